@@ -1,0 +1,436 @@
+"""Scaled orthographic cameras and rotation utilities.
+
+Conventions (see ``docs/conventions.md``):
+
+* Image coordinates: x right, y down, pixel centres at integer coordinates.
+* A camera maps object-frame points ``X (..., 3)`` to pixels
+  ``uv = s * X @ R[:2].T + t`` and to depth ``z = s * X @ R[2]`` (pixels).
+* ``R`` is a proper rotation whose rows are the image x axis, the image y axis
+  (down) and the viewing direction (into the scene), written in the object frame:
+  the OpenCV / COLMAP camera frame.
+* Quaternions are ``(w, x, y, z)`` (kornia's order).
+* Azimuth / elevation / roll follow PASCAL3D+ for objects with +z up and their
+  front towards -y: azimuth 0, elevation 0 is the frontal view, elevation > 0
+  looks down on the object. See :func:`rotation_from_azimuth_elevation_roll`.
+
+All functions broadcast over leading batch dimensions and work on any device.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from kornia.geometry import conversions as kconv
+
+__all__ = [
+    "ScaledOrthographic",
+    "Similarity2D",
+    "nearest_scaled_rotation",
+    "complete_rotation",
+    "rotation_to_quaternion",
+    "quaternion_to_rotation",
+    "axis_angle_to_rotation",
+    "rotation_to_axis_angle",
+    "rotation_from_azimuth_elevation_roll",
+    "azimuth_elevation_roll_from_rotation",
+    "geodesic_angle",
+    "rotation_about_axis",
+    "random_rotations",
+    "FLIP_X",
+]
+
+#: Left-right image flip of the camera frame, ``diag(-1, 1, 1)``.
+FLIP_X = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
+
+
+# --------------------------------------------------------------------------- rotations
+
+
+def complete_rotation(rows: torch.Tensor) -> torch.Tensor:
+    """Complete two orthonormal rows into a proper rotation.
+
+    Args:
+        rows: ``(..., 2, 3)`` with orthonormal rows.
+
+    Returns:
+        ``(..., 3, 3)`` rotation whose third row is ``rows[..., 0, :] x rows[..., 1, :]``.
+
+    Example:
+        >>> complete_rotation(torch.eye(3)[:2])
+        tensor([[1., 0., 0.],
+                [0., 1., 0.],
+                [0., 0., 1.]])
+    """
+    third = torch.linalg.cross(rows[..., 0, :], rows[..., 1, :], dim=-1)
+    return torch.cat([rows, third.unsqueeze(-2)], dim=-2)
+
+
+def nearest_scaled_rotation(M: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Project 2x3 blocks onto the nearest scaled Stiefel matrix ``c * U V^T``.
+
+    ``M = U diag(sigma) V^T`` (thin SVD); the nearest matrix with orthogonal rows
+    of equal norm is ``c U V^T`` with ``c`` the mean of the two singular values.
+
+    Args:
+        M: ``(..., 2, 3)`` affine camera blocks.
+
+    Returns:
+        ``R (..., 3, 3)`` proper rotation (third row the cross product of the first
+        two) and ``s (...)`` the scale ``c``, so that ``s * R[..., :2, :]`` is the
+        projection of ``M``.
+
+    Example:
+        >>> R, s = nearest_scaled_rotation(2.0 * torch.eye(3)[:2])
+        >>> float(s)
+        2.0
+    """
+    U, S, Vh = torch.linalg.svd(M, full_matrices=False)  # U (..,2,2) S (..,2) Vh (..,2,3)
+    rows = U @ Vh
+    return complete_rotation(rows), S.mean(dim=-1)
+
+
+def rotation_to_quaternion(R: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices ``(..., 3, 3)`` to unit quaternions ``(..., 4)`` in ``(w, x, y, z)``.
+
+    The sign is chosen with ``w >= 0``. Computed by kornia.
+
+    Example:
+        >>> rotation_to_quaternion(torch.eye(3))
+        tensor([1., 0., 0., 0.])
+    """
+    q = kconv.rotation_matrix_to_quaternion(R.contiguous())
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def quaternion_to_rotation(q: torch.Tensor) -> torch.Tensor:
+    """Quaternions ``(..., 4)`` in ``(w, x, y, z)`` (normalised here) to rotations ``(..., 3, 3)``.
+
+    Example:
+        >>> quaternion_to_rotation(torch.tensor([1.0, 0, 0, 0]))
+        tensor([[1., 0., 0.],
+                [0., 1., 0.],
+                [0., 0., 1.]])
+    """
+    q = q / q.norm(dim=-1, keepdim=True)
+    return kconv.quaternion_to_rotation_matrix(q)
+
+
+def axis_angle_to_rotation(v: torch.Tensor) -> torch.Tensor:
+    """Axis-angle vectors ``(..., 3)`` (angle = norm, radians) to rotations ``(..., 3, 3)``.
+
+    Differentiable at zero (kornia >= 0.9).
+
+    Example:
+        >>> axis_angle_to_rotation(torch.zeros(3))
+        tensor([[1., 0., 0.],
+                [0., 1., 0.],
+                [0., 0., 1.]])
+    """
+    shape = v.shape[:-1]
+    return kconv.axis_angle_to_rotation_matrix(v.reshape(-1, 3)).reshape(*shape, 3, 3)
+
+
+def rotation_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
+    """Rotations ``(..., 3, 3)`` to axis-angle vectors ``(..., 3)`` (through the quaternion)."""
+    return kconv.quaternion_to_axis_angle(rotation_to_quaternion(R))
+
+
+def rotation_about_axis(axis: torch.Tensor, angle: torch.Tensor | float) -> torch.Tensor:
+    """Right-handed rotation by ``angle`` (radians) about unit ``axis``.
+
+    Args:
+        axis: ``(..., 3)``; normalised here.
+        angle: ``(...)`` or a float.
+
+    Returns:
+        ``(..., 3, 3)``.
+    """
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    angle = torch.as_tensor(angle, dtype=axis.dtype, device=axis.device)
+    return axis_angle_to_rotation(axis * angle.unsqueeze(-1))
+
+
+def geodesic_angle(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
+    """Angle (radians, in ``[0, pi]``) of the relative rotation ``R1 R2^T``.
+
+    Uses ``atan2(||skew||, trace - 1)``, accurate near 0 and near pi.
+
+    Args:
+        R1, R2: ``(..., 3, 3)`` broadcastable.
+
+    Returns:
+        ``(...)`` angles.
+
+    Example:
+        >>> float(geodesic_angle(torch.eye(3), torch.eye(3)))
+        0.0
+    """
+    D = R1 @ R2.transpose(-1, -2)
+    tr = D[..., 0, 0] + D[..., 1, 1] + D[..., 2, 2]
+    skew = torch.stack(
+        [D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], dim=-1
+    )
+    return torch.atan2(skew.norm(dim=-1), tr - 1.0)
+
+
+def _rz(a: torch.Tensor) -> torch.Tensor:
+    c, s = torch.cos(a), torch.sin(a)
+    o, z = torch.ones_like(a), torch.zeros_like(a)
+    return torch.stack([c, -s, z, s, c, z, z, z, o], dim=-1).reshape(*a.shape, 3, 3)
+
+
+def _rx(a: torch.Tensor) -> torch.Tensor:
+    c, s = torch.cos(a), torch.sin(a)
+    o, z = torch.ones_like(a), torch.zeros_like(a)
+    return torch.stack([o, z, z, z, c, -s, z, s, c], dim=-1).reshape(*a.shape, 3, 3)
+
+
+def rotation_from_azimuth_elevation_roll(
+    azimuth: torch.Tensor, elevation: torch.Tensor, roll: torch.Tensor
+) -> torch.Tensor:
+    """Camera rotation from viewpoint angles (radians), PASCAL3D+ convention.
+
+    ``R = diag(1, -1, -1) @ Rz(roll) @ Rx(elevation - pi/2) @ Rz(-azimuth)`` with
+    right-handed (active) ``Rz``, ``Rx``. For an object with +z up and its front
+    towards -y, azimuth 0 / elevation 0 / roll 0 looks at its front, with the object's
+    up pointing up in the image; azimuth turns the camera about the object's up
+    axis, elevation > 0 raises it, roll turns the image in its plane. This equals
+    PASCAL3D+'s ``R = diag(1,-1,-1) @ rot.T`` for its ``euler = [roll, elevation, azimuth]``.
+
+    Args:
+        azimuth, elevation, roll: ``(...)`` broadcastable tensors.
+
+    Returns:
+        ``(..., 3, 3)`` rotations.
+
+    Example:
+        >>> z = torch.tensor(0.0)
+        >>> rotation_from_azimuth_elevation_roll(z, z, z)[2]   # looks along +y
+        tensor([0., 1., 0.])
+    """
+    azimuth, elevation, roll = torch.broadcast_tensors(
+        torch.as_tensor(azimuth), torch.as_tensor(elevation), torch.as_tensor(roll)
+    )
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=azimuth.dtype, device=azimuth.device))
+    return flip @ _rz(roll) @ _rx(elevation - math.pi / 2) @ _rz(-azimuth)
+
+
+def azimuth_elevation_roll_from_rotation(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Inverse of :func:`rotation_from_azimuth_elevation_roll`.
+
+    Args:
+        R: ``(..., 3, 3)`` rotations.
+
+    Returns:
+        ``azimuth`` in ``(-pi, pi]``, ``elevation`` in ``[-pi/2, pi/2]``, ``roll`` in
+        ``(-pi, pi]``, each ``(...)``. At elevation +-90 degrees azimuth and roll are
+        not separable; roll is then reported as 0.
+    """
+    flip = torch.tensor([1.0, -1.0, -1.0], dtype=R.dtype, device=R.device)
+    M = flip[:, None] * R  # Rz(roll) Rx(phi) Rz(psi), phi = elev - pi/2 in [-pi, 0]
+    sin_phi = -torch.sqrt(M[..., 2, 0] ** 2 + M[..., 2, 1] ** 2)
+    phi = torch.atan2(sin_phi, M[..., 2, 2])
+    degenerate = sin_phi.abs() < 1e-9
+    psi = torch.atan2(-M[..., 2, 0], -M[..., 2, 1])
+    roll = torch.atan2(-M[..., 0, 2], M[..., 1, 2])
+    # Gimbal lock: M = Rz(roll + psi) (up to Rx(0 or -pi)); put everything in psi.
+    psi_deg = torch.atan2(M[..., 1, 0], M[..., 0, 0]) * torch.where(M[..., 2, 2] > 0, 1.0, -1.0)
+    psi = torch.where(degenerate, psi_deg, psi)
+    roll = torch.where(degenerate, torch.zeros_like(roll), roll)
+    azimuth = torch.remainder(-psi + math.pi, 2 * math.pi) - math.pi
+    return azimuth, phi + math.pi / 2, roll
+
+
+def random_rotations(n: int, generator: torch.Generator | None = None, dtype=torch.float32, device="cpu") -> torch.Tensor:
+    """``n`` rotations drawn uniformly (Haar) from random unit quaternions. Returns ``(n, 3, 3)``."""
+    q = torch.randn(n, 4, generator=generator, dtype=torch.float64)
+    return quaternion_to_rotation(q).to(dtype=dtype, device=device)
+
+
+# --------------------------------------------------------------------------- similarities
+
+
+@dataclass
+class Similarity2D:
+    """Batch of 2-D similarities ``p' = scale * p + offset`` (no rotation).
+
+    Used for the image -> canvas map of every instance: canvas pixels =
+    ``scale * image pixels + offset``.
+
+    Attributes:
+        scale: ``(N,)`` positive.
+        offset: ``(N, 2)``.
+    """
+
+    scale: torch.Tensor
+    offset: torch.Tensor
+
+    def apply(self, p: torch.Tensor) -> torch.Tensor:
+        """Map points ``p (N, P, 2)`` (or ``(N, 2)``)."""
+        if p.dim() == 2:
+            return self.scale[:, None] * p + self.offset
+        return self.scale[:, None, None] * p + self.offset[:, None, :]
+
+    def inverse(self) -> "Similarity2D":
+        return Similarity2D(1.0 / self.scale, -self.offset / self.scale[:, None])
+
+    def __getitem__(self, idx) -> "Similarity2D":
+        return Similarity2D(self.scale[idx], self.offset[idx])
+
+    def to(self, *args, **kwargs) -> "Similarity2D":
+        return Similarity2D(self.scale.to(*args, **kwargs), self.offset.to(*args, **kwargs))
+
+
+# --------------------------------------------------------------------------- cameras
+
+
+@dataclass
+class ScaledOrthographic:
+    """A batch of N scaled orthographic cameras.
+
+    ``uv = s * X @ R[:2].T + t`` and ``depth = s * X @ R[2]``, in pixels.
+
+    Attributes:
+        R: ``(N, 3, 3)`` proper rotations; rows = image x, image y (down), viewing
+            direction, in the object frame.
+        s: ``(N,)`` positive scales (pixels per object unit).
+        t: ``(N, 2)`` image position of the object-frame origin.
+
+    Example:
+        >>> cam = ScaledOrthographic(torch.eye(3)[None], torch.tensor([2.0]), torch.tensor([[10.0, 5.0]]))
+        >>> cam.project(torch.tensor([[1.0, 1.0, 3.0]]))
+        tensor([[[12.,  7.]]])
+    """
+
+    R: torch.Tensor
+    s: torch.Tensor
+    t: torch.Tensor
+
+    def __post_init__(self):
+        if self.R.dim() != 3 or self.R.shape[-2:] != (3, 3):
+            raise ValueError(f"R must be (N, 3, 3), got {tuple(self.R.shape)}")
+        n = self.R.shape[0]
+        if self.s.shape != (n,) or self.t.shape != (n, 2):
+            raise ValueError(f"expected s ({n},) and t ({n}, 2); got {tuple(self.s.shape)} and {tuple(self.t.shape)}")
+
+    # -- basics
+    def __len__(self) -> int:
+        return self.R.shape[0]
+
+    def __getitem__(self, idx) -> "ScaledOrthographic":
+        if isinstance(idx, int):
+            idx = slice(idx, idx + 1) if idx != -1 else slice(-1, None)
+        return ScaledOrthographic(self.R[idx], self.s[idx], self.t[idx])
+
+    def to(self, *args, **kwargs) -> "ScaledOrthographic":
+        return ScaledOrthographic(self.R.to(*args, **kwargs), self.s.to(*args, **kwargs), self.t.to(*args, **kwargs))
+
+    @property
+    def device(self) -> torch.device:
+        return self.R.device
+
+    @staticmethod
+    def cat(cams: Sequence["ScaledOrthographic"]) -> "ScaledOrthographic":
+        return ScaledOrthographic(
+            torch.cat([c.R for c in cams]), torch.cat([c.s for c in cams]), torch.cat([c.t for c in cams])
+        )
+
+    @property
+    def M(self) -> torch.Tensor:
+        """``(N, 2, 3)`` affine block ``s * R[:2]``."""
+        return self.s[:, None, None] * self.R[:, :2, :]
+
+    @property
+    def view_direction(self) -> torch.Tensor:
+        """``(N, 3)`` viewing direction (into the scene) in the object frame: ``R[2]``."""
+        return self.R[:, 2, :]
+
+    @classmethod
+    def from_affine(cls, M: torch.Tensor, t: torch.Tensor) -> "ScaledOrthographic":
+        """Nearest scaled orthographic camera to affine cameras ``M (N, 2, 3)``, ``t (N, 2)``."""
+        R, s = nearest_scaled_rotation(M)
+        return cls(R, s, t)
+
+    # -- projection
+    def project(self, X: torch.Tensor) -> torch.Tensor:
+        """Project object-frame points.
+
+        Args:
+            X: ``(P, 3)`` shared by all cameras, or ``(N, P, 3)`` one set per camera.
+
+        Returns:
+            ``(N, P, 2)`` pixels.
+        """
+        if X.dim() == 2:
+            X = X.unsqueeze(0)
+        return self.s[:, None, None] * (X @ self.R[:, :2, :].transpose(-1, -2)) + self.t[:, None, :]
+
+    def depth(self, X: torch.Tensor) -> torch.Tensor:
+        """Depth (pixels, along the viewing direction) of ``X (P, 3)`` or ``(N, P, 3)``; returns ``(N, P)``."""
+        if X.dim() == 2:
+            X = X.unsqueeze(0)
+        return self.s[:, None] * (X @ self.R[:, 2, :, None]).squeeze(-1)
+
+    def to_camera_frame(self, X: torch.Tensor) -> torch.Tensor:
+        """Object-frame points ``(P,3)`` / ``(N,P,3)`` to ``(u, v, depth)`` ``(N, P, 3)``."""
+        return torch.cat([self.project(X), self.depth(X).unsqueeze(-1)], dim=-1)
+
+    def from_camera_frame(self, p: torch.Tensor) -> torch.Tensor:
+        """Inverse of :meth:`to_camera_frame`: ``(N, P, 3)`` camera-frame points to object frame."""
+        q = p.clone()
+        q[..., :2] = q[..., :2] - self.t[:, None, :]
+        return (q / self.s[:, None, None]) @ self.R
+
+    # -- composition
+    def compose_similarity(self, sim: Similarity2D) -> "ScaledOrthographic":
+        """The camera followed by a 2-D similarity ``p' = a p + b`` (e.g. image -> canvas).
+
+        Returns the camera with ``s' = a s`` and ``t' = a t + b``: projecting with it
+        equals projecting with ``self`` and then applying ``sim``.
+        """
+        return ScaledOrthographic(self.R, sim.scale * self.s, sim.apply(self.t))
+
+    def mirror(self, width: torch.Tensor | float, reflection: torch.Tensor | None = None) -> "ScaledOrthographic":
+        """Camera of the left-right flipped image (``x' = width - 1 - x``).
+
+        A flipped photograph of an object is a photograph of its mirror image.
+        With ``reflection`` = the object's symmetry plane ``P (3, 3)`` (an improper
+        orthogonal matrix, e.g. ``diag(-1, 1, 1)``), the returned camera sees the
+        object itself: ``R' = diag(-1,1,1) R P`` (proper), and a point ``X`` of the
+        object projects where its mirror ``P X`` appeared, flipped. Without
+        ``reflection`` the object frame's x axis is used as the symmetry plane normal.
+
+        Args:
+            width: image width(s), float or ``(N,)``.
+            reflection: ``(3, 3)`` or ``(N, 3, 3)``.
+
+        Mirroring twice with the same width and reflection gives back the camera.
+        """
+        if reflection is None:
+            reflection = FLIP_X.to(self.R)
+        flip = FLIP_X.to(self.R)
+        width = torch.as_tensor(width, dtype=self.t.dtype, device=self.t.device)
+        R = flip @ self.R @ reflection
+        t = self.t.clone()
+        t[:, 0] = width - 1 - self.t[:, 0]
+        return ScaledOrthographic(R, self.s.clone(), t)
+
+    # -- serialisation
+    def to_list(self) -> list[dict]:
+        """One ``{"R": 3x3, "s": float, "t": [x, y]}`` dict per camera (float64 lists)."""
+        R = self.R.detach().double().cpu().tolist()
+        s = self.s.detach().double().cpu().tolist()
+        t = self.t.detach().double().cpu().tolist()
+        return [{"R": R[i], "s": s[i], "t": t[i]} for i in range(len(self))]
+
+    @classmethod
+    def from_list(cls, items: Sequence[dict], dtype=torch.float32, device="cpu") -> "ScaledOrthographic":
+        if len(items) == 0:
+            return cls(torch.zeros(0, 3, 3, dtype=dtype, device=device), torch.zeros(0, dtype=dtype, device=device),
+                       torch.zeros(0, 2, dtype=dtype, device=device))
+        R = torch.tensor([it["R"] for it in items], dtype=dtype, device=device)
+        s = torch.tensor([float(it["s"]) for it in items], dtype=dtype, device=device)
+        t = torch.tensor([it["t"] for it in items], dtype=dtype, device=device)
+        return cls(R, s, t)

@@ -1,0 +1,117 @@
+"""Atomic file writes and resumable output directories.
+
+Every file the package writes goes through these helpers: the content is written
+to a temporary file in the same directory and moved into place with
+``os.replace``, so a reader (or a rerun after a crash) sees either the old file
+or the complete new one, never a partial file.
+"""
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+__all__ = ["atomic_write", "write_json", "read_json", "write_npz", "write_bytes", "to_jsonable", "is_done"]
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[io.BufferedWriter], None]) -> Path:
+    """Call ``write(fileobj)`` on a temporary file, then move it to ``path`` atomically.
+
+    Parent directories are created. Returns ``Path(path)``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically."""
+    return atomic_write(path, lambda f: f.write(data))
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Convert tensors, numpy arrays and scalars, paths and tuples to JSON types.
+
+    Non-finite floats become ``None`` (JSON has no NaN).
+    """
+    try:
+        import torch
+
+        if isinstance(obj, torch.Tensor):
+            obj = obj.detach().cpu().numpy()
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1) -> Path:
+    """Write ``obj`` (converted with :func:`to_jsonable`) as JSON, atomically."""
+    text = json.dumps(to_jsonable(obj), indent=indent)
+    return write_bytes(path, text.encode("utf-8"))
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """Read JSON; a malformed file raises ``ValueError`` naming the file, line and column."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: no such file") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: malformed JSON at line {e.lineno}, column {e.colno} (char {e.pos}): {e.msg}") from None
+
+
+def write_npz(path: str | os.PathLike, **arrays: Any) -> Path:
+    """Write a compressed ``.npz`` atomically (tensors are converted to numpy)."""
+    conv = {}
+    for k, v in arrays.items():
+        try:
+            import torch
+
+            if isinstance(v, torch.Tensor):
+                v = v.detach().cpu().numpy()
+        except ImportError:  # pragma: no cover
+            pass
+        conv[k] = np.asarray(v)
+    return atomic_write(path, lambda f: np.savez_compressed(f, **conv))
+
+
+def is_done(*paths: str | os.PathLike) -> bool:
+    """True when every path exists and is non-empty (a finished, atomically written output)."""
+    return all(Path(p).is_file() and Path(p).stat().st_size > 0 for p in paths)
