@@ -1,0 +1,364 @@
+"""Class collections: all instances of one object class as canvas tensors.
+
+Images differ in size, so each instance's mask and keypoints are cropped around
+the object and scaled into one square canvas of ``canvas_size`` pixels: a uniform
+scale ``a`` and offset ``b`` per instance, ``canvas = a * image + b`` (recorded in
+``canvas_from_image``). Every stage works in canvas pixels; a camera estimated in
+canvas pixels maps back to image pixels exactly with
+``cam.compose_similarity(canvas_from_image.inverse())``.
+
+Mirroring adds the left-right flipped copy of an instance: canvas ``x' = C - 1 - x``,
+keypoints swapped along the class's flip pairs (a left keypoint of the flipped
+image is the right keypoint of the original). The mirrored copy is the flipped
+*image*: its image x is ``w - 1 - x`` (``w`` the image width), so its canvas
+similarity has the same scale and offset ``b_x' = C - 1 - a (w - 1) - b_x``.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field, replace
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+
+from .cameras import Similarity2D
+
+__all__ = ["ClassMeta", "ClassCollection", "infer_flip_pairs", "flip_permutation", "canvas_similarity",
+           "resample_to_canvas"]
+
+
+# --------------------------------------------------------------------------- left/right names
+
+_SIDES = (("left", "right"), ("l", "r"))
+
+
+def _side_variants(name: str) -> list[str]:
+    """Names obtained by swapping one left/right marker of ``name`` (case preserved)."""
+    out = []
+    # split into word parts on '_', '-', ' ' and camelCase-free tokens, keep separators
+    parts = re.split(r"([_\-\s])", name)
+    for i, p in enumerate(parts):
+        low = p.lower()
+        for a, b in _SIDES:
+            for x, y in ((a, b), (b, a)):
+                if low == x:
+                    swapped = y.upper() if p.isupper() else (y.capitalize() if p[:1].isupper() else y)
+                    out.append("".join(parts[:i] + [swapped] + parts[i + 1:]))
+                elif len(x) > 1 and low.startswith(x) and len(low) > len(x):
+                    # e.g. "leftcorner_windshield" <-> "rightcorner_windshield"
+                    rest = p[len(x):]
+                    head = p[: len(x)]
+                    swapped = y.upper() if head.isupper() else (y.capitalize() if head[:1].isupper() else y)
+                    out.append("".join(parts[:i] + [swapped + rest] + parts[i + 1:]))
+    return out
+
+
+def infer_flip_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
+    """Left/right keypoint pairs from their names.
+
+    Recognises ``left``/``right`` and ``l``/``r`` as word parts separated by ``_``,
+    ``-`` or spaces, in any position and case (``L_WingTip``/``R_WingTip``,
+    ``Left_Wing_Base``/``Right_Wing_Base``, ``body_back_left_lower``/...,
+    ``wheel_l``/``wheel_r``) and as a word prefix (``leftcorner_x``/``rightcorner_x``).
+    A name pairs only with a name that exists; each index appears at most once.
+
+    Args:
+        names: keypoint names of a class.
+
+    Returns:
+        Sorted list of ``(i, j)`` with ``i < j``.
+
+    Example:
+        >>> infer_flip_pairs(["L_WingTip", "NoseTip", "R_WingTip"])
+        [(0, 2)]
+    """
+    index = {n: i for i, n in enumerate(names)}
+    pairs: set[tuple[int, int]] = set()
+    used: set[int] = set()
+    for i, n in enumerate(names):
+        if i in used:
+            continue
+        for v in _side_variants(n):
+            j = index.get(v)
+            if j is not None and j != i and j not in used:
+                pairs.add((min(i, j), max(i, j)))
+                used.update((i, j))
+                break
+    return sorted(pairs)
+
+
+def flip_permutation(num_keypoints: int, flip_pairs: Sequence[Sequence[int]], device=None) -> torch.Tensor:
+    """``(K,)`` long permutation swapping each flip pair (an involution).
+
+    Example:
+        >>> flip_permutation(4, [(0, 2)])
+        tensor([2, 1, 0, 3])
+    """
+    perm = torch.arange(num_keypoints, device=device)
+    for i, j in flip_pairs:
+        perm[i], perm[j] = int(j), int(i)
+    return perm
+
+
+# --------------------------------------------------------------------------- canvas
+
+
+def canvas_similarity(boxes: torch.Tensor, canvas_size: int, margin: float) -> Similarity2D:
+    """Per-instance image -> canvas similarity centring each box in the canvas.
+
+    Args:
+        boxes: ``(N, 4)`` float ``(x0, y0, x1, y1)`` in image pixel coordinates (pixel centres,
+            inclusive), e.g. the extreme foreground pixel centres.
+        canvas_size: canvas side ``C``.
+        margin: fraction of the canvas left free on each side.
+
+    Returns:
+        ``Similarity2D`` with ``scale (N,)`` and ``offset (N, 2)``: the box's longer side (plus one
+        pixel) spans ``C (1 - 2 margin)`` canvas pixels and its centre maps to ``((C-1)/2, (C-1)/2)``.
+    """
+    side = torch.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]) + 1.0
+    scale = canvas_size * (1.0 - 2.0 * margin) / side.clamp(min=1.0)
+    centre = torch.stack([(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2], dim=-1)
+    offset = (canvas_size - 1) / 2.0 - scale[:, None] * centre
+    return Similarity2D(scale, offset)
+
+
+def resample_to_canvas(mask: torch.Tensor, scale: float, offset: torch.Tensor, canvas_size: int,
+                       supersample: int | None = None) -> torch.Tensor:
+    """Resample one image-size mask into the canvas.
+
+    Each canvas pixel is the average of ``supersample x supersample`` bilinear samples of the image mask
+    at sub-pixel positions (``x_img = (x_canvas - b_x) / a``), thresholded at 0.5 — an area average
+    when the canvas is coarser than the image.
+
+    Args:
+        mask: ``(h, w)`` bool image mask.
+        scale: ``a``; offset: ``(2,)`` ``b``.
+        canvas_size: ``C``.
+        supersample: sub-samples per axis; default ``ceil(1 / a)`` clamped to [1, 4].
+
+    Returns:
+        ``(C, C)`` bool.
+    """
+    h, w = mask.shape
+    dev = mask.device
+    if supersample is None:
+        supersample = int(min(4, max(1, round(1.0 / max(scale, 1e-6)))))
+    k = supersample
+    sub = (torch.arange(k, device=dev, dtype=torch.float32) + 0.5) / k - 0.5  # sub-pixel offsets
+    c = torch.arange(canvas_size, device=dev, dtype=torch.float32)
+    xs = (c[:, None] + sub[None, :]).reshape(-1)  # (C*k,)
+    ximg = (xs - float(offset[0])) / scale
+    yimg = (xs - float(offset[1])) / scale
+    gx = 2.0 * ximg / max(w - 1, 1) - 1.0
+    gy = 2.0 * yimg / max(h - 1, 1) - 1.0
+    grid = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], dim=-1)[None]  # (1, Ck, Ck, 2) (x, y)
+    samples = F.grid_sample(mask[None, None].float(), grid, mode="bilinear", padding_mode="zeros",
+                            align_corners=True)[0, 0]
+    avg = samples.reshape(canvas_size, k, canvas_size, k).mean(dim=(1, 3))
+    return avg >= 0.5
+
+
+# --------------------------------------------------------------------------- the container
+
+
+@dataclass
+class ClassMeta:
+    """Per-class metadata (from the COCO category and its carvi extras).
+
+    Attributes:
+        name: class name.
+        keypoint_names: ``K`` names.
+        flip_pairs: left/right index pairs (inferred from names when the category gives none).
+        rigid_keypoints: indices used by SfM only (``None``: all).
+        symmetry: ``"none"`` or ``"rotational"``.
+        articulated: articulated classes skip mirrored silhouettes in carving.
+        category_id: the COCO category id.
+    """
+
+    name: str
+    keypoint_names: list
+    flip_pairs: list = field(default_factory=list)
+    rigid_keypoints: list | None = None
+    symmetry: str = "none"
+    articulated: bool = False
+    category_id: int = 0
+
+    @property
+    def num_keypoints(self) -> int:
+        return len(self.keypoint_names)
+
+
+@dataclass
+class ClassCollection:
+    """All instances of one class, as canvas tensors on one device.
+
+    Attributes:
+        meta: :class:`ClassMeta`.
+        masks: ``(N, C, C)`` bool canvas masks.
+        keypoints: ``(N, K, 2)`` float canvas keypoints ``(x, y)`` (undefined where not visible).
+        visible: ``(N, K)`` bool.
+        canvas_from_image: :class:`Similarity2D` of ``N`` image -> canvas maps.
+        image_size: ``(N, 2)`` long ``(width, height)`` of the source images.
+        annotation_ids, image_ids, object_ids: ``(N,)`` long.
+        is_mirror: ``(N,)`` bool, True for flipped copies.
+        sources: ``N`` strings (where each annotation came from).
+        splits: ``N`` strings (``"pool"``, ``"test"`` or ``""``).
+    """
+
+    meta: ClassMeta
+    masks: torch.Tensor
+    keypoints: torch.Tensor
+    visible: torch.Tensor
+    canvas_from_image: Similarity2D
+    image_size: torch.Tensor
+    annotation_ids: torch.Tensor
+    image_ids: torch.Tensor
+    object_ids: torch.Tensor
+    is_mirror: torch.Tensor
+    sources: list = field(default_factory=list)
+    splits: list = field(default_factory=list)
+
+    def __post_init__(self):
+        n = self.masks.shape[0]
+        k = self.meta.num_keypoints
+        if self.masks.dim() != 3 or self.masks.shape[1] != self.masks.shape[2]:
+            raise ValueError(f"masks must be (N, C, C), got {tuple(self.masks.shape)}")
+        if self.keypoints.shape != (n, k, 2) or self.visible.shape != (n, k):
+            raise ValueError(f"keypoints must be ({n}, {k}, 2) and visible ({n}, {k}); got "
+                             f"{tuple(self.keypoints.shape)} and {tuple(self.visible.shape)}")
+        if not self.sources:
+            self.sources = [""] * n
+        if not self.splits:
+            self.splits = [""] * n
+
+    # ---- basics
+    def __len__(self) -> int:
+        return self.masks.shape[0]
+
+    @property
+    def canvas_size(self) -> int:
+        return self.masks.shape[-1]
+
+    @property
+    def device(self) -> torch.device:
+        return self.masks.device
+
+    @property
+    def name(self) -> str:
+        return self.meta.name
+
+    def _index_list(self, idx) -> list[int]:
+        return torch.arange(len(self))[idx].reshape(-1).tolist()
+
+    def __getitem__(self, idx) -> "ClassCollection":
+        """Subset by a slice, a list/tensor of indices or a bool mask (always a collection)."""
+        if isinstance(idx, int):
+            idx = [idx]
+        if isinstance(idx, torch.Tensor):
+            idx = idx.to("cpu")
+        rows = self._index_list(idx)
+        ix = torch.tensor(rows, dtype=torch.long, device=self.device)
+        return ClassCollection(
+            meta=self.meta,
+            masks=self.masks[ix],
+            keypoints=self.keypoints[ix],
+            visible=self.visible[ix],
+            canvas_from_image=self.canvas_from_image[ix],
+            image_size=self.image_size[ix],
+            annotation_ids=self.annotation_ids[ix],
+            image_ids=self.image_ids[ix],
+            object_ids=self.object_ids[ix],
+            is_mirror=self.is_mirror[ix],
+            sources=[self.sources[i] for i in rows],
+            splits=[self.splits[i] for i in rows],
+        )
+
+    def to(self, device) -> "ClassCollection":
+        """Move every tensor to ``device``."""
+        return ClassCollection(
+            meta=self.meta,
+            masks=self.masks.to(device),
+            keypoints=self.keypoints.to(device),
+            visible=self.visible.to(device),
+            canvas_from_image=self.canvas_from_image.to(device),
+            image_size=self.image_size.to(device),
+            annotation_ids=self.annotation_ids.to(device),
+            image_ids=self.image_ids.to(device),
+            object_ids=self.object_ids.to(device),
+            is_mirror=self.is_mirror.to(device),
+            sources=list(self.sources),
+            splits=list(self.splits),
+        )
+
+    @staticmethod
+    def cat(parts: Sequence["ClassCollection"]) -> "ClassCollection":
+        """Concatenate collections of the same class."""
+        first = parts[0]
+        return ClassCollection(
+            meta=first.meta,
+            masks=torch.cat([p.masks for p in parts]),
+            keypoints=torch.cat([p.keypoints for p in parts]),
+            visible=torch.cat([p.visible for p in parts]),
+            canvas_from_image=Similarity2D(torch.cat([p.canvas_from_image.scale for p in parts]),
+                                           torch.cat([p.canvas_from_image.offset for p in parts])),
+            image_size=torch.cat([p.image_size for p in parts]),
+            annotation_ids=torch.cat([p.annotation_ids for p in parts]),
+            image_ids=torch.cat([p.image_ids for p in parts]),
+            object_ids=torch.cat([p.object_ids for p in parts]),
+            is_mirror=torch.cat([p.is_mirror for p in parts]),
+            sources=[s for p in parts for s in p.sources],
+            splits=[s for p in parts for s in p.splits],
+        )
+
+    # ---- mirroring
+    @property
+    def flip_perm(self) -> torch.Tensor:
+        """``(K,)`` permutation swapping left/right keypoints."""
+        return flip_permutation(self.meta.num_keypoints, self.meta.flip_pairs, device=self.device)
+
+    def mirror(self) -> "ClassCollection":
+        """Left-right flipped copies of every instance (``is_mirror`` toggled).
+
+        Masks are flipped along x, keypoints mapped by ``x' = C - 1 - x`` and relabelled along the flip
+        pairs, and the canvas similarity describes the flipped image. Mirroring twice is the identity.
+        """
+        C = self.canvas_size
+        perm = self.flip_perm
+        kp = self.keypoints[:, perm].clone()
+        kp[..., 0] = (C - 1) - kp[..., 0]
+        sim = self.canvas_from_image
+        off = sim.offset.clone()
+        w = self.image_size[:, 0].to(off.dtype)
+        off[:, 0] = (C - 1) - sim.scale * (w - 1) - sim.offset[:, 0]
+        return ClassCollection(
+            meta=self.meta,
+            masks=self.masks.flip(-1),
+            keypoints=kp,
+            visible=self.visible[:, perm],
+            canvas_from_image=Similarity2D(sim.scale.clone(), off),
+            image_size=self.image_size.clone(),
+            annotation_ids=self.annotation_ids.clone(),
+            image_ids=self.image_ids.clone(),
+            object_ids=self.object_ids.clone(),
+            is_mirror=~self.is_mirror,
+            sources=list(self.sources),
+            splits=list(self.splits),
+        )
+
+    def with_mirrors(self) -> "ClassCollection":
+        """The originals followed by their mirrored copies (``2N`` instances; copy ``i + N`` mirrors ``i``)."""
+        return ClassCollection.cat([self, self.mirror()])
+
+    # ---- conversions
+    def keypoints_in_image(self) -> torch.Tensor:
+        """``(N, K, 2)`` keypoints mapped back to image pixels (of the flipped image for mirrors)."""
+        return self.canvas_from_image.inverse().apply(self.keypoints)
+
+    def num_visible(self) -> torch.Tensor:
+        """``(N,)`` number of visible keypoints."""
+        return self.visible.sum(dim=1)
+
+    def replace(self, **changes) -> "ClassCollection":
+        return replace(self, **changes)

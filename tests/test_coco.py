@@ -1,0 +1,158 @@
+"""io/coco.py: COCO keypoint JSON in and out, validation per object."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from pycocotools.coco import COCO
+
+from carvi_torch.io.coco import (CocoFormatError, decode_segmentation, encode_mask, load_coco, make_annotation,
+                                 make_category, write_coco)
+
+NAMES = ["left_wing", "right_wing", "nose", "tail"]
+
+
+def _ellipse(h, w, cx, cy, rx, ry):
+    yy, xx = np.mgrid[:h, :w]
+    return ((xx - cx) / rx) ** 2 + ((yy - cy) / ry) ** 2 <= 1
+
+
+def _dataset(tmp_path, extra_anns=(), n=4):
+    images, anns = [], []
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        w, h = 160 + 10 * i, 120
+        images.append({"id": i + 1, "file_name": f"im{i}.jpg", "width": w, "height": h})
+        m = _ellipse(h, w, 70 + i, 60, 40, 20)
+        kp = np.array([[40.0, 60], [100, 60], [70 + i, 45], [70, 75]]) + rng.normal(0, 1, (4, 2))
+        vis = np.array([True, True, True, i % 2 == 0])
+        anns.append(make_annotation(i + 1, i + 1, 1, m, kp, vis, object_id=100 + i, source=f"im{i}.xml"))
+    anns += list(extra_anns)
+    cats = [make_category(1, "plane", NAMES)]
+    path = tmp_path / "ann.json"
+    write_coco(path, images, anns, cats)
+    return path, images, anns
+
+
+class TestEncodeDecode:
+    def test_round_trip_pycocotools(self, tmp_path):
+        path, images, anns = _dataset(tmp_path)
+        coco = COCO(str(path))
+        for a in anns:
+            im = images[a["image_id"] - 1]
+            m = _ellipse(im["height"], im["width"], 70 + a["image_id"] - 1, 60, 40, 20)
+            assert np.array_equal(coco.annToMask(coco.anns[a["id"]]).astype(bool), m)
+            assert np.array_equal(decode_segmentation(a["segmentation"], im["height"], im["width"]), m)
+
+    def test_polygon(self):
+        poly = [[2.0, 2.0, 12.0, 2.0, 12.0, 8.0, 2.0, 8.0]]
+        m = decode_segmentation(poly, 10, 15)
+        assert m.shape == (10, 15) and 50 <= m.sum() <= 80
+
+    def test_uncompressed_rle(self):
+        m = np.zeros((4, 5), bool)
+        m[1:3, 1:4] = True
+        counts = []  # column-major run lengths, starting with zeros
+        flat = m.flatten(order="F")
+        cur, run = False, 0
+        for v in flat:
+            if v == cur:
+                run += 1
+            else:
+                counts.append(run)
+                cur, run = v, 1
+        counts.append(run)
+        assert np.array_equal(decode_segmentation({"size": [4, 5], "counts": counts}, 4, 5), m)
+
+    def test_bad_segmentation(self):
+        with pytest.raises(ValueError):
+            decode_segmentation({"size": [3, 3], "counts": "x"}, 4, 5)
+        with pytest.raises(ValueError):
+            decode_segmentation([[1.0, 2.0]], 4, 5)
+
+
+class TestLoad:
+    def test_collection(self, tmp_path):
+        path, images, anns = _dataset(tmp_path)
+        res = load_coco(path, canvas_size=64)
+        c = res.collections["plane"]
+        assert len(c) == 4 and c.masks.shape == (4, 64, 64) and c.keypoints.shape == (4, 4, 2)
+        assert c.meta.flip_pairs == [(0, 1)] and c.object_ids.tolist() == [100, 101, 102, 103]
+        assert c.visible[:, 3].tolist() == [True, False, True, False]
+        # keypoints map back to the image exactly
+        img = torch.tensor([[a["keypoints"][3 * k], a["keypoints"][3 * k + 1]] for a in anns for k in range(4)],
+                           dtype=torch.float32).reshape(4, 4, 2)
+        back = c.keypoints_in_image()
+        assert torch.allclose(back[c.visible], img[c.visible], atol=2e-3)
+        # canvas mask area ~ image area * scale^2
+        area_img = torch.tensor([a["area"] for a in anns])
+        ratio = c.masks.flatten(1).sum(1) / (area_img * c.canvas_from_image.scale ** 2)
+        assert ((ratio - 1).abs() < 0.05).all()
+        # the object is centred in the canvas with the margin
+        assert c.masks[:, :5].sum() == 0 and c.masks[:, :, :5].sum() == 0
+
+    def test_problems_per_object(self, tmp_path):
+        good = make_annotation(0, 1, 1, _ellipse(120, 160, 70, 60, 40, 20),
+                               np.array([[40.0, 60], [100, 60], [70, 45], [70, 75]]), np.ones(4, bool))
+        bad = []
+
+        def variant(aid, **changes):
+            a = json.loads(json.dumps(good))
+            a["id"] = aid
+            for k, v in changes.items():
+                if v is None:
+                    a.pop(k)
+                else:
+                    a[k] = v
+            bad.append(a)
+
+        variant(50, segmentation=None)  # missing mask
+        variant(51, segmentation=encode_mask(np.zeros((120, 160), bool)))  # empty mask
+        variant(52, keypoints=[1, 2, 2] * 3)  # keypoint count
+        variant(53, keypoints=[0, 0, 0] * 4)  # nothing visible
+        variant(54, category_id=9)  # unknown category
+        variant(1)  # duplicate id (1 exists)
+        variant(55, image_id=77)  # unknown image
+        variant(56, keypoints=[float("nan"), 1, 2, 100, 60, 2, 70, 45, 2, 70, 75, 2])  # NaN -> warning
+        variant(57, keypoints=[5000, 60, 2, 100, 60, 2, 70, 45, 2, 70, 75, 2])  # far outside -> warning
+        variant(58, occluded=True)
+        variant(59, segmentation={"size": [120, 160], "counts": "garbage!!"})
+        path, _, _ = _dataset(tmp_path, bad)
+        res = load_coco(path, canvas_size=32)
+        reasons = {p.annotation_id: p for p in res.problems}
+        assert "missing mask" in reasons[50].reason and "empty mask" in reasons[51].reason
+        assert "keypoint values" in reasons[52].reason and "no visible keypoint" in reasons[53].reason
+        assert "unknown category" in reasons[54].reason and "duplicate" in reasons[1].reason
+        assert "unknown image" in reasons[55].reason
+        assert "NaN" in reasons[56].reason and not reasons[56].fatal
+        assert "far outside" in reasons[57].reason and not reasons[57].fatal
+        assert "occluded" in reasons[58].reason and "malformed segmentation" in reasons[59].reason
+        c = res.collections["plane"]
+        ids = c.annotation_ids.tolist()
+        assert ids == [1, 2, 3, 4, 56, 57]  # good objects and the two warned ones go on
+        assert c.visible[4].tolist() == [False, True, True, True] and c.visible[5].tolist() == [False, True, True, True]
+        for p in res.problems:
+            assert str(p.annotation_id) in p.message()
+
+    def test_malformed_json(self, tmp_path):
+        p = tmp_path / "bad.json"
+        p.write_text('{"images": [], "annotations": [1, 2,, 3]}')
+        with pytest.raises(CocoFormatError, match=r"bad\.json.*line 1, column"):
+            load_coco(p)
+        p.write_text('{"images": []}')
+        with pytest.raises(CocoFormatError, match="annotations"):
+            load_coco(p)
+        with pytest.raises(CocoFormatError, match="no such file"):
+            load_coco(tmp_path / "missing.json")
+
+    def test_class_filter_and_extras(self, tmp_path):
+        path, images, anns = _dataset(tmp_path)
+        data = json.loads(path.read_text())
+        data["categories"][0].update({"rigid_keypoints": [0, 1, 2], "symmetry": "rotational", "articulated": True,
+                                      "flip_pairs": [[0, 1]]})
+        path.write_text(json.dumps(data))
+        c = load_coco(path, canvas_size=32).collections["plane"]
+        assert c.meta.rigid_keypoints == [0, 1, 2] and c.meta.symmetry == "rotational" and c.meta.articulated
+        assert load_coco(path, classes=["car"]).collections == {}

@@ -1,0 +1,118 @@
+"""collection.py: flip pairs from names, canvas maps, indexing, mirroring."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from carvi_torch.cameras import ScaledOrthographic, Similarity2D, random_rotations
+from carvi_torch.collection import (ClassCollection, ClassMeta, canvas_similarity, flip_permutation,
+                                    infer_flip_pairs, resample_to_canvas)
+
+
+class TestInferFlipPairs:
+    @pytest.mark.parametrize("names,expected", [
+        (["L_WingTip", "NoseTip", "R_WingTip"], [(0, 2)]),
+        (["Left_Wing_Base", "Right_Wing_Base", "Top_Rudder"], [(0, 1)]),
+        (["left_wing", "right_wing", "tail"], [(0, 1)]),
+        (["body_back_left_lower", "body_back_right_lower"], [(0, 1)]),
+        (["wheel_l", "wheel_r", "hub"], [(0, 1)]),
+        (["leftcorner_windshield", "rightcorner_windshield"], [(0, 1)]),
+        (["L_Eye", "R_Eye", "Nose", "L_EarBase", "R_EarBase"], [(0, 1), (3, 4)]),
+        (["left", "right"], [(0, 1)]),
+        (["mouth", "body", "bottom"], []),
+        (["left_wing", "tail"], []),  # partner missing
+    ])
+    def test_names(self, names, expected):
+        assert infer_flip_pairs(names) == expected
+
+    def test_permutation_involution(self):
+        perm = flip_permutation(6, [(0, 3), (1, 5)])
+        assert torch.equal(perm[perm], torch.arange(6))
+        assert perm.tolist() == [3, 5, 2, 0, 4, 1]
+
+
+class TestCanvas:
+    def test_similarity_centres_box(self):
+        boxes = torch.tensor([[10.0, 20.0, 109.0, 69.0], [0.0, 0.0, 9.0, 39.0]])
+        sim = canvas_similarity(boxes, 128, 0.1)
+        c = sim.apply(torch.stack([(boxes[:, :2] + boxes[:, 2:]) / 2], dim=1))[:, 0]
+        assert torch.allclose(c, torch.full((2, 2), 63.5))
+        side = torch.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]) + 1
+        assert torch.allclose(sim.scale * side, torch.full((2,), 128 * 0.8))
+
+    def test_resample_identity_and_downscale(self):
+        m = torch.zeros(64, 64, dtype=torch.bool)
+        m[10:30, 20:50] = True
+        same = resample_to_canvas(m, 1.0, torch.zeros(2), 64, supersample=1)
+        assert torch.equal(same, m)
+        half = resample_to_canvas(m, 0.5, torch.zeros(2), 32)
+        # area-averaged: the rectangle [10, 30) x [20, 50) at half resolution is [5, 15) x [10, 25)
+        ref = torch.zeros(32, 32, dtype=torch.bool)
+        ref[5:15, 10:25] = True
+        assert (half ^ ref).sum() <= 4
+
+
+def _collection(n=4, k=5, C=32, g=None):
+    g = g or torch.Generator().manual_seed(0)
+    meta = ClassMeta("thing", ["left_a", "right_a", "nose", "l_b", "r_b"][:k], infer_flip_pairs(
+        ["left_a", "right_a", "nose", "l_b", "r_b"][:k]))
+    masks = torch.rand(n, C, C, generator=g) > 0.5
+    kp = torch.rand(n, k, 2, generator=g) * (C - 1)
+    vis = torch.rand(n, k, generator=g) > 0.3
+    sim = Similarity2D(torch.rand(n, generator=g) + 0.5, torch.randn(n, 2, generator=g))
+    return ClassCollection(meta, masks, kp, vis, sim, torch.tensor([[200, 100]] * n), torch.arange(n) + 10,
+                           torch.arange(n), torch.arange(n) + 100, torch.zeros(n, dtype=torch.bool),
+                           [f"s{i}" for i in range(n)])
+
+
+class TestClassCollection:
+    def test_shapes_and_index(self):
+        c = _collection()
+        sub = c[torch.tensor([True, False, True, False])]
+        assert len(sub) == 2 and sub.annotation_ids.tolist() == [10, 12] and sub.sources == ["s0", "s2"]
+        assert len(c[1:]) == 3 and len(c[[3]]) == 1
+
+    def test_bad_shapes(self):
+        c = _collection()
+        with pytest.raises(ValueError):
+            ClassCollection(c.meta, c.masks, c.keypoints[:, :2], c.visible, c.canvas_from_image, c.image_size,
+                            c.annotation_ids, c.image_ids, c.object_ids, c.is_mirror)
+
+    def test_mirror_twice_is_identity(self):
+        c = _collection()
+        cc = c.mirror().mirror()
+        for f in ("masks", "keypoints", "visible", "image_size", "annotation_ids", "is_mirror"):
+            assert torch.allclose(getattr(cc, f).float(), getattr(c, f).float(), atol=1e-5), f
+        assert torch.allclose(cc.canvas_from_image.offset, c.canvas_from_image.offset, atol=1e-4)
+
+    def test_mirror_swaps_labels(self):
+        c = _collection()
+        m = c.mirror()
+        assert torch.equal(m.masks, c.masks.flip(-1)) and m.is_mirror.all()
+        # left_a of the mirror is right_a of the original, flipped
+        assert torch.allclose(m.keypoints[:, 0, 0], c.canvas_size - 1 - c.keypoints[:, 1, 0])
+        assert torch.equal(m.visible[:, 0], c.visible[:, 1])
+        assert len(c.with_mirrors()) == 2 * len(c)
+
+    def test_mirror_consistent_with_cameras(self):
+        """Mirrored canvas keypoints = mirrored image camera, composed with the mirrored canvas map."""
+        g = torch.Generator().manual_seed(1)
+        n, C = 3, 64
+        names = ["left_a", "right_a", "nose"]
+        X = torch.tensor([[-1.0, 0.2, 0.3], [1.0, 0.2, 0.3], [0.0, -1.0, 0.1]])  # symmetric about x = 0
+        P = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
+        cam = ScaledOrthographic(random_rotations(n, g), torch.full((n,), 40.0), torch.full((n, 2), 100.0))
+        img_kp = cam.project(X)
+        sim = Similarity2D(torch.full((n,), 0.3), torch.full((n, 2), 2.0))
+        meta = ClassMeta("t", names, infer_flip_pairs(names))
+        coll = ClassCollection(meta, torch.zeros(n, C, C, dtype=torch.bool), sim.apply(img_kp),
+                               torch.ones(n, 3, dtype=torch.bool), sim, torch.tensor([[250, 180]] * n),
+                               torch.arange(n), torch.arange(n), torch.arange(n), torch.zeros(n, dtype=torch.bool))
+        m = coll.mirror()
+        cam_m = cam.mirror(250.0, P).compose_similarity(m.canvas_from_image)
+        assert torch.allclose(cam_m.project(X), m.keypoints, atol=1e-4)
+        assert torch.allclose(m.keypoints_in_image(), cam.mirror(250.0, P).project(X), atol=1e-4)
+
+    def test_to_device(self):
+        c = _collection().to("cpu")
+        assert c.device.type == "cpu"

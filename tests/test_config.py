@@ -1,0 +1,53 @@
+"""config.py: defaults, YAML file, key=value overrides, validation, saved config."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from carvi_torch.config import Config, ConfigError, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_overrides_are_typed():
+    cfg = Config().override(["resolution=32", "imprint=false", "silhouette_weight=2", "classes=car,chair",
+                             "device=cpu", "data="])
+    assert cfg.resolution == 32 and cfg.imprint is False and cfg.silhouette_weight == 2.0
+    assert cfg.classes == ["car", "chair"] and cfg.data is None
+
+
+@pytest.mark.parametrize("item", ["nokey", "resolution=abc", "resolution=1.5", "imprint=maybe", "stage=mesh",
+                                  "unknown_key=1", "canvas_margin=0.7"])
+def test_bad_overrides(item):
+    with pytest.raises(ConfigError):
+        Config().override([item])
+
+
+def test_file_then_cli(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("resolution: 40\nproposals: 5\n")
+    cfg = load_config(p, ["proposals=7"])
+    assert cfg.resolution == 40 and cfg.proposals == 7
+
+
+def test_bad_file(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("resolution: [1, 2\n")
+    with pytest.raises(ConfigError, match="malformed YAML"):
+        load_config(p)
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.yaml")
+
+
+def test_default_yaml_matches_dataclass():
+    """configs/default.yaml lists every field with the dataclass default."""
+    data = yaml.safe_load((ROOT / "configs" / "default.yaml").read_text())
+    assert data == Config().to_dict()
+
+
+def test_to_yaml_round_trip():
+    cfg = Config().override(["resolution=33", "classes=[a, b]"])
+    assert yaml.safe_load(cfg.to_yaml()) == cfg.to_dict()
+    assert "# Voxel grid steps per axis." in cfg.to_yaml()
