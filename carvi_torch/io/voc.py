@@ -1,0 +1,1115 @@
+"""PASCAL VOC input: Berkeley keypoint XML + SBD / VOC instance masks -> COCO keypoint JSON.
+
+The converter behind ``python -m carvi_torch.datasets voc --keypoints DIR [--masks DIR]
+--out annotations.json``. CPU-side (XML, ``.mat`` and PNG reading, numpy, scipy,
+scikit-image, pycocotools); it runs once per dataset, before any tensor work.
+
+Inputs
+------
+* ``keypoint_dir``: Berkeley keypoint files (``voc2011_keypoints_Feb2012`` format), one
+  object per file, ``<image>_<voc_id>.xml``, searched recursively (a flat folder or one
+  folder per class)::
+
+      <annotation>
+        <image>2008_000037</image> <voc_id>1</voc_id> <category>aeroplane</category>
+        <subcategory>Propeller</subcategory>
+        <visible_bounds xmin="47" ymin="157" width="403" height="125"/>
+        <keypoints> <keypoint name="NoseTip" visible="1" x="371.44" y="210.92" z="0"/> ... </keypoints>
+        <polylinesegments> <segment name="foreground" x="57.57 78.99 ..." y="167.84 ..."/> </polylinesegments>
+      </annotation>
+
+* ``masks_dir`` (optional): SBD instance maps ``inst/<image>.mat`` (``GTinst.Segmentation``
+  ``(H, W)`` instance indices, ``GTinst.Categories`` VOC class index per instance) or VOC
+  ``SegmentationObject/<image>.png`` (palette PNG, pixel value = instance index, 0
+  background, 255 void boundary; the class of each instance is read from
+  ``SegmentationClass/<image>.png`` beside it when present). ``<image>.mat`` /
+  ``<image>.png`` directly in ``masks_dir`` are found too.
+* ``annotations_dir`` (optional): VOC records ``<image>.xml`` (or
+  ``Annotations/<image>.xml``), for the image size and the object's ``occluded`` /
+  ``truncated`` flags.
+
+Coordinates
+-----------
+Berkeley keypoints, polygons and ``visible_bounds`` are 1-based pixel coordinates, like the
+VOC records (on the 165 aeroplanes with PASCAL3D+ boxes, ``visible_bounds`` equal the VOC
+boxes exactly and the polygons' extents are centred on them within 0.3 px). The converter
+subtracts 1 (``one_based=True``) so that the output follows the package convention: x
+right, y down, pixel ``[i, j]`` centred at ``(x=j, y=i)``.
+
+Masks
+-----
+An instance mask from ``masks_dir`` is used when one matches the object: the box of each
+instance mask is compared with the object's box (``visible_bounds``, else the extent of
+its visible keypoints and polygon) by IoU, objects and instances of one image are paired
+one-to-one by :func:`scipy.optimize.linear_sum_assignment` on the IoU, pairs of different
+known classes are forbidden and pairs below ``min_iou`` are dropped. Otherwise the
+foreground polygon is rasterised at the image size with an exact pixel-centre test
+(:func:`skimage.measure.grid_points_in_poly`: pixel ``[i, j]`` is foreground when the point
+``(x=j, y=i)`` is inside the polygon or on its boundary; even-odd rule; several foreground
+segments are united).
+
+Image size: the VOC record's ``<size>`` when given, else the instance-map size, else the
+extent of all objects of the image (polygons, visible keypoints, ``visible_bounds``):
+``ceil(max) + 1`` in 0-based coordinates.
+
+Skipped objects (reported by file name with the reason, the rest goes on): malformed files,
+unknown categories, fewer than 2 visible keypoints, no mask (no polygon and no matching
+instance), empty masks.
+"""
+from __future__ import annotations
+
+import math
+import re
+import sys
+import xml.etree.ElementTree as ET
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from .outputs import write_json
+from .vocmeta import (
+    ARTICULATED_CLASSES,
+    HEAD_TORSO_CLASSES,
+    HEAD_TORSO_WORDS,
+    HULL_CLASSES,
+    LIMB_WORDS,
+    MIN_RIGID_KEYPOINTS,
+    RIGGING_WORDS,
+    ROTATIONAL_CLASSES,
+    SUPERCATEGORY,
+    TAIL_BASE_WORDS,
+    VOC_CLASSES,
+    category_id,
+    normalize_class_name,
+)
+
+__all__ = [
+    "VocFormatError",
+    "VocObject",
+    "VocRecord",
+    "InstanceMasks",
+    "Report",
+    "parse_keypoint_xml",
+    "parse_voc_record",
+    "read_sbd_instances",
+    "read_voc_instances",
+    "find_mask_file",
+    "name_words",
+    "swap_side",
+    "infer_flip_pairs",
+    "rigid_keypoint_indices",
+    "category_entry",
+    "rasterize_polygons",
+    "mask_boxes",
+    "box_iou",
+    "match_instances",
+    "encode_rle",
+    "convert",
+    "run",
+]
+
+#: Fewest visible keypoints an object needs to be converted.
+MIN_VISIBLE_KEYPOINTS = 2
+
+
+class VocFormatError(ValueError):
+    """A keypoint, record or mask file that cannot be read.
+
+    Attributes:
+        path: the file.
+        problem: what is wrong, without the file name.
+    """
+
+    def __init__(self, path: str | Path, problem: str):
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+# --------------------------------------------------------------------------- Berkeley XML
+
+
+@dataclass(frozen=True, eq=False)
+class VocObject:
+    """One object of a Berkeley keypoint file, in 0-based pixel-centre coordinates.
+
+    Attributes:
+        source: the file name, e.g. ``"2008_000037_1.xml"``.
+        image: VOC image name, e.g. ``"2008_000037"``.
+        voc_id: 1-based index of the object in the image's VOC record.
+        category: the category as written in the file (see :func:`normalize_class_name`).
+        subcategory: e.g. ``"Propeller"``, or ``None``.
+        visible_bounds: ``(xmin, ymin, width, height)`` floats, or ``None``.
+        keypoints: name -> ``(x, y, visible)``, in file order.
+        polygon: ``(P, 2)`` float64 ``(x, y)`` vertices of the first foreground segment, or ``None``.
+        polygons: all foreground segments, each ``(P, 2)`` float64 (the mask is their union).
+    """
+
+    source: str
+    image: str
+    voc_id: int
+    category: str
+    subcategory: str | None
+    visible_bounds: tuple[float, float, float, float] | None
+    keypoints: dict[str, tuple[float, float, bool]]
+    polygon: np.ndarray | None
+    polygons: tuple[np.ndarray, ...] = ()
+
+    @property
+    def visible_names(self) -> tuple[str, ...]:
+        """Names of the visible keypoints, in file order."""
+        return tuple(n for n, (_, _, v) in self.keypoints.items() if v)
+
+    @property
+    def num_visible(self) -> int:
+        """Number of visible keypoints."""
+        return len(self.visible_names)
+
+    def _points(self) -> np.ndarray:
+        """``(M, 2)`` visible keypoints and polygon vertices."""
+        pts = [np.array([[x, y] for x, y, v in self.keypoints.values() if v], dtype=np.float64).reshape(-1, 2)]
+        pts += list(self.polygons)
+        return np.concatenate(pts, axis=0)
+
+    def box(self) -> np.ndarray:
+        """``(4,)`` float64 box ``[x0, y0, x1, y1]`` (pixel-centre extents) used to match masks.
+
+        ``visible_bounds`` when present, else the extent of the visible keypoints and the
+        polygon vertices; all NaN when the object has none of them.
+        """
+        if self.visible_bounds is not None:
+            x, y, w, h = self.visible_bounds
+            return np.array([x, y, x + w, y + h], dtype=np.float64)
+        pts = self._points()
+        if len(pts) == 0:
+            return np.full(4, np.nan)
+        return np.concatenate([pts.min(0), pts.max(0)])
+
+    def extent(self) -> tuple[float, float]:
+        """Largest ``(x, y)`` over the polygon, visible keypoints and ``visible_bounds``; NaN if none."""
+        pts = self._points()
+        if self.visible_bounds is not None:
+            x, y, w, h = self.visible_bounds
+            pts = np.concatenate([pts, [[x + w, y + h]]], axis=0)
+        if len(pts) == 0:
+            return (math.nan, math.nan)
+        m = pts.max(0)
+        return (float(m[0]), float(m[1]))
+
+
+def _float(path: Path, value: str | None, what: str) -> float:
+    if value is None:
+        raise VocFormatError(path, f"missing {what}")
+    try:
+        v = float(value)
+    except ValueError:
+        raise VocFormatError(path, f"{what} is not a number: {value!r}") from None
+    if not math.isfinite(v):
+        raise VocFormatError(path, f"{what} is not finite: {value!r}")
+    return v
+
+
+def _text(path: Path, root: ET.Element, tag: str, required: bool = True) -> str | None:
+    el = root.find(tag)
+    text = el.text.strip() if el is not None and el.text is not None else ""
+    if not text:
+        if required:
+            raise VocFormatError(path, f"missing <{tag}>")
+        return None
+    return text
+
+
+def _read_xml(path: Path) -> ET.Element:
+    try:
+        return ET.parse(path).getroot()
+    except ET.ParseError as e:
+        line, col = e.position
+        msg = str(e).rsplit(": line", 1)[0]
+        raise VocFormatError(path, f"malformed XML at line {line}, column {col}: {msg}") from None
+    except OSError as e:
+        raise VocFormatError(path, f"cannot read the file: {e.strerror or e}") from None
+
+
+def _coordinate_list(path: Path, text: str | None, what: str) -> np.ndarray:
+    if text is None:
+        raise VocFormatError(path, f"missing {what}")
+    try:
+        arr = np.array([float(v) for v in text.split()], dtype=np.float64)
+    except ValueError:
+        raise VocFormatError(path, f"{what} holds something that is not a number") from None
+    if not np.isfinite(arr).all():
+        raise VocFormatError(path, f"{what} holds a non-finite value")
+    return arr
+
+
+def parse_keypoint_xml(path: str | Path, *, one_based: bool = True) -> VocObject:
+    """Read one Berkeley keypoint file.
+
+    Required: ``<image>``, ``<voc_id>`` (integer), ``<category>``, ``<keypoints>`` (may be
+    empty) whose ``<keypoint>`` elements carry ``name``, ``visible``, ``x``, ``y``.
+    Optional: ``<subcategory>``, ``<visible_bounds>``, ``<polylinesegments>`` with
+    ``<segment name="foreground" x=".." y="..">`` (other segment names are ignored).
+
+    Args:
+        path: the ``.xml`` file.
+        one_based: the file's coordinates are 1-based (Berkeley / VOC); 1 is subtracted
+            from keypoints, polygon and ``visible_bounds`` so that the result uses 0-based
+            pixel centres. ``False`` keeps them as written.
+
+    Returns:
+        :class:`VocObject`; ``visible`` is ``True`` for a non-zero ``visible`` attribute.
+
+    Raises:
+        VocFormatError: malformed XML (with line and column), a missing or non-numeric
+            field, a duplicate keypoint name, a polygon with unequal x/y counts or fewer
+            than 3 vertices. The message names the file.
+
+    Example:
+        >>> obj = parse_keypoint_xml("2008_000037_1.xml")   # doctest: +SKIP
+        >>> obj.keypoints["NoseTip"]                        # doctest: +SKIP
+        (370.44, 209.92, True)
+    """
+    path = Path(path)
+    root = _read_xml(path)
+    if root.tag != "annotation":
+        raise VocFormatError(path, f"root element is <{root.tag}>, expected <annotation>")
+    off = 1.0 if one_based else 0.0
+    image = _text(path, root, "image")
+    voc_text = _text(path, root, "voc_id")
+    try:
+        voc_id = int(voc_text)
+    except ValueError:
+        raise VocFormatError(path, f"<voc_id> is not an integer: {voc_text!r}") from None
+    category = _text(path, root, "category")
+    subcategory = _text(path, root, "subcategory", required=False)
+
+    bounds = None
+    vb = root.find("visible_bounds")
+    if vb is not None:
+        vals = [_float(path, vb.get(k), f"visible_bounds {k}") for k in ("xmin", "ymin", "width", "height")]
+        bounds = (vals[0] - off, vals[1] - off, vals[2], vals[3])
+
+    kps_el = root.find("keypoints")
+    if kps_el is None:
+        raise VocFormatError(path, "missing <keypoints>")
+    keypoints: dict[str, tuple[float, float, bool]] = {}
+    for i, kp in enumerate(kps_el.findall("keypoint")):
+        name = (kp.get("name") or "").strip()
+        if not name:
+            raise VocFormatError(path, f"keypoint {i} has no name")
+        if name in keypoints:
+            raise VocFormatError(path, f"keypoint {name!r} appears twice")
+        x = _float(path, kp.get("x"), f"x of keypoint {name!r}")
+        y = _float(path, kp.get("y"), f"y of keypoint {name!r}")
+        vis = _float(path, kp.get("visible"), f"visible of keypoint {name!r}")
+        keypoints[name] = (x - off, y - off, vis != 0)
+
+    polygons = []
+    for seg in root.findall("polylinesegments/segment"):
+        if (seg.get("name") or "").strip().lower() != "foreground":
+            continue
+        xs = _coordinate_list(path, seg.get("x"), "polygon x")
+        ys = _coordinate_list(path, seg.get("y"), "polygon y")
+        if len(xs) != len(ys):
+            raise VocFormatError(path, f"polygon has {len(xs)} x and {len(ys)} y values")
+        if len(xs) < 3:
+            raise VocFormatError(path, f"polygon has {len(xs)} vertices, needs at least 3")
+        polygons.append(np.stack([xs, ys], axis=1) - off)
+
+    return VocObject(source=path.name, image=image, voc_id=voc_id, category=category, subcategory=subcategory,
+                     visible_bounds=bounds, keypoints=keypoints, polygon=polygons[0] if polygons else None,
+                     polygons=tuple(polygons))
+
+
+# --------------------------------------------------------------------------- VOC records
+
+
+@dataclass(frozen=True)
+class VocRecord:
+    """The parts of a VOC annotation record (``Annotations/<image>.xml``) the converter uses.
+
+    Attributes:
+        width, height: image size in pixels.
+        objects: per object, in record order (``voc_id - 1``): ``{"name", "truncated",
+            "occluded", "difficult"}`` (flags as bool, absent flags false).
+    """
+
+    width: int
+    height: int
+    objects: tuple[dict, ...]
+
+
+def parse_voc_record(path: str | Path) -> VocRecord:
+    """Read a VOC annotation record.
+
+    Raises:
+        VocFormatError: malformed XML, missing or non-positive ``<size>``.
+    """
+    path = Path(path)
+    root = _read_xml(path)
+    size = root.find("size")
+    if size is None:
+        raise VocFormatError(path, "missing <size>")
+    w = _float(path, _text(path, size, "width"), "size width")
+    h = _float(path, _text(path, size, "height"), "size height")
+    if w < 1 or h < 1 or w != int(w) or h != int(h):
+        raise VocFormatError(path, f"size {w}x{h} is not a positive integer size")
+
+    def flag(el: ET.Element, tag: str) -> bool:
+        t = el.findtext(tag)
+        try:
+            return bool(int(float(t))) if t is not None and t.strip() else False
+        except ValueError:
+            raise VocFormatError(path, f"<{tag}> is not 0/1: {t!r}") from None
+
+    objects = tuple({"name": (o.findtext("name") or "").strip(), "truncated": flag(o, "truncated"),
+                     "occluded": flag(o, "occluded"), "difficult": flag(o, "difficult")}
+                    for o in root.findall("object"))
+    return VocRecord(width=int(w), height=int(h), objects=objects)
+
+
+# --------------------------------------------------------------------------- instance masks
+
+
+@dataclass(frozen=True, eq=False)
+class InstanceMasks:
+    """The instances of one image's instance map.
+
+    Attributes:
+        masks: ``(B, H, W)`` bool, one mask per instance (empty instances dropped).
+        categories: ``(B,)`` int64 VOC class index (1..20), 0 when unknown.
+        ids: ``(B,)`` int64 instance value in the map.
+        source: ``"sbd"`` or ``"voc"``.
+        path: the file read.
+    """
+
+    masks: np.ndarray
+    categories: np.ndarray
+    ids: np.ndarray
+    source: str
+    path: Path
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)``."""
+        return tuple(self.masks.shape[1:])
+
+
+def _split_instances(inst_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(B,)`` instance ids (excluding 0 and 255) and ``(B, H, W)`` bool masks of an ``(H, W)`` map."""
+    ids = np.unique(inst_map)
+    ids = ids[(ids != 0) & (ids != 255)].astype(np.int64)
+    return ids, inst_map[None] == ids[:, None, None]
+
+
+def read_sbd_instances(path: str | Path) -> InstanceMasks:
+    """Read an SBD instance map ``inst/<image>.mat`` (``scipy.io.loadmat``).
+
+    ``GTinst.Segmentation`` is ``(H, W)`` with 0 background and ``k`` on instance ``k``;
+    ``GTinst.Categories[k - 1]`` is its VOC class index (1..20).
+
+    Raises:
+        VocFormatError: unreadable file, no ``GTinst``/``Segmentation``, not 2-D.
+    """
+    from scipy.io import loadmat
+
+    path = Path(path)
+    try:
+        mat = loadmat(str(path), squeeze_me=True, struct_as_record=False)
+    except Exception as e:  # scipy raises several types for corrupt files
+        raise VocFormatError(path, f"cannot read the .mat file: {e}") from None
+    gt = mat.get("GTinst")
+    if gt is None:
+        raise VocFormatError(path, "no GTinst structure")
+    seg = getattr(gt, "Segmentation", None)
+    if seg is None:
+        raise VocFormatError(path, "GTinst has no Segmentation")
+    seg = np.asarray(seg)
+    if seg.ndim != 2 or seg.size == 0:
+        raise VocFormatError(path, f"GTinst.Segmentation has shape {seg.shape}, expected (H, W)")
+    cats = getattr(gt, "Categories", None)
+    cats = np.atleast_1d(np.asarray(cats if cats is not None else [], dtype=np.float64)).ravel().astype(np.int64)
+    ids, masks = _split_instances(seg.astype(np.int64))
+    lookup = np.zeros(int(max(ids.max(initial=0), len(cats))) + 1, dtype=np.int64)
+    lookup[1:len(cats) + 1] = np.where((cats >= 1) & (cats <= len(VOC_CLASSES)), cats, 0)
+    return InstanceMasks(masks=masks, categories=lookup[ids], ids=ids, source="sbd", path=path)
+
+
+def _read_index_png(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            if im.mode not in ("P", "L", "I", "I;16"):
+                raise VocFormatError(path, f"PNG mode {im.mode!r}: expected a palette or grey-level index image")
+            return np.array(im).astype(np.int64)
+    except VocFormatError:
+        raise
+    except Exception as e:
+        raise VocFormatError(path, f"cannot read the PNG: {e}") from None
+
+
+def read_voc_instances(path: str | Path, class_path: str | Path | None = None) -> InstanceMasks:
+    """Read a VOC ``SegmentationObject/<image>.png`` (palette index = instance, 255 = void).
+
+    Args:
+        path: the instance PNG.
+        class_path: ``SegmentationClass/<image>.png`` of the same image, or ``None``. When
+            given, each instance's class is the most frequent class index (1..20) under
+            its pixels; otherwise classes are unknown (0).
+
+    Raises:
+        VocFormatError: unreadable PNG, RGB image, class map of another size.
+    """
+    path = Path(path)
+    inst_map = _read_index_png(path)
+    ids, masks = _split_instances(inst_map)
+    cats = np.zeros(len(ids), dtype=np.int64)
+    if class_path is not None and len(ids):
+        cls_map = _read_index_png(Path(class_path))
+        if cls_map.shape != inst_map.shape:
+            raise VocFormatError(class_path, f"class map {cls_map.shape} differs from instance map {inst_map.shape}")
+        cls_map = np.where((cls_map >= 1) & (cls_map <= len(VOC_CLASSES)), cls_map, 0)
+        # votes[b, c] = pixels of instance b with class c, all instances at once
+        inst_index = np.searchsorted(ids, inst_map)
+        valid = np.isin(inst_map, ids)
+        votes = np.bincount(inst_index[valid] * (len(VOC_CLASSES) + 1) + cls_map[valid],
+                            minlength=len(ids) * (len(VOC_CLASSES) + 1)).reshape(len(ids), -1)
+        votes[:, 0] = 0
+        cats = np.where(votes.max(1) > 0, votes.argmax(1), 0)
+    return InstanceMasks(masks=masks, categories=cats, ids=ids, source="voc", path=path)
+
+
+def find_mask_file(masks_dir: str | Path, image: str) -> tuple[Path, Path | None] | None:
+    """The instance-map file of ``image`` under ``masks_dir``, and its class map.
+
+    Looks for ``inst/<image>.mat``, ``<image>.mat``, ``SegmentationObject/<image>.png``,
+    ``<image>.png`` in that order. For a PNG, the class map is
+    ``SegmentationClass/<image>.png`` beside the ``SegmentationObject`` folder or under
+    ``masks_dir`` (``None`` when absent; always ``None`` for ``.mat``).
+
+    Returns:
+        ``(instance_file, class_file_or_None)``, or ``None`` when there is no file.
+    """
+    d = Path(masks_dir)
+    for p in (d / "inst" / f"{image}.mat", d / f"{image}.mat"):
+        if p.is_file():
+            return p, None
+    for p in (d / "SegmentationObject" / f"{image}.png", d / f"{image}.png"):
+        if p.is_file():
+            for c in (p.parent.parent / "SegmentationClass" / p.name, d / "SegmentationClass" / p.name):
+                if c.is_file() and c != p:
+                    return p, c
+            return p, None
+    return None
+
+
+def _read_instances(masks_dir: Path, image: str) -> InstanceMasks | None:
+    found = find_mask_file(masks_dir, image)
+    if found is None:
+        return None
+    inst, cls = found
+    return read_sbd_instances(inst) if inst.suffix == ".mat" else read_voc_instances(inst, cls)
+
+
+# --------------------------------------------------------------------------- boxes and matching
+
+
+def mask_boxes(masks: np.ndarray) -> np.ndarray:
+    """Pixel-centre boxes of masks.
+
+    Args:
+        masks: ``(B, H, W)`` bool.
+
+    Returns:
+        ``(B, 4)`` float64 ``[x0, y0, x1, y1]`` = (first column, first row, last column,
+        last row) holding foreground; NaN rows for empty masks.
+
+    Example:
+        >>> m = np.zeros((1, 5, 6), bool); m[0, 1:3, 2:5] = True
+        >>> mask_boxes(m).tolist()
+        [[2.0, 1.0, 4.0, 2.0]]
+    """
+    masks = np.asarray(masks, dtype=bool)
+    if masks.ndim != 3:
+        raise ValueError(f"masks: expected (B, H, W), got shape {masks.shape}")
+    _, h, w = masks.shape
+    rows, cols = masks.any(2), masks.any(1)
+    boxes = np.stack([cols.argmax(1), rows.argmax(1), w - 1 - cols[:, ::-1].argmax(1),
+                      h - 1 - rows[:, ::-1].argmax(1)], axis=1).astype(np.float64)
+    boxes[~rows.any(1)] = np.nan
+    return boxes
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of pixel-centre boxes, all pairs.
+
+    A box ``[x0, y0, x1, y1]`` covers the pixels whose centres lie in it, so its area is
+    ``(x1 - x0 + 1) * (y1 - y0 + 1)`` (exact for integer boxes).
+
+    Args:
+        a: ``(A, 4)``; b: ``(B, 4)`` float. NaN boxes have IoU 0 with everything.
+
+    Returns:
+        ``(A, B)`` float64 in ``[0, 1]``.
+
+    Example:
+        >>> box_iou(np.array([[0, 0, 1, 1.]]), np.array([[0, 0, 3, 1.]])).tolist()
+        [[0.5]]
+    """
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
+    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
+    area_a = np.clip(a[:, 2] - a[:, 0] + 1, 0, None) * np.clip(a[:, 3] - a[:, 1] + 1, 0, None)
+    area_b = np.clip(b[:, 2] - b[:, 0] + 1, 0, None) * np.clip(b[:, 3] - b[:, 1] + 1, 0, None)
+    iw = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]) + 1, 0, None)
+    ih = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]) + 1, 0, None)
+    inter = iw * ih
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = inter / (area_a[:, None] + area_b[None, :] - inter)
+    return np.nan_to_num(iou, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def match_instances(object_boxes: np.ndarray, object_classes: np.ndarray, instance_boxes: np.ndarray,
+                    instance_classes: np.ndarray, min_iou: float = 0.5) -> np.ndarray:
+    """One-to-one assignment of objects to instance masks by box IoU.
+
+    Maximises the summed IoU (:func:`scipy.optimize.linear_sum_assignment`) over pairs
+    that are class-consistent (equal classes, or either unknown = 0) and overlap by at
+    least ``min_iou``.
+
+    Args:
+        object_boxes: ``(A, 4)`` float boxes (see :func:`box_iou`).
+        object_classes: ``(A,)`` int VOC class index, 0 unknown.
+        instance_boxes: ``(B, 4)``; instance_classes: ``(B,)`` likewise.
+        min_iou: smallest IoU of an accepted pair.
+
+    Returns:
+        ``(A,)`` int64: the matched instance index per object, -1 when none.
+    """
+    object_classes = np.asarray(object_classes, dtype=np.int64).reshape(-1)
+    instance_classes = np.asarray(instance_classes, dtype=np.int64).reshape(-1)
+    iou = box_iou(object_boxes, instance_boxes)
+    if iou.shape != (len(object_classes), len(instance_classes)):
+        raise ValueError(f"object_classes / instance_classes: lengths {len(object_classes)}, "
+                         f"{len(instance_classes)} do not match the boxes {iou.shape}")
+    out = np.full(iou.shape[0], -1, dtype=np.int64)
+    if iou.size == 0:
+        return out
+    oc, ic = object_classes[:, None], instance_classes[None, :]
+    ok = ((oc == 0) | (ic == 0) | (oc == ic)) & (iou >= min_iou)
+    score = np.where(ok, iou, 0.0)
+    from scipy.optimize import linear_sum_assignment
+
+    rows, cols = linear_sum_assignment(score, maximize=True)
+    keep = ok[rows, cols]
+    out[rows[keep]] = cols[keep]
+    return out
+
+
+# --------------------------------------------------------------------------- rasterising, RLE
+
+
+def rasterize_polygons(polygons: Sequence[np.ndarray], height: int, width: int) -> np.ndarray:
+    """Union of polygons as an ``(H, W)`` bool mask, by an exact pixel-centre test.
+
+    Pixel ``[i, j]`` is set when the point ``(x=j, y=i)`` is inside a polygon or on its
+    boundary (even-odd rule within a polygon; skimage's ``grid_points_in_poly``, run on
+    each polygon's bounding window). Parts outside the image are clipped.
+
+    Args:
+        polygons: each ``(P, 2)`` float ``(x, y)`` vertices, 0-based pixel coordinates.
+        height, width: mask size.
+
+    Returns:
+        ``(height, width)`` bool.
+
+    Example:
+        >>> sq = np.array([[1, 1], [3, 1], [3, 2], [1, 2]], float)
+        >>> int(rasterize_polygons([sq], 4, 5).sum())
+        6
+    """
+    from skimage.measure import grid_points_in_poly
+
+    if height < 1 or width < 1:
+        raise ValueError(f"height, width: expected positive sizes, got {height}x{width}")
+    mask = np.zeros((int(height), int(width)), dtype=bool)
+    for poly in polygons:
+        poly = np.asarray(poly, dtype=np.float64)
+        if poly.ndim != 2 or poly.shape[1] != 2 or len(poly) < 3:
+            raise ValueError(f"polygons: expected (P >= 3, 2) vertices, got shape {poly.shape}")
+        x0 = max(0, math.ceil(poly[:, 0].min()))
+        y0 = max(0, math.ceil(poly[:, 1].min()))
+        x1 = min(width - 1, math.floor(poly[:, 0].max()))
+        y1 = min(height - 1, math.floor(poly[:, 1].max()))
+        if x0 > x1 or y0 > y1:
+            continue
+        verts = np.stack([poly[:, 1] - y0, poly[:, 0] - x0], axis=1)  # (row, col)
+        mask[y0:y1 + 1, x0:x1 + 1] |= grid_points_in_poly((y1 - y0 + 1, x1 - x0 + 1), verts)
+    return mask
+
+
+def encode_rle(mask: np.ndarray) -> dict:
+    """COCO compressed RLE of an ``(H, W)`` bool mask, ``counts`` as ``str`` (JSON-ready)."""
+    from pycocotools import mask as mask_utils
+
+    rle = mask_utils.encode(np.asfortranarray(np.asarray(mask, dtype=np.uint8)))
+    rle["counts"] = rle["counts"].decode("ascii")
+    return rle
+
+
+# --------------------------------------------------------------------------- names
+
+
+_WORD = re.compile(r"[A-Z]?[a-z]+|[A-Z]+(?![a-z])|\d+")
+_SIDE_SWAP = {"left": "right", "right": "left", "l": "r", "r": "l"}
+
+
+def name_words(name: str) -> list[str]:
+    """Lower-cased words of a keypoint name.
+
+    Splits at ``_``, ``-``, spaces and other non-letters, digits and camel-case
+    boundaries.
+
+    Example:
+        >>> name_words("L_EarBase"), name_words("Upper_Neck_Base"), name_words("HeadBack")
+        (['l', 'ear', 'base'], ['upper', 'neck', 'base'], ['head', 'back'])
+    """
+    return [w.lower() for w in _WORD.findall(name)]
+
+
+def _swap_word(m: re.Match) -> str:
+    w = m.group(0)
+    s = _SIDE_SWAP.get(w.lower())
+    if s is None:
+        return w
+    if w.isupper():
+        return s.upper()
+    return s.capitalize() if w[0].isupper() else s
+
+
+def swap_side(name: str) -> str:
+    """The name with every left/right word swapped (case kept), other characters untouched.
+
+    Side words are ``left``/``right`` and the single letters ``l``/``r`` as whole words of
+    :func:`name_words` (so ``L_WingTip``, ``Left_Wing_Base``, ``l_eye``, ``wheel_left``,
+    ``leftEye`` are swapped, ``Leftover`` and ``Roof`` are not).
+
+    Example:
+        >>> swap_side("L_WingTip"), swap_side("Hull_Mid_Left_Bot"), swap_side("NoseTip")
+        ('R_WingTip', 'Hull_Mid_Right_Bot', 'NoseTip')
+    """
+    return _WORD.sub(_swap_word, name)
+
+
+def infer_flip_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
+    """Left/right keypoint pairs from their names.
+
+    ``i`` pairs with ``j`` when ``names[j] == swap_side(names[i])`` (see
+    :func:`swap_side`): ``L_/R_``, ``Left_/Right_``, ``l_/r_``, ``_left/_right`` and
+    left/right word parts anywhere in the name (``Leg_Left_Back``/``Leg_Right_Back``).
+    Names without a counterpart pair with nothing.
+
+    Args:
+        names: ``K`` keypoint names.
+
+    Returns:
+        Sorted ``(i, j)`` index pairs with ``i < j``; each index appears at most once.
+
+    Example:
+        >>> infer_flip_pairs(["L_WingTip", "NoseTip", "R_WingTip", "Left_Wing_Base", "Right_Wing_Base"])
+        [(0, 2), (3, 4)]
+    """
+    index = {n: i for i, n in enumerate(names)}
+    pairs, used = [], set()
+    for i, n in enumerate(names):
+        j = index.get(swap_side(n))
+        if j is not None and j != i and i not in used and j not in used:
+            pairs.append((min(i, j), max(i, j)))
+            used.update((i, j))
+    return sorted(pairs)
+
+
+def _is_head_or_torso(words: list[str]) -> bool:
+    ws = set(words)
+    if ws & LIMB_WORDS:
+        return False
+    return bool(ws & HEAD_TORSO_WORDS) or ("tail" in ws and bool(ws & TAIL_BASE_WORDS))
+
+
+def rigid_keypoint_indices(category: str, names: Sequence[str]) -> list[int]:
+    """Indices of the keypoints used by rigid SfM for a class.
+
+    Head/torso classes (animals, person) keep head and torso names, boats keep the hull
+    (no sail / mast names), other classes keep everything; the patterns are documented
+    in :mod:`carvi_torch.io.vocmeta`. If a pattern keeps fewer than
+    ``MIN_RIGID_KEYPOINTS`` names, all indices are returned.
+
+    Args:
+        category: class name (normalised with :func:`normalize_class_name`; unknown
+            classes keep everything).
+        names: ``K`` keypoint names.
+
+    Returns:
+        Sorted indices into ``names``.
+
+    Example:
+        >>> rigid_keypoint_indices("boat", ["Hull_Back_Bot", "Hull_Back_Top", "Hull_Front_Bot",
+        ...                                 "Hull_Front_Top", "Mast_Top", "Sail_Left"])
+        [0, 1, 2, 3]
+    """
+    cls = normalize_class_name(category)
+    words = [name_words(n) for n in names]
+    if cls in HEAD_TORSO_CLASSES:
+        keep = [i for i, w in enumerate(words) if _is_head_or_torso(w)]
+    elif cls in HULL_CLASSES:
+        keep = [i for i, w in enumerate(words) if not set(w) & RIGGING_WORDS]
+    else:
+        keep = list(range(len(names)))
+    if len(keep) < MIN_RIGID_KEYPOINTS:
+        keep = list(range(len(names)))
+    return keep
+
+
+def category_entry(category: str, names: Sequence[str]) -> dict:
+    """The COCO category of a VOC class with its carvi extras.
+
+    Args:
+        category: VOC class (normalised with :func:`normalize_class_name`).
+        names: the class's keypoint names, in output order.
+
+    Returns:
+        ``{id, name, supercategory, keypoints, skeleton: [], flip_pairs, rigid_keypoints,
+        symmetry, articulated}``; ``id`` is the VOC class index (1..20).
+
+    Raises:
+        ValueError: ``category`` is not a VOC class.
+    """
+    cls = normalize_class_name(category)
+    cid = category_id(category)
+    names = list(names)
+    return {
+        "id": cid,
+        "name": cls,
+        "supercategory": SUPERCATEGORY[cls],
+        "keypoints": names,
+        "skeleton": [],
+        "flip_pairs": [list(p) for p in infer_flip_pairs(names)],
+        "rigid_keypoints": rigid_keypoint_indices(cls, names),
+        "symmetry": "rotational" if cls in ROTATIONAL_CLASSES else "none",
+        "articulated": cls in ARTICULATED_CLASSES,
+    }
+
+
+# --------------------------------------------------------------------------- conversion
+
+
+@dataclass
+class Report:
+    """Outcome of :func:`convert`.
+
+    Attributes:
+        out_path: the JSON written.
+        counts: converted objects per class.
+        skipped: ``(file name, reason)`` per object not converted, sorted by file name.
+        excluded: parsed objects of classes not asked for (``classes=``), per class.
+        num_files: ``.xml`` files read.
+        num_images: images in the output.
+        mask_sources: converted objects per mask source (``"polygon"``, ``"sbd"``, ``"voc"``).
+        warnings: problems that did not skip an object (an unreadable mask file or VOC
+            record: the object falls back to the polygon / the other size sources).
+    """
+
+    out_path: Path
+    counts: dict[str, int] = field(default_factory=dict)
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+    excluded: dict[str, int] = field(default_factory=dict)
+    num_files: int = 0
+    num_images: int = 0
+    mask_sources: dict[str, int] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def converted(self) -> int:
+        """Total converted objects."""
+        return sum(self.counts.values())
+
+    def skipped_by_reason(self) -> dict[str, int]:
+        """Skipped objects per kind of reason (the text before the first ``:`` of each reason)."""
+        kinds = Counter(" + ".join(r.split(":", 1)[0] for r in reason.split("; ")) for _, reason in self.skipped)
+        return dict(sorted(kinds.items()))
+
+    def summary(self, max_files: int = 20) -> str:
+        """A short human-readable summary (the full skipped list is in the JSON)."""
+        lines = [f"voc: converted {self.converted} objects in {self.num_images} images from "
+                 f"{self.num_files} files -> {self.out_path}"]
+        lines += [f"  {c}: {n}" for c, n in sorted(self.counts.items())]
+        if self.mask_sources:
+            lines.append("  masks: " + ", ".join(f"{k} {v}" for k, v in sorted(self.mask_sources.items())))
+        if self.excluded:
+            lines.append("  not asked for: " + ", ".join(f"{c} {n}" for c, n in sorted(self.excluded.items())))
+        lines.append(f"skipped {len(self.skipped)}" + (":" if self.skipped else ""))
+        lines += [f"  {n} x {k}" for k, n in self.skipped_by_reason().items()]
+        lines += [f"    {f}: {r}" for f, r in self.skipped[:max_files]]
+        if len(self.skipped) > max_files:
+            lines.append(f"    ... {len(self.skipped) - max_files} more in 'carvi_skipped' of the output")
+        lines += [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+def _check_dir(path: Any, what: str) -> Path | None:
+    if path is None:
+        return None
+    p = Path(path)
+    if not p.is_dir():
+        raise FileNotFoundError(f"{what}: {p} is not a directory")
+    return p
+
+
+def _wanted_classes(classes: Iterable[str] | str | None) -> set[str] | None:
+    if classes is None:
+        return None
+    if isinstance(classes, str):
+        classes = [c for c in re.split(r"[,\s]+", classes) if c]
+    wanted, bad = set(), []
+    for c in classes:
+        n = normalize_class_name(c)
+        (bad.append(c) if n is None else wanted.add(n))
+    if bad:
+        raise ValueError(f"classes: {bad} are not PASCAL VOC classes (one of {', '.join(VOC_CLASSES)})")
+    return wanted
+
+
+def _find_record(annotations_dir: Path, image: str) -> Path | None:
+    for p in (annotations_dir / f"{image}.xml", annotations_dir / "Annotations" / f"{image}.xml"):
+        if p.is_file():
+            return p
+    return None
+
+
+def _extent_size(objs: Sequence[VocObject]) -> tuple[int, int] | None:
+    ext = np.array([o.extent() for o in objs], dtype=np.float64).reshape(-1, 2)
+    if np.isnan(ext).all():
+        return None
+    mx = np.nanmax(ext, axis=0)
+    return max(1, math.ceil(mx[0]) + 1), max(1, math.ceil(mx[1]) + 1)
+
+
+def _round(v: float) -> float:
+    return round(float(v), 6)
+
+
+def convert(keypoint_dir: str | Path, out_path: str | Path, masks_dir: str | Path | None = None,
+            annotations_dir: str | Path | None = None, classes: Iterable[str] | str | None = None, *,
+            one_based: bool = True, min_iou: float = 0.5) -> Report:
+    """Convert Berkeley keypoint files (+ optional SBD / VOC masks) to COCO keypoint JSON.
+
+    See the module docstring for inputs, coordinates, mask matching and image sizes.
+    The output (written atomically) holds ``info``, ``images`` (``{id, file_name:
+    "<image>.jpg", width, height}``, ids by sorted image name), ``annotations`` (ids by
+    sorted file path; ``segmentation`` compressed RLE with ``str`` counts, ``area``,
+    ``bbox`` from the mask, ``iscrowd`` 0, ``keypoints`` ``[x, y, v] * K`` with ``v = 2``
+    for visible keypoints and ``0, 0, 0`` for absent or not visible ones,
+    ``num_keypoints``, ``object_id`` (one per ``(image, voc_id)``), ``source`` (the file
+    name), ``voc_id``, ``subcategory``, ``mask_source``, ``occluded`` / ``truncated``
+    (from the VOC record when ``annotations_dir`` has it, else false)), ``categories`` (one
+    per converted class, see :func:`category_entry`; keypoints = sorted union of the names
+    of the class's converted objects) and ``carvi_skipped`` (``[{file, reason}]``).
+
+    Args:
+        keypoint_dir: folder of Berkeley ``.xml`` files (searched recursively).
+        out_path: output JSON path.
+        masks_dir: SBD / VOC instance masks (see :func:`find_mask_file`), or ``None``.
+        annotations_dir: VOC records, or ``None``.
+        classes: VOC classes to convert (names or a comma-separated string); ``None``: all.
+            Objects of other classes still take part in mask matching.
+        one_based: subtract 1 from the file coordinates (see :func:`parse_keypoint_xml`).
+        min_iou: smallest box IoU for an object-instance match.
+
+    Returns:
+        :class:`Report`.
+
+    Raises:
+        FileNotFoundError: a given folder does not exist.
+        ValueError: no ``.xml`` file in ``keypoint_dir``; unknown names in ``classes``.
+    """
+    kdir = _check_dir(keypoint_dir, "keypoint_dir")
+    mdir = _check_dir(masks_dir, "masks_dir")
+    adir = _check_dir(annotations_dir, "annotations_dir")
+    wanted = _wanted_classes(classes)
+    files = sorted(kdir.rglob("*.xml"), key=lambda p: p.relative_to(kdir).as_posix())
+    if not files:
+        raise ValueError(f"keypoint_dir: no .xml files in {kdir}")
+    report = Report(out_path=Path(out_path), num_files=len(files))
+    excluded: Counter = Counter()
+    rank = {p: i for i, p in enumerate(files)}
+
+    # 1. parse; group the objects of each image (every parsed object takes part in matching)
+    by_image: dict[str, list[tuple[Path, VocObject, str | None]]] = defaultdict(list)
+    for f in files:
+        try:
+            obj = parse_keypoint_xml(f, one_based=one_based)
+        except VocFormatError as e:
+            report.skipped.append((f.name, f"malformed file: {e.problem}"))
+            continue
+        cls = normalize_class_name(obj.category)
+        if cls is None:
+            report.skipped.append((f.name, f"unknown category: {obj.category!r} is not a PASCAL VOC class"))
+        by_image[obj.image].append((f, obj, cls))
+
+    # 2. per image: size, instance masks, matching, masks
+    converted = []  # (file, obj, cls, mask_rle, area, bbox, mask_source, flags)
+    for image in sorted(by_image):
+        group = by_image[image]
+        record = None
+        rec_path = _find_record(adir, image) if adir is not None else None
+        if rec_path is not None:
+            try:
+                record = parse_voc_record(rec_path)
+            except VocFormatError as e:
+                report.warnings.append(str(e))
+        inst = None
+        if mdir is not None:
+            try:
+                inst = _read_instances(mdir, image)
+            except VocFormatError as e:
+                report.warnings.append(f"{e}; using polygons for {image}")
+        if record is not None:
+            size = (record.width, record.height)
+        elif inst is not None:
+            size = (inst.shape[1], inst.shape[0])
+        else:
+            size = _extent_size([o for _, o, _ in group])
+        if inst is not None and size is not None and inst.shape != (size[1], size[0]):
+            report.warnings.append(f"{inst.path}: instance map is {inst.shape[1]}x{inst.shape[0]}, the VOC record "
+                                   f"says {size[0]}x{size[1]}; using polygons for {image}")
+            inst = None
+        match = np.full(len(group), -1, dtype=np.int64)
+        if inst is not None and len(inst.ids):
+            obj_boxes = np.stack([o.box() for _, o, _ in group])
+            obj_cls = np.array([VOC_CLASSES.index(c) + 1 if c else 0 for _, _, c in group], dtype=np.int64)
+            match = match_instances(obj_boxes, obj_cls, mask_boxes(inst.masks), inst.categories, min_iou)
+
+        for (f, obj, cls), j in zip(group, match):
+            if cls is None:
+                continue  # reported above
+            if wanted is not None and cls not in wanted:
+                excluded[cls] += 1
+                continue
+            reasons = []
+            if obj.num_visible < MIN_VISIBLE_KEYPOINTS:
+                reasons.append(f"too few visible keypoints: {obj.num_visible} visible, "
+                               f"needs {MIN_VISIBLE_KEYPOINTS}")
+            mask, source = None, None
+            if j >= 0:
+                mask, source = inst.masks[j], inst.source
+            elif obj.polygons and size is not None:
+                mask, source = rasterize_polygons(obj.polygons, size[1], size[0]), "polygon"
+            else:
+                looked = " and no matching instance mask" if mdir is not None else ""
+                reasons.append(f"no mask: no foreground polygon{looked}")
+            if mask is not None and not mask.any():
+                reasons.append(f"empty mask: the {source} covers no pixel of the {size[0]}x{size[1]} image")
+            if reasons:
+                report.skipped.append((f.name, "; ".join(reasons)))
+                continue
+            flags = {"occluded": False, "truncated": False}
+            if record is not None and 1 <= obj.voc_id <= len(record.objects):
+                rec_obj = record.objects[obj.voc_id - 1]
+                flags = {"occluded": rec_obj["occluded"], "truncated": rec_obj["truncated"]}
+            rle = encode_rle(mask)
+            converted.append((f, obj, cls, rle, size, source, flags))
+
+    # 3. categories, images, annotations
+    converted.sort(key=lambda c: rank[c[0]])
+    names_by_class: dict[str, set[str]] = defaultdict(set)
+    for _, obj, cls, *_ in converted:
+        names_by_class[cls].update(obj.keypoints)
+    categories = [category_entry(c, sorted(names_by_class[c])) for c in VOC_CLASSES if c in names_by_class]
+    cat_by_name = {c["name"]: c for c in categories}
+    image_sizes = {obj.image: size for _, obj, _, _, size, _, _ in converted}
+    image_ids = {im: i + 1 for i, im in enumerate(sorted(image_sizes))}
+    object_ids = {k: i + 1 for i, k in enumerate(sorted({(o.image, o.voc_id) for _, o, *_ in converted}))}
+    images = [{"id": image_ids[im], "file_name": f"{im}.jpg", "width": int(image_sizes[im][0]),
+               "height": int(image_sizes[im][1])} for im in sorted(image_sizes)]
+
+    from pycocotools import mask as mask_utils
+
+    annotations = []
+    counts: Counter = Counter()
+    sources: Counter = Counter()
+    for ann_id, (f, obj, cls, rle, size, source, flags) in enumerate(converted, start=1):
+        names = cat_by_name[cls]["keypoints"]
+        kps = []
+        for n in names:
+            x, y, v = obj.keypoints.get(n, (0.0, 0.0, False))
+            kps += [_round(x), _round(y), 2] if v else [0, 0, 0]
+        annotations.append({
+            "id": ann_id,
+            "image_id": image_ids[obj.image],
+            "category_id": cat_by_name[cls]["id"],
+            "segmentation": rle,
+            "area": float(mask_utils.area(rle)),
+            "bbox": [float(v) for v in mask_utils.toBbox(rle)],
+            "iscrowd": 0,
+            "keypoints": kps,
+            "num_keypoints": obj.num_visible,
+            "object_id": object_ids[(obj.image, obj.voc_id)],
+            "source": obj.source,
+            "voc_id": obj.voc_id,
+            "subcategory": obj.subcategory,
+            "mask_source": source,
+            "occluded": bool(flags["occluded"]),
+            "truncated": bool(flags["truncated"]),
+        })
+        counts[cls] += 1
+        sources[source] += 1
+
+    report.skipped.sort()
+    report.counts = dict(sorted(counts.items()))
+    report.excluded = dict(sorted(excluded.items()))
+    report.mask_sources = dict(sorted(sources.items()))
+    report.num_images = len(images)
+    data = {
+        "info": {"description": "PASCAL VOC Berkeley keypoints converted by carvi_torch.io.voc",
+                 "keypoint_dir": str(kdir), "masks_dir": str(mdir) if mdir else None,
+                 "annotations_dir": str(adir) if adir else None,
+                 "coordinates": "0-based, pixel centres at integers" + (" (file values minus 1)" if one_based else "")},
+        "images": images,
+        "annotations": annotations,
+        "categories": categories,
+        "carvi_skipped": [{"file": f, "reason": r} for f, r in report.skipped],
+    }
+    write_json(out_path, data)
+    return report
+
+
+def run(args: Any) -> int:
+    """Command-line entry: ``python -m carvi_torch.datasets voc --keypoints DIR [--masks DIR]
+    [--annotations DIR] --out annotations.json``.
+
+    Args:
+        args: an object with ``.keypoints``, ``.out`` and optionally ``.masks``,
+            ``.annotations``, ``.classes`` (missing attributes count as ``None``).
+
+    Returns:
+        0 when at least one object was converted, 1 when none was (the JSON is still
+        written), 2 on bad arguments (message on stderr). Prints :meth:`Report.summary`.
+    """
+    keypoints, out = getattr(args, "keypoints", None), getattr(args, "out", None)
+    if keypoints is None or out is None:
+        print("voc: error: --keypoints and --out are required", file=sys.stderr)
+        return 2
+    try:
+        report = convert(keypoints, out, masks_dir=getattr(args, "masks", None),
+                         annotations_dir=getattr(args, "annotations", None), classes=getattr(args, "classes", None))
+    except (FileNotFoundError, ValueError) as e:
+        print(f"voc: error: {e}", file=sys.stderr)
+        return 2
+    print(report.summary())
+    if report.converted == 0:
+        print("voc: error: no object was converted", file=sys.stderr)
+        return 1
+    return 0
