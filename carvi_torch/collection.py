@@ -37,7 +37,7 @@ def _side_variants(name: str) -> list[str]:
     """Names obtained by swapping one left/right marker of ``name`` (case preserved)."""
     out = []
     # split into word parts on '_', '-', ' ' and camelCase-free tokens, keep separators
-    parts = re.split(r"([_\-\s])", name)
+    parts = re.split(r"([_\-\s]|(?<=[a-z])(?=[A-Z]))", name)
     for i, p in enumerate(parts):
         low = p.lower()
         for a, b in _SIDES:
@@ -58,7 +58,7 @@ def infer_flip_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
     """Left/right keypoint pairs from their names.
 
     Recognises ``left``/``right`` and ``l``/``r`` as word parts separated by ``_``,
-    ``-`` or spaces, in any position and case (``L_WingTip``/``R_WingTip``,
+    ``-``, spaces or a camel-case boundary (``leftEye``), in any position and case (``L_WingTip``/``R_WingTip``,
     ``Left_Wing_Base``/``Right_Wing_Base``, ``body_back_left_lower``/...,
     ``wheel_l``/``wheel_r``) and as a word prefix (``leftcorner_x``/``rightcorner_x``).
     A name pairs only with a name that exists; each index appears at most once.

@@ -69,6 +69,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from ..collection import infer_flip_pairs
+from .coco import encode_mask as encode_rle
 from .outputs import write_json
 from .vocmeta import (
     ARTICULATED_CLASSES,
@@ -651,15 +653,6 @@ def rasterize_polygons(polygons: Sequence[np.ndarray], height: int, width: int) 
     return mask
 
 
-def encode_rle(mask: np.ndarray) -> dict:
-    """COCO compressed RLE of an ``(H, W)`` bool mask, ``counts`` as ``str`` (JSON-ready)."""
-    from pycocotools import mask as mask_utils
-
-    rle = mask_utils.encode(np.asfortranarray(np.asarray(mask, dtype=np.uint8)))
-    rle["counts"] = rle["counts"].decode("ascii")
-    return rle
-
-
 # --------------------------------------------------------------------------- names
 
 
@@ -702,34 +695,6 @@ def swap_side(name: str) -> str:
         ('R_WingTip', 'Hull_Mid_Right_Bot', 'NoseTip')
     """
     return _WORD.sub(_swap_word, name)
-
-
-def infer_flip_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
-    """Left/right keypoint pairs from their names.
-
-    ``i`` pairs with ``j`` when ``names[j] == swap_side(names[i])`` (see
-    :func:`swap_side`): ``L_/R_``, ``Left_/Right_``, ``l_/r_``, ``_left/_right`` and
-    left/right word parts anywhere in the name (``Leg_Left_Back``/``Leg_Right_Back``).
-    Names without a counterpart pair with nothing.
-
-    Args:
-        names: ``K`` keypoint names.
-
-    Returns:
-        Sorted ``(i, j)`` index pairs with ``i < j``; each index appears at most once.
-
-    Example:
-        >>> infer_flip_pairs(["L_WingTip", "NoseTip", "R_WingTip", "Left_Wing_Base", "Right_Wing_Base"])
-        [(0, 2), (3, 4)]
-    """
-    index = {n: i for i, n in enumerate(names)}
-    pairs, used = [], set()
-    for i, n in enumerate(names):
-        j = index.get(swap_side(n))
-        if j is not None and j != i and i not in used and j not in used:
-            pairs.append((min(i, j), max(i, j)))
-            used.update((i, j))
-    return sorted(pairs)
 
 
 def _is_head_or_torso(words: list[str]) -> bool:
