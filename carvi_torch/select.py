@@ -184,9 +184,13 @@ def average_masks(
     counts = torch.bincount(labels[members], minlength=3)[:3]
     sums = torch.zeros(3, G * G, dtype=torch.float32, device=dev)
     scale = torch.tensor([2.0 / (w - 1), 2.0 / (h - 1)], device=dev)
-    for start in range(0, members.numel(), max(1, int(chunk))):
+    cameras = cameras.to(device=dev, dtype=torch.float32)
+    if int(chunk) < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    chunk = int(chunk)
+    for start in range(0, members.numel(), chunk):
         idx = members[start : start + chunk]
-        cams = cameras[idx].to(device=dev, dtype=torch.float32)
+        cams = cameras[idx]
         uv = cams.project(pts[labels[idx]])  # (c, G*G, 2)
         grid = (uv * scale - 1.0).reshape(-1, G, G, 2)
         m = masks[idx].to(torch.float32).unsqueeze(1)  # (c, 1, H, W)
@@ -207,13 +211,6 @@ def _check_grids(occupancy: torch.Tensor, voxel_to_camera: torch.Tensor) -> None
         raise ValueError(f"voxel_to_camera must be ({b}, 4, 4) like occupancy's batch")
 
 
-def _plane_index(coords: torch.Tensor, G: int, extent: float) -> torch.Tensor:
-    """Nearest plane sample index of coordinates (object units about the centre); -1 outside."""
-    k = torch.round((coords + extent) * ((G - 1) / (2.0 * extent)))
-    inside = (k >= 0) & (k <= G - 1)
-    return torch.where(inside, k, torch.full_like(k, -1)).long()
-
-
 def project_proposals(
     occupancy: torch.Tensor,
     voxel_to_camera: torch.Tensor,
@@ -231,12 +228,15 @@ def project_proposals(
     ``voxel_to_camera``) sampled at ``m^3`` sub-voxel points (offsets
     ``(i + 0.5) / m - 0.5``, ``i < m``, along each index axis). The points go to the
     reference camera frame, to the object frame (``ref_cameras.from_camera_frame``), to
-    plane coordinates ``(a, b)`` (module docstring), and are splatted into the nearest
-    plane sample (``index_put_``). Holes: with the automatic
-    ``m = ceil(sqrt(3) * longest voxel edge / plane spacing)`` (object units, max over
-    the batch, clipped to 8) consecutive sub-points are at most ``spacing / sqrt(3)``
-    apart in 3-D, so every plane sample whose centre lies in the projection of an
-    occupied voxel is set; samples up to half a spacing outside it may be set too.
+    plane coordinates ``(a, b)`` (module docstring) -- one affine map per grid, applied
+    through per-axis lookup tables -- and set their nearest plane sample (``index_put_``).
+
+    Holes: the automatic ``m = ceil(sqrt(3) * longest voxel edge / spacing)`` (object
+    units, ``spacing = 2 extent / (G - 1)``, max over the batch, clipped to 8) makes the
+    sub-cubes' half-diagonal at most ``spacing / 2``, so every plane sample whose centre
+    lies in the projection of an occupied voxel cube is set (no holes, even for voxels
+    coarser than the plane), and a set sample's centre lies within ``spacing / 2`` of
+    that projection (a dilation of at most half a sample).
 
     Args:
         occupancy: ``(B, D, H, W)`` bool proposals.
@@ -260,6 +260,8 @@ def project_proposals(
         raise ValueError(f"ref_cameras must hold B={B} cameras, got {len(ref_cameras)}")
     if supersample is not None and int(supersample) < 1:
         raise ValueError(f"supersample must be None or >= 1, got {supersample}")
+    if int(chunk_points) < 1:
+        raise ValueError(f"chunk_points must be >= 1, got {chunk_points}")
     dev = occupancy.device
     G = int(plane_size)
     out = torch.zeros(B * 3 * G * G, dtype=torch.bool, device=dev)
@@ -269,7 +271,7 @@ def project_proposals(
     T = voxel_to_camera.to(device=dev, dtype=torch.float64)
     cams = ref_cameras.to(device=dev, dtype=torch.float64)
     # Plane coordinates along all three axes are an affine function of the index:
-    # c = axes R^T (T[:3] h - [t, 0]) / s  ->  A (B, 3, 4) with c = A h.
+    # c = axes R^T (T[:3] h - [t, 0]) / s - axes centre  ->  A (B, 3, 4) with c = A h.
     shift = torch.zeros(B, 3, 4, dtype=torch.float64, device=dev)
     shift[:, :2, 3] = cams.t
     ax = axes.to(device=dev, dtype=torch.float64)
@@ -277,32 +279,43 @@ def project_proposals(
     if centre is not None:
         A[:, :, 3] -= ax @ centre.to(device=dev, dtype=torch.float64)
 
+    spacing = 2.0 * extent / (G - 1)
     if supersample is None:
-        spacing = 2.0 * extent / (G - 1)
         edge = float(A[:, :, :3].norm(dim=1).max())  # longest voxel edge, object units
         m = min(8, max(1, math.ceil(math.sqrt(3.0) * edge / spacing)))
     else:
         m = int(supersample)
+    # In plane-sample units u = (c + extent) / spacing, a sample's index is round(u).
+    U = A / spacing
+    U[:, :, 3] += extent / spacing
     o = (torch.arange(m, dtype=torch.float64, device=dev) + 0.5) / m - 0.5
     offsets = torch.stack(torch.meshgrid(o, o, o, indexing="ij"), dim=-1).reshape(-1, 3)  # (m^3, 3)
-    delta = offsets @ A[:, :, :3].transpose(-1, -2)  # (B, m^3, 3)
+    delta = (offsets @ U[:, :, :3].transpose(-1, -2)).to(torch.float32)  # (B, m^3, 3)
+    # u(b, d, h, w) = Ld[b, d] + Lh[b, h] + Lw[b, w] (the constant folded into Ld): lookup tables.
+    D, H, W = occupancy.shape[1:]
+    Ld = (U[:, None, :, 0] * torch.arange(D, device=dev, dtype=torch.float64)[None, :, None] + U[:, None, :, 3])
+    Lh = U[:, None, :, 1] * torch.arange(H, device=dev, dtype=torch.float64)[None, :, None]
+    Lw = U[:, None, :, 2] * torch.arange(W, device=dev, dtype=torch.float64)[None, :, None]
+    Ld, Lh, Lw = (L.to(torch.float32).reshape(-1, 3) for L in (Ld, Lh, Lw))  # (B*D, 3) ...
 
-    pair = torch.tensor([[1, 2], [2, 0], [0, 1]], device=dev)  # (a, b) per plane
-    occ = occupancy.nonzero()  # (M, 4): b, d, h, w
+    trash = out.numel()
+    out = torch.zeros(trash + 1, dtype=torch.bool, device=dev)  # last entry catches samples off the plane
+    occ = occupancy.nonzero()  # (M, 4): b, d, h, w, sorted by b
     per = max(1, int(chunk_points) // (m**3))
     for start in range(0, occ.shape[0], per):
-        ids = occ[start : start + per]
-        bi = ids[:, 0]
-        hom = torch.cat([ids[:, 1:].to(torch.float64), torch.ones_like(bi[:, None], dtype=torch.float64)], dim=1)
-        c = (A[bi] @ hom[:, :, None]).squeeze(-1)  # (M, 3)
-        c = c[:, None, :] + delta[bi]  # (M, m^3, 3)
-        k = _plane_index(c, G, extent)  # (M, m^3, 3)
-        col = k[..., pair[:, 0]]  # (M, m^3, 3 planes): a index
-        row = k[..., pair[:, 1]]  # b index
-        ok = (col >= 0) & (row >= 0)
-        plane = torch.arange(3, device=dev)
-        flat = ((bi[:, None, None] * 3 + plane) * G + row) * G + col
-        out[flat[ok]] = True
+        bi, di, hi, wi = occ[start : start + per].unbind(-1)
+        u = Ld[bi * D + di] + Lh[bi * H + hi] + Lw[bi * W + wi]  # (M, 3)
+        u = u[:, None, :] + delta[bi]  # (M, m^3, 3)
+        k = torch.round(u)
+        inside = (k >= 0) & (k <= G - 1)
+        k = k.long()
+        base = bi[:, None] * (3 * G * G)  # (M, 1)
+        for j in range(3):  # the three planes: (a, b) = (u[(j+1)%3], u[(j+2)%3])
+            a, b = (j + 1) % 3, (j + 2) % 3
+            flat = base + (j * G + k[..., b]) * G + k[..., a]
+            ok = inside[..., a] & inside[..., b]
+            out[torch.where(ok, flat, trash)] = True
+    out = out[:trash]
     return out.reshape(B, 3, G, G)
 
 
