@@ -19,7 +19,7 @@ from carvi_torch.select import (
     rank_proposals,
     score_proposals,
 )
-from tests.conftest import requires_cuda
+from conftest import requires_cuda
 
 HALF = (0.9, 0.6, 0.4)  # box half-sizes along axes[0], axes[1], axes[2]
 CANVAS = 64

@@ -21,7 +21,7 @@ from carvi_torch.surrogates import (
     symmetric_surrogates,
     symmetry_axis,
 )
-from tests.conftest import requires_cuda
+from conftest import requires_cuda
 
 
 def _anisotropic_shape(generator, k=40, sigmas=(3.0, 1.5, 0.5)):
