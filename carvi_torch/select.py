@@ -99,9 +99,12 @@ def _check_axes(axes: torch.Tensor) -> None:
         raise ValueError("axes must be a (3, 3) tensor (rows = principal axes)")
 
 
-def _check_plane(plane_size: int, extent: float) -> None:
+def _check_plane(plane_size: int, extent: float | None) -> None:
+    if extent is None:
+        raise ValueError("extent is required: the planes' half-width in object units, e.g. plane_extent(S)")
     if int(plane_size) < 2:
         raise ValueError(f"plane_size must be >= 2, got {plane_size}")
+    extent = float(extent)
     if not (extent > 0 and math.isfinite(extent)):
         raise ValueError(f"extent must be a positive finite float, got {extent}")
 
@@ -116,6 +119,7 @@ def plane_points(axes: torch.Tensor, plane_size: int, extent: float, centre: tor
         tensor([ 1., -1.,  0.])
     """
     _check_plane(plane_size, extent)
+    extent = float(extent)
     pa = plane_axes(axes)  # (3, 2, 3)
     g = torch.linspace(-extent, extent, int(plane_size), dtype=axes.dtype, device=axes.device)
     pts = g[None, None, :, None] * pa[:, None, None, 0, :] + g[None, :, None, None] * pa[:, None, None, 1, :]
@@ -133,7 +137,7 @@ def average_masks(
     labels: torch.Tensor,
     axes: torch.Tensor,
     plane_size: int = 64,
-    extent: float = 1.0,
+    extent: float | None = None,
     centre: torch.Tensor | None = None,
     mode: str = "bilinear",
     chunk: int = 256,
@@ -154,7 +158,8 @@ def average_masks(
         labels: ``(N,)`` long cluster labels in ``{-1, 0, 1, 2}``.
         axes: ``(3, 3)`` principal axes (rows).
         plane_size: ``G``.
-        extent: half-width of the planes (object units), e.g. :func:`plane_extent`.
+        extent: half-width of the planes (object units), e.g. :func:`plane_extent`;
+            required (the ``None`` default only raises).
         centre: optional ``(3,)`` plane centre (default the object-frame origin).
         mode: ``"bilinear"`` (soft) or ``"nearest"`` lookup.
         chunk: members aligned at once (bounds memory; not a per-instance loop).
@@ -174,6 +179,7 @@ def average_masks(
         raise ValueError(f"mode must be 'bilinear' or 'nearest', got {mode!r}")
     _check_axes(axes)
     _check_plane(plane_size, extent)
+    extent = float(extent)
     if h < 2 or w < 2:
         raise ValueError("masks must be at least 2x2 pixels")
     dev = masks.device
@@ -217,7 +223,7 @@ def project_proposals(
     ref_cameras: ScaledOrthographic,
     axes: torch.Tensor,
     plane_size: int = 64,
-    extent: float = 1.0,
+    extent: float | None = None,
     centre: torch.Tensor | None = None,
     supersample: int | None = None,
     chunk_points: int = 1 << 22,
@@ -244,7 +250,7 @@ def project_proposals(
         ref_cameras: ``B`` reference cameras (the frame of each grid).
         axes: ``(3, 3)`` principal axes (rows).
         plane_size: ``G``.
-        extent: plane half-width (object units).
+        extent: plane half-width (object units), required (see :func:`plane_extent`).
         centre: optional ``(3,)`` plane centre (default the object-frame origin).
         supersample: ``m`` (``>= 1``) or ``None`` for the rule above.
         chunk_points: sub-voxel points handled at once (bounds memory).
@@ -255,6 +261,7 @@ def project_proposals(
     _check_grids(occupancy, voxel_to_camera)
     _check_axes(axes)
     _check_plane(plane_size, extent)
+    extent = float(extent)
     B = occupancy.shape[0]
     if len(ref_cameras) != B:
         raise ValueError(f"ref_cameras must hold B={B} cameras, got {len(ref_cameras)}")

@@ -151,7 +151,7 @@ class TestAverageMasks:
     def test_boxes_seen_along_axes_give_the_rectangle(self, axes):
         masks, cams, labels, _ = _box_class(axes)
         ext = 1.3 * math.sqrt(sum(h * h for h in HALF))
-        avg, counts = average_masks(masks, cams, labels, axes, plane_size=64, extent=ext)
+        avg, counts = average_masks(masks, cams, labels, axes, plane_size=64, extent=torch.tensor(ext))
         assert avg.shape == (3, 64, 64) and avg.dtype == torch.float32
         assert counts.tolist() == [4, 4, 4]
         assert float(avg.min()) >= 0 and float(avg.max()) <= 1
@@ -313,6 +313,8 @@ class TestProjectProposals:
             project_proposals(occ, T, cams[0], axes, 8, 1.0)
         with pytest.raises(ValueError, match="plane_size"):
             project_proposals(occ, T, cams, axes, 1, 1.0)
+        with pytest.raises(ValueError, match="extent is required"):
+            project_proposals(occ, T, cams, axes, 8)
         with pytest.raises(ValueError, match="supersample"):
             project_proposals(occ, T, cams, axes, 8, 1.0, supersample=0)
 
