@@ -1,0 +1,442 @@
+"""Reconstruction selection: average masks per principal direction, proposal scores.
+
+Step 8 of the pipeline (DESIGN.md; paper, "Reconstruction selection"): every proposal
+of a reference instance is projected onto three planes, one perpendicular to each
+principal direction, and compared with the class' average mask on that plane; the
+proposal closest to the class average (after the fewest missed reference keypoints)
+wins.
+
+Plane convention. Plane ``j`` is perpendicular to axis ``e_j = axes[j]`` and spanned by
+the two other axes in cyclic order, ``(e_a, e_b) = (axes[(j+1) % 3], axes[(j+2) % 3])``,
+so ``e_a x e_b = e_j`` for right-handed axes. A ``(G, G)`` plane image has rows along
+``b`` and columns along ``a``, both sampled at ``-extent + 2 extent k / (G - 1)``,
+``k = 0 .. G-1`` (object units, about ``centre``): pixel ``[i, k]`` is the object-frame
+point ``centre + a_k e_a + b_i e_b``. Read like an image (x right = ``e_a``, y down =
+``e_b``), plane ``j`` is the orthographic view of a camera looking along ``+e_j``.
+
+Voxel grids follow the package convention: occupancy ``(D, H, W)`` = (depth, y, x) of the
+reference camera frame and ``voxel_to_camera (4, 4)`` maps the homogeneous index
+``(d, h, w, 1)`` to the camera-frame point ``(x, y, z, 1)`` (pixels of the reference
+image), voxel centres at integer indices.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from carvi_torch.cameras import ScaledOrthographic
+
+__all__ = [
+    "plane_axes",
+    "plane_centre",
+    "plane_extent",
+    "plane_points",
+    "average_masks",
+    "project_proposals",
+    "score_proposals",
+    "keypoint_misses",
+    "rank_proposals",
+]
+
+
+# --------------------------------------------------------------------------- planes
+
+
+def plane_axes(axes: torch.Tensor) -> torch.Tensor:
+    """In-plane axes of the three planes: ``(3, 2, 3)``, ``[j] = (e_a, e_b)``.
+
+    ``e_a = axes[(j+1) % 3]``, ``e_b = axes[(j+2) % 3]`` (cyclic, so ``e_a x e_b = e_j``
+    for a right-handed ``axes``).
+
+    Args:
+        axes: ``(3, 3)`` principal axes (rows).
+    """
+    _check_axes(axes)
+    idx = torch.tensor([[1, 2], [2, 0], [0, 1]], device=axes.device)
+    return axes[idx]
+
+
+def plane_centre(S: torch.Tensor) -> torch.Tensor:
+    """Centroid ``(3,)`` of the finite rows of a mean shape ``S (K, 3)``: the natural plane centre."""
+    if not isinstance(S, torch.Tensor) or S.dim() != 2 or S.shape[-1] != 3:
+        raise ValueError("S must be a (K, 3) tensor")
+    X = S[torch.isfinite(S).all(dim=-1)]
+    if X.shape[0] == 0:
+        raise ValueError("S has no finite row")
+    return X.mean(dim=0)
+
+
+def plane_extent(S: torch.Tensor, factor: float = 1.3, centre: torch.Tensor | None = None) -> float:
+    """Half-width of the selection planes: ``factor`` x the largest distance of a finite
+    keypoint of ``S`` from ``centre`` (default: their centroid, :func:`plane_centre`).
+
+    Args:
+        S: ``(K, 3)`` mean shape, object units; NaN rows ignored.
+        factor: margin (``> 0``).
+        centre: optional ``(3,)``; use the same centre for the plane functions.
+
+    Returns:
+        a positive float (object units).
+
+    Example:
+        >>> plane_extent(torch.tensor([[1.0, 0, 0], [-1.0, 0, 0]]))
+        1.3
+    """
+    if not factor > 0:
+        raise ValueError(f"factor must be > 0, got {factor}")
+    c = plane_centre(S) if centre is None else centre.to(S)
+    X = S[torch.isfinite(S).all(dim=-1)]
+    r = float((X - c).norm(dim=-1).max())
+    if not r > 0:
+        raise ValueError("S must have two distinct finite keypoints to define a plane extent")
+    return factor * r
+
+
+def _check_axes(axes: torch.Tensor) -> None:
+    if not isinstance(axes, torch.Tensor) or axes.shape != (3, 3):
+        raise ValueError("axes must be a (3, 3) tensor (rows = principal axes)")
+
+
+def _check_plane(plane_size: int, extent: float | None) -> None:
+    if extent is None:
+        raise ValueError("extent is required: the planes' half-width in object units, e.g. plane_extent(S)")
+    if int(plane_size) < 2:
+        raise ValueError(f"plane_size must be >= 2, got {plane_size}")
+    extent = float(extent)
+    if not (extent > 0 and math.isfinite(extent)):
+        raise ValueError(f"extent must be a positive finite float, got {extent}")
+
+
+def plane_points(axes: torch.Tensor, plane_size: int, extent: float, centre: torch.Tensor | None = None) -> torch.Tensor:
+    """Object-frame points of the three plane grids: ``(3, G, G, 3)``.
+
+    ``[j, i, k] = centre + a_k e_a + b_i e_b`` (module docstring), ``G = plane_size``.
+
+    Example:
+        >>> plane_points(torch.eye(3), 3, 1.0)[2, 0, 2]   # plane 2: (e_a, e_b) = (x, y)
+        tensor([ 1., -1.,  0.])
+    """
+    _check_plane(plane_size, extent)
+    extent = float(extent)
+    pa = plane_axes(axes)  # (3, 2, 3)
+    g = torch.linspace(-extent, extent, int(plane_size), dtype=axes.dtype, device=axes.device)
+    pts = g[None, None, :, None] * pa[:, None, None, 0, :] + g[None, :, None, None] * pa[:, None, None, 1, :]
+    if centre is not None:
+        pts = pts + centre.to(pts)
+    return pts
+
+
+# --------------------------------------------------------------------------- average masks
+
+
+def average_masks(
+    masks: torch.Tensor,
+    cameras: ScaledOrthographic,
+    labels: torch.Tensor,
+    axes: torch.Tensor,
+    plane_size: int = 64,
+    extent: float | None = None,
+    centre: torch.Tensor | None = None,
+    mode: str = "bilinear",
+    chunk: int = 256,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Average mask of each principal direction's cluster, in the class frame.
+
+    Every member ``n`` of cluster ``j`` (``labels[n] == j``) is aligned into plane ``j``
+    by its camera: the plane point ``centre + a e_a + b e_b`` is projected into image
+    ``n`` (``cameras.project``) and the mask looked up there (``grid_sample``,
+    ``align_corners=True`` with ``norm = 2 pix / (size - 1) - 1``, zeros outside the
+    image). For a view exactly along ``+-e_j`` this is the silhouette in plane
+    coordinates; a back view sees the plane mirrored and the projection undoes it. The
+    aligned masks of a cluster are averaged.
+
+    Args:
+        masks: ``(N, H, W)`` bool, canvas masks.
+        cameras: ``N`` cameras (canvas pixels) of the same instances.
+        labels: ``(N,)`` long cluster labels in ``{-1, 0, 1, 2}``.
+        axes: ``(3, 3)`` principal axes (rows).
+        plane_size: ``G``.
+        extent: half-width of the planes (object units), e.g. :func:`plane_extent`;
+            required (the ``None`` default only raises).
+        centre: optional ``(3,)`` plane centre (default the object-frame origin).
+        mode: ``"bilinear"`` (soft) or ``"nearest"`` lookup.
+        chunk: members aligned at once (bounds memory; not a per-instance loop).
+
+    Returns:
+        ``averages (3, G, G)`` float32 in ``[0, 1]`` (zeros for a direction without
+        members) and ``counts (3,)`` long, members per direction; on the masks' device.
+    """
+    if not isinstance(masks, torch.Tensor) or masks.dim() != 3:
+        raise ValueError("masks must be a (N, H, W) tensor")
+    n, h, w = masks.shape
+    if len(cameras) != n:
+        raise ValueError(f"cameras must hold N={n} cameras like masks, got {len(cameras)}")
+    if not isinstance(labels, torch.Tensor) or labels.shape != (n,):
+        raise ValueError(f"labels must be a ({n},) tensor")
+    if mode not in ("bilinear", "nearest"):
+        raise ValueError(f"mode must be 'bilinear' or 'nearest', got {mode!r}")
+    _check_axes(axes)
+    _check_plane(plane_size, extent)
+    extent = float(extent)
+    if h < 2 or w < 2:
+        raise ValueError("masks must be at least 2x2 pixels")
+    dev = masks.device
+    G = int(plane_size)
+    labels = labels.to(dev).long()
+    pts = plane_points(axes.to(device=dev, dtype=torch.float32), G, extent, centre).reshape(3, G * G, 3)
+    members = (labels >= 0).nonzero().squeeze(-1)
+    counts = torch.bincount(labels[members], minlength=3)[:3]
+    sums = torch.zeros(3, G * G, dtype=torch.float32, device=dev)
+    scale = torch.tensor([2.0 / (w - 1), 2.0 / (h - 1)], device=dev)
+    cameras = cameras.to(device=dev, dtype=torch.float32)
+    if int(chunk) < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    chunk = int(chunk)
+    for start in range(0, members.numel(), chunk):
+        idx = members[start : start + chunk]
+        cams = cameras[idx]
+        uv = cams.project(pts[labels[idx]])  # (c, G*G, 2)
+        grid = (uv * scale - 1.0).reshape(-1, G, G, 2)
+        m = masks[idx].to(torch.float32).unsqueeze(1)  # (c, 1, H, W)
+        vals = F.grid_sample(m, grid, mode=mode, padding_mode="zeros", align_corners=True)  # (c,1,G,G)
+        sums.index_add_(0, labels[idx], vals.reshape(-1, G * G))
+    averages = sums / counts.clamp_min(1)[:, None].to(sums.dtype)
+    return averages.reshape(3, G, G), counts
+
+
+# --------------------------------------------------------------------------- proposals
+
+
+def _check_grids(occupancy: torch.Tensor, voxel_to_camera: torch.Tensor) -> None:
+    if not isinstance(occupancy, torch.Tensor) or occupancy.dim() != 4:
+        raise ValueError("occupancy must be a (B, D, H, W) tensor")
+    b = occupancy.shape[0]
+    if not isinstance(voxel_to_camera, torch.Tensor) or voxel_to_camera.shape != (b, 4, 4):
+        raise ValueError(f"voxel_to_camera must be ({b}, 4, 4) like occupancy's batch")
+
+
+def project_proposals(
+    occupancy: torch.Tensor,
+    voxel_to_camera: torch.Tensor,
+    ref_cameras: ScaledOrthographic,
+    axes: torch.Tensor,
+    plane_size: int = 64,
+    extent: float | None = None,
+    centre: torch.Tensor | None = None,
+    supersample: int | None = None,
+    chunk_points: int = 1 << 22,
+) -> torch.Tensor:
+    """Orthographic projections of voxel proposals onto the three principal planes.
+
+    Each occupied voxel is treated as a cube (edges = the first three columns of
+    ``voxel_to_camera``) sampled at ``m^3`` sub-voxel points (offsets
+    ``(i + 0.5) / m - 0.5``, ``i < m``, along each index axis). The points go to the
+    reference camera frame, to the object frame (``ref_cameras.from_camera_frame``), to
+    plane coordinates ``(a, b)`` (module docstring) -- one affine map per grid, applied
+    through per-axis lookup tables -- and set their nearest plane sample (``index_put_``).
+
+    Holes: the automatic ``m = ceil(sqrt(3) * longest voxel edge / spacing)`` (object
+    units, ``spacing = 2 extent / (G - 1)``, max over the batch, clipped to 8) makes the
+    sub-cubes' half-diagonal at most ``spacing / 2``, so every plane sample whose centre
+    lies in the projection of an occupied voxel cube is set (no holes, even for voxels
+    coarser than the plane), and a set sample's centre lies within ``spacing / 2`` of
+    that projection (a dilation of at most half a sample).
+
+    Args:
+        occupancy: ``(B, D, H, W)`` bool proposals.
+        voxel_to_camera: ``(B, 4, 4)`` index -> reference camera frame.
+        ref_cameras: ``B`` reference cameras (the frame of each grid).
+        axes: ``(3, 3)`` principal axes (rows).
+        plane_size: ``G``.
+        extent: plane half-width (object units), required (see :func:`plane_extent`).
+        centre: optional ``(3,)`` plane centre (default the object-frame origin).
+        supersample: ``m`` (``>= 1``) or ``None`` for the rule above.
+        chunk_points: sub-voxel points handled at once (bounds memory).
+
+    Returns:
+        ``(B, 3, G, G)`` bool on the occupancy's device.
+    """
+    _check_grids(occupancy, voxel_to_camera)
+    _check_axes(axes)
+    _check_plane(plane_size, extent)
+    extent = float(extent)
+    B = occupancy.shape[0]
+    if len(ref_cameras) != B:
+        raise ValueError(f"ref_cameras must hold B={B} cameras, got {len(ref_cameras)}")
+    if supersample is not None and int(supersample) < 1:
+        raise ValueError(f"supersample must be None or >= 1, got {supersample}")
+    if int(chunk_points) < 1:
+        raise ValueError(f"chunk_points must be >= 1, got {chunk_points}")
+    dev = occupancy.device
+    G = int(plane_size)
+    out = torch.zeros(B * 3 * G * G, dtype=torch.bool, device=dev)
+    if B == 0:
+        return out.reshape(0, 3, G, G)
+
+    T = voxel_to_camera.to(device=dev, dtype=torch.float64)
+    cams = ref_cameras.to(device=dev, dtype=torch.float64)
+    # Plane coordinates along all three axes are an affine function of the index:
+    # c = axes R^T (T[:3] h - [t, 0]) / s - axes centre  ->  A (B, 3, 4) with c = A h.
+    shift = torch.zeros(B, 3, 4, dtype=torch.float64, device=dev)
+    shift[:, :2, 3] = cams.t
+    ax = axes.to(device=dev, dtype=torch.float64)
+    A = ax @ cams.R.transpose(-1, -2) @ (T[:, :3, :] - shift) / cams.s[:, None, None]
+    if centre is not None:
+        A[:, :, 3] -= ax @ centre.to(device=dev, dtype=torch.float64)
+
+    spacing = 2.0 * extent / (G - 1)
+    if supersample is None:
+        edge = float(A[:, :, :3].norm(dim=1).max())  # longest voxel edge, object units
+        m = min(8, max(1, math.ceil(math.sqrt(3.0) * edge / spacing)))
+    else:
+        m = int(supersample)
+    # In plane-sample units u = (c + extent) / spacing, a sample's index is round(u).
+    U = A / spacing
+    U[:, :, 3] += extent / spacing
+    o = (torch.arange(m, dtype=torch.float64, device=dev) + 0.5) / m - 0.5
+    offsets = torch.stack(torch.meshgrid(o, o, o, indexing="ij"), dim=-1).reshape(-1, 3)  # (m^3, 3)
+    delta = (offsets @ U[:, :, :3].transpose(-1, -2)).to(torch.float32)  # (B, m^3, 3)
+    # u(b, d, h, w) = Ld[b, d] + Lh[b, h] + Lw[b, w] (the constant folded into Ld): lookup tables.
+    D, H, W = occupancy.shape[1:]
+    Ld = (U[:, None, :, 0] * torch.arange(D, device=dev, dtype=torch.float64)[None, :, None] + U[:, None, :, 3])
+    Lh = U[:, None, :, 1] * torch.arange(H, device=dev, dtype=torch.float64)[None, :, None]
+    Lw = U[:, None, :, 2] * torch.arange(W, device=dev, dtype=torch.float64)[None, :, None]
+    Ld, Lh, Lw = (L.to(torch.float32).reshape(-1, 3) for L in (Ld, Lh, Lw))  # (B*D, 3) ...
+
+    trash = out.numel()
+    out = torch.zeros(trash + 1, dtype=torch.bool, device=dev)  # last entry catches samples off the plane
+    occ = occupancy.nonzero()  # (M, 4): b, d, h, w, sorted by b
+    per = max(1, int(chunk_points) // (m**3))
+    for start in range(0, occ.shape[0], per):
+        bi, di, hi, wi = occ[start : start + per].unbind(-1)
+        u = Ld[bi * D + di] + Lh[bi * H + hi] + Lw[bi * W + wi]  # (M, 3)
+        u = u[:, None, :] + delta[bi]  # (M, m^3, 3)
+        k = torch.round(u)
+        inside = (k >= 0) & (k <= G - 1)
+        k = k.long()
+        base = bi[:, None] * (3 * G * G)  # (M, 1)
+        for j in range(3):  # the three planes: (a, b) = (u[(j+1)%3], u[(j+2)%3])
+            a, b = (j + 1) % 3, (j + 2) % 3
+            flat = base + (j * G + k[..., b]) * G + k[..., a]
+            ok = inside[..., a] & inside[..., b]
+            out[torch.where(ok, flat, trash)] = True
+    out = out[:trash]
+    return out.reshape(B, 3, G, G)
+
+
+def score_proposals(projections: torch.Tensor, averages: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """Distance of each proposal to the class average: lower is better.
+
+    ``score[b] = sum_{j : counts[j] > 0} mean_{i,k} |projections[b, j, i, k] - averages[j, i, k]|``.
+
+    Args:
+        projections: ``(B, 3, G, G)`` bool or float (:func:`project_proposals`).
+        averages: ``(3, G, G)`` float (:func:`average_masks`).
+        counts: ``(3,)`` members per direction.
+
+    Returns:
+        ``(B,)`` float32 (zeros if no direction has members).
+    """
+    if not isinstance(projections, torch.Tensor) or projections.dim() != 4 or projections.shape[1] != 3:
+        raise ValueError("projections must be a (B, 3, G, G) tensor")
+    if not isinstance(averages, torch.Tensor) or averages.shape != projections.shape[1:]:
+        raise ValueError(f"averages must be {tuple(projections.shape[1:])} like the projections' planes")
+    if not isinstance(counts, torch.Tensor) or counts.shape != (3,):
+        raise ValueError("counts must be a (3,) tensor")
+    diff = (projections.to(torch.float32) - averages.to(device=projections.device, dtype=torch.float32)).abs()
+    per_dir = diff.mean(dim=(-2, -1))  # (B, 3)
+    use = (counts.to(projections.device) > 0).to(torch.float32)
+    return (per_dir * use).sum(dim=-1)
+
+
+def keypoint_misses(
+    occupancy: torch.Tensor, voxel_to_camera: torch.Tensor, keypoints: torch.Tensor, visible: torch.Tensor
+) -> torch.Tensor:
+    """Visible reference keypoints that the proposal's silhouette does not cover.
+
+    The grid must be aligned with the reference camera (``voxel_to_camera[:2, 0] == 0``:
+    the depth index moves along the viewing ray only), so a ray is a column ``(h, w)``.
+    A keypoint ``(x, y)`` is mapped to its nearest column by inverting the 2x2 block
+    ``voxel_to_camera[:2, 1:3]``; it is missed when that column has no occupied voxel
+    or lies outside the grid.
+
+    Args:
+        occupancy: ``(B, D, H, W)`` bool.
+        voxel_to_camera: ``(B, 4, 4)``.
+        keypoints: ``(B, K, 2)`` reference keypoints, canvas pixels ``(x, y)``.
+        visible: ``(B, K)`` bool.
+
+    Returns:
+        ``(B,)`` long.
+    """
+    _check_grids(occupancy, voxel_to_camera)
+    B, D, H, W = occupancy.shape
+    if not isinstance(keypoints, torch.Tensor) or keypoints.dim() != 3 or keypoints.shape[0] != B or keypoints.shape[-1] != 2:
+        raise ValueError(f"keypoints must be a ({B}, K, 2) tensor")
+    K = keypoints.shape[1]
+    if not isinstance(visible, torch.Tensor) or visible.shape != (B, K):
+        raise ValueError(f"visible must be a ({B}, {K}) tensor")
+    dev = occupancy.device
+    T = voxel_to_camera.to(device=dev, dtype=torch.float64)
+    scale = T[:, :2, 1:3].abs().amax(dim=(-2, -1)).clamp_min(1e-12)
+    if bool((T[:, :2, 0].abs() > 1e-6 * scale[:, None]).any()):
+        raise ValueError("voxel_to_camera must align the depth index with the viewing ray (T[:2, 0] == 0)")
+    column = occupancy.any(dim=1)  # (B, H, W)
+    rhs = keypoints.to(device=dev, dtype=torch.float64) - T[:, None, :2, 3]  # (B, K, 2)
+    hw = torch.linalg.solve(T[:, None, :2, 1:3].expand(B, K, 2, 2), rhs)  # (B, K, 2) = (h, w)
+    hw = torch.round(hw)
+    finite = torch.isfinite(hw).all(dim=-1)
+    hi = torch.nan_to_num(hw[..., 0], nan=-1.0)
+    wi = torch.nan_to_num(hw[..., 1], nan=-1.0)
+    inside = finite & (hi >= 0) & (hi <= H - 1) & (wi >= 0) & (wi <= W - 1)
+    hi = hi.clamp(0, H - 1).long()
+    wi = wi.clamp(0, W - 1).long()
+    bidx = torch.arange(B, device=dev)[:, None].expand(B, K)
+    covered = inside & column[bidx, hi, wi]
+    return (visible.to(dev).bool() & ~covered).sum(dim=-1)
+
+
+def rank_proposals(
+    scores: torch.Tensor, misses: torch.Tensor, valid: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Order every reference's proposals: valid first, then fewest keypoint misses, then
+    lowest score (NaN scores after finite ones); ties keep the proposal order.
+
+    Args:
+        scores: ``(R, P)`` float (:func:`score_proposals`).
+        misses: ``(R, P)`` int (:func:`keypoint_misses`).
+        valid: ``(R, P)`` bool.
+
+    Returns:
+        ``order (R, P)`` long proposal indices, best first, and ``best (R,)`` long, the
+        best valid proposal, ``-1`` for a reference with none.
+
+    Example:
+        >>> order, best = rank_proposals(torch.tensor([[0.1, 0.2, 0.0]]), torch.tensor([[1, 0, 0]]),
+        ...                              torch.tensor([[True, True, False]]))
+        >>> order.tolist(), best.tolist()
+        ([[1, 0, 2]], [1])
+    """
+    if not isinstance(scores, torch.Tensor) or scores.dim() != 2:
+        raise ValueError("scores must be a (R, P) tensor")
+    if not isinstance(misses, torch.Tensor) or misses.shape != scores.shape:
+        raise ValueError(f"misses must be {tuple(scores.shape)} like scores")
+    if not isinstance(valid, torch.Tensor) or valid.shape != scores.shape:
+        raise ValueError(f"valid must be {tuple(scores.shape)} like scores")
+    dev = scores.device
+    s = torch.nan_to_num(scores.to(torch.float64), nan=float("inf"))
+    isnan = torch.isnan(scores)
+    # Successive stable sorts, least significant key first.
+    order = torch.argsort(s, dim=-1, stable=True)
+    order = order.gather(1, torch.argsort(isnan.gather(1, order).to(torch.int8), dim=-1, stable=True))
+    order = order.gather(1, torch.argsort(misses.to(dev).long().gather(1, order), dim=-1, stable=True))
+    invalid = ~valid.to(dev).bool()
+    order = order.gather(1, torch.argsort(invalid.gather(1, order).to(torch.int8), dim=-1, stable=True))
+    any_valid = valid.to(dev).bool().any(dim=-1)
+    if order.shape[1]:
+        best = torch.where(any_valid, order[:, 0], torch.full_like(order[:, 0], -1))
+    else:
+        best = torch.full((order.shape[0],), -1, dtype=torch.long, device=dev)
+    return order, best

@@ -1,0 +1,501 @@
+"""Principal directions of a class, viewpoint clusters and surrogate triplets.
+
+Steps 5 and 6 of the pipeline (DESIGN.md; paper, "Sampling shape surrogates"):
+
+1. :func:`principal_directions` — PCA axes of the SfM mean shape ``S``.
+2. :func:`cluster_by_direction` — instances seen (front or back) within a threshold of a
+   principal axis form that axis' cluster; the threshold widens while too few
+   instances are clustered.
+3. :func:`sample_triplets` — per reference instance, ``P`` triplets = the reference +
+   one surrogate from each of two *different* clusters, clusters drawn with probability
+   proportional to their size.
+4. Rotationally symmetric classes (bottle-like) replace surrogates by the reference seen
+   from cameras rotated about the symmetry axis: :func:`symmetry_axis`,
+   :func:`symmetric_surrogates`.
+
+Conventions: the object frame is the frame of the mean shape ``S (K, 3)``; a camera's
+viewing direction in that frame is ``R[2]`` (:attr:`ScaledOrthographic.view_direction`).
+Rows of ``S`` holding NaN (keypoints SfM never saw) are ignored everywhere.
+Randomness only through the ``torch.Generator`` passed in.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from carvi_torch.cameras import ScaledOrthographic, rotation_about_axis
+
+__all__ = [
+    "Clusters",
+    "Triplets",
+    "principal_components",
+    "principal_directions",
+    "cluster_by_direction",
+    "cluster_weights",
+    "sample_triplets",
+    "symmetry_axis",
+    "symmetric_surrogates",
+]
+
+
+# --------------------------------------------------------------------------- PCA
+
+
+def _finite_rows(S: torch.Tensor, name: str = "S") -> torch.Tensor:
+    """Rows of ``S (K, 3)`` without NaN/inf; ``ValueError`` if the shape is wrong."""
+    if not isinstance(S, torch.Tensor) or S.dim() != 2 or S.shape[-1] != 3:
+        shape = tuple(S.shape) if isinstance(S, torch.Tensor) else type(S).__name__
+        raise ValueError(f"{name} must be a (K, 3) tensor, got {shape}")
+    return S[torch.isfinite(S).all(dim=-1)]
+
+
+def principal_components(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """PCA of a mean shape: axes and variances, by decreasing variance.
+
+    Rows of ``S`` with a non-finite entry are ignored. The covariance of the centred
+    finite rows is eigen-decomposed in float64 (``torch.linalg.eigh``).
+
+    Sign convention (the eigenvectors' signs are arbitrary): the first two axes are
+    flipped so that their component of largest magnitude is positive; the third is
+    their cross product, so ``axes`` is a proper rotation (right-handed, ``det = +1``).
+
+    Args:
+        S: ``(K, 3)`` float, object frame; may hold NaN rows.
+
+    Returns:
+        ``axes (3, 3)`` (rows = unit axes, decreasing variance) and ``variances (3,)``
+        (population variance of the finite rows along each axis), both in ``S``'s dtype
+        and device.
+
+    Raises:
+        ValueError: ``S`` is not ``(K, 3)`` or has fewer than 3 finite rows.
+
+    Example:
+        >>> S = torch.tensor([[3.0, 0, 0], [-3.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0], [0, 0, .5]])
+        >>> axes, var = principal_components(S)
+        >>> axes.abs().round()
+        tensor([[1., 0., 0.],
+                [0., 1., 0.],
+                [0., 0., 1.]])
+    """
+    X = _finite_rows(S)
+    if X.shape[0] < 3:
+        raise ValueError(f"S needs at least 3 finite rows for a PCA, got {X.shape[0]}")
+    X = X.double()
+    Xc = X - X.mean(dim=0, keepdim=True)
+    cov = Xc.T @ Xc / X.shape[0]
+    evals, evecs = torch.linalg.eigh(cov)  # ascending; columns are eigenvectors
+    order = torch.arange(2, -1, -1, device=S.device)
+    evals = evals[order].clamp_min(0.0)
+    axes = evecs[:, order].T.contiguous()  # rows
+    idx = axes[:2].abs().argmax(dim=-1)  # (2,)
+    sign = torch.sign(axes[:2].gather(1, idx[:, None]))
+    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+    first_two = axes[:2] * sign
+    third = torch.linalg.cross(first_two[0], first_two[1], dim=-1)
+    axes = torch.cat([first_two, third[None]], dim=0)
+    return axes.to(S.dtype), evals.to(S.dtype)
+
+
+def principal_directions(S: torch.Tensor) -> torch.Tensor:
+    """Principal directions of a class: PCA axes of its centred mean shape.
+
+    See :func:`principal_components` for NaN handling and the sign convention.
+
+    Args:
+        S: ``(K, 3)`` float mean shape (object frame); NaN rows are ignored.
+
+    Returns:
+        ``(3, 3)``: rows = unit axes by decreasing variance; a proper rotation.
+    """
+    return principal_components(S)[0]
+
+
+# --------------------------------------------------------------------------- clusters
+
+
+@dataclass
+class Clusters:
+    """Instances grouped by the principal direction they are seen along.
+
+    Attributes:
+        labels: ``(N,)`` long in ``{-1, 0, 1, 2}``: the axis whose cluster the instance
+            joined, ``-1`` for none.
+        threshold_deg: the angular threshold finally used (degrees).
+        sizes: ``(3,)`` long, members per axis.
+        log: human-readable notes, one per widening of the threshold (each starting with
+            ``"widened"``) and one if the maximum was reached without success.
+        angle_deg: ``(N,)`` float, angle (degrees, in ``[0, 90]``) between each
+            instance's viewing direction and its nearest principal axis (front or back).
+    """
+
+    labels: torch.Tensor
+    threshold_deg: float
+    sizes: torch.Tensor
+    log: list[str] = field(default_factory=list)
+    angle_deg: torch.Tensor | None = None
+
+
+def _check_axes(axes: torch.Tensor) -> None:
+    if not isinstance(axes, torch.Tensor) or axes.shape != (3, 3):
+        shape = tuple(axes.shape) if isinstance(axes, torch.Tensor) else type(axes).__name__
+        raise ValueError(f"axes must be a (3, 3) tensor (rows = principal axes), got {shape}")
+
+
+def cluster_by_direction(
+    view_dirs: torch.Tensor,
+    axes: torch.Tensor,
+    threshold_deg: float = 15.0,
+    widen_step_deg: float = 5.0,
+    max_threshold_deg: float = 45.0,
+    min_second: int = 2,
+) -> Clusters:
+    """Cluster instances around the principal directions by their viewing direction.
+
+    Instance ``n`` joins the cluster of axis ``j`` when the angle between its viewing
+    direction and ``+axes[j]`` or ``-axes[j]`` (front or back view) is strictly below
+    the threshold. The axes being orthogonal and the threshold at most 45 degrees, an
+    instance is near at most one axis: it is tested against its nearest axis only.
+
+    Widening: while the second-smallest cluster has fewer than ``min_second`` members
+    (so fewer than two clusters can provide surrogates), the threshold grows by
+    ``widen_step_deg`` (the last step clipped to ``max_threshold_deg``), each widening
+    noted in ``log``.
+
+    Args:
+        view_dirs: ``(N, 3)`` viewing directions in the object frame
+            (``cameras.R[:, 2]``); normalised here; a non-finite row joins no cluster.
+        axes: ``(3, 3)`` principal axes (rows), e.g. from :func:`principal_directions`.
+        threshold_deg: initial threshold (degrees, ``> 0``).
+        widen_step_deg: widening step (degrees, ``> 0``).
+        max_threshold_deg: largest threshold (degrees, ``threshold_deg <= . <= 45``).
+        min_second: members the second-smallest cluster should have (``>= 0``).
+
+    Returns:
+        :class:`Clusters` on the device of ``view_dirs``.
+
+    Example:
+        >>> v = torch.tensor([[0.0, 0, 1], [0, 0, -1], [1, 0, 0], [1, 1, 0]])
+        >>> cluster_by_direction(v, torch.eye(3), min_second=1).labels
+        tensor([ 2,  2,  0, -1])
+    """
+    if not isinstance(view_dirs, torch.Tensor) or view_dirs.dim() != 2 or view_dirs.shape[-1] != 3:
+        shape = tuple(view_dirs.shape) if isinstance(view_dirs, torch.Tensor) else type(view_dirs).__name__
+        raise ValueError(f"view_dirs must be a (N, 3) tensor, got {shape}")
+    _check_axes(axes)
+    if not threshold_deg > 0:
+        raise ValueError(f"threshold_deg must be > 0, got {threshold_deg}")
+    if not widen_step_deg > 0:
+        raise ValueError(f"widen_step_deg must be > 0, got {widen_step_deg}")
+    if not threshold_deg <= max_threshold_deg <= 45.0:
+        raise ValueError(
+            f"max_threshold_deg must lie in [threshold_deg={threshold_deg}, 45], got {max_threshold_deg}"
+        )
+    if min_second < 0:
+        raise ValueError(f"min_second must be >= 0, got {min_second}")
+
+    dev = view_dirs.device
+    v = view_dirs.double()
+    v = v / v.norm(dim=-1, keepdim=True)
+    a = axes.to(device=dev, dtype=torch.float64)
+    a = a / a.norm(dim=-1, keepdim=True)
+    cos = (v @ a.T).abs().clamp(max=1.0)  # (N, 3)
+    best_cos, nearest = cos.max(dim=-1)
+    angle = torch.rad2deg(torch.acos(best_cos))  # NaN rows stay NaN and join no cluster
+
+    log: list[str] = []
+    thr = float(threshold_deg)
+    while True:
+        labels = torch.where(angle < thr, nearest, torch.full_like(nearest, -1))
+        sizes = torch.bincount(labels[labels >= 0], minlength=3)[:3]
+        second = int(sizes.sort().values[1])
+        if second >= min_second:
+            break
+        if thr >= max_threshold_deg:
+            log.append(
+                f"second-smallest principal-direction cluster still has {second} < {min_second} members "
+                f"at the maximum threshold {thr:g} deg (sizes {sizes.tolist()})"
+            )
+            break
+        new = min(thr + widen_step_deg, float(max_threshold_deg))
+        log.append(
+            f"widened principal-direction threshold from {thr:g} to {new:g} deg: second-smallest cluster "
+            f"has {second} < {min_second} members (sizes {sizes.tolist()})"
+        )
+        thr = new
+    return Clusters(labels=labels, threshold_deg=thr, sizes=sizes, log=log, angle_deg=angle.to(view_dirs.dtype))
+
+
+# --------------------------------------------------------------------------- triplets
+
+
+@dataclass
+class Triplets:
+    """Sampled surrogate pairs: reference ``r``'s proposal ``p`` carves
+    ``references[r], surrogates[r, p, 0], surrogates[r, p, 1]``.
+
+    Attributes:
+        surrogates: ``(R, P, 2)`` long instance indices, ``-1`` where the proposal is
+            invalid (no usable pair, or a duplicate of an earlier proposal).
+        valid: ``(R, P)`` bool, ``valid == (surrogates >= 0).all(-1)``.
+        reasons: ``{instance index of the reference: why}`` for every reference with no
+            valid proposal at all.
+        clusters: ``(R, P, 2)`` long, the principal direction each surrogate came from
+            (``-1`` where invalid).
+    """
+
+    surrogates: torch.Tensor
+    valid: torch.Tensor
+    reasons: dict[int, str]
+    clusters: torch.Tensor
+
+
+def cluster_weights(
+    labels: torch.Tensor,
+    object_ids: torch.Tensor,
+    references: torch.Tensor,
+    own_cluster_weight: float = 0.1,
+    floor: float = 0.2,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unnormalised probabilities of drawing each cluster for each reference.
+
+    ``w[r, j] = max(sizes[j] / sizes.sum(), floor)``; the reference's own cluster gets
+    ``own_cluster_weight`` instead; a cluster with no member eligible for the reference
+    (members not sharing its ``object_id``, hence never the reference itself) gets 0.
+
+    Args:
+        labels: ``(N,)`` long cluster labels in ``{-1, 0, 1, 2}``.
+        object_ids: ``(N,)`` long physical-object ids.
+        references: ``(R,)`` long instance indices.
+        own_cluster_weight, floor: as above.
+
+    Returns:
+        ``weights (R, 3)`` float64 and ``eligible (R, 3)`` long, the number of members of
+        each cluster eligible as surrogates of each reference.
+    """
+    sizes = torch.bincount(labels[labels >= 0], minlength=3)[:3].double()
+    total = sizes.sum().clamp_min(1.0)
+    base = torch.clamp(sizes / total, min=floor)  # (3,)
+    # eligible[r, j] = #{n : labels[n] == j, object_ids[n] != object_ids[ref_r]}
+    onehot = (labels[:, None] == torch.arange(3, device=labels.device)).long()  # (N, 3)
+    other = object_ids[None, :] != object_ids[references][:, None]  # (R, N)
+    eligible = other.long() @ onehot  # (R, 3)
+    w = base[None, :].expand(references.shape[0], 3).clone()
+    own = labels[references]
+    has_own = own >= 0
+    w[has_own.nonzero().squeeze(-1), own[has_own]] = float(own_cluster_weight)
+    w = torch.where(eligible > 0, w, torch.zeros_like(w))
+    return w, eligible
+
+
+def sample_triplets(
+    labels: torch.Tensor,
+    object_ids: torch.Tensor,
+    references: torch.Tensor,
+    proposals: int = 20,
+    generator: torch.Generator | None = None,
+    own_cluster_weight: float = 0.1,
+    floor: float = 0.2,
+) -> Triplets:
+    """Sample ``proposals`` surrogate pairs for every reference instance.
+
+    Per reference and proposal: two *different* principal-direction clusters are drawn
+    without replacement (``torch.multinomial`` on the weights of
+    :func:`cluster_weights`: proportional to cluster size, floored at ``floor``, the
+    reference's own cluster at ``own_cluster_weight``, clusters without an eligible
+    member at 0); then one surrogate uniformly from the eligible members of each (a
+    masked categorical, ``torch.multinomial`` over instances). A surrogate never is the
+    reference nor shares its ``object_id`` (annotations without a known object must
+    carry unique ids). A proposal repeating an earlier proposal's unordered pair is
+    marked invalid (first occurrence kept). A reference with fewer than two clusters of
+    positive weight gets no valid proposal and a reason.
+
+    Sampling runs on ``generator.device`` (CPU when ``generator`` is None, using the
+    global RNG), so a CPU generator gives the same triplets for CPU and CUDA inputs;
+    results are returned on the device of ``labels``. The same generator state gives the
+    same triplets.
+
+    Args:
+        labels: ``(N,)`` long in ``{-1, 0, 1, 2}`` (:attr:`Clusters.labels`).
+        object_ids: ``(N,)`` long.
+        references: ``(R,)`` long instance indices in ``[0, N)``.
+        proposals: ``P >= 1`` proposals per reference.
+        generator: ``torch.Generator``.
+        own_cluster_weight: weight of the reference's own cluster (``>= 0``).
+        floor: lower bound of a non-empty cluster's normalised size (``>= 0``).
+
+    Returns:
+        :class:`Triplets`.
+
+    Example:
+        >>> labels = torch.tensor([0, 0, 1, 1, 2, 2])
+        >>> t = sample_triplets(labels, torch.arange(6), torch.tensor([0]), 4, torch.Generator().manual_seed(0))
+        >>> t.surrogates.shape, bool(t.valid.any())
+        (torch.Size([1, 4, 2]), True)
+    """
+    for name, x in (("labels", labels), ("object_ids", object_ids), ("references", references)):
+        if not isinstance(x, torch.Tensor) or x.dim() != 1:
+            raise ValueError(f"{name} must be a 1-D tensor")
+        if x.dtype.is_floating_point or x.dtype == torch.bool:
+            raise ValueError(f"{name} must hold integers, got {x.dtype}")
+    n = labels.shape[0]
+    if object_ids.shape[0] != n:
+        raise ValueError(f"object_ids must have N={n} entries like labels, got {object_ids.shape[0]}")
+    if labels.numel() and (labels.min() < -1 or labels.max() > 2):
+        raise ValueError("labels must lie in {-1, 0, 1, 2}")
+    if references.numel() and (references.min() < 0 or references.max() >= n):
+        raise ValueError(f"references must be instance indices in [0, {n})")
+    if int(proposals) < 1:
+        raise ValueError(f"proposals must be >= 1, got {proposals}")
+    if own_cluster_weight < 0 or floor < 0:
+        raise ValueError(f"own_cluster_weight and floor must be >= 0, got {own_cluster_weight}, {floor}")
+
+    out_dev = labels.device
+    dev = generator.device if generator is not None else torch.device("cpu")
+    labels = labels.to(dev).long()
+    object_ids = object_ids.to(dev).long()
+    references = references.to(dev).long()
+    R, P = references.shape[0], int(proposals)
+
+    w, eligible = cluster_weights(labels, object_ids, references, own_cluster_weight, floor)  # (R, 3)
+    usable = (w > 0).sum(dim=-1) >= 2  # (R,)
+
+    # 1. two different clusters per proposal.
+    w_draw = torch.where(usable[:, None], w, torch.ones_like(w))  # placeholder rows keep multinomial happy
+    w_draw = w_draw[:, None, :].expand(R, P, 3).reshape(R * P, 3)
+    if R * P:
+        pick = torch.multinomial(w_draw, 2, replacement=False, generator=generator).reshape(R, P, 2)
+    else:
+        pick = torch.zeros(R, P, 2, dtype=torch.long, device=dev)
+
+    # 2. one eligible member of every cluster per slot, then keep the chosen cluster's.
+    member = (labels[None, None, :] == torch.arange(3, device=dev)[None, :, None]) & (
+        object_ids[None, None, :] != object_ids[references][:, None, None]
+    )  # (R, 3, N)
+    probs = member.float()
+    probs = torch.where(eligible[..., None] > 0, probs, torch.ones_like(probs))  # placeholders for empty rows
+    if R * P and n:
+        draws = torch.multinomial(probs.reshape(R * 3, n), 2 * P, replacement=True, generator=generator)
+        draws = draws.reshape(R, 3, P, 2)
+        surrogates = draws.permute(0, 2, 3, 1).gather(-1, pick[..., None]).squeeze(-1)  # (R, P, 2)
+    else:
+        surrogates = torch.full((R, P, 2), -1, dtype=torch.long, device=dev)
+
+    # 3. invalid rows and duplicated unordered pairs.
+    valid = usable[:, None].expand(R, P).clone()
+    key = surrogates.min(dim=-1).values * max(n, 1) + surrogates.max(dim=-1).values  # (R, P)
+    same = key[:, :, None] == key[:, None, :]  # (R, P, P): [r, p, q]
+    earlier = torch.ones(P, P, dtype=torch.bool, device=dev).tril(diagonal=-1)  # q < p
+    dup = (same & earlier).any(dim=-1)
+    valid &= ~dup
+    surrogates = torch.where(valid[..., None], surrogates, torch.full_like(surrogates, -1))
+    clusters = torch.where(valid[..., None], pick, torch.full_like(pick, -1))
+
+    reasons: dict[int, str] = {}
+    if R and not bool(usable.all()):
+        sizes = torch.bincount(labels[labels >= 0], minlength=3)[:3].tolist()
+        for r in (~usable).nonzero().squeeze(-1).tolist():  # only the failing references
+            ref = int(references[r])
+            own = int(labels[ref])
+            reasons[ref] = (
+                f"fewer than two principal-direction clusters can give a surrogate: eligible members per "
+                f"direction {eligible[r].tolist()} (cluster sizes {sizes}, own cluster {own}, weights "
+                f"{[round(x, 3) for x in w[r].tolist()]}); members sharing the reference's object_id are excluded"
+            )
+    return Triplets(
+        surrogates=surrogates.to(out_dev), valid=valid.to(out_dev), reasons=reasons, clusters=clusters.to(out_dev)
+    )
+
+
+# --------------------------------------------------------------------------- rotational symmetry
+
+
+def symmetry_axis(S: torch.Tensor, choice: int | None = None) -> torch.Tensor:
+    """Axis of rotational symmetry of a (roughly) rotationally symmetric class.
+
+    Among the PCA axes (:func:`principal_components`, variances ``l0 >= l1 >= l2``) the
+    symmetry axis is the one whose variance stands apart from the two others, which are
+    about equal for a solid of revolution: the first axis when
+    ``log(l0 / l1) > log(l1 / l2)`` (elongated, e.g. a bottle), else the third (flat, e.g.
+    a round table). The middle axis never stands apart by this measure. ``choice`` picks
+    PCA axis 0, 1 or 2 explicitly instead.
+
+    Args:
+        S: ``(K, 3)`` mean shape (object frame), NaN rows ignored.
+        choice: ``None`` (automatic) or a PCA axis index in ``{0, 1, 2}``.
+
+    Returns:
+        ``(3,)`` unit axis in the object frame.
+
+    Example:
+        >>> S = torch.tensor([[0, 0, 5.0], [0, 0, -5], [1, 0, 0], [-1, 0, 0], [0, 1.1, 0], [0, -1.1, 0]])
+        >>> symmetry_axis(S).abs()
+        tensor([0., 0., 1.])
+    """
+    axes, var = principal_components(S)
+    if choice is not None:
+        if choice not in (0, 1, 2):
+            raise ValueError(f"choice must be None or a PCA axis index in {{0, 1, 2}}, got {choice}")
+        return axes[choice]
+    v = var.double().clamp_min(torch.finfo(torch.float64).tiny)
+    top = torch.log(v[0] / v[1])
+    bottom = torch.log(v[1] / v[2])
+    return axes[0] if bool(top > bottom) else axes[2]
+
+
+def symmetric_surrogates(
+    camera: ScaledOrthographic, axis: torch.Tensor, step_deg: float = 90.0, centre: torch.Tensor | None = None
+) -> ScaledOrthographic:
+    """Cameras that stand in for surrogates of a rotationally symmetric reference.
+
+    Camera ``k`` is ``R_k = R @ Rot(axis, k * step)`` for ``k = 1 .. 360/step - 1`` with
+    the reference's ``s`` and ``t`` (``Rot`` right-handed, :func:`rotation_about_axis`).
+    Seen from camera ``k``, a point ``X`` lands where the reference camera sees
+    ``Rot(axis, k step) X``; carving the reference mask from all these cameras
+    intersects the reference's visual cone with its rotated copies, i.e. assumes the
+    object is a solid of revolution about ``axis`` through the object-frame origin.
+    With ``centre = c`` the axis passes through ``c`` instead: the point seen is
+    ``Rot (X - c) + c``, so ``t_k = t + s (R (c - Rot c))[:2]``.
+    (The paper rotated every 45 degrees; the default here is 90.)
+
+    Args:
+        camera: a ``ScaledOrthographic`` of length 1.
+        axis: ``(3,)`` symmetry axis in the object frame (:func:`symmetry_axis`).
+        step_deg: rotation step in degrees; ``360 / step_deg`` must be an integer ``>= 2``.
+        centre: optional ``(3,)`` point of the axis (object frame); default the origin.
+
+    Returns:
+        ``ScaledOrthographic`` of length ``360 / step_deg - 1`` on the camera's device.
+
+    Example:
+        >>> cam = ScaledOrthographic(torch.eye(3)[None], torch.ones(1), torch.zeros(1, 2))
+        >>> len(symmetric_surrogates(cam, torch.tensor([0.0, 0, 1]), 45.0))
+        7
+    """
+    if not isinstance(camera, ScaledOrthographic) or len(camera) != 1:
+        raise ValueError("camera must be a ScaledOrthographic of length 1")
+    if not isinstance(axis, torch.Tensor) or axis.shape != (3,):
+        raise ValueError("axis must be a (3,) tensor")
+    if not bool(torch.isfinite(axis).all()) or float(axis.norm()) == 0.0:
+        raise ValueError("axis must be finite and non-zero")
+    if not step_deg > 0:
+        raise ValueError(f"step_deg must be > 0, got {step_deg}")
+    count = 360.0 / step_deg
+    n = int(round(count))
+    if abs(count - n) > 1e-6 or n < 2:
+        raise ValueError(f"step_deg must divide 360 into at least 2 steps, got {step_deg}")
+    R0 = camera.R[0]
+    k = torch.arange(1, n, dtype=torch.float64, device=R0.device)
+    angles = torch.deg2rad(k * float(step_deg))
+    rot = rotation_about_axis(axis.to(device=R0.device, dtype=torch.float64).expand(n - 1, 3), angles)
+    R = R0.double() @ rot  # (n-1, 3, 3)
+    t = camera.t.double().expand(n - 1, 2).clone()
+    if centre is not None:
+        if not isinstance(centre, torch.Tensor) or centre.shape != (3,):
+            raise ValueError("centre must be None or a (3,) tensor")
+        c = centre.to(device=R0.device, dtype=torch.float64)
+        shift = R0.double()[:2] @ c - (R[:, :2, :] @ c)  # R (c - Rot c) restricted to image rows
+        t = t + camera.s.double() * shift
+    return ScaledOrthographic(R.to(R0.dtype), camera.s.expand(n - 1).clone(), t.to(camera.t.dtype))
