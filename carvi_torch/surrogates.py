@@ -448,34 +448,35 @@ def symmetry_axis(S: torch.Tensor, choice: int | None = None) -> torch.Tensor:
 def symmetric_surrogates(
     camera: ScaledOrthographic, axis: torch.Tensor, step_deg: float = 90.0, centre: torch.Tensor | None = None
 ) -> ScaledOrthographic:
-    """Cameras that stand in for surrogates of a rotationally symmetric reference.
+    """Cameras that stand in for surrogates of rotationally symmetric references.
 
-    Camera ``k`` is ``R_k = R @ Rot(axis, k * step)`` for ``k = 1 .. 360/step - 1`` with
-    the reference's ``s`` and ``t`` (``Rot`` right-handed, :func:`rotation_about_axis`).
-    Seen from camera ``k``, a point ``X`` lands where the reference camera sees
-    ``Rot(axis, k step) X``; carving the reference mask from all these cameras
-    intersects the reference's visual cone with its rotated copies, i.e. assumes the
-    object is a solid of revolution about ``axis`` through the object-frame origin.
-    With ``centre = c`` the axis passes through ``c`` instead: the point seen is
+    For each reference camera, camera ``k`` is ``R_k = R @ Rot(axis, k * step)`` for
+    ``k = 1 .. 360/step - 1`` with the reference's ``s`` and ``t`` (``Rot`` right-handed,
+    :func:`rotation_about_axis`). Seen from camera ``k``, a point ``X`` lands where the
+    reference camera sees ``Rot(axis, k step) X``; carving the reference mask from all
+    these cameras intersects the reference's visual cone with its rotated copies, i.e.
+    assumes the object is a solid of revolution about ``axis`` through the object-frame
+    origin. With ``centre = c`` the axis passes through ``c`` instead: the point seen is
     ``Rot (X - c) + c``, so ``t_k = t + s (R (c - Rot c))[:2]``.
     (The paper rotated every 45 degrees; the default here is 90.)
 
     Args:
-        camera: a ``ScaledOrthographic`` of length 1.
+        camera: ``ScaledOrthographic`` of ``N >= 1`` reference cameras.
         axis: ``(3,)`` symmetry axis in the object frame (:func:`symmetry_axis`).
         step_deg: rotation step in degrees; ``360 / step_deg`` must be an integer ``>= 2``.
         centre: optional ``(3,)`` point of the axis (object frame); default the origin.
 
     Returns:
-        ``ScaledOrthographic`` of length ``360 / step_deg - 1`` on the camera's device.
+        ``ScaledOrthographic`` of length ``N * (360 / step_deg - 1)`` on the camera's device,
+        reference-major: entries ``[i * m, (i + 1) * m)`` belong to reference ``i``.
 
     Example:
         >>> cam = ScaledOrthographic(torch.eye(3)[None], torch.ones(1), torch.zeros(1, 2))
         >>> len(symmetric_surrogates(cam, torch.tensor([0.0, 0, 1]), 45.0))
         7
     """
-    if not isinstance(camera, ScaledOrthographic) or len(camera) != 1:
-        raise ValueError("camera must be a ScaledOrthographic of length 1")
+    if not isinstance(camera, ScaledOrthographic) or len(camera) < 1:
+        raise ValueError("camera must be a non-empty ScaledOrthographic")
     if not isinstance(axis, torch.Tensor) or axis.shape != (3,):
         raise ValueError("axis must be a (3,) tensor")
     if not bool(torch.isfinite(axis).all()) or float(axis.norm()) == 0.0:
@@ -486,16 +487,18 @@ def symmetric_surrogates(
     n = int(round(count))
     if abs(count - n) > 1e-6 or n < 2:
         raise ValueError(f"step_deg must divide 360 into at least 2 steps, got {step_deg}")
-    R0 = camera.R[0]
+    N, m = len(camera), n - 1
+    R0 = camera.R.double()  # (N, 3, 3)
     k = torch.arange(1, n, dtype=torch.float64, device=R0.device)
     angles = torch.deg2rad(k * float(step_deg))
-    rot = rotation_about_axis(axis.to(device=R0.device, dtype=torch.float64).expand(n - 1, 3), angles)
-    R = R0.double() @ rot  # (n-1, 3, 3)
-    t = camera.t.double().expand(n - 1, 2).clone()
+    rot = rotation_about_axis(axis.to(device=R0.device, dtype=torch.float64).expand(m, 3), angles)  # (m, 3, 3)
+    R = R0[:, None] @ rot[None]  # (N, m, 3, 3)
+    t = camera.t.double()[:, None, :].expand(N, m, 2).clone()
     if centre is not None:
         if not isinstance(centre, torch.Tensor) or centre.shape != (3,):
             raise ValueError("centre must be None or a (3,) tensor")
         c = centre.to(device=R0.device, dtype=torch.float64)
-        shift = R0.double()[:2] @ c - (R[:, :2, :] @ c)  # R (c - Rot c) restricted to image rows
-        t = t + camera.s.double() * shift
-    return ScaledOrthographic(R.to(R0.dtype), camera.s.expand(n - 1).clone(), t.to(camera.t.dtype))
+        shift = (R0[:, None, :2] @ c) - (R[:, :, :2, :] @ c)  # (N, m, 2): R (c - Rot c), image rows
+        t = t + camera.s.double()[:, None, None] * shift
+    s_rep = camera.s[:, None].expand(N, m).reshape(-1).clone()
+    return ScaledOrthographic(R.reshape(-1, 3, 3).to(camera.R.dtype), s_rep, t.reshape(-1, 2).to(camera.t.dtype))

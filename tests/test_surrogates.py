@@ -416,5 +416,18 @@ class TestSymmetry:
             symmetric_surrogates(cam, torch.tensor([0.0, 0, 1]), 360.0)
         with pytest.raises(ValueError, match="axis"):
             symmetric_surrogates(cam, torch.zeros(3), 90.0)
-        with pytest.raises(ValueError, match="length 1"):
-            symmetric_surrogates(ScaledOrthographic.cat([cam, cam]), torch.tensor([0.0, 0, 1]))
+        with pytest.raises(ValueError, match="non-empty"):
+            symmetric_surrogates(cam[0:0], torch.tensor([0.0, 0, 1]))
+
+    def test_batched_equals_one_by_one(self, generator):
+        from carvi_torch.cameras import random_rotations
+
+        cams = ScaledOrthographic(random_rotations(4, generator), torch.rand(4, generator=generator) + 1,
+                                  torch.rand(4, 2, generator=generator) * 50)
+        axis, c = torch.tensor([0.2, 0.1, 1.0]), torch.tensor([0.3, -0.2, 0.1])
+        out = symmetric_surrogates(cams, axis, 45.0, centre=c)
+        assert len(out) == 4 * 7
+        for i in range(4):
+            one = symmetric_surrogates(cams[i:i + 1], axis, 45.0, centre=c)
+            torch.testing.assert_close(out.R[7 * i:7 * (i + 1)], one.R)
+            torch.testing.assert_close(out.t[7 * i:7 * (i + 1)], one.t)
