@@ -412,7 +412,8 @@ def sample_triplets(
 # --------------------------------------------------------------------------- rotational symmetry
 
 
-def symmetry_axis(S: torch.Tensor, choice: int | None = None) -> torch.Tensor:
+def symmetry_axis(S: torch.Tensor, choice: int | None = None, up: torch.Tensor | None = None,
+                  planar_ratio: float = 1e-3) -> torch.Tensor:
     """Axis of rotational symmetry of a (roughly) rotationally symmetric class.
 
     Among the PCA axes (:func:`principal_components`, variances ``l0 >= l1 >= l2``) the
@@ -422,9 +423,18 @@ def symmetry_axis(S: torch.Tensor, choice: int | None = None) -> torch.Tensor:
     a round table). The middle axis never stands apart by this measure. ``choice`` picks
     PCA axis 0, 1 or 2 explicitly instead.
 
+    Planar keypoint sets (``l2 < planar_ratio * l0``; e.g. PASCAL's view-dependent bottle
+    keypoints, which lie on the silhouette) say nothing about the third direction: the
+    third PCA axis is then the normal of the keypoint plane, roughly the viewing direction,
+    never a symmetry axis. The axis is then the in-plane PCA axis (0 or 1) closest to
+    ``up`` when given (e.g. the mean image-up direction of the class's cameras: bottles and
+    tables stand upright in photos), else axis 0.
+
     Args:
         S: ``(K, 3)`` mean shape (object frame), NaN rows ignored.
         choice: ``None`` (automatic) or a PCA axis index in ``{0, 1, 2}``.
+        up: optional ``(3,)`` direction (object frame) used for planar keypoint sets.
+        planar_ratio: variance ratio below which the keypoints count as planar.
 
     Returns:
         ``(3,)`` unit axis in the object frame.
@@ -440,6 +450,11 @@ def symmetry_axis(S: torch.Tensor, choice: int | None = None) -> torch.Tensor:
             raise ValueError(f"choice must be None or a PCA axis index in {{0, 1, 2}}, got {choice}")
         return axes[choice]
     v = var.double().clamp_min(torch.finfo(torch.float64).tiny)
+    if float(v[2] / v[0]) < planar_ratio:
+        if up is None:
+            return axes[0]
+        u = up.to(axes)
+        return axes[0] if bool((axes[0] @ u).abs() >= (axes[1] @ u).abs()) else axes[1]
     top = torch.log(v[0] / v[1])
     bottom = torch.log(v[1] / v[2])
     return axes[0] if bool(top > bottom) else axes[2]

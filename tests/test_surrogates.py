@@ -419,6 +419,14 @@ class TestSymmetry:
         with pytest.raises(ValueError, match="non-empty"):
             symmetric_surrogates(cam[0:0], torch.tensor([0.0, 0, 1]))
 
+    def test_planar_keypoints(self):
+        """Coplanar keypoints (a bottle's silhouette points in the x-z plane): the axis lies in the plane."""
+        S = torch.tensor([[0, 0, 2.0], [0.3, 0, 1.0], [-0.3, 0, 1.0], [0.5, 0, -1.5], [-0.5, 0, -1.5], [0, 0, -2.0]])
+        assert symmetry_axis(S).abs().argmax() == 2  # the long in-plane axis, not the plane normal (y)
+        wide = S * torch.tensor([4.0, 1.0, 0.5])  # wider than tall: 'up' decides
+        assert symmetry_axis(wide, up=torch.tensor([0.1, 0.0, -1.0])).abs().argmax() == 2
+        assert symmetry_axis(wide).abs().argmax() == 0
+
     def test_batched_equals_one_by_one(self, generator):
         from carvi_torch.cameras import random_rotations
 
