@@ -93,6 +93,8 @@ class Config:
     """Triplets (reconstruction proposals) sampled per reference instance."""
     symmetric_step_deg: float = 90.0
     """Rotationally symmetric classes: synthesise surrogate views every this many degrees."""
+    symmetric_axis_in_image: bool = True
+    """Rotationally symmetric classes: assume each photo sees the symmetry axis in its image plane."""
 
     # ---- carving
     resolution: int = 60

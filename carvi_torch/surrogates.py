@@ -37,6 +37,7 @@ __all__ = [
     "sample_triplets",
     "symmetry_axis",
     "symmetric_surrogates",
+    "axis_in_image_plane",
 ]
 
 
@@ -460,6 +461,37 @@ def symmetry_axis(S: torch.Tensor, choice: int | None = None, up: torch.Tensor |
     return axes[0] if bool(top > bottom) else axes[2]
 
 
+def axis_in_image_plane(cameras: ScaledOrthographic, axis: torch.Tensor) -> torch.Tensor:
+    """Per camera, the symmetry axis turned into the camera's image plane.
+
+    Photos of rotationally symmetric objects (bottles, pots) are mostly taken from the side,
+    and with view-dependent, coplanar keypoints the out-of-plane tilt of an SfM camera is
+    not determined by the data. This keeps the axis' direction *in the image* (the
+    projection ``R[:2] @ axis``) and drops its depth component, so the reference is assumed
+    to be seen perpendicular to its axis.
+
+    Args:
+        cameras: ``N`` cameras.
+        axis: ``(3,)`` symmetry axis in the object frame.
+
+    Returns:
+        ``(N, 3)`` unit axes in the object frame (``R^T [a_x, a_y, 0]`` normalised). A camera
+        looking exactly along the axis keeps the original axis.
+
+    Example:
+        >>> cam = ScaledOrthographic(torch.eye(3)[None], torch.ones(1), torch.zeros(1, 2))
+        >>> axis_in_image_plane(cam, torch.tensor([0.0, 0.6, 0.8]))
+        tensor([[0., 1., 0.]])
+    """
+    a = axis.to(cameras.R) / axis.norm()
+    cam = cameras.R @ a  # (N, 3) in camera coordinates
+    flat = torch.cat([cam[:, :2], torch.zeros_like(cam[:, 2:])], dim=-1)
+    norm = flat.norm(dim=-1, keepdim=True)
+    ok = norm > 1e-6
+    out = (cameras.R.transpose(-1, -2) @ (flat / norm.clamp_min(1e-12)).unsqueeze(-1)).squeeze(-1)
+    return torch.where(ok, out, a.expand_as(out))
+
+
 def symmetric_surrogates(
     camera: ScaledOrthographic, axis: torch.Tensor, step_deg: float = 90.0, centre: torch.Tensor | None = None
 ) -> ScaledOrthographic:
@@ -477,7 +509,8 @@ def symmetric_surrogates(
 
     Args:
         camera: ``ScaledOrthographic`` of ``N >= 1`` reference cameras.
-        axis: ``(3,)`` symmetry axis in the object frame (:func:`symmetry_axis`).
+        axis: ``(3,)`` symmetry axis in the object frame (:func:`symmetry_axis`), or ``(N, 3)`` one
+            per reference (e.g. :func:`axis_in_image_plane`).
         step_deg: rotation step in degrees; ``360 / step_deg`` must be an integer ``>= 2``.
         centre: optional ``(3,)`` point of the axis (object frame); default the origin.
 
@@ -492,9 +525,9 @@ def symmetric_surrogates(
     """
     if not isinstance(camera, ScaledOrthographic) or len(camera) < 1:
         raise ValueError("camera must be a non-empty ScaledOrthographic")
-    if not isinstance(axis, torch.Tensor) or axis.shape != (3,):
-        raise ValueError("axis must be a (3,) tensor")
-    if not bool(torch.isfinite(axis).all()) or float(axis.norm()) == 0.0:
+    if not isinstance(axis, torch.Tensor) or axis.shape not in ((3,), (len(camera), 3)):
+        raise ValueError(f"axis must be a (3,) or ({len(camera)}, 3) tensor")
+    if not bool(torch.isfinite(axis).all()) or float(axis.norm(dim=-1).min()) == 0.0:
         raise ValueError("axis must be finite and non-zero")
     if not step_deg > 0:
         raise ValueError(f"step_deg must be > 0, got {step_deg}")
@@ -506,8 +539,9 @@ def symmetric_surrogates(
     R0 = camera.R.double()  # (N, 3, 3)
     k = torch.arange(1, n, dtype=torch.float64, device=R0.device)
     angles = torch.deg2rad(k * float(step_deg))
-    rot = rotation_about_axis(axis.to(device=R0.device, dtype=torch.float64).expand(m, 3), angles)  # (m, 3, 3)
-    R = R0[:, None] @ rot[None]  # (N, m, 3, 3)
+    ax = axis.to(device=R0.device, dtype=torch.float64).reshape(-1, 1, 3).expand(N, m, 3)
+    rot = rotation_about_axis(ax, angles.expand(N, m))  # (N, m, 3, 3)
+    R = R0[:, None] @ rot  # (N, m, 3, 3)
     t = camera.t.double()[:, None, :].expand(N, m, 2).clone()
     if centre is not None:
         if not isinstance(centre, torch.Tensor) or centre.shape != (3,):

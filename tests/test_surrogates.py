@@ -419,6 +419,30 @@ class TestSymmetry:
         with pytest.raises(ValueError, match="non-empty"):
             symmetric_surrogates(cam[0:0], torch.tensor([0.0, 0, 1]))
 
+    def test_axis_in_image_plane(self, generator):
+        from carvi_torch.cameras import random_rotations
+        from carvi_torch.surrogates import axis_in_image_plane
+
+        cams = ScaledOrthographic(random_rotations(6, generator), torch.ones(6), torch.zeros(6, 2))
+        axis = torch.tensor([0.3, -0.2, 0.9])
+        out = axis_in_image_plane(cams, axis)
+        in_cam = (cams.R @ out.unsqueeze(-1)).squeeze(-1)
+        torch.testing.assert_close(in_cam[:, 2], torch.zeros(6), atol=1e-6, rtol=0)  # no depth component
+        torch.testing.assert_close(out.norm(dim=-1), torch.ones(6))
+        proj = (cams.R[:, :2] @ axis)  # same direction in the image as the original axis
+        cos = (in_cam[:, :2] * proj).sum(-1) / proj.norm(dim=-1)
+        torch.testing.assert_close(cos, torch.ones(6), atol=1e-5, rtol=0)
+
+    def test_per_reference_axes(self, generator):
+        from carvi_torch.cameras import random_rotations
+
+        cams = ScaledOrthographic(random_rotations(3, generator), torch.ones(3), torch.zeros(3, 2))
+        axes = torch.nn.functional.normalize(torch.randn(3, 3, generator=generator), dim=-1)
+        out = symmetric_surrogates(cams, axes, 90.0)
+        for i in range(3):
+            one = symmetric_surrogates(cams[i:i + 1], axes[i], 90.0)
+            torch.testing.assert_close(out.R[3 * i:3 * i + 3], one.R)
+
     def test_planar_keypoints(self):
         """Coplanar keypoints (a bottle's silhouette points in the x-z plane): the axis lies in the plane."""
         S = torch.tensor([[0, 0, 2.0], [0.3, 0, 1.0], [-0.3, 0, 1.0], [0.5, 0, -1.5], [-0.5, 0, -1.5], [0, 0, -2.0]])
