@@ -47,7 +47,7 @@ import torch.nn.functional as F
 
 from .cameras import ScaledOrthographic, axis_angle_to_rotation, complete_rotation
 from .sdf import distance_to_mask
-from .sfm import scaled_stiefel
+from .sfm import cpu_single_thread, scaled_stiefel
 
 __all__ = [
     "RefineResult",
@@ -254,8 +254,15 @@ def _retract(R, s, t, delta):
 def _optimize(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol):
     """Levenberg-Marquardt over ``(N, B)`` cameras; see the module docstring.
 
+    Runs single-threaded on the CPU (:func:`carvi_torch.sfm.cpu_single_thread`).
+
     Returns ``R, s, t, E_before, E, E_kp, E_sil, iterations, converged (N, B)``.
     """
+    with cpu_single_thread(keypoints.device):
+        return _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol)
+
+
+def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol):
     dt = keypoints.dtype
     kmask = torch.isfinite(shape).all(-1)
     S = torch.nan_to_num(shape).to(dt)
