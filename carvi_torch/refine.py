@@ -141,6 +141,16 @@ def _check(shape, keypoints, visible, dist_maps, n_cams=None):
         raise ValueError(f"cameras has {n_cams} entries but keypoints has N={n}")
 
 
+def _finite_maps(maps: torch.Tensor) -> torch.Tensor:
+    """``maps`` with non-finite values (empty masks) set to 0; copies only when needed."""
+    bad = ~torch.isfinite(maps).flatten(1).all(1)
+    if not bool(bad.any()):
+        return maps
+    maps = maps.clone()
+    maps[bad] = torch.nan_to_num(maps[bad], nan=0.0, posinf=0.0, neginf=0.0)
+    return maps
+
+
 def _mask_valid(dist_maps: torch.Tensor, mask_valid) -> torch.Tensor:
     if mask_valid is None:
         return torch.isfinite(dist_maps).flatten(1).all(1)
@@ -185,7 +195,7 @@ def refinement_energy(
     kmask = torch.isfinite(shape).all(-1)
     S = torch.nan_to_num(shape).to(M.dtype)
     lam = silhouette_weight * _mask_valid(dist_maps, mask_valid).to(M.dtype)
-    maps = torch.where(torch.isfinite(dist_maps), dist_maps, torch.zeros_like(dist_maps)).to(M.dtype)
+    maps = _finite_maps(dist_maps).to(M.dtype)
     P = S @ M.transpose(-1, -2) + t[:, None, :]  # (N, K, 2)
     wv = (visible & kmask & torch.isfinite(keypoints).all(-1)).to(M.dtype)
     r = (P - torch.nan_to_num(keypoints).to(M.dtype)) * wv[..., None]
@@ -270,7 +280,7 @@ def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol
     wv = (visible & kmask & torch.isfinite(keypoints).all(-1)).to(dt)
     kp = torch.nan_to_num(keypoints)
     if maps is not None:
-        maps = torch.where(torch.isfinite(maps), maps, torch.zeros_like(maps)).to(dt)
+        maps = _finite_maps(maps).to(dt)
     E, E_kp, E_sil, g, H = _terms(R, s, t, S, kmf, kp, wv, maps, lam)
     E_before = E.clone()
     mu = torch.full_like(E, 1e-3)
