@@ -39,15 +39,15 @@ or ``max_iters`` iterations.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
-from .cameras import ScaledOrthographic, axis_angle_to_rotation, complete_rotation
+from .cameras import ScaledOrthographic, axis_angle_to_rotation, complete_rotation, nearest_scaled_rotation
 from .sdf import distance_to_mask
-from .sfm import cpu_single_thread, scaled_stiefel
 
 __all__ = [
     "RefineResult",
@@ -58,7 +58,69 @@ __all__ = [
     "estimate_camera",
     "mask_start_cameras",
     "sphere_rotations",
+    "scaled_stiefel",
+    "cpu_single_thread",
 ]
+
+
+# --------------------------------------------------------------------------- primitives
+
+
+@contextlib.contextmanager
+def cpu_single_thread(device: torch.device | str):
+    """Run the enclosed torch ops with one intra-op thread when ``device`` is the CPU.
+
+    The iterative solvers here are hundreds of small tensor ops; intra-op threads
+    only add synchronisation to them (measured: rigid SfM of 4,000 instances took
+    3.0 s with 1 thread and 26 s with 2 on a 2-core machine busy with other work).
+    The previous thread count is restored on exit. No effect on other devices.
+    """
+    if torch.device(device).type != "cpu" or torch.get_num_threads() == 1:
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def scaled_stiefel(M: torch.Tensor) -> torch.Tensor:
+    """Nearest scaled Stiefel matrix ``c U V^T`` of ``2x3`` blocks, in closed form.
+
+    Same result as :func:`carvi_torch.cameras.nearest_scaled_rotation` (``s * R[:2]``)
+    without a batched SVD: with ``A = M M^T`` and ``delta = sqrt(det A) = sigma_1
+    sigma_2``, ``(M M^T)^(-1/2) = adj(A + delta I) / (delta (sigma_1 + sigma_2))``
+    (the 2x2 square-root formula), so ``c U V^T = adj(A + delta I) M / (2 delta)``.
+    Blocks of rank < 2 (``delta <= 1e-10 tr A``) fall back to the SVD. Differentiable.
+
+    Args:
+        M: ``(..., 2, 3)``.
+
+    Returns:
+        ``(..., 2, 3)`` with orthogonal rows of equal norm ``c`` (the mean singular value).
+
+    Example:
+        >>> scaled_stiefel(torch.tensor([[2.0, 0, 0], [0, 4.0, 0]]))
+        tensor([[3., 0., 0.],
+                [0., 3., 0.]])
+    """
+    A = M @ M.transpose(-1, -2)
+    a, b, d = A[..., 0, 0], A[..., 0, 1], A[..., 1, 1]
+    tr = a + d
+    delta = (a * d - b * b).clamp(min=0).sqrt()
+    ok = delta > 1e-10 * tr
+    dsafe = torch.where(ok, delta, torch.ones_like(delta))
+    # adj(A + delta I) = [[d + delta, -b], [-b, a + delta]]
+    adj = torch.stack([torch.stack([d + delta, -b], -1), torch.stack([-b, a + delta], -1)], -2)
+    out = adj @ M / (2.0 * dsafe)[..., None, None]
+    if not bool(ok.all()):
+        R, s = nearest_scaled_rotation(M[~ok])
+        out = out.clone()
+        out[~ok] = s[:, None, None] * R[:, :2, :]
+    return out
+
 
 
 @dataclass
@@ -264,7 +326,7 @@ def _retract(R, s, t, delta):
 def _optimize(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol):
     """Levenberg-Marquardt over ``(N, B)`` cameras; see the module docstring.
 
-    Runs single-threaded on the CPU (:func:`carvi_torch.sfm.cpu_single_thread`).
+    Runs single-threaded on the CPU (:func:`cpu_single_thread`).
 
     Returns ``R, s, t, E_before, E, E_kp, E_sil, iterations, converged (N, B)``.
     """
@@ -286,17 +348,22 @@ def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol
     mu = torch.full_like(E, 1e-3)
     active = torch.isfinite(E)
     converged = torch.zeros_like(active)
-    eye = torch.eye(6, dtype=dt, device=E.device)
     it = 0
     for it in range(1, max_iters + 1):
         if not bool(active.any()):
             it -= 1
             break
-        diagH = H.diagonal(dim1=-2, dim2=-1)
-        ridge = 1e-9 * diagH.sum(-1, keepdim=True) / 6.0 + 1e-12
-        A = H + mu[..., None, None] * torch.diag_embed(diagH + ridge)
-        delta = -torch.linalg.solve(A + 1e-30 * eye, g.unsqueeze(-1)).squeeze(-1)
-        delta = torch.where(active[..., None] & torch.isfinite(delta), delta, torch.zeros_like(delta))
+        # damped 6x6 solves in float64: H can be rank-deficient (an instance with one
+        # visible keypoint whose shape points all fall inside its mask has no
+        # information about most directions); the relative ridge keeps A definite
+        H64 = H.double()
+        diagH = H64.diagonal(dim1=-2, dim2=-1)
+        ridge = 1e-6 * diagH.mean(-1, keepdim=True) + 1e-12
+        A = H64 + mu.double()[..., None, None] * torch.diag_embed(diagH + ridge)
+        sol, info = torch.linalg.solve_ex(A, g.double().unsqueeze(-1))
+        delta = (-sol.squeeze(-1)).to(dt)
+        ok = active & (info == 0) & torch.isfinite(delta).all(-1)
+        delta = torch.where(ok[..., None], delta, torch.zeros_like(delta))
         Rt, st, tt = _retract(R, s, t, delta)
         Et, Ekt, Est, gt, Ht = _terms(Rt, st, tt, S, kmf, kp, wv, maps, lam)
         accept = active & torch.isfinite(Et) & (Et <= E)
@@ -336,7 +403,7 @@ def refine_cameras(
     cameras: ScaledOrthographic,
     keypoints: torch.Tensor,
     visible: torch.Tensor,
-    dist_maps: torch.Tensor,
+    dist_maps: torch.Tensor | None,
     *,
     silhouette_weight: float = 1.0,
     max_iters: int = 100,
@@ -353,7 +420,7 @@ def refine_cameras(
         cameras: N initial cameras (e.g. ``SfMResult.cameras``).
         keypoints: ``(N, K, 2)`` canvas pixels; visible: ``(N, K)`` bool.
         dist_maps: ``(N, H, W)`` ``distance_to_mask`` of the canvas masks (``inf``
-            for empty masks).
+            for empty masks), or ``None`` for the keypoint term alone.
         silhouette_weight: ``lambda`` of the silhouette term (pixels^2 per pixel^2).
         max_iters, tol: see the stopping rule in the module docstring.
         mask_valid: ``(N,)`` bool; instances with False (empty masks) use the
@@ -366,7 +433,10 @@ def refine_cameras(
     if silhouette_weight < 0:
         raise ValueError(f"silhouette_weight must be >= 0, got {silhouette_weight}")
     dt = keypoints.dtype
-    lam = silhouette_weight * _mask_valid(dist_maps, mask_valid).to(dt)
+    if dist_maps is None:
+        lam = torch.zeros(keypoints.shape[0], dtype=dt, device=keypoints.device)
+    else:
+        lam = silhouette_weight * _mask_valid(dist_maps, mask_valid).to(dt)
     R, s, t = _as_batched(cameras, dt)
     R, s, t, E0, E, Ek, Es, it, conv = _optimize(R, s, t, shape, keypoints, visible, dist_maps, lam, max_iters, tol)
     cams = ScaledOrthographic(R[:, 0], s[:, 0], t[:, 0])
