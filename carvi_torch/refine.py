@@ -196,7 +196,8 @@ def _check(shape, keypoints, visible, dist_maps, n_cams=None):
         raise ValueError(f"visible must be ({n}, {k}), got {getattr(visible, 'shape', type(visible))}")
     if dist_maps is not None:
         if not isinstance(dist_maps, torch.Tensor) or dist_maps.dim() != 3 or dist_maps.shape[0] != n:
-            raise ValueError(f"dist_maps / masks must be ({n}, H, W), got {getattr(dist_maps, 'shape', type(dist_maps))}")
+            got = getattr(dist_maps, "shape", type(dist_maps))
+            raise ValueError(f"dist_maps / masks must be ({n}, H, W), got {got}")
         if dist_maps.shape[1] < 2 or dist_maps.shape[2] < 2:
             raise ValueError(f"dist_maps must be at least 2x2 pixels, got {tuple(dist_maps.shape[1:])}")
     if n_cams is not None and n_cams != n:

@@ -697,7 +697,8 @@ def rigid_sfm(
     vis = visible.to(device=dev, dtype=torch.bool)
     bad = vis & ~torch.isfinite(keypoints).all(-1)
     if bool(bad.any()):
-        problems.append(f"{int(bad.sum())} visible keypoint entries have non-finite coordinates; treated as not visible")
+        problems.append(f"{int(bad.sum())} visible keypoint entries have non-finite coordinates; "
+                        "treated as not visible")
         vis = vis & ~bad
     kp = torch.nan_to_num(keypoints.double(), nan=0.0, posinf=0.0, neginf=0.0)
 
@@ -742,6 +743,10 @@ def rigid_sfm(
         problems.append(f"only {n_three} instance(s) see 3 or more rigid keypoints: with fewer than 3 such views "
                         "the shape's depth is not determined (orthographic two-view ambiguity); cameras unreliable")
 
+    n_two = int((valid & (vis[:, torch.tensor(sfm_cols, device=dev)].sum(-1) == 2)).sum())
+    if n_two:
+        problems.append(f"{n_two} instance(s) see only 2 rigid keypoints: their rotation is not determined by the "
+                        "keypoints (only the silhouette refinement constrains it)")
     cols = torch.tensor(sfm_cols, device=dev, dtype=torch.long)
     Wv = kp[valid][:, cols].transpose(1, 2).contiguous()  # (Nv, 2, Kc)
     vv = vis[valid][:, cols].double()
@@ -831,7 +836,8 @@ def rigid_sfm(
     residual = rms(cm).to(dt)
     residual_all = rms(torch.isfinite(shape).all(-1)).to(dt)
     cams = ScaledOrthographic(cams.R.to(dt), cams.s.to(dt), cams.t.to(dt))
-    return SfMResult(shape.to(dt), cams, valid, residual, residual_all, iters, polish_rounds, converged, votes, is_planar,
+    return SfMResult(shape.to(dt), cams, valid, residual, residual_all, iters, polish_rounds, converged, votes,
+                     is_planar,
                      seen_all, never, rigid, reasons, problems, history)
 
 

@@ -36,7 +36,8 @@ def _check_pair(R_est: torch.Tensor, R_gt: torch.Tensor) -> None:
         if not isinstance(R, torch.Tensor) or R.dim() != 3 or R.shape[1:] != (3, 3):
             raise ValueError(f"{name} must be a (N, 3, 3) tensor, got {getattr(R, 'shape', type(R))}")
     if R_est.shape[0] != R_gt.shape[0]:
-        raise ValueError(f"R_est and R_gt must hold the same number of rotations, got {R_est.shape[0]} and {R_gt.shape[0]}")
+        raise ValueError("R_est and R_gt must hold the same number of rotations, "
+                         f"got {R_est.shape[0]} and {R_gt.shape[0]}")
 
 
 def _finite(R_est: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:

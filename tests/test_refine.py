@@ -316,8 +316,8 @@ def test_estimate_camera_for_unseen_images():
     ],
 )
 def test_bad_arguments_raise(which, value, match):
-    args = {"shape": torch.zeros(5, 3), "keypoints": torch.zeros(3, 5, 2), "visible": torch.ones(3, 5, dtype=torch.bool),
-            "dist_maps": torch.zeros(3, 8, 8)}
+    args = {"shape": torch.zeros(5, 3), "keypoints": torch.zeros(3, 5, 2),
+            "visible": torch.ones(3, 5, dtype=torch.bool), "dist_maps": torch.zeros(3, 8, 8)}
     args[which] = value
     cams = ScaledOrthographic(torch.eye(3).expand(3, 3, 3), torch.ones(3), torch.zeros(3, 2))
     with pytest.raises(ValueError, match=match):

@@ -360,6 +360,7 @@ def test_all_instances_with_two_keypoints():
     res = rigid_sfm(d["kp"], d["vis"])
     assert bool(res.valid.all())
     assert any("3 or more" in p for p in res.problems)
+    assert any("40 instance(s) see only 2" in p for p in res.problems)
     assert bool(torch.isfinite(res.cameras.R).all())
 
 

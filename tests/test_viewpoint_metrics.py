@@ -146,7 +146,8 @@ def _voc_aeroplanes(root, canvas=128):
     recs, names = [], []
     for f in files:
         a = ET.parse(f).getroot()
-        kps = {k.get("name"): (float(k.get("x")), float(k.get("y")), k.get("visible") == "1") for k in a.iter("keypoint")}
+        kps = {k.get("name"): (float(k.get("x")), float(k.get("y")), k.get("visible") == "1")
+               for k in a.iter("keypoint")}
         names += [n for n in kps if n not in names]
         seg = [s for s in a.iter("segment") if s.get("name") == "foreground"]
         poly = None
@@ -181,7 +182,9 @@ def test_viewpoints_of_real_voc_aeroplanes(shared_data):
     ids, names, kp, vis, masks = _voc_aeroplanes(shared_data)
     canvas = masks.shape[-1]
     # flip pairs from the Berkeley names (L_WingTip / R_WingTip, Left_Engine_Front / Right_...)
-    key = lambda nm: nm.lower().replace("left", "").replace("right", "").replace("l_", "").replace("r_", "")  # noqa: E731
+    def key(nm):
+        return nm.lower().replace("left", "").replace("right", "").replace("l_", "").replace("r_", "")
+
     pairs = [(i, j) for i, a in enumerate(names) for j, b in enumerate(names)
              if keypoint_side(a) == "left" and keypoint_side(b) == "right" and key(a) == key(b)]
     assert len(pairs) == 5

@@ -146,8 +146,10 @@ def main(argv=None) -> dict:
                     "sfm_plus_refinement": t_sfm + t_ref},
         "instances_per_second": {"sfm": n_all / t_sfm, "refinement": n_all / t_ref,
                                  "sfm_plus_refinement": n_all / (t_sfm + t_ref)},
-        "peak_memory_mb": {"process_rss": peak_rss_mb(),
-                           "cuda_allocated": (torch.cuda.max_memory_allocated(dev) / 2**20) if dev.type == "cuda" else None},
+        "peak_memory_mb": {
+            "process_rss": peak_rss_mb(),
+            "cuda_allocated": (torch.cuda.max_memory_allocated(dev) / 2**20) if dev.type == "cuda" else None,
+        },
         "sfm": {"iterations": sfm.iterations, "converged": sfm.converged, "valid": int(sfm.valid.sum()),
                 "planar": sfm.planar, "reflection": sfm.reflection_votes,
                 "median_residual_px": float(sfm.residual[sfm.valid].median()), "problems": sfm.problems},
