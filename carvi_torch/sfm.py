@@ -755,8 +755,10 @@ def rigid_sfm(
             Wv, vv, planar, planar_margin, polish_iters, max_outer=max_outer, inner=inner, tol=tol,
             reg=regularization, generator=gen)
     if not converged:
+        last = abs(history[-2] - history[-1]) / max(history[-2], 1e-300) if len(history) >= 2 else float("nan")
         problems.append(f"SfM stopped at its iteration limits (max_outer={max_outer}, polish_iters={polish_iters}) "
-                        f"before the residual settled (tol={tol})")
+                        f"before the residual settled: last relative change {last:.1e} > tol={tol:.0e} "
+                        f"(RMS residual {history[-1]:.3g} px)")
     Rv = complete_rotation(M / M[:, 0].norm(dim=-1)[:, None, None])
     sv = M[:, 0].norm(dim=-1)
     R[valid] = Rv
