@@ -302,6 +302,23 @@ def test_estimate_camera_for_unseen_images():
     assert bool((energy <= e0 + 1e-3).all())
 
 
+def test_degenerate_instances_stay_finite():
+    d = make_scene(10, n=6, k=8)
+    vis = d["vis"].clone()
+    masks = d["masks"].clone()
+    vis[0] = False  # no keypoint, mask only
+    vis[1] = False
+    vis[1, 0] = True  # one keypoint, mask
+    masks[2] = False  # keypoints only
+    vis[3] = False
+    masks[3] = False  # nothing at all
+    cams, energy = estimate_camera(d["S0"], d["kp"], vis, masks)
+    assert bool(torch.isfinite(cams.R).all() and torch.isfinite(cams.t).all() and torch.isfinite(energy).all())
+    assert float(energy[3]) == 0.0
+    res = refine_cameras(d["S0"], d["cams"], d["kp"], vis, distance_to_mask(masks))
+    assert bool(torch.isfinite(res.cameras.R).all()) and bool((res.energy_after <= res.energy_before).all())
+
+
 # --------------------------------------------------------------------------- bad input
 
 
