@@ -1,0 +1,232 @@
+"""Viewpoint metrics: compare estimated cameras with ground-truth ones.
+
+Estimated rotations live in the SfM object frame, ground truth in another (e.g.
+PASCAL3D+'s CAD frame: +z up, front towards -y), so the two sets are compared after
+one global rotation ``G`` with ``R_est G ~ R_gt`` (:func:`align_rotations`).
+Camera convention (``carvi_torch.cameras``): rows of ``R`` = image x, image y (down),
+viewing direction, in the object frame.
+
+Orthographic SfM may also return the mirror image of the true frame (the Necker
+ambiguity, when its reflection vote fails): then ``R_est = F R_true Q F`` with
+``F = diag(1, 1, -1)`` and no proper ``G`` aligns the sets. :func:`viewpoint_report`
+measures both hypotheses and *reports* a mirrored frame; it never silently fixes it.
+
+All angles returned are in degrees.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .cameras import azimuth_elevation_roll_from_rotation, geodesic_angle
+
+__all__ = [
+    "align_rotations",
+    "geodesic_errors",
+    "angle_errors",
+    "summarize",
+    "viewpoint_report",
+    "necker_mirror",
+]
+
+
+def _check_pair(R_est: torch.Tensor, R_gt: torch.Tensor) -> None:
+    for name, R in (("R_est", R_est), ("R_gt", R_gt)):
+        if not isinstance(R, torch.Tensor) or R.dim() != 3 or R.shape[1:] != (3, 3):
+            raise ValueError(f"{name} must be a (N, 3, 3) tensor, got {getattr(R, 'shape', type(R))}")
+    if R_est.shape[0] != R_gt.shape[0]:
+        raise ValueError("R_est and R_gt must hold the same number of rotations, "
+                         f"got {R_est.shape[0]} and {R_gt.shape[0]}")
+
+
+def _finite(R_est: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:
+    return torch.isfinite(R_est).flatten(1).all(1) & torch.isfinite(R_gt).flatten(1).all(1)
+
+
+def necker_mirror(R: torch.Tensor) -> torch.Tensor:
+    """The Necker-mirrored cameras ``F R F``, ``F = diag(1, 1, -1)``: ``(..., 3, 3)`` -> same.
+
+    They see the mirrored object ``F S`` exactly as ``R`` sees ``S``, with depths negated.
+    """
+    f = torch.tensor([1.0, 1.0, -1.0], dtype=R.dtype, device=R.device)
+    return f[:, None] * R * f[None, :]
+
+
+def _procrustes(A: torch.Tensor) -> torch.Tensor:
+    """Proper rotation ``G`` maximising ``trace(G^T A)`` for ``A (3, 3)``."""
+    U, _, Vh = torch.linalg.svd(A)
+    d = torch.sign(torch.det(U @ Vh))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
+    return U @ D @ Vh
+
+
+def align_rotations(
+    R_est: torch.Tensor,
+    R_gt: torch.Tensor,
+    *,
+    robust: bool = False,
+    iters: int = 20,
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Global rotation ``G`` minimising ``sum_n w_n ||R_est_n G - R_gt_n||_F^2``.
+
+    Closed form (orthogonal Procrustes): ``A = sum_n w_n R_est_n^T R_gt_n = U S V^T``,
+    ``G = U diag(1, 1, det(U V^T)) V^T`` (a proper rotation). With ``robust=True``,
+    iteratively reweighted with ``w_n = 1 / max(theta_n, 1 deg)`` (``theta_n`` the
+    geodesic residual), which approximately minimises the sum of the angles
+    rather than of their squares, so a few gross errors (e.g. flipped instances)
+    do not tilt ``G``. Pairs with a non-finite entry are ignored.
+
+    Args:
+        R_est, R_gt: ``(N, 3, 3)`` proper rotations.
+        robust: use the reweighted variant.
+        iters: reweighting iterations.
+        weights: ``(N,)`` optional non-negative weights.
+
+    Returns:
+        ``(3, 3)`` in ``R_est``'s dtype (computed in float64).
+
+    Example:
+        >>> from carvi_torch.cameras import random_rotations
+        >>> R = random_rotations(5, torch.Generator().manual_seed(0)); G = random_rotations(1)[0]
+        >>> torch.allclose(align_rotations(R @ G.T, R), G, atol=1e-5)
+        True
+    """
+    _check_pair(R_est, R_gt)
+    ok = _finite(R_est, R_gt)
+    if not bool(ok.any()):
+        raise ValueError("align_rotations: no pair of finite rotations")
+    Re = R_est[ok].double()
+    Rg = R_gt[ok].double()
+    w = torch.ones(Re.shape[0], dtype=torch.float64, device=Re.device)
+    if weights is not None:
+        w = torch.as_tensor(weights, device=Re.device).double()[ok.to(Re.device)]
+        if bool((w < 0).any()):
+            raise ValueError("weights must be non-negative")
+    G = _procrustes(torch.einsum("n,nji,njk->ik", w, Re, Rg))
+    if robust:
+        floor = math.radians(1.0)
+        for _ in range(iters):
+            theta = geodesic_angle(Re @ G, Rg)
+            G_new = _procrustes(torch.einsum("n,nji,njk->ik", w / theta.clamp(min=floor), Re, Rg))
+            if float((G_new - G).abs().max()) < 1e-12:
+                G = G_new
+                break
+            G = G_new
+    return G.to(R_est.dtype)
+
+
+def geodesic_errors(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor | None = None) -> torch.Tensor:
+    """Angle (degrees) between ``R_est_n G`` and ``R_gt_n``; ``G`` = identity when None.
+
+    Returns ``(N,)`` in ``[0, 180]``; NaN where an input is not finite.
+    """
+    _check_pair(R_est, R_gt)
+    Re = R_est if G is None else R_est @ G.to(R_est)
+    return torch.rad2deg(geodesic_angle(Re, R_gt.to(Re)))
+
+
+def _wrap_deg(a: torch.Tensor) -> torch.Tensor:
+    """Absolute angle difference wrapped to ``[0, 180]`` degrees, from radians."""
+    return torch.rad2deg(torch.remainder(a + math.pi, 2 * math.pi) - math.pi).abs()
+
+
+def angle_errors(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Azimuth, elevation and roll errors (degrees, wrapped) of ``R_est G`` vs ``R_gt``.
+
+    Angles follow PASCAL3D+ (``cameras.azimuth_elevation_roll_from_rotation``; the
+    ground-truth object frame has +z up and its front towards -y).
+
+    Returns:
+        ``{"azimuth": (N,), "elevation": (N,), "roll": (N,)}``, each in ``[0, 180]``.
+    """
+    _check_pair(R_est, R_gt)
+    Re = R_est if G is None else R_est @ G.to(R_est)
+    a1, e1, r1 = azimuth_elevation_roll_from_rotation(Re)
+    a2, e2, r2 = azimuth_elevation_roll_from_rotation(R_gt.to(Re))
+    return {"azimuth": _wrap_deg(a1 - a2), "elevation": _wrap_deg(e1 - e2), "roll": _wrap_deg(r1 - r2)}
+
+
+def summarize(errors: torch.Tensor, threshold: float = 30.0) -> dict:
+    """Median, mean and accuracy of angular errors (degrees); NaNs are left out.
+
+    Returns:
+        ``{"n": int, "median": float, "mean": float, "acc_at_30": float}`` where
+        ``acc_at_30`` is the fraction of errors below ``threshold`` degrees
+        (PASCAL3D+'s ``Acc_pi/6`` with the default). Empty input gives NaNs and ``n = 0``.
+
+    Example:
+        >>> summarize(torch.tensor([1.0, 2.0, 40.0]))["acc_at_30"]
+        0.6666666865348816
+    """
+    e = torch.as_tensor(errors).flatten()
+    e = e[torch.isfinite(e)]
+    if e.numel() == 0:
+        return {"n": 0, "median": float("nan"), "mean": float("nan"), "acc_at_30": float("nan")}
+    return {
+        "n": int(e.numel()),
+        "median": float(e.median()),
+        "mean": float(e.mean()),
+        "acc_at_30": float((e < threshold).float().mean()),
+    }
+
+
+def viewpoint_report(
+    R_est: torch.Tensor,
+    R_gt: torch.Tensor,
+    *,
+    valid: torch.Tensor | None = None,
+    robust: bool = False,
+) -> dict:
+    """Everything about estimated vs ground-truth viewpoints, JSON-ready.
+
+    Aligns the frames (:func:`align_rotations`), then reports geodesic, azimuth,
+    elevation and roll error summaries. It also aligns the Necker-mirrored cameras
+    (:func:`necker_mirror`) and sets ``"mirrored": True`` when they fit the ground
+    truth better (median geodesic error): the estimated object frame is then the
+    mirror image of the true one. The reported errors stay those of the cameras as
+    given.
+
+    Args:
+        R_est, R_gt: ``(N, 3, 3)``.
+        valid: ``(N,)`` bool, pairs to use (default: all finite).
+        robust: robust alignment.
+
+    Returns:
+        ``{"n", "alignment" (3x3 list), "geodesic", "azimuth", "elevation", "roll"
+        (each a :func:`summarize` dict), "mirrored" (bool), "mirrored_geodesic"
+        (summary of the mirrored hypothesis), "per_instance_geodesic" (list, NaN
+        for unused pairs)}``.
+    """
+    _check_pair(R_est, R_gt)
+    use = _finite(R_est, R_gt)
+    if valid is not None:
+        v = torch.as_tensor(valid, device=R_est.device).bool()
+        if v.shape != use.shape:
+            raise ValueError(f"valid must be ({use.shape[0]},), got {tuple(v.shape)}")
+        use = use & v
+    if not bool(use.any()):
+        raise ValueError("viewpoint_report: no valid pair of finite rotations")
+    Re, Rg = R_est[use], R_gt[use]
+    G = align_rotations(Re, Rg, robust=robust)
+    geo = geodesic_errors(Re, Rg, G)
+    ang = angle_errors(Re, Rg, G)
+    Rm = necker_mirror(Re)
+    Gm = align_rotations(Rm, Rg, robust=robust)
+    geo_m = geodesic_errors(Rm, Rg, Gm)
+    per = torch.full(use.shape, float("nan"), dtype=geo.dtype, device=geo.device)
+    per[use] = geo
+    report = {
+        "n": int(use.sum()),
+        "alignment": G.double().cpu().tolist(),
+        "geodesic": summarize(geo),
+        "azimuth": summarize(ang["azimuth"]),
+        "elevation": summarize(ang["elevation"]),
+        "roll": summarize(ang["roll"]),
+        "mirrored": bool(geo_m.median() < geo.median()),
+        "mirrored_geodesic": summarize(geo_m),
+        "per_instance_geodesic": per.double().cpu().tolist(),
+    }
+    return report

@@ -1,0 +1,369 @@
+"""Tests for carvi_torch.refine: silhouette refinement, keypoint-only refinement, unseen images."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy import ndimage
+from scipy.spatial import ConvexHull
+from scipy.spatial.transform import Rotation
+from skimage.draw import polygon2mask
+
+from carvi_torch.cameras import ScaledOrthographic, random_rotations, rotation_about_axis
+from carvi_torch.refine import (
+    RefineResult,
+    _terms,
+    estimate_camera,
+    mask_start_cameras,
+    refine_cameras,
+    refine_keypoints_only,
+    refinement_energy,
+    sample_distance,
+    sphere_rotations,
+)
+from carvi_torch.sdf import distance_to_mask
+from carvi_torch.sfm import rigid_sfm
+
+CANVAS = 96
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def hull_masks(points: torch.Tensor, size: int = CANVAS) -> torch.Tensor:
+    """Filled convex hulls of ``points (N, P, 2)`` rasterised by skimage (``(N, size, size)`` bool)."""
+    out = np.zeros((points.shape[0], size, size), dtype=bool)
+    for i, p in enumerate(points.detach().double().numpy()):
+        v = p[ConvexHull(p).vertices]
+        out[i] = polygon2mask((size, size), v[:, ::-1])
+    return torch.from_numpy(out)
+
+
+def make_scene(seed, n=60, k=12, deform=0.0, hidden=0.4, size=CANVAS):
+    """Instances of a class: mean shape + per-instance deformation, random views.
+
+    Keypoints are the true instance's projections; the farthest ``hidden`` fraction
+    is hidden (self-occlusion); masks are the convex hulls of every projected point.
+    """
+    g = torch.Generator().manual_seed(seed)
+    S0 = torch.randn(k, 3, generator=g) * torch.tensor([1.0, 0.7, 0.5])
+    S0 = S0 - S0.mean(0)
+    Sn = S0 + deform * torch.randn(n, k, 3, generator=g)
+    R = random_rotations(n, g)
+    s = size / 5.0 * (1.0 + 0.1 * torch.rand(n, generator=g))
+    t = size / 2.0 + 2.0 * torch.randn(n, 2, generator=g)
+    cams = ScaledOrthographic(R, s, t)
+    kp = cams.project(Sn)
+    z = cams.depth(Sn)
+    rank = (-z).argsort(1).argsort(1)
+    vis = rank >= round(hidden * k)
+    masks = hull_masks(kp, size)
+    return {"S0": S0, "Sn": Sn, "cams": cams, "kp": kp, "vis": vis, "masks": masks}
+
+
+def rot_err_deg(R1, R2):
+    R1 = np.asarray(R1, dtype=np.float64)
+    R2 = np.asarray(R2, dtype=np.float64)
+    return np.degrees(Rotation.from_matrix(np.einsum("nij,nkj->nik", R1, R2)).magnitude())
+
+
+def brute_energy(M, t, S, kp, vis, D, lam):
+    """Per-instance loop with scipy's order-1 map_coordinates (independent of grid_sample)."""
+    n, h, w = D.shape
+    out = []
+    for i in range(n):
+        e = 0.0
+        for k in range(S.shape[0]):
+            p = M[i] @ S[k] + t[i]
+            if vis[i, k]:
+                e += float(((p - kp[i, k]) ** 2).sum())
+            x, y = float(p[0]), float(p[1])
+            cx, cy = min(max(x, 0.0), w - 1.0), min(max(y, 0.0), h - 1.0)
+            d = ndimage.map_coordinates(D[i], [[cy], [cx]], order=1)[0]
+            d += math.hypot(x - cx, y - cy)
+            e += lam * d * d
+        out.append(e)
+    return np.array(out)
+
+
+# --------------------------------------------------------------------------- sampling and energy
+
+
+def test_sample_distance_inside_matches_scipy_and_grows_outside(generator):
+    D = torch.rand(3, 7, 9, generator=generator, dtype=torch.float64) * 5
+    pts = torch.rand(3, 20, 2, generator=generator, dtype=torch.float64) * torch.tensor([8.0, 6.0], dtype=torch.float64)
+    got = sample_distance(D, pts)
+    for i in range(3):
+        ref = ndimage.map_coordinates(D[i].numpy(), [pts[i, :, 1].numpy(), pts[i, :, 0].numpy()], order=1)
+        np.testing.assert_allclose(got[i].numpy(), ref, atol=1e-10)
+    # pixel centres are exact samples (align_corners=True)
+    assert float(sample_distance(D, torch.tensor([[[3.0, 2.0]]] * 3, dtype=torch.float64))[1, 0]) == pytest.approx(
+        float(D[1, 2, 3]))
+    # outside: border value plus the distance to the canvas, strictly increasing outward
+    xs = torch.tensor([8.0, 9.0, 12.0, 20.0], dtype=torch.float64)
+    far = torch.stack([xs, torch.full_like(xs, 3.0)], -1)[None].expand(3, -1, -1)
+    v = sample_distance(D, far)
+    np.testing.assert_allclose(v[0].numpy(), D[0, 3, 8].item() + np.array([0.0, 1.0, 4.0, 12.0]), atol=1e-10)
+    assert bool((v[:, 1:] > v[:, :-1]).all())
+
+
+def test_energy_matches_brute_force_loop(generator):
+    d = make_scene(1, n=4, k=6)
+    dm = distance_to_mask(d["masks"]).double()
+    M = d["cams"].M.double() * 1.05
+    t = d["cams"].t.double() + 1.5
+    S = d["S0"].double()
+    E = refinement_energy(M, t, S, d["kp"].double(), d["vis"], dm, silhouette_weight=0.7)
+    ref = brute_energy(M.numpy(), t.numpy(), S.numpy(), d["kp"].double().numpy(), d["vis"].numpy(), dm.numpy(), 0.7)
+    np.testing.assert_allclose(E.numpy(), ref, rtol=1e-10)
+    # NaN shape rows drop out of both sums; an invalid mask drops the silhouette term
+    S2 = S.clone()
+    S2[2] = float("nan")
+    keep = [0, 1, 3, 4, 5]
+    E2 = refinement_energy(M, t, S2, d["kp"].double(), d["vis"], dm, 0.7, mask_valid=torch.tensor([1, 0, 1, 1]).bool())
+    ref2 = brute_energy(M.numpy(), t.numpy(), S.numpy()[keep], d["kp"].double().numpy()[:, keep],
+                        d["vis"].numpy()[:, keep], dm.numpy(), 0.7)
+    ref2[1] = brute_energy(M.numpy()[1:2], t.numpy()[1:2], S.numpy()[keep], d["kp"].double().numpy()[1:2, keep],
+                           d["vis"].numpy()[1:2, keep], dm.numpy()[1:2], 0.0)[0]
+    np.testing.assert_allclose(E2.numpy(), ref2, rtol=1e-10)
+
+
+def test_energy_gradcheck_float64():
+    d = make_scene(2, n=3, k=5)
+    dm = distance_to_mask(d["masks"]).double()
+    M = (d["cams"].M.double() * 1.1).requires_grad_(True)
+    t = (d["cams"].t.double() + 2.3).requires_grad_(True)
+
+    def f(M_, t_):
+        return refinement_energy(M_, t_, d["S0"].double(), d["kp"].double(), d["vis"], dm, 1.0)
+
+    assert torch.autograd.gradcheck(f, (M, t), eps=1e-6, atol=1e-5)
+
+
+def test_local_gradient_and_gauss_newton_match_finite_differences():
+    d = make_scene(3, n=3, k=6)
+    dm = distance_to_mask(d["masks"]).double()
+    cams = d["cams"]
+    R = cams.R.double()[:, None] @ rotation_about_axis(torch.tensor([1.0, 2, 3], dtype=torch.float64), 0.2)
+    s = cams.s.double()[:, None] * 1.1
+    t = cams.t.double()[:, None] + 1.7
+    S = d["S0"].double()
+    kmask = torch.ones(S.shape[0], dtype=torch.float64)
+    wv = d["vis"].double()
+    lam = torch.full((3,), 0.5, dtype=torch.float64)
+    E, _, _, g, H = _terms(R, s, t, S, kmask, d["kp"].double(), wv, dm, lam)
+    from carvi_torch.cameras import axis_angle_to_rotation
+
+    def energy(delta):
+        Rn = axis_angle_to_rotation(delta[..., :3]) @ R
+        return _terms(Rn, s * torch.exp(delta[..., 3]), t + delta[..., 4:], S, kmask, d["kp"].double(), wv, dm, lam)[0]
+
+    eps = 1e-6
+    fd = torch.zeros_like(g)
+    for j in range(6):
+        e = torch.zeros(3, 1, 6, dtype=torch.float64)
+        e[..., j] = eps
+        fd[..., j] = (energy(e) - energy(-e)) / (2 * eps)
+    assert torch.allclose(g, fd, rtol=1e-5, atol=1e-5 * float(g.abs().max()))
+    # H is symmetric positive semi-definite
+    assert torch.allclose(H, H.transpose(-1, -2))
+    assert float(torch.linalg.eigvalsh(H).min()) > -1e-8 * float(H.abs().max())
+
+
+# --------------------------------------------------------------------------- refine_cameras
+
+
+def test_refinement_never_raises_energy_and_reports_it():
+    d = make_scene(4, n=80, k=10, deform=0.2)
+    g = torch.Generator().manual_seed(4)
+    axis = torch.randn(80, 3, generator=g)
+    R0 = rotation_about_axis(axis, torch.deg2rad(torch.rand(80, generator=g) * 90)) @ d["cams"].R
+    start = ScaledOrthographic(R0, d["cams"].s * (0.7 + 0.6 * torch.rand(80, generator=g)),
+                               d["cams"].t + 8 * torch.randn(80, 2, generator=g))
+    kp = d["kp"] + 1.5 * torch.randn(d["kp"].shape, generator=g)
+    dm = distance_to_mask(d["masks"])
+    res = refine_cameras(d["S0"], start, kp, d["vis"], dm, silhouette_weight=2.0, max_iters=60)
+    assert isinstance(res, RefineResult)
+    assert bool((res.energy_after <= res.energy_before).all())
+    assert float(res.energy_after.sum()) < 0.5 * float(res.energy_before.sum())
+    # reported energies are those of the cameras, recomputed independently
+    E0 = refinement_energy(start.M, start.t, d["S0"], kp, d["vis"], dm, 2.0)
+    E1 = refinement_energy(res.cameras.M, res.cameras.t, d["S0"], kp, d["vis"], dm, 2.0)
+    assert torch.allclose(E0, res.energy_before, rtol=1e-4)
+    assert torch.allclose(E1, res.energy_after, rtol=1e-3, atol=1e-3)
+    assert torch.allclose(res.keypoint_energy + 2.0 * res.silhouette_energy, res.energy_after, rtol=1e-4)
+    R = res.cameras.R.double()
+    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(80, 3, 3), atol=1e-5)
+    assert torch.allclose(torch.det(R), torch.ones(80, dtype=torch.float64), atol=1e-5)
+
+
+def test_refinement_fixes_cameras_when_the_true_shape_differs_from_the_mean():
+    d = make_scene(5, n=150, k=12, deform=0.15, hidden=0.4)
+    sfm = rigid_sfm(d["kp"], d["vis"])
+    assert sfm.reflection_votes["decided_by"] == "visibility"
+    dm = distance_to_mask(d["masks"])
+    # one global rotation between the SfM frame and the true frame (from SfM's own cameras)
+    B = np.einsum("nji,njk->nik", sfm.cameras.R.double().numpy(), d["cams"].R.double().numpy())
+    G = torch.from_numpy(Rotation.from_matrix(B).mean().as_matrix())
+    err_sfm = rot_err_deg(sfm.cameras.R.double() @ G, d["cams"].R)
+    kp_only = refine_keypoints_only(sfm.shape, sfm.cameras, d["kp"], d["vis"], d["masks"])
+    sil = refine_cameras(sfm.shape, sfm.cameras, d["kp"], d["vis"], dm, silhouette_weight=1.0)
+    err_kp = rot_err_deg(kp_only.cameras.R.double() @ G, d["cams"].R)
+    err_sil = rot_err_deg(sil.cameras.R.double() @ G, d["cams"].R)
+    assert np.median(err_sil) < 0.85 * np.median(err_sfm), (np.median(err_sfm), np.median(err_sil))
+    assert np.median(err_sil) < np.median(err_kp)
+    assert np.mean(err_sil) < np.mean(err_sfm)
+
+
+def test_empty_masks_use_keypoints_only():
+    d = make_scene(6, n=20, k=8)
+    masks = d["masks"].clone()
+    masks[:5] = False
+    dm = distance_to_mask(masks)
+    assert bool(torch.isinf(dm[:5]).all())
+    start = ScaledOrthographic(rotation_about_axis(torch.tensor([0.0, 1.0, 0.0]), 0.3) @ d["cams"].R,
+                               d["cams"].s, d["cams"].t + 2)
+    a = refine_cameras(d["S0"], start, d["kp"], d["vis"], dm)
+    b = refine_cameras(d["S0"], start[:5], d["kp"][:5], d["vis"][:5], dm[:5], silhouette_weight=0.0)
+    assert bool(torch.isfinite(a.energy_after).all())
+    assert torch.allclose(a.cameras.R[:5], b.cameras.R, atol=1e-4)
+    assert bool((a.silhouette_energy[5:] >= 0).all())
+    # mask_valid given explicitly overrides the default
+    c = refine_cameras(d["S0"], start, d["kp"], d["vis"], distance_to_mask(d["masks"]),
+                       mask_valid=torch.zeros(20, dtype=torch.bool))
+    e = refine_cameras(d["S0"], start, d["kp"], d["vis"], distance_to_mask(d["masks"]), silhouette_weight=0.0)
+    assert torch.allclose(c.energy_after, e.energy_after)
+
+
+def test_refine_keypoints_only_two_starts():
+    d = make_scene(7, n=30, k=10, hidden=0.2)
+    flipped = ScaledOrthographic(rotation_about_axis(torch.tensor([0.0, 1.0, 0.0]), math.pi) @ d["cams"].R,
+                                 d["cams"].s, d["cams"].t)
+    res = refine_keypoints_only(d["S0"], flipped, d["kp"], d["vis"], d["masks"])
+    # each instance keeps the better of its two refined starts
+    one = refine_cameras(d["S0"], flipped, d["kp"], d["vis"], distance_to_mask(d["masks"]), silhouette_weight=0.0)
+    assert bool((res.energy_after <= one.energy_after + 1e-3).all())
+    assert bool((res.start == 1).any())
+    err = rot_err_deg(res.cameras.R, d["cams"].R)
+    assert np.median(err) < 0.5
+    assert float(res.silhouette_energy.abs().max()) == 0.0
+
+
+def test_mask_start_cameras_centre_and_scale():
+    masks = torch.zeros(2, 40, 50, dtype=torch.bool)
+    masks[0, 10:20, 5:25] = True  # 20 wide, 10 high, centre (14.5, 14.5)
+    shape = torch.tensor([[-1.0, -0.5, 0.0], [1.0, 0.5, 0.0], [0.0, 0.0, 3.0]])
+    kp = torch.tensor([[[0.0, 0.0]] * 3, [[10.0, 10.0], [30.0, 20.0], [0.0, 0.0]]])
+    vis = torch.tensor([[False] * 3, [True, True, False]])
+    cams = mask_start_cameras(shape, masks, kp, vis)
+    assert torch.allclose(cams.R, torch.eye(3).expand(2, 3, 3))
+    centroid = shape.mean(0)
+    assert torch.allclose(cams.project(centroid[None])[0, 0], torch.tensor([14.5, 14.5]))
+    assert float(cams.s[0]) == pytest.approx(20.0 / 2.0)  # mask 20 px vs shape extent 2 in x
+    # empty mask: visible keypoints' centre (20, 15) and extent 20
+    assert torch.allclose(cams.project(centroid[None])[1, 0], torch.tensor([20.0, 15.0]))
+    assert float(cams.s[1]) == pytest.approx(10.0)
+
+
+# --------------------------------------------------------------------------- unseen images
+
+
+def test_sphere_rotations_cover_the_sphere():
+    R = sphere_rotations(64, dtype=torch.float64)
+    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(64, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.det(R), torch.ones(64, dtype=torch.float64))
+    d = R[:, 2]
+    probe = torch.nn.functional.normalize(torch.randn(2000, 3, generator=torch.Generator().manual_seed(0),
+                                                      dtype=torch.float64), dim=1)
+    worst = torch.rad2deg(torch.arccos((probe @ d.T).amax(1).clamp(-1, 1))).max()
+    assert float(worst) < 20.0  # 64 evenly spread directions: every direction within 20 deg
+
+
+def test_estimate_camera_for_unseen_images():
+    d = make_scene(8, n=40, k=12, hidden=0.3)
+    cams, energy = estimate_camera(d["S0"], d["kp"], d["vis"], d["masks"])
+    assert len(cams) == 40 and energy.shape == (40,)
+    err = rot_err_deg(cams.R, d["cams"].R)
+    assert np.median(err) < 0.5 and (err < 5).mean() >= 0.9, np.sort(err)[-5:]
+    # scales within 4%: the hull vertices lie on the mask's edge, where the distance to
+    # the nearest foreground pixel centre is up to half a pixel, so the silhouette
+    # term shrinks the projection by a fraction of a pixel (scale ~20 px per unit)
+    assert torch.allclose(cams.s, d["cams"].s, rtol=4e-2)
+    # float distance maps give the same cameras as bool masks
+    cams2, energy2 = estimate_camera(d["S0"], d["kp"], d["vis"], distance_to_mask(d["masks"]))
+    assert torch.allclose(energy, energy2, rtol=1e-4, atol=1e-4)
+    # energies are those of the returned cameras
+    E = refinement_energy(cams.M, cams.t, d["S0"], d["kp"], d["vis"], distance_to_mask(d["masks"]))
+    assert torch.allclose(E, energy, rtol=1e-3, atol=1e-3)
+    # more starts never do worse than the identity start alone
+    _, e0 = estimate_camera(d["S0"], d["kp"], d["vis"], d["masks"], n_starts=0)
+    assert bool((energy <= e0 + 1e-3).all())
+
+
+def test_degenerate_instances_stay_finite():
+    d = make_scene(10, n=6, k=8)
+    vis = d["vis"].clone()
+    masks = d["masks"].clone()
+    vis[0] = False  # no keypoint, mask only
+    vis[1] = False
+    vis[1, 0] = True  # one keypoint, mask
+    masks[2] = False  # keypoints only
+    vis[3] = False
+    masks[3] = False  # nothing at all
+    cams, energy = estimate_camera(d["S0"], d["kp"], vis, masks)
+    assert bool(torch.isfinite(cams.R).all() and torch.isfinite(cams.t).all() and torch.isfinite(energy).all())
+    assert float(energy[3]) == 0.0
+    res = refine_cameras(d["S0"], d["cams"], d["kp"], vis, distance_to_mask(masks))
+    assert bool(torch.isfinite(res.cameras.R).all()) and bool((res.energy_after <= res.energy_before).all())
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize(
+    "which,value,match",
+    [
+        ("shape", torch.zeros(5, 2), "shape"),
+        ("keypoints", torch.zeros(3, 4, 2), "keypoints"),
+        ("visible", torch.ones(3, 4, dtype=torch.bool), "visible"),
+        ("dist_maps", torch.zeros(3, 8), "dist_maps"),
+        ("dist_maps", torch.zeros(3, 1, 8), "2x2"),
+    ],
+)
+def test_bad_arguments_raise(which, value, match):
+    args = {"shape": torch.zeros(5, 3), "keypoints": torch.zeros(3, 5, 2),
+            "visible": torch.ones(3, 5, dtype=torch.bool), "dist_maps": torch.zeros(3, 8, 8)}
+    args[which] = value
+    cams = ScaledOrthographic(torch.eye(3).expand(3, 3, 3), torch.ones(3), torch.zeros(3, 2))
+    with pytest.raises(ValueError, match=match):
+        refine_cameras(args["shape"], cams, args["keypoints"], args["visible"], args["dist_maps"])
+
+
+def test_camera_count_mismatch_and_negative_weight():
+    cams = ScaledOrthographic(torch.eye(3).expand(2, 3, 3), torch.ones(2), torch.zeros(2, 2))
+    with pytest.raises(ValueError, match="cameras"):
+        refine_cameras(torch.zeros(5, 3), cams, torch.zeros(3, 5, 2), torch.ones(3, 5, dtype=torch.bool),
+                       torch.zeros(3, 8, 8))
+    with pytest.raises(ValueError, match="silhouette_weight"):
+        refine_cameras(torch.zeros(5, 3), cams, torch.zeros(2, 5, 2), torch.ones(2, 5, dtype=torch.bool),
+                       torch.zeros(2, 8, 8), silhouette_weight=-1.0)
+
+
+# --------------------------------------------------------------------------- device
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_matches_cpu():
+    d = make_scene(9, n=30, k=10, deform=0.1)
+    dm = distance_to_mask(d["masks"])
+    start = ScaledOrthographic(rotation_about_axis(torch.tensor([1.0, 0.0, 0.0]), 0.2) @ d["cams"].R,
+                               d["cams"].s, d["cams"].t)
+    a = refine_cameras(d["S0"], start, d["kp"], d["vis"], dm)
+    b = refine_cameras(d["S0"].cuda(), start.to("cuda"), d["kp"].cuda(), d["vis"].cuda(), dm.cuda())
+    assert b.cameras.R.device.type == "cuda"
+    assert torch.allclose(a.energy_after, b.energy_after.cpu(), rtol=1e-3, atol=1e-2)
+    c, e = estimate_camera(d["S0"].cuda(), d["kp"].cuda(), d["vis"].cuda(), d["masks"].cuda())
+    assert c.R.device.type == "cuda" and bool(torch.isfinite(e).all())

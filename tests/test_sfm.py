@@ -1,0 +1,477 @@
+"""Tests for carvi_torch.sfm: rigid factorisation with missing data, reflection, planar sets."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import procrustes
+from scipy.spatial.transform import Rotation
+
+from carvi_torch.cameras import ScaledOrthographic, nearest_scaled_rotation, random_rotations, rotation_about_axis
+from carvi_torch.sfm import (
+    SfMResult,
+    keypoint_end,
+    keypoint_side,
+    rigid_sfm,
+    scaled_stiefel,
+    symmetry_plane,
+    triangulate,
+)
+
+F = np.diag([1.0, 1.0, -1.0])
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def make_class(seed, n=200, k=12, missing=0.4, noise=0.0, visibility="random", axes=(1.0, 0.8, 0.6),
+               shape=None, rotations=None):
+    """A rigid shape seen by ``n`` random scaled orthographic cameras (canvas-like pixels).
+
+    ``missing``: fraction of keypoints hidden in every instance; ``visibility``:
+    ``"random"`` (no depth cue), ``"depth"`` (the farthest are hidden: self-occlusion)
+    or ``"reversed"`` (the nearest are hidden). ``noise``: Gaussian std per coordinate
+    as a fraction of the instance's projected extent (larger bounding-box side).
+    """
+    g = torch.Generator().manual_seed(seed)
+    if shape is None:
+        S = torch.randn(k, 3, generator=g, dtype=torch.float64) * torch.tensor(axes, dtype=torch.float64)
+        S = S - S.mean(0)
+    else:
+        S = shape.double()
+        k = S.shape[0]
+    R = random_rotations(n, g, dtype=torch.float64) if rotations is None else rotations.double()
+    s = 40.0 + 10.0 * torch.rand(n, generator=g, dtype=torch.float64)
+    t = 64.0 + 5.0 * torch.randn(n, 2, generator=g, dtype=torch.float64)
+    cams = ScaledOrthographic(R, s, t)
+    kp = cams.project(S)
+    extent = (kp.amax(1) - kp.amin(1)).amax(-1)
+    kp = kp + noise * extent[:, None, None] * torch.randn(kp.shape, generator=g, dtype=torch.float64)
+    m = round(missing * k)
+    if visibility == "random":
+        rank = torch.rand(n, k, generator=g).argsort(1).argsort(1)
+    elif visibility in ("depth", "reversed"):
+        z = cams.depth(S)
+        z = z if visibility == "depth" else -z
+        rank = (-z).argsort(1).argsort(1)  # 0 = farthest
+    else:
+        raise ValueError(visibility)
+    vis = rank >= m
+    return {"S": S, "R": R, "s": s, "t": t, "kp": kp.float(), "vis": vis}
+
+
+def scipy_alignment(R_est, R_gt):
+    """Errors (deg) after the best global rotation, by scipy's chordal mean of R_est^T R_gt."""
+    Re = np.asarray(R_est, dtype=np.float64)
+    Rg = np.asarray(R_gt, dtype=np.float64)
+    B = np.einsum("nji,njk->nik", Re, Rg)
+    G = Rotation.from_matrix(B).mean().as_matrix()
+    err = Rotation.from_matrix(np.einsum("nij,jk,nlk->nil", Re, G, Rg)).magnitude()
+    return np.degrees(err), G
+
+
+def errors_any_reflection(R_est, R_gt):
+    """Errors of the better of the frame and its Necker mirror (random visibility cannot tell)."""
+    e1, _ = scipy_alignment(R_est, R_gt)
+    e2, _ = scipy_alignment(F @ np.asarray(R_est, dtype=np.float64) @ F, R_gt)
+    return e1 if np.median(e1) <= np.median(e2) else e2
+
+
+def assert_cameras_proper(cams: ScaledOrthographic, atol=1e-4):
+    R = cams.R.double()
+    eye = torch.eye(3, dtype=torch.float64).expand_as(R)
+    assert torch.allclose(R @ R.transpose(1, 2), eye, atol=atol)
+    assert torch.allclose(torch.det(R), torch.ones(len(cams), dtype=torch.float64), atol=atol)
+    assert bool((cams.s > 0).all())
+
+
+# --------------------------------------------------------------------------- scaled_stiefel
+
+
+def test_scaled_stiefel_matches_svd_projection(generator):
+    M = torch.randn(500, 2, 3, generator=generator, dtype=torch.float64)
+    M[0, 1] = 2.0 * M[0, 0]  # rank 1: SVD fallback
+    out = scaled_stiefel(M)
+    # independent reference: numpy SVD, c U V^T with c the mean singular value
+    U, sv, Vt = np.linalg.svd(M.numpy(), full_matrices=False)
+    ref = sv.mean(-1)[:, None, None] * (U @ Vt)
+    np.testing.assert_allclose(out[1:].numpy(), ref[1:], atol=1e-9)
+    # rank-1 block: rows orthogonal with equal norms (the projection is not unique)
+    G = out[0] @ out[0].T
+    assert abs(float(G[0, 1])) < 1e-9 and abs(float(G[0, 0] - G[1, 1])) < 1e-9
+    R, s = nearest_scaled_rotation(M[1:])
+    assert torch.allclose(out[1:], s[:, None, None] * R[:, :2], atol=1e-9)
+
+
+def test_scaled_stiefel_is_differentiable():
+    M = torch.randn(4, 2, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(scaled_stiefel, (M,))
+
+
+# --------------------------------------------------------------------------- names
+
+
+@pytest.mark.parametrize(
+    "name,side,end",
+    [
+        ("L_WingTip", "left", None),
+        ("Left_Wing_Base", "left", None),
+        ("R_Stabilizer", "right", None),
+        ("right_front_wheel", "right", "front"),
+        ("leftcorner_windshield", "left", None),
+        ("NoseTip", None, "front"),
+        ("noselanding", None, "front"),
+        ("tail", None, "back"),
+        ("left_back_wheel", "left", "back"),
+        ("headlight_center", None, "front"),
+        ("Top_Rudder", None, None),
+        ("rear_left", "left", "back"),
+        ("front_back", None, None),
+    ],
+)
+def test_keypoint_side_and_end(name, side, end):
+    assert keypoint_side(name) == side
+    assert keypoint_end(name) == end
+
+
+# --------------------------------------------------------------------------- accuracy
+
+
+def test_missing_data_noise_free_recovers_every_camera():
+    d = make_class(0, n=200, k=12, missing=0.4)
+    res = rigid_sfm(d["kp"], d["vis"])
+    assert isinstance(res, SfMResult)
+    assert bool(res.valid.all()) and res.shape.shape == (12, 3)
+    assert float(res.residual.max()) < 1e-2
+    err = errors_any_reflection(res.cameras.R, d["R"])
+    assert err.max() < 0.5, f"max camera error {err.max():.3f} deg"
+    assert_cameras_proper(res.cameras)
+    # shape up to similarity (scipy's Procrustes allows a reflection)
+    _, _, disparity = procrustes(d["S"].numpy(), res.shape.double().numpy())
+    assert disparity < 1e-8
+    # translations and scales reproduce the keypoints, including the hidden ones
+    P = res.cameras.project(res.shape).double()
+    true = ScaledOrthographic(d["R"], d["s"], d["t"]).project(d["S"])
+    assert float((P - true).norm(dim=-1).max()) < 0.05
+
+
+def test_missing_data_with_noise_median_within_two_degrees():
+    d = make_class(1, n=200, k=12, missing=0.4, noise=0.01)
+    res = rigid_sfm(d["kp"], d["vis"])
+    err = errors_any_reflection(res.cameras.R, d["R"])
+    assert np.median(err) < 2.0, f"median {np.median(err):.2f} deg"
+    # the residual is at the noise level (std 1% of extents of ~100-200 px per coordinate)
+    assert 0.3 < float(res.residual.median()) < 3.0
+
+
+def test_visibility_vote_gives_the_true_frame():
+    d = make_class(2, n=150, k=12, missing=0.35, visibility="depth")
+    res = rigid_sfm(d["kp"], d["vis"])
+    assert res.reflection_votes["decided_by"] == "visibility"
+    assert res.reflection_votes["for"] > res.reflection_votes["against"]
+    err, G = scipy_alignment(res.cameras.R, d["R"])  # proper alignment only
+    assert err.max() < 0.5
+    # the mirrored hypothesis fits badly: the frame is not a mirror image
+    err_m, _ = scipy_alignment(F @ res.cameras.R.double().numpy() @ F, d["R"])
+    assert np.median(err_m) > 10.0
+
+
+def test_visibility_vote_follows_the_cue():
+    # hiding the *nearest* keypoints is a wrong cue: the vote must then pick the mirror
+    d = make_class(2, n=150, k=12, missing=0.35, visibility="reversed")
+    res = rigid_sfm(d["kp"], d["vis"])
+    assert res.reflection_votes["decided_by"] == "visibility"
+    err_m, _ = scipy_alignment(F @ res.cameras.R.double().numpy() @ F, d["R"])
+    assert err_m.max() < 0.5
+
+
+def _named_class(seed, left_convention_truth="object"):
+    """A bilaterally symmetric object: +z up, front towards -y; its own left is +x.
+
+    (With up = +z and front = -y, a person's left is up x front = +x.)
+    """
+    g = torch.Generator().manual_seed(seed)
+    half = torch.tensor([[0.6, -0.8, 0.1], [0.5, 0.7, 0.3], [0.3, 0.0, -0.4], [0.7, 0.4, 0.2]], dtype=torch.float64)
+    half = half + 0.05 * torch.randn(half.shape, generator=g, dtype=torch.float64)
+    mid = torch.tensor([[0.0, -1.0, 0.0], [0.0, 1.0, 0.2], [0.0, 0.2, 0.6]], dtype=torch.float64)
+    left = half
+    right = half * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)
+    S = torch.cat([left, right, mid])
+    names = ["left_front_wheel", "left_back_door", "left_side", "left_mirror",
+             "right_front_wheel", "right_back_door", "right_side", "right_mirror",
+             "nose", "tail", "roof"]
+    if left_convention_truth == "viewer":
+        names = [n.replace("left", "TMP").replace("right", "left").replace("TMP", "right") for n in names]
+    pairs = [(0, 4), (1, 5), (2, 6), (3, 7)]
+    # upright photos: azimuth anywhere, elevation 0..40 deg, small roll
+    n = 120
+    az = torch.rand(n, generator=g, dtype=torch.float64) * 2 * math.pi
+    el = torch.rand(n, generator=g, dtype=torch.float64) * math.radians(40)
+    roll = (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * math.radians(20)
+    from carvi_torch.cameras import rotation_from_azimuth_elevation_roll
+
+    R = rotation_from_azimuth_elevation_roll(az, el, roll)
+    return S, names, pairs, R
+
+
+@pytest.mark.parametrize("convention", ["object", "viewer"])
+def test_handedness_rule_decides_a_close_vote(convention):
+    S, names, pairs, R = _named_class(3, convention)
+    d = make_class(3, n=R.shape[0], shape=S, rotations=R, missing=0.3, visibility="random")
+    res = rigid_sfm(d["kp"], d["vis"], keypoint_names=names, flip_pairs=pairs, left_convention=convention)
+    assert res.reflection_votes["decided_by"] == "handedness"
+    assert res.reflection_votes["handedness"] > 0
+    err, _ = scipy_alignment(res.cameras.R, d["R"])
+    assert err.max() < 0.5
+    # the wrong convention must give the mirror image
+    other = "viewer" if convention == "object" else "object"
+    res2 = rigid_sfm(d["kp"], d["vis"], keypoint_names=names, flip_pairs=pairs, left_convention=other)
+    err2, _ = scipy_alignment(F @ res2.cameras.R.double().numpy() @ F, d["R"])
+    assert err2.max() < 0.5
+
+
+def test_close_vote_without_names_is_reported():
+    d = make_class(4, n=30, k=10, missing=0.3, visibility="random")
+    res = rigid_sfm(d["kp"], d["vis"])
+    assert res.reflection_votes["decided_by"] == "visibility (weak)"
+    assert any("reflection ambiguous" in p for p in res.problems)
+
+
+def test_mirrored_copies_are_consistent_with_symmetry_plane():
+    S, names, pairs, R = _named_class(5)
+    width = 128.0
+    d = make_class(5, n=R.shape[0], shape=S, rotations=R, missing=0.3, visibility="depth")
+    kp, vis = d["kp"], d["vis"]
+    # the pipeline's mirrored copies: x' = W - 1 - x and left/right labels swapped
+    perm = list(range(S.shape[0]))
+    for i, j in pairs:
+        perm[i], perm[j] = j, i
+    kp_m = kp[:, perm].clone()
+    kp_m[..., 0] = width - 1 - kp_m[..., 0]
+    vis_m = vis[:, perm]
+    res = rigid_sfm(torch.cat([kp, kp_m]), torch.cat([vis, vis_m]), keypoint_names=names, flip_pairs=pairs)
+    n = kp.shape[0]
+    assert float(res.residual.max()) < 1e-2
+    P = symmetry_plane(res.shape, pairs)
+    mirrored = res.cameras[:n].mirror(width, reflection=P)
+    # the mirror of each original camera is the camera SfM found for its flipped copy
+    ang = torch.rad2deg(torch.arccos(((mirrored.R * res.cameras.R[n:]).sum((1, 2)) - 1).clamp(-2, 2) / 2))
+    assert float(ang.max()) < 0.5
+    assert torch.allclose(mirrored.t, res.cameras.t[n:], atol=1e-2)
+
+
+# --------------------------------------------------------------------------- planar
+
+
+def _planar_class(seed, tilt_deg, n=100, k=8, missing=0.25):
+    g = torch.Generator().manual_seed(seed)
+    S = torch.randn(k, 3, generator=g, dtype=torch.float64)
+    S[:, 2] = 0.0
+    S = S - S.mean(0)
+    roll = (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 2 * math.pi
+    axis = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    axis[:, 2] = 0.0
+    tilt = torch.deg2rad(tilt_deg * torch.rand(n, generator=g, dtype=torch.float64))
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(n, 3)
+    R = rotation_about_axis(z, roll) @ rotation_about_axis(axis, tilt)
+    return make_class(seed, n=n, shape=S, rotations=R, missing=missing)
+
+
+@pytest.mark.parametrize("tilt", [0.0, 30.0])
+def test_planar_keypoints_no_nan_and_in_plane_cameras(tilt):
+    d = _planar_class(6, tilt)
+    res = rigid_sfm(d["kp"], d["vis"])
+    assert res.planar
+    assert bool(torch.isfinite(res.shape).all()) and bool(torch.isfinite(res.cameras.R).all())
+    assert_cameras_proper(res.cameras)
+    assert float(res.shape[:, 2].abs().max()) < 1e-6
+    # every keypoint, hidden ones included, lands where the true camera puts it
+    P = res.cameras.project(res.shape).double()
+    true = ScaledOrthographic(d["R"], d["s"], d["t"]).project(d["S"])
+    assert float((P - true).norm(dim=-1).max()) < 0.05
+    # in-plane blocks A_n = M_n B (2x2) equal the true ones up to one global 2x2 map
+    A_est = res.cameras.M.double()[:, :, :2]
+    A_true = d["s"][:, None, None] * d["R"][:, :2, :2]
+    X = torch.linalg.lstsq(A_est.reshape(-1, 2), A_true.reshape(-1, 2)).solution
+    assert float((A_est @ X - A_true).abs().max()) < 1e-3 * float(d["s"].mean())
+    if tilt == 0.0:
+        # fronto-parallel views: the gauge is a similarity and every roll is exact
+        sv = torch.linalg.svdvals(X)
+        assert float(sv[0] / sv[1]) < 1.0 + 1e-4
+        roll_est = torch.atan2(A_est[:, 1, 0], A_est[:, 0, 0])
+        roll_true = torch.atan2(A_true[:, 1, 0], A_true[:, 0, 0])
+        diff = torch.remainder(roll_est - roll_true + math.pi, 2 * math.pi) - math.pi
+        diff = torch.rad2deg(torch.remainder(diff - diff[0] + math.pi, 2 * math.pi) - math.pi)
+        assert float(diff.abs().max()) < 0.5
+
+
+def test_planar_forced_off_does_not_crash():
+    d = _planar_class(7, 20.0)
+    res = rigid_sfm(d["kp"], d["vis"], planar=False, max_outer=30)
+    assert not res.planar
+    assert bool(torch.isfinite(res.cameras.R).all()) and bool(torch.isfinite(res.shape).all())
+
+
+def test_non_planar_class_is_not_called_planar():
+    d = make_class(8, n=100, k=10, missing=0.3, noise=0.01)
+    assert not rigid_sfm(d["kp"], d["vis"]).planar
+
+
+# --------------------------------------------------------------------------- rigid subset, triangulation
+
+
+def test_rigid_subset_and_triangulated_rest():
+    d = make_class(9, n=80, k=12, missing=0.3)
+    vis = d["vis"].clone()
+    vis[:, 11] = False
+    vis[0, 11] = True  # keypoint 11 seen once: cannot be triangulated
+    rigid = list(range(8))
+    res = rigid_sfm(d["kp"], vis, rigid_keypoints=rigid)
+    assert res.rigid_keypoints == rigid
+    assert bool(torch.isnan(res.shape[11]).all())
+    assert any("[11]" in p for p in res.problems)
+    # keypoints 8..10 were triangulated: the whole shape matches the truth up to similarity
+    _, _, disp = procrustes(d["S"][:11].numpy(), res.shape[:11].double().numpy())
+    assert disp < 1e-8
+
+
+def test_triangulate_known_points(generator):
+    X = torch.randn(5, 3, generator=generator, dtype=torch.float64)
+    cams = ScaledOrthographic(random_rotations(6, generator, dtype=torch.float64),
+                              torch.rand(6, generator=generator, dtype=torch.float64) + 1.0,
+                              torch.randn(6, 2, generator=generator, dtype=torch.float64))
+    kp = cams.project(X)
+    vis = torch.ones(6, 5, dtype=torch.bool)
+    vis[:, 4] = False
+    vis[2, 4] = True
+    out = triangulate(cams, kp, vis)
+    assert torch.allclose(out[:4], X[:4], atol=1e-8)
+    assert bool(torch.isnan(out[4]).all())
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_all_instances_with_two_keypoints():
+    d = make_class(10, n=40, k=8, missing=0.75)  # 2 visible each
+    res = rigid_sfm(d["kp"], d["vis"])
+    assert bool(res.valid.all())
+    assert any("3 or more" in p for p in res.problems)
+    assert any("40 instance(s) see only 2" in p for p in res.problems)
+    assert bool(torch.isfinite(res.cameras.R).all())
+
+
+def test_all_instances_with_one_keypoint():
+    d = make_class(11, n=10, k=6, missing=5 / 6)
+    res = rigid_sfm(d["kp"], d["vis"])
+    assert not bool(res.valid.any())
+    assert all("only 1 visible" in r for r in res.reasons)
+    assert any("SfM not run" in p for p in res.problems)
+    assert bool(torch.isnan(res.shape).all())
+    assert bool(torch.isnan(res.residual).all())
+    json.dumps(res.summary())
+
+
+def test_two_instances_only():
+    d = make_class(12, n=2, k=10, missing=0.0)
+    res = rigid_sfm(d["kp"], d["vis"])
+    assert bool(res.valid.all())
+    assert any("depth is not determined" in p for p in res.problems)
+    assert bool(torch.isfinite(res.shape).all()) and bool(torch.isfinite(res.cameras.R).all())
+    assert float(res.residual.max()) < 1e-2
+
+
+def test_never_visible_keypoint_and_invalid_instance():
+    d = make_class(13, n=60, k=10, missing=0.2)
+    vis = d["vis"].clone()
+    vis[:, 3] = False
+    vis[5] = False
+    vis[5, 0] = True
+    res = rigid_sfm(d["kp"], vis)
+    assert res.never_visible == [3]
+    assert bool(torch.isnan(res.shape[3]).all())
+    assert not bool(res.valid[5]) and "only 1 visible" in res.reasons[5]
+    assert bool(res.valid.sum() == 59)
+    assert any("never visible" in p for p in res.problems)
+    keep = torch.ones(60, dtype=torch.bool)
+    keep[5] = False
+    err = errors_any_reflection(res.cameras.R[keep], d["R"][keep])
+    assert err.max() < 0.5
+    s = res.summary()
+    assert s["never_visible"] == [3] and "5" in json.loads(json.dumps(s))["invalid"]
+
+
+def test_nan_coordinates_of_visible_keypoints_are_reported():
+    d = make_class(14, n=40, k=8, missing=0.2)
+    kp = d["kp"].clone()
+    kp[0, 0] = float("nan")
+    vis = d["vis"].clone()
+    vis[0, 0] = True
+    res = rigid_sfm(kp, vis)
+    assert any("non-finite" in p for p in res.problems)
+    assert bool(torch.isfinite(res.shape).all())
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        ({"keypoints": torch.zeros(3, 4)}, "keypoints"),
+        ({"visible": torch.ones(3, 5, dtype=torch.bool)}, "visible"),
+        ({"rigid_keypoints": [0, 9]}, "rigid_keypoints"),
+        ({"flip_pairs": [(0, 7)]}, "flip_pairs"),
+        ({"keypoint_names": ["a"]}, "keypoint_names"),
+        ({"left_convention": "mine"}, "left_convention"),
+    ],
+)
+def test_bad_arguments_raise(kwargs, match):
+    args = {"keypoints": torch.zeros(3, 4, 2), "visible": torch.ones(3, 4, dtype=torch.bool)}
+    args.update(kwargs)
+    kp, vis = args.pop("keypoints"), args.pop("visible")
+    with pytest.raises(ValueError, match=match):
+        rigid_sfm(kp, vis, **args)
+
+
+def test_deterministic_and_summary_is_json():
+    d = make_class(15, n=50, k=10, missing=0.3)
+    a = rigid_sfm(d["kp"], d["vis"])
+    b = rigid_sfm(d["kp"], d["vis"])
+    assert torch.equal(a.shape, b.shape) and torch.equal(a.cameras.R, b.cameras.R)
+    s = json.loads(json.dumps(a.summary()))
+    assert s["valid"] == 50 and s["reflection"]["decided_by"] in ("visibility", "visibility (weak)")
+
+
+# --------------------------------------------------------------------------- symmetry plane
+
+
+def test_symmetry_plane_of_a_reflected_shape(generator):
+    half = torch.randn(4, 3, generator=generator, dtype=torch.float64)
+    n = torch.nn.functional.normalize(torch.randn(3, generator=generator, dtype=torch.float64), dim=0)
+    # independent reference: a Householder matrix built in numpy
+    H = np.eye(3) - 2.0 * np.outer(n.numpy(), n.numpy())
+    other = half @ torch.from_numpy(H)
+    S = torch.cat([half, other, torch.full((1, 3), float("nan"), dtype=torch.float64)])
+    pairs = [(0, 4), (5, 1), (2, 6), (3, 7), (0, 8)]  # mixed order, one pair with a NaN row
+    P = symmetry_plane(S, pairs)
+    np.testing.assert_allclose(P.numpy(), H, atol=1e-10)
+    assert abs(float(torch.det(P)) + 1.0) < 1e-10
+    with pytest.raises(ValueError, match="flip_pairs"):
+        symmetry_plane(S, [(0, 8)])
+    with pytest.raises(ValueError, match="shape"):
+        symmetry_plane(torch.zeros(3, 2), [(0, 1)])
+
+
+# --------------------------------------------------------------------------- device
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_matches_cpu():
+    d = make_class(16, n=100, k=12, missing=0.3, noise=0.005)
+    a = rigid_sfm(d["kp"], d["vis"])
+    b = rigid_sfm(d["kp"].cuda(), d["vis"].cuda())
+    assert b.shape.device.type == "cuda" and b.cameras.R.device.type == "cuda"
+    assert torch.allclose(a.shape, b.shape.cpu(), atol=1e-3)
+    assert torch.allclose(a.cameras.R, b.cameras.R.cpu(), atol=1e-3)
