@@ -90,6 +90,8 @@ def distance_to_mask(masks: torch.Tensor) -> torch.Tensor:
     """
     m = _check(masks)
     nonempty = m.flatten(1).any(dim=1)
+    if bool(nonempty.all()):
+        return _edt(m)
     out = torch.full(m.shape, float("inf"), dtype=torch.float32, device=m.device)
     if bool(nonempty.any()):
         out[nonempty] = _edt(m[nonempty])
