@@ -175,6 +175,9 @@ class ClassMeta:
         symmetry: ``"none"`` or ``"rotational"``.
         articulated: articulated classes skip mirrored silhouettes in carving.
         category_id: the COCO category id.
+        left_convention: ``"object"`` when a keypoint named left lies on the object's own left
+            (Berkeley PASCAL keypoints), ``"viewer"`` when it lies on the left of a frontal photo
+            (PASCAL3D+ CAD names). Only used to break close reflection votes in SfM.
     """
 
     name: str
@@ -184,6 +187,7 @@ class ClassMeta:
     symmetry: str = "none"
     articulated: bool = False
     category_id: int = 0
+    left_convention: str = "object"
 
     @property
     def num_keypoints(self) -> int:

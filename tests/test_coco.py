@@ -151,8 +151,9 @@ class TestLoad:
         path, images, anns = _dataset(tmp_path)
         data = json.loads(path.read_text())
         data["categories"][0].update({"rigid_keypoints": [0, 1, 2], "symmetry": "rotational", "articulated": True,
-                                      "flip_pairs": [[0, 1]]})
+                                      "flip_pairs": [[0, 1]], "left_convention": "viewer"})
         path.write_text(json.dumps(data))
         c = load_coco(path, canvas_size=32).collections["plane"]
         assert c.meta.rigid_keypoints == [0, 1, 2] and c.meta.symmetry == "rotational" and c.meta.articulated
+        assert c.meta.left_convention == "viewer"
         assert load_coco(path, classes=["car"]).collections == {}

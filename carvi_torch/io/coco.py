@@ -4,7 +4,9 @@ Input follows pycocotools conventions: ``keypoints`` is ``[x, y, v] * K`` with
 ``v = 0`` not labelled, ``1`` labelled but not visible, ``2`` visible;
 ``segmentation`` is RLE (compressed or not) or polygons. carvi extras on a
 category (all optional): ``flip_pairs``, ``rigid_keypoints``, ``symmetry``
-(``"none"`` / ``"rotational"``), ``articulated``; on an annotation: ``occluded``,
+(``"none"`` / ``"rotational"``), ``articulated``, ``left_convention`` (``"object"``: a
+keypoint named left is on the object's own left, the default; ``"viewer"``: on the left of a
+frontal photo, as PASCAL3D+ CAD names); on an annotation: ``occluded``,
 ``truncated`` (not reconstructed), ``object_id``, ``source``, ``split``.
 
 Validation never stops the run for one bad object: every problem becomes a
@@ -123,7 +125,8 @@ def decode_segmentation(seg: Any, height: int, width: int) -> np.ndarray:
 
 
 def make_category(cat_id: int, name: str, keypoints: list[str], *, flip_pairs=None, rigid_keypoints=None,
-                  symmetry: str = "none", articulated: bool = False, supercategory: str = "object") -> dict:
+                  symmetry: str = "none", articulated: bool = False, supercategory: str = "object",
+                  left_convention: str | None = None) -> dict:
     """A COCO keypoint category with the carvi extras (flip pairs inferred from names when not given)."""
     return {
         "id": int(cat_id), "name": name, "supercategory": supercategory, "keypoints": list(keypoints),
@@ -131,6 +134,7 @@ def make_category(cat_id: int, name: str, keypoints: list[str], *, flip_pairs=No
         "flip_pairs": [list(p) for p in (flip_pairs if flip_pairs is not None else infer_flip_pairs(keypoints))],
         **({"rigid_keypoints": [int(i) for i in rigid_keypoints]} if rigid_keypoints is not None else {}),
         "symmetry": symmetry, "articulated": bool(articulated),
+        **({"left_convention": left_convention} if left_convention is not None else {}),
     }
 
 
@@ -200,9 +204,13 @@ def _category_meta(cat: dict, problems: list) -> ClassMeta | None:
     if symmetry not in ("none", "rotational"):
         problems.append(Problem(f"unknown symmetry {symmetry!r}; using 'none'", category=name, fatal=False))
         symmetry = "none"
+    convention = str(cat.get("left_convention", "object"))
+    if convention not in ("object", "viewer"):
+        problems.append(Problem(f"unknown left_convention {convention!r}; using 'object'", category=name, fatal=False))
+        convention = "object"
     return ClassMeta(name=name, keypoint_names=names, flip_pairs=[tuple(p) for p in pairs], rigid_keypoints=rigid,
                      symmetry=symmetry, articulated=bool(cat.get("articulated", False)),
-                     category_id=int(cat["id"]))
+                     category_id=int(cat["id"]), left_convention=convention)
 
 
 def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[np.ndarray, np.ndarray] | str:
