@@ -346,25 +346,39 @@ def random_proposals(gen, M=8, B=12, V=4, size=32):
     return signed_distance(masks), cams, reference, views
 
 
-@pytest.mark.parametrize("imprint", [True, False])
-def test_batched_equals_loop_voxel_for_voxel(imprint):
+@pytest.mark.parametrize("imprint, n", [(True, 14), (False, 14), (True, 11)])
+def test_batched_equals_loop_voxel_for_voxel(imprint, n):
     gen = torch.Generator().manual_seed(6)
     sdf, cams, reference, views = random_proposals(gen)
-    n = 14
     loop = carve_proposals_loop(sdf, cams, reference, views, resolution=n, imprint=imprint)
-    for mbv in (n ** 3, 10 ** 9):  # many chunks / one chunk
-        for return_cost in (False, True):
-            out = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint, max_batch_voxels=mbv,
-                                  return_cost=return_cost)
-            assert torch.equal(out.occupancy, loop.occupancy)
-            assert torch.equal(out.voxel_to_camera, loop.voxel_to_camera)
-            assert torch.equal(out.empty, loop.empty)
-            assert torch.equal(out.reference_columns, loop.reference_columns)
-            assert torch.equal(out.column_cost, loop.column_cost)
-            if return_cost:
-                assert torch.equal(out.cost, loop.cost)
+    for mbv, return_cost, c2f in [(n ** 3, False, False), (10 ** 9, False, False), (n ** 3, True, False),
+                                  (10 ** 9, True, False), (n ** 3, False, True), (10 ** 9, False, True)]:
+        out = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint, max_batch_voxels=mbv,
+                              return_cost=return_cost, coarse_to_fine=c2f)
+        assert torch.equal(out.occupancy, loop.occupancy)
+        assert torch.equal(out.voxel_to_camera, loop.voxel_to_camera)
+        assert torch.equal(out.empty, loop.empty)
+        assert torch.equal(out.reference_columns, loop.reference_columns)
+        assert torch.equal(out.column_cost, loop.column_cost)
+        if return_cost:
+            assert torch.equal(out.cost, loop.cost)
     assert bool(loop.empty[3]) and not loop.occupancy[3].any()  # empty reference
     assert loop.occupancy.any() and (~loop.empty).sum() >= len(reference) // 2
+
+
+def test_coarse_to_fine_is_exact_on_many_proposals_and_on_any_maps():
+    # Blocks are decided by the Lipschitz bound of the maps actually given: also
+    # correct for maps that are not distance maps (steep random values).
+    for seed in range(4):
+        gen = torch.Generator().manual_seed(100 + seed)
+        sdf, cams, reference, views = random_proposals(gen, M=8, B=10, V=4, size=24)
+        if seed == 3:
+            sdf = sdf + 3.0 * torch.randn(sdf.shape, generator=gen)
+        for n in (9, 16):
+            for imprint in (True, False):
+                dense = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint)
+                c2f = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint, coarse_to_fine=True)
+                assert torch.equal(dense.occupancy, c2f.occupancy) and torch.equal(dense.empty, c2f.empty)
 
 
 def test_unused_slot_is_the_same_as_leaving_the_view_out():
