@@ -147,11 +147,13 @@ class VoxelGrid:
 
     def __post_init__(self):
         if not isinstance(self.occupancy, torch.Tensor) or self.occupancy.dim() != 3:
-            raise ValueError(f"occupancy must be a (D, H, W) tensor, got {getattr(self.occupancy, 'shape', type(self.occupancy))}")
+            got = getattr(self.occupancy, "shape", type(self.occupancy))
+            raise ValueError(f"occupancy must be a (D, H, W) tensor, got {got}")
         if self.occupancy.dtype != torch.bool:
             raise ValueError(f"occupancy must be bool, got {self.occupancy.dtype}")
         if not isinstance(self.voxel_to_camera, torch.Tensor) or self.voxel_to_camera.shape != (4, 4):
-            raise ValueError(f"voxel_to_camera must be a (4, 4) tensor, got {getattr(self.voxel_to_camera, 'shape', None)}")
+            got = getattr(self.voxel_to_camera, "shape", type(self.voxel_to_camera))
+            raise ValueError(f"voxel_to_camera must be a (4, 4) tensor, got {got}")
         if self.cost is not None and self.cost.shape != self.occupancy.shape:
             raise ValueError(f"cost must match occupancy {tuple(self.occupancy.shape)}, got {tuple(self.cost.shape)}")
 
@@ -184,6 +186,7 @@ class VoxelGrid:
         return occupancy_to_mesh(self.occupancy, self.voxel_to_camera, largest_component=largest_component)
 
     def to(self, device) -> "VoxelGrid":
+        """The grid with every tensor on ``device``."""
         return VoxelGrid(self.occupancy.to(device), self.voxel_to_camera.to(device),
                          None if self.cost is None else self.cost.to(device))
 
@@ -215,6 +218,7 @@ class ProposalGrids:
         return self.occupancy.shape[0]
 
     def __getitem__(self, i: int) -> VoxelGrid:
+        """Proposal ``i`` as a :class:`VoxelGrid` (views of the batch tensors)."""
         return VoxelGrid(self.occupancy[i], self.voxel_to_camera[i], None if self.cost is None else self.cost[i])
 
     def volumes(self) -> torch.Tensor:
@@ -223,6 +227,7 @@ class ProposalGrids:
         return self.occupancy.flatten(1).sum(1).double() * det
 
     def to(self, device) -> "ProposalGrids":
+        """The grids with every tensor on ``device``."""
         return ProposalGrids(*(None if v is None else v.to(device) for v in
                                (self.occupancy, self.voxel_to_camera, self.empty, self.reference_columns,
                                 self.column_cost, self.cost)))
@@ -252,7 +257,8 @@ def _check_inputs(sdf, cameras, reference, views, resolution):
     if views.dim() != 2 or views.shape[0] != B or views.is_floating_point() or views.dtype == torch.bool:
         raise ValueError(f"views must be a (B, V) = ({B}, V) integer tensor, got {tuple(views.shape)} {views.dtype}")
     if B and (int(reference.min()) < 0 or int(reference.max()) >= M):
-        raise ValueError(f"reference indices must lie in [0, {M}), got range [{int(reference.min())}, {int(reference.max())}]")
+        raise ValueError(f"reference indices must lie in [0, {M}), got range "
+                         f"[{int(reference.min())}, {int(reference.max())}]")
     if views.numel() and (int(views.min()) < -1 or int(views.max()) >= M):
         raise ValueError(f"views indices must lie in [0, {M}) or be -1 (unused), got range "
                          f"[{int(views.min())}, {int(views.max())}]")
@@ -302,8 +308,8 @@ def mask_geometry(sdf: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, tor
     x_hi = W - 1 - cols.flip(1).int().argmax(dim=1)
     y_lo = rows.int().argmax(dim=1)
     y_hi = H - 1 - rows.flip(1).int().argmax(dim=1)
-    box = torch.stack([x_lo, x_hi, y_lo, y_hi], dim=1).double() + torch.tensor([-0.5, 0.5, -0.5, 0.5], device=sdf.device,
-                                                                                 dtype=torch.float64)
+    half = torch.tensor([-0.5, 0.5, -0.5, 0.5], device=sdf.device, dtype=torch.float64)
+    box = torch.stack([x_lo, x_hi, y_lo, y_hi], dim=1).double() + half
     full = torch.tensor([-0.5, W - 0.5, -0.5, H - 0.5], device=sdf.device, dtype=torch.float64)
     box = torch.where(nonempty[:, None], box, full)
     xs = torch.arange(W, device=sdf.device, dtype=torch.float64)
@@ -474,13 +480,16 @@ def _sample_columns(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor,
     """
     N, K = xy[0].shape
     D = depth.shape[0]
-    planes = out.view(-1)[: N * 2 * D * K].view(N, 2, D, K) if out is not None else torch.empty(N, 2, D, K, device=maps.device)
+    if out is None:
+        out = torch.empty(N * 2 * D * K, device=maps.device)
+    planes = out.view(-1)[: N * 2 * D * K].view(N, 2, D, K)
     for i in range(2):
         torch.add(G[:, i, 0, None, None] * depth[None, :, None], xy[i][:, None, :], out=planes[:, i])
     return _grid_sample(maps, planes.permute(0, 2, 3, 1))[:, 0]
 
 
-def _sample_points(maps: torch.Tensor, G: torch.Tensor, d: torch.Tensor, h: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _sample_points(maps: torch.Tensor, G: torch.Tensor, d: torch.Tensor, h: torch.Tensor,
+                   w: torch.Tensor) -> torch.Tensor:
     """Bilinear samples of ``maps`` at voxels ``(d, h, w)``, ``(N, K)`` float32 indices each.
 
     Same arithmetic as :func:`_sample_columns` (``G[:, :, 0] d`` plus the column term of
@@ -553,8 +562,8 @@ def _prepare(sdf, cams, reference, views, resolution):
     ext = extend_maps(sdf[used])
     ext = torch.cat([ext, torch.full_like(ext[:1], _UNUSED)])  # index len(used): unused slot
     box, nonempty, radius = mask_geometry(sdf[used], cams.t[used])
-    T, G, G_ref, scale = proposal_geometry(box, nonempty, radius, cams[used], ref_u, torch.where(views >= 0, views_u, -1),
-                                           resolution, tuple(ext.shape[1:]))
+    T, G, G_ref, scale = proposal_geometry(box, nonempty, radius, cams[used], ref_u,
+                                           torch.where(views >= 0, views_u, -1), resolution, tuple(ext.shape[1:]))
     return ext, ref_u, views_u, T, G.float(), G_ref.float(), scale.float()
 
 
@@ -589,7 +598,8 @@ class _Chunk:
     def __init__(self, ext, views_c, scale_c, G_c, column_cost_c, n):
         unused = len(ext) - 1
         self.maps = [None if bool((views_c[:, j] == unused).all())
-                     else ext[views_c[:, j]][:, None] * scale_c[:, j, None, None, None] for j in range(views_c.shape[1])]
+                     else ext[views_c[:, j]][:, None] * scale_c[:, j, None, None, None]
+                     for j in range(views_c.shape[1])]
         self.G, self.column_cost, self.n = G_c, column_cost_c, n
 
     def columns(self, cols: torch.Tensor, depth: torch.Tensor, buf=None) -> torch.Tensor:

@@ -9,8 +9,8 @@ their mirrored copies and the mirrored reference), as the pipeline does. Timed:
 * ``loop``: :func:`carvi_torch.carve.carve_proposals_loop` (one proposal, one view
   at a time) on the first ``--loop-references`` objects, and checked voxel for voxel
   against the batched result;
-* ``batched, no c2f``: the same without coarse-to-fine (every voxel of the
-  reference's foreground columns is sampled);
+* ``batched, coarse_to_fine=True``: the same with the optional coarse-to-fine
+  evaluation (fewer samples, more bookkeeping);
 * ``floor``: the time spent inside the ``grid_sample`` calls alone, measured in situ
   (``carve._grid_sample`` wrapped by a clock) for each of those runs; the loop's floor
   is the cost of sampling every voxel of every proposal.
@@ -163,21 +163,21 @@ def main(argv=None):
     identical = bool(torch.equal(ref_loop.occupancy, out.occupancy[:n_loop]))
 
     t_floor, samples = floor(carve, args.repeat, device)
-    dense = lambda: C.carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=mbv,  # noqa: E731
-                                      coarse_to_fine=False)
-    t_columns = best_of(dense, args.repeat, device)
-    t_columns_floor, column_samples = floor(dense, args.repeat, device)
+    c2f = lambda: C.carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=mbv,  # noqa: E731
+                                    coarse_to_fine=True)
+    t_c2f = best_of(c2f, args.repeat, device)
+    t_c2f_floor, c2f_samples = floor(c2f, args.repeat, device)
     t_loop_floor, loop_samples = floor(loop, 1, device)
     t_loop_floor *= n_obj * per / n_loop
     loop_samples = loop_samples * n_obj * per // n_loop
 
     per_obj = lambda t: t / n_obj  # noqa: E731
     rows = [
-        ("batched (coarse-to-fine)", t_batched, samples),
-        ("batched, foreground columns, no c2f", t_columns, column_samples),
+        ("batched (foreground columns)", t_batched, samples),
+        ("batched, coarse_to_fine=True", t_c2f, c2f_samples),
         ("loop (every voxel)", t_loop, loop_samples),
         ("floor: grid_sample of batched", t_floor, samples),
-        ("floor: grid_sample of batched, no c2f", t_columns_floor, column_samples),
+        ("floor: grid_sample of coarse-to-fine", t_c2f_floor, c2f_samples),
         ("floor: grid_sample of loop", t_loop_floor, loop_samples),
     ]
     print(f"device {device}, threads {torch.get_num_threads()}, load average at start {load:.2f}")
@@ -186,7 +186,8 @@ def main(argv=None):
     for name, t, s_ in rows:
         print(f"{name:40s} {per_obj(t):10.4f} {t:9.3f} {s_ / 1e6:9.1f}")
     print(f"batched vs loop: {t_loop / t_batched:.1f}x faster; batched / its floor: {t_batched / t_floor:.2f}; "
-          f"batched / loop's floor: {t_batched / t_loop_floor:.2f}; identical to loop on {n_loop} proposals: {identical}")
+          f"batched / loop's floor: {t_batched / t_loop_floor:.2f}; "
+          f"identical to loop on {n_loop} proposals: {identical}")
     occupied = float(out.occupancy.float().mean())
     result = {
         "command": " ".join(["python tools/bench_carve.py"] + argv),
@@ -197,11 +198,10 @@ def main(argv=None):
         "config": {"references": n_obj, "proposals_per_reference": per, "further_views": int(views.shape[1]),
                    "resolution": n, "canvas": args.canvas, "max_batch_voxels": mbv, "repeat": args.repeat,
                    "loop_proposals_timed": n_loop, "seed": args.seed},
-        "seconds_per_object": {"batched": per_obj(t_batched), "batched_no_coarse_to_fine": per_obj(t_columns),
+        "seconds_per_object": {"batched": per_obj(t_batched), "batched_coarse_to_fine": per_obj(t_c2f),
                                "loop": per_obj(t_loop), "floor_batched": per_obj(t_floor),
-                               "floor_batched_no_coarse_to_fine": per_obj(t_columns_floor),
-                               "floor_loop": per_obj(t_loop_floor)},
-        "samples_per_object": {"batched": samples / n_obj, "batched_no_coarse_to_fine": column_samples / n_obj,
+                               "floor_coarse_to_fine": per_obj(t_c2f_floor), "floor_loop": per_obj(t_loop_floor)},
+        "samples_per_object": {"batched": samples / n_obj, "coarse_to_fine": c2f_samples / n_obj,
                                "loop": loop_samples / n_obj},
         "speedup_vs_loop": t_loop / t_batched,
         "batched_over_its_floor": t_batched / t_floor,
