@@ -341,3 +341,28 @@ def test_perturb_boundary_moves_boundary_by_about_sigma():
     assert torch.equal(noisy, again)
     with pytest.raises(ValueError, match="sigma"):
         perturb_boundary(disc, -1.0)
+
+
+# --------------------------------------------------------------------------- CUDA
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (CI has none)")
+def test_render_on_cuda_matches_cpu(generator):
+    V, F = cube_mesh(0.5)
+    V = V + 0.01 * torch.randn(V.shape, generator=generator)
+    kp = torch.tensor([[0, -0.5, 0], [0, 0.5, 0], [0.5, 0.1, 0.2]])
+    cams = sample_cameras(4, generator, (64, 48), radius=0.9)
+    for c in range(4):
+        cpu = render_view(V, F, kp, None, cams[c], (64, 48))
+        gpu = render_view(V.cuda(), F.cuda(), kp.cuda(), None, cams[c], (64, 48))
+        assert gpu["mask"].is_cuda
+        assert torch.equal(cpu["mask"], gpu["mask"].cpu())
+        assert torch.equal(cpu["visible"], gpu["visible"].cpu())
+        torch.testing.assert_close(cpu["keypoints"], gpu["keypoints"].cpu())
+        uv = cams[c].project(V)[0]
+        z = cams[c].depth(V)[0]
+        torch.testing.assert_close(rasterize_depth(uv.cuda(), z.cuda(), F.cuda(), 48, 64).cpu(),
+                                   rasterize_depth(uv, z, F, 48, 64))
+    noisy = perturb_boundary(cpu["mask"].cuda(), 1.5, torch.Generator().manual_seed(0))
+    assert noisy.is_cuda and noisy.shape == (48, 64)

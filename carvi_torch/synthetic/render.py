@@ -104,22 +104,36 @@ def _check_points_faces(points2d: torch.Tensor, faces: torch.Tensor, height: int
 
 
 def _covered_pixels(points2d: torch.Tensor, faces: torch.Tensor, height: int, width: int,
-                    chunk: int = _DEFAULT_CHUNK) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+                    chunk: int = _DEFAULT_CHUNK, barycentric: bool = True
+                    ) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]:
     """Every (triangle, pixel) pair whose pixel centre lies inside or on the triangle.
 
     Candidate pixels are the integer points of each triangle's bounding box clipped to
     the image; the triangles are processed in chunks of about ``chunk`` candidates
     (``repeat_interleave`` of the box sizes, then the three edge functions).
-    Edge functions are evaluated in float64: for float32 vertices every difference
-    and product is exact there, so the inside / on-edge / outside decision is exact.
-    Degenerate (zero-area) and non-finite triangles are skipped.
+
+    Exactness: the vertices are first rounded (float64) to the grid of ``2^-m`` pixels,
+    ``m = 25 - ceil(log2 R)`` with ``R`` the largest of the image sides and the vertices'
+    absolute coordinates (``2^-16`` pixel for a 320 x 240 image with the object inside).
+    On that grid every coordinate difference has at most ``26`` significant bits, so the
+    float64 products of the edge functions are exact and their difference has the exact
+    sign: inside / on-edge / outside is decided without rounding error, and a pixel centre
+    on an edge shared by two triangles is covered by both (no cracks). The rounding moves
+    a vertex by at most ``2^-17`` pixel. Degenerate (zero-area after rounding) and
+    non-finite triangles are skipped.
 
     Yields:
         ``face (P,) long`` triangle index, ``pixel (P,) long`` flat index ``i * width + j``,
-        ``bary (P, 3) float64`` barycentric coordinates of the pixel centre.
+        ``bary (P, 3) float64`` barycentric coordinates of the pixel centre (``None`` unless
+        ``barycentric``).
     """
     dev = points2d.device
-    tri = points2d.to(torch.float64)[faces.long()]  # (F, 3, 2)
+    P = points2d.to(torch.float64)
+    finite = torch.isfinite(P)
+    largest = float(P.abs().where(finite, torch.zeros_like(P)).max()) if P.numel() else 0.0
+    m = 25 - math.ceil(math.log2(max(largest, float(width), float(height), 1.0)))
+    P = torch.round(P * 2.0**m) / 2.0**m  # exact power-of-two scaling; non-finite values stay so
+    tri = P[faces.long()]  # (F, 3, 2)
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
     area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
     lo = tri.amin(dim=1)
@@ -140,9 +154,13 @@ def _covered_pixels(points2d: torch.Tensor, faces: torch.Tensor, height: int, wi
     A = a[keep]
     B = torch.where(flip[:, None], c[keep], b[keep])
     C = torch.where(flip[:, None], b[keep], c[keep])
-    area = area2[keep].abs()
-    x0k, y0k, bwk, cnt = x0[keep].long(), y0[keep].long(), bw[keep], count[keep]
+    cnt = count[keep]
     csum = torch.cumsum(cnt, 0)
+    # one row per kept triangle, gathered once per candidate pixel: vertices (oriented),
+    # box origin and width, index of its first candidate (all exact in float64)
+    pack = torch.stack([A[:, 0], A[:, 1], B[:, 0], B[:, 1], C[:, 0], C[:, 1], x0[keep], y0[keep],
+                        bw[keep].to(torch.float64), (csum - cnt).to(torch.float64)], dim=1)
+    area = area2[keep].abs()
     n = keep.numel()
     start = 0
     # chunk boundaries: consecutive triangles whose candidate counts add up to about `chunk`
@@ -150,29 +168,28 @@ def _covered_pixels(points2d: torch.Tensor, faces: torch.Tensor, height: int, wi
         base = int(csum[start - 1]) if start > 0 else 0
         end = int(torch.searchsorted(csum, torch.tensor(base + chunk, device=dev), right=True))
         end = max(end, start + 1)
-        sl = slice(start, end)
-        c_cnt = cnt[sl]
-        total = int(c_cnt.sum())
+        c_cnt = cnt[start:end]
+        total = int(csum[end - 1]) - base
         local_tri = torch.repeat_interleave(torch.arange(end - start, device=dev), c_cnt, output_size=total)
-        offsets = torch.cumsum(c_cnt, 0) - c_cnt
-        k = torch.arange(total, device=dev) - offsets[local_tri]
-        w = bwk[sl][local_tri]
-        px = x0k[sl][local_tri] + k % w
-        py = y0k[sl][local_tri] + torch.div(k, w, rounding_mode="floor")
-        pxf, pyf = px.to(torch.float64), py.to(torch.float64)
-        Aa, Bb, Cc = A[sl][local_tri], B[sl][local_tri], C[sl][local_tri]
+        G = pack[start:end].index_select(0, local_tri)  # (P, 10)
+        k = torch.arange(base, base + total, device=dev, dtype=torch.float64) - G[:, 9]
+        px = G[:, 6] + torch.remainder(k, G[:, 8])
+        py = G[:, 7] + torch.div(k, G[:, 8], rounding_mode="floor")
+        ax, ay, bx, by, cx, cy = G[:, 0], G[:, 1], G[:, 2], G[:, 3], G[:, 4], G[:, 5]
         # edge functions: >= 0 on the inner side of each directed edge (or on it)
-        e_a = (Cc[:, 0] - Bb[:, 0]) * (pyf - Bb[:, 1]) - (Cc[:, 1] - Bb[:, 1]) * (pxf - Bb[:, 0])  # opposite A
-        e_b = (Aa[:, 0] - Cc[:, 0]) * (pyf - Cc[:, 1]) - (Aa[:, 1] - Cc[:, 1]) * (pxf - Cc[:, 0])  # opposite B
-        e_c = (Bb[:, 0] - Aa[:, 0]) * (pyf - Aa[:, 1]) - (Bb[:, 1] - Aa[:, 1]) * (pxf - Aa[:, 0])  # opposite C
-        inside = (e_a >= 0) & (e_b >= 0) & (e_c >= 0)
-        idx = torch.nonzero(inside).squeeze(1)
-        tri_local = local_tri[idx]
-        bary = torch.stack([e_a[idx], e_b[idx], e_c[idx]], dim=1) / area[sl][tri_local, None]
-        # barycentrics refer to the oriented (A, B, C); map back to the face's own vertex order
-        fl = flip[sl][tri_local]
-        bary = torch.where(fl[:, None], bary[:, [0, 2, 1]], bary)
-        yield keep[sl][tri_local], py[idx] * width + px[idx], bary
+        e_a = (cx - bx) * (py - by) - (cy - by) * (px - bx)  # opposite A
+        e_b = (ax - cx) * (py - cy) - (ay - cy) * (px - cx)  # opposite B
+        e_c = (bx - ax) * (py - ay) - (by - ay) * (px - ax)  # opposite C
+        idx = torch.nonzero((e_a >= 0) & (e_b >= 0) & (e_c >= 0)).squeeze(1)
+        pix = (py[idx] * width + px[idx]).long()
+        tri_local = local_tri[idx] + start
+        if barycentric:
+            bary = torch.stack([e_a[idx], e_b[idx], e_c[idx]], dim=1) / area[tri_local, None]
+            # barycentrics refer to the oriented (A, B, C); map back to the face's own vertex order
+            bary = torch.where(flip[tri_local, None], bary[:, [0, 2, 1]], bary)
+        else:
+            bary = None
+        yield keep[tri_local], pix, bary
         start = end
 
 
@@ -181,9 +198,10 @@ def rasterize_triangles(points2d: torch.Tensor, faces: torch.Tensor, height: int
     """Exact silhouette of a triangle soup: the union of the projected triangles.
 
     A pixel ``[i, j]`` is foreground iff its centre ``(x=j, y=i)`` lies inside or on the
-    boundary of at least one triangle. Exact for float32 points (the edge functions are
-    computed in float64, where they have no rounding error); degenerate (zero-area)
-    triangles are ignored. Runs on the device of ``points2d``; memory is bounded by
+    boundary of at least one triangle. Exact: the vertices are rounded to a fine dyadic
+    grid (``2^-16`` pixel for images up to 512 pixels with the object in view) on which
+    the float64 edge functions have no rounding error; see ``_covered_pixels``.
+    Degenerate (zero-area) triangles are ignored. Runs on the device of ``points2d``; memory is bounded by
     processing about ``chunk`` candidate pixels at a time.
 
     Args:
@@ -204,7 +222,7 @@ def rasterize_triangles(points2d: torch.Tensor, faces: torch.Tensor, height: int
     """
     _check_points_faces(points2d, faces, height, width)
     mask = torch.zeros(int(height) * int(width), dtype=torch.bool, device=points2d.device)
-    for _face, pix, _bary in _covered_pixels(points2d, faces, int(height), int(width), chunk):
+    for _face, pix, _bary in _covered_pixels(points2d, faces, int(height), int(width), chunk, barycentric=False):
         mask[pix] = True
     return mask.view(int(height), int(width))
 
