@@ -31,7 +31,6 @@ when given no ``--data``.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -423,7 +422,7 @@ def make_instance(category: str, generator: torch.Generator, name: str | None = 
 
     Returns:
         :class:`~carvi_torch.synthetic.meshes.Model` with a watertight mesh,
-        ``source = "procedural"``.
+        ``source = "procedural:<name>"``.
 
     Example:
         >>> m = make_instance("car", torch.Generator().manual_seed(0))
@@ -448,15 +447,16 @@ def make_instance(category: str, generator: torch.Generator, name: str | None = 
     kp = (kp.numpy() - centre) * scale
     return Model(name=name or category, category=category, vertices=torch.from_numpy(verts.astype(np.float32)),
                  faces=torch.from_numpy(faces), keypoint_names=names,
-                 keypoints=torch.from_numpy(kp.astype(np.float32)), source="procedural")
+                 keypoints=torch.from_numpy(kp.astype(np.float32)), source=f"procedural:{name or category}")
 
 
 def make_collection(instances_per_class: int = 40, seed: int = 0,
                     categories: Sequence[str] | None = None) -> list[Model]:
     """``instances_per_class`` instances of each class, named ``<class><index:03d>``.
 
-    Instance ``i`` of class ``c`` is built from :func:`seed_generator` ``(seed, c, i)``, so
-    it does not depend on the other classes or on how many instances are asked for.
+    Instance ``i`` of class ``c`` is built from :func:`seed_generator`
+    ``(seed, "procedural", c, i)``, so it does not depend on the other classes or on how
+    many instances are asked for.
     """
     cats = list(categories) if categories is not None else list(CATEGORIES)
     bad = [c for c in cats if c not in _BUILDERS]
