@@ -1,0 +1,184 @@
+"""Make input datasets (COCO keypoint JSON) for carvi_torch.
+
+Subcommands::
+
+    python -m carvi_torch.datasets synthetic --meshes DIR --out DIR [--views N] [--test-views N]
+        [--seed S] [--image-size W H | --canvas S] [--keypoint-noise P] [--boundary-noise P]
+    python -m carvi_torch.datasets procedural --out DIR [--instances N] [--views N] [--seed S] ...
+    python -m carvi_torch.datasets voc --keypoints DIR [--masks DIR] --out annotations.json
+
+``synthetic`` renders meshes with 3-D keypoints (PASCAL3D+ ``.npz``, or any trimesh mesh with
+a ``.json`` of keypoints beside it) from random photograph-like cameras; ``procedural``
+builds and renders the embedded procedural classes (the default data of
+``python -m carvi_torch.reconstruct``); ``voc`` converts Berkeley keypoint XML files (and
+VOC/SBD masks) through :mod:`carvi_torch.io.voc`. Each writes ``annotations.json`` (and,
+for synthetic data, ``gt.json`` and ``meshes/``) into ``--out``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Sequence
+
+__all__ = ["build_parser", "main"]
+
+
+def _nonneg_float(text: str) -> float:
+    v = float(text)
+    if not v >= 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text}")
+    return v
+
+
+def _pos_int(text: str) -> int:
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text}")
+    return v
+
+
+def _nonneg_int(text: str) -> int:
+    v = int(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
+    return v
+
+
+def _add_render_options(p: argparse.ArgumentParser, views_default: int, views_help: str) -> None:
+    p.add_argument("--views", type=_pos_int, default=views_default, help=views_help)
+    p.add_argument("--test-views", type=_nonneg_int, default=0,
+                   help="the first N renders of each model get split 'test', the others 'pool' (default 0)")
+    p.add_argument("--seed", type=int, default=0, help="random seed; the same seed writes the same files (default 0)")
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--image-size", type=_pos_int, nargs=2, metavar=("W", "H"), default=None,
+                      help="image width and height in pixels (default 320 240)")
+    size.add_argument("--canvas", type=_pos_int, metavar="S", default=None,
+                      help="square S x S renders instead of --image-size")
+    p.add_argument("--keypoint-noise", type=_nonneg_float, default=0.0, metavar="P",
+                   help="standard deviation (pixels) of Gaussian noise on visible keypoints (default 0)")
+    p.add_argument("--boundary-noise", type=_nonneg_float, default=0.0, metavar="P",
+                   help="standard deviation (pixels) of a smooth random displacement of the mask "
+                        "boundary along its normal (default 0)")
+    p.add_argument("--device", default="cpu", help="torch device for rasterisation (default cpu)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m carvi_torch.datasets``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m carvi_torch.datasets",
+        description="Make COCO keypoint datasets for carvi_torch: render meshes with keypoints, build the "
+                    "embedded procedural classes, or convert PASCAL VOC keypoint annotations.")
+    sub = parser.add_subparsers(dest="command", metavar="{synthetic,procedural,voc}")
+
+    syn = sub.add_parser(
+        "synthetic", help="render meshes with 3-D keypoints into masks + 2-D keypoints",
+        description="Render every model of --meshes (PASCAL3D+ .npz files, or .ply/.obj/.off/.stl/.glb meshes "
+                    "with a .json of {'class', 'keypoints': {name: [x, y, z]}} beside them) from random "
+                    "photograph-like scaled orthographic cameras. Writes OUT/annotations.json (COCO keypoints, "
+                    "RLE masks), OUT/gt.json (true cameras) and OUT/meshes/<model>.ply.")
+    syn.add_argument("--meshes", required=True, metavar="DIR", help="directory of models")
+    syn.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    _add_render_options(syn, 30, "renders per model (default 30)")
+
+    proc = sub.add_parser(
+        "procedural", help="build and render the embedded procedural classes (car, aeroplane, chair, bottle)",
+        description="Build --instances random instances of each procedural class (meshes from parts, with "
+                    "keypoints) and render each --views times (default once: many instances, one photograph "
+                    "each, like PASCAL VOC). Same outputs as 'synthetic'.")
+    proc.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    proc.add_argument("--instances", type=_pos_int, default=40, help="instances per class (default 40)")
+    proc.add_argument("--categories", nargs="+", default=None, metavar="CLASS",
+                      help="classes to build (default: aeroplane bottle car chair)")
+    _add_render_options(proc, 1, "renders per instance (default 1)")
+
+    voc = sub.add_parser(
+        "voc", help="convert Berkeley PASCAL VOC keypoint XML (and masks) to COCO keypoint JSON",
+        description="Convert Berkeley keypoint annotations (voc2011_keypoints XML files with figure-ground "
+                    "polygons) and optional VOC/SBD segmentation masks into one COCO keypoint JSON file "
+                    "(delegates to carvi_torch.io.voc).")
+    voc.add_argument("--keypoints", required=True, metavar="DIR", help="directory of keypoint XML files")
+    voc.add_argument("--masks", default=None, metavar="DIR",
+                     help="directory of VOC/SBD object segmentation masks (default: the XML polygons)")
+    voc.add_argument("--out", required=True, metavar="annotations.json", help="output JSON file")
+    return parser
+
+
+def _image_size(args) -> tuple[int, int]:
+    if args.canvas is not None:
+        return (args.canvas, args.canvas)
+    if args.image_size is not None:
+        return tuple(args.image_size)
+    from .synthetic.render import DEFAULT_IMAGE_SIZE
+
+    return DEFAULT_IMAGE_SIZE
+
+
+def _print_summary(summary: dict) -> None:
+    print(f"wrote {summary['images']} renders of {summary['models']} models "
+          f"({', '.join(summary['categories'])}) in {summary['seconds']:.1f} s")
+    print(f"  {summary['annotations']}")
+    print(f"  {summary['gt']}")
+
+
+def _run_synthetic(args) -> int:
+    from .synthetic.meshes import load_models
+    from .synthetic.render import render_dataset
+
+    if args.test_views > args.views:
+        print(f"error: --test-views ({args.test_views}) exceeds --views ({args.views})", file=sys.stderr)
+        return 2
+    try:
+        models = load_models(args.meshes)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    summary = render_dataset(models, args.out, views=args.views, test_views=args.test_views, seed=args.seed,
+                             image_size=_image_size(args), keypoint_noise=args.keypoint_noise,
+                             boundary_noise=args.boundary_noise, progress=not args.quiet, device=args.device)
+    _print_summary(summary)
+    return 0
+
+
+def _run_procedural(args) -> int:
+    from .synthetic.procedural import CATEGORIES, write_default_collection
+
+    if args.test_views > args.views:
+        print(f"error: --test-views ({args.test_views}) exceeds --views ({args.views})", file=sys.stderr)
+        return 2
+    if args.categories is not None:
+        bad = [c for c in args.categories if c not in CATEGORIES]
+        if bad:
+            print(f"error: unknown classes {bad}; choose from {list(CATEGORIES)}", file=sys.stderr)
+            return 2
+    summary = write_default_collection(args.out, instances_per_class=args.instances, views_per_instance=args.views,
+                                       seed=args.seed, categories=args.categories, image_size=_image_size(args),
+                                       test_views=args.test_views, keypoint_noise=args.keypoint_noise,
+                                       boundary_noise=args.boundary_noise, progress=not args.quiet,
+                                       device=args.device)
+    _print_summary(summary)
+    return 0
+
+
+def _run_voc(args) -> int:
+    try:
+        from .io import voc
+    except ImportError as e:
+        print(f"error: the PASCAL VOC converter (carvi_torch.io.voc) is not available: {e}", file=sys.stderr)
+        return 2
+    return voc.run(args)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the exit status (0 success, 2 bad arguments or input)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    runners = {"synthetic": _run_synthetic, "procedural": _run_procedural, "voc": _run_voc}
+    return int(runners[args.command](args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

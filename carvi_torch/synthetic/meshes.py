@@ -1,0 +1,331 @@
+"""Meshes with 3-D semantic keypoints: loading, and left/right keypoint pairs from names.
+
+Two on-disk forms are read (CPU-side; files are parsed with numpy / trimesh):
+
+* the PASCAL3D+ ``.npz`` files (``vertices (V,3)``, ``faces (F,3)`` 0-based,
+  ``keypoint_names (K,)``, ``keypoints (K,3)``); the class is the file stem without
+  its digits (``aeroplane01.npz`` -> ``aeroplane``);
+* any mesh trimesh reads (``X.ply``, ``.obj``, ``.off``, ``.stl``, ``.glb``) with a
+  ``X.json`` beside it: ``{"class": "car", "keypoints": {"name": [x, y, z], ...}}``.
+  A scene (``.glb``) is flattened into one mesh.
+
+Object frame (as PASCAL3D+): +z up, the object's front towards -y, unit-ish size.
+Real data is messy: meshes are rarely watertight and keypoint sets differ between
+models of one class; both are kept as they are (a name a model lacks is simply absent
+from its ``keypoint_names``). Only unusable entries are dropped, with a warning naming
+the file: non-finite keypoints and repeated keypoint names (the first is kept).
+"""
+from __future__ import annotations
+
+import re
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+__all__ = ["Model", "MESH_SUFFIXES", "load_cad_npz", "load_mesh_with_keypoints", "load_model", "load_models",
+           "infer_flip_pairs", "category_from_stem"]
+
+#: File suffixes read through trimesh (a ``.json`` with the keypoints must sit beside the mesh).
+MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".glb", ".gltf")
+
+
+@dataclass
+class Model:
+    """A mesh in its object frame with named 3-D keypoints.
+
+    Attributes:
+        name: unique model name (file stem, e.g. ``"aeroplane01"``).
+        category: class name (e.g. ``"aeroplane"``).
+        vertices: ``(V, 3)`` float32, object frame (+z up, front towards -y).
+        faces: ``(F, 3)`` int64 (long) vertex indices, 0-based.
+        keypoint_names: ``K`` names, unique.
+        keypoints: ``(K, 3)`` float32 keypoint positions in the object frame.
+        source: the file the model was read from (its name only), or a label for
+            generated models; written as the annotations' ``source``.
+    """
+
+    name: str
+    category: str
+    vertices: torch.Tensor
+    faces: torch.Tensor
+    keypoint_names: list[str] = field(default_factory=list)
+    keypoints: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
+    source: str = ""
+
+    def __post_init__(self):
+        self.vertices = torch.as_tensor(self.vertices, dtype=torch.float32)
+        self.faces = torch.as_tensor(self.faces, dtype=torch.long)
+        self.keypoints = torch.as_tensor(self.keypoints, dtype=torch.float32).reshape(-1, 3)
+        self.keypoint_names = [str(n) for n in self.keypoint_names]
+        if self.vertices.dim() != 2 or self.vertices.shape[1] != 3:
+            raise ValueError(f"{self.name}: vertices must be (V, 3), got {tuple(self.vertices.shape)}")
+        if self.faces.dim() != 2 or self.faces.shape[1] != 3:
+            raise ValueError(f"{self.name}: faces must be (F, 3), got {tuple(self.faces.shape)}")
+        if self.faces.numel() and (int(self.faces.min()) < 0 or int(self.faces.max()) >= self.vertices.shape[0]):
+            raise ValueError(f"{self.name}: faces index outside [0, {self.vertices.shape[0]})")
+        if len(self.keypoint_names) != self.keypoints.shape[0]:
+            raise ValueError(f"{self.name}: {len(self.keypoint_names)} keypoint names for "
+                             f"{self.keypoints.shape[0]} keypoints")
+        if len(set(self.keypoint_names)) != len(self.keypoint_names):
+            raise ValueError(f"{self.name}: keypoint names are not unique")
+
+    @property
+    def bounding_radius(self) -> float:
+        """Largest distance of a vertex from the object-frame origin (object units)."""
+        if self.vertices.shape[0] == 0:
+            return 0.0
+        return float(self.vertices.norm(dim=1).max())
+
+    def keypoint_dict(self) -> dict[str, list[float]]:
+        """``{name: [x, y, z]}`` (the JSON form read by :func:`load_mesh_with_keypoints`)."""
+        return {n: [float(v) for v in p] for n, p in zip(self.keypoint_names, self.keypoints.tolist())}
+
+    def to_trimesh(self):
+        """The mesh as a ``trimesh.Trimesh`` (``process=False``: vertices and faces kept as they are)."""
+        import trimesh
+
+        return trimesh.Trimesh(self.vertices.numpy().astype(np.float64), self.faces.numpy(), process=False)
+
+
+# --------------------------------------------------------------------------- flip pairs
+
+_SIDE_SWAP = {"left": "right", "right": "left", "l": "r", "r": "l"}
+_SEPARATORS = re.compile(r"([_\-\s.]+)")
+
+
+def _match_case(word: str, like: str) -> str:
+    """``word`` written in the case pattern of ``like`` (``L`` -> ``R``, ``Left`` -> ``Right``)."""
+    if like.isupper():
+        return word.upper()
+    if like[:1].isupper():
+        return word[:1].upper() + word[1:]
+    return word
+
+
+def _swap_token(token: str) -> str:
+    """A name part with its side swapped, or unchanged when it names no side.
+
+    Whole parts ``left``/``right``/``l``/``r`` (any case) swap, and so does a ``left`` /
+    ``right`` prefix of a longer part (``leftcorner`` -> ``rightcorner``,
+    ``LeftWing`` -> ``RightWing``). Single letters swap only as whole parts.
+    """
+    low = token.lower()
+    if low in _SIDE_SWAP:
+        return _match_case(_SIDE_SWAP[low], token)
+    for side in ("left", "right"):
+        if low.startswith(side) and len(low) > len(side):
+            head, rest = token[: len(side)], token[len(side):]
+            return _match_case(_SIDE_SWAP[side], head) + rest
+    return token
+
+
+def _mirror_name(name: str) -> str:
+    """The keypoint name with every side word part swapped (``L_WingTip`` -> ``R_WingTip``)."""
+    parts = _SEPARATORS.split(name)
+    # split keeps separators at odd positions; swap only the words (even positions)
+    return "".join(_swap_token(p) if i % 2 == 0 else p for i, p in enumerate(parts))
+
+
+def infer_flip_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
+    """Left/right keypoint pairs from their names.
+
+    Name parts are separated by ``_``, ``-``, ``.`` or spaces. Every part that names
+    a side is swapped at once: ``left``/``right`` and ``l``/``r`` as whole parts in any
+    case and position (``left_wing``, ``body_back_left_lower``, ``L_WingTip``,
+    ``Left_Wing_Base``, ``wheel_l``, ``mirror_right``) and ``left``/``right`` as the start
+    of a longer part (``leftcorner_windshield``, ``LeftWing``). ``i`` and ``j`` pair when
+    the swapped name of ``names[i]`` is exactly ``names[j]`` (case-sensitive).
+
+    Args:
+        names: keypoint names of one class (``K`` strings).
+
+    Returns:
+        Sorted list of ``(i, j)`` index pairs with ``i < j``; each index appears at most once.
+
+    Example:
+        >>> infer_flip_pairs(["L_WingTip", "NoseTip", "R_WingTip", "left_wing", "right_wing"])
+        [(0, 2), (3, 4)]
+    """
+    names = [str(n) for n in names]
+    index: dict[str, int] = {}
+    for i, n in enumerate(names):
+        index.setdefault(n, i)
+    pairs: list[tuple[int, int]] = []
+    used: set[int] = set()
+    for i, n in enumerate(names):
+        if i in used:
+            continue
+        j = index.get(_mirror_name(n))
+        if j is None or j == i or j in used:
+            continue
+        pairs.append((min(i, j), max(i, j)))
+        used.update((i, j))
+    return sorted(pairs)
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def category_from_stem(stem: str) -> str:
+    """Class name of a model file stem: the stem without digits (and trailing ``_``/``-``).
+
+    Example:
+        >>> category_from_stem("aeroplane01"), category_from_stem("car_3")
+        ('aeroplane', 'car')
+    """
+    cat = re.sub(r"\d+", "", stem).strip("_- .")
+    if not cat:
+        raise ValueError(f"model file stem {stem!r}: cannot derive a class name (no letters)")
+    return cat
+
+
+def _clean_keypoints(names: Sequence[str], points: np.ndarray, where: str) -> tuple[list[str], np.ndarray]:
+    """Drop non-finite and repeated keypoints (with a warning naming ``where``)."""
+    names = [str(n) for n in names]
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(names) != len(points):
+        raise ValueError(f"{where}: {len(names)} keypoint names for {len(points)} keypoints")
+    keep_names, keep = [], []
+    seen = set()
+    for n, p in zip(names, points):
+        if n in seen:
+            warnings.warn(f"{where}: keypoint {n!r} repeated; keeping the first", stacklevel=3)
+            continue
+        if not np.isfinite(p).all():
+            warnings.warn(f"{where}: keypoint {n!r} has non-finite coordinates; dropped", stacklevel=3)
+            continue
+        seen.add(n)
+        keep_names.append(n)
+        keep.append(p)
+    arr = np.asarray(keep, dtype=np.float32).reshape(-1, 3)
+    return keep_names, arr
+
+
+def load_cad_npz(path: str | Path) -> Model:
+    """Read a PASCAL3D+ CAD ``.npz`` (``vertices``, ``faces``, ``keypoint_names``, ``keypoints``).
+
+    CPU-side. The class is the file stem without digits.
+
+    Returns:
+        :class:`Model` with ``vertices (V,3) float32``, ``faces (F,3) long``, keypoints as stored
+        (non-finite or repeated ones dropped with a warning), ``source`` = the file name.
+
+    Raises:
+        ValueError: a required array is missing or malformed.
+    """
+    path = Path(path)
+    with np.load(path, allow_pickle=False) as data:
+        missing = [k for k in ("vertices", "faces") if k not in data]
+        if missing:
+            raise ValueError(f"{path}: missing array(s) {missing}")
+        vertices = np.asarray(data["vertices"], dtype=np.float32)
+        faces = np.asarray(data["faces"], dtype=np.int64)
+        names = [str(n) for n in data["keypoint_names"]] if "keypoint_names" in data else []
+        points = np.asarray(data["keypoints"]) if "keypoints" in data else np.zeros((0, 3))
+    names, points = _clean_keypoints(names, points, str(path))
+    return Model(name=path.stem, category=category_from_stem(path.stem), vertices=torch.from_numpy(vertices),
+                 faces=torch.from_numpy(faces), keypoint_names=names, keypoints=torch.from_numpy(points),
+                 source=path.name)
+
+
+def load_mesh_with_keypoints(path: str | Path, keypoints_json: str | Path | None = None) -> Model:
+    """Read a trimesh-readable mesh and its keypoint file ``<stem>.json`` (CPU-side).
+
+    The JSON is ``{"class": "car", "keypoints": {"name": [x, y, z], ...}}``; ``class``
+    defaults to the stem without digits; a keypoint given as ``null`` is absent.
+
+    Args:
+        path: ``.ply``, ``.obj``, ``.off``, ``.stl``, ``.glb`` or ``.gltf`` file.
+        keypoints_json: the keypoint file; default ``path`` with suffix ``.json``.
+
+    Returns:
+        :class:`Model` (a scene is concatenated into one mesh; vertices are not merged).
+
+    Raises:
+        FileNotFoundError: the mesh or its JSON is missing.
+        ValueError: the JSON is malformed.
+    """
+    import trimesh
+
+    from ..io.outputs import read_json
+
+    path = Path(path)
+    jpath = Path(keypoints_json) if keypoints_json is not None else path.with_suffix(".json")
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such mesh file")
+    if not jpath.is_file():
+        raise FileNotFoundError(f"{path}: keypoint file {jpath.name} not found beside it "
+                                '(expected {"class": ..., "keypoints": {"name": [x, y, z], ...}})')
+    meta = read_json(jpath)
+    if not isinstance(meta, dict):
+        raise ValueError(f"{jpath}: expected a JSON object with 'class' and 'keypoints'")
+    kps = meta.get("keypoints", {}) or {}
+    if not isinstance(kps, dict):
+        raise ValueError(f"{jpath}: 'keypoints' must be an object {{name: [x, y, z]}}")
+    names, points = [], []
+    for n, p in kps.items():
+        if p is None:
+            continue
+        try:
+            arr = np.asarray(p, dtype=np.float64).reshape(3)
+        except (TypeError, ValueError):
+            raise ValueError(f"{jpath}: keypoint {n!r} is not three numbers: {p!r}") from None
+        names.append(str(n))
+        points.append(arr)
+    names, pts = _clean_keypoints(names, np.asarray(points).reshape(-1, 3), str(jpath))
+    mesh = trimesh.load(str(path), force="mesh", process=False)
+    vertices = np.asarray(mesh.vertices, dtype=np.float32).reshape(-1, 3)
+    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    category = str(meta.get("class") or category_from_stem(path.stem))
+    return Model(name=path.stem, category=category, vertices=torch.from_numpy(vertices),
+                 faces=torch.from_numpy(faces), keypoint_names=names, keypoints=torch.from_numpy(pts),
+                 source=path.name)
+
+
+def load_model(path: str | Path) -> Model:
+    """Read one model: ``.npz`` through :func:`load_cad_npz`, else :func:`load_mesh_with_keypoints`."""
+    path = Path(path)
+    if path.suffix.lower() == ".npz":
+        return load_cad_npz(path)
+    if path.suffix.lower() in MESH_SUFFIXES:
+        return load_mesh_with_keypoints(path)
+    raise ValueError(f"{path}: unsupported model file (expected .npz or one of {', '.join(MESH_SUFFIXES)})")
+
+
+def load_models(directory: str | Path) -> list[Model]:
+    """Every model of a directory (not recursive), sorted by file name (deterministic).
+
+    Reads ``*.npz`` (PASCAL3D+ form) and meshes with a ``.json`` keypoint file beside
+    them; a mesh without one is skipped with a warning (it has no keypoints to annotate).
+
+    Raises:
+        FileNotFoundError: ``directory`` does not exist.
+        ValueError: no model found, or two models share a name (file stem).
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise FileNotFoundError(f"{directory}: no such directory of models")
+    models: list[Model] = []
+    for path in sorted(directory.iterdir(), key=lambda p: p.name):
+        suffix = path.suffix.lower()
+        if not path.is_file() or path.name.startswith("."):
+            continue
+        if suffix == ".npz":
+            models.append(load_cad_npz(path))
+        elif suffix in MESH_SUFFIXES:
+            if not path.with_suffix(".json").is_file():
+                warnings.warn(f"{path}: no {path.stem}.json with its class and keypoints beside it; skipped",
+                              stacklevel=2)
+                continue
+            models.append(load_mesh_with_keypoints(path))
+    if not models:
+        raise ValueError(f"{directory}: no models (.npz, or {'/'.join(MESH_SUFFIXES)} with a .json beside)")
+    names = [m.name for m in models]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"{directory}: several files share the model name(s) {dup}")
+    return models

@@ -1,0 +1,310 @@
+"""Tests of model loading, flip pairs, the COCO dataset writer and ``python -m carvi_torch.datasets``."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from carvi_torch import datasets
+from carvi_torch.cameras import ScaledOrthographic
+from carvi_torch.synthetic.meshes import Model, infer_flip_pairs, load_cad_npz, load_models
+from carvi_torch.synthetic.render import rasterize_triangles, render_dataset
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# --------------------------------------------------------------------------- infer_flip_pairs
+
+
+def test_infer_flip_pairs_naming_styles():
+    names = ["left_wing", "right_wing", "noselanding", "body_back_left_lower", "body_back_right_lower",
+             "L_WingTip", "R_WingTip", "Left_Wing_Base", "Right_Wing_Base", "wheel_l", "wheel_r",
+             "mirror_left", "mirror_right", "leftcorner_windshield", "rightcorner_windshield", "l_eye", "r_eye",
+             "rudder", "tail"]
+    pairs = infer_flip_pairs(names)
+    got = {(names[i], names[j]) for i, j in pairs}
+    assert got == {("left_wing", "right_wing"), ("body_back_left_lower", "body_back_right_lower"),
+                   ("L_WingTip", "R_WingTip"), ("Left_Wing_Base", "Right_Wing_Base"), ("wheel_l", "wheel_r"),
+                   ("mirror_left", "mirror_right"), ("leftcorner_windshield", "rightcorner_windshield"),
+                   ("l_eye", "r_eye")}
+    assert all(i < j for i, j in pairs) and pairs == sorted(pairs)
+
+
+def test_infer_flip_pairs_only_existing_counterparts():
+    assert infer_flip_pairs(["left_wing", "tail", "rudder"]) == []
+    assert infer_flip_pairs([]) == []
+    # single letters swap only as whole name parts; case must match
+    assert infer_flip_pairs(["rudder", "ludder", "L_x", "r_x"]) == []
+    assert infer_flip_pairs(["upper_left_windshield", "upper_right_windshield"]) == [(0, 1)]
+
+
+@pytest.mark.shared
+def test_infer_flip_pairs_on_every_cad_class(shared_data):
+    for path in sorted((shared_data / "pascal3d_cad").glob("*.npz")):
+        names = [str(n) for n in np.load(path)["keypoint_names"]]
+        pairs = infer_flip_pairs(names)
+        sided = [n for n in names if "left" in n or "right" in n]
+        # every keypoint naming a side is paired when its counterpart exists
+        paired = {names[k] for p in pairs for k in p}
+        for n in sided:
+            other = n.replace("left", "\0").replace("right", "left").replace("\0", "right")
+            assert (n in paired) == (other in names), (path.name, n)
+
+
+# --------------------------------------------------------------------------- loaders
+
+
+@pytest.mark.shared
+def test_load_cad_models(shared_data):
+    models = load_models(shared_data / "pascal3d_cad")
+    assert len(models) == 73
+    assert [m.name for m in models] == sorted(m.name for m in models)
+    cats = {m.category for m in models}
+    assert cats == {"aeroplane", "bicycle", "boat", "bottle", "bus", "car", "chair", "diningtable", "motorbike",
+                    "sofa", "train", "tvmonitor"}
+    car = next(m for m in models if m.name == "car01")
+    raw = np.load(shared_data / "pascal3d_cad" / "car01.npz")
+    assert car.category == "car" and car.source == "car01.npz"
+    assert car.vertices.dtype == torch.float32 and car.faces.dtype == torch.long
+    np.testing.assert_array_equal(car.vertices.numpy(), raw["vertices"])
+    np.testing.assert_array_equal(car.faces.numpy(), raw["faces"])
+    assert car.keypoint_names == [str(n) for n in raw["keypoint_names"]]
+    # keypoint sets differ between models of a class: kept as they are
+    assert len({len(m.keypoint_names) for m in models if m.category == "car"}) > 1
+
+
+def test_load_mesh_with_json_and_messy_keypoints(tmp_path):
+    box = trimesh.creation.box(extents=(1, 2, 3))
+    for ext in ("ply", "obj", "off", "stl"):
+        box.export(tmp_path / f"thing{ext}_1.{ext}")
+        (tmp_path / f"thing{ext}_1.json").write_text(json.dumps(
+            {"class": "thing", "keypoints": {"top": [0, 0, 1.5], "left_side": [-0.5, 0, 0], "gone": None,
+                                             "bad": [float("nan"), 0, 0]}}))
+    box.export(tmp_path / "orphan.ply")  # no json: skipped with a warning
+    np.savez(tmp_path / "cup07.npz", vertices=box.vertices.astype(np.float32), faces=box.faces.astype(np.int32),
+             keypoint_names=np.array(["rim", "rim", "base"]), keypoints=np.zeros((3, 3), np.float32))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        models = load_models(tmp_path)
+    messages = " ".join(str(w.message) for w in caught)
+    assert "orphan.ply" in messages and "non-finite" in messages and "repeated" in messages
+    assert [m.name for m in models] == ["cup07", "thingobj_1", "thingoff_1", "thingply_1", "thingstl_1"]
+    cup = models[0]
+    assert cup.category == "cup" and cup.keypoint_names == ["rim", "base"]
+    for m in models[1:]:
+        assert m.category == "thing" and m.keypoint_names == ["top", "left_side"]
+        # the same geometry whatever the format (obj / stl may reorder or duplicate vertices)
+        tm = trimesh.Trimesh(m.vertices.double().numpy(), m.faces.numpy())
+        assert abs(tm.volume - 6.0) < 1e-4, m.name
+        torch.testing.assert_close(m.keypoints, torch.tensor([[0, 0, 1.5], [-0.5, 0, 0]]))
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        load_models(tmp_path / "nowhere")
+    with pytest.raises(ValueError, match="no models"):
+        load_models(tmp_path)
+    np.savez(tmp_path / "a1.npz", vertices=np.zeros((3, 3), np.float32))
+    with pytest.raises(ValueError, match="faces"):
+        load_cad_npz(tmp_path / "a1.npz")
+    with pytest.raises(ValueError, match="faces"):
+        Model("x", "x", torch.zeros(3, 3), torch.tensor([[0, 1, 5]]))
+
+
+# --------------------------------------------------------------------------- render_dataset
+
+
+def _toy_models() -> list[Model]:
+    """Two small classes, keypoint sets differing within a class, one model without keypoints."""
+    box = trimesh.creation.box(extents=(0.6, 0.9, 0.4))
+    ico = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
+    cyl = trimesh.creation.cylinder(radius=0.15, height=0.9)
+    kb = {"left_front": [-0.3, -0.45, 0.2], "right_front": [0.3, -0.45, 0.2], "top": [0, 0, 0.2]}
+    return [
+        Model("crate01", "crate", box.vertices, box.faces, list(kb), list(kb.values()), source="crate01.ply"),
+        Model("crate02", "crate", ico.vertices, ico.faces, ["top", "bottom"], [[0, 0, 0.4], [0, 0, -0.4]],
+              source="crate02.ply"),
+        Model("bottle01", "bottle", cyl.vertices, cyl.faces, ["mouth", "mouth_left", "mouth_right"],
+              [[0, -0.15, 0.45], [-0.15, 0, 0.45], [0.15, 0, 0.45]], source="bottle01.ply"),
+        Model("crate03", "crate", box.vertices, box.faces, [], torch.zeros(0, 3), source="crate03.ply"),
+    ]
+
+
+@pytest.fixture(scope="module")
+def toy_dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("toy")
+    summary = render_dataset(_toy_models(), out, views=4, test_views=1, seed=3, image_size=(96, 72), progress=False)
+    return out, summary
+
+
+def test_render_dataset_coco_loads_and_masks_match(toy_dataset):
+    from pycocotools.coco import COCO
+
+    out, summary = toy_dataset
+    assert summary["images"] == 16 and summary["categories"] == ["bottle", "crate"]
+    coco = COCO(str(out / "annotations.json"))
+    data = json.loads((out / "annotations.json").read_text())
+    gt = json.loads((out / "gt.json").read_text())
+    cats = {c["name"]: c for c in data["categories"]}
+    assert cats["crate"]["keypoints"] == ["bottom", "left_front", "right_front", "top"]  # sorted union
+    assert cats["crate"]["flip_pairs"] == [[1, 2]]
+    assert cats["bottle"]["flip_pairs"] == [[1, 2]] and cats["bottle"]["symmetry"] == "rotational"
+    assert cats["crate"]["symmetry"] == "none" and cats["crate"]["articulated"] is False
+    assert all(c["supercategory"] == "object" and c["skeleton"] == [] for c in data["categories"])
+    models = {m.name: m for m in _toy_models()}
+    for ann in data["annotations"]:
+        img = coco.loadImgs(ann["image_id"])[0]
+        assert (img["width"], img["height"]) == (96, 72)
+        g = gt["annotations"][str(ann["id"])]
+        model = models[g["model"]]
+        assert img["file_name"].startswith(g["model"] + "_v") and img["file_name"].endswith(".png")
+        assert ann["source"] == model.source and g["category"] == model.category
+        assert g["mesh"] == f"meshes/{model.name}.ply" and (out / g["mesh"]).is_file()
+        # the true camera reproduces the written mask exactly (pycocotools decodes it)
+        cam = ScaledOrthographic.from_list([g])
+        mask = rasterize_triangles(cam.project(model.vertices)[0], model.faces, 72, 96).numpy()
+        decoded = coco.annToMask(ann).astype(bool)
+        np.testing.assert_array_equal(decoded, mask)
+        assert ann["area"] == mask.sum() and ann["iscrowd"] == 0
+        ys, xs = np.nonzero(mask)
+        assert ann["bbox"] == [xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1]
+        # keypoints: projected where visible, zeros where occluded or absent on the model
+        names = coco.loadCats(ann["category_id"])[0]["keypoints"]
+        kp = np.array(ann["keypoints"], dtype=float).reshape(-1, 3)
+        assert ann["num_keypoints"] == int((kp[:, 2] == 2).sum())
+        for (x, y, v), n in zip(kp, names):
+            if n not in model.keypoint_names:
+                assert (x, y, v) == (0, 0, 0)
+            elif v == 2:
+                p = cam.project(model.keypoints[model.keypoint_names.index(n)][None])[0, 0]
+                assert abs(x - p[0]) < 1e-3 and abs(y - p[1]) < 1e-3
+            else:
+                assert (x, y, v) == (0, 0, 0)
+    # object ids: one per model; split: the first test_views renders of each model
+    by_model: dict = {}
+    for ann in data["annotations"]:
+        by_model.setdefault(gt["annotations"][str(ann["id"])]["model"], []).append(ann)
+    assert len({anns[0]["object_id"] for anns in by_model.values()}) == 4
+    for anns in by_model.values():
+        assert len({a["object_id"] for a in anns}) == 1
+        assert [a["split"] for a in anns] == ["test", "pool", "pool", "pool"]
+    # the 3-D keypoints travel in gt.json
+    kp3 = gt["models"]["crate02"]["keypoints"]
+    assert list(kp3) == ["top", "bottom"]
+    np.testing.assert_allclose([kp3["top"], kp3["bottom"]], [[0, 0, 0.4], [0, 0, -0.4]], atol=1e-6)
+
+
+def test_render_dataset_deterministic(toy_dataset, tmp_path):
+    out, _ = toy_dataset
+    render_dataset(_toy_models(), tmp_path / "same", views=4, test_views=1, seed=3, image_size=(96, 72),
+                   progress=False)
+    files = sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(tmp_path / "same") for p in (tmp_path / "same").rglob("*") if p.is_file())
+    for f in files:
+        assert (out / f).read_bytes() == (tmp_path / "same" / f).read_bytes(), f
+    render_dataset(_toy_models(), tmp_path / "other", views=4, test_views=1, seed=4, image_size=(96, 72),
+                   progress=False)
+    g1 = json.loads((out / "gt.json").read_text())["annotations"]
+    g2 = json.loads((tmp_path / "other" / "gt.json").read_text())["annotations"]
+    assert all(not np.allclose(g1[k]["R"], g2[k]["R"]) for k in g1)
+    # a model's renders depend only on (seed, model name), not on the other models
+    render_dataset(_toy_models()[2:3], tmp_path / "alone", views=4, seed=3, image_size=(96, 72), progress=False)
+    g3 = json.loads((tmp_path / "alone" / "gt.json").read_text())["annotations"]
+    bottle = [k for k in g1 if g1[k]["model"] == "bottle01"]
+    assert [g1[k]["R"] for k in bottle] == [g3[k]["R"] for k in sorted(g3, key=int)]
+
+
+def test_render_dataset_noise_and_errors(tmp_path):
+    models = _toy_models()[:1]
+    clean = render_dataset(models, tmp_path / "a", views=2, seed=1, image_size=96, progress=False)
+    noisy = render_dataset(models, tmp_path / "b", views=2, seed=1, image_size=96, keypoint_noise=1.0,
+                           boundary_noise=1.5, progress=False)
+    a = json.loads(Path(clean["annotations"]).read_text())["annotations"]
+    b = json.loads(Path(noisy["annotations"]).read_text())["annotations"]
+    assert a[0]["segmentation"]["size"] == [96, 96]
+    assert a[0]["segmentation"] != b[0]["segmentation"] and a[0]["keypoints"] != b[0]["keypoints"]
+    with pytest.raises(ValueError, match="test_views"):
+        render_dataset(models, tmp_path / "c", views=2, test_views=3, progress=False)
+    with pytest.raises(ValueError, match="unique"):
+        render_dataset(models + models, tmp_path / "c", views=1, progress=False)
+    with pytest.raises(ValueError, match="views"):
+        render_dataset(models, tmp_path / "c", views=0, progress=False)
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+@pytest.mark.parametrize("command", [[], ["synthetic"], ["procedural"], ["voc"]])
+def test_cli_help(command, capsys):
+    with pytest.raises(SystemExit) as e:
+        datasets.main(command + ["--help"])
+    assert e.value.code == 0
+    text = capsys.readouterr().out
+    assert "usage" in text
+    if command == ["synthetic"]:
+        assert "--meshes" in text and "--boundary-noise" in text and "--image-size" in text and "--canvas" in text
+    if command == ["voc"]:
+        assert "--keypoints" in text and "--masks" in text
+
+
+def test_cli_synthetic_and_procedural(tmp_path, capsys):
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    for m in _toy_models()[:3]:
+        m.to_trimesh().export(meshes / f"{m.name}.ply")
+        (meshes / f"{m.name}.json").write_text(json.dumps({"class": m.category, "keypoints": m.keypoint_dict()}))
+    rc = datasets.main(["synthetic", "--meshes", str(meshes), "--out", str(tmp_path / "syn"), "--views", "3",
+                        "--test-views", "1", "--seed", "2", "--canvas", "64", "--keypoint-noise", "0.5", "--quiet"])
+    assert rc == 0
+    data = json.loads((tmp_path / "syn" / "annotations.json").read_text())
+    assert len(data["images"]) == 9 and {(i["width"], i["height"]) for i in data["images"]} == {(64, 64)}
+    assert sum(a["split"] == "test" for a in data["annotations"]) == 3
+    rc = datasets.main(["procedural", "--out", str(tmp_path / "proc"), "--instances", "1", "--categories", "car",
+                        "bottle", "--image-size", "80", "60", "--quiet"])
+    assert rc == 0
+    data = json.loads((tmp_path / "proc" / "annotations.json").read_text())
+    assert [c["name"] for c in data["categories"]] == ["bottle", "car"]
+    assert {(i["width"], i["height"]) for i in data["images"]} == {(80, 60)}
+    assert "wrote 2 renders" in capsys.readouterr().out
+
+
+def test_cli_bad_input(tmp_path, capsys):
+    assert datasets.main(["synthetic", "--meshes", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
+    assert "no such directory" in capsys.readouterr().err
+    assert datasets.main(["synthetic", "--meshes", str(tmp_path), "--out", str(tmp_path / "o"), "--views", "2",
+                          "--test-views", "3"]) == 2
+    assert datasets.main(["procedural", "--out", str(tmp_path / "o"), "--categories", "ship"]) == 2
+    with pytest.raises(SystemExit):
+        datasets.main(["synthetic", "--meshes", "x", "--out", "y", "--views", "0"])
+    with pytest.raises(SystemExit):
+        datasets.main(["synthetic", "--meshes", "x", "--out", "y", "--image-size", "3", "4", "--canvas", "5"])
+
+
+def test_cli_voc_delegates_or_reports(tmp_path, capsys, monkeypatch):
+    """Without carvi_torch.io.voc: a clear message and status 2; with it: its run(args) result."""
+    import types
+
+    monkeypatch.setitem(sys.modules, "carvi_torch.io.voc", None)  # import fails
+    rc = datasets.main(["voc", "--keypoints", str(tmp_path), "--out", str(tmp_path / "a.json")])
+    assert rc == 2 and "carvi_torch.io.voc" in capsys.readouterr().err
+    seen = {}
+    fake = types.ModuleType("carvi_torch.io.voc")
+    fake.run = lambda args: seen.setdefault("args", args) and 0
+    import carvi_torch.io as io_pkg
+
+    monkeypatch.setitem(sys.modules, "carvi_torch.io.voc", fake)
+    monkeypatch.setattr(io_pkg, "voc", fake, raising=False)
+    rc = datasets.main(["voc", "--keypoints", "K", "--masks", "M", "--out", "o.json"])
+    assert rc == 0 and seen["args"].keypoints == "K" and seen["args"].masks == "M" and seen["args"].out == "o.json"
+
+
+def test_cli_module_entry_point():
+    res = subprocess.run([sys.executable, "-m", "carvi_torch.datasets", "synthetic", "--help"], cwd=ROOT,
+                         capture_output=True, text=True, env={"PYTHONPATH": str(ROOT), "PATH": ""}, timeout=120)
+    assert res.returncode == 0 and "--meshes" in res.stdout

@@ -1,0 +1,134 @@
+"""Tests of carvi_torch.synthetic.procedural: watertight instances, keypoints, variation, collection."""
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from carvi_torch.synthetic.meshes import infer_flip_pairs
+from carvi_torch.synthetic.procedural import CATEGORIES, make_collection, make_instance, write_default_collection
+from carvi_torch.synthetic.render import seed_generator
+
+N_PER_CLASS = 4
+
+
+@pytest.fixture(scope="module")
+def instances():
+    return {c: [make_instance(c, seed_generator(7, c, i), name=f"{c}{i:03d}") for i in range(N_PER_CLASS)]
+            for c in CATEGORIES}
+
+
+def test_categories():
+    assert set(CATEGORIES) >= {"car", "aeroplane", "chair", "bottle"}
+    with pytest.raises(ValueError, match="category"):
+        make_instance("unicorn", torch.Generator())
+
+
+@pytest.mark.parametrize("category", CATEGORIES)
+def test_instances_are_watertight_single_outward_meshes(instances, category):
+    for m in instances[category]:
+        assert m.vertices.dtype == torch.float32 and m.faces.dtype == torch.long
+        tm = trimesh.Trimesh(m.vertices.double().numpy(), m.faces.numpy(), process=False)
+        assert tm.is_watertight, m.name
+        assert tm.is_winding_consistent, m.name
+        assert tm.volume > 0, m.name  # outward normals
+        assert len(tm.split(only_watertight=False)) == 1, m.name  # one connected solid
+        # PASCAL3D+ normalisation: centred bounding box with a unit diagonal
+        lo, hi = tm.bounds
+        np.testing.assert_allclose((lo + hi) / 2, 0, atol=1e-6)
+        assert abs(np.linalg.norm(hi - lo) - 1) < 1e-6
+
+
+@pytest.mark.parametrize("category", CATEGORIES)
+def test_keypoints_on_surface_and_named_in_pairs(instances, category):
+    for m in instances[category]:
+        assert len(m.keypoint_names) >= 8
+        pairs = infer_flip_pairs(m.keypoint_names)
+        assert len(pairs) >= 2
+        tm = trimesh.Trimesh(m.vertices.double().numpy(), m.faces.numpy(), process=False)
+        _, dist, _ = trimesh.proximity.closest_point(tm, m.keypoints.double().numpy())
+        assert dist.max() < 0.02, (m.name, dict(zip(m.keypoint_names, dist.round(4))))  # within one grid cell
+        # left is -x, right is +x (PASCAL3D+ naming), mirror pairs are mirror images
+        for i, j in pairs:
+            a, b = m.keypoints[i], m.keypoints[j]
+            left, right = (a, b) if "left" in m.keypoint_names[i] else (b, a)
+            assert left[0] < 0 < right[0]
+            torch.testing.assert_close(left * torch.tensor([-1.0, 1, 1]), right, atol=2e-3, rtol=0)
+
+
+def test_object_frame_orientation(instances):
+    """+z up and front towards -y, as PASCAL3D+."""
+    for car in instances["car"]:
+        k = dict(zip(car.keypoint_names, car.keypoints))
+        assert k["left_front_wheel"][1] < k["left_back_wheel"][1]
+        assert k["upper_left_windshield"][2] > k["left_front_wheel"][2]
+    for plane in instances["aeroplane"]:
+        k = dict(zip(plane.keypoint_names, plane.keypoints))
+        assert k["noselanding"][1] < k["tail"][1] and k["rudder_upper"][2] > k["rudder_lower"][2]
+    for chair in instances["chair"]:
+        k = dict(zip(chair.keypoint_names, chair.keypoints))
+        assert k["back_upper_left"][2] > k["seat_upper_left"][2] > k["leg_upper_left"][2]
+        assert k["seat_lower_left"][1] < k["seat_upper_left"][1]
+    for bottle in instances["bottle"]:
+        k = dict(zip(bottle.keypoint_names, bottle.keypoints))
+        assert k["mouth"][2] > k["body"][2] > k["bottom"][2]
+
+
+def test_bottle_is_rotationally_symmetric(instances):
+    for m in instances["bottle"]:
+        v = m.vertices.double()
+        r = v[:, :2].norm(dim=1)
+        # radius as a function of height: vertices in the same thin slice share one radius (up to the grid)
+        z = v[:, 2]
+        for zc in torch.linspace(z.min() + 0.05, z.max() - 0.05, 7):
+            sl = (z - zc).abs() < 0.004
+            if sl.sum() > 8:
+                assert (r[sl].max() - r[sl].min()).item() < 0.02
+
+
+def test_intra_class_variation(instances):
+    for c, ms in instances.items():
+        # normalised keypoint layouts differ between instances
+        layouts = torch.stack([m.keypoints for m in ms])
+        spread = (layouts - layouts.mean(dim=0)).norm(dim=-1).mean().item()
+        assert spread > 0.01, c
+        # so do the shapes: volumes differ by more than a few percent
+        vols = [trimesh.Trimesh(m.vertices.double().numpy(), m.faces.numpy(), process=False).volume for m in ms]
+        assert (max(vols) - min(vols)) / max(vols) > 0.05, (c, vols)
+
+
+def test_determinism():
+    a = make_instance("chair", seed_generator(1, "x"))
+    b = make_instance("chair", seed_generator(1, "x"))
+    c = make_instance("chair", seed_generator(2, "x"))
+    assert torch.equal(a.vertices, b.vertices) and torch.equal(a.faces, b.faces) and torch.equal(a.keypoints, b.keypoints)
+    assert a.vertices.shape != c.vertices.shape or not torch.equal(a.vertices, c.vertices)
+    # an instance does not depend on how many are asked for
+    small = make_collection(2, seed=4, categories=["car"])
+    big = make_collection(3, seed=4, categories=["car"])
+    assert [m.name for m in small] == ["car000", "car001"]
+    assert torch.equal(small[1].vertices, big[1].vertices)
+    with pytest.raises(ValueError, match="categories"):
+        make_collection(2, categories=["car", "ship"])
+
+
+def test_write_default_collection_small(tmp_path):
+    t0 = time.perf_counter()
+    summary = write_default_collection(tmp_path, instances_per_class=3, seed=0)
+    elapsed = time.perf_counter() - t0
+    assert summary["images"] == 3 * len(CATEGORIES) and summary["categories"] == sorted(CATEGORIES)
+    data = json.loads((tmp_path / "annotations.json").read_text())
+    cats = {c["name"]: c for c in data["categories"]}
+    assert cats["bottle"]["symmetry"] == "rotational" and cats["car"]["symmetry"] == "none"
+    assert all(len(c["flip_pairs"]) >= 2 for c in cats.values())
+    # VOC-like: every instance is its own object, one photograph each
+    assert len({a["object_id"] for a in data["annotations"]}) == len(data["annotations"])
+    assert all(a["num_keypoints"] > 0 and a["area"] > 100 for a in data["annotations"])
+    gt = json.loads((tmp_path / "gt.json").read_text())
+    assert len(gt["annotations"]) == len(data["annotations"])
+    assert all((tmp_path / g["mesh"]).is_file() for g in gt["annotations"].values())
+    assert elapsed < 30  # the full default (4 x 40) takes a few seconds; this is 4 x 3
