@@ -24,67 +24,89 @@ import torch.nn.functional as F
 
 from .cameras import Similarity2D
 
-__all__ = ["ClassMeta", "ClassCollection", "infer_flip_pairs", "flip_permutation", "canvas_similarity",
+__all__ = ["ClassMeta", "ClassCollection", "infer_flip_pairs", "mirror_name", "flip_permutation", "canvas_similarity",
            "resample_to_canvas"]
 
 
 # --------------------------------------------------------------------------- left/right names
 
-_SIDES = (("left", "right"), ("l", "r"))
+_SIDE_SWAP = {"left": "right", "right": "left", "l": "r", "r": "l"}
+# word separators: '_', '-', '.', spaces, and a lower->upper camel-case boundary (kept by split)
+_SEPARATORS = re.compile(r"([_\-\s.]+|(?<=[a-z])(?=[A-Z]))")
 
 
-def _side_variants(name: str) -> list[str]:
-    """Names obtained by swapping one left/right marker of ``name`` (case preserved)."""
-    out = []
-    # split into word parts on '_', '-', ' ' and camelCase-free tokens, keep separators
-    parts = re.split(r"([_\-\s]|(?<=[a-z])(?=[A-Z]))", name)
-    for i, p in enumerate(parts):
-        low = p.lower()
-        for a, b in _SIDES:
-            for x, y in ((a, b), (b, a)):
-                if low == x:
-                    swapped = y.upper() if p.isupper() else (y.capitalize() if p[:1].isupper() else y)
-                    out.append("".join(parts[:i] + [swapped] + parts[i + 1:]))
-                elif len(x) > 1 and low.startswith(x) and len(low) > len(x):
-                    # e.g. "leftcorner_windshield" <-> "rightcorner_windshield"
-                    rest = p[len(x):]
-                    head = p[: len(x)]
-                    swapped = y.upper() if head.isupper() else (y.capitalize() if head[:1].isupper() else y)
-                    out.append("".join(parts[:i] + [swapped + rest] + parts[i + 1:]))
-    return out
+def _match_case(word: str, like: str) -> str:
+    """``word`` written in the case pattern of ``like`` (``L`` -> ``R``, ``Left`` -> ``Right``)."""
+    if like.isupper():
+        return word.upper()
+    if like[:1].isupper():
+        return word[:1].upper() + word[1:]
+    return word
+
+
+def _swap_token(token: str) -> str:
+    """A name part with its side swapped, or unchanged when it names no side.
+
+    Whole parts ``left``/``right``/``l``/``r`` (any case) swap, and so does a ``left`` /
+    ``right`` prefix of a longer part (``leftcorner`` -> ``rightcorner``). Single letters
+    swap only as whole parts.
+    """
+    low = token.lower()
+    if low in _SIDE_SWAP:
+        return _match_case(_SIDE_SWAP[low], token)
+    for side in ("left", "right"):
+        if low.startswith(side) and len(low) > len(side):
+            head, rest = token[: len(side)], token[len(side):]
+            return _match_case(_SIDE_SWAP[side], head) + rest
+    return token
+
+
+def mirror_name(name: str) -> str:
+    """The keypoint name with every side word part swapped (``L_WingTip`` -> ``R_WingTip``).
+
+    Example:
+        >>> mirror_name("body_back_left_lower"), mirror_name("leftEye"), mirror_name("NoseTip")
+        ('body_back_right_lower', 'rightEye', 'NoseTip')
+    """
+    parts = _SEPARATORS.split(name)
+    # split keeps separators at odd positions; swap only the words (even positions)
+    return "".join(_swap_token(p) if i % 2 == 0 else p for i, p in enumerate(parts))
 
 
 def infer_flip_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
     """Left/right keypoint pairs from their names.
 
-    Recognises ``left``/``right`` and ``l``/``r`` as word parts separated by ``_``,
-    ``-``, spaces or a camel-case boundary (``leftEye``), in any position and case (``L_WingTip``/``R_WingTip``,
-    ``Left_Wing_Base``/``Right_Wing_Base``, ``body_back_left_lower``/...,
-    ``wheel_l``/``wheel_r``) and as a word prefix (``leftcorner_x``/``rightcorner_x``).
-    A name pairs only with a name that exists; each index appears at most once.
+    Name parts are separated by ``_``, ``-``, ``.``, spaces or a camel-case boundary. Every
+    part that names a side is swapped at once: ``left``/``right`` and ``l``/``r`` as whole
+    parts in any case and position (``left_wing``, ``body_back_left_lower``, ``L_WingTip``,
+    ``Left_Wing_Base``, ``wheel_l``, ``leftEye``) and ``left``/``right`` as the start of a
+    longer part (``leftcorner_windshield``). ``i`` and ``j`` pair when the swapped name of
+    ``names[i]`` is exactly ``names[j]``.
 
     Args:
-        names: keypoint names of a class.
+        names: keypoint names of one class (``K`` strings).
 
     Returns:
-        Sorted list of ``(i, j)`` with ``i < j``.
+        Sorted list of ``(i, j)`` with ``i < j``; each index appears at most once.
 
     Example:
         >>> infer_flip_pairs(["L_WingTip", "NoseTip", "R_WingTip"])
         [(0, 2)]
     """
-    index = {n: i for i, n in enumerate(names)}
-    pairs: set[tuple[int, int]] = set()
+    names = [str(n) for n in names]
+    index: dict[str, int] = {}
+    for i, n in enumerate(names):
+        index.setdefault(n, i)
+    pairs: list[tuple[int, int]] = []
     used: set[int] = set()
     for i, n in enumerate(names):
         if i in used:
             continue
-        for v in _side_variants(n):
-            j = index.get(v)
-            if j is not None and j != i and j not in used:
-                pairs.add((min(i, j), max(i, j)))
-                used.update((i, j))
-                break
+        j = index.get(mirror_name(n))
+        if j is None or j == i or j in used:
+            continue
+        pairs.append((min(i, j), max(i, j)))
+        used.update((i, j))
     return sorted(pairs)
 
 

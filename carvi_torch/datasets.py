@@ -100,6 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
     voc.add_argument("--keypoints", required=True, metavar="DIR", help="directory of keypoint XML files")
     voc.add_argument("--masks", default=None, metavar="DIR",
                      help="directory of VOC/SBD object segmentation masks (default: the XML polygons)")
+    voc.add_argument("--annotations", default=None, metavar="DIR",
+                     help="VOC Annotations/ directory (image sizes and occluded/truncated flags; optional)")
     voc.add_argument("--out", required=True, metavar="annotations.json", help="output JSON file")
     return parser
 
@@ -161,11 +163,8 @@ def _run_procedural(args) -> int:
 
 
 def _run_voc(args) -> int:
-    try:
-        from .io import voc
-    except ImportError as e:
-        print(f"error: the PASCAL VOC converter (carvi_torch.io.voc) is not available: {e}", file=sys.stderr)
-        return 2
+    from .io import voc
+
     return voc.run(args)
 
 

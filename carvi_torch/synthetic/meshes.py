@@ -26,6 +26,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from ..collection import infer_flip_pairs  # re-exported: name-based left/right pairs
+
 __all__ = ["Model", "MESH_SUFFIXES", "load_cad_npz", "load_mesh_with_keypoints", "load_model", "load_models",
            "infer_flip_pairs", "category_from_stem"]
 
@@ -92,80 +94,6 @@ class Model:
 
 
 # --------------------------------------------------------------------------- flip pairs
-
-_SIDE_SWAP = {"left": "right", "right": "left", "l": "r", "r": "l"}
-_SEPARATORS = re.compile(r"([_\-\s.]+)")
-
-
-def _match_case(word: str, like: str) -> str:
-    """``word`` written in the case pattern of ``like`` (``L`` -> ``R``, ``Left`` -> ``Right``)."""
-    if like.isupper():
-        return word.upper()
-    if like[:1].isupper():
-        return word[:1].upper() + word[1:]
-    return word
-
-
-def _swap_token(token: str) -> str:
-    """A name part with its side swapped, or unchanged when it names no side.
-
-    Whole parts ``left``/``right``/``l``/``r`` (any case) swap, and so does a ``left`` /
-    ``right`` prefix of a longer part (``leftcorner`` -> ``rightcorner``,
-    ``LeftWing`` -> ``RightWing``). Single letters swap only as whole parts.
-    """
-    low = token.lower()
-    if low in _SIDE_SWAP:
-        return _match_case(_SIDE_SWAP[low], token)
-    for side in ("left", "right"):
-        if low.startswith(side) and len(low) > len(side):
-            head, rest = token[: len(side)], token[len(side):]
-            return _match_case(_SIDE_SWAP[side], head) + rest
-    return token
-
-
-def _mirror_name(name: str) -> str:
-    """The keypoint name with every side word part swapped (``L_WingTip`` -> ``R_WingTip``)."""
-    parts = _SEPARATORS.split(name)
-    # split keeps separators at odd positions; swap only the words (even positions)
-    return "".join(_swap_token(p) if i % 2 == 0 else p for i, p in enumerate(parts))
-
-
-def infer_flip_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
-    """Left/right keypoint pairs from their names.
-
-    Name parts are separated by ``_``, ``-``, ``.`` or spaces. Every part that names
-    a side is swapped at once: ``left``/``right`` and ``l``/``r`` as whole parts in any
-    case and position (``left_wing``, ``body_back_left_lower``, ``L_WingTip``,
-    ``Left_Wing_Base``, ``wheel_l``, ``mirror_right``) and ``left``/``right`` as the start
-    of a longer part (``leftcorner_windshield``, ``LeftWing``). ``i`` and ``j`` pair when
-    the swapped name of ``names[i]`` is exactly ``names[j]`` (case-sensitive).
-
-    Args:
-        names: keypoint names of one class (``K`` strings).
-
-    Returns:
-        Sorted list of ``(i, j)`` index pairs with ``i < j``; each index appears at most once.
-
-    Example:
-        >>> infer_flip_pairs(["L_WingTip", "NoseTip", "R_WingTip", "left_wing", "right_wing"])
-        [(0, 2), (3, 4)]
-    """
-    names = [str(n) for n in names]
-    index: dict[str, int] = {}
-    for i, n in enumerate(names):
-        index.setdefault(n, i)
-    pairs: list[tuple[int, int]] = []
-    used: set[int] = set()
-    for i, n in enumerate(names):
-        if i in used:
-            continue
-        j = index.get(_mirror_name(n))
-        if j is None or j == i or j in used:
-            continue
-        pairs.append((min(i, j), max(i, j)))
-        used.update((i, j))
-    return sorted(pairs)
-
 
 # --------------------------------------------------------------------------- loading
 

@@ -554,23 +554,23 @@ def render_view(vertices: torch.Tensor, faces: torch.Tensor, keypoints3d: torch.
 
 
 def _category_entry(cat_id: int, name: str, keypoint_names: list[str]) -> dict:
-    from .meshes import infer_flip_pairs
+    from ..io.coco import make_category
 
-    return {
-        "id": cat_id, "name": name, "supercategory": "object", "keypoints": keypoint_names, "skeleton": [],
-        "flip_pairs": [[int(i), int(j)] for i, j in infer_flip_pairs(keypoint_names)],
-        "symmetry": "rotational" if name in ROTATIONAL_CLASSES else "none", "articulated": False,
-    }
+    # CAD and procedural keypoint names put "left" on the left of a frontal view (PASCAL3D+ naming)
+    return make_category(cat_id, name, keypoint_names,
+                         symmetry="rotational" if name in ROTATIONAL_CLASSES else "none",
+                         left_convention="viewer")
 
 
 def _encode(mask: np.ndarray) -> tuple[dict, float, list[float]]:
     """Compressed RLE (counts as str), area and ``[x, y, w, h]`` bbox of an ``(H, W)`` bool mask."""
     from pycocotools import mask as mask_utils
 
-    rle = mask_utils.encode(np.asfortranarray(mask.astype(np.uint8)))
-    area = float(mask_utils.area(rle))
-    bbox = [float(v) for v in mask_utils.toBbox(rle)]
-    return {"size": [int(v) for v in rle["size"]], "counts": rle["counts"].decode("ascii")}, area, bbox
+    from ..io.coco import encode_mask
+
+    rle = encode_mask(mask)
+    coded = {"size": rle["size"], "counts": rle["counts"].encode("ascii")}
+    return rle, float(mask_utils.area(coded)), [float(v) for v in mask_utils.toBbox(coded)]
 
 
 def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_views: int = 0, seed: int = 0,
