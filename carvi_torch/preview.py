@@ -1,0 +1,114 @@
+"""``preview.png``: a few reconstructions at a glance.
+
+Per object (a row): the input mask with its keypoints, the reconstruction's silhouette
+projected back onto the mask (green = both, red = mask only, blue = reconstruction only),
+and two shaded views of the voxel shape (the reference view turned by 90 degrees about
+the image y axis — a side view — and a view from above).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["write_preview", "shaded_view", "silhouette_overlay"]
+
+
+def shaded_view(occupancy: np.ndarray, axis: int, flip: bool = False) -> np.ndarray:
+    """Depth-shaded orthographic view of ``occupancy (D, H, W)`` looking along ``axis``.
+
+    Returns an ``(a, b)`` float image in [0, 1] (1 = nearest surface, 0 = background).
+    """
+    occ = np.flip(occupancy, axis=axis) if flip else occupancy
+    n = occ.shape[axis]
+    hit = occ.any(axis=axis)
+    first = np.argmax(occ, axis=axis).astype(np.float32)
+    shade = 1.0 - 0.7 * first / max(n - 1, 1)
+    gy, gx = np.gradient(np.where(hit, first, first.max() if hit.any() else 0.0))
+    light = np.clip(1.0 - 0.15 * (gx + gy), 0.4, 1.2)
+    return np.where(hit, np.clip(shade * light, 0.05, 1.0), 0.0)
+
+
+def silhouette_overlay(mask: np.ndarray, occupancy: np.ndarray, voxel_to_camera: np.ndarray) -> np.ndarray:
+    """RGB overlay of an image mask ``(h, w)`` and the projection of the occupied voxels (image pixels)."""
+    h, w = mask.shape
+    d, hh, ww = np.nonzero(occupancy)
+    pts = voxel_to_camera @ np.stack([d, hh, ww, np.ones_like(d)]).astype(np.float64)
+    proj = np.zeros((h, w), dtype=bool)
+    # splat each voxel's footprint (its projected size) so the silhouette has no holes
+    size = np.abs(voxel_to_camera[:2, :3]).max()
+    r = int(np.ceil(size / 2))
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            x = np.round(pts[0] + dx).astype(int)
+            y = np.round(pts[1] + dy).astype(int)
+            ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+            proj[y[ok], x[ok]] = True
+    rgb = np.ones((h, w, 3))
+    rgb[mask & proj] = (0.3, 0.8, 0.3)
+    rgb[mask & ~proj] = (0.9, 0.3, 0.3)
+    rgb[~mask & proj] = (0.3, 0.4, 0.9)
+    return rgb
+
+
+def _crop_box(mask: np.ndarray, pad: int = 10):
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return 0, mask.shape[0], 0, mask.shape[1]
+    return (max(0, ys.min() - pad), min(mask.shape[0], ys.max() + pad + 1), max(0, xs.min() - pad),
+            min(mask.shape[1], xs.max() + pad + 1))
+
+
+def write_preview(out: str | Path, summary: dict, max_objects: int = 8) -> Path | None:
+    """Draw up to ``max_objects`` reconstructions (spread over the classes) into ``out/preview.png``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from pycocotools.coco import COCO
+
+    from .io.outputs import atomic_write
+
+    out = Path(out)
+    coco = COCO(summary["data"]) if summary.get("data") else None
+    picks = []
+    classes = [c for c in summary.get("classes", {}) if (out / c / "voxels").is_dir()]
+    per = max(1, max_objects // max(1, len(classes)))
+    for c in classes:
+        files = sorted((out / c / "voxels").glob("*.npz"), key=lambda p: int(p.stem) if p.stem.isdigit() else 0)
+        picks += [(c, f) for f in files[:per]]
+    picks = picks[:max_objects]
+    if not picks or coco is None:
+        return None
+    fig, axes = plt.subplots(len(picks), 4, figsize=(12, 2.8 * len(picks)), squeeze=False)
+    for row, (cls, f) in zip(axes, picks):
+        z = np.load(f)
+        occ, v2c = z["occupancy"], z["voxel_to_camera"]
+        aid = int(f.stem)
+        ann = coco.anns.get(aid)
+        if ann is None:
+            continue
+        mask = coco.annToMask(ann).astype(bool)
+        y0, y1, x0, x1 = _crop_box(mask)
+        row[0].imshow(mask[y0:y1, x0:x1], cmap="gray")
+        kp = np.asarray(ann["keypoints"], dtype=float).reshape(-1, 3)
+        vis = kp[:, 2] > 1
+        row[0].plot(kp[vis, 0] - x0, kp[vis, 1] - y0, "o", ms=4, color="orange")
+        row[0].set_title(f"{cls} #{aid}: mask + keypoints", fontsize=9)
+        row[1].imshow(silhouette_overlay(mask, occ, v2c)[y0:y1, x0:x1])
+        row[1].set_title("reconstruction silhouette", fontsize=9)
+        # voxel edge lengths along d, h, w, so the views keep the true proportions
+        sd, sh, sw = (float(np.linalg.norm(v2c[:3, i])) for i in range(3))
+        row[2].imshow(shaded_view(occ, axis=2).T[:, ::-1] if occ.any() else np.zeros((2, 2)), cmap="viridis",
+                      aspect=sh / sd)
+        row[2].set_title("side view (turned 90 deg)", fontsize=9)
+        row[3].imshow(shaded_view(occ, axis=1) if occ.any() else np.zeros((2, 2)), cmap="viridis", aspect=sd / sw)
+        row[3].set_title("view from above", fontsize=9)
+        for a in row:
+            a.set_xticks([])
+            a.set_yticks([])
+    fig.tight_layout()
+    path = out / "preview.png"
+    atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=80))
+    plt.close(fig)
+    return path
