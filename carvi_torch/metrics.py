@@ -39,7 +39,7 @@ from typing import Sequence, Union
 import numpy as np
 import torch
 import trimesh
-from scipy import ndimage, optimize
+from scipy import ndimage
 
 __all__ = [
     "MeshLike",
@@ -319,8 +319,9 @@ def _sample_small(vertices: torch.Tensor, faces: torch.Tensor, area: torch.Tenso
 
 
 def _safe_div(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
-    """``num / den`` with 0 where ``den == 0``."""
-    return num / torch.where(den == 0, torch.ones_like(den), den) * (den != 0)
+    """``num / den``, dividing by 1 where ``den == 0`` (there ``num`` is 0 too, for the quotients
+    of :func:`_closest_barycentric` on canonical triangles, see :func:`_canonical_triangles`)."""
+    return num / den.masked_fill(den == 0, 1.0)
 
 
 def _closest_barycentric(d1, d2, d00, d01, d11):
@@ -328,9 +329,10 @@ def _closest_barycentric(d1, d2, d00, d01, d11):
 
     Region selection of Ericson (Real-Time Collision Detection, 5.1.5), vectorised:
     ``d1 = ab . ap``, ``d2 = ac . ap``, ``d00 = ab . ab``, ``d01 = ab . ac``,
-    ``d11 = ac . ac``; all arguments broadcastable tensors. The tests use signs only, so
-    degenerate triangles (collinear or coincident vertices) land on an edge or a vertex;
-    divisions by zero are guarded. Every case is evaluated and the right one selected.
+    ``d11 = ac . ac``; all arguments broadcastable tensors. Triangles must be
+    non-degenerate or in the form ``(p, q, q)`` (:func:`_canonical_triangles`); there the
+    region tests are exact and a zero denominator comes with a zero numerator. Every case
+    is evaluated and the right one selected.
     """
     d3, d4 = d1 - d00, d2 - d01  # ab . bp, ac . bp
     d5, d6 = d1 - d01, d2 - d11  # ab . cp, ac . cp
@@ -445,6 +447,39 @@ def point_triangle_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c
     return d2 if squared else d2.sqrt()
 
 
+def _morton_order_torch(points: torch.Tensor, lo: np.ndarray, hi: np.ndarray, bits: int = 10) -> torch.Tensor:
+    """:func:`_morton_order` of ``points (P, 3)`` computed on their device; returns ``(P,)`` int64."""
+    lo_t = torch.as_tensor(lo, dtype=points.dtype, device=points.device)
+    ext = torch.as_tensor(np.maximum(hi - lo, 1e-300), dtype=points.dtype, device=points.device)
+    q = (torch.clamp((points - lo_t) / ext, 0.0, 1.0) * ((1 << bits) - 1)).long()
+    code = torch.zeros(points.shape[0], dtype=torch.int64, device=points.device)
+    for b in range(bits):
+        for axis in range(3):
+            code |= ((q[:, axis] >> b) & 1) << (3 * b + axis)
+    return torch.argsort(code, stable=True)
+
+
+def _box_frame(tri: torch.Tensor) -> torch.Tensor:
+    """Axes ``(3, 3)`` (columns) for the boxes of triangles ``(F, 3, 3)`` float64.
+
+    The identity or the principal axes of the vertices (a proper rotation), whichever
+    gives the smaller total surface area of the triangles' axis-aligned boxes.
+    """
+    v = tri.reshape(-1, 3)
+    centred = v - v.mean(dim=0)
+    _, axes = torch.linalg.eigh(centred.T @ centred)
+    if float(torch.det(axes)) < 0:
+        axes[:, 0] = -axes[:, 0]
+
+    def box_area(frame: torch.Tensor) -> float:
+        t = tri @ frame
+        e = t.amax(dim=1) - t.amin(dim=1)
+        return float((e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]).sum())
+
+    eye = torch.eye(3, dtype=tri.dtype)
+    return axes if box_area(axes) < 0.9 * box_area(eye) else eye
+
+
 def _bisect_to_size(tri: np.ndarray, size: float, max_pieces: int) -> tuple[np.ndarray, np.ndarray]:
     """Cut triangles ``(F, 3, 3)`` float64 by longest-edge bisection until no edge exceeds ``size``.
 
@@ -522,12 +557,23 @@ class MeshDistanceIndex:
         size: largest piece edge (mesh units); default 5% of the bounding-box diagonal.
         width: children per node (and pieces per leaf), ``>= 2``.
         grid: seed-grid cells along the longest side of the bounding box.
-        chunk: points per traversal batch (bounds memory).
+        chunk: points per traversal batch (bounds memory); default 2048 on the CPU, where
+            small batches keep the temporaries in cache (1.7x faster than 16384 measured),
+            65536 on other devices.
         max_pieces: refuse to build more pieces than this (``ValueError``).
+        frame: ``(3, 3)`` orthogonal matrix whose columns are the axes of the boxes;
+            default: the vertices' own axes or their principal axes, whichever gives the
+            triangles the smaller total box area (a CAD model turned into a camera frame
+            gets its own axes back, and boxes three to seven times smaller).
         exact_dtype: dtype of the point-triangle distances (at least the vertices'). The
             default float64 keeps near-degenerate CAD slivers exact: in float32 their
             region tests are ill-conditioned (errors up to ``1e-3`` of a sliver's length
             measured on PASCAL3D+ chairs); boxes are tested in the vertices' dtype.
+
+    Attributes:
+        frame: ``(3, 3)`` float64, the axes of the boxes (columns).
+        n_pieces: number of pieces after bisection.
+        last_pairs: exact point-triangle evaluations of the last query (a diagnostic).
 
     Example:
         >>> V = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
@@ -537,12 +583,14 @@ class MeshDistanceIndex:
     """
 
     def __init__(self, vertices: torch.Tensor, faces: torch.Tensor, size: float | None = None,
-                 width: int = 4, grid: int = 64, chunk: int = 16384, max_pieces: int = 5_000_000,
-                 exact_dtype: torch.dtype = torch.float64):
+                 width: int = 4, grid: int = 64, chunk: int | None = None, max_pieces: int = 5_000_000,
+                 exact_dtype: torch.dtype = torch.float64, frame: torch.Tensor | None = None):
         if faces.dim() != 2 or faces.shape[-1] != 3 or faces.shape[0] == 0:
             raise ValueError(f"faces must be (F, 3) with F >= 1, got {tuple(faces.shape)}")
         if vertices.dim() != 2 or vertices.shape[-1] != 3:
             raise ValueError(f"vertices must be (V, 3), got {tuple(vertices.shape)}")
+        if chunk is None:
+            chunk = 2048 if vertices.device.type == "cpu" else 1 << 16
         if width < 2 or chunk < 1 or grid < 1:
             raise ValueError(f"need width >= 2, grid >= 1 and chunk >= 1; got {width}, {grid}, {chunk}")
         tri = vertices.detach()[faces]  # (F, 3, 3)
@@ -550,6 +598,15 @@ class MeshDistanceIndex:
             raise ValueError("vertices used by faces must be finite")
         self.device, self.dtype = vertices.device, vertices.dtype
         self.width, self.chunk = int(width), int(chunk)
+        # work in the frame (given, or the vertices' or their principal axes) where the
+        # triangles' boxes are smallest: distances do not change, pruning gets tighter
+        self.frame = _box_frame(tri.detach().double().cpu()) if frame is None else \
+            torch.as_tensor(frame, dtype=torch.float64).cpu()
+        if self.frame.shape != (3, 3) or not torch.allclose(self.frame.T @ self.frame, torch.eye(3, dtype=torch.float64),
+                                                           atol=1e-9):
+            raise ValueError(f"frame must be a (3, 3) orthogonal matrix, got {self.frame}")
+        self._frame_t = self.frame.to(device=self.device, dtype=self.dtype)
+        tri = (tri.double() @ self.frame.to(tri.device)).to(self.dtype)
         self.exact_dtype = torch.promote_types(self.dtype, exact_dtype)
         a, b, c = _canonical_triangles(*tri.double().unbind(dim=1))
         ab, ac = b - a, c - a
@@ -624,16 +681,17 @@ class MeshDistanceIndex:
         return d2.to(self.dtype)
 
     def _check_points(self, points: torch.Tensor) -> torch.Tensor:
+        """Validated points ``(P, 3)`` in the index's device and dtype, turned into its frame."""
         if points.dim() != 2 or points.shape[-1] != 3:
             raise ValueError(f"points must be (P, 3), got {tuple(points.shape)}")
         pts = points.detach().to(device=self.device, dtype=self.dtype)
         if not bool(torch.isfinite(pts).all()):
             raise ValueError("points must be finite")
-        return pts
+        return pts @ self._frame_t
 
     def _query(self, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Squared distances ``(P,)`` and closest triangle ``(P,)`` of checked points ``(P, 3)``."""
-        order = torch.from_numpy(_morton_order(pts.double().cpu().numpy(), self.lo_all, self.hi_all)).to(self.device)
+        order = _morton_order_torch(pts, self.lo_all, self.hi_all)
         sorted_pts = pts.index_select(0, order)
         d2 = torch.empty(pts.shape[0], dtype=self.dtype, device=self.device)
         face = torch.empty(pts.shape[0], dtype=torch.int64, device=self.device)
@@ -671,7 +729,8 @@ class MeshDistanceIndex:
         d2, face = self._query(pts)
         px, py, pz = pts.T.to(self.exact_dtype).contiguous().unbind(0)
         rx, ry, rz = _triangle_residual_soa(px, py, pz, *self.table.index_select(1, face).unbind(0))
-        return d2.sqrt(), pts - torch.stack([rx, ry, rz], dim=1).to(self.dtype), face
+        closest = (pts - torch.stack([rx, ry, rz], dim=1).to(self.dtype)) @ self._frame_t.T
+        return d2.sqrt(), closest, face
 
     def _chunk(self, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Squared distances and closest triangles of a chunk of points ``(n, 3)`` (see the class)."""
@@ -786,6 +845,14 @@ class EvaluationMesh:
         """``mesh`` itself when it already is an ``EvaluationMesh``, else a new wrapper."""
         return mesh if isinstance(mesh, EvaluationMesh) else cls(mesh, dtype=dtype, device=device, name=name)
 
+    def with_diag(self, diag: float) -> "EvaluationMesh":
+        """A view of this mesh (sharing its index and samples) that reports ``diag`` as its diagonal."""
+        view = object.__new__(EvaluationMesh)
+        view.__dict__.update(self.__dict__)
+        view.diag = diag
+        view._owner = self
+        return view
+
     def require_valid(self) -> None:
         """Raise ``ValueError`` with :attr:`problem` when the mesh cannot be evaluated."""
         if self.problem is not None:
@@ -795,9 +862,10 @@ class EvaluationMesh:
     def index(self) -> MeshDistanceIndex:
         """The :class:`MeshDistanceIndex` of the mesh (built on first use)."""
         self.require_valid()
-        if self._index is None:
-            self._index = MeshDistanceIndex(self.vertices, self.faces)
-        return self._index
+        owner = getattr(self, "_owner", self)
+        if owner._index is None:
+            owner._index = MeshDistanceIndex(self.vertices, self.faces)
+        return owner._index
 
     def samples(self, step: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Deterministic :func:`sample_surface` samples ``(points (P, 3), weights (P,))``, cached per step."""
@@ -919,18 +987,18 @@ class DepthOffsetResult:
         return iter((self.offset, self.error))
 
 
-def _depth_model(index: MeshDistanceIndex, points: torch.Tensor, weights: torch.Tensor, axis: int,
+def _depth_model(index: MeshDistanceIndex, points: torch.Tensor, weights: torch.Tensor, unit: torch.Tensor,
                  sign: float) -> tuple[float, float, float]:
-    """Squared weighted RMS distance of ``points`` to a mesh and its local model along ``axis``.
+    """Squared weighted RMS distance of ``points`` to a mesh and its local model along ``unit``.
 
-    With the points moved by ``sign * x`` along ``axis``, the squared distance of point ``i``
-    behaves near ``x = 0`` as ``d_i^2 + 2 sign r_i x + k_i x^2`` with ``r_i`` the ``axis``
-    component of ``p_i - closest_i`` (the exact derivative) and ``k_i = (r_i / d_i)^2``
+    With the points moved by ``sign * x * unit`` (``unit (3,)`` a unit vector), the squared
+    distance of point ``i`` behaves near ``x = 0`` as ``d_i^2 + 2 sign r_i x + k_i x^2`` with
+    ``r_i = (p_i - closest_i) . unit`` (the exact derivative) and ``k_i = (r_i / d_i)^2``
     (the point-to-plane curvature; 1 where ``d_i = 0``). Returns the weighted means
     ``(c0, c1, c2)`` of the three coefficients.
     """
     d, closest, _ = index.closest(points)
-    r = (points[:, axis] - closest[:, axis]).double()
+    r = ((points - closest).double() @ unit.double().to(points.device))
     d = d.double()
     k = torch.where(d > 0, (r / torch.where(d > 0, d, torch.ones_like(d))) ** 2, torch.ones_like(d))
     w = weights.double().to(d.device)
@@ -961,9 +1029,24 @@ def _minimax_step(ma: tuple[float, float, float], mb: tuple[float, float, float]
     return cands[i], vals[i]
 
 
-def best_depth_offset(recon, gt, step: float | None = None, axis: int = 2, xatol: float = 1e-3,
+def _direction(axis, like: torch.Tensor) -> torch.Tensor:
+    """Unit ``(3,)`` depth direction from an axis index or a vector, in ``like``'s dtype and device."""
+    if isinstance(axis, (int, np.integer)) and not isinstance(axis, bool):
+        if axis not in (0, 1, 2):
+            raise ValueError(f"axis must be 0, 1, 2 or a (3,) vector, got {axis}")
+        unit = torch.zeros(3, dtype=torch.float64)
+        unit[int(axis)] = 1.0
+    else:
+        unit = torch.as_tensor(axis, dtype=torch.float64).detach().cpu().reshape(-1)
+        if unit.shape != (3,) or not bool(torch.isfinite(unit).all()) or float(unit.norm()) == 0:
+            raise ValueError(f"axis must be 0, 1, 2 or a finite non-zero (3,) vector, got {axis}")
+        unit = unit / unit.norm()
+    return unit.to(dtype=like.dtype, device=like.device)
+
+
+def best_depth_offset(recon, gt, step: float | None = None, axis=2, xatol: float = 1e-3,
                       trust: float = 0.02, max_offset: float = 0.5, search_step: float | None = None,
-                      max_evaluations: int = 15) -> DepthOffsetResult:
+                      max_evaluations: int = 15, ftol: float = 1e-4) -> DepthOffsetResult:
     """Depth shift of ``recon`` minimising its symmetric RMS distance to ``gt``.
 
     Under orthography a reconstruction has no absolute depth: both meshes live in the
@@ -977,9 +1060,10 @@ def best_depth_offset(recon, gt, step: float | None = None, axis: int = 2, xatol
        larger model within the trust radius (initially ``trust * diag``); a step that
        lowers ``f`` is taken and may double the radius, otherwise the radius shrinks to
        a quarter of the step. It stops when the step or the radius falls below
-       ``xatol * diag`` (default 0.1% of the GT diagonal), after ``max_evaluations``, or
+       ``xatol * diag`` (default 0.1% of the GT diagonal), when the models promise less
+       than a relative decrease ``ftol`` of ``f`` (0.01%), after ``max_evaluations``, or
        at ``|z - z0| = max_offset * diag``. The samples of both meshes are drawn once (at
-       ``search_step``, default twice ``step``); an evaluation only shifts them (``recon``'s
+       ``search_step``, default three times ``step``); an evaluation only shifts them (``recon``'s
        by ``+z``, ``gt``'s by ``-z``) and queries the two prebuilt distance indices, so it
        stays near the optimum where queries are cheap;
     3. evaluates the exact symmetric RMS at the offset found, with samples at ``step``.
@@ -992,14 +1076,18 @@ def best_depth_offset(recon, gt, step: float | None = None, axis: int = 2, xatol
         recon, gt: meshes (``trimesh.Trimesh``, ``(V, F)`` pairs or :class:`EvaluationMesh`;
             wrap ``gt`` once to reuse it).
         step: final sampling step; default 0.5% of the GT diagonal.
-        axis: the depth axis of the vertices (2).
+        axis: the depth direction: an axis of the vertices (``2``: ``z``, the reference
+            camera frame), or a ``(3,)`` vector (normalised here), e.g. the viewing direction
+            ``R[2]`` when both meshes are given in the object frame.
         xatol, trust, max_offset: fractions of the GT diagonal (tolerance on ``z``, initial
             trust radius, largest shift from ``z0``).
-        search_step: sampling step of the search (default ``2 * step``).
+        search_step: sampling step of the search (default ``3 * step``).
         max_evaluations: search evaluations at most.
+        ftol: relative decrease of the squared objective below which the search stops.
 
     Returns:
-        :class:`DepthOffsetResult`; it unpacks as ``offset, error``.
+        :class:`DepthOffsetResult` (``offset`` along the unit direction); it unpacks as
+        ``offset, error``.
 
     Raises:
         ValueError: empty or degenerate meshes, bad parameters.
@@ -1007,33 +1095,31 @@ def best_depth_offset(recon, gt, step: float | None = None, axis: int = 2, xatol
     recon, gt = EvaluationMesh.wrap(recon, name="recon"), EvaluationMesh.wrap(gt, name="gt")
     gt.require_valid()
     recon.require_valid()
-    if axis not in (0, 1, 2):
-        raise ValueError(f"axis must be 0, 1 or 2, got {axis}")
-    if not (xatol > 0 and trust > 0 and max_offset > 0 and max_evaluations >= 1):
-        raise ValueError(f"xatol, trust, max_offset and max_evaluations must be > 0, got "
-                         f"{xatol}, {trust}, {max_offset}, {max_evaluations}")
+    unit = _direction(axis, recon.vertices)
+    if not (xatol > 0 and trust > 0 and max_offset > 0 and max_evaluations >= 1 and ftol >= 0):
+        raise ValueError(f"xatol, trust, max_offset and max_evaluations must be > 0 and ftol >= 0, got "
+                         f"{xatol}, {trust}, {max_offset}, {max_evaluations}, {ftol}")
     step = _resolve_step(step, gt)
-    search_step = 2.0 * step if search_step is None else _resolve_step(search_step, gt)
+    search_step = 3.0 * step if search_step is None else _resolve_step(search_step, gt)
     pr, wr = recon.samples(search_step)
     pg, wg = gt.samples(search_step)
     fr, fg = recon.samples(step), gt.samples(step)
-    z0 = float((fg[1].double() * fg[0][:, axis].double()).sum() / fg[1].double().sum()
-               - (fr[1].double() * fr[0][:, axis].double()).sum() / fr[1].double().sum())
-    unit = torch.zeros(3, dtype=pr.dtype, device=pr.device)
-    unit[axis] = 1.0
+    u64 = unit.double()
+    z0 = float((fg[1].double() * (fg[0].double() @ u64)).sum() / fg[1].double().sum()
+               - (fr[1].double() * (fr[0].double() @ u64)).sum() / fr[1].double().sum())
 
     def models(z: float):
-        return (_depth_model(gt.index, pr + z * unit, wr, axis, 1.0),
-                _depth_model(recon.index, pg - z * unit, wg, axis, -1.0))
+        return (_depth_model(gt.index, pr + z * unit, wr, unit, 1.0),
+                _depth_model(recon.index, pg - z * unit, wg, unit, -1.0))
 
     tol, limit = xatol * gt.diag, max_offset * gt.diag
     radius = trust * gt.diag
     z, (ma, mb) = z0, models(z0)
     value, evaluations = max(ma[0], mb[0]), 1
     while evaluations < max_evaluations and radius >= tol:
-        x, _ = _minimax_step(ma, mb, radius)
+        x, predicted = _minimax_step(ma, mb, radius)
         x = float(np.clip(z + x, z0 - limit, z0 + limit)) - z
-        if abs(x) < tol:
+        if abs(x) < tol or value - predicted <= ftol * value:
             break
         na, nb = models(z + x)
         evaluations += 1
@@ -1050,7 +1136,7 @@ def best_depth_offset(recon, gt, step: float | None = None, axis: int = 2, xatol
 
 
 def evaluate_reconstruction(recon_mesh, gt_mesh, step: float | None = None, optimise_offset: bool = True,
-                            **search) -> dict:
+                            diag: float | None = None, **search) -> dict:
     """Symmetric RMS error of a reconstruction, in percent of the GT bounding-box diagonal.
 
     Both meshes are in the reference camera frame (``z`` = depth); the depth of ``recon``
@@ -1064,7 +1150,11 @@ def evaluate_reconstruction(recon_mesh, gt_mesh, step: float | None = None, opti
             samples and distance index across reconstructions.
         step: sampling step; default 0.5% of the GT diagonal.
         optimise_offset: search the depth offset (default) or use the meshes as given.
-        **search: further keyword arguments of :func:`best_depth_offset`.
+        diag: the diagonal to normalise by, when not the axis-aligned one of ``gt_mesh`` as
+            given: e.g. the diagonal of the CAD model's box in its own frame times the
+            camera scale, since the axis-aligned box of a mesh turned into a camera frame
+            depends on the view. It also sets the default step (and the search tolerances).
+        **search: further keyword arguments of :func:`best_depth_offset` (e.g. ``axis``).
 
     Returns:
         ``dict`` with ``error_percent`` (float), ``offset`` (depth shift added to the
@@ -1078,6 +1168,10 @@ def evaluate_reconstruction(recon_mesh, gt_mesh, step: float | None = None, opti
     """
     gt = EvaluationMesh.wrap(gt_mesh, name="gt")
     gt.require_valid()
+    if diag is not None:
+        if not (math.isfinite(diag) and diag > 0):
+            raise ValueError(f"diag must be a positive finite number, got {diag}")
+        gt = gt.with_diag(float(diag))
     step = _resolve_step(step, gt)
     nan = float("nan")
     result = {"error_percent": nan, "offset": nan, "rms_ab": nan, "rms_ba": nan, "diag": gt.diag,

@@ -431,10 +431,32 @@ class TestDepthOffset:
         assert r.error <= min(scan) + 1e-3 * gtm.diag
         assert r.evaluations <= 15
 
+    def test_object_frame_with_view_direction(self):
+        # the same evaluation in the camera frame (axis z) and in the object frame (axis R[2])
+        from carvi_torch.cameras import ScaledOrthographic, random_rotations
+
+        gt = trimesh.creation.capsule(1.0, 0.4, count=[16, 16])
+        gt.apply_transform(trimesh.transformations.rotation_matrix(0.5, [0, 1, 0]))
+        recon = trimesh.creation.box(extents=[0.8, 0.8, 1.6])
+        R = random_rotations(1, torch.Generator().manual_seed(3), dtype=torch.float64)
+        cam = ScaledOrthographic(R, torch.tensor([40.0], dtype=torch.float64), torch.tensor([[64.0, 64.0]], dtype=torch.float64))
+        to_cam = lambda m: (cam.to_camera_frame(torch.tensor(m.vertices))[0], torch.tensor(m.faces))
+        diag = float(np.linalg.norm(gt.extents))
+        shift = torch.tensor([0.0, 0.0, 17.0], dtype=torch.float64)
+        rv, rf = to_cam(recon)
+        in_cam = evaluate_reconstruction((rv + shift, rf), to_cam(gt), diag=40.0 * diag, step=0.01 * 40 * diag)
+        in_obj = evaluate_reconstruction(recon, gt, diag=diag, axis=R[0, 2], step=0.01 * diag)
+        assert in_cam["diag"] == pytest.approx(40 * diag) and in_obj["diag"] == pytest.approx(diag)
+        assert in_cam["error_percent"] == pytest.approx(in_obj["error_percent"], rel=0.02)
+        assert in_cam["offset"] == pytest.approx(40 * in_obj["offset"] - 17.0, abs=0.01 * 40 * diag)
+
     def test_errors(self):
         box = trimesh.creation.box()
-        with pytest.raises(ValueError, match="axis"):
-            best_depth_offset(box, box, axis=3)
+        for bad in (3, [0.0, 0.0, 0.0], [1.0, 2.0]):
+            with pytest.raises(ValueError, match="axis"):
+                best_depth_offset(box, box, axis=bad)
+        with pytest.raises(ValueError, match="diag"):
+            evaluate_reconstruction(box, box, diag=-1.0)
         with pytest.raises(ValueError, match="xatol"):
             best_depth_offset(box, box, xatol=0)
 
