@@ -1,0 +1,324 @@
+"""``python -m carvi_torch.evaluate``: shape and viewpoint errors of reconstructions against ground truth.
+
+Shapes: the symmetric RMS mesh distance of the paper (``carvi_torch.metrics``), in percent of
+the ground-truth bounding-box diagonal, in the reference camera frame (the ground-truth mesh
+posed by its true camera, image pixels) after the best depth offset. Viewpoints: geodesic,
+azimuth, elevation and roll errors after one global rotation aligning the class frame with
+the ground-truth frame (``carvi_torch.viewpoint_metrics``), for SfM and refined cameras.
+
+Several reconstruction directories (e.g. Full, -CRef, -SImp, oracle) are compared in one run,
+so every ground-truth mesh is sampled and indexed once; the baselines Puffball and SFMc are
+computed on the fly (``--baselines``).
+
+Examples:
+    python -m carvi_torch.evaluate --data renders/annotations.json --recon runs/full
+    python -m carvi_torch.evaluate --data renders/annotations.json --recon Full=runs/full \\
+        --recon -CRef=runs/nocref --baselines --split test --out results/
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from tqdm.auto import tqdm
+
+from .cameras import ScaledOrthographic
+from .io.coco import CocoFormatError, load_coco
+from .io.outputs import read_json, write_bytes, write_json
+from . import metrics, viewpoint_metrics
+
+__all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "main"]
+
+
+def posed_gt_mesh(entry: dict, root: Path, cache: dict | None = None) -> tuple[trimesh.Trimesh, float]:
+    """The ground-truth mesh of one annotation in its reference camera frame (image pixels).
+
+    ``entry`` is the annotation's record of ``gt.json`` (``mesh`` path relative to ``root``, true
+    ``R``, ``s``, ``t``): vertices ``X`` go to ``(u, v, depth) = (s R[:2] X + t, s R[2] X)``.
+
+    Returns:
+        the posed mesh and the normalising diagonal: ``s`` times the bounding-box diagonal of the
+        model in its own frame (the paper's normalisation; a box taken in the camera frame would
+        depend on the view).
+    """
+    path = (root / entry["mesh"]).resolve()
+    if cache is not None and path in cache:
+        base = cache[path]
+    else:
+        base = trimesh.load(path, force="mesh", process=False)
+        if cache is not None:
+            cache[path] = base
+    cam = ScaledOrthographic.from_list([entry], dtype=torch.float64)
+    V = torch.from_numpy(np.asarray(base.vertices, dtype=np.float64))
+    Vc = cam.to_camera_frame(V)[0].numpy()
+    used = np.unique(np.asarray(base.faces))
+    diag = float(cam.s[0]) * metrics.bounding_box_diagonal(V[used])
+    return trimesh.Trimesh(Vc, np.asarray(base.faces), process=False), diag
+
+
+def _load_recon_mesh(recon: Path, cls: str, aid: int) -> trimesh.Trimesh | None:
+    d = recon / cls / "meshes"
+    for ext in ("ply", "obj", "glb"):
+        p = d / f"{aid}.{ext}"
+        if p.is_file():
+            return trimesh.load(p, force="mesh", process=False)
+    return None
+
+
+def _viewpoints(recon: Path, cls: str, gt_entries: dict, aids: list[int]) -> dict | None:
+    p = recon / cls / "cameras.json"
+    if not p.is_file():
+        return None
+    cams = read_json(p).get("cameras", {})
+    out = {}
+    for stage in ("sfm", "refined"):
+        est, ref = [], []
+        for a in aids:
+            c = cams.get(str(a), {}).get(stage)
+            g = gt_entries.get(str(a))
+            if c is None or g is None:
+                continue
+            est.append(c["R"])
+            ref.append(g["R"])
+        if len(est) >= 2:
+            rep = viewpoint_metrics.viewpoint_report(torch.tensor(est, dtype=torch.float64),
+                                                     torch.tensor(ref, dtype=torch.float64))
+            out[stage] = rep
+    return out or None
+
+
+def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path | None = None,
+             split: str | None = None, baselines: bool = False, step_percent: float = 0.5,
+             classes=None, progress: bool = True, canvas_size: int | None = None) -> dict:
+    """Evaluate reconstruction directories ``recons`` (method name -> directory) against ``gt.json``.
+
+    Returns a dict with ``objects`` (per annotation id: class, and per method the error or the
+    reason it is missing), ``classes`` (per class and method: mean and median error, count) and
+    ``viewpoints`` (per class and method: SfM and refined viewpoint reports).
+    """
+    data = Path(data)
+    gt_path = Path(gt) if gt else data.with_name("gt.json")
+    if not gt_path.is_file():
+        raise FileNotFoundError(f"{gt_path}: no ground truth (gt.json beside the annotations)")
+    gt_all = read_json(gt_path)
+    gt_entries = gt_all.get("annotations", gt_all)
+    dataset = read_json(data)
+    split_of = {int(a["id"]): a.get("split", "") for a in dataset.get("annotations", [])}
+    cat_of = {int(c["id"]): c["name"] for c in dataset.get("categories", [])}
+    ann_class = {int(a["id"]): cat_of.get(int(a["category_id"])) for a in dataset.get("annotations", [])}
+    first = Path(next(iter(recons.values())))
+    cfg = {}
+    if (first / "config.yaml").is_file():
+        import yaml
+
+        cfg = yaml.safe_load((first / "config.yaml").read_text()) or {}
+    canvas_size = canvas_size or int(cfg.get("canvas_size", 128))
+    coll_by_class = {}
+    if baselines:
+        loaded = load_coco(data, canvas_size=canvas_size, margin=float(cfg.get("canvas_margin", 0.1)),
+                           classes=classes)
+        coll_by_class = loaded.collections
+    # default: the classes some reconstruction directory has
+    wanted = set(classes) if classes else {c for r in recons.values() for c in ann_class.values()
+                                           if c is not None and (Path(r) / c).is_dir()}
+    targets = [a for a, c in ann_class.items()
+               if str(a) in gt_entries and (split is None or split_of.get(a) == split)
+               and (wanted is None or c in wanted)]
+    targets.sort()
+    methods = list(recons) + (["Puffball", "SFMc"] if baselines else [])
+    objects: dict[str, dict] = {}
+    mesh_cache: dict = {}
+    t0 = time.perf_counter()
+    for aid in tqdm(targets, desc="evaluate", disable=not progress):
+        cls = ann_class[aid]
+        entry = gt_entries[str(aid)]
+        row = {"class": cls, "split": split_of.get(aid, "")}
+        try:
+            posed, diag = posed_gt_mesh(entry, gt_path.parent, mesh_cache)
+            gt_mesh = metrics.EvaluationMesh(posed, name="gt")
+            gt_mesh.require_valid()
+            gt_mesh = gt_mesh.with_diag(diag)
+        except (ValueError, FileNotFoundError, KeyError) as e:
+            row["reason"] = f"ground truth unusable: {e}"
+            objects[str(aid)] = row
+            continue
+        step = step_percent / 100.0 * gt_mesh.diag
+        for name, rdir in recons.items():
+            m = _load_recon_mesh(Path(rdir), cls, aid)
+            row[name] = _score(m, gt_mesh, step, "no reconstruction")
+        if baselines:
+            row["Puffball"] = _score(_puffball(coll_by_class.get(cls), aid), gt_mesh, step, "no mask")
+            row["SFMc"] = _score(_sfmc(first, cls, aid), gt_mesh, step, "no SfM camera")
+        objects[str(aid)] = row
+    # per class aggregates
+    per_class: dict[str, dict] = defaultdict(dict)
+    for cls in sorted({r["class"] for r in objects.values()}):
+        rows = [r for r in objects.values() if r["class"] == cls]
+        for mth in methods:
+            errs = [r[mth]["error_percent"] for r in rows if isinstance(r.get(mth), dict)
+                    and r[mth].get("error_percent") is not None and math.isfinite(r[mth]["error_percent"])]
+            per_class[cls][mth] = {"mean": float(np.mean(errs)) if errs else None,
+                                   "median": float(np.median(errs)) if errs else None,
+                                   "count": len(errs), "missing": len(rows) - len(errs)}
+    viewpoints = {}
+    for cls in per_class:
+        aids = [int(a) for a, r in objects.items() if r["class"] == cls]
+        vp = {}
+        for name, rdir in recons.items():
+            rep = _viewpoints(Path(rdir), cls, gt_entries, aids)
+            if rep:
+                vp[name] = rep
+        viewpoints[cls] = vp
+    means = {}
+    for mth in methods:
+        vals = [per_class[c][mth]["mean"] for c in per_class if per_class[c][mth]["mean"] is not None]
+        means[mth] = float(np.mean(vals)) if vals else None
+    return {"data": str(data), "gt": str(gt_path), "split": split, "step_percent": step_percent,
+            "methods": methods, "recons": {k: str(v) for k, v in recons.items()}, "objects": objects,
+            "classes": dict(per_class), "mean_over_classes": means, "viewpoints": viewpoints,
+            "seconds": round(time.perf_counter() - t0, 2)}
+
+
+def _score(mesh, gt_mesh, step, missing_reason) -> dict:
+    if mesh is None:
+        return {"error_percent": None, "reason": missing_reason}
+    try:
+        r = metrics.evaluate_reconstruction(mesh, gt_mesh, step=step)
+    except ValueError as e:
+        return {"error_percent": None, "reason": str(e)}
+    err = r["error_percent"]
+    return {"error_percent": float(err) if math.isfinite(err) else None, "offset": r.get("offset"),
+            "reason": r.get("reason")}
+
+
+def _puffball(coll, aid: int):
+    """Puffball of the annotation's canvas mask, mapped to image pixels (``None`` without a mask)."""
+    if coll is None:
+        return None
+    hit = (coll.annotation_ids == aid).nonzero()
+    if len(hit) == 0:
+        return None
+    i = int(hit[0, 0])
+    from .baselines import puffball
+
+    m = puffball(coll.masks[i])
+    if m is None or len(m.faces) == 0:
+        return None
+    a = float(coll.canvas_from_image.scale[i])
+    b = coll.canvas_from_image.offset[i].double().numpy()
+    V = np.asarray(m.vertices, dtype=np.float64).copy()
+    V[:, :2] = (V[:, :2] - b) / a
+    V[:, 2] = V[:, 2] / a
+    return trimesh.Trimesh(V, np.asarray(m.faces), process=False)
+
+
+def _sfmc(recon: Path, cls: str, aid: int):
+    """Convex hull of the SfM mean shape seen by the annotation's refined camera (image pixels)."""
+    p = recon / cls / "cameras.json"
+    if not p.is_file():
+        return None
+    cj = read_json(p)
+    cam = cj.get("cameras", {}).get(str(aid), {}).get("refined")
+    if cam is None:
+        return None
+    S = torch.tensor([v for v in cj.get("mean_shape", {}).values() if v is not None], dtype=torch.float64)
+    if len(S) < 4:
+        return None
+    from .baselines import sfm_convex_hull
+
+    return sfm_convex_hull(S, ScaledOrthographic.from_list([cam], dtype=torch.float64))
+
+
+# --------------------------------------------------------------------------- tables
+
+
+def _fmt(v, digits=2):
+    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{v:.{digits}f}"
+
+
+def format_shape_table(res: dict) -> str:
+    """Markdown table in the shape of the paper's Table 1: per class mean error per method, and the mean."""
+    methods = res["methods"]
+    lines = ["| class | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    for cls, row in sorted(res["classes"].items()):
+        vals = [row[m]["mean"] for m in methods]
+        finite = [v for v in vals if v is not None]
+        best = min(finite) if finite else None
+        cells = [f"**{_fmt(v)}**" if v is not None and v == best else _fmt(v) for v in vals]
+        n = max(row[m]["count"] for m in methods)
+        lines.append(f"| {cls} ({n}) | " + " | ".join(cells) + " |")
+    means = [res["mean_over_classes"][m] for m in methods]
+    lines.append("| **mean** | " + " | ".join(_fmt(v) for v in means) + " |")
+    return "\n".join(lines)
+
+
+def format_viewpoint_table(res: dict) -> str:
+    """Per class and method: median geodesic / azimuth / elevation error and accuracy at 30 degrees."""
+    lines = ["| class | method | stage | n | median geodesic | median azimuth | median elevation | acc@30 | mirrored |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for cls, per in sorted(res["viewpoints"].items()):
+        for mth, stages in per.items():
+            for stage, rep in stages.items():
+                g = rep.get("geodesic", {})
+                az = rep.get("azimuth", {})
+                el = rep.get("elevation", {})
+                lines.append(f"| {cls} | {mth} | {stage} | {g.get('n', '-')} | {_fmt(g.get('median'), 1)} | "
+                             f"{_fmt(az.get('median'), 1)} | {_fmt(el.get('median'), 1)} | "
+                             f"{_fmt(g.get('acc_at_30'), 2)} | {rep.get('mirrored', False)} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m carvi_torch.evaluate", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="COCO keypoint JSON the reconstruction ran on (gt.json beside it)")
+    ap.add_argument("--recon", required=True, action="append",
+                    help="reconstruction directory, or NAME=DIR to name the method; repeat to compare methods")
+    ap.add_argument("--out", help="directory for results.json, shapes.md and viewpoints.md")
+    ap.add_argument("--gt", help="ground truth file (default: gt.json beside --data)")
+    ap.add_argument("--split", help="evaluate only annotations of this split (e.g. test)")
+    ap.add_argument("--baselines", action="store_true", help="also evaluate Puffball and SFMc")
+    ap.add_argument("--step-percent", type=float, default=0.5,
+                    help="surface sampling step in percent of the GT bounding-box diagonal (default 0.5)")
+    ap.add_argument("--classes", help="comma-separated class names")
+    ap.add_argument("--no-progress", action="store_true")
+    args = ap.parse_args(argv)
+    recons = {}
+    for item in args.recon:
+        name, _, path = item.rpartition("=")
+        recons[name or ("Full" if not recons else Path(path).name)] = path
+    for name, p in recons.items():
+        if not Path(p).is_dir():
+            print(f"error: reconstruction directory {p} ({name}) not found", file=sys.stderr)
+            return 2
+    try:
+        res = evaluate(args.data, recons, gt=args.gt, split=args.split, baselines=args.baselines,
+                       step_percent=args.step_percent, classes=args.classes.split(",") if args.classes else None,
+                       progress=not args.no_progress)
+    except (FileNotFoundError, ValueError, CocoFormatError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    shapes, views = format_shape_table(res), format_viewpoint_table(res)
+    print("Symmetric RMS error, % of the ground-truth bounding-box diagonal (objects per class in brackets)")
+    print(shapes)
+    print()
+    print("Viewpoint errors (degrees) after global alignment")
+    print(views)
+    if args.out:
+        out = Path(args.out)
+        write_json(out / "results.json", res)
+        write_bytes(out / "shapes.md", (shapes + "\n").encode())
+        write_bytes(out / "viewpoints.md", (views + "\n").encode())
+        print(f"wrote {out}/results.json, shapes.md, viewpoints.md")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
