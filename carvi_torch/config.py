@@ -39,6 +39,9 @@ class Config:
     """Output directory (``config.yaml``, ``summary.json``, per class ``cameras.json``, meshes, voxels)."""
     classes: Optional[list] = None
     """Restrict the run to these class names (``None``: all classes in the data)."""
+    references: str = "all"
+    """Objects to reconstruct: ``all``, or only those of one split (e.g. ``test``); every object still
+    takes part in SfM and may serve as a surrogate."""
     overwrite: bool = False
     """Recompute objects whose outputs already exist (default: a rerun skips finished work)."""
 
@@ -113,6 +116,8 @@ class Config:
     """Mesh file format: ``ply``, ``obj`` or ``glb``."""
     keep_all_scores: bool = True
     """Write the score of every proposal (ranking studies)."""
+    save_proposals: bool = False
+    """Also write every proposal's occupancy (``<class>/proposals/<id>.npz``, bit-packed) for studies."""
     preview: bool = True
     """Write ``preview.png`` with a few results."""
 

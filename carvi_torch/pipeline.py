@@ -302,9 +302,11 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
     aids = coll.annotation_ids.tolist()
     done = [not cfg.overwrite and is_done(mesh_dir / f"{a}.{cfg.mesh_format}", vox_dir / f"{a}.npz") for a in aids]
     report.resumed = sum(done)
-    todo = [i for i in range(n) if not done[i] and bool(usable[i])]
+    chosen = [cfg.references == "all" or coll.splits[i] == cfg.references for i in range(n)]
+    todo = [i for i in range(n) if chosen[i] and not done[i] and bool(usable[i])]
+    report.info["references"] = sum(chosen)
     for i in range(n):
-        if not bool(usable[i]):
+        if chosen[i] and not bool(usable[i]):
             report.skip("no usable camera", "viewpoints", aids[i], coll.sources[i])
 
     # ---- surrogates for every reference (all of them, so a resumed run samples the same triplets)
@@ -400,50 +402,76 @@ def _reconstruct_chunk(ids, coll, both, cams, shape, axes, trip, sdf_maps, avg, 
     # position of each proposal inside `keep`
     pos = torch.full((R * P,), -1, dtype=torch.long, device=device)
     pos[keep] = torch.arange(len(keep), device=device)
-    with _timed(report, "mesh", device):
-        for j, i in enumerate(ids.tolist()):
-            aid = int(coll.annotation_ids[i])
-            src = coll.sources[i]
-            okj = ok.view(R, P)[j]
-            if not bool(okj.any()):
-                if bool(valid[j].any()):
-                    reason = "all proposals carved away (empty)"
-                else:
-                    why = trip.reasons.get(i) if trip is not None else None
-                    reason = f"no valid surrogate triplet ({why or 'clusters too small'})"
-                report.skip(reason, "carve", aid, src)
-                continue
-            b = j * P + int(best[j])
-            p = int(pos[b])
-            occ = grids.occupancy[p]
-            canvas_to_image = _canvas_to_image_4x4(coll.canvas_from_image.scale[i], coll.canvas_from_image.offset[i])
-            v2c = grids.voxel_to_camera[p].double().cpu()
-            v2img = canvas_to_image @ v2c
-            occ_np = occ.cpu().numpy()
-            if cfg.largest_component:
-                occ_np = mesh.largest_component(occ_np)
-            m = mesh.occupancy_to_mesh(occ_np, v2img.numpy())
-            if len(m.faces) == 0:
-                report.skip("selected proposal has no surface", "mesh", aid, src)
-                continue
-            sur_ids = []
-            if trip is not None:
-                sur_ids = [int(coll.annotation_ids[int(s)]) for s in trip.surrogates[i, int(best[j])].tolist() if s >= 0]
-            write_npz(cdir / "voxels" / f"{aid}.npz", occupancy=occ_np, voxel_to_camera=v2img.numpy(),
-                      voxel_to_canvas=v2c.numpy(), canvas_scale=float(coll.canvas_from_image.scale[i]),
-                      canvas_offset=coll.canvas_from_image.offset[i].cpu().numpy(),
-                      surrogates=np.asarray(sur_ids, dtype=np.int64))
-            mesh.write_mesh(m, cdir / "meshes" / f"{aid}.{cfg.mesh_format}")
-            report.reconstructed += 1
-            if cfg.keep_all_scores:
-                rows = scores.view(R, P)[j]
-                scores_out[str(aid)] = {
-                    "best": int(best[j]),
-                    "scores": [None if not math.isfinite(v) else round(v, 6) for v in rows.tolist()],
-                    "misses": [int(v) if v < 10 ** 6 else None for v in misses.view(R, P)[j].tolist()],
-                    "surrogates": ([[int(coll.annotation_ids[int(s)]) if s >= 0 else None for s in pair]
-                                    for pair in trip.surrogates[i].tolist()] if trip is not None else None),
-                }
+    t_mesh = t_write = 0.0
+    for j, i in enumerate(ids.tolist()):
+        aid = int(coll.annotation_ids[i])
+        src = coll.sources[i]
+        okj = ok.view(R, P)[j]
+        if not bool(okj.any()):
+            if bool(valid[j].any()):
+                reason = "all proposals carved away (empty)"
+            else:
+                why = trip.reasons.get(i) if trip is not None else None
+                reason = f"no valid surrogate triplet ({why or 'clusters too small'})"
+            report.skip(reason, "carve", aid, src)
+            continue
+        t0 = time.perf_counter()
+        b = j * P + int(best[j])
+        p = int(pos[b])
+        canvas_to_image = _canvas_to_image_4x4(coll.canvas_from_image.scale[i], coll.canvas_from_image.offset[i])
+        v2c = grids.voxel_to_camera[p].double().cpu()
+        v2img = canvas_to_image @ v2c
+        occ_np = grids.occupancy[p].cpu().numpy()
+        if cfg.largest_component:
+            occ_np = mesh.largest_component(occ_np)
+        m = mesh.occupancy_to_mesh(occ_np, v2img.numpy())
+        t1 = time.perf_counter()
+        t_mesh += t1 - t0
+        if len(m.faces) == 0:
+            report.skip("selected proposal has no surface", "mesh", aid, src)
+            continue
+        sur_ids = []
+        if trip is not None:
+            sur_ids = [int(coll.annotation_ids[int(s)]) for s in trip.surrogates[i, int(best[j])].tolist() if s >= 0]
+        if cfg.save_proposals:
+            _write_proposals(cdir / "proposals" / f"{aid}.npz", grids, pos[j * P:(j + 1) * P], canvas_to_image,
+                             scores.view(R, P)[j], misses.view(R, P)[j], int(best[j]),
+                             trip.surrogates[i] if trip is not None else None, coll)
+        write_npz(cdir / "voxels" / f"{aid}.npz", occupancy=occ_np, voxel_to_camera=v2img.numpy(),
+                  voxel_to_canvas=v2c.numpy(), canvas_scale=float(coll.canvas_from_image.scale[i]),
+                  canvas_offset=coll.canvas_from_image.offset[i].cpu().numpy(),
+                  surrogates=np.asarray(sur_ids, dtype=np.int64))
+        mesh.write_mesh(m, cdir / "meshes" / f"{aid}.{cfg.mesh_format}")
+        t_write += time.perf_counter() - t1
+        report.reconstructed += 1
+        if cfg.keep_all_scores:
+            rows = scores.view(R, P)[j]
+            scores_out[str(aid)] = {
+                "best": int(best[j]),
+                "scores": [None if not math.isfinite(v) else round(v, 6) for v in rows.tolist()],
+                "misses": [int(v) if v < 10 ** 6 else None for v in misses.view(R, P)[j].tolist()],
+                "surrogates": ([[int(coll.annotation_ids[int(s)]) if s >= 0 else None for s in pair]
+                                for pair in trip.surrogates[i].tolist()] if trip is not None else None),
+            }
+    report.seconds["mesh"] = report.seconds.get("mesh", 0.0) + t_mesh
+    report.seconds["write"] = report.seconds.get("write", 0.0) + t_write
+
+
+def _write_proposals(path: Path, grids, positions: torch.Tensor, canvas_to_image: torch.Tensor, scores, misses,
+                     best: int, surrogates, coll):
+    """Every proposal of one reference (bit-packed occupancy, image-pixel transforms, scores) for studies."""
+    P = len(positions)
+    ok = positions >= 0
+    idx = positions.clamp(min=0)
+    occ = grids.occupancy[idx].cpu().numpy() & ok.cpu().numpy()[:, None, None, None]
+    v2img = (canvas_to_image[None] @ grids.voxel_to_camera[idx].double().cpu()).numpy()
+    sur = np.full((P, 2), -1, dtype=np.int64)
+    if surrogates is not None:
+        for k, pair in enumerate(surrogates.tolist()):
+            sur[k] = [int(coll.annotation_ids[int(x)]) if x >= 0 else -1 for x in pair]
+    write_npz(path, occupancy_bits=np.packbits(occ.reshape(P, -1), axis=1), shape=np.asarray(occ.shape[1:]),
+              voxel_to_camera=v2img, valid=ok.cpu().numpy(), scores=scores.cpu().numpy(),
+              misses=misses.cpu().numpy(), best=np.int64(best), surrogates=sur)
 
 
 def _canvas_to_image_4x4(scale: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
@@ -504,6 +532,9 @@ def run(cfg: Config) -> dict:
                  cfg)
         write_json(out / "summary.json", summary)
     summary["total_seconds"] = round(time.perf_counter() - t_start, 3)
+    summary["peak_rss_mb"] = round(_peak_rss_mb(), 1)
+    if device.type == "cuda":
+        summary["peak_cuda_mb"] = round(torch.cuda.max_memory_allocated(device) / 2 ** 20, 1)
     write_json(out / "summary.json", summary)
     if cfg.preview and cfg.stage == "all":
         try:
@@ -513,6 +544,13 @@ def run(cfg: Config) -> dict:
         except Exception as e:  # a picture must never fail the run
             _log(f"preview.png not written: {e}", cfg)
     return summary
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process (MB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _stable_hash(name: str) -> int:

@@ -179,3 +179,26 @@ def test_help(module):
     res = subprocess.run([sys.executable, "-m", f"carvi_torch.{module}", "--help"], cwd=ROOT, capture_output=True,
                          text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert res.returncode == 0 and "usage" in res.stdout.lower()
+
+
+def test_reference_split_and_saved_proposals(tiny, tmp_path):
+    """references=test reconstructs only test objects; save_proposals keeps every proposal, best = the output."""
+    out, summary = tiny
+    data = json.loads(Path(summary["data"]).read_text())
+    cars = [a for a in data["annotations"] if a["category_id"] == next(c["id"] for c in data["categories"]
+                                                                     if c["name"] == "car")]
+    for a in cars[:2]:
+        a["split"] = "test"
+    dst = tmp_path / "data"
+    dst.mkdir()
+    (dst / "annotations.json").write_text(json.dumps(data))
+    res = run(_cfg(tmp_path / "o", data=str(dst / "annotations.json"), classes=["car"], references="test",
+                   save_proposals=True, preview=False))
+    assert res["classes"]["car"]["reconstructed"] == 2 and res["classes"]["car"]["references"] == 2
+    for a in cars[:2]:
+        z = np.load(tmp_path / "o" / "car" / "proposals" / f"{a['id']}.npz")
+        vox = np.load(tmp_path / "o" / "car" / "voxels" / f"{a['id']}.npz")
+        occ = np.unpackbits(z["occupancy_bits"], axis=1)[:, :int(np.prod(z["shape"]))].reshape(-1, *z["shape"])
+        assert occ.shape[0] == TINY["proposals"]
+        assert np.array_equal(occ[int(z["best"])].astype(bool), vox["occupancy"])
+        assert np.allclose(z["voxel_to_camera"][int(z["best"])], vox["voxel_to_camera"])
