@@ -96,12 +96,13 @@ def _viewpoints(recon: Path, cls: str, gt_entries: dict, aids: list[int]) -> dic
 
 def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path | None = None,
              split: str | None = None, baselines: bool = False, step_percent: float = 0.5,
-             classes=None, progress: bool = True, canvas_size: int | None = None) -> dict:
+             classes=None, progress: bool = True, canvas_size: int | None = None, shapes: bool = True) -> dict:
     """Evaluate reconstruction directories ``recons`` (method name -> directory) against ``gt.json``.
 
     Returns a dict with ``objects`` (per annotation id: class, and per method the error or the
     reason it is missing), ``classes`` (per class and method: mean and median error, count) and
-    ``viewpoints`` (per class and method: SfM and refined viewpoint reports).
+    ``viewpoints`` (per class and method: SfM and refined viewpoint reports). With ``shapes=False``
+    only the viewpoints are evaluated (e.g. after ``stage=cameras``).
     """
     data = Path(data)
     gt_path = Path(gt) if gt else data.with_name("gt.json")
@@ -132,7 +133,7 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
                if str(a) in gt_entries and (split is None or split_of.get(a) == split)
                and (wanted is None or c in wanted)]
     targets.sort()
-    methods = list(recons) + (["Puffball", "SFMc"] if baselines else [])
+    methods = list(recons) + (["Puffball", "SFMc"] if baselines and shapes else [])
     objects: dict[str, dict] = {}
     mesh_cache: dict = {}
     t0 = time.perf_counter()
@@ -140,6 +141,9 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
         cls = ann_class[aid]
         entry = gt_entries[str(aid)]
         row = {"class": cls, "split": split_of.get(aid, "")}
+        if not shapes:
+            objects[str(aid)] = row
+            continue
         try:
             posed, diag = posed_gt_mesh(entry, gt_path.parent, mesh_cache)
             gt_mesh = metrics.EvaluationMesh(posed, name="gt")
@@ -288,6 +292,7 @@ def main(argv=None) -> int:
     ap.add_argument("--step-percent", type=float, default=0.5,
                     help="surface sampling step in percent of the GT bounding-box diagonal (default 0.5)")
     ap.add_argument("--classes", help="comma-separated class names")
+    ap.add_argument("--viewpoints-only", action="store_true", help="skip the shapes (e.g. after stage=cameras)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     recons = {}
@@ -301,14 +306,15 @@ def main(argv=None) -> int:
     try:
         res = evaluate(args.data, recons, gt=args.gt, split=args.split, baselines=args.baselines,
                        step_percent=args.step_percent, classes=args.classes.split(",") if args.classes else None,
-                       progress=not args.no_progress)
+                       progress=not args.no_progress, shapes=not args.viewpoints_only)
     except (FileNotFoundError, ValueError, CocoFormatError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     shapes, views = format_shape_table(res), format_viewpoint_table(res)
-    print("Symmetric RMS error, % of the ground-truth bounding-box diagonal (objects per class in brackets)")
-    print(shapes)
-    print()
+    if not args.viewpoints_only:
+        print("Symmetric RMS error, % of the ground-truth bounding-box diagonal (objects per class in brackets)")
+        print(shapes)
+        print()
     print("Viewpoint errors (degrees) after global alignment")
     print(views)
     if args.out:

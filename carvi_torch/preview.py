@@ -70,7 +70,11 @@ def write_preview(out: str | Path, summary: dict, max_objects: int = 8) -> Path 
     from .io.outputs import atomic_write
 
     out = Path(out)
-    coco = COCO(summary["data"]) if summary.get("data") else None
+    import contextlib
+    import io
+
+    with contextlib.redirect_stdout(io.StringIO()):  # pycocotools prints progress lines
+        coco = COCO(summary["data"]) if summary.get("data") else None
     picks = []
     classes = [c for c in summary.get("classes", {}) if (out / c / "voxels").is_dir()]
     per = max(1, max_objects // max(1, len(classes)))

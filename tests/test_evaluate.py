@@ -102,3 +102,10 @@ def test_missing_reconstruction_reported(recon, tmp_path):
 def test_cli_errors(tmp_path, capsys):
     assert main(["--data", str(tmp_path / "a.json"), "--recon", str(tmp_path / "none")]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+def test_viewpoints_only(recon, tmp_path, capsys):
+    data, gt = _gt(recon)
+    rc = main(["--data", str(data), "--recon", str(recon), "--viewpoints-only", "--no-progress"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "Symmetric RMS" not in out and "| car | Full | refined |" in out
