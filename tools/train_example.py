@@ -89,7 +89,7 @@ def main(argv=None) -> int:
             opt.zero_grad()
             loss.backward()
             opt.step()
-            total += float(loss) * len(pred)
+            total += float(loss.detach()) * len(pred)
             count += len(pred)
         net.eval()
         vtotal, vcount, errs = 0.0, 0, []
