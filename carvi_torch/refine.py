@@ -115,10 +115,12 @@ def scaled_stiefel(M: torch.Tensor) -> torch.Tensor:
     # adj(A + delta I) = [[d + delta, -b], [-b, a + delta]]
     adj = torch.stack([torch.stack([d + delta, -b], -1), torch.stack([-b, a + delta], -1)], -2)
     out = adj @ M / (2.0 * dsafe)[..., None, None]
-    if not bool(ok.all()):
-        R, s = nearest_scaled_rotation(M[~ok])
+    # rank < 2 blocks go through the SVD; non-finite blocks stay non-finite (the SVD would fail)
+    fallback = ~ok & torch.isfinite(M).flatten(-2).all(-1)
+    if bool(fallback.any()):
+        R, s = nearest_scaled_rotation(M[fallback])
         out = out.clone()
-        out[~ok] = s[:, None, None] * R[:, :2, :]
+        out[fallback] = s[:, None, None] * R[:, :2, :]
     return out
 
 
