@@ -34,6 +34,12 @@ centred visible coordinates)`` (an exact fit at float32 precision), else after
 ``max_outer`` outer iterations. The reference implementation ran 200 outer x 10
 inner iterations.
 
+Before the factorisation, instances and keypoints are restricted to the largest
+connected group of the visibility graph (an instance and a keypoint are linked when
+the instance sees it): groups that share no keypoint have unrelated frames, so the
+others are invalid, with the reason (PASCAL3D+'s diningtable: one CAD model's
+table-top keypoints carry names no other model uses).
+
 Then a **bundle polish** (``polish_iters`` rounds, same stopping rule): alternate
 every camera's constrained least-squares fit to the shape on its visible keypoints
 (a few Levenberg-Marquardt steps on scaled rotations, ``refine.refine_cameras``
@@ -57,6 +63,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Sequence
 
+import numpy as np
 import torch
 
 from .cameras import ScaledOrthographic, complete_rotation
@@ -92,8 +99,11 @@ class SfMResult:
         cameras: N scaled orthographic cameras (canvas pixels). Entries of invalid
             instances are placeholders: ``R = I``, ``s = 1``, ``t`` = mean of their
             visible keypoints (or 0).
-        valid: ``(N,)`` bool, instances with >= 2 visible rigid keypoints whose
-            camera came out of the factorisation.
+        valid: ``(N,)`` bool, instances with >= 2 visible rigid keypoints in the
+            largest connected group of the visibility graph (instances linked by shared
+            keypoints) whose camera came out of the factorisation finite, with a
+            non-zero scale. Every other instance has a reason in ``reasons``; no
+            camera entry is ever NaN.
         residual: ``(N,)`` RMS reprojection error (pixels) of the visible keypoints
             used by the SfM (the rigid ones); NaN for invalid instances.
         residual_all: ``(N,)`` the same over all visible keypoints with a finite
@@ -222,6 +232,48 @@ def _check_inputs(keypoints: torch.Tensor, visible: torch.Tensor) -> None:
 
 def _flip_z(dtype, device) -> torch.Tensor:
     return torch.diag(torch.tensor(_FLIP_Z, dtype=dtype, device=device))
+
+
+def _outside_main_component(seen: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Instances and keypoints outside the largest connected group of the visibility graph.
+
+    The graph links instance ``n`` and keypoint ``k`` when ``seen[n, k]``. Two groups
+    that share no keypoint have unrelated frames (each could be rotated or reflected
+    on its own), so one factorisation cannot place both. The main group is the
+    component with the most instances (ties: the most keypoints, then the first).
+    Instances and keypoints without any edge belong to no group and are not
+    reported (other checks cover them).
+
+    Args:
+        seen: ``(N, K)`` bool.
+
+    Returns:
+        ``(N,)`` bool instances and ``(K,)`` bool keypoints that have an edge but lie
+        outside the main component.
+
+    Example:
+        >>> seen = torch.tensor([[1, 1, 0, 0], [1, 1, 0, 0], [0, 0, 1, 1]], dtype=torch.bool)
+        >>> [x.tolist() for x in _outside_main_component(seen)]
+        [[False, False, True], [False, False, True, True]]
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n, k = seen.shape
+    rows, cols = seen.nonzero(as_tuple=True)
+    rows, cols = rows.cpu().numpy(), cols.cpu().numpy()
+    graph = coo_matrix((np.ones(len(rows)), (rows, n + cols)), shape=(n + k, n + k))
+    _, labels = connected_components(graph, directed=False)
+    labels = torch.as_tensor(labels, device=seen.device)
+    li, lk = labels[:n], labels[n:]
+    has_i, has_k = seen.any(1), seen.any(0)
+    if not bool(has_i.any()):
+        return torch.zeros_like(has_i), torch.zeros_like(has_k)
+    n_lab = int(labels.max()) + 1
+    ci = torch.bincount(li[has_i], minlength=n_lab)
+    ck = torch.bincount(lk[has_k], minlength=n_lab)
+    main = int(torch.argmax(ci * (k + 1) + ck))  # most instances, then most keypoints, then first
+    return has_i & (li != main), has_k & (lk != main)
 
 
 def _visible_translation(M: torch.Tensor, S: torch.Tensor, W: torch.Tensor, vis: torch.Tensor):
@@ -414,15 +466,22 @@ def _polish(M, t, S, W, vis, *, iters, tol, lm_iters=5):
     Returns ``M, t, S, history, converged``.
     """
     kp = W.transpose(1, 2).contiguous()
-    visb = vis > 0
     s = M[:, 0].norm(dim=-1)
-    cams = ScaledOrthographic(complete_rotation(M / s[:, None, None]), s, t)
+    # degenerate blocks (zero scale: e.g. an instance whose visible keypoints coincide in
+    # the shape) would turn into NaN cameras and, through the shape solve, NaN everywhere:
+    # they sit out the polish and keep their block
+    ok = _usable_blocks(M, t)
+    vis = vis * ok[:, None]
+    visb = vis > 0
+    eye = torch.eye(3, dtype=M.dtype, device=M.device)
+    R0 = torch.where(ok[:, None, None], complete_rotation(M / s.clamp(min=1e-300)[:, None, None]), eye)
+    cams = ScaledOrthographic(R0, torch.where(ok, s, torch.ones_like(s)), torch.where(ok[:, None], t, 0.0))
     shape = S.T.contiguous()
     floor = 1e-5 * float(((W - (W * vis[:, None]).sum(-1, keepdim=True) / vis.sum(-1).clamp(min=1)[:, None, None])
                           .pow(2) * vis[:, None]).sum() / (2 * vis.sum()).clamp(min=1)) ** 0.5
 
     def rms(c, X):
-        e = ((c.project(X) - kp) ** 2).sum(-1) * vis
+        e = torch.where(visb, ((c.project(X) - kp) ** 2).sum(-1), 0.0)
         return float((e.sum() / (2 * vis.sum()).clamp(min=1)).sqrt())
 
     history: list[float] = []
@@ -437,7 +496,19 @@ def _polish(M, t, S, W, vis, *, iters, tol, lm_iters=5):
             converged = True
             break
         prev = cur
-    return cams.M, cams.t, shape.T.contiguous(), history, converged
+    M_out = torch.where(ok[:, None, None], cams.M, M)
+    t_out = torch.where(ok[:, None], cams.t, t)
+    return M_out, t_out, shape.T.contiguous(), history, converged
+
+
+def _usable_blocks(M: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` bool: camera blocks ``M (N, 2, 3)``, ``t (N, 2)`` that are finite with a scale above
+    ``1e-6`` of the median finite scale (a zero block carries no rotation)."""
+    s = M[:, 0].norm(dim=-1)
+    fin = torch.isfinite(M).flatten(1).all(1) & torch.isfinite(t).all(1) & torch.isfinite(s)
+    if not bool(fin.any()):
+        return fin
+    return fin & (s > 1e-6 * s[fin].median())
 
 
 def _fit(Wv, vv, planar, planar_margin, polish_iters, **kw):
@@ -712,12 +783,30 @@ def rigid_sfm(
     valid = nvis_rigid >= 2
     reasons = ["" if bool(v) else f"only {int(c)} visible rigid keypoint(s); a camera needs 2"
                for v, c in zip(valid.tolist(), nvis_rigid.tolist())]
+    # instances and keypoints linked to the largest group only through no shared keypoint
+    # cannot be placed in its frame: SfM runs on the largest connected component
+    outside, cols_out = _outside_main_component(vis[:, rigid_t] & valid[:, None])
+    if bool(outside.any()):
+        lost = [rigid[j] for j in cols_out.nonzero().squeeze(1).tolist()]
+        lost_names = [keypoint_names[j] for j in lost] if keypoint_names is not None else lost
+        n_main = int((valid & ~outside).sum())
+        for i in outside.nonzero().squeeze(1).tolist():
+            reasons[i] = (f"its visible rigid keypoints share none with the {n_main} instances of the largest "
+                          "connected group: SfM cannot place it in the class frame")
+        problems.append(f"{int(outside.sum())} instance(s) see only keypoints {lost_names}, which no instance of "
+                        f"the largest connected group ({n_main} instances) sees: those instances get no SfM camera "
+                        "and those keypoints no shape row")
+        valid = valid & ~outside
+        rigid_main = [r for r, o in zip(rigid, cols_out.tolist()) if not o]
+    else:
+        lost = []
+        rigid_main = list(rigid)
     seen_all = (vis & valid[:, None]).sum(0)
     never = [i for i in range(k) if int(vis[:, i].sum()) == 0]
     if never:
         problems.append(f"keypoints {never} are never visible: excluded, shape rows NaN")
-    sfm_cols = [i for i in rigid if int(seen_all[i]) >= 2]
-    few = [i for i in rigid if 0 < int(seen_all[i]) < 2]
+    sfm_cols = [i for i in rigid_main if int(seen_all[i]) >= 2]
+    few = [i for i in rigid_main if 0 < int(seen_all[i]) < 2]
     if few:
         problems.append(f"rigid keypoints {few} are seen by fewer than 2 valid instances: excluded, shape rows NaN")
 
@@ -759,8 +848,20 @@ def rigid_sfm(
         problems.append(f"SfM stopped at its iteration limits (max_outer={max_outer}, polish_iters={polish_iters}) "
                         f"before the residual settled: last relative change {last:.1e} > tol={tol:.0e} "
                         f"(RMS residual {history[-1]:.3g} px)")
-    Rv = complete_rotation(M / M[:, 0].norm(dim=-1)[:, None, None])
+    # no NaN leaves SfM: a degenerate block (zero scale, non-finite) makes its instance invalid
+    good = _usable_blocks(M, tv)
+    if not bool(good.all()):
+        idx_v = valid.nonzero().squeeze(1)
+        for i in idx_v[~good].tolist():
+            reasons[i] = ("SfM gave a degenerate camera (zero or non-finite scale): its visible rigid keypoints "
+                          "coincide in the mean shape or carry no rotation")
+        problems.append(f"{int((~good).sum())} instance(s) got a degenerate SfM camera and are marked invalid")
+        sub = torch.zeros_like(valid)
+        sub[idx_v[good]] = True
+        valid = sub
+        M, tv = M[good], tv[good]
     sv = M[:, 0].norm(dim=-1)
+    Rv = complete_rotation(M / sv[:, None, None])
     R[valid] = Rv
     s[valid] = sv
     t[valid] = tv
@@ -768,7 +869,7 @@ def rigid_sfm(
 
     cams64 = ScaledOrthographic(R, s, t)
     # non-rigid keypoints: triangulated from the cameras
-    others = [i for i in range(k) if i not in set(sfm_cols) and i not in set(never) and i not in set(few)]
+    others = [i for i in range(k) if i not in set(sfm_cols) | set(never) | set(few) | set(lost)]
     if others:
         o = torch.tensor(others, device=dev)
         X = triangulate(cams64[valid], kp[valid][:, o], vis[valid][:, o])

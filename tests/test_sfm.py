@@ -475,3 +475,62 @@ def test_cuda_matches_cpu():
     assert b.shape.device.type == "cuda" and b.cameras.R.device.type == "cuda"
     assert torch.allclose(a.shape, b.shape.cpu(), atol=1e-3)
     assert torch.allclose(a.cameras.R, b.cameras.R.cpu(), atol=1e-3)
+
+
+# --------------------------------------------------------------------------- disconnected groups, degenerate blocks
+
+
+def _two_groups(seed=21):
+    """Group A: 8 non-planar keypoints, 40 instances; group B: 4 other, coplanar keypoints, 12
+    instances (4 of them see only 2): no instance sees keypoints of both groups (the PASCAL3D+
+    diningtable models: one model's table-top keypoints are named differently from the others')."""
+    g = torch.Generator().manual_seed(seed)
+    S = torch.randn(12, 3, generator=g, dtype=torch.float64)
+    S[8:, 2] = 0.0
+    R = random_rotations(52, g, dtype=torch.float64)
+    d = make_class(seed, n=52, shape=S, rotations=R, missing=0.0)
+    vis = torch.zeros(52, 12, dtype=torch.bool)
+    vis[:40, :8] = True
+    vis[40:, 8:] = True
+    vis[40:44, 10:] = False
+    return d, vis
+
+
+def test_disconnected_groups_no_nan_and_reasons():
+    d, vis = _two_groups()
+    res = rigid_sfm(d["kp"], vis)
+    assert bool(torch.isfinite(res.cameras.R).all()) and bool(torch.isfinite(res.cameras.s).all())
+    assert bool(res.valid[:40].all()) and not bool(res.valid[40:].any())
+    assert all("largest connected group" in r for r in res.reasons[40:])
+    assert any("no shape row" in p for p in res.problems)
+    assert bool(torch.isfinite(res.shape[:8]).all()) and bool(torch.isnan(res.shape[8:]).all())
+    # the main group is reconstructed as if the other were absent (noise-free: exact)
+    err = errors_any_reflection(res.cameras.R[:40], d["R"][:40])
+    assert err.max() < 0.5
+
+
+def test_outside_main_component_picks_most_instances():
+    from carvi_torch.sfm import _outside_main_component
+
+    seen = torch.zeros(6, 5, dtype=torch.bool)
+    seen[:2, :3] = True   # 2 instances, 3 keypoints
+    seen[2:5, 3:] = True  # 3 instances, 2 keypoints: the main group
+    inst, kps = _outside_main_component(seen)
+    assert inst.tolist() == [True, True, False, False, False, False]  # instance 5 has no edge
+    assert kps.tolist() == [True, True, True, False, False]
+
+
+def test_polish_keeps_degenerate_blocks_out_of_the_shape():
+    from carvi_torch.sfm import _polish
+
+    d = make_class(22, n=30, k=8, missing=0.2)
+    W = d["kp"].double().transpose(1, 2).contiguous()
+    vis = d["vis"].double()
+    cams = ScaledOrthographic(d["R"], d["s"], d["t"])
+    M, t = cams.M.clone(), cams.t.clone()
+    M[3] = 0.0  # a zero block: no rotation, would be a NaN camera
+    M[4] = float("nan")
+    M2, t2, S2, hist, _ = _polish(M, t, d["S"].T.contiguous(), W, vis, iters=3, tol=1e-9)
+    assert bool(torch.isfinite(S2).all()) and all(math.isfinite(h) for h in hist)
+    assert hist[-1] < 1e-4
+    assert torch.equal(M2[3], M[3]) and bool(torch.isfinite(M2[torch.arange(30) != 4]).all())
