@@ -73,6 +73,7 @@ __all__ = [
     "SfMResult",
     "rigid_sfm",
     "symmetry_plane",
+    "mirror_width",
     "triangulate",
     "scaled_stiefel",
     "keypoint_side",
@@ -125,6 +126,12 @@ class SfMResult:
         problems: human-readable messages for the class's summary.
         history: visible-entry RMS residual (pixels) after every outer iteration,
             then after every polish round.
+        mirrors: empty when the instances hold no mirrored copies, else
+            ``{"width": C, "tie_deg_median": float | None, "reseeded": bool, ...}``:
+            the median angle between each copy's camera and its original's camera
+            mirrored through the shape's symmetry plane (0 for a solution consistent
+            with the object's symmetry), and whether the solution was re-seeded from
+            the originals (with both residuals, ``rms_joint`` and ``rms_seeded``).
     """
 
     shape: torch.Tensor
@@ -143,6 +150,7 @@ class SfMResult:
     reasons: list[str] = field(default_factory=list)
     problems: list[str] = field(default_factory=list)
     history: list[float] = field(default_factory=list)
+    mirrors: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         """JSON-ready summary (counts, flags, messages) for ``summary.json``."""
@@ -160,6 +168,7 @@ class SfMResult:
             "rigid_keypoints": list(self.rigid_keypoints),
             "invalid": {int(i): r for i, r in enumerate(self.reasons) if r},
             "problems": list(self.problems),
+            "mirrors": dict(self.mirrors),
         }
 
 
@@ -511,18 +520,174 @@ def _usable_blocks(M: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return fin & (s > 1e-6 * s[fin].median())
 
 
-def _fit(Wv, vv, planar, planar_margin, polish_iters, **kw):
+def mirror_width(keypoints: torch.Tensor, visible: torch.Tensor, flip_pairs: Sequence[Sequence[int]] | None,
+                 atol: float = 1e-3) -> float | None:
+    """Canvas width ``C`` when instances ``N/2..N-1`` are the mirrored copies of ``0..N/2-1``, else ``None``.
+
+    The pipeline's mirrored copy of an instance (``ClassCollection.mirror``) has
+    ``x' = C - 1 - x``, the same ``y``, and its keypoints relabelled along the flip
+    pairs (and so its visibility). This checks exactly that layout on the visible
+    entries (tolerance ``atol`` times ``1 +`` the largest coordinate) and returns ``C``.
+
+    Args:
+        keypoints: ``(N, K, 2)``; visible: ``(N, K)`` bool; flip_pairs: ``(i, j)`` pairs or None.
+
+    Example:
+        >>> kp = torch.tensor([[[1.0, 2.0], [5.0, 3.0]]]); vis = torch.ones(1, 2, dtype=torch.bool)
+        >>> m = torch.stack([9.0 - kp[0, [1, 0], 0], kp[0, [1, 0], 1]], -1)[None]
+        >>> mirror_width(torch.cat([kp, m]), torch.cat([vis, vis]), [(0, 1)])
+        10.0
+    """
+    n, k = visible.shape
+    if n < 2 or n % 2:
+        return None
+    h = n // 2
+    perm = list(range(k))
+    for i, j in flip_pairs or []:
+        perm[int(i)], perm[int(j)] = int(j), int(i)
+    perm_t = torch.tensor(perm, device=visible.device)
+    v0, v1 = visible[:h], visible[h:]
+    if not bool(v1.any()) or not torch.equal(v1, v0[:, perm_t]):
+        return None
+    a, b = keypoints[:h][:, perm_t], keypoints[h:]
+    sx = (a[..., 0] + b[..., 0])[v1].double()
+    dy = (a[..., 1] - b[..., 1])[v1].double()
+    tol = atol * (1.0 + float(keypoints[visible].abs().max()))
+    c = float(sx.median())
+    if not math.isfinite(c) or float((sx - c).abs().max()) > tol or float(dy.abs().max()) > tol:
+        return None
+    return c + 1.0
+
+
+@dataclass
+class _MirrorLayout:
+    """Where each factorised row's mirrored copy is (rows = valid instances)."""
+
+    partner: torch.Tensor  # (Nv,) long: row of the mirrored copy of an original (or of the original), -1: none
+    original: torch.Tensor  # (Nv,) bool: rows of the first half
+    width: float  # canvas width C (x' = C - 1 - x)
+    pairs: list  # flip pairs as column positions of the factorised matrix
+
+
+def _mirror_layout(valid: torch.Tensor, width: float, flip_pairs, cols: list[int]) -> _MirrorLayout:
+    """Mirror pairing among the factorised rows (``valid (N,)`` bool, copy of ``i`` at ``i + N/2``)."""
+    n = valid.shape[0]
+    h = n // 2
+    pos = torch.cumsum(valid.long(), 0) - 1
+    idx = valid.nonzero().squeeze(1)
+    other = torch.where(idx < h, idx + h, idx - h)
+    partner = torch.where(valid[other], pos[other], torch.full_like(other, -1))
+    where = {c: p for p, c in enumerate(cols)}
+    pairs = [(where[int(i)], where[int(j)]) for i, j in (flip_pairs or []) if int(i) in where and int(j) in where]
+    return _MirrorLayout(partner, idx < h, float(width), pairs)
+
+
+_FLIP_IMAGE_X = (-1.0, 1.0)
+
+
+def _mirror_blocks(M: torch.Tensor, t: torch.Tensor, P: torch.Tensor, width: float):
+    """Camera blocks of the mirrored images: ``M' = diag(-1, 1) M P``, ``t' = (C - 1 - t_x, t_y)``.
+
+    As ``ScaledOrthographic.mirror(width, reflection=P)``: the mirrored image of an
+    object with symmetry plane ``P (3, 3)`` seen by ``M (N, 2, 3)``, ``t (N, 2)``.
+    """
+    f = torch.tensor(_FLIP_IMAGE_X, dtype=M.dtype, device=M.device)
+    tm = t.clone()
+    tm[:, 0] = width - 1.0 - t[:, 0]
+    return f[:, None] * (M @ P), tm
+
+
+def _mirror_tie_deg(M: torch.Tensor, S: torch.Tensor, mir: _MirrorLayout) -> torch.Tensor | None:
+    """Angles (degrees) between each mirrored copy's camera and its original's camera mirrored.
+
+    A solution consistent with the object's bilateral symmetry has them equal (the
+    copies are the originals' images flipped). ``None`` when no pair of symmetric
+    keypoints defines the symmetry plane of ``S (3, Kc)``.
+
+    Returns ``(P,)`` float64 for the originals whose copy is a row too.
+    """
+    from .cameras import geodesic_angle
+
+    has = mir.original & (mir.partner >= 0)
+    if not bool(has.any()) or not mir.pairs:
+        return None
+    try:
+        P = symmetry_plane(S.T, mir.pairs)
+    except ValueError:
+        return None
+    Mo, _ = _mirror_blocks(M[has], torch.zeros_like(M[has, :, 0]), P, mir.width)
+    Mm = M[mir.partner[has]]
+    Ro = complete_rotation(Mo / Mo[:, 0].norm(dim=-1).clamp(min=1e-300)[:, None, None])
+    Rm = complete_rotation(Mm / Mm[:, 0].norm(dim=-1).clamp(min=1e-300)[:, None, None])
+    return torch.rad2deg(geodesic_angle(Ro, Rm))
+
+
+def _seed_from_originals(Wv, vv, mir: _MirrorLayout, M_joint, t_joint, polish_iters, **kw):
+    """Solve the originals alone, derive their copies' cameras by mirroring, polish all rows together.
+
+    Returns ``M, t, S, history`` (history: originals' factorisation and polish, then the joint polish).
+    """
+    o = mir.original
+    Mo, to, So, hist, _, _ = _factorize(Wv[o], vv[o], rank=3, **kw)
+    Mo, to, So, ph, _ = _polish(Mo, to, So, Wv[o], vv[o], iters=polish_iters, tol=kw["tol"])
+    seen = vv[o].sum(0)
+    pairs = [(i, j) for i, j in mir.pairs if seen[i] >= 2 and seen[j] >= 2]
+    M, t = M_joint.clone(), t_joint.clone()
+    M[o], t[o] = Mo, to
+    try:
+        P = symmetry_plane(So.T, pairs)
+    except ValueError:
+        return None
+    rows = o.nonzero().squeeze(1)
+    has = mir.partner[rows] >= 0
+    Mm, tm = _mirror_blocks(Mo[has], to[has], P, mir.width)
+    M[mir.partner[rows[has]]] = Mm
+    t[mir.partner[rows[has]]] = tm
+    # every keypoint from every camera (a keypoint the originals never show is seen by their copies)
+    s = M[:, 0].norm(dim=-1)
+    cams = ScaledOrthographic(complete_rotation(M / s[:, None, None]), s, t)
+    S = triangulate(cams, Wv.transpose(1, 2), vv > 0, min_views=1).T
+    S = torch.where(torch.isfinite(S), S, So)
+    M, t, S, ph2, _ = _polish(M, t, S, Wv, vv, iters=polish_iters, tol=kw["tol"])
+    return M, t, S, hist + ph + ph2
+
+
+def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: _MirrorLayout | None = None, tie_deg: float = 5.0,
+         **kw):
     """Rigid (factorisation + polish) or planar solution; ``planar=None`` picks by residual.
 
-    Returns ``M, t, S, history, iterations, polish_rounds, converged, is_planar``.
+    With ``mirrors`` (rows that are mirrored copies of others), a rigid solution whose
+    copies' cameras are not their originals' mirrored (median angle above ``tie_deg``)
+    fell into a minimum that breaks the object's symmetry; it is solved again from the
+    originals alone (:func:`_seed_from_originals`) and the lower residual is kept.
+
+    Returns ``M, t, S, history, iterations, polish_rounds, converged, is_planar, mirror_report``.
     """
+    report: dict = {}
     if planar is True:
         M, tv, Sc, history, iters, converged = _planar_solution(Wv, vv, **kw)
-        return M, tv, Sc, history, iters, 0, converged, True
+        return M, tv, Sc, history, iters, 0, converged, True, report
     M, tv, Sc, history, iters, converged = _factorize(Wv, vv, rank=3, **kw)
     M, tv, Sc, phist, pconv = _polish(M, tv, Sc, Wv, vv, iters=polish_iters, tol=kw["tol"])
     history = history + phist
     converged = pconv if polish_iters > 0 else converged
+    if mirrors is not None:
+        tie = _mirror_tie_deg(M, Sc, mirrors)
+        report = {"width": mirrors.width, "tie_deg_median": None if tie is None else float(tie.median()),
+                  "reseeded": False}
+        if tie is not None and float(tie.median()) > tie_deg and int(mirrors.original.sum()) >= 2:
+            seeded = _seed_from_originals(Wv, vv, mirrors, M, tv, polish_iters, **kw)
+            report["rms_joint"] = history[-1]
+            if seeded is not None:
+                report["rms_seeded"] = seeded[3][-1]
+                tie2 = _mirror_tie_deg(seeded[0], seeded[2], mirrors)
+                report["tie_deg_median_seeded"] = None if tie2 is None else float(tie2.median())
+                if seeded[3][-1] < history[-1]:
+                    M, tv, Sc = seeded[:3]
+                    history = history + seeded[3]
+                    phist = seeded[3]
+                    report["reseeded"] = True
+                    report["tie_deg_median"] = report["tie_deg_median_seeded"]
     if planar is None:
         # a shorter planar fit decides; a planar winner is then run to the end
         max_outer = kw["max_outer"]
@@ -533,8 +698,8 @@ def _fit(Wv, vv, planar, planar_margin, polish_iters, **kw):
             if not sol_p[5] and short["max_outer"] < max_outer:
                 sol_p = _planar_solution(Wv, vv, **kw)
             M, tv, Sc, history, iters, converged = sol_p
-            return M, tv, Sc, history, iters, 0, converged, True
-    return M, tv, Sc, history, iters, len(phist), converged, False
+            return M, tv, Sc, history, iters, 0, converged, True, {}
+    return M, tv, Sc, history, iters, len(phist), converged, False, report
 
 
 def triangulate(cameras: ScaledOrthographic, keypoints: torch.Tensor, visible: torch.Tensor,
@@ -664,6 +829,8 @@ def rigid_sfm(
     planar_margin: float = 0.02,
     vote_margin: float = 0.1,
     min_voters: int = 5,
+    mirrors: bool | None = None,
+    mirror_tie_deg: float = 5.0,
     generator: torch.Generator | None = None,
 ) -> SfMResult:
     """Mean shape and scaled orthographic cameras of a class from keypoints with missing data.
@@ -703,6 +870,12 @@ def rigid_sfm(
             or ``|for - against| <= max(vote_margin * voters, 3 sqrt(voters))`` (the
             second bound: a margin that visibility unrelated to depth, a fair coin
             per voter, would reach by chance once in about 370 classes).
+        mirrors: whether instances ``N/2..N-1`` are the left-right mirrored copies of
+            ``0..N/2-1`` (``ClassCollection.with_mirrors()``); ``None`` detects it
+            (:func:`mirror_width`), ``True`` requires it, ``False`` treats every
+            instance as independent. See "Mirrored copies" below.
+        mirror_tie_deg: median angle (degrees) between the copies' cameras and their
+            originals' mirrored cameras above which the joint solution is re-seeded.
         generator: random source, only used to complete a rank-deficient initial
             shape (a fixed seed is used when ``None``, so results are deterministic).
 
@@ -725,6 +898,18 @@ def rigid_sfm(
        and flip pairs, without both front- and back-named keypoints, or when the
        instances' image up directions disagree (mean length < 0.2); the weak vote
        then decides and a problem is reported.
+
+    Mirrored copies. A mirrored copy is a photograph of the object's mirror image, so
+    for a bilaterally symmetric object its camera is its original's camera mirrored
+    through the symmetry plane (``ScaledOrthographic.mirror``). The factorisation
+    treats every row as independent, and with block-structured missing data (e.g.
+    PASCAL3D+ cars: every keypoint in a left/right pair, CAD models annotated with
+    12, 20 or 22 of the 22 names) the joint alternation can end in a minimum that
+    breaks this tie (cars: median 122 degrees between copy and mirrored original,
+    72 degrees of viewpoint error). When the median tie angle exceeds
+    ``mirror_tie_deg``, the originals are solved alone, their copies' cameras are
+    derived by mirroring, and all rows are polished together; the solution with the
+    lower visible-entry residual is kept (``SfMResult.mirrors`` reports both).
 
     Planar keypoint sets (all rigid keypoints coplanar, e.g. PASCAL's bottle): the
     rank-3 factorisation is degenerate (the camera component along the plane normal
@@ -839,10 +1024,25 @@ def rigid_sfm(
     cols = torch.tensor(sfm_cols, device=dev, dtype=torch.long)
     Wv = kp[valid][:, cols].transpose(1, 2).contiguous()  # (Nv, 2, Kc)
     vv = vis[valid][:, cols].double()
+    layout = None
+    if mirrors is not False:
+        width = mirror_width(kp, vis, flip_pairs)
+        if width is None and mirrors:
+            raise ValueError("mirrors=True but instances N/2..N-1 are not the mirrored copies of 0..N/2-1 "
+                             "(x' = C - 1 - x, same y, keypoints swapped along flip_pairs)")
+        if width is not None:
+            layout = _mirror_layout(valid, width, flip_pairs, sfm_cols)
     with cpu_single_thread(dev):
-        M, tv, Sc, history, iters, polish_rounds, converged, is_planar = _fit(
-            Wv, vv, planar, planar_margin, polish_iters, max_outer=max_outer, inner=inner, tol=tol,
-            reg=regularization, generator=gen)
+        M, tv, Sc, history, iters, polish_rounds, converged, is_planar, mirror_report = _fit(
+            Wv, vv, planar, planar_margin, polish_iters, mirrors=layout, tie_deg=mirror_tie_deg,
+            max_outer=max_outer, inner=inner, tol=tol, reg=regularization, generator=gen)
+    if mirror_report.get("reseeded"):
+        problems.append(f"the joint solution broke the mirror symmetry (median {mirror_report['tie_deg_median']:.1f} "
+                        "deg between copies' cameras and their mirrored originals): re-seeded from the originals")
+    elif mirror_report.get("tie_deg_median") is not None and mirror_report["tie_deg_median"] > mirror_tie_deg:
+        problems.append(f"mirrored copies' cameras disagree with their mirrored originals (median "
+                        f"{mirror_report['tie_deg_median']:.1f} deg) and re-seeding from the originals did not "
+                        "lower the residual")
     if not converged:
         last = abs(history[-2] - history[-1]) / max(history[-2], 1e-300) if len(history) >= 2 else float("nan")
         problems.append(f"SfM stopped at its iteration limits (max_outer={max_outer}, polish_iters={polish_iters}) "
@@ -941,7 +1141,7 @@ def rigid_sfm(
     cams = ScaledOrthographic(cams.R.to(dt), cams.s.to(dt), cams.t.to(dt))
     return SfMResult(shape.to(dt), cams, valid, residual, residual_all, iters, polish_rounds, converged, votes,
                      is_planar,
-                     seen_all, never, rigid, reasons, problems, history)
+                     seen_all, never, rigid, reasons, problems, history, mirror_report)
 
 
 def symmetry_plane(shape: torch.Tensor, flip_pairs: Sequence[Sequence[int]]) -> torch.Tensor:
