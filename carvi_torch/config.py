@@ -83,7 +83,9 @@ class Config:
     refine_iters: int = 150
     """Refinement steps at most."""
     silhouette_weight: float = 1.0
-    """Weight of the squared distance-to-mask penalty against the keypoint reprojection error."""
+    """Weight of the distance-to-mask penalty against the keypoint reprojection error."""
+    silhouette_robust: float = 0.2
+    """Robust (Geman-McClure) scale of the distance-to-mask penalty, a fraction of each mask's larger side; 0 = the paper's squared distance."""
 
     # ---- surrogates
     cluster_threshold_deg: float = 15.0
@@ -159,6 +161,8 @@ class Config:
             raise ConfigError(f"canvas_margin must be in [0, 0.5), got {self.canvas_margin}")
         if not 0 < self.cluster_threshold_deg <= 90:
             raise ConfigError(f"cluster_threshold_deg must be in (0, 90], got {self.cluster_threshold_deg}")
+        if self.silhouette_robust < 0:
+            raise ConfigError(f"silhouette_robust must be >= 0 (0 = squared distance), got {self.silhouette_robust}")
         if not 0 < self.symmetric_step_deg < 360:
             raise ConfigError(f"symmetric_step_deg must be in (0, 360), got {self.symmetric_step_deg}")
 

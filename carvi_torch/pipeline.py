@@ -162,7 +162,8 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
     elif cfg.refine:
         with _timed(report, "refine", device):
             rr = refine.refine_cameras(shape, cams_sfm, both.keypoints, both.visible, dist,
-                                       silhouette_weight=cfg.silhouette_weight, max_iters=cfg.refine_iters)
+                                       silhouette_weight=cfg.silhouette_weight, max_iters=cfg.refine_iters,
+                                       silhouette_robust=cfg.silhouette_robust or None)
         cams = rr.cameras
         report.info["refine"] = {"median_energy_before": float(rr.energy_before[res.valid].median())
                                  if res.valid.any() else None,
@@ -173,7 +174,8 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
     if bool(missing.any()):
         with _timed(report, "refine", device):
             idx = missing.nonzero().squeeze(1)
-            est, _energy = refine.estimate_camera(shape, both.keypoints[idx], both.visible[idx], dist[idx])
+            est, _energy = refine.estimate_camera(shape, both.keypoints[idx], both.visible[idx], dist[idx],
+                                                   silhouette_robust=cfg.silhouette_robust or None)
         R, s, t = cams.R.clone(), cams.s.clone(), cams.t.clone()
         R[idx], s[idx], t[idx] = est.R, est.s, est.t
         cams = ScaledOrthographic(R, s, t)

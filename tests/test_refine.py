@@ -69,9 +69,22 @@ def rot_err_deg(R1, R2):
     return np.degrees(Rotation.from_matrix(np.einsum("nij,nkj->nik", R1, R2)).magnitude())
 
 
-def brute_energy(M, t, S, kp, vis, D, lam):
-    """Per-instance loop with scipy's order-1 map_coordinates (independent of grid_sample)."""
+def mask_sides(D):
+    """Larger side of each mask's bounding box (pixels), from the zeros of its distance map, by numpy."""
+    out = []
+    for m in np.asarray(D) == 0:
+        ys, xs = np.nonzero(m)
+        out.append(max(xs.max() - xs.min() + 1, ys.max() - ys.min() + 1))
+    return np.array(out, dtype=np.float64)
+
+
+def brute_energy(M, t, S, kp, vis, D, lam, robust=None):
+    """Per-instance loop with scipy's order-1 map_coordinates (independent of grid_sample).
+
+    ``robust``: None for the squared distance, else the Geman-McClure scale as a fraction of
+    the mask's larger side."""
     n, h, w = D.shape
+    sides = mask_sides(D)
     out = []
     for i in range(n):
         e = 0.0
@@ -83,7 +96,11 @@ def brute_energy(M, t, S, kp, vis, D, lam):
             cx, cy = min(max(x, 0.0), w - 1.0), min(max(y, 0.0), h - 1.0)
             d = ndimage.map_coordinates(D[i], [[cy], [cx]], order=1)[0]
             d += math.hypot(x - cx, y - cy)
-            e += lam * d * d
+            if robust is None:
+                e += lam * d * d
+            else:
+                c2 = (robust * sides[i]) ** 2
+                e += lam * c2 * d * d / (c2 + d * d)
         out.append(e)
     return np.array(out)
 
@@ -109,25 +126,71 @@ def test_sample_distance_inside_matches_scipy_and_grows_outside(generator):
     assert bool((v[:, 1:] > v[:, :-1]).all())
 
 
-def test_energy_matches_brute_force_loop(generator):
+@pytest.mark.parametrize("robust", [None, 0.2, 0.05])
+def test_energy_matches_brute_force_loop(generator, robust):
     d = make_scene(1, n=4, k=6)
     dm = distance_to_mask(d["masks"]).double()
     M = d["cams"].M.double() * 1.05
     t = d["cams"].t.double() + 1.5
     S = d["S0"].double()
-    E = refinement_energy(M, t, S, d["kp"].double(), d["vis"], dm, silhouette_weight=0.7)
-    ref = brute_energy(M.numpy(), t.numpy(), S.numpy(), d["kp"].double().numpy(), d["vis"].numpy(), dm.numpy(), 0.7)
+    E = refinement_energy(M, t, S, d["kp"].double(), d["vis"], dm, silhouette_weight=0.7, silhouette_robust=robust)
+    ref = brute_energy(M.numpy(), t.numpy(), S.numpy(), d["kp"].double().numpy(), d["vis"].numpy(), dm.numpy(), 0.7,
+                       robust)
     np.testing.assert_allclose(E.numpy(), ref, rtol=1e-10)
     # NaN shape rows drop out of both sums; an invalid mask drops the silhouette term
     S2 = S.clone()
     S2[2] = float("nan")
     keep = [0, 1, 3, 4, 5]
-    E2 = refinement_energy(M, t, S2, d["kp"].double(), d["vis"], dm, 0.7, mask_valid=torch.tensor([1, 0, 1, 1]).bool())
+    E2 = refinement_energy(M, t, S2, d["kp"].double(), d["vis"], dm, 0.7, mask_valid=torch.tensor([1, 0, 1, 1]).bool(),
+                           silhouette_robust=robust)
     ref2 = brute_energy(M.numpy(), t.numpy(), S.numpy()[keep], d["kp"].double().numpy()[:, keep],
-                        d["vis"].numpy()[:, keep], dm.numpy(), 0.7)
+                        d["vis"].numpy()[:, keep], dm.numpy(), 0.7, robust)
     ref2[1] = brute_energy(M.numpy()[1:2], t.numpy()[1:2], S.numpy()[keep], d["kp"].double().numpy()[1:2, keep],
                            d["vis"].numpy()[1:2, keep], dm.numpy()[1:2], 0.0)[0]
     np.testing.assert_allclose(E2.numpy(), ref2, rtol=1e-10)
+    if robust is not None:  # the default is the robust penalty at ROBUST_FRACTION
+        from carvi_torch.refine import ROBUST_FRACTION
+
+        Ed = refinement_energy(M, t, S, d["kp"].double(), d["vis"], dm, silhouette_weight=0.7)
+        refd = brute_energy(M.numpy(), t.numpy(), S.numpy(), d["kp"].double().numpy(), d["vis"].numpy(), dm.numpy(),
+                            0.7, ROBUST_FRACTION)
+        np.testing.assert_allclose(Ed.numpy(), refd, rtol=1e-10)
+
+
+def test_silhouette_penalty_and_robust_scales():
+    from carvi_torch.refine import robust_scales, silhouette_penalty
+
+    D = torch.tensor([0.0, 0.5, 3.0, 40.0, 1e4], dtype=torch.float64)
+    np.testing.assert_allclose(silhouette_penalty(D).numpy(), (D * D).numpy())
+    c = 4.0
+    ref = c * c * D * D / (c * c + D * D)
+    np.testing.assert_allclose(silhouette_penalty(D, c).numpy(), ref.numpy(), rtol=1e-12)
+    # quadratic near the mask, bounded by delta^2 far from it
+    assert float(silhouette_penalty(torch.tensor(0.1, dtype=torch.float64), c)) == pytest.approx(0.01, rel=1e-3)
+    assert float(silhouette_penalty(torch.tensor(1e6, dtype=torch.float64), c)) == pytest.approx(c * c, rel=1e-9)
+    masks = torch.zeros(3, 20, 30, dtype=torch.bool)
+    masks[0, 2:5, 3:10] = True   # 3 x 7
+    masks[1, 1:19, 10:12] = True  # 18 x 2
+    dm = distance_to_mask(masks)
+    np.testing.assert_allclose(robust_scales(dm[:2], 0.25).numpy(), [0.25 * 7, 0.25 * 18])
+    assert float(robust_scales(dm, 0.25)[2]) == 1.0  # empty mask
+
+
+def test_robust_penalty_ignores_a_misplaced_shape_point():
+    """One mean-shape point far from where the instances have it (a keypoint placed badly by SfM, or
+    one the instance lacks): the squared penalty drags every camera off to pull it into the mask, the
+    robust one leaves the cameras near the truth."""
+    d = make_scene(11, n=40, k=10, hidden=0.3)
+    dm = distance_to_mask(d["masks"])
+    S = d["S0"].clone()
+    S[3] = S[3] + torch.tensor([6.0, -5.0, 0.0])  # far outside every silhouette
+    vis = d["vis"].clone()
+    vis[:, 3] = False
+    errs = {}
+    for robust in (None, 0.2):
+        res = refine_cameras(S, d["cams"], d["kp"], vis, dm, max_iters=100, silhouette_robust=robust)
+        errs[robust] = np.median(rot_err_deg(res.cameras.R, d["cams"].R))
+    assert errs[0.2] < 2.0 and errs[None] > 5.0 * errs[0.2]
 
 
 def test_energy_gradcheck_float64():
@@ -142,7 +205,8 @@ def test_energy_gradcheck_float64():
     assert torch.autograd.gradcheck(f, (M, t), eps=1e-6, atol=1e-5)
 
 
-def test_local_gradient_and_gauss_newton_match_finite_differences():
+@pytest.mark.parametrize("robust", [False, True])
+def test_local_gradient_and_gauss_newton_match_finite_differences(robust):
     d = make_scene(3, n=3, k=6)
     dm = distance_to_mask(d["masks"]).double()
     cams = d["cams"]
@@ -153,12 +217,14 @@ def test_local_gradient_and_gauss_newton_match_finite_differences():
     kmask = torch.ones(S.shape[0], dtype=torch.float64)
     wv = d["vis"].double()
     lam = torch.full((3,), 0.5, dtype=torch.float64)
-    E, _, _, g, H = _terms(R, s, t, S, kmask, d["kp"].double(), wv, dm, lam)
+    rscale = torch.tensor([3.0, 5.0, 8.0], dtype=torch.float64) if robust else None
+    E, _, _, g, H = _terms(R, s, t, S, kmask, d["kp"].double(), wv, dm, lam, rscale)
     from carvi_torch.cameras import axis_angle_to_rotation
 
     def energy(delta):
         Rn = axis_angle_to_rotation(delta[..., :3]) @ R
-        return _terms(Rn, s * torch.exp(delta[..., 3]), t + delta[..., 4:], S, kmask, d["kp"].double(), wv, dm, lam)[0]
+        return _terms(Rn, s * torch.exp(delta[..., 3]), t + delta[..., 4:], S, kmask, d["kp"].double(), wv, dm, lam,
+                      rscale)[0]
 
     eps = 1e-6
     fd = torch.zeros_like(g)
