@@ -179,10 +179,11 @@ def viewpoint_report(
     *,
     valid: torch.Tensor | None = None,
     robust: bool = False,
+    alignment: torch.Tensor | None = None,
 ) -> dict:
     """Everything about estimated vs ground-truth viewpoints, JSON-ready.
 
-    Aligns the frames (:func:`align_rotations`), then reports geodesic, azimuth,
+    Aligns the frames (:func:`align_rotations`, or the given ``alignment``), then reports geodesic, azimuth,
     elevation and roll error summaries. It also aligns the Necker-mirrored cameras
     (:func:`necker_mirror`) and sets ``"mirrored": True`` when they fit the ground
     truth better (median geodesic error): the estimated object frame is then the
@@ -193,6 +194,10 @@ def viewpoint_report(
         R_est, R_gt: ``(N, 3, 3)``.
         valid: ``(N,)`` bool, pairs to use (default: all finite).
         robust: robust alignment.
+        alignment: ``(3, 3)`` a global rotation ``G`` (``R_est G ~ R_gt``) fitted elsewhere,
+            e.g. on other instances of the same SfM frame (cameras of unseen images
+            evaluated without fitting ``G`` to their own ground truth). ``None``: fit it
+            here. The mirrored hypothesis is always fitted here.
 
     Returns:
         ``{"n", "alignment" (3x3 list), "geodesic", "azimuth", "elevation", "roll"
@@ -210,7 +215,12 @@ def viewpoint_report(
     if not bool(use.any()):
         raise ValueError("viewpoint_report: no valid pair of finite rotations")
     Re, Rg = R_est[use], R_gt[use]
-    G = align_rotations(Re, Rg, robust=robust)
+    if alignment is None:
+        G = align_rotations(Re, Rg, robust=robust)
+    else:
+        G = torch.as_tensor(alignment).to(Re)
+        if G.shape != (3, 3) or not bool(torch.isfinite(G).all()):
+            raise ValueError(f"alignment must be a finite (3, 3) rotation, got {tuple(G.shape)}")
     geo = geodesic_errors(Re, Rg, G)
     ang = angle_errors(Re, Rg, G)
     Rm = necker_mirror(Re)
