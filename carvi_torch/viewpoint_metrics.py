@@ -152,6 +152,9 @@ def angle_errors(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor | None
 def summarize(errors: torch.Tensor, threshold: float = 30.0) -> dict:
     """Median, mean and accuracy of angular errors (degrees); NaNs are left out.
 
+    The median of an even count is the mean of the two middle values (as numpy and
+    MATLAB's ``median``, which PASCAL3D+'s MedErr uses), not ``torch.median``'s lower one.
+
     Returns:
         ``{"n": int, "median": float, "mean": float, "acc_at_30": float}`` where
         ``acc_at_30`` is the fraction of errors below ``threshold`` degrees
@@ -167,7 +170,7 @@ def summarize(errors: torch.Tensor, threshold: float = 30.0) -> dict:
         return {"n": 0, "median": float("nan"), "mean": float("nan"), "acc_at_30": float("nan")}
     return {
         "n": int(e.numel()),
-        "median": float(e.median()),
+        "median": float(torch.quantile(e.double(), 0.5)),
         "mean": float(e.mean()),
         "acc_at_30": float((e < threshold).float().mean()),
     }
