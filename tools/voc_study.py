@@ -416,8 +416,9 @@ def _gt_arrays(cams: dict, gt: dict, stage: str):
 def azimuth_bins(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor, width: float = 30.0) -> list[dict]:
     """Errors per ground-truth azimuth bin: count, median |azimuth error|, signed median, median geodesic.
 
-    The signed azimuth error is wrapped to ``(-180, 180]``; azimuths follow PASCAL3D+ (0 = front,
-    90 = the aeroplane's left side seen... per ``cameras.azimuth_elevation_roll_from_rotation``).
+    The signed azimuth error (estimate minus truth) is wrapped to ``[-180, 180)``; azimuths follow
+    PASCAL3D+ (``cameras.azimuth_elevation_roll_from_rotation``: 0 = seen from the front, 180 = from
+    behind, 90 and 270 = from the sides).
     """
     a_est, _, _ = azimuth_elevation_roll_from_rotation(R_est @ G)
     a_gt, _, _ = azimuth_elevation_roll_from_rotation(R_gt)
