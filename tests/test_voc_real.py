@@ -164,6 +164,21 @@ def test_azimuth_bins_signed_errors():
     assert bins[1]["median_abs_azimuth_error"] == pytest.approx(11.0, abs=1e-6)
 
 
+def test_toward_front_and_side_view_bias():
+    # azimuth 90 (a side), estimate 80: turned 10 degrees towards the front; azimuth 270, estimate 280: too
+    assert np.allclose(vs.toward_front(np.array([-10.0, 10.0, 10.0]), np.array([90.0, 270.0, 100.0])),
+                       [10.0, 10.0, -10.0])
+    per = {"a": {"signed_azimuth_error": -10.0, "gt_azimuth": 90.0},   # side, +10 towards the front
+           "b": {"signed_azimuth_error": 6.0, "gt_azimuth": 280.0},    # side, +6
+           "c": {"signed_azimuth_error": 8.0, "gt_azimuth": 100.0},    # side, -8 (towards the back)
+           "d": {"signed_azimuth_error": 5.0, "gt_azimuth": 10.0},     # front view: left out
+           "e": {"signed_azimuth_error": 170.0, "gt_azimuth": 90.0}}   # gross: left out
+    bias = vs.side_view_bias(per, {"a": "Jet", "b": "Jet", "c": "Propeller"})
+    assert bias["all"]["n"] == 3 and bias["all"]["median_toward_front"] == 6.0
+    assert bias["Jet"] == {"n": 2, "median_toward_front": 8.0, "mean_toward_front": 8.0}
+    assert bias["Propeller"]["median_toward_front"] == -8.0
+
+
 def test_print_table_formats(capsys):
     vs.print_table("t", ["a", "b"], [["x", 1.234], ["yy", float("nan")]])
     out = capsys.readouterr().out

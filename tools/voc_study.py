@@ -420,9 +420,8 @@ def azimuth_bins(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor, width
     PASCAL3D+ (``cameras.azimuth_elevation_roll_from_rotation``: 0 = seen from the front, 180 = from
     behind, 90 and 270 = from the sides).
     """
-    a_est, _, _ = azimuth_elevation_roll_from_rotation(R_est @ G)
+    signed = signed_azimuth_errors(R_est, R_gt, G)
     a_gt, _, _ = azimuth_elevation_roll_from_rotation(R_gt)
-    signed = torch.rad2deg(torch.remainder(a_est - a_gt + math.pi, 2 * math.pi) - math.pi)
     geo = geodesic_errors(R_est, R_gt, G)
     az = torch.rad2deg(torch.remainder(a_gt, 2 * math.pi))
     out = []
@@ -437,8 +436,42 @@ def azimuth_bins(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor, width
     return out
 
 
-def step_viewpoints(recon: Path, gt: dict) -> dict:
-    """SfM and refined cameras of the pipeline vs PASCAL3D+."""
+def signed_azimuth_errors(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` azimuth of ``R_est G`` minus that of ``R_gt`` (degrees, wrapped to ``[-180, 180)``)."""
+    a_est, _, _ = azimuth_elevation_roll_from_rotation(R_est @ G)
+    a_gt, _, _ = azimuth_elevation_roll_from_rotation(R_gt)
+    return torch.rad2deg(torch.remainder(a_est - a_gt + math.pi, 2 * math.pi) - math.pi)
+
+
+def toward_front(signed: np.ndarray, gt_azimuth: np.ndarray) -> np.ndarray:
+    """Signed azimuth errors re-signed so that > 0 means the estimate is turned towards the front (azimuth 0).
+
+    For a ground-truth azimuth in ``(0, 180)`` a smaller azimuth is nearer the front, in ``(180, 360)``
+    a larger one.
+    """
+    return np.where(np.asarray(gt_azimuth) % 360.0 < 180.0, -np.asarray(signed), np.asarray(signed))
+
+
+def side_view_bias(per: dict, subcategory: dict, gross: float = 45.0) -> dict:
+    """Median toward-front azimuth error of side views (azimuth 60-120 or 240-300), per subcategory.
+
+    Gross errors (``|azimuth error| >= gross``) are left out. ``per``: per-object dicts with
+    ``signed_azimuth_error`` and ``gt_azimuth``; ``subcategory``: key -> Berkeley subcategory.
+    """
+    groups: dict[str, list[float]] = {}
+    for k, v in per.items():
+        az = v["gt_azimuth"] % 360.0
+        if not (60.0 <= az < 120.0 or 240.0 <= az < 300.0) or abs(v["signed_azimuth_error"]) >= gross:
+            continue
+        e = float(toward_front(np.array([v["signed_azimuth_error"]]), np.array([az]))[0])
+        for g in ("all", subcategory.get(k) or "unknown"):
+            groups.setdefault(g, []).append(e)
+    return {g: {"n": len(v), "median_toward_front": float(np.median(v)), "mean_toward_front": float(np.mean(v))}
+            for g, v in sorted(groups.items())}
+
+
+def step_viewpoints(recon: Path, gt: dict, subcategory: dict | None = None) -> dict:
+    """SfM and refined cameras of the pipeline vs PASCAL3D+ (``subcategory``: key -> Berkeley subcategory)."""
     cams = read_json(recon / CLASS / "cameras.json")["cameras"]
     out, rows = {}, []
     for stage in ("sfm", "refined"):
@@ -448,12 +481,16 @@ def step_viewpoints(recon: Path, gt: dict) -> dict:
         G = torch.tensor(rep["alignment"], dtype=torch.float64)
         ang = angle_errors(R, Rg, G)
         geo = geodesic_errors(R, Rg, G)
+        signed = signed_azimuth_errors(R, Rg, G)
         a_gt, e_gt, _ = azimuth_elevation_roll_from_rotation(Rg)
         per = {k: {"annotation_id": a, "geodesic": float(g), "azimuth_error": float(az), "elevation_error": float(el),
-                   "gt_azimuth": math.degrees(float(ag)) % 360.0, "gt_elevation": math.degrees(float(eg))}
-               for k, a, g, az, el, ag, eg in zip(keys, aids, geo, ang["azimuth"], ang["elevation"], a_gt, e_gt)}
+                   "signed_azimuth_error": float(sa), "gt_azimuth": math.degrees(float(ag)) % 360.0,
+                   "gt_elevation": math.degrees(float(eg))}
+               for k, a, g, az, el, sa, ag, eg in zip(keys, aids, geo, ang["azimuth"], ang["elevation"], signed,
+                                                     a_gt, e_gt)}
         gross = sorted(((k, v) for k, v in per.items() if v["geodesic"] > 30.0), key=lambda kv: -kv[1]["geodesic"])
         out[stage] = {"report": _compact(rep), "robust_alignment": _compact(rob), "by_azimuth": azimuth_bins(R, Rg, G),
+                      "side_view_bias": side_view_bias(per, subcategory or {}),
                       "per_object": per, "gross_errors": [k for k, _ in gross]}
         rows.append(_summary_row("SfM" if stage == "sfm" else "refined", rep))
         rows.append(_summary_row(("SfM" if stage == "sfm" else "refined") + " (robust G)", rob))
@@ -472,6 +509,12 @@ def step_viewpoints(recon: Path, gt: dict) -> dict:
                 ["azimuth bin", "n", "|az err| med", "signed az err med", "geodesic med"],
                 [[f"{b['azimuth_from']:.0f}-{b['azimuth_to']:.0f}", str(b["n"]), b["median_abs_azimuth_error"],
                   b["median_signed_azimuth_error"], b["median_geodesic"]] for b in out["refined"]["by_azimuth"]])
+    print_table("side views (azimuth 60-120, 240-300; |azimuth error| < 45): azimuth error towards the front, "
+                "by Berkeley subcategory (degrees; > 0 = estimate turned towards the nose)",
+                ["subcategory", "n", "SfM median", "refined median", "refined mean"],
+                [[g, str(v["n"]), out["sfm"]["side_view_bias"].get(g, {}).get("median_toward_front"),
+                  v["median_toward_front"], v["mean_toward_front"]]
+                 for g, v in out["refined"]["side_view_bias"].items()])
     print(f"  gross refined errors (> 30 deg): {len(out['refined']['gross_errors'])} of {ref['n']}")
     return out
 
@@ -1013,7 +1056,8 @@ def main(argv=None) -> dict:
                                     "note": "reused an existing reconstruction (--skip-reconstruct)"}
     else:
         result["reconstruction"] = step_reconstruct(ann, recon, args.overrides, args.device)
-    vp = step_viewpoints(recon, gt)
+    subcategory = {gt_key(a["source"]): a.get("subcategory") for a in read_json(ann)["annotations"]}
+    vp = step_viewpoints(recon, gt, subcategory)
     result["viewpoints"] = {k: ({kk: vv for kk, vv in v.items() if kk != "per_object"} if isinstance(v, dict)
                                 and "per_object" in v else v) for k, v in vp.items()}
     result["unseen"] = step_unseen(ann, gt, cfg, args.seed, args.holdout, args.device, seen=vp)
