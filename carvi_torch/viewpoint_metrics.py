@@ -152,6 +152,9 @@ def angle_errors(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor | None
 def summarize(errors: torch.Tensor, threshold: float = 30.0) -> dict:
     """Median, mean and accuracy of angular errors (degrees); NaNs are left out.
 
+    The median of an even count is the mean of the two middle values (as numpy and
+    MATLAB's ``median``, which PASCAL3D+'s MedErr uses), not ``torch.median``'s lower one.
+
     Returns:
         ``{"n": int, "median": float, "mean": float, "acc_at_30": float}`` where
         ``acc_at_30`` is the fraction of errors below ``threshold`` degrees
@@ -167,7 +170,7 @@ def summarize(errors: torch.Tensor, threshold: float = 30.0) -> dict:
         return {"n": 0, "median": float("nan"), "mean": float("nan"), "acc_at_30": float("nan")}
     return {
         "n": int(e.numel()),
-        "median": float(e.median()),
+        "median": float(torch.quantile(e.double(), 0.5)),
         "mean": float(e.mean()),
         "acc_at_30": float((e < threshold).float().mean()),
     }
@@ -179,10 +182,11 @@ def viewpoint_report(
     *,
     valid: torch.Tensor | None = None,
     robust: bool = False,
+    alignment: torch.Tensor | None = None,
 ) -> dict:
     """Everything about estimated vs ground-truth viewpoints, JSON-ready.
 
-    Aligns the frames (:func:`align_rotations`), then reports geodesic, azimuth,
+    Aligns the frames (:func:`align_rotations`, or the given ``alignment``), then reports geodesic, azimuth,
     elevation and roll error summaries. It also aligns the Necker-mirrored cameras
     (:func:`necker_mirror`) and sets ``"mirrored": True`` when they fit the ground
     truth better (median geodesic error): the estimated object frame is then the
@@ -193,6 +197,10 @@ def viewpoint_report(
         R_est, R_gt: ``(N, 3, 3)``.
         valid: ``(N,)`` bool, pairs to use (default: all finite).
         robust: robust alignment.
+        alignment: ``(3, 3)`` a global rotation ``G`` (``R_est G ~ R_gt``) fitted elsewhere,
+            e.g. on other instances of the same SfM frame (cameras of unseen images
+            evaluated without fitting ``G`` to their own ground truth). ``None``: fit it
+            here. The mirrored hypothesis is always fitted here.
 
     Returns:
         ``{"n", "alignment" (3x3 list), "geodesic", "azimuth", "elevation", "roll"
@@ -210,7 +218,12 @@ def viewpoint_report(
     if not bool(use.any()):
         raise ValueError("viewpoint_report: no valid pair of finite rotations")
     Re, Rg = R_est[use], R_gt[use]
-    G = align_rotations(Re, Rg, robust=robust)
+    if alignment is None:
+        G = align_rotations(Re, Rg, robust=robust)
+    else:
+        G = torch.as_tensor(alignment).to(Re)
+        if G.shape != (3, 3) or not bool(torch.isfinite(G).all()):
+            raise ValueError(f"alignment must be a finite (3, 3) rotation, got {tuple(G.shape)}")
     geo = geodesic_errors(Re, Rg, G)
     ang = angle_errors(Re, Rg, G)
     Rm = necker_mirror(Re)

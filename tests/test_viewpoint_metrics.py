@@ -89,7 +89,11 @@ def test_angle_errors_known_offsets_and_wrapping():
 
 def test_summarize_values():
     s = summarize(torch.tensor([1.0, 3.0, 50.0, float("nan"), 20.0]))
-    assert s == {"n": 4, "median": 3.0, "mean": pytest.approx(18.5), "acc_at_30": 0.75}
+    # even count: the mean of the two middle values (numpy's median), not torch.median's lower one
+    assert s == {"n": 4, "median": float(np.median([1.0, 3.0, 50.0, 20.0])), "mean": pytest.approx(18.5),
+                 "acc_at_30": 0.75}
+    assert s["median"] == 11.5
+    assert summarize(torch.tensor([4.0, 1.0, 9.0]))["median"] == 4.0
     assert summarize(torch.tensor([]))["n"] == 0
     assert math.isnan(summarize(torch.tensor([float("nan")]))["median"])
 
@@ -126,6 +130,28 @@ def test_report_valid_mask_and_errors(generator):
         viewpoint_report(R_est, R_gt, valid=torch.ones(4, dtype=torch.bool))
     with pytest.raises(ValueError, match="no valid"):
         viewpoint_report(R_est, R_gt, valid=torch.zeros(10, dtype=torch.bool))
+
+
+def test_report_with_a_given_alignment(generator):
+    """A G fitted on other instances is applied as given, not refitted."""
+    R_gt = random_rotations(40, generator, dtype=torch.float64)
+    G_true = random_rotations(1, generator, dtype=torch.float64)[0]
+    noise = torch.from_numpy(Rotation.from_rotvec(np.random.default_rng(2).normal(scale=0.05, size=(40, 3)))
+                             .as_matrix())
+    R_est = noise @ R_gt @ G_true.T
+    G_train = align_rotations(R_est[:30], R_gt[:30])
+    rep = viewpoint_report(R_est[30:], R_gt[30:], alignment=G_train)
+    assert torch.allclose(torch.tensor(rep["alignment"], dtype=torch.float64), G_train, atol=1e-12)
+    ref = geodesic_errors(R_est[30:], R_gt[30:], G_train)
+    assert rep["geodesic"]["median"] == pytest.approx(float(np.median(ref.numpy())), abs=1e-9)
+    assert rep["per_instance_geodesic"] == pytest.approx(ref.tolist(), abs=1e-9)
+    # the identity as alignment: every error is the angle of G_true (up to the noise)
+    rep_id = viewpoint_report(R_est, R_gt, alignment=torch.eye(3, dtype=torch.float64))
+    angle = math.degrees(Rotation.from_matrix(G_true.numpy()).magnitude())
+    assert rep_id["geodesic"]["median"] == pytest.approx(angle, abs=8.0)
+    assert rep_id["geodesic"]["median"] > viewpoint_report(R_est, R_gt)["geodesic"]["median"] + 5.0
+    with pytest.raises(ValueError, match="alignment"):
+        viewpoint_report(R_est, R_gt, alignment=torch.eye(2))
 
 
 # --------------------------------------------------------------------------- real data
