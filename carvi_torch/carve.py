@@ -104,6 +104,8 @@ __all__ = [
     "imprinted_visual_hull",
     "carve_proposals",
     "carve_proposals_loop",
+    "CarveMaps",
+    "prepare_maps",
     "extend_maps",
     "mask_geometry",
     "proposal_geometry",
@@ -205,6 +207,8 @@ class ProposalGrids:
         column_cost: ``(B, H, W)`` float32: the reference cone cost ``C_r`` at the
             column centres.
         cost: ``(B, D, H, W)`` float32 ``C``, only when asked for (``return_cost``).
+        columns: ``(B, H, W)`` bool, the columns holding an occupied voxel
+            (``occupancy.any(dim=1)``, known from the carving without a pass over the grids).
     """
 
     occupancy: torch.Tensor
@@ -213,6 +217,7 @@ class ProposalGrids:
     reference_columns: torch.Tensor
     column_cost: torch.Tensor
     cost: torch.Tensor | None = field(default=None)
+    columns: torch.Tensor | None = field(default=None)
 
     def __len__(self) -> int:
         return self.occupancy.shape[0]
@@ -230,43 +235,214 @@ class ProposalGrids:
         """The grids with every tensor on ``device``."""
         return ProposalGrids(*(None if v is None else v.to(device) for v in
                                (self.occupancy, self.voxel_to_camera, self.empty, self.reference_columns,
-                                self.column_cost, self.cost)))
+                                self.column_cost, self.cost, self.columns)))
+
+
+# --------------------------------------------------------------------------- prepared maps
+
+
+@dataclass
+class CarveMaps:
+    """Silhouettes prepared once for many carvings: extended maps, cameras, mask geometry.
+
+    A carving reads every map it uses many times (once per proposal that uses it), so the
+    per-map work -- checks, the extension beyond the canvas (:func:`extend_maps`), bounding
+    boxes and radii (:func:`mask_geometry`) -- is done once here, and a proposal names its
+    views by *entry* index. An entry is a map seen by one camera; several entries may share
+    a map (:meth:`with_entries`, e.g. the rotated cameras of a rotationally symmetric
+    reference), so no map is ever copied per proposal.
+
+    Attributes:
+        ext: ``(K + 1, H + 2 PAD, W + 2 PAD)`` float32 extended maps; the last one is the
+            unused-slot map (``_UNUSED`` everywhere).
+        entry_map: ``(M,)`` long, the map (row of ``ext``) of each entry.
+        cameras: ``ScaledOrthographic (M)`` float64, one per entry.
+        box: ``(M, 4)`` float64, nonempty: ``(M,)`` bool, radius: ``(M,)`` float64: the
+            :func:`mask_geometry` of each entry (the radius is about the entry's ``t``).
+        size: ``(H, W)`` of the canvas.
+    """
+
+    ext: torch.Tensor
+    entry_map: torch.Tensor
+    cameras: ScaledOrthographic
+    box: torch.Tensor
+    nonempty: torch.Tensor
+    radius: torch.Tensor
+    size: tuple[int, int]
+    _lip: torch.Tensor | None = field(default=None, repr=False)
+
+    def __len__(self) -> int:
+        return self.entry_map.shape[0]
+
+    @property
+    def device(self) -> torch.device:
+        return self.ext.device
+
+    @property
+    def unused(self) -> int:
+        """Row of ``ext`` that unused view slots sample."""
+        return self.ext.shape[0] - 1
+
+    def sdf(self, i: int | torch.Tensor) -> torch.Tensor:
+        """The canvas part of the map(s) of entry ``i``: ``(H, W)`` (or ``(n, H, W)``) float32 signed distances."""
+        return self.ext[self.entry_map[i]][..., PAD:-PAD, PAD:-PAD]
+
+    def lipschitz(self) -> torch.Tensor:
+        """``(K + 1,)`` float64 :func:`_lipschitz` bound of every map (computed once)."""
+        if self._lip is None:
+            self._lip = torch.cat([_lipschitz(self.ext[i:i + _PREP_CHUNK]) for i in range(0, len(self.ext), _PREP_CHUNK)])
+        return self._lip
+
+    def with_entries(self, maps: torch.Tensor, cameras: ScaledOrthographic) -> "CarveMaps":
+        """These entries plus ``E`` more: entry ``M + e`` is map ``maps[e]`` seen by ``cameras[e]``.
+
+        Args:
+            maps: ``(E,)`` long map indices (rows of ``ext``, ``< K``), e.g. ``entry_map[i]``.
+            cameras: ``ScaledOrthographic (E)`` in the canvas pixels of those maps.
+        """
+        maps = torch.as_tensor(maps, device=self.device).long().reshape(-1)
+        if len(cameras) != maps.shape[0]:
+            raise ValueError(f"with_entries: {maps.shape[0]} maps but {len(cameras)} cameras")
+        if maps.numel() and (int(maps.min()) < 0 or int(maps.max()) >= self.unused):
+            raise ValueError(f"with_entries: map indices must lie in [0, {self.unused})")
+        cams = _checked_cameras(cameras, self.device)
+        box, nonempty, radius = _chunked_geometry(self.ext, maps, cams.t)
+        return CarveMaps(self.ext, torch.cat([self.entry_map, maps]), ScaledOrthographic.cat([self.cameras, cams]),
+                         torch.cat([self.box, box]), torch.cat([self.nonempty, nonempty]),
+                         torch.cat([self.radius, radius]), self.size, None if self._lip is None else self._lip)
+
+
+#: Maps extended (and measured) at once by :func:`prepare_maps` (bounds its temporary memory).
+_PREP_CHUNK = 256
+
+
+def _checked_cameras(cameras, device) -> ScaledOrthographic:
+    if not isinstance(cameras, ScaledOrthographic):
+        raise ValueError(f"cameras must be a ScaledOrthographic, got {type(cameras).__name__}")
+    cams = cameras.to(device=device, dtype=torch.float64)
+    if len(cams) and not bool(((cams.s > 0) & torch.isfinite(cams.s)).all()):
+        raise ValueError("cameras.s must be finite and positive")
+    return cams
+
+
+def _chunked_geometry(ext: torch.Tensor, maps: torch.Tensor, t: torch.Tensor):
+    """:func:`mask_geometry` of the canvas part of ``ext[maps]`` about ``t``, a chunk of maps at a time."""
+    parts = [mask_geometry(ext[maps[i:i + _PREP_CHUNK], PAD:-PAD, PAD:-PAD], t[i:i + _PREP_CHUNK])
+             for i in range(0, maps.shape[0], _PREP_CHUNK)]
+    if not parts:
+        dev = ext.device
+        return (torch.zeros(0, 4, dtype=torch.float64, device=dev), torch.zeros(0, dtype=torch.bool, device=dev),
+                torch.zeros(0, dtype=torch.float64, device=dev))
+    return tuple(torch.cat(x) for x in zip(*parts))
+
+
+def prepare_maps(sdf, cameras: ScaledOrthographic, *, count: int | None = None) -> CarveMaps:
+    """Prepare signed distance maps for :func:`carve_proposals` (entry ``i`` = map ``i`` seen by ``cameras[i]``).
+
+    Args:
+        sdf: ``(M, H, W)`` float signed distance maps (:func:`carvi_torch.sdf.signed_distance`),
+            or a function ``sdf(start, stop) -> (stop - start, H, W)`` giving them a chunk at a
+            time (then ``count = M`` is required), so the full ``sdf`` never needs to exist
+            beside the extended maps.
+        cameras: ``ScaledOrthographic (M)`` in the maps' pixels.
+        count: ``M`` when ``sdf`` is a function.
+
+    Returns:
+        :class:`CarveMaps`. Values are the same, bit for bit, as the maps
+        :func:`carve_proposals` prepares from a plain ``sdf`` tensor.
+    """
+    if callable(sdf) and not isinstance(sdf, torch.Tensor):
+        if count is None:
+            raise ValueError("prepare_maps: count is required when sdf is a function")
+        M, source = int(count), sdf
+    else:
+        if not isinstance(sdf, torch.Tensor) or sdf.dim() != 3 or not sdf.is_floating_point():
+            raise ValueError(f"sdf must be a floating (M, H, W) tensor, got {getattr(sdf, 'shape', type(sdf))}")
+        M, source = sdf.shape[0], (lambda a, b: sdf[a:b])
+    if M == 0:
+        raise ValueError("sdf must hold at least one map")
+    if not isinstance(cameras, ScaledOrthographic) or len(cameras) != M:
+        raise ValueError(f"cameras must be a ScaledOrthographic of length {M} (one per map), got "
+                         f"{len(cameras) if isinstance(cameras, ScaledOrthographic) else type(cameras)}")
+    ext = None
+    for start in range(0, M, _PREP_CHUNK):
+        part = source(start, min(M, start + _PREP_CHUNK))
+        if not isinstance(part, torch.Tensor) or part.dim() != 3 or not part.is_floating_point():
+            raise ValueError(f"sdf must give floating (n, H, W) maps, got {getattr(part, 'shape', type(part))}")
+        H, W = part.shape[1:]
+        if H < 2 or W < 2:
+            raise ValueError(f"sdf maps must be at least 2x2 pixels, got {tuple(part.shape[1:])}")
+        if torch.isnan(part).any():
+            raise ValueError(f"sdf contains NaN (maps {start} to {start + part.shape[0] - 1})")
+        if ext is None:
+            ext = torch.empty(M + 1, H + 2 * PAD, W + 2 * PAD, device=part.device)
+            ext[M] = _UNUSED
+        ext[start:start + part.shape[0]] = extend_maps(part.detach().to(torch.float32).clamp(-BIG, BIG))
+    cams = _checked_cameras(cameras, ext.device)
+    entry = torch.arange(M, device=ext.device)
+    box, nonempty, radius = _chunked_geometry(ext, entry, cams.t)
+    return CarveMaps(ext, entry, cams, box, nonempty, radius, (ext.shape[1] - 2 * PAD, ext.shape[2] - 2 * PAD))
 
 
 # --------------------------------------------------------------------------- input checks
 
 
-def _check_inputs(sdf, cameras, reference, views, resolution):
-    if not isinstance(sdf, torch.Tensor) or sdf.dim() != 3 or not sdf.is_floating_point():
-        raise ValueError(f"sdf must be a floating (M, H, W) tensor, got {getattr(sdf, 'shape', type(sdf))}")
-    M, H, W = sdf.shape
-    if M == 0 or H < 2 or W < 2:
-        raise ValueError(f"sdf must hold at least one map of at least 2x2 pixels, got {tuple(sdf.shape)}")
-    if torch.isnan(sdf).any():
-        raise ValueError("sdf contains NaN")
-    if not isinstance(cameras, ScaledOrthographic) or len(cameras) != M:
-        raise ValueError(f"cameras must be a ScaledOrthographic of length {M} (one per map), got "
-                         f"{len(cameras) if isinstance(cameras, ScaledOrthographic) else type(cameras)}")
-    if not bool((cameras.s > 0).all()) or not bool(torch.isfinite(cameras.s).all()):
-        raise ValueError("cameras.s must be finite and positive")
-    reference = torch.as_tensor(reference, device=sdf.device)
-    views = torch.as_tensor(views, device=sdf.device)
+def _check_indices(M: int, reference, views, resolution, device):
+    """Proposal indices as long tensors on ``device``, checked against ``M`` entries (one host read)."""
+    reference = torch.as_tensor(reference, device=device)
+    views = torch.as_tensor(views, device=device)
     if reference.dim() != 1 or reference.is_floating_point() or reference.dtype == torch.bool:
         raise ValueError(f"reference must be a (B,) integer tensor, got {tuple(reference.shape)} {reference.dtype}")
     B = reference.shape[0]
     if views.dim() != 2 or views.shape[0] != B or views.is_floating_point() or views.dtype == torch.bool:
         raise ValueError(f"views must be a (B, V) = ({B}, V) integer tensor, got {tuple(views.shape)} {views.dtype}")
-    if B and (int(reference.min()) < 0 or int(reference.max()) >= M):
-        raise ValueError(f"reference indices must lie in [0, {M}), got range "
-                         f"[{int(reference.min())}, {int(reference.max())}]")
-    if views.numel() and (int(views.min()) < -1 or int(views.max()) >= M):
-        raise ValueError(f"views indices must lie in [0, {M}) or be -1 (unused), got range "
-                         f"[{int(views.min())}, {int(views.max())}]")
     if not isinstance(resolution, int) or resolution < 4:
         raise ValueError(f"resolution must be an int >= 4, got {resolution!r}")
-    sdf = sdf.detach().to(torch.float32).clamp(-BIG, BIG)
-    cams = cameras.to(device=sdf.device, dtype=torch.float64)
-    return sdf, cams, reference.long(), views.long()
+    reference, views = reference.long(), views.long()
+    if B:
+        lo_r, hi_r, lo_v, hi_v = torch.stack([reference.min(), reference.max(),
+                                              views.min() if views.numel() else reference.min(),
+                                              views.max() if views.numel() else reference.min()]).tolist()
+        if lo_r < 0 or hi_r >= M:
+            raise ValueError(f"reference indices must lie in [0, {M}), got range [{lo_r}, {hi_r}]")
+        if views.numel() and (lo_v < -1 or hi_v >= M):
+            raise ValueError(f"views indices must lie in [0, {M}) or be -1 (unused), got range [{lo_v}, {hi_v}]")
+    return reference, views
+
+
+def _check_sdf(sdf, cameras) -> int:
+    """Check plain ``(M, H, W)`` maps and their ``M`` cameras; returns ``M``."""
+    if not isinstance(sdf, torch.Tensor) or sdf.dim() != 3 or not sdf.is_floating_point():
+        raise ValueError(f"sdf must be a floating (M, H, W) tensor, got {getattr(sdf, 'shape', type(sdf))}")
+    M, H, W = sdf.shape
+    if M == 0 or H < 2 or W < 2:
+        raise ValueError(f"sdf must hold at least one map of at least 2x2 pixels, got {tuple(sdf.shape)}")
+    if not isinstance(cameras, ScaledOrthographic) or len(cameras) != M:
+        raise ValueError(f"cameras must be a ScaledOrthographic of length {M} (one per map), got "
+                         f"{len(cameras) if isinstance(cameras, ScaledOrthographic) else type(cameras)}")
+    return M
+
+
+def _as_maps(sdf, cameras, reference, views, resolution):
+    """``(CarveMaps, reference, views)``: the given maps, or the maps of a plain ``sdf`` tensor.
+
+    From a plain tensor only the maps the proposals use are prepared, and the indices are
+    renumbered into them.
+    """
+    if isinstance(sdf, CarveMaps):
+        if cameras is not None and cameras is not sdf.cameras:
+            raise ValueError("pass cameras=None with prepared CarveMaps (they hold their cameras)")
+        reference, views = _check_indices(len(sdf), reference, views, resolution, sdf.device)
+        return sdf, reference, views
+    M = _check_sdf(sdf, cameras)
+    reference, views = _check_indices(M, reference, views, resolution, sdf.device)
+    used, inverse = torch.unique(torch.cat([reference, views.clamp(min=0).flatten()]), return_inverse=True)
+    if used.numel() == 0:
+        used = torch.zeros(1, dtype=torch.long, device=sdf.device)
+    maps = prepare_maps(sdf[used], cameras.to(sdf.device)[used])
+    ref_u = inverse[: reference.shape[0]]
+    views_u = torch.where(views >= 0, inverse[reference.shape[0]:].view_as(views), torch.full_like(views, -1))
+    return maps, ref_u, views_u
 
 
 # --------------------------------------------------------------------------- geometry
@@ -488,6 +664,33 @@ def _sample_columns(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor,
     return _grid_sample(maps, planes.permute(0, 2, 3, 1))[:, 0]
 
 
+def _sample_columns_at(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor, torch.Tensor], d: torch.Tensor,
+                       out: torch.Tensor | None = None) -> torch.Tensor:
+    """Bilinear samples of ``maps`` at voxels ``(d[:, l, k], column k)``: each column its own depths.
+
+    Same arithmetic as :func:`_sample_columns` (``G[:, :, 0] d``, then plus the column
+    term), so a voxel gets the same value bit for bit.
+
+    Args:
+        maps: ``(N, 1, Hp, Wp)`` float32 extended maps (already scaled).
+        G: ``(N, 2, 4)`` float32 index -> sampling maps.
+        xy: from :func:`_column_coords`, ``(N, K)`` each.
+        d: ``(N, L, K)`` float32 depth indices.
+        out: optional float32 buffer of at least ``N * 2 * L * K`` elements.
+
+    Returns:
+        ``(N, L, K)`` float32 samples.
+    """
+    N, L, K = d.shape
+    if out is None:
+        out = torch.empty(N * 2 * L * K, device=maps.device)
+    planes = out.view(-1)[: N * 2 * L * K].view(N, 2, L, K)
+    for i in range(2):
+        torch.mul(G[:, i, 0, None, None], d, out=planes[:, i])
+        planes[:, i] += xy[i][:, None, :]
+    return _grid_sample(maps, planes.permute(0, 2, 3, 1))[:, 0]
+
+
 def _sample_points(maps: torch.Tensor, G: torch.Tensor, d: torch.Tensor, h: torch.Tensor,
                    w: torch.Tensor) -> torch.Tensor:
     """Bilinear samples of ``maps`` at voxels ``(d, h, w)``, ``(N, K)`` float32 indices each.
@@ -503,7 +706,8 @@ def _sample_points(maps: torch.Tensor, G: torch.Tensor, d: torch.Tensor, h: torc
     return _grid_sample(maps, planes.permute(0, 2, 1)[:, None])[:, 0, 0]
 
 
-def _label(cost: torch.Tensor, column_cost: torch.Tensor, imprint: bool) -> tuple[torch.Tensor, torch.Tensor]:
+def _label(cost: torch.Tensor, column_cost: torch.Tensor, imprint: bool
+           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Interior labels along axis 1 (depth), with or without imprinting.
 
     Args:
@@ -513,19 +717,22 @@ def _label(cost: torch.Tensor, column_cost: torch.Tensor, imprint: bool) -> tupl
             the first voxel (lowest ``d``) of minimal ``C`` (``argmin``).
 
     Returns:
-        ``inside (N, D, K)`` bool and ``nonempty (N,)`` bool (any interior voxel).
+        ``inside (N, D, K)`` bool, ``nonempty (N,)`` bool (any interior voxel) and
+        ``occupied (N, K)`` bool (the columns holding an interior voxel).
     """
     inside = cost < 0
     low = cost.amin(dim=1)  # (N, K)
-    nonempty = (low < 0).any(dim=1)
+    occupied = low < 0
+    nonempty = occupied.any(dim=1)
     if imprint:
-        need = (column_cost < 0) & (low >= 0)  # foreground, nothing inside
+        need = (column_cost < 0) & ~occupied  # foreground, nothing inside
         n_idx, k_idx = need.nonzero(as_tuple=True)
         if n_idx.numel():
             d_idx = cost[n_idx, :, k_idx].argmin(dim=1)  # only the columns that need it
             inside[n_idx, d_idx, k_idx] = True
             nonempty = nonempty | need.any(dim=1)
-    return inside, nonempty
+            occupied = occupied | need
+    return inside, nonempty, occupied
 
 
 def _pad_rows(row: torch.Tensor, values: torch.Tensor, n_rows: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -554,17 +761,18 @@ def _pad_rows(row: torch.Tensor, values: torch.Tensor, n_rows: int) -> tuple[tor
 # --------------------------------------------------------------------------- carving
 
 
-def _prepare(sdf, cams, reference, views, resolution):
-    """Maps and geometry shared by the batched and the loop implementations."""
-    used, inverse = torch.unique(torch.cat([reference, views.clamp(min=0).flatten()]), return_inverse=True)
-    ref_u = inverse[: reference.shape[0]]
-    views_u = torch.where(views >= 0, inverse[reference.shape[0]:].view_as(views), torch.full_like(views, len(used)))
-    ext = extend_maps(sdf[used])
-    ext = torch.cat([ext, torch.full_like(ext[:1], _UNUSED)])  # index len(used): unused slot
-    box, nonempty, radius = mask_geometry(sdf[used], cams.t[used])
-    T, G, G_ref, scale = proposal_geometry(box, nonempty, radius, cams[used], ref_u,
-                                           torch.where(views >= 0, views_u, -1), resolution, tuple(ext.shape[1:]))
-    return ext, ref_u, views_u, T, G.float(), G_ref.float(), scale.float()
+def _prepare(maps: CarveMaps, reference: torch.Tensor, views: torch.Tensor, resolution: int, keep_double=False):
+    """Maps and geometry shared by the batched and the loop implementations.
+
+    Returns ``ext`` (the extended maps), ``ref_m (B,)`` and ``views_m (B, V)`` (rows of ``ext``;
+    unused slots: the unused-slot map), and ``T, G, G_ref, scale`` of :func:`proposal_geometry`
+    (``G_ref``, ``scale`` in float32, ``G`` too unless ``keep_double``).
+    """
+    ref_m = maps.entry_map[reference]
+    views_m = torch.where(views >= 0, maps.entry_map[views.clamp(min=0)], maps.unused)
+    T, G, G_ref, scale = proposal_geometry(maps.box, maps.nonempty, maps.radius, maps.cameras, reference, views,
+                                           resolution, tuple(maps.ext.shape[1:]))
+    return maps.ext, ref_m, views_m, T, (G if keep_double else G.float()), G_ref.float(), scale.float()
 
 
 def _reference_columns(ext, ref_u, G_ref, H_grid, W_grid):
@@ -593,13 +801,13 @@ class _Chunk:
 
     Attributes: ``maps`` (list over slots of ``(N, 1, Hp, Wp)`` scaled maps or ``None``
     for a slot unused by every proposal), ``G (N, V, 2, 4)``, ``column_cost (N, HW)``.
+    ``slots`` (host bools, one per slot): whether any proposal of the chunk uses the slot
+    (known on the host, so building a chunk reads nothing back from the device).
     """
 
-    def __init__(self, ext, views_c, scale_c, G_c, column_cost_c, n):
-        unused = len(ext) - 1
-        self.maps = [None if bool((views_c[:, j] == unused).all())
-                     else ext[views_c[:, j]][:, None] * scale_c[:, j, None, None, None]
-                     for j in range(views_c.shape[1])]
+    def __init__(self, ext, views_c, scale_c, G_c, column_cost_c, n, slots):
+        self.maps = [ext[views_c[:, j]][:, None] * scale_c[:, j, None, None, None] if used else None
+                     for j, used in enumerate(slots)]
         self.G, self.column_cost, self.n = G_c, column_cost_c, n
 
     def columns(self, cols: torch.Tensor, depth: torch.Tensor, buf=None) -> torch.Tensor:
@@ -613,6 +821,17 @@ class _Chunk:
         col = self.column_cost.gather(1, cols)[:, None, :]
         return col.expand(-1, depth.shape[0], -1).contiguous() if acc is None else torch.maximum(acc, col, out=acc)
 
+    def columns_at(self, cols: torch.Tensor, d: torch.Tensor, buf=None) -> torch.Tensor:
+        """Exact ``C`` at depths ``d (N, L, K)`` (float32) of flat columns ``cols (N, K)``: ``(N, L, K)`` float32."""
+        h, w = _column_hw(cols, self.n)
+        acc = None
+        for j, maps in enumerate(self.maps):
+            if maps is not None:
+                sample = _sample_columns_at(maps, self.G[:, j], _column_coords(self.G[:, j], h, w), d, out=buf)
+                acc = sample if acc is None else torch.maximum(acc, sample, out=acc)
+        col = self.column_cost.gather(1, cols)[:, None, :]
+        return col.expand_as(d).contiguous() if acc is None else torch.maximum(acc, col, out=acc)
+
     def points(self, d: torch.Tensor, h: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         """Exact ``C`` at voxels ``(d, h, w)`` (``(N, K)`` long each): ``(N, K)`` float32."""
         df, hf, wf = d.float(), h.float(), w.float()
@@ -623,6 +842,122 @@ class _Chunk:
                 acc = sample if acc is None else torch.maximum(acc, sample, out=acc)
         col = self.column_cost.gather(1, h * self.n + w)
         return col.clone() if acc is None else torch.maximum(acc, col, out=acc)
+
+
+#: Column groups of the interval carving (columns sorted by interval length; each group is
+#: sampled at the depths of its longest interval).
+_INTERVAL_GROUPS = 4
+#: Depth-slope (normalised sampling units per voxel) below which a view does not bound a column.
+_FLAT = 1e-5
+
+
+def _column_intervals(G: torch.Tensor, box: torch.Tensor, valid: torch.Tensor, cols: torch.Tensor, n: int,
+                      map_size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth intervals outside which the voxels of some columns are provably exterior.
+
+    The box of a view's mask (:func:`mask_geometry`: its negative pixels' centres extended by
+    half a pixel) is widened by another half pixel: beyond it every bilinear neighbour is a
+    pixel outside the box, where the map is not negative (any map, not only distance maps),
+    so ``C >= 0`` there and the voxel is exterior. A side of the box on the canvas edge bounds
+    nothing (the band beyond the canvas may continue a negative value). Along a column the
+    projection into view ``m`` moves linearly with depth, so each view and image axis bounds
+    the depth to an interval; they are intersected and widened by one voxel (float slack).
+
+    Args:
+        G: ``(N, V, 2, 4)`` index -> sampling maps (float64 preferred).
+        box: ``(N, V, 4)`` float64 boxes of the views' masks (canvas pixels).
+        valid: ``(N, V)`` bool used slots.
+        cols: ``(N, K)`` long flat columns ``h * n + w``.
+        n: resolution; map_size: ``(Hp, Wp)`` of the extended maps.
+
+    Returns:
+        ``lo, hi`` ``(N, K)`` long, clamped to ``[0, n - 1]``; ``lo > hi`` when no voxel of
+        the column can be interior.
+    """
+    Hp, Wp = map_size
+    size = (Wp - 2 * PAD, Hp - 2 * PAD)
+    G = G.double()
+    h = torch.div(cols, n, rounding_mode="floor").double()
+    w = (cols % n).double()
+    lo = torch.zeros(cols.shape, dtype=torch.float64, device=cols.device)
+    hi = torch.full(cols.shape, float(n - 1), dtype=torch.float64, device=cols.device)
+    scale = (2.0 / (Wp - 1), 2.0 / (Hp - 1))
+    for j in range(G.shape[1]):
+        for i in range(2):
+            g = G[:, j, i]
+            c = g[:, 1, None] * h + g[:, 2, None] * w + g[:, 3, None]
+            first, last = box[:, j, 2 * i], box[:, j, 2 * i + 1]
+            a = torch.where(first > -0.5, (first - 0.5 + PAD) * scale[i] - 1.0, -math.inf)[:, None]
+            b = torch.where(last < size[i] - 0.5, (last + 0.5 + PAD) * scale[i] - 1.0, math.inf)[:, None]
+            g0 = g[:, 0, None].expand_as(c)
+            use = valid[:, j, None] & (g0.abs() > _FLAT)
+            safe = torch.where(use, g0, torch.ones_like(g0))
+            d1, d2 = (a - c) / safe, (b - c) / safe
+            lo = torch.where(use, torch.maximum(lo, torch.minimum(d1, d2)), lo)
+            hi = torch.where(use, torch.minimum(hi, torch.maximum(d1, d2)), hi)
+            # a view that hardly moves along the column: the column is outside its box or not at all
+            off = valid[:, j, None] & ~use & ((c < a - 1e-3) | (c > b + 1e-3))
+            lo = torch.where(off, torch.full_like(lo, math.inf), lo)
+    lo = torch.ceil(lo - 1.0).clamp(0, n)
+    hi = torch.floor(hi + 1.0).clamp(-1, n - 1)
+    return lo.long(), hi.long()
+
+
+def _carve_chunk_intervals(chunk: "_Chunk", cols: torch.Tensor, fg: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+                           imprint: bool, buf: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Labels of a chunk sampling only the depth interval of every foreground column.
+
+    Columns are sorted by interval length and split into :data:`_INTERVAL_GROUPS` groups, each
+    sampled at ``L_g`` depths from its columns' ``lo`` (``L_g`` = the group's longest interval;
+    depths past the grid are clamped, duplicate samples of one voxel agree). Voxels outside
+    the intervals are exterior (:func:`_column_intervals`). A foreground column left without an
+    interior voxel is imprinted at the first argmin of ``C`` over its *whole* depth, sampled
+    for those columns only. Values are those of the full evaluation bit for bit, so the labels
+    are identical.
+
+    Args:
+        chunk: ``N`` proposals; cols: ``(N, K)`` flat foreground columns first (padding columns
+            are background); fg: ``(N, HW)`` bool; lo, hi: ``(N, K)`` from :func:`_column_intervals`.
+        buf: float32 buffer of at least ``N * K * n * 2`` elements.
+
+    Returns:
+        ``occupancy (N, n, HW)`` bool, ``nonempty (N,)`` bool, ``columns (N, HW)`` bool occupied columns.
+    """
+    n, N, K = chunk.n, cols.shape[0], cols.shape[1]
+    HW = n * n
+    dev = cols.device
+    length = (hi - lo + 1).clamp(min=0)
+    length = torch.where(fg.gather(1, cols), length, torch.zeros_like(length))
+    order = torch.argsort(length, dim=1, descending=True, stable=True)
+    cols, lo, length = cols.gather(1, order), lo.gather(1, order), length.gather(1, order)
+    bounds = [round(K * g / _INTERVAL_GROUPS) for g in range(_INTERVAL_GROUPS + 1)]
+    bounds = sorted(set(bounds))
+    starts = torch.tensor(bounds[:-1], device=dev)
+    lengths = length[:, starts].amax(dim=0).tolist()  # one host read: the depths of each group
+    occ = torch.zeros(N, n * HW, dtype=torch.bool, device=dev)
+    occupied = torch.zeros(N, HW, dtype=torch.bool, device=dev)
+    for (k0, k1), L in zip(zip(bounds[:-1], bounds[1:]), lengths):
+        if L == 0:
+            continue
+        cg = cols[:, k0:k1]
+        d = (lo[:, None, k0:k1] + torch.arange(L, device=dev)[None, :, None]).clamp_(max=n - 1)  # (N, L, Kg)
+        acc = chunk.columns_at(cg, d.float(), buf)
+        occ.scatter_(1, (d * HW + cg[:, None, :]).view(N, -1), (acc < 0).view(N, -1))
+        occupied.scatter_(1, cg, acc.amin(dim=1) < 0)
+    nonempty = occupied.any(dim=1)
+    if imprint:
+        need = fg & ~occupied
+        b_n, c_n = need.nonzero(as_tuple=True)
+        if b_n.numel():
+            valid, (cn,) = _pad_rows(b_n, c_n[None], N)
+            depth = torch.arange(n, device=dev, dtype=torch.float32)
+            full = chunk.columns(cn, depth, buf)  # (N, n, Kn): whole columns
+            best = full.argmin(dim=1)  # the first minimum
+            rows = torch.arange(N, device=dev)[:, None].expand_as(cn)
+            occ[rows[valid], best[valid] * HW + cn[valid]] = True
+            nonempty = nonempty | need.any(dim=1)
+            occupied = occupied | need
+    return occ.view(N, n, HW), nonempty, occupied
 
 
 #: The eight fine voxels of a coarse block, as offsets (d, h, w) from its representative.
@@ -729,7 +1064,8 @@ def _carve_chunk_coarse_to_fine(chunk: _Chunk, fg: torch.Tensor, tol: torch.Tens
 
 def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: torch.Tensor, views: torch.Tensor, *,
                     resolution: int = 60, imprint: bool = True, max_batch_voxels: int | None = None,
-                    return_cost: bool = False, coarse_to_fine: bool = False) -> ProposalGrids:
+                    return_cost: bool = False, coarse_to_fine: bool = False,
+                    depth_intervals: bool = False) -> ProposalGrids:
     """Carve the imprinted visual hulls of ``B`` proposals in one batched computation.
 
     Proposal ``b`` carves reference map ``reference[b]`` with the maps ``views[b]``
@@ -737,14 +1073,17 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
     (see the module docstring for frames, bounds and units). Proposals are processed
     in chunks of at most ``max_batch_voxels`` voxels (a loop over chunks and over the
     ``V`` view slots; everything else is batched, one ``grid_sample`` call per chunk,
-    slot and stage). Views are sampled only along the reference's foreground columns
-    and, with ``coarse_to_fine``, only where the sign of ``C`` or the imprinting argmin
-    is not already decided by exact costs on a grid of half the resolution and the
-    Lipschitz bound of the maps (see :func:`_carve_chunk_coarse_to_fine`); the labels
-    are identical to evaluating every voxel.
+    slot and stage). Views are sampled only along the reference's foreground columns;
+    with ``depth_intervals`` only within each column's depth interval that the views'
+    mask boxes leave (:func:`_carve_chunk_intervals`); with ``coarse_to_fine`` only where
+    the sign of ``C`` or the imprinting argmin is not already decided by exact costs on a
+    grid of half the resolution and the Lipschitz bound of the maps (see
+    :func:`_carve_chunk_coarse_to_fine`). The labels are identical to evaluating every voxel.
 
     Args:
-        sdf: ``(M, H, W)`` float signed distance maps (:func:`carvi_torch.sdf.signed_distance`).
+        sdf: ``(M, H, W)`` float signed distance maps (:func:`carvi_torch.sdf.signed_distance`),
+            or :class:`CarveMaps` prepared once (:func:`prepare_maps`; then ``cameras`` is
+            ``None`` and indices are its entries).
         cameras: ``ScaledOrthographic`` of length ``M``, in the maps' pixels.
         reference: ``(B,)`` long indices into ``sdf``.
         views: ``(B, V)`` long indices into ``sdf``, ``-1`` for an unused slot.
@@ -760,6 +1099,10 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
             fewer voxels but its bookkeeping made it 2x slower than sampling every
             voxel of the foreground columns; kept, exact and tested, for devices where
             sampling dominates.
+        depth_intervals: sample each foreground column only within the depths its views'
+            mask boxes allow (about half the samples on the benchmark class). Off by
+            default: on the CPU its bookkeeping costs what the samples save
+            (``docs/benchmarks/README.md``); measured again on CUDA by the benchmark.
 
     Returns:
         :class:`ProposalGrids`; voxel for voxel equal to :func:`carve_proposals_loop`.
@@ -771,8 +1114,8 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
         >>> out.occupancy.shape, bool(out.empty[0])
         (torch.Size([1, 16, 16, 16]), False)
     """
-    sdf, cams, reference, views = _check_inputs(sdf, cameras, reference, views, resolution)
-    dev = sdf.device
+    maps, reference, views = _as_maps(sdf, cameras, reference, views, resolution)
+    dev = maps.device
     if max_batch_voxels is None:
         max_batch_voxels = _DEFAULT_BATCH_VOXELS.get(dev.type, _DEFAULT_BATCH_VOXELS["cuda"])
     if not isinstance(max_batch_voxels, int) or max_batch_voxels < 1:
@@ -783,15 +1126,16 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
     if B == 0:
         z = torch.zeros(0, n, n, n, dtype=torch.bool, device=dev)
         return ProposalGrids(z, torch.zeros(0, 4, 4, device=dev), torch.zeros(0, dtype=torch.bool, device=dev),
-                             z[:, 0], torch.zeros(0, n, n, device=dev), z.float() if return_cost else None)
-    ext, ref_u, views_u, T, G, G_ref, scale = _prepare(sdf, cams, reference, views, resolution)
+                             z[:, 0], torch.zeros(0, n, n, device=dev), z.float() if return_cost else None, z[:, 0])
+    ext, ref_u, views_u, T, G, G_ref, scale = _prepare(maps, reference, views, resolution, keep_double=True)
+    G64, G = G, G.float()
     column_cost = _reference_columns(ext, ref_u, G_ref, n, n)  # (B, HW)
     fg = column_cost < 0
     depth = torch.arange(n, device=dev, dtype=torch.float32)
     coarse_to_fine = coarse_to_fine and not return_cost
     if coarse_to_fine:
         # Lipschitz bound of C over a block (reference pixels) and a float slack.
-        lip = _lipschitz(ext)
+        lip = maps.lipschitz()
         used = torch.cat([ref_u[:, None], views_u], dim=1)
         L = lip[used].amax(dim=1)
         radius = T[:, :3, :3].abs().sum(dim=1).norm(dim=1)  # sqrt(sx^2 + sy^2 + sz^2)
@@ -803,9 +1147,17 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
     count = torch.full((B,), HW, device=dev) if return_cost else fg.sum(dim=1)
     order = torch.argsort(count, descending=True, stable=True)
     col_order = torch.argsort((~fg).to(torch.uint8), dim=1, stable=True)  # foreground columns first
-    count_sorted = count[order].tolist()
+    # One host read for the chunking: the counts, and which view slots each proposal uses
+    # (as bits; beyond 40 slots every slot counts as used).
+    if V <= 40:
+        packed = (count[order] * (1 << V) + ((views[order] >= 0).long() << torch.arange(V, device=dev)).sum(1)).tolist()
+        count_sorted = [c >> V for c in packed]
+    else:
+        count_sorted = count[order].tolist()
+        packed = [(1 << V) - 1] * B
 
     occ = torch.zeros(B, n, HW, dtype=torch.bool, device=dev)
+    columns = torch.zeros(B, HW, dtype=torch.bool, device=dev)
     nonempty = torch.zeros(B, dtype=torch.bool, device=dev)
     cost = torch.empty(B, n, HW, device=dev) if return_cost else None
     buf = None
@@ -818,16 +1170,26 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
         start += size
         if count_sorted[start - size] == 0:
             continue  # empty references: nothing to carve
-        chunk = _Chunk(ext, views_u[idx], scale[idx], G[idx], column_cost[idx], n)
+        bits = 0
+        for c in packed[start - size:start]:
+            bits |= c
+        chunk = _Chunk(ext, views_u[idx], scale[idx], G[idx], column_cost[idx], n, [bool(bits >> j & 1) for j in range(V)])
         if coarse_to_fine:
             occ_c, nonempty[idx] = _carve_chunk_coarse_to_fine(chunk, fg[idx], tol[idx], slack[idx], imprint)
             occ[idx] = occ_c.view(-1, n, HW)
+            columns[idx] = occ[idx].any(dim=1)
             continue
         cols = col_order[idx, :k]  # (b, k)
         if buf is None or buf.numel() < idx.shape[0] * k * n * 2:
             buf = torch.empty(idx.shape[0] * k * n * 2, device=dev)
+        if depth_intervals and cost is None:
+            lo, hi = _column_intervals(G64[idx], maps.box[views[idx].clamp(min=0)], views[idx] >= 0, cols, n,
+                                       tuple(ext.shape[1:]))
+            occ[idx], nonempty[idx], columns[idx] = _carve_chunk_intervals(chunk, cols, fg[idx], lo, hi, imprint, buf)
+            continue
         acc = chunk.columns(cols, depth, buf)
-        inside, nonempty[idx] = _label(acc, column_cost[idx].gather(1, cols), imprint)
+        inside, nonempty[idx], col_occ = _label(acc, column_cost[idx].gather(1, cols), imprint)
+        columns[idx] = torch.zeros(idx.shape[0], HW, dtype=torch.bool, device=dev).scatter_(1, cols, col_occ)
         spread = cols[:, None, :].expand(-1, n, -1)
         occ[idx] = torch.zeros(idx.shape[0], n, HW, dtype=torch.bool, device=dev).scatter_(2, spread, inside)
         if cost is not None:
@@ -841,6 +1203,7 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
         reference_columns=fg.view(B, n, n),
         column_cost=column_cost.view(B, n, n),
         cost=None if cost is None else cost.view(B, n, n, n),
+        columns=columns.view(B, n, n),
     )
 
 
@@ -848,30 +1211,36 @@ def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, referen
                          *, resolution: int = 60, imprint: bool = True) -> ProposalGrids:
     """Reference implementation of :func:`carve_proposals`: one proposal, one view at a time.
 
-    Samples every voxel of every proposal (no column skipping, no coarse-to-fine),
-    skips unused slots, and imprints column by column through the same rule. Slow;
-    for tests and benchmarks. Always returns the full cost.
+    The structure of a straightforward implementation: each proposal on its own, its
+    silhouettes prepared for it (given plain ``sdf`` maps: extended and measured per
+    proposal; given :class:`CarveMaps`: taken as they are), every voxel sampled (no column
+    skipping, no depth intervals, no coarse-to-fine), unused slots skipped, and the same
+    imprinting rule. Slow; for tests and benchmarks. Always returns the full cost.
 
     Args and returns: as :func:`carve_proposals`.
     """
-    sdf, cams, reference, views = _check_inputs(sdf, cameras, reference, views, resolution)
-    dev = sdf.device
+    prepared = isinstance(sdf, CarveMaps)
+    maps, reference, views = _as_maps(sdf, cameras, reference, views, resolution) if prepared else \
+        (None, *_check_indices(_check_sdf(sdf, cameras), reference, views, resolution, sdf.device))
+    dev = maps.device if prepared else sdf.device
     B, V = views.shape
     n = resolution
     depth = torch.arange(n, device=dev, dtype=torch.float32)
     h, w = _column_hw(torch.arange(n * n, device=dev)[None], n)
     grids = []
     for b in range(B):
-        ext, ref_u, views_u, T, G, G_ref, scale = _prepare(sdf, cams, reference[b:b + 1], views[b:b + 1], resolution)
+        one, ref_b, views_b = (maps, reference[b:b + 1], views[b:b + 1]) if prepared else \
+            _as_maps(sdf, cameras, reference[b:b + 1], views[b:b + 1], resolution)
+        ext, ref_u, views_u, T, G, G_ref, scale = _prepare(one, ref_b, views_b, resolution)
         column_cost = _reference_columns(ext, ref_u, G_ref, n, n)  # (1, HW)
         acc = column_cost[:, None, :].expand(1, n, n * n).clone()  # (1, D, HW)
         for j in range(V):
             if int(views[b, j]) < 0:
                 continue
-            maps = ext[views_u[:, j]][:, None] * scale[:, j, None, None, None]
+            view_map = ext[views_u[:, j]][:, None] * scale[:, j, None, None, None]
             xy = _column_coords(G[:, j], h, w)
-            acc = torch.maximum(acc, _sample_columns(maps, G[:, j], xy, depth))
-        occ, _ = _label(acc, column_cost, imprint)
+            acc = torch.maximum(acc, _sample_columns(view_map, G[:, j], xy, depth))
+        occ, _, _ = _label(acc, column_cost, imprint)
         grids.append((occ, T.float(), column_cost, acc))
     if B == 0:
         return carve_proposals(sdf, cameras, reference, views, resolution=resolution, return_cost=True)
@@ -884,6 +1253,7 @@ def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, referen
         reference_columns=(column_cost < 0).view(B, n, n),
         column_cost=column_cost.view(B, n, n),
         cost=acc.view(B, n, n, n),
+        columns=occupancy.any(dim=1),
     )
 
 

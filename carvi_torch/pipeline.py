@@ -18,7 +18,9 @@ atomically and a rerun skips objects whose mesh and voxels already exist.
 from __future__ import annotations
 
 import math
+import os
 import time
+from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,7 +37,8 @@ from .io import coco
 from .io.outputs import is_done, read_json, write_json, write_npz
 from .sdf import distance_to_mask, signed_distance
 
-__all__ = ["run", "run_class", "ClassReport", "prepare_data"]
+__all__ = ["run", "run_class", "prepare_class", "proposals_of", "ClassReport", "prepare_data", "writer_workers",
+           "torch_threads"]
 
 #: Reflection of the ground-truth object frames (PASCAL3D+ and procedural: left/right along x).
 GT_REFLECTION = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
@@ -141,7 +144,8 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
         why = res.reasons[i] if i < len(res.reasons) and res.reasons[i] else "fewer than 2 visible keypoints"
         report.warnings.append(f"annotation {int(coll.annotation_ids[i])} ({coll.sources[i]}): no SfM camera: {why}")
 
-    dist = distance_to_mask(both.masks)
+    with _timed(report, "sdf", device):
+        dist = distance_to_mask(both.masks)
     cams = cams_sfm
     if cfg.cameras == "gt":
         if gt_img is None:
@@ -262,23 +266,32 @@ def _views_for_proposals(refs: torch.Tensor, sur: torch.Tensor, n: int, use_mirr
     return torch.cat([sur, r + n, sur + n], dim=-1)
 
 
-def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, device: torch.device,
-              generator: torch.Generator) -> ClassReport:
-    """Run every stage for one class; write ``out/<class>/``; return its report."""
-    report = ClassReport(coll.name, objects=len(coll))
-    cdir = out / coll.name
+def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
+                  gt: dict | None = None, out: Path | None = None, report: ClassReport | None = None):
+    """Every stage of one class up to carving: cameras, clusters, triplets, prepared silhouettes.
+
+    Writes ``out/<class>/cameras.json`` when ``out`` is given. Used by :func:`run_class` and
+    by the benchmark (which carves the same proposals on its own).
+
+    Returns:
+        ``(plan, todo, report)``: the :class:`_ClassPlan` (``None`` when the class stops
+        before carving: too few instances, missing ground truth, ``stage=cameras``), the
+        original indices to reconstruct, and the class report so far.
+    """
+    report = ClassReport(coll.name, objects=len(coll)) if report is None else report
+    cdir = (Path(out) if out is not None else Path(".")) / coll.name
     if len(coll) < cfg.min_instances:
         report.status = "skipped"
         report.skip(f"class has {len(coll)} usable instance(s), fewer than min_instances={cfg.min_instances}",
                     "class")
-        return report
+        return None, [], report
     coll = coll.to(device)
     n = len(coll)
     gt_img = _gt_cameras(gt, coll)
     if cfg.cameras == "gt" and gt_img is None:
         report.status = "failed"
         report.skip("cameras=gt but gt.json has no camera for every annotation of this class", "viewpoints")
-        return report
+        return None, [], report
 
     vp = _viewpoints(coll, cfg, report, device, gt_img)
     both, cams, shape = vp["both"], vp["cams"], vp["shape"]
@@ -293,22 +306,25 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
         report.warnings.append(f"clusters: {line}")
     report.info["clusters"] = {"threshold_deg": float(clusters.threshold_deg),
                                "sizes": [int(v) for v in clusters.sizes.tolist()]}
-    write_json(cdir / "cameras.json", _cameras_json(coll, vp, axes, clusters))
+    if out is not None:
+        write_json(cdir / "cameras.json", _cameras_json(coll, vp, axes, clusters))
     if cfg.stage == "cameras":
         report.reconstructed = 0
         report.status = "cameras"
-        return report
+        return None, [], report
 
     # ---- which references remain to do
     mesh_dir, vox_dir = cdir / "meshes", cdir / "voxels"
     aids = coll.annotation_ids.tolist()
-    done = [not cfg.overwrite and is_done(mesh_dir / f"{a}.{cfg.mesh_format}", vox_dir / f"{a}.npz") for a in aids]
+    usable_h = usable.tolist()
+    done = [out is not None and not cfg.overwrite and is_done(mesh_dir / f"{a}.{cfg.mesh_format}",
+                                                             vox_dir / f"{a}.npz") for a in aids]
     report.resumed = sum(done)
     chosen = [cfg.references == "all" or coll.splits[i] == cfg.references for i in range(n)]
-    todo = [i for i in range(n) if chosen[i] and not done[i] and bool(usable[i])]
+    todo = [i for i in range(n) if chosen[i] and not done[i] and usable_h[i]]
     report.info["references"] = sum(chosen)
     for i in range(n):
-        if chosen[i] and not bool(usable[i]):
+        if chosen[i] and not usable_h[i]:
             report.skip("no usable camera", "viewpoints", aids[i], coll.sources[i])
 
     # ---- surrogates for every reference (all of them, so a resumed run samples the same triplets)
@@ -321,27 +337,78 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
         else:
             trip = surrogates.sample_triplets(clusters.labels, coll.object_ids, refs_all, proposals=cfg.proposals,
                                               generator=generator)
-    sdf_maps = None
+    # ---- the silhouettes, prepared once for every carving of the class (the outside distances are reused)
     with _timed(report, "sdf", device):
-        sdf_maps = signed_distance(both.masks)
-    avg = None
+        dist = vp.pop("dist")
+        maps = carve.prepare_maps(lambda a, b: signed_distance(both.masks[a:b], outside=dist[a:b]), cams,
+                                  count=len(both))
+        del dist
     with _timed(report, "select", device):
         centre = select.plane_centre(shape)
         extent = select.plane_extent(shape, centre=centre)
         avg, counts = select.average_masks(coll.masks, cams[:n], clusters.labels, axes, plane_size=cfg.plane_size,
                                            extent=extent, centre=centre)
     report.info["average_mask_members"] = [int(c) for c in counts.tolist()]
+    todo_t = torch.tensor(todo, dtype=torch.long, device=device)
+    if symmetric and todo:
+        # surrogates synthesised by rotating the reference camera about the symmetry axis: further
+        # entries that reuse the reference's own map (no map is copied)
+        with _timed(report, "surrogates", device):
+            up = -cams.R[:n, 1, :].mean(dim=0)  # mean image-up direction in the object frame
+            axis = surrogates.symmetry_axis(shape, up=up)
+            if cfg.symmetric_axis_in_image:
+                axis = surrogates.axis_in_image_plane(cams[todo_t], axis)
+            extra = surrogates.symmetric_surrogates(cams[todo_t], axis, step_deg=cfg.symmetric_step_deg,
+                                                    centre=centre)
+            per_ref = len(extra) // len(todo)
+            maps = maps.with_entries(maps.entry_map[todo_t].repeat_interleave(per_ref), extra)
 
-    chunk = max(1, cfg.max_batch_voxels // max(1, cfg.proposals * 5 * cfg.resolution ** 3))
+    plan = _ClassPlan(coll=coll, cams=cams, axes=axes, trip=trip, maps=maps, avg=avg, counts=counts, extent=extent,
+                      centre=centre, symmetric=symmetric, use_mirrors=use_mirrors, cdir=cdir,
+                      aids=aids, todo_pos={i: k for k, i in enumerate(todo)})
+    return plan, todo, report
+
+
+def proposals_of(plan: "_ClassPlan", ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The proposals of references ``ids`` (original indices, a consecutive run of ``todo``).
+
+    Returns:
+        ``reference (R * P,)`` long, ``views (R * P, V)`` long entries of ``plan.maps`` and
+        ``valid (R * P,)`` bool, reference-major.
+    """
+    views, valid = _proposal_views(ids, plan)
+    R, P = valid.shape
+    return ids[:, None].expand(R, P).reshape(-1), views.reshape(R * P, -1), valid.reshape(-1)
+
+
+def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, device: torch.device,
+              generator: torch.Generator, writer: "_Writer | None" = None) -> ClassReport:
+    """Run every stage for one class; write ``out/<class>/``; return its report.
+
+    ``writer`` meshes and writes the objects (worker processes, see :func:`run`); by default
+    they are written inline.
+    """
+    plan, todo, report = prepare_class(coll, cfg, device, generator, gt=gt, out=out)
+    if plan is None:
+        return report
+    cdir = plan.cdir
+    todo_t = torch.tensor(todo, dtype=torch.long, device=device)
+    chunk = _chunk_objects(cfg, device)
+    own_writer = writer is None
+    if own_writer:
+        writer = _Writer(0)
     bar = tqdm(total=len(todo), desc=f"{coll.name}: carve+select", disable=not cfg.progress, leave=False)
     scores_out = {}
     for c0 in range(0, len(todo), chunk):
-        ids = torch.tensor(todo[c0:c0 + chunk], device=device, dtype=torch.long)
-        _reconstruct_chunk(ids, coll, both, cams, shape, axes, trip, sdf_maps, avg, counts, (extent, centre), cfg,
-                           report,
-                           symmetric, use_mirrors, cdir, scores_out, device)
+        ids = todo_t[c0:c0 + chunk]
+        result = _carve_and_select(ids, plan, cfg, report, device)
+        _submit_chunk(result, ids, plan, cfg, report, writer, scores_out)
         bar.update(len(ids))
     bar.close()
+    with _timed(report, "write_wait", device):
+        writer.drain()
+    if own_writer:
+        writer.close()
     if cfg.keep_all_scores and scores_out:
         prev = {}
         sp = cdir / "proposal_scores.json"
@@ -355,125 +422,292 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
     return report
 
 
-def _reconstruct_chunk(ids, coll, both, cams, shape, axes, trip, sdf_maps, avg, counts, plane, cfg, report,
-                       symmetric, use_mirrors, cdir, scores_out, device):
-    """Carve, select and write the objects ``ids`` (indices of originals)."""
-    n = len(coll)
-    extent, centre = plane
+@dataclass
+class _ClassPlan:
+    """What carving and selection need for every chunk of one class (built once per class)."""
+
+    coll: ClassCollection
+    cams: ScaledOrthographic  # (2N) canvas cameras of originals and mirrors
+    axes: torch.Tensor
+    trip: object  # surrogates.Triplets or None (rotationally symmetric class)
+    maps: carve.CarveMaps  # entries: 2N silhouettes (+ rotated reference cameras, symmetric classes)
+    avg: torch.Tensor
+    counts: torch.Tensor
+    extent: float
+    centre: torch.Tensor
+    symmetric: bool
+    use_mirrors: bool
+    cdir: Path
+    aids: list  # annotation ids of the originals (host ints)
+    todo_pos: dict  # original index -> position among the references to reconstruct
+    canvas_scale: torch.Tensor | None = None  # (N,) float64 host copy of canvas_from_image.scale
+    canvas_offset: torch.Tensor | None = None  # (N, 2) float64 host copy of canvas_from_image.offset
+
+    def __post_init__(self):
+        sim = self.coll.canvas_from_image
+        self.canvas_scale = sim.scale.detach().double().cpu()
+        self.canvas_offset = sim.offset.detach().double().cpu()
+
+
+#: Objects per pipeline chunk on the CPU: small enough that a chunk's grids stay in the
+#: caches between carving and selection, large enough that per-chunk overheads vanish.
+_CPU_CHUNK_OBJECTS = 4
+#: Fraction of the free CUDA memory a pipeline chunk may take (grids, costs, projections).
+_CUDA_CHUNK_FRACTION = 0.25
+#: Bytes per voxel of one proposal held during a chunk on CUDA (occupancy, boundary, sampling temporaries).
+_CUDA_BYTES_PER_VOXEL = 16
+
+
+def _chunk_objects(cfg: Config, device: torch.device) -> int:
+    """References carved and selected together (one pipeline chunk).
+
+    CPU: a few (:data:`_CPU_CHUNK_OBJECTS`), the carving and selection chunk further for their
+    caches. CUDA: as many as a quarter of the free device memory holds, so that kernels are
+    few and large.
+    """
+    per_object = max(1, cfg.proposals) * cfg.resolution ** 3
+    if device.type == "cuda":
+        free, _total = torch.cuda.mem_get_info(device)
+        return max(1, int(free * _CUDA_CHUNK_FRACTION) // (per_object * _CUDA_BYTES_PER_VOXEL))
+    return _CPU_CHUNK_OBJECTS
+
+
+def _carve_batch_voxels(cfg: Config, device: torch.device) -> int:
+    """Voxels per carving chunk: the config's bound, and at most the device's measured best."""
+    best = carve._DEFAULT_BATCH_VOXELS.get(device.type, carve._DEFAULT_BATCH_VOXELS["cuda"])
+    return max(1, min(int(cfg.max_batch_voxels), best))
+
+
+@dataclass
+class _ChunkResult:
+    """Carving and selection of one chunk of ``R`` references, ``P`` proposals each (host tensors
+    except ``grids``)."""
+
+    grids: carve.ProposalGrids  # the kept proposals (device)
+    pos: torch.Tensor  # (R * P,) long position of each proposal in ``grids`` (-1: not carved)
+    scores: torch.Tensor  # (R, P) float
+    misses: torch.Tensor  # (R, P) long
+    ok: torch.Tensor  # (R, P) bool: valid and not empty
+    valid: torch.Tensor  # (R, P) bool: a valid triplet
+    best: torch.Tensor  # (R,) long
+    best_occupancy: torch.Tensor  # (R, D, H, W) bool: the best proposal of every reference (host)
+    best_transform: torch.Tensor  # (R, 4, 4) float64 voxel -> canvas of the best proposal (host)
+    surrogates: torch.Tensor | None  # (R, P, 2) long original indices (host), -1 invalid
+
+
+def _proposal_views(ids: torch.Tensor, plan: _ClassPlan) -> tuple[torch.Tensor, torch.Tensor]:
+    """Further views ``(R, P, V)`` (entries of ``plan.maps``) and validity ``(R, P)`` of the chunk's proposals."""
+    n = len(plan.coll)
     R = len(ids)
-    if symmetric:
-        # surrogates synthesised by rotating the reference camera about the symmetry axis
-        with _timed(report, "surrogates", device):
-            up = -cams.R[:n, 1, :].mean(dim=0)  # mean image-up direction in the object frame
-            axis = surrogates.symmetry_axis(shape, up=up)
-            if cfg.symmetric_axis_in_image:
-                axis = surrogates.axis_in_image_plane(cams[ids], axis)
-            extra = surrogates.symmetric_surrogates(cams[ids], axis, step_deg=cfg.symmetric_step_deg, centre=centre)
-            m = len(extra) // R
-            cams_all = ScaledOrthographic.cat([cams, extra])
-            sdf_all = torch.cat([sdf_maps, sdf_maps[ids].repeat_interleave(m, dim=0)])
-            base = 2 * n + torch.arange(R, device=device)[:, None] * m + torch.arange(m, device=device)[None]
-            views = base[:, None, :]  # (R, 1, m): one proposal per reference
-            valid = torch.ones(R, 1, dtype=torch.bool, device=device)
-    else:
-        cams_all, sdf_all = cams, sdf_maps
-        sur = trip.surrogates[ids]  # (R, P, 2)
-        valid = trip.valid[ids]
-        views = _views_for_proposals(ids, sur.clamp(min=0), n, use_mirrors)
+    if plan.symmetric:
+        # one proposal per reference: its rotated cameras, entries 2N + k * m + j (k its rank in ``todo``)
+        m = (len(plan.maps) - 2 * n) // max(1, len(plan.todo_pos))
+        first = plan.todo_pos[int(ids[0])]  # chunks are consecutive runs of ``todo``
+        k = first + torch.arange(R, device=ids.device)
+        views = 2 * n + k[:, None, None] * m + torch.arange(m, device=ids.device)
+        return views, torch.ones(R, 1, dtype=torch.bool, device=ids.device)
+    sur = plan.trip.surrogates[ids]  # (R, P, 2)
+    return _views_for_proposals(ids, sur.clamp(min=0), n, plan.use_mirrors), plan.trip.valid[ids]
+
+
+def _carve_and_select(ids: torch.Tensor, plan: _ClassPlan, cfg: Config, report: ClassReport,
+                      device: torch.device) -> _ChunkResult:
+    """Carve every proposal of the references ``ids`` (indices of originals), score and rank them.
+
+    All device work of a chunk; the few tensors the writer needs come back to the host at
+    the end, in one transfer each.
+    """
+    coll = plan.coll
+    R = len(ids)
+    with _timed(report, "surrogates", device):
+        views, valid = _proposal_views(ids, plan)
     P = views.shape[1]
     flat_ref = ids[:, None].expand(R, P).reshape(-1)
     flat_views = views.reshape(R * P, -1)
     flat_valid = valid.reshape(-1)
     keep = flat_valid.nonzero().squeeze(1)
     with _timed(report, "carve", device):
-        grids = carve.carve_proposals(sdf_all, cams_all, flat_ref[keep], flat_views[keep], resolution=cfg.resolution,
-                                      imprint=cfg.imprint, max_batch_voxels=cfg.max_batch_voxels)
+        grids = carve.carve_proposals(plan.maps, None, flat_ref[keep], flat_views[keep], resolution=cfg.resolution,
+                                      imprint=cfg.imprint, max_batch_voxels=_carve_batch_voxels(cfg, device))
     with _timed(report, "select", device):
-        ref_cams = cams[flat_ref[keep]]
-        proj = select.project_proposals(grids.occupancy, grids.voxel_to_camera, ref_cams, axes,
-                                        plane_size=cfg.plane_size, extent=extent, centre=centre)
-        sc = select.score_proposals(proj, avg, counts)
-        miss = select.keypoint_misses(grids.occupancy, grids.voxel_to_camera, coll.keypoints[flat_ref[keep]],
-                                      coll.visible[flat_ref[keep]])
+        kept_ref = flat_ref[keep]
+        ref_cams = plan.cams[kept_ref]
+        proj = select.project_proposals(grids.occupancy, grids.voxel_to_camera, ref_cams, plan.axes,
+                                        plane_size=cfg.plane_size, extent=plan.extent, centre=plan.centre)
+        sc = select.score_proposals(proj, plan.avg, plan.counts)
+        miss = select.keypoint_misses(grids.occupancy, grids.voxel_to_camera, coll.keypoints[kept_ref],
+                                      coll.visible[kept_ref], columns=grids.columns)
         scores = torch.full((R * P,), float("inf"), device=device)
         misses = torch.full((R * P,), 10 ** 6, dtype=torch.long, device=device)
         empty = torch.ones(R * P, dtype=torch.bool, device=device)
         scores[keep], misses[keep], empty[keep] = sc, miss, grids.empty
         ok = flat_valid & ~empty
-        order, best = select.rank_proposals(scores.view(R, P), misses.view(R, P), ok.view(R, P))
-    # position of each proposal inside `keep`
-    pos = torch.full((R * P,), -1, dtype=torch.long, device=device)
-    pos[keep] = torch.arange(len(keep), device=device)
-    t_mesh = t_write = 0.0
-    for j, i in enumerate(ids.tolist()):
-        aid = int(coll.annotation_ids[i])
-        src = coll.sources[i]
-        okj = ok.view(R, P)[j]
-        if not bool(okj.any()):
-            if bool(valid[j].any()):
+        _order, best = select.rank_proposals(scores.view(R, P), misses.view(R, P), ok.view(R, P))
+        # position of each proposal inside `keep`; the best one of each reference
+        pos = torch.full((R * P,), -1, dtype=torch.long, device=device)
+        pos[keep] = torch.arange(len(keep), device=device)
+        if len(keep):
+            best_pos = pos.view(R, P).gather(1, best.clamp(min=0)[:, None])[:, 0].clamp(min=0)
+            best_occ = grids.occupancy[best_pos].cpu()
+            best_T = grids.voxel_to_camera[best_pos].double().cpu()
+        else:  # no valid proposal in the chunk: nothing will be written
+            n = cfg.resolution
+            best_occ = torch.zeros(R, n, n, n, dtype=torch.bool)
+            best_T = torch.zeros(R, 4, 4, dtype=torch.float64)
+    return _ChunkResult(grids=grids, pos=pos.cpu(), scores=scores.view(R, P).cpu(), misses=misses.view(R, P).cpu(),
+                        ok=ok.view(R, P).cpu(), valid=valid.cpu(), best=best.cpu(), best_occupancy=best_occ,
+                        best_transform=best_T,
+                        surrogates=None if plan.trip is None else plan.trip.surrogates[ids].cpu())
+
+
+def _submit_chunk(res: _ChunkResult, ids: torch.Tensor, plan: _ClassPlan, cfg: Config, report: ClassReport,
+                  writer: "_Writer", scores_out: dict) -> None:
+    """Hand every reconstructed reference of a chunk to the writer; note the failures (host data only)."""
+    coll = plan.coll
+    R, P = res.scores.shape
+    scale, offset = plan.canvas_scale, plan.canvas_offset
+    ids_h = ids.tolist()
+    any_ok = res.ok.any(dim=1).tolist()
+    any_valid = res.valid.any(dim=1).tolist()
+    best = res.best.tolist()
+    aid_of = plan.aids
+    for j, i in enumerate(ids_h):
+        aid, src = aid_of[i], coll.sources[i]
+        if not any_ok[j]:
+            if any_valid[j]:
                 reason = "all proposals carved away (empty)"
             else:
-                why = trip.reasons.get(i) if trip is not None else None
+                why = plan.trip.reasons.get(i) if plan.trip is not None else None
                 reason = f"no valid surrogate triplet ({why or 'clusters too small'})"
             report.skip(reason, "carve", aid, src)
             continue
-        t0 = time.perf_counter()
-        b = j * P + int(best[j])
-        p = int(pos[b])
-        canvas_to_image = _canvas_to_image_4x4(coll.canvas_from_image.scale[i], coll.canvas_from_image.offset[i])
-        v2c = grids.voxel_to_camera[p].double().cpu()
+        canvas_to_image = _canvas_to_image_4x4(scale[i], offset[i])
+        v2c = res.best_transform[j]
         v2img = canvas_to_image @ v2c
-        occ_np = grids.occupancy[p].cpu().numpy()
-        if cfg.largest_component:
-            occ_np = mesh.largest_component(occ_np)
-        m = mesh.occupancy_to_mesh(occ_np, v2img.numpy())
-        t1 = time.perf_counter()
-        t_mesh += t1 - t0
-        if len(m.faces) == 0:
-            report.skip("selected proposal has no surface", "mesh", aid, src)
-            continue
         sur_ids = []
-        if trip is not None:
-            sur_ids = [int(coll.annotation_ids[int(s)]) for s in trip.surrogates[i, int(best[j])].tolist() if s >= 0]
+        if res.surrogates is not None:
+            sur_ids = [aid_of[s] for s in res.surrogates[j, best[j]].tolist() if s >= 0]
+        proposals = None
         if cfg.save_proposals:
-            _write_proposals(cdir / "proposals" / f"{aid}.npz", grids, pos[j * P:(j + 1) * P], canvas_to_image,
-                             scores.view(R, P)[j], misses.view(R, P)[j], int(best[j]),
-                             trip.surrogates[i] if trip is not None else None, coll)
-        write_npz(cdir / "voxels" / f"{aid}.npz", occupancy=occ_np, voxel_to_camera=v2img.numpy(),
-                  voxel_to_canvas=v2c.numpy(), canvas_scale=float(coll.canvas_from_image.scale[i]),
-                  canvas_offset=coll.canvas_from_image.offset[i].cpu().numpy(),
-                  surrogates=np.asarray(sur_ids, dtype=np.int64))
-        mesh.write_mesh(m, cdir / "meshes" / f"{aid}.{cfg.mesh_format}")
-        t_write += time.perf_counter() - t1
-        report.reconstructed += 1
+            proposals = _proposals_payload(res, j, canvas_to_image, best[j], aid_of)
+        job = dict(aid=aid, occupancy=res.best_occupancy[j].numpy(), voxel_to_canvas=v2c.numpy(),
+                   voxel_to_image=v2img.numpy(), canvas_scale=float(scale[i]),
+                   canvas_offset=offset[i].float().numpy(), surrogates=np.asarray(sur_ids, dtype=np.int64),
+                   voxel_path=str(plan.cdir / "voxels" / f"{aid}.npz"),
+                   mesh_path=str(plan.cdir / "meshes" / f"{aid}.{cfg.mesh_format}"),
+                   proposals_path=str(plan.cdir / "proposals" / f"{aid}.npz"), proposals=proposals,
+                   largest_component=cfg.largest_component)
+        writer.submit(job, lambda out, aid=aid, src=src: _account(out, aid, src, report))
         if cfg.keep_all_scores:
-            rows = scores.view(R, P)[j]
+            rows = res.scores[j].tolist()
             scores_out[str(aid)] = {
                 "best": int(best[j]),
-                "scores": [None if not math.isfinite(v) else round(v, 6) for v in rows.tolist()],
-                "misses": [int(v) if v < 10 ** 6 else None for v in misses.view(R, P)[j].tolist()],
-                "surrogates": ([[int(coll.annotation_ids[int(s)]) if s >= 0 else None for s in pair]
-                                for pair in trip.surrogates[i].tolist()] if trip is not None else None),
+                "scores": [None if not math.isfinite(v) else round(v, 6) for v in rows],
+                "misses": [int(v) if v < 10 ** 6 else None for v in res.misses[j].tolist()],
+                "surrogates": ([[aid_of[s] if s >= 0 else None for s in pair] for pair in res.surrogates[j].tolist()]
+                               if res.surrogates is not None else None),
             }
-    report.seconds["mesh"] = report.seconds.get("mesh", 0.0) + t_mesh
-    report.seconds["write"] = report.seconds.get("write", 0.0) + t_write
 
 
-def _write_proposals(path: Path, grids, positions: torch.Tensor, canvas_to_image: torch.Tensor, scores, misses,
-                     best: int, surrogates, coll):
-    """Every proposal of one reference (bit-packed occupancy, image-pixel transforms, scores) for studies."""
-    P = len(positions)
+def _account(out: dict, aid: int, src: str, report: ClassReport) -> None:
+    """Book a finished write into the class report."""
+    report.seconds["mesh"] = report.seconds.get("mesh", 0.0) + out["mesh_seconds"]
+    report.seconds["write"] = report.seconds.get("write", 0.0) + out["write_seconds"]
+    if out["ok"]:
+        report.reconstructed += 1
+    else:
+        report.skip(out["reason"], "mesh", aid, src)
+
+
+def _proposals_payload(res: _ChunkResult, j: int, canvas_to_image: torch.Tensor, best: int, aid_of: list) -> dict:
+    """Every proposal of reference ``j`` of a chunk (bit-packed occupancy, image-pixel transforms, scores)."""
+    R, P = res.scores.shape
+    positions = res.pos[j * P:(j + 1) * P]
     ok = positions >= 0
-    idx = positions.clamp(min=0)
-    occ = grids.occupancy[idx].cpu().numpy() & ok.cpu().numpy()[:, None, None, None]
-    v2img = (canvas_to_image[None] @ grids.voxel_to_camera[idx].double().cpu()).numpy()
+    idx = positions.clamp(min=0).to(res.grids.occupancy.device)
+    occ = res.grids.occupancy[idx].cpu().numpy() & ok.numpy()[:, None, None, None]
+    v2img = (canvas_to_image[None] @ res.grids.voxel_to_camera[idx].double().cpu()).numpy()
     sur = np.full((P, 2), -1, dtype=np.int64)
-    if surrogates is not None:
-        for k, pair in enumerate(surrogates.tolist()):
-            sur[k] = [int(coll.annotation_ids[int(x)]) if x >= 0 else -1 for x in pair]
-    write_npz(path, occupancy_bits=np.packbits(occ.reshape(P, -1), axis=1), shape=np.asarray(occ.shape[1:]),
-              voxel_to_camera=v2img, valid=ok.cpu().numpy(), scores=scores.cpu().numpy(),
-              misses=misses.cpu().numpy(), best=np.int64(best), surrogates=sur)
+    if res.surrogates is not None:
+        for k, pair in enumerate(res.surrogates[j].tolist()):
+            sur[k] = [aid_of[x] if x >= 0 else -1 for x in pair]
+    return dict(occupancy_bits=np.packbits(occ.reshape(P, -1), axis=1), shape=np.asarray(occ.shape[1:]),
+                voxel_to_camera=v2img, valid=ok.numpy(), scores=res.scores[j].numpy(),
+                misses=res.misses[j].numpy(), best=np.int64(best), surrogates=sur)
+
+
+def _write_object(job: dict) -> dict:
+    """Mesh and files of one reconstructed object (runs in a writer process, or inline).
+
+    Takes host (numpy) data only. Returns ``ok``, ``reason``, ``mesh_seconds``, ``write_seconds``.
+    """
+    t0 = time.perf_counter()
+    occ = job["occupancy"]
+    v2img = job["voxel_to_image"]
+    if job["largest_component"]:
+        occ = mesh.largest_component(occ)
+    m = mesh.occupancy_to_mesh(occ, v2img)
+    t1 = time.perf_counter()
+    if len(m.faces) == 0:
+        return dict(ok=False, reason="selected proposal has no surface", mesh_seconds=t1 - t0, write_seconds=0.0)
+    if job["proposals"] is not None:
+        write_npz(job["proposals_path"], **job["proposals"])
+    write_npz(job["voxel_path"], occupancy=occ, voxel_to_camera=v2img, voxel_to_canvas=job["voxel_to_canvas"],
+              canvas_scale=job["canvas_scale"], canvas_offset=job["canvas_offset"], surrogates=job["surrogates"])
+    mesh.write_mesh(m, job["mesh_path"])
+    return dict(ok=True, reason=None, mesh_seconds=t1 - t0, write_seconds=time.perf_counter() - t1)
+
+
+def _start_worker() -> int:
+    """No-op run by each writer process once, so that all of them start (fork) early."""
+    return os.getpid()
+
+
+class _Writer:
+    """Meshes and files of reconstructed objects, in worker processes or inline.
+
+    Results are booked in submission order (deterministic reports). At most
+    ``4 * workers`` objects wait at once, which bounds the memory of pending grids.
+    With ``workers == 0`` every object is written at once, in this process.
+    """
+
+    def __init__(self, workers: int):
+        self.workers = int(workers)
+        self.pool = None
+        self.pending: deque = deque()
+        if self.workers > 0:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            # fork (Linux): workers share the parent's imports and start in milliseconds; they only
+            # run numpy/scikit-image/trimesh code. They are started here, before the data are loaded.
+            method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context(method))
+            for f in [self.pool.submit(_start_worker) for _ in range(self.workers)]:
+                f.result()
+
+    def submit(self, job: dict, done) -> None:
+        if self.pool is None:
+            done(_write_object(job))
+            return
+        self.pending.append((self.pool.submit(_write_object, job), done))
+        while len(self.pending) > 4 * self.workers:
+            self._finish_one()
+
+    def _finish_one(self) -> None:
+        future, done = self.pending.popleft()
+        done(future.result())
+
+    def drain(self) -> None:
+        """Wait for every submitted object and book it."""
+        while self.pending:
+            self._finish_one()
+
+    def close(self) -> None:
+        self.drain()
+        if self.pool is not None:
+            self.pool.shutdown()
+            self.pool = None
 
 
 def _canvas_to_image_4x4(scale: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
@@ -489,8 +723,60 @@ def _canvas_to_image_4x4(scale: torch.Tensor, offset: torch.Tensor) -> torch.Ten
 # =========================================================================== whole run
 
 
-def run(cfg: Config) -> dict:
-    """Run every class; write ``config.yaml``, ``summary.json``, per-class outputs and ``preview.png``."""
+def writer_workers(cfg: Config) -> int:
+    """Writer processes of a run: ``CARVI_WRITERS`` if set, else one per CPU core beyond the first (at most 8).
+
+    Meshing and writing an object takes ~10 ms of CPU; in worker processes it overlaps the
+    carving of the next objects (``0``: everything inline).
+    """
+    env = os.environ.get("CARVI_WRITERS")
+    if env is not None:
+        try:
+            return max(0, int(env))
+        except ValueError:
+            raise ValueError(f"CARVI_WRITERS must be an integer, got {env!r}") from None
+    if cfg.stage != "all":
+        return 0
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return min(8, max(1, cores - 1))
+
+
+def torch_threads(workers: int) -> int:
+    """Intra-op threads of this process during a run: ``CARVI_THREADS`` if set, else the CPU
+    cores left to it beside ``workers`` writer processes (at least one).
+
+    The carving and selection are chains of many medium-sized tensor operations; on a machine
+    whose cores are busy with other work, extra OpenMP threads of each operation mostly wait
+    for one another (measured: 2 threads 7x slower than 1 on a loaded 2-core machine, see
+    ``docs/benchmarks/README.md``).
+    """
+    env = os.environ.get("CARVI_THREADS")
+    if env is not None:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            raise ValueError(f"CARVI_THREADS must be an integer, got {env!r}") from None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, cores - workers)
+
+
+@contextmanager
+def _torch_threads(n: int):
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> dict:
+    """Run every class; write ``config.yaml``, ``summary.json``, per-class outputs and ``preview.png``.
+
+    ``workers``: writer processes for meshes and files (default :func:`writer_workers`);
+    ``threads``: torch intra-op threads of this process during the run (default
+    :func:`torch_threads`; restored afterwards).
+    """
     t_start = time.perf_counter()
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -499,6 +785,28 @@ def run(cfg: Config) -> dict:
     write_bytes(out / "config.yaml", cfg.to_yaml().encode())
     device = cfg.resolve_device()
     torch.manual_seed(cfg.seed)
+    # writer processes start first, while this process is small
+    writer = _Writer(writer_workers(cfg) if workers is None else workers)
+    try:
+        with _torch_threads(torch_threads(writer.workers) if threads is None else max(1, int(threads))):
+            summary = _run(cfg, out, device, writer, t_start)
+    finally:
+        writer.close()
+    summary["peak_rss_workers_mb"] = round(_peak_rss_mb(children=True), 1) if writer.workers else 0.0
+    summary["writer_workers"] = writer.workers
+    write_json(out / "summary.json", summary)
+    if cfg.preview and cfg.stage == "all":
+        try:
+            from .preview import write_preview
+
+            write_preview(out, summary)
+        except Exception as e:  # a picture must never fail the run
+            _log(f"preview.png not written: {e}", cfg)
+    return summary
+
+
+def _run(cfg: Config, out: Path, device: torch.device, writer: "_Writer", t_start: float) -> dict:
+    """:func:`run` once the writer is up: load, every class, ``summary.json``."""
     data_path, gt_path = prepare_data(cfg)
     t0 = time.perf_counter()
     loaded = coco.load_coco(data_path, canvas_size=cfg.canvas_size, margin=cfg.canvas_margin, device=device,
@@ -521,7 +829,7 @@ def run(cfg: Config) -> dict:
         g = torch.Generator(device="cpu").manual_seed(cfg.seed + _stable_hash(name))
         _log(f"{name}: {len(coll)} objects", cfg)
         try:
-            rep = run_class(coll, cfg, out, gt, device, g)
+            rep = run_class(coll, cfg, out, gt, device, g, writer)
         except Exception as e:  # one broken class must not stop the others
             import traceback
 
@@ -538,21 +846,15 @@ def run(cfg: Config) -> dict:
     if device.type == "cuda":
         summary["peak_cuda_mb"] = round(torch.cuda.max_memory_allocated(device) / 2 ** 20, 1)
     write_json(out / "summary.json", summary)
-    if cfg.preview and cfg.stage == "all":
-        try:
-            from .preview import write_preview
-
-            write_preview(out, summary)
-        except Exception as e:  # a picture must never fail the run
-            _log(f"preview.png not written: {e}", cfg)
     return summary
 
 
-def _peak_rss_mb() -> float:
-    """Peak resident memory of this process (MB)."""
+def _peak_rss_mb(children: bool = False) -> float:
+    """Peak resident memory (MB) of this process, or of its largest finished child process."""
     import resource
 
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
+    return resource.getrusage(who).ru_maxrss / 1024.0
 
 
 def _stable_hash(name: str) -> int:

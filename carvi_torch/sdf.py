@@ -34,7 +34,7 @@ def _edt_numpy(targets: np.ndarray) -> np.ndarray:
     return out
 
 
-def _edt_torch(targets: torch.Tensor, chunk_elems: int = 1 << 26) -> torch.Tensor:
+def _edt_torch(targets: torch.Tensor, chunk_elems: int = 1 << 28) -> torch.Tensor:
     """Exact batched EDT in torch: distance of every pixel to the nearest ``True`` pixel.
 
     Separable: ``g(y, x) = min_x' |x - x'|`` over targets in row ``y``, then
@@ -115,11 +115,13 @@ def distance_to_background(masks: torch.Tensor) -> torch.Tensor:
     return _edt(padded)[:, 1:-1, 1:-1] * m
 
 
-def signed_distance(masks: torch.Tensor) -> torch.Tensor:
+def signed_distance(masks: torch.Tensor, outside: torch.Tensor | None = None) -> torch.Tensor:
     """Exact signed distance map: negative inside, positive outside, zero level on the boundary.
 
     Args:
         masks: ``(N, H, W)`` bool.
+        outside: optional ``(N, H, W)`` float32 :func:`distance_to_mask` of the same masks,
+            when the caller has it already (saves one of the two transforms).
 
     Returns:
         ``(N, H, W)`` float32; see the module docstring for the half-pixel convention.
@@ -130,6 +132,9 @@ def signed_distance(masks: torch.Tensor) -> torch.Tensor:
         >>> signed_distance(m)
         tensor([[[ 0.5000, -0.5000, -0.5000,  0.5000]]])
     """
-    outside = distance_to_mask(masks)
+    if outside is None:
+        outside = distance_to_mask(masks)
+    elif outside.shape != masks.shape:
+        raise ValueError(f"outside must match masks {tuple(masks.shape)}, got {tuple(outside.shape)}")
     inside = distance_to_background(masks)
     return torch.where(masks.bool(), -(inside - 0.5), outside - 0.5)

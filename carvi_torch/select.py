@@ -217,12 +217,100 @@ def _check_grids(occupancy: torch.Tensor, voxel_to_camera: torch.Tensor) -> None
         raise ValueError(f"voxel_to_camera must be ({b}, 4, 4) like occupancy's batch")
 
 
+#: Default ``chunk_voxels`` of :func:`project_proposals` per device type.
+_CHUNK_VOXELS = {"cpu": 1 << 20, "cuda": 1 << 27}
+#: Default ``chunk_points`` of :func:`project_proposals` per device type.
+_CHUNK_POINTS = {"cpu": 1 << 22, "cuda": 1 << 24}
+
+
 def _boundary(occupancy: torch.Tensor) -> torch.Tensor:
-    """``(B, D, H, W)`` bool: occupied voxels with an empty voxel (or the grid edge) among their 26 neighbours."""
-    empty = (~occupancy).to(torch.float16 if occupancy.is_cuda else torch.float32)[:, None]
-    empty = torch.nn.functional.pad(empty, (1, 1, 1, 1, 1, 1), value=1.0)
-    near_empty = torch.nn.functional.max_pool3d(empty, kernel_size=3, stride=1)[:, 0] > 0
-    return occupancy & near_empty
+    """``(B, D, H, W)`` bool: occupied voxels with an empty voxel (or the grid edge) among their 26 neighbours.
+
+    The 3x3x3 dilation of the empty set (padded with empty voxels) is separable: an OR over
+    three shifted slices along each axis in turn, on bool tensors (a few passes over
+    ``B D H W`` bytes; no float pooling).
+    """
+    B, D, H, W = occupancy.shape
+    empty = torch.ones(B, D + 2, H + 2, W + 2, dtype=torch.bool, device=occupancy.device)
+    torch.bitwise_not(occupancy, out=empty[:, 1:-1, 1:-1, 1:-1])
+    near = torch.bitwise_or(empty[:, :-2], empty[:, 1:-1])
+    near |= empty[:, 2:]  # (B, D, H + 2, W + 2)
+    near2 = torch.bitwise_or(near[:, :, :-2], near[:, :, 1:-1])
+    near2 |= near[:, :, 2:]  # (B, D, H, W + 2)
+    near3 = torch.bitwise_or(near2[..., :-2], near2[..., 1:-1])
+    near3 |= near2[..., 2:]  # (B, D, H, W)
+    near3 &= occupancy
+    return near3
+
+
+def _supersampling(A: torch.Tensor, spacing: float, supersample: int | None) -> torch.Tensor:
+    """``(B, 3)`` long sub-voxel points per index axis of each grid (the rule of :func:`project_proposals`)."""
+    if supersample is not None:
+        return torch.full((A.shape[0], 3), int(supersample), dtype=torch.long, device=A.device)
+    edges = A[:, :, :3].norm(dim=1)  # (B, 3) voxel edge per index axis, object units
+    return torch.ceil(math.sqrt(3.0) * edges / spacing).clamp(1, 8).long()
+
+
+def _axis_tables(U: torch.Tensor, sizes: tuple[int, int, int], ms: tuple[int, int, int]) -> list[torch.Tensor]:
+    """Plane-sample coordinates of the sub-voxel points, one lookup table per index axis.
+
+    For grids ``U (b, 3, 4)`` (plane units per index, constant last), the point of voxel
+    ``(d, h, w)`` with sub-voxel offsets ``(o_d, o_h, o_w)`` has coordinates
+    ``Ld[:, i_d, b*D + d] + Lh[:, i_h, b*H + h] + Lw[:, i_w, b*W + w]`` (float32 sums of
+    float64 products rounded once), ``o = (i + 0.5) / m - 0.5``.
+
+    Returns:
+        ``[Ld, Lh, Lw]``, each ``(3 * m, b * size)`` float32 (row ``c * m + i``: coordinate ``c``, offset ``i``).
+    """
+    dev = U.device
+    out = []
+    for axis, (size, m) in enumerate(zip(sizes, ms)):
+        pos = ((torch.arange(m, dtype=torch.float64, device=dev)[:, None] + 0.5) / m - 0.5
+               + torch.arange(size, dtype=torch.float64, device=dev))  # (m, size)
+        L = U[:, :, axis].T[:, None, :, None] * pos[None, :, None, :]  # (3, m, b, size)
+        if axis == 0:
+            L = L + U[:, :, 3].T[:, None, :, None]
+        out.append(L.to(torch.float32).reshape(3 * m, -1))
+    return out
+
+
+def _splat(out: torch.Tensor, occupancy: torch.Tensor, U: torch.Tensor, rows: torch.Tensor, ms: tuple[int, int, int],
+           G: int, chunk_points: int) -> None:
+    """Set the plane samples hit by the sub-voxel points of the boundary voxels of some grids.
+
+    Args:
+        out: ``(B * 3 * (G + 2)^2,)`` bool planes with a one-sample border that takes every
+            point off the plane (coordinates are clamped to ``[-1, G]``).
+        occupancy: ``(b, D, H, W)`` bool grids, all with the sub-sampling ``ms``.
+        U: ``(b, 3, 4)`` index -> plane-sample coordinates.
+        rows: ``(b,)`` long position of each grid in ``out``.
+    """
+    dev = occupancy.device
+    D, H, W = occupancy.shape[1:]
+    md, mh, mw = ms
+    m3 = md * mh * mw
+    Gp = G + 2
+    Ld, Lh, Lw = _axis_tables(U, (D, H, W), ms)
+    voxels = _boundary(occupancy).nonzero()  # (M, 4) b, d, h, w
+    base = rows * (3 * Gp * Gp) + Gp + 1  # + Gp + 1: the border shift of both coordinates
+    per = max(1, int(chunk_points) // m3)
+    for start in range(0, voxels.shape[0], per):
+        bi, di, hi, wi = voxels[start:start + per].unbind(-1)
+        M = bi.shape[0]
+        g = [torch.empty(3, m, M, device=dev) for m in ms]
+        for L, gi, idx, m in ((Ld, g[0], bi * D + di, md), (Lh, g[1], bi * H + hi, mh), (Lw, g[2], bi * W + wi, mw)):
+            flat_g = gi.view(3 * m, M)
+            for r in range(3 * m):  # 1-D gathers (the fast kind)
+                torch.index_select(L[r], 0, idx, out=flat_g[r])
+        u = g[0][:, :, None, None, :] + g[1][:, None, :, None, :]
+        u = u + g[2][:, None, None, :, :]  # (3, md, mh, mw, M)
+        k = u.view(3, m3, M).round_().clamp_(-1, G).long()
+        at = base[bi]
+        for j in range(3):  # the three planes: (a, b) = (u[(j+1)%3], u[(j+2)%3])
+            a, b = (j + 1) % 3, (j + 2) % 3
+            flat = torch.add(k[a], k[b], alpha=Gp)
+            flat += at + j * Gp * Gp
+            out.index_fill_(0, flat.view(-1), True)
 
 
 def project_proposals(
@@ -234,7 +322,8 @@ def project_proposals(
     extent: float | None = None,
     centre: torch.Tensor | None = None,
     supersample: int | None = None,
-    chunk_points: int = 1 << 22,
+    chunk_points: int | None = None,
+    chunk_voxels: int | None = None,
 ) -> torch.Tensor:
     """Orthographic projections of voxel proposals onto the three principal planes.
 
@@ -243,16 +332,18 @@ def project_proposals(
     ``(i + 0.5) / m - 0.5``, ``i < m``, along each index axis). The points go to the
     reference camera frame, to the object frame (``ref_cameras.from_camera_frame``), to
     plane coordinates ``(a, b)`` (module docstring) -- one affine map per grid, applied
-    through per-axis lookup tables -- and set their nearest plane sample (``index_put_``).
+    through per-axis lookup tables -- and set their nearest plane sample (round half to
+    even).
 
-    Holes: the automatic sub-sampling takes ``m_i = ceil(sqrt(3) * edge_i / spacing)``
-    points along each index axis ``i`` (``edge_i`` the voxel edge along that axis in object
-    units, max over the batch; ``spacing = 2 extent / (G - 1)``; clipped to 8). The voxel
-    edges are orthogonal, so the sub-cubes' half-diagonal ``sqrt(sum (edge_i / m_i)^2) / 2``
-    is at most ``spacing / 2``: every plane sample whose centre lies in the projection of
-    an occupied voxel cube is set (no holes, even for voxels coarser than the plane), and a
-    set sample's centre lies within ``spacing / 2`` of that projection (a dilation of at most
-    half a sample).
+    Holes: the automatic sub-sampling takes, for each grid, ``m_i = ceil(sqrt(3) * edge_i /
+    spacing)`` points along each index axis ``i`` (``edge_i`` that grid's voxel edge along the
+    axis in object units; ``spacing = 2 extent / (G - 1)``; clipped to 8). The voxel edges are
+    orthogonal, so the sub-cubes' half-diagonal ``sqrt(sum (edge_i / m_i)^2) / 2`` is at most
+    ``spacing / 2``: every plane sample whose centre lies in the projection of an occupied
+    voxel cube is set (no holes, even for voxels coarser than the plane), and a set sample's
+    centre lies within ``spacing / 2`` of that projection (a dilation of at most half a
+    sample). The rule is per grid, so a grid's projection does not depend on the other grids
+    of the batch (grids are processed in groups of equal ``m``).
 
     Only boundary voxels are splatted (occupied voxels with an empty voxel, or the grid's
     edge, among their 26 neighbours): a ray through an occupied cube leaves the occupied set
@@ -267,7 +358,11 @@ def project_proposals(
         extent: plane half-width (object units), required (see :func:`plane_extent`).
         centre: optional ``(3,)`` plane centre (default the object-frame origin).
         supersample: ``m`` (``>= 1``) or ``None`` for the rule above.
-        chunk_points: sub-voxel points handled at once (bounds memory).
+        chunk_points: sub-voxel points handled at once (bounds memory); default ``2**22`` on
+            the CPU, ``2**24`` on other devices.
+        chunk_voxels: voxels of the grids handled at once (the dense boundary pass); default
+            ``2**20`` on the CPU (a few MB stay in its caches), ``2**27`` on other devices
+            (few, large kernels).
 
     Returns:
         ``(B, 3, G, G)`` bool on the occupancy's device.
@@ -281,13 +376,16 @@ def project_proposals(
         raise ValueError(f"ref_cameras must hold B={B} cameras, got {len(ref_cameras)}")
     if supersample is not None and int(supersample) < 1:
         raise ValueError(f"supersample must be None or >= 1, got {supersample}")
-    if int(chunk_points) < 1:
-        raise ValueError(f"chunk_points must be >= 1, got {chunk_points}")
+    kind = occupancy.device.type if occupancy.device.type in _CHUNK_VOXELS else "cuda"
+    chunk_voxels = _CHUNK_VOXELS[kind] if chunk_voxels is None else chunk_voxels
+    chunk_points = _CHUNK_POINTS[kind] if chunk_points is None else chunk_points
+    if int(chunk_points) < 1 or int(chunk_voxels) < 1:
+        raise ValueError(f"chunk_points and chunk_voxels must be >= 1, got {chunk_points}, {chunk_voxels}")
     dev = occupancy.device
     G = int(plane_size)
-    out = torch.zeros(B * 3 * G * G, dtype=torch.bool, device=dev)
+    Gp = G + 2
     if B == 0:
-        return out.reshape(0, 3, G, G)
+        return torch.zeros(0, 3, G, G, dtype=torch.bool, device=dev)
 
     T = voxel_to_camera.to(device=dev, dtype=torch.float64)
     cams = ref_cameras.to(device=dev, dtype=torch.float64)
@@ -301,44 +399,22 @@ def project_proposals(
         A[:, :, 3] -= ax @ centre.to(device=dev, dtype=torch.float64)
 
     spacing = 2.0 * extent / (G - 1)
-    if supersample is None:
-        edges = A[:, :, :3].norm(dim=1).amax(dim=0)  # (3,) voxel edge per index axis, object units
-        ms = [min(8, max(1, math.ceil(math.sqrt(3.0) * float(e) / spacing))) for e in edges]
-    else:
-        ms = [int(supersample)] * 3
-    m3 = ms[0] * ms[1] * ms[2]
+    ms = _supersampling(A, spacing, supersample)
     # In plane-sample units u = (c + extent) / spacing, a sample's index is round(u).
     U = A / spacing
     U[:, :, 3] += extent / spacing
-    o = [(torch.arange(mi, dtype=torch.float64, device=dev) + 0.5) / mi - 0.5 for mi in ms]
-    offsets = torch.stack(torch.meshgrid(*o, indexing="ij"), dim=-1).reshape(-1, 3)  # (m3, 3)
-    delta = (offsets @ U[:, :, :3].transpose(-1, -2)).to(torch.float32)  # (B, m3, 3)
-    # u(b, d, h, w) = Ld[b, d] + Lh[b, h] + Lw[b, w] (the constant folded into Ld): lookup tables.
     D, H, W = occupancy.shape[1:]
-    Ld = (U[:, None, :, 0] * torch.arange(D, device=dev, dtype=torch.float64)[None, :, None] + U[:, None, :, 3])
-    Lh = U[:, None, :, 1] * torch.arange(H, device=dev, dtype=torch.float64)[None, :, None]
-    Lw = U[:, None, :, 2] * torch.arange(W, device=dev, dtype=torch.float64)[None, :, None]
-    Ld, Lh, Lw = (L.to(torch.float32).reshape(-1, 3) for L in (Ld, Lh, Lw))  # (B*D, 3) ...
-
-    trash = out.numel()
-    out = torch.zeros(trash + 1, dtype=torch.bool, device=dev)  # last entry catches samples off the plane
-    occ = _boundary(occupancy).nonzero()  # (M, 4): b, d, h, w, sorted by b
-    per = max(1, int(chunk_points) // m3)
-    for start in range(0, occ.shape[0], per):
-        bi, di, hi, wi = occ[start : start + per].unbind(-1)
-        u = Ld[bi * D + di] + Lh[bi * H + hi] + Lw[bi * W + wi]  # (M, 3)
-        u = u[:, None, :] + delta[bi]  # (M, m3, 3)
-        k = torch.round(u)
-        inside = (k >= 0) & (k <= G - 1)
-        k = k.long()
-        base = bi[:, None] * (3 * G * G)  # (M, 1)
-        for j in range(3):  # the three planes: (a, b) = (u[(j+1)%3], u[(j+2)%3])
-            a, b = (j + 1) % 3, (j + 2) % 3
-            flat = base + (j * G + k[..., b]) * G + k[..., a]
-            ok = inside[..., a] & inside[..., b]
-            out[torch.where(ok, flat, trash)] = True
-    out = out[:trash]
-    return out.reshape(B, 3, G, G)
+    out = torch.zeros(B * 3 * Gp * Gp, dtype=torch.bool, device=dev)
+    groups: dict[tuple, list[int]] = {}
+    for b, key in enumerate(map(tuple, ms.tolist())):  # one host read per call
+        groups.setdefault(key, []).append(b)
+    per = max(1, int(chunk_voxels) // max(1, D * H * W))
+    for key, members in groups.items():
+        members = torch.tensor(members, device=dev)
+        for c0 in range(0, len(members), per):
+            rows = members[c0:c0 + per]
+            _splat(out, occupancy[rows], U[rows], rows, key, G, chunk_points)
+    return out.view(B, 3, Gp, Gp)[:, :, 1:-1, 1:-1].contiguous()
 
 
 def score_proposals(projections: torch.Tensor, averages: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
@@ -367,7 +443,8 @@ def score_proposals(projections: torch.Tensor, averages: torch.Tensor, counts: t
 
 
 def keypoint_misses(
-    occupancy: torch.Tensor, voxel_to_camera: torch.Tensor, keypoints: torch.Tensor, visible: torch.Tensor
+    occupancy: torch.Tensor, voxel_to_camera: torch.Tensor, keypoints: torch.Tensor, visible: torch.Tensor,
+    columns: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Visible reference keypoints that the proposal's silhouette does not cover.
 
@@ -382,6 +459,8 @@ def keypoint_misses(
         voxel_to_camera: ``(B, 4, 4)``.
         keypoints: ``(B, K, 2)`` reference keypoints, canvas pixels ``(x, y)``.
         visible: ``(B, K)`` bool.
+        columns: optional ``(B, H, W)`` bool ``occupancy.any(dim=1)`` when known already
+            (:attr:`carvi_torch.carve.ProposalGrids.columns`); saves a pass over the grids.
 
     Returns:
         ``(B,)`` long.
@@ -398,7 +477,9 @@ def keypoint_misses(
     scale = T[:, :2, 1:3].abs().amax(dim=(-2, -1)).clamp_min(1e-12)
     if bool((T[:, :2, 0].abs() > 1e-6 * scale[:, None]).any()):
         raise ValueError("voxel_to_camera must align the depth index with the viewing ray (T[:2, 0] == 0)")
-    column = occupancy.any(dim=1)  # (B, H, W)
+    if columns is not None and tuple(columns.shape) != (B, H, W):
+        raise ValueError(f"columns must be ({B}, {H}, {W}) like occupancy.any(dim=1), got {tuple(columns.shape)}")
+    column = occupancy.any(dim=1) if columns is None else columns.to(dev).bool()  # (B, H, W)
     rhs = keypoints.to(device=dev, dtype=torch.float64) - T[:, None, :2, 3]  # (B, K, 2)
     hw = torch.linalg.solve(T[:, None, :2, 1:3].expand(B, K, 2, 2), rhs)  # (B, K, 2) = (h, w)
     hw = torch.round(hw)

@@ -276,19 +276,56 @@ def cluster_weights(
         ``weights (R, 3)`` float64 and ``eligible (R, 3)`` long, the number of members of
         each cluster eligible as surrogates of each reference.
     """
-    sizes = torch.bincount(labels[labels >= 0], minlength=3)[:3].double()
+    counts = torch.bincount(labels[labels >= 0], minlength=3)[:3]
+    sizes = counts.double()
     total = sizes.sum().clamp_min(1.0)
     base = torch.clamp(sizes / total, min=floor)  # (3,)
     # eligible[r, j] = #{n : labels[n] == j, object_ids[n] != object_ids[ref_r]}
-    onehot = (labels[:, None] == torch.arange(3, device=labels.device)).long()  # (N, 3)
-    other = object_ids[None, :] != object_ids[references][:, None]  # (R, N)
-    eligible = other.long() @ onehot  # (R, 3)
+    #               = sizes[j] - #{n : labels[n] == j, object_ids[n] == object_ids[ref_r]}
+    # (members per object id and cluster: O(N) memory, not a reference x instance matrix)
+    ids, group = torch.unique(object_ids, return_inverse=True)
+    clustered = labels >= 0
+    per_object = torch.zeros(ids.shape[0], 3, dtype=torch.long, device=labels.device)
+    per_object.index_put_((group[clustered], labels[clustered]), torch.ones_like(labels[clustered]), accumulate=True)
+    eligible = counts[None, :] - per_object[group[references]]  # (R, 3)
     w = base[None, :].expand(references.shape[0], 3).clone()
     own = labels[references]
     has_own = own >= 0
     w[has_own.nonzero().squeeze(-1), own[has_own]] = float(own_cluster_weight)
     w = torch.where(eligible > 0, w, torch.zeros_like(w))
     return w, eligible
+
+
+#: Member weights (references x 3 x instances) built at once by :func:`sample_triplets`.
+_TRIPLET_CHUNK_ELEMS = 1 << 24
+
+
+def _member_draws(labels: torch.Tensor, object_ids: torch.Tensor, references: torch.Tensor, eligible: torch.Tensor,
+                  samples: int, generator: torch.Generator | None) -> torch.Tensor:
+    """``(3 r, samples)`` uniform draws (with replacement) among each cluster's eligible members.
+
+    Row ``3 i + j``: members of cluster ``j`` not sharing ``object_ids[references[i]]``; a cluster
+    without any (``eligible[i, j] == 0``) draws among all instances (a placeholder, never used).
+    The weights are the cluster indicators with the reference's own object zeroed (one copy
+    and a scatter, not an elementwise comparison of every reference with every instance).
+    """
+    n = labels.shape[0]
+    r = references.shape[0]
+    dev = labels.device
+    probs = (labels[None, :] == torch.arange(3, device=dev)[:, None]).float()[None].expand(r, 3, n).clone()
+    # instances sharing each reference's object id: (reference row, instance) pairs
+    order = torch.argsort(object_ids, stable=True)
+    sorted_ids = object_ids[order]
+    first = torch.searchsorted(sorted_ids, object_ids[references])
+    last = torch.searchsorted(sorted_ids, object_ids[references], right=True)
+    size = last - first
+    row = torch.repeat_interleave(torch.arange(r, device=dev), size)
+    rank = torch.arange(row.shape[0], device=dev) - torch.repeat_interleave(torch.cumsum(size, 0) - size, size)
+    inst = order[first[row] + rank]
+    clustered = labels[inst] >= 0
+    probs[row[clustered], labels[inst[clustered]], inst[clustered]] = 0.0
+    probs[eligible <= 0] = 1.0  # placeholders for empty rows
+    return torch.multinomial(probs.reshape(-1, n), samples, replacement=True, generator=generator)
 
 
 def sample_triplets(
@@ -371,14 +408,13 @@ def sample_triplets(
     else:
         pick = torch.zeros(R, P, 2, dtype=torch.long, device=dev)
 
-    # 2. one eligible member of every cluster per slot, then keep the chosen cluster's.
-    member = (labels[None, None, :] == torch.arange(3, device=dev)[None, :, None]) & (
-        object_ids[None, None, :] != object_ids[references][:, None, None]
-    )  # (R, 3, N)
-    probs = member.float()
-    probs = torch.where(eligible[..., None] > 0, probs, torch.ones_like(probs))  # placeholders for empty rows
+    # 2. one eligible member of every cluster per slot, then keep the chosen cluster's. The
+    # (references, 3, N) member weights are built a chunk of references at a time (bounded memory
+    # for large classes); multinomial draws row by row, so chunks give the same draws.
     if R * P and n:
-        draws = torch.multinomial(probs.reshape(R * 3, n), 2 * P, replacement=True, generator=generator)
+        per = max(1, _TRIPLET_CHUNK_ELEMS // (3 * n))
+        draws = torch.cat([_member_draws(labels, object_ids, references[r:r + per], eligible[r:r + per], 2 * P,
+                                         generator) for r in range(0, R, per)])
         draws = draws.reshape(R, 3, P, 2)
         surrogates = draws.permute(0, 2, 3, 1).gather(-1, pick[..., None]).squeeze(-1)  # (R, P, 2)
     else:

@@ -25,6 +25,7 @@ from carvi_torch.carve import (
     extend_maps,
     imprinted_visual_hull,
     mask_geometry,
+    prepare_maps,
 )
 from carvi_torch.sdf import signed_distance
 from conftest import requires_cuda
@@ -602,3 +603,82 @@ def test_real_cad_chair_hull_contains_the_model(shared_data):
     out = carve_proposals(signed_distance(masks), cams, torch.tensor([0]), torch.tensor([[1, 2]]), resolution=n)
     assert (out.occupancy[0].any(0) | ~out.reference_columns[0]).all()
     assert grid.to_mesh().is_watertight
+
+
+# --------------------------------------------------------------------------- prepared maps, depth intervals
+
+
+def test_prepared_maps_give_the_same_grids_bit_for_bit():
+    gen = torch.Generator().manual_seed(11)
+    sdf, cams, reference, views = random_proposals(gen, M=9, B=14, V=5, size=28)
+    plain = carve_proposals(sdf, cams, reference, views, resolution=12)
+    maps = prepare_maps(sdf, cams)
+    assert len(maps) == 9 and maps.ext.shape == (10, 28 + 2 * PAD, 28 + 2 * PAD)
+    torch.testing.assert_close(maps.sdf(torch.arange(9)), sdf.clamp(-BIG, BIG), rtol=0, atol=0)
+    for kw in ({}, dict(max_batch_voxels=12 ** 3), dict(coarse_to_fine=True), dict(depth_intervals=True)):
+        got = carve_proposals(maps, None, reference, views, resolution=12, **kw)
+        assert torch.equal(got.occupancy, plain.occupancy), kw
+        assert torch.equal(got.voxel_to_camera, plain.voxel_to_camera) and torch.equal(got.empty, plain.empty)
+        assert torch.equal(got.columns, got.occupancy.any(dim=1)), kw
+    # maps given a chunk at a time by a function: the same maps
+    chunked = prepare_maps(lambda a, b: sdf[a:b], cams, count=9)
+    assert torch.equal(chunked.ext, maps.ext) and torch.equal(chunked.box, maps.box)
+    # the loop takes prepared maps too
+    loop = carve_proposals_loop(maps, None, reference, views, resolution=12)
+    assert torch.equal(loop.occupancy, plain.occupancy)
+    with pytest.raises(ValueError, match="cameras=None"):
+        carve_proposals(maps, cams, reference, views, resolution=12)
+    with pytest.raises(ValueError, match="reference"):
+        carve_proposals(maps, None, torch.tensor([9]), views[:1], resolution=12)
+    with pytest.raises(ValueError, match="count"):
+        prepare_maps(lambda a, b: sdf[a:b], cams)
+
+
+def test_entries_sharing_a_map_equal_copies_of_it():
+    """with_entries (e.g. rotated cameras of one reference) carves like copying the map per camera."""
+    gen = torch.Generator().manual_seed(12)
+    sdf, cams, reference, views = random_proposals(gen, M=8, B=8, V=2, size=24)
+    extra = random_cameras(4, 24, gen)
+    which = torch.tensor([0, 0, 2, 3])
+    maps = prepare_maps(sdf, cams).with_entries(which, extra)
+    copied = torch.cat([sdf, sdf[which]])
+    cams_all = ScaledOrthographic.cat([cams, extra])
+    ref = torch.tensor([0, 2, 3, 1])
+    vw = torch.tensor([[8, 9], [10, -1], [11, 1], [8, 11]])
+    a = carve_proposals(maps, None, ref, vw, resolution=11)
+    b = carve_proposals(copied, cams_all, ref, vw, resolution=11)
+    assert torch.equal(a.occupancy, b.occupancy) and torch.equal(a.voxel_to_camera, b.voxel_to_camera)
+    with pytest.raises(ValueError, match="map indices"):
+        prepare_maps(sdf, cams).with_entries(torch.tensor([8]), extra[:1])
+
+
+@pytest.mark.parametrize("steep", [False, True])
+def test_depth_intervals_only_skip_exterior_voxels(steep):
+    """Depth intervals: every skipped voxel has C >= 0 (full cost of the loop), also for maps that
+    are not distance maps and masks touching the canvas edge; labels identical."""
+    gen = torch.Generator().manual_seed(13 + steep)
+    sdf, cams, reference, views = random_proposals(gen, M=8, B=12, V=4, size=24)
+    masks = sdf < 0
+    masks[2, :, :3] = True  # touches the left edge
+    masks[4, -2:, :] = True  # and the bottom edge
+    sdf = signed_distance(masks)
+    if steep:
+        sdf = sdf + 3.0 * torch.randn(sdf.shape, generator=gen)
+    n = 13
+    loop = carve_proposals_loop(sdf, cams, reference, views, resolution=n)
+    for imprint in (True, False):
+        got = carve_proposals(sdf, cams, reference, views, resolution=n, depth_intervals=True, imprint=imprint,
+                              max_batch_voxels=n ** 3)
+        ref_imp = carve_proposals_loop(sdf, cams, reference, views, resolution=n, imprint=imprint)
+        assert torch.equal(got.occupancy, ref_imp.occupancy) and torch.equal(got.empty, ref_imp.empty)
+    # the intervals themselves: outside them the full cost is never negative
+    from carvi_torch import carve as C
+
+    maps = prepare_maps(sdf, cams)
+    ext, ref_m, views_m, T, G, G_ref, scale = C._prepare(maps, reference, views, n, keep_double=True)
+    cols = torch.arange(n * n).expand(len(reference), -1)
+    lo, hi = C._column_intervals(G, maps.box[views.clamp(min=0)], views >= 0, cols, n, tuple(ext.shape[1:]))
+    d = torch.arange(n)[None, :, None]
+    outside = (d < lo[:, None, :]) | (d > hi[:, None, :])  # (B, n, HW)
+    assert outside.float().mean() > 0.1  # the intervals do skip voxels
+    assert bool((loop.cost.view(len(reference), n, -1)[outside] >= 0).all())

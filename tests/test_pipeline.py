@@ -16,6 +16,7 @@ from pycocotools.coco import COCO
 from carvi_torch.config import Config
 from carvi_torch.pipeline import run
 from carvi_torch.reconstruct import main as reconstruct_main
+from conftest import requires_cuda
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "progress": False,
@@ -206,3 +207,105 @@ def test_reference_split_and_saved_proposals(tiny, tmp_path):
         assert occ.shape[0] == TINY["proposals"]
         assert np.array_equal(occ[int(z["best"])].astype(bool), vox["occupancy"])
         assert np.allclose(z["voxel_to_camera"][int(z["best"])], vox["voxel_to_camera"])
+
+
+def _files(root: Path, cls: str) -> dict:
+    """Every output file of a class: voxels as arrays, meshes and scores as bytes."""
+    out = {}
+    for f in sorted((root / cls / "voxels").glob("*.npz")):
+        z = np.load(f)
+        out[f"voxels/{f.name}"] = {k: z[k] for k in z.files}
+    for f in sorted((root / cls / "meshes").glob("*.ply")):
+        out[f"meshes/{f.name}"] = f.read_bytes()
+    out["proposal_scores.json"] = (root / cls / "proposal_scores.json").read_bytes()
+    return out
+
+
+def test_writers_chunks_and_threads_do_not_change_outputs(tiny, tmp_path, monkeypatch):
+    """Inline writing vs writer processes, one object per chunk vs the default: the same files, byte for
+    byte; the torch thread count of the caller is restored."""
+    import carvi_torch.pipeline as P
+
+    out, summary = tiny
+    assert summary["writer_workers"] >= 1  # the fixture ran with writer processes
+    monkeypatch.setattr(P, "_CPU_CHUNK_OBJECTS", 1)
+    threads = torch.get_num_threads()
+    res = run(_cfg(tmp_path / "inline", data=summary["data"], classes=["car"], preview=False), workers=0, threads=1)
+    assert torch.get_num_threads() == threads
+    assert res["writer_workers"] == 0 and res["torch_threads"] == 1
+    a, b = _files(out, "car"), _files(tmp_path / "inline", "car")
+    assert a.keys() == b.keys() and len(a) > 3
+    for k in a:
+        if k.startswith("voxels/"):
+            assert a[k].keys() == b[k].keys()
+            for name in a[k]:
+                assert np.array_equal(a[k][name], b[k][name]), (k, name)
+        else:
+            assert a[k] == b[k], k
+    for stage in ("carve", "select", "mesh", "write"):
+        assert res["classes"]["car"]["seconds"][stage] > 0
+
+
+def test_writer_and_thread_rules(monkeypatch):
+    import carvi_torch.pipeline as P
+
+    monkeypatch.setenv("CARVI_WRITERS", "3")
+    monkeypatch.setenv("CARVI_THREADS", "2")
+    assert P.writer_workers(Config()) == 3 and P.torch_threads(3) == 2
+    monkeypatch.delenv("CARVI_WRITERS")
+    monkeypatch.delenv("CARVI_THREADS")
+    assert P.writer_workers(Config().override({"stage": "cameras"})) == 0
+    cores = len(os.sched_getaffinity(0))
+    assert P.writer_workers(Config()) == min(8, max(1, cores - 1))
+    assert P.torch_threads(P.writer_workers(Config())) == max(1, cores - P.writer_workers(Config()))
+    monkeypatch.setenv("CARVI_THREADS", "many")
+    with pytest.raises(ValueError, match="CARVI_THREADS"):
+        P.torch_threads(1)
+
+
+@requires_cuda
+def test_cuda_run_matches_cpu(tiny, tmp_path):
+    """device=cuda end to end: the same objects reconstructed; with the true cameras (no SfM or refinement
+    differences) the voxels agree with the CPU run but for float rounding at a few voxels."""
+    out, summary = tiny
+    kw = dict(data=summary["data"], classes=["car"], preview=False, cameras="gt")
+    cpu = run(_cfg(tmp_path / "cpu", **kw), workers=0)
+    gpu = run(_cfg(tmp_path / "gpu", device="cuda", **kw))
+    assert gpu["device"].startswith("cuda") and gpu["peak_cuda_mb"] > 0
+    assert gpu["classes"]["car"]["reconstructed"] == cpu["classes"]["car"]["reconstructed"] >= 5
+    agree = []
+    for f in (tmp_path / "cpu" / "car" / "voxels").glob("*.npz"):
+        a, b = np.load(f)["occupancy"], np.load(tmp_path / "gpu" / "car" / "voxels" / f.name)["occupancy"]
+        agree.append((a == b).mean() if a.shape == b.shape else 0.0)
+    assert np.median(agree) > 0.999 and min(agree) > 0.95
+
+
+@requires_cuda
+def test_cuda_chunk_has_no_per_object_host_reads(tiny):
+    """The device work of a chunk reads back from the GPU a fixed number of times, not once per object
+    (a few more for a larger chunk are allowed: one per further group of equal sub-sampling in the
+    selection's projections)."""
+    import warnings
+
+    import carvi_torch.pipeline as P
+    from carvi_torch.io import coco
+
+    out, summary = tiny
+    cfg = _cfg(out, data=summary["data"], device="cuda")
+    loaded = coco.load_coco(summary["data"], canvas_size=cfg.canvas_size, margin=cfg.canvas_margin,
+                            device=torch.device("cuda"), classes=["car"])
+    plan, todo, report = P.prepare_class(loaded.collections["car"], cfg, torch.device("cuda"),
+                                         torch.Generator().manual_seed(0))
+    counts = []
+    for R in (1, len(todo)):
+        ids = torch.tensor(todo[:R], device="cuda")
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                P._carve_and_select(ids, plan, cfg, report, torch.device("cuda"))
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+        counts.append(len(caught))
+    assert len(todo) >= 5 and counts[1] <= counts[0] + 4, counts

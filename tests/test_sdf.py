@@ -85,6 +85,16 @@ class TestSignedDistance:
         assert (s[:, 1:] - s[:, :-1]).abs().max() <= 1.0 + 1e-5
         assert (s[1:] - s[:-1]).abs().max() <= 1.0 + 1e-5
 
+    def test_given_outside_distances_are_reused(self, generator):
+        m = _random_masks(generator)
+        out = sdf.distance_to_mask(m)
+        assert torch.equal(sdf.signed_distance(m, outside=out), sdf.signed_distance(m))
+        # the given map is what is used (not recomputed)
+        torch.testing.assert_close(sdf.signed_distance(m, outside=out + 1.0)[~m], sdf.signed_distance(m)[~m] + 1.0,
+                                   atol=1e-5, rtol=0)
+        with pytest.raises(ValueError, match="outside"):
+            sdf.signed_distance(m, outside=out[:2])
+
     @requires_cuda
     def test_cuda_matches_cpu(self, generator):
         m = _random_masks(generator)

@@ -302,6 +302,42 @@ class TestProjectProposals:
         assert expected.sum() > 20
         assert int((got.numpy() != expected).sum()) <= 2  # rounding ties at most
 
+    def test_boundary_vs_scipy_erosion(self, generator):
+        """Boundary voxels = occupied minus the 26-neighbourhood erosion (outside the grid counts as empty)."""
+        from scipy import ndimage
+
+        from carvi_torch.select import _boundary
+
+        occ = torch.rand(3, 7, 9, 8, generator=generator) > 0.35
+        occ[1] = True  # full grid: only its outer layer is boundary
+        got = _boundary(occ)
+        st = np.ones((3, 3, 3), bool)
+        for b in range(3):
+            o = occ[b].numpy()
+            expected = o & ~ndimage.binary_erosion(o, structure=st, border_value=0)
+            assert np.array_equal(got[b].numpy(), expected), b
+        assert got[1].sum() == 7 * 9 * 8 - 5 * 7 * 6
+
+    def test_each_grid_alone_equals_in_a_batch(self, generator, axes):
+        """Per-grid sub-sampling: a projection does not depend on its batch mates or on the chunking."""
+        cams = _ref_cameras(generator, 3)
+        grids = [_voxelise_box(cams[0], axes, HALF, step=0.6), _voxelise_box(cams[1], axes, HALF, step=2.5),
+                 _voxelise_box(cams[2], axes, HALF, step=1.2)]
+        occ, T = _stack_grids(grids)
+        full = project_proposals(occ, T, cams, axes, 48, 1.3)
+        for b in range(3):
+            alone = project_proposals(occ[b:b + 1], T[b:b + 1], cams[b:b + 1], axes, 48, 1.3)
+            assert torch.equal(alone[0], full[b]), b
+        small = project_proposals(occ, T, cams, axes, 48, 1.3, chunk_points=100, chunk_voxels=1)
+        assert torch.equal(small, full)
+        # the coarse grid needs more sub-samples than the fine one: the rule is per grid
+        from carvi_torch.select import _supersampling
+
+        A = torch.zeros(3, 3, 4, dtype=torch.float64)
+        A[:, :, :3] = torch.diag_embed(torch.tensor([[0.1, 0.1, 0.1], [1.0, 0.1, 0.1], [0.1, 0.1, 2.0]],
+                                                    dtype=torch.float64))
+        assert _supersampling(A, 0.2, None).tolist() == [[1, 1, 1], [8, 1, 1], [1, 1, 8]]
+
     def test_empty_and_exceptions(self, generator, axes):
         cams = _ref_cameras(generator, 2)
         occ = torch.zeros(2, 3, 3, 3, dtype=torch.bool)
@@ -384,6 +420,21 @@ class TestKeypointMisses:
             expected.append(miss)
         assert got.tolist() == expected
         assert max(expected) > 0 and min(expected) < int(vis.sum(-1).min())  # neither trivial case
+
+    def test_known_columns_give_the_same_misses(self, generator):
+        B, D, H, W, K = 3, 4, 9, 11, 15
+        occ = torch.rand(B, D, H, W, generator=generator) > 0.85
+        T = torch.zeros(B, 4, 4, dtype=torch.float64)
+        T[:, 0, 2] = T[:, 1, 1] = T[:, 2, 0] = 1.0
+        T[:, 3, 3] = 1
+        kp = torch.rand(B, K, 2, generator=generator) * 12
+        vis = torch.ones(B, K, dtype=torch.bool)
+        plain = keypoint_misses(occ, T, kp, vis)
+        assert torch.equal(keypoint_misses(occ, T, kp, vis, columns=occ.any(dim=1)), plain)
+        assert not torch.equal(keypoint_misses(occ, T, kp, vis, columns=torch.zeros(B, H, W, dtype=torch.bool)),
+                               plain)
+        with pytest.raises(ValueError, match="columns"):
+            keypoint_misses(occ, T, kp, vis, columns=occ.any(dim=2))
 
     def test_rotated_in_plane_grid(self, generator):
         # a grid turned in the image plane: columns are found through the 2x2 inverse

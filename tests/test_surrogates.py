@@ -245,6 +245,24 @@ class TestSampleTriplets:
         assert a.reasons == b.reasons
         assert not torch.equal(a.surrogates, c.surrogates)
 
+    def test_chunked_member_weights_give_the_same_draws(self, generator, monkeypatch):
+        """The member weights are built a chunk of references at a time: same triplets, and the
+        same as the reference x instance matrix of the stated rule (brute force)."""
+        import carvi_torch.surrogates as S
+
+        labels, object_ids = _random_class(generator)
+        object_ids[::4] = object_ids[1::4][: len(object_ids[::4])]  # some physical objects seen twice
+        refs = torch.arange(len(labels))
+        whole = sample_triplets(labels, object_ids, refs, 12, torch.Generator().manual_seed(5))
+        monkeypatch.setattr(S, "_TRIPLET_CHUNK_ELEMS", 3 * len(labels) * 7)  # chunks of 7 references
+        chunked = sample_triplets(labels, object_ids, refs, 12, torch.Generator().manual_seed(5))
+        assert torch.equal(whole.surrogates, chunked.surrogates) and whole.reasons == chunked.reasons
+        # brute force: eligible members counted pair by pair
+        w, elig = cluster_weights(labels, object_ids, refs)
+        brute = [[sum(int(labels[m]) == j and int(object_ids[m]) != int(object_ids[r]) for m in range(len(labels)))
+                  for j in range(3)] for r in refs.tolist()]
+        assert elig.tolist() == brute
+
     def test_cluster_weights_stated_rule(self):
         labels = torch.tensor([0] * 30 + [1] * 10 + [2] * 5 + [-1])
         object_ids = torch.arange(46)

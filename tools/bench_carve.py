@@ -5,12 +5,15 @@ their mirrored copies) gives ``--references`` objects with ``--proposals`` propo
 each; every proposal carves the reference with 5 further views (two surrogates,
 their mirrored copies and the mirrored reference), as the pipeline does. Timed:
 
-* ``batched``: :func:`carvi_torch.carve.carve_proposals` on all proposals at once;
+* ``batched``: :func:`carvi_torch.carve.carve_proposals` on all proposals at once, on
+  maps prepared once (:func:`carvi_torch.carve.prepare_maps`, timed apart, as the
+  pipeline does per class);
 * ``loop``: :func:`carvi_torch.carve.carve_proposals_loop` (one proposal, one view
-  at a time) on the first ``--loop-references`` objects, and checked voxel for voxel
-  against the batched result;
-* ``batched, coarse_to_fine=True``: the same with the optional coarse-to-fine
-  evaluation (fewer samples, more bookkeeping);
+  at a time, its maps prepared per proposal) on the first ``--loop-references``
+  objects, and checked voxel for voxel against the batched result;
+* ``batched, depth_intervals=True`` and ``batched, coarse_to_fine=True``: the same with
+  the optional per-column depth intervals or coarse-to-fine evaluation (fewer samples,
+  more bookkeeping);
 * ``floor``: the time spent inside the ``grid_sample`` calls alone, measured in situ
   (``carve._grid_sample`` wrapped by a clock) for each of those runs; the loop's floor
   is the cost of sampling every voxel of every proposal.
@@ -152,9 +155,16 @@ def main(argv=None):
     mbv = args.max_batch_voxels or C._DEFAULT_BATCH_VOXELS.get(device.type, C._DEFAULT_BATCH_VOXELS["cuda"])
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    carve = lambda: C.carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=mbv)  # noqa: E731
+    t_prepare = best_of(lambda: C.prepare_maps(sdf, cams), args.repeat, device)
+    maps = C.prepare_maps(sdf, cams)
+    carve = lambda: C.carve_proposals(maps, None, reference, views, resolution=n, max_batch_voxels=mbv)  # noqa: E731
     out = carve()  # warm-up
     t_batched = best_of(carve, args.repeat, device)
+    intervals = lambda: C.carve_proposals(maps, None, reference, views, resolution=n,  # noqa: E731
+                                          max_batch_voxels=mbv, depth_intervals=True)
+    identical_intervals = bool(torch.equal(intervals().occupancy, out.occupancy))
+    t_int = best_of(intervals, args.repeat, device)
+    t_int_floor, int_samples = floor(intervals, args.repeat, device)
 
     n_loop = min(args.loop_references, n_obj) * per
     loop = lambda: C.carve_proposals_loop(sdf, cams, reference[:n_loop], views[:n_loop], resolution=n)  # noqa: E731
@@ -163,7 +173,7 @@ def main(argv=None):
     identical = bool(torch.equal(ref_loop.occupancy, out.occupancy[:n_loop]))
 
     t_floor, samples = floor(carve, args.repeat, device)
-    c2f = lambda: C.carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=mbv,  # noqa: E731
+    c2f = lambda: C.carve_proposals(maps, None, reference, views, resolution=n, max_batch_voxels=mbv,  # noqa: E731
                                     coarse_to_fine=True)
     t_c2f = best_of(c2f, args.repeat, device)
     t_c2f_floor, c2f_samples = floor(c2f, args.repeat, device)
@@ -173,10 +183,13 @@ def main(argv=None):
 
     per_obj = lambda t: t / n_obj  # noqa: E731
     rows = [
+        ("prepare maps (once per class)", t_prepare, 0),
         ("batched (foreground columns)", t_batched, samples),
+        ("batched, depth_intervals=True", t_int, int_samples),
         ("batched, coarse_to_fine=True", t_c2f, c2f_samples),
         ("loop (every voxel)", t_loop, loop_samples),
         ("floor: grid_sample of batched", t_floor, samples),
+        ("floor: grid_sample of depth intervals", t_int_floor, int_samples),
         ("floor: grid_sample of coarse-to-fine", t_c2f_floor, c2f_samples),
         ("floor: grid_sample of loop", t_loop_floor, loop_samples),
     ]
@@ -187,7 +200,7 @@ def main(argv=None):
         print(f"{name:40s} {per_obj(t):10.4f} {t:9.3f} {s_ / 1e6:9.1f}")
     print(f"batched vs loop: {t_loop / t_batched:.1f}x faster; batched / its floor: {t_batched / t_floor:.2f}; "
           f"batched / loop's floor: {t_batched / t_loop_floor:.2f}; "
-          f"identical to loop on {n_loop} proposals: {identical}")
+          f"identical to loop on {n_loop} proposals: {identical}; depth intervals identical: {identical_intervals}")
     occupied = float(out.occupancy.float().mean())
     result = {
         "command": " ".join(["python tools/bench_carve.py"] + argv),
@@ -198,15 +211,18 @@ def main(argv=None):
         "config": {"references": n_obj, "proposals_per_reference": per, "further_views": int(views.shape[1]),
                    "resolution": n, "canvas": args.canvas, "max_batch_voxels": mbv, "repeat": args.repeat,
                    "loop_proposals_timed": n_loop, "seed": args.seed},
-        "seconds_per_object": {"batched": per_obj(t_batched), "batched_coarse_to_fine": per_obj(t_c2f),
+        "seconds_per_object": {"prepare_maps": per_obj(t_prepare), "batched": per_obj(t_batched),
+                               "batched_depth_intervals": per_obj(t_int), "batched_coarse_to_fine": per_obj(t_c2f),
                                "loop": per_obj(t_loop), "floor_batched": per_obj(t_floor),
+                               "floor_depth_intervals": per_obj(t_int_floor),
                                "floor_coarse_to_fine": per_obj(t_c2f_floor), "floor_loop": per_obj(t_loop_floor)},
-        "samples_per_object": {"batched": samples / n_obj, "coarse_to_fine": c2f_samples / n_obj,
-                               "loop": loop_samples / n_obj},
+        "samples_per_object": {"batched": samples / n_obj, "depth_intervals": int_samples / n_obj,
+                               "coarse_to_fine": c2f_samples / n_obj, "loop": loop_samples / n_obj},
         "speedup_vs_loop": t_loop / t_batched,
         "batched_over_its_floor": t_batched / t_floor,
         "batched_over_loop_floor": t_batched / t_loop_floor,
         "identical_to_loop": identical,
+        "depth_intervals_identical": identical_intervals,
         "occupied_fraction": occupied,
         "foreground_column_fraction": float(out.reference_columns.float().mean()),
     }
