@@ -342,7 +342,9 @@ def viewpoints(args) -> int:
                         "median_azimuth": full[st]["azimuth"]["median"],
                         "median_elevation": full[st]["elevation"]["median"]}
                    for st in ("sfm", "refined") if st in full}
-    out = {"command": _command(), "source": str(bench_json), "classes": rows,
+    missing = [c for c, r in rows.items() if not ("sfm" in r and "refined" in r)]
+    rows = {c: r for c, r in rows.items() if c not in missing}
+    out = {"command": _command(), "source": str(bench_json), "classes": rows, "classes_without_cameras": missing,
            "median_of_class_medians": {st: float(np.median([r[st]["median_geodesic"] for r in rows.values() if st in r]))
                                        for st in ("sfm", "refined")}}
     from carvi_torch.io.outputs import write_json
