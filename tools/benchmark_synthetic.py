@@ -1,0 +1,405 @@
+"""The paper's synthetic benchmark (its Table 1) on the PASCAL3D+ CAD models, with one command.
+
+Steps (each skipped when its output exists, unless ``--fresh``):
+
+1. **Render** every model of ``--models`` (73 PASCAL3D+ CAD models, 12 classes) from
+   ``--pool + --test-views`` cameras drawn like photographs
+   (:func:`carvi_torch.synthetic.render_dataset`): the first ``--test-views`` renders of each
+   model are ``split=test``, the others ``split=pool``.
+2. **Reconstruct** every test render with ``python -m carvi_torch.reconstruct
+   references=test`` (surrogates come from other models only: renders of one model share an
+   ``object_id``), once per method: ``Full``; ``-CRef`` (``refine=false``); ``-SImp``
+   (``imprint=false``); ``oracle`` (``cameras=gt``). ``Full`` also saves every proposal
+   (``save_proposals=true``) for ``tools/studies.py``. ``--jobs`` runs that many at once, each
+   with ``torch`` threads = cores / jobs.
+3. **Evaluate** with ``python -m carvi_torch.evaluate --baselines --split test`` (adds Puffball
+   and SFMc): the symmetric RMS error in percent of the ground-truth bounding-box diagonal,
+   surfaces sampled every ``--step-percent`` of that diagonal. With ``--jobs 2`` the classes
+   are split in two evaluate processes and their results merged.
+4. **Write** ``--results`` (default ``docs/results/``): ``table1.md`` (per class + mean, the
+   paper's numbers beside ours), ``benchmark.json`` (everything, with the command line,
+   the machine, wall and CPU times per step), ``viewpoints.md``.
+
+Same seed, same numbers: the renders depend only on ``(seed, model name)``, the
+reconstructions on ``seed``.
+
+Example (the numbers of docs/results/):
+
+    python tools/benchmark_synthetic.py --out outputs/benchmark --jobs 2
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import resource
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+#: The paper's Table 1 (symmetric RMS, % of the GT bbox diagonal) for the 12 PASCAL3D+ classes and its mean
+#: over its 20 classes.
+PAPER = {
+    "aeroplane": {"Full": 3.58, "-CRef": 4.94, "-SImp": 3.95, "Puffball": 9.64, "SFMc": 5.79},
+    "bicycle": {"Full": 4.30, "-CRef": 3.26, "-SImp": 4.75, "Puffball": 10.51, "SFMc": 6.56},
+    "boat": {"Full": 5.91, "-CRef": 6.78, "-SImp": 6.05, "Puffball": 8.81, "SFMc": 6.52},
+    "bottle": {"Full": 8.09, "-CRef": 10.77, "-SImp": 8.53, "Puffball": 6.25, "SFMc": 12.13},
+    "bus": {"Full": 6.45, "-CRef": 6.10, "-SImp": 6.49, "Puffball": 11.02, "SFMc": 7.34},
+    "car": {"Full": 3.04, "-CRef": 6.33, "-SImp": 3.10, "Puffball": 11.07, "SFMc": 3.22},
+    "chair": {"Full": 5.36, "-CRef": 5.73, "-SImp": 6.06, "Puffball": 8.13, "SFMc": 7.37},
+    "diningtable": {"Full": 8.97, "-CRef": 12.57, "-SImp": 14.30, "Puffball": 8.67, "SFMc": 9.52},
+    "motorbike": {"Full": 4.12, "-CRef": 4.24, "-SImp": 4.16, "Puffball": 9.24, "SFMc": 5.32},
+    "sofa": {"Full": 6.11, "-CRef": 6.24, "-SImp": 6.31, "Puffball": 8.06, "SFMc": 5.75},
+    "train": {"Full": 15.73, "-CRef": 20.55, "-SImp": 16.19, "Puffball": 17.01, "SFMc": 17.47},
+    "tvmonitor": {"Full": 9.73, "-CRef": 10.45, "-SImp": 10.28, "Puffball": 9.67, "SFMc": 10.08},
+}
+PAPER_MEAN_20 = {"Full": 6.96, "-CRef": 8.01, "-SImp": 7.53, "Puffball": 9.57, "SFMc": 9.40}
+
+#: Methods: name -> reconstruct overrides.
+METHODS = {
+    "Full": ["save_proposals=true"],
+    "-CRef": ["refine=false"],
+    "-SImp": ["imprint=false"],
+    "oracle": ["cameras=gt"],
+}
+PYTHON = sys.executable
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _cpu_children() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _cpu_self() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def _env(threads: int) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        env[k] = str(threads)
+    return env
+
+
+def run_parallel(commands: list[tuple[str, list[str], Path]], jobs: int, threads: int) -> dict[str, dict]:
+    """Run ``(name, argv, log)`` commands, ``jobs`` at a time; wall and CPU seconds per command."""
+    pending = list(commands)
+    running: dict[str, tuple[subprocess.Popen, float, object]] = {}
+    done: dict[str, dict] = {}
+    while pending or running:
+        while pending and len(running) < jobs:
+            name, argv, log = pending.pop(0)
+            log.parent.mkdir(parents=True, exist_ok=True)
+            fh = open(log, "w")
+            print(f"  start {name}: {' '.join(shlex.quote(a) for a in argv)}", flush=True)
+            running[name] = (subprocess.Popen(argv, stdout=fh, stderr=subprocess.STDOUT, env=_env(threads),
+                                              cwd=ROOT), time.perf_counter(), fh)
+        time.sleep(0.5)
+        for name in list(running):
+            proc, t0, fh = running[name]
+            if proc.poll() is None:
+                continue
+            fh.close()
+            wall = time.perf_counter() - t0
+            done[name] = {"wall_s": round(wall, 1), "returncode": proc.returncode}
+            del running[name]
+            print(f"  done  {name} in {wall:.0f} s (exit {proc.returncode})", flush=True)
+            if proc.returncode != 0:
+                for other, _, ofh in running.values():  # stop the others before giving up
+                    other.terminate()
+                    other.wait()
+                    ofh.close()
+                raise RuntimeError(f"{name} failed (exit {proc.returncode}); see {log_of(commands, name)}")
+    return done
+
+
+def log_of(commands, name):
+    return next(str(c[2]) for c in commands if c[0] == name)
+
+
+# --------------------------------------------------------------------------- steps
+
+
+def render(models_dir: Path, data_dir: Path, pool: int, test_views: int, seed: int, classes=None) -> dict:
+    """Render the dataset (step 1); returns ``render_dataset``'s summary."""
+    import torch
+
+    from carvi_torch.synthetic import load_models, render_dataset
+
+    models = load_models(models_dir)
+    if classes:
+        models = [m for m in models if m.category in classes]
+    torch.manual_seed(seed)
+    return render_dataset(models, data_dir, views=pool + test_views, test_views=test_views, seed=seed,
+                          progress=False)
+
+
+def _render_matches(data_dir: Path, pool: int, test_views: int, seed: int) -> bool:
+    ann = data_dir / "annotations.json"
+    if not (ann.is_file() and (data_dir / "gt.json").is_file()):
+        return False
+    with open(ann) as f:
+        head = f.read(4096)  # the "info" block comes first
+    try:
+        info = json.loads(head[head.index("{", 1):head.index("}") + 1])
+    except ValueError:
+        return False
+    return info.get("seed") == seed and info.get("views") == pool + test_views and info.get("test_views") == test_views
+
+
+def merge_evaluations(parts: list[dict]) -> dict:
+    """Merge ``evaluate`` results computed on disjoint class subsets (recomputes the mean over classes)."""
+    import numpy as np
+
+    out = dict(parts[0])
+    out["objects"], out["classes"], out["viewpoints"] = {}, {}, {}
+    for p in parts:
+        out["objects"].update(p["objects"])
+        out["classes"].update(p["classes"])
+        out["viewpoints"].update(p["viewpoints"])
+    out["classes"] = dict(sorted(out["classes"].items()))
+    means = {}
+    for m in out["methods"]:
+        vals = [c[m]["mean"] for c in out["classes"].values() if c[m]["mean"] is not None]
+        means[m] = float(np.mean(vals)) if vals else None
+    out["mean_over_classes"] = means
+    out["seconds"] = [p["seconds"] for p in parts]
+    return out
+
+
+def table1(res: dict) -> str:
+    """Markdown: our per-class means (bold = best of our methods) with the paper's in brackets."""
+    methods = [m for m in ("Full", "-CRef", "-SImp", "Puffball", "SFMc", "oracle") if m in res["methods"]]
+    head = "| class (objects) | " + " | ".join(methods) + " |"
+    lines = [head, "|---" * (len(methods) + 1) + "|"]
+    compared = [m for m in methods if m != "oracle"]
+    for cls, row in res["classes"].items():
+        vals = {m: row[m]["mean"] for m in methods}
+        finite = [vals[m] for m in compared if vals[m] is not None]
+        best = min(finite) if finite else None
+        cells = []
+        for m in methods:
+            v = vals[m]
+            txt = "-" if v is None else f"{v:.2f}"
+            if v is not None and v == best:
+                txt = f"**{txt}**"
+            paper = PAPER.get(cls, {}).get(m)
+            if paper is not None:
+                txt += f" ({paper:.2f})"
+            miss = row[m]["missing"]
+            if miss:
+                txt += f" [{miss} missing]"
+            cells.append(txt)
+        n = max(row[m]["count"] + row[m]["missing"] for m in methods)
+        lines.append(f"| {cls} ({n}) | " + " | ".join(cells) + " |")
+    means = res["mean_over_classes"]
+    common = common_classes(res, methods)
+    cmean = {m: sum(res["classes"][c][m]["mean"] for c in common) / len(common) if common else None for m in methods}
+    paper_c = {m: sum(PAPER[c][m] for c in common if c in PAPER) / max(1, sum(c in PAPER for c in common))
+               for m in compared}
+    lines.append(f"| **mean, the {len(common)} classes every method covers** | " + " | ".join(
+        ("-" if cmean[m] is None else f"**{cmean[m]:.2f}**") + (f" ({paper_c[m]:.2f})" if m in paper_c else "")
+        for m in methods) + " |")
+    lines.append("| mean, every class the method covers | " + " | ".join(
+        ("-" if means[m] is None else f"{means[m]:.2f}") + f" ({sum(1 for c in res['classes'].values() if c[m]['mean'] is not None)})"
+        for m in methods) + " |")
+    lines.append("| paper, mean of its 20 classes | " + " | ".join(
+        f"{PAPER_MEAN_20[m]:.2f}" if m in PAPER_MEAN_20 else "-" for m in methods) + " |")
+    return "\n".join(lines)
+
+
+def common_classes(res: dict, methods) -> list[str]:
+    """Classes where every method in ``methods`` has a mean error (the fair set for a mean)."""
+    return [c for c, row in res["classes"].items() if all(row[m]["mean"] is not None for m in methods)]
+
+
+def acceptance(res: dict) -> dict:
+    """The acceptance checks of the benchmark (Full vs baselines and ablations).
+
+    Means are compared over the classes every compared method covers (a class a method has no
+    reconstruction for would otherwise drop out of its mean only); a class without a Full result
+    counts as a loss in the per-class count.
+    """
+    means = res["mean_over_classes"]
+    cls = res["classes"]
+    compared = [m for m in ("Full", "-CRef", "-SImp", "Puffball", "SFMc") if m in means]
+    common = common_classes(res, compared)
+    cmean = {m: float(sum(cls[c][m]["mean"] for c in common) / len(common)) if common else None for m in compared}
+
+    def beats(c, b):
+        return cls[c]["Full"]["mean"] is not None and cls[c][b]["mean"] is not None and \
+            cls[c]["Full"]["mean"] < cls[c][b]["mean"]
+
+    baselines = [b for b in ("Puffball", "SFMc") if b in means]
+    checks = {
+        "classes": len(cls),
+        "classes_with_full": sum(1 for c in cls.values() if c["Full"]["mean"] is not None),
+        "common_classes": common,
+        "mean_over_common_classes": cmean,
+        "full_mean_over_its_classes": means.get("Full"),
+        "full_mean_at_most_7": means.get("Full") is not None and means["Full"] <= 7.0,
+        "full_beats_baselines_on_common_mean": bool(common) and all(cmean["Full"] < cmean[b] for b in baselines),
+        "classes_full_beats_puffball": sum(beats(c, "Puffball") for c in cls) if "Puffball" in means else None,
+        "classes_full_beats_sfmc": sum(beats(c, "SFMc") for c in cls) if "SFMc" in means else None,
+        "classes_full_beats_both": sum(all(beats(c, b) for b in baselines) for c in cls),
+    }
+    checks["full_beats_both_in_8_of_12"] = checks["classes_full_beats_both"] >= 8
+    for abl in ("-CRef", "-SImp"):
+        if abl in cmean and common:
+            checks[f"{abl}_worse_than_full_on_common_mean"] = cmean[abl] > cmean["Full"]
+    return checks
+
+
+# --------------------------------------------------------------------------- main
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--models", default=str(ROOT.parent / "shared" / "data" / "pascal3d_cad"),
+                    help="directory of CAD models with 3-D keypoints (default ../shared/data/pascal3d_cad)")
+    ap.add_argument("--out", default=str(ROOT / "outputs" / "benchmark"), help="working directory (data, runs)")
+    ap.add_argument("--results", default=str(ROOT / "docs" / "results"), help="where tables and JSON go")
+    ap.add_argument("--pool", type=int, default=20, help="pool (surrogate) renders per model (default 20)")
+    ap.add_argument("--test-views", type=int, default=5, help="test renders per model (default 5)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--step-percent", type=float, default=1.0,
+                    help="metric sampling step, %% of the GT bbox diagonal (paper 0.5; default 1.0, see README)")
+    ap.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {list(METHODS)}")
+    ap.add_argument("--classes", help="comma-separated classes (default: all)")
+    ap.add_argument("--jobs", type=int, default=2, help="processes at once (default 2)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="extra reconstruct override for every method (repeatable)")
+    ap.add_argument("--fresh", action="store_true", help="recompute every step (default: reuse finished outputs)")
+    ap.add_argument("--no-baselines", action="store_true", help="skip Puffball and SFMc")
+    cli = sys.argv[1:] if argv is None else list(argv)
+    args = ap.parse_args(argv)
+
+    t_start, cpu0 = time.perf_counter(), _cpu_self() + _cpu_children()
+    out = Path(args.out)
+    data = out / f"data_pool{args.pool}_test{args.test_views}_seed{args.seed}"
+    classes = args.classes.split(",") if args.classes else None
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown or "Full" not in methods:
+        ap.error(f"--methods must include Full and come from {list(METHODS)}; got {methods}")
+    ncpu = os.cpu_count() or 1
+    jobs = max(1, args.jobs)
+    threads = max(1, ncpu // jobs)
+    timings: dict = {}
+
+    # 1. data
+    t0, c0 = time.perf_counter(), _cpu_self()
+    if args.fresh or not _render_matches(data, args.pool, args.test_views, args.seed):
+        print(f"render {args.pool}+{args.test_views} views per model into {data}", flush=True)
+        info = render(Path(args.models), data, args.pool, args.test_views, args.seed)
+        print(f"  {info['images']} renders of {info['models']} models in {info['seconds']:.0f} s", flush=True)
+        timings["render"] = {"wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(_cpu_self() - c0, 1)}
+    else:
+        print(f"render: reusing {data}", flush=True)
+        timings["render"] = {"reused": True}
+    ann = data / "annotations.json"
+
+    # 2. reconstructions
+    runs = {m: out / f"run_{m.lstrip('-').lower()}" for m in methods}
+    cmds = []
+    for m in methods:
+        if not args.fresh and (runs[m] / "summary.json").is_file() and _finished(runs[m]):
+            print(f"reconstruct {m}: reusing {runs[m]}", flush=True)
+            continue
+        argv = [PYTHON, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(runs[m]),
+                "references=test", f"seed={args.seed}", "progress=false", "preview=false",
+                *( ["overwrite=true"] if args.fresh else []), *METHODS[m], *args.set]
+        if classes:
+            argv.append("classes=" + ",".join(classes))
+        cmds.append((m, argv, runs[m] / "log.txt"))
+    t0, c0 = time.perf_counter(), _cpu_children()
+    timings["reconstruct"] = run_parallel(cmds, jobs, threads) if cmds else {}
+    timings["reconstruct_total"] = {"wall_s": round(time.perf_counter() - t0, 1),
+                                    "cpu_s": round(_cpu_children() - c0, 1)}
+
+    # 3. evaluation
+    t0, c0 = time.perf_counter(), _cpu_children()
+    evals = out / "eval"
+    names = sorted(c["name"] for c in json.loads(ann.read_text())["categories"])
+    names = [c for c in names if not classes or c in classes]
+    halves = [names[i::jobs] for i in range(jobs)] if jobs > 1 else [names]
+    halves = [h for h in halves if h]
+    ecmds = []
+    for i, part in enumerate(halves):
+        argv = [PYTHON, "-m", "carvi_torch.evaluate", "--data", str(ann), "--split", "test", "--no-progress",
+                "--step-percent", str(args.step_percent), "--classes", ",".join(part), "--out", str(evals / f"part{i}")]
+        if not args.no_baselines:
+            argv.append("--baselines")
+        for m in methods:
+            argv.append(f"--recon={m}={runs[m]}")  # "=" form: names such as -CRef start with a dash
+        ecmds.append((f"evaluate[{i}]", argv, evals / f"part{i}.log"))
+    timings["evaluate"] = run_parallel(ecmds, jobs, threads)
+    timings["evaluate_total"] = {"wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(_cpu_children() - c0, 1)}
+    res = merge_evaluations([json.loads((evals / f"part{i}" / "results.json").read_text())
+                             for i in range(len(halves))])
+
+    # 4. results
+    from carvi_torch.evaluate import format_viewpoint_table
+    from carvi_torch.io.outputs import write_bytes, write_json
+
+    total_wall = time.perf_counter() - t_start
+    total_cpu = _cpu_self() + _cpu_children() - cpu0
+    results = Path(args.results)
+    command = "python tools/benchmark_synthetic.py " + " ".join(shlex.quote(a) for a in cli)
+    summaries = {m: json.loads((runs[m] / "summary.json").read_text()) for m in methods}
+    report = {
+        "command": command,
+        "machine": {"platform": platform.platform(), "cpus": ncpu, "python": platform.python_version(),
+                    "load_average_at_end": list(os.getloadavg())},
+        "settings": {"pool": args.pool, "test_views": args.test_views, "seed": args.seed,
+                     "step_percent": args.step_percent, "jobs": jobs, "threads_per_job": threads,
+                     "methods": {m: METHODS[m] + args.set for m in methods}},
+        "timings": timings, "total_wall_s": round(total_wall, 1), "total_cpu_s": round(total_cpu, 1),
+        "acceptance": acceptance(res),
+        "table": {c: {m: r[m]["mean"] for m in res["methods"]} for c, r in res["classes"].items()},
+        "mean_over_classes": res["mean_over_classes"],
+        "paper": PAPER, "paper_mean_20": PAPER_MEAN_20,
+        "reconstruct_seconds": {m: {c: v.get("seconds") for c, v in s["classes"].items()}
+                                for m, s in summaries.items()},
+        "clusters": {c: v.get("clusters") for c, v in summaries["Full"]["classes"].items()},
+        "evaluation": res,
+    }
+    tag = "" if not classes else "_" + "_".join(classes)
+    write_json(results / f"benchmark{tag}.json", report)
+    table = table1(res)
+    write_bytes(results / f"table1{tag}.md", (
+        f"Symmetric RMS error, % of the ground-truth bounding-box diagonal (surface step {args.step_percent}% "
+        f"of it); the paper's Table 1 in brackets.\n\n{table}\n\nCommand: `{command}`\n").encode())
+    write_bytes(results / f"viewpoints{tag}.md", (format_viewpoint_table(res) + "\n").encode())
+    print()
+    print(table)
+    print()
+    for k, v in report["acceptance"].items():
+        print(f"  {k}: {v}")
+    print(f"total {total_wall / 60:.1f} min wall, {total_cpu / 60:.1f} min CPU; wrote {results}/table1{tag}.md, "
+          f"benchmark{tag}.json")
+    return 0
+
+
+def _finished(run: Path) -> bool:
+    try:
+        s = json.loads((run / "summary.json").read_text())
+    except ValueError:
+        return False
+    return "total_seconds" in s
+
+
+if __name__ == "__main__":
+    sys.exit(main())

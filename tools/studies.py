@@ -1,0 +1,575 @@
+"""Studies of the synthetic benchmark (after ``tools/benchmark_synthetic.py``): plots and JSON in docs/results/.
+
+Subcommands (``--bench`` is the benchmark's working directory, default outputs/benchmark):
+
+* ``ranking`` (a, b): every saved proposal of the Full run (``<class>/proposals/<id>.npz``) is
+  meshed (:func:`carvi_torch.mesh.occupancy_to_mesh`) and scored against the ground truth
+  (:func:`carvi_torch.metrics.evaluate_reconstruction`, step ``--step-percent`` of the GT
+  bbox diagonal, coarser than the table's to keep the ~7000 evaluations affordable; the
+  difference is measured on the selected proposals and written to the JSON). Per class: the
+  top-ranked, random (expected error of a uniform pick among the valid proposals) and best
+  available proposal (``ranking.png``); over all classes: the same against the size of the
+  proposal pool, 1..P, the top-ranked among the first k (``pool_size.png``).
+* ``threshold`` (c): Full rerun on ``--classes`` with ``cluster_threshold_deg`` in
+  ``--thresholds``; mean error per class and threshold (``threshold.png``).
+* ``viewpoints`` (d): median geodesic viewpoint error per class, SfM vs refined cameras, from
+  the benchmark's evaluation (``viewpoints.png``).
+* ``step``: the metric's sampling step, the paper's 0.5% against the table's 1% of the GT
+  bbox diagonal, on ``--classes`` (Full and the baselines): per-object differences, CPU times.
+* ``clusters``: per class, the Full reconstructions brought into the class's object frame
+  (refined cameras), ``--points`` surface samples each, centred and scaled to unit RMS radius,
+  a symmetric RMS chamfer distance matrix (:func:`carvi_torch.studies.chamfer_matrix`), K-medoids
+  into 5 clusters, the medoids drawn ordered by cluster size (``shape_clusters.png``).
+
+Example:
+    python tools/studies.py ranking --jobs 2
+    python tools/studies.py threshold --classes aeroplane,car,chair,sofa
+    python tools/studies.py viewpoints
+    python tools/studies.py clusters
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+RESULTS = ROOT / "docs" / "results"
+
+
+def _command() -> str:
+    return "python tools/studies.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+
+
+def _data_dir(bench: Path) -> Path:
+    cands = sorted(bench.glob("data_pool*"))
+    if not cands:
+        raise SystemExit(f"error: no rendered data in {bench} (run tools/benchmark_synthetic.py first)")
+    return cands[0]
+
+
+def _classes_of(ann: dict) -> dict[int, str]:
+    cat = {int(c["id"]): c["name"] for c in ann["categories"]}
+    return {int(a["id"]): cat[int(a["category_id"])] for a in ann["annotations"]}
+
+
+# =========================================================================== (a, b) ranking
+
+
+def _proposal_errors(job):
+    """Worker: errors of every proposal of one reference (list, NaN where invalid or empty)."""
+    import torch
+
+    torch.set_num_threads(1)
+    from carvi_torch import metrics
+    from carvi_torch.evaluate import posed_gt_mesh
+    from carvi_torch.mesh import occupancy_to_mesh
+    from carvi_torch.studies import load_proposals
+
+    path, entry, gt_root, step_percent, selected_mesh, table_step = job
+    props = load_proposals(path)
+    posed, diag = posed_gt_mesh(entry, Path(gt_root))
+    gt = metrics.EvaluationMesh(posed, name="gt").with_diag(diag)
+    step = step_percent / 100.0 * diag
+    P = len(props["valid"])
+    errs = [math.nan] * P
+    nonempty = [bool(props["occupancy"][p].any()) for p in range(P)]
+    for p in range(P):
+        if not (props["valid"][p] and nonempty[p]):
+            continue
+        m = occupancy_to_mesh(props["occupancy"][p], props["voxel_to_camera"][p])
+        r = metrics.evaluate_reconstruction(m, gt, step=step)
+        errs[p] = float(r["error_percent"])
+    fine = None
+    if selected_mesh is not None:  # the selected proposal at the table's step, to measure the approximation
+        import trimesh
+
+        m = trimesh.load(selected_mesh, force="mesh", process=False)
+        fine = float(metrics.evaluate_reconstruction(m, gt, step=table_step / 100.0 * diag)["error_percent"])
+    return {"errors": errs, "scores": props["scores"].tolist(), "misses": props["misses"].tolist(),
+            "valid": [bool(v) and ne for v, ne in zip(props["valid"], nonempty)], "best": props["best"],
+            "selected_fine": fine}
+
+
+def ranking(args) -> int:
+    import torch
+    from multiprocessing import get_context
+
+    from carvi_torch.select import rank_proposals
+    from carvi_torch.studies import ranking_curves
+
+    bench = Path(args.bench)
+    data = _data_dir(bench)
+    ann = json.loads((data / "annotations.json").read_text())
+    gt = json.loads((data / "gt.json").read_text())["annotations"]
+    cls_of = _classes_of(ann)
+    test = [a for a in ann["annotations"] if a.get("split") == "test"]
+    # subset: the first --views-per-model test views of every model
+    by_model: dict[int, list[int]] = {}
+    for a in sorted(test, key=lambda a: a["id"]):
+        by_model.setdefault(int(a["object_id"]), []).append(int(a["id"]))
+    chosen = sorted(i for ids in by_model.values() for i in ids[: args.views_per_model])
+    classes = set(args.classes.split(",")) if args.classes else None
+    full = bench / "run_full"
+    table_step = json.loads((RESULTS / "benchmark.json").read_text())["settings"]["step_percent"] \
+        if (RESULTS / "benchmark.json").is_file() else 1.0
+    jobs = []
+    for aid in chosen:
+        c = cls_of[aid]
+        if classes and c not in classes:
+            continue
+        p = full / c / "proposals" / f"{aid}.npz"
+        if not p.is_file():
+            continue
+        mesh = full / c / "meshes" / f"{aid}.ply"
+        jobs.append((str(p), gt[str(aid)], str(data), args.step_percent,
+                     str(mesh) if mesh.is_file() else None, table_step))
+    raw = bench / "ranking" / f"errors_step{args.step_percent:g}_v{args.views_per_model}.json"
+    if raw.is_file() and not args.fresh:
+        cached = json.loads(raw.read_text())
+        per_ref, seconds = cached["per_reference"], cached["seconds"]
+        per_ref = {k: v for k, v in per_ref.items() if not classes or v["class"] in classes}
+        print(f"ranking: reusing {raw} ({len(per_ref)} references)", flush=True)
+    else:
+        print(f"ranking: {len(jobs)} references, step {args.step_percent}% ({args.jobs} processes)", flush=True)
+        t0 = time.perf_counter()
+        with get_context("fork").Pool(args.jobs) as pool:
+            rows = []
+            for i, r in enumerate(pool.imap(_proposal_errors, jobs, chunksize=1)):
+                rows.append(r)
+                if (i + 1) % 25 == 0:
+                    print(f"  {i + 1}/{len(jobs)} ({time.perf_counter() - t0:.0f} s)", flush=True)
+        seconds = time.perf_counter() - t0
+        per_ref = {}
+        for job, r in zip(jobs, rows):
+            aid = int(Path(job[0]).stem)
+            per_ref[str(aid)] = {"class": cls_of[aid], **r}
+        from carvi_torch.io.outputs import write_json
+
+        write_json(raw, {"per_reference": per_ref, "seconds": seconds}, indent=None)
+    out = _ranking_summary(per_ref)
+    out.update({"command": _command(), "step_percent": args.step_percent, "table_step_percent": table_step,
+                "views_per_model": args.views_per_model, "references": len(per_ref), "seconds": round(seconds, 1),
+                "per_reference": per_ref})
+    from carvi_torch.io.outputs import write_json
+
+    write_json(RESULTS / "ranking.json", out)
+    _plot_ranking(out)
+    print(json.dumps({k: out[k] for k in ("mean", "selected_vs_table")}, indent=1))
+    return 0
+
+
+def _ranking_summary(per_ref: dict) -> dict:
+    import torch
+
+    from carvi_torch.select import rank_proposals
+    from carvi_torch.studies import ranking_curves
+
+    classes = sorted({r["class"] for r in per_ref.values()})
+    P = max(len(r["errors"]) for r in per_ref.values())
+    per_class, curves = {}, {}
+    agree, n_ref = 0, 0
+    fine_pairs = []
+    for c in classes:
+        rows = [r for r in per_ref.values() if r["class"] == c]
+        E = torch.tensor([[math.nan if v is None else v for v in r["errors"]] for r in rows], dtype=torch.float64)
+        S = torch.tensor([[math.inf if v is None else v for v in r["scores"]] for r in rows], dtype=torch.float64)
+        M = torch.tensor([r["misses"] for r in rows], dtype=torch.long)
+        V = torch.tensor([r["valid"] for r in rows], dtype=torch.bool)
+        order, best = rank_proposals(S, M, V)
+        agree += int((best == torch.tensor([r["best"] for r in rows])).sum())
+        n_ref += len(rows)
+        cur = ranking_curves(E, order)
+        curves[c] = {k: np.nanmean(v.numpy(), axis=0).tolist() for k, v in cur.items()}
+        per_class[c] = {k: float(np.nanmean(v[:, -1].numpy())) for k, v in cur.items()}
+        per_class[c]["references"] = len(rows)
+        per_class[c]["valid_proposals_mean"] = float(V.sum(1).double().mean())
+        for r, t in zip(rows, cur["top"][:, -1].tolist()):
+            if r.get("selected_fine") is not None and math.isfinite(t):
+                fine_pairs.append((t, r["selected_fine"]))
+    mean = {k: float(np.mean([per_class[c][k] for c in classes])) for k in ("top", "random", "best")}
+    # the pool-size curve: classes with a pool of P proposals (rotationally symmetric classes have one)
+    pooled = [c for c in classes if len(curves[c]["top"]) == P]
+    pool = {k: np.nanmean(np.array([curves[c][k] for c in pooled]), axis=0).tolist() for k in ("top", "random", "best")}
+    diffs = np.array([a - b for a, b in fine_pairs]) if fine_pairs else np.zeros(0)
+    return {"classes": per_class, "mean": mean, "pool_size": {"k": list(range(1, P + 1)), "classes": pooled, **pool},
+            "ranking_agrees_with_pipeline": f"{agree}/{n_ref}",
+            "selected_vs_table": {"n": int(len(diffs)),
+                                  "mean_difference_pp": float(diffs.mean()) if len(diffs) else None,
+                                  "mean_abs_difference_pp": float(np.abs(diffs).mean()) if len(diffs) else None,
+                                  "note": "top-ranked proposal's error at the study's step minus the selected "
+                                          "mesh's error at the table's step"}}
+
+
+def _plot_ranking(out: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    classes = list(out["classes"])
+    x = np.arange(len(classes) + 1)
+    fig, ax = plt.subplots(figsize=(11, 4))
+    w = 0.27
+    for i, (k, label, col) in enumerate((("top", "top ranked", "tab:blue"), ("random", "random", "tab:gray"),
+                                         ("best", "best available", "tab:green"))):
+        vals = [out["classes"][c][k] for c in classes] + [out["mean"][k]]
+        ax.bar(x + (i - 1) * w, vals, w, label=label, color=col)
+    ax.set_xticks(x, classes + ["mean"], rotation=30, ha="right")
+    ax.set_ylabel("symmetric RMS error (% of GT bbox diagonal)")
+    ax.set_title(f"Proposal ranking (Full, {out['references']} references, metric step {out['step_percent']}%)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(RESULTS / "ranking.png", dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    k = out["pool_size"]["k"]
+    for key, label, col in (("top", "top ranked", "tab:blue"), ("random", "random", "tab:gray"),
+                            ("best", "best available", "tab:green")):
+        ax.plot(k, out["pool_size"][key], "o-", ms=3, label=label, color=col)
+    ax.set_xlabel("proposals in the pool (the first k)")
+    ax.set_ylabel("mean error over classes (%)")
+    ax.set_xticks([1, 5, 10, 15, 20])
+    ax.grid(alpha=0.3)
+    ax.legend()
+    ax.set_title(f"Error against the size of the proposal pool ({len(out['pool_size']['classes'])} classes)",
+                 fontsize=10)
+    fig.tight_layout()
+    fig.savefig(RESULTS / "pool_size.png", dpi=110)
+    plt.close(fig)
+
+
+# =========================================================================== (c) threshold
+
+
+def threshold(args) -> int:
+    bench = Path(args.bench)
+    data = _data_dir(bench)
+    classes = args.classes.split(",")
+    thresholds = [float(v) for v in args.thresholds.split(",")]
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS=str(max(1, (os.cpu_count() or 1) // args.jobs)))
+    runs = {}
+    cmds = []
+    for thr in thresholds:
+        d = bench / "threshold" / f"t{thr:g}"
+        runs[thr] = d
+        if (d / "summary.json").is_file() and "total_seconds" in json.loads((d / "summary.json").read_text()):
+            continue
+        cmds.append([sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(data / "annotations.json"),
+                     "--out", str(d), "references=test", f"seed={args.seed}", "progress=false", "preview=false",
+                     f"cluster_threshold_deg={thr:g}", "classes=" + ",".join(classes)])
+    t0 = time.perf_counter()
+    _run_all(cmds, args.jobs, env)
+    ev = [sys.executable, "-m", "carvi_torch.evaluate", "--data", str(data / "annotations.json"), "--split", "test",
+          "--no-progress", "--step-percent", str(args.step_percent), "--classes", ",".join(classes),
+          "--out", str(bench / "threshold" / "eval")]
+    for thr in thresholds:
+        ev += ["--recon", f"t{thr:g}={runs[thr]}"]
+    _run_all([ev], 1, dict(env, OMP_NUM_THREADS=str(os.cpu_count() or 1)))
+    res = json.loads((bench / "threshold" / "eval" / "results.json").read_text())
+    table = {c: {f"{thr:g}": res["classes"][c][f"t{thr:g}"]["mean"] for thr in thresholds} for c in classes}
+    used = {}
+    for thr in thresholds:
+        s = json.loads((runs[thr] / "summary.json").read_text())
+        used[f"{thr:g}"] = {c: s["classes"][c].get("clusters") for c in classes if c in s["classes"]}
+    mean = {f"{thr:g}": float(np.mean([table[c][f"{thr:g}"] for c in classes])) for thr in thresholds}
+    out = {"command": _command(), "classes": classes, "thresholds": thresholds, "step_percent": args.step_percent,
+           "error": table, "mean": mean, "clusters": used, "seconds": round(time.perf_counter() - t0, 1)}
+    from carvi_torch.io.outputs import write_json
+
+    write_json(RESULTS / "threshold.json", out)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    for c in classes:
+        ax.plot(thresholds, [table[c][f"{t:g}"] for t in thresholds], "o-", ms=3, label=c, alpha=0.7)
+    ax.plot(thresholds, [mean[f"{t:g}"] for t in thresholds], "k-", lw=2.5, label="mean")
+    ax.set_xlabel("principal-direction clustering threshold (degrees)")
+    ax.set_ylabel("mean error (% of GT bbox diagonal)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title("Error against the clustering threshold (Full)")
+    fig.tight_layout()
+    fig.savefig(RESULTS / "threshold.png", dpi=110)
+    plt.close(fig)
+    print(json.dumps({"error": table, "mean": mean}, indent=1))
+    return 0
+
+
+def _run_all(cmds: list[list[str]], jobs: int, env: dict) -> None:
+    running = []
+    pending = list(cmds)
+    while pending or running:
+        while pending and len(running) < jobs:
+            argv = pending.pop(0)
+            print("  " + " ".join(shlex.quote(a) for a in argv), flush=True)
+            running.append((subprocess.Popen(argv, env=env, cwd=ROOT, stdout=subprocess.DEVNULL,
+                                             stderr=subprocess.PIPE, text=True), argv))
+        time.sleep(0.5)
+        for item in list(running):
+            proc, argv = item
+            if proc.poll() is None:
+                continue
+            running.remove(item)
+            if proc.returncode != 0:
+                raise SystemExit(f"failed ({proc.returncode}): {' '.join(argv)}\n{proc.stderr.read()[-3000:]}")
+
+
+# =========================================================================== (d) viewpoints
+
+
+def viewpoints(args) -> int:
+    bench_json = Path(args.bench_json)
+    res = json.loads(bench_json.read_text())["evaluation"]
+    rows = {}
+    for c, per in sorted(res["viewpoints"].items()):
+        full = per.get("Full", {})
+        rows[c] = {st: {"median_geodesic": full[st]["geodesic"]["median"], "acc_at_30": full[st]["geodesic"]["acc_at_30"],
+                        "median_azimuth": full[st]["azimuth"]["median"],
+                        "median_elevation": full[st]["elevation"]["median"]}
+                   for st in ("sfm", "refined") if st in full}
+    missing = [c for c, r in rows.items() if not ("sfm" in r and "refined" in r)]
+    rows = {c: r for c, r in rows.items() if c not in missing}
+    out = {"command": _command(), "source": str(bench_json), "classes": rows, "classes_without_cameras": missing,
+           "median_of_class_medians": {st: float(np.median([r[st]["median_geodesic"] for r in rows.values() if st in r]))
+                                       for st in ("sfm", "refined")}}
+    from carvi_torch.io.outputs import write_json
+
+    write_json(RESULTS / "viewpoints.json", out)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    classes = list(rows)
+    x = np.arange(len(classes))
+    fig, ax = plt.subplots(figsize=(10, 4))
+    for i, (st, col) in enumerate((("sfm", "tab:orange"), ("refined", "tab:blue"))):
+        ax.bar(x + (i - 0.5) * 0.38, [rows[c][st]["median_geodesic"] for c in classes], 0.38, label=st, color=col)
+    ax.set_xticks(x, classes, rotation=30, ha="right")
+    ax.set_ylabel("median geodesic error (degrees)")
+    ax.set_title("Viewpoint error of the test renders (Full run), SfM vs refined cameras")
+    ax.axhline(10, color="k", lw=0.5, ls="--")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(RESULTS / "viewpoints.png", dpi=110)
+    plt.close(fig)
+    print(json.dumps(out["median_of_class_medians"]))
+    return 0
+
+
+# =========================================================================== shape clusters
+
+
+def clusters(args) -> int:
+    import torch
+    import trimesh
+
+    from carvi_torch.cameras import ScaledOrthographic
+    from carvi_torch.studies import (chamfer_matrix, k_medoids, normalise_points, order_clusters_by_size,
+                                     sample_points)
+
+    bench = Path(args.bench)
+    data = _data_dir(bench)
+    ann = json.loads((data / "annotations.json").read_text())
+    model_of = {str(a["id"]): a["source"] for a in ann["annotations"]}
+    full = bench / "run_full"
+    t0 = time.perf_counter()
+    out, figs = {}, {}
+    for cdir in sorted(p for p in full.iterdir() if (p / "cameras.json").is_file()):
+        c = cdir.name
+        cams = json.loads((cdir / "cameras.json").read_text())["cameras"]
+        ids = sorted(int(p.stem) for p in (cdir / "meshes").glob("*.ply"))
+        ids = [a for a in ids if cams.get(str(a), {}).get("refined")]
+        if len(ids) < args.k:
+            continue
+        meshes = [trimesh.load(cdir / "meshes" / f"{a}.ply", force="mesh", process=False) for a in ids]
+        pts = torch.stack([sample_points(m, args.points, seed=args.seed) for m in meshes])  # (N, M, 3)
+        cam = ScaledOrthographic.from_list([cams[str(a)]["refined"] for a in ids], dtype=torch.float64)
+        obj = normalise_points(cam.from_camera_frame(pts)).float()
+        D = chamfer_matrix(obj, chunk_pairs=16).double()
+        med, labels, cost = k_medoids(D, args.k)
+        med, labels, sizes = order_clusters_by_size(med, labels)
+        models = [model_of[str(a)] for a in ids]
+        # purity: share of items whose cluster's most common source model is their own
+        pure = 0
+        for j in range(args.k):
+            mem = [models[i] for i in range(len(ids)) if int(labels[i]) == j]
+            if mem:
+                pure += max(mem.count(m) for m in set(mem))
+        out[c] = {"objects": len(ids), "medoids": [ids[int(m)] for m in med], "sizes": sizes.tolist(),
+                  "cost": cost, "purity_by_model": pure / len(ids),
+                  "members": {str(ids[int(m)]): sorted({models[i] for i in range(len(ids)) if int(labels[i]) == j})
+                              for j, m in enumerate(med)},
+                  "medoid_models": [models[int(m)] for m in med]}
+        # every medoid drawn in the class frame, seen by the camera of the largest cluster's medoid
+        view = cam.R[int(med[0])]
+        figs[c] = [(_object_frame_mesh(meshes[int(m)], cam[int(m)]), view, int(sizes[j]), models[int(m)])
+                   for j, m in enumerate(med)]
+        print(f"  {c}: sizes {sizes.tolist()}, purity {out[c]['purity_by_model']:.2f}", flush=True)
+    seconds = time.perf_counter() - t0
+    from carvi_torch.io.outputs import write_json
+
+    write_json(RESULTS / "shape_clusters.json", {
+        "command": _command(), "k": args.k, "points": args.points, "seconds": round(seconds, 1),
+        "distance": "symmetric RMS chamfer (max of the two directions) between area-uniform point samples of the "
+                    "Full meshes, in the class's SfM object frame (refined cameras), each centred and scaled to unit "
+                    "RMS radius", "classes": out})
+    _plot_clusters(figs, args.k)
+    return 0
+
+
+def _object_frame_mesh(mesh, cam):
+    """A reference-frame mesh (image pixels) in the class's object frame, centred (``(V, 3)``, faces)."""
+    import torch
+
+    V = cam.from_camera_frame(torch.from_numpy(np.asarray(mesh.vertices, dtype=np.float64))[None])[0].numpy()
+    return V - V.mean(axis=0), np.asarray(mesh.faces)
+
+
+def _draw_mesh(ax, mesh, view, turn_deg: float = 35.0, lift_deg: float = 20.0) -> None:
+    """Shaded object-frame mesh ``(V, F)`` seen by rotation ``view (3, 3)`` turned by ``turn_deg``
+    about the image's vertical axis and ``lift_deg`` about its horizontal axis."""
+    from matplotlib.collections import PolyCollection
+
+    V, F = mesh
+    V = V @ np.asarray(view, dtype=np.float64).T  # camera frame: x right, y down, z into the scene
+    a, b = math.radians(turn_deg), math.radians(lift_deg)
+    Ry = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+    Rx = np.array([[1, 0, 0], [0, math.cos(b), -math.sin(b)], [0, math.sin(b), math.cos(b)]])
+    P = V @ (Rx @ Ry).T
+    tri = P[F]  # (F, 3, 3)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
+    light = np.array([-0.4, -0.6, -0.7])
+    light /= np.linalg.norm(light)
+    shade = np.clip(n @ light, 0, 1) * 0.75 + 0.2
+    depth = tri[:, :, 2].mean(axis=1)
+    order = np.argsort(-depth)  # far first (depth grows into the scene)
+    cols = np.stack([0.35 * shade, 0.55 * shade, 0.85 * shade], axis=1)
+    polys = tri[order][:, :, :2] * np.array([1, -1])  # y down -> up
+    ax.add_collection(PolyCollection(polys, facecolors=cols[order], edgecolors="none"))
+    lo, hi = polys.reshape(-1, 2).min(0), polys.reshape(-1, 2).max(0)
+    c, r = (lo + hi) / 2, (hi - lo).max() / 2 * 1.05
+    ax.set_xlim(c[0] - r, c[0] + r)
+    ax.set_ylim(c[1] - r, c[1] + r)
+    ax.set_aspect("equal")
+    ax.axis("off")
+
+
+def _plot_clusters(figs: dict, k: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    classes = list(figs)
+    fig, axes = plt.subplots(len(classes), k, figsize=(2.0 * k, 1.9 * len(classes)))
+    axes = np.atleast_2d(axes)
+    for i, c in enumerate(classes):
+        for j, (mesh, cam, size, model) in enumerate(figs[c]):
+            ax = axes[i, j]
+            _draw_mesh(ax, mesh, cam)
+            ax.set_title(f"{size} objects ({model.replace('.npz', '')})", fontsize=7)
+        axes[i, 0].text(-0.15, 0.5, c, transform=axes[i, 0].transAxes, rotation=90, va="center", ha="center",
+                        fontsize=10)
+    fig.suptitle("Medoids of 5 shape clusters per class (Full reconstructions), largest cluster first", fontsize=11)
+    fig.tight_layout(rect=(0.02, 0, 1, 0.98))
+    fig.savefig(RESULTS / "shape_clusters.png", dpi=100)
+    plt.close(fig)
+
+
+# =========================================================================== metric step
+
+
+def step(args) -> int:
+    """Evaluate the same reconstructions at two sampling steps; per-object differences and times."""
+    bench = Path(args.bench)
+    data = _data_dir(bench)
+    steps = [float(v) for v in args.steps.split(",")]
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    recon = [f"--recon={m}={bench / d}" for m, d in (("Full", "run_full"),)]
+    times, res = {}, {}
+    for st in steps:
+        out = bench / "step" / f"s{st:g}"
+        argv = [sys.executable, "-m", "carvi_torch.evaluate", "--data", str(data / "annotations.json"), "--split",
+                "test", "--no-progress", "--step-percent", str(st), "--classes", args.classes, "--out", str(out),
+                "--baselines", *recon]
+        print("  " + " ".join(shlex.quote(a) for a in argv), flush=True)
+        import resource
+
+        c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        subprocess.run(argv, env=env, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+        c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        times[f"{st:g}"] = round(c1.ru_utime + c1.ru_stime - c0.ru_utime - c0.ru_stime, 1)
+        res[f"{st:g}"] = json.loads((out / "results.json").read_text())
+    a, b = (res[f"{st:g}"] for st in steps)
+    diffs = {}
+    for m in a["methods"]:
+        d = [b["objects"][k][m]["error_percent"] - r[m]["error_percent"] for k, r in a["objects"].items()
+             if isinstance(r.get(m), dict) and r[m].get("error_percent") is not None
+             and b["objects"][k][m].get("error_percent") is not None]
+        d = np.array(d)
+        diffs[m] = {"n": int(len(d)), "mean_difference_pp": float(d.mean()), "mean_abs_difference_pp": float(np.abs(d).mean()),
+                    "max_abs_difference_pp": float(np.abs(d).max()),
+                    "class_mean_difference_pp": {c: b["classes"][c][m]["mean"] - a["classes"][c][m]["mean"]
+                                                 for c in a["classes"] if a["classes"][c][m]["mean"] is not None}}
+    out = {"command": _command(), "classes": args.classes.split(","), "steps_percent": steps,
+           "cpu_seconds": times, "difference": diffs,
+           "note": f"errors at step {steps[1]:g}% minus errors at step {steps[0]:g}% (percentage points)"}
+    from carvi_torch.io.outputs import write_json
+
+    write_json(RESULTS / "metric_step.json", out)
+    print(json.dumps({k: out[k] for k in ("cpu_seconds", "difference")}, indent=1))
+    return 0
+
+
+# =========================================================================== main
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="study", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--bench", default=str(ROOT / "outputs" / "benchmark"), help="benchmark working directory")
+    common.add_argument("--jobs", type=int, default=2, help="processes at once")
+    common.add_argument("--seed", type=int, default=0)
+    p = sub.add_parser("ranking", parents=[common], help="(a) top/random/best proposal, (b) pool size")
+    p.add_argument("--step-percent", type=float, default=2.0, help="metric step, %% of the GT bbox diagonal")
+    p.add_argument("--views-per-model", type=int, default=5, help="test views per model to study (subset)")
+    p.add_argument("--classes", help="comma-separated subset")
+    p.add_argument("--fresh", action="store_true", help="recompute the per-proposal errors even if cached")
+    p = sub.add_parser("threshold", parents=[common], help="(c) error against the clustering threshold")
+    p.add_argument("--classes", default="aeroplane,car,chair,sofa")
+    p.add_argument("--thresholds", default="15,20,25,30,35,40,45")
+    p.add_argument("--step-percent", type=float, default=1.0)
+    p = sub.add_parser("viewpoints", parents=[common], help="(d) viewpoint error per class, SfM vs refined")
+    p.add_argument("--bench-json", default=str(RESULTS / "benchmark.json"))
+    p = sub.add_parser("clusters", parents=[common], help="shape clusters (K-medoids) per class")
+    p.add_argument("--k", type=int, default=5)
+    p.add_argument("--points", type=int, default=1024, help="surface samples per reconstruction")
+    p = sub.add_parser("step", parents=[common], help="metric sampling step: 0.5%% vs 1%% on a subset")
+    p.add_argument("--classes", default="bicycle,car,chair,sofa")
+    p.add_argument("--steps", default="0.5,1.0")
+    args = ap.parse_args(argv)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    return {"ranking": ranking, "threshold": threshold, "viewpoints": viewpoints, "clusters": clusters,
+            "step": step}[args.study](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
