@@ -473,8 +473,15 @@ def test_cuda_matches_cpu():
     a = rigid_sfm(d["kp"], d["vis"])
     b = rigid_sfm(d["kp"].cuda(), d["vis"].cuda())
     assert b.shape.device.type == "cuda" and b.cameras.R.device.type == "cuda"
-    assert torch.allclose(a.shape, b.shape.cpu(), atol=1e-3)
-    assert torch.allclose(a.cameras.R, b.cameras.R.cpu(), atol=1e-3)
+    # The object frame is fixed only up to one rotation (the factorisation's gauge comes from
+    # an SVD, whose signs and bases may differ between backends): compare what does not depend
+    # on it -- the reprojected mean shape of every instance and the relative rotations.
+    assert torch.equal(a.valid, b.valid.cpu())
+    Pa = a.cameras.project(torch.nan_to_num(a.shape))[a.valid]
+    Pb = b.cameras.to("cpu").project(torch.nan_to_num(b.shape.cpu()))[a.valid]
+    torch.testing.assert_close(Pa, Pb, atol=1e-2, rtol=0)  # canvas pixels
+    Ra, Rb = a.cameras.R[a.valid], b.cameras.R.cpu()[a.valid]
+    torch.testing.assert_close(Ra @ Ra[:1].transpose(1, 2), Rb @ Rb[:1].transpose(1, 2), atol=1e-3, rtol=0)
 
 
 # --------------------------------------------------------------------------- disconnected groups, degenerate blocks
