@@ -57,8 +57,13 @@ def old_module(rev: str, path: str, name: str):
     src = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=ROOT, capture_output=True, text=True, check=True).stdout
     tmp = Path(tempfile.mkdtemp()) / f"{name}.py"
     tmp.write_text(src)
-    spec = importlib.util.spec_from_file_location(name, tmp)
+    # a submodule of the package, so its relative imports (``from .cameras import ...``) resolve,
+    # registered before it runs (dataclasses look their module up in sys.modules)
+    full = f"carvi_torch.{name}"
+    spec = importlib.util.spec_from_file_location(full, tmp)
     mod = importlib.util.module_from_spec(spec)
+    mod.__package__ = "carvi_torch"
+    sys.modules[full] = mod
     spec.loader.exec_module(mod)
     return mod
 
