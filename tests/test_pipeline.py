@@ -309,3 +309,24 @@ def test_cuda_chunk_has_no_per_object_host_reads(tiny):
             torch.cuda.set_sync_debug_mode(0)
         counts.append(len(caught))
     assert len(todo) >= 5 and counts[1] <= counts[0] + 4, counts
+
+
+def test_silhouette_robust_reaches_refinement(monkeypatch, tmp_path):
+    """``silhouette_robust`` is handed to the refinement: 0 means the paper's squared penalty (None)."""
+    from carvi_torch import pipeline as P
+    from carvi_torch import refine as Rf
+    from carvi_torch.config import Config
+
+    seen = []
+    orig = Rf.refine_cameras
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("silhouette_robust", "missing"))
+        return orig(*args, **kwargs)
+
+    monkeypatch.setattr(P.refine, "refine_cameras", spy)
+    for value, expected in ((0.0, None), (0.3, 0.3)):
+        cfg = Config().override([f"out={tmp_path / str(value)}", "procedural_instances=6", "classes=car", "stage=cameras",
+                                 f"silhouette_robust={value}", "progress=false", "preview=false"])
+        P.run(cfg)
+        assert seen[-1] == expected
