@@ -399,14 +399,24 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
         writer = _Writer(0)
     bar = tqdm(total=len(todo), desc=f"{coll.name}: carve+select", disable=not cfg.progress, leave=False)
     scores_out = {}
-    for c0 in range(0, len(todo), chunk):
-        ids = todo_t[c0:c0 + chunk]
-        result = _carve_and_select(ids, plan, cfg, report, device)
-        _submit_chunk(result, ids, plan, cfg, report, writer, scores_out)
-        bar.update(len(ids))
-    bar.close()
-    with _timed(report, "write_wait", device):
-        writer.drain()
+    try:
+        for c0 in range(0, len(todo), chunk):
+            ids = todo_t[c0:c0 + chunk]
+            result = _carve_and_select(ids, plan, cfg, report, device)
+            _submit_chunk(result, ids, plan, cfg, report, writer, scores_out)
+            del result  # the next chunk's grids must not sit beside this one's
+            bar.update(len(ids))
+        bar.close()
+        with _timed(report, "write_wait", device):
+            writer.drain()
+    except BaseException as e:
+        # this class's pending objects are finished (their files written) before the error
+        # leaves, so they are not booked into the next class; an interrupt drops them
+        if own_writer:
+            writer.close(cancel=True)
+        elif not isinstance(e, KeyboardInterrupt):
+            writer.drain()
+        raise
     if own_writer:
         writer.close()
     if cfg.keep_all_scores and scores_out:
@@ -658,6 +668,15 @@ def _write_object(job: dict) -> dict:
     return dict(ok=True, reason=None, mesh_seconds=t1 - t0, write_seconds=time.perf_counter() - t1)
 
 
+def _write_object_safe(job: dict) -> dict:
+    """:func:`_write_object`, with any error of this object booked as its own failure (reason)
+    instead of surfacing later, at some other object's turn (or in another class)."""
+    try:
+        return _write_object(job)
+    except Exception as e:  # noqa: BLE001 - reported per object, the run goes on
+        return dict(ok=False, reason=f"writing failed: {type(e).__name__}: {e}", mesh_seconds=0.0, write_seconds=0.0)
+
+
 def _start_worker() -> int:
     """No-op run by each writer process once, so that all of them start (fork) early."""
     return os.getpid()
@@ -688,26 +707,37 @@ class _Writer:
 
     def submit(self, job: dict, done) -> None:
         if self.pool is None:
-            done(_write_object(job))
+            done(_write_object_safe(job))
             return
-        self.pending.append((self.pool.submit(_write_object, job), done))
+        self.pending.append((self.pool.submit(_write_object_safe, job), done))
         while len(self.pending) > 4 * self.workers:
             self._finish_one()
 
     def _finish_one(self) -> None:
         future, done = self.pending.popleft()
-        done(future.result())
+        try:
+            out = future.result()
+        except Exception as e:  # noqa: BLE001 - a writer process died (BrokenProcessPool, ...)
+            out = dict(ok=False, reason=f"writer process failed: {type(e).__name__}: {e}", mesh_seconds=0.0,
+                       write_seconds=0.0)
+        done(out)
 
     def drain(self) -> None:
         """Wait for every submitted object and book it."""
         while self.pending:
             self._finish_one()
 
-    def close(self) -> None:
-        self.drain()
-        if self.pool is not None:
-            self.pool.shutdown()
-            self.pool = None
+    def close(self, cancel: bool = False) -> None:
+        """Book what is pending (or, with ``cancel``, drop it: an error or Ctrl-C is on its way
+        out) and stop the processes."""
+        try:
+            if not cancel:
+                self.drain()
+        finally:
+            self.pending.clear()
+            if self.pool is not None:
+                self.pool.shutdown(wait=True, cancel_futures=True)
+                self.pool = None
 
 
 def _canvas_to_image_4x4(scale: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
@@ -724,7 +754,8 @@ def _canvas_to_image_4x4(scale: torch.Tensor, offset: torch.Tensor) -> torch.Ten
 
 
 def writer_workers(cfg: Config) -> int:
-    """Writer processes of a run: ``CARVI_WRITERS`` if set, else one per CPU core beyond the first (at most 8).
+    """Writer processes of a run: ``CARVI_WRITERS`` if set, else ``cores - 1`` (at least 1, at most 8;
+    none for ``stage=cameras``).
 
     Meshing and writing an object takes ~10 ms of CPU; in worker processes it overlaps the
     carving of the next objects (``0``: everything inline).
@@ -790,8 +821,10 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
     try:
         with _torch_threads(torch_threads(writer.workers) if threads is None else max(1, int(threads))):
             summary = _run(cfg, out, device, writer, t_start)
-    finally:
-        writer.close()
+    except BaseException:
+        writer.close(cancel=True)  # an error or Ctrl-C: stop the writers without waiting for them
+        raise
+    writer.close()
     summary["peak_rss_workers_mb"] = round(_peak_rss_mb(children=True), 1) if writer.workers else 0.0
     summary["writer_workers"] = writer.workers
     write_json(out / "summary.json", summary)

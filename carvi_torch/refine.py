@@ -286,6 +286,7 @@ def refinement_energy(
     wv = (visible & kmask & torch.isfinite(keypoints).all(-1)).to(M.dtype)
     r = (P - torch.nan_to_num(keypoints).to(M.dtype)) * wv[..., None]
     D = sample_distance(maps, P) * kmask.to(M.dtype)
+    _check_robust(silhouette_robust)
     rscale = None if silhouette_robust is None else robust_scales(dist_maps, silhouette_robust).to(M.dtype)[:, None]
     return (r * r).sum((-1, -2)) + lam * silhouette_penalty(D, rscale).sum(-1)
 
@@ -374,6 +375,11 @@ def _penalty_terms(D, delta):
     q = d2 + D * D
     w = (d2 / q) ** 2
     return d2 * D * D / q, 2.0 * D * w, w
+
+
+def _check_robust(silhouette_robust) -> None:
+    if silhouette_robust is not None and not silhouette_robust > 0:
+        raise ValueError(f"silhouette_robust must be > 0 or None (squared distance), got {silhouette_robust}")
 
 
 def robust_scales(dist_maps: torch.Tensor, fraction: float) -> torch.Tensor:
@@ -519,8 +525,7 @@ def refine_cameras(
         :class:`RefineResult`.
     """
     _check(shape, keypoints, visible, dist_maps, len(cameras))
-    if silhouette_robust is not None and not silhouette_robust > 0:
-        raise ValueError(f"silhouette_robust must be > 0 or None, got {silhouette_robust}")
+    _check_robust(silhouette_robust)
     if silhouette_weight < 0:
         raise ValueError(f"silhouette_weight must be >= 0, got {silhouette_weight}")
     dt = keypoints.dtype
@@ -763,6 +768,7 @@ def estimate_camera(
         ts.append(t)
     R, s, t = torch.cat(Rs, 1), torch.cat(ss, 1), torch.cat(ts, 1)
     lam = silhouette_weight * valid.to(dt)
+    _check_robust(silhouette_robust)
     maps = maps.to(dev)
     rscale = None if silhouette_robust is None else robust_scales(maps, silhouette_robust)
     R, s, t, E0, E, Ek, Es, it, conv = _optimize(R, s, t, shape, keypoints, visible, maps, lam,

@@ -687,6 +687,7 @@ def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: _MirrorLayout | N
                     history = history + seeded[3]
                     phist = seeded[3]
                     report["reseeded"] = True
+                    report["tie_deg_median_joint"] = report["tie_deg_median"]
                     report["tie_deg_median"] = report["tie_deg_median_seeded"]
     if planar is None:
         # a shorter planar fit decides; a planar winner is then run to the end
@@ -1037,7 +1038,8 @@ def rigid_sfm(
             Wv, vv, planar, planar_margin, polish_iters, mirrors=layout, tie_deg=mirror_tie_deg,
             max_outer=max_outer, inner=inner, tol=tol, reg=regularization, generator=gen)
     if mirror_report.get("reseeded"):
-        problems.append(f"the joint solution broke the mirror symmetry (median {mirror_report['tie_deg_median']:.1f} "
+        joint = mirror_report['tie_deg_median_joint']
+        problems.append(f"the joint solution broke the mirror symmetry (median {joint:.1f} "
                         "deg between copies' cameras and their mirrored originals): re-seeded from the originals")
     elif mirror_report.get("tie_deg_median") is not None and mirror_report["tie_deg_median"] > mirror_tie_deg:
         problems.append(f"mirrored copies' cameras disagree with their mirrored originals (median "

@@ -330,3 +330,23 @@ def test_silhouette_robust_reaches_refinement(monkeypatch, tmp_path):
                                  f"silhouette_robust={value}", "progress=false", "preview=false"])
         P.run(cfg)
         assert seen[-1] == expected
+
+
+@pytest.mark.parametrize("workers", [0, 1])
+def test_a_failing_write_is_booked_on_its_object(monkeypatch, tmp_path, workers):
+    """An error while writing an object (disk full, a mesh library error) is that object's failure,
+    with its reason, in its own class; the run goes on and the writer processes are stopped."""
+    from carvi_torch import mesh as M
+
+    def broken(m, path):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(M, "write_mesh", broken)  # before run(): the forked writers inherit it
+    summary = run(_cfg(tmp_path, classes=["car", "chair"]), workers=workers)
+    for cls in ("car", "chair"):
+        rep = summary["classes"][cls]
+        assert rep["status"] != "failed", rep
+        assert rep["reconstructed"] == 0 and rep["skipped"] == 6, rep
+        written = [f for f in rep["failures"] if "writing failed" in f["reason"]]
+        assert written and all("OSError: disk full" in f["reason"] for f in written)
+    assert not list((tmp_path / "car" / "meshes").glob("*.ply"))
