@@ -326,6 +326,8 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     for i in range(n):
         if chosen[i] and not usable_h[i]:
             report.skip("no usable camera", "viewpoints", aids[i], coll.sources[i])
+    if not todo:  # everything done already (a resumed run) or nothing usable: no maps to prepare
+        return None, [], report
 
     # ---- surrogates for every reference (all of them, so a resumed run samples the same triplets)
     symmetric = coll.meta.symmetry == "rotational"

@@ -92,9 +92,15 @@ def test_rerun_skips_finished(tiny, tmp_path):
     out, summary = tiny
     before = {p: p.stat().st_mtime_ns for p in out.glob("*/meshes/*.ply")}
     again = run(_cfg(out, preview=False))
+    complete = []
     for cls, rep in again["classes"].items():
         assert rep["resumed"] == summary["classes"][cls]["reconstructed"]
         assert rep["reconstructed"] == 0
+        if summary["classes"][cls]["reconstructed"] == rep["objects"]:
+            # nothing left to do: no silhouettes prepared, no average masks, no carving
+            complete.append(cls)
+            assert not {"carve", "select"} & set(rep["seconds"]), (cls, rep["seconds"])
+    assert complete, "no class was complete after the first run: the check above did not run"
     assert before == {p: p.stat().st_mtime_ns for p in out.glob("*/meshes/*.ply")}
 
 
