@@ -61,9 +61,15 @@ class ClassReport:
     def skip(self, reason: str, stage: str, annotation_id=None, source=None):
         self.skipped.append({"annotation_id": annotation_id, "source": source, "stage": stage, "reason": reason})
 
+    def failures(self) -> list:
+        """The skipped objects, class-level entries first, then by annotation id (the order in which
+        writer processes finish must not change the report)."""
+        return sorted(self.skipped, key=lambda f: (f["annotation_id"] is not None,
+                                                   f["annotation_id"] if isinstance(f["annotation_id"], int) else 0))
+
     def to_dict(self) -> dict:
         return {"objects": self.objects, "reconstructed": self.reconstructed, "resumed": self.resumed,
-                "skipped": len(self.skipped), "status": self.status, "failures": self.skipped,
+                "skipped": len(self.skipped), "status": self.status, "failures": self.failures(),
                 "warnings": self.warnings, "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
                 **self.info}
 

@@ -356,3 +356,16 @@ def test_a_failing_write_is_booked_on_its_object(monkeypatch, tmp_path, workers)
         written = [f for f in rep["failures"] if "writing failed" in f["reason"]]
         assert written and all("OSError: disk full" in f["reason"] for f in written)
     assert not list((tmp_path / "car" / "meshes").glob("*.ply"))
+
+
+def test_report_failures_do_not_depend_on_booking_order():
+    from carvi_torch.pipeline import ClassReport
+
+    a, b = ClassReport("car"), ClassReport("car")
+    entries = [("mesh", 7), ("carve", 3), ("class", None), ("carve", 12)]
+    for stage, aid in entries:
+        a.skip(f"{stage} failed", stage, aid)
+    for stage, aid in reversed(entries):
+        b.skip(f"{stage} failed", stage, aid)
+    assert a.to_dict()["failures"] == b.to_dict()["failures"]
+    assert [f["annotation_id"] for f in a.to_dict()["failures"]] == [None, 3, 7, 12]
