@@ -424,20 +424,30 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
             writer.close(cancel=True)
         elif not isinstance(e, KeyboardInterrupt):
             writer.drain()
+        try:  # the scores of the objects handed to the writer so far are kept too
+            _write_scores(cdir, cfg, scores_out)
+        except Exception:  # noqa: BLE001 - the original error is the one to report
+            pass
         raise
     if own_writer:
         writer.close()
-    if cfg.keep_all_scores and scores_out:
-        prev = {}
-        sp = cdir / "proposal_scores.json"
-        if sp.is_file() and not cfg.overwrite:
-            try:
-                prev = read_json(sp)
-            except ValueError:
-                prev = {}
-        prev.update(scores_out)
-        write_json(sp, prev, indent=None)
+    _write_scores(cdir, cfg, scores_out)
     return report
+
+
+def _write_scores(cdir: Path, cfg: Config, scores_out: dict) -> None:
+    """Merge this run's proposal scores into ``cdir/proposal_scores.json`` (atomic)."""
+    if not (cfg.keep_all_scores and scores_out):
+        return
+    prev = {}
+    sp = cdir / "proposal_scores.json"
+    if sp.is_file() and not cfg.overwrite:
+        try:
+            prev = read_json(sp)
+        except ValueError:
+            prev = {}
+    prev.update(scores_out)
+    write_json(sp, prev, indent=None)
 
 
 @dataclass

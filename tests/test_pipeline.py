@@ -369,3 +369,30 @@ def test_report_failures_do_not_depend_on_booking_order():
         b.skip(f"{stage} failed", stage, aid)
     assert a.to_dict()["failures"] == b.to_dict()["failures"]
     assert [f["annotation_id"] for f in a.to_dict()["failures"]] == [None, 3, 7, 12]
+
+
+def test_a_class_failing_midway_keeps_finished_objects_and_their_scores(monkeypatch, tmp_path):
+    """An error after the first chunk: the class is reported failed, the run goes on, the objects of
+    the first chunk are written with their proposal scores, and a rerun finishes the rest."""
+    from carvi_torch import pipeline as P
+
+    orig = P._carve_and_select
+    calls = {"n": 0}
+
+    def flaky(ids, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise RuntimeError("simulated failure in the second chunk")
+        return orig(ids, *args, **kwargs)
+
+    monkeypatch.setattr(P, "_carve_and_select", flaky)
+    monkeypatch.setattr(P, "_CPU_CHUNK_OBJECTS", 3)
+    summary = run(_cfg(tmp_path, classes=["car"]), workers=0)
+    rep = summary["classes"]["car"]
+    assert rep["status"] == "failed" and "simulated failure" in rep["failures"][0]["reason"]
+    written = sorted(p.stem for p in (tmp_path / "car" / "meshes").glob("*.ply"))
+    scores = json.loads((tmp_path / "car" / "proposal_scores.json").read_text())
+    assert 1 <= len(written) <= 3 and set(written) <= set(scores)
+    monkeypatch.setattr(P, "_carve_and_select", orig)
+    again = run(_cfg(tmp_path, classes=["car"], preview=False), workers=0)["classes"]["car"]
+    assert again["resumed"] == len(written) and again["resumed"] + again["reconstructed"] + again["skipped"] == 6
