@@ -771,6 +771,22 @@ def _canvas_to_image_4x4(scale: torch.Tensor, offset: torch.Tensor) -> torch.Ten
 # =========================================================================== whole run
 
 
+def _env_count(name: str, minimum: int) -> int | None:
+    """The integer environment variable ``name`` (at least ``minimum``), or None when unset."""
+    env = os.environ.get(name)
+    if env is None:
+        return None
+    try:
+        return max(minimum, int(env))
+    except ValueError:
+        raise ValueError(f"{name} must be an integer, got {env!r}") from None
+
+
+def _cores() -> int:
+    """CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def writer_workers(cfg: Config) -> int:
     """Writer processes of a run: ``CARVI_WRITERS`` if set, else ``cores - 1`` (at least 1, at most 8;
     none for ``stage=cameras``).
@@ -778,16 +794,12 @@ def writer_workers(cfg: Config) -> int:
     Meshing and writing an object takes ~10 ms of CPU; in worker processes it overlaps the
     carving of the next objects (``0``: everything inline).
     """
-    env = os.environ.get("CARVI_WRITERS")
+    env = _env_count("CARVI_WRITERS", 0)
     if env is not None:
-        try:
-            return max(0, int(env))
-        except ValueError:
-            raise ValueError(f"CARVI_WRITERS must be an integer, got {env!r}") from None
+        return env
     if cfg.stage != "all":
         return 0
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return min(8, max(1, cores - 1))
+    return min(8, max(1, _cores() - 1))
 
 
 def torch_threads(workers: int) -> int:
@@ -795,18 +807,11 @@ def torch_threads(workers: int) -> int:
     cores left to it beside ``workers`` writer processes (at least one).
 
     The carving and selection are chains of many medium-sized tensor operations; on a machine
-    whose cores are busy with other work, extra OpenMP threads of each operation mostly wait
-    for one another (measured: 2 threads 7x slower than 1 on a loaded 2-core machine, see
-    ``docs/benchmarks/README.md``).
+    whose cores are busy with other work (the writers), extra OpenMP threads of each operation
+    mostly wait for one another.
     """
-    env = os.environ.get("CARVI_THREADS")
-    if env is not None:
-        try:
-            return max(1, int(env))
-        except ValueError:
-            raise ValueError(f"CARVI_THREADS must be an integer, got {env!r}") from None
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, cores - workers)
+    env = _env_count("CARVI_THREADS", 1)
+    return env if env is not None else max(1, _cores() - workers)
 
 
 @contextmanager
