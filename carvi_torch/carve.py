@@ -1095,14 +1095,14 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
         return_cost: also return the full cost ``C (B, D, H, W)`` (samples every column
             at every depth; no coarse-to-fine).
         coarse_to_fine: skip the voxels whose labels exact coarse costs decide. Off
-            by default: on the benchmark class (60^3 and 100^3, CPU) it sampled a third
-            fewer voxels but its bookkeeping made it 2x slower than sampling every
-            voxel of the foreground columns; kept, exact and tested, for devices where
-            sampling dominates.
+            by default: on the pipeline's proposals (60^3, CPU, ``tools/benchmark.py``) it
+            sampled 45% fewer voxels but its bookkeeping made it 2.5x slower than sampling
+            every voxel of the foreground columns; kept, exact and tested, for devices
+            where sampling dominates.
         depth_intervals: sample each foreground column only within the depths its views'
-            mask boxes allow (about half the samples on the benchmark class). Off by
-            default: on the CPU its bookkeeping costs what the samples save
-            (``docs/benchmarks/README.md``); measured again on CUDA by the benchmark.
+            mask boxes allow (21% fewer samples on the pipeline's proposals). Off by
+            default: on the CPU its bookkeeping costs more than the samples save (1.3x
+            slower, ``docs/benchmarks/README.md``); to be measured on CUDA by the benchmark.
 
     Returns:
         :class:`ProposalGrids`; voxel for voxel equal to :func:`carve_proposals_loop`.
