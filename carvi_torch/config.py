@@ -107,7 +107,7 @@ class Config:
     imprint: bool = True
     """Imprint the reference silhouette (``False`` = the -SImp ablation)."""
     max_batch_voxels: int = 50_000_000
-    """Upper bound on voxels x views carved in one batched chunk (bounds memory); the carving never uses more than the device's measured best (2^20 on CPU, 2^25 on CUDA), so only smaller values change anything."""
+    """Upper bound on voxels x views carved in one batched chunk (bounds memory); the carving never uses more than its per-device default (2^20 on CPU, the measured best on 2 cores; 2^25 on CUDA), so only smaller values change anything."""
 
     # ---- selection and meshes
     plane_size: int = 64
