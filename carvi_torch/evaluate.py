@@ -79,7 +79,7 @@ def _viewpoints(recon: Path, cls: str, gt_entries: dict, aids: list[int]) -> dic
     cams = read_json(p).get("cameras", {})
     out = {}
     for stage in ("sfm", "refined"):
-        est, ref = [], []
+        est, ref, used = [], [], []
         for a in aids:
             c = cams.get(str(a), {}).get(stage)
             g = gt_entries.get(str(a))
@@ -87,9 +87,11 @@ def _viewpoints(recon: Path, cls: str, gt_entries: dict, aids: list[int]) -> dic
                 continue
             est.append(c["R"])
             ref.append(g["R"])
+            used.append(int(a))
         if len(est) >= 2:
             rep = viewpoint_metrics.viewpoint_report(torch.tensor(est, dtype=torch.float64),
                                                      torch.tensor(ref, dtype=torch.float64))
+            rep["annotation_ids"] = used  # aligned with rep["per_instance_geodesic"]
             out[stage] = rep
     return out or None
 

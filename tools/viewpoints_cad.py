@@ -24,6 +24,29 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
+def _per_model(annotations: Path, viewpoints: dict) -> dict:
+    """Median geodesic error per CAD model: ``{class: {model: {"n", "sfm", "refined"}}}`` (degrees)."""
+    import json
+    from statistics import median
+
+    model = {a["id"]: Path(a.get("source") or str(a.get("object_id"))).stem
+             for a in json.loads(Path(annotations).read_text())["annotations"]}
+    out = {}
+    for cls, per in sorted(viewpoints.items()):
+        rows = {}
+        for stage in ("sfm", "refined"):
+            rep = per.get("estimated", {}).get(stage)
+            if not rep:
+                continue
+            errs: dict = {}
+            for aid, e in zip(rep["annotation_ids"], rep["per_instance_geodesic"]):
+                errs.setdefault(model[aid], []).append(e)
+            for m, es in errs.items():
+                rows.setdefault(m, {"n": len(es)})[stage] = round(median(es), 2)
+        out[cls] = dict(sorted(rows.items()))
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--views", type=int, default=30, help="renders per CAD model (default 30)")
@@ -69,6 +92,7 @@ def main(argv=None) -> int:
             "sfm_acc30": sfm.get("geodesic", {}).get("acc_at_30"), "refined_acc30": ref["geodesic"]["acc_at_30"],
             "mirrored": bool(ref.get("mirrored")),
         })
+    per_model = _per_model(renders / "annotations.json", res["viewpoints"])
     f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
     lines = ["| class | views | median geodesic SfM -> refined | median azimuth SfM -> refined | "
              "median elevation SfM -> refined | acc@30 refined | frame mirrored |",
@@ -88,6 +112,7 @@ def main(argv=None) -> int:
     write_json(args.out, {"command": " ".join(shlex.quote(a) for a in ["python", "tools/viewpoints_cad.py",
                                                                       *(argv if argv is not None else sys.argv[1:])]),
                           "views": args.views, "seed": args.seed, "rows": rows, "table": table,
+                          "per_model": per_model,
                           "render_seconds": round(t_render, 1), "cameras_seconds": round(t_cams, 1)})
     print(f"wrote {args.out}")
     return 0
