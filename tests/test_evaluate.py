@@ -81,6 +81,9 @@ def test_real_run_with_baselines(recon, tmp_path, capsys):
         assert 0 < car[m]["mean"] < 50
     vp = res["viewpoints"]["car"]["Full"]
     assert set(vp) == {"sfm", "refined"} and vp["refined"]["geodesic"]["median"] < 20
+    # per-instance errors are tied to their objects
+    ids = vp["refined"]["annotation_ids"]
+    assert len(ids) == len(vp["refined"]["per_instance_geodesic"]) and set(ids) <= {int(k) for k in gt}
     text = capsys.readouterr().out
     assert f"| car ({len(gt)}) |" in text and "refined" in text
     assert (tmp_path / "ev" / "shapes.md").read_text().startswith("| class |")
