@@ -1208,20 +1208,37 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
 
 
 def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: torch.Tensor, views: torch.Tensor,
-                         *, resolution: int = 60, imprint: bool = True) -> ProposalGrids:
+                         *, resolution: int = 60, imprint: bool = True,
+                         reference_every_voxel: bool = False) -> ProposalGrids:
     """Reference implementation of :func:`carve_proposals`: one proposal, one view at a time.
 
     The structure of a straightforward implementation: each proposal on its own, its
-    silhouettes prepared for it (given plain ``sdf`` maps: extended and measured per
-    proposal; given :class:`CarveMaps`: taken as they are), every voxel sampled (no column
-    skipping, no depth intervals, no coarse-to-fine), unused slots skipped, and the same
-    imprinting rule. Slow; for tests and benchmarks. Always returns the full cost.
+    silhouettes prepared for it, every voxel sampled (no column skipping, no depth
+    intervals, no coarse-to-fine), unused slots skipped, and the same imprinting rule.
+    Slow; for tests and benchmarks. Always returns the full cost. How much is redone per
+    proposal depends on what is passed (the benchmark times each step of the ladder):
+
+    * ``sdf`` **bool masks** ``(M, H, W)``: the distance maps of the proposal's silhouettes
+      are computed for it (:func:`carvi_torch.sdf.signed_distance`), then extended and
+      measured; nothing is shared between proposals (the reference implementation's structure).
+    * float ``sdf`` maps: extended and measured per proposal.
+    * :class:`CarveMaps`: taken as they are (prepared once per class).
+
+    ``reference_every_voxel`` samples the reference map at every voxel like the other views
+    (its projection does not move along depth, so the values equal the once-per-column
+    samples bit for bit; only the work differs).
 
     Args and returns: as :func:`carve_proposals`.
     """
     prepared = isinstance(sdf, CarveMaps)
+    from_masks = not prepared and isinstance(sdf, torch.Tensor) and sdf.dtype == torch.bool
+    if from_masks:
+        if sdf.dim() != 3:
+            raise ValueError(f"masks must be a (M, H, W) bool tensor, got {tuple(sdf.shape)}")
+        _check_sdf(sdf.float(), cameras)
     maps, reference, views = _as_maps(sdf, cameras, reference, views, resolution) if prepared else \
-        (None, *_check_indices(_check_sdf(sdf, cameras), reference, views, resolution, sdf.device))
+        (None, *_check_indices(_check_sdf(sdf.float() if from_masks else sdf, cameras), reference, views,
+                               resolution, sdf.device))
     dev = maps.device if prepared else sdf.device
     B, V = views.shape
     n = resolution
@@ -1229,11 +1246,21 @@ def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, referen
     h, w = _column_hw(torch.arange(n * n, device=dev)[None], n)
     grids = []
     for b in range(B):
-        one, ref_b, views_b = (maps, reference[b:b + 1], views[b:b + 1]) if prepared else \
-            _as_maps(sdf, cameras, reference[b:b + 1], views[b:b + 1], resolution)
+        if prepared:
+            one, ref_b, views_b = maps, reference[b:b + 1], views[b:b + 1]
+        elif from_masks:
+            used = torch.cat([reference[b:b + 1], views[b][views[b] >= 0]])
+            mine = torch.where(views[b:b + 1] >= 0, torch.cumsum((views[b:b + 1] >= 0).long(), 1), -1)
+            one, ref_b, views_b = _as_maps(signed_distance(sdf[used]), cameras.to(dev)[used],
+                                           torch.zeros(1, dtype=torch.long, device=dev), mine, resolution)
+        else:
+            one, ref_b, views_b = _as_maps(sdf, cameras, reference[b:b + 1], views[b:b + 1], resolution)
         ext, ref_u, views_u, T, G, G_ref, scale = _prepare(one, ref_b, views_b, resolution)
         column_cost = _reference_columns(ext, ref_u, G_ref, n, n)  # (1, HW)
-        acc = column_cost[:, None, :].expand(1, n, n * n).clone()  # (1, D, HW)
+        if reference_every_voxel:
+            acc = _sample_columns(ext[ref_u][:, None], G_ref, _column_coords(G_ref, h, w), depth)  # (1, D, HW)
+        else:
+            acc = column_cost[:, None, :].expand(1, n, n * n).clone()  # (1, D, HW)
         for j in range(V):
             if int(views[b, j]) < 0:
                 continue

@@ -652,6 +652,36 @@ def test_entries_sharing_a_map_equal_copies_of_it():
         prepare_maps(sdf, cams).with_entries(torch.tensor([8]), extra[:1])
 
 
+@pytest.mark.parametrize("imprint", [True, False])
+def test_loop_structures_agree_voxel_for_voxel(imprint):
+    """The benchmark's ladder of loops: distance maps computed per proposal from the masks,
+    the reference sampled at every voxel, maps given, maps prepared once: same labels and cost."""
+    gen = torch.Generator().manual_seed(21)
+    sdf, cams, reference, views = random_proposals(gen, M=8, B=10, V=4, size=28)
+    masks = sdf < 0
+    n = 12
+    given = carve_proposals_loop(sdf, cams, reference, views, resolution=n, imprint=imprint)
+    naive = carve_proposals_loop(masks, cams, reference, views, resolution=n, imprint=imprint,
+                                 reference_every_voxel=True)
+    prepared = carve_proposals_loop(prepare_maps(sdf, cams), None, reference, views, resolution=n, imprint=imprint)
+    batched = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint)
+    for other in (naive, prepared, batched):
+        assert torch.equal(other.occupancy, given.occupancy)
+        assert torch.equal(other.voxel_to_camera, given.voxel_to_camera)
+        assert torch.equal(other.empty, given.empty)
+    assert torch.equal(naive.cost, given.cost) and torch.equal(prepared.cost, given.cost)
+    assert bool(given.occupancy.any()) and bool(given.empty.any())  # the case is not trivial
+
+
+def test_loop_from_masks_rejects_bad_masks():
+    gen = torch.Generator().manual_seed(22)
+    sdf, cams, reference, views = random_proposals(gen, M=8, B=8, V=2, size=16)
+    with pytest.raises(ValueError, match="masks must be a"):
+        carve_proposals_loop((sdf < 0)[None], cams, reference, views, resolution=8)
+    with pytest.raises(ValueError, match="cameras must be"):
+        carve_proposals_loop(sdf < 0, cams[:4], reference, views, resolution=8)
+
+
 @pytest.mark.parametrize("steep", [False, True])
 def test_depth_intervals_only_skip_exterior_voxels(steep):
     """Depth intervals: every skipped voxel has C >= 0 (full cost of the loop), also for maps that
