@@ -34,4 +34,17 @@ def cuda_available() -> bool:
     return torch.cuda.is_available()
 
 
-requires_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (CI has none)")
+#: Marks a test as needing CUDA: ``pytest -m cuda`` selects every such test (a session with a
+#: GPU runs them all with ``tools/gpu_session.sh``); without a device they are skipped by
+#: :func:`pytest_collection_modifyitems`.
+requires_cuda = pytest.mark.cuda
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip the tests marked ``cuda`` when no CUDA device is present, with the reason."""
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA device (CI has none)")
+    for item in items:
+        if "cuda" in item.keywords:
+            item.add_marker(skip)

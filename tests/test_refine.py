@@ -421,7 +421,6 @@ def test_camera_count_mismatch_and_negative_weight():
 
 
 @pytest.mark.cuda
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_matches_cpu():
     d = make_scene(9, n=30, k=10, deform=0.1)
     dm = distance_to_mask(d["masks"])

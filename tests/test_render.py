@@ -347,7 +347,6 @@ def test_perturb_boundary_moves_boundary_by_about_sigma():
 
 
 @pytest.mark.cuda
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (CI has none)")
 def test_render_on_cuda_matches_cpu(generator):
     V, F = cube_mesh(0.5)
     V = V + 0.01 * torch.randn(V.shape, generator=generator)

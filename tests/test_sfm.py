@@ -467,7 +467,6 @@ def test_symmetry_plane_of_a_reflected_shape(generator):
 
 
 @pytest.mark.cuda
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_matches_cpu():
     d = make_class(16, n=100, k=12, missing=0.3, noise=0.005)
     a = rigid_sfm(d["kp"], d["vis"])

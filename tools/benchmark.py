@@ -264,6 +264,9 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
         # distance maps of every silhouette computed per proposal, the reference sampled at every voxel
         "loop_reference_structure": lambda: C.carve_proposals_loop(sdf_l < 0, cams_l, ref_l, views_l, resolution=n,
                                                                    imprint=cfg.imprint, reference_every_voxel=True),
+        # distance maps per proposal, the reference sampled once per column
+        "loop_maps_per_proposal": lambda: C.carve_proposals_loop(sdf_l < 0, cams_l, ref_l, views_l, resolution=n,
+                                                                 imprint=cfg.imprint),
         # the class's maps prepared once (extended, measured), shared by every proposal
         "loop_prepared_maps": lambda: C.carve_proposals_loop(plan.maps, None, reference[:m], views[:m], resolution=n,
                                                              imprint=cfg.imprint),
@@ -352,6 +355,8 @@ def table(result: dict) -> str:
                 ("batched, coarse_to_fine", s["batched_coarse_to_fine"], sm["batched_coarse_to_fine"]),
                 (f"(a) per-proposal loop, reference structure ({cs['loop_objects']} objects, extrapolated)",
                  s["loop_reference_structure"], sm["loop_reference_structure"]),
+                ("(a) per-proposal loop, distance maps per proposal, reference once per column",
+                 s["loop_maps_per_proposal"], sm["loop_naive"]),
                 ("(a) per-proposal loop, maps given (extended per proposal), reference once per column",
                  s["loop"], sm["loop_naive"]),
                 ("(a) per-proposal loop, maps prepared once per class", s["loop_prepared_maps"], sm["loop_naive"]),

@@ -1,0 +1,69 @@
+#!/usr/bin/env bash
+# Everything to run when a CUDA machine is at hand, in one command: the CUDA tests and the GPU
+# benchmarks (docs/benchmarks/README.md, "GPU"). Run from the repository root:
+#
+#     bash tools/gpu_session.sh [all|tests|bench1000|bench9087] [OUTDIR]
+#
+# OUTDIR defaults to $OUT (the lent machine's result folder) or outputs/gpu. Each step writes
+# its log and JSON there; steps can be run one by one (a lent machine limits one command to
+# 10 minutes). Python is $PYTHON or python3; it must have torch with CUDA. Packages the
+# machine lacks can be carried as wheels in .whl/ (installed into a private target, never
+# into the system). The benchmark data are generated on first use, or carried:
+# outputs/bench/data/car1000_s0/{annotations.json,gt.json} (about 3 MB; the 9,087-object
+# class is tiled from it).
+set -uo pipefail
+step=${1:-all}
+out=${2:-${OUT:-outputs/gpu}}
+py=${PYTHON:-python3}
+mkdir -p "$out"
+
+case "$step" in
+    all|tests|bench1000|bench9087) ;;
+    *) echo "unknown step '$step' (all, tests, bench1000, bench9087)" >&2; exit 2 ;;
+esac
+
+if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, scipy, skimage" 2>/dev/null \
+        && [ -d .whl ] && compgen -G ".whl/*.whl" >/dev/null; then
+    "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/carvi_site .whl/*.whl || exit 1
+    export PYTHONPATH="/tmp/carvi_site:$PWD"
+else
+    export PYTHONPATH="$PWD"
+fi
+
+if ! "$py" -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)"; then
+    echo "no CUDA device visible to $py: nothing to do here" >&2
+    exit 2
+fi
+{ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>/dev/null
+  "$py" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"; } | tee "$out/device.txt"
+
+run_tests() {
+    # pycolmap is only needed by the rotation cross-checks, which have no CUDA test
+    local ignore=()
+    "$py" -c "import pycolmap" 2>/dev/null || ignore=(--ignore tests/test_cameras.py)
+    "$py" -m pytest -q -rs -m cuda "${ignore[@]}" tests 2>&1 | tee "$out/pytest_cuda.txt"
+    return "${PIPESTATUS[0]}"
+}
+
+bench() {  # objects, extra arguments
+    local n=$1
+    shift
+    "$py" tools/benchmark.py --device cuda --objects "$n" --out "$out/benchmark_cuda_$n.json" "$@" 2>&1 \
+        | tee "$out/benchmark_cuda_$n.txt"
+    return "${PIPESTATUS[0]}"
+}
+
+status=0
+case "$step" in
+    tests) run_tests || status=$? ;;
+    bench1000) bench 1000 || status=$? ;;
+    bench9087) bench 9087 --skip-carve || status=$? ;;
+    all)
+        run_tests || status=$?
+        bench 1000 || status=$?
+        bench 9087 --skip-carve || status=$?
+        ;;
+esac
+echo "results in $out"
+exit "$status"
