@@ -1,0 +1,299 @@
+"""Study: a mixture of rigid SfM shapes per class, on the CAD renders (not part of the pipeline).
+
+One rigid mean shape per class cannot fit classes whose members differ in proportions (sofa:
+a long low couch, an armchair and ordinary sofas; docs/viewpoints.md); the camera then absorbs
+the shape difference. This study splits a class into ``k`` groups, each with its own rigid SfM,
+by hard EM (k-subspaces), without any ground truth:
+
+1. ``k = 1``: the pipeline's rigid SfM on originals + mirrored copies (reproduces
+   ``tools/viewpoints_cad.py``).
+2. Initial groups for ``k > 1``, two candidates: ``lifted`` = k-means (``scipy.cluster.vq.kmeans2``,
+   k-means++ starts, best of 10) of every object's single-model reprojection residuals lifted into
+   the object frame (``R[:2]^T r / s``; object and mirrored copy side by side, unit norm);
+   ``residual`` = quantiles of every object's single-model keypoint residual.
+3. Alternate (at most 6 rounds): rigid SfM per group (objects with their mirrored copies); a
+   keypoint-only camera of every object under every group's mean shape
+   (:func:`carvi_torch.refine.estimate_camera`, ``silhouette_weight=0``); move every object to the
+   group with the lowest squared pixel residual (object + mirrored copy). Groups below
+   ``--min-group`` objects take the objects that cost least to move.
+4. One class frame: every group's mean shape is rotated onto group 0's (a proper rotation fitted
+   on their shared keypoints, centred and scaled: ``scipy.spatial.transform.Rotation.align_vectors``)
+   and its cameras with it.
+5. The silhouette refinement of the pipeline, per group, with that group's rotated mean shape.
+6. Of the two initialisations the one with the lower total residual is kept.
+
+The ground truth (``gt.json`` of the renders) is read only to score: median geodesic error
+after one global rotation (:func:`carvi_torch.viewpoint_metrics.viewpoint_report`, as
+``evaluate`` does), per CAD model, and which models each group holds. The table also applies
+an unsupervised selection rule (``--rule``): ``k = 2`` when it lowers the total squared residual
+by more than that fraction against ``k = 1``, ``k = 3`` when it lowers it by more than that
+against ``k = 2``.
+
+    python tools/viewpoints_cad.py                       # renders the CAD models (cached)
+    python tools/sfm_mixture_study.py [--classes sofa] [--k 1 2 3] [--out docs/results/sfm_mixture.json]
+
+About 1 to 4 minutes per class on one core.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.cluster.vq import kmeans2
+from scipy.spatial.transform import Rotation
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from carvi_torch import refine, sfm  # noqa: E402
+from carvi_torch.cameras import ScaledOrthographic  # noqa: E402
+from carvi_torch.config import load_config  # noqa: E402
+from carvi_torch.io import coco  # noqa: E402
+from carvi_torch.io.outputs import write_json  # noqa: E402
+from carvi_torch.sdf import distance_to_mask  # noqa: E402
+from carvi_torch.viewpoint_metrics import viewpoint_report  # noqa: E402
+
+RENDERS = ROOT / "outputs" / "viewpoints_cad" / "renders_v30_s0" / "annotations.json"
+
+
+def group_sfm(both, idx: torch.Tensor, n: int, cfg):
+    """Rigid SfM of objects ``idx`` and their mirrored copies; returns (rows of ``both``, SfMResult)."""
+    rows = torch.cat([idx, idx + n])
+    sub, m = both[rows], both.meta
+    res = sfm.rigid_sfm(sub.keypoints, sub.visible, max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner,
+                        tol=cfg.sfm_tol, rigid_keypoints=m.rigid_keypoints, keypoint_names=m.keypoint_names,
+                        flip_pairs=m.flip_pairs, left_convention=m.left_convention)
+    return rows, res
+
+
+def keypoint_cost(shape: torch.Tensor, both, dist: torch.Tensor, n: int) -> torch.Tensor:
+    """``(n,)`` squared pixel residual of every object + its mirrored copy under ``shape`` (keypoint-only camera)."""
+    cams, _ = refine.estimate_camera(shape, both.keypoints, both.visible, dist, silhouette_weight=0.0, n_starts=16)
+    S = torch.nan_to_num(shape).to(cams.R)
+    P = cams.s[:, None, None] * (S @ cams.R[:, :2, :].transpose(-1, -2)) + cams.t[:, None, :]
+    vis = both.visible & torch.isfinite(shape).all(-1)[None] & torch.isfinite(both.keypoints).all(-1)
+    r = ((P - torch.nan_to_num(both.keypoints)).pow(2).sum(-1) * vis).sum(-1)
+    return r[:n] + r[n:]
+
+
+def lifted_residuals(res, keypoints: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
+    """``(M, 3K)`` reprojection residuals of the SfM rows lifted into the object frame (``R[:2]^T r / s``)."""
+    c = res.cameras
+    S = torch.nan_to_num(res.shape)
+    P = c.s[:, None, None] * (S @ c.R[:, :2, :].transpose(-1, -2)) + c.t[:, None, :]
+    vis = visible & torch.isfinite(res.shape).all(-1)[None] & res.valid[:, None]
+    r = (torch.nan_to_num(keypoints) - P) * vis[..., None]
+    return (torch.einsum("mki,mij->mkj", r, c.R[:, :2, :]) / c.s[:, None, None]).flatten(1)
+
+
+def kmeans_labels(X: torch.Tensor, k: int, seed: int, restarts: int = 10) -> torch.Tensor:
+    """Best of ``restarts`` k-means++ runs (scipy), by within-cluster sum of squares."""
+    data = X.double().numpy()
+    best, best_cost = None, np.inf
+    for r in range(restarts):
+        centres, labels = kmeans2(data, k, minit="++", seed=np.random.default_rng(seed + r))
+        cost = float(((data - centres[labels]) ** 2).sum())
+        if cost < best_cost:
+            best, best_cost = labels, cost
+    return torch.as_tensor(best, dtype=torch.long)
+
+
+def top_up(labels: torch.Tensor, cost: torch.Tensor, k: int, min_size: int) -> torch.Tensor:
+    """Groups below ``min_size`` take the objects of larger groups that cost least to move (``cost (n, k)``)."""
+    labels = labels.clone()
+    for g in range(k):
+        need = min_size - int((labels == g).sum())
+        if need <= 0:
+            continue
+        sizes = torch.bincount(labels, minlength=k)
+        extra = cost[:, g] - cost.gather(1, labels[:, None])[:, 0]
+        extra[(labels == g) | (sizes[labels] <= min_size)] = float("inf")
+        labels[extra.argsort()[:need]] = g
+    return labels
+
+
+def fit_mixture(both, n, dist, cfg, labels, k, min_size, rounds=6):
+    """Hard EM from ``labels (n,)``; returns (labels, groups [(rows, SfMResult)], cost (n, k), history)."""
+    nvis = (both.visible[:n].sum(-1) + both.visible[n:].sum(-1)).sum().clamp(min=1)
+    history = []
+    for it in range(rounds + 1):
+        groups = [group_sfm(both, (labels == g).nonzero().squeeze(1), n, cfg) for g in range(k)]
+        cost = torch.stack([keypoint_cost(res.shape, both, dist, n) for _rows, res in groups], 1)
+        history.append({"round": it, "sizes": torch.bincount(labels, minlength=k).tolist(),
+                        "rms_px": float(cost.gather(1, labels[:, None]).sum() / nvis) ** 0.5})
+        new = top_up(cost.argmin(1), cost, k, min_size)
+        if it == rounds or torch.equal(new, labels):
+            return labels, groups, cost, history
+        labels = new
+
+
+def rotation_onto(S: torch.Tensor, S0: torch.Tensor) -> torch.Tensor:
+    """Proper rotation ``Q (3, 3)`` with ``S Q ~ c S0`` on the shared finite rows (centred, unit norm)."""
+    ok = torch.isfinite(S).all(-1) & torch.isfinite(S0).all(-1)
+    A, B = S[ok].double(), S0[ok].double()
+    A, B = A - A.mean(0), B - B.mean(0)
+    A, B = A / A.norm(), B / B.norm()
+    rot, _ = Rotation.align_vectors(B.numpy(), A.numpy())  # rot maps rows of A onto rows of B
+    return torch.as_tensor(rot.as_matrix().T, dtype=S.dtype)
+
+
+def class_cameras(both, n, dist, cfg, groups):
+    """SfM and refined cameras (2n) in group 0's frame; returns (sfm cams, sfm valid, refined cams)."""
+    M, dt = 2 * n, both.keypoints.dtype
+    out = {key: [torch.eye(3, dtype=dt).repeat(M, 1, 1), torch.ones(M, dtype=dt), torch.zeros(M, 2, dtype=dt)]
+           for key in ("sfm", "refined")}
+
+    def put(key, rows, c):
+        out[key][0][rows], out[key][1][rows], out[key][2][rows] = c.R, c.s, c.t
+
+    valid = torch.zeros(M, dtype=torch.bool)
+    S0 = groups[0][1].shape
+    for rows, res in groups:
+        Q = rotation_onto(res.shape, S0) if len(groups) > 1 else torch.eye(3, dtype=dt)
+        shape = res.shape @ Q
+        cams = ScaledOrthographic(res.cameras.R @ Q, res.cameras.s, res.cameras.t)
+        valid[rows] = res.valid
+        put("sfm", rows, cams)
+        if cfg.refine:
+            cams = refine.refine_cameras(shape, cams, both.keypoints[rows], both.visible[rows], dist[rows],
+                                         silhouette_weight=cfg.silhouette_weight, max_iters=cfg.refine_iters,
+                                         silhouette_robust=cfg.silhouette_robust or None).cameras
+        missing = (~res.valid).nonzero().squeeze(1)
+        if missing.numel():  # the unseen-image path, as the pipeline
+            est, _ = refine.estimate_camera(shape, both.keypoints[rows][missing], both.visible[rows][missing],
+                                            dist[rows][missing], silhouette_robust=cfg.silhouette_robust or None)
+            R, s, t = cams.R.clone(), cams.s.clone(), cams.t.clone()
+            R[missing], s[missing], t[missing] = est.R, est.s, est.t
+            cams = ScaledOrthographic(R, s, t)
+        put("refined", rows, cams)
+    return ScaledOrthographic(*out["sfm"]), valid, ScaledOrthographic(*out["refined"])
+
+
+def score(coll, cams, ok, gt_R, models):
+    """Median geodesic error (degrees) after one global rotation, overall and per CAD model."""
+    img = cams[: len(coll)].compose_similarity(coll.canvas_from_image.inverse())
+    rep = viewpoint_report(img.R.double(), gt_R, valid=ok[: len(coll)])
+    err = torch.tensor(rep["per_instance_geodesic"], dtype=torch.float64)
+    per_model = {}
+    for m in sorted(set(models)):
+        e = err[[i for i, x in enumerate(models) if x == m]]
+        e = e[torch.isfinite(e)]
+        per_model[m] = round(float(e.median()), 1) if len(e) else None
+    return round(rep["geodesic"]["median"], 2), per_model
+
+
+def study_class(coll, gt, cfg, ks, min_size, seed):
+    n = len(coll)
+    both = coll.with_mirrors()
+    dist = distance_to_mask(both.masks)
+    aids = coll.annotation_ids.tolist()
+    models = [gt[str(a)].get("model", "?") for a in aids]
+    gt_R = torch.tensor([gt[str(a)]["R"] for a in aids], dtype=torch.float64)
+    nvis_obj = (both.visible[:n].sum(-1) + both.visible[n:].sum(-1)).clamp(min=1)  # (n,)
+    nvis = float(nvis_obj.sum())
+    rows1, res1 = group_sfm(both, torch.arange(n), n, cfg)
+    cost1 = keypoint_cost(res1.shape, both, dist, n)
+    lifted = lifted_residuals(res1, both.keypoints[rows1], both.visible[rows1])
+    lifted = torch.cat([lifted[:n], lifted[n:]], 1)
+    lifted = lifted / lifted.norm(dim=1, keepdim=True).clamp(min=1e-9)
+    out = {}
+    for k in ks:
+        if k == 1:
+            cands = [("single", torch.zeros(n, dtype=torch.long), [(rows1, res1)], cost1[:, None], [])]
+        else:
+            cands = []
+            inits = {"lifted": kmeans_labels(lifted, k, seed),
+                     "residual": ((cost1 / nvis_obj).argsort().argsort() * k // n).clamp(max=k - 1)}
+            for name, lab0 in inits.items():
+                lab0 = top_up(lab0, torch.zeros(n, k), k, min_size)
+                cands.append((name, *fit_mixture(both, n, dist, cfg, lab0, k, min_size)))
+        rows = []
+        for name, lab, groups, cost, hist in cands:
+            sse = float(cost.gather(1, lab[:, None]).sum())
+            sfm_cams, sfm_ok, ref_cams = class_cameras(both, n, dist, cfg, groups)
+            sfm_med, sfm_pm = score(coll, sfm_cams, sfm_ok, gt_R, models)
+            ref_med, ref_pm = score(coll, ref_cams, torch.ones(2 * n, dtype=torch.bool), gt_R, models)
+            rows.append({"init": name, "sse_px2": sse, "rms_px": (sse / nvis) ** 0.5, "sfm": sfm_med,
+                         "refined": ref_med, "sfm_per_model": sfm_pm, "refined_per_model": ref_pm,
+                         "groups": {g: {m: [models[i] for i in (lab == g).nonzero().squeeze(1).tolist()].count(m)
+                                        for m in sorted(set(models))} for g in range(k)},
+                         "history": hist})
+            print(f"  k={k} {name}: rms {rows[-1]['rms_px']:.3f} px, SfM {sfm_med:.1f}, refined {ref_med:.1f} deg, "
+                  f"sizes {torch.bincount(lab, minlength=k).tolist()}", flush=True)
+        chosen = min(rows, key=lambda r: r["sse_px2"])  # unsupervised: the lower residual
+        out[str(k)] = {"chosen": chosen["init"], "candidates": rows}
+    return out
+
+
+def pick(entry: dict, rule: float) -> tuple[int, dict]:
+    """The rule's choice of ``k`` for one class and the chosen candidates per ``k``."""
+    ch = {int(k): next(c for c in v["candidates"] if c["init"] == v["chosen"]) for k, v in entry.items()}
+    k = 1
+    while k + 1 in ch and 1 - ch[k + 1]["sse_px2"] / max(ch[k]["sse_px2"], 1e-12) > rule:
+        k += 1
+    return k, ch
+
+
+def table(results: dict, rule: float) -> str:
+    ks = sorted({int(k) for e in results.values() for k in e})
+    head = ["class"] + [f"k={k}: SfM -> refined (residual cut vs k={k - 1})" if k > 1 else "k=1: SfM -> refined"
+                        for k in ks] + [f"rule (> {rule:.0%} per step) picks", "picked: SfM -> refined"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for cls in sorted(results):
+        k_pick, ch = pick(results[cls], rule)
+        cells = [cls]
+        for k in ks:
+            c = ch.get(k)
+            if c is None:
+                cells.append("")
+                continue
+            cut = "" if k == 1 or k - 1 not in ch else f" ({1 - c['sse_px2'] / ch[k - 1]['sse_px2']:.0%})"
+            cells.append(f"{c['sfm']:.1f} -> {c['refined']:.1f}{cut}")
+        cells += [str(k_pick), f"{ch[k_pick]['sfm']:.1f} -> {ch[k_pick]['refined']:.1f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
+    ap.add_argument("--data", default=str(RENDERS), help="annotations.json of the renders (gt.json beside it)")
+    ap.add_argument("--classes", nargs="*", default=None, help="default: every class of the renders")
+    ap.add_argument("--k", nargs="*", type=int, default=[1, 2, 3], help="group counts to fit")
+    ap.add_argument("--min-group", type=int, default=15, help="fewest objects per group")
+    ap.add_argument("--rule", type=float, default=0.3, help="residual cut that accepts one more group")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default=str(ROOT / "docs" / "results" / "sfm_mixture.json"))
+    args = ap.parse_args(argv)
+    data = Path(args.data)
+    if not data.is_file() or not (data.parent / "gt.json").is_file():
+        raise SystemExit(f"no renders at {data} (with gt.json beside it): run python tools/viewpoints_cad.py first")
+    if not args.k or min(args.k) < 1 or 1 not in args.k:
+        raise SystemExit("--k must include 1 (the baseline) and hold positive counts")
+    torch.set_num_threads(1)
+    cfg = load_config(None, [])
+    gt = json.loads((data.parent / "gt.json").read_text())
+    gt = gt.get("annotations", gt)
+    loaded = coco.load_coco(data, canvas_size=cfg.canvas_size, margin=cfg.canvas_margin, classes=args.classes)
+    results, seconds = {}, {}
+    for name in sorted(loaded.collections):
+        t0 = time.perf_counter()
+        print(f"{name}:", flush=True)
+        results[name] = study_class(loaded.collections[name], gt, cfg, sorted(set(args.k)), args.min_group, args.seed)
+        seconds[name] = round(time.perf_counter() - t0, 1)
+    text = table(results, args.rule)
+    print(text)
+    write_json(Path(args.out), {"command": "python tools/sfm_mixture_study.py " + " ".join(argv or sys.argv[1:]),
+                                "data": str(data), "rule": args.rule, "min_group": args.min_group, "seed": args.seed,
+                                "seconds": seconds, "table": text, "classes": results})
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
