@@ -239,6 +239,12 @@ def pick(entry: dict, rule: float) -> tuple[int, dict]:
     return k, ch
 
 
+def _cut(sse: float, previous: float) -> str:
+    """The residual cut of one more group, as a percentage (or 'residual up')."""
+    cut = 1 - sse / max(previous, 1e-12)
+    return f"{cut:.0%}" if cut >= 0 else "residual up"
+
+
 def table(results: dict, rule: float) -> str:
     ks = sorted({int(k) for e in results.values() for k in e})
     head = ["class"] + [f"k={k}: SfM -> refined (residual cut vs k={k - 1})" if k > 1 else "k=1: SfM -> refined"
@@ -252,7 +258,7 @@ def table(results: dict, rule: float) -> str:
             if c is None:
                 cells.append("")
                 continue
-            cut = "" if k == 1 or k - 1 not in ch else f" ({1 - c['sse_px2'] / ch[k - 1]['sse_px2']:.0%})"
+            cut = "" if k == 1 or k - 1 not in ch else f" ({_cut(c['sse_px2'], ch[k - 1]['sse_px2'])})"
             cells.append(f"{c['sfm']:.1f} -> {c['refined']:.1f}{cut}")
         cells += [str(k_pick), f"{ch[k_pick]['sfm']:.1f} -> {ch[k_pick]['refined']:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
@@ -269,7 +275,12 @@ def main(argv=None):
     ap.add_argument("--rule", type=float, default=0.3, help="residual cut that accepts one more group")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(ROOT / "docs" / "results" / "sfm_mixture.json"))
+    ap.add_argument("--table", metavar="JSON", default=None,
+                    help="print the table of an earlier run's JSON (with --rule) and stop")
     args = ap.parse_args(argv)
+    if args.table:
+        print(table(json.loads(Path(args.table).read_text())["classes"], args.rule))
+        return 0
     data = Path(args.data)
     if not data.is_file() or not (data.parent / "gt.json").is_file():
         raise SystemExit(f"no renders at {data} (with gt.json beside it): run python tools/viewpoints_cad.py first")
