@@ -1096,12 +1096,12 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
             at every depth; no coarse-to-fine).
         coarse_to_fine: skip the voxels whose labels exact coarse costs decide. Off
             by default: on the pipeline's proposals (60^3, CPU, ``tools/benchmark.py``) it
-            sampled 45% fewer voxels but its bookkeeping made it 2.7x slower than sampling
+            sampled 45% fewer voxels but its bookkeeping made it 2.4-2.7x slower than sampling
             every voxel of the foreground columns; kept, exact and tested, for devices
             where sampling dominates.
         depth_intervals: sample each foreground column only within the depths its views'
             mask boxes allow (21% fewer samples on the pipeline's proposals). Off by
-            default: on the CPU its bookkeeping costs more than the samples save (1.3x
+            default: on the CPU its bookkeeping costs more than the samples save (1.2-1.3x
             slower, ``docs/benchmarks/README.md``); to be measured on CUDA by the benchmark.
 
     Returns:
