@@ -56,7 +56,7 @@ from carvi_torch.config import load_config  # noqa: E402
 from carvi_torch.io import coco  # noqa: E402
 from carvi_torch.io.outputs import write_json  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
-from carvi_torch.viewpoint_metrics import viewpoint_report  # noqa: E402
+from carvi_torch.viewpoint_metrics import geodesic_errors, viewpoint_report  # noqa: E402
 
 RENDERS = ROOT / "outputs" / "viewpoints_cad" / "renders_v30_s0" / "annotations.json"
 
@@ -142,6 +142,27 @@ def rotation_onto(S: torch.Tensor, S0: torch.Tensor) -> torch.Tensor:
     return torch.as_tensor(rot.as_matrix().T, dtype=S.dtype)
 
 
+def frame_agreement(both, n: int, dist: torch.Tensor, groups) -> float:
+    """How well the groups' frames agree after the shape alignment (degrees; no ground truth).
+
+    Every object gets a keypoint-only camera under every group's rotated mean shape; if the
+    frames agree, an object's rotations under two groups' shapes differ only by what the shape
+    difference costs. Returns the largest, over pairs of groups, of the median angle between
+    the two rotations over all objects (0 for one group).
+    """
+    if len(groups) < 2:
+        return 0.0
+    S0 = groups[0][1].shape
+    Rs = [refine.estimate_camera(res.shape @ rotation_onto(res.shape, S0), both.keypoints[:n], both.visible[:n],
+                                 dist[:n], silhouette_weight=0.0, n_starts=16)[0].R.double() for _rows, res in groups]
+    worst = 0.0
+    for a in range(len(Rs)):
+        for b in range(a + 1, len(Rs)):
+            e = geodesic_errors(Rs[a], Rs[b])
+            worst = max(worst, float(e[torch.isfinite(e)].median()))
+    return worst
+
+
 def class_cameras(both, n, dist, cfg, groups):
     """SfM and refined cameras (2n) in group 0's frame; returns (sfm cams, sfm valid, refined cams)."""
     M, dt = 2 * n, both.keypoints.dtype
@@ -218,21 +239,34 @@ def study_class(coll, gt, cfg, ks, min_size, seed):
             sfm_cams, sfm_ok, ref_cams = class_cameras(both, n, dist, cfg, groups)
             sfm_med, sfm_pm = score(coll, sfm_cams, sfm_ok, gt_R, models)
             ref_med, ref_pm = score(coll, ref_cams, torch.ones(2 * n, dtype=torch.bool), gt_R, models)
-            rows.append({"init": name, "sse_px2": sse, "rms_px": (sse / nvis) ** 0.5, "sfm": sfm_med,
+            agree = frame_agreement(both, n, dist, groups)
+            rows.append({"init": name, "sse_px2": sse, "rms_px": (sse / nvis) ** 0.5, "frame_agreement_deg": agree,
+                         "sfm": sfm_med,
                          "refined": ref_med, "sfm_per_model": sfm_pm, "refined_per_model": ref_pm,
                          "groups": {g: {m: [models[i] for i in (lab == g).nonzero().squeeze(1).tolist()].count(m)
                                         for m in sorted(set(models))} for g in range(k)},
                          "history": hist})
-            print(f"  k={k} {name}: rms {rows[-1]['rms_px']:.3f} px, SfM {sfm_med:.1f}, refined {ref_med:.1f} deg, "
+            print(f"  k={k} {name}: rms {rows[-1]['rms_px']:.3f} px, frames agree within {agree:.1f} deg, "
+                  f"SfM {sfm_med:.1f}, refined {ref_med:.1f} deg, "
                   f"sizes {torch.bincount(lab, minlength=k).tolist()}", flush=True)
         chosen = min(rows, key=lambda r: r["sse_px2"])  # unsupervised: the lower residual
         out[str(k)] = {"chosen": chosen["init"], "candidates": rows}
     return out
 
 
-def pick(entry: dict, rule: float) -> tuple[int, dict]:
-    """The rule's choice of ``k`` for one class and the chosen candidates per ``k``."""
-    ch = {int(k): next(c for c in v["candidates"] if c["init"] == v["chosen"]) for k, v in entry.items()}
+def pick(entry: dict, rule: float, agreement: float | None = None) -> tuple[int, dict]:
+    """The rule's choice of ``k`` for one class and the candidate it uses per ``k``.
+
+    Per ``k`` the candidate is the lower-residual initialisation; with ``agreement`` (degrees),
+    only among those whose groups' frames agree within it (:func:`frame_agreement`). One more
+    group is taken while it has such a candidate and cuts the residual by more than ``rule``.
+    """
+    ch = {}
+    for k, v in entry.items():
+        ok = [c for c in v["candidates"]
+              if agreement is None or c.get("frame_agreement_deg", 0.0) <= agreement]
+        if ok:
+            ch[int(k)] = min(ok, key=lambda c: c["sse_px2"])
     k = 1
     while k + 1 in ch and 1 - ch[k + 1]["sse_px2"] / max(ch[k]["sse_px2"], 1e-12) > rule:
         k += 1
@@ -245,13 +279,15 @@ def _cut(sse: float, previous: float) -> str:
     return f"{cut:.0%}" if cut >= 0 else "residual up"
 
 
-def table(results: dict, rule: float) -> str:
+def table(results: dict, rule: float, agreement: float | None = None) -> str:
     ks = sorted({int(k) for e in results.values() for k in e})
     head = ["class"] + [f"k={k}: SfM -> refined (residual cut vs k={k - 1})" if k > 1 else "k=1: SfM -> refined"
-                        for k in ks] + [f"rule (> {rule:.0%} per step) picks", "picked: SfM -> refined"]
+                        for k in ks]
+    head += [f"rule (> {rule:.0%} per step{'' if agreement is None else f', frames within {agreement:g} deg'}) picks",
+             "picked: SfM -> refined"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for cls in sorted(results):
-        k_pick, ch = pick(results[cls], rule)
+        k_pick, ch = pick(results[cls], rule, agreement)
         cells = [cls]
         for k in ks:
             c = ch.get(k)
@@ -259,7 +295,8 @@ def table(results: dict, rule: float) -> str:
                 cells.append("")
                 continue
             cut = "" if k == 1 or k - 1 not in ch else f" ({_cut(c['sse_px2'], ch[k - 1]['sse_px2'])})"
-            cells.append(f"{c['sfm']:.1f} -> {c['refined']:.1f}{cut}")
+            agree = "" if k == 1 or "frame_agreement_deg" not in c else f" [{c['frame_agreement_deg']:.0f} deg]"
+            cells.append(f"{c['sfm']:.1f} -> {c['refined']:.1f}{cut}{agree}")
         cells += [str(k_pick), f"{ch[k_pick]['sfm']:.1f} -> {ch[k_pick]['refined']:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -273,13 +310,15 @@ def main(argv=None):
     ap.add_argument("--k", nargs="*", type=int, default=[1, 2, 3], help="group counts to fit")
     ap.add_argument("--min-group", type=int, default=15, help="fewest objects per group")
     ap.add_argument("--rule", type=float, default=0.3, help="residual cut that accepts one more group")
+    ap.add_argument("--agreement", type=float, default=None, metavar="DEG",
+                    help="also require the groups' frames to agree within DEG degrees (table only)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(ROOT / "docs" / "results" / "sfm_mixture.json"))
     ap.add_argument("--table", metavar="JSON", default=None,
                     help="print the table of an earlier run's JSON (with --rule) and stop")
     args = ap.parse_args(argv)
     if args.table:
-        print(table(json.loads(Path(args.table).read_text())["classes"], args.rule))
+        print(table(json.loads(Path(args.table).read_text())["classes"], args.rule, args.agreement))
         return 0
     data = Path(args.data)
     if not data.is_file() or not (data.parent / "gt.json").is_file():
@@ -297,10 +336,10 @@ def main(argv=None):
         print(f"{name}:", flush=True)
         results[name] = study_class(loaded.collections[name], gt, cfg, sorted(set(args.k)), args.min_group, args.seed)
         seconds[name] = round(time.perf_counter() - t0, 1)
-    text = table(results, args.rule)
+    text = table(results, args.rule, args.agreement)
     print(text)
     write_json(Path(args.out), {"command": "python tools/sfm_mixture_study.py " + " ".join(argv or sys.argv[1:]),
-                                "data": str(data), "rule": args.rule, "min_group": args.min_group, "seed": args.seed,
+                                "data": str(data), "rule": args.rule, "agreement_deg": args.agreement, "min_group": args.min_group, "seed": args.seed,
                                 "seconds": seconds, "table": text, "classes": results})
     print(f"wrote {args.out}")
     return 0
