@@ -1096,12 +1096,12 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
             at every depth; no coarse-to-fine).
         coarse_to_fine: skip the voxels whose labels exact coarse costs decide. Off
             by default: on the pipeline's proposals (60^3, CPU, ``tools/benchmark.py``) it
-            sampled 45% fewer voxels but its bookkeeping made it 2.4-2.7x slower than sampling
+            sampled 45% fewer voxels but its bookkeeping made it 2.4x slower than sampling
             every voxel of the foreground columns; kept, exact and tested, for devices
             where sampling dominates.
         depth_intervals: sample each foreground column only within the depths its views'
             mask boxes allow (21% fewer samples on the pipeline's proposals). Off by
-            default: on the CPU its bookkeeping costs more than the samples save (1.2-1.3x
+            default: on the CPU its bookkeeping costs more than the samples save (1.2-1.4x
             slower, ``docs/benchmarks/README.md``); to be measured on CUDA by the benchmark.
 
     Returns:
@@ -1232,10 +1232,8 @@ def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, referen
     """
     prepared = isinstance(sdf, CarveMaps)
     from_masks = not prepared and isinstance(sdf, torch.Tensor) and sdf.dtype == torch.bool
-    if from_masks:
-        if sdf.dim() != 3:
-            raise ValueError(f"masks must be a (M, H, W) bool tensor, got {tuple(sdf.shape)}")
-        _check_sdf(sdf.float(), cameras)
+    if from_masks and sdf.dim() != 3:
+        raise ValueError(f"masks must be a (M, H, W) bool tensor, got {tuple(sdf.shape)}")
     maps, reference, views = _as_maps(sdf, cameras, reference, views, resolution) if prepared else \
         (None, *_check_indices(_check_sdf(sdf.float() if from_masks else sdf, cameras), reference, views,
                                resolution, sdf.device))
@@ -1270,7 +1268,8 @@ def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, referen
         occ, _, _ = _label(acc, column_cost, imprint)
         grids.append((occ, T.float(), column_cost, acc))
     if B == 0:
-        return carve_proposals(sdf, cameras, reference, views, resolution=resolution, return_cost=True)
+        return carve_proposals(signed_distance(sdf) if from_masks else sdf, cameras, reference, views,
+                               resolution=resolution, return_cost=True)
     occ, T, column_cost, acc = (torch.cat(x) for x in zip(*grids))
     occupancy = occ.view(B, n, n, n)
     return ProposalGrids(

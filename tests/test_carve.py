@@ -673,6 +673,14 @@ def test_loop_structures_agree_voxel_for_voxel(imprint):
     assert bool(given.occupancy.any()) and bool(given.empty.any())  # the case is not trivial
 
 
+def test_loop_from_masks_with_no_proposal():
+    gen = torch.Generator().manual_seed(23)
+    sdf, cams, _, _ = random_proposals(gen, M=8, B=8, V=2, size=16)
+    out = carve_proposals_loop(sdf < 0, cams, torch.zeros(0, dtype=torch.long), torch.zeros(0, 2, dtype=torch.long),
+                               resolution=8)
+    assert out.occupancy.shape == (0, 8, 8, 8)
+
+
 def test_loop_from_masks_rejects_bad_masks():
     gen = torch.Generator().manual_seed(22)
     sdf, cams, reference, views = random_proposals(gen, M=8, B=8, V=2, size=16)

@@ -75,3 +75,16 @@ def test_rule_with_frame_agreement_skips_disagreeing_splits():
     k, chosen = mix.pick(entry, 0.3, agreement=60.0)
     assert k == 2 and chosen[2]["init"] == "b" and 3 not in chosen  # the agreeing split only
     assert "frames within 60 deg" in mix.table({"c": entry}, 0.3, 60.0)
+
+
+def test_top_up_never_takes_a_donor_below_the_bound():
+    gen = torch.Generator().manual_seed(3)
+    labels = torch.cat([torch.zeros(16, dtype=torch.long), torch.ones(30, dtype=torch.long)])
+    cost = torch.rand(46, 3, generator=gen)
+    cost[:16, 2] = -1.0  # group 0's objects are the cheapest to move into group 2
+    out = mix.top_up(labels, cost, 3, 15)
+    assert torch.bincount(out, minlength=3).tolist() == [15, 16, 15]
+
+
+def test_frame_agreement_of_one_group_is_zero():
+    assert mix.frame_agreement(None, 0, None, [(None, None)]) == 0.0

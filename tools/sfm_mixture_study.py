@@ -107,13 +107,14 @@ def top_up(labels: torch.Tensor, cost: torch.Tensor, k: int, min_size: int) -> t
     """Groups below ``min_size`` take the objects of larger groups that cost least to move (``cost (n, k)``)."""
     labels = labels.clone()
     for g in range(k):
-        need = min_size - int((labels == g).sum())
-        if need <= 0:
-            continue
-        sizes = torch.bincount(labels, minlength=k)
-        extra = cost[:, g] - cost.gather(1, labels[:, None])[:, 0]
-        extra[(labels == g) | (sizes[labels] <= min_size)] = float("inf")
-        labels[extra.argsort()[:need]] = g
+        while int((labels == g).sum()) < min_size:  # one object at a time: no donor drops below the bound
+            sizes = torch.bincount(labels, minlength=k)
+            extra = cost[:, g] - cost.gather(1, labels[:, None])[:, 0]
+            extra[(labels == g) | (sizes[labels] <= min_size)] = float("inf")
+            best = int(extra.argmin())
+            if not bool(torch.isfinite(extra[best])):
+                break  # no group can give an object away
+            labels[best] = g
     return labels
 
 
@@ -159,7 +160,8 @@ def frame_agreement(both, n: int, dist: torch.Tensor, groups) -> float:
     for a in range(len(Rs)):
         for b in range(a + 1, len(Rs)):
             e = geodesic_errors(Rs[a], Rs[b])
-            worst = max(worst, float(e[torch.isfinite(e)].median()))
+            e = e[torch.isfinite(e)]
+            worst = max(worst, float(e.median()) if len(e) else float("inf"))  # no camera pair: no agreement
     return worst
 
 
@@ -263,8 +265,10 @@ def pick(entry: dict, rule: float, agreement: float | None = None) -> tuple[int,
     """
     ch = {}
     for k, v in entry.items():
+        if agreement is not None and int(k) > 1 and any("frame_agreement_deg" not in c for c in v["candidates"]):
+            raise ValueError("--agreement needs a JSON written by a study that measured frame_agreement_deg")
         ok = [c for c in v["candidates"]
-              if agreement is None or c.get("frame_agreement_deg", 0.0) <= agreement]
+              if agreement is None or int(k) == 1 or c["frame_agreement_deg"] <= agreement]
         if ok:
             ch[int(k)] = min(ok, key=lambda c: c["sse_px2"])
     k = 1
