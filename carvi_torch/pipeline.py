@@ -125,6 +125,15 @@ def _gt_cameras(gt: dict | None, coll: ClassCollection) -> ScaledOrthographic | 
 # =========================================================================== viewpoints
 
 
+def class_sfm(both: ClassCollection, cfg: Config) -> sfm.SfMResult:
+    """Rigid SfM of a collection (originals and mirrored copies) with the config's settings and
+    the category's rigid keypoints, keypoint names, flip pairs and left/right convention."""
+    m = both.meta
+    return sfm.rigid_sfm(both.keypoints, both.visible, max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner,
+                         tol=cfg.sfm_tol, rigid_keypoints=m.rigid_keypoints, keypoint_names=m.keypoint_names,
+                         flip_pairs=m.flip_pairs, left_convention=m.left_convention)
+
+
 def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device, gt_img: ScaledOrthographic | None):
     """Cameras for originals and mirrors (canvas pixels), the mean shape and the symmetry plane.
 
@@ -135,10 +144,7 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
     both = coll.with_mirrors()
     k = coll.meta.num_keypoints
     with _timed(report, "sfm", device):
-        res = sfm.rigid_sfm(both.keypoints, both.visible, max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner,
-                            tol=cfg.sfm_tol, rigid_keypoints=coll.meta.rigid_keypoints,
-                            keypoint_names=coll.meta.keypoint_names, flip_pairs=coll.meta.flip_pairs,
-                            left_convention=coll.meta.left_convention)
+        res = class_sfm(both, cfg)
     for msg in res.problems:
         report.warnings.append(f"sfm: {msg}")
     shape = res.shape

@@ -50,7 +50,7 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from carvi_torch import refine, sfm  # noqa: E402
+from carvi_torch import pipeline, refine  # noqa: E402
 from carvi_torch.cameras import ScaledOrthographic  # noqa: E402
 from carvi_torch.config import load_config  # noqa: E402
 from carvi_torch.io import coco  # noqa: E402
@@ -64,11 +64,7 @@ RENDERS = ROOT / "outputs" / "viewpoints_cad" / "renders_v30_s0" / "annotations.
 def group_sfm(both, idx: torch.Tensor, n: int, cfg):
     """Rigid SfM of objects ``idx`` and their mirrored copies; returns (rows of ``both``, SfMResult)."""
     rows = torch.cat([idx, idx + n])
-    sub, m = both[rows], both.meta
-    res = sfm.rigid_sfm(sub.keypoints, sub.visible, max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner,
-                        tol=cfg.sfm_tol, rigid_keypoints=m.rigid_keypoints, keypoint_names=m.keypoint_names,
-                        flip_pairs=m.flip_pairs, left_convention=m.left_convention)
-    return rows, res
+    return rows, pipeline.class_sfm(both[rows], cfg)
 
 
 def keypoint_cost(shape: torch.Tensor, both, dist: torch.Tensor, n: int) -> torch.Tensor:
