@@ -134,6 +134,25 @@ def class_sfm(both: ClassCollection, cfg: Config) -> sfm.SfMResult:
                          flip_pairs=m.flip_pairs, left_convention=m.left_convention)
 
 
+def class_refine(shape: torch.Tensor, cams: ScaledOrthographic, both: ClassCollection, dist: torch.Tensor,
+                 cfg: Config) -> refine.RefineResult:
+    """Silhouette refinement of every camera of ``both`` with the mean shape fixed, as configured."""
+    return refine.refine_cameras(shape, cams, both.keypoints, both.visible, dist, silhouette_weight=cfg.silhouette_weight,
+                                 max_iters=cfg.refine_iters, silhouette_robust=cfg.silhouette_robust or None)
+
+
+def cameras_from_mean_shape(shape: torch.Tensor, cams: ScaledOrthographic, idx: torch.Tensor, both: ClassCollection,
+                            dist: torch.Tensor, cfg: Config) -> ScaledOrthographic:
+    """``cams`` with the cameras of rows ``idx`` replaced by the unseen-image estimate from ``shape``."""
+    if idx.numel() == 0:
+        return cams
+    est, _energy = refine.estimate_camera(shape, both.keypoints[idx], both.visible[idx], dist[idx],
+                                          silhouette_robust=cfg.silhouette_robust or None)
+    R, s, t = cams.R.clone(), cams.s.clone(), cams.t.clone()
+    R[idx], s[idx], t[idx] = est.R, est.s, est.t
+    return ScaledOrthographic(R, s, t)
+
+
 def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device, gt_img: ScaledOrthographic | None):
     """Cameras for originals and mirrors (canvas pixels), the mean shape and the symmetry plane.
 
@@ -177,9 +196,7 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
         reflection = GT_REFLECTION.to(shape)
     elif cfg.refine:
         with _timed(report, "refine", device):
-            rr = refine.refine_cameras(shape, cams_sfm, both.keypoints, both.visible, dist,
-                                       silhouette_weight=cfg.silhouette_weight, max_iters=cfg.refine_iters,
-                                       silhouette_robust=cfg.silhouette_robust or None)
+            rr = class_refine(shape, cams_sfm, both, dist, cfg)
         cams = rr.cameras
         report.info["refine"] = {"median_energy_before": float(rr.energy_before[res.valid].median())
                                  if res.valid.any() else None,
@@ -190,11 +207,7 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
     if bool(missing.any()):
         with _timed(report, "refine", device):
             idx = missing.nonzero().squeeze(1)
-            est, _energy = refine.estimate_camera(shape, both.keypoints[idx], both.visible[idx], dist[idx],
-                                                   silhouette_robust=cfg.silhouette_robust or None)
-        R, s, t = cams.R.clone(), cams.s.clone(), cams.t.clone()
-        R[idx], s[idx], t[idx] = est.R, est.s, est.t
-        cams = ScaledOrthographic(R, s, t)
+            cams = cameras_from_mean_shape(shape, cams, idx, both, dist, cfg)
         report.info["cameras_from_mean_shape"] = [int(coll.annotation_ids[i]) for i in idx.tolist() if i < n]
         has_camera = torch.ones_like(has_camera)
     finite = torch.isfinite(cams.R).flatten(1).all(1) & torch.isfinite(cams.s) & (cams.s > 0)

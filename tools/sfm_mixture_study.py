@@ -178,17 +178,11 @@ def class_cameras(both, n, dist, cfg, groups):
         cams = ScaledOrthographic(res.cameras.R @ Q, res.cameras.s, res.cameras.t)
         valid[rows] = res.valid
         put("sfm", rows, cams)
+        sub = both[rows]
         if cfg.refine:
-            cams = refine.refine_cameras(shape, cams, both.keypoints[rows], both.visible[rows], dist[rows],
-                                         silhouette_weight=cfg.silhouette_weight, max_iters=cfg.refine_iters,
-                                         silhouette_robust=cfg.silhouette_robust or None).cameras
-        missing = (~res.valid).nonzero().squeeze(1)
-        if missing.numel():  # the unseen-image path, as the pipeline
-            est, _ = refine.estimate_camera(shape, both.keypoints[rows][missing], both.visible[rows][missing],
-                                            dist[rows][missing], silhouette_robust=cfg.silhouette_robust or None)
-            R, s, t = cams.R.clone(), cams.s.clone(), cams.t.clone()
-            R[missing], s[missing], t[missing] = est.R, est.s, est.t
-            cams = ScaledOrthographic(R, s, t)
+            cams = pipeline.class_refine(shape, cams, sub, dist[rows], cfg).cameras
+        # objects without an SfM camera: the unseen-image path, as the pipeline
+        cams = pipeline.cameras_from_mean_shape(shape, cams, (~res.valid).nonzero().squeeze(1), sub, dist[rows], cfg)
         put("refined", rows, cams)
     return ScaledOrthographic(*out["sfm"]), valid, ScaledOrthographic(*out["refined"])
 
