@@ -86,5 +86,13 @@ def test_top_up_never_takes_a_donor_below_the_bound():
     assert torch.bincount(out, minlength=3).tolist() == [15, 16, 15]
 
 
-def test_frame_agreement_of_one_group_is_zero():
-    assert mix.frame_agreement(None, 0, None, [(None, None)]) == 0.0
+def test_frame_agreement_measures_the_angle_between_group_frames():
+    R = torch.as_tensor(Rotation.random(40, random_state=4).as_matrix())
+    I = torch.eye(3, dtype=torch.float64)
+    Q = torch.as_tensor(Rotation.from_rotvec([0.0, 0.0, 0.5]).as_matrix())  # 28.6 degrees
+    assert mix.frame_agreement([R], [I]) == 0.0
+    assert mix.frame_agreement([R, R], [I, I]) == pytest.approx(0.0, abs=1e-5)
+    assert mix.frame_agreement([R, R], [I, Q]) == pytest.approx(28.65, abs=0.01)
+    # a group whose cameras are already off by Q^T is brought back by its rotation Q
+    assert mix.frame_agreement([R, R @ Q.T], [I, Q]) == pytest.approx(0.0, abs=1e-5)
+    assert mix.frame_agreement([R, torch.full_like(R, float("nan"))], [I, I]) == float("inf")

@@ -56,7 +56,7 @@ from carvi_torch.config import load_config  # noqa: E402
 from carvi_torch.io import coco  # noqa: E402
 from carvi_torch.io.outputs import write_json  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
-from carvi_torch.viewpoint_metrics import geodesic_errors, viewpoint_report  # noqa: E402
+from carvi_torch.viewpoint_metrics import geodesic_errors, summarize, viewpoint_report  # noqa: E402
 
 RENDERS = ROOT / "outputs" / "viewpoints_cad" / "renders_v30_s0" / "annotations.json"
 
@@ -67,14 +67,15 @@ def group_sfm(both, idx: torch.Tensor, n: int, cfg):
     return rows, pipeline.class_sfm(both[rows], cfg)
 
 
-def keypoint_cost(shape: torch.Tensor, both, dist: torch.Tensor, n: int) -> torch.Tensor:
-    """``(n,)`` squared pixel residual of every object + its mirrored copy under ``shape`` (keypoint-only camera)."""
+def keypoint_cost(shape: torch.Tensor, both, dist: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keypoint-only cameras of every row of ``both`` under ``shape``: ``(n,)`` squared pixel residual of
+    every object + its mirrored copy, and ``(n, 3, 3)`` the objects' rotations."""
     cams, _ = refine.estimate_camera(shape, both.keypoints, both.visible, dist, silhouette_weight=0.0, n_starts=16)
     S = torch.nan_to_num(shape).to(cams.R)
     P = cams.s[:, None, None] * (S @ cams.R[:, :2, :].transpose(-1, -2)) + cams.t[:, None, :]
     vis = both.visible & torch.isfinite(shape).all(-1)[None] & torch.isfinite(both.keypoints).all(-1)
     r = ((P - torch.nan_to_num(both.keypoints)).pow(2).sum(-1) * vis).sum(-1)
-    return r[:n] + r[n:]
+    return r[:n] + r[n:], cams.R[:n]
 
 
 def lifted_residuals(res, keypoints: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
@@ -115,17 +116,21 @@ def top_up(labels: torch.Tensor, cost: torch.Tensor, k: int, min_size: int) -> t
 
 
 def fit_mixture(both, n, dist, cfg, labels, k, min_size, rounds=6):
-    """Hard EM from ``labels (n,)``; returns (labels, groups [(rows, SfMResult)], cost (n, k), history)."""
+    """Hard EM from ``labels (n,)``.
+
+    Returns (labels, groups [(rows, SfMResult)], cost (n, k), rotations [(n, 3, 3)] of every object's
+    keypoint-only camera under every group's shape, history)."""
     nvis = (both.visible[:n].sum(-1) + both.visible[n:].sum(-1)).sum().clamp(min=1)
     history = []
     for it in range(rounds + 1):
         groups = [group_sfm(both, (labels == g).nonzero().squeeze(1), n, cfg) for g in range(k)]
-        cost = torch.stack([keypoint_cost(res.shape, both, dist, n) for _rows, res in groups], 1)
+        fits = [keypoint_cost(res.shape, both, dist, n) for _rows, res in groups]
+        cost = torch.stack([c for c, _R in fits], 1)
         history.append({"round": it, "sizes": torch.bincount(labels, minlength=k).tolist(),
                         "rms_px": float(cost.gather(1, labels[:, None]).sum() / nvis) ** 0.5})
         new = top_up(cost.argmin(1), cost, k, min_size)
         if it == rounds or torch.equal(new, labels):
-            return labels, groups, cost, history
+            return labels, groups, cost, [R for _c, R in fits], history
         labels = new
 
 
@@ -139,19 +144,28 @@ def rotation_onto(S: torch.Tensor, S0: torch.Tensor) -> torch.Tensor:
     return torch.as_tensor(rot.as_matrix().T, dtype=S.dtype)
 
 
-def frame_agreement(both, n: int, dist: torch.Tensor, groups) -> float:
+def group_rotations(groups) -> list[torch.Tensor]:
+    """``Q_g`` rotating every group's mean shape onto group 0's (identity for one group)."""
+    S0 = groups[0][1].shape
+    return [torch.eye(3, dtype=S0.dtype) if len(groups) == 1 else rotation_onto(res.shape, S0) for _r, res in groups]
+
+
+def frame_agreement(rotations: list[torch.Tensor], Q: list[torch.Tensor]) -> float:
     """How well the groups' frames agree after the shape alignment (degrees; no ground truth).
 
-    Every object gets a keypoint-only camera under every group's rotated mean shape; if the
-    frames agree, an object's rotations under two groups' shapes differ only by what the shape
-    difference costs. Returns the largest, over pairs of groups, of the median angle between
-    the two rotations over all objects (0 for one group).
+    Every object has a keypoint-only camera ``R`` under every group's mean shape (from the EM);
+    under the rotated shape ``S Q`` that camera is ``R Q``. If the frames agree, an object's
+    rotations under two groups' shapes differ only by what the shape difference costs.
+
+    Args:
+        rotations: per group, ``(n, 3, 3)`` the objects' rotations under the group's shape.
+        Q: per group, the rotation of its shape into the common frame (:func:`group_rotations`).
+
+    Returns:
+        The largest, over pairs of groups, of the median angle between the two rotations over
+        all objects (0 for one group; ``inf`` when a pair has no finite angle).
     """
-    if len(groups) < 2:
-        return 0.0
-    S0 = groups[0][1].shape
-    Rs = [refine.estimate_camera(res.shape @ rotation_onto(res.shape, S0), both.keypoints[:n], both.visible[:n],
-                                 dist[:n], silhouette_weight=0.0, n_starts=16)[0].R.double() for _rows, res in groups]
+    Rs = [R.double() @ q.double() for R, q in zip(rotations, Q)]
     worst = 0.0
     for a in range(len(Rs)):
         for b in range(a + 1, len(Rs)):
@@ -161,8 +175,9 @@ def frame_agreement(both, n: int, dist: torch.Tensor, groups) -> float:
     return worst
 
 
-def class_cameras(both, n, dist, cfg, groups):
-    """SfM and refined cameras (2n) in group 0's frame; returns (sfm cams, sfm valid, refined cams)."""
+def class_cameras(both, n, dist, cfg, groups, Q):
+    """SfM and refined cameras (2n) in group 0's frame (shapes rotated by ``Q``, :func:`group_rotations`);
+    returns (sfm cams, sfm valid, refined cams)."""
     M, dt = 2 * n, both.keypoints.dtype
     out = {key: [torch.eye(3, dtype=dt).repeat(M, 1, 1), torch.ones(M, dtype=dt), torch.zeros(M, 2, dtype=dt)]
            for key in ("sfm", "refined")}
@@ -171,11 +186,10 @@ def class_cameras(both, n, dist, cfg, groups):
         out[key][0][rows], out[key][1][rows], out[key][2][rows] = c.R, c.s, c.t
 
     valid = torch.zeros(M, dtype=torch.bool)
-    S0 = groups[0][1].shape
-    for rows, res in groups:
-        Q = rotation_onto(res.shape, S0) if len(groups) > 1 else torch.eye(3, dtype=dt)
-        shape = res.shape @ Q
-        cams = ScaledOrthographic(res.cameras.R @ Q, res.cameras.s, res.cameras.t)
+    for (rows, res), q in zip(groups, Q):
+        q = q.to(res.shape.dtype)
+        shape = res.shape @ q
+        cams = ScaledOrthographic(res.cameras.R @ q, res.cameras.s, res.cameras.t)
         valid[rows] = res.valid
         put("sfm", rows, cams)
         sub = both[rows]
@@ -188,18 +202,16 @@ def class_cameras(both, n, dist, cfg, groups):
 
 
 def score(coll, cams, ok, gt_R, models):
-    """Median geodesic error (degrees) after one global rotation, overall and per CAD model.
-
-    Per model the median is torch's (the lower middle value of an even count).
-    """
+    """Median geodesic error (degrees) after one global rotation, overall and per CAD model
+    (:func:`carvi_torch.viewpoint_metrics.summarize`: an even count's median is the mean of
+    the two middle values, as everywhere in the project)."""
     img = cams[: len(coll)].compose_similarity(coll.canvas_from_image.inverse())
     rep = viewpoint_report(img.R.double(), gt_R, valid=ok[: len(coll)])
     err = torch.tensor(rep["per_instance_geodesic"], dtype=torch.float64)
     per_model = {}
     for m in sorted(set(models)):
-        e = err[[i for i, x in enumerate(models) if x == m]]
-        e = e[torch.isfinite(e)]
-        per_model[m] = round(float(e.median()), 1) if len(e) else None
+        med = summarize(err[[i for i, x in enumerate(models) if x == m]])["median"]
+        per_model[m] = None if med != med else round(med, 1)  # NaN: no finite error
     return round(rep["geodesic"]["median"], 2), per_model
 
 
@@ -213,14 +225,14 @@ def study_class(coll, gt, cfg, ks, min_size, seed):
     nvis_obj = (both.visible[:n].sum(-1) + both.visible[n:].sum(-1)).clamp(min=1)  # (n,)
     nvis = float(nvis_obj.sum())
     rows1, res1 = group_sfm(both, torch.arange(n), n, cfg)
-    cost1 = keypoint_cost(res1.shape, both, dist, n)
+    cost1, R1 = keypoint_cost(res1.shape, both, dist, n)
     lifted = lifted_residuals(res1, both.keypoints[rows1], both.visible[rows1])
     lifted = torch.cat([lifted[:n], lifted[n:]], 1)
     lifted = lifted / lifted.norm(dim=1, keepdim=True).clamp(min=1e-9)
     out = {}
     for k in ks:
         if k == 1:
-            cands = [("single", torch.zeros(n, dtype=torch.long), [(rows1, res1)], cost1[:, None], [])]
+            cands = [("single", torch.zeros(n, dtype=torch.long), [(rows1, res1)], cost1[:, None], [R1], [])]
         else:
             cands = []
             inits = {"lifted": kmeans_labels(lifted, k, seed),
@@ -229,12 +241,13 @@ def study_class(coll, gt, cfg, ks, min_size, seed):
                 lab0 = top_up(lab0, torch.zeros(n, k), k, min_size)
                 cands.append((name, *fit_mixture(both, n, dist, cfg, lab0, k, min_size)))
         rows = []
-        for name, lab, groups, cost, hist in cands:
+        for name, lab, groups, cost, rotations, hist in cands:
             sse = float(cost.gather(1, lab[:, None]).sum())
-            sfm_cams, sfm_ok, ref_cams = class_cameras(both, n, dist, cfg, groups)
+            Q = group_rotations(groups)
+            sfm_cams, sfm_ok, ref_cams = class_cameras(both, n, dist, cfg, groups, Q)
             sfm_med, sfm_pm = score(coll, sfm_cams, sfm_ok, gt_R, models)
             ref_med, ref_pm = score(coll, ref_cams, torch.ones(2 * n, dtype=torch.bool), gt_R, models)
-            agree = frame_agreement(both, n, dist, groups)
+            agree = frame_agreement(rotations, Q)
             rows.append({"init": name, "sse_px2": sse, "rms_px": (sse / nvis) ** 0.5, "frame_agreement_deg": agree,
                          "sfm": sfm_med,
                          "refined": ref_med, "sfm_per_model": sfm_pm, "refined_per_model": ref_pm,
