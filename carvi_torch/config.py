@@ -78,6 +78,19 @@ class Config:
     """Inner (camera / shape) alternations per outer iteration."""
     sfm_tol: float = 1e-7
     """Stop when the relative change of the visible-entry residual falls below this."""
+    sfm_groups: int = 1
+    """Most rigid shapes per class (``carvi_torch.sfm_mixture``): a class whose members differ in
+    proportions is split into groups, each with its own SfM shape, in one class frame. 1 = one mean
+    shape per class, as in the paper."""
+    sfm_group_min: int = 15
+    """Fewest objects per shape group (a class with fewer than twice this keeps one shape)."""
+    sfm_group_gain: float = 0.3
+    """A split into one more group is kept when it cuts the keypoint residual by more than this fraction."""
+    sfm_group_agreement_deg: float = 60.0
+    """A split is only considered when its groups' frames agree within this many degrees (median over
+    the objects; no ground truth)."""
+    sfm_group_rounds: int = 6
+    """Most hard-EM rounds per candidate split."""
     refine: bool = True
     """Silhouette refinement of the SfM cameras (``False`` = the -CRef ablation)."""
     refine_iters: int = 150
@@ -154,7 +167,8 @@ class Config:
         if self.mesh_format not in ("ply", "obj", "glb"):
             raise ConfigError(f"mesh_format must be ply, obj or glb, got {self.mesh_format!r}")
         for name in ("canvas_size", "resolution", "proposals", "plane_size", "refine_iters", "sfm_max_outer",
-                     "sfm_inner", "procedural_instances", "min_instances"):
+                     "sfm_inner", "procedural_instances", "min_instances", "sfm_groups", "sfm_group_min",
+                     "sfm_group_rounds"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0 <= self.canvas_margin < 0.5:
@@ -163,6 +177,10 @@ class Config:
             raise ConfigError(f"cluster_threshold_deg must be in (0, 90], got {self.cluster_threshold_deg}")
         if self.silhouette_robust < 0:
             raise ConfigError(f"silhouette_robust must be >= 0 (0 = squared distance), got {self.silhouette_robust}")
+        if not 0 <= self.sfm_group_gain < 1:
+            raise ConfigError(f"sfm_group_gain must be in [0, 1), got {self.sfm_group_gain}")
+        if not 0 < self.sfm_group_agreement_deg <= 180:
+            raise ConfigError(f"sfm_group_agreement_deg must be in (0, 180], got {self.sfm_group_agreement_deg}")
         if not 0 < self.symmetric_step_deg < 360:
             raise ConfigError(f"symmetric_step_deg must be in (0, 360), got {self.symmetric_step_deg}")
 

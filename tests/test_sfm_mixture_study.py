@@ -1,51 +1,14 @@
-"""Tests for the pure pieces of tools/sfm_mixture_study.py (the study itself needs the CAD renders)."""
+"""Tests for the study-only pieces of tools/sfm_mixture_study.py (its selection rule and table; the fit's
+pieces are tested in tests/test_sfm_mixture.py, the study itself needs the CAD renders)."""
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
 import pytest
-import torch
-from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import sfm_mixture_study as mix  # noqa: E402
-
-
-def test_rotation_onto_recovers_a_known_rotation():
-    gen = torch.Generator().manual_seed(0)
-    S0 = torch.randn(9, 3, generator=gen, dtype=torch.float64)
-    Rt = torch.as_tensor(Rotation.from_rotvec([0.3, -1.1, 0.7]).as_matrix())
-    S = 2.5 * S0 @ Rt + torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)  # rotated, scaled, shifted
-    S[4] = float("nan")  # a keypoint one shape lacks: ignored
-    Q = mix.rotation_onto(S, S0)
-    assert torch.allclose(Q, Rt.T, atol=1e-8)
-    assert float(torch.det(Q)) == pytest.approx(1.0, abs=1e-10)
-
-
-def test_rotation_onto_is_proper_for_a_mirror_image():
-    """A mirrored shape has no proper rotation onto the original: still a rotation (det +1), never a reflection."""
-    gen = torch.Generator().manual_seed(1)
-    S0 = torch.randn(8, 3, generator=gen, dtype=torch.float64)
-    Q = mix.rotation_onto(S0 * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64), S0)
-    assert float(torch.det(Q)) == pytest.approx(1.0, abs=1e-10)
-    assert torch.allclose(Q @ Q.T, torch.eye(3, dtype=torch.float64), atol=1e-10)
-
-
-def test_top_up_moves_the_cheapest_objects_into_small_groups():
-    labels = torch.tensor([0, 0, 0, 0, 0, 0, 1])
-    cost = torch.tensor([[0.0, 5.0], [0.0, 1.0], [0.0, 9.0], [0.0, 2.0], [0.0, 7.0], [0.0, 3.0], [4.0, 0.0]])
-    out = mix.top_up(labels, cost, 2, 3)
-    assert out.tolist() == [0, 1, 0, 1, 0, 0, 1]  # objects 1 and 3 cost least to move
-    assert mix.top_up(labels, cost, 2, 1).tolist() == labels.tolist()  # already large enough
-
-
-def test_kmeans_labels_separates_clear_clusters_and_is_deterministic():
-    gen = torch.Generator().manual_seed(2)
-    X = torch.cat([torch.randn(20, 4, generator=gen) * 0.1, torch.randn(15, 4, generator=gen) * 0.1 + 3.0])
-    a, b = mix.kmeans_labels(X, 2, seed=5), mix.kmeans_labels(X, 2, seed=5)
-    assert torch.equal(a, b)
-    assert len(set(a[:20].tolist())) == 1 and len(set(a[20:].tolist())) == 1 and a[0] != a[-1]
 
 
 def _entry(sse):
@@ -77,22 +40,3 @@ def test_rule_with_frame_agreement_skips_disagreeing_splits():
     assert "frames within 60 deg" in mix.table({"c": entry}, 0.3, 60.0)
 
 
-def test_top_up_never_takes_a_donor_below_the_bound():
-    gen = torch.Generator().manual_seed(3)
-    labels = torch.cat([torch.zeros(16, dtype=torch.long), torch.ones(30, dtype=torch.long)])
-    cost = torch.rand(46, 3, generator=gen)
-    cost[:16, 2] = -1.0  # group 0's objects are the cheapest to move into group 2
-    out = mix.top_up(labels, cost, 3, 15)
-    assert torch.bincount(out, minlength=3).tolist() == [15, 16, 15]
-
-
-def test_frame_agreement_measures_the_angle_between_group_frames():
-    R = torch.as_tensor(Rotation.random(40, random_state=4).as_matrix())
-    I = torch.eye(3, dtype=torch.float64)
-    Q = torch.as_tensor(Rotation.from_rotvec([0.0, 0.0, 0.5]).as_matrix())  # 28.6 degrees
-    assert mix.frame_agreement([R], [I]) == 0.0
-    assert mix.frame_agreement([R, R], [I, I]) == pytest.approx(0.0, abs=1e-5)
-    assert mix.frame_agreement([R, R], [I, Q]) == pytest.approx(28.65, abs=0.01)
-    # a group whose cameras are already off by Q^T is brought back by its rotation Q
-    assert mix.frame_agreement([R, R @ Q.T], [I, Q]) == pytest.approx(0.0, abs=1e-5)
-    assert mix.frame_agreement([R, torch.full_like(R, float("nan"))], [I, I]) == float("inf")

@@ -1,4 +1,4 @@
-"""Study: a mixture of rigid SfM shapes per class, on the CAD renders (not part of the pipeline).
+"""Study: a mixture of rigid SfM shapes per class, on the CAD renders (every candidate split, scored).
 
 One rigid mean shape per class cannot fit classes whose members differ in proportions (sofa:
 a long low couch, an armchair and ordinary sofas; docs/viewpoints.md); the camera then absorbs
@@ -42,137 +42,33 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
-from scipy.cluster.vq import kmeans2
-from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from carvi_torch import pipeline, refine  # noqa: E402
+from carvi_torch import pipeline  # noqa: E402
 from carvi_torch.cameras import ScaledOrthographic  # noqa: E402
 from carvi_torch.config import load_config  # noqa: E402
 from carvi_torch.io import coco  # noqa: E402
 from carvi_torch.io.outputs import write_json  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
-from carvi_torch.viewpoint_metrics import geodesic_errors, summarize, viewpoint_report  # noqa: E402
+from carvi_torch.sfm_mixture import (frame_agreement, group_rotations, group_rows, hard_em,  # noqa: E402
+                                     keypoint_cost, kmeans_labels, lifted_residuals, top_up)
+from carvi_torch.viewpoint_metrics import summarize, viewpoint_report  # noqa: E402
 
 RENDERS = ROOT / "outputs" / "viewpoints_cad" / "renders_v30_s0" / "annotations.json"
 
 
 def group_sfm(both, idx: torch.Tensor, n: int, cfg):
     """Rigid SfM of objects ``idx`` and their mirrored copies; returns (rows of ``both``, SfMResult)."""
-    rows = torch.cat([idx, idx + n])
+    rows = group_rows(idx, n)
     return rows, pipeline.class_sfm(both[rows], cfg)
 
 
-def keypoint_cost(shape: torch.Tensor, both, dist: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Keypoint-only cameras of every row of ``both`` under ``shape``: ``(n,)`` squared pixel residual of
-    every object + its mirrored copy, and ``(n, 3, 3)`` the objects' rotations."""
-    cams, _ = refine.estimate_camera(shape, both.keypoints, both.visible, dist, silhouette_weight=0.0, n_starts=16)
-    S = torch.nan_to_num(shape).to(cams.R)
-    P = cams.s[:, None, None] * (S @ cams.R[:, :2, :].transpose(-1, -2)) + cams.t[:, None, :]
-    vis = both.visible & torch.isfinite(shape).all(-1)[None] & torch.isfinite(both.keypoints).all(-1)
-    r = ((P - torch.nan_to_num(both.keypoints)).pow(2).sum(-1) * vis).sum(-1)
-    return r[:n] + r[n:], cams.R[:n]
-
-
-def lifted_residuals(res, keypoints: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
-    """``(M, 3K)`` reprojection residuals of the SfM rows lifted into the object frame (``R[:2]^T r / s``)."""
-    c = res.cameras
-    S = torch.nan_to_num(res.shape)
-    P = c.s[:, None, None] * (S @ c.R[:, :2, :].transpose(-1, -2)) + c.t[:, None, :]
-    vis = visible & torch.isfinite(res.shape).all(-1)[None] & res.valid[:, None]
-    r = (torch.nan_to_num(keypoints) - P) * vis[..., None]
-    return (torch.einsum("mki,mij->mkj", r, c.R[:, :2, :]) / c.s[:, None, None]).flatten(1)
-
-
-def kmeans_labels(X: torch.Tensor, k: int, seed: int, restarts: int = 10) -> torch.Tensor:
-    """Best of ``restarts`` k-means++ runs (scipy), by within-cluster sum of squares."""
-    data = X.double().numpy()
-    best, best_cost = None, np.inf
-    for r in range(restarts):
-        centres, labels = kmeans2(data, k, minit="++", seed=np.random.default_rng(seed + r))
-        cost = float(((data - centres[labels]) ** 2).sum())
-        if cost < best_cost:
-            best, best_cost = labels, cost
-    return torch.as_tensor(best, dtype=torch.long)
-
-
-def top_up(labels: torch.Tensor, cost: torch.Tensor, k: int, min_size: int) -> torch.Tensor:
-    """Groups below ``min_size`` take the objects of larger groups that cost least to move (``cost (n, k)``)."""
-    labels = labels.clone()
-    for g in range(k):
-        while int((labels == g).sum()) < min_size:  # one object at a time: no donor drops below the bound
-            sizes = torch.bincount(labels, minlength=k)
-            extra = cost[:, g] - cost.gather(1, labels[:, None])[:, 0]
-            extra[(labels == g) | (sizes[labels] <= min_size)] = float("inf")
-            best = int(extra.argmin())
-            if not bool(torch.isfinite(extra[best])):
-                break  # no group can give an object away
-            labels[best] = g
-    return labels
-
-
 def fit_mixture(both, n, dist, cfg, labels, k, min_size, rounds=6):
-    """Hard EM from ``labels (n,)``.
-
-    Returns (labels, groups [(rows, SfMResult)], cost (n, k), rotations [(n, 3, 3)] of every object's
-    keypoint-only camera under every group's shape, history)."""
-    nvis = (both.visible[:n].sum(-1) + both.visible[n:].sum(-1)).sum().clamp(min=1)
-    history = []
-    for it in range(rounds + 1):
-        groups = [group_sfm(both, (labels == g).nonzero().squeeze(1), n, cfg) for g in range(k)]
-        fits = [keypoint_cost(res.shape, both, dist, n) for _rows, res in groups]
-        cost = torch.stack([c for c, _R in fits], 1)
-        history.append({"round": it, "sizes": torch.bincount(labels, minlength=k).tolist(),
-                        "rms_px": float(cost.gather(1, labels[:, None]).sum() / nvis) ** 0.5})
-        new = top_up(cost.argmin(1), cost, k, min_size)
-        if it == rounds or torch.equal(new, labels):
-            return labels, groups, cost, [R for _c, R in fits], history
-        labels = new
-
-
-def rotation_onto(S: torch.Tensor, S0: torch.Tensor) -> torch.Tensor:
-    """Proper rotation ``Q (3, 3)`` with ``S Q ~ c S0`` on the shared finite rows (centred, unit norm)."""
-    ok = torch.isfinite(S).all(-1) & torch.isfinite(S0).all(-1)
-    A, B = S[ok].double(), S0[ok].double()
-    A, B = A - A.mean(0), B - B.mean(0)
-    A, B = A / A.norm(), B / B.norm()
-    rot, _ = Rotation.align_vectors(B.numpy(), A.numpy())  # rot maps rows of A onto rows of B
-    return torch.as_tensor(rot.as_matrix().T, dtype=S.dtype)
-
-
-def group_rotations(groups) -> list[torch.Tensor]:
-    """``Q_g`` rotating every group's mean shape onto group 0's (identity for one group)."""
-    S0 = groups[0][1].shape
-    return [torch.eye(3, dtype=S0.dtype) if len(groups) == 1 else rotation_onto(res.shape, S0) for _r, res in groups]
-
-
-def frame_agreement(rotations: list[torch.Tensor], Q: list[torch.Tensor]) -> float:
-    """How well the groups' frames agree after the shape alignment (degrees; no ground truth).
-
-    Every object has a keypoint-only camera ``R`` under every group's mean shape (from the EM);
-    under the rotated shape ``S Q`` that camera is ``R Q``. If the frames agree, an object's
-    rotations under two groups' shapes differ only by what the shape difference costs.
-
-    Args:
-        rotations: per group, ``(n, 3, 3)`` the objects' rotations under the group's shape.
-        Q: per group, the rotation of its shape into the common frame (:func:`group_rotations`).
-
-    Returns:
-        The largest, over pairs of groups, of the median angle between the two rotations over
-        all objects (0 for one group; ``inf`` when a pair has no finite angle).
-    """
-    Rs = [R.double() @ q.double() for R, q in zip(rotations, Q)]
-    worst = 0.0
-    for a in range(len(Rs)):
-        for b in range(a + 1, len(Rs)):
-            e = geodesic_errors(Rs[a], Rs[b])
-            e = e[torch.isfinite(e)]
-            worst = max(worst, float(e.median()) if len(e) else float("inf"))  # no camera pair: no agreement
-    return worst
+    """Hard EM from ``labels (n,)`` with the pipeline's SfM (:func:`carvi_torch.sfm_mixture.hard_em`)."""
+    return hard_em(both, n, dist, lambda sub: pipeline.class_sfm(sub, cfg), labels, k, min_size, rounds)
 
 
 def class_cameras(both, n, dist, cfg, groups, Q):

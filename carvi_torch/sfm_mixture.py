@@ -1,0 +1,323 @@
+"""SfM stage, optional: a mixture of rigid shapes per class (``sfm_groups > 1``).
+
+One rigid mean shape cannot fit a class whose members differ in proportions (sofas: a long low
+couch, an armchair and ordinary sofas); the cameras then absorb the shape differences and the
+viewpoints suffer. This stage splits a class into at most ``max_groups`` groups, each with its own
+rigid SfM (:func:`carvi_torch.sfm.rigid_sfm`), by hard EM over the groups, without any ground
+truth, and puts every group in one class frame.
+
+The fit, for ``k = 2, 3, ...`` while a split is accepted:
+
+1. Two initial labellings: ``lifted`` = k-means (``scipy.cluster.vq.kmeans2``, k-means++, best of
+   10 restarts) of every object's one-shape reprojection residuals lifted into the object frame
+   (``R[:2]^T r / s``; the object and its mirrored copy side by side, unit norm);
+   ``residual`` = quantiles of every object's one-shape keypoint residual.
+2. Alternation (at most ``rounds``): rigid SfM of every group (its objects with their mirrored
+   copies); a keypoint-only camera of every object under every group's shape
+   (:func:`carvi_torch.refine.estimate_camera`); every object moves to the group with the lowest
+   squared pixel residual (object + mirrored copy). A group below ``min_size`` objects takes the
+   objects that cost least to move.
+3. One class frame: every group's shape is rotated onto group 0's (a proper rotation on their
+   shared keypoints, centred and scaled, :func:`rotation_onto`), and its cameras with it.
+4. Acceptance: among the two candidates whose groups' frames agree within ``agreement_deg``
+   (:func:`frame_agreement`: the median angle between an object's rotations under two groups'
+   rotated shapes), the one with the lower residual is taken when it cuts the residual of
+   ``k - 1`` groups by more than ``gain``. Otherwise the fit stops at ``k - 1``.
+
+Every object and its mirrored copy belong to one group. Objects without an SfM camera (fewer
+than 2 visible keypoints) cost the same in every group; they end up in group 0 unless a group
+needs them to reach ``min_size``.
+
+The acceptance rule and its thresholds (``gain = 0.3``, ``agreement_deg = 60``) were set on the
+renders of the PASCAL3D+ CAD models (``tools/sfm_mixture_study.py``, docs/viewpoints.md); they
+are not tuned on any other data.
+
+Example:
+    >>> import torch
+    >>> from carvi_torch.sfm_mixture import top_up
+    >>> top_up(torch.tensor([0, 0, 0, 1]), torch.tensor([[0., 3.], [0., 1.], [0., 2.], [5., 0.]]), 2, 2).tolist()
+    [0, 1, 0, 1]
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+from scipy.cluster.vq import kmeans2
+from scipy.spatial.transform import Rotation
+
+from . import refine
+from .cameras import ScaledOrthographic
+from .sfm import SfMResult
+from .viewpoint_metrics import geodesic_errors
+
+__all__ = ["MixtureResult", "fit_mixture_of_shapes", "group_rows", "keypoint_cost", "lifted_residuals",
+           "kmeans_labels", "top_up", "hard_em", "rotation_onto", "group_rotations", "frame_agreement"]
+
+#: ``ClassCollection -> SfMResult``: the rigid SfM of a collection with the run's settings.
+SfMFn = Callable[[object], SfMResult]
+
+
+def group_rows(idx: torch.Tensor, n: int) -> torch.Tensor:
+    """Rows of the ``2n`` originals + mirrors collection for objects ``idx (m,)``: ``(2m,)``, originals first."""
+    return torch.cat([idx, idx + n])
+
+
+def keypoint_cost(shape: torch.Tensor, both, dist: torch.Tensor, n: int,
+                  n_starts: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keypoint-only cameras of every row of ``both`` under ``shape``.
+
+    Args:
+        shape: ``(K, 3)`` a mean shape (NaN rows: keypoints it lacks).
+        both: the ``2n`` collection (originals, then mirrored copies).
+        dist: ``(2n, H, W)`` distance maps of its masks (only their size is used: no silhouette term).
+        n: number of originals.
+
+    Returns:
+        ``cost (n,)`` squared pixel residual of every object plus its mirrored copy, and
+        ``R (n, 3, 3)`` the objects' rotations.
+    """
+    cams, _ = refine.estimate_camera(shape, both.keypoints, both.visible, dist, silhouette_weight=0.0,
+                                     n_starts=n_starts)
+    S = torch.nan_to_num(shape).to(cams.R)
+    P = cams.s[:, None, None] * (S @ cams.R[:, :2, :].transpose(-1, -2)) + cams.t[:, None, :]
+    vis = both.visible & torch.isfinite(shape).all(-1)[None] & torch.isfinite(both.keypoints).all(-1)
+    r = ((P - torch.nan_to_num(both.keypoints)).pow(2).sum(-1) * vis).sum(-1)
+    return r[:n] + r[n:], cams.R[:n]
+
+
+def lifted_residuals(res: SfMResult, keypoints: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
+    """``(M, 3K)`` reprojection residuals of SfM rows lifted into the object frame (``R[:2]^T r / s``).
+
+    Args:
+        res: the SfM of ``M`` rows; keypoints ``(M, K, 2)``, visible ``(M, K)`` of those rows.
+    """
+    c = res.cameras
+    S = torch.nan_to_num(res.shape)
+    P = c.s[:, None, None] * (S @ c.R[:, :2, :].transpose(-1, -2)) + c.t[:, None, :]
+    vis = visible & torch.isfinite(res.shape).all(-1)[None] & res.valid[:, None]
+    r = (torch.nan_to_num(keypoints) - P) * vis[..., None]
+    return (torch.einsum("mki,mij->mkj", r, c.R[:, :2, :]) / c.s[:, None, None]).flatten(1)
+
+
+def kmeans_labels(X: torch.Tensor, k: int, seed: int, restarts: int = 10) -> torch.Tensor:
+    """``(n,)`` labels of the best of ``restarts`` k-means++ runs (scipy) of ``X (n, d)``, by
+    within-cluster sum of squares. Same seed, same labels."""
+    data = X.detach().double().cpu().numpy()
+    best, best_cost = None, np.inf
+    for r in range(restarts):
+        centres, labels = kmeans2(data, k, minit="++", seed=np.random.default_rng(seed + r))
+        cost = float(((data - centres[labels]) ** 2).sum())
+        if cost < best_cost:
+            best, best_cost = labels, cost
+    return torch.as_tensor(best, dtype=torch.long, device=X.device)
+
+
+def top_up(labels: torch.Tensor, cost: torch.Tensor, k: int, min_size: int) -> torch.Tensor:
+    """Groups below ``min_size`` take the objects of larger groups that cost least to move.
+
+    Args:
+        labels: ``(n,)`` long group of every object; cost: ``(n, k)`` cost of every object in every group.
+
+    Returns:
+        New ``(n,)`` labels; no donor group is taken below ``min_size``.
+    """
+    labels = labels.clone()
+    cost = cost.to(labels.device)
+    for g in range(k):
+        while int((labels == g).sum()) < min_size:  # one object at a time: no donor drops below the bound
+            sizes = torch.bincount(labels, minlength=k)
+            extra = cost[:, g] - cost.gather(1, labels[:, None])[:, 0]
+            extra[(labels == g) | (sizes[labels] <= min_size)] = float("inf")
+            best = int(extra.argmin())
+            if not bool(torch.isfinite(extra[best])):
+                break  # no group can give an object away
+            labels[best] = g
+    return labels
+
+
+def hard_em(both, n: int, dist: torch.Tensor, sfm_fn: SfMFn, labels: torch.Tensor, k: int, min_size: int,
+            rounds: int = 6):
+    """Hard EM over ``k`` rigid shapes from ``labels (n,)``.
+
+    Returns:
+        ``(labels, groups, cost, rotations, history)``: final labels; per group ``(rows, SfMResult)``
+        (rows of ``both``, :func:`group_rows`); ``cost (n, k)``; per group ``(n, 3, 3)`` every object's
+        keypoint-only rotation under the group's shape; per round the sizes and RMS pixel residual.
+    """
+    nvis = (both.visible[:n].sum(-1) + both.visible[n:].sum(-1)).sum().clamp(min=1)
+    history = []
+    for it in range(rounds + 1):
+        groups = []
+        for g in range(k):
+            rows = group_rows((labels == g).nonzero().squeeze(1), n)
+            groups.append((rows, sfm_fn(both[rows])))
+        fits = [keypoint_cost(res.shape, both, dist, n) for _rows, res in groups]
+        cost = torch.stack([c for c, _R in fits], 1)
+        history.append({"round": it, "sizes": torch.bincount(labels, minlength=k).tolist(),
+                        "rms_px": float(cost.gather(1, labels[:, None]).sum() / nvis) ** 0.5})
+        new = top_up(cost.argmin(1), cost, k, min_size)
+        if it == rounds or torch.equal(new, labels):
+            return labels, groups, cost, [R for _c, R in fits], history
+        labels = new
+
+
+def rotation_onto(S: torch.Tensor, S0: torch.Tensor) -> torch.Tensor:
+    """Proper rotation ``Q (3, 3)`` with ``S Q ~ c S0`` on the rows finite in both (centred, unit norm).
+
+    Args:
+        S, S0: ``(K, 3)`` shapes; NaN rows are ignored.
+
+    Returns:
+        ``(3, 3)`` with det +1 (a mirror image is matched by a rotation, never a reflection), on
+        ``S``'s device and dtype.
+    """
+    ok = torch.isfinite(S).all(-1) & torch.isfinite(S0).all(-1)
+    A, B = S[ok].detach().double().cpu(), S0[ok].detach().double().cpu()
+    A, B = A - A.mean(0), B - B.mean(0)
+    A, B = A / A.norm(), B / B.norm()
+    rot, _ = Rotation.align_vectors(B.numpy(), A.numpy())  # rot maps rows of A onto rows of B
+    return torch.as_tensor(rot.as_matrix().T, dtype=S.dtype, device=S.device)
+
+
+def group_rotations(groups) -> list[torch.Tensor]:
+    """``Q_g`` rotating every group's mean shape onto group 0's (the identity for one group)."""
+    S0 = groups[0][1].shape
+    return [torch.eye(3, dtype=S0.dtype, device=S0.device) if len(groups) == 1 else rotation_onto(res.shape, S0)
+            for _r, res in groups]
+
+
+def frame_agreement(rotations: list[torch.Tensor], Q: list[torch.Tensor]) -> float:
+    """How well the groups' frames agree after the shape alignment (degrees; no ground truth).
+
+    Every object has a keypoint-only camera ``R`` under every group's mean shape (from the EM);
+    under the rotated shape ``S Q`` that camera is ``R Q``. If the frames agree, an object's
+    rotations under two groups' shapes differ only by what the shape difference costs.
+
+    Args:
+        rotations: per group, ``(n, 3, 3)`` the objects' rotations under the group's shape.
+        Q: per group, the rotation of its shape into the common frame (:func:`group_rotations`).
+
+    Returns:
+        The largest, over pairs of groups, of the median angle between the two rotations over
+        all objects (0 for one group; ``inf`` when a pair has no finite angle).
+    """
+    Rs = [R.double() @ q.to(R.device).double() for R, q in zip(rotations, Q)]
+    worst = 0.0
+    for a in range(len(Rs)):
+        for b in range(a + 1, len(Rs)):
+            e = geodesic_errors(Rs[a], Rs[b])
+            e = e[torch.isfinite(e)]
+            worst = max(worst, float(e.median()) if len(e) else float("inf"))  # no camera pair: no agreement
+    return worst
+
+
+@dataclass
+class MixtureResult:
+    """Output of :func:`fit_mixture_of_shapes`.
+
+    Attributes:
+        k: groups kept (1: one rigid shape, as without the mixture).
+        labels: ``(n,)`` long group of every object (its mirrored copy shares it).
+        groups: per group ``(rows, SfMResult)``: rows of the ``2n`` collection (:func:`group_rows`)
+            and the group's own SfM, in its own frame.
+        Q: per group ``(3, 3)``: the rotation of its shape (and cameras) into the class frame (group 0's).
+        agreement_deg: :func:`frame_agreement` of the kept groups (0 for one group).
+        candidates: every split tried: ``{"k", "init", "sizes", "sse_px2", "cut", "agreement_deg",
+            "eligible", "kept"}``.
+        single: the one-shape SfM of the whole class (always run first).
+    """
+
+    k: int
+    labels: torch.Tensor
+    groups: list
+    Q: list
+    agreement_deg: float
+    single: SfMResult
+    candidates: list = field(default_factory=list)
+
+    def shape(self, g: int) -> torch.Tensor:
+        """``(K, 3)`` mean shape of group ``g`` in the class frame (one group: the SfM shape itself)."""
+        S = self.groups[g][1].shape
+        return S if self.k == 1 else S @ self.Q[g].to(S)
+
+    def cameras(self, g: int) -> ScaledOrthographic:
+        """SfM cameras of group ``g``'s rows (``groups[g][0]``) in the class frame."""
+        c = self.groups[g][1].cameras
+        return ScaledOrthographic(c.R @ self.Q[g].to(c.R), c.s, c.t)
+
+    def summary(self) -> dict:
+        """JSON-ready: groups kept, their sizes, the frame agreement and every candidate."""
+        return {"groups": self.k, "sizes": torch.bincount(self.labels, minlength=self.k).tolist(),
+                "frame_agreement_deg": self.agreement_deg, "candidates": self.candidates}
+
+
+def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups: int = 3, min_size: int = 15,
+                          gain: float = 0.3, agreement_deg: float = 60.0, rounds: int = 6, seed: int = 0,
+                          single: SfMResult | None = None, log: Callable[[str], None] | None = None) -> MixtureResult:
+    """Fit at most ``max_groups`` rigid shapes to a class (see the module docstring for the rule).
+
+    Args:
+        both: the class with its mirrored copies (``2n`` instances, copy ``i + n`` mirrors ``i``).
+        dist: ``(2n, H, W)`` distance maps of its masks (:func:`carvi_torch.sdf.distance_to_mask`).
+        sfm_fn: rigid SfM of a sub-collection with the run's settings.
+        max_groups: most groups (``1``: the one-shape SfM only).
+        min_size: fewest objects per group; a class with fewer than ``2 * min_size`` objects keeps one shape.
+        gain: a split is kept when it cuts the residual of one group fewer by more than this fraction.
+        agreement_deg: a split is only eligible when its groups' frames agree within this (degrees).
+        rounds: most EM rounds per candidate.
+        seed: seed of the k-means starts.
+        single: the one-shape SfM of ``both`` when already computed.
+        log: called with a line per candidate.
+
+    Returns:
+        :class:`MixtureResult`.
+    """
+    if max_groups < 1 or min_size < 1:
+        raise ValueError(f"max_groups and min_size must be >= 1, got {max_groups} and {min_size}")
+    n = len(both) // 2
+    rows1 = torch.arange(2 * n, device=both.keypoints.device)
+    res1 = sfm_fn(both) if single is None else single
+    eye = torch.eye(3, dtype=res1.shape.dtype, device=res1.shape.device)
+    labels1 = torch.zeros(n, dtype=torch.long, device=both.keypoints.device)
+    best = MixtureResult(1, labels1, [(rows1, res1)], [eye], 0.0, res1)
+    if max_groups == 1 or n < 2 * min_size:
+        return best
+    cost1, _R1 = keypoint_cost(res1.shape, both, dist, n)
+    nvis_obj = (both.visible[:n].sum(-1) + both.visible[n:].sum(-1)).clamp(min=1)
+    lifted = lifted_residuals(res1, both.keypoints, both.visible)
+    lifted = torch.cat([lifted[:n], lifted[n:]], 1)
+    lifted = lifted / lifted.norm(dim=1, keepdim=True).clamp(min=1e-9)
+    sse_prev = float(cost1.sum())
+    for k in range(2, max_groups + 1):
+        if n < k * min_size:
+            break
+        inits = {"lifted": kmeans_labels(lifted, k, seed),
+                 "residual": ((cost1 / nvis_obj).argsort().argsort() * k // n).clamp(max=k - 1)}
+        cands = []
+        for name, lab0 in inits.items():
+            lab0 = top_up(lab0, torch.zeros(n, k), k, min_size)
+            lab, groups, cost, rotations, _hist = hard_em(both, n, dist, sfm_fn, lab0, k, min_size, rounds)
+            Q = group_rotations(groups)
+            sse = float(cost.gather(1, lab[:, None]).sum())
+            agree = frame_agreement(rotations, Q)
+            row = {"k": k, "init": name, "sizes": torch.bincount(lab, minlength=k).tolist(), "sse_px2": sse,
+                   "cut": 1 - sse / max(sse_prev, 1e-12), "agreement_deg": agree,
+                   "eligible": agree <= agreement_deg, "kept": False}
+            best.candidates.append(row)
+            cands.append((row, MixtureResult(k, lab, groups, Q, agree, res1)))
+            if log is not None:
+                log(f"{k} shapes from '{name}': sizes {row['sizes']}, residual cut {row['cut']:.0%}, "
+                    f"frames agree within {agree:.0f} deg")
+        ok = [c for c in cands if c[0]["eligible"]]
+        if not ok:
+            break
+        row, res = min(ok, key=lambda c: c[0]["sse_px2"])
+        if row["cut"] <= gain:
+            break
+        row["kept"] = True
+        res.candidates = best.candidates
+        best, sse_prev = res, row["sse_px2"]
+    return best
