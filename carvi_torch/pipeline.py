@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from . import carve, mesh, refine, select, sfm, surrogates
+from . import carve, mesh, refine, select, sfm, sfm_mixture, surrogates
 from .cameras import ScaledOrthographic, azimuth_elevation_roll_from_rotation
 from .collection import ClassCollection
 from .config import Config
@@ -153,23 +153,38 @@ def cameras_from_mean_shape(shape: torch.Tensor, cams: ScaledOrthographic, idx: 
     return ScaledOrthographic(R, s, t)
 
 
+def _shape_groups(both: ClassCollection, dist: torch.Tensor, res: sfm.SfMResult, cfg: Config,
+                  report: ClassReport) -> sfm_mixture.MixtureResult:
+    """One rigid shape (``sfm_groups=1``) or the mixture of :mod:`carvi_torch.sfm_mixture`."""
+    if cfg.sfm_groups == 1 or cfg.cameras != "estimate":
+        return sfm_mixture.fit_mixture_of_shapes(both, dist, None, max_groups=1, single=res)
+    log = []
+    mix = sfm_mixture.fit_mixture_of_shapes(
+        both, dist, lambda sub: class_sfm(sub, cfg), max_groups=cfg.sfm_groups, min_size=cfg.sfm_group_min,
+        gain=cfg.sfm_group_gain, agreement_deg=cfg.sfm_group_agreement_deg, rounds=cfg.sfm_group_rounds,
+        seed=cfg.seed, single=res, log=log.append)
+    for line in log:
+        _log(f"  {both.name}: {line}", cfg)
+    report.info["sfm_groups"] = mix.summary()
+    if len(both) // 2 < 2 * cfg.sfm_group_min:
+        report.info["sfm_groups"]["note"] = (f"one shape: {len(both) // 2} objects, fewer than twice "
+                                             f"sfm_group_min={cfg.sfm_group_min}")
+    return mix
+
+
 def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device, gt_img: ScaledOrthographic | None):
     """Cameras for originals and mirrors (canvas pixels), the mean shape and the symmetry plane.
 
-    Returns a dict with ``both`` (the 2N-instance collection), ``cams_sfm``, ``cams`` (2N), ``shape (K,3)``,
-    ``reflection (3,3)``, ``has_camera (2N,) bool``.
+    Returns a dict with ``both`` (the 2N-instance collection), ``cams_sfm``, ``cams`` (2N), ``shape (K,3)``
+    (with several shape groups: the largest group's, in the class frame), ``reflection (3,3)``,
+    ``has_camera (2N,) bool``, ``groups`` (:class:`carvi_torch.sfm_mixture.MixtureResult`).
     """
     n = len(coll)
     both = coll.with_mirrors()
-    k = coll.meta.num_keypoints
     with _timed(report, "sfm", device):
         res = class_sfm(both, cfg)
     for msg in res.problems:
         report.warnings.append(f"sfm: {msg}")
-    shape = res.shape
-    reflection = sfm.symmetry_plane(shape, coll.meta.flip_pairs)
-    cams_sfm = res.cameras
-    has_camera = res.valid.clone()
     report.info["sfm"] = res.summary()
     for i in (~res.valid[:n]).nonzero().squeeze(1).tolist():
         why = res.reasons[i] if i < len(res.reasons) and res.reasons[i] else "fewer than 2 visible keypoints"
@@ -177,6 +192,35 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
 
     with _timed(report, "sdf", device):
         dist = distance_to_mask(both.masks)
+    with _timed(report, "sfm", device):
+        mix = _shape_groups(both, dist, res, cfg, report)
+    # every group's SfM cameras in the class frame, gathered into the 2N rows
+    R, s, t = res.cameras.R.clone(), res.cameras.s.clone(), res.cameras.t.clone()
+    sfm_valid = res.valid.clone()
+    for g, (rows, gres) in enumerate(mix.groups):
+        if mix.k > 1:
+            c = mix.cameras(g)
+            R[rows], s[rows], t[rows] = c.R, c.s, c.t
+            sfm_valid[rows] = gres.valid
+    cams_sfm = ScaledOrthographic(R, s, t)
+    main = int(torch.bincount(mix.labels, minlength=mix.k).argmax())
+    shape = mix.shape(main)
+    reflection = sfm.symmetry_plane(shape, coll.meta.flip_pairs)
+    has_camera = sfm_valid.clone()
+
+    def per_group(fn):
+        """``fn(shape_g, rows_g)`` -> ScaledOrthographic of those rows, gathered into the 2N rows of ``cams``."""
+        if mix.k == 1:
+            return fn(mix.shape(0), None)
+        R, s, t = cams.R.clone(), cams.s.clone(), cams.t.clone()
+        for g, (rows, _gres) in enumerate(mix.groups):
+            c = fn(mix.shape(g), rows)
+            R[rows], s[rows], t[rows] = c.R, c.s, c.t
+        return ScaledOrthographic(R, s, t)
+
+    def sub(x, rows):
+        return x if rows is None else x[rows]
+
     cams = cams_sfm
     if cfg.cameras == "gt":
         if gt_img is None:
@@ -195,25 +239,35 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
         shape = (shape @ G) / ratio
         reflection = GT_REFLECTION.to(shape)
     elif cfg.refine:
+        energy = torch.zeros((2, 2 * n), dtype=cams_sfm.s.dtype, device=cams_sfm.s.device)
+
+        def refine_group(shape_g, rows):
+            rr = class_refine(shape_g, sub(cams_sfm, rows), sub(both, rows), sub(dist, rows), cfg)
+            energy[0, rows if rows is not None else slice(None)] = rr.energy_before
+            energy[1, rows if rows is not None else slice(None)] = rr.energy_after
+            return rr.cameras
+
         with _timed(report, "refine", device):
-            rr = class_refine(shape, cams_sfm, both, dist, cfg)
-        cams = rr.cameras
-        report.info["refine"] = {"median_energy_before": float(rr.energy_before[res.valid].median())
-                                 if res.valid.any() else None,
-                                 "median_energy_after": float(rr.energy_after[res.valid].median())
-                                 if res.valid.any() else None}
+            cams = per_group(refine_group)
+        ok = sfm_valid
+        report.info["refine"] = {"median_energy_before": float(energy[0][ok].median()) if ok.any() else None,
+                                 "median_energy_after": float(energy[1][ok].median()) if ok.any() else None}
     # instances without an SfM camera (fewer than 2 visible keypoints): the unseen-image path
     missing = ~has_camera
     if bool(missing.any()):
         with _timed(report, "refine", device):
-            idx = missing.nonzero().squeeze(1)
-            cams = cameras_from_mean_shape(shape, cams, idx, both, dist, cfg)
+            def unseen(shape_g, rows):
+                m = sub(missing, rows).nonzero().squeeze(1)
+                return cameras_from_mean_shape(shape_g, sub(cams, rows), m, sub(both, rows), sub(dist, rows), cfg)
+
+            cams = per_group(unseen)
+        idx = missing.nonzero().squeeze(1)
         report.info["cameras_from_mean_shape"] = [int(coll.annotation_ids[i]) for i in idx.tolist() if i < n]
         has_camera = torch.ones_like(has_camera)
     finite = torch.isfinite(cams.R).flatten(1).all(1) & torch.isfinite(cams.s) & (cams.s > 0)
     has_camera &= finite
-    return {"both": both, "cams_sfm": cams_sfm, "sfm_valid": res.valid, "cams": cams, "shape": shape,
-            "reflection": reflection, "has_camera": has_camera, "dist": dist}
+    return {"both": both, "cams_sfm": cams_sfm, "sfm_valid": sfm_valid, "cams": cams, "shape": shape,
+            "reflection": reflection, "has_camera": has_camera, "dist": dist, "groups": mix}
 
 
 @dataclass
@@ -245,6 +299,7 @@ def _jsonable(x):
 def _cameras_json(coll: ClassCollection, vp: dict, axes: torch.Tensor | None, clusters) -> dict:
     """``cameras.json`` content: per annotation id, SfM and refined cameras in image pixels."""
     n = len(coll)
+    mix = vp["groups"]
     inv = coll.canvas_from_image.inverse()
     sfm_img = vp["cams_sfm"][:n].compose_similarity(inv).to_list()
     ref_img = vp["cams"][:n].compose_similarity(inv).to_list()
@@ -259,17 +314,28 @@ def _cameras_json(coll: ClassCollection, vp: dict, axes: torch.Tensor | None, cl
             "roll_deg": math.degrees(float(ro[i])),
             "cluster": int(clusters.labels[i]) if clusters is not None else None,
         }
+        if mix.k > 1:
+            per[str(aid)]["shape_group"] = int(mix.labels[i])
     names = coll.meta.keypoint_names
-    S = vp["shape"].detach().double().cpu()
-    return {
+
+    def named(S):
+        S = S.detach().double().cpu()
+        return {nm: (None if not torch.isfinite(S[k]).all() else S[k].tolist()) for k, nm in enumerate(names)}
+
+    out = {
         "class": coll.name,
         "frame": "image pixels of each annotation's image; R rows = image x, image y (down), view direction",
         "cameras": per,
-        "mean_shape": {nm: (None if not torch.isfinite(S[k]).all() else S[k].tolist()) for k, nm in enumerate(names)},
+        "mean_shape": named(vp["shape"]),
         "symmetry_plane": vp["reflection"].detach().double().cpu().tolist(),
         "principal_directions": axes.detach().double().cpu().tolist() if axes is not None else None,
         "cluster_threshold_deg": float(clusters.threshold_deg) if clusters is not None else None,
     }
+    if mix.k > 1:  # a mixture of rigid shapes: every group's mean shape, in the same class frame
+        sizes = torch.bincount(mix.labels, minlength=mix.k).tolist()
+        out["shape_groups"] = [{"objects": sizes[g], "mean_shape": named(mix.shape(g))} for g in range(mix.k)]
+        out["mean_shape_group"] = int(torch.tensor(sizes).argmax())
+    return out
 
 
 # =========================================================================== reconstruction
