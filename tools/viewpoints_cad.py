@@ -69,7 +69,8 @@ def main(argv=None) -> int:
     if not (renders / "annotations.json").is_file():
         render_dataset(load_models(cad), renders, views=args.views, seed=args.seed, progress=True)
     t_render = time.perf_counter() - t0
-    recon = work / "cameras"
+    # one folder per set of overrides, so runs with different settings never mix their cameras
+    recon = work / ("cameras" + "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in o) for o in args.overrides))
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(renders / "annotations.json"),
            "--out", str(recon), "stage=cameras", "progress=false", f"seed={args.seed}", *args.overrides]
     t1 = time.perf_counter()
