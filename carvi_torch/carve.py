@@ -1096,7 +1096,7 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
             at every depth; no coarse-to-fine).
         coarse_to_fine: skip the voxels whose labels exact coarse costs decide. Off
             by default: on the pipeline's proposals (60^3, CPU, ``tools/benchmark.py``) it
-            sampled 45% fewer voxels but its bookkeeping made it 2.4x slower than sampling
+            sampled 45% fewer voxels but its bookkeeping made it 2.4-2.6x slower than sampling
             every voxel of the foreground columns; kept, exact and tested, for devices
             where sampling dominates.
         depth_intervals: sample each foreground column only within the depths its views'
