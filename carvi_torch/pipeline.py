@@ -172,6 +172,59 @@ def _shape_groups(both: ClassCollection, dist: torch.Tensor, res: sfm.SfMResult,
     return mix
 
 
+def _per_group(mix: sfm_mixture.MixtureResult, base: ScaledOrthographic, fn) -> ScaledOrthographic:
+    """``base`` with the rows of every shape group replaced by ``fn(g, rows_g)``.
+
+    ``rows_g`` are group ``g``'s rows of the ``2N`` collection, or ``None`` for one group (then
+    ``fn(0, None)`` gets every row and returns all of them).
+    """
+    if mix.k == 1:
+        return fn(0, None)
+    R, s, t = base.R.clone(), base.s.clone(), base.t.clone()
+    for g, (rows, _res) in enumerate(mix.groups):
+        c = fn(g, rows)
+        R[rows], s[rows], t[rows] = c.R, c.s, c.t
+    return ScaledOrthographic(R, s, t)
+
+
+def _rows(x, rows):
+    """``x`` restricted to ``rows`` (``None``: all of it)."""
+    return x if rows is None else x[rows]
+
+
+def group_sfm_cameras(mix: sfm_mixture.MixtureResult) -> tuple[ScaledOrthographic, torch.Tensor]:
+    """Every group's SfM cameras in the class frame, gathered into the ``2N`` rows; and ``valid (2N,)``."""
+    single = mix.single
+    if mix.k == 1:
+        return single.cameras, single.valid.clone()
+    valid = single.valid.clone()
+    for rows, res in mix.groups:
+        valid[rows] = res.valid
+    return _per_group(mix, single.cameras, lambda g, _rows: mix.cameras(g)), valid
+
+
+def refine_groups(mix: sfm_mixture.MixtureResult, cams_sfm: ScaledOrthographic, both: ClassCollection,
+                  dist: torch.Tensor, cfg: Config) -> tuple[ScaledOrthographic, torch.Tensor]:
+    """Silhouette refinement of every group with its own mean shape; returns the cameras and
+    ``energy (2, 2N)`` (before, after)."""
+    energy = torch.zeros((2, len(both)), dtype=cams_sfm.s.dtype, device=cams_sfm.s.device)
+
+    def refine_group(g, rows):
+        rr = class_refine(mix.shape(g), _rows(cams_sfm, rows), _rows(both, rows), _rows(dist, rows), cfg)
+        at = slice(None) if rows is None else rows
+        energy[0, at], energy[1, at] = rr.energy_before, rr.energy_after
+        return rr.cameras
+
+    return _per_group(mix, cams_sfm, refine_group), energy
+
+
+def unseen_per_group(mix: sfm_mixture.MixtureResult, cams: ScaledOrthographic, missing: torch.Tensor,
+                     both: ClassCollection, dist: torch.Tensor, cfg: Config) -> ScaledOrthographic:
+    """``cams`` with the rows ``missing (2N,) bool`` estimated from their group's mean shape (unseen-image path)."""
+    return _per_group(mix, cams, lambda g, rows: cameras_from_mean_shape(
+        mix.shape(g), _rows(cams, rows), _rows(missing, rows).nonzero().squeeze(1), _rows(both, rows), _rows(dist, rows), cfg))
+
+
 def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device, gt_img: ScaledOrthographic | None):
     """Cameras for originals and mirrors (canvas pixels), the mean shape and the symmetry plane.
 
@@ -194,32 +247,11 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
         dist = distance_to_mask(both.masks)
     with _timed(report, "sfm", device):
         mix = _shape_groups(both, dist, res, cfg, report)
-    # every group's SfM cameras in the class frame, gathered into the 2N rows
-    R, s, t = res.cameras.R.clone(), res.cameras.s.clone(), res.cameras.t.clone()
-    sfm_valid = res.valid.clone()
-    for g, (rows, gres) in enumerate(mix.groups):
-        if mix.k > 1:
-            c = mix.cameras(g)
-            R[rows], s[rows], t[rows] = c.R, c.s, c.t
-            sfm_valid[rows] = gres.valid
-    cams_sfm = ScaledOrthographic(R, s, t)
+    cams_sfm, sfm_valid = group_sfm_cameras(mix)
     main = int(torch.bincount(mix.labels, minlength=mix.k).argmax())
     shape = mix.shape(main)
     reflection = sfm.symmetry_plane(shape, coll.meta.flip_pairs)
     has_camera = sfm_valid.clone()
-
-    def per_group(fn):
-        """``fn(shape_g, rows_g)`` -> ScaledOrthographic of those rows, gathered into the 2N rows of ``cams``."""
-        if mix.k == 1:
-            return fn(mix.shape(0), None)
-        R, s, t = cams.R.clone(), cams.s.clone(), cams.t.clone()
-        for g, (rows, _gres) in enumerate(mix.groups):
-            c = fn(mix.shape(g), rows)
-            R[rows], s[rows], t[rows] = c.R, c.s, c.t
-        return ScaledOrthographic(R, s, t)
-
-    def sub(x, rows):
-        return x if rows is None else x[rows]
 
     cams = cams_sfm
     if cfg.cameras == "gt":
@@ -239,16 +271,8 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
         shape = (shape @ G) / ratio
         reflection = GT_REFLECTION.to(shape)
     elif cfg.refine:
-        energy = torch.zeros((2, 2 * n), dtype=cams_sfm.s.dtype, device=cams_sfm.s.device)
-
-        def refine_group(shape_g, rows):
-            rr = class_refine(shape_g, sub(cams_sfm, rows), sub(both, rows), sub(dist, rows), cfg)
-            energy[0, rows if rows is not None else slice(None)] = rr.energy_before
-            energy[1, rows if rows is not None else slice(None)] = rr.energy_after
-            return rr.cameras
-
         with _timed(report, "refine", device):
-            cams = per_group(refine_group)
+            cams, energy = refine_groups(mix, cams_sfm, both, dist, cfg)
         ok = sfm_valid
         report.info["refine"] = {"median_energy_before": float(energy[0][ok].median()) if ok.any() else None,
                                  "median_energy_after": float(energy[1][ok].median()) if ok.any() else None}
@@ -256,11 +280,7 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
     missing = ~has_camera
     if bool(missing.any()):
         with _timed(report, "refine", device):
-            def unseen(shape_g, rows):
-                m = sub(missing, rows).nonzero().squeeze(1)
-                return cameras_from_mean_shape(shape_g, sub(cams, rows), m, sub(both, rows), sub(dist, rows), cfg)
-
-            cams = per_group(unseen)
+            cams = unseen_per_group(mix, cams, missing, both, dist, cfg)
         idx = missing.nonzero().squeeze(1)
         report.info["cameras_from_mean_shape"] = [int(coll.annotation_ids[i]) for i in idx.tolist() if i < n]
         has_camera = torch.ones_like(has_camera)

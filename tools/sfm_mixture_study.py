@@ -48,13 +48,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from carvi_torch import pipeline  # noqa: E402
-from carvi_torch.cameras import ScaledOrthographic  # noqa: E402
 from carvi_torch.config import load_config  # noqa: E402
 from carvi_torch.io import coco  # noqa: E402
 from carvi_torch.io.outputs import write_json  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
-from carvi_torch.sfm_mixture import (frame_agreement, group_rotations, group_rows, hard_em,  # noqa: E402
-                                     keypoint_cost, kmeans_labels, lifted_residuals, top_up)
+from carvi_torch.sfm_mixture import (MixtureResult, frame_agreement, group_rotations, group_rows,  # noqa: E402
+                                     hard_em, keypoint_cost, kmeans_labels, lifted_residuals, top_up)
 from carvi_torch.viewpoint_metrics import summarize, viewpoint_report  # noqa: E402
 
 RENDERS = ROOT / "outputs" / "viewpoints_cad" / "renders_v30_s0" / "annotations.json"
@@ -71,30 +70,15 @@ def fit_mixture(both, n, dist, cfg, labels, k, min_size, rounds=6):
     return hard_em(both, n, dist, lambda sub: pipeline.class_sfm(sub, cfg), labels, k, min_size, rounds)
 
 
-def class_cameras(both, n, dist, cfg, groups, Q):
-    """SfM and refined cameras (2n) in group 0's frame (shapes rotated by ``Q``, :func:`group_rotations`);
-    returns (sfm cams, sfm valid, refined cams)."""
-    M, dt = 2 * n, both.keypoints.dtype
-    out = {key: [torch.eye(3, dtype=dt).repeat(M, 1, 1), torch.ones(M, dtype=dt), torch.zeros(M, 2, dtype=dt)]
-           for key in ("sfm", "refined")}
-
-    def put(key, rows, c):
-        out[key][0][rows], out[key][1][rows], out[key][2][rows] = c.R, c.s, c.t
-
-    valid = torch.zeros(M, dtype=torch.bool)
-    for (rows, res), q in zip(groups, Q):
-        q = q.to(res.shape.dtype)
-        shape = res.shape @ q
-        cams = ScaledOrthographic(res.cameras.R @ q, res.cameras.s, res.cameras.t)
-        valid[rows] = res.valid
-        put("sfm", rows, cams)
-        sub = both[rows]
-        if cfg.refine:
-            cams = pipeline.class_refine(shape, cams, sub, dist[rows], cfg).cameras
-        # objects without an SfM camera: the unseen-image path, as the pipeline
-        cams = pipeline.cameras_from_mean_shape(shape, cams, (~res.valid).nonzero().squeeze(1), sub, dist[rows], cfg)
-        put("refined", rows, cams)
-    return ScaledOrthographic(*out["sfm"]), valid, ScaledOrthographic(*out["refined"])
+def class_cameras(both, n, dist, cfg, groups, Q, single):
+    """SfM and refined cameras (2n) in group 0's frame, as the pipeline computes them for a kept split
+    (:func:`carvi_torch.pipeline.group_sfm_cameras`, ``refine_groups``, ``unseen_per_group``);
+    ``single`` is the one-shape SfM of the whole class (every row); returns (sfm cams, sfm valid, refined cams)."""
+    mix = MixtureResult(len(groups), torch.zeros(n, dtype=torch.long), groups, Q, 0.0, single)
+    sfm_cams, valid = pipeline.group_sfm_cameras(mix)
+    cams = pipeline.refine_groups(mix, sfm_cams, both, dist, cfg)[0] if cfg.refine else sfm_cams
+    # objects without an SfM camera: the unseen-image path, as the pipeline
+    return sfm_cams, valid, pipeline.unseen_per_group(mix, cams, ~valid, both, dist, cfg)
 
 
 def score(coll, cams, ok, gt_R, models):
@@ -140,7 +124,7 @@ def study_class(coll, gt, cfg, ks, min_size, seed):
         for name, lab, groups, cost, rotations, hist in cands:
             sse = float(cost.gather(1, lab[:, None]).sum())
             Q = group_rotations(groups)
-            sfm_cams, sfm_ok, ref_cams = class_cameras(both, n, dist, cfg, groups, Q)
+            sfm_cams, sfm_ok, ref_cams = class_cameras(both, n, dist, cfg, groups, Q, res1)
             sfm_med, sfm_pm = score(coll, sfm_cams, sfm_ok, gt_R, models)
             ref_med, ref_pm = score(coll, ref_cams, torch.ones(2 * n, dtype=torch.bool), gt_R, models)
             agree = frame_agreement(rotations, Q)
