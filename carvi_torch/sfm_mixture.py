@@ -17,12 +17,22 @@ The fit, for ``k = 2, 3, ...`` while a split is accepted:
    (:func:`carvi_torch.refine.estimate_camera`); every object moves to the group with the lowest
    squared pixel residual (object + mirrored copy). A group below ``min_size`` objects takes the
    objects that cost least to move.
+   A keypoint no member of a group shows is left NaN by the group's SfM; it is filled from the
+   whole class's shape posed onto the group's (:func:`fill_missing_rows`), so that every group is
+   scored on the same keypoints (a shape lacking keypoints would otherwise look cheaper).
 3. One class frame: every group's shape is rotated onto group 0's (a proper rotation on their
    shared keypoints, centred and scaled, :func:`rotation_onto`), and its cameras with it.
 4. Acceptance: among the two candidates whose groups' frames agree within ``agreement_deg``
-   (:func:`frame_agreement`: the median angle between an object's rotations under two groups'
-   rotated shapes), the one with the lower residual is taken when it cuts the residual of
-   ``k - 1`` groups by more than ``gain``. Otherwise the fit stops at ``k - 1``.
+   (:func:`frame_agreement`: the median, over the objects with an SfM camera, of the angle
+   between an object's rotations under two groups' rotated shapes), the one with the lower
+   residual is taken when it cuts the residual of ``k - 1`` groups by more than ``gain``.
+   Otherwise the fit stops at ``k - 1``. A candidate with a group that has no usable SfM shape
+   (fewer than 3 keypoints or no camera), or whose shapes share too few keypoints for one frame,
+   is recorded with its problem and never kept: the class falls back to fewer groups, never fails.
+
+Limitations: planar classes (every keypoint on one plane) have a two-fold tilt ambiguity per
+group that the agreement check reads as disagreeing frames, so they keep one shape; a class's
+``rigid_keypoints`` subset is not used here (every reconstructed keypoint counts).
 
 Every object and its mirrored copy belong to one group. Objects without an SfM camera (fewer
 than 2 visible keypoints) cost the same in every group; they end up in group 0 unless a group
@@ -40,6 +50,8 @@ Example:
 """
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -97,7 +109,7 @@ def lifted_residuals(res: SfMResult, keypoints: torch.Tensor, visible: torch.Ten
     c = res.cameras
     S = torch.nan_to_num(res.shape)
     P = c.s[:, None, None] * (S @ c.R[:, :2, :].transpose(-1, -2)) + c.t[:, None, :]
-    vis = visible & torch.isfinite(res.shape).all(-1)[None] & res.valid[:, None]
+    vis = visible & torch.isfinite(res.shape).all(-1)[None] & res.valid[:, None] & torch.isfinite(keypoints).all(-1)
     r = (torch.nan_to_num(keypoints) - P) * vis[..., None]
     return (torch.einsum("mki,mij->mkj", r, c.R[:, :2, :]) / c.s[:, None, None]).flatten(1)
 
@@ -129,7 +141,7 @@ def top_up(labels: torch.Tensor, cost: torch.Tensor, k: int, min_size: int) -> t
     for g in range(k):
         while int((labels == g).sum()) < min_size:  # one object at a time: no donor drops below the bound
             sizes = torch.bincount(labels, minlength=k)
-            extra = cost[:, g] - cost.gather(1, labels[:, None])[:, 0]
+            extra = torch.nan_to_num(cost[:, g] - cost.gather(1, labels[:, None])[:, 0], nan=float("inf"))
             extra[(labels == g) | (sizes[labels] <= min_size)] = float("inf")
             best = int(extra.argmin())
             if not bool(torch.isfinite(extra[best])):
@@ -138,22 +150,73 @@ def top_up(labels: torch.Tensor, cost: torch.Tensor, k: int, min_size: int) -> t
     return labels
 
 
+class SplitFailed(ValueError):
+    """A candidate split cannot be used (a group without a usable shape); the fit keeps fewer groups."""
+
+
+def fill_missing_rows(S: torch.Tensor, S_full: torch.Tensor) -> torch.Tensor:
+    """``S`` with the rows it lacks (NaN) and ``S_full`` has, taken from ``S_full`` posed onto ``S``.
+
+    The pose is the similarity (proper rotation :func:`rotation_onto`, scale, translation) that
+    fits ``S_full`` onto ``S`` on their shared rows. A group's SfM leaves a keypoint NaN when no
+    member of the group shows it; filled from the class's shape, every group's shape has the
+    same keypoints, so keypoint costs under different groups' shapes count the same keypoints.
+
+    Args:
+        S: ``(K, 3)`` a group's shape; S_full: ``(K, 3)`` the whole class's shape.
+
+    Raises:
+        SplitFailed: fewer than 3 shared rows (no pose).
+    """
+    missing = ~torch.isfinite(S).all(-1) & torch.isfinite(S_full).all(-1)
+    if not bool(missing.any()):
+        return S
+    shared = torch.isfinite(S).all(-1) & torch.isfinite(S_full).all(-1)
+    try:
+        Q = rotation_onto(S_full, S)  # S_full Q ~ c S
+    except ValueError as e:
+        raise SplitFailed(f"a group's shape cannot be completed from the class's: {e}") from None
+    A, B = S_full[shared].to(S), S[shared]
+    ma, mb = A.mean(0), B.mean(0)
+    c = (B - mb).norm() / (A - ma).norm()
+    out = S.clone()
+    out[missing] = c * (S_full[missing].to(S) - ma) @ Q.to(S) + mb
+    return out
+
+
+def _group_sfm(both, labels: torch.Tensor, g: int, n: int, sfm_fn: SfMFn, full_shape: torch.Tensor | None):
+    """``(rows, SfMResult)`` of group ``g``, its shape completed from ``full_shape``; raises :class:`SplitFailed`."""
+    rows = group_rows((labels == g).nonzero().squeeze(1), n)
+    res = sfm_fn(both[rows])
+    if int(torch.isfinite(res.shape).all(-1).sum()) < 3 or not bool(res.valid.any()):
+        raise SplitFailed(f"group {g} ({len(rows) // 2} objects) has no usable SfM shape "
+                          f"({int(res.valid.sum())} cameras, {int(torch.isfinite(res.shape).all(-1).sum())} keypoints)")
+    if full_shape is not None:
+        res = dataclasses.replace(res, shape=fill_missing_rows(res.shape, full_shape))
+    return rows, res
+
+
 def hard_em(both, n: int, dist: torch.Tensor, sfm_fn: SfMFn, labels: torch.Tensor, k: int, min_size: int,
-            rounds: int = 6):
+            rounds: int = 6, full_shape: torch.Tensor | None = None):
     """Hard EM over ``k`` rigid shapes from ``labels (n,)``.
+
+    Args:
+        full_shape: the whole class's SfM shape; rows a group's shape lacks are filled from it
+            (:func:`fill_missing_rows`), so every group is scored on the same keypoints.
 
     Returns:
         ``(labels, groups, cost, rotations, history)``: final labels; per group ``(rows, SfMResult)``
         (rows of ``both``, :func:`group_rows`); ``cost (n, k)``; per group ``(n, 3, 3)`` every object's
         keypoint-only rotation under the group's shape; per round the sizes and RMS pixel residual.
+
+    Raises:
+        SplitFailed: a group without a usable shape (too few cameras or keypoints).
     """
-    nvis = (both.visible[:n].sum(-1) + both.visible[n:].sum(-1)).sum().clamp(min=1)
+    ok_kp = torch.isfinite(both.keypoints).all(-1)
+    nvis = ((both.visible & ok_kp)[:n].sum(-1) + (both.visible & ok_kp)[n:].sum(-1)).sum().clamp(min=1)
     history = []
     for it in range(rounds + 1):
-        groups = []
-        for g in range(k):
-            rows = group_rows((labels == g).nonzero().squeeze(1), n)
-            groups.append((rows, sfm_fn(both[rows])))
+        groups = [_group_sfm(both, labels, g, n, sfm_fn, full_shape) for g in range(k)]
         fits = [keypoint_cost(res.shape, both, dist, n) for _rows, res in groups]
         cost = torch.stack([c for c, _R in fits], 1)
         history.append({"round": it, "sizes": torch.bincount(labels, minlength=k).tolist(),
@@ -173,10 +236,17 @@ def rotation_onto(S: torch.Tensor, S0: torch.Tensor) -> torch.Tensor:
     Returns:
         ``(3, 3)`` with det +1 (a mirror image is matched by a rotation, never a reflection), on
         ``S``'s device and dtype.
+
+    Raises:
+        ValueError: fewer than 3 rows finite in both shapes, or all of them at one point.
     """
     ok = torch.isfinite(S).all(-1) & torch.isfinite(S0).all(-1)
+    if int(ok.sum()) < 3:
+        raise ValueError(f"the two shapes share {int(ok.sum())} reconstructed keypoint(s); a rotation needs 3")
     A, B = S[ok].detach().double().cpu(), S0[ok].detach().double().cpu()
     A, B = A - A.mean(0), B - B.mean(0)
+    if float(A.norm()) == 0 or float(B.norm()) == 0:
+        raise ValueError("a shape's shared keypoints all coincide; no rotation between the shapes")
     A, B = A / A.norm(), B / B.norm()
     rot, _ = Rotation.align_vectors(B.numpy(), A.numpy())  # rot maps rows of A onto rows of B
     return torch.as_tensor(rot.as_matrix().T, dtype=S.dtype, device=S.device)
@@ -189,7 +259,7 @@ def group_rotations(groups) -> list[torch.Tensor]:
             for _r, res in groups]
 
 
-def frame_agreement(rotations: list[torch.Tensor], Q: list[torch.Tensor]) -> float:
+def frame_agreement(rotations: list[torch.Tensor], Q: list[torch.Tensor], valid: torch.Tensor | None = None) -> float:
     """How well the groups' frames agree after the shape alignment (degrees; no ground truth).
 
     Every object has a keypoint-only camera ``R`` under every group's mean shape (from the EM);
@@ -199,12 +269,16 @@ def frame_agreement(rotations: list[torch.Tensor], Q: list[torch.Tensor]) -> flo
     Args:
         rotations: per group, ``(n, 3, 3)`` the objects' rotations under the group's shape.
         Q: per group, the rotation of its shape into the common frame (:func:`group_rotations`).
+        valid: ``(n,)`` bool, the objects that count (those with an SfM camera: an object with
+            fewer than 2 visible keypoints has an arbitrary rotation); default all.
 
     Returns:
         The largest, over pairs of groups, of the median angle between the two rotations over
         all objects (0 for one group; ``inf`` when a pair has no finite angle).
     """
     Rs = [R.double() @ q.to(R.device).double() for R, q in zip(rotations, Q)]
+    if valid is not None:
+        Rs = [R[valid.to(R.device)] for R in Rs]
     worst = 0.0
     for a in range(len(Rs)):
         for b in range(a + 1, len(Rs)):
@@ -286,7 +360,8 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
     if max_groups == 1 or n < 2 * min_size:
         return best
     cost1, _R1 = keypoint_cost(res1.shape, both, dist, n)
-    nvis_obj = (both.visible[:n].sum(-1) + both.visible[n:].sum(-1)).clamp(min=1)
+    seen = both.visible & torch.isfinite(both.keypoints).all(-1)
+    nvis_obj = (seen[:n].sum(-1) + seen[n:].sum(-1)).clamp(min=1)
     lifted = lifted_residuals(res1, both.keypoints, both.visible)
     lifted = torch.cat([lifted[:n], lifted[n:]], 1)
     lifted = lifted / lifted.norm(dim=1, keepdim=True).clamp(min=1e-9)
@@ -295,22 +370,37 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
         if n < k * min_size:
             break
         inits = {"lifted": kmeans_labels(lifted, k, seed),
-                 "residual": ((cost1 / nvis_obj).argsort().argsort() * k // n).clamp(max=k - 1)}
+                 "residual": ((cost1 / nvis_obj).argsort(stable=True).argsort(stable=True) * k // n).clamp(max=k - 1)}
         cands = []
         for name, lab0 in inits.items():
-            lab0 = top_up(lab0, torch.zeros(n, k), k, min_size)
-            lab, groups, cost, rotations, _hist = hard_em(both, n, dist, sfm_fn, lab0, k, min_size, rounds)
-            Q = group_rotations(groups)
+            lab0 = top_up(lab0, torch.zeros(n, k, device=lab0.device), k, min_size)
+            row = {"k": k, "init": name, "sizes": None, "sse_px2": float("inf"), "cut": float("-inf"),
+                   "agreement_deg": float("inf"), "eligible": False, "kept": False}
+            try:
+                lab, groups, cost, rotations, _hist = hard_em(both, n, dist, sfm_fn, lab0, k, min_size, rounds,
+                                                              full_shape=res1.shape)
+            except SplitFailed as e:
+                row["problem"] = str(e)
+                best.candidates.append(row)
+                if log is not None:
+                    log(f"{k} shapes from '{name}': not usable: {e}")
+                continue
             sse = float(cost.gather(1, lab[:, None]).sum())
-            agree = frame_agreement(rotations, Q)
-            row = {"k": k, "init": name, "sizes": torch.bincount(lab, minlength=k).tolist(), "sse_px2": sse,
-                   "cut": 1 - sse / max(sse_prev, 1e-12), "agreement_deg": agree,
-                   "eligible": agree <= agreement_deg, "kept": False}
+            row.update(sizes=torch.bincount(lab, minlength=k).tolist(), sse_px2=sse, cut=1 - sse / max(sse_prev, 1e-12))
+            try:
+                Q = group_rotations(groups)
+            except ValueError as e:  # a group's shape cannot be put in the class frame: not a usable split
+                row["problem"] = f"no class frame: {e}"
+                Q = None
+            if Q is not None:
+                row["agreement_deg"] = frame_agreement(rotations, Q, valid=res1.valid[:n])
+                row["eligible"] = bool(row["agreement_deg"] <= agreement_deg and math.isfinite(sse))
             best.candidates.append(row)
-            cands.append((row, MixtureResult(k, lab, groups, Q, agree, res1)))
+            if Q is not None:
+                cands.append((row, MixtureResult(k, lab, groups, Q, row["agreement_deg"], res1)))
             if log is not None:
                 log(f"{k} shapes from '{name}': sizes {row['sizes']}, residual cut {row['cut']:.0%}, "
-                    f"frames agree within {agree:.0f} deg")
+                    + (f"frames agree within {row['agreement_deg']:.0f} deg" if Q is not None else row["problem"]))
         ok = [c for c in cands if c[0]["eligible"]]
         if not ok:
             break

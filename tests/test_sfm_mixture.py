@@ -82,6 +82,25 @@ def test_frame_agreement_measures_the_angle_between_group_frames():
     assert mix.frame_agreement([R, torch.full_like(R, float("nan"))], [I, I]) == float("inf")
 
 
+def test_fill_missing_rows_poses_the_full_shape_onto_the_group_shape():
+    gen = torch.Generator().manual_seed(8)
+    S_full = torch.randn(10, 3, generator=gen, dtype=torch.float64)
+    Q = torch.as_tensor(Rotation.from_rotvec([0.2, 0.9, -0.4]).as_matrix())
+    exact = 1.7 * S_full @ Q + torch.tensor([0.5, -1.0, 2.0], dtype=torch.float64)
+    S = exact.clone()
+    S[[2, 7]] = float("nan")  # keypoints no member of the group shows
+    S_full_nan = S_full.clone()
+    S_full_nan[9] = float("nan")  # and one the class lacks too
+    S[9] = float("nan")
+    out = mix.fill_missing_rows(S, S_full_nan)
+    assert torch.allclose(out[[2, 7]], exact[[2, 7]], atol=1e-10)
+    assert torch.equal(out[:2], S[:2]) and bool(torch.isnan(out[9]).all())
+    assert mix.fill_missing_rows(exact, S_full) is exact  # nothing missing: unchanged
+    S[3:] = float("nan")  # 2 shared rows: no pose
+    with pytest.raises(mix.SplitFailed, match="share 2"):
+        mix.fill_missing_rows(S, S_full)
+
+
 # --------------------------------------------------------------------------- the whole fit
 
 
@@ -234,9 +253,14 @@ def test_pipeline_viewpoints_refine_every_group_with_its_own_shape(two_shapes):
     assert {out["cameras"][str(i)]["shape_group"] for i in range(n)} == {0, 1}
     assert out["mean_shape"] == out["shape_groups"][out["mean_shape_group"]]["mean_shape"]
 
-    one = pipeline._viewpoints(coll, Config().override({"progress": False, "silhouette_weight": 0.0}),
-                               pipeline.ClassReport(coll.name, objects=n), torch.device("cpu"), None)
+    cfg1 = Config().override({"progress": False, "silhouette_weight": 0.0})
+    one = pipeline._viewpoints(coll, cfg1, pipeline.ClassReport(coll.name, objects=n), torch.device("cpu"), None)
     assert one["groups"].k == 1 and torch.equal(one["shape"], one["groups"].single.shape)
+    # one group: exactly the one-shape SfM and its refinement, as before the mixture existed
+    res = pipeline.class_sfm(both, cfg1)
+    ref = pipeline.class_refine(res.shape, res.cameras, both, dist, cfg1).cameras
+    assert torch.equal(one["cams_sfm"].R, res.cameras.R) and torch.equal(one["cams"].R, ref.R)
+    assert torch.equal(one["cams"].s, ref.s) and torch.equal(one["cams"].t, ref.t)
     assert "shape_groups" not in pipeline._cameras_json(coll, one, torch.eye(3), clusters)
     assert viewpoint_report(one["cams"].R[:n].double(), R.double())["geodesic"]["median"] > 3.0
 
@@ -277,3 +301,49 @@ def test_cad_sofas_fit_three_shapes_and_better_viewpoints(shared_data, tmp_path)
             assert info["groups"] == 3 and min(info["sizes"]) >= 15 and info["frame_agreement_deg"] <= 60
     assert errors[1] > 9.0  # one shape: the target is missed
     assert errors[3] < 7.0 and errors[3] < 0.7 * errors[1], errors
+
+
+def test_rotation_onto_needs_three_shared_points():
+    S = torch.randn(5, 3, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    T = S.clone()
+    T[:3] = float("nan")  # two shared rows left
+    with pytest.raises(ValueError, match="share 2"):
+        mix.rotation_onto(T, S)
+    with pytest.raises(ValueError, match="coincide"):
+        mix.rotation_onto(torch.ones(5, 3, dtype=torch.float64), S)
+
+
+def test_a_split_without_a_class_frame_is_not_kept(two_shapes, monkeypatch):
+    """A group whose shape cannot be rotated into the class frame makes its split ineligible; one shape is kept."""
+    coll, both, dist, R, truth, fitted = two_shapes
+
+    def no_frame(groups):
+        raise ValueError("the two shapes share 0 reconstructed keypoint(s); a rotation needs 3")
+
+    monkeypatch.setattr(mix, "group_rotations", no_frame)
+    lines = []
+    out = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, log=lines.append)
+    assert out.k == 1 and len(out.candidates) == 2
+    assert all(not c["eligible"] and c["problem"].startswith("no class frame") for c in out.candidates)
+    assert all("no class frame" in line for line in lines)
+
+
+def test_a_group_without_cameras_makes_its_split_unusable_not_the_class():
+    """Half the objects see one keypoint only (no SfM camera): they cost nothing under any shape. The
+    residual-quantile start puts all of them in one group, whose SfM has no camera: that split is
+    recorded as not usable (before, the class failed). The other start still splits the objects
+    that have cameras by their true shape."""
+    coll, _R, truth = _two_shape_class(sizes=(18, 18))
+    bad = torch.cat([torch.arange(0, 9), torch.arange(18, 27)])
+    coll.visible[bad] = False
+    coll.visible[bad, 0] = True
+    both = coll.with_mirrors()
+    out = mix.fit_mixture_of_shapes(both, distance_to_mask(both.masks), _sfm, max_groups=2, min_size=6)
+    by_init = {c["init"]: c for c in out.candidates}
+    assert "no usable SfM shape" in by_init["residual"]["problem"] and not by_init["residual"]["eligible"]
+    assert by_init["lifted"]["kept"] and out.k == 2
+    good = torch.ones(36, dtype=torch.bool)
+    good[bad] = False
+    lab, tru = out.labels[good], truth[good]
+    assert bool((lab == tru).all() or (lab == 1 - tru).all())
+    assert all(bool(res.valid.any()) for _rows, res in out.groups)

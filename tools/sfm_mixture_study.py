@@ -52,8 +52,9 @@ from carvi_torch.config import load_config  # noqa: E402
 from carvi_torch.io import coco  # noqa: E402
 from carvi_torch.io.outputs import write_json  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
-from carvi_torch.sfm_mixture import (MixtureResult, frame_agreement, group_rotations, group_rows,  # noqa: E402
-                                     hard_em, keypoint_cost, kmeans_labels, lifted_residuals, top_up)
+from carvi_torch.sfm_mixture import (MixtureResult, SplitFailed, frame_agreement, group_rotations,  # noqa: E402
+                                     group_rows, hard_em, keypoint_cost, kmeans_labels, lifted_residuals,
+                                     top_up)
 from carvi_torch.viewpoint_metrics import summarize, viewpoint_report  # noqa: E402
 
 RENDERS = ROOT / "outputs" / "viewpoints_cad" / "renders_v30_s0" / "annotations.json"
@@ -65,9 +66,10 @@ def group_sfm(both, idx: torch.Tensor, n: int, cfg):
     return rows, pipeline.class_sfm(both[rows], cfg)
 
 
-def fit_mixture(both, n, dist, cfg, labels, k, min_size, rounds=6):
+def fit_mixture(both, n, dist, cfg, labels, k, min_size, full_shape, rounds=6):
     """Hard EM from ``labels (n,)`` with the pipeline's SfM (:func:`carvi_torch.sfm_mixture.hard_em`)."""
-    return hard_em(both, n, dist, lambda sub: pipeline.class_sfm(sub, cfg), labels, k, min_size, rounds)
+    return hard_em(both, n, dist, lambda sub: pipeline.class_sfm(sub, cfg), labels, k, min_size, rounds,
+                   full_shape=full_shape)
 
 
 def class_cameras(both, n, dist, cfg, groups, Q, single):
@@ -102,7 +104,8 @@ def study_class(coll, gt, cfg, ks, min_size, seed):
     aids = coll.annotation_ids.tolist()
     models = [gt[str(a)].get("model", "?") for a in aids]
     gt_R = torch.tensor([gt[str(a)]["R"] for a in aids], dtype=torch.float64)
-    nvis_obj = (both.visible[:n].sum(-1) + both.visible[n:].sum(-1)).clamp(min=1)  # (n,)
+    seen = both.visible & torch.isfinite(both.keypoints).all(-1)
+    nvis_obj = (seen[:n].sum(-1) + seen[n:].sum(-1)).clamp(min=1)  # (n,)
     nvis = float(nvis_obj.sum())
     rows1, res1 = group_sfm(both, torch.arange(n), n, cfg)
     cost1, R1 = keypoint_cost(res1.shape, both, dist, n)
@@ -116,18 +119,25 @@ def study_class(coll, gt, cfg, ks, min_size, seed):
         else:
             cands = []
             inits = {"lifted": kmeans_labels(lifted, k, seed),
-                     "residual": ((cost1 / nvis_obj).argsort().argsort() * k // n).clamp(max=k - 1)}
+                     "residual": ((cost1 / nvis_obj).argsort(stable=True).argsort(stable=True) * k // n).clamp(max=k - 1)}
             for name, lab0 in inits.items():
                 lab0 = top_up(lab0, torch.zeros(n, k), k, min_size)
-                cands.append((name, *fit_mixture(both, n, dist, cfg, lab0, k, min_size)))
+                try:
+                    cands.append((name, *fit_mixture(both, n, dist, cfg, lab0, k, min_size, res1.shape)))
+                except SplitFailed as e:
+                    print(f"  k={k} {name}: not usable: {e}", flush=True)
         rows = []
         for name, lab, groups, cost, rotations, hist in cands:
             sse = float(cost.gather(1, lab[:, None]).sum())
-            Q = group_rotations(groups)
+            try:
+                Q = group_rotations(groups)
+            except ValueError as e:
+                print(f"  k={k} {name}: no class frame: {e}", flush=True)
+                continue
             sfm_cams, sfm_ok, ref_cams = class_cameras(both, n, dist, cfg, groups, Q, res1)
             sfm_med, sfm_pm = score(coll, sfm_cams, sfm_ok, gt_R, models)
             ref_med, ref_pm = score(coll, ref_cams, torch.ones(2 * n, dtype=torch.bool), gt_R, models)
-            agree = frame_agreement(rotations, Q)
+            agree = frame_agreement(rotations, Q, valid=res1.valid[:n])
             rows.append({"init": name, "sse_px2": sse, "rms_px": (sse / nvis) ** 0.5, "frame_agreement_deg": agree,
                          "sfm": sfm_med,
                          "refined": ref_med, "sfm_per_model": sfm_pm, "refined_per_model": ref_pm,
@@ -137,8 +147,8 @@ def study_class(coll, gt, cfg, ks, min_size, seed):
             print(f"  k={k} {name}: rms {rows[-1]['rms_px']:.3f} px, frames agree within {agree:.1f} deg, "
                   f"SfM {sfm_med:.1f}, refined {ref_med:.1f} deg, "
                   f"sizes {torch.bincount(lab, minlength=k).tolist()}", flush=True)
-        chosen = min(rows, key=lambda r: r["sse_px2"])  # unsupervised: the lower residual
-        out[str(k)] = {"chosen": chosen["init"], "candidates": rows}
+        chosen = min(rows, key=lambda r: r["sse_px2"])["init"] if rows else None  # unsupervised: the lower residual
+        out[str(k)] = {"chosen": chosen, "candidates": rows}
     return out
 
 
