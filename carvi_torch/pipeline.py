@@ -320,6 +320,7 @@ def _cameras_json(coll: ClassCollection, vp: dict, axes: torch.Tensor | None, cl
     """``cameras.json`` content: per annotation id, SfM and refined cameras in image pixels."""
     n = len(coll)
     mix = vp["groups"]
+    group_of = mix.labels.tolist() if mix.k > 1 else None  # one host read
     inv = coll.canvas_from_image.inverse()
     sfm_img = vp["cams_sfm"][:n].compose_similarity(inv).to_list()
     ref_img = vp["cams"][:n].compose_similarity(inv).to_list()
@@ -334,8 +335,8 @@ def _cameras_json(coll: ClassCollection, vp: dict, axes: torch.Tensor | None, cl
             "roll_deg": math.degrees(float(ro[i])),
             "cluster": int(clusters.labels[i]) if clusters is not None else None,
         }
-        if mix.k > 1:
-            per[str(aid)]["shape_group"] = int(mix.labels[i])
+        if group_of is not None:
+            per[str(aid)]["shape_group"] = group_of[i]
     names = coll.meta.keypoint_names
 
     def named(S):

@@ -238,15 +238,17 @@ def rotation_onto(S: torch.Tensor, S0: torch.Tensor) -> torch.Tensor:
         ``S``'s device and dtype.
 
     Raises:
-        ValueError: fewer than 3 rows finite in both shapes, or all of them at one point.
+        ValueError: fewer than 3 rows finite in both shapes, or all of them on one line.
     """
     ok = torch.isfinite(S).all(-1) & torch.isfinite(S0).all(-1)
     if int(ok.sum()) < 3:
         raise ValueError(f"the two shapes share {int(ok.sum())} reconstructed keypoint(s); a rotation needs 3")
     A, B = S[ok].detach().double().cpu(), S0[ok].detach().double().cpu()
     A, B = A - A.mean(0), B - B.mean(0)
-    if float(A.norm()) == 0 or float(B.norm()) == 0:
-        raise ValueError("a shape's shared keypoints all coincide; no rotation between the shapes")
+    for X in (A, B):  # collinear points leave the rotation about their line undetermined
+        sv = torch.linalg.svdvals(X)
+        if float(sv[0]) == 0 or float(sv[1]) <= 1e-6 * float(sv[0]):
+            raise ValueError("a shape's shared keypoints all lie on one line; no rotation between the shapes")
     A, B = A / A.norm(), B / B.norm()
     rot, _ = Rotation.align_vectors(B.numpy(), A.numpy())  # rot maps rows of A onto rows of B
     return torch.as_tensor(rot.as_matrix().T, dtype=S.dtype, device=S.device)

@@ -309,8 +309,11 @@ def test_rotation_onto_needs_three_shared_points():
     T[:3] = float("nan")  # two shared rows left
     with pytest.raises(ValueError, match="share 2"):
         mix.rotation_onto(T, S)
-    with pytest.raises(ValueError, match="coincide"):
+    with pytest.raises(ValueError, match="one line"):
         mix.rotation_onto(torch.ones(5, 3, dtype=torch.float64), S)
+    line = torch.linspace(0, 1, 5, dtype=torch.float64)[:, None] * torch.tensor([1.0, 2.0, -1.0], dtype=torch.float64)
+    with pytest.raises(ValueError, match="one line"):
+        mix.rotation_onto(line, S)
 
 
 def test_a_split_without_a_class_frame_is_not_kept(two_shapes, monkeypatch):
