@@ -166,9 +166,6 @@ def _shape_groups(both: ClassCollection, dist: torch.Tensor, res: sfm.SfMResult,
     for line in log:
         _log(f"  {both.name}: {line}", cfg)
     report.info["sfm_groups"] = mix.summary()
-    if len(both) // 2 < 2 * cfg.sfm_group_min:
-        report.info["sfm_groups"]["note"] = (f"one shape: {len(both) // 2} objects, fewer than twice "
-                                             f"sfm_group_min={cfg.sfm_group_min}")
     return mix
 
 
@@ -248,8 +245,7 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
     with _timed(report, "sfm", device):
         mix = _shape_groups(both, dist, res, cfg, report)
     cams_sfm, sfm_valid = group_sfm_cameras(mix)
-    main = int(torch.bincount(mix.labels, minlength=mix.k).argmax())
-    shape = mix.shape(main)
+    shape = mix.shape(mix.largest())
     reflection = sfm.symmetry_plane(shape, coll.meta.flip_pairs)
     has_camera = sfm_valid.clone()
 
@@ -353,9 +349,9 @@ def _cameras_json(coll: ClassCollection, vp: dict, axes: torch.Tensor | None, cl
         "cluster_threshold_deg": float(clusters.threshold_deg) if clusters is not None else None,
     }
     if mix.k > 1:  # a mixture of rigid shapes: every group's mean shape, in the same class frame
-        sizes = torch.bincount(mix.labels, minlength=mix.k).tolist()
+        sizes = mix.sizes()
         out["shape_groups"] = [{"objects": sizes[g], "mean_shape": named(mix.shape(g))} for g in range(mix.k)]
-        out["mean_shape_group"] = int(torch.tensor(sizes).argmax())
+        out["mean_shape_group"] = mix.largest()
     return out
 
 

@@ -93,8 +93,7 @@ def keypoint_cost(shape: torch.Tensor, both, dist: torch.Tensor, n: int,
     """
     cams, _ = refine.estimate_camera(shape, both.keypoints, both.visible, dist, silhouette_weight=0.0,
                                      n_starts=n_starts)
-    S = torch.nan_to_num(shape).to(cams.R)
-    P = cams.s[:, None, None] * (S @ cams.R[:, :2, :].transpose(-1, -2)) + cams.t[:, None, :]
+    P = cams.project(torch.nan_to_num(shape).to(cams.R))
     vis = both.visible & torch.isfinite(shape).all(-1)[None] & torch.isfinite(both.keypoints).all(-1)
     r = ((P - torch.nan_to_num(both.keypoints)).pow(2).sum(-1) * vis).sum(-1)
     return r[:n] + r[n:], cams.R[:n]
@@ -107,8 +106,7 @@ def lifted_residuals(res: SfMResult, keypoints: torch.Tensor, visible: torch.Ten
         res: the SfM of ``M`` rows; keypoints ``(M, K, 2)``, visible ``(M, K)`` of those rows.
     """
     c = res.cameras
-    S = torch.nan_to_num(res.shape)
-    P = c.s[:, None, None] * (S @ c.R[:, :2, :].transpose(-1, -2)) + c.t[:, None, :]
+    P = c.project(torch.nan_to_num(res.shape))
     vis = visible & torch.isfinite(res.shape).all(-1)[None] & res.valid[:, None] & torch.isfinite(keypoints).all(-1)
     r = (torch.nan_to_num(keypoints) - P) * vis[..., None]
     return (torch.einsum("mki,mij->mkj", r, c.R[:, :2, :]) / c.s[:, None, None]).flatten(1)
@@ -304,6 +302,7 @@ class MixtureResult:
         candidates: every split tried: ``{"k", "init", "sizes", "sse_px2", "cut", "agreement_deg",
             "eligible", "kept"}``.
         single: the one-shape SfM of the whole class (always run first).
+        note: why no split was tried (``None`` when one was).
     """
 
     k: int
@@ -313,6 +312,7 @@ class MixtureResult:
     agreement_deg: float
     single: SfMResult
     candidates: list = field(default_factory=list)
+    note: str | None = None
 
     def shape(self, g: int) -> torch.Tensor:
         """``(K, 3)`` mean shape of group ``g`` in the class frame (one group: the SfM shape itself)."""
@@ -324,10 +324,23 @@ class MixtureResult:
         c = self.groups[g][1].cameras
         return ScaledOrthographic(c.R @ self.Q[g].to(c.R), c.s, c.t)
 
+    def sizes(self) -> list[int]:
+        """Objects per group (host ints)."""
+        return torch.bincount(self.labels, minlength=self.k).tolist()
+
+    def largest(self) -> int:
+        """The group with the most objects (the first of equals)."""
+        sizes = self.sizes()
+        return sizes.index(max(sizes))
+
     def summary(self) -> dict:
-        """JSON-ready: groups kept, their sizes, the frame agreement and every candidate."""
-        return {"groups": self.k, "sizes": torch.bincount(self.labels, minlength=self.k).tolist(),
-                "frame_agreement_deg": self.agreement_deg, "candidates": self.candidates}
+        """JSON-ready: groups kept, their sizes, the frame agreement, every candidate (and a note
+        when no split was tried)."""
+        out = {"groups": self.k, "sizes": self.sizes(), "frame_agreement_deg": self.agreement_deg,
+               "candidates": self.candidates}
+        if self.note:
+            out["note"] = self.note
+        return out
 
 
 def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups: int = 3, min_size: int = 15,
@@ -359,7 +372,10 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
     eye = torch.eye(3, dtype=res1.shape.dtype, device=res1.shape.device)
     labels1 = torch.zeros(n, dtype=torch.long, device=both.keypoints.device)
     best = MixtureResult(1, labels1, [(rows1, res1)], [eye], 0.0, res1)
-    if max_groups == 1 or n < 2 * min_size:
+    if max_groups == 1:
+        return best
+    if n < 2 * min_size:
+        best.note = f"one shape: {n} objects, fewer than twice the smallest group ({min_size})"
         return best
     cost1, _R1 = keypoint_cost(res1.shape, both, dist, n)
     seen = both.visible & torch.isfinite(both.keypoints).all(-1)

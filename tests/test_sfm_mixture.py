@@ -215,6 +215,7 @@ def test_fit_small_class_runs_one_sfm_only():
 
     fitted = mix.fit_mixture_of_shapes(both, distance_to_mask(both.masks), counted, max_groups=3, min_size=6)
     assert fitted.k == 1 and calls == [20] and fitted.candidates == []
+    assert "10 objects" in fitted.summary()["note"]
 
 
 def test_fit_rejects_bad_arguments():
@@ -244,7 +245,8 @@ def test_pipeline_viewpoints_refine_every_group_with_its_own_shape(two_shapes):
         err = viewpoint_report(vp[key].R[:n].double(), R.double())
         assert err["geodesic"]["median"] < 1.0 and not err["mirrored"], key
     assert bool(vp["has_camera"].all())
-    big = int(torch.bincount(fitted.labels).argmax())
+    big = fitted.largest()
+    assert big == int(torch.bincount(fitted.labels).argmax())
     assert torch.allclose(vp["shape"], fitted.shape(big), atol=0.01)  # the run's SfM settings differ slightly
     clusters = pipeline._clusters(vp["cams"].R[:n, 2, :], vp["has_camera"][:n],
                                   torch.eye(3), cfg)
