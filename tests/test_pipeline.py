@@ -290,7 +290,10 @@ def test_cuda_run_matches_cpu(tiny, tmp_path):
 def test_cuda_chunk_has_no_per_object_host_reads(tiny):
     """The device work of a chunk reads back from the GPU a fixed number of times, not once per object
     (a few more for a larger chunk are allowed: one per further group of equal sub-sampling in the
-    selection's projections)."""
+    selection's projections).
+
+    Both chunks hold only references that have a surrogate triplet: a chunk with no valid
+    proposal skips the carving and selection altogether, and would make a low baseline."""
     import warnings
 
     import carvi_torch.pipeline as P
@@ -302,9 +305,10 @@ def test_cuda_chunk_has_no_per_object_host_reads(tiny):
                             device=torch.device("cuda"), classes=["car"])
     plan, todo, report = P.prepare_class(loaded.collections["car"], cfg, torch.device("cuda"),
                                          torch.Generator().manual_seed(0))
+    good = [i for i in todo if plan.trip is None or i not in plan.trip.reasons]
     counts = []
-    for R in (1, len(todo)):
-        ids = torch.tensor(todo[:R], device="cuda")
+    for R in (1, len(good)):
+        ids = torch.tensor(good[:R], device="cuda")
         torch.cuda.synchronize()
         torch.cuda.set_sync_debug_mode("warn")
         try:
@@ -314,7 +318,7 @@ def test_cuda_chunk_has_no_per_object_host_reads(tiny):
         finally:
             torch.cuda.set_sync_debug_mode(0)
         counts.append(len(caught))
-    assert len(todo) >= 5 and counts[1] <= counts[0] + 4, counts
+    assert len(good) >= 4 and counts[0] > 0 and counts[1] <= counts[0] + 4, counts
 
 
 def test_silhouette_robust_reaches_refinement(monkeypatch, tmp_path):
