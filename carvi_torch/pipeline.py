@@ -513,7 +513,13 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
         for c0 in range(0, len(todo), chunk):
             ids = todo_t[c0:c0 + chunk]
             result = _carve_and_select(ids, plan, cfg, report, device)
+            # handing the chunk to the writers; the time spent blocked on busy writers is booked
+            # as waiting for them, the rest as hand-off (host-side bookkeeping per object)
+            t0, b0 = time.perf_counter(), writer.blocked
             _submit_chunk(result, ids, plan, cfg, report, writer, scores_out)
+            waited = writer.blocked - b0
+            report.seconds["handoff"] = report.seconds.get("handoff", 0.0) + time.perf_counter() - t0 - waited
+            report.seconds["write_wait"] = report.seconds.get("write_wait", 0.0) + waited
             del result  # the next chunk's grids must not sit beside this one's
             bar.update(len(ids))
         bar.close()
@@ -808,12 +814,15 @@ class _Writer:
     Results are booked in submission order (deterministic reports). At most
     ``4 * workers`` objects wait at once, which bounds the memory of pending grids.
     With ``workers == 0`` every object is written at once, in this process.
+    ``blocked``: seconds :meth:`submit` spent waiting for a writer to finish (back-pressure:
+    the writers, not the device work, are then what limits the run).
     """
 
     def __init__(self, workers: int):
         self.workers = int(workers)
         self.pool = None
         self.pending: deque = deque()
+        self.blocked = 0.0
         if self.workers > 0:
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
@@ -830,8 +839,11 @@ class _Writer:
             done(_write_object_safe(job))
             return
         self.pending.append((self.pool.submit(_write_object_safe, job), done))
-        while len(self.pending) > 4 * self.workers:
-            self._finish_one()
+        if len(self.pending) > 4 * self.workers:
+            t0 = time.perf_counter()
+            while len(self.pending) > 4 * self.workers:
+                self._finish_one()
+            self.blocked += time.perf_counter() - t0
 
     def _finish_one(self) -> None:
         future, done = self.pending.popleft()
@@ -889,19 +901,23 @@ def _cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
-def writer_workers(cfg: Config) -> int:
-    """Writer processes of a run: ``CARVI_WRITERS`` if set, else ``cores - 1`` (at least 1, at most 8;
-    none for ``stage=cameras``).
+def writer_workers(cfg: Config, device: torch.device | None = None) -> int:
+    """Writer processes of a run: ``CARVI_WRITERS`` if set, else ``cores - 1`` (at least 1; at
+    most 8 on the CPU, 16 with ``device`` a GPU; none for ``stage=cameras``).
 
-    Meshing and writing an object takes ~10 ms of CPU; in worker processes it overlaps the
-    carving of the next objects (``0``: everything inline).
+    Meshing and writing an object takes ~10-25 ms of CPU; in worker processes it overlaps the
+    carving of the next objects (``0``: everything inline). On the CPU the carving needs the
+    cores too; with a GPU the main process mostly waits on the device, and the writers are
+    what limits a run (on an H100 with 16 cores, 9,087 objects: 62 s with 8 writers, 48 s with
+    15; docs/benchmarks/README.md).
     """
     env = _env_count("CARVI_WRITERS", 0)
     if env is not None:
         return env
     if cfg.stage != "all":
         return 0
-    return min(8, max(1, _cores() - 1))
+    cap = 16 if device is not None and device.type == "cuda" else 8
+    return min(cap, max(1, _cores() - 1))
 
 
 def torch_threads(workers: int) -> int:
@@ -942,7 +958,7 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
     device = cfg.resolve_device()
     torch.manual_seed(cfg.seed)
     # writer processes start first, while this process is small
-    writer = _Writer(writer_workers(cfg) if workers is None else workers)
+    writer = _Writer(writer_workers(cfg, device) if workers is None else workers)
     try:
         with _torch_threads(torch_threads(writer.workers) if threads is None else max(1, int(threads))):
             summary = _run(cfg, out, device, writer, t_start)

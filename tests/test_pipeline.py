@@ -5,6 +5,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -248,8 +249,37 @@ def test_writers_chunks_and_threads_do_not_change_outputs(tiny, tmp_path, monkey
                 assert np.array_equal(a[k][name], b[k][name]), (k, name)
         else:
             assert a[k] == b[k], k
-    for stage in ("carve", "select", "mesh", "write"):
+    for stage in ("carve", "select", "mesh", "write", "handoff"):
         assert res["classes"]["car"]["seconds"][stage] > 0
+
+
+def _slow_job(job):
+    time.sleep(job["sleep"])
+    return dict(ok=True, i=job["i"])
+
+
+def test_writer_books_back_pressure(monkeypatch):
+    """Time blocked on busy writers is counted (``blocked``); results stay in submission order."""
+    import carvi_torch.pipeline as P
+
+    monkeypatch.setattr(P, "_write_object_safe", _slow_job)  # before the fork: the worker sees it
+    w = P._Writer(1)
+    try:
+        got = []
+        t0 = time.perf_counter()
+        for i in range(4):  # up to 4 * workers pending: never blocks
+            w.submit(dict(i=i, sleep=0.0), got.append)
+        assert w.blocked == 0.0
+        for i in range(4, 10):  # every further object waits for the oldest to finish
+            w.submit(dict(i=i, sleep=0.1), got.append)
+        w.drain()
+        total = time.perf_counter() - t0
+    finally:
+        w.close()
+    assert [g["i"] for g in got] == list(range(10))
+    # six slow jobs (0.6 s of work in one process): the last 4 are still pending when submit
+    # returns, so at least 0.2 s were spent blocked, and never more than the whole run
+    assert 0.15 < w.blocked <= total
 
 
 def test_writer_and_thread_rules(monkeypatch):
@@ -263,6 +293,8 @@ def test_writer_and_thread_rules(monkeypatch):
     assert P.writer_workers(Config().override({"stage": "cameras"})) == 0
     cores = len(os.sched_getaffinity(0))
     assert P.writer_workers(Config()) == min(8, max(1, cores - 1))
+    assert P.writer_workers(Config(), torch.device("cpu")) == min(8, max(1, cores - 1))
+    assert P.writer_workers(Config(), torch.device("cuda")) == min(16, max(1, cores - 1))  # no device needed
     assert P.torch_threads(P.writer_workers(Config())) == max(1, cores - P.writer_workers(Config()))
     monkeypatch.setenv("CARVI_THREADS", "many")
     with pytest.raises(ValueError, match="CARVI_THREADS"):

@@ -8,7 +8,9 @@ proposals per object):
    surrogate sampling, distance maps, carving, selection, meshing and writing) and in total:
    objects per second, seconds per object, peak memory (main process, writer processes, CUDA).
    Meshing and writing run in writer processes beside the carving; their seconds are the
-   writers' own (overlapped), ``write_wait`` is what the main process waited for them.
+   writers' own (overlapped), ``handoff`` is the main process's per-object bookkeeping when
+   handing objects over, ``write_wait`` what it waited for busy writers (during the run and at
+   the end): when it is large, the writers limit the run.
 2. **Carving on the pipeline's own proposals** (the first ``--carve-objects`` references, the
    same triplets as the run: same seed): the batched carving as the pipeline calls it, its
    ``depth_intervals`` and ``coarse_to_fine`` variants, (a) straightforward per-proposal
@@ -71,7 +73,10 @@ from carvi_torch.io.outputs import read_json, write_bytes, write_json  # noqa: E
 #: Stages of ``summary.json`` in pipeline order, with the names the table shows.
 STAGES = [("load", "loading"), ("sfm", "SfM"), ("refine", "refinement"), ("surrogates", "sampling (surrogates)"),
           ("sdf", "distance maps"), ("carve", "carving"), ("select", "selection"), ("mesh", "meshing (writers)"),
-          ("write", "writing (writers)"), ("write_wait", "waiting for writers")]
+          ("write", "writing (writers)"), ("handoff", "handing objects to the writers"),
+          ("write_wait", "waiting for writers")]
+#: Stages run by the writer processes, overlapped with the main process's.
+WRITER_STAGES = ("mesh", "write")
 
 
 # =========================================================================== data
@@ -173,6 +178,9 @@ def run_end_to_end(data: Path, out: Path, args) -> dict:
         "objects": c["objects"], "reconstructed": n, "skipped": c["skipped"],
         "seconds_per_stage": {k: round(seconds.get(k, 0.0), 3) for k, _ in STAGES},
         "total_seconds": total, "wall_seconds_with_startup": round(wall, 3),
+        # what the main process spent outside the timed stages (the writers' stages overlap it)
+        "other_main_seconds": round(total - sum(v for k, v in seconds.items()
+                                                if k not in WRITER_STAGES and k in dict(STAGES)), 3),
         "objects_per_second": n / total if total else None, "seconds_per_object": total / n if n else None,
         "torch_threads": summary.get("torch_threads"), "writer_workers": workers,
         "peak_rss_main_mb": peak_main, "peak_rss_per_writer_mb": peak_worker,
@@ -359,6 +367,10 @@ def table(result: dict) -> str:
         for key, name in STAGES:
             s = e2e["seconds_per_stage"].get(key, 0.0)
             lines.append(f"| {name} | {s:.2f} | {1000 * s / n:.1f} |")
+        other = e2e.get("other_main_seconds")
+        if other is not None:
+            lines.append(f"| other (main process: clustering, cameras.json, scores, summary) | {other:.2f} | "
+                         f"{1000 * other / n:.1f} |")
         lines += [f"| **end to end** ({e2e['reconstructed']} of {e2e['objects']} objects) | "
                   f"{e2e['total_seconds']:.1f} | {1000 * e2e['seconds_per_object']:.1f} |", "",
                   f"objects per second: **{e2e['objects_per_second']:.2f}**; peak memory: main "
