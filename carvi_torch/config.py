@@ -99,6 +99,8 @@ class Config:
     """Weight of the distance-to-mask penalty against the keypoint reprojection error."""
     silhouette_robust: float = 0.2
     """Robust (Geman-McClure) scale of the distance-to-mask penalty, a fraction of each mask's larger side; 0 = the paper's squared distance."""
+    refine_twin_flatness: float = 0.1
+    """Also refine a camera from its planar twin (the other camera under which the plane of its visible keypoints looks the same) when those keypoints are this flat (thickness: smallest over middle spread; 1 = every camera, 0 = off); the twin's result is kept when its energy is at least 2% lower (``refine.TWIN_MARGIN``). Twice the refinement's work when on."""
 
     # ---- surrogates
     cluster_threshold_deg: float = 15.0
@@ -175,6 +177,8 @@ class Config:
             raise ConfigError(f"canvas_margin must be in [0, 0.5), got {self.canvas_margin}")
         if not 0 < self.cluster_threshold_deg <= 90:
             raise ConfigError(f"cluster_threshold_deg must be in (0, 90], got {self.cluster_threshold_deg}")
+        if not self.refine_twin_flatness >= 0:
+            raise ConfigError(f"refine_twin_flatness must be >= 0 (0 = off), got {self.refine_twin_flatness}")
         if self.silhouette_robust < 0:
             raise ConfigError(f"silhouette_robust must be >= 0 (0 = squared distance), got {self.silhouette_robust}")
         if not 0 <= self.sfm_group_gain < 1:

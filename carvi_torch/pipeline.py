@@ -138,7 +138,8 @@ def class_refine(shape: torch.Tensor, cams: ScaledOrthographic, both: ClassColle
                  cfg: Config) -> refine.RefineResult:
     """Silhouette refinement of every camera of ``both`` with the mean shape fixed, as configured."""
     return refine.refine_cameras(shape, cams, both.keypoints, both.visible, dist, silhouette_weight=cfg.silhouette_weight,
-                                 max_iters=cfg.refine_iters, silhouette_robust=cfg.silhouette_robust or None)
+                                 max_iters=cfg.refine_iters, silhouette_robust=cfg.silhouette_robust or None,
+                                 twin_flatness=cfg.refine_twin_flatness)
 
 
 def cameras_from_mean_shape(shape: torch.Tensor, cams: ScaledOrthographic, idx: torch.Tensor, both: ClassCollection,

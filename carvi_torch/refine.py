@@ -62,15 +62,21 @@ from .sdf import distance_to_mask
 
 #: Default robust scale of the silhouette penalty, as a fraction of the mask's larger side.
 ROBUST_FRACTION = 0.2
+#: A planar twin's refined camera replaces the instance's own only when its energy is lower by
+#: at least this fraction: nearly equal energies mean the data cannot tell the two apart, and
+#: the branch SfM chose (jointly with every other instance) is kept.
+TWIN_MARGIN = 0.02
 
 __all__ = [
     "RefineResult",
     "silhouette_penalty",
     "robust_scales",
     "ROBUST_FRACTION",
+    "TWIN_MARGIN",
     "sample_distance",
     "refinement_energy",
     "refine_cameras",
+    "planar_twin",
     "refine_keypoints_only",
     "estimate_camera",
     "mask_start_cameras",
@@ -487,6 +493,58 @@ def _pick(R, s, t, E, *extra):
     return (R[idx, best], s[idx, best], t[idx, best], E[idx, best], *[x[idx, best] for x in extra], best)
 
 
+def planar_twin(shape: torch.Tensor, cameras: ScaledOrthographic, visible: torch.Tensor) -> ScaledOrthographic:
+    """The other camera under which the plane of an instance's visible keypoints projects the same.
+
+    Orthographic views of a plane come in pairs: with ``n`` the unit normal of the plane
+    (through ``c``) best fitting the instance's visible mean-shape points and
+    ``H = I - 2 n n^T`` the reflection through it, the camera ``(D R H, s, t')``,
+    ``D = diag(1, 1, -1)`` (a proper rotation), ``t' = t + 2 s (n . c) R[:2] n``, projects every
+    point of that plane exactly where ``(R, s, t)`` does, and tilts the rest of the shape the
+    other way. When the visible keypoints are (nearly) coplanar -- a monitor's four front
+    corners -- keypoints cannot tell the two apart and SfM lands in either; the silhouette can.
+
+    Args:
+        shape: ``(K, 3)`` mean shape (NaN rows ignored).
+        cameras: N cameras.
+        visible: ``(N, K)`` bool.
+
+    Returns:
+        ``(twin, thickness)``: N cameras (float dtype of ``cameras``) and ``(N,)`` the
+        thickness of the visible points, ``sqrt(l_min / l_mid)`` of their spread's eigenvalues
+        (0 for exactly coplanar points, up to 1). An instance with fewer than 3 usable points
+        gets its camera back unchanged and an infinite thickness.
+
+    Example:
+        >>> S = torch.tensor([[0., 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1]])
+        >>> cam = ScaledOrthographic(axis_angle_to_rotation(torch.tensor([[0.3, 0.2, 0.1]])),
+        ...                          torch.tensor([2.0]), torch.tensor([[5.0, 6.0]]))
+        >>> vis = torch.tensor([[True, True, True, True, False]])
+        >>> twin, thickness = planar_twin(S, cam, vis)
+        >>> torch.allclose(twin.project(S)[:, :4], cam.project(S)[:, :4], atol=1e-5), float(thickness[0]) < 1e-3
+        (True, True)
+    """
+    R, sc, t = cameras.R, cameras.s, cameras.t
+    dt = R.dtype
+    X = torch.nan_to_num(shape.to(dt))
+    w = (visible & torch.isfinite(shape).all(-1)).to(dt)  # (N, K)
+    cnt = w.sum(1)
+    c = (w @ X) / cnt.clamp(min=1)[:, None]  # (N, 3)
+    Xc = X[None] - c[:, None]  # (N, K, 3)
+    cov = torch.einsum("nk,nki,nkj->nij", w, Xc, Xc)
+    evals, evecs = torch.linalg.eigh(cov)
+    n = evecs[..., 0]  # (N, 3): the direction of least spread
+    H = torch.eye(3, dtype=dt, device=R.device) - 2 * n[:, :, None] * n[:, None, :]
+    D = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=dt, device=R.device))
+    R2 = D @ R @ H
+    t2 = t + 2 * (sc * (n * c).sum(-1))[:, None] * torch.einsum("nij,nj->ni", R[:, :2], n)
+    ok = cnt >= 3
+    twin = ScaledOrthographic(torch.where(ok[:, None, None], R2, R), sc, torch.where(ok[:, None], t2, t))
+    # thickness: spread across the plane over the smaller spread within it
+    thickness = (evals[:, 0].clamp(min=0) / evals[:, 1].clamp(min=torch.finfo(dt).tiny)).sqrt()
+    return twin, torch.where(ok, thickness, torch.full_like(thickness, float("inf")))
+
+
 # --------------------------------------------------------------------------- public
 
 
@@ -502,11 +560,17 @@ def refine_cameras(
     tol: float = 1e-6,
     mask_valid: torch.Tensor | None = None,
     silhouette_robust: float | None = ROBUST_FRACTION,
+    twin_flatness: float = 0.0,
+    twin_margin: float = TWIN_MARGIN,
 ) -> RefineResult:
     """Refine every instance's camera against its keypoints and silhouette, at once.
 
     Minimises the energy of the module docstring for each instance with the shape
     fixed; no instance's energy ever rises (rejected steps keep the camera).
+    With ``twin_flatness > 0``, each instance whose visible keypoints are that flat (the
+    thickness of :func:`planar_twin` below it; 1 takes every instance) is also refined from
+    the planar twin of its camera; the twin's result is kept when its energy is lower than
+    the other's by at least the fraction ``twin_margin`` (``start`` says which was kept).
 
     Args:
         shape: ``(K, 3)`` mean shape (NaN rows are ignored).
@@ -520,27 +584,40 @@ def refine_cameras(
             keypoint term only. Default: maps that are finite everywhere.
         silhouette_robust: robust scale of the silhouette penalty as a fraction of
             each mask's larger side (module docstring); None: squared distance.
+        twin_flatness: see above; 0 (the default): one start (the second start costs as
+            much as the first).
+        twin_margin: see above (:data:`TWIN_MARGIN`).
 
     Returns:
-        :class:`RefineResult`.
+        :class:`RefineResult` (``energy_before``: the given cameras').
     """
     _check(shape, keypoints, visible, dist_maps, len(cameras))
     _check_robust(silhouette_robust)
     if silhouette_weight < 0:
         raise ValueError(f"silhouette_weight must be >= 0, got {silhouette_weight}")
+    if not twin_flatness >= 0 or not 0 <= twin_margin < 1:
+        raise ValueError(f"need twin_flatness >= 0 and 0 <= twin_margin < 1, got {twin_flatness}, {twin_margin}")
     dt = keypoints.dtype
     if dist_maps is None:
         lam = torch.zeros(keypoints.shape[0], dtype=dt, device=keypoints.device)
     else:
         lam = silhouette_weight * _mask_valid(dist_maps, mask_valid).to(dt)
     R, s, t = _as_batched(cameras, dt)
+    if twin_flatness > 0:
+        tw, thickness = planar_twin(shape, ScaledOrthographic(R[:, 0], s[:, 0], t[:, 0]), visible)
+        flat = thickness < twin_flatness  # the others start twice from their own camera (same result)
+        R2 = torch.where(flat[:, None, None], tw.R, R[:, 0])
+        t2 = torch.where(flat[:, None], tw.t, t[:, 0])
+        R, s, t = torch.cat([R, R2[:, None]], 1), torch.cat([s, s], 1), torch.cat([t, t2[:, None]], 1)
     rscale = None
     if dist_maps is not None and silhouette_robust is not None:
         rscale = robust_scales(dist_maps, silhouette_robust)
     R, s, t, E0, E, Ek, Es, it, conv = _optimize(R, s, t, shape, keypoints, visible, dist_maps, lam, max_iters, tol,
                                                  rscale)
-    R, s, t, E, Ek, Es, conv = R[:, 0], s[:, 0], t[:, 0], E[:, 0], Ek[:, 0], Es[:, 0], conv[:, 0]
-    start = torch.zeros(len(cameras), dtype=torch.long, device=keypoints.device)
+    if E.shape[1] == 2:  # the twin must win clearly
+        twin_wins = E[:, 1] < (1.0 - twin_margin) * E[:, 0]
+        E = torch.stack([E[:, 0], torch.where(twin_wins, E[:, 1], torch.full_like(E[:, 1], float("inf")))], 1)
+    R, s, t, E, Ek, Es, conv, start = _pick(R, s, t, E, Ek, Es, conv)
     cams = ScaledOrthographic(R, s, t)
     return RefineResult(cams, E0[:, 0], E, it, conv, Ek, Es, start)
 

@@ -13,10 +13,12 @@ from skimage.draw import polygon2mask
 
 from carvi_torch.cameras import ScaledOrthographic, random_rotations, rotation_about_axis
 from carvi_torch.refine import (
+    TWIN_MARGIN,
     RefineResult,
     _terms,
     estimate_camera,
     mask_start_cameras,
+    planar_twin,
     refine_cameras,
     refine_keypoints_only,
     refinement_energy,
@@ -281,6 +283,105 @@ def test_refinement_fixes_cameras_when_the_true_shape_differs_from_the_mean():
     assert np.median(err_sil) < 0.85 * np.median(err_sfm), (np.median(err_sfm), np.median(err_sil))
     assert np.median(err_sil) < np.median(err_kp)
     assert np.mean(err_sil) < np.mean(err_sfm)
+
+
+# --------------------------------------------------------------------------- planar twin
+
+
+def _monitor(seed, n=80, size=CANVAS):
+    """A monitor-like class: 4 coplanar front corners (the only keypoints, all visible) on a
+    plane off the origin with a tilted normal, and a smaller box behind them (in the mean shape
+    and the masks, never a keypoint)."""
+    g = torch.Generator().manual_seed(seed)
+    front = torch.tensor([[-1.0, -0.6, 0.0], [1.0, -0.6, 0.0], [1.0, 0.6, 0.0], [-1.0, 0.6, 0.0]], dtype=torch.float64)
+    back = torch.tensor([[x, y, -0.7] for x in (-0.5, 0.5) for y in (-0.3, 0.3)], dtype=torch.float64)
+    Q = rotation_about_axis(torch.tensor([[0.3, 1.0, 0.2]], dtype=torch.float64), torch.tensor([0.5],
+                            dtype=torch.float64))[0]
+    S = torch.cat([front, back]) @ Q.T + torch.tensor([0.2, -0.1, 0.3], dtype=torch.float64)
+    # views from the front half-sphere, tilted 20-60 degrees (a frontal view is ambiguous for the silhouette too)
+    axis = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    axis[:, 2] = 0
+    tilt = torch.deg2rad(20 + 40 * torch.rand(n, generator=g, dtype=torch.float64))
+    R = rotation_about_axis(axis, tilt) @ Q.T
+    cams = ScaledOrthographic(R, torch.full((n,), size / 4.0, dtype=torch.float64),
+                              size / 2.0 + torch.zeros(n, 2, dtype=torch.float64))
+    kp = cams.project(S)
+    vis = torch.zeros(n, 8, dtype=torch.bool)
+    vis[:, :4] = True
+    return S, cams, kp, vis, hull_masks(kp, size)
+
+
+def test_planar_twin_projects_the_plane_alike():
+    S, cams, kp, vis, _ = _monitor(0, n=20)
+    twin, thick = planar_twin(S, cams, vis)
+    assert torch.allclose(thick, torch.zeros(20, dtype=torch.float64), atol=1e-6)
+    R = twin.R
+    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(20, 3, 3), atol=1e-10)
+    assert torch.allclose(torch.det(R), torch.ones(20, dtype=torch.float64), atol=1e-10)
+    P0, P1 = cams.project(S), twin.project(S)
+    assert torch.allclose(P1[:, :4], P0[:, :4], atol=1e-9)  # the plane projects alike
+    assert ((P1[:, 4:] - P0[:, 4:]).norm(dim=-1) > 1.0).all()  # the rest tilts the other way
+    assert (rot_err_deg(twin.R, cams.R) > 30).all()  # 2x the 20-60 degree tilt
+    # the twin of the twin is the camera itself
+    back, _ = planar_twin(S, twin, vis)
+    assert torch.allclose(back.R, cams.R, atol=1e-9) and torch.allclose(back.t, cams.t, atol=1e-9)
+    # a non-flat visible set is thick; fewer than 3 usable points: unchanged, infinite thickness
+    vis2 = vis.clone()
+    vis2[:, 4] = True
+    assert (planar_twin(S, cams, vis2)[1] > 0.3).all()
+    vis3 = torch.zeros_like(vis)
+    vis3[:, :2] = True
+    S_nan = S.clone()
+    S_nan[2] = float("nan")
+    vis3[:, 2] = True  # its shape row is NaN: not usable
+    tw3, th3 = planar_twin(S_nan, cams, vis3)
+    assert torch.equal(tw3.R, cams.R) and torch.equal(tw3.t, cams.t) and torch.isinf(th3).all()
+
+
+def test_twin_start_recovers_the_other_branch_of_a_plane():
+    """Started on the wrong branch (keypoints fit exactly), the silhouette refinement alone stays
+    there; with the twin start every instance comes back to its true camera."""
+    S, cams, kp, vis, masks = _monitor(1)
+    S, kp = S.float(), kp.float()
+    cams = ScaledOrthographic(cams.R.float(), cams.s.float(), cams.t.float())
+    wrong, _ = planar_twin(S, cams, vis)
+    dm = distance_to_mask(masks)
+    plain = refine_cameras(S, wrong, kp, vis, dm, max_iters=100)
+    twin = refine_cameras(S, wrong, kp, vis, dm, max_iters=100, twin_flatness=0.1)
+    e_plain, e_twin = rot_err_deg(plain.cameras.R, cams.R), rot_err_deg(twin.cameras.R, cams.R)
+    # where the back box projects inside the front's outline, the two branches have (nearly) the
+    # same silhouette and nothing decides; judge the views whose two silhouettes differ
+    differ = (hull_masks(wrong.project(S)) ^ masks).flatten(1).sum(1) > 20
+    assert differ.float().mean() > 0.3
+    assert np.median(e_plain[differ]) > 20, np.median(e_plain)
+    assert np.median(e_twin[differ]) < 2 and (twin.start[differ] == 1).float().mean() > 0.9, e_twin[differ]
+    assert bool((twin.energy_after <= twin.energy_before).all())
+    assert bool((twin.energy_after <= plain.energy_after).all())
+    # the reported energy is that of the kept camera
+    E = refinement_energy(twin.cameras.M, twin.cameras.t, S, kp, vis, dm, 1.0)
+    assert torch.allclose(E, twin.energy_after, rtol=1e-3, atol=1e-3)
+
+
+def test_twin_start_off_or_unused_changes_nothing():
+    d = make_scene(6, n=40, k=10, deform=0.2)
+    dm = distance_to_mask(d["masks"])
+    sfm = rigid_sfm(d["kp"], d["vis"])
+    base = refine_cameras(sfm.shape, sfm.cameras, d["kp"], d["vis"], dm, max_iters=40)
+    assert (base.start == 0).all()
+    # no instance this flat: the second start repeats the first, and the result is the same
+    none_flat = refine_cameras(sfm.shape, sfm.cameras, d["kp"], d["vis"], dm, max_iters=40, twin_flatness=1e-9)
+    # every instance tried, but the twin must lower the energy by 99.9%: never kept here
+    strict = refine_cameras(sfm.shape, sfm.cameras, d["kp"], d["vis"], dm, max_iters=40, twin_flatness=1.0,
+                            twin_margin=0.999)
+    for r in (none_flat, strict):
+        assert (r.start == 0).all()
+        assert torch.allclose(r.cameras.R, base.cameras.R, atol=1e-6)
+        assert torch.allclose(r.energy_after, base.energy_after, rtol=1e-6)
+    assert 0 < TWIN_MARGIN < 0.1
+    with pytest.raises(ValueError, match="twin"):
+        refine_cameras(sfm.shape, sfm.cameras, d["kp"], d["vis"], dm, twin_flatness=-1.0)
+    with pytest.raises(ValueError, match="twin"):
+        refine_cameras(sfm.shape, sfm.cameras, d["kp"], d["vis"], dm, twin_flatness=0.1, twin_margin=1.0)
 
 
 def test_empty_masks_use_keypoints_only():

@@ -33,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 from carvi_torch.cameras import FLIP_X, ScaledOrthographic, random_rotations  # noqa: E402
 from carvi_torch.io.outputs import write_json  # noqa: E402
+from carvi_torch.config import Config  # noqa: E402
 from carvi_torch.refine import refine_cameras  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
 from carvi_torch.sfm import rigid_sfm  # noqa: E402
@@ -127,7 +128,9 @@ def main(argv=None) -> dict:
     t_sfm = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    ref = refine_cameras(sfm.shape, sfm.cameras, kp, vis, dist, max_iters=args.max_iters)
+    # the pipeline's refinement settings (the planar-twin start included)
+    ref = refine_cameras(sfm.shape, sfm.cameras, kp, vis, dist, max_iters=args.max_iters,
+                         twin_flatness=Config().refine_twin_flatness)
     sync()
     t_ref = time.perf_counter() - t0
 
@@ -138,6 +141,7 @@ def main(argv=None) -> dict:
     result = {
         "config": {"instances": args.n, "with_mirrors": n_all, "keypoints": args.k, "canvas": args.canvas,
                    "seed": args.seed, "device": str(dev), "max_outer": args.max_outer, "inner": args.inner,
+                   "twin_flatness": Config().refine_twin_flatness,
                    "refine_max_iters": args.max_iters},
         "environment": {"torch": torch.__version__, "python": platform.python_version(),
                         "cpu_threads": torch.get_num_threads(), "machine": platform.machine(),
