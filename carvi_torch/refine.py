@@ -493,7 +493,8 @@ def _pick(R, s, t, E, *extra):
     return (R[idx, best], s[idx, best], t[idx, best], E[idx, best], *[x[idx, best] for x in extra], best)
 
 
-def planar_twin(shape: torch.Tensor, cameras: ScaledOrthographic, visible: torch.Tensor) -> ScaledOrthographic:
+def planar_twin(shape: torch.Tensor, cameras: ScaledOrthographic,
+                visible: torch.Tensor) -> tuple[ScaledOrthographic, torch.Tensor]:
     """The other camera under which the plane of an instance's visible keypoints projects the same.
 
     Orthographic views of a plane come in pairs: with ``n`` the unit normal of the plane
