@@ -541,7 +541,8 @@ def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, de
                         tol=cfg.sfm_tol, rigid_keypoints=meta.rigid_keypoints, keypoint_names=meta.keypoint_names,
                         flip_pairs=meta.flip_pairs, left_convention=meta.left_convention)
     rr = refine.refine_cameras(res.shape, res.cameras, both.keypoints, both.visible, distance_to_mask(both.masks),
-                               silhouette_weight=cfg.silhouette_weight, max_iters=cfg.refine_iters)
+                               silhouette_weight=cfg.silhouette_weight, max_iters=cfg.refine_iters,
+                               silhouette_robust=cfg.silhouette_robust or None, twin_flatness=cfg.refine_twin_flatness)
     t_train = time.perf_counter() - t0
     dist = distance_to_mask(te.masks)
     t0 = time.perf_counter()
@@ -621,7 +622,8 @@ def camera_variant(coll, gt: dict, cfg: Config, *, mirrors: bool = True, rigid: 
     rr = refine.refine_cameras(res.shape, res.cameras, both.keypoints, both.visible, distance_to_mask(both.masks),
                                silhouette_weight=cfg.silhouette_weight if silhouette_weight is None
                                else silhouette_weight,
-                               max_iters=cfg.refine_iters if refine_iters is None else refine_iters)
+                               max_iters=cfg.refine_iters if refine_iters is None else refine_iters,
+                               silhouette_robust=cfg.silhouette_robust or None, twin_flatness=cfg.refine_twin_flatness)
     n = len(coll)
     keys = [gt_key(s) for s in coll.sources]
     idx = [i for i, k in enumerate(keys) if k in gt]
