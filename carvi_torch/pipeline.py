@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 from tqdm.auto import tqdm
 
 from . import carve, mesh, refine, select, sfm, sfm_mixture, surrogates
@@ -955,6 +956,11 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
     out.mkdir(parents=True, exist_ok=True)
     from .io.outputs import write_bytes
 
+    changed = _settings_changed(out / "config.yaml", cfg)
+    if changed:
+        _log(f"{out} holds a run made with other settings ("
+             + ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in changed.items())
+             + "); its finished objects are kept as they are (resumed), so pass overwrite=true to redo them", cfg)
     write_bytes(out / "config.yaml", cfg.to_yaml().encode())
     device = cfg.resolve_device()
     torch.manual_seed(cfg.seed)
@@ -967,6 +973,8 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
         writer.close(cancel=True)  # an error or Ctrl-C: stop the writers without waiting for them
         raise
     writer.close()
+    if changed:
+        summary["resumed_from_other_settings"] = {k: list(v) for k, v in changed.items()}
     summary["peak_rss_workers_mb"] = round(_peak_rss_mb(children=True), 1) if writer.workers else 0.0
     summary["writer_workers"] = writer.workers
     write_json(out / "summary.json", summary)
@@ -978,6 +986,26 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
         except Exception as e:  # a picture must never fail the run
             _log(f"preview.png not written: {e}", cfg)
     return summary
+
+
+#: Settings that do not change how an object is reconstructed (a rerun may differ in them freely;
+#: the input files are the user's choice, and resumed objects are matched by annotation id).
+_NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "overwrite", "classes", "stage", "device"}
+
+
+def _settings_changed(previous: Path, cfg: Config) -> dict:
+    """``{key: (old, new)}`` of the settings in which ``cfg`` differs from the run saved at
+    ``previous`` (its ``config.yaml``), when that run's finished objects would be resumed
+    (no ``overwrite``); empty otherwise, or when the file is missing or unreadable."""
+    if cfg.overwrite or cfg.stage != "all" or not previous.is_file():
+        return {}
+    try:
+        old = yaml.safe_load(previous.read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return {}
+    new = yaml.safe_load(cfg.to_yaml())
+    # a key the old file lacks (a setting added since) counts as changed: that run predates it
+    return {k: (old.get(k), v) for k, v in new.items() if k not in _NEUTRAL_SETTINGS and old.get(k) != v}
 
 
 def _run(cfg: Config, out: Path, device: torch.device, writer: "_Writer", t_start: float) -> dict:

@@ -103,6 +103,23 @@ def test_rerun_skips_finished(tiny, tmp_path):
             assert not {"carve", "select"} & set(rep["seconds"]), (cls, rep["seconds"])
     assert complete, "no class was complete after the first run: the check above did not run"
     assert before == {p: p.stat().st_mtime_ns for p in out.glob("*/meshes/*.ply")}
+    assert "resumed_from_other_settings" not in again  # only `preview` differed: neutral
+
+
+def test_rerun_with_other_settings_says_so(tiny, tmp_path, capsys):
+    """Resuming finished objects made under other settings keeps them, and says which settings differ."""
+    import shutil
+
+    out, summary = tiny
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    capsys.readouterr()
+    again = run(_cfg(copy, data=summary["data"], preview=False, refine_iters=7, classes=["car"]))
+    assert again["resumed_from_other_settings"] == {"refine_iters": [Config().override(TINY).refine_iters, 7]}
+    assert again["classes"]["car"]["resumed"] == summary["classes"]["car"]["reconstructed"]
+    assert "other settings (refine_iters" in capsys.readouterr().out
+    fresh = run(_cfg(copy, data=summary["data"], preview=False, refine_iters=7, classes=["car"], overwrite=True))
+    assert "resumed_from_other_settings" not in fresh and fresh["classes"]["car"]["resumed"] == 0
 
 
 def test_same_seed_same_voxels(tiny, tmp_path):
