@@ -100,7 +100,7 @@ class Config:
     silhouette_robust: float = 0.2
     """Robust (Geman-McClure) scale of the distance-to-mask penalty, a fraction of each mask's larger side; 0 = the paper's squared distance."""
     refine_twin_flatness: float = 0.1
-    """Also refine a camera from its planar twin (the other camera under which the plane of its visible keypoints looks the same) when those keypoints are this flat (thickness: smallest over middle spread; 1 = every camera, 0 = off); the twin's result is kept when its energy is at least 2% lower (``refine.TWIN_MARGIN``). Twice the refinement's work when on."""
+    """Also refine a camera from its planar twin (the other camera under which the plane of its visible keypoints looks the same) when those keypoints are this flat (thickness: smallest over middle spread; 1 = every camera, 0 = off); the twin's result is kept when its energy is at least 2% lower (``refine.TWIN_MARGIN``). The flat instances are refined twice."""
 
     # ---- surrogates
     cluster_threshold_deg: float = 15.0

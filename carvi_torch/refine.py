@@ -585,8 +585,8 @@ def refine_cameras(
             keypoint term only. Default: maps that are finite everywhere.
         silhouette_robust: robust scale of the silhouette penalty as a fraction of
             each mask's larger side (module docstring); None: squared distance.
-        twin_flatness: see above; 0 (the default): one start (the second start costs as
-            much as the first).
+        twin_flatness: see above; 0 (the default): one start. The second start is run for
+            the flat instances only.
         twin_margin: see above (:data:`TWIN_MARGIN`).
 
     Returns:
@@ -604,23 +604,32 @@ def refine_cameras(
     else:
         lam = silhouette_weight * _mask_valid(dist_maps, mask_valid).to(dt)
     R, s, t = _as_batched(cameras, dt)
-    if twin_flatness > 0:
-        tw, thickness = planar_twin(shape, ScaledOrthographic(R[:, 0], s[:, 0], t[:, 0]), visible)
-        flat = thickness < twin_flatness  # the others start twice from their own camera (same result)
-        R2 = torch.where(flat[:, None, None], tw.R, R[:, 0])
-        t2 = torch.where(flat[:, None], tw.t, t[:, 0])
-        R, s, t = torch.cat([R, R2[:, None]], 1), torch.cat([s, s], 1), torch.cat([t, t2[:, None]], 1)
     rscale = None
     if dist_maps is not None and silhouette_robust is not None:
         rscale = robust_scales(dist_maps, silhouette_robust)
-    R, s, t, E0, E, Ek, Es, it, conv = _optimize(R, s, t, shape, keypoints, visible, dist_maps, lam, max_iters, tol,
-                                                 rscale)
-    if E.shape[1] == 2:  # the twin must win clearly
-        twin_wins = E[:, 1] < (1.0 - twin_margin) * E[:, 0]
-        E = torch.stack([E[:, 0], torch.where(twin_wins, E[:, 1], torch.full_like(E[:, 1], float("inf")))], 1)
-    R, s, t, E, Ek, Es, conv, start = _pick(R, s, t, E, Ek, Es, conv)
+    out = _optimize(R, s, t, shape, keypoints, visible, dist_maps, lam, max_iters, tol, rscale)
+    R, s, t, E0, E, Ek, Es, conv = (x[:, 0] for x in out[:7] + out[8:])
+    it = out[7]
+    start = torch.zeros(len(cameras), dtype=torch.long, device=keypoints.device)
+    if twin_flatness > 0:
+        # the second start, for the flat instances only (instances are optimised independently)
+        tw, thickness = planar_twin(shape, ScaledOrthographic(cameras.R.to(dt), cameras.s.to(dt), cameras.t.to(dt)),
+                                    visible)
+        idx = (thickness < twin_flatness).nonzero().squeeze(1)
+        if idx.numel():
+            sub = lambda x: None if x is None else x[idx]  # noqa: E731
+            o2 = _optimize(tw.R[idx, None], tw.s[idx, None], tw.t[idx, None], shape, keypoints[idx], visible[idx],
+                           sub(dist_maps), lam[idx], max_iters, tol, sub(rscale))
+            R2, s2, t2, _, E2, Ek2, Es2, conv2 = (x[:, 0] for x in o2[:7] + o2[8:])
+            it = max(it, o2[7])
+            wins = E2 < (1.0 - twin_margin) * E[idx]  # the twin must win clearly
+            win = idx[wins]
+            R, s, t = R.index_put((win,), R2[wins]), s.index_put((win,), s2[wins]), t.index_put((win,), t2[wins])
+            E, Ek, Es = E.index_put((win,), E2[wins]), Ek.index_put((win,), Ek2[wins]), Es.index_put((win,), Es2[wins])
+            conv = conv.index_put((win,), conv2[wins])
+            start = start.index_put((win,), torch.ones_like(win))
     cams = ScaledOrthographic(R, s, t)
-    return RefineResult(cams, E0[:, 0], E, it, conv, Ek, Es, start)
+    return RefineResult(cams, E0, E, it, conv, Ek, Es, start)
 
 
 def mask_start_cameras(shape: torch.Tensor, masks: torch.Tensor | None, keypoints: torch.Tensor,
