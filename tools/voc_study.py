@@ -61,7 +61,7 @@ import trimesh
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from carvi_torch import metrics, refine, sfm  # noqa: E402
+from carvi_torch import metrics, pipeline, refine, sfm  # noqa: E402
 from carvi_torch.cameras import (  # noqa: E402
     ScaledOrthographic,
     azimuth_elevation_roll_from_rotation,
@@ -540,9 +540,7 @@ def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, de
     res = sfm.rigid_sfm(both.keypoints, both.visible, max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner,
                         tol=cfg.sfm_tol, rigid_keypoints=meta.rigid_keypoints, keypoint_names=meta.keypoint_names,
                         flip_pairs=meta.flip_pairs, left_convention=meta.left_convention)
-    rr = refine.refine_cameras(res.shape, res.cameras, both.keypoints, both.visible, distance_to_mask(both.masks),
-                               silhouette_weight=cfg.silhouette_weight, max_iters=cfg.refine_iters,
-                               silhouette_robust=cfg.silhouette_robust or None, twin_flatness=cfg.refine_twin_flatness)
+    rr = pipeline.class_refine(res.shape, res.cameras, both, distance_to_mask(both.masks), cfg)
     t_train = time.perf_counter() - t0
     dist = distance_to_mask(te.masks)
     t0 = time.perf_counter()
@@ -619,11 +617,9 @@ def camera_variant(coll, gt: dict, cfg: Config, *, mirrors: bool = True, rigid: 
                         tol=cfg.sfm_tol, rigid_keypoints=meta.rigid_keypoints if rigid is None else rigid,
                         keypoint_names=meta.keypoint_names, flip_pairs=meta.flip_pairs,
                         left_convention=meta.left_convention)
-    rr = refine.refine_cameras(res.shape, res.cameras, both.keypoints, both.visible, distance_to_mask(both.masks),
-                               silhouette_weight=cfg.silhouette_weight if silhouette_weight is None
-                               else silhouette_weight,
-                               max_iters=cfg.refine_iters if refine_iters is None else refine_iters,
-                               silhouette_robust=cfg.silhouette_robust or None, twin_flatness=cfg.refine_twin_flatness)
+    vcfg = cfg.override({k: v for k, v in (("silhouette_weight", silhouette_weight), ("refine_iters", refine_iters))
+                         if v is not None})
+    rr = pipeline.class_refine(res.shape, res.cameras, both, distance_to_mask(both.masks), vcfg)
     n = len(coll)
     keys = [gt_key(s) for s in coll.sources]
     idx = [i for i, k in enumerate(keys) if k in gt]
