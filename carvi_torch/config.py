@@ -102,6 +102,9 @@ class Config:
     refine_twin_flatness: float = 0.1
     """Also refine a camera from its planar twin (the other camera under which the plane of its visible keypoints looks the same) when those keypoints are this flat (thickness: smallest over middle spread; 1 = every camera, 0 = off); the twin's result is kept when its energy is at least 2% lower (``refine.TWIN_MARGIN``). The flat instances are refined twice."""
 
+    refine_min_support: float = 0.1
+    """Leave out of the refinement (and of the unseen-image path) every mean-shape keypoint shown by fewer than this fraction of the instances refined with that shape (the class, or its shape group): placed by SfM from too few views, it would pull every instance's camera through the silhouette term (``refine.supported_shape``; 0 = use every keypoint)."""
+
     # ---- surrogates
     cluster_threshold_deg: float = 15.0
     """An instance joins a principal direction's cluster within this angle (front or back)."""
@@ -179,6 +182,8 @@ class Config:
             raise ConfigError(f"cluster_threshold_deg must be in (0, 90], got {self.cluster_threshold_deg}")
         if not self.refine_twin_flatness >= 0:
             raise ConfigError(f"refine_twin_flatness must be >= 0 (0 = off), got {self.refine_twin_flatness}")
+        if not 0 <= self.refine_min_support <= 1:
+            raise ConfigError(f"refine_min_support must be in [0, 1] (0 = every keypoint), got {self.refine_min_support}")
         if self.silhouette_robust < 0:
             raise ConfigError(f"silhouette_robust must be >= 0 (0 = squared distance), got {self.silhouette_robust}")
         if not 0 <= self.sfm_group_gain < 1:

@@ -137,7 +137,9 @@ def class_sfm(both: ClassCollection, cfg: Config) -> sfm.SfMResult:
 
 def class_refine(shape: torch.Tensor, cams: ScaledOrthographic, both: ClassCollection, dist: torch.Tensor,
                  cfg: Config) -> refine.RefineResult:
-    """Silhouette refinement of every camera of ``both`` with the mean shape fixed, as configured."""
+    """Silhouette refinement of every camera of ``both`` with the mean shape fixed, as configured
+    (without the keypoints fewer than ``refine_min_support`` of ``both`` show)."""
+    shape = refine.supported_shape(shape, both.visible, cfg.refine_min_support)
     return refine.refine_cameras(shape, cams, both.keypoints, both.visible, dist, silhouette_weight=cfg.silhouette_weight,
                                  max_iters=cfg.refine_iters, silhouette_robust=cfg.silhouette_robust or None,
                                  twin_flatness=cfg.refine_twin_flatness)
@@ -148,6 +150,7 @@ def cameras_from_mean_shape(shape: torch.Tensor, cams: ScaledOrthographic, idx: 
     """``cams`` with the cameras of rows ``idx`` replaced by the unseen-image estimate from ``shape``."""
     if idx.numel() == 0:
         return cams
+    shape = refine.supported_shape(shape, both.visible, cfg.refine_min_support)  # support over all of ``both``
     est, _energy = refine.estimate_camera(shape, both.keypoints[idx], both.visible[idx], dist[idx],
                                           silhouette_robust=cfg.silhouette_robust or None)
     R, s, t = cams.R.clone(), cams.s.clone(), cams.t.clone()

@@ -66,6 +66,9 @@ ROBUST_FRACTION = 0.2
 #: at least this fraction: nearly equal energies mean the data cannot tell the two apart, and
 #: the branch SfM chose (jointly with every other instance) is kept.
 TWIN_MARGIN = 0.02
+#: Default of :func:`supported_shape`: a mean-shape keypoint shown by fewer than this fraction of
+#: the instances being refined is left out of their refinement.
+MIN_SUPPORT = 0.1
 
 __all__ = [
     "RefineResult",
@@ -73,6 +76,8 @@ __all__ = [
     "robust_scales",
     "ROBUST_FRACTION",
     "TWIN_MARGIN",
+    "MIN_SUPPORT",
+    "supported_shape",
     "sample_distance",
     "refinement_energy",
     "refine_cameras",
@@ -544,6 +549,45 @@ def planar_twin(shape: torch.Tensor, cameras: ScaledOrthographic,
     # thickness: spread across the plane over the smaller spread within it
     thickness = (evals[:, 0].clamp(min=0) / evals[:, 1].clamp(min=torch.finfo(dt).tiny)).sqrt()
     return twin, torch.where(ok, thickness, torch.full_like(thickness, float("inf")))
+
+
+def supported_shape(shape: torch.Tensor, visible: torch.Tensor, min_support: float = MIN_SUPPORT) -> torch.Tensor:
+    """The mean shape without the keypoints too few instances show (their rows set to NaN).
+
+    SfM places a keypoint in 3D from the instances that show it; one that a handful of
+    instances show is placed from a handful of views, and can be far off. The keypoint term
+    uses it only for those instances, but the silhouette term pulls it into *every*
+    instance's mask, so one badly placed point can turn every camera (on the PASCAL3D+ boat
+    renders with three shape groups, a ``tail`` seen by 2 of a group's 28 objects sat at mid
+    length, and refinement moved that group from 12 to 53 degrees). Rows whose support -- the
+    fraction of ``visible``'s instances showing the keypoint -- is below ``min_support``
+    become NaN, which the refinement leaves out of both terms.
+
+    Args:
+        shape: ``(K, 3)`` mean shape (NaN rows stay NaN).
+        visible: ``(N, K)`` bool, the instances whose cameras will be refined with the shape
+            (a class, or one shape group of it).
+        min_support: in ``[0, 1]``; 0 keeps every row.
+
+    Returns:
+        ``(K, 3)``, a new tensor; ``shape`` itself when nothing is dropped or ``N == 0``.
+
+    Example:
+        >>> S = torch.arange(9.0).view(3, 3)
+        >>> vis = torch.tensor([[True, True, False]] * 19 + [[True, True, True]])
+        >>> supported_shape(S, vis, 0.1)[:, 0]
+        tensor([0., 3., nan])
+    """
+    if not 0 <= min_support <= 1:
+        raise ValueError(f"min_support must be in [0, 1], got {min_support}")
+    if visible.dim() != 2 or shape.dim() != 2 or visible.shape[1] != shape.shape[0]:
+        raise ValueError(f"need shape (K, 3) and visible (N, K), got {tuple(shape.shape)} and {tuple(visible.shape)}")
+    if visible.shape[0] == 0 or min_support == 0:
+        return shape
+    weak = visible.float().mean(0) < min_support
+    if not bool(weak.any()):
+        return shape
+    return torch.where(weak.to(shape.device)[:, None], torch.full_like(shape, float("nan")), shape)
 
 
 # --------------------------------------------------------------------------- public

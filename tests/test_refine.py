@@ -24,6 +24,7 @@ from carvi_torch.refine import (
     refinement_energy,
     sample_distance,
     sphere_rotations,
+    supported_shape,
 )
 from carvi_torch.sdf import distance_to_mask
 from carvi_torch.sfm import rigid_sfm
@@ -283,6 +284,65 @@ def test_refinement_fixes_cameras_when_the_true_shape_differs_from_the_mean():
     assert np.median(err_sil) < 0.85 * np.median(err_sfm), (np.median(err_sfm), np.median(err_sil))
     assert np.median(err_sil) < np.median(err_kp)
     assert np.mean(err_sil) < np.mean(err_sfm)
+
+
+# --------------------------------------------------------------------------- supported shape
+
+
+def test_supported_shape_known_values():
+    S = torch.arange(12.0).view(4, 3)
+    S[2] = float("nan")
+    vis = torch.zeros(20, 4, dtype=torch.bool)
+    vis[:, 0] = True  # support 1
+    vis[:2, 1] = True  # support 0.1: at the threshold, kept
+    vis[:1, 3] = True  # support 0.05: dropped
+    out = supported_shape(S, vis, 0.1)
+    assert torch.equal(out[[0, 1]], S[[0, 1]])
+    assert bool(torch.isnan(out[[2, 3]]).all())
+    assert out is not S and not bool(torch.isnan(S[3]).any())  # a new tensor; the input is untouched
+    # nothing to drop, no instances, or the rule off: the shape itself
+    assert supported_shape(S, vis, 0.0) is S
+    assert supported_shape(S, vis[:0], 0.5) is S
+    assert supported_shape(S, vis[:, [0, 0, 0, 0]], 0.5) is S
+    # the row count threshold by brute force over thresholds
+    for frac in (0.0, 0.04, 0.05, 0.06, 0.1, 0.11, 1.0):
+        got = torch.isnan(supported_shape(S, vis, frac)[:, 0])
+        want = [bool(torch.isnan(S[k, 0])) or (frac > 0 and vis[:, k].float().mean().item() < frac) for k in range(4)]
+        assert got.tolist() == want, frac
+
+
+@pytest.mark.parametrize("args, match", [
+    ((torch.zeros(3, 3), torch.ones(4, 3, dtype=torch.bool), 1.5), "min_support"),
+    ((torch.zeros(3, 3), torch.ones(4, 3, dtype=torch.bool), -0.1), "min_support"),
+    ((torch.zeros(3, 3), torch.ones(4, 2, dtype=torch.bool), 0.1), "need shape"),
+    ((torch.zeros(3, 3), torch.ones(3, dtype=torch.bool), 0.1), "need shape"),
+])
+def test_supported_shape_bad_arguments(args, match):
+    with pytest.raises(ValueError, match=match):
+        supported_shape(*args)
+
+
+def test_a_keypoint_few_instances_show_does_not_turn_every_camera():
+    """A mean-shape point SfM placed badly from the 2 of 60 instances that show it: refining with
+    it pulls the point into every mask and turns the cameras; without it (support below 10%) the
+    cameras stay at the truth, exactly as if the row were absent."""
+    d = make_scene(22, n=60, k=10, hidden=0.3)
+    dm = distance_to_mask(d["masks"])
+    S = d["S0"].clone()
+    S[3] = S[3] + torch.tensor([0.0, 0.0, 1.5])
+    vis = d["vis"].clone()
+    seen = vis[:, 3].nonzero()[:2, 0]
+    vis[:, 3] = False
+    vis[seen, 3] = True
+    errs = {}
+    for name, shape in (("all", S), ("supported", supported_shape(S, vis, 0.1))):
+        res = refine_cameras(shape, d["cams"], d["kp"], vis, dm, max_iters=100)
+        errs[name] = float(np.median(rot_err_deg(res.cameras.R, d["cams"].R)))
+    absent = S.clone()
+    absent[3] = float("nan")
+    ref = refine_cameras(absent, d["cams"], d["kp"], vis, dm, max_iters=100)
+    assert errs["supported"] == pytest.approx(float(np.median(rot_err_deg(ref.cameras.R, d["cams"].R))), abs=1e-6)
+    assert errs["supported"] < 1.5 and errs["all"] > 2.5 * errs["supported"], errs
 
 
 # --------------------------------------------------------------------------- planar twin

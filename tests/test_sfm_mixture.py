@@ -267,6 +267,38 @@ def test_pipeline_viewpoints_refine_every_group_with_its_own_shape(two_shapes):
     assert viewpoint_report(one["cams"].R[:n].double(), R.double())["geodesic"]["median"] > 3.0
 
 
+def test_pipeline_refines_without_keypoints_few_instances_show():
+    """``refine_min_support``: the pipeline's refinement and unseen-image path drop the mean-shape
+    rows too few of the refined instances show (``refine.supported_shape``), and only those."""
+    from carvi_torch import pipeline, refine
+    from carvi_torch.config import Config
+
+    coll, _R, _truth = _two_shape_class(seed=3)
+    coll.visible[1:, [0, 6]] = False  # a left/right pair only object 0 shows: 2 of 48 rows with the mirrors
+    both = coll.with_mirrors()
+    dist = distance_to_mask(both.masks)
+    res = _sfm(both)
+    assert bool(torch.isfinite(res.shape).all())
+    support = both.visible.float().mean(0)
+    weak = support < 0.1
+    assert weak.nonzero().squeeze(1).tolist() == [0, 6]
+    on = Config().override({"progress": False, "refine_min_support": 0.1})
+    off = on.override({"refine_min_support": 0.0})
+    got = pipeline.class_refine(res.shape, res.cameras, both, dist, on)
+    want = refine.refine_cameras(refine.supported_shape(res.shape, both.visible, 0.1), res.cameras, both.keypoints,
+                                 both.visible, dist, silhouette_weight=on.silhouette_weight, max_iters=on.refine_iters,
+                                 silhouette_robust=on.silhouette_robust, twin_flatness=on.refine_twin_flatness)
+    assert torch.equal(got.cameras.R, want.cameras.R) and torch.equal(got.energy_after, want.energy_after)
+    every = pipeline.class_refine(res.shape, res.cameras, both, dist, off)
+    assert not torch.equal(every.energy_after, got.energy_after)
+    # the unseen-image path takes the support over every row of the collection, not the few it estimates
+    idx = torch.tensor([0, 30])  # row 0 shows the pair: over these rows alone it would be kept
+    u_on = pipeline.cameras_from_mean_shape(res.shape, res.cameras, idx, both, dist, on)
+    est, _ = refine.estimate_camera(refine.supported_shape(res.shape, both.visible, 0.1), both.keypoints[idx],
+                                    both.visible[idx], dist[idx], silhouette_robust=on.silhouette_robust)
+    assert torch.equal(u_on.R[idx], est.R) and torch.equal(u_on.R[1:30], res.cameras.R[1:30])
+
+
 # --------------------------------------------------------------------------- real CAD models
 
 

@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 from carvi_torch.cameras import FLIP_X, ScaledOrthographic, random_rotations  # noqa: E402
 from carvi_torch.io.outputs import write_json  # noqa: E402
 from carvi_torch.config import Config  # noqa: E402
-from carvi_torch.refine import refine_cameras  # noqa: E402
+from carvi_torch.refine import refine_cameras, supported_shape  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
 from carvi_torch.sfm import rigid_sfm  # noqa: E402
 from carvi_torch.viewpoint_metrics import viewpoint_report  # noqa: E402
@@ -128,8 +128,9 @@ def main(argv=None) -> dict:
     t_sfm = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    # the pipeline's refinement settings (the planar-twin start included)
-    ref = refine_cameras(sfm.shape, sfm.cameras, kp, vis, dist, max_iters=args.max_iters,
+    # the pipeline's refinement settings (the planar-twin start and the keypoint support rule included)
+    shape = supported_shape(sfm.shape, vis, Config().refine_min_support)
+    ref = refine_cameras(shape, sfm.cameras, kp, vis, dist, max_iters=args.max_iters,
                          twin_flatness=Config().refine_twin_flatness)
     sync()
     t_ref = time.perf_counter() - t0

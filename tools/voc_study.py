@@ -544,9 +544,11 @@ def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, de
     t_train = time.perf_counter() - t0
     dist = distance_to_mask(te.masks)
     t0 = time.perf_counter()
-    est_kp, _ = refine.estimate_camera(res.shape, te.keypoints, te.visible, dist, silhouette_weight=0.0,
+    # the pipeline's unseen-image path: the keypoints the training instances show often enough
+    shape = refine.supported_shape(res.shape, both.visible, cfg.refine_min_support)
+    est_kp, _ = refine.estimate_camera(shape, te.keypoints, te.visible, dist, silhouette_weight=0.0,
                                        max_iters=cfg.refine_iters)
-    est_sil, _ = refine.estimate_camera(res.shape, te.keypoints, te.visible, dist,
+    est_sil, _ = refine.estimate_camera(shape, te.keypoints, te.visible, dist,
                                         silhouette_weight=cfg.silhouette_weight, max_iters=cfg.refine_iters)
     t_test = time.perf_counter() - t0
 
