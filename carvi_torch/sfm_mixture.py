@@ -27,7 +27,8 @@ The fit, for ``k = 2, 3, ...`` while a split is accepted:
    between an object's rotations under two groups' rotated shapes), the one with the lower
    residual is taken when it cuts the residual of ``k - 1`` groups by more than ``gain``.
    Otherwise the fit stops at ``k - 1``. A candidate with a group that has no usable SfM shape
-   (fewer than 3 keypoints or no camera), or whose shapes share too few keypoints for one frame,
+   (fewer than 3 keypoints, no camera, or only keypoints on one plane: :data:`PLANAR_THICKNESS`),
+   or whose shapes share too few keypoints for one frame,
    is recorded with its problem and never kept: the class falls back to fewer groups, never fails.
 
 Limitations: planar classes (every keypoint on one plane) have a two-fold tilt ambiguity per
@@ -65,7 +66,7 @@ from .cameras import ScaledOrthographic
 from .sfm import SfMResult
 from .viewpoint_metrics import geodesic_errors
 
-__all__ = ["MixtureResult", "fit_mixture_of_shapes", "group_rows", "keypoint_cost", "lifted_residuals",
+__all__ = ["MixtureResult", "fit_mixture_of_shapes", "shape_thickness", "PLANAR_THICKNESS", "group_rows", "keypoint_cost", "lifted_residuals",
            "kmeans_labels", "top_up", "hard_em", "rotation_onto", "group_rotations", "frame_agreement"]
 
 #: ``ClassCollection -> SfMResult``: the rigid SfM of a collection with the run's settings.
@@ -152,6 +153,28 @@ class SplitFailed(ValueError):
     """A candidate split cannot be used (a group without a usable shape); the fit keeps fewer groups."""
 
 
+#: A group whose own SfM shape (the keypoints its members show) is flatter than this is not usable:
+#: coplanar keypoints leave the tilt of every camera of the group undetermined (a planar twin per
+#: view, :func:`carvi_torch.refine.planar_twin`), so its cameras are arbitrary along one rotation.
+PLANAR_THICKNESS = 0.1
+
+
+def shape_thickness(S: torch.Tensor) -> float:
+    """``sqrt(l_min / l_mid)`` of the spread of the finite rows of ``S (K, 3)``: 0 for coplanar
+    points, up to 1; ``0`` for fewer than 3 finite rows.
+
+    Example:
+        >>> shape_thickness(torch.tensor([[0., 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]))
+        0.0
+    """
+    X = S[torch.isfinite(S).all(-1)].double()
+    if X.shape[0] < 3:
+        return 0.0
+    X = X - X.mean(0)
+    ev = torch.linalg.eigvalsh(X.T @ X)
+    return float((ev[0].clamp(min=0) / ev[1].clamp(min=torch.finfo(torch.float64).tiny)).sqrt())
+
+
 def fill_missing_rows(S: torch.Tensor, S_full: torch.Tensor) -> torch.Tensor:
     """``S`` with the rows it lacks (NaN) and ``S_full`` has, taken from ``S_full`` posed onto ``S``.
 
@@ -189,6 +212,10 @@ def _group_sfm(both, labels: torch.Tensor, g: int, n: int, sfm_fn: SfMFn, full_s
     if int(torch.isfinite(res.shape).all(-1).sum()) < 3 or not bool(res.valid.any()):
         raise SplitFailed(f"group {g} ({len(rows) // 2} objects) has no usable SfM shape "
                           f"({int(res.valid.sum())} cameras, {int(torch.isfinite(res.shape).all(-1).sum())} keypoints)")
+    thickness = shape_thickness(res.shape)
+    if thickness < PLANAR_THICKNESS:
+        raise SplitFailed(f"group {g} ({len(rows) // 2} objects) shows only (nearly) coplanar keypoints (thickness "
+                          f"{thickness:.3f} < {PLANAR_THICKNESS}): the tilt of its cameras is undetermined")
     if full_shape is not None:
         res = dataclasses.replace(res, shape=fill_missing_rows(res.shape, full_shape))
     return rows, res
