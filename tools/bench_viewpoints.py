@@ -12,7 +12,13 @@ Timed stages: exact distance maps, rigid SfM, silhouette refinement. Prints a
 table (seconds, instances per second, peak memory) and the viewpoint errors
 against the true cameras, and writes everything to ``--out`` as JSON.
 
-    python tools/bench_viewpoints.py [--n 2000] [--device cpu] [--out docs/benchmarks/viewpoints.json]
+With ``--groups 3`` it also times the fit of a mixture of rigid shapes
+(:func:`carvi_torch.sfm_mixture.fit_mixture_of_shapes`, the pipeline's ``sfm_groups``
+settings) on the same class. The class is one rigid shape, so the fit tries two
+groups (two initialisations), finds no residual cut worth a split and stops: a
+lower bound on what the option costs on a class that does split.
+
+    python tools/bench_viewpoints.py [--n 2000] [--device cpu] [--groups 1] [--out docs/benchmarks/viewpoints.json]
 """
 from __future__ import annotations
 
@@ -37,6 +43,7 @@ from carvi_torch.config import Config  # noqa: E402
 from carvi_torch.refine import refine_cameras, supported_shape  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
 from carvi_torch.sfm import rigid_sfm  # noqa: E402
+from carvi_torch.sfm_mixture import fit_mixture_of_shapes  # noqa: E402
 from carvi_torch.viewpoint_metrics import viewpoint_report  # noqa: E402
 
 
@@ -83,6 +90,19 @@ def make_class(n: int, k: int, canvas: int, seed: int):
     }
 
 
+class _Rows:
+    """The two fields of a collection the mixture fit reads, indexable by rows."""
+
+    def __init__(self, keypoints: torch.Tensor, visible: torch.Tensor):
+        self.keypoints, self.visible = keypoints, visible
+
+    def __len__(self) -> int:
+        return self.keypoints.shape[0]
+
+    def __getitem__(self, rows) -> "_Rows":
+        return _Rows(self.keypoints[rows], self.visible[rows])
+
+
 def peak_rss_mb() -> float:
     """Peak resident set size of this process (MB; Linux reports KB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -98,6 +118,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--max-outer", type=int, default=200)
     ap.add_argument("--inner", type=int, default=10)
     ap.add_argument("--max-iters", type=int, default=100, help="refinement iterations")
+    ap.add_argument("--groups", type=int, default=1,
+                    help="also time the mixture fit with at most this many rigid shapes (default 1: not run)")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "viewpoints.json"))
     args = ap.parse_args(argv)
     dev = torch.device(args.device)
@@ -135,6 +157,19 @@ def main(argv=None) -> dict:
     sync()
     t_ref = time.perf_counter() - t0
 
+    mixture = None
+    if args.groups > 1:
+        cfg = Config()
+        t0 = time.perf_counter()
+        mix = fit_mixture_of_shapes(_Rows(kp, vis), dist,
+                                    lambda sub: rigid_sfm(sub.keypoints, sub.visible, max_outer=args.max_outer,
+                                                          inner=args.inner),
+                                    max_groups=args.groups, min_size=cfg.sfm_group_min, gain=cfg.sfm_group_gain,
+                                    agreement_deg=cfg.sfm_group_agreement_deg, rounds=cfg.sfm_group_rounds,
+                                    seed=args.seed, single=sfm)
+        sync()
+        mixture = {"seconds": time.perf_counter() - t0, "max_groups": args.groups, **mix.summary()}
+
     rep_sfm = viewpoint_report(sfm.cameras.R.cpu(), data["R_true"], valid=sfm.valid.cpu())
     rep_ref = viewpoint_report(ref.cameras.R.cpu(), data["R_true"], valid=sfm.valid.cpu())
     for rep in (rep_sfm, rep_ref):
@@ -163,14 +198,20 @@ def main(argv=None) -> dict:
                        "energy_after_median": float(ref.energy_after.median()),
                        "energy_raised": int((ref.energy_after > ref.energy_before).sum())},
         "viewpoint_error_deg": {"sfm": rep_sfm, "refined": rep_ref},
+        "mixture_fit": mixture,
         "target_seconds_sfm_plus_refinement": 60.0,
     }
     rows = [("distance maps", t_dist), ("rigid SfM", t_sfm), ("refinement", t_ref), ("SfM + refinement", t_sfm + t_ref)]
+    if mixture is not None:
+        rows.append((f"mixture fit (<= {args.groups})", mixture["seconds"]))
     print(f"viewpoints benchmark: {n_all} instances ({args.n} + mirrors), K={args.k}, canvas {args.canvas}, "
           f"device {dev}, {torch.get_num_threads()} CPU threads")
-    print(f"{'stage':<20}{'seconds':>10}{'inst/s':>12}")
+    print(f"{'stage':<22}{'seconds':>10}{'inst/s':>12}")
     for name, sec in rows:
-        print(f"{name:<20}{sec:>10.2f}{n_all / sec:>12.0f}")
+        print(f"{name:<22}{sec:>10.2f}{n_all / sec:>12.0f}")
+    if mixture is not None:
+        print(f"mixture fit: {mixture['groups']} group(s) kept; candidates: "
+              + "; ".join(f"k={c['k']} {c['init']}: cut {c['cut']:.0%}" for c in mixture["candidates"]))
     print(f"peak RSS {result['peak_memory_mb']['process_rss']:.0f} MB"
           + (f", peak CUDA {result['peak_memory_mb']['cuda_allocated']:.0f} MB" if dev.type == "cuda" else ""))
     print(f"SfM: {sfm.iterations} outer iterations, converged={sfm.converged}, reflection "
