@@ -343,7 +343,7 @@ def test_cad_sofas_fit_three_shapes_and_better_viewpoints(shared_data, tmp_path)
 
     One rigid shape cannot fit them (10.6 deg median here; 9.5 at 30 renders, docs/viewpoints.md).
     The pipeline with ``sfm_groups=3`` splits them into three shapes whose frames agree and lands
-    below the 8-degree target (5.8 here, 6.1 at 30 renders); the ground truth only scores."""
+    below the 8-degree target (5.8 here, 5.8 at 30 renders); the ground truth only scores."""
     import json
 
     from carvi_torch import pipeline
