@@ -338,26 +338,33 @@ def test_pipeline_refines_without_keypoints_few_instances_show():
 # --------------------------------------------------------------------------- real CAD models
 
 
+def _cad_class(shared_data, tmp_path, prefix: str, count: int, views: int = 15):
+    """The PASCAL3D+ CAD models named ``prefix*`` (``count`` of them) rendered ``views`` times each:
+    ``(collection, true rotations (n, 3, 3) float64)``."""
+    import json
+
+    from carvi_torch.io.coco import load_coco
+    from carvi_torch.synthetic import load_models
+    from carvi_torch.synthetic.render import render_dataset
+
+    models = [m for m in load_models(shared_data / "pascal3d_cad") if m.name.startswith(prefix)]
+    assert len(models) == count
+    render_dataset(models, tmp_path, views=views, seed=0, progress=False)
+    coll = load_coco(tmp_path / "annotations.json").collections[prefix]
+    gt = json.loads((tmp_path / "gt.json").read_text())["annotations"]
+    return coll, torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids.tolist()], dtype=torch.float64)
+
+
 def test_cad_sofas_fit_three_shapes_and_better_viewpoints(shared_data, tmp_path):
     """The six PASCAL3D+ sofa models (a long low couch, an armchair, ordinary sofas), 15 renders each.
 
     One rigid shape cannot fit them (10.6 deg median here; 9.5 at 30 renders, docs/viewpoints.md).
     The pipeline with ``sfm_groups=3`` splits them into three shapes whose frames agree and lands
     below the 8-degree target (5.8 here, 5.8 at 30 renders); the ground truth only scores."""
-    import json
-
     from carvi_torch import pipeline
     from carvi_torch.config import Config
-    from carvi_torch.io.coco import load_coco
-    from carvi_torch.synthetic import load_models
-    from carvi_torch.synthetic.render import render_dataset
 
-    models = [m for m in load_models(shared_data / "pascal3d_cad") if m.name.startswith("sofa")]
-    assert len(models) == 6
-    render_dataset(models, tmp_path, views=15, seed=0, progress=False)
-    coll = load_coco(tmp_path / "annotations.json").collections["sofa"]
-    gt = json.loads((tmp_path / "gt.json").read_text())["annotations"]
-    R = torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids.tolist()], dtype=torch.float64)
+    coll, R = _cad_class(shared_data, tmp_path, "sofa", 6)
     n = len(coll)
     errors = {}
     for groups in (1, 3):
@@ -379,20 +386,10 @@ def test_cad_monitors_never_split_off_the_flat_fronted_models(shared_data, tmp_p
     cameras' tilt. With ``sfm_groups=3`` every candidate with such a group is recorded as not
     usable, and the kept split (two groups here) gives better cameras than the three-group split
     kept without the rule (refined median 3.4 against 7.9 degrees when measured)."""
-    import json
-
     from carvi_torch import pipeline
     from carvi_torch.config import Config
-    from carvi_torch.io.coco import load_coco
-    from carvi_torch.synthetic import load_models
-    from carvi_torch.synthetic.render import render_dataset
 
-    models = [m for m in load_models(shared_data / "pascal3d_cad") if m.name.startswith("tvmonitor")]
-    assert len(models) == 4
-    render_dataset(models, tmp_path, views=15, seed=0, progress=False)
-    coll = load_coco(tmp_path / "annotations.json").collections["tvmonitor"]
-    gt = json.loads((tmp_path / "gt.json").read_text())["annotations"]
-    R = torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids.tolist()], dtype=torch.float64)
+    coll, R = _cad_class(shared_data, tmp_path, "tvmonitor", 4)
     n = len(coll)
 
     def fit():
