@@ -183,7 +183,8 @@ class Config:
         if not self.refine_twin_flatness >= 0:
             raise ConfigError(f"refine_twin_flatness must be >= 0 (0 = off), got {self.refine_twin_flatness}")
         if not 0 <= self.refine_min_support <= 1:
-            raise ConfigError(f"refine_min_support must be in [0, 1] (0 = every keypoint), got {self.refine_min_support}")
+            raise ConfigError(f"refine_min_support must be in [0, 1] (0 = every keypoint), "
+                              f"got {self.refine_min_support}")
         if self.silhouette_robust < 0:
             raise ConfigError(f"silhouette_robust must be >= 0 (0 = squared distance), got {self.silhouette_robust}")
         if not 0 <= self.sfm_group_gain < 1:

@@ -66,8 +66,9 @@ from .cameras import ScaledOrthographic
 from .sfm import SfMResult
 from .viewpoint_metrics import geodesic_errors
 
-__all__ = ["MixtureResult", "fit_mixture_of_shapes", "shape_thickness", "PLANAR_THICKNESS", "group_rows", "keypoint_cost", "lifted_residuals",
-           "kmeans_labels", "top_up", "hard_em", "rotation_onto", "group_rotations", "frame_agreement"]
+__all__ = ["MixtureResult", "fit_mixture_of_shapes", "shape_thickness", "PLANAR_THICKNESS", "group_rows",
+           "keypoint_cost", "lifted_residuals", "kmeans_labels", "top_up", "hard_em", "rotation_onto",
+           "group_rotations", "frame_agreement"]
 
 #: ``ClassCollection -> SfMResult``: the rigid SfM of a collection with the run's settings.
 SfMFn = Callable[[object], SfMResult]
