@@ -220,6 +220,21 @@ def refine_groups(mix: sfm_mixture.MixtureResult, cams_sfm: ScaledOrthographic, 
     return _per_group(mix, cams_sfm, refine_group), energy
 
 
+def keypoints_left_out(mix: sfm_mixture.MixtureResult, both: ClassCollection, cfg: Config) -> dict[str, list[str]]:
+    """Per shape group (``"0"``, ``"1"``...), the names of the keypoints its refinement leaves out
+    (:func:`carvi_torch.refine.supported_shape` with ``refine_min_support``); groups that keep
+    every keypoint are not listed."""
+    out = {}
+    for g in range(mix.k):
+        rows = None if mix.k == 1 else mix.groups[g][0]
+        S = mix.shape(g)
+        kept = refine.supported_shape(S, _rows(both, rows).visible, cfg.refine_min_support)
+        dropped = (torch.isfinite(S).all(-1) & ~torch.isfinite(kept).all(-1)).nonzero().squeeze(1).tolist()
+        if dropped:
+            out[str(g)] = [both.meta.keypoint_names[k] for k in dropped]
+    return out
+
+
 def unseen_per_group(mix: sfm_mixture.MixtureResult, cams: ScaledOrthographic, missing: torch.Tensor,
                      both: ClassCollection, dist: torch.Tensor, cfg: Config) -> ScaledOrthographic:
     """``cams`` with the rows ``missing (2N,) bool`` estimated from their group's mean shape (unseen-image path)."""
@@ -277,6 +292,12 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
         ok = sfm_valid
         report.info["refine"] = {"median_energy_before": float(energy[0][ok].median()) if ok.any() else None,
                                  "median_energy_after": float(energy[1][ok].median()) if ok.any() else None}
+        left_out = keypoints_left_out(mix, both, cfg)
+        if left_out:
+            report.info["refine"]["keypoints_left_out"] = left_out
+            _log(f"  {coll.name}: refinement leaves out keypoints shown by fewer than "
+                 f"{cfg.refine_min_support:.0%} of the instances: "
+                 + "; ".join(f"group {g}: {', '.join(v)}" for g, v in left_out.items()), cfg)
     # instances without an SfM camera (fewer than 2 visible keypoints): the unseen-image path
     missing = ~has_camera
     if bool(missing.any()):

@@ -333,6 +333,11 @@ def test_pipeline_refines_without_keypoints_few_instances_show():
     est, _ = refine.estimate_camera(refine.supported_shape(res.shape, both.visible, 0.1), both.keypoints[idx],
                                     both.visible[idx], dist[idx], silhouette_robust=on.silhouette_robust)
     assert torch.equal(u_on.R[idx], est.R) and torch.equal(u_on.R[1:30], res.cameras.R[1:30])
+    # the run says which keypoints its refinement left out (summary.json), and only when it does
+    for cfg, want in ((on, {"0": ["left_front_low", "right_front_low"]}), (off, None)):
+        report = pipeline.ClassReport(coll.name, objects=len(coll))
+        pipeline._viewpoints(coll, cfg, report, torch.device("cpu"), None)
+        assert report.info["refine"].get("keypoints_left_out") == want
 
 
 # --------------------------------------------------------------------------- real CAD models
