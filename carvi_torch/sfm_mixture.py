@@ -157,6 +157,8 @@ class SplitFailed(ValueError):
 #: A group whose own SfM shape (the keypoints its members show) is flatter than this is not usable:
 #: coplanar keypoints leave the tilt of every camera of the group undetermined (a planar twin per
 #: view, :func:`carvi_torch.refine.planar_twin`), so its cameras are arbitrary along one rotation.
+#: (The SfM's own ``planar`` flag does not catch it: on such a group the rigid model fits the plane
+#: as well as the planar model does, and a nearly flat rigid shape comes back.)
 PLANAR_THICKNESS = 0.1
 
 
