@@ -82,6 +82,7 @@ __all__ = [
     "refinement_energy",
     "refine_cameras",
     "planar_twin",
+    "keypoint_thickness",
     "refine_keypoints_only",
     "estimate_camera",
     "mask_start_cameras",
@@ -532,13 +533,7 @@ def planar_twin(shape: torch.Tensor, cameras: ScaledOrthographic,
     """
     R, sc, t = cameras.R, cameras.s, cameras.t
     dt = R.dtype
-    X = torch.nan_to_num(shape.to(dt))
-    w = (visible & torch.isfinite(shape).all(-1)).to(dt)  # (N, K)
-    cnt = w.sum(1)
-    c = (w @ X) / cnt.clamp(min=1)[:, None]  # (N, 3)
-    Xc = X[None] - c[:, None]  # (N, K, 3)
-    cov = torch.einsum("nk,nki,nkj->nij", w, Xc, Xc)
-    evals, evecs = torch.linalg.eigh(cov)
+    c, evals, evecs, cnt = _spread(shape.to(dt), visible)
     n = evecs[..., 0]  # (N, 3): the direction of least spread
     H = torch.eye(3, dtype=dt, device=R.device) - 2 * n[:, :, None] * n[:, None, :]
     D = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=dt, device=R.device))
@@ -546,9 +541,39 @@ def planar_twin(shape: torch.Tensor, cameras: ScaledOrthographic,
     t2 = t + 2 * (sc * (n * c).sum(-1))[:, None] * torch.einsum("nij,nj->ni", R[:, :2], n)
     ok = cnt >= 3
     twin = ScaledOrthographic(torch.where(ok[:, None, None], R2, R), sc, torch.where(ok[:, None], t2, t))
-    # thickness: spread across the plane over the smaller spread within it
-    thickness = (evals[:, 0].clamp(min=0) / evals[:, 1].clamp(min=torch.finfo(dt).tiny)).sqrt()
-    return twin, torch.where(ok, thickness, torch.full_like(thickness, float("inf")))
+    return twin, _thickness(evals, ok)
+
+
+def _spread(shape: torch.Tensor, visible: torch.Tensor):
+    """Spread of each instance's visible, finite shape points: ``(centroid (N, 3), eigenvalues
+    (N, 3) ascending, eigenvectors (N, 3, 3) as columns, point count (N,))`` in ``shape``'s dtype."""
+    X = torch.nan_to_num(shape)
+    w = (visible & torch.isfinite(shape).all(-1)).to(shape.dtype)  # (N, K)
+    cnt = w.sum(1)
+    c = (w @ X) / cnt.clamp(min=1)[:, None]  # (N, 3)
+    Xc = X[None] - c[:, None]  # (N, K, 3)
+    evals, evecs = torch.linalg.eigh(torch.einsum("nk,nki,nkj->nij", w, Xc, Xc))
+    return c, evals, evecs, cnt
+
+
+def _thickness(evals: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+    """Spread across the best plane over the smaller spread within it, ``sqrt(l_min / l_mid)``;
+    ``inf`` where ``ok`` is False (fewer than 3 points)."""
+    th = (evals[:, 0].clamp(min=0) / evals[:, 1].clamp(min=torch.finfo(evals.dtype).tiny)).sqrt()
+    return torch.where(ok, th, torch.full_like(th, float("inf")))
+
+
+def keypoint_thickness(shape: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` thickness of each instance's visible shape points, as :func:`planar_twin` measures it:
+    ``sqrt(l_min / l_mid)`` of their spread (0 for coplanar points, up to 1; ``inf`` for fewer than 3).
+
+    Example:
+        >>> S = torch.tensor([[0., 0, 0], [2, 0, 0], [0, 1, 0], [2, 1, 0], [1, 1, 1]])
+        >>> keypoint_thickness(S, torch.tensor([[True] * 4 + [False], [True] * 5])).tolist()[0]
+        0.0
+    """
+    _c, evals, _v, cnt = _spread(shape, visible)
+    return _thickness(evals, cnt >= 3)
 
 
 def supported_shape(shape: torch.Tensor, visible: torch.Tensor, min_support: float = MIN_SUPPORT) -> torch.Tensor:

@@ -163,19 +163,15 @@ PLANAR_THICKNESS = 0.1
 
 
 def shape_thickness(S: torch.Tensor) -> float:
-    """``sqrt(l_min / l_mid)`` of the spread of the finite rows of ``S (K, 3)``: 0 for coplanar
-    points, up to 1; ``0`` for fewer than 3 finite rows.
+    """:func:`carvi_torch.refine.keypoint_thickness` of the finite rows of ``S (K, 3)`` (in float64):
+    0 for coplanar points, up to 1; ``0`` for fewer than 3 finite rows (no shape to speak of).
 
     Example:
         >>> shape_thickness(torch.tensor([[0., 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]))
         0.0
     """
-    X = S[torch.isfinite(S).all(-1)].double()
-    if X.shape[0] < 3:
-        return 0.0
-    X = X - X.mean(0)
-    ev = torch.linalg.eigvalsh(X.T @ X)
-    return float((ev[0].clamp(min=0) / ev[1].clamp(min=torch.finfo(torch.float64).tiny)).sqrt())
+    th = float(refine.keypoint_thickness(S.double(), torch.ones(1, S.shape[0], dtype=torch.bool, device=S.device))[0])
+    return th if math.isfinite(th) else 0.0
 
 
 def fill_missing_rows(S: torch.Tensor, S_full: torch.Tensor) -> torch.Tensor:

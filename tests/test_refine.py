@@ -17,6 +17,7 @@ from carvi_torch.refine import (
     RefineResult,
     _terms,
     estimate_camera,
+    keypoint_thickness,
     mask_start_cameras,
     planar_twin,
     refine_cameras,
@@ -369,6 +370,23 @@ def _monitor(seed, n=80, size=CANVAS):
     vis = torch.zeros(n, 8, dtype=torch.bool)
     vis[:, :4] = True
     return S, cams, kp, vis, hull_masks(kp, size)
+
+
+def test_keypoint_thickness_matches_a_numpy_loop():
+    g = torch.Generator().manual_seed(3)
+    S = torch.randn(7, 3, generator=g, dtype=torch.float64) * torch.tensor([2.0, 1.0, 0.3], dtype=torch.float64)
+    S[5] = float("nan")
+    vis = torch.rand(6, 7, generator=g) > 0.3
+    vis[0] = False
+    vis[0, :2] = True  # two points: no plane
+    got = keypoint_thickness(S, vis)
+    for i in range(6):
+        X = S.numpy()[vis[i].numpy() & np.isfinite(S.numpy()).all(1)]
+        if len(X) < 3:
+            assert math.isinf(float(got[i]))
+            continue
+        ev = np.linalg.eigvalsh(np.cov(X.T, bias=True))
+        assert float(got[i]) == pytest.approx(float(np.sqrt(max(ev[0], 0) / ev[1])), rel=1e-9, abs=1e-6)  # 3 points: 0 up to rounding
 
 
 def test_planar_twin_projects_the_plane_alike():
