@@ -47,6 +47,12 @@ that instance's energy; otherwise the instance keeps its camera and its damping
 shrinks (/3). Stopping rule, per instance: an accepted step lowered the energy by
 less than ``tol`` times its value, or ``mu`` exceeded ``1e8`` (no descent step left),
 or ``max_iters`` iterations.
+
+Working set: a finished camera is no longer stepped. Once at most :data:`COMPACT_FRACTION` of
+the rows the optimiser holds still has an active camera, the finished rows are written back
+and dropped (their data with them), so the batch shrinks geometrically while a few slow
+cameras run on. With no silhouette term every start is its own row. Each camera's arithmetic
+is unchanged, so the results are those of stepping the whole batch to the end.
 """
 from __future__ import annotations
 
@@ -436,24 +442,45 @@ def _optimize(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rsc
         return _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale)
 
 
+#: The optimiser works on a shrinking set of rows: once at most this fraction of the rows it
+#: holds still has an active camera, the others are written back and dropped (module docstring).
+COMPACT_FRACTION = 0.5
+
+
 def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale=None):
     dt = keypoints.dtype
+    n, b = s.shape
     kmask = torch.isfinite(shape).all(-1)
     S = torch.nan_to_num(shape).to(dt)
     kmf = kmask.to(dt)
     wv = (visible & kmask & torch.isfinite(keypoints).all(-1)).to(dt)
     kp = torch.nan_to_num(keypoints)
+    if maps is not None and not bool((lam > 0).any()):
+        maps = None  # no silhouette term anywhere: the maps are never sampled
     if maps is not None:
         maps = _finite_maps(maps).to(dt)
     if rscale is not None:
         rscale = rscale.to(dt)
+    flat = maps is None and b > 1
+    if flat:
+        # without maps every camera is its own row, so finished starts can be dropped one by one
+        R, s, t = R.reshape(n * b, 1, 3, 3), s.reshape(n * b, 1), t.reshape(n * b, 1, 2)
+        kp, wv, lam = kp.repeat_interleave(b, 0), wv.repeat_interleave(b, 0), lam.repeat_interleave(b, 0)
+        rscale = None if rscale is None else rscale.repeat_interleave(b, 0)
     E, E_kp, E_sil, g, H = _terms(R, s, t, S, kmf, kp, wv, maps, lam, rscale)
     E_before = E.clone()
     mu = torch.full_like(E, 1e-3)
     active = torch.isfinite(E)
     converged = torch.zeros_like(active)
+    # the working set: ``rows`` of the full state; ``state`` holds its per-camera tensors
+    full = [R, s, t, E, E_kp, E_sil, g, H, mu, active, converged]
+    rows = None
+    state = list(full)
+    data = [kp, wv, maps, lam, rscale]
     it = 0
     for it in range(1, max_iters + 1):
+        R, s, t, E, E_kp, E_sil, g, H, mu, active, converged = state
+        kp_w, wv_w, maps_w, lam_w, rscale_w = data
         if not bool(active.any()):
             it -= 1
             break
@@ -469,7 +496,7 @@ def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol
         ok = active & (info == 0) & torch.isfinite(delta).all(-1)
         delta = torch.where(ok[..., None], delta, torch.zeros_like(delta))
         Rt, st, tt = _retract(R, s, t, delta)
-        Et, Ekt, Est, gt, Ht = _terms(Rt, st, tt, S, kmf, kp, wv, maps, lam, rscale)
+        Et, Ekt, Est, gt, Ht = _terms(Rt, st, tt, S, kmf, kp_w, wv_w, maps_w, lam_w, rscale_w)
         accept = active & torch.isfinite(Et) & (Et <= E)
         small = accept & ((E - Et) <= tol * E)
         a2, a3, a4 = accept[..., None], accept[..., None, None], accept[..., None, None]
@@ -485,7 +512,30 @@ def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol
         done = small | (mu > 1e8)
         converged = converged | (active & done)
         active = active & ~done
+        state = [R, s, t, E, E_kp, E_sil, g, H, mu, active, converged]
+        live = active.any(-1)
+        n_live = int(live.sum())
+        if 0 < n_live <= COMPACT_FRACTION * live.shape[0]:
+            _write_back(full, rows, state)
+            keep = live.nonzero().squeeze(1)
+            rows = keep if rows is None else rows[keep]
+            state = [x[keep] for x in state]
+            data = [None if x is None else x[keep] for x in data]
+    _write_back(full, rows, state)
+    R, s, t, E, E_kp, E_sil, _g, _H, _mu, _active, converged = full
+    if flat:
+        R, s, t = R.reshape(n, b, 3, 3), s.reshape(n, b), t.reshape(n, b, 2)
+        E_before, E, E_kp, E_sil, converged = (x.reshape(n, b) for x in (E_before, E, E_kp, E_sil, converged))
     return R, s, t, E_before, E, E_kp, E_sil, it, converged
+
+
+def _write_back(full: list, rows, state: list) -> None:
+    """Copy the working set's tensors into the full ones (``rows`` None: the working set is the full set)."""
+    for i, x in enumerate(state):
+        if rows is None:
+            full[i] = x
+        else:
+            full[i] = full[i].index_copy(0, rows, x)
 
 
 def _as_batched(cameras: ScaledOrthographic, dtype):
