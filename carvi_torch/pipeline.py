@@ -126,13 +126,15 @@ def _gt_cameras(gt: dict | None, coll: ClassCollection) -> ScaledOrthographic | 
 # =========================================================================== viewpoints
 
 
-def class_sfm(both: ClassCollection, cfg: Config) -> sfm.SfMResult:
+def class_sfm(both: ClassCollection, cfg: Config, init_shape: torch.Tensor | None = None) -> sfm.SfMResult:
     """Rigid SfM of a collection (originals and mirrored copies) with the config's settings and
-    the category's rigid keypoints, keypoint names, flip pairs and left/right convention."""
+    the category's rigid keypoints, keypoint names, flip pairs and left/right convention
+    (``init_shape``: a start for the factorisation, see :func:`carvi_torch.sfm.rigid_sfm`)."""
     m = both.meta
     return sfm.rigid_sfm(both.keypoints, both.visible, max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner,
                          tol=cfg.sfm_tol, rigid_keypoints=m.rigid_keypoints, keypoint_names=m.keypoint_names,
-                         flip_pairs=m.flip_pairs, left_convention=m.left_convention)
+                         flip_pairs=m.flip_pairs, left_convention=m.left_convention,
+                         init_shape=init_shape)
 
 
 def class_refine(shape: torch.Tensor, cams: ScaledOrthographic, both: ClassCollection, dist: torch.Tensor,
@@ -165,7 +167,7 @@ def _shape_groups(both: ClassCollection, dist: torch.Tensor, res: sfm.SfMResult,
         return sfm_mixture.fit_mixture_of_shapes(both, dist, None, max_groups=1, single=res)
     log = []
     mix = sfm_mixture.fit_mixture_of_shapes(
-        both, dist, lambda sub: class_sfm(sub, cfg), max_groups=cfg.sfm_groups, min_size=cfg.sfm_group_min,
+        both, dist, lambda sub, init_shape=None: class_sfm(sub, cfg, init_shape), max_groups=cfg.sfm_groups, min_size=cfg.sfm_group_min,
         gain=cfg.sfm_group_gain, agreement_deg=cfg.sfm_group_agreement_deg, rounds=cfg.sfm_group_rounds,
         seed=cfg.seed, single=res, log=log.append)
     for line in log:

@@ -67,11 +67,13 @@ from .sfm import SfMResult
 from .viewpoint_metrics import geodesic_errors
 
 __all__ = ["MixtureResult", "fit_mixture_of_shapes", "shape_thickness", "PLANAR_THICKNESS", "group_rows",
-           "keypoint_cost", "lifted_residuals", "kmeans_labels", "top_up", "hard_em", "rotation_onto",
+           "keypoint_fit", "keypoint_cost", "transfer_cameras", "lifted_residuals", "kmeans_labels", "top_up", "hard_em", "rotation_onto",
            "group_rotations", "frame_agreement"]
 
-#: ``ClassCollection -> SfMResult``: the rigid SfM of a collection with the run's settings.
-SfMFn = Callable[[object], SfMResult]
+#: ``(ClassCollection, init_shape=None) -> SfMResult``: the rigid SfM of a collection with the run's
+#: settings; ``init_shape`` (``(K, 3)`` or None) is passed on to :func:`carvi_torch.sfm.rigid_sfm`
+#: (a warm start). Called with the collection alone when there is no start.
+SfMFn = Callable[..., SfMResult]
 
 
 def group_rows(idx: torch.Tensor, n: int) -> torch.Tensor:
@@ -79,26 +81,82 @@ def group_rows(idx: torch.Tensor, n: int) -> torch.Tensor:
     return torch.cat([idx, idx + n])
 
 
-def keypoint_cost(shape: torch.Tensor, both, dist: torch.Tensor, n: int,
-                  n_starts: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
-    """Keypoint-only cameras of every row of ``both`` under ``shape``.
+def keypoint_fit(shape: torch.Tensor, both, dist: torch.Tensor, n: int, *, n_starts: int = 16,
+                 starts: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+                 ) -> tuple[torch.Tensor, ScaledOrthographic]:
+    """Keypoint-only cameras of every row of ``both`` under ``shape``, and what they cost.
 
     Args:
         shape: ``(K, 3)`` a mean shape (NaN rows: keypoints it lacks).
         both: the ``2n`` collection (originals, then mirrored copies).
-        dist: ``(2n, H, W)`` distance maps of its masks (only their size is used: no silhouette term).
+        dist: ``(2n, H, W)`` distance maps of its masks (only the starts' mask centres use them: no
+            silhouette term).
         n: number of originals.
+        n_starts: rotated starts of the search over the sphere
+            (:func:`carvi_torch.refine.estimate_camera`), when ``starts`` is None.
+        starts: ``R (2n, B, 3, 3)``, ``s (2n, B)``, ``t (2n, B, 2)``: refine these starts instead of
+            searching the sphere (a warm start); every row keeps its best.
 
     Returns:
-        ``cost (n,)`` squared pixel residual of every object plus its mirrored copy, and
-        ``R (n, 3, 3)`` the objects' rotations.
+        ``cost (n,)`` squared pixel residual of every object plus its mirrored copy, and the ``2n``
+        cameras.
     """
-    cams, _ = refine.estimate_camera(shape, both.keypoints, both.visible, dist, silhouette_weight=0.0,
-                                     n_starts=n_starts)
+    if starts is None:
+        cams, _ = refine.estimate_camera(shape, both.keypoints, both.visible, dist, silhouette_weight=0.0,
+                                         n_starts=n_starts)
+    else:
+        R, s, t = starts
+        lam = torch.zeros(len(both), dtype=both.keypoints.dtype, device=both.keypoints.device)
+        out = refine._optimize(R, s, t, shape, both.keypoints, both.visible, None, lam, 100, 1e-6)
+        Rb, sb, tb, _E, _best = refine._pick(out[0], out[1], out[2], out[4])
+        cams = ScaledOrthographic(Rb, sb, tb)
     P = cams.project(torch.nan_to_num(shape).to(cams.R))
     vis = both.visible & torch.isfinite(shape).all(-1)[None] & torch.isfinite(both.keypoints).all(-1)
     r = ((P - torch.nan_to_num(both.keypoints)).pow(2).sum(-1) * vis).sum(-1)
-    return r[:n] + r[n:], cams.R[:n]
+    return r[:n] + r[n:], cams
+
+
+def keypoint_cost(shape: torch.Tensor, both, dist: torch.Tensor, n: int,
+                  n_starts: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`keypoint_fit` from a search over the sphere: ``cost (n,)`` and the objects'
+    rotations ``R (n, 3, 3)``."""
+    cost, cams = keypoint_fit(shape, both, dist, n, n_starts=n_starts)
+    return cost, cams.R[:n]
+
+
+def transfer_cameras(cams: ScaledOrthographic, S_from: torch.Tensor, S_to: torch.Tensor) -> ScaledOrthographic:
+    """Cameras that show ``S_to`` as ``cams`` show ``S_from``, once the two shapes are aligned.
+
+    With ``(S_to - m_to) Q ~ c (S_from - m_from)`` (:func:`rotation_onto`, least-squares ``c``,
+    centroids ``m`` over the rows finite in both), a point ``x`` of ``S_to`` stands for
+    ``Q^T (x - m_to) / c + m_from`` of ``S_from``, so ``R' = R Q^T``, ``s' = s / c`` and
+    ``t' = t + s R[:2] m_from - s' R'[:2] m_to``. Equal shapes give the cameras back; a rotated
+    copy ``S_to = S_from Q0`` gives ``R Q0``. Used to carry cameras from one shape to the next
+    (a warm start); the result is only as good as the two shapes are alike.
+
+    Args:
+        cams: N cameras; S_from, S_to: ``(K, 3)``, NaN rows ignored.
+
+    Raises:
+        ValueError: the shapes share fewer than 3 keypoints, or only collinear ones.
+
+    Example:
+        >>> S = torch.tensor([[0., 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3]])
+        >>> c = ScaledOrthographic(torch.eye(3)[None], torch.ones(1), torch.zeros(1, 2))
+        >>> d = transfer_cameras(c, S, 2 * S + 1)
+        >>> torch.allclose(d.project(2 * S + 1), c.project(S), atol=1e-5)
+        True
+    """
+    Q = rotation_onto(S_to, S_from).to(cams.R)
+    ok = torch.isfinite(S_to).all(-1) & torch.isfinite(S_from).all(-1)
+    A, B = S_to[ok].to(cams.R), S_from[ok].to(cams.R)
+    m_to, m_from = A.mean(0), B.mean(0)
+    A, B = A - m_to, B - m_from
+    c = ((A @ Q) * B).sum() / (B * B).sum()
+    R = cams.R @ Q.T
+    s = cams.s / c
+    t = cams.t + cams.s[..., None] * (cams.R[..., :2, :] @ m_from) - s[..., None] * (R[..., :2, :] @ m_to)
+    return ScaledOrthographic(R, s, t)
 
 
 def lifted_residuals(res: SfMResult, keypoints: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
@@ -204,10 +262,12 @@ def fill_missing_rows(S: torch.Tensor, S_full: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def _group_sfm(both, labels: torch.Tensor, g: int, n: int, sfm_fn: SfMFn, full_shape: torch.Tensor | None):
-    """``(rows, SfMResult)`` of group ``g``, its shape completed from ``full_shape``; raises :class:`SplitFailed`."""
+def _group_sfm(both, labels: torch.Tensor, g: int, n: int, sfm_fn: SfMFn, full_shape: torch.Tensor | None,
+               init: torch.Tensor | None = None):
+    """``(rows, SfMResult)`` of group ``g`` (its SfM started from ``init`` when given), its shape
+    completed from ``full_shape``; raises :class:`SplitFailed`."""
     rows = group_rows((labels == g).nonzero().squeeze(1), n)
-    res = sfm_fn(both[rows])
+    res = sfm_fn(both[rows]) if init is None else sfm_fn(both[rows], init_shape=init)
     if int(torch.isfinite(res.shape).all(-1).sum()) < 3 or not bool(res.valid.any()):
         raise SplitFailed(f"group {g} ({len(rows) // 2} objects) has no usable SfM shape "
                           f"({int(res.valid.sum())} cameras, {int(torch.isfinite(res.shape).all(-1).sum())} keypoints)")
@@ -220,13 +280,56 @@ def _group_sfm(both, labels: torch.Tensor, g: int, n: int, sfm_fn: SfMFn, full_s
     return rows, res
 
 
+def _warm_starts(groups, labels: torch.Tensor, prev, prior) -> list:
+    """Per group, the starts of its keypoint fit: ``(R, s, t)`` batched ``(2n, B, ...)``, or None
+    (search the sphere: the shapes could not be aligned).
+
+    ``prev``: last round's ``(shapes, cameras)`` per group; starts under group ``g`` are its own last
+    cameras and every row's camera under its assigned group, both carried onto the new shape.
+    First round (``prev`` None): ``prior = (shape, cameras)`` carried onto every group's shape, and
+    the group's SfM cameras for its own rows.
+    """
+    lab2 = labels.repeat(2)
+    out = []
+    for g, (rows, res) in enumerate(groups):
+        try:
+            if prev is None:
+                first = transfer_cameras(prior[1], prior[0], res.shape)
+                second = ScaledOrthographic(first.R.clone(), first.s.clone(), first.t.clone())
+                c = res.cameras
+                use = res.valid & torch.isfinite(c.R).flatten(1).all(-1) & torch.isfinite(c.t).all(-1) & (c.s > 0)
+                r = rows[use]
+                second.R[r], second.s[r], second.t[r] = c.R[use].to(first.R), c.s[use].to(first.s), c.t[use].to(first.t)
+            else:
+                shapes, cams = prev
+                moved = [transfer_cameras(cams[h], shapes[h], res.shape) for h in range(len(groups))]
+                first = moved[g]
+                pick = lambda x: torch.stack(x)[lab2, torch.arange(len(lab2), device=lab2.device)]  # noqa: E731
+                second = ScaledOrthographic(pick([m.R for m in moved]), pick([m.s for m in moved]),
+                                            pick([m.t for m in moved]))
+        except ValueError:
+            out.append(None)
+            continue
+        out.append((torch.stack([first.R, second.R], 1), torch.stack([first.s, second.s], 1),
+                    torch.stack([first.t, second.t], 1)))
+    return out
+
+
 def hard_em(both, n: int, dist: torch.Tensor, sfm_fn: SfMFn, labels: torch.Tensor, k: int, min_size: int,
-            rounds: int = 6, full_shape: torch.Tensor | None = None):
+            rounds: int = 6, full_shape: torch.Tensor | None = None,
+            warm: tuple[torch.Tensor, ScaledOrthographic] | None = None):
     """Hard EM over ``k`` rigid shapes from ``labels (n,)``.
 
     Args:
         full_shape: the whole class's SfM shape; rows a group's shape lacks are filled from it
             (:func:`fill_missing_rows`), so every group is scored on the same keypoints.
+        warm: ``(shape, cameras)``: every row's keypoint-only camera under ``shape`` (the ``2n``
+            rows; e.g. the one-shape fit). Given, the keypoint fits are warm-started
+            (:func:`transfer_cameras`): the first round's from these cameras and the group's
+            SfM cameras, later rounds' from the last round's cameras (two starts per row and
+            group instead of the search over the sphere); and every group's SfM starts from
+            ``full_shape`` (when given), later from the group's last shape (``sfm_fn``'s
+            ``init_shape``). ``None``: every round searches the sphere and every SfM starts cold.
 
     Returns:
         ``(labels, groups, cost, rotations, history)``: final labels; per group ``(rows, SfMResult)``
@@ -239,15 +342,22 @@ def hard_em(both, n: int, dist: torch.Tensor, sfm_fn: SfMFn, labels: torch.Tenso
     ok_kp = torch.isfinite(both.keypoints).all(-1)
     nvis = ((both.visible & ok_kp)[:n].sum(-1) + (both.visible & ok_kp)[n:].sum(-1)).sum().clamp(min=1)
     history = []
+    prev = None
     for it in range(rounds + 1):
-        groups = [_group_sfm(both, labels, g, n, sfm_fn, full_shape) for g in range(k)]
-        fits = [keypoint_cost(res.shape, both, dist, n) for _rows, res in groups]
-        cost = torch.stack([c for c, _R in fits], 1)
+        if warm is None:
+            inits = [None] * k
+        else:  # the first round's SfM starts cold, later ones from the group's last shape
+            inits = [None] * k if prev is None else prev[0]
+        groups = [_group_sfm(both, labels, g, n, sfm_fn, full_shape, inits[g]) for g in range(k)]
+        starts = [None] * k if warm is None else _warm_starts(groups, labels, prev, warm)
+        fits = [keypoint_fit(res.shape, both, dist, n, starts=st) for (_rows, res), st in zip(groups, starts)]
+        prev = ([res.shape for _rows, res in groups], [c for _cost, c in fits])
+        cost = torch.stack([c for c, _cams in fits], 1)
         history.append({"round": it, "sizes": torch.bincount(labels, minlength=k).tolist(),
                         "rms_px": float(cost.gather(1, labels[:, None]).sum() / nvis) ** 0.5})
         new = top_up(cost.argmin(1), cost, k, min_size)
         if it == rounds or torch.equal(new, labels):
-            return labels, groups, cost, [R for _c, R in fits], history
+            return labels, groups, cost, [cams.R[:n] for _c, cams in fits], history
         labels = new
 
 
@@ -371,7 +481,8 @@ class MixtureResult:
 
 def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups: int = 3, min_size: int = 15,
                           gain: float = 0.3, agreement_deg: float = 60.0, rounds: int = 6, seed: int = 0,
-                          single: SfMResult | None = None, log: Callable[[str], None] | None = None) -> MixtureResult:
+                          single: SfMResult | None = None, log: Callable[[str], None] | None = None,
+                          warm_start: bool = True) -> MixtureResult:
     """Fit at most ``max_groups`` rigid shapes to a class (see the module docstring for the rule).
 
     Args:
@@ -386,6 +497,8 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
         seed: seed of the k-means starts.
         single: the one-shape SfM of ``both`` when already computed.
         log: called with a line per candidate.
+        warm_start: the EM's keypoint fits start from the one-shape fit and then from the last
+            round (:func:`hard_em`'s ``warm``); False: every fit searches the sphere (slower).
 
     Returns:
         :class:`MixtureResult`.
@@ -403,7 +516,7 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
     if n < 2 * min_size:
         best.note = f"one shape: {n} objects, fewer than twice the smallest group ({min_size})"
         return best
-    cost1, _R1 = keypoint_cost(res1.shape, both, dist, n)
+    cost1, cams1 = keypoint_fit(res1.shape, both, dist, n)
     seen = both.visible & torch.isfinite(both.keypoints).all(-1)
     nvis_obj = (seen[:n].sum(-1) + seen[n:].sum(-1)).clamp(min=1)
     lifted = lifted_residuals(res1, both.keypoints, both.visible)
@@ -422,7 +535,8 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
                    "agreement_deg": float("inf"), "eligible": False, "kept": False}
             try:
                 lab, groups, cost, rotations, _hist = hard_em(both, n, dist, sfm_fn, lab0, k, min_size, rounds,
-                                                              full_shape=res1.shape)
+                                                              full_shape=res1.shape,
+                                                              warm=(res1.shape, cams1) if warm_start else None)
             except SplitFailed as e:
                 row["problem"] = str(e)
                 best.candidates.append(row)

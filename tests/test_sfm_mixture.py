@@ -102,6 +102,87 @@ def test_fill_missing_rows_poses_the_full_shape_onto_the_group_shape():
         mix.fill_missing_rows(S, S_full)
 
 
+def _random_cameras(n, seed):
+    from carvi_torch.cameras import ScaledOrthographic, random_rotations
+
+    g = torch.Generator().manual_seed(seed)
+    return ScaledOrthographic(random_rotations(n, g), 10 + 5 * torch.rand(n, generator=g),
+                              60 + 5 * torch.randn(n, 2, generator=g))
+
+
+def test_transfer_cameras_known_values():
+    """Equal shapes give the cameras back; a similar copy ``c S Q0 + m`` is projected exactly as
+    the original (every point); a rotated copy gives ``R Q0``. Independent: scipy's rotation."""
+    g = torch.Generator().manual_seed(3)
+    S = torch.randn(10, 3, generator=g, dtype=torch.float64)
+    cams = _random_cameras(7, 0)
+    cams = type(cams)(cams.R.double(), cams.s.double(), cams.t.double())
+    same = mix.transfer_cameras(cams, S, S)
+    assert torch.allclose(same.R, cams.R, atol=1e-10) and torch.allclose(same.s, cams.s)
+    assert torch.allclose(same.t, cams.t, atol=1e-9)
+    Q0 = torch.as_tensor(Rotation.from_rotvec([0.3, -1.1, 0.7]).as_matrix())
+    S2 = 2.5 * S @ Q0 + torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    moved = mix.transfer_cameras(cams, S, S2)
+    assert torch.allclose(moved.project(S2), cams.project(S), atol=1e-9)
+    assert torch.allclose(moved.R, cams.R @ Q0, atol=1e-10) and torch.allclose(moved.s, cams.s / 2.5)
+    # NaN rows are ignored for the alignment; they stay NaN when projected
+    S3 = S2.clone()
+    S3[[1, 4]] = float("nan")
+    part = mix.transfer_cameras(cams, S, S3)
+    assert torch.allclose(part.R, moved.R, atol=1e-9) and torch.allclose(part.t, moved.t, atol=1e-8)
+
+
+def test_transfer_cameras_needs_three_shared_points():
+    S = torch.randn(5, 3)
+    T = S.clone()
+    T[2:] = float("nan")
+    with pytest.raises(ValueError, match="share 2"):
+        mix.transfer_cameras(_random_cameras(3, 1), S, T)
+
+
+def test_warm_and_cold_em_agree_on_two_shapes(two_shapes):
+    """The warm-started EM (keypoint fits from the last round's cameras, SfM from the group's last
+    shape) ends where the EM that searches the sphere and starts every SfM cold ends: same labels,
+    keypoint costs within 2% per object, rotations within 0.5 degrees once the groups' frames
+    (each SfM's own choice) are aligned."""
+    coll, both, dist, R, truth, fitted = two_shapes
+    n = len(coll)
+    single = _sfm(both)
+    cost1, cams1 = mix.keypoint_fit(single.shape, both, dist, n)
+    start = truth.clone()
+    start[:3] = 1 - start[:3]  # three objects start in the wrong group
+    runs = {}
+    for warm in (None, (single.shape, cams1)):
+        runs[warm is not None] = mix.hard_em(both, n, dist, _sfm, start, 2, 6, rounds=6, full_shape=single.shape,
+                                             warm=warm)
+    (lab_c, _g, cost_c, rot_c, hist_c), (lab_w, _gw, cost_w, rot_w, hist_w) = runs[False], runs[True]
+    assert torch.equal(lab_c, truth) and torch.equal(lab_w, truth)
+    assert torch.allclose(cost_w, cost_c, rtol=0.02, atol=0.05), (cost_w - cost_c).abs().max()
+    from carvi_torch.viewpoint_metrics import geodesic_errors
+
+    for Rc, Rw in zip(rot_c, rot_w):  # a group's frame is SfM's choice: the two differ by one rotation
+        D = Rw.double().transpose(1, 2) @ Rc.double()
+        assert float(geodesic_errors(D, D[:1].expand_as(D)).max()) < 0.5
+    assert len(hist_w) >= 2  # the warm path ran at least one warm round
+
+
+def test_warm_sfm_from_a_rotated_solution_matches_the_cold_one():
+    """``rigid_sfm(init_shape=...)`` from the cold solution turned and scaled arbitrarily ends at
+    the same fit: the same residuals and the same cameras up to the frame's rotation."""
+    coll, _R, _truth = _two_shape_class(sizes=(20, 0), noise=0.3)
+    cold = _sfm(coll)
+    Q0 = torch.as_tensor(Rotation.from_rotvec([0.2, 0.9, -0.4]).as_matrix(), dtype=torch.float32)
+    warm = _sfm(coll, init_shape=3.0 * cold.shape @ Q0 + 1.0)
+    assert warm.iterations <= sfm.WARM_OUTER < cold.iterations
+    assert torch.allclose(warm.residual, cold.residual, rtol=1e-3, atol=1e-3)
+    Q = mix.rotation_onto(warm.shape, cold.shape)  # the two frames differ by a rotation at most
+    from carvi_torch.viewpoint_metrics import geodesic_errors
+
+    assert float(geodesic_errors(warm.cameras.R.double() @ Q.double(), cold.cameras.R.double()).max()) < 0.05
+    with pytest.raises(ValueError, match="init_shape"):
+        _sfm(coll, init_shape=torch.zeros(5, 3))
+
+
 # --------------------------------------------------------------------------- the whole fit
 
 
@@ -142,10 +223,10 @@ def _two_shape_class(sizes=(12, 12), seed=0, noise=0.2, same_shape=False):
     return coll, cam.R, truth
 
 
-def _sfm(sub):
+def _sfm(sub, init_shape=None):
     m = sub.meta
     return sfm.rigid_sfm(sub.keypoints, sub.visible, keypoint_names=m.keypoint_names, flip_pairs=m.flip_pairs,
-                         left_convention="object")
+                         left_convention="object", init_shape=init_shape)
 
 
 def _class_cameras(res: mix.MixtureResult) -> torch.Tensor:

@@ -16,9 +16,10 @@ With ``--groups 3`` it also times the fit of a mixture of rigid shapes
 (:func:`carvi_torch.sfm_mixture.fit_mixture_of_shapes`, the pipeline's ``sfm_groups``
 settings) on the same class. The class is one rigid shape, so the fit tries two
 groups (two initialisations), finds no residual cut worth a split and stops: a
-lower bound on what the option costs on a class that does split.
+lower bound on what the option costs on a class that does split. ``--cold-too`` also times
+the fit without its warm starts, in the same run.
 
-    python tools/bench_viewpoints.py [--n 2000] [--device cpu] [--groups 1] [--out docs/benchmarks/viewpoints.json]
+    python tools/bench_viewpoints.py [--n 2000] [--device cpu] [--groups 1] [--cold-too] [--out docs/benchmarks/viewpoints.json]
 """
 from __future__ import annotations
 
@@ -120,6 +121,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--max-iters", type=int, default=100, help="refinement iterations")
     ap.add_argument("--groups", type=int, default=1,
                     help="also time the mixture fit with at most this many rigid shapes (default 1: not run)")
+    ap.add_argument("--cold-too", action="store_true",
+                    help="with --groups: also time the fit without warm starts (every keypoint fit searches the "
+                         "sphere, every SfM starts cold), in the same run")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "viewpoints.json"))
     args = ap.parse_args(argv)
     dev = torch.device(args.device)
@@ -160,15 +164,21 @@ def main(argv=None) -> dict:
     mixture = None
     if args.groups > 1:
         cfg = Config()
-        t0 = time.perf_counter()
-        mix = fit_mixture_of_shapes(_Rows(kp, vis), dist,
-                                    lambda sub: rigid_sfm(sub.keypoints, sub.visible, max_outer=args.max_outer,
-                                                          inner=args.inner),
-                                    max_groups=args.groups, min_size=cfg.sfm_group_min, gain=cfg.sfm_group_gain,
-                                    agreement_deg=cfg.sfm_group_agreement_deg, rounds=cfg.sfm_group_rounds,
-                                    seed=args.seed, single=sfm)
-        sync()
-        mixture = {"seconds": time.perf_counter() - t0, "max_groups": args.groups, **mix.summary()}
+        mixture = {}
+        for warm in (True, False) if args.cold_too else (True,):
+            t0 = time.perf_counter()
+            mix = fit_mixture_of_shapes(_Rows(kp, vis), dist,
+                                        lambda sub, init_shape=None: rigid_sfm(sub.keypoints, sub.visible,
+                                                                               max_outer=args.max_outer,
+                                                                               inner=args.inner, init_shape=init_shape),
+                                        max_groups=args.groups, min_size=cfg.sfm_group_min, gain=cfg.sfm_group_gain,
+                                        agreement_deg=cfg.sfm_group_agreement_deg, rounds=cfg.sfm_group_rounds,
+                                        seed=args.seed, single=sfm, warm_start=warm)
+            sync()
+            mixture["warm" if warm else "cold"] = {"seconds": time.perf_counter() - t0, "max_groups": args.groups,
+                                                   **mix.summary()}
+        if "cold" in mixture:
+            mixture["cold_over_warm"] = mixture["cold"]["seconds"] / mixture["warm"]["seconds"]
 
     rep_sfm = viewpoint_report(sfm.cameras.R.cpu(), data["R_true"], valid=sfm.valid.cpu())
     rep_ref = viewpoint_report(ref.cameras.R.cpu(), data["R_true"], valid=sfm.valid.cpu())
@@ -203,15 +213,20 @@ def main(argv=None) -> dict:
     }
     rows = [("distance maps", t_dist), ("rigid SfM", t_sfm), ("refinement", t_ref), ("SfM + refinement", t_sfm + t_ref)]
     if mixture is not None:
-        rows.append((f"mixture fit (<= {args.groups})", mixture["seconds"]))
+        rows.append((f"mixture fit (<= {args.groups})", mixture["warm"]["seconds"]))
+        if "cold" in mixture:
+            rows.append(("  without warm starts", mixture["cold"]["seconds"]))
     print(f"viewpoints benchmark: {n_all} instances ({args.n} + mirrors), K={args.k}, canvas {args.canvas}, "
           f"device {dev}, {torch.get_num_threads()} CPU threads")
     print(f"{'stage':<22}{'seconds':>10}{'inst/s':>12}")
     for name, sec in rows:
         print(f"{name:<22}{sec:>10.2f}{n_all / sec:>12.0f}")
-    if mixture is not None:
-        print(f"mixture fit: {mixture['groups']} group(s) kept; candidates: "
-              + "; ".join(f"k={c['k']} {c['init']}: cut {c['cut']:.0%}" for c in mixture["candidates"]))
+    for name, m in (mixture or {}).items():
+        if isinstance(m, dict):
+            print(f"mixture fit ({name}): {m['groups']} group(s) kept; candidates: "
+                  + "; ".join(f"k={c['k']} {c['init']}: cut {c['cut']:.0%}" for c in m["candidates"]))
+    if mixture and "cold" in mixture:
+        print(f"warm starts: {mixture['cold_over_warm']:.1f}x faster than without")
     print(f"peak RSS {result['peak_memory_mb']['process_rss']:.0f} MB"
           + (f", peak CUDA {result['peak_memory_mb']['cuda_allocated']:.0f} MB" if dev.type == "cuda" else ""))
     print(f"SfM: {sfm.iterations} outer iterations, converged={sfm.converged}, reflection "

@@ -15,7 +15,9 @@ by hard EM (k-subspaces), without any ground truth:
    keypoint-only camera of every object under every group's mean shape
    (:func:`carvi_torch.refine.estimate_camera`, ``silhouette_weight=0``); move every object to the
    group with the lowest squared pixel residual (object + mirrored copy). Groups below
-   ``--min-group`` objects take the objects that cost least to move.
+   ``--min-group`` objects take the objects that cost least to move. As in the pipeline, the
+   keypoint fits start from the one-shape fit and then from the last round, and the groups'
+   SfM from their last shape (the warm starts of :func:`carvi_torch.sfm_mixture.hard_em`).
 4. One class frame: every group's mean shape is rotated onto group 0's (a proper rotation fitted
    on their shared keypoints, centred and scaled: ``scipy.spatial.transform.Rotation.align_vectors``)
    and its cameras with it.
@@ -53,7 +55,7 @@ from carvi_torch.io import coco  # noqa: E402
 from carvi_torch.io.outputs import write_json  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
 from carvi_torch.sfm_mixture import (MixtureResult, SplitFailed, frame_agreement, group_rotations,  # noqa: E402
-                                     group_rows, hard_em, keypoint_cost, kmeans_labels, lifted_residuals,
+                                     group_rows, hard_em, keypoint_fit, kmeans_labels, lifted_residuals,
                                      top_up)
 from carvi_torch.viewpoint_metrics import summarize, viewpoint_report  # noqa: E402
 
@@ -66,10 +68,11 @@ def group_sfm(both, idx: torch.Tensor, n: int, cfg):
     return rows, pipeline.class_sfm(both[rows], cfg)
 
 
-def fit_mixture(both, n, dist, cfg, labels, k, min_size, full_shape, rounds=6):
-    """Hard EM from ``labels (n,)`` with the pipeline's SfM (:func:`carvi_torch.sfm_mixture.hard_em`)."""
-    return hard_em(both, n, dist, lambda sub: pipeline.class_sfm(sub, cfg), labels, k, min_size, rounds,
-                   full_shape=full_shape)
+def fit_mixture(both, n, dist, cfg, labels, k, min_size, full_shape, warm, rounds=6):
+    """Hard EM from ``labels (n,)`` with the pipeline's SfM and warm starts
+    (:func:`carvi_torch.sfm_mixture.hard_em`)."""
+    return hard_em(both, n, dist, lambda sub, init_shape=None: pipeline.class_sfm(sub, cfg, init_shape), labels, k,
+                   min_size, rounds, full_shape=full_shape, warm=warm)
 
 
 def class_cameras(both, n, dist, cfg, groups, Q, single):
@@ -108,7 +111,8 @@ def study_class(coll, gt, cfg, ks, min_size, seed):
     nvis_obj = (seen[:n].sum(-1) + seen[n:].sum(-1)).clamp(min=1)  # (n,)
     nvis = float(nvis_obj.sum())
     rows1, res1 = group_sfm(both, torch.arange(n), n, cfg)
-    cost1, R1 = keypoint_cost(res1.shape, both, dist, n)
+    cost1, cams1 = keypoint_fit(res1.shape, both, dist, n)
+    R1 = cams1.R[:n]
     lifted = lifted_residuals(res1, both.keypoints[rows1], both.visible[rows1])
     lifted = torch.cat([lifted[:n], lifted[n:]], 1)
     lifted = lifted / lifted.norm(dim=1, keepdim=True).clamp(min=1e-9)
@@ -123,7 +127,8 @@ def study_class(coll, gt, cfg, ks, min_size, seed):
             for name, lab0 in inits.items():
                 lab0 = top_up(lab0, torch.zeros(n, k), k, min_size)
                 try:
-                    cands.append((name, *fit_mixture(both, n, dist, cfg, lab0, k, min_size, res1.shape)))
+                    cands.append((name, *fit_mixture(both, n, dist, cfg, lab0, k, min_size, res1.shape,
+                                                     (res1.shape, cams1))))
                 except SplitFailed as e:
                     print(f"  k={k} {name}: not usable: {e}", flush=True)
         rows = []
