@@ -467,9 +467,9 @@ def _cad_class(shared_data, tmp_path, prefix: str, count: int, views: int = 15):
 def test_cad_sofas_fit_three_shapes_and_better_viewpoints(shared_data, tmp_path):
     """The six PASCAL3D+ sofa models (a long low couch, an armchair, ordinary sofas), 15 renders each.
 
-    One rigid shape cannot fit them (10.6 deg median here; 9.5 at 30 renders, docs/viewpoints.md).
+    One rigid shape cannot fit them (10.4 deg median here; 9.5 at 30 renders, docs/viewpoints.md).
     The pipeline with ``sfm_groups=3`` splits them into three shapes whose frames agree and lands
-    below the 8-degree target (5.8 here, 5.8 at 30 renders); the ground truth only scores."""
+    below the 8-degree target (5.5 here, 5.7 at 30 renders); the ground truth only scores."""
     from carvi_torch import pipeline
     from carvi_torch.config import Config
 
