@@ -90,6 +90,7 @@ __all__ = [
     "planar_twin",
     "keypoint_thickness",
     "refine_keypoints_only",
+    "refine_starts_keypoints_only",
     "estimate_camera",
     "mask_start_cameras",
     "sphere_rotations",
@@ -842,6 +843,43 @@ def refine_keypoints_only(
     R, s, t, E0, E, Ek, Es, it, conv = _optimize(R, s, t, shape, keypoints, visible, None, lam, max_iters, tol)
     Rb, sb, tb, Eb, Ekb, Esb, cb, best = _pick(R, s, t, E, Ek, Es, conv)
     return RefineResult(ScaledOrthographic(Rb, sb, tb), E0[:, 0], Eb, it, cb, Ekb, Esb, best)
+
+
+def refine_starts_keypoints_only(
+    shape: torch.Tensor,
+    R: torch.Tensor,
+    s: torch.Tensor,
+    t: torch.Tensor,
+    keypoints: torch.Tensor,
+    visible: torch.Tensor,
+    *,
+    max_iters: int = 100,
+    tol: float = 1e-6,
+) -> tuple[ScaledOrthographic, torch.Tensor]:
+    """Keypoint-only refinement of ``B`` given starts per instance, keeping each instance's best.
+
+    Args:
+        shape: ``(K, 3)``; R ``(N, B, 3, 3)``, s ``(N, B)``, t ``(N, B, 2)``: the starts;
+        keypoints ``(N, K, 2)``; visible ``(N, K)``.
+
+    Returns:
+        ``cameras`` (N) and ``energy (N,)`` (the squared keypoint residual of each).
+
+    Example:
+        >>> S = torch.randn(6, 3, generator=torch.Generator().manual_seed(0))
+        >>> true = ScaledOrthographic(torch.eye(3)[None], torch.full((1,), 10.0), torch.zeros(1, 2))
+        >>> start = axis_angle_to_rotation(torch.tensor([[[0.1, 0.0, 0.0]]]))
+        >>> cams, e = refine_starts_keypoints_only(S, start, torch.full((1, 1), 9.0), torch.zeros(1, 1, 2),
+        ...                                       true.project(S), torch.ones(1, 6, dtype=torch.bool))
+        >>> bool(e[0] < 1e-6), bool(torch.allclose(cams.R, true.R, atol=1e-4))
+        (True, True)
+    """
+    _check(shape, keypoints, visible, None, R.shape[0])
+    lam = torch.zeros(keypoints.shape[0], dtype=keypoints.dtype, device=keypoints.device)
+    dt = keypoints.dtype
+    out = _optimize(R.to(dt), s.to(dt), t.to(dt), shape, keypoints, visible, None, lam, max_iters, tol)
+    Rb, sb, tb, Eb, _best = _pick(out[0], out[1], out[2], out[4])
+    return ScaledOrthographic(Rb, sb, tb), Eb
 
 
 def sphere_rotations(n: int, dtype=torch.float32, device="cpu") -> torch.Tensor:

@@ -11,7 +11,7 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 from skimage.draw import polygon2mask
 
-from carvi_torch.cameras import ScaledOrthographic, random_rotations, rotation_about_axis
+from carvi_torch.cameras import ScaledOrthographic, axis_angle_to_rotation, random_rotations, rotation_about_axis
 from carvi_torch.refine import (
     TWIN_MARGIN,
     RefineResult,
@@ -22,6 +22,7 @@ from carvi_torch.refine import (
     planar_twin,
     refine_cameras,
     refine_keypoints_only,
+    refine_starts_keypoints_only,
     refinement_energy,
     sample_distance,
     sphere_rotations,
@@ -495,6 +496,26 @@ def test_refine_keypoints_only_two_starts():
     err = rot_err_deg(res.cameras.R, d["cams"].R)
     assert np.median(err) < 0.5
     assert float(res.silhouette_energy.abs().max()) == 0.0
+
+
+def test_refine_starts_keypoints_only_keeps_each_instances_best_start():
+    """Two starts per instance, a near one and one turned by 150 degrees: the result is, per
+    instance, the better of the two refined alone (the same energy), and the near start recovers
+    the true camera of noise-free keypoints."""
+    d = make_scene(11, n=25, k=10, hidden=0.3)
+    c = d["cams"]
+    near = axis_angle_to_rotation(0.05 * torch.randn(25, 3, generator=torch.Generator().manual_seed(1))) @ c.R
+    far = rotation_about_axis(torch.tensor([0.3, 1.0, 0.2]), math.radians(150.0)).to(c.R) @ c.R
+    R = torch.stack([far, near], 1)
+    s = torch.stack([c.s, c.s * 0.95], 1)
+    t = torch.stack([c.t, c.t + 1.0], 1)
+    cams, e = refine_starts_keypoints_only(d["S0"], R, s, t, d["kp"], d["vis"])
+    alone = [refine_starts_keypoints_only(d["S0"], R[:, b:b + 1], s[:, b:b + 1], t[:, b:b + 1], d["kp"], d["vis"])[1]
+             for b in range(2)]
+    assert torch.allclose(e, torch.minimum(*alone), rtol=1e-5, atol=1e-6)
+    assert float(rot_err_deg(cams.R, c.R).max()) < 0.1 and float(e.max()) < 1e-4
+    with pytest.raises(ValueError):
+        refine_starts_keypoints_only(d["S0"], R[:3], s[:3], t[:3], d["kp"], d["vis"])
 
 
 def test_mask_start_cameras_centre_and_scale():

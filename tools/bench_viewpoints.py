@@ -16,10 +16,13 @@ With ``--groups 3`` it also times the fit of a mixture of rigid shapes
 (:func:`carvi_torch.sfm_mixture.fit_mixture_of_shapes`, the pipeline's ``sfm_groups``
 settings) on the same class. The class is one rigid shape, so the fit tries two
 groups (two initialisations), finds no residual cut worth a split and stops: a
-lower bound on what the option costs on a class that does split. ``--cold-too`` also times
-the fit without its warm starts, in the same run.
+lower bound on what the option costs on a class that does split; ``--shapes 3`` makes one
+(every third instance stretched longer and lower, every third shorter and taller), so the fit
+also tries three groups. ``--cold-too`` also times the fit without its warm starts, in the
+same run.
 
-    python tools/bench_viewpoints.py [--n 2000] [--device cpu] [--groups 1] [--cold-too] [--out docs/benchmarks/viewpoints.json]
+    python tools/bench_viewpoints.py [--n 2000] [--device cpu] [--groups 1] [--shapes 1] [--cold-too]
+                                   [--out docs/benchmarks/viewpoints.json]
 """
 from __future__ import annotations
 
@@ -48,8 +51,16 @@ from carvi_torch.sfm_mixture import fit_mixture_of_shapes  # noqa: E402
 from carvi_torch.viewpoint_metrics import viewpoint_report  # noqa: E402
 
 
-def make_class(n: int, k: int, canvas: int, seed: int):
-    """Synthetic class (originals then mirrored copies) with its true cameras; CPU tensors."""
+#: Proportions of the ``--shapes`` variants of the base shape (x: width, y: length, z: height).
+STRETCHES = ((1.0, 1.0, 1.0), (1.0, 1.6, 0.6), (1.2, 0.6, 1.5))
+
+
+def make_class(n: int, k: int, canvas: int, seed: int, shapes: int = 1):
+    """Synthetic class (originals then mirrored copies) with its true cameras; CPU tensors.
+
+    ``shapes > 1``: instance ``i`` is a variant ``i % shapes`` of the base shape, stretched by
+    :data:`STRETCHES` (a class of different proportions, for the mixture fit to split); the base
+    shape and every random draw are those of ``shapes = 1``."""
     g = torch.Generator().manual_seed(seed)
     n_pairs = (k - 2) // 2
     half = torch.randn(n_pairs, 3, generator=g) * torch.tensor([0.5, 1.0, 0.6])
@@ -58,9 +69,13 @@ def make_class(n: int, k: int, canvas: int, seed: int):
     S = torch.cat([half, half * torch.tensor([-1.0, 1.0, 1.0]), mid])
     S = S - S.mean(0)
     pairs = [(i, i + n_pairs) for i in range(n_pairs)]
-    Sn = S + 0.05 * torch.randn(n, k, 3, generator=g)  # instances differ from the mean a little
+    if not 1 <= shapes <= len(STRETCHES):
+        raise ValueError(f"shapes must be 1 to {len(STRETCHES)}, got {shapes}")
+    variants = torch.stack([S * torch.tensor(st) for st in STRETCHES[:shapes]])
+    base = variants[torch.arange(n) % shapes]  # (n, k, 3)
+    Sn = base + 0.05 * torch.randn(n, k, 3, generator=g)  # instances differ from their shape a little
     R = random_rotations(n, g)
-    radius = S.norm(dim=-1).max()
+    radius = variants.norm(dim=-1).max()  # shapes = 1: the base shape's
     s = (0.35 * canvas / radius) * (0.9 + 0.2 * torch.rand(n, generator=g))
     t = canvas / 2.0 + 0.03 * canvas * torch.randn(n, 2, generator=g)
     cams = ScaledOrthographic(R, s, t)
@@ -121,6 +136,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--max-iters", type=int, default=100, help="refinement iterations")
     ap.add_argument("--groups", type=int, default=1,
                     help="also time the mixture fit with at most this many rigid shapes (default 1: not run)")
+    ap.add_argument("--shapes", type=int, default=1,
+                    help=f"instances come in this many proportions of one shape (1 to {len(STRETCHES)}, default 1); "
+                         "with --groups, a class the mixture fit splits")
     ap.add_argument("--cold-too", action="store_true",
                     help="with --groups: also time the fit without warm starts (every keypoint fit searches the "
                          "sphere, every SfM starts cold), in the same run")
@@ -129,7 +147,7 @@ def main(argv=None) -> dict:
     dev = torch.device(args.device)
 
     t0 = time.perf_counter()
-    data = make_class(args.n, args.k, args.canvas, args.seed)
+    data = make_class(args.n, args.k, args.canvas, args.seed, args.shapes)
     t_data = time.perf_counter() - t0
     kp = data["keypoints"].to(dev)
     vis = data["visible"].to(dev)
@@ -175,8 +193,13 @@ def main(argv=None) -> dict:
                                         agreement_deg=cfg.sfm_group_agreement_deg, rounds=cfg.sfm_group_rounds,
                                         seed=args.seed, single=sfm, warm_start=warm)
             sync()
-            mixture["warm" if warm else "cold"] = {"seconds": time.perf_counter() - t0, "max_groups": args.groups,
-                                                   **mix.summary()}
+            seconds = time.perf_counter() - t0
+            R_mix = mix.single.cameras.R.clone()  # the groups' SfM cameras, in the class frame
+            for gi in range(mix.k):
+                R_mix[mix.groups[gi][0]] = mix.cameras(gi).R
+            rep = viewpoint_report(R_mix.cpu(), data["R_true"], valid=mix.single.valid.cpu())
+            mixture["warm" if warm else "cold"] = {"seconds": seconds, "max_groups": args.groups, **mix.summary(),
+                                                   "sfm_geodesic_deg": rep["geodesic"]}
         if "cold" in mixture:
             mixture["cold_over_warm"] = mixture["cold"]["seconds"] / mixture["warm"]["seconds"]
 
@@ -186,6 +209,7 @@ def main(argv=None) -> dict:
         rep.pop("per_instance_geodesic")
     result = {
         "config": {"instances": args.n, "with_mirrors": n_all, "keypoints": args.k, "canvas": args.canvas,
+                   "shapes": args.shapes,
                    "seed": args.seed, "device": str(dev), "max_outer": args.max_outer, "inner": args.inner,
                    "twin_flatness": Config().refine_twin_flatness,
                    "refine_max_iters": args.max_iters},
@@ -223,7 +247,8 @@ def main(argv=None) -> dict:
         print(f"{name:<22}{sec:>10.2f}{n_all / sec:>12.0f}")
     for name, m in (mixture or {}).items():
         if isinstance(m, dict):
-            print(f"mixture fit ({name}): {m['groups']} group(s) kept; candidates: "
+            print(f"mixture fit ({name}): {m['groups']} group(s) kept, sizes {m['sizes']}; SfM cameras: median "
+                  f"{m['sfm_geodesic_deg']['median']:.2f} deg; candidates: "
                   + "; ".join(f"k={c['k']} {c['init']}: cut {c['cut']:.0%}" for c in m["candidates"]))
     if mixture and "cold" in mixture:
         print(f"warm starts: {mixture['cold_over_warm']:.1f}x faster than without")
