@@ -27,7 +27,7 @@ The fit, for ``k = 2, 3, ...`` while a split is accepted:
    and the closed-form resection of the object onto the shape
    (:func:`carvi_torch.sfm.resect_cameras`). Every group's SfM after the first round starts from
    its last shape (``init_shape``). On the 2,000-instance benchmark class this cut the fit from
-   459 s to about 30 s; on the CAD renders it keeps as many groups as the search did in 11 of 12
+   459 s to 25 s; on the CAD renders it keeps as many groups as the search did in 11 of 12
    classes (boat: three instead of two; docs/viewpoints.md).
 3. One class frame: every group's shape is rotated onto group 0's (a proper rotation on their
    shared keypoints, centred and scaled, :func:`rotation_onto`), and its cameras with it.
