@@ -76,7 +76,7 @@ from .sfm import SfMResult, resect_cameras
 from .viewpoint_metrics import geodesic_errors
 
 __all__ = ["MixtureResult", "fit_mixture_of_shapes", "shape_thickness", "PLANAR_THICKNESS", "group_rows",
-           "keypoint_fit", "keypoint_cost", "transfer_cameras", "lifted_residuals", "kmeans_labels", "top_up",
+           "keypoint_fit", "transfer_cameras", "lifted_residuals", "kmeans_labels", "top_up",
            "hard_em", "rotation_onto", "group_rotations", "frame_agreement", "EM_SETTLED"]
 
 #: The EM stops when at most this fraction of the objects (rounded down: none below 400 objects)
@@ -133,14 +133,6 @@ def keypoint_fit(shape: torch.Tensor, both, dist: torch.Tensor, n: int, *, n_sta
     vis = both.visible & torch.isfinite(shape).all(-1)[None] & torch.isfinite(both.keypoints).all(-1)
     r = ((P - torch.nan_to_num(both.keypoints)).pow(2).sum(-1) * vis).sum(-1)
     return r[:n] + r[n:], cams
-
-
-def keypoint_cost(shape: torch.Tensor, both, dist: torch.Tensor, n: int,
-                  n_starts: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`keypoint_fit` from a search over the sphere: ``cost (n,)`` and the objects'
-    rotations ``R (n, 3, 3)``."""
-    cost, cams = keypoint_fit(shape, both, dist, n, n_starts=n_starts)
-    return cost, cams.R[:n]
 
 
 def transfer_cameras(cams: ScaledOrthographic, S_from: torch.Tensor, S_to: torch.Tensor) -> ScaledOrthographic:
