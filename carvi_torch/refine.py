@@ -476,13 +476,14 @@ def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol
     # the working set: ``rows`` of the full state; ``state`` holds its per-camera tensors
     full = [R, s, t, E, E_kp, E_sil, g, H, mu, active, converged]
     rows = None
+    n_live = int(active.any(-1).sum())  # one host read per step: it also decides when to stop
     state = list(full)
     data = [kp, wv, maps, lam, rscale]
     it = 0
     for it in range(1, max_iters + 1):
         R, s, t, E, E_kp, E_sil, g, H, mu, active, converged = state
         kp_w, wv_w, maps_w, lam_w, rscale_w = data
-        if not bool(active.any()):
+        if n_live == 0:
             it -= 1
             break
         # damped 6x6 solves in float64: H can be rank-deficient (an instance with one

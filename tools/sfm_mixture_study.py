@@ -34,7 +34,7 @@ against ``k = 2``.
     python tools/viewpoints_cad.py                       # renders the CAD models (cached)
     python tools/sfm_mixture_study.py [--classes sofa] [--k 1 2 3] [--out docs/results/sfm_mixture.json]
 
-About 1 to 4 minutes per class on one core.
+About 5 to 50 s per class on one core (5 minutes for the 12 CAD classes).
 """
 from __future__ import annotations
 
