@@ -91,6 +91,10 @@ class Config:
     the objects; no ground truth)."""
     sfm_group_rounds: int = 6
     """Most hard-EM rounds per candidate split."""
+    sfm_group_threads: int = 2
+    """Python threads that run the two initialisations of each candidate split side by side, for
+    classes of at least ``sfm_mixture.THREADS_MIN_OBJECTS`` objects (1: one after the other; same
+    result either way)."""
     refine: bool = True
     """Silhouette refinement of the SfM cameras (``False`` = the -CRef ablation)."""
     refine_iters: int = 150
@@ -173,7 +177,7 @@ class Config:
             raise ConfigError(f"mesh_format must be ply, obj or glb, got {self.mesh_format!r}")
         for name in ("canvas_size", "resolution", "proposals", "plane_size", "refine_iters", "sfm_max_outer",
                      "sfm_inner", "procedural_instances", "min_instances", "sfm_groups", "sfm_group_min",
-                     "sfm_group_rounds"):
+                     "sfm_group_rounds", "sfm_group_threads"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0 <= self.canvas_margin < 0.5:

@@ -169,7 +169,7 @@ def _shape_groups(both: ClassCollection, dist: torch.Tensor, res: sfm.SfMResult,
     mix = sfm_mixture.fit_mixture_of_shapes(
         both, dist, lambda sub, init_shape=None: class_sfm(sub, cfg, init_shape), max_groups=cfg.sfm_groups, min_size=cfg.sfm_group_min,
         gain=cfg.sfm_group_gain, agreement_deg=cfg.sfm_group_agreement_deg, rounds=cfg.sfm_group_rounds,
-        seed=cfg.seed, single=res, log=log.append)
+        seed=cfg.seed, single=res, log=log.append, threads=cfg.sfm_group_threads)
     for line in log:
         _log(f"  {both.name}: {line}", cfg)
     report.info["sfm_groups"] = mix.summary()
