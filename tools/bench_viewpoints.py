@@ -18,10 +18,13 @@ settings) on the same class. The class is one rigid shape, so the fit tries two
 groups (two initialisations), finds no residual cut worth a split and stops: a
 lower bound on what the option costs on a class that does split; ``--shapes 3`` makes one
 (every third instance stretched longer and lower, every third shorter and taller), so the fit
-also tries three groups. ``--cold-too`` also times the fit without its warm starts, in the
-same run.
+also tries three groups. The fit runs each ``k``'s two initialisations on ``--group-threads``
+Python threads (the pipeline's ``sfm_group_threads``); ``--one-thread-too`` also times it on one
+and checks that the result is the same, ``--cold-too`` also times it without its warm starts,
+both in the same run. "stage with mixture" adds the one-shape SfM and the refinement to the fit.
 
     python tools/bench_viewpoints.py [--n 2000] [--device cpu] [--groups 1] [--shapes 1] [--cold-too]
+                                   [--group-threads 2] [--one-thread-too]
                                    [--out docs/benchmarks/viewpoints.json]
 """
 from __future__ import annotations
@@ -142,6 +145,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--cold-too", action="store_true",
                     help="with --groups: also time the fit without warm starts (every keypoint fit searches the "
                          "sphere, every SfM starts cold), in the same run")
+    ap.add_argument("--group-threads", type=int, default=Config().sfm_group_threads,
+                    help="with --groups: Python threads of the mixture fit (its initialisations side by side; "
+                         "default the pipeline's sfm_group_threads, %(default)s)")
+    ap.add_argument("--one-thread-too", action="store_true",
+                    help="with --groups: also time the warm fit on one Python thread, in the same run, and check "
+                         "that it gives the same result")
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "viewpoints.json"))
     args = ap.parse_args(argv)
     dev = torch.device(args.device)
@@ -183,7 +192,13 @@ def main(argv=None) -> dict:
     if args.groups > 1:
         cfg = Config()
         mixture = {}
-        for warm in (True, False) if args.cold_too else (True,):
+        variants = [("warm", True, args.group_threads)]
+        if args.one_thread_too and args.group_threads != 1:
+            variants.append(("warm_one_thread", True, 1))
+        if args.cold_too:
+            variants.append(("cold", False, args.group_threads))
+        fits = {}
+        for name, warm, threads in variants:
             t0 = time.perf_counter()
             mix = fit_mixture_of_shapes(_Rows(kp, vis), dist,
                                         lambda sub, init_shape=None: rigid_sfm(sub.keypoints, sub.visible,
@@ -191,15 +206,26 @@ def main(argv=None) -> dict:
                                                                                inner=args.inner, init_shape=init_shape),
                                         max_groups=args.groups, min_size=cfg.sfm_group_min, gain=cfg.sfm_group_gain,
                                         agreement_deg=cfg.sfm_group_agreement_deg, rounds=cfg.sfm_group_rounds,
-                                        seed=args.seed, single=sfm, warm_start=warm)
+                                        seed=args.seed, single=sfm, warm_start=warm, threads=threads)
             sync()
             seconds = time.perf_counter() - t0
+            fits[name] = mix
             R_mix = mix.single.cameras.R.clone()  # the groups' SfM cameras, in the class frame
             for gi in range(mix.k):
                 R_mix[mix.groups[gi][0]] = mix.cameras(gi).R
             rep = viewpoint_report(R_mix.cpu(), data["R_true"], valid=mix.single.valid.cpu())
-            mixture["warm" if warm else "cold"] = {"seconds": seconds, "max_groups": args.groups, **mix.summary(),
-                                                   "sfm_geodesic_deg": rep["geodesic"]}
+            mixture[name] = {"seconds": seconds, "threads": threads, "max_groups": args.groups, **mix.summary(),
+                             "sfm_geodesic_deg": rep["geodesic"],
+                             # the viewpoint stage with the mixture: the one-shape SfM, the fit, the refinement
+                             "stage_seconds": t_sfm + seconds + t_ref}
+        if "warm_one_thread" in fits:
+            a, b = fits["warm"], fits["warm_one_thread"]
+            mixture["one_thread_over_threads"] = mixture["warm_one_thread"]["seconds"] / mixture["warm"]["seconds"]
+            mixture["threads_same_result"] = bool(
+                a.k == b.k and torch.equal(a.labels, b.labels)
+                and all(torch.equal(ga[1].shape, gb[1].shape) and torch.equal(ga[1].cameras.R, gb[1].cameras.R)
+                        for ga, gb in zip(a.groups, b.groups))
+                and a.candidates == b.candidates)
         if "cold" in mixture:
             mixture["cold_over_warm"] = mixture["cold"]["seconds"] / mixture["warm"]["seconds"]
 
@@ -238,8 +264,11 @@ def main(argv=None) -> dict:
     rows = [("distance maps", t_dist), ("rigid SfM", t_sfm), ("refinement", t_ref), ("SfM + refinement", t_sfm + t_ref)]
     if mixture is not None:
         rows.append((f"mixture fit (<= {args.groups})", mixture["warm"]["seconds"]))
+        if "warm_one_thread" in mixture:
+            rows.append(("  on one thread", mixture["warm_one_thread"]["seconds"]))
         if "cold" in mixture:
             rows.append(("  without warm starts", mixture["cold"]["seconds"]))
+        rows.append(("stage with mixture", mixture["warm"]["stage_seconds"]))
     print(f"viewpoints benchmark: {n_all} instances ({args.n} + mirrors), K={args.k}, canvas {args.canvas}, "
           f"device {dev}, {torch.get_num_threads()} CPU threads")
     print(f"{'stage':<22}{'seconds':>10}{'inst/s':>12}")
@@ -252,6 +281,9 @@ def main(argv=None) -> dict:
                   + "; ".join(f"k={c['k']} {c['init']}: cut {c['cut']:.0%}" for c in m["candidates"]))
     if mixture and "cold" in mixture:
         print(f"warm starts: {mixture['cold_over_warm']:.1f}x faster than without")
+    if mixture and "warm_one_thread" in mixture:
+        print(f"{args.group_threads} threads: {mixture['one_thread_over_threads']:.2f}x faster than one; same result: "
+              f"{mixture['threads_same_result']}")
     print(f"peak RSS {result['peak_memory_mb']['process_rss']:.0f} MB"
           + (f", peak CUDA {result['peak_memory_mb']['cuda_allocated']:.0f} MB" if dev.type == "cuda" else ""))
     print(f"SfM: {sfm.iterations} outer iterations, converged={sfm.converged}, reflection "
