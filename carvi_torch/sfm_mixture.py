@@ -87,7 +87,9 @@ __all__ = ["MixtureResult", "fit_mixture_of_shapes", "shape_thickness", "PLANAR_
 
 #: The EM stops when at most this fraction of the objects (rounded down: none below 400 objects)
 #: changed group in a round. On large classes a few objects near two shapes' boundary keep
-#: trading places for the last rounds (2,000 instances: 2 to 8 per round from the fifth on).
+#: trading places for the last rounds (the 2,000-instance class of ``tools/bench_viewpoints.py
+#: --shapes 3 --groups 3``: 2 to 15 in the last two rounds of its four candidates, each
+#: candidate's ``"moved"``).
 EM_SETTLED = 0.0025
 
 #: The fit runs a ``k``'s two initialisations on two threads only for classes of at least this many
@@ -485,7 +487,9 @@ class MixtureResult:
         Q: per group ``(3, 3)``: the rotation of its shape (and cameras) into the class frame (group 0's).
         agreement_deg: :func:`frame_agreement` of the kept groups (0 for one group).
         candidates: every split tried: ``{"k", "init", "sizes", "sse_px2", "cut", "agreement_deg",
-            "eligible", "kept"}``.
+            "eligible", "kept"}``, and once its EM ran, ``"rounds"`` (rounds run), ``"moved"``
+            (objects that changed group after each round) and ``"settled"`` (whether the last
+            round moved at most :data:`EM_SETTLED` of the objects; False: stopped at ``rounds``).
         single: the one-shape SfM of the whole class (always run first).
         note: why no split was tried (``None`` when one was).
     """
@@ -591,14 +595,16 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
             row = {"k": k, "init": name, "sizes": None, "sse_px2": float("inf"), "cut": float("-inf"),
                    "agreement_deg": float("inf"), "eligible": False, "kept": False}
             try:
-                lab, groups, cost, rotations, _hist = hard_em(both, n, dist, sfm_fn, lab0, k, min_size, rounds,
+                lab, groups, cost, rotations, hist = hard_em(both, n, dist, sfm_fn, lab0, k, min_size, rounds,
                                                               full_shape=res1.shape,
                                                               warm=(res1.shape, cams1) if warm_start else None)
             except SplitFailed as e:
                 row["problem"] = str(e)
                 return row, None, f"{k} shapes from '{name}': not usable: {e}"
             sse = float(cost.gather(1, lab[:, None]).sum())
-            row.update(sizes=torch.bincount(lab, minlength=k).tolist(), sse_px2=sse, cut=1 - sse / max(sse_prev, 1e-12))
+            row.update(sizes=torch.bincount(lab, minlength=k).tolist(), sse_px2=sse, cut=1 - sse / max(sse_prev, 1e-12),
+                       rounds=len(hist), moved=[h["moved"] for h in hist],
+                       settled=hist[-1]["moved"] <= int(EM_SETTLED * n))
             try:
                 Q = group_rotations(groups)
             except ValueError as e:  # a group's shape cannot be put in the class frame: not a usable split

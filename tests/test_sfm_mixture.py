@@ -276,6 +276,14 @@ def test_fit_finds_the_two_shapes_and_their_cameras(two_shapes):
     assert bool(agree), fitted.labels.tolist()
     kept = [c for c in fitted.candidates if c["kept"]]
     assert len(kept) == 1 and kept[0]["cut"] > 0.9 and kept[0]["agreement_deg"] < 60
+    # the EM's record: rounds run, objects moved after each; below 400 objects settled means none moved
+    for c in fitted.candidates:
+        assert 1 <= c["rounds"] <= 7 and len(c["moved"]) == c["rounds"]
+        assert c["settled"] == (c["moved"][-1] == 0)
+    assert kept[0]["settled"]
+    capped = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, rounds=0)
+    assert all(c["rounds"] == 1 for c in capped.candidates)
+    assert [c["settled"] for c in capped.candidates] == [c["moved"][0] == 0 for c in capped.candidates]
     one = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=1)
     err_mix = viewpoint_report(_class_cameras(fitted)[:n].double(), R.double())
     err_one = viewpoint_report(_class_cameras(one)[:n].double(), R.double())
