@@ -622,3 +622,22 @@ def test_a_group_without_cameras_makes_its_split_unusable_not_the_class():
     lab, tru = out.labels[good], truth[good]
     assert bool((lab == tru).all() or (lab == 1 - tru).all())
     assert all(bool(res.valid.any()) for _rows, res in out.groups)
+
+
+def test_a_keypoint_no_object_shows_leaves_the_split_intact():
+    """Bad input of the viewpoint issue, through the mixture: a keypoint never visible in the class is
+    reported by the one-shape SfM and stays a NaN row of every group's shape (nothing to fill it
+    from); the two true shapes are still found from the other keypoints. (Hidden with its left/right
+    partner: a mirrored copy shows an original's keypoint under its partner's name.)"""
+    coll, _R, truth = _two_shape_class(sizes=(12, 12), seed=3)
+    names = coll.meta.keypoint_names
+    hidden = [names.index("left_back_roof"), names.index("right_back_roof")]
+    coll.visible[:, hidden] = False
+    both = coll.with_mirrors()
+    assert not bool(both.visible[:, hidden].any())
+    out = mix.fit_mixture_of_shapes(both, distance_to_mask(both.masks), _sfm, max_groups=2, min_size=6)
+    assert any("never visible" in p for p in out.single.problems), out.single.problems
+    assert out.k == 2 and bool((out.labels == truth).all() or (out.labels == 1 - truth).all())
+    for g in range(2):
+        fin = torch.isfinite(out.shape(g)).all(-1)
+        assert fin.tolist() == [i not in hidden for i in range(len(names))]
