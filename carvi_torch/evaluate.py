@@ -73,21 +73,30 @@ def _load_recon_mesh(recon: Path, cls: str, aid: int) -> trimesh.Trimesh | None:
 
 
 def _viewpoints(recon: Path, cls: str, gt_entries: dict, aids: list[int]) -> dict | None:
+    """Viewpoint reports of one class: ``sfm`` (objects with an SfM camera), ``refined`` (every
+    object with a final camera) and, when those two sets differ, ``refined_with_sfm``: the refined
+    cameras of exactly the ``sfm`` objects. Objects without an SfM camera get theirs from the
+    unseen-image path, not from refinement; ``refined_with_sfm`` is the before/after comparison
+    of the refinement itself. Each report is aligned with its own global rotation."""
     p = recon / cls / "cameras.json"
     if not p.is_file():
         return None
     cams = read_json(p).get("cameras", {})
     out = {}
-    for stage in ("sfm", "refined"):
+    has_sfm = {a for a in aids if cams.get(str(a), {}).get("sfm") is not None}
+    for stage, source, among in (("sfm", "sfm", None), ("refined", "refined", None),
+                                 ("refined_with_sfm", "refined", has_sfm)):
         est, ref, used = [], [], []
         for a in aids:
-            c = cams.get(str(a), {}).get(stage)
+            c = cams.get(str(a), {}).get(source)
             g = gt_entries.get(str(a))
-            if c is None or g is None:
+            if c is None or g is None or (among is not None and a not in among):
                 continue
             est.append(c["R"])
             ref.append(g["R"])
             used.append(int(a))
+        if among is not None and "refined" in out and used == out["refined"]["annotation_ids"]:
+            continue  # the same objects: the refined report already is the comparison
         if len(est) >= 2:
             rep = viewpoint_metrics.viewpoint_report(torch.tensor(est, dtype=torch.float64),
                                                      torch.tensor(ref, dtype=torch.float64))

@@ -112,3 +112,31 @@ def test_viewpoints_only(recon, tmp_path, capsys):
     rc = main(["--data", str(data), "--recon", str(recon), "--viewpoints-only", "--no-progress"])
     out = capsys.readouterr().out
     assert rc == 0 and "Symmetric RMS" not in out and "| car | Full | refined |" in out
+
+
+def test_refinement_is_compared_on_the_objects_with_an_sfm_camera(recon, tmp_path):
+    """An object without an SfM camera (its camera came from the unseen-image path) counts in
+    ``refined`` but not in ``sfm``; ``refined_with_sfm`` scores the refined cameras of exactly the
+    ``sfm`` objects, each set with its own global alignment (checked against viewpoint_report)."""
+    import torch
+
+    from carvi_torch.viewpoint_metrics import viewpoint_report
+
+    data, gt = _gt(recon)
+    part = tmp_path / "part"
+    shutil.copytree(recon, part)
+    p = part / "car" / "cameras.json"
+    cj = json.loads(p.read_text())
+    ids = sorted(int(a) for a in cj["cameras"] if str(a) in gt)
+    dropped = ids[0]
+    cj["cameras"][str(dropped)]["sfm"] = None
+    p.write_text(json.dumps(cj))
+    vp = evaluate(data, {"Full": part}, shapes=False, progress=False)["viewpoints"]["car"]["Full"]
+    assert set(vp) == {"sfm", "refined", "refined_with_sfm"}
+    assert dropped in vp["refined"]["annotation_ids"] and dropped not in vp["sfm"]["annotation_ids"]
+    assert vp["refined_with_sfm"]["annotation_ids"] == vp["sfm"]["annotation_ids"]
+    keep = vp["sfm"]["annotation_ids"]
+    want = viewpoint_report(torch.tensor([cj["cameras"][str(a)]["refined"]["R"] for a in keep], dtype=torch.float64),
+                            torch.tensor([gt[str(a)]["R"] for a in keep], dtype=torch.float64))
+    assert vp["refined_with_sfm"]["geodesic"]["median"] == pytest.approx(want["geodesic"]["median"], abs=1e-9)
+    assert vp["refined_with_sfm"]["geodesic"]["n"] == vp["refined"]["geodesic"]["n"] - 1
