@@ -237,6 +237,26 @@ def keypoints_left_out(mix: sfm_mixture.MixtureResult, both: ClassCollection, cf
     return out
 
 
+def unseen_keypoints(mix: sfm_mixture.MixtureResult, missing: torch.Tensor, both: ClassCollection,
+                     cfg: Config) -> torch.Tensor:
+    """``(2N,)`` long: for the rows ``missing`` (the unseen-image path), how many of their visible
+    keypoints have a row in the mean shape the path uses (its group's, with the refinement's
+    support rule, as :func:`cameras_from_mean_shape`); -1 elsewhere. 0 means the camera is fitted
+    to the silhouette alone."""
+    count = torch.full((len(both),), -1, dtype=torch.long, device=missing.device)
+
+    def per_group(g, rows):
+        sub = _rows(both, rows)
+        S = refine.supported_shape(mix.shape(g), sub.visible, cfg.refine_min_support)
+        seen = (sub.visible & torch.isfinite(sub.keypoints).all(-1) & torch.isfinite(S).all(-1)).sum(-1)
+        at = torch.arange(len(both), device=missing.device) if rows is None else rows
+        count[at] = torch.where(missing[at], seen, count[at])
+
+    for g in range(mix.k):
+        per_group(g, None if mix.k == 1 else mix.groups[g][0])
+    return count
+
+
 def unseen_per_group(mix: sfm_mixture.MixtureResult, cams: ScaledOrthographic, missing: torch.Tensor,
                      both: ClassCollection, dist: torch.Tensor, cfg: Config) -> ScaledOrthographic:
     """``cams`` with the rows ``missing (2N,) bool`` estimated from their group's mean shape (unseen-image path)."""
@@ -307,11 +327,23 @@ def _viewpoints(coll: ClassCollection, cfg: Config, report: ClassReport, device,
             cams = unseen_per_group(mix, cams, missing, both, dist, cfg)
         idx = missing.nonzero().squeeze(1)
         report.info["cameras_from_mean_shape"] = [int(coll.annotation_ids[i]) for i in idx.tolist() if i < n]
+        unseen_kp = unseen_keypoints(mix, missing, both, cfg)
+        blind = [int(coll.annotation_ids[i]) for i in (unseen_kp[:n] == 0).nonzero().squeeze(1).tolist()]
+        if blind:
+            report.info["cameras_from_silhouette_only"] = blind
+            report.warnings.append(
+                f"{len(blind)} annotation(s) without an SfM camera got one from the silhouette alone (none of "
+                f"their visible keypoints has a row in the mean shape): unreliable, a silhouette often fits "
+                f"several viewpoints (cameras.json: camera_from 'silhouette'); ids {blind[:20]}"
+                + (" ..." if len(blind) > 20 else ""))
         has_camera = torch.ones_like(has_camera)
+    else:
+        unseen_kp = torch.full((len(both),), -1, dtype=torch.long, device=missing.device)
     finite = torch.isfinite(cams.R).flatten(1).all(1) & torch.isfinite(cams.s) & (cams.s > 0)
     has_camera &= finite
     return {"both": both, "cams_sfm": cams_sfm, "sfm_valid": sfm_valid, "cams": cams, "shape": shape,
-            "reflection": reflection, "has_camera": has_camera, "dist": dist, "groups": mix}
+            "reflection": reflection, "has_camera": has_camera, "dist": dist, "groups": mix,
+            "unseen_keypoints": unseen_kp, "ground_truth_cameras": cfg.cameras == "gt"}
 
 
 @dataclass
@@ -349,12 +381,23 @@ def _cameras_json(coll: ClassCollection, vp: dict, axes: torch.Tensor | None, cl
     sfm_img = vp["cams_sfm"][:n].compose_similarity(inv).to_list()
     ref_img = vp["cams"][:n].compose_similarity(inv).to_list()
     az, el, ro = azimuth_elevation_roll_from_rotation(vp["cams"].R[:n].double())
+    sfm_ok, has_cam = vp["sfm_valid"][:n].tolist(), vp["has_camera"][:n].tolist()  # one host read each
+    unseen = vp["unseen_keypoints"][:n].tolist() if "unseen_keypoints" in vp else [-1] * n
     per = {}
     for i, aid in enumerate(coll.annotation_ids.tolist()):
+        if vp.get("ground_truth_cameras"):
+            camera_from = "ground_truth"
+        elif sfm_ok[i]:
+            camera_from = "sfm"
+        elif not has_cam[i]:
+            camera_from = None
+        else:  # the unseen-image path: the mean shape's keypoints and the silhouette, or the silhouette alone
+            camera_from = "mean_shape" if unseen[i] > 0 else "silhouette"
         per[str(aid)] = {
             "source": coll.sources[i],
-            "sfm": sfm_img[i] if bool(vp["sfm_valid"][i]) else None,
-            "refined": ref_img[i] if bool(vp["has_camera"][i]) else None,
+            "sfm": sfm_img[i] if sfm_ok[i] else None,
+            "refined": ref_img[i] if has_cam[i] else None,
+            "camera_from": camera_from,
             "azimuth_deg": math.degrees(float(az[i])), "elevation_deg": math.degrees(float(el[i])),
             "roll_deg": math.degrees(float(ro[i])),
             "cluster": int(clusters.labels[i]) if clusters is not None else None,

@@ -48,6 +48,7 @@ def test_outputs_exist(tiny):
         for entry in cams["cameras"].values():
             R = np.array(entry["refined"]["R"])
             assert abs(np.linalg.det(R) - 1) < 1e-4
+            assert entry["camera_from"] == ("sfm" if entry["sfm"] is not None else "mean_shape")
         for f in (out / cls / "voxels").glob("*.npz"):
             z = np.load(f)
             assert z["occupancy"].dtype == bool and z["occupancy"].any() and z["voxel_to_camera"].shape == (4, 4)
@@ -147,6 +148,7 @@ def test_oracle_cameras(tmp_path):
     for aid, entry in cams.items():
         assert np.allclose(entry["refined"]["R"], gt[aid]["R"], atol=1e-4)
         assert np.allclose(entry["refined"]["t"], gt[aid]["t"], atol=1e-2)
+        assert entry["camera_from"] == "ground_truth"
 
 
 def _write_small(path: Path, data: dict):

@@ -641,3 +641,33 @@ def test_a_keypoint_no_object_shows_leaves_the_split_intact():
     for g in range(2):
         fin = torch.isfinite(out.shape(g)).all(-1)
         assert fin.tolist() == [i not in hidden for i in range(len(names))]
+
+
+@pytest.mark.parametrize("groups", [1, 2])
+def test_pipeline_says_where_each_camera_came_from(groups):
+    """Objects without an SfM camera take one from the unseen-image path. ``cameras.json`` says so
+    per camera (``camera_from``); one whose visible keypoints all lack a mean-shape row is fitted to
+    its silhouette alone, flagged ``silhouette`` and listed with a warning in the class report."""
+    from carvi_torch import pipeline
+    from carvi_torch.config import Config
+
+    coll, _R, _truth = _two_shape_class(sizes=(20, 20), seed=4)
+    names = coll.meta.keypoint_names
+    pair = [names.index("left_back_roof"), names.index("right_back_roof")]
+    coll.visible[:, pair] = False  # never seen by anyone: no shape row
+    coll.visible[0] = False
+    coll.visible[0, pair[0]] = True  # object 0: one keypoint, without a shape row -> silhouette only
+    coll.visible[1] = False
+    coll.visible[1, 0] = True  # object 1: one keypoint, with a shape row -> the mean shape helps
+    report = pipeline.ClassReport(coll.name, objects=len(coll))
+    cfg = Config().override({"sfm_groups": groups, "sfm_group_min": 6, "progress": False, "refine_iters": 20})
+    vp = pipeline._viewpoints(coll, cfg, report, torch.device("cpu"), None)
+    assert vp["groups"].k == groups
+    aid = [int(a) for a in coll.annotation_ids]
+    assert report.info["cameras_from_mean_shape"] == [aid[0], aid[1]]
+    assert report.info["cameras_from_silhouette_only"] == [aid[0]]
+    assert any("silhouette alone" in w and str(aid[0]) in w for w in report.warnings)
+    assert vp["unseen_keypoints"][:2].tolist() == [0, 1] and bool((vp["unseen_keypoints"][2:40] == -1).all())
+    cams = pipeline._cameras_json(coll, vp, None, None)["cameras"]
+    assert [cams[str(a)]["camera_from"] for a in aid[:3]] == ["silhouette", "mean_shape", "sfm"]
+    assert cams[str(aid[0])]["sfm"] is None and cams[str(aid[0])]["refined"] is not None
