@@ -385,12 +385,12 @@ def _cameras_json(coll: ClassCollection, vp: dict, axes: torch.Tensor | None, cl
     unseen = vp["unseen_keypoints"][:n].tolist() if "unseen_keypoints" in vp else [-1] * n
     per = {}
     for i, aid in enumerate(coll.annotation_ids.tolist()):
-        if vp.get("ground_truth_cameras"):
+        if not has_cam[i]:
+            camera_from = None
+        elif vp.get("ground_truth_cameras"):
             camera_from = "ground_truth"
         elif sfm_ok[i]:
             camera_from = "sfm"
-        elif not has_cam[i]:
-            camera_from = None
         else:  # the unseen-image path: the mean shape's keypoints and the silhouette, or the silhouette alone
             camera_from = "mean_shape" if unseen[i] > 0 else "silhouette"
         per[str(aid)] = {

@@ -31,8 +31,8 @@ The fit, for ``k = 2, 3, ...`` while a split is accepted:
    classes (boat: three instead of two; docs/viewpoints.md).
    The two initialisations of a ``k`` are independent: on a class of at least
    :data:`THREADS_MIN_OBJECTS` objects they run side by side on ``threads`` Python threads (same
-   result as one after the other; 1.45x faster on 2 cores for a 2,000-instance class that splits
-   in three).
+   result as one after the other; 1.43x faster on 2 cores for a 2,000-instance class that splits
+   in three, 1.47x for one that does not).
 3. One class frame: every group's shape is rotated onto group 0's (a proper rotation on their
    shared keypoints, centred and scaled, :func:`rotation_onto`), and its cameras with it.
 4. Acceptance: among the two candidates whose groups' frames agree within ``agreement_deg``
@@ -88,8 +88,8 @@ __all__ = ["MixtureResult", "fit_mixture_of_shapes", "shape_thickness", "PLANAR_
 #: The EM stops when at most this fraction of the objects (rounded down: none below 400 objects)
 #: changed group in a round. On large classes a few objects near two shapes' boundary keep
 #: trading places for the last rounds (the 2,000-instance class of ``tools/bench_viewpoints.py
-#: --shapes 3 --groups 3``: 2 to 15 in the last two rounds of its four candidates, each
-#: candidate's ``"moved"``).
+#: --shapes 3 --groups 3``: its four candidates' last rounds moved 3, 5, 2 and 3 objects, the
+#: rounds before those 8, 37, 15 and 106; each candidate's ``"moved"``).
 EM_SETTLED = 0.0025
 
 #: The fit runs a ``k``'s two initialisations on two threads only for classes of at least this many
@@ -97,7 +97,7 @@ EM_SETTLED = 0.0025
 #: each, but on a small class the ops are so short that the two threads mostly wait for the lock
 #: and for each other's wake-ups. Measured (2 cores, 1 intra-op thread each, three proportions,
 #: ``sfm_groups=3``; docs/viewpoints.md): 150 objects 1.32x slower on two threads, 400 about even,
-#: 700 1.10x faster, 2,000 1.45x faster; the CAD sofa renders (180 objects) 1.14-1.25x slower.
+#: 700 1.10x faster, 2,000 1.43-1.47x faster; the CAD sofa renders (180 objects) 1.14-1.25x slower.
 THREADS_MIN_OBJECTS = 500
 
 #: ``(ClassCollection, init_shape=None) -> SfMResult``: the rigid SfM of a collection with the run's
@@ -402,14 +402,17 @@ def _map_candidates(fn, items: list, threads: int, device) -> list:
     """``[fn(*item) for item in items]``, on at most ``threads`` Python threads, in order.
 
     On the CPU the whole map runs with one intra-op thread (:func:`carvi_torch.refine.cpu_single_thread`,
-    set once here: the thread count is process-wide, so the workers must not switch it themselves).
-    An exception in one item is raised here once all have finished.
+    set once here, on one thread or on several, so every op runs the same way in both cases: the
+    solvers inside already run on one, and the few other ops would otherwise split their sums
+    over the intra-op threads on one thread and not on several). Worker threads start with the
+    caller's count. An exception in one item is raised here once all have finished.
     """
-    if threads == 1 or len(items) < 2:
-        return [fn(*item) for item in items]
-    with refine.cpu_single_thread(device), ThreadPoolExecutor(min(threads, len(items))) as pool:
-        futures = [pool.submit(fn, *item) for item in items]
-        return [f.result() for f in futures]
+    with refine.cpu_single_thread(device):
+        if threads == 1 or len(items) < 2:
+            return [fn(*item) for item in items]
+        with ThreadPoolExecutor(min(threads, len(items))) as pool:
+            futures = [pool.submit(fn, *item) for item in items]
+            return [f.result() for f in futures]
 
 
 def rotation_onto(S: torch.Tensor, S0: torch.Tensor) -> torch.Tensor:
@@ -487,9 +490,11 @@ class MixtureResult:
         Q: per group ``(3, 3)``: the rotation of its shape (and cameras) into the class frame (group 0's).
         agreement_deg: :func:`frame_agreement` of the kept groups (0 for one group).
         candidates: every split tried: ``{"k", "init", "sizes", "sse_px2", "cut", "agreement_deg",
-            "eligible", "kept"}``, and once its EM ran, ``"rounds"`` (rounds run), ``"moved"``
-            (objects that changed group after each round) and ``"settled"`` (whether the last
-            round moved at most :data:`EM_SETTLED` of the objects; False: stopped at ``rounds``).
+            "eligible", "kept"}``, and once its EM ran, ``"rounds"`` (EM rounds run, each a fit of
+            every group and a re-assignment; the last one scores the final labels, so at most
+            ``rounds + 1`` of :func:`fit_mixture_of_shapes`'s ``rounds``), ``"moved"`` (objects
+            that changed group after each round) and ``"settled"`` (whether the last round moved
+            at most :data:`EM_SETTLED` of the objects; False: stopped at the cap).
         single: the one-shape SfM of the whole class (always run first).
         note: why no split was tried (``None`` when one was).
     """

@@ -338,11 +338,13 @@ def test_fit_on_two_threads_equals_the_fit_on_one(two_shapes, monkeypatch):
 
 
 def test_an_error_on_a_worker_thread_reaches_the_caller(two_shapes, monkeypatch):
+    import threading
+
     coll, both, dist, R, truth, fitted = two_shapes
     monkeypatch.setattr(mix, "THREADS_MIN_OBJECTS", 1)
 
     def broken(sub, init_shape=None):
-        if len(sub) < len(both):  # the groups' SfM, on the workers; not the class's own
+        if threading.current_thread() is not threading.main_thread():  # only on the workers
             raise RuntimeError("solver exploded")
         return _sfm(sub, init_shape)
 

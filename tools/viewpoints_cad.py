@@ -28,7 +28,9 @@ sys.path.insert(0, str(ROOT))
 
 
 def _per_model(annotations: Path, viewpoints: dict) -> dict:
-    """Median geodesic error per CAD model: ``{class: {model: {"n", "sfm", "refined"}}}`` (degrees)."""
+    """Median geodesic error per CAD model: ``{class: {model: {"n", "sfm", "refined"}}}`` (degrees);
+    where some views have no SfM camera also ``"refined_with_sfm"``: the model's views that have
+    one, under the alignment of those views (the class rows' SfM -> refined comparison)."""
     import json
     from statistics import median
 
@@ -37,7 +39,7 @@ def _per_model(annotations: Path, viewpoints: dict) -> dict:
     out = {}
     for cls, per in sorted(viewpoints.items()):
         rows = {}
-        for stage in ("sfm", "refined"):
+        for stage in ("sfm", "refined", "refined_with_sfm"):
             rep = per.get("estimated", {}).get(stage)
             if not rep:
                 continue
