@@ -104,6 +104,7 @@ __all__ = [
     "imprinted_visual_hull",
     "carve_proposals",
     "carve_proposals_loop",
+    "INTERPOLATIONS",
     "CarveMaps",
     "prepare_maps",
     "extend_maps",
@@ -631,14 +632,19 @@ def _column_coords(G: torch.Tensor, h: torch.Tensor, w: torch.Tensor) -> tuple[t
     return x, y
 
 
-def _grid_sample(maps: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """The one call into ``grid_sample``: bilinear, ``padding_mode="border"``, ``align_corners=True``."""
-    return F.grid_sample(maps, grid, mode="bilinear", padding_mode="border", align_corners=True)
+#: The maps' interpolations :func:`carve_proposals` offers (``interpolation``).
+INTERPOLATIONS = ("bilinear", "nearest")
+
+
+def _grid_sample(maps: torch.Tensor, grid: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
+    """The one call into ``grid_sample``: ``mode`` (:data:`INTERPOLATIONS`), ``padding_mode="border"``,
+    ``align_corners=True``."""
+    return F.grid_sample(maps, grid, mode=mode, padding_mode="border", align_corners=True)
 
 
 def _sample_columns(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor, torch.Tensor], depth: torch.Tensor,
-                    out: torch.Tensor | None = None) -> torch.Tensor:
-    """Bilinear samples of ``maps`` at the voxels of some columns.
+                    out: torch.Tensor | None = None, mode: str = "bilinear") -> torch.Tensor:
+    """Samples of ``maps`` (interpolated as ``mode``) at the voxels of some columns.
 
     The coordinates of voxel ``(d, column)`` are ``G[:, :, 0] d + xy[column]``, written
     as two planes ``(N, 2, D, K)`` (two vectorised broadcast adds) and handed to
@@ -661,11 +667,11 @@ def _sample_columns(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor,
     planes = out.view(-1)[: N * 2 * D * K].view(N, 2, D, K)
     for i in range(2):
         torch.add(G[:, i, 0, None, None] * depth[None, :, None], xy[i][:, None, :], out=planes[:, i])
-    return _grid_sample(maps, planes.permute(0, 2, 3, 1))[:, 0]
+    return _grid_sample(maps, planes.permute(0, 2, 3, 1), mode)[:, 0]
 
 
 def _sample_columns_at(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor, torch.Tensor], d: torch.Tensor,
-                       out: torch.Tensor | None = None) -> torch.Tensor:
+                       out: torch.Tensor | None = None, mode: str = "bilinear") -> torch.Tensor:
     """Bilinear samples of ``maps`` at voxels ``(d[:, l, k], column k)``: each column its own depths.
 
     Same arithmetic as :func:`_sample_columns` (``G[:, :, 0] d``, then plus the column
@@ -688,11 +694,11 @@ def _sample_columns_at(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tens
     for i in range(2):
         torch.mul(G[:, i, 0, None, None], d, out=planes[:, i])
         planes[:, i] += xy[i][:, None, :]
-    return _grid_sample(maps, planes.permute(0, 2, 3, 1))[:, 0]
+    return _grid_sample(maps, planes.permute(0, 2, 3, 1), mode)[:, 0]
 
 
 def _sample_points(maps: torch.Tensor, G: torch.Tensor, d: torch.Tensor, h: torch.Tensor,
-                   w: torch.Tensor) -> torch.Tensor:
+                   w: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Bilinear samples of ``maps`` at voxels ``(d, h, w)``, ``(N, K)`` float32 indices each.
 
     Same arithmetic as :func:`_sample_columns` (``G[:, :, 0] d`` plus the column term of
@@ -703,7 +709,7 @@ def _sample_points(maps: torch.Tensor, G: torch.Tensor, d: torch.Tensor, h: torc
     xy = _column_coords(G, h, w)
     for i in range(2):
         torch.add(G[:, i, 0, None] * d, xy[i], out=planes[:, i])
-    return _grid_sample(maps, planes.permute(0, 2, 1)[:, None])[:, 0, 0]
+    return _grid_sample(maps, planes.permute(0, 2, 1)[:, None], mode)[:, 0, 0]
 
 
 def _label(cost: torch.Tensor, column_cost: torch.Tensor, imprint: bool
@@ -775,13 +781,13 @@ def _prepare(maps: CarveMaps, reference: torch.Tensor, views: torch.Tensor, reso
     return maps.ext, ref_m, views_m, T, (G if keep_double else G.float()), G_ref.float(), scale.float()
 
 
-def _reference_columns(ext, ref_u, G_ref, H_grid, W_grid):
+def _reference_columns(ext, ref_u, G_ref, H_grid, W_grid, mode="bilinear"):
     """``(B, H_grid * W_grid)`` reference cost at every column centre."""
     B = ref_u.shape[0]
     h, w = _column_hw(torch.arange(H_grid * W_grid, device=ext.device).expand(B, -1), W_grid)
     xy = _column_coords(G_ref, h, w)
     zero = torch.zeros(1, device=ext.device, dtype=torch.float32)
-    return _sample_columns(ext[ref_u][:, None], G_ref, xy, zero)[:, 0]
+    return _sample_columns(ext[ref_u][:, None], G_ref, xy, zero, mode=mode)[:, 0]
 
 
 def _lipschitz(ext: torch.Tensor) -> torch.Tensor:
@@ -805,10 +811,10 @@ class _Chunk:
     (known on the host, so building a chunk reads nothing back from the device).
     """
 
-    def __init__(self, ext, views_c, scale_c, G_c, column_cost_c, n, slots):
+    def __init__(self, ext, views_c, scale_c, G_c, column_cost_c, n, slots, mode="bilinear"):
         self.maps = [ext[views_c[:, j]][:, None] * scale_c[:, j, None, None, None] if used else None
                      for j, used in enumerate(slots)]
-        self.G, self.column_cost, self.n = G_c, column_cost_c, n
+        self.G, self.column_cost, self.n, self.mode = G_c, column_cost_c, n, mode
 
     def columns(self, cols: torch.Tensor, depth: torch.Tensor, buf=None) -> torch.Tensor:
         """Exact ``C`` at ``depth (D,)`` of flat columns ``cols (N, K)``: ``(N, D, K)`` float32."""
@@ -816,7 +822,8 @@ class _Chunk:
         acc = None
         for j, maps in enumerate(self.maps):
             if maps is not None:
-                sample = _sample_columns(maps, self.G[:, j], _column_coords(self.G[:, j], h, w), depth, out=buf)
+                sample = _sample_columns(maps, self.G[:, j], _column_coords(self.G[:, j], h, w), depth, out=buf,
+                                         mode=self.mode)
                 acc = sample if acc is None else torch.maximum(acc, sample, out=acc)
         col = self.column_cost.gather(1, cols)[:, None, :]
         return col.expand(-1, depth.shape[0], -1).contiguous() if acc is None else torch.maximum(acc, col, out=acc)
@@ -827,7 +834,8 @@ class _Chunk:
         acc = None
         for j, maps in enumerate(self.maps):
             if maps is not None:
-                sample = _sample_columns_at(maps, self.G[:, j], _column_coords(self.G[:, j], h, w), d, out=buf)
+                sample = _sample_columns_at(maps, self.G[:, j], _column_coords(self.G[:, j], h, w), d, out=buf,
+                                            mode=self.mode)
                 acc = sample if acc is None else torch.maximum(acc, sample, out=acc)
         col = self.column_cost.gather(1, cols)[:, None, :]
         return col.expand_as(d).contiguous() if acc is None else torch.maximum(acc, col, out=acc)
@@ -838,7 +846,7 @@ class _Chunk:
         acc = None
         for j, maps in enumerate(self.maps):
             if maps is not None:
-                sample = _sample_points(maps, self.G[:, j], df, hf, wf)
+                sample = _sample_points(maps, self.G[:, j], df, hf, wf, self.mode)
                 acc = sample if acc is None else torch.maximum(acc, sample, out=acc)
         col = self.column_cost.gather(1, h * self.n + w)
         return col.clone() if acc is None else torch.maximum(acc, col, out=acc)
@@ -1065,7 +1073,7 @@ def _carve_chunk_coarse_to_fine(chunk: _Chunk, fg: torch.Tensor, tol: torch.Tens
 def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: torch.Tensor, views: torch.Tensor, *,
                     resolution: int = 60, imprint: bool = True, max_batch_voxels: int | None = None,
                     return_cost: bool = False, coarse_to_fine: bool = False,
-                    depth_intervals: bool = False) -> ProposalGrids:
+                    depth_intervals: bool = False, interpolation: str = "bilinear") -> ProposalGrids:
     """Carve the imprinted visual hulls of ``B`` proposals in one batched computation.
 
     Proposal ``b`` carves reference map ``reference[b]`` with the maps ``views[b]``
@@ -1103,9 +1111,15 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
             mask boxes allow (21% fewer samples on the pipeline's proposals). Off by
             default: on the CPU its bookkeeping costs more than the samples save (1.2-1.4x
             slower, ``docs/benchmarks/README.md``); to be measured on CUDA by the benchmark.
+        interpolation: how the distance maps are read at a voxel's projection (:data:`INTERPOLATIONS`):
+            ``"bilinear"`` (the default, the reference implementation's) or ``"nearest"`` (the
+            pixel the voxel falls in: a cheaper sample, an approximation of the bilinear labels;
+            measured in docs/benchmarks/README.md). Neither ``coarse_to_fine`` nor
+            ``depth_intervals`` with ``"nearest"``: their bounds assume continuous maps.
 
     Returns:
-        :class:`ProposalGrids`; voxel for voxel equal to :func:`carve_proposals_loop`.
+        :class:`ProposalGrids`; voxel for voxel equal to :func:`carve_proposals_loop` with the
+        same ``interpolation``.
 
     Example:
         >>> masks = torch.zeros(2, 32, 32, dtype=torch.bool); masks[:, 8:24, 10:22] = True
@@ -1114,6 +1128,11 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
         >>> out.occupancy.shape, bool(out.empty[0])
         (torch.Size([1, 16, 16, 16]), False)
     """
+    if interpolation not in INTERPOLATIONS:
+        raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
+    if interpolation != "bilinear" and (coarse_to_fine or depth_intervals):
+        raise ValueError("coarse_to_fine and depth_intervals bound the bilinear maps; they do not take "
+                         f"interpolation={interpolation!r}")
     maps, reference, views = _as_maps(sdf, cameras, reference, views, resolution)
     dev = maps.device
     if max_batch_voxels is None:
@@ -1129,7 +1148,7 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
                              z[:, 0], torch.zeros(0, n, n, device=dev), z.float() if return_cost else None, z[:, 0])
     ext, ref_u, views_u, T, G, G_ref, scale = _prepare(maps, reference, views, resolution, keep_double=True)
     G64, G = G, G.float()
-    column_cost = _reference_columns(ext, ref_u, G_ref, n, n)  # (B, HW)
+    column_cost = _reference_columns(ext, ref_u, G_ref, n, n, interpolation)  # (B, HW)
     fg = column_cost < 0
     depth = torch.arange(n, device=dev, dtype=torch.float32)
     coarse_to_fine = coarse_to_fine and not return_cost
@@ -1173,7 +1192,8 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
         bits = 0
         for c in packed[start - size:start]:
             bits |= c
-        chunk = _Chunk(ext, views_u[idx], scale[idx], G[idx], column_cost[idx], n, [bool(bits >> j & 1) for j in range(V)])
+        chunk = _Chunk(ext, views_u[idx], scale[idx], G[idx], column_cost[idx], n, [bool(bits >> j & 1) for j in range(V)],
+                       interpolation)
         if coarse_to_fine:
             occ_c, nonempty[idx] = _carve_chunk_coarse_to_fine(chunk, fg[idx], tol[idx], slack[idx], imprint)
             occ[idx] = occ_c.view(-1, n, HW)
@@ -1209,7 +1229,7 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
 
 def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: torch.Tensor, views: torch.Tensor,
                          *, resolution: int = 60, imprint: bool = True,
-                         reference_every_voxel: bool = False) -> ProposalGrids:
+                         reference_every_voxel: bool = False, interpolation: str = "bilinear") -> ProposalGrids:
     """Reference implementation of :func:`carve_proposals`: one proposal, one view at a time.
 
     The structure of a straightforward implementation: each proposal on its own, its
@@ -1230,6 +1250,8 @@ def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, referen
 
     Args and returns: as :func:`carve_proposals`.
     """
+    if interpolation not in INTERPOLATIONS:
+        raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
     prepared = isinstance(sdf, CarveMaps)
     from_masks = not prepared and isinstance(sdf, torch.Tensor) and sdf.dtype == torch.bool
     if from_masks and sdf.dim() != 3:
@@ -1254,9 +1276,10 @@ def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, referen
         else:
             one, ref_b, views_b = _as_maps(sdf, cameras, reference[b:b + 1], views[b:b + 1], resolution)
         ext, ref_u, views_u, T, G, G_ref, scale = _prepare(one, ref_b, views_b, resolution)
-        column_cost = _reference_columns(ext, ref_u, G_ref, n, n)  # (1, HW)
+        column_cost = _reference_columns(ext, ref_u, G_ref, n, n, interpolation)  # (1, HW)
         if reference_every_voxel:
-            acc = _sample_columns(ext[ref_u][:, None], G_ref, _column_coords(G_ref, h, w), depth)  # (1, D, HW)
+            acc = _sample_columns(ext[ref_u][:, None], G_ref, _column_coords(G_ref, h, w), depth,
+                                  mode=interpolation)  # (1, D, HW)
         else:
             acc = column_cost[:, None, :].expand(1, n, n * n).clone()  # (1, D, HW)
         for j in range(V):
@@ -1264,12 +1287,12 @@ def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, referen
                 continue
             view_map = ext[views_u[:, j]][:, None] * scale[:, j, None, None, None]
             xy = _column_coords(G[:, j], h, w)
-            acc = torch.maximum(acc, _sample_columns(view_map, G[:, j], xy, depth))
+            acc = torch.maximum(acc, _sample_columns(view_map, G[:, j], xy, depth, mode=interpolation))
         occ, _, _ = _label(acc, column_cost, imprint)
         grids.append((occ, T.float(), column_cost, acc))
     if B == 0:
         return carve_proposals(signed_distance(sdf) if from_masks else sdf, cameras, reference, views,
-                               resolution=resolution, return_cost=True)
+                               resolution=resolution, return_cost=True, interpolation=interpolation)
     occ, T, column_cost, acc = (torch.cat(x) for x in zip(*grids))
     occupancy = occ.view(B, n, n, n)
     return ProposalGrids(

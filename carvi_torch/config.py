@@ -128,6 +128,10 @@ class Config:
     """Voxel grid steps per axis."""
     imprint: bool = True
     """Imprint the reference silhouette (``False`` = the -SImp ablation)."""
+    carve_interpolation: str = "bilinear"
+    """How the carving reads the distance maps at a voxel's projection: ``bilinear`` (the paper's) or
+    ``nearest`` (the pixel it falls in: about 1.7x faster carving on the CPU, an approximation;
+    docs/benchmarks/README.md)."""
     max_batch_voxels: int = 50_000_000
     """Upper bound on voxels x views carved in one batched chunk (bounds memory); the carving never uses more than its per-device default (2^20 on CPU, the measured best on 2 cores; 2^25 on CUDA), so only smaller values change anything."""
 
@@ -173,6 +177,8 @@ class Config:
             raise ConfigError(f"stage must be 'all' or 'cameras', got {self.stage!r}")
         if self.cameras not in ("estimate", "gt"):
             raise ConfigError(f"cameras must be 'estimate' or 'gt', got {self.cameras!r}")
+        if self.carve_interpolation not in ("bilinear", "nearest"):
+            raise ConfigError(f"carve_interpolation must be 'bilinear' or 'nearest', got {self.carve_interpolation!r}")
         if self.mesh_format not in ("ply", "obj", "glb"):
             raise ConfigError(f"mesh_format must be ply, obj or glb, got {self.mesh_format!r}")
         for name in ("canvas_size", "resolution", "proposals", "plane_size", "refine_iters", "sfm_max_outer",

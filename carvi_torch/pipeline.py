@@ -735,7 +735,8 @@ def _carve_and_select(ids: torch.Tensor, plan: _ClassPlan, cfg: Config, report: 
     keep = flat_valid.nonzero().squeeze(1)
     with _timed(report, "carve", device):
         grids = carve.carve_proposals(plan.maps, None, flat_ref[keep], flat_views[keep], resolution=cfg.resolution,
-                                      imprint=cfg.imprint, max_batch_voxels=_carve_batch_voxels(cfg, device))
+                                      imprint=cfg.imprint, max_batch_voxels=_carve_batch_voxels(cfg, device),
+                                      interpolation=cfg.carve_interpolation)
     with _timed(report, "select", device):
         kept_ref = flat_ref[keep]
         ref_cams = plan.cams[kept_ref]

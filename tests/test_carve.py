@@ -118,8 +118,9 @@ def random_cameras(n: int, size: int, gen: torch.Generator) -> ScaledOrthographi
 
 
 def brute_force(sdf: torch.Tensor, cams: ScaledOrthographic, T: torch.Tensor, reference: int, views: list[int],
-                n: int, imprint: bool = True):
-    """Per-voxel float64 loop: C = max_m (s_r / s_m) bilinear(extended sdf_m, u_m); labels; imprinting."""
+                n: int, imprint: bool = True, nearest: bool = False, nudge: float = 0.0):
+    """Per-voxel float64 loop: C = max_m (s_r / s_m) bilinear(extended sdf_m, u_m) (``nearest``: the
+    extended map at the nearest pixel of ``u_m + nudge``); labels; imprinting."""
     S = sdf.double().clamp(-BIG, BIG).numpy()
     _, H, W = S.shape
     c64 = cams.to(dtype=torch.float64)
@@ -131,6 +132,8 @@ def brute_force(sdf: torch.Tensor, cams: ScaledOrthographic, T: torch.Tensor, re
     def bilinear(m, x, y):
         x = min(max(x, -PAD), W - 1 + PAD)
         y = min(max(y, -PAD), H - 1 + PAD)
+        if nearest:
+            return value(m, round(x + nudge), round(y + nudge))
         x0, y0 = math.floor(x), math.floor(y)
         fx, fy = x - x0, y - y0
         return ((1 - fx) * (1 - fy) * value(m, x0, y0) + fx * (1 - fy) * value(m, x0 + 1, y0)
@@ -365,6 +368,57 @@ def test_batched_equals_loop_voxel_for_voxel(imprint, n):
             assert torch.equal(out.cost, loop.cost)
     assert bool(loop.empty[3]) and not loop.occupancy[3].any()  # empty reference
     assert loop.occupancy.any() and (~loop.empty).sum() >= len(reference) // 2
+
+
+def test_nearest_interpolation_batched_equals_loop_and_brute_force():
+    """``interpolation="nearest"``: the batched carving equals the loop voxel for voxel (every
+    chunking, with and without imprinting), its costs equal a per-voxel float64 loop that reads the
+    nearest pixel, and its labels differ from the bilinear ones only in a thin layer."""
+    gen = torch.Generator().manual_seed(6)
+    sdf, cams, reference, views = random_proposals(gen)
+    n = 14
+    for imprint in (True, False):
+        loop = carve_proposals_loop(sdf, cams, reference, views, resolution=n, imprint=imprint, interpolation="nearest")
+        for mbv in (n ** 3, 10 ** 9):
+            out = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint, max_batch_voxels=mbv,
+                                  return_cost=True, interpolation="nearest")
+            assert torch.equal(out.occupancy, loop.occupancy) and torch.equal(out.cost, loop.cost)
+            assert torch.equal(out.column_cost, loop.column_cost)
+    bil = carve_proposals(sdf, cams, reference, views, resolution=n)
+    near = carve_proposals(sdf, cams, reference, views, resolution=n, interpolation="nearest")
+    differ = (bil.occupancy != near.occupancy).float().mean()
+    assert 0 < differ < 0.05, differ  # not the same computation, but close to it
+    gen = torch.Generator().manual_seed(5)
+    masks = blob_masks(3, 20, gen)
+    cams3 = random_cameras(3, 20, gen)
+    sdf3 = signed_distance(masks)
+    out = carve_proposals(sdf3, cams3, torch.tensor([1]), torch.tensor([[0, 2]]), resolution=7, return_cost=True,
+                          interpolation="nearest")
+    # a projection on a pixel edge (the grid is aligned with the reference, whose voxels can project
+    # exactly between two pixels) picks either pixel, whichever float rounding gives: the voxels
+    # whose cost does not depend on that are compared exactly
+    T = out.voxel_to_camera[0]
+    occ_lo, C_lo, _ = brute_force(sdf3, cams3, T, 1, [0, 2], 7, imprint=False, nearest=True, nudge=-1e-5)
+    occ_hi, C_hi, _ = brute_force(sdf3, cams3, T, 1, [0, 2], 7, imprint=False, nearest=True, nudge=1e-5)
+    clear = np.isclose(C_lo, C_hi, atol=1e-9)
+    assert clear.mean() > 0.5
+    assert np.allclose(out.cost[0].numpy()[clear], C_lo[clear], atol=1e-4)
+    ambiguous = ~clear  # there, one of the two readings
+    got = out.cost[0].numpy()[ambiguous]
+    assert (np.isclose(got, C_lo[ambiguous], atol=1e-4) | np.isclose(got, C_hi[ambiguous], atol=1e-4)).all()
+
+
+def test_nearest_interpolation_rejects_the_bounded_modes():
+    sdf = signed_distance(blob_masks(2, 16, torch.Generator().manual_seed(0)))
+    cams = random_cameras(2, 16, torch.Generator().manual_seed(0))
+    args = (sdf, cams, torch.tensor([0]), torch.tensor([[1]]))
+    for kw in (dict(coarse_to_fine=True), dict(depth_intervals=True)):
+        with pytest.raises(ValueError, match="interpolation"):
+            carve_proposals(*args, resolution=8, interpolation="nearest", **kw)
+    with pytest.raises(ValueError, match="interpolation"):
+        carve_proposals(*args, resolution=8, interpolation="bicubic")
+    with pytest.raises(ValueError, match="interpolation"):
+        carve_proposals_loop(*args, resolution=8, interpolation="bicubic")
 
 
 def test_coarse_to_fine_is_exact_on_many_proposals_and_on_any_maps():
