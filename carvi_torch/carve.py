@@ -50,7 +50,8 @@ Frames and units
   intersection) give the span between their intervals; the depth extent is at least
   one pixel. The depth extent is tiled like ``x`` and ``y``.
 * **Cone cost** ``C_m``: view ``m``'s sdf, bilinearly interpolated at ``u_m``
-  (``grid_sample``, ``align_corners=True``, pixel centres are sample points), times
+  (``grid_sample``, ``align_corners=True``, pixel centres are sample points; with
+  ``interpolation="nearest"``, the value at the pixel centre nearest ``u_m``), times
   ``s_r / s_m``: each map is in its own pixels, so dividing by its scale (object
   units) and multiplying by the reference scale expresses every ``C_m`` in reference
   pixels ("pixels over camera scale") and the max over views is meaningful.
@@ -672,7 +673,7 @@ def _sample_columns(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor,
 
 def _sample_columns_at(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor, torch.Tensor], d: torch.Tensor,
                        out: torch.Tensor | None = None, mode: str = "bilinear") -> torch.Tensor:
-    """Bilinear samples of ``maps`` at voxels ``(d[:, l, k], column k)``: each column its own depths.
+    """Samples of ``maps`` (interpolated as ``mode``) at voxels ``(d[:, l, k], column k)``: each column its own depths.
 
     Same arithmetic as :func:`_sample_columns` (``G[:, :, 0] d``, then plus the column
     term), so a voxel gets the same value bit for bit.
@@ -699,7 +700,7 @@ def _sample_columns_at(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tens
 
 def _sample_points(maps: torch.Tensor, G: torch.Tensor, d: torch.Tensor, h: torch.Tensor,
                    w: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
-    """Bilinear samples of ``maps`` at voxels ``(d, h, w)``, ``(N, K)`` float32 indices each.
+    """Samples of ``maps`` (interpolated as ``mode``) at voxels ``(d, h, w)``, ``(N, K)`` float32 indices each.
 
     Same arithmetic as :func:`_sample_columns` (``G[:, :, 0] d`` plus the column term of
     :func:`_column_coords`), so a voxel gets the same value bit for bit. Returns ``(N, K)`` float32.

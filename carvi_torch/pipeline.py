@@ -1060,7 +1060,8 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
 
 #: Settings that do not change how an object is reconstructed (a rerun may differ in them freely;
 #: the input files are the user's choice, and resumed objects are matched by annotation id).
-_NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "overwrite", "classes", "stage", "device"}
+_NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "overwrite", "classes", "stage", "device",
+                     "sfm_group_threads"}  # the mixture fit's result is the same on any number of threads
 
 
 def _settings_changed(previous: Path, cfg: Config) -> dict:

@@ -624,7 +624,6 @@ def test_cuda_matches_cpu():
     assert grid.occupancy.is_cuda and grid.to_mesh().is_watertight
 
 
-
 @requires_cuda
 def test_cuda_nearest_matches_its_loop_and_the_cpu():
     """``interpolation="nearest"`` on CUDA: batched equals the CUDA loop voxel for voxel, and the CPU

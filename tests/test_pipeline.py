@@ -94,7 +94,7 @@ def test_meshes_overlay_their_masks(tiny):
 def test_rerun_skips_finished(tiny, tmp_path):
     out, summary = tiny
     before = {p: p.stat().st_mtime_ns for p in out.glob("*/meshes/*.ply")}
-    again = run(_cfg(out, preview=False))
+    again = run(_cfg(out, preview=False, sfm_group_threads=1))
     complete = []
     for cls, rep in again["classes"].items():
         assert rep["resumed"] == summary["classes"][cls]["reconstructed"]
@@ -105,7 +105,7 @@ def test_rerun_skips_finished(tiny, tmp_path):
             assert not {"carve", "select"} & set(rep["seconds"]), (cls, rep["seconds"])
     assert complete, "no class was complete after the first run: the check above did not run"
     assert before == {p: p.stat().st_mtime_ns for p in out.glob("*/meshes/*.ply")}
-    assert "resumed_from_other_settings" not in again  # only `preview` differed: neutral
+    assert "resumed_from_other_settings" not in again  # only `preview` and the fit's threads differed: neutral
 
 
 def test_rerun_with_other_settings_says_so(tiny, tmp_path, capsys):
@@ -136,8 +136,8 @@ def test_same_seed_same_voxels(tiny, tmp_path):
 
 def test_nearest_pixel_carving_stays_close_to_bilinear(tiny, tmp_path):
     """``carve_interpolation=nearest`` through the pipeline: the same objects reconstructed, on the
-    same voxel grids, with labels that differ from the bilinear run's only near the surface
-    (the synthetic benchmark's error figures: docs/benchmarks/README.md)."""
+    same voxel grids, with labels that differ from the bilinear run's in some voxels, under 2% of
+    them (the synthetic benchmark's error figures: docs/benchmarks/README.md)."""
     out, summary = tiny
     other = tmp_path / "nearest"
     res = run(_cfg(other, classes=["car"], preview=False, carve_interpolation="nearest"))
