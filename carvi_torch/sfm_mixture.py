@@ -96,8 +96,9 @@ EM_SETTLED = 0.0025
 #: objects. The solvers are chains of small tensor ops; torch releases the interpreter lock inside
 #: each, but on a small class the ops are so short that the two threads mostly wait for the lock
 #: and for each other's wake-ups. Measured (2 cores, 1 intra-op thread each, three proportions,
-#: ``sfm_groups=3``; docs/viewpoints.md): 150 objects 1.32x slower on two threads, 400 about even,
-#: 700 1.10x faster, 2,000 1.43-1.47x faster; the CAD sofa renders (180 objects) 1.14-1.25x slower.
+#: ``sfm_groups=3``; ``tools/bench_viewpoints.py --threads-min-objects 0``, docs/viewpoints.md):
+#: 150 objects 1.21x slower on two threads, 400 1.07x slower, 700 1.10x faster, 2,000 1.43-1.47x
+#: faster; the CAD sofa renders (180 objects, a scratch run) 1.14-1.25x slower.
 THREADS_MIN_OBJECTS = 500
 
 #: ``(ClassCollection, init_shape=None) -> SfMResult``: the rigid SfM of a collection with the run's

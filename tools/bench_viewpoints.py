@@ -20,13 +20,15 @@ lower bound on what the option costs on a class that does split; ``--shapes 3`` 
 (every third instance stretched longer and lower, every third shorter and taller), so the fit
 also tries three groups. The fit runs each ``k``'s two initialisations on ``--group-threads``
 Python threads (the pipeline's ``sfm_group_threads``); ``--one-thread-too`` also times it on one
-and checks that the result is the same, ``--cold-too`` also times it without its warm starts,
+and checks that the result is the same (below ``sfm_mixture.THREADS_MIN_OBJECTS`` objects the fit
+stays on one thread; ``--threads-min-objects 0`` lifts that, to measure what threads do to a
+small class), ``--cold-too`` also times it without its warm starts,
 both in the same run. Then every group's cameras are refined with its own mean shape, as the
 pipeline does (``pipeline.refine_groups``; ``--max-iters`` steps); "stage with mixture" is the
 one-shape SfM, the fit and that refinement.
 
     python tools/bench_viewpoints.py [--n 2000] [--device cpu] [--groups 1] [--shapes 1] [--cold-too]
-                                   [--group-threads 2] [--one-thread-too]
+                                   [--group-threads 2] [--one-thread-too] [--threads-min-objects N]
                                    [--out docs/benchmarks/viewpoints.json]
 """
 from __future__ import annotations
@@ -53,6 +55,7 @@ from carvi_torch.pipeline import group_sfm_cameras, refine_groups  # noqa: E402
 from carvi_torch.refine import refine_cameras, supported_shape  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
 from carvi_torch.sfm import rigid_sfm  # noqa: E402
+from carvi_torch import sfm_mixture  # noqa: E402
 from carvi_torch.sfm_mixture import fit_mixture_of_shapes  # noqa: E402
 from carvi_torch.viewpoint_metrics import viewpoint_report  # noqa: E402
 
@@ -151,6 +154,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--group-threads", type=int, default=Config().sfm_group_threads,
                     help="with --groups: Python threads of the mixture fit (its initialisations side by side; "
                          "default the pipeline's sfm_group_threads, %(default)s)")
+    ap.add_argument("--threads-min-objects", type=int, default=None,
+                    help="with --groups: the class size from which the fit uses its threads "
+                         "(default sfm_mixture.THREADS_MIN_OBJECTS; 0: always, to measure small classes)")
     ap.add_argument("--one-thread-too", action="store_true",
                     help="with --groups: also time the warm fit on one Python thread, in the same run, and check "
                          "that it gives the same result")
@@ -195,6 +201,8 @@ def main(argv=None) -> dict:
     if args.groups > 1:
         cfg = Config()
         mixture = {}
+        if args.threads_min_objects is not None:
+            sfm_mixture.THREADS_MIN_OBJECTS = args.threads_min_objects
         variants = [("warm", True, args.group_threads)]
         if args.one_thread_too and args.group_threads != 1:
             variants.append(("warm_one_thread", True, 1))
@@ -273,6 +281,7 @@ def main(argv=None) -> dict:
                        "energy_raised": int((ref.energy_after > ref.energy_before).sum())},
         "viewpoint_error_deg": {"sfm": rep_sfm, "refined": rep_ref},
         "mixture_fit": mixture,
+        "threads_min_objects": sfm_mixture.THREADS_MIN_OBJECTS,
         "target_seconds_sfm_plus_refinement": 60.0,
     }
     rows = [("distance maps", t_dist), ("rigid SfM", t_sfm), ("refinement", t_ref), ("SfM + refinement", t_sfm + t_ref)]
