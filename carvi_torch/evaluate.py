@@ -75,9 +75,10 @@ def _load_recon_mesh(recon: Path, cls: str, aid: int) -> trimesh.Trimesh | None:
 def _viewpoints(recon: Path, cls: str, gt_entries: dict, aids: list[int]) -> dict | None:
     """Viewpoint reports of one class: ``sfm`` (objects with an SfM camera), ``refined`` (every
     object with a final camera) and, when ``refined`` holds objects without an SfM camera,
-    ``refined_with_sfm``: the refined cameras of the objects that also have an SfM camera. Objects without an SfM camera get theirs from the
-    unseen-image path, not from refinement; ``refined_with_sfm`` is the before/after comparison
-    of the refinement itself. Each report is aligned with its own global rotation."""
+    ``refined_with_sfm``: the refined cameras of the objects that also have an SfM camera.
+    Objects without an SfM camera get theirs from the unseen-image path, not from refinement;
+    ``refined_with_sfm`` is the before/after comparison of the refinement itself. Each report is
+    aligned with its own global rotation."""
     p = recon / cls / "cameras.json"
     if not p.is_file():
         return None

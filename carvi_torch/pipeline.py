@@ -147,12 +147,18 @@ def class_refine(shape: torch.Tensor, cams: ScaledOrthographic, both: ClassColle
                                  twin_flatness=cfg.refine_twin_flatness)
 
 
+def _unseen_shape(shape: torch.Tensor, both: ClassCollection, cfg: Config) -> torch.Tensor:
+    """The mean shape the unseen-image path fits to ``both``'s rows: without the keypoints fewer than
+    ``refine_min_support`` of them show (:func:`carvi_torch.refine.supported_shape`, support over all of ``both``)."""
+    return refine.supported_shape(shape, both.visible, cfg.refine_min_support)
+
+
 def cameras_from_mean_shape(shape: torch.Tensor, cams: ScaledOrthographic, idx: torch.Tensor, both: ClassCollection,
                             dist: torch.Tensor, cfg: Config) -> ScaledOrthographic:
     """``cams`` with the cameras of rows ``idx`` replaced by the unseen-image estimate from ``shape``."""
     if idx.numel() == 0:
         return cams
-    shape = refine.supported_shape(shape, both.visible, cfg.refine_min_support)  # support over all of ``both``
+    shape = _unseen_shape(shape, both, cfg)
     est, _energy = refine.estimate_camera(shape, both.keypoints[idx], both.visible[idx], dist[idx],
                                           silhouette_robust=cfg.silhouette_robust or None)
     R, s, t = cams.R.clone(), cams.s.clone(), cams.t.clone()
@@ -240,20 +246,18 @@ def keypoints_left_out(mix: sfm_mixture.MixtureResult, both: ClassCollection, cf
 def unseen_keypoints(mix: sfm_mixture.MixtureResult, missing: torch.Tensor, both: ClassCollection,
                      cfg: Config) -> torch.Tensor:
     """``(2N,)`` long: for the rows ``missing`` (the unseen-image path), how many of their visible
-    keypoints have a row in the mean shape the path uses (its group's, with the refinement's
-    support rule, as :func:`cameras_from_mean_shape`); -1 elsewhere. 0 means the camera is fitted
-    to the silhouette alone."""
+    keypoints have a row in the mean shape the path fits (its group's, :func:`_unseen_shape`);
+    -1 elsewhere. 0 means the camera is fitted to the silhouette alone."""
     count = torch.full((len(both),), -1, dtype=torch.long, device=missing.device)
-
-    def per_group(g, rows):
-        sub = _rows(both, rows)
-        S = refine.supported_shape(mix.shape(g), sub.visible, cfg.refine_min_support)
-        seen = (sub.visible & torch.isfinite(sub.keypoints).all(-1) & torch.isfinite(S).all(-1)).sum(-1)
-        at = torch.arange(len(both), device=missing.device) if rows is None else rows
-        count[at] = torch.where(missing[at], seen, count[at])
-
     for g in range(mix.k):
-        per_group(g, None if mix.k == 1 else mix.groups[g][0])
+        rows = None if mix.k == 1 else mix.groups[g][0]
+        sub = _rows(both, rows)
+        S = _unseen_shape(mix.shape(g), sub, cfg)
+        seen = (sub.visible & torch.isfinite(sub.keypoints).all(-1) & torch.isfinite(S).all(-1)).sum(-1)
+        if rows is None:
+            count = torch.where(missing, seen, count)
+        else:
+            count[rows] = torch.where(missing[rows], seen, count[rows])
     return count
 
 
