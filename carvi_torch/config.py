@@ -133,7 +133,7 @@ class Config:
     ``nearest`` (the pixel it falls in: 1.75-1.9x faster carving on the CPU, an approximation;
     docs/benchmarks/README.md)."""
     max_batch_voxels: int = 50_000_000
-    """Upper bound on voxels x views carved in one batched chunk (bounds memory); the carving never uses more than its per-device default (2^20 on CPU, the measured best on 2 cores; 2^25 on CUDA), so only smaller values change anything."""
+    """Upper bound on voxels x views carved in one batched chunk (bounds memory); the carving never uses more than its per-device default (``carve.default_batch_voxels``: 2^19 per thread on CPU, the measured best with 1 and 2 threads; 2^25 on CUDA), so only smaller values change anything."""
 
     # ---- selection and meshes
     plane_size: int = 64

@@ -685,7 +685,7 @@ def _chunk_objects(cfg: Config, device: torch.device) -> int:
 
 def _carve_batch_voxels(cfg: Config, device: torch.device) -> int:
     """Voxels per carving chunk: the config's bound, and at most the device default of the carving."""
-    best = carve._DEFAULT_BATCH_VOXELS.get(device.type, carve._DEFAULT_BATCH_VOXELS["cuda"])
+    best = carve.default_batch_voxels(device)
     return max(1, min(int(cfg.max_batch_voxels), best))
 
 

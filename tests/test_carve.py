@@ -788,3 +788,44 @@ def test_depth_intervals_only_skip_exterior_voxels(steep):
     outside = (d < lo[:, None, :]) | (d > hi[:, None, :])  # (B, n, HW)
     assert outside.float().mean() > 0.1  # the intervals do skip voxels
     assert bool((loop.cost.view(len(reference), n, -1)[outside] >= 0).all())
+
+
+def test_foreground_first_is_the_stable_argsort():
+    from carvi_torch.carve import _foreground_first
+    gen = torch.Generator().manual_seed(3)
+    fg = torch.rand(9, 37, generator=gen) < 0.5
+    fg[0] = True  # every column foreground
+    fg[1] = False  # none
+    fg[2, :5] = True
+    fg[2, 5:] = False
+    got = _foreground_first(fg)
+    want = torch.from_numpy(np.argsort((~fg).numpy(), axis=1, kind="stable"))
+    assert torch.equal(got, want)
+    # a permutation of every row, foreground first, each part ascending
+    count = fg.sum(1)
+    for b in range(fg.shape[0]):
+        k = int(count[b])
+        assert sorted(got[b].tolist()) == list(range(37))
+        assert bool(fg[b, got[b, :k]].all()) and not bool(fg[b, got[b, k:]].any())
+        for part in (got[b, :k], got[b, k:]):
+            assert bool((part[1:] > part[:-1]).all())
+
+
+def test_default_batch_voxels_scales_with_threads_and_is_bounded():
+    from carvi_torch.carve import default_batch_voxels
+    before = torch.get_num_threads()
+    try:
+        seen = {}
+        for t in (1, 2, 3, 64):
+            torch.set_num_threads(t)
+            seen[t] = default_batch_voxels("cpu")
+    finally:
+        torch.set_num_threads(before)
+    assert seen[1] == 2 ** 19 and seen[2] == 2 ** 20 and seen[3] == 3 * 2 ** 19 and seen[64] == 2 ** 21
+    assert default_batch_voxels("cuda") == default_batch_voxels(torch.device("cuda", 0)) == 2 ** 25
+    # the chunking never changes the labels (cf. test_batched_equals_loop_voxel_for_voxel)
+    gen = torch.Generator().manual_seed(8)
+    sdf, cams, reference, views = random_proposals(gen)
+    a = carve_proposals(sdf, cams, reference, views, resolution=12)
+    b = carve_proposals(sdf, cams, reference, views, resolution=12, max_batch_voxels=12 ** 2)
+    assert torch.equal(a.occupancy, b.occupancy) and torch.equal(a.columns, b.columns)

@@ -152,7 +152,7 @@ def main(argv=None):
     reference, views = proposals(n_obj, per, gen)
     sdf = signed_distance(masks).to(device)
     cams, reference, views = cams.to(device), reference.to(device), views.to(device)
-    mbv = args.max_batch_voxels or C._DEFAULT_BATCH_VOXELS.get(device.type, C._DEFAULT_BATCH_VOXELS["cuda"])
+    mbv = args.max_batch_voxels or C.default_batch_voxels(device)
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     t_prepare = best_of(lambda: C.prepare_maps(sdf, cams), args.repeat, device)
