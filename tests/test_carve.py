@@ -829,3 +829,19 @@ def test_default_batch_voxels_scales_with_threads_and_is_bounded():
     a = carve_proposals(sdf, cams, reference, views, resolution=12)
     b = carve_proposals(sdf, cams, reference, views, resolution=12, max_batch_voxels=12 ** 2)
     assert torch.equal(a.occupancy, b.occupancy) and torch.equal(a.columns, b.columns)
+
+
+@pytest.mark.parametrize("width", [4, 11, 60, 517, 2048])
+def test_column_hw_is_exact_integer_division(width):
+    from carvi_torch.carve import _column_hw
+    c = torch.arange(width * width)
+    h, w = _column_hw(c, width)
+    assert h.dtype == w.dtype == torch.float32
+    assert torch.equal(h.long(), torch.div(c, width, rounding_mode="floor")) and torch.equal(w.long(), c % width)
+
+
+def test_resolution_above_the_exact_column_bound_is_refused():
+    gen = torch.Generator().manual_seed(2)
+    sdf, cams, reference, views = random_proposals(gen)
+    with pytest.raises(ValueError, match=r"resolution must be an int in \[4, 2048\]"):
+        carve_proposals(sdf, cams, reference, views, resolution=2049)
