@@ -23,6 +23,9 @@ reconstructed by the pipeline itself (``prepare_class``, same seed as a run). Wr
 
     python tools/bench_changes.py --data outputs/bench/data/car1000_s0/annotations.json \\
         [--rev f39c310] [--pipeline outputs/bench/data/car200/annotations.json]
+
+``--carve-only --rev REV`` compares just the carving, both revisions called alike (see
+:func:`carving_same_call`), e.g. ``--rev ec551be`` for the chunking and indexing changes.
 """
 from __future__ import annotations
 
@@ -149,6 +152,46 @@ def functions(args) -> dict:
     return out
 
 
+def carving_same_call(args) -> dict:
+    """Old and new ``carve_proposals``, called alike: on the class's maps prepared once, per pipeline
+    chunk of references (each chunk's grids released before the next), each revision with its own
+    default chunk size; both interpolations; labels compared voxel for voxel.
+
+    For revisions that already take prepared maps (from the performance work on); the old module's
+    :class:`CarveMaps` is the new one, so both read the same object.
+    """
+    old_carve = old_module(args.rev, "carvi_torch/carve.py", "_old_carve")
+    old_carve.CarveMaps = C.CarveMaps
+    device = torch.device("cpu")
+    cfg = Config().override(dict(data=args.data, classes=[args.category], progress=False))
+    loaded = coco.load_coco(args.data, canvas_size=cfg.canvas_size, margin=cfg.canvas_margin, device=device,
+                            classes=[args.category])
+    coll = loaded.collections[args.category]
+    gen = torch.Generator().manual_seed(cfg.seed + pipeline._stable_hash(args.category))
+    plan, todo, _ = pipeline.prepare_class(coll, cfg, device, gen)
+    K = min(args.objects, len(todo))
+    ref, views, valid = pipeline.proposals_of(plan, torch.tensor(todo[:K]))
+    per_ref = valid.view(K, -1).sum(1).tolist()
+    ref, views = ref[valid], views[valid]
+    step = pipeline._chunk_objects(cfg, device)
+    bounds = [sum(per_ref[:a]) for a in range(0, K, step)] + [len(ref)]
+    out = {"objects": K, "pipeline_chunk_objects": step}
+    for mode in ("bilinear", "nearest"):
+        def run(mod, keep=False, mode=mode):
+            grids = []
+            for a, b in zip(bounds[:-1], bounds[1:]):
+                g = mod.carve_proposals(plan.maps, None, ref[a:b], views[a:b], resolution=cfg.resolution,
+                                        imprint=cfg.imprint, interpolation=mode)
+                if keep:
+                    grids.append(g.occupancy)
+                del g
+            return grids
+        same = all(torch.equal(x, y) for x, y in zip(run(old_carve, True), run(C, True)))
+        t = interleaved({"old": lambda: run(old_carve), "new": lambda: run(C)}, args.repeat)
+        out[mode] = {"old": t["old"] / K, "new": t["new"] / K, "ratio": t["old"] / t["new"], "identical": same}
+    return out
+
+
 def _peak_child(which: str, args) -> dict:
     """Seconds and peak memory of sample_triplets on ``--big`` instances, in a fresh process."""
     code = f"""
@@ -217,10 +260,29 @@ def main(argv=None):
     ap.add_argument("--pipeline", default=None, help="annotations.json for the end-to-end comparison")
     ap.add_argument("--work-dir", default=str(ROOT / "outputs" / "bench" / "changes"))
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "changes.json"))
+    ap.add_argument("--carve-only", action="store_true",
+                    help="only the carving, both revisions called alike on prepared maps, both interpolations "
+                         "(for revisions from the performance work on)")
     argv = list(sys.argv[1:] if argv is None else argv)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     load = os.getloadavg()
+    if args.carve_only:
+        result = {"command": " ".join(["python tools/bench_changes.py"] + [shlex.quote(a) for a in argv]),
+                  "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "torch": torch.__version__,
+                              "threads": args.threads, "load_average_at_start": list(load)},
+                  "carving": carving_same_call(args)}
+        result["machine"]["load_average_at_end"] = list(os.getloadavg())
+        cv = result["carving"]
+        print(f"load average at start {load[0]:.2f}, end {result['machine']['load_average_at_end'][0]:.2f}; "
+              f"{args.threads} torch thread(s); {cv['objects']} objects; carving, old revision {args.rev}")
+        print(f"{'':12s} {'old s/obj':>10s} {'new s/obj':>10s} {'old/new':>8s}  identical")
+        for mode in ("bilinear", "nearest"):
+            r = cv[mode]
+            print(f"{mode:12s} {r['old']:10.4f} {r['new']:10.4f} {r['ratio']:8.2f}  {r['identical']}")
+        write_json(args.out, result)
+        print(f"wrote {args.out}")
+        return result
     result = {"command": " ".join(["python tools/bench_changes.py"] + [shlex.quote(a) for a in argv]),
               "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "torch": torch.__version__,
                           "threads": args.threads, "load_average_at_start": list(load)},

@@ -309,9 +309,21 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
     for name, fn in ladder.items():
         identical[f"{name}_vs_batched"] = bool(torch.equal(fn().occupancy, out.occupancy[:m]))
         t_ladder[name] = best_of(fn, max(1, min(rep, 2)), device) * K / L
+    # the nearest-pixel option against loops of its own kind (the same structure, maps read at the pixel)
+    loop_nearest = lambda: C.carve_proposals_loop(sdf_l, cams_l, ref_l, views_l, resolution=n,  # noqa: E731
+                                                  imprint=cfg.imprint, interpolation="nearest")
+    t_ladder["loop_reference_structure_nearest"] = best_of(
+        lambda: C.carve_proposals_loop(sdf_l < 0, cams_l, ref_l, views_l, resolution=n, imprint=cfg.imprint,
+                                       reference_every_voxel=True, interpolation="nearest"),
+        max(1, min(rep, 2)), device) * K / L
     with GridSampleClock(device) as clock:
         loop()
     floor_loop, samples_loop = clock.seconds * K / L, clock.samples * K / L
+    floor_loop_nearest = math.inf
+    for _ in range(max(1, min(rep, 2))):
+        with GridSampleClock(device) as clock:
+            loop_nearest()
+        floor_loop_nearest = min(floor_loop_nearest, clock.seconds * K / L)
     with GridSampleClock(device) as clock:
         ladder["loop_reference_structure"]()
     samples_ref_structure = clock.samples * K / L
@@ -337,6 +349,7 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
                                "loop": per(t_loop),
                                **{k: per(v) for k, v in t_ladder.items()},
                                **{f"floor_{k}": per(v) for k, v in floors.items()}, "floor_loop_naive": per(floor_loop),
+                               "floor_loop_naive_nearest": per(floor_loop_nearest),
                                "selection": per(t_select), "carving_plus_selection": per(times["batched"] + t_select)},
         "samples_per_object": {**{k: v / K for k, v in samples.items()}, "loop_naive": samples_loop / K,
                                "loop_reference_structure": samples_ref_structure / K},
@@ -345,6 +358,10 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
         # the nearest-pixel carving (an approximation, config carve_interpolation=nearest) against the
         # same loops, which read the maps bilinearly as the reference implementation did
         "nearest_speedup_vs_loop_reference_structure": t_ladder["loop_reference_structure"] / times["batched_nearest"],
+        "nearest_speedup_vs_loop_reference_structure_nearest":
+            t_ladder["loop_reference_structure_nearest"] / times["batched_nearest"],
+        "nearest_over_its_floor": times["batched_nearest"] / floors["batched_nearest"],
+        "nearest_over_naive_nearest_floor": times["batched_nearest"] / floor_loop_nearest,
         "nearest_over_batched": times["batched_nearest"] / times["batched"],
         "nearest_voxels_differing": nearest_differs,
         "nearest_occupied_fraction": float(out_nearest.occupancy.float().mean()),
@@ -408,6 +425,8 @@ def table(result: dict) -> str:
                  s["batched_nearest"], sm["batched_nearest"]),
                 (f"(a) per-proposal loop, reference structure ({cs['loop_objects']} objects, extrapolated)",
                  s["loop_reference_structure"], sm["loop_reference_structure"]),
+                *([("(a) the same loop reading the nearest pixel", s["loop_reference_structure_nearest"],
+                    sm["loop_reference_structure"])] if "loop_reference_structure_nearest" in s else []),
                 ("(a) per-proposal loop, distance maps per proposal, reference once per column",
                  s["loop_maps_per_proposal"], sm["loop_naive"]),
                 ("(a) per-proposal loop, maps given (extended per proposal), reference once per column",
@@ -418,7 +437,10 @@ def table(result: dict) -> str:
                  sm["batched_depth_intervals"]),
                 ("(b) floor: grid_sample of coarse_to_fine", s["floor_batched_coarse_to_fine"],
                  sm["batched_coarse_to_fine"]),
+                ("(b) floor: grid_sample of nearest", s["floor_batched_nearest"], sm["batched_nearest"]),
                 ("(b) naive floor: grid_sample of every voxel (loop)", s["floor_loop_naive"], sm["loop_naive"]),
+                *([("(b) naive floor, nearest pixel", s["floor_loop_naive_nearest"], sm["loop_naive"])]
+                  if "floor_loop_naive_nearest" in s else []),
                 ("selection (projections, scores, misses)", s["selection"], float("nan")),
                 ("**carving + selection**", s["carving_plus_selection"], float("nan"))]
         for name, t, m in rows:
@@ -430,7 +452,12 @@ def table(result: dict) -> str:
                   f"**{cs['batched_over_naive_floor']:.2f}**; identical voxel for voxel: {cs['identical']}; "
                   f"torch threads {cs['torch_threads']}",
                   "", f"nearest pixel: **{cs['nearest_speedup_vs_loop_reference_structure']:.1f}x** the reference "
-                  f"structure loop (bilinear), {cs['nearest_over_batched']:.2f} x the bilinear batched time; "
+                  f"structure loop (bilinear)"
+                  + (f", **{cs['nearest_speedup_vs_loop_reference_structure_nearest']:.1f}x** the same loop reading "
+                     f"the nearest pixel; nearest / its floor **{cs['nearest_over_its_floor']:.2f}**, / the naive "
+                     f"nearest floor **{cs['nearest_over_naive_nearest_floor']:.2f}**"
+                     if "nearest_over_its_floor" in cs else "")
+                  + f"; {cs['nearest_over_batched']:.2f} x the bilinear batched time; "
                   f"{100 * cs['nearest_voxels_differing']:.2f}% of the voxels labelled differently (occupied: "
                   f"{100 * cs['nearest_occupied_fraction']:.2f}% against {100 * cs['occupied_fraction']:.2f}%)", ""]
     ev = result.get("evaluation")
