@@ -130,10 +130,10 @@ class Config:
     """Imprint the reference silhouette (``False`` = the -SImp ablation)."""
     carve_interpolation: str = "bilinear"
     """How the carving reads the distance maps at a voxel's projection: ``bilinear`` (the paper's) or
-    ``nearest`` (the pixel it falls in: 1.75-1.9x faster carving on the CPU, an approximation;
+    ``nearest`` (the pixel it falls in: about 1.9-2x faster carving on the CPU, an approximation;
     docs/benchmarks/README.md)."""
     max_batch_voxels: int = 50_000_000
-    """Upper bound on voxels x views carved in one batched chunk (bounds memory); the carving never uses more than its per-device default (``carve.default_batch_voxels``: 2^19 per thread on CPU, the measured best with 1 and 2 threads; 2^25 on CUDA), so only smaller values change anything."""
+    """Upper bound on voxels x views carved in one batched chunk (bounds memory); the carving never uses more than its per-device default (``carve.default_batch_voxels``: 2^19 per thread on CPU, at most 2^21, measured with 1 and 2 threads; 2^25 on CUDA), so only smaller values change anything."""
 
     # ---- selection and meshes
     plane_size: int = 64

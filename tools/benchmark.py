@@ -50,6 +50,7 @@ import math
 import os
 import platform
 import shlex
+import statistics
 import subprocess
 import sys
 import time
@@ -265,7 +266,10 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
     variants = {"batched": {}, "batched_depth_intervals": dict(depth_intervals=True),
                 "batched_coarse_to_fine": dict(coarse_to_fine=True),
                 "batched_nearest": dict(interpolation="nearest")}  # an approximation: not identical
-    times = {name: best_of(lambda kw=kw: batched_chunks(**kw), rep, device) for name, kw in variants.items()}
+    times = {}
+    for name, kw in variants.items():
+        batched_chunks(**kw)  # warm-up: the first runs of a call pattern pay for growing the process's memory
+        times[name] = best_of(lambda kw=kw: batched_chunks(**kw), rep, device)
     identical = {name: bool(torch.equal(batched(**kw).occupancy, out.occupancy)) for name, kw in variants.items()
                  if kw and "interpolation" not in kw}
     out_nearest = batched(interpolation="nearest")
@@ -274,14 +278,23 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
         C.carve_proposals(plan.maps, None, reference[a:b], views[a:b], resolution=n, imprint=cfg.imprint,
                           max_batch_voxels=mbv).occupancy for a, b in zip(bounds[:-1], bounds[1:])]), out.occupancy))
     t_one_call = best_of(batched, rep, device)
-    floors, samples = {}, {}
+    # The floors: the grid_sample calls timed in place. Each of these runs also gives the ratio of
+    # the whole carving to its own sampling within one run (same load, same caches): the median of
+    # those ratios is steadier on a shared machine than the ratio of two best-of timings.
+    floors, samples, in_run = {}, {}, {}
     for name, kw in variants.items():
-        best = math.inf
+        best, ratios = math.inf, []
         for _ in range(rep):
             with GridSampleClock(device) as clock:
+                sync(device)
+                t0 = time.perf_counter()
                 batched_chunks(**kw)
+                sync(device)
+                wall = time.perf_counter() - t0
             best, samples[name] = min(best, clock.seconds), clock.samples
+            ratios.append(wall / clock.seconds)
         floors[name] = best
+        in_run[name] = {"median": statistics.median(ratios), "min": min(ratios), "max": max(ratios)}
 
     L = min(args.loop_objects, K)
     m = int(round(L * P))
@@ -366,6 +379,8 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
         "nearest_voxels_differing": nearest_differs,
         "nearest_occupied_fraction": float(out_nearest.occupancy.float().mean()),
         "batched_over_its_floor": times["batched"] / floors["batched"],
+        # whole carving / its own grid_sample time within each floor run (median, min, max over the runs)
+        "over_its_floor_within_runs": in_run,
         "batched_over_naive_floor": times["batched"] / floor_loop,
         "identical": identical,
         "occupied_fraction": float(out.occupancy.float().mean()),
@@ -449,7 +464,16 @@ def table(result: dict) -> str:
                   f"**{cs['speedup_vs_loop']:.1f}x** (maps given), **{cs['speedup_vs_loop_prepared_maps']:.1f}x** "
                   f"(maps prepared once); batched / its floor: "
                   f"**{cs['batched_over_its_floor']:.2f}**; batched / naive floor: "
-                  f"**{cs['batched_over_naive_floor']:.2f}**; identical voxel for voxel: {cs['identical']}; "
+                  f"**{cs['batched_over_naive_floor']:.2f}**"
+                  + (f" (within each floor run, median [min-max]: batched "
+                     f"{cs['over_its_floor_within_runs']['batched']['median']:.2f} "
+                     f"[{cs['over_its_floor_within_runs']['batched']['min']:.2f}-"
+                     f"{cs['over_its_floor_within_runs']['batched']['max']:.2f}], nearest "
+                     f"{cs['over_its_floor_within_runs']['batched_nearest']['median']:.2f} "
+                     f"[{cs['over_its_floor_within_runs']['batched_nearest']['min']:.2f}-"
+                     f"{cs['over_its_floor_within_runs']['batched_nearest']['max']:.2f}])"
+                     if "over_its_floor_within_runs" in cs else "")
+                  + f"; identical voxel for voxel: {cs['identical']}; "
                   f"torch threads {cs['torch_threads']}",
                   "", f"nearest pixel: **{cs['nearest_speedup_vs_loop_reference_structure']:.1f}x** the reference "
                   f"structure loop (bilinear)"

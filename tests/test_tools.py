@@ -1,0 +1,38 @@
+"""The benchmark tools run, and what they report is consistent (a small class; seconds, not minutes)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_benchmark_carving_comparison_on_a_small_class(tmp_path: Path):
+    out = tmp_path / "bench.json"
+    cmd = [sys.executable, str(ROOT / "tools" / "benchmark.py"), "--objects", "30", "--carve-objects", "3",
+           "--loop-objects", "1", "--repeat", "2", "--skip-e2e", "--threads", "1",
+           "--data-dir", str(tmp_path / "data"), "--work-dir", str(tmp_path / "runs"), "--out", str(out)]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300,
+                         env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    cs = json.loads(out.read_text())["carving"]
+    # every exact variant and every loop agrees with the batched carving voxel for voxel, and the
+    # nearest-pixel loop with the nearest-pixel batched carving
+    assert cs["identical"] and all(cs["identical"].values()), cs["identical"]
+    s = cs["seconds_per_object"]
+    for key in ("batched", "batched_nearest", "loop_reference_structure", "loop_reference_structure_nearest",
+                "floor_batched", "floor_batched_nearest", "floor_loop_naive", "floor_loop_naive_nearest"):
+        assert s[key] > 0, key
+    # a carving cannot take less time than its own grid_sample calls within one run
+    for name in ("batched", "batched_nearest"):
+        r = cs["over_its_floor_within_runs"][name]
+        assert 1.0 <= r["min"] <= r["median"] <= r["max"], (name, r)
+    # the nearest carving samples the same voxels as the bilinear one (up to the columns whose
+    # reference sign differs), and the batched carvings sample fewer voxels than the naive loop
+    sm = cs["samples_per_object"]
+    assert abs(sm["batched_nearest"] - sm["batched"]) <= 0.02 * sm["batched"]
+    assert sm["batched"] < sm["loop_naive"] < sm["loop_reference_structure"]
+    assert (out.with_suffix(".md")).is_file()
