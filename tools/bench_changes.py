@@ -82,11 +82,9 @@ def interleaved(fns: dict, repeat: int) -> dict:
     return best
 
 
-def functions(args) -> dict:
-    old_carve = old_module(args.rev, "carvi_torch/carve.py", "_old_carve")
-    old_select = old_module(args.rev, "carvi_torch/select.py", "_old_select")
-    old_sur = old_module(args.rev, "carvi_torch/surrogates.py", "_old_surrogates")
-    device = torch.device("cpu")
+def class_proposals(args, device: torch.device):
+    """The class of ``args.data`` as a run prepares it (same seed) and the kept proposals of its first
+    ``args.objects`` references: ``cfg, plan, coll, K, ref, views, valid`` (``valid`` before keeping)."""
     cfg = Config().override(dict(data=args.data, classes=[args.category], progress=False))
     loaded = coco.load_coco(args.data, canvas_size=cfg.canvas_size, margin=cfg.canvas_margin, device=device,
                             classes=[args.category])
@@ -95,7 +93,15 @@ def functions(args) -> dict:
     plan, todo, _ = pipeline.prepare_class(coll, cfg, device, gen)
     K = min(args.objects, len(todo))
     ref, views, valid = pipeline.proposals_of(plan, torch.tensor(todo[:K]))
-    ref, views = ref[valid], views[valid]
+    return cfg, plan, coll, K, ref[valid], views[valid], valid
+
+
+def functions(args) -> dict:
+    old_carve = old_module(args.rev, "carvi_torch/carve.py", "_old_carve")
+    old_select = old_module(args.rev, "carvi_torch/select.py", "_old_select")
+    old_sur = old_module(args.rev, "carvi_torch/surrogates.py", "_old_surrogates")
+    device = torch.device("cpu")
+    cfg, plan, coll, K, ref, views, _ = class_proposals(args, device)
     maps = plan.maps
     sdf = maps.ext[:-1, C.PAD:-C.PAD, C.PAD:-C.PAD].contiguous()  # the class's maps, as the old pipeline held them
     cams = maps.cameras
@@ -163,16 +169,8 @@ def carving_same_call(args) -> dict:
     old_carve = old_module(args.rev, "carvi_torch/carve.py", "_old_carve")
     old_carve.CarveMaps = C.CarveMaps
     device = torch.device("cpu")
-    cfg = Config().override(dict(data=args.data, classes=[args.category], progress=False))
-    loaded = coco.load_coco(args.data, canvas_size=cfg.canvas_size, margin=cfg.canvas_margin, device=device,
-                            classes=[args.category])
-    coll = loaded.collections[args.category]
-    gen = torch.Generator().manual_seed(cfg.seed + pipeline._stable_hash(args.category))
-    plan, todo, _ = pipeline.prepare_class(coll, cfg, device, gen)
-    K = min(args.objects, len(todo))
-    ref, views, valid = pipeline.proposals_of(plan, torch.tensor(todo[:K]))
+    cfg, plan, _, K, ref, views, valid = class_proposals(args, device)
     per_ref = valid.view(K, -1).sum(1).tolist()
-    ref, views = ref[valid], views[valid]
     step = pipeline._chunk_objects(cfg, device)
     bounds = [sum(per_ref[:a]) for a in range(0, K, step)] + [len(ref)]
     out = {"objects": K, "pipeline_chunk_objects": step}
