@@ -124,7 +124,7 @@ BIG = 1.0e6
 _UNUSED = -1.0e30
 #: Default ``max_batch_voxels`` per device type (CPU: per intra-op thread, see :func:`default_batch_voxels`).
 _DEFAULT_BATCH_VOXELS = {"cpu": 1 << 19, "cuda": 1 << 25}
-#: Bound on the CPU default (more threads than measured: no larger chunks).
+#: Bound on the CPU default: chunks grow with the threads up to it (measured with 1 and 2 threads only).
 _CPU_BATCH_VOXELS_MAX = 1 << 21
 #: Coarse-to-fine evaluates a fraction of the voxels: its chunks hold this many times more proposals.
 _C2F_CHUNK = 2
@@ -618,13 +618,16 @@ def extend_maps(sdf: torch.Tensor, pad: int = PAD) -> torch.Tensor:
 def _column_hw(cols: torch.Tensor, width: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Flat column indices ``h * width + w`` (any shape, long, ``0 <= h, w < width <= 2048``) to float32 ``(h, w)``.
 
-    In float32 arithmetic (about 3x faster than integer division on the CPU) and exact: the
-    indices are integers below ``2**22``; the exact quotient ``h + w / width`` lies at least
-    ``1 / width`` below ``h + 1``, more than the rounding of the division (half an ulp of a
-    value below 2048, at most ``2**-13``), so its floor is ``h``.
+    In float32 arithmetic (about 3x faster than int64 division on the CPU in a scratch measurement)
+    and exact: ``h = floor((c + 0.5) / width)``, where ``c + 0.5`` is exact (``c < 2**22``) and
+    the exact quotient ``h + (w + 0.5) / width`` lies at least ``0.5 / width >= 2**-12`` from
+    every integer, more than the error of either division a device may use: correctly rounded
+    (the CPU) or a multiply by the rounded reciprocal (CUDA's tensor-by-scalar division), each
+    within about an ulp of a value below 2048 (``2**-13``). ``tests/test_carve.py`` checks both
+    forms at every width up to 2048.
     """
     c = cols.to(torch.float32)
-    h = torch.floor(c / width)
+    h = torch.floor((c + 0.5) / width)
     return h, c - h * width
 
 
@@ -1143,7 +1146,7 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
         cameras: ``ScaledOrthographic`` of length ``M``, in the maps' pixels.
         reference: ``(B,)`` long indices into ``sdf``.
         views: ``(B, V)`` long indices into ``sdf``, ``-1`` for an unused slot.
-        resolution: voxels per axis (``>= 4``).
+        resolution: voxels per axis (4 to 2048).
         imprint: fill every foreground column of the reference that has no interior
             voxel at its voxel of minimal cost.
         max_batch_voxels: bound on the voxels of the foreground columns of a chunk;
@@ -1152,12 +1155,12 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
             at every depth; no coarse-to-fine).
         coarse_to_fine: skip the voxels whose labels exact coarse costs decide. Off
             by default: on the pipeline's proposals (60^3, CPU, ``tools/benchmark.py``) it
-            sampled 45% fewer voxels but its bookkeeping made it 2.4-2.6x slower than sampling
+            sampled 45-47% fewer voxels but its bookkeeping made it 2.4-2.6x slower than sampling
             every voxel of the foreground columns; kept, exact and tested, for devices
             where sampling dominates.
         depth_intervals: sample each foreground column only within the depths its views'
-            mask boxes allow (21% fewer samples on the pipeline's proposals). Off by
-            default: on the CPU its bookkeeping costs more than the samples save (1.2-1.4x
+            mask boxes allow (21-26% fewer samples on the pipeline's proposals). Off by
+            default: on the CPU its bookkeeping costs more than the samples save (1.2-1.65x
             slower, ``docs/benchmarks/README.md``); to be measured on CUDA by the benchmark.
         interpolation: how the distance maps are read at a voxel's projection (:data:`INTERPOLATIONS`):
             ``"bilinear"`` (the default, the reference implementation's) or ``"nearest"`` (the
@@ -1256,7 +1259,7 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
             occ[idx], nonempty[idx], columns[idx] = _carve_chunk_intervals(chunk, cols, fg[idx], lo, hi, imprint, buf)
             continue
         acc = chunk.columns(cols, depth, buf)
-        inside, nonempty[idx], col_occ = _label(acc, column_cost[idx].gather(1, cols), imprint)
+        inside, nonempty[idx], col_occ = _label(acc, chunk.column_cost.gather(1, cols), imprint)
         columns[idx] = torch.zeros(idx.shape[0], HW, dtype=torch.bool, device=dev).scatter_(1, cols, col_occ)
         spread = cols[:, None, :].expand(-1, n, -1)
         occ[idx] = torch.zeros(idx.shape[0], n, HW, dtype=torch.bool, device=dev).scatter_(2, spread, inside)

@@ -133,7 +133,7 @@ class Config:
     ``nearest`` (the pixel it falls in: about 1.9-2x faster carving on the CPU, an approximation;
     docs/benchmarks/README.md)."""
     max_batch_voxels: int = 50_000_000
-    """Upper bound on voxels x views carved in one batched chunk (bounds memory); the carving never uses more than its per-device default (``carve.default_batch_voxels``: 2^19 per thread on CPU, at most 2^21, measured with 1 and 2 threads; 2^25 on CUDA), so only smaller values change anything."""
+    """Upper bound on the voxels (of the reference's foreground columns) carved in one batched chunk (bounds memory); the carving never uses more than its per-device default (``carve.default_batch_voxels``: 2^19 per thread on CPU, at most 2^21, measured with 1 and 2 threads; 2^25 on CUDA), so only smaller values change anything."""
 
     # ---- selection and meshes
     plane_size: int = 64
@@ -186,6 +186,8 @@ class Config:
                      "sfm_group_rounds", "sfm_group_threads"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 4 <= self.resolution <= 2048:
+            raise ConfigError(f"resolution must be in [4, 2048] (the carving's bound), got {self.resolution}")
         if not 0 <= self.canvas_margin < 0.5:
             raise ConfigError(f"canvas_margin must be in [0, 0.5), got {self.canvas_margin}")
         if not 0 < self.cluster_threshold_deg <= 90:

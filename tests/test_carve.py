@@ -606,21 +606,35 @@ def test_bad_cameras_and_masks_raise():
 
 
 @requires_cuda
-def test_cuda_matches_cpu():
+def test_cuda_column_indices_are_exact():
+    """The column rows and columns on CUDA (a tensor-by-scalar division there multiplies by the
+    reciprocal) at widths where a plain ``floor(c / width)`` would be off by one."""
+    from carvi_torch.carve import _column_hw
+    for width in (41, 47, 61, 2047):
+        c = torch.arange(width * width, device="cuda")
+        h, w = _column_hw(c, width)
+        assert torch.equal(h.long().cpu(), torch.arange(width * width) // width)
+        assert torch.equal(w.long().cpu(), torch.arange(width * width) % width)
+
+
+@requires_cuda
+@pytest.mark.parametrize("n", [16, 41])
+def test_cuda_matches_cpu(n):
     gen = torch.Generator().manual_seed(9)
     sdf, cams, reference, views = random_proposals(gen)
-    cpu = carve_proposals(sdf, cams, reference, views, resolution=16, return_cost=True)
-    gpu = carve_proposals(sdf.cuda(), cams.to("cuda"), reference.cuda(), views.cuda(), resolution=16,
+    cpu = carve_proposals(sdf, cams, reference, views, resolution=n, return_cost=True)
+    gpu = carve_proposals(sdf.cuda(), cams.to("cuda"), reference.cuda(), views.cuda(), resolution=n,
                           return_cost=True)
+    assert torch.allclose(gpu.column_cost.cpu(), cpu.column_cost, atol=1e-3, rtol=1e-5)
     assert gpu.occupancy.is_cuda
     assert torch.allclose(gpu.cost.cpu(), cpu.cost, atol=1e-3, rtol=1e-5)
     sure = cpu.cost.abs() > 1e-3
     assert torch.equal(gpu.occupancy.cpu()[sure], cpu.occupancy[sure])
     assert (gpu.occupancy.cpu() != cpu.occupancy).float().mean() < 1e-3
-    loop = carve_proposals_loop(sdf.cuda(), cams.to("cuda"), reference.cuda(), views.cuda(), resolution=16)
+    loop = carve_proposals_loop(sdf.cuda(), cams.to("cuda"), reference.cuda(), views.cuda(), resolution=n)
     assert torch.equal(loop.occupancy, gpu.occupancy)
     masks = sdf < 0
-    grid = imprinted_visual_hull(masks.cuda(), cams.to("cuda"), reference=0, resolution=16)
+    grid = imprinted_visual_hull(masks.cuda(), cams.to("cuda"), reference=0, resolution=n)
     assert grid.occupancy.is_cuda and grid.to_mesh().is_watertight
 
 
@@ -831,13 +845,25 @@ def test_default_batch_voxels_scales_with_threads_and_is_bounded():
     assert torch.equal(a.occupancy, b.occupancy) and torch.equal(a.columns, b.columns)
 
 
-@pytest.mark.parametrize("width", [4, 11, 60, 517, 2048])
+@pytest.mark.parametrize("width", [4, 11, 41, 60, 61, 517, 2047, 2048])
 def test_column_hw_is_exact_integer_division(width):
     from carvi_torch.carve import _column_hw
     c = torch.arange(width * width)
     h, w = _column_hw(c, width)
     assert h.dtype == w.dtype == torch.float32
     assert torch.equal(h.long(), torch.div(c, width, rounding_mode="floor")) and torch.equal(w.long(), c % width)
+
+
+def test_column_hw_rule_is_exact_under_a_reciprocal_multiply_too():
+    """CUDA divides a tensor by a scalar as a multiply by the float32 reciprocal: the rule of
+    ``_column_hw`` must hold for that division too, at every width up to the bound (the quotient
+    grows with ``c``, so each row's first and last column decide)."""
+    for width in range(4, 2049):
+        h = torch.arange(width, dtype=torch.float32)
+        ends = torch.cat([h * width, h * width + (width - 1)])
+        inv = torch.tensor(1.0, dtype=torch.float32) / torch.tensor(float(width), dtype=torch.float32)
+        for q in ((ends + 0.5) / width, (ends + 0.5) * inv):
+            assert torch.equal(torch.floor(q), torch.cat([h, h])), width
 
 
 def test_resolution_above_the_exact_column_bound_is_refused():

@@ -20,7 +20,8 @@ def test_overrides_are_typed():
 
 @pytest.mark.parametrize("item", ["nokey", "resolution=abc", "resolution=1.5", "imprint=maybe", "stage=mesh",
                                   "unknown_key=1", "canvas_margin=0.7", "silhouette_robust=-0.1",
-                                  "refine_min_support=1.5", "refine_min_support=-0.1"])
+                                  "refine_min_support=1.5", "refine_min_support=-0.1", "resolution=3",
+                                  "resolution=2049"])
 def test_bad_overrides(item):
     with pytest.raises(ConfigError):
         Config().override([item])

@@ -167,6 +167,9 @@ def carving_same_call(args) -> dict:
     :class:`CarveMaps` is the new one, so both read the same object.
     """
     old_carve = old_module(args.rev, "carvi_torch/carve.py", "_old_carve")
+    if not hasattr(old_carve, "prepare_maps"):
+        raise SystemExit(f"--carve-only needs a revision whose carving takes prepared maps (carve.prepare_maps); "
+                         f"{args.rev} has none: give --rev a later one (e.g. ec551be)")
     old_carve.CarveMaps = C.CarveMaps
     device = torch.device("cpu")
     cfg, plan, _, K, ref, views, valid = class_proposals(args, device)
@@ -274,6 +277,7 @@ def main(argv=None):
         cv = result["carving"]
         print(f"load average at start {load[0]:.2f}, end {result['machine']['load_average_at_end'][0]:.2f}; "
               f"{args.threads} torch thread(s); {cv['objects']} objects; carving, old revision {args.rev}")
+        print("seconds per object are process (CPU) time, summed over threads")
         print(f"{'':12s} {'old s/obj':>10s} {'new s/obj':>10s} {'old/new':>8s}  identical")
         for mode in ("bilinear", "nearest"):
             r = cv[mode]
