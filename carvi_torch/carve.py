@@ -1243,8 +1243,8 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
         bits = 0
         for c in packed[start - size:start]:
             bits |= c
-        chunk = _Chunk(ext, views_u[idx], scale[idx], G[idx], torch.index_select(column_cost, 0, idx), n, [bool(bits >> j & 1) for j in range(V)],
-                       interpolation)
+        chunk = _Chunk(ext, views_u[idx], scale[idx], G[idx], torch.index_select(column_cost, 0, idx), n,
+                       [bool(bits >> j & 1) for j in range(V)], interpolation)
         if coarse_to_fine:
             occ_c, nonempty[idx] = _carve_chunk_coarse_to_fine(chunk, fg[idx], tol[idx], slack[idx], imprint)
             occ[idx] = occ_c.view(-1, n, HW)
