@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -40,3 +42,16 @@ def test_benchmark_carving_comparison_on_a_small_class(tmp_path: Path):
     assert abs(sm["batched_nearest"] - sm["batched"]) <= 0.02 * sm["batched"]
     assert sm["batched"] < sm["loop_naive"] < sm["loop_reference_structure"]
     assert (out.with_suffix(".md")).is_file()
+
+
+def test_carving_figure_from_the_kept_runs(tmp_path: Path):
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        import figure_carving
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    runs = figure_carving.DEFAULT_RUNS
+    out = figure_carving.main(["--runs", *map(str, runs), "--out", str(tmp_path / "fig.png")])
+    assert out.is_file() and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 20_000
+    with pytest.raises(SystemExit, match="benchmark JSON not found"):
+        figure_carving.main(["--runs", str(tmp_path / "missing.json"), "--out", str(tmp_path / "x.png")])
