@@ -541,7 +541,8 @@ class MixtureResult:
 def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups: int = 3, min_size: int = 15,
                           gain: float = 0.3, agreement_deg: float = 60.0, rounds: int = 6, seed: int = 0,
                           single: SfMResult | None = None, log: Callable[[str], None] | None = None,
-                          warm_start: bool = True, threads: int = 2) -> MixtureResult:
+                          warm_start: bool = True, threads: int = 2,
+                          threads_min_objects: int = THREADS_MIN_OBJECTS) -> MixtureResult:
     """Fit at most ``max_groups`` rigid shapes to a class (see the module docstring for the rule).
 
     Args:
@@ -559,10 +560,12 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
         warm_start: the EM's keypoint fits start from the one-shape fit and then from the last
             round (:func:`hard_em`'s ``warm``); False: every fit searches the sphere (slower).
         threads: Python threads that run a ``k``'s two initialisations side by side (1: one after
-            the other), on classes of at least :data:`THREADS_MIN_OBJECTS` objects (smaller ones
+            the other), on classes of at least ``threads_min_objects`` objects (smaller ones
             run on one). The result is the same either way (each EM is the same sequence of tensor
             ops, each on one intra-op thread); on the CPU the two share the cores, on a GPU the
             launches interleave.
+        threads_min_objects: class size from which ``threads`` apply (default :data:`THREADS_MIN_OBJECTS`;
+            0: always, as the benchmark does to measure small classes).
 
     Returns:
         :class:`MixtureResult`.
@@ -624,7 +627,7 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
             return row, None if Q is None else MixtureResult(k, lab, groups, Q, row["agreement_deg"], res1), line
 
         cands = []
-        workers = threads if n >= THREADS_MIN_OBJECTS else 1
+        workers = threads if n >= threads_min_objects else 1
         for row, res, line in _map_candidates(candidate, list(inits.items()), workers, dev):
             best.candidates.append(row)
             if res is not None:

@@ -302,7 +302,7 @@ def test_fit_is_deterministic(two_shapes):
     assert torch.equal(again.labels, fitted.labels) and again.candidates == fitted.candidates
 
 
-def test_fit_on_two_threads_equals_the_fit_on_one(two_shapes, monkeypatch):
+def test_fit_on_two_threads_equals_the_fit_on_one(two_shapes):
     """Each ``k``'s two initialisations on two Python threads (the default, here with the class-size
     bound lowered to this small class): every label, candidate, shape and camera is the same as on
     one thread, bit for bit. The two-thread run really used two worker threads, and leaves the
@@ -319,16 +319,16 @@ def test_fit_on_two_threads_equals_the_fit_on_one(two_shapes, monkeypatch):
     assert len(coll) < mix.THREADS_MIN_OBJECTS
     small = mix.fit_mixture_of_shapes(both, dist, traced, max_groups=2, min_size=6, threads=2)
     assert seen == {threading.get_ident()} and torch.equal(small.labels, fitted.labels)
-    monkeypatch.setattr(mix, "THREADS_MIN_OBJECTS", 1)
     assert fitted.candidates and [c["init"] for c in fitted.candidates] == ["lifted", "residual"]  # in order
     seen.clear()
     lines = []
     before = torch.get_num_threads()
-    again = mix.fit_mixture_of_shapes(both, dist, traced, max_groups=2, min_size=6, threads=2, log=lines.append)
+    again = mix.fit_mixture_of_shapes(both, dist, traced, max_groups=2, min_size=6, threads=2, log=lines.append,
+                                      threads_min_objects=1)
     assert torch.get_num_threads() == before
     assert len(seen - {threading.get_ident()}) == 2, seen  # both initialisations ran on worker threads
     assert [line.split("'")[1] for line in lines] == ["lifted", "residual"]  # logged in order
-    one = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, threads=1)
+    one = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, threads=1, threads_min_objects=1)
     for other in (again, one):
         assert other.k == fitted.k and torch.equal(other.labels, fitted.labels)
         assert other.candidates == fitted.candidates
@@ -337,11 +337,10 @@ def test_fit_on_two_threads_equals_the_fit_on_one(two_shapes, monkeypatch):
         assert all(torch.equal(qa, qb) for qa, qb in zip(other.Q, fitted.Q))
 
 
-def test_an_error_on_a_worker_thread_reaches_the_caller(two_shapes, monkeypatch):
+def test_an_error_on_a_worker_thread_reaches_the_caller(two_shapes):
     import threading
 
     coll, both, dist, R, truth, fitted = two_shapes
-    monkeypatch.setattr(mix, "THREADS_MIN_OBJECTS", 1)
 
     def broken(sub, init_shape=None):
         if threading.current_thread() is not threading.main_thread():  # only on the workers
@@ -349,7 +348,7 @@ def test_an_error_on_a_worker_thread_reaches_the_caller(two_shapes, monkeypatch)
         return _sfm(sub, init_shape)
 
     with pytest.raises(RuntimeError, match="solver exploded"):
-        mix.fit_mixture_of_shapes(both, dist, broken, max_groups=2, min_size=6, threads=2)
+        mix.fit_mixture_of_shapes(both, dist, broken, max_groups=2, min_size=6, threads=2, threads_min_objects=1)
 
 
 def test_fit_keeps_one_shape_when_the_frames_must_agree_closely(two_shapes):

@@ -201,8 +201,8 @@ def main(argv=None) -> dict:
     if args.groups > 1:
         cfg = Config()
         mixture = {}
-        if args.threads_min_objects is not None:
-            sfm_mixture.THREADS_MIN_OBJECTS = args.threads_min_objects
+        min_objects = (sfm_mixture.THREADS_MIN_OBJECTS if args.threads_min_objects is None
+                       else args.threads_min_objects)
         variants = [("warm", True, args.group_threads)]
         if args.one_thread_too and args.group_threads != 1:
             variants.append(("warm_one_thread", True, 1))
@@ -217,7 +217,8 @@ def main(argv=None) -> dict:
                                                                                inner=args.inner, init_shape=init_shape),
                                         max_groups=args.groups, min_size=cfg.sfm_group_min, gain=cfg.sfm_group_gain,
                                         agreement_deg=cfg.sfm_group_agreement_deg, rounds=cfg.sfm_group_rounds,
-                                        seed=args.seed, single=sfm, warm_start=warm, threads=threads)
+                                        seed=args.seed, single=sfm, warm_start=warm, threads=threads,
+                                        threads_min_objects=min_objects)
             sync()
             seconds = time.perf_counter() - t0
             fits[name] = mix
@@ -281,7 +282,7 @@ def main(argv=None) -> dict:
                        "energy_raised": int((ref.energy_after > ref.energy_before).sum())},
         "viewpoint_error_deg": {"sfm": rep_sfm, "refined": rep_ref},
         "mixture_fit": mixture,
-        "threads_min_objects": sfm_mixture.THREADS_MIN_OBJECTS,
+        "threads_min_objects": None if mixture is None else min_objects,
         "target_seconds_sfm_plus_refinement": 60.0,
     }
     rows = [("distance maps", t_dist), ("rigid SfM", t_sfm), ("refinement", t_ref), ("SfM + refinement", t_sfm + t_ref)]

@@ -333,19 +333,17 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
     nearest_ladder = {"loop_reference_structure_nearest": best_of(ref_structure_nearest, max(1, min(rep, 2)), device)
                       * K / L}
 
-    def naive_floor(fn) -> float:
-        """Best time of the grid_sample calls of a loop, as many runs as the loops are timed."""
-        best = math.inf
+    def naive_floor(fn) -> tuple[float, float]:
+        """Best time of the grid_sample calls of a loop (as many runs as the loops are timed) and
+        their samples, both per ``K`` objects."""
+        best, samples = math.inf, 0
         for _ in range(max(1, min(rep, 2))):
             with GridSampleClock(device) as clock:
                 fn()
-            best = min(best, clock.seconds)
-        return best * K / L
+            best, samples = min(best, clock.seconds), clock.samples
+        return best * K / L, samples * K / L
 
-    floor_loop, floor_loop_nearest = naive_floor(loop), naive_floor(loop_nearest)
-    with GridSampleClock(device) as clock:
-        loop()
-    samples_loop = clock.samples * K / L
+    (floor_loop, samples_loop), (floor_loop_nearest, _) = naive_floor(loop), naive_floor(loop_nearest)
     with GridSampleClock(device) as clock:
         ladder["loop_reference_structure"]()
     samples_ref_structure = clock.samples * K / L
