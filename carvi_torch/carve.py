@@ -631,19 +631,27 @@ def _column_hw(cols: torch.Tensor, width: int) -> tuple[torch.Tensor, torch.Tens
     return h, c - h * width
 
 
-def _column_coords(G: torch.Tensor, h: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """In-plane part of the sampling coordinates of columns.
+def _column_terms(G: torch.Tensor, h: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """In-plane part of the sampling coordinates of columns, for any number of maps per proposal.
 
     Args:
-        G: ``(N, 2, 4)`` float32 index -> sampling maps.
+        G: ``(N, ..., 2, 4)`` float32 index -> sampling maps (e.g. ``(N, 2, 4)``, or
+            ``(N, V, 2, 4)`` for every view slot at once).
         h, w: ``(N, K)`` float32 row and column indices of the columns (:func:`_column_hw`).
 
     Returns:
-        ``x, y`` each ``(N, K)`` float32: ``(G[:, i, 1] h + G[:, i, 2] w) + G[:, i, 3]``
-        (elementwise, so a column's value does not depend on which other columns are present).
+        ``(N, ..., 2, K)`` float32: ``(G[..., i, 1] h + G[..., i, 2] w) + G[..., i, 3]``
+        (elementwise, so a column's value depends neither on which other columns are present
+        nor on how many maps are computed at once).
     """
-    x = (G[:, 0, 1, None] * h + G[:, 0, 2, None] * w) + G[:, 0, 3, None]
-    y = (G[:, 1, 1, None] * h + G[:, 1, 2, None] * w) + G[:, 1, 3, None]
+    shape = (h.shape[0],) + (1,) * (G.dim() - 2) + (h.shape[1],)
+    h, w = h.view(shape), w.view(shape)
+    return (G[..., 1, None] * h + G[..., 2, None] * w) + G[..., 3, None]
+
+
+def _column_coords(G: torch.Tensor, h: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_column_terms` of ``(N, 2, 4)`` maps as the pair ``x, y``, ``(N, K)`` each."""
+    x, y = _column_terms(G, h, w).unbind(1)
     return x, y
 
 
@@ -661,9 +669,8 @@ def _sample_columns(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor,
                     out: torch.Tensor | None = None, mode: str = "bilinear") -> torch.Tensor:
     """Samples of ``maps`` (interpolated as ``mode``) at the voxels of some columns.
 
-    The coordinates of voxel ``(d, column)`` are ``G[:, :, 0] d + xy[column]``, written
-    as two planes ``(N, 2, D, K)`` (two vectorised broadcast adds) and handed to
-    ``grid_sample`` as the view ``(N, D, K, 2)`` (it takes strided grids).
+    The coordinates of voxel ``(d, column)`` are ``G[:, :, 0] d + xy[column]``
+    (:func:`_sample_planes`).
 
     Args:
         maps: ``(N, 1, Hp, Wp)`` float32 extended maps (already scaled).
@@ -675,13 +682,31 @@ def _sample_columns(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor,
     Returns:
         ``(N, D, K)`` float32 samples.
     """
-    N, K = xy[0].shape
-    D = depth.shape[0]
+    return _sample_planes(maps, G[:, :, 0, None] * depth, torch.stack(xy, 1), out, mode)
+
+
+def _sample_planes(maps: torch.Tensor, dz: torch.Tensor, xy: torch.Tensor, out: torch.Tensor | None = None,
+                   mode: str = "bilinear") -> torch.Tensor:
+    """Samples of ``maps`` at the coordinates ``dz[:, :, d] + xy[:, :, k]`` (depth term plus column term).
+
+    The coordinates are written as two planes ``(N, 2, D, K)`` (one vectorised broadcast
+    add) and handed to ``grid_sample`` as the view ``(N, D, K, 2)`` (it takes strided grids).
+
+    Args:
+        maps: ``(N, 1, Hp, Wp)`` float32 extended maps (already scaled).
+        dz: ``(N, 2, D)`` float32 depth terms ``G[:, :, 0] d``.
+        xy: ``(N, 2, K)`` float32 column terms (:func:`_column_terms`).
+        out: optional float32 buffer of at least ``N * 2 * D * K`` elements for the coordinates.
+
+    Returns:
+        ``(N, D, K)`` float32 samples.
+    """
+    N, _, D = dz.shape
+    K = xy.shape[2]
     if out is None:
         out = torch.empty(N * 2 * D * K, device=maps.device)
     planes = out.view(-1)[: N * 2 * D * K].view(N, 2, D, K)
-    for i in range(2):
-        torch.add(G[:, i, 0, None, None] * depth[None, :, None], xy[i][:, None, :], out=planes[:, i])
+    torch.add(dz[:, :, :, None], xy[:, :, None, :], out=planes)
     return _grid_sample(maps, planes.permute(0, 2, 3, 1), mode)[:, 0]
 
 
@@ -851,11 +876,13 @@ class _Chunk:
     def columns(self, cols: torch.Tensor, depth: torch.Tensor, buf=None) -> torch.Tensor:
         """Exact ``C`` at ``depth (D,)`` of flat columns ``cols (N, K)``: ``(N, D, K)`` float32."""
         h, w = _column_hw(cols, self.n)
+        # the depth and column terms of every slot at once (a few operations per chunk, not per slot)
+        dz = self.G[..., 0, None] * depth  # (N, V, 2, D)
+        xy = _column_terms(self.G, h, w)  # (N, V, 2, K)
         acc = None
         for j, maps in enumerate(self.maps):
             if maps is not None:
-                sample = _sample_columns(maps, self.G[:, j], _column_coords(self.G[:, j], h, w), depth, out=buf,
-                                         mode=self.mode)
+                sample = _sample_planes(maps, dz[:, j], xy[:, j], out=buf, mode=self.mode)
                 acc = sample if acc is None else torch.maximum(acc, sample, out=acc)
         col = self.column_cost.gather(1, cols)[:, None, :]
         return col.expand(-1, depth.shape[0], -1).contiguous() if acc is None else torch.maximum(acc, col, out=acc)
@@ -1121,6 +1148,20 @@ def default_batch_voxels(device: torch.device | str) -> int:
     return min(_DEFAULT_BATCH_VOXELS["cpu"] * max(1, torch.get_num_threads()), _CPU_BATCH_VOXELS_MAX)
 
 
+def _chunk_multiple(device: torch.device) -> int:
+    """Chunks hold a multiple of this many proposals where the budget allows: the intra-op
+    thread count on the CPU, 1 elsewhere.
+
+    The CPU ``grid_sample`` shares a call's work among the threads by batch index, whole
+    batch entries each, so a chunk of 7 proposals on 2 threads keeps one thread idle for a
+    proposal's time (13% slower per proposal than 8 in a scratch measurement). Rounding the
+    chunk down to 6 was 10% faster on the pipeline's proposals at 2 threads (bilinear and
+    nearest; docs/benchmarks/README.md); splitting each proposal's depths into one batch
+    entry per thread instead was slower (its maps are copied once per thread).
+    """
+    return max(1, torch.get_num_threads()) if device.type == "cpu" else 1
+
+
 def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: torch.Tensor, views: torch.Tensor, *,
                     resolution: int = 60, imprint: bool = True, max_batch_voxels: int | None = None,
                     return_cost: bool = False, coarse_to_fine: bool = False,
@@ -1230,12 +1271,14 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
     columns = torch.zeros(B, HW, dtype=torch.bool, device=dev)
     nonempty = torch.zeros(B, dtype=torch.bool, device=dev)
     cost = torch.empty(B, n, HW, device=dev) if return_cost else None
+    per = _chunk_multiple(dev)
     buf = None
     start = 0
     while start < B:
         k = max(count_sorted[start], 1)
         # coarse-to-fine evaluates a fraction of the voxels: chunks of more proposals
-        size = max(1, min(B - start, max_batch_voxels * (_C2F_CHUNK if coarse_to_fine else 1) // (k * n)))
+        size = max(1, max_batch_voxels * (_C2F_CHUNK if coarse_to_fine else 1) // (k * n))
+        size = min(B - start, size - size % per if size >= per else size)
         idx = order[start:start + size]
         start += size
         if count_sorted[start - size] == 0:

@@ -845,6 +845,49 @@ def test_default_batch_voxels_scales_with_threads_and_is_bounded():
     assert torch.equal(a.occupancy, b.occupancy) and torch.equal(a.columns, b.columns)
 
 
+@pytest.mark.parametrize("threads", [2, 3])
+def test_chunks_hold_a_multiple_of_the_threads_within_the_budget(threads, monkeypatch):
+    """The CPU ``grid_sample`` shares work among threads by batch entry: every chunk but the
+    last of a call holds a multiple of the thread count, none exceeds the voxel budget, and
+    the labels are those of one thread and one proposal per chunk."""
+    from carvi_torch import carve
+    gen = torch.Generator().manual_seed(8)
+    sdf, cams, reference, views = random_proposals(gen, B=23)
+    n = 12
+    sizes = []
+    init = carve._Chunk.__init__
+
+    def spy(self, ext, views_c, *args, **kwargs):
+        sizes.append(views_c.shape[0])
+        init(self, ext, views_c, *args, **kwargs)
+
+    monkeypatch.setattr(carve._Chunk, "__init__", spy)
+    fg_cols = carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=1).reference_columns
+    count = fg_cols.flatten(1).sum(1)
+    budget = 7 * int(count.max()) * n  # 7 proposals of the largest count: 6 with 2 or 3 threads
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=n)
+        torch.set_num_threads(threads)
+        sizes.clear()
+        out = carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=budget)
+        assert carve._chunk_multiple(torch.device("cpu")) == threads
+    finally:
+        torch.set_num_threads(before)
+    assert carve._chunk_multiple(torch.device("cuda")) == 1
+    got = list(sizes)  # chunks led by an empty reference are skipped, and empty ones come last
+    assert int((count > 0).sum()) <= sum(got) <= len(count) and len(got) >= 3
+    assert all(s % threads == 0 for s in got[:-1]), got
+    order = torch.argsort(count, descending=True, stable=True)
+    start = 0
+    for s in got:  # proposals of the chunk: at most the budget's voxels of foreground columns
+        assert s * int(count[order[start]]) * n <= budget
+        start += s
+    assert torch.equal(out.occupancy, one.occupancy) and torch.equal(out.columns, one.columns)
+    assert torch.equal(out.empty, one.empty)
+
+
 @pytest.mark.parametrize("width", [4, 11, 41, 60, 61, 517, 2047, 2048])
 def test_column_hw_is_exact_integer_division(width):
     from carvi_torch.carve import _column_hw
