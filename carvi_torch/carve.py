@@ -1154,10 +1154,11 @@ def _chunk_multiple(device: torch.device) -> int:
 
     The CPU ``grid_sample`` shares a call's work among the threads by batch index, whole
     batch entries each, so a chunk of 7 proposals on 2 threads keeps one thread idle for a
-    proposal's time (13% slower per proposal than 8 in a scratch measurement). Rounding the
-    chunk down to 6 was 10% faster on the pipeline's proposals at 2 threads (bilinear and
-    nearest; docs/benchmarks/README.md); splitting each proposal's depths into one batch
-    entry per thread instead was slower (its maps are copied once per thread).
+    proposal's time (13% slower per proposal than 8 in a scratch measurement). With this
+    rounding (and the per-chunk coordinate terms) the carving was 1.14x faster bilinear and
+    1.24x nearest at 2 threads (docs/benchmarks/README.md, "Balanced threads"); splitting each
+    proposal's depths into one batch entry per thread instead was slower (its maps are copied
+    once per thread).
     """
     return max(1, torch.get_num_threads()) if device.type == "cpu" else 1
 
