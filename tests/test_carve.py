@@ -886,6 +886,18 @@ def test_chunks_hold_a_multiple_of_the_threads_within_the_budget(threads, monkey
         start += s
     assert torch.equal(out.occupancy, one.occupancy) and torch.equal(out.columns, one.columns)
     assert torch.equal(out.empty, one.empty)
+    loop = carve_proposals_loop(sdf, cams, reference, views, resolution=n)
+    assert torch.equal(out.occupancy, loop.occupancy)
+    # a budget of fewer proposals than threads: chunks of whatever fits (here one), not of zero
+    try:
+        torch.set_num_threads(threads)
+        sizes.clear()
+        small = carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=int(count.max()) * n,
+                                return_cost=True)
+    finally:
+        torch.set_num_threads(before)
+    assert sizes and set(sizes) == {1}
+    assert torch.equal(small.occupancy, loop.occupancy) and torch.equal(small.cost, loop.cost)
 
 
 @pytest.mark.parametrize("width", [4, 11, 41, 60, 61, 517, 2047, 2048])

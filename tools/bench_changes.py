@@ -271,6 +271,8 @@ def main(argv=None):
                          "time (what shows how well the threads share the work)")
     argv = list(sys.argv[1:] if argv is None else argv)
     args = ap.parse_args(argv)
+    if args.clock != "process" and not args.carve_only:
+        ap.error("--clock applies to --carve-only; the full comparison times in process time")
     torch.set_num_threads(args.threads)
     load = os.getloadavg()
     if args.carve_only:
