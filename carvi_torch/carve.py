@@ -665,7 +665,7 @@ def _grid_sample(maps: torch.Tensor, grid: torch.Tensor, mode: str = "bilinear")
     return F.grid_sample(maps, grid, mode=mode, padding_mode="border", align_corners=True)
 
 
-def _sample_columns(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor, torch.Tensor], depth: torch.Tensor,
+def _sample_columns(maps: torch.Tensor, G: torch.Tensor, xy: torch.Tensor, depth: torch.Tensor,
                     out: torch.Tensor | None = None, mode: str = "bilinear") -> torch.Tensor:
     """Samples of ``maps`` (interpolated as ``mode``) at the voxels of some columns.
 
@@ -675,14 +675,14 @@ def _sample_columns(maps: torch.Tensor, G: torch.Tensor, xy: tuple[torch.Tensor,
     Args:
         maps: ``(N, 1, Hp, Wp)`` float32 extended maps (already scaled).
         G: ``(N, 2, 4)`` float32 index -> sampling maps.
-        xy: from :func:`_column_coords`, ``(N, K)`` each.
+        xy: ``(N, 2, K)`` column terms (:func:`_column_terms`).
         depth: ``(D,)`` float32 depth indices.
         out: optional float32 buffer of at least ``N * 2 * D * K`` elements for the coordinates.
 
     Returns:
         ``(N, D, K)`` float32 samples.
     """
-    return _sample_planes(maps, G[:, :, 0, None] * depth, torch.stack(xy, 1), out, mode)
+    return _sample_planes(maps, G[:, :, 0, None] * depth, xy, out, mode)
 
 
 def _sample_planes(maps: torch.Tensor, dz: torch.Tensor, xy: torch.Tensor, out: torch.Tensor | None = None,
@@ -841,9 +841,9 @@ def _reference_columns(ext, ref_u, G_ref, H_grid, W_grid, mode="bilinear"):
     """``(B, H_grid * W_grid)`` reference cost at every column centre."""
     B = ref_u.shape[0]
     h, w = _column_hw(torch.arange(H_grid * W_grid, device=ext.device).expand(B, -1), W_grid)
-    xy = _column_coords(G_ref, h, w)
     zero = torch.zeros(1, device=ext.device, dtype=torch.float32)
-    return _sample_columns(torch.index_select(ext, 0, ref_u)[:, None], G_ref, xy, zero, mode=mode)[:, 0]
+    return _sample_columns(torch.index_select(ext, 0, ref_u)[:, None], G_ref, _column_terms(G_ref, h, w), zero,
+                           mode=mode)[:, 0]
 
 
 def _lipschitz(ext: torch.Tensor) -> torch.Tensor:
@@ -876,14 +876,15 @@ class _Chunk:
     def columns(self, cols: torch.Tensor, depth: torch.Tensor, buf=None) -> torch.Tensor:
         """Exact ``C`` at ``depth (D,)`` of flat columns ``cols (N, K)``: ``(N, D, K)`` float32."""
         h, w = _column_hw(cols, self.n)
-        # the depth and column terms of every slot at once (a few operations per chunk, not per slot)
-        dz = self.G[..., 0, None] * depth  # (N, V, 2, D)
-        xy = _column_terms(self.G, h, w)  # (N, V, 2, K)
+        # the depth and column terms of every used slot at once (a few operations per chunk, not per slot)
+        used = [j for j, maps in enumerate(self.maps) if maps is not None]
+        G = self.G if len(used) == len(self.maps) else self.G[:, used]  # (N, U, 2, 4)
+        dz = G[..., 0, None] * depth  # (N, U, 2, D)
+        xy = _column_terms(G, h, w)  # (N, U, 2, K)
         acc = None
-        for j, maps in enumerate(self.maps):
-            if maps is not None:
-                sample = _sample_planes(maps, dz[:, j], xy[:, j], out=buf, mode=self.mode)
-                acc = sample if acc is None else torch.maximum(acc, sample, out=acc)
+        for u, j in enumerate(used):
+            sample = _sample_planes(self.maps[j], dz[:, u], xy[:, u], out=buf, mode=self.mode)
+            acc = sample if acc is None else torch.maximum(acc, sample, out=acc)
         col = self.column_cost.gather(1, cols)[:, None, :]
         return col.expand(-1, depth.shape[0], -1).contiguous() if acc is None else torch.maximum(acc, col, out=acc)
 
@@ -1373,7 +1374,7 @@ def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, referen
         ext, ref_u, views_u, T, G, G_ref, scale = _prepare(one, ref_b, views_b, resolution)
         column_cost = _reference_columns(ext, ref_u, G_ref, n, n, interpolation)  # (1, HW)
         if reference_every_voxel:
-            acc = _sample_columns(ext[ref_u][:, None], G_ref, _column_coords(G_ref, h, w), depth,
+            acc = _sample_columns(ext[ref_u][:, None], G_ref, _column_terms(G_ref, h, w), depth,
                                   mode=interpolation)  # (1, D, HW)
         else:
             acc = column_cost[:, None, :].expand(1, n, n * n).clone()  # (1, D, HW)
@@ -1381,7 +1382,7 @@ def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, referen
             if int(views[b, j]) < 0:
                 continue
             view_map = ext[views_u[:, j]][:, None] * scale[:, j, None, None, None]
-            xy = _column_coords(G[:, j], h, w)
+            xy = _column_terms(G[:, j], h, w)
             acc = torch.maximum(acc, _sample_columns(view_map, G[:, j], xy, depth, mode=interpolation))
         occ, _, _ = _label(acc, column_cost, imprint)
         grids.append((occ, T.float(), column_cost, acc))

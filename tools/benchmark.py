@@ -334,8 +334,9 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
                       * K / L}
 
     # The same comparisons paired in time: each round runs the batched carving (K objects) and then
-    # the loop (L objects, scaled to K) back to back, so both see the same load; the median of the
-    # per-round ratios is steadier on a shared machine than the ratio of two best-of timings.
+    # the loop (L objects, scaled to K) back to back (single runs, always in that order); the median
+    # of the per-round ratios is less sensitive to a load swing between two best-of timings, not
+    # immune to load.
     paired = {}
     for name, kw, fn in (("batched", {}, ladder["loop_reference_structure"]),
                          ("batched_nearest", dict(interpolation="nearest"), ref_structure_nearest)):
