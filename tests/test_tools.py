@@ -60,3 +60,37 @@ def test_carving_figure_from_the_kept_runs(tmp_path: Path):
     assert out.is_file() and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 20_000
     with pytest.raises(SystemExit, match="benchmark JSON not found"):
         figure_carving.main(["--runs", str(tmp_path / "missing.json"), "--out", str(tmp_path / "x.png")])
+
+
+@pytest.fixture(scope="module")
+def small_class(tmp_path_factory) -> Path:
+    """annotations.json of 12 procedural cars."""
+    from carvi_torch.synthetic import procedural
+
+    data = tmp_path_factory.mktemp("small_class")
+    procedural.write_default_collection(data, instances_per_class=12, categories=["car"], seed=0, progress=False)
+    return data / "annotations.json"
+
+
+def test_malloc_threshold_comparison_on_a_small_class(small_class: Path, tmp_path: Path):
+    """tools/bench_malloc.py: both carving set-ups run in child processes under both malloc settings,
+    and the report holds what each child measured."""
+    out = tmp_path / "malloc.json"
+    cmd = [sys.executable, str(ROOT / "tools" / "bench_malloc.py"), "--data", str(small_class),
+           "--objects", "2", "--threads", "1", "--calls", "1", "--rounds", "1",
+           "--work-dir", str(tmp_path / "work"), "--out", str(out)]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300,
+                         env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    r = json.loads(out.read_text())
+    for kind in ("carve", "carve_loaded"):
+        assert len(r[kind]["rounds"]) == 1
+        for rnd in r[kind]["rounds"]:
+            for setting in ("false", "true"):
+                m = rnd[setting]
+                assert m["objects"] == 2 and m["threads"] == 1 and m["seconds_per_object"] > 0
+                assert m["faults_per_object"] >= 0
+        s = r[kind]["seconds_per_object"]
+        assert s["adaptive_over_fixed_min"] <= s["adaptive_over_fixed_median"] <= s["adaptive_over_fixed_max"]
+    assert "e2e" not in r  # only with --e2e (the whole pipeline twice: minutes on the benchmark's class)
+
