@@ -94,3 +94,23 @@ def test_malloc_threshold_comparison_on_a_small_class(small_class: Path, tmp_pat
         assert s["adaptive_over_fixed_min"] <= s["adaptive_over_fixed_median"] <= s["adaptive_over_fixed_max"]
     assert "e2e" not in r  # only with --e2e (the whole pipeline twice: minutes on the benchmark's class)
 
+
+def test_sample_bounds_of_a_coarse_to_fine_carving(small_class: Path, tmp_path: Path):
+    """tools/carve_sample_bounds.py: fractions of the dense samples, the per-view bounds never needing
+    more than the single bound, and every imprinted column among those sampled whole."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        import carve_sample_bounds
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    r = carve_sample_bounds.main(["--data", str(small_class), "--objects", "2", "--blocks", "2", "4",
+                                  "--out", str(tmp_path / "bounds.json")])
+    assert r["proposals"] > 0 and len(r["rows"]) == 4
+    rows = {(x["block"], x["per_view_bounds"]): x for x in r["rows"]}
+    for (block, per_view), x in rows.items():
+        assert 0 < x["sample_fraction"] <= 1.0 + 1e-9, x
+        assert x["imprinted_column_fraction"] <= x["candidate_column_fraction"] <= 1, x
+        if per_view:
+            assert x["sample_fraction"] <= rows[(block, False)]["sample_fraction"] + 1e-12
+    # sampling every second depth needs at least half of the samples, and more than the sampled depths
+    assert rows[(2, True)]["sample_fraction"] >= 31 / 60
