@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -73,44 +74,82 @@ def small_class(tmp_path_factory) -> Path:
 
 
 def test_malloc_threshold_comparison_on_a_small_class(small_class: Path, tmp_path: Path):
-    """tools/bench_malloc.py: both carving set-ups run in child processes under both malloc settings,
-    and the report holds what each child measured."""
+    """tools/bench_malloc.py: both carving set-ups run in child processes under both malloc settings (the
+    fixed children see the thresholds, the adaptive ones none, whatever the caller set), and the report
+    holds what each child measured."""
     out = tmp_path / "malloc.json"
     cmd = [sys.executable, str(ROOT / "tools" / "bench_malloc.py"), "--data", str(small_class),
            "--objects", "2", "--threads", "1", "--calls", "1", "--rounds", "1",
            "--work-dir", str(tmp_path / "work"), "--out", str(out)]
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300,
-                         env=dict(os.environ, OMP_NUM_THREADS="1"))
+                         env=dict(os.environ, OMP_NUM_THREADS="1", MALLOC_TRIM_THRESHOLD_="4096"))
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     r = json.loads(out.read_text())
+    fixed = {"MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(256 << 20)}
     for kind in ("carve", "carve_loaded"):
-        assert len(r[kind]["rounds"]) == 1
-        for rnd in r[kind]["rounds"]:
-            for setting in ("false", "true"):
-                m = rnd[setting]
+        rounds = r[kind]["rounds"]
+        assert [list(x) for x in rounds] == [["adaptive", "fixed"]]  # the first round's order
+        for rnd in rounds:
+            assert rnd["fixed"]["environment"] == fixed
+            assert rnd["adaptive"]["environment"] == {k: None for k in fixed}
+            for m in rnd.values():
                 assert m["objects"] == 2 and m["threads"] == 1 and m["seconds_per_object"] > 0
                 assert m["faults_per_object"] >= 0
         s = r[kind]["seconds_per_object"]
-        assert s["adaptive_over_fixed_min"] <= s["adaptive_over_fixed_median"] <= s["adaptive_over_fixed_max"]
+        ratios = sorted(x["adaptive"]["seconds_per_object"] / x["fixed"]["seconds_per_object"] for x in rounds)
+        assert s["adaptive_over_fixed_min"] == ratios[0] and s["adaptive_over_fixed_max"] == ratios[-1]
     assert "e2e" not in r  # only with --e2e (the whole pipeline twice: minutes on the benchmark's class)
 
 
-def test_sample_bounds_of_a_coarse_to_fine_carving(small_class: Path, tmp_path: Path):
-    """tools/carve_sample_bounds.py: fractions of the dense samples, the per-view bounds never needing
-    more than the single bound, and every imprinted column among those sampled whole."""
+def _tool(name: str):
     sys.path.insert(0, str(ROOT / "tools"))
     try:
-        import carve_sample_bounds
+        return __import__(name)
     finally:
         sys.path.remove(str(ROOT / "tools"))
-    r = carve_sample_bounds.main(["--data", str(small_class), "--objects", "2", "--blocks", "2", "4",
-                                  "--out", str(tmp_path / "bounds.json")])
+
+
+def test_sample_bounds_of_a_coarse_to_fine_carving(small_class: Path, tmp_path: Path):
+    """tools/carve_sample_bounds.py: sound bounds (no decision the exact costs contradict), fractions
+    of the dense samples, and the per-view bounds never needing more than the single bound."""
+    r = _tool("carve_sample_bounds").main(["--data", str(small_class), "--objects", "2", "--blocks", "2", "4",
+                                           "--out", str(tmp_path / "bounds.json")])
     assert r["proposals"] > 0 and len(r["rows"]) == 4
     rows = {(x["block"], x["per_view_bounds"]): x for x in r["rows"]}
     for (block, per_view), x in rows.items():
+        assert x["violations"] == 0, x
         assert 0 < x["sample_fraction"] <= 1.0 + 1e-9, x
         assert x["imprinted_column_fraction"] <= x["candidate_column_fraction"] <= 1, x
         if per_view:
             assert x["sample_fraction"] <= rows[(block, False)]["sample_fraction"] + 1e-12
     # sampling every second depth needs at least half of the samples, and more than the sampled depths
     assert rows[(2, True)]["sample_fraction"] >= 31 / 60
+
+
+def test_sample_bounds_simulation_counts_violations_of_a_bound_too_small():
+    """The simulation's soundness count can fail: a quarter of a valid bound contradicts the costs."""
+    tool = _tool("carve_sample_bounds")
+    depth = torch.arange(60, dtype=torch.float64)
+    # one view, one column: the cost falls 1 per step to -20 at depth 30, then rises again
+    S = (depth - 30).abs()[None, :, None] - 20.0
+    assert tool.simulate(S, torch.tensor([1.0 + 1e-3]), 6, True)["violations"] == 0
+    assert tool.simulate(S, torch.tensor([0.25]), 6, True)["violations"] > 0
+
+
+@pytest.mark.parametrize("block", [3, 4, 7])
+@pytest.mark.parametrize("imprint", [True, False])
+def test_depth_block_prototype_equals_the_batched_carving(small_class: Path, block: int, imprint: bool):
+    """The prototype the tool times gives the batched carving's labels voxel for voxel (small chunks,
+    so that chunks hold padding columns)."""
+    import argparse
+
+    from carvi_torch import carve as C
+
+    tool = _tool("carve_sample_bounds")
+    ns = argparse.Namespace(data=str(small_class), category="car", objects=3)
+    cfg, plan, _, K, ref, views, _ = _tool("bench_changes").class_proposals(ns, torch.device("cpu"))
+    want = C.carve_proposals(plan.maps, None, ref, views, resolution=cfg.resolution, imprint=imprint,
+                             max_batch_voxels=20_000).occupancy
+    got = tool.carve_blocks(plan.maps, ref, views, cfg.resolution, block, imprint,
+                            tool.map_differences(plan.maps.ext), max_batch_voxels=20_000)
+    assert want.any() and torch.equal(got, want)

@@ -97,6 +97,18 @@ def class_proposals(args, device: torch.device):
     return cfg, plan, coll, K, ref[valid], views[valid], valid
 
 
+def pipeline_call_bounds(cfg, valid: torch.Tensor, objects: int, device: torch.device) -> list[int]:
+    """Where the pipeline's carving calls split the kept proposals of the first ``objects`` references.
+
+    ``valid (objects * P,)`` bool marks the kept proposals (:func:`class_proposals`); a run on
+    ``device`` carves ``pipeline._chunk_objects`` references per call, so call ``i`` takes the kept
+    proposals ``bounds[i]:bounds[i + 1]``.
+    """
+    per_ref = valid.view(objects, -1).sum(1).tolist()
+    step = pipeline._chunk_objects(cfg, device)
+    return [sum(per_ref[:a]) for a in range(0, objects, step)] + [sum(per_ref)]
+
+
 def functions(args) -> dict:
     old_carve = old_module(args.rev, "carvi_torch/carve.py", "_old_carve")
     old_select = old_module(args.rev, "carvi_torch/select.py", "_old_select")
@@ -174,10 +186,8 @@ def carving_same_call(args) -> dict:
     old_carve.CarveMaps = C.CarveMaps
     device = torch.device("cpu")
     cfg, plan, _, K, ref, views, valid = class_proposals(args, device)
-    per_ref = valid.view(K, -1).sum(1).tolist()
-    step = pipeline._chunk_objects(cfg, device)
-    bounds = [sum(per_ref[:a]) for a in range(0, K, step)] + [len(ref)]
-    out = {"objects": K, "pipeline_chunk_objects": step}
+    bounds = pipeline_call_bounds(cfg, valid, K, device)
+    out = {"objects": K, "pipeline_chunk_objects": pipeline._chunk_objects(cfg, device)}
     for mode in ("bilinear", "nearest"):
         def run(mod, keep=False, mode=mode):
             grids = []

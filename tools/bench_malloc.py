@@ -7,7 +7,10 @@ Memory handed back costs a minor page fault per 4 KiB page at its next use. The 
 ``MALLOC_MMAP_THRESHOLD_=32 MiB`` (glibc's largest) and ``MALLOC_TRIM_THRESHOLD_=256 MiB`` in
 the child's environment.
 
-Each measurement runs in a fresh child process, alternating the two settings round by round:
+Each measurement runs in a fresh child process (every ``MALLOC_*`` variable and ``GLIBC_TUNABLES``
+of the caller's environment removed, :data:`FIXED` added for the fixed setting; an allocator
+preloaded with ``LD_PRELOAD`` would stay, so do not run the tool under one), alternating the two
+settings round by round (the whole-pipeline pairs alternate from one thread count to the next):
 
 * ``carve`` (the class prepared as a run prepares it, same seed, in the child): the proposals of
   the first ``--objects`` references carved as the pipeline calls the carving (one call per
@@ -54,26 +57,31 @@ from carvi_torch.io.outputs import write_json  # noqa: E402
 
 #: The fixed setting, as glibc reads it from the environment (the mmap threshold at its largest value).
 FIXED = {"MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(256 << 20)}
+#: The two settings compared, as the JSON names them.
+SETTINGS = ("adaptive", "fixed")
 
 
 def _faults(who=resource.RUSAGE_SELF) -> int:
+    """Minor page faults so far of this process (``RUSAGE_SELF``, every thread) or of its waited-for children."""
     return resource.getrusage(who).ru_minflt
 
 
-def _pipeline_bounds(cfg, valid, K, ref) -> list[int]:
-    per_ref = valid.view(K, -1).sum(1).tolist()
-    step = pipeline._chunk_objects(cfg, torch.device("cpu"))
-    return [sum(per_ref[:a]) for a in range(0, K, step)] + [len(ref)]
-
-
-def _prepare(args):
+def _prepare(args) -> dict:
+    """The class prepared as a run prepares it (same seed) and the kept proposals of its first ``--objects``
+    references, with the bounds of the pipeline's carving calls (``bench_changes``)."""
     sys.path.insert(0, str(ROOT / "tools"))
-    import bench_changes  # the class and proposals exactly as the other carving benchmarks take them
+    from bench_changes import class_proposals, pipeline_call_bounds
 
+    device = torch.device("cpu")
     ns = argparse.Namespace(data=args.data, category=args.category, objects=args.objects)
-    cfg, plan, _, K, ref, views, valid = bench_changes.class_proposals(ns, torch.device("cpu"))
-    return dict(maps=plan.maps, ref=ref, views=views, bounds=_pipeline_bounds(cfg, valid, K, ref), K=K,
+    cfg, plan, _, K, ref, views, valid = class_proposals(ns, device)
+    return dict(maps=plan.maps, ref=ref, views=views, bounds=pipeline_call_bounds(cfg, valid, K, device), K=K,
                 resolution=cfg.resolution, imprint=cfg.imprint)
+
+
+def _seen() -> dict:
+    """The malloc settings this process found in its environment."""
+    return {k: os.environ.get(k) for k in FIXED}
 
 
 def child_carve(args) -> dict:
@@ -98,12 +106,12 @@ def child_carve(args) -> dict:
     wall, faults = time.perf_counter() - t0, _faults() - f0
     K = p["K"]
     return {"seconds_per_object": wall / (args.calls * K), "faults_per_object": faults / (args.calls * K),
-            "objects": K, "calls": args.calls, "threads": torch.get_num_threads()}
+            "objects": K, "calls": args.calls, "threads": torch.get_num_threads(), "environment": _seen()}
 
 
 def child_e2e(args) -> dict:
-    """In this (fresh) process: the whole pipeline."""
-    out = Path(args.work_dir) / f"e2e_keep_{args.keep}_t{args.threads}"
+    """In this (fresh) process: the whole pipeline (one writer process, forked: its faults are the children's)."""
+    out = Path(args.work_dir) / f"e2e_{args.setting}_t{args.threads}"
     cfg = Config().override({"data": args.data, "classes": [args.category], "out": str(out), "overwrite": True,
                              "progress": False, "preview": False})
     f0, t0 = _faults(), time.perf_counter()
@@ -114,26 +122,35 @@ def child_e2e(args) -> dict:
             "faults_main": _faults() - f0, "faults_writer": _faults(resource.RUSAGE_CHILDREN),
             "peak_rss_main_mb": summary["peak_rss_mb"], "peak_rss_writer_mb": summary["peak_rss_workers_mb"],
             "carve_seconds": c["seconds"].get("carve"), "select_seconds": c["seconds"].get("select"),
-            "threads": args.threads}
+            "threads": args.threads, "environment": _seen()}
 
 
-def _child(kind: str, keep: str, threads: int, args) -> dict:
-    cmd = [sys.executable, __file__, "--child", kind, "--keep", keep, "--threads", str(threads), "--data", args.data,
-           "--category", args.category, "--objects", str(args.objects), "--calls", str(args.calls),
-           "--work-dir", args.work_dir]
+def _child(kind: str, setting: str, threads: int, args) -> dict:
+    """Run one measurement in a fresh process: every ``MALLOC_*`` variable and ``GLIBC_TUNABLES`` of this
+    environment removed, then :data:`FIXED` added for the fixed setting (an allocator preloaded with
+    ``LD_PRELOAD`` would stay: do not run the tool under one)."""
+    cmd = [sys.executable, __file__, "--child", kind, "--setting", setting, "--threads", str(threads),
+           "--data", args.data, "--category", args.category, "--objects", str(args.objects),
+           "--calls", str(args.calls), "--work-dir", args.work_dir]
     env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GLIBC_TUNABLES"}
-    if keep == "true":
+    if setting == "fixed":
         env.update(FIXED)
-    res = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
+    res = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=args.timeout)
     if res.returncode != 0:
         raise SystemExit(f"child failed ({res.returncode}):\n{res.stderr[-3000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
 def _paired(rows: list[dict], key: str) -> dict:
-    """Median and range over rounds of (adaptive / fixed) for ``key``, and each setting's median."""
-    a = [r["false"][key] for r in rows]
-    b = [r["true"][key] for r in rows]
+    """Each setting's median of ``key`` over rounds, and the median and range of the rounds' adaptive / fixed.
+
+    Example:
+        >>> _paired([{"adaptive": {"s": 2.0}, "fixed": {"s": 1.0}}, {"adaptive": {"s": 3.0}, "fixed": {"s": 2.0}},
+        ...          {"adaptive": {"s": 1.0}, "fixed": {"s": 1.0}}], "s")["adaptive_over_fixed_median"]
+        1.5
+    """
+    a = [r["adaptive"][key] for r in rows]
+    b = [r["fixed"][key] for r in rows]
     ratios = [x / y for x, y in zip(a, b) if y]
     return {"adaptive_median": statistics.median(a), "fixed_median": statistics.median(b),
             "adaptive_over_fixed_median": statistics.median(ratios) if ratios else None,
@@ -154,7 +171,8 @@ def main(argv=None):
     ap.add_argument("--work-dir", default=str(ROOT / "outputs" / "bench" / "malloc"))
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "malloc.json"))
     ap.add_argument("--child", choices=("carve", "carve_loaded", "e2e"), help=argparse.SUPPRESS)
-    ap.add_argument("--keep", choices=("true", "false"), help=argparse.SUPPRESS)
+    ap.add_argument("--timeout", type=int, default=3600, help="seconds a child process may take")
+    ap.add_argument("--setting", choices=SETTINGS, help=argparse.SUPPRESS)
     argv = list(sys.argv[1:] if argv is None else argv)
     args = ap.parse_args(argv)
     if args.child:
@@ -170,26 +188,24 @@ def main(argv=None):
     for kind in ("carve", "carve_loaded"):
         rows = []
         for r in range(args.rounds):
-            order = ("false", "true") if r % 2 == 0 else ("true", "false")
+            order = SETTINGS if r % 2 == 0 else SETTINGS[::-1]
             rows.append({k: _child(kind, k, args.threads, args) for k in order})
             print(f"{kind} round {r + 1}: " + ", ".join(
-                f"{'fixed' if k == 'true' else 'adaptive'}: {v['seconds_per_object'] * 1000:.1f} ms/object, "
-                f"{v['faults_per_object']:.0f} faults/object" for k, v in rows[-1].items()), flush=True)
+                f"{k}: {v['seconds_per_object'] * 1000:.1f} ms/object, {v['faults_per_object']:.0f} faults/object"
+                for k, v in rows[-1].items()), flush=True)
         result[kind] = {"threads": args.threads, "rounds": rows,
                         "seconds_per_object": _paired(rows, "seconds_per_object"),
-                        "faults_per_object": {
-                            "adaptive_median": statistics.median(r["false"]["faults_per_object"] for r in rows),
-                            "fixed_median": statistics.median(r["true"]["faults_per_object"] for r in rows)}}
+                        "faults_per_object": {f"{k}_median": statistics.median(r[k]["faults_per_object"] for r in rows)
+                                              for k in SETTINGS}}
     if args.e2e:
         result["e2e"] = {}
-        for t in args.e2e_threads:
-            runs = {k: _child("e2e", k, t, args) for k in ("false", "true")}
-            result["e2e"][str(t)] = runs
-            print(f"e2e, {t} thread(s): " + ", ".join(
-                f"{'fixed' if k == 'true' else 'adaptive'}: {v['seconds']:.1f} s, {v['faults_main']} faults "
-                f"(writer {v['faults_writer']}), peak "
-                f"{v['peak_rss_main_mb']:.0f} + {v['peak_rss_writer_mb']:.0f} MB" for k, v in runs.items()),
-                flush=True)
+        for i, t in enumerate(args.e2e_threads):
+            order = SETTINGS if i % 2 == 0 else SETTINGS[::-1]
+            runs = {k: _child("e2e", k, t, args) for k in order}
+            result["e2e"][str(t)] = {"order": list(order), **runs}
+            print(f"e2e, {t} thread(s), in this order: " + ", ".join(
+                f"{k}: {v['seconds']:.1f} s, {v['faults_main']} faults (writer {v['faults_writer']}), peak "
+                f"{v['peak_rss_main_mb']:.0f} + {v['peak_rss_writer_mb']:.0f} MB" for k, v in runs.items()), flush=True)
     result["machine"]["load_average_at_end"] = list(os.getloadavg())
 
     print(f"\n| carving, {args.threads} thread(s), fresh process | adaptive (glibc's default) | fixed | "

@@ -65,6 +65,7 @@ if str(ROOT / "tools") not in sys.path:
     sys.path.insert(0, str(ROOT / "tools"))
 
 from bench_carve import GridSampleClock, best_of, sync  # noqa: E402
+from bench_changes import pipeline_call_bounds  # noqa: E402
 from carvi_torch import carve as C  # noqa: E402
 from carvi_torch import pipeline, select  # noqa: E402
 from carvi_torch.config import Config  # noqa: E402
@@ -249,9 +250,7 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
     # The timed runs carve as the pipeline does: one call per pipeline chunk of references, each
     # chunk's grids released before the next (so the process reuses their memory instead of
     # touching fresh pages for one output of all K objects).
-    per_ref = valid.view(K, -1).sum(1).tolist()
-    step = pipeline._chunk_objects(cfg, device)
-    bounds = [sum(per_ref[:a]) for a in range(0, K, step)] + [len(reference)]
+    bounds = pipeline_call_bounds(cfg, valid, K, device)
 
     def batched_chunks(**kw):
         empty = 0
@@ -377,7 +376,7 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
     per = lambda t: t / K  # noqa: E731
     res = {
         "objects": K, "proposals_per_object": P, "loop_objects": L, "max_batch_voxels": mbv,
-        "pipeline_chunk_objects": step,
+        "pipeline_chunk_objects": pipeline._chunk_objects(cfg, device),
         "seconds_per_object": {**{k: per(v) for k, v in times.items()}, "batched_one_call": per(t_one_call),
                                "loop": per(t_loop),
                                **{k: per(v) for k, v in t_ladder.items()},
