@@ -275,6 +275,7 @@ class CarveMaps:
     radius: torch.Tensor
     size: tuple[int, int]
     _lip: torch.Tensor | None = field(default=None, repr=False)
+    _diff: tuple | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return self.entry_map.shape[0]
@@ -292,10 +293,18 @@ class CarveMaps:
         """The canvas part of the map(s) of entry ``i``: ``(H, W)`` (or ``(n, H, W)``) float32 signed distances."""
         return self.ext[self.entry_map[i]][..., PAD:-PAD, PAD:-PAD]
 
+    def pixel_differences(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``lx, ly``: ``(K + 1,)`` float64 :func:`_pixel_differences` of every map (computed once)."""
+        if self._diff is None:
+            parts = [_pixel_differences(self.ext[i:i + _PREP_CHUNK]) for i in range(0, len(self.ext), _PREP_CHUNK)]
+            self._diff = tuple(torch.cat(x) for x in zip(*parts))
+        return self._diff
+
     def lipschitz(self) -> torch.Tensor:
         """``(K + 1,)`` float64 :func:`_lipschitz` bound of every map (computed once)."""
         if self._lip is None:
-            self._lip = torch.cat([_lipschitz(self.ext[i:i + _PREP_CHUNK]) for i in range(0, len(self.ext), _PREP_CHUNK)])
+            lx, ly = self.pixel_differences()
+            self._lip = torch.sqrt(lx ** 2 + ly ** 2)
         return self._lip
 
     def with_entries(self, maps: torch.Tensor, cameras: ScaledOrthographic) -> "CarveMaps":
@@ -314,7 +323,7 @@ class CarveMaps:
         box, nonempty, radius = _chunked_geometry(self.ext, maps, cams.t)
         return CarveMaps(self.ext, torch.cat([self.entry_map, maps]), ScaledOrthographic.cat([self.cameras, cams]),
                          torch.cat([self.box, box]), torch.cat([self.nonempty, nonempty]),
-                         torch.cat([self.radius, radius]), self.size, None if self._lip is None else self._lip)
+                         torch.cat([self.radius, radius]), self.size, self._lip, self._diff)
 
 
 #: Maps extended (and measured) at once by :func:`prepare_maps` (bounds its temporary memory).
@@ -846,6 +855,18 @@ def _reference_columns(ext, ref_u, G_ref, H_grid, W_grid, mode="bilinear"):
                            mode=mode)[:, 0]
 
 
+def _pixel_differences(ext: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``lx, ly``: ``(K,)`` float64 largest absolute difference between neighbouring pixels of each
+    map ``ext (K, H, W)``, along x (within rows) and along y (within columns).
+
+    The bilinear interpolant's partial derivatives are convex combinations of such differences,
+    so over a step ``(dx, dy)`` it changes by at most ``lx |dx| + ly |dy|``.
+    """
+    lx = (ext[:, :, 1:] - ext[:, :, :-1]).abs().flatten(1).amax(1)
+    ly = (ext[:, 1:] - ext[:, :-1]).abs().flatten(1).amax(1)
+    return lx.double(), ly.double()
+
+
 def _lipschitz(ext: torch.Tensor) -> torch.Tensor:
     """``(K,)`` bound on the gradient norm of the bilinear interpolant of each map.
 
@@ -853,9 +874,8 @@ def _lipschitz(ext: torch.Tensor) -> torch.Tensor:
     differences, so ``|grad| <= sqrt(max|dx|^2 + max|dy|^2)``: ``sqrt 2`` for an exact
     signed distance map (adjacent values differ by at most one pixel), 0 for a constant.
     """
-    lx = (ext[:, :, 1:] - ext[:, :, :-1]).abs().flatten(1).amax(1)
-    ly = (ext[:, 1:] - ext[:, :-1]).abs().flatten(1).amax(1)
-    return torch.sqrt(lx.double() ** 2 + ly.double() ** 2)
+    lx, ly = _pixel_differences(ext)
+    return torch.sqrt(lx ** 2 + ly ** 2)
 
 
 class _Chunk:

@@ -926,3 +926,19 @@ def test_resolution_above_the_exact_column_bound_is_refused():
     sdf, cams, reference, views = random_proposals(gen)
     with pytest.raises(ValueError, match=r"resolution must be an int in \[4, 2048\]"):
         carve_proposals(sdf, cams, reference, views, resolution=2049)
+
+
+def test_pixel_differences_and_lipschitz_against_numpy(generator):
+    """CarveMaps.pixel_differences: the largest neighbour differences along x and y of every extended
+    map (a double loop in numpy); lipschitz() is their Euclidean norm."""
+    sdf = torch.randn(3, 6, 7, generator=generator) * 2
+    maps = prepare_maps(sdf, ScaledOrthographic(torch.eye(3).expand(3, 3, 3), torch.ones(3), torch.zeros(3, 2)))
+    lx, ly = maps.pixel_differences()
+    ext = maps.ext.double().numpy()
+    for k in range(ext.shape[0] - 1):  # the last map is the constant unused-slot map
+        e = ext[k]
+        want_x = max(abs(e[i, j + 1] - e[i, j]) for i in range(e.shape[0]) for j in range(e.shape[1] - 1))
+        want_y = max(abs(e[i + 1, j] - e[i, j]) for i in range(e.shape[0] - 1) for j in range(e.shape[1]))
+        assert lx[k].item() == pytest.approx(want_x, rel=1e-6) and ly[k].item() == pytest.approx(want_y, rel=1e-6)
+    assert lx[-1] == 0 and ly[-1] == 0
+    assert torch.equal(maps.lipschitz(), torch.sqrt(lx ** 2 + ly ** 2))

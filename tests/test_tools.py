@@ -94,7 +94,6 @@ def test_malloc_threshold_comparison_on_a_small_class(small_class: Path, tmp_pat
             assert rnd["adaptive"]["environment"] == {k: None for k in fixed}
             for m in rnd.values():
                 assert m["objects"] == 2 and m["threads"] == 1 and m["seconds_per_object"] > 0
-                assert m["faults_per_object"] >= 0
         s = r[kind]["seconds_per_object"]
         ratios = sorted(x["adaptive"]["seconds_per_object"] / x["fixed"]["seconds_per_object"] for x in rounds)
         assert s["adaptive_over_fixed_min"] == ratios[0] and s["adaptive_over_fixed_max"] == ratios[-1]
@@ -150,6 +149,5 @@ def test_depth_block_prototype_equals_the_batched_carving(small_class: Path, blo
     cfg, plan, _, K, ref, views, _ = _tool("bench_changes").class_proposals(ns, torch.device("cpu"))
     want = C.carve_proposals(plan.maps, None, ref, views, resolution=cfg.resolution, imprint=imprint,
                              max_batch_voxels=20_000).occupancy
-    got = tool.carve_blocks(plan.maps, ref, views, cfg.resolution, block, imprint,
-                            tool.map_differences(plan.maps.ext), max_batch_voxels=20_000)
+    got = tool.carve_blocks(plan.maps, ref, views, cfg.resolution, block, imprint, max_batch_voxels=20_000)
     assert want.any() and torch.equal(got, want)

@@ -69,22 +69,6 @@ def rep_depths(n: int, block: int) -> list[int]:
     return reps if reps[-1] == n - 1 else reps + [n - 1]
 
 
-def map_differences(ext: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Largest absolute difference between neighbouring pixels of each map.
-
-    Args:
-        ext: ``(M, Hp, Wp)`` float maps.
-
-    Returns:
-        ``lx, ly``: ``(M,)`` float64, along x (within rows) and along y (within columns).
-        A bilinear interpolant's partial derivatives are convex combinations of such
-        differences, so it changes by at most ``lx |dx| + ly |dy|`` over a step ``(dx, dy)``.
-    """
-    lx = (ext[:, :, 1:] - ext[:, :, :-1]).abs().flatten(1).amax(1).double()
-    ly = (ext[:, 1:] - ext[:, :-1]).abs().flatten(1).amax(1).double()
-    return lx, ly
-
-
 def step_bounds(G: torch.Tensor, scale: torch.Tensor, maps: torch.Tensor, lx: torch.Tensor, ly: torch.Tensor,
                 map_size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """How much each view's cost can change from one depth to the next along a column.
@@ -93,7 +77,7 @@ def step_bounds(G: torch.Tensor, scale: torch.Tensor, maps: torch.Tensor, lx: to
         G: ``(B, V, 2, 4)`` index -> ``grid_sample`` coordinate maps (``align_corners=True``).
         scale: ``(B, V)`` the factor each view's map is multiplied by (``s_r / s_m``).
         maps: ``(B, V)`` long, the map (row of ``ext``) of each view slot.
-        lx, ly: ``(M,)`` float64 from :func:`map_differences`.
+        lx, ly: ``(M,)`` float64 largest pixel differences of the maps (``CarveMaps.pixel_differences``).
         map_size: ``(Hp, Wp)`` of the maps.
 
     Returns:
@@ -119,8 +103,7 @@ def view_samples(maps: C.CarveMaps, ref: torch.Tensor, views: torch.Tensor, n: i
     samples), and their per-step bounds ``t (U,)`` (directional) and ``t_iso (U,)`` (isotropic)."""
     ext, ref_u, views_u, _, G, G_ref, scale = C._prepare(maps, ref, views, n)
     column_cost = C._reference_columns(ext, ref_u, G_ref, n, n)
-    lx, ly = map_differences(ext)
-    t_dir, t_iso = step_bounds(G, scale, views_u, lx, ly, tuple(ext.shape[1:]))
+    t_dir, t_iso = step_bounds(G, scale, views_u, *maps.pixel_differences(), tuple(ext.shape[1:]))
     depth = torch.arange(n, dtype=torch.float32)
     for b in range(len(ref)):
         cols = (column_cost[b] < 0).nonzero()[:, 0][None]
@@ -272,14 +255,12 @@ def chunk_blocks(chunk: "C._Chunk", cols: torch.Tensor, step: torch.Tensor, bloc
 
 
 def carve_blocks(maps: C.CarveMaps, reference: torch.Tensor, views: torch.Tensor, n: int, block: int,
-                 imprint: bool, differences: tuple[torch.Tensor, torch.Tensor],
-                 max_batch_voxels: int | None = None) -> torch.Tensor:
+                 imprint: bool, max_batch_voxels: int | None = None) -> torch.Tensor:
     """The prototype over a batch of proposals, chunked like ``carve.carve_proposals``.
 
     Args:
         maps: prepared maps; reference ``(B,)``, views ``(B, V)`` long entries (``-1`` unused).
         n: resolution; block: depths per block; imprint: as in ``carve.carve_proposals``.
-        differences: :func:`map_differences` of ``maps.ext``.
         max_batch_voxels: chunk bound (default ``carve.default_batch_voxels``, as the batched carving).
 
     Returns:
@@ -292,7 +273,7 @@ def carve_blocks(maps: C.CarveMaps, reference: torch.Tensor, views: torch.Tensor
     ext, ref_u, views_u, _, G, G_ref, scale = C._prepare(maps, reference, views, n)
     column_cost = C._reference_columns(ext, ref_u, G_ref, n, n)
     fg = column_cost < 0
-    step, _ = step_bounds(G, scale, views_u, *differences, tuple(ext.shape[1:]))
+    step, _ = step_bounds(G, scale, views_u, *maps.pixel_differences(), tuple(ext.shape[1:]))
     count = fg.sum(1)
     order = torch.argsort(count, descending=True, stable=True)
     col_order = C._foreground_first(fg)
@@ -332,7 +313,6 @@ def time_prototype(args) -> dict:
     cfg, plan, _, K, ref, views, valid = class_proposals(ns, device)
     bounds = pipeline_call_bounds(cfg, valid, K, device)
     n, b = cfg.resolution, args.time_block
-    differences = map_differences(plan.maps.ext)  # once per class, like the maps
 
     def dense(keep=False):
         out = []
@@ -344,7 +324,7 @@ def time_prototype(args) -> dict:
     def blocks(keep=False):
         out = []
         for a, z in zip(bounds[:-1], bounds[1:]):
-            occ = carve_blocks(plan.maps, ref[a:z], views[a:z], n, b, cfg.imprint, differences)
+            occ = carve_blocks(plan.maps, ref[a:z], views[a:z], n, b, cfg.imprint)
             out.append(occ if keep else None)
         return out
 
