@@ -151,3 +151,24 @@ def test_depth_block_prototype_equals_the_batched_carving(small_class: Path, blo
                              max_batch_voxels=20_000).occupancy
     got = tool.carve_blocks(plan.maps, ref, views, cfg.resolution, block, imprint, max_batch_voxels=20_000)
     assert want.any() and torch.equal(got, want)
+
+
+def test_gpu_session_keeps_the_callers_python_path(tmp_path: Path):
+    """The GPU script adds the checkout to PYTHONPATH without dropping what the caller put there
+    (a lent machine's carried packages); without CUDA it stops with status 2 and says why."""
+    log = tmp_path / "pythonpath.txt"
+    fake = tmp_path / "fakepython"
+    # records the path it was started with, then fails every check (no packages, no CUDA)
+    fake.write_text(f'#!/bin/sh\necho "$PYTHONPATH" >> "{log}"\nexit 1\n')
+    fake.chmod(0o755)
+    work = tmp_path / "work"  # no .whl/ here: the script takes the branch without wheels
+    work.mkdir()
+    env = dict(os.environ, PYTHON=str(fake), PYTHONPATH="/carried/site")
+    script = ROOT / "tools" / "gpu_session.sh"
+    proc = subprocess.run(["bash", str(script), "tests", str(tmp_path / "out")], cwd=work, env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert "no CUDA device" in proc.stderr
+    seen = log.read_text().split()
+    assert len(seen) == 2  # the package check, then the CUDA check
+    assert seen[1].split(":") == [str(work), "/carried/site"]

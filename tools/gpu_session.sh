@@ -27,9 +27,9 @@ if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, scipy, skimage, yam
         && [ -d .whl ] && compgen -G ".whl/*.whl" >/dev/null; then
     "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
         --target /tmp/carvi_site .whl/*.whl || exit 1
-    export PYTHONPATH="/tmp/carvi_site:$PWD"
+    export PYTHONPATH="/tmp/carvi_site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
 else
-    export PYTHONPATH="$PWD"
+    export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 fi
 
 if ! "$py" -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)"; then
