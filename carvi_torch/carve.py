@@ -96,6 +96,7 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
+from carvi_torch import carve_fused
 from carvi_torch.cameras import ScaledOrthographic
 from carvi_torch.sdf import signed_distance
 
@@ -106,6 +107,7 @@ __all__ = [
     "imprinted_visual_hull",
     "carve_proposals",
     "carve_proposals_loop",
+    "resolve_backend",
     "INTERPOLATIONS",
     "CarveMaps",
     "prepare_maps",
@@ -1184,10 +1186,56 @@ def _chunk_multiple(device: torch.device) -> int:
     return max(1, torch.get_num_threads()) if device.type == "cpu" else 1
 
 
+def _use_fused(backend: str, device: torch.device, interpolation: str, return_cost: bool, coarse_to_fine: bool,
+               depth_intervals: bool, V: int) -> bool:
+    """Whether :func:`carve_proposals` runs the fused kernel (``backend="fused"`` where it cannot: an error)."""
+    if backend == "torch":
+        return False
+    why = None
+    if device.type != "cpu":
+        why = f"it runs on the CPU, not {device.type}"
+    elif interpolation != "bilinear":
+        why = f"it reads the maps bilinearly, not {interpolation!r}"
+    elif return_cost or coarse_to_fine or depth_intervals:
+        why = "it computes labels only (no return_cost, coarse_to_fine or depth_intervals)"
+    elif V > carve_fused.MAX_VIEWS:
+        why = f"it takes at most {carve_fused.MAX_VIEWS} view slots, not {V}"
+    elif not carve_fused.available():
+        why = f"it is not available here: {carve_fused.unavailable_reason()}"
+    if why is not None and backend == "fused":
+        raise ValueError(f"backend='fused' cannot carve this call: {why}")
+    return why is None
+
+
+def resolve_backend(backend: str, device: torch.device | str, interpolation: str = "bilinear") -> dict:
+    """What :func:`carve_proposals` runs for a labels-only call (the pipeline's) with these settings.
+
+    Returns:
+        ``{"backend": "fused" | "torch", "variant": "fma" | "plain" | None, "reason": str | None}``:
+        the fused kernel's sample arithmetic when it runs, and why it does not when ``backend`` is
+        ``"auto"`` on the CPU (no compiler, say). Raises ``ValueError`` as :func:`carve_proposals`
+        does for ``backend="fused"`` where the kernel cannot run.
+
+    Example:
+        >>> resolve_backend("torch", "cpu")
+        {'backend': 'torch', 'variant': None, 'reason': None}
+    """
+    if backend not in carve_fused.BACKENDS:
+        raise ValueError(f"backend must be one of {carve_fused.BACKENDS}, got {backend!r}")
+    dev = torch.device(device)
+    if _use_fused(backend, dev, interpolation, False, False, False, 0):
+        return {"backend": "fused", "variant": carve_fused.variant(), "reason": None}
+    reason = None
+    if backend == "auto" and dev.type == "cpu" and interpolation == "bilinear":
+        reason = carve_fused.unavailable_reason()
+    return {"backend": "torch", "variant": None, "reason": reason}
+
+
 def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: torch.Tensor, views: torch.Tensor, *,
                     resolution: int = 60, imprint: bool = True, max_batch_voxels: int | None = None,
                     return_cost: bool = False, coarse_to_fine: bool = False,
-                    depth_intervals: bool = False, interpolation: str = "bilinear") -> ProposalGrids:
+                    depth_intervals: bool = False, interpolation: str = "bilinear",
+                    backend: str = "auto") -> ProposalGrids:
     """Carve the imprinted visual hulls of ``B`` proposals in one batched computation.
 
     Proposal ``b`` carves reference map ``reference[b]`` with the maps ``views[b]``
@@ -1230,10 +1278,17 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
             pixel the voxel falls in: a cheaper sample, an approximation of the bilinear labels;
             measured in docs/benchmarks/README.md). Neither ``coarse_to_fine`` nor
             ``depth_intervals`` with ``"nearest"``: their bounds assume continuous maps.
+        backend: who computes the labels (:data:`carvi_torch.carve_fused.BACKENDS`). ``"torch"``:
+            the batched ``grid_sample`` carving described above. ``"fused"``: the compiled CPU
+            kernel of :mod:`carvi_torch.carve_fused`, which samples, takes the maximum and labels
+            in one pass and stops reading a voxel's views as soon as its labels are decided
+            (same labels voxel for voxel; CPU, bilinear, without ``return_cost``,
+            ``coarse_to_fine`` or ``depth_intervals``). ``"auto"`` (default): ``"fused"`` where
+            it applies and the kernel is available, else ``"torch"``.
 
     Returns:
         :class:`ProposalGrids`; voxel for voxel equal to :func:`carve_proposals_loop` with the
-        same ``interpolation``.
+        same ``interpolation``, whichever the backend.
 
     Example:
         >>> masks = torch.zeros(2, 32, 32, dtype=torch.bool); masks[:, 8:24, 10:22] = True
@@ -1247,8 +1302,11 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
     if interpolation != "bilinear" and (coarse_to_fine or depth_intervals):
         raise ValueError("coarse_to_fine and depth_intervals bound the bilinear maps; they do not take "
                          f"interpolation={interpolation!r}")
+    if backend not in carve_fused.BACKENDS:
+        raise ValueError(f"backend must be one of {carve_fused.BACKENDS}, got {backend!r}")
     maps, reference, views = _as_maps(sdf, cameras, reference, views, resolution)
     dev = maps.device
+    fused = _use_fused(backend, dev, interpolation, return_cost, coarse_to_fine, depth_intervals, views.shape[1])
     if max_batch_voxels is None:
         max_batch_voxels = default_batch_voxels(dev)
     if not isinstance(max_batch_voxels, int) or max_batch_voxels < 1:
@@ -1264,6 +1322,12 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
     G64, G = G, G.float()
     column_cost = _reference_columns(ext, ref_u, G_ref, n, n, interpolation)  # (B, HW)
     fg = column_cost < 0
+    if fused:
+        occ, columns, nonempty, _ = carve_fused.carve_labels(ext, torch.where(views >= 0, views_u, -1), scale, G,
+                                                             column_cost, n, imprint)
+        return ProposalGrids(occupancy=occ.view(B, n, n, n), voxel_to_camera=T.float(), empty=~nonempty,
+                             reference_columns=fg.view(B, n, n), column_cost=column_cost.view(B, n, n), cost=None,
+                             columns=columns.view(B, n, n))
     depth = torch.arange(n, device=dev, dtype=torch.float32)
     coarse_to_fine = coarse_to_fine and not return_cost
     if coarse_to_fine:

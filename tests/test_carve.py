@@ -355,10 +355,13 @@ def test_batched_equals_loop_voxel_for_voxel(imprint, n):
     gen = torch.Generator().manual_seed(6)
     sdf, cams, reference, views = random_proposals(gen)
     loop = carve_proposals_loop(sdf, cams, reference, views, resolution=n, imprint=imprint)
-    for mbv, return_cost, c2f in [(n ** 3, False, False), (10 ** 9, False, False), (n ** 3, True, False),
-                                  (10 ** 9, True, False), (n ** 3, False, True), (10 ** 9, False, True)]:
+    # "auto" runs the fused CPU kernel where it applies and builds (labels only), else torch
+    for mbv, return_cost, c2f, backend in [(n ** 3, False, False, "torch"), (10 ** 9, False, False, "torch"),
+                                           (n ** 3, False, False, "auto"), (n ** 3, True, False, "auto"),
+                                           (10 ** 9, True, False, "auto"), (n ** 3, False, True, "auto"),
+                                           (10 ** 9, False, True, "auto")]:
         out = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint, max_batch_voxels=mbv,
-                              return_cost=return_cost, coarse_to_fine=c2f)
+                              return_cost=return_cost, coarse_to_fine=c2f, backend=backend)
         assert torch.equal(out.occupancy, loop.occupancy)
         assert torch.equal(out.voxel_to_camera, loop.voxel_to_camera)
         assert torch.equal(out.empty, loop.empty)

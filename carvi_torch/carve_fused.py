@@ -1,0 +1,294 @@
+"""The fused CPU carving kernel: sampling, maximum and labels in one pass, with early exit.
+
+:func:`carvi_torch.carve.carve_proposals` computes the cone cost ``C`` of every voxel of every
+foreground column with one ``grid_sample`` call per view, then labels the voxels. Most of those
+samples are not needed for the labels: a voxel is exterior as soon as one view gives a value
+``>= 0`` (``C`` is a maximum), so the rest of its views need not be read. torch has no operator
+that stops sampling early, so this module compiles a small C kernel
+(``carvi_torch/kernels/carve_fused.c``) that walks each column in depth order and reads a
+voxel's views only until the labels are decided (see the C file for the exact rule, which keeps
+the imprinting's first minimum exact too).
+
+Exactness. The kernel repeats the torch path's float32 arithmetic operation for operation. Whether
+torch's CPU ``grid_sample`` sums its four weighted pixels with fused multiply-adds depends on how
+it was built for this processor (it does in its AVX2 and AVX-512 kernels), so at load time a
+self-test compares both variants of the kernel's sample with ``grid_sample`` bit for bit on
+random maps and coordinates, and keeps the one that matches. If neither does, the kernel is not
+used (the labels could then differ from the torch path's), and ``backend="auto"`` falls back to
+torch.
+
+Building. The kernel is compiled on first use with the C compiler of the machine (``$CC``, else
+Python's, else ``cc``) into ``$CARVI_TORCH_CACHE/kernels`` (default ``~/.cache/carvi_torch``),
+under a name that hashes the source, the flags and the compiler, written atomically; later runs
+load it. No compiler, a failed build or a failed self-test makes :func:`available` ``False``
+with the reason in :func:`unavailable_reason`; nothing else changes.
+
+Threads. ``ctypes`` releases the GIL during a call, so proposals are split into one contiguous
+range per torch intra-op thread (balanced by foreground columns) and carved by that many Python
+threads at once.
+
+Example:
+    >>> from carvi_torch import carve_fused
+    >>> isinstance(carve_fused.available(), bool)
+    True
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shlex
+import subprocess
+import sysconfig
+import tempfile
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["available", "unavailable_reason", "carve_labels", "sample", "variant", "library_path", "BACKENDS"]
+
+#: The carving backends :func:`carvi_torch.carve.carve_proposals` offers: ``"auto"`` (the fused
+#: kernel on the CPU when it is available and the call can use it, else torch), ``"torch"``,
+#: ``"fused"`` (an error where it cannot be used).
+BACKENDS = ("auto", "torch", "fused")
+
+_SOURCE = Path(__file__).with_name("kernels") / "carve_fused.c"
+_FLAGS = ["-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math"]
+#: Largest resolution the kernel takes (``MAX_RESOLUTION`` in the C source).
+MAX_RESOLUTION = 2048
+#: Most view slots a proposal may use (``MAX_VIEWS`` in the C source).
+MAX_VIEWS = 64
+
+_lock = threading.Lock()
+_state: dict = {}
+
+
+def _compiler() -> list[str]:
+    cc = os.environ.get("CC") or sysconfig.get_config_var("CC") or "cc"
+    return shlex.split(cc)
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("CARVI_TORCH_CACHE")
+    return Path(root) if root else Path.home() / ".cache" / "carvi_torch"
+
+
+def library_path() -> Path:
+    """Where the compiled kernel for this source, compiler and flags lives (built or not)."""
+    cc = _compiler()
+    key = hashlib.sha256()
+    key.update(_SOURCE.read_bytes())
+    key.update(" ".join(cc + _FLAGS).encode())
+    key.update(platform.machine().encode())
+    return _cache_dir() / "kernels" / f"carve_fused-{key.hexdigest()[:16]}.so"
+
+
+def _build(path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=path.parent)
+    os.close(fd)
+    try:
+        cmd = _compiler() + _FLAGS + ["-o", tmp, str(_SOURCE), "-lm"]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        if proc.returncode != 0:
+            raise RuntimeError(f"compiling the fused carving kernel failed ({' '.join(cmd)}):\n{proc.stderr.strip()}")
+        os.replace(tmp, path)  # atomic: a concurrent process loads either nothing or the whole library
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _declare(lib) -> None:
+    P, I64, F32, I = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_int
+    for name in ("carvi_sample_plain", "carvi_sample_fma"):
+        fn = getattr(lib, name)
+        fn.argtypes = [P, I64, I64, I64, F32, P, P, I64, P]
+        fn.restype = None
+    for name in ("carvi_carve_plain", "carvi_carve_fma"):
+        fn = getattr(lib, name)
+        fn.argtypes = [P, I64, I64, P, P, P, P, I64, I64, I, I64, I64, P, P, P, P]
+        fn.restype = I
+    lib.carvi_has_fma.argtypes = []
+    lib.carvi_has_fma.restype = I
+
+
+def _ptr(t: torch.Tensor) -> ctypes.c_void_p:
+    return ctypes.c_void_p(t.data_ptr())
+
+
+def _sample_with(lib, fused: bool, ext: torch.Tensor, k: int, scale: float, grid: torch.Tensor) -> torch.Tensor:
+    gx, gy = grid[:, 0].contiguous(), grid[:, 1].contiguous()
+    out = torch.empty(grid.shape[0], dtype=torch.float32)
+    fn = lib.carvi_sample_fma if fused else lib.carvi_sample_plain
+    fn(_ptr(ext), ext.shape[1], ext.shape[2], k, scale, _ptr(gx), _ptr(gy), grid.shape[0], _ptr(out))
+    return out
+
+
+def _self_test(lib) -> str | None:
+    """The sample variant that equals ``grid_sample`` bit for bit here (``"fma"`` or ``"plain"``), or ``None``."""
+    gen = torch.Generator().manual_seed(0)
+    cases = []
+    for Hp, Wp in ((37, 53), (130, 97), (2, 3)):
+        ext = torch.randn(2, Hp, Wp, generator=gen) * 40
+        grid = torch.rand(20000, 2, generator=gen) * 2.4 - 1.2  # inside, on and beyond the border
+        grid[:500] = torch.round(grid[:500] * 8) / 8  # pixel centres and edges
+        scale = float(torch.rand((), generator=gen) * 2 + 0.25)
+        want = F.grid_sample((ext[1] * scale)[None, None], grid.view(1, 1, -1, 2), mode="bilinear",
+                             padding_mode="border", align_corners=True).view(-1)
+        cases.append((ext, scale, grid, want))
+    order = ("fma", "plain") if lib.carvi_has_fma() else ("plain",)
+    for name in order:
+        if all(torch.equal(_sample_with(lib, name == "fma", ext, 1, scale, grid), want)
+               for ext, scale, grid, want in cases):
+            return name
+    return None
+
+
+def _load() -> dict:
+    with _lock:
+        if _state:
+            return _state
+        try:
+            path = library_path()
+            if not path.is_file():
+                _build(path)
+            lib = ctypes.CDLL(str(path))
+            _declare(lib)
+            name = _self_test(lib)
+            if name is None:
+                raise RuntimeError("the kernel's bilinear samples differ from torch's grid_sample on this machine "
+                                   f"(CPU capability {torch.backends.cpu.get_cpu_capability()}), so its labels "
+                                   "could differ from the torch carving's")
+            _state.update(lib=lib, variant=name, reason=None)
+        except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
+            _state.update(lib=None, variant=None, reason=str(exc))
+        return _state
+
+
+def available() -> bool:
+    """Whether the fused kernel is built, loaded and bit-exact with ``grid_sample`` here (builds it on first call)."""
+    return _load()["lib"] is not None
+
+
+def unavailable_reason() -> str | None:
+    """Why :func:`available` is ``False`` (``None`` when it is available)."""
+    return _load()["reason"]
+
+
+def variant() -> str | None:
+    """The sample arithmetic in use: ``"fma"`` (fused multiply-adds, as torch's AVX2/AVX-512 kernels) or ``"plain"``."""
+    return _load()["variant"]
+
+
+def _library():
+    state = _load()
+    if state["lib"] is None:
+        raise RuntimeError(f"the fused carving kernel is not available: {state['reason']}")
+    return state["lib"], state["variant"] == "fma"
+
+
+def sample(ext: torch.Tensor, k: int, scale: float, grid: torch.Tensor) -> torch.Tensor:
+    """The kernel's bilinear sample of map ``k`` of ``ext`` scaled by ``scale``.
+
+    Equal bit for bit to ``grid_sample((ext[k] * scale)[None, None], grid.view(1, 1, -1, 2),
+    mode="bilinear", padding_mode="border", align_corners=True)``.
+
+    Args:
+        ext: ``(K, Hp, Wp)`` float32 contiguous CPU maps.
+        k: the map.
+        scale: float32 factor of its values.
+        grid: ``(m, 2)`` float32 normalised ``(x, y)`` coordinates.
+
+    Returns:
+        ``(m,)`` float32 samples.
+
+    Example:
+        >>> ext = torch.arange(6.0).view(1, 2, 3)
+        >>> sample(ext, 0, 1.0, torch.tensor([[0.0, 0.0]])) if available() else torch.tensor([2.5])
+        tensor([2.5000])
+    """
+    lib, fused = _library()
+    ext = ext.to(torch.float32).contiguous()
+    return _sample_with(lib, fused, ext, int(k), float(scale), grid.to(torch.float32).reshape(-1, 2))
+
+
+def _ranges(weights: list[int], parts: int) -> list[tuple[int, int]]:
+    """Split ``range(len(weights))`` into at most ``parts`` contiguous ranges of about equal total weight."""
+    total = sum(weights)
+    if parts <= 1 or total == 0 or len(weights) <= 1:
+        return [(0, len(weights))]
+    out, start, acc = [], 0, 0
+    for i, w in enumerate(weights):
+        acc += w
+        if acc * parts >= total * (len(out) + 1) and len(out) < parts - 1:
+            out.append((start, i + 1))
+            start = i + 1
+    if start < len(weights):
+        out.append((start, len(weights)))
+    return out
+
+
+def carve_labels(ext: torch.Tensor, views: torch.Tensor, scale: torch.Tensor, G: torch.Tensor,
+                 column_cost: torch.Tensor, resolution: int, imprint: bool, threads: int | None = None,
+                 variant: str | None = None):
+    """Interior labels of ``B`` proposals by the fused kernel (what :func:`carvi_torch.carve.carve_proposals` runs
+    on the CPU with ``backend="fused"``).
+
+    Args:
+        ext: ``(K, Hp, Wp)`` float32 extended maps, unscaled (:attr:`carvi_torch.carve.CarveMaps.ext`).
+        views: ``(B, V)`` long rows of ``ext`` per view slot, ``-1`` for an unused slot.
+        scale: ``(B, V)`` float32 per-slot scale of the map values.
+        G: ``(B, V, 2, 4)`` float32 voxel index -> sampling coordinates (:func:`carvi_torch.carve.proposal_geometry`).
+        column_cost: ``(B, n * n)`` float32 reference cost at the column centres.
+        resolution: ``n``.
+        imprint: imprint the foreground columns left without an interior voxel.
+        threads: Python threads carving at once (default ``torch.get_num_threads()``).
+        variant: ``"fma"`` or ``"plain"`` to force a sample arithmetic (tests); default the one the
+            self-test found equal to ``grid_sample`` (:func:`variant`).
+
+    Returns:
+        ``occ (B, n, n * n)`` bool (depth, then the flat column ``h * n + w``), ``columns (B, n * n)`` bool,
+        ``nonempty (B,)`` bool, ``samples (B,)`` long: the bilinear samples read per proposal.
+    """
+    lib, fused = _library()
+    if variant is not None:
+        if variant not in ("fma", "plain") or (variant == "fma" and not lib.carvi_has_fma()):
+            raise ValueError(f"variant must be 'plain' or (on a processor with AVX2 and FMA) 'fma', got {variant!r}")
+        fused = variant == "fma"
+    B, V = views.shape
+    n = int(resolution)
+    if V > MAX_VIEWS:
+        raise ValueError(f"the fused carving takes at most {MAX_VIEWS} view slots, got {V}")
+    ext = ext.to(torch.float32).contiguous()
+    views = views.to(torch.int64).contiguous()
+    scale = scale.to(torch.float32).contiguous()
+    G = G.to(torch.float32).contiguous()
+    column_cost = column_cost.to(torch.float32).contiguous()
+    HW = n * n
+    occ = torch.zeros(B, n, HW, dtype=torch.uint8)
+    columns = torch.zeros(B, HW, dtype=torch.uint8)
+    nonempty = torch.zeros(B, dtype=torch.uint8)
+    samples = torch.zeros(B, dtype=torch.int64)
+    fn = lib.carvi_carve_fma if fused else lib.carvi_carve_plain
+    args = (_ptr(ext), ext.shape[1], ext.shape[2], _ptr(views), _ptr(scale), _ptr(G), _ptr(column_cost), V, n,
+            int(bool(imprint)))
+    outs = (_ptr(occ), _ptr(columns), _ptr(nonempty), _ptr(samples))
+    threads = max(1, torch.get_num_threads() if threads is None else int(threads))
+    weights = ((column_cost < 0).sum(1) * ((views >= 0).sum(1) + 1)).tolist()
+    ranges = [r for r in _ranges(weights, threads) if r[1] > r[0]]
+
+    def run(r):
+        return fn(*args, r[0], r[1], *outs)
+
+    if len(ranges) == 1:
+        codes = [run(ranges[0])]
+    else:
+        with ThreadPoolExecutor(max_workers=len(ranges)) as pool:
+            codes = list(pool.map(run, ranges))
+    if any(c != 0 for c in codes):
+        raise RuntimeError(f"the fused carving kernel failed (codes {codes})")
+    return occ.view(torch.bool), columns.view(torch.bool), nonempty.view(torch.bool), samples

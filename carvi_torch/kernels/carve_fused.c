@@ -1,0 +1,316 @@
+/* Fused cone-cost carving on the CPU: sampling, maximum and labels per column, with early exit.
+ *
+ * Computes the labels of carvi_torch.carve.carve_proposals (bilinear maps, imprinting or not)
+ * without materialising the cost C. For each proposal and each foreground column of its
+ * reference:
+ *
+ *   1. The column's depths start as candidates. Each view in turn is sampled at the remaining
+ *      candidates only, the running maximum C is updated, and the depths where it reached >= 0
+ *      (exterior: C is a maximum, so it can only grow) are dropped. The depths left after the
+ *      last view are the interior voxels, exactly.
+ *   2. A column left without an interior voxel that must be imprinted needs the first depth of
+ *      minimal C, so it is sampled again at every depth and view (no early exit).
+ *
+ * Views are tried in an order that adapts per proposal: the view that dropped the most depths
+ * in the previous column goes first. C is a maximum, so the order changes which samples are
+ * read, never the labels.
+ *
+ * The arithmetic is that of the torch path, operation for operation, in float32 (compile with
+ * -ffp-contract=off): sampling coordinates (G0 d) + ((G1 h + G2 w) + G3), then grid_sample's
+ * align_corners=True, padding_mode="border" bilinear read of the scaled map (each pixel value
+ * times the view's scale, as the torch path scales a map before sampling it). torch's
+ * vectorised CPU kernel sums the four weighted pixels with fused multiply-adds where it is
+ * built for FMA (AVX2, AVX-512); the `fma` variant below does the same, the `plain` variant
+ * does not, and the loader keeps the variant whose samples equal grid_sample's bit for bit.
+ * The one difference: where a pixel's east or south neighbour lies beyond the map, torch reads
+ * 0 and this kernel the pixel itself; its weight is exactly 0 there (the coordinate is clamped
+ * to the last pixel), so only the sign of a zero sum can differ, which no label sees.
+ *
+ * Layouts (all C-contiguous):
+ *   ext      (K, Hp, Wp) float32   extended, unscaled maps
+ *   views    (B, V) int64          row of ext per view slot, < 0 for a slot to skip
+ *   scale    (B, V) float32        per-slot scale of the map values
+ *   G        (B, V, 2, 4) float32  voxel index -> grid_sample coordinates, per slot
+ *   colcost  (B, n*n) float32      reference cost at the column centres (foreground iff < 0)
+ *   occ      (B, n, n*n) uint8     out, zero on entry: interior voxels
+ *   columns  (B, n*n) uint8        out, zero on entry: columns holding an interior voxel
+ *   nonempty (B,) uint8            out: any interior voxel
+ *   samples  (B,) int64            out: bilinear samples read per proposal
+ */
+#include <stdint.h>
+#include <stdlib.h>
+
+#define MAX_VIEWS 64
+#define MAX_RESOLUTION 2048
+
+#if defined(__x86_64__) || defined(__i386__)
+#define FMA_TARGET __attribute__((target("avx2,fma")))
+#else
+#define FMA_TARGET
+#endif
+#define INLINE static inline __attribute__((always_inline))
+
+typedef struct {
+    const float *map;
+    float scale, g0x, g0y, g1x, g1y, g2x, g2y, g3x, g3y;
+} view_t;
+
+typedef struct {
+    int64_t Hp, Wp;
+    float sfx, sfy, maxx, maxy;
+} geom_t;
+
+/* out[i] = the scaled map's bilinear sample at depth idx[i] of the column whose in-plane
+ * coordinate terms are (cx, cy): grid_sample(..., "bilinear", "border", align_corners=True).
+ * A plain loop without branches, so that the compiler vectorises it. */
+INLINE void sample_depths(const view_t *v, const geom_t *g, float cx, float cy, const int32_t *restrict idx,
+                          int m, float *restrict out, const int fused)
+{
+    const float *restrict map = v->map;
+    const float scale = v->scale, g0x = v->g0x, g0y = v->g0y;
+    const float sfx = g->sfx, sfy = g->sfy, maxx = g->maxx, maxy = g->maxy;
+    const int32_t Wp = (int32_t)g->Wp, Hp = (int32_t)g->Hp;
+    for (int i = 0; i < m; i++) {
+        float df = (float)idx[i];
+        float gx = g0x * df, gy = g0y * df;
+        gx = gx + cx;
+        gy = gy + cy;
+        float x = (gx + 1.0f) * sfx;
+        float y = (gy + 1.0f) * sfy;
+        x = x > 0.0f ? x : 0.0f; /* clamp to [0, max]; a NaN to 0, as torch */
+        y = y > 0.0f ? y : 0.0f;
+        x = x < maxx ? x : maxx;
+        y = y < maxy ? y : maxy;
+        int32_t ix = (int32_t)x, iy = (int32_t)y; /* x, y >= 0: truncation is the floor */
+        float w = x - (float)ix, n = y - (float)iy;
+        float e = 1.0f - w, s = 1.0f - n;
+        float nw = s * e, ne = s * w, sw = n * e, se = n * w;
+        int32_t o = iy * Wp + ix;
+        int32_t oe = ix + 1 < Wp ? 1 : 0;  /* beyond the map: the pixel itself, with weight 0 */
+        int32_t os = iy + 1 < Hp ? Wp : 0;
+        float vnw = map[o] * scale, vne = map[o + oe] * scale;
+        float vsw = map[o + os] * scale, vse = map[o + os + oe] * scale;
+        if (fused)
+            out[i] = __builtin_fmaf(vse, se, __builtin_fmaf(vsw, sw, __builtin_fmaf(vne, ne, vnw * nw)));
+        else
+            out[i] = ((vnw * nw + vne * ne) + vsw * sw) + vse * se;
+    }
+}
+
+/* Candidates i0 <= i < na: cost[i] = max(cost[i], s[i]); keeps (in order, from position m) those
+ * whose cost is still < 0. Returns the new count. */
+INLINE int keep_negative(int32_t *restrict idx, float *restrict cost, const float *restrict s, int m, int i0,
+                         int na)
+{
+    for (int i = i0; i < na; i++) {
+        float c = s[i] > cost[i] ? s[i] : cost[i];
+        idx[m] = idx[i];
+        cost[m] = c;
+        m += c < 0.0f;
+    }
+    return m;
+}
+
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+
+/* Left-packing permutations for 8 lanes: entry `mask` moves the lanes whose bit is set to the front. */
+static int32_t pack_lut[256][8];
+static int pack_lut_ready = 0;
+__attribute__((constructor)) static void pack_lut_init(void);
+
+__attribute__((constructor)) static void pack_lut_init(void)
+{
+    for (int mask = 0; mask < 256; mask++) {
+        int k = 0;
+        for (int lane = 0; lane < 8; lane++)
+            if (mask >> lane & 1)
+                pack_lut[mask][k++] = lane;
+        for (; k < 8; k++)
+            pack_lut[mask][k] = 0;
+    }
+    pack_lut_ready = 1;
+}
+
+/* keep_negative, eight candidates at a time (AVX2 left-packing); the same result. */
+__attribute__((target("avx2,fma"))) static inline int keep_negative_avx2(int32_t *restrict idx,
+                                                                          float *restrict cost,
+                                                                          const float *restrict s, int na)
+{
+    int m = 0, i = 0;
+    const __m256 zero = _mm256_setzero_ps();
+    for (; i + 8 <= na; i += 8) {
+        __m256 sv = _mm256_loadu_ps(s + i), cv = _mm256_loadu_ps(cost + i);
+        __m256 c = _mm256_blendv_ps(cv, sv, _mm256_cmp_ps(sv, cv, _CMP_GT_OQ)); /* s > cost ? s : cost */
+        int mask = _mm256_movemask_ps(_mm256_cmp_ps(c, zero, _CMP_LT_OQ));
+        __m256i perm = _mm256_loadu_si256((const __m256i *)pack_lut[mask]);
+        __m256i iv = _mm256_loadu_si256((const __m256i *)(idx + i));
+        /* m <= i: the stores only overwrite lanes already read */
+        _mm256_storeu_si256((__m256i *)(idx + m), _mm256_permutevar8x32_epi32(iv, perm));
+        _mm256_storeu_ps(cost + m, _mm256_permutevar8x32_ps(c, perm));
+        m += __builtin_popcount((unsigned)mask);
+    }
+    return keep_negative(idx, cost, s, m, i, na);
+}
+#else
+static void pack_lut_init(void) {}
+#define keep_negative_avx2(idx, cost, s, na) keep_negative(idx, cost, s, 0, 0, na)
+#endif
+
+INLINE geom_t geometry(int64_t Hp, int64_t Wp)
+{
+    geom_t g = {Hp, Wp, (float)(Wp - 1) / 2, (float)(Hp - 1) / 2, (float)(Wp - 1), (float)(Hp - 1)};
+    return g;
+}
+
+/* Bilinear samples of map k of ext, scaled, at m normalised coordinates (gx[i], gy[i]): the
+ * loader's self-test against grid_sample, and the tests. */
+INLINE void samples_at(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, const float *gx,
+                       const float *gy, int64_t m, float *out, const int fused)
+{
+    geom_t g = geometry(Hp, Wp);
+    /* as a column at depth 0 with the coordinates as its in-plane terms */
+    view_t v = {ext + k * Hp * Wp, scale, 0, 0, 0, 0, 0, 0, 0, 0};
+    int32_t zero = 0;
+    for (int64_t i = 0; i < m; i++)
+        sample_depths(&v, &g, gx[i], gy[i], &zero, 1, out + i, fused);
+}
+
+void carvi_sample_plain(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, const float *gx,
+                        const float *gy, int64_t m, float *out)
+{
+    samples_at(ext, Hp, Wp, k, scale, gx, gy, m, out, 0);
+}
+
+FMA_TARGET void carvi_sample_fma(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, const float *gx,
+                                 const float *gy, int64_t m, float *out)
+{
+    samples_at(ext, Hp, Wp, k, scale, gx, gy, m, out, 1);
+}
+
+INLINE int carve(const float *ext, int64_t Hp, int64_t Wp, const int64_t *views, const float *scale, const float *G,
+                 const float *colcost, int64_t V, int64_t n, int imprint, int64_t b0, int64_t b1, uint8_t *occ,
+                 uint8_t *columns, uint8_t *nonempty, int64_t *samples, const int fused)
+{
+    if (V > MAX_VIEWS || n > MAX_RESOLUTION || n < 1)
+        return -1;
+    const int64_t HW = n * n;
+    const geom_t g = geometry(Hp, Wp);
+    view_t vw[MAX_VIEWS];
+    int order[MAX_VIEWS];
+    float cx[MAX_VIEWS], cy[MAX_VIEWS];
+    int32_t all[MAX_RESOLUTION], idx[MAX_RESOLUTION];
+    float cost[MAX_RESOLUTION], s[MAX_RESOLUTION];
+    for (int64_t d = 0; d < n; d++)
+        all[d] = (int32_t)d;
+    for (int64_t b = b0; b < b1; b++) {
+        int U = 0;
+        for (int64_t j = 0; j < V; j++) {
+            int64_t m = views[b * V + j];
+            if (m < 0)
+                continue;
+            const float *gj = G + (b * V + j) * 8;
+            view_t *v = &vw[U];
+            v->map = ext + m * Hp * Wp;
+            v->scale = scale[b * V + j];
+            v->g0x = gj[0]; v->g1x = gj[1]; v->g2x = gj[2]; v->g3x = gj[3];
+            v->g0y = gj[4]; v->g1y = gj[5]; v->g2y = gj[6]; v->g3y = gj[7];
+            order[U] = U;
+            U++;
+        }
+        const float *cc = colcost + b * HW;
+        uint8_t *ob = occ + b * n * HW;
+        int64_t count = 0;
+        int any = 0;
+        for (int64_t k = 0; k < HW; k++) {
+            const float c0 = cc[k];
+            if (!(c0 < 0.0f))
+                continue; /* background column: never interior, never imprinted */
+            const float hf = (float)(k / n), wf = (float)(k % n);
+            for (int u = 0; u < U; u++) {
+                const view_t *v = &vw[u];
+                float ax = v->g1x * hf, bx = v->g2x * wf, ay = v->g1y * hf, by = v->g2y * wf;
+                cx[u] = (ax + bx) + v->g3x;
+                cy[u] = (ay + by) + v->g3y;
+            }
+            /* 1. early exit: candidates shrink view by view */
+            int na = (int)n, most = -1, dropped_most = 0;
+            for (int64_t d = 0; d < n; d++) {
+                idx[d] = (int32_t)d;
+                cost[d] = c0;
+            }
+            for (int r = 0; r < U && na > 0; r++) {
+                const int u = order[r];
+                sample_depths(&vw[u], &g, cx[u], cy[u], idx, na, s, fused);
+                count += na;
+                int m = fused ? keep_negative_avx2(idx, cost, s, na) : keep_negative(idx, cost, s, 0, 0, na);
+                if (na - m > dropped_most) {
+                    dropped_most = na - m;
+                    most = r;
+                }
+                na = m;
+            }
+            if (most > 0) { /* the view that dropped the most goes first in the next column */
+                int u = order[most];
+                for (int r = most; r > 0; r--)
+                    order[r] = order[r - 1];
+                order[0] = u;
+            }
+            int inside = na > 0;
+            for (int i = 0; i < na; i++)
+                ob[(int64_t)idx[i] * HW + k] = 1;
+            /* 2. imprinting: the first depth of minimal C, from every view at every depth */
+            if (!inside && imprint) {
+                for (int64_t d = 0; d < n; d++)
+                    cost[d] = c0;
+                for (int u = 0; u < U; u++) {
+                    sample_depths(&vw[u], &g, cx[u], cy[u], all, (int)n, s, fused);
+                    for (int64_t d = 0; d < n; d++)
+                        cost[d] = s[d] > cost[d] ? s[d] : cost[d];
+                }
+                count += U * n;
+                int64_t best = 0;
+                for (int64_t d = 1; d < n; d++)
+                    if (cost[d] < cost[best])
+                        best = d;
+                ob[best * HW + k] = 1;
+                inside = 1;
+            }
+            if (inside) {
+                columns[b * HW + k] = 1;
+                any = 1;
+            }
+        }
+        nonempty[b] = (uint8_t)any;
+        samples[b] = count;
+    }
+    return 0;
+}
+
+#define CARVE_ARGS                                                                                                \
+    const float *ext, int64_t Hp, int64_t Wp, const int64_t *views, const float *scale, const float *G,          \
+        const float *colcost, int64_t V, int64_t n, int imprint, int64_t b0, int64_t b1, uint8_t *occ,           \
+        uint8_t *columns, uint8_t *nonempty, int64_t *samples
+#define CARVE_CALL(FUSED)                                                                                         \
+    carve(ext, Hp, Wp, views, scale, G, colcost, V, n, imprint, b0, b1, occ, columns, nonempty, samples, FUSED)
+
+/* Carves proposals b0 <= b < b1. Returns 0, or -1 for more than MAX_VIEWS view slots or a
+ * resolution outside 1..MAX_RESOLUTION. carvi_carve_fma needs AVX2 and FMA (the caller checks). */
+int carvi_carve_plain(CARVE_ARGS) { return CARVE_CALL(0); }
+
+FMA_TARGET int carvi_carve_fma(CARVE_ARGS) { return CARVE_CALL(1); }
+
+/* Whether this processor can run the fma variant. */
+int carvi_has_fma(void)
+{
+    if (!pack_lut_ready)
+        pack_lut_init();
+#if defined(__x86_64__) || defined(__i386__)
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+#elif defined(__aarch64__)
+    return 1;
+#else
+    return 0;
+#endif
+}
