@@ -740,7 +740,7 @@ def _carve_and_select(ids: torch.Tensor, plan: _ClassPlan, cfg: Config, report: 
     with _timed(report, "carve", device):
         grids = carve.carve_proposals(plan.maps, None, flat_ref[keep], flat_views[keep], resolution=cfg.resolution,
                                       imprint=cfg.imprint, max_batch_voxels=_carve_batch_voxels(cfg, device),
-                                      interpolation=cfg.carve_interpolation)
+                                      interpolation=cfg.carve_interpolation, backend=cfg.carve_backend)
     with _timed(report, "select", device):
         kept_ref = flat_ref[keep]
         ref_cams = plan.cams[kept_ref]
@@ -1065,7 +1065,8 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
 #: Settings that do not change how an object is reconstructed (a rerun may differ in them freely;
 #: the input files are the user's choice, and resumed objects are matched by annotation id).
 _NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "overwrite", "classes", "stage", "device",
-                     "sfm_group_threads"}  # the mixture fit's result is the same on any number of threads
+                     "sfm_group_threads",  # the mixture fit's result is the same on any number of threads
+                     "carve_backend"}  # every carving backend gives the same labels voxel for voxel
 
 
 def _settings_changed(previous: Path, cfg: Config) -> dict:
@@ -1094,7 +1095,9 @@ def _run(cfg: Config, out: Path, device: torch.device, writer: "_Writer", t_star
         _log(p.message(), cfg)
     gt = read_json(gt_path) if gt_path is not None and Path(gt_path).is_file() else None
     summary = {"data": str(data_path), "gt": str(gt_path) if gt_path else None, "device": str(device),
-               "torch_threads": torch.get_num_threads(), "load_seconds": round(load_s, 3),
+               "torch_threads": torch.get_num_threads(),
+               "carve_backend": carve.resolve_backend(cfg.carve_backend, device, cfg.carve_interpolation),
+               "load_seconds": round(load_s, 3),
                "input_problems": [p.to_dict() for p in loaded.problems], "classes": {}}
     names = sorted(loaded.collections)
     if cfg.classes:

@@ -60,8 +60,13 @@ def format_table(summary: dict) -> str:
     if n_in:
         lines.append(f"input problems reported at load: {n_in} (see summary.json)")
     if "total_seconds" in summary:
+        cb = summary.get("carve_backend") or {}
+        carving = {"fused": f"; carving: fused CPU kernel ({cb.get('variant')})", "torch": "; carving: torch"}.get(
+            cb.get("backend"), "")
         lines.append(f"total {summary['total_seconds']:.1f} s on {summary.get('device')} "
-                     f"({summary.get('torch_threads')} threads)")
+                     f"({summary.get('torch_threads')} threads{carving})")
+        if cb.get("reason"):
+            lines.append(f"the fused carving kernel was not used: {cb['reason']}")
     return "\n".join(lines)
 
 

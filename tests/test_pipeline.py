@@ -266,18 +266,23 @@ def _files(root: Path, cls: str) -> dict:
     return out
 
 
-def test_writers_chunks_and_threads_do_not_change_outputs(tiny, tmp_path, monkeypatch):
-    """Inline writing vs writer processes, one object per chunk vs the default: the same files, byte for
-    byte; the torch thread count of the caller is restored."""
+def test_writers_chunks_threads_and_backend_do_not_change_outputs(tiny, tmp_path, monkeypatch):
+    """Inline writing vs writer processes, one object per chunk vs the default, the torch carving vs the
+    default backend (the fused kernel where it builds): the same files, byte for byte; the torch thread
+    count of the caller is restored; summary.json says which carving ran."""
     import carvi_torch.pipeline as P
+    from carvi_torch import carve_fused
 
     out, summary = tiny
     assert summary["writer_workers"] >= 1  # the fixture ran with writer processes
+    assert summary["carve_backend"]["backend"] == ("fused" if carve_fused.available() else "torch")
     monkeypatch.setattr(P, "_CPU_CHUNK_OBJECTS", 1)
     threads = torch.get_num_threads()
-    res = run(_cfg(tmp_path / "inline", data=summary["data"], classes=["car"], preview=False), workers=0, threads=1)
+    res = run(_cfg(tmp_path / "inline", data=summary["data"], classes=["car"], preview=False, carve_backend="torch"),
+              workers=0, threads=1)
     assert torch.get_num_threads() == threads
     assert res["writer_workers"] == 0 and res["torch_threads"] == 1
+    assert res["carve_backend"] == {"backend": "torch", "variant": None, "reason": None}
     a, b = _files(out, "car"), _files(tmp_path / "inline", "car")
     assert a.keys() == b.keys() and len(a) > 3
     for k in a:
