@@ -67,6 +67,7 @@ if str(ROOT / "tools") not in sys.path:
 from bench_carve import GridSampleClock, best_of, sync  # noqa: E402
 from bench_changes import pipeline_call_bounds  # noqa: E402
 from carvi_torch import carve as C  # noqa: E402
+from carvi_torch import carve_fused  # noqa: E402
 from carvi_torch import pipeline, select  # noqa: E402
 from carvi_torch.config import Config  # noqa: E402
 from carvi_torch.io import coco  # noqa: E402
@@ -229,6 +230,15 @@ def _subset_maps(maps: C.CarveMaps, reference: torch.Tensor, views: torch.Tensor
     return sdf, maps.cameras[used], ref, vw
 
 
+def carve_fused_samples(maps: C.CarveMaps, reference: torch.Tensor, views: torch.Tensor, n: int,
+                        imprint: bool) -> int:
+    """Bilinear samples the fused kernel reads for these proposals (its early exit skips the rest)."""
+    ext, ref_u, views_u, _, G, G_ref, scale = C._prepare(maps, reference, views, n)
+    column_cost = C._reference_columns(ext, ref_u, G_ref, n, n)
+    out = carve_fused.carve_labels(ext, torch.where(views >= 0, views_u, -1), scale, G, column_cost, n, imprint)
+    return int(out[3].sum())
+
+
 def carve_and_select(data: Path, args, device: torch.device) -> dict:
     """Timings of the carving variants, the loop, the floors and the selection on the run's proposals."""
     torch.set_num_threads(args.threads or pipeline.torch_threads(pipeline.writer_workers(Config())))
@@ -262,7 +272,11 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
         return empty
 
     out = batched()  # warm-up; the grids every other variant is checked against
-    variants = {"batched": {}, "batched_depth_intervals": dict(depth_intervals=True),
+    # "batched" is what the pipeline runs (backend "auto": the fused kernel on the CPU where it is
+    # available); "batched_torch" the grid_sample carving, whose samples define the floor.
+    fused = device.type == "cpu" and carve_fused.available()
+    variants = {"batched": {}, "batched_torch": dict(backend="torch"),
+                "batched_depth_intervals": dict(depth_intervals=True),
                 "batched_coarse_to_fine": dict(coarse_to_fine=True),
                 "batched_nearest": dict(interpolation="nearest")}  # an approximation: not identical
     times = {}
@@ -282,6 +296,8 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
     # those ratios is steadier on a shared machine than the ratio of two best-of timings.
     floors, samples, in_run = {}, {}, {}
     for name, kw in variants.items():
+        if name == "batched" and fused:
+            continue  # the fused kernel calls no grid_sample per voxel: its floor is batched_torch's
         best, ratios = math.inf, []
         for _ in range(rep):
             with GridSampleClock(device) as clock:
@@ -294,6 +310,11 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
             ratios.append(wall / clock.seconds)
         floors[name] = best
         in_run[name] = {"median": statistics.median(ratios), "min": min(ratios), "max": max(ratios)}
+    if fused:
+        # the samples the carving needs, as grid_sample takes them; and the fused kernel's own reads
+        floors["batched"], samples["batched"] = floors["batched_torch"], samples["batched_torch"]
+        fused_samples = sum(int(carve_fused_samples(plan.maps, reference[a:b], views[a:b], n, cfg.imprint))
+                            for a, b in zip(bounds[:-1], bounds[1:]))
 
     L = min(args.loop_objects, K)
     m = int(round(L * P))
@@ -338,6 +359,8 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
     # immune to load.
     paired = {}
     for name, kw, fn in (("batched", {}, ladder["loop_reference_structure"]),
+                         *((("batched_torch", dict(backend="torch"), ladder["loop_reference_structure"]),)
+                           if fused else ()),
                          ("batched_nearest", dict(interpolation="nearest"), ref_structure_nearest)):
         ratios = []
         for _ in range(rep):
@@ -401,6 +424,12 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
         "nearest_voxels_differing": nearest_differs,
         "nearest_occupied_fraction": float(out_nearest.occupancy.float().mean()),
         "batched_over_its_floor": times["batched"] / floors["batched"],
+        # which backend the pipeline's carving ran, and (fused) the map reads its early exit left
+        "carve_backend": "fused" if fused else "torch",
+        **({"fused_kernel_variant": carve_fused.variant(), "fused_samples_per_object": fused_samples / K,
+            "torch_speedup_vs_loop_reference_structure": t_ladder["loop_reference_structure"] / times["batched_torch"],
+            "fused_over_torch": times["batched"] / times["batched_torch"],
+            "torch_over_its_floor": times["batched_torch"] / floors["batched_torch"]} if fused else {}),
         # whole carving / its own grid_sample time within each floor run (median, min, max over the runs)
         "over_its_floor_within_runs": in_run,
         "batched_over_naive_floor": times["batched"] / floor_loop,
@@ -448,10 +477,16 @@ def table(result: dict) -> str:
     cs = result.get("carving")
     if cs:
         s, sm = cs["seconds_per_object"], cs["samples_per_object"]
+        fk = "batched_torch" if cs.get("carve_backend") == "fused" else "batched"
         lines += [f"| carving ({cs['objects']} objects x {cs['proposals_per_object']:.0f} proposals) | "
                   f"s per object | Msamples per object |", "|---|---:|---:|"]
         step = cs.get("pipeline_chunk_objects")
-        rows = [(f"batched (pipeline: one call per chunk of {step} objects)", s["batched"], sm["batched"])]
+        backend = cs.get("carve_backend", "torch")
+        rows = [(f"batched (pipeline: one call per chunk of {step} objects; backend {backend})", s["batched"],
+                 cs.get("fused_samples_per_object", sm["batched"]))]
+        if "batched_torch" in s and backend == "fused":
+            rows.append(("batched, torch backend (grid_sample per chunk and view)", s["batched_torch"],
+                         sm["batched_torch"]))
         if "batched_one_call" in s:
             rows.append((f"batched, one call for all {cs['objects']} objects (fresh output memory)",
                          s["batched_one_call"], sm["batched"]))
@@ -469,7 +504,7 @@ def table(result: dict) -> str:
                 ("(a) per-proposal loop, maps given (extended per proposal), reference once per column",
                  s["loop"], sm["loop_naive"]),
                 ("(a) per-proposal loop, maps prepared once per class", s["loop_prepared_maps"], sm["loop_naive"]),
-                ("(b) floor: grid_sample of batched", s["floor_batched"], sm["batched"]),
+                ("(b) floor: grid_sample of batched (the torch backend's calls)", s["floor_batched"], sm["batched"]),
                 ("(b) floor: grid_sample of depth_intervals", s["floor_batched_depth_intervals"],
                  sm["batched_depth_intervals"]),
                 ("(b) floor: grid_sample of coarse_to_fine", s["floor_batched_coarse_to_fine"],
@@ -486,21 +521,28 @@ def table(result: dict) -> str:
                   f"**{cs['speedup_vs_loop']:.1f}x** (maps given), **{cs['speedup_vs_loop_prepared_maps']:.1f}x** "
                   f"(maps prepared once); batched / its floor: "
                   f"**{cs['batched_over_its_floor']:.2f}**"
-                  + (f" (carving / its own floor within each floor run, median [min-max]: batched "
-                     f"{cs['over_its_floor_within_runs']['batched']['median']:.2f} "
-                     f"[{cs['over_its_floor_within_runs']['batched']['min']:.2f}-"
-                     f"{cs['over_its_floor_within_runs']['batched']['max']:.2f}], nearest "
+                  + (f" (carving / its own floor within each floor run, median [min-max]: {fk} "
+                     f"{cs['over_its_floor_within_runs'][fk]['median']:.2f} "
+                     f"[{cs['over_its_floor_within_runs'][fk]['min']:.2f}-"
+                     f"{cs['over_its_floor_within_runs'][fk]['max']:.2f}], nearest "
                      f"{cs['over_its_floor_within_runs']['batched_nearest']['median']:.2f} "
                      f"[{cs['over_its_floor_within_runs']['batched_nearest']['min']:.2f}-"
                      f"{cs['over_its_floor_within_runs']['batched_nearest']['max']:.2f}])"
                      if "over_its_floor_within_runs" in cs else "")
                   + (f"; loop (reference structure) / batched paired within rounds, "
                      f"median [min-max]: batched **{w['batched']['median']:.1f}x** "
-                     f"[{w['batched']['min']:.1f}-{w['batched']['max']:.1f}], nearest vs the nearest loop "
+                     f"[{w['batched']['min']:.1f}-{w['batched']['max']:.1f}]"
+                     + (f", torch backend **{w['batched_torch']['median']:.1f}x** [{w['batched_torch']['min']:.1f}-"
+                        f"{w['batched_torch']['max']:.1f}]" if "batched_torch" in w else "")
+                     + f", nearest vs the nearest loop "
                      f"**{w['batched_nearest']['median']:.1f}x** [{w['batched_nearest']['min']:.1f}-"
                      f"{w['batched_nearest']['max']:.1f}]"
                      if (w := cs.get("speedup_vs_loop_reference_structure_within_rounds")) else "")
                   + f"; batched / naive floor: **{cs['batched_over_naive_floor']:.2f}**"
+                  + (f"; fused kernel ({cs['fused_kernel_variant']}): {cs['fused_over_torch']:.2f} x the torch "
+                     f"backend's time, reading {cs['fused_samples_per_object'] / sm['batched']:.2f} of its samples; "
+                     f"torch backend vs loop **{cs['torch_speedup_vs_loop_reference_structure']:.1f}x**, / its floor "
+                     f"**{cs['torch_over_its_floor']:.2f}**" if cs.get("carve_backend") == "fused" else "")
                   + f"; identical voxel for voxel: {cs['identical']}; "
                   f"torch threads {cs['torch_threads']}",
                   "", f"nearest pixel: **{cs['nearest_speedup_vs_loop_reference_structure']:.1f}x** the reference "
