@@ -108,6 +108,10 @@ def _declare(lib) -> None:
         fn = getattr(lib, name)
         fn.argtypes = [P, I64, I64, I64, F32, P, P, I64, P]
         fn.restype = None
+    for name in ("carvi_line_plain", "carvi_line_fma"):
+        fn = getattr(lib, name)
+        fn.argtypes = [P, I64, I64, I64, F32, F32, F32, F32, F32, I64, P]
+        fn.restype = None
     for name in ("carvi_carve_plain", "carvi_carve_fma"):
         fn = getattr(lib, name)
         fn.argtypes = [P, I64, I64, P, P, P, P, I64, I64, I, I64, I64, P, P, P, P]
@@ -128,8 +132,26 @@ def _sample_with(lib, fused: bool, ext: torch.Tensor, k: int, scale: float, grid
     return out
 
 
+def _line_with(lib, fused: bool, ext: torch.Tensor, k: int, scale: float, g0: tuple[float, float],
+               c: tuple[float, float], m: int) -> torch.Tensor:
+    out = torch.empty(m, dtype=torch.float32)
+    fn = lib.carvi_line_fma if fused else lib.carvi_line_plain
+    fn(_ptr(ext), ext.shape[1], ext.shape[2], k, scale, g0[0], g0[1], c[0], c[1], m, _ptr(out))
+    return out
+
+
+def _line_grid(g0: tuple[float, float], c: tuple[float, float], m: int) -> torch.Tensor:
+    """``(m, 2)`` float32 coordinates ``(g0 d) + c`` of depths ``d < m``, in the carving's float32 arithmetic."""
+    d = torch.arange(m, dtype=torch.float32)
+    g0t, ct = torch.tensor(g0, dtype=torch.float32), torch.tensor(c, dtype=torch.float32)
+    return g0t * d[:, None] + ct
+
+
 def _self_test(lib) -> str | None:
-    """The sample variant that equals ``grid_sample`` bit for bit here (``"fma"`` or ``"plain"``), or ``None``."""
+    """The sample variant that equals ``grid_sample`` bit for bit here (``"fma"`` or ``"plain"``), or ``None``.
+
+    Checks both ways the kernel reads a map: one point at a time, and along columns (depths ``0 .. m - 1``
+    of a line, as the carving reads them, eight at a time where the processor allows)."""
     gen = torch.Generator().manual_seed(0)
     cases = []
     for Hp, Wp in ((37, 53), (130, 97), (2, 3)):
@@ -140,10 +162,22 @@ def _self_test(lib) -> str | None:
         want = F.grid_sample((ext[1] * scale)[None, None], grid.view(1, 1, -1, 2), mode="bilinear",
                              padding_mode="border", align_corners=True).view(-1)
         cases.append((ext, scale, grid, want))
+    lines = []
+    for _ in range(40):
+        ext, scale, _, _ = cases[len(lines) % 2]
+        g0 = tuple((torch.rand(2, generator=gen) * 0.2 - 0.1).tolist())
+        c = tuple((torch.rand(2, generator=gen) * 2.4 - 1.2).tolist())
+        m = int(torch.randint(1, 200, (), generator=gen))
+        grid = _line_grid(g0, c, m)
+        want = F.grid_sample((ext[1] * scale)[None, None], grid.view(1, 1, -1, 2), mode="bilinear",
+                             padding_mode="border", align_corners=True).view(-1)
+        lines.append((ext, scale, g0, c, m, want))
     order = ("fma", "plain") if lib.carvi_has_fma() else ("plain",)
     for name in order:
-        if all(torch.equal(_sample_with(lib, name == "fma", ext, 1, scale, grid), want)
-               for ext, scale, grid, want in cases):
+        fused = name == "fma"
+        if all(torch.equal(_sample_with(lib, fused, ext, 1, scale, grid), want) for ext, scale, grid, want in cases) \
+                and all(torch.equal(_line_with(lib, fused, ext, 1, scale, g0, c, m), want)
+                        for ext, scale, g0, c, m, want in lines):
             return name
     return None
 
@@ -216,6 +250,19 @@ def sample(ext: torch.Tensor, k: int, scale: float, grid: torch.Tensor) -> torch
     return _sample_with(lib, fused, ext, int(k), float(scale), grid.to(torch.float32).reshape(-1, 2))
 
 
+#: Ranges of proposals per thread in one :func:`carve_labels` call.
+_RANGES_PER_THREAD = 4
+_pools: dict[int, ThreadPoolExecutor] = {}
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """A thread pool of ``threads`` workers, kept for later calls (the carving calls once per chunk)."""
+    with _lock:
+        if threads not in _pools:
+            _pools[threads] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="carvi-carve")
+        return _pools[threads]
+
+
 def _ranges(weights: list[int], parts: int) -> list[tuple[int, int]]:
     """Split ``range(len(weights))`` into at most ``parts`` contiguous ranges of about equal total weight."""
     total = sum(weights)
@@ -265,6 +312,13 @@ def carve_labels(ext: torch.Tensor, views: torch.Tensor, scale: torch.Tensor, G:
         raise ValueError(f"the fused carving takes at most {MAX_VIEWS} view slots, got {V}")
     ext = ext.to(torch.float32).contiguous()
     views = views.to(torch.int64).contiguous()
+    if views.numel() and int(views.max()) >= ext.shape[0] - 1:
+        # the kernel may read one pixel past the last map it samples (with weight 0): give it one
+        # (CarveMaps never needs this: its last map is the unused-slot one, which is never sampled)
+        padded = torch.empty(ext.numel() + 1, dtype=torch.float32)
+        padded[:-1] = ext.view(-1)
+        padded[-1] = 0.0
+        ext = padded[:-1].view(ext.shape)
     scale = scale.to(torch.float32).contiguous()
     G = G.to(torch.float32).contiguous()
     column_cost = column_cost.to(torch.float32).contiguous()
@@ -279,16 +333,17 @@ def carve_labels(ext: torch.Tensor, views: torch.Tensor, scale: torch.Tensor, G:
     outs = (_ptr(occ), _ptr(columns), _ptr(nonempty), _ptr(samples))
     threads = max(1, torch.get_num_threads() if threads is None else int(threads))
     weights = ((column_cost < 0).sum(1) * ((views >= 0).sum(1) + 1)).tolist()
-    ranges = [r for r in _ranges(weights, threads) if r[1] > r[0]]
+    # a few ranges per thread, taken in turn by the threads as they finish: the weights only
+    # estimate the work (interior voxels cost every view, exterior ones about one)
+    ranges = [r for r in _ranges(weights, threads * _RANGES_PER_THREAD if threads > 1 else 1) if r[1] > r[0]]
 
     def run(r):
         return fn(*args, r[0], r[1], *outs)
 
-    if len(ranges) == 1:
-        codes = [run(ranges[0])]
+    if threads == 1 or len(ranges) == 1:
+        codes = [run(r) for r in ranges]
     else:
-        with ThreadPoolExecutor(max_workers=len(ranges)) as pool:
-            codes = list(pool.map(run, ranges))
+        codes = list(_pool(threads).map(run, ranges))
     if any(c != 0 for c in codes):
         raise RuntimeError(f"the fused carving kernel failed (codes {codes})")
     return occ.view(torch.bool), columns.view(torch.bool), nonempty.view(torch.bool), samples

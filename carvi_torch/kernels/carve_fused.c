@@ -152,9 +152,74 @@ __attribute__((target("avx2,fma"))) static inline int keep_negative_avx2(int32_t
     }
     return keep_negative(idx, cost, s, m, i, na);
 }
+
+/* The two pixels (p[0], p[1]) of 8 lanes, as (first, second) vectors in lane order. */
+__attribute__((target("avx2,fma"))) static inline void load_pairs(const float *restrict map, const int32_t *o,
+                                                                   __m256 *first, __m256 *second)
+{
+    __m128 a = _mm_loadh_pi(_mm_castpd_ps(_mm_load_sd((const double *)(map + o[0]))), (const __m64 *)(map + o[1]));
+    __m128 b = _mm_loadh_pi(_mm_castpd_ps(_mm_load_sd((const double *)(map + o[2]))), (const __m64 *)(map + o[3]));
+    __m128 c = _mm_loadh_pi(_mm_castpd_ps(_mm_load_sd((const double *)(map + o[4]))), (const __m64 *)(map + o[5]));
+    __m128 d = _mm_loadh_pi(_mm_castpd_ps(_mm_load_sd((const double *)(map + o[6]))), (const __m64 *)(map + o[7]));
+    __m256 ac = _mm256_insertf128_ps(_mm256_castps128_ps256(a), c, 1); /* l0 l1 | l4 l5 (pairs) */
+    __m256 bd = _mm256_insertf128_ps(_mm256_castps128_ps256(b), d, 1); /* l2 l3 | l6 l7 */
+    *first = _mm256_shuffle_ps(ac, bd, _MM_SHUFFLE(2, 0, 2, 0));       /* l0 l1 l2 l3 | l4 l5 l6 l7 */
+    *second = _mm256_shuffle_ps(ac, bd, _MM_SHUFFLE(3, 1, 3, 1));
+}
+
+/* sample_depths with fused multiply-adds, eight depths at a time: the same arithmetic, with each
+ * row's two pixels read as one 8-byte load (the east one at the last column is the next row's
+ * first pixel, or the next map's, never past the maps: the caller guarantees a pixel after the
+ * last map it samples; its weight is 0, and the pixel itself is used as in sample_depths). */
+__attribute__((target("avx2,fma"))) static void sample_depths_avx2(const view_t *v, const geom_t *g, float cx,
+                                                                   float cy, const int32_t *restrict idx, int m,
+                                                                   float *restrict out)
+{
+    const float *restrict map = v->map;
+    const int32_t Wp = (int32_t)g->Wp, Hp = (int32_t)g->Hp;
+    const __m256 g0x = _mm256_set1_ps(v->g0x), g0y = _mm256_set1_ps(v->g0y), vcx = _mm256_set1_ps(cx),
+                 vcy = _mm256_set1_ps(cy), one = _mm256_set1_ps(1.0f), zero = _mm256_setzero_ps(),
+                 sfx = _mm256_set1_ps(g->sfx), sfy = _mm256_set1_ps(g->sfy), maxx = _mm256_set1_ps(g->maxx),
+                 maxy = _mm256_set1_ps(g->maxy), scale = _mm256_set1_ps(v->scale);
+    const __m256i vW = _mm256_set1_epi32(Wp), vH = _mm256_set1_epi32(Hp), ione = _mm256_set1_epi32(1);
+    int i = 0;
+    int32_t o[8], os[8];
+    for (; i + 8 <= m; i += 8) {
+        __m256 df = _mm256_cvtepi32_ps(_mm256_loadu_si256((const __m256i *)(idx + i)));
+        __m256 gx = _mm256_add_ps(_mm256_mul_ps(g0x, df), vcx);
+        __m256 gy = _mm256_add_ps(_mm256_mul_ps(g0y, df), vcy);
+        __m256 x = _mm256_mul_ps(_mm256_add_ps(gx, one), sfx);
+        __m256 y = _mm256_mul_ps(_mm256_add_ps(gy, one), sfy);
+        /* x > 0 ? x : 0 (a NaN to 0), then x < max ? x : max */
+        x = _mm256_blendv_ps(zero, x, _mm256_cmp_ps(x, zero, _CMP_GT_OQ));
+        y = _mm256_blendv_ps(zero, y, _mm256_cmp_ps(y, zero, _CMP_GT_OQ));
+        x = _mm256_blendv_ps(maxx, x, _mm256_cmp_ps(x, maxx, _CMP_LT_OQ));
+        y = _mm256_blendv_ps(maxy, y, _mm256_cmp_ps(y, maxy, _CMP_LT_OQ));
+        __m256i ix = _mm256_cvttps_epi32(x), iy = _mm256_cvttps_epi32(y);
+        __m256 w = _mm256_sub_ps(x, _mm256_cvtepi32_ps(ix)), n = _mm256_sub_ps(y, _mm256_cvtepi32_ps(iy));
+        __m256 e = _mm256_sub_ps(one, w), s = _mm256_sub_ps(one, n);
+        __m256 nw = _mm256_mul_ps(s, e), ne = _mm256_mul_ps(s, w), sw = _mm256_mul_ps(n, e), se = _mm256_mul_ps(n, w);
+        __m256i vo = _mm256_add_epi32(_mm256_mullo_epi32(iy, vW), ix);
+        __m256i east = _mm256_cmpgt_epi32(vW, _mm256_add_epi32(ix, ione));  /* ix + 1 < Wp */
+        __m256i vos = _mm256_and_si256(_mm256_cmpgt_epi32(vH, _mm256_add_epi32(iy, ione)), vW);
+        _mm256_storeu_si256((__m256i *)o, vo);
+        _mm256_storeu_si256((__m256i *)os, _mm256_add_epi32(vo, vos));
+        __m256 t0, t1, b0, b1;
+        load_pairs(map, o, &t0, &t1);
+        load_pairs(map, os, &b0, &b1);
+        __m256 emask = _mm256_castsi256_ps(east);
+        __m256 vnw = _mm256_mul_ps(t0, scale), vne = _mm256_mul_ps(_mm256_blendv_ps(t0, t1, emask), scale);
+        __m256 vsw = _mm256_mul_ps(b0, scale), vse = _mm256_mul_ps(_mm256_blendv_ps(b0, b1, emask), scale);
+        __m256 r = _mm256_fmadd_ps(vse, se, _mm256_fmadd_ps(vsw, sw, _mm256_fmadd_ps(vne, ne, _mm256_mul_ps(vnw, nw))));
+        _mm256_storeu_ps(out + i, r);
+    }
+    if (i < m)
+        sample_depths(v, g, cx, cy, idx + i, m - i, out + i, 1);
+}
 #else
 static void pack_lut_init(void) {}
 #define keep_negative_avx2(idx, cost, s, na) keep_negative(idx, cost, s, 0, 0, na)
+#define sample_depths_avx2(v, g, cx, cy, idx, m, out) sample_depths(v, g, cx, cy, idx, m, out, 1)
 #endif
 
 INLINE geom_t geometry(int64_t Hp, int64_t Wp)
@@ -186,6 +251,36 @@ FMA_TARGET void carvi_sample_fma(const float *ext, int64_t Hp, int64_t Wp, int64
                                  const float *gy, int64_t m, float *out)
 {
     samples_at(ext, Hp, Wp, k, scale, gx, gy, m, out, 1);
+}
+
+/* Samples of map k of ext, scaled, at depths 0 .. m - 1 of one column: coordinates
+ * (g0x d) + cx, (g0y d) + cy, m <= MAX_RESOLUTION, read by the carving's own sampler. */
+INLINE void line_at(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, float g0x, float g0y, float cx,
+                    float cy, int64_t m, float *out, const int fused)
+{
+    geom_t g = geometry(Hp, Wp);
+    view_t v = {ext + k * Hp * Wp, scale, g0x, g0y, 0, 0, 0, 0, 0, 0};
+    int32_t idx[MAX_RESOLUTION];
+    if (m > MAX_RESOLUTION)
+        m = MAX_RESOLUTION;
+    for (int64_t d = 0; d < m; d++)
+        idx[d] = (int32_t)d;
+    if (fused)
+        sample_depths_avx2(&v, &g, cx, cy, idx, (int)m, out);
+    else
+        sample_depths(&v, &g, cx, cy, idx, (int)m, out, 0);
+}
+
+void carvi_line_plain(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, float g0x, float g0y,
+                      float cx, float cy, int64_t m, float *out)
+{
+    line_at(ext, Hp, Wp, k, scale, g0x, g0y, cx, cy, m, out, 0);
+}
+
+FMA_TARGET void carvi_line_fma(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, float g0x,
+                               float g0y, float cx, float cy, int64_t m, float *out)
+{
+    line_at(ext, Hp, Wp, k, scale, g0x, g0y, cx, cy, m, out, 1);
 }
 
 INLINE int carve(const float *ext, int64_t Hp, int64_t Wp, const int64_t *views, const float *scale, const float *G,
@@ -241,7 +336,10 @@ INLINE int carve(const float *ext, int64_t Hp, int64_t Wp, const int64_t *views,
             }
             for (int r = 0; r < U && na > 0; r++) {
                 const int u = order[r];
-                sample_depths(&vw[u], &g, cx[u], cy[u], idx, na, s, fused);
+                if (fused)
+                    sample_depths_avx2(&vw[u], &g, cx[u], cy[u], idx, na, s);
+                else
+                    sample_depths(&vw[u], &g, cx[u], cy[u], idx, na, s, 0);
                 count += na;
                 int m = fused ? keep_negative_avx2(idx, cost, s, na) : keep_negative(idx, cost, s, 0, 0, na);
                 if (na - m > dropped_most) {
@@ -264,7 +362,10 @@ INLINE int carve(const float *ext, int64_t Hp, int64_t Wp, const int64_t *views,
                 for (int64_t d = 0; d < n; d++)
                     cost[d] = c0;
                 for (int u = 0; u < U; u++) {
-                    sample_depths(&vw[u], &g, cx[u], cy[u], all, (int)n, s, fused);
+                    if (fused)
+                        sample_depths_avx2(&vw[u], &g, cx[u], cy[u], all, (int)n, s);
+                    else
+                        sample_depths(&vw[u], &g, cx[u], cy[u], all, (int)n, s, 0);
                     for (int64_t d = 0; d < n; d++)
                         cost[d] = s[d] > cost[d] ? s[d] : cost[d];
                 }
