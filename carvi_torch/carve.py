@@ -1187,7 +1187,7 @@ def _chunk_multiple(device: torch.device) -> int:
 
 
 def _use_fused(backend: str, device: torch.device, interpolation: str, return_cost: bool, coarse_to_fine: bool,
-               depth_intervals: bool, V: int) -> bool:
+               depth_intervals: bool, V: int, resolution: int = 0) -> bool:
     """Whether :func:`carve_proposals` runs the fused kernel (``backend="fused"`` where it cannot: an error)."""
     if backend == "torch":
         return False
@@ -1200,6 +1200,8 @@ def _use_fused(backend: str, device: torch.device, interpolation: str, return_co
         why = "it computes labels only (no return_cost, coarse_to_fine or depth_intervals)"
     elif V > carve_fused.MAX_VIEWS:
         why = f"it takes at most {carve_fused.MAX_VIEWS} view slots, not {V}"
+    elif resolution > carve_fused.MAX_RESOLUTION:
+        why = f"it takes resolutions up to {carve_fused.MAX_RESOLUTION}, not {resolution}"
     elif not carve_fused.available():
         why = f"it is not available here: {carve_fused.unavailable_reason()}"
     if why is not None and backend == "fused":
@@ -1306,7 +1308,8 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
         raise ValueError(f"backend must be one of {carve_fused.BACKENDS}, got {backend!r}")
     maps, reference, views = _as_maps(sdf, cameras, reference, views, resolution)
     dev = maps.device
-    fused = _use_fused(backend, dev, interpolation, return_cost, coarse_to_fine, depth_intervals, views.shape[1])
+    fused = _use_fused(backend, dev, interpolation, return_cost, coarse_to_fine, depth_intervals, views.shape[1],
+                       resolution)
     if max_batch_voxels is None:
         max_batch_voxels = default_batch_voxels(dev)
     if not isinstance(max_batch_voxels, int) or max_batch_voxels < 1:

@@ -23,9 +23,13 @@ under a name that hashes the source, the flags and the compiler, written atomica
 load it. No compiler, a failed build or a failed self-test makes :func:`available` ``False``
 with the reason in :func:`unavailable_reason`; nothing else changes.
 
-Threads. ``ctypes`` releases the GIL during a call, so proposals are split into one contiguous
-range per torch intra-op thread (balanced by foreground columns) and carved by that many Python
-threads at once.
+Threads. ``ctypes`` releases the GIL during a call, so proposals are split into four contiguous
+ranges per torch intra-op thread (of about equal estimated work) and carved by that many Python
+threads of a pool kept across calls (and forgotten in a forked child, where its threads do not
+exist).
+
+NaN. A NaN sample does not win the kernel's maximum, while ``torch.maximum`` propagates it; the
+carving never sees one (:func:`carvi_torch.carve.prepare_maps` and the cameras are checked finite).
 
 Example:
     >>> from carvi_torch import carve_fused
@@ -57,7 +61,8 @@ __all__ = ["available", "unavailable_reason", "carve_labels", "sample", "variant
 BACKENDS = ("auto", "torch", "fused")
 
 _SOURCE = Path(__file__).with_name("kernels") / "carve_fused.c"
-_FLAGS = ["-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math"]
+_FLAGS = ["-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math",
+          "-fno-unsafe-math-optimizations"]
 #: Largest resolution the kernel takes (``MAX_RESOLUTION`` in the C source).
 MAX_RESOLUTION = 2048
 #: Most view slots a proposal may use (``MAX_VIEWS`` in the C source).
@@ -65,6 +70,17 @@ MAX_VIEWS = 64
 
 _lock = threading.Lock()
 _state: dict = {}
+
+
+def _after_fork_in_child() -> None:
+    """A forked child inherits the pools' executors without their threads, and maybe a held lock."""
+    global _lock
+    _lock = threading.Lock()
+    _pools.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def _compiler() -> list[str]:
@@ -87,12 +103,12 @@ def library_path() -> Path:
     return _cache_dir() / "kernels" / f"carve_fused-{key.hexdigest()[:16]}.so"
 
 
-def _build(path: Path) -> None:
+def _build(path: Path, extra: tuple[str, ...] = ()) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=path.parent)
     os.close(fd)
     try:
-        cmd = _compiler() + _FLAGS + ["-o", tmp, str(_SOURCE), "-lm"]
+        cmd = _compiler() + _FLAGS + list(extra) + ["-o", tmp, str(_SOURCE), "-lm"]
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
         if proc.returncode != 0:
             raise RuntimeError(f"compiling the fused carving kernel failed ({' '.join(cmd)}):\n{proc.stderr.strip()}")
@@ -134,6 +150,8 @@ def _sample_with(lib, fused: bool, ext: torch.Tensor, k: int, scale: float, grid
 
 def _line_with(lib, fused: bool, ext: torch.Tensor, k: int, scale: float, g0: tuple[float, float],
                c: tuple[float, float], m: int) -> torch.Tensor:
+    if not 0 < m <= MAX_RESOLUTION:
+        raise ValueError(f"a line has 1 to {MAX_RESOLUTION} depths, got {m}")
     out = torch.empty(m, dtype=torch.float32)
     fn = lib.carvi_line_fma if fused else lib.carvi_line_plain
     fn(_ptr(ext), ext.shape[1], ext.shape[2], k, scale, g0[0], g0[1], c[0], c[1], m, _ptr(out))
@@ -155,7 +173,8 @@ def _self_test(lib) -> str | None:
     gen = torch.Generator().manual_seed(0)
     cases = []
     for Hp, Wp in ((37, 53), (130, 97), (2, 3)):
-        ext = torch.randn(2, Hp, Wp, generator=gen) * 40
+        # one value beyond the last map: the column sampler may read it (with weight 0)
+        ext = _padded(torch.randn(2, Hp, Wp, generator=gen) * 40)
         grid = torch.rand(20000, 2, generator=gen) * 2.4 - 1.2  # inside, on and beyond the border
         grid[:500] = torch.round(grid[:500] * 8) / 8  # pixel centres and edges
         scale = float(torch.rand((), generator=gen) * 2 + 0.25)
@@ -163,8 +182,8 @@ def _self_test(lib) -> str | None:
                              padding_mode="border", align_corners=True).view(-1)
         cases.append((ext, scale, grid, want))
     lines = []
-    for _ in range(40):
-        ext, scale, _, _ = cases[len(lines) % 2]
+    for _ in range(45):
+        ext, scale, _, _ = cases[len(lines) % 3]
         g0 = tuple((torch.rand(2, generator=gen) * 0.2 - 0.1).tolist())
         c = tuple((torch.rand(2, generator=gen) * 2.4 - 1.2).tolist())
         m = int(torch.randint(1, 200, (), generator=gen))
@@ -177,9 +196,42 @@ def _self_test(lib) -> str | None:
         fused = name == "fma"
         if all(torch.equal(_sample_with(lib, fused, ext, 1, scale, grid), want) for ext, scale, grid, want in cases) \
                 and all(torch.equal(_line_with(lib, fused, ext, 1, scale, g0, c, m), want)
-                        for ext, scale, g0, c, m, want in lines):
+                        for ext, scale, g0, c, m, want in lines) \
+                and _labels_agree(lib, fused, gen):
             return name
     return None
+
+
+def _labels_agree(lib, fused: bool, gen: torch.Generator) -> bool:
+    """The kernel's labels equal the torch carving's on a small random problem (every step of the
+    arithmetic, the column terms included, as the compiler built it)."""
+    from carvi_torch import carve  # carve imports this module: import here, at first use
+    from carvi_torch.cameras import ScaledOrthographic, random_rotations
+
+    M, size, n = 6, 24, 12
+    yy, xx = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32),
+                            indexing="ij")
+    centre = 8 + 8 * torch.rand(M, 2, generator=gen)
+    radius = 4 + 4 * torch.rand(M, 2, generator=gen)
+    sdf = torch.sqrt(((xx - centre[:, 0, None, None]) / radius[:, 0, None, None]) ** 2
+                     + ((yy - centre[:, 1, None, None]) / radius[:, 1, None, None]) ** 2) * 5 - 5
+    cams = ScaledOrthographic(random_rotations(M, generator=gen).float(), 1 + 0.2 * torch.rand(M, generator=gen),
+                              centre.clone())
+    maps = carve.prepare_maps(sdf, cams)
+    reference = torch.arange(M)
+    views = torch.stack([(reference + k) % M for k in (1, 2, 3)], 1)
+    want = carve.carve_proposals(maps, None, reference, views, resolution=n, backend="torch")
+    ext, ref_u, views_u, _, G, G_ref, scale = carve._prepare(maps, reference, views, n)
+    column_cost = carve._reference_columns(ext, ref_u, G_ref, n, n)
+    occ, columns, nonempty, _ = _carve_with(lib, fused, ext, views_u, scale, G, column_cost, n, True, 1)
+    return bool(torch.equal(occ.view(want.occupancy.shape), want.occupancy) and torch.equal(~nonempty, want.empty))
+
+
+def _padded(ext: torch.Tensor) -> torch.Tensor:
+    """``ext`` (float32) in storage with one more value after it, so that reading one pixel past its last map is safe."""
+    buf = torch.zeros(ext.numel() + 1, dtype=torch.float32)
+    buf[:-1] = ext.reshape(-1)
+    return buf[:-1].view(ext.shape)
 
 
 def _load() -> dict:
@@ -190,16 +242,21 @@ def _load() -> dict:
             path = library_path()
             if not path.is_file():
                 _build(path)
-            lib = ctypes.CDLL(str(path))
-            _declare(lib)
+            try:
+                lib = ctypes.CDLL(str(path))
+                _declare(lib)
+            except (OSError, AttributeError):  # a damaged or stale file under the expected name: build again
+                _build(path)
+                lib = ctypes.CDLL(str(path))
+                _declare(lib)
             name = _self_test(lib)
             if name is None:
                 raise RuntimeError("the kernel's bilinear samples differ from torch's grid_sample on this machine "
                                    f"(CPU capability {torch.backends.cpu.get_cpu_capability()}), so its labels "
                                    "could differ from the torch carving's")
             _state.update(lib=lib, variant=name, reason=None)
-        except (OSError, RuntimeError, subprocess.SubprocessError) as exc:
-            _state.update(lib=None, variant=None, reason=str(exc))
+        except Exception as exc:  # noqa: BLE001 -- whatever fails, the torch carving runs instead
+            _state.update(lib=None, variant=None, reason=f"{type(exc).__name__}: {exc}")
         return _state
 
 
@@ -306,19 +363,43 @@ def carve_labels(ext: torch.Tensor, views: torch.Tensor, scale: torch.Tensor, G:
         if variant not in ("fma", "plain") or (variant == "fma" and not lib.carvi_has_fma()):
             raise ValueError(f"variant must be 'plain' or (on a processor with AVX2 and FMA) 'fma', got {variant!r}")
         fused = variant == "fma"
-    B, V = views.shape
     n = int(resolution)
+    _check_inputs(ext, views, scale, G, column_cost, n)
+    return _carve_with(lib, fused, ext, views, scale, G, column_cost, n, imprint, threads)
+
+
+def _check_inputs(ext, views, scale, G, column_cost, n: int) -> None:
+    """Shapes, devices and ranges the kernel relies on (it reads raw pointers: a wrong one would crash)."""
+    for name, t in (("ext", ext), ("views", views), ("scale", scale), ("G", G), ("column_cost", column_cost)):
+        if not isinstance(t, torch.Tensor) or t.device.type != "cpu":
+            raise ValueError(f"the fused carving takes CPU tensors; {name} is "
+                             f"{t.device if isinstance(t, torch.Tensor) else type(t).__name__}")
+    if ext.dim() != 3 or views.dim() != 2:
+        raise ValueError(f"ext must be (K, Hp, Wp) and views (B, V), got {tuple(ext.shape)} and {tuple(views.shape)}")
+    B, V = views.shape
+    K, Hp, Wp = ext.shape
     if V > MAX_VIEWS:
         raise ValueError(f"the fused carving takes at most {MAX_VIEWS} view slots, got {V}")
+    if not 1 <= n <= MAX_RESOLUTION:
+        raise ValueError(f"the fused carving takes resolutions 1 to {MAX_RESOLUTION}, got {n}")
+    if Hp * Wp >= 2 ** 31 - Wp:
+        raise ValueError(f"maps of {Hp} x {Wp} pixels are too large for the fused carving's 32-bit offsets")
+    if tuple(scale.shape) != (B, V) or tuple(G.shape) != (B, V, 2, 4) or tuple(column_cost.shape) != (B, n * n):
+        raise ValueError(f"scale, G, column_cost must be ({B}, {V}), ({B}, {V}, 2, 4), ({B}, {n * n}); got "
+                         f"{tuple(scale.shape)}, {tuple(G.shape)}, {tuple(column_cost.shape)}")
+    if views.numel() and (int(views.max()) >= K or int(views.min()) < -1):
+        raise ValueError(f"views must index the {K} maps of ext, or be -1 (unused), got "
+                         f"{int(views.min())} .. {int(views.max())}")
+
+
+def _carve_with(lib, fused: bool, ext, views, scale, G, column_cost, n: int, imprint: bool, threads):
+    B, V = views.shape
     ext = ext.to(torch.float32).contiguous()
     views = views.to(torch.int64).contiguous()
     if views.numel() and int(views.max()) >= ext.shape[0] - 1:
         # the kernel may read one pixel past the last map it samples (with weight 0): give it one
         # (CarveMaps never needs this: its last map is the unused-slot one, which is never sampled)
-        padded = torch.empty(ext.numel() + 1, dtype=torch.float32)
-        padded[:-1] = ext.view(-1)
-        padded[-1] = 0.0
-        ext = padded[:-1].view(ext.shape)
+        ext = _padded(ext)
     scale = scale.to(torch.float32).contiguous()
     G = G.to(torch.float32).contiguous()
     column_cost = column_cost.to(torch.float32).contiguous()
@@ -345,5 +426,7 @@ def carve_labels(ext: torch.Tensor, views: torch.Tensor, scale: torch.Tensor, G:
     else:
         codes = list(_pool(threads).map(run, ranges))
     if any(c != 0 for c in codes):
-        raise RuntimeError(f"the fused carving kernel failed (codes {codes})")
+        what = {-1: "too many view slots or a resolution out of range", -2: "out of memory"}
+        raise RuntimeError("the fused carving kernel failed: "
+                           + ", ".join(sorted({what.get(c, f"code {c}") for c in codes if c != 0})))
     return occ.view(torch.bool), columns.view(torch.bool), nonempty.view(torch.bool), samples

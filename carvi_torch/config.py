@@ -130,13 +130,14 @@ class Config:
     """Imprint the reference silhouette (``False`` = the -SImp ablation)."""
     carve_interpolation: str = "bilinear"
     """How the carving reads the distance maps at a voxel's projection: ``bilinear`` (the paper's) or
-    ``nearest`` (the pixel it falls in: about 1.9-2x faster carving on the CPU, an approximation;
+    ``nearest`` (the pixel it falls in, an approximation: about 1.9-2x faster than the torch backend's
+    bilinear carving, but it has no fused kernel, so on the CPU it is slower than the default;
     docs/benchmarks/README.md)."""
     carve_backend: str = "auto"
     """Who computes the carving's labels: ``auto`` (the compiled CPU kernel of ``carvi_torch.carve_fused``
     where it applies -- CPU, bilinear -- and builds, else torch), ``torch`` (batched ``grid_sample``) or
     ``fused`` (the kernel, an error where it cannot run). Every backend gives the same labels voxel for
-    voxel; the kernel is about 2x faster on the CPU (docs/benchmarks/README.md)."""
+    voxel; the kernel is about 2.3x faster on the CPU (docs/benchmarks/README.md)."""
     max_batch_voxels: int = 50_000_000
     """Upper bound on the voxels (of the reference's foreground columns) carved in one batched chunk (bounds memory); the carving never uses more than its per-device default (``carve.default_batch_voxels``: 2^19 per thread on CPU, at most 2^21, measured with 1 and 2 threads; 2^25 on CUDA), so only smaller values change anything."""
 

@@ -253,6 +253,16 @@ def test_a_kernel_that_disagrees_with_grid_sample_is_not_used(monkeypatch):
     assert carve_fused._self_test(lib) is None
     monkeypatch.setattr(carve_fused, "_sample_with", real)
     assert carve_fused._self_test(lib) == carve_fused.variant()
+    # the same for the column sampler the carving uses
+    real_line = carve_fused._line_with
+
+    def line_off(lib_, fused, ext, k, scale, g0, c, m):
+        out = real_line(lib_, fused, ext, k, scale, g0, c, m)
+        out[-1] = torch.nextafter(out[-1], torch.tensor(float("-inf")))
+        return out
+
+    monkeypatch.setattr(carve_fused, "_line_with", line_off)
+    assert carve_fused._self_test(lib) is None
 
 
 @needs_kernel
@@ -279,3 +289,100 @@ def test_both_variants_carve_and_differ_only_at_the_zero_level():
             assert differ < 1e-3, differ
     with pytest.raises(ValueError, match="variant"):
         carve_fused.carve_labels(ext, slots, scale, G, cc, n, True, variant="avx512")
+
+
+def _kernel_inputs(seed: int, n: int, **kw):
+    gen = torch.Generator().manual_seed(seed)
+    sdf, cams, reference, views = random_proposals(gen, **kw)
+    maps = prepare_maps(sdf, cams)
+    ext, ref_u, views_u, _, G, G_ref, scale = _prepare(maps, reference, views, n)
+    cc = _reference_columns(ext, ref_u, G_ref, n, n)
+    return ext, torch.where(views >= 0, views_u, -1), scale, G, cc
+
+
+@needs_kernel
+def test_a_view_of_the_last_map_is_read_safely():
+    """When a view samples the last map of ``ext`` (never in a CarveMaps, whose last map is the unused
+    slot's), the kernel gets a copy with a value after it: the labels equal those with a spare map."""
+    n = 14
+    ext, slots, scale, G, cc = _kernel_inputs(8, n)
+    last = ext.shape[0] - 1
+    slots = slots.clone()
+    slots[:, 0] = torch.where(slots[:, 0] >= 0, torch.full_like(slots[:, 0], last), slots[:, 0])
+    ext = ext.clone()
+    ext[last] = ext[0]  # a real map in the last row
+    a = carve_fused.carve_labels(ext, slots, scale, G, cc, n, True)
+    spare = torch.cat([ext, torch.zeros_like(ext[:1])])  # the same maps with one more after them
+    b = carve_fused.carve_labels(spare, slots, scale, G, cc, n, True)
+    for x, y in zip(a, b):
+        assert torch.equal(x, y)
+
+
+@needs_kernel
+def test_carve_labels_checks_its_inputs():
+    n = 10
+    ext, slots, scale, G, cc = _kernel_inputs(9, n)
+    with pytest.raises(ValueError, match="views must index"):
+        carve_fused.carve_labels(ext, torch.full_like(slots, ext.shape[0]), scale, G, cc, n, True)
+    with pytest.raises(ValueError, match="scale, G, column_cost"):
+        carve_fused.carve_labels(ext, slots, scale, G, cc[:, :-1], n, True)
+    with pytest.raises(ValueError, match="resolutions"):
+        carve_fused.carve_labels(ext, slots, scale, G, cc, 0, True)
+    with pytest.raises(ValueError, match="view slots"):
+        many = torch.full((slots.shape[0], 65), -1)
+        carve_fused.carve_labels(ext, many, torch.ones(slots.shape[0], 65), torch.zeros(slots.shape[0], 65, 2, 4), cc,
+                                 n, True)
+
+
+def test_more_view_slots_than_the_kernel_takes_run_on_torch():
+    gen = torch.Generator().manual_seed(12)
+    sdf, cams, reference, views = random_proposals(gen, M=8, B=8, V=4, size=24)
+    wide = torch.full((8, 70), -1)
+    wide[:, :4] = views
+    a = carve_proposals(sdf, cams, reference, wide, resolution=10, backend="auto")
+    b = carve_proposals(sdf, cams, reference, views, resolution=10, backend="torch")
+    assert torch.equal(a.occupancy, b.occupancy)
+    if carve_fused.available():
+        with pytest.raises(ValueError, match="view slots"):
+            carve_proposals(sdf, cams, reference, wide, resolution=10, backend="fused")
+
+
+def _carve_in_forked_child(queue, args):
+    queue.put([t.numpy().copy() for t in carve_fused.carve_labels(*args, threads=2)])  # by value, not shared
+
+
+@needs_kernel
+def test_a_forked_child_carves_with_threads():
+    """A child forked after the parent's thread pool started must not wait for threads it does not have."""
+    import multiprocessing as mp
+
+    n = 12
+    args = (*_kernel_inputs(10, n), n, True)
+    want = carve_fused.carve_labels(*args, threads=2)  # the parent's pool now exists
+    ctx = mp.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_carve_in_forked_child, args=(queue, args))
+    child.start()
+    got = queue.get(timeout=60)
+    child.join(timeout=60)
+    assert child.exitcode == 0
+    for x, y in zip(want, got):
+        assert torch.equal(x, torch.from_numpy(y))
+
+
+@needs_kernel
+def test_the_portable_build_carves_like_the_x86_one(tmp_path):
+    """The code for processors without AVX2 (``CARVI_NO_X86``: what aarch64 builds) compiles and gives the
+    plain variant's labels."""
+    import ctypes
+
+    path = tmp_path / "portable.so"
+    carve_fused._build(path, ("-DCARVI_NO_X86",))
+    lib = ctypes.CDLL(str(path))
+    carve_fused._declare(lib)
+    n = 13
+    ext, slots, scale, G, cc = _kernel_inputs(14, n)
+    want = carve_fused.carve_labels(ext, slots, scale, G, cc, n, True, variant="plain")
+    got = carve_fused._carve_with(lib, False, ext, slots, scale, G, cc, n, True, 1)
+    for x, y in zip(want, got):
+        assert torch.equal(x, y)

@@ -427,6 +427,9 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
         # which backend the pipeline's carving ran, and (fused) the map reads its early exit left
         "carve_backend": "fused" if fused else "torch",
         **({"fused_kernel_variant": carve_fused.variant(), "fused_samples_per_object": fused_samples / K,
+            # with the fused kernel, floor_batched and samples_per_object["batched"] are the torch
+            # backend's: the samples the carving needs, taken by grid_sample
+            "floor_batched_is": "batched_torch",
             "torch_speedup_vs_loop_reference_structure": t_ladder["loop_reference_structure"] / times["batched_torch"],
             "fused_over_torch": times["batched"] / times["batched_torch"],
             "torch_over_its_floor": times["batched_torch"] / floors["batched_torch"]} if fused else {}),
@@ -489,7 +492,7 @@ def table(result: dict) -> str:
                          sm["batched_torch"]))
         if "batched_one_call" in s:
             rows.append((f"batched, one call for all {cs['objects']} objects (fresh output memory)",
-                         s["batched_one_call"], sm["batched"]))
+                         s["batched_one_call"], cs.get("fused_samples_per_object", sm["batched"])))
         rows += [
                 ("batched, depth_intervals", s["batched_depth_intervals"], sm["batched_depth_intervals"]),
                 ("batched, coarse_to_fine", s["batched_coarse_to_fine"], sm["batched_coarse_to_fine"]),

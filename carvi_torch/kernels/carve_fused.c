@@ -38,12 +38,16 @@
  *   samples  (B,) int64            out: bilinear samples read per proposal
  */
 #include <stdint.h>
-#include <stdlib.h>
 
 #define MAX_VIEWS 64
+
+/* x86 with AVX2 code paths (CARVI_NO_X86 builds the portable code alone, as on other processors) */
+#if (defined(__x86_64__) || defined(__i386__)) && !defined(CARVI_NO_X86)
+#define CARVI_X86 1
+#endif
 #define MAX_RESOLUTION 2048
 
-#if defined(__x86_64__) || defined(__i386__)
+#if defined(CARVI_X86)
 #define FMA_TARGET __attribute__((target("avx2,fma")))
 #else
 #define FMA_TARGET
@@ -111,7 +115,7 @@ INLINE int keep_negative(int32_t *restrict idx, float *restrict cost, const floa
     return m;
 }
 
-#if defined(__x86_64__) || defined(__i386__)
+#if defined(CARVI_X86)
 #include <immintrin.h>
 
 /* Left-packing permutations for 8 lanes: entry `mask` moves the lanes whose bit is set to the front. */
@@ -217,7 +221,6 @@ __attribute__((target("avx2,fma"))) static void sample_depths_avx2(const view_t 
         sample_depths(v, g, cx, cy, idx + i, m - i, out + i, 1);
 }
 #else
-static void pack_lut_init(void) {}
 #define keep_negative_avx2(idx, cost, s, na) keep_negative(idx, cost, s, 0, 0, na)
 #define sample_depths_avx2(v, g, cx, cy, idx, m, out) sample_depths(v, g, cx, cy, idx, m, out, 1)
 #endif
@@ -404,9 +407,9 @@ FMA_TARGET int carvi_carve_fma(CARVE_ARGS) { return CARVE_CALL(1); }
 /* Whether this processor can run the fma variant. */
 int carvi_has_fma(void)
 {
-    if (!pack_lut_ready)
+#if defined(CARVI_X86)
+    if (!pack_lut_ready) /* the constructor has run; a backstop */
         pack_lut_init();
-#if defined(__x86_64__) || defined(__i386__)
     __builtin_cpu_init();
     return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
 #elif defined(__aarch64__)
