@@ -2,7 +2,8 @@
 
 Reads the JSON of ``tools/benchmark.py`` runs (default: the 1- and 2-thread pair kept in
 ``docs/benchmarks/``) and draws one panel per run: horizontal bars on a log scale for the
-batched carvings (exact and nearest pixel), the reference-structure loops (bilinear and
+batched carvings (exact -- the default backend, the fused CPU kernel where it runs, and the torch
+backend -- and nearest pixel), the reference-structure loops (bilinear and
 nearest pixel) and the floors (each carving's own ``grid_sample`` calls, and the naive floors
 of the loops), with the issue's two targets marked on each batched bar's own scale: a tenth of
 the reference-structure loop of the same kind, and twice its own floor.
@@ -26,8 +27,9 @@ DEFAULT_RUNS = [ROOT / "docs" / "benchmarks" / "carving_cpu_1000_threads1.json",
 
 #: (key in seconds_per_object, label, kind): kind picks the colour.
 ROWS = [
-    ("batched", "batched, exact (default)", "batched"),
-    ("floor_batched", "  its floor: its grid_sample calls", "floor"),
+    ("batched", "batched, exact (default backend)", "batched"),
+    ("batched_torch", "batched, exact, torch backend", "batched"),
+    ("floor_batched", "  floor: the torch backend's grid_sample calls", "floor"),
     ("batched_nearest", "batched, nearest pixel", "batched"),
     ("floor_batched_nearest", "  its floor: its grid_sample calls", "floor"),
     ("loop_reference_structure", "loop, reference structure (bilinear)", "loop"),
@@ -50,6 +52,7 @@ def draw(runs: list[Path], out: Path) -> Path:
         # targets on each batched bar: 10x its loop of the same kind, 2x its own floor
         right = {k: s[k] for k, _, _ in rows}
         for key, loop, floor in (("batched", "loop_reference_structure", "floor_batched"),
+                                 ("batched_torch", "loop_reference_structure", "floor_batched"),
                                  ("batched_nearest", "loop_reference_structure_nearest", "floor_batched_nearest")):
             if key not in s or loop not in s:
                 continue
@@ -62,7 +65,9 @@ def draw(runs: list[Path], out: Path) -> Path:
         ax.set_xscale("log")
         ax.set_yticks(y, [label for _, label, _ in rows], fontsize=8)
         ax.set_xlabel("seconds per object (20 proposals, 60^3), log scale")
-        ax.set_title(f"{cs['torch_threads']} torch thread(s), {cs['objects']} objects ({path.name})", fontsize=9)
+        backend = cs.get("carve_backend", "torch")
+        ax.set_title(f"{cs['torch_threads']} torch thread(s), {cs['objects']} objects, default backend {backend}\n"
+                     f"({path.name})", fontsize=9)
         ax.set_xlim(min(s[k] for k, _, _ in rows) / 2, max(s[k] for k, _, _ in rows) * 2.5)
     handles = [plt.Line2D([], [], color="black", lw=1.5, label="target: a tenth of the loop of its kind"),
                plt.Line2D([], [], color="black", lw=1.5, ls=":", label="target: twice its own floor")]
