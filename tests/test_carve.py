@@ -852,7 +852,7 @@ def test_default_batch_voxels_scales_with_threads_and_is_bounded():
 def test_chunks_hold_a_multiple_of_the_threads_within_the_budget(threads, monkeypatch):
     """The CPU ``grid_sample`` shares work among threads by batch entry: every chunk but the
     last of a call holds a multiple of the thread count, none exceeds the voxel budget, and
-    the labels are those of one thread and one proposal per chunk."""
+    the labels are those of one thread and one proposal per chunk (the torch backend's chunks)."""
     from carvi_torch import carve
     gen = torch.Generator().manual_seed(8)
     sdf, cams, reference, views = random_proposals(gen, B=23)
@@ -871,10 +871,10 @@ def test_chunks_hold_a_multiple_of_the_threads_within_the_budget(threads, monkey
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        one = carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=n)
+        one = carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=n, backend="torch")
         torch.set_num_threads(threads)
         sizes.clear()
-        out = carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=budget)
+        out = carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=budget, backend="torch")
         assert carve._chunk_multiple(torch.device("cpu")) == threads
     finally:
         torch.set_num_threads(before)
