@@ -36,6 +36,16 @@ def _grid_sample(ext, k, scale, grid):
                          padding_mode="border", align_corners=True).view(-1)
 
 
+def _kernel_inputs(seed: int, n: int, **kw):
+    """What :func:`carve_fused.carve_labels` takes, for random proposals (``random_proposals(**kw)``)."""
+    gen = torch.Generator().manual_seed(seed)
+    sdf, cams, reference, views = random_proposals(gen, **kw)
+    maps = prepare_maps(sdf, cams)
+    ext, ref_u, views_u, _, G, G_ref, scale = _prepare(maps, reference, views, n)
+    cc = _reference_columns(ext, ref_u, G_ref, n, n)
+    return ext, torch.where(views >= 0, views_u, -1), scale, G, cc
+
+
 # --------------------------------------------------------------------------- sample
 
 
@@ -109,13 +119,8 @@ def test_fused_labels_on_steep_maps_and_many_proposals():
 
 @needs_kernel
 def test_fused_reads_fewer_samples_than_dense_carving():
-    gen = torch.Generator().manual_seed(3)
-    sdf, cams, reference, views = random_proposals(gen, M=8, B=16, V=4, size=32)
-    maps = prepare_maps(sdf, cams)
     n = 20
-    ext, ref_u, views_u, _, G, G_ref, scale = _prepare(maps, reference, views, n)
-    column_cost = _reference_columns(ext, ref_u, G_ref, n, n)
-    slots = torch.where(views >= 0, views_u, -1)
+    ext, slots, scale, G, column_cost = _kernel_inputs(3, n, M=8, B=16, V=4, size=32)
     occ, columns, nonempty, samples = carve_fused.carve_labels(ext, slots, scale, G, column_cost, n, imprint=False)
     fg = (column_cost < 0).sum(1)
     dense = fg * (slots >= 0).sum(1) * n  # what the torch backend samples: every view at every foreground voxel
@@ -130,13 +135,8 @@ def test_fused_reads_fewer_samples_than_dense_carving():
 @needs_kernel
 @pytest.mark.parametrize("threads", [1, 2, 5])
 def test_threads_do_not_change_the_labels(threads):
-    gen = torch.Generator().manual_seed(11)
-    sdf, cams, reference, views = random_proposals(gen, M=8, B=13, V=4, size=32)
-    maps = prepare_maps(sdf, cams)
     n = 15
-    ext, ref_u, views_u, _, G, G_ref, scale = _prepare(maps, reference, views, n)
-    cc = _reference_columns(ext, ref_u, G_ref, n, n)
-    slots = torch.where(views >= 0, views_u, -1)
+    ext, slots, scale, G, cc = _kernel_inputs(11, n, M=8, B=13, V=4, size=32)
     one = carve_fused.carve_labels(ext, slots, scale, G, cc, n, True, threads=1)
     many = carve_fused.carve_labels(ext, slots, scale, G, cc, n, True, threads=threads)
     for a, b in zip(one, many):
@@ -270,13 +270,8 @@ def test_both_variants_carve_and_differ_only_at_the_zero_level():
     """The variant the self-test did not pick still carves: without imprinting its labels differ from the
     chosen one's only where the cost is within float rounding of 0 (a thin set, here none); with imprinting
     the same columns are filled, though an imprinted voxel may move along a column of near-equal costs."""
-    gen = torch.Generator().manual_seed(21)
-    sdf, cams, reference, views = random_proposals(gen, M=8, B=16, V=4, size=32)
-    maps = prepare_maps(sdf, cams)
     n = 18
-    ext, ref_u, views_u, _, G, G_ref, scale = _prepare(maps, reference, views, n)
-    cc = _reference_columns(ext, ref_u, G_ref, n, n)
-    slots = torch.where(views >= 0, views_u, -1)
+    ext, slots, scale, G, cc = _kernel_inputs(21, n, M=8, B=16, V=4, size=32)
     other_name = "plain" if carve_fused.variant() == "fma" else "fma"
     if other_name == "fma" and not carve_fused._state["lib"].carvi_has_fma():
         pytest.skip("this processor has no FMA: only the plain variant runs here")
@@ -289,15 +284,6 @@ def test_both_variants_carve_and_differ_only_at_the_zero_level():
             assert differ < 1e-3, differ
     with pytest.raises(ValueError, match="variant"):
         carve_fused.carve_labels(ext, slots, scale, G, cc, n, True, variant="avx512")
-
-
-def _kernel_inputs(seed: int, n: int, **kw):
-    gen = torch.Generator().manual_seed(seed)
-    sdf, cams, reference, views = random_proposals(gen, **kw)
-    maps = prepare_maps(sdf, cams)
-    ext, ref_u, views_u, _, G, G_ref, scale = _prepare(maps, reference, views, n)
-    cc = _reference_columns(ext, ref_u, G_ref, n, n)
-    return ext, torch.where(views >= 0, views_u, -1), scale, G, cc
 
 
 @needs_kernel
