@@ -130,7 +130,7 @@ class Config:
     """Imprint the reference silhouette (``False`` = the -SImp ablation)."""
     carve_interpolation: str = "bilinear"
     """How the carving reads the distance maps at a voxel's projection: ``bilinear`` (the paper's) or
-    ``nearest`` (the pixel it falls in, an approximation: about 1.9-2x faster than the torch backend's
+    ``nearest`` (the pixel it falls in, an approximation: about 1.5-1.75x faster than the torch backend's
     bilinear carving, but it has no fused kernel, so on the CPU it is slower than the default;
     docs/benchmarks/README.md)."""
     carve_backend: str = "auto"
