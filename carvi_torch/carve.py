@@ -1186,8 +1186,21 @@ def _chunk_multiple(device: torch.device) -> int:
     return max(1, torch.get_num_threads()) if device.type == "cpu" else 1
 
 
+def _fused_inputs(maps: CarveMaps, reference: torch.Tensor, views: torch.Tensor, n: int):
+    """What :func:`carvi_torch.carve_fused.carve_labels` takes for these proposals (bilinear maps).
+
+    Returns:
+        ``ext`` (the extended maps), ``slots (B, V)`` (row of ``ext`` per view slot, ``-1`` unused),
+        ``scale (B, V)`` and ``G (B, V, 2, 4)`` float32, ``column_cost (B, n * n)``, and ``T (B, 4, 4)``
+        the voxel-to-camera maps (float64).
+    """
+    ext, ref_u, views_u, T, G, G_ref, scale = _prepare(maps, reference, views, n)
+    column_cost = _reference_columns(ext, ref_u, G_ref, n, n)
+    return ext, torch.where(views >= 0, views_u, -1), scale, G, column_cost, T
+
+
 def _use_fused(backend: str, device: torch.device, interpolation: str, return_cost: bool, coarse_to_fine: bool,
-               depth_intervals: bool, V: int, resolution: int = 0) -> bool:
+               depth_intervals: bool, V: int) -> bool:
     """Whether :func:`carve_proposals` runs the fused kernel (``backend="fused"`` where it cannot: an error)."""
     if backend == "torch":
         return False
@@ -1200,8 +1213,6 @@ def _use_fused(backend: str, device: torch.device, interpolation: str, return_co
         why = "it computes labels only (no return_cost, coarse_to_fine or depth_intervals)"
     elif V > carve_fused.MAX_VIEWS:
         why = f"it takes at most {carve_fused.MAX_VIEWS} view slots, not {V}"
-    elif resolution > carve_fused.MAX_RESOLUTION:
-        why = f"it takes resolutions up to {carve_fused.MAX_RESOLUTION}, not {resolution}"
     elif not carve_fused.available():
         why = f"it is not available here: {carve_fused.unavailable_reason()}"
     if why is not None and backend == "fused":
@@ -1308,8 +1319,8 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
         raise ValueError(f"backend must be one of {carve_fused.BACKENDS}, got {backend!r}")
     maps, reference, views = _as_maps(sdf, cameras, reference, views, resolution)
     dev = maps.device
-    fused = _use_fused(backend, dev, interpolation, return_cost, coarse_to_fine, depth_intervals, views.shape[1],
-                       resolution)
+    # (resolutions: carve_proposals takes at most 2048, the kernel's MAX_RESOLUTION)
+    fused = _use_fused(backend, dev, interpolation, return_cost, coarse_to_fine, depth_intervals, views.shape[1])
     if max_batch_voxels is None:
         max_batch_voxels = default_batch_voxels(dev)
     if not isinstance(max_batch_voxels, int) or max_batch_voxels < 1:
@@ -1321,16 +1332,16 @@ def carve_proposals(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: t
         z = torch.zeros(0, n, n, n, dtype=torch.bool, device=dev)
         return ProposalGrids(z, torch.zeros(0, 4, 4, device=dev), torch.zeros(0, dtype=torch.bool, device=dev),
                              z[:, 0], torch.zeros(0, n, n, device=dev), z.float() if return_cost else None, z[:, 0])
+    if fused:
+        ext, slots, scale, G, column_cost, T = _fused_inputs(maps, reference, views, n)
+        occ, columns, nonempty, _ = carve_fused.carve_labels(ext, slots, scale, G, column_cost, n, imprint)
+        return ProposalGrids(occupancy=occ.view(B, n, n, n), voxel_to_camera=T.float(), empty=~nonempty,
+                             reference_columns=(column_cost < 0).view(B, n, n), column_cost=column_cost.view(B, n, n),
+                             cost=None, columns=columns.view(B, n, n))
     ext, ref_u, views_u, T, G, G_ref, scale = _prepare(maps, reference, views, resolution, keep_double=True)
     G64, G = G, G.float()
     column_cost = _reference_columns(ext, ref_u, G_ref, n, n, interpolation)  # (B, HW)
     fg = column_cost < 0
-    if fused:
-        occ, columns, nonempty, _ = carve_fused.carve_labels(ext, torch.where(views >= 0, views_u, -1), scale, G,
-                                                             column_cost, n, imprint)
-        return ProposalGrids(occupancy=occ.view(B, n, n, n), voxel_to_camera=T.float(), empty=~nonempty,
-                             reference_columns=fg.view(B, n, n), column_cost=column_cost.view(B, n, n), cost=None,
-                             columns=columns.view(B, n, n))
     depth = torch.arange(n, device=dev, dtype=torch.float32)
     coarse_to_fine = coarse_to_fine and not return_cost
     if coarse_to_fine:

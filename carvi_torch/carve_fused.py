@@ -51,7 +51,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 
 __all__ = ["available", "unavailable_reason", "carve_labels", "sample", "variant", "library_path", "BACKENDS"]
 
@@ -158,18 +157,15 @@ def _line_with(lib, fused: bool, ext: torch.Tensor, k: int, scale: float, g0: tu
     return out
 
 
-def _line_grid(g0: tuple[float, float], c: tuple[float, float], m: int) -> torch.Tensor:
-    """``(m, 2)`` float32 coordinates ``(g0 d) + c`` of depths ``d < m``, in the carving's float32 arithmetic."""
-    d = torch.arange(m, dtype=torch.float32)
-    g0t, ct = torch.tensor(g0, dtype=torch.float32), torch.tensor(c, dtype=torch.float32)
-    return g0t * d[:, None] + ct
-
-
 def _self_test(lib) -> str | None:
     """The sample variant that equals ``grid_sample`` bit for bit here (``"fma"`` or ``"plain"``), or ``None``.
 
     Checks both ways the kernel reads a map: one point at a time, and along columns (depths ``0 .. m - 1``
-    of a line, as the carving reads them, eight at a time where the processor allows)."""
+    of a line, as the carving reads them, eight at a time where the processor allows). The references
+    are the torch carving's own calls (:func:`carvi_torch.carve._grid_sample`, and
+    :func:`carvi_torch.carve._sample_planes` for the columns' coordinate arithmetic)."""
+    from carvi_torch import carve  # carve imports this module: import here, at first use
+
     gen = torch.Generator().manual_seed(0)
     cases = []
     for Hp, Wp in ((37, 53), (130, 97), (2, 3)):
@@ -178,8 +174,7 @@ def _self_test(lib) -> str | None:
         grid = torch.rand(20000, 2, generator=gen) * 2.4 - 1.2  # inside, on and beyond the border
         grid[:500] = torch.round(grid[:500] * 8) / 8  # pixel centres and edges
         scale = float(torch.rand((), generator=gen) * 2 + 0.25)
-        want = F.grid_sample((ext[1] * scale)[None, None], grid.view(1, 1, -1, 2), mode="bilinear",
-                             padding_mode="border", align_corners=True).view(-1)
+        want = carve._grid_sample((ext[1] * scale)[None, None], grid.view(1, 1, -1, 2)).view(-1)
         cases.append((ext, scale, grid, want))
     lines = []
     for _ in range(45):
@@ -187,9 +182,9 @@ def _self_test(lib) -> str | None:
         g0 = tuple((torch.rand(2, generator=gen) * 0.2 - 0.1).tolist())
         c = tuple((torch.rand(2, generator=gen) * 2.4 - 1.2).tolist())
         m = int(torch.randint(1, 200, (), generator=gen))
-        grid = _line_grid(g0, c, m)
-        want = F.grid_sample((ext[1] * scale)[None, None], grid.view(1, 1, -1, 2), mode="bilinear",
-                             padding_mode="border", align_corners=True).view(-1)
+        # depths 0 .. m - 1 of one column: depth term g0 d plus column term c
+        dz = torch.tensor(g0, dtype=torch.float32)[None, :, None] * torch.arange(m, dtype=torch.float32)
+        want = carve._sample_planes((ext[1] * scale)[None, None], dz, torch.tensor(c)[None, :, None]).view(-1)
         lines.append((ext, scale, g0, c, m, want))
     order = ("fma", "plain") if lib.carvi_has_fma() else ("plain",)
     for name in order:
@@ -221,9 +216,8 @@ def _labels_agree(lib, fused: bool, gen: torch.Generator) -> bool:
     reference = torch.arange(M)
     views = torch.stack([(reference + k) % M for k in (1, 2, 3)], 1)
     want = carve.carve_proposals(maps, None, reference, views, resolution=n, backend="torch")
-    ext, ref_u, views_u, _, G, G_ref, scale = carve._prepare(maps, reference, views, n)
-    column_cost = carve._reference_columns(ext, ref_u, G_ref, n, n)
-    occ, columns, nonempty, _ = _carve_with(lib, fused, ext, views_u, scale, G, column_cost, n, True, 1)
+    ext, slots, scale, G, column_cost, _ = carve._fused_inputs(maps, reference, views, n)
+    occ, columns, nonempty, _ = _carve_with(lib, fused, ext, slots, scale, G, column_cost, n, True, 1)
     return bool(torch.equal(occ.view(want.occupancy.shape), want.occupancy) and torch.equal(~nonempty, want.empty))
 
 

@@ -17,10 +17,9 @@ from pathlib import Path
 
 import pytest
 import torch
-import torch.nn.functional as F
 
 from carvi_torch import carve_fused
-from carvi_torch.carve import _prepare, _reference_columns, carve_proposals, carve_proposals_loop, prepare_maps
+from carvi_torch.carve import _fused_inputs, _grid_sample, carve_proposals, carve_proposals_loop, prepare_maps
 from carvi_torch.config import Config, ConfigError
 from carvi_torch.sdf import signed_distance
 from test_carve import blob_masks, random_cameras, random_proposals
@@ -31,19 +30,16 @@ needs_kernel = pytest.mark.skipif(not carve_fused.available(),
                                   reason=f"fused kernel unavailable: {carve_fused.unavailable_reason()}")
 
 
-def _grid_sample(ext, k, scale, grid):
-    return F.grid_sample((ext[k] * scale)[None, None], grid.view(1, 1, -1, 2), mode="bilinear",
-                         padding_mode="border", align_corners=True).view(-1)
+def _reference(ext, k, scale, grid):
+    """``grid_sample`` of map ``k`` scaled, as the torch carving calls it."""
+    return _grid_sample((ext[k] * scale)[None, None], grid.view(1, 1, -1, 2)).view(-1)
 
 
 def _kernel_inputs(seed: int, n: int, **kw):
     """What :func:`carve_fused.carve_labels` takes, for random proposals (``random_proposals(**kw)``)."""
     gen = torch.Generator().manual_seed(seed)
     sdf, cams, reference, views = random_proposals(gen, **kw)
-    maps = prepare_maps(sdf, cams)
-    ext, ref_u, views_u, _, G, G_ref, scale = _prepare(maps, reference, views, n)
-    cc = _reference_columns(ext, ref_u, G_ref, n, n)
-    return ext, torch.where(views >= 0, views_u, -1), scale, G, cc
+    return _fused_inputs(prepare_maps(sdf, cams), reference, views, n)[:5]
 
 
 # --------------------------------------------------------------------------- sample
@@ -62,7 +58,7 @@ def test_sample_equals_grid_sample_bit_for_bit(size):
                                     [1.0, 0.3], [0.3, 1.0], [-1.0, 0.3], [1.5, 1.5], [-1.5, -1.5]])
     for k in range(3):
         for scale in (1.0, 0.37, 2.9):
-            got, want = carve_fused.sample(ext, k, scale, grid), _grid_sample(ext, k, scale, grid)
+            got, want = carve_fused.sample(ext, k, scale, grid), _reference(ext, k, scale, grid)
             assert torch.equal(got, want), (k, scale, int((got != want).sum()))
 
 
@@ -372,3 +368,10 @@ def test_the_portable_build_carves_like_the_x86_one(tmp_path):
     got = carve_fused._carve_with(lib, False, ext, slots, scale, G, cc, n, True, 1)
     for x, y in zip(want, got):
         assert torch.equal(x, y)
+
+
+def test_the_kernel_takes_every_resolution_carve_proposals_takes():
+    from carvi_torch import carve
+    with pytest.raises(ValueError, match="2048"):
+        carve._check_indices(2, torch.tensor([0]), torch.tensor([[1]]), 2049, torch.device("cpu"))
+    assert carve_fused.MAX_RESOLUTION >= 2048

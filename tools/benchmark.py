@@ -233,9 +233,8 @@ def _subset_maps(maps: C.CarveMaps, reference: torch.Tensor, views: torch.Tensor
 def carve_fused_samples(maps: C.CarveMaps, reference: torch.Tensor, views: torch.Tensor, n: int,
                         imprint: bool) -> int:
     """Bilinear samples the fused kernel reads for these proposals (its early exit skips the rest)."""
-    ext, ref_u, views_u, _, G, G_ref, scale = C._prepare(maps, reference, views, n)
-    column_cost = C._reference_columns(ext, ref_u, G_ref, n, n)
-    out = carve_fused.carve_labels(ext, torch.where(views >= 0, views_u, -1), scale, G, column_cost, n, imprint)
+    ext, slots, scale, G, column_cost, _ = C._fused_inputs(maps, reference, views, n)
+    out = carve_fused.carve_labels(ext, slots, scale, G, column_cost, n, imprint)
     return int(out[3].sum())
 
 
