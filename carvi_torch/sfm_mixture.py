@@ -53,7 +53,7 @@ than 2 visible keypoints) cost the same in every group; they end up in group 0 u
 needs them to reach ``min_size``.
 
 The acceptance rule and its thresholds (``gain = 0.3``, ``agreement_deg = 60``) were set on the
-renders of the PASCAL3D+ CAD models (``tools/sfm_mixture_study.py``, docs/viewpoints.md); they
+renders of the PASCAL3D+ CAD models (docs/viewpoints.md); they
 are not tuned on any other data.
 
 Example:
