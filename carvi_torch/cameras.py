@@ -28,6 +28,7 @@ __all__ = [
     "ScaledOrthographic",
     "Similarity2D",
     "nearest_scaled_rotation",
+    "scaled_stiefel",
     "complete_rotation",
     "rotation_to_quaternion",
     "quaternion_to_rotation",
@@ -36,6 +37,8 @@ __all__ = [
     "rotation_from_azimuth_elevation_roll",
     "azimuth_elevation_roll_from_rotation",
     "geodesic_angle",
+    "align_rotations",
+    "geodesic_errors",
     "rotation_about_axis",
     "random_rotations",
     "FLIP_X",
@@ -89,6 +92,44 @@ def nearest_scaled_rotation(M: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     U, S, Vh = torch.linalg.svd(M, full_matrices=False)  # U (..,2,2) S (..,2) Vh (..,2,3)
     rows = U @ Vh
     return complete_rotation(rows), S.mean(dim=-1)
+
+
+def scaled_stiefel(M: torch.Tensor) -> torch.Tensor:
+    """Nearest scaled Stiefel matrix ``c U V^T`` of ``2x3`` blocks, in closed form.
+
+    Same result as :func:`carvi_torch.cameras.nearest_scaled_rotation` (``s * R[:2]``)
+    without a batched SVD: with ``A = M M^T`` and ``delta = sqrt(det A) = sigma_1
+    sigma_2``, ``(M M^T)^(-1/2) = adj(A + delta I) / (delta (sigma_1 + sigma_2))``
+    (the 2x2 square-root formula), so ``c U V^T = adj(A + delta I) M / (2 delta)``.
+    Blocks of rank < 2 (``delta <= 1e-10 tr A``) fall back to the SVD. Differentiable.
+
+    Args:
+        M: ``(..., 2, 3)``.
+
+    Returns:
+        ``(..., 2, 3)`` with orthogonal rows of equal norm ``c`` (the mean singular value).
+
+    Example:
+        >>> scaled_stiefel(torch.tensor([[2.0, 0, 0], [0, 4.0, 0]]))
+        tensor([[3., 0., 0.],
+                [0., 3., 0.]])
+    """
+    A = M @ M.transpose(-1, -2)
+    a, b, d = A[..., 0, 0], A[..., 0, 1], A[..., 1, 1]
+    tr = a + d
+    delta = (a * d - b * b).clamp(min=0).sqrt()
+    ok = delta > 1e-10 * tr
+    dsafe = torch.where(ok, delta, torch.ones_like(delta))
+    # adj(A + delta I) = [[d + delta, -b], [-b, a + delta]]
+    adj = torch.stack([torch.stack([d + delta, -b], -1), torch.stack([-b, a + delta], -1)], -2)
+    out = adj @ M / (2.0 * dsafe)[..., None, None]
+    # rank < 2 blocks go through the SVD; non-finite blocks stay non-finite (the SVD would fail)
+    fallback = ~ok & torch.isfinite(M).flatten(-2).all(-1)
+    if bool(fallback.any()):
+        R, s = nearest_scaled_rotation(M[fallback])
+        out = out.clone()
+        out[fallback] = s[:, None, None] * R[:, :2, :]
+    return out
 
 
 def rotation_to_quaternion(R: torch.Tensor) -> torch.Tensor:
@@ -173,6 +214,94 @@ def geodesic_angle(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
         [D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], dim=-1
     )
     return torch.atan2(skew.norm(dim=-1), tr - 1.0)
+
+
+def check_rotation_pairs(R_est: torch.Tensor, R_gt: torch.Tensor) -> None:
+    for name, R in (("R_est", R_est), ("R_gt", R_gt)):
+        if not isinstance(R, torch.Tensor) or R.dim() != 3 or R.shape[1:] != (3, 3):
+            raise ValueError(f"{name} must be a (N, 3, 3) tensor, got {getattr(R, 'shape', type(R))}")
+    if R_est.shape[0] != R_gt.shape[0]:
+        raise ValueError("R_est and R_gt must hold the same number of rotations, "
+                         f"got {R_est.shape[0]} and {R_gt.shape[0]}")
+
+
+def finite_rotation_pairs(R_est: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:
+    return torch.isfinite(R_est).flatten(1).all(1) & torch.isfinite(R_gt).flatten(1).all(1)
+
+
+def _procrustes(A: torch.Tensor) -> torch.Tensor:
+    """Proper rotation ``G`` maximising ``trace(G^T A)`` for ``A (3, 3)``."""
+    U, _, Vh = torch.linalg.svd(A)
+    d = torch.sign(torch.det(U @ Vh))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
+    return U @ D @ Vh
+
+
+def align_rotations(
+    R_est: torch.Tensor,
+    R_gt: torch.Tensor,
+    *,
+    robust: bool = False,
+    iters: int = 20,
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Global rotation ``G`` minimising ``sum_n w_n ||R_est_n G - R_gt_n||_F^2``.
+
+    Closed form (orthogonal Procrustes): ``A = sum_n w_n R_est_n^T R_gt_n = U S V^T``,
+    ``G = U diag(1, 1, det(U V^T)) V^T`` (a proper rotation). With ``robust=True``,
+    iteratively reweighted with ``w_n = 1 / max(theta_n, 1 deg)`` (``theta_n`` the
+    geodesic residual), which approximately minimises the sum of the angles
+    rather than of their squares, so a few gross errors (e.g. flipped instances)
+    do not tilt ``G``. Pairs with a non-finite entry are ignored.
+
+    Args:
+        R_est, R_gt: ``(N, 3, 3)`` proper rotations.
+        robust: use the reweighted variant.
+        iters: reweighting iterations.
+        weights: ``(N,)`` optional non-negative weights.
+
+    Returns:
+        ``(3, 3)`` in ``R_est``'s dtype (computed in float64).
+
+    Example:
+        >>> from carvi_torch.cameras import random_rotations
+        >>> R = random_rotations(5, torch.Generator().manual_seed(0)); G = random_rotations(1)[0]
+        >>> torch.allclose(align_rotations(R @ G.T, R), G, atol=1e-5)
+        True
+    """
+    check_rotation_pairs(R_est, R_gt)
+    ok = finite_rotation_pairs(R_est, R_gt)
+    if not bool(ok.any()):
+        raise ValueError("align_rotations: no pair of finite rotations")
+    Re = R_est[ok].double()
+    Rg = R_gt[ok].double()
+    w = torch.ones(Re.shape[0], dtype=torch.float64, device=Re.device)
+    if weights is not None:
+        w = torch.as_tensor(weights, device=Re.device).double()[ok.to(Re.device)]
+        if bool((w < 0).any()):
+            raise ValueError("weights must be non-negative")
+    G = _procrustes(torch.einsum("n,nji,njk->ik", w, Re, Rg))
+    if robust:
+        floor = math.radians(1.0)
+        for _ in range(iters):
+            theta = geodesic_angle(Re @ G, Rg)
+            G_new = _procrustes(torch.einsum("n,nji,njk->ik", w / theta.clamp(min=floor), Re, Rg))
+            if float((G_new - G).abs().max()) < 1e-12:
+                G = G_new
+                break
+            G = G_new
+    return G.to(R_est.dtype)
+
+
+def geodesic_errors(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor | None = None) -> torch.Tensor:
+    """Angle (degrees) between ``R_est_n G`` and ``R_gt_n``; ``G`` = identity when None.
+
+    Returns ``(N,)`` in ``[0, 180]``; NaN where an input is not finite.
+    """
+    check_rotation_pairs(R_est, R_gt)
+    Re = R_est if G is None else R_est @ G.to(R_est)
+    return torch.rad2deg(geodesic_angle(Re, R_gt.to(Re)))
 
 
 def _rz(a: torch.Tensor) -> torch.Tensor:

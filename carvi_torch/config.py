@@ -1,67 +1,71 @@
-"""Run configuration: one dataclass, one docstring per field.
+"""Run configuration: nested dataclasses, one per stage, one docstring per field.
 
-Resolution order (later wins): the dataclass defaults, ``configs/default.yaml``
-shipped with the package (the same values, for users to copy), a ``--config FILE``,
-then ``key=value`` overrides on the command line. The resolved configuration is
-written next to the outputs as ``config.yaml``.
+A run's settings are the dataclass defaults, then a ``--config FILE`` (YAML, nested by
+section or flat), then ``key=value`` overrides on the command line. The resolved
+configuration is written next to the outputs as ``config.yaml``; ``configs/default.yaml``
+is the defaults rendered the same way, for users to copy (a test keeps it equal to them).
+
+Keys. Every setting has a full dotted name, ``<section>.<field>`` (``carve.resolution``),
+or its bare name for the run-wide fields (``seed``). Shorter spellings are accepted where
+they name one setting: the field alone (``resolution``) and ``<section>_<field>``
+(``carve_backend``, ``mesh_format``). Enumerated settings take their values from the
+``Literal`` types of the modules that own them.
 
 Example:
-    >>> cfg = Config().override(["resolution=32", "imprint=false"])
-    >>> cfg.resolution, cfg.imprint
-    (32, False)
+    >>> cfg = Config().override(["resolution=32", "imprint=false", "carve.backend=torch"])
+    >>> cfg.carve.resolution, cfg.carve.imprint, cfg.carve.backend
+    (32, False, 'torch')
+    >>> resolve_key("mesh_format")
+    'mesh.format'
 """
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, fields
+import difflib
+import math
+import sys
+import typing
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Literal, Optional
 
 import yaml
 
-__all__ = ["Config", "ConfigError", "load_config"]
+from .carve import Backend, Interpolation
+from .mesh import MeshFormat
+from .viewpoints import CameraSource
+
+__all__ = ["Config", "ConfigError", "load_config", "read_run_config", "settings_changed", "flatten_settings", "NEUTRAL_SETTINGS", "resolve_key", "all_keys", "FIELD_DOCS", "InputConfig",
+           "ViewpointConfig", "SurrogateConfig", "CarveConfig", "SelectConfig", "MeshConfig", "StudyConfig",
+           "Stage"]
+
+#: ``all`` runs every stage; ``cameras`` stops after viewpoint estimation.
+Stage = Literal["all", "cameras"]
 
 
 class ConfigError(ValueError):
     """A configuration file or override is invalid (names the key and the problem)."""
 
 
+def _positive(section, *names: str) -> None:
+    for name in names:
+        if getattr(section, name) < 1:
+            raise ConfigError(f"{name} must be >= 1, got {getattr(section, name)}")
+
+
+def _within(value: float, lo: float, hi: float, name: str, lo_open=False, hi_open=False, note: str = "") -> None:
+    ok = (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
+    if not ok:
+        interval = f"{'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+        raise ConfigError(f"{name} must be in {interval}{note}, got {value}")
+
+
 @dataclass
-class Config:
-    """Every knob of a reconstruction run."""
+class InputConfig:
+    """How annotations become canvas tensors (and the embedded default collection)."""
 
-    # ---- input / output
-    data: Optional[str] = None
-    """COCO keypoint JSON to reconstruct. ``None``: the embedded procedural collection."""
-    gt: Optional[str] = None
-    """Ground-truth ``gt.json`` (synthetic data). Default: ``gt.json`` beside ``data`` when present."""
-    out: str = "outputs/default"
-    """Output directory (``config.yaml``, ``summary.json``, per class ``cameras.json``, meshes, voxels)."""
-    classes: Optional[list] = None
-    """Restrict the run to these class names (``None``: all classes in the data)."""
-    references: str = "all"
-    """Objects to reconstruct: ``all``, or only those of one split (e.g. ``test``); every object still
-    takes part in SfM and may serve as a surrogate."""
-    overwrite: bool = False
-    """Recompute objects whose outputs already exist (default: a rerun skips finished work)."""
-
-    # ---- general
-    seed: int = 0
-    """Seed of every random choice (surrogate sampling, synthetic data). Same seed, same outputs."""
-    device: str = "cpu"
-    """Torch device for all stages: ``cpu``, ``cuda``, ``cuda:1`` or ``auto`` (CUDA when available)."""
-    stage: str = "all"
-    """``all`` runs the whole pipeline; ``cameras`` stops after viewpoint estimation."""
-    cameras: str = "estimate"
-    """``estimate`` (SfM + refinement) or ``gt``: take the true cameras of ``gt.json`` (oracle study)."""
-    progress: bool = True
-    """Show progress bars."""
-
-    # ---- embedded default collection
     procedural_instances: int = 40
-    """Instances per class of the embedded procedural collection (used when ``data`` is ``None``)."""
-
-    # ---- canvas
+    """Instances per class of the embedded procedural collection (used when ``data`` is unset)."""
     canvas_size: int = 128
     """Side (pixels) of the square canvas every instance is cropped and scaled into."""
     canvas_margin: float = 0.1
@@ -69,9 +73,15 @@ class Config:
     min_instances: int = 3
     """Classes with fewer usable instances are reported and skipped."""
 
-    # ---- viewpoints (SfM + refinement)
-    mirrors: bool = True
-    """Add left-right flipped copies (SfM data; mirrored silhouettes in carving unless articulated)."""
+    def validate(self) -> None:
+        _positive(self, "procedural_instances", "canvas_size", "min_instances")
+        _within(self.canvas_margin, 0, 0.5, "canvas_margin", hi_open=True)
+
+
+@dataclass
+class ViewpointConfig:
+    """Rigid SfM (``carvi_torch.viewpoints.sfm``), its mixture of shapes and the silhouette refinement."""
+
     sfm_max_outer: int = 200
     """Outer (fill) iterations of the missing-data factorisation at most."""
     sfm_inner: int = 10
@@ -79,7 +89,7 @@ class Config:
     sfm_tol: float = 1e-7
     """Stop when the relative change of the visible-entry residual falls below this."""
     sfm_groups: int = 1
-    """Most rigid shapes per class (``carvi_torch.sfm_mixture``): a class whose members differ in
+    """Most rigid shapes per class (``carvi_torch.viewpoints.mixture``): a class whose members differ in
     proportions is split into groups, each with its own SfM shape, in one class frame. 1 = one mean
     shape per class, as in the paper."""
     sfm_group_min: int = 15
@@ -93,8 +103,8 @@ class Config:
     """Most hard-EM rounds per candidate split."""
     sfm_group_threads: int = 2
     """Python threads that run the two initialisations of each candidate split side by side, for
-    classes of at least ``sfm_mixture.THREADS_MIN_OBJECTS`` objects (1: one after the other; same
-    result either way)."""
+    classes of at least ``viewpoints.mixture.THREADS_MIN_OBJECTS`` objects (1: one after the other;
+    same result either way)."""
     refine: bool = True
     """Silhouette refinement of the SfM cameras (``False`` = the -CRef ablation)."""
     refine_iters: int = 150
@@ -102,14 +112,38 @@ class Config:
     silhouette_weight: float = 1.0
     """Weight of the distance-to-mask penalty against the keypoint reprojection error."""
     silhouette_robust: float = 0.2
-    """Robust (Geman-McClure) scale of the distance-to-mask penalty, a fraction of each mask's larger side; 0 = the paper's squared distance."""
+    """Robust (Geman-McClure) scale of the distance-to-mask penalty, a fraction of each mask's larger
+    side; 0 = the paper's squared distance."""
     refine_twin_flatness: float = 0.1
-    """Also refine a camera from its planar twin (the other camera under which the plane of its visible keypoints looks the same) when those keypoints are this flat (thickness: smallest over middle spread; 1 = every camera, 0 = off); the twin's result is kept when its energy is at least 2% lower (``refine.TWIN_MARGIN``). The flat instances are refined twice."""
-
+    """Also refine a camera from its planar twin (the other camera under which the plane of its visible
+    keypoints looks the same) when those keypoints are this flat (thickness: smallest over middle
+    spread; 1 = every camera, 0 = off); the twin's result is kept when its energy is at least 2% lower
+    (``viewpoints.camera_fit.TWIN_MARGIN``). The flat instances are refined twice."""
     refine_min_support: float = 0.1
-    """Leave out of the refinement (and of the unseen-image path) every mean-shape keypoint shown by fewer than this fraction of the instances refined with that shape (the class, or its shape group): placed by SfM from too few views, it would pull every instance's camera through the silhouette term (``refine.supported_shape``; 0 = use every keypoint)."""
+    """Leave out of the refinement (and of the unseen-image path) every mean-shape keypoint shown by
+    fewer than this fraction of the instances refined with that shape (the class, or its shape group):
+    placed by SfM from too few views, it would pull every instance's camera through the silhouette term
+    (``viewpoints.camera_fit.supported_shape``; 0 = use every keypoint)."""
 
-    # ---- surrogates
+    def validate(self) -> None:
+        _positive(self, "refine_iters", "sfm_max_outer", "sfm_inner", "sfm_groups", "sfm_group_min",
+                  "sfm_group_rounds", "sfm_group_threads")
+        if not self.refine_twin_flatness >= 0:
+            raise ConfigError(f"refine_twin_flatness must be >= 0 (0 = off), got {self.refine_twin_flatness}")
+        _within(self.refine_min_support, 0, 1, "refine_min_support", note=" (0 = every keypoint)")
+        if self.silhouette_robust < 0:
+            raise ConfigError(f"silhouette_robust must be >= 0 (0 = squared distance), got {self.silhouette_robust}")
+        _within(self.sfm_group_gain, 0, 1, "sfm_group_gain", hi_open=True)
+        _within(self.sfm_group_agreement_deg, 0, 180, "sfm_group_agreement_deg", lo_open=True)
+
+
+@dataclass
+class SurrogateConfig:
+    """Principal directions, clusters and the surrogate triplets of every reference."""
+
+    mirrors: bool = True
+    """Carve with the mirrored copies' silhouettes too (bilateral symmetry; articulated classes never
+    do). SfM always uses the mirrored copies."""
     cluster_threshold_deg: float = 15.0
     """An instance joins a principal direction's cluster within this angle (front or back)."""
     cluster_widen_step_deg: float = 5.0
@@ -123,107 +157,147 @@ class Config:
     symmetric_axis_in_image: bool = True
     """Rotationally symmetric classes: assume each photo sees the symmetry axis in its image plane."""
 
-    # ---- carving
+    def validate(self) -> None:
+        _positive(self, "proposals")
+        _within(self.cluster_threshold_deg, 0, 90, "cluster_threshold_deg", lo_open=True)
+        _within(self.symmetric_step_deg, 0, 360, "symmetric_step_deg", lo_open=True, hi_open=True)
+
+
+@dataclass
+class CarveConfig:
+    """The imprinted visual hull of every proposal (``carvi_torch.carve``)."""
+
     resolution: int = 60
     """Voxel grid steps per axis."""
     imprint: bool = True
     """Imprint the reference silhouette (``False`` = the -SImp ablation)."""
-    carve_interpolation: str = "bilinear"
+    interpolation: Interpolation = "bilinear"
     """How the carving reads the distance maps at a voxel's projection: ``bilinear`` (the paper's) or
-    ``nearest`` (the pixel it falls in, an approximation: about 1.5-1.75x faster than the torch backend's
-    bilinear carving, but it has no fused kernel, so on the CPU it is slower than the default;
-    docs/benchmarks/README.md)."""
-    carve_backend: str = "auto"
-    """Who computes the carving's labels: ``auto`` (the compiled CPU kernel of ``carvi_torch.carve_fused``
+    ``nearest`` (the pixel it falls in, an approximation; it has no native kernel, so on the CPU it is
+    slower than the default; docs/benchmarks.md)."""
+    backend: Backend = "auto"
+    """Who computes the carving's labels: ``auto`` (the native CPU kernel of ``carvi_torch.carve.native``
     where it applies -- CPU, bilinear -- and builds, else torch), ``torch`` (batched ``grid_sample``) or
-    ``fused`` (the kernel, an error where it cannot run). Every backend gives the same labels voxel for
-    voxel; the kernel is about 2.3x faster on the CPU (docs/benchmarks/README.md)."""
-    max_batch_voxels: int = 50_000_000
-    """Upper bound on the voxels (of the reference's foreground columns) carved in one batched chunk (bounds memory); the carving never uses more than its per-device default (``carve.default_batch_voxels``: 2^19 per thread on CPU, at most 2^21, measured with 1 and 2 threads; 2^25 on CUDA), so only smaller values change anything."""
+    ``fused`` (the native kernel, an error where it cannot run). Every backend gives the same labels
+    voxel for voxel; the kernel is about 2.3x faster on the CPU (docs/benchmarks.md)."""
 
-    # ---- selection and meshes
+    def validate(self) -> None:
+        _within(self.resolution, 4, 2048, "resolution", note=" (the carving's bound)")
+
+
+@dataclass
+class SelectConfig:
+    """Scoring the proposals against the class's average silhouettes."""
+
     plane_size: int = 64
     """Resolution of the average masks / proposal projections used for selection."""
+
+    def validate(self) -> None:
+        _positive(self, "plane_size")
+
+
+@dataclass
+class MeshConfig:
+    """Meshes of the selected proposals."""
+
+    format: MeshFormat = "ply"
+    """Mesh file format (``carvi_torch.mesh.MESH_FORMATS``)."""
     largest_component: bool = False
     """Keep only the largest connected component of the selected occupancy."""
-    mesh_format: str = "ply"
-    """Mesh file format: ``ply``, ``obj`` or ``glb``."""
-    keep_all_scores: bool = True
-    """Write the score of every proposal (ranking studies)."""
+
+    def validate(self) -> None:
+        pass
+
+
+@dataclass
+class StudyConfig:
+    """Settings for studies and benchmarks (``tools/``), not for producing a dataset."""
+
+    cameras: CameraSource = "estimate"
+    """``estimate`` (SfM + refinement) or ``gt``: take the true cameras of ``gt.json`` (oracle study)."""
+    keep_all_scores: bool = False
+    """Write the score of every proposal to ``<class>/proposal_scores.json`` (ranking studies)."""
     save_proposals: bool = False
-    """Also write every proposal's occupancy (``<class>/proposals/<id>.npz``, bit-packed) for studies."""
+    """Also write every proposal's occupancy (``<class>/proposals/<id>.npz``, bit-packed)."""
+
+    def validate(self) -> None:
+        pass
+
+
+#: The sections of :class:`Config`, in order.
+SECTIONS = ("input", "viewpoints", "surrogates", "carve", "select", "mesh", "study")
+
+
+@dataclass
+class Config:
+    """Every knob of a reconstruction run: run-wide fields, then one section per stage."""
+
+    data: Optional[str] = None
+    """COCO keypoint JSON to reconstruct. ``None``: the embedded procedural collection."""
+    gt: Optional[str] = None
+    """Ground-truth ``gt.json`` (synthetic data). Default: ``gt.json`` beside ``data`` when present."""
+    out: str = "outputs/default"
+    """Output directory (``config.yaml``, ``summary.json``, per class ``cameras.json``, meshes, voxels)."""
+    classes: Optional[list] = None
+    """Restrict the run to these class names (``None``: all classes in the data)."""
+    references: str = "all"
+    """Objects to reconstruct: ``all``, or only those of one split (e.g. ``test``); every object still
+    takes part in SfM and may serve as a surrogate."""
+    overwrite: bool = False
+    """Recompute objects whose outputs already exist (default: a rerun skips finished work)."""
+    seed: int = 0
+    """Seed of every random choice (surrogate sampling, synthetic data). Same seed, same outputs."""
+    device: str = "cpu"
+    """Torch device for all stages: ``cpu``, ``cuda``, ``cuda:1`` or ``auto`` (CUDA when available)."""
+    stage: Stage = "all"
+    """``all`` runs the whole pipeline; ``cameras`` stops after viewpoint estimation."""
+    progress: bool = True
+    """Show progress bars."""
     preview: bool = True
     """Write ``preview.png`` with a few results."""
+    input: InputConfig = field(default_factory=InputConfig)
+    viewpoints: ViewpointConfig = field(default_factory=ViewpointConfig)
+    surrogates: SurrogateConfig = field(default_factory=SurrogateConfig)
+    carve: CarveConfig = field(default_factory=CarveConfig)
+    select: SelectConfig = field(default_factory=SelectConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    study: StudyConfig = field(default_factory=StudyConfig)
 
     # ------------------------------------------------------------------ helpers
     def override(self, items: list[str] | dict[str, Any]) -> "Config":
-        """Return a copy with ``key=value`` strings (or a dict) applied, values parsed as YAML scalars."""
-        if isinstance(items, dict):
-            pairs = list(items.items())
-        else:
-            pairs = []
-            for item in items:
-                if "=" not in item:
-                    raise ConfigError(f"override {item!r} is not of the form key=value")
-                k, v = item.split("=", 1)
-                pairs.append((k.strip(), yaml.safe_load(v) if v.strip() != "" else None))
-        known = {f.name: f for f in fields(self)}
-        values = dataclasses.asdict(self)
-        for k, v in pairs:
-            if k not in known:
-                raise ConfigError(f"unknown config key {k!r}; known keys: {', '.join(sorted(known))}")
-            values[k] = _coerce(k, v, known[k].type)
-        cfg = Config(**values)
+        """Return a copy with ``key=value`` strings (or a mapping, flat or nested by section) applied;
+        string values are parsed as YAML scalars."""
+        values = self.flat()
+        for key, value in _pairs(items):
+            dotted = resolve_key(key)
+            values[dotted] = _coerce(dotted, value, _ANNOTATIONS[dotted])
+        cfg = _from_flat(values)
         cfg.validate()
         return cfg
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` for values out of range."""
-        if self.stage not in ("all", "cameras"):
-            raise ConfigError(f"stage must be 'all' or 'cameras', got {self.stage!r}")
-        if self.cameras not in ("estimate", "gt"):
-            raise ConfigError(f"cameras must be 'estimate' or 'gt', got {self.cameras!r}")
-        if self.carve_interpolation not in ("bilinear", "nearest"):
-            raise ConfigError(f"carve_interpolation must be 'bilinear' or 'nearest', got {self.carve_interpolation!r}")
-        if self.carve_backend not in ("auto", "torch", "fused"):
-            raise ConfigError(f"carve_backend must be 'auto', 'torch' or 'fused', got {self.carve_backend!r}")
-        if self.mesh_format not in ("ply", "obj", "glb"):
-            raise ConfigError(f"mesh_format must be ply, obj or glb, got {self.mesh_format!r}")
-        for name in ("canvas_size", "resolution", "proposals", "plane_size", "refine_iters", "sfm_max_outer",
-                     "sfm_inner", "procedural_instances", "min_instances", "sfm_groups", "sfm_group_min",
-                     "sfm_group_rounds", "sfm_group_threads"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if not 4 <= self.resolution <= 2048:
-            raise ConfigError(f"resolution must be in [4, 2048] (the carving's bound), got {self.resolution}")
-        if not 0 <= self.canvas_margin < 0.5:
-            raise ConfigError(f"canvas_margin must be in [0, 0.5), got {self.canvas_margin}")
-        if not 0 < self.cluster_threshold_deg <= 90:
-            raise ConfigError(f"cluster_threshold_deg must be in (0, 90], got {self.cluster_threshold_deg}")
-        if not self.refine_twin_flatness >= 0:
-            raise ConfigError(f"refine_twin_flatness must be >= 0 (0 = off), got {self.refine_twin_flatness}")
-        if not 0 <= self.refine_min_support <= 1:
-            raise ConfigError(f"refine_min_support must be in [0, 1] (0 = every keypoint), "
-                              f"got {self.refine_min_support}")
-        if self.silhouette_robust < 0:
-            raise ConfigError(f"silhouette_robust must be >= 0 (0 = squared distance), got {self.silhouette_robust}")
-        if not 0 <= self.sfm_group_gain < 1:
-            raise ConfigError(f"sfm_group_gain must be in [0, 1), got {self.sfm_group_gain}")
-        if not 0 < self.sfm_group_agreement_deg <= 180:
-            raise ConfigError(f"sfm_group_agreement_deg must be in (0, 180], got {self.sfm_group_agreement_deg}")
-        if not 0 < self.symmetric_step_deg < 360:
-            raise ConfigError(f"symmetric_step_deg must be in (0, 360), got {self.symmetric_step_deg}")
+        for name in SECTIONS:
+            getattr(self, name).validate()
+
+    def flat(self) -> dict[str, Any]:
+        """``{dotted key: value}`` of every setting, in :func:`all_keys` order."""
+        return {key: _get(self, key) for key in all_keys()}
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
     def to_yaml(self) -> str:
+        """The configuration as YAML, nested by section, with each field's docstring as a comment."""
         lines = ["# carvi_torch resolved configuration"]
-        for f in fields(self):
-            doc = FIELD_DOCS.get(f.name, "")
-            if doc:
-                lines.append(f"# {doc}")
-            lines.append(yaml.safe_dump({f.name: getattr(self, f.name)}, default_flow_style=True).strip()[1:-1])
+        for key in all_keys():
+            section, _, name = key.rpartition(".")
+            if section and name == _section_fields(section)[0]:
+                lines.append(f"{section}:")
+            indent = "  " if section else ""
+            lines.append(f"{indent}# {FIELD_DOCS[key]}")
+            value = yaml.safe_dump({name: _get(self, key)}, default_flow_style=True).strip()[1:-1]
+            lines.append(indent + value)
         return "\n".join(lines) + "\n"
 
     def resolve_device(self):
@@ -231,23 +305,129 @@ class Config:
 
         if self.device == "auto":
             return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-        dev = torch.device(self.device)
+        try:
+            dev = torch.device(self.device)
+        except RuntimeError as e:
+            raise ConfigError(f"device: {e}") from None
+        if dev.type not in ("cpu", "cuda"):
+            raise ConfigError(f"device must be cpu, cuda, cuda:N or auto, got {self.device!r}")
         if dev.type == "cuda" and not torch.cuda.is_available():
             raise ConfigError("device=cuda but no CUDA device is available (use device=cpu or device=auto)")
         return dev
 
 
-def _field_docs() -> dict[str, str]:
-    """Field docstrings, read from the source (the attribute docstrings under each field)."""
+# --------------------------------------------------------------------------- keys
+
+
+def _section_fields(section: str) -> list[str]:
+    return [f.name for f in fields(_SECTION_TYPES[section])]
+
+
+_SECTION_TYPES = {f.name: f.default_factory for f in fields(Config) if f.name in SECTIONS}
+
+
+def all_keys() -> list[str]:
+    """Every setting's dotted key: the run-wide fields, then ``<section>.<field>`` per section."""
+    top = [f.name for f in fields(Config) if f.name not in SECTIONS]
+    return top + [f"{s}.{name}" for s in SECTIONS for name in _section_fields(s)]
+
+
+def _aliases() -> dict[str, str]:
+    """Short spellings: a field's bare name where one section has it, and ``<section>_<field>``."""
+    out: dict[str, str] = {}
+    bare: dict[str, list[str]] = {}
+    for key in all_keys():
+        section, _, name = key.rpartition(".")
+        if section:
+            bare.setdefault(name, []).append(key)
+            out.setdefault(f"{section}_{name}", key)
+    for name, keys in bare.items():
+        if len(keys) == 1 and name not in out:
+            out[name] = keys[0]
+    top = set(all_keys())
+    return {k: v for k, v in out.items() if k not in top}
+
+
+def resolve_key(key: str) -> str:
+    """The dotted key a command-line key names; :class:`ConfigError` (with suggestions) when it names none.
+
+    Example:
+        >>> resolve_key("carve.resolution"), resolve_key("resolution"), resolve_key("carve_backend")
+        ('carve.resolution', 'carve.resolution', 'carve.backend')
+    """
+    key = key.strip()
+    if key in _ANNOTATIONS:
+        return key
+    if key in _ALIASES:
+        return _ALIASES[key]
+    close = difflib.get_close_matches(key, list(_ANNOTATIONS) + list(_ALIASES), n=3, cutoff=0.6)
+    hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
+    raise ConfigError(f"unknown config key {key!r}{hint} (reconstruct --help lists every key)")
+
+
+def _get(cfg: Config, key: str) -> Any:
+    obj = cfg
+    for part in key.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _from_flat(values: dict[str, Any]) -> Config:
+    top = {k: v for k, v in values.items() if "." not in k}
+    sections = {s: _SECTION_TYPES[s](**{k.split(".", 1)[1]: v for k, v in values.items() if k.startswith(s + ".")})
+                for s in SECTIONS}
+    return Config(**top, **sections)
+
+
+def _pairs(items: list[str] | dict[str, Any]) -> list[tuple[str, Any]]:
+    """``(key, value)`` pairs of ``key=value`` strings or of a mapping (sections flattened)."""
+    if isinstance(items, dict):
+        pairs = []
+        for k, v in items.items():
+            if k in SECTIONS and isinstance(v, dict):
+                pairs.extend((f"{k}.{name}", val) for name, val in v.items())
+            else:
+                pairs.append((k, v))
+        return pairs
+    pairs = []
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} is not of the form key=value")
+        k, v = item.split("=", 1)
+        try:
+            value = yaml.safe_load(v) if v.strip() != "" else None
+        except yaml.YAMLError:
+            value = v
+        pairs.append((k.strip(), value))
+    return pairs
+
+
+def flatten_settings(data: dict) -> dict[str, Any]:
+    """``{dotted key: value}`` of a saved configuration (nested, or flat with short keys); unknown
+    keys are kept as they are (a file written by another version)."""
+    out = {}
+    for k, v in _pairs(data):
+        try:
+            out[resolve_key(k)] = v
+        except ConfigError:
+            out[k] = v
+    return out
+
+
+# --------------------------------------------------------------------------- docs and types
+
+
+def _class_field_docs(cls) -> dict[str, str]:
+    """Field docstrings of a dataclass, read from its source (the string under each field)."""
     import ast
     import inspect
 
-    docs: dict[str, str] = {}
     try:
-        tree = ast.parse(inspect.getsource(Config))
+        tree = ast.parse(inspect.getsource(cls))
     except (OSError, TypeError):  # pragma: no cover - source unavailable
-        return docs
+        return {}
     body = tree.body[0].body
+    docs = {}
     for node, nxt in zip(body, body[1:]):
         if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
             if isinstance(nxt, ast.Expr) and isinstance(getattr(nxt, "value", None), ast.Constant):
@@ -255,42 +435,106 @@ def _field_docs() -> dict[str, str]:
     return docs
 
 
-FIELD_DOCS = _field_docs()
+def _field_docs() -> dict[str, str]:
+    docs = {k: v for k, v in _class_field_docs(Config).items() if k not in SECTIONS}
+    for s in SECTIONS:
+        docs.update({f"{s}.{k}": v for k, v in _class_field_docs(_SECTION_TYPES[s]).items()})
+    return docs
+
+
+def _annotations() -> dict[str, Any]:
+    mod = sys.modules[__name__].__dict__
+    out = {k: v for k, v in typing.get_type_hints(Config, mod).items() if k not in SECTIONS}
+    for s in SECTIONS:
+        out.update({f"{s}.{k}": v for k, v in typing.get_type_hints(_SECTION_TYPES[s], mod).items()})
+    return out
+
+
+#: Each setting's docstring, by dotted key.
+FIELD_DOCS: dict[str, str] = _field_docs()
+_ANNOTATIONS: dict[str, Any] = _annotations()
+_ALIASES: dict[str, str] = _aliases()
 
 
 def _coerce(key: str, value: Any, annotation: Any) -> Any:
-    """Check/convert ``value`` against the field's annotation (a string under ``from __future__``)."""
-    ann = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", str(annotation))
-    optional = ann.startswith("Optional[")
-    base = ann[len("Optional["):-1] if optional else ann
-    if value is None:
-        if optional:
+    """Check/convert ``value`` against the field's type (``Optional``, ``Literal``, bool, int, float, str, list)."""
+    args = typing.get_args(annotation)
+    if typing.get_origin(annotation) is typing.Union and type(None) in args:
+        if value is None:
             return None
+        annotation = next(a for a in args if a is not type(None))
+    if value is None:
         raise ConfigError(f"{key} cannot be empty")
+    if typing.get_origin(annotation) is Literal:
+        choices = typing.get_args(annotation)
+        if value not in choices:
+            raise ConfigError(f"{key} must be one of {', '.join(map(str, choices))}; got {value!r}")
+        return value
     try:
-        if base == "bool":
-            if isinstance(value, bool):
-                return value
-            if isinstance(value, str) and value.lower() in ("true", "yes", "1", "on", "false", "no", "0", "off"):
-                return value.lower() in ("true", "yes", "1", "on")
-            raise ValueError
-        if base == "int":
-            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
-                raise ValueError
-            return int(value)
-        if base == "float":
-            if isinstance(value, bool):
-                raise ValueError
-            return float(value)
-        if base == "str":
-            return str(value)
-        if base == "list":
-            if isinstance(value, str):
-                return [v.strip() for v in value.split(",") if v.strip()]
-            return list(value)
+        return _coerce_plain(value, annotation)
     except (TypeError, ValueError):
-        raise ConfigError(f"{key}: expected {base}, got {value!r}") from None
+        name = getattr(annotation, "__name__", str(annotation))
+        raise ConfigError(f"{key}: expected {name}, got {value!r}") from None
+
+
+def _coerce_plain(value: Any, annotation: Any) -> Any:
+    if annotation is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "yes", "1", "on", "false", "no", "0", "off"):
+            return value.lower() in ("true", "yes", "1", "on")
+        raise ValueError
+    if annotation is int:
+        if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+            raise ValueError
+        return int(value)
+    if annotation is float:
+        if isinstance(value, bool) or not math.isfinite(float(value)):
+            raise ValueError
+        return float(value)
+    if annotation is str:
+        return str(value)
+    if annotation is list:
+        if isinstance(value, str):
+            return [v.strip() for v in value.split(",") if v.strip()]
+        return list(value)
     return value
+
+
+#: Settings that do not change how an object is reconstructed (a rerun may differ in them freely;
+#: the input files are the user's choice, and resumed objects are matched by annotation id).
+NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "overwrite", "classes", "stage", "device",
+                    "viewpoints.sfm_group_threads",  # the mixture fit's result is the same on any number of threads
+                    "carve.backend"}  # every carving backend gives the same labels voxel for voxel
+
+
+def settings_changed(previous: Path, cfg: Config) -> dict:
+    """``{key: (old, new)}`` of the settings in which ``cfg`` differs from the run saved at
+    ``previous`` (its ``config.yaml``), when that run's finished objects would be resumed
+    (no ``overwrite``); empty otherwise, or when the file is missing or unreadable."""
+    if cfg.overwrite or cfg.stage != "all" or not previous.is_file():
+        return {}
+    try:
+        old = flatten_settings(yaml.safe_load(previous.read_text()) or {})
+    except (OSError, yaml.YAMLError, AttributeError):
+        return {}
+    # a key the old file lacks (a setting added since) counts as changed: that run predates it
+    return {k: (old.get(k), v) for k, v in cfg.flat().items() if k not in NEUTRAL_SETTINGS and old.get(k) != v}
+
+
+
+def read_run_config(path: str | Path) -> Config:
+    """The configuration a run saved (its ``config.yaml``, nested or flat); settings this version does
+    not know are ignored, so outputs of other versions stay readable."""
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: malformed YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{p}: expected a mapping of key: value")
+    known = {k: v for k, v in flatten_settings(data).items() if k in _ANNOTATIONS}
+    return Config().override(known)
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:

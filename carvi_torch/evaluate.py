@@ -1,10 +1,10 @@
 """``python -m carvi_torch.evaluate``: shape and viewpoint errors of reconstructions against ground truth.
 
-Shapes: the symmetric RMS mesh distance of the paper (``carvi_torch.metrics``), in percent of
+Shapes: the symmetric RMS mesh distance of the paper (``carvi_torch.evaluation.metrics``), in percent of
 the ground-truth bounding-box diagonal, in the reference camera frame (the ground-truth mesh
 posed by its true camera, image pixels) after the best depth offset. Viewpoints: geodesic,
 azimuth, elevation and roll errors after one global rotation aligning the class frame with
-the ground-truth frame (``carvi_torch.viewpoint_metrics``), for SfM and refined cameras.
+the ground-truth frame (``carvi_torch.evaluation.viewpoint_metrics``), for SfM and refined cameras.
 
 Several reconstruction directories (e.g. Full, -CRef, -SImp, oracle) are compared in one run,
 so every ground-truth mesh is sampled and indexed once; the baselines Puffball and SFMc are
@@ -30,9 +30,10 @@ import trimesh
 from tqdm.auto import tqdm
 
 from .cameras import ScaledOrthographic
+from .config import Config, read_run_config
 from .io.coco import CocoFormatError, load_coco
 from .io.outputs import read_json, write_bytes, write_json
-from . import metrics, viewpoint_metrics
+from .evaluation import metrics, viewpoint_metrics
 
 __all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "main"]
 
@@ -127,15 +128,11 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     cat_of = {int(c["id"]): c["name"] for c in dataset.get("categories", [])}
     ann_class = {int(a["id"]): cat_of.get(int(a["category_id"])) for a in dataset.get("annotations", [])}
     first = Path(next(iter(recons.values())))
-    cfg = {}
-    if (first / "config.yaml").is_file():
-        import yaml
-
-        cfg = yaml.safe_load((first / "config.yaml").read_text()) or {}
-    canvas_size = canvas_size or int(cfg.get("canvas_size", 128))
+    cfg = read_run_config(first / "config.yaml") if (first / "config.yaml").is_file() else Config()
+    canvas_size = canvas_size or cfg.input.canvas_size
     coll_by_class = {}
     if baselines:
-        loaded = load_coco(data, canvas_size=canvas_size, margin=float(cfg.get("canvas_margin", 0.1)),
+        loaded = load_coco(data, canvas_size=canvas_size, margin=cfg.input.canvas_margin,
                            classes=classes)
         coll_by_class = loaded.collections
     # default: the classes some reconstruction directory has
@@ -222,7 +219,7 @@ def _puffball(coll, aid: int):
     if len(hit) == 0:
         return None
     i = int(hit[0, 0])
-    from .baselines import puffball
+    from .evaluation.baselines import puffball
 
     m = puffball(coll.masks[i])
     if m is None or len(m.faces) == 0:
@@ -247,7 +244,7 @@ def _sfmc(recon: Path, cls: str, aid: int):
     S = torch.tensor([v for v in cj.get("mean_shape", {}).values() if v is not None], dtype=torch.float64)
     if len(S) < 4:
         return None
-    from .baselines import sfm_convex_hull
+    from .evaluation.baselines import sfm_convex_hull
 
     return sfm_convex_hull(S, ScaledOrthographic.from_list([cam], dtype=torch.float64))
 

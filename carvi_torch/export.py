@@ -12,7 +12,6 @@ annotations) are reported by annotation id with the reason, in the console and i
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from dataclasses import dataclass
@@ -22,10 +21,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 import trimesh
-import yaml
 from tqdm.auto import tqdm
 
 from .cameras import ScaledOrthographic, Similarity2D
+from .config import Config, read_run_config
 from .io.coco import load_coco
 from .io.outputs import atomic_write, read_json, write_json
 
@@ -137,21 +136,21 @@ def depth_map(mesh_canvas: trimesh.Trimesh, canvas_size: int, depth_centre: floa
 # =========================================================================== the export
 
 
-def _recon_config(recon: Path) -> dict:
+def _recon_config(recon: Path) -> Config:
     p = recon / "config.yaml"
     if not p.is_file():
         raise FileNotFoundError(f"{recon}: no config.yaml (is this a reconstruction directory?)")
-    return yaml.safe_load(p.read_text()) or {}
+    return read_run_config(p)
 
 
-def _data_path(recon: Path, cfg: dict) -> Path:
+def _data_path(recon: Path, cfg: Config) -> Path:
     summ = recon / "summary.json"
     if summ.is_file():
         data = read_json(summ).get("data")
         if data:
             return Path(data)
-    if cfg.get("data"):
-        return Path(cfg["data"])
+    if cfg.data:
+        return Path(cfg.data)
     return recon / "input" / "annotations.json"
 
 
@@ -195,8 +194,8 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     recon, out = Path(recon), Path(out)
     cfg = _recon_config(recon)
     data = _data_path(recon, cfg)
-    canvas = int(cfg.get("canvas_size", 128))
-    loaded = load_coco(data, canvas_size=canvas, margin=float(cfg.get("canvas_margin", 0.1)), classes=classes)
+    canvas = cfg.input.canvas_size
+    loaded = load_coco(data, canvas_size=canvas, margin=cfg.input.canvas_margin, classes=classes)
     class_names = sorted(c for c in loaded.collections if (recon / c).is_dir())
     writer = _ShardWriter(out, shard_size)
     skipped, samples = [], []

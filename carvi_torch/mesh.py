@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Literal, get_args
 
 import numpy as np
 import torch
@@ -34,12 +35,14 @@ import trimesh
 from scipy import ndimage
 from skimage.measure import marching_cubes
 
-from carvi_torch.io.outputs import atomic_write
+from .io.outputs import atomic_write
 
-__all__ = ["occupancy_to_mesh", "largest_component", "transform_mesh", "write_mesh", "empty_mesh", "MESH_FORMATS"]
+__all__ = ["occupancy_to_mesh", "largest_component", "transform_mesh", "write_mesh", "empty_mesh", "MESH_FORMATS",
+           "MeshFormat"]
 
-#: File types :func:`write_mesh` writes, chosen by the path's extension.
-MESH_FORMATS = ("ply", "obj", "glb", "stl", "off")
+#: Mesh file formats :func:`write_mesh` writes (by the path's extension).
+MeshFormat = Literal["ply", "obj", "glb", "stl", "off"]
+MESH_FORMATS: tuple[str, ...] = get_args(MeshFormat)
 #: Marching-cubes level on the 0/1 occupancy (see the module docstring).
 LEVEL = 0.5 - 1e-3
 

@@ -11,20 +11,34 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .config import Config, ConfigError, load_config
+from .config import FIELD_DOCS, Config, ConfigError, load_config
 from .io.coco import CocoFormatError
 
-EPILOG = """\
-key=value overrides (any field of configs/default.yaml), e.g.:
-  stage=cameras        stop after viewpoint estimation (writes <class>/cameras.json)
-  cameras=gt           use the cameras of gt.json (oracle study)
-  refine=false         no silhouette refinement (-CRef);  imprint=false  no imprinting (-SImp)
-  proposals=20 resolution=60 device=cuda seed=0 classes=car,chair overwrite=true
-
+EPILOG_HEAD = """\
 Outputs in --out: config.yaml (resolved), summary.json, preview.png and per class
 <class>/cameras.json, <class>/meshes/<annotation_id>.ply, <class>/voxels/<annotation_id>.npz
 (meshes and voxels in the reference camera frame, image pixels). A rerun skips finished objects.
+
+key=value settings: a full dotted key (carve.resolution=40) or a short one where it names one
+setting (resolution=40, carve_backend=torch). Every key, with its default:
 """
+
+
+def settings_help(width: int = 100) -> str:
+    """Every configuration key with its default and docstring, grouped by section."""
+    import textwrap
+
+    defaults = Config().flat()
+    lines = []
+    section = None
+    for key, doc in FIELD_DOCS.items():
+        head = key.rpartition(".")[0]
+        if head != section:
+            section = head
+            lines.append(f"\n[{section}]" if section else "[run]")
+        lines.append(f"  {key}={defaults[key]!r}")
+        lines.extend(textwrap.wrap(doc, width, initial_indent="      ", subsequent_indent="      "))
+    return "\n".join(lines)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,11 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
                                  description="Lift annotated objects into 3D: a camera viewpoint and a dense shape "
                                              "for every object (Carreira et al., 'Lifting Object Detection "
                                              "Datasets into 3D').",
-                                 epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+                                 epilog=EPILOG_HEAD + settings_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", help="COCO keypoint JSON (default: the embedded procedural collection)")
     ap.add_argument("--out", help="output directory (default: outputs/default)")
-    ap.add_argument("--config", help="YAML config file (see configs/default.yaml)")
-    ap.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+    ap.add_argument("--config", help="YAML config file (nested by section or flat; see configs/default.yaml)")
+    ap.add_argument("overrides", nargs="*", metavar="key=value", help="settings (listed below)")
     return ap
 
 

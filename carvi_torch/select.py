@@ -22,11 +22,12 @@ image), voxel centres at integer indices.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
-from carvi_torch.cameras import ScaledOrthographic
+from .cameras import ScaledOrthographic
 
 __all__ = [
     "plane_axes",
@@ -38,6 +39,10 @@ __all__ = [
     "score_proposals",
     "keypoint_misses",
     "rank_proposals",
+    "SelectionReference",
+    "class_reference",
+    "Selection",
+    "select_proposals",
 ]
 
 
@@ -536,3 +541,102 @@ def rank_proposals(
     else:
         best = torch.full((order.shape[0],), -1, dtype=torch.long, device=dev)
     return order, best
+
+
+# --------------------------------------------------------------------------- a class's selection
+
+
+@dataclass
+class SelectionReference:
+    """What every proposal of a class is scored against: the average masks on the three planes.
+
+    Attributes:
+        axes: ``(3, 3)`` principal directions (rows); centre: ``(3,)``; extent: half-side of the
+            planes (object units); averages: ``(3, G, G)`` float average masks; counts: ``(3,)``
+            long members per average (:func:`average_masks`).
+    """
+
+    axes: torch.Tensor
+    centre: torch.Tensor
+    extent: float
+    averages: torch.Tensor
+    counts: torch.Tensor
+    plane_size: int
+
+
+def class_reference(shape: torch.Tensor, masks: torch.Tensor, cameras: ScaledOrthographic, labels: torch.Tensor,
+                    axes: torch.Tensor, plane_size: int) -> SelectionReference:
+    """The class's :class:`SelectionReference` from its mean shape ``(K, 3)``, masks ``(N, H, W)``,
+    cameras ``(N)``, cluster labels ``(N,)`` and principal directions ``(3, 3)``."""
+    centre = plane_centre(shape)
+    extent = plane_extent(shape, centre=centre)
+    avg, counts = average_masks(masks, cameras, labels, axes, plane_size=plane_size, extent=extent, centre=centre)
+    return SelectionReference(axes, centre, extent, avg, counts, plane_size)
+
+
+@dataclass
+class Selection:
+    """The ranked proposals of ``R`` references with ``P`` proposals each (host tensors but the grids).
+
+    Attributes:
+        grids: the carved proposals (:class:`carvi_torch.carve.ProposalGrids`, on the device).
+        pos: ``(R * P,)`` long position of each proposal in ``grids`` (-1: not carved).
+        scores: ``(R, P)`` float (``inf``: not carved); misses: ``(R, P)`` long (``10**6``: not carved).
+        ok: ``(R, P)`` bool valid and not empty; valid: ``(R, P)`` bool a valid triplet.
+        best: ``(R,)`` long best proposal (-1: none).
+        best_occupancy: ``(R, D, H, W)`` bool; best_transform: ``(R, 4, 4)`` float64 voxel -> canvas.
+    """
+
+    grids: object
+    pos: torch.Tensor
+    scores: torch.Tensor
+    misses: torch.Tensor
+    ok: torch.Tensor
+    valid: torch.Tensor
+    best: torch.Tensor
+    best_occupancy: torch.Tensor
+    best_transform: torch.Tensor
+
+
+def select_proposals(grids, keep: torch.Tensor, valid: torch.Tensor, cameras: ScaledOrthographic,
+                     keypoints: torch.Tensor, visible: torch.Tensor, reference: SelectionReference) -> Selection:
+    """Score, rank and pick the best of every reference's proposals.
+
+    Args:
+        grids: :class:`carvi_torch.carve.ProposalGrids` of the carved proposals ``keep``.
+        keep: ``(B,)`` long positions, in the ``R * P`` reference-major proposals, of the carved ones.
+        valid: ``(R, P)`` bool valid triplets.
+        cameras: ``(B)`` reference cameras of the carved proposals; keypoints: ``(B, K, 2)``;
+            visible: ``(B, K)`` bool.
+        reference: the class's :class:`SelectionReference`.
+
+    Returns:
+        :class:`Selection`; the few tensors the writer needs come back to the host in one
+        transfer each.
+    """
+    R, P = valid.shape
+    dev = valid.device
+    ref = reference
+    proj = project_proposals(grids.occupancy, grids.voxel_to_camera, cameras, ref.axes, plane_size=ref.plane_size,
+                             extent=ref.extent, centre=ref.centre)
+    sc = score_proposals(proj, ref.averages, ref.counts)
+    miss = keypoint_misses(grids.occupancy, grids.voxel_to_camera, keypoints, visible, columns=grids.columns)
+    scores = torch.full((R * P,), float("inf"), device=dev)
+    misses = torch.full((R * P,), 10 ** 6, dtype=torch.long, device=dev)
+    empty = torch.ones(R * P, dtype=torch.bool, device=dev)
+    scores[keep], misses[keep], empty[keep] = sc, miss, grids.empty
+    ok = valid.reshape(-1) & ~empty
+    _order, best = rank_proposals(scores.view(R, P), misses.view(R, P), ok.view(R, P))
+    pos = torch.full((R * P,), -1, dtype=torch.long, device=dev)
+    pos[keep] = torch.arange(len(keep), device=dev)
+    if len(keep):
+        best_pos = pos.view(R, P).gather(1, best.clamp(min=0)[:, None])[:, 0].clamp(min=0)
+        best_occ = grids.occupancy[best_pos].cpu()
+        best_T = grids.voxel_to_camera[best_pos].double().cpu()
+    else:  # no valid proposal: nothing will be written
+        n = grids.occupancy.shape[-1]
+        best_occ = torch.zeros(R, n, n, n, dtype=torch.bool)
+        best_T = torch.zeros(R, 4, 4, dtype=torch.float64)
+    return Selection(grids=grids, pos=pos.cpu(), scores=scores.view(R, P).cpu(), misses=misses.view(R, P).cpu(),
+                     ok=ok.view(R, P).cpu(), valid=valid.cpu(), best=best.cpu(), best_occupancy=best_occ,
+                     best_transform=best_T)

@@ -20,12 +20,15 @@ Randomness only through the ``torch.Generator`` passed in.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 
-from carvi_torch.cameras import ScaledOrthographic, rotation_about_axis
+from .cameras import ScaledOrthographic, rotation_about_axis
+
+if TYPE_CHECKING:
+    from .config import SurrogateConfig
 
 __all__ = [
     "Clusters",
@@ -38,6 +41,9 @@ __all__ = [
     "symmetry_axis",
     "symmetric_surrogates",
     "axis_in_image_plane",
+    "cluster_instances",
+    "SurrogatePlan",
+    "rotated_cameras",
 ]
 
 
@@ -587,3 +593,100 @@ def symmetric_surrogates(
         t = t + camera.s.double()[:, None, None] * shift
     s_rep = camera.s[:, None].expand(N, m).reshape(-1).clone()
     return ScaledOrthographic(R.reshape(-1, 3, 3).to(camera.R.dtype), s_rep, t.reshape(-1, 2).to(camera.t.dtype))
+
+
+# --------------------------------------------------------------------------- class plan
+
+
+def cluster_instances(view_dirs: torch.Tensor, usable: torch.Tensor, axes: torch.Tensor,
+                      cfg: SurrogateConfig) -> Clusters:
+    """:func:`cluster_by_direction` of the instances that have a camera, with the configured
+    thresholds; the others get label ``-1`` (never surrogates).
+
+    Args:
+        view_dirs: ``(N, 3)`` viewing directions; usable: ``(N,)`` bool; axes: ``(3, 3)``.
+    """
+    labels = torch.full((len(view_dirs),), -1, dtype=torch.long, device=view_dirs.device)
+    if not bool(usable.any()):
+        return Clusters(labels, cfg.cluster_threshold_deg, torch.zeros(3, dtype=torch.long), ["no usable camera"])
+    sub = cluster_by_direction(view_dirs[usable], axes, threshold_deg=cfg.cluster_threshold_deg,
+                               widen_step_deg=cfg.cluster_widen_step_deg,
+                               max_threshold_deg=cfg.cluster_max_threshold_deg)
+    labels[usable] = sub.labels.to(labels.device)
+    return Clusters(labels, float(sub.threshold_deg), sub.sizes, list(sub.log))
+
+
+@dataclass
+class SurrogatePlan:
+    """Which silhouettes every proposal of a class carves.
+
+    Views are *entries* of the class's prepared maps (:class:`carvi_torch.carve.CarveMaps`):
+    rows ``0 .. 2N - 1`` are the originals and their mirrored copies; for a rotationally
+    symmetric class, entries ``2N + k m + j`` are the ``m`` rotated cameras of the ``k``-th
+    reference in ``todo``.
+
+    Attributes:
+        n: instances of the class (originals).
+        axes: ``(3, 3)`` principal directions (rows).
+        clusters: the instances' :class:`Clusters`.
+        triplets: sampled :class:`Triplets` of every original (``None`` for a symmetric class).
+        mirrors: whether proposals also carve the mirrored silhouettes.
+        todo: the originals to reconstruct (host ints, in order); chunks are consecutive runs of it.
+        rotated: rotated cameras per reference in ``todo`` (symmetric classes; 0 otherwise).
+    """
+
+    n: int
+    axes: torch.Tensor
+    clusters: Clusters
+    triplets: Triplets | None
+    mirrors: bool
+    todo: list = field(default_factory=list)
+    rotated: int = 0
+
+    def __post_init__(self):
+        self._pos = {i: k for k, i in enumerate(self.todo)}
+
+    def proposal_views(self, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Views ``(R, P, V)`` long (entries of the maps) and validity ``(R, P)`` bool of the proposals
+        of the references ``ids (R,)`` (a consecutive run of ``todo``)."""
+        R = len(ids)
+        if self.triplets is None:
+            # one proposal per reference: its rotated cameras
+            k = self._pos[int(ids[0])] + torch.arange(R, device=ids.device)
+            views = 2 * self.n + k[:, None, None] * self.rotated + torch.arange(self.rotated, device=ids.device)
+            return views, torch.ones(R, 1, dtype=torch.bool, device=ids.device)
+        sur = self.triplets.surrogates[ids].clamp(min=0)  # (R, P, 2)
+        if not self.mirrors:
+            return sur, self.triplets.valid[ids]
+        r = ids[:, None, None].expand(-1, sur.shape[1], 1)
+        return torch.cat([sur, r + self.n, sur + self.n], dim=-1), self.triplets.valid[ids]
+
+    def surrogates_of(self, ids: torch.Tensor) -> torch.Tensor | None:
+        """``(R, P, 2)`` long surrogate originals of each proposal (``-1`` invalid), or ``None`` (symmetric)."""
+        return None if self.triplets is None else self.triplets.surrogates[ids]
+
+    def reason(self, i: int) -> str:
+        """Why reference ``i`` has no valid proposal."""
+        why = self.triplets.reasons.get(i) if self.triplets is not None else None
+        return f"no valid surrogate triplet ({why or 'clusters too small'})"
+
+
+def rotated_cameras(cams: ScaledOrthographic, shape: torch.Tensor, todo: torch.Tensor, centre: torch.Tensor,
+                    cfg: SurrogateConfig) -> tuple[ScaledOrthographic, int]:
+    """A rotationally symmetric class's synthetic surrogates: every reference in ``todo`` seen from
+    cameras rotated about the symmetry axis (:func:`symmetric_surrogates`).
+
+    Args:
+        cams: the class's ``(2N)`` cameras (originals first); shape: ``(K, 3)`` mean shape;
+        todo: ``(T,)`` long references; centre: ``(3,)`` rotation centre.
+
+    Returns:
+        the cameras, reference-major (``T * m``), and ``m`` per reference.
+    """
+    n = len(cams) // 2
+    up = -cams.R[:n, 1, :].mean(dim=0)  # mean image-up direction in the object frame
+    axis = symmetry_axis(shape, up=up)
+    if cfg.symmetric_axis_in_image:
+        axis = axis_in_image_plane(cams[todo], axis)
+    extra = symmetric_surrogates(cams[todo], axis, step_deg=cfg.symmetric_step_deg, centre=centre)
+    return extra, len(extra) // len(todo)

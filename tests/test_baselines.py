@@ -1,4 +1,4 @@
-"""Tests of carvi_torch.baselines: Puffball and the SfM convex hull.
+"""Tests of carvi_torch.evaluation.baselines: Puffball and the SfM convex hull.
 
 References: a brute-force numpy evaluation of the Puffball height formula, shapely
 rasterisation of the mesh's projection, scipy's ConvexHull, and analytic disks/spheres.
@@ -16,9 +16,9 @@ from scipy import ndimage
 from scipy.spatial import ConvexHull, cKDTree
 from skimage import morphology
 
-from carvi_torch.baselines import medial_balls, puffball, puffball_height, sfm_convex_hull
+from carvi_torch.evaluation.baselines import medial_balls, puffball, puffball_height, sfm_convex_hull
 from carvi_torch.cameras import ScaledOrthographic, random_rotations
-from carvi_torch.metrics import evaluate_reconstruction
+from carvi_torch.evaluation.metrics import evaluate_reconstruction
 
 
 def disk(size: int, cx: float, cy: float, r: float) -> torch.Tensor:

@@ -356,12 +356,10 @@ def test_batched_equals_loop_voxel_for_voxel(imprint, n):
     sdf, cams, reference, views = random_proposals(gen)
     loop = carve_proposals_loop(sdf, cams, reference, views, resolution=n, imprint=imprint)
     # "auto" runs the fused CPU kernel where it applies and builds (labels only), else torch
-    for mbv, return_cost, c2f, backend in [(n ** 3, False, False, "torch"), (10 ** 9, False, False, "torch"),
-                                           (n ** 3, False, False, "auto"), (n ** 3, True, False, "auto"),
-                                           (10 ** 9, True, False, "auto"), (n ** 3, False, True, "auto"),
-                                           (10 ** 9, False, True, "auto")]:
+    for mbv, return_cost, backend in [(n ** 3, False, "torch"), (10 ** 9, False, "torch"), (n ** 3, False, "auto"),
+                                      (n ** 3, True, "auto"), (10 ** 9, True, "auto")]:
         out = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint, max_batch_voxels=mbv,
-                              return_cost=return_cost, coarse_to_fine=c2f, backend=backend)
+                              return_cost=return_cost, backend=backend)
         assert torch.equal(out.occupancy, loop.occupancy)
         assert torch.equal(out.voxel_to_camera, loop.voxel_to_camera)
         assert torch.equal(out.empty, loop.empty)
@@ -411,32 +409,14 @@ def test_nearest_interpolation_batched_equals_loop_and_brute_force():
     assert (np.isclose(got, C_lo[ambiguous], atol=1e-4) | np.isclose(got, C_hi[ambiguous], atol=1e-4)).all()
 
 
-def test_nearest_interpolation_rejects_the_bounded_modes():
+def test_unknown_interpolation_is_refused():
     sdf = signed_distance(blob_masks(2, 16, torch.Generator().manual_seed(0)))
     cams = random_cameras(2, 16, torch.Generator().manual_seed(0))
     args = (sdf, cams, torch.tensor([0]), torch.tensor([[1]]))
-    for kw in (dict(coarse_to_fine=True), dict(depth_intervals=True)):
-        with pytest.raises(ValueError, match="interpolation"):
-            carve_proposals(*args, resolution=8, interpolation="nearest", **kw)
     with pytest.raises(ValueError, match="interpolation"):
         carve_proposals(*args, resolution=8, interpolation="bicubic")
     with pytest.raises(ValueError, match="interpolation"):
         carve_proposals_loop(*args, resolution=8, interpolation="bicubic")
-
-
-def test_coarse_to_fine_is_exact_on_many_proposals_and_on_any_maps():
-    # Blocks are decided by the Lipschitz bound of the maps actually given: also
-    # correct for maps that are not distance maps (steep random values).
-    for seed in range(4):
-        gen = torch.Generator().manual_seed(100 + seed)
-        sdf, cams, reference, views = random_proposals(gen, M=8, B=10, V=4, size=24)
-        if seed == 3:
-            sdf = sdf + 3.0 * torch.randn(sdf.shape, generator=gen)
-        for n in (9, 16):
-            for imprint in (True, False):
-                dense = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint)
-                c2f = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint, coarse_to_fine=True)
-                assert torch.equal(dense.occupancy, c2f.occupancy) and torch.equal(dense.empty, c2f.empty)
 
 
 def test_unused_slot_is_the_same_as_leaving_the_view_out():
@@ -612,10 +592,10 @@ def test_bad_cameras_and_masks_raise():
 def test_cuda_column_indices_are_exact():
     """The column rows and columns on CUDA (a tensor-by-scalar division there multiplies by the
     reciprocal) at widths where a plain ``floor(c / width)`` would be off by one."""
-    from carvi_torch.carve import _column_hw
+    from carvi_torch.carve.geometry import column_hw
     for width in (41, 47, 61, 2047):
         c = torch.arange(width * width, device="cuda")
-        h, w = _column_hw(c, width)
+        h, w = column_hw(c, width)
         assert torch.equal(h.long().cpu(), torch.arange(width * width) // width)
         assert torch.equal(w.long().cpu(), torch.arange(width * width) % width)
 
@@ -690,7 +670,7 @@ def test_real_cad_chair_hull_contains_the_model(shared_data):
     assert grid.to_mesh().is_watertight
 
 
-# --------------------------------------------------------------------------- prepared maps, depth intervals
+# --------------------------------------------------------------------------- prepared maps
 
 
 def test_prepared_maps_give_the_same_grids_bit_for_bit():
@@ -700,7 +680,7 @@ def test_prepared_maps_give_the_same_grids_bit_for_bit():
     maps = prepare_maps(sdf, cams)
     assert len(maps) == 9 and maps.ext.shape == (10, 28 + 2 * PAD, 28 + 2 * PAD)
     torch.testing.assert_close(maps.sdf(torch.arange(9)), sdf.clamp(-BIG, BIG), rtol=0, atol=0)
-    for kw in ({}, dict(max_batch_voxels=12 ** 3), dict(coarse_to_fine=True), dict(depth_intervals=True)):
+    for kw in ({}, dict(max_batch_voxels=12 ** 3), dict(backend="torch")):
         got = carve_proposals(maps, None, reference, views, resolution=12, **kw)
         assert torch.equal(got.occupancy, plain.occupancy), kw
         assert torch.equal(got.voxel_to_camera, plain.voxel_to_camera) and torch.equal(got.empty, plain.empty)
@@ -775,47 +755,15 @@ def test_loop_from_masks_rejects_bad_masks():
         carve_proposals_loop(sdf < 0, cams[:4], reference, views, resolution=8)
 
 
-@pytest.mark.parametrize("steep", [False, True])
-def test_depth_intervals_only_skip_exterior_voxels(steep):
-    """Depth intervals: every skipped voxel has C >= 0 (full cost of the loop), also for maps that
-    are not distance maps and masks touching the canvas edge; labels identical."""
-    gen = torch.Generator().manual_seed(13 + steep)
-    sdf, cams, reference, views = random_proposals(gen, M=8, B=12, V=4, size=24)
-    masks = sdf < 0
-    masks[2, :, :3] = True  # touches the left edge
-    masks[4, -2:, :] = True  # and the bottom edge
-    sdf = signed_distance(masks)
-    if steep:
-        sdf = sdf + 3.0 * torch.randn(sdf.shape, generator=gen)
-    n = 13
-    loop = carve_proposals_loop(sdf, cams, reference, views, resolution=n)
-    for imprint in (True, False):
-        got = carve_proposals(sdf, cams, reference, views, resolution=n, depth_intervals=True, imprint=imprint,
-                              max_batch_voxels=n ** 3)
-        ref_imp = carve_proposals_loop(sdf, cams, reference, views, resolution=n, imprint=imprint)
-        assert torch.equal(got.occupancy, ref_imp.occupancy) and torch.equal(got.empty, ref_imp.empty)
-    # the intervals themselves: outside them the full cost is never negative
-    from carvi_torch import carve as C
-
-    maps = prepare_maps(sdf, cams)
-    ext, ref_m, views_m, T, G, G_ref, scale = C._prepare(maps, reference, views, n, keep_double=True)
-    cols = torch.arange(n * n).expand(len(reference), -1)
-    lo, hi = C._column_intervals(G, maps.box[views.clamp(min=0)], views >= 0, cols, n, tuple(ext.shape[1:]))
-    d = torch.arange(n)[None, :, None]
-    outside = (d < lo[:, None, :]) | (d > hi[:, None, :])  # (B, n, HW)
-    assert outside.float().mean() > 0.1  # the intervals do skip voxels
-    assert bool((loop.cost.view(len(reference), n, -1)[outside] >= 0).all())
-
-
 def test_foreground_first_is_the_stable_argsort():
-    from carvi_torch.carve import _foreground_first
+    from carvi_torch.carve.torch_backend import foreground_first
     gen = torch.Generator().manual_seed(3)
     fg = torch.rand(9, 37, generator=gen) < 0.5
     fg[0] = True  # every column foreground
     fg[1] = False  # none
     fg[2, :5] = True
     fg[2, 5:] = False
-    got = _foreground_first(fg)
+    got = foreground_first(fg)
     want = torch.from_numpy(np.argsort((~fg).numpy(), axis=1, kind="stable"))
     assert torch.equal(got, want)
     # a permutation of every row, foreground first, each part ascending
@@ -853,18 +801,19 @@ def test_chunks_hold_a_multiple_of_the_threads_within_the_budget(threads, monkey
     """The CPU ``grid_sample`` shares work among threads by batch entry: every chunk but the
     last of a call holds a multiple of the thread count, none exceeds the voxel budget, and
     the labels are those of one thread and one proposal per chunk (the torch backend's chunks)."""
-    from carvi_torch import carve
+    from carvi_torch.carve import torch_backend
     gen = torch.Generator().manual_seed(8)
     sdf, cams, reference, views = random_proposals(gen, B=23)
     n = 12
     sizes = []
-    init = carve._Chunk.__init__
+    plan = torch_backend.plan_chunks
 
-    def spy(self, ext, views_c, *args, **kwargs):
-        sizes.append(views_c.shape[0])
-        init(self, ext, views_c, *args, **kwargs)
+    def spy(*args, **kwargs):
+        for idx, k, slots in plan(*args, **kwargs):
+            sizes.append(len(idx))
+            yield idx, k, slots
 
-    monkeypatch.setattr(carve._Chunk, "__init__", spy)
+    monkeypatch.setattr(torch_backend, "plan_chunks", spy)
     fg_cols = carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=1).reference_columns
     count = fg_cols.flatten(1).sum(1)
     budget = 7 * int(count.max()) * n  # 7 proposals of the largest count: 6 with 2 or 3 threads
@@ -875,10 +824,10 @@ def test_chunks_hold_a_multiple_of_the_threads_within_the_budget(threads, monkey
         torch.set_num_threads(threads)
         sizes.clear()
         out = carve_proposals(sdf, cams, reference, views, resolution=n, max_batch_voxels=budget, backend="torch")
-        assert carve._chunk_multiple(torch.device("cpu")) == threads
+        assert torch_backend.chunk_multiple(torch.device("cpu")) == threads
     finally:
         torch.set_num_threads(before)
-    assert carve._chunk_multiple(torch.device("cuda")) == 1
+    assert torch_backend.chunk_multiple(torch.device("cuda")) == 1
     got = list(sizes)  # chunks led by an empty reference are skipped, and empty ones come last
     assert int((count > 0).sum()) <= sum(got) <= len(count) and len(got) >= 3
     assert all(s % threads == 0 for s in got[:-1]), got
@@ -905,9 +854,9 @@ def test_chunks_hold_a_multiple_of_the_threads_within_the_budget(threads, monkey
 
 @pytest.mark.parametrize("width", [4, 11, 41, 60, 61, 517, 2047, 2048])
 def test_column_hw_is_exact_integer_division(width):
-    from carvi_torch.carve import _column_hw
+    from carvi_torch.carve.geometry import column_hw
     c = torch.arange(width * width)
-    h, w = _column_hw(c, width)
+    h, w = column_hw(c, width)
     assert h.dtype == w.dtype == torch.float32
     assert torch.equal(h.long(), torch.div(c, width, rounding_mode="floor")) and torch.equal(w.long(), c % width)
 
@@ -931,17 +880,3 @@ def test_resolution_above_the_exact_column_bound_is_refused():
         carve_proposals(sdf, cams, reference, views, resolution=2049)
 
 
-def test_pixel_differences_and_lipschitz_against_numpy(generator):
-    """CarveMaps.pixel_differences: the largest neighbour differences along x and y of every extended
-    map (a double loop in numpy); lipschitz() is their Euclidean norm."""
-    sdf = torch.randn(3, 6, 7, generator=generator) * 2
-    maps = prepare_maps(sdf, ScaledOrthographic(torch.eye(3).expand(3, 3, 3), torch.ones(3), torch.zeros(3, 2)))
-    lx, ly = maps.pixel_differences()
-    ext = maps.ext.double().numpy()
-    for k in range(ext.shape[0] - 1):  # the last map is the constant unused-slot map
-        e = ext[k]
-        want_x = max(abs(e[i, j + 1] - e[i, j]) for i in range(e.shape[0]) for j in range(e.shape[1] - 1))
-        want_y = max(abs(e[i + 1, j] - e[i, j]) for i in range(e.shape[0] - 1) for j in range(e.shape[1]))
-        assert lx[k].item() == pytest.approx(want_x, rel=1e-6) and ly[k].item() == pytest.approx(want_y, rel=1e-6)
-    assert lx[-1] == 0 and ly[-1] == 0
-    assert torch.equal(maps.lipschitz(), torch.sqrt(lx ** 2 + ly ** 2))

@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_overrides_are_typed():
     cfg = Config().override(["resolution=32", "imprint=false", "silhouette_weight=2", "classes=car,chair",
                              "device=cpu", "data="])
-    assert cfg.resolution == 32 and cfg.imprint is False and cfg.silhouette_weight == 2.0
+    assert cfg.carve.resolution == 32 and cfg.carve.imprint is False and cfg.viewpoints.silhouette_weight == 2.0
     assert cfg.classes == ["car", "chair"] and cfg.data is None
 
 
@@ -31,7 +31,7 @@ def test_file_then_cli(tmp_path):
     p = tmp_path / "c.yaml"
     p.write_text("resolution: 40\nproposals: 5\n")
     cfg = load_config(p, ["proposals=7"])
-    assert cfg.resolution == 40 and cfg.proposals == 7
+    assert cfg.carve.resolution == 40 and cfg.surrogates.proposals == 7
 
 
 def test_bad_file(tmp_path):

@@ -120,7 +120,7 @@ def test_refinement_is_compared_on_the_objects_with_an_sfm_camera(recon, tmp_pat
     ``sfm`` objects, each set with its own global alignment (checked against viewpoint_report)."""
     import torch
 
-    from carvi_torch.viewpoint_metrics import viewpoint_report
+    from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report
 
     data, gt = _gt(recon)
     part = tmp_path / "part"

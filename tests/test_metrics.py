@@ -1,4 +1,4 @@
-"""Tests of carvi_torch.metrics: sampling, exact distances, RMS errors, depth offset, IoU.
+"""Tests of carvi_torch.evaluation.metrics: sampling, exact distances, RMS errors, depth offset, IoU.
 
 References are independent of the code under test: a float64 numpy point-triangle
 distance written differently (projection test + edge distances), brute force over all
@@ -13,7 +13,7 @@ import pytest
 import torch
 import trimesh
 
-from carvi_torch.metrics import (
+from carvi_torch.evaluation.metrics import (
     EvaluationMesh,
     MeshDistanceIndex,
     barycentric_grid,

@@ -1,4 +1,4 @@
-"""Tests for carvi_torch.refine: silhouette refinement, keypoint-only refinement, unseen images."""
+"""Tests for carvi_torch.viewpoints.camera_fit: silhouette refinement, keypoint-only refinement, unseen images."""
 from __future__ import annotations
 
 import math
@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from skimage.draw import polygon2mask
 
 from carvi_torch.cameras import ScaledOrthographic, axis_angle_to_rotation, random_rotations, rotation_about_axis
-from carvi_torch.refine import (
+from carvi_torch.viewpoints.camera_fit import (
     TWIN_MARGIN,
     RefineResult,
     _terms,
@@ -29,8 +29,8 @@ from carvi_torch.refine import (
     supported_shape,
 )
 from carvi_torch.sdf import distance_to_mask
-import carvi_torch.refine as refine_module
-from carvi_torch.sfm import rigid_sfm
+import carvi_torch.viewpoints.camera_fit as refine_module
+from carvi_torch.viewpoints.sfm import rigid_sfm
 
 CANVAS = 96
 
@@ -155,7 +155,7 @@ def test_energy_matches_brute_force_loop(generator, robust):
                            d["vis"].numpy()[1:2, keep], dm.numpy()[1:2], 0.0)[0]
     np.testing.assert_allclose(E2.numpy(), ref2, rtol=1e-10)
     if robust is not None:  # the default is the robust penalty at ROBUST_FRACTION
-        from carvi_torch.refine import ROBUST_FRACTION
+        from carvi_torch.viewpoints.camera_fit import ROBUST_FRACTION
 
         Ed = refinement_energy(M, t, S, d["kp"].double(), d["vis"], dm, silhouette_weight=0.7)
         refd = brute_energy(M.numpy(), t.numpy(), S.numpy(), d["kp"].double().numpy(), d["vis"].numpy(), dm.numpy(),
@@ -164,7 +164,7 @@ def test_energy_matches_brute_force_loop(generator, robust):
 
 
 def test_silhouette_penalty_and_robust_scales():
-    from carvi_torch.refine import robust_scales, silhouette_penalty
+    from carvi_torch.viewpoints.camera_fit import robust_scales, silhouette_penalty
 
     D = torch.tensor([0.0, 0.5, 3.0, 40.0, 1e4], dtype=torch.float64)
     np.testing.assert_allclose(silhouette_penalty(D).numpy(), (D * D).numpy())

@@ -1,4 +1,4 @@
-"""Tests for carvi_torch.sfm: rigid factorisation with missing data, reflection, planar sets."""
+"""Tests for carvi_torch.viewpoints.sfm: rigid factorisation with missing data, reflection, planar sets."""
 from __future__ import annotations
 
 import json
@@ -11,7 +11,7 @@ from scipy.spatial import procrustes
 from scipy.spatial.transform import Rotation
 
 from carvi_torch.cameras import ScaledOrthographic, nearest_scaled_rotation, random_rotations, rotation_about_axis
-from carvi_torch.sfm import (
+from carvi_torch.viewpoints.sfm import (
     SfMResult,
     keypoint_end,
     keypoint_side,
@@ -372,7 +372,7 @@ def test_resect_cameras_recovers_noise_free_cameras():
 def test_resect_cameras_with_noise_is_a_close_start():
     """With 1% noise the closed form is a start, not the optimum (the affine fit is projected onto
     scaled rotations afterwards): median within 2.5 degrees of the true camera, all within 10."""
-    from carvi_torch.viewpoint_metrics import geodesic_errors
+    from carvi_torch.evaluation.viewpoint_metrics import geodesic_errors
 
     d = make_class(5, n=200, k=12, missing=0.3, noise=0.01)
     cams, ok = resect_cameras(d["S"], d["kp"], d["vis"])
@@ -573,7 +573,7 @@ def test_disconnected_groups_no_nan_and_reasons():
 
 
 def test_outside_main_component_picks_most_instances():
-    from carvi_torch.sfm import _outside_main_component
+    from carvi_torch.viewpoints.sfm import _outside_main_component
 
     seen = torch.zeros(6, 5, dtype=torch.bool)
     seen[:2, :3] = True   # 2 instances, 3 keypoints
@@ -584,7 +584,7 @@ def test_outside_main_component_picks_most_instances():
 
 
 def test_polish_keeps_degenerate_blocks_out_of_the_shape():
-    from carvi_torch.sfm import _polish
+    from carvi_torch.viewpoints.sfm import _polish
 
     d = make_class(22, n=30, k=8, missing=0.2)
     W = d["kp"].double().transpose(1, 2).contiguous()
@@ -613,7 +613,7 @@ def _with_mirrors(kp, vis, pairs, width=128.0):
 
 
 def test_mirror_width_detects_the_layout_only():
-    from carvi_torch.sfm import mirror_width
+    from carvi_torch.viewpoints.sfm import mirror_width
 
     S, names, pairs, R = _named_class(5)
     d = make_class(5, n=R.shape[0], shape=S, rotations=R, missing=0.3, visibility="depth")
@@ -631,7 +631,7 @@ def test_mirror_width_detects_the_layout_only():
 
 
 def test_mirror_tie_angle_is_zero_for_the_truth_and_large_when_broken():
-    from carvi_torch.sfm import _mirror_layout, _mirror_tie_deg, mirror_width
+    from carvi_torch.viewpoints.sfm import _mirror_layout, _mirror_tie_deg, mirror_width
 
     S, names, pairs, R = _named_class(6)
     d = make_class(6, n=R.shape[0], shape=S, rotations=R, missing=0.0)
@@ -670,7 +670,7 @@ def test_cad_cars_with_mirrors_are_reseeded_from_the_originals(cad_cars):
 
     The joint factorisation over originals and mirrored copies ends in a minimum that breaks the
     mirror tie (72 deg median error); re-seeding from the originals recovers the viewpoints."""
-    from carvi_torch.viewpoint_metrics import viewpoint_report
+    from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report
 
     coll, R = cad_cars
     both = coll.with_mirrors()

@@ -1,4 +1,4 @@
-"""Tests of carvi_torch.studies against independent references (brute force, loops, scipy)."""
+"""Tests of carvi_torch.evaluation.studies against independent references (brute force, loops, scipy)."""
 from __future__ import annotations
 
 import itertools
@@ -10,7 +10,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from carvi_torch.studies import (chamfer_matrix, k_medoids, load_proposals, medoid_cost, normalise_points,
+from carvi_torch.evaluation.studies import (chamfer_matrix, k_medoids, load_proposals, medoid_cost, normalise_points,
                                  order_clusters_by_size, ranking_curves, sample_points)
 
 

@@ -1,4 +1,4 @@
-"""Tests for carvi_torch.viewpoint_metrics against scipy's rotation tools."""
+"""Tests for carvi_torch.evaluation.viewpoint_metrics against scipy's rotation tools."""
 from __future__ import annotations
 
 import json
@@ -10,7 +10,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from carvi_torch.cameras import random_rotations, rotation_from_azimuth_elevation_roll
-from carvi_torch.viewpoint_metrics import (
+from carvi_torch.evaluation.viewpoint_metrics import (
     align_rotations,
     angle_errors,
     geodesic_errors,
@@ -201,9 +201,9 @@ def _voc_aeroplanes(root, canvas=128):
 @pytest.mark.shared
 def test_viewpoints_of_real_voc_aeroplanes(shared_data):
     """SfM + refinement on the 330 VOC aeroplanes (with mirrors) vs PASCAL3D+ viewpoints."""
-    from carvi_torch.refine import refine_cameras
+    from carvi_torch.viewpoints.camera_fit import refine_cameras
     from carvi_torch.sdf import distance_to_mask
-    from carvi_torch.sfm import keypoint_side, rigid_sfm
+    from carvi_torch.viewpoints.sfm import keypoint_side, rigid_sfm
 
     ids, names, kp, vis, masks = _voc_aeroplanes(shared_data)
     canvas = masks.shape[-1]

@@ -19,7 +19,7 @@ import torch
 import trimesh
 
 from carvi_torch.cameras import random_rotations, rotation_from_azimuth_elevation_roll
-from carvi_torch.metrics import voxel_iou
+from carvi_torch.evaluation.metrics import voxel_iou
 
 ROOT = Path(__file__).resolve().parents[1]
 

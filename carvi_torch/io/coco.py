@@ -16,7 +16,6 @@ Validation never stops the run for one bad object: every problem becomes a
 """
 from __future__ import annotations
 
-import math
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +25,6 @@ import numpy as np
 import torch
 from pycocotools import mask as mask_utils
 
-from ..cameras import Similarity2D
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvas
 from .outputs import read_json, write_json
 
@@ -174,7 +172,7 @@ def _category_meta(cat: dict, problems: list) -> ClassMeta | None:
     name = str(cat.get("name", f"category_{cat.get('id')}"))
     names = cat.get("keypoints")
     if not isinstance(names, list) or not names:
-        problems.append(Problem(f"category has no keypoint names", category=name))
+        problems.append(Problem("category has no keypoint names", category=name))
         return None
     names = [str(n) for n in names]
     k = len(names)

@@ -494,3 +494,17 @@ def write_default_collection(out_dir: str | Path, instances_per_class: int = 40,
     summary["build_seconds"] = t_build
     summary["seconds"] = summary["seconds"] + t_build
     return summary
+
+
+def default_collection(target: str | Path, instances_per_class: int, seed: int, progress: bool = False,
+                       log=print) -> tuple[Path, Path]:
+    """``annotations.json`` and ``gt.json`` of the embedded default collection in ``target``, generated
+    there (:func:`write_default_collection`) unless already complete."""
+    from ..io.outputs import is_done
+
+    target = Path(target)
+    ann = target / "annotations.json"
+    if not is_done(ann, target / "gt.json"):
+        log(f"generating the embedded procedural collection ({instances_per_class} instances per class) in {target}")
+        write_default_collection(target, instances_per_class=instances_per_class, seed=seed, progress=progress)
+    return ann, target / "gt.json"

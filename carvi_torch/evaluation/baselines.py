@@ -3,7 +3,7 @@
 Both give a closed ``trimesh.Trimesh`` in the reference camera frame of the instance,
 the frame of the method's own reconstructions: ``x``, ``y`` = canvas pixels (x right,
 y down, pixel centres at integers), ``z`` = depth in pixels (into the scene). Depth has no
-absolute origin under orthography; the evaluation (:func:`carvi_torch.metrics.
+absolute origin under orthography; the evaluation (:func:`carvi_torch.evaluation.metrics.
 evaluate_reconstruction`) aligns it.
 
 * :func:`puffball` inflates a single silhouette (Twarog, Tappen, Adelson, "Playing with
@@ -19,7 +19,7 @@ import torch
 import trimesh
 from skimage import measure, morphology
 
-from .cameras import ScaledOrthographic
+from ..cameras import ScaledOrthographic
 
 __all__ = ["medial_balls", "puffball_height", "puffball", "sfm_convex_hull"]
 
@@ -105,7 +105,7 @@ def puffball_height(mask: torch.Tensor, chunk_elems: int = 1 << 24) -> torch.Ten
     val = torch.cat(out)
     lost = torch.isnan(val)
     if bool(lost.any()):
-        from .sdf import distance_to_background
+        from ..sdf import distance_to_background
 
         own = distance_to_background(m[None].cpu())[0].to(m.device)[ys[lost], xs[lost]]
         val[lost] = torch.logaddexp(torch.zeros_like(own), own)

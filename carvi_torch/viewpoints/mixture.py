@@ -3,7 +3,7 @@
 One rigid mean shape cannot fit a class whose members differ in proportions (sofas: a long low
 couch, an armchair and ordinary sofas); the cameras then absorb the shape differences and the
 viewpoints suffer. This stage splits a class into at most ``max_groups`` groups, each with its own
-rigid SfM (:func:`carvi_torch.sfm.rigid_sfm`), by hard EM over the groups, without any ground
+rigid SfM (:func:`carvi_torch.viewpoints.sfm.rigid_sfm`), by hard EM over the groups, without any ground
 truth, and puts every group in one class frame.
 
 The fit, for ``k = 2, 3, ...`` while a split is accepted:
@@ -14,7 +14,7 @@ The fit, for ``k = 2, 3, ...`` while a split is accepted:
    ``residual`` = quantiles of every object's one-shape keypoint residual.
 2. Alternation (at most ``rounds``): rigid SfM of every group (its objects with their mirrored
    copies); a keypoint-only camera of every object under every group's shape
-   (:func:`carvi_torch.refine.estimate_camera`); every object moves to the group with the lowest
+   (:func:`carvi_torch.viewpoints.camera_fit.estimate_camera`); every object moves to the group with the lowest
    squared pixel residual (object + mirrored copy). A group below ``min_size`` objects takes the
    objects that cost least to move.
    A keypoint no member of a group shows is left NaN by the group's SfM; it is filled from the
@@ -25,7 +25,7 @@ The fit, for ``k = 2, 3, ...`` while a split is accepted:
    camera carried onto the group's shape (:func:`transfer_cameras`; later rounds: the object's
    last cameras under the group and under its own group), the group's SfM camera (first round)
    and the closed-form resection of the object onto the shape
-   (:func:`carvi_torch.sfm.resect_cameras`). Every group's SfM after the first round starts from
+   (:func:`carvi_torch.viewpoints.sfm.resect_cameras`). Every group's SfM after the first round starts from
    its last shape (``init_shape``). On the 2,000-instance benchmark class this cut the fit from
    459 s to 25 s; on the CAD renders it keeps as many groups as the search did in 11 of 12
    classes (boat: three instead of two; docs/viewpoints.md).
@@ -58,7 +58,7 @@ are not tuned on any other data.
 
 Example:
     >>> import torch
-    >>> from carvi_torch.sfm_mixture import top_up
+    >>> from carvi_torch.viewpoints.mixture import top_up
     >>> top_up(torch.tensor([0, 0, 0, 1]), torch.tensor([[0., 3.], [0., 1.], [0., 2.], [5., 0.]]), 2, 2).tolist()
     [0, 1, 0, 1]
 """
@@ -75,10 +75,10 @@ import torch
 from scipy.cluster.vq import kmeans2
 from scipy.spatial.transform import Rotation
 
-from . import refine
-from .cameras import ScaledOrthographic
+from ..cameras import ScaledOrthographic, geodesic_errors
+from ..runtime import cpu_single_thread
+from . import camera_fit
 from .sfm import SfMResult, resect_cameras
-from .viewpoint_metrics import geodesic_errors
 
 __all__ = ["MixtureResult", "fit_mixture_of_shapes", "shape_thickness", "PLANAR_THICKNESS", "group_rows",
            "keypoint_fit", "transfer_cameras", "lifted_residuals", "kmeans_labels", "top_up",
@@ -102,7 +102,7 @@ EM_SETTLED = 0.0025
 THREADS_MIN_OBJECTS = 500
 
 #: ``(ClassCollection, init_shape=None) -> SfMResult``: the rigid SfM of a collection with the run's
-#: settings; ``init_shape`` (``(K, 3)`` or None) is passed on to :func:`carvi_torch.sfm.rigid_sfm`
+#: settings; ``init_shape`` (``(K, 3)`` or None) is passed on to :func:`carvi_torch.viewpoints.sfm.rigid_sfm`
 #: (a warm start). Called with the collection alone when there is no start.
 SfMFn = Callable[..., SfMResult]
 
@@ -124,10 +124,10 @@ def keypoint_fit(shape: torch.Tensor, both, dist: torch.Tensor, n: int, *, n_sta
             silhouette term).
         n: number of originals.
         n_starts: rotated starts of the search over the sphere
-            (:func:`carvi_torch.refine.estimate_camera`), when ``starts`` is None.
+            (:func:`carvi_torch.viewpoints.camera_fit.estimate_camera`), when ``starts`` is None.
         starts: ``R (2n, B, 3, 3)``, ``s (2n, B)``, ``t (2n, B, 2)``: refine these starts instead of
             searching the sphere (a warm start), plus the closed-form resection of every row
-            (:func:`carvi_torch.sfm.resect_cameras`); every row keeps its best. The resection
+            (:func:`carvi_torch.viewpoints.sfm.resect_cameras`); every row keeps its best. The resection
             finds the basins that the warm starts miss (on the sofa renders, warm starts alone
             ended worse than the search for up to 11% of the objects under a group's shape,
             with the resection for none).
@@ -137,7 +137,7 @@ def keypoint_fit(shape: torch.Tensor, both, dist: torch.Tensor, n: int, *, n_sta
         cameras.
     """
     if starts is None:
-        cams, _ = refine.estimate_camera(shape, both.keypoints, both.visible, dist, silhouette_weight=0.0,
+        cams, _ = camera_fit.estimate_camera(shape, both.keypoints, both.visible, dist, silhouette_weight=0.0,
                                          n_starts=n_starts)
     else:
         R, s, t = starts
@@ -145,7 +145,7 @@ def keypoint_fit(shape: torch.Tensor, both, dist: torch.Tensor, n: int, *, n_sta
         R = torch.cat([R, torch.where(ok[:, None, None], rc.R.to(R), R[:, 0])[:, None]], 1)
         s = torch.cat([s, torch.where(ok, rc.s.to(s), s[:, 0])[:, None]], 1)
         t = torch.cat([t, torch.where(ok[:, None], rc.t.to(t), t[:, 0])[:, None]], 1)
-        cams, _ = refine.refine_starts_keypoints_only(shape, R, s, t, both.keypoints, both.visible)
+        cams, _ = camera_fit.refine_starts_keypoints_only(shape, R, s, t, both.keypoints, both.visible)
     P = cams.project(torch.nan_to_num(shape).to(cams.R))
     vis = both.visible & torch.isfinite(shape).all(-1)[None] & torch.isfinite(both.keypoints).all(-1)
     r = ((P - torch.nan_to_num(both.keypoints)).pow(2).sum(-1) * vis).sum(-1)
@@ -242,21 +242,21 @@ class SplitFailed(ValueError):
 
 #: A group whose own SfM shape (the keypoints its members show) is flatter than this is not usable:
 #: coplanar keypoints leave the tilt of every camera of the group undetermined (a planar twin per
-#: view, :func:`carvi_torch.refine.planar_twin`), so its cameras are arbitrary along one rotation.
+#: view, :func:`carvi_torch.viewpoints.camera_fit.planar_twin`), so its cameras are arbitrary along one rotation.
 #: (The SfM's own ``planar`` flag does not catch it: on such a group the rigid model fits the plane
 #: as well as the planar model does, and a nearly flat rigid shape comes back.)
 PLANAR_THICKNESS = 0.1
 
 
 def shape_thickness(S: torch.Tensor) -> float:
-    """:func:`carvi_torch.refine.keypoint_thickness` of the finite rows of ``S (K, 3)`` (in float64):
+    """:func:`carvi_torch.viewpoints.camera_fit.keypoint_thickness` of the finite rows of ``S (K, 3)`` (in float64):
     0 for coplanar points, up to 1; ``0`` for fewer than 3 finite rows (no shape to speak of).
 
     Example:
         >>> shape_thickness(torch.tensor([[0., 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]))
         0.0
     """
-    th = float(refine.keypoint_thickness(S.double(), torch.ones(1, S.shape[0], dtype=torch.bool, device=S.device))[0])
+    th = float(camera_fit.keypoint_thickness(S.double(), torch.ones(1, S.shape[0], dtype=torch.bool, device=S.device))[0])
     return th if math.isfinite(th) else 0.0
 
 
@@ -402,13 +402,13 @@ def hard_em(both, n: int, dist: torch.Tensor, sfm_fn: SfMFn, labels: torch.Tenso
 def _map_candidates(fn, items: list, threads: int, device) -> list:
     """``[fn(*item) for item in items]``, on at most ``threads`` Python threads, in order.
 
-    On the CPU the whole map runs with one intra-op thread (:func:`carvi_torch.refine.cpu_single_thread`,
+    On the CPU the whole map runs with one intra-op thread (:func:`carvi_torch.runtime.cpu_single_thread`,
     set once here, on one thread or on several, so every op runs the same way in both cases: the
     solvers inside already run on one, and the few other ops would otherwise split their sums
     over the intra-op threads on one thread and not on several). Worker threads start with the
     caller's count. An exception in one item is raised here once all have finished.
     """
-    with refine.cpu_single_thread(device):
+    with cpu_single_thread(device):
         if threads == 1 or len(items) < 2:
             return [fn(*item) for item in items]
         with ThreadPoolExecutor(min(threads, len(items))) as pool:

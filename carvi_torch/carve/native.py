@@ -5,7 +5,7 @@ foreground column with one ``grid_sample`` call per view, then labels the voxels
 samples are not needed for the labels: a voxel is exterior as soon as one view gives a value
 ``>= 0`` (``C`` is a maximum), so the rest of its views need not be read. torch has no operator
 that stops sampling early, so this module compiles a small C kernel
-(``carvi_torch/kernels/carve_fused.c``) that walks each column in depth order and reads a
+(``carvi_torch/carve/kernels/carve_fused.c``) that walks each column in depth order and reads a
 voxel's views only until the labels are decided (see the C file for the exact rule, which keeps
 the imprinting's first minimum exact too).
 
@@ -29,11 +29,11 @@ threads of a pool kept across calls (and forgotten in a forked child, where its 
 exist).
 
 NaN. A NaN sample does not win the kernel's maximum, while ``torch.maximum`` propagates it; the
-carving never sees one (:func:`carvi_torch.carve.prepare_maps` and the cameras are checked finite).
+carving never sees one (:func:`carvi_torch.carve.geometry.prepare_maps` and the cameras are checked finite).
 
 Example:
-    >>> from carvi_torch import carve_fused
-    >>> isinstance(carve_fused.available(), bool)
+    >>> from carvi_torch.carve import native
+    >>> isinstance(native.available(), bool)
     True
 """
 from __future__ import annotations
@@ -52,12 +52,12 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "unavailable_reason", "carve_labels", "sample", "variant", "library_path", "BACKENDS"]
+from ..cameras import ScaledOrthographic, random_rotations
+from .geometry import prepare_maps
+from .torch_backend import carve_torch, grid_sample_maps, kernel_inputs, sample_planes
 
-#: The carving backends :func:`carvi_torch.carve.carve_proposals` offers: ``"auto"`` (the fused
-#: kernel on the CPU when it is available and the call can use it, else torch), ``"torch"``,
-#: ``"fused"`` (an error where it cannot be used).
-BACKENDS = ("auto", "torch", "fused")
+__all__ = ["available", "unavailable_reason", "carve_labels", "sample", "variant", "library_path", "MAX_VIEWS",
+           "MAX_RESOLUTION"]
 
 _SOURCE = Path(__file__).with_name("kernels") / "carve_fused.c"
 _FLAGS = ["-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math",
@@ -162,10 +162,8 @@ def _self_test(lib) -> str | None:
 
     Checks both ways the kernel reads a map: one point at a time, and along columns (depths ``0 .. m - 1``
     of a line, as the carving reads them, eight at a time where the processor allows). The references
-    are the torch carving's own calls (:func:`carvi_torch.carve._grid_sample`, and
-    :func:`carvi_torch.carve._sample_planes` for the columns' coordinate arithmetic)."""
-    from carvi_torch import carve  # carve imports this module: import here, at first use
-
+    are the torch carving's own calls (:func:`~carvi_torch.carve.torch_backend.grid_sample_maps`, and
+    :func:`~carvi_torch.carve.torch_backend.sample_planes` for the columns' coordinate arithmetic)."""
     gen = torch.Generator().manual_seed(0)
     cases = []
     for Hp, Wp in ((37, 53), (130, 97), (2, 3)):
@@ -174,7 +172,7 @@ def _self_test(lib) -> str | None:
         grid = torch.rand(20000, 2, generator=gen) * 2.4 - 1.2  # inside, on and beyond the border
         grid[:500] = torch.round(grid[:500] * 8) / 8  # pixel centres and edges
         scale = float(torch.rand((), generator=gen) * 2 + 0.25)
-        want = carve._grid_sample((ext[1] * scale)[None, None], grid.view(1, 1, -1, 2)).view(-1)
+        want = grid_sample_maps((ext[1] * scale)[None, None], grid.view(1, 1, -1, 2)).view(-1)
         cases.append((ext, scale, grid, want))
     lines = []
     for _ in range(45):
@@ -184,7 +182,7 @@ def _self_test(lib) -> str | None:
         m = int(torch.randint(1, 200, (), generator=gen))
         # depths 0 .. m - 1 of one column: depth term g0 d plus column term c
         dz = torch.tensor(g0, dtype=torch.float32)[None, :, None] * torch.arange(m, dtype=torch.float32)
-        want = carve._sample_planes((ext[1] * scale)[None, None], dz, torch.tensor(c)[None, :, None]).view(-1)
+        want = sample_planes((ext[1] * scale)[None, None], dz, torch.tensor(c)[None, :, None]).view(-1)
         lines.append((ext, scale, g0, c, m, want))
     order = ("fma", "plain") if lib.carvi_has_fma() else ("plain",)
     for name in order:
@@ -200,8 +198,6 @@ def _self_test(lib) -> str | None:
 def _labels_agree(lib, fused: bool, gen: torch.Generator) -> bool:
     """The kernel's labels equal the torch carving's on a small random problem (every step of the
     arithmetic, the column terms included, as the compiler built it)."""
-    from carvi_torch import carve  # carve imports this module: import here, at first use
-    from carvi_torch.cameras import ScaledOrthographic, random_rotations
 
     M, size, n = 6, 24, 12
     yy, xx = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32),
@@ -212,11 +208,11 @@ def _labels_agree(lib, fused: bool, gen: torch.Generator) -> bool:
                      + ((yy - centre[:, 1, None, None]) / radius[:, 1, None, None]) ** 2) * 5 - 5
     cams = ScaledOrthographic(random_rotations(M, generator=gen).float(), 1 + 0.2 * torch.rand(M, generator=gen),
                               centre.clone())
-    maps = carve.prepare_maps(sdf, cams)
+    maps = prepare_maps(sdf, cams)
     reference = torch.arange(M)
     views = torch.stack([(reference + k) % M for k in (1, 2, 3)], 1)
-    want = carve.carve_proposals(maps, None, reference, views, resolution=n, backend="torch")
-    ext, slots, scale, G, column_cost, _ = carve._fused_inputs(maps, reference, views, n)
+    want = carve_torch(maps, reference, views, n)
+    ext, slots, scale, G, column_cost, _ = kernel_inputs(maps, reference, views, n)
     occ, columns, nonempty, _ = _carve_with(lib, fused, ext, slots, scale, G, column_cost, n, True, 1)
     return bool(torch.equal(occ.view(want.occupancy.shape), want.occupancy) and torch.equal(~nonempty, want.empty))
 
@@ -337,10 +333,10 @@ def carve_labels(ext: torch.Tensor, views: torch.Tensor, scale: torch.Tensor, G:
     on the CPU with ``backend="fused"``).
 
     Args:
-        ext: ``(K, Hp, Wp)`` float32 extended maps, unscaled (:attr:`carvi_torch.carve.CarveMaps.ext`).
+        ext: ``(K, Hp, Wp)`` float32 extended maps, unscaled (:attr:`carvi_torch.carve.geometry.CarveMaps.ext`).
         views: ``(B, V)`` long rows of ``ext`` per view slot, ``-1`` for an unused slot.
         scale: ``(B, V)`` float32 per-slot scale of the map values.
-        G: ``(B, V, 2, 4)`` float32 voxel index -> sampling coordinates (:func:`carvi_torch.carve.proposal_geometry`).
+        G: ``(B, V, 2, 4)`` float32 voxel index -> sampling coordinates (:func:`carvi_torch.carve.geometry.proposal_geometry`).
         column_cost: ``(B, n * n)`` float32 reference cost at the column centres.
         resolution: ``n``.
         imprint: imprint the foreground columns left without an interior voxel.

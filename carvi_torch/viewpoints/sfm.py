@@ -58,6 +58,7 @@ All tensors of one call live on one device; the factorisation runs in float64
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass, field
@@ -66,21 +67,21 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from .cameras import ScaledOrthographic, complete_rotation
-from .refine import cpu_single_thread, refine_cameras, scaled_stiefel
+from ..cameras import ScaledOrthographic, complete_rotation, geodesic_angle, scaled_stiefel
+from ..runtime import cpu_single_thread
+from .camera_fit import refine_cameras
 
 __all__ = [
     "SfMResult",
+    "SfMOptions",
     "rigid_sfm",
     "symmetry_plane",
     "mirror_width",
     "triangulate",
     "resect_cameras",
-    "scaled_stiefel",
     "keypoint_side",
     "keypoint_end",
     "WARM_OUTER",
-    "cpu_single_thread",
 ]
 
 #: ``diag(1, 1, -1)``: the reflection that maps a solution onto its Necker mirror.
@@ -480,7 +481,7 @@ def _polish(M, t, S, W, vis, *, iters, tol, lm_iters=5):
     """Bundle polish of a rigid solution on the visible entries (block coordinate descent).
 
     Alternates (a) every camera's constrained least-squares fit to the current shape
-    (:func:`carvi_torch.refine.refine_cameras` with the keypoint term only: a few
+    (:func:`carvi_torch.viewpoints.camera_fit.refine_cameras` with the keypoint term only: a few
     Levenberg-Marquardt steps on scaled rotations, never raising an instance's
     residual) and (b) the shape's exact least-squares solve given the cameras
     (:func:`triangulate`). Both steps lower the visible-entry residual, which the
@@ -624,7 +625,6 @@ def _mirror_tie_deg(M: torch.Tensor, S: torch.Tensor, mir: _MirrorLayout) -> tor
 
     Returns ``(P,)`` float64 for the originals whose copy is a row too.
     """
-    from .cameras import geodesic_angle
 
     has = mir.original & (mir.partner >= 0)
     if not bool(has.any()) or not mir.pairs:
@@ -670,6 +670,21 @@ def _seed_from_originals(Wv, vv, mir: _MirrorLayout, M_joint, t_joint, polish_it
     return M, t, S, hist + ph + ph2
 
 
+@dataclass
+class _Fit:
+    """The factorisation's solution on the valid instances and the keypoints ``cols``."""
+
+    M: torch.Tensor  # (Nv, 2, 3)
+    t: torch.Tensor  # (Nv, 2)
+    S: torch.Tensor  # (3, Kc)
+    history: list
+    iterations: int
+    polish_rounds: int
+    converged: bool
+    planar: bool
+    mirrors: dict
+
+
 #: Outer steps of a warm-started factorisation (``rigid_sfm(init_shape=...)``). From a near
 #: solution the bundle polish converges in a few Gauss-Newton rounds, while the alternation's
 #: slow tail (the missing entries' fill) would take about as many steps as a cold start: on the
@@ -690,12 +705,12 @@ def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: _MirrorLayout | N
     ``S_init (3, Kc)``: start of the rigid factorisation, which then runs at most
     :data:`WARM_OUTER` outer steps before the polish (the planar one and a re-seed start cold).
 
-    Returns ``M, t, S, history, iterations, polish_rounds, converged, is_planar, mirror_report``.
+    Returns :class:`_Fit`.
     """
     report: dict = {}
     if planar is True:
         M, tv, Sc, history, iters, converged = _planar_solution(Wv, vv, **kw)
-        return M, tv, Sc, history, iters, 0, converged, True, report
+        return _Fit(M, tv, Sc, history, iters, 0, converged, True, report)
     kw3 = kw if S_init is None else dict(kw, max_outer=min(kw["max_outer"], WARM_OUTER))
     M, tv, Sc, history, iters, converged = _factorize(Wv, vv, rank=3, S_init=S_init, **kw3)
     M, tv, Sc, phist, pconv = _polish(M, tv, Sc, Wv, vv, iters=polish_iters, tol=kw["tol"])
@@ -729,8 +744,8 @@ def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: _MirrorLayout | N
             if not sol_p[5] and short["max_outer"] < max_outer:
                 sol_p = _planar_solution(Wv, vv, **kw)
             M, tv, Sc, history, iters, converged = sol_p
-            return M, tv, Sc, history, iters, 0, converged, True, {}
-    return M, tv, Sc, history, iters, len(phist), converged, False, report
+            return _Fit(M, tv, Sc, history, iters, 0, converged, True, {})
+    return _Fit(M, tv, Sc, history, iters, len(phist), converged, False, report)
 
 
 def resect_cameras(shape: torch.Tensor, keypoints: torch.Tensor, visible: torch.Tensor,
@@ -893,27 +908,372 @@ def _flip_solution(S: torch.Tensor, cams: ScaledOrthographic) -> tuple[torch.Ten
 # --------------------------------------------------------------------------- main
 
 
+@dataclass(frozen=True)
+class SfMOptions:
+    """Settings of :func:`rigid_sfm` (the algorithm's own; the class's keypoint metadata are arguments)."""
+
+    max_outer: int = 200
+    """Outer (fill / refill) iterations of the factorisation at most."""
+    inner: int = 10
+    """Power-factorisation steps per outer iteration."""
+    tol: float = 1e-6
+    """Relative change of the visible-entry RMS residual that stops the outer loop and the polish."""
+    polish_iters: int = 30
+    """Bundle-polish rounds after the factorisation (0: none)."""
+    regularization: float = 1e-6
+    """Relative Tikhonov weight of the shape and camera solves (keeps rank-deficient, e.g. planar
+    or two-view, problems defined)."""
+    planar: bool | None = None
+    """``True`` forces the coplanar model, ``False`` forbids it, ``None`` fits both and keeps the
+    planar one when its visible-entry RMS residual is at most ``(1 + planar_margin)`` times the
+    rigid 3-D one (plus a float floor): the simpler model wins when it explains the data as well."""
+    planar_margin: float = 0.02
+    """See ``planar``."""
+    vote_margin: float = 0.1
+    """The visibility vote is too close, and the handedness rule decides (when applicable), when
+    ``voters < min_voters`` or ``|for - against| <= max(vote_margin * voters, 3 sqrt(voters))``
+    (the second bound: a margin that visibility unrelated to depth, a fair coin per voter, would
+    reach by chance once in about 370 classes)."""
+    min_voters: int = 5
+    """See ``vote_margin``."""
+    mirrors: bool | None = None
+    """Whether instances ``N/2..N-1`` are the left-right mirrored copies of ``0..N/2-1``
+    (``ClassCollection.with_mirrors()``); ``None`` detects it (:func:`mirror_width`), ``True``
+    requires it, ``False`` treats every instance as independent ("Mirrored copies" in
+    :func:`rigid_sfm`)."""
+    mirror_tie_deg: float = 5.0
+    """Median angle (degrees) between the copies' cameras and their originals' mirrored cameras
+    above which the joint solution is re-seeded from the originals."""
+
+    def check(self) -> None:
+        """Raise ``ValueError`` for limits below 1."""
+        if self.max_outer < 1 or self.inner < 1:
+            raise ValueError(f"max_outer and inner must be >= 1, got {self.max_outer} and {self.inner}")
+
+
+@dataclass
+class _Data:
+    """The measurements :func:`rigid_sfm` factorises, and which instances and keypoints take part."""
+
+    kp: torch.Tensor  # (N, K, 2) float64, non-finite entries zeroed
+    vis: torch.Tensor  # (N, K) bool, visible and finite
+    rigid: list  # the rigid keypoints asked for
+    valid: torch.Tensor  # (N,) bool instances that take part
+    reasons: list  # per instance, why it does not ("" when it does)
+    cols: list  # the keypoints the factorisation uses
+    excluded: set  # keypoints with no shape row from the factorisation or triangulation (never / few / lost)
+    never: list  # keypoints visible in no instance
+    seen: torch.Tensor  # (K,) valid instances that see each keypoint
+    centroid: torch.Tensor  # (N, 2) mean visible keypoint of each instance
+    problems: list
+
+
+def _check_class(keypoints, visible, options, keypoint_names, flip_pairs, left_convention) -> None:
+    _check_inputs(keypoints, visible)
+    if left_convention not in ("object", "viewer"):
+        raise ValueError(f"left_convention must be 'object' or 'viewer', got {left_convention!r}")
+    options.check()
+    k = keypoints.shape[1]
+    if keypoint_names is not None and len(keypoint_names) != k:
+        raise ValueError(f"keypoint_names must have K={k} entries, got {len(keypoint_names)}")
+    for p in flip_pairs or ():
+        if len(p) != 2 or not all(0 <= int(q) < k for q in p):
+            raise ValueError(f"flip_pairs entries must be index pairs in [0, {k}), got {p}")
+
+
+def _finite_visible(keypoints: torch.Tensor, visible: torch.Tensor, problems: list) -> torch.Tensor:
+    """``visible`` without the entries whose coordinates are not finite (reported)."""
+    vis = visible.to(device=keypoints.device, dtype=torch.bool)
+    bad = vis & ~torch.isfinite(keypoints).all(-1)
+    if bool(bad.any()):
+        problems.append(f"{int(bad.sum())} visible keypoint entries have non-finite coordinates; "
+                        "treated as not visible")
+        vis = vis & ~bad
+    return vis
+
+
+def _main_component(vis, rigid, valid, reasons, keypoint_names, problems):
+    """Restrict ``valid`` to the largest connected group of the visibility graph (reasons, problems
+    updated); returns ``valid``, the rigid keypoints left in the group and those lost."""
+    rigid_t = torch.tensor(rigid, device=vis.device, dtype=torch.long)
+    outside, cols_out = _outside_main_component(vis[:, rigid_t] & valid[:, None])
+    if not bool(outside.any()):
+        return valid, list(rigid), []
+    lost = [rigid[j] for j in cols_out.nonzero().squeeze(1).tolist()]
+    lost_names = [keypoint_names[j] for j in lost] if keypoint_names is not None else lost
+    n_main = int((valid & ~outside).sum())
+    for i in outside.nonzero().squeeze(1).tolist():
+        reasons[i] = (f"its visible rigid keypoints share none with the {n_main} instances of the largest "
+                      "connected group: SfM cannot place it in the class frame")
+    problems.append(f"{int(outside.sum())} instance(s) see only keypoints {lost_names}, which no instance of "
+                    f"the largest connected group ({n_main} instances) sees: those instances get no SfM camera "
+                    "and those keypoints no shape row")
+    return valid & ~outside, [r for r, o in zip(rigid, cols_out.tolist()) if not o], lost
+
+
+def _select_data(keypoints, visible, rigid_keypoints, keypoint_names) -> _Data:
+    """Step 1: the instances and keypoints that take part, with the reasons for those that do not."""
+    n, k, _ = keypoints.shape
+    problems: list[str] = []
+    vis = _finite_visible(keypoints, visible, problems)
+    kp = torch.nan_to_num(keypoints.double(), nan=0.0, posinf=0.0, neginf=0.0)
+    rigid = list(range(k)) if rigid_keypoints is None else sorted({int(i) for i in rigid_keypoints})
+    if any(not 0 <= i < k for i in rigid):
+        raise ValueError(f"rigid_keypoints must be indices in [0, {k}), got {list(rigid_keypoints)}")
+    if not rigid:
+        raise ValueError("rigid_keypoints is empty")
+    nvis_rigid = vis[:, torch.tensor(rigid, device=vis.device, dtype=torch.long)].sum(-1)
+    valid = nvis_rigid >= 2
+    reasons = ["" if bool(v) else f"only {int(c)} visible rigid keypoint(s); a camera needs 2"
+               for v, c in zip(valid.tolist(), nvis_rigid.tolist())]
+    # instances and keypoints linked to the largest group only through no shared keypoint
+    # cannot be placed in its frame: SfM runs on the largest connected component
+    valid, rigid_main, lost = _main_component(vis, rigid, valid, reasons, keypoint_names, problems)
+    seen = (vis & valid[:, None]).sum(0)
+    never = [i for i in range(k) if int(vis[:, i].sum()) == 0]
+    if never:
+        problems.append(f"keypoints {never} are never visible: excluded, shape rows NaN")
+    cols = [i for i in rigid_main if int(seen[i]) >= 2]
+    few = [i for i in rigid_main if 0 < int(seen[i]) < 2]
+    if few:
+        problems.append(f"rigid keypoints {few} are seen by fewer than 2 valid instances: excluded, shape rows NaN")
+    centroid = (kp * vis[..., None]).sum(1) / vis.sum(1, keepdim=True).clamp(min=1)
+    return _Data(kp, vis, rigid, valid, reasons, cols, set(never) | set(few) | set(lost), never, seen, centroid,
+                 problems)
+
+
+def _too_little(data: _Data) -> str | None:
+    """Why SfM cannot run on ``data`` (``None``: it can)."""
+    n_valid = int(data.valid.sum())
+    if n_valid < 2:
+        return f"only {n_valid} instance(s) with >= 2 visible rigid keypoints (need 2)"
+    if len(data.cols) < 3:
+        return f"only {len(data.cols)} rigid keypoint(s) seen by >= 2 valid instances (need 3)"
+    return None
+
+
+def _placeholder(data: _Data, why: str, dtype) -> SfMResult:
+    """The result when SfM cannot run: every camera a placeholder, every instance invalid."""
+    n, k = data.vis.shape
+    dev = data.vis.device
+    data.problems.append(f"SfM not run: {why}; all cameras are placeholders")
+    reasons = [r if r else "SfM not run: " + why for r in data.reasons]
+    R = torch.eye(3, dtype=dtype, device=dev).expand(n, 3, 3).clone()
+    cams = ScaledOrthographic(R, torch.ones(n, dtype=dtype, device=dev), data.centroid.to(dtype))
+    nan_n = torch.full((n,), float("nan"), dtype=dtype, device=dev)
+    votes = {"for": 0, "against": 0, "voters": 0, "decided_by": "none", "flipped": False, "handedness": None}
+    return SfMResult(torch.full((k, 3), float("nan"), dtype=dtype, device=dev), cams,
+                     torch.zeros(n, dtype=torch.bool, device=dev), nan_n, nan_n.clone(), 0, 0, False, votes, False,
+                     data.seen, data.never, data.rigid, reasons, data.problems, [])
+
+
+def _coverage_problems(data: _Data) -> None:
+    """Report instances whose keypoints leave their depth or rotation undetermined."""
+    sub = data.vis[:, torch.tensor(data.cols, device=data.vis.device)].sum(-1)
+    n_three = int((sub >= 3).sum())
+    if n_three < 3:
+        data.problems.append(f"only {n_three} instance(s) see 3 or more rigid keypoints: with fewer than 3 such "
+                             "views the shape's depth is not determined (orthographic two-view ambiguity); cameras "
+                             "unreliable")
+    n_two = int((data.valid & (sub == 2)).sum())
+    if n_two:
+        data.problems.append(f"{n_two} instance(s) see only 2 rigid keypoints: their rotation is not determined by "
+                             "the keypoints (only the silhouette refinement constrains it)")
+
+
+def _warm_start(init_shape, k: int, cols: torch.Tensor, dev) -> torch.Tensor | None:
+    """``init_shape (K, 3)`` as a start ``(3, Kc)`` of the factorisation, or ``None`` (too few finite rows)."""
+    if init_shape.shape != (k, 3):
+        raise ValueError(f"init_shape must be ({k}, 3), got {tuple(init_shape.shape)}")
+    S_init = init_shape.to(device=dev, dtype=torch.float64)[cols]
+    fin = torch.isfinite(S_init).all(-1)
+    if int(fin.sum()) < 3:
+        return None  # nothing to start from
+    return torch.where(fin[:, None], S_init, S_init[fin].mean(0)).T.contiguous()
+
+
+def _fit_problems(opts: SfMOptions, mirror_report: dict, converged: bool, history: list, problems: list) -> None:
+    """Report a re-seeded or symmetry-breaking solution and iteration limits reached."""
+    if mirror_report.get("reseeded"):
+        joint = mirror_report['tie_deg_median_joint']
+        problems.append(f"the joint solution broke the mirror symmetry (median {joint:.1f} "
+                        "deg between copies' cameras and their mirrored originals): re-seeded from the originals")
+    elif mirror_report.get("tie_deg_median") is not None and mirror_report["tie_deg_median"] > opts.mirror_tie_deg:
+        problems.append(f"mirrored copies' cameras disagree with their mirrored originals (median "
+                        f"{mirror_report['tie_deg_median']:.1f} deg) and re-seeding from the originals did not "
+                        "lower the residual")
+    if not converged:
+        last = abs(history[-2] - history[-1]) / max(history[-2], 1e-300) if len(history) >= 2 else float("nan")
+        problems.append(f"SfM stopped at its iteration limits (max_outer={opts.max_outer}, "
+                        f"polish_iters={opts.polish_iters}) before the residual settled: last relative change "
+                        f"{last:.1e} > tol={opts.tol:.0e} (RMS residual {history[-1]:.3g} px)")
+
+
+def _fit_step(data: _Data, opts: SfMOptions, flip_pairs, init_shape, generator) -> _Fit:
+    """Step 2: factorisation and bundle polish (rigid or planar) on the valid rows and ``cols``."""
+    dev = data.vis.device
+    cols = torch.tensor(data.cols, device=dev, dtype=torch.long)
+    Wv = data.kp[data.valid][:, cols].transpose(1, 2).contiguous()  # (Nv, 2, Kc)
+    vv = data.vis[data.valid][:, cols].double()
+    layout = None
+    if opts.mirrors is not False:
+        width = mirror_width(data.kp, data.vis, flip_pairs)
+        if width is None and opts.mirrors:
+            raise ValueError("mirrors=True but instances N/2..N-1 are not the mirrored copies of 0..N/2-1 "
+                             "(x' = C - 1 - x, same y, keypoints swapped along flip_pairs)")
+        if width is not None:
+            layout = _mirror_layout(data.valid, width, flip_pairs, data.cols)
+    planar, S_init = opts.planar, None
+    if init_shape is not None:
+        if planar is None:
+            planar = False  # a warm start continues the rigid model: the planar one is not fitted
+        S_init = _warm_start(init_shape, data.kp.shape[1], cols, dev)
+    with cpu_single_thread(dev):
+        fit = _fit(Wv, vv, planar, opts.planar_margin, opts.polish_iters, mirrors=layout,
+                   tie_deg=opts.mirror_tie_deg, S_init=S_init, max_outer=opts.max_outer, inner=opts.inner,
+                   tol=opts.tol, reg=opts.regularization, generator=generator)
+    _fit_problems(opts, fit.mirrors, fit.converged, fit.history, data.problems)
+    return fit
+
+
+def _assemble(data: _Data, fit: _Fit):
+    """Step 3: cameras of every instance and the shape of every keypoint (float64), the valid
+    instances' degenerate blocks made invalid and the other keypoints triangulated.
+
+    Returns ``R (N, 3, 3)``, ``s (N,)``, ``t (N, 2)``, ``shape (K, 3)`` (NaN rows: no point).
+    """
+    n, k = data.vis.shape
+    dev = data.vis.device
+    M, tv = fit.M, fit.t
+    # no NaN leaves SfM: a degenerate block (zero scale, non-finite) makes its instance invalid
+    good = _usable_blocks(M, tv)
+    if not bool(good.all()):
+        idx_v = data.valid.nonzero().squeeze(1)
+        for i in idx_v[~good].tolist():
+            data.reasons[i] = ("SfM gave a degenerate camera (zero or non-finite scale): its visible rigid keypoints "
+                               "coincide in the mean shape or carry no rotation")
+        data.problems.append(f"{int((~good).sum())} instance(s) got a degenerate SfM camera and are marked invalid")
+        sub = torch.zeros_like(data.valid)
+        sub[idx_v[good]] = True
+        data.valid = sub
+        M, tv = M[good], tv[good]
+    R = torch.eye(3, dtype=torch.float64, device=dev).expand(n, 3, 3).clone()
+    s = torch.ones(n, dtype=torch.float64, device=dev)
+    t = data.centroid.clone()
+    sv = M[:, 0].norm(dim=-1)
+    R[data.valid] = complete_rotation(M / sv[:, None, None])
+    s[data.valid] = sv
+    t[data.valid] = tv
+    shape = torch.full((k, 3), float("nan"), dtype=torch.float64, device=dev)
+    shape[torch.tensor(data.cols, device=dev, dtype=torch.long)] = fit.S.T
+    _triangulate_others(data, ScaledOrthographic(R, s, t), shape)
+    return R, s, t, shape
+
+
+def _triangulate_others(data: _Data, cams64: ScaledOrthographic, shape: torch.Tensor) -> None:
+    """Fill the shape rows of the keypoints the factorisation did not use, from the cameras (in place)."""
+    k = shape.shape[0]
+    others = [i for i in range(k) if i not in set(data.cols) | data.excluded]
+    if not others:
+        return
+    o = torch.tensor(others, device=shape.device)
+    X = triangulate(cams64[data.valid], data.kp[data.valid][:, o], data.vis[data.valid][:, o])
+    shape[o] = X
+    lost = [others[j] for j in range(len(others)) if not bool(torch.isfinite(X[j]).all())]
+    if lost:
+        data.problems.append(f"non-rigid keypoints {lost} are seen by fewer than 2 valid instances: shape rows NaN")
+
+
+def _centre(shape, R, s, t):
+    """Gauge, position: the shape's finite rows centred on 0, the translations absorbing it."""
+    fin = torch.isfinite(shape).all(-1)
+    c = shape[fin].mean(0)
+    return shape - c, t + s[:, None] * (R[:, :2, :] @ c)
+
+
+def _reflection_step(data, shape, cams64, is_planar, opts, keypoint_names, flip_pairs, left_convention):
+    """Step 4: the reflection (Necker) decision of :func:`rigid_sfm`; returns ``shape, R, votes``."""
+    v_for, v_against = _visibility_votes(shape, cams64[data.valid], data.vis[data.valid])
+    voters = v_for + v_against
+    votes = {"for": v_for, "against": v_against, "voters": voters, "decided_by": "none", "flipped": False,
+             "handedness": None}
+    close = voters < opts.min_voters or abs(v_for - v_against) <= max(opts.vote_margin * voters,
+                                                                      3.0 * math.sqrt(voters))
+    flip = v_against > v_for
+    if is_planar:
+        # the mirror of a plane is itself: the flip only reverses every camera's
+        # (unobservable) tilt direction, so there is nothing to decide
+        flip = False
+        votes["decided_by"] = "not applicable (planar)"
+    elif not close:
+        votes["decided_by"] = "visibility"
+    else:
+        hand, why = _handedness(shape, cams64[data.valid], keypoint_names, flip_pairs, left_convention)
+        votes["handedness"] = hand
+        if hand is not None and abs(hand) >= 0.1:
+            votes["decided_by"] = "handedness"
+            flip = hand < 0
+        else:
+            why = why or f"left, up and front nearly coplanar (|det| = {abs(hand):.2f} < 0.1)"
+            votes["decided_by"] = "visibility (weak)"
+            data.problems.append(f"reflection ambiguous: visibility vote {v_for} for / {v_against} against is too "
+                                 f"close and the handedness rule is not applicable ({why})")
+    R = cams64.R
+    if flip:
+        shape, cams64 = _flip_solution(shape, cams64)
+        R = cams64.R
+        votes["for"], votes["against"] = v_against, v_for
+        if votes["handedness"] is not None:
+            votes["handedness"] = -votes["handedness"]
+    votes["flipped"] = bool(flip)
+    return shape, R, votes
+
+
+def _scale_gauge(data: _Data, shape, R, s, t) -> tuple[torch.Tensor, ScaledOrthographic]:
+    """Gauge, scale: the median camera scale of the valid instances is 1; placeholders for the others."""
+    valid = data.valid
+    med = s[valid].median()
+    shape = shape * med
+    s = s / med
+    s = torch.where(valid, s, torch.ones_like(s))
+    R = torch.where(valid[:, None, None], R, torch.eye(3, dtype=R.dtype, device=R.device))
+    t = torch.where(valid[:, None], t, data.centroid)
+    return shape, ScaledOrthographic(R, s, t)
+
+
+def _report(data: _Data, fit: _Fit, shape, cams: ScaledOrthographic, votes: dict, dtype) -> SfMResult:
+    """Step 5: residuals and the :class:`SfMResult` in the keypoints' dtype."""
+    kp, vis, valid = data.kp, data.vis, data.valid
+
+    def rms(cols_mask: torch.Tensor) -> torch.Tensor:
+        P = cams.project(torch.nan_to_num(shape))
+        m = vis & cols_mask[None, :]
+        e = ((P - kp) ** 2).sum(-1) * m
+        out = (e.sum(-1) / m.sum(-1).clamp(min=1)).sqrt()
+        return torch.where(valid & (m.sum(-1) > 0), out, torch.full_like(out, float("nan")))
+
+    cm = torch.zeros(shape.shape[0], dtype=torch.bool, device=shape.device)
+    cm[torch.tensor(data.cols, device=shape.device, dtype=torch.long)] = True
+    residual = rms(cm).to(dtype)
+    residual_all = rms(torch.isfinite(shape).all(-1)).to(dtype)
+    cams = ScaledOrthographic(cams.R.to(dtype), cams.s.to(dtype), cams.t.to(dtype))
+    return SfMResult(shape.to(dtype), cams, valid, residual, residual_all, fit.iterations, fit.polish_rounds,
+                     fit.converged, votes, fit.planar, data.seen, data.never, data.rigid, data.reasons,
+                     data.problems, fit.history, fit.mirrors)
+
+
 def rigid_sfm(
     keypoints: torch.Tensor,
     visible: torch.Tensor,
+    options: SfMOptions | None = None,
     *,
-    max_outer: int = 200,
-    inner: int = 10,
-    tol: float = 1e-6,
-    polish_iters: int = 30,
-    regularization: float = 1e-6,
     rigid_keypoints: Sequence[int] | None = None,
     keypoint_names: Sequence[str] | None = None,
     flip_pairs: Sequence[Sequence[int]] | None = None,
     left_convention: str = "object",
-    planar: bool | None = None,
-    planar_margin: float = 0.02,
-    vote_margin: float = 0.1,
-    min_voters: int = 5,
-    mirrors: bool | None = None,
-    mirror_tie_deg: float = 5.0,
     generator: torch.Generator | None = None,
     init_shape: torch.Tensor | None = None,
+    **overrides,
 ) -> SfMResult:
     """Mean shape and scaled orthographic cameras of a class from keypoints with missing data.
 
@@ -926,13 +1286,9 @@ def rigid_sfm(
             visible are ignored (may be NaN). Visible entries with a non-finite
             coordinate are treated as not visible and reported in ``problems``.
         visible: ``(N, K)`` bool.
-        max_outer, inner: iteration limits (outer fill/refill steps, inner power
-            factorisation steps per outer step).
-        tol: relative change of the visible-entry RMS residual that stops the outer
-            loop and the polish.
-        polish_iters: bundle-polish rounds after the factorisation (0: none).
-        regularization: relative Tikhonov weight of the shape and camera solves
-            (keeps rank-deficient, e.g. planar or two-view, problems defined).
+        options: :class:`SfMOptions` (iteration limits, tolerances, the planar and mirror
+            rules, the reflection vote); ``**overrides`` replace single fields of it
+            (``rigid_sfm(kp, vis, max_outer=30)``).
         rigid_keypoints: indices used by the factorisation (all when ``None``). The
             others are triangulated afterwards by least squares from the cameras
             (:func:`triangulate`), NaN when seen by fewer than 2 valid instances.
@@ -942,27 +1298,11 @@ def rigid_sfm(
             own left (a person's left; Berkeley PASCAL keypoints: ``L_WingTip`` is the
             pilot's left), ``"viewer"`` when it lies on the left of a viewer facing
             the object's front (PASCAL3D+ CAD keypoints: ``left_wing`` is the pilot's right).
-        planar: ``True`` forces the coplanar model, ``False`` forbids it, ``None``
-            fits both and keeps the planar one when its visible-entry RMS residual is
-            at most ``(1 + planar_margin)`` times the rigid 3-D one (plus a float
-            floor): the simpler model wins when it explains the data as well.
-        planar_margin: see ``planar``.
-        vote_margin, min_voters: the visibility vote is too close, and the
-            handedness rule decides (when applicable), when ``voters < min_voters``
-            or ``|for - against| <= max(vote_margin * voters, 3 sqrt(voters))`` (the
-            second bound: a margin that visibility unrelated to depth, a fair coin
-            per voter, would reach by chance once in about 370 classes).
-        mirrors: whether instances ``N/2..N-1`` are the left-right mirrored copies of
-            ``0..N/2-1`` (``ClassCollection.with_mirrors()``); ``None`` detects it
-            (:func:`mirror_width`), ``True`` requires it, ``False`` treats every
-            instance as independent. See "Mirrored copies" below.
-        mirror_tie_deg: median angle (degrees) between the copies' cameras and their
-            originals' mirrored cameras above which the joint solution is re-seeded.
         generator: random source, only used to complete a rank-deficient initial
             shape (a fixed seed is used when ``None``, so results are deterministic).
         init_shape: ``(K, 3)`` a shape to start the rigid factorisation from instead of the
             rank-3 approximation of the filled measurements (e.g. the last round's shape of an
-            alternation over sub-collections, :mod:`carvi_torch.sfm_mixture`). The missing
+            alternation over sub-collections, :mod:`carvi_torch.viewpoints.mixture`). The missing
             entries are filled from the start's resected cameras, at most :data:`WARM_OUTER`
             outer steps are run and the bundle polish finishes. Any rotation, scale or
             translation of the solution serves; NaN rows start at the other rows' centroid.
@@ -1026,227 +1366,21 @@ def rigid_sfm(
         >>> bool(res.residual.max() < 1e-3)
         True
     """
-    _check_inputs(keypoints, visible)
-    if left_convention not in ("object", "viewer"):
-        raise ValueError(f"left_convention must be 'object' or 'viewer', got {left_convention!r}")
-    if max_outer < 1 or inner < 1:
-        raise ValueError(f"max_outer and inner must be >= 1, got {max_outer} and {inner}")
-    n, k, _ = keypoints.shape
-    dev, dt = keypoints.device, keypoints.dtype
-    if keypoint_names is not None and len(keypoint_names) != k:
-        raise ValueError(f"keypoint_names must have K={k} entries, got {len(keypoint_names)}")
-    if flip_pairs is not None:
-        for p in flip_pairs:
-            if len(p) != 2 or not all(0 <= int(q) < k for q in p):
-                raise ValueError(f"flip_pairs entries must be index pairs in [0, {k}), got {p}")
+    opts = dataclasses.replace(options or SfMOptions(), **overrides)
+    _check_class(keypoints, visible, opts, keypoint_names, flip_pairs, left_convention)
     gen = generator if generator is not None else torch.Generator().manual_seed(0)
-    problems: list[str] = []
-
-    vis = visible.to(device=dev, dtype=torch.bool)
-    bad = vis & ~torch.isfinite(keypoints).all(-1)
-    if bool(bad.any()):
-        problems.append(f"{int(bad.sum())} visible keypoint entries have non-finite coordinates; "
-                        "treated as not visible")
-        vis = vis & ~bad
-    kp = torch.nan_to_num(keypoints.double(), nan=0.0, posinf=0.0, neginf=0.0)
-
-    rigid = list(range(k)) if rigid_keypoints is None else sorted({int(i) for i in rigid_keypoints})
-    if any(not 0 <= i < k for i in rigid):
-        raise ValueError(f"rigid_keypoints must be indices in [0, {k}), got {list(rigid_keypoints)}")
-    if not rigid:
-        raise ValueError("rigid_keypoints is empty")
-    rigid_t = torch.tensor(rigid, device=dev, dtype=torch.long)
-    nvis_rigid = vis[:, rigid_t].sum(-1)
-    valid = nvis_rigid >= 2
-    reasons = ["" if bool(v) else f"only {int(c)} visible rigid keypoint(s); a camera needs 2"
-               for v, c in zip(valid.tolist(), nvis_rigid.tolist())]
-    # instances and keypoints linked to the largest group only through no shared keypoint
-    # cannot be placed in its frame: SfM runs on the largest connected component
-    outside, cols_out = _outside_main_component(vis[:, rigid_t] & valid[:, None])
-    if bool(outside.any()):
-        lost = [rigid[j] for j in cols_out.nonzero().squeeze(1).tolist()]
-        lost_names = [keypoint_names[j] for j in lost] if keypoint_names is not None else lost
-        n_main = int((valid & ~outside).sum())
-        for i in outside.nonzero().squeeze(1).tolist():
-            reasons[i] = (f"its visible rigid keypoints share none with the {n_main} instances of the largest "
-                          "connected group: SfM cannot place it in the class frame")
-        problems.append(f"{int(outside.sum())} instance(s) see only keypoints {lost_names}, which no instance of "
-                        f"the largest connected group ({n_main} instances) sees: those instances get no SfM camera "
-                        "and those keypoints no shape row")
-        valid = valid & ~outside
-        rigid_main = [r for r, o in zip(rigid, cols_out.tolist()) if not o]
-    else:
-        lost = []
-        rigid_main = list(rigid)
-    seen_all = (vis & valid[:, None]).sum(0)
-    never = [i for i in range(k) if int(vis[:, i].sum()) == 0]
-    if never:
-        problems.append(f"keypoints {never} are never visible: excluded, shape rows NaN")
-    sfm_cols = [i for i in rigid_main if int(seen_all[i]) >= 2]
-    few = [i for i in rigid_main if 0 < int(seen_all[i]) < 2]
-    if few:
-        problems.append(f"rigid keypoints {few} are seen by fewer than 2 valid instances: excluded, shape rows NaN")
-
-    centroid = (kp * vis[..., None]).sum(1) / vis.sum(1, keepdim=True).clamp(min=1)
-    shape = torch.full((k, 3), float("nan"), dtype=torch.float64, device=dev)
-    R = torch.eye(3, dtype=torch.float64, device=dev).expand(n, 3, 3).clone()
-    s = torch.ones(n, dtype=torch.float64, device=dev)
-    t = centroid.clone()
-    nan_n = torch.full((n,), float("nan"), dtype=dt, device=dev)
-    votes = {"for": 0, "against": 0, "voters": 0, "decided_by": "none", "flipped": False, "handedness": None}
-
-    n_valid = int(valid.sum())
-    if n_valid < 2 or len(sfm_cols) < 3:
-        why = (f"only {n_valid} instance(s) with >= 2 visible rigid keypoints (need 2)" if n_valid < 2
-               else f"only {len(sfm_cols)} rigid keypoint(s) seen by >= 2 valid instances (need 3)")
-        problems.append(f"SfM not run: {why}; all cameras are placeholders")
-        reasons = [r if r else "SfM not run: " + why for r in reasons]
-        cams = ScaledOrthographic(R.to(dt), s.to(dt), t.to(dt))
-        return SfMResult(shape.to(dt), cams, torch.zeros(n, dtype=torch.bool, device=dev), nan_n, nan_n.clone(), 0, 0,
-                         False, votes, False, seen_all, never, rigid, reasons, problems, [])
-    n_three = int((vis[:, torch.tensor(sfm_cols, device=dev)].sum(-1) >= 3).sum())
-    if n_three < 3:
-        problems.append(f"only {n_three} instance(s) see 3 or more rigid keypoints: with fewer than 3 such views "
-                        "the shape's depth is not determined (orthographic two-view ambiguity); cameras unreliable")
-
-    n_two = int((valid & (vis[:, torch.tensor(sfm_cols, device=dev)].sum(-1) == 2)).sum())
-    if n_two:
-        problems.append(f"{n_two} instance(s) see only 2 rigid keypoints: their rotation is not determined by the "
-                        "keypoints (only the silhouette refinement constrains it)")
-    cols = torch.tensor(sfm_cols, device=dev, dtype=torch.long)
-    Wv = kp[valid][:, cols].transpose(1, 2).contiguous()  # (Nv, 2, Kc)
-    vv = vis[valid][:, cols].double()
-    layout = None
-    if mirrors is not False:
-        width = mirror_width(kp, vis, flip_pairs)
-        if width is None and mirrors:
-            raise ValueError("mirrors=True but instances N/2..N-1 are not the mirrored copies of 0..N/2-1 "
-                             "(x' = C - 1 - x, same y, keypoints swapped along flip_pairs)")
-        if width is not None:
-            layout = _mirror_layout(valid, width, flip_pairs, sfm_cols)
-    S_init = None
-    if init_shape is not None:
-        if init_shape.shape != (k, 3):
-            raise ValueError(f"init_shape must be ({k}, 3), got {tuple(init_shape.shape)}")
-        if planar is None:
-            planar = False  # a warm start continues the rigid model: the planar one is not fitted
-        S_init = init_shape.to(device=dev, dtype=torch.float64)[cols]
-        fin = torch.isfinite(S_init).all(-1)
-        if int(fin.sum()) < 3:
-            S_init = None  # nothing to start from
-        else:
-            S_init = torch.where(fin[:, None], S_init, S_init[fin].mean(0)).T.contiguous()
-    with cpu_single_thread(dev):
-        M, tv, Sc, history, iters, polish_rounds, converged, is_planar, mirror_report = _fit(
-            Wv, vv, planar, planar_margin, polish_iters, mirrors=layout, tie_deg=mirror_tie_deg, S_init=S_init,
-            max_outer=max_outer, inner=inner, tol=tol, reg=regularization, generator=gen)
-    if mirror_report.get("reseeded"):
-        joint = mirror_report['tie_deg_median_joint']
-        problems.append(f"the joint solution broke the mirror symmetry (median {joint:.1f} "
-                        "deg between copies' cameras and their mirrored originals): re-seeded from the originals")
-    elif mirror_report.get("tie_deg_median") is not None and mirror_report["tie_deg_median"] > mirror_tie_deg:
-        problems.append(f"mirrored copies' cameras disagree with their mirrored originals (median "
-                        f"{mirror_report['tie_deg_median']:.1f} deg) and re-seeding from the originals did not "
-                        "lower the residual")
-    if not converged:
-        last = abs(history[-2] - history[-1]) / max(history[-2], 1e-300) if len(history) >= 2 else float("nan")
-        problems.append(f"SfM stopped at its iteration limits (max_outer={max_outer}, polish_iters={polish_iters}) "
-                        f"before the residual settled: last relative change {last:.1e} > tol={tol:.0e} "
-                        f"(RMS residual {history[-1]:.3g} px)")
-    # no NaN leaves SfM: a degenerate block (zero scale, non-finite) makes its instance invalid
-    good = _usable_blocks(M, tv)
-    if not bool(good.all()):
-        idx_v = valid.nonzero().squeeze(1)
-        for i in idx_v[~good].tolist():
-            reasons[i] = ("SfM gave a degenerate camera (zero or non-finite scale): its visible rigid keypoints "
-                          "coincide in the mean shape or carry no rotation")
-        problems.append(f"{int((~good).sum())} instance(s) got a degenerate SfM camera and are marked invalid")
-        sub = torch.zeros_like(valid)
-        sub[idx_v[good]] = True
-        valid = sub
-        M, tv = M[good], tv[good]
-    sv = M[:, 0].norm(dim=-1)
-    Rv = complete_rotation(M / sv[:, None, None])
-    R[valid] = Rv
-    s[valid] = sv
-    t[valid] = tv
-    shape[cols] = Sc.T
-
-    cams64 = ScaledOrthographic(R, s, t)
-    # non-rigid keypoints: triangulated from the cameras
-    others = [i for i in range(k) if i not in set(sfm_cols) | set(never) | set(few) | set(lost)]
-    if others:
-        o = torch.tensor(others, device=dev)
-        X = triangulate(cams64[valid], kp[valid][:, o], vis[valid][:, o])
-        shape[o] = X
-        lost = [others[j] for j in range(len(others)) if not bool(torch.isfinite(X[j]).all())]
-        if lost:
-            problems.append(f"non-rigid keypoints {lost} are seen by fewer than 2 valid instances: shape rows NaN")
-
-    # centre the shape (the translations absorb the centroid)
-    fin = torch.isfinite(shape).all(-1)
-    c = shape[fin].mean(0)
-    t = t + s[:, None] * (R[:, :2, :] @ c)
-    shape = shape - c
-
-    # reflection
-    cams64 = ScaledOrthographic(R, s, t)
-    v_for, v_against = _visibility_votes(shape, cams64[valid], vis[valid])
-    voters = v_for + v_against
-    votes.update({"for": v_for, "against": v_against, "voters": voters})
-    close = voters < min_voters or abs(v_for - v_against) <= max(vote_margin * voters, 3.0 * math.sqrt(voters))
-    flip = v_against > v_for
-    if is_planar:
-        # the mirror of a plane is itself: the flip only reverses every camera's
-        # (unobservable) tilt direction, so there is nothing to decide
-        flip = False
-        votes["decided_by"] = "not applicable (planar)"
-    elif not close:
-        votes["decided_by"] = "visibility"
-    else:
-        hand, why = _handedness(shape, cams64[valid], keypoint_names, flip_pairs, left_convention)
-        votes["handedness"] = hand
-        if hand is not None and abs(hand) >= 0.1:
-            votes["decided_by"] = "handedness"
-            flip = hand < 0
-        else:
-            why = why or f"left, up and front nearly coplanar (|det| = {abs(hand):.2f} < 0.1)"
-            votes["decided_by"] = "visibility (weak)"
-            problems.append(f"reflection ambiguous: visibility vote {v_for} for / {v_against} against is too close "
-                            f"and the handedness rule is not applicable ({why})")
-    if flip:
-        shape, cams64 = _flip_solution(shape, cams64)
-        R = cams64.R
-        votes["for"], votes["against"] = v_against, v_for
-        if votes["handedness"] is not None:
-            votes["handedness"] = -votes["handedness"]
-    votes["flipped"] = bool(flip)
-
-    # scale gauge: median camera scale of valid instances = 1
-    med = s[valid].median()
-    shape = shape * med
-    s = s / med
-    s = torch.where(valid, s, torch.ones_like(s))
-    R = torch.where(valid[:, None, None], R, torch.eye(3, dtype=R.dtype, device=dev))
-    t = torch.where(valid[:, None], t, centroid)
-    cams = ScaledOrthographic(R, s, t)
-
-    # residuals
-    def rms(cols_mask: torch.Tensor) -> torch.Tensor:
-        P = cams.project(torch.nan_to_num(shape))
-        m = vis & cols_mask[None, :]
-        e = ((P - kp) ** 2).sum(-1) * m
-        out = (e.sum(-1) / m.sum(-1).clamp(min=1)).sqrt()
-        return torch.where(valid & (m.sum(-1) > 0), out, torch.full_like(out, float("nan")))
-
-    cm = torch.zeros(k, dtype=torch.bool, device=dev)
-    cm[cols] = True
-    residual = rms(cm).to(dt)
-    residual_all = rms(torch.isfinite(shape).all(-1)).to(dt)
-    cams = ScaledOrthographic(cams.R.to(dt), cams.s.to(dt), cams.t.to(dt))
-    return SfMResult(shape.to(dt), cams, valid, residual, residual_all, iters, polish_rounds, converged, votes,
-                     is_planar,
-                     seen_all, never, rigid, reasons, problems, history, mirror_report)
+    data = _select_data(keypoints, visible, rigid_keypoints, keypoint_names)
+    why = _too_little(data)
+    if why is not None:
+        return _placeholder(data, why, keypoints.dtype)
+    _coverage_problems(data)
+    fit = _fit_step(data, opts, flip_pairs, init_shape, gen)
+    R, s, t, shape = _assemble(data, fit)
+    shape, t = _centre(shape, R, s, t)
+    shape, R, votes = _reflection_step(data, shape, ScaledOrthographic(R, s, t), fit.planar, opts, keypoint_names,
+                                       flip_pairs, left_convention)
+    shape, cams = _scale_gauge(data, shape, R, s, t)
+    return _report(data, fit, shape, cams, votes, keypoints.dtype)
 
 
 def symmetry_plane(shape: torch.Tensor, flip_pairs: Sequence[Sequence[int]]) -> torch.Tensor:

@@ -19,7 +19,8 @@ import math
 
 import torch
 
-from .cameras import azimuth_elevation_roll_from_rotation, geodesic_angle
+from ..cameras import (align_rotations, azimuth_elevation_roll_from_rotation, check_rotation_pairs,
+                       finite_rotation_pairs, geodesic_errors)
 
 __all__ = [
     "align_rotations",
@@ -31,19 +32,6 @@ __all__ = [
 ]
 
 
-def _check_pair(R_est: torch.Tensor, R_gt: torch.Tensor) -> None:
-    for name, R in (("R_est", R_est), ("R_gt", R_gt)):
-        if not isinstance(R, torch.Tensor) or R.dim() != 3 or R.shape[1:] != (3, 3):
-            raise ValueError(f"{name} must be a (N, 3, 3) tensor, got {getattr(R, 'shape', type(R))}")
-    if R_est.shape[0] != R_gt.shape[0]:
-        raise ValueError("R_est and R_gt must hold the same number of rotations, "
-                         f"got {R_est.shape[0]} and {R_gt.shape[0]}")
-
-
-def _finite(R_est: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:
-    return torch.isfinite(R_est).flatten(1).all(1) & torch.isfinite(R_gt).flatten(1).all(1)
-
-
 def necker_mirror(R: torch.Tensor) -> torch.Tensor:
     """The Necker-mirrored cameras ``F R F``, ``F = diag(1, 1, -1)``: ``(..., 3, 3)`` -> same.
 
@@ -51,81 +39,6 @@ def necker_mirror(R: torch.Tensor) -> torch.Tensor:
     """
     f = torch.tensor([1.0, 1.0, -1.0], dtype=R.dtype, device=R.device)
     return f[:, None] * R * f[None, :]
-
-
-def _procrustes(A: torch.Tensor) -> torch.Tensor:
-    """Proper rotation ``G`` maximising ``trace(G^T A)`` for ``A (3, 3)``."""
-    U, _, Vh = torch.linalg.svd(A)
-    d = torch.sign(torch.det(U @ Vh))
-    d = torch.where(d == 0, torch.ones_like(d), d)
-    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
-    return U @ D @ Vh
-
-
-def align_rotations(
-    R_est: torch.Tensor,
-    R_gt: torch.Tensor,
-    *,
-    robust: bool = False,
-    iters: int = 20,
-    weights: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """Global rotation ``G`` minimising ``sum_n w_n ||R_est_n G - R_gt_n||_F^2``.
-
-    Closed form (orthogonal Procrustes): ``A = sum_n w_n R_est_n^T R_gt_n = U S V^T``,
-    ``G = U diag(1, 1, det(U V^T)) V^T`` (a proper rotation). With ``robust=True``,
-    iteratively reweighted with ``w_n = 1 / max(theta_n, 1 deg)`` (``theta_n`` the
-    geodesic residual), which approximately minimises the sum of the angles
-    rather than of their squares, so a few gross errors (e.g. flipped instances)
-    do not tilt ``G``. Pairs with a non-finite entry are ignored.
-
-    Args:
-        R_est, R_gt: ``(N, 3, 3)`` proper rotations.
-        robust: use the reweighted variant.
-        iters: reweighting iterations.
-        weights: ``(N,)`` optional non-negative weights.
-
-    Returns:
-        ``(3, 3)`` in ``R_est``'s dtype (computed in float64).
-
-    Example:
-        >>> from carvi_torch.cameras import random_rotations
-        >>> R = random_rotations(5, torch.Generator().manual_seed(0)); G = random_rotations(1)[0]
-        >>> torch.allclose(align_rotations(R @ G.T, R), G, atol=1e-5)
-        True
-    """
-    _check_pair(R_est, R_gt)
-    ok = _finite(R_est, R_gt)
-    if not bool(ok.any()):
-        raise ValueError("align_rotations: no pair of finite rotations")
-    Re = R_est[ok].double()
-    Rg = R_gt[ok].double()
-    w = torch.ones(Re.shape[0], dtype=torch.float64, device=Re.device)
-    if weights is not None:
-        w = torch.as_tensor(weights, device=Re.device).double()[ok.to(Re.device)]
-        if bool((w < 0).any()):
-            raise ValueError("weights must be non-negative")
-    G = _procrustes(torch.einsum("n,nji,njk->ik", w, Re, Rg))
-    if robust:
-        floor = math.radians(1.0)
-        for _ in range(iters):
-            theta = geodesic_angle(Re @ G, Rg)
-            G_new = _procrustes(torch.einsum("n,nji,njk->ik", w / theta.clamp(min=floor), Re, Rg))
-            if float((G_new - G).abs().max()) < 1e-12:
-                G = G_new
-                break
-            G = G_new
-    return G.to(R_est.dtype)
-
-
-def geodesic_errors(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor | None = None) -> torch.Tensor:
-    """Angle (degrees) between ``R_est_n G`` and ``R_gt_n``; ``G`` = identity when None.
-
-    Returns ``(N,)`` in ``[0, 180]``; NaN where an input is not finite.
-    """
-    _check_pair(R_est, R_gt)
-    Re = R_est if G is None else R_est @ G.to(R_est)
-    return torch.rad2deg(geodesic_angle(Re, R_gt.to(Re)))
 
 
 def _wrap_deg(a: torch.Tensor) -> torch.Tensor:
@@ -142,7 +55,7 @@ def angle_errors(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor | None
     Returns:
         ``{"azimuth": (N,), "elevation": (N,), "roll": (N,)}``, each in ``[0, 180]``.
     """
-    _check_pair(R_est, R_gt)
+    check_rotation_pairs(R_est, R_gt)
     Re = R_est if G is None else R_est @ G.to(R_est)
     a1, e1, r1 = azimuth_elevation_roll_from_rotation(Re)
     a2, e2, r2 = azimuth_elevation_roll_from_rotation(R_gt.to(Re))
@@ -208,8 +121,8 @@ def viewpoint_report(
         (summary of the mirrored hypothesis), "per_instance_geodesic" (list, NaN
         for unused pairs)}``.
     """
-    _check_pair(R_est, R_gt)
-    use = _finite(R_est, R_gt)
+    check_rotation_pairs(R_est, R_gt)
+    use = finite_rotation_pairs(R_est, R_gt)
     if valid is not None:
         v = torch.as_tensor(valid, device=R_est.device).bool()
         if v.shape != use.shape:

@@ -56,15 +56,15 @@ is unchanged, so the results are those of stepping the whole batch to the end.
 """
 from __future__ import annotations
 
-import contextlib
 import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
-from .cameras import ScaledOrthographic, axis_angle_to_rotation, complete_rotation, nearest_scaled_rotation
-from .sdf import distance_to_mask
+from ..cameras import ScaledOrthographic, axis_angle_to_rotation, complete_rotation, scaled_stiefel
+from ..runtime import cpu_single_thread
+from ..sdf import distance_to_mask
 
 #: Default robust scale of the silhouette penalty, as a fraction of the mask's larger side.
 ROBUST_FRACTION = 0.2
@@ -94,71 +94,10 @@ __all__ = [
     "estimate_camera",
     "mask_start_cameras",
     "sphere_rotations",
-    "scaled_stiefel",
-    "cpu_single_thread",
 ]
 
 
 # --------------------------------------------------------------------------- primitives
-
-
-@contextlib.contextmanager
-def cpu_single_thread(device: torch.device | str):
-    """Run the enclosed torch ops with one intra-op thread when ``device`` is the CPU.
-
-    The iterative solvers here are hundreds of small tensor ops; intra-op threads
-    only add synchronisation to them (measured: rigid SfM of 4,000 instances took
-    3.0 s with 1 thread and 26 s with 2 on a 2-core machine busy with other work).
-    The previous thread count is restored on exit. No effect on other devices.
-    """
-    if torch.device(device).type != "cpu" or torch.get_num_threads() == 1:
-        yield
-        return
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
-def scaled_stiefel(M: torch.Tensor) -> torch.Tensor:
-    """Nearest scaled Stiefel matrix ``c U V^T`` of ``2x3`` blocks, in closed form.
-
-    Same result as :func:`carvi_torch.cameras.nearest_scaled_rotation` (``s * R[:2]``)
-    without a batched SVD: with ``A = M M^T`` and ``delta = sqrt(det A) = sigma_1
-    sigma_2``, ``(M M^T)^(-1/2) = adj(A + delta I) / (delta (sigma_1 + sigma_2))``
-    (the 2x2 square-root formula), so ``c U V^T = adj(A + delta I) M / (2 delta)``.
-    Blocks of rank < 2 (``delta <= 1e-10 tr A``) fall back to the SVD. Differentiable.
-
-    Args:
-        M: ``(..., 2, 3)``.
-
-    Returns:
-        ``(..., 2, 3)`` with orthogonal rows of equal norm ``c`` (the mean singular value).
-
-    Example:
-        >>> scaled_stiefel(torch.tensor([[2.0, 0, 0], [0, 4.0, 0]]))
-        tensor([[3., 0., 0.],
-                [0., 3., 0.]])
-    """
-    A = M @ M.transpose(-1, -2)
-    a, b, d = A[..., 0, 0], A[..., 0, 1], A[..., 1, 1]
-    tr = a + d
-    delta = (a * d - b * b).clamp(min=0).sqrt()
-    ok = delta > 1e-10 * tr
-    dsafe = torch.where(ok, delta, torch.ones_like(delta))
-    # adj(A + delta I) = [[d + delta, -b], [-b, a + delta]]
-    adj = torch.stack([torch.stack([d + delta, -b], -1), torch.stack([-b, a + delta], -1)], -2)
-    out = adj @ M / (2.0 * dsafe)[..., None, None]
-    # rank < 2 blocks go through the SVD; non-finite blocks stay non-finite (the SVD would fail)
-    fallback = ~ok & torch.isfinite(M).flatten(-2).all(-1)
-    if bool(fallback.any()):
-        R, s = nearest_scaled_rotation(M[fallback])
-        out = out.clone()
-        out[fallback] = s[:, None, None] * R[:, :2, :]
-    return out
-
 
 
 @dataclass

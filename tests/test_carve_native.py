@@ -1,4 +1,4 @@
-"""Tests of carvi_torch.carve_fused: the compiled CPU carving kernel and the ``backend`` choice.
+"""Tests of carvi_torch.carve.native: the compiled CPU carving kernel and the ``backend`` choice.
 
 References: ``torch.nn.functional.grid_sample`` (the kernel's bilinear sample, bit for bit), the
 torch backend of :func:`carvi_torch.carve.carve_proposals` and the per-proposal loop (labels
@@ -18,8 +18,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from carvi_torch import carve_fused
-from carvi_torch.carve import _fused_inputs, _grid_sample, carve_proposals, carve_proposals_loop, prepare_maps
+from carvi_torch.carve import carve_proposals, carve_proposals_loop, prepare_maps
+from carvi_torch.carve import native as carve_fused
+from carvi_torch.carve.torch_backend import grid_sample_maps, kernel_inputs
 from carvi_torch.config import Config, ConfigError
 from carvi_torch.sdf import signed_distance
 from test_carve import blob_masks, random_cameras, random_proposals
@@ -32,14 +33,14 @@ needs_kernel = pytest.mark.skipif(not carve_fused.available(),
 
 def _reference(ext, k, scale, grid):
     """``grid_sample`` of map ``k`` scaled, as the torch carving calls it."""
-    return _grid_sample((ext[k] * scale)[None, None], grid.view(1, 1, -1, 2)).view(-1)
+    return grid_sample_maps((ext[k] * scale)[None, None], grid.view(1, 1, -1, 2)).view(-1)
 
 
 def _kernel_inputs(seed: int, n: int, **kw):
     """What :func:`carve_fused.carve_labels` takes, for random proposals (``random_proposals(**kw)``)."""
     gen = torch.Generator().manual_seed(seed)
     sdf, cams, reference, views = random_proposals(gen, **kw)
-    return _fused_inputs(prepare_maps(sdf, cams), reference, views, n)[:5]
+    return kernel_inputs(prepare_maps(sdf, cams), reference, views, n)[:5]
 
 
 # --------------------------------------------------------------------------- sample
@@ -156,16 +157,16 @@ def test_real_aeroplanes_fused_equals_torch(shared_data, tmp_path):
     ann = tmp_path / "aeroplane.json"
     convert(shared_data / "pascal_voc_aeroplane" / "keypoints", ann)
     cfg = Config().override(dict(data=str(ann), progress=False))
-    loaded = coco.load_coco(ann, canvas_size=cfg.canvas_size, margin=cfg.canvas_margin, device=torch.device("cpu"),
+    loaded = coco.load_coco(ann, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin, device=torch.device("cpu"),
                             classes=["aeroplane"])
     coll = loaded.collections["aeroplane"]
     gen = torch.Generator().manual_seed(cfg.seed)
     plan, todo, _ = pipeline.prepare_class(coll, cfg, torch.device("cpu"), gen)
-    ref, views, valid = pipeline.proposals_of(plan, torch.tensor(todo[:6]))
+    ref, views, valid = plan.proposals(torch.tensor(todo[:6]))
     ref, views = ref[valid], views[valid]
     assert len(ref) >= 20
-    a = carve_proposals(plan.maps, None, ref, views, resolution=cfg.resolution, backend="torch")
-    b = carve_proposals(plan.maps, None, ref, views, resolution=cfg.resolution, backend="fused")
+    a = carve_proposals(plan.maps, None, ref, views, resolution=cfg.carve.resolution, backend="torch")
+    b = carve_proposals(plan.maps, None, ref, views, resolution=cfg.carve.resolution, backend="fused")
     assert torch.equal(a.occupancy, b.occupancy) and torch.equal(a.columns, b.columns)
     assert torch.equal(a.empty, b.empty) and a.occupancy.any()
 
@@ -179,13 +180,12 @@ def test_backend_validation():
     args = (sdf, cams, torch.tensor([0]), torch.tensor([[1]]))
     with pytest.raises(ValueError, match="backend must be one of"):
         carve_proposals(*args, resolution=8, backend="cuda")
-    for kw, why in ((dict(interpolation="nearest"), "bilinearly"), (dict(return_cost=True), "labels only"),
-                    (dict(coarse_to_fine=True), "labels only"), (dict(depth_intervals=True), "labels only")):
+    for kw, why in ((dict(interpolation="nearest"), "bilinearly"), (dict(return_cost=True), "labels only")):
         with pytest.raises(ValueError, match=why):
             carve_proposals(*args, resolution=8, backend="fused", **kw)
         # auto falls back to torch for what the kernel does not do
         carve_proposals(*args, resolution=8, backend="auto", **kw)
-    with pytest.raises(ConfigError, match="carve_backend"):
+    with pytest.raises(ConfigError, match="carve.backend"):
         Config().override(dict(carve_backend="gpu")).validate()
 
 
@@ -194,7 +194,7 @@ def test_without_a_compiler_auto_runs_torch_and_fused_says_why(tmp_path):
     carves with torch (same labels), ``fused`` is refused, in a fresh process and cache."""
     code = """
 import json, torch
-from carvi_torch import carve_fused
+from carvi_torch.carve import native as carve_fused
 from carvi_torch.carve import carve_proposals
 from test_carve import random_proposals
 sdf, cams, ref, views = random_proposals(torch.Generator().manual_seed(6))
@@ -222,7 +222,7 @@ print(json.dumps(dict(available=carve_fused.available(), reason=carve_fused.unav
 @needs_kernel
 def test_the_build_is_cached_and_reused(tmp_path):
     """A fresh cache builds the library once; a second process loads it without rebuilding."""
-    code = ("import json; from carvi_torch import carve_fused as f; ok = f.available(); "
+    code = ("import json; from carvi_torch.carve import native as f; ok = f.available(); "
             "p = f.library_path(); print(json.dumps([ok, str(p), p.stat().st_mtime_ns]))")
     env = dict(os.environ, CARVI_TORCH_CACHE=str(tmp_path), PYTHONPATH=str(ROOT))
     runs = [json.loads(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
@@ -371,7 +371,7 @@ def test_the_portable_build_carves_like_the_x86_one(tmp_path):
 
 
 def test_the_kernel_takes_every_resolution_carve_proposals_takes():
-    from carvi_torch import carve
+    from carvi_torch.carve.geometry import check_indices
     with pytest.raises(ValueError, match="2048"):
-        carve._check_indices(2, torch.tensor([0]), torch.tensor([[1]]), 2049, torch.device("cpu"))
+        check_indices(2, torch.tensor([0]), torch.tensor([[1]]), 2049, torch.device("cpu"))
     assert carve_fused.MAX_RESOLUTION >= 2048

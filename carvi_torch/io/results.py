@@ -1,0 +1,154 @@
+"""The run's reports and per-class JSON files: ``summary.json`` entries, ``cameras.json``, proposal scores.
+
+Example:
+    >>> r = ClassReport("car", objects=2)
+    >>> r.skip("no usable camera", "viewpoints", annotation_id=7, source="a.xml")
+    >>> r.to_dict()["skipped"], r.to_dict()["failures"][0]["reason"]
+    (1, 'no usable camera')
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from ..cameras import azimuth_elevation_roll_from_rotation
+from .outputs import read_json, write_json
+
+__all__ = ["ClassReport", "cameras_json", "scores_entry", "write_scores"]
+
+
+@dataclass
+class ClassReport:
+    """What happened to one class (becomes its entry in ``summary.json``)."""
+
+    name: str
+    objects: int = 0
+    reconstructed: int = 0
+    resumed: int = 0
+    skipped: list = field(default_factory=list)  # dicts: annotation_id, source, stage, reason
+    warnings: list = field(default_factory=list)
+    seconds: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+    status: str = "ok"
+
+    def skip(self, reason: str, stage: str, annotation_id=None, source=None):
+        self.skipped.append({"annotation_id": annotation_id, "source": source, "stage": stage, "reason": reason})
+
+    def failures(self) -> list:
+        """The skipped objects, class-level entries first, then by annotation id (the order in which
+        writer processes finish must not change the report)."""
+        return sorted(self.skipped, key=lambda f: (f["annotation_id"] is not None,
+                                                   f["annotation_id"] if isinstance(f["annotation_id"], int) else 0))
+
+    def to_dict(self) -> dict:
+        return {"objects": self.objects, "reconstructed": self.reconstructed, "resumed": self.resumed,
+                "skipped": len(self.skipped), "status": self.status, "failures": self.failures(),
+                "warnings": self.warnings, "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
+                **self.info}
+
+    def book_write(self, out: dict, aid, src) -> None:
+        """Book a writer's result (:func:`carvi_torch.io.writer.write_object`) for object ``aid``."""
+        self.seconds["mesh"] = self.seconds.get("mesh", 0.0) + out["mesh_seconds"]
+        self.seconds["write"] = self.seconds.get("write", 0.0) + out["write_seconds"]
+        if out["ok"]:
+            self.reconstructed += 1
+        else:
+            self.skip(out["reason"], "mesh", aid, src)
+
+
+def _camera_from(has_cam: bool, ground_truth: bool, sfm_ok: bool, unseen: int) -> str | None:
+    if not has_cam:
+        return None
+    if ground_truth:
+        return "ground_truth"
+    if sfm_ok:
+        return "sfm"
+    # the unseen-image path: the mean shape's keypoints and the silhouette, or the silhouette alone
+    return "mean_shape" if unseen > 0 else "silhouette"
+
+
+def _per_annotation(coll, vp, clusters) -> dict:
+    """``cameras.json``'s ``cameras``: per annotation id, SfM and final cameras in image pixels."""
+    n = len(coll)
+    mix = vp.groups
+    group_of = mix.labels.tolist() if mix.k > 1 else None  # one host read
+    inv = coll.canvas_from_image.inverse()
+    sfm_img = vp.sfm_cameras[:n].compose_similarity(inv).to_list()
+    ref_img = vp.cameras[:n].compose_similarity(inv).to_list()
+    az, el, ro = azimuth_elevation_roll_from_rotation(vp.cameras.R[:n].double())
+    sfm_ok, has_cam = vp.sfm_valid[:n].tolist(), vp.has_camera[:n].tolist()  # one host read each
+    unseen = vp.unseen_keypoints[:n].tolist()
+    per = {}
+    for i, aid in enumerate(coll.annotation_ids.tolist()):
+        per[str(aid)] = {
+            "source": coll.sources[i],
+            "sfm": sfm_img[i] if sfm_ok[i] else None,
+            "refined": ref_img[i] if has_cam[i] else None,
+            "camera_from": _camera_from(has_cam[i], vp.source == "gt", sfm_ok[i], unseen[i]),
+            "azimuth_deg": math.degrees(float(az[i])), "elevation_deg": math.degrees(float(el[i])),
+            "roll_deg": math.degrees(float(ro[i])),
+            "cluster": int(clusters.labels[i]) if clusters is not None else None,
+        }
+        if group_of is not None:
+            per[str(aid)]["shape_group"] = group_of[i]
+    return per
+
+
+def cameras_json(coll, vp, axes: torch.Tensor | None, clusters) -> dict:
+    """``cameras.json`` content of a class: per annotation id its cameras, then the mean shape,
+    symmetry plane, principal directions and (with shape groups) every group's mean shape.
+
+    Args:
+        coll: the class; vp: its :class:`carvi_torch.viewpoints.Viewpoints`; axes: ``(3, 3)``
+            principal directions; clusters: :class:`carvi_torch.surrogates.Clusters`.
+    """
+    names = coll.meta.keypoint_names
+
+    def named(S):
+        S = S.detach().double().cpu()
+        return {nm: (None if not torch.isfinite(S[k]).all() else S[k].tolist()) for k, nm in enumerate(names)}
+
+    mix = vp.groups
+    out = {
+        "class": coll.name,
+        "frame": "image pixels of each annotation's image; R rows = image x, image y (down), view direction",
+        "cameras": _per_annotation(coll, vp, clusters),
+        "mean_shape": named(vp.shape),
+        "symmetry_plane": vp.reflection.detach().double().cpu().tolist(),
+        "principal_directions": axes.detach().double().cpu().tolist() if axes is not None else None,
+        "cluster_threshold_deg": float(clusters.threshold_deg) if clusters is not None else None,
+    }
+    if mix.k > 1:  # a mixture of rigid shapes: every group's mean shape, in the same class frame
+        sizes = mix.sizes()
+        out["shape_groups"] = [{"objects": sizes[g], "mean_shape": named(mix.shape(g))} for g in range(mix.k)]
+        out["mean_shape_group"] = mix.largest()
+    return out
+
+
+def scores_entry(sel, j: int, surrogates: torch.Tensor | None, aid_of: list) -> dict:
+    """``proposal_scores.json`` entry of reference ``j`` of a chunk's :class:`carvi_torch.select.Selection`."""
+    return {
+        "best": int(sel.best[j]),
+        "scores": [None if not math.isfinite(v) else round(v, 6) for v in sel.scores[j].tolist()],
+        "misses": [int(v) if v < 10 ** 6 else None for v in sel.misses[j].tolist()],
+        "surrogates": ([[aid_of[s] if s >= 0 else None for s in pair] for pair in surrogates[j].tolist()]
+                       if surrogates is not None else None),
+    }
+
+
+def write_scores(cdir: Path, scores: dict, overwrite: bool) -> None:
+    """Merge ``scores`` into ``cdir/proposal_scores.json`` (atomic; ``overwrite`` starts afresh)."""
+    if not scores:
+        return
+    prev = {}
+    sp = cdir / "proposal_scores.json"
+    if sp.is_file() and not overwrite:
+        try:
+            prev = read_json(sp)
+        except ValueError:
+            prev = {}
+    prev.update(scores)
+    write_json(sp, prev, indent=None)

@@ -1,0 +1,182 @@
+"""Meshes and files of reconstructed objects, written by worker processes beside the device work.
+
+Meshing (marching cubes) and writing an object take about 10-25 ms of CPU; in worker
+processes they overlap the carving of the next objects. Workers are started with
+``forkserver`` where the platform has it (else ``spawn``): never ``fork``, which copies a
+process whose threads (torch's pools) may hold locks.
+
+Example:
+    >>> w = Writer(0)            # no worker processes: every object is written at once, here
+    >>> w.workers
+    0
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import time
+from collections import deque
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+import torch
+
+from .. import mesh
+from ..runtime import cores, env_count
+from .outputs import write_npz
+
+__all__ = ["Writer", "write_object", "writer_workers", "start_method", "canvas_to_image_4x4", "proposals_payload"]
+
+
+def start_method() -> str:
+    """How worker processes start: ``forkserver`` where available, else ``spawn`` (never ``fork``)."""
+    return "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+
+
+def writer_workers(stage: str = "all", device: torch.device | None = None) -> int:
+    """Writer processes of a run: ``CARVI_WRITERS`` if set, else ``cores - 1`` (at least 1; at
+    most 8 on the CPU, 16 with ``device`` a GPU; none for ``stage=cameras``).
+
+    On the CPU the carving needs the cores too; with a GPU the main process mostly waits on the
+    device, and the writers are what limits a run (docs/benchmarks.md).
+    """
+    env = env_count("CARVI_WRITERS", 0)
+    if env is not None:
+        return env
+    if stage != "all":
+        return 0
+    cap = 16 if device is not None and device.type == "cuda" else 8
+    return min(cap, max(1, cores() - 1))
+
+
+def canvas_to_image_4x4(scale: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
+    """``(4, 4)`` float64 map of camera-frame points from canvas pixels to image pixels (x, y shifted and
+    scaled, z scaled), for a canvas similarity ``canvas = scale * image + offset``.
+
+    Example:
+        >>> canvas_to_image_4x4(torch.tensor(2.0), torch.tensor([4.0, 0.0]))[0].tolist()
+        [0.5, 0.0, 0.0, -2.0]
+    """
+    a = float(scale)
+    T = torch.eye(4, dtype=torch.float64)
+    T[0, 0] = T[1, 1] = T[2, 2] = 1.0 / a
+    T[0, 3] = -float(offset[0]) / a
+    T[1, 3] = -float(offset[1]) / a
+    return T
+
+
+def proposals_payload(sel, j: int, surrogates: torch.Tensor | None, canvas_to_image: torch.Tensor,
+                      aid_of: list) -> dict:
+    """Every proposal of reference ``j`` of a chunk's :class:`~carvi_torch.select.Selection`, for
+    ``<class>/proposals/<id>.npz`` (bit-packed occupancy, image-pixel transforms, scores)."""
+    R, P = sel.scores.shape
+    positions = sel.pos[j * P:(j + 1) * P]
+    ok = positions >= 0
+    idx = positions.clamp(min=0).to(sel.grids.occupancy.device)
+    occ = sel.grids.occupancy[idx].cpu().numpy() & ok.numpy()[:, None, None, None]
+    v2img = (canvas_to_image[None] @ sel.grids.voxel_to_camera[idx].double().cpu()).numpy()
+    sur = np.full((P, 2), -1, dtype=np.int64)
+    if surrogates is not None:
+        for k, pair in enumerate(surrogates[j].tolist()):
+            sur[k] = [aid_of[x] if x >= 0 else -1 for x in pair]
+    return dict(occupancy_bits=np.packbits(occ.reshape(P, -1), axis=1), shape=np.asarray(occ.shape[1:]),
+                voxel_to_camera=v2img, valid=ok.numpy(), scores=sel.scores[j].numpy(),
+                misses=sel.misses[j].numpy(), best=np.int64(sel.best[j]), surrogates=sur)
+
+
+def write_object(job: dict) -> dict:
+    """Mesh and files of one reconstructed object (in a writer process, or inline).
+
+    Takes host (numpy) data only. Returns ``ok``, ``reason``, ``mesh_seconds``, ``write_seconds``.
+    """
+    t0 = time.perf_counter()
+    occ = job["occupancy"]
+    v2img = job["voxel_to_image"]
+    if job["largest_component"]:
+        occ = mesh.largest_component(occ)
+    m = mesh.occupancy_to_mesh(occ, v2img)
+    t1 = time.perf_counter()
+    if len(m.faces) == 0:
+        return dict(ok=False, reason="selected proposal has no surface", mesh_seconds=t1 - t0, write_seconds=0.0)
+    if job["proposals"] is not None:
+        write_npz(job["proposals_path"], **job["proposals"])
+    write_npz(job["voxel_path"], occupancy=occ, voxel_to_camera=v2img, voxel_to_canvas=job["voxel_to_canvas"],
+              canvas_scale=job["canvas_scale"], canvas_offset=job["canvas_offset"], surrogates=job["surrogates"])
+    mesh.write_mesh(m, job["mesh_path"])
+    return dict(ok=True, reason=None, mesh_seconds=t1 - t0, write_seconds=time.perf_counter() - t1)
+
+
+def _write_object_safe(job: dict) -> dict:
+    """:func:`write_object`, with any error of this object booked as its own failure (reason)
+    instead of surfacing later, at some other object's turn (or in another class)."""
+    try:
+        return write_object(job)
+    except Exception as e:  # noqa: BLE001 - reported per object, the run goes on
+        return dict(ok=False, reason=f"writing failed: {type(e).__name__}: {e}", mesh_seconds=0.0, write_seconds=0.0)
+
+
+def _start_worker() -> int:
+    """No-op run by each writer process once, so that all of them start early."""
+    return os.getpid()
+
+
+class Writer:
+    """Meshes and files of reconstructed objects, in worker processes or inline.
+
+    Results are booked in submission order (deterministic reports). At most
+    ``4 * workers`` objects wait at once, which bounds the memory of pending grids.
+    With ``workers == 0`` every object is written at once, in this process.
+    ``blocked``: seconds :meth:`submit` spent waiting for a writer to finish (back-pressure:
+    the writers, not the device work, then limit the run).
+    """
+
+    def __init__(self, workers: int):
+        self.workers = int(workers)
+        self.pool = None
+        self.pending: deque = deque()
+        self.blocked = 0.0
+        if self.workers > 0:
+            ctx = mp.get_context(start_method())
+            if start_method() == "forkserver":
+                ctx.set_forkserver_preload([__name__])
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx)
+            for f in [self.pool.submit(_start_worker) for _ in range(self.workers)]:
+                f.result()
+
+    def submit(self, job: dict, done) -> None:
+        """Write ``job`` (:func:`write_object`); ``done(result)`` is called when it is booked."""
+        if self.pool is None:
+            done(_write_object_safe(job))
+            return
+        self.pending.append((self.pool.submit(_write_object_safe, job), done))
+        if len(self.pending) > 4 * self.workers:
+            t0 = time.perf_counter()
+            while len(self.pending) > 4 * self.workers:
+                self._finish_one()
+            self.blocked += time.perf_counter() - t0
+
+    def _finish_one(self) -> None:
+        future, done = self.pending.popleft()
+        try:
+            out = future.result()
+        except Exception as e:  # noqa: BLE001 - a writer process died (BrokenProcessPool, ...)
+            out = dict(ok=False, reason=f"writer process failed: {type(e).__name__}: {e}", mesh_seconds=0.0,
+                       write_seconds=0.0)
+        done(out)
+
+    def drain(self) -> None:
+        """Wait for every submitted object and book it."""
+        while self.pending:
+            self._finish_one()
+
+    def close(self, cancel: bool = False) -> None:
+        """Book what is pending (or, with ``cancel``, drop it: an error or Ctrl-C is on its way
+        out) and stop the processes."""
+        try:
+            if not cancel:
+                self.drain()
+        finally:
+            self.pending.clear()
+            if self.pool is not None:
+                self.pool.shutdown(wait=True, cancel_futures=True)
+                self.pool = None

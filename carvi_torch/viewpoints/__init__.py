@@ -1,0 +1,245 @@
+"""The viewpoint stage: a camera for every instance of a class and the class's mean shape.
+
+Modules, in the order data flows through them:
+
+* :mod:`~carvi_torch.viewpoints.camera_fit`: fitting scaled orthographic cameras to a fixed
+  shape (keypoints and silhouettes; Levenberg-Marquardt on scaled rotations), the shared maths;
+* :mod:`~carvi_torch.viewpoints.sfm`: rigid structure from motion with missing data;
+* :mod:`~carvi_torch.viewpoints.mixture`: optionally several rigid shapes per class;
+* :mod:`~carvi_torch.viewpoints.refine`: silhouette refinement per shape group, and cameras for
+  the instances SfM could not place (the unseen-image path).
+
+:func:`estimate_viewpoints` runs them in order on a class and its mirrored copies and returns
+a :class:`Viewpoints`. Cameras are in canvas pixels (``carvi_torch.cameras`` conventions).
+
+Example:
+    >>> from carvi_torch.synthetic import procedural
+    >>> from carvi_torch.io.coco import load_coco
+    >>> import tempfile, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = procedural.write_default_collection(d, instances_per_class=8, categories=["car"], seed=0, progress=False)
+    >>> coll = load_coco(d / "annotations.json").collections["car"]
+    >>> from carvi_torch.config import ViewpointConfig
+    >>> vp = estimate_viewpoints(coll, ViewpointConfig())
+    >>> len(vp.cameras) == 2 * len(coll), tuple(vp.shape.shape[1:])
+    (True, (3,))
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Literal
+
+import torch
+
+from ..cameras import ScaledOrthographic, align_rotations
+from ..collection import ClassCollection
+from ..runtime import StageTimer
+from ..sdf import distance_to_mask
+from . import mixture, sfm
+from .refine import group_sfm_cameras, keypoints_left_out, refine_groups, unseen_keypoints, unseen_per_group
+
+if TYPE_CHECKING:
+    from ..config import ViewpointConfig
+
+__all__ = ["Viewpoints", "CameraSource", "estimate_viewpoints", "class_sfm", "GT_REFLECTION", "ground_truth_cameras"]
+
+#: Where a run's cameras come from: ``estimate`` (SfM and refinement) or ``gt`` (the true cameras, a study).
+CameraSource = Literal["estimate", "gt"]
+
+#: Reflection of the ground-truth object frames (PASCAL3D+ and procedural: left/right along x).
+GT_REFLECTION = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
+
+
+@dataclass
+class Viewpoints:
+    """Cameras of a class's originals and mirrored copies (``2N`` rows, canvas pixels) and its mean shape.
+
+    Attributes:
+        both: the class with its mirrored copies (row ``i + N`` mirrors row ``i``).
+        sfm_cameras: ``ScaledOrthographic (2N)``: the SfM cameras in the class frame.
+        sfm_valid: ``(2N,)`` bool: rows with an SfM camera.
+        cameras: ``ScaledOrthographic (2N)``: the final cameras (refined, unseen-image or ground truth).
+        has_camera: ``(2N,)`` bool: rows whose final camera is usable (finite, positive scale).
+        shape: ``(K, 3)`` mean shape (with shape groups: the largest group's) in the class frame.
+        reflection: ``(3, 3)`` reflection through the shape's left-right symmetry plane.
+        groups: the shape groups (:class:`~carvi_torch.viewpoints.mixture.MixtureResult`).
+        unseen_keypoints: ``(2N,)`` long: for rows of the unseen-image path, their visible keypoints
+            with a mean-shape row (0: the silhouette alone); -1 elsewhere.
+        source: :data:`CameraSource`.
+        distances: ``(2N, H, W)`` exact distances to the masks (:func:`carvi_torch.sdf.distance_to_mask`),
+            kept for the carving's signed distances; :meth:`take_distances` hands them over once.
+        info: entries for the class's summary (``sfm``, ``sfm_groups``, ``refine``,
+            ``cameras_from_mean_shape``, ``cameras_from_silhouette_only``), in that order.
+        warnings: messages for the class's summary.
+        log: lines for the terminal.
+    """
+
+    both: ClassCollection
+    sfm_cameras: ScaledOrthographic
+    sfm_valid: torch.Tensor
+    cameras: ScaledOrthographic
+    has_camera: torch.Tensor
+    shape: torch.Tensor
+    reflection: torch.Tensor
+    groups: mixture.MixtureResult
+    unseen_keypoints: torch.Tensor
+    source: str = "estimate"
+    distances: torch.Tensor | None = None
+    info: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+    log: list = field(default_factory=list)
+
+    def take_distances(self) -> torch.Tensor:
+        """The distance maps, released from this object (the carving needs them once)."""
+        dist, self.distances = self.distances, None
+        if dist is None:
+            raise RuntimeError("the distance maps were already taken")
+        return dist
+
+
+def class_sfm(both: ClassCollection, cfg: ViewpointConfig, init_shape: torch.Tensor | None = None) -> sfm.SfMResult:
+    """Rigid SfM of a collection with the configured limits and the category's rigid keypoints, names,
+    flip pairs and left/right convention (``init_shape``: a start, :func:`~carvi_torch.viewpoints.sfm.rigid_sfm`)."""
+    m = both.meta
+    opts = sfm.SfMOptions(max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner, tol=cfg.sfm_tol)
+    return sfm.rigid_sfm(both.keypoints, both.visible, opts, rigid_keypoints=m.rigid_keypoints,
+                         keypoint_names=m.keypoint_names, flip_pairs=m.flip_pairs, left_convention=m.left_convention,
+                         init_shape=init_shape)
+
+
+def _sfm_notes(coll: ClassCollection, res: sfm.SfMResult, vp_info: dict, warnings: list) -> None:
+    """The SfM's problems and the originals it could not place, for the summary."""
+    n = len(coll)
+    for msg in res.problems:
+        warnings.append(f"sfm: {msg}")
+    vp_info["sfm"] = res.summary()
+    for i in (~res.valid[:n]).nonzero().squeeze(1).tolist():
+        why = res.reasons[i] if i < len(res.reasons) and res.reasons[i] else "fewer than 2 visible keypoints"
+        warnings.append(f"annotation {int(coll.annotation_ids[i])} ({coll.sources[i]}): no SfM camera: {why}")
+
+
+def _shape_groups(both, dist, res, cfg: ViewpointConfig, source: str, seed: int, info: dict, log: list):
+    """One rigid shape (``sfm_groups=1``) or the mixture of :mod:`carvi_torch.viewpoints.mixture`."""
+    if cfg.sfm_groups == 1 or source != "estimate":
+        return mixture.fit_mixture_of_shapes(both, dist, None, max_groups=1, single=res)
+    lines = []
+    mix = mixture.fit_mixture_of_shapes(
+        both, dist, lambda sub, init_shape=None: class_sfm(sub, cfg, init_shape), max_groups=cfg.sfm_groups,
+        min_size=cfg.sfm_group_min, gain=cfg.sfm_group_gain, agreement_deg=cfg.sfm_group_agreement_deg,
+        rounds=cfg.sfm_group_rounds, seed=seed, single=res, log=lines.append, threads=cfg.sfm_group_threads)
+    log.extend(f"  {both.name}: {line}" for line in lines)
+    info["sfm_groups"] = mix.summary()
+    return mix
+
+
+def _ground_truth(coll: ClassCollection, both: ClassCollection, gt_img: ScaledOrthographic, vp: Viewpoints) -> None:
+    """Replace the cameras by the true ones (in canvas pixels, mirrors included) and express the mean
+    shape in the ground-truth frame, so that clusters and selection use that frame (a study)."""
+    n = len(coll)
+    w = coll.image_size[:, 0].to(gt_img.t.dtype)
+    mirrored = gt_img.mirror(w, GT_REFLECTION.to(gt_img.R))
+    vp.cameras = ScaledOrthographic.cat([gt_img.compose_similarity(coll.canvas_from_image),
+                                         mirrored.compose_similarity(both.canvas_from_image[n:])])
+    vp.has_camera = torch.ones(2 * n, dtype=torch.bool, device=both.keypoints.device)
+    ok = vp.groups.single.valid
+    G = align_rotations(vp.sfm_cameras.R[ok], vp.cameras.R[ok])  # R_sfm G ~ R_gt
+    ratio = (vp.cameras.s[ok] / vp.sfm_cameras.s[ok]).median()
+    vp.shape = (vp.shape @ G) / ratio
+    vp.reflection = GT_REFLECTION.to(vp.shape)
+
+
+def _refine_step(vp: Viewpoints, dist: torch.Tensor, cfg: ViewpointConfig) -> None:
+    """Silhouette refinement of every shape group's cameras (the summary's ``refine`` entry)."""
+    cams, energy = refine_groups(vp.groups, vp.sfm_cameras, vp.both, dist, cfg)
+    vp.cameras = cams
+    ok = vp.sfm_valid
+    vp.info["refine"] = {"median_energy_before": float(energy[0][ok].median()) if ok.any() else None,
+                         "median_energy_after": float(energy[1][ok].median()) if ok.any() else None}
+    left_out = keypoints_left_out(vp.groups, vp.both, cfg)
+    if left_out:
+        vp.info["refine"]["keypoints_left_out"] = left_out
+        vp.log.append(f"  {vp.both.name}: refinement leaves out keypoints shown by fewer than "
+                      f"{cfg.refine_min_support:.0%} of the instances: "
+                      + "; ".join(f"group {g}: {', '.join(v)}" for g, v in left_out.items()))
+
+
+def _unseen_step(coll: ClassCollection, vp: Viewpoints, dist: torch.Tensor, cfg: ViewpointConfig) -> None:
+    """Cameras for the rows without one (fewer than 2 visible keypoints): the unseen-image path."""
+    n = len(coll)
+    missing = ~vp.has_camera
+    vp.cameras = unseen_per_group(vp.groups, vp.cameras, missing, vp.both, dist, cfg)
+    idx = missing.nonzero().squeeze(1)
+    vp.info["cameras_from_mean_shape"] = [int(coll.annotation_ids[i]) for i in idx.tolist() if i < n]
+    vp.unseen_keypoints = unseen_keypoints(vp.groups, missing, vp.both, cfg)
+    blind = [int(coll.annotation_ids[i]) for i in (vp.unseen_keypoints[:n] == 0).nonzero().squeeze(1).tolist()]
+    if blind:
+        vp.info["cameras_from_silhouette_only"] = blind
+        vp.warnings.append(
+            f"{len(blind)} annotation(s) without an SfM camera got one from the silhouette alone (none of "
+            f"their visible keypoints has a row in the mean shape): unreliable, a silhouette often fits "
+            f"several viewpoints (cameras.json: camera_from 'silhouette'); ids {blind[:20]}"
+            + (" ..." if len(blind) > 20 else ""))
+    vp.has_camera = torch.ones_like(vp.has_camera)
+
+
+def ground_truth_cameras(gt: dict | None, coll: ClassCollection) -> ScaledOrthographic | None:
+    """Image-pixel ground-truth cameras of the collection's instances from ``gt.json``'s content
+    (``None`` when there is none, or when an instance has none)."""
+    if gt is None:
+        return None
+    entries = gt.get("annotations", gt)
+    items = [entries.get(str(aid)) for aid in coll.annotation_ids.tolist()]
+    if any(e is None or "R" not in e for e in items):
+        return None
+    return ScaledOrthographic.from_list(items, device=coll.device)
+
+
+def estimate_viewpoints(coll: ClassCollection, cfg: ViewpointConfig, *, source: str = "estimate",
+                        gt_cameras: ScaledOrthographic | None = None, seed: int = 0,
+                        timer: StageTimer | None = None) -> Viewpoints:
+    """Cameras of a class (originals and mirrored copies) and its mean shape and symmetry plane.
+
+    SfM, the optional mixture of shapes, then (``source="estimate"``) silhouette refinement or
+    (``"gt"``) the true cameras, and the unseen-image path for rows without a camera.
+
+    Args:
+        coll: the class (``N`` instances) on its device.
+        cfg: the viewpoint settings (:class:`carvi_torch.config.ViewpointConfig`).
+        source: :data:`CameraSource`.
+        gt_cameras: ``ScaledOrthographic (N)`` true cameras in image pixels (``source="gt"``).
+        seed: seed of the mixture's k-means starts.
+        timer: books ``sfm``, ``sdf`` and ``refine`` seconds.
+
+    Returns:
+        :class:`Viewpoints` with ``2N`` rows.
+    """
+    if source == "gt" and gt_cameras is None:
+        raise ValueError("source='gt' needs the true cameras of every annotation (gt_cameras)")
+    timer = timer if timer is not None else StageTimer(coll.device)
+    both = coll.with_mirrors()
+    info, warnings, log = {}, [], []
+    with timer("sfm"):
+        res = class_sfm(both, cfg)
+    _sfm_notes(coll, res, info, warnings)
+    with timer("sdf"):
+        dist = distance_to_mask(both.masks)
+    with timer("sfm"):
+        mix = _shape_groups(both, dist, res, cfg, source, seed, info, log)
+    cams_sfm, sfm_valid = group_sfm_cameras(mix)
+    shape = mix.shape(mix.largest())
+    vp = Viewpoints(both, cams_sfm, sfm_valid, cams_sfm, sfm_valid.clone(), shape,
+                    sfm.symmetry_plane(shape, coll.meta.flip_pairs), mix, None, source, dist, info, warnings, log)
+    if source == "gt":
+        _ground_truth(coll, both, gt_cameras, vp)
+    elif cfg.refine:
+        with timer("refine"):
+            _refine_step(vp, dist, cfg)
+    if bool((~vp.has_camera).any()):
+        with timer("refine"):
+            _unseen_step(coll, vp, dist, cfg)
+    else:
+        vp.unseen_keypoints = torch.full((len(both),), -1, dtype=torch.long, device=vp.has_camera.device)
+    finite = torch.isfinite(vp.cameras.R).flatten(1).all(1) & torch.isfinite(vp.cameras.s) & (vp.cameras.s > 0)
+    vp.has_camera = vp.has_camera & finite
+    return vp
+
