@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.carvi-installed
 OUT    ?= outputs/default
 
-.PHONY: install run test bench clean
+.PHONY: install run test lint clean
 
 # The install is a file target: it re-runs only when pyproject.toml changes.
 $(STAMP): pyproject.toml
@@ -19,7 +19,11 @@ install: $(STAMP)
 run: install
 	$(PY) -m carvi_torch.reconstruct --out $(OUT)
 
-test: install
+lint: install
+	$(PY) -m ruff check carvi_torch tests tools
+
+# lint, then the suite (doctests of the package included: pyproject.toml's pytest options)
+test: lint
 	$(PY) -m pytest -q
 
 clean:

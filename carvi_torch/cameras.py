@@ -336,7 +336,7 @@ def rotation_from_azimuth_elevation_roll(
 
     Example:
         >>> z = torch.tensor(0.0)
-        >>> rotation_from_azimuth_elevation_roll(z, z, z)[2]   # looks along +y
+        >>> rotation_from_azimuth_elevation_roll(z, z, z)[2].round(decimals=6)   # looks along +y
         tensor([0., 1., 0.])
     """
     azimuth, elevation, roll = torch.broadcast_tensors(
@@ -372,7 +372,8 @@ def azimuth_elevation_roll_from_rotation(R: torch.Tensor) -> tuple[torch.Tensor,
     return azimuth, phi + math.pi / 2, roll
 
 
-def random_rotations(n: int, generator: torch.Generator | None = None, dtype=torch.float32, device="cpu") -> torch.Tensor:
+def random_rotations(n: int, generator: torch.Generator | None = None, dtype=torch.float32,
+                     device="cpu") -> torch.Tensor:
     """``n`` rotations drawn uniformly (Haar) from random unit quaternions. Returns ``(n, 3, 3)``."""
     q = torch.randn(n, 4, generator=generator, dtype=torch.float64)
     return quaternion_to_rotation(q).to(dtype=dtype, device=device)

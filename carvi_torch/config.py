@@ -35,7 +35,8 @@ from .carve import Backend, Interpolation
 from .mesh import MeshFormat
 from .viewpoints import CameraSource
 
-__all__ = ["Config", "ConfigError", "load_config", "read_run_config", "settings_changed", "flatten_settings", "NEUTRAL_SETTINGS", "resolve_key", "all_keys", "FIELD_DOCS", "InputConfig",
+__all__ = ["Config", "ConfigError", "load_config", "read_run_config", "settings_changed", "flatten_settings",
+           "NEUTRAL_SETTINGS", "resolve_key", "all_keys", "FIELD_DOCS", "InputConfig",
            "ViewpointConfig", "SurrogateConfig", "CarveConfig", "SelectConfig", "MeshConfig", "StudyConfig",
            "Stage"]
 

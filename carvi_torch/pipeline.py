@@ -9,9 +9,8 @@ Data flows one way through the stage modules::
     select           average masks, proposal scores, the best proposal  -> Selection
     io.writer        marching cubes, files (worker processes)
 
-:func:`run` drives a whole run (every class), :func:`run_class` one class. They only order
-the stages and keep the books (resume, the report); the numerical work lives in the stage
-modules. Outputs are written atomically and a rerun skips objects whose mesh and voxels exist.
+:func:`run` drives a whole run, :func:`run_class` one class. They only order the stages and keep the
+books (resume, the report); the numerical work lives in the stage modules.
 """
 from __future__ import annotations
 
@@ -35,8 +34,7 @@ from .runtime import StageTimer, intra_op_threads, peak_rss_mb, stable_hash, tor
 from .sdf import signed_distance
 from .viewpoints import Viewpoints, estimate_viewpoints, ground_truth_cameras
 
-__all__ = ["run", "run_class", "prepare_class", "prepare_data", "carve_and_select", "ClassPlan", "ClassReport",
-           "chunk_objects"]
+__all__ = ["run", "run_class", "prepare_class", "prepare_data", "carve_and_select", "ClassPlan", "chunk_objects"]
 
 
 def _log(msg: str, cfg: Config):

@@ -46,7 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
                                  description="Lift annotated objects into 3D: a camera viewpoint and a dense shape "
                                              "for every object (Carreira et al., 'Lifting Object Detection "
                                              "Datasets into 3D').",
-                                 epilog=EPILOG_HEAD + settings_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
+                                 epilog=EPILOG_HEAD + settings_help(),
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", help="COCO keypoint JSON (default: the embedded procedural collection)")
     ap.add_argument("--out", help="output directory (default: outputs/default)")
     ap.add_argument("--config", help="YAML config file (nested by section or flat; see configs/default.yaml)")

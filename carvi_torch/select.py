@@ -114,7 +114,8 @@ def _check_plane(plane_size: int, extent: float | None) -> None:
         raise ValueError(f"extent must be a positive finite float, got {extent}")
 
 
-def plane_points(axes: torch.Tensor, plane_size: int, extent: float, centre: torch.Tensor | None = None) -> torch.Tensor:
+def plane_points(axes: torch.Tensor, plane_size: int, extent: float,
+                 centre: torch.Tensor | None = None) -> torch.Tensor:
     """Object-frame points of the three plane grids: ``(3, G, G, 3)``.
 
     ``[j, i, k] = centre + a_k e_a + b_i e_b`` (module docstring), ``G = plane_size``.
@@ -472,7 +473,8 @@ def keypoint_misses(
     """
     _check_grids(occupancy, voxel_to_camera)
     B, D, H, W = occupancy.shape
-    if not isinstance(keypoints, torch.Tensor) or keypoints.dim() != 3 or keypoints.shape[0] != B or keypoints.shape[-1] != 2:
+    if (not isinstance(keypoints, torch.Tensor) or keypoints.dim() != 3 or keypoints.shape[0] != B
+            or keypoints.shape[-1] != 2):
         raise ValueError(f"keypoints must be a ({B}, K, 2) tensor")
     K = keypoints.shape[1]
     if not isinstance(visible, torch.Tensor) or visible.shape != (B, K):

@@ -51,7 +51,8 @@ def within_a_pixel(a: np.ndarray, b: np.ndarray) -> bool:
 
 def single_camera(seed: int = 0, s: float = 30.0) -> ScaledOrthographic:
     R = random_rotations(1, torch.Generator().manual_seed(seed), dtype=torch.float64)
-    return ScaledOrthographic(R, torch.tensor([s], dtype=torch.float64), torch.tensor([[64.0, 60.0]], dtype=torch.float64))
+    f64 = dict(dtype=torch.float64)
+    return ScaledOrthographic(R, torch.tensor([s], **f64), torch.tensor([[64.0, 60.0]], **f64))
 
 
 # --------------------------------------------------------------------------- medial axis

@@ -157,7 +157,8 @@ def test_real_aeroplanes_fused_equals_torch(shared_data, tmp_path):
     ann = tmp_path / "aeroplane.json"
     convert(shared_data / "pascal_voc_aeroplane" / "keypoints", ann)
     cfg = Config().override(dict(data=str(ann), progress=False))
-    loaded = coco.load_coco(ann, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin, device=torch.device("cpu"),
+    loaded = coco.load_coco(ann, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
+                            device=torch.device("cpu"),
                             classes=["aeroplane"])
     coll = loaded.collections["aeroplane"]
     gen = torch.Generator().manual_seed(cfg.seed)

@@ -6,7 +6,6 @@ import shutil
 
 import numpy as np
 import pytest
-import trimesh
 
 from carvi_torch.config import Config
 from carvi_torch.evaluate import evaluate, format_shape_table, format_viewpoint_table, main, posed_gt_mesh

@@ -211,7 +211,8 @@ class TestSampleSurface:
         v = torch.tensor([[0.0, 0, 0], [2, 0, 0], [0.5, 1.5, 0]], dtype=torch.float64)
         f = torch.tensor([[0, 1, 2]])
         p, w = sample_surface(v, f, 0.11)
-        assert float((w * p[:, 0]).sum()) == pytest.approx(float(triangle_areas(v, f)) * float(v[:, 0].mean()), rel=1e-12)
+        assert float((w * p[:, 0]).sum()) == pytest.approx(float(triangle_areas(v, f)) * float(v[:, 0].mean()),
+                                                           rel=1e-12)
 
     def test_quadrature_converges(self):
         # integral of x^2 over the unit square = 1/3
@@ -439,8 +440,12 @@ class TestDepthOffset:
         gt.apply_transform(trimesh.transformations.rotation_matrix(0.5, [0, 1, 0]))
         recon = trimesh.creation.box(extents=[0.8, 0.8, 1.6])
         R = random_rotations(1, torch.Generator().manual_seed(3), dtype=torch.float64)
-        cam = ScaledOrthographic(R, torch.tensor([40.0], dtype=torch.float64), torch.tensor([[64.0, 64.0]], dtype=torch.float64))
-        to_cam = lambda m: (cam.to_camera_frame(torch.tensor(m.vertices))[0], torch.tensor(m.faces))
+        f64 = dict(dtype=torch.float64)
+        cam = ScaledOrthographic(R, torch.tensor([40.0], **f64), torch.tensor([[64.0, 64.0]], **f64))
+
+        def to_cam(m):
+            return cam.to_camera_frame(torch.tensor(m.vertices))[0], torch.tensor(m.faces)
+
         diag = float(np.linalg.norm(gt.extents))
         shift = torch.tensor([0.0, 0.0, 17.0], dtype=torch.float64)
         rv, rf = to_cam(recon)

@@ -420,7 +420,8 @@ def test_silhouette_robust_reaches_refinement(monkeypatch, tmp_path):
 
     monkeypatch.setattr(Rf, "refine_cameras", spy)
     for value, expected in ((0.0, None), (0.3, 0.3)):
-        cfg = Config().override([f"out={tmp_path / str(value)}", "procedural_instances=6", "classes=car", "stage=cameras",
+        cfg = Config().override([f"out={tmp_path / str(value)}", "procedural_instances=6", "classes=car",
+                                 "stage=cameras",
                                  f"silhouette_robust={value}", "progress=false", "preview=false"])
         P.run(cfg)
         assert seen[-1] == expected
@@ -445,7 +446,7 @@ def test_a_failing_write_is_booked_on_its_object(tmp_path, workers):
 
 
 def test_report_failures_do_not_depend_on_booking_order():
-    from carvi_torch.pipeline import ClassReport
+    from carvi_torch.io.results import ClassReport
 
     a, b = ClassReport("car"), ClassReport("car")
     entries = [("mesh", 7), ("carve", 3), ("class", None), ("carve", 12)]

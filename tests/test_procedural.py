@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import pytest
@@ -105,7 +104,8 @@ def test_determinism():
     a = make_instance("chair", seed_generator(1, "x"))
     b = make_instance("chair", seed_generator(1, "x"))
     c = make_instance("chair", seed_generator(2, "x"))
-    assert torch.equal(a.vertices, b.vertices) and torch.equal(a.faces, b.faces) and torch.equal(a.keypoints, b.keypoints)
+    assert torch.equal(a.vertices, b.vertices) and torch.equal(a.faces, b.faces)
+    assert torch.equal(a.keypoints, b.keypoints)
     assert a.vertices.shape != c.vertices.shape or not torch.equal(a.vertices, c.vertices)
     # an instance does not depend on how many are asked for
     small = make_collection(2, seed=4, categories=["car"])
@@ -117,9 +117,7 @@ def test_determinism():
 
 
 def test_write_default_collection_small(tmp_path):
-    t0 = time.perf_counter()
     summary = write_default_collection(tmp_path, instances_per_class=3, seed=0)
-    elapsed = time.perf_counter() - t0
     assert summary["images"] == 3 * len(CATEGORIES) and summary["categories"] == sorted(CATEGORIES)
     data = json.loads((tmp_path / "annotations.json").read_text())
     cats = {c["name"]: c for c in data["categories"]}
@@ -131,4 +129,3 @@ def test_write_default_collection_small(tmp_path):
     gt = json.loads((tmp_path / "gt.json").read_text())
     assert len(gt["annotations"]) == len(data["annotations"])
     assert all((tmp_path / g["mesh"]).is_file() for g in gt["annotations"].values())
-    assert elapsed < 30  # the full default (4 x 40) takes a few seconds; this is 4 x 3

@@ -388,7 +388,8 @@ def test_keypoint_thickness_matches_a_numpy_loop():
             assert math.isinf(float(got[i]))
             continue
         ev = np.linalg.eigvalsh(np.cov(X.T, bias=True))
-        assert float(got[i]) == pytest.approx(float(np.sqrt(max(ev[0], 0) / ev[1])), rel=1e-9, abs=1e-6)  # 3 points: 0 up to rounding
+        want = float(np.sqrt(max(ev[0], 0) / ev[1]))
+        assert float(got[i]) == pytest.approx(want, rel=1e-9, abs=1e-6)  # 3 points: 0 up to rounding
 
 
 def test_planar_twin_projects_the_plane_alike():

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from carvi_torch.cameras import ScaledOrthographic, azimuth_elevation_roll_from_rotation, rotation_from_azimuth_elevation_roll
+from carvi_torch.cameras import (ScaledOrthographic, azimuth_elevation_roll_from_rotation,
+                                 rotation_from_azimuth_elevation_roll)
 from carvi_torch.synthetic.meshes import load_cad_npz
 from carvi_torch.synthetic.render import (
     VISIBILITY_EPS_REL,
@@ -176,7 +177,8 @@ def test_visibility_cube_faces(generator):
     assert vis.tolist() == [True, False, False, False, False, True]
     # in general: a face point is visible iff the face's normal points towards the camera
     for _ in range(20):
-        az, el = (torch.rand(2, generator=generator) * torch.tensor([360.0, 160.0]) - torch.tensor([0.0, 80.0])).tolist()
+        u = torch.rand(2, generator=generator)
+        az, el = (u * torch.tensor([360.0, 160.0]) - torch.tensor([0.0, 80.0])).tolist()
         R = camera(az, el).R[0]
         expected = (normals @ -R[2]) > 0
         assert torch.equal(keypoint_visibility(V, F, kp, R), expected)

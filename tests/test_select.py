@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from carvi_torch.cameras import ScaledOrthographic, random_rotations, rotation_about_axis
+from carvi_torch.cameras import ScaledOrthographic, random_rotations
 from carvi_torch.select import (
     average_masks,
     keypoint_misses,
@@ -207,9 +207,11 @@ class TestAverageMasks:
         with pytest.raises(ValueError, match="labels"):
             average_masks(torch.zeros(1, 8, 8, dtype=torch.bool), cams, torch.zeros(2, dtype=torch.long), axes)
         with pytest.raises(ValueError, match="mode"):
-            average_masks(torch.zeros(1, 8, 8, dtype=torch.bool), cams, torch.zeros(1, dtype=torch.long), axes, mode="x")
+            average_masks(torch.zeros(1, 8, 8, dtype=torch.bool), cams, torch.zeros(1, dtype=torch.long), axes,
+                          mode="x")
         with pytest.raises(ValueError, match="extent"):
-            average_masks(torch.zeros(1, 8, 8, dtype=torch.bool), cams, torch.zeros(1, dtype=torch.long), axes, extent=0.0)
+            average_masks(torch.zeros(1, 8, 8, dtype=torch.bool), cams, torch.zeros(1, dtype=torch.long), axes,
+                          extent=0.0)
 
 
 # --------------------------------------------------------------------------- project_proposals
@@ -273,7 +275,8 @@ class TestProjectProposals:
     def test_vs_brute_force(self, generator, m):
         B, D, H, W, G, ext = 2, 5, 6, 7, 12, 1.0
         occ = torch.rand(B, D, H, W, generator=generator) > 0.7
-        cams = ScaledOrthographic(random_rotations(B, generator), torch.tensor([9.0, 12.0]), torch.tensor([[3.0, 4.0], [5.0, 2.0]]))
+        cams = ScaledOrthographic(random_rotations(B, generator), torch.tensor([9.0, 12.0]),
+                                  torch.tensor([[3.0, 4.0], [5.0, 2.0]]))
         T = torch.zeros(B, 4, 4, dtype=torch.float64)
         T[:, 0, 2] = T[:, 1, 1] = T[:, 2, 0] = torch.tensor([1.3, 0.9], dtype=torch.float64)
         T[:, :3, 3] = torch.randn(B, 3, generator=generator, dtype=torch.float64)
@@ -474,8 +477,10 @@ class TestRankProposals:
         valid[0] = False
         order, best = rank_proposals(scores, misses, valid)
         for r in range(R):
-            key = lambda p: (not bool(valid[r, p]), int(misses[r, p]), math.isnan(float(scores[r, p])),
-                             0.0 if math.isnan(float(scores[r, p])) else float(scores[r, p]), p)
+            def key(p, r=r):
+                nan = math.isnan(float(scores[r, p]))
+                return not bool(valid[r, p]), int(misses[r, p]), nan, 0.0 if nan else float(scores[r, p]), p
+
             assert order[r].tolist() == sorted(range(P), key=key)
             assert int(best[r]) == (order[r, 0].item() if bool(valid[r].any()) else -1)
         assert int(best[0]) == -1
@@ -506,7 +511,9 @@ def test_cuda_matches_cpu(generator, axes):
     torch.testing.assert_close(s_g.cpu(), s_c, atol=1e-3, rtol=0)
     kp = torch.rand(2, 6, 2, generator=generator) * 60
     vis = torch.ones(2, 6, dtype=torch.bool)
-    assert keypoint_misses(occ.cuda(), T.cuda(), kp.cuda(), vis.cuda()).cpu().tolist() == keypoint_misses(occ, T, kp, vis).tolist()
+    want = keypoint_misses(occ, T, kp, vis).tolist()
+    assert keypoint_misses(occ.cuda(), T.cuda(), kp.cuda(), vis.cuda()).cpu().tolist() == want
     o_c, b_c = rank_proposals(s_c[None], torch.zeros(1, 2, dtype=torch.long), torch.ones(1, 2, dtype=torch.bool))
-    o_g, b_g = rank_proposals(s_g[None], torch.zeros(1, 2, dtype=torch.long, device="cuda"), torch.ones(1, 2, dtype=torch.bool, device="cuda"))
+    o_g, b_g = rank_proposals(s_g[None], torch.zeros(1, 2, dtype=torch.long, device="cuda"),
+                              torch.ones(1, 2, dtype=torch.bool, device="cuda"))
     assert o_g.is_cuda and o_g.cpu().tolist() == o_c.tolist()

@@ -159,7 +159,7 @@ def test_warm_and_cold_em_agree_on_two_shapes(two_shapes):
     for warm in (None, (single.shape, cams1)):
         runs[warm is not None] = mix.hard_em(both, n, dist, _sfm, start, 2, 6, rounds=6, full_shape=single.shape,
                                              warm=warm)
-    (lab_c, _g, cost_c, rot_c, hist_c), (lab_w, _gw, cost_w, rot_w, hist_w) = runs[False], runs[True]
+    (lab_c, _g, cost_c, rot_c, _hist_c), (lab_w, _gw, cost_w, rot_w, hist_w) = runs[False], runs[True]
     assert torch.equal(lab_c, truth) and torch.equal(lab_w, truth)
     assert torch.allclose(cost_w, cost_c, rtol=0.02, atol=0.05), (cost_w - cost_c).abs().max()
     from carvi_torch.evaluation.viewpoint_metrics import geodesic_errors
@@ -487,7 +487,8 @@ def test_pipeline_refines_without_keypoints_few_instances_show():
     got = refine_with_shape(res.shape, res.cameras, both, dist, on.viewpoints)
     want = refine.refine_cameras(refine.supported_shape(res.shape, both.visible, 0.1), res.cameras, both.keypoints,
                                  both.visible, dist, silhouette_weight=on.viewpoints.silhouette_weight,
-                                 max_iters=on.viewpoints.refine_iters, silhouette_robust=on.viewpoints.silhouette_robust,
+                                 max_iters=on.viewpoints.refine_iters,
+                                 silhouette_robust=on.viewpoints.silhouette_robust,
                                  twin_flatness=on.viewpoints.refine_twin_flatness)
     assert torch.equal(got.cameras.R, want.cameras.R) and torch.equal(got.energy_after, want.energy_after)
     every = refine_with_shape(res.shape, res.cameras, both, dist, off.viewpoints)

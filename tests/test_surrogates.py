@@ -398,7 +398,8 @@ class TestSymmetry:
     @pytest.mark.parametrize("step", [90.0, 45.0, 120.0])
     def test_symmetric_surrogates_vs_scipy(self, generator, step):
         R0 = random_rotations(1, generator, dtype=torch.float64)
-        cam = ScaledOrthographic(R0, torch.tensor([3.0], dtype=torch.float64), torch.tensor([[10.0, -4.0]], dtype=torch.float64))
+        f64 = dict(dtype=torch.float64)
+        cam = ScaledOrthographic(R0, torch.tensor([3.0], **f64), torch.tensor([[10.0, -4.0]], **f64))
         axis = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
         out = symmetric_surrogates(cam, axis, step)
         n = int(round(360 / step))

@@ -218,7 +218,7 @@ def _labels_agree(lib, fused: bool, gen: torch.Generator) -> bool:
 
 
 def _padded(ext: torch.Tensor) -> torch.Tensor:
-    """``ext`` (float32) in storage with one more value after it, so that reading one pixel past its last map is safe."""
+    """``ext`` (float32) in storage with one more value after it: reading one pixel past its last map is safe."""
     buf = torch.zeros(ext.numel() + 1, dtype=torch.float32)
     buf[:-1] = ext.reshape(-1)
     return buf[:-1].view(ext.shape)
@@ -336,7 +336,8 @@ def carve_labels(ext: torch.Tensor, views: torch.Tensor, scale: torch.Tensor, G:
         ext: ``(K, Hp, Wp)`` float32 extended maps, unscaled (:attr:`carvi_torch.carve.geometry.CarveMaps.ext`).
         views: ``(B, V)`` long rows of ``ext`` per view slot, ``-1`` for an unused slot.
         scale: ``(B, V)`` float32 per-slot scale of the map values.
-        G: ``(B, V, 2, 4)`` float32 voxel index -> sampling coordinates (:func:`carvi_torch.carve.geometry.proposal_geometry`).
+        G: ``(B, V, 2, 4)`` float32 voxel index -> sampling coordinates
+            (:func:`carvi_torch.carve.geometry.proposal_geometry`).
         column_cost: ``(B, n * n)`` float32 reference cost at the column centres.
         resolution: ``n``.
         imprint: imprint the foreground columns left without an interior voxel.

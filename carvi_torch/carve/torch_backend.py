@@ -41,9 +41,9 @@ import torch.nn.functional as F
 from .geometry import CarveMaps, column_hw, column_terms, proposal_geometry
 from .grids import ProposalGrids
 
-__all__ = ["Interpolation", "INTERPOLATIONS", "carve_torch", "default_batch_voxels", "grid_sample_maps", "sample_columns",
-           "sample_planes", "label_columns", "foreground_first", "prepare_proposals", "reference_columns",
-           "kernel_inputs", "chunk_multiple", "empty_grids", "plan_chunks"]
+__all__ = ["Interpolation", "INTERPOLATIONS", "carve_torch", "default_batch_voxels", "grid_sample_maps",
+           "sample_columns", "sample_planes", "label_columns", "foreground_first", "prepare_proposals",
+           "reference_columns", "kernel_inputs", "chunk_multiple", "empty_grids", "plan_chunks"]
 
 #: Default ``max_batch_voxels`` per device type (CPU: per intra-op thread, see :func:`default_batch_voxels`).
 _DEFAULT_BATCH_VOXELS = {"cpu": 1 << 19, "cuda": 1 << 25}

@@ -97,7 +97,8 @@ def mesh_tensors(mesh: MeshLike, dtype: torch.dtype = torch.float32, device=None
         try:
             v, f = mesh
         except (TypeError, ValueError):
-            raise ValueError(f"{name} must be a trimesh.Trimesh or a (vertices, faces) pair, got {type(mesh)}") from None
+            raise ValueError(f"{name} must be a trimesh.Trimesh or a (vertices, faces) pair, "
+                             f"got {type(mesh)}") from None
     if device is None:
         device = v.device if isinstance(v, torch.Tensor) else torch.device("cpu")
     v = torch.as_tensor(v).to(device=device, dtype=dtype)
@@ -602,7 +603,8 @@ class MeshDistanceIndex:
         # triangles' boxes are smallest: distances do not change, pruning gets tighter
         self.frame = _box_frame(tri.detach().double().cpu()) if frame is None else \
             torch.as_tensor(frame, dtype=torch.float64).cpu()
-        if self.frame.shape != (3, 3) or not torch.allclose(self.frame.T @ self.frame, torch.eye(3, dtype=torch.float64),
+        eye = torch.eye(3, dtype=torch.float64)
+        if self.frame.shape != (3, 3) or not torch.allclose(self.frame.T @ self.frame, eye,
                                                            atol=1e-9):
             raise ValueError(f"frame must be a (3, 3) orthogonal matrix, got {self.frame}")
         self._frame_t = self.frame.to(device=self.device, dtype=self.dtype)
@@ -758,7 +760,8 @@ class MeshDistanceIndex:
                 bp = pi.index_select(0, best)
                 bq = table.index_select(1, bp)
                 d2 = self._exact2(bq[0], bq[1], bq[2],
-                                  self.piece_face.index_select(0, node.index_select(0, best) * w + col.index_select(0, best)))
+                                  self.piece_face.index_select(
+                                      0, node.index_select(0, best) * w + col.index_select(0, best)))
                 u2 = u2.scatter_reduce(0, bp, d2, reduce="amin")
             table[3] = u2
             keep = gap <= u2.index_select(0, pi) * slack  # (w, m)

@@ -267,7 +267,8 @@ def k_medoids(D: torch.Tensor, k: int, max_swaps: int = 1000) -> tuple[torch.Ten
     return med, labels, float(cost)
 
 
-def order_clusters_by_size(medoids: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def order_clusters_by_size(medoids: torch.Tensor,
+                           labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Renumber clusters by decreasing size (ties: lower slot first).
 
     Returns:

@@ -910,128 +910,12 @@ def convert(keypoint_dir: str | Path, out_path: str | Path, masks_dir: str | Pat
     report = Report(out_path=Path(out_path), num_files=len(files))
     excluded: Counter = Counter()
     rank = {p: i for i, p in enumerate(files)}
-
-    # 1. parse; group the objects of each image (every parsed object takes part in matching)
-    by_image: dict[str, list[tuple[Path, VocObject, str | None]]] = defaultdict(list)
-    for f in files:
-        try:
-            obj = parse_keypoint_xml(f, one_based=one_based)
-        except VocFormatError as e:
-            report.skipped.append((f.name, f"malformed file: {e.problem}"))
-            continue
-        cls = normalize_class_name(obj.category)
-        if cls is None:
-            report.skipped.append((f.name, f"unknown category: {obj.category!r} is not a PASCAL VOC class"))
-        by_image[obj.image].append((f, obj, cls))
-
-    # 2. per image: size, instance masks, matching, masks
-    converted = []  # (file, obj, cls, mask_rle, area, bbox, mask_source, flags)
+    by_image = _parse_files(files, one_based, report)
+    converted = []  # (file, obj, cls, mask_rle, size, mask_source, flags)
     for image in sorted(by_image):
-        group = by_image[image]
-        record = None
-        rec_path = _find_record(adir, image) if adir is not None else None
-        if rec_path is not None:
-            try:
-                record = parse_voc_record(rec_path)
-            except VocFormatError as e:
-                report.warnings.append(str(e))
-        inst = None
-        if mdir is not None:
-            try:
-                inst = _read_instances(mdir, image)
-            except VocFormatError as e:
-                report.warnings.append(f"{e}; using polygons for {image}")
-        if record is not None:
-            size = (record.width, record.height)
-        elif inst is not None:
-            size = (inst.shape[1], inst.shape[0])
-        else:
-            size = _extent_size([o for _, o, _ in group])
-        if inst is not None and size is not None and inst.shape != (size[1], size[0]):
-            report.warnings.append(f"{inst.path}: instance map is {inst.shape[1]}x{inst.shape[0]}, the VOC record "
-                                   f"says {size[0]}x{size[1]}; using polygons for {image}")
-            inst = None
-        match = np.full(len(group), -1, dtype=np.int64)
-        if inst is not None and len(inst.ids):
-            obj_boxes = np.stack([o.box() for _, o, _ in group])
-            obj_cls = np.array([VOC_CLASSES.index(c) + 1 if c else 0 for _, _, c in group], dtype=np.int64)
-            match = match_instances(obj_boxes, obj_cls, mask_boxes(inst.masks), inst.categories, min_iou)
-
-        for (f, obj, cls), j in zip(group, match):
-            if cls is None:
-                continue  # reported above
-            if wanted is not None and cls not in wanted:
-                excluded[cls] += 1
-                continue
-            reasons = []
-            if obj.num_visible < MIN_VISIBLE_KEYPOINTS:
-                reasons.append(f"too few visible keypoints: {obj.num_visible} visible, "
-                               f"needs {MIN_VISIBLE_KEYPOINTS}")
-            mask, source = None, None
-            if j >= 0:
-                mask, source = inst.masks[j], inst.source
-            elif obj.polygons and size is not None:
-                mask, source = rasterize_polygons(obj.polygons, size[1], size[0]), "polygon"
-            else:
-                looked = " and no matching instance mask" if mdir is not None else ""
-                reasons.append(f"no mask: no foreground polygon{looked}")
-            if mask is not None and not mask.any():
-                reasons.append(f"empty mask: the {source} covers no pixel of the {size[0]}x{size[1]} image")
-            if reasons:
-                report.skipped.append((f.name, "; ".join(reasons)))
-                continue
-            flags = {"occluded": False, "truncated": False}
-            if record is not None and 1 <= obj.voc_id <= len(record.objects):
-                rec_obj = record.objects[obj.voc_id - 1]
-                flags = {"occluded": rec_obj["occluded"], "truncated": rec_obj["truncated"]}
-            rle = encode_rle(mask)
-            converted.append((f, obj, cls, rle, size, source, flags))
-
-    # 3. categories, images, annotations
+        converted += _convert_image(image, by_image[image], mdir, adir, wanted, min_iou, report, excluded)
     converted.sort(key=lambda c: rank[c[0]])
-    names_by_class: dict[str, set[str]] = defaultdict(set)
-    for _, obj, cls, *_ in converted:
-        names_by_class[cls].update(obj.keypoints)
-    categories = [category_entry(c, sorted(names_by_class[c])) for c in VOC_CLASSES if c in names_by_class]
-    cat_by_name = {c["name"]: c for c in categories}
-    image_sizes = {obj.image: size for _, obj, _, _, size, _, _ in converted}
-    image_ids = {im: i + 1 for i, im in enumerate(sorted(image_sizes))}
-    object_ids = {k: i + 1 for i, k in enumerate(sorted({(o.image, o.voc_id) for _, o, *_ in converted}))}
-    images = [{"id": image_ids[im], "file_name": f"{im}.jpg", "width": int(image_sizes[im][0]),
-               "height": int(image_sizes[im][1])} for im in sorted(image_sizes)]
-
-    from pycocotools import mask as mask_utils
-
-    annotations = []
-    counts: Counter = Counter()
-    sources: Counter = Counter()
-    for ann_id, (f, obj, cls, rle, size, source, flags) in enumerate(converted, start=1):
-        names = cat_by_name[cls]["keypoints"]
-        kps = []
-        for n in names:
-            x, y, v = obj.keypoints.get(n, (0.0, 0.0, False))
-            kps += [_round(x), _round(y), 2] if v else [0, 0, 0]
-        annotations.append({
-            "id": ann_id,
-            "image_id": image_ids[obj.image],
-            "category_id": cat_by_name[cls]["id"],
-            "segmentation": rle,
-            "area": float(mask_utils.area(rle)),
-            "bbox": [float(v) for v in mask_utils.toBbox(rle)],
-            "iscrowd": 0,
-            "keypoints": kps,
-            "num_keypoints": obj.num_visible,
-            "object_id": object_ids[(obj.image, obj.voc_id)],
-            "source": obj.source,
-            "voc_id": obj.voc_id,
-            "subcategory": obj.subcategory,
-            "mask_source": source,
-            "occluded": bool(flags["occluded"]),
-            "truncated": bool(flags["truncated"]),
-        })
-        counts[cls] += 1
-        sources[source] += 1
-
+    categories, images, annotations, counts, sources = _coco_entries(converted)
     report.skipped.sort()
     report.counts = dict(sorted(counts.items()))
     report.excluded = dict(sorted(excluded.items()))
@@ -1049,6 +933,131 @@ def convert(keypoint_dir: str | Path, out_path: str | Path, masks_dir: str | Pat
     }
     write_json(out_path, data)
     return report
+
+
+def _parse_files(files: list[Path], one_based: bool, report: Report) -> dict:
+    """Step 1: parse every file; the objects of each image (every parsed object takes part in matching)."""
+    by_image: dict[str, list[tuple[Path, VocObject, str | None]]] = defaultdict(list)
+    for f in files:
+        try:
+            obj = parse_keypoint_xml(f, one_based=one_based)
+        except VocFormatError as e:
+            report.skipped.append((f.name, f"malformed file: {e.problem}"))
+            continue
+        cls = normalize_class_name(obj.category)
+        if cls is None:
+            report.skipped.append((f.name, f"unknown category: {obj.category!r} is not a PASCAL VOC class"))
+        by_image[obj.image].append((f, obj, cls))
+    return by_image
+
+
+def _image_sources(image: str, group: list, mdir, adir, report: Report):
+    """The VOC record, the instance masks and the size ``(W, H)`` of one image (any may be ``None``)."""
+    record = None
+    rec_path = _find_record(adir, image) if adir is not None else None
+    if rec_path is not None:
+        try:
+            record = parse_voc_record(rec_path)
+        except VocFormatError as e:
+            report.warnings.append(str(e))
+    inst = None
+    if mdir is not None:
+        try:
+            inst = _read_instances(mdir, image)
+        except VocFormatError as e:
+            report.warnings.append(f"{e}; using polygons for {image}")
+    if record is not None:
+        size = (record.width, record.height)
+    elif inst is not None:
+        size = (inst.shape[1], inst.shape[0])
+    else:
+        size = _extent_size([o for _, o, _ in group])
+    if inst is not None and size is not None and inst.shape != (size[1], size[0]):
+        report.warnings.append(f"{inst.path}: instance map is {inst.shape[1]}x{inst.shape[0]}, the VOC record "
+                               f"says {size[0]}x{size[1]}; using polygons for {image}")
+        inst = None
+    return record, inst, size
+
+
+def _object_mask(obj: VocObject, j: int, inst, size, mdir, reasons: list):
+    """The object's mask and its source: the matched instance mask, else its polygons (or a reason)."""
+    mask, source = None, None
+    if j >= 0:
+        mask, source = inst.masks[j], inst.source
+    elif obj.polygons and size is not None:
+        mask, source = rasterize_polygons(obj.polygons, size[1], size[0]), "polygon"
+    else:
+        looked = " and no matching instance mask" if mdir is not None else ""
+        reasons.append(f"no mask: no foreground polygon{looked}")
+    if mask is not None and not mask.any():
+        reasons.append(f"empty mask: the {source} covers no pixel of the {size[0]}x{size[1]} image")
+    return mask, source
+
+
+def _convert_image(image, group, mdir, adir, wanted, min_iou, report: Report, excluded: Counter) -> list:
+    """Step 2: one image's objects matched to its instance masks and converted (or skipped, with reasons)."""
+    record, inst, size = _image_sources(image, group, mdir, adir, report)
+    match = np.full(len(group), -1, dtype=np.int64)
+    if inst is not None and len(inst.ids):
+        obj_boxes = np.stack([o.box() for _, o, _ in group])
+        obj_cls = np.array([VOC_CLASSES.index(c) + 1 if c else 0 for _, _, c in group], dtype=np.int64)
+        match = match_instances(obj_boxes, obj_cls, mask_boxes(inst.masks), inst.categories, min_iou)
+    converted = []
+    for (f, obj, cls), j in zip(group, match):
+        if cls is None:
+            continue  # reported at parsing
+        if wanted is not None and cls not in wanted:
+            excluded[cls] += 1
+            continue
+        reasons = []
+        if obj.num_visible < MIN_VISIBLE_KEYPOINTS:
+            reasons.append(f"too few visible keypoints: {obj.num_visible} visible, needs {MIN_VISIBLE_KEYPOINTS}")
+        mask, source = _object_mask(obj, j, inst, size, mdir, reasons)
+        if reasons:
+            report.skipped.append((f.name, "; ".join(reasons)))
+            continue
+        flags = {"occluded": False, "truncated": False}
+        if record is not None and 1 <= obj.voc_id <= len(record.objects):
+            rec_obj = record.objects[obj.voc_id - 1]
+            flags = {"occluded": rec_obj["occluded"], "truncated": rec_obj["truncated"]}
+        converted.append((f, obj, cls, encode_rle(mask), size, source, flags))
+    return converted
+
+
+def _coco_entries(converted: list):
+    """Step 3: the COCO categories, images and annotations of the converted objects, and counts per
+    class and per mask source."""
+    from pycocotools import mask as mask_utils
+
+    names_by_class: dict[str, set[str]] = defaultdict(set)
+    for _, obj, cls, *_ in converted:
+        names_by_class[cls].update(obj.keypoints)
+    categories = [category_entry(c, sorted(names_by_class[c])) for c in VOC_CLASSES if c in names_by_class]
+    cat_by_name = {c["name"]: c for c in categories}
+    image_sizes = {obj.image: size for _, obj, _, _, size, _, _ in converted}
+    image_ids = {im: i + 1 for i, im in enumerate(sorted(image_sizes))}
+    object_ids = {k: i + 1 for i, k in enumerate(sorted({(o.image, o.voc_id) for _, o, *_ in converted}))}
+    images = [{"id": image_ids[im], "file_name": f"{im}.jpg", "width": int(image_sizes[im][0]),
+               "height": int(image_sizes[im][1])} for im in sorted(image_sizes)]
+    annotations = []
+    counts: Counter = Counter()
+    sources: Counter = Counter()
+    for ann_id, (f, obj, cls, rle, size, source, flags) in enumerate(converted, start=1):
+        kps = []
+        for n in cat_by_name[cls]["keypoints"]:
+            x, y, v = obj.keypoints.get(n, (0.0, 0.0, False))
+            kps += [_round(x), _round(y), 2] if v else [0, 0, 0]
+        annotations.append({
+            "id": ann_id, "image_id": image_ids[obj.image], "category_id": cat_by_name[cls]["id"],
+            "segmentation": rle, "area": float(mask_utils.area(rle)),
+            "bbox": [float(v) for v in mask_utils.toBbox(rle)], "iscrowd": 0, "keypoints": kps,
+            "num_keypoints": obj.num_visible, "object_id": object_ids[(obj.image, obj.voc_id)],
+            "source": obj.source, "voc_id": obj.voc_id, "subcategory": obj.subcategory, "mask_source": source,
+            "occluded": bool(flags["occluded"]), "truncated": bool(flags["truncated"]),
+        })
+        counts[cls] += 1
+        sources[source] += 1
+    return categories, images, annotations, counts, sources
 
 
 def run(args: Any) -> int:

@@ -631,7 +631,8 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
         raise ValueError("models is empty")
     names = [m.name for m in models]
     if len(set(names)) != len(names):
-        raise ValueError(f"model names must be unique, got duplicates {sorted({n for n in names if names.count(n) > 1})}")
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        raise ValueError(f"model names must be unique, got duplicates {dupes}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     dev = torch.device(device)

@@ -256,7 +256,8 @@ def shape_thickness(S: torch.Tensor) -> float:
         >>> shape_thickness(torch.tensor([[0., 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]))
         0.0
     """
-    th = float(camera_fit.keypoint_thickness(S.double(), torch.ones(1, S.shape[0], dtype=torch.bool, device=S.device))[0])
+    every = torch.ones(1, S.shape[0], dtype=torch.bool, device=S.device)
+    th = float(camera_fit.keypoint_thickness(S.double(), every)[0])
     return th if math.isfinite(th) else 0.0
 
 

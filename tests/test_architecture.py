@@ -1,0 +1,188 @@
+"""The package's shape: stages import only earlier stages, functions fit on a screen, portable process code.
+
+The import graph is read from the source (every ``import`` statement, module level or inside a
+function, outside ``if TYPE_CHECKING:`` blocks), so a lazy import cannot hide a dependency.
+"""
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "carvi_torch"
+
+#: The stages in the order data flows through them; a module of a stage may import modules of its
+#: own stage (the order inside a stage is checked for cycles below) and of earlier stages only.
+STAGES = [
+    ("viewpoints", ["viewpoints.camera_fit", "viewpoints.sfm", "viewpoints.mixture", "viewpoints.refine",
+                    "viewpoints"]),
+    ("surrogates", ["surrogates"]),
+    ("carve", ["carve.geometry", "carve.grids", "carve.torch_backend", "carve.native", "carve.reference",
+               "carve.dispatch", "carve"]),
+    ("select", ["select"]),
+    ("mesh", ["mesh"]),
+    ("write", ["io.writer", "io.results"]),
+]
+#: Imports of a later stage that the public contract asks for, with the reason.
+ALLOWED = {("carve.grids", "mesh"): "VoxelGrid.to_mesh() is part of the public contract (DESIGN.md)"}
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(PACKAGE).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    t = node.test
+    return (isinstance(t, ast.Name) and t.id == "TYPE_CHECKING") or (
+        isinstance(t, ast.Attribute) and t.attr == "TYPE_CHECKING")
+
+
+def _imports(path: Path) -> set[str]:
+    """The package modules ``path`` imports (relative names resolved, TYPE_CHECKING blocks skipped)."""
+    me = _module_name(path).split(".") if _module_name(path) else []
+    is_pkg = path.name == "__init__.py"
+    out: set[str] = set()
+
+    def visit(node):
+        if isinstance(node, ast.If) and _is_type_checking(node):
+            for child in node.orelse:
+                visit(child)
+            return
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = me if is_pkg else me[:-1]
+                base = base[:len(base) - (node.level - 1)] if node.level > 1 else base
+                mod = ".".join(base + ([node.module] if node.module else []))
+            elif node.module and node.module.startswith("carvi_torch"):
+                mod = node.module[len("carvi_torch"):].lstrip(".")
+            else:
+                mod = None
+            if mod is not None:
+                for alias in node.names:
+                    sub = f"{mod}.{alias.name}" if mod else alias.name
+                    out.add(sub if (PACKAGE / Path(*sub.split("."))).with_suffix(".py").is_file()
+                            or (PACKAGE / Path(*sub.split(".")) / "__init__.py").is_file() else mod)
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("carvi_torch."):
+                    out.add(alias.name[len("carvi_torch."):])
+        for child in ast.iter_child_nodes(node):
+            visit(child)
+
+    visit(ast.parse(path.read_text()))
+    return {m for m in out if m}
+
+
+def _graph() -> dict[str, set[str]]:
+    return {_module_name(p): _imports(p) for p in PACKAGE.rglob("*.py")}
+
+
+def test_no_stage_imports_a_later_stage():
+    graph = _graph()
+    position = {m: i for i, (_stage, mods) in enumerate(STAGES) for m in mods}
+    bad = []
+    for mod, deps in graph.items():
+        if mod not in position:
+            continue
+        for dep in deps:
+            if dep in position and position[dep] > position[mod] and (mod, dep) not in ALLOWED:
+                bad.append(f"{mod} imports {dep}")
+    assert not bad, bad
+    # the shared maths and thread control import no stage at all
+    for base in ("cameras", "runtime", "sdf", "collection", "io.outputs"):
+        assert not (graph[base] & set(position)), (base, graph[base] & set(position))
+
+
+def test_the_checker_sees_a_later_import():
+    """The graph reader resolves relative and lazy imports (so the rule above can fail)."""
+    graph = _graph()
+    assert "mesh" in graph["carve.grids"]  # a lazy import inside a method
+    assert "viewpoints.camera_fit" in graph["viewpoints.sfm"]  # a relative import
+    assert "carve.native" in graph["carve.dispatch"]
+
+
+def test_no_import_cycles():
+    graph = _graph()
+    state: dict[str, int] = {}
+
+    def walk(m, stack):
+        state[m] = 1
+        for d in graph.get(m, ()):
+            if state.get(d) == 1 and not (m == d):
+                raise AssertionError("import cycle: " + " -> ".join(stack + [m, d]))
+            if d in graph and not state.get(d):
+                walk(d, stack + [m])
+        state[m] = 2
+
+    for m in graph:
+        if not state.get(m):
+            # a package's __init__ re-exports its modules: the edges package -> submodule are expected
+            walk(m, [])
+
+
+def test_functions_fit_in_150_lines():
+    long = []
+    for path in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > 150:
+                    long.append(f"{path.relative_to(PACKAGE)}:{node.lineno} {node.name} ({n} lines)")
+    assert not long, long
+
+
+def test_pipeline_only_orders_the_stages():
+    assert len((PACKAGE / "pipeline.py").read_text().splitlines()) <= 400
+
+
+def test_peak_memory_without_the_resource_module(monkeypatch):
+    """Windows has no ``resource``: importing the package and running its process code must not need it."""
+    code = ("import sys; sys.modules['resource'] = None\n"
+            "import carvi_torch.pipeline, carvi_torch.runtime as r\n"
+            "assert r.resource is None and r.peak_rss_mb() is None and r.peak_rss_mb(children=True) is None\n"
+            "print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+def test_maxrss_units_per_platform():
+    from carvi_torch.runtime import maxrss_to_mb, peak_rss_mb
+
+    assert maxrss_to_mb(5 * 1024, "linux") == 5.0  # kilobytes
+    assert maxrss_to_mb(5 * 2 ** 20, "darwin") == 5.0  # bytes
+    if sys.platform.startswith("linux"):
+        import resource
+
+        kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        assert abs(peak_rss_mb() - kb / 1024.0) < 64  # this process, a little later
+        assert 10 < peak_rss_mb() < 100_000
+
+
+def test_writer_processes_are_never_forked():
+    """Writer processes start by forkserver (or spawn): a fork of a process whose torch threads may
+    hold locks can deadlock. They still write objects."""
+    from carvi_torch.io.writer import Writer, start_method
+
+    assert start_method() in ("forkserver", "spawn")
+    w = Writer(1)
+    try:
+        assert w.pool._mp_context.get_start_method() == start_method()
+        got = []
+        w.submit({"occupancy": None}, got.append)  # a broken job: reported, not raised
+        w.drain()
+    finally:
+        w.close()
+    assert len(got) == 1 and got[0]["ok"] is False and "writing failed" in got[0]["reason"]
+
+
+@pytest.mark.parametrize("name", ["pipeline", "config", "viewpoints", "carve", "surrogates", "select"])
+def test_stage_modules_import_alone(name):
+    """Every stage module imports in a fresh process on its own (no hidden order dependency)."""
+    out = subprocess.run([sys.executable, "-c", f"import carvi_torch.{name}"], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
