@@ -20,10 +20,10 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-__all__ = ["distance_to_mask", "distance_to_background", "signed_distance"]
+__all__ = ["distance_to_mask", "distance_to_background", "signed_distance", "edt_scipy", "edt_torch"]
 
 
-def _edt_numpy(targets: np.ndarray) -> np.ndarray:
+def edt_scipy(targets: np.ndarray) -> np.ndarray:
     """Distance of every pixel of ``(N, H, W)`` bool to the nearest ``True`` pixel of its slice.
 
     Every slice must contain a ``True`` pixel.
@@ -34,7 +34,7 @@ def _edt_numpy(targets: np.ndarray) -> np.ndarray:
     return out
 
 
-def _edt_torch(targets: torch.Tensor, chunk_elems: int = 1 << 28) -> torch.Tensor:
+def edt_torch(targets: torch.Tensor, chunk_elems: int = 1 << 28) -> torch.Tensor:
     """Exact batched EDT in torch: distance of every pixel to the nearest ``True`` pixel.
 
     Separable: ``g(y, x) = min_x' |x - x'|`` over targets in row ``y``, then
@@ -64,8 +64,8 @@ def _edt_torch(targets: torch.Tensor, chunk_elems: int = 1 << 28) -> torch.Tenso
 def _edt(targets: torch.Tensor) -> torch.Tensor:
     """Dispatch: scipy on the CPU, torch elsewhere. ``targets (N, H, W)`` bool, each slice non-empty."""
     if targets.device.type == "cpu":
-        return torch.from_numpy(_edt_numpy(targets.numpy()))
-    return _edt_torch(targets)
+        return torch.from_numpy(edt_scipy(targets.numpy()))
+    return edt_torch(targets)
 
 
 def _check(masks: torch.Tensor) -> torch.Tensor:

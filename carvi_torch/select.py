@@ -43,6 +43,8 @@ __all__ = [
     "class_reference",
     "Selection",
     "select_proposals",
+    "boundary_voxels",
+    "supersampling",
 ]
 
 
@@ -229,7 +231,7 @@ _CHUNK_VOXELS = {"cpu": 1 << 20, "cuda": 1 << 27}
 _CHUNK_POINTS = {"cpu": 1 << 22, "cuda": 1 << 24}
 
 
-def _boundary(occupancy: torch.Tensor) -> torch.Tensor:
+def boundary_voxels(occupancy: torch.Tensor) -> torch.Tensor:
     """``(B, D, H, W)`` bool: occupied voxels with an empty voxel (or the grid edge) among their 26 neighbours.
 
     The 3x3x3 dilation of the empty set (padded with empty voxels) is separable: an OR over
@@ -249,7 +251,7 @@ def _boundary(occupancy: torch.Tensor) -> torch.Tensor:
     return near3
 
 
-def _supersampling(A: torch.Tensor, spacing: float, supersample: int | None) -> torch.Tensor:
+def supersampling(A: torch.Tensor, spacing: float, supersample: int | None) -> torch.Tensor:
     """``(B, 3)`` long sub-voxel points per index axis of each grid (the rule of :func:`project_proposals`)."""
     if supersample is not None:
         return torch.full((A.shape[0], 3), int(supersample), dtype=torch.long, device=A.device)
@@ -297,7 +299,7 @@ def _splat(out: torch.Tensor, occupancy: torch.Tensor, U: torch.Tensor, rows: to
     m3 = md * mh * mw
     Gp = G + 2
     Ld, Lh, Lw = _axis_tables(U, (D, H, W), ms)
-    voxels = _boundary(occupancy).nonzero()  # (M, 4) b, d, h, w
+    voxels = boundary_voxels(occupancy).nonzero()  # (M, 4) b, d, h, w
     base = rows * (3 * Gp * Gp) + Gp + 1  # + Gp + 1: the border shift of both coordinates
     per = max(1, int(chunk_points) // m3)
     for start in range(0, voxels.shape[0], per):
@@ -405,7 +407,7 @@ def project_proposals(
         A[:, :, 3] -= ax @ centre.to(device=dev, dtype=torch.float64)
 
     spacing = 2.0 * extent / (G - 1)
-    ms = _supersampling(A, spacing, supersample)
+    ms = supersampling(A, spacing, supersample)
     # In plane-sample units u = (c + extent) / spacing, a sample's index is round(u).
     U = A / spacing
     U[:, :, 3] += extent / spacing

@@ -33,8 +33,8 @@ class TestDistanceToMask:
     def test_torch_path_against_scipy(self, generator):
         m = _random_masks(generator)
         ok = m.flatten(1).any(1)
-        got = sdf._edt_torch(m[ok])
-        ref = sdf._edt_numpy(m[ok].numpy())
+        got = sdf.edt_torch(m[ok])
+        ref = sdf.edt_scipy(m[ok].numpy())
         assert (got - torch.from_numpy(ref)).abs().max() < 1e-4
 
     def test_known_value(self):

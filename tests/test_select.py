@@ -309,11 +309,11 @@ class TestProjectProposals:
         """Boundary voxels = occupied minus the 26-neighbourhood erosion (outside the grid counts as empty)."""
         from scipy import ndimage
 
-        from carvi_torch.select import _boundary
+        from carvi_torch.select import boundary_voxels
 
         occ = torch.rand(3, 7, 9, 8, generator=generator) > 0.35
         occ[1] = True  # full grid: only its outer layer is boundary
-        got = _boundary(occ)
+        got = boundary_voxels(occ)
         st = np.ones((3, 3, 3), bool)
         for b in range(3):
             o = occ[b].numpy()
@@ -334,12 +334,12 @@ class TestProjectProposals:
         small = project_proposals(occ, T, cams, axes, 48, 1.3, chunk_points=100, chunk_voxels=1)
         assert torch.equal(small, full)
         # the coarse grid needs more sub-samples than the fine one: the rule is per grid
-        from carvi_torch.select import _supersampling
+        from carvi_torch.select import supersampling
 
         A = torch.zeros(3, 3, 4, dtype=torch.float64)
         A[:, :, :3] = torch.diag_embed(torch.tensor([[0.1, 0.1, 0.1], [1.0, 0.1, 0.1], [0.1, 0.1, 2.0]],
                                                     dtype=torch.float64))
-        assert _supersampling(A, 0.2, None).tolist() == [[1, 1, 1], [8, 1, 1], [1, 1, 8]]
+        assert supersampling(A, 0.2, None).tolist() == [[1, 1, 1], [8, 1, 1], [1, 1, 8]]
 
     def test_empty_and_exceptions(self, generator, axes):
         cams = _ref_cameras(generator, 2)

@@ -573,18 +573,18 @@ def test_disconnected_groups_no_nan_and_reasons():
 
 
 def test_outside_main_component_picks_most_instances():
-    from carvi_torch.viewpoints.sfm import _outside_main_component
+    from carvi_torch.viewpoints.sfm import outside_main_component
 
     seen = torch.zeros(6, 5, dtype=torch.bool)
     seen[:2, :3] = True   # 2 instances, 3 keypoints
     seen[2:5, 3:] = True  # 3 instances, 2 keypoints: the main group
-    inst, kps = _outside_main_component(seen)
+    inst, kps = outside_main_component(seen)
     assert inst.tolist() == [True, True, False, False, False, False]  # instance 5 has no edge
     assert kps.tolist() == [True, True, True, False, False]
 
 
 def test_polish_keeps_degenerate_blocks_out_of_the_shape():
-    from carvi_torch.viewpoints.sfm import _polish
+    from carvi_torch.viewpoints.sfm import bundle_polish
 
     d = make_class(22, n=30, k=8, missing=0.2)
     W = d["kp"].double().transpose(1, 2).contiguous()
@@ -593,7 +593,7 @@ def test_polish_keeps_degenerate_blocks_out_of_the_shape():
     M, t = cams.M.clone(), cams.t.clone()
     M[3] = 0.0  # a zero block: no rotation, would be a NaN camera
     M[4] = float("nan")
-    M2, t2, S2, hist, _ = _polish(M, t, d["S"].T.contiguous(), W, vis, iters=3, tol=1e-9)
+    M2, t2, S2, hist, _ = bundle_polish(M, t, d["S"].T.contiguous(), W, vis, iters=3, tol=1e-9)
     assert bool(torch.isfinite(S2).all()) and all(math.isfinite(h) for h in hist)
     assert hist[-1] < 1e-4
     assert torch.equal(M2[3], M[3]) and bool(torch.isfinite(M2[torch.arange(30) != 4]).all())
@@ -631,7 +631,7 @@ def test_mirror_width_detects_the_layout_only():
 
 
 def test_mirror_tie_angle_is_zero_for_the_truth_and_large_when_broken():
-    from carvi_torch.viewpoints.sfm import _mirror_layout, _mirror_tie_deg, mirror_width
+    from carvi_torch.viewpoints.sfm import mirror_layout, mirror_tie_angles, mirror_width
 
     S, names, pairs, R = _named_class(6)
     d = make_class(6, n=R.shape[0], shape=S, rotations=R, missing=0.0)
@@ -640,13 +640,13 @@ def test_mirror_tie_angle_is_zero_for_the_truth_and_large_when_broken():
     cams = ScaledOrthographic(d["R"], d["s"], d["t"])
     P = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
     both = ScaledOrthographic.cat([cams, cams.mirror(128.0, reflection=P)])
-    layout = _mirror_layout(torch.ones(2 * n, dtype=torch.bool), mirror_width(kp, vis, pairs), pairs,
+    layout = mirror_layout(torch.ones(2 * n, dtype=torch.bool), mirror_width(kp, vis, pairs), pairs,
                             list(range(S.shape[0])))
-    tie = _mirror_tie_deg(both.M, S.T, layout)
+    tie = mirror_tie_angles(both.M, S.T, layout)
     assert tie.shape == (n,) and float(tie.max()) < 1e-6
     # copies seen from the originals' viewpoints (not mirrored): angles far from 0
     broken = ScaledOrthographic.cat([cams, cams])
-    assert float(_mirror_tie_deg(broken.M, S.T, layout).median()) > 20.0
+    assert float(mirror_tie_angles(broken.M, S.T, layout).median()) > 20.0
 
 
 @pytest.fixture(scope="module")

@@ -82,6 +82,11 @@ __all__ = [
     "keypoint_side",
     "keypoint_end",
     "WARM_OUTER",
+    "bundle_polish",
+    "outside_main_component",
+    "mirror_layout",
+    "mirror_tie_angles",
+    "MirrorLayout",
 ]
 
 #: ``diag(1, 1, -1)``: the reflection that maps a solution onto its Necker mirror.
@@ -246,7 +251,7 @@ def _flip_z(dtype, device) -> torch.Tensor:
     return torch.diag(torch.tensor(_FLIP_Z, dtype=dtype, device=device))
 
 
-def _outside_main_component(seen: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def outside_main_component(seen: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Instances and keypoints outside the largest connected group of the visibility graph.
 
     The graph links instance ``n`` and keypoint ``k`` when ``seen[n, k]``. Two groups
@@ -265,7 +270,7 @@ def _outside_main_component(seen: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
 
     Example:
         >>> seen = torch.tensor([[1, 1, 0, 0], [1, 1, 0, 0], [0, 0, 1, 1]], dtype=torch.bool)
-        >>> [x.tolist() for x in _outside_main_component(seen)]
+        >>> [x.tolist() for x in outside_main_component(seen)]
         [[False, False, True], [False, False, True, True]]
     """
     from scipy.sparse import coo_matrix
@@ -477,7 +482,7 @@ def _planar_solution(W, vis, **kw):
     return M, tv, S, history, it, conv
 
 
-def _polish(M, t, S, W, vis, *, iters, tol, lm_iters=5):
+def bundle_polish(M, t, S, W, vis, *, iters, tol, lm_iters=5):
     """Bundle polish of a rigid solution on the visible entries (block coordinate descent).
 
     Alternates (a) every camera's constrained least-squares fit to the current shape
@@ -579,7 +584,7 @@ def mirror_width(keypoints: torch.Tensor, visible: torch.Tensor, flip_pairs: Seq
 
 
 @dataclass
-class _MirrorLayout:
+class MirrorLayout:
     """Where each factorised row's mirrored copy is (rows = valid instances)."""
 
     partner: torch.Tensor  # (Nv,) long: row of the mirrored copy of an original (or of the original), -1: none
@@ -588,7 +593,7 @@ class _MirrorLayout:
     pairs: list  # flip pairs as column positions of the factorised matrix
 
 
-def _mirror_layout(valid: torch.Tensor, width: float, flip_pairs, cols: list[int]) -> _MirrorLayout:
+def mirror_layout(valid: torch.Tensor, width: float, flip_pairs, cols: list[int]) -> MirrorLayout:
     """Mirror pairing among the factorised rows (``valid (N,)`` bool, copy of ``i`` at ``i + N/2``)."""
     n = valid.shape[0]
     h = n // 2
@@ -598,7 +603,7 @@ def _mirror_layout(valid: torch.Tensor, width: float, flip_pairs, cols: list[int
     partner = torch.where(valid[other], pos[other], torch.full_like(other, -1))
     where = {c: p for p, c in enumerate(cols)}
     pairs = [(where[int(i)], where[int(j)]) for i, j in (flip_pairs or []) if int(i) in where and int(j) in where]
-    return _MirrorLayout(partner, idx < h, float(width), pairs)
+    return MirrorLayout(partner, idx < h, float(width), pairs)
 
 
 _FLIP_IMAGE_X = (-1.0, 1.0)
@@ -616,7 +621,7 @@ def _mirror_blocks(M: torch.Tensor, t: torch.Tensor, P: torch.Tensor, width: flo
     return f[:, None] * (M @ P), tm
 
 
-def _mirror_tie_deg(M: torch.Tensor, S: torch.Tensor, mir: _MirrorLayout) -> torch.Tensor | None:
+def mirror_tie_angles(M: torch.Tensor, S: torch.Tensor, mir: MirrorLayout) -> torch.Tensor | None:
     """Angles (degrees) between each mirrored copy's camera and its original's camera mirrored.
 
     A solution consistent with the object's bilateral symmetry has them equal (the
@@ -640,14 +645,14 @@ def _mirror_tie_deg(M: torch.Tensor, S: torch.Tensor, mir: _MirrorLayout) -> tor
     return torch.rad2deg(geodesic_angle(Ro, Rm))
 
 
-def _seed_from_originals(Wv, vv, mir: _MirrorLayout, M_joint, t_joint, polish_iters, **kw):
+def _seed_from_originals(Wv, vv, mir: MirrorLayout, M_joint, t_joint, polish_iters, **kw):
     """Solve the originals alone, derive their copies' cameras by mirroring, polish all rows together.
 
     Returns ``M, t, S, history`` (history: originals' factorisation and polish, then the joint polish).
     """
     o = mir.original
     Mo, to, So, hist, _, _ = _factorize(Wv[o], vv[o], rank=3, **kw)
-    Mo, to, So, ph, _ = _polish(Mo, to, So, Wv[o], vv[o], iters=polish_iters, tol=kw["tol"])
+    Mo, to, So, ph, _ = bundle_polish(Mo, to, So, Wv[o], vv[o], iters=polish_iters, tol=kw["tol"])
     seen = vv[o].sum(0)
     pairs = [(i, j) for i, j in mir.pairs if seen[i] >= 2 and seen[j] >= 2]
     M, t = M_joint.clone(), t_joint.clone()
@@ -666,7 +671,7 @@ def _seed_from_originals(Wv, vv, mir: _MirrorLayout, M_joint, t_joint, polish_it
     cams = ScaledOrthographic(complete_rotation(M / s[:, None, None]), s, t)
     S = triangulate(cams, Wv.transpose(1, 2), vv > 0, min_views=1).T
     S = torch.where(torch.isfinite(S), S, So)
-    M, t, S, ph2, _ = _polish(M, t, S, Wv, vv, iters=polish_iters, tol=kw["tol"])
+    M, t, S, ph2, _ = bundle_polish(M, t, S, Wv, vv, iters=polish_iters, tol=kw["tol"])
     return M, t, S, hist + ph + ph2
 
 
@@ -693,7 +698,7 @@ class _Fit:
 WARM_OUTER = 10
 
 
-def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: _MirrorLayout | None = None, tie_deg: float = 5.0,
+def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: MirrorLayout | None = None, tie_deg: float = 5.0,
          S_init: torch.Tensor | None = None, **kw):
     """Rigid (factorisation + polish) or planar solution; ``planar=None`` picks by residual.
 
@@ -713,11 +718,11 @@ def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: _MirrorLayout | N
         return _Fit(M, tv, Sc, history, iters, 0, converged, True, report)
     kw3 = kw if S_init is None else dict(kw, max_outer=min(kw["max_outer"], WARM_OUTER))
     M, tv, Sc, history, iters, converged = _factorize(Wv, vv, rank=3, S_init=S_init, **kw3)
-    M, tv, Sc, phist, pconv = _polish(M, tv, Sc, Wv, vv, iters=polish_iters, tol=kw["tol"])
+    M, tv, Sc, phist, pconv = bundle_polish(M, tv, Sc, Wv, vv, iters=polish_iters, tol=kw["tol"])
     history = history + phist
     converged = pconv if polish_iters > 0 else converged
     if mirrors is not None:
-        tie = _mirror_tie_deg(M, Sc, mirrors)
+        tie = mirror_tie_angles(M, Sc, mirrors)
         report = {"width": mirrors.width, "tie_deg_median": None if tie is None else float(tie.median()),
                   "reseeded": False}
         if tie is not None and float(tie.median()) > tie_deg and int(mirrors.original.sum()) >= 2:
@@ -725,7 +730,7 @@ def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: _MirrorLayout | N
             report["rms_joint"] = history[-1]
             if seeded is not None:
                 report["rms_seeded"] = seeded[3][-1]
-                tie2 = _mirror_tie_deg(seeded[0], seeded[2], mirrors)
+                tie2 = mirror_tie_angles(seeded[0], seeded[2], mirrors)
                 report["tie_deg_median_seeded"] = None if tie2 is None else float(tie2.median())
                 if seeded[3][-1] < history[-1]:
                     M, tv, Sc = seeded[:3]
@@ -996,7 +1001,7 @@ def _main_component(vis, rigid, valid, reasons, keypoint_names, problems):
     """Restrict ``valid`` to the largest connected group of the visibility graph (reasons, problems
     updated); returns ``valid``, the rigid keypoints left in the group and those lost."""
     rigid_t = torch.tensor(rigid, device=vis.device, dtype=torch.long)
-    outside, cols_out = _outside_main_component(vis[:, rigid_t] & valid[:, None])
+    outside, cols_out = outside_main_component(vis[:, rigid_t] & valid[:, None])
     if not bool(outside.any()):
         return valid, list(rigid), []
     lost = [rigid[j] for j in cols_out.nonzero().squeeze(1).tolist()]
@@ -1122,7 +1127,7 @@ def _fit_step(data: _Data, opts: SfMOptions, flip_pairs, init_shape, generator) 
             raise ValueError("mirrors=True but instances N/2..N-1 are not the mirrored copies of 0..N/2-1 "
                              "(x' = C - 1 - x, same y, keypoints swapped along flip_pairs)")
         if width is not None:
-            layout = _mirror_layout(data.valid, width, flip_pairs, data.cols)
+            layout = mirror_layout(data.valid, width, flip_pairs, data.cols)
     planar, S_init = opts.planar, None
     if init_shape is not None:
         if planar is None:
