@@ -13,7 +13,7 @@ table (seconds, instances per second, peak memory) and the viewpoint errors
 against the true cameras, and writes everything to ``--out`` as JSON.
 
 With ``--groups 3`` it also times the fit of a mixture of rigid shapes
-(:func:`carvi_torch.sfm_mixture.fit_mixture_of_shapes`, the pipeline's ``sfm_groups``
+(:func:`carvi_torch.viewpoints.mixture.fit_mixture_of_shapes`, the pipeline's ``sfm_groups``
 settings) on the same class. The class is one rigid shape, so the fit tries two
 groups (two initialisations), finds no residual cut worth a split and stops: a
 lower bound on what the option costs on a class that does split; ``--shapes 3`` makes one
@@ -52,12 +52,12 @@ from carvi_torch.cameras import FLIP_X, ScaledOrthographic, random_rotations  # 
 from carvi_torch.io.outputs import write_json  # noqa: E402
 from carvi_torch.config import Config  # noqa: E402
 from carvi_torch.pipeline import group_sfm_cameras, refine_groups  # noqa: E402
-from carvi_torch.refine import refine_cameras, supported_shape  # noqa: E402
+from carvi_torch.viewpoints.camera_fit import refine_cameras, supported_shape  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
-from carvi_torch.sfm import rigid_sfm  # noqa: E402
-from carvi_torch import sfm_mixture  # noqa: E402
-from carvi_torch.sfm_mixture import fit_mixture_of_shapes  # noqa: E402
-from carvi_torch.viewpoint_metrics import viewpoint_report  # noqa: E402
+from carvi_torch.viewpoints.sfm import rigid_sfm  # noqa: E402
+from carvi_torch.viewpoints import mixture as sfm_mixture  # noqa: E402
+from carvi_torch.viewpoints.mixture import fit_mixture_of_shapes  # noqa: E402
+from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report  # noqa: E402
 
 
 #: Proportions of the ``--shapes`` variants of the base shape (x: width, y: length, z: height).
@@ -215,8 +215,8 @@ def main(argv=None) -> dict:
                                         lambda sub, init_shape=None: rigid_sfm(sub.keypoints, sub.visible,
                                                                                max_outer=args.max_outer,
                                                                                inner=args.inner, init_shape=init_shape),
-                                        max_groups=args.groups, min_size=cfg.sfm_group_min, gain=cfg.sfm_group_gain,
-                                        agreement_deg=cfg.sfm_group_agreement_deg, rounds=cfg.sfm_group_rounds,
+                                        max_groups=args.groups, min_size=cfg.viewpoints.sfm_group_min, gain=cfg.viewpoints.sfm_group_gain,
+                                        agreement_deg=cfg.viewpoints.sfm_group_agreement_deg, rounds=cfg.viewpoints.sfm_group_rounds,
                                         seed=args.seed, single=sfm, warm_start=warm, threads=threads,
                                         threads_min_objects=min_objects)
             sync()

@@ -4,7 +4,7 @@ Subcommands (``--bench`` is the benchmark's working directory, default outputs/b
 
 * ``ranking`` (a, b): every saved proposal of the Full run (``<class>/proposals/<id>.npz``) is
   meshed (:func:`carvi_torch.mesh.occupancy_to_mesh`) and scored against the ground truth
-  (:func:`carvi_torch.metrics.evaluate_reconstruction`, step ``--step-percent`` of the GT
+  (:func:`carvi_torch.evaluation.metrics.evaluate_reconstruction`, step ``--step-percent`` of the GT
   bbox diagonal, coarser than the table's to keep the ~7000 evaluations affordable; the
   difference is measured on the selected proposals and written to the JSON). Per class: the
   top-ranked, random (expected error of a uniform pick among the valid proposals) and best
@@ -18,7 +18,7 @@ Subcommands (``--bench`` is the benchmark's working directory, default outputs/b
   bbox diagonal, on ``--classes`` (Full and the baselines): per-object differences, CPU times.
 * ``clusters``: per class, the Full reconstructions brought into the class's object frame
   (refined cameras), ``--points`` surface samples each, centred and scaled to unit RMS radius,
-  a symmetric RMS chamfer distance matrix (:func:`carvi_torch.studies.chamfer_matrix`), K-medoids
+  a symmetric RMS chamfer distance matrix (:func:`carvi_torch.evaluation.studies.chamfer_matrix`), K-medoids
   into 5 clusters, the medoids drawn ordered by cluster size (``shape_clusters.png``).
 
 Example:
@@ -71,10 +71,10 @@ def _proposal_errors(job):
     import torch
 
     torch.set_num_threads(1)
-    from carvi_torch import metrics
+    from carvi_torch.evaluation import metrics
     from carvi_torch.evaluate import posed_gt_mesh
     from carvi_torch.mesh import occupancy_to_mesh
-    from carvi_torch.studies import load_proposals
+    from carvi_torch.evaluation.studies import load_proposals
 
     path, entry, gt_root, step_percent, selected_mesh, table_step = job
     props = load_proposals(path)
@@ -106,7 +106,7 @@ def ranking(args) -> int:
     from multiprocessing import get_context
 
     from carvi_torch.select import rank_proposals
-    from carvi_torch.studies import ranking_curves
+    from carvi_torch.evaluation.studies import ranking_curves
 
     bench = Path(args.bench)
     data = _data_dir(bench)
@@ -173,7 +173,7 @@ def _ranking_summary(per_ref: dict) -> dict:
     import torch
 
     from carvi_torch.select import rank_proposals
-    from carvi_torch.studies import ranking_curves
+    from carvi_torch.evaluation.studies import ranking_curves
 
     classes = sorted({r["class"] for r in per_ref.values()})
     P = max(len(r["errors"]) for r in per_ref.values())
@@ -380,7 +380,7 @@ def clusters(args) -> int:
     import trimesh
 
     from carvi_torch.cameras import ScaledOrthographic
-    from carvi_torch.studies import (chamfer_matrix, k_medoids, normalise_points, order_clusters_by_size,
+    from carvi_torch.evaluation.studies import (chamfer_matrix, k_medoids, normalise_points, order_clusters_by_size,
                                      sample_points)
 
     bench = Path(args.bench)

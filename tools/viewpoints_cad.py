@@ -3,7 +3,7 @@
 All models of a class are pooled (a class = many different objects, as in PASCAL VOC), each
 rendered from ``--views`` photo-like cameras; ``reconstruct stage=cameras`` estimates every
 camera; errors are measured after one global rotation aligning the SfM class frame with the
-CAD frame (``carvi_torch.viewpoint_metrics``). SfM -> refined compares the same views (those with
+CAD frame (``carvi_torch.evaluation.viewpoint_metrics``). SfM -> refined compares the same views (those with
 an SfM camera, ``evaluate``'s ``refined_with_sfm``); every view's refined median, the
 unseen-image cameras included, has a column of its own. The cameras of a run go to
 ``<work>/cameras[_<overrides>][_renders-s<seed>]`` (rerunning the same settings resumes there).

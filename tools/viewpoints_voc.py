@@ -4,7 +4,7 @@ The viewpoint steps of ``tools/voc_study.py`` (which also reconstructs every sha
 cameras of unseen images and compares shapes with the CAD models, about 8 minutes), run with
 ``stage=cameras``: convert the Berkeley keypoint files, ``python -m carvi_torch.reconstruct
 stage=cameras``, then the SfM and refined cameras against ``viewpoints_dev.json`` after one
-global rotation (:func:`carvi_torch.viewpoint_metrics.viewpoint_report`).
+global rotation (:func:`carvi_torch.evaluation.viewpoint_metrics.viewpoint_report`).
 
     python tools/viewpoints_voc.py [--data ../shared/data] [--work outputs/viewpoints_voc]
                                    [--out docs/results/viewpoints_voc.json] [key=value ...]

@@ -16,12 +16,12 @@ Steps (each prints a table; everything lands in ``--out`` as JSON with the comma
 3. **viewpoints**: the SfM and the refined cameras of ``cameras.json`` against the
    PASCAL3D+ rotations of ``viewpoints_dev.json`` (``R``, our camera convention), after one
    global rotation aligning the SfM frame with the CAD frame
-   (:func:`carvi_torch.viewpoint_metrics.viewpoint_report`): median geodesic error,
+   (:func:`carvi_torch.evaluation.viewpoint_metrics.viewpoint_report`): median geodesic error,
    accuracy at 30 degrees, median azimuth / elevation errors; errors by ground-truth
    azimuth; the gross errors (> 30 degrees) by name.
 4. **unseen images**: a random third of the objects (``--seed``) is held aside; rigid SfM
    (with mirrors, the pipeline's settings) and refinement run on the rest; the held-aside
-   cameras come from :func:`carvi_torch.refine.estimate_camera` with the mean shape learned
+   cameras come from :func:`carvi_torch.viewpoints.camera_fit.estimate_camera` with the mean shape learned
    from the rest, once from keypoints alone (``silhouette_weight = 0``) and once with the
    silhouette term. The alignment ``G`` is fitted on the *training* objects with ground
    truth and applied unchanged (also reported: ``G`` fitted on the held-aside objects).
@@ -31,7 +31,7 @@ Steps (each prints a table; everything lands in ``--out`` as JSON with the comma
    those of the mask; see :func:`fit_cad_to_mask`). The reconstruction is compared with it
    in the CAD frame: symmetric RMS error in percent of the CAD's bounding-box diagonal
    after the best depth shift along the viewing direction
-   (:func:`carvi_torch.metrics.evaluate_reconstruction`), and voxel IoU at the
+   (:func:`carvi_torch.evaluation.metrics.evaluate_reconstruction`), and voxel IoU at the
    reconstruction's own voxel size after that shift (:func:`solid_iou`). The same for the
    Puffball and SfM-convex-hull baselines and, as a yardstick of how much aeroplanes differ,
    for the *other* seven CAD models posed the same way. The CAD model is only the closest
@@ -61,7 +61,9 @@ import trimesh
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from carvi_torch import metrics, pipeline, refine, sfm  # noqa: E402
+from carvi_torch import pipeline
+from carvi_torch.evaluation import metrics
+from carvi_torch.viewpoints import camera_fit as refine, sfm  # noqa: E402
 from carvi_torch.cameras import (  # noqa: E402
     ScaledOrthographic,
     azimuth_elevation_roll_from_rotation,
@@ -72,7 +74,7 @@ from carvi_torch.io import coco, voc  # noqa: E402
 from carvi_torch.io.outputs import read_json, write_json  # noqa: E402
 from carvi_torch.sdf import distance_to_mask  # noqa: E402
 from carvi_torch.synthetic.render import rasterize_triangles  # noqa: E402
-from carvi_torch.viewpoint_metrics import (  # noqa: E402
+from carvi_torch.evaluation.viewpoint_metrics import (  # noqa: E402
     align_rotations,
     angle_errors,
     geodesic_errors,
@@ -248,7 +250,7 @@ class VisualHull:
     PASCAL3D+ meshes have holes, so a flood fill of their surface voxels leaks (two of the
     eight aeroplanes). The hull is the set of points whose projection falls inside the
     mesh's silhouette in every one of ``views`` orthographic views spread over the sphere
-    (:func:`carvi_torch.refine.sphere_rotations`); it contains the solid and exceeds it only
+    (:func:`carvi_torch.viewpoints.camera_fit.sphere_rotations`); it contains the solid and exceeds it only
     in concavities no view sees into (for aeroplanes: small wedges at the wing roots).
 
     Args:
@@ -314,7 +316,7 @@ def mesh_solid(vertices: np.ndarray, faces: np.ndarray, pitch: float, fill: bool
                hull: VisualHull | None = None) -> Solid:
     """Solid voxelisation of a mesh on the global lattice.
 
-    Surface voxels by :func:`carvi_torch.metrics.voxelize_solid` (cavities filled when ``fill``:
+    Surface voxels by :func:`carvi_torch.evaluation.metrics.voxelize_solid` (cavities filled when ``fill``:
     right for closed meshes such as the reconstructions); with ``hull``, united with the
     visual hull at the voxel centres (for CAD meshes with holes, ``fill=False``).
     """
@@ -526,7 +528,7 @@ def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, de
     ``seen``: the result of :func:`step_viewpoints`; its errors on the same held-aside objects
     (cameras of the full run, where they took part in SfM) are reported beside.
     """
-    loaded = coco.load_coco(ann, canvas_size=cfg.canvas_size, margin=cfg.canvas_margin, device=device)
+    loaded = coco.load_coco(ann, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin, device=device)
     coll = loaded.collections[CLASS]
     n = len(coll)
     perm = torch.randperm(n, generator=torch.Generator().manual_seed(seed))
@@ -537,19 +539,19 @@ def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, de
     meta = coll.meta
     t0 = time.perf_counter()
     both = tr.with_mirrors()
-    res = sfm.rigid_sfm(both.keypoints, both.visible, max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner,
-                        tol=cfg.sfm_tol, rigid_keypoints=meta.rigid_keypoints, keypoint_names=meta.keypoint_names,
+    res = sfm.rigid_sfm(both.keypoints, both.visible, max_outer=cfg.viewpoints.sfm_max_outer, inner=cfg.viewpoints.sfm_inner,
+                        tol=cfg.viewpoints.sfm_tol, rigid_keypoints=meta.rigid_keypoints, keypoint_names=meta.keypoint_names,
                         flip_pairs=meta.flip_pairs, left_convention=meta.left_convention)
     rr = pipeline.class_refine(res.shape, res.cameras, both, distance_to_mask(both.masks), cfg)
     t_train = time.perf_counter() - t0
     dist = distance_to_mask(te.masks)
     t0 = time.perf_counter()
     # the pipeline's unseen-image path: the keypoints the training instances show often enough
-    shape = refine.supported_shape(res.shape, both.visible, cfg.refine_min_support)
+    shape = refine.supported_shape(res.shape, both.visible, cfg.viewpoints.refine_min_support)
     est_kp, _ = refine.estimate_camera(shape, te.keypoints, te.visible, dist, silhouette_weight=0.0,
-                                       max_iters=cfg.refine_iters)
+                                       max_iters=cfg.viewpoints.refine_iters)
     est_sil, _ = refine.estimate_camera(shape, te.keypoints, te.visible, dist,
-                                        silhouette_weight=cfg.silhouette_weight, max_iters=cfg.refine_iters)
+                                        silhouette_weight=cfg.viewpoints.silhouette_weight, max_iters=cfg.viewpoints.refine_iters)
     t_test = time.perf_counter() - t0
 
     def with_gt(c, R):
@@ -615,8 +617,8 @@ def camera_variant(coll, gt: dict, cfg: Config, *, mirrors: bool = True, rigid: 
     t0 = time.perf_counter()
     both = coll.with_mirrors() if mirrors else coll
     meta = coll.meta
-    res = sfm.rigid_sfm(both.keypoints, both.visible, max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner,
-                        tol=cfg.sfm_tol, rigid_keypoints=meta.rigid_keypoints if rigid is None else rigid,
+    res = sfm.rigid_sfm(both.keypoints, both.visible, max_outer=cfg.viewpoints.sfm_max_outer, inner=cfg.viewpoints.sfm_inner,
+                        tol=cfg.viewpoints.sfm_tol, rigid_keypoints=meta.rigid_keypoints if rigid is None else rigid,
                         keypoint_names=meta.keypoint_names, flip_pairs=meta.flip_pairs,
                         left_convention=meta.left_convention)
     vcfg = cfg.override({k: v for k, v in (("silhouette_weight", silhouette_weight), ("refine_iters", refine_iters))
@@ -644,15 +646,15 @@ def step_diagnose(data: Path, work: Path, gt: dict, cfg: Config, device: str) ->
     voc.convert(data / "pascal_voc_aeroplane" / "keypoints", ann_1, one_based=False)
 
     def load(path, canvas):
-        return coco.load_coco(path, canvas_size=canvas, margin=cfg.canvas_margin, device=device).collections[CLASS]
+        return coco.load_coco(path, canvas_size=canvas, margin=cfg.input.canvas_margin, device=device).collections[CLASS]
 
-    coll = load(ann, cfg.canvas_size)
+    coll = load(ann, cfg.input.canvas_size)
     names = coll.meta.keypoint_names
     no_engines = [i for i, nm in enumerate(names) if "engine" not in nm.lower()]
     variants = {
         "pipeline settings": lambda: camera_variant(coll, gt, cfg),
         "no mirrored copies": lambda: camera_variant(coll, gt, cfg, mirrors=False),
-        "1-based coordinates kept": lambda: camera_variant(load(ann_1, cfg.canvas_size), gt, cfg),
+        "1-based coordinates kept": lambda: camera_variant(load(ann_1, cfg.input.canvas_size), gt, cfg),
         "canvas 256": lambda: camera_variant(load(ann, 256), gt, cfg),
         "rigid subset: no engines": lambda: camera_variant(coll, gt, cfg, rigid=no_engines),
         "silhouette weight 0": lambda: camera_variant(coll, gt, cfg, silhouette_weight=0.0),
@@ -685,7 +687,7 @@ def _recon_mesh(recon: Path, aid: int) -> trimesh.Trimesh | None:
 
 def _puffball_image(coll, i: int) -> trimesh.Trimesh:
     """Puffball of instance ``i``'s canvas mask, in image pixels."""
-    from carvi_torch.baselines import puffball
+    from carvi_torch.evaluation.baselines import puffball
 
     m = puffball(coll.masks[i])
     a = float(coll.canvas_from_image.scale[i])
@@ -697,7 +699,7 @@ def _puffball_image(coll, i: int) -> trimesh.Trimesh:
 
 
 def _sfmc_image(cams_json: dict, aid: int) -> trimesh.Trimesh | None:
-    from carvi_torch.baselines import sfm_convex_hull
+    from carvi_torch.evaluation.baselines import sfm_convex_hull
 
     cam = cams_json["cameras"].get(str(aid), {}).get("refined")
     if cam is None:
@@ -788,7 +790,7 @@ def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: C
 
     cc = COCO(str(ann))
     cams_json = read_json(recon / CLASS / "cameras.json")
-    loaded = coco.load_coco(ann, canvas_size=cfg.canvas_size, margin=cfg.canvas_margin)
+    loaded = coco.load_coco(ann, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin)
     coll = loaded.collections[CLASS]
     row_of = {int(a): i for i, a in enumerate(coll.annotation_ids.tolist())}
     t0 = time.perf_counter()
