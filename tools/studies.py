@@ -1,7 +1,13 @@
-"""Studies of the synthetic benchmark (after ``tools/benchmark_synthetic.py``): plots and JSON in docs/results/.
+"""Studies of the synthetic benchmark (after ``tools/benchmark_synthetic.py``), and the frames figure.
 
-Subcommands (``--bench`` is the benchmark's working directory, default outputs/benchmark):
+    python tools/studies.py {frames,ranking,threshold,viewpoints,clusters,step} [options]
 
+Figures go to ``docs/figures/<name>.png`` (docs/results.md and docs/conventions.md show them),
+JSON records to ``docs/data/studies_<name>.json``. Subcommands (``--bench`` is the benchmark's
+working directory, default outputs/benchmark):
+
+* ``frames``: the image, camera and voxel-grid frames of carvi_torch (``frames.png``,
+  docs/conventions.md; ``--out`` moves it). Needs no benchmark.
 * ``ranking`` (a, b): every saved proposal of the Full run (``<class>/proposals/<id>.npz``) is
   meshed (:func:`carvi_torch.mesh.occupancy_to_mesh`) and scored against the ground truth
   (:func:`carvi_torch.evaluation.metrics.evaluate_reconstruction`, step ``--step-percent`` of the GT
@@ -10,10 +16,10 @@ Subcommands (``--bench`` is the benchmark's working directory, default outputs/b
   top-ranked, random (expected error of a uniform pick among the valid proposals) and best
   available proposal (``ranking.png``); over all classes: the same against the size of the
   proposal pool, 1..P, the top-ranked among the first k (``pool_size.png``).
-* ``threshold`` (c): Full rerun on ``--classes`` with ``cluster_threshold_deg`` in
+* ``threshold`` (c): Full rerun on ``--classes`` with ``surrogates.cluster_threshold_deg`` in
   ``--thresholds``; mean error per class and threshold (``threshold.png``).
 * ``viewpoints`` (d): median geodesic viewpoint error per class, SfM vs refined cameras, from
-  the benchmark's evaluation (``viewpoints.png``).
+  the benchmark's record ``docs/data/benchmark_synthetic.json`` (``viewpoints.png``).
 * ``step``: the metric's sampling step, the paper's 0.5% against the table's 1% of the GT
   bbox diagonal, on ``--classes`` (Full and the baselines): per-object differences, CPU times.
 * ``clusters``: per class, the Full reconstructions brought into the class's object frame
@@ -22,6 +28,7 @@ Subcommands (``--bench`` is the benchmark's working directory, default outputs/b
   into 5 clusters, the medoids drawn ordered by cluster size (``shape_clusters.png``).
 
 Example:
+    python tools/studies.py frames
     python tools/studies.py ranking --jobs 2
     python tools/studies.py threshold --classes aeroplane,car,chair,sofa
     python tools/studies.py viewpoints
@@ -42,13 +49,27 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-RESULTS = ROOT / "docs" / "results"
+#: Where the figures go (docs/results.md, docs/conventions.md show them).
+FIGURES = ROOT / "docs" / "figures"
+#: Where the studies' JSON records go, and where the synthetic benchmark's record is read.
+DATA = ROOT / "docs" / "data"
+BENCHMARK_JSON = DATA / "benchmark_synthetic.json"
 
 
 def _command() -> str:
     return "python tools/studies.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+
+
+def _record(name: str) -> Path:
+    """``docs/data/studies_<name>.json`` (its folder made)."""
+    DATA.mkdir(parents=True, exist_ok=True)
+    return DATA / f"studies_{name}.json"
+
+
+def _figure(name: str) -> Path:
+    """``docs/figures/<name>.png`` (its folder made)."""
+    FIGURES.mkdir(parents=True, exist_ok=True)
+    return FIGURES / f"{name}.png"
 
 
 def _data_dir(bench: Path) -> Path:
@@ -102,11 +123,8 @@ def _proposal_errors(job):
 
 
 def ranking(args) -> int:
-    import torch
     from multiprocessing import get_context
 
-    from carvi_torch.select import rank_proposals
-    from carvi_torch.evaluation.studies import ranking_curves
 
     bench = Path(args.bench)
     data = _data_dir(bench)
@@ -121,8 +139,8 @@ def ranking(args) -> int:
     chosen = sorted(i for ids in by_model.values() for i in ids[: args.views_per_model])
     classes = set(args.classes.split(",")) if args.classes else None
     full = bench / "run_full"
-    table_step = json.loads((RESULTS / "benchmark.json").read_text())["settings"]["step_percent"] \
-        if (RESULTS / "benchmark.json").is_file() else 1.0
+    table_step = json.loads(BENCHMARK_JSON.read_text())["settings"]["step_percent"] \
+        if BENCHMARK_JSON.is_file() else 1.0
     jobs = []
     for aid in chosen:
         c = cls_of[aid]
@@ -163,7 +181,7 @@ def ranking(args) -> int:
                 "per_reference": per_ref})
     from carvi_torch.io.outputs import write_json
 
-    write_json(RESULTS / "ranking.json", out)
+    write_json(_record("ranking"), out)
     _plot_ranking(out)
     print(json.dumps({k: out[k] for k in ("mean", "selected_vs_table")}, indent=1))
     return 0
@@ -230,7 +248,7 @@ def _plot_ranking(out: dict) -> None:
     ax.set_title(f"Proposal ranking (Full, {out['references']} references, metric step {out['step_percent']}%)")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(RESULTS / "ranking.png", dpi=110)
+    fig.savefig(_figure("ranking"), dpi=110)
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(5.5, 4))
@@ -246,7 +264,7 @@ def _plot_ranking(out: dict) -> None:
     ax.set_title(f"Error against the size of the proposal pool ({len(out['pool_size']['classes'])} classes)",
                  fontsize=10)
     fig.tight_layout()
-    fig.savefig(RESULTS / "pool_size.png", dpi=110)
+    fig.savefig(_figure("pool_size"), dpi=110)
     plt.close(fig)
 
 
@@ -258,7 +276,7 @@ def threshold(args) -> int:
     data = _data_dir(bench)
     classes = args.classes.split(",")
     thresholds = [float(v) for v in args.thresholds.split(",")]
-    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS=str(max(1, (os.cpu_count() or 1) // args.jobs)))
+    env = dict(os.environ, OMP_NUM_THREADS=str(max(1, (os.cpu_count() or 1) // args.jobs)))
     runs = {}
     cmds = []
     for thr in thresholds:
@@ -268,7 +286,7 @@ def threshold(args) -> int:
             continue
         cmds.append([sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(data / "annotations.json"),
                      "--out", str(d), "references=test", f"seed={args.seed}", "progress=false", "preview=false",
-                     f"cluster_threshold_deg={thr:g}", "classes=" + ",".join(classes)])
+                     f"surrogates.cluster_threshold_deg={thr:g}", "classes=" + ",".join(classes)])
     t0 = time.perf_counter()
     _run_all(cmds, args.jobs, env)
     ev = [sys.executable, "-m", "carvi_torch.evaluate", "--data", str(data / "annotations.json"), "--split", "test",
@@ -288,7 +306,7 @@ def threshold(args) -> int:
            "error": table, "mean": mean, "clusters": used, "seconds": round(time.perf_counter() - t0, 1)}
     from carvi_torch.io.outputs import write_json
 
-    write_json(RESULTS / "threshold.json", out)
+    write_json(_record("threshold"), out)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -304,7 +322,7 @@ def threshold(args) -> int:
     ax.legend(fontsize=8)
     ax.set_title("Error against the clustering threshold (Full)")
     fig.tight_layout()
-    fig.savefig(RESULTS / "threshold.png", dpi=110)
+    fig.savefig(_figure("threshold"), dpi=110)
     plt.close(fig)
     print(json.dumps({"error": table, "mean": mean}, indent=1))
     return 0
@@ -349,7 +367,7 @@ def viewpoints(args) -> int:
                                        for st in ("sfm", "refined")}}
     from carvi_torch.io.outputs import write_json
 
-    write_json(RESULTS / "viewpoints.json", out)
+    write_json(_record("viewpoints"), out)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -366,7 +384,7 @@ def viewpoints(args) -> int:
     ax.axhline(10, color="k", lw=0.5, ls="--")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(RESULTS / "viewpoints.png", dpi=110)
+    fig.savefig(_figure("viewpoints"), dpi=110)
     plt.close(fig)
     print(json.dumps(out["median_of_class_medians"]))
     return 0
@@ -424,7 +442,7 @@ def clusters(args) -> int:
     seconds = time.perf_counter() - t0
     from carvi_torch.io.outputs import write_json
 
-    write_json(RESULTS / "shape_clusters.json", {
+    write_json(_record("shape_clusters"), {
         "command": _command(), "k": args.k, "points": args.points, "seconds": round(seconds, 1),
         "distance": "symmetric RMS chamfer (max of the two directions) between area-uniform point samples of the "
                     "Full meshes, in the class's SfM object frame (refined cameras), each centred and scaled to unit "
@@ -489,7 +507,7 @@ def _plot_clusters(figs: dict, k: int) -> None:
                         fontsize=10)
     fig.suptitle("Medoids of 5 shape clusters per class (Full reconstructions), largest cluster first", fontsize=11)
     fig.tight_layout(rect=(0.02, 0, 1, 0.98))
-    fig.savefig(RESULTS / "shape_clusters.png", dpi=100)
+    fig.savefig(_figure("shape_clusters"), dpi=100)
     plt.close(fig)
 
 
@@ -501,7 +519,7 @@ def step(args) -> int:
     bench = Path(args.bench)
     data = _data_dir(bench)
     steps = [float(v) for v in args.steps.split(",")]
-    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    env = dict(os.environ, OMP_NUM_THREADS="1")
     recon = [f"--recon={m}={bench / d}" for m, d in (("Full", "run_full"),)]
     times, res = {}, {}
     for st in steps:
@@ -533,8 +551,99 @@ def step(args) -> int:
            "note": f"errors at step {steps[1]:g}% minus errors at step {steps[0]:g}% (percentage points)"}
     from carvi_torch.io.outputs import write_json
 
-    write_json(RESULTS / "metric_step.json", out)
+    write_json(_record("metric_step"), out)
     print(json.dumps({k: out[k] for k in ("cpu_seconds", "difference")}, indent=1))
+    return 0
+
+
+# =========================================================================== frames
+
+
+def _arrow(ax, p, q, color, text, dx=0.0, dy=0.0):
+    from matplotlib.patches import FancyArrowPatch
+
+    ax.add_patch(FancyArrowPatch(p, q, arrowstyle="-|>", mutation_scale=14, lw=2, color=color))
+    ax.text(q[0] + dx, q[1] + dy, text, color=color, fontsize=11, ha="center", va="center")
+
+
+def frames(args) -> int:
+    """docs/figures/frames.png: the image, camera and voxel-grid frames of carvi_torch (docs/conventions.md)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    fig, axes = plt.subplots(1, 3, figsize=(16, 5.5))
+
+    # (a) image / canvas pixels
+    ax = axes[0]
+    ax.set_title("(a) image and canvas pixels")
+    for i in range(5):
+        for j in range(6):
+            ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, lw=0.5, color="0.6"))
+            ax.plot(j, i, ".", color="0.4", ms=3)
+    ax.add_patch(Rectangle((1.5, 0.5), 3, 3, color="tab:orange", alpha=0.35))
+    _arrow(ax, (0, 0), (6.2, 0), "tab:red", "x", 0.3, 0)
+    _arrow(ax, (0, 0), (0, 5.2), "tab:green", "y", 0, 0.3)
+    ax.plot(0, 0, "o", color="k", ms=5)
+    ax.text(0.1, -0.8, "origin = centre of pixel [0, 0]", fontsize=9)
+    ax.text(2.5, 4.9, "pixel [i, j] has its centre at (x=j, y=i)", fontsize=9, ha="center")
+    ax.text(3.0, 2.0, "mask", ha="center", fontsize=9)
+    ax.text(2.5, 5.5, "canvas = a * image + b  (per instance)", fontsize=9, ha="center")
+    ax.set_xlim(-1.2, 6.8)
+    ax.set_ylim(6.0, -1.3)
+    ax.set_aspect("equal")
+    ax.axis("off")
+
+    # (b) scaled orthographic camera
+    ax = axes[1]
+    ax.set_title("(b) scaled orthographic camera")
+    ax.plot([-2.5, 2.5], [2.2, 2.2], color="k", lw=3)
+    ax.text(2.6, 2.2, "image plane", fontsize=9, va="center")
+    obj = np.array([[-0.8, -0.6], [0.9, -0.4], [0.6, 0.7], [-0.7, 0.5], [-0.8, -0.6]])
+    ax.fill(obj[:, 0], obj[:, 1] - 0.5, color="tab:blue", alpha=0.3)
+    for x in (-0.8, 0.9):
+        ax.plot([x, x], [2.2, -1.6], ls=":", color="0.5")
+    _arrow(ax, (-2.2, 2.2), (-1.0, 2.2), "tab:red", "x (u)", 0, 0.25)
+    _arrow(ax, (-2.2, 2.2), (-2.2, -0.8), "tab:purple", "z = depth\n(into scene, R[2])", 0.1, -0.45)
+    ax.text(0.0, -1.9, "uv = s * X R[:2]^T + t     z = s * X . R[2]", ha="center", fontsize=10)
+    ax.text(0.0, -2.4, "R rows: image x, image y (down), view direction", ha="center", fontsize=9)
+    ax.text(0.0, 2.7, "y (down) points out of the page", ha="center", fontsize=9, color="tab:green")
+    ax.set_xlim(-3, 3.4)
+    ax.set_ylim(-2.8, 3.0)
+    ax.set_aspect("equal")
+    ax.axis("off")
+
+    # (c) voxel grid in the reference camera frame
+    ax = fig.add_subplot(1, 3, 3, projection="3d")
+    axes[2].axis("off")
+    ax.set_title("(c) voxel grid (D, H, W), reference camera frame", pad=4)
+    n = 4
+    for d in range(n):
+        for h in range(n):
+            ax.plot([0, n - 1], [d, d], [h, h], color="0.8", lw=0.6)
+            ax.plot([d, d], [0, n - 1], [h, h], color="0.8", lw=0.6)
+    pts = np.array([[w, d, h] for d in range(n) for h in range(n) for w in range(n)])
+    ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=6, color="0.4")
+    ax.quiver(0, 0, 0, n, 0, 0, color="tab:red")
+    ax.quiver(0, 0, 0, 0, n, 0, color="tab:purple")
+    ax.quiver(0, 0, 0, 0, 0, n, color="tab:green")
+    ax.text(n, -0.6, 0, "x: index w", color="tab:red")
+    ax.text(0.3, n, 1.2, "z (depth): index d", color="tab:purple")
+    ax.text(-0.5, 0, n + 0.5, "y (down): index h", color="tab:green")
+    ax.text2D(0.02, 0.02, "(x, y, z, 1) = voxel_to_camera @ (d, h, w, 1)\n"
+              "a column (h, w) is the ray of one reference pixel", transform=ax.transAxes, fontsize=9)
+    ax.set_zlim(n, 0)  # y down
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_axis_off()
+
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    print(f"wrote {out}")
     return 0
 
 
@@ -548,6 +657,8 @@ def main(argv=None) -> int:
     common.add_argument("--bench", default=str(ROOT / "outputs" / "benchmark"), help="benchmark working directory")
     common.add_argument("--jobs", type=int, default=2, help="processes at once")
     common.add_argument("--seed", type=int, default=0)
+    p = sub.add_parser("frames", help="the figure of the image, camera and voxel-grid frames (docs/conventions.md)")
+    p.add_argument("--out", default=str(FIGURES / "frames.png"))
     p = sub.add_parser("ranking", parents=[common], help="(a) top/random/best proposal, (b) pool size")
     p.add_argument("--step-percent", type=float, default=2.0, help="metric step, %% of the GT bbox diagonal")
     p.add_argument("--views-per-model", type=int, default=5, help="test views per model to study (subset)")
@@ -558,7 +669,7 @@ def main(argv=None) -> int:
     p.add_argument("--thresholds", default="15,20,25,30,35,40,45")
     p.add_argument("--step-percent", type=float, default=1.0)
     p = sub.add_parser("viewpoints", parents=[common], help="(d) viewpoint error per class, SfM vs refined")
-    p.add_argument("--bench-json", default=str(RESULTS / "benchmark.json"))
+    p.add_argument("--bench-json", default=str(BENCHMARK_JSON), help="the synthetic benchmark's JSON record")
     p = sub.add_parser("clusters", parents=[common], help="shape clusters (K-medoids) per class")
     p.add_argument("--k", type=int, default=5)
     p.add_argument("--points", type=int, default=1024, help="surface samples per reconstruction")
@@ -566,8 +677,7 @@ def main(argv=None) -> int:
     p.add_argument("--classes", default="bicycle,car,chair,sofa")
     p.add_argument("--steps", default="0.5,1.0")
     args = ap.parse_args(argv)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    return {"ranking": ranking, "threshold": threshold, "viewpoints": viewpoints, "clusters": clusters,
+    return {"frames": frames, "ranking": ranking, "threshold": threshold, "viewpoints": viewpoints, "clusters": clusters,
             "step": step}[args.study](args)
 
 
