@@ -8,30 +8,33 @@ Steps (each skipped when its output exists, unless ``--fresh``):
    model are ``split=test``, the others ``split=pool``.
 2. **Reconstruct** every test render with ``python -m carvi_torch.reconstruct
    references=test`` (surrogates come from other models only: renders of one model share an
-   ``object_id``), once per method: ``Full``; ``-CRef`` (``refine=false``); ``-SImp``
-   (``imprint=false``); ``oracle`` (``cameras=gt``). ``Full`` also saves every proposal
-   (``save_proposals=true``) for ``tools/studies.py``. ``--jobs`` runs that many at once, each
-   with ``torch`` threads = cores / jobs.
+   ``object_id``), once per method: ``Full``; ``-CRef`` (``viewpoints.refine=false``); ``-SImp``
+   (``carve.imprint=false``); ``oracle`` (``study.cameras=gt``). ``Full`` also saves every
+   proposal and its score (``study.save_proposals=true study.keep_all_scores=true``, off by
+   default) for ``tools/studies.py``. ``--jobs`` runs that many at once, each with ``torch``
+   threads = cores / jobs.
 3. **Evaluate** with ``python -m carvi_torch.evaluate --baselines --split test`` (adds Puffball
    and SFMc): the symmetric RMS error in percent of the ground-truth bounding-box diagonal,
    surfaces sampled every ``--step-percent`` of that diagonal. With ``--jobs 2`` the classes
    are split in two evaluate processes and their results merged.
-4. **Write** ``--results`` (default ``docs/results/``): ``table1.md`` (per class + mean, the
-   paper's numbers beside ours), ``benchmark.json`` (everything, with the command line,
-   the machine, wall and CPU times per step), ``viewpoints.md``.
+4. **Write** ``benchmark_synthetic.json`` into ``--results`` (default ``docs/data/``, the record
+   docs/results.md cites: everything, with the command line, the machine, wall and CPU times per
+   step), and ``table1.md`` (per class + mean, the paper's numbers beside ours) and
+   ``viewpoints.md`` into ``--out``. With ``--classes`` the names end in ``_<classes>``.
 
 Same seed, same numbers: the renders depend only on ``(seed, model name)``, the
 reconstructions on ``seed``.
 
-Example (the numbers of docs/results/):
+Command line (``--help`` lists every option); the numbers of docs/results.md:
 
-    python tools/benchmark_synthetic.py --out outputs/benchmark --jobs 2
+    python tools/benchmark_synthetic.py [--out outputs/benchmark] [--results docs/data] [--jobs 2]
+                                        [--methods Full,-CRef,-SImp,oracle] [--classes C1,C2]
+                                        [--set KEY=VALUE ...] [--no-baselines] [--fresh]
 """
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import resource
@@ -42,7 +45,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 #: The paper's Table 1 (symmetric RMS, % of the GT bbox diagonal) for the 12 PASCAL3D+ classes and its mean
 #: over its 20 classes.
@@ -64,10 +66,10 @@ PAPER_MEAN_20 = {"Full": 6.96, "-CRef": 8.01, "-SImp": 7.53, "Puffball": 9.57, "
 
 #: Methods: name -> reconstruct overrides.
 METHODS = {
-    "Full": ["save_proposals=true"],
-    "-CRef": ["refine=false"],
-    "-SImp": ["imprint=false"],
-    "oracle": ["cameras=gt"],
+    "Full": ["study.save_proposals=true", "study.keep_all_scores=true"],  # for tools/studies.py
+    "-CRef": ["viewpoints.refine=false"],
+    "-SImp": ["carve.imprint=false"],
+    "oracle": ["study.cameras=gt"],
 }
 PYTHON = sys.executable
 
@@ -87,7 +89,6 @@ def _cpu_self() -> float:
 
 def _env(threads: int) -> dict:
     env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         env[k] = str(threads)
     return env
@@ -266,16 +267,18 @@ def acceptance(res: dict) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--models", default=str(ROOT.parent / "shared" / "data" / "pascal3d_cad"),
                     help="directory of CAD models with 3-D keypoints (default ../shared/data/pascal3d_cad)")
     ap.add_argument("--out", default=str(ROOT / "outputs" / "benchmark"), help="working directory (data, runs)")
-    ap.add_argument("--results", default=str(ROOT / "docs" / "results"), help="where tables and JSON go")
+    ap.add_argument("--results", default=str(ROOT / "docs" / "data"),
+                    help="where benchmark_synthetic.json goes (default docs/data; table1.md and viewpoints.md go to --out)")
     ap.add_argument("--pool", type=int, default=20, help="pool (surrogate) renders per model (default 20)")
     ap.add_argument("--test-views", type=int, default=5, help="test renders per model (default 5)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--step-percent", type=float, default=1.0,
-                    help="metric sampling step, %% of the GT bbox diagonal (paper 0.5; default 1.0, see README)")
+                    help="metric sampling step, %% of the GT bbox diagonal (paper 0.5; default 1.0, see docs/results.md)")
     ap.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {list(METHODS)}")
     ap.add_argument("--classes", help="comma-separated classes (default: all)")
     ap.add_argument("--jobs", type=int, default=2, help="processes at once (default 2)")
@@ -377,19 +380,19 @@ def main(argv=None) -> int:
         "evaluation": res,
     }
     tag = "" if not classes else "_" + "_".join(classes)
-    write_json(results / f"benchmark{tag}.json", report)
+    write_json(results / f"benchmark_synthetic{tag}.json", report)
     table = table1(res)
-    write_bytes(results / f"table1{tag}.md", (
+    write_bytes(out / f"table1{tag}.md", (
         f"Symmetric RMS error, % of the ground-truth bounding-box diagonal (surface step {args.step_percent}% "
         f"of it); the paper's Table 1 in brackets.\n\n{table}\n\nCommand: `{command}`\n").encode())
-    write_bytes(results / f"viewpoints{tag}.md", (format_viewpoint_table(res) + "\n").encode())
+    write_bytes(out / f"viewpoints{tag}.md", (format_viewpoint_table(res) + "\n").encode())
     print()
     print(table)
     print()
     for k, v in report["acceptance"].items():
         print(f"  {k}: {v}")
-    print(f"total {total_wall / 60:.1f} min wall, {total_cpu / 60:.1f} min CPU; wrote {results}/table1{tag}.md, "
-          f"benchmark{tag}.json")
+    print(f"total {total_wall / 60:.1f} min wall, {total_cpu / 60:.1f} min CPU; wrote "
+          f"{results / f'benchmark_synthetic{tag}.json'}, {out / f'table1{tag}.md'}, {out / f'viewpoints{tag}.md'}")
     return 0
 
 
