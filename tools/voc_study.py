@@ -2,10 +2,13 @@
 
 One command reproduces every number of ``docs/voc.md``::
 
-    python tools/voc_study.py [--data ../shared/data] [--work outputs/voc] [--out docs/results/voc]
+    python tools/voc_study.py [--data ../shared/data] [--work outputs/voc] [--out docs/data/voc_study.json]
                               [--figure docs/figures/voc_aeroplanes.png] [--seed 0] [--device cpu]
+                              [--set KEY=VALUE ...] [--skip-reconstruct] [--no-shapes] [--no-diagnose]
+    python tools/voc_study.py --cameras-only [--set KEY=VALUE ...]   # steps 1-3 alone, about 20 s
 
-Steps (each prints a table; everything lands in ``--out`` as JSON with the command line):
+Steps (each prints a table; everything lands in ``--out`` as JSON with the command line, the
+per-object errors in ``WORK/per_object.json``):
 
 1. **convert** every Berkeley keypoint file of ``DATA/pascal_voc_aeroplane/keypoints`` with
    :func:`carvi_torch.io.voc.convert` (the code of ``python -m carvi_torch.datasets voc``);
@@ -39,6 +42,11 @@ Steps (each prints a table; everything lands in ``--out`` as JSON with the comma
 6. **figure** ``--figure``: a dozen objects spread over the azimuths, each with its polygon
    mask, the projected reconstruction's silhouette, the annotated keypoints and the mean
    shape's keypoints seen by the refined camera, and two views of the mesh.
+
+``--cameras-only``: the viewpoint check alone: convert, reconstruct with ``stage=cameras``
+(into ``WORK/cameras``, settings of ``--set`` applied), the viewpoint tables of step 3; its
+JSON (default ``WORK/cameras_only.json``) holds their summary. E.g. ``--cameras-only --set
+silhouette_robust=0`` for the paper's squared silhouette penalty.
 """
 from __future__ import annotations
 
@@ -58,29 +66,28 @@ import numpy as np
 import torch
 import trimesh
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from carvi_torch import pipeline
-from carvi_torch.evaluation import metrics
-from carvi_torch.viewpoints import camera_fit as refine, sfm  # noqa: E402
-from carvi_torch.cameras import (  # noqa: E402
+from carvi_torch.cameras import (
     ScaledOrthographic,
     azimuth_elevation_roll_from_rotation,
     rotation_from_azimuth_elevation_roll,
 )
-from carvi_torch.config import Config  # noqa: E402
-from carvi_torch.io import coco, voc  # noqa: E402
-from carvi_torch.io.outputs import read_json, write_json  # noqa: E402
-from carvi_torch.sdf import distance_to_mask  # noqa: E402
-from carvi_torch.synthetic.render import rasterize_triangles  # noqa: E402
-from carvi_torch.evaluation.viewpoint_metrics import (  # noqa: E402
+from carvi_torch.config import Config
+from carvi_torch.evaluation import metrics
+from carvi_torch.evaluation.viewpoint_metrics import (
     align_rotations,
     angle_errors,
     geodesic_errors,
     summarize,
     viewpoint_report,
 )
+from carvi_torch.io import coco, voc
+from carvi_torch.io.outputs import read_json, write_json
+from carvi_torch.sdf import distance_to_mask
+from carvi_torch.synthetic.render import rasterize_triangles
+from carvi_torch.viewpoints import camera_fit, class_sfm, sfm
+from carvi_torch.viewpoints.refine import refine_with_shape
+
+ROOT = Path(__file__).resolve().parents[1]
 
 CLASS = "aeroplane"
 
@@ -263,7 +270,7 @@ class VisualHull:
         self.radius = float(np.linalg.norm(vertices - self.centre, axis=1).max()) * 1.02
         self.pixel = 2 * self.radius / resolution
         self.resolution = resolution
-        self.R = refine.sphere_rotations(views, dtype=torch.float64).numpy()  # (B, 3, 3)
+        self.R = camera_fit.sphere_rotations(views, dtype=torch.float64).numpy()  # (B, 3, 3)
         X = vertices - self.centre
         sil = []
         for Rv in self.R:
@@ -382,9 +389,8 @@ def step_reconstruct(ann: Path, recon: Path, overrides: list[str], device: str) 
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(recon),
            "progress=false", f"device={device}", *overrides]
     print("\n$ " + " ".join(shlex.quote(c) for c in cmd), flush=True)
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, env=env, cwd=str(ROOT))
+    subprocess.run(cmd, check=True, cwd=str(ROOT))
     wall = time.perf_counter() - t0
     summ = read_json(recon / "summary.json")
     c = summ["classes"][CLASS]
@@ -536,22 +542,20 @@ def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, de
     test = perm[:n_test].sort().values
     train = perm[n_test:].sort().values
     tr, te = coll[train], coll[test]
-    meta = coll.meta
     t0 = time.perf_counter()
     both = tr.with_mirrors()
-    res = sfm.rigid_sfm(both.keypoints, both.visible, max_outer=cfg.viewpoints.sfm_max_outer, inner=cfg.viewpoints.sfm_inner,
-                        tol=cfg.viewpoints.sfm_tol, rigid_keypoints=meta.rigid_keypoints, keypoint_names=meta.keypoint_names,
-                        flip_pairs=meta.flip_pairs, left_convention=meta.left_convention)
-    rr = pipeline.class_refine(res.shape, res.cameras, both, distance_to_mask(both.masks), cfg)
+    res = class_sfm(both, cfg.viewpoints)  # the pipeline's SfM (one shape)
+    rr = refine_with_shape(res.shape, res.cameras, both, distance_to_mask(both.masks), cfg.viewpoints)
     t_train = time.perf_counter() - t0
     dist = distance_to_mask(te.masks)
     t0 = time.perf_counter()
     # the pipeline's unseen-image path: the keypoints the training instances show often enough
-    shape = refine.supported_shape(res.shape, both.visible, cfg.viewpoints.refine_min_support)
-    est_kp, _ = refine.estimate_camera(shape, te.keypoints, te.visible, dist, silhouette_weight=0.0,
-                                       max_iters=cfg.viewpoints.refine_iters)
-    est_sil, _ = refine.estimate_camera(shape, te.keypoints, te.visible, dist,
-                                        silhouette_weight=cfg.viewpoints.silhouette_weight, max_iters=cfg.viewpoints.refine_iters)
+    vcfg = cfg.viewpoints
+    shape = camera_fit.supported_shape(res.shape, both.visible, vcfg.refine_min_support)
+    est_kp, _ = camera_fit.estimate_camera(shape, te.keypoints, te.visible, dist, silhouette_weight=0.0,
+                                           max_iters=vcfg.refine_iters)
+    est_sil, _ = camera_fit.estimate_camera(shape, te.keypoints, te.visible, dist,
+                                            silhouette_weight=vcfg.silhouette_weight, max_iters=vcfg.refine_iters)
     t_test = time.perf_counter() - t0
 
     def with_gt(c, R):
@@ -603,7 +607,8 @@ def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, de
 
 def camera_variant(coll, gt: dict, cfg: Config, *, mirrors: bool = True, rigid: list[int] | None = None,
                    silhouette_weight: float | None = None, refine_iters: int | None = None) -> dict:
-    """SfM + refinement as the pipeline runs them (``pipeline._viewpoints``), scored against PASCAL3D+.
+    """SfM + refinement as the pipeline runs them with one shape (:func:`carvi_torch.viewpoints.class_sfm`,
+    :func:`carvi_torch.viewpoints.refine.refine_with_shape`), scored against PASCAL3D+.
 
     Args:
         coll: the class collection (canvas tensors); gt: ``viewpoints_dev.json``.
@@ -617,13 +622,15 @@ def camera_variant(coll, gt: dict, cfg: Config, *, mirrors: bool = True, rigid: 
     t0 = time.perf_counter()
     both = coll.with_mirrors() if mirrors else coll
     meta = coll.meta
-    res = sfm.rigid_sfm(both.keypoints, both.visible, max_outer=cfg.viewpoints.sfm_max_outer, inner=cfg.viewpoints.sfm_inner,
-                        tol=cfg.viewpoints.sfm_tol, rigid_keypoints=meta.rigid_keypoints if rigid is None else rigid,
+    opts = sfm.SfMOptions(max_outer=cfg.viewpoints.sfm_max_outer, inner=cfg.viewpoints.sfm_inner,
+                          tol=cfg.viewpoints.sfm_tol)
+    res = sfm.rigid_sfm(both.keypoints, both.visible, opts,
+                        rigid_keypoints=meta.rigid_keypoints if rigid is None else rigid,
                         keypoint_names=meta.keypoint_names, flip_pairs=meta.flip_pairs,
                         left_convention=meta.left_convention)
-    vcfg = cfg.override({k: v for k, v in (("silhouette_weight", silhouette_weight), ("refine_iters", refine_iters))
-                         if v is not None})
-    rr = pipeline.class_refine(res.shape, res.cameras, both, distance_to_mask(both.masks), vcfg)
+    vcfg = cfg.override({k: v for k, v in (("viewpoints.silhouette_weight", silhouette_weight),
+                                           ("viewpoints.refine_iters", refine_iters)) if v is not None})
+    rr = refine_with_shape(res.shape, res.cameras, both, distance_to_mask(both.masks), vcfg.viewpoints)
     n = len(coll)
     keys = [gt_key(s) for s in coll.sources]
     idx = [i for i, k in enumerate(keys) if k in gt]
@@ -998,12 +1005,14 @@ def step_figure(path: Path, ann: Path, recon: Path, data: Path, gt: dict, vp: di
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default=str(ROOT / ".." / "shared" / "data"),
                     help="folder with pascal_voc_aeroplane/ and pascal3d_cad/ (default ../shared/data)")
     ap.add_argument("--work", default=str(ROOT / "outputs" / "voc"),
                     help="working folder: annotations.json and the reconstruction (default outputs/voc)")
-    ap.add_argument("--out", default=str(ROOT / "docs" / "results" / "voc"), help="JSON results (default docs/results/voc)")
+    ap.add_argument("--out", default=None,
+                    help="JSON record (default docs/data/voc_study.json; with --cameras-only WORK/cameras_only.json)")
     ap.add_argument("--figure", default=str(ROOT / "docs" / "figures" / "voc_aeroplanes.png"),
                     help="figure path (default docs/figures/voc_aeroplanes.png); 'none' for no figure")
     ap.add_argument("--seed", type=int, default=0, help="seed of the held-aside split (default 0)")
@@ -1022,18 +1031,44 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-shapes", action="store_true", help="skip the shape comparison")
     ap.add_argument("--no-diagnose", action="store_true",
                     help="skip the viewpoint diagnosis (SfM + refinement under one change at a time)")
+    ap.add_argument("--cameras-only", action="store_true",
+                    help="convert, reconstruct with stage=cameras and print the viewpoint tables only")
     return ap
+
+
+def cameras_only(args, data: Path, work: Path, command: str) -> dict:
+    """``--cameras-only``: convert, ``stage=cameras``, the viewpoint tables (about 20 s)."""
+    gt = json.loads((data / "pascal_voc_aeroplane" / "viewpoints_dev.json").read_text())
+    conv = step_convert(data, work)
+    ann = Path(conv["annotations"])
+    recon = step_reconstruct(ann, work / "cameras", ["stage=cameras", "overwrite=true", *args.overrides], args.device)
+    subcategory = {gt_key(a["source"]): a.get("subcategory") for a in read_json(ann)["annotations"]}
+    vp = step_viewpoints(work / "cameras", gt, subcategory)
+    summary = {stage: {"n": vp[stage]["report"]["n"],
+                       **{f"{a}_median": vp[stage]["report"][a]["median"] for a in ("geodesic", "azimuth", "elevation")},
+                       "acc_at_30": vp[stage]["report"]["geodesic"]["acc_at_30"],
+                       "mirrored": vp[stage]["report"]["mirrored"]} for stage in ("sfm", "refined")}
+    out = Path(args.out) if args.out else work / "cameras_only.json"
+    result = {"command": command, "objects": conv["converted"], **summary, "acceptance": vp["acceptance"],
+              "cameras_seconds": recon["total_seconds"]}
+    write_json(out, result)
+    print(f"\nwrote {out}")
+    return result
 
 
 def main(argv=None) -> dict:
     args = build_parser().parse_args(argv)
-    data, work, out = Path(args.data).resolve(), Path(args.work).resolve(), Path(args.out).resolve()
-    if not (data / "pascal_voc_aeroplane" / "keypoints").is_dir():
-        raise SystemExit(f"voc_study: {data}/pascal_voc_aeroplane/keypoints not found (--data)")
+    data, work = Path(args.data).resolve(), Path(args.work).resolve()
+    src = data / "pascal_voc_aeroplane"
+    if not (src / "keypoints").is_dir() or not (src / "viewpoints_dev.json").is_file():
+        raise SystemExit(f"voc_study: {src} has no keypoints/ and viewpoints_dev.json (--data)")
     work.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(max(1, args.threads))
     command = "python tools/voc_study.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None
                                                                              else sys.argv[1:]))
+    if args.cameras_only:
+        return cameras_only(args, data, work, command)
+    out = Path(args.out).resolve() if args.out else ROOT / "docs" / "data" / "voc_study.json"
     load = os.getloadavg()
     print(f"voc_study: {command}\nload average at start: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, "
           f"{os.cpu_count()} cores")
@@ -1074,8 +1109,7 @@ def main(argv=None) -> dict:
     result["total_seconds"] = round(time.perf_counter() - t_start, 1)
     load = os.getloadavg()
     result["environment"]["load_average_end"] = [round(x, 2) for x in load]
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "study.json", result)
+    write_json(out, result)
     per_object = {}
     for k in vp["refined"]["per_object"]:
         row = {"sfm": vp["sfm"]["per_object"].get(k), "refined": vp["refined"]["per_object"][k]}
@@ -1084,8 +1118,8 @@ def main(argv=None) -> dict:
         if shapes and k in shapes["per_object"]:
             row["shape"] = shapes["per_object"][k]
         per_object[k] = row
-    write_json(out / "per_object.json", {"command": command, "objects": per_object})
-    print(f"\nwrote {out / 'study.json'} and {out / 'per_object.json'} in {result['total_seconds']:.0f} s "
+    write_json(work / "per_object.json", {"command": command, "objects": per_object})
+    print(f"\nwrote {out} and {work / 'per_object.json'} in {result['total_seconds']:.0f} s "
           f"(load average at end {load[0]:.2f})")
     return result
 
