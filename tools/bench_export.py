@@ -1,13 +1,15 @@
 """Benchmark the training export and the dataset reader.
 
     python tools/bench_export.py [--objects 1000] [--recon DIR] [--work outputs/bench_export]
+                                 [--out docs/data/export.json]
 
 Without ``--recon`` it first reconstructs an embedded procedural collection of ``--objects``
 objects (equal parts of the four classes; default settings, 60^3 grid, 20 proposals) — that
 part is not timed here (see tools/benchmark.py). Then it times, as separate processes:
 ``python -m carvi_torch.export`` (whole process: objects per second, peak memory) and reading
 every sample, all fields, with ``LiftedDataset`` on one worker (samples per second), and a
-``DataLoader`` with 2 workers. Prints a table and writes ``docs/benchmarks/export.json``.
+``DataLoader`` with 2 workers. Prints a table and writes ``--out`` (default ``docs/data/export.json``,
+docs/export.md).
 """
 from __future__ import annotations
 
@@ -22,7 +24,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 READER = r"""
 import json, resource, sys, time
@@ -55,11 +56,12 @@ def _timed(cmd: list[str]) -> tuple[float, float, str]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--objects", type=int, default=1000)
     ap.add_argument("--recon", help="existing reconstruction directory (default: build one)")
     ap.add_argument("--work", default=str(ROOT / "outputs" / "bench_export"))
-    ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "export.json"))
+    ap.add_argument("--out", default=str(ROOT / "docs" / "data" / "export.json"), help="JSON record")
     args = ap.parse_args(argv)
     work = Path(args.work)
     py = sys.executable
@@ -70,7 +72,7 @@ def main(argv=None) -> int:
         per = max(1, args.objects // 4)
         if not (recon / "summary.json").is_file():
             print(f"reconstructing {4 * per} procedural objects into {recon} (not timed) ...")
-            subprocess.run([py, "-m", "carvi_torch.reconstruct", "--out", str(recon), f"procedural_instances={per}",
+            subprocess.run([py, "-m", "carvi_torch.reconstruct", "--out", str(recon), f"input.procedural_instances={per}",
                             "progress=false", "preview=false"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     exp = work / "export"
     if exp.exists():

@@ -24,19 +24,22 @@ and checks that the result is the same (below ``sfm_mixture.THREADS_MIN_OBJECTS`
 stays on one thread; ``--threads-min-objects 0`` lifts that, to measure what threads do to a
 small class), ``--cold-too`` also times it without its warm starts,
 both in the same run. Then every group's cameras are refined with its own mean shape, as the
-pipeline does (``pipeline.refine_groups``; ``--max-iters`` steps); "stage with mixture" is the
-one-shape SfM, the fit and that refinement.
+pipeline does (:func:`carvi_torch.viewpoints.refine.refine_groups`; ``--max-iters`` steps); "stage
+with mixture" is the one-shape SfM, the fit and that refinement.
 
     python tools/bench_viewpoints.py [--n 2000] [--device cpu] [--groups 1] [--shapes 1] [--cold-too]
-                                   [--group-threads 2] [--one-thread-too] [--threads-min-objects N]
-                                   [--out docs/benchmarks/viewpoints.json]
+                                     [--group-threads 2] [--one-thread-too] [--threads-min-objects N]
+                                     [--out PATH]
+
+The JSON record goes to ``--out``, by default ``docs/data/viewpoints_speed[_groups<G>][_shapes<S>]
+[_n<N>][_<device>].json`` (docs/viewpoints.md cites the default run's and ``--shapes 3 --groups 3``'s).
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import platform
 import resource
-import sys
 import time
 from pathlib import Path
 
@@ -45,19 +48,18 @@ import torch
 from scipy.spatial import ConvexHull
 from skimage.draw import polygon2mask
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from carvi_torch.cameras import FLIP_X, ScaledOrthographic, random_rotations
+from carvi_torch.config import Config
+from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report
+from carvi_torch.io.outputs import write_json
+from carvi_torch.sdf import distance_to_mask
+from carvi_torch.viewpoints import mixture as sfm_mixture
+from carvi_torch.viewpoints.camera_fit import refine_cameras, supported_shape
+from carvi_torch.viewpoints.mixture import fit_mixture_of_shapes
+from carvi_torch.viewpoints.refine import group_sfm_cameras, refine_groups
+from carvi_torch.viewpoints.sfm import rigid_sfm
 
-from carvi_torch.cameras import FLIP_X, ScaledOrthographic, random_rotations  # noqa: E402
-from carvi_torch.io.outputs import write_json  # noqa: E402
-from carvi_torch.config import Config  # noqa: E402
-from carvi_torch.pipeline import group_sfm_cameras, refine_groups  # noqa: E402
-from carvi_torch.viewpoints.camera_fit import refine_cameras, supported_shape  # noqa: E402
-from carvi_torch.sdf import distance_to_mask  # noqa: E402
-from carvi_torch.viewpoints.sfm import rigid_sfm  # noqa: E402
-from carvi_torch.viewpoints import mixture as sfm_mixture  # noqa: E402
-from carvi_torch.viewpoints.mixture import fit_mixture_of_shapes  # noqa: E402
-from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 #: Proportions of the ``--shapes`` variants of the base shape (x: width, y: length, z: height).
@@ -134,7 +136,8 @@ def peak_rss_mb() -> float:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=2000, help="instances before mirroring (default 2000)")
     ap.add_argument("--k", type=int, default=12, help="keypoints (default 12)")
     ap.add_argument("--canvas", type=int, default=128, help="canvas side in pixels (default 128)")
@@ -151,7 +154,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--cold-too", action="store_true",
                     help="with --groups: also time the fit without warm starts (every keypoint fit searches the "
                          "sphere, every SfM starts cold), in the same run")
-    ap.add_argument("--group-threads", type=int, default=Config().sfm_group_threads,
+    ap.add_argument("--group-threads", type=int, default=Config().viewpoints.sfm_group_threads,
                     help="with --groups: Python threads of the mixture fit (its initialisations side by side; "
                          "default the pipeline's sfm_group_threads, %(default)s)")
     ap.add_argument("--threads-min-objects", type=int, default=None,
@@ -160,9 +163,15 @@ def main(argv=None) -> dict:
     ap.add_argument("--one-thread-too", action="store_true",
                     help="with --groups: also time the warm fit on one Python thread, in the same run, and check "
                          "that it gives the same result")
-    ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "viewpoints.json"))
+    ap.add_argument("--out", default=None, help="JSON record (default docs/data/viewpoints_speed[...].json, "
+                                                "named after the options that differ from the defaults)")
     args = ap.parse_args(argv)
     dev = torch.device(args.device)
+    vcfg = Config().viewpoints  # the pipeline's viewpoint settings
+    out = Path(args.out) if args.out else ROOT / "docs" / "data" / (
+        "viewpoints_speed" + (f"_groups{args.groups}" if args.groups > 1 else "")
+        + (f"_shapes{args.shapes}" if args.shapes > 1 else "") + (f"_n{args.n}" if args.n != 2000 else "")
+        + (f"_{dev.type}" if dev.type != "cpu" else "") + ".json")
 
     t0 = time.perf_counter()
     data = make_class(args.n, args.k, args.canvas, args.seed, args.shapes)
@@ -191,15 +200,14 @@ def main(argv=None) -> dict:
 
     t0 = time.perf_counter()
     # the pipeline's refinement settings (the planar-twin start and the keypoint support rule included)
-    shape = supported_shape(sfm.shape, vis, Config().refine_min_support)
+    shape = supported_shape(sfm.shape, vis, vcfg.refine_min_support)
     ref = refine_cameras(shape, sfm.cameras, kp, vis, dist, max_iters=args.max_iters,
-                         twin_flatness=Config().refine_twin_flatness)
+                         twin_flatness=vcfg.refine_twin_flatness)
     sync()
     t_ref = time.perf_counter() - t0
 
     mixture = None
     if args.groups > 1:
-        cfg = Config()
         mixture = {}
         min_objects = (sfm_mixture.THREADS_MIN_OBJECTS if args.threads_min_objects is None
                        else args.threads_min_objects)
@@ -215,8 +223,8 @@ def main(argv=None) -> dict:
                                         lambda sub, init_shape=None: rigid_sfm(sub.keypoints, sub.visible,
                                                                                max_outer=args.max_outer,
                                                                                inner=args.inner, init_shape=init_shape),
-                                        max_groups=args.groups, min_size=cfg.viewpoints.sfm_group_min, gain=cfg.viewpoints.sfm_group_gain,
-                                        agreement_deg=cfg.viewpoints.sfm_group_agreement_deg, rounds=cfg.viewpoints.sfm_group_rounds,
+                                        max_groups=args.groups, min_size=vcfg.sfm_group_min, gain=vcfg.sfm_group_gain,
+                                        agreement_deg=vcfg.sfm_group_agreement_deg, rounds=vcfg.sfm_group_rounds,
                                         seed=args.seed, single=sfm, warm_start=warm, threads=threads,
                                         threads_min_objects=min_objects)
             sync()
@@ -233,7 +241,7 @@ def main(argv=None) -> dict:
                 t0 = time.perf_counter()
                 cams_mix, _valid = group_sfm_cameras(mix)
                 refined_mix, _energy = refine_groups(mix, cams_mix, _Rows(kp, vis), dist,
-                                                     cfg.override({"refine_iters": args.max_iters}))
+                                                     dataclasses.replace(vcfg, refine_iters=args.max_iters))
                 sync()
                 t_ref_mix = time.perf_counter() - t0
                 rep = viewpoint_report(refined_mix.R.cpu(), data["R_true"], valid=mix.single.valid.cpu())
@@ -260,7 +268,7 @@ def main(argv=None) -> dict:
         "config": {"instances": args.n, "with_mirrors": n_all, "keypoints": args.k, "canvas": args.canvas,
                    "shapes": args.shapes,
                    "seed": args.seed, "device": str(dev), "max_outer": args.max_outer, "inner": args.inner,
-                   "twin_flatness": Config().refine_twin_flatness,
+                   "twin_flatness": vcfg.refine_twin_flatness,
                    "refine_max_iters": args.max_iters},
         "environment": {"torch": torch.__version__, "python": platform.python_version(),
                         "cpu_threads": torch.get_num_threads(), "machine": platform.machine(),
@@ -321,8 +329,8 @@ def main(argv=None) -> dict:
               f"acc@30 {gsum['acc_at_30']:.3f}, mirrored frame: {rep['mirrored']}")
     print(f"refinement: {ref.iterations} iterations, energy median {result['refinement']['energy_before_median']:.1f}"
           f" -> {result['refinement']['energy_after_median']:.1f}, raised for {result['refinement']['energy_raised']}")
-    write_json(args.out, result)
-    print(f"wrote {args.out}")
+    write_json(out, result)
+    print(f"wrote {out}")
     return result
 
 

@@ -25,9 +25,8 @@ import torch.nn.functional as F
 from torch.utils.data import DataLoader, random_split
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from carvi_torch.training import LiftedDataset, collate_lifted  # noqa: E402
+from carvi_torch.training import LiftedDataset, collate_lifted
 
 
 class ViewpointNet(nn.Module):
@@ -53,7 +52,8 @@ def targets(batch):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--export", help="export directory (default: build one from the embedded collection)")
     ap.add_argument("--epochs", type=int, default=8)
     ap.add_argument("--batch-size", type=int, default=32)

@@ -9,7 +9,11 @@ unseen-image cameras included, has a column of its own. The cameras of a run go 
 ``<work>/cameras[_<overrides>][_renders-s<seed>]`` (rerunning the same settings resumes there).
 
     python tools/viewpoints_cad.py [--views 30] [--seed 0] [--work outputs/viewpoints_cad]
-                                   [--out docs/results/viewpoints_cad.json]
+                                   [--out PATH] [key=value ...]
+
+``key=value`` are reconstruct overrides (``sfm_groups=3``). The JSON record goes to ``--out``;
+by default, for the default settings (no override, seed 0), to ``docs/data/viewpoints_cad.json``
+(docs/viewpoints.md), else beside the run's cameras (``<work>/cameras...json``).
 
 Needs ../shared/data/pascal3d_cad (the PASCAL3D+ CAD models, Xiang et al. 2014).
 """
@@ -24,14 +28,12 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 
 def _per_model(annotations: Path, viewpoints: dict) -> dict:
     """Median geodesic error per CAD model: ``{class: {model: {"n", "sfm", "refined"}}}`` (degrees);
     where some views have no SfM camera also ``"refined_with_sfm"``: the model's views that have
     one, under the alignment of those views (the class rows' SfM -> refined comparison)."""
-    import json
     from statistics import median
 
     model = {a["id"]: Path(a.get("source") or str(a.get("object_id"))).stem
@@ -53,12 +55,14 @@ def _per_model(annotations: Path, viewpoints: dict) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--views", type=int, default=30, help="renders per CAD model (default 30)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cad", default=str(ROOT / ".." / "shared" / "data" / "pascal3d_cad"))
     ap.add_argument("--work", default=str(ROOT / "outputs" / "viewpoints_cad"), help="renders and cameras go here")
-    ap.add_argument("--out", default=str(ROOT / "docs" / "results" / "viewpoints_cad.json"))
+    ap.add_argument("--out", default=None, help="JSON record (default: docs/data/viewpoints_cad.json for the "
+                                                "default settings, else beside the cameras in --work)")
     ap.add_argument("overrides", nargs="*", metavar="key=value", help="extra reconstruct overrides")
     args = ap.parse_args(argv)
     cad = Path(args.cad)
@@ -79,6 +83,8 @@ def main(argv=None) -> int:
                     + (f"_renders-s{args.seed}" if args.seed else ""))
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(renders / "annotations.json"),
            "--out", str(recon), "stage=cameras", "progress=false", f"seed={args.seed}", *args.overrides]
+    out = Path(args.out) if args.out else (ROOT / "docs" / "data" / "viewpoints_cad.json"
+                                           if not args.overrides and not args.seed else recon.with_suffix(".json"))
     t1 = time.perf_counter()
     subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
     t_cams = time.perf_counter() - t1
@@ -124,13 +130,13 @@ def main(argv=None) -> int:
     print(f"render {t_render:.1f} s, SfM + refinement of all classes {t_cams:.1f} s")
     from carvi_torch.io.outputs import write_json
 
-    write_json(args.out, {"command": " ".join(shlex.quote(a) for a in ["python", "tools/viewpoints_cad.py",
+    write_json(out, {"command": " ".join(shlex.quote(a) for a in ["python", "tools/viewpoints_cad.py",
                                                                       *(argv if argv is not None else sys.argv[1:])]),
                           "views": args.views, "seed": args.seed, "rows": rows, "table": table,
                           "refinement_lowers": improved,
                           "per_model": per_model,
                           "render_seconds": round(t_render, 1), "cameras_seconds": round(t_cams, 1)})
-    print(f"wrote {args.out}")
+    print(f"wrote {out}")
     return 0
 
 
