@@ -102,3 +102,9 @@ def test_gpu_session_keeps_the_callers_python_path(tmp_path: Path):
     seen = log.read_text().split()
     assert len(seen) == 2  # the package check, then the CUDA check
     assert seen[1].split(":") == [str(work), "/carried/site"]
+
+
+def test_gpu_session_answers_help():
+    res = subprocess.run(["bash", str(ROOT / "tools" / "gpu_session.sh"), "--help"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 0 and "bash tools/gpu_session.sh [all|tests|bench1000|bench9087]" in res.stdout

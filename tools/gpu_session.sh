@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Everything to run when a CUDA machine is at hand, in one command: the CUDA tests and the GPU
-# benchmarks (docs/benchmarks/README.md, "GPU"). Run from the repository root:
+# benchmarks (docs/benchmarks.md; tools/benchmark.py --device cuda). Run from the repository root:
 #
 #     bash tools/gpu_session.sh [all|tests|bench1000|bench9087] [OUTDIR]
 #
@@ -12,6 +12,10 @@
 # outputs/bench/data/car1000_s0/{annotations.json,gt.json} (about 3 MB; the 9,087-object
 # class is tiled from it).
 set -uo pipefail
+if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then  # the comment above
+    sed -n '2,/^set /p' "$0" | sed -e '$d' -e 's/^# \{0,1\}//'
+    exit 0
+fi
 step=${1:-all}
 out=${2:-${OUT:-outputs/gpu}}
 py=${PYTHON:-python3}
