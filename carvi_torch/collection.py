@@ -190,16 +190,19 @@ class ClassMeta:
     """Per-class metadata (from the COCO category and its carvi extras).
 
     Attributes:
-        name: class name.
+        name: class name, as the category gives it.
         keypoint_names: ``K`` names.
         flip_pairs: left/right index pairs (inferred from names when the category gives none).
         rigid_keypoints: indices used by SfM only (``None``: all).
         symmetry: ``"none"`` or ``"rotational"``.
         articulated: articulated classes skip mirrored silhouettes in carving.
-        category_id: the COCO category id.
+        category_id: the COCO category id (an int or a string, as the file gives it).
         left_convention: ``"object"`` when a keypoint named left lies on the object's own left
             (Berkeley PASCAL keypoints), ``"viewer"`` when it lies on the left of a frontal photo
             (PASCAL3D+ CAD names). Only used to break close reflection votes in SfM.
+        key: the class's folder name in a run's outputs and its key in ``summary.json``: the name
+            when it is a safe, unique folder name, else a safe spelling of it
+            (:func:`carvi_torch.io.outputs.safe_name`); ``""``: the name itself.
     """
 
     name: str
@@ -208,8 +211,13 @@ class ClassMeta:
     rigid_keypoints: list | None = None
     symmetry: str = "none"
     articulated: bool = False
-    category_id: int = 0
+    category_id: int | str = 0
     left_convention: str = "object"
+    key: str = ""
+
+    def __post_init__(self):
+        if not self.key:
+            self.key = self.name
 
     @property
     def num_keypoints(self) -> int:
@@ -227,7 +235,11 @@ class ClassCollection:
         visible: ``(N, K)`` bool.
         canvas_from_image: :class:`Similarity2D` of ``N`` image -> canvas maps.
         image_size: ``(N, 2)`` long ``(width, height)`` of the source images.
-        annotation_ids, image_ids, object_ids: ``(N,)`` long.
+        annotation_ids, image_ids: ``N`` ids each, ints or strings as the input gives them.
+        object_ids: ``N`` physical-object ids as the input gives them (ints, strings, or ``None``:
+            the annotation is its own object).
+        object_groups: ``(N,)`` long: instances with equal values are views of one physical object
+            (a dense index of ``object_ids``; never surrogates for each other).
         is_mirror: ``(N,)`` bool, True for flipped copies.
         sources: ``N`` strings (where each annotation came from).
         splits: ``N`` strings (``"pool"``, ``"test"`` or ``""``).
@@ -239,9 +251,10 @@ class ClassCollection:
     visible: torch.Tensor
     canvas_from_image: Similarity2D
     image_size: torch.Tensor
-    annotation_ids: torch.Tensor
-    image_ids: torch.Tensor
-    object_ids: torch.Tensor
+    annotation_ids: list
+    image_ids: list
+    object_ids: list
+    object_groups: torch.Tensor
     is_mirror: torch.Tensor
     sources: list = field(default_factory=list)
     splits: list = field(default_factory=list)
@@ -254,6 +267,10 @@ class ClassCollection:
         if self.keypoints.shape != (n, k, 2) or self.visible.shape != (n, k):
             raise ValueError(f"keypoints must be ({n}, {k}, 2) and visible ({n}, {k}); got "
                              f"{tuple(self.keypoints.shape)} and {tuple(self.visible.shape)}")
+        self.annotation_ids, self.image_ids = list(self.annotation_ids), list(self.image_ids)
+        self.object_ids = list(self.object_ids)
+        if not (len(self.annotation_ids) == len(self.image_ids) == len(self.object_ids) == n):
+            raise ValueError(f"annotation_ids, image_ids and object_ids must hold N={n} ids each")
         if not self.sources:
             self.sources = [""] * n
         if not self.splits:
@@ -293,9 +310,10 @@ class ClassCollection:
             visible=self.visible[ix],
             canvas_from_image=self.canvas_from_image[ix],
             image_size=self.image_size[ix],
-            annotation_ids=self.annotation_ids[ix],
-            image_ids=self.image_ids[ix],
-            object_ids=self.object_ids[ix],
+            annotation_ids=[self.annotation_ids[i] for i in rows],
+            image_ids=[self.image_ids[i] for i in rows],
+            object_ids=[self.object_ids[i] for i in rows],
+            object_groups=self.object_groups[ix],
             is_mirror=self.is_mirror[ix],
             sources=[self.sources[i] for i in rows],
             splits=[self.splits[i] for i in rows],
@@ -310,9 +328,10 @@ class ClassCollection:
             visible=self.visible.to(device),
             canvas_from_image=self.canvas_from_image.to(device),
             image_size=self.image_size.to(device),
-            annotation_ids=self.annotation_ids.to(device),
-            image_ids=self.image_ids.to(device),
-            object_ids=self.object_ids.to(device),
+            annotation_ids=list(self.annotation_ids),
+            image_ids=list(self.image_ids),
+            object_ids=list(self.object_ids),
+            object_groups=self.object_groups.to(device),
             is_mirror=self.is_mirror.to(device),
             sources=list(self.sources),
             splits=list(self.splits),
@@ -330,9 +349,10 @@ class ClassCollection:
             canvas_from_image=Similarity2D(torch.cat([p.canvas_from_image.scale for p in parts]),
                                            torch.cat([p.canvas_from_image.offset for p in parts])),
             image_size=torch.cat([p.image_size for p in parts]),
-            annotation_ids=torch.cat([p.annotation_ids for p in parts]),
-            image_ids=torch.cat([p.image_ids for p in parts]),
-            object_ids=torch.cat([p.object_ids for p in parts]),
+            annotation_ids=[a for p in parts for a in p.annotation_ids],
+            image_ids=[a for p in parts for a in p.image_ids],
+            object_ids=[a for p in parts for a in p.object_ids],
+            object_groups=torch.cat([p.object_groups for p in parts]),
             is_mirror=torch.cat([p.is_mirror for p in parts]),
             sources=[s for p in parts for s in p.sources],
             splits=[s for p in parts for s in p.splits],
@@ -365,9 +385,10 @@ class ClassCollection:
             visible=self.visible[:, perm],
             canvas_from_image=Similarity2D(sim.scale.clone(), off),
             image_size=self.image_size.clone(),
-            annotation_ids=self.annotation_ids.clone(),
-            image_ids=self.image_ids.clone(),
-            object_ids=self.object_ids.clone(),
+            annotation_ids=list(self.annotation_ids),
+            image_ids=list(self.image_ids),
+            object_ids=list(self.object_ids),
+            object_groups=self.object_groups.clone(),
             is_mirror=~self.is_mirror,
             sources=list(self.sources),
             splits=list(self.splits),

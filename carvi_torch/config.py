@@ -73,9 +73,13 @@ class InputConfig:
     """Fraction of the canvas left empty on each side of the object's bounding box."""
     min_instances: int = 3
     """Classes with fewer usable instances are reported and skipped."""
+    max_image_pixels: int = 200_000_000
+    """Objects whose image has more pixels are skipped with their reason (a mask is decoded at one byte
+    per pixel of its image)."""
 
     def validate(self) -> None:
-        _positive(self, "procedural_instances", "canvas_size", "min_instances")
+        _positive(self, "procedural_instances", "min_instances", "max_image_pixels")
+        _within(self.canvas_size, 16, 1024, "canvas_size", note=" (memory grows with its square per object)")
         _within(self.canvas_margin, 0, 0.5, "canvas_margin", hi_open=True)
 
 

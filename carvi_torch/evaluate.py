@@ -31,7 +31,9 @@ from tqdm.auto import tqdm
 
 from .cameras import ScaledOrthographic
 from .config import Config, read_run_config
-from .io.coco import CocoFormatError, load_coco
+from .io.coco import CocoFormatError, class_keys, load_coco, object_id
+from .io.layout import object_file
+from .mesh import MESH_FORMATS
 from .io.outputs import read_json, write_bytes, write_json
 from .evaluation import metrics, viewpoint_metrics
 
@@ -64,16 +66,15 @@ def posed_gt_mesh(entry: dict, root: Path, cache: dict | None = None) -> tuple[t
     return trimesh.Trimesh(Vc, np.asarray(base.faces), process=False), diag
 
 
-def _load_recon_mesh(recon: Path, cls: str, aid: int) -> trimesh.Trimesh | None:
-    d = recon / cls / "meshes"
-    for ext in ("ply", "obj", "glb"):
-        p = d / f"{aid}.{ext}"
+def _load_recon_mesh(recon: Path, cls: str, aid) -> trimesh.Trimesh | None:
+    for ext in MESH_FORMATS:
+        p = object_file(recon / cls, "meshes", aid, ext)
         if p.is_file():
             return trimesh.load(p, force="mesh", process=False)
     return None
 
 
-def _viewpoints(recon: Path, cls: str, gt_entries: dict, aids: list[int]) -> dict | None:
+def _viewpoints(recon: Path, cls: str, gt_entries: dict, aids: list) -> dict | None:
     """Viewpoint reports of one class: ``sfm`` (objects with an SfM camera), ``refined`` (every
     object with a final camera) and, when ``refined`` holds objects without an SfM camera,
     ``refined_with_sfm``: the refined cameras of the objects that also have an SfM camera.
@@ -96,7 +97,7 @@ def _viewpoints(recon: Path, cls: str, gt_entries: dict, aids: list[int]) -> dic
                 continue
             est.append(c["R"])
             ref.append(g["R"])
-            used.append(int(a))
+            used.append(a)
         if among is not None and "refined" in out and used == out["refined"]["annotation_ids"]:
             continue  # the same objects: the refined report already is the comparison
         if len(est) >= 2:
@@ -124,9 +125,11 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     gt_all = read_json(gt_path)
     gt_entries = gt_all.get("annotations", gt_all)
     dataset = read_json(data)
-    split_of = {int(a["id"]): a.get("split", "") for a in dataset.get("annotations", [])}
-    cat_of = {int(c["id"]): c["name"] for c in dataset.get("categories", [])}
-    ann_class = {int(a["id"]): cat_of.get(int(a["category_id"])) for a in dataset.get("annotations", [])}
+    anns = [a for a in dataset.get("annotations", []) if isinstance(a, dict) and object_id(a.get("id")) is not None]
+    split_of = {str(a["id"]): a.get("split", "") for a in anns}
+    key_of = class_keys(dataset.get("categories", []))
+    ann_class = {str(a["id"]): key_of.get(str(a.get("category_id"))) for a in anns}
+    original = {str(a["id"]): a["id"] for a in anns}  # ids as the file gives them (ints or strings)
     first = Path(next(iter(recons.values())))
     cfg = read_run_config(first / "config.yaml") if (first / "config.yaml").is_file() else Config()
     canvas_size = canvas_size or cfg.input.canvas_size
@@ -141,7 +144,7 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     targets = [a for a, c in ann_class.items()
                if str(a) in gt_entries and (split is None or split_of.get(a) == split)
                and (wanted is None or c in wanted)]
-    targets.sort()
+    targets.sort(key=_id_order)
     methods = list(recons) + (["Puffball", "SFMc"] if baselines and shapes else [])
     objects: dict[str, dict] = {}
     mesh_cache: dict = {}
@@ -182,7 +185,7 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
                                    "count": len(errs), "missing": len(rows) - len(errs)}
     viewpoints = {}
     for cls in per_class:
-        aids = [int(a) for a, r in objects.items() if r["class"] == cls]
+        aids = [original[a] for a, r in objects.items() if r["class"] == cls]
         vp = {}
         for name, rdir in recons.items():
             rep = _viewpoints(Path(rdir), cls, gt_entries, aids)
@@ -197,6 +200,11 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
             "methods": methods, "recons": {k: str(v) for k, v in recons.items()}, "objects": objects,
             "classes": dict(per_class), "mean_over_classes": means, "viewpoints": viewpoints,
             "seconds": round(time.perf_counter() - t0, 2)}
+
+
+def _id_order(aid: str):
+    """Sort key of ids as strings: integers by value first, then the others as text."""
+    return (0, int(aid), "") if aid.lstrip("-").isdigit() else (1, 0, aid)
 
 
 def _score(mesh, gt_mesh, step, missing_reason) -> dict:
@@ -215,10 +223,10 @@ def _puffball(coll, aid: int):
     """Puffball of the annotation's canvas mask, mapped to image pixels (``None`` without a mask)."""
     if coll is None:
         return None
-    hit = (coll.annotation_ids == aid).nonzero()
-    if len(hit) == 0:
+    keys = [str(a) for a in coll.annotation_ids]
+    if str(aid) not in keys:
         return None
-    i = int(hit[0, 0])
+    i = keys.index(str(aid))
     from .evaluation.baselines import puffball
 
     m = puffball(coll.masks[i])

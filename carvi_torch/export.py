@@ -26,7 +26,9 @@ from tqdm.auto import tqdm
 from .cameras import ScaledOrthographic, Similarity2D
 from .config import Config, read_run_config
 from .io.coco import load_coco
+from .io.layout import object_file
 from .io.outputs import atomic_write, read_json, write_json
+from .mesh import MESH_FORMATS
 
 __all__ = ["export", "main", "FIELDS", "view_occupancy", "canonical_occupancy", "depth_map"]
 
@@ -63,8 +65,8 @@ FIELDS: dict[str, FieldSpec] = {
                                             "relative to the object's depth centre; +inf where the ray misses"),
     "points": FieldSpec("float32", "(P, 3)", "surface points in the class frame (area-uniform samples)"),
     "normals": FieldSpec("float32", "(P, 3)", "outward unit normals at the points, class frame"),
-    "annotation_id": FieldSpec("int64", "()", "COCO annotation id"),
-    "image_id": FieldSpec("int64", "()", "COCO image id"),
+    "annotation_id": FieldSpec("int64", "()", "COCO annotation id (-1 for a string id: see annotation_key)"),
+    "image_id": FieldSpec("int64", "()", "COCO image id (-1 for a string id)"),
     "class_index": FieldSpec("int64", "()", "index into index.json['classes']"),
 }
 
@@ -144,14 +146,20 @@ def _recon_config(recon: Path) -> Config:
 
 
 def _data_path(recon: Path, cfg: Config) -> Path:
+    """The annotations a run read: its summary's path (absolute), else its config's; a relative path
+    is looked up beside the run, then from the current folder."""
     summ = recon / "summary.json"
-    if summ.is_file():
-        data = read_json(summ).get("data")
-        if data:
-            return Path(data)
-    if cfg.data:
-        return Path(cfg.data)
-    return recon / "input" / "annotations.json"
+    data = read_json(summ).get("data") if summ.is_file() else None
+    data = data or cfg.data
+    if not data:
+        return recon / "input" / "annotations.json"
+    p = Path(data)
+    if p.is_absolute():
+        return p
+    for base in (recon, recon.parent):
+        if (base / p).is_file():
+            return base / p
+    return p
 
 
 class _ShardWriter:
@@ -210,20 +218,20 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
         try:
             cams = read_json(cdir / "cameras.json")
         except (FileNotFoundError, ValueError) as e:
-            for aid in coll.annotation_ids.tolist():
+            for aid in coll.annotation_ids:
                 skipped.append({"annotation_id": aid, "class": cname, "reason": f"cameras.json unreadable: {e}"})
             bar.update(len(coll))
             continue
         shape = np.array([v for v in cams.get("mean_shape", {}).values() if v is not None], dtype=np.float64)
         extent = float(1.3 * np.linalg.norm(shape - shape.mean(0), axis=1).max()) if len(shape) else 1.0
         class_extent[cname] = extent
-        for i, aid in enumerate(coll.annotation_ids.tolist()):
+        for i, aid in enumerate(coll.annotation_ids):
             bar.update(1)
             reason = None
             cam_entry = cams.get("cameras", {}).get(str(aid), {})
-            vox_p = cdir / "voxels" / f"{aid}.npz"
-            mesh_p = next(iter(sorted((cdir / "meshes").glob(f"{aid}.*"))), None) if (cdir / "meshes").is_dir() \
-                else None
+            vox_p = object_file(cdir, "voxels", aid)
+            mesh_p = next((p for p in (object_file(cdir, "meshes", aid, ext) for ext in MESH_FORMATS) if p.is_file()),
+                          None)
             if cam_entry.get("refined") is None:
                 reason = "no camera in cameras.json"
             elif not vox_p.is_file():
@@ -240,7 +248,7 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
                 continue
             sample["class_index"] = ci
             writer.add(sample, cname)
-            samples.append({"annotation_id": aid, "image_id": int(coll.image_ids[i]), "class": cname,
+            samples.append({"annotation_id": aid, "image_id": coll.image_ids[i], "class": cname,
                             "source": coll.sources[i]})
     writer.flush()
     bar.close()
@@ -256,6 +264,12 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     }
     write_json(out / "index.json", index, indent=None)
     return index
+
+
+def _int_id(value) -> np.int64:
+    """An id as the int64 field holds it: the id when it is an integer, else -1 (``index.json`` and
+    :class:`~carvi_torch.training.LiftedDataset`'s ``annotation_key`` carry every id as given)."""
+    return np.int64(value) if isinstance(value, int) else np.int64(-1)
 
 
 def _export_one(coll, i, cam_entry, vox_p, mesh_p, canvas, extent, res, n_points, rng) -> dict:
@@ -303,7 +317,7 @@ def _export_one(coll, i, cam_entry, vox_p, mesh_p, canvas, extent, res, n_points
         "occupancy_canonical": canonical_occupancy(occ, v2canvas, cam_canvas, extent, res),
         "depth": depth_map(m_canvas, canvas, depth_centre),
         "points": pts_class.astype(np.float32), "normals": normals_class.astype(np.float32),
-        "annotation_id": np.int64(coll.annotation_ids[i]), "image_id": np.int64(coll.image_ids[i]),
+        "annotation_id": _int_id(coll.annotation_ids[i]), "image_id": _int_id(coll.image_ids[i]),
     }
 
 

@@ -26,11 +26,11 @@ accepted and copied to the CPU.
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 from typing import Literal, get_args
 
 import numpy as np
-import torch
 import trimesh
 from scipy import ndimage
 from skimage.measure import marching_cubes
@@ -47,8 +47,14 @@ MESH_FORMATS: tuple[str, ...] = get_args(MeshFormat)
 LEVEL = 0.5 - 1e-3
 
 
+def _is_tensor(x) -> bool:
+    """Whether ``x`` is a torch tensor, without importing torch (the writer processes never need it)."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(x, torch.Tensor)
+
+
 def _to_numpy(x, name: str, dtype=None) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
+    if _is_tensor(x):
         x = x.detach().cpu().numpy()
     try:
         return np.asarray(x, dtype=dtype)
@@ -87,6 +93,7 @@ def occupancy_to_mesh(occupancy, voxel_to_camera, *, largest_component: bool = F
         faces, ``volume > 0``); an empty occupancy gives an empty mesh.
 
     Example:
+        >>> import torch
         >>> occ = torch.zeros(4, 4, 4, dtype=torch.bool); occ[1:3, 1:3, 1:3] = True
         >>> m = occupancy_to_mesh(occ, torch.eye(4))
         >>> bool(m.is_watertight), bool(m.volume > 0)
@@ -137,13 +144,13 @@ def largest_component(occupancy, connectivity: int = 3):
         >>> largest_component(occ).astype(int)
         array([[[0, 0, 1, 1, 0]]])
     """
-    is_tensor = isinstance(occupancy, torch.Tensor)
+    is_tensor = _is_tensor(occupancy)
     occ = _to_numpy(occupancy, "occupancy", dtype=bool)
     if occ.ndim not in (3, 4):
         raise ValueError(f"occupancy must be (D, H, W) or (B, D, H, W), got shape {occ.shape}")
     out = _largest_component_np(occ, connectivity)
     if is_tensor:
-        return torch.from_numpy(out).to(occupancy.device)
+        return sys.modules["torch"].from_numpy(out).to(occupancy.device)
     return out
 
 

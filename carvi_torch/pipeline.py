@@ -9,8 +9,9 @@ Data flows one way through the stage modules::
     select           average masks, proposal scores, the best proposal  -> Selection
     io.writer        marching cubes, files (worker processes)
 
-:func:`run` drives a whole run, :func:`run_class` one class. They only order the stages and keep the
-books (resume, the report); the numerical work lives in the stage modules.
+:func:`run_class` runs one class; an executor (:mod:`carvi_torch.executors`) runs the classes of a
+run. The pipeline only orders the stages and keeps the books (resume, the report); the numerical work
+lives in the stage modules.
 """
 from __future__ import annotations
 
@@ -25,32 +26,16 @@ from tqdm.auto import tqdm
 from . import carve, select, surrogates
 from .carve import CarveMaps
 from .collection import ClassCollection
-from .config import Config, settings_changed
-from .io import coco
-from .io.outputs import is_done, read_json, write_bytes, write_json
+from .config import Config
+from .io.layout import class_dir, object_file
+from .io.outputs import is_done, write_json
 from .io.results import ClassReport, cameras_json, scores_entry, write_scores
-from .io.writer import Writer, canvas_to_image_4x4, proposals_payload, writer_workers
-from .runtime import StageTimer, intra_op_threads, peak_rss_mb, stable_hash, torch_threads
+from .io.writer import Writer, canvas_to_image_4x4, proposals_payload
+from .runtime import StageTimer, log
 from .sdf import signed_distance
 from .viewpoints import Viewpoints, estimate_viewpoints, ground_truth_cameras
 
-__all__ = ["run", "run_class", "prepare_class", "prepare_data", "carve_and_select", "ClassPlan", "chunk_objects"]
-
-
-def _log(msg: str, cfg: Config):
-    tqdm.write(msg) if cfg.progress else print(msg)
-
-
-def prepare_data(cfg: Config) -> tuple[Path, Path | None]:
-    """The annotation file (and ``gt.json`` if any) to run on; generates the embedded default when needed."""
-    if cfg.data:
-        data = Path(cfg.data)
-        gt = Path(cfg.gt) if cfg.gt else data.with_name("gt.json")
-        return data, (gt if gt.is_file() else None)
-    from .synthetic import procedural
-
-    return procedural.default_collection(Path(cfg.out) / "input", cfg.input.procedural_instances, cfg.seed,
-                                         cfg.progress, log=lambda msg: _log(msg, cfg))
+__all__ = ["run_class", "prepare_class", "carve_and_select", "ClassPlan", "chunk_objects"]
 
 
 # =========================================================================== one class
@@ -69,7 +54,7 @@ class ClassPlan:
 
     def __post_init__(self):  # host copies, read once per object by the hand-off
         sim = self.coll.canvas_from_image
-        self.aids = self.coll.annotation_ids.tolist()
+        self.aids = list(self.coll.annotation_ids)
         self.canvas_scale = sim.scale.detach().double().cpu()  # (N,)
         self.canvas_offset = sim.offset.detach().double().cpu()  # (N, 2)
 
@@ -83,9 +68,9 @@ class ClassPlan:
 
 def _todo(coll: ClassCollection, usable: list, cfg: Config, cdir: Path, out, report: ClassReport) -> list[int]:
     """The originals to reconstruct: chosen (``references``), usable, not finished (resume)."""
-    aids = coll.annotation_ids.tolist()
-    done = [out is not None and not cfg.overwrite and is_done(cdir / "meshes" / f"{a}.{cfg.mesh.format}",
-                                                             cdir / "voxels" / f"{a}.npz") for a in aids]
+    aids = coll.annotation_ids
+    done = [out is not None and not cfg.overwrite and is_done(object_file(cdir, "meshes", a, cfg.mesh.format),
+                                                             object_file(cdir, "voxels", a)) for a in aids]
     report.resumed = sum(done)
     chosen = [cfg.references == "all" or coll.splits[i] == cfg.references for i in range(len(coll))]
     report.info["references"] = sum(chosen)
@@ -106,7 +91,7 @@ def _viewpoints(coll, cfg, gt, report, timer) -> Viewpoints | None:
     report.warnings.extend(vp.warnings)
     report.info.update(vp.info)
     for line in vp.log:
-        _log(line, cfg)
+        log.info(line)
     return vp
 
 
@@ -137,9 +122,9 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
         carving: too few instances, missing ground truth, ``stage=cameras``, nothing to do), the
         original indices to reconstruct, and the class report so far.
     """
-    report = ClassReport(coll.name, objects=len(coll)) if report is None else report
+    report = ClassReport(coll.meta.key, objects=len(coll)) if report is None else report
     timer = StageTimer(device, report.seconds)
-    cdir = (Path(out) if out is not None else Path(".")) / coll.name
+    cdir = class_dir(out if out is not None else ".", coll.meta.key)
     if len(coll) < cfg.input.min_instances:
         report.status = "skipped"
         report.skip(f"class has {len(coll)} usable instance(s), fewer than min_instances={cfg.input.min_instances}",
@@ -155,7 +140,7 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
         usable = vp.has_camera[:n]
         clusters = surrogates.cluster_instances(vp.cameras.R[:n, 2, :], usable, axes, cfg.surrogates)
     for line in clusters.log:
-        _log(f"  {coll.name}: {line}", cfg)
+        log.info(f"  {coll.meta.key}: {line}")
         report.warnings.append(f"clusters: {line}")
     report.info["clusters"] = {"threshold_deg": float(clusters.threshold_deg),
                                "sizes": [int(v) for v in clusters.sizes.tolist()]}
@@ -169,7 +154,7 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
         return None, [], report
     with timer("surrogates"):  # triplets of every reference, so a resumed run samples the same ones
         trip = None if coll.meta.symmetry == "rotational" else surrogates.sample_triplets(
-            clusters.labels, coll.object_ids, torch.arange(n, device=device), proposals=cfg.surrogates.proposals,
+            clusters.labels, coll.object_groups, torch.arange(n, device=device), proposals=cfg.surrogates.proposals,
             generator=generator)
     plan = surrogates.SurrogatePlan(n, axes, clusters, trip, cfg.surrogates.mirrors and not coll.meta.articulated,
                                     todo)
@@ -210,9 +195,9 @@ def _job(sel: select.Selection, j: int, i: int, sur, plan: ClassPlan, cfg: Confi
     return dict(aid=aid, occupancy=sel.best_occupancy[j].numpy(), voxel_to_canvas=v2c.numpy(),
                 voxel_to_image=(canvas_to_image @ v2c).numpy(), canvas_scale=float(scale),
                 canvas_offset=offset.float().numpy(), surrogates=np.asarray(sur_ids, dtype=np.int64),
-                voxel_path=str(plan.cdir / "voxels" / f"{aid}.npz"),
-                mesh_path=str(plan.cdir / "meshes" / f"{aid}.{cfg.mesh.format}"),
-                proposals_path=str(plan.cdir / "proposals" / f"{aid}.npz"),
+                voxel_path=str(object_file(plan.cdir, "voxels", aid)),
+                mesh_path=str(object_file(plan.cdir, "meshes", aid, cfg.mesh.format)),
+                proposals_path=str(object_file(plan.cdir, "proposals", aid)),
                 proposals=(proposals_payload(sel, j, sur, canvas_to_image, aid_of) if cfg.study.save_proposals
                            else None),
                 largest_component=cfg.mesh.largest_component)
@@ -271,7 +256,7 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
     writer = Writer(0) if own_writer else writer
     todo_t = torch.tensor(todo, dtype=torch.long, device=device)
     chunk = chunk_objects(cfg, device)
-    bar = tqdm(total=len(todo), desc=f"{coll.name}: carve+select", disable=not cfg.progress, leave=False)
+    bar = tqdm(total=len(todo), desc=f"{coll.meta.key}: carve+select", disable=not cfg.progress, leave=False)
     scores: dict = {}
     try:
         for c0 in range(0, len(todo), chunk):
@@ -303,97 +288,3 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
         writer.close()
     write_scores(plan.cdir, scores, cfg.overwrite)
     return report
-
-
-# =========================================================================== whole run
-
-
-def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> dict:
-    """Run every class; write ``config.yaml``, ``summary.json``, per-class outputs and ``preview.png``.
-
-    ``workers``: writer processes (default :func:`~carvi_torch.io.writer.writer_workers`);
-    ``threads``: torch intra-op threads during the run (default :func:`intra_op_threads`; restored).
-    """
-    t_start = time.perf_counter()
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    changed = settings_changed(out / "config.yaml", cfg)
-    if changed:
-        _log(f"{out} holds a run made with other settings ("
-             + ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in changed.items())
-             + "); its finished objects are kept as they are (resumed), so pass overwrite=true to redo them", cfg)
-    write_bytes(out / "config.yaml", cfg.to_yaml().encode())
-    device = cfg.resolve_device()
-    torch.manual_seed(cfg.seed)
-    writer = Writer(writer_workers(cfg.stage, device) if workers is None else workers)  # before the data load
-    try:
-        with torch_threads(intra_op_threads(writer.workers) if threads is None else max(1, int(threads))):
-            summary = _run(cfg, out, device, writer, t_start)
-    except BaseException:
-        writer.close(cancel=True)  # an error or Ctrl-C: stop the writers without waiting for them
-        raise
-    writer.close()
-    if changed:
-        summary["resumed_from_other_settings"] = {k: list(v) for k, v in changed.items()}
-    workers_mb = peak_rss_mb(children=True)
-    summary["peak_rss_workers_mb"] = round(workers_mb, 1) if writer.workers and workers_mb is not None else 0.0
-    summary["writer_workers"] = writer.workers
-    write_json(out / "summary.json", summary)
-    if cfg.preview and cfg.stage == "all":
-        try:
-            from .preview import write_preview
-
-            write_preview(out, summary)
-        except Exception as e:  # a picture must never fail the run
-            _log(f"preview.png not written: {e}", cfg)
-    return summary
-
-
-def _load(cfg: Config, device: torch.device):
-    data_path, gt_path = prepare_data(cfg)
-    t0 = time.perf_counter()
-    loaded = coco.load_coco(data_path, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
-                            device=device, classes=cfg.classes)
-    load_s = time.perf_counter() - t0
-    for p in loaded.problems:
-        _log(p.message(), cfg)
-    gt = read_json(gt_path) if gt_path is not None and Path(gt_path).is_file() else None
-    summary = {"data": str(data_path), "gt": str(gt_path) if gt_path else None, "device": str(device),
-               "torch_threads": torch.get_num_threads(),
-               "carve_backend": carve.resolve_backend(cfg.carve.backend, device, cfg.carve.interpolation),
-               "load_seconds": round(load_s, 3),
-               "input_problems": [p.to_dict() for p in loaded.problems], "classes": {}}
-    return loaded, gt, summary
-
-
-def _run(cfg: Config, out: Path, device: torch.device, writer: Writer, t_start: float) -> dict:
-    """:func:`run` once the writer is up: load, every class, ``summary.json``."""
-    loaded, gt, summary = _load(cfg, device)
-    for c in cfg.classes or []:
-        if c not in loaded.collections:
-            summary["classes"][c] = {"status": "skipped", "objects": 0, "reconstructed": 0,
-                                     "failures": [{"stage": "load", "reason": "no usable object of this class"}]}
-    for name in sorted(loaded.collections):
-        coll = loaded.collections[name]
-        g = torch.Generator(device="cpu").manual_seed(cfg.seed + stable_hash(name))
-        _log(f"{name}: {len(coll)} objects", cfg)
-        try:
-            rep = run_class(coll, cfg, out, gt, device, g, writer)
-        except Exception as e:  # one broken class must not stop the others
-            import traceback
-
-            rep = ClassReport(name, objects=len(coll), status="failed")
-            rep.skip(f"{type(e).__name__}: {e}", "class")
-            _log(traceback.format_exc(), cfg)
-        summary["classes"][name] = rep.to_dict()
-        for s in rep.skipped:
-            _log(f"  {name}: annotation {s['annotation_id']} ({s['source']}) skipped at {s['stage']}: {s['reason']}",
-                 cfg)
-        write_json(out / "summary.json", summary)
-    summary["total_seconds"] = round(time.perf_counter() - t_start, 3)
-    peak = peak_rss_mb()
-    summary["peak_rss_mb"] = round(peak, 1) if peak is not None else None
-    if device.type == "cuda":
-        summary["peak_cuda_mb"] = round(torch.cuda.max_memory_allocated(device) / 2 ** 20, 1)
-    write_json(out / "summary.json", summary)
-    return summary

@@ -51,24 +51,34 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--data", help="COCO keypoint JSON (default: the embedded procedural collection)")
     ap.add_argument("--out", help="output directory (default: outputs/default)")
     ap.add_argument("--config", help="YAML config file (nested by section or flat; see configs/default.yaml)")
+    ap.add_argument("--classes", help="comma-separated class names to run (default: every class)")
+    ap.add_argument("--quiet", action="store_true", help="no progress bars, warnings and errors only")
     ap.add_argument("overrides", nargs="*", metavar="key=value", help="settings (listed below)")
     return ap
 
 
+def _main_reasons(c: dict) -> str:
+    """The two most frequent skip reasons of a class, else its first warning."""
+    reasons: dict[str, int] = {}
+    for f in c.get("failures", []):
+        key = f.get("reason", "")[:48]
+        reasons[key] = reasons.get(key, 0) + 1
+    top = "; ".join(f"{k} (x{v})" for k, v in sorted(reasons.items(), key=lambda kv: -kv[1])[:2])
+    if not top and c.get("warnings"):
+        top = "warning: " + c["warnings"][0][:60]
+    return top or "-"
+
+
 def format_table(summary: dict) -> str:
     """The closing table: per class objects, reconstructed, skipped (with reasons), seconds."""
-    rows = [("class", "objects", "recon.", "resumed", "skipped", "seconds", "main reasons")]
+    rows = [("class", "objects", "recon.", "resumed", "skipped", "warnings", "seconds", "main reasons")]
     for name, c in summary.get("classes", {}).items():
-        reasons: dict[str, int] = {}
-        for f in c.get("failures", []):
-            key = f.get("reason", "")[:48]
-            reasons[key] = reasons.get(key, 0) + 1
-        top = "; ".join(f"{k} (x{v})" for k, v in sorted(reasons.items(), key=lambda kv: -kv[1])[:2])
         secs = sum((c.get("seconds") or {}).values())
         rows.append((name, str(c.get("objects", 0)), str(c.get("reconstructed", 0)), str(c.get("resumed", 0)),
-                     str(c.get("skipped", len(c.get("failures", [])))), f"{secs:.1f}", top or "-"))
+                     str(c.get("skipped", len(c.get("failures", [])))), str(len(c.get("warnings", []))),
+                     f"{secs:.1f}", _main_reasons(c)))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = ["  ".join(v.ljust(widths[i]) if i in (0, 6) else v.rjust(widths[i]) for i, v in enumerate(r))
+    lines = ["  ".join(v.ljust(widths[i]) if i in (0, 7) else v.rjust(widths[i]) for i, v in enumerate(r))
              for r in rows]
     lines.insert(1, "-" * len(lines[0]))
     n_in = len(summary.get("input_problems", []))
@@ -86,25 +96,28 @@ def format_table(summary: dict) -> str:
 
 
 def main(argv=None) -> int:
+    """Exit status: 0 the run made what it was asked for; 1 a class failed or nothing came out of it;
+    2 a user error (one ``error:`` line, nothing written)."""
     args = build_parser().parse_args(argv)
     try:
         cfg = load_config(args.config, args.overrides)
-        extra = {}
-        if args.data:
-            extra["data"] = args.data
-        if args.out:
-            extra["out"] = args.out
-        if extra:
-            cfg = cfg.override(extra)
-        from .pipeline import run
+        extra = {k: v for k, v in (("data", args.data), ("out", args.out), ("classes", args.classes)) if v}
+        if args.quiet:
+            extra["progress"] = False
+        cfg = cfg.override(extra) if extra else cfg
+        from .executors import exit_status, run
 
         summary = run(cfg)
-    except (ConfigError, CocoFormatError, FileNotFoundError) as e:
+    except (ConfigError, CocoFormatError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(format_table(summary))
     print(f"outputs in {cfg.out}")
-    return 0
+    status = exit_status(summary, cfg.stage)
+    if status:
+        print("error: a class failed or no object was reconstructed (see the table and summary.json)",
+              file=sys.stderr)
+    return status
 
 
 if __name__ == "__main__":

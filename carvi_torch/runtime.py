@@ -1,8 +1,10 @@
 """Process resources every stage shares: CPU cores, torch threads, stage timers, peak memory.
 
-Nothing here knows a pipeline stage; every stage may import it.
+Nothing here knows a pipeline stage; every stage may import it. torch is imported on first use
+only, so that processes that never need it (the writers) start fast.
 
 Example:
+    >>> import torch
     >>> with torch_threads(1):
     ...     torch.get_num_threads()
     1
@@ -10,13 +12,12 @@ Example:
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import sys
 import time
 import zlib
 from typing import Iterator
-
-import torch
 
 try:  # POSIX only; peak memory is unknown elsewhere (Windows)
     import resource
@@ -24,7 +25,8 @@ except ImportError:  # pragma: no cover - exercised by tests that hide the modul
     resource = None
 
 __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb",
-           "maxrss_to_mb", "stable_hash", "intra_op_threads"]
+           "maxrss_to_mb", "stable_hash", "intra_op_threads", "log",
+           "log_to_terminal", "log_to_file", "TqdmHandler"]
 
 
 def cores() -> int:
@@ -51,6 +53,8 @@ def env_count(name: str, minimum: int) -> int | None:
 @contextlib.contextmanager
 def torch_threads(n: int) -> Iterator[None]:
     """Run the enclosed code with ``n`` torch intra-op threads; the previous count is restored."""
+    import torch
+
     before = torch.get_num_threads()
     torch.set_num_threads(max(1, int(n)))
     try:
@@ -60,7 +64,7 @@ def torch_threads(n: int) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def cpu_single_thread(device: torch.device | str) -> Iterator[None]:
+def cpu_single_thread(device) -> Iterator[None]:
     """Run the enclosed torch ops with one intra-op thread when ``device`` is the CPU.
 
     The iterative solvers (SfM, refinement) are hundreds of small tensor ops; intra-op
@@ -68,6 +72,8 @@ def cpu_single_thread(device: torch.device | str) -> Iterator[None]:
     3.0 s with 1 thread and 26 s with 2 on a 2-core machine busy with other work). The
     previous thread count is restored on exit. No effect on other devices.
     """
+    import torch
+
     if torch.device(device).type != "cpu" or torch.get_num_threads() == 1:
         yield
         return
@@ -79,14 +85,16 @@ class StageTimer:
     """Wall seconds per named stage, summed over calls; CUDA work is synchronised at each stop.
 
     Example:
-        >>> timer = StageTimer(torch.device("cpu"))
+        >>> timer = StageTimer("cpu")
         >>> with timer("sfm"):
         ...     pass
         >>> list(timer.seconds)
         ['sfm']
     """
 
-    def __init__(self, device: torch.device | str = "cpu", seconds: dict | None = None):
+    def __init__(self, device="cpu", seconds: dict | None = None):
+        import torch
+
         self.device = torch.device(device)
         self.seconds: dict[str, float] = {} if seconds is None else seconds
 
@@ -97,7 +105,7 @@ class StageTimer:
             yield
         finally:
             if self.device.type == "cuda":
-                torch.cuda.synchronize(self.device)
+                sys.modules["torch"].cuda.synchronize(self.device)
             self.add(stage, time.perf_counter() - t0)
 
     def add(self, stage: str, seconds: float) -> None:
@@ -139,3 +147,48 @@ def intra_op_threads(workers: int) -> int:
     cores left to it beside ``workers`` writer processes (at least one)."""
     env = env_count("CARVI_THREADS", 1)
     return env if env is not None else max(1, cores() - workers)
+
+
+class TqdmHandler(logging.StreamHandler):
+    """A log handler that writes through ``tqdm.write``, so messages do not tear progress bars."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            from tqdm.auto import tqdm
+
+            tqdm.write(self.format(record), file=self.stream)
+        except Exception:  # noqa: BLE001 - logging must never raise
+            self.handleError(record)
+
+
+#: The package's logger; modules log through children of it (``carvi_torch.<module>``).
+log = logging.getLogger("carvi_torch")
+
+
+@contextlib.contextmanager
+def _handler(h: logging.Handler) -> Iterator[None]:
+    before = log.level
+    log.setLevel(logging.DEBUG)
+    log.addHandler(h)
+    try:
+        yield
+    finally:
+        log.removeHandler(h)
+        h.close()
+        log.setLevel(before)
+
+
+def log_to_terminal(quiet: bool = False):
+    """Context: the package's log on the terminal (INFO, or WARNING when ``quiet``), through ``tqdm.write``."""
+    h = TqdmHandler(sys.stderr)
+    h.setLevel(logging.WARNING if quiet else logging.INFO)
+    h.setFormatter(logging.Formatter("%(message)s"))
+    return _handler(h)
+
+
+def log_to_file(path: str | os.PathLike):
+    """Context: every record of the package's log (DEBUG and up, timestamped) appended to ``path``."""
+    h = logging.FileHandler(path, encoding="utf-8")
+    h.setLevel(logging.DEBUG)
+    h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    return _handler(h)

@@ -39,7 +39,8 @@ class LiftedDataset(Dataset):
         transform: called on each sample dict (after conversion to tensors).
 
     Each item is a dict of tensors (one per field, with the dtype and shape of ``docs/export.md``)
-    plus ``class_name`` and ``source`` strings.
+    plus ``class_name``, ``source`` and ``annotation_key`` (the annotation id as a string, also for
+    string ids) strings.
     """
 
     def __init__(self, root: str | Path, classes: Iterable[str] | None = None,
@@ -77,7 +78,11 @@ class LiftedDataset(Dataset):
         arr = self._maps.get(key)
         if arr is None:
             name = self.index["shards"][shard]["name"]
-            arr = np.load(self.root / name / f"{field}.npy", mmap_mode="r")
+            path = self.root / name / f"{field}.npy"
+            try:
+                arr = np.load(path, mmap_mode="r")
+            except (OSError, ValueError, EOFError) as e:
+                raise OSError(f"{path}: unreadable shard file ({type(e).__name__}: {e})") from None
             self._maps[key] = arr
         return arr
 
@@ -98,6 +103,7 @@ class LiftedDataset(Dataset):
         meta = self._samples[g]
         out["class_name"] = meta["class"]
         out["source"] = meta.get("source", "")
+        out["annotation_key"] = str(meta.get("annotation_id", ""))
         if self.transform is not None:
             out = self.transform(out)
         return out

@@ -79,7 +79,8 @@ class TestLoad:
         res = load_coco(path, canvas_size=64)
         c = res.collections["plane"]
         assert len(c) == 4 and c.masks.shape == (4, 64, 64) and c.keypoints.shape == (4, 4, 2)
-        assert c.meta.flip_pairs == [(0, 1)] and c.object_ids.tolist() == [100, 101, 102, 103]
+        assert c.meta.flip_pairs == [(0, 1)] and c.object_ids == [100, 101, 102, 103]
+        assert c.object_groups.tolist() == [0, 1, 2, 3]
         assert c.visible[:, 3].tolist() == [True, False, True, False]
         # keypoints map back to the image exactly
         img = torch.tensor([[a["keypoints"][3 * k], a["keypoints"][3 * k + 1]] for a in anns for k in range(4)],
@@ -130,7 +131,7 @@ class TestLoad:
         assert "far outside" in reasons[57].reason and not reasons[57].fatal
         assert "occluded" in reasons[58].reason and "malformed segmentation" in reasons[59].reason
         c = res.collections["plane"]
-        ids = c.annotation_ids.tolist()
+        ids = c.annotation_ids
         assert ids == [1, 2, 3, 4, 56, 57]  # good objects and the two warned ones go on
         assert c.visible[4].tolist() == [False, True, True, True] and c.visible[5].tolist() == [False, True, True, True]
         for p in res.problems:

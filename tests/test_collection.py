@@ -60,29 +60,30 @@ def _collection(n=4, k=5, C=32, g=None):
     kp = torch.rand(n, k, 2, generator=g) * (C - 1)
     vis = torch.rand(n, k, generator=g) > 0.3
     sim = Similarity2D(torch.rand(n, generator=g) + 0.5, torch.randn(n, 2, generator=g))
-    return ClassCollection(meta, masks, kp, vis, sim, torch.tensor([[200, 100]] * n), torch.arange(n) + 10,
-                           torch.arange(n), torch.arange(n) + 100, torch.zeros(n, dtype=torch.bool),
-                           [f"s{i}" for i in range(n)])
+    return ClassCollection(meta, masks, kp, vis, sim, torch.tensor([[200, 100]] * n), [10 + i for i in range(n)],
+                           list(range(n)), [100 + i for i in range(n)], torch.arange(n),
+                           torch.zeros(n, dtype=torch.bool), [f"s{i}" for i in range(n)])
 
 
 class TestClassCollection:
     def test_shapes_and_index(self):
         c = _collection()
         sub = c[torch.tensor([True, False, True, False])]
-        assert len(sub) == 2 and sub.annotation_ids.tolist() == [10, 12] and sub.sources == ["s0", "s2"]
+        assert len(sub) == 2 and sub.annotation_ids == [10, 12] and sub.sources == ["s0", "s2"]
         assert len(c[1:]) == 3 and len(c[[3]]) == 1
 
     def test_bad_shapes(self):
         c = _collection()
         with pytest.raises(ValueError):
             ClassCollection(c.meta, c.masks, c.keypoints[:, :2], c.visible, c.canvas_from_image, c.image_size,
-                            c.annotation_ids, c.image_ids, c.object_ids, c.is_mirror)
+                            c.annotation_ids, c.image_ids, c.object_ids, c.object_groups, c.is_mirror)
 
     def test_mirror_twice_is_identity(self):
         c = _collection()
         cc = c.mirror().mirror()
-        for f in ("masks", "keypoints", "visible", "image_size", "annotation_ids", "is_mirror"):
+        for f in ("masks", "keypoints", "visible", "image_size", "is_mirror"):
             assert torch.allclose(getattr(cc, f).float(), getattr(c, f).float(), atol=1e-5), f
+        assert cc.annotation_ids == c.annotation_ids and cc.object_ids == c.object_ids
         assert torch.allclose(cc.canvas_from_image.offset, c.canvas_from_image.offset, atol=1e-4)
 
     def test_mirror_swaps_labels(self):
@@ -107,7 +108,8 @@ class TestClassCollection:
         meta = ClassMeta("t", names, infer_flip_pairs(names))
         coll = ClassCollection(meta, torch.zeros(n, C, C, dtype=torch.bool), sim.apply(img_kp),
                                torch.ones(n, 3, dtype=torch.bool), sim, torch.tensor([[250, 180]] * n),
-                               torch.arange(n), torch.arange(n), torch.arange(n), torch.zeros(n, dtype=torch.bool))
+                               list(range(n)), list(range(n)), list(range(n)), torch.arange(n),
+                               torch.zeros(n, dtype=torch.bool))
         m = coll.mirror()
         cam_m = cam.mirror(250.0, P).compose_similarity(m.canvas_from_image)
         assert torch.allclose(cam_m.project(X), m.keypoints, atol=1e-4)

@@ -9,7 +9,7 @@ import pytest
 
 from carvi_torch.config import Config
 from carvi_torch.evaluate import evaluate, format_shape_table, format_viewpoint_table, main, posed_gt_mesh
-from carvi_torch.pipeline import run
+from carvi_torch.executors import run
 
 TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 3, "canvas_size": 64, "progress": False,
         "refine_iters": 20, "plane_size": 32, "preview": False, "classes": ["car"]}

@@ -12,7 +12,7 @@ from torch.utils.data import DataLoader
 
 from carvi_torch.config import Config
 from carvi_torch.export import export, main as export_main
-from carvi_torch.pipeline import run
+from carvi_torch.executors import run
 from carvi_torch.training import LiftedDataset, collate_lifted
 
 TINY = {"procedural_instances": 5, "resolution": 24, "proposals": 3, "canvas_size": 64, "progress": False,

@@ -17,7 +17,7 @@ from pycocotools.coco import COCO
 
 from carvi_torch.config import Config
 from carvi_torch.runtime import StageTimer
-from carvi_torch.pipeline import run
+from carvi_torch.executors import run
 from carvi_torch.reconstruct import main as reconstruct_main
 from conftest import requires_cuda
 
@@ -124,7 +124,8 @@ def test_rerun_with_other_settings_says_so(tiny, tmp_path, capsys):
     want = Config().override(TINY).viewpoints.refine_iters
     assert again["resumed_from_other_settings"] == {"viewpoints.refine_iters": [want, 7]}
     assert again["classes"]["car"]["resumed"] == summary["classes"]["car"]["reconstructed"]
-    assert "other settings (viewpoints.refine_iters" in capsys.readouterr().out
+    assert "other settings (viewpoints.refine_iters" in capsys.readouterr().err
+    assert "other settings (viewpoints.refine_iters" in (copy / "run.log").read_text()
     fresh = run(_cfg(copy, data=summary["data"], preview=False, refine_iters=7, classes=["car"], overwrite=True))
     assert "resumed_from_other_settings" not in fresh and fresh["classes"]["car"]["resumed"] == 0
 
@@ -311,7 +312,7 @@ def test_writer_books_back_pressure(monkeypatch):
     results stay in submission order."""
     from carvi_torch.io import writer as W
 
-    monkeypatch.setattr(W, "_write_object_safe", _slow_job)
+    monkeypatch.setattr(W.Writer, "write", staticmethod(_slow_job))
     w = W.Writer(0)  # inline: no wait is ever needed
     got = []
     w.submit(dict(i=0, sleep=0.0), got.append)
@@ -407,7 +408,6 @@ def test_cuda_chunk_has_no_per_object_host_reads(tiny):
 
 def test_silhouette_robust_reaches_refinement(monkeypatch, tmp_path):
     """``silhouette_robust`` is handed to the refinement: 0 means the paper's squared penalty (None)."""
-    from carvi_torch import pipeline as P
     from carvi_torch.viewpoints import camera_fit as Rf
     from carvi_torch.config import Config
 
@@ -423,7 +423,7 @@ def test_silhouette_robust_reaches_refinement(monkeypatch, tmp_path):
         cfg = Config().override([f"out={tmp_path / str(value)}", "procedural_instances=6", "classes=car",
                                  "stage=cameras",
                                  f"silhouette_robust={value}", "progress=false", "preview=false"])
-        P.run(cfg)
+        run(cfg)
         assert seen[-1] == expected
 
 

@@ -661,7 +661,7 @@ def cad_cars(shared_data, tmp_path_factory):
     render_dataset(models, out, views=30, seed=0, progress=False)
     coll = load_coco(out / "annotations.json").collections["car"]
     gt = json.loads((out / "gt.json").read_text())["annotations"]
-    R = torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids.tolist()], dtype=torch.float64)
+    R = torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids], dtype=torch.float64)
     return coll, R
 
 

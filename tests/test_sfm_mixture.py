@@ -244,8 +244,8 @@ def _two_shape_class(sizes=(12, 12), seed=0, noise=0.2, same_shape=False):
              & (yy[None] >= lo[:, 1, None, None]) & (yy[None] <= hi[:, 1, None, None]))  # boxes: sizes only
     coll = ClassCollection(ClassMeta("t", names, infer_flip_pairs(names)), masks, kp,
                            torch.ones(n, K, dtype=torch.bool), Similarity2D(torch.ones(n), torch.zeros(n, 2)),
-                           torch.tensor([[C, C]] * n), torch.arange(n), torch.arange(n), torch.arange(n),
-                           torch.zeros(n, dtype=torch.bool))
+                           torch.tensor([[C, C]] * n), list(range(n)), list(range(n)), list(range(n)),
+                           torch.arange(n), torch.zeros(n, dtype=torch.bool))
     truth = torch.cat([torch.full((m,), i) for i, m in enumerate(sizes)])
     return coll, cam.R, truth
 
@@ -522,7 +522,7 @@ def _cad_class(shared_data, tmp_path, prefix: str, count: int, views: int = 15):
     render_dataset(models, tmp_path, views=views, seed=0, progress=False)
     coll = load_coco(tmp_path / "annotations.json").collections[prefix]
     gt = json.loads((tmp_path / "gt.json").read_text())["annotations"]
-    return coll, torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids.tolist()], dtype=torch.float64)
+    return coll, torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids], dtype=torch.float64)
 
 
 def test_cad_sofas_fit_three_shapes_and_better_viewpoints(shared_data, tmp_path):

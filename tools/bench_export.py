@@ -72,7 +72,8 @@ def main(argv=None) -> int:
         per = max(1, args.objects // 4)
         if not (recon / "summary.json").is_file():
             print(f"reconstructing {4 * per} procedural objects into {recon} (not timed) ...")
-            subprocess.run([py, "-m", "carvi_torch.reconstruct", "--out", str(recon), f"input.procedural_instances={per}",
+            subprocess.run([py, "-m", "carvi_torch.reconstruct", "--out", str(recon),
+                            f"input.procedural_instances={per}",
                             "progress=false", "preview=false"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     exp = work / "export"
     if exp.exists():
@@ -88,7 +89,8 @@ def main(argv=None) -> int:
         reads[w] = json.loads(out.strip().splitlines()[-1])
     size_mb = sum(f.stat().st_size for f in exp.rglob("*") if f.is_file()) / 2 ** 20
     rows = [
-        ("export (whole process)", f"{n} objects", f"{t_exp:.1f} s", f"{n / t_exp:.1f} objects/s", f"{peak_exp:.0f} MB"),
+        ("export (whole process)", f"{n} objects", f"{t_exp:.1f} s", f"{n / t_exp:.1f} objects/s",
+         f"{peak_exp:.0f} MB"),
         ("read, 1 worker, all fields", f"{reads[0]['samples']} samples", f"{reads[0]['seconds']:.2f} s",
          f"{reads[0]['samples'] / reads[0]['seconds']:.0f} samples/s", f"{reads[0]['peak_rss_mb']:.0f} MB"),
         ("DataLoader, 2 workers, batch 64", f"{reads[2]['samples']} samples", f"{reads[2]['seconds']:.2f} s",

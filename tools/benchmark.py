@@ -141,7 +141,8 @@ class GridSampleClock:
     def check(self, what: str) -> None:
         if self.calls == 0 or self.samples == 0:
             raise RuntimeError(f"the grid_sample clock saw no call during {what}: the carving no longer samples "
-                               "through carvi_torch.carve.torch_backend.grid_sample_maps, so the floors are not measured")
+                               "through carvi_torch.carve.torch_backend.grid_sample_maps, so the floors are not "
+                               "measured")
 
 
 def pipeline_call_bounds(cfg: Config, valid: torch.Tensor, objects: int, device: torch.device) -> list[int]:
@@ -580,7 +581,8 @@ def _carving_table(cs: dict) -> list[str]:
          cs.get("fused_samples_per_object", sm["batched"])),
         ("torch backend, nearest pixel (an approximation: carve.interpolation=nearest)", s["batched_nearest"],
          sm["batched_nearest"]),
-        (f"(a) loop, reference structure ({L} object{'s' if L != 1 else ''}, extrapolated)", s["loop_reference_structure"],
+        (f"(a) loop, reference structure ({L} object{'s' if L != 1 else ''}, extrapolated)",
+         s["loop_reference_structure"],
          sm["loop_reference_structure"]),
         ("(a) the same loop reading the nearest pixel", s["loop_reference_structure_nearest"],
          sm["loop_reference_structure"]),
@@ -589,7 +591,8 @@ def _carving_table(cs: dict) -> list[str]:
         ("(a) loop, maps given (extended per proposal)", s["loop"], sm["loop_naive"]),
         ("(a) loop, maps prepared once per class", s["loop_prepared_maps"], sm["loop_naive"]),
         ("(b) floor: grid_sample calls of the torch backend", s["floor_batched"], sm["batched"]),
-        ("(b) floor: grid_sample calls of the nearest-pixel carving", s["floor_batched_nearest"], sm["batched_nearest"]),
+        ("(b) floor: grid_sample calls of the nearest-pixel carving", s["floor_batched_nearest"],
+         sm["batched_nearest"]),
         ("(b) naive floor: grid_sample of every voxel (loop)", s["floor_loop_naive"], sm["loop_naive"]),
         ("(b) naive floor, nearest pixel", s["floor_loop_naive_nearest"], sm["loop_naive"]),
         ("selection (select_proposals per chunk)", s["selection"], float("nan")),

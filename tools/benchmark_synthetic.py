@@ -180,6 +180,11 @@ def merge_evaluations(parts: list[dict]) -> dict:
     return out
 
 
+
+def _covered(res: dict, m: str) -> int:
+    """The classes for which method ``m`` has a mean."""
+    return sum(1 for c in res["classes"].values() if c[m]["mean"] is not None)
+
 def table1(res: dict) -> str:
     """Markdown: our per-class means (bold = best of our methods) with the paper's in brackets."""
     methods = [m for m in ("Full", "-CRef", "-SImp", "Puffball", "SFMc", "oracle") if m in res["methods"]]
@@ -214,8 +219,7 @@ def table1(res: dict) -> str:
         ("-" if cmean[m] is None else f"**{cmean[m]:.2f}**") + (f" ({paper_c[m]:.2f})" if m in paper_c else "")
         for m in methods) + " |")
     lines.append("| mean, every class the method covers | " + " | ".join(
-        ("-" if means[m] is None else f"{means[m]:.2f}") + f" ({sum(1 for c in res['classes'].values() if c[m]['mean'] is not None)})"
-        for m in methods) + " |")
+        ("-" if means[m] is None else f"{means[m]:.2f}") + f" ({_covered(res, m)})" for m in methods) + " |")
     lines.append("| paper, mean of its 20 classes | " + " | ".join(
         f"{PAPER_MEAN_20[m]:.2f}" if m in PAPER_MEAN_20 else "-" for m in methods) + " |")
     return "\n".join(lines)
@@ -273,12 +277,14 @@ def main(argv=None) -> int:
                     help="directory of CAD models with 3-D keypoints (default ../shared/data/pascal3d_cad)")
     ap.add_argument("--out", default=str(ROOT / "outputs" / "benchmark"), help="working directory (data, runs)")
     ap.add_argument("--results", default=str(ROOT / "docs" / "data"),
-                    help="where benchmark_synthetic.json goes (default docs/data; table1.md and viewpoints.md go to --out)")
+                    help="where benchmark_synthetic.json goes (default docs/data; table1.md and viewpoints.md go "
+                         "to --out)")
     ap.add_argument("--pool", type=int, default=20, help="pool (surrogate) renders per model (default 20)")
     ap.add_argument("--test-views", type=int, default=5, help="test renders per model (default 5)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--step-percent", type=float, default=1.0,
-                    help="metric sampling step, %% of the GT bbox diagonal (paper 0.5; default 1.0, see docs/results.md)")
+                    help="metric sampling step, %% of the GT bbox diagonal (paper 0.5; default 1.0, "
+                         "see docs/results.md)")
     ap.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {list(METHODS)}")
     ap.add_argument("--classes", help="comma-separated classes (default: all)")
     ap.add_argument("--jobs", type=int, default=2, help="processes at once (default 2)")

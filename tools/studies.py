@@ -356,15 +356,17 @@ def viewpoints(args) -> int:
     rows = {}
     for c, per in sorted(res["viewpoints"].items()):
         full = per.get("Full", {})
-        rows[c] = {st: {"median_geodesic": full[st]["geodesic"]["median"], "acc_at_30": full[st]["geodesic"]["acc_at_30"],
+        rows[c] = {st: {"median_geodesic": full[st]["geodesic"]["median"],
+                        "acc_at_30": full[st]["geodesic"]["acc_at_30"],
                         "median_azimuth": full[st]["azimuth"]["median"],
                         "median_elevation": full[st]["elevation"]["median"]}
                    for st in ("sfm", "refined") if st in full}
     missing = [c for c, r in rows.items() if not ("sfm" in r and "refined" in r)]
     rows = {c: r for c, r in rows.items() if c not in missing}
     out = {"command": _command(), "source": str(bench_json), "classes": rows, "classes_without_cameras": missing,
-           "median_of_class_medians": {st: float(np.median([r[st]["median_geodesic"] for r in rows.values() if st in r]))
-                                       for st in ("sfm", "refined")}}
+           "median_of_class_medians": {
+               st: float(np.median([r[st]["median_geodesic"] for r in rows.values() if st in r]))
+               for st in ("sfm", "refined")}}
     from carvi_torch.io.outputs import write_json
 
     write_json(_record("viewpoints"), out)
@@ -542,7 +544,8 @@ def step(args) -> int:
              if isinstance(r.get(m), dict) and r[m].get("error_percent") is not None
              and b["objects"][k][m].get("error_percent") is not None]
         d = np.array(d)
-        diffs[m] = {"n": int(len(d)), "mean_difference_pp": float(d.mean()), "mean_abs_difference_pp": float(np.abs(d).mean()),
+        diffs[m] = {"n": int(len(d)), "mean_difference_pp": float(d.mean()),
+                    "mean_abs_difference_pp": float(np.abs(d).mean()),
                     "max_abs_difference_pp": float(np.abs(d).max()),
                     "class_mean_difference_pp": {c: b["classes"][c][m]["mean"] - a["classes"][c][m]["mean"]
                                                  for c in a["classes"] if a["classes"][c][m]["mean"] is not None}}
@@ -677,7 +680,8 @@ def main(argv=None) -> int:
     p.add_argument("--classes", default="bicycle,car,chair,sofa")
     p.add_argument("--steps", default="0.5,1.0")
     args = ap.parse_args(argv)
-    return {"frames": frames, "ranking": ranking, "threshold": threshold, "viewpoints": viewpoints, "clusters": clusters,
+    return {"frames": frames, "ranking": ranking, "threshold": threshold, "viewpoints": viewpoints,
+            "clusters": clusters,
             "step": step}[args.study](args)
 
 

@@ -24,9 +24,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch.utils.data import DataLoader, random_split
 
-ROOT = Path(__file__).resolve().parents[1]
-
 from carvi_torch.training import LiftedDataset, collate_lifted
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 class ViewpointNet(nn.Module):
@@ -102,7 +102,8 @@ def main(argv=None) -> int:
                 d = torch.atan2(pred[:, 1], pred[:, 0]) - torch.atan2(y[:, 1], y[:, 0])
                 errs.append(torch.rad2deg(torch.atan2(torch.sin(d), torch.cos(d)).abs()))
         med = float(torch.cat(errs).median())
-        print(f"{epoch:5d}  {total / count:10.4f}  {vtotal / vcount:8.4f}  {med:30.1f}  {time.perf_counter() - t0:7.1f}")
+        secs = time.perf_counter() - t0
+        print(f"{epoch:5d}  {total / count:10.4f}  {vtotal / vcount:8.4f}  {med:30.1f}  {secs:7.1f}")
     return 0
 
 

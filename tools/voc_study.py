@@ -653,7 +653,8 @@ def step_diagnose(data: Path, work: Path, gt: dict, cfg: Config, device: str) ->
     voc.convert(data / "pascal_voc_aeroplane" / "keypoints", ann_1, one_based=False)
 
     def load(path, canvas):
-        return coco.load_coco(path, canvas_size=canvas, margin=cfg.input.canvas_margin, device=device).collections[CLASS]
+        return coco.load_coco(path, canvas_size=canvas, margin=cfg.input.canvas_margin,
+                              device=device).collections[CLASS]
 
     coll = load(ann, cfg.input.canvas_size)
     names = coll.meta.keypoint_names
@@ -799,7 +800,7 @@ def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: C
     cams_json = read_json(recon / CLASS / "cameras.json")
     loaded = coco.load_coco(ann, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin)
     coll = loaded.collections[CLASS]
-    row_of = {int(a): i for i, a in enumerate(coll.annotation_ids.tolist())}
+    row_of = {int(a): i for i, a in enumerate(coll.annotation_ids)}
     t0 = time.perf_counter()
     models = load_models(data, work / "cad_solids")
     t_models = time.perf_counter() - t0
@@ -830,7 +831,8 @@ def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: C
             s_kp, _, _ = fit_keypoints(P, W)
             extent = s * float(np.ptp(cad["vertices"] @ R[:2].T, axis=0).max())
             row["keypoint_scale_ratio"] = s_kp / s
-            row["keypoint_rms_percent_of_extent"] = 100.0 * float(np.sqrt(((s * P + t - W) ** 2).sum(-1).mean())) / extent
+            rms = float(np.sqrt(((s * P + t - W) ** 2).sum(-1).mean()))
+            row["keypoint_rms_percent_of_extent"] = 100.0 * rms / extent
         row["reconstruction"] = score_mesh(_recon_mesh(recon, aid), R, s, t, model)
         if aid in row_of:
             row["puffball"] = score_mesh(_puffball_image(coll, row_of[aid]), R, s, t, model)
@@ -1045,7 +1047,8 @@ def cameras_only(args, data: Path, work: Path, command: str) -> dict:
     subcategory = {gt_key(a["source"]): a.get("subcategory") for a in read_json(ann)["annotations"]}
     vp = step_viewpoints(work / "cameras", gt, subcategory)
     summary = {stage: {"n": vp[stage]["report"]["n"],
-                       **{f"{a}_median": vp[stage]["report"][a]["median"] for a in ("geodesic", "azimuth", "elevation")},
+                       **{f"{a}_median": vp[stage]["report"][a]["median"] for a in ("geodesic", "azimuth",
+                                                                                    "elevation")},
                        "acc_at_30": vp[stage]["report"]["geodesic"]["acc_at_30"],
                        "mirrored": vp[stage]["report"]["mirrored"]} for stage in ("sfm", "refined")}
     out = Path(args.out) if args.out else work / "cameras_only.json"

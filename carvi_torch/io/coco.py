@@ -16,6 +16,7 @@ Validation never stops the run for one bad object: every problem becomes a
 """
 from __future__ import annotations
 
+import json
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,13 +27,16 @@ import torch
 from pycocotools import mask as mask_utils
 
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvas
-from .outputs import read_json, write_json
+from .outputs import read_json, safe_name, write_json
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
-           "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE"]
+           "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "MAX_IMAGE_PIXELS", "object_id",
+           "flag", "class_keys"]
 
 #: Keypoints farther outside the image than this fraction of its larger side are rejected.
 OUTSIDE_TOLERANCE = 0.5
+#: Default bound on an image's pixels (a mask is decoded at one byte per pixel of its image).
+MAX_IMAGE_PIXELS = 200_000_000
 
 
 class CocoFormatError(ValueError):
@@ -44,7 +48,7 @@ class Problem:
     """One object (or class) that could not be used, and why."""
 
     reason: str
-    annotation_id: int | None = None
+    annotation_id: int | str | None = None
     category: str | None = None
     source: str | None = None
     stage: str = "load"
@@ -110,6 +114,12 @@ def decode_segmentation(seg: Any, height: int, width: int) -> np.ndarray:
         if list(seg.get("size", [])) != [height, width]:
             raise ValueError(f"RLE size {seg.get('size')} does not match the image ({height}, {width})")
         if isinstance(seg["counts"], list):
+            counts = seg["counts"]
+            if not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in counts):
+                raise ValueError("uncompressed RLE counts must be non-negative integers")
+            if sum(counts) != height * width:
+                raise ValueError(f"uncompressed RLE counts sum to {sum(counts)}, not width x height = "
+                                 f"{width} x {height} = {width * height}")
             rle = mask_utils.frPyObjects(seg, height, width)
         else:
             rle = {"size": seg["size"], "counts": seg["counts"].encode("ascii") if isinstance(seg["counts"], str)
@@ -168,6 +178,47 @@ def write_coco(path: str | Path, images: list, annotations: list, categories: li
 # --------------------------------------------------------------------------- reading
 
 
+def object_id(value) -> int | str | None:
+    """An id as the outputs carry it: an int (not a bool) or a non-empty string; ``None`` when unusable
+    (null, a float, a bool, an empty string, a list...).
+
+    Example:
+        >>> object_id(7), object_id("aeroplane01"), object_id(7.0), object_id(None), object_id(True)
+        (7, 'aeroplane01', None, None, None)
+    """
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
+    if isinstance(value, str) and value.strip():
+        return value
+    return None
+
+
+def _describe(value) -> str:
+    kind = {type(None): "null", bool: "a boolean", float: "a float", list: "a list", dict: "an object"}
+    return f"{kind.get(type(value), type(value).__name__)} ({json.dumps(value)[:40]})"
+
+
+def flag(value) -> bool | None:
+    """A yes/no annotation field (``occluded``, ``truncated``, ``iscrowd``): JSON booleans, 0 / 1, and
+    the strings true/false, yes/no, 1/0 (any case); ``None`` for anything else.
+
+    Example:
+        >>> flag(True), flag(0), flag("no"), flag("Yes"), flag("maybe")
+        (True, False, False, True, None)
+    """
+    if isinstance(value, bool):
+        return value
+    if value is None:
+        return False
+    if isinstance(value, (int, float)) and value in (0, 1):
+        return bool(value)
+    if isinstance(value, str) and value.strip().lower() in ("true", "yes", "1", "false", "no", "0", ""):
+        return value.strip().lower() in ("true", "yes", "1")
+    return None
+
+
 def _category_meta(cat: dict, problems: list) -> ClassMeta | None:
     name = str(cat.get("name", f"category_{cat.get('id')}"))
     names = cat.get("keypoints")
@@ -207,8 +258,8 @@ def _category_meta(cat: dict, problems: list) -> ClassMeta | None:
         problems.append(Problem(f"unknown left_convention {convention!r}; using 'object'", category=name, fatal=False))
         convention = "object"
     return ClassMeta(name=name, keypoint_names=names, flip_pairs=[tuple(p) for p in pairs], rigid_keypoints=rigid,
-                     symmetry=symmetry, articulated=bool(cat.get("articulated", False)),
-                     category_id=int(cat["id"]), left_convention=convention)
+                     symmetry=symmetry, articulated=flag(cat.get("articulated", False)) is True,
+                     category_id=object_id(cat.get("id")), left_convention=convention)
 
 
 def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[np.ndarray, np.ndarray] | str:
@@ -241,123 +292,218 @@ def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[
 
 
 def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, device: str | torch.device = "cpu",
-              classes: Iterable[str] | None = None, skip_flags: bool = True) -> LoadResult:
+              classes: Iterable[str] | None = None, skip_flags: bool = True,
+              max_image_pixels: int = MAX_IMAGE_PIXELS) -> LoadResult:
     """Read a COCO keypoint file into one :class:`ClassCollection` per category.
 
     Args:
         path: the JSON file.
         canvas_size, margin: canvas of the collections (see :func:`canvas_similarity`).
         device: device of the returned tensors.
-        classes: keep only these category names.
+        classes: keep only these categories (by name, or by their folder name ``ClassMeta.key``).
         skip_flags: skip annotations flagged ``occluded`` / ``truncated`` / ``iscrowd``.
+        max_image_pixels: skip objects whose image has more pixels (their mask would not fit in memory).
 
     Returns:
-        :class:`LoadResult`. Objects are skipped (with a :class:`Problem`) for: unknown category or image,
-        duplicate id, keypoint count not matching the category, no visible keypoint, missing/empty/
-        malformed mask, occluded/truncated flags. NaN or far-outside keypoints are dropped with a warning.
+        :class:`LoadResult`, collections keyed by ``ClassMeta.key`` (two categories of one name are two
+        classes with different keys). Objects are skipped (with a :class:`Problem`) for: an unusable or
+        duplicate id, unknown category or image, an image too large or without a size, keypoint count not
+        matching the category, no visible keypoint, missing/empty/malformed mask, occluded/truncated
+        flags (or unreadable ones). NaN or far-outside keypoints are dropped with a warning.
 
     Raises:
         CocoFormatError: the file is missing, not JSON (message with line and column) or has no
             ``annotations`` / ``categories`` lists.
     """
-    path = Path(path)
+    data = _read(Path(path))
+    problems: list[Problem] = []
+    metas = _categories(data["categories"], set(classes) if classes else None, problems)
+    images = _images(data.get("images") or [], problems)
+    per_class: dict[str, list] = defaultdict(list)
+    seen: set[str] = set()
+    for ann in data["annotations"]:
+        item = _annotation(ann, metas, images, seen, skip_flags, max_image_pixels, problems)
+        if item is not None:
+            per_class[item[0]].append(item[1:])
+    by_key = {key: meta for key, meta in metas.values() if meta is not None}
+    collections = {key: _build_collection(by_key[key], items, canvas_size, margin, torch.device(device))
+                   for key, items in per_class.items()}
+    return LoadResult(collections=collections, problems=problems, dataset=data)
+
+
+def _read(path: Path) -> dict:
     try:
         data = read_json(path)
     except (FileNotFoundError, ValueError) as e:
         raise CocoFormatError(str(e)) from None
+    except OSError as e:
+        raise CocoFormatError(f"{path}: {e.strerror or e}") from None
     if not isinstance(data, dict):
         raise CocoFormatError(f"{path}: expected a JSON object with images, annotations and categories")
     for key in ("annotations", "categories"):
         if not isinstance(data.get(key), list):
             raise CocoFormatError(f"{path}: missing or invalid '{key}' list")
-    problems: list[Problem] = []
-    wanted = set(classes) if classes else None
+    return data
 
-    metas: dict[int, ClassMeta] = {}
-    for cat in data["categories"]:
-        if not isinstance(cat, dict) or "id" not in cat:
-            problems.append(Problem(f"category entry without an id: {str(cat)[:80]}"))
+
+def _categories(cats: list, wanted: set | None, problems: list) -> dict:
+    """``{category id as str: (key, ClassMeta or None)}``: every category with a usable id (``None``:
+    a broken category or one ``wanted`` leaves out), each with a safe folder name unique in the file."""
+    out: dict = {}
+    taken: set[str] = set()
+    for cat in cats:
+        cid = object_id(cat.get("id")) if isinstance(cat, dict) else None
+        if cid is None:
+            problems.append(Problem(f"category entry without a usable id: {str(cat)[:80]}"))
             continue
-        if int(cat["id"]) in metas:
-            problems.append(Problem(f"duplicate category id {cat['id']}; keeping the first", fatal=False))
+        if str(cid) in out:
+            problems.append(Problem(f"duplicate category id {cid!r}; keeping the first", fatal=False))
             continue
         meta = _category_meta(cat, problems)
-        if meta is not None and (wanted is None or meta.name in wanted):
-            metas[meta.category_id] = meta
+        if meta is not None:
+            meta.key = _unique_key(meta.name, cid, taken)
+            if meta.key != meta.name:
+                problems.append(Problem(f"category {meta.name!r} (id {cid!r}) is written to the folder "
+                                        f"{meta.key!r}", category=meta.name, fatal=False))
+            if wanted is not None and not ({meta.name, meta.key} & wanted):
+                meta = None
+        out[str(cid)] = (meta.key if meta else None, meta)
+    return out
+
+
+def class_keys(categories: list) -> dict[str, str]:
+    """``{category id as str: class key}`` of a file's categories, as :func:`load_coco` names their
+    folders (readers of a run's outputs find a class's folder with it).
+
+    Example:
+        >>> class_keys([{"id": 1, "name": "car", "keypoints": ["a"]}, {"id": 2, "name": "car", "keypoints": ["a"]}])
+        {'1': 'car', '2': 'car-2'}
+    """
+    return {cid: key for cid, (key, meta) in _categories(categories, None, []).items() if meta is not None}
+
+
+def _unique_key(name: str, cid, taken: set) -> str:
+    """A safe folder name for the class, unique in the run (case-insensitively)."""
+    key = safe_name(name)
+    if key.lower() in taken:
+        key = safe_name(f"{name}-{cid}")
+        n = 2
+        while key.lower() in taken:
+            key, n = safe_name(f"{name}-{cid}-{n}"), n + 1
+    taken.add(key.lower())
+    return key
+
+
+def _images(entries: list, problems: list) -> dict:
+    """``{image id as str: image entry}`` of the entries with a usable id."""
     images = {}
-    for im in data.get("images", []) or []:
-        try:
-            images[int(im["id"])] = im
-        except (KeyError, TypeError, ValueError):
-            problems.append(Problem(f"image entry without a valid id: {str(im)[:80]}"))
+    for im in entries:
+        iid = object_id(im.get("id")) if isinstance(im, dict) else None
+        if iid is None:
+            problems.append(Problem(f"image entry without a usable id: {str(im)[:80]}"))
+        elif str(iid) in images:
+            problems.append(Problem(f"duplicate image id {iid!r}; keeping the first", fatal=False))
+        else:
+            images[str(iid)] = im
+    return images
 
-    per_class: dict[int, list] = defaultdict(list)
-    seen: set[int] = set()
-    known_cats = {int(c["id"]) for c in data["categories"] if isinstance(c, dict) and "id" in c}
-    for ann in data["annotations"]:
-        if not isinstance(ann, dict) or "id" not in ann:
-            problems.append(Problem(f"annotation entry without an id: {str(ann)[:80]}"))
-            continue
-        aid = int(ann["id"])
-        source = ann.get("source")
-        cid = ann.get("category_id")
-        if cid is None or int(cid) not in known_cats:
-            problems.append(Problem(f"unknown category id {cid}", annotation_id=aid, source=source))
-            continue
-        if int(cid) not in metas:  # filtered out by `classes` or a broken category
-            continue
-        meta = metas[int(cid)]
-        p = dict(annotation_id=aid, category=meta.name, source=source)
-        if aid in seen:
-            problems.append(Problem(f"duplicate annotation id {aid}; keeping the first", **p))
-            continue
-        seen.add(aid)
-        if skip_flags:
-            flags = [f for f in ("occluded", "truncated", "iscrowd") if ann.get(f)]
-            if flags:
-                problems.append(Problem(f"{' and '.join(flags)}: not reconstructed", **p))
-                continue
-        im = images.get(int(ann.get("image_id", -1)))
-        if im is None:
-            problems.append(Problem(f"unknown image id {ann.get('image_id')}", **p))
-            continue
-        try:
-            width, height = int(im["width"]), int(im["height"])
-            if width < 1 or height < 1:
-                raise ValueError
-        except (KeyError, TypeError, ValueError):
-            problems.append(Problem(f"image {im.get('id')} has no valid width/height", **p))
-            continue
+
+def _image_size(im: dict, max_pixels: int) -> tuple[int, int] | str:
+    """``(width, height)`` of an image entry, or why it is unusable."""
+    try:
+        width, height = im["width"], im["height"]
+        if isinstance(width, bool) or isinstance(height, bool) or int(width) != width or int(height) != height:
+            raise ValueError
+        width, height = int(width), int(height)
+        if width < 1 or height < 1:
+            raise ValueError
+    except (KeyError, TypeError, ValueError, OverflowError):
+        return f"image {im.get('id')!r} has no valid width/height"
+    if width * height > max_pixels:
+        return (f"image {im.get('id')!r} is {width}x{height} pixels, more than max_image_pixels={max_pixels} "
+                "(its mask would not fit in memory)")
+    return width, height
+
+
+def _annotation(ann, metas: dict, images: dict, seen: set, skip_flags: bool, max_pixels: int, problems: list):
+    """One annotation checked and decoded: ``(class key, ann, image, mask, xy, visible)``, or ``None``
+    with its :class:`Problem` recorded."""
+    if not isinstance(ann, dict):
+        problems.append(Problem(f"annotation entry is not an object: {str(ann)[:80]}"))
+        return None
+    aid, source = object_id(ann.get("id")), ann.get("source")
+    source = source if isinstance(source, str) else None
+    if aid is None:
+        problems.append(Problem(f"annotation id is {_describe(ann.get('id'))}, not an integer or a string",
+                                source=source or str(ann)[:60]))
+        return None
+    cid = object_id(ann.get("category_id"))
+    if cid is None or str(cid) not in metas:
+        problems.append(Problem(f"unknown category id {ann.get('category_id')!r}", annotation_id=aid, source=source))
+        return None
+    key, meta = metas[str(cid)]
+    if meta is None:  # left out by `classes`, or a broken category (reported)
+        return None
+    p = dict(annotation_id=aid, category=meta.name, source=source)
+    if str(aid) in seen:
+        problems.append(Problem(f"duplicate annotation id {aid!r}; keeping the first", **p))
+        return None
+    seen.add(str(aid))
+    why = _flags(ann) if skip_flags else None
+    if why is None:
+        why, im, size = _image_of(ann, images, max_pixels)
+    if why is None:
         warnings: list[str] = []
-        parsed = _parse_keypoints(ann, meta.num_keypoints, width, height, warnings.append)
-        for w in warnings:
-            problems.append(Problem(w, fatal=False, **p))
-        if isinstance(parsed, str):
-            problems.append(Problem(parsed, **p))
-            continue
-        xy, vis = parsed
-        if not vis.any():
-            problems.append(Problem("no visible keypoint", **p))
-            continue
-        seg = ann.get("segmentation")
-        if seg is None or seg == [] or seg == {}:
-            problems.append(Problem("missing mask (no segmentation)", **p))
-            continue
-        try:
-            mask = decode_segmentation(seg, height, width)
-        except Exception as e:  # pycocotools raises various types on garbage
-            problems.append(Problem(f"malformed segmentation: {e}", **p))
-            continue
-        if not mask.any():
-            problems.append(Problem("empty mask", **p))
-            continue
-        per_class[meta.category_id].append((ann, im, mask, xy, vis))
+        parsed = _parse_keypoints(ann, meta.num_keypoints, size[0], size[1], warnings.append)
+        problems.extend(Problem(w, fatal=False, **p) for w in warnings)
+        why = parsed if isinstance(parsed, str) else ("no visible keypoint" if not parsed[1].any() else None)
+    if why is None:
+        mask = _mask(ann, size)
+        why = mask if isinstance(mask, str) else None
+    if why is not None:
+        problems.append(Problem(why, **p))
+        return None
+    return key, ann, im, mask, parsed[0], parsed[1]
 
-    collections = {}
-    for cid, items in per_class.items():
-        meta = metas[cid]
-        collections[meta.name] = _build_collection(meta, items, canvas_size, margin, torch.device(device))
-    return LoadResult(collections=collections, problems=problems, dataset=data)
+
+def _flags(ann: dict) -> str | None:
+    """Why a flagged annotation is not reconstructed (``None``: it is)."""
+    set_flags = []
+    for name in ("occluded", "truncated", "iscrowd"):
+        value = flag(ann.get(name))
+        if value is None:
+            return f"{name} is {_describe(ann.get(name))}, not a yes/no value"
+        if value:
+            set_flags.append(name)
+    return f"{' and '.join(set_flags)}: not reconstructed" if set_flags else None
+
+
+def _image_of(ann: dict, images: dict, max_pixels: int):
+    """``(reason or None, image entry, (width, height))`` of an annotation's image."""
+    iid = object_id(ann.get("image_id"))
+    im = images.get(str(iid)) if iid is not None else None
+    if im is None:
+        return f"unknown image id {ann.get('image_id')!r}", None, None
+    size = _image_size(im, max_pixels)
+    return (size, None, None) if isinstance(size, str) else (None, im, size)
+
+
+def _mask(ann: dict, size: tuple[int, int]) -> np.ndarray | str:
+    """The decoded, non-empty mask of an annotation, or why there is none."""
+    seg = ann.get("segmentation")
+    if seg is None or seg == [] or seg == {}:
+        return "missing mask (no segmentation)"
+    try:
+        mask = decode_segmentation(seg, size[1], size[0])
+    except Exception as e:  # noqa: BLE001 - pycocotools raises various types on garbage
+        return f"malformed segmentation: {e}"
+    return mask if mask.any() else "empty mask"
+
+
+def _dense(values: list) -> torch.Tensor:
+    """``(N,)`` long: equal values get equal indices (object ids may be ints or strings)."""
+    index: dict = {}
+    return torch.tensor([index.setdefault(v, len(index)) for v in values], dtype=torch.long)
 
 
 def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: float,
@@ -377,9 +523,10 @@ def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: fl
     kp = torch.where(vis[..., None], sim.apply(xy), torch.zeros_like(xy))
     anns = [it[0] for it in items]
     ims = [it[1] for it in items]
-    aids = torch.tensor([int(a["id"]) for a in anns], dtype=torch.long)
-    oids = torch.tensor([int(a["object_id"]) if a.get("object_id") is not None else -1 - int(a["id"])
-                         for a in anns], dtype=torch.long)
+    aids = [object_id(a["id"]) for a in anns]
+    # an annotation without a usable object_id is its own object
+    oids = [("object", str(object_id(a.get("object_id")))) if object_id(a.get("object_id")) is not None
+            else ("annotation", str(aid)) for a, aid in zip(anns, aids)]
     coll = ClassCollection(
         meta=meta,
         masks=masks,
@@ -388,8 +535,9 @@ def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: fl
         canvas_from_image=sim,
         image_size=torch.tensor([[int(im["width"]), int(im["height"])] for im in ims], dtype=torch.long),
         annotation_ids=aids,
-        image_ids=torch.tensor([int(a["image_id"]) for a in anns], dtype=torch.long),
-        object_ids=oids,
+        image_ids=[object_id(a["image_id"]) for a in anns],
+        object_ids=[object_id(a.get("object_id")) for a in anns],
+        object_groups=_dense(oids),
         is_mirror=torch.zeros(len(items), dtype=torch.bool),
         sources=[str(a.get("source") or f"annotation {a['id']}") for a in anns],
         splits=[str(a.get("split", "")) for a in anns],

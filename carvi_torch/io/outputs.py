@@ -7,28 +7,44 @@ or the complete new one, never a partial file.
 """
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["atomic_write", "write_json", "read_json", "write_npz", "write_bytes", "to_jsonable", "is_done"]
+__all__ = ["atomic_write", "write_json", "read_json", "write_npz", "write_bytes", "to_jsonable", "is_done", "safe_name"]
+
+
+def _file_mode() -> int:
+    """The mode a new file gets under this process's umask (``0o666 & ~umask``)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+#: Mode of written files: what ``open()`` would give (``mkstemp`` alone gives 0600).
+FILE_MODE = _file_mode()
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[io.BufferedWriter], None]) -> Path:
     """Call ``write(fileobj)`` on a temporary file, then move it to ``path`` atomically.
 
-    Parent directories are created. Returns ``Path(path)``.
+    Parent directories are created. The file gets the mode the process's umask gives new files
+    (:data:`FILE_MODE`). Returns ``Path(path)``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        if hasattr(os, "fchmod"):
+            os.fchmod(fd, FILE_MODE)
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
@@ -116,3 +132,25 @@ def write_npz(path: str | os.PathLike, **arrays: Any) -> Path:
 def is_done(*paths: str | os.PathLike) -> bool:
     """True when every path exists and is non-empty (a finished, atomically written output)."""
     return all(Path(p).is_file() and Path(p).stat().st_size > 0 for p in paths)
+
+
+_SAFE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
+
+
+def safe_name(name) -> str:
+    """A file or folder name for ``name`` (a class name or an object id) that cannot leave its folder.
+
+    ``name`` itself (as a string) when it is 1 to 100 characters of ``A-Z a-z 0-9 . _ -`` starting
+    with a letter or digit (so never ``.``, ``..``, hidden, absolute or nested); otherwise a readable
+    spelling of it with the other characters replaced, plus a hash of the original, so that
+    different names stay different.
+
+    Example:
+        >>> safe_name("car"), safe_name(17), safe_name("../../evil"), safe_name("")
+        ('car', '17', 'evil-0fbfd372', 'x-e3b0c442')
+    """
+    text = str(name)
+    if _SAFE.fullmatch(text) and not text.endswith("."):
+        return text
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._-")[:60] or "x"
+    return f"{slug}-{hashlib.sha256(text.encode('utf-8', 'surrogatepass')).hexdigest()[:8]}"

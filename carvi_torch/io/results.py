@@ -82,7 +82,7 @@ def _per_annotation(coll, vp, clusters) -> dict:
     sfm_ok, has_cam = vp.sfm_valid[:n].tolist(), vp.has_camera[:n].tolist()  # one host read each
     unseen = vp.unseen_keypoints[:n].tolist()
     per = {}
-    for i, aid in enumerate(coll.annotation_ids.tolist()):
+    for i, aid in enumerate(coll.annotation_ids):
         per[str(aid)] = {
             "source": coll.sources[i],
             "sfm": sfm_img[i] if sfm_ok[i] else None,
@@ -114,6 +114,7 @@ def cameras_json(coll, vp, axes: torch.Tensor | None, clusters) -> dict:
     mix = vp.groups
     out = {
         "class": coll.name,
+        "class_key": coll.meta.key,
         "frame": "image pixels of each annotation's image; R rows = image x, image y (down), view direction",
         "cameras": _per_annotation(coll, vp, clusters),
         "mean_shape": named(vp.shape),

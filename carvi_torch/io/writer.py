@@ -13,7 +13,6 @@ Example:
 from __future__ import annotations
 
 import multiprocessing as mp
-import os
 import time
 from collections import deque
 from concurrent.futures import ProcessPoolExecutor
@@ -21,11 +20,11 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 import torch
 
-from .. import mesh
 from ..runtime import cores, env_count
-from .outputs import write_npz
+from . import write_worker
+from .write_worker import write_object_safe
 
-__all__ = ["Writer", "write_object", "writer_workers", "start_method", "canvas_to_image_4x4", "proposals_payload"]
+__all__ = ["Writer", "writer_workers", "start_method", "canvas_to_image_4x4", "proposals_payload"]
 
 
 def start_method() -> str:
@@ -84,42 +83,6 @@ def proposals_payload(sel, j: int, surrogates: torch.Tensor | None, canvas_to_im
                 misses=sel.misses[j].numpy(), best=np.int64(sel.best[j]), surrogates=sur)
 
 
-def write_object(job: dict) -> dict:
-    """Mesh and files of one reconstructed object (in a writer process, or inline).
-
-    Takes host (numpy) data only. Returns ``ok``, ``reason``, ``mesh_seconds``, ``write_seconds``.
-    """
-    t0 = time.perf_counter()
-    occ = job["occupancy"]
-    v2img = job["voxel_to_image"]
-    if job["largest_component"]:
-        occ = mesh.largest_component(occ)
-    m = mesh.occupancy_to_mesh(occ, v2img)
-    t1 = time.perf_counter()
-    if len(m.faces) == 0:
-        return dict(ok=False, reason="selected proposal has no surface", mesh_seconds=t1 - t0, write_seconds=0.0)
-    if job["proposals"] is not None:
-        write_npz(job["proposals_path"], **job["proposals"])
-    write_npz(job["voxel_path"], occupancy=occ, voxel_to_camera=v2img, voxel_to_canvas=job["voxel_to_canvas"],
-              canvas_scale=job["canvas_scale"], canvas_offset=job["canvas_offset"], surrogates=job["surrogates"])
-    mesh.write_mesh(m, job["mesh_path"])
-    return dict(ok=True, reason=None, mesh_seconds=t1 - t0, write_seconds=time.perf_counter() - t1)
-
-
-def _write_object_safe(job: dict) -> dict:
-    """:func:`write_object`, with any error of this object booked as its own failure (reason)
-    instead of surfacing later, at some other object's turn (or in another class)."""
-    try:
-        return write_object(job)
-    except Exception as e:  # noqa: BLE001 - reported per object, the run goes on
-        return dict(ok=False, reason=f"writing failed: {type(e).__name__}: {e}", mesh_seconds=0.0, write_seconds=0.0)
-
-
-def _start_worker() -> int:
-    """No-op run by each writer process once, so that all of them start early."""
-    return os.getpid()
-
-
 class Writer:
     """Meshes and files of reconstructed objects, in worker processes or inline.
 
@@ -130,25 +93,30 @@ class Writer:
     the writers, not the device work, then limit the run).
     """
 
+    #: What a job runs (a module-level function, so that worker processes can import it).
+    write = staticmethod(write_object_safe)
+
     def __init__(self, workers: int):
         self.workers = int(workers)
         self.pool = None
         self.pending: deque = deque()
         self.blocked = 0.0
+        self.peak_rss_mb: float | None = None  # the largest writer process's peak memory, as they report it
         if self.workers > 0:
             ctx = mp.get_context(start_method())
             if start_method() == "forkserver":
-                ctx.set_forkserver_preload([__name__])
-            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx)
-            for f in [self.pool.submit(_start_worker) for _ in range(self.workers)]:
+                ctx.set_forkserver_preload([write_worker.__name__])
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=write_worker.watch_parent)
+            for f in [self.pool.submit(write_worker.start_worker) for _ in range(self.workers)]:
                 f.result()
 
     def submit(self, job: dict, done) -> None:
-        """Write ``job`` (:func:`write_object`); ``done(result)`` is called when it is booked."""
+        """Write ``job`` (:func:`~carvi_torch.io.write_worker.write_object`); ``done(result)`` is called
+        when it is booked."""
         if self.pool is None:
-            done(_write_object_safe(job))
+            done(self.write(job))
             return
-        self.pending.append((self.pool.submit(_write_object_safe, job), done))
+        self.pending.append((self.pool.submit(self.write, job), done))
         if len(self.pending) > 4 * self.workers:
             t0 = time.perf_counter()
             while len(self.pending) > 4 * self.workers:
@@ -162,6 +130,8 @@ class Writer:
         except Exception as e:  # noqa: BLE001 - a writer process died (BrokenProcessPool, ...)
             out = dict(ok=False, reason=f"writer process failed: {type(e).__name__}: {e}", mesh_seconds=0.0,
                        write_seconds=0.0)
+        if out.get("peak_rss_mb") is not None:
+            self.peak_rss_mb = max(self.peak_rss_mb or 0.0, out["peak_rss_mb"])
         done(out)
 
     def drain(self) -> None:

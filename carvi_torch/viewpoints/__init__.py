@@ -115,7 +115,7 @@ def _sfm_notes(coll: ClassCollection, res: sfm.SfMResult, vp_info: dict, warning
     vp_info["sfm"] = res.summary()
     for i in (~res.valid[:n]).nonzero().squeeze(1).tolist():
         why = res.reasons[i] if i < len(res.reasons) and res.reasons[i] else "fewer than 2 visible keypoints"
-        warnings.append(f"annotation {int(coll.annotation_ids[i])} ({coll.sources[i]}): no SfM camera: {why}")
+        warnings.append(f"annotation {coll.annotation_ids[i]} ({coll.sources[i]}): no SfM camera: {why}")
 
 
 def _shape_groups(both, dist, res, cfg: ViewpointConfig, source: str, seed: int, info: dict, log: list):
@@ -169,9 +169,9 @@ def _unseen_step(coll: ClassCollection, vp: Viewpoints, dist: torch.Tensor, cfg:
     missing = ~vp.has_camera
     vp.cameras = unseen_per_group(vp.groups, vp.cameras, missing, vp.both, dist, cfg)
     idx = missing.nonzero().squeeze(1)
-    vp.info["cameras_from_mean_shape"] = [int(coll.annotation_ids[i]) for i in idx.tolist() if i < n]
+    vp.info["cameras_from_mean_shape"] = [coll.annotation_ids[i] for i in idx.tolist() if i < n]
     vp.unseen_keypoints = unseen_keypoints(vp.groups, missing, vp.both, cfg)
-    blind = [int(coll.annotation_ids[i]) for i in (vp.unseen_keypoints[:n] == 0).nonzero().squeeze(1).tolist()]
+    blind = [coll.annotation_ids[i] for i in (vp.unseen_keypoints[:n] == 0).nonzero().squeeze(1).tolist()]
     if blind:
         vp.info["cameras_from_silhouette_only"] = blind
         vp.warnings.append(
@@ -188,7 +188,7 @@ def ground_truth_cameras(gt: dict | None, coll: ClassCollection) -> ScaledOrthog
     if gt is None:
         return None
     entries = gt.get("annotations", gt)
-    items = [entries.get(str(aid)) for aid in coll.annotation_ids.tolist()]
+    items = [entries.get(str(aid)) for aid in coll.annotation_ids]
     if any(e is None or "R" not in e for e in items):
         return None
     return ScaledOrthographic.from_list(items, device=coll.device)

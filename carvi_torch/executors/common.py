@@ -1,0 +1,181 @@
+"""What every executor does around the classes: check the request, load the data, keep the summary.
+
+A run is: :func:`open_run` (user errors first, with nothing written: the device, the output
+folder, the annotation file), the classes (the executor's business), then :func:`finish_run`
+(``summary.json`` merged with an earlier run's classes, ``preview.png``) and :func:`exit_status`.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from .. import carve
+from ..config import Config, ConfigError, settings_changed
+from ..io import coco
+from ..io.outputs import read_json, write_bytes, write_json
+from ..runtime import log, peak_rss_mb, stable_hash
+
+__all__ = ["RunSetup", "check_request", "open_run", "finish_run", "exit_status", "class_generator",
+           "prepare_data"]
+
+
+@dataclass
+class RunSetup:
+    """A checked run: where it writes, its device, its data and the summary so far."""
+
+    cfg: Config
+    out: Path
+    device: torch.device
+    loaded: coco.LoadResult
+    gt: dict | None
+    summary: dict
+    changed: dict = field(default_factory=dict)
+    t_start: float = field(default_factory=time.perf_counter)
+
+
+def _check_out(out: Path) -> None:
+    """The output folder must be a folder this process can create and write (nothing is created here)."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} is a file, not a folder")
+    probe = out
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ConfigError(f"--out {out}: {probe} is a file, not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise ConfigError(f"--out {out}: {probe} is not writable")
+
+
+def check_request(cfg: Config) -> torch.device:
+    """The user errors a run can have before it starts, as :class:`ConfigError` (nothing is written):
+    an unknown or absent device, an output folder that is a file or not writable, annotations that
+    do not exist. Returns the device."""
+    device = cfg.resolve_device()
+    _check_out(Path(cfg.out))
+    if cfg.data is not None and not Path(cfg.data).is_file():
+        raise ConfigError(f"--data {cfg.data}: no such file")
+    if cfg.gt is not None and not Path(cfg.gt).is_file():
+        raise ConfigError(f"gt={cfg.gt}: no such file")
+    return device
+
+
+def prepare_data(cfg: Config) -> tuple[Path, Path | None]:
+    """The annotation file (and ``gt.json`` if any) to run on; generates the embedded default when needed."""
+    if cfg.data:
+        data = Path(cfg.data)
+        gt = Path(cfg.gt) if cfg.gt else data.with_name("gt.json")
+        return data, (gt if gt.is_file() else None)
+    from ..synthetic import procedural
+
+    return procedural.default_collection(Path(cfg.out) / "input", cfg.input.procedural_instances, cfg.seed,
+                                         cfg.progress, log=log.info)
+
+
+def open_run(cfg: Config) -> RunSetup:
+    """Check the request, read the annotations, then create the output folder and ``config.yaml``.
+
+    Raises :class:`ConfigError` or :class:`~carvi_torch.io.coco.CocoFormatError` for a user error,
+    before anything is written (the embedded default collection is generated into ``OUT/input``).
+    """
+    device = check_request(cfg)
+    out = Path(cfg.out)
+    data_path, gt_path = prepare_data(cfg)  # reads only, unless it generates the embedded default
+    t0 = time.perf_counter()
+    loaded = coco.load_coco(data_path, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
+                            device=device, classes=cfg.classes, max_image_pixels=cfg.input.max_image_pixels)
+    load_s = time.perf_counter() - t0
+    gt = read_json(gt_path) if gt_path is not None and Path(gt_path).is_file() else None
+    out.mkdir(parents=True, exist_ok=True)
+    changed = settings_changed(out / "config.yaml", cfg)
+    write_bytes(out / "config.yaml", cfg.to_yaml().encode())
+    summary = {"data": str(Path(data_path).resolve()), "gt": str(Path(gt_path).resolve()) if gt_path else None,
+               "device": str(device), "torch_threads": torch.get_num_threads(),
+               "carve_backend": carve.resolve_backend(cfg.carve.backend, device, cfg.carve.interpolation),
+               "load_seconds": round(load_s, 3), "input_problems": [p.to_dict() for p in loaded.problems],
+               "classes": {}}
+    return RunSetup(cfg, out, device, loaded, gt, summary, changed)
+
+
+def announce(setup: RunSetup) -> None:
+    """Log the input problems, the classes asked for that have no usable object, and changed settings."""
+    for p in setup.loaded.problems:
+        (log.warning if p.fatal else log.info)(p.message())
+    if setup.changed:
+        log.warning(f"{setup.out} holds a run made with other settings ("
+                    + ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in setup.changed.items())
+                    + "); its finished objects are kept as they are (resumed), so pass overwrite=true to redo them")
+    names = {c.meta.name for c in setup.loaded.collections.values()} | set(setup.loaded.collections)
+    for c in setup.cfg.classes or []:
+        if c not in names:
+            setup.summary["classes"][c] = {"status": "skipped", "objects": 0, "reconstructed": 0,
+                                           "failures": [{"stage": "load", "reason": "no usable object of this class"}]}
+            log.warning(f"{c}: no usable object of this class")
+
+
+def class_generator(cfg: Config, key: str) -> torch.Generator:
+    """The random source of one class (same seed, same class: same triplets on any executor)."""
+    return torch.Generator(device="cpu").manual_seed(cfg.seed + stable_hash(key))
+
+
+def _merge_previous(setup: RunSetup) -> None:
+    """Keep the classes an earlier run into the same folder reported and this run did not touch."""
+    path = setup.out / "summary.json"
+    if setup.cfg.overwrite or not path.is_file():
+        return
+    try:
+        previous = read_json(path).get("classes", {})
+    except (ValueError, AttributeError, OSError):
+        return
+    kept = [k for k in previous if k not in setup.summary["classes"]]
+    for k in kept:
+        setup.summary["classes"][k] = previous[k]
+    if kept:
+        setup.summary["classes_from_earlier_runs"] = kept
+        setup.summary["classes"] = dict(sorted(setup.summary["classes"].items()))
+
+
+def write_summary(setup: RunSetup) -> None:
+    """``summary.json`` as it stands (written atomically after every class)."""
+    write_json(setup.out / "summary.json", setup.summary)
+
+
+def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = None) -> dict:
+    """Totals, the earlier run's other classes, ``summary.json`` and ``preview.png``; returns the summary.
+
+    ``workers_mb``: the largest writer process's peak memory (as the writers report it).
+    """
+    s = setup.summary
+    s["total_seconds"] = round(time.perf_counter() - setup.t_start, 3)
+    peak = peak_rss_mb()
+    s["peak_rss_mb"] = round(peak, 1) if peak is not None else None
+    s["peak_rss_workers_mb"] = round(workers_mb, 1) if writer_workers and workers_mb is not None else 0.0
+    if setup.device.type == "cuda":
+        s["peak_cuda_mb"] = round(torch.cuda.max_memory_allocated(setup.device) / 2 ** 20, 1)
+    if setup.changed:
+        s["resumed_from_other_settings"] = {k: list(v) for k, v in setup.changed.items()}
+    s["writer_workers"] = writer_workers
+    _merge_previous(setup)
+    write_summary(setup)
+    if setup.cfg.preview and setup.cfg.stage == "all":
+        try:
+            from ..preview import write_preview
+
+            write_preview(setup.out, s)
+        except Exception as e:  # noqa: BLE001 - a picture must never fail the run
+            log.warning(f"preview.png not written: {e}")
+    return s
+
+
+def exit_status(summary: dict, stage: str = "all") -> int:
+    """0: the run made what it was asked for; 1: a class failed, or no object (no camera with
+    ``stage=cameras``) came out of it."""
+    classes = summary.get("classes", {}).values()
+    if any(c.get("status") == "failed" for c in classes):
+        return 1
+    if stage == "cameras":
+        return 0 if any(c.get("status") == "cameras" for c in classes) else 1
+    return 0 if any(c.get("reconstructed", 0) + c.get("resumed", 0) > 0 for c in classes) else 1

@@ -1,0 +1,52 @@
+"""Where a run's files lie in its output folder: one place for every reader and writer.
+
+::
+
+    OUT/config.yaml, OUT/summary.json, OUT/run.log, OUT/preview.png
+    OUT/<class key>/cameras.json
+    OUT/<class key>/meshes/<object stem>.<format>
+    OUT/<class key>/voxels/<object stem>.npz
+    OUT/<class key>/proposals/<object stem>.npz         (studies)
+    OUT/<class key>/proposal_scores.json                (studies)
+
+The class key is the category's name when that is a safe folder name, else a safe spelling of
+it (``ClassMeta.key``); an object's stem is its annotation id when that is a safe file name,
+else a safe spelling of it (:func:`~carvi_torch.io.outputs.safe_name`). Neither can point outside
+``OUT``: no separator, no leading dot.
+
+Example:
+    >>> object_file(Path("out/car"), "meshes", "../x", "ply").as_posix()
+    'out/car/meshes/x-d6b96a97.ply'
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from .outputs import safe_name
+
+__all__ = ["class_dir", "object_stem", "object_file", "KINDS"]
+
+#: Per-object file kinds and their extension (``None``: the mesh format).
+KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz"}
+
+
+def class_dir(out: str | Path, key: str) -> Path:
+    """The folder of a class (``key``: ``ClassMeta.key``, already safe; checked again here)."""
+    if safe_name(key) != key:
+        raise ValueError(f"class key {key!r} is not a safe folder name")
+    return Path(out) / key
+
+
+def object_stem(annotation_id) -> str:
+    """The file stem of an object: its annotation id, or a safe spelling of it."""
+    return safe_name(annotation_id)
+
+
+def object_file(cdir: str | Path, kind: str, annotation_id, ext: str | None = None) -> Path:
+    """``cdir/<kind>/<stem>.<ext>``; ``ext`` defaults to the kind's (``npz``); meshes need their format."""
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {list(KINDS)}, got {kind!r}")
+    ext = ext or KINDS[kind]
+    if ext is None:
+        raise ValueError("meshes need their format as ext (ply, obj, ...)")
+    return Path(cdir) / kind / f"{object_stem(annotation_id)}.{ext}"

@@ -1,0 +1,83 @@
+"""What a writer process runs: mesh one object and write its files. Imports no torch (a fast start).
+
+A writer process watches its parent: when the run that started it is gone (killed, even with
+SIGKILL), the process is re-parented and exits within a second, so a killed run leaves nothing
+running.
+
+Example:
+    >>> import numpy as np, tempfile, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> occ = np.zeros((4, 4, 4), bool); occ[1:3, 1:3, 1:3] = True
+    >>> job = dict(occupancy=occ, voxel_to_image=np.eye(4), voxel_to_canvas=np.eye(4), canvas_scale=1.0,
+    ...            canvas_offset=np.zeros(2, np.float32), surrogates=np.zeros(0, np.int64), largest_component=False,
+    ...            proposals=None, scores=None, voxel_path=str(d / "v.npz"), mesh_path=str(d / "m.ply"))
+    >>> write_object(job)["ok"], (d / "m.ply").is_file()
+    (True, True)
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+from .. import mesh
+from ..runtime import peak_rss_mb
+from .outputs import write_json, write_npz
+
+__all__ = ["write_object", "write_object_safe", "start_worker", "watch_parent"]
+
+
+def write_object(job: dict) -> dict:
+    """Mesh and files of one reconstructed object (in a writer process, or inline).
+
+    Takes host (numpy) data only. Writes the proposals (studies) and scores first, then the voxels,
+    then the mesh: an object counts as finished once its mesh exists. Returns ``ok``, ``reason``,
+    ``mesh_seconds``, ``write_seconds``.
+    """
+    t0 = time.perf_counter()
+    occ = job["occupancy"]
+    v2img = job["voxel_to_image"]
+    if job["largest_component"]:
+        occ = mesh.largest_component(occ)
+    m = mesh.occupancy_to_mesh(occ, v2img)
+    t1 = time.perf_counter()
+    if len(m.faces) == 0:
+        return dict(ok=False, reason="selected proposal has no surface", mesh_seconds=t1 - t0, write_seconds=0.0)
+    if job.get("proposals") is not None:
+        write_npz(job["proposals_path"], **job["proposals"])
+    if job.get("scores") is not None:
+        write_json(job["scores_path"], job["scores"], indent=None)
+    write_npz(job["voxel_path"], occupancy=occ, voxel_to_camera=v2img, voxel_to_canvas=job["voxel_to_canvas"],
+              canvas_scale=job["canvas_scale"], canvas_offset=job["canvas_offset"], surrogates=job["surrogates"])
+    mesh.write_mesh(m, job["mesh_path"])
+    return dict(ok=True, reason=None, mesh_seconds=t1 - t0, write_seconds=time.perf_counter() - t1)
+
+
+def write_object_safe(job: dict) -> dict:
+    """:func:`write_object`, with any error of this object booked as its own failure (reason)
+    instead of surfacing later, at some other object's turn (or in another class); plus the
+    process's peak memory (``peak_rss_mb``, ``None`` where unknown)."""
+    try:
+        out = write_object(job)
+    except Exception as e:  # noqa: BLE001 - reported per object, the run goes on
+        out = dict(ok=False, reason=f"writing failed: {type(e).__name__}: {e}", mesh_seconds=0.0, write_seconds=0.0)
+    out["peak_rss_mb"] = peak_rss_mb()
+    return out
+
+
+def start_worker() -> int:
+    """No-op run by each writer process once, so that all of them start early; returns the pid."""
+    return os.getpid()
+
+
+def watch_parent(period: float = 0.5) -> None:
+    """Process initializer: exit this process as soon as its parent is gone (re-parented)."""
+    parent = os.getppid()
+
+    def watch():
+        while True:
+            time.sleep(period)
+            if os.getppid() != parent:
+                os._exit(0)
+
+    threading.Thread(target=watch, name="carvi-parent-watch", daemon=True).start()
