@@ -28,7 +28,7 @@ from .carve import CarveMaps
 from .collection import ClassCollection
 from .config import Config
 from .io.layout import class_dir, object_file
-from .io.outputs import is_done, write_json
+from .io.outputs import is_done, read_json, write_json
 from .io.results import ClassReport, cameras_json, scores_entry, write_scores
 from .io.writer import Writer, canvas_to_image_4x4, proposals_payload
 from .runtime import StageTimer, log
@@ -66,11 +66,16 @@ class ClassPlan:
         return ids[:, None].expand(R, P).reshape(-1), views.reshape(R * P, -1), valid.reshape(-1)
 
 
-def _todo(coll: ClassCollection, usable: list, cfg: Config, cdir: Path, out, report: ClassReport) -> list[int]:
+def _done(coll: ClassCollection, cfg: Config, cdir: Path, out) -> list[bool]:
+    """Per original: finished by an earlier run into ``out`` (its files exist), unless ``overwrite``."""
+    return [out is not None and not cfg.overwrite and is_done(object_file(cdir, "meshes", a, cfg.mesh.format),
+                                                             object_file(cdir, "voxels", a))
+            for a in coll.annotation_ids]
+
+
+def _todo(coll: ClassCollection, usable: list, done: list, cfg: Config, report: ClassReport) -> list[int]:
     """The originals to reconstruct: chosen (``references``), usable, not finished (resume)."""
     aids = coll.annotation_ids
-    done = [out is not None and not cfg.overwrite and is_done(object_file(cdir, "meshes", a, cfg.mesh.format),
-                                                             object_file(cdir, "voxels", a)) for a in aids]
     report.resumed = sum(done)
     chosen = [cfg.references == "all" or coll.splits[i] == cfg.references for i in range(len(coll))]
     report.info["references"] = sum(chosen)
@@ -111,6 +116,39 @@ def _maps(vp: Viewpoints, plan: surrogates.SurrogatePlan, todo: list[int], sel: 
     return maps
 
 
+def _surrogate_plan(coll, vp: Viewpoints, cfg: Config, generator, timer, report) -> surrogates.SurrogatePlan:
+    """Principal directions, clusters, and the triplets (or fallbacks) of every original: all of them,
+    so that a resumed run samples the same ones."""
+    n = len(coll)
+    usable = vp.has_camera[:n]
+    mirrors = cfg.surrogates.mirrors and not coll.meta.articulated
+    with timer("surrogates"):
+        axes = surrogates.principal_directions(vp.shape)
+        clusters = surrogates.cluster_instances(vp.cameras.R[:n, 2, :], usable, axes, cfg.surrogates)
+        if coll.meta.symmetry == "rotational":
+            trip, levels = None, ["rotated_views" if u else None for u in usable.tolist()]
+        else:
+            trip, levels = surrogates.plan_proposals(clusters, coll.object_groups, usable, vp.cameras.R[:n, 2, :],
+                                                     axes, cfg.surrogates.proposals, mirrors, generator)
+    for line in clusters.log:
+        log.info(f"  {coll.meta.key}: {line}")
+        report.warnings.append(f"clusters: {line}")
+    report.info["clusters"] = {"threshold_deg": float(clusters.threshold_deg),
+                               "sizes": [int(v) for v in clusters.sizes.tolist()]}
+    return surrogates.SurrogatePlan(n, axes, clusters, trip, mirrors, levels=levels)
+
+
+def _resumed_levels(cdir: Path, coll: ClassCollection, levels: list, done: list) -> list:
+    """``levels`` with the puffball fallbacks of finished objects kept from the earlier run's cameras.json
+    (a puffball is decided after carving, which a resumed object does not repeat)."""
+    try:
+        previous = read_json(cdir / "cameras.json").get("cameras", {}) if (cdir / "cameras.json").is_file() else {}
+    except (ValueError, AttributeError):
+        previous = {}
+    return [("puffball" if d and (previous.get(str(a)) or {}).get("surrogates_from") == "puffball" else lv)
+            for a, lv, d in zip(coll.annotation_ids, levels, done)]
+
+
 def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
                   gt: dict | None = None, out: Path | None = None, report: ClassReport | None = None):
     """Every stage of one class up to carving: viewpoints, clusters, triplets, prepared silhouettes.
@@ -135,29 +173,19 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     vp = _viewpoints(coll, cfg, gt, report, timer)
     if vp is None:
         return None, [], report
-    with timer("surrogates"):
-        axes = surrogates.principal_directions(vp.shape)
-        usable = vp.has_camera[:n]
-        clusters = surrogates.cluster_instances(vp.cameras.R[:n, 2, :], usable, axes, cfg.surrogates)
-    for line in clusters.log:
-        log.info(f"  {coll.meta.key}: {line}")
-        report.warnings.append(f"clusters: {line}")
-    report.info["clusters"] = {"threshold_deg": float(clusters.threshold_deg),
-                               "sizes": [int(v) for v in clusters.sizes.tolist()]}
+    plan = _surrogate_plan(coll, vp, cfg, generator, timer, report)
+    done = _done(coll, cfg, cdir, out)
     if out is not None:
-        write_json(cdir / "cameras.json", cameras_json(coll, vp, axes, clusters))
+        plan.levels = _resumed_levels(cdir, coll, plan.levels, done)
+        write_json(cdir / "cameras.json", cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels))
     if cfg.stage == "cameras":
         report.status = "cameras"
         return None, [], report
-    todo = _todo(coll, usable.tolist(), cfg, cdir, out, report)
+    todo = _todo(coll, vp.has_camera[:n].tolist(), done, cfg, report)
     if not todo:  # everything done already (a resumed run) or nothing usable: no maps to prepare
         return None, [], report
-    with timer("surrogates"):  # triplets of every reference, so a resumed run samples the same ones
-        trip = None if coll.meta.symmetry == "rotational" else surrogates.sample_triplets(
-            clusters.labels, coll.object_groups, torch.arange(n, device=device), proposals=cfg.surrogates.proposals,
-            generator=generator)
-    plan = surrogates.SurrogatePlan(n, axes, clusters, trip, cfg.surrogates.mirrors and not coll.meta.articulated,
-                                    todo)
+    plan.set_todo(todo)
+    axes, clusters = plan.axes, plan.clusters
     with timer("select"):
         sel = select.class_reference(vp.shape, coll.masks, vp.cameras[:n], clusters.labels, axes,
                                      cfg.select.plane_size)
@@ -191,35 +219,49 @@ def _job(sel: select.Selection, j: int, i: int, sur, plan: ClassPlan, cfg: Confi
     canvas_to_image = canvas_to_image_4x4(scale, offset)
     v2c = sel.best_transform[j]
     best = int(sel.best[j])
-    sur_ids = [] if sur is None else [aid_of[s] for s in sur[j, best].tolist() if s >= 0]
+    sur_ids = [] if sur is None or best < 0 else [aid_of[s] for s in sur[j, best].tolist() if s >= 0]
     return dict(aid=aid, occupancy=sel.best_occupancy[j].numpy(), voxel_to_canvas=v2c.numpy(),
                 voxel_to_image=(canvas_to_image @ v2c).numpy(), canvas_scale=float(scale),
                 canvas_offset=offset.float().numpy(), surrogates=np.asarray(sur_ids, dtype=np.int64),
                 voxel_path=str(object_file(plan.cdir, "voxels", aid)),
                 mesh_path=str(object_file(plan.cdir, "meshes", aid, cfg.mesh.format)),
                 proposals_path=str(object_file(plan.cdir, "proposals", aid)),
-                proposals=(proposals_payload(sel, j, sur, canvas_to_image, aid_of) if cfg.study.save_proposals
-                           else None),
+                proposals=(proposals_payload(sel, j, sur, canvas_to_image, aid_of)
+                           if cfg.study.save_proposals and best >= 0 else None),
                 largest_component=cfg.mesh.largest_component)
 
 
 def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config, report: ClassReport,
-            writer: Writer, scores: dict) -> None:
-    """Hand every reconstructed reference of a chunk to the writer; note the failures."""
+            writer: Writer) -> None:
+    """Hand every reference of a chunk to the writer (a puffball for one whose every proposal is empty)."""
     coll = plan.coll
     sur = plan.surrogates.surrogates_of(ids)
     sur = None if sur is None else sur.cpu()
-    any_ok, any_valid = sel.ok.any(dim=1).tolist(), sel.valid.any(dim=1).tolist()
+    puffed = _puffballs(sel, ids, plan, cfg)
     aid_of = plan.aids
     for j, i in enumerate(ids.tolist()):
         aid, src = aid_of[i], coll.sources[i]
-        if not any_ok[j]:
-            reason = "all proposals carved away (empty)" if any_valid[j] else plan.surrogates.reason(i)
-            report.skip(reason, "carve", aid, src)
-            continue
-        writer.submit(_job(sel, j, i, sur, plan, cfg), lambda res, aid=aid, src=src: report.book_write(res, aid, src))
-        if cfg.study.keep_all_scores:
-            scores[str(aid)] = scores_entry(sel, j, sur, aid_of)
+        job = _job(sel, j, i, None if j in puffed else sur, plan, cfg)
+        if cfg.study.keep_all_scores and j not in puffed:
+            job["scores"], job["scores_path"] = scores_entry(sel, j, sur, aid_of), str(
+                object_file(plan.cdir, "scores", aid))
+        writer.submit(job, lambda res, aid=aid, src=src: report.book_write(res, aid, src))
+
+
+def _puffballs(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config) -> set[int]:
+    """The chunk's references without a non-empty proposal get a puffball instead (their level becomes
+    ``puffball``); returns their positions in the chunk."""
+    none = [j for j, ok in enumerate(sel.ok.any(dim=1).tolist()) if not ok]
+    if not none:
+        return set()
+    rows = ids[torch.tensor(none, device=ids.device)]
+    grids = carve.puffball_grids(plan.coll.masks[rows], cfg.carve.resolution)
+    for k, j in enumerate(none):
+        sel.best_occupancy[j] = grids.occupancy[k].cpu()
+        sel.best_transform[j] = grids.voxel_to_camera[k].double().cpu()
+        sel.best[j] = -1
+        plan.surrogates.levels[int(ids[j])] = "puffball"
+    return set(none)
 
 
 #: Objects per pipeline chunk on the CPU: small enough that a chunk's grids stay in the
@@ -257,14 +299,13 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
     todo_t = torch.tensor(todo, dtype=torch.long, device=device)
     chunk = chunk_objects(cfg, device)
     bar = tqdm(total=len(todo), desc=f"{coll.meta.key}: carve+select", disable=not cfg.progress, leave=False)
-    scores: dict = {}
     try:
         for c0 in range(0, len(todo), chunk):
             ids = todo_t[c0:c0 + chunk]
             sel = carve_and_select(ids, plan, cfg, timer)
             # the time spent blocked on busy writers is booked as waiting for them, the rest as hand-off
             t0, b0 = time.perf_counter(), writer.blocked
-            _submit(sel, ids, plan, cfg, report, writer, scores)
+            _submit(sel, ids, plan, cfg, report, writer)
             timer.add("handoff", time.perf_counter() - t0 - (writer.blocked - b0))
             timer.add("write_wait", writer.blocked - b0)
             del sel  # the next chunk's grids must not sit beside this one's
@@ -279,12 +320,24 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
             writer.close(cancel=True)
         elif not isinstance(e, KeyboardInterrupt):
             writer.drain()
-        try:  # the scores of the objects handed to the writer so far are kept too
-            write_scores(plan.cdir, scores, cfg.overwrite)
-        except Exception:  # noqa: BLE001 - the original error is the one to report
-            pass
         raise
     if own_writer:
         writer.close()
-    write_scores(plan.cdir, scores, cfg.overwrite)
+    _finish_class(plan, cfg, report)
     return report
+
+
+def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport) -> None:
+    """Where every object's proposals came from (summary; cameras.json again when a puffball was needed),
+    and the merged proposal scores (studies)."""
+    levels = plan.surrogates.levels
+    used = [lv for lv in surrogates.LEVELS if lv in levels]
+    report.info["surrogates_from"] = {
+        "counts": {lv: levels.count(lv) for lv in used},
+        "fallbacks": {lv: [a for a, x in zip(plan.aids, levels) if x == lv] for lv in used
+                      if lv not in ("triplet", "rotated_views")}}
+    if "puffball" in levels:
+        vp, sp = plan.viewpoints, plan.surrogates
+        write_json(plan.cdir / "cameras.json", cameras_json(plan.coll, vp, sp.axes, sp.clusters, levels))
+    if cfg.study.keep_all_scores:
+        write_scores(plan.cdir, plan.aids, cfg.overwrite)

@@ -44,6 +44,8 @@ __all__ = [
     "cluster_instances",
     "SurrogatePlan",
     "rotated_cameras",
+    "plan_proposals",
+    "LEVELS",
 ]
 
 
@@ -633,6 +635,7 @@ class SurrogatePlan:
         mirrors: whether proposals also carve the mirrored silhouettes.
         todo: the originals to reconstruct (host ints, in order); chunks are consecutive runs of it.
         rotated: rotated cameras per reference in ``todo`` (symmetric classes; 0 otherwise).
+        levels: per original, where its proposals come from (:data:`LEVELS`; ``None``: no camera).
     """
 
     n: int
@@ -642,8 +645,14 @@ class SurrogatePlan:
     mirrors: bool
     todo: list = field(default_factory=list)
     rotated: int = 0
+    levels: list = field(default_factory=list)
 
     def __post_init__(self):
+        self.set_todo(self.todo)
+
+    def set_todo(self, todo: list) -> None:
+        """The originals to reconstruct (host ints, in order)."""
+        self.todo = list(todo)
         self._pos = {i: k for k, i in enumerate(self.todo)}
 
     def proposal_views(self, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -655,11 +664,12 @@ class SurrogatePlan:
             k = self._pos[int(ids[0])] + torch.arange(R, device=ids.device)
             views = 2 * self.n + k[:, None, None] * self.rotated + torch.arange(self.rotated, device=ids.device)
             return views, torch.ones(R, 1, dtype=torch.bool, device=ids.device)
-        sur = self.triplets.surrogates[ids].clamp(min=0)  # (R, P, 2)
+        sur = self.triplets.surrogates[ids]  # (R, P, 2), -1: no surrogate in that slot (unused view)
         if not self.mirrors:
             return sur, self.triplets.valid[ids]
         r = ids[:, None, None].expand(-1, sur.shape[1], 1)
-        return torch.cat([sur, r + self.n, sur + self.n], dim=-1), self.triplets.valid[ids]
+        mirrored = torch.where(sur >= 0, sur + self.n, torch.full_like(sur, -1))
+        return torch.cat([sur, r + self.n, mirrored], dim=-1), self.triplets.valid[ids]
 
     def surrogates_of(self, ids: torch.Tensor) -> torch.Tensor | None:
         """``(R, P, 2)`` long surrogate originals of each proposal (``-1`` invalid), or ``None`` (symmetric)."""
@@ -669,6 +679,75 @@ class SurrogatePlan:
         """Why reference ``i`` has no valid proposal."""
         why = self.triplets.reasons.get(i) if self.triplets is not None else None
         return f"no valid surrogate triplet ({why or 'clusters too small'})"
+
+
+#: Where a reference's proposals come from, most to least informed: two surrogates from two clusters
+#: (a rotationally symmetric class: the reference seen from rotated cameras); the same from clusters
+#: widened to every instance's nearest principal direction; one surrogate; the reference and its
+#: mirrored copy alone; a puffball of the reference's silhouette (also for a reference whose every
+#: proposal carved away to nothing).
+LEVELS = ("triplet", "rotated_views", "widened_clusters", "surrogate_pair", "own_mirror", "puffball")
+
+
+def _nearest_axis_labels(view_dirs: torch.Tensor, usable: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
+    """Every usable instance in the cluster of its nearest principal direction (front or back)."""
+    v = view_dirs.double() / view_dirs.double().norm(dim=-1, keepdim=True)
+    nearest = (v @ axes.to(v).T).abs().argmax(dim=-1)
+    return torch.where(usable, nearest, torch.full_like(nearest, -1))
+
+
+def _pairs(groups: torch.Tensor, usable: torch.Tensor, refs: list, P: int, generator) -> torch.Tensor:
+    """``(len(refs), P, 2)``: one surrogate per proposal (second slot -1), drawn without repetition
+    among the usable instances of other physical objects; -1 rows where there is none."""
+    out = torch.full((len(refs), P, 2), -1, dtype=torch.long)
+    for k, r in enumerate(refs):
+        cand = (usable & (groups != groups[r])).nonzero().squeeze(1).cpu()
+        if len(cand):
+            pick = cand[torch.randperm(len(cand), generator=generator)[:P]]
+            out[k, :len(pick), 0] = pick
+    return out
+
+
+def plan_proposals(clusters: Clusters, groups: torch.Tensor, usable: torch.Tensor, view_dirs: torch.Tensor,
+                   axes: torch.Tensor, proposals: int, mirrors: bool,
+                   generator: torch.Generator) -> tuple[Triplets, list]:
+    """Triplets of every original, and a fallback for every reference that has none (:data:`LEVELS`).
+
+    Args:
+        clusters: the instances' :class:`Clusters`; groups: ``(N,)`` long physical objects;
+        usable: ``(N,)`` bool instances with a camera; view_dirs: ``(N, 3)``; axes: ``(3, 3)``.
+        proposals: ``P``; mirrors: whether the mirrored silhouettes are carved too.
+        generator: the class's random source (triplets first, then the fallbacks).
+
+    Returns:
+        :class:`Triplets` (``N`` rows; a pair has its second surrogate -1, ``own_mirror`` both) and the
+        level of every original (``None`` for one without a camera).
+    """
+    n, dev = len(usable), usable.device
+    trip = sample_triplets(clusters.labels, groups, torch.arange(n, device=dev), proposals=proposals,
+                           generator=generator)
+    has = trip.valid.any(dim=1)
+    levels = [("triplet" if h else None) if u else None for h, u in zip(has.tolist(), usable.tolist())]
+    failing = [i for i, lv in enumerate(levels) if lv is None and bool(usable[i])]
+    if not failing:
+        return trip, levels
+    idx = torch.tensor(failing, device=dev)
+    wide = sample_triplets(_nearest_axis_labels(view_dirs, usable, axes), groups, idx, proposals=proposals,
+                           generator=generator)
+    sur, valid = trip.surrogates.clone(), trip.valid.clone()
+    sur[idx], valid[idx] = wide.surrogates, wide.valid
+    rest = [i for i, ok in zip(failing, wide.valid.any(dim=1).tolist()) if not ok]
+    for i in failing:
+        levels[i] = "widened_clusters"
+    pairs = _pairs(groups.cpu(), usable.cpu(), rest, proposals, generator).to(dev)
+    for k, i in enumerate(rest):
+        if bool((pairs[k, :, 0] >= 0).any()):
+            sur[i], valid[i], levels[i] = pairs[k], pairs[k, :, 0] >= 0, "surrogate_pair"
+        elif mirrors:
+            sur[i, 0], valid[i, 0], levels[i] = -1, True, "own_mirror"
+        else:
+            levels[i] = "puffball"
+    return Triplets(sur, valid, trip.reasons, trip.clusters), levels
 
 
 def rotated_cameras(cams: ScaledOrthographic, shape: torch.Tensor, todo: torch.Tensor, centre: torch.Tensor,

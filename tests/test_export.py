@@ -44,7 +44,9 @@ def _canvas_mesh(recon, cls, aid, scale, offset):
 def test_index_and_shards(exported):
     out, index = exported
     n = len(index["samples"])
-    assert n >= 8 and sum(s["count"] for s in index["shards"]) == n and len(index["shards"]) == -(-n // 4)
+    per_class = {c: sum(1 for s in index["samples"] if s["class"] == c) for c in index["classes"]}
+    assert n >= 8 and sum(s["count"] for s in index["shards"]) == n
+    assert len(index["shards"]) == sum(-(-k // 4) for k in per_class.values())  # shards hold one class each
     for name, spec in index["fields"].items():
         arr = np.load(out / index["shards"][0]["name"] / f"{name}.npy", mmap_mode="r")
         assert str(arr.dtype) == spec["dtype"], name

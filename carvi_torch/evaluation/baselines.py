@@ -8,7 +8,8 @@ evaluate_reconstruction`) aligns it.
 
 * :func:`puffball` inflates a single silhouette (Twarog, Tappen, Adelson, "Playing with
   Puffball: simple scale-invariant inflation for use in vision and graphics", 2012): the
-  union of the balls of the medial axis, blended softly.
+  union of the balls of the medial axis, blended softly (:mod:`carvi_torch.carve.puffball`, where
+  the pipeline's last fallback voxelises the same height field).
 * :func:`sfm_convex_hull` is the convex hull of the class's SfM mean shape seen by the
   instance's camera.
 """
@@ -17,9 +18,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 import trimesh
-from skimage import measure, morphology
+from skimage import measure
 
 from ..cameras import ScaledOrthographic
+from ..carve.puffball import medial_balls, puffball_height  # noqa: F401 - re-exported: the baseline's pieces
 
 __all__ = ["medial_balls", "puffball_height", "puffball", "sfm_convex_hull"]
 
@@ -29,88 +31,6 @@ def _check_mask(mask) -> torch.Tensor:
     if m.dim() != 2:
         raise ValueError(f"mask must be (H, W), got {tuple(m.shape)}")
     return m.bool()
-
-
-def medial_balls(mask: torch.Tensor, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Medial-axis points of a silhouette and their grassfire radii (CPU-side: scikit-image).
-
-    ``skimage.morphology.medial_axis(mask, return_distance=True)``: the skeleton pixels and,
-    for each, the Euclidean distance from its centre to the nearest background pixel
-    centre (pixels). The ball of that radius around a medial point holds foreground pixel
-    centres only. scikit-image breaks ties in the thinning at random; ``seed`` fixes them,
-    so the result is deterministic.
-
-    Args:
-        mask: ``(H, W)`` bool silhouette (any device).
-        seed: seed of the tie-breaking.
-
-    Returns:
-        ``centres (M, 2)`` float32 ``(x, y)`` pixel coordinates and ``radii (M,)`` float32,
-        on the mask's device. An empty mask gives ``M = 0``.
-
-    Example:
-        >>> m = torch.zeros(5, 5, dtype=torch.bool); m[1:4, 1:4] = True
-        >>> c, r = medial_balls(m)
-        >>> c[r.argmax()].tolist(), float(r.max())
-        ([2.0, 2.0], 2.0)
-    """
-    m = _check_mask(mask)
-    skel, dist = morphology.medial_axis(m.cpu().numpy(), return_distance=True, rng=seed)
-    ys, xs = np.nonzero(skel)
-    centres = torch.from_numpy(np.stack([xs, ys], axis=1).astype(np.float32))
-    radii = torch.from_numpy(dist[ys, xs].astype(np.float32))
-    return centres.to(m.device), radii.to(m.device)
-
-
-def puffball_height(mask: torch.Tensor, chunk_elems: int = 1 << 24) -> torch.Tensor:
-    """Puffball height field of a silhouette (pixels), as the reference implementation blends it.
-
-    For a foreground pixel ``p`` and the medial balls ``(q, r_q)`` of :func:`medial_balls`
-    that cover it (``|p - q| <= r_q``),
-
-        ``h(p) = log(1 + sum_q exp(sqrt(r_q^2 - |p - q|^2)))``,
-
-    a soft maximum of the heights of the balls' upper hemispheres (it exceeds the largest
-    by at most ``log(1 + number of covering balls)``). Evaluated for pixels x medial points
-    in chunks of at most ``chunk_elems`` pairs, with ``logsumexp`` for stability; squared
-    distances between pixel centres are integers, so the covering test is exact. A
-    foreground pixel no medial ball covers (rare, digital medial axes are not exact) is
-    given its own ball, of its distance to the background. Background pixels get 0.
-
-    Args:
-        mask: ``(H, W)`` bool.
-        chunk_elems: pixel x medial-point pairs per chunk.
-
-    Returns:
-        ``(H, W)`` float32 on the mask's device; ``h >= log 2`` on the foreground.
-    """
-    m = _check_mask(mask)
-    centres, radii = medial_balls(m)
-    h = torch.zeros(m.shape, dtype=torch.float32, device=m.device)
-    if centres.shape[0] == 0:
-        return h
-    ys, xs = torch.nonzero(m, as_tuple=True)
-    pix = torch.stack([xs, ys], dim=1).float()  # (N, 2)
-    per = max(1, chunk_elems // centres.shape[0])
-    r2 = torch.round(radii.double() ** 2).float()  # squared distances between pixel centres: integers
-    out = []
-    for s in range(0, pix.shape[0], per):
-        diff = pix[s:s + per, None, :] - centres[None, :, :]  # (n, M, 2), exact for pixel coordinates
-        d2 = (diff * diff).sum(-1)  # (n, M)
-        cover = d2 <= r2[None, :]
-        height = torch.sqrt(torch.clamp(r2[None, :] - d2, min=0.0))
-        lse = torch.logsumexp(torch.where(cover, height, torch.full_like(height, -torch.inf)), dim=1)
-        out.append(torch.where(cover.any(dim=1), torch.logaddexp(torch.zeros_like(lse), lse),
-                               torch.full_like(lse, torch.nan)))
-    val = torch.cat(out)
-    lost = torch.isnan(val)
-    if bool(lost.any()):
-        from ..sdf import distance_to_background
-
-        own = distance_to_background(m[None].cpu())[0].to(m.device)[ys[lost], xs[lost]]
-        val[lost] = torch.logaddexp(torch.zeros_like(own), own)
-    h[ys, xs] = val
-    return h
 
 
 def puffball(mask: torch.Tensor, camera: ScaledOrthographic | None = None, depth_step: float = 1.0,

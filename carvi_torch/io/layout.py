@@ -7,7 +7,8 @@
     OUT/<class key>/meshes/<object stem>.<format>
     OUT/<class key>/voxels/<object stem>.npz
     OUT/<class key>/proposals/<object stem>.npz         (studies)
-    OUT/<class key>/proposal_scores.json                (studies)
+    OUT/<class key>/scores/<object stem>.json           (studies: every proposal's score)
+    OUT/<class key>/proposal_scores.json                (studies: the scores merged at the end of the class)
 
 The class key is the category's name when that is a safe folder name, else a safe spelling of
 it (``ClassMeta.key``); an object's stem is its annotation id when that is a safe file name,
@@ -27,7 +28,7 @@ from .outputs import safe_name
 __all__ = ["class_dir", "object_stem", "object_file", "KINDS"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
-KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz"}
+KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
 
 
 def class_dir(out: str | Path, key: str) -> Path:

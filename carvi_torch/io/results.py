@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 
 from ..cameras import azimuth_elevation_roll_from_rotation
+from .layout import object_file
 from .outputs import read_json, write_json
 
 __all__ = ["ClassReport", "cameras_json", "scores_entry", "write_scores"]
@@ -70,7 +71,7 @@ def _camera_from(has_cam: bool, ground_truth: bool, sfm_ok: bool, unseen: int) -
     return "mean_shape" if unseen > 0 else "silhouette"
 
 
-def _per_annotation(coll, vp, clusters) -> dict:
+def _per_annotation(coll, vp, clusters, levels) -> dict:
     """``cameras.json``'s ``cameras``: per annotation id, SfM and final cameras in image pixels."""
     n = len(coll)
     mix = vp.groups
@@ -91,19 +92,21 @@ def _per_annotation(coll, vp, clusters) -> dict:
             "azimuth_deg": math.degrees(float(az[i])), "elevation_deg": math.degrees(float(el[i])),
             "roll_deg": math.degrees(float(ro[i])),
             "cluster": int(clusters.labels[i]) if clusters is not None else None,
+            "surrogates_from": levels[i] if levels is not None else None,
         }
         if group_of is not None:
             per[str(aid)]["shape_group"] = group_of[i]
     return per
 
 
-def cameras_json(coll, vp, axes: torch.Tensor | None, clusters) -> dict:
+def cameras_json(coll, vp, axes: torch.Tensor | None, clusters, levels: list | None = None) -> dict:
     """``cameras.json`` content of a class: per annotation id its cameras, then the mean shape,
     symmetry plane, principal directions and (with shape groups) every group's mean shape.
 
     Args:
         coll: the class; vp: its :class:`carvi_torch.viewpoints.Viewpoints`; axes: ``(3, 3)``
-            principal directions; clusters: :class:`carvi_torch.surrogates.Clusters`.
+            principal directions; clusters: :class:`carvi_torch.surrogates.Clusters`; levels: per
+            object, where its proposals come from (:data:`carvi_torch.surrogates.LEVELS`).
     """
     names = coll.meta.keypoint_names
 
@@ -116,7 +119,7 @@ def cameras_json(coll, vp, axes: torch.Tensor | None, clusters) -> dict:
         "class": coll.name,
         "class_key": coll.meta.key,
         "frame": "image pixels of each annotation's image; R rows = image x, image y (down), view direction",
-        "cameras": _per_annotation(coll, vp, clusters),
+        "cameras": _per_annotation(coll, vp, clusters, levels),
         "mean_shape": named(vp.shape),
         "symmetry_plane": vp.reflection.detach().double().cpu().tolist(),
         "principal_directions": axes.detach().double().cpu().tolist() if axes is not None else None,
@@ -140,16 +143,23 @@ def scores_entry(sel, j: int, surrogates: torch.Tensor | None, aid_of: list) -> 
     }
 
 
-def write_scores(cdir: Path, scores: dict, overwrite: bool) -> None:
-    """Merge ``scores`` into ``cdir/proposal_scores.json`` (atomic; ``overwrite`` starts afresh)."""
-    if not scores:
-        return
-    prev = {}
+def write_scores(cdir: Path, annotation_ids: list, overwrite: bool) -> None:
+    """``cdir/proposal_scores.json``: the per-object score files (``scores/<stem>.json``, written with
+    each object, so a killed run keeps them) of ``annotation_ids``, merged (atomic). Objects without a
+    score file keep the entry an earlier file had, unless ``overwrite``."""
     sp = cdir / "proposal_scores.json"
+    merged = {}
     if sp.is_file() and not overwrite:
         try:
-            prev = read_json(sp)
+            merged = read_json(sp)
         except ValueError:
-            prev = {}
-    prev.update(scores)
-    write_json(sp, prev, indent=None)
+            merged = {}
+    for aid in annotation_ids:
+        p = object_file(cdir, "scores", aid)
+        if p.is_file():
+            try:
+                merged[str(aid)] = read_json(p)
+            except ValueError:
+                pass  # a damaged score file: its object is redone only by overwrite; the earlier entry stays
+    if merged:
+        write_json(sp, merged, indent=None)
