@@ -20,6 +20,8 @@ import argparse
 import sys
 from typing import Sequence
 
+from .cli import add_common, split_classes
+
 __all__ = ["build_parser", "main"]
 
 
@@ -69,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m carvi_torch.datasets",
         description="Make COCO keypoint datasets for carvi_torch: render meshes with keypoints, build the "
                     "embedded procedural classes, or convert PASCAL VOC keypoint annotations.")
+    add_common(parser, classes=False, quiet=False)
     sub = parser.add_subparsers(dest="command", metavar="{synthetic,procedural,voc}")
 
     syn = sub.add_parser(
@@ -88,8 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "each, like PASCAL VOC). Same outputs as 'synthetic'.")
     proc.add_argument("--out", required=True, metavar="DIR", help="output directory")
     proc.add_argument("--instances", type=_pos_int, default=40, help="instances per class (default 40)")
-    proc.add_argument("--categories", nargs="+", default=None, metavar="CLASS",
-                      help="classes to build (default: aeroplane bottle car chair)")
+    proc.add_argument("--classes", default=None, metavar="A,B",
+                      help="comma-separated classes to build (default: aeroplane,bottle,car,chair)")
     _add_render_options(proc, 1, "renders per instance (default 1)")
 
     voc = sub.add_parser(
@@ -103,6 +106,8 @@ def build_parser() -> argparse.ArgumentParser:
     voc.add_argument("--annotations", default=None, metavar="DIR",
                      help="VOC Annotations/ directory (image sizes and occluded/truncated flags; optional)")
     voc.add_argument("--out", required=True, metavar="annotations.json", help="output JSON file")
+    voc.add_argument("--classes", default=None, metavar="A,B",
+                     help="comma-separated VOC classes to convert (default: every class)")
     return parser
 
 
@@ -148,13 +153,14 @@ def _run_procedural(args) -> int:
     if args.test_views > args.views:
         print(f"error: --test-views ({args.test_views}) exceeds --views ({args.views})", file=sys.stderr)
         return 2
-    if args.categories is not None:
-        bad = [c for c in args.categories if c not in CATEGORIES]
+    classes = split_classes(args.classes)
+    if classes is not None:
+        bad = [c for c in classes if c not in CATEGORIES]
         if bad:
             print(f"error: unknown classes {bad}; choose from {list(CATEGORIES)}", file=sys.stderr)
             return 2
     summary = write_default_collection(args.out, instances_per_class=args.instances, views_per_instance=args.views,
-                                       seed=args.seed, categories=args.categories, image_size=_image_size(args),
+                                       seed=args.seed, categories=classes, image_size=_image_size(args),
                                        test_views=args.test_views, keypoint_noise=args.keypoint_noise,
                                        boundary_noise=args.boundary_noise, progress=not args.quiet,
                                        device=args.device)

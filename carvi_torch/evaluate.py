@@ -30,6 +30,7 @@ import trimesh
 from tqdm.auto import tqdm
 
 from .cameras import ScaledOrthographic
+from .cli import add_common, split_classes
 from .config import Config, read_run_config
 from .io.coco import CocoFormatError, class_keys, load_coco, object_id
 from .io.layout import object_file
@@ -308,9 +309,8 @@ def main(argv=None) -> int:
     ap.add_argument("--baselines", action="store_true", help="also evaluate Puffball and SFMc")
     ap.add_argument("--step-percent", type=float, default=0.5,
                     help="surface sampling step in percent of the GT bounding-box diagonal (default 0.5)")
-    ap.add_argument("--classes", help="comma-separated class names")
     ap.add_argument("--viewpoints-only", action="store_true", help="skip the shapes (e.g. after stage=cameras)")
-    ap.add_argument("--no-progress", action="store_true")
+    add_common(ap)
     args = ap.parse_args(argv)
     recons = {}
     for item in args.recon:
@@ -322,8 +322,8 @@ def main(argv=None) -> int:
             return 2
     try:
         res = evaluate(args.data, recons, gt=args.gt, split=args.split, baselines=args.baselines,
-                       step_percent=args.step_percent, classes=args.classes.split(",") if args.classes else None,
-                       progress=not args.no_progress, shapes=not args.viewpoints_only)
+                       step_percent=args.step_percent, classes=split_classes(args.classes),
+                       progress=not args.quiet, shapes=not args.viewpoints_only)
     except (FileNotFoundError, ValueError, CocoFormatError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

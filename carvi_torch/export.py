@@ -24,6 +24,7 @@ import trimesh
 from tqdm.auto import tqdm
 
 from .cameras import ScaledOrthographic, Similarity2D
+from .cli import add_common, split_classes
 from .config import Config, read_run_config
 from .io.coco import load_coco
 from .io.layout import object_file
@@ -332,11 +333,11 @@ def main(argv=None) -> int:
     ap.add_argument("--points", type=int, default=2048, help="surface points per object (default 2048)")
     ap.add_argument("--shard-size", type=int, default=256, help="objects per shard (default 256)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the surface sampling")
-    ap.add_argument("--classes", help="comma-separated class names (default: all)")
+    add_common(ap)
     args = ap.parse_args(argv)
     try:
         idx = export(args.recon, args.out, args.resolution, args.points, args.shard_size, args.seed,
-                     classes=args.classes.split(",") if args.classes else None)
+                     progress=not args.quiet, classes=split_classes(args.classes))
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -27,8 +27,8 @@ from . import carve, select, surrogates
 from .carve import CarveMaps
 from .collection import ClassCollection
 from .config import Config
-from .io.layout import class_dir, object_file
-from .io.outputs import is_done, read_json, write_json
+from .io.layout import class_dir, finished, object_file
+from .io.outputs import read_json, write_json
 from .io.results import ClassReport, cameras_json, scores_entry, write_scores
 from .io.writer import Writer, canvas_to_image_4x4, proposals_payload
 from .runtime import StageTimer, log
@@ -67,10 +67,17 @@ class ClassPlan:
 
 
 def _done(coll: ClassCollection, cfg: Config, cdir: Path, out) -> list[bool]:
-    """Per original: finished by an earlier run into ``out`` (its files exist), unless ``overwrite``."""
-    return [out is not None and not cfg.overwrite and is_done(object_file(cdir, "meshes", a, cfg.mesh.format),
-                                                             object_file(cdir, "voxels", a))
-            for a in coll.annotation_ids]
+    """Per original: finished by an earlier run into ``out`` (its files exist and load), unless ``overwrite``;
+    damaged files are logged and their object is redone."""
+    if out is None or cfg.overwrite:
+        return [False] * len(coll)
+    done = []
+    for a in coll.annotation_ids:
+        state = finished(cdir, a, cfg.mesh.format)
+        if isinstance(state, str):
+            log.warning(f"  {coll.meta.key}: annotation {a}: {state}; reconstructing it again")
+        done.append(state is True)
+    return done
 
 
 def _todo(coll: ClassCollection, usable: list, done: list, cfg: Config, report: ClassReport) -> list[int]:

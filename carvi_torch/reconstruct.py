@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .cli import add_common, split_classes
 from .config import FIELD_DOCS, Config, ConfigError, load_config
 from .io.coco import CocoFormatError
 
@@ -51,8 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--data", help="COCO keypoint JSON (default: the embedded procedural collection)")
     ap.add_argument("--out", help="output directory (default: outputs/default)")
     ap.add_argument("--config", help="YAML config file (nested by section or flat; see configs/default.yaml)")
-    ap.add_argument("--classes", help="comma-separated class names to run (default: every class)")
-    ap.add_argument("--quiet", action="store_true", help="no progress bars, warnings and errors only")
+    add_common(ap)
     ap.add_argument("overrides", nargs="*", metavar="key=value", help="settings (listed below)")
     return ap
 
@@ -102,6 +102,8 @@ def main(argv=None) -> int:
     try:
         cfg = load_config(args.config, args.overrides)
         extra = {k: v for k, v in (("data", args.data), ("out", args.out), ("classes", args.classes)) if v}
+        if "classes" in extra:
+            extra["classes"] = split_classes(extra["classes"])
         if args.quiet:
             extra["progress"] = False
         cfg = cfg.override(extra) if extra else cfg

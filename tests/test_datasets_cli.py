@@ -265,8 +265,8 @@ def test_cli_synthetic_and_procedural(tmp_path, capsys):
     data = json.loads((tmp_path / "syn" / "annotations.json").read_text())
     assert len(data["images"]) == 9 and {(i["width"], i["height"]) for i in data["images"]} == {(64, 64)}
     assert sum(a["split"] == "test" for a in data["annotations"]) == 3
-    rc = datasets.main(["procedural", "--out", str(tmp_path / "proc"), "--instances", "1", "--categories", "car",
-                        "bottle", "--image-size", "80", "60", "--quiet"])
+    rc = datasets.main(["procedural", "--out", str(tmp_path / "proc"), "--instances", "1", "--classes", "car,bottle",
+                        "--image-size", "80", "60", "--quiet"])
     assert rc == 0
     data = json.loads((tmp_path / "proc" / "annotations.json").read_text())
     assert [c["name"] for c in data["categories"]] == ["bottle", "car"]
@@ -279,7 +279,7 @@ def test_cli_bad_input(tmp_path, capsys):
     assert "no such directory" in capsys.readouterr().err
     assert datasets.main(["synthetic", "--meshes", str(tmp_path), "--out", str(tmp_path / "o"), "--views", "2",
                           "--test-views", "3"]) == 2
-    assert datasets.main(["procedural", "--out", str(tmp_path / "o"), "--categories", "ship"]) == 2
+    assert datasets.main(["procedural", "--out", str(tmp_path / "o"), "--classes", "ship"]) == 2
     with pytest.raises(SystemExit):
         datasets.main(["synthetic", "--meshes", "x", "--out", "y", "--views", "0"])
     with pytest.raises(SystemExit):

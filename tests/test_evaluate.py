@@ -70,7 +70,7 @@ def test_perfect_and_shifted_reconstructions(recon, tmp_path):
 def test_real_run_with_baselines(recon, tmp_path, capsys):
     data, gt = _gt(recon)
     rc = main(["--data", str(data), "--recon", f"Full={recon}", "--baselines", "--step-percent", "2",
-               "--out", str(tmp_path / "ev"), "--no-progress"])
+               "--out", str(tmp_path / "ev"), "--quiet"])
     assert rc == 0
     res = json.loads((tmp_path / "ev" / "results.json").read_text())
     assert res["methods"] == ["Full", "Puffball", "SFMc"]
@@ -108,7 +108,7 @@ def test_cli_errors(tmp_path, capsys):
 
 def test_viewpoints_only(recon, tmp_path, capsys):
     data, gt = _gt(recon)
-    rc = main(["--data", str(data), "--recon", str(recon), "--viewpoints-only", "--no-progress"])
+    rc = main(["--data", str(data), "--recon", str(recon), "--viewpoints-only", "--quiet"])
     out = capsys.readouterr().out
     assert rc == 0 and "Symmetric RMS" not in out and "| car | Full | refined |" in out
 

@@ -272,7 +272,7 @@ def run_end_to_end(data: Path, out: Path, args) -> dict:
 def run_evaluation(data: Path, recon: Path, out: Path, category: str) -> dict:
     """``python -m carvi_torch.evaluate`` on the run; returns its shape summary for the class."""
     cmd = [sys.executable, "-m", "carvi_torch.evaluate", "--data", str(data), "--recon", f"run={recon}", "--out",
-           str(out), "--classes", category, "--no-progress"]
+           str(out), "--classes", category, "--quiet"]
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     if res.returncode != 0:
         raise SystemExit(f"evaluate failed:\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}")

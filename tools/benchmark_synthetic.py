@@ -347,7 +347,7 @@ def main(argv=None) -> int:
     halves = [h for h in halves if h]
     ecmds = []
     for i, part in enumerate(halves):
-        argv = [PYTHON, "-m", "carvi_torch.evaluate", "--data", str(ann), "--split", "test", "--no-progress",
+        argv = [PYTHON, "-m", "carvi_torch.evaluate", "--data", str(ann), "--split", "test", "--quiet",
                 "--step-percent", str(args.step_percent), "--classes", ",".join(part), "--out", str(evals / f"part{i}")]
         if not args.no_baselines:
             argv.append("--baselines")

@@ -290,7 +290,7 @@ def threshold(args) -> int:
     t0 = time.perf_counter()
     _run_all(cmds, args.jobs, env)
     ev = [sys.executable, "-m", "carvi_torch.evaluate", "--data", str(data / "annotations.json"), "--split", "test",
-          "--no-progress", "--step-percent", str(args.step_percent), "--classes", ",".join(classes),
+          "--quiet", "--step-percent", str(args.step_percent), "--classes", ",".join(classes),
           "--out", str(bench / "threshold" / "eval")]
     for thr in thresholds:
         ev += ["--recon", f"t{thr:g}={runs[thr]}"]
@@ -527,7 +527,7 @@ def step(args) -> int:
     for st in steps:
         out = bench / "step" / f"s{st:g}"
         argv = [sys.executable, "-m", "carvi_torch.evaluate", "--data", str(data / "annotations.json"), "--split",
-                "test", "--no-progress", "--step-percent", str(st), "--classes", args.classes, "--out", str(out),
+                "test", "--quiet", "--step-percent", str(st), "--classes", args.classes, "--out", str(out),
                 "--baselines", *recon]
         print("  " + " ".join(shlex.quote(a) for a in argv), flush=True)
         import resource

@@ -23,9 +23,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from .outputs import safe_name
 
-__all__ = ["class_dir", "object_stem", "object_file", "KINDS"]
+__all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -51,3 +53,37 @@ def object_file(cdir: str | Path, kind: str, annotation_id, ext: str | None = No
     if ext is None:
         raise ValueError("meshes need their format as ext (ply, obj, ...)")
     return Path(cdir) / kind / f"{object_stem(annotation_id)}.{ext}"
+
+
+def _voxels_ok(path: Path) -> str | None:
+    """Why a voxels file is not a finished object's (``None``: it is one)."""
+    try:
+        with np.load(path) as z:
+            occ, T = z["occupancy"], z["voxel_to_camera"]
+    except Exception as e:  # noqa: BLE001 - any damage means: redo the object
+        return f"unreadable voxels ({type(e).__name__})"
+    if occ.dtype != bool or occ.ndim != 3 or T.shape != (4, 4) or not np.isfinite(T).all():
+        return f"voxels of the wrong kind (occupancy {occ.dtype} {occ.shape}, transform {T.shape})"
+    return None
+
+
+def _mesh_ok(path: Path) -> str | None:
+    """Why a mesh file is not a finished object's (``None``: it is one)."""
+    import trimesh
+
+    try:
+        m = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # noqa: BLE001
+        return f"unreadable mesh ({type(e).__name__})"
+    if len(getattr(m, "faces", ())) == 0:
+        return "mesh without faces"
+    return None
+
+
+def finished(cdir: str | Path, annotation_id, mesh_format: str) -> str | bool:
+    """Whether an earlier run finished an object: ``True``, ``False`` (no files), or the reason its files
+    cannot be trusted (a truncated or damaged mesh or voxels file: the object is redone)."""
+    mesh, voxels = object_file(cdir, "meshes", annotation_id, mesh_format), object_file(cdir, "voxels", annotation_id)
+    if not (mesh.is_file() and voxels.is_file()):
+        return False
+    return _voxels_ok(voxels) or _mesh_ok(mesh) or True
