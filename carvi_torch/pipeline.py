@@ -19,7 +19,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -30,7 +29,7 @@ from .config import Config
 from .io.layout import class_dir, finished, object_file
 from .io.outputs import read_json, write_json
 from .io.results import ClassReport, cameras_json, scores_entry, write_scores
-from .io.writer import Writer, canvas_to_image_4x4, proposals_payload
+from .io.writer import Writer, canvas_to_image_4x4, id_array, proposals_payload
 from .runtime import StageTimer, log
 from .sdf import signed_distance
 from .viewpoints import Viewpoints, estimate_viewpoints, ground_truth_cameras
@@ -229,7 +228,7 @@ def _job(sel: select.Selection, j: int, i: int, sur, plan: ClassPlan, cfg: Confi
     sur_ids = [] if sur is None or best < 0 else [aid_of[s] for s in sur[j, best].tolist() if s >= 0]
     return dict(aid=aid, occupancy=sel.best_occupancy[j].numpy(), voxel_to_canvas=v2c.numpy(),
                 voxel_to_image=(canvas_to_image @ v2c).numpy(), canvas_scale=float(scale),
-                canvas_offset=offset.float().numpy(), surrogates=np.asarray(sur_ids, dtype=np.int64),
+                canvas_offset=offset.float().numpy(), surrogates=id_array(sur_ids),
                 voxel_path=str(object_file(plan.cdir, "voxels", aid)),
                 mesh_path=str(object_file(plan.cdir, "meshes", aid, cfg.mesh.format)),
                 proposals_path=str(object_file(plan.cdir, "proposals", aid)),

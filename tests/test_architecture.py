@@ -24,7 +24,7 @@ STAGES = [
                "carve.dispatch", "carve"]),
     ("select", ["select"]),
     ("mesh", ["mesh"]),
-    ("write", ["io.writer", "io.results"]),
+    ("write", ["io.write_worker", "io.writer", "io.results"]),
 ]
 #: Imports of a later stage that the public contract asks for, with the reason.
 ALLOWED = {("carve.grids", "mesh"): "VoxelGrid.to_mesh() is part of the public contract (DESIGN.md)"}

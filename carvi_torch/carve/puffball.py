@@ -133,7 +133,8 @@ def _grid_axes(mask: torch.Tensor, hmax: float, n: int) -> torch.Tensor:
 
 
 def _voxelise(h: torch.Tensor, T: torch.Tensor, n: int) -> torch.Tensor:
-    """``(n, n, n)`` bool: voxels whose centre satisfies ``|z| <= h(x, y)`` (``h`` read bilinearly)."""
+    """``(n, n, n)`` bool: voxels whose centre satisfies ``|z| <= h(x, y)``, ``h`` read at the nearest pixel
+    (the silhouette is the mask's pixels, as a carved hull's is)."""
     H, W = h.shape
     idx = torch.arange(n, dtype=torch.float64)
     x = T[0, 2] * idx + T[0, 3]
@@ -142,7 +143,7 @@ def _voxelise(h: torch.Tensor, T: torch.Tensor, n: int) -> torch.Tensor:
     gx = 2 * x / max(W - 1, 1) - 1
     gy = 2 * y / max(H - 1, 1) - 1
     grid = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], dim=-1).float()  # (n, n, 2) as (x, y)
-    hv = F.grid_sample(h[None, None].float(), grid[None], mode="bilinear", padding_mode="zeros",
+    hv = F.grid_sample(h[None, None].float(), grid[None], mode="nearest", padding_mode="zeros",
                        align_corners=True)[0, 0]  # (n: y, n: x)
     return (z.abs()[:, None, None] <= hv.double()[None]) & (hv[None] > 0)
 

@@ -35,6 +35,7 @@ class RunSetup:
     summary: dict
     changed: dict = field(default_factory=dict)
     t_start: float = field(default_factory=time.perf_counter)
+    earlier: dict = field(default_factory=dict)  # classes an earlier run into the same folder reported
 
 
 def _check_out(out: Path) -> None:
@@ -89,6 +90,7 @@ def open_run(cfg: Config) -> RunSetup:
                             device=device, classes=cfg.classes, max_image_pixels=cfg.input.max_image_pixels)
     load_s = time.perf_counter() - t0
     gt = read_json(gt_path) if gt_path is not None and Path(gt_path).is_file() else None
+    earlier = _earlier_classes(out, cfg)
     out.mkdir(parents=True, exist_ok=True)
     changed = settings_changed(out / "config.yaml", cfg)
     write_bytes(out / "config.yaml", cfg.to_yaml().encode())
@@ -97,7 +99,7 @@ def open_run(cfg: Config) -> RunSetup:
                "carve_backend": carve.resolve_backend(cfg.carve.backend, device, cfg.carve.interpolation),
                "load_seconds": round(load_s, 3), "input_problems": [p.to_dict() for p in loaded.problems],
                "classes": {}}
-    return RunSetup(cfg, out, device, loaded, gt, summary, changed)
+    return RunSetup(cfg, out, device, loaded, gt, summary, changed, earlier=earlier)
 
 
 def announce(setup: RunSetup) -> None:
@@ -121,26 +123,28 @@ def class_generator(cfg: Config, key: str) -> torch.Generator:
     return torch.Generator(device="cpu").manual_seed(cfg.seed + stable_hash(key))
 
 
-def _merge_previous(setup: RunSetup) -> None:
-    """Keep the classes an earlier run into the same folder reported and this run did not touch."""
-    path = setup.out / "summary.json"
-    if setup.cfg.overwrite or not path.is_file():
-        return
+def _earlier_classes(out: Path, cfg: Config) -> dict:
+    """The classes an earlier run into ``out`` reported (none with ``overwrite``): a dataset can be
+    processed in parts, and the summary keeps every part."""
+    path = out / "summary.json"
+    if cfg.overwrite or not path.is_file():
+        return {}
     try:
-        previous = read_json(path).get("classes", {})
+        classes = read_json(path).get("classes", {})
     except (ValueError, AttributeError, OSError):
-        return
-    kept = [k for k in previous if k not in setup.summary["classes"]]
-    for k in kept:
-        setup.summary["classes"][k] = previous[k]
-    if kept:
-        setup.summary["classes_from_earlier_runs"] = kept
-        setup.summary["classes"] = dict(sorted(setup.summary["classes"].items()))
+        return {}
+    return classes if isinstance(classes, dict) else {}
 
 
 def write_summary(setup: RunSetup) -> None:
-    """``summary.json`` as it stands (written atomically after every class)."""
-    write_json(setup.out / "summary.json", setup.summary)
+    """``summary.json`` as it stands (atomically, after every class): this run's classes, and those of
+    an earlier run into the same folder that this run did not touch."""
+    s = dict(setup.summary)
+    kept = {k: v for k, v in setup.earlier.items() if k not in s["classes"]}
+    if kept:
+        s["classes"] = dict(sorted({**s["classes"], **kept}.items()))
+        s["classes_from_earlier_runs"] = sorted(kept)
+    write_json(setup.out / "summary.json", s)
 
 
 def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = None) -> dict:
@@ -158,16 +162,15 @@ def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = 
     if setup.changed:
         s["resumed_from_other_settings"] = {k: list(v) for k, v in setup.changed.items()}
     s["writer_workers"] = writer_workers
-    _merge_previous(setup)
     write_summary(setup)
     if setup.cfg.preview and setup.cfg.stage == "all":
         try:
             from ..preview import write_preview
 
-            write_preview(setup.out, s)
+            write_preview(setup.out, read_json(setup.out / "summary.json"))
         except Exception as e:  # noqa: BLE001 - a picture must never fail the run
             log.warning(f"preview.png not written: {e}")
-    return s
+    return read_json(setup.out / "summary.json")
 
 
 def exit_status(summary: dict, stage: str = "all") -> int:

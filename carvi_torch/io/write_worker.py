@@ -1,8 +1,8 @@
 """What a writer process runs: mesh one object and write its files. Imports no torch (a fast start).
 
-A writer process watches its parent: when the run that started it is gone (killed, even with
-SIGKILL), the process is re-parented and exits within a second, so a killed run leaves nothing
-running.
+A writer process watches the run that started it: when the run is gone (killed, even with
+SIGKILL), the writer exits within a second, and the forkserver that forked it follows, so a killed
+run leaves nothing running.
 
 Example:
     >>> import numpy as np, tempfile, pathlib
@@ -70,14 +70,29 @@ def start_worker() -> int:
     return os.getpid()
 
 
-def watch_parent(period: float = 0.5) -> None:
-    """Process initializer: exit this process as soon as its parent is gone (re-parented)."""
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's (a reused pid)
+        return True
+    return True
+
+
+def watch_parent(run_pid: int, period: float = 0.5) -> None:
+    """Process initializer: exit this process as soon as the run that started it (``run_pid``) is gone.
+
+    A process started by the forkserver is that server's child, and the server itself lives as long as
+    its children do, so the run's own pid is watched (where ``os.kill(pid, 0)`` can tell, on POSIX),
+    and the parent too (re-parenting: under spawn the parent is the run)."""
     parent = os.getppid()
+    posix = os.name == "posix"
 
     def watch():
         while True:
             time.sleep(period)
-            if os.getppid() != parent:
+            if os.getppid() != parent or (posix and run_pid != parent and not _alive(run_pid)):
                 os._exit(0)
 
-    threading.Thread(target=watch, name="carvi-parent-watch", daemon=True).start()
+    threading.Thread(target=watch, name="carvi-run-watch", daemon=True).start()

@@ -13,6 +13,7 @@ Example:
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import time
 from collections import deque
 from concurrent.futures import ProcessPoolExecutor
@@ -24,7 +25,7 @@ from ..runtime import cores, env_count
 from . import write_worker
 from .write_worker import write_object_safe
 
-__all__ = ["Writer", "writer_workers", "start_method", "canvas_to_image_4x4", "proposals_payload"]
+__all__ = ["Writer", "writer_workers", "start_method", "canvas_to_image_4x4", "proposals_payload", "id_array"]
 
 
 def start_method() -> str:
@@ -64,6 +65,19 @@ def canvas_to_image_4x4(scale: torch.Tensor, offset: torch.Tensor) -> torch.Tens
     return T
 
 
+def id_array(ids: list, missing=-1) -> np.ndarray:
+    """Annotation ids as an array a ``.npz`` holds without pickling: int64 when every id is an integer,
+    else strings (``missing`` becomes ``""``).
+
+    Example:
+        >>> id_array([3, -1]).dtype.kind, id_array(["a", -1]).tolist()
+        ('i', ['a', ''])
+    """
+    if all(isinstance(i, int) for i in ids):
+        return np.asarray(ids, dtype=np.int64)
+    return np.asarray(["" if i == missing else str(i) for i in ids], dtype=str)
+
+
 def proposals_payload(sel, j: int, surrogates: torch.Tensor | None, canvas_to_image: torch.Tensor,
                       aid_of: list) -> dict:
     """Every proposal of reference ``j`` of a chunk's :class:`~carvi_torch.select.Selection`, for
@@ -74,10 +88,8 @@ def proposals_payload(sel, j: int, surrogates: torch.Tensor | None, canvas_to_im
     idx = positions.clamp(min=0).to(sel.grids.occupancy.device)
     occ = sel.grids.occupancy[idx].cpu().numpy() & ok.numpy()[:, None, None, None]
     v2img = (canvas_to_image[None] @ sel.grids.voxel_to_camera[idx].double().cpu()).numpy()
-    sur = np.full((P, 2), -1, dtype=np.int64)
-    if surrogates is not None:
-        for k, pair in enumerate(surrogates[j].tolist()):
-            sur[k] = [aid_of[x] if x >= 0 else -1 for x in pair]
+    pairs = surrogates[j].tolist() if surrogates is not None else [[-1, -1]] * P
+    sur = id_array([aid_of[x] if x >= 0 else -1 for pair in pairs for x in pair]).reshape(P, 2)
     return dict(occupancy_bits=np.packbits(occ.reshape(P, -1), axis=1), shape=np.asarray(occ.shape[1:]),
                 voxel_to_camera=v2img, valid=ok.numpy(), scores=sel.scores[j].numpy(),
                 misses=sel.misses[j].numpy(), best=np.int64(sel.best[j]), surrogates=sur)
@@ -106,7 +118,8 @@ class Writer:
             ctx = mp.get_context(start_method())
             if start_method() == "forkserver":
                 ctx.set_forkserver_preload([write_worker.__name__])
-            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=write_worker.watch_parent)
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=write_worker.watch_parent,
+                                            initargs=(os.getpid(),))
             for f in [self.pool.submit(write_worker.start_worker) for _ in range(self.workers)]:
                 f.result()
 

@@ -1,0 +1,373 @@
+"""Nothing lost, nothing escapes: valid objects are reconstructed, bad input gets a per-object reason,
+user errors one line, and nothing is written outside ``--out``.
+
+Each test builds its input from a small procedural collection (two classes of six objects) by
+editing the COCO file as a user's file could be.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from carvi_torch.config import Config, ConfigError
+from carvi_torch.executors import exit_status, run
+from carvi_torch.io.coco import load_coco
+from carvi_torch.reconstruct import main as reconstruct_main
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = {"resolution": 16, "proposals": 3, "canvas_size": 48, "progress": False, "refine_iters": 20,
+         "plane_size": 24, "preview": False}
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory) -> dict:
+    """COCO data of six procedural cars and six chairs (with gt.json and meshes beside it)."""
+    from carvi_torch.synthetic import procedural
+
+    d = tmp_path_factory.mktemp("base")
+    procedural.write_default_collection(d, instances_per_class=6, categories=["car", "chair"], seed=1,
+                                        progress=False)
+    return json.loads((d / "annotations.json").read_text())
+
+
+def _write(tmp: Path, data: dict, name="ann.json") -> Path:
+    p = tmp / name
+    p.write_text(json.dumps(data))
+    return p
+
+
+def _cfg(out: Path, data: Path, **extra) -> Config:
+    return Config().override({**SMALL, "out": str(out), "data": str(data), **extra})
+
+
+def _problems(summary: dict) -> dict:
+    return {str(p["annotation_id"]): p for p in summary["input_problems"]}
+
+
+# --------------------------------------------------------------------------- 1. fallbacks
+
+
+def test_every_object_of_a_tiny_class_is_reconstructed(base, tmp_path):
+    """Six objects per class is too few for two principal-direction clusters each: every object still
+    gets a reconstruction, and cameras.json / summary.json say which fallback made it."""
+    out = tmp_path / "run"
+    s = run(_cfg(out, _write(tmp_path, base)), workers=0)
+    for key in ("car", "chair"):
+        c = s["classes"][key]
+        assert c["reconstructed"] == c["objects"] == 6 and c["skipped"] == 0, c["failures"]
+        cams = json.loads((out / key / "cameras.json").read_text())["cameras"]
+        levels = [e["surrogates_from"] for e in cams.values()]
+        assert set(levels) <= {"triplet", "widened_clusters", "surrogate_pair", "own_mirror", "puffball"}
+        assert c["surrogates_from"]["counts"] == {lv: levels.count(lv) for lv in c["surrogates_from"]["counts"]}
+    fallbacks = {lv for key in ("car", "chair") for lv in s["classes"][key]["surrogates_from"]["fallbacks"]}
+    assert fallbacks, "this collection is small enough to need a fallback somewhere"
+
+
+def test_fallback_levels_in_order():
+    """One cluster only: widened clusters when the widening finds two; else a single surrogate; else (one
+    physical object) the own mirrored copy; without mirrors, a puffball."""
+    from carvi_torch.surrogates import Clusters, plan_proposals
+
+    axes = torch.eye(3)
+    # every instance seen along +z except two along x and y, just outside the 15 degree clusters
+    view = torch.tensor([[0.0, 0, 1]] * 6 + [[1.0, 0, 0.5], [0, 1.0, 0.5]])
+    n = len(view)
+    labels = torch.tensor([2] * 6 + [-1, -1])
+    cl = Clusters(labels, 15.0, torch.bincount(labels[labels >= 0], minlength=3))
+    usable = torch.ones(n, dtype=torch.bool)
+    g = torch.Generator().manual_seed(0)
+    trip, levels = plan_proposals(cl, torch.arange(n), usable, view, axes, 4, True, g)
+    assert set(levels) == {"widened_clusters"} and bool(trip.valid.any(dim=1).all())
+    # all seen along one axis: no second cluster even widened -> one surrogate each
+    trip, levels = plan_proposals(cl, torch.arange(n), usable, torch.tensor([[0.0, 0, 1]] * n), axes, 4, True, g)
+    assert set(levels) == {"surrogate_pair"} and bool((trip.surrogates[..., 1][trip.valid] == -1).all())
+    # one physical object: no surrogate at all -> the reference and its mirror; without mirrors a puffball
+    one = torch.zeros(n, dtype=torch.long)
+    trip, levels = plan_proposals(cl, one, usable, torch.tensor([[0.0, 0, 1]] * n), axes, 4, True, g)
+    assert set(levels) == {"own_mirror"} and bool(trip.valid[:, 0].all()) and not trip.valid[:, 1:].any()
+    _trip, levels = plan_proposals(cl, one, usable, torch.tensor([[0.0, 0, 1]] * n), axes, 4, False, g)
+    assert set(levels) == {"puffball"}
+
+
+def test_puffball_grid_matches_the_puffball_mesh():
+    """The voxelised puffball has the volume of the baseline's marching-cubes mesh of the same height field."""
+    from carvi_torch.carve.puffball import puffball_grids
+    from carvi_torch.evaluation.baselines import puffball
+
+    yy, xx = torch.meshgrid(torch.arange(48), torch.arange(48), indexing="ij")
+    mask = ((xx - 24) ** 2 / 18 ** 2 + (yy - 22) ** 2 / 10 ** 2) <= 1
+    grids = puffball_grids(mask[None], resolution=48)
+    mesh = puffball(mask)
+    assert float(grids.volumes()[0]) == pytest.approx(mesh.volume, rel=0.06)
+    # the grid's silhouette is the mask: the same area, and no occupied column farther than a pixel from it
+    from scipy import ndimage
+
+    T = grids.voxel_to_camera[0].double()
+    hw = grids.columns[0].nonzero().double()
+    x, y = T[0, 2] * hw[:, 1] + T[0, 3], T[1, 1] * hw[:, 0] + T[1, 3]
+    area = len(hw) * float(T[0, 2] * T[1, 1])
+    assert area == pytest.approx(float(mask.sum()), rel=0.08)
+    outside = ndimage.distance_transform_edt(~mask.numpy())
+    assert outside[y.round().long().numpy(), x.round().long().numpy()].max() <= 1.0
+
+
+# --------------------------------------------------------------------------- 2, 3, 4. ids and names
+
+
+def _string_ids(data: dict) -> dict:
+    d = copy.deepcopy(data)
+    cat = {c["id"]: f"cat-{c['name']}" for c in d["categories"]}
+    img = {i["id"]: f"img/{i['id']}" for i in d["images"]}
+    for c in d["categories"]:
+        c["id"] = cat[c["id"]]
+    for i in d["images"]:
+        i["id"] = img[i["id"]]
+    for a in d["annotations"]:
+        a["category_id"], a["image_id"] = cat[a["category_id"]], img[a["image_id"]]
+        a["object_id"] = f"plane {a['id']}"
+        a["id"] = f"obj/{a['id']}"
+    return d
+
+
+def test_string_ids_are_carried_to_every_output(base, tmp_path):
+    out = tmp_path / "run"
+    s = run(_cfg(out, _write(tmp_path, _string_ids(base)), classes="car"), workers=0)
+    c = s["classes"]["car"]
+    assert c["reconstructed"] == 6 and not s["input_problems"]
+    cams = json.loads((out / "car" / "cameras.json").read_text())["cameras"]
+    assert sorted(cams) == sorted(a["id"] for a in _string_ids(base)["annotations"] if a["category_id"] == "cat-car")
+    files = sorted(p.name for p in (out / "car" / "meshes").iterdir())
+    assert len(files) == 6 and all("/" not in f and not f.startswith(".") for f in files)
+    from carvi_torch.io.layout import object_file
+
+    assert all(object_file(out / "car", "meshes", a, "ply").is_file() for a in cams)
+
+
+@pytest.mark.parametrize("bad, why", [(None, "null"), (3.5, "a float"), (True, "a boolean"), ("", "")])
+def test_unusable_ids_skip_their_object(base, tmp_path, bad, why):
+    d = copy.deepcopy(base)
+    d["annotations"][0]["id"] = bad
+    d["annotations"][1]["id"] = d["annotations"][2]["id"]  # a duplicate
+    res = load_coco(_write(tmp_path, d), canvas_size=48)
+    reasons = [p.reason for p in res.problems]
+    assert any("not an integer or a string" in r and why in r for r in reasons), reasons
+    assert any("duplicate annotation id" in r for r in reasons)
+    assert sum(len(c) for c in res.collections.values()) == len(d["annotations"]) - 2
+
+
+def test_two_categories_of_one_name_are_two_classes(base, tmp_path):
+    d = copy.deepcopy(base)
+    chair = next(c for c in d["categories"] if c["name"] == "chair")
+    chair["name"] = "car"
+    out = tmp_path / "run"
+    s = run(_cfg(out, _write(tmp_path, d)), workers=0)
+    assert len(s["classes"]) == 2 and sum(c["reconstructed"] for c in s["classes"].values()) == 12
+    names = sorted(json.loads((out / k / "cameras.json").read_text())["class"] for k in s["classes"])
+    assert names == ["car", "car"] and sorted(s["classes"])[0] == "car"
+
+
+@pytest.mark.parametrize("name", ["../../evil", "/abs/path", "a/b", ".", "", "..", "~root"])
+def test_category_names_never_leave_the_output_folder(base, tmp_path, name):
+    d = copy.deepcopy(base)
+    d["categories"][0]["name"] = name
+    d["annotations"] = [a for a in d["annotations"] if a["category_id"] == d["categories"][0]["id"]]
+    root = tmp_path / "root"
+    out = root / "deep" / "out"
+    out.parent.mkdir(parents=True)
+    before = sorted(p for p in tmp_path.rglob("*"))
+    s = run(_cfg(out, _write(root, d)), workers=0)
+    (key,) = s["classes"]
+    assert s["classes"][key]["reconstructed"] == 6
+    assert (out / key / "cameras.json").is_file() and (out / key).resolve().parent == out.resolve()
+    assert json.loads((out / key / "cameras.json").read_text())["class"] == name
+    new = [p for p in tmp_path.rglob("*") if p not in before]
+    assert all(p == out or out in p.parents or p == root / "ann.json" for p in new), new
+    assert not Path("/abs/path").exists()
+
+
+# --------------------------------------------------------------------------- 6, 7. sizes and masks
+
+
+def test_a_huge_image_is_skipped_not_a_crash(base, tmp_path):
+    d = copy.deepcopy(base)
+    a = d["annotations"][0]
+    im = next(i for i in d["images"] if i["id"] == a["image_id"])
+    im["width"] = im["height"] = 100000
+    a["segmentation"] = [[10.0, 10.0, 90000.0, 10.0, 90000.0, 90000.0]]
+    res = load_coco(_write(tmp_path, d), canvas_size=48)
+    p = next(p for p in res.problems if p.annotation_id == a["id"])
+    assert "100000x100000" in p.reason and "max_image_pixels" in p.reason
+    with pytest.raises(ConfigError, match="canvas_size"):
+        Config().override({"canvas_size": 5000})
+
+
+def test_uncompressed_rle_counts_must_cover_the_image(base, tmp_path):
+    d = copy.deepcopy(base)
+    a = d["annotations"][0]
+    im = next(i for i in d["images"] if i["id"] == a["image_id"])
+    a["segmentation"] = {"size": [im["height"], im["width"]], "counts": [10, 20, 30]}
+    res = load_coco(_write(tmp_path, d), canvas_size=48)
+    p = next(p for p in res.problems if p.annotation_id == a["id"])
+    assert "sum to 60" in p.reason and p.fatal
+
+
+@pytest.mark.parametrize("value, skipped", [("no", False), ("false", False), (0, False), ("yes", True),
+                                            (True, True), ("maybe", True)])
+def test_yes_no_flags(base, tmp_path, value, skipped):
+    d = copy.deepcopy(base)
+    d["annotations"][0]["truncated"] = value
+    res = load_coco(_write(tmp_path, d), canvas_size=48)
+    hit = [p for p in res.problems if p.annotation_id == d["annotations"][0]["id"]]
+    assert bool(hit) == skipped, hit
+
+
+# --------------------------------------------------------------------------- 8, 10, 11. resume
+
+
+def test_resume_redoes_damaged_outputs_and_merges_partial_runs(base, tmp_path):
+    data = _write(tmp_path, base)
+    out = tmp_path / "run"
+    first = run(_cfg(out, data, classes="car"), workers=0)
+    assert list(first["classes"]) == ["car"]
+    meshes = sorted((out / "car" / "meshes").glob("*.ply"))
+    voxels = sorted((out / "car" / "voxels").glob("*.npz"))
+    meshes[0].write_bytes(meshes[0].read_bytes()[:300])
+    voxels[1].write_bytes(voxels[1].read_bytes()[:200])
+    second = run(_cfg(out, data, classes="chair"), workers=0)
+    assert sorted(second["classes"]) == ["car", "chair"]  # the earlier run's class is kept
+    assert second["classes_from_earlier_runs"] == ["car"]
+    again = run(_cfg(out, data, classes="car"), workers=0)["classes"]["car"]
+    assert again["resumed"] == 4 and again["reconstructed"] == 2
+    assert len(trimesh.load(meshes[0], force="mesh").faces) > 0 and np.load(voxels[1])["occupancy"].any()
+
+
+def test_a_killed_run_leaves_no_process_running(base, tmp_path):
+    """SIGKILL of the main process while its writer processes work: they notice and exit."""
+    marker = uuid.uuid4().hex
+    code = ("import sys, json; from carvi_torch.config import Config; from carvi_torch.executors import run; "
+            "run(Config().override(json.loads(sys.argv[3]) | {'out': sys.argv[1], 'data': sys.argv[2]}), workers=2)")
+    settings = json.dumps({**SMALL, "resolution": 40, "proposals": 20})
+    env = dict(os.environ, CARVI_TEST_MARKER=marker)
+    proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "run"), str(_write(tmp_path, base)),
+                             settings], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def marked() -> list[int]:
+        pids = []
+        for p in Path("/proc").iterdir():
+            try:
+                if p.name.isdigit() and marker.encode() in (p / "environ").read_bytes():
+                    pids.append(int(p.name))
+            except OSError:
+                continue
+        return pids
+
+    for _ in range(600):  # wait for the writer processes (the main process plus at least two)
+        if len(marked()) >= 3 or proc.poll() is not None:
+            break
+        time.sleep(0.1)
+    assert proc.poll() is None and len(marked()) >= 3, "the run ended before its writers were seen"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    for _ in range(100):
+        if not marked():
+            break
+        time.sleep(0.1)
+    left = marked()
+    for pid in left:
+        os.kill(pid, signal.SIGKILL)
+    assert not left, f"processes of the killed run still running: {left}"
+
+
+# --------------------------------------------------------------------------- 12, 13. errors and exit status
+
+
+@pytest.mark.parametrize("args, why", [(["device=tpu"], "device"), (["device=banana"], "device"),
+                                       (["device=mps"], "device"), (["--data", "missing.json"], "no such file"),
+                                       (["silhouette_weight=nan"], "silhouette_weight"),
+                                       (["resolutoin=40"], "did you mean 'resolution'")])
+def test_user_errors_are_one_line_and_write_nothing(tmp_path, capsys, args, why):
+    out = tmp_path / "out"
+    rc = reconstruct_main(["--out", str(out), "--quiet", *args])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error:") and why in err[0], err
+    assert not out.exists()
+
+
+def test_an_output_folder_that_is_a_file_or_under_one(tmp_path, capsys):
+    f = tmp_path / "file"
+    f.write_text("x")
+    for out in (f, f / "sub"):
+        assert reconstruct_main(["--out", str(out), "--quiet"]) == 2
+        assert "is a file" in capsys.readouterr().err
+    assert f.read_text() == "x"
+
+
+def test_exit_status_says_when_nothing_came_out(base, tmp_path):
+    d = copy.deepcopy(base)
+    for a in d["annotations"]:
+        a["truncated"] = True
+    data = _write(tmp_path, d)
+    rc = reconstruct_main(["--data", str(data), "--out", str(tmp_path / "o"), "--quiet", "preview=false"])
+    assert rc == 1
+    assert exit_status({"classes": {"car": {"reconstructed": 0, "resumed": 3}}}) == 0
+    assert exit_status({"classes": {"car": {"reconstructed": 5, "status": "failed"}}}) == 1
+
+
+def test_files_take_the_umask(base, tmp_path):
+    code = ("import os, sys; os.umask(0o022); from carvi_torch.io.outputs import write_json; "
+            "write_json(sys.argv[1], {'a': 1}); print(oct(os.stat(sys.argv[1]).st_mode & 0o777))")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "x.json")], capture_output=True, text=True)
+    assert out.stdout.strip() == "0o644", out.stderr
+
+
+def test_export_finds_the_runs_data_and_names_a_broken_shard(base, tmp_path, monkeypatch):
+    from carvi_torch.export import export
+    from carvi_torch.training import LiftedDataset
+
+    work = tmp_path / "work"
+    work.mkdir()
+    _write(work, base)
+    monkeypatch.chdir(work)
+    s = run(_cfg(work / "run", Path("ann.json"), classes="car"), workers=0)
+    assert Path(s["data"]).is_absolute()
+    monkeypatch.chdir(tmp_path)  # another folder: the relative path must not be read from here
+    index = export(work / "run", tmp_path / "export", resolution=8, points=32, progress=False)
+    assert len(index["samples"]) == 6
+    shard = tmp_path / "export" / index["shards"][0]["name"] / "mask.npy"
+    shard.write_bytes(b"broken")
+    with pytest.raises(OSError, match="mask.npy"):
+        LiftedDataset(tmp_path / "export")[0]
+
+
+# --------------------------------------------------------------------------- 14, 15. CLI and logging
+
+
+def test_one_cli_and_a_log(base, tmp_path):
+    carvi = [sys.executable, "-m", "carvi_torch.cli"]
+    v = subprocess.run(carvi + ["--version"], capture_output=True, text=True)
+    assert v.returncode == 0 and v.stdout.startswith("carvi_torch ")
+    for cmd in ("reconstruct", "evaluate", "export", "datasets"):
+        h = subprocess.run(carvi + [cmd, "--help"], capture_output=True, text=True)
+        assert h.returncode == 0 and (cmd == "datasets" or "--classes" in h.stdout), (cmd, h.stderr)
+    data = _write(tmp_path, base)
+    out = tmp_path / "run"
+    r = subprocess.run(carvi + ["reconstruct", "--data", str(data), "--out", str(out), "--classes", "car",
+                                "sfm_max_outer=2", "resolution=16", "proposals=3", "canvas_size=48", "preview=false"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    # a warning that reaches summary.json also reaches the terminal, the log and the table
+    assert "SfM stopped at its iteration limits" in r.stderr
+    assert "SfM stopped at its iteration limits" in (out / "run.log").read_text()
+    assert "warnings" in r.stdout.splitlines()[0] and "warning: sfm:" in r.stdout
