@@ -1,150 +1,428 @@
-"""Tests of carvi_torch.carve.native: the compiled CPU carving kernel and the ``backend`` choice.
+"""Tests of the native carving kernel (``carvi_torch.carve.native``, ``kernels/carve_native.cpp``).
 
-References: ``torch.nn.functional.grid_sample`` (the kernel's bilinear sample, bit for bit), the
-torch backend of :func:`carvi_torch.carve.carve_proposals` and the per-proposal loop (labels
-voxel for voxel, on random blobs and on the real PASCAL VOC aeroplanes), a count of the samples
-dense carving reads (the kernel must read fewer). The kernel is built with the machine's C
-compiler; where none works, the tests that need it skip and say why (``backend="auto"`` then
-runs torch, which the fallback test checks in a child process).
+References: ``grid_sample`` (samples bit for bit), the torch carving and the per-proposal loop (labels
+voxel for voxel, on random blobs, steep maps and the real PASCAL VOC aeroplanes), a count of the samples
+dense carving reads. The loader's checks are tested white-box (its private build and check functions). The cache's
+rules (private directory, owner, mode and SHA-256 of a library checked before it is loaded, atomic and
+concurrent builds) and the fallbacks without a compiler run in child processes with their own caches:
+a library that fails a check must be rebuilt, never loaded (a truncated one could kill the process).
 """
 from __future__ import annotations
 
+import hashlib
+import importlib
 import json
 import os
+import shutil
+import stat
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import pytest
 import torch
 
+from carvi_torch.cameras import ScaledOrthographic, random_rotations
 from carvi_torch.carve import carve_proposals, carve_proposals_loop, prepare_maps
-from carvi_torch.carve import native as carve_fused
 from carvi_torch.carve.torch_backend import grid_sample_maps, kernel_inputs
 from carvi_torch.config import Config, ConfigError
 from carvi_torch.sdf import signed_distance
 from test_carve import blob_masks, random_cameras, random_proposals
 
-ROOT = Path(__file__).resolve().parents[1]
+MODULE = "carvi_torch.carve.native"
+native = importlib.import_module(MODULE)
+ROOT = Path(sys.modules["carvi_torch"].__file__).resolve().parents[1]
 
-needs_kernel = pytest.mark.skipif(not carve_fused.available(),
-                                  reason=f"fused kernel unavailable: {carve_fused.unavailable_reason()}")
-
-
-def _reference(ext, k, scale, grid):
-    """``grid_sample`` of map ``k`` scaled, as the torch carving calls it."""
-    return grid_sample_maps((ext[k] * scale)[None, None], grid.view(1, 1, -1, 2)).view(-1)
+needs_kernel = pytest.mark.skipif(not native.available(), reason=f"kernel unavailable: {native.unavailable_reason()}")
 
 
-def _kernel_inputs(seed: int, n: int, **kw):
-    """What :func:`carve_fused.carve_labels` takes, for random proposals (``random_proposals(**kw)``)."""
+def _problem(seed: int, n: int, M: int = 8, B: int = 12, V: int = 4, size: int = 32, steep: bool = False):
+    """Random blob silhouettes and cameras: ``(maps, reference, views, (ext, slots, scale, G, column_cost))``."""
     gen = torch.Generator().manual_seed(seed)
-    sdf, cams, reference, views = random_proposals(gen, **kw)
-    return kernel_inputs(prepare_maps(sdf, cams), reference, views, n)[:5]
+    yy, xx = torch.meshgrid(torch.arange(size, dtype=torch.float32), torch.arange(size, dtype=torch.float32),
+                            indexing="ij")
+    centre = size / 3 + size / 3 * torch.rand(M, 2, generator=gen)
+    radius = size / 8 + size / 8 * torch.rand(M, 2, generator=gen)
+    sdf = torch.sqrt(((xx - centre[:, 0, None, None]) / radius[:, 0, None, None]) ** 2
+                     + ((yy - centre[:, 1, None, None]) / radius[:, 1, None, None]) ** 2) * 5 - 5
+    if steep:
+        sdf = sdf + 4.0 * torch.randn(sdf.shape, generator=gen)
+    cams = ScaledOrthographic(random_rotations(M, generator=gen).float(), 1 + 0.2 * torch.rand(M, generator=gen),
+                              centre.clone())
+    maps = prepare_maps(sdf, cams)
+    reference = torch.randint(0, M, (B,), generator=gen)
+    views = torch.stack([(reference + 1 + torch.randint(0, M - 1, (B,), generator=gen)) % M for _ in range(V)], 1)
+    views[::3, -1] = -1  # unused slots
+    return maps, reference, views, kernel_inputs(maps, reference, views, n)[:5]
 
 
-# --------------------------------------------------------------------------- sample
+# --------------------------------------------------------------------------- samples and labels
+
+
+def test_available_says_why_not():
+    assert isinstance(native.available(), bool)
+    assert (native.unavailable_reason() is None) == native.available()
+    assert native.variant() in ({"fma", "plain"} if native.available() else {None})
 
 
 @needs_kernel
 @pytest.mark.parametrize("size", [(2, 2), (5, 9), (64, 48), (161, 143)])
 def test_sample_equals_grid_sample_bit_for_bit(size):
     gen = torch.Generator().manual_seed(sum(size))
-    H, W = size
-    ext = torch.randn(3, H, W, generator=gen) * 30
-    ext[2] = torch.randn(H, W, generator=gen) * 1e6  # large values, as empty masks' maps hold
-    grid = torch.rand(50000, 2, generator=gen) * 2.6 - 1.3  # inside, on and beyond the border
-    grid[:2000] = torch.round(grid[:2000] * 16) / 16  # pixel centres, edges and the border itself
-    grid[2000:2010] = torch.tensor([[-1.0, -1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [0.0, 0.0],
-                                    [1.0, 0.3], [0.3, 1.0], [-1.0, 0.3], [1.5, 1.5], [-1.5, -1.5]])
+    ext = torch.randn(3, *size, generator=gen) * 30
+    ext[2] = torch.randn(size, generator=gen) * 1e6
+    grid = torch.rand(50000, 2, generator=gen) * 2.6 - 1.3
+    grid[:2000] = torch.round(grid[:2000] * 16) / 16
     for k in range(3):
         for scale in (1.0, 0.37, 2.9):
-            got, want = carve_fused.sample(ext, k, scale, grid), _reference(ext, k, scale, grid)
-            assert torch.equal(got, want), (k, scale, int((got != want).sum()))
+            want = grid_sample_maps((ext[k] * scale)[None, None], grid.view(1, 1, -1, 2)).view(-1)
+            assert torch.equal(native.sample(ext, k, scale, grid), want)
 
 
 @needs_kernel
-def test_sample_shapes_and_known_values():
-    ext = torch.tensor([[[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]]])  # (1, 2, 3)
-    grid = torch.tensor([[-1.0, -1.0], [1.0, 1.0], [0.0, 0.0], [0.0, -1.0], [5.0, 5.0]])
-    out = carve_fused.sample(ext, 0, 2.0, grid)
-    assert out.shape == (5,) and out.dtype == torch.float32
-    # corners, the centre (mean of the four middle pixels' bilinear mix), an edge midpoint, border
-    assert out.tolist() == pytest.approx([0.0, 10.0, 5.0, 2.0, 10.0])
-
-
-def test_variant_is_known():
-    assert carve_fused.variant() in ({"fma", "plain"} if carve_fused.available() else {None})
-    assert (carve_fused.unavailable_reason() is None) == carve_fused.available()
-
-
-# --------------------------------------------------------------------------- labels
-
-
-@needs_kernel
-@pytest.mark.parametrize("imprint, n", [(True, 14), (False, 14), (True, 9), (True, 23)])
-def test_fused_labels_equal_torch_and_loop_voxel_for_voxel(imprint, n):
-    gen = torch.Generator().manual_seed(6 + n)
-    sdf, cams, reference, views = random_proposals(gen, M=8, B=16, V=4, size=32)
-    torch_out = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint, backend="torch")
-    fused = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint, backend="fused")
-    loop = carve_proposals_loop(sdf, cams, reference, views, resolution=n, imprint=imprint)
-    for out in (torch_out, loop):
-        assert torch.equal(fused.occupancy, out.occupancy)
-        assert torch.equal(fused.empty, out.empty)
-        assert torch.equal(fused.voxel_to_camera, out.voxel_to_camera)
-        assert torch.equal(fused.reference_columns, out.reference_columns)
-        assert torch.equal(fused.column_cost, out.column_cost)
-    assert torch.equal(fused.columns, torch_out.columns)
-    assert fused.occupancy.any() and bool(fused.empty[3])  # something carved; the empty reference stays empty
-    assert fused.cost is None
+@pytest.mark.parametrize("imprint, n, steep", [(True, 14, False), (False, 14, False), (True, 9, True),
+                                               (True, 23, False), (False, 17, True)])
+def test_labels_equal_the_torch_carving(imprint, n, steep):
+    maps, reference, views, inputs = _problem(6 + n, n, steep=steep)
+    want = carve_proposals(maps, None, reference, views, resolution=n, imprint=imprint,
+                                               backend="torch")
+    occ, columns, nonempty, samples = native.carve_labels(*inputs, n, imprint)
+    B = len(reference)
+    assert occ.dtype == columns.dtype == nonempty.dtype == torch.bool and samples.dtype == torch.int64
+    assert occ.shape == (B, n, n * n) and columns.shape == (B, n * n) and nonempty.shape == (B,)
+    assert torch.equal(occ.view(B, n, n, n), want.occupancy) and torch.equal(~nonempty, want.empty)
+    assert torch.equal(columns.view(B, n, n), want.columns)
+    assert want.occupancy.any()
 
 
 @needs_kernel
-def test_fused_labels_on_steep_maps_and_many_proposals():
-    """Maps that are not distance maps (steep noise), many views, odd sizes: still the torch labels."""
-    for seed in range(3):
-        gen = torch.Generator().manual_seed(40 + seed)
-        sdf, cams, reference, views = random_proposals(gen, M=10, B=24, V=7, size=27)
-        sdf = sdf + 4.0 * torch.randn(sdf.shape, generator=gen)
-        for imprint in (True, False):
-            a = carve_proposals(sdf, cams, reference, views, resolution=17, imprint=imprint, backend="torch")
-            b = carve_proposals(sdf, cams, reference, views, resolution=17, imprint=imprint, backend="fused")
-            assert torch.equal(a.occupancy, b.occupancy) and torch.equal(a.columns, b.columns)
-            assert torch.equal(a.empty, b.empty)
-
-
-@needs_kernel
-def test_fused_reads_fewer_samples_than_dense_carving():
-    n = 20
-    ext, slots, scale, G, column_cost = _kernel_inputs(3, n, M=8, B=16, V=4, size=32)
-    occ, columns, nonempty, samples = carve_fused.carve_labels(ext, slots, scale, G, column_cost, n, imprint=False)
-    fg = (column_cost < 0).sum(1)
-    dense = fg * (slots >= 0).sum(1) * n  # what the torch backend samples: every view at every foreground voxel
-    interior = occ.flatten(1).sum(1)
-    used = (slots >= 0).sum(1)
-    assert (samples <= dense).all() and samples.sum() < 0.9 * dense.sum()
-    # an interior voxel needs every view; an exterior foreground voxel at least one (when there is a view)
-    assert (samples >= interior * used + (fg * n - interior) * (used > 0)).all()
-    assert torch.equal(nonempty, occ.flatten(1).any(1)) and torch.equal(columns, occ.any(1))
-
-
-@needs_kernel
-@pytest.mark.parametrize("threads", [1, 2, 5])
+@pytest.mark.parametrize("threads", [1, 2])
 def test_threads_do_not_change_the_labels(threads):
     n = 15
-    ext, slots, scale, G, cc = _kernel_inputs(11, n, M=8, B=13, V=4, size=32)
-    one = carve_fused.carve_labels(ext, slots, scale, G, cc, n, True, threads=1)
-    many = carve_fused.carve_labels(ext, slots, scale, G, cc, n, True, threads=threads)
+    maps, reference, views, inputs = _problem(11, n, B=13)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = native.carve_labels(*inputs, n, True)
+        torch.set_num_threads(threads)
+        many = native.carve_labels(*inputs, n, True)
+    finally:
+        torch.set_num_threads(before)
     for a, b in zip(one, many):
         assert torch.equal(a, b)
+    want = carve_proposals(maps, None, reference, views, resolution=n, backend="torch")
+    assert torch.equal(many[0].view(want.occupancy.shape), want.occupancy)
 
 
-def test_ranges_split_by_weight():
-    r = carve_fused._ranges([5, 1, 1, 1, 1, 1, 5], 2)
-    assert r[0][0] == 0 and r[-1][1] == 7 and all(a[1] == b[0] for a, b in zip(r, r[1:]))
-    assert carve_fused._ranges([3, 3], 1) == [(0, 2)] and carve_fused._ranges([0, 0], 4) == [(0, 2)]
-    assert len(carve_fused._ranges([1] * 10, 3)) == 3
+@needs_kernel
+def test_the_last_map_is_read_safely_and_non_contiguous_inputs_are_copied():
+    n = 14
+    _, _, _, (ext, slots, scale, G, cc) = _problem(8, n)
+    last = ext.shape[0] - 1
+    slots = torch.where(slots >= 0, torch.full_like(slots, last), slots)
+    ext = ext.clone()
+    ext[last] = ext[0]
+    a = native.carve_labels(ext, slots, scale, G, cc, n, True)
+    b = native.carve_labels(torch.cat([ext, torch.zeros_like(ext[:1])]), slots, scale, G, cc, n, True)
+    c = native.carve_labels(ext, slots.t().contiguous().t(), scale, G, cc, n, True)  # transposed twice: strided
+    for x, y, z in zip(a, b, c):
+        assert torch.equal(x, y) and torch.equal(x, z)
+
+
+@needs_kernel
+def test_the_other_variant_carves_too():
+    n = 12
+    _, _, _, inputs = _problem(21, n)
+    other = "plain" if native.variant() == "fma" else "fma"
+    if other == "fma" and not native.operators().has_fma():
+        pytest.skip("no AVX2/FMA here")
+    chosen, alt = native.carve_labels(*inputs, n, True), native.carve_labels(*inputs, n, True, variant=other)
+    assert torch.equal(chosen[1], alt[1]) and torch.equal(chosen[2], alt[2])
+    with pytest.raises(ValueError, match="variant"):
+        native.carve_labels(*inputs, n, True, variant="avx512")
+
+
+@needs_kernel
+def test_the_portable_build_carves_like_the_x86_one(tmp_path):
+    """The code for processors without AVX2 (``CARVI_NO_X86``: what aarch64 compiles, and MSVC) builds,
+    gives the plain variant's labels, and refuses the fma variant instead of running AVX2 code."""
+    d = native._private_dir(tmp_path / "kernels")
+    namespace = f"carvi_portable_{native._key()}"  # its own namespace: loading it beside the x86 one is safe
+    path = d / f"{namespace}.so"
+    with native._dir_lock(d, exclusive=True):
+        native._build(path, namespace, ("-DCARVI_NO_X86",))
+    assert native._rejected(path) is None
+    torch.ops.load_library(str(path))
+    ops = getattr(torch.ops, namespace)
+    assert ops.has_fma() is False
+    n = 13
+    inputs = _problem(14, n)[3]
+    want = native.carve_labels(*inputs, n, True, variant="plain")
+    for x, y in zip(want, ops.carve_labels(*inputs, n, True, False)):
+        assert torch.equal(x, y)
+    with pytest.raises(ValueError, match="needs a processor with AVX2 and FMA"):
+        ops.carve_labels(*inputs, n, True, True)
+
+
+# --------------------------------------------------------------------------- input checks at the operator
+
+
+@needs_kernel
+def test_every_input_is_checked():
+    n = 10
+    ext, slots, scale, G, cc = _problem(9, n)[3]
+    B = slots.shape[0]
+    cases = [
+        (TypeError, "views must be Long", (ext, slots.float(), scale, G, cc, n)),
+        (TypeError, "ext must be Float", (ext.double(), slots, scale, G, cc, n)),
+        (TypeError, "G must be Float", (ext, slots, scale, G.half(), cc, n)),
+        (ValueError, "CPU tensors; ext", (ext.to("meta"), slots, scale, G, cc, n)),
+        (ValueError, "CPU tensors; views", (ext, slots.to("meta"), scale, G, cc, n)),
+        (ValueError, "ext must have 3 dimensions", (ext[0], slots, scale, G, cc, n)),
+        (ValueError, "scale, G, column_cost", (ext, slots, scale, G, cc[:, :-1], n)),
+        (ValueError, "scale, G, column_cost", (ext, slots, scale[:-1], G, cc, n)),
+        (ValueError, "scale, G, column_cost", (ext, slots, scale, G[..., :3], cc, n)),
+        (ValueError, "views must index", (ext, torch.full_like(slots, ext.shape[0]), scale, G, cc, n)),
+        (ValueError, "views must index", (ext, torch.full_like(slots, -2), scale, G, cc, n)),
+        (ValueError, "at least one pixel", (ext[:, :0], slots, scale, G, cc, n)),
+        (ValueError, "resolutions 1 to 2048", (ext, slots, scale, G, cc, 0)),
+        (ValueError, "resolutions 1 to 2048", (ext, slots, scale, G, cc, 2049)),
+        (ValueError, "at most 64 view slots",
+         (ext, torch.full((B, 65), -1), torch.ones(B, 65), torch.zeros(B, 65, 2, 4), cc, n)),
+    ]
+    for exc, match, args in cases:
+        with pytest.raises(exc, match=match):
+            native.carve_labels(*args, True)
+
+
+@needs_kernel
+def test_the_operators_check_what_the_wrapper_would_fix():
+    """Called directly (no Python wrapper), the operators refuse what they cannot read safely."""
+    ops = native.operators()
+    ext, slots, scale, G, cc = _problem(9, 10)[3]
+    with pytest.raises(ValueError, match="views must be contiguous"):
+        ops.carve_labels(ext, slots.t().contiguous().t(), scale, G, cc, 10, True, False)
+    with pytest.raises(ValueError, match="map 5 of"):
+        ops.sample(ext[:5], 5, 1.0, torch.zeros(3, 2), False)
+    with pytest.raises(ValueError, match="grid must be"):
+        ops.sample(ext, 0, 1.0, torch.zeros(3, 3), False)
+    with pytest.raises(ValueError, match="a line has 1 to 2048"):
+        ops.line(ext, 0, 1.0, 0.1, 0.1, 0.0, 0.0, 0, False)
+    with pytest.raises(ValueError, match="map -1 of"):
+        ops.line(ext, -1, 1.0, 0.1, 0.1, 0.0, 0.0, 5, False)
+
+
+# --------------------------------------------------------------------------- the cache, in child processes
+
+
+_CHILD = """
+import json, os, sys, importlib
+native = importlib.import_module(sys.argv[1])
+ok = native.available()
+path = native.library_path()
+print(json.dumps(dict(ok=ok, reason=native.unavailable_reason(), path=str(path),
+                      rebuilt=native.status()["rebuilt"], mtime=path.stat().st_mtime_ns if path.exists() else None)))
+"""
+
+
+def _run_child(cache: Path, **env_extra) -> tuple[int, dict | None, str]:
+    env = dict(os.environ, CARVI_TORCH_CACHE=str(cache), PYTHONPATH=str(ROOT))
+    env.update(env_extra)
+    proc = subprocess.run([sys.executable, "-c", _CHILD, MODULE], env=env, capture_output=True, text=True,
+                          timeout=600)
+    lines = proc.stdout.strip().splitlines()
+    return proc.returncode, (json.loads(lines[-1]) if proc.returncode == 0 and lines else None), proc.stderr
+
+
+@pytest.fixture(scope="module")
+def built_cache(tmp_path_factory) -> Path:
+    """A cache in which a child process built the library (copied by the tests that tamper with it)."""
+    if not native.available():
+        pytest.skip(f"kernel unavailable: {native.unavailable_reason()}")
+    cache = tmp_path_factory.mktemp("built")
+    rc, res, err = _run_child(cache)
+    assert rc == 0 and res["ok"], err
+    return cache
+
+
+def _copy_cache(src: Path, dst: Path) -> Path:
+    """``dst`` holding a copy of ``src``'s kernels (modes kept); the library's path in it."""
+    shutil.copytree(src / "kernels", dst / "kernels")
+    lib = [p for p in (dst / "kernels").iterdir() if p.suffix == ".so"]
+    assert len(lib) == 1
+    return lib[0]
+
+
+def _assert_rebuilt(cache: Path, lib: Path, tampered: bytes | None, why: str) -> None:
+    """A child process finds the library rejected for ``why``, rebuilds it (no crash) and uses it."""
+    rc, res, err = _run_child(cache)
+    assert rc == 0, f"child died ({rc}): {err[-2000:]}"
+    assert res["ok"] and res["path"] == str(lib), res
+    assert res["rebuilt"] is not None and why in res["rebuilt"], res
+    assert tampered is None or lib.read_bytes() != tampered
+    assert (lib.parent / (lib.name + ".sha256")).read_text().strip() == hashlib.sha256(lib.read_bytes()).hexdigest()
+    assert not stat.S_IMODE(lib.stat().st_mode) & 0o022
+    assert not [p for p in lib.parent.iterdir() if p.name.startswith(".build-")]
+
+
+@needs_kernel
+def test_a_fresh_cache_is_private_and_the_library_is_reused(tmp_path, built_cache):
+    kernels = built_cache / "kernels"
+    assert stat.S_IMODE(kernels.stat().st_mode) == 0o700
+    lib = [p for p in kernels.iterdir() if p.suffix == ".so"][0]
+    assert not stat.S_IMODE(lib.stat().st_mode) & 0o077
+    assert (kernels / (lib.name + ".sha256")).read_text().strip() == hashlib.sha256(lib.read_bytes()).hexdigest()
+    copy = _copy_cache(built_cache, tmp_path)
+    mtime = copy.stat().st_mtime_ns
+    rc, res, err = _run_child(tmp_path)
+    assert rc == 0 and res["ok"] and res["rebuilt"] is None and res["mtime"] == mtime, (res, err)
+    os.chmod(tmp_path / "kernels", 0o777)  # a cache directory of ours opened up: closed again
+    rc, res, err = _run_child(tmp_path)
+    assert rc == 0 and res["ok"] and stat.S_IMODE((tmp_path / "kernels").stat().st_mode) == 0o700, err
+
+
+def _planted_library(tmp_path: Path, marker: Path) -> bytes:
+    """A shared library that, when loaded, writes ``marker`` (built with ``cc``; the test skips without it)."""
+    src = tmp_path / "planted.c"
+    src.write_text(textwrap.dedent(f"""
+        #include <stdio.h>
+        __attribute__((constructor)) static void planted(void) {{
+            FILE *f = fopen("{marker}", "w"); if (f) {{ fputs("loaded", f); fclose(f); }}
+        }}
+    """))
+    out = tmp_path / "planted.so"
+    try:
+        subprocess.run(["cc", "-shared", "-fPIC", "-o", str(out), str(src)], check=True, capture_output=True)
+    except (OSError, subprocess.CalledProcessError) as exc:
+        pytest.skip(f"no C compiler to build the planted library: {exc}")
+    return out.read_bytes()
+
+
+@needs_kernel
+def test_a_planted_library_is_rebuilt_not_loaded(tmp_path, built_cache):
+    """A library of another owner, mode 0777, with a matching hash beside it: rebuilt, its constructor never runs."""
+    marker = tmp_path / "marker"
+    planted = _planted_library(tmp_path, marker)
+    cache = tmp_path / "cache"
+    lib = _copy_cache(built_cache, cache)
+    lib.write_bytes(planted)  # with a matching sidecar: only the owner or the mode gives it away
+    (lib.parent / (lib.name + ".sha256")).write_text(hashlib.sha256(planted).hexdigest() + "\n")
+    os.chmod(lib, 0o777)
+    why = "writable by others"
+    if os.getuid() == 0:
+        os.chown(lib, 12345, 12345)
+        why = "belongs to uid 12345"
+    _assert_rebuilt(cache, lib, planted, why)
+    assert not marker.exists(), "the planted library was loaded"
+
+
+@needs_kernel
+@pytest.mark.parametrize("damage", ["truncated", "sidecar mode 0666"])
+def test_a_damaged_cache_entry_is_rebuilt_without_a_crash(tmp_path, built_cache, damage):
+    lib = _copy_cache(built_cache, tmp_path)
+    sidecar = lib.parent / (lib.name + ".sha256")
+    before, tampered = lib.read_bytes(), None
+    if damage == "truncated":  # a dlopen of this could SIGBUS: the hash check must come first
+        assert len(before) // 2 >= 1000
+        tampered = before[: len(before) // 2]
+        lib.write_bytes(tampered)
+        why = "SHA-256"
+    elif damage == "wrong hash":
+        sidecar.write_text("0" * 64 + "\n")
+        why = "SHA-256"
+    elif damage == "missing hash":
+        sidecar.unlink()
+        why = "missing"
+    else:
+        os.chmod(sidecar, 0o666)
+        why = "writable by others"
+    _assert_rebuilt(tmp_path, lib, tampered, why)
+
+
+@needs_kernel
+def test_a_cache_directory_of_another_user_is_not_used(tmp_path):
+    if os.getuid() != 0:
+        pytest.skip("changing a directory's owner needs root")
+    (tmp_path / "kernels").mkdir(mode=0o700)
+    os.chown(tmp_path / "kernels", 12345, 12345)
+    rc, res, err = _run_child(tmp_path)
+    assert rc == 0 and res["ok"] is False and "belongs to uid 12345" in res["reason"], (res, err)
+
+
+@needs_kernel
+def test_two_processes_building_at_once(tmp_path):
+    env = dict(os.environ, CARVI_TORCH_CACHE=str(tmp_path), PYTHONPATH=str(ROOT))
+    procs = [subprocess.Popen([sys.executable, "-c", _CHILD, MODULE], env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
+    res = [json.loads(o[0].strip().splitlines()[-1]) for o in outs]
+    assert all(r["ok"] for r in res) and sum(r["rebuilt"] is not None for r in res) == 1, res
+    files = sorted(p.name for p in (tmp_path / "kernels").iterdir())
+    lib = Path(res[0]["path"])
+    assert files == sorted([".lock", lib.name, lib.name + ".sha256"]), files
+    assert (lib.parent / (lib.name + ".sha256")).read_text().strip() == hashlib.sha256(lib.read_bytes()).hexdigest()
+
+
+@pytest.mark.parametrize("how", ["CXX=/nonexistent", "empty PATH"])
+def test_without_a_compiler_the_kernel_is_unavailable_with_the_reason(tmp_path, how):
+    extra = {"CXX": "/nonexistent/c++"} if how.startswith("CXX") else {"PATH": "", "CXX": ""}
+    rc, res, err = _run_child(tmp_path, **extra)
+    assert rc == 0, err
+    assert res["ok"] is False and "compiler" in res["reason"], res
+    assert ("/nonexistent/c++" if how.startswith("CXX") else "c++") in res["reason"]
+    assert not list(tmp_path.rglob("*.so")) and not list(tmp_path.rglob(".build-*"))
+
+
+# --------------------------------------------------------------------------- processes and threads
+
+
+def _carve_in_forked_child(queue, args):
+    torch.set_num_threads(1)
+    queue.put([t.numpy().copy() for t in native.carve_labels(*args)])
+
+
+@needs_kernel
+def test_a_forked_child_carves_as_torch_operators_do():
+    """No fork handling: the kernel runs in torch's own thread pool, so a forked child is in the state of
+    every torch operator there. GNU OpenMP's threads do not survive a fork: after the parent ran a parallel
+    region, a child that runs one (any torch operator on more than one thread: grid_sample as well as this
+    kernel) waits forever; with ``torch.set_num_threads(1)`` (what torch's DataLoader workers do) it runs."""
+    import multiprocessing as mp
+
+    n = 12
+    args = (*_problem(10, n)[3], n, True)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        want = native.carve_labels(*args)  # the parent's OpenMP threads now exist
+    finally:
+        torch.set_num_threads(before)
+    ctx = mp.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_carve_in_forked_child, args=(queue, args))
+    child.start()
+    try:
+        got = queue.get(timeout=120)
+    finally:
+        child.join(timeout=60)
+        if child.exitcode is None:
+            child.kill()
+    assert child.exitcode == 0
+    for x, y in zip(want, got):
+        assert torch.equal(x, torch.from_numpy(y))
+
+
+@needs_kernel
+def test_loading_again_in_the_same_process_reuses_the_operators():
+    """A second library defining the same operator namespace would abort the process: it is never loaded."""
+    ops, path, rebuilt = native._open_library()
+    assert ops is native.operators() or ops.carve_labels is native.operators().carve_labels
+    assert rebuilt is None and path == native.library_path()
+
+
+# --------------------------------------------------------------------------- through carve_proposals
 
 
 @needs_kernel
@@ -172,9 +450,6 @@ def test_real_aeroplanes_fused_equals_torch(shared_data, tmp_path):
     assert torch.equal(a.empty, b.empty) and a.occupancy.any()
 
 
-# --------------------------------------------------------------------------- backend choice
-
-
 def test_backend_validation():
     sdf = signed_distance(blob_masks(2, 16, torch.Generator().manual_seed(0)))
     cams = random_cameras(2, 16, torch.Generator().manual_seed(0))
@@ -190,131 +465,38 @@ def test_backend_validation():
         Config().override(dict(carve_backend="gpu")).validate()
 
 
-def test_without_a_compiler_auto_runs_torch_and_fused_says_why(tmp_path):
-    """A machine with no working C compiler: the kernel is unavailable with the reason, ``auto``
-    carves with torch (same labels), ``fused`` is refused, in a fresh process and cache."""
-    code = """
-import json, torch
-from carvi_torch.carve import native as carve_fused
-from carvi_torch.carve import carve_proposals
-from test_carve import random_proposals
-sdf, cams, ref, views = random_proposals(torch.Generator().manual_seed(6))
-a = carve_proposals(sdf, cams, ref, views, resolution=10, backend="auto")
-b = carve_proposals(sdf, cams, ref, views, resolution=10, backend="torch")
-try:
-    carve_proposals(sdf, cams, ref, views, resolution=10, backend="fused")
-    refused = None
-except ValueError as exc:
-    refused = str(exc)
-print(json.dumps(dict(available=carve_fused.available(), reason=carve_fused.unavailable_reason(),
-                      same=bool(torch.equal(a.occupancy, b.occupancy)), refused=refused)))
-"""
-    env = dict(os.environ, CC=str(tmp_path / "no-such-compiler"), CARVI_TORCH_CACHE=str(tmp_path / "cache"),
-               PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "tests")]))
-    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    res = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert res["available"] is False and "no-such-compiler" in res["reason"]
-    assert res["same"] is True
-    assert "not available here" in res["refused"] and "no-such-compiler" in res["refused"]
-    assert not list((tmp_path / "cache").rglob("*.so"))  # nothing half-built left behind
+@needs_kernel
+def test_fused_reads_fewer_samples_than_dense_carving():
+    n = 20
+    ext, slots, scale, G, column_cost = _problem(3, n, M=8, B=16, V=4, size=32)[3]
+    occ, columns, nonempty, samples = native.carve_labels(ext, slots, scale, G, column_cost, n, imprint=False)
+    fg = (column_cost < 0).sum(1)
+    dense = fg * (slots >= 0).sum(1) * n  # what the torch backend samples: every view at every foreground voxel
+    interior = occ.flatten(1).sum(1)
+    used = (slots >= 0).sum(1)
+    assert (samples <= dense).all() and samples.sum() < 0.9 * dense.sum()
+    # an interior voxel needs every view; an exterior foreground voxel at least one (when there is a view)
+    assert (samples >= interior * used + (fg * n - interior) * (used > 0)).all()
+    assert torch.equal(nonempty, occ.flatten(1).any(1)) and torch.equal(columns, occ.any(1))
 
 
 @needs_kernel
-def test_the_build_is_cached_and_reused(tmp_path):
-    """A fresh cache builds the library once; a second process loads it without rebuilding."""
-    code = ("import json; from carvi_torch.carve import native as f; ok = f.available(); "
-            "p = f.library_path(); print(json.dumps([ok, str(p), p.stat().st_mtime_ns]))")
-    env = dict(os.environ, CARVI_TORCH_CACHE=str(tmp_path), PYTHONPATH=str(ROOT))
-    runs = [json.loads(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                                      timeout=300, check=True).stdout.strip().splitlines()[-1]) for _ in range(2)]
-    assert runs[0][0] and runs[1][0]
-    assert runs[0][1] == runs[1][1] and Path(runs[0][1]).parent.parent == tmp_path
-    assert runs[0][2] == runs[1][2]  # not rebuilt
-    assert len(list(tmp_path.rglob("*.so"))) == 1
-
-
-def test_a_kernel_that_disagrees_with_grid_sample_is_not_used(monkeypatch):
-    """The loader's self-test rejects a sample that differs from grid_sample in the last bit."""
-    if not carve_fused.available():
-        pytest.skip(f"fused kernel unavailable: {carve_fused.unavailable_reason()}")
-    lib = carve_fused._state["lib"]
-    real = carve_fused._sample_with
-
-    def off_by_an_ulp(lib_, fused, ext, k, scale, grid):
-        out = real(lib_, fused, ext, k, scale, grid)
-        out[7] = torch.nextafter(out[7], torch.tensor(float("inf")))
-        return out
-
-    monkeypatch.setattr(carve_fused, "_sample_with", off_by_an_ulp)
-    assert carve_fused._self_test(lib) is None
-    monkeypatch.setattr(carve_fused, "_sample_with", real)
-    assert carve_fused._self_test(lib) == carve_fused.variant()
-    # the same for the column sampler the carving uses
-    real_line = carve_fused._line_with
-
-    def line_off(lib_, fused, ext, k, scale, g0, c, m):
-        out = real_line(lib_, fused, ext, k, scale, g0, c, m)
-        out[-1] = torch.nextafter(out[-1], torch.tensor(float("-inf")))
-        return out
-
-    monkeypatch.setattr(carve_fused, "_line_with", line_off)
-    assert carve_fused._self_test(lib) is None
-
-
-@needs_kernel
-def test_both_variants_carve_and_differ_only_at_the_zero_level():
-    """The variant the self-test did not pick still carves: without imprinting its labels differ from the
-    chosen one's only where the cost is within float rounding of 0 (a thin set, here none); with imprinting
-    the same columns are filled, though an imprinted voxel may move along a column of near-equal costs."""
-    n = 18
-    ext, slots, scale, G, cc = _kernel_inputs(21, n, M=8, B=16, V=4, size=32)
-    other_name = "plain" if carve_fused.variant() == "fma" else "fma"
-    if other_name == "fma" and not carve_fused._state["lib"].carvi_has_fma():
-        pytest.skip("this processor has no FMA: only the plain variant runs here")
-    for imprint in (False, True):
-        chosen = carve_fused.carve_labels(ext, slots, scale, G, cc, n, imprint)
-        other = carve_fused.carve_labels(ext, slots, scale, G, cc, n, imprint, variant=other_name)
-        assert torch.equal(chosen[1], other[1]) and torch.equal(chosen[2], other[2])
-        if not imprint:
-            differ = (chosen[0] != other[0]).float().mean().item()
-            assert differ < 1e-3, differ
-    with pytest.raises(ValueError, match="variant"):
-        carve_fused.carve_labels(ext, slots, scale, G, cc, n, True, variant="avx512")
-
-
-@needs_kernel
-def test_a_view_of_the_last_map_is_read_safely():
-    """When a view samples the last map of ``ext`` (never in a CarveMaps, whose last map is the unused
-    slot's), the kernel gets a copy with a value after it: the labels equal those with a spare map."""
-    n = 14
-    ext, slots, scale, G, cc = _kernel_inputs(8, n)
-    last = ext.shape[0] - 1
-    slots = slots.clone()
-    slots[:, 0] = torch.where(slots[:, 0] >= 0, torch.full_like(slots[:, 0], last), slots[:, 0])
-    ext = ext.clone()
-    ext[last] = ext[0]  # a real map in the last row
-    a = carve_fused.carve_labels(ext, slots, scale, G, cc, n, True)
-    spare = torch.cat([ext, torch.zeros_like(ext[:1])])  # the same maps with one more after them
-    b = carve_fused.carve_labels(spare, slots, scale, G, cc, n, True)
-    for x, y in zip(a, b):
-        assert torch.equal(x, y)
-
-
-@needs_kernel
-def test_carve_labels_checks_its_inputs():
-    n = 10
-    ext, slots, scale, G, cc = _kernel_inputs(9, n)
-    with pytest.raises(ValueError, match="views must index"):
-        carve_fused.carve_labels(ext, torch.full_like(slots, ext.shape[0]), scale, G, cc, n, True)
-    with pytest.raises(ValueError, match="scale, G, column_cost"):
-        carve_fused.carve_labels(ext, slots, scale, G, cc[:, :-1], n, True)
-    with pytest.raises(ValueError, match="resolutions"):
-        carve_fused.carve_labels(ext, slots, scale, G, cc, 0, True)
-    with pytest.raises(ValueError, match="view slots"):
-        many = torch.full((slots.shape[0], 65), -1)
-        carve_fused.carve_labels(ext, many, torch.ones(slots.shape[0], 65), torch.zeros(slots.shape[0], 65, 2, 4), cc,
-                                 n, True)
+@pytest.mark.parametrize("imprint, n", [(True, 14), (False, 14), (True, 9), (True, 23)])
+def test_fused_labels_equal_torch_and_loop_voxel_for_voxel(imprint, n):
+    gen = torch.Generator().manual_seed(6 + n)
+    sdf, cams, reference, views = random_proposals(gen, M=8, B=16, V=4, size=32)
+    torch_out = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint, backend="torch")
+    fused = carve_proposals(sdf, cams, reference, views, resolution=n, imprint=imprint, backend="fused")
+    loop = carve_proposals_loop(sdf, cams, reference, views, resolution=n, imprint=imprint)
+    for out in (torch_out, loop):
+        assert torch.equal(fused.occupancy, out.occupancy)
+        assert torch.equal(fused.empty, out.empty)
+        assert torch.equal(fused.voxel_to_camera, out.voxel_to_camera)
+        assert torch.equal(fused.reference_columns, out.reference_columns)
+        assert torch.equal(fused.column_cost, out.column_cost)
+    assert torch.equal(fused.columns, torch_out.columns)
+    assert fused.occupancy.any() and bool(fused.empty[3])  # something carved; the empty reference stays empty
+    assert fused.cost is None
 
 
 def test_more_view_slots_than_the_kernel_takes_run_on_torch():
@@ -325,54 +507,41 @@ def test_more_view_slots_than_the_kernel_takes_run_on_torch():
     a = carve_proposals(sdf, cams, reference, wide, resolution=10, backend="auto")
     b = carve_proposals(sdf, cams, reference, views, resolution=10, backend="torch")
     assert torch.equal(a.occupancy, b.occupancy)
-    if carve_fused.available():
+    if native.available():
         with pytest.raises(ValueError, match="view slots"):
             carve_proposals(sdf, cams, reference, wide, resolution=10, backend="fused")
-
-
-def _carve_in_forked_child(queue, args):
-    queue.put([t.numpy().copy() for t in carve_fused.carve_labels(*args, threads=2)])  # by value, not shared
-
-
-@needs_kernel
-def test_a_forked_child_carves_with_threads():
-    """A child forked after the parent's thread pool started must not wait for threads it does not have."""
-    import multiprocessing as mp
-
-    n = 12
-    args = (*_kernel_inputs(10, n), n, True)
-    want = carve_fused.carve_labels(*args, threads=2)  # the parent's pool now exists
-    ctx = mp.get_context("fork")
-    queue = ctx.Queue()
-    child = ctx.Process(target=_carve_in_forked_child, args=(queue, args))
-    child.start()
-    got = queue.get(timeout=60)
-    child.join(timeout=60)
-    assert child.exitcode == 0
-    for x, y in zip(want, got):
-        assert torch.equal(x, torch.from_numpy(y))
-
-
-@needs_kernel
-def test_the_portable_build_carves_like_the_x86_one(tmp_path):
-    """The code for processors without AVX2 (``CARVI_NO_X86``: what aarch64 builds) compiles and gives the
-    plain variant's labels."""
-    import ctypes
-
-    path = tmp_path / "portable.so"
-    carve_fused._build(path, ("-DCARVI_NO_X86",))
-    lib = ctypes.CDLL(str(path))
-    carve_fused._declare(lib)
-    n = 13
-    ext, slots, scale, G, cc = _kernel_inputs(14, n)
-    want = carve_fused.carve_labels(ext, slots, scale, G, cc, n, True, variant="plain")
-    got = carve_fused._carve_with(lib, False, ext, slots, scale, G, cc, n, True, 1)
-    for x, y in zip(want, got):
-        assert torch.equal(x, y)
 
 
 def test_the_kernel_takes_every_resolution_carve_proposals_takes():
     from carvi_torch.carve.geometry import check_indices
     with pytest.raises(ValueError, match="2048"):
         check_indices(2, torch.tensor([0]), torch.tensor([[1]]), 2049, torch.device("cpu"))
-    assert carve_fused.MAX_RESOLUTION >= 2048
+    assert native.MAX_RESOLUTION >= 2048
+
+
+def test_a_kernel_that_disagrees_with_grid_sample_is_not_used(monkeypatch):
+    """The loader's self-test rejects a sample that differs from grid_sample in the last bit."""
+    if not native.available():
+        pytest.skip(f"kernel unavailable: {native.unavailable_reason()}")
+    lib = native.operators()
+    real = native._sample_with
+
+    def off_by_an_ulp(lib_, fused, ext, k, scale, grid):
+        out = real(lib_, fused, ext, k, scale, grid)
+        out[7] = torch.nextafter(out[7], torch.tensor(float("inf")))
+        return out
+
+    monkeypatch.setattr(native, "_sample_with", off_by_an_ulp)
+    assert native._self_test(lib) is None
+    monkeypatch.setattr(native, "_sample_with", real)
+    assert native._self_test(lib) == native.variant()
+    # the same for the column sampler the carving uses
+    real_line = native._line_with
+
+    def line_off(lib_, fused, ext, k, scale, g0, c, m):
+        out = real_line(lib_, fused, ext, k, scale, g0, c, m)
+        out[-1] = torch.nextafter(out[-1], torch.tensor(float("-inf")))
+        return out
+
+    monkeypatch.setattr(native, "_line_with", line_off)
+    assert native._self_test(lib) is None

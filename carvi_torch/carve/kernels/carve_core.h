@@ -1,8 +1,12 @@
 /* Fused cone-cost carving on the CPU: sampling, maximum and labels per column, with early exit.
  *
- * Computes the labels of carvi_torch.carve.carve_proposals (bilinear maps, imprinting or not)
- * without materialising the cost C. For each proposal and each foreground column of its
- * reference:
+ * The arithmetic of carvi_torch's carving kernel (formerly kernels/carve_fused.c, a C99 file loaded with
+ * ctypes), as a C++ header for carve_native.cpp, which wraps it in torch.library operators. The code is
+ * that file's, operation for operation; what changed is only C++ spelling (restrict, the packing table
+ * built at compile time instead of by a constructor) and the entry points (see the end of the file).
+ *
+ * Computes the labels of carvi_torch's carve_proposals (bilinear maps, imprinting or not) without
+ * materialising the cost C. For each proposal and each foreground column of its reference:
  *
  *   1. The column's depths start as candidates. Each view in turn is sampled at the remaining
  *      candidates only, the running maximum C is updated, and the depths where it reached >= 0
@@ -26,6 +30,12 @@
  * 0 and this kernel the pixel itself; its weight is exactly 0 there (the coordinate is clamped
  * to the last pixel), so only the sign of a zero sum can differ, which no label sees.
  *
+ * Memory safety: every coordinate is clamped into the map before it is truncated (NaN to 0), so a
+ * read stays inside the map it samples, except that the AVX2 sampler reads each row's two pixels
+ * as one 8-byte load: at a map's last pixel it reads one float beyond it (weight 0). The caller
+ * must provide that float after the last map it samples (carve_native.cpp copies the maps when a
+ * view uses the last one).
+ *
  * Layouts (all C-contiguous):
  *   ext      (K, Hp, Wp) float32   extended, unscaled maps
  *   views    (B, V) int64          row of ext per view slot, < 0 for a slot to skip
@@ -37,22 +47,36 @@
  *   nonempty (B,) uint8            out: any interior voxel
  *   samples  (B,) int64            out: bilinear samples read per proposal
  */
+#pragma once
 #include <stdint.h>
 
-#define MAX_VIEWS 64
+#define CARVI_MAX_VIEWS 64
+#define CARVI_MAX_RESOLUTION 2048
 
-/* x86 with AVX2 code paths (CARVI_NO_X86 builds the portable code alone, as on other processors) */
-#if (defined(__x86_64__) || defined(__i386__)) && !defined(CARVI_NO_X86)
+/* x86 with AVX2 code paths (CARVI_NO_X86 builds the portable code alone, as on other processors).
+ * MSVC has no target attributes: it builds the portable code (not tried: no Windows machine here). */
+#if (defined(__x86_64__) || defined(__i386__)) && !defined(CARVI_NO_X86) && !defined(_MSC_VER)
 #define CARVI_X86 1
 #endif
-#define MAX_RESOLUTION 2048
+
+#if defined(_MSC_VER) && !defined(__clang__)
+#include <cmath>
+#define CARVI_RESTRICT __restrict
+#define CARVI_INLINE static __forceinline
+#define CARVI_FMAF(a, b, c) std::fma((float)(a), (float)(b), (float)(c))
+#else
+#define CARVI_RESTRICT __restrict__
+#define CARVI_INLINE static inline __attribute__((always_inline))
+#define CARVI_FMAF(a, b, c) __builtin_fmaf(a, b, c)
+#endif
 
 #if defined(CARVI_X86)
-#define FMA_TARGET __attribute__((target("avx2,fma")))
+#define CARVI_FMA_TARGET __attribute__((target("avx2,fma")))
 #else
-#define FMA_TARGET
+#define CARVI_FMA_TARGET
 #endif
-#define INLINE static inline __attribute__((always_inline))
+
+namespace carvi {
 
 typedef struct {
     const float *map;
@@ -67,10 +91,10 @@ typedef struct {
 /* out[i] = the scaled map's bilinear sample at depth idx[i] of the column whose in-plane
  * coordinate terms are (cx, cy): grid_sample(..., "bilinear", "border", align_corners=True).
  * A plain loop without branches, so that the compiler vectorises it. */
-INLINE void sample_depths(const view_t *v, const geom_t *g, float cx, float cy, const int32_t *restrict idx,
-                          int m, float *restrict out, const int fused)
+CARVI_INLINE void sample_depths(const view_t *v, const geom_t *g, float cx, float cy,
+                                const int32_t *CARVI_RESTRICT idx, int m, float *CARVI_RESTRICT out, const int fused)
 {
-    const float *restrict map = v->map;
+    const float *CARVI_RESTRICT map = v->map;
     const float scale = v->scale, g0x = v->g0x, g0y = v->g0y;
     const float sfx = g->sfx, sfy = g->sfy, maxx = g->maxx, maxy = g->maxy;
     const int32_t Wp = (int32_t)g->Wp, Hp = (int32_t)g->Hp;
@@ -90,12 +114,12 @@ INLINE void sample_depths(const view_t *v, const geom_t *g, float cx, float cy, 
         float e = 1.0f - w, s = 1.0f - n;
         float nw = s * e, ne = s * w, sw = n * e, se = n * w;
         int32_t o = iy * Wp + ix;
-        int32_t oe = ix + 1 < Wp ? 1 : 0;  /* beyond the map: the pixel itself, with weight 0 */
+        int32_t oe = ix + 1 < Wp ? 1 : 0; /* beyond the map: the pixel itself, with weight 0 */
         int32_t os = iy + 1 < Hp ? Wp : 0;
         float vnw = map[o] * scale, vne = map[o + oe] * scale;
         float vsw = map[o + os] * scale, vse = map[o + os + oe] * scale;
         if (fused)
-            out[i] = __builtin_fmaf(vse, se, __builtin_fmaf(vsw, sw, __builtin_fmaf(vne, ne, vnw * nw)));
+            out[i] = CARVI_FMAF(vse, se, CARVI_FMAF(vsw, sw, CARVI_FMAF(vne, ne, vnw * nw)));
         else
             out[i] = ((vnw * nw + vne * ne) + vsw * sw) + vse * se;
     }
@@ -103,8 +127,8 @@ INLINE void sample_depths(const view_t *v, const geom_t *g, float cx, float cy, 
 
 /* Candidates i0 <= i < na: cost[i] = max(cost[i], s[i]); keeps (in order, from position m) those
  * whose cost is still < 0. Returns the new count. */
-INLINE int keep_negative(int32_t *restrict idx, float *restrict cost, const float *restrict s, int m, int i0,
-                         int na)
+CARVI_INLINE int keep_negative(int32_t *CARVI_RESTRICT idx, float *CARVI_RESTRICT cost,
+                               const float *CARVI_RESTRICT s, int m, int i0, int na)
 {
     for (int i = i0; i < na; i++) {
         float c = s[i] > cost[i] ? s[i] : cost[i];
@@ -116,30 +140,32 @@ INLINE int keep_negative(int32_t *restrict idx, float *restrict cost, const floa
 }
 
 #if defined(CARVI_X86)
+} // namespace carvi
 #include <immintrin.h>
+namespace carvi {
 
-/* Left-packing permutations for 8 lanes: entry `mask` moves the lanes whose bit is set to the front. */
-static int32_t pack_lut[256][8];
-static int pack_lut_ready = 0;
-__attribute__((constructor)) static void pack_lut_init(void);
-
-__attribute__((constructor)) static void pack_lut_init(void)
+/* Left-packing permutations for 8 lanes: entry `mask` moves the lanes whose bit is set to the front
+ * (built by the compiler: no constructor, no initialisation order to get right). */
+struct pack_lut_t {
+    int32_t lane[256][8];
+};
+static constexpr pack_lut_t make_pack_lut()
 {
+    pack_lut_t t{};
     for (int mask = 0; mask < 256; mask++) {
         int k = 0;
         for (int lane = 0; lane < 8; lane++)
             if (mask >> lane & 1)
-                pack_lut[mask][k++] = lane;
-        for (; k < 8; k++)
-            pack_lut[mask][k] = 0;
+                t.lane[mask][k++] = lane;
     }
-    pack_lut_ready = 1;
+    return t;
 }
+alignas(32) static constexpr pack_lut_t pack_lut = make_pack_lut();
 
 /* keep_negative, eight candidates at a time (AVX2 left-packing); the same result. */
-__attribute__((target("avx2,fma"))) static inline int keep_negative_avx2(int32_t *restrict idx,
-                                                                          float *restrict cost,
-                                                                          const float *restrict s, int na)
+__attribute__((target("avx2,fma"))) static inline int keep_negative_avx2(int32_t *CARVI_RESTRICT idx,
+                                                                          float *CARVI_RESTRICT cost,
+                                                                          const float *CARVI_RESTRICT s, int na)
 {
     int m = 0, i = 0;
     const __m256 zero = _mm256_setzero_ps();
@@ -147,7 +173,7 @@ __attribute__((target("avx2,fma"))) static inline int keep_negative_avx2(int32_t
         __m256 sv = _mm256_loadu_ps(s + i), cv = _mm256_loadu_ps(cost + i);
         __m256 c = _mm256_blendv_ps(cv, sv, _mm256_cmp_ps(sv, cv, _CMP_GT_OQ)); /* s > cost ? s : cost */
         int mask = _mm256_movemask_ps(_mm256_cmp_ps(c, zero, _CMP_LT_OQ));
-        __m256i perm = _mm256_loadu_si256((const __m256i *)pack_lut[mask]);
+        __m256i perm = _mm256_loadu_si256((const __m256i *)pack_lut.lane[mask]);
         __m256i iv = _mm256_loadu_si256((const __m256i *)(idx + i));
         /* m <= i: the stores only overwrite lanes already read */
         _mm256_storeu_si256((__m256i *)(idx + m), _mm256_permutevar8x32_epi32(iv, perm));
@@ -158,7 +184,7 @@ __attribute__((target("avx2,fma"))) static inline int keep_negative_avx2(int32_t
 }
 
 /* The two pixels (p[0], p[1]) of 8 lanes, as (first, second) vectors in lane order. */
-__attribute__((target("avx2,fma"))) static inline void load_pairs(const float *restrict map, const int32_t *o,
+__attribute__((target("avx2,fma"))) static inline void load_pairs(const float *CARVI_RESTRICT map, const int32_t *o,
                                                                    __m256 *first, __m256 *second)
 {
     __m128 a = _mm_loadh_pi(_mm_castpd_ps(_mm_load_sd((const double *)(map + o[0]))), (const __m64 *)(map + o[1]));
@@ -176,10 +202,10 @@ __attribute__((target("avx2,fma"))) static inline void load_pairs(const float *r
  * first pixel, or the next map's, never past the maps: the caller guarantees a pixel after the
  * last map it samples; its weight is 0, and the pixel itself is used as in sample_depths). */
 __attribute__((target("avx2,fma"))) static void sample_depths_avx2(const view_t *v, const geom_t *g, float cx,
-                                                                   float cy, const int32_t *restrict idx, int m,
-                                                                   float *restrict out)
+                                                                   float cy, const int32_t *CARVI_RESTRICT idx,
+                                                                   int m, float *CARVI_RESTRICT out)
 {
-    const float *restrict map = v->map;
+    const float *CARVI_RESTRICT map = v->map;
     const int32_t Wp = (int32_t)g->Wp, Hp = (int32_t)g->Hp;
     const __m256 g0x = _mm256_set1_ps(v->g0x), g0y = _mm256_set1_ps(v->g0y), vcx = _mm256_set1_ps(cx),
                  vcy = _mm256_set1_ps(cy), one = _mm256_set1_ps(1.0f), zero = _mm256_setzero_ps(),
@@ -204,7 +230,7 @@ __attribute__((target("avx2,fma"))) static void sample_depths_avx2(const view_t 
         __m256 e = _mm256_sub_ps(one, w), s = _mm256_sub_ps(one, n);
         __m256 nw = _mm256_mul_ps(s, e), ne = _mm256_mul_ps(s, w), sw = _mm256_mul_ps(n, e), se = _mm256_mul_ps(n, w);
         __m256i vo = _mm256_add_epi32(_mm256_mullo_epi32(iy, vW), ix);
-        __m256i east = _mm256_cmpgt_epi32(vW, _mm256_add_epi32(ix, ione));  /* ix + 1 < Wp */
+        __m256i east = _mm256_cmpgt_epi32(vW, _mm256_add_epi32(ix, ione)); /* ix + 1 < Wp */
         __m256i vos = _mm256_and_si256(_mm256_cmpgt_epi32(vH, _mm256_add_epi32(iy, ione)), vW);
         _mm256_storeu_si256((__m256i *)o, vo);
         _mm256_storeu_si256((__m256i *)os, _mm256_add_epi32(vo, vos));
@@ -225,47 +251,36 @@ __attribute__((target("avx2,fma"))) static void sample_depths_avx2(const view_t 
 #define sample_depths_avx2(v, g, cx, cy, idx, m, out) sample_depths(v, g, cx, cy, idx, m, out, 1)
 #endif
 
-INLINE geom_t geometry(int64_t Hp, int64_t Wp)
+CARVI_INLINE geom_t geometry(int64_t Hp, int64_t Wp)
 {
     geom_t g = {Hp, Wp, (float)(Wp - 1) / 2, (float)(Hp - 1) / 2, (float)(Wp - 1), (float)(Hp - 1)};
     return g;
 }
 
-/* Bilinear samples of map k of ext, scaled, at m normalised coordinates (gx[i], gy[i]): the
- * loader's self-test against grid_sample, and the tests. */
-INLINE void samples_at(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, const float *gx,
-                       const float *gy, int64_t m, float *out, const int fused)
+/* Bilinear samples of map k of ext, scaled, at m normalised coordinates xy[2 i], xy[2 i + 1] (the
+ * loader's self-test against grid_sample, and the tests). Reads only inside map k. */
+CARVI_INLINE void samples_at(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, const float *xy,
+                             int64_t m, float *out, const int fused)
 {
     geom_t g = geometry(Hp, Wp);
     /* as a column at depth 0 with the coordinates as its in-plane terms */
     view_t v = {ext + k * Hp * Wp, scale, 0, 0, 0, 0, 0, 0, 0, 0};
     int32_t zero = 0;
     for (int64_t i = 0; i < m; i++)
-        sample_depths(&v, &g, gx[i], gy[i], &zero, 1, out + i, fused);
-}
-
-void carvi_sample_plain(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, const float *gx,
-                        const float *gy, int64_t m, float *out)
-{
-    samples_at(ext, Hp, Wp, k, scale, gx, gy, m, out, 0);
-}
-
-FMA_TARGET void carvi_sample_fma(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, const float *gx,
-                                 const float *gy, int64_t m, float *out)
-{
-    samples_at(ext, Hp, Wp, k, scale, gx, gy, m, out, 1);
+        sample_depths(&v, &g, xy[2 * i], xy[2 * i + 1], &zero, 1, out + i, fused);
 }
 
 /* Samples of map k of ext, scaled, at depths 0 .. m - 1 of one column: coordinates
- * (g0x d) + cx, (g0y d) + cy, m <= MAX_RESOLUTION, read by the carving's own sampler. */
-INLINE void line_at(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, float g0x, float g0y, float cx,
-                    float cy, int64_t m, float *out, const int fused)
+ * (g0x d) + cx, (g0y d) + cy, m <= CARVI_MAX_RESOLUTION, read by the carving's own sampler
+ * (the fused one may read one float past map k). */
+CARVI_INLINE void line_at(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, float g0x, float g0y,
+                          float cx, float cy, int64_t m, float *out, const int fused)
 {
     geom_t g = geometry(Hp, Wp);
     view_t v = {ext + k * Hp * Wp, scale, g0x, g0y, 0, 0, 0, 0, 0, 0};
-    int32_t idx[MAX_RESOLUTION];
-    if (m > MAX_RESOLUTION)
-        m = MAX_RESOLUTION;
+    int32_t idx[CARVI_MAX_RESOLUTION];
+    if (m > CARVI_MAX_RESOLUTION)
+        m = CARVI_MAX_RESOLUTION;
     for (int64_t d = 0; d < m; d++)
         idx[d] = (int32_t)d;
     if (fused)
@@ -274,31 +289,19 @@ INLINE void line_at(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float s
         sample_depths(&v, &g, cx, cy, idx, (int)m, out, 0);
 }
 
-void carvi_line_plain(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, float g0x, float g0y,
-                      float cx, float cy, int64_t m, float *out)
+CARVI_INLINE int carve(const float *ext, int64_t Hp, int64_t Wp, const int64_t *views, const float *scale,
+                       const float *G, const float *colcost, int64_t V, int64_t n, int imprint, int64_t b0, int64_t b1,
+                       uint8_t *occ, uint8_t *columns, uint8_t *nonempty, int64_t *samples, const int fused)
 {
-    line_at(ext, Hp, Wp, k, scale, g0x, g0y, cx, cy, m, out, 0);
-}
-
-FMA_TARGET void carvi_line_fma(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, float g0x,
-                               float g0y, float cx, float cy, int64_t m, float *out)
-{
-    line_at(ext, Hp, Wp, k, scale, g0x, g0y, cx, cy, m, out, 1);
-}
-
-INLINE int carve(const float *ext, int64_t Hp, int64_t Wp, const int64_t *views, const float *scale, const float *G,
-                 const float *colcost, int64_t V, int64_t n, int imprint, int64_t b0, int64_t b1, uint8_t *occ,
-                 uint8_t *columns, uint8_t *nonempty, int64_t *samples, const int fused)
-{
-    if (V > MAX_VIEWS || n > MAX_RESOLUTION || n < 1)
+    if (V > CARVI_MAX_VIEWS || n > CARVI_MAX_RESOLUTION || n < 1)
         return -1;
     const int64_t HW = n * n;
     const geom_t g = geometry(Hp, Wp);
-    view_t vw[MAX_VIEWS];
-    int order[MAX_VIEWS];
-    float cx[MAX_VIEWS], cy[MAX_VIEWS];
-    int32_t all[MAX_RESOLUTION], idx[MAX_RESOLUTION];
-    float cost[MAX_RESOLUTION], s[MAX_RESOLUTION];
+    view_t vw[CARVI_MAX_VIEWS];
+    int order[CARVI_MAX_VIEWS];
+    float cx[CARVI_MAX_VIEWS], cy[CARVI_MAX_VIEWS];
+    int32_t all[CARVI_MAX_RESOLUTION], idx[CARVI_MAX_RESOLUTION];
+    float cost[CARVI_MAX_RESOLUTION], s[CARVI_MAX_RESOLUTION];
     for (int64_t d = 0; d < n; d++)
         all[d] = (int32_t)d;
     for (int64_t b = b0; b < b1; b++) {
@@ -391,30 +394,51 @@ INLINE int carve(const float *ext, int64_t Hp, int64_t Wp, const int64_t *views,
     return 0;
 }
 
-#define CARVE_ARGS                                                                                                \
+/* Entry points: one copy of each routine per variant, the fma one compiled for AVX2 and FMA (its
+ * callers check has_fma() first: on a processor without them it would fault). */
+#define CARVI_CARVE_ARGS                                                                                          \
     const float *ext, int64_t Hp, int64_t Wp, const int64_t *views, const float *scale, const float *G,          \
         const float *colcost, int64_t V, int64_t n, int imprint, int64_t b0, int64_t b1, uint8_t *occ,           \
         uint8_t *columns, uint8_t *nonempty, int64_t *samples
-#define CARVE_CALL(FUSED)                                                                                         \
+#define CARVI_CARVE_CALL(FUSED)                                                                                   \
     carve(ext, Hp, Wp, views, scale, G, colcost, V, n, imprint, b0, b1, occ, columns, nonempty, samples, FUSED)
 
-/* Carves proposals b0 <= b < b1. Returns 0, or -1 for more than MAX_VIEWS view slots or a
- * resolution outside 1..MAX_RESOLUTION. carvi_carve_fma needs AVX2 and FMA (the caller checks). */
-int carvi_carve_plain(CARVE_ARGS) { return CARVE_CALL(0); }
+static int carve_plain(CARVI_CARVE_ARGS) { return CARVI_CARVE_CALL(0); }
+CARVI_FMA_TARGET static int carve_fma(CARVI_CARVE_ARGS) { return CARVI_CARVE_CALL(1); }
 
-FMA_TARGET int carvi_carve_fma(CARVE_ARGS) { return CARVE_CALL(1); }
+static void samples_plain(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, const float *xy,
+                          int64_t m, float *out)
+{
+    samples_at(ext, Hp, Wp, k, scale, xy, m, out, 0);
+}
+CARVI_FMA_TARGET static void samples_fma(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale,
+                                         const float *xy, int64_t m, float *out)
+{
+    samples_at(ext, Hp, Wp, k, scale, xy, m, out, 1);
+}
+
+static void line_plain(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, float g0x, float g0y,
+                       float cx, float cy, int64_t m, float *out)
+{
+    line_at(ext, Hp, Wp, k, scale, g0x, g0y, cx, cy, m, out, 0);
+}
+CARVI_FMA_TARGET static void line_fma(const float *ext, int64_t Hp, int64_t Wp, int64_t k, float scale, float g0x,
+                                      float g0y, float cx, float cy, int64_t m, float *out)
+{
+    line_at(ext, Hp, Wp, k, scale, g0x, g0y, cx, cy, m, out, 1);
+}
 
 /* Whether this processor can run the fma variant. */
-int carvi_has_fma(void)
+static int has_fma()
 {
 #if defined(CARVI_X86)
-    if (!pack_lut_ready) /* the constructor has run; a backstop */
-        pack_lut_init();
     __builtin_cpu_init();
     return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
-#elif defined(__aarch64__)
+#elif defined(__aarch64__) || defined(_M_ARM64)
     return 1;
 #else
     return 0;
 #endif
 }
+
+} // namespace carvi

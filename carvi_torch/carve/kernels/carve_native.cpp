@@ -1,0 +1,250 @@
+// carvi_torch's fused carving kernel (carve_core.h) as torch.library operators, in the namespace CARVI_NS
+// (native.py names it after the build's key, carvi_<hex>: loading a second library that defines operators
+// of a namespace already registered aborts the process, so two builds must never share one):
+//
+//   carvi::carve_labels(Tensor ext, Tensor views, Tensor scale, Tensor G, Tensor column_cost, int n,
+//                       bool imprint, bool fma) -> (Tensor occ, Tensor columns, Tensor nonempty, Tensor samples)
+//   carvi::sample(Tensor ext, int k, float scale, Tensor grid, bool fma) -> Tensor
+//   carvi::line(Tensor ext, int k, float scale, float g0x, float g0y, float cx, float cy, int m, bool fma) -> Tensor
+//   carvi::has_fma() -> bool
+//
+// Every argument is checked here, at the operators' boundary: device, dtype, layout, contiguity, shapes,
+// index ranges and sizes (the kernel reads raw pointers: it must never read outside its inputs, whatever
+// they are). Proposals are carved in torch's intra-op thread pool (at::parallel_for: torch.set_num_threads
+// governs it); the threads take proposals one at a time, heaviest first, from a shared counter, since
+// proposals differ in cost by orders of magnitude.
+#if defined(CARVI_FULL_HEADERS)
+#include <torch/extension.h>
+#else
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <torch/library.h>
+#endif
+
+#include <algorithm>
+#include <atomic>
+#include <cstring>
+#include <numeric>
+#include <vector>
+
+#include "carve_core.h"
+
+#ifndef CARVI_SCHEDULE
+#define CARVI_SCHEDULE 2 // 0: parallel_for's own split; 1: weighted ranges, 4 per thread; 2: heaviest first
+#endif
+
+namespace {
+
+void check_tensor(const at::Tensor &t, const char *name, at::ScalarType dtype, int64_t dim)
+{
+    TORCH_CHECK_VALUE(t.defined(), "carvi: ", name, " is undefined");
+    TORCH_CHECK_VALUE(t.device().is_cpu(), "carvi: the fused carving takes CPU tensors; ", name, " is on ",
+                      t.device());
+    TORCH_CHECK_VALUE(t.layout() == at::kStrided, "carvi: ", name, " must be a strided (dense) tensor");
+    TORCH_CHECK_TYPE(t.scalar_type() == dtype, "carvi: ", name, " must be ", dtype, ", got ", t.scalar_type());
+    TORCH_CHECK_VALUE(t.dim() == dim, "carvi: ", name, " must have ", dim, " dimensions, got shape ", t.sizes());
+    TORCH_CHECK_VALUE(t.is_contiguous(), "carvi: ", name, " must be contiguous");
+    TORCH_CHECK_VALUE(!t.is_neg() && !t.is_conj(), "carvi: ", name, " must not be a negated or conjugated view");
+    TORCH_CHECK_VALUE(t.numel() == 0 || t.has_storage(), "carvi: ", name, " has no storage");
+}
+
+// (K, Hp, Wp) float32 maps whose 32-bit pixel offsets cannot overflow.
+void check_maps(const at::Tensor &ext)
+{
+    check_tensor(ext, "ext", at::kFloat, 3);
+    const int64_t Hp = ext.size(1), Wp = ext.size(2);
+    TORCH_CHECK_VALUE(Hp >= 1 && Wp >= 1, "carvi: maps must have at least one pixel, got ", ext.sizes());
+    TORCH_CHECK_VALUE(Hp * Wp < (int64_t(1) << 31) - Wp, "carvi: maps of ", Hp, " x ", Wp,
+                      " pixels are too large for the fused carving's 32-bit offsets");
+}
+
+// The maps, with one float after map `last` when it is the last one (the AVX2 sampler's 8-byte reads may
+// touch it, with weight 0): ext itself, or a copy kept alive in `keep`.
+const float *maps_with_spare(const at::Tensor &ext, bool uses_last, at::Tensor &keep)
+{
+    if (!uses_last)
+        return ext.data_ptr<float>();
+    keep = at::zeros({ext.numel() + 1}, ext.options());
+    std::memcpy(keep.data_ptr<float>(), ext.data_ptr<float>(), sizeof(float) * ext.numel());
+    return keep.data_ptr<float>();
+}
+
+void check_fma(bool fma)
+{
+    TORCH_CHECK_VALUE(!fma || carvi::has_fma(), "carvi: the fma variant needs a processor with AVX2 and FMA");
+}
+
+// Largest view index, after checking every one is in -1 .. K - 1.
+int64_t check_views(const at::Tensor &views, int64_t K)
+{
+    const int64_t *v = views.data_ptr<int64_t>();
+    int64_t lo = 0, hi = -1;
+    for (int64_t i = 0; i < views.numel(); i++) {
+        lo = std::min(lo, v[i]);
+        hi = std::max(hi, v[i]);
+    }
+    TORCH_CHECK_VALUE(views.numel() == 0 || (lo >= -1 && hi < K), "carvi: views must index the ", K,
+                      " maps of ext, or be -1 (unused), got ", lo, " .. ", hi);
+    return hi;
+}
+
+void check_carve_inputs(const at::Tensor &ext, const at::Tensor &views, const at::Tensor &scale,
+                        const at::Tensor &G, const at::Tensor &column_cost, int64_t n)
+{
+    check_maps(ext);
+    check_tensor(views, "views", at::kLong, 2);
+    const int64_t B = views.size(0), V = views.size(1);
+    TORCH_CHECK_VALUE(V <= CARVI_MAX_VIEWS, "carvi: the fused carving takes at most ", CARVI_MAX_VIEWS,
+                      " view slots, got ", V);
+    TORCH_CHECK_VALUE(n >= 1 && n <= CARVI_MAX_RESOLUTION, "carvi: the fused carving takes resolutions 1 to ",
+                      CARVI_MAX_RESOLUTION, ", got ", n);
+    check_tensor(scale, "scale", at::kFloat, 2);
+    check_tensor(G, "G", at::kFloat, 4);
+    check_tensor(column_cost, "column_cost", at::kFloat, 2);
+    const bool ok = scale.sizes() == at::IntArrayRef({B, V}) && G.sizes() == at::IntArrayRef({B, V, 2, 4}) &&
+                    column_cost.sizes() == at::IntArrayRef({B, n * n});
+    TORCH_CHECK_VALUE(ok, "carvi: scale, G, column_cost must be (", B, ", ", V, "), (", B, ", ", V, ", 2, 4), (", B,
+                      ", ", n * n, "); got ", scale.sizes(), ", ", G.sizes(), ", ", column_cost.sizes());
+}
+
+// Estimated work per proposal: foreground columns times (used views + 1); interior voxels cost every
+// view, exterior ones about one.
+std::vector<int64_t> work_weights(const int64_t *views, const float *cc, int64_t B, int64_t V, int64_t HW)
+{
+    std::vector<int64_t> w(B);
+    for (int64_t b = 0; b < B; b++) {
+        int64_t fg = 0, used = 0;
+        for (int64_t k = 0; k < HW; k++)
+            fg += cc[b * HW + k] < 0.0f;
+        for (int64_t j = 0; j < V; j++)
+            used += views[b * V + j] >= 0;
+        w[b] = fg * (used + 1);
+    }
+    return w;
+}
+
+// Runs carve_range(b0, b1) over all B proposals in torch's intra-op pool.
+template <typename F>
+void schedule(const std::vector<int64_t> &w, F carve_range)
+{
+    const int64_t B = (int64_t)w.size();
+    const int64_t T = std::min<int64_t>(at::get_num_threads(), B);
+    if (T <= 1 || at::in_parallel_region()) {
+        carve_range(0, B);
+        return;
+    }
+#if CARVI_SCHEDULE == 0
+    at::parallel_for(0, B, 1, carve_range);
+#elif CARVI_SCHEDULE == 1
+    // 4 ranges per thread of about equal total weight, taken in turn (today's Python-pool split)
+    const int64_t parts = 4 * T;
+    const int64_t total = std::max<int64_t>(1, std::accumulate(w.begin(), w.end(), int64_t(0)));
+    std::vector<int64_t> bounds{0};
+    for (int64_t b = 0, acc = 0; b < B; b++) {
+        acc += w[b];
+        if (acc * parts >= total * (int64_t)bounds.size() && (int64_t)bounds.size() < parts)
+            bounds.push_back(b + 1);
+    }
+    if (bounds.back() != B)
+        bounds.push_back(B);
+    std::atomic<int64_t> next{0};
+    const int64_t R = (int64_t)bounds.size() - 1;
+    at::parallel_for(0, T, 1, [&](int64_t, int64_t) {
+        for (int64_t r; (r = next.fetch_add(1)) < R;)
+            carve_range(bounds[r], bounds[r + 1]);
+    });
+#else
+    // one proposal at a time, heaviest first, from a shared counter (longest-processing-time order)
+    std::vector<int64_t> order(B);
+    std::iota(order.begin(), order.end(), 0);
+    std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return w[a] > w[b]; });
+    std::atomic<int64_t> next{0};
+    at::parallel_for(0, T, 1, [&](int64_t, int64_t) {
+        for (int64_t i; (i = next.fetch_add(1)) < B;)
+            carve_range(order[i], order[i] + 1);
+    });
+#endif
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> carve_labels(
+    const at::Tensor &ext, const at::Tensor &views, const at::Tensor &scale, const at::Tensor &G,
+    const at::Tensor &column_cost, int64_t n, bool imprint, bool fma)
+{
+    check_carve_inputs(ext, views, scale, G, column_cost, n);
+    check_fma(fma);
+    const int64_t B = views.size(0), V = views.size(1), HW = n * n, Hp = ext.size(1), Wp = ext.size(2);
+    const int64_t last = check_views(views, ext.size(0));
+    at::Tensor spare;
+    const float *maps = maps_with_spare(ext, last == ext.size(0) - 1, spare);
+    auto u8 = ext.options().dtype(at::kByte);
+    at::Tensor occ = at::zeros({B, n, HW}, u8), columns = at::zeros({B, HW}, u8), nonempty = at::zeros({B}, u8);
+    at::Tensor samples = at::zeros({B}, ext.options().dtype(at::kLong));
+    const int64_t *vp = views.data_ptr<int64_t>();
+    const float *sp = scale.data_ptr<float>(), *gp = G.data_ptr<float>(), *cp = column_cost.data_ptr<float>();
+    uint8_t *op = occ.data_ptr<uint8_t>(), *colp = columns.data_ptr<uint8_t>(), *np = nonempty.data_ptr<uint8_t>();
+    int64_t *cntp = samples.data_ptr<int64_t>();
+    auto fn = fma ? carvi::carve_fma : carvi::carve_plain;
+    schedule(work_weights(vp, cp, B, V, HW), [&](int64_t b0, int64_t b1) {
+        fn(maps, Hp, Wp, vp, sp, gp, cp, V, n, imprint, b0, b1, op, colp, np, cntp); // inputs checked: returns 0
+    });
+    return {occ.view(at::kBool), columns.view(at::kBool), nonempty.view(at::kBool), samples};
+}
+
+at::Tensor sample(const at::Tensor &ext, int64_t k, double scale, const at::Tensor &grid, bool fma)
+{
+    check_maps(ext);
+    check_tensor(grid, "grid", at::kFloat, 2);
+    TORCH_CHECK_VALUE(grid.size(1) == 2, "carvi: grid must be (m, 2), got ", grid.sizes());
+    TORCH_CHECK_VALUE(k >= 0 && k < ext.size(0), "carvi: map ", k, " of ", ext.size(0), " maps");
+    check_fma(fma);
+    at::Tensor out = at::empty({grid.size(0)}, ext.options());
+    auto fn = fma ? carvi::samples_fma : carvi::samples_plain;
+    fn(ext.data_ptr<float>(), ext.size(1), ext.size(2), k, (float)scale, grid.data_ptr<float>(), grid.size(0),
+       out.data_ptr<float>());
+    return out;
+}
+
+at::Tensor line(const at::Tensor &ext, int64_t k, double scale, double g0x, double g0y, double cx, double cy,
+                int64_t m, bool fma)
+{
+    check_maps(ext);
+    TORCH_CHECK_VALUE(k >= 0 && k < ext.size(0), "carvi: map ", k, " of ", ext.size(0), " maps");
+    TORCH_CHECK_VALUE(m >= 1 && m <= CARVI_MAX_RESOLUTION, "carvi: a line has 1 to ", CARVI_MAX_RESOLUTION,
+                      " depths, got ", m);
+    check_fma(fma);
+    at::Tensor spare;
+    const float *maps = maps_with_spare(ext, k == ext.size(0) - 1, spare);
+    at::Tensor out = at::empty({m}, ext.options());
+    auto fn = fma ? carvi::line_fma : carvi::line_plain;
+    fn(maps, ext.size(1), ext.size(2), k, (float)scale, (float)g0x, (float)g0y, (float)cx, (float)cy, m,
+       out.data_ptr<float>());
+    return out;
+}
+
+bool has_fma() { return carvi::has_fma() != 0; }
+
+} // namespace
+
+#ifndef CARVI_NS
+#define CARVI_NS carvi
+#endif
+
+TORCH_LIBRARY(CARVI_NS, m)
+{
+    m.def("carve_labels(Tensor ext, Tensor views, Tensor scale, Tensor G, Tensor column_cost, int n, bool imprint, "
+          "bool fma) -> (Tensor, Tensor, Tensor, Tensor)");
+    m.def("sample(Tensor ext, int k, float scale, Tensor grid, bool fma) -> Tensor");
+    m.def("line(Tensor ext, int k, float scale, float g0x, float g0y, float cx, float cy, int m, bool fma) -> Tensor");
+    m.def("has_fma() -> bool", &has_fma);
+}
+
+// CompositeExplicitAutograd: one kernel for every device, so that a tensor on another device reaches the
+// checks above (and gets their message) instead of the dispatcher's "could not run" error.
+TORCH_LIBRARY_IMPL(CARVI_NS, CompositeExplicitAutograd, m)
+{
+    m.impl("carve_labels", &carve_labels);
+    m.impl("sample", &sample);
+    m.impl("line", &line);
+}
