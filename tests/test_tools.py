@@ -1,10 +1,12 @@
 """The benchmark tools run, and what they report is consistent (a small class; seconds, not minutes)."""
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -63,8 +65,8 @@ TOOLS = sorted(p.name for p in (ROOT / "tools").glob("*.py"))
 
 
 def test_tools_are_few_and_import_the_installed_package():
-    """At most 9 maintained scripts; none edits sys.path or imports another tool."""
-    assert len(list((ROOT / "tools").iterdir())) <= 9
+    """At most 10 maintained scripts; none edits sys.path or imports another tool."""
+    assert len(list((ROOT / "tools").iterdir())) <= 10
     names = {Path(t).stem for t in TOOLS}
     for tool in TOOLS:
         text = (ROOT / "tools" / tool).read_text()
@@ -107,3 +109,57 @@ def test_gpu_session_answers_help():
     res = subprocess.run(["bash", str(ROOT / "tools" / "gpu_session.sh"), "--help"], cwd=ROOT, capture_output=True,
                          text=True, timeout=60)
     assert res.returncode == 0 and "bash tools/gpu_session.sh [all|tests|bench1000|bench9087]" in res.stdout
+
+
+STRESS = ROOT / "tools" / "stress_inputs.py"
+
+
+def test_stress_inputs_runs_a_few_cases(tmp_path: Path):
+    """A handful of the hostile-input cases through the real command line (a valid file, a truncated
+    JSON, keypoint lists of the wrong shape, a bad device): each comes out as promised, so the tool
+    exits 0 and its table marks every row good."""
+    cases = ["control_valid", "json_truncated", "ann_kp_shapes", "cli_device_tpu"]
+    record = tmp_path / "stress.json"
+    res = subprocess.run([sys.executable, str(STRESS), "--work", str(tmp_path / "work"), "--cases", ",".join(cases),
+                          "--out-json", str(record)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
+    lines = res.stdout.splitlines()
+    assert lines[:2] == ["| case | what is wrong | outcome | good? |", "|---|---|---|---|"]
+    rows = {ln.split("|")[1].strip(" `"): ln for ln in lines[2:] if ln.startswith("| `")}
+    assert sorted(rows) == sorted(cases) and all(r.endswith("| yes |") for r in rows.values()), rows
+    assert "exit 2: error: device" in rows["cli_device_tpu"] and "exit 0; 9 objects" in rows["ann_kp_shapes"]
+    rec = json.loads(record.read_text())["cases"]
+    assert [(c["case"], c["exit"], c["good"]) for c in rec] == [
+        ("control_valid", [0], True), ("json_truncated", [2], True), ("ann_kp_shapes", [0], True),
+        ("cli_device_tpu", [2], True)]
+
+
+def _load_stress():
+    spec = importlib.util.spec_from_file_location("stress_inputs", STRESS)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["stress_inputs"] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_stress_inputs_checks_catch_bad_outcomes(tmp_path: Path):
+    """The tool's checks flag what they must: a wrong exit status, a traceback, a missing phrase, a
+    file outside --out, a good object not made, a process of the run left running."""
+    st = _load_stress()
+    ctx = st.Ctx(st.Case("x", "x", rc=2, error=("device",)), tmp_path / "case", tmp_path, {"annotations": []}, 10)
+    ctx.out.parent.mkdir(parents=True)
+    before = st.snapshot(ctx.dir)
+    (ctx.dir / "stray.txt").write_text("x")
+    proc = st.Proc([], 1, "", "Traceback (most recent call last):\nValueError: x\n", 0.1)
+    problems = " / ".join(st.check_exit(ctx, proc) + st.check_streams(ctx, proc) + st.check_writes(ctx, before))
+    for what in ("exit status 1, expected 2", "Traceback on stderr", "does not say 'device'", "outside --out"):
+        assert what in problems, problems
+    ctx.good = [1]
+    assert st.check_good(ctx) and not st.check_processes(ctx, wait=0.1)
+    left = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"], env=ctx.env())
+    try:
+        time.sleep(0.5)
+        assert "still running" in " ".join(st.check_processes(ctx, wait=0.5))
+    finally:
+        left.kill()
+        left.wait()
