@@ -514,6 +514,22 @@ class ScaledOrthographic:
         return (q / self.s[:, None, None]) @ self.R
 
     # -- composition
+    def camera_to_object_4x4(self) -> torch.Tensor:
+        """``(N, 4, 4)`` float64 maps of camera-frame points ``(u, v, depth, 1)`` to object-frame ones
+        (:meth:`from_camera_frame` as a matrix: ``X = R^T [(u - t_x) / s, (v - t_y) / s, depth / s]``).
+
+        Example:
+            >>> cam = ScaledOrthographic(torch.eye(3)[None], torch.tensor([2.0]), torch.tensor([[4.0, 6.0]]))
+            >>> (cam.camera_to_object_4x4()[0] @ torch.tensor([6.0, 6.0, 2.0, 1.0], dtype=torch.float64)).tolist()
+            [1.0, 0.0, 1.0, 1.0]
+        """
+        R, s, t = self.R.double(), self.s.double(), self.t.double()
+        A = torch.zeros(len(self), 4, 4, dtype=torch.float64, device=R.device)
+        A[:, :3, :3] = R.transpose(1, 2) / s[:, None, None]
+        A[:, :3, 3] = -(R.transpose(1, 2)[:, :, :2] @ t[:, :, None])[..., 0] / s[:, None]
+        A[:, 3, 3] = 1.0
+        return A
+
     def compose_similarity(self, sim: Similarity2D) -> "ScaledOrthographic":
         """The camera followed by a 2-D similarity ``p' = a p + b`` (e.g. image -> canvas).
 

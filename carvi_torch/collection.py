@@ -203,6 +203,8 @@ class ClassMeta:
         key: the class's folder name in a run's outputs and its key in ``summary.json``: the name
             when it is a safe, unique folder name, else a safe spelling of it
             (:func:`carvi_torch.io.outputs.safe_name`); ``""``: the name itself.
+        keypoints_3d: the category's own template, ``K`` points ``[x, y, z]`` (``None`` for an unknown
+            one) in its canonical frame, or ``None`` (:mod:`carvi_torch.viewpoints.frame`).
     """
 
     name: str
@@ -214,6 +216,7 @@ class ClassMeta:
     category_id: int | str = 0
     left_convention: str = "object"
     key: str = ""
+    keypoints_3d: list | None = None
 
     def __post_init__(self):
         if not self.key:

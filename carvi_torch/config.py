@@ -34,6 +34,7 @@ import yaml
 from .carve import Backend, Interpolation
 from .mesh import MeshFormat
 from .viewpoints import CameraSource
+from .viewpoints.frame import FrameChoice
 
 __all__ = ["Config", "ConfigError", "load_config", "read_run_config", "settings_changed", "flatten_settings",
            "NEUTRAL_SETTINGS", "resolve_key", "all_keys", "FIELD_DOCS", "InputConfig",
@@ -124,6 +125,10 @@ class ViewpointConfig:
     keypoints looks the same) when those keypoints are this flat (thickness: smallest over middle
     spread; 1 = every camera, 0 = off); the twin's result is kept when its energy is at least 2% lower
     (``viewpoints.camera_fit.TWIN_MARGIN``). The flat instances are refined twice."""
+    frame: FrameChoice = "best"
+    """The canonical object frame the outputs are written in (``carvi_torch.viewpoints.frame``): ``best`` (a
+    template of 3-D keypoints when one fits: the category's ``keypoints_3d`` or the shipped PASCAL3D+ ones;
+    else ``symmetry+up``; else the SfM frame), ``template``, ``symmetry+up`` or ``sfm``."""
     refine_min_support: float = 0.1
     """Leave out of the refinement (and of the unseen-image path) every mean-shape keypoint shown by
     fewer than this fraction of the instances refined with that shape (the class, or its shape group):

@@ -282,18 +282,22 @@ def format_shape_table(res: dict) -> str:
 
 
 def format_viewpoint_table(res: dict) -> str:
-    """Per class and method: median geodesic / azimuth / elevation error and accuracy at 30 degrees."""
-    lines = ["| class | method | stage | n | median geodesic | median azimuth | median elevation | acc@30 | mirrored |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    """Per class and method: median geodesic / azimuth / elevation error as written (absolute: the
+    labels a user trains on) and after one fitted global rotation (aligned: the cameras alone), and
+    the accuracy at 30 degrees of each."""
+    lines = ["| class | method | stage | n | geodesic abs / aligned | azimuth abs / aligned | "
+             "elevation abs / aligned | acc@30 abs / aligned | mirrored |", "|---|---|---|---|---|---|---|---|---|"]
     for cls, per in sorted(res["viewpoints"].items()):
         for mth, stages in per.items():
             for stage, rep in stages.items():
-                g = rep.get("geodesic", {})
-                az = rep.get("azimuth", {})
-                el = rep.get("elevation", {})
-                lines.append(f"| {cls} | {mth} | {stage} | {g.get('n', '-')} | {_fmt(g.get('median'), 1)} | "
-                             f"{_fmt(az.get('median'), 1)} | {_fmt(el.get('median'), 1)} | "
-                             f"{_fmt(g.get('acc_at_30'), 2)} | {rep.get('mirrored', False)} |")
+                ab = rep.get("absolute", {})
+
+                def pair(key, stat="median", nd=1):
+                    return f"{_fmt(ab.get(key, {}).get(stat), nd)} / {_fmt(rep.get(key, {}).get(stat), nd)}"
+
+                lines.append(f"| {cls} | {mth} | {stage} | {rep.get('geodesic', {}).get('n', '-')} | "
+                             f"{pair('geodesic')} | {pair('azimuth')} | {pair('elevation')} | "
+                             f"{pair('geodesic', 'acc_at_30', 2)} | {rep.get('mirrored', False)} |")
     return "\n".join(lines)
 
 

@@ -56,7 +56,8 @@ FIELDS: dict[str, FieldSpec] = {
                                         "in the class frame"),
     "s": FieldSpec("float32", "()", "camera scale, image pixels per class-frame unit"),
     "t": FieldSpec("float32", "(2,)", "image position of the class-frame origin (image pixels)"),
-    "viewpoint": FieldSpec("float32", "(3,)", "azimuth, elevation, roll (radians) in the class frame"),
+    "viewpoint": FieldSpec("float32", "(3,)", "azimuth, elevation, roll (radians) in the class frame, as "
+                                               "PASCAL3D+ defines them"),
     "occupancy_view": FieldSpec("bool", "(R, R, R)", "occupancy in the view frame, [depth, y, x]: the canvas "
                                                      "square in x, y and a depth range of the same size centred "
                                                      "on the object"),

@@ -28,7 +28,7 @@ from .collection import ClassCollection
 from .config import Config
 from .io.layout import class_dir, finished, object_file
 from .io.outputs import read_json, write_json
-from .io.results import ClassReport, cameras_json, scores_entry, write_scores
+from .io.results import ClassReport, cameras_json, canonical_image_cameras, scores_entry, write_scores
 from .io.writer import Writer, canvas_to_image_4x4, id_array, proposals_payload
 from .runtime import StageTimer, log
 from .sdf import signed_distance
@@ -56,6 +56,8 @@ class ClassPlan:
         self.aids = list(self.coll.annotation_ids)
         self.canvas_scale = sim.scale.detach().double().cpu()  # (N,)
         self.canvas_offset = sim.offset.detach().double().cpu()  # (N, 2)
+        # camera frame (image pixels) -> canonical object frame, per original (its final camera)
+        self.object_from_camera = canonical_image_cameras(self.coll, self.viewpoints).camera_to_object_4x4().cpu()
 
     def proposals(self, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The proposals of references ``ids`` (a consecutive run of ``todo``), reference-major:
@@ -226,8 +228,10 @@ def _job(sel: select.Selection, j: int, i: int, sur, plan: ClassPlan, cfg: Confi
     v2c = sel.best_transform[j]
     best = int(sel.best[j])
     sur_ids = [] if sur is None or best < 0 else [aid_of[s] for s in sur[j, best].tolist() if s >= 0]
+    v2img = canvas_to_image @ v2c
     return dict(aid=aid, occupancy=sel.best_occupancy[j].numpy(), voxel_to_canvas=v2c.numpy(),
-                voxel_to_image=(canvas_to_image @ v2c).numpy(), canvas_scale=float(scale),
+                voxel_to_image=v2img.numpy(), voxel_to_object=(plan.object_from_camera[i] @ v2img).numpy(),
+                canvas_scale=float(scale),
                 canvas_offset=offset.float().numpy(), surrogates=id_array(sur_ids),
                 voxel_path=str(object_file(plan.cdir, "voxels", aid)),
                 mesh_path=str(object_file(plan.cdir, "meshes", aid, cfg.mesh.format)),

@@ -2,8 +2,11 @@
 
 All models of a class are pooled (a class = many different objects, as in PASCAL VOC), each
 rendered from ``--views`` photo-like cameras; ``reconstruct stage=cameras`` estimates every
-camera; errors are measured after one global rotation aligning the SfM class frame with the
-CAD frame (``carvi_torch.evaluation.viewpoint_metrics``). SfM -> refined compares the same views (those with
+camera; errors are measured as written (absolute: the class's canonical frame against the CAD
+frame, +z up, front -y) and after one global rotation aligning the two
+(``carvi_torch.evaluation.viewpoint_metrics``); the up error is the angle between the written
++z and the CAD +z under that rotation (with ``viewpoints.frame=symmetry+up`` it measures the
+automatic frame, which uses no template). SfM -> refined compares the same views (those with
 an SfM camera, ``evaluate``'s ``refined_with_sfm``); every view's refined median, the
 unseen-image cameras included, has a column of its own. The cameras of a run go to
 ``<work>/cameras[_<overrides>][_renders-s<seed>]`` (rerunning the same settings resumes there).
@@ -11,9 +14,10 @@ unseen-image cameras included, has a column of its own. The cameras of a run go 
     python tools/viewpoints_cad.py [--views 30] [--seed 0] [--work outputs/viewpoints_cad]
                                    [--out PATH] [key=value ...]
 
-``key=value`` are reconstruct overrides (``sfm_groups=3``). The JSON record goes to ``--out``;
-by default, for the default settings (no override, seed 0), to ``docs/data/viewpoints_cad.json``
-(docs/viewpoints.md), else beside the run's cameras (``<work>/cameras...json``).
+``key=value`` are reconstruct overrides (``sfm_groups=3``, ``viewpoints.frame=symmetry+up``). The
+JSON record goes to ``--out``; by default, for the default settings (no override, seed 0), to
+``docs/data/viewpoints_cad.json`` (docs/viewpoints.md), else beside the run's cameras
+(``<work>/cameras...json``).
 
 Needs ../shared/data/pascal3d_cad (the PASCAL3D+ CAD models, Xiang et al. 2014).
 """
@@ -52,6 +56,13 @@ def _per_model(annotations: Path, viewpoints: dict) -> dict:
                 rows.setdefault(m, {"n": len(es)})[stage] = round(median(es), 2)
         out[cls] = dict(sorted(rows.items()))
     return out
+
+
+def _up_error(alignment: list) -> float:
+    """Degrees between the written +z and the CAD +z: ``R_est G ~ R_gt`` puts the CAD +z at ``G e_z``."""
+    import math
+
+    return round(math.degrees(math.acos(max(-1.0, min(1.0, alignment[2][2])))), 2)
 
 
 def main(argv=None) -> int:
@@ -107,19 +118,26 @@ def main(argv=None) -> int:
             "sfm_elevation": sfm.get("elevation", {}).get("median"), "refined_elevation": same["elevation"]["median"],
             "sfm_acc30": sfm.get("geodesic", {}).get("acc_at_30"), "refined_acc30": ref["geodesic"]["acc_at_30"],
             "mirrored": bool(ref.get("mirrored")),
+            "frame": json.loads((recon / cls / "cameras.json").read_text()).get("frame"),
+            "absolute_geodesic": ref["absolute"]["geodesic"]["median"],
+            "absolute_azimuth": ref["absolute"]["azimuth"]["median"],
+            "absolute_elevation": ref["absolute"]["elevation"]["median"],
+            "up_error_deg": _up_error(ref["alignment"]),
         })
     per_model = _per_model(renders / "annotations.json", res["viewpoints"])
     f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
     lines = ["| class | views (with an SfM camera) | median geodesic SfM -> refined | median azimuth SfM -> refined | "
-             "median elevation SfM -> refined | every view: refined median, acc@30 | frame mirrored |",
-             "|---|---|---|---|---|---|---|"]
+             "median elevation SfM -> refined | every view: refined median, acc@30 | frame mirrored | "
+             "frame (up error) | absolute: geodesic, azimuth, elevation |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         worse = r["sfm_geodesic"] is not None and r["refined_geodesic_sfm_objects"] > r["sfm_geodesic"]
         views = f"{r['n']}" + ("" if r["n_sfm"] == r["n"] else f" ({r['n_sfm']})")
         lines.append(f"| {r['class']} | {views} | {f(r['sfm_geodesic'])} -> {f(r['refined_geodesic_sfm_objects'])}"
                      f"{' (worse)' if worse else ''} | {f(r['sfm_azimuth'])} -> {f(r['refined_azimuth'])} | "
                      f"{f(r['sfm_elevation'])} -> {f(r['refined_elevation'])} | {f(r['refined_geodesic'])}, "
-                     f"{r['refined_acc30']:.2f} | {r['mirrored']} |")
+                     f"{r['refined_acc30']:.2f} | {r['mirrored']} | {r['frame']} ({f(r['up_error_deg'])}) | "
+                     f"{f(r['absolute_geodesic'])}, {f(r['absolute_azimuth'])}, {f(r['absolute_elevation'])} |")
     table = "\n".join(lines)
     print(table)
     print("(SfM -> refined: the views with an SfM camera, before and after refinement; views without one take "
@@ -127,13 +145,15 @@ def main(argv=None) -> int:
     improved = sum(1 for r in rows
                    if r["sfm_geodesic"] is not None and r["refined_geodesic_sfm_objects"] < r["sfm_geodesic"])
     print(f"refinement lowers the median geodesic error in {improved} of {len(rows)} classes")
+    up_ok = sum(1 for r in rows if r["up_error_deg"] <= 10.0)
+    print(f"the written up axis lies within 10 degrees of the CAD +z in {up_ok} of {len(rows)} classes")
     print(f"render {t_render:.1f} s, SfM + refinement of all classes {t_cams:.1f} s")
     from carvi_torch.io.outputs import write_json
 
     write_json(out, {"command": " ".join(shlex.quote(a) for a in ["python", "tools/viewpoints_cad.py",
                                                                       *(argv if argv is not None else sys.argv[1:])]),
                           "views": args.views, "seed": args.seed, "rows": rows, "table": table,
-                          "refinement_lowers": improved,
+                          "refinement_lowers": improved, "up_within_10deg": up_ok,
                           "per_model": per_model,
                           "render_seconds": round(t_render, 1), "cameras_seconds": round(t_cams, 1)})
     print(f"wrote {out}")

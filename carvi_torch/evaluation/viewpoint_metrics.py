@@ -1,8 +1,11 @@
 """Viewpoint metrics: compare estimated cameras with ground-truth ones.
 
-Estimated rotations live in the SfM object frame, ground truth in another (e.g.
-PASCAL3D+'s CAD frame: +z up, front towards -y), so the two sets are compared after
-one global rotation ``G`` with ``R_est G ~ R_gt`` (:func:`align_rotations`).
+Estimated rotations are written in a class's canonical frame
+(:mod:`carvi_torch.viewpoints.frame`), ground truth in its own (e.g. PASCAL3D+'s CAD frame:
++z up, front towards -y). :func:`viewpoint_report` compares them twice: ``absolute``, as
+written (what a user training on the labels gets), and aligned, after one global rotation
+``G`` with ``R_est G ~ R_gt`` (:func:`align_rotations`): the error of the cameras alone,
+whatever the frame.
 Camera convention (``carvi_torch.cameras``): rows of ``R`` = image x, image y (down),
 viewing direction, in the object frame.
 
@@ -117,9 +120,9 @@ def viewpoint_report(
 
     Returns:
         ``{"n", "alignment" (3x3 list), "geodesic", "azimuth", "elevation", "roll"
-        (each a :func:`summarize` dict), "mirrored" (bool), "mirrored_geodesic"
-        (summary of the mirrored hypothesis), "per_instance_geodesic" (list, NaN
-        for unused pairs)}``.
+        (each a :func:`summarize` dict, after the alignment), "absolute" (the same four
+        without any fitted rotation), "mirrored" (bool), "mirrored_geodesic" (summary of
+        the mirrored hypothesis), "per_instance_geodesic" (list, NaN for unused pairs)}``.
     """
     check_rotation_pairs(R_est, R_gt)
     use = finite_rotation_pairs(R_est, R_gt)
@@ -139,6 +142,7 @@ def viewpoint_report(
             raise ValueError(f"alignment must be a finite (3, 3) rotation, got {tuple(G.shape)}")
     geo = geodesic_errors(Re, Rg, G)
     ang = angle_errors(Re, Rg, G)
+    ang_abs = angle_errors(Re, Rg)
     Rm = necker_mirror(Re)
     Gm = align_rotations(Rm, Rg, robust=robust)
     geo_m = geodesic_errors(Rm, Rg, Gm)
@@ -151,6 +155,8 @@ def viewpoint_report(
         "azimuth": summarize(ang["azimuth"]),
         "elevation": summarize(ang["elevation"]),
         "roll": summarize(ang["roll"]),
+        "absolute": {"geodesic": summarize(geodesic_errors(Re, Rg)),
+                     **{k: summarize(ang_abs[k]) for k in ("azimuth", "elevation", "roll")}},
         "mirrored": bool(geo_m.median() < geo.median()),
         "mirrored_geodesic": summarize(geo_m),
         "per_instance_geodesic": per.double().cpu().tolist(),

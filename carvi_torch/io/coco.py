@@ -17,6 +17,7 @@ Validation never stops the run for one bad object: every problem becomes a
 from __future__ import annotations
 
 import json
+import math
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -259,7 +260,24 @@ def _category_meta(cat: dict, problems: list) -> ClassMeta | None:
         convention = "object"
     return ClassMeta(name=name, keypoint_names=names, flip_pairs=[tuple(p) for p in pairs], rigid_keypoints=rigid,
                      symmetry=symmetry, articulated=flag(cat.get("articulated", False)) is True,
-                     category_id=object_id(cat.get("id")), left_convention=convention)
+                     category_id=object_id(cat.get("id")), left_convention=convention,
+                     keypoints_3d=_keypoints_3d(cat, k, name, problems))
+
+
+def _keypoints_3d(cat: dict, k: int, name: str, problems: list) -> list | None:
+    """The category's ``keypoints_3d`` (``K`` points or nulls), or ``None`` (absent or unusable: reported)."""
+    pts = cat.get("keypoints_3d")
+    if pts is None:
+        return None
+    ok = isinstance(pts, list) and len(pts) == k and all(
+        p is None or (isinstance(p, list) and len(p) == 3 and all(isinstance(v, (int, float)) and not
+                                                                  isinstance(v, bool) and math.isfinite(v) for v in p))
+        for p in pts)
+    if not ok:
+        problems.append(Problem(f"keypoints_3d must hold {k} points [x, y, z] or nulls; ignored", category=name,
+                                fatal=False))
+        return None
+    return pts
 
 
 def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[np.ndarray, np.ndarray] | str:

@@ -18,7 +18,7 @@ from ..cameras import azimuth_elevation_roll_from_rotation
 from .layout import object_file
 from .outputs import read_json, write_json
 
-__all__ = ["ClassReport", "cameras_json", "scores_entry", "write_scores"]
+__all__ = ["ClassReport", "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras"]
 
 
 @dataclass
@@ -71,15 +71,24 @@ def _camera_from(has_cam: bool, ground_truth: bool, sfm_ok: bool, unseen: int) -
     return "mean_shape" if unseen > 0 else "silhouette"
 
 
+def canonical_image_cameras(coll, vp, which: str = "cameras"):
+    """The originals' cameras (``vp.cameras`` or ``vp.sfm_cameras``) in the canonical frame and image pixels."""
+    n = len(coll)
+    groups = vp.groups.labels if vp.groups.k > 1 else None
+    cams = getattr(vp, which)[:n]
+    cams = vp.frame.cameras(cams, groups) if vp.frame is not None else cams
+    return cams.compose_similarity(coll.canvas_from_image.inverse())
+
+
 def _per_annotation(coll, vp, clusters, levels) -> dict:
-    """``cameras.json``'s ``cameras``: per annotation id, SfM and final cameras in image pixels."""
+    """``cameras.json``'s ``cameras``: per annotation id, SfM and final cameras in image pixels, canonical frame."""
     n = len(coll)
     mix = vp.groups
     group_of = mix.labels.tolist() if mix.k > 1 else None  # one host read
-    inv = coll.canvas_from_image.inverse()
-    sfm_img = vp.sfm_cameras[:n].compose_similarity(inv).to_list()
-    ref_img = vp.cameras[:n].compose_similarity(inv).to_list()
-    az, el, ro = azimuth_elevation_roll_from_rotation(vp.cameras.R[:n].double())
+    sfm_img = canonical_image_cameras(coll, vp, "sfm_cameras").to_list()
+    refined = canonical_image_cameras(coll, vp)
+    ref_img = refined.to_list()
+    az, el, ro = azimuth_elevation_roll_from_rotation(refined.R.double())
     sfm_ok, has_cam = vp.sfm_valid[:n].tolist(), vp.has_camera[:n].tolist()  # one host read each
     unseen = vp.unseen_keypoints[:n].tolist()
     per = {}
@@ -114,21 +123,28 @@ def cameras_json(coll, vp, axes: torch.Tensor | None, clusters, levels: list | N
         S = S.detach().double().cpu()
         return {nm: (None if not torch.isfinite(S[k]).all() else S[k].tolist()) for k, nm in enumerate(names)}
 
-    mix = vp.groups
+    mix, frame, big = vp.groups, vp.frame, vp.groups.largest()
+    canon = (lambda S, g=big: frame.points(S.cpu(), g)) if frame is not None else (lambda S, g=big: S)
     out = {
         "class": coll.name,
         "class_key": coll.meta.key,
-        "frame": "image pixels of each annotation's image; R rows = image x, image y (down), view direction",
+        "frame": frame.kind if frame is not None else "sfm",
+        "frame_info": frame.info if frame is not None else {"kind": "sfm"},
+        "camera_convention": "image pixels of each annotation's image; R rows = image x, image y (down), view "
+                             "direction, in the frame above; azimuth, elevation, roll as PASCAL3D+ defines them",
         "cameras": _per_annotation(coll, vp, clusters, levels),
-        "mean_shape": named(vp.shape),
-        "symmetry_plane": vp.reflection.detach().double().cpu().tolist(),
-        "principal_directions": axes.detach().double().cpu().tolist() if axes is not None else None,
+        "mean_shape": named(canon(vp.shape)),
+        "symmetry_plane": (frame.reflection(vp.reflection.cpu(), big) if frame is not None
+                           else vp.reflection).detach().double().cpu().tolist(),
+        "principal_directions": None if axes is None else (
+            frame.directions(axes.cpu(), big) if frame is not None else axes).detach().double().cpu().tolist(),
         "cluster_threshold_deg": float(clusters.threshold_deg) if clusters is not None else None,
     }
-    if mix.k > 1:  # a mixture of rigid shapes: every group's mean shape, in the same class frame
+    if mix.k > 1:  # a mixture of rigid shapes: every group's mean shape, in the canonical frame
         sizes = mix.sizes()
-        out["shape_groups"] = [{"objects": sizes[g], "mean_shape": named(mix.shape(g))} for g in range(mix.k)]
-        out["mean_shape_group"] = mix.largest()
+        out["shape_groups"] = [{"objects": sizes[g], "mean_shape": named(canon(mix.shape(g), g))}
+                               for g in range(mix.k)]
+        out["mean_shape_group"] = big
     return out
 
 

@@ -20,6 +20,8 @@ import os
 import threading
 import time
 
+import numpy as np
+
 from .. import mesh
 from ..runtime import peak_rss_mb
 from .outputs import write_json, write_npz
@@ -48,7 +50,8 @@ def write_object(job: dict) -> dict:
     if job.get("scores") is not None:
         write_json(job["scores_path"], job["scores"], indent=None)
     write_npz(job["voxel_path"], occupancy=occ, voxel_to_camera=v2img, voxel_to_canvas=job["voxel_to_canvas"],
-              canvas_scale=job["canvas_scale"], canvas_offset=job["canvas_offset"], surrogates=job["surrogates"])
+              voxel_to_object=job.get("voxel_to_object", np.full((4, 4), np.nan)), canvas_scale=job["canvas_scale"],
+              canvas_offset=job["canvas_offset"], surrogates=job["surrogates"])
     mesh.write_mesh(m, job["mesh_path"])
     return dict(ok=True, reason=None, mesh_seconds=t1 - t0, write_seconds=time.perf_counter() - t1)
 

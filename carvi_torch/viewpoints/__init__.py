@@ -36,6 +36,7 @@ from ..collection import ClassCollection
 from ..runtime import StageTimer
 from ..sdf import distance_to_mask
 from . import mixture, sfm
+from .frame import CanonicalFrame, FrameFit, canonical_frame
 from .refine import group_sfm_cameras, keypoints_left_out, refine_groups, unseen_keypoints, unseen_per_group
 
 if TYPE_CHECKING:
@@ -66,6 +67,8 @@ class Viewpoints:
         unseen_keypoints: ``(2N,)`` long: for rows of the unseen-image path, their visible keypoints
             with a mean-shape row (0: the silhouette alone); -1 elsewhere.
         source: :data:`CameraSource`.
+        frame: the canonical object frame the outputs are written in (:mod:`~carvi_torch.viewpoints.frame`;
+            the cameras and shapes here stay in the SfM frame).
         distances: ``(2N, H, W)`` exact distances to the masks (:func:`carvi_torch.sdf.distance_to_mask`),
             kept for the carving's signed distances; :meth:`take_distances` hands them over once.
         info: entries for the class's summary (``sfm``, ``sfm_groups``, ``refine``,
@@ -85,6 +88,7 @@ class Viewpoints:
     unseen_keypoints: torch.Tensor
     source: str = "estimate"
     distances: torch.Tensor | None = None
+    frame: CanonicalFrame | None = None
     info: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     log: list = field(default_factory=list)
@@ -228,7 +232,8 @@ def estimate_viewpoints(coll: ClassCollection, cfg: ViewpointConfig, *, source: 
     cams_sfm, sfm_valid = group_sfm_cameras(mix)
     shape = mix.shape(mix.largest())
     vp = Viewpoints(both, cams_sfm, sfm_valid, cams_sfm, sfm_valid.clone(), shape,
-                    sfm.symmetry_plane(shape, coll.meta.flip_pairs), mix, None, source, dist, info, warnings, log)
+                    sfm.symmetry_plane(shape, coll.meta.flip_pairs), mix, None, source=source, distances=dist,
+                    info=info, warnings=warnings, log=log)
     if source == "gt":
         _ground_truth(coll, both, gt_cameras, vp)
     elif cfg.refine:
@@ -241,5 +246,26 @@ def estimate_viewpoints(coll: ClassCollection, cfg: ViewpointConfig, *, source: 
         vp.unseen_keypoints = torch.full((len(both),), -1, dtype=torch.long, device=vp.has_camera.device)
     finite = torch.isfinite(vp.cameras.R).flatten(1).all(1) & torch.isfinite(vp.cameras.s) & (vp.cameras.s > 0)
     vp.has_camera = vp.has_camera & finite
+    vp.frame = _frame(coll, vp, cfg)
+    vp.info["frame"] = vp.frame.info
+    if "fallback" in vp.frame.info and cfg.frame in ("best", "template"):
+        vp.warnings.append(f"frame: {vp.frame.kind} ({vp.frame.info['fallback']})")
     return vp
+
+
+def _frame(coll: ClassCollection, vp: Viewpoints, cfg: ViewpointConfig) -> CanonicalFrame:
+    """The class's canonical frame (ground-truth cameras are in theirs already)."""
+    if vp.source == "gt":
+        return CanonicalFrame("ground_truth", [FrameFit(torch.eye(3, dtype=torch.float64))], {"kind": "ground_truth"})
+    n = len(coll)
+    mix = vp.groups
+    try:
+        reflection = sfm.symmetry_plane(vp.shape, coll.meta.flip_pairs) if coll.meta.flip_pairs else None
+    except ValueError:
+        reflection = None
+    seen = vp.has_camera[:n]
+    return canonical_frame(cfg.frame, coll.meta.name, coll.meta.keypoint_names,
+                           [mix.shape(g).cpu() for g in range(mix.k)], vp.shape.cpu(),
+                           None if reflection is None else reflection.cpu(), vp.cameras.R[:n][seen].cpu(),
+                           own_template=coll.meta.keypoints_3d)
 
