@@ -81,15 +81,16 @@ def _done(coll: ClassCollection, cfg: Config, cdir: Path, out) -> list[bool]:
     return done
 
 
-def _todo(coll: ClassCollection, usable: list, done: list, cfg: Config, report: ClassReport) -> list[int]:
-    """The originals to reconstruct: chosen (``references``), usable, not finished (resume)."""
+def _todo(coll: ClassCollection, vp: Viewpoints, done: list, cfg: Config, report: ClassReport) -> list[int]:
+    """The originals to reconstruct: chosen (``references``), with a usable camera, not finished (resume)."""
     aids = coll.annotation_ids
+    usable = vp.has_camera[:len(coll)].tolist()
     report.resumed = sum(done)
     chosen = [cfg.references == "all" or coll.splits[i] == cfg.references for i in range(len(coll))]
     report.info["references"] = sum(chosen)
     for i in range(len(coll)):
         if chosen[i] and not usable[i]:
-            report.skip("no usable camera", "viewpoints", aids[i], coll.sources[i])
+            report.skip(vp.no_camera.get(i, "no usable camera"), "viewpoints", aids[i], coll.sources[i])
     return [i for i in range(len(coll)) if chosen[i] and not done[i] and usable[i]]
 
 
@@ -189,7 +190,7 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     if cfg.stage == "cameras":
         report.status = "cameras"
         return None, [], report
-    todo = _todo(coll, vp.has_camera[:n].tolist(), done, cfg, report)
+    todo = _todo(coll, vp, done, cfg, report)
     if not todo:  # everything done already (a resumed run) or nothing usable: no maps to prepare
         return None, [], report
     plan.set_todo(todo)

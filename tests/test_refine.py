@@ -16,6 +16,7 @@ from carvi_torch.viewpoints.camera_fit import (
     TWIN_MARGIN,
     RefineResult,
     _terms,
+    collapsed_keypoints,
     estimate_camera,
     keypoint_thickness,
     mask_start_cameras,
@@ -610,6 +611,43 @@ def test_degenerate_instances_stay_finite():
     assert float(energy[3]) == 0.0
     res = refine_cameras(d["S0"], d["cams"], d["kp"], vis, distance_to_mask(masks))
     assert bool(torch.isfinite(res.cameras.R).all()) and bool((res.energy_after <= res.energy_before).all())
+
+
+def test_non_finite_points_never_reach_grid_sample(monkeypatch):
+    """NaN and infinite points (a degenerate fit's trial step) give non-finite samples, and
+    ``grid_sample`` only ever sees a finite grid inside [-1, 1] (its CPU kernel can crash on NaN)."""
+    seen = []
+    real = refine_module.F.grid_sample
+
+    def spy(inp, grid, **kw):
+        seen.append(grid.clone())
+        return real(inp, grid, **kw)
+
+    monkeypatch.setattr(refine_module.F, "grid_sample", spy)
+    D = torch.arange(8.0).expand(1, 6, 8)
+    pts = torch.tensor([[[float("nan"), 1.0], [float("inf"), 2.0], [2.0, -float("inf")], [3.0, 2.0]]])
+    got = sample_distance(D, pts)
+    assert seen and bool(torch.isfinite(seen[0]).all()) and float(seen[0].abs().max()) <= 1.0
+    assert not bool(torch.isfinite(got[0, :3]).any()) and float(got[0, 3]) == 3.0
+
+
+def test_collapsed_keypoints_get_no_camera():
+    """An image whose visible keypoints all lie on one pixel fixes no scale: it gets a NaN camera and
+    an infinite energy; the other images of the batch keep their fits."""
+    d = make_scene(11, n=4, k=8, hidden=0.2)
+    kp = d["kp"].clone()
+    kp[1] = torch.tensor([40.0, 50.0])  # every keypoint of image 1 at one pixel
+    kp[2, :, 0] = 30.0 + 0.1 * torch.arange(8)  # spread over less than a pixel
+    kp[2, :, 1] = 20.0
+    flags = collapsed_keypoints(kp, d["vis"])
+    assert flags.tolist() == [False, True, True, False]
+    one = d["vis"].clone()
+    one[0] = False
+    one[0, 0] = True  # a single visible keypoint is no collapse
+    assert not bool(collapsed_keypoints(kp, one)[0])
+    cams, energy = estimate_camera(d["S0"], kp, d["vis"], d["masks"], max_iters=30)
+    assert bool(torch.isnan(cams.s[1:3]).all()) and bool(torch.isinf(energy[1:3]).all())
+    assert bool(torch.isfinite(cams.R[[0, 3]]).all()) and bool((cams.s[[0, 3]] > 1).all())
 
 
 # --------------------------------------------------------------------------- bad input

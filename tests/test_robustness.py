@@ -233,6 +233,24 @@ def test_yes_no_flags(base, tmp_path, value, skipped):
     assert bool(hit) == skipped, hit
 
 
+def test_an_object_whose_keypoints_collapse_is_skipped_alone(base, tmp_path):
+    """Every visible keypoint of one object on one pixel: no camera fits it (its fit used to reach
+    grid_sample with NaN and crash the process); it is skipped with the reason, the others are made."""
+    d = copy.deepcopy(base)
+    a = next(a for a in d["annotations"] if a["id"] == 2)
+    kp = a["keypoints"]
+    for i in range(0, len(kp), 3):
+        if kp[i + 2] == 2:
+            kp[i:i + 2] = [250.0, 150.0]
+    out = tmp_path / "run"
+    c = run(_cfg(out, _write(tmp_path, d), classes="car"), workers=0)["classes"]["car"]
+    assert [(f["annotation_id"], f["reason"]) for f in c["failures"]] == [
+        (2, "visible keypoints collapse to one point (they fix no scale)")]
+    assert c["reconstructed"] == 5 and c["status"] != "failed"
+    cams = json.loads((out / "car" / "cameras.json").read_text())["cameras"]
+    assert cams["2"]["refined"] is None and cams["2"]["azimuth_deg"] is None and cams["1"]["refined"] is not None
+
+
 # --------------------------------------------------------------------------- 8, 10, 11. resume
 
 

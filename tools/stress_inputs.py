@@ -504,7 +504,7 @@ def _keypoint_cases() -> list[Case]:
                         keypoints(8, visible(lambda x, y, v: (x, y, -1), 2))),
              good=(1, 7, 8), warn=((1, "far outside"),)),
         Case("ann_kp_collapsed", "every visible keypoint of one object at one pixel (250, 150)",
-             edit=keypoints(2, visible(lambda x, y, v: (250.0, 150.0, v))), good=(2,)),
+             edit=keypoints(2, visible(lambda x, y, v: (250.0, 150.0, v))), bad=((2, "collapse to one point"),)),
     ]
 
 

@@ -80,6 +80,12 @@ def canonical_image_cameras(coll, vp, which: str = "cameras"):
     return cams.compose_similarity(coll.canvas_from_image.inverse())
 
 
+def _angles(az, el, ro, has_cam: bool) -> dict:
+    """``azimuth_deg``, ``elevation_deg``, ``roll_deg`` of a camera (``None`` for an object without one)."""
+    return {k: math.degrees(float(v)) if has_cam else None
+            for k, v in (("azimuth_deg", az), ("elevation_deg", el), ("roll_deg", ro))}
+
+
 def _per_annotation(coll, vp, clusters, levels) -> dict:
     """``cameras.json``'s ``cameras``: per annotation id, SfM and final cameras in image pixels, canonical frame."""
     n = len(coll)
@@ -98,8 +104,7 @@ def _per_annotation(coll, vp, clusters, levels) -> dict:
             "sfm": sfm_img[i] if sfm_ok[i] else None,
             "refined": ref_img[i] if has_cam[i] else None,
             "camera_from": _camera_from(has_cam[i], vp.source == "gt", sfm_ok[i], unseen[i]),
-            "azimuth_deg": math.degrees(float(az[i])), "elevation_deg": math.degrees(float(el[i])),
-            "roll_deg": math.degrees(float(ro[i])),
+            **_angles(az[i], el[i], ro[i], has_cam[i]),
             "cluster": int(clusters.labels[i]) if clusters is not None else None,
             "surrogates_from": levels[i] if levels is not None else None,
         }

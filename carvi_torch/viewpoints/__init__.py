@@ -35,7 +35,7 @@ from ..cameras import ScaledOrthographic, align_rotations
 from ..collection import ClassCollection
 from ..runtime import StageTimer
 from ..sdf import distance_to_mask
-from . import mixture, sfm
+from . import camera_fit, mixture, sfm
 from .frame import CanonicalFrame, FrameFit, canonical_frame
 from .refine import group_sfm_cameras, keypoints_left_out, refine_groups, unseen_keypoints, unseen_per_group
 
@@ -69,6 +69,7 @@ class Viewpoints:
         source: :data:`CameraSource`.
         frame: the canonical object frame the outputs are written in (:mod:`~carvi_torch.viewpoints.frame`;
             the cameras and shapes here stay in the SfM frame).
+        no_camera: ``{row: reason}`` for the rows without a usable camera (after :func:`estimate_viewpoints`).
         distances: ``(2N, H, W)`` exact distances to the masks (:func:`carvi_torch.sdf.distance_to_mask`),
             kept for the carving's signed distances; :meth:`take_distances` hands them over once.
         info: entries for the class's summary (``sfm``, ``sfm_groups``, ``refine``,
@@ -89,6 +90,7 @@ class Viewpoints:
     source: str = "estimate"
     distances: torch.Tensor | None = None
     frame: CanonicalFrame | None = None
+    no_camera: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     log: list = field(default_factory=list)
@@ -246,11 +248,34 @@ def estimate_viewpoints(coll: ClassCollection, cfg: ViewpointConfig, *, source: 
         vp.unseen_keypoints = torch.full((len(both),), -1, dtype=torch.long, device=vp.has_camera.device)
     finite = torch.isfinite(vp.cameras.R).flatten(1).all(1) & torch.isfinite(vp.cameras.s) & (vp.cameras.s > 0)
     vp.has_camera = vp.has_camera & finite
+    vp.no_camera = _no_camera_reasons(vp)
+    vp.cameras = _with_placeholders(vp.cameras, vp.has_camera)
     vp.frame = _frame(coll, vp, cfg)
     vp.info["frame"] = vp.frame.info
     if "fallback" in vp.frame.info and cfg.frame in ("best", "template"):
         vp.warnings.append(f"frame: {vp.frame.kind} ({vp.frame.info['fallback']})")
     return vp
+
+
+def _no_camera_reasons(vp: Viewpoints) -> dict[int, str]:
+    """``{row: reason}`` for the rows without a usable camera."""
+    missing = (~vp.has_camera).nonzero().squeeze(1).tolist()
+    if not missing:
+        return {}
+    collapsed = camera_fit.collapsed_keypoints(vp.both.keypoints, vp.both.visible).tolist()
+    return {i: camera_fit.COLLAPSED_REASON if collapsed[i] else "no usable camera" for i in missing}
+
+
+def _with_placeholders(cams: ScaledOrthographic, has_camera: torch.Tensor) -> ScaledOrthographic:
+    """``cams`` with the rows without a usable camera (``has_camera (2N,)`` False) set to a finite
+    placeholder (identity rotation, unit scale, no shift), so that the batched later stages never meet
+    a NaN camera; ``has_camera`` keeps them out of every result."""
+    if bool(has_camera.all()):
+        return cams
+    keep = has_camera.to(cams.R.device)
+    eye = torch.eye(3, dtype=cams.R.dtype, device=cams.R.device)
+    return ScaledOrthographic(torch.where(keep[:, None, None], cams.R, eye), torch.where(keep, cams.s, 1.0),
+                              torch.where(keep[:, None], cams.t, 0.0))
 
 
 def _frame(coll: ClassCollection, vp: Viewpoints, cfg: ViewpointConfig) -> CanonicalFrame:

@@ -75,6 +75,11 @@ TWIN_MARGIN = 0.02
 #: Default of :func:`supported_shape`: a mean-shape keypoint shown by fewer than this fraction of
 #: the instances being refined is left out of their refinement.
 MIN_SUPPORT = 0.1
+#: Visible keypoints whose bounding box is at most this many pixels wide and high "collapse to one
+#: point": they fix no scale (the keypoint term is smallest at scale 0), so no camera is fitted to them.
+COLLAPSE_PIXELS = 1.0
+#: Why an instance whose visible keypoints collapse gets no camera (the summary's reason).
+COLLAPSED_REASON = "visible keypoints collapse to one point (they fix no scale)"
 
 __all__ = [
     "RefineResult",
@@ -83,6 +88,9 @@ __all__ = [
     "ROBUST_FRACTION",
     "TWIN_MARGIN",
     "MIN_SUPPORT",
+    "COLLAPSE_PIXELS",
+    "COLLAPSED_REASON",
+    "collapsed_keypoints",
     "supported_shape",
     "sample_distance",
     "refinement_energy",
@@ -148,14 +156,43 @@ def sample_distance(dist_maps: torch.Tensor, points: torch.Tensor) -> torch.Tens
     """
     n, h, w = dist_maps.shape
     x, y = points[..., 0], points[..., 1]
-    grid = torch.stack([2.0 * x / (w - 1) - 1.0, 2.0 * y / (h - 1) - 1.0], dim=-1)[:, None]  # (N, 1, P, 2)
+    xc, yc = x.clamp(0, w - 1), y.clamp(0, h - 1)  # what border padding samples
+    # NaN survives the clamp and must never reach grid_sample (its CPU kernel reads out of bounds);
+    # such a point's sample stays NaN through the outside term below
+    grid = torch.stack([2.0 * xc / (w - 1) - 1.0, 2.0 * yc / (h - 1) - 1.0], dim=-1).nan_to_num(nan=0.0)[:, None]
     d = F.grid_sample(dist_maps[:, None].to(points.dtype), grid, mode="bilinear", padding_mode="border",
-                      align_corners=True)[:, 0, 0]
-    ox = x - x.clamp(0, w - 1)
-    oy = y - y.clamp(0, h - 1)
+                      align_corners=True)[:, 0, 0]  # grid (N, 1, P, 2), finite, in [-1, 1]
+    ox = x - xc
+    oy = y - yc
     o2 = ox * ox + oy * oy
-    out = torch.where(o2 > 0, o2.clamp(min=1e-30).sqrt(), torch.zeros_like(o2))
+    out = torch.where(o2 == 0, torch.zeros_like(o2), o2.clamp(min=1e-30).sqrt())  # NaN stays NaN
     return d + out
+
+
+def collapsed_keypoints(keypoints: torch.Tensor, visible: torch.Tensor,
+                        shape: torch.Tensor | None = None) -> torch.Tensor:
+    """Instances with at least 2 usable visible keypoints that all lie within :data:`COLLAPSE_PIXELS`
+    (bounding box width and height) of each other: degenerate, no camera can be fitted to them.
+
+    Args:
+        keypoints: ``(N, K, 2)``; visible: ``(N, K)`` bool; shape: ``(K, 3)`` or None (then every
+            keypoint counts; else only those with a finite shape row, as the fit uses them).
+
+    Returns:
+        ``(N,)`` bool.
+
+    Example:
+        >>> kp = torch.tensor([[[5.0, 5.0], [5.0, 5.0], [9.0, 1.0]], [[5.0, 5.0], [8.0, 5.0], [0.0, 0.0]]])
+        >>> collapsed_keypoints(kp, torch.tensor([[True, True, False], [True, True, False]])).tolist()
+        [True, False]
+    """
+    use = visible & torch.isfinite(keypoints).all(-1)
+    if shape is not None:
+        use = use & torch.isfinite(shape).all(-1)
+    big = torch.finfo(keypoints.dtype).max
+    kp = torch.nan_to_num(keypoints)
+    extent = (torch.where(use[..., None], kp, -big).amax(1) - torch.where(use[..., None], kp, big).amin(1))
+    return (use.sum(-1) >= 2) & (extent <= COLLAPSE_PIXELS).all(-1)
 
 
 # --------------------------------------------------------------------------- checks
@@ -925,7 +962,8 @@ def estimate_camera(
             :func:`refine_cameras`.
 
     Returns:
-        ``cameras`` (M) and ``energy (M,)``.
+        ``cameras`` (M) and ``energy (M,)``; an image whose visible keypoints collapse to one point
+        (:func:`collapsed_keypoints`) gets a NaN camera and an infinite energy.
     """
     _check(shape, keypoints, visible, masks_or_dist_maps)
     if n_starts < 0:
@@ -958,4 +996,16 @@ def estimate_camera(
     R, s, t, E0, E, Ek, Es, it, conv = _optimize(R, s, t, shape, keypoints, visible, maps, lam,
                                                  max_iters, tol, rscale)
     Rb, sb, tb, Eb, _ = _pick(R, s, t, E)
-    return ScaledOrthographic(Rb, sb, tb), Eb
+    return _without_collapsed(ScaledOrthographic(Rb, sb, tb), Eb, collapsed_keypoints(keypoints, visible, shape))
+
+
+def _without_collapsed(cams: ScaledOrthographic, energy: torch.Tensor,
+                       collapsed: torch.Tensor) -> tuple[ScaledOrthographic, torch.Tensor]:
+    """``cams`` and ``energy`` with the ``collapsed (M,)`` rows made NaN and infinite (no camera)."""
+    if not bool(collapsed.any()):
+        return cams, energy
+    nan = torch.tensor(float("nan"), dtype=cams.s.dtype, device=cams.s.device)
+    R = torch.where(collapsed[:, None, None], nan, cams.R)
+    s = torch.where(collapsed, nan, cams.s)
+    t = torch.where(collapsed[:, None], nan, cams.t)
+    return ScaledOrthographic(R, s, t), torch.where(collapsed, torch.full_like(energy, float("inf")), energy)
