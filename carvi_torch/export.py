@@ -29,6 +29,7 @@ from .config import Config, read_run_config
 from .io.coco import load_coco
 from .io.layout import object_file
 from .io.outputs import atomic_write, read_json, write_json
+from .io.writer import INT64_RANGE
 from .mesh import MESH_FORMATS
 
 __all__ = ["export", "main", "FIELDS", "view_occupancy", "canonical_occupancy", "depth_map"]
@@ -269,9 +270,10 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
 
 
 def _int_id(value) -> np.int64:
-    """An id as the int64 field holds it: the id when it is an integer, else -1 (``index.json`` and
-    :class:`~carvi_torch.training.LiftedDataset`'s ``annotation_key`` carry every id as given)."""
-    return np.int64(value) if isinstance(value, int) else np.int64(-1)
+    """An id as the int64 field holds it: the id when it is an integer int64 holds, else -1 (``index.json``
+    and :class:`~carvi_torch.training.LiftedDataset`'s ``annotation_key`` carry every id as given)."""
+    lo, hi = INT64_RANGE
+    return np.int64(value) if isinstance(value, int) and lo <= value <= hi else np.int64(-1)
 
 
 def _export_one(coll, i, cam_entry, vox_p, mesh_p, canvas, extent, res, n_points, rng) -> dict:

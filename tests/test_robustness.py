@@ -155,6 +155,25 @@ def test_string_ids_are_carried_to_every_output(base, tmp_path):
     assert all(object_file(out / "car", "meshes", a, "ply").is_file() for a in cams)
 
 
+def test_an_integer_id_beyond_64_bits_is_kept_as_written(base, tmp_path):
+    """Annotation id 10**30 (no int64 holds it): the object is made, its files and cameras.json
+    carry its digits, and the arrays that hold ids fall back to strings instead of overflowing."""
+    from carvi_torch.export import _int_id
+    from carvi_torch.io.layout import object_file
+    from carvi_torch.io.writer import id_array
+
+    huge = 10 ** 30
+    d = copy.deepcopy(base)
+    next(a for a in d["annotations"] if a["id"] == 3)["id"] = huge
+    out = tmp_path / "run"
+    c = run(_cfg(out, _write(tmp_path, d), classes="car"), workers=0)["classes"]["car"]
+    assert c["status"] != "failed" and c["reconstructed"] == 6, c["failures"]
+    assert str(huge) in json.loads((out / "car" / "cameras.json").read_text())["cameras"]
+    assert object_file(out / "car", "meshes", huge, "ply").is_file()
+    assert id_array([huge, 2, -1]).tolist() == [str(huge), "2", ""] and id_array([2 ** 63 - 1]).dtype == np.int64
+    assert _int_id(huge) == -1 and _int_id(-5) == -5
+
+
 @pytest.mark.parametrize("bad, why", [(None, "null"), (3.5, "a float"), (True, "a boolean"), ("", "")])
 def test_unusable_ids_skip_their_object(base, tmp_path, bad, why):
     d = copy.deepcopy(base)

@@ -25,7 +25,8 @@ from ..runtime import cores, env_count
 from . import write_worker
 from .write_worker import write_object_safe
 
-__all__ = ["Writer", "writer_workers", "start_method", "canvas_to_image_4x4", "proposals_payload", "id_array"]
+__all__ = ["Writer", "writer_workers", "start_method", "canvas_to_image_4x4", "proposals_payload", "id_array",
+           "INT64_RANGE"]
 
 
 def start_method() -> str:
@@ -65,15 +66,20 @@ def canvas_to_image_4x4(scale: torch.Tensor, offset: torch.Tensor) -> torch.Tens
     return T
 
 
+#: The integers an int64 array holds (a larger integer id is written as a string, as written in the input).
+INT64_RANGE = (-2 ** 63, 2 ** 63 - 1)
+
+
 def id_array(ids: list, missing=-1) -> np.ndarray:
-    """Annotation ids as an array a ``.npz`` holds without pickling: int64 when every id is an integer,
-    else strings (``missing`` becomes ``""``).
+    """Annotation ids as an array a ``.npz`` holds without pickling: int64 when every id is an integer
+    that int64 holds, else strings (``missing`` becomes ``""``; an integer beyond 64 bits keeps its digits).
 
     Example:
-        >>> id_array([3, -1]).dtype.kind, id_array(["a", -1]).tolist()
-        ('i', ['a', ''])
+        >>> id_array([3, -1]).dtype.kind, id_array(["a", -1]).tolist(), id_array([10 ** 30, 3]).tolist()
+        ('i', ['a', ''], ['1000000000000000000000000000000', '3'])
     """
-    if all(isinstance(i, int) for i in ids):
+    lo, hi = INT64_RANGE
+    if all(isinstance(i, int) and lo <= i <= hi for i in ids):
         return np.asarray(ids, dtype=np.int64)
     return np.asarray(["" if i == missing else str(i) for i in ids], dtype=str)
 
