@@ -145,6 +145,16 @@ class TestAzimuthElevationRoll:
         R = torch.tensor([v["R"] for v in d.values()], dtype=torch.float64)
         ours = C.rotation_from_azimuth_elevation_roll(E[:, 2], E[:, 1], E[:, 0])
         assert (ours - R).abs().max() < 1e-7
+        # and PASCAL3D+'s own rotation matrix: rot^T = Rz(theta) Rx(elevation - pi/2) Rz(-azimuth), R = F rot^T
+        rot = torch.tensor([v["rot"] for v in d.values()], dtype=torch.float64)
+        F = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+        assert (F @ rot.transpose(1, 2) - R).abs().max() < 1e-7
+        a, e, r = C.azimuth_elevation_roll_from_rotation(R)
+        wrap = lambda x: torch.remainder(x + math.pi, 2 * math.pi) - math.pi  # noqa: E731
+        assert wrap(e - E[:, 1]).abs().max() < 1e-6
+        free = E[:, 1].abs() < math.radians(89.9)  # 4 objects seen from straight below: az and roll not separable
+        assert int((~free).sum()) == 4
+        assert wrap(a - E[:, 2])[free].abs().max() < 1e-6 and wrap(r - E[:, 0])[free].abs().max() < 1e-6
 
 
 # ----------------------------------------------------------------------------- stiefel

@@ -1,6 +1,6 @@
 """Studies of the synthetic benchmark (after ``tools/benchmark_synthetic.py``), and the frames figure.
 
-    python tools/studies.py {frames,ranking,threshold,viewpoints,clusters,step} [options]
+    python tools/studies.py {frames,canonical,ranking,threshold,viewpoints,clusters,step} [options]
 
 Figures go to ``docs/figures/<name>.png`` (docs/results.md and docs/conventions.md show them),
 JSON records to ``docs/data/studies_<name>.json``. Subcommands (``--bench`` is the benchmark's
@@ -8,6 +8,8 @@ working directory, default outputs/benchmark):
 
 * ``frames``: the image, camera and voxel-grid frames of carvi_torch (``frames.png``,
   docs/conventions.md; ``--out`` moves it). Needs no benchmark.
+* ``canonical``: the canonical object frame with the shipped aeroplane template and one
+  camera's azimuth and elevation (``canonical_frame.png``, docs/conventions.md).
 * ``ranking`` (a, b): every saved proposal of the Full run (``<class>/proposals/<id>.npz``) is
   meshed (:func:`carvi_torch.mesh.occupancy_to_mesh`) and scored against the ground truth
   (:func:`carvi_torch.evaluation.metrics.evaluate_reconstruction`, step ``--step-percent`` of the GT
@@ -650,6 +652,80 @@ def frames(args) -> int:
     return 0
 
 
+def canonical(args) -> int:
+    """docs/figures/canonical_frame.png: the canonical object frame (the shipped aeroplane template) and
+    PASCAL3D+'s azimuth and elevation of one camera, drawn with the package's own functions."""
+    import math
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import torch
+
+    from carvi_torch.cameras import rotation_from_azimuth_elevation_roll
+    from carvi_torch.viewpoints.frame import load_templates
+
+    pts = load_templates()["classes"]["aeroplane"]["keypoints"]
+    P = np.array(list(pts.values()))
+    az, el = 40.0, 25.0
+    R = rotation_from_azimuth_elevation_roll(torch.tensor(math.radians(az), dtype=torch.float64),
+                                             torch.tensor(math.radians(el), dtype=torch.float64),
+                                             torch.tensor(0.0, dtype=torch.float64)).numpy()
+    cam = -R[2]  # unit vector from the object towards the camera
+    fig, axes = plt.subplots(1, 3, figsize=(16, 5.4))
+    views = (("(a) from above: x right, y up the page", 0, 1, "x", "y"),
+             ("(b) from the side, in the camera's vertical plane", None, 2, "horizontal", "z (up)"))
+    for ax, (title, i, j, xl, yl) in zip(axes[:2], views):
+        h = np.array([cam[0], cam[1], 0.0]) / math.hypot(cam[0], cam[1])
+        X = P[:, i] if i is not None else P @ h
+        Y = P[:, j]
+        ax.scatter(X, Y, color="tab:blue", s=20, zorder=3)
+        for (name, p), x, y in zip(pts.items(), X, Y):
+            ax.annotate(name, (x, y), fontsize=7, color="0.3", xytext=(3, 3), textcoords="offset points")
+        c = (cam[i], cam[j]) if i is not None else (float(cam @ h), cam[2])
+        ax.plot([0, 0.5 * c[0]], [0, 0.5 * c[1]], color="tab:orange", lw=1.5)
+        ax.plot(0.5 * c[0], 0.5 * c[1], "s", color="tab:orange", ms=9)
+        ax.text(0.5 * c[0], 0.5 * c[1] + 0.03, "camera", color="tab:orange", ha="center")
+        if i is not None:  # azimuth: from the front (-y), counter-clockwise seen from above
+            t = np.radians(np.linspace(0, az, 30))
+            ax.plot(0.25 * np.sin(t), -0.25 * np.cos(t), color="tab:orange")
+            ax.text(0.04, -0.19, f"azimuth {az:.0f}", color="tab:orange")
+            ax.annotate("", (0, -0.42), (0, 0), arrowprops=dict(arrowstyle="-|>", ls="--"))
+            ax.text(0.01, -0.46, "front = -y", fontsize=9)
+        else:
+            t = np.radians(np.linspace(0, el, 20))
+            ax.plot(0.3 * np.cos(t), 0.3 * np.sin(t), color="tab:orange")
+            ax.text(0.32, 0.05, f"elevation {el:.0f}", color="tab:orange")
+            ax.axhline(0, color="0.7", lw=0.8)
+        ax.set_title(title)
+        ax.set_xlabel(xl)
+        ax.set_ylabel(yl)
+        ax.set_xlim(-0.55, 0.55)
+        ax.set_ylim(-0.55, 0.55)
+        ax.set_aspect("equal")
+        ax.grid(alpha=0.3)
+    ax = axes[2]  # what that camera sees: uv = X R[:2]^T, image y down
+    uv = P @ R[:2].T
+    ax.scatter(uv[:, 0], uv[:, 1], color="tab:blue", s=20)
+    for (name, _), (u, v) in zip(pts.items(), uv):
+        ax.annotate(name, (u, v), fontsize=7, color="0.3", xytext=(3, 3), textcoords="offset points")
+    ax.set_ylim(0.5, -0.5)
+    ax.set_xlim(-0.5, 0.5)
+    ax.set_aspect("equal")
+    ax.grid(alpha=0.3)
+    ax.set_title("(c) what it sees (image y down), roll 0")
+    fig.suptitle("The canonical frame of the PASCAL3D+ classes (shipped aeroplane template): +z up, front towards "
+                 "-y.   R = diag(1, -1, -1) Rz(roll) Rx(elevation - 90) Rz(-azimuth)")
+    fig.tight_layout()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    print(f"wrote {out}")
+    return 0
+
+
 # =========================================================================== main
 
 
@@ -662,6 +738,8 @@ def main(argv=None) -> int:
     common.add_argument("--seed", type=int, default=0)
     p = sub.add_parser("frames", help="the figure of the image, camera and voxel-grid frames (docs/conventions.md)")
     p.add_argument("--out", default=str(FIGURES / "frames.png"))
+    p = sub.add_parser("canonical", help="the canonical object frame and its angles (docs/conventions.md)")
+    p.add_argument("--out", default=str(FIGURES / "canonical_frame.png"))
     p = sub.add_parser("ranking", parents=[common], help="(a) top/random/best proposal, (b) pool size")
     p.add_argument("--step-percent", type=float, default=2.0, help="metric step, %% of the GT bbox diagonal")
     p.add_argument("--views-per-model", type=int, default=5, help="test views per model to study (subset)")
@@ -680,9 +758,8 @@ def main(argv=None) -> int:
     p.add_argument("--classes", default="bicycle,car,chair,sofa")
     p.add_argument("--steps", default="0.5,1.0")
     args = ap.parse_args(argv)
-    return {"frames": frames, "ranking": ranking, "threshold": threshold, "viewpoints": viewpoints,
-            "clusters": clusters,
-            "step": step}[args.study](args)
+    return {"frames": frames, "canonical": canonical, "ranking": ranking, "threshold": threshold,
+            "viewpoints": viewpoints, "clusters": clusters, "step": step}[args.study](args)
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ frame, +z up, front -y) and after one global rotation aligning the two
 automatic frame, which uses no template). SfM -> refined compares the same views (those with
 an SfM camera, ``evaluate``'s ``refined_with_sfm``); every view's refined median, the
 unseen-image cameras included, has a column of its own. The cameras of a run go to
-``<work>/cameras[_<overrides>][_renders-s<seed>]`` (rerunning the same settings resumes there).
+``<work>/cameras[_<overrides>][_v<views>][_renders-s<seed>]`` (rerunning the same settings resumes there).
 
     python tools/viewpoints_cad.py [--views 30] [--seed 0] [--work outputs/viewpoints_cad]
                                    [--out PATH] [key=value ...]
@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     t_render = time.perf_counter() - t0
     # one folder per render seed and set of overrides, so runs with different settings never mix their cameras
     recon = work / ("cameras" + "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in o) for o in args.overrides)
-                    + (f"_renders-s{args.seed}" if args.seed else ""))
+                    + (f"_v{args.views}" if args.views != 30 else "") + (f"_renders-s{args.seed}" if args.seed else ""))
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(renders / "annotations.json"),
            "--out", str(recon), "stage=cameras", "progress=false", f"seed={args.seed}", *args.overrides]
     out = Path(args.out) if args.out else (ROOT / "docs" / "data" / "viewpoints_cad.json"
