@@ -32,6 +32,7 @@ from typing import Any, Literal, Optional
 import yaml
 
 from .carve import Backend, Interpolation
+from .io.outputs import read_text
 from .mesh import MeshFormat
 from .viewpoints import CameraSource
 from .viewpoints.frame import FrameChoice
@@ -525,22 +526,55 @@ def settings_changed(previous: Path, cfg: Config) -> dict:
     if cfg.overwrite or cfg.stage != "all" or not previous.is_file():
         return {}
     try:
-        old = flatten_settings(yaml.safe_load(previous.read_text()) or {})
-    except (OSError, yaml.YAMLError, AttributeError):
+        old = flatten_settings(read_yaml(previous))
+    except (ConfigError, AttributeError):
         return {}
     # a key the old file lacks (a setting added since) counts as changed: that run predates it
     return {k: (old.get(k), v) for k, v in cfg.flat().items() if k not in NEUTRAL_SETTINGS and old.get(k) != v}
 
 
 
+def read_yaml(path: str | Path) -> Any:
+    """A YAML file's content (UTF-8, a byte order mark allowed; empty: ``{}``). Raises :class:`ConfigError`
+    with one line naming the file (and the line and column of malformed YAML): missing, not UTF-8,
+    malformed.
+
+    Example:
+        >>> import tempfile
+        >>> p = Path(tempfile.mkdtemp()) / "c.yaml"
+        >>> _ = p.write_text("carve:\\n  resolution: [16\\n x: :\\n")
+        >>> try:
+        ...     read_yaml(p)
+        ... except ConfigError as e:
+        ...     print(str(e).replace(str(p), "c.yaml"))
+        c.yaml: malformed YAML at line 3, column 3: expected ',' or ']', but got ':' (in a flow sequence)
+    """
+    p = Path(path)
+    try:
+        return yaml.safe_load(read_text(p)) or {}
+    except (OSError, ValueError) as e:
+        raise ConfigError(str(e) if str(p) in str(e) else f"{p}: {e}") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: malformed YAML{_yaml_where(e)}") from None
+    except RecursionError:
+        raise ConfigError(f"{p}: YAML nested too deeply to read") from None
+
+
+def _yaml_where(e: yaml.YAMLError) -> str:
+    """`` at line L, column C: problem (in context)`` of a YAML error, on one line."""
+    mark, problem = getattr(e, "problem_mark", None), getattr(e, "problem", None)
+    if problem is None:
+        return ": " + " ".join(str(e).split())
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    context = getattr(e, "context", None)
+    return f"{where}: {problem}" + (f" ({context.replace('while parsing', 'in')})" if context else "")
+
+
 def read_run_config(path: str | Path) -> Config:
     """The configuration a run saved (its ``config.yaml``, nested or flat); settings this version does
     not know are ignored, so outputs of other versions stay readable."""
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{p}: malformed YAML: {e}") from None
+    data = read_yaml(p)
     if not isinstance(data, dict):
         raise ConfigError(f"{p}: expected a mapping of key: value")
     known = {k: v for k, v in flatten_settings(data).items() if k in _ANNOTATIONS}
@@ -554,10 +588,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
         p = Path(path)
         if not p.is_file():
             raise ConfigError(f"config file {p} not found")
-        try:
-            data = yaml.safe_load(p.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{p}: malformed YAML: {e}") from None
+        data = read_yaml(p)
         if not isinstance(data, dict):
             raise ConfigError(f"{p}: expected a mapping of key: value")
         cfg = cfg.override(data)

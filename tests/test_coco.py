@@ -148,6 +148,27 @@ class TestLoad:
         with pytest.raises(CocoFormatError, match="no such file"):
             load_coco(tmp_path / "missing.json")
 
+    def test_unreadable_files_name_the_file(self, tmp_path):
+        """`images` not a list, nesting beyond the parser's recursion, bytes that are not UTF-8: one
+        CocoFormatError (a user error) naming the file, never a TypeError or RecursionError."""
+        path, _, _ = _dataset(tmp_path, n=2)
+        data = json.loads(path.read_text())
+        bad = tmp_path / "bad.json"
+        bad.write_text(json.dumps({**data, "images": 5}))
+        with pytest.raises(CocoFormatError, match=r"bad\.json: 'images' is an integer \(5\), not a list"):
+            load_coco(bad)
+        bad.write_text(json.dumps(data)[:-1] + ', "info": ' + "[" * 100_000 + "]" * 100_000 + "}")
+        with pytest.raises(CocoFormatError, match=r"bad\.json: JSON nested too deeply"):
+            load_coco(bad)
+        bad.write_bytes(json.dumps({**data, "info": "caf\u00e9"}, ensure_ascii=False).encode("latin-1"))
+        with pytest.raises(CocoFormatError, match=r"bad\.json: not UTF-8 text \(byte 0xe9"):
+            load_coco(bad)
+
+    def test_a_byte_order_mark_is_accepted(self, tmp_path):
+        path, _, _ = _dataset(tmp_path, n=2)
+        path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+        assert len(load_coco(path, canvas_size=32).collections["plane"]) == 2
+
     def test_class_filter_and_extras(self, tmp_path):
         path, images, anns = _dataset(tmp_path)
         data = json.loads(path.read_text())

@@ -43,6 +43,23 @@ def test_bad_file(tmp_path):
         load_config(tmp_path / "nope.yaml")
 
 
+def test_a_malformed_file_is_one_line_with_its_place(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("carve:\n  resolution: [16\n x: :\n")
+    with pytest.raises(ConfigError) as e:
+        load_config(p)
+    assert "\n" not in str(e.value) and str(e.value).startswith(f"{p}: malformed YAML at line 3, column 3: ")
+    p.write_bytes(b"resolution: \xe9\n")  # Latin-1, not UTF-8
+    with pytest.raises(ConfigError, match=r"c\.yaml: not UTF-8 text"):
+        load_config(p)
+
+
+def test_a_byte_order_mark_is_accepted(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_bytes(b"\xef\xbb\xbfresolution: 40\n")
+    assert load_config(p).carve.resolution == 40
+
+
 def test_default_yaml_matches_dataclass():
     """configs/default.yaml lists every field with the dataclass default."""
     data = yaml.safe_load((ROOT / "configs" / "default.yaml").read_text())

@@ -197,7 +197,8 @@ def object_id(value) -> int | str | None:
 
 
 def _describe(value) -> str:
-    kind = {type(None): "null", bool: "a boolean", float: "a float", list: "a list", dict: "an object"}
+    kind = {type(None): "null", bool: "a boolean", int: "an integer", float: "a float", str: "a string",
+            list: "a list", dict: "an object"}
     return f"{kind.get(type(value), type(value).__name__)} ({json.dumps(value)[:40]})"
 
 
@@ -330,8 +331,8 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
         flags (or unreadable ones). NaN or far-outside keypoints are dropped with a warning.
 
     Raises:
-        CocoFormatError: the file is missing, not JSON (message with line and column) or has no
-            ``annotations`` / ``categories`` lists.
+        CocoFormatError: the file is missing, not UTF-8, not JSON (message with line and column), nested
+            too deeply, or has no ``annotations`` / ``categories`` lists, or ``images`` that is not a list.
     """
     data = _read(Path(path))
     problems: list[Problem] = []
@@ -361,6 +362,8 @@ def _read(path: Path) -> dict:
     for key in ("annotations", "categories"):
         if not isinstance(data.get(key), list):
             raise CocoFormatError(f"{path}: missing or invalid '{key}' list")
+    if data.get("images") is not None and not isinstance(data["images"], list):
+        raise CocoFormatError(f"{path}: 'images' is {_describe(data['images'])}, not a list")
     return data
 
 

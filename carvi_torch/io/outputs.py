@@ -19,7 +19,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["atomic_write", "write_json", "read_json", "write_npz", "write_bytes", "to_jsonable", "is_done", "safe_name"]
+__all__ = ["atomic_write", "write_json", "read_json", "read_text", "write_npz", "write_bytes", "to_jsonable", "is_done",
+           "safe_name"]
 
 
 def _file_mode() -> int:
@@ -100,18 +101,31 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1) -> Pat
     return write_bytes(path, text.encode("utf-8"))
 
 
-def read_json(path: str | os.PathLike) -> Any:
-    """Read JSON; a malformed file raises ``ValueError`` naming the file, line and column."""
+def read_text(path: str | os.PathLike) -> str:
+    """A UTF-8 text file (a leading byte order mark, as Windows editors write, is dropped); a missing
+    file raises ``FileNotFoundError`` and bytes that are not UTF-8 ``ValueError``, both naming the file."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: no such file") from None
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not UTF-8 text (byte 0x{e.object[e.start]:02x} at byte {e.start}); "
+                         "save it as UTF-8") from None
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """Read JSON (:func:`read_text`); a malformed file raises ``ValueError`` naming the file, line and
+    column, and one nested too deeply for the parser ``ValueError`` naming the file."""
+    path = Path(path)
+    text = read_text(path)
     try:
         return json.loads(text)
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: malformed JSON at line {e.lineno}, column {e.colno} (char {e.pos}): "
                          f"{e.msg}") from None
+    except RecursionError:
+        raise ValueError(f"{path}: JSON nested too deeply to read") from None
 
 
 def write_npz(path: str | os.PathLike, **arrays: Any) -> Path:
