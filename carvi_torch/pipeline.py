@@ -95,13 +95,17 @@ def _todo(coll: ClassCollection, vp: Viewpoints, done: list, cfg: Config, report
 
 
 def _viewpoints(coll, cfg, gt, report, timer) -> Viewpoints | None:
-    gt_img = ground_truth_cameras(gt, coll)
+    """The class's viewpoints; with ``cameras=gt`` the true ones, the objects without a usable one in
+    ``gt.json`` skipped with the reason (``None``: no object has one, every object skipped)."""
+    gt_img, gt_why = ground_truth_cameras(gt, coll) if cfg.study.cameras == "gt" else (None, [])
     if cfg.study.cameras == "gt" and gt_img is None:
-        report.status = "failed"
-        report.skip("cameras=gt but gt.json has no camera for every annotation of this class", "viewpoints")
+        report.status = "skipped"
+        for aid, src, why in zip(coll.annotation_ids, coll.sources, gt_why):
+            report.skip(f"cameras=gt: {why}", "viewpoints", aid, src)
         return None
     vp = estimate_viewpoints(coll, cfg.viewpoints, source=cfg.study.cameras, gt_cameras=gt_img, seed=cfg.seed,
                              timer=timer)
+    vp.no_camera.update({i: f"cameras=gt: {why}" for i, why in enumerate(gt_why) if why})
     report.warnings.extend(vp.warnings)
     report.info.update(vp.info)
     for line in vp.log:

@@ -32,14 +32,20 @@ SMALL = {"resolution": 16, "proposals": 3, "canvas_size": 48, "progress": False,
 
 
 @pytest.fixture(scope="module")
-def base(tmp_path_factory) -> dict:
-    """COCO data of six procedural cars and six chairs (with gt.json and meshes beside it)."""
+def base_dir(tmp_path_factory) -> Path:
+    """Six procedural cars and six chairs: annotations.json, gt.json and the meshes."""
     from carvi_torch.synthetic import procedural
 
     d = tmp_path_factory.mktemp("base")
     procedural.write_default_collection(d, instances_per_class=6, categories=["car", "chair"], seed=1,
                                         progress=False)
-    return json.loads((d / "annotations.json").read_text())
+    return d
+
+
+@pytest.fixture(scope="module")
+def base(base_dir) -> dict:
+    """COCO data of six procedural cars and six chairs."""
+    return json.loads((base_dir / "annotations.json").read_text())
 
 
 def _write(tmp: Path, data: dict, name="ann.json") -> Path:
@@ -268,6 +274,52 @@ def test_an_object_whose_keypoints_collapse_is_skipped_alone(base, tmp_path):
     assert c["reconstructed"] == 5 and c["status"] != "failed"
     cams = json.loads((out / "car" / "cameras.json").read_text())["cameras"]
     assert cams["2"]["refined"] is None and cams["2"]["azimuth_deg"] is None and cams["1"]["refined"] is not None
+
+
+# --------------------------------------------------------------------------- ground truth beside the data
+
+
+@pytest.mark.parametrize("content, warned", [
+    (b"<html>404 Not Found</html>", True), (b"[]", False),
+    (json.dumps({"annotations": {"1": {"R": "junk", "s": 1, "t": [0, 0]}}}).encode(), False)],
+    ids=["not JSON", "a list", "junk cameras"])
+def test_a_broken_gt_json_does_not_stop_a_run_that_does_not_need_it(base, tmp_path, content, warned):
+    """Ground truth is only used with cameras=gt: an unreadable gt.json is one warning, a junk one nothing."""
+    (tmp_path / "gt.json").write_bytes(content)
+    s = run(_cfg(tmp_path / "run", _write(tmp_path, base), classes="car"), workers=0)
+    assert s["classes"]["car"]["reconstructed"] == 6
+    gt = [p for p in s["input_problems"] if p["stage"] == "gt"]
+    assert len(gt) == warned and s["gt"] == (None if warned else str(tmp_path / "gt.json"))
+    assert all("gt.json: malformed JSON" in p["reason"] and not p["skipped"] for p in gt)
+    assert ("gt.json: malformed JSON" in (tmp_path / "run" / "run.log").read_text()) == warned
+
+
+def test_cameras_gt_needs_a_readable_gt_json(base, tmp_path, capsys):
+    data = _write(tmp_path, base)
+    out = tmp_path / "run"
+    for content in (None, b"<html>404 Not Found</html>"):
+        if content is not None:
+            (tmp_path / "gt.json").write_bytes(content)
+        rc = reconstruct_main(["--data", str(data), "--out", str(out), "--quiet", "cameras=gt"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and len(err) == 1 and err[0].startswith("error: cameras=gt") and "gt.json" in err[0], err
+        assert not out.exists()
+
+
+def test_cameras_gt_skips_the_objects_without_a_usable_true_camera(base, base_dir, tmp_path):
+    gt = json.loads((base_dir / "gt.json").read_text())
+    gt["annotations"]["2"]["R"] = "junk"
+    gt["annotations"]["3"]["R"] = [[2, 0, 0], [0, 1, 0], [0, 0, 1]]
+    del gt["annotations"]["4"]
+    (tmp_path / "gt.json").write_text(json.dumps(gt))
+    out = tmp_path / "run"
+    c = run(_cfg(out, _write(tmp_path, base), classes="car", cameras="gt"), workers=0)["classes"]["car"]
+    assert {f["annotation_id"]: f["reason"] for f in c["failures"]} == {
+        2: "cameras=gt: gt.json camera: R must be 3x3 numbers, s a number, t 2 numbers",
+        3: "cameras=gt: gt.json camera: R is not a rotation", 4: "cameras=gt: no camera in gt.json"}
+    assert c["reconstructed"] == 3
+    cams = json.loads((out / "car" / "cameras.json").read_text())["cameras"]
+    assert cams["1"]["camera_from"] == "ground_truth" and cams["2"]["camera_from"] is None
 
 
 # --------------------------------------------------------------------------- 8, 10, 11. resume

@@ -20,7 +20,7 @@ from ..io.outputs import read_json, write_bytes, write_json
 from ..runtime import log, peak_rss_mb, stable_hash
 
 __all__ = ["RunSetup", "check_request", "open_run", "finish_run", "exit_status", "class_generator",
-           "prepare_data"]
+           "prepare_data", "read_ground_truth"]
 
 
 @dataclass
@@ -89,7 +89,10 @@ def open_run(cfg: Config) -> RunSetup:
     loaded = coco.load_coco(data_path, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
                             device=device, classes=cfg.classes, max_image_pixels=cfg.input.max_image_pixels)
     load_s = time.perf_counter() - t0
-    gt = read_json(gt_path) if gt_path is not None and Path(gt_path).is_file() else None
+    gt, gt_problem = read_ground_truth(gt_path, cfg.study.cameras == "gt")
+    if gt_problem is not None:
+        loaded.problems.append(gt_problem)
+        gt_path = None
     earlier = _earlier_classes(out, cfg)
     out.mkdir(parents=True, exist_ok=True)
     changed = settings_changed(out / "config.yaml", cfg)
@@ -102,10 +105,29 @@ def open_run(cfg: Config) -> RunSetup:
     return RunSetup(cfg, out, device, loaded, gt, summary, changed, earlier=earlier)
 
 
+def read_ground_truth(path: Path | None, needed: bool) -> tuple[dict | None, coco.Problem | None]:
+    """``gt.json``'s content (``None`` when there is none) and the problem of an unreadable one.
+
+    ``needed`` (``cameras=gt``): a missing or unreadable file is a user error (:class:`ConfigError`);
+    otherwise an unreadable file is a warning and the run goes on without ground truth.
+    """
+    if path is None:
+        if needed:
+            raise ConfigError("cameras=gt needs ground truth: no gt.json beside --data (or pass gt=FILE)")
+        return None, None
+    try:
+        return read_json(path), None
+    except (OSError, ValueError) as e:
+        if needed:
+            raise ConfigError(f"cameras=gt: {e}") from None
+        return None, coco.Problem(f"ground truth unreadable, going on without it: {e}", stage="gt", fatal=False)
+
+
 def announce(setup: RunSetup) -> None:
-    """Log the input problems, the classes asked for that have no usable object, and changed settings."""
+    """Log the input problems (those of a whole file or class as warnings, an object's warnings as info:
+    there may be thousands), the classes asked for that have no usable object, and changed settings."""
     for p in setup.loaded.problems:
-        (log.warning if p.fatal else log.info)(p.message())
+        (log.warning if p.fatal or p.annotation_id is None else log.info)(p.message())
     if setup.changed:
         log.warning(f"{setup.out} holds a run made with other settings ("
                     + ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in setup.changed.items())

@@ -26,9 +26,11 @@ Example:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
+import numpy as np
 import torch
 
 from ..cameras import ScaledOrthographic, align_rotations
@@ -146,8 +148,11 @@ def _ground_truth(coll: ClassCollection, both: ClassCollection, gt_img: ScaledOr
     mirrored = gt_img.mirror(w, GT_REFLECTION.to(gt_img.R))
     vp.cameras = ScaledOrthographic.cat([gt_img.compose_similarity(coll.canvas_from_image),
                                          mirrored.compose_similarity(both.canvas_from_image[n:])])
-    vp.has_camera = torch.ones(2 * n, dtype=torch.bool, device=both.keypoints.device)
-    ok = vp.groups.single.valid
+    known = torch.isfinite(gt_img.s).to(both.keypoints.device)  # instances without a true camera get none
+    vp.has_camera = torch.cat([known, known])
+    ok = vp.groups.single.valid & vp.has_camera
+    if not bool(ok.any()):
+        return
     G = align_rotations(vp.sfm_cameras.R[ok], vp.cameras.R[ok])  # R_sfm G ~ R_gt
     ratio = (vp.cameras.s[ok] / vp.sfm_cameras.s[ok]).median()
     vp.shape = (vp.shape @ G) / ratio
@@ -188,16 +193,52 @@ def _unseen_step(coll: ClassCollection, vp: Viewpoints, dist: torch.Tensor, cfg:
     vp.has_camera = torch.ones_like(vp.has_camera)
 
 
-def ground_truth_cameras(gt: dict | None, coll: ClassCollection) -> ScaledOrthographic | None:
-    """Image-pixel ground-truth cameras of the collection's instances from ``gt.json``'s content
-    (``None`` when there is none, or when an instance has none)."""
-    if gt is None:
-        return None
-    entries = gt.get("annotations", gt)
-    items = [entries.get(str(aid)) for aid in coll.annotation_ids]
-    if any(e is None or "R" not in e for e in items):
-        return None
-    return ScaledOrthographic.from_list(items, device=coll.device)
+def ground_truth_cameras(gt, coll: ClassCollection) -> tuple[ScaledOrthographic | None, list]:
+    """Image-pixel ground-truth cameras of the collection's instances from ``gt.json``'s content.
+
+    Returns:
+        ``ScaledOrthographic (N)`` with NaN rows for the instances without a usable entry (``None``
+        when no instance has one), and per instance why it has none (``None``: it has one).
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> entry = {"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "s": 2.0, "t": [0, 0]}
+        >>> coll = SimpleNamespace(annotation_ids=[1, 2], device="cpu")
+        >>> cams, why = ground_truth_cameras({"annotations": {"1": entry, "2": {"R": "junk"}}}, coll)
+        >>> cams.s.tolist()[0], why
+        (2.0, [None, 'gt.json camera: R must be 3x3 numbers, s a number, t 2 numbers'])
+    """
+    entries = gt.get("annotations", gt) if isinstance(gt, dict) else gt
+    if not isinstance(entries, dict):
+        why = "gt.json holds no object of annotation ids" if gt is not None else "no gt.json"
+        return None, [why] * len(coll.annotation_ids)
+    parsed = [_gt_camera(entries.get(str(aid))) for aid in coll.annotation_ids]
+    why = [p if isinstance(p, str) else None for p in parsed]
+    if all(isinstance(p, str) for p in parsed):
+        return None, why
+    nan = (np.full((3, 3), np.nan), np.nan, np.full(2, np.nan))
+    cams = [nan if isinstance(p, str) else p for p in parsed]
+    R, s, t = (torch.tensor(np.stack([c[j] for c in cams]), dtype=torch.float32, device=coll.device) for j in range(3))
+    return ScaledOrthographic(R, s, t), why
+
+
+def _gt_camera(entry) -> tuple[np.ndarray, float, np.ndarray] | str:
+    """``(R (3, 3), s, t (2,))`` of one ``gt.json`` entry, or why it has no usable camera."""
+    if entry is None:
+        return "no camera in gt.json"
+    try:
+        R = np.asarray(entry["R"], dtype=np.float64)
+        s = float(entry["s"])
+        t = np.asarray(entry["t"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError, IndexError):
+        R = s = t = None
+    if R is None or R.shape != (3, 3) or t.shape != (2,):
+        return "gt.json camera: R must be 3x3 numbers, s a number, t 2 numbers"
+    if not (np.isfinite(R).all() and np.isfinite(t).all() and math.isfinite(s) and s > 0):
+        return "gt.json camera: R, s and t must be finite, s positive"
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) <= 0:
+        return "gt.json camera: R is not a rotation"
+    return R, s, t
 
 
 def estimate_viewpoints(coll: ClassCollection, cfg: ViewpointConfig, *, source: str = "estimate",
@@ -241,7 +282,7 @@ def estimate_viewpoints(coll: ClassCollection, cfg: ViewpointConfig, *, source: 
     elif cfg.refine:
         with timer("refine"):
             _refine_step(vp, dist, cfg)
-    if bool((~vp.has_camera).any()):
+    if source != "gt" and bool((~vp.has_camera).any()):
         with timer("refine"):
             _unseen_step(coll, vp, dist, cfg)
     else:
