@@ -222,6 +222,25 @@ def test_category_names_never_leave_the_output_folder(base, tmp_path, name):
     assert not Path("/abs/path").exists()
 
 
+def test_classes_named_like_the_runs_own_files_get_other_folders(base, tmp_path):
+    """Categories named summary.json and Config.YAML (any case) do not collide with the run's files: their
+    folders get other safe names, their names stay in summary.json and cameras.json."""
+    from carvi_torch.io.layout import RUN_NAMES, class_dir
+
+    d = copy.deepcopy(base)
+    d["categories"][0]["name"], d["categories"][1]["name"] = "summary.json", "Config.YAML"
+    out = tmp_path / "run"
+    s = run(_cfg(out, _write(tmp_path, d)), workers=0)
+    assert sorted(s["classes"]) == ["Config.YAML-2", "summary.json-1"]
+    assert all(c["reconstructed"] == 6 for c in s["classes"].values()), s["classes"]
+    assert json.loads((out / "summary.json").read_text())["classes"] == s["classes"]
+    assert sorted(json.loads((out / k / "cameras.json").read_text())["class"] for k in s["classes"]) == [
+        "Config.YAML", "summary.json"]
+    for name in RUN_NAMES:
+        with pytest.raises(ValueError, match="run's own names"):
+            class_dir(out, name)
+
+
 # --------------------------------------------------------------------------- 6, 7. sizes and masks
 
 

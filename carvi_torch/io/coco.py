@@ -28,6 +28,7 @@ import torch
 from pycocotools import mask as mask_utils
 
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvas
+from .layout import reserved
 from .outputs import read_json, safe_name, write_json
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
@@ -404,12 +405,13 @@ def class_keys(categories: list) -> dict[str, str]:
 
 
 def _unique_key(name: str, cid, taken: set) -> str:
-    """A safe folder name for the class, unique in the run (case-insensitively)."""
+    """A safe folder name for the class, unique in the run and none of the run's own file names
+    (case-insensitively)."""
     key = safe_name(name)
-    if key.lower() in taken:
+    if key.lower() in taken or reserved(key):
         key = safe_name(f"{name}-{cid}")
         n = 2
-        while key.lower() in taken:
+        while key.lower() in taken or reserved(key):
             key, n = safe_name(f"{name}-{cid}-{n}"), n + 1
     taken.add(key.lower())
     return key

@@ -10,10 +10,11 @@
     OUT/<class key>/scores/<object stem>.json           (studies: every proposal's score)
     OUT/<class key>/proposal_scores.json                (studies: the scores merged at the end of the class)
 
-The class key is the category's name when that is a safe folder name, else a safe spelling of
-it (``ClassMeta.key``); an object's stem is its annotation id when that is a safe file name,
-else a safe spelling of it (:func:`~carvi_torch.io.outputs.safe_name`). Neither can point outside
-``OUT``: no separator, no leading dot.
+The class key is the category's name when that is a safe folder name and none of the run's own
+names (:data:`RUN_NAMES`), else a safe spelling of it (``ClassMeta.key``); an object's stem is its
+annotation id when that is a safe file name, else a safe spelling of it
+(:func:`~carvi_torch.io.outputs.safe_name`). Neither can point outside ``OUT``: no separator, no
+leading dot.
 
 Example:
     >>> object_file(Path("out/car"), "meshes", "../x", "ply").as_posix()
@@ -27,16 +28,29 @@ import numpy as np
 
 from .outputs import safe_name
 
-__all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS"]
+__all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS", "RUN_NAMES", "reserved"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
+#: The run's own files and folders in ``OUT`` (``input``: the embedded default collection); no class
+#: folder takes one of these names, in any case.
+RUN_NAMES = ("config.yaml", "summary.json", "run.log", "preview.png", "input")
+
+
+def reserved(key: str) -> bool:
+    """Whether ``key`` is one of the run's own names in ``OUT`` (:data:`RUN_NAMES`, case-insensitively).
+
+    Example:
+        >>> reserved("Summary.JSON"), reserved("car")
+        (True, False)
+    """
+    return key.lower() in RUN_NAMES
 
 
 def class_dir(out: str | Path, key: str) -> Path:
-    """The folder of a class (``key``: ``ClassMeta.key``, already safe; checked again here)."""
-    if safe_name(key) != key:
-        raise ValueError(f"class key {key!r} is not a safe folder name")
+    """The folder of a class (``key``: ``ClassMeta.key``, already safe and not reserved; checked again here)."""
+    if safe_name(key) != key or reserved(key):
+        raise ValueError(f"class key {key!r} is not a safe folder name or is one of the run's own names")
     return Path(out) / key
 
 
