@@ -32,7 +32,7 @@ from .io.results import ClassReport, cameras_json, canonical_image_cameras, scor
 from .io.writer import Writer, canvas_to_image_4x4, id_array, proposals_payload
 from .runtime import StageTimer, log
 from .sdf import signed_distance
-from .viewpoints import Viewpoints, estimate_viewpoints, ground_truth_cameras
+from .viewpoints import NoMeanShape, Viewpoints, estimate_viewpoints, ground_truth_cameras
 
 __all__ = ["run_class", "prepare_class", "carve_and_select", "ClassPlan", "chunk_objects"]
 
@@ -96,15 +96,21 @@ def _todo(coll: ClassCollection, vp: Viewpoints, done: list, cfg: Config, report
 
 def _viewpoints(coll, cfg, gt, report, timer) -> Viewpoints | None:
     """The class's viewpoints; with ``cameras=gt`` the true ones, the objects without a usable one in
-    ``gt.json`` skipped with the reason (``None``: no object has one, every object skipped)."""
+    ``gt.json`` skipped with the reason. ``None`` (the class skipped, with the reason): no object has a
+    true camera, or SfM placed none."""
     gt_img, gt_why = ground_truth_cameras(gt, coll) if cfg.study.cameras == "gt" else (None, [])
     if cfg.study.cameras == "gt" and gt_img is None:
         report.status = "skipped"
         for aid, src, why in zip(coll.annotation_ids, coll.sources, gt_why):
             report.skip(f"cameras=gt: {why}", "viewpoints", aid, src)
         return None
-    vp = estimate_viewpoints(coll, cfg.viewpoints, source=cfg.study.cameras, gt_cameras=gt_img, seed=cfg.seed,
-                             timer=timer)
+    try:
+        vp = estimate_viewpoints(coll, cfg.viewpoints, source=cfg.study.cameras, gt_cameras=gt_img, seed=cfg.seed,
+                                 timer=timer)
+    except NoMeanShape as e:
+        report.status = "skipped"
+        report.skip(str(e), "viewpoints")
+        return None
     vp.no_camera.update({i: f"cameras=gt: {why}" for i, why in enumerate(gt_why) if why})
     report.warnings.extend(vp.warnings)
     report.info.update(vp.info)
@@ -134,7 +140,7 @@ def _surrogate_plan(coll, vp: Viewpoints, cfg: Config, generator, timer, report)
     so that a resumed run samples the same ones."""
     n = len(coll)
     usable = vp.has_camera[:n]
-    mirrors = cfg.surrogates.mirrors and not coll.meta.articulated
+    mirrors = cfg.surrogates.mirrors and not coll.meta.articulated and vp.mirrored
     with timer("surrogates"):
         axes = surrogates.principal_directions(vp.shape)
         clusters = surrogates.cluster_instances(vp.cameras.R[:n, 2, :], usable, axes, cfg.surrogates)

@@ -295,6 +295,43 @@ def test_an_object_whose_keypoints_collapse_is_skipped_alone(base, tmp_path):
     assert cams["2"]["refined"] is None and cams["2"]["azimuth_deg"] is None and cams["1"]["refined"] is not None
 
 
+# --------------------------------------------------------------------------- categories without left/right pairs
+
+
+@pytest.mark.parametrize("change", [{"keypoints": [f"k{i}" for i in range(10)]}, {"flip_pairs": []}],
+                         ids=["names k0..k9", "flip_pairs []"])
+def test_a_class_without_left_right_pairs_runs_without_mirrors(base, tmp_path, change):
+    """No flip pairs (none to infer from the names, or none given): the class runs without mirrored
+    copies and symmetry plane (it used to fail in symmetry_plane), and says so."""
+    from carvi_torch.viewpoints import NO_MIRRORS
+
+    d = copy.deepcopy(base)
+    chair = next(c for c in d["categories"] if c["name"] == "chair")
+    chair.pop("flip_pairs", None)
+    chair.update(change)
+    out = tmp_path / "run"
+    c = run(_cfg(out, _write(tmp_path, d), classes="chair"), workers=0)["classes"]["chair"]
+    assert c["reconstructed"] == 6 and c["status"] != "failed", c["failures"]
+    assert NO_MIRRORS in c["warnings"] and "own_mirror" not in c["surrogates_from"]["counts"]
+    assert json.loads((out / "chair" / "cameras.json").read_text())["symmetry_plane"] is None
+
+
+def test_a_class_of_one_keypoint_is_skipped_with_its_reason(base, tmp_path):
+    """A single keypoint places no object in SfM: the class is skipped (not failed) with one reason."""
+    d = copy.deepcopy(base)
+    chair = next(c for c in d["categories"] if c["name"] == "chair")
+    chair.update(keypoints=["center"], flip_pairs=[])
+    for a in d["annotations"]:
+        if a["category_id"] == chair["id"]:
+            a["keypoints"] = next(a["keypoints"][i:i + 3] for i in range(0, len(a["keypoints"]), 3)
+                                  if a["keypoints"][i + 2] == 2)
+    s = run(_cfg(tmp_path / "run", _write(tmp_path, d)), workers=0)
+    c = s["classes"]["chair"]
+    assert c["status"] == "skipped" and len(c["failures"]) == 1 and c["failures"][0]["annotation_id"] is None
+    assert "no mean shape" in c["failures"][0]["reason"] and "a camera needs 2" in c["failures"][0]["reason"]
+    assert s["classes"]["car"]["reconstructed"] == 6 and exit_status(s) == 0
+
+
 # --------------------------------------------------------------------------- ground truth beside the data
 
 

@@ -435,7 +435,7 @@ def _category_cases() -> list[Case]:
         Case("cat_one_keypoint", "chair category with a single keypoint (\"center\")",
              edit=chain(cat(2, keypoints=["center"], flip_pairs=[]),
                         *(keypoints(a, lambda k: next(t for t in triples(k) if t[2] == 2)) for a in CHAIRS)),
-             lost=CHAIRS),
+             lost=CHAIRS, bad=((Cls("chair"), "no mean shape"),)),
         Case("cat_no_left_right", "chair keypoints named k0..k9: no flip pairs to infer",
              edit=chain(cat_del(2, "flip_pairs"), cat(2, keypoints=[f"k{i}" for i in range(10)])), good=CHAIRS),
         Case("cat_flip_pairs_junk", "flip_pairs [[0, 99]] and \"abc\"",

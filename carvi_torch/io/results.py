@@ -113,6 +113,14 @@ def _per_annotation(coll, vp, clusters, levels) -> dict:
     return per
 
 
+def _symmetry_plane(vp, frame, group: int) -> list | None:
+    """The class's left-right reflection in the canonical frame (``None``: the class has none)."""
+    if vp.reflection is None:
+        return None
+    P = frame.reflection(vp.reflection.cpu(), group) if frame is not None else vp.reflection
+    return P.detach().double().cpu().tolist()
+
+
 def cameras_json(coll, vp, axes: torch.Tensor | None, clusters, levels: list | None = None) -> dict:
     """``cameras.json`` content of a class: per annotation id its cameras, then the mean shape,
     symmetry plane, principal directions and (with shape groups) every group's mean shape.
@@ -139,8 +147,7 @@ def cameras_json(coll, vp, axes: torch.Tensor | None, clusters, levels: list | N
                              "direction, in the frame above; azimuth, elevation, roll as PASCAL3D+ defines them",
         "cameras": _per_annotation(coll, vp, clusters, levels),
         "mean_shape": named(canon(vp.shape)),
-        "symmetry_plane": (frame.reflection(vp.reflection.cpu(), big) if frame is not None
-                           else vp.reflection).detach().double().cpu().tolist(),
+        "symmetry_plane": _symmetry_plane(vp, frame, big),
         "principal_directions": None if axes is None else (
             frame.directions(axes.cpu(), big) if frame is not None else axes).detach().double().cpu().tolist(),
         "cluster_threshold_deg": float(clusters.threshold_deg) if clusters is not None else None,

@@ -44,7 +44,8 @@ from .refine import group_sfm_cameras, keypoints_left_out, refine_groups, unseen
 if TYPE_CHECKING:
     from ..config import ViewpointConfig
 
-__all__ = ["Viewpoints", "CameraSource", "estimate_viewpoints", "class_sfm", "GT_REFLECTION", "ground_truth_cameras"]
+__all__ = ["Viewpoints", "CameraSource", "estimate_viewpoints", "class_sfm", "GT_REFLECTION", "ground_truth_cameras",
+           "NoMeanShape", "symmetry_plane", "NO_MIRRORS"]
 
 #: Where a run's cameras come from: ``estimate`` (SfM and refinement) or ``gt`` (the true cameras, a study).
 CameraSource = Literal["estimate", "gt"]
@@ -64,13 +65,17 @@ class Viewpoints:
         cameras: ``ScaledOrthographic (2N)``: the final cameras (refined, unseen-image or ground truth).
         has_camera: ``(2N,)`` bool: rows whose final camera is usable (finite, positive scale).
         shape: ``(K, 3)`` mean shape (with shape groups: the largest group's) in the class frame.
-        reflection: ``(3, 3)`` reflection through the shape's left-right symmetry plane.
+        reflection: ``(3, 3)`` reflection through the shape's left-right symmetry plane (``None`` when no
+            flip pair defines one).
         groups: the shape groups (:class:`~carvi_torch.viewpoints.mixture.MixtureResult`).
         unseen_keypoints: ``(2N,)`` long: for rows of the unseen-image path, their visible keypoints
             with a mean-shape row (0: the silhouette alone); -1 elsewhere.
         source: :data:`CameraSource`.
         frame: the canonical object frame the outputs are written in (:mod:`~carvi_torch.viewpoints.frame`;
             the cameras and shapes here stay in the SfM frame).
+        mirrored: whether rows ``N..2N-1`` are the originals' mirrored copies with their keypoints; False
+            for a class without flip pairs (no way to relabel a flipped image's keypoints): those rows hold
+            no keypoints and get no camera, and nothing uses them.
         no_camera: ``{row: reason}`` for the rows without a usable camera (after :func:`estimate_viewpoints`).
         distances: ``(2N, H, W)`` exact distances to the masks (:func:`carvi_torch.sdf.distance_to_mask`),
             kept for the carving's signed distances; :meth:`take_distances` hands them over once.
@@ -86,10 +91,11 @@ class Viewpoints:
     cameras: ScaledOrthographic
     has_camera: torch.Tensor
     shape: torch.Tensor
-    reflection: torch.Tensor
+    reflection: torch.Tensor | None
     groups: mixture.MixtureResult
     unseen_keypoints: torch.Tensor
     source: str = "estimate"
+    mirrored: bool = True
     distances: torch.Tensor | None = None
     frame: CanonicalFrame | None = None
     no_camera: dict = field(default_factory=dict)
@@ -124,6 +130,20 @@ def _sfm_notes(coll: ClassCollection, res: sfm.SfMResult, vp_info: dict, warning
     for i in (~res.valid[:n]).nonzero().squeeze(1).tolist():
         why = res.reasons[i] if i < len(res.reasons) and res.reasons[i] else "fewer than 2 visible keypoints"
         warnings.append(f"annotation {coll.annotation_ids[i]} ({coll.sources[i]}): no SfM camera: {why}")
+
+
+class NoMeanShape(ValueError):
+    """SfM placed no instance of a class (e.g. its category has a single keypoint): the class has no mean
+    shape and cannot be reconstructed (a reason for the whole class, not an error of the program)."""
+
+
+def _check_placed(coll: ClassCollection, res: sfm.SfMResult) -> None:
+    """Raise :class:`NoMeanShape` when SfM placed no instance (naming the first instance's reason)."""
+    if bool(res.valid.any()):
+        return
+    why = next((r for r in res.reasons if r), "no reason given")
+    raise NoMeanShape(f"SfM placed no object, so the class has no mean shape (annotation {coll.annotation_ids[0]}: "
+                      f"{why})")
 
 
 def _shape_groups(both, dist, res, cfg: ViewpointConfig, source: str, seed: int, info: dict, log: list):
@@ -174,10 +194,11 @@ def _refine_step(vp: Viewpoints, dist: torch.Tensor, cfg: ViewpointConfig) -> No
                       + "; ".join(f"group {g}: {', '.join(v)}" for g, v in left_out.items()))
 
 
-def _unseen_step(coll: ClassCollection, vp: Viewpoints, dist: torch.Tensor, cfg: ViewpointConfig) -> None:
-    """Cameras for the rows without one (fewer than 2 visible keypoints): the unseen-image path."""
+def _unseen_step(coll: ClassCollection, vp: Viewpoints, missing: torch.Tensor, dist: torch.Tensor,
+                 cfg: ViewpointConfig) -> None:
+    """Cameras for the rows ``missing (2N,)`` without one (fewer than 2 visible keypoints): the
+    unseen-image path."""
     n = len(coll)
-    missing = ~vp.has_camera
     vp.cameras = unseen_per_group(vp.groups, vp.cameras, missing, vp.both, dist, cfg)
     idx = missing.nonzero().squeeze(1)
     vp.info["cameras_from_mean_shape"] = [coll.annotation_ids[i] for i in idx.tolist() if i < n]
@@ -190,7 +211,7 @@ def _unseen_step(coll: ClassCollection, vp: Viewpoints, dist: torch.Tensor, cfg:
             f"their visible keypoints has a row in the mean shape): unreliable, a silhouette often fits "
             f"several viewpoints (cameras.json: camera_from 'silhouette'); ids {blind[:20]}"
             + (" ..." if len(blind) > 20 else ""))
-    vp.has_camera = torch.ones_like(vp.has_camera)
+    vp.has_camera = vp.has_camera | missing
 
 
 def ground_truth_cameras(gt, coll: ClassCollection) -> tuple[ScaledOrthographic | None, list]:
@@ -259,15 +280,19 @@ def estimate_viewpoints(coll: ClassCollection, cfg: ViewpointConfig, *, source: 
 
     Returns:
         :class:`Viewpoints` with ``2N`` rows.
+
+    Raises:
+        NoMeanShape: SfM placed no instance (the class cannot be reconstructed).
     """
     if source == "gt" and gt_cameras is None:
         raise ValueError("source='gt' needs the true cameras of every annotation (gt_cameras)")
     timer = timer if timer is not None else StageTimer(coll.device)
-    both = coll.with_mirrors()
-    info, warnings, log = {}, [], []
+    both, mirrored = _mirrored_rows(coll)
+    info, warnings, log = {}, [] if mirrored else [NO_MIRRORS], []
     with timer("sfm"):
         res = class_sfm(both, cfg)
     _sfm_notes(coll, res, info, warnings)
+    _check_placed(coll, res)
     with timer("sdf"):
         dist = distance_to_mask(both.masks)
     with timer("sfm"):
@@ -275,16 +300,17 @@ def estimate_viewpoints(coll: ClassCollection, cfg: ViewpointConfig, *, source: 
     cams_sfm, sfm_valid = group_sfm_cameras(mix)
     shape = mix.shape(mix.largest())
     vp = Viewpoints(both, cams_sfm, sfm_valid, cams_sfm, sfm_valid.clone(), shape,
-                    sfm.symmetry_plane(shape, coll.meta.flip_pairs), mix, None, source=source, distances=dist,
-                    info=info, warnings=warnings, log=log)
+                    symmetry_plane(shape, coll.meta.flip_pairs), mix, None, source=source, mirrored=mirrored,
+                    distances=dist, info=info, warnings=warnings, log=log)
     if source == "gt":
         _ground_truth(coll, both, gt_cameras, vp)
     elif cfg.refine:
         with timer("refine"):
             _refine_step(vp, dist, cfg)
-    if source != "gt" and bool((~vp.has_camera).any()):
+    missing = ~vp.has_camera if mirrored else ~vp.has_camera & ~both.is_mirror
+    if source != "gt" and bool(missing.any()):
         with timer("refine"):
-            _unseen_step(coll, vp, dist, cfg)
+            _unseen_step(coll, vp, missing, dist, cfg)
     else:
         vp.unseen_keypoints = torch.full((len(both),), -1, dtype=torch.long, device=vp.has_camera.device)
     finite = torch.isfinite(vp.cameras.R).flatten(1).all(1) & torch.isfinite(vp.cameras.s) & (vp.cameras.s > 0)
@@ -296,6 +322,32 @@ def estimate_viewpoints(coll: ClassCollection, cfg: ViewpointConfig, *, source: 
     if "fallback" in vp.frame.info and cfg.frame in ("best", "template"):
         vp.warnings.append(f"frame: {vp.frame.kind} ({vp.frame.info['fallback']})")
     return vp
+
+
+#: The class warning of a class without left/right keypoint pairs.
+NO_MIRRORS = ("no left/right keypoint pairs (flip_pairs): no mirrored copies and no symmetry plane; each object "
+              "is carved from its own and its surrogates' silhouettes")
+
+
+def _mirrored_rows(coll: ClassCollection) -> tuple[ClassCollection, bool]:
+    """The class with its mirrored copies (``2N`` rows), and whether the copies carry keypoints: a class
+    without flip pairs cannot relabel a flipped image's keypoints (a left one would keep its name on the
+    right), so its copies' keypoints are hidden and the copies take no part (:attr:`Viewpoints.mirrored`)."""
+    both = coll.with_mirrors()
+    if coll.meta.flip_pairs:
+        return both, True
+    return both.replace(visible=both.visible & ~both.is_mirror[:, None]), False
+
+
+def symmetry_plane(shape: torch.Tensor, flip_pairs) -> torch.Tensor | None:
+    """:func:`~carvi_torch.viewpoints.sfm.symmetry_plane` of ``shape (K, 3)``, or ``None`` when no flip
+    pair has two distinct finite points (a class without left/right keypoints)."""
+    if not flip_pairs:
+        return None
+    try:
+        return sfm.symmetry_plane(shape, flip_pairs)
+    except ValueError:
+        return None
 
 
 def _no_camera_reasons(vp: Viewpoints) -> dict[int, str]:
@@ -325,10 +377,7 @@ def _frame(coll: ClassCollection, vp: Viewpoints, cfg: ViewpointConfig) -> Canon
         return CanonicalFrame("ground_truth", [FrameFit(torch.eye(3, dtype=torch.float64))], {"kind": "ground_truth"})
     n = len(coll)
     mix = vp.groups
-    try:
-        reflection = sfm.symmetry_plane(vp.shape, coll.meta.flip_pairs) if coll.meta.flip_pairs else None
-    except ValueError:
-        reflection = None
+    reflection = symmetry_plane(vp.shape, coll.meta.flip_pairs)
     seen = vp.has_camera[:n]
     return canonical_frame(cfg.frame, coll.meta.name, coll.meta.keypoint_names,
                            [mix.shape(g).cpu() for g in range(mix.k)], vp.shape.cpu(),
