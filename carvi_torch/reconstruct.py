@@ -95,9 +95,21 @@ def format_table(summary: dict) -> str:
     return "\n".join(lines)
 
 
+#: The one line a run interrupted by Ctrl-C prints (its finished objects are files a rerun resumes).
+INTERRUPTED = "interrupted; finished objects are kept, rerun to resume"
+
+
 def main(argv=None) -> int:
     """Exit status: 0 the run made what it was asked for; 1 a class failed or nothing came out of it;
-    2 a user error (one ``error:`` line, nothing written)."""
+    2 a user error (one ``error:`` line, nothing written); 130 interrupted by Ctrl-C (one line)."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print(INTERRUPTED, file=sys.stderr)
+        return 130
+
+
+def _main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         cfg = load_config(args.config, args.overrides)

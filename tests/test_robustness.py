@@ -435,6 +435,36 @@ def test_a_killed_run_leaves_no_process_running(base, tmp_path):
     assert not left, f"processes of the killed run still running: {left}"
 
 
+def test_ctrl_c_is_one_line_and_exit_130(tmp_path, capsys, monkeypatch):
+    """Ctrl-C during a run: one line, exit status 130, no traceback (the finished objects stay for a rerun)."""
+    import carvi_torch.executors as executors
+    from carvi_torch.reconstruct import INTERRUPTED
+
+    def interrupted(cfg):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(executors, "run", interrupted)
+    rc = reconstruct_main(["--out", str(tmp_path / "out"), "--quiet"])
+    captured = capsys.readouterr()
+    assert rc == 130 and captured.err.splitlines() == [INTERRUPTED] and "Traceback" not in captured.out
+
+
+def test_writer_processes_ignore_ctrl_c():
+    """Ctrl-C reaches the whole process group; a writer process ignores it (the run stops the writers)
+    instead of dying with a KeyboardInterrupt traceback."""
+    from carvi_torch.io import write_worker
+    from carvi_torch.io.writer import Writer
+
+    w = Writer(1)
+    try:
+        pid = w.pool.submit(write_worker.start_worker).result(timeout=30)
+        os.kill(pid, signal.SIGINT)
+        time.sleep(0.2)
+        assert w.pool.submit(write_worker.start_worker).result(timeout=30) == pid
+    finally:
+        w.close()
+
+
 # --------------------------------------------------------------------------- 12, 13. errors and exit status
 
 

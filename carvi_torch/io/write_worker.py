@@ -2,7 +2,8 @@
 
 A writer process watches the run that started it: when the run is gone (killed, even with
 SIGKILL), the writer exits within a second, and the forkserver that forked it follows, so a killed
-run leaves nothing running.
+run leaves nothing running. It ignores Ctrl-C (SIGINT, which a terminal sends to the whole process
+group): the run handles it and stops its writers, which would otherwise each print a traceback.
 
 Example:
     >>> import numpy as np, tempfile, pathlib
@@ -17,6 +18,7 @@ Example:
 from __future__ import annotations
 
 import os
+import signal
 import threading
 import time
 
@@ -26,7 +28,7 @@ from .. import mesh
 from ..runtime import peak_rss_mb
 from .outputs import write_json, write_npz
 
-__all__ = ["write_object", "write_object_safe", "start_worker", "watch_parent"]
+__all__ = ["write_object", "write_object_safe", "start_worker", "watch_parent", "init_worker"]
 
 
 def write_object(job: dict) -> dict:
@@ -81,6 +83,13 @@ def _alive(pid: int) -> bool:
     except PermissionError:  # alive, another user's (a reused pid)
         return True
     return True
+
+
+def init_worker(run_pid: int) -> None:
+    """Process initializer of a writer: ignore Ctrl-C (the run stops its writers) and
+    :func:`watch_parent` ``run_pid``."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    watch_parent(run_pid)
 
 
 def watch_parent(run_pid: int, period: float = 0.5) -> None:

@@ -124,7 +124,7 @@ class Writer:
             ctx = mp.get_context(start_method())
             if start_method() == "forkserver":
                 ctx.set_forkserver_preload([write_worker.__name__])
-            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=write_worker.watch_parent,
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=write_worker.init_worker,
                                             initargs=(os.getpid(),))
             for f in [self.pool.submit(write_worker.start_worker) for _ in range(self.workers)]:
                 f.result()
