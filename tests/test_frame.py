@@ -191,15 +191,24 @@ def _templates_for(names, T):
     return {"classes": {"car": {"keypoints": {n: p.tolist() for n, p in zip(names, T)}}}, "aliases": {}}
 
 
-def test_template_frame_per_shape_group(generator):
-    """Every shape group gets its own fit to the same template (groups may sit slightly turned)."""
+def test_template_frame_of_shape_groups_is_one_rotation(generator):
+    """Shape groups share the SfM class frame: one rotation takes them all to the template (their
+    cameras stay consistent), each group keeps its own scale and offset and its own residual."""
     names, T = _car_template()
-    G1, G2 = random_rotations(2, generator, dtype=D)
-    shapes = [T @ G1.T * 2.0, (T * torch.tensor([1.0, 1.2, 0.9], dtype=D)) @ G2.T]
+    G = random_rotations(1, generator, dtype=D)[0]
+    shapes = [T @ G.T * 2.0 + 1.0, (T * torch.tensor([1.0, 1.2, 0.9], dtype=D)) @ G.T * 0.5]
+    shapes[1][3] = math.nan  # a keypoint one group never saw
     R = _photo_cameras(20, generator)
     frame = canonical_frame("best", "car", names, shapes, shapes[0], None, R, templates=_templates_for(names, T))
     assert frame.kind == "template" and len(frame.fits) == 2 and len(frame.info["residual_per_group"]) == 2
-    assert _deg(frame.fits[0].Q, G1.T) < 1e-6 and _deg(frame.fits[1].Q, G2.T) < 1e-6
+    assert _deg(frame.fits[0].Q, G.T) < 1e-6 and torch.equal(frame.fits[0].Q, frame.fits[1].Q)
+    assert abs(frame.fits[0].c - 0.5) < 1e-6 and 1.6 < frame.fits[1].c < 2.4  # least squares over the proportions
+    assert max(frame.info["residual_per_group"]) < 1e-6 and frame.info["matched_keypoints"] == 11
+    # groups a few degrees apart (the frames SfM found agree only roughly): the rotation is their compromise
+    tilt = torch.tensor(Rotation.from_rotvec([0.0, 0.0, math.radians(6)]).as_matrix())
+    frame = canonical_frame("best", "car", names, [T @ G.T, T @ (tilt @ G).T], T, None, R,
+                            templates=_templates_for(names, T))
+    assert 2.0 < _deg(frame.fits[0].Q, G.T) < 4.0 and 2.0 < _deg(frame.fits[0].Q, (tilt @ G).T) < 4.0
 
 
 def test_a_template_the_data_disagree_with_falls_back_and_says_why(generator):

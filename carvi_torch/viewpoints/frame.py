@@ -6,10 +6,11 @@ and every run:
 
 * ``template``: the similarity ``X' = c Q X + tau`` (``Q`` a proper rotation: a reflection is never
   accepted) that maps the SfM mean shape onto a template of 3-D keypoints (weighted Umeyama, with
-  Cauchy reweighting of keypoints that disagree). A COCO category may carry its own template
-  (``keypoints_3d``); the 12 PASCAL3D+ classes have shipped ones (``templates.json``, built from the
-  CAD models by :func:`build_templates`), in the PASCAL3D+ CAD frame (+z up, front towards -y), so
-  that azimuth, elevation and roll follow PASCAL3D+'s definitions. Keypoints are matched by name,
+  Cauchy reweighting of keypoints that disagree; shape groups share one rotation). A COCO category
+  may carry its own template (``keypoints_3d``); the 12 PASCAL3D+ classes have shipped ones
+  (``templates.json``, built from the CAD models by :func:`build_templates`), in the PASCAL3D+ CAD
+  frame (+z up, front towards -y), so that azimuth, elevation and roll follow PASCAL3D+'s
+  definitions. Keypoints are matched by name,
   Berkeley VOC names through an alias table (``L_WingTip`` is PASCAL3D+'s ``right_wing``).
 * ``symmetry+up`` (no template, or one the data disagree with): x along the normal of the class's
   left-right symmetry plane, z (up) in that plane and as perpendicular as it can be to both the
@@ -75,25 +76,29 @@ def _identity() -> FrameFit:
     return FrameFit(torch.eye(3, dtype=torch.float64))
 
 
-def fit_similarity(S: torch.Tensor, T: torch.Tensor, iters: int = 10) -> FrameFit:
+def fit_similarity(S: torch.Tensor, T: torch.Tensor, iters: int = 10, Q: torch.Tensor | None = None) -> FrameFit:
     """The proper similarity mapping the rows of ``S (K, 3)`` onto those of ``T (K, 3)`` (rows with a
-    non-finite entry in either are ignored), by weighted Umeyama with Cauchy reweighting.
+    non-finite entry in either are ignored), by weighted Umeyama with Cauchy reweighting; with ``Q``
+    given, only its scale and translation.
 
-    Returns a :class:`FrameFit` whose ``residual`` is the median distance after the fit over the RMS
-    radius of the matched template points.
+    Returns a :class:`FrameFit` whose ``residual`` is the robust median distance after the fit, each
+    template axis rescaled on its own (proportions are not a misfit), over the RMS radius of the
+    matched template points.
     """
     ok = torch.isfinite(S).all(-1) & torch.isfinite(T).all(-1)
     if int(ok.sum()) < 3:
         raise ValueError(f"a similarity needs 3 shared points, got {int(ok.sum())}")
     A, B = S[ok].double(), T[ok].double()
     w = torch.ones(len(A), dtype=torch.float64)
+    fixed = Q = None if Q is None else Q.double()
     for _ in range(iters):
         ma, mb = (w[:, None] * A).sum(0) / w.sum(), (w[:, None] * B).sum(0) / w.sum()
         Ac, Bc = A - ma, B - mb
-        U, D, Vh = torch.linalg.svd((w[:, None] * Bc).T @ Ac)
-        E = torch.diag(torch.tensor([1.0, 1.0, float(torch.sign(torch.det(U @ Vh))) or 1.0], dtype=torch.float64))
-        Q = U @ E @ Vh
-        c = float((D * E.diagonal()).sum() / (w * (Ac ** 2).sum(-1)).sum().clamp(min=1e-300))
+        if fixed is None:
+            U, D, Vh = torch.linalg.svd((w[:, None] * Bc).T @ Ac)
+            E = torch.diag(torch.tensor([1.0, 1.0, float(torch.sign(torch.det(U @ Vh))) or 1.0], dtype=torch.float64))
+            Q = U @ E @ Vh
+        c = float((w[:, None] * Bc * (Ac @ Q.T)).sum() / (w * (Ac ** 2).sum(-1)).sum().clamp(min=1e-300))
         tau = mb - c * Q @ ma
         r = (c * A @ Q.T + tau - B).norm(dim=-1)
         scale = float(1.4826 * r.median()) + 1e-12
@@ -233,7 +238,7 @@ def _front_sign(shape: torch.Tensor, axis: torch.Tensor, names: list | None) -> 
 
 @dataclass
 class CanonicalFrame:
-    """A class's canonical frame: one :class:`FrameFit` per shape group (all the same without a template).
+    """A class's canonical frame: one :class:`FrameFit` per shape group (one rotation for all; a scale and offset each).
 
     Attributes:
         kind: :data:`FrameKind`; fits: per shape group; info: what ``cameras.json`` and ``summary.json``
@@ -276,12 +281,29 @@ class CanonicalFrame:
         return Q @ P.double() @ Q.T
 
 
+def _normalised(S: torch.Tensor, T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rows both know, each set centred and scaled to a unit RMS radius."""
+    ok = torch.isfinite(S).all(-1) & torch.isfinite(T).all(-1)
+    A, B = S[ok].double(), T[ok].double()
+    A, B = A - A.mean(0), B - B.mean(0)
+    return A / A.pow(2).sum(-1).mean().sqrt().clamp(min=1e-300), B / B.pow(2).sum(-1).mean().sqrt().clamp(min=1e-300)
+
+
 def _template_frame(group_shapes: list, T: torch.Tensor, source: str) -> tuple[CanonicalFrame | None, str]:
-    """Every shape group aligned to the template, or why not (a group the template does not fit)."""
+    """Every shape group aligned to the template by one rotation (the groups share the SfM class frame:
+    one rotation keeps their cameras consistent), each with its own scale and offset; or why not (a
+    group the template does not fit)."""
+    Q = None
+    if len(group_shapes) > 1:
+        pairs = [_normalised(S, T) for S in group_shapes]
+        try:
+            Q = fit_similarity(torch.cat([a for a, _ in pairs]), torch.cat([b for _, b in pairs])).Q
+        except ValueError as e:
+            return None, str(e)
     fits = []
     for g, S in enumerate(group_shapes):
         try:
-            fit = fit_similarity(S, T)
+            fit = fit_similarity(S, T, Q=Q)
         except ValueError as e:
             return None, f"group {g}: {e}"
         if fit.residual > MAX_TEMPLATE_RESIDUAL:
