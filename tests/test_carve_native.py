@@ -152,7 +152,7 @@ def test_the_portable_build_carves_like_the_x86_one(tmp_path):
     path = d / f"{namespace}.so"
     with native._dir_lock(d, exclusive=True):
         native._build(path, namespace, ("-DCARVI_NO_X86",))
-    assert native._rejected(path) is None
+    assert native.cache_entry_problem(path) is None
     torch.ops.load_library(str(path))
     ops = getattr(torch.ops, namespace)
     assert ops.has_fma() is False
@@ -236,14 +236,18 @@ def _run_child(cache: Path, **env_extra) -> tuple[int, dict | None, str]:
 
 
 @pytest.fixture(scope="module")
-def built_cache(tmp_path_factory) -> Path:
-    """A cache in which a child process built the library (copied by the tests that tamper with it)."""
+def built_cache(tmp_path_factory) -> tuple[Path, list]:
+    """A cache built by two child processes started at once (the lock lets one build, the other wait and
+    load); the tests that tamper with it work on copies. Also the children's reports."""
     if not native.available():
         pytest.skip(f"kernel unavailable: {native.unavailable_reason()}")
     cache = tmp_path_factory.mktemp("built")
-    rc, res, err = _run_child(cache)
-    assert rc == 0 and res["ok"], err
-    return cache
+    env = dict(os.environ, CARVI_TORCH_CACHE=str(cache), PYTHONPATH=str(ROOT))
+    procs = [subprocess.Popen([sys.executable, "-c", _CHILD, MODULE], env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
+    return cache, [json.loads(o[0].strip().splitlines()[-1]) for o in outs]
 
 
 def _copy_cache(src: Path, dst: Path) -> Path:
@@ -268,6 +272,7 @@ def _assert_rebuilt(cache: Path, lib: Path, tampered: bytes | None, why: str) ->
 
 @needs_kernel
 def test_a_fresh_cache_is_private_and_the_library_is_reused(tmp_path, built_cache):
+    built_cache, _ = built_cache
     kernels = built_cache / "kernels"
     assert stat.S_IMODE(kernels.stat().st_mode) == 0o700
     lib = [p for p in kernels.iterdir() if p.suffix == ".so"][0]
@@ -305,7 +310,7 @@ def test_a_planted_library_is_rebuilt_not_loaded(tmp_path, built_cache):
     marker = tmp_path / "marker"
     planted = _planted_library(tmp_path, marker)
     cache = tmp_path / "cache"
-    lib = _copy_cache(built_cache, cache)
+    lib = _copy_cache(built_cache[0], cache)
     lib.write_bytes(planted)  # with a matching sidecar: only the owner or the mode gives it away
     (lib.parent / (lib.name + ".sha256")).write_text(hashlib.sha256(planted).hexdigest() + "\n")
     os.chmod(lib, 0o777)
@@ -318,15 +323,15 @@ def test_a_planted_library_is_rebuilt_not_loaded(tmp_path, built_cache):
 
 
 @needs_kernel
-@pytest.mark.parametrize("damage", ["truncated", "sidecar mode 0666"])
-def test_a_damaged_cache_entry_is_rebuilt_without_a_crash(tmp_path, built_cache, damage):
-    lib = _copy_cache(built_cache, tmp_path)
+@pytest.mark.parametrize("damage", ["truncated", "wrong hash", "missing hash", "sidecar mode 0666"])
+def test_a_damaged_cache_entry_is_refused_before_it_is_mapped(tmp_path, built_cache, damage):
+    """Each damage is named by the check that runs before any load (a dlopen of a truncated library could
+    SIGBUS); the rebuild that follows a refusal is the planted library's test."""
+    lib = _copy_cache(built_cache[0], tmp_path)
     sidecar = lib.parent / (lib.name + ".sha256")
-    before, tampered = lib.read_bytes(), None
-    if damage == "truncated":  # a dlopen of this could SIGBUS: the hash check must come first
-        assert len(before) // 2 >= 1000
-        tampered = before[: len(before) // 2]
-        lib.write_bytes(tampered)
+    assert native.cache_entry_problem(lib) is None
+    if damage == "truncated":
+        lib.write_bytes(lib.read_bytes()[: lib.stat().st_size // 2])
         why = "SHA-256"
     elif damage == "wrong hash":
         sidecar.write_text("0" * 64 + "\n")
@@ -337,7 +342,8 @@ def test_a_damaged_cache_entry_is_rebuilt_without_a_crash(tmp_path, built_cache,
     else:
         os.chmod(sidecar, 0o666)
         why = "writable by others"
-    _assert_rebuilt(tmp_path, lib, tampered, why)
+    problem = native.cache_entry_problem(lib)
+    assert problem is not None and why in problem, problem
 
 
 @needs_kernel
@@ -351,15 +357,10 @@ def test_a_cache_directory_of_another_user_is_not_used(tmp_path):
 
 
 @needs_kernel
-def test_two_processes_building_at_once(tmp_path):
-    env = dict(os.environ, CARVI_TORCH_CACHE=str(tmp_path), PYTHONPATH=str(ROOT))
-    procs = [subprocess.Popen([sys.executable, "-c", _CHILD, MODULE], env=env, stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
-    outs = [p.communicate(timeout=600) for p in procs]
-    assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
-    res = [json.loads(o[0].strip().splitlines()[-1]) for o in outs]
+def test_two_processes_building_at_once(built_cache):
+    cache, res = built_cache
     assert all(r["ok"] for r in res) and sum(r["rebuilt"] is not None for r in res) == 1, res
-    files = sorted(p.name for p in (tmp_path / "kernels").iterdir())
+    files = sorted(p.name for p in (cache / "kernels").iterdir())
     lib = Path(res[0]["path"])
     assert files == sorted([".lock", lib.name, lib.name + ".sha256"]), files
     assert (lib.parent / (lib.name + ".sha256")).read_text().strip() == hashlib.sha256(lib.read_bytes()).hexdigest()

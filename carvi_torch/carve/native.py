@@ -76,8 +76,7 @@ except ImportError:  # Windows: no advisory locks; builds stay atomic (os.replac
     fcntl = None
 
 __all__ = ["available", "unavailable_reason", "carve_labels", "sample", "variant", "library_path", "status",
-           "operators",
-           "MAX_VIEWS", "MAX_RESOLUTION"]
+           "operators", "cache_entry_problem", "MAX_VIEWS", "MAX_RESOLUTION"]
 #: Largest resolution the kernel takes (``CARVI_MAX_RESOLUTION`` in the C++ source).
 MAX_RESOLUTION = 2048
 #: Most view slots a proposal may use (``CARVI_MAX_VIEWS`` in the C++ source).
@@ -188,7 +187,7 @@ def _sha256(path: Path) -> str:
         return hashlib.sha256(f.read()).hexdigest()
 
 
-def _rejected(path: Path) -> str | None:
+def cache_entry_problem(path: Path) -> str | None:
     """Why the cached library at ``path`` must not be loaded (``None``: it may). Reads it, never maps it."""
     for p in (path, _sidecar(path)):
         why = _own_file_problem(p)
@@ -280,14 +279,14 @@ def _open_library():
     if _ops(namespace) is not None:
         return _ops(namespace), path, None
     with _dir_lock(path.parent, exclusive=False):
-        if _rejected(path) is None:
+        if cache_entry_problem(path) is None:
             torch.ops.load_library(str(path))
             return _ops(namespace), path, None
     with _dir_lock(path.parent, exclusive=True):
-        why = _rejected(path)  # another process may have built it meanwhile
+        why = cache_entry_problem(path)  # another process may have built it meanwhile
         if why is not None:
             _build(path, namespace)
-            problem = _rejected(path)
+            problem = cache_entry_problem(path)
             if problem is not None:
                 raise RuntimeError(f"the freshly built kernel fails the cache's checks: {problem}")
         torch.ops.load_library(str(path))
