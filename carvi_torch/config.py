@@ -33,6 +33,7 @@ import yaml
 
 from .carve import Backend, Interpolation
 from .io.outputs import read_text
+from .marching import Mesher
 from .mesh import MeshFormat
 from .viewpoints import CameraSource
 from .viewpoints.frame import FrameChoice
@@ -215,6 +216,10 @@ class MeshConfig:
     """Mesh file format (``carvi_torch.mesh.MESH_FORMATS``)."""
     largest_component: bool = False
     """Keep only the largest connected component of the selected occupancy."""
+    mesher: Mesher = "auto"
+    """Marching cubes: ``skimage`` (scikit-image, one object at a time in the writer processes), ``torch``
+    (``carvi_torch.marching``: batched, in the run's process on its device; the same meshes within 1e-5 voxel),
+    or ``auto``: ``torch`` on CUDA, ``skimage`` elsewhere."""
 
     def validate(self) -> None:
         pass

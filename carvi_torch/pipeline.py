@@ -7,7 +7,7 @@ Data flows one way through the stage modules::
     surrogates       principal directions, clusters, triplets  -> SurrogatePlan
     carve            imprinted visual hull of every proposal  -> ProposalGrids
     select           average masks, proposal scores, the best proposal  -> Selection
-    io.writer        marching cubes, files (worker processes)
+    io.writer        marching cubes, files (worker processes; on CUDA the meshes come from marching)
 
 :func:`run_class` runs one class; an executor (:mod:`carvi_torch.executors`) runs the classes of a
 run. The pipeline only orders the stages and keeps the books (resume, the report); the numerical work
@@ -19,6 +19,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -30,6 +31,8 @@ from .io.layout import class_dir, finished, object_file
 from .io.outputs import read_json, write_json
 from .io.results import ClassReport, cameras_json, canonical_image_cameras, scores_entry, write_scores
 from .io.writer import Writer, canvas_to_image_4x4, id_array, proposals_payload
+from .marching import occupancy_to_meshes, resolve_mesher
+from .mesh import largest_component
 from .runtime import StageTimer, log
 from .sdf import signed_distance
 from .viewpoints import NoMeanShape, Viewpoints, estimate_viewpoints, ground_truth_cameras
@@ -253,20 +256,47 @@ def _job(sel: select.Selection, j: int, i: int, sur, plan: ClassPlan, cfg: Confi
 
 
 def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config, report: ClassReport,
-            writer: Writer) -> None:
-    """Hand every reference of a chunk to the writer (a puffball for one whose every proposal is empty)."""
+            writer: Writer, timer: StageTimer) -> None:
+    """Hand every reference of a chunk to the writer (a puffball for one whose every proposal is empty),
+    meshed here first with ``mesh.mesher=torch``."""
     coll = plan.coll
     sur = plan.surrogates.surrogates_of(ids)
     sur = None if sur is None else sur.cpu()
     puffed = _puffballs(sel, ids, plan, cfg)
     aid_of = plan.aids
-    for j, i in enumerate(ids.tolist()):
+    jobs = [_job(sel, j, i, None if j in puffed else sur, plan, cfg) for j, i in enumerate(ids.tolist())]
+    if resolve_mesher(cfg.mesh.mesher, ids.device) == "torch":
+        with timer("mesh_device"):
+            _mesh_jobs(sel, puffed, jobs, cfg)
+    for j, (i, job) in enumerate(zip(ids.tolist(), jobs)):
         aid, src = aid_of[i], coll.sources[i]
-        job = _job(sel, j, i, None if j in puffed else sur, plan, cfg)
         if cfg.study.keep_all_scores and j not in puffed:
             job["scores"], job["scores_path"] = scores_entry(sel, j, sur, aid_of), str(
                 object_file(plan.cdir, "scores", aid))
         writer.submit(job, lambda res, aid=aid, src=src: report.book_write(res, aid, src))
+
+
+def _mesh_jobs(sel: select.Selection, puffed: set[int], jobs: list[dict], cfg: Config) -> None:
+    """Mesh a chunk's selected grids in one batch on the grids' device (:mod:`carvi_torch.marching`); the
+    writers then only write. The grids are taken again from the device copy of the proposals (puffballs
+    from the host); ``largest_component`` is applied first, on the host, as the writers would."""
+    grids = sel.grids.occupancy
+    R, P = sel.scores.shape
+    if grids.device.type == "cpu" or len(grids) == 0:
+        occ = sel.best_occupancy.to(grids.device)
+    else:
+        best_pos = sel.pos.view(R, P).gather(1, sel.best.clamp(min=0)[:, None])[:, 0].clamp(min=0)
+        occ = grids[best_pos.to(grids.device)]
+        if puffed:
+            rows = sorted(puffed)
+            occ[torch.tensor(rows, device=grids.device)] = sel.best_occupancy[rows].to(grids.device)
+    if cfg.mesh.largest_component:
+        occ = largest_component(occ)
+        for job, o in zip(jobs, occ.cpu().numpy()):
+            job["occupancy"], job["largest_component"] = o, False
+    v2img = torch.from_numpy(np.stack([job["voxel_to_image"] for job in jobs]))
+    for job, (verts, faces) in zip(jobs, occupancy_to_meshes(occ, v2img)):
+        job["mesh_vertices"], job["mesh_faces"] = verts, faces
 
 
 def _puffballs(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config) -> set[int]:
@@ -325,9 +355,10 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
             ids = todo_t[c0:c0 + chunk]
             sel = carve_and_select(ids, plan, cfg, timer)
             # the time spent blocked on busy writers is booked as waiting for them, the rest as hand-off
-            t0, b0 = time.perf_counter(), writer.blocked
-            _submit(sel, ids, plan, cfg, report, writer)
-            timer.add("handoff", time.perf_counter() - t0 - (writer.blocked - b0))
+            t0, b0, m0 = time.perf_counter(), writer.blocked, report.seconds.get("mesh_device", 0.0)
+            _submit(sel, ids, plan, cfg, report, writer, timer)
+            meshing = report.seconds.get("mesh_device", 0.0) - m0
+            timer.add("handoff", time.perf_counter() - t0 - (writer.blocked - b0) - meshing)
             timer.add("write_wait", writer.blocked - b0)
             del sel  # the next chunk's grids must not sit beside this one's
             bar.update(len(ids))

@@ -23,7 +23,7 @@ STAGES = [
     ("carve", ["carve.geometry", "carve.grids", "carve.torch_backend", "carve.native", "carve.reference",
                "carve.dispatch", "carve"]),
     ("select", ["select"]),
-    ("mesh", ["mesh"]),
+    ("mesh", ["mesh", "marching"]),
     ("write", ["io.write_worker", "io.writer", "io.results"]),
 ]
 #: Imports of a later stage that the public contract asks for, with the reason.

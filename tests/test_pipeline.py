@@ -302,6 +302,41 @@ def test_writers_chunks_threads_and_backend_do_not_change_outputs(tiny, tmp_path
         assert res["classes"]["car"]["seconds"][stage] > 0
 
 
+def _same_meshes_as_skimage(out: Path, cls: str) -> int:
+    """Every mesh of ``out/cls`` equals scikit-image's mesh of its voxels (carvi_torch.mesh) within
+    1e-5 voxel, with the same triangles; returns how many were checked."""
+    from carvi_torch.mesh import occupancy_to_mesh
+    from test_marching import VOXEL_TOL, assert_same_mesh
+
+    files = sorted((out / cls / "voxels").glob("*.npz"))
+    for f in files:
+        z = np.load(f)
+        ref = occupancy_to_mesh(z["occupancy"], z["voxel_to_camera"])
+        m = trimesh.load(out / cls / "meshes" / f"{f.stem}.ply", force="mesh", process=False)
+        tol = VOXEL_TOL * float(np.abs(z["voxel_to_camera"][:3, :3]).sum(1).max())
+        assert_same_mesh(np.asarray(ref.vertices), np.asarray(ref.faces), np.asarray(m.vertices),
+                         np.asarray(m.faces), tol)
+    return len(files)
+
+
+def test_torch_mesher_keeps_voxels_and_gives_scikit_image_meshes(tiny, tmp_path):
+    """``mesher=torch`` (the CUDA default) run on the CPU, with ``largest_component``: the voxels are the
+    writers' run's (largest component taken) byte for byte, and every mesh is scikit-image's mesh of its
+    reconstructed grid within 1e-5 voxel with the same triangles; the meshing is booked in the run."""
+    from carvi_torch.mesh import largest_component
+
+    out, summary = tiny
+    res = run(_cfg(tmp_path / "t", data=summary["data"], classes=["car"], preview=False, mesher="torch",
+                   largest_component=True), workers=0)
+    assert res["classes"]["car"]["reconstructed"] == summary["classes"]["car"]["reconstructed"]
+    assert res["classes"]["car"]["seconds"]["mesh_device"] > 0
+    for f in (out / "car" / "voxels").glob("*.npz"):
+        a, b = np.load(f), np.load(tmp_path / "t" / "car" / "voxels" / f.name)
+        assert np.array_equal(largest_component(a["occupancy"]), b["occupancy"])
+        assert all(np.array_equal(a[k], b[k]) for k in a.files if k != "occupancy")
+    assert _same_meshes_as_skimage(tmp_path / "t", "car") >= 5
+
+
 def _slow_job(job):
     time.sleep(job["sleep"])
     return dict(ok=True, i=job["i"])
@@ -368,6 +403,9 @@ def test_cuda_run_matches_cpu(tiny, tmp_path):
         a, b = np.load(f)["occupancy"], np.load(tmp_path / "gpu" / "car" / "voxels" / f.name)["occupancy"]
         agree.append((a == b).mean() if a.shape == b.shape else 0.0)
     assert np.median(agree) > 0.999 and min(agree) > 0.95
+    # on CUDA the meshes come from the batched torch marching cubes: scikit-image's within the tolerance
+    assert gpu["classes"]["car"]["seconds"]["mesh_device"] > 0
+    assert _same_meshes_as_skimage(tmp_path / "gpu", "car") >= 5
 
 
 @requires_cuda

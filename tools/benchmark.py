@@ -51,6 +51,17 @@ Examples::
     python tools/benchmark.py --objects 5000 --skip-carve       # the 5,000-object memory check
     python tools/benchmark.py --device cuda --objects 9087      # VOC scale on a GPU
     python tools/benchmark.py --objects 200 --eval              # with shape errors (gt.json)
+    python tools/benchmark.py --many-classes --compare-with ../main   # 12 classes, this code vs another checkout
+
+**Many classes** (``--many-classes``): 12 classes of about 50 objects, where real datasets spend their
+time (many classes of different sizes): the PASCAL3D+ CAD models of ``../shared/data/pascal3d_cad``
+rendered at 8 views each (584 objects, 32-80 per class; ``carvi datasets synthetic``, cached), or
+without them the 4 procedural categories of 150 objects each split into 3 classes. Whole runs of
+every class, the variants interleaved (``--compare-with DIR``: another checkout's code, "old";
+``--compare-set KEY=VALUE``: this code with overrides, "alt"; ``--rounds``), and per stage a line
+``seconds = fixed + per_object * objects`` fitted across the classes: its intercept is the fixed
+cost per class. Prints whole-process time, objects per second, peak memory and those costs, and
+the ratios new / old and new / alt measured in the same invocation.
 """
 from __future__ import annotations
 
@@ -81,7 +92,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: Stages of ``summary.json`` in pipeline order, with the names the table shows.
 STAGES = [("load", "loading"), ("sfm", "SfM"), ("refine", "refinement"), ("surrogates", "sampling (surrogates)"),
-          ("sdf", "distance maps"), ("carve", "carving"), ("select", "selection"), ("mesh", "meshing (writers)"),
+          ("sdf", "distance maps"), ("carve", "carving"), ("select", "selection"),
+          ("mesh_device", "meshing (main process, batched torch)"), ("mesh", "meshing (writers)"),
           ("write", "writing (writers)"), ("handoff", "handing objects to the writers"),
           ("write_wait", "waiting for writers")]
 #: Stages run by the writer processes, overlapped with the main process's.
@@ -278,6 +290,161 @@ def run_evaluation(data: Path, recon: Path, out: Path, category: str) -> dict:
         raise SystemExit(f"evaluate failed:\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}")
     results = read_json(out / "results.json")
     return {"command": " ".join(shlex.quote(x) for x in cmd), "results": results.get("shapes", results)}
+
+
+# =========================================================================== many classes
+
+#: The many-class benchmark's rendered CAD dataset (PASCAL3D+ models, 8 views each: 584 objects in 12 classes).
+CAD_MESHES = ROOT.parent / "shared" / "data" / "pascal3d_cad"
+#: Procedural fallback: the 4 procedural categories, each split into this many renamed classes.
+SPLITS = 3
+
+
+def ensure_many_classes(data_dir: Path, seed: int, cad: Path = CAD_MESHES) -> Path:
+    """``annotations.json`` of 12 classes of about 50 objects (cached): PASCAL3D+ CAD renders at 8 views per
+    model (``carvi datasets synthetic``) where ``cad`` exists, else 4 procedural categories of 150 objects,
+    each split round-robin into 3 classes ``<category>_<k>`` (their metadata copied)."""
+    if cad.is_dir():
+        d = data_dir / f"cad_v8_s{seed}"
+        if not (d / "annotations.json").is_file():
+            cmd = [sys.executable, "-m", "carvi_torch.cli", "datasets", "synthetic", "--meshes", str(cad), "--out",
+                   str(d), "--views", "8", "--seed", str(seed), "--quiet"]
+            print("rendering the many-class data (cached):", " ".join(cmd), flush=True)
+            subprocess.run(cmd, cwd=ROOT, check=True)
+        return d / "annotations.json"
+    d = data_dir / f"procedural12_s{seed}"
+    ann = d / "annotations.json"
+    if not ann.is_file():
+        base = data_dir / f"procedural4x{50 * SPLITS}_s{seed}"
+        if not (base / "annotations.json").is_file():
+            from carvi_torch.synthetic import procedural
+
+            print(f"generating 4 x {50 * SPLITS} procedural objects in {base} (cached)", flush=True)
+            procedural.write_default_collection(base, instances_per_class=50 * SPLITS, seed=seed, progress=True)
+        split_classes(base / "annotations.json", d, SPLITS)
+    return ann
+
+
+def split_classes(src_ann: Path, dst: Path, parts: int) -> None:
+    """Every category of ``src_ann`` split round-robin into ``parts`` classes ``<name>_<k>`` (same metadata);
+    images and ``gt.json`` are shared (paths relative to ``dst``)."""
+    data = read_json(src_ann)
+    cats, anns = [], []
+    new_id = {}
+    for c in data["categories"]:
+        for k in range(parts):
+            new_id[(c["id"], k)] = len(cats) + 1
+            cats.append(dict(c, id=len(cats) + 1, name=f"{c['name']}_{k}"))
+    seen: dict = {}
+    for a in data["annotations"]:
+        k = seen.get(a["category_id"], 0)
+        seen[a["category_id"]] = k + 1
+        anns.append(dict(a, category_id=new_id[(a["category_id"], k % parts)]))
+    dst.mkdir(parents=True, exist_ok=True)
+    rel = os.path.relpath(src_ann.parent, dst)
+    images = [dict(im, file_name=str(Path(rel) / im["file_name"])) if "file_name" in im else im
+              for im in data["images"]]
+    write_json(dst / "annotations.json", dict(data, categories=cats, annotations=anns, images=images), indent=None)
+
+
+def class_costs(summary: dict) -> dict:
+    """Per class: objects, reconstructed, the main process's seconds per stage and in all; and per stage
+    the least-squares line ``seconds = fixed + per_object * objects`` across the classes (its intercept: the
+    fixed cost per class)."""
+    classes = {k: c for k, c in summary["classes"].items() if c.get("status") == "ok"}
+    stages = [k for k, _ in STAGES if k not in WRITER_STAGES and k != "load"]
+    rows = {k: {"objects": c["objects"], "reconstructed": c["reconstructed"],
+                "seconds": {st: c["seconds"].get(st, 0.0) for st in stages}} for k, c in classes.items()}
+    for r in rows.values():
+        r["seconds"]["main"] = sum(r["seconds"].values())
+    n = torch.tensor([float(r["objects"]) for r in rows.values()], dtype=torch.float64)
+    fits = {}
+    if len(rows) >= 3 and float(n.std()) > 0:
+        A = torch.stack([torch.ones_like(n), n], dim=1)
+        for st in stages + ["main"]:
+            y = torch.tensor([r["seconds"][st] for r in rows.values()], dtype=torch.float64)
+            coef = torch.linalg.lstsq(A, y[:, None]).solution[:, 0]
+            fits[st] = {"fixed_per_class": float(coef[0]), "per_object": float(coef[1]), "sum": float(y.sum())}
+    return {"classes": rows, "fits": fits}
+
+
+def run_many(data: Path, out: Path, args, name: str, sets: list[str], pythonpath: str | None) -> dict:
+    """One whole run of every class of ``data`` (a child process); its totals and per-class costs."""
+    cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(data), "--out", str(out),
+           "progress=false", "preview=false", "overwrite=true", f"device={args.device}", *args.set, *sets]
+    env = dict(os.environ)
+    env["PYTHONPATH"] = pythonpath or str(ROOT)
+    if args.threads:
+        env["CARVI_THREADS"] = str(args.threads)
+    if args.workers is not None:
+        env["CARVI_WRITERS"] = str(args.workers)
+    print(f"{name}:", f"PYTHONPATH={env['PYTHONPATH']}", " ".join(shlex.quote(c) for c in cmd), flush=True)
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, cwd=pythonpath or ROOT, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if res.returncode != 0:
+        raise SystemExit(f"{name}: reconstruct failed ({res.returncode}):\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}")
+    summary = read_json(out / "summary.json")
+    objects = sum(c.get("objects", 0) for c in summary["classes"].values())
+    done = sum(c.get("reconstructed", 0) for c in summary["classes"].values())
+    total = summary["total_seconds"]
+    workers = summary.get("writer_workers", 0)
+    return {"name": name, "pythonpath": env["PYTHONPATH"], "overrides": sets,
+            "command": " ".join(shlex.quote(x) for x in cmd), "classes": len(summary["classes"]),
+            "objects": objects, "reconstructed": done, "total_seconds": total, "wall_seconds_with_startup": wall,
+            "load_seconds": summary["load_seconds"], "objects_per_second": done / total if total else None,
+            "peak_rss_main_mb": summary["peak_rss_mb"], "peak_rss_per_writer_mb": summary.get("peak_rss_workers_mb"),
+            "writer_workers": workers, "peak_cuda_mb": summary.get("peak_cuda_mb"),
+            "costs": class_costs(summary)}
+
+
+def many_classes(args, device: torch.device) -> dict:
+    """The many-class benchmark: the variants (this checkout; ``--compare-with`` another checkout's code;
+    ``--compare-set`` this checkout with further overrides) run ``--rounds`` times, interleaved, on the same data."""
+    data = ensure_many_classes(Path(args.data_dir), args.seed)
+    variants = [("new", [], None)]
+    if args.compare_with:
+        variants.append(("old", [], str(Path(args.compare_with).resolve())))
+    if args.compare_set:
+        variants.append(("alt", list(args.compare_set), None))
+    runs: dict[str, list] = {v[0]: [] for v in variants}
+    for r in range(max(1, args.rounds)):
+        for name, sets, path in (variants if r % 2 == 0 else variants[::-1]):
+            out = Path(args.work_dir) / f"many_{device.type}_{name}"
+            runs[name].append(run_many(data, out, args, name, sets, path))
+    best = {k: min(v, key=lambda x: x["total_seconds"]) for k, v in runs.items()}
+    ratios = {k: {"best_of_rounds": best["new"]["total_seconds"] / b["total_seconds"],
+                  "per_round": [n["total_seconds"] / o["total_seconds"] for n, o in zip(runs["new"], runs[k])]}
+              for k, b in best.items() if k != "new"}
+    return {"data": str(data), "runs": runs, "best": best, "new_over": ratios}
+
+
+def _many_table(m: dict) -> list[str]:
+    best = m["best"]
+    lines = ["| many classes | " + " | ".join(best) + " |", "|---|" + "---:|" * len(best)]
+    row = lambda label, f: lines.append(f"| {label} | " + " | ".join(f(b) for b in best.values()) + " |")  # noqa: E731
+    row("code (PYTHONPATH) and overrides", lambda b: f"{b['pythonpath']} {' '.join(b['overrides'])}".strip())
+    row("classes / objects / reconstructed", lambda b: f"{b['classes']} / {b['objects']} / {b['reconstructed']}")
+    row("**whole process, seconds** (best of rounds)", lambda b: f"**{b['total_seconds']:.1f}**")
+    row("with the interpreter's start", lambda b: f"{b['wall_seconds_with_startup']:.1f}")
+    row("loading", lambda b: f"{b['load_seconds']:.2f}")
+    row("objects per second", lambda b: f"{b['objects_per_second']:.2f}")
+    row("peak memory: main + writers", lambda b: f"{b['peak_rss_main_mb']:.0f} MB + {b['writer_workers']} x "
+                                                  f"{b['peak_rss_per_writer_mb'] or 0:.0f} MB"
+                                                  + (f"; CUDA {b['peak_cuda_mb']:.0f} MB" if b['peak_cuda_mb'] else ""))
+    fits = {k: b["costs"]["fits"] for k, b in best.items()}
+    stages = [(k, n) for k, n in STAGES if k not in WRITER_STAGES and k != "load"] + [("main", "main process, all")]
+    for key, name in stages:
+        if any(key in f for f in fits.values()):
+            row(f"{name}: fixed s per class + ms per object",
+                lambda b, key=key: (f"{b['costs']['fits'][key]['fixed_per_class']:.3f} + "
+                                    f"{1000 * b['costs']['fits'][key]['per_object']:.1f}")
+                if key in b["costs"]["fits"] else "")
+    lines.append("")
+    for k, r in m["new_over"].items():
+        lines.append(f"new / {k}, whole process: **{r['best_of_rounds']:.3f}** best of rounds; per round "
+                     + ", ".join(f"{x:.3f}" for x in r["per_round"]))
+    return lines + [""]
 
 
 # =========================================================================== carving and selection
@@ -677,6 +844,13 @@ def main(argv=None):
     ap.add_argument("--skip-carve", action="store_true", help="no carving comparison (the end-to-end run alone)")
     ap.add_argument("--eval", action="store_true", help="also evaluate shape errors against gt.json")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="further config overrides")
+    ap.add_argument("--many-classes", action="store_true",
+                    help="the many-class benchmark instead (12 classes of about 50 objects; see the docstring)")
+    ap.add_argument("--compare-with", default=None, metavar="DIR",
+                    help="--many-classes: also run the code of this checkout (old), interleaved; report new / old")
+    ap.add_argument("--compare-set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="--many-classes: also run this checkout with these overrides (alt); report new / alt")
+    ap.add_argument("--rounds", type=int, default=1, help="--many-classes: runs of each variant (best of)")
     ap.add_argument("--out", default=None, help="JSON path (default: docs/data/benchmark_<device>_<objects>.json, "
                                                 "with --skip-e2e docs/data/carving_<device>_threads<N>.json)")
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -686,6 +860,8 @@ def main(argv=None):
         raise SystemExit("--device cuda but no CUDA device is available")
     if device.type == "cpu":
         native.available()  # build and self-test the kernel now, outside every timing
+    if args.many_classes:
+        return main_many(args, argv, device)
     data = ensure_data(args.objects, args.category, Path(args.data_dir), args.base_objects, args.tile, args.seed)
     name = f"benchmark_{device.type}_{args.objects}"
     out_json = Path(args.out) if args.out else default_out(device, args)
@@ -703,6 +879,21 @@ def main(argv=None):
         result["carving"] = carve_and_select(data, args, device)
     result["machine_at_end"] = machine(device)
     print(table(result))
+    print(f"load average at start / end: {result['machine_at_start']['load_average']} / "
+          f"{result['machine_at_end']['load_average']}")
+    write_json(out_json, result)
+    print(f"wrote {out_json}")
+    return result
+
+
+def main_many(args, argv: list[str], device: torch.device) -> dict:
+    """``--many-classes``: run, print and write (default ``docs/data/many_classes_<device>.json``)."""
+    out_json = Path(args.out) if args.out else ROOT / "docs" / "data" / f"many_classes_{device.type}.json"
+    result = {"command": " ".join(["python tools/benchmark.py"] + [shlex.quote(a) for a in argv]),
+              "machine_at_start": machine(device)}
+    result["many_classes"] = many_classes(args, device)
+    result["machine_at_end"] = machine(device)
+    print("\n".join(_many_table(result["many_classes"])))
     print(f"load average at start / end: {result['machine_at_start']['load_average']} / "
           f"{result['machine_at_end']['load_average']}")
     write_json(out_json, result)

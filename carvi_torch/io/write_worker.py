@@ -23,6 +23,7 @@ import threading
 import time
 
 import numpy as np
+import trimesh
 
 from .. import mesh
 from ..runtime import peak_rss_mb
@@ -34,16 +35,20 @@ __all__ = ["write_object", "write_object_safe", "start_worker", "watch_parent", 
 def write_object(job: dict) -> dict:
     """Mesh and files of one reconstructed object (in a writer process, or inline).
 
-    Takes host (numpy) data only. Writes the proposals (studies) and scores first, then the voxels,
-    then the mesh: an object counts as finished once its mesh exists. Returns ``ok``, ``reason``,
-    ``mesh_seconds``, ``write_seconds``.
+    Takes host (numpy) data only; a job with ``mesh_vertices`` and ``mesh_faces`` was meshed by the
+    run (its occupancy is final: ``largest_component`` is not applied again). Writes the proposals
+    (studies) and scores first, then the voxels, then the mesh: an object counts as finished once its
+    mesh exists. Returns ``ok``, ``reason``, ``mesh_seconds``, ``write_seconds``.
     """
     t0 = time.perf_counter()
     occ = job["occupancy"]
     v2img = job["voxel_to_image"]
-    if job["largest_component"]:
-        occ = mesh.largest_component(occ)
-    m = mesh.occupancy_to_mesh(occ, v2img)
+    if job.get("mesh_faces") is not None:  # meshed already, in the run's process (mesh.mesher=torch)
+        m = trimesh.Trimesh(vertices=job["mesh_vertices"], faces=job["mesh_faces"], process=False)
+    else:
+        if job["largest_component"]:
+            occ = mesh.largest_component(occ)
+        m = mesh.occupancy_to_mesh(occ, v2img)
     t1 = time.perf_counter()
     if len(m.faces) == 0:
         return dict(ok=False, reason="selected proposal has no surface", mesh_seconds=t1 - t0, write_seconds=0.0)
