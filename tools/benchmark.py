@@ -304,8 +304,10 @@ def ensure_many_classes(data_dir: Path, seed: int, cad: Path = CAD_MESHES) -> Pa
     """``annotations.json`` of 12 classes of about 50 objects (cached): PASCAL3D+ CAD renders at 8 views per
     model (``carvi datasets synthetic``) where ``cad`` exists, else 4 procedural categories of 150 objects,
     each split round-robin into 3 classes ``<category>_<k>`` (their metadata copied)."""
+    d = data_dir / f"cad_v8_s{seed}"
+    if (d / "annotations.json").is_file():  # rendered earlier (or carried to a machine without the models)
+        return d / "annotations.json"
     if cad.is_dir():
-        d = data_dir / f"cad_v8_s{seed}"
         if not (d / "annotations.json").is_file():
             cmd = [sys.executable, "-m", "carvi_torch.cli", "datasets", "synthetic", "--meshes", str(cad), "--out",
                    str(d), "--views", "8", "--seed", str(seed), "--quiet"]

@@ -1,16 +1,25 @@
 #!/usr/bin/env bash
 # Everything to run when a CUDA machine is at hand, in one command: the CUDA tests and the GPU
-# benchmarks (docs/benchmarks.md; tools/benchmark.py --device cuda). Run from the repository root:
+# benchmarks (docs/benchmarks.md; tools/benchmark.py --device cuda), each new path timed against
+# the current one in the same run. Run from the repository root:
 #
-#     bash tools/gpu_session.sh [all|tests|bench1000|bench9087] [OUTDIR]
+#     bash tools/gpu_session.sh [all|tests|bench1000|bench9087|manyclasses] [OUTDIR]
 #
 # OUTDIR defaults to $OUT (the lent machine's result folder) or outputs/gpu. Each step writes
 # its log and JSON there; steps can be run one by one (a lent machine limits one command to
-# 10 minutes). Python is $PYTHON or python3; it must have torch with CUDA. Packages the
-# machine lacks can be carried as wheels in .whl/ (installed into a private target, never
-# into the system). The benchmark data are generated on first use, or carried:
-# outputs/bench/data/car1000_s0/{annotations.json,gt.json} (about 3 MB; the 9,087-object
-# class is tiled from it).
+# 10 minutes; `all` should take 5-6 minutes on an H100: an estimate, not yet timed). Python is
+# $PYTHON or python3; it must have torch with CUDA. Packages the machine lacks can be carried as
+# wheels in .whl/ (installed into a private target, never into the system). The benchmark data
+# are generated on first use, or
+# carried (the run tool's carry list): outputs/bench/data/car1000_s0/{annotations.json,gt.json}
+# (about 3 MB; the 9,087-object class is tiled from it) and
+# outputs/bench/data/cad_v8_s0/annotations.json (0.5 MB: the many-class data, 584 CAD renders;
+# without it and without ../shared/data/pascal3d_cad a procedural stand-in is generated, minutes).
+#
+# New against current, same run (ratios appended to OUTDIR/ratios.txt):
+#   bench9087    the 9,087-object class with mesh.mesher=auto (batched torch marching cubes on the
+#                GPU, in the run's process) and with mesher=skimage (the writers mesh, as before)
+#   manyclasses  12 classes of about 50 objects, the same two meshers
 set -uo pipefail
 if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then  # the comment above
     sed -n '2,/^set /p' "$0" | sed -e '$d' -e 's/^# \{0,1\}//'
@@ -22,8 +31,8 @@ py=${PYTHON:-python3}
 mkdir -p "$out"
 
 case "$step" in
-    all|tests|bench1000|bench9087) ;;
-    *) echo "unknown step '$step' (all, tests, bench1000, bench9087)" >&2; exit 2 ;;
+    all|tests|bench1000|bench9087|manyclasses) ;;
+    *) echo "unknown step '$step' (all, tests, bench1000, bench9087, manyclasses)" >&2; exit 2 ;;
 esac
 
 if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, scipy, skimage, yaml, tqdm, matplotlib, pytest" \
@@ -61,16 +70,42 @@ bench() {  # objects, extra arguments
     return "${PIPESTATUS[0]}"
 }
 
+bench_pair() {  # the 9,087-object class: the GPU meshing (default) and the writers' meshing, one after the other
+    local n=9087
+    "$py" tools/benchmark.py --device cuda --objects $n --skip-carve --out "$out/benchmark_cuda_${n}.json" 2>&1 \
+        | tee "$out/benchmark_cuda_${n}.txt" || return 1
+    "$py" tools/benchmark.py --device cuda --objects $n --skip-carve --set mesher=skimage \
+        --out "$out/benchmark_cuda_${n}_skimage.json" 2>&1 | tee "$out/benchmark_cuda_${n}_skimage.txt" || return 1
+    "$py" - "$out" <<'PY' | tee -a "$out/ratios.txt"
+import json, sys
+d = sys.argv[1]
+new, old = (json.load(open(f"{d}/benchmark_cuda_9087{s}.json"))["end_to_end"] for s in ("", "_skimage"))
+print(f"9087 objects: mesher=auto {new['total_seconds']:.1f} s, mesher=skimage {old['total_seconds']:.1f} s, "
+      f"new / old {new['total_seconds'] / old['total_seconds']:.3f}")
+PY
+}
+
+many() {  # 12 classes of about 50 objects: the GPU meshing (new) and the writers' meshing (alt), interleaved
+    "$py" tools/benchmark.py --device cuda --many-classes --compare-set mesher=skimage \
+        --out "$out/many_classes_cuda.json" 2>&1 | tee "$out/many_classes_cuda.txt"
+    local rc=${PIPESTATUS[0]}
+    grep "^new / " "$out/many_classes_cuda.txt" | sed 's/^/many classes: /' >> "$out/ratios.txt"
+    return "$rc"
+}
+
 status=0
 case "$step" in
     tests) run_tests || status=$? ;;
     bench1000) bench 1000 || status=$? ;;
-    bench9087) bench 9087 --skip-carve || status=$? ;;
+    bench9087) bench_pair || status=$? ;;
+    manyclasses) many || status=$? ;;
     all)
         run_tests || status=$?
         bench 1000 || status=$?
-        bench 9087 --skip-carve || status=$?
+        bench_pair || status=$?
+        many || status=$?
         ;;
 esac
+[ -f "$out/ratios.txt" ] && cat "$out/ratios.txt"
 echo "results in $out"
 exit "$status"
