@@ -61,6 +61,50 @@ def test_benchmark_carving_comparison_on_a_small_class(tmp_path: Path):
     assert "identical voxel for voxel: True" in res.stdout
 
 
+def _benchmark_module():
+    spec = importlib.util.spec_from_file_location("benchmark_tool", ROOT / "tools" / "benchmark.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_many_class_helpers_split_classes_and_fit_fixed_costs(tmp_path: Path):
+    """The many-class benchmark's procedural stand-in splits each category round-robin into renamed classes
+    with the same metadata; its fixed cost per class is the intercept of a least-squares line (numpy's polyfit)."""
+    import numpy as np
+
+    bench = _benchmark_module()
+    cats = [{"id": 1, "name": "car", "symmetry": "none"}, {"id": 2, "name": "bottle", "symmetry": "rotational"}]
+    anns = [{"id": i, "image_id": i, "category_id": 1 + i % 2} for i in range(10)]
+    src = tmp_path / "src" / "annotations.json"
+    src.parent.mkdir()
+    src.write_text(json.dumps({"categories": cats, "annotations": anns,
+                               "images": [{"id": i, "file_name": f"{i}.png"} for i in range(10)]}))
+    bench.split_classes(src, tmp_path / "dst", 3)
+    out = json.loads((tmp_path / "dst" / "annotations.json").read_text())
+    names = {c["id"]: c for c in out["categories"]}
+    assert sorted(c["name"] for c in names.values()) == ["bottle_0", "bottle_1", "bottle_2", "car_0", "car_1", "car_2"]
+    assert all(c["symmetry"] == ("rotational" if c["name"].startswith("bottle") else "none") for c in names.values())
+    per = {}
+    for a in out["annotations"]:
+        per.setdefault(names[a["category_id"]]["name"], []).append(a["id"])
+    assert per["car_0"] == [0, 6] and per["car_1"] == [2, 8] and per["car_2"] == [4] and per["bottle_2"] == [5]
+    assert out["images"][0]["file_name"] == "../src/0.png"
+
+    objects = [32, 40, 48, 56, 64, 80]
+    rng = np.random.default_rng(0)
+    sfm = [1.5 + 0.02 * n + e for n, e in zip(objects, rng.normal(0, 0.05, len(objects)))]
+    summary = {"classes": {f"c{i}": {"status": "ok", "objects": n, "reconstructed": n,
+                                     "seconds": {"sfm": t, "carve": 0.05 * n, "mesh": 9.0}}
+                           for i, (n, t) in enumerate(zip(objects, sfm))}}
+    fits = bench.class_costs(summary)["fits"]
+    slope, intercept = np.polyfit(objects, sfm, 1)
+    assert fits["sfm"]["fixed_per_class"] == pytest.approx(intercept, rel=1e-9)
+    assert fits["sfm"]["per_object"] == pytest.approx(slope, rel=1e-9)
+    assert fits["carve"]["fixed_per_class"] == pytest.approx(0.0, abs=1e-9)
+    assert "mesh" not in fits  # the writers' stages overlap the run: not a cost of the main process
+
+
 TOOLS = sorted(p.name for p in (ROOT / "tools").glob("*.py"))
 
 

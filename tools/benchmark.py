@@ -281,6 +281,33 @@ def run_end_to_end(data: Path, out: Path, args) -> dict:
     }
 
 
+def time_meshing(recon: Path, device: torch.device, objects: int, repeat: int) -> dict | None:
+    """Marching cubes of a run's first ``objects`` voxel grids: scikit-image one by one
+    (:func:`carvi_torch.mesh.occupancy_to_mesh`, the writers' way) against the batched torch op on ``device``
+    (:func:`carvi_torch.marching.occupancy_to_meshes`, host copies of the meshes included), best of ``repeat``;
+    and the largest vertex distance between the two (voxels)."""
+    import numpy as np
+
+    from carvi_torch.marching import occupancy_to_meshes
+    from carvi_torch.mesh import occupancy_to_mesh
+
+    files = sorted(recon.glob("*/voxels/*.npz"))[:objects]
+    if not files:
+        return None
+    z = [np.load(f) for f in files]
+    occ = torch.from_numpy(np.stack([x["occupancy"] for x in z]))
+    T = torch.from_numpy(np.stack([x["voxel_to_camera"] for x in z]))
+    occ_d, T_d = occ.to(device), T.to(device)
+    t_sk = best_of(lambda: [occupancy_to_mesh(o, t) for o, t in zip(occ.numpy(), T.numpy())], repeat, device)
+    occupancy_to_meshes(occ_d, T_d)  # warm-up (the case table, the device's kernels)
+    t_torch = best_of(lambda: occupancy_to_meshes(occ_d, T_d), repeat, device)
+    a, b = occupancy_to_mesh(occ[0].numpy(), T[0].numpy()), occupancy_to_meshes(occ_d[:1], T_d[:1])[0]
+    return {"objects": len(files), "grid": list(occ.shape[1:]), "device": str(device),
+            "skimage_ms_per_object": 1000 * t_sk / len(files), "torch_ms_per_object": 1000 * t_torch / len(files),
+            "torch_over_skimage": t_torch / t_sk, "same_counts_first_object": [len(a.vertices), len(a.faces)] == [
+                len(b[0]), len(b[1])]}
+
+
 def run_evaluation(data: Path, recon: Path, out: Path, category: str) -> dict:
     """``python -m carvi_torch.evaluate`` on the run; returns its shape summary for the class."""
     cmd = [sys.executable, "-m", "carvi_torch.evaluate", "--data", str(data), "--recon", f"run={recon}", "--out",
@@ -804,6 +831,12 @@ def table(result: dict) -> str:
     lines = []
     if result.get("end_to_end"):
         lines += _e2e_table(result["end_to_end"])
+    ms = result.get("meshing")
+    if ms:
+        lines += [f"marching cubes of {ms['objects']} of the run's grids ({'x'.join(map(str, ms['grid']))}): "
+                  f"scikit-image {ms['skimage_ms_per_object']:.2f} ms per object (host, one by one), batched torch "
+                  f"{ms['torch_ms_per_object']:.2f} on {ms['device']}: torch / scikit-image "
+                  f"**{ms['torch_over_skimage']:.3f}**", ""]
     if result.get("carving"):
         lines += _carving_table(result["carving"])
     ev = result.get("evaluation")
@@ -846,6 +879,8 @@ def main(argv=None):
     ap.add_argument("--skip-carve", action="store_true", help="no carving comparison (the end-to-end run alone)")
     ap.add_argument("--eval", action="store_true", help="also evaluate shape errors against gt.json")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="further config overrides")
+    ap.add_argument("--mesh-objects", type=int, default=200,
+                    help="grids of the end-to-end run meshed by scikit-image and by the batched torch op (timed)")
     ap.add_argument("--many-classes", action="store_true",
                     help="the many-class benchmark instead (12 classes of about 50 objects; see the docstring)")
     ap.add_argument("--compare-with", default=None, metavar="DIR",
@@ -875,6 +910,7 @@ def main(argv=None):
     if not args.skip_e2e:
         recon = Path(args.work_dir) / name
         result["end_to_end"] = run_end_to_end(data, recon, args)
+        result["meshing"] = time_meshing(recon, device, args.mesh_objects, args.repeat)
         if args.eval:
             result["evaluation"] = run_evaluation(data, recon, Path(args.work_dir) / f"{name}_eval", args.category)
     if not args.skip_carve:
