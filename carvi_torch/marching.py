@@ -253,7 +253,9 @@ def _orient_and_map(mc: MarchingCubes, voxel_to_camera: torch.Tensor) -> tuple[t
     volume = torch.zeros(B, dtype=torch.float64, device=f.device).index_add_(
         0, face_b, (a * torch.linalg.cross(b, c)).sum(1))
     T = voxel_to_camera.to(device=v.device, dtype=torch.float64)
-    flip = (volume < 0) ^ (torch.linalg.det(T[:, :3, :3]) < 0)
+    L = T[:, :3, :3]
+    det = (L[:, 0] * torch.linalg.cross(L[:, 1], L[:, 2])).sum(1)  # no solver library on the device for a sign
+    flip = (volume < 0) ^ (det < 0)
     faces = torch.where(flip[face_b][:, None], f.flip(1), f)
     cam = torch.einsum("vij,vj->vi", T[vert_b, :3, :3], v) + T[vert_b, :3, 3]
     return cam, faces

@@ -381,7 +381,8 @@ def class_costs(summary: dict) -> dict:
     the least-squares line ``seconds = fixed + per_object * objects`` across the classes (its intercept: the
     fixed cost per class)."""
     classes = {k: c for k, c in summary["classes"].items() if c.get("status") == "ok"}
-    stages = [k for k, _ in STAGES if k not in WRITER_STAGES and k != "load"]
+    stages = [k for k, _ in STAGES if k not in WRITER_STAGES and k != "load"
+              and any(k in c["seconds"] for c in classes.values())]
     rows = {k: {"objects": c["objects"], "reconstructed": c["reconstructed"],
                 "seconds": {st: c["seconds"].get(st, 0.0) for st in stages}} for k, c in classes.items()}
     for r in rows.values():

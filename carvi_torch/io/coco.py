@@ -28,6 +28,7 @@ import torch
 from pycocotools import mask as mask_utils
 
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvas
+from ..runtime import torch_threads
 from .layout import reserved
 from .outputs import read_json, safe_name, write_json
 
@@ -534,13 +535,16 @@ def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: fl
     """Crop each object into the canvas (box = mask extent; visible keypoints may stick out a little)."""
     boxes = []
     for _ann, _im, mask, _xy, _vis in items:
-        ys, xs = np.nonzero(mask)
-        boxes.append([xs.min(), ys.min(), xs.max(), ys.max()])
+        ys, xs = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))  # occupied rows, columns
+        boxes.append([xs[0], ys[0], xs[-1], ys[-1]])
     sim = canvas_similarity(torch.tensor(boxes, dtype=torch.float32), canvas_size, margin)
-    masks = torch.stack([
-        resample_to_canvas(torch.from_numpy(m), float(sim.scale[i]), sim.offset[i], canvas_size)
-        for i, (_a, _im, m, _xy, _v) in enumerate(items)
-    ])
+    # a few small operations per object: intra-op threads only add their synchronisation (on a busy
+    # 2-core machine 584 objects took 33 s with 2 threads, 2.2 s with 1), and change no value
+    with torch_threads(1):
+        masks = torch.stack([
+            resample_to_canvas(torch.from_numpy(m), float(sim.scale[i]), sim.offset[i], canvas_size)
+            for i, (_a, _im, m, _xy, _v) in enumerate(items)
+        ])
     xy = torch.tensor(np.stack([it[3] for it in items]), dtype=torch.float32)
     vis = torch.tensor(np.stack([it[4] for it in items]), dtype=torch.bool)
     kp = torch.where(vis[..., None], sim.apply(xy), torch.zeros_like(xy))
