@@ -50,7 +50,7 @@ Mesher = Literal["auto", "skimage", "torch"]
 MAX_TRIANGLES = 5
 #: Cube corners ``(d, h, w)`` offsets; corner ``k`` has bit ``k`` of a cube's pattern.
 CORNERS = [(d, h, w) for d in (0, 1) for h in (0, 1) for w in (0, 1)]
-#: Cubes meshed per batch of :func:`marching_cubes` (bounds its temporaries: about 40 bytes per cube).
+#: Cubes meshed per step of :func:`marching_cubes` (bounds the memory of its temporaries).
 CUBES_PER_STEP = 2 ** 26
 
 

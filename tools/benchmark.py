@@ -739,6 +739,8 @@ def _e2e_table(e2e: dict) -> list[str]:
     lines = ["| stage | seconds | ms per object |", "|---|---:|---:|"]
     for key, name in STAGES:
         s = e2e["seconds_per_stage"].get(key, 0.0)
+        if key == "mesh_device" and not s:  # the writers meshed (mesher=skimage)
+            continue
         lines.append(f"| {name} | {s:.2f} | {1000 * s / n:.1f} |")
     other = e2e.get("other_main_seconds")
     if other is not None:
