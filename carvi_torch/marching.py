@@ -27,7 +27,7 @@ Example:
     >>> occ = torch.zeros(1, 4, 4, 4, dtype=torch.bool); occ[0, 1:3, 1:3, 1:3] = True
     >>> mc = marching_cubes(occ)
     >>> mc.vertex_counts.tolist(), mc.face_counts.tolist()
-    ([24, 44])
+    ([24], [44])
 """
 from __future__ import annotations
 
