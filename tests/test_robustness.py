@@ -531,11 +531,15 @@ def test_export_finds_the_runs_data_and_names_a_broken_shard(base, tmp_path, mon
 
 def test_one_cli_and_a_log(base, tmp_path):
     carvi = [sys.executable, "-m", "carvi_torch.cli"]
-    v = subprocess.run(carvi + ["--version"], capture_output=True, text=True)
-    assert v.returncode == 0 and v.stdout.startswith("carvi_torch ")
+    # the version and every command's help, the processes started at once
+    asks = {cmd: carvi + ([cmd, "--help"] if cmd else ["--version"])
+            for cmd in ("", "reconstruct", "evaluate", "export", "datasets")}
+    procs = {cmd: subprocess.Popen(a, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for cmd, a in asks.items()}
+    said = {cmd: p.communicate(timeout=120) for cmd, p in procs.items()}
+    assert procs[""].returncode == 0 and said[""][0].startswith("carvi_torch ")
     for cmd in ("reconstruct", "evaluate", "export", "datasets"):
-        h = subprocess.run(carvi + [cmd, "--help"], capture_output=True, text=True)
-        assert h.returncode == 0 and (cmd == "datasets" or "--classes" in h.stdout), (cmd, h.stderr)
+        assert procs[cmd].returncode == 0 and (cmd == "datasets" or "--classes" in said[cmd][0]), (cmd, said[cmd][1])
     data = _write(tmp_path, base)
     out = tmp_path / "run"
     r = subprocess.run(carvi + ["reconstruct", "--data", str(data), "--out", str(out), "--classes", "car",
