@@ -74,7 +74,8 @@ def main(argv=None) -> int:
             print(f"reconstructing {4 * per} procedural objects into {recon} (not timed) ...")
             subprocess.run([py, "-m", "carvi_torch.reconstruct", "--out", str(recon),
                             f"input.procedural_instances={per}",
-                            "progress=false", "preview=false"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+                            "progress=false", "preview=false", "report=false"],
+                           cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     exp = work / "export"
     if exp.exists():
         import shutil
