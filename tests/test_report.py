@@ -1,8 +1,8 @@
 """The HTML report: files and budgets, order, damaged inputs, and the page in headless Chromium.
 
-One tiny reconstruction (two classes of six objects) is shared by the module; ``reconstruct`` writes
-its report at the end. The browser tests drive ``/usr/bin/chromium`` by its command line and are
-skipped, with the reason, where it is absent.
+One tiny reconstruction (two classes of six objects) is shared by the module; the run writes
+its report at the end (``report=true``, the default). The browser tests drive ``/usr/bin/chromium``
+by its command line and are skipped, with the reason, where it is absent.
 """
 from __future__ import annotations
 
@@ -19,14 +19,15 @@ import pytest
 import trimesh
 
 from carvi_torch.cli import main as cli_main
-from carvi_torch.reconstruct import main as reconstruct_main
+from carvi_torch.config import Config
+from carvi_torch.executors import run
 from carvi_torch.report import build_report, main as report_main
 from carvi_torch.report.build import STATIC
 from carvi_torch.report.cards import decode_positions
 
 CHROMIUM = Path("/usr/bin/chromium")
-TINY = ["--quiet", "procedural_instances=6", "resolution=20", "proposals=4", "canvas_size=64", "refine_iters=30",
-        "plane_size=32", "preview=false", "classes=car,chair"]
+TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "refine_iters": 30,
+        "plane_size": 32, "preview": False, "progress": False, "classes": ["car", "chair"]}
 #: URL-like strings the vendored three.js holds that load nothing: the XHTML namespace (an identifier) and
 #: a link printed in a console warning.
 VENDORED_URLS = {"http://www.w3.org/1999/xhtml", "https://github.com/mrdoob/three.js/pull/23228"}
@@ -35,7 +36,8 @@ VENDORED_URLS = {"http://www.w3.org/1999/xhtml", "https://github.com/mrdoob/thre
 @pytest.fixture(scope="module")
 def recon(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("run")
-    assert reconstruct_main(["--out", str(out), *TINY]) == 0
+    summary = run(Config().override({**TINY, "out": str(out)}), workers=0)  # the report is on by default
+    assert all(c["reconstructed"] == 6 for c in summary["classes"].values())
     return out
 
 

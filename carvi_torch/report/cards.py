@@ -35,7 +35,7 @@ __all__ = ["Card", "CardContext", "ClassView", "legend", "encode_mesh", "decode_
 KEYPOINT_COLOURS = {"annotated": ((255, 150, 0), "annotated keypoint"),
                     "projected": ((0, 200, 220), "mean-shape keypoint, projected")}
 #: The overlay image's longer side, pixels.
-CROP_SIZE = 224
+CROP_SIZE = 208
 
 
 @dataclass

@@ -10,7 +10,7 @@
   'use strict';
   var R = window.carviReport = {};
   var S = {meta: {}, cards: [], byClass: {}, pending: {}, token: 0};
-  var W = 224, H = 224;
+  var W = 208, H = 208;
   var gl = null;  // the shared renderer; false: WebGL unavailable (gl_reason says why)
   var glReason = '';
 
