@@ -173,6 +173,10 @@ def test_quality_orders_the_cards_and_damaged_files_are_named(recon, tmp_path):
     (run / "car" / "meshes" / f"{ids[0]}.ply").unlink()
     (run / "car" / "voxels" / f"{ids[2]}.npz").write_bytes(b"not an npz")
     (run / "chair" / "cameras.json").write_text("{broken")
+    summary = json.loads((run / "summary.json").read_text())
+    summary["classes"]["car"]["failures"] = [{"annotation_id": 999, "source": "x.xml", "stage": "load",
+                                              "reason": "mask <empty> & no keypoints"}]
+    (run / "summary.json").write_text(json.dumps(summary))
     before = _tree(run)
     assert cli_main(["report", "--recon", str(run), "--out", str(run / "rep"), "--quiet", "--per-page", "4"]) == 0
     after = _tree(run)
@@ -180,10 +184,15 @@ def test_quality_orders_the_cards_and_damaged_files_are_named(recon, tmp_path):
     meta, cards = _cards(run / "rep")
     assert meta["sort_by"] == "quality" and meta["per_page"] == 4
     car = [c for c in cards if c["cls"] == "car"]
-    assert [c["id"] for c in car] == [ids[2], ids[0], ids[1], ids[5], ids[4], ids[3]]  # damaged first
-    assert "voxels unreadable" in car[0]["problems"][0] and "no mesh file" in car[1]["problems"][0]
+    # skipped first, then damaged files, then by quality
+    assert [c["id"] for c in car] == ["999", ids[2], ids[0], ids[1], ids[5], ids[4], ids[3]]
+    assert car[0]["skipped"] == "mask <empty> & no keypoints"
+    assert "annotation not in the input" in car[0]["problems"][0]
+    assert "voxels unreadable" in car[1]["problems"][0] and "no mesh file" in car[2]["problems"][0]
     assert not any(c["cls"] == "chair" for c in cards)
-    assert "chair/cameras.json unreadable" in (run / "rep" / "index.html").read_text()
+    page = (run / "rep" / "index.html").read_text()
+    assert "chair/cameras.json unreadable" in page
+    assert "999 (x.xml): load: mask &lt;empty&gt; &amp; no keypoints" in page
     assert report_main(["--recon", str(tmp_path / "nothing"), "--quiet"]) == 2
     assert not (tmp_path / "nothing").exists()
 
