@@ -193,6 +193,7 @@ def test_quality_orders_the_cards_and_damaged_files_are_named(recon, tmp_path):
     page = (run / "rep" / "index.html").read_text()
     assert "chair/cameras.json unreadable" in page
     assert "999 (x.xml): load: mask &lt;empty&gt; &amp; no keypoints" in page
+    assert report_main(["--recon", str(run), "--out", str(run), "--quiet"]) == 2  # never over the run's own files
     assert report_main(["--recon", str(tmp_path / "nothing"), "--quiet"]) == 2
     assert not (tmp_path / "nothing").exists()
 

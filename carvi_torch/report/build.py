@@ -30,7 +30,7 @@ from typing import Literal
 from ..io.outputs import safe_name
 from .cards import Card, CardContext, ClassView, make_card
 from .charts import class_figure
-from .inputs import RunInputs, read_run
+from .inputs import ReportError, RunInputs, read_run
 from .page import class_panel_html, index_html
 
 __all__ = ["build_report", "sort_cards", "default_workers", "Report", "SortBy", "STATIC", "ASSETS", "POOL_FROM"]
@@ -141,12 +141,18 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
     processes (default :func:`default_workers`; 0: all in this process).
 
     Raises:
-        carvi_torch.report.inputs.ReportError: ``recon`` has no readable ``summary.json``.
+        carvi_torch.report.inputs.ReportError: ``recon`` has no readable ``summary.json``, or ``out`` is
+            the run's folder, a class folder, or cannot be made.
     """
     t0 = time.perf_counter()
     run = read_run(recon)
     out = Path(out) if out is not None else run.recon / "report"
-    out.mkdir(parents=True, exist_ok=True)
+    if out.resolve() == run.recon.resolve() or out.resolve() in {(run.recon / c.key).resolve() for c in run.classes}:
+        raise ReportError(f"--out {out} is the run's folder or a class folder: give the report a folder of its own")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ReportError(f"cannot make --out {out}: {e.strerror or e}") from e
     per = _make_cards(run, out, max_faces, workers)
     cards, panels, names = [], [], []
     for cls in run.classes:
