@@ -231,8 +231,9 @@ def test_page_in_chromium_filter_pages_and_reasons(recon, tmp_path):
     the page is still ready."""
     run = tmp_path / "run"
     shutil.copytree(recon, run, ignore=shutil.ignore_patterns("report"))
-    build_report(run, run / "rep", per_page=4, workers=0)
-    _, order = _cards(run / "rep")
+    build_report(run, run / "rep", per_page=4, workers=2)  # worker processes make the same cards
+    meta, order = _cards(run / "rep")
+    assert order == _cards(recon / "report")[1] and meta["per_page"] == 4
     car = [c for c in order if c["cls"] == "car"]
     (run / "rep" / car[4]["mesh"]).unlink()
     dom = _chromium((run / "rep" / "index.html").as_uri() + "#class=car&page=2")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import logging
 import multiprocessing as mp
 import os
 import shutil
@@ -25,6 +26,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Literal
 
 from ..io.outputs import safe_name
@@ -35,6 +37,7 @@ from .page import class_panel_html, index_html
 
 __all__ = ["build_report", "sort_cards", "default_workers", "Report", "SortBy", "STATIC", "ASSETS", "POOL_FROM"]
 
+log = logging.getLogger(__name__)
 #: Runs with at least this many objects make their cards in worker processes (:func:`default_workers`).
 POOL_FROM = 100
 #: The number cards are sorted by, worst first.
@@ -113,12 +116,16 @@ def _make_cards(run: RunInputs, out: Path, max_faces: int, workers: int | None) 
     args = (run.recon, out, run.data, run.mesh_format, max_faces)
     jobs = [(ClassView.of(c), o, safe_name(c.key)) for c in run.classes for o in c.objects]
     workers = default_workers(len(jobs)) if workers is None else workers
+    made = None
     if workers > 0:
         method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-        with ProcessPoolExecutor(workers, mp_context=mp.get_context(method), initializer=_init_worker,
-                                 initargs=args) as pool:
-            made = list(pool.map(_card_in_worker, jobs, chunksize=max(1, min(32, len(jobs) // (4 * workers)))))
-    else:
+        try:
+            with ProcessPoolExecutor(workers, mp_context=mp.get_context(method), initializer=_init_worker,
+                                     initargs=args) as pool:
+                made = list(pool.map(_card_in_worker, jobs, chunksize=max(1, min(32, len(jobs) // (4 * workers)))))
+        except (OSError, BrokenProcessPool) as e:  # no worker processes here: make the cards in this one
+            log.warning(f"report: worker processes failed ({type(e).__name__}: {e}); making the cards here")
+    if made is None:
         ctx = _context(*args)
         made = [make_card(ctx, *job) for job in jobs]
     per: dict[str, list[Card]] = {c.key: [] for c in run.classes}
@@ -160,8 +167,11 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
         mine = per[cls.key]
         chart = None
         if mine:
-            class_figure(mine, out / "classes" / f"{key}.png")
-            chart = f"classes/{key}.png"
+            try:
+                class_figure(mine, out / "classes" / f"{key}.png")
+                chart = f"classes/{key}.png"
+            except Exception as e:  # noqa: BLE001 - a figure that fails leaves its panel without it
+                log.warning(f"report: the figure of class {cls.key} failed ({type(e).__name__}: {e})")
         panels.append(class_panel_html(cls.summary, cls.key, cls.name, chart, cls.problem))
         names.append((cls.key, cls.name))
         cards += mine
