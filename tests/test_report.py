@@ -62,7 +62,7 @@ def _tree(root: Path) -> dict[str, bytes]:
             for p in root.rglob("*") if p.is_file()}
 
 
-def _chromium(url: str, shot: Path | None = None, size=(1300, 1500)) -> str:
+def _chromium(url: str, shot: Path | None = None, size=(1300, 1500), extra: tuple = ()) -> str:
     """The DOM of ``url`` after its scripts ran (and a screenshot into ``shot``)."""
     if not CHROMIUM.is_file():
         pytest.skip(f"{CHROMIUM} not found (apt-get install chromium; .ci/run installs it)")
@@ -71,7 +71,7 @@ def _chromium(url: str, shot: Path | None = None, size=(1300, 1500)) -> str:
                "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update",
                "--disable-sync", "--host-resolver-rules=MAP * ~NOTFOUND", f"--user-data-dir={prof}",
                "--virtual-time-budget=15000", f"--window-size={size[0]},{size[1]}", "--hide-scrollbars",
-               "--dump-dom"]
+               "--dump-dom", *extra]
         if shot is not None:
             cmd.append(f"--screenshot={shot}")
         res = subprocess.run(cmd + [url], capture_output=True, text=True, timeout=120)
@@ -243,3 +243,13 @@ def test_page_in_chromium_filter_pages_and_reasons(recon, tmp_path):
     assert all(c["data-class"] == "car" for c in cards)
     assert cards[0]["data-viewer"] == "failed" and "mesh data missing" in cards[0]["text"]
     assert cards[1]["data-viewer"] == "ok"
+
+
+def test_page_without_webgl_still_shows_every_card(recon):
+    """No WebGL: every 3D view says so, the overlays stay, and the page is still ready."""
+    dom = _chromium((recon / "report" / "index.html").as_uri() + "#class=chair", extra=("--disable-webgl",))
+    assert re.search(r'<body[^>]* data-ready="1"', dom)
+    cards = _dom_cards(dom)
+    assert len(cards) == 6 and all(c["data-class"] == "chair" for c in cards)
+    assert all(c["data-viewer"] == "failed" and "WebGL unavailable" in c["text"] for c in cards)
+    assert dom.count('class="overlay"') == 6
