@@ -170,7 +170,9 @@ def read_run(recon: str | Path) -> RunInputs:
         raise ReportError(f"{recon}/summary.json has no 'classes' mapping")
     classes = [_read_class(recon, str(k), v) for k, v in summary["classes"].items()
                if (recon / str(k)).resolve().parent == recon.resolve()]
-    data = summary.get("data")
+    data = Path(summary["data"]) if isinstance(summary.get("data"), str) else None
+    if (data is None or not data.is_file()) and (recon / "input" / "annotations.json").is_file():
+        data = recon / "input" / "annotations.json"  # the embedded collection, in a run folder that moved
     fmt = "ply"
     try:
         import yaml
@@ -179,5 +181,4 @@ def read_run(recon: str | Path) -> RunInputs:
         fmt = str(((cfg or {}).get("mesh") or {}).get("format") or "ply")
     except Exception:  # noqa: BLE001 - no or damaged config: the default format
         pass
-    return RunInputs(recon=recon, summary=summary, classes=classes, data=Path(data) if data else None,
-                     mesh_format=fmt)
+    return RunInputs(recon=recon, summary=summary, classes=classes, data=data, mesh_format=fmt)
