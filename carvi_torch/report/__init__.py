@@ -29,10 +29,13 @@ def main(argv=None) -> int:
     ap.add_argument("--recon", required=True, help="the run's output folder (reconstruct --out)")
     ap.add_argument("--out", help="where to write the report (default: RECON/report)")
     ap.add_argument("--per-page", type=int, default=24, help="cards per page (default: 24)")
+    ap.add_argument("--workers", type=int, help="processes making the cards (default: none on 2 cores or fewer "
+                                                "or below 100 objects, else one per core but one, at most 4)")
     add_common(ap, classes=False)
     args = ap.parse_args(argv)
     try:
-        rep = build_report(args.recon, args.out, per_page=max(1, args.per_page))
+        rep = build_report(args.recon, args.out, per_page=max(1, args.per_page),
+                           workers=None if args.workers is None else max(0, args.workers))
     except ReportError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -103,12 +103,11 @@ def _card_in_worker(job: tuple) -> Card:
 
 
 def default_workers(n_objects: int) -> int:
-    """Card processes for a run of ``n_objects``: none below :data:`POOL_FROM` objects (starting
-    them costs more than it saves), else one per core, at most 4."""
-    if n_objects < POOL_FROM:
-        return 0
+    """Card processes for a run of ``n_objects``: none below :data:`POOL_FROM` objects (starting them
+    costs more than it saves) or on 2 cores or fewer (measured slower there, docs/report.md), else
+    one per core but one, at most 4."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(0, min(4, cores)) if cores > 1 else 0
+    return 0 if n_objects < POOL_FROM or cores <= 2 else min(4, cores - 1)
 
 
 def _make_cards(run: RunInputs, out: Path, max_faces: int, workers: int | None) -> dict[str, list[Card]]:
