@@ -266,6 +266,9 @@ class Config:
     """Show progress bars."""
     preview: bool = True
     """Write ``preview.png`` with a few results."""
+    report: bool = True
+    """Write the HTML report (``report/index.html``: every object's overlay and 3D mesh, per-class plots;
+    ``python -m carvi_torch.report`` makes it for any finished run)."""
     input: InputConfig = field(default_factory=InputConfig)
     viewpoints: ViewpointConfig = field(default_factory=ViewpointConfig)
     surrogates: SurrogateConfig = field(default_factory=SurrogateConfig)
@@ -514,7 +517,7 @@ def _coerce_plain(value: Any, annotation: Any) -> Any:
 
 #: Settings that do not change how an object is reconstructed (a rerun may differ in them freely;
 #: the input files are the user's choice, and resumed objects are matched by annotation id).
-NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "overwrite", "classes", "stage", "device",
+NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overwrite", "classes", "stage", "device",
                     "viewpoints.sfm_group_threads",  # the mixture fit's result is the same on any number of threads
                     "carve.backend"}  # every carving backend gives the same labels voxel for voxel
 

@@ -28,7 +28,7 @@ from carvi_torch.reconstruct import main as reconstruct_main
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = {"resolution": 16, "proposals": 3, "canvas_size": 48, "progress": False, "refine_iters": 20,
-         "plane_size": 24, "preview": False}
+         "plane_size": 24, "preview": False, "report": False}
 
 
 @pytest.fixture(scope="module")
@@ -494,7 +494,8 @@ def test_exit_status_says_when_nothing_came_out(base, tmp_path):
     for a in d["annotations"]:
         a["truncated"] = True
     data = _write(tmp_path, d)
-    rc = reconstruct_main(["--data", str(data), "--out", str(tmp_path / "o"), "--quiet", "preview=false"])
+    rc = reconstruct_main(["--data", str(data), "--out", str(tmp_path / "o"), "--quiet", "preview=false",
+                          "report=false"])
     assert rc == 1
     assert exit_status({"classes": {"car": {"reconstructed": 0, "resumed": 3}}}) == 0
     assert exit_status({"classes": {"car": {"reconstructed": 5, "status": "failed"}}}) == 1
@@ -543,7 +544,8 @@ def test_one_cli_and_a_log(base, tmp_path):
     data = _write(tmp_path, base)
     out = tmp_path / "run"
     r = subprocess.run(carvi + ["reconstruct", "--data", str(data), "--out", str(out), "--classes", "car",
-                                "sfm_max_outer=2", "resolution=16", "proposals=3", "canvas_size=48", "preview=false"],
+                                "sfm_max_outer=2", "resolution=16", "proposals=3", "canvas_size=48", "preview=false",
+                                "report=false"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-2000:]
     # a warning that reaches summary.json also reaches the terminal, the log and the table

@@ -228,7 +228,7 @@ def tile_collection(src_ann: Path, dst: Path, objects: int) -> None:
 def run_end_to_end(data: Path, out: Path, args) -> dict:
     """``python -m carvi_torch.reconstruct`` in a child process; returns its summary plus wall times."""
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(data), "--out", str(out),
-           "progress=false", "preview=false", "overwrite=true", f"device={args.device}",
+           "progress=false", "preview=false", "report=false", "overwrite=true", f"device={args.device}",
            f"resolution={args.resolution}", f"proposals={args.proposals}", f"classes={args.category}",
            *args.set]
     env = dict(os.environ)

@@ -58,7 +58,8 @@ import trimesh
 
 from carvi_torch.io.layout import finished
 
-SMALL = ("resolution=16", "proposals=3", "canvas_size=48", "refine_iters=20", "plane_size=24", "preview=false")
+SMALL = ("resolution=16", "proposals=3", "canvas_size=48", "refine_iters=20", "plane_size=24", "preview=false",
+         "report=false")
 HEAVY = ("resolution=40", "proposals=20")  # a run long enough to be interrupted
 RECONSTRUCT = (sys.executable, "-m", "carvi_torch.reconstruct")
 MARKER = "CARVI_STRESS_CASE"

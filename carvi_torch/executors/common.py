@@ -170,7 +170,7 @@ def write_summary(setup: RunSetup) -> None:
 
 
 def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = None) -> dict:
-    """Totals, the earlier run's other classes, ``summary.json`` and ``preview.png``; returns the summary.
+    """Totals, the earlier run's other classes, ``summary.json``, ``preview.png`` and ``report/``; returns the summary.
 
     ``workers_mb``: the largest writer process's peak memory (as the writers report it).
     """
@@ -192,6 +192,13 @@ def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = 
             write_preview(setup.out, read_json(setup.out / "summary.json"))
         except Exception as e:  # noqa: BLE001 - a picture must never fail the run
             log.warning(f"preview.png not written: {e}")
+    if setup.cfg.report and setup.cfg.stage == "all":
+        try:
+            from ..report import build_report
+
+            build_report(setup.out, setup.out / "report")
+        except Exception as e:  # noqa: BLE001 - the report must never fail the run
+            log.warning(f"report/index.html not written: {e}")
     return read_json(setup.out / "summary.json")
 
 
