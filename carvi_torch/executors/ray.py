@@ -128,65 +128,43 @@ def _plan(ref):
     return _PLAN[key]
 
 
-def _started(attempts, key: tuple) -> tuple[str, int]:
-    """Book one attempt of task ``key`` (the driver counts retries from them); this task's node id and
-    CPUs."""
+def _here() -> tuple[str, int, int | None]:
+    """This task's node id, CPUs, and attempt (0: its first run; ``None`` where this Ray does not tell)."""
     ray = import_ray()
-    ray.get(attempts.started.remote(key))
     ctx = ray.get_runtime_context()
-    return ctx.get_node_id(), max(1, int(ctx.get_assigned_resources().get("CPU", 1)))
+    attempt = getattr(ctx.worker.core_worker, "get_current_task_attempt_number", None)
+    return (ctx.get_node_id(), max(1, int(ctx.get_assigned_resources().get("CPU", 1))),
+            int(attempt()) if attempt is not None else None)
 
 
-def prepare_task(coll, cfg: Config, gt: dict | None, out: str, done: list[bool], attempts):
+def prepare_task(coll, cfg: Config, gt: dict | None, out: str, done: list[bool]):
     """Task: every stage of class ``coll`` up to carving (:func:`~carvi_torch.pipeline.prepare_class`,
-    ``cameras.json`` written). Returns ``(plan, (todo, report, node, peak MB))``, two objects: the plan
-    stays in the object store."""
-    key = coll.meta.key
-    node, cpus = _started(attempts, ("prepare", key))
+    ``cameras.json`` written). Returns two objects: the plan, which stays in the object store, and
+    ``(todo, report, (node, attempt, peak MB))``."""
+    node, cpus, attempt = _here()
     with torch_threads(cpus):
-        plan, todo, report = prepare_class(coll, cfg, cfg.resolve_device(), class_generator(cfg, key), gt=gt,
-                                           out=Path(out), done=done)
-    return plan, (todo, report, node, peak_rss_mb())
+        plan, todo, report = prepare_class(coll, cfg, cfg.resolve_device(), class_generator(cfg, coll.meta.key),
+                                           gt=gt, out=Path(out), done=done)
+    return plan, (todo, report, (node, attempt, peak_rss_mb()))
 
 
-def chunk_task(plan_ref: list, ids: list[int], cfg: Config, attempts):
+def chunk_task(plan_ref: list, ids: list[int], cfg: Config):
     """Task: carve, select, mesh and write the originals ``ids`` of a class
     (:func:`~carvi_torch.pipeline.reconstruct_chunk`); ``plan_ref``: ``[the plan's object ref]``.
-    Returns ``(report, puffballs, node, peak MB)``."""
-    plan = _plan(plan_ref[0])
-    node, cpus = _started(attempts, ("chunk", plan.coll.meta.key, ids[0]))
+    Returns ``(report, puffballs, (node, attempt, peak MB))``."""
+    node, cpus, attempt = _here()
     with torch_threads(cpus):
-        report, puffballs = reconstruct_chunk(plan, ids, cfg)
-    return report, puffballs, node, peak_rss_mb()
+        report, puffballs = reconstruct_chunk(_plan(plan_ref[0]), ids, cfg)
+    return report, puffballs, (node, attempt, peak_rss_mb())
 
 
-def finish_task(plan_ref: list, cfg: Config, report: ClassReport, puffballs: list[int], attempts):
-    """Task: the end of a class (:func:`~carvi_torch.pipeline.finish_class`). Returns ``(report, node)``."""
-    plan = _plan(plan_ref[0])
-    node, _ = _started(attempts, ("finish", plan.coll.meta.key))
-    finish_class(plan, cfg, report, puffballs)
+def finish_task(plan_ref: list, cfg: Config, report: ClassReport, puffballs: list[int]):
+    """Task: the end of a class (:func:`~carvi_torch.pipeline.finish_class`). Returns
+    ``(report, (node, attempt, peak MB))``."""
+    node, _, attempt = _here()
+    finish_class(_plan(plan_ref[0]), cfg, report, puffballs)
     _PLAN.clear()  # the class is done: its plan may leave the store
-    return report, node
-
-
-def _attempts_actor(ray):
-    """An actor on the driver's node that counts the attempts of every task (``retries``: those beyond
-    the first). Defined here, so that its process imports nothing of the package."""
-
-    class Attempts:
-        def __init__(self):
-            self.count = {}
-
-        def started(self, key):
-            self.count[key] = self.count.get(key, 0) + 1
-
-        def retries(self):
-            return sum(n - 1 for n in self.count.values())
-
-    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
-
-    here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
-    return ray.remote(num_cpus=0)(Attempts).options(scheduling_strategy=here).remote()
+    return report, (node, attempt, peak_rss_mb())
 
 
 # =========================================================================== the driver
@@ -224,17 +202,16 @@ class _Driver:
                        for f in (chunk_task, finish_task)}
         self.remote["prepare_task"] = ray.remote(prepare_task).options(num_cpus=TASK_CPUS, max_retries=TASK_RETRIES,
                                                                      num_returns=2)
-        self.attempts = _attempts_actor(ray)
         self.gt = ray.put(setup.gt)
         self.pending: dict = {}  # object ref -> (kind, class key)
         self.classes: dict[str, _Class] = {}
-        self.tasks, self.nodes, self.peak_mb = 0, set(), 0.0
-        self.limit = max(2, int(ray.cluster_resources().get("CPU", 1)))
+        self.tasks, self.retries, self.nodes, self.peak_mb = 0, 0, set(), 0.0
+        self.limit = int(ray.cluster_resources().get("CPU", 1)) + 1
         colls = setup.loaded.collections
         self.bar = tqdm(total=sum(len(c) for c in colls.values()), desc="objects", disable=not setup.cfg.progress)
 
     def _submit(self, name: str, kind: str, key: str, *args):
-        refs = self.remote[name].remote(*args, self.attempts)
+        refs = self.remote[name].remote(*args)
         self.tasks += 1
         ref = refs[1] if isinstance(refs, list) else refs
         self.pending[ref] = (kind, key)
@@ -263,13 +240,12 @@ class _Driver:
                 continue
             getattr(self, f"_{kind}")(self.classes[key], value)
         self.bar.close()
-        retries = int(self.ray.get(self.attempts.retries.remote()))
-        return {"name": "ray", "nodes": sorted(self.nodes), "tasks": self.tasks, "retries": retries,
+        return {"name": "ray", "nodes": sorted(self.nodes), "tasks": self.tasks, "retries": self.retries,
                 "peak_rss_task_mb": round(self.peak_mb, 1)}
 
     def _prepare(self, c: _Class, value) -> None:
-        todo, c.report, node, mb = value
-        self._ran(node, mb)
+        todo, c.report, ran = value
+        self._ran(*ran)
         self.bar.update(c.objects - len(todo))
         if not todo:
             return self._book(c)
@@ -279,8 +255,8 @@ class _Driver:
             c.left += 1
 
     def _chunk(self, c: _Class, value) -> None:
-        part, puffballs, node, mb = value
-        self._ran(node, mb)
+        part, puffballs, ran = value
+        self._ran(*ran)
         self.bar.update(part.reconstructed + len(part.skipped))
         c.report.merge(part)
         c.puffballs.extend(puffballs)
@@ -295,18 +271,23 @@ class _Driver:
         self._submit("finish_task", "finish", c.key, [c.plan], self.cfg, c.report, sorted(c.puffballs))
 
     def _finish(self, c: _Class, value) -> None:
-        c.report, node = value
-        self._ran(node, None)
+        c.report, ran = value
+        self._ran(*ran)
         self._book(c)
 
-    def _ran(self, node: str, mb: float | None) -> None:
+    def _ran(self, node: str, attempt: int | None, mb: float | None) -> None:
+        """Book where a task ran, how often it had been tried before (``None``: this Ray does not say;
+        the retries are then ``None``), and its process's peak memory."""
         self.nodes.add(node)
+        self.retries = None if attempt is None or self.retries is None else self.retries + attempt
         self.peak_mb = max(self.peak_mb, mb or 0.0)
 
     def _failed(self, key: str, e: Exception) -> None:
         """A task of class ``key`` failed for good: the class is reported failed with the reason; its
         other chunks go on (their objects are kept)."""
         c = self.classes[key]
+        if not isinstance(e, self.ray.exceptions.RayTaskError) and self.retries is not None:
+            self.retries += TASK_RETRIES  # its worker or node died every time it was tried
         log.error(f"{key}: failed: {_reason(e)}")
         log.debug("".join(traceback.format_exception(e)))
         if c.error is None:
