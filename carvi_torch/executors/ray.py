@@ -40,13 +40,19 @@ from ..runtime import log, log_to_file, log_to_terminal, peak_rss_mb, torch_thre
 from .common import RunSetup, announce, book_class, class_generator, finish_run, open_run
 
 __all__ = ["run", "import_ray", "connect", "loopback", "LOOPBACK_VAR", "prepare_task", "chunk_task", "finish_task",
-           "TASK_RETRIES", "TASK_CPUS"]
+           "TASK_RETRIES", "TASK_CPUS",
+           "PLAN_BYTES_PER_PIXEL", "STORE_SHARE"]
 
 #: Times Ray runs a task again whose worker process or node died (an error the task raises is not retried:
 #: it would raise again; its class is reported failed, with the reason).
 TASK_RETRIES = 3
 #: CPUs (and torch threads) of a task.
 TASK_CPUS = 1
+#: Bytes of a class plan per object and canvas pixel (a 40-object class at 128^2 pixels: 221 KB per object,
+#: mostly the distance maps of the silhouettes and their mirrors).
+PLAN_BYTES_PER_PIXEL = 14
+#: Share of the cluster's object store the plans of the classes in flight may take together.
+STORE_SHARE = 0.5
 
 
 def import_ray():
@@ -193,8 +199,9 @@ def _reason(e: Exception) -> str:
 
 
 class _Driver:
-    """Submits the tasks of every class and books what comes back (at most ``limit`` classes in flight,
-    so that the object store holds a bounded number of plans)."""
+    """Submits the tasks of every class and books what comes back. Classes start in name order while
+    fewer than the cluster's CPUs + 1 are in flight and their plans (:data:`PLAN_BYTES_PER_PIXEL`) fit in
+    :data:`STORE_SHARE` of the object store (one class always starts)."""
 
     def __init__(self, setup: RunSetup, ray):
         self.setup, self.ray, self.cfg = setup, ray, setup.cfg.override({"progress": False})
@@ -206,7 +213,9 @@ class _Driver:
         self.pending: dict = {}  # object ref -> (kind, class key)
         self.classes: dict[str, _Class] = {}
         self.tasks, self.retries, self.nodes, self.peak_mb = 0, 0, set(), 0.0
-        self.limit = int(ray.cluster_resources().get("CPU", 1)) + 1
+        resources = ray.cluster_resources()
+        self.limit = int(resources.get("CPU", 1)) + 1
+        self.store = STORE_SHARE * resources.get("object_store_memory", float("inf"))
         colls = setup.loaded.collections
         self.bar = tqdm(total=sum(len(c) for c in colls.values()), desc="objects", disable=not setup.cfg.progress)
 
@@ -229,7 +238,7 @@ class _Driver:
         """Run every class; returns the executor's record for ``summary.json``."""
         queue = deque(sorted(self.setup.loaded.collections))
         while queue or self.pending:
-            while queue and len(self.classes) < self.limit:
+            while queue and self._room(queue[0]):
                 self._start(queue.popleft())
             ready, _ = self.ray.wait(list(self.pending), num_returns=1)
             kind, key = self.pending.pop(ready[0])
@@ -242,6 +251,16 @@ class _Driver:
         self.bar.close()
         return {"name": "ray", "nodes": sorted(self.nodes), "tasks": self.tasks, "retries": self.retries,
                 "peak_rss_task_mb": round(self.peak_mb, 1)}
+
+    def _plan_bytes(self, key: str) -> float:
+        return len(self.setup.loaded.collections[key]) * self.cfg.input.canvas_size ** 2 * PLAN_BYTES_PER_PIXEL
+
+    def _room(self, key: str) -> bool:
+        """Whether class ``key`` may start now."""
+        if not self.classes:
+            return True
+        held = sum(self._plan_bytes(k) for k in self.classes)
+        return len(self.classes) < self.limit and held + self._plan_bytes(key) <= self.store
 
     def _prepare(self, c: _Class, value) -> None:
         todo, c.report, ran = value
