@@ -9,6 +9,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -21,10 +22,6 @@ import pytest
 from carvi_torch.config import Config, ConfigError
 from carvi_torch.executors import run
 
-ray = pytest.importorskip("ray", reason="Ray is not installed (pip install 'carvi_torch[ray]')")
-
-from carvi_torch.executors.ray import loopback  # noqa: E402 - after the skip
-
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "progress": False,
         "refine_iters": 30, "plane_size": 32, "preview": False, "keep_all_scores": True,
@@ -35,10 +32,15 @@ def _cfg(out, **extra) -> Config:
     return Config().override({**TINY, "out": str(out), **extra})
 
 
+def _ray():
+    return pytest.importorskip("ray", reason="Ray is not installed (pip install 'carvi_torch[ray]')")
+
+
 @pytest.fixture(scope="module")
 def local_started(tmp_path_factory):
     """The reference, the local executor's run of the tiny collection, started in a process of its own
     (it computes while the cluster below starts, which mostly waits)."""
+    _ray()
     out = tmp_path_factory.mktemp("local")
     config, err = out.parent / "local.yaml", out.parent / "local.err"
     config.write_text(_cfg(out).to_yaml())
@@ -53,7 +55,10 @@ def local_started(tmp_path_factory):
 def cluster(local_started):
     """A head node that runs no task (0 CPUs: it holds the driver and Ray's services) and two worker
     nodes of 1 CPU each, on 127.0.0.1; this process connected to it. Yields it and the worker nodes."""
+    ray = _ray()
     from ray.cluster_utils import Cluster
+
+    from carvi_torch.executors.ray import loopback
 
     tmp = tempfile.mkdtemp(prefix="cr-")  # short: Ray's socket paths must fit 107 bytes
     with loopback(), pytest.MonkeyPatch.context() as mp:
@@ -160,7 +165,7 @@ def test_a_killed_worker_is_retried(cluster, local, tmp_path):
     every object (the same files as the local run), and the record counts the retry."""
     c, nodes = cluster
     out, ref = local
-    raylets = [n.all_processes[ray._private.ray_constants.PROCESS_TYPE_RAYLET][0].process.pid for n in nodes]
+    raylets = [n.all_processes["raylet"][0].process.pid for n in nodes]
     stop, killed = threading.Event(), []
     killer = threading.Thread(target=_kill_a_chunk_task, args=(raylets, stop, killed), daemon=True)
     killer.start()
@@ -176,8 +181,24 @@ def test_a_killed_worker_is_retried(cluster, local, tmp_path):
 
 
 def test_without_ray_one_line(monkeypatch, tmp_path):
-    """executor=ray where Ray is not installed: a ConfigError saying how to install it, nothing written."""
+    """executor=ray where Ray is not installed: a ConfigError saying how to install it, nothing written
+    (runs with or without Ray installed)."""
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray now raises ImportError
     with pytest.raises(ConfigError, match=r"pip install 'carvi_torch\[ray\]'"):
         run(_cfg(tmp_path / "out", executor="ray"))
     assert not (tmp_path / "out").exists()
+
+
+def test_an_unreachable_head_is_one_line():
+    """ray_address=host:port where nothing listens: a ConfigError at once (Ray itself would keep trying
+    for minutes); ``auto`` is left to Ray."""
+    from carvi_torch.executors.ray import check_reachable
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # bound, not listening: refused
+        with pytest.raises(ConfigError, match=f"ray_address=127.0.0.1:{port}: no Ray head answers there"):
+            check_reachable(f"127.0.0.1:{port}")
+        s.listen()
+        check_reachable(f"127.0.0.1:{port}")
+    check_reachable("auto")

@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import socket
 import tempfile
 import traceback
 from collections import deque
@@ -41,7 +42,7 @@ from .common import RunSetup, announce, book_class, class_generator, finish_run,
 
 __all__ = ["run", "import_ray", "connect", "loopback", "LOOPBACK_VAR", "prepare_task", "chunk_task", "finish_task",
            "TASK_RETRIES", "TASK_CPUS",
-           "PLAN_BYTES_PER_PIXEL", "STORE_SHARE"]
+           "PLAN_BYTES_PER_PIXEL", "STORE_SHARE", "check_reachable"]
 
 #: Times Ray runs a task again whose worker process or node died (an error the task raises is not retried:
 #: it would raise again; its class is reported failed, with the reason).
@@ -90,6 +91,26 @@ def loopback():
             os.environ[LOOPBACK_VAR] = before
 
 
+#: Seconds to wait for a cluster's head to accept a connection before the run gives up.
+CONNECT_TIMEOUT_S = 10.0
+
+
+def check_reachable(address: str) -> None:
+    """:class:`ConfigError` unless ``host:port`` accepts a TCP connection within :data:`CONNECT_TIMEOUT_S`
+    (Ray itself keeps trying for minutes); ``auto`` and other forms are left to Ray.
+
+    Example:
+        >>> check_reachable("auto")
+    """
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S).close()
+    except OSError as e:
+        raise ConfigError(f"ray_address={address}: no Ray head answers there ({e.strerror or e})") from None
+
+
 @contextlib.contextmanager
 def connect(address: str | None):
     """Ray, connected for the run; yields the cluster's address.
@@ -105,6 +126,8 @@ def connect(address: str | None):
         return
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     kw = dict(log_to_driver=False, logging_level=logging.WARNING)
+    if address is not None:
+        check_reachable(address)
     with contextlib.ExitStack() as stack:
         if address is None:
             stack.enter_context(loopback())
