@@ -85,9 +85,11 @@ def local(local_started):
 
 
 def _files(root: Path) -> dict[str, bytes]:
-    """Every file a run wrote for its classes, by path (cameras.json, voxels, meshes, scores)."""
+    """Every file a run wrote for its classes, by path (cameras.json, voxels, meshes, scores), but the
+    hidden temporary files of atomic writes that a killed process may leave (never read)."""
     return {str(p.relative_to(root)): p.read_bytes() for cls in TINY["classes"]
-            for p in sorted((root / cls).rglob("*")) if p.is_file()}
+            for p in sorted((root / cls).rglob("*"))
+            if p.is_file() and not (p.name.startswith(".") and p.name.endswith(".tmp"))}
 
 
 def _same_files(a: Path, b: Path) -> None:
