@@ -144,19 +144,6 @@ def connect(address: str | None):
 
 # =========================================================================== the tasks (worker processes)
 
-#: The class plan a worker process read last, by object id: the chunks of a class that a process runs one
-#: after another read it from the object store once.
-_PLAN: dict = {}
-
-
-def _plan(ref):
-    key = ref.hex()
-    if key not in _PLAN:
-        _PLAN.clear()
-        _PLAN[key] = import_ray().get(ref)
-    return _PLAN[key]
-
-
 def _here() -> tuple[str, int, int | None]:
     """This task's node id, CPUs, and attempt (0: its first run; ``None`` where this Ray does not tell)."""
     ray = import_ray()
@@ -177,22 +164,21 @@ def prepare_task(coll, cfg: Config, gt: dict | None, out: str, done: list[bool])
     return plan, (todo, report, (node, attempt, peak_rss_mb()))
 
 
-def chunk_task(plan_ref: list, ids: list[int], cfg: Config):
+def chunk_task(plan, ids: list[int], cfg: Config):
     """Task: carve, select, mesh and write the originals ``ids`` of a class
-    (:func:`~carvi_torch.pipeline.reconstruct_chunk`); ``plan_ref``: ``[the plan's object ref]``.
-    Returns ``(report, puffballs, (node, attempt, peak MB))``."""
+    (:func:`~carvi_torch.pipeline.reconstruct_chunk`); ``plan``: the class plan (Ray reads it from the
+    object store before the task starts). Returns ``(report, puffballs, (node, attempt, peak MB))``."""
     node, cpus, attempt = _here()
     with torch_threads(cpus):
-        report, puffballs = reconstruct_chunk(_plan(plan_ref[0]), ids, cfg)
+        report, puffballs = reconstruct_chunk(plan, ids, cfg)
     return report, puffballs, (node, attempt, peak_rss_mb())
 
 
-def finish_task(plan_ref: list, cfg: Config, report: ClassReport, puffballs: list[int]):
+def finish_task(plan, cfg: Config, report: ClassReport, puffballs: list[int]):
     """Task: the end of a class (:func:`~carvi_torch.pipeline.finish_class`). Returns
     ``(report, (node, attempt, peak MB))``."""
     node, _, attempt = _here()
-    finish_class(_plan(plan_ref[0]), cfg, report, puffballs)
-    _PLAN.clear()  # the class is done: its plan may leave the store
+    finish_class(plan, cfg, report, puffballs)
     return report, (node, attempt, peak_rss_mb())
 
 
@@ -293,7 +279,7 @@ class _Driver:
             return self._book(c)
         n = self.cfg.ray_chunk_objects
         for c0 in range(0, len(todo), n):
-            self._submit("chunk_task", "chunk", c.key, [c.plan], todo[c0:c0 + n], self.cfg)
+            self._submit("chunk_task", "chunk", c.key, c.plan, todo[c0:c0 + n], self.cfg)
             c.left += 1
 
     def _chunk(self, c: _Class, value) -> None:
@@ -310,7 +296,7 @@ class _Driver:
             return
         if c.error is not None:
             return self._book(c)
-        self._submit("finish_task", "finish", c.key, [c.plan], self.cfg, c.report, sorted(c.puffballs))
+        self._submit("finish_task", "finish", c.key, c.plan, self.cfg, c.report, sorted(c.puffballs))
 
     def _finish(self, c: _Class, value) -> None:
         c.report, ran = value
