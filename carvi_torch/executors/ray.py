@@ -6,8 +6,9 @@ The split of the work (docs/distributed.md):
   triplets and prepared silhouettes; writes ``<class>/cameras.json``; returns the class plan
   (:class:`~carvi_torch.pipeline.ClassPlan`), which stays in Ray's object store, put there once per class;
 - :func:`chunk_task`, one per ``ray_chunk_objects`` objects of a class: carving, selection, meshing and
-  writing, straight into ``--out`` (atomic files, a shared filesystem on a cluster); it reads the plan
-  from the object store (once per worker process and class);
+  writing, straight into ``--out`` (atomic files, a shared filesystem on a cluster); the plan is its
+  argument: Ray fetches it from the object store (or rebuilds it, when its node was lost) before the
+  task starts, so that no task waits for it holding a CPU;
 - :func:`finish_task`, one per class: the class's closing files (``cameras.json`` again when an object
   became a puffball, the merged proposal scores).
 
