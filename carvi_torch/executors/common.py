@@ -20,7 +20,7 @@ from ..io.outputs import read_json, write_bytes, write_json
 from ..runtime import log, peak_rss_mb, stable_hash
 
 __all__ = ["RunSetup", "check_request", "open_run", "finish_run", "exit_status", "class_generator",
-           "prepare_data", "read_ground_truth"]
+           "prepare_data", "read_ground_truth", "book_class"]
 
 
 @dataclass
@@ -167,6 +167,19 @@ def write_summary(setup: RunSetup) -> None:
         s["classes"] = dict(sorted({**s["classes"], **kept}.items()))
         s["classes_from_earlier_runs"] = sorted(kept)
     write_json(setup.out / "summary.json", s)
+
+
+def book_class(setup: RunSetup, key: str, rep) -> None:
+    """A finished class into the summary (classes in name order, whichever finished first), its skipped
+    objects and warnings into the log, and ``summary.json`` written."""
+    setup.summary["classes"][key] = rep.to_dict()
+    setup.summary["classes"] = dict(sorted(setup.summary["classes"].items()))
+    for s in rep.skipped:
+        log.info(f"  {key}: annotation {s['annotation_id']} ({s['source']}) skipped at {s['stage']}: "
+                 f"{s['reason']}")
+    for w in rep.warnings:
+        log.warning(f"  {key}: {w}")
+    write_summary(setup)
 
 
 def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = None) -> dict:
