@@ -3,6 +3,7 @@
     carvi reconstruct [--data annotations.json] [--out DIR] [key=value ...]
     carvi evaluate --data annotations.json --recon DIR
     carvi export --recon DIR --out DIR
+    carvi report --recon DIR [--out DIR/report]
     carvi datasets {voc,synthetic,procedural} ...
     carvi --version
 
@@ -29,6 +30,7 @@ COMMANDS = {
     "evaluate": ("carvi_torch.evaluate", "errors of reconstructions against ground truth"),
     "export": ("carvi_torch.export", "a training dataset from a reconstruction"),
     "datasets": ("carvi_torch.datasets", "convert or generate annotations"),
+    "report": ("carvi_torch.report", "an HTML page of a finished run: every object, worst first"),
 }
 
 

@@ -41,10 +41,13 @@ from .viewpoints.frame import FrameChoice
 __all__ = ["Config", "ConfigError", "load_config", "read_run_config", "settings_changed", "flatten_settings",
            "NEUTRAL_SETTINGS", "resolve_key", "all_keys", "FIELD_DOCS", "InputConfig",
            "ViewpointConfig", "SurrogateConfig", "CarveConfig", "SelectConfig", "MeshConfig", "StudyConfig",
-           "Stage"]
+           "Stage", "Executor"]
 
 #: ``all`` runs every stage; ``cameras`` stops after viewpoint estimation.
 Stage = Literal["all", "cameras"]
+#: Who runs the classes: ``local`` (this process and its writer processes) or ``ray`` (tasks on a Ray
+#: cluster, ``carvi_torch.executors.ray``).
+Executor = Literal["local", "ray"]
 
 
 class ConfigError(ValueError):
@@ -271,6 +274,20 @@ class Config:
     """Show progress bars."""
     preview: bool = True
     """Write ``preview.png`` with a few results."""
+    report: bool = True
+    """Write the HTML report (``report/index.html``: every object's overlay and 3D mesh, per-class plots;
+    ``python -m carvi_torch.report`` makes it for any finished run)."""
+    executor: Executor = "local"
+    """Who runs the classes: ``local`` (this process, meshes written by processes beside it) or ``ray``
+    (each class's viewpoints one task, its objects tasks of ``ray_chunk_objects``, on a Ray cluster;
+    ``pip install 'carvi_torch[ray]'``; docs/distributed.md). Same seed, same outputs on either."""
+    ray_address: Optional[str] = None
+    """``executor=ray``: the cluster to run on, ``auto`` (the one started on this machine by ``ray start``,
+    or ``RAY_ADDRESS``) or ``host:port`` of its head; ``None``: start a Ray on this machine for the run."""
+    ray_chunk_objects: int = 16
+    """``executor=ray``: objects carved, meshed and written per task (each task reads its class plan,
+    about 0.22 MB per object of the class at the default canvas, from the object store: larger classes
+    want larger chunks)."""
     input: InputConfig = field(default_factory=InputConfig)
     viewpoints: ViewpointConfig = field(default_factory=ViewpointConfig)
     surrogates: SurrogateConfig = field(default_factory=SurrogateConfig)
@@ -293,6 +310,7 @@ class Config:
 
     def validate(self) -> None:
         """Raise :class:`ConfigError` for values out of range."""
+        _positive(self, "ray_chunk_objects")
         for name in SECTIONS:
             getattr(self, name).validate()
 
@@ -519,7 +537,8 @@ def _coerce_plain(value: Any, annotation: Any) -> Any:
 
 #: Settings that do not change how an object is reconstructed (a rerun may differ in them freely;
 #: the input files are the user's choice, and resumed objects are matched by annotation id).
-NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "overwrite", "classes", "stage", "device",
+NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overwrite", "classes", "stage", "device",
+                    "executor", "ray_address", "ray_chunk_objects",  # where the work runs, not what it computes
                     "viewpoints.sfm_group_threads",  # the mixture fit's result is the same on any number of threads
                     "carve.backend"}  # every carving backend gives the same labels voxel for voxel
 

@@ -19,7 +19,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -30,14 +29,14 @@ from .config import Config
 from .io.layout import class_dir, finished, object_file
 from .io.outputs import read_json, write_json
 from .io.results import ClassReport, cameras_json, canonical_image_cameras, scores_entry, write_scores
-from .io.writer import Writer, canvas_to_image_4x4, id_array, proposals_payload
-from .marching import occupancy_to_meshes, resolve_mesher
-from .mesh import largest_component
+from .io.writer import Writer, canvas_to_image_4x4, id_array, mesh_jobs, proposals_payload
+from .marching import resolve_mesher
 from .runtime import StageTimer, log
 from .sdf import signed_distance
 from .viewpoints import NoMeanShape, Viewpoints, estimate_viewpoints, ground_truth_cameras
 
-__all__ = ["run_class", "prepare_class", "carve_and_select", "ClassPlan", "chunk_objects"]
+__all__ = ["run_class", "prepare_class", "carve_and_select", "ClassPlan", "chunk_objects", "finished_objects",
+           "reconstruct_chunk", "finish_class"]
 
 
 # =========================================================================== one class
@@ -70,9 +69,10 @@ class ClassPlan:
         return ids[:, None].expand(R, P).reshape(-1), views.reshape(R * P, -1), valid.reshape(-1)
 
 
-def _done(coll: ClassCollection, cfg: Config, cdir: Path, out) -> list[bool]:
+def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None) -> list[bool]:
     """Per original: finished by an earlier run into ``out`` (its files exist and load), unless ``overwrite``;
     damaged files are logged and their object is redone."""
+    cdir = class_dir(out if out is not None else ".", coll.meta.key)
     if out is None or cfg.overwrite:
         return [False] * len(coll)
     done = []
@@ -172,10 +172,13 @@ def _resumed_levels(cdir: Path, coll: ClassCollection, levels: list, done: list)
 
 
 def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
-                  gt: dict | None = None, out: Path | None = None, report: ClassReport | None = None):
+                  gt: dict | None = None, out: Path | None = None, report: ClassReport | None = None,
+                  done: list[bool] | None = None):
     """Every stage of one class up to carving: viewpoints, clusters, triplets, prepared silhouettes.
 
-    Writes ``out/<class>/cameras.json`` when ``out`` is given.
+    Writes ``out/<class>/cameras.json`` when ``out`` is given. ``done``: per original, finished by an
+    earlier run (default :func:`finished_objects`; an executor that may run this twice passes it, so that
+    both runs plan the same objects).
 
     Returns:
         ``(plan, todo, report)``: the :class:`ClassPlan` (``None`` when the class stops before
@@ -196,7 +199,7 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     if vp is None:
         return None, [], report
     plan = _surrogate_plan(coll, vp, cfg, generator, timer, report)
-    done = _done(coll, cfg, cdir, out)
+    done = finished_objects(coll, cfg, out) if done is None else list(done)
     if out is not None:
         plan.levels = _resumed_levels(cdir, coll, plan.levels, done)
         write_json(cdir / "cameras.json", cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels))
@@ -257,9 +260,7 @@ def _job(sel: select.Selection, j: int, i: int, sur, plan: ClassPlan, cfg: Confi
 
 def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config, report: ClassReport,
             writer: Writer, timer: StageTimer) -> None:
-    """Hand every reference of a chunk to the writer (a puffball for one whose every proposal is empty),
-    meshed here first with ``mesh.mesher=torch``."""
-    coll = plan.coll
+    """Hand a chunk's references to the writer (puffballs where no proposal is left; meshed first: mesher=torch)."""
     sur = plan.surrogates.surrogates_of(ids)
     sur = None if sur is None else sur.cpu()
     puffed = _puffballs(sel, ids, plan, cfg)
@@ -267,38 +268,13 @@ def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Conf
     jobs = [_job(sel, j, i, None if j in puffed else sur, plan, cfg) for j, i in enumerate(ids.tolist())]
     if resolve_mesher(cfg.mesh.mesher, ids.device) == "torch":
         with timer("mesh_device"):
-            _mesh_jobs(sel, puffed, jobs, cfg)
+            mesh_jobs(sel, puffed, jobs, cfg.mesh.largest_component, cfg.mesh.format)
     for j, (i, job) in enumerate(zip(ids.tolist(), jobs)):
-        aid, src = aid_of[i], coll.sources[i]
+        aid, src = aid_of[i], plan.coll.sources[i]
         if cfg.study.keep_all_scores and j not in puffed:
             job["scores"], job["scores_path"] = scores_entry(sel, j, sur, aid_of), str(
                 object_file(plan.cdir, "scores", aid))
         writer.submit(job, lambda res, aid=aid, src=src: report.book_write(res, aid, src))
-
-
-def _mesh_jobs(sel: select.Selection, puffed: set[int], jobs: list[dict], cfg: Config) -> None:
-    """Mesh a chunk's selected grids in one batch on the grids' device (:mod:`carvi_torch.marching`); the
-    writers then only write. The grids are taken again from the device copy of the proposals (puffballs
-    from the host); ``largest_component`` is applied first, on the host, as the writers would."""
-    grids = sel.grids.occupancy
-    R, P = sel.scores.shape
-    if len(grids) == 0:  # every reference a puffball
-        occ = sel.best_occupancy.to(grids.device)
-    else:
-        best_pos = sel.pos.view(R, P).gather(1, sel.best.clamp(min=0)[:, None])[:, 0].clamp(min=0)
-        occ = grids[best_pos.to(grids.device)]
-        if puffed:
-            rows = sorted(puffed)
-            occ[torch.tensor(rows, device=grids.device)] = sel.best_occupancy[rows].to(grids.device)
-    if cfg.mesh.largest_component:
-        occ = largest_component(occ)
-        for job, o in zip(jobs, occ.cpu().numpy()):
-            job["occupancy"], job["largest_component"] = o, False
-    v2img = torch.from_numpy(np.stack([job["voxel_to_image"] for job in jobs]))
-    # a PLY file holds float32 vertices and int32 faces: sent so, fewer bytes reach the writers, same file
-    vertex_type = np.float32 if cfg.mesh.format == "ply" else np.float64
-    for job, (verts, faces) in zip(jobs, occupancy_to_meshes(occ, v2img)):
-        job["mesh_vertices"], job["mesh_faces"] = verts.astype(vertex_type), faces.astype(np.int32)
 
 
 def _puffballs(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config) -> set[int]:
@@ -346,27 +322,12 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
     plan, todo, report = prepare_class(coll, cfg, device, generator, gt=gt, out=out)
     if plan is None:
         return report
-    timer = StageTimer(device, report.seconds)
     own_writer = writer is None
     writer = Writer(0) if own_writer else writer
-    todo_t = torch.tensor(todo, dtype=torch.long, device=device)
-    chunk = chunk_objects(cfg, device)
     bar = tqdm(total=len(todo), desc=f"{coll.meta.key}: carve+select", disable=not cfg.progress, leave=False)
     try:
-        for c0 in range(0, len(todo), chunk):
-            ids = todo_t[c0:c0 + chunk]
-            sel = carve_and_select(ids, plan, cfg, timer)
-            # the time spent blocked on busy writers is booked as waiting for them, the rest as hand-off
-            t0, b0, m0 = time.perf_counter(), writer.blocked, report.seconds.get("mesh_device", 0.0)
-            _submit(sel, ids, plan, cfg, report, writer, timer)
-            meshing = report.seconds.get("mesh_device", 0.0) - m0
-            timer.add("handoff", time.perf_counter() - t0 - (writer.blocked - b0) - meshing)
-            timer.add("write_wait", writer.blocked - b0)
-            del sel  # the next chunk's grids must not sit beside this one's
-            bar.update(len(ids))
+        _carve_chunks(plan, todo, cfg, report, writer, bar.update)
         bar.close()
-        with timer("write_wait"):
-            writer.drain()
     except BaseException as e:
         # this class's pending objects are finished (their files written) before the error
         # leaves, so they are not booked into the next class; an interrupt drops them
@@ -377,8 +338,50 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
         raise
     if own_writer:
         writer.close()
-    _finish_class(plan, cfg, report)
+    finish_class(plan, cfg, report)
     return report
+
+
+def _carve_chunks(plan: ClassPlan, todo: list[int], cfg: Config, report: ClassReport, writer: Writer,
+                  progress=None) -> None:
+    """Carve, select and hand to ``writer`` the originals ``todo`` (a consecutive run of the plan's),
+    :func:`chunk_objects` at a time; wait for the writer at the end."""
+    device = plan.maps.device
+    timer = StageTimer(device, report.seconds)
+    todo_t = torch.tensor(todo, dtype=torch.long, device=device)
+    chunk = chunk_objects(cfg, device)
+    for c0 in range(0, len(todo), chunk):
+        ids = todo_t[c0:c0 + chunk]
+        sel = carve_and_select(ids, plan, cfg, timer)
+        # time blocked on busy writers is booked as waiting for them, the device's meshing as mesh_device
+        t0, b0, m0 = time.perf_counter(), writer.blocked, timer.seconds.get("mesh_device", 0.0)
+        _submit(sel, ids, plan, cfg, report, writer, timer)
+        timer.add("handoff", time.perf_counter() - t0 - writer.blocked + b0 - timer.seconds.get("mesh_device", 0) + m0)
+        timer.add("write_wait", writer.blocked - b0)
+        del sel  # the next chunk's grids must not sit beside this one's
+        if progress is not None:
+            progress(len(ids))
+    with timer("write_wait"):
+        writer.drain()
+
+
+def reconstruct_chunk(plan: ClassPlan, ids: list[int], cfg: Config) -> tuple[ClassReport, list[int]]:
+    """Carve, select, mesh and write the originals ``ids`` (a consecutive run of the class's ``todo``), the
+    files written here: the work of one task of a distributed executor, on a plan built by
+    :func:`prepare_class` (the same files as :func:`run_class` writes for them: chunking does not change
+    results). Returns the report of these objects and the originals of ``ids`` that became puffballs."""
+    report = ClassReport(plan.coll.meta.key, objects=0)
+    _carve_chunks(plan, list(ids), cfg, report, Writer(0))
+    levels = plan.surrogates.levels
+    return report, [i for i in ids if levels[i] == "puffball"]
+
+
+def finish_class(plan: ClassPlan, cfg: Config, report: ClassReport, puffballs: list[int] = ()) -> None:
+    """The end of a class whose objects are written: ``puffballs`` (originals that became puffballs in
+    chunks carved elsewhere) marked, then :func:`_finish_class`."""
+    for i in puffballs:
+        plan.surrogates.levels[i] = "puffball"
+    _finish_class(plan, cfg, report)
 
 
 def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport) -> None:

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_preview", "shaded_view", "silhouette_overlay"]
+__all__ = ["write_preview", "shaded_view", "silhouette_overlay", "project_silhouette", "overlay_colours",
+           "crop_box", "OVERLAY_COLOURS"]
 
 
 def shaded_view(occupancy: np.ndarray, axis: int, flip: bool = False) -> np.ndarray:
@@ -29,29 +30,71 @@ def shaded_view(occupancy: np.ndarray, axis: int, flip: bool = False) -> np.ndar
     return np.where(hit, np.clip(shade * light, 0.05, 1.0), 0.0)
 
 
-def silhouette_overlay(mask: np.ndarray, occupancy: np.ndarray, voxel_to_camera: np.ndarray) -> np.ndarray:
-    """RGB overlay of an image mask ``(h, w)`` and the projection of the occupied voxels (image pixels)."""
-    h, w = mask.shape
+#: The overlay's colours (RGB in [0, 1]) and what each means; the report's legend reads them too.
+OVERLAY_COLOURS = {
+    "both": ((0.3, 0.8, 0.3), "mask and reconstruction"),
+    "mask_only": ((0.9, 0.3, 0.3), "mask only"),
+    "recon_only": ((0.3, 0.4, 0.9), "reconstruction only"),
+}
+
+
+def project_silhouette(shape: tuple[int, int], occupancy: np.ndarray, voxel_to_camera: np.ndarray) -> np.ndarray:
+    """``(h, w)`` bool: the image pixels whose centres the occupied voxels of ``occupancy (D, H, W)``
+    cover, each voxel a box of one index step about its centre.
+
+    A grid in its reference camera frame (image x and y each follow one index axis, as every run
+    writes them) is projected exactly, by looking each pixel's voxel column up; any other transform
+    splats each voxel's centre over its projected footprint, so the silhouette has no holes.
+
+    Example:
+        >>> occ = np.zeros((2, 2, 2), bool); occ[0, 1, 1] = True
+        >>> T = np.diag([1.0, 3.0, 3.0, 1.0])[[2, 1, 0, 3]]  # (d, h, w) -> (x, y, z) = (3w, 3h, d)
+        >>> sil = project_silhouette((6, 6), occ, T)  # the voxel's box: x and y in [1.5, 4.5]
+        >>> np.argwhere(sil.any(axis=0)).ravel().tolist(), int(sil.sum())
+        ([2, 3, 4], 9)
+    """
+    h, w = shape
+    A, t = np.asarray(voxel_to_camera, dtype=np.float64)[:2, :3], np.asarray(voxel_to_camera, dtype=np.float64)[:2, 3]
+    ax, ay = np.flatnonzero(np.abs(A[0]) > 1e-12), np.flatnonzero(np.abs(A[1]) > 1e-12)
+    if len(ax) == 1 and len(ay) == 1 and ax[0] != ay[0]:
+        foot = occupancy.any(axis=3 - int(ax[0]) - int(ay[0]))
+        foot = foot if ay[0] < ax[0] else foot.T  # rows follow image y, columns image x
+        iy = np.rint((np.arange(h) - t[1]) / A[1, ay[0]]).astype(np.int64)
+        ix = np.rint((np.arange(w) - t[0]) / A[0, ax[0]]).astype(np.int64)
+        oky, okx = (iy >= 0) & (iy < foot.shape[0]), (ix >= 0) & (ix < foot.shape[1])
+        proj = np.zeros((h, w), dtype=bool)
+        proj[np.ix_(oky, okx)] = foot[np.ix_(iy[oky], ix[okx])]
+        return proj
     d, hh, ww = np.nonzero(occupancy)
-    pts = voxel_to_camera @ np.stack([d, hh, ww, np.ones_like(d)]).astype(np.float64)
+    pts = A @ np.stack([d, hh, ww]).astype(np.float64) + t[:, None]
     proj = np.zeros((h, w), dtype=bool)
-    # splat each voxel's footprint (its projected size) so the silhouette has no holes
-    size = np.abs(voxel_to_camera[:2, :3]).max()
-    r = int(np.ceil(size / 2))
+    r = int(np.ceil(np.abs(A).max() / 2))
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             x = np.round(pts[0] + dx).astype(int)
             y = np.round(pts[1] + dy).astype(int)
             ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
             proj[y[ok], x[ok]] = True
-    rgb = np.ones((h, w, 3))
-    rgb[mask & proj] = (0.3, 0.8, 0.3)
-    rgb[mask & ~proj] = (0.9, 0.3, 0.3)
-    rgb[~mask & proj] = (0.3, 0.4, 0.9)
+    return proj
+
+
+def overlay_colours(mask: np.ndarray, proj: np.ndarray, background: np.ndarray | None = None,
+                    alpha: float = 1.0) -> np.ndarray:
+    """``(h, w, 3)`` float RGB: ``mask`` and ``proj`` (both ``(h, w)`` bool) in :data:`OVERLAY_COLOURS`,
+    blended with weight ``alpha`` over ``background`` (``(h, w, 3)`` in [0, 1]; default white)."""
+    rgb = np.ones(mask.shape + (3,)) if background is None else np.array(background, dtype=np.float64)
+    for sel, key in ((mask & proj, "both"), (mask & ~proj, "mask_only"), (~mask & proj, "recon_only")):
+        rgb[sel] = (1 - alpha) * rgb[sel] + alpha * np.asarray(OVERLAY_COLOURS[key][0])
     return rgb
 
 
-def _crop_box(mask: np.ndarray, pad: int = 10):
+def silhouette_overlay(mask: np.ndarray, occupancy: np.ndarray, voxel_to_camera: np.ndarray) -> np.ndarray:
+    """RGB overlay of an image mask ``(h, w)`` and the projection of the occupied voxels (image pixels)."""
+    return overlay_colours(mask, project_silhouette(mask.shape, occupancy, voxel_to_camera))
+
+
+def crop_box(mask: np.ndarray, pad: int = 10) -> tuple[int, int, int, int]:
+    """``(y0, y1, x0, x1)``: the box around ``mask``'s pixels, ``pad`` pixels wider (the whole image if empty)."""
     ys, xs = np.nonzero(mask)
     if len(xs) == 0:
         return 0, mask.shape[0], 0, mask.shape[1]
@@ -93,7 +136,7 @@ def write_preview(out: str | Path, summary: dict, max_objects: int = 8) -> Path 
         if ann is None:
             continue
         mask = coco.annToMask(ann).astype(bool)
-        y0, y1, x0, x1 = _crop_box(mask)
+        y0, y1, x0, x1 = crop_box(mask)
         row[0].imshow(mask[y0:y1, x0:x1], cmap="gray")
         kp = np.asarray(ann["keypoints"], dtype=float).reshape(-1, 3)
         vis = kp[:, 2] > 1

@@ -16,7 +16,7 @@ from .config import FIELD_DOCS, Config, ConfigError, load_config
 from .io.coco import CocoFormatError
 
 EPILOG_HEAD = """\
-Outputs in --out: config.yaml (resolved), summary.json, preview.png and per class
+Outputs in --out: config.yaml (resolved), summary.json, preview.png, report/index.html and per class
 <class>/cameras.json, <class>/meshes/<annotation_id>.ply, <class>/voxels/<annotation_id>.npz
 (meshes and voxels in the reference camera frame, image pixels). A rerun skips finished objects.
 

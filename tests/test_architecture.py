@@ -180,9 +180,20 @@ def test_writer_processes_are_never_forked():
     assert len(got) == 1 and got[0]["ok"] is False and "writing failed" in got[0]["reason"]
 
 
-@pytest.mark.parametrize("name", ["pipeline", "config", "viewpoints", "carve", "surrogates", "select"])
-def test_stage_modules_import_alone(name):
+ALONE = ["pipeline", "config", "viewpoints", "carve", "surrogates", "select"]
+
+
+@pytest.fixture(scope="module")
+def imported_alone() -> dict[str, tuple[int, str]]:
+    """Each of ``ALONE`` imported in a fresh process, the processes started at once: name -> (status, stderr)."""
+    procs = {n: subprocess.Popen([sys.executable, "-c", f"import carvi_torch.{n}"], text=True,
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE) for n in ALONE}
+    errs = {n: p.communicate(timeout=180)[1] for n, p in procs.items()}
+    return {n: (procs[n].returncode, errs[n]) for n in ALONE}
+
+
+@pytest.mark.parametrize("name", ALONE)
+def test_stage_modules_import_alone(name, imported_alone):
     """Every stage module imports in a fresh process on its own (no hidden order dependency)."""
-    out = subprocess.run([sys.executable, "-c", f"import carvi_torch.{name}"], capture_output=True, text=True,
-                         timeout=120)
-    assert out.returncode == 0, out.stderr[-2000:]
+    rc, err = imported_alone[name]
+    assert rc == 0, err[-2000:]

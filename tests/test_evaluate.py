@@ -12,7 +12,7 @@ from carvi_torch.evaluate import evaluate, format_shape_table, format_viewpoint_
 from carvi_torch.executors import run
 
 TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 3, "canvas_size": 64, "progress": False,
-        "refine_iters": 20, "plane_size": 32, "preview": False, "classes": ["car"]}
+        "refine_iters": 20, "plane_size": 32, "preview": False, "report": False, "classes": ["car"]}
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ from carvi_torch.executors import run
 from carvi_torch.training import LiftedDataset, collate_lifted
 
 TINY = {"procedural_instances": 5, "resolution": 24, "proposals": 3, "canvas_size": 64, "progress": False,
-        "refine_iters": 20, "plane_size": 32, "preview": False, "classes": ["car", "chair"]}
+        "refine_iters": 20, "plane_size": 32, "preview": False, "report": False, "classes": ["car", "chair"]}
 
 
 @pytest.fixture(scope="module")

@@ -264,7 +264,7 @@ def test_outputs_are_written_in_the_pascal3d_frame(tmp_path):
     from carvi_torch.executors import run
 
     cfg = Config().override({"procedural_instances": 8, "resolution": 20, "proposals": 3, "canvas_size": 64,
-                             "progress": False, "refine_iters": 30, "plane_size": 32, "preview": False,
+                             "progress": False, "refine_iters": 30, "plane_size": 32, "preview": False, "report": False,
                              "classes": ["car"], "out": str(tmp_path)})
     summary = run(cfg)
     assert summary["classes"]["car"]["frame"]["kind"] == "template"

@@ -23,7 +23,7 @@ from conftest import requires_cuda
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "progress": False,
-        "refine_iters": 30, "plane_size": 32, "preview": True, "keep_all_scores": True}
+        "refine_iters": 30, "plane_size": 32, "preview": True, "report": False, "keep_all_scores": True}
 
 
 def _cfg(out, **extra):
@@ -460,7 +460,7 @@ def test_silhouette_robust_reaches_refinement(monkeypatch, tmp_path):
     for value, expected in ((0.0, None), (0.3, 0.3)):
         cfg = Config().override([f"out={tmp_path / str(value)}", "procedural_instances=6", "classes=car",
                                  "stage=cameras",
-                                 f"silhouette_robust={value}", "progress=false", "preview=false"])
+                                 f"silhouette_robust={value}", "progress=false", "preview=false", "report=false"])
         run(cfg)
         assert seen[-1] == expected
 

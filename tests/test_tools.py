@@ -15,10 +15,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_benchmark_carving_comparison_on_a_small_class(tmp_path: Path):
+    """The carving comparison runs every variant on a small class and checks them against each other:
+    voxel identity and sample counts (deterministic); its timings are reported, never asserted."""
     out = tmp_path / "bench.json"
-    cmd = [sys.executable, str(ROOT / "tools" / "benchmark.py"), "--objects", "30", "--carve-objects", "3",
-           "--loop-objects", "1", "--repeat", "2", "--skip-e2e", "--threads", "1",
-           "--data-dir", str(tmp_path / "data"), "--work-dir", str(tmp_path / "runs"), "--out", str(out)]
+    cmd = [sys.executable, str(ROOT / "tools" / "benchmark.py"), "--objects", "20", "--carve-objects", "2",
+           "--loop-objects", "1", "--repeat", "1", "--skip-e2e", "--threads", "1", "--resolution", "32",
+           "--proposals", "8", "--data-dir", str(tmp_path / "data"), "--work-dir", str(tmp_path / "runs"),
+           "--out", str(out)]
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300,
                          env=dict(os.environ, OMP_NUM_THREADS="1"))
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
@@ -32,28 +35,17 @@ def test_benchmark_carving_comparison_on_a_small_class(tmp_path: Path):
                 "floor_batched", "floor_batched_nearest", "floor_loop_naive", "floor_loop_naive_nearest"):
         assert s[key] > 0, key
     fused = cs["carve_backend"] == "fused"  # the pipeline's default on the CPU where the kernel builds
-    for name in ("batched_torch" if fused else "batched", "batched_nearest"):
-        r = cs["over_its_floor_within_runs"][name]
-        assert r["min"] <= r["median"] <= r["max"] < float("inf"), (name, r)
     for name in ("batched", "batched_nearest") + (("batched_torch",) if fused else ()):
-        # the paired rounds' ratios are ordered and finite, the loop slower than the batched carving
-        # in the median round (10x on 50 objects; here 3 objects against 1, so only > 1)
         w = cs["speedup_vs_loop_reference_structure_within_rounds"][name]
         assert 0 < w["min"] <= w["median"] <= w["max"] < float("inf"), (name, w)
-        assert w["median"] > 1, (name, w)
-    # a nearest-pixel sample is several times cheaper than a bilinear one (3x on the development
-    # machine): both floors, the batched carving's and the naive loop's, must show it
-    assert s["floor_batched_nearest"] < s["floor_batched"]
-    assert s["floor_loop_naive_nearest"] < s["floor_loop_naive"]
     # the nearest carving samples the same voxels as the bilinear one (up to the columns whose
     # reference sign differs), and the batched carvings sample fewer voxels than the naive loop
     sm = cs["samples_per_object"]
     assert abs(sm["batched_nearest"] - sm["batched"]) <= 0.02 * sm["batched"]
     assert sm["batched"] < sm["loop_naive"] < sm["loop_reference_structure"]
     if fused:
-        # the floor of the fused carving is the torch backend's grid_sample calls; the kernel's early
-        # exit reads fewer samples than those
-        assert s["floor_batched"] == s["floor_batched_torch"] and sm["batched"] == sm["batched_torch"]
+        # the kernel's early exit reads fewer samples than the torch backend's grid_sample calls
+        assert sm["batched"] == sm["batched_torch"]
         assert 0 < cs["fused_samples_per_object"] < sm["batched"]
         assert cs["fused_kernel_variant"] in ("fma", "plain") and cs["fused_over_torch"] > 0
     # the printed table: the variants as ratios to the default backend, and the label check
@@ -119,11 +111,22 @@ def test_tools_are_few_and_import_the_installed_package():
             assert f"import {name}\n" not in text and f"from {name} import" not in text, (tool, name)
 
 
+@pytest.fixture(scope="module")
+def helps() -> dict[str, subprocess.CompletedProcess]:
+    """Every tool's ``--help``, the processes started at once (each spends seconds importing torch)."""
+    procs = {t: subprocess.Popen([sys.executable, str(ROOT / "tools" / t), "--help"], cwd=ROOT, text=True,
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE) for t in TOOLS}
+    done = {}
+    for t, p in procs.items():
+        out, err = p.communicate(timeout=180)
+        done[t] = subprocess.CompletedProcess(p.args, p.returncode, out, err)
+    return done
+
+
 @pytest.mark.parametrize("tool", TOOLS)
-def test_every_tool_answers_help(tool: str):
+def test_every_tool_answers_help(tool: str, helps):
     """Each tool starts (its imports resolve against the current package) and documents its command line."""
-    res = subprocess.run([sys.executable, str(ROOT / "tools" / tool), "--help"], cwd=ROOT, capture_output=True,
-                         text=True, timeout=120)
+    res = helps[tool]
     assert res.returncode == 0, res.stderr[-2000:]
     assert "usage:" in res.stdout and f"tools/{tool}" in (ROOT / "tools" / tool).read_text().split('"""')[1]
 
@@ -160,10 +163,9 @@ STRESS = ROOT / "tools" / "stress_inputs.py"
 
 
 def test_stress_inputs_runs_a_few_cases(tmp_path: Path):
-    """A handful of the hostile-input cases through the real command line (a valid file, a truncated
-    JSON, keypoint lists of the wrong shape, a bad device): each comes out as promised, so the tool
-    exits 0 and its table marks every row good."""
-    cases = ["control_valid", "json_truncated", "ann_kp_shapes", "cli_device_tpu"]
+    """A few of the hostile-input cases through the real command line (a valid file, a truncated JSON,
+    a bad device): each comes out as promised, so the tool exits 0 and its table marks every row good."""
+    cases = ["control_valid", "json_truncated", "cli_device_tpu"]
     record = tmp_path / "stress.json"
     res = subprocess.run([sys.executable, str(STRESS), "--work", str(tmp_path / "work"), "--cases", ",".join(cases),
                           "--out-json", str(record)], cwd=ROOT, capture_output=True, text=True, timeout=300)
@@ -172,11 +174,10 @@ def test_stress_inputs_runs_a_few_cases(tmp_path: Path):
     assert lines[:2] == ["| case | what is wrong | outcome | good? |", "|---|---|---|---|"]
     rows = {ln.split("|")[1].strip(" `"): ln for ln in lines[2:] if ln.startswith("| `")}
     assert sorted(rows) == sorted(cases) and all(r.endswith("| yes |") for r in rows.values()), rows
-    assert "exit 2: error: device" in rows["cli_device_tpu"] and "exit 0; 9 objects" in rows["ann_kp_shapes"]
+    assert "exit 2: error: device" in rows["cli_device_tpu"] and "exit 0; 12 objects" in rows["control_valid"]
     rec = json.loads(record.read_text())["cases"]
     assert [(c["case"], c["exit"], c["good"]) for c in rec] == [
-        ("control_valid", [0], True), ("json_truncated", [2], True), ("ann_kp_shapes", [0], True),
-        ("cli_device_tpu", [2], True)]
+        ("control_valid", [0], True), ("json_truncated", [2], True), ("cli_device_tpu", [2], True)]
 
 
 def _load_stress():

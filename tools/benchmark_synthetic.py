@@ -328,7 +328,7 @@ def main(argv=None) -> int:
             print(f"reconstruct {m}: reusing {runs[m]}", flush=True)
             continue
         argv = [PYTHON, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(runs[m]),
-                "references=test", f"seed={args.seed}", "progress=false", "preview=false",
+                "references=test", f"seed={args.seed}", "progress=false", "preview=false", "report=false",
                 *( ["overwrite=true"] if args.fresh else []), *METHODS[m], *args.set]
         if classes:
             argv.append("classes=" + ",".join(classes))

@@ -58,7 +58,8 @@ import trimesh
 
 from carvi_torch.io.layout import finished
 
-SMALL = ("resolution=16", "proposals=3", "canvas_size=48", "refine_iters=20", "plane_size=24", "preview=false")
+SMALL = ("resolution=16", "proposals=3", "canvas_size=48", "refine_iters=20", "plane_size=24", "preview=false",
+         "report=false")
 HEAVY = ("resolution=40", "proposals=20")  # a run long enough to be interrupted
 RECONSTRUCT = (sys.executable, "-m", "carvi_torch.reconstruct")
 MARKER = "CARVI_STRESS_CASE"
@@ -980,8 +981,9 @@ def run_resume(ctx: Ctx, before: dict) -> tuple[list[str], dict]:
 
 
 def _busy(ctx: Ctx) -> Callable[[], bool]:
-    """True once the run has its writer processes and a finished mesh: the moment to interrupt it."""
-    return lambda: len(marked(ctx.marker)) >= 3 and any(ctx.out.glob("*/meshes/*.ply"))
+    """True once the run has a finished mesh and its writer processes: the moment to interrupt it (the
+    cheap look at the folder first, so that a loaded machine does not scan /proc every 50 ms meanwhile)."""
+    return lambda: any(ctx.out.glob("*/meshes/*.ply")) and len(marked(ctx.marker)) >= 3
 
 
 def _loads(path: Path) -> bool:

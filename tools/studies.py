@@ -288,6 +288,7 @@ def threshold(args) -> int:
             continue
         cmds.append([sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(data / "annotations.json"),
                      "--out", str(d), "references=test", f"seed={args.seed}", "progress=false", "preview=false",
+                     "report=false",
                      f"surrogates.cluster_threshold_deg={thr:g}", "classes=" + ",".join(classes)])
     t0 = time.perf_counter()
     _run_all(cmds, args.jobs, env)

@@ -65,7 +65,8 @@ def main(argv=None) -> int:
     if not (export / "index.json").is_file():
         recon = export.parent / "recon"
         print(f"no export at {export}: reconstructing the embedded collection into {recon}")
-        subprocess.run([sys.executable, "-m", "carvi_torch.reconstruct", "--out", str(recon), "preview=false"],
+        subprocess.run([sys.executable, "-m", "carvi_torch.reconstruct", "--out", str(recon), "preview=false",
+                        "report=false"],
                        check=True, cwd=ROOT)
         subprocess.run([sys.executable, "-m", "carvi_torch.export", "--recon", str(recon), "--out", str(export)],
                        check=True, cwd=ROOT)

@@ -20,7 +20,7 @@ from ..io.outputs import read_json, write_bytes, write_json
 from ..runtime import log, peak_rss_mb, stable_hash
 
 __all__ = ["RunSetup", "check_request", "open_run", "finish_run", "exit_status", "class_generator",
-           "prepare_data", "read_ground_truth"]
+           "prepare_data", "read_ground_truth", "book_class"]
 
 
 @dataclass
@@ -169,8 +169,21 @@ def write_summary(setup: RunSetup) -> None:
     write_json(setup.out / "summary.json", s)
 
 
+def book_class(setup: RunSetup, key: str, rep) -> None:
+    """A finished class into the summary (classes in name order, whichever finished first), its skipped
+    objects and warnings into the log, and ``summary.json`` written."""
+    setup.summary["classes"][key] = rep.to_dict()
+    setup.summary["classes"] = dict(sorted(setup.summary["classes"].items()))
+    for s in rep.skipped:
+        log.info(f"  {key}: annotation {s['annotation_id']} ({s['source']}) skipped at {s['stage']}: "
+                 f"{s['reason']}")
+    for w in rep.warnings:
+        log.warning(f"  {key}: {w}")
+    write_summary(setup)
+
+
 def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = None) -> dict:
-    """Totals, the earlier run's other classes, ``summary.json`` and ``preview.png``; returns the summary.
+    """Totals, the earlier run's other classes, ``summary.json``, ``preview.png`` and ``report/``; returns the summary.
 
     ``workers_mb``: the largest writer process's peak memory (as the writers report it).
     """
@@ -192,6 +205,13 @@ def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = 
             write_preview(setup.out, read_json(setup.out / "summary.json"))
         except Exception as e:  # noqa: BLE001 - a picture must never fail the run
             log.warning(f"preview.png not written: {e}")
+    if setup.cfg.report and setup.cfg.stage == "all":
+        try:
+            from ..report import build_report
+
+            build_report(setup.out, setup.out / "report")
+        except Exception as e:  # noqa: BLE001 - the report must never fail the run
+            log.warning(f"report/index.html not written: {e}")
     return read_json(setup.out / "summary.json")
 
 

@@ -17,7 +17,7 @@ from ..io.results import ClassReport
 from ..io.writer import Writer, writer_workers
 from ..pipeline import run_class
 from ..runtime import intra_op_threads, log, log_to_file, log_to_terminal, torch_threads
-from .common import RunSetup, announce, class_generator, finish_run, open_run, write_summary
+from .common import RunSetup, announce, book_class, class_generator, finish_run, open_run
 
 __all__ = ["run"]
 
@@ -38,6 +38,7 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
             writer = Writer(writer_workers(cfg.stage, setup.device) if workers is None else workers)
             n = intra_op_threads(writer.workers) if threads is None else max(1, int(threads))
             setup.summary["torch_threads"] = n
+            setup.summary["executor"] = {"name": "local", "address": None}
             try:
                 with torch_threads(n):
                     _classes(setup, writer)
@@ -60,10 +61,4 @@ def _classes(setup: RunSetup, writer: Writer) -> None:
             rep.skip(f"{type(e).__name__}: {e}", "class")
             log.error(f"{key}: failed: {type(e).__name__}: {e}")
             log.debug(traceback.format_exc())
-        setup.summary["classes"][key] = rep.to_dict()
-        for s in rep.skipped:
-            log.info(f"  {key}: annotation {s['annotation_id']} ({s['source']}) skipped at {s['stage']}: "
-                     f"{s['reason']}")
-        for w in rep.warnings:
-            log.warning(f"  {key}: {w}")
-        write_summary(setup)
+        book_class(setup, key, rep)

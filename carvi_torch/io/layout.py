@@ -2,7 +2,7 @@
 
 ::
 
-    OUT/config.yaml, OUT/summary.json, OUT/run.log, OUT/preview.png
+    OUT/config.yaml, OUT/summary.json, OUT/run.log, OUT/preview.png, OUT/report/index.html
     OUT/<class key>/cameras.json
     OUT/<class key>/meshes/<object stem>.<format>
     OUT/<class key>/voxels/<object stem>.npz
@@ -32,9 +32,10 @@ __all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS", "RUN_
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
-#: The run's own files and folders in ``OUT`` (``input``: the embedded default collection); no class
+#: The run's own files and folders in ``OUT`` (``input``: the embedded default collection; ``report``: the
+#: HTML report); no class
 #: folder takes one of these names, in any case.
-RUN_NAMES = ("config.yaml", "summary.json", "run.log", "preview.png", "input")
+RUN_NAMES = ("config.yaml", "summary.json", "run.log", "preview.png", "input", "report")
 
 
 def reserved(key: str) -> bool:

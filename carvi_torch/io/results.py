@@ -50,6 +50,15 @@ class ClassReport:
                 "warnings": self.warnings, "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
                 **self.info}
 
+    def merge(self, part: "ClassReport") -> None:
+        """Add the objects, failures, warnings and seconds of ``part``, the report of some of this class's
+        objects (a chunk carved by another process)."""
+        self.reconstructed += part.reconstructed
+        self.skipped.extend(part.skipped)
+        self.warnings.extend(part.warnings)
+        for k, v in part.seconds.items():
+            self.seconds[k] = self.seconds.get(k, 0.0) + v
+
     def book_write(self, out: dict, aid, src) -> None:
         """Book a writer's result (:func:`carvi_torch.io.writer.write_object`) for object ``aid``."""
         self.seconds["mesh"] = self.seconds.get("mesh", 0.0) + out["mesh_seconds"]

@@ -21,12 +21,14 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 import torch
 
+from ..marching import occupancy_to_meshes
+from ..mesh import largest_component
 from ..runtime import cores, env_count
 from . import write_worker
 from .write_worker import write_object_safe
 
 __all__ = ["Writer", "writer_workers", "start_method", "canvas_to_image_4x4", "proposals_payload", "id_array",
-           "INT64_RANGE"]
+           "INT64_RANGE", "mesh_jobs"]
 
 
 def start_method() -> str:
@@ -99,6 +101,34 @@ def proposals_payload(sel, j: int, surrogates: torch.Tensor | None, canvas_to_im
     return dict(occupancy_bits=np.packbits(occ.reshape(P, -1), axis=1), shape=np.asarray(occ.shape[1:]),
                 voxel_to_camera=v2img, valid=ok.numpy(), scores=sel.scores[j].numpy(),
                 misses=sel.misses[j].numpy(), best=np.int64(sel.best[j]), surrogates=sur)
+
+
+def mesh_jobs(sel, puffed: set[int], jobs: list[dict], largest: bool, mesh_format: str) -> None:
+    """Mesh a chunk's selected grids in one batch on the proposals' device (:mod:`carvi_torch.marching`)
+    into its writer ``jobs`` (``mesh_vertices``, ``mesh_faces``): the writers then only write.
+
+    ``sel``: the chunk's :class:`~carvi_torch.select.Selection`; the grids are gathered again from its
+    proposals on the device, the ``puffed`` rows (puffballs) from the host. ``largest``: keep the largest
+    component first, on the host, as the writers would (the jobs' occupancy becomes it). A PLY file holds
+    float32 vertices and int32 faces: they are sent so (fewer bytes to the writers, the same file)."""
+    grids = sel.grids.occupancy
+    R, P = sel.scores.shape
+    if len(grids) == 0:  # every reference a puffball
+        occ = sel.best_occupancy.to(grids.device)
+    else:
+        best_pos = sel.pos.view(R, P).gather(1, sel.best.clamp(min=0)[:, None])[:, 0].clamp(min=0)
+        occ = grids[best_pos.to(grids.device)]
+        if puffed:
+            rows = sorted(puffed)
+            occ[torch.tensor(rows, device=grids.device)] = sel.best_occupancy[rows].to(grids.device)
+    if largest:
+        occ = largest_component(occ)
+        for job, o in zip(jobs, occ.cpu().numpy()):
+            job["occupancy"], job["largest_component"] = o, False
+    v2img = torch.from_numpy(np.stack([job["voxel_to_image"] for job in jobs]))
+    vertex_type = np.float32 if mesh_format == "ply" else np.float64
+    for job, (verts, faces) in zip(jobs, occupancy_to_meshes(occ, v2img)):
+        job["mesh_vertices"], job["mesh_faces"] = verts.astype(vertex_type), faces.astype(np.int32)
 
 
 class Writer:

@@ -1,0 +1,44 @@
+"""The report of a run: one page (``index.html``) to look at every object and class of a finished
+``reconstruct --out DIR`` folder, offline, from disk.
+
+    python -m carvi_torch.report --recon DIR [--out DIR/report]
+
+Modules: :mod:`.inputs` (what is read: typed records), :mod:`.cards` (one object's overlay and mesh
+data), :mod:`.charts` (a class's figure), :mod:`.page` (the HTML), :mod:`.build` (all of it, in order);
+``static/`` holds the page's script, style sheet and the vendored three.js (``static/vendor/VENDOR.md``).
+"""
+from __future__ import annotations
+
+from .build import Report, build_report
+from .inputs import ReportError
+
+__all__ = ["build_report", "Report", "ReportError", "main"]
+
+
+def main(argv=None) -> int:
+    """``python -m carvi_torch.report``; exit status 0, or 2 when ``--recon`` is not a finished run."""
+    import argparse
+    import sys
+
+    from ..cli import add_common
+
+    ap = argparse.ArgumentParser(prog="python -m carvi_torch.report",
+                                 description="An HTML report of a finished run: per-class panels and one card per "
+                                             "object (overlay, interactive 3D mesh), worst first. Open "
+                                             "OUT/index.html in a browser; it needs no network.")
+    ap.add_argument("--recon", required=True, help="the run's output folder (reconstruct --out)")
+    ap.add_argument("--out", help="where to write the report (default: RECON/report)")
+    ap.add_argument("--per-page", type=int, default=24, help="cards per page (default: 24)")
+    ap.add_argument("--workers", type=int, help="processes making the cards (default: none on 2 cores or fewer "
+                                                "or below 100 objects, else one per core but one, at most 4)")
+    add_common(ap, classes=False)
+    args = ap.parse_args(argv)
+    try:
+        rep = build_report(args.recon, args.out, per_page=max(1, args.per_page),
+                           workers=None if args.workers is None else max(0, args.workers))
+    except ReportError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if not args.quiet:
+        print(f"report of {rep.cards} objects in {rep.index} ({rep.seconds:.1f} s)")
+    return 0

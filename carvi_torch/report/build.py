@@ -1,0 +1,185 @@
+"""Build the report of a finished run: ``OUT/index.html``, ``OUT/cards.js``, ``OUT/assets/``,
+``OUT/classes/<class>.png``, ``OUT/objects/<class>/<stem>.{jpg,js}``; nothing outside ``OUT``.
+
+Cards are sorted worst first (:data:`SortBy`): by ``quality`` ascending when the run scored its
+objects, else by the selected proposal's score descending (a disagreement with the class's average
+silhouettes: higher is worse) when the run kept the scores, else by the silhouette IoU ascending.
+Skipped objects and objects with damaged files come first.
+
+Example:
+    >>> from carvi_torch.report.cards import Card
+    >>> cards = [Card("1", "c", "c/1", iou=0.9), Card("2", "c", "c/2", iou=0.5), Card("3", "c", "c/3", skipped="x")]
+    >>> order, by = sort_cards(cards)
+    >>> [c.id for c in order], by
+    (['3', '2', '1'], 'iou')
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import logging
+import multiprocessing as mp
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Literal
+
+from ..io.outputs import safe_name
+from .cards import Card, CardContext, ClassView, make_card
+from .charts import class_figure
+from .inputs import ReportError, RunInputs, read_run
+from .page import class_panel_html, index_html
+
+__all__ = ["build_report", "sort_cards", "default_workers", "Report", "SortBy", "STATIC", "ASSETS", "POOL_FROM"]
+
+log = logging.getLogger(__name__)
+#: Runs with at least this many objects make their cards in worker processes (:func:`default_workers`).
+POOL_FROM = 100
+#: The number cards are sorted by, worst first.
+SortBy = Literal["quality", "score", "iou"]
+#: The package's static files, and those copied into ``OUT/assets``.
+STATIC = Path(__file__).resolve().parent / "static"
+ASSETS = {"report.js": "report.js", "report.css": "report.css", "vendor/three.min.js": "three.min.js",
+          "vendor/OrbitControls.js": "OrbitControls.js", "vendor/LICENSE.three.txt": "LICENSE.three.txt",
+          "vendor/VENDOR.md": "VENDOR.md"}
+
+
+@dataclass
+class Report:
+    """What :func:`build_report` made."""
+
+    index: Path
+    cards: int
+    sort_by: SortBy
+    seconds: float
+
+
+def sort_cards(cards: list[Card]) -> tuple[list[Card], SortBy]:
+    """``cards`` worst first, and the number that ordered them (see the module docstring)."""
+    by: SortBy = ("quality" if any(c.quality is not None for c in cards)
+                  else "score" if any(c.score is not None for c in cards) else "iou")
+    sign = -1.0 if by == "score" else 1.0
+
+    def key(c: Card):
+        v = getattr(c, by)
+        return (c.skipped is None and not c.problems, v is not None, sign * v if v is not None else 0.0)
+
+    return sorted(cards, key=key), by
+
+
+def _context(recon: Path, out: Path, data: Path | None, mesh_format: str, max_faces: int) -> CardContext:
+    anns, images, coco, problem = {}, {}, None, None
+    if data is None:
+        problem = "summary.json names no input annotation file: no overlay"
+    else:
+        try:
+            from pycocotools.coco import COCO
+
+            with contextlib.redirect_stdout(io.StringIO()):  # pycocotools prints progress lines
+                coco = COCO(str(data))
+            anns = {str(k): v for k, v in coco.anns.items()}
+            images = coco.imgs
+        except Exception as e:  # noqa: BLE001 - no overlays, every card says why
+            problem = f"input annotations {data.name} unreadable ({type(e).__name__}): no overlay"
+    return CardContext(recon=recon, out=out, anns=anns, images=images, coco=coco, data=data,
+                       mesh_format=mesh_format, max_faces=max_faces, data_problem=problem)
+
+
+_WORKER_CTX: CardContext | None = None
+
+
+def _init_worker(*args) -> None:
+    global _WORKER_CTX
+    _WORKER_CTX = _context(*args)
+
+
+def _card_in_worker(job: tuple) -> Card:
+    return make_card(_WORKER_CTX, *job)
+
+
+def default_workers(n_objects: int) -> int:
+    """Card processes for a run of ``n_objects``: none below :data:`POOL_FROM` objects (starting them
+    costs more than it saves) or on 2 cores or fewer (measured slower there, docs/report.md), else
+    one per core but one, at most 4."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return 0 if n_objects < POOL_FROM or cores <= 2 else min(4, cores - 1)
+
+
+def _make_cards(run: RunInputs, out: Path, max_faces: int, workers: int | None) -> dict[str, list[Card]]:
+    """Every class's cards (written files included), in this process or in ``workers`` processes."""
+    args = (run.recon, out, run.data, run.mesh_format, max_faces)
+    jobs = [(ClassView.of(c), o, safe_name(c.key)) for c in run.classes for o in c.objects]
+    workers = default_workers(len(jobs)) if workers is None else workers
+    made = None
+    if workers > 0:
+        method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+        try:
+            with ProcessPoolExecutor(workers, mp_context=mp.get_context(method), initializer=_init_worker,
+                                     initargs=args) as pool:
+                made = list(pool.map(_card_in_worker, jobs, chunksize=max(1, min(32, len(jobs) // (4 * workers)))))
+        except (OSError, BrokenProcessPool) as e:  # no worker processes here: make the cards in this one
+            log.warning(f"report: worker processes failed ({type(e).__name__}: {e}); making the cards here")
+    if made is None:
+        ctx = _context(*args)
+        made = [make_card(ctx, *job) for job in jobs]
+    per: dict[str, list[Card]] = {c.key: [] for c in run.classes}
+    for (view, _, _), card in zip(jobs, made):
+        per[view.key].append(card)
+    return per
+
+
+def _copy_assets(out: Path) -> None:
+    (out / "assets").mkdir(parents=True, exist_ok=True)
+    for src, dst in ASSETS.items():
+        shutil.copyfile(STATIC / src, out / "assets" / dst)
+
+
+def build_report(recon: str | Path, out: str | Path | None = None, per_page: int = 24, max_faces: int = 4000,
+                 title: str | None = None, workers: int | None = None) -> Report:
+    """Write the report of the run in ``recon`` into ``out`` (default ``recon/report``).
+
+    ``max_faces``: the 3D views' meshes are decimated to at most this many faces; ``workers``: card
+    processes (default :func:`default_workers`; 0: all in this process).
+
+    Raises:
+        carvi_torch.report.inputs.ReportError: ``recon`` has no readable ``summary.json``, or ``out`` is
+            the run's folder, a class folder, or cannot be made.
+    """
+    t0 = time.perf_counter()
+    run = read_run(recon)
+    out = Path(out) if out is not None else run.recon / "report"
+    if out.resolve() == run.recon.resolve() or out.resolve() in {(run.recon / c.key).resolve() for c in run.classes}:
+        raise ReportError(f"--out {out} is the run's folder or a class folder: give the report a folder of its own")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ReportError(f"cannot make --out {out}: {e.strerror or e}") from e
+    per = _make_cards(run, out, max_faces, workers)
+    cards, panels, names = [], [], []
+    for cls in run.classes:
+        key = safe_name(cls.key)
+        mine = per[cls.key]
+        chart = None
+        if mine:
+            try:
+                class_figure(mine, out / "classes" / f"{key}.png")
+                chart = f"classes/{key}.png"
+            except Exception as e:  # noqa: BLE001 - a figure that fails leaves its panel without it
+                log.warning(f"report: the figure of class {cls.key} failed ({type(e).__name__}: {e})")
+        panels.append(class_panel_html(cls.summary, cls.key, cls.name, chart, cls.problem))
+        names.append((cls.key, cls.name))
+        cards += mine
+    order, by = sort_cards(cards)
+    meta = {"per_page": per_page, "sort_by": by, "names": dict(names)}
+    (out / "cards.js").write_text("carviReport.index(" + json.dumps(meta) + ",\n["
+                                  + ",\n".join(json.dumps(c.to_json()) for c in order) + "]);\n")
+    _copy_assets(out)
+    title = title or f"carvi_torch report: {run.recon.resolve().name}"
+    index = out / "index.html"
+    index.write_text(index_html(run.summary, title, panels, names, len(order), by))
+    return Report(index=index, cards=len(order), sort_by=by, seconds=time.perf_counter() - t0)

@@ -1,0 +1,184 @@
+"""What the report reads from a finished ``reconstruct --out`` folder, as typed records.
+
+Nothing here writes anything. A class whose ``cameras.json`` is missing or unreadable keeps its
+``summary.json`` entry and says why (``ClassInputs.problem``); an object keeps its entry whatever its
+files look like (the card says what is wrong with them, :mod:`carvi_torch.report.cards`).
+
+Example:
+    >>> _number({"quality": 0.5}, "quality"), _number({"quality": float("nan")}, "quality"), _number({}, "q")
+    (0.5, None, None)
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..io.layout import object_stem
+from ..io.outputs import read_json
+
+__all__ = ["ReportError", "ObjectInputs", "ClassInputs", "RunInputs", "read_run"]
+
+
+class ReportError(Exception):
+    """The folder is not a finished run (no readable ``summary.json``): one line, no report."""
+
+
+@dataclass
+class ObjectInputs:
+    """One object of a class: its ids, camera and scores (``None`` where the run has none)."""
+
+    annotation_id: str
+    """The annotation id as ``cameras.json`` spells it (a string)."""
+    stem: str
+    """Its file stem (``<class>/meshes/<stem>.<ext>``)."""
+    source: str | None = None
+    camera: dict | None = None
+    """The final (refined) camera in image pixels: ``R (3, 3)``, ``s``, ``t (2,)``; ``None``: no camera."""
+    sfm: dict | None = None
+    """The SfM camera (before refinement), the same way; ``None``: SfM placed no camera."""
+    shape_group: int = 0
+    azimuth_deg: float | None = None
+    elevation_deg: float | None = None
+    camera_from: str | None = None
+    surrogates_from: str | None = None
+    quality: float | None = None
+    """The run's quality score of the object when ``cameras.json`` has one (higher is better)."""
+    score: float | None = None
+    """The selected proposal's score (``proposal_scores.json``; a disagreement: lower is better)."""
+    skipped: str | None = None
+    """Why the run skipped the object (``summary.json``'s failures), else ``None``."""
+
+
+@dataclass
+class ClassInputs:
+    """One class: its ``summary.json`` entry, ``cameras.json`` content and objects."""
+
+    key: str
+    name: str
+    summary: dict
+    objects: list[ObjectInputs] = field(default_factory=list)
+    keypoint_names: list[str] = field(default_factory=list)
+    mean_shapes: list[np.ndarray] = field(default_factory=list)
+    """Per shape group, ``(K, 3)`` float, the canonical-frame mean shape (NaN rows: not in it)."""
+    frame: str | None = None
+    problem: str | None = None
+    """Why the class has no objects to show (``cameras.json`` missing or unreadable), else ``None``."""
+
+
+@dataclass
+class RunInputs:
+    """The run: its folder, ``summary.json``, annotation file and classes."""
+
+    recon: Path
+    summary: dict
+    classes: list[ClassInputs]
+    data: Path | None
+    mesh_format: str = "ply"
+
+
+def _number(d: dict, key: str) -> float | None:
+    v = d.get(key)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        return None
+    return float(v)
+
+
+def _mean_shapes(cams: dict, names: list[str]) -> list[np.ndarray]:
+    def arr(named: dict) -> np.ndarray:
+        return np.array([named.get(n) if named.get(n) is not None else [np.nan] * 3 for n in names], dtype=np.float64)
+
+    groups = cams.get("shape_groups")
+    if groups:
+        return [arr(g.get("mean_shape") or {}) for g in groups]
+    return [arr(cams.get("mean_shape") or {})]
+
+
+def _chosen_scores(cdir: Path) -> dict:
+    """Per annotation id, the selected proposal's score (``proposal_scores.json``), where the run kept them."""
+    p = cdir / "proposal_scores.json"
+    try:
+        entries = read_json(p) if p.is_file() else {}
+    except ValueError:
+        return {}
+    out = {}
+    for aid, e in entries.items() if isinstance(entries, dict) else ():
+        try:
+            v = e["scores"][e["best"]]
+        except (KeyError, IndexError, TypeError):
+            continue
+        if isinstance(v, (int, float)) and math.isfinite(v):
+            out[str(aid)] = float(v)
+    return out
+
+
+def _objects(cams: dict, failures: dict, scores: dict) -> list[ObjectInputs]:
+    out = []
+    for aid, c in (cams.get("cameras") or {}).items():
+        c = c if isinstance(c, dict) else {}
+        g = c.get("shape_group")
+        out.append(ObjectInputs(
+            annotation_id=str(aid), stem=object_stem(aid), source=c.get("source"),
+            camera=c.get("refined") if isinstance(c.get("refined"), dict) else None,
+            sfm=c.get("sfm") if isinstance(c.get("sfm"), dict) else None,
+            shape_group=g if isinstance(g, int) else 0,
+            azimuth_deg=_number(c, "azimuth_deg"), elevation_deg=_number(c, "elevation_deg"),
+            camera_from=c.get("camera_from"), surrogates_from=c.get("surrogates_from"),
+            quality=_number(c, "quality"), score=scores.get(str(aid)), skipped=failures.pop(str(aid), None)))
+    # skipped objects that cameras.json does not list (e.g. dropped at load) still get a card
+    out += [ObjectInputs(annotation_id=aid, stem=object_stem(aid), skipped=reason) for aid, reason in failures.items()]
+    return out
+
+
+def _read_class(recon: Path, key: str, entry: dict) -> ClassInputs:
+    entry = entry if isinstance(entry, dict) else {}
+    failures = {str(f["annotation_id"]): f.get("reason", "skipped") for f in entry.get("failures", [])
+                if isinstance(f, dict) and f.get("annotation_id") is not None}
+    cls = ClassInputs(key=key, name=key, summary=entry)
+    p = recon / key / "cameras.json"
+    try:
+        cams = read_json(p)
+        if not isinstance(cams, dict):
+            raise ValueError("not a JSON object")
+    except FileNotFoundError:
+        cams, cls.problem = {}, f"no {key}/cameras.json"
+    except (ValueError, OSError) as e:
+        cams, cls.problem = {}, f"{key}/cameras.json unreadable: {str(e).splitlines()[0][:120]}"
+    cls.name = str(cams.get("class", key))
+    cls.frame = cams.get("frame")
+    cls.keypoint_names = [str(n) for n in (cams.get("mean_shape") or {})]
+    if cls.keypoint_names:
+        cls.mean_shapes = _mean_shapes(cams, cls.keypoint_names)
+    cls.objects = _objects(cams, failures, _chosen_scores(recon / key))
+    return cls
+
+
+def read_run(recon: str | Path) -> RunInputs:
+    """Read ``recon/summary.json`` and every class's files it lists.
+
+    Raises:
+        ReportError: no readable ``summary.json`` with a ``classes`` mapping.
+    """
+    recon = Path(recon)
+    try:
+        summary = read_json(recon / "summary.json")
+    except (OSError, ValueError) as e:
+        raise ReportError(f"{recon} is not a finished run: summary.json unreadable ({type(e).__name__})") from e
+    if not isinstance(summary, dict) or not isinstance(summary.get("classes"), dict):
+        raise ReportError(f"{recon}/summary.json has no 'classes' mapping")
+    classes = [_read_class(recon, str(k), v) for k, v in summary["classes"].items()
+               if (recon / str(k)).resolve().parent == recon.resolve()]
+    data = Path(summary["data"]) if isinstance(summary.get("data"), str) else None
+    if (data is None or not data.is_file()) and (recon / "input" / "annotations.json").is_file():
+        data = recon / "input" / "annotations.json"  # the embedded collection, in a run folder that moved
+    fmt = "ply"
+    try:
+        import yaml
+
+        cfg = yaml.safe_load((recon / "config.yaml").read_text())
+        fmt = str(((cfg or {}).get("mesh") or {}).get("format") or "ply")
+    except Exception:  # noqa: BLE001 - no or damaged config: the default format
+        pass
+    return RunInputs(recon=recon, summary=summary, classes=classes, data=data, mesh_format=fmt)

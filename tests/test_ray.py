@@ -1,0 +1,206 @@
+"""executor=ray on a local two-node Ray cluster (1 CPU each, loopback only): the same files as the local
+executor, resume across executors, the executor's record, and a worker killed during a run.
+
+One module-scoped cluster serves every test (a Ray cluster takes seconds to start).
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from carvi_torch.config import Config, ConfigError
+from carvi_torch.executors import run
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "progress": False,
+        "refine_iters": 30, "plane_size": 32, "preview": False, "keep_all_scores": True,
+        "classes": ["bottle", "car"]}  # a rotationally symmetric class and a bilateral one
+
+
+def _cfg(out, **extra) -> Config:
+    return Config().override({**TINY, "out": str(out), **extra})
+
+
+def _ray():
+    return pytest.importorskip("ray", reason="Ray is not installed (pip install 'carvi_torch[ray]')")
+
+
+@pytest.fixture(scope="module")
+def local_started(tmp_path_factory):
+    """The reference, the local executor's run of the tiny collection, started in a process of its own
+    (it computes while the cluster below starts, which mostly waits)."""
+    _ray()
+    out = tmp_path_factory.mktemp("local")
+    config, err = out.parent / "local.yaml", out.parent / "local.err"
+    config.write_text(_cfg(out).to_yaml())
+    with open(err, "w") as f:
+        proc = subprocess.Popen([sys.executable, "-m", "carvi_torch.reconstruct", "--config", str(config)], cwd=ROOT,
+                                stdout=subprocess.DEVNULL, stderr=f)
+    yield out, proc, err
+    proc.kill()
+
+
+@pytest.fixture(scope="module")
+def cluster(local_started):
+    """A head node that runs no task (0 CPUs: it holds the driver and Ray's services) and two worker
+    nodes of 1 CPU each, on 127.0.0.1; this process connected to it. Yields it and the worker nodes."""
+    ray = _ray()
+    from ray.cluster_utils import Cluster
+
+    from carvi_torch.executors.ray import loopback
+
+    tmp = tempfile.mkdtemp(prefix="cr-")  # short: Ray's socket paths must fit 107 bytes
+    with loopback(), pytest.MonkeyPatch.context() as mp:
+        mp.setenv("RAY_TMPDIR", tmp)
+        mp.setenv("RAY_USAGE_STATS_ENABLED", "0")
+        c = Cluster(initialize_head=True, head_node_args=dict(num_cpus=0, include_dashboard=False,
+                                                              node_ip_address="127.0.0.1"))
+        try:
+            nodes = [c.add_node(num_cpus=1, node_ip_address="127.0.0.1") for _ in range(2)]
+            ray.init(address=c.address, log_to_driver=False)
+            yield c, nodes
+        finally:
+            ray.shutdown()
+            c.shutdown()
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def local(local_started):
+    """The reference run's folder and summary."""
+    out, proc, err = local_started
+    assert proc.wait(timeout=600) == 0, err.read_text()[-2000:]
+    return out, json.loads((out / "summary.json").read_text())
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    """Every file a run wrote for its classes, by path (cameras.json, voxels, meshes, scores), but the
+    hidden temporary files of atomic writes that a killed process may leave (never read)."""
+    return {str(p.relative_to(root)): p.read_bytes() for cls in TINY["classes"]
+            for p in sorted((root / cls).rglob("*"))
+            if p.is_file() and not (p.name.startswith(".") and p.name.endswith(".tmp"))}
+
+
+def _same_files(a: Path, b: Path) -> None:
+    fa, fb = _files(a), _files(b)
+    assert fa.keys() == fb.keys() and len(fa) > 10
+    different = [k for k in fa if fa[k] != fb[k]]
+    assert not different, different
+
+
+def _counts(summary: dict) -> dict:
+    return {k: (c["status"], c["objects"], c["reconstructed"], c["resumed"], c["failures"])
+            for k, c in summary["classes"].items()}
+
+
+def test_ray_run_equals_local_run(cluster, local, tmp_path):
+    """Same seed: byte-identical cameras.json, voxels, meshes and proposal scores, the same reports; the
+    executor's record names the worker nodes that ran the tasks (both: two classes start at once), and
+    counts every task: per class one viewpoint task, one per chunk of 2 objects, one closing task."""
+    c, nodes = cluster
+    out, ref = local
+    got = run(_cfg(tmp_path, data=ref["data"], executor="ray", ray_address=c.address, ray_chunk_objects=2))
+    _same_files(out, tmp_path)
+    assert _counts(got) == _counts(ref)
+    assert all(v["reconstructed"] == 6 for v in got["classes"].values())
+    ex = got["executor"]
+    assert ex["name"] == "ray" and ex["address"] == c.address and ex["retries"] == 0
+    assert ex["tasks"] == 2 * (1 + 3 + 1)
+    assert sorted(ex["nodes"]) == sorted(n.node_id for n in nodes)
+    assert ref["executor"] == {"name": "local", "address": None}
+
+
+def test_resume_across_executors(cluster, local, tmp_path):
+    """A local run's folder with some objects lost: a Ray run redoes just those (the same files again), and
+    its summary keeps the class it did not run (merged); a local rerun into that folder then resumes all."""
+    c, _ = cluster
+    out, ref = local
+    shutil.copytree(out, tmp_path, dirs_exist_ok=True)
+    lost = sorted((tmp_path / "car" / "meshes").glob("*.ply"))[:3]
+    for p in lost:
+        p.unlink()
+    got = run(_cfg(tmp_path, data=ref["data"], executor="ray", ray_address=c.address, classes=["car"]))
+    car = got["classes"]["car"]
+    assert (car["reconstructed"], car["resumed"]) == (len(lost), 6 - len(lost))
+    assert got["classes"]["bottle"] == ref["classes"]["bottle"] and got["classes_from_earlier_runs"] == ["bottle"]
+    _same_files(out, tmp_path)
+    again = run(_cfg(tmp_path, data=ref["data"], classes=["car"]))["classes"]["car"]
+    assert (again["resumed"], again["reconstructed"]) == (6, 0)
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        return [int(x) for x in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
+
+
+def _kill_a_chunk_task(raylets: list[int], stop: threading.Event, killed: list) -> None:
+    """Kill (SIGKILL) the first worker process of ``raylets`` seen running a chunk task."""
+    while not stop.is_set() and not killed:
+        for pid in (w for r in raylets for w in _children(r)):
+            try:
+                title = Path(f"/proc/{pid}/cmdline").read_bytes()
+            except OSError:
+                continue
+            if title.startswith(b"ray::chunk_task"):
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+                return
+        time.sleep(0.01)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds Ray's worker processes in /proc")
+def test_a_killed_worker_is_retried(cluster, local, tmp_path):
+    """A worker process killed while it carves a chunk: Ray runs the chunk again, the run finishes with
+    every object (the same files as the local run), and the record counts the retry."""
+    c, nodes = cluster
+    out, ref = local
+    raylets = [n.all_processes["raylet"][0].process.pid for n in nodes]
+    stop, killed = threading.Event(), []
+    killer = threading.Thread(target=_kill_a_chunk_task, args=(raylets, stop, killed), daemon=True)
+    killer.start()
+    try:
+        got = run(_cfg(tmp_path, data=ref["data"], executor="ray", ray_address=c.address, ray_chunk_objects=6))
+    finally:
+        stop.set()
+        killer.join()
+    assert killed, "no chunk task was seen running"
+    assert got["executor"]["retries"] >= 1
+    assert all(v["status"] == "ok" and v["reconstructed"] == 6 for v in got["classes"].values())
+    _same_files(out, tmp_path)
+
+
+def test_without_ray_one_line(monkeypatch, tmp_path):
+    """executor=ray where Ray is not installed: a ConfigError saying how to install it, nothing written
+    (runs with or without Ray installed)."""
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray now raises ImportError
+    with pytest.raises(ConfigError, match=r"pip install 'carvi_torch\[ray\]'"):
+        run(_cfg(tmp_path / "out", executor="ray"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_unreachable_head_is_one_line():
+    """ray_address=host:port where nothing listens: a ConfigError at once (Ray itself would keep trying
+    for minutes); ``auto`` is left to Ray."""
+    from carvi_torch.executors.ray import check_reachable
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # bound, not listening: refused
+        with pytest.raises(ConfigError, match=f"ray_address=127.0.0.1:{port}: no Ray head answers there"):
+            check_reachable(f"127.0.0.1:{port}")
+        s.listen()
+        check_reachable(f"127.0.0.1:{port}")
+    check_reachable("auto")

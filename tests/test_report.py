@@ -1,0 +1,255 @@
+"""The HTML report: files and budgets, order, damaged inputs, and the page in headless Chromium.
+
+One tiny reconstruction (two classes of six objects) is shared by the module; the run writes
+its report at the end (``report=true``, the default). The browser tests drive ``/usr/bin/chromium``
+by its command line and are skipped, with the reason, where it is absent.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from carvi_torch.cli import main as cli_main
+from carvi_torch.config import Config
+from carvi_torch.executors import run
+from carvi_torch.report import build_report, main as report_main
+from carvi_torch.report.build import STATIC
+from carvi_torch.report.cards import decode_positions
+
+CHROMIUM = Path("/usr/bin/chromium")
+TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "refine_iters": 30,
+        "plane_size": 32, "preview": False, "progress": False, "classes": ["car", "chair"]}
+#: URL-like strings the vendored three.js holds that load nothing: the XHTML namespace (an identifier) and
+#: a link printed in a console warning.
+VENDORED_URLS = {"http://www.w3.org/1999/xhtml", "https://github.com/mrdoob/three.js/pull/23228"}
+
+
+@pytest.fixture(scope="module")
+def recon(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("run")
+    summary = run(Config().override({**TINY, "out": str(out)}), workers=0)  # the report is on by default
+    assert all(c["reconstructed"] == 6 for c in summary["classes"].values())
+    return out
+
+
+def _cards(report: Path) -> tuple[dict, list[dict]]:
+    """``cards.js``'s meta and cards (the file is ``carviReport.index(meta, [cards]);``)."""
+    text = (report / "cards.js").read_text()
+    m = re.fullmatch(r"carviReport\.index\((.*?),\n(\[.*\])\);\n", text, flags=re.S)
+    assert m, text[:200]
+    return json.loads(m.group(1)), json.loads(m.group(2))
+
+
+def _objects(recon: Path) -> dict[str, str]:
+    """annotation id -> class key, from every class's cameras.json."""
+    out = {}
+    for cls in ("car", "chair"):
+        out.update({aid: cls for aid in json.loads((recon / cls / "cameras.json").read_text())["cameras"]})
+    return out
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).digest()
+            for p in root.rglob("*") if p.is_file()}
+
+
+def _chromium(url: str, shot: Path | None = None, size=(1300, 1500), extra: tuple = ()) -> str:
+    """The DOM of ``url`` after its scripts ran (and a screenshot into ``shot``)."""
+    if not CHROMIUM.is_file():
+        pytest.skip(f"{CHROMIUM} not found (apt-get install chromium; .ci/run installs it)")
+    with tempfile.TemporaryDirectory() as prof:
+        cmd = [str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+               "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update",
+               "--disable-sync", "--host-resolver-rules=MAP * ~NOTFOUND", f"--user-data-dir={prof}",
+               "--virtual-time-budget=15000", f"--window-size={size[0]},{size[1]}", "--hide-scrollbars",
+               "--dump-dom", *extra]
+        if shot is not None:
+            cmd.append(f"--screenshot={shot}")
+        res = subprocess.run(cmd + [url], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    return res.stdout
+
+
+def _dom_cards(dom: str) -> list[dict]:
+    """Per card element: its attributes (annotation id, class, viewer state) and its text."""
+    out = []
+    for m in re.finditer(r'<div class="card[^"]*" ([^>]*)>(.*?)<dl class="stats"', dom, flags=re.S):
+        attrs = dict(re.findall(r'([\w-]+)="([^"]*)"', m.group(1)))
+        drawn = re.search(r'data-drawn="([0-9.]+)"', m.group(2))
+        attrs["drawn"] = float(drawn.group(1)) if drawn else None
+        attrs["text"] = re.sub(r"<[^>]+>", " ", m.group(2))
+        out.append(attrs)
+    return out
+
+
+def test_reconstruct_writes_the_report_within_budget(recon):
+    report = recon / "report"
+    meta, cards = _cards(report)
+    objects = _objects(recon)
+    assert sorted(c["id"] for c in cards) == sorted(objects) and len(cards) == 12
+    assert all(c["cls"] == objects[c["id"]] for c in cards)
+    assert meta["sort_by"] == "iou"  # the run keeps neither quality nor proposal scores
+    ious = [c["iou"] for c in cards]
+    assert ious == sorted(ious) and all(0.3 < v <= 1 for v in ious)
+    for c in cards:
+        assert not c.get("problems") and c["img"] and c["mesh"], c
+        size = (report / c["img"]).stat().st_size + (report / c["mesh"]).stat().st_size
+        assert size <= 200_000, (c["id"], size)
+        for link in c["files"].values():  # the card's links resolve to the run's files
+            assert (report / link).resolve().is_file()
+    assert (report / "index.html").is_file() and len(list((report / "classes").glob("*.png"))) == 2
+
+
+def _voxel_boxes(shape, occupancy, T) -> np.ndarray:
+    """Brute force: every occupied voxel's box (index +- 0.5, its 8 corners through ``T``), filled."""
+    sil = np.zeros(shape, bool)
+    ys, xs = np.arange(shape[0])[:, None], np.arange(shape[1])[None, :]
+    corners = np.array(np.meshgrid([-0.5, 0.5], [-0.5, 0.5], [-0.5, 0.5], indexing="ij")).reshape(3, -1)
+    for idx in np.argwhere(occupancy):
+        p = T[:2, :3] @ (idx[:, None] + corners) + T[:2, 3:]
+        sil |= (xs > p[0].min()) & (xs < p[0].max()) & (ys > p[1].min()) & (ys < p[1].max())
+    return sil
+
+
+def test_overlay_silhouette_is_the_voxels_projection(recon):
+    """The card's IoU of mask and silhouette against independent references: the voxel boxes filled one
+    by one, the mask from pycocotools; and the mesh file's outline (its faces filled, z dropped) agrees."""
+    from pycocotools.coco import COCO
+    from skimage.draw import polygon
+
+    _, cards = _cards(recon / "report")
+    coco = COCO(str(recon / "input" / "annotations.json"))
+    for c in cards[:3]:
+        mask = coco.annToMask(coco.anns[int(c["id"])]).astype(bool)
+        z = np.load(recon / c["cls"] / "voxels" / f"{c['id']}.npz")
+        sil = _voxel_boxes(mask.shape, z["occupancy"], z["voxel_to_camera"])
+        assert abs((sil & mask).sum() / (sil | mask).sum() - c["iou"]) < 0.01, c["id"]
+        m = trimesh.load(recon / c["cls"] / "meshes" / f"{c['id']}.ply", process=False)
+        outline = np.zeros_like(mask)
+        for tri in m.vertices[m.faces][:, :, :2]:
+            rr, cc = polygon(tri[:, 1], tri[:, 0], mask.shape)
+            outline[rr, cc] = True
+        assert (outline & sil).sum() / (outline | sil).sum() > 0.7, c["id"]  # the mesh lies half a voxel inside
+
+
+def test_mesh_data_decodes_to_the_mesh(recon):
+    """Decoded positions lie on the original mesh's surface (within a voxel) and span its bounding box."""
+    _, cards = _cards(recon / "report")
+    c = cards[-1]
+    text = (recon / "report" / c["mesh"]).read_text()
+    key, data = re.fullmatch(r'carviReport\.mesh\(("[^"]+"),(.*)\);\n', text, flags=re.S).groups()
+    assert json.loads(key) == c["key"]
+    data = json.loads(data)
+    v = decode_positions(data)
+    m = trimesh.load(recon / c["cls"] / "meshes" / f"{c['id']}.ply", process=False)
+    voxel = float(np.linalg.norm(np.load(recon / c["cls"] / "voxels" / f"{c['id']}.npz")["voxel_to_camera"][:3, :3],
+                                 axis=0).max())
+    _, dist, _ = trimesh.proximity.closest_point(m, v)
+    assert dist.max() < voxel, (dist.max(), voxel)
+    assert np.allclose(v.min(0), m.bounds[0], atol=voxel) and np.allclose(v.max(0), m.bounds[1], atol=voxel)
+    idx = np.frombuffer(__import__("base64").b64decode(data["index"]), dtype="<u2")
+    assert len(idx) == 3 * c["faces"] and idx.max() < len(v)
+
+
+def test_quality_orders_the_cards_and_damaged_files_are_named(recon, tmp_path):
+    """``quality`` in cameras.json orders the cards (ascending); a missing mesh, damaged voxels and an
+    unreadable cameras.json each give a visible reason, and the command writes only under --out."""
+    run = tmp_path / "run"
+    shutil.copytree(recon, run, ignore=shutil.ignore_patterns("report"))
+    cams = json.loads((run / "car" / "cameras.json").read_text())
+    ids = list(cams["cameras"])
+    for i, aid in enumerate(ids):
+        cams["cameras"][aid]["quality"] = [0.9, 0.1, 0.5, 0.7, 0.3, 0.2][i]
+    (run / "car" / "cameras.json").write_text(json.dumps(cams))
+    (run / "car" / "meshes" / f"{ids[0]}.ply").unlink()
+    (run / "car" / "voxels" / f"{ids[2]}.npz").write_bytes(b"not an npz")
+    (run / "chair" / "cameras.json").write_text("{broken")
+    summary = json.loads((run / "summary.json").read_text())
+    summary["classes"]["car"]["failures"] = [{"annotation_id": 999, "source": "x.xml", "stage": "load",
+                                              "reason": "mask <empty> & no keypoints"}]
+    (run / "summary.json").write_text(json.dumps(summary))
+    before = _tree(run)
+    assert cli_main(["report", "--recon", str(run), "--out", str(run / "rep"), "--quiet", "--per-page", "4"]) == 0
+    after = _tree(run)
+    assert {k: v for k, v in after.items() if not k.startswith("rep/")} == before
+    meta, cards = _cards(run / "rep")
+    assert meta["sort_by"] == "quality" and meta["per_page"] == 4
+    car = [c for c in cards if c["cls"] == "car"]
+    # skipped first, then damaged files, then by quality
+    assert [c["id"] for c in car] == ["999", ids[2], ids[0], ids[1], ids[5], ids[4], ids[3]]
+    assert car[0]["skipped"] == "mask <empty> & no keypoints"
+    assert "annotation not in the input" in car[0]["problems"][0]
+    assert "voxels unreadable" in car[1]["problems"][0] and "no mesh file" in car[2]["problems"][0]
+    assert not any(c["cls"] == "chair" for c in cards)
+    page = (run / "rep" / "index.html").read_text()
+    assert "chair/cameras.json unreadable" in page
+    assert "999 (x.xml): load: mask &lt;empty&gt; &amp; no keypoints" in page
+    assert report_main(["--recon", str(run), "--out", str(run), "--quiet"]) == 2  # never over the run's own files
+    assert report_main(["--recon", str(tmp_path / "nothing"), "--quiet"]) == 2
+    assert not (tmp_path / "nothing").exists()
+
+
+def test_no_network_reference_and_vendored_files_intact(recon):
+    for p in (recon / "report").rglob("*"):
+        if p.suffix in (".jpg", ".png") or p.name in ("LICENSE.three.txt", "VENDOR.md") or not p.is_file():
+            continue
+        urls = set(re.findall(r"https?://[^\s\"'<>)]+", p.read_text(errors="replace")))
+        allowed = VENDORED_URLS if p.name == "three.min.js" else set()
+        assert urls <= allowed, (p.name, urls - allowed)
+    notes = (STATIC / "vendor" / "VENDOR.md").read_text()
+    for name in ("three.min.js", "OrbitControls.js"):
+        digest = hashlib.sha256((STATIC / "vendor" / name).read_bytes()).hexdigest()
+        assert digest in notes, name
+        assert (recon / "report" / "assets" / name).read_bytes() == (STATIC / "vendor" / name).read_bytes()
+
+
+def test_page_in_chromium_cards_viewers_and_screenshot(recon, tmp_path):
+    from PIL import Image
+
+    shot = tmp_path / "shot.png"
+    dom = _chromium((recon / "report" / "index.html").as_uri(), shot)
+    assert re.search(r'<body[^>]* data-ready="1"', dom), dom[:500]
+    cards = _dom_cards(dom)
+    assert sorted(c["data-annotation-id"] for c in cards) == sorted(_objects(recon))
+    assert all(c["data-viewer"] == "ok" and c["drawn"] > 0.01 for c in cards), [
+        (c["data-annotation-id"], c["data-viewer"], c["drawn"]) for c in cards]
+    px = np.asarray(Image.open(shot).convert("L"), dtype=np.float64)
+    assert px.std() > 20 and (px < 128).mean() > 0.01  # not blank: text, plots, overlays
+
+
+def test_page_in_chromium_filter_pages_and_reasons(recon, tmp_path):
+    """The class filter and the page come from the URL; a card whose mesh data is gone says why, and
+    the page is still ready."""
+    run = tmp_path / "run"
+    shutil.copytree(recon, run, ignore=shutil.ignore_patterns("report"))
+    build_report(run, run / "rep", per_page=4, workers=2)  # worker processes make the same cards
+    meta, order = _cards(run / "rep")
+    assert order == _cards(recon / "report")[1] and meta["per_page"] == 4
+    car = [c for c in order if c["cls"] == "car"]
+    (run / "rep" / car[4]["mesh"]).unlink()
+    dom = _chromium((run / "rep" / "index.html").as_uri() + "#class=car&page=2")
+    assert re.search(r'<body[^>]* data-ready="1"', dom) and "page 2 of 2" in dom
+    cards = _dom_cards(dom)
+    assert [c["data-annotation-id"] for c in cards] == [c["id"] for c in car[4:]]
+    assert all(c["data-class"] == "car" for c in cards)
+    assert cards[0]["data-viewer"] == "failed" and "mesh data missing" in cards[0]["text"]
+    assert cards[1]["data-viewer"] == "ok"
+
+
+def test_page_without_webgl_still_shows_every_card(recon):
+    """No WebGL: every 3D view says so, the overlays stay, and the page is still ready."""
+    dom = _chromium((recon / "report" / "index.html").as_uri() + "#class=chair", extra=("--disable-webgl",))
+    assert re.search(r'<body[^>]* data-ready="1"', dom)
+    cards = _dom_cards(dom)
+    assert len(cards) == 6 and all(c["data-class"] == "chair" for c in cards)
+    assert all(c["data-viewer"] == "failed" and "WebGL unavailable" in c["text"] for c in cards)
+    assert dom.count('class="overlay"') == 6
