@@ -95,6 +95,11 @@ class ViewpointConfig:
     """Inner (camera / shape) alternations per outer iteration."""
     sfm_tol: float = 1e-7
     """Stop when the relative change of the visible-entry residual falls below this."""
+    sfm_template_start: bool = True
+    """Also start the class's SfM from its template of 3-D keypoints (the category's ``keypoints_3d``, else the
+    shipped PASCAL3D+ one of its name; ``viewpoints.frame``) and keep that solution when its visible-keypoint
+    RMS residual is lower by more than ``viewpoints.TEMPLATE_START_MARGIN`` (5%). Classes without a template
+    run one SfM."""
     sfm_groups: int = 1
     """Most rigid shapes per class (``carvi_torch.viewpoints.mixture``): a class whose members differ in
     proportions is split into groups, each with its own SfM shape, in one class frame. 1 = one mean

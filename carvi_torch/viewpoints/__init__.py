@@ -38,13 +38,14 @@ from ..collection import ClassCollection
 from ..runtime import StageTimer
 from ..sdf import distance_to_mask
 from . import camera_fit, mixture, sfm
-from .frame import CanonicalFrame, FrameFit, canonical_frame
+from .frame import CanonicalFrame, FrameFit, canonical_frame, load_templates, template_points
 from .refine import group_sfm_cameras, keypoints_left_out, refine_groups, unseen_keypoints, unseen_per_group
 
 if TYPE_CHECKING:
     from ..config import ViewpointConfig
 
-__all__ = ["Viewpoints", "CameraSource", "estimate_viewpoints", "class_sfm", "GT_REFLECTION", "ground_truth_cameras",
+__all__ = ["Viewpoints", "CameraSource", "estimate_viewpoints", "class_sfm", "started_sfm", "TEMPLATE_START_MARGIN",
+           "GT_REFLECTION", "ground_truth_cameras",
            "NoMeanShape", "symmetry_plane", "NO_MIRRORS"]
 
 #: Where a run's cameras come from: ``estimate`` (SfM and refinement) or ``gt`` (the true cameras, a study).
@@ -119,6 +120,49 @@ def class_sfm(both: ClassCollection, cfg: ViewpointConfig, init_shape: torch.Ten
     return sfm.rigid_sfm(both.keypoints, both.visible, opts, rigid_keypoints=m.rigid_keypoints,
                          keypoint_names=m.keypoint_names, flip_pairs=m.flip_pairs, left_convention=m.left_convention,
                          init_shape=init_shape)
+
+
+#: The template start's SfM solution replaces the cold start's when its visible-keypoint RMS residual
+#: is lower by more than this fraction (``sfm_template_start``): nearly equal residuals keep the cold start.
+TEMPLATE_START_MARGIN = 0.05
+
+
+def _template_start(both: ClassCollection) -> torch.Tensor | None:
+    """``(K, 3)`` start shape of the class's SfM from its template of 3-D keypoints (NaN rows: not in the
+    template), scaled to the canvas width; ``None`` without a template (:func:`~carvi_torch.viewpoints.frame.
+    template_points`)."""
+    m = both.meta
+    found = template_points(m.name, m.keypoint_names, load_templates(), own=m.keypoints_3d)
+    if found is None:
+        return None
+    T, _source = found
+    return (T * float(both.masks.shape[-1])).to(both.keypoints.dtype)
+
+
+def _rms(res: sfm.SfMResult) -> float:
+    """Visible-keypoint RMS residual (pixels) of an SfM solution over its placed instances."""
+    r = res.residual[res.valid]
+    return float((r * r).mean().sqrt()) if r.numel() else math.inf
+
+
+def started_sfm(both: ClassCollection, cfg: ViewpointConfig) -> tuple[sfm.SfMResult, dict | None]:
+    """:func:`class_sfm` from a cold start and (``sfm_template_start``, a class with a template) from its
+    template; the template start's solution is kept when it places as many instances with an RMS residual
+    lower by more than :data:`TEMPLATE_START_MARGIN`. Returns the solution and, when there were two starts,
+    ``{"kept": "cold" | "template", "rms_cold_px", "rms_template_px"}`` (the summary's ``sfm.start``).
+
+    A class whose models disagree on what some keypoints mean (the CAD trains) can lead the cold
+    factorisation into a poor local solution; the template's rough proportions start it near a good one.
+    """
+    res = class_sfm(both, cfg)
+    T = _template_start(both) if cfg.sfm_template_start else None
+    if T is None:
+        return res, None
+    alt = class_sfm(both, cfg, T)
+    cold, warm = _rms(res), _rms(alt)
+    keep = int(alt.valid.sum()) >= int(res.valid.sum()) and warm < (1.0 - TEMPLATE_START_MARGIN) * cold
+    return (alt if keep else res), {"kept": "template" if keep else "cold", "rms_cold_px": round(cold, 3),
+                                    "rms_template_px": round(warm, 3)}
 
 
 def _sfm_notes(coll: ClassCollection, res: sfm.SfMResult, vp_info: dict, warnings: list) -> None:
@@ -290,8 +334,10 @@ def estimate_viewpoints(coll: ClassCollection, cfg: ViewpointConfig, *, source: 
     both, mirrored = _mirrored_rows(coll)
     info, warnings, log = {}, [] if mirrored else [NO_MIRRORS], []
     with timer("sfm"):
-        res = class_sfm(both, cfg)
+        res, start = started_sfm(both, cfg)
     _sfm_notes(coll, res, info, warnings)
+    if start is not None:
+        info["sfm"]["start"] = start
     _check_placed(coll, res)
     with timer("sdf"):
         dist = distance_to_mask(both.masks)
