@@ -88,6 +88,7 @@ def _rows(res: dict, recon: Path) -> list:
             continue
         same = rep.get("refined_with_sfm", ref)  # the refinement's own before/after: the SfM objects
         cj = json.loads((recon / cls / "cameras.json").read_text())
+        choice = [c.get("camera_choice") for c in cj["cameras"].values()]
         rows.append({
             "class": cls, "n": ref["geodesic"]["n"], "n_sfm": sfm.get("geodesic", {}).get("n", 0),
             "sfm_geodesic": sfm.get("geodesic", {}).get("median"),
@@ -96,7 +97,7 @@ def _rows(res: dict, recon: Path) -> list:
             "sfm_azimuth": sfm.get("azimuth", {}).get("median"), "refined_azimuth": same["azimuth"]["median"],
             "sfm_elevation": sfm.get("elevation", {}).get("median"), "refined_elevation": same["elevation"]["median"],
             "sfm_acc30": sfm.get("geodesic", {}).get("acc_at_30"), "refined_acc30": ref["geodesic"]["acc_at_30"],
-            "mirrored": bool(ref.get("mirrored")), "frame": cj.get("frame"),
+            "mirrored": bool(ref.get("mirrored")), "frame": cj.get("frame"), "kept_sfm": choice.count("sfm"),
             "absolute_geodesic": ref["absolute"]["geodesic"]["median"],
             "absolute_azimuth": ref["absolute"]["azimuth"]["median"],
             "absolute_elevation": ref["absolute"]["elevation"]["median"],
@@ -150,24 +151,30 @@ def _run(args, seed: int, overrides: list) -> dict:
             "render_seconds": round(t_render, 1), "cameras_seconds": round(t_cams, 1)}
 
 
-def _seeds_table(runs: list) -> tuple[str, dict]:
-    """Per class and seed: SfM -> refined medians (degrees, the views with an SfM camera), their means over
-    the seeds, and whether the refined median is no worse than the SfM one at every seed."""
+def _seeds_table(runs: list, refined: list | None = None) -> tuple[str, dict]:
+    """Per class and seed: the SfM and final (kept) medians (degrees, the views with an SfM camera), with
+    ``refined`` (the runs with ``refine_keep=refined``) the refined ones between them; the means over the
+    seeds, and whether the final median is no worse than the SfM one at every seed."""
     f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
-    lines = ["| class | " + " | ".join(f"seed {r['seed']}" for r in runs) + " | mean | refined <= SfM |",
-             "|---" * (len(runs) + 3) + "|"]
+    what = "SfM / refined / kept" if refined else "SfM -> refined"
+    lines = ["| class | " + " | ".join(f"seed {r['seed']}: {what}" for r in runs) + f" | mean {what} | "
+             "final <= SfM at every seed |", "|---" * (len(runs) + 3) + "|"]
     out = {}
     for cls in [r["class"] for r in runs[0]["rows"]]:
         rows = [next(x for x in run["rows"] if x["class"] == cls) for run in runs]
-        sfm = [r["sfm_geodesic"] for r in rows]
-        ref = [r["refined_geodesic_sfm_objects"] for r in rows]
-        ok = all(s is None or r <= s for s, r in zip(sfm, ref))
-        ms = sum(s for s in sfm if s is not None) / max(1, sum(s is not None for s in sfm))
-        mr = sum(ref) / len(ref)
-        out[cls] = {"sfm": sfm, "refined": ref, "mean_sfm": round(ms, 2), "mean_refined": round(mr, 2),
-                    "refined_not_worse": ok}
-        lines.append(f"| {cls} | " + " | ".join(f"{f(s)} -> {f(r)}" for s, r in zip(sfm, ref))
-                     + f" | {ms:.1f} -> {mr:.1f} | {'yes' if ok else 'no'} |")
+        cols = {"sfm": [r["sfm_geodesic"] for r in rows], "final": [r["refined_geodesic_sfm_objects"] for r in rows]}
+        if refined:
+            cols["refined"] = [next(x for x in run["rows"] if x["class"] == cls)["refined_geodesic_sfm_objects"]
+                               for run in refined]
+        ok = all(s is None or r <= s for s, r in zip(cols["sfm"], cols["final"]))
+        mean = {k: sum(v for v in vs if v is not None) / max(1, sum(v is not None for v in vs))
+                for k, vs in cols.items()}
+        order = ["sfm", "refined", "final"] if refined else ["sfm", "final"]
+        sep = " / " if refined else " -> "
+        out[cls] = {**cols, **{f"mean_{k}": round(v, 2) for k, v in mean.items()}, "final_not_worse": ok,
+                    "kept_sfm": [r.get("kept_sfm") for r in rows]}
+        lines.append(f"| {cls} | " + " | ".join(sep.join(f(cols[k][i]) for k in order) for i in range(len(runs)))
+                     + f" | {sep.join(f(mean[k]) for k in order)} | {'yes' if ok else 'no'} |")
     return "\n".join(lines), out
 
 
@@ -178,6 +185,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, nargs="+", default=[0], help="render seeds (several: a table per class and "
                                                                      "seed of the SfM and refined medians)")
     ap.add_argument("--cameras", choices=sorted(CAMERAS), default="photo", help="camera distribution of the renders")
+    ap.add_argument("--refined-too", action="store_true", help="also run every seed with refine_keep=refined (the "
+                                                               "refined cameras whatever they score) for the table")
     ap.add_argument("--quiet", action="store_true", help="no render progress bar")
     ap.add_argument("--cad", default=str(ROOT / ".." / "shared" / "data" / "pascal3d_cad"))
     ap.add_argument("--work", default=str(ROOT / "outputs" / "viewpoints_cad"), help="renders and cameras go here")
@@ -189,6 +198,8 @@ def main(argv=None) -> int:
         print(f"error: {args.cad} not found (the PASCAL3D+ CAD models in ../shared/data)", file=sys.stderr)
         return 2
     runs = [_run(args, seed, args.overrides) for seed in args.seed]
+    refined = [_run(args, seed, [*args.overrides, "refine_keep=refined"]) for seed in args.seed] \
+        if args.refined_too else None
     default = not args.overrides and args.seed == [0] and args.cameras == "photo"
     out = Path(args.out) if args.out else (ROOT / "docs" / "data" / "viewpoints_cad.json" if default
                                            else runs[0]["recon"].with_suffix(".json"))
@@ -214,10 +225,12 @@ def main(argv=None) -> int:
             record.update(rec)
         else:
             record.setdefault("seeds", []).append(rec)
-    if len(runs) > 1:
-        table, per_class = _seeds_table(runs)
+    if len(runs) > 1 or refined:
+        table, per_class = _seeds_table(runs, refined)
         print(table)
         record.update({"seeds_table": table, "per_class": per_class})
+        if refined:
+            record["refined_runs"] = [{"seed": r["seed"], "rows": r["rows"]} for r in refined]
     from carvi_torch.io.outputs import write_json
 
     write_json(out, record)
