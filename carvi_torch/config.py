@@ -122,11 +122,13 @@ class ViewpointConfig:
     """Silhouette refinement of the SfM cameras (``False`` = the -CRef ablation)."""
     refine_iters: int = 150
     """Refinement steps at most."""
-    refine_keep: CameraKeep = "better"
-    """Which camera an object with an SfM camera keeps (``carvi_torch.viewpoints.choice``): ``better`` keeps
-    its SfM camera when the refined one raised the keypoint error by more than 1% of the mask's box
-    diagonal while raising the agreement of the mask with the projected mean shape's hull by less than
-    0.05; ``refined`` always the refined one (the paper's). ``cameras.json`` says which (``camera_choice``)."""
+    refine_keep: CameraKeep = "class"
+    """Which camera an object with an SfM camera keeps (``carvi_torch.viewpoints.choice``). A refined camera is
+    suspect when it raised the keypoint error by more than 1% of the mask's box diagonal while raising the
+    agreement of the mask with the projected mean shape's hull by less than 0.05. ``class``: the whole class
+    keeps its SfM cameras when more than half its refined cameras are suspect; ``objects``: every suspect
+    object keeps its SfM camera; ``refined``: always the refined one (the paper's). ``cameras.json`` says
+    which (``camera_choice``)."""
     silhouette_weight: float = 1.0
     """Weight of the distance-to-mask penalty against the keypoint reprojection error."""
     silhouette_robust: float = 0.2

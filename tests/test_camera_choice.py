@@ -85,3 +85,20 @@ def test_choice_keeps_sfm_only_for_a_keypoint_loss_without_hull_gain():
     assert c.keep_sfm.tolist() == [True, False]
     assert float(c.rms_refined[0] - c.rms_sfm[0]) > KEYPOINT_GROWTH * float(c.diagonal[0])
     assert float(c.hull_refined[0] - c.hull_sfm[0]) < HULL_GAIN
+
+
+def test_kept_rows_per_object_and_per_class():
+    """``class`` keeps the SfM cameras of every row with one only when more than half of them are suspect;
+    rows without an SfM camera never keep one."""
+    from carvi_torch.viewpoints.choice import CLASS_SUSPECT, kept_rows
+
+    has = torch.tensor([True] * 6 + [False, False])
+    half = torch.tensor([True, True, True, False, False, False, True, True])
+    assert CLASS_SUSPECT == 0.5
+    assert kept_rows(half, has, "class").tolist() == [False] * 8  # 3 of 6: not more than half
+    more = half.clone()
+    more[3] = True
+    assert kept_rows(more, has, "class").tolist() == [True] * 6 + [False, False]
+    assert kept_rows(more, has, "objects").tolist() == [True] * 4 + [False] * 4
+    assert not kept_rows(more, has, "refined").any()
+    assert not kept_rows(more, torch.zeros(8, dtype=torch.bool), "class").any()

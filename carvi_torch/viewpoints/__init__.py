@@ -38,6 +38,7 @@ from ..collection import ClassCollection
 from ..runtime import StageTimer
 from ..sdf import distance_to_mask
 from . import camera_fit, mixture, sfm
+from .choice import kept_rows
 from .frame import CanonicalFrame, FrameFit, canonical_frame, load_templates, template_points
 from .refine import (choose_per_group, group_sfm_cameras, keypoints_left_out, refine_groups, unseen_keypoints,
                      unseen_per_group)
@@ -240,7 +241,7 @@ def _refine_step(vp: Viewpoints, dist: torch.Tensor, cfg: ViewpointConfig) -> No
     ok = vp.sfm_valid
     vp.info["refine"] = {"median_energy_before": float(energy[0][ok].median()) if ok.any() else None,
                          "median_energy_after": float(energy[1][ok].median()) if ok.any() else None}
-    if cfg.refine_keep == "better":
+    if cfg.refine_keep != "refined":
         _keep_better(vp, cfg)
     left_out = keypoints_left_out(vp.groups, vp.both, cfg)
     if left_out:
@@ -251,17 +252,21 @@ def _refine_step(vp: Viewpoints, dist: torch.Tensor, cfg: ViewpointConfig) -> No
 
 
 def _keep_better(vp: Viewpoints, cfg: ViewpointConfig) -> None:
-    """Keep the SfM camera of every row whose refined camera scores worse (:mod:`~carvi_torch.viewpoints.choice`);
-    the summary's ``refine.kept_sfm`` counts the originals that keep theirs, with their annotation ids."""
+    """Keep the SfM cameras where the refined ones are suspect, per object or for the whole class
+    (``refine_keep``, :mod:`~carvi_torch.viewpoints.choice`); the summary's ``refine.kept_sfm`` counts the
+    suspect rows and the originals that keep their SfM camera, with their annotation ids."""
     choice = choose_per_group(vp.groups, vp.sfm_cameras, vp.cameras, vp.both, cfg)
-    keep = choice.keep_sfm.to(vp.sfm_valid.device) & vp.sfm_valid
+    suspect = choice.keep_sfm.to(vp.sfm_valid.device) & vp.sfm_valid
+    keep = kept_rows(suspect, vp.sfm_valid, cfg.refine_keep)
     sfm, ref = vp.sfm_cameras, vp.cameras
     vp.cameras = ScaledOrthographic(torch.where(keep[:, None, None], sfm.R, ref.R), torch.where(keep, sfm.s, ref.s),
                                     torch.where(keep[:, None], sfm.t, ref.t))
     vp.kept_sfm = keep
     n = len(vp.both) // 2
     ids = [vp.both.annotation_ids[i] for i in keep[:n].nonzero().squeeze(1).tolist()]
-    vp.info["refine"]["kept_sfm"] = {"originals": len(ids), "mirrored_copies": int(keep[n:].sum()), "ids": ids}
+    vp.info["refine"]["kept_sfm"] = {"how": cfg.refine_keep, "suspect": int(suspect.sum()),
+                                     "with_sfm": int(vp.sfm_valid.sum()), "originals": len(ids),
+                                     "mirrored_copies": int(keep[n:].sum()), "ids": ids}
 
 
 def _unseen_step(coll: ClassCollection, vp: Viewpoints, missing: torch.Tensor, dist: torch.Tensor,
