@@ -82,7 +82,7 @@ def test_choice_keeps_sfm_only_for_a_keypoint_loss_without_hull_gain():
     turned = rotation_about_axis(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), math.radians(40.0))
     refined = _cams(torch.stack([turned, eye]), [1.0, 1.0], [[16.0, 16.0], [16.1, 16.0]])
     c = choose_cameras(S, sfm, refined, kp, vis, masks)
-    assert c.keep_sfm.tolist() == [True, False]
+    assert c.suspect.tolist() == [True, False]
     assert float(c.rms_refined[0] - c.rms_sfm[0]) > KEYPOINT_GROWTH * float(c.diagonal[0])
     assert float(c.hull_refined[0] - c.hull_sfm[0]) < HULL_GAIN
 

@@ -109,7 +109,7 @@ def _per_annotation(coll, vp, clusters, levels) -> dict:
             "cluster": int(clusters.labels[i]) if clusters is not None else None,
             "surrogates_from": levels[i] if levels is not None else None,
         }
-        if kept is not None:  # refine_keep=better: which of the object's two cameras it keeps
+        if kept is not None:  # refine_keep class or objects: which of its two cameras the object keeps
             per[str(aid)]["camera_choice"] = ("sfm" if kept[i] else "refined") if sfm_ok[i] and has_cam[i] else None
         if group_of is not None:
             per[str(aid)]["shape_group"] = group_of[i]

@@ -81,7 +81,7 @@ class Viewpoints:
             no keypoints and get no camera, and nothing uses them.
         no_camera: ``{row: reason}`` for the rows without a usable camera (after :func:`estimate_viewpoints`).
         kept_sfm: ``(2N,)`` bool: rows whose SfM camera was kept over its refined one
-            (``refine_keep="better"``, :mod:`~carvi_torch.viewpoints.choice`); ``None`` when no choice was made.
+            (``refine_keep`` ``class`` or ``objects``, :mod:`~carvi_torch.viewpoints.choice`); else ``None``.
         distances: ``(2N, H, W)`` exact distances to the masks (:func:`carvi_torch.sdf.distance_to_mask`),
             kept for the carving's signed distances; :meth:`take_distances` hands them over once.
         info: entries for the class's summary (``sfm``, ``sfm_groups``, ``refine``,
@@ -256,7 +256,7 @@ def _keep_better(vp: Viewpoints, cfg: ViewpointConfig) -> None:
     (``refine_keep``, :mod:`~carvi_torch.viewpoints.choice`); the summary's ``refine.kept_sfm`` counts the
     suspect rows and the originals that keep their SfM camera, with their annotation ids."""
     choice = choose_per_group(vp.groups, vp.sfm_cameras, vp.cameras, vp.both, cfg)
-    suspect = choice.keep_sfm.to(vp.sfm_valid.device) & vp.sfm_valid
+    suspect = choice.suspect.to(vp.sfm_valid.device) & vp.sfm_valid
     keep = kept_rows(suspect, vp.sfm_valid, cfg.refine_keep)
     sfm, ref = vp.sfm_cameras, vp.cameras
     vp.cameras = ScaledOrthographic(torch.where(keep[:, None, None], sfm.R, ref.R), torch.where(keep, sfm.s, ref.s),

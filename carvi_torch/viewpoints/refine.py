@@ -119,7 +119,7 @@ def choose_per_group(mix: MixtureResult, cams_sfm: ScaledOrthographic, refined: 
     out = CameraChoice(torch.zeros(n, dtype=torch.bool), *(torch.zeros(n, dtype=torch.float64) for _ in range(5)))
     for idx, c in parts:
         at = idx.cpu()
-        for name in ("keep_sfm", "rms_sfm", "rms_refined", "hull_sfm", "hull_refined", "diagonal"):
+        for name in ("suspect", "rms_sfm", "rms_refined", "hull_sfm", "hull_refined", "diagonal"):
             getattr(out, name)[at] = getattr(c, name)
     return out
 
