@@ -156,7 +156,7 @@ def _seeds_table(runs: list, refined: list | None = None) -> tuple[str, dict]:
     ``refined`` (the runs with ``refine_keep=refined``) the refined ones between them; the means over the
     seeds, and whether the final median is no worse than the SfM one at every seed."""
     f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
-    what = "SfM / refined / kept" if refined else "SfM -> refined"
+    what = "SfM / refined / final" if refined else "SfM -> refined"
     lines = ["| class | " + " | ".join(f"seed {r['seed']}: {what}" for r in runs) + f" | mean {what} | "
              "final <= SfM at every seed |", "|---" * (len(runs) + 3) + "|"]
     out = {}

@@ -16,7 +16,7 @@ A refined camera is *suspect* when the keypoint growth exceeds :data:`KEYPOINT_G
 agreement rises by less than :data:`HULL_GAIN`: it pays for its silhouette fit with the keypoints
 and gains little two-sided agreement. ``refine_keep="class"`` (the default) keeps the SfM cameras of
 the whole class when more than :data:`CLASS_SUSPECT` of its objects' refined cameras are suspect
-(the mean shape itself does not fit the class's silhouettes: the CAD trains at 8 views, 53-63% of their
+(the mean shape itself does not fit the class's silhouettes: the CAD trains at 8 views, 53-72% of their
 rows, against at most 27% in any other class); ``"objects"`` keeps each suspect object's SfM camera.
 
 Example:
