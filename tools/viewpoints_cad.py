@@ -10,14 +10,14 @@ automatic frame, which uses no template). SfM -> refined compares the same views
 an SfM camera, ``evaluate``'s ``refined_with_sfm``); every view's refined median, the
 unseen-image cameras included, has a column of its own. The cameras of a run go to
 ``<work>/cameras[_<overrides>][_v<views>][_renders-s<seed>][_<cameras>]`` (rerunning the same
-settings resumes there). With several ``--seed`` values every seed is rendered and reconstructed
+settings resumes there). With several seeds (``--seed 0,1,2``) every seed is rendered and reconstructed
 in turn and a last table gives, per class and seed, the SfM -> refined medians, their means and
 whether refinement is no worse than SfM at every seed (the small-class benchmark: ``--views 8``,
 32-80 views per class). ``--cameras level`` draws the renders' cameras from a level camera held
 above the ground (elevation mostly 0-30 degrees, up to 50; roll sd 2) instead of the renderer's
 default photo-like distribution.
 
-    python tools/viewpoints_cad.py [--views 30] [--seed 0 [1 2]] [--cameras photo|level] [--quiet]
+    python tools/viewpoints_cad.py [--views 30] [--seed 0[,1,2]] [--cameras photo|level] [--quiet]
                                    [--work outputs/viewpoints_cad] [--out PATH] [key=value ...]
 
 ``key=value`` are reconstruct overrides (``sfm_groups=3``, ``viewpoints.frame=symmetry+up``). The
@@ -178,12 +178,20 @@ def _seeds_table(runs: list, refined: list | None = None) -> tuple[str, dict]:
     return "\n".join(lines), out
 
 
+def _seeds(text: str) -> list:
+    """``"0,1,2"`` -> ``[0, 1, 2]`` (the ``--seed`` argument)."""
+    try:
+        return [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"seeds must be integers separated by commas, got {text!r}") from None
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--views", type=int, default=30, help="renders per CAD model (default 30)")
-    ap.add_argument("--seed", type=int, nargs="+", default=[0], help="render seeds (several: a table per class and "
-                                                                     "seed of the SfM and refined medians)")
+    ap.add_argument("--seed", type=_seeds, default=[0], help="render seed, or several comma-separated (0,1,2: a table "
+                                                             "per class and seed of the SfM and refined medians)")
     ap.add_argument("--cameras", choices=sorted(CAMERAS), default="photo", help="camera distribution of the renders")
     ap.add_argument("--refined-too", action="store_true", help="also run every seed with refine_keep=refined (the "
                                                                "refined cameras whatever they score) for the table")
