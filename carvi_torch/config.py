@@ -36,6 +36,7 @@ from .io.outputs import read_text
 from .marching import Mesher
 from .mesh import MeshFormat
 from .viewpoints import CameraSource
+from .viewpoints.choice import CameraKeep
 from .viewpoints.frame import FrameChoice
 
 __all__ = ["Config", "ConfigError", "load_config", "read_run_config", "settings_changed", "flatten_settings",
@@ -99,6 +100,11 @@ class ViewpointConfig:
     """Inner (camera / shape) alternations per outer iteration."""
     sfm_tol: float = 1e-7
     """Stop when the relative change of the visible-entry residual falls below this."""
+    sfm_template_start: bool = True
+    """Also start the class's SfM from its template of 3-D keypoints (the category's ``keypoints_3d``, else the
+    shipped PASCAL3D+ one of its name; ``viewpoints.frame``) and keep that solution when it places as many
+    objects with a visible-keypoint RMS residual lower by more than ``viewpoints.TEMPLATE_START_MARGIN``
+    (25%). Classes without a template and rotationally symmetric ones run one SfM."""
     sfm_groups: int = 1
     """Most rigid shapes per class (``carvi_torch.viewpoints.mixture``): a class whose members differ in
     proportions is split into groups, each with its own SfM shape, in one class frame. 1 = one mean
@@ -120,6 +126,13 @@ class ViewpointConfig:
     """Silhouette refinement of the SfM cameras (``False`` = the -CRef ablation)."""
     refine_iters: int = 150
     """Refinement steps at most."""
+    refine_keep: CameraKeep = "class"
+    """Which camera an object with an SfM camera keeps (``carvi_torch.viewpoints.choice``). A refined camera is
+    suspect when it raised the keypoint error by more than 1% of the mask's box diagonal while raising the
+    agreement of the mask with the projected mean shape's hull by less than 0.05. ``class``: the whole class
+    keeps its SfM cameras when more than half its refined cameras are suspect; ``objects``: every suspect
+    object keeps its SfM camera; ``refined``: always the refined one (the paper's). ``cameras.json`` says
+    which (``camera_choice``)."""
     silhouette_weight: float = 1.0
     """Weight of the distance-to-mask penalty against the keypoint reprojection error."""
     silhouette_robust: float = 0.2

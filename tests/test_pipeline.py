@@ -51,6 +51,14 @@ def test_outputs_exist(tiny):
             R = np.array(entry["refined"]["R"])
             assert abs(np.linalg.det(R) - 1) < 1e-4
             assert entry["camera_from"] == ("sfm" if entry["sfm"] is not None else "mean_shape")
+            # refine_keep=better: an object that keeps its SfM camera holds it as its final camera
+            if entry["sfm"] is None:
+                assert entry["camera_choice"] is None
+            if entry["camera_choice"] == "sfm":
+                np.testing.assert_allclose(R, np.array(entry["sfm"]["R"]), atol=1e-6)
+        kept = [e for e in cams["cameras"].values() if e["camera_choice"] == "sfm"]
+        assert rep["refine"]["kept_sfm"]["originals"] == len(kept)
+        assert {e["camera_choice"] for e in cams["cameras"].values() if e["sfm"] is not None} <= {"sfm", "refined"}
         for f in (out / cls / "voxels").glob("*.npz"):
             z = np.load(f)
             assert z["occupancy"].dtype == bool and z["occupancy"].any() and z["voxel_to_camera"].shape == (4, 4)

@@ -30,6 +30,50 @@ out=${2:-${OUT:-outputs/gpu}}
 py=${PYTHON:-python3}
 mkdir -p "$out"
 
+# ---- begin: small-class CAD benchmark, CPU against CUDA -------------------------------------
+#     bash tools/gpu_session.sh cad8 [OUTDIR]
+# Renders the PASCAL3D+ CAD models at 8 views per model (seed 2: the trains' template start),
+# reconstructs their cameras on the CPU and on CUDA (tools/viewpoints_cad.py, default settings)
+# and compares every object's final camera (degrees between the two), which start each class's
+# SfM kept and which camera each object kept (camera_choice). Needs ../shared/data/pascal3d_cad
+# (or CAD=path). Tolerance (docs/viewpoints.md): median angle <= 0.5 degrees per class.
+if [ "$step" = "cad8" ]; then
+    export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+    cad=${CAD:-../shared/data/pascal3d_cad}
+    status=0
+    for dev in cpu cuda; do
+        "$py" tools/viewpoints_cad.py --views 8 --seed 2 --quiet --cad "$cad" --work "$out/cad8" \
+            --out "$out/cad8_$dev.json" "device=$dev" 2>&1 | tee "$out/cad8_$dev.txt" || status=1
+    done
+    "$py" - "$out/cad8" <<'PYEOF' 2>&1 | tee "$out/cad8_agreement.txt" || status=1
+import json, math, sys
+from pathlib import Path
+import numpy as np
+work, worst = Path(sys.argv[1]), 0.0
+runs = {d: work / f"cameras_device-{d}_v8_renders-s2" for d in ("cpu", "cuda")}
+summ = {d: json.loads((p / "summary.json").read_text())["classes"] for d, p in runs.items()}
+for cls in sorted(summ["cpu"]):
+    cams = {d: json.loads((p / cls / "cameras.json").read_text())["cameras"] for d, p in runs.items()}
+    ang, choice = [], 0
+    for aid, c in cams["cpu"].items():
+        g = cams["cuda"].get(aid, {})
+        if c.get("refined") and g.get("refined"):
+            M = np.array(c["refined"]["R"]) @ np.array(g["refined"]["R"]).T
+            ang.append(math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(M) - 1) / 2)))))
+        choice += c.get("camera_choice") != g.get("camera_choice")
+    start = [summ[d][cls].get("sfm", {}).get("start", {}).get("kept") for d in ("cpu", "cuda")]
+    med = float(np.median(ang)) if ang else float("nan")
+    worst = max(worst, med)
+    print(f"{cls:12s} median {med:.3f} deg, max {max(ang, default=float('nan')):.2f} deg, camera_choice differs "
+          f"in {choice}, SfM start cpu/cuda {start[0]}/{start[1]}")
+print(f"largest class median {worst:.3f} deg: {'within' if worst <= 0.5 else 'OUTSIDE'} the 0.5 degree tolerance")
+sys.exit(0 if worst <= 0.5 else 1)
+PYEOF
+    echo "results in $out"
+    exit "$status"
+fi
+# ---- end: small-class CAD benchmark, CPU against CUDA ---------------------------------------
+
 case "$step" in
     all|tests|bench1000|bench9087|manyclasses) ;;
     *) echo "unknown step '$step' (all, tests, bench1000, bench9087, manyclasses)" >&2; exit 2 ;;

@@ -9,10 +9,16 @@ frame, +z up, front -y) and after one global rotation aligning the two
 automatic frame, which uses no template). SfM -> refined compares the same views (those with
 an SfM camera, ``evaluate``'s ``refined_with_sfm``); every view's refined median, the
 unseen-image cameras included, has a column of its own. The cameras of a run go to
-``<work>/cameras[_<overrides>][_v<views>][_renders-s<seed>]`` (rerunning the same settings resumes there).
+``<work>/cameras[_<overrides>][_v<views>][_renders-s<seed>][_<cameras>]`` (rerunning the same
+settings resumes there). With several seeds (``--seed 0,1,2``) every seed is rendered and reconstructed
+in turn and a last table gives, per class and seed, the SfM -> refined medians, their means and
+whether refinement is no worse than SfM at every seed (the small-class benchmark: ``--views 8``,
+32-80 views per class). ``--cameras level`` draws the renders' cameras from a level camera held
+above the ground (elevation mostly 0-30 degrees, up to 50; roll sd 2) instead of the renderer's
+default photo-like distribution.
 
-    python tools/viewpoints_cad.py [--views 30] [--seed 0] [--work outputs/viewpoints_cad]
-                                   [--out PATH] [key=value ...]
+    python tools/viewpoints_cad.py [--views 30] [--seed 0[,1,2]] [--cameras photo|level] [--quiet]
+                                   [--work outputs/viewpoints_cad] [--out PATH] [key=value ...]
 
 ``key=value`` are reconstruct overrides (``sfm_groups=3``, ``viewpoints.frame=symmetry+up``). The
 JSON record goes to ``--out``; by default, for the default settings (no override, seed 0), to
@@ -65,43 +71,15 @@ def _up_error(alignment: list) -> float:
     return round(math.degrees(math.acos(max(-1.0, min(1.0, alignment[2][2])))), 2)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--views", type=int, default=30, help="renders per CAD model (default 30)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--cad", default=str(ROOT / ".." / "shared" / "data" / "pascal3d_cad"))
-    ap.add_argument("--work", default=str(ROOT / "outputs" / "viewpoints_cad"), help="renders and cameras go here")
-    ap.add_argument("--out", default=None, help="JSON record (default: docs/data/viewpoints_cad.json for the "
-                                                "default settings, else beside the cameras in --work)")
-    ap.add_argument("overrides", nargs="*", metavar="key=value", help="extra reconstruct overrides")
-    args = ap.parse_args(argv)
-    cad = Path(args.cad)
-    if not cad.is_dir():
-        print(f"error: {cad} not found (the PASCAL3D+ CAD models in ../shared/data)", file=sys.stderr)
-        return 2
-    from carvi_torch.synthetic import load_models
-    from carvi_torch.synthetic.render import render_dataset
+#: Camera distributions of the renders (``render_dataset``'s ``camera_options``): ``photo`` the
+#: renderer's default (elevation N(12, 12) degrees in -20..75, roll sd 3); ``level`` a level camera
+#: held above the ground (elevation N(15, 12) in 0..50, roll sd 2): mostly 0-30 degrees, some up to 50.
+CAMERAS = {"photo": {}, "level": {"elevation_deg": (15.0, 12.0), "elevation_range_deg": (0.0, 50.0),
+                                  "roll_sd_deg": 2.0}}
 
-    work = Path(args.work)
-    renders = work / f"renders_v{args.views}_s{args.seed}"
-    t0 = time.perf_counter()
-    if not (renders / "annotations.json").is_file():
-        render_dataset(load_models(cad), renders, views=args.views, seed=args.seed, progress=True)
-    t_render = time.perf_counter() - t0
-    # one folder per render seed and set of overrides, so runs with different settings never mix their cameras
-    recon = work / ("cameras" + "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in o) for o in args.overrides)
-                    + (f"_v{args.views}" if args.views != 30 else "") + (f"_renders-s{args.seed}" if args.seed else ""))
-    cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(renders / "annotations.json"),
-           "--out", str(recon), "stage=cameras", "progress=false", f"seed={args.seed}", *args.overrides]
-    out = Path(args.out) if args.out else (ROOT / "docs" / "data" / "viewpoints_cad.json"
-                                           if not args.overrides and not args.seed else recon.with_suffix(".json"))
-    t1 = time.perf_counter()
-    subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
-    t_cams = time.perf_counter() - t1
-    from carvi_torch.evaluate import evaluate
 
-    res = evaluate(renders / "annotations.json", {"estimated": recon}, shapes=False, progress=False)
+def _rows(res: dict, recon: Path) -> list:
+    """One row per class of an evaluation of the run in ``recon`` (medians in degrees)."""
     rows = []
     for cls, per in sorted(res["viewpoints"].items()):
         rep = per.get("estimated", {})
@@ -109,6 +87,8 @@ def main(argv=None) -> int:
         if not ref:
             continue
         same = rep.get("refined_with_sfm", ref)  # the refinement's own before/after: the SfM objects
+        cj = json.loads((recon / cls / "cameras.json").read_text())
+        choice = [c.get("camera_choice") for c in cj["cameras"].values()]
         rows.append({
             "class": cls, "n": ref["geodesic"]["n"], "n_sfm": sfm.get("geodesic", {}).get("n", 0),
             "sfm_geodesic": sfm.get("geodesic", {}).get("median"),
@@ -117,14 +97,16 @@ def main(argv=None) -> int:
             "sfm_azimuth": sfm.get("azimuth", {}).get("median"), "refined_azimuth": same["azimuth"]["median"],
             "sfm_elevation": sfm.get("elevation", {}).get("median"), "refined_elevation": same["elevation"]["median"],
             "sfm_acc30": sfm.get("geodesic", {}).get("acc_at_30"), "refined_acc30": ref["geodesic"]["acc_at_30"],
-            "mirrored": bool(ref.get("mirrored")),
-            "frame": json.loads((recon / cls / "cameras.json").read_text()).get("frame"),
+            "mirrored": bool(ref.get("mirrored")), "frame": cj.get("frame"), "kept_sfm": choice.count("sfm"),
             "absolute_geodesic": ref["absolute"]["geodesic"]["median"],
             "absolute_azimuth": ref["absolute"]["azimuth"]["median"],
             "absolute_elevation": ref["absolute"]["elevation"]["median"],
             "up_error_deg": _up_error(ref["alignment"]),
         })
-    per_model = _per_model(renders / "annotations.json", res["viewpoints"])
+    return rows
+
+
+def _table(rows: list) -> str:
     f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
     lines = ["| class | views (with an SfM camera) | median geodesic SfM -> refined | median azimuth SfM -> refined | "
              "median elevation SfM -> refined | every view: refined median, acc@30 | frame mirrored | "
@@ -138,24 +120,128 @@ def main(argv=None) -> int:
                      f"{f(r['sfm_elevation'])} -> {f(r['refined_elevation'])} | {f(r['refined_geodesic'])}, "
                      f"{r['refined_acc30']:.2f} | {r['mirrored']} | {r['frame']} ({f(r['up_error_deg'])}) | "
                      f"{f(r['absolute_geodesic'])}, {f(r['absolute_azimuth'])}, {f(r['absolute_elevation'])} |")
-    table = "\n".join(lines)
-    print(table)
-    print("(SfM -> refined: the views with an SfM camera, before and after refinement; views without one take "
-          "their camera from the unseen-image path and count in the 'every view' column only)")
-    improved = sum(1 for r in rows
-                   if r["sfm_geodesic"] is not None and r["refined_geodesic_sfm_objects"] < r["sfm_geodesic"])
-    print(f"refinement lowers the median geodesic error in {improved} of {len(rows)} classes")
-    up_ok = sum(1 for r in rows if r["up_error_deg"] <= 10.0)
-    print(f"the written up axis lies within 10 degrees of the CAD +z in {up_ok} of {len(rows)} classes")
-    print(f"render {t_render:.1f} s, SfM + refinement of all classes {t_cams:.1f} s")
+    return "\n".join(lines)
+
+
+def _run(args, seed: int, overrides: list) -> dict:
+    """Render (once) and reconstruct the cameras of one seed with ``overrides``; its rows and timings."""
+    from carvi_torch.evaluate import evaluate
+    from carvi_torch.synthetic import load_models
+    from carvi_torch.synthetic.render import render_dataset
+
+    work = Path(args.work)
+    dist = "" if args.cameras == "photo" else f"_{args.cameras}"
+    renders = work / f"renders_v{args.views}_s{seed}{dist}"
+    t0 = time.perf_counter()
+    if not (renders / "annotations.json").is_file():
+        render_dataset(load_models(Path(args.cad)), renders, views=args.views, seed=seed, progress=not args.quiet,
+                       camera_options=CAMERAS[args.cameras])
+    t_render = time.perf_counter() - t0
+    # one folder per render seed and set of overrides, so runs with different settings never mix their cameras
+    recon = work / ("cameras" + "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in o) for o in overrides)
+                    + (f"_v{args.views}" if args.views != 30 else "") + (f"_renders-s{seed}" if seed else "") + dist)
+    cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(renders / "annotations.json"),
+           "--out", str(recon), "stage=cameras", "progress=false", f"seed={seed}", *overrides]
+    t1 = time.perf_counter()
+    subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+    t_cams = time.perf_counter() - t1
+    res = evaluate(renders / "annotations.json", {"estimated": recon}, shapes=False, progress=False)
+    return {"seed": seed, "recon": recon, "rows": _rows(res, recon),
+            "per_model": _per_model(renders / "annotations.json", res["viewpoints"]),
+            "render_seconds": round(t_render, 1), "cameras_seconds": round(t_cams, 1)}
+
+
+def _seeds_table(runs: list, refined: list | None = None) -> tuple[str, dict]:
+    """Per class and seed: the SfM and final (kept) medians (degrees, the views with an SfM camera), with
+    ``refined`` (the runs with ``refine_keep=refined``) the refined ones between them; the means over the
+    seeds, and whether the final median is no worse than the SfM one at every seed."""
+    f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
+    what = "SfM / refined / final" if refined else "SfM -> refined"
+    lines = ["| class | " + " | ".join(f"seed {r['seed']}: {what}" for r in runs) + f" | mean {what} | "
+             "final <= SfM at every seed |", "|---" * (len(runs) + 3) + "|"]
+    out = {}
+    for cls in [r["class"] for r in runs[0]["rows"]]:
+        rows = [next(x for x in run["rows"] if x["class"] == cls) for run in runs]
+        cols = {"sfm": [r["sfm_geodesic"] for r in rows], "final": [r["refined_geodesic_sfm_objects"] for r in rows]}
+        if refined:
+            cols["refined"] = [next(x for x in run["rows"] if x["class"] == cls)["refined_geodesic_sfm_objects"]
+                               for run in refined]
+        ok = all(s is None or r <= s for s, r in zip(cols["sfm"], cols["final"]))
+        mean = {k: sum(v for v in vs if v is not None) / max(1, sum(v is not None for v in vs))
+                for k, vs in cols.items()}
+        order = ["sfm", "refined", "final"] if refined else ["sfm", "final"]
+        sep = " / " if refined else " -> "
+        out[cls] = {**cols, **{f"mean_{k}": round(v, 2) for k, v in mean.items()}, "final_not_worse": ok,
+                    "kept_sfm": [r.get("kept_sfm") for r in rows]}
+        lines.append(f"| {cls} | " + " | ".join(sep.join(f(cols[k][i]) for k in order) for i in range(len(runs)))
+                     + f" | {sep.join(f(mean[k]) for k in order)} | {'yes' if ok else 'no'} |")
+    return "\n".join(lines), out
+
+
+def _seeds(text: str) -> list:
+    """``"0,1,2"`` -> ``[0, 1, 2]`` (the ``--seed`` argument)."""
+    try:
+        return [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"seeds must be integers separated by commas, got {text!r}") from None
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--views", type=int, default=30, help="renders per CAD model (default 30)")
+    ap.add_argument("--seed", type=_seeds, default=[0], help="render seed, or several comma-separated (0,1,2: a table "
+                                                             "per class and seed of the SfM and refined medians)")
+    ap.add_argument("--cameras", choices=sorted(CAMERAS), default="photo", help="camera distribution of the renders")
+    ap.add_argument("--refined-too", action="store_true", help="also run every seed with refine_keep=refined (the "
+                                                               "refined cameras whatever they score) for the table")
+    ap.add_argument("--quiet", action="store_true", help="no render progress bar")
+    ap.add_argument("--cad", default=str(ROOT / ".." / "shared" / "data" / "pascal3d_cad"))
+    ap.add_argument("--work", default=str(ROOT / "outputs" / "viewpoints_cad"), help="renders and cameras go here")
+    ap.add_argument("--out", default=None, help="JSON record (default: docs/data/viewpoints_cad.json for the "
+                                                "default settings, else beside the cameras in --work)")
+    ap.add_argument("overrides", nargs="*", metavar="key=value", help="extra reconstruct overrides")
+    args = ap.parse_args(argv)
+    if not Path(args.cad).is_dir():
+        print(f"error: {args.cad} not found (the PASCAL3D+ CAD models in ../shared/data)", file=sys.stderr)
+        return 2
+    runs = [_run(args, seed, args.overrides) for seed in args.seed]
+    refined = [_run(args, seed, [*args.overrides, "refine_keep=refined"]) for seed in args.seed] \
+        if args.refined_too else None
+    default = not args.overrides and args.seed == [0] and args.cameras == "photo"
+    out = Path(args.out) if args.out else (ROOT / "docs" / "data" / "viewpoints_cad.json" if default
+                                           else runs[0]["recon"].with_suffix(".json"))
+    record = {"command": " ".join(shlex.quote(a) for a in ["python", "tools/viewpoints_cad.py",
+                                                           *(argv if argv is not None else sys.argv[1:])]),
+              "views": args.views, "cameras": args.cameras}
+    for run in runs:
+        rows = run["rows"]
+        table = _table(rows)
+        print(f"seed {run['seed']}\n{table}")
+        print("(SfM -> refined: the views with an SfM camera, before and after refinement; views without one take "
+              "their camera from the unseen-image path and count in the 'every view' column only)")
+        improved = sum(1 for r in rows
+                       if r["sfm_geodesic"] is not None and r["refined_geodesic_sfm_objects"] < r["sfm_geodesic"])
+        up_ok = sum(1 for r in rows if r["up_error_deg"] <= 10.0)
+        print(f"refinement lowers the median geodesic error in {improved} of {len(rows)} classes")
+        print(f"the written up axis lies within 10 degrees of the CAD +z in {up_ok} of {len(rows)} classes")
+        print(f"render {run['render_seconds']:.1f} s, SfM + refinement of all classes {run['cameras_seconds']:.1f} s")
+        rec = {"seed": run["seed"], "rows": rows, "table": table, "refinement_lowers": improved,
+               "up_within_10deg": up_ok, "per_model": run["per_model"], "render_seconds": run["render_seconds"],
+               "cameras_seconds": run["cameras_seconds"]}
+        if len(runs) == 1:
+            record.update(rec)
+        else:
+            record.setdefault("seeds", []).append(rec)
+    if len(runs) > 1 or refined:
+        table, per_class = _seeds_table(runs, refined)
+        print(table)
+        record.update({"seeds_table": table, "per_class": per_class})
+        if refined:
+            record["refined_runs"] = [{"seed": r["seed"], "rows": r["rows"]} for r in refined]
     from carvi_torch.io.outputs import write_json
 
-    write_json(out, {"command": " ".join(shlex.quote(a) for a in ["python", "tools/viewpoints_cad.py",
-                                                                      *(argv if argv is not None else sys.argv[1:])]),
-                          "views": args.views, "seed": args.seed, "rows": rows, "table": table,
-                          "refinement_lowers": improved, "up_within_10deg": up_ok,
-                          "per_model": per_model,
-                          "render_seconds": round(t_render, 1), "cameras_seconds": round(t_cams, 1)})
+    write_json(out, record)
     print(f"wrote {out}")
     return 0
 

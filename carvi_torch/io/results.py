@@ -106,6 +106,7 @@ def _per_annotation(coll, vp, clusters, levels) -> dict:
     az, el, ro = azimuth_elevation_roll_from_rotation(refined.R.double())
     sfm_ok, has_cam = vp.sfm_valid[:n].tolist(), vp.has_camera[:n].tolist()  # one host read each
     unseen = vp.unseen_keypoints[:n].tolist()
+    kept = vp.kept_sfm[:n].tolist() if vp.kept_sfm is not None else None
     per = {}
     for i, aid in enumerate(coll.annotation_ids):
         per[str(aid)] = {
@@ -117,6 +118,8 @@ def _per_annotation(coll, vp, clusters, levels) -> dict:
             "cluster": int(clusters.labels[i]) if clusters is not None else None,
             "surrogates_from": levels[i] if levels is not None else None,
         }
+        if kept is not None:  # refine_keep class or objects: which of its two cameras the object keeps
+            per[str(aid)]["camera_choice"] = ("sfm" if kept[i] else "refined") if sfm_ok[i] and has_cam[i] else None
         if group_of is not None:
             per[str(aid)]["shape_group"] = group_of[i]
     return per

@@ -23,12 +23,14 @@ import torch
 from ..cameras import ScaledOrthographic
 from ..collection import ClassCollection
 from . import camera_fit
+from .choice import CameraChoice, choose_cameras
 from .mixture import MixtureResult
 
 if TYPE_CHECKING:
     from ..config import ViewpointConfig
 
-__all__ = ["rows", "group_sfm_cameras", "refine_with_shape", "refine_groups", "keypoints_left_out", "unseen_keypoints",
+__all__ = ["rows", "group_sfm_cameras", "refine_with_shape", "refine_groups", "choose_per_group", "keypoints_left_out",
+           "unseen_keypoints",
            "unseen_per_group", "cameras_from_mean_shape"]
 
 
@@ -98,6 +100,28 @@ def refine_groups(mix: MixtureResult, cams_sfm: ScaledOrthographic, both: ClassC
         return rr.cameras
 
     return _per_group(mix, cams_sfm, refine_group), energy
+
+
+def choose_per_group(mix: MixtureResult, cams_sfm: ScaledOrthographic, refined: ScaledOrthographic,
+                     both: ClassCollection, cfg: ViewpointConfig) -> CameraChoice:
+    """:func:`~carvi_torch.viewpoints.choice.choose_cameras` of every row under its group's mean shape (the
+    keypoints the refinement used), gathered into the ``2N`` rows (CPU tensors)."""
+    parts = []
+    for g in range(mix.k):
+        idx = _group_rows(mix, g)
+        sub = rows(both, idx)
+        S = camera_fit.supported_shape(mix.shape(g), sub.visible, cfg.refine_min_support)
+        parts.append((idx, choose_cameras(S, rows(cams_sfm, idx), rows(refined, idx), sub.keypoints, sub.visible,
+                                          sub.masks)))
+    if mix.k == 1:
+        return parts[0][1]
+    n = len(both)
+    out = CameraChoice(torch.zeros(n, dtype=torch.bool), *(torch.zeros(n, dtype=torch.float64) for _ in range(5)))
+    for idx, c in parts:
+        at = idx.cpu()
+        for name in ("suspect", "rms_sfm", "rms_refined", "hull_sfm", "hull_refined", "diagonal"):
+            getattr(out, name)[at] = getattr(c, name)
+    return out
 
 
 def keypoints_left_out(mix: MixtureResult, both: ClassCollection, cfg: ViewpointConfig) -> dict[str, list[str]]:

@@ -1,0 +1,170 @@
+"""Keep the better of an object's SfM and refined cameras, judged without ground truth.
+
+The refinement never raises its own energy (keypoints plus a one-sided silhouette term that only
+pulls the projected mean shape into the mask), so that energy cannot tell when a refined camera
+is worse than its SfM camera: with a mean shape that is not the object's own, the silhouette term
+can turn the camera until the shape fits inside the mask, at the cost of the keypoints. Two
+measures the refinement does not optimise judge the pair instead:
+
+* **keypoint growth**: how much the refinement raised the RMS reprojection error of the visible
+  keypoints, over the diagonal of the mask's bounding box;
+* **hull agreement**: the intersection over union of the mask and the convex hull of the projected
+  mean shape (a two-sided silhouette agreement: a shape turned to hide inside the mask covers
+  less of it).
+
+A refined camera is *suspect* when the keypoint growth exceeds :data:`KEYPOINT_GROWTH` and the hull
+agreement rises by less than :data:`HULL_GAIN`: it pays for its silhouette fit with the keypoints
+and gains little two-sided agreement. ``refine_keep="class"`` (the default) keeps the SfM cameras of
+the whole class when more than :data:`CLASS_SUSPECT` of its objects' refined cameras are suspect
+(the mean shape itself does not fit the class's silhouettes: the CAD trains at 8 views, 53-72% of their
+rows, against at most 27% in any other class); ``"objects"`` keeps each suspect object's SfM camera.
+
+Example:
+    >>> import torch
+    >>> from carvi_torch.cameras import ScaledOrthographic
+    >>> S = torch.tensor([[-10., -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]])
+    >>> cam = ScaledOrthographic(torch.eye(3)[None], torch.ones(1), torch.tensor([[16., 16.]]))
+    >>> mask = torch.zeros(1, 32, 32, dtype=torch.bool); mask[0, 6:27, 6:27] = True
+    >>> round(float(hull_agreement(S, cam, mask)[0]), 2)
+    1.0
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import torch
+
+from ..cameras import ScaledOrthographic
+
+__all__ = ["CameraKeep", "KEYPOINT_GROWTH", "HULL_GAIN", "CLASS_SUSPECT", "CameraChoice", "kept_rows",
+           "hull_agreement", "keypoint_rms",
+           "box_diagonal", "choose_cameras"]
+
+#: Which camera an object with an SfM camera keeps after refinement: ``refined`` (always the refined
+#: one, the paper's), ``class`` (the SfM cameras of a class most of whose refined cameras are suspect)
+#: or ``objects`` (the SfM camera of every object whose refined one is suspect); module docstring.
+CameraKeep = Literal["refined", "class", "objects"]
+
+#: A refined camera whose keypoint RMS error exceeds its SfM camera's by more than this fraction of
+#: the mask's box diagonal is suspect.
+KEYPOINT_GROWTH = 0.01
+#: ... and is replaced by the SfM camera unless its hull agreement is higher by at least this much.
+HULL_GAIN = 0.05
+#: ``refine_keep="class"``: the class keeps its SfM cameras when more than this fraction of its rows
+#: with an SfM camera have a suspect refined camera.
+CLASS_SUSPECT = 0.5
+
+
+@dataclass
+class CameraChoice:
+    """Per row (``(M,)`` each): ``suspect`` bool (the refined camera is suspect), the two cameras' keypoint
+    RMS errors (pixels), hull agreements (NaN where the keypoint error did not grow enough for them to
+    matter) and the box diagonal (pixels)."""
+
+    suspect: torch.Tensor
+    rms_sfm: torch.Tensor
+    rms_refined: torch.Tensor
+    hull_sfm: torch.Tensor
+    hull_refined: torch.Tensor
+    diagonal: torch.Tensor
+
+
+def _hull_mask(points: np.ndarray, size: int) -> np.ndarray:
+    """``(size, size)`` bool: the pixels whose centres lie in the convex hull of ``points (P, 2)`` (x, y)."""
+    from scipy.spatial import ConvexHull, QhullError
+    from skimage.draw import polygon
+
+    out = np.zeros((size, size), dtype=bool)
+    if len(points) < 3:
+        return out
+    try:
+        hull = points[ConvexHull(points).vertices]
+    except (QhullError, ValueError):
+        return out  # collinear or coincident points: no area
+    rr, cc = polygon(hull[:, 1], hull[:, 0], shape=(size, size))
+    out[rr, cc] = True
+    return out
+
+
+def hull_agreement(shape: torch.Tensor, cams: ScaledOrthographic, masks: torch.Tensor) -> torch.Tensor:
+    """Intersection over union of each mask and the convex hull of the projected ``shape``.
+
+    Args:
+        shape: ``(K, 3)`` (NaN rows are left out); cams: ``M`` cameras; masks: ``(M, C, C)`` bool.
+
+    Returns:
+        ``(M,)`` float64 in ``[0, 1]`` (0 where the hull or the union is empty).
+    """
+    keep = torch.isfinite(shape).all(-1)
+    P = cams.project(shape[keep].to(cams.R.dtype)).detach().double().cpu().numpy()  # (M, K', 2)
+    m = masks.detach().cpu().numpy()
+    out = np.zeros(len(m))
+    for i in range(len(m)):
+        h = _hull_mask(P[i], m.shape[-1])
+        union = np.count_nonzero(h | m[i])
+        out[i] = np.count_nonzero(h & m[i]) / union if union else 0.0
+    return torch.from_numpy(out)
+
+
+def keypoint_rms(shape: torch.Tensor, cams: ScaledOrthographic, keypoints: torch.Tensor,
+                 visible: torch.Tensor) -> torch.Tensor:
+    """``(M,)`` RMS distance (pixels) between the projected ``shape (K, 3)`` and the visible ``keypoints
+    (M, K, 2)`` with a finite shape row; 0 for a row with none."""
+    ok = (visible & torch.isfinite(shape).all(-1) & torch.isfinite(keypoints).all(-1)).to(cams.R.dtype)
+    P = cams.project(torch.nan_to_num(shape).to(cams.R.dtype))
+    d2 = ((P - torch.nan_to_num(keypoints).to(P.dtype)) ** 2).sum(-1) * ok
+    return (d2.sum(-1) / ok.sum(-1).clamp(min=1)).sqrt()
+
+
+def box_diagonal(masks: torch.Tensor) -> torch.Tensor:
+    """``(M,)`` diagonal (pixels) of each mask's bounding box (1 for an empty mask)."""
+    ys = torch.arange(masks.shape[1], device=masks.device, dtype=torch.float64)
+    xs = torch.arange(masks.shape[2], device=masks.device, dtype=torch.float64)
+    rows, cols = masks.any(2), masks.any(1)
+    big = torch.tensor(float("inf"), dtype=torch.float64, device=masks.device)
+    h = torch.where(rows, ys, -big).amax(-1) - torch.where(rows, ys, big).amin(-1) + 1
+    w = torch.where(cols, xs, -big).amax(-1) - torch.where(cols, xs, big).amin(-1) + 1
+    d = torch.hypot(h, w)
+    return torch.where(torch.isfinite(d), d, torch.ones_like(d))
+
+
+def choose_cameras(shape: torch.Tensor, sfm: ScaledOrthographic, refined: ScaledOrthographic,
+                   keypoints: torch.Tensor, visible: torch.Tensor, masks: torch.Tensor) -> CameraChoice:
+    """Score every row's SfM and refined cameras under ``shape (K, 3)`` and say which refined ones are suspect.
+
+    Args:
+        sfm, refined: ``M`` cameras each (canvas pixels); keypoints ``(M, K, 2)``; visible ``(M, K)``;
+        masks ``(M, C, C)`` bool.
+    """
+    rms_s, rms_r = (keypoint_rms(shape, c, keypoints, visible).double().cpu() for c in (sfm, refined))
+    diag = box_diagonal(masks).cpu()
+    grew = rms_r - rms_s > KEYPOINT_GROWTH * diag
+    hull_s = torch.full_like(rms_s, float("nan"))
+    hull_r = hull_s.clone()
+    idx = grew.nonzero().squeeze(1)  # the hulls only matter where the keypoint error grew (they cost ~1 ms a row)
+    if idx.numel():
+        on = idx.to(masks.device)
+        hull_s[idx] = hull_agreement(shape, sfm[on], masks[on])
+        hull_r[idx] = hull_agreement(shape, refined[on], masks[on])
+    suspect = grew & (hull_r - hull_s < HULL_GAIN)
+    return CameraChoice(suspect, rms_s, rms_r, hull_s, hull_r, diag)
+
+
+def kept_rows(suspect: torch.Tensor, has_sfm: torch.Tensor, how: CameraKeep) -> torch.Tensor:
+    """``(M,)`` bool: the rows that keep their SfM camera, from the suspect rows ``(M,)`` among those with an
+    SfM camera ``has_sfm (M,)``.
+
+    Example:
+        >>> s, h = torch.tensor([True, True, False, False]), torch.tensor([True, True, True, False])
+        >>> kept_rows(s, h, "objects").tolist(), kept_rows(s, h, "class").tolist()
+        ([True, True, False, False], [True, True, True, False])
+    """
+    suspect = suspect & has_sfm
+    if how == "refined":
+        return torch.zeros_like(suspect)
+    if how == "objects":
+        return suspect
+    n = int(has_sfm.sum())
+    return has_sfm.clone() if n and int(suspect.sum()) > CLASS_SUSPECT * n else torch.zeros_like(suspect)
