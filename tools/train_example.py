@@ -54,7 +54,7 @@ def targets(batch):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--export", help="export directory (default: build one from the embedded collection)")
+    ap.add_argument("--export", help="export (zarr store) directory (default: build one from the embedded collection)")
     ap.add_argument("--epochs", type=int, default=8)
     ap.add_argument("--batch-size", type=int, default=32)
     ap.add_argument("--workers", type=int, default=2)
@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.manual_seed(args.seed)
     export = Path(args.export) if args.export else ROOT / "outputs" / "train_example" / "export"
-    if not (export / "index.json").is_file():
+    if not (export / "zarr.json").is_file():  # the zarr store of python -m carvi_torch.export
         recon = export.parent / "recon"
         print(f"no export at {export}: reconstructing the embedded collection into {recon}")
         subprocess.run([sys.executable, "-m", "carvi_torch.reconstruct", "--out", str(recon), "preview=false"],
