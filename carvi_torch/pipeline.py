@@ -28,7 +28,8 @@ from .collection import ClassCollection
 from .config import Config
 from .io.layout import class_dir, finished, object_file
 from .io.outputs import read_json, write_json
-from .io.results import ClassReport, cameras_json, canonical_image_cameras, scores_entry, write_scores
+from .io.results import (ClassReport, cameras_json, canonical_image_cameras, quality_summary, reconstruction_signals,
+                         scores_entry, write_scores)
 from .io.writer import Writer, canvas_to_image_4x4, id_array, proposals_payload
 from .runtime import StageTimer, log
 from .sdf import signed_distance
@@ -196,7 +197,10 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     done = _done(coll, cfg, cdir, out)
     if out is not None:
         plan.levels = _resumed_levels(cdir, coll, plan.levels, done)
-        write_json(cdir / "cameras.json", cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels))
+        cams = cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels,
+                            reconstruction_signals(cdir, [a for a, d in zip(coll.annotation_ids, done) if d]))
+        write_json(cdir / "cameras.json", cams)
+        report.info["quality"] = quality_summary(cams["cameras"])
     if cfg.stage == "cameras":
         report.status = "cameras"
         return None, [], report
@@ -249,7 +253,7 @@ def _job(sel: select.Selection, j: int, i: int, sur, plan: ClassPlan, cfg: Confi
                 proposals_path=str(object_file(plan.cdir, "proposals", aid)),
                 proposals=(proposals_payload(sel, j, sur, canvas_to_image, aid_of)
                            if cfg.study.save_proposals and best >= 0 else None),
-                largest_component=cfg.mesh.largest_component)
+                largest_component=cfg.mesh.largest_component, mask=plan.coll.masks[i].cpu().numpy())
 
 
 def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config, report: ClassReport,
@@ -349,16 +353,17 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
 
 
 def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport) -> None:
-    """Where every object's proposals came from (summary; cameras.json again when a puffball was needed),
-    and the merged proposal scores (studies)."""
+    """Where every object's proposals came from (summary), cameras.json again with every object's quality
+    (its reconstruction is known now), and the merged proposal scores (studies)."""
     levels = plan.surrogates.levels
     used = [lv for lv in surrogates.LEVELS if lv in levels]
     report.info["surrogates_from"] = {
         "counts": {lv: levels.count(lv) for lv in used},
         "fallbacks": {lv: [a for a, x in zip(plan.aids, levels) if x == lv] for lv in used
                       if lv not in ("triplet", "rotated_views")}}
-    if "puffball" in levels:
-        vp, sp = plan.viewpoints, plan.surrogates
-        write_json(plan.cdir / "cameras.json", cameras_json(plan.coll, vp, sp.axes, sp.clusters, levels))
+    vp, sp = plan.viewpoints, plan.surrogates
+    cams = cameras_json(plan.coll, vp, sp.axes, sp.clusters, levels, reconstruction_signals(plan.cdir, plan.aids))
+    write_json(plan.cdir / "cameras.json", cams)
+    report.info["quality"] = quality_summary(cams["cameras"])
     if cfg.study.keep_all_scores:
         write_scores(plan.cdir, plan.aids, cfg.overwrite)

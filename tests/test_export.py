@@ -72,8 +72,13 @@ def test_store_opens_with_zarr_alone(exported):
 
 
 def test_round_trip_matches_reconstruction(recon, exported):
-    """What the dataset returns equals what the reconstruction wrote."""
+    """What the dataset returns equals what the reconstruction wrote, quality included (also summarised
+    per class in summary.json)."""
     out, index = exported
+    summary = json.loads((recon / "summary.json").read_text())["classes"]
+    for c in ("car", "chair"):
+        assert summary[c]["quality"]["count"] == summary[c]["reconstructed"]
+        assert 0 <= summary[c]["quality"]["p10"] <= summary[c]["quality"]["median"] <= summary[c]["quality"]["p90"] <= 1
     ds = LiftedDataset(out)
     assert len(ds) == len(index["samples"]) >= 8
     for i in range(len(ds)):
@@ -83,8 +88,9 @@ def test_round_trip_matches_reconstruction(recon, exported):
         cams = json.loads((recon / cls / "cameras.json").read_text())["cameras"][str(aid)]
         assert np.allclose(item["R"].numpy(), cams["refined"]["R"], atol=1e-5)
         assert np.isclose(float(item["s"]), cams["refined"]["s"])
-        q = cams.get("quality")
-        assert (np.isnan(float(item["quality"])) if q is None else np.isclose(float(item["quality"]), q))
+        q = cams["quality"]  # every object with a camera has one, with the signals it combines
+        assert 0.0 <= q <= 1.0 and np.isclose(float(item["quality"]), q) and "reconstruction_iou" in cams[
+            "quality_signals"]
         z = np.load(recon / cls / "voxels" / f"{aid}.npz")
         assert np.isclose(float(item["canvas_scale"]), float(z["canvas_scale"]))
         assert item["points"].dtype == torch.float32 and item["depth"].dtype == torch.float32
