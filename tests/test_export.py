@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+
 from scipy import ndimage
+from scipy.spatial import ConvexHull
 from torch.utils.data import DataLoader
 
 from carvi_torch.config import Config
@@ -336,3 +338,33 @@ def test_missing_and_partial_objects_reported(recon, tmp_path, capsys):
     assert int(vox[0].stem) in reasons and "no voxels" in reasons[int(vox[0].stem)]
     assert int(vox[1].stem) in reasons and "unreadable" in reasons[int(vox[1].stem)]
     assert "skipped" in capsys.readouterr().out
+
+
+def test_cmr_and_ucmr_files_round_trip(recon, tmp_path):
+    """The .mat reads as CMR reads it; every pose puts the normalised mean shape where our camera puts the
+    mean shape (trans 1-based); conv_tri (1-based) closes the hull of S; the JSON's sfmpose is the same pose."""
+    import scipy.io
+    from scipy.spatial.transform import Rotation
+
+    assert export_main(["--recon", str(recon), "--out", str(tmp_path / "cmr"), "--format", "cmr"]) == 0
+    assert export_main(["--recon", str(recon), "--out", str(tmp_path / "ucmr"), "--format", "ucmr"]) == 0
+    for c in ("car", "chair"):
+        m = scipy.io.loadmat(tmp_path / "cmr" / f"{c}.mat", struct_as_record=False, squeeze_me=True)
+        cams = json.loads((recon / c / "cameras.json").read_text())
+        names = list(m["kp_names"])
+        X = np.array([cams["mean_shape"][n] for n in names], dtype=np.float64)  # (K, 3), every row known here
+        S = m["S"].T
+        assert np.isclose(np.max(np.linalg.norm(S[:, None] - S[None], axis=-1)), 2.0) and np.allclose(S.mean(0), 0)
+        hull = trimesh.Trimesh(S, m["conv_tri"].astype(int) - 1, process=False)
+        assert hull.is_watertight and np.isclose(abs(hull.volume), ConvexHull(S).volume)
+        js = json.loads((tmp_path / "ucmr" / f"{c}.json").read_text())
+        assert len(m["sfm_anno"]) == len(js["images"]) == len(cams["cameras"])
+        for a, aid, rec in zip(m["sfm_anno"], m["annotation_ids"], js["images"]):
+            cam = cams["cameras"][str(aid)]["refined"]
+            ours = cam["s"] * X @ np.array(cam["R"])[:2].T + np.array(cam["t"])
+            theirs = a.scale * S @ a.rot[:2].T + a.trans - 1.0
+            assert np.allclose(theirs, ours, atol=1e-6) and a.err_sfm_reproj >= 0
+            s, t, q = rec["sfmpose"]
+            assert str(rec["annotation_id"]) == str(aid) and np.isclose(s, a.scale) and np.allclose(t, a.trans)
+            Rq = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()  # (w, x, y, z) -> scipy's (x, y, z, w)
+            assert np.allclose(Rq, a.rot, atol=1e-6) and q[0] >= 0
