@@ -4,7 +4,12 @@ Signals (each computed where the information exists, ``None`` otherwise):
 
 - ``keypoint_residual``: RMS distance between the object's visible keypoints and the final camera's
   projection of the mean shape (of the object's shape group), as a fraction of the canvas side.
-- ``silhouette_inside``: fraction of the projected mean-shape keypoints that land inside the mask.
+- ``visible_keypoints``: how many keypoints the object shows (what SfM had to go on).
+- ``refinement_deg``: angle (degrees) by which silhouette refinement turned the SfM camera (a large
+  turn: keypoints and silhouette disagreed).
+- ``rotational``: the class is rotationally symmetric (its viewpoint about the axis is a guess).
+- ``silhouette_inside``: fraction of the projected mean-shape keypoints that land inside the mask
+  (recorded, not combined: it did not rank the errors, see docs/export.md).
 - ``mirror_deg``: angle (degrees) between the camera of the object and the camera of its mirrored
   copy mirrored back (``diag(-1, 1, 1) R P`` with ``P`` the symmetry plane): the two are estimated
   separately, so their disagreement is a self-consistency check of the viewpoint.
@@ -30,10 +35,15 @@ import math
 
 import numpy as np
 
-__all__ = ["camera_signals", "reconstruction_iou", "combine", "SCALES", "CAMERA_FROM", "FALLBACK"]
+__all__ = ["camera_signals", "reconstruction_iou", "combine", "SCALES", "CAMERA_FROM", "FALLBACK", "VISIBLE_HALF",
+           "ROTATIONAL"]
 
-#: Value of each continuous signal at which its factor is 1/2.
-SCALES = {"keypoint_residual": 0.03, "mirror_deg": 25.0}
+#: Value of each continuous signal at which its factor ``1 / (1 + (v / scale)^2)`` is 1/2.
+SCALES = {"keypoint_residual": 0.04, "refinement_deg": 5.0, "mirror_deg": 25.0}
+#: ``visible_keypoints`` enter as ``n / (n + VISIBLE_HALF)``.
+VISIBLE_HALF = 8.0
+#: Factor of a rotationally symmetric class.
+ROTATIONAL = 0.5
 #: Factor per camera source (the unseen-image paths guess more).
 CAMERA_FROM = {"sfm": 1.0, "ground_truth": 1.0, "mean_shape": 0.6, "silhouette": 0.3}
 #: Factor per surrogate level; levels not named here (the intermediate fallbacks) take ``FALLBACK["other"]``.
@@ -49,8 +59,9 @@ def _geodesic_deg(A, B):
 
 
 def camera_signals(coll, vp) -> list[dict]:
-    """Per original object of the class, ``keypoint_residual``, ``silhouette_inside`` and ``mirror_deg``
-    (``None`` where the object has no camera, no visible keypoint, or no mirrored camera).
+    """Per original object of the class, ``keypoint_residual``, ``silhouette_inside``, ``mirror_deg``,
+    ``visible_keypoints``, ``refinement_deg`` and ``rotational`` (``None`` where the object has no camera,
+    no visible keypoint, no mirrored camera, or no SfM camera; ``refinement_deg`` also for true cameras).
 
     Args:
         coll: the class (``N`` originals, canvas pixels); vp: its
@@ -67,6 +78,9 @@ def camera_signals(coll, vp) -> list[dict]:
     masks = coll.masks.cpu()
     C = masks.shape[-1]
     has = vp.has_camera.cpu()
+    sfm_ok = vp.sfm_valid[:n].cpu()
+    turn = _geodesic_deg(vp.sfm_cameras.R[:n].double().cpu(), R).tolist()
+    rotational = getattr(getattr(coll, "meta", None), "symmetry", "none") == "rotational"
     mirror = [None] * n
     if vp.mirrored and vp.reflection is not None:
         flip = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
@@ -76,7 +90,8 @@ def camera_signals(coll, vp) -> list[dict]:
     out = []
     for i in range(n):
         if not bool(has[i]):
-            out.append({"keypoint_residual": None, "silhouette_inside": None, "mirror_deg": None})
+            out.append({"keypoint_residual": None, "silhouette_inside": None, "mirror_deg": None,
+                        "visible_keypoints": int(vis[i].sum()), "refinement_deg": None, "rotational": rotational})
             continue
         S = shapes[labels[i]]
         ok = torch.isfinite(S).all(1)
@@ -91,7 +106,10 @@ def camera_signals(coll, vp) -> list[dict]:
         inside = torch.zeros(len(px), dtype=torch.bool)
         inside[inb] = masks[i][px[inb, 1], px[inb, 0]]
         out.append({"keypoint_residual": res, "silhouette_inside": float(inside.float().mean()) if len(px) else None,
-                    "mirror_deg": mirror[i]})
+                    "mirror_deg": mirror[i], "visible_keypoints": int(vis[i].sum()),
+                    "refinement_deg": turn[i] if bool(sfm_ok[i]) and math.isfinite(turn[i])
+                    and getattr(vp, "source", "estimate") != "gt" else None,
+                    "rotational": rotational})
     return out
 
 
@@ -135,12 +153,14 @@ def combine(signals: dict) -> float:
         v = signals.get(key)
         if v is not None and math.isfinite(v):
             q *= _half_at(v, scale)
-    inside = signals.get("silhouette_inside")
-    if inside is not None:
-        q *= max(0.05, inside) ** 2
+    n = signals.get("visible_keypoints")
+    if n is not None:
+        q *= n / (n + VISIBLE_HALF)
+    if signals.get("rotational"):
+        q *= ROTATIONAL
     iou = signals.get("reconstruction_iou")
     if iou is not None:
-        q *= max(0.05, iou) ** 2
+        q *= max(0.05, iou)
     src = signals.get("camera_from")
     if src is not None:
         q *= CAMERA_FROM.get(src, 0.3)

@@ -57,6 +57,7 @@ class ZarrReader:
                 self.samples.append({"class": c, "row": row, "annotation_id": ga["annotation_ids"][row],
                                      "source": ga["sources"][row], "quality": float(q[row])})
         self._group = None
+        self._arrays: dict[tuple[str, str], object] = {}  # opened once per process: metadata is read once
         self._offsets: dict[str, np.ndarray] = {}
 
     def _open(self):
@@ -68,23 +69,28 @@ class ZarrReader:
 
     def __getstate__(self):  # arrays are reopened in each worker
         state = dict(self.__dict__)
-        state["_group"] = None
+        state["_group"], state["_arrays"] = None, {}
         return state
+
+    def _array(self, cls: str, field: str):
+        arr = self._arrays.get((cls, field))
+        if arr is None:
+            if self._group is None:
+                self._group = self._open()
+            arr = self._arrays[(cls, field)] = self._group[cls][field]
+        return arr
 
     def read(self, g: int, field: str) -> np.ndarray:
         """Field ``field`` of global sample ``g`` (one chunk read; the ragged mesh fields: a row range)."""
-        if self._group is None:
-            self._group = self._open()
         s = self.samples[g]
-        grp = self._group[s["class"]]
         try:
             if field.startswith("mesh_"):
                 off = self._offsets.get(s["class"])
                 if off is None:
-                    off = self._offsets[s["class"]] = grp["mesh_offsets"][:]
+                    off = self._offsets[s["class"]] = self._array(s["class"], "mesh_offsets")[:]
                 col = 0 if field == "mesh_vertices" else 1
-                return np.asarray(grp[field][int(off[s["row"], col]):int(off[s["row"] + 1, col])])
-            return np.asarray(grp[field][s["row"]])
+                return np.asarray(self._array(s["class"], field)[int(off[s["row"], col]):int(off[s["row"] + 1, col])])
+            return np.asarray(self._array(s["class"], field)[s["row"]])
         except Exception as e:  # noqa: BLE001 - name the array that failed
             raise OSError(f"{self.root}/{s['class']}/{field}: unreadable chunk of sample {s['row']} "
                           f"({type(e).__name__}: {e})") from None

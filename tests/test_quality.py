@@ -36,21 +36,23 @@ def test_reconstruction_iou_against_a_pixel_loop():
 
 
 def test_combine_is_monotone_and_bounded():
-    base = {"keypoint_residual": 0.01, "silhouette_inside": 0.9, "mirror_deg": 5.0, "camera_from": "sfm",
-            "reconstruction_iou": 0.9, "surrogates_from": "triplet"}
+    base = {"keypoint_residual": 0.01, "visible_keypoints": 6, "refinement_deg": 2.0, "mirror_deg": 5.0,
+            "camera_from": "sfm", "reconstruction_iou": 0.9, "surrogates_from": "triplet"}
     q0 = combine(base)
     assert 0 < q0 < 1
-    worse = [("keypoint_residual", 0.05), ("silhouette_inside", 0.5), ("mirror_deg", 40.0),
-             ("camera_from", "silhouette"), ("reconstruction_iou", 0.5), ("surrogates_from", "puffball")]
+    worse = [("keypoint_residual", 0.05), ("visible_keypoints", 3), ("refinement_deg", 10.0), ("mirror_deg", 40.0),
+             ("camera_from", "silhouette"), ("reconstruction_iou", 0.5), ("surrogates_from", "puffball"),
+             ("rotational", True)]
     for key, value in worse:
         assert combine({**base, key: value}) < q0, key
-    assert combine({}) == 1.0 and combine({**base, "silhouette_inside": 0.0, "reconstruction_iou": 0.0}) >= 0.0
+    assert combine({}) == 1.0 and combine({**base, "reconstruction_iou": 0.0}) >= 0.0
+    assert combine({**base, "silhouette_inside": 0.0}) == q0  # recorded, not combined
 
 
 def test_camera_signals_measure_residual_silhouette_and_mirror_disagreement():
     """Two objects: the first seen exactly (its keypoints on the projections, inside its mask, its mirrored
-    copy's camera the mirror of its own); the second with keypoints 3 px off, an empty mask and a mirrored
-    camera turned 10 degrees."""
+    copy's camera the mirror of its own, its SfM camera the same); the second with keypoints 3 px off, an
+    empty mask, a mirrored camera turned 10 degrees and an SfM camera turned 7 degrees."""
     g = torch.Generator().manual_seed(1)
     S = torch.randn(4, 3, generator=g, dtype=torch.float64)
     S = torch.cat([S, S * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)])  # left/right pairs
@@ -66,14 +68,24 @@ def test_camera_signals_measure_residual_silhouette_and_mirror_disagreement():
     kp[1] += 3.0 / math.sqrt(2)
     masks = torch.zeros(2, 64, 64, dtype=torch.bool)
     masks[0] = True
-    coll = type("Coll", (), {"keypoints": kp, "visible": torch.ones(2, 8, dtype=torch.bool), "masks": masks,
+    vis = torch.ones(2, 8, dtype=torch.bool)
+    vis[1, :3] = False
+    kp[1, :3] = 0.0
+    coll = type("Coll", (), {"keypoints": kp, "visible": vis, "masks": masks, "meta": SimpleNamespace(symmetry="none"),
                              "__len__": lambda self: 2})()
-    vp = SimpleNamespace(cameras=cams, groups=SimpleNamespace(k=1), shape=S, has_camera=torch.ones(4, dtype=torch.bool),
-                         mirrored=True, reflection=P)
+    Rs = R.clone()
+    Rs[1] = axis_angle_to_rotation(torch.tensor([math.radians(7.0), 0.0, 0.0], dtype=torch.float64)) @ R[1]
+    sfm = ScaledOrthographic(torch.cat([Rs, Rm]), cams.s, cams.t)
+    vp = SimpleNamespace(cameras=cams, sfm_cameras=sfm, sfm_valid=torch.ones(4, dtype=torch.bool),
+                         groups=SimpleNamespace(k=1), shape=S, has_camera=torch.ones(4, dtype=torch.bool),
+                         mirrored=True, reflection=P, source="estimate")
     sig = camera_signals(coll, vp)
     assert sig[0]["keypoint_residual"] == pytest.approx(0.0, abs=1e-12)
     assert sig[1]["keypoint_residual"] == pytest.approx(3.0 / 64, rel=1e-9)
     assert sig[0]["silhouette_inside"] == 1.0 and sig[1]["silhouette_inside"] == 0.0
     assert sig[0]["mirror_deg"] == pytest.approx(0.0, abs=1e-5)
     assert sig[1]["mirror_deg"] == pytest.approx(10.0, abs=1e-6)
+    assert sig[0]["refinement_deg"] == pytest.approx(0.0, abs=1e-5)
+    assert sig[1]["refinement_deg"] == pytest.approx(7.0, abs=1e-6)
+    assert (sig[0]["visible_keypoints"], sig[1]["visible_keypoints"]) == (8, 5) and not sig[0]["rotational"]
     assert combine(sig[1]) < combine(sig[0])

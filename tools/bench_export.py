@@ -46,12 +46,13 @@ print(json.dumps({"samples": len(ds), "seconds": dt,
 """
 
 
-def _tree_rss_mb(pid: int) -> float | None:
-    """Resident memory (MB) of ``pid`` and all its descendants (Linux /proc; None elsewhere)."""
+def _tree_rss_mb(pid: int, cpu: dict | None = None) -> float | None:
+    """Resident memory (MB) of ``pid`` and all its descendants (Linux /proc; None elsewhere); ``cpu`` gets
+    each process's CPU seconds so far (user + system), by pid."""
     proc = Path("/proc")
     if not proc.is_dir():
         return None
-    parent, rss = {}, {}
+    parent, rss, ticks = {}, {}, {}
     for d in proc.iterdir():
         if not d.name.isdigit():
             continue
@@ -60,6 +61,7 @@ def _tree_rss_mb(pid: int) -> float | None:
             fields = stat[stat.rindex(")") + 2:].split()
             parent[int(d.name)] = int(fields[1])
             rss[int(d.name)] = int(fields[21]) * os.sysconf("SC_PAGE_SIZE")
+            ticks[int(d.name)] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
         except (OSError, ValueError, IndexError):
             continue
     tree, frontier = {pid}, [pid]
@@ -68,18 +70,22 @@ def _tree_rss_mb(pid: int) -> float | None:
         kids = [c for c, pp in parent.items() if pp == p and c not in tree]
         tree.update(kids)
         frontier.extend(kids)
+    if cpu is not None:
+        for p in tree:
+            cpu[p] = max(cpu.get(p, 0.0), ticks.get(p, 0.0))
     return sum(rss.get(p, 0) for p in tree) / 2 ** 20
 
 
-def _timed(cmd: list[str]) -> tuple[float, float | None, str]:
-    """Wall seconds, peak memory of the process tree (sampled every 50 ms), stdout."""
+def _timed(cmd: list[str], cpu: dict | None = None) -> tuple[float, float | None, str]:
+    """Wall seconds, peak memory of the process tree (sampled every 50 ms), stdout; ``cpu``: CPU seconds
+    per process of the tree (as last sampled)."""
     t = time.perf_counter()
     p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     peak = [0.0]
 
     def watch():
         while p.poll() is None:
-            m = _tree_rss_mb(p.pid)
+            m = _tree_rss_mb(p.pid, cpu)
             if m is not None:
                 peak[0] = max(peak[0], m)
             time.sleep(0.05)
@@ -134,7 +140,9 @@ def main(argv=None) -> int:
     cmd = [py, "-m", "carvi_torch.export", "--recon", str(recon), "--out", str(exp), "--quiet"]
     cmd += ["--workers", str(args.workers)] if args.workers is not None else []
     load0 = os.getloadavg()[0]
-    t_exp, peak_exp, _ = _timed(cmd)
+    cpu: dict = {}
+    t_exp, peak_exp, _ = _timed(cmd, cpu)
+    cpu_s = sum(cpu.values())
     import zarr
 
     attrs = zarr.open_group(str(exp), mode="r").attrs["carvi_export"]
@@ -162,6 +170,8 @@ def main(argv=None) -> int:
         print("  ".join(v.ljust(widths[i]) for i, v in enumerate(r)))
     print("bytes per object by field: " + ", ".join(f"{k} {v / max(n, 1):.0f}" for k, v in
                                                     sorted(sizes.items(), key=lambda kv: -kv[1])))
+    print(f"export CPU time (process tree, user + system): {cpu_s:.1f} s = {1000 * cpu_s / max(n, 1):.1f} ms/object, "
+          f"so at most {2 * n / cpu_s:.0f} objects/s on 2 idle cores (start-up included)")
     print(f"{os.cpu_count()} cores; load average {load0:.1f} before the export, {os.getloadavg()[0]:.1f} after")
     from carvi_torch.io.outputs import write_json
 
@@ -169,6 +179,7 @@ def main(argv=None) -> int:
         "command": "python tools/bench_export.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:])),
         "objects": n, "export_seconds": round(t_exp, 2), "export_objects_per_second": round(n / t_exp, 2),
         "export_peak_tree_rss_mb": round(peak_exp) if peak_exp else None,
+        "export_cpu_seconds": round(cpu_s, 2), "export_cpu_ms_per_object": round(1000 * cpu_s / max(n, 1), 2),
         "bytes_per_object": round(per_obj), "bytes_per_object_by_field": {k: round(v / max(n, 1)) for k, v in
                                                                           sorted(sizes.items())},
         "read_samples_per_second_1_worker_all_fields": round(reads["all"]["samples"] / reads["all"]["seconds"]),

@@ -24,7 +24,8 @@ __all__ = ["spearman", "quality_vs_error", "format_quality_table"]
 
 #: Signals whose Spearman rho is reported beside quality's (numeric ones; higher = better for none of them
 #: in particular: the sign says).
-SIGNALS = ("keypoint_residual", "silhouette_inside", "mirror_deg", "reconstruction_iou")
+SIGNALS = ("keypoint_residual", "visible_keypoints", "refinement_deg", "silhouette_inside", "mirror_deg",
+           "reconstruction_iou")
 
 
 def spearman(x, y) -> dict:
