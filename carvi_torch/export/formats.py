@@ -40,6 +40,7 @@ from scipy.spatial import ConvexHull, distance
 
 from ..io.coco import load_coco
 from ..io.outputs import atomic_write, read_json, write_json
+from .source import data_path, recon_config
 
 __all__ = ["normalised_shape", "cmr_pose", "export_format", "class_records", "quaternion_wxyz"]
 
@@ -145,11 +146,9 @@ def _write_ucmr(path: Path, cname: str, recs: list, S: np.ndarray, hull: np.ndar
 def export_format(recon: str | Path, out: str | Path, fmt: str, classes=None) -> list[Path]:
     """Write one ``cmr`` ``.mat`` or ``ucmr`` ``.json`` file per reconstructed class of ``recon`` into
     ``out``; returns the files written."""
-    from .run import _data_path, _recon_config
-
     recon, out = Path(recon), Path(out)
-    cfg = _recon_config(recon)
-    loaded = load_coco(_data_path(recon, cfg), canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
+    cfg = recon_config(recon)
+    loaded = load_coco(data_path(recon, cfg), canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
                        classes=classes)
     written = []
     for cname in sorted(c for c in loaded.collections if (recon / c / "cameras.json").is_file()):

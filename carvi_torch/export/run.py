@@ -24,13 +24,13 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..cli import add_common, split_classes
-from ..config import Config, read_run_config
 from ..io.coco import load_coco
 from ..io.layout import object_file
 from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
 from ..mesh import MESH_FORMATS
 from ..runtime import cores, torch_threads
+from .source import data_path, recon_config
 from .objects import canonical_occupancy, depth_map, init_worker, safe_export_object, view_occupancy
 from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, StoreWriter
 
@@ -39,30 +39,6 @@ __all__ = ["export", "main", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "cano
 
 #: Objects handed to the worker processes at a time (bounds the memory of queued jobs).
 JOB_BLOCK = 256
-
-
-def _recon_config(recon: Path) -> Config:
-    p = recon / "config.yaml"
-    if not p.is_file():
-        raise FileNotFoundError(f"{recon}: no config.yaml (is this a reconstruction directory?)")
-    return read_run_config(p)
-
-
-def _data_path(recon: Path, cfg: Config) -> Path:
-    """The annotations a run read: its summary's path (absolute), else its config's; a relative path
-    is looked up beside the run, then from the current folder."""
-    summ = recon / "summary.json"
-    data = read_json(summ).get("data") if summ.is_file() else None
-    data = data or cfg.data
-    if not data:
-        return recon / "input" / "annotations.json"
-    p = Path(data)
-    if p.is_absolute():
-        return p
-    for base in (recon, recon.parent):
-        if (base / p).is_file():
-            return base / p
-    return p
 
 
 def _int_id(value) -> np.int64:
@@ -130,8 +106,8 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     (class, annotation_id, image_id, source) per exported sample, in store order.
     """
     recon, out = Path(recon), Path(out)
-    cfg = _recon_config(recon)
-    data = _data_path(recon, cfg)
+    cfg = recon_config(recon)
+    data = data_path(recon, cfg)
     canvas = cfg.input.canvas_size
     workers = cores() if workers is None else max(0, int(workers))
     t0 = time.perf_counter()
