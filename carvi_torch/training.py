@@ -36,7 +36,13 @@ class ZarrReader:
         from .export.store import ATTRS_KEY, FORMAT_VERSION
 
         self.root, self.storage_options = root, storage_options
-        group = self._open()
+        try:
+            group = self._open()
+        except FileNotFoundError:
+            raise
+        except Exception as e:  # noqa: BLE001 - zarr's "no group here" errors differ by store
+            raise ValueError(f"{root}: not a zarr export ({type(e).__name__}: {e}); write one with python -m "
+                             f"carvi_torch.export") from None
         attrs = group.attrs.asdict().get(ATTRS_KEY)
         if attrs is None:
             raise ValueError(f"{root}: not a carvi_torch export (no '{ATTRS_KEY}' attribute on the root group)")

@@ -283,6 +283,8 @@ def test_class_field_and_quality_filters(recon, exported, tmp_path):
         LiftedDataset(out, fields=["nope"])
     with pytest.raises(ValueError, match="not in the export"):
         LiftedDataset(out, classes=["boat"])
+    with pytest.raises((FileNotFoundError, ValueError)):  # a folder without a store: one clear error
+        LiftedDataset(tmp_path)
     # min_quality keeps the objects whose cameras.json quality reaches it
     rec = tmp_path / "recon"
     shutil.copytree(recon, rec, ignore=shutil.ignore_patterns("voxels", "meshes"))
