@@ -68,6 +68,9 @@ def test_store_opens_with_zarr_alone(exported):
             assert a.compressors, name
         assert g["occupancy_view"].shape[1:] == (16, 16, 16) and g["points"].shape[1:] == (256, 3)
         assert g["mask"][0].dtype == bool and g["mask"][0].shape == (64, 64)
+    # a zarr store object works as well as a path (what remote stores are)
+    ds = LiftedDataset(zarr.storage.LocalStore(str(out), read_only=True), fields=["mask"])
+    assert len(ds) == len(index["samples"]) and torch.equal(ds[0]["mask"], torch.from_numpy(root["car"]["mask"][0]))
     # compression: the bool occupancies take far less than their raw size on disk
     occ_bytes = sum(f.stat().st_size for f in out.glob("*/occupancy_view/**/*") if f.is_file())
     assert occ_bytes < 0.5 * len(index["samples"]) * 16 ** 3
