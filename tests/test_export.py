@@ -343,6 +343,14 @@ def test_missing_and_partial_objects_reported(recon, tmp_path, capsys):
     assert int(vox[0].stem) in reasons and "no voxels" in reasons[int(vox[0].stem)]
     assert int(vox[1].stem) in reasons and "unreadable" in reasons[int(vox[1].stem)]
     assert "skipped" in capsys.readouterr().out
+    # an earlier export is replaced; a folder holding anything else is left alone (exit 2, nothing written)
+    args = ["--recon", str(broken), "--resolution", "4", "--points", "8", "--workers", "0", "--classes", "chair"]
+    assert export_main(args + ["--out", str(tmp_path / "exp")]) == 0
+    assert zarr.open_group(str(tmp_path / "exp"), mode="r").attrs["carvi_export"]["classes"] == ["chair"]
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    assert export_main(args + ["--out", str(tmp_path / "mine")]) == 2
+    assert [p.name for p in (tmp_path / "mine").iterdir()] == ["notes.txt"]
 
 
 def test_cmr_and_ucmr_files_round_trip(recon, tmp_path):

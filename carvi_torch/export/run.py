@@ -29,7 +29,7 @@ from ..io.layout import object_file
 from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
 from ..mesh import MESH_FORMATS
-from ..runtime import cores, torch_threads
+from ..runtime import cores, stable_hash, torch_threads
 from .source import data_path, recon_config
 from .objects import canonical_occupancy, depth_map, init_worker, safe_export_object, view_occupancy
 from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, StoreWriter
@@ -75,7 +75,8 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
             continue
         q = entry.get("quality")
         jobs.append({**settings, "class": cname, "class_index": ci, "annotation_id": aid,
-                     "image_id": coll.image_ids[i], "source": coll.sources[i], "seed": [settings["seed"], ci, i],
+                     "image_id": coll.image_ids[i], "source": coll.sources[i],
+                     "seed": [settings["seed"], stable_hash(cname), i],
                      "mask": coll.masks[i].cpu().numpy(), "keypoints": coll.keypoints[i].cpu().numpy(),
                      "visible": coll.visible[i].cpu().numpy(), "canvas_scale": float(coll.canvas_from_image.scale[i]),
                      "canvas_offset": coll.canvas_from_image.offset[i].double().numpy(), "camera": entry["refined"],

@@ -169,12 +169,30 @@ class _ClassArrays:
         self.group.attrs.update(attrs)
 
 
+def _check_replaceable(out: Path) -> None:
+    """Refuse to write over a folder that holds anything but an earlier export (zarr's ``mode="w"`` empties
+    the folder first)."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: exists and is not a folder")
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    try:
+        import json
+
+        if ATTRS_KEY in json.loads((out / "zarr.json").read_text()).get("attributes", {}):
+            return
+    except (OSError, ValueError, AttributeError):
+        pass
+    raise ValueError(f"{out}: not empty and not an earlier export; choose another --out (nothing was written)")
+
+
 class StoreWriter:
     """Writes samples class by class into a zarr v3 store at ``out`` (created, or replaced when it holds
     an earlier export's store)."""
 
     def __init__(self, out: str | Path, shard_size: int = 256, fields: list[str] | None = None):
         self.out = Path(out)
+        _check_replaceable(self.out)
         self.root = zarr.open_group(str(self.out), mode="w", zarr_format=3)
         self.shard_size = max(1, int(shard_size))
         self.fields = list(fields) if fields is not None else list(DEFAULT_FIELDS)
