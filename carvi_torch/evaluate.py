@@ -36,7 +36,7 @@ from .io.coco import CocoFormatError, class_keys, load_coco, object_id
 from .io.layout import object_file
 from .mesh import MESH_FORMATS
 from .io.outputs import read_json, write_bytes, write_json
-from .evaluation import metrics, viewpoint_metrics
+from .evaluation import metrics, reliability, viewpoint_metrics
 
 __all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "main"]
 
@@ -197,10 +197,12 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     for mth in methods:
         vals = [per_class[c][mth]["mean"] for c in per_class if per_class[c][mth]["mean"] is not None]
         means[mth] = float(np.mean(vals)) if vals else None
-    return {"data": str(data), "gt": str(gt_path), "split": split, "step_percent": step_percent,
-            "methods": methods, "recons": {k: str(v) for k, v in recons.items()}, "objects": objects,
-            "classes": dict(per_class), "mean_over_classes": means, "viewpoints": viewpoints,
-            "seconds": round(time.perf_counter() - t0, 2)}
+    res = {"data": str(data), "gt": str(gt_path), "split": split, "step_percent": step_percent,
+           "methods": methods, "recons": {k: str(v) for k, v in recons.items()}, "objects": objects,
+           "classes": dict(per_class), "mean_over_classes": means, "viewpoints": viewpoints}
+    res["quality"] = reliability.quality_vs_error(res)
+    res["seconds"] = round(time.perf_counter() - t0, 2)
+    return res
 
 
 def _id_order(aid: str):
@@ -338,12 +340,18 @@ def main(argv=None) -> int:
         print()
     print("Viewpoint errors (degrees) after global alignment")
     print(views)
+    quality = reliability.format_quality_table(res["quality"]) if res["quality"] else ""
+    if quality:
+        print("\nHow the objects' quality ranks their errors (Spearman rho; negative: higher quality, lower error)")
+        print(quality)
     if args.out:
         out = Path(args.out)
         write_json(out / "results.json", res)
         write_bytes(out / "shapes.md", (shapes + "\n").encode())
         write_bytes(out / "viewpoints.md", (views + "\n").encode())
-        print(f"wrote {out}/results.json, shapes.md, viewpoints.md")
+        if quality:
+            write_bytes(out / "quality.md", (quality + "\n").encode())
+        print(f"wrote {out}/results.json, shapes.md, viewpoints.md" + (", quality.md" if quality else ""))
     return 0
 
 

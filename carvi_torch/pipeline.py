@@ -27,8 +27,9 @@ from .carve import CarveMaps
 from .collection import ClassCollection
 from .config import Config
 from .io.layout import class_dir, finished, object_file
-from .io.outputs import read_json, write_json
-from .io.results import ClassReport, cameras_json, canonical_image_cameras, scores_entry, write_scores
+from .io.outputs import write_json
+from .io.results import (ClassReport, cameras_json, canonical_image_cameras, quality_summary, reconstruction_signals,
+                         resumed_levels, scores_entry, write_scores)
 from .io.writer import Writer, canvas_to_image_4x4, id_array, mesh_jobs, proposals_payload
 from .marching import resolve_mesher
 from .runtime import StageTimer, log
@@ -160,17 +161,6 @@ def _surrogate_plan(coll, vp: Viewpoints, cfg: Config, generator, timer, report)
     return surrogates.SurrogatePlan(n, axes, clusters, trip, mirrors, levels=levels)
 
 
-def _resumed_levels(cdir: Path, coll: ClassCollection, levels: list, done: list) -> list:
-    """``levels`` with the puffball fallbacks of finished objects kept from the earlier run's cameras.json
-    (a puffball is decided after carving, which a resumed object does not repeat)."""
-    try:
-        previous = read_json(cdir / "cameras.json").get("cameras", {}) if (cdir / "cameras.json").is_file() else {}
-    except (ValueError, AttributeError):
-        previous = {}
-    return [("puffball" if d and (previous.get(str(a)) or {}).get("surrogates_from") == "puffball" else lv)
-            for a, lv, d in zip(coll.annotation_ids, levels, done)]
-
-
 def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
                   gt: dict | None = None, out: Path | None = None, report: ClassReport | None = None,
                   done: list[bool] | None = None):
@@ -201,8 +191,11 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     plan = _surrogate_plan(coll, vp, cfg, generator, timer, report)
     done = finished_objects(coll, cfg, out) if done is None else list(done)
     if out is not None:
-        plan.levels = _resumed_levels(cdir, coll, plan.levels, done)
-        write_json(cdir / "cameras.json", cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels))
+        plan.levels = resumed_levels(cdir, coll, plan.levels, done)
+        cams = cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels,
+                            reconstruction_signals(cdir, [a for a, d in zip(coll.annotation_ids, done) if d]))
+        write_json(cdir / "cameras.json", cams)
+        report.info["quality"] = quality_summary(cams["cameras"])
     if cfg.stage == "cameras":
         report.status = "cameras"
         return None, [], report
@@ -255,7 +248,7 @@ def _job(sel: select.Selection, j: int, i: int, sur, plan: ClassPlan, cfg: Confi
                 proposals_path=str(object_file(plan.cdir, "proposals", aid)),
                 proposals=(proposals_payload(sel, j, sur, canvas_to_image, aid_of)
                            if cfg.study.save_proposals and best >= 0 else None),
-                largest_component=cfg.mesh.largest_component)
+                largest_component=cfg.mesh.largest_component, mask=plan.coll.masks[i].cpu().numpy())
 
 
 def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config, report: ClassReport,
@@ -385,16 +378,17 @@ def finish_class(plan: ClassPlan, cfg: Config, report: ClassReport, puffballs: l
 
 
 def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport) -> None:
-    """Where every object's proposals came from (summary; cameras.json again when a puffball was needed),
-    and the merged proposal scores (studies)."""
+    """Where every object's proposals came from (summary), cameras.json again with every object's quality
+    (its reconstruction is known now), and the merged proposal scores (studies)."""
     levels = plan.surrogates.levels
     used = [lv for lv in surrogates.LEVELS if lv in levels]
     report.info["surrogates_from"] = {
         "counts": {lv: levels.count(lv) for lv in used},
         "fallbacks": {lv: [a for a, x in zip(plan.aids, levels) if x == lv] for lv in used
                       if lv not in ("triplet", "rotated_views")}}
-    if "puffball" in levels:
-        vp, sp = plan.viewpoints, plan.surrogates
-        write_json(plan.cdir / "cameras.json", cameras_json(plan.coll, vp, sp.axes, sp.clusters, levels))
+    vp, sp = plan.viewpoints, plan.surrogates
+    cams = cameras_json(plan.coll, vp, sp.axes, sp.clusters, levels, reconstruction_signals(plan.cdir, plan.aids))
+    write_json(plan.cdir / "cameras.json", cams)
+    report.info["quality"] = quality_summary(cams["cameras"])
     if cfg.study.keep_all_scores:
         write_scores(plan.cdir, plan.aids, cfg.overwrite)

@@ -2,18 +2,22 @@
 
 Example:
     >>> from torch.utils.data import DataLoader
-    >>> ds = LiftedDataset("exports/default", fields=["mask", "viewpoint"])      # doctest: +SKIP
+    >>> ds = LiftedDataset("exports/default", fields=["mask", "viewpoint"], min_quality=0.5)  # doctest: +SKIP
     >>> loader = DataLoader(ds, batch_size=32, shuffle=True, num_workers=2,
-    ...                     collate_fn=collate_lifted)                          # doctest: +SKIP
-    >>> batch = next(iter(loader)); batch["mask"].shape                         # doctest: +SKIP
+    ...                     collate_fn=collate_lifted)                                    # doctest: +SKIP
+    >>> batch = next(iter(loader)); batch["mask"].shape                                   # doctest: +SKIP
     torch.Size([32, 128, 128])
 
-Shards are memory-mapped (``numpy.load(mmap_mode="r")``), opened lazily in each worker,
-so an export larger than memory is fine and ``DataLoader(num_workers > 0)`` works.
+The export is a zarr v3 store (:mod:`carvi_torch.export.store`): ``root`` is its local path, a URL
+that zarr's fsspec stores open (``s3://bucket/export``, with ``storage_options``), or a zarr store
+object. Arrays are opened lazily in each process, so ``DataLoader(num_workers > 0)`` works and
+an export larger than memory is fine. A format-1 export (``index.json`` + shards of ``.npy``
+files) is still read, with a ``DeprecationWarning``, through carvi_torch 0.3.
 """
 from __future__ import annotations
 
-import bisect
+import math
+import warnings
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
@@ -22,74 +26,128 @@ import torch
 from torch.utils.data import Dataset
 from torch.utils.data._utils.collate import default_collate
 
-from .io.outputs import read_json
+__all__ = ["LiftedDataset", "collate_lifted", "ZarrReader"]
 
-__all__ = ["LiftedDataset", "collate_lifted"]
 
-_META = ("class_name", "source")
+class ZarrReader:
+    """Samples of a zarr export: per class group, its metadata at open, its arrays on demand."""
+
+    def __init__(self, root, storage_options: dict | None = None):
+        from .export.store import ATTRS_KEY, FORMAT_VERSION
+
+        self.root, self.storage_options = root, storage_options
+        try:
+            group = self._open()
+        except FileNotFoundError:
+            raise
+        except Exception as e:  # noqa: BLE001 - zarr's "no group here" errors differ by store
+            raise ValueError(f"{root}: not a zarr export ({type(e).__name__}: {e}); write one with python -m "
+                             f"carvi_torch.export") from None
+        attrs = group.attrs.asdict().get(ATTRS_KEY)
+        if attrs is None:
+            raise ValueError(f"{root}: not a carvi_torch export (no '{ATTRS_KEY}' attribute on the root group)")
+        if attrs.get("format_version", 0) > FORMAT_VERSION:
+            raise ValueError(f"{root}: export format {attrs['format_version']} is newer than this reader's "
+                             f"({FORMAT_VERSION}); update carvi_torch")
+        self.attrs = attrs
+        self.fields = attrs["fields"]
+        self.class_names = attrs["classes"]
+        self.samples = []
+        for c in self.class_names:
+            if c not in group:
+                continue
+            g = group[c]
+            ga = g.attrs.asdict()
+            q = g["quality"][:] if "quality" in g else np.full(ga["count"], np.nan, np.float32)
+            for row in range(ga["count"]):
+                self.samples.append({"class": c, "row": row, "annotation_id": ga["annotation_ids"][row],
+                                     "source": ga["sources"][row], "quality": float(q[row])})
+        self._group = None
+        self._arrays: dict[tuple[str, str], object] = {}  # opened once per process: metadata is read once
+        self._offsets: dict[str, np.ndarray] = {}
+
+    def _open(self):
+        import zarr
+
+        root = str(self.root) if isinstance(self.root, Path) else self.root
+        return zarr.open_group(root, mode="r", storage_options=self.storage_options) if isinstance(root, str) \
+            else zarr.open_group(root, mode="r")
+
+    def __getstate__(self):  # arrays are reopened in each worker
+        state = dict(self.__dict__)
+        state["_group"], state["_arrays"] = None, {}
+        return state
+
+    def _array(self, cls: str, field: str):
+        arr = self._arrays.get((cls, field))
+        if arr is None:
+            if self._group is None:
+                self._group = self._open()
+            arr = self._arrays[(cls, field)] = self._group[cls][field]
+        return arr
+
+    def read(self, g: int, field: str) -> np.ndarray:
+        """Field ``field`` of global sample ``g`` (one chunk read; the ragged mesh fields: a row range)."""
+        s = self.samples[g]
+        try:
+            if field.startswith("mesh_"):
+                off = self._offsets.get(s["class"])
+                if off is None:
+                    off = self._offsets[s["class"]] = self._array(s["class"], "mesh_offsets")[:]
+                col = 0 if field == "mesh_vertices" else 1
+                return np.asarray(self._array(s["class"], field)[int(off[s["row"], col]):int(off[s["row"] + 1, col])])
+            return np.asarray(self._array(s["class"], field)[s["row"]])
+        except Exception as e:  # noqa: BLE001 - name the array that failed
+            raise OSError(f"{self.root}/{s['class']}/{field}: unreadable chunk of sample {s['row']} "
+                          f"({type(e).__name__}: {e})") from None
 
 
 class LiftedDataset(Dataset):
     """Samples of a carvi_torch export.
 
     Args:
-        root: the export directory (with ``index.json``).
+        root: the export (a path or URL of its zarr store, or a zarr store).
         classes: keep only these class names (default: all).
-        fields: field names to return (default: all; see ``index.json["fields"]`` / ``docs/export.md``).
+        fields: field names to return (default: all that were exported; ``docs/export.md`` lists them).
         transform: called on each sample dict (after conversion to tensors).
+        min_quality: keep only objects whose ``quality`` is at least this (objects without one are dropped).
+        storage_options: passed to zarr's fsspec store for a URL.
 
-    Each item is a dict of tensors (one per field, with the dtype and shape of ``docs/export.md``)
-    plus ``class_name``, ``source`` and ``annotation_key`` (the annotation id as a string, also for
-    string ids) strings.
+    Each item is a dict of tensors (one per field, with the dtype and shape of ``docs/export.md``;
+    fields stored as float16 come back as float32) plus ``class_name``, ``source`` and
+    ``annotation_key`` (the annotation id as a string, also for string ids) strings.
     """
 
-    def __init__(self, root: str | Path, classes: Iterable[str] | None = None,
-                 fields: Sequence[str] | None = None, transform: Callable | None = None):
-        self.root = Path(root)
-        self.index = read_json(self.root / "index.json")
-        known = self.index["fields"]
+    def __init__(self, root, classes: Iterable[str] | None = None, fields: Sequence[str] | None = None,
+                 transform: Callable | None = None, min_quality: float | None = None,
+                 storage_options: dict | None = None):
+        from .export.legacy import REMOVED_IN, ShardReader, is_shard_export
+
+        if is_shard_export(root):
+            warnings.warn(f"{root}: the shard layout (index.json + .npy files) is deprecated and is read until "
+                          f"carvi_torch {REMOVED_IN}; re-export it as a zarr store with python -m "
+                          f"carvi_torch.export", DeprecationWarning, stacklevel=2)
+            self.reader = ShardReader(root)
+        else:
+            self.reader = ZarrReader(root, storage_options)
+        known = self.reader.fields
         self.fields = list(fields) if fields is not None else list(known)
         bad = [f for f in self.fields if f not in known]
         if bad:
             raise ValueError(f"unknown field(s) {bad}; available: {sorted(known)}")
         self.transform = transform
-        self.class_names = self.index["classes"]
+        self.class_names = self.reader.class_names
         wanted = set(classes) if classes is not None else None
-        if wanted is not None:
-            missing = wanted - set(self.class_names)
-            if missing:
-                raise ValueError(f"class(es) {sorted(missing)} not in the export; available: {self.class_names}")
-        # global sample i -> (shard, row)
-        starts, offset = [], 0
-        for sh in self.index["shards"]:
-            starts.append(offset)
-            offset += sh["count"]
-        self._starts = starts
-        samples = self.index["samples"]
-        self._rows = [i for i, s in enumerate(samples) if wanted is None or s["class"] in wanted]
-        self._samples = samples
-        self._maps: dict[tuple[int, str], np.ndarray] = {}
+        if wanted is not None and wanted - set(self.class_names):
+            raise ValueError(f"class(es) {sorted(wanted - set(self.class_names))} not in the export; available: "
+                             f"{self.class_names}")
+        self._rows = [i for i, s in enumerate(self.reader.samples)
+                      if (wanted is None or s["class"] in wanted)
+                      and (min_quality is None or (not math.isnan(s["quality"]) and s["quality"] >= min_quality))]
+        self._dtypes = {f: getattr(torch, known[f].get("returns") or known[f]["dtype"]) for f in self.fields}
 
     def __len__(self) -> int:
         return len(self._rows)
-
-    def _array(self, shard: int, field: str) -> np.ndarray:
-        key = (shard, field)
-        arr = self._maps.get(key)
-        if arr is None:
-            name = self.index["shards"][shard]["name"]
-            path = self.root / name / f"{field}.npy"
-            try:
-                arr = np.load(path, mmap_mode="r")
-            except (OSError, ValueError, EOFError) as e:
-                raise OSError(f"{path}: unreadable shard file ({type(e).__name__}: {e})") from None
-            self._maps[key] = arr
-        return arr
-
-    def __getstate__(self):  # memory maps are reopened in each worker
-        state = dict(self.__dict__)
-        state["_maps"] = {}
-        return state
 
     def __getitem__(self, i: int) -> dict:
         if i < 0:
@@ -97,12 +155,10 @@ class LiftedDataset(Dataset):
         if not 0 <= i < len(self):
             raise IndexError(i)
         g = self._rows[i]
-        shard = bisect.bisect_right(self._starts, g) - 1
-        row = g - self._starts[shard]
-        out = {f: torch.from_numpy(np.array(self._array(shard, f)[row])) for f in self.fields}
-        meta = self._samples[g]
+        out = {f: torch.from_numpy(self.reader.read(g, f)).to(self._dtypes[f]) for f in self.fields}
+        meta = self.reader.samples[g]
         out["class_name"] = meta["class"]
-        out["source"] = meta.get("source", "")
+        out["source"] = meta.get("source", "") or ""
         out["annotation_key"] = str(meta.get("annotation_id", ""))
         if self.transform is not None:
             out = self.transform(out)
@@ -110,15 +166,17 @@ class LiftedDataset(Dataset):
 
 
 def collate_lifted(batch: list[dict]) -> dict:
-    """Stack tensor fields along a new batch axis; keep strings as lists.
+    """Stack tensor fields along a new batch axis; keep strings and the ragged mesh fields as lists.
 
     Classes have different keypoint counts ``K``: when a batch mixes classes, ``keypoints`` and
     ``visible`` are zero-padded to the largest ``K`` of the batch (padded keypoints are not visible).
+    ``mesh_vertices`` / ``mesh_faces`` stay lists of ``(V_i, 3)`` / ``(F_i, 3)`` tensors (what
+    ``pytorch3d.structures.Meshes(verts=..., faces=...)`` takes).
     """
     out = {}
     for k in batch[0]:
         vals = [b[k] for b in batch]
-        if isinstance(vals[0], str):
+        if isinstance(vals[0], str) or k.startswith("mesh_"):
             out[k] = vals
             continue
         shapes = {tuple(v.shape) for v in vals}

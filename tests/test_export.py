@@ -1,4 +1,4 @@
-"""export.py + training.py: the sharded training dataset and its reader."""
+"""export/ + training.py: the zarr training store and its reader."""
 from __future__ import annotations
 
 import json
@@ -8,11 +8,15 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+
+from scipy import ndimage
+from scipy.spatial import ConvexHull
 from torch.utils.data import DataLoader
 
 from carvi_torch.config import Config
-from carvi_torch.export import export, main as export_main
 from carvi_torch.executors import run
+from carvi_torch.export import export, main as export_main
+from carvi_torch.export.objects import canonical_occupancy, splat_occupancy
 from carvi_torch.training import LiftedDataset, collate_lifted
 
 TINY = {"procedural_instances": 5, "resolution": 24, "proposals": 3, "canvas_size": 64, "progress": False,
@@ -28,8 +32,8 @@ def recon(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def exported(recon, tmp_path_factory):
-    out = tmp_path_factory.mktemp("export")
-    index = export(recon, out, resolution=16, points=256, shard_size=4, progress=False)
+    out = tmp_path_factory.mktemp("export") / "store"
+    index = export(recon, out, resolution=16, points=256, shard_size=4, progress=False, workers=0, mesh=True)
     return out, index
 
 
@@ -41,56 +45,171 @@ def _canvas_mesh(recon, cls, aid, scale, offset):
     return m
 
 
-def test_index_and_shards(exported):
+def test_store_opens_with_zarr_alone(exported):
+    """Any zarr v3 reader gets the samples: one group per class, one compressed array per field,
+    one chunk per sample, shards of --shard-size samples."""
+    import zarr
+
     out, index = exported
-    n = len(index["samples"])
-    per_class = {c: sum(1 for s in index["samples"] if s["class"] == c) for c in index["classes"]}
-    assert n >= 8 and sum(s["count"] for s in index["shards"]) == n
-    assert len(index["shards"]) == sum(-(-k // 4) for k in per_class.values())  # shards hold one class each
-    for name, spec in index["fields"].items():
-        arr = np.load(out / index["shards"][0]["name"] / f"{name}.npy", mmap_mode="r")
-        assert str(arr.dtype) == spec["dtype"], name
-    ds = LiftedDataset(out)
-    item = ds[0]
-    assert item["mask"].shape == (64, 64) and item["mask"].dtype == torch.bool
-    assert item["occupancy_view"].shape == (16, 16, 16) and item["points"].shape == (256, 3)
-    assert item["R"].shape == (3, 3) and abs(float(torch.det(item["R"].double())) - 1) < 1e-4
+    root = zarr.open_group(str(out), mode="r")
+    attrs = root.attrs["carvi_export"]
+    assert attrs["format_version"] == 2 and attrs["classes"] == ["car", "chair"]
+    assert json.loads((out / "zarr.json").read_text())["zarr_format"] == 3
+    for c in attrs["classes"]:
+        g = root[c]
+        n = g.attrs["count"]
+        assert n == sum(1 for s in index["samples"] if s["class"] == c) == len(g.attrs["annotation_ids"])
+        for name, spec in attrs["fields"].items():
+            a = g[name]
+            assert str(a.dtype) == spec["dtype"], name
+            if name.startswith("mesh_"):
+                continue
+            assert a.shape[0] == n and a.chunks == (1, *a.shape[1:]) and a.shards == (4, *a.shape[1:]), name
+            assert a.compressors, name
+        assert g["occupancy_view"].shape[1:] == (16, 16, 16) and g["points"].shape[1:] == (256, 3)
+        assert g["mask"][0].dtype == bool and g["mask"][0].shape == (64, 64)
+    # a zarr store object works as well as a path (what remote stores are)
+    ds = LiftedDataset(zarr.storage.LocalStore(str(out), read_only=True), fields=["mask"])
+    assert len(ds) == len(index["samples"]) and torch.equal(ds[0]["mask"], torch.from_numpy(root["car"]["mask"][0]))
+    # compression: the bool occupancies take far less than their raw size on disk
+    occ_bytes = sum(f.stat().st_size for f in out.glob("*/occupancy_view/**/*") if f.is_file())
+    assert occ_bytes < 0.5 * len(index["samples"]) * 16 ** 3
 
 
 def test_round_trip_matches_reconstruction(recon, exported):
-    """What the dataset returns equals what the reconstruction wrote."""
+    """What the dataset returns equals what the reconstruction wrote, quality included (also summarised
+    per class in summary.json)."""
     out, index = exported
+    summary = json.loads((recon / "summary.json").read_text())["classes"]
+    for c in ("car", "chair"):
+        assert summary[c]["quality"]["count"] == summary[c]["reconstructed"]
+        assert 0 <= summary[c]["quality"]["p10"] <= summary[c]["quality"]["median"] <= summary[c]["quality"]["p90"] <= 1
     ds = LiftedDataset(out)
+    assert len(ds) == len(index["samples"]) >= 8
     for i in range(len(ds)):
         item = ds[i]
         cls, aid = item["class_name"], int(item["annotation_id"])
-        cams = json.loads((recon / cls / "cameras.json").read_text())["cameras"][str(aid)]["refined"]
-        assert np.allclose(item["R"].numpy(), cams["R"], atol=1e-5) and np.isclose(float(item["s"]), cams["s"])
+        assert item["annotation_key"] == str(aid)
+        cams = json.loads((recon / cls / "cameras.json").read_text())["cameras"][str(aid)]
+        assert np.allclose(item["R"].numpy(), cams["refined"]["R"], atol=1e-5)
+        assert np.isclose(float(item["s"]), cams["refined"]["s"])
+        q = cams["quality"]  # every object with a camera has one, with the signals it combines
+        assert 0.0 <= q <= 1.0 and np.isclose(float(item["quality"]), q) and "reconstruction_iou" in cams[
+            "quality_signals"]
         z = np.load(recon / cls / "voxels" / f"{aid}.npz")
         assert np.isclose(float(item["canvas_scale"]), float(z["canvas_scale"]))
+        assert item["points"].dtype == torch.float32 and item["depth"].dtype == torch.float32
+        assert abs(float(torch.det(item["R"].double())) - 1) < 1e-4
 
 
-def test_occupancy_agrees_with_mesh(recon, exported):
-    """Occupancy re-derived from the mesh agrees with the exported view-frame voxels (IoU >= 0.95)."""
-    out, index = exported
-    ds = LiftedDataset(out)
-    ious = []
+def _mesh_cells(m, R, lo, size):
+    """Cells ``[d, y, x]`` of an R^3 grid (origin ``lo``, cell ``size``, axes x, y, z) whose centre is in ``m``."""
+    c = (np.arange(R) + 0.5) * size
+    zz, yy, xx = np.meshgrid(lo[2] + c, lo[1] + c, lo[0] + c, indexing="ij")
+    return m.contains(np.stack([xx, yy, zz], -1).reshape(-1, 3)).reshape(R, R, R)
+
+
+def test_view_occupancy_covers_the_mesh(recon, exported):
+    """Every surface point of the mesh lies in the one-cell-dilated occupancy; the occupancy holds every
+    cell whose centre is inside the mesh, and nothing farther than one cell from the mesh."""
+    out, _ = exported
+    ds = LiftedDataset(out, fields=["occupancy_view", "canvas_scale", "canvas_offset", "annotation_id"])
+    cube = np.ones((3, 3, 3))
+    checked_inside = 0
     for i in range(len(ds)):
         item = ds[i]
         m = _canvas_mesh(recon, item["class_name"], int(item["annotation_id"]), float(item["canvas_scale"]),
                          item["canvas_offset"].numpy())
-        if not m.is_watertight:
-            continue
-        R = 16
-        C = 64.0
-        zc = float(np.asarray(m.vertices)[:, 2].mean())
-        c = (np.arange(R) + 0.5) / R
-        zz, yy, xx = np.meshgrid(zc - C / 2 + C * c, -0.5 + C * c, -0.5 + C * c, indexing="ij")
-        pts = np.stack([xx, yy, zz], -1).reshape(-1, 3)
-        inside = m.contains(pts).reshape(R, R, R)
         occ = item["occupancy_view"].numpy()
-        ious.append((inside & occ).sum() / max((inside | occ).sum(), 1))
-    assert ious and np.median(ious) >= 0.95, ious
+        R, C = occ.shape[0], 64.0
+        zc = float(np.asarray(m.vertices)[:, 2].mean())
+        pts = m.sample(4000, seed=i)
+        cell = np.floor(np.stack([(pts[:, 2] - zc + C / 2), pts[:, 1] + 0.5, pts[:, 0] + 0.5], 1) * R / C)
+        cell = np.clip(cell.astype(int), 0, R - 1)
+        assert ndimage.binary_dilation(occ, cube)[cell[:, 0], cell[:, 1], cell[:, 2]].mean() >= 0.99, i
+        near = np.zeros_like(occ)
+        near[cell[:, 0], cell[:, 1], cell[:, 2]] = True
+        if checked_inside < 2 and m.is_watertight:  # containment tests are slow: two objects
+            ref = _mesh_cells(m, R, np.array([-0.5, -0.5, zc - C / 2]), C / R)
+            assert (ref & occ).sum() >= 0.98 * ref.sum(), i
+            near |= ref
+            checked_inside += 1
+        near |= ndimage.binary_fill_holes(near)
+        assert not (occ & ~ndimage.binary_dilation(near, cube)).any(), i
+    assert checked_inside == 2
+
+
+def test_canonical_occupancy_covers_the_mesh(recon, exported):
+    out, index = exported
+    ds = LiftedDataset(out, fields=["occupancy_canonical", "mesh_vertices", "mesh_faces"])
+    for i in range(len(ds)):
+        item = ds[i]
+        E = index["class_extent"][item["class_name"]]
+        occ = item["occupancy_canonical"].numpy()
+        R = occ.shape[0]
+        m = trimesh.Trimesh(item["mesh_vertices"].numpy(), item["mesh_faces"].numpy(), process=False)
+        pts = m.sample(2000, seed=i)
+        cell = np.clip(np.floor((pts[:, ::-1] + E) * R / (2 * E)).astype(int), 0, R - 1)  # [z, y, x]
+        dil = ndimage.binary_dilation(occ, structure=np.ones((3, 3, 3)))
+        assert dil[cell[:, 0], cell[:, 1], cell[:, 2]].mean() >= 0.99, i
+
+
+def _centre_sampled(occ, v2t, res):
+    """What sampling cell centres gives (trilinear, level 0.5): the earlier export's occupancy."""
+    c = np.arange(res) + 0.5
+    pts = np.stack(np.meshgrid(c, c, c, indexing="ij"), -1).reshape(-1, 3)
+    src = (pts - v2t[:3, 3]) @ np.linalg.inv(v2t[:3, :3]).T
+    return (ndimage.map_coordinates(occ.astype(np.float32), src.T, order=1) >= 0.5).reshape(res, res, res)
+
+
+def test_thin_parts_are_kept():
+    """A rod and a plate one voxel thick, on a grid twice as fine as the export's and placed between its
+    cell centres: sampling cell centres drops both; the supersampled occupancy keeps every cell holding
+    one of their voxels' centres, and marks no cell their boxes do not overlap."""
+    occ = np.zeros((40, 40, 40), bool)
+    occ[8:32, 20, 20] = True  # a rod along depth; cell centres sit at odd voxel indices 2c + 1
+    occ[10, 5:35, 5:35] = True  # a plate
+    v2t = np.diag([0.5, 0.5, 0.5, 1.0])  # 20^3 cells, 2 voxels per cell
+    assert not _centre_sampled(occ, v2t, 20).any()
+    got = splat_occupancy(occ, v2t, 20)
+    centres = np.zeros_like(got)  # analytic: voxel i has its centre in cell floor(i / 2)
+    overlap = np.zeros_like(got)  # and its box [i - 0.5, i + 0.5] / 2 overlaps cells floor(i/2 -+ 1/4)
+    for d, h, w in np.argwhere(occ):
+        centres[d // 2, h // 2, w // 2] = True
+        lo = np.floor((np.array([d, h, w]) - 0.5) / 2).astype(int)
+        hi = np.floor((np.array([d, h, w]) + 0.5) / 2).astype(int)
+        overlap[lo[0]:hi[0] + 1, lo[1]:hi[1] + 1, lo[2]:hi[2] + 1] = True
+    assert got[centres].all() and not got[~overlap].any()
+    assert got[5].sum() >= 15 * 15 and got[4:16, 10, 10].all()
+
+
+def test_canonical_occupancy_of_a_thin_rotated_plate():
+    """A plate one voxel thick, in a camera rotated 30 degrees about two axes: the canonical grid keeps it
+    (at least 97% of the cells its mid-plane crosses), where cell-centre sampling keeps under half of them."""
+    occ = np.zeros((48, 48, 48), bool)
+    occ[24, 8:40, 8:40] = True  # depth 24: the plate z = 0 of the camera frame
+    v2c = np.eye(4)
+    v2c[:3, :3] = np.array([[0, 0, 1], [0, 1, 0], [1, 0, 0]])  # (d, h, w) -> (x, y, z) = (w, h, d)
+    v2c[:3, 3] = [-24, -24, -24]
+    a, b = np.radians(30), np.radians(30)
+    Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    Ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    R = Rx @ Ry
+    got = canonical_occupancy(occ, v2c, R, 1.0, np.zeros(2), extent=24.0, res=24)
+    # cells crossed by the plate's mid-plane: dense samples of it, in the class frame X = R^T x
+    u = np.linspace(8 - 23.5, 39 - 24 + 0.49, 400)
+    g = np.stack(np.meshgrid(u, u, indexing="ij"), -1).reshape(-1, 2)
+    X = np.concatenate([g, np.zeros((len(g), 1))], 1) @ R  # rows: R^T x
+    cell = np.floor((X[:, ::-1] + 24.0) * 24 / 48).astype(int)
+    want = np.zeros_like(got)
+    want[cell[:, 0], cell[:, 1], cell[:, 2]] = True
+    assert got[want].mean() >= 0.97  # slivers under the sub-sample spacing may be missed
+    assert got.sum() <= 2.5 * want.sum()  # any-overlap, not a blanket
+    # the same voxel -> canonical cell map for the centre sampler: [z, y, x] = (R^T x + E) res / (2 E)
+    v2t_c = np.diag([0.5, 0.5, 0.5, 1.0])
+    v2t_c[:3, :3] = 0.5 * np.array([[0, 0, 1], [0, 1, 0], [1, 0, 0]]) @ R.T @ v2c[:3, :3]
+    v2t_c[:3, 3] = 0.5 * (np.array([[0, 0, 1], [0, 1, 0], [1, 0, 0]]) @ R.T @ v2c[:3, 3]) + 12
+    assert _centre_sampled(occ, v2t_c, 24)[want].mean() < 0.5
 
 
 def test_depth_matches_ray_cast(recon, exported):
@@ -110,7 +229,8 @@ def test_depth_matches_ray_cast(recon, exported):
     np.minimum.at(first, ray_idx, locs[:, 2])
     ok = np.isfinite(first)
     assert ok.mean() > 0.9
-    assert np.abs(first[ok] - zc - depth[ys[pick], xs[pick]][ok]).max() < 1e-3
+    # float16 keeps 11 significant bits: |depth| <= 32 canvas pixels -> within 2^-6 pixel
+    assert np.abs(first[ok] - zc - depth[ys[pick], xs[pick]][ok]).max() < 2 ** -6 + 1e-3
 
 
 def test_points_on_surface(recon, exported):
@@ -127,18 +247,23 @@ def test_points_on_surface(recon, exported):
     uvz[:, :2] += t_c
     m = _canvas_mesh(recon, item["class_name"], int(item["annotation_id"]), a, item["canvas_offset"].numpy())
     _, dist, _ = trimesh.proximity.closest_point(m, uvz)
-    assert dist.max() < 1e-2
-    assert np.allclose(np.linalg.norm(item["normals"].numpy(), axis=1), 1, atol=1e-4)
+    # float16 class-frame points: 2^-11 relative, times s_c |X| (<= the canvas) -> under 0.05 canvas pixel
+    assert dist.max() < 0.05
+    assert np.allclose(np.linalg.norm(item["normals"].numpy(), axis=1), 1, atol=2e-3)
+    # the normals point outwards: a step along them leaves the (watertight) mesh
+    if m.is_watertight:
+        n_c = item["normals"].numpy().astype(np.float64) @ R.T
+        assert m.contains(uvz - 0.3 * n_c).mean() > 0.9 and m.contains(uvz + 0.3 * n_c).mean() < 0.1
 
 
 def test_dataloader_two_workers(exported):
     out, index = exported
-    ds = LiftedDataset(out, fields=["mask", "viewpoint", "occupancy_canonical"])
+    ds = LiftedDataset(out, fields=["mask", "viewpoint", "occupancy_canonical", "mesh_vertices"])
     loader = DataLoader(ds, batch_size=3, num_workers=2, collate_fn=collate_lifted)
     seen = 0
     for batch in loader:
         assert batch["mask"].dtype == torch.bool and batch["viewpoint"].shape[1] == 3
-        assert isinstance(batch["class_name"], list)
+        assert isinstance(batch["class_name"], list) and isinstance(batch["mesh_vertices"], list)
         seen += batch["mask"].shape[0]
     assert seen == len(index["samples"])
 
@@ -154,13 +279,51 @@ def test_collate_pads_mixed_classes(exported):
     assert not batch["visible"][1, k_chair:].any()
 
 
-def test_class_and_field_filters(exported):
+def test_class_field_and_quality_filters(recon, exported, tmp_path):
     out, _ = exported
     assert all(ds_item["class_name"] == "car" for ds_item in LiftedDataset(out, classes=["car"]))
     with pytest.raises(ValueError, match="unknown field"):
         LiftedDataset(out, fields=["nope"])
     with pytest.raises(ValueError, match="not in the export"):
         LiftedDataset(out, classes=["boat"])
+    with pytest.raises((FileNotFoundError, ValueError)):  # a folder without a store: one clear error
+        LiftedDataset(tmp_path)
+    # min_quality keeps the objects whose cameras.json quality reaches it
+    rec = tmp_path / "recon"
+    shutil.copytree(recon, rec, ignore=shutil.ignore_patterns("voxels", "meshes"))
+    for c in ("car", "chair"):
+        shutil.copytree(recon / c / "voxels", rec / c / "voxels")
+        shutil.copytree(recon / c / "meshes", rec / c / "meshes")
+        cams = json.loads((rec / c / "cameras.json").read_text())
+        for k, entry in enumerate(cams["cameras"].values()):
+            entry["quality"] = k / 10
+        (rec / c / "cameras.json").write_text(json.dumps(cams))
+    export(rec, tmp_path / "q", resolution=4, points=8, progress=False, workers=0)
+    ds = LiftedDataset(tmp_path / "q", min_quality=0.25, fields=["quality"])
+    qs = sorted(float(ds[i]["quality"]) for i in range(len(ds)))
+    assert len(ds) == 2 * 2 and min(qs) >= 0.25 - 1e-6  # 5 objects per class, qualities 0, .1, .2, .3, .4
+
+
+def test_the_shard_layout_is_still_read_with_a_warning(tmp_path):
+    """A format-1 export (index.json + shard_XXXXX/<field>.npy) reads, with a DeprecationWarning."""
+    sh = tmp_path / "old" / "shard_00000"
+    sh.mkdir(parents=True)
+    masks = np.zeros((2, 4, 4), bool)
+    masks[1, 1:3, 1:3] = True
+    np.save(sh / "mask.npy", masks)
+    np.save(sh / "s.npy", np.array([2.0, 3.0], np.float32))
+    index = {"format_version": 1, "classes": ["car"], "fields": {"mask": {"dtype": "bool", "shape": "(C, C)"},
+                                                                 "s": {"dtype": "float32", "shape": "()"}},
+             "shards": [{"name": "shard_00000", "count": 2, "class": "car"}],
+             "samples": [{"annotation_id": 5, "class": "car", "source": "a"},
+                         {"annotation_id": "x7", "class": "car", "source": "b"}]}
+    (tmp_path / "old" / "index.json").write_text(json.dumps(index))
+    with pytest.warns(DeprecationWarning, match="deprecated and is read until carvi_torch 0.4"):
+        ds = LiftedDataset(tmp_path / "old")
+    assert len(ds) == 2 and ds[1]["mask"].sum() == 4 and float(ds[1]["s"]) == 3.0
+    assert ds[1]["annotation_key"] == "x7"
+    with pytest.warns(DeprecationWarning):
+        assert len(LiftedDataset(tmp_path / "old", min_quality=0.0)) == 0  # no quality in format 1
 
 
 def test_missing_and_partial_objects_reported(recon, tmp_path, capsys):
@@ -170,10 +333,51 @@ def test_missing_and_partial_objects_reported(recon, tmp_path, capsys):
     vox[0].unlink()  # missing
     mesh = broken / "car" / "meshes" / f"{vox[1].stem}.ply"
     mesh.write_bytes(mesh.read_bytes()[:50])  # partial file
-    rc = export_main(["--recon", str(broken), "--out", str(tmp_path / "exp"), "--resolution", "8", "--points", "16"])
+    rc = export_main(["--recon", str(broken), "--out", str(tmp_path / "exp"), "--resolution", "8", "--points",
+                      "16", "--workers", "0"])
     assert rc == 0
-    index = json.loads((tmp_path / "exp" / "index.json").read_text())
-    reasons = {s["annotation_id"]: s["reason"] for s in index["skipped"]}
+    import zarr
+
+    attrs = zarr.open_group(str(tmp_path / "exp"), mode="r").attrs["carvi_export"]
+    reasons = {s["annotation_id"]: s["reason"] for s in attrs["skipped"]}
     assert int(vox[0].stem) in reasons and "no voxels" in reasons[int(vox[0].stem)]
     assert int(vox[1].stem) in reasons and "unreadable" in reasons[int(vox[1].stem)]
     assert "skipped" in capsys.readouterr().out
+    # an earlier export is replaced; a folder holding anything else is left alone (exit 2, nothing written)
+    args = ["--recon", str(broken), "--resolution", "4", "--points", "8", "--workers", "0", "--classes", "chair"]
+    assert export_main(args + ["--out", str(tmp_path / "exp")]) == 0
+    assert zarr.open_group(str(tmp_path / "exp"), mode="r").attrs["carvi_export"]["classes"] == ["chair"]
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    assert export_main(args + ["--out", str(tmp_path / "mine")]) == 2
+    assert [p.name for p in (tmp_path / "mine").iterdir()] == ["notes.txt"]
+
+
+def test_cmr_and_ucmr_files_round_trip(recon, tmp_path):
+    """The .mat reads as CMR reads it; every pose puts the normalised mean shape where our camera puts the
+    mean shape (trans 1-based); conv_tri (1-based) closes the hull of S; the JSON's sfmpose is the same pose."""
+    import scipy.io
+    from scipy.spatial.transform import Rotation
+
+    assert export_main(["--recon", str(recon), "--out", str(tmp_path / "cmr"), "--format", "cmr"]) == 0
+    assert export_main(["--recon", str(recon), "--out", str(tmp_path / "ucmr"), "--format", "ucmr"]) == 0
+    for c in ("car", "chair"):
+        m = scipy.io.loadmat(tmp_path / "cmr" / f"{c}.mat", struct_as_record=False, squeeze_me=True)
+        cams = json.loads((recon / c / "cameras.json").read_text())
+        names = list(m["kp_names"])
+        X = np.array([cams["mean_shape"][n] for n in names], dtype=np.float64)  # (K, 3), every row known here
+        S = m["S"].T
+        assert np.isclose(np.max(np.linalg.norm(S[:, None] - S[None], axis=-1)), 2.0) and np.allclose(S.mean(0), 0)
+        hull = trimesh.Trimesh(S, m["conv_tri"].astype(int) - 1, process=False)
+        assert hull.is_watertight and np.isclose(abs(hull.volume), ConvexHull(S).volume)
+        js = json.loads((tmp_path / "ucmr" / f"{c}.json").read_text())
+        assert len(m["sfm_anno"]) == len(js["images"]) == len(cams["cameras"])
+        for a, aid, rec in zip(m["sfm_anno"], m["annotation_ids"], js["images"]):
+            cam = cams["cameras"][str(aid)]["refined"]
+            ours = cam["s"] * X @ np.array(cam["R"])[:2].T + np.array(cam["t"])
+            theirs = a.scale * S @ a.rot[:2].T + a.trans - 1.0
+            assert np.allclose(theirs, ours, atol=1e-6) and a.err_sfm_reproj >= 0
+            s, t, q = rec["sfmpose"]
+            assert str(rec["annotation_id"]) == str(aid) and np.isclose(s, a.scale) and np.allclose(t, a.trans)
+            Rq = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()  # (w, x, y, z) -> scipy's (x, y, z, w)
+            assert np.allclose(Rq, a.rot, atol=1e-6) and q[0] >= 0

@@ -508,7 +508,7 @@ def test_files_take_the_umask(base, tmp_path):
     assert out.stdout.strip() == "0o644", out.stderr
 
 
-def test_export_finds_the_runs_data_and_names_a_broken_shard(base, tmp_path, monkeypatch):
+def test_export_finds_the_runs_data_and_names_a_broken_chunk(base, tmp_path, monkeypatch):
     from carvi_torch.export import export
     from carvi_torch.training import LiftedDataset
 
@@ -519,11 +519,11 @@ def test_export_finds_the_runs_data_and_names_a_broken_shard(base, tmp_path, mon
     s = run(_cfg(work / "run", Path("ann.json"), classes="car"), workers=0)
     assert Path(s["data"]).is_absolute()
     monkeypatch.chdir(tmp_path)  # another folder: the relative path must not be read from here
-    index = export(work / "run", tmp_path / "export", resolution=8, points=32, progress=False)
+    index = export(work / "run", tmp_path / "export", resolution=8, points=32, progress=False, workers=0)
     assert len(index["samples"]) == 6
-    shard = tmp_path / "export" / index["shards"][0]["name"] / "mask.npy"
+    shard = next(p for p in (tmp_path / "export" / "car" / "mask").rglob("*") if p.is_file())
     shard.write_bytes(b"broken")
-    with pytest.raises(OSError, match="mask.npy"):
+    with pytest.raises(OSError, match="car/mask"):
         LiftedDataset(tmp_path / "export")[0]
 
 

@@ -1,16 +1,16 @@
-"""Benchmark the training export and the dataset reader, or (``--report``) the HTML report.
+"""Benchmark the training export (zarr store) and the dataset reader, or (``--report``) the HTML report.
 
     python tools/bench_export.py [--objects 1000] [--recon DIR] [--work outputs/bench_export]
-                                 [--out docs/data/export.json]
+                                 [--workers N] [--out docs/data/export.json]
     python tools/bench_export.py --report [--objects 160] [--recon DIR] [--out docs/data/report.json]
 
 Without ``--recon`` it first reconstructs an embedded procedural collection of ``--objects``
 objects (equal parts of the four classes; default settings, 60^3 grid, 20 proposals) — that
 part is not timed here (see tools/benchmark.py). Then it times, as separate processes:
-``python -m carvi_torch.export`` (whole process: objects per second, peak memory) and reading
-every sample, all fields, with ``LiftedDataset`` on one worker (samples per second), and a
-``DataLoader`` with 2 workers. Prints a table and writes ``--out`` (default ``docs/data/export.json``,
-docs/export.md).
+``python -m carvi_torch.export`` (whole process, start-up included: objects per second, peak
+memory of the process tree, bytes per object on disk, per field too), reading every sample with
+``LiftedDataset`` on one worker (all fields, and three fields), and a ``DataLoader`` with 2
+workers. Prints a table and writes ``--out`` (default ``docs/data/export.json``, docs/export.md).
 
 With ``--report`` it times ``python -m carvi_torch.report`` instead (whole process), once with the
 cards made in the report's own process and once in 2 worker processes: objects per
@@ -27,6 +27,7 @@ import resource
 import shlex
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -35,10 +36,11 @@ ROOT = Path(__file__).resolve().parents[1]
 READER = r"""
 import json, resource, sys, time
 import torch
+torch.set_num_threads(1)
 from torch.utils.data import DataLoader
 from carvi_torch.training import LiftedDataset, collate_lifted
-root, workers = sys.argv[1], int(sys.argv[2])
-ds = LiftedDataset(root)
+root, workers, fields = sys.argv[1], int(sys.argv[2]), (sys.argv[3].split(",") if sys.argv[3] else None)
+ds = LiftedDataset(root, fields=fields)
 t = time.perf_counter()
 if workers == 0:
     for i in range(len(ds)):
@@ -52,14 +54,80 @@ print(json.dumps({"samples": len(ds), "seconds": dt,
 """
 
 
-def _timed(cmd: list[str]) -> tuple[float, float, str]:
+def _tree_rss_mb(pid: int, cpu: dict | None = None) -> float | None:
+    """Resident memory (MB) of ``pid`` and all its descendants (Linux /proc; None elsewhere); ``cpu`` gets
+    each process's CPU seconds so far (user + system), by pid."""
+    proc = Path("/proc")
+    if not proc.is_dir():
+        return None
+    parent, rss, ticks = {}, {}, {}
+    for d in proc.iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            fields = stat[stat.rindex(")") + 2:].split()
+            parent[int(d.name)] = int(fields[1])
+            rss[int(d.name)] = int(fields[21]) * os.sysconf("SC_PAGE_SIZE")
+            ticks[int(d.name)] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        except (OSError, ValueError, IndexError):
+            continue
+    tree, frontier = {pid}, [pid]
+    while frontier:
+        p = frontier.pop()
+        kids = [c for c, pp in parent.items() if pp == p and c not in tree]
+        tree.update(kids)
+        frontier.extend(kids)
+    if cpu is not None:
+        for p in tree:
+            cpu[p] = max(cpu.get(p, 0.0), ticks.get(p, 0.0))
+    return sum(rss.get(p, 0) for p in tree) / 2 ** 20
+
+
+def _timed(cmd: list[str], cpu: dict | None = None) -> tuple[float, float | None, str]:
+    """Wall seconds, peak memory of the process tree (sampled every 50 ms), stdout; ``cpu``: CPU seconds
+    per process of the tree (as last sampled)."""
     t = time.perf_counter()
-    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    peak = [0.0]
+
+    def watch():
+        while p.poll() is None:
+            m = _tree_rss_mb(p.pid, cpu)
+            if m is not None:
+                peak[0] = max(peak[0], m)
+            time.sleep(0.05)
+
+    th = threading.Thread(target=watch, daemon=True)
+    th.start()
+    out, err = p.communicate()
     dt = time.perf_counter() - t
-    if res.returncode != 0:
-        raise SystemExit(f"failed: {' '.join(cmd)}\n{res.stderr[-2000:]}")
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-    return dt, peak, res.stdout
+    th.join()
+    if p.returncode != 0:
+        raise SystemExit(f"failed: {' '.join(cmd)}\n{err[-2000:]}")
+    return dt, (peak[0] or None), out
+
+
+def _sizes(store: Path) -> dict[str, int]:
+    """Bytes on disk per field (summed over classes) and in metadata."""
+    out: dict[str, int] = {}
+    for f in store.rglob("*"):
+        if f.is_file():
+            rel = f.relative_to(store).parts
+            key = rel[1] if len(rel) > 2 else "metadata"
+            out[key] = out.get(key, 0) + f.stat().st_size
+    return out
+
+
+def _reconstruct(py: str, work: Path, objects: int) -> Path:
+    recon = work / f"recon_{objects}"
+    per = max(1, objects // 4)
+    if not (recon / "summary.json").is_file():
+        print(f"reconstructing {4 * per} procedural objects into {recon} (not timed) ...")
+        subprocess.run([py, "-m", "carvi_torch.reconstruct", "--out", str(recon), f"input.procedural_instances={per}",
+                        "progress=false", "preview=false", "report=false"],
+                       cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    return recon
 
 
 REPORT = r"""
@@ -126,25 +194,15 @@ def main(argv=None) -> int:
     ap.add_argument("--objects", type=int, help="objects to reconstruct without --recon (default 1000; --report 160)")
     ap.add_argument("--recon", help="existing reconstruction directory (default: build one)")
     ap.add_argument("--work", default=str(ROOT / "outputs" / "bench_export"))
+    ap.add_argument("--workers", type=int, default=None, help="export worker processes (default: its own)")
     ap.add_argument("--out", help="JSON record (default docs/data/export.json; with --report docs/data/report.json)")
     ap.add_argument("--report", action="store_true", help="benchmark the HTML report instead of the export")
     args = ap.parse_args(argv)
     argv = list(sys.argv[1:] if argv is None else argv)
     args.objects = args.objects or (160 if args.report else 1000)
     args.out = args.out or str(ROOT / "docs" / "data" / ("report.json" if args.report else "export.json"))
-    work = Path(args.work)
-    py = sys.executable
-    if args.recon:
-        recon = Path(args.recon)
-    else:
-        recon = work / f"recon_{args.objects}"
-        per = max(1, args.objects // 4)
-        if not (recon / "summary.json").is_file():
-            print(f"reconstructing {4 * per} procedural objects into {recon} (not timed) ...")
-            subprocess.run([py, "-m", "carvi_torch.reconstruct", "--out", str(recon),
-                            f"input.procedural_instances={per}",
-                            "progress=false", "preview=false", "report=false"],
-                           cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    work, py = Path(args.work), sys.executable
+    recon = Path(args.recon) if args.recon else _reconstruct(py, work, args.objects)
     if args.report:
         return bench_report(recon, work, args.out, argv)
     exp = work / "export"
@@ -152,36 +210,56 @@ def main(argv=None) -> int:
         import shutil
 
         shutil.rmtree(exp)
-    t_exp, peak_exp, _ = _timed([py, "-m", "carvi_torch.export", "--recon", str(recon), "--out", str(exp)])
-    index = json.loads((exp / "index.json").read_text())
-    n = len(index["samples"])
+    cmd = [py, "-m", "carvi_torch.export", "--recon", str(recon), "--out", str(exp), "--quiet"]
+    cmd += ["--workers", str(args.workers)] if args.workers is not None else []
+    load0 = os.getloadavg()[0]
+    cpu: dict = {}
+    t_exp, peak_exp, _ = _timed(cmd, cpu)
+    cpu_s = sum(cpu.values())
+    import zarr
+
+    attrs = zarr.open_group(str(exp), mode="r").attrs["carvi_export"]
+    n = sum(attrs["counts"].values())
     reads = {}
-    for w in (0, 2):
-        _, _, out = _timed([py, "-c", READER, str(exp), str(w)])
-        reads[w] = json.loads(out.strip().splitlines()[-1])
-    size_mb = sum(f.stat().st_size for f in exp.rglob("*") if f.is_file()) / 2 ** 20
-    rows = [
-        ("export (whole process)", f"{n} objects", f"{t_exp:.1f} s", f"{n / t_exp:.1f} objects/s",
-         f"{peak_exp:.0f} MB"),
-        ("read, 1 worker, all fields", f"{reads[0]['samples']} samples", f"{reads[0]['seconds']:.2f} s",
-         f"{reads[0]['samples'] / reads[0]['seconds']:.0f} samples/s", f"{reads[0]['peak_rss_mb']:.0f} MB"),
-        ("DataLoader, 2 workers, batch 64", f"{reads[2]['samples']} samples", f"{reads[2]['seconds']:.2f} s",
-         f"{reads[2]['samples'] / reads[2]['seconds']:.0f} samples/s", f"{reads[2]['peak_rss_mb']:.0f} MB"),
-    ]
-    head = ("what", "size", "wall", "rate", "peak memory")
-    widths = [max(len(r[i]) for r in rows + [head]) for i in range(5)]
+    for name, w, fields in (("all", 0, ""), ("three", 0, "mask,viewpoint,occupancy_canonical"), ("loader", 2, "")):
+        _, _, out = _timed([py, "-c", READER, str(exp), str(w), fields])
+        reads[name] = json.loads(out.strip().splitlines()[-1])
+    sizes = _sizes(exp)
+    per_obj = sum(sizes.values()) / max(n, 1)
+
+    def mb(v):
+        return f"{v:.0f} MB" if v else "n/a"
+
+    rows = [("export (whole process)", f"{n} objects", f"{t_exp:.1f} s", f"{n / t_exp:.1f} objects/s",
+             mb(peak_exp), f"{per_obj / 1024:.1f} KB/object")]
+    for name, what in (("all", "read, 1 worker, all fields"), ("three", "read, 1 worker, 3 fields"),
+                       ("loader", "DataLoader, 2 workers, batch 64, all fields")):
+        r = reads[name]
+        rows.append((what, f"{r['samples']} samples", f"{r['seconds']:.2f} s",
+                     f"{r['samples'] / r['seconds']:.0f} samples/s", mb(r["peak_rss_mb"]), ""))
+    head = ("what", "size", "wall", "rate", "peak memory", "on disk")
+    widths = [max(len(r[i]) for r in rows + [head]) for i in range(len(head))]
     for r in [head] + rows:
         print("  ".join(v.ljust(widths[i]) for i, v in enumerate(r)))
-    print(f"export size on disk: {size_mb:.0f} MB; threads {os.cpu_count()} cores; load {os.getloadavg()[0]:.1f}")
+    print("bytes per object by field: " + ", ".join(f"{k} {v / max(n, 1):.0f}" for k, v in
+                                                    sorted(sizes.items(), key=lambda kv: -kv[1])))
+    print(f"export CPU time (process tree, user + system): {cpu_s:.1f} s = {1000 * cpu_s / max(n, 1):.1f} ms/object, "
+          f"so at most {2 * n / cpu_s:.0f} objects/s on 2 idle cores (start-up included)")
+    print(f"{os.cpu_count()} cores; load average {load0:.1f} before the export, {os.getloadavg()[0]:.1f} after")
     from carvi_torch.io.outputs import write_json
 
     write_json(args.out, {
         "command": "python tools/bench_export.py " + " ".join(shlex.quote(a) for a in argv),
         "objects": n, "export_seconds": round(t_exp, 2), "export_objects_per_second": round(n / t_exp, 2),
-        "export_peak_rss_mb": round(peak_exp), "read_samples_per_second_1_worker":
-        round(reads[0]["samples"] / reads[0]["seconds"]), "dataloader_samples_per_second_2_workers":
-        round(reads[2]["samples"] / reads[2]["seconds"]), "size_mb": round(size_mb), "load_average":
-        round(os.getloadavg()[0], 2), "cpus": os.cpu_count()})
+        "export_peak_tree_rss_mb": round(peak_exp) if peak_exp else None,
+        "export_cpu_seconds": round(cpu_s, 2), "export_cpu_ms_per_object": round(1000 * cpu_s / max(n, 1), 2),
+        "bytes_per_object": round(per_obj), "bytes_per_object_by_field": {k: round(v / max(n, 1)) for k, v in
+                                                                          sorted(sizes.items())},
+        "read_samples_per_second_1_worker_all_fields": round(reads["all"]["samples"] / reads["all"]["seconds"]),
+        "read_samples_per_second_1_worker_3_fields": round(reads["three"]["samples"] / reads["three"]["seconds"]),
+        "dataloader_samples_per_second_2_workers": round(reads["loader"]["samples"] / reads["loader"]["seconds"]),
+        "load_average_before": round(load0, 2), "load_average_after": round(os.getloadavg()[0], 2),
+        "cpus": os.cpu_count()})
     print(f"wrote {args.out}")
     return 0
 

@@ -6,7 +6,7 @@ loss printed per epoch should fall.
 
     python -m carvi_torch.reconstruct --out runs/default
     python -m carvi_torch.export --recon runs/default --out exports/default
-    python tools/train_example.py --export exports/default --epochs 8
+    python tools/train_example.py --export exports/default --epochs 8 [--min-quality 0.3]
 
 With no --export, it reconstructs and exports the embedded procedural collection first
 (a few minutes).
@@ -54,15 +54,17 @@ def targets(batch):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--export", help="export directory (default: build one from the embedded collection)")
+    ap.add_argument("--export", help="export (zarr store) directory (default: build one from the embedded collection)")
     ap.add_argument("--epochs", type=int, default=8)
     ap.add_argument("--batch-size", type=int, default=32)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--min-quality", type=float, default=None,
+                    help="train and validate only on objects whose quality is at least this")
     args = ap.parse_args(argv)
     torch.manual_seed(args.seed)
     export = Path(args.export) if args.export else ROOT / "outputs" / "train_example" / "export"
-    if not (export / "index.json").is_file():
+    if not (export / "zarr.json").is_file():  # the zarr store of python -m carvi_torch.export
         recon = export.parent / "recon"
         print(f"no export at {export}: reconstructing the embedded collection into {recon}")
         subprocess.run([sys.executable, "-m", "carvi_torch.reconstruct", "--out", str(recon), "preview=false",
@@ -70,7 +72,7 @@ def main(argv=None) -> int:
                        check=True, cwd=ROOT)
         subprocess.run([sys.executable, "-m", "carvi_torch.export", "--recon", str(recon), "--out", str(export)],
                        check=True, cwd=ROOT)
-    ds = LiftedDataset(export, fields=["mask", "viewpoint", "class_index"])
+    ds = LiftedDataset(export, fields=["mask", "viewpoint", "class_index"], min_quality=args.min_quality)
     n_val = max(1, len(ds) // 5)
     train, val = random_split(ds, [len(ds) - n_val, n_val], generator=torch.Generator().manual_seed(args.seed))
     kw = dict(batch_size=args.batch_size, num_workers=args.workers, collate_fn=collate_lifted)

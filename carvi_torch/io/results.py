@@ -12,13 +12,16 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 
+from .. import quality
 from ..cameras import azimuth_elevation_roll_from_rotation
 from .layout import object_file
 from .outputs import read_json, write_json
 
-__all__ = ["ClassReport", "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras"]
+__all__ = ["ClassReport", "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras",
+           "reconstruction_signals", "quality_summary"]
 
 
 @dataclass
@@ -95,8 +98,43 @@ def _angles(az, el, ro, has_cam: bool) -> dict:
             for k, v in (("azimuth_deg", az), ("elevation_deg", el), ("roll_deg", ro))}
 
 
-def _per_annotation(coll, vp, clusters, levels) -> dict:
-    """``cameras.json``'s ``cameras``: per annotation id, SfM and final cameras in image pixels, canonical frame."""
+def reconstruction_signals(cdir: Path, annotation_ids: list) -> dict:
+    """``{str(aid): reconstruction_iou}`` of the objects whose voxels file holds one (finished objects)."""
+    out = {}
+    for aid in annotation_ids:
+        p = object_file(cdir, "voxels", aid)
+        try:
+            with np.load(p) as z:
+                if "reconstruction_iou" in z:
+                    out[str(aid)] = float(z["reconstruction_iou"])
+        except (OSError, ValueError, KeyError, EOFError):
+            continue  # no file yet, or a damaged one (the object is redone)
+    return out
+
+
+def quality_summary(cameras: dict) -> dict:
+    """``summary.json``'s ``quality`` of a class: count, mean, quartiles and deciles of the objects' quality."""
+    q = np.array([c["quality"] for c in cameras.values() if c.get("quality") is not None], dtype=np.float64)
+    if len(q) == 0:
+        return {"count": 0}
+    pct = np.percentile(q, [10, 25, 50, 75, 90])
+    return {"count": int(len(q)), "mean": round(float(q.mean()), 4),
+            **{k: round(float(v), 4) for k, v in zip(("p10", "p25", "median", "p75", "p90"), pct)}}
+
+
+def _quality(entry: dict, cam: dict, recon_iou: float | None) -> tuple[float | None, dict]:
+    """An object's ``quality`` and the signals it combines (carvi_torch.quality)."""
+    if entry["refined"] is None:
+        return None, {}
+    sig = {**cam, "camera_from": entry["camera_from"], "surrogates_from": entry["surrogates_from"],
+           "reconstruction_iou": recon_iou}
+    sig = {k: (round(v, 6) if isinstance(v, float) else v) for k, v in sig.items() if v is not None}
+    return round(quality.combine(sig), 4), sig
+
+
+def _per_annotation(coll, vp, clusters, levels, recon: dict | None = None) -> dict:
+    """``cameras.json``'s ``cameras``: per annotation id, SfM and final cameras in image pixels, canonical frame,
+    and the object's ``quality`` with its ``quality_signals`` (``recon``: :func:`reconstruction_signals`)."""
     n = len(coll)
     mix = vp.groups
     group_of = mix.labels.tolist() if mix.k > 1 else None  # one host read
@@ -107,6 +145,8 @@ def _per_annotation(coll, vp, clusters, levels) -> dict:
     sfm_ok, has_cam = vp.sfm_valid[:n].tolist(), vp.has_camera[:n].tolist()  # one host read each
     unseen = vp.unseen_keypoints[:n].tolist()
     kept = vp.kept_sfm[:n].tolist() if vp.kept_sfm is not None else None
+    cam_sig = quality.camera_signals(coll, vp)
+    recon = recon or {}
     per = {}
     for i, aid in enumerate(coll.annotation_ids):
         per[str(aid)] = {
@@ -122,6 +162,8 @@ def _per_annotation(coll, vp, clusters, levels) -> dict:
             per[str(aid)]["camera_choice"] = ("sfm" if kept[i] else "refined") if sfm_ok[i] and has_cam[i] else None
         if group_of is not None:
             per[str(aid)]["shape_group"] = group_of[i]
+        e = per[str(aid)]
+        e["quality"], e["quality_signals"] = _quality(e, cam_sig[i], recon.get(str(aid)))
     return per
 
 
@@ -133,14 +175,16 @@ def _symmetry_plane(vp, frame, group: int) -> list | None:
     return P.detach().double().cpu().tolist()
 
 
-def cameras_json(coll, vp, axes: torch.Tensor | None, clusters, levels: list | None = None) -> dict:
+def cameras_json(coll, vp, axes: torch.Tensor | None, clusters, levels: list | None = None,
+                 recon: dict | None = None) -> dict:
     """``cameras.json`` content of a class: per annotation id its cameras, then the mean shape,
     symmetry plane, principal directions and (with shape groups) every group's mean shape.
 
     Args:
         coll: the class; vp: its :class:`carvi_torch.viewpoints.Viewpoints`; axes: ``(3, 3)``
             principal directions; clusters: :class:`carvi_torch.surrogates.Clusters`; levels: per
-            object, where its proposals come from (:data:`carvi_torch.surrogates.LEVELS`).
+            object, where its proposals come from (:data:`carvi_torch.surrogates.LEVELS`); recon: per
+            annotation id, the reconstruction's quality signal (:func:`reconstruction_signals`).
     """
     names = coll.meta.keypoint_names
 
@@ -157,7 +201,7 @@ def cameras_json(coll, vp, axes: torch.Tensor | None, clusters, levels: list | N
         "frame_info": frame.info if frame is not None else {"kind": "sfm"},
         "camera_convention": "image pixels of each annotation's image; R rows = image x, image y (down), view "
                              "direction, in the frame above; azimuth, elevation, roll as PASCAL3D+ defines them",
-        "cameras": _per_annotation(coll, vp, clusters, levels),
+        "cameras": _per_annotation(coll, vp, clusters, levels, recon),
         "mean_shape": named(canon(vp.shape)),
         "symmetry_plane": _symmetry_plane(vp, frame, big),
         "principal_directions": None if axes is None else (
@@ -203,3 +247,14 @@ def write_scores(cdir: Path, annotation_ids: list, overwrite: bool) -> None:
                 pass  # a damaged score file: its object is redone only by overwrite; the earlier entry stays
     if merged:
         write_json(sp, merged, indent=None)
+
+
+def resumed_levels(cdir: Path, coll, levels: list, done: list) -> list:
+    """``levels`` with the puffball fallbacks of finished objects kept from the earlier run's cameras.json
+    (a puffball is decided after carving, which a resumed object does not repeat)."""
+    try:
+        previous = read_json(cdir / "cameras.json").get("cameras", {}) if (cdir / "cameras.json").is_file() else {}
+    except (ValueError, AttributeError):
+        previous = {}
+    return [("puffball" if d and (previous.get(str(a)) or {}).get("surrogates_from") == "puffball" else lv)
+            for a, lv, d in zip(coll.annotation_ids, levels, done)]

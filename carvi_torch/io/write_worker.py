@@ -26,6 +26,7 @@ import numpy as np
 import trimesh
 
 from .. import mesh
+from ..quality import reconstruction_iou
 from ..runtime import peak_rss_mb
 from .outputs import write_json, write_npz
 
@@ -56,9 +57,12 @@ def write_object(job: dict) -> dict:
         write_npz(job["proposals_path"], **job["proposals"])
     if job.get("scores") is not None:
         write_json(job["scores_path"], job["scores"], indent=None)
+    extra = {}
+    if job.get("mask") is not None:  # the quality signal of the reconstruction (carvi_torch.quality)
+        extra["reconstruction_iou"] = np.float64(reconstruction_iou(occ, job["voxel_to_canvas"], job["mask"]))
     write_npz(job["voxel_path"], occupancy=occ, voxel_to_camera=v2img, voxel_to_canvas=job["voxel_to_canvas"],
               voxel_to_object=job.get("voxel_to_object", np.full((4, 4), np.nan)), canvas_scale=job["canvas_scale"],
-              canvas_offset=job["canvas_offset"], surrogates=job["surrogates"])
+              canvas_offset=job["canvas_offset"], surrogates=job["surrogates"], **extra)
     mesh.write_mesh(m, job["mesh_path"])
     return dict(ok=True, reason=None, mesh_seconds=t1 - t0, write_seconds=time.perf_counter() - t1)
 

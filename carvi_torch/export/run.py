@@ -1,0 +1,194 @@
+"""The export: a training dataset (a zarr v3 store) from a reconstruction directory.
+
+For every reconstructed object the export writes one sample into a zarr v3 store: one group per
+class, one compressed array per field, one chunk per sample (:mod:`carvi_torch.export.store`;
+layout and fields in ``docs/export.md``). :class:`carvi_torch.training.LiftedDataset` reads it,
+and so does zarr alone. ``--format cmr`` / ``--format ucmr`` write the annotation files of
+category-specific mesh reconstruction codebases instead (:mod:`carvi_torch.export.formats`).
+
+Objects whose outputs are missing or unreadable (no voxels, no mesh, no camera, not in the
+annotations) are reported by annotation id with the reason, in the console and in the root
+group's ``skipped`` attribute; the rest is exported. The per-object work runs in ``--workers``
+processes (default: one per core).
+"""
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import multiprocessing as mp
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ..cli import add_common, split_classes
+from ..io.coco import load_coco
+from ..io.layout import object_file
+from ..io.outputs import read_json
+from ..io.writer import INT64_RANGE, start_method
+from ..mesh import MESH_FORMATS
+from ..runtime import cores, stable_hash, torch_threads
+from .source import data_path, recon_config
+from .objects import canonical_occupancy, depth_map, init_worker, safe_export_object, view_occupancy
+from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, StoreWriter
+
+__all__ = ["export", "main", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "canonical_occupancy", "depth_map",
+           "ATTRS_KEY", "FORMAT_VERSION"]
+
+#: Objects handed to the worker processes at a time (bounds the memory of queued jobs).
+JOB_BLOCK = 256
+
+
+def _int_id(value) -> np.int64:
+    """An id as the int64 field holds it: the id when it is an integer int64 holds, else -1 (the class
+    group's ``annotation_ids`` and :class:`~carvi_torch.training.LiftedDataset`'s ``annotation_key`` carry
+    every id as given)."""
+    lo, hi = INT64_RANGE
+    return np.int64(value) if isinstance(value, int) and lo <= value <= hi else np.int64(-1)
+
+
+def class_extent(cams: dict) -> float:
+    """Half-side ``E`` of the canonical occupancy cube: 1.3 x the largest keypoint radius of the class's
+    mean shape (1.0 without one)."""
+    shape = np.array([v for v in cams.get("mean_shape", {}).values() if v is not None], dtype=np.float64)
+    return float(1.3 * np.linalg.norm(shape - shape.mean(0), axis=1).max()) if len(shape) else 1.0
+
+
+# =========================================================================== the export (main process)
+
+
+def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, skipped: list):
+    """The jobs of a class's exportable objects (the others go to ``skipped`` with their reason)."""
+    jobs = []
+    for i, aid in enumerate(coll.annotation_ids):
+        entry = cams.get("cameras", {}).get(str(aid)) or {}
+        vox = object_file(cdir, "voxels", aid)
+        mesh = next((p for p in (object_file(cdir, "meshes", aid, ext) for ext in MESH_FORMATS) if p.is_file()),
+                    None)
+        reason = ("no camera in cameras.json" if entry.get("refined") is None else
+                  "no voxels (not reconstructed)" if not vox.is_file() else
+                  "no mesh (not reconstructed)" if mesh is None else None)
+        if reason is not None:
+            skipped.append({"annotation_id": aid, "class": cname, "source": coll.sources[i], "reason": reason})
+            continue
+        q = entry.get("quality")
+        jobs.append({**settings, "class": cname, "class_index": ci, "annotation_id": aid,
+                     "image_id": coll.image_ids[i], "source": coll.sources[i],
+                     "seed": [settings["seed"], stable_hash(cname), i],
+                     "mask": coll.masks[i].cpu().numpy(), "keypoints": coll.keypoints[i].cpu().numpy(),
+                     "visible": coll.visible[i].cpu().numpy(), "canvas_scale": float(coll.canvas_from_image.scale[i]),
+                     "canvas_offset": coll.canvas_from_image.offset[i].double().numpy(), "camera": entry["refined"],
+                     "quality": float(q) if q is not None else float("nan"), "voxels": str(vox), "mesh": str(mesh)})
+    return jobs
+
+
+def _run_jobs(jobs: list, pool, write, skipped: list, bar) -> None:
+    for k in range(0, len(jobs), JOB_BLOCK):
+        block = jobs[k:k + JOB_BLOCK]
+        results = (pool.map(safe_export_object, block, chunksize=4) if pool is not None
+                   else map(safe_export_object, block))
+        for job, (sample, reason) in zip(block, results):
+            bar.update(1)
+            if reason is not None:
+                skipped.append({"annotation_id": job["annotation_id"], "class": job["class"],
+                                "source": job["source"], "reason": reason})
+            else:
+                write(job, sample)
+
+
+def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int = 2048, shard_size: int = 256,
+           seed: int = 0, progress: bool = True, classes=None, workers: int | None = None,
+           mesh: bool = False) -> dict:
+    """Export every reconstructed object of ``recon`` into a zarr v3 store at ``out``.
+
+    Returns the root group's description (its ``carvi_export`` attribute) plus ``samples``: one entry
+    (class, annotation_id, image_id, source) per exported sample, in store order.
+    """
+    recon, out = Path(recon), Path(out)
+    cfg = recon_config(recon)
+    data = data_path(recon, cfg)
+    canvas = cfg.input.canvas_size
+    workers = cores() if workers is None else max(0, int(workers))
+    t0 = time.perf_counter()
+    with torch_threads(1):
+        loaded = load_coco(data, canvas_size=canvas, margin=cfg.input.canvas_margin, classes=classes)
+    class_names = sorted(c for c in loaded.collections if (recon / c).is_dir())
+    fields = DEFAULT_FIELDS + (MESH_FIELDS if mesh else [])
+    writer = StoreWriter(out, shard_size, fields)
+    skipped, samples = [], []
+    settings = {"canvas": canvas, "resolution": resolution, "points": points, "seed": seed, "mesh_field": mesh}
+    bar = tqdm(total=sum(len(loaded.collections[c]) for c in class_names), desc="export", disable=not progress)
+
+    def write(job, sample):
+        sample["annotation_id"], sample["image_id"] = _int_id(job["annotation_id"]), _int_id(job["image_id"])
+        writer.add(job["class"], sample, job)
+        samples.append({k: job[k] for k in ("class", "annotation_id", "image_id", "source")})
+
+    ctx = mp.get_context(start_method())
+    if workers > 0 and start_method() == "forkserver":  # workers fork from a server that imported them once
+        ctx.set_forkserver_preload([safe_export_object.__module__])
+    pool = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=init_worker) if workers > 0 else None
+    try:
+        with torch_threads(1):
+            for ci, cname in enumerate(class_names):
+                coll, cdir = loaded.collections[cname], recon / cname
+                try:
+                    cams = read_json(cdir / "cameras.json")
+                except (FileNotFoundError, ValueError) as e:
+                    skipped.extend({"annotation_id": aid, "class": cname, "reason": f"cameras.json unreadable: {e}"}
+                                   for aid in coll.annotation_ids)
+                    bar.update(len(coll))
+                    continue
+                writer.extent[cname] = class_extent(cams)
+                jobs = _jobs(coll, cname, ci, cdir, cams, {**settings, "extent": writer.extent[cname]}, skipped)
+                bar.update(len(coll) - len(jobs))
+                _run_jobs(jobs, pool, write, skipped, bar)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+        bar.close()
+    for s in skipped:
+        tqdm.write(f"export: {s['class']} annotation {s['annotation_id']} skipped: {s['reason']}")
+    attrs = {"recon": str(recon), "data": str(data), "canvas_size": canvas, "resolution": resolution,
+             "points": points, "seed": seed, "classes": class_names,
+             "class_extent": {c: writer.extent[c] for c in class_names if c in writer.extent},
+             "skipped": skipped, "seconds": round(time.perf_counter() - t0, 3)}
+    writer.close(attrs)
+    return {**writer.root.attrs[ATTRS_KEY], "samples": samples}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m carvi_torch.export",
+                                 description="Export a reconstruction directory as a zarr v3 store for PyTorch "
+                                             "training (read it with carvi_torch.training.LiftedDataset; layout in "
+                                             "docs/export.md), or as CMR / U-CMR annotation files.")
+    ap.add_argument("--recon", required=True, help="output directory of carvi_torch.reconstruct")
+    ap.add_argument("--out", required=True, help="store (directory) to write")
+    ap.add_argument("--format", choices=["zarr", "cmr", "ucmr"], default="zarr",
+                    help="zarr: the training store (default); cmr: one .mat per class; ucmr: one .json per class")
+    ap.add_argument("--resolution", type=int, default=32, help="occupancy grid side (default 32)")
+    ap.add_argument("--points", type=int, default=2048, help="surface points per object (default 2048)")
+    ap.add_argument("--shard-size", type=int, default=256, help="samples per shard file (default 256)")
+    ap.add_argument("--mesh", action="store_true", help="also store every mesh (ragged mesh_vertices, mesh_faces)")
+    ap.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core; 0: none)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the surface sampling")
+    add_common(ap)
+    args = ap.parse_args(argv)
+    try:
+        if args.format != "zarr":
+            from .formats import export_format
+
+            written = export_format(args.recon, args.out, args.format, classes=split_classes(args.classes))
+            print(f"wrote {len(written)} {args.format} file(s) to {args.out}")
+            return 0
+        idx = export(args.recon, args.out, args.resolution, args.points, args.shard_size, args.seed,
+                     progress=not args.quiet, classes=split_classes(args.classes), workers=args.workers,
+                     mesh=args.mesh)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"exported {len(idx['samples'])} objects of {len(idx['classes'])} class(es) to {args.out} "
+          f"({idx['seconds']:.1f} s); skipped {len(idx['skipped'])}")
+    return 0

@@ -1,0 +1,216 @@
+"""The export's zarr v3 store: one group per class, one array per field, one chunk per sample.
+
+Layout (``docs/export.md`` has the full table)::
+
+    <out>/zarr.json                 root group; attributes["carvi_export"]: format version, classes,
+                                    canvas size, resolution, points, fields, skipped objects, ...
+    <out>/<class>/zarr.json         class group; attributes: annotation_ids, image_ids, sources, class_extent
+    <out>/<class>/<field>/...       array (N, *sample shape); chunk = one sample, shard = ``shard_size`` samples
+
+Reading one sample reads one chunk of every field it asks for (zarr's sharding codec keeps
+the chunks of ``shard_size`` samples in one file, so a store of 100,000 objects is not
+millions of files). Any zarr v3 reader opens it: ``zarr.open_group(out, mode="r")["car"]["mask"][0]``.
+
+Example:
+    >>> import tempfile, numpy as np
+    >>> d = tempfile.mkdtemp()
+    >>> w = StoreWriter(d, shard_size=2, fields=["quality"])
+    >>> for q in (0.5, 0.25, 1.0):
+    ...     w.add("car", {"quality": np.float32(q)}, {"annotation_id": 1, "image_id": 1, "source": ""})
+    >>> w.close({"classes": ["car"]})
+    >>> import zarr
+    >>> zarr.open_group(d, mode="r")["car"]["quality"][:].tolist()
+    [0.5, 0.25, 1.0]
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zarr
+from zarr.codecs import BloscCodec
+
+__all__ = ["FieldSpec", "FIELDS", "DEFAULT_FIELDS", "MESH_FIELDS", "StoreWriter", "FORMAT_VERSION", "ATTRS_KEY"]
+
+FORMAT_VERSION = 2
+#: The root group's attribute that holds the export's description.
+ATTRS_KEY = "carvi_export"
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """One exported field: the dtype kept on disk, the dtype :class:`~carvi_torch.training.LiftedDataset`
+    returns, the per-sample shape (symbolic) and its meaning."""
+
+    dtype: str
+    shape: str
+    doc: str
+    returns: str | None = None  # None: as stored
+
+    @property
+    def out_dtype(self) -> str:
+        return self.returns or self.dtype
+
+
+#: Every exported field (also written to the root group's attributes).
+FIELDS: dict[str, FieldSpec] = {
+    "mask": FieldSpec("bool", "(C, C)", "canvas mask, [row = y, col = x], canvas pixels"),
+    "keypoints": FieldSpec("float32", "(K, 2)", "canvas keypoints (x, y); 0 where not visible"),
+    "visible": FieldSpec("bool", "(K,)", "keypoint visibility"),
+    "crop_box": FieldSpec("float32", "(4,)", "image region of the canvas: x0, y0, x1, y1 (image pixels, "
+                                             "centres of the canvas corner pixels)"),
+    "canvas_scale": FieldSpec("float32", "()", "a in canvas = a * image + b"),
+    "canvas_offset": FieldSpec("float32", "(2,)", "b in canvas = a * image + b"),
+    "R": FieldSpec("float32", "(3, 3)", "camera rotation, rows = image x, image y (down), view direction, "
+                                        "in the class frame"),
+    "s": FieldSpec("float32", "()", "camera scale, image pixels per class-frame unit"),
+    "t": FieldSpec("float32", "(2,)", "image position of the class-frame origin (image pixels)"),
+    "viewpoint": FieldSpec("float32", "(3,)", "azimuth, elevation, roll (radians) in the class frame, as "
+                                               "PASCAL3D+ defines them"),
+    "quality": FieldSpec("float32", "()", "predicted reliability in [0, 1] (cameras.json 'quality'; NaN when "
+                                          "the run wrote none)"),
+    "occupancy_view": FieldSpec("bool", "(R, R, R)", "any-overlap occupancy in the view frame, [depth, y, x]: the "
+                                                     "canvas square in x, y and a depth range of the same size "
+                                                     "centred on the object"),
+    "occupancy_canonical": FieldSpec("bool", "(R, R, R)", "any-overlap occupancy in the class frame, [z, y, x] over "
+                                                          "[-E, E]^3 (E = class_extent)"),
+    "depth": FieldSpec("float16", "(C, C)", "depth of the mesh's first surface per canvas pixel, canvas pixels, "
+                                            "relative to the object's depth centre; +inf where the ray misses",
+                       returns="float32"),
+    "points": FieldSpec("float16", "(P, 3)", "surface points in the class frame (area-uniform samples)",
+                        returns="float32"),
+    "normals": FieldSpec("float16", "(P, 3)", "outward unit normals at the points, class frame", returns="float32"),
+    "annotation_id": FieldSpec("int64", "()", "COCO annotation id (-1 for a string id: see annotation_key)"),
+    "image_id": FieldSpec("int64", "()", "COCO image id (-1 for a string id)"),
+    "class_index": FieldSpec("int64", "()", "index into the classes of the root group's attributes"),
+    # the optional mesh (ragged: concatenated over the class's samples, located by mesh_offsets)
+    "mesh_vertices": FieldSpec("float32", "(V_i, 3)", "mesh vertices in the class frame (ragged)"),
+    "mesh_faces": FieldSpec("int32", "(F_i, 3)", "mesh triangles, indices into this sample's vertices (ragged)"),
+}
+#: The fields a plain export writes (``--mesh`` adds :data:`MESH_FIELDS`).
+DEFAULT_FIELDS = [k for k in FIELDS if not k.startswith("mesh_")]
+MESH_FIELDS = ["mesh_vertices", "mesh_faces"]
+#: Rows per chunk of the ragged mesh arrays.
+MESH_CHUNK_ROWS = 4096
+
+
+def _compressor(dtype: str) -> BloscCodec:
+    """Blosc-zstd; bit-shuffled for booleans (8 voxels per byte before zstd), byte-shuffled otherwise."""
+    return BloscCodec(cname="zstd", clevel=5, shuffle="bitshuffle" if dtype == "bool" else "shuffle",
+                      typesize=np.dtype(dtype).itemsize)
+
+
+class _ClassArrays:
+    """The arrays of one class group, appended to in whole shards."""
+
+    def __init__(self, group: zarr.Group, fields: list[str], shard_size: int):
+        self.group, self.fields, self.shard_size = group, fields, shard_size
+        self.buf: dict[str, list] = {k: [] for k in fields}
+        self.meta: dict[str, list] = {"annotation_ids": [], "image_ids": [], "sources": []}
+        self.count = 0
+        self.ragged_rows = {k: 0 for k in MESH_FIELDS}
+        self.lengths: dict[str, list[int]] = {k: [] for k in MESH_FIELDS}
+
+    def _array(self, name: str, sample: np.ndarray, ragged: bool):
+        if name in self.group:
+            return self.group[name]
+        dtype = FIELDS[name].dtype
+        if ragged:
+            shape, chunks, shards = (0, 3), (MESH_CHUNK_ROWS, 3), None
+        else:
+            shape, chunks = (0, *sample.shape), (1, *sample.shape)
+            shards = (self.shard_size, *sample.shape)
+        fill = 0 if dtype != "bool" else False
+        return self.group.create_array(name, shape=shape, chunks=chunks, shards=shards, dtype=dtype,
+                                       compressors=_compressor(dtype), fill_value=fill,
+                                       dimension_names=None)
+
+    def add(self, sample: dict, meta: dict) -> None:
+        for k in self.fields:
+            self.buf[k].append(np.asarray(sample[k]))
+        for k, key in (("annotation_ids", "annotation_id"), ("image_ids", "image_id"), ("sources", "source")):
+            self.meta[k].append(meta[key])
+        if len(self.buf[self.fields[0]]) >= self.shard_size:
+            self.flush()
+
+    def flush(self) -> None:
+        n = len(self.buf[self.fields[0]]) if self.fields else 0
+        if n == 0:
+            return
+        for k in self.fields:
+            if k in MESH_FIELDS:
+                self._append_ragged(k, self.buf[k])
+                continue
+            block = np.stack(self.buf[k]).astype(FIELDS[k].dtype)
+            arr = self._array(k, block[0], ragged=False)
+            arr.resize((self.count + n, *block.shape[1:]))
+            arr[self.count:self.count + n] = block
+        self.count += n
+        self.buf = {k: [] for k in self.fields}
+
+    def _append_ragged(self, name: str, items: list) -> None:
+        block = np.concatenate(items).astype(FIELDS[name].dtype)
+        arr = self._array(name, block, ragged=True)
+        start = self.ragged_rows[name]
+        arr.resize((start + len(block), 3))
+        arr[start:] = block
+        self.ragged_rows[name] = start + len(block)
+        self.lengths[name].extend(len(it) for it in items)
+
+    def close(self, extent: float) -> None:
+        self.flush()
+        attrs = {**self.meta, "count": self.count, "class_extent": extent}
+        if self.lengths[MESH_FIELDS[0]]:
+            lengths = np.array([self.lengths[k] for k in MESH_FIELDS], dtype=np.int64).T  # (N, 2)
+            off = np.concatenate([np.zeros((1, 2), np.int64), np.cumsum(lengths, axis=0)])
+            self.group.create_array("mesh_offsets", data=off, chunks=off.shape, compressors=_compressor("int64"))
+            attrs["mesh_offsets"] = "rows [i, i + 1) of mesh_vertices (column 0) and mesh_faces (column 1)"
+        self.group.attrs.update(attrs)
+
+
+def _check_replaceable(out: Path) -> None:
+    """Refuse to write over a folder that holds anything but an earlier export (zarr's ``mode="w"`` empties
+    the folder first)."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: exists and is not a folder")
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    try:
+        import json
+
+        if ATTRS_KEY in json.loads((out / "zarr.json").read_text()).get("attributes", {}):
+            return
+    except (OSError, ValueError, AttributeError):
+        pass
+    raise ValueError(f"{out}: not empty and not an earlier export; choose another --out (nothing was written)")
+
+
+class StoreWriter:
+    """Writes samples class by class into a zarr v3 store at ``out`` (created, or replaced when it holds
+    an earlier export's store)."""
+
+    def __init__(self, out: str | Path, shard_size: int = 256, fields: list[str] | None = None):
+        self.out = Path(out)
+        _check_replaceable(self.out)
+        self.root = zarr.open_group(str(self.out), mode="w", zarr_format=3)
+        self.shard_size = max(1, int(shard_size))
+        self.fields = list(fields) if fields is not None else list(DEFAULT_FIELDS)
+        self.classes: dict[str, _ClassArrays] = {}
+        self.extent: dict[str, float] = {}
+
+    def add(self, cls: str, sample: dict, meta: dict) -> None:
+        """Append one sample (a dict with every field) of class ``cls``; ``meta``: annotation_id, image_id,
+        source (ids as given: ints or strings)."""
+        if cls not in self.classes:
+            self.classes[cls] = _ClassArrays(self.root.create_group(cls), self.fields, self.shard_size)
+        self.classes[cls].add(sample, meta)
+
+    def close(self, attrs: dict) -> None:
+        """Flush every class and write the root attributes (``attrs`` plus the fields and format version)."""
+        for cls, arrays in self.classes.items():
+            arrays.close(self.extent.get(cls, 1.0))
+        fields = {k: {"dtype": FIELDS[k].dtype, "returns": FIELDS[k].out_dtype, "shape": FIELDS[k].shape,
+                      "doc": FIELDS[k].doc} for k in self.fields}
+        self.root.attrs[ATTRS_KEY] = {"format_version": FORMAT_VERSION, **attrs, "fields": fields,
+                                      "counts": {c: a.count for c, a in self.classes.items()}}

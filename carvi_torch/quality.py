@@ -1,0 +1,170 @@
+"""A per-object ``quality`` in [0, 1] (higher: more reliable): what the run itself can tell about an object's error.
+
+Signals (each computed where the information exists, ``None`` otherwise):
+
+- ``keypoint_residual``: RMS distance between the object's visible keypoints and the final camera's
+  projection of the mean shape (of the object's shape group), as a fraction of the canvas side.
+- ``visible_keypoints``: how many keypoints the object shows (what SfM had to go on).
+- ``refinement_deg``: angle (degrees) by which silhouette refinement turned the SfM camera (a large
+  turn: keypoints and silhouette disagreed).
+- ``rotational``: the class is rotationally symmetric (its viewpoint about the axis is a guess).
+- ``silhouette_inside``: fraction of the projected mean-shape keypoints that land inside the mask
+  (recorded, not combined: it did not rank the errors, see docs/export.md).
+- ``mirror_deg``: angle (degrees) between the camera of the object and the camera of its mirrored
+  copy mirrored back (``diag(-1, 1, 1) R P`` with ``P`` the symmetry plane): the two are estimated
+  separately, so their disagreement is a self-consistency check of the viewpoint.
+- ``camera_from``: ``sfm`` / ``ground_truth`` / ``mean_shape`` / ``silhouette`` (cameras.json).
+- ``reconstruction_iou``: IoU of the selected reconstruction's silhouette (its occupancy projected
+  along the reference camera's rays) with the mask, in canvas pixels.
+- ``surrogates_from``: which surrogate fallback made the reconstruction (``puffball`` the last).
+
+:func:`combine` turns them into ``quality``: a product of monotone factors, each in (0, 1], of the
+signals present (a missing signal is a factor of 1). The scales are set by hand, one per signal, and
+the result is measured against true errors on CAD renders (``docs/export.md#quality``).
+
+Example:
+    >>> round(combine({"keypoint_residual": 0.0, "silhouette_inside": 1.0, "mirror_deg": 0.0,
+    ...                "camera_from": "sfm", "reconstruction_iou": 1.0, "surrogates_from": "triplet"}), 3)
+    1.0
+    >>> combine({"mirror_deg": 30.0}) < combine({"mirror_deg": 5.0})
+    True
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["camera_signals", "reconstruction_iou", "combine", "SCALES", "CAMERA_FROM", "FALLBACK", "VISIBLE_HALF",
+           "ROTATIONAL"]
+
+#: Value of each continuous signal at which its factor ``1 / (1 + (v / scale)^2)`` is 1/2.
+SCALES = {"keypoint_residual": 0.04, "refinement_deg": 5.0, "mirror_deg": 25.0}
+#: ``visible_keypoints`` enter as ``n / (n + VISIBLE_HALF)``.
+VISIBLE_HALF = 8.0
+#: Factor of a rotationally symmetric class.
+ROTATIONAL = 0.5
+#: Factor per camera source (the unseen-image paths guess more).
+CAMERA_FROM = {"sfm": 1.0, "ground_truth": 1.0, "mean_shape": 0.6, "silhouette": 0.3}
+#: Factor per surrogate level; levels not named here (the intermediate fallbacks) take ``FALLBACK["other"]``.
+FALLBACK = {"triplet": 1.0, "rotated_views": 1.0, "puffball": 0.3, "other": 0.8}
+
+
+def _geodesic_deg(A, B):
+    """Angle (degrees) of ``A B^T`` for ``(N, 3, 3)`` rotation tensors."""
+    import torch
+
+    tr = torch.einsum("nij,nij->n", A, B)
+    return torch.rad2deg(torch.acos(((tr - 1) / 2).clamp(-1.0, 1.0)))
+
+
+def camera_signals(coll, vp) -> list[dict]:
+    """Per original object of the class, ``keypoint_residual``, ``silhouette_inside``, ``mirror_deg``,
+    ``visible_keypoints``, ``refinement_deg`` and ``rotational`` (``None`` where the object has no camera,
+    no visible keypoint, no mirrored camera, or no SfM camera; ``refinement_deg`` also for true cameras).
+
+    Args:
+        coll: the class (``N`` originals, canvas pixels); vp: its
+            :class:`~carvi_torch.viewpoints.Viewpoints` (``2N`` rows; cameras in the SfM frame).
+    """
+    import torch  # here, not at the top: writer processes import this module for reconstruction_iou
+
+    n = len(coll)
+    cams = vp.cameras
+    R, s, t = cams.R[:n].double().cpu(), cams.s[:n].double().cpu(), cams.t[:n].double().cpu()
+    labels = vp.groups.labels[:n].cpu().tolist() if vp.groups.k > 1 else [0] * n
+    shapes = {g: (vp.groups.shape(g) if vp.groups.k > 1 else vp.shape).double().cpu() for g in set(labels)}
+    kp, vis = coll.keypoints.double().cpu(), coll.visible.cpu()
+    masks = coll.masks.cpu()
+    C = masks.shape[-1]
+    has = vp.has_camera.cpu()
+    sfm_ok = vp.sfm_valid[:n].cpu()
+    turn = _geodesic_deg(vp.sfm_cameras.R[:n].double().cpu(), R).tolist()
+    rotational = getattr(getattr(coll, "meta", None), "symmetry", "none") == "rotational"
+    mirror = [None] * n
+    if vp.mirrored and vp.reflection is not None:
+        flip = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
+        pred = flip @ R @ vp.reflection.double().cpu()
+        ang = _geodesic_deg(pred, cams.R[n:2 * n].double().cpu()).tolist()
+        mirror = [a if bool(has[i]) and bool(has[i + n]) and math.isfinite(a) else None for i, a in enumerate(ang)]
+    out = []
+    for i in range(n):
+        if not bool(has[i]):
+            out.append({"keypoint_residual": None, "silhouette_inside": None, "mirror_deg": None,
+                        "visible_keypoints": int(vis[i].sum()), "refinement_deg": None, "rotational": rotational})
+            continue
+        S = shapes[labels[i]]
+        ok = torch.isfinite(S).all(1)
+        uv = s[i] * S[ok] @ R[i, :2].T + t[i]
+        v = vis[i] & ok
+        res = None
+        if bool(v.any()):
+            d = s[i] * S[v] @ R[i, :2].T + t[i] - kp[i, v]
+            res = float(d.pow(2).sum(1).mean().sqrt()) / C
+        px = uv.round().long()
+        inb = (px >= 0).all(1) & (px < C).all(1)
+        inside = torch.zeros(len(px), dtype=torch.bool)
+        inside[inb] = masks[i][px[inb, 1], px[inb, 0]]
+        out.append({"keypoint_residual": res, "silhouette_inside": float(inside.float().mean()) if len(px) else None,
+                    "mirror_deg": mirror[i], "visible_keypoints": int(vis[i].sum()),
+                    "refinement_deg": turn[i] if bool(sfm_ok[i]) and math.isfinite(turn[i])
+                    and getattr(vp, "source", "estimate") != "gt" else None,
+                    "rotational": rotational})
+    return out
+
+
+def reconstruction_iou(occupancy: np.ndarray, voxel_to_canvas: np.ndarray, mask: np.ndarray) -> float:
+    """IoU of the silhouette of ``occupancy (D, H, W)`` (a grid whose depth axis is the camera's ray, as
+    the carving builds it) with the canvas ``mask (C, C)``; nearest voxel column per canvas pixel centre.
+
+    Example:
+        >>> occ = np.zeros((2, 4, 4), bool); occ[:, 1:3, 1:3] = True
+        >>> m = np.zeros((4, 4), bool); m[1:3, 1:4] = True
+        >>> reconstruction_iou(occ, np.eye(4)[[2, 1, 0, 3]], m)  # (d, h, w) -> (x=w, y=h, z=d)
+        0.6666666666666666
+    """
+    A = np.asarray(voxel_to_canvas, dtype=np.float64)
+    sil = np.asarray(occupancy, dtype=bool).any(axis=0)  # (H, W)
+    C = mask.shape[0]
+    # canvas (x, y) -> voxel (h, w) through the x, y rows of the affine restricted to the (h, w) columns
+    M = A[:2, 1:3]
+    if abs(A[0, 0]) > 1e-6 * np.abs(M).max() or abs(A[1, 0]) > 1e-6 * np.abs(M).max():
+        raise ValueError("the grid's depth axis is not the camera's ray")
+    ys, xs = np.mgrid[0:C, 0:C]
+    xy = np.stack([xs.ravel() - A[0, 3], ys.ravel() - A[1, 3]], 1)
+    hw = np.rint(xy @ np.linalg.inv(M).T).astype(np.int64)
+    ok = (hw >= 0).all(1) & (hw[:, 0] < sil.shape[0]) & (hw[:, 1] < sil.shape[1])
+    proj = np.zeros(C * C, dtype=bool)
+    proj[ok] = sil[hw[ok, 0], hw[ok, 1]]
+    m = np.asarray(mask, dtype=bool).ravel()
+    union = int((proj | m).sum())
+    return float((proj & m).sum()) / union if union else 0.0
+
+
+def _half_at(value: float, scale: float) -> float:
+    """``1 / (1 + (value / scale)^2)``: 1 at 0, 1/2 at ``scale``, decreasing."""
+    return 1.0 / (1.0 + (value / scale) ** 2)
+
+
+def combine(signals: dict) -> float:
+    """``quality`` in [0, 1] from the signals present (see the module docstring); 1 when none is."""
+    q = 1.0
+    for key, scale in SCALES.items():
+        v = signals.get(key)
+        if v is not None and math.isfinite(v):
+            q *= _half_at(v, scale)
+    n = signals.get("visible_keypoints")
+    if n is not None:
+        q *= n / (n + VISIBLE_HALF)
+    if signals.get("rotational"):
+        q *= ROTATIONAL
+    iou = signals.get("reconstruction_iou")
+    if iou is not None:
+        q *= max(0.05, iou)
+    src = signals.get("camera_from")
+    if src is not None:
+        q *= CAMERA_FROM.get(src, 0.3)
+    lv = signals.get("surrogates_from")
+    if lv is not None:
+        q *= FALLBACK.get(lv, FALLBACK["other"])
+    return float(min(1.0, max(0.0, q)))

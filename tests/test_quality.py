@@ -1,0 +1,91 @@
+"""quality.py: the per-object quality signals and their combination."""
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from carvi_torch.cameras import ScaledOrthographic, axis_angle_to_rotation, random_rotations
+from carvi_torch.quality import camera_signals, combine, reconstruction_iou
+
+
+def test_reconstruction_iou_against_a_pixel_loop():
+    rng = np.random.default_rng(0)
+    occ = rng.random((6, 9, 7)) < 0.2  # [d, h, w]
+    A = np.zeros((4, 4))
+    A[0, 2], A[1, 1], A[2, 0], A[3, 3] = 2.5, 3.0, 1.7, 1.0  # x = 2.5 w + 4, y = 3 h + 2, z = 1.7 d - 5
+    A[:3, 3] = [4.0, 2.0, -5.0]
+    mask = rng.random((32, 32)) < 0.4
+    sil = occ.any(0)
+    inter = union = 0
+    for y in range(32):
+        for x in range(32):
+            h, w = (y - 2.0) / 3.0, (x - 4.0) / 2.5  # the nearest column, if any
+            hi, wi = int(np.floor(h + 0.5)), int(np.floor(w + 0.5))
+            p = 0 <= hi < 9 and 0 <= wi < 7 and sil[hi, wi]
+            inter += p and mask[y, x]
+            union += p or mask[y, x]
+    assert reconstruction_iou(occ, A, mask) == pytest.approx(inter / union, abs=1e-12)
+    tilted = A.copy()
+    tilted[0, 0] = 0.5  # depth moves x: not a grid aligned with the rays
+    with pytest.raises(ValueError, match="ray"):
+        reconstruction_iou(occ, tilted, mask)
+
+
+def test_combine_is_monotone_and_bounded():
+    base = {"keypoint_residual": 0.01, "visible_keypoints": 6, "refinement_deg": 2.0, "mirror_deg": 5.0,
+            "camera_from": "sfm", "reconstruction_iou": 0.9, "surrogates_from": "triplet"}
+    q0 = combine(base)
+    assert 0 < q0 < 1
+    worse = [("keypoint_residual", 0.05), ("visible_keypoints", 3), ("refinement_deg", 10.0), ("mirror_deg", 40.0),
+             ("camera_from", "silhouette"), ("reconstruction_iou", 0.5), ("surrogates_from", "puffball"),
+             ("rotational", True)]
+    for key, value in worse:
+        assert combine({**base, key: value}) < q0, key
+    assert combine({}) == 1.0 and combine({**base, "reconstruction_iou": 0.0}) >= 0.0
+    assert combine({**base, "silhouette_inside": 0.0}) == q0  # recorded, not combined
+
+
+def test_camera_signals_measure_residual_silhouette_and_mirror_disagreement():
+    """Two objects: the first seen exactly (its keypoints on the projections, inside its mask, its mirrored
+    copy's camera the mirror of its own, its SfM camera the same); the second with keypoints 3 px off, an
+    empty mask, a mirrored camera turned 10 degrees and an SfM camera turned 7 degrees."""
+    g = torch.Generator().manual_seed(1)
+    S = torch.randn(4, 3, generator=g, dtype=torch.float64)
+    S = torch.cat([S, S * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)])  # left/right pairs
+    P = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
+    R = random_rotations(2, generator=g, dtype=torch.float64)
+    s = torch.tensor([8.0, 8.0], dtype=torch.float64)
+    t = torch.tensor([[32.0, 32.0], [30.0, 34.0]], dtype=torch.float64)
+    Rm = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)) @ R @ P
+    turn = axis_angle_to_rotation(torch.tensor([0.0, 0.0, math.radians(10.0)], dtype=torch.float64))
+    Rm[1] = turn @ Rm[1]
+    cams = ScaledOrthographic(torch.cat([R, Rm]), torch.cat([s, s]), torch.cat([t, 63 - t]))
+    kp = ScaledOrthographic(R, s, t).project(S.expand(2, -1, -1)).clone()
+    kp[1] += 3.0 / math.sqrt(2)
+    masks = torch.zeros(2, 64, 64, dtype=torch.bool)
+    masks[0] = True
+    vis = torch.ones(2, 8, dtype=torch.bool)
+    vis[1, :3] = False
+    kp[1, :3] = 0.0
+    coll = type("Coll", (), {"keypoints": kp, "visible": vis, "masks": masks, "meta": SimpleNamespace(symmetry="none"),
+                             "__len__": lambda self: 2})()
+    Rs = R.clone()
+    Rs[1] = axis_angle_to_rotation(torch.tensor([math.radians(7.0), 0.0, 0.0], dtype=torch.float64)) @ R[1]
+    sfm = ScaledOrthographic(torch.cat([Rs, Rm]), cams.s, cams.t)
+    vp = SimpleNamespace(cameras=cams, sfm_cameras=sfm, sfm_valid=torch.ones(4, dtype=torch.bool),
+                         groups=SimpleNamespace(k=1), shape=S, has_camera=torch.ones(4, dtype=torch.bool),
+                         mirrored=True, reflection=P, source="estimate")
+    sig = camera_signals(coll, vp)
+    assert sig[0]["keypoint_residual"] == pytest.approx(0.0, abs=1e-12)
+    assert sig[1]["keypoint_residual"] == pytest.approx(3.0 / 64, rel=1e-9)
+    assert sig[0]["silhouette_inside"] == 1.0 and sig[1]["silhouette_inside"] == 0.0
+    assert sig[0]["mirror_deg"] == pytest.approx(0.0, abs=1e-5)
+    assert sig[1]["mirror_deg"] == pytest.approx(10.0, abs=1e-6)
+    assert sig[0]["refinement_deg"] == pytest.approx(0.0, abs=1e-5)
+    assert sig[1]["refinement_deg"] == pytest.approx(7.0, abs=1e-6)
+    assert (sig[0]["visible_keypoints"], sig[1]["visible_keypoints"]) == (8, 5) and not sig[0]["rotational"]
+    assert combine(sig[1]) < combine(sig[0])
