@@ -97,9 +97,12 @@ def test_reconstruct_writes_the_report_within_budget(recon):
     objects = _objects(recon)
     assert sorted(c["id"] for c in cards) == sorted(objects) and len(cards) == 12
     assert all(c["cls"] == objects[c["id"]] for c in cards)
-    assert meta["sort_by"] == "iou"  # the run keeps neither quality nor proposal scores
-    ious = [c["iou"] for c in cards]
-    assert ious == sorted(ious) and all(0.3 < v <= 1 for v in ious)
+    assert meta["sort_by"] == "quality"  # cameras.json scores every object
+    cams = {aid: e for cls in ("car", "chair")
+            for aid, e in json.loads((recon / cls / "cameras.json").read_text())["cameras"].items()}
+    qs = [c["quality"] for c in cards]
+    assert qs == sorted(qs) and all(c["quality"] == pytest.approx(cams[c["id"]]["quality"], abs=1e-4) for c in cards)
+    assert all(0.3 < c["iou"] <= 1 for c in cards)
     for c in cards:
         assert not c.get("problems") and c["img"] and c["mesh"], c
         size = (report / c["img"]).stat().st_size + (report / c["mesh"]).stat().st_size
