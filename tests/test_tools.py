@@ -16,16 +16,20 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_benchmark_carving_comparison_on_a_small_class(tmp_path: Path):
     """The carving comparison runs every variant on a small class and checks them against each other:
-    voxel identity and sample counts (deterministic); its timings are reported, never asserted."""
+    voxel identity and sample counts (deterministic); its timings are reported, never asserted. The
+    record goes under ``--key`` of ``--out``, whose other records stay as they were."""
     out = tmp_path / "bench.json"
+    out.write_text(json.dumps({"older": {"command": "kept"}}))
     cmd = [sys.executable, str(ROOT / "tools" / "benchmark.py"), "--objects", "20", "--carve-objects", "2",
            "--loop-objects", "1", "--repeat", "1", "--skip-e2e", "--threads", "1", "--resolution", "32",
            "--proposals", "8", "--data-dir", str(tmp_path / "data"), "--work-dir", str(tmp_path / "runs"),
-           "--out", str(out)]
+           "--out", str(out), "--key", "small"]
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300,
                          env=dict(os.environ, OMP_NUM_THREADS="1"))
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
-    cs = json.loads(out.read_text())["carving"]
+    records = json.loads(out.read_text())
+    assert sorted(records) == ["older", "small"] and records["older"] == {"command": "kept"}
+    cs = records["small"]["carving"]
     # every exact variant and every loop agrees with the batched carving voxel for voxel, and both
     # nearest-pixel loops (the timed reference structure among them) with the nearest-pixel batched carving
     assert cs["identical"] and all(cs["identical"].values()), cs["identical"]
@@ -51,6 +55,66 @@ def test_benchmark_carving_comparison_on_a_small_class(tmp_path: Path):
     # the printed table: the variants as ratios to the default backend, and the label check
     assert "| / default |" in res.stdout and "| ratio (same run) | value |" in res.stdout
     assert "identical voxel for voxel: True" in res.stdout
+
+
+def test_write_record_sets_one_key_and_keeps_the_rest(tmp_path: Path):
+    """``write_record``: without a key the whole file; with one, that key of the file's object (a missing
+    file starts empty, the other keys stay); a file that is not an object of records is refused."""
+    from carvi_torch.io.outputs import write_record
+
+    p = tmp_path / "records.json"
+    write_record(p, {"a": 1}, "first")
+    write_record(p, {"b": [2, 3]}, "second")
+    write_record(p, {"a": 4}, "first")
+    assert json.loads(p.read_text()) == {"first": {"a": 4}, "second": {"b": [2, 3]}}
+    whole = tmp_path / "whole.json"
+    write_record(whole, [1, 2])
+    assert json.loads(whole.read_text()) == [1, 2]
+    with pytest.raises(ValueError, match="whole.json: not a JSON object of records"):
+        write_record(whole, {"a": 1}, "k")
+    assert json.loads(whole.read_text()) == [1, 2]
+
+
+def test_benchmark_records_default_to_their_key_of_the_pages_file():
+    """With no ``--out`` the benchmark's records are keys of docs/data/benchmarks.json (docs/benchmarks.md);
+    ``--out`` alone is a file of its own."""
+    bm = _benchmark_module()
+    import argparse
+
+    import torch
+
+    args = argparse.Namespace(out=None, key=None, skip_e2e=True, skip_carve=False, threads=2, objects=50)
+
+    key = bm.default_key(torch.device("cpu"), args)
+    assert key == "carving_cpu_threads2"
+    assert bm.record_target(args, key) == (ROOT / "docs" / "data" / "benchmarks.json", key)
+    args.key = "meshing_cpu"
+    assert bm.record_target(args, key) == (ROOT / "docs" / "data" / "benchmarks.json", "meshing_cpu")
+    args.out, args.key = "x.json", None
+    assert bm.record_target(args, key) == (Path("x.json"), None)
+    args.skip_e2e = False
+    assert bm.default_key(torch.device("cpu"), args) == "benchmark_cpu_50"
+    # every key the page names is in the file
+    page = (ROOT / "docs" / "benchmarks.md").read_text()
+    records = json.loads((ROOT / "docs" / "data" / "benchmarks.json").read_text())
+    for name in ("benchmark_cpu_1000", "benchmark_cuda_9087_h100", "benchmark_cuda_1000_h100", "carving_cpu_threads1",
+                 "carving_cpu_threads2", "many_classes_cpu", "meshing_cpu"):
+        assert f"`{name}`" in page and name in records, name
+
+
+def test_docs_data_holds_few_records_each_named_by_a_page():
+    """docs/data/ keeps raw JSON only where a page builds a table from it, at most 12 files: every file is
+    linked from a page of docs/, and every link of a page into data/ names a file that is there."""
+    import re
+
+    data = ROOT / "docs" / "data"
+    files = {p.name for p in data.glob("*.json")}
+    assert 0 < len(files) <= 12, sorted(files)
+    linked = set()
+    for page in (ROOT / "docs").glob("*.md"):
+        linked |= set(re.findall(r"\]\(data/([^)#]+\.json)\)", page.read_text()))
+    assert linked <= files, sorted(linked - files)
+    assert files <= linked, sorted(files - linked)
 
 
 def _benchmark_module():

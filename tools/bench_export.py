@@ -1,8 +1,8 @@
 """Benchmark the training export (zarr store) and the dataset reader, or (``--report``) the HTML report.
 
     python tools/bench_export.py [--objects 1000] [--recon DIR] [--work outputs/bench_export]
-                                 [--workers N] [--out docs/data/export.json]
-    python tools/bench_export.py --report [--objects 160] [--recon DIR] [--out docs/data/report.json]
+                                 [--workers N] [--out PATH [--key KEY]]
+    python tools/bench_export.py --report [--objects 160] [--recon DIR] [--out PATH [--key KEY]]
 
 Without ``--recon`` it first reconstructs an embedded procedural collection of ``--objects``
 objects (equal parts of the four classes; default settings, 60^3 grid, 20 proposals) — that
@@ -10,13 +10,14 @@ part is not timed here (see tools/benchmark.py). Then it times, as separate proc
 ``python -m carvi_torch.export`` (whole process, start-up included: objects per second, peak
 memory of the process tree, bytes per object on disk, per field too), reading every sample with
 ``LiftedDataset`` on one worker (all fields, and three fields), and a ``DataLoader`` with 2
-workers. Prints a table and writes ``--out`` (default ``docs/data/export.json``, docs/export.md).
+workers. Prints a table and writes ``--out`` (under ``--key`` when given, the file's other keys kept;
+default: key ``export`` of ``docs/data/export.json``, the records of docs/export.md).
 
 With ``--report`` it times ``python -m carvi_torch.report`` instead (whole process), once with the
 cards made in the report's own process and once in 2 worker processes: objects per
 second, CPU time and peak memory of the report process (its workers are the forkserver's children:
 neither is counted), and bytes per object (overlay and mesh data; the shared assets apart). Default
-record ``docs/data/report.json`` (docs/report.md).
+record: key ``report_<objects>`` of ``docs/data/report.json`` (docs/report.md).
 """
 from __future__ import annotations
 
@@ -140,7 +141,7 @@ print(json.dumps({"cards": r.cards, "seconds_inside": time.perf_counter() - t,
 """
 
 
-def bench_report(recon: Path, work: Path, out: str, argv) -> int:
+def bench_report(recon: Path, work: Path, out: str, key: str | None, argv) -> int:
     """Time the report of ``recon`` as a whole process, without and with worker processes; print a table."""
     import shutil
 
@@ -179,12 +180,12 @@ def bench_report(recon: Path, work: Path, out: str, argv) -> int:
         print("  ".join(v.ljust(widths[i]) for i, v in enumerate(r)))
     print(f"shared files (page, assets, class figures): {assets / 1024:.0f} KB; {os.cpu_count()} cores; "
           f"load {os.getloadavg()[0]:.1f}")
-    from carvi_torch.io.outputs import write_json
+    from carvi_torch.io.outputs import write_record
 
     record.update({"command": "python tools/bench_export.py " + " ".join(shlex.quote(a) for a in argv),
                    "load_average": round(os.getloadavg()[0], 2), "cpus": os.cpu_count()})
-    write_json(out, record)
-    print(f"wrote {out}")
+    write_record(out, record, key)
+    print(f"wrote {out}" + (f", key {key}" if key else ""))
     return 0
 
 
@@ -196,15 +197,19 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default=str(ROOT / "outputs" / "bench_export"))
     ap.add_argument("--workers", type=int, default=None, help="export worker processes (default: its own)")
     ap.add_argument("--out", help="JSON record (default docs/data/export.json; with --report docs/data/report.json)")
+    ap.add_argument("--key", help="write the record under this key of --out's JSON object, its other keys kept "
+                                  "(default with no --out: export; with --report report_<objects>)")
     ap.add_argument("--report", action="store_true", help="benchmark the HTML report instead of the export")
     args = ap.parse_args(argv)
     argv = list(sys.argv[1:] if argv is None else argv)
     args.objects = args.objects or (160 if args.report else 1000)
-    args.out = args.out or str(ROOT / "docs" / "data" / ("report.json" if args.report else "export.json"))
+    if not args.out:
+        args.out = str(ROOT / "docs" / "data" / ("report.json" if args.report else "export.json"))
+        args.key = args.key or (f"report_{args.objects}" if args.report else "export")
     work, py = Path(args.work), sys.executable
     recon = Path(args.recon) if args.recon else _reconstruct(py, work, args.objects)
     if args.report:
-        return bench_report(recon, work, args.out, argv)
+        return bench_report(recon, work, args.out, args.key, argv)
     exp = work / "export"
     if exp.exists():
         import shutil
@@ -246,9 +251,9 @@ def main(argv=None) -> int:
     print(f"export CPU time (process tree, user + system): {cpu_s:.1f} s = {1000 * cpu_s / max(n, 1):.1f} ms/object, "
           f"so at most {2 * n / cpu_s:.0f} objects/s on 2 idle cores (start-up included)")
     print(f"{os.cpu_count()} cores; load average {load0:.1f} before the export, {os.getloadavg()[0]:.1f} after")
-    from carvi_torch.io.outputs import write_json
+    from carvi_torch.io.outputs import write_record
 
-    write_json(args.out, {
+    write_record(args.out, {
         "command": "python tools/bench_export.py " + " ".join(shlex.quote(a) for a in argv),
         "objects": n, "export_seconds": round(t_exp, 2), "export_objects_per_second": round(n / t_exp, 2),
         "export_peak_tree_rss_mb": round(peak_exp) if peak_exp else None,
@@ -259,8 +264,8 @@ def main(argv=None) -> int:
         "read_samples_per_second_1_worker_3_fields": round(reads["three"]["samples"] / reads["three"]["seconds"]),
         "dataloader_samples_per_second_2_workers": round(reads["loader"]["samples"] / reads["loader"]["seconds"]),
         "load_average_before": round(load0, 2), "load_average_after": round(os.getloadavg()[0], 2),
-        "cpus": os.cpu_count()})
-    print(f"wrote {args.out}")
+        "cpus": os.cpu_count()}, args.key)
+    print(f"wrote {args.out}" + (f", key {args.key}" if args.key else ""))
     return 0
 
 

@@ -29,10 +29,11 @@ with mixture" is the one-shape SfM, the fit and that refinement.
 
     python tools/bench_viewpoints.py [--n 2000] [--device cpu] [--groups 1] [--shapes 1] [--cold-too]
                                      [--group-threads 2] [--one-thread-too] [--threads-min-objects N]
-                                     [--out PATH]
+                                     [--out PATH] [--key KEY]
 
-The JSON record goes to ``--out``, by default ``docs/data/viewpoints_speed[_groups<G>][_shapes<S>]
-[_n<N>][_<device>].json`` (docs/viewpoints.md cites the default run's and ``--shapes 3 --groups 3``'s).
+The JSON record goes to ``--out`` (under ``--key`` when given), by default under the key
+``viewpoints_speed[_groups<G>][_shapes<S>][_n<N>][_<device>]`` of ``docs/data/viewpoints.json``, the
+records of docs/viewpoints.md (it cites the default run's and ``--shapes 3 --groups 3``'s).
 """
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ from skimage.draw import polygon2mask
 from carvi_torch.cameras import FLIP_X, ScaledOrthographic, random_rotations
 from carvi_torch.config import Config
 from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report
-from carvi_torch.io.outputs import write_json
+from carvi_torch.io.outputs import write_record
 from carvi_torch.sdf import distance_to_mask
 from carvi_torch.viewpoints import mixture as sfm_mixture
 from carvi_torch.viewpoints.camera_fit import refine_cameras, supported_shape
@@ -163,15 +164,17 @@ def main(argv=None) -> dict:
     ap.add_argument("--one-thread-too", action="store_true",
                     help="with --groups: also time the warm fit on one Python thread, in the same run, and check "
                          "that it gives the same result")
-    ap.add_argument("--out", default=None, help="JSON record (default docs/data/viewpoints_speed[...].json, "
-                                                "named after the options that differ from the defaults)")
+    ap.add_argument("--out", default=None, help="JSON record (default docs/data/viewpoints.json, under --key)")
+    ap.add_argument("--key", default=None, help="write the record under this key of --out's JSON object, its other "
+                                                "keys kept (default with no --out: viewpoints_speed[...], named "
+                                                "after the options that differ from the defaults)")
     args = ap.parse_args(argv)
     dev = torch.device(args.device)
     vcfg = Config().viewpoints  # the pipeline's viewpoint settings
-    out = Path(args.out) if args.out else ROOT / "docs" / "data" / (
+    out, key = (Path(args.out), args.key) if args.out else (ROOT / "docs" / "data" / "viewpoints.json", args.key or (
         "viewpoints_speed" + (f"_groups{args.groups}" if args.groups > 1 else "")
         + (f"_shapes{args.shapes}" if args.shapes > 1 else "") + (f"_n{args.n}" if args.n != 2000 else "")
-        + (f"_{dev.type}" if dev.type != "cpu" else "") + ".json")
+        + (f"_{dev.type}" if dev.type != "cpu" else "")))
 
     t0 = time.perf_counter()
     data = make_class(args.n, args.k, args.canvas, args.seed, args.shapes)
@@ -329,8 +332,8 @@ def main(argv=None) -> dict:
               f"acc@30 {gsum['acc_at_30']:.3f}, mirrored frame: {rep['mirrored']}")
     print(f"refinement: {ref.iterations} iterations, energy median {result['refinement']['energy_before_median']:.1f}"
           f" -> {result['refinement']['energy_after_median']:.1f}, raised for {result['refinement']['energy_raised']}")
-    write_json(out, result)
-    print(f"wrote {out}")
+    write_record(out, result, key)
+    print(f"wrote {out}" + (f", key {key}" if key else ""))
     return result
 
 

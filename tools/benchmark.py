@@ -50,9 +50,9 @@ generates them all.
 
 Prints a table (whole-process time, objects per second, peak memory; the carving variants as
 seconds per object and as ratios to the default backend timed in the same run) and writes
-everything as JSON, with the command line and the machine, to ``--out`` (default
-``docs/data/benchmark_<device>_<objects>.json``, or ``docs/data/carving_<device>_threads<N>.json``
-with ``--skip-e2e``).
+everything as JSON, with the command line and the machine, to ``--out``, by default under the key
+``benchmark_<device>_<objects>`` (``carving_<device>_threads<N>`` with ``--skip-e2e``) of
+``docs/data/benchmarks.json``, the records of docs/benchmarks.md (``--key`` names another key).
 
 Examples::
 
@@ -97,7 +97,7 @@ from carvi_torch import pipeline, select
 from carvi_torch.carve import native, torch_backend
 from carvi_torch.config import Config
 from carvi_torch.io import coco
-from carvi_torch.io.outputs import read_json, write_json
+from carvi_torch.io.outputs import read_json, write_json, write_record
 from carvi_torch.io.writer import writer_workers
 from carvi_torch.runtime import intra_op_threads, stable_hash
 
@@ -963,13 +963,24 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def default_out(device: torch.device, args) -> Path:
-    """``docs/data/benchmark_<device>_<objects>.json``; the carving comparison alone (``--skip-e2e``):
-    ``docs/data/carving_<device>_threads<N>.json`` (N: the torch threads it will use)."""
+BENCHMARKS_JSON = ROOT / "docs" / "data" / "benchmarks.json"  # docs/benchmarks.md's records, one key each
+
+
+def record_target(args, key: str) -> tuple[Path, str | None]:
+    """Where the record goes: ``--out`` (under ``--key`` when given, else the whole file), by default
+    key ``key`` of ``docs/data/benchmarks.json``."""
+    if args.out:
+        return Path(args.out), args.key
+    return BENCHMARKS_JSON, args.key or key
+
+
+def default_key(device: torch.device, args) -> str:
+    """``benchmark_<device>_<objects>``; the carving comparison alone (``--skip-e2e``):
+    ``carving_<device>_threads<N>`` (N: the torch threads it will use)."""
     if args.skip_e2e and not args.skip_carve:
         threads = args.threads or intra_op_threads(writer_workers("all", device))
-        return ROOT / "docs" / "data" / f"carving_{device.type}_threads{threads}.json"
-    return ROOT / "docs" / "data" / f"benchmark_{device.type}_{args.objects}.json"
+        return f"carving_{device.type}_threads{threads}"
+    return f"benchmark_{device.type}_{args.objects}"
 
 
 def main(argv=None):
@@ -1005,8 +1016,12 @@ def main(argv=None):
     ap.add_argument("--compare-set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="--many-classes: also run this checkout with these overrides (alt); report new / alt")
     ap.add_argument("--rounds", type=int, default=1, help="--many-classes: runs of each variant (best of)")
-    ap.add_argument("--out", default=None, help="JSON path (default: docs/data/benchmark_<device>_<objects>.json, "
-                                                "with --skip-e2e docs/data/carving_<device>_threads<N>.json)")
+    ap.add_argument("--out", default=None, help="JSON path (default: docs/data/benchmarks.json, under --key; "
+                                                "with --executor ray docs/data/ray_scaling_<objects>.json)")
+    ap.add_argument("--key", default=None, help="write the record under this key of --out's JSON object, its other "
+                                                "keys kept (default with no --out: benchmark_<device>_<objects>, "
+                                                "with --skip-e2e carving_<device>_threads<N>, with --many-classes "
+                                                "many_classes_<device>)")
     ap.add_argument("--executor", choices=["local", "ray"], default="local",
                     help="ray: the Ray executor's throughput on local clusters of --ray-nodes worker nodes")
     ap.add_argument("--ray-nodes", default="1,2", help="--executor ray: worker node counts (1 CPU each)")
@@ -1016,7 +1031,7 @@ def main(argv=None):
         result = ray_scaling(args, argv)
         print(ray_table(result))
         out_json = Path(args.out) if args.out else ROOT / "docs" / "data" / f"ray_scaling_{args.objects}.json"
-        write_json(out_json, result)
+        write_record(out_json, result, args.key)
         print(f"wrote {out_json}")
         return result
     device = torch.device(args.device)
@@ -1028,7 +1043,7 @@ def main(argv=None):
         return main_many(args, argv, device)
     data = ensure_data(args.objects, args.category, Path(args.data_dir), args.base_objects, args.tile, args.seed)
     name = f"benchmark_{device.type}_{args.objects}"
-    out_json = Path(args.out) if args.out else default_out(device, args)
+    out_json, key = record_target(args, default_key(device, args))
     result = {"command": " ".join(["python tools/benchmark.py"] + [shlex.quote(a) for a in argv]),
               "data": str(data), "machine_at_start": machine(device),
               "config": {"objects": args.objects, "category": args.category, "resolution": args.resolution,
@@ -1046,14 +1061,15 @@ def main(argv=None):
     print(table(result))
     print(f"load average at start / end: {result['machine_at_start']['load_average']} / "
           f"{result['machine_at_end']['load_average']}")
-    write_json(out_json, result)
-    print(f"wrote {out_json}")
+    write_record(out_json, result, key)
+    print(f"wrote {out_json}" + (f", key {key}" if key else ""))
     return result
 
 
 def main_many(args, argv: list[str], device: torch.device) -> dict:
-    """``--many-classes``: run, print and write (default ``docs/data/many_classes_<device>.json``)."""
-    out_json = Path(args.out) if args.out else ROOT / "docs" / "data" / f"many_classes_{device.type}.json"
+    """``--many-classes``: run, print and write (default: key ``many_classes_<device>`` of
+    ``docs/data/benchmarks.json``)."""
+    out_json, key = record_target(args, f"many_classes_{device.type}")
     result = {"command": " ".join(["python tools/benchmark.py"] + [shlex.quote(a) for a in argv]),
               "machine_at_start": machine(device)}
     result["many_classes"] = many_classes(args, device)
@@ -1061,8 +1077,8 @@ def main_many(args, argv: list[str], device: torch.device) -> dict:
     print("\n".join(_many_table(result["many_classes"])))
     print(f"load average at start / end: {result['machine_at_start']['load_average']} / "
           f"{result['machine_at_end']['load_average']}")
-    write_json(out_json, result)
-    print(f"wrote {out_json}")
+    write_record(out_json, result, key)
+    print(f"wrote {out_json}" + (f", key {key}" if key else ""))
     return result
 
 

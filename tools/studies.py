@@ -3,7 +3,8 @@
     python tools/studies.py {frames,canonical,ranking,threshold,viewpoints,clusters,step} [options]
 
 Figures go to ``docs/figures/<name>.png`` (docs/results.md and docs/conventions.md show them),
-JSON records to ``docs/data/studies_<name>.json``. Subcommands (``--bench`` is the benchmark's
+JSON records to ``outputs/studies/studies_<name>.json`` (no docs table is built from them; the
+figures are what the docs show). Subcommands (``--bench`` is the benchmark's
 working directory, default outputs/benchmark):
 
 * ``frames``: the image, camera and voxel-grid frames of carvi_torch (``frames.png``,
@@ -53,9 +54,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 #: Where the figures go (docs/results.md, docs/conventions.md show them).
 FIGURES = ROOT / "docs" / "figures"
-#: Where the studies' JSON records go, and where the synthetic benchmark's record is read.
-DATA = ROOT / "docs" / "data"
-BENCHMARK_JSON = DATA / "benchmark_synthetic.json"
+#: Where the studies' JSON records go.
+RECORDS = ROOT / "outputs" / "studies"
+#: The synthetic benchmark's record (docs/results.md), read by ``viewpoints`` and ``ranking``.
+BENCHMARK_JSON = ROOT / "docs" / "data" / "benchmark_synthetic.json"
 
 
 def _command() -> str:
@@ -63,9 +65,9 @@ def _command() -> str:
 
 
 def _record(name: str) -> Path:
-    """``docs/data/studies_<name>.json`` (its folder made)."""
-    DATA.mkdir(parents=True, exist_ok=True)
-    return DATA / f"studies_{name}.json"
+    """``outputs/studies/studies_<name>.json`` (its folder made)."""
+    RECORDS.mkdir(parents=True, exist_ok=True)
+    return RECORDS / f"studies_{name}.json"
 
 
 def _figure(name: str) -> Path:

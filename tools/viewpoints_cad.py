@@ -18,11 +18,12 @@ above the ground (elevation mostly 0-30 degrees, up to 50; roll sd 2) instead of
 default photo-like distribution.
 
     python tools/viewpoints_cad.py [--views 30] [--seed 0[,1,2]] [--cameras photo|level] [--quiet]
-                                   [--work outputs/viewpoints_cad] [--out PATH] [key=value ...]
+                                   [--work outputs/viewpoints_cad] [--out PATH [--key KEY]] [key=value ...]
 
 ``key=value`` are reconstruct overrides (``sfm_groups=3``, ``viewpoints.frame=symmetry+up``). The
-JSON record goes to ``--out``; by default, for the default settings (no override, seed 0), to
-``docs/data/viewpoints_cad.json`` (docs/viewpoints.md), else beside the run's cameras
+JSON record goes to ``--out`` (under ``--key`` when given, the file's other keys kept); by default,
+for the default settings (no override, seed 0), under the key ``viewpoints_cad`` of
+``docs/data/viewpoints.json`` (the records of docs/viewpoints.md), else beside the run's cameras
 (``<work>/cameras...json``).
 
 Needs ../shared/data/pascal3d_cad (the PASCAL3D+ CAD models, Xiang et al. 2014).
@@ -198,8 +199,12 @@ def main(argv=None) -> int:
     ap.add_argument("--quiet", action="store_true", help="no render progress bar")
     ap.add_argument("--cad", default=str(ROOT / ".." / "shared" / "data" / "pascal3d_cad"))
     ap.add_argument("--work", default=str(ROOT / "outputs" / "viewpoints_cad"), help="renders and cameras go here")
-    ap.add_argument("--out", default=None, help="JSON record (default: docs/data/viewpoints_cad.json for the "
-                                                "default settings, else beside the cameras in --work)")
+    ap.add_argument("--out", default=None, help="JSON record (default: key viewpoints_cad of "
+                                                "docs/data/viewpoints.json for the default settings, else beside "
+                                                "the cameras in --work)")
+    ap.add_argument("--key", default=None, help="write the record under this key of --out's JSON object, its other "
+                                                "keys kept (e.g. --out docs/data/viewpoints.json --key "
+                                                "viewpoints_cad8)")
     ap.add_argument("overrides", nargs="*", metavar="key=value", help="extra reconstruct overrides")
     args = ap.parse_args(argv)
     if not Path(args.cad).is_dir():
@@ -209,8 +214,9 @@ def main(argv=None) -> int:
     refined = [_run(args, seed, [*args.overrides, "refine_keep=refined"]) for seed in args.seed] \
         if args.refined_too else None
     default = not args.overrides and args.seed == [0] and args.cameras == "photo"
-    out = Path(args.out) if args.out else (ROOT / "docs" / "data" / "viewpoints_cad.json" if default
-                                           else runs[0]["recon"].with_suffix(".json"))
+    out, key = ((Path(args.out), args.key) if args.out else (ROOT / "docs" / "data" / "viewpoints.json",
+                                                             args.key or "viewpoints_cad") if default
+                else (runs[0]["recon"].with_suffix(".json"), args.key))
     record = {"command": " ".join(shlex.quote(a) for a in ["python", "tools/viewpoints_cad.py",
                                                            *(argv if argv is not None else sys.argv[1:])]),
               "views": args.views, "cameras": args.cameras}
@@ -239,10 +245,10 @@ def main(argv=None) -> int:
         record.update({"seeds_table": table, "per_class": per_class})
         if refined:
             record["refined_runs"] = [{"seed": r["seed"], "rows": r["rows"]} for r in refined]
-    from carvi_torch.io.outputs import write_json
+    from carvi_torch.io.outputs import write_record
 
-    write_json(out, record)
-    print(f"wrote {out}")
+    write_record(out, record, key)
+    print(f"wrote {out}" + (f", key {key}" if key else ""))
     return 0
 
 

@@ -19,8 +19,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["atomic_write", "write_json", "read_json", "read_text", "write_npz", "write_bytes", "to_jsonable", "is_done",
-           "safe_name"]
+__all__ = ["atomic_write", "write_json", "write_record", "read_json", "read_text", "write_npz", "write_bytes",
+           "to_jsonable", "is_done", "safe_name"]
 
 
 def _file_mode() -> int:
@@ -99,6 +99,19 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1) -> Pat
     """Write ``obj`` (converted with :func:`to_jsonable`) as JSON, atomically."""
     text = json.dumps(to_jsonable(obj), indent=indent)
     return write_bytes(path, text.encode("utf-8"))
+
+
+def write_record(path: str | os.PathLike, obj: Any, key: str | None = None) -> Path:
+    """Write ``obj`` as JSON (:func:`write_json`), or, with ``key``, set that key of the JSON object in
+    ``path`` to it: the file's other keys are kept, a missing file starts as ``{}``, atomically.
+    Benchmark tools keep the records of one docs page in one file this way (``docs/data/``)."""
+    if key is None:
+        return write_json(path, obj)
+    records = read_json(path) if Path(path).exists() else {}
+    if not isinstance(records, dict):
+        raise ValueError(f"{path}: not a JSON object of records; give another file or no key")
+    records[key] = obj
+    return write_json(path, records)
 
 
 def read_text(path: str | os.PathLike) -> str:
