@@ -415,6 +415,8 @@ def run_many(data: Path, out: Path, args, name: str, sets: list[str], pythonpath
     """One whole run of every class of ``data`` (a child process); its totals and per-class costs."""
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(data), "--out", str(out),
            "progress=false", "preview=false", "overwrite=true", f"device={args.device}", *args.set, *sets]
+    if pythonpath is None:  # this checkout: no HTML report (a checkout compared with may predate the setting)
+        cmd.append("report=false")
     env = dict(os.environ)
     env["PYTHONPATH"] = pythonpath or str(ROOT)
     if args.threads:
@@ -782,7 +784,7 @@ def _ray_run(data: Path, out: Path, nodes: int, args) -> dict:
                 cluster.add_node(num_cpus=1, node_ip_address="127.0.0.1")
             cluster.wait_for_nodes()
             cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(data), "--out", str(out),
-                   "progress=false", "preview=false", "overwrite=true", "executor=ray",
+                   "progress=false", "preview=false", "report=false", "overwrite=true", "executor=ray",
                    f"ray_address={cluster.address}", f"resolution={args.resolution}",
                    f"proposals={args.proposals}", *args.set]
             print(f"{nodes} worker node(s):", " ".join(shlex.quote(c) for c in cmd), flush=True)
