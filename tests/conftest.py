@@ -24,6 +24,23 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def render_cad_class(shared_data: Path, out: Path, prefix: str, views: int, seed: int = 0):
+    """The PASCAL3D+ CAD models named ``prefix*`` rendered ``views`` times each into ``out``:
+    ``(collection, true rotations (n, 3, 3) float64, models)``."""
+    import json
+
+    from carvi_torch.io.coco import load_coco
+    from carvi_torch.synthetic import load_models
+    from carvi_torch.synthetic.render import render_dataset
+
+    models = [m for m in load_models(shared_data / "pascal3d_cad") if m.name.startswith(prefix)]
+    render_dataset(models, out, views=views, seed=seed, progress=False)
+    coll = load_coco(out / "annotations.json").collections[prefix]
+    gt = json.loads((out / "gt.json").read_text())["annotations"]
+    R = torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids], dtype=torch.float64)
+    return coll, R, models
+
+
 @pytest.fixture
 def generator() -> torch.Generator:
     """A seeded CPU generator, so every test is deterministic."""

@@ -10,6 +10,7 @@ import torch
 from scipy.spatial import procrustes
 from scipy.spatial.transform import Rotation
 
+from conftest import render_cad_class
 from carvi_torch.cameras import ScaledOrthographic, nearest_scaled_rotation, random_rotations, rotation_about_axis
 from carvi_torch.viewpoints.sfm import (
     SfMResult,
@@ -652,16 +653,7 @@ def test_mirror_tie_angle_is_zero_for_the_truth_and_large_when_broken():
 @pytest.fixture(scope="module")
 def cad_cars(shared_data, tmp_path_factory):
     """The 5 PASCAL3D+ car models rendered from 30 views each (keypoints with self-occlusion)."""
-    from carvi_torch.io.coco import load_coco
-    from carvi_torch.synthetic import load_models
-    from carvi_torch.synthetic.render import render_dataset
-
-    out = tmp_path_factory.mktemp("cars")
-    models = [m for m in load_models(shared_data / "pascal3d_cad") if m.name.startswith("car")]
-    render_dataset(models, out, views=30, seed=0, progress=False)
-    coll = load_coco(out / "annotations.json").collections["car"]
-    gt = json.loads((out / "gt.json").read_text())["annotations"]
-    R = torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids], dtype=torch.float64)
+    coll, R, _ = render_cad_class(shared_data, tmp_path_factory.mktemp("cars"), "car", views=30)
     return coll, R
 
 

@@ -11,6 +11,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from conftest import render_cad_class
 from carvi_torch.viewpoints import sfm, mixture as mix
 from carvi_torch.cameras import Similarity2D
 from carvi_torch.collection import ClassCollection, ClassMeta, infer_flip_pairs
@@ -511,18 +512,9 @@ def test_pipeline_refines_without_keypoints_few_instances_show():
 def _cad_class(shared_data, tmp_path, prefix: str, count: int, views: int = 15):
     """The PASCAL3D+ CAD models named ``prefix*`` (``count`` of them) rendered ``views`` times each:
     ``(collection, true rotations (n, 3, 3) float64)``."""
-    import json
-
-    from carvi_torch.io.coco import load_coco
-    from carvi_torch.synthetic import load_models
-    from carvi_torch.synthetic.render import render_dataset
-
-    models = [m for m in load_models(shared_data / "pascal3d_cad") if m.name.startswith(prefix)]
+    coll, R, models = render_cad_class(shared_data, tmp_path, prefix, views=views)
     assert len(models) == count
-    render_dataset(models, tmp_path, views=views, seed=0, progress=False)
-    coll = load_coco(tmp_path / "annotations.json").collections[prefix]
-    gt = json.loads((tmp_path / "gt.json").read_text())["annotations"]
-    return coll, torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids], dtype=torch.float64)
+    return coll, R
 
 
 def test_cad_sofas_fit_three_shapes_and_better_viewpoints(shared_data, tmp_path):

@@ -7,28 +7,18 @@ start's. The ground-truth cameras are the independent reference.
 """
 from __future__ import annotations
 
-import json
 
 import pytest
 import torch
 
 from carvi_torch.config import ViewpointConfig
 from carvi_torch.viewpoints import TEMPLATE_START_MARGIN, started_sfm
-from conftest import requires_cuda
+from conftest import render_cad_class, requires_cuda
 
 
 @pytest.fixture(scope="module")
 def cad_trains(shared_data, tmp_path_factory):
-    from carvi_torch.io.coco import load_coco
-    from carvi_torch.synthetic import load_models
-    from carvi_torch.synthetic.render import render_dataset
-
-    out = tmp_path_factory.mktemp("trains")
-    models = [m for m in load_models(shared_data / "pascal3d_cad") if m.name.startswith("train")]
-    render_dataset(models, out, views=8, seed=2, progress=False)
-    coll = load_coco(out / "annotations.json").collections["train"]
-    gt = json.loads((out / "gt.json").read_text())["annotations"]
-    R = torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids], dtype=torch.float64)
+    coll, R, _ = render_cad_class(shared_data, tmp_path_factory.mktemp("trains"), "train", views=8, seed=2)
     return coll, R
 
 
