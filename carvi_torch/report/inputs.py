@@ -106,11 +106,11 @@ def _chosen_scores(cdir: Path) -> dict:
     out = {}
     for aid, e in entries.items() if isinstance(entries, dict) else ():
         try:
-            v = e["scores"][e["best"]]
+            v = _number({"v": e["scores"][e["best"]]}, "v")
         except (KeyError, IndexError, TypeError):
             continue
-        if isinstance(v, (int, float)) and math.isfinite(v):
-            out[str(aid)] = float(v)
+        if v is not None:
+            out[str(aid)] = v
     return out
 
 
