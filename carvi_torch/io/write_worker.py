@@ -23,7 +23,6 @@ import threading
 import time
 
 import numpy as np
-import trimesh
 
 from .. import mesh
 from ..quality import reconstruction_iou
@@ -47,7 +46,7 @@ def write_object(job: dict) -> dict:
     occ = job["occupancy"]
     v2img = job["voxel_to_image"]
     if job.get("mesh_faces") is not None:  # meshed already, in the run's process (mesh.mesher=torch)
-        m = trimesh.Trimesh(vertices=job["mesh_vertices"], faces=job["mesh_faces"], process=False)
+        m = mesh.trimesh_mesh(job["mesh_vertices"], job["mesh_faces"])
     else:
         if job["largest_component"]:
             occ = mesh.largest_component(occ)
