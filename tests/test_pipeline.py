@@ -402,6 +402,21 @@ def test_writer_books_back_pressure(monkeypatch):
     assert [g["i"] for g in got] == list(range(10))
 
 
+def test_writer_start_failure_surfaces_in_the_run(monkeypatch):
+    """The writer processes start in a thread: a failure there is raised where the run first needs them
+    (and a cancelling close, on an error's way out, does not raise it again)."""
+    from carvi_torch.io import writer as W
+
+    monkeypatch.setattr(W, "start_method", lambda: "no-such-start-method")
+    w = W.Writer(1)
+    with pytest.raises(ValueError, match="no-such-start-method"):
+        w.submit(dict(i=0), lambda res: None)
+    w.close(cancel=True)
+    w = W.Writer(1)
+    with pytest.raises(ValueError, match="no-such-start-method"):
+        w.close()
+
+
 def test_writer_and_thread_rules(monkeypatch):
     from carvi_torch.io.writer import writer_workers
     from carvi_torch.runtime import intra_op_threads
