@@ -67,7 +67,7 @@ def _to_numpy(x, name: str, dtype=None) -> np.ndarray:
 
 def trimesh_mesh(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
     """``trimesh.Trimesh(vertices, faces, process=False)``. trimesh is imported here, on first use: a run's
-    main process meshes nothing on the CPU, and importing trimesh (and networkx) costs it about 0.35 s."""
+    main process meshes nothing on the CPU (measured: 1.82 against 1.87 s of CPU for its imports)."""
     import trimesh
 
     return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
