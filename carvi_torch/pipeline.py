@@ -192,8 +192,9 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     done = finished_objects(coll, cfg, out) if done is None else list(done)
     if out is not None:
         plan.levels = resumed_levels(cdir, coll, plan.levels, done)
-        cams = cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels,
-                            reconstruction_signals(cdir, [a for a, d in zip(coll.annotation_ids, done) if d]))
+        finished_ids = [a for a, d in zip(coll.annotation_ids, done) if d]
+        report.reconstruction_iou.update(reconstruction_signals(cdir, finished_ids))
+        cams = cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels, report.reconstruction_iou)
         write_json(cdir / "cameras.json", cams)
         report.info["quality"] = quality_summary(cams["cameras"])
     if cfg.stage == "cameras":
@@ -331,7 +332,7 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
         raise
     if own_writer:
         writer.close()
-    finish_class(plan, cfg, report)
+    finish_class(plan, cfg, report, from_report=True)
     return report
 
 
@@ -369,17 +370,19 @@ def reconstruct_chunk(plan: ClassPlan, ids: list[int], cfg: Config) -> tuple[Cla
     return report, [i for i in ids if levels[i] == "puffball"]
 
 
-def finish_class(plan: ClassPlan, cfg: Config, report: ClassReport, puffballs: list[int] = ()) -> None:
+def finish_class(plan: ClassPlan, cfg: Config, report: ClassReport, puffballs: list[int] = (),
+                 from_report: bool = False) -> None:
     """The end of a class whose objects are written: ``puffballs`` (originals that became puffballs in
-    chunks carved elsewhere) marked, then :func:`_finish_class`."""
+    chunks carved elsewhere) marked, then :func:`_finish_class`. ``from_report``: the objects'
+    ``reconstruction_iou`` is the one ``report`` holds (the writers' results), else read from their voxels files."""
     for i in puffballs:
         plan.surrogates.levels[i] = "puffball"
-    _finish_class(plan, cfg, report)
+    _finish_class(plan, cfg, report, report.reconstruction_iou if from_report else None)
 
 
-def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport) -> None:
+def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport, recon: dict | None) -> None:
     """Where every object's proposals came from (summary), cameras.json again with every object's quality
-    (its reconstruction is known now), and the merged proposal scores (studies)."""
+    (its reconstruction is known now: ``recon``, else read from the files), and the merged proposal scores."""
     levels = plan.surrogates.levels
     used = [lv for lv in surrogates.LEVELS if lv in levels]
     report.info["surrogates_from"] = {
@@ -387,7 +390,8 @@ def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport) -> None:
         "fallbacks": {lv: [a for a, x in zip(plan.aids, levels) if x == lv] for lv in used
                       if lv not in ("triplet", "rotated_views")}}
     vp, sp = plan.viewpoints, plan.surrogates
-    cams = cameras_json(plan.coll, vp, sp.axes, sp.clusters, levels, reconstruction_signals(plan.cdir, plan.aids))
+    recon = reconstruction_signals(plan.cdir, plan.aids) if recon is None else recon
+    cams = cameras_json(plan.coll, vp, sp.axes, sp.clusters, levels, recon)
     write_json(plan.cdir / "cameras.json", cams)
     report.info["quality"] = quality_summary(cams["cameras"])
     if cfg.study.keep_all_scores:

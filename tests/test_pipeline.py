@@ -106,6 +106,7 @@ def test_meshes_overlay_their_masks(tiny):
 def test_rerun_skips_finished(tiny, tmp_path):
     out, summary = tiny
     before = {p: p.stat().st_mtime_ns for p in out.glob("*/meshes/*.ply")}
+    cameras = {p: p.read_bytes() for p in out.glob("*/cameras.json")}
     again = run(_cfg(out, preview=False, sfm_group_threads=1))
     complete = []
     for cls, rep in again["classes"].items():
@@ -115,9 +116,34 @@ def test_rerun_skips_finished(tiny, tmp_path):
             # nothing left to do: no silhouettes prepared, no average masks, no carving
             complete.append(cls)
             assert not {"carve", "select"} & set(rep["seconds"]), (cls, rep["seconds"])
+            # the first run's qualities came from its writers' results, the rerun's from the voxels files
+            assert (out / cls / "cameras.json").read_bytes() == cameras[out / cls / "cameras.json"], cls
     assert complete, "no class was complete after the first run: the check above did not run"
     assert before == {p: p.stat().st_mtime_ns for p in out.glob("*/meshes/*.ply")}
     assert "resumed_from_other_settings" not in again  # only `preview` and the fit's threads differed: neutral
+
+
+def test_cameras_json_quality_holds_the_voxels_files_reconstruction_iou(tiny):
+    """The local run takes every object's reconstruction_iou from its writer's result instead of reading the
+    voxels files again: cameras.json holds the files' value (rounded as before), for exactly the objects
+    written, and each quality combines its signals."""
+    from carvi_torch.quality import combine
+
+    out, summary = tiny
+    checked = 0
+    for cls in summary["classes"]:
+        cams = json.loads((out / cls / "cameras.json").read_text())["cameras"]
+        files = {f.stem: float(np.load(f)["reconstruction_iou"]) for f in (out / cls / "voxels").glob("*.npz")}
+        assert len(files) == summary["classes"][cls]["reconstructed"] > 0
+        for aid, entry in cams.items():
+            signals = entry["quality_signals"]
+            if entry["refined"] is None:  # no camera: no quality, no reconstruction
+                assert entry["quality"] is None and aid not in files
+                continue
+            assert signals.get("reconstruction_iou") == (round(files[aid], 6) if aid in files else None), (cls, aid)
+            assert entry["quality"] == round(combine(signals), 4)
+            checked += aid in files
+    assert checked == sum(c["reconstructed"] for c in summary["classes"].values())
 
 
 def test_rerun_with_other_settings_says_so(tiny, tmp_path, capsys):
@@ -374,6 +400,21 @@ def test_writer_books_back_pressure(monkeypatch):
     finally:
         w.close()
     assert [g["i"] for g in got] == list(range(10))
+
+
+def test_writer_start_failure_surfaces_in_the_run(monkeypatch):
+    """The writer processes start in a thread: a failure there is raised where the run first needs them
+    (and a cancelling close, on an error's way out, does not raise it again)."""
+    from carvi_torch.io import writer as W
+
+    monkeypatch.setattr(W, "start_method", lambda: "no-such-start-method")
+    w = W.Writer(1)
+    with pytest.raises(ValueError, match="no-such-start-method"):
+        w.submit(dict(i=0), lambda res: None)
+    w.close(cancel=True)
+    w = W.Writer(1)
+    with pytest.raises(ValueError, match="no-such-start-method"):
+        w.close()
 
 
 def test_writer_and_thread_rules(monkeypatch):

@@ -72,7 +72,8 @@ every class, the variants interleaved (``--compare-with DIR``: another checkout'
 ``--compare-set KEY=VALUE``: this code with overrides, "alt"; ``--rounds``), and per stage a line
 ``seconds = fixed + per_object * objects`` fitted across the classes: its intercept is the fixed
 cost per class. Prints whole-process time, objects per second, peak memory and those costs, and
-the ratios new / old and new / alt measured in the same invocation.
+the ratios new / old and new / alt measured in the same invocation. ``--cpu-clock``: the runs' stage
+timers read their process's CPU time instead of the wall clock (a busy host's waits left out).
 """
 from __future__ import annotations
 
@@ -411,11 +412,33 @@ def class_costs(summary: dict) -> dict:
     return {"classes": rows, "fits": fits}
 
 
+#: ``python -c`` code that runs ``carvi_torch.reconstruct`` with ``time.perf_counter`` reading the process's CPU time.
+CPU_CLOCK = ("import runpy, sys, time; time.perf_counter = time.process_time; sys.argv[0] = 'carvi_torch.reconstruct'; "
+             "runpy.run_module('carvi_torch.reconstruct', run_name='__main__')")
+
+
+def _knows_report(pythonpath: str | None) -> bool:
+    """Whether the code at ``pythonpath`` (``None``: this checkout) has the ``report`` setting."""
+    config = Path(pythonpath) / "carvi_torch" / "config.py" if pythonpath else ROOT / "carvi_torch" / "config.py"
+    return "    report: bool" in config.read_text()
+
+
+def _children_cpu() -> float:
+    """CPU seconds (user + system) of this process's finished child processes, so far (a run's writer processes
+    are the forkserver's children, which the run does not wait for: not counted)."""
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
 def run_many(data: Path, out: Path, args, name: str, sets: list[str], pythonpath: str | None) -> dict:
     """One whole run of every class of ``data`` (a child process); its totals and per-class costs."""
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(data), "--out", str(out),
            "progress=false", "preview=false", "overwrite=true", f"device={args.device}", *args.set, *sets]
-    if pythonpath is None:  # this checkout: no HTML report (a checkout compared with may predate the setting)
+    if args.cpu_clock:  # the same module run with its stage timers on the process's CPU time
+        cmd[1:3] = ["-c", CPU_CLOCK]
+    if _knows_report(pythonpath):  # no HTML report (a checkout compared with may predate the setting)
         cmd.append("report=false")
     env = dict(os.environ)
     env["PYTHONPATH"] = pythonpath or str(ROOT)
@@ -424,9 +447,9 @@ def run_many(data: Path, out: Path, args, name: str, sets: list[str], pythonpath
     if args.workers is not None:
         env["CARVI_WRITERS"] = str(args.workers)
     print(f"{name}:", f"PYTHONPATH={env['PYTHONPATH']}", " ".join(shlex.quote(c) for c in cmd), flush=True)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _children_cpu()
     res = subprocess.run(cmd, cwd=pythonpath or ROOT, env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
     if res.returncode != 0:
         raise SystemExit(f"{name}: reconstruct failed ({res.returncode}):\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}")
     summary = read_json(out / "summary.json")
@@ -437,6 +460,7 @@ def run_many(data: Path, out: Path, args, name: str, sets: list[str], pythonpath
     return {"name": name, "pythonpath": env["PYTHONPATH"], "overrides": sets,
             "command": " ".join(shlex.quote(x) for x in cmd), "classes": len(summary["classes"]),
             "objects": objects, "reconstructed": done, "total_seconds": total, "wall_seconds_with_startup": wall,
+            "cpu_seconds": cpu,
             "load_seconds": summary["load_seconds"], "objects_per_second": done / total if total else None,
             "peak_rss_main_mb": summary["peak_rss_mb"], "peak_rss_per_writer_mb": summary.get("peak_rss_workers_mb"),
             "writer_workers": workers, "peak_cuda_mb": summary.get("peak_cuda_mb"),
@@ -471,7 +495,8 @@ def many_summary(runs: dict[str, list]) -> dict:
             continue
         ratios[k] = {key: {"best_of_rounds": best["new"][key] / b[key],
                            "per_round": [n[key] / o[key] for n, o in zip(runs["new"], runs[k])]}
-                     for key in ("wall_seconds_with_startup", "total_seconds")}
+                     for key in ("wall_seconds_with_startup", "total_seconds", "cpu_seconds")
+                     if all(key in r for r in runs["new"] + runs[k])}
     return {"best": best, "new_over": ratios}
 
 
@@ -483,6 +508,7 @@ def _many_table(m: dict) -> list[str]:
     row("classes / objects / reconstructed", lambda b: f"{b['classes']} / {b['objects']} / {b['reconstructed']}")
     row("**whole process, seconds** (best of rounds)", lambda b: f"**{b['wall_seconds_with_startup']:.1f}**")
     row("objects per second, whole process", lambda b: f"{b['reconstructed'] / b['wall_seconds_with_startup']:.2f}")
+    row("CPU seconds of the run's main process", lambda b: f"{b['cpu_seconds']:.1f}" if "cpu_seconds" in b else "")
     row("loading", lambda b: f"{b['load_seconds']:.2f}")
     row("the run after loading (summary total_seconds)", lambda b: f"{b['total_seconds']:.1f}")
     row("peak memory: main + writers", lambda b: f"{b['peak_rss_main_mb']:.0f} MB + {b['writer_workers']} x "
@@ -498,7 +524,10 @@ def _many_table(m: dict) -> list[str]:
                 if key in b["costs"]["fits"] else "")
     lines.append("")
     for k, r in m["new_over"].items():
-        for key, what in (("wall_seconds_with_startup", "whole process"), ("total_seconds", "run after loading")):
+        for key, what in (("wall_seconds_with_startup", "whole process"), ("total_seconds", "run after loading"),
+                          ("cpu_seconds", "CPU seconds of the main process")):
+            if key not in r:
+                continue
             lines.append(f"new / {k}, {what}: **{r[key]['best_of_rounds']:.3f}** best of rounds; per round "
                          + ", ".join(f"{x:.3f}" for x in r[key]["per_round"]))
     return lines + [""]
@@ -1018,6 +1047,8 @@ def main(argv=None):
     ap.add_argument("--compare-set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="--many-classes: also run this checkout with these overrides (alt); report new / alt")
     ap.add_argument("--rounds", type=int, default=1, help="--many-classes: runs of each variant (best of)")
+    ap.add_argument("--cpu-clock", action="store_true",
+                    help="--many-classes: stage timers (and total_seconds) on the run's CPU time, not the wall clock")
     ap.add_argument("--out", default=None, help="JSON path (default: docs/data/benchmarks.json, under --key; "
                                                 "with --executor ray docs/data/ray_scaling_<objects>.json)")
     ap.add_argument("--key", default=None, help="write the record under this key of --out's JSON object, its other "

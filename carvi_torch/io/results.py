@@ -37,6 +37,9 @@ class ClassReport:
     seconds: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)
     status: str = "ok"
+    #: ``{str(annotation id): reconstruction_iou}`` of the objects written by this run (as the writers report
+    #: it) and of those finished earlier (read from their files); not part of ``summary.json``.
+    reconstruction_iou: dict = field(default_factory=dict)
 
     def skip(self, reason: str, stage: str, annotation_id=None, source=None):
         self.skipped.append({"annotation_id": annotation_id, "source": source, "stage": stage, "reason": reason})
@@ -59,6 +62,7 @@ class ClassReport:
         self.reconstructed += part.reconstructed
         self.skipped.extend(part.skipped)
         self.warnings.extend(part.warnings)
+        self.reconstruction_iou.update(part.reconstruction_iou)
         for k, v in part.seconds.items():
             self.seconds[k] = self.seconds.get(k, 0.0) + v
 
@@ -68,6 +72,8 @@ class ClassReport:
         self.seconds["write"] = self.seconds.get("write", 0.0) + out["write_seconds"]
         if out["ok"]:
             self.reconstructed += 1
+            if out.get("reconstruction_iou") is not None:
+                self.reconstruction_iou[str(aid)] = out["reconstruction_iou"]
         else:
             self.skip(out["reason"], "mesh", aid, src)
 

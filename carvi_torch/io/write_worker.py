@@ -23,7 +23,6 @@ import threading
 import time
 
 import numpy as np
-import trimesh
 
 from .. import mesh
 from ..quality import reconstruction_iou
@@ -39,13 +38,15 @@ def write_object(job: dict) -> dict:
     Takes host (numpy) data only; a job with ``mesh_vertices`` and ``mesh_faces`` was meshed by the
     run (its occupancy is final: ``largest_component`` is not applied again). Writes the proposals
     (studies) and scores first, then the voxels, then the mesh: an object counts as finished once its
-    mesh exists. Returns ``ok``, ``reason``, ``mesh_seconds``, ``write_seconds``.
+    mesh exists. Returns ``ok``, ``reason``, ``mesh_seconds``, ``write_seconds`` and ``reconstruction_iou``
+    (the value written into the voxels file, ``None`` without a ``mask``), which the run's ``cameras.json``
+    takes without opening the file again.
     """
     t0 = time.perf_counter()
     occ = job["occupancy"]
     v2img = job["voxel_to_image"]
     if job.get("mesh_faces") is not None:  # meshed already, in the run's process (mesh.mesher=torch)
-        m = trimesh.Trimesh(vertices=job["mesh_vertices"], faces=job["mesh_faces"], process=False)
+        m = mesh.trimesh_mesh(job["mesh_vertices"], job["mesh_faces"])
     else:
         if job["largest_component"]:
             occ = mesh.largest_component(occ)
@@ -64,7 +65,8 @@ def write_object(job: dict) -> dict:
               voxel_to_object=job.get("voxel_to_object", np.full((4, 4), np.nan)), canvas_scale=job["canvas_scale"],
               canvas_offset=job["canvas_offset"], surrogates=job["surrogates"], **extra)
     mesh.write_mesh(m, job["mesh_path"])
-    return dict(ok=True, reason=None, mesh_seconds=t1 - t0, write_seconds=time.perf_counter() - t1)
+    return dict(ok=True, reason=None, mesh_seconds=t1 - t0, write_seconds=time.perf_counter() - t1,
+                reconstruction_iou=float(extra["reconstruction_iou"]) if extra else None)
 
 
 def write_object_safe(job: dict) -> dict:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import threading
 import time
 from collections import deque
 from concurrent.futures import ProcessPoolExecutor
@@ -139,6 +140,10 @@ class Writer:
     With ``workers == 0`` every object is written at once, in this process.
     ``blocked``: seconds :meth:`submit` spent waiting for a writer to finish (back-pressure:
     the writers, not the device work, then limit the run).
+
+    The processes start in a thread of their own (a forkserver that imports numpy, SciPy, scikit-image
+    and trimesh, then the workers): beside the run's first stages rather than before them; :attr:`pool`
+    waits for them.
     """
 
     #: What a job runs (a module-level function, so that worker processes can import it).
@@ -146,18 +151,41 @@ class Writer:
 
     def __init__(self, workers: int):
         self.workers = int(workers)
-        self.pool = None
+        self._pool: ProcessPoolExecutor | None = None
+        self._start_error: BaseException | None = None
         self.pending: deque = deque()
         self.blocked = 0.0
         self.peak_rss_mb: float | None = None  # the largest writer process's peak memory, as they report it
+        self._starting = None
         if self.workers > 0:
+            self._starting = threading.Thread(target=self._start, name="carvi-writers-start", daemon=True)
+            self._starting.start()
+
+    def _start(self) -> None:
+        """Start the worker processes, every one of them (the thread of :meth:`__init__`)."""
+        try:
             ctx = mp.get_context(start_method())
             if start_method() == "forkserver":
-                ctx.set_forkserver_preload([write_worker.__name__])
-            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=write_worker.init_worker,
-                                            initargs=(os.getpid(),))
-            for f in [self.pool.submit(write_worker.start_worker) for _ in range(self.workers)]:
+                ctx.set_forkserver_preload([write_worker.__name__, "trimesh"])  # what every object needs
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=write_worker.init_worker,
+                                             initargs=(os.getpid(),))
+            for f in [self._pool.submit(write_worker.start_worker) for _ in range(self.workers)]:
                 f.result()
+        except BaseException as e:  # noqa: BLE001 - raised again by `pool`, in the run's thread
+            self._start_error = e
+
+    @property
+    def pool(self) -> ProcessPoolExecutor | None:
+        """The worker processes (``None``: written inline), once started."""
+        if self._starting is not None:
+            self._starting.join()
+            self._starting = None
+            if self._start_error is not None:
+                if self._pool is not None:
+                    self._pool.shutdown(wait=True, cancel_futures=True)
+                    self._pool = None
+                raise self._start_error
+        return self._pool
 
     def submit(self, job: dict, done) -> None:
         """Write ``job`` (:func:`~carvi_torch.io.write_worker.write_object`); ``done(result)`` is called
@@ -196,6 +224,12 @@ class Writer:
                 self.drain()
         finally:
             self.pending.clear()
-            if self.pool is not None:
-                self.pool.shutdown(wait=True, cancel_futures=True)
-                self.pool = None
+            try:
+                pool = self.pool
+            except BaseException:  # noqa: BLE001 - the processes never started: nothing to stop
+                if not cancel:
+                    raise
+                pool = None
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
+                self._pool = None
