@@ -123,7 +123,12 @@ def test_image_tilt_is_the_roll_of_a_level_view_and_the_up_is_found_in_any_objec
     rolls = [0.0, 10.0, -35.0, 90.0, 150.0, -170.0, 5.0, 60.0]
     R = _level_cameras(8, rolls, elevation_deg=0.0)
     z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-    assert image_tilt(R, z).tolist() == pytest.approx([abs(r) for r in rolls], abs=1e-9)
+    tilt, length = image_tilt(R, z)
+    assert tilt.tolist() == pytest.approx([abs(r) for r in rolls], abs=1e-9)
+    assert length.tolist() == pytest.approx([1.0] * 8, abs=1e-12)
+    # the projected up shortens with the elevation: cos(elevation)
+    assert image_tilt(_level_cameras(3, elevation_deg=50.0), z)[1].tolist() == pytest.approx(
+        [math.cos(math.radians(50.0))] * 3, abs=1e-12)
     G = random_rotations(1, generator=generator, dtype=torch.float64)[0]
     level = _level_cameras(12, elevation_deg=20.0) @ G
     up = class_up(level)
@@ -165,6 +170,10 @@ def test_a_tilted_refined_camera_keeps_its_sfm_camera_and_a_level_one_keeps_its_
     sfm_down[3] = rotation_from_azimuth_elevation_roll(t(3 * az1), t(e0), t(math.radians(170.0)))
     assert not tilted(sfm_down, sfm, has, 30.0)[3]
     assert not kept_rows(none, has, "objects", tilted(sfm_down, sfm, has, 30.0))[3]
+    # a camera looking nearly along the up (elevation 70: length cos 70 < MIN_UP_LENGTH) is not judged
+    steep = refined.clone()
+    steep[0] = rotation_from_azimuth_elevation_roll(t(a0), t(math.radians(70.0)), t(math.radians(160.0)))
+    assert not tilted(sfm, steep, has, 30.0)[0]
     # an SfM camera already tilted by 150 degrees: a refined one at 160 is within the margin
     sfm_bad = sfm.clone()
     sfm_bad[0] = rotation_from_azimuth_elevation_roll(t(a0), t(e0), t(math.radians(160.0 - TILT_MARGIN_DEG + 10)))

@@ -26,8 +26,8 @@ direction most perpendicular to all of them (over the SfM cameras) is the class'
 the angle between the projected up and the image's up, 180 degrees upside down) by more than
 ``max_tilt_deg`` and by :data:`TILT_MARGIN_DEG` more than its SfM camera does is *tilted*: the
 silhouette term turned it into a pose no photographer takes (a boat whose mean shape fits its mask
-upside down); it keeps its SfM camera. A class whose up is not clear (:data:`UP_MARGIN`) is not
-judged this way.
+upside down); it keeps its SfM camera. A class whose up is not clear (:data:`UP_MARGIN`), and a camera
+looking nearly along the up (:data:`MIN_UP_LENGTH`), are not judged this way.
 
 Example:
     >>> import torch
@@ -49,8 +49,8 @@ import torch
 from ..cameras import ScaledOrthographic
 
 __all__ = ["CameraKeep", "KEYPOINT_GROWTH", "HULL_GAIN", "CLASS_SUSPECT", "TILT_MARGIN_DEG", "UP_MARGIN",
-           "CameraChoice", "kept_rows", "hull_agreement", "keypoint_rms", "box_diagonal", "choose_cameras",
-           "class_up", "image_tilt", "tilted"]
+           "MIN_UP_LENGTH", "CameraChoice", "kept_rows", "hull_agreement", "keypoint_rms", "box_diagonal",
+           "choose_cameras", "class_up", "image_tilt", "tilted"]
 
 #: Which camera an object with an SfM camera keeps after refinement: ``refined`` (always the refined
 #: one, the paper's), ``class`` (the SfM cameras of a class most of whose refined cameras are suspect)
@@ -71,6 +71,9 @@ TILT_MARGIN_DEG = 20.0
 #: The class's up is used only when the second-smallest eigenvalue of the image x axes' scatter exceeds the
 #: smallest this many times (photographs from level cameras: 8-230 on the CAD renders at 8 views per model).
 UP_MARGIN = 4.0
+#: The tilt is judged only where both cameras show the class's up at least this long (elevation within 60
+#: degrees): a VOC aeroplane seen from below (SfM 0.28, elevation -53 degrees) has no meaningful tilt.
+MIN_UP_LENGTH = 0.5
 
 
 @dataclass
@@ -195,31 +198,36 @@ def class_up(R: torch.Tensor) -> torch.Tensor | None:
     return -up if float((R[:, 1] @ up).median()) > 0 else up
 
 
-def image_tilt(R: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
-    """``(M,)`` degrees in ``[0, 180]``: the angle between the image's up and the projection of ``up (3,)`` by
-    cameras ``R (M, 3, 3)`` (0 upright, 180 upside down).
+def image_tilt(R: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The angle ``(M,)`` in degrees, ``[0, 180]``, between the image's up and the projection of ``up (3,)`` by
+    cameras ``R (M, 3, 3)`` (0 upright, 180 upside down), and the projection's length ``(M,)`` (``cos`` of the
+    elevation; the angle means little where it is short).
 
     Example:
         >>> R = torch.stack([torch.eye(3), torch.diag(torch.tensor([-1.0, -1.0, 1.0]))]).double()
-        >>> image_tilt(R, torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)).tolist()
-        [0.0, 180.0]
+        >>> tilt, length = image_tilt(R, torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64))
+        >>> tilt.tolist(), length.tolist()
+        ([0.0, 180.0], [1.0, 1.0])
     """
     R = R.detach().double().cpu()
     u = up.double().cpu()
-    return torch.rad2deg(torch.atan2(R[:, 0] @ u, -(R[:, 1] @ u))).abs()
+    x, y = R[:, 0] @ u, -(R[:, 1] @ u)
+    return torch.rad2deg(torch.atan2(x, y)).abs(), torch.hypot(x, y)
 
 
 def tilted(sfm: torch.Tensor, refined: torch.Tensor, has_sfm: torch.Tensor, max_tilt_deg: float) -> torch.Tensor:
     """``(M,)`` bool: the rows with an SfM camera (``has_sfm (M,)``) whose refined camera ``refined (M, 3, 3)``
     shows the class's up (:func:`class_up` of the SfM cameras ``sfm (M, 3, 3)``) tilted by more than
-    ``max_tilt_deg`` and by more than :data:`TILT_MARGIN_DEG` beyond the SfM camera (CPU)."""
+    ``max_tilt_deg`` and by more than :data:`TILT_MARGIN_DEG` beyond the SfM camera, where both cameras
+    see the up at least :data:`MIN_UP_LENGTH` long (CPU)."""
     has = has_sfm.detach().cpu()
     none = torch.zeros_like(has)
     up = class_up(sfm.detach().cpu()[has]) if max_tilt_deg < 180 else None
     if up is None:
         return none
-    t_s, t_r = image_tilt(sfm, up), image_tilt(refined, up)
-    return has & (t_r > max_tilt_deg) & (t_r > t_s + TILT_MARGIN_DEG)
+    (t_s, l_s), (t_r, l_r) = image_tilt(sfm, up), image_tilt(refined, up)
+    seen = (l_s >= MIN_UP_LENGTH) & (l_r >= MIN_UP_LENGTH)
+    return has & seen & (t_r > max_tilt_deg) & (t_r > t_s + TILT_MARGIN_DEG)
 
 
 def kept_rows(suspect: torch.Tensor, has_sfm: torch.Tensor, how: CameraKeep,
