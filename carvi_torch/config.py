@@ -134,7 +134,7 @@ class ViewpointConfig:
     object keeps its SfM camera; ``refined``: always the refined one (the paper's). With ``class`` and
     ``objects`` a tilted refined camera (``refine_max_tilt_deg``) keeps its SfM camera too. ``cameras.json``
     says which (``camera_choice``)."""
-    refine_max_tilt_deg: float = 30.0
+    refine_max_tilt_deg: float = 45.0
     """An object keeps its SfM camera when its refined camera shows the class's up direction (the direction
     most perpendicular to the SfM cameras' image x axes: photographs are taken level) tilted in the image by
     more than this many degrees and by 20 more than the SfM camera does (``refine_keep`` ``class`` or
