@@ -54,7 +54,8 @@ __all__ = ["CameraKeep", "KEYPOINT_GROWTH", "HULL_GAIN", "CLASS_SUSPECT", "TILT_
 
 #: Which camera an object with an SfM camera keeps after refinement: ``refined`` (always the refined
 #: one, the paper's), ``class`` (the SfM cameras of a class most of whose refined cameras are suspect)
-#: or ``objects`` (the SfM camera of every object whose refined one is suspect); module docstring.
+#: or ``objects`` (the SfM camera of every object whose refined one is suspect); with ``class`` and
+#: ``objects`` a tilted refined camera keeps its SfM camera too; module docstring.
 CameraKeep = Literal["refined", "class", "objects"]
 
 #: A refined camera whose keypoint RMS error exceeds its SfM camera's by more than this fraction of
@@ -80,7 +81,7 @@ MIN_UP_LENGTH = 0.5
 class CameraChoice:
     """Per row (``(M,)`` each): ``suspect`` bool (the refined camera is suspect), the two cameras' keypoint
     RMS errors (pixels), hull agreements (NaN where the keypoint error did not grow enough for them to
-    matter) and the box diagonal (pixels); ``tilted`` bool (:func:`tilted`; all False until it is set)."""
+    matter) and the box diagonal (pixels)."""
 
     suspect: torch.Tensor
     rms_sfm: torch.Tensor
@@ -88,7 +89,6 @@ class CameraChoice:
     hull_sfm: torch.Tensor
     hull_refined: torch.Tensor
     diagonal: torch.Tensor
-    tilted: torch.Tensor | None = None
 
 
 def _hull_mask(points: np.ndarray, size: int) -> np.ndarray:
