@@ -131,8 +131,14 @@ class ViewpointConfig:
     suspect when it raised the keypoint error by more than 1% of the mask's box diagonal while raising the
     agreement of the mask with the projected mean shape's hull by less than 0.05. ``class``: the whole class
     keeps its SfM cameras when more than half its refined cameras are suspect; ``objects``: every suspect
-    object keeps its SfM camera; ``refined``: always the refined one (the paper's). ``cameras.json`` says
-    which (``camera_choice``)."""
+    object keeps its SfM camera; ``refined``: always the refined one (the paper's). With ``class`` and
+    ``objects`` a tilted refined camera (``refine_max_tilt_deg``) keeps its SfM camera too. ``cameras.json``
+    says which (``camera_choice``)."""
+    refine_max_tilt_deg: float = 45.0
+    """An object keeps its SfM camera when its refined camera shows the class's up direction (the direction
+    most perpendicular to the SfM cameras' image x axes: photographs are taken level) tilted in the image by
+    more than this many degrees and by 20 more than the SfM camera does (``refine_keep`` ``class`` or
+    ``objects``; ``carvi_torch.viewpoints.choice``). 180 = off."""
     silhouette_weight: float = 1.0
     """Weight of the distance-to-mask penalty against the keypoint reprojection error."""
     silhouette_robust: float = 0.2
@@ -159,6 +165,7 @@ class ViewpointConfig:
         if not self.refine_twin_flatness >= 0:
             raise ConfigError(f"refine_twin_flatness must be >= 0 (0 = off), got {self.refine_twin_flatness}")
         _within(self.refine_min_support, 0, 1, "refine_min_support", note=" (0 = every keypoint)")
+        _within(self.refine_max_tilt_deg, 0, 180, "refine_max_tilt_deg", note=" (180 = off)")
         if self.silhouette_robust < 0:
             raise ConfigError(f"silhouette_robust must be >= 0 (0 = squared distance), got {self.silhouette_robust}")
         _within(self.sfm_group_gain, 0, 1, "sfm_group_gain", hi_open=True)

@@ -102,3 +102,79 @@ def test_kept_rows_per_object_and_per_class():
     assert kept_rows(more, has, "objects").tolist() == [True] * 4 + [False] * 4
     assert not kept_rows(more, has, "refined").any()
     assert not kept_rows(more, torch.zeros(8, dtype=torch.bool), "class").any()
+
+
+def _level_cameras(n: int, roll_deg=None, elevation_deg: float = 15.0):
+    from carvi_torch.cameras import rotation_from_azimuth_elevation_roll
+
+    az = torch.linspace(0.0, 2 * math.pi, n + 1, dtype=torch.float64)[:n]
+    el = torch.full_like(az, math.radians(elevation_deg))
+    roll = torch.zeros_like(az) if roll_deg is None else torch.deg2rad(torch.as_tensor(roll_deg, dtype=torch.float64))
+    return rotation_from_azimuth_elevation_roll(az, el, roll)
+
+
+def test_image_tilt_is_the_roll_of_a_level_view_and_the_up_is_found_in_any_object_frame(generator):
+    """At elevation 0 the tilt of the object's up (+z) is the camera's roll, by the angle convention of
+    ``rotation_from_azimuth_elevation_roll``; ``class_up`` finds +z from level cameras in whatever frame
+    the object is written (a random rotation G of the frame: cameras R G, up G^T z)."""
+    from carvi_torch.cameras import random_rotations
+    from carvi_torch.viewpoints.choice import class_up, image_tilt
+
+    rolls = [0.0, 10.0, -35.0, 90.0, 150.0, -170.0, 5.0, 60.0]
+    R = _level_cameras(8, rolls, elevation_deg=0.0)
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    tilt, length = image_tilt(R, z)
+    assert tilt.tolist() == pytest.approx([abs(r) for r in rolls], abs=1e-9)
+    assert length.tolist() == pytest.approx([1.0] * 8, abs=1e-12)
+    # the projected up shortens with the elevation: cos(elevation)
+    assert image_tilt(_level_cameras(3, elevation_deg=50.0), z)[1].tolist() == pytest.approx(
+        [math.cos(math.radians(50.0))] * 3, abs=1e-12)
+    G = random_rotations(1, generator=generator, dtype=torch.float64)[0]
+    level = _level_cameras(12, elevation_deg=20.0) @ G
+    up = class_up(level)
+    assert float(up @ (G.T @ z)) == pytest.approx(1.0, abs=1e-9)
+    # cameras that all look down the up axis leave it unclear
+    assert class_up(_level_cameras(12, elevation_deg=0.0)[:2]) is None
+
+
+def test_a_tilted_refined_camera_keeps_its_sfm_camera_and_a_level_one_keeps_its_refinement():
+    """A class of 12 level SfM cameras; refinement turns object 0 upside down (roll 160 degrees: a pose no
+    photographer takes), object 1 by 8 degrees of azimuth and object 2 by a roll of 25 degrees (within
+    ``refine_max_tilt_deg``): only object 0 keeps its SfM camera, under both ``class`` and ``objects``; the
+    paper's ``refined`` keeps every refinement."""
+    from carvi_torch.cameras import rotation_from_azimuth_elevation_roll
+    from carvi_torch.viewpoints.choice import TILT_MARGIN_DEG, kept_rows, tilted
+
+    sfm = _level_cameras(12, elevation_deg=15.0)
+    refined = sfm.clone()
+    a0, e0 = 0.0, math.radians(15.0)
+    t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+    refined[0] = rotation_from_azimuth_elevation_roll(t(a0), t(e0), t(math.radians(160.0)))
+    az1 = 2 * math.pi / 12
+    refined[1] = rotation_from_azimuth_elevation_roll(t(az1 + math.radians(8.0)), t(e0), t(0.0))
+    refined[2] = rotation_from_azimuth_elevation_roll(t(2 * az1), t(e0), t(math.radians(25.0)))
+    has = torch.ones(12, dtype=torch.bool)
+    tilt = tilted(sfm, refined, has, 30.0)
+    assert tilt.tolist() == [True] + [False] * 11
+    none = torch.zeros(12, dtype=torch.bool)
+    for how in ("class", "objects"):
+        assert kept_rows(none, has, how, tilt).tolist() == [True] + [False] * 11
+    assert not kept_rows(none, has, "refined", tilt).any()
+    # 180 switches the test off; a row without an SfM camera is never tilted
+    assert not tilted(sfm, refined, has, 180.0).any()
+    no_sfm = has.clone()
+    no_sfm[0] = False
+    assert not tilted(sfm, refined, no_sfm, 30.0)[0]
+    # a refinement that turns an upside-down SfM camera (roll 170) upright is kept
+    sfm_down = sfm.clone()
+    sfm_down[3] = rotation_from_azimuth_elevation_roll(t(3 * az1), t(e0), t(math.radians(170.0)))
+    assert not tilted(sfm_down, sfm, has, 30.0)[3]
+    assert not kept_rows(none, has, "objects", tilted(sfm_down, sfm, has, 30.0))[3]
+    # a camera looking nearly along the up (elevation 70: length cos 70 < MIN_UP_LENGTH) is not judged
+    steep = refined.clone()
+    steep[0] = rotation_from_azimuth_elevation_roll(t(a0), t(math.radians(70.0)), t(math.radians(160.0)))
+    assert not tilted(sfm, steep, has, 30.0)[0]
+    # an SfM camera already tilted by 150 degrees: a refined one at 160 is within the margin
+    sfm_bad = sfm.clone()
+    sfm_bad[0] = rotation_from_azimuth_elevation_roll(t(a0), t(e0), t(math.radians(160.0 - TILT_MARGIN_DEG + 10)))
+    assert not tilted(sfm_bad, refined, has, 30.0)[0]

@@ -58,6 +58,9 @@ def test_outputs_exist(tiny):
                 np.testing.assert_allclose(R, np.array(entry["sfm"]["R"]), atol=1e-6)
         kept = [e for e in cams["cameras"].values() if e["camera_choice"] == "sfm"]
         assert rep["refine"]["kept_sfm"]["originals"] == len(kept)
+        # a tilted refined camera (refine_max_tilt_deg) is one of the kept SfM cameras
+        kept_ids = {k for k, e in cams["cameras"].items() if e["camera_choice"] == "sfm"}
+        assert {str(i) for i in rep["refine"]["kept_sfm"]["tilted_ids"]} <= kept_ids
         assert {e["camera_choice"] for e in cams["cameras"].values() if e["sfm"] is not None} <= {"sfm", "refined"}
         for f in (out / cls / "voxels").glob("*.npz"):
             z = np.load(f)

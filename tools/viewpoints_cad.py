@@ -19,6 +19,16 @@ default photo-like distribution.
 
     python tools/viewpoints_cad.py [--views 30] [--seed 0[,1,2]] [--cameras photo|level] [--quiet]
                                    [--work outputs/viewpoints_cad] [--out PATH [--key KEY]] [key=value ...]
+    python tools/viewpoints_cad.py --views 8 --seed 0,1,2 --choice-study [--out PATH]
+
+``--choice-study`` runs no table: every class of every seed is estimated with ``refine_keep=refined``,
+every object's SfM and refined cameras are compared with the truth and scored by what the pipeline
+can see (keypoint growth, hull gain, silhouette gain, the refinement's energy drop, the turn, the
+change of the image tilt of the class's up); it prints how many objects the tilt and suspect tests
+flag per band of the true error change, each score's AUC between the objects refinement made worse
+and those it made better by over 2 degrees, and the classes a per-object choice by the truth would
+keep within their SfM medians at every seed (docs/viewpoints.md, *What separates a worse refined
+camera*).
 
 ``key=value`` are reconstruct overrides (``sfm_groups=3``, ``viewpoints.frame=symmetry+up``). The
 JSON record goes to ``--out`` (under ``--key`` when given, the file's other keys kept); by default,
@@ -37,6 +47,9 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -124,19 +137,27 @@ def _table(rows: list) -> str:
     return "\n".join(lines)
 
 
-def _run(args, seed: int, overrides: list) -> dict:
-    """Render (once) and reconstruct the cameras of one seed with ``overrides``; its rows and timings."""
-    from carvi_torch.evaluate import evaluate
+def _renders(args, seed: int) -> Path:
+    """The renders of one seed (rendered on first use): ``<work>/renders_v<views>_s<seed>[_<cameras>]``."""
     from carvi_torch.synthetic import load_models
     from carvi_torch.synthetic.render import render_dataset
 
-    work = Path(args.work)
     dist = "" if args.cameras == "photo" else f"_{args.cameras}"
-    renders = work / f"renders_v{args.views}_s{seed}{dist}"
-    t0 = time.perf_counter()
+    renders = Path(args.work) / f"renders_v{args.views}_s{seed}{dist}"
     if not (renders / "annotations.json").is_file():
         render_dataset(load_models(Path(args.cad)), renders, views=args.views, seed=seed, progress=not args.quiet,
                        camera_options=CAMERAS[args.cameras])
+    return renders
+
+
+def _run(args, seed: int, overrides: list) -> dict:
+    """Render (once) and reconstruct the cameras of one seed with ``overrides``; its rows and timings."""
+    from carvi_torch.evaluate import evaluate
+
+    work = Path(args.work)
+    dist = "" if args.cameras == "photo" else f"_{args.cameras}"
+    t0 = time.perf_counter()
+    renders = _renders(args, seed)
     t_render = time.perf_counter() - t0
     # one folder per render seed and set of overrides, so runs with different settings never mix their cameras
     recon = work / ("cameras" + "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in o) for o in overrides)
@@ -179,6 +200,123 @@ def _seeds_table(runs: list, refined: list | None = None) -> tuple[str, dict]:
     return "\n".join(lines), out
 
 
+BANDS = [("worse by over 10", 10, np.inf), ("worse by 2-10", 2, 10), ("within 2", -2, 2),
+         ("better by 2-10", -10, -2), ("better by over 10", -np.inf, -10)]
+
+
+def _aligned_errors(R: torch.Tensor, Rg: torch.Tensor) -> np.ndarray:
+    from carvi_torch.cameras import align_rotations, geodesic_errors
+
+    return geodesic_errors(R, Rg, align_rotations(R, Rg)).numpy()
+
+
+def _class_rows(coll, gt: dict, seed: int) -> dict:
+    """Per original with an SfM camera and a true one: scores and the true error change (degrees)."""
+    from carvi_torch.cameras import geodesic_angle
+    from carvi_torch.config import ViewpointConfig
+    from carvi_torch.sdf import distance_to_mask
+    from carvi_torch.viewpoints import camera_fit, estimate_viewpoints, ground_truth_cameras
+    from carvi_torch.viewpoints.choice import (box_diagonal, class_up, hull_agreement, image_tilt, keypoint_rms,
+                                               tilted)
+    from carvi_torch.viewpoints.refine import choose_per_group
+
+    cfg = ViewpointConfig(refine_keep="refined")
+    vp = estimate_viewpoints(coll, cfg, seed=seed)
+    n, both = len(coll), vp.both
+    gtc, _why = ground_truth_cameras(gt, coll)
+    if gtc is None:
+        return {}
+    ok = (vp.sfm_valid[:n].cpu() & torch.isfinite(gtc.R).flatten(1).all(1)).numpy()
+    if ok.sum() < 3:
+        return {}
+    Rg = gtc.R.double()[ok]
+    err = {k: _aligned_errors(c.R[:n].double().cpu()[ok], Rg) for k, c in (("sfm", vp.sfm_cameras),
+                                                                           ("refined", vp.cameras))}
+    S = camera_fit.supported_shape(vp.shape, both.visible, cfg.refine_min_support)
+    sfm, ref = vp.sfm_cameras[:n], vp.cameras[:n]
+    kp, vis, masks = both.keypoints[:n], both.visible[:n], both.masks[:n]
+    diag = box_diagonal(masks).numpy()
+    dist = camera_fit._finite_maps(distance_to_mask(masks))
+    sil = [camera_fit.sample_distance(dist, c.project(S[torch.isfinite(S).all(-1)])).mean(-1).double().numpy()
+           for c in (sfm, ref)]
+    choice = choose_per_group(vp.groups, vp.sfm_cameras, vp.cameras, both, cfg)
+    energy = [camera_fit.refinement_energy(c.s[:, None, None] * c.R[:, :2], c.t, S, kp, vis, dist,
+                                           silhouette_robust=cfg.silhouette_robust).double().numpy()
+              for c in (sfm, ref)]
+    up = class_up(vp.sfm_cameras.R[vp.sfm_valid])
+    tilt = [image_tilt(c.R, up)[0].numpy() if up is not None else np.zeros(n) for c in (sfm, ref)]
+    flagged = tilted(vp.sfm_cameras.R, vp.cameras.R, vp.sfm_valid, cfg.refine_max_tilt_deg)[:n].numpy()
+    scores = {
+        "keypoint_growth": ((keypoint_rms(S, ref, kp, vis) - keypoint_rms(S, sfm, kp, vis)).double().numpy() / diag),
+        "hull_gain": (hull_agreement(S, ref, masks) - hull_agreement(S, sfm, masks)).numpy(),
+        "silhouette_gain": (sil[0] - sil[1]) / diag,
+        "energy_drop": (energy[0] - energy[1]) / np.maximum(energy[0], 1e-9),
+        "turn": np.rad2deg(geodesic_angle(sfm.R.double(), ref.R.double()).cpu().numpy()),
+        "tilt_change": tilt[1] - tilt[0],
+    }
+    # the best any per-object choice can do: each object's better camera, by the truth, then aligned again
+    best = np.where((err["refined"] > err["sfm"])[:, None, None], sfm.R.double().cpu().numpy()[ok],
+                    ref.R.double().cpu().numpy()[ok])
+    medians = {"sfm": float(np.median(err["sfm"])), "refined": float(np.median(err["refined"])),
+               "best_per_object": float(np.median(_aligned_errors(torch.from_numpy(best), Rg)))}
+    return {"change": err["refined"] - err["sfm"], "tilted": flagged[ok], "suspect": choice.suspect[:n].numpy()[ok],
+            **{k: v[ok] for k, v in scores.items()}, "medians": medians}
+
+
+def _auc(pos: np.ndarray, neg: np.ndarray) -> float:
+    """P(score of a worse object > score of a better one), ties half."""
+    if not len(pos) or not len(neg):
+        return float("nan")
+    return float((pos[:, None] > neg[None]).mean() + 0.5 * (pos[:, None] == neg[None]).mean())
+
+
+def _choice_study(args) -> int:
+    """``--choice-study``: which refined cameras are worse than their SfM cameras, and what tells them apart
+    without ground truth (every class of every seed estimated with ``refine_keep=refined``; scores, bands of
+    the true error change, AUCs and the bound of a per-object choice by the truth, printed and written to
+    ``--out``, default ``<work>/refine_choice_v<views>_<cameras>.json``)."""
+    from carvi_torch.io.coco import load_coco
+
+    torch.set_num_threads(1)
+    rows: dict = {}
+    per_class: dict = {}
+    for seed in args.seed:
+        renders = _renders(args, seed)
+        gt = json.loads((renders / "gt.json").read_text())
+        for cls, coll in sorted(load_coco(renders / "annotations.json").collections.items()):
+            r = _class_rows(coll, gt, seed)
+            medians = r.pop("medians", None)
+            for k, v in r.items():
+                rows.setdefault(k, []).append(v)
+            if r:
+                per_class.setdefault(cls, []).append({"seed": seed, "worse_over_10": int((r["change"] > 10).sum()),
+                                                      "tilted": int(r["tilted"].sum()),
+                                                      "tilted_worse": int((r["tilted"] & (r["change"] > 0)).sum()),
+                                                      "medians": medians})
+    x = {k: np.concatenate(v) for k, v in rows.items()}
+    ch = x["change"]
+    bands = []
+    print("| true change, refined - SfM (degrees) | objects | tilted | suspect |\n|---|---:|---:|---:|")
+    for name, lo, hi in BANDS:
+        m = (ch > lo) & (ch <= hi)
+        bands.append({"band": name, "objects": int(m.sum()), "tilted": int((m & x["tilted"]).sum()),
+                      "suspect": int((m & x["suspect"]).sum())})
+        print(f"| {name} | {bands[-1]['objects']} | {bands[-1]['tilted']} | {bands[-1]['suspect']} |")
+    worse, better = ch > 2, ch < -2
+    auc = {k: round(_auc(x[k][worse], x[k][better]), 3) for k in x if k not in ("change", "tilted", "suspect")}
+    print("AUC, worse by over 2 against better by over 2 degrees:", auc)
+    best_ok = [c for c, v in per_class.items()
+               if all(r["medians"]["best_per_object"] <= r["medians"]["sfm"] for r in v)]
+    print(f"each object's better camera by the truth: median no worse than SfM at every seed in {len(best_ok)} of "
+          f"{len(per_class)} classes ({', '.join(best_ok)})")
+    out = Path(args.out) if args.out else Path(args.work) / f"refine_choice_v{args.views}_{args.cameras}.json"
+    out.write_text(json.dumps({"command": " ".join(["python", "tools/viewpoints_cad.py", *sys.argv[1:]]),
+                               "bands": bands, "auc_worse_vs_better": auc, "best_per_object_not_worse": best_ok,
+                               "per_class": per_class}, indent=1))
+    print(f"wrote {out}")
+    return 0
+
+
 def _seeds(text: str) -> list:
     """``"0,1,2"`` -> ``[0, 1, 2]`` (the ``--seed`` argument)."""
     try:
@@ -196,6 +334,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cameras", choices=sorted(CAMERAS), default="photo", help="camera distribution of the renders")
     ap.add_argument("--refined-too", action="store_true", help="also run every seed with refine_keep=refined (the "
                                                                "refined cameras whatever they score) for the table")
+    ap.add_argument("--choice-study", action="store_true",
+                    help="instead of the tables: which refined cameras are worse than SfM's and what separates them")
     ap.add_argument("--quiet", action="store_true", help="no render progress bar")
     ap.add_argument("--cad", default=str(ROOT / ".." / "shared" / "data" / "pascal3d_cad"))
     ap.add_argument("--work", default=str(ROOT / "outputs" / "viewpoints_cad"), help="renders and cameras go here")
@@ -210,6 +350,8 @@ def main(argv=None) -> int:
     if not Path(args.cad).is_dir():
         print(f"error: {args.cad} not found (the PASCAL3D+ CAD models in ../shared/data)", file=sys.stderr)
         return 2
+    if args.choice_study:
+        return _choice_study(args)
     runs = [_run(args, seed, args.overrides) for seed in args.seed]
     refined = [_run(args, seed, [*args.overrides, "refine_keep=refined"]) for seed in args.seed] \
         if args.refined_too else None

@@ -38,7 +38,7 @@ from ..collection import ClassCollection
 from ..runtime import StageTimer
 from ..sdf import distance_to_mask
 from . import camera_fit, mixture, sfm
-from .choice import kept_rows
+from .choice import kept_rows, tilted
 from .frame import CanonicalFrame, FrameFit, canonical_frame, load_templates, template_points
 from .refine import (choose_per_group, group_sfm_cameras, keypoints_left_out, refine_groups, unseen_keypoints,
                      unseen_per_group)
@@ -253,18 +253,22 @@ def _refine_step(vp: Viewpoints, dist: torch.Tensor, cfg: ViewpointConfig) -> No
 
 def _keep_better(vp: Viewpoints, cfg: ViewpointConfig) -> None:
     """Keep the SfM cameras where the refined ones are suspect, per object or for the whole class
-    (``refine_keep``, :mod:`~carvi_torch.viewpoints.choice`); the summary's ``refine.kept_sfm`` counts the
-    suspect rows and the originals that keep their SfM camera, with their annotation ids."""
+    (``refine_keep``), and where a refined camera is tilted (``refine_max_tilt_deg``;
+    :mod:`~carvi_torch.viewpoints.choice`); the summary's ``refine.kept_sfm`` counts the suspect and tilted
+    rows and the originals that keep their SfM camera, with their annotation ids."""
     choice = choose_per_group(vp.groups, vp.sfm_cameras, vp.cameras, vp.both, cfg)
     suspect = choice.suspect.to(vp.sfm_valid.device) & vp.sfm_valid
-    keep = kept_rows(suspect, vp.sfm_valid, cfg.refine_keep)
+    tilt = tilted(vp.sfm_cameras.R, vp.cameras.R, vp.sfm_valid, cfg.refine_max_tilt_deg).to(suspect.device)
+    keep = kept_rows(suspect, vp.sfm_valid, cfg.refine_keep, tilt)
     sfm, ref = vp.sfm_cameras, vp.cameras
     vp.cameras = ScaledOrthographic(torch.where(keep[:, None, None], sfm.R, ref.R), torch.where(keep, sfm.s, ref.s),
                                     torch.where(keep[:, None], sfm.t, ref.t))
     vp.kept_sfm = keep
     n = len(vp.both) // 2
     ids = [vp.both.annotation_ids[i] for i in keep[:n].nonzero().squeeze(1).tolist()]
+    tilted_ids = [vp.both.annotation_ids[i] for i in tilt[:n].nonzero().squeeze(1).tolist()]
     vp.info["refine"]["kept_sfm"] = {"how": cfg.refine_keep, "suspect": int(suspect.sum()),
+                                     "tilted": int(tilt.sum()), "tilted_ids": tilted_ids,
                                      "with_sfm": int(vp.sfm_valid.sum()), "originals": len(ids),
                                      "mirrored_copies": int(keep[n:].sum()), "ids": ids}
 

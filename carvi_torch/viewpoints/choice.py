@@ -19,6 +19,16 @@ the whole class when more than :data:`CLASS_SUSPECT` of its objects' refined cam
 (the mean shape itself does not fit the class's silhouettes: the CAD trains at 8 views, 53-72% of their
 rows, against at most 27% in any other class); ``"objects"`` keeps each suspect object's SfM camera.
 
+A third test judges each object on its own, with either rule: **tilt**. Photographs are taken with a
+level camera, so the image x axes of a class's cameras are horizontal in the object frame, and the
+direction most perpendicular to all of them (over the SfM cameras) is the class's up
+(:func:`class_up`). A refined camera that shows that up tilted in the image (:func:`image_tilt`:
+the angle between the projected up and the image's up, 180 degrees upside down) by more than
+``max_tilt_deg`` and by :data:`TILT_MARGIN_DEG` more than its SfM camera does is *tilted*: the
+silhouette term turned it into a pose no photographer takes (a boat whose mean shape fits its mask
+upside down); it keeps its SfM camera. A class whose up is not clear (:data:`UP_MARGIN`), and a camera
+looking nearly along the up (:data:`MIN_UP_LENGTH`), are not judged this way.
+
 Example:
     >>> import torch
     >>> from carvi_torch.cameras import ScaledOrthographic
@@ -38,13 +48,14 @@ import torch
 
 from ..cameras import ScaledOrthographic
 
-__all__ = ["CameraKeep", "KEYPOINT_GROWTH", "HULL_GAIN", "CLASS_SUSPECT", "CameraChoice", "kept_rows",
-           "hull_agreement", "keypoint_rms",
-           "box_diagonal", "choose_cameras"]
+__all__ = ["CameraKeep", "KEYPOINT_GROWTH", "HULL_GAIN", "CLASS_SUSPECT", "TILT_MARGIN_DEG", "UP_MARGIN",
+           "MIN_UP_LENGTH", "CameraChoice", "kept_rows", "hull_agreement", "keypoint_rms", "box_diagonal",
+           "choose_cameras", "class_up", "image_tilt", "tilted"]
 
 #: Which camera an object with an SfM camera keeps after refinement: ``refined`` (always the refined
 #: one, the paper's), ``class`` (the SfM cameras of a class most of whose refined cameras are suspect)
-#: or ``objects`` (the SfM camera of every object whose refined one is suspect); module docstring.
+#: or ``objects`` (the SfM camera of every object whose refined one is suspect); with ``class`` and
+#: ``objects`` a tilted refined camera keeps its SfM camera too; module docstring.
 CameraKeep = Literal["refined", "class", "objects"]
 
 #: A refined camera whose keypoint RMS error exceeds its SfM camera's by more than this fraction of
@@ -55,6 +66,15 @@ HULL_GAIN = 0.05
 #: ``refine_keep="class"``: the class keeps its SfM cameras when more than this fraction of its rows
 #: with an SfM camera have a suspect refined camera.
 CLASS_SUSPECT = 0.5
+#: A refined camera is tilted when its image tilt of the class's up exceeds ``max_tilt_deg`` and its SfM
+#: camera's by more than this many degrees.
+TILT_MARGIN_DEG = 20.0
+#: The class's up is used only when the second-smallest eigenvalue of the image x axes' scatter exceeds the
+#: smallest this many times (photographs from level cameras: 8-230 on the CAD renders at 8 views per model).
+UP_MARGIN = 4.0
+#: The tilt is judged only where both cameras show the class's up at least this long (elevation within 60
+#: degrees): a VOC aeroplane seen from below (SfM 0.28, elevation -53 degrees) has no meaningful tilt.
+MIN_UP_LENGTH = 0.5
 
 
 @dataclass
@@ -152,19 +172,82 @@ def choose_cameras(shape: torch.Tensor, sfm: ScaledOrthographic, refined: Scaled
     return CameraChoice(suspect, rms_s, rms_r, hull_s, hull_r, diag)
 
 
-def kept_rows(suspect: torch.Tensor, has_sfm: torch.Tensor, how: CameraKeep) -> torch.Tensor:
+def class_up(R: torch.Tensor) -> torch.Tensor | None:
+    """The class's up direction ``(3,)`` in the object frame from cameras ``R (M, 3, 3)`` of level photographs:
+    the unit vector most perpendicular to their image x axes (``R[:, 0]``), signed so that it points up in most
+    images (image y points down); ``None`` when fewer than 3 cameras or the direction is not clear
+    (:data:`UP_MARGIN`).
+
+    Example:
+        >>> import math
+        >>> from carvi_torch.cameras import rotation_from_azimuth_elevation_roll
+        >>> az = torch.linspace(0, 6, 12, dtype=torch.float64)
+        >>> R = rotation_from_azimuth_elevation_roll(az, torch.full_like(az, 0.3), torch.zeros_like(az))
+        >>> [round(float(v), 3) + 0.0 for v in class_up(R)]
+        [0.0, 0.0, 1.0]
+    """
+    R = R.detach().double().cpu()
+    R = R[torch.isfinite(R).flatten(1).all(1)]
+    if len(R) < 3:
+        return None
+    x = R[:, 0]
+    evals, evecs = torch.linalg.eigh(x.T @ x)
+    if not float(evals[1]) > UP_MARGIN * max(float(evals[0]), 1e-12):
+        return None
+    up = evecs[:, 0]
+    return -up if float((R[:, 1] @ up).median()) > 0 else up
+
+
+def image_tilt(R: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The angle ``(M,)`` in degrees, ``[0, 180]``, between the image's up and the projection of ``up (3,)`` by
+    cameras ``R (M, 3, 3)`` (0 upright, 180 upside down), and the projection's length ``(M,)`` (``cos`` of the
+    elevation; the angle means little where it is short).
+
+    Example:
+        >>> R = torch.stack([torch.eye(3), torch.diag(torch.tensor([-1.0, -1.0, 1.0]))]).double()
+        >>> tilt, length = image_tilt(R, torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64))
+        >>> tilt.tolist(), length.tolist()
+        ([0.0, 180.0], [1.0, 1.0])
+    """
+    R = R.detach().double().cpu()
+    u = up.double().cpu()
+    x, y = R[:, 0] @ u, -(R[:, 1] @ u)
+    return torch.rad2deg(torch.atan2(x, y)).abs(), torch.hypot(x, y)
+
+
+def tilted(sfm: torch.Tensor, refined: torch.Tensor, has_sfm: torch.Tensor, max_tilt_deg: float) -> torch.Tensor:
+    """``(M,)`` bool: the rows with an SfM camera (``has_sfm (M,)``) whose refined camera ``refined (M, 3, 3)``
+    shows the class's up (:func:`class_up` of the SfM cameras ``sfm (M, 3, 3)``) tilted by more than
+    ``max_tilt_deg`` and by more than :data:`TILT_MARGIN_DEG` beyond the SfM camera, where both cameras
+    see the up at least :data:`MIN_UP_LENGTH` long (CPU)."""
+    has = has_sfm.detach().cpu()
+    none = torch.zeros_like(has)
+    up = class_up(sfm.detach().cpu()[has]) if max_tilt_deg < 180 else None
+    if up is None:
+        return none
+    (t_s, l_s), (t_r, l_r) = image_tilt(sfm, up), image_tilt(refined, up)
+    seen = (l_s >= MIN_UP_LENGTH) & (l_r >= MIN_UP_LENGTH)
+    return has & seen & (t_r > max_tilt_deg) & (t_r > t_s + TILT_MARGIN_DEG)
+
+
+def kept_rows(suspect: torch.Tensor, has_sfm: torch.Tensor, how: CameraKeep,
+              tilt: torch.Tensor | None = None) -> torch.Tensor:
     """``(M,)`` bool: the rows that keep their SfM camera, from the suspect rows ``(M,)`` among those with an
-    SfM camera ``has_sfm (M,)``.
+    SfM camera ``has_sfm (M,)`` and (``how`` ``class`` or ``objects``) the tilted rows ``tilt (M,)``.
 
     Example:
         >>> s, h = torch.tensor([True, True, False, False]), torch.tensor([True, True, True, False])
         >>> kept_rows(s, h, "objects").tolist(), kept_rows(s, h, "class").tolist()
         ([True, True, False, False], [True, True, True, False])
+        >>> kept_rows(s & False, h, "class", tilt=torch.tensor([False, False, True, True])).tolist()
+        [False, False, True, False]
     """
     suspect = suspect & has_sfm
     if how == "refined":
         return torch.zeros_like(suspect)
+    tilt = torch.zeros_like(suspect) if tilt is None else tilt.to(suspect.device) & has_sfm
     if how == "objects":
-        return suspect
+        return suspect | tilt
     n = int(has_sfm.sum())
-    return has_sfm.clone() if n and int(suspect.sum()) > CLASS_SUSPECT * n else torch.zeros_like(suspect)
+    whole = has_sfm.clone() if n and int(suspect.sum()) > CLASS_SUSPECT * n else torch.zeros_like(suspect)
+    return whole | tilt
