@@ -29,7 +29,8 @@ from ..cameras import azimuth_elevation_roll_from_rotation
 from ..synthetic.render import rasterize_depth
 
 __all__ = ["splat_occupancy", "view_occupancy", "canonical_occupancy", "depth_map", "sample_surface",
-           "load_mesh", "canvas_to_class", "export_object", "safe_export_object", "init_worker"]
+           "load_mesh", "canvas_to_class", "export_object", "safe_export_object", "safe_export_objects",
+           "init_worker"]
 
 #: Most sub-samples per voxel and axis (a target cell finer than a quarter voxel is not a use case).
 MAX_SUBSAMPLES = 4
@@ -221,6 +222,11 @@ def safe_export_object(job: dict) -> tuple[dict | None, str | None]:
         return export_object(job), None
     except Exception as e:  # noqa: BLE001 - partial/corrupt files: the object is reported, the run goes on
         return None, f"unreadable outputs: {type(e).__name__}: {e}"
+
+
+def safe_export_objects(jobs: list[dict]) -> list[tuple[dict | None, str | None]]:
+    """:func:`safe_export_object` of each job (one task of a worker process)."""
+    return [safe_export_object(job) for job in jobs]
 
 
 def init_worker() -> None:
