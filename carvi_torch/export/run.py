@@ -23,8 +23,10 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 import numpy as np
+import torch
 from tqdm.auto import tqdm
 
+from ..cameras import azimuth_elevation_roll_from_rotation
 from ..io.coco import load_coco
 from ..io.layout import object_file
 from ..io.outputs import read_json
@@ -63,6 +65,16 @@ def class_extent(cams: dict) -> float:
 # =========================================================================== the export (main process)
 
 
+def _viewpoint_or_none(camera: dict) -> list[float] | None:
+    """Azimuth, elevation, roll of a camera entry's ``R`` (None where ``R`` is malformed: the worker then
+    reports the object with the error)."""
+    try:
+        R = torch.as_tensor(np.asarray(camera["R"], dtype=np.float64))
+        return [float(x) for x in azimuth_elevation_roll_from_rotation(R)]
+    except Exception:  # noqa: BLE001 - reported by the worker, as every unreadable camera
+        return None
+
+
 def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, skipped: list):
     """The jobs of a class's exportable objects (the others go to ``skipped`` with their reason)."""
     jobs = []
@@ -79,7 +91,8 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
             continue
         q = entry.get("quality")
         jobs.append({**settings, "class": cname, "class_index": ci, "annotation_id": aid,
-                     "image_id": coll.image_ids[i], "source": coll.sources[i],
+                     "viewpoint": _viewpoint_or_none(entry["refined"]), "image_id": coll.image_ids[i],
+                     "source": coll.sources[i],
                      "seed": [settings["seed"], stable_hash(cname), i],
                      "mask": coll.masks[i].cpu().numpy(), "keypoints": coll.keypoints[i].cpu().numpy(),
                      "visible": coll.visible[i].cpu().numpy(), "canvas_scale": float(coll.canvas_from_image.scale[i]),
