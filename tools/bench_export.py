@@ -92,13 +92,16 @@ def _tree_rss_mb(pid: int, cpu: dict | None = None) -> float | None:
     return sum(rss.get(p, 0) for p in tree) / 2 ** 20
 
 
-def _timed(cmd: list[str], cpu: dict | None = None, code: Path = ROOT) -> tuple[float, float | None, str]:
+def _timed(cmd: list[str], cpu: dict | None = None, code: Path = ROOT, pids: list | None = None
+           ) -> tuple[float, float | None, str]:
     """Wall seconds, peak memory of the process tree (sampled every 50 ms), stdout; ``cpu``: CPU seconds
     per process of the tree (as last sampled). ``code``: the source tree whose ``carvi_torch`` runs
-    (working directory and ``PYTHONPATH``)."""
+    (working directory and ``PYTHONPATH``); ``pids`` gets the process id of ``cmd``."""
     env = {**os.environ, "PYTHONPATH": str(code)}
     t = time.perf_counter()
     p = subprocess.Popen(cmd, cwd=code, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    if pids is not None:
+        pids.append(p.pid)
     peak = [0.0]
 
     def watch():
@@ -151,13 +154,16 @@ def time_export(py: str, recon: Path, exp: Path, workers: int | None, code: Path
     cmd += ["--workers", str(workers)] if workers is not None else []
     cpu: dict = {}
     load = os.getloadavg()[0]
-    t, peak, _ = _timed(cmd, cpu, code)
+    pids: list = []
+    t, peak, _ = _timed(cmd, cpu, code, pids)
+    main_cpu = cpu.pop(pids[0], 0.0)
     import zarr
 
     n = sum(zarr.open_group(str(exp), mode="r").attrs["carvi_export"]["counts"].values())
-    c = sum(cpu.values())
+    c = main_cpu + sum(cpu.values())
     return {"code": str(code), "objects": n, "seconds": round(t, 2), "objects_per_second": round(n / t, 2),
             "cpu_seconds": round(c, 2), "cpu_ms_per_object": round(1000 * c / max(n, 1), 2),
+            "cpu_seconds_main_process": round(main_cpu, 2),
             "peak_tree_rss_mb": round(peak) if peak else None, "load_average_before": round(load, 2)}
 
 
@@ -204,7 +210,8 @@ def compare_exports(py: str, recon: Path, work: Path, args, argv) -> int:
             x = runs[name][-1]
             print(f"round {r + 1} {name}: {x['objects']} objects, {x['seconds']:.1f} s, "
                   f"{x['objects_per_second']:.1f} objects/s, CPU {x['cpu_ms_per_object']:.1f} ms/object "
-                  f"(load {x['load_average_before']:.1f})", flush=True)
+                  f"(main process {x['cpu_seconds_main_process']:.1f} s of {x['cpu_seconds']:.1f} s; load "
+                  f"{x['load_average_before']:.1f})", flush=True)
     med = {k: {q: statistics.median(x[q] for x in v) for q in ("seconds", "cpu_seconds", "objects_per_second",
                                                               "cpu_ms_per_object")} for k, v in runs.items()}
     ratio = {"objects_per_second": med["new"]["objects_per_second"] / med["old"]["objects_per_second"],
