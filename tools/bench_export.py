@@ -4,6 +4,7 @@
                                  [--workers N] [--out PATH [--key KEY]]
     python tools/bench_export.py --report [--objects 160] [--recon DIR] [--out PATH [--key KEY]]
     python tools/bench_export.py --recon DIR --compare-with OTHER_TREE [--rounds 3] [--out PATH [--key KEY]]
+    python tools/bench_export.py --quality EVAL_DIR [EVAL_DIR ...] [--method NAME] [--out PATH [--key KEY]]
 
 Without ``--recon`` it first reconstructs an embedded procedural collection of ``--objects``
 objects (equal parts of the four classes; default settings, 60^3 grid, 20 proposals) — that
@@ -13,6 +14,10 @@ memory of the process tree, bytes per object on disk, per field too), reading ev
 ``LiftedDataset`` on one worker (all fields, and three fields), and a ``DataLoader`` with 2
 workers. Prints a table and writes ``--out`` (under ``--key`` when given, the file's other keys kept;
 default: key ``export`` of ``docs/data/export.json``, the records of docs/export.md).
+
+With ``--quality EVAL_DIR ...`` it times nothing: it ranks the true shape errors of ``evaluate`` runs
+by the objects' ``quality`` (Spearman rho, pooled and per class, each signal alone, ``quality``
+recombined without each factor; default record: key ``quality_shape_cad``).
 
 With ``--compare-with`` it times the export of this tree's code and of another source tree's (say a
 ``git worktree`` or ``git archive`` of an earlier commit) back to back, alternating which goes first,
@@ -234,6 +239,82 @@ def compare_exports(py: str, recon: Path, work: Path, args, argv) -> int:
     return 0
 
 
+def _quality_rows(res: dict, method: str) -> list[dict]:
+    """Per object with a quality and a shape error: class, shape error (%), quality and its signals."""
+    from carvi_torch.io.outputs import read_json
+
+    recon, rows, cams = Path(res["recons"][method]), [], {}
+    for aid, obj in res["objects"].items():
+        err = (obj.get(method) or {}).get("error_percent") if isinstance(obj.get(method), dict) else None
+        cls = obj["class"]
+        if cls not in cams:
+            p = recon / cls / "cameras.json"
+            cams[cls] = read_json(p).get("cameras", {}) if p.is_file() else {}
+        entry = cams[cls].get(aid) or {}
+        if err is None or entry.get("quality") is None:
+            continue
+        rows.append({"class": cls, "shape_percent": float(err), "quality": float(entry["quality"]),
+                     "signals": entry.get("quality_signals") or {}})
+    return rows
+
+
+def quality_study(eval_dirs: list[Path], method: str | None, out: str, key: str, argv) -> int:
+    """Spearman rho of ``quality`` against the true shape error (symmetric RMS, % of the ground-truth
+    diagonal) of ``evaluate`` runs without ``--viewpoints-only`` (their ``results.json`` in ``eval_dirs``,
+    say one per group of classes, their objects pooled): pooled and per class; each signal alone;
+    ``quality`` recombined without each of its factors (which term helps or hurts the ranking of shape
+    errors); prints a table, writes the record."""
+    import numpy as np
+
+    from carvi_torch.evaluation.reliability import spearman
+    from carvi_torch.io.outputs import read_json, write_record
+    from carvi_torch.quality import combine
+
+    rows, steps = [], set()
+    for d in eval_dirs:
+        res = read_json(d / "results.json")
+        method = method or next(iter(res["recons"]))
+        rows += _quality_rows(res, method)
+        steps.add(res["step_percent"])
+    if not rows:
+        raise SystemExit(f"{eval_dirs}: no object has both a quality and a shape error (run evaluate without "
+                         "--viewpoints-only on a reconstruction that wrote quality)")
+    err = np.array([r["shape_percent"] for r in rows])
+    classes = np.array([r["class"] for r in rows])
+    numeric = ("keypoint_residual", "visible_keypoints", "refinement_deg", "mirror_deg", "reconstruction_iou",
+               "silhouette_inside")
+    keys = sorted({k for r in rows for k in r["signals"]})
+
+    def rho(x, sel=slice(None)):
+        return spearman(np.asarray(x, dtype=np.float64)[sel], err[sel])
+
+    record = {"eval": [str(d) for d in eval_dirs], "step_percent": sorted(steps), "method": method,
+              "objects": len(rows),
+              "pooled": rho([r["quality"] for r in rows]),
+              "recombined": rho([combine(r["signals"]) for r in rows]),  # = pooled (quality is combine's)
+              "per_class": {c: rho([r["quality"] for r in rows], classes == c) for c in sorted(set(classes))},
+              "signal_alone": {k: rho([float(r["signals"][k]) if r["signals"].get(k) is not None else np.nan
+                                       for r in rows]) for k in numeric if k in keys},
+              "factor_alone": {k: rho([combine({k: r["signals"][k]}) if k in r["signals"] else np.nan
+                                       for r in rows]) for k in keys},
+              "without_factor": {k: rho([combine({j: v for j, v in r["signals"].items() if j != k})
+                                         for r in rows]) for k in keys}}
+    hi = np.array([r["quality"] for r in rows]) >= np.median([r["quality"] for r in rows])
+    record["median_shape_percent_top_bottom_half"] = [round(float(np.median(err[hi])), 3),
+                                                      round(float(np.median(err[~hi])), 3)]
+    record["command"] = "python tools/bench_export.py " + " ".join(shlex.quote(a) for a in argv)
+    f = lambda d: "n/a" if d["rho"] is None else f"{d['rho']:+.2f}"  # noqa: E731
+    print(f"{method}: {len(rows)} objects; rho(quality, shape error) pooled {f(record['pooled'])}; "
+          f"median shape error top / bottom half of quality {record['median_shape_percent_top_bottom_half']}")
+    print("per class: " + ", ".join(f"{c} {f(v)} (n={v['n']})" for c, v in record["per_class"].items()))
+    print("signal alone: " + ", ".join(f"{k} {f(v)}" for k, v in record["signal_alone"].items()))
+    print("factor alone: " + ", ".join(f"{k} {f(v)}" for k, v in record["factor_alone"].items()))
+    print("quality without the factor: " + ", ".join(f"{k} {f(v)}" for k, v in record["without_factor"].items()))
+    write_record(out, record, key)
+    print(f"wrote {out}, key {key}")
+    return 0
+
+
 REPORT = r"""
 import json, resource, sys, time
 t = time.perf_counter()
@@ -308,8 +389,16 @@ def main(argv=None) -> int:
                          "its export and this tree's back to back, alternating, and compare the stores "
                          "(the reader is not timed)")
     ap.add_argument("--rounds", type=int, default=3, help="rounds of each code with --compare-with (default 3)")
+    ap.add_argument("--quality", metavar="EVAL_DIR", nargs="+",
+                    help="instead of timing: rank the true shape errors of an evaluate run (its --out, without "
+                         "--viewpoints-only) by quality: Spearman rho pooled, per class, per signal and with each "
+                         "factor left out (default record: key quality_shape_cad)")
+    ap.add_argument("--method", help="with --quality: the evaluated method (default: the first)")
     args = ap.parse_args(argv)
     argv = list(sys.argv[1:] if argv is None else argv)
+    if args.quality:
+        out = args.out or str(ROOT / "docs" / "data" / "export.json")
+        return quality_study([Path(d) for d in args.quality], args.method, out, args.key or "quality_shape_cad", argv)
     args.objects = args.objects or (160 if args.report else 1000)
     if not args.out:
         args.out = str(ROOT / "docs" / "data" / ("report.json" if args.report else "export.json"))
