@@ -508,7 +508,7 @@ def test_worker_processes_write_the_same_store(recon, tmp_path):
     shutil.copytree(recon, broken)
     mesh = sorted((broken / "car" / "meshes").glob("*.ply"))[1]
     mesh.write_bytes(mesh.read_bytes()[:60])  # a partial file: skipped by the worker, with its reason
-    kw = dict(resolution=16, points=256, shard_size=4, progress=False, mesh=True)
+    kw = dict(resolution=8, points=32, shard_size=2, progress=False, mesh=True)
     one = export(broken, tmp_path / "w0", workers=0, **kw)
     two = export(broken, tmp_path / "w2", workers=2, **kw)
     assert one["samples"] == two["samples"] and one["skipped"] == two["skipped"] and len(one["skipped"]) == 1

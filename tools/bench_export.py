@@ -447,6 +447,7 @@ def main(argv=None) -> int:
         "objects": n, "export_seconds": round(t_exp, 2), "export_objects_per_second": round(n / t_exp, 2),
         "export_peak_tree_rss_mb": round(peak_exp) if peak_exp else None,
         "export_cpu_seconds": round(cpu_s, 2), "export_cpu_ms_per_object": round(1000 * cpu_s / max(n, 1), 2),
+        "export_cpu_seconds_main_process": run["cpu_seconds_main_process"],
         "bytes_per_object": round(per_obj), "bytes_per_object_by_field": {k: round(v / max(n, 1)) for k, v in
                                                                           sorted(sizes.items())},
         "read_samples_per_second_1_worker_all_fields": round(reads["all"]["samples"] / reads["all"]["seconds"]),
