@@ -3,6 +3,8 @@
     python tools/bench_export.py [--objects 1000] [--recon DIR] [--work outputs/bench_export]
                                  [--workers N] [--out PATH [--key KEY]]
     python tools/bench_export.py --report [--objects 160] [--recon DIR] [--out PATH [--key KEY]]
+    python tools/bench_export.py --recon DIR --compare-with OTHER_TREE [--rounds 3] [--out PATH [--key KEY]]
+    python tools/bench_export.py --quality EVAL_DIR [EVAL_DIR ...] [--method NAME] [--out PATH [--key KEY]]
 
 Without ``--recon`` it first reconstructs an embedded procedural collection of ``--objects``
 objects (equal parts of the four classes; default settings, 60^3 grid, 20 proposals) — that
@@ -12,6 +14,15 @@ memory of the process tree, bytes per object on disk, per field too), reading ev
 ``LiftedDataset`` on one worker (all fields, and three fields), and a ``DataLoader`` with 2
 workers. Prints a table and writes ``--out`` (under ``--key`` when given, the file's other keys kept;
 default: key ``export`` of ``docs/data/export.json``, the records of docs/export.md).
+
+With ``--quality EVAL_DIR ...`` it times nothing: it ranks the true shape errors of ``evaluate`` runs
+by the objects' ``quality`` (Spearman rho, pooled and per class, each signal alone, ``quality``
+recombined without each factor; default record: key ``quality_shape_cad``).
+
+With ``--compare-with`` it times the export of this tree's code and of another source tree's (say a
+``git worktree`` or ``git archive`` of an earlier commit) back to back, alternating which goes first,
+``--rounds`` times each; prints both rates, CPU times and their ratios, and whether the two stores hold
+the same arrays (default record: key ``export_compare``).
 
 With ``--report`` it times ``python -m carvi_torch.report`` instead (whole process), once with the
 cards made in the report's own process and once in 2 worker processes: objects per
@@ -26,6 +37,7 @@ import json
 import os
 import resource
 import shlex
+import statistics
 import subprocess
 import sys
 import threading
@@ -85,11 +97,16 @@ def _tree_rss_mb(pid: int, cpu: dict | None = None) -> float | None:
     return sum(rss.get(p, 0) for p in tree) / 2 ** 20
 
 
-def _timed(cmd: list[str], cpu: dict | None = None) -> tuple[float, float | None, str]:
+def _timed(cmd: list[str], cpu: dict | None = None, code: Path = ROOT, pids: list | None = None
+           ) -> tuple[float, float | None, str]:
     """Wall seconds, peak memory of the process tree (sampled every 50 ms), stdout; ``cpu``: CPU seconds
-    per process of the tree (as last sampled)."""
+    per process of the tree (as last sampled). ``code``: the source tree whose ``carvi_torch`` runs
+    (working directory and ``PYTHONPATH``); ``pids`` gets the process id of ``cmd``."""
+    env = {**os.environ, "PYTHONPATH": str(code)}
     t = time.perf_counter()
-    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(cmd, cwd=code, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    if pids is not None:
+        pids.append(p.pid)
     peak = [0.0]
 
     def watch():
@@ -129,6 +146,173 @@ def _reconstruct(py: str, work: Path, objects: int) -> Path:
                         "progress=false", "preview=false", "report=false"],
                        cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     return recon
+
+
+def time_export(py: str, recon: Path, exp: Path, workers: int | None, code: Path = ROOT) -> dict:
+    """One export of ``recon`` into ``exp`` (replaced) as a whole process, with the ``carvi_torch`` of ``code``:
+    wall and CPU seconds (user + system of every process of its tree, start-up included), peak memory."""
+    if exp.exists():
+        import shutil
+
+        shutil.rmtree(exp)
+    cmd = [py, "-m", "carvi_torch.export", "--recon", str(recon.resolve()), "--out", str(exp.resolve()), "--quiet"]
+    cmd += ["--workers", str(workers)] if workers is not None else []
+    cpu: dict = {}
+    load = os.getloadavg()[0]
+    pids: list = []
+    t, peak, _ = _timed(cmd, cpu, code, pids)
+    main_cpu = cpu.pop(pids[0], 0.0)
+    import zarr
+
+    n = sum(zarr.open_group(str(exp), mode="r").attrs["carvi_export"]["counts"].values())
+    c = main_cpu + sum(cpu.values())
+    return {"code": str(code), "objects": n, "seconds": round(t, 2), "objects_per_second": round(n / t, 2),
+            "cpu_seconds": round(c, 2), "cpu_ms_per_object": round(1000 * c / max(n, 1), 2),
+            "cpu_seconds_main_process": round(main_cpu, 2),
+            "peak_tree_rss_mb": round(peak) if peak else None, "load_average_before": round(load, 2)}
+
+
+def same_stores(a: Path, b: Path) -> dict[str, str]:
+    """Every array of every class group of two exports compared: field -> ``identical`` (same shape,
+    dtype and values, NaN equal to NaN) or what differs; class groups' attributes and the root's
+    (but its ``seconds`` and ``recon``) under ``attributes``."""
+    import numpy as np
+    import zarr
+
+    ra, rb = zarr.open_group(str(a), mode="r"), zarr.open_group(str(b), mode="r")
+    drop = ("seconds", "recon")
+    attrs = [{k: v for k, v in r.attrs["carvi_export"].items() if k not in drop} for r in (ra, rb)]
+    out: dict[str, str] = {"attributes": "identical" if attrs[0] == attrs[1] else "differ"}
+    for cls in attrs[0]["classes"]:
+        if dict(ra[cls].attrs) != dict(rb[cls].attrs):
+            out["attributes"] = f"differ ({cls})"
+        for name in sorted(set(ra[cls].array_keys()) | set(rb[cls].array_keys())):
+            if name not in ra[cls] or name not in rb[cls]:
+                out[name] = f"missing in one store ({cls})"
+                continue
+            x, y = ra[cls][name][...], rb[cls][name][...]
+            if x.shape != y.shape or x.dtype != y.dtype:
+                out[name] = f"{cls}: {x.shape} {x.dtype} against {y.shape} {y.dtype}"
+            elif not np.array_equal(x, y, equal_nan=x.dtype.kind == "f"):
+                fin = np.isfinite(x) & np.isfinite(y) if x.dtype.kind == "f" else np.ones(x.shape, bool)
+                diff = np.abs(x[fin].astype(np.float64) - y[fin].astype(np.float64))
+                out[name] = (f"{cls}: {int((x != y).sum())} of {x.size} values differ, largest by "
+                             f"{diff.max() if diff.size else float('nan'):.3g}")
+            else:
+                out.setdefault(name, "identical")
+    return out
+
+
+def compare_exports(py: str, recon: Path, work: Path, args, argv) -> int:
+    """The export with this tree's code and with ``--compare-with``'s, alternating, ``--rounds`` times each
+    (back to back, so both see the same load); prints each round, the ratios and whether the stores agree."""
+    other = Path(args.compare_with).resolve()
+    runs: dict[str, list] = {"new": [], "old": []}
+    for r in range(max(1, args.rounds)):
+        order = [("new", ROOT), ("old", other)]
+        for name, code in order if r % 2 == 0 else order[::-1]:
+            runs[name].append(time_export(py, recon, work / f"export_{name}", args.workers, code))
+            x = runs[name][-1]
+            print(f"round {r + 1} {name}: {x['objects']} objects, {x['seconds']:.1f} s, "
+                  f"{x['objects_per_second']:.1f} objects/s, CPU {x['cpu_ms_per_object']:.1f} ms/object "
+                  f"(main process {x['cpu_seconds_main_process']:.1f} s of {x['cpu_seconds']:.1f} s; load "
+                  f"{x['load_average_before']:.1f})", flush=True)
+    med = {k: {q: statistics.median(x[q] for x in v) for q in ("seconds", "cpu_seconds", "objects_per_second",
+                                                              "cpu_ms_per_object")} for k, v in runs.items()}
+    ratio = {"objects_per_second": med["new"]["objects_per_second"] / med["old"]["objects_per_second"],
+             "cpu_seconds": med["new"]["cpu_seconds"] / med["old"]["cpu_seconds"],
+             "per_round_objects_per_second": [n["objects_per_second"] / o["objects_per_second"]
+                                              for n, o in zip(runs["new"], runs["old"])]}
+    same = same_stores(work / "export_new", work / "export_old")
+    print(f"median of {len(runs['new'])} rounds: new {med['new']['objects_per_second']:.1f} objects/s, "
+          f"{med['new']['cpu_ms_per_object']:.1f} ms CPU/object; old {med['old']['objects_per_second']:.1f} "
+          f"objects/s, {med['old']['cpu_ms_per_object']:.1f} ms CPU/object; new/old rate "
+          f"{ratio['objects_per_second']:.2f}x, CPU {ratio['cpu_seconds']:.2f}x")
+    differ = [f"{k} {v}" for k, v in same.items() if v != "identical"]
+    print("stores: " + (", ".join(differ) if differ else "every field and attribute identical"))
+    from carvi_torch.io.outputs import write_record
+
+    write_record(args.out, {"command": "python tools/bench_export.py " + " ".join(shlex.quote(a) for a in argv),
+                            "cpus": os.cpu_count(), "runs": runs, "median": med, "new_over_old": ratio,
+                            "stores": same}, args.key)
+    print(f"wrote {args.out}" + (f", key {args.key}" if args.key else ""))
+    return 0
+
+
+def _quality_rows(res: dict, method: str) -> list[dict]:
+    """Per object with a quality and a shape error: class, shape error (%), quality and its signals."""
+    from carvi_torch.io.outputs import read_json
+
+    recon, rows, cams = Path(res["recons"][method]), [], {}
+    for aid, obj in res["objects"].items():
+        err = (obj.get(method) or {}).get("error_percent") if isinstance(obj.get(method), dict) else None
+        cls = obj["class"]
+        if cls not in cams:
+            p = recon / cls / "cameras.json"
+            cams[cls] = read_json(p).get("cameras", {}) if p.is_file() else {}
+        entry = cams[cls].get(aid) or {}
+        if err is None or entry.get("quality") is None:
+            continue
+        rows.append({"class": cls, "shape_percent": float(err), "quality": float(entry["quality"]),
+                     "signals": entry.get("quality_signals") or {}})
+    return rows
+
+
+def quality_study(eval_dirs: list[Path], method: str | None, out: str, key: str, argv) -> int:
+    """Spearman rho of ``quality`` against the true shape error (symmetric RMS, % of the ground-truth
+    diagonal) of ``evaluate`` runs without ``--viewpoints-only`` (their ``results.json`` in ``eval_dirs``,
+    say one per group of classes, their objects pooled): pooled and per class; each signal alone;
+    ``quality`` recombined without each of its factors (which term helps or hurts the ranking of shape
+    errors); prints a table, writes the record."""
+    import numpy as np
+
+    from carvi_torch.evaluation.reliability import spearman
+    from carvi_torch.io.outputs import read_json, write_record
+    from carvi_torch.quality import combine
+
+    rows, steps = [], set()
+    for d in eval_dirs:
+        res = read_json(d / "results.json")
+        method = method or next(iter(res["recons"]))
+        rows += _quality_rows(res, method)
+        steps.add(res["step_percent"])
+    if not rows:
+        raise SystemExit(f"{eval_dirs}: no object has both a quality and a shape error (run evaluate without "
+                         "--viewpoints-only on a reconstruction that wrote quality)")
+    err = np.array([r["shape_percent"] for r in rows])
+    classes = np.array([r["class"] for r in rows])
+    numeric = ("keypoint_residual", "visible_keypoints", "refinement_deg", "mirror_deg", "reconstruction_iou",
+               "silhouette_inside")
+    keys = sorted({k for r in rows for k in r["signals"]})
+
+    def rho(x, sel=slice(None)):
+        return spearman(np.asarray(x, dtype=np.float64)[sel], err[sel])
+
+    record = {"eval": [str(d) for d in eval_dirs], "step_percent": sorted(steps), "method": method,
+              "objects": len(rows),
+              "pooled": rho([r["quality"] for r in rows]),
+              "recombined": rho([combine(r["signals"]) for r in rows]),  # = pooled (quality is combine's)
+              "per_class": {c: rho([r["quality"] for r in rows], classes == c) for c in sorted(set(classes))},
+              "signal_alone": {k: rho([float(r["signals"][k]) if r["signals"].get(k) is not None else np.nan
+                                       for r in rows]) for k in numeric if k in keys},
+              "factor_alone": {k: rho([combine({k: r["signals"][k]}) if k in r["signals"] else np.nan
+                                       for r in rows]) for k in keys},
+              "without_factor": {k: rho([combine({j: v for j, v in r["signals"].items() if j != k})
+                                         for r in rows]) for k in keys}}
+    hi = np.array([r["quality"] for r in rows]) >= np.median([r["quality"] for r in rows])
+    record["median_shape_percent_top_bottom_half"] = [round(float(np.median(err[hi])), 3),
+                                                      round(float(np.median(err[~hi])), 3)]
+    record["command"] = "python tools/bench_export.py " + " ".join(shlex.quote(a) for a in argv)
+    f = lambda d: "n/a" if d["rho"] is None else f"{d['rho']:+.2f}"  # noqa: E731
+    print(f"{method}: {len(rows)} objects; rho(quality, shape error) pooled {f(record['pooled'])}; "
+          f"median shape error top / bottom half of quality {record['median_shape_percent_top_bottom_half']}")
+    print("per class: " + ", ".join(f"{c} {f(v)} (n={v['n']})" for c, v in record["per_class"].items()))
+    print("signal alone: " + ", ".join(f"{k} {f(v)}" for k, v in record["signal_alone"].items()))
+    print("factor alone: " + ", ".join(f"{k} {f(v)}" for k, v in record["factor_alone"].items()))
+    print("quality without the factor: " + ", ".join(f"{k} {f(v)}" for k, v in record["without_factor"].items()))
+    write_record(out, record, key)
+    print(f"wrote {out}, key {key}")
+    return 0
 
 
 REPORT = r"""
@@ -200,31 +384,36 @@ def main(argv=None) -> int:
     ap.add_argument("--key", help="write the record under this key of --out's JSON object, its other keys kept "
                                   "(default with no --out: export; with --report report_<objects>)")
     ap.add_argument("--report", action="store_true", help="benchmark the HTML report instead of the export")
+    ap.add_argument("--compare-with", metavar="DIR",
+                    help="a source tree holding another carvi_torch (e.g. a checkout of an earlier commit): time "
+                         "its export and this tree's back to back, alternating, and compare the stores "
+                         "(the reader is not timed)")
+    ap.add_argument("--rounds", type=int, default=3, help="rounds of each code with --compare-with (default 3)")
+    ap.add_argument("--quality", metavar="EVAL_DIR", nargs="+",
+                    help="instead of timing: rank the true shape errors of an evaluate run (its --out, without "
+                         "--viewpoints-only) by quality: Spearman rho pooled, per class, per signal and with each "
+                         "factor left out (default record: key quality_shape_cad)")
+    ap.add_argument("--method", help="with --quality: the evaluated method (default: the first)")
     args = ap.parse_args(argv)
     argv = list(sys.argv[1:] if argv is None else argv)
+    if args.quality:
+        out = args.out or str(ROOT / "docs" / "data" / "export.json")
+        return quality_study([Path(d) for d in args.quality], args.method, out, args.key or "quality_shape_cad", argv)
     args.objects = args.objects or (160 if args.report else 1000)
     if not args.out:
         args.out = str(ROOT / "docs" / "data" / ("report.json" if args.report else "export.json"))
-        args.key = args.key or (f"report_{args.objects}" if args.report else "export")
+        args.key = args.key or (f"report_{args.objects}" if args.report else
+                                "export_compare" if args.compare_with else "export")
     work, py = Path(args.work), sys.executable
     recon = Path(args.recon) if args.recon else _reconstruct(py, work, args.objects)
     if args.report:
         return bench_report(recon, work, args.out, args.key, argv)
+    if args.compare_with:
+        return compare_exports(py, recon, work, args, argv)
     exp = work / "export"
-    if exp.exists():
-        import shutil
-
-        shutil.rmtree(exp)
-    cmd = [py, "-m", "carvi_torch.export", "--recon", str(recon), "--out", str(exp), "--quiet"]
-    cmd += ["--workers", str(args.workers)] if args.workers is not None else []
     load0 = os.getloadavg()[0]
-    cpu: dict = {}
-    t_exp, peak_exp, _ = _timed(cmd, cpu)
-    cpu_s = sum(cpu.values())
-    import zarr
-
-    attrs = zarr.open_group(str(exp), mode="r").attrs["carvi_export"]
-    n = sum(attrs["counts"].values())
+    run = time_export(py, recon, exp, args.workers)
+    t_exp, peak_exp, cpu_s, n = run["seconds"], run["peak_tree_rss_mb"], run["cpu_seconds"], run["objects"]
     reads = {}
     for name, w, fields in (("all", 0, ""), ("three", 0, "mask,viewpoint,occupancy_canonical"), ("loader", 2, "")):
         _, _, out = _timed([py, "-c", READER, str(exp), str(w), fields])
@@ -258,6 +447,7 @@ def main(argv=None) -> int:
         "objects": n, "export_seconds": round(t_exp, 2), "export_objects_per_second": round(n / t_exp, 2),
         "export_peak_tree_rss_mb": round(peak_exp) if peak_exp else None,
         "export_cpu_seconds": round(cpu_s, 2), "export_cpu_ms_per_object": round(1000 * cpu_s / max(n, 1), 2),
+        "export_cpu_seconds_main_process": run["cpu_seconds_main_process"],
         "bytes_per_object": round(per_obj), "bytes_per_object_by_field": {k: round(v / max(n, 1)) for k, v in
                                                                           sorted(sizes.items())},
         "read_samples_per_second_1_worker_all_fields": round(reads["all"]["samples"] / reads["all"]["seconds"]),

@@ -1,6 +1,7 @@
 """``python -m carvi_torch.export``: a training dataset (a zarr v3 store) from a reconstruction directory.
 
-- :mod:`~carvi_torch.export.run`: the export and its command line (:func:`export`, :func:`main`);
+- :mod:`~carvi_torch.export.run`: the export (:func:`export`);
+- :mod:`~carvi_torch.export.command`: its command line (:func:`main`), light to import;
 - :mod:`~carvi_torch.export.store`: the zarr store's layout and fields;
 - :mod:`~carvi_torch.export.objects`: the per-object work (occupancy, depth, surface samples), run
   in worker processes;
@@ -17,6 +18,10 @@ __all__ = ["export", "main", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "cano
 
 
 def __getattr__(name: str):
+    if name == "main":
+        from .command import main
+
+        return main
     if name in __all__ or name == "_int_id":
         from . import run
 

@@ -1,7 +1,7 @@
-"""``python -m carvi_torch.export`` (see :func:`carvi_torch.export.run.main`)."""
+"""``python -m carvi_torch.export`` (see :func:`carvi_torch.export.command.main`)."""
 import sys
 
-from .run import main
+from .command import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,7 +1,8 @@
 """Per-object computations of the training export: occupancy that keeps thin parts, depth, surface samples.
 
 Everything here takes host (numpy) data of one object and returns numpy arrays, so that export
-worker processes run it without sharing state.
+worker processes run it without sharing state; it imports numpy and trimesh (for the mesh files), not
+torch, so that the workers start fast.
 
 Occupancy is *any-overlap* (supersampled): every voxel of the reconstruction's grid is a small
 box (the marching-cubes surface at level 0.5 runs along these boxes' faces); a cell of the
@@ -18,18 +19,19 @@ Example (a plate one voxel thick, seen by a grid whose centres all miss it):
 """
 from __future__ import annotations
 
+import functools
 import math
+import sys
 
 import numpy as np
-import torch
 import trimesh
 from trimesh.exchange.ply import load_ply
 
-from ..cameras import azimuth_elevation_roll_from_rotation
-from ..synthetic.render import rasterize_depth
+from .raster import zbuffer
 
 __all__ = ["splat_occupancy", "view_occupancy", "canonical_occupancy", "depth_map", "sample_surface",
-           "load_mesh", "canvas_to_class", "export_object", "safe_export_object", "init_worker"]
+           "load_mesh", "canvas_to_class", "export_object", "safe_export_object", "safe_export_objects",
+           "init_worker"]
 
 #: Most sub-samples per voxel and axis (a target cell finer than a quarter voxel is not a use case).
 MAX_SUBSAMPLES = 4
@@ -44,7 +46,41 @@ def _boundary(occ: np.ndarray) -> np.ndarray:
     return occ & ~inner
 
 
-def splat_occupancy(occ: np.ndarray, voxel_to_target: np.ndarray, res: int) -> np.ndarray:
+def boundary_voxels(occ: np.ndarray) -> np.ndarray:
+    """Indices ``(N, 3)`` float32 of the occupied voxels with an empty (or outside) 6-neighbour, in C order."""
+    return np.argwhere(_boundary(np.asarray(occ, dtype=bool))).astype(np.float32)
+
+
+@functools.lru_cache(maxsize=4)
+def _axis_centres(res: int) -> np.ndarray:
+    return np.arange(res, dtype=np.float64) + 0.5
+
+
+def _centre_hits(occ: np.ndarray, A: np.ndarray, b: np.ndarray, res: int, lo: np.ndarray, hi: np.ndarray,
+                 out: np.ndarray) -> None:
+    """Set the cells of ``out`` ``(res, res, res)`` whose centre lies in an occupied voxel's box (its nearest
+    voxel is occupied). Only the cells around the target-space box of the occupied voxels' boxes
+    (``lo``, ``hi``: their first and last voxel index per axis) are tested, one cell of margin around it:
+    no other centre is near an occupied box."""
+    corners = np.stack(np.meshgrid(*[(lo[j] - 0.5, hi[j] + 0.5) for j in range(3)], indexing="ij"), -1)
+    t = corners.reshape(-1, 3) @ A.T + b
+    first = np.clip(np.floor(t.min(axis=0)).astype(np.int64) - 1, 0, res)
+    last = np.clip(np.floor(t.max(axis=0)).astype(np.int64) + 2, 0, res)
+    if (last <= first).any():
+        return
+    c = _axis_centres(res)
+    centres = np.stack(np.meshgrid(*[c[first[j]:last[j]] for j in range(3)], indexing="ij"), -1).reshape(-1, 3)
+    src = np.rint((centres - b) @ np.linalg.inv(A).T).astype(np.int64)
+    s0, s1, s2 = src[:, 0], src[:, 1], src[:, 2]
+    D, H, W = occ.shape
+    inside = np.flatnonzero((s0 >= 0) & (s0 < D) & (s1 >= 0) & (s1 < H) & (s2 >= 0) & (s2 < W))
+    hit = np.zeros(len(src), dtype=bool)
+    hit[inside] = occ.ravel()[(s0[inside] * H + s1[inside]) * W + s2[inside]]
+    out[first[0]:last[0], first[1]:last[1], first[2]:last[2]] |= hit.reshape(tuple(last - first))
+
+
+def splat_occupancy(occ: np.ndarray, voxel_to_target: np.ndarray, res: int,
+                    boundary: np.ndarray | None = None) -> np.ndarray:
     """Any-overlap occupancy ``(res, res, res)`` of the boxes of ``occ``'s occupied voxels.
 
     Args:
@@ -52,6 +88,7 @@ def splat_occupancy(occ: np.ndarray, voxel_to_target: np.ndarray, res: int) -> n
         voxel_to_target: ``(4, 4)`` affine: source voxel index ``(d, h, w, 1)`` -> continuous target
             index ``(i0, i1, i2, 1)``; target cell ``[i0, i1, i2]`` covers ``[i, i + 1)`` on each axis.
         res: target side.
+        boundary: :func:`boundary_voxels` of ``occ``, when the caller has it already (one grid, two targets).
 
     Returns:
         ``(res, res, res)`` bool: a cell is occupied when its centre lies in an occupied voxel's box, or
@@ -61,34 +98,29 @@ def splat_occupancy(occ: np.ndarray, voxel_to_target: np.ndarray, res: int) -> n
         thin part's) by their sub-samples.
     """
     occ = np.asarray(occ, dtype=bool)
-    out = np.zeros(res ** 3, dtype=bool)
+    out = np.zeros((res, res, res), dtype=bool)
     A = voxel_to_target[:3, :3].astype(np.float64)
     b = voxel_to_target[:3, 3].astype(np.float64)
-    # 1. cell centres inside an occupied box (nearest voxel)
-    c = np.arange(res, dtype=np.float64) + 0.5
-    centres = np.stack(np.meshgrid(c, c, c, indexing="ij"), -1).reshape(-1, 3)
-    src = np.rint((centres - b) @ np.linalg.inv(A).T).astype(np.int64)
-    inside = ((src >= 0) & (src < np.array(occ.shape))).all(axis=1)
-    hit = np.zeros(len(src), dtype=bool)
-    s = src[inside]
-    hit[inside] = occ[s[:, 0], s[:, 1], s[:, 2]]
-    out |= hit
+    idx = boundary_voxels(occ) if boundary is None else boundary
+    if len(idx) == 0:  # no occupied voxel (every occupied region has a boundary)
+        return out
+    # 1. cell centres inside an occupied box (nearest voxel); the boundary spans the occupied voxels
+    _centre_hits(occ, A, b, res, idx.min(axis=0).astype(np.float64), idx.max(axis=0).astype(np.float64), out)
     # 2. sub-samples of the boundary boxes
-    idx = np.argwhere(_boundary(occ)).astype(np.float32)
-    if len(idx):
-        k = [int(min(MAX_SUBSAMPLES, max(1, math.ceil(2.0 * float(np.abs(A[:, j]).sum()))))) for j in range(3)]
-        subs = [(np.arange(n, dtype=np.float32) + 0.5) / n - 0.5 for n in k]
-        offs = np.stack(np.meshgrid(*subs, indexing="ij"), -1).reshape(-1, 3)  # voxel units
-        Af = A.astype(np.float32)
-        pts = ((idx @ Af.T + b.astype(np.float32))[:, None, :] + (offs @ Af.T)[None]).reshape(-1, 3)
-        cell = np.floor(pts).astype(np.int64)
-        cell = cell[((cell >= 0) & (cell < res)).all(axis=1)]
-        out[(cell[:, 0] * res + cell[:, 1]) * res + cell[:, 2]] = True
-    return out.reshape(res, res, res)
+    k = [int(min(MAX_SUBSAMPLES, max(1, math.ceil(2.0 * float(np.abs(A[:, j]).sum()))))) for j in range(3)]
+    subs = [(np.arange(n, dtype=np.float32) + 0.5) / n - 0.5 for n in k]
+    offs = np.stack(np.meshgrid(*subs, indexing="ij"), -1).reshape(-1, 3)  # voxel units
+    Af = A.astype(np.float32)
+    pts = ((idx @ Af.T + b.astype(np.float32))[:, None, :] + (offs @ Af.T)[None]).reshape(-1, 3)
+    cell = np.floor(pts).astype(np.int64)
+    c0, c1, c2 = cell[:, 0], cell[:, 1], cell[:, 2]
+    ok = np.flatnonzero((c0 >= 0) & (c0 < res) & (c1 >= 0) & (c1 < res) & (c2 >= 0) & (c2 < res))
+    out.ravel()[(c0[ok] * res + c1[ok]) * res + c2[ok]] = True
+    return out
 
 
 def view_occupancy(occ: np.ndarray, voxel_to_canvas: np.ndarray, canvas_size: int, res: int,
-                   depth_centre: float) -> np.ndarray:
+                   depth_centre: float, boundary: np.ndarray | None = None) -> np.ndarray:
     """Occupancy ``(res, res, res)`` ``[depth, y, x]`` over the canvas square and a cube of depth around the centre.
 
     Cell ``j`` on ``x`` (and ``y``) covers canvas pixels ``[j C/res - 0.5, (j + 1) C/res - 0.5)``; on depth
@@ -100,7 +132,7 @@ def view_occupancy(occ: np.ndarray, voxel_to_canvas: np.ndarray, canvas_size: in
     canvas_to_target[1, 1], canvas_to_target[1, 3] = f, 0.5 * f
     canvas_to_target[2, 0], canvas_to_target[2, 3] = f, 0.5 * f
     canvas_to_target[3, 3] = 1.0
-    return splat_occupancy(occ, canvas_to_target @ voxel_to_canvas, res)
+    return splat_occupancy(occ, canvas_to_target @ voxel_to_canvas, res, boundary)
 
 
 def canvas_to_class(R: np.ndarray, s: float, t: np.ndarray) -> np.ndarray:
@@ -113,26 +145,27 @@ def canvas_to_class(R: np.ndarray, s: float, t: np.ndarray) -> np.ndarray:
 
 
 def canonical_occupancy(occ: np.ndarray, voxel_to_canvas: np.ndarray, R: np.ndarray, s: float, t: np.ndarray,
-                        extent: float, res: int) -> np.ndarray:
+                        extent: float, res: int, boundary: np.ndarray | None = None) -> np.ndarray:
     """Occupancy ``(res, res, res)`` ``[z, y, x]`` of the class frame over ``[-extent, extent]^3``.
 
-    ``(R, s, t)`` is the object's canvas camera (class frame -> canvas pixels).
+    ``(R, s, t)`` is the object's canvas camera (class frame -> canvas pixels); ``boundary``: see
+    :func:`splat_occupancy`.
     """
     f = res / (2.0 * extent)
     class_to_target = np.zeros((4, 4))  # (X, Y, Z, 1) -> (i_z, i_y, i_x, 1)
     class_to_target[0, 2] = class_to_target[1, 1] = class_to_target[2, 0] = f
     class_to_target[:3, 3] = f * extent
     class_to_target[3, 3] = 1.0
-    return splat_occupancy(occ, class_to_target @ canvas_to_class(R, s, t) @ voxel_to_canvas, res)
+    return splat_occupancy(occ, class_to_target @ canvas_to_class(R, s, t) @ voxel_to_canvas, res, boundary)
 
 
 def depth_map(vertices: np.ndarray, faces: np.ndarray, canvas_size: int, depth_centre: float) -> np.ndarray:
     """First-surface depth ``(C, C)`` float32 of a canvas-frame mesh at every canvas pixel centre, relative
-    to ``depth_centre`` (z-buffer rasterisation; ``+inf`` where the ray misses)."""
-    v = torch.from_numpy(np.asarray(vertices, dtype=np.float64))
-    f = torch.from_numpy(np.asarray(faces, dtype=np.int64))
-    z = rasterize_depth(v[:, :2], v[:, 2], f, canvas_size, canvas_size)
-    return (z - depth_centre).numpy().astype(np.float32)
+    to ``depth_centre`` (z-buffer rasterisation, :func:`~carvi_torch.export.raster.zbuffer`; ``+inf`` where
+    the ray misses)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    z = zbuffer(v[:, :2], v[:, 2], faces, canvas_size, canvas_size)
+    return z - np.float32(depth_centre)
 
 
 def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, rng: np.random.Generator
@@ -145,15 +178,18 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, rng: np.
         >>> bool((p.sum(1) <= 1 + 1e-9).all()), n[0].tolist()
         (True, [0.0, 0.0, 1.0])
     """
-    tri = vertices[faces]  # (F, 3, 3)
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area2 = np.linalg.norm(cross, axis=1)
+    # coordinate-major (3, F) arrays: every product below runs over contiguous rows
+    vt, ft = np.ascontiguousarray(vertices.T), np.ascontiguousarray(faces.T)
+    p0 = vt[:, ft[0]]
+    (ux, uy, uz), (vx, vy, vz) = vt[:, ft[1]] - p0, vt[:, ft[2]] - p0  # the two edges from corner 0
+    cross = np.stack([uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx])  # as np.cross computes them
+    area2 = np.sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2])  # np.linalg.norm's sums
     cum = np.cumsum(area2)
     fidx = np.minimum(np.searchsorted(cum, rng.random(count) * cum[-1], side="right"), len(faces) - 1)
     r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
     w = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)  # uniform barycentric coordinates
-    pts = np.einsum("pk,pkc->pc", w, tri[fidx])
-    normals = cross[fidx] / np.maximum(area2[fidx], 1e-300)[:, None]
+    pts = np.einsum("pk,pkc->pc", w, vertices[faces[fidx]])
+    normals = cross[:, fidx].T / np.maximum(area2[fidx], 1e-300)[:, None]
     return pts, normals
 
 
@@ -176,11 +212,23 @@ def load_mesh(path) -> tuple[np.ndarray, np.ndarray]:
 # =========================================================================== one object (worker processes)
 
 
+def _viewpoint(R: np.ndarray) -> list[float]:
+    """Azimuth, elevation, roll of ``R`` (:func:`carvi_torch.cameras.azimuth_elevation_roll_from_rotation`).
+    The main process computes them for every job; a worker only where that failed (a malformed camera),
+    to report the object with the error (torch is imported then, and only then)."""
+    import torch
+
+    from ..cameras import azimuth_elevation_roll_from_rotation
+
+    return [float(x) for x in azimuth_elevation_roll_from_rotation(torch.from_numpy(R))]
+
+
 def export_object(job: dict) -> dict:
     """Every field of one object from its job (host data and file paths; built by
     :func:`carvi_torch.export.run.export`); the ids are filled in by the caller."""
     z = np.load(job["voxels"])
     occ = z["occupancy"].astype(bool)
+    boundary = boundary_voxels(occ)  # shared by both occupancies
     a, b = float(job["canvas_scale"]), np.asarray(job["canvas_offset"], dtype=np.float64)
     image_to_canvas = np.diag([a, a, a, 1.0])
     image_to_canvas[:2, 3] = b
@@ -195,16 +243,16 @@ def export_object(job: dict) -> dict:
     pts, normals = sample_surface(verts, faces, job["points"], np.random.default_rng(job["seed"]))
     to_class = canvas_to_class(R, s_c, t_c)
     C, res = job["canvas"], job["resolution"]
-    az, el, ro = azimuth_elevation_roll_from_rotation(torch.from_numpy(R))
+    viewpoint = job["viewpoint"] if job.get("viewpoint") is not None else _viewpoint(R)
     out = {
         "mask": job["mask"], "keypoints": job["keypoints"], "visible": job["visible"],
         "crop_box": np.concatenate([-b / a, (C - 1.0 - b) / a]).astype(np.float32),
         "canvas_scale": np.float32(a), "canvas_offset": b.astype(np.float32),
         "R": R.astype(np.float32), "s": np.float32(s), "t": t.astype(np.float32),
-        "viewpoint": np.array([float(az), float(el), float(ro)], dtype=np.float32),
+        "viewpoint": np.array(viewpoint, dtype=np.float32),
         "quality": np.float32(job["quality"]),
-        "occupancy_view": view_occupancy(occ, v2canvas, C, res, depth_centre),
-        "occupancy_canonical": canonical_occupancy(occ, v2canvas, R, s_c, t_c, job["extent"], res),
+        "occupancy_view": view_occupancy(occ, v2canvas, C, res, depth_centre, boundary),
+        "occupancy_canonical": canonical_occupancy(occ, v2canvas, R, s_c, t_c, job["extent"], res, boundary),
         "depth": depth_map(verts, faces, C, depth_centre),
         "points": pts @ to_class[:3, :3].T + to_class[:3, 3], "normals": normals @ R,
         "class_index": np.int64(job["class_index"]),
@@ -223,6 +271,14 @@ def safe_export_object(job: dict) -> tuple[dict | None, str | None]:
         return None, f"unreadable outputs: {type(e).__name__}: {e}"
 
 
+def safe_export_objects(jobs: list[dict]) -> list[tuple[dict | None, str | None]]:
+    """:func:`safe_export_object` of each job (one task of a worker process)."""
+    return [safe_export_object(job) for job in jobs]
+
+
 def init_worker() -> None:
-    """An export worker process: one torch thread (the processes are the parallelism)."""
-    torch.set_num_threads(1)
+    """An export worker process: one torch thread where torch is imported (the processes are the
+    parallelism; the worker's own work is numpy, and it does not import torch)."""
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)

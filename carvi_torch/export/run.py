@@ -9,21 +9,24 @@ category-specific mesh reconstruction codebases instead (:mod:`carvi_torch.expor
 Objects whose outputs are missing or unreadable (no voxels, no mesh, no camera, not in the
 annotations) are reported by annotation id with the reason, in the console and in the root
 group's ``skipped`` attribute; the rest is exported. The per-object work runs in ``--workers``
-processes (default: one per core).
+processes (default: one per core), fed one stream of jobs over every class; the main process writes
+the results in order as they come (:mod:`carvi_torch.export.command` is the command line).
 """
 from __future__ import annotations
 
-import argparse
 import concurrent.futures as cf
 import multiprocessing as mp
-import sys
 import time
+from collections import deque
+from itertools import islice
 from pathlib import Path
+from typing import Iterable, Iterator
 
 import numpy as np
+import torch
 from tqdm.auto import tqdm
 
-from ..cli import add_common, split_classes
+from ..cameras import azimuth_elevation_roll_from_rotation
 from ..io.coco import load_coco
 from ..io.layout import object_file
 from ..io.outputs import read_json
@@ -31,14 +34,17 @@ from ..io.writer import INT64_RANGE, start_method
 from ..mesh import MESH_FORMATS
 from ..runtime import cores, stable_hash, torch_threads
 from .source import data_path, recon_config
-from .objects import canonical_occupancy, depth_map, init_worker, safe_export_object, view_occupancy
+from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
+                      view_occupancy)
 from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, StoreWriter
 
-__all__ = ["export", "main", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "canonical_occupancy", "depth_map",
+__all__ = ["export", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "canonical_occupancy", "depth_map",
            "ATTRS_KEY", "FORMAT_VERSION"]
 
-#: Objects handed to the worker processes at a time (bounds the memory of queued jobs).
-JOB_BLOCK = 256
+#: Objects per task handed to a worker process (fewer round trips than one object per task).
+TASK_OBJECTS = 4
+#: Tasks queued per worker process at most (bounds the memory of queued jobs and of results not yet written).
+TASKS_PER_WORKER = 4
 
 
 def _int_id(value) -> np.int64:
@@ -59,6 +65,16 @@ def class_extent(cams: dict) -> float:
 # =========================================================================== the export (main process)
 
 
+def _viewpoint_or_none(camera: dict) -> list[float] | None:
+    """Azimuth, elevation, roll of a camera entry's ``R`` (None where ``R`` is malformed: the worker then
+    reports the object with the error)."""
+    try:
+        R = torch.as_tensor(np.asarray(camera["R"], dtype=np.float64))
+        return [float(x) for x in azimuth_elevation_roll_from_rotation(R)]
+    except Exception:  # noqa: BLE001 - reported by the worker, as every unreadable camera
+        return None
+
+
 def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, skipped: list):
     """The jobs of a class's exportable objects (the others go to ``skipped`` with their reason)."""
     jobs = []
@@ -75,7 +91,8 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
             continue
         q = entry.get("quality")
         jobs.append({**settings, "class": cname, "class_index": ci, "annotation_id": aid,
-                     "image_id": coll.image_ids[i], "source": coll.sources[i],
+                     "viewpoint": _viewpoint_or_none(entry["refined"]), "image_id": coll.image_ids[i],
+                     "source": coll.sources[i],
                      "seed": [settings["seed"], stable_hash(cname), i],
                      "mask": coll.masks[i].cpu().numpy(), "keypoints": coll.keypoints[i].cpu().numpy(),
                      "visible": coll.visible[i].cpu().numpy(), "canvas_scale": float(coll.canvas_from_image.scale[i]),
@@ -84,18 +101,51 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
     return jobs
 
 
-def _run_jobs(jobs: list, pool, write, skipped: list, bar) -> None:
-    for k in range(0, len(jobs), JOB_BLOCK):
-        block = jobs[k:k + JOB_BLOCK]
-        results = (pool.map(safe_export_object, block, chunksize=4) if pool is not None
-                   else map(safe_export_object, block))
-        for job, (sample, reason) in zip(block, results):
-            bar.update(1)
-            if reason is not None:
-                skipped.append({"annotation_id": job["annotation_id"], "class": job["class"],
-                                "source": job["source"], "reason": reason})
-            else:
-                write(job, sample)
+def _class_jobs(loaded, recon: Path, class_names: list, settings: dict, writer: StoreWriter, skipped: dict, bar):
+    """The jobs of every class, class by class, read lazily (a class's ``cameras.json`` when its first job is
+    asked for); objects that cannot be exported go to ``skipped[class]`` with their reason."""
+    for ci, cname in enumerate(class_names):
+        coll, cdir = loaded.collections[cname], recon / cname
+        try:
+            cams = read_json(cdir / "cameras.json")
+        except (FileNotFoundError, ValueError) as e:
+            skipped[cname].extend({"annotation_id": aid, "class": cname, "reason": f"cameras.json unreadable: {e}"}
+                                  for aid in coll.annotation_ids)
+            bar.update(len(coll))
+            continue
+        writer.extent[cname] = class_extent(cams)
+        jobs = _jobs(coll, cname, ci, cdir, cams, {**settings, "extent": writer.extent[cname]}, skipped[cname])
+        bar.update(len(coll) - len(jobs))
+        yield from jobs
+
+
+def _stream(jobs: Iterable[dict], pool, workers: int) -> Iterator[tuple[dict, dict | None, str | None]]:
+    """``(job, sample, reason)`` for every job, in job order: one stream over every class, tasks of
+    :data:`TASK_OBJECTS` objects, at most :data:`TASKS_PER_WORKER` tasks per worker in flight (no barrier:
+    a worker takes the next task as soon as it is free, and results are handed on as they come, in order)."""
+    if pool is None:
+        for job in jobs:
+            yield (job, *safe_export_object(job))
+        return
+    source, pending = iter(jobs), deque()
+
+    def submit() -> bool:
+        task = list(islice(source, TASK_OBJECTS))
+        if task:
+            pending.append((task, pool.submit(safe_export_objects, task)))
+        return bool(task)
+
+    while len(pending) < TASKS_PER_WORKER * workers and submit():
+        pass
+    while pending:
+        task, future = pending.popleft()
+        submit()
+        for job, result in zip(task, future.result()):
+            yield (job, *result)
+
+
+def _skipped_in_order(class_names: list, skipped: dict) -> list:
+    return [s for c in class_names for s in skipped[c]]
 
 
 def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int = 2048, shard_size: int = 256,
@@ -117,78 +167,40 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     class_names = sorted(c for c in loaded.collections if (recon / c).is_dir())
     fields = DEFAULT_FIELDS + (MESH_FIELDS if mesh else [])
     writer = StoreWriter(out, shard_size, fields)
-    skipped, samples = [], []
+    skipped: dict[str, list] = {c: [] for c in class_names}
+    samples = []
     settings = {"canvas": canvas, "resolution": resolution, "points": points, "seed": seed, "mesh_field": mesh}
     bar = tqdm(total=sum(len(loaded.collections[c]) for c in class_names), desc="export", disable=not progress)
-
-    def write(job, sample):
-        sample["annotation_id"], sample["image_id"] = _int_id(job["annotation_id"]), _int_id(job["image_id"])
-        writer.add(job["class"], sample, job)
-        samples.append({k: job[k] for k in ("class", "annotation_id", "image_id", "source")})
-
     ctx = mp.get_context(start_method())
     if workers > 0 and start_method() == "forkserver":  # workers fork from a server that imported them once
-        ctx.set_forkserver_preload([safe_export_object.__module__])
+        ctx.set_forkserver_preload([safe_export_objects.__module__])
     pool = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=init_worker) if workers > 0 else None
     try:
         with torch_threads(1):
-            for ci, cname in enumerate(class_names):
-                coll, cdir = loaded.collections[cname], recon / cname
-                try:
-                    cams = read_json(cdir / "cameras.json")
-                except (FileNotFoundError, ValueError) as e:
-                    skipped.extend({"annotation_id": aid, "class": cname, "reason": f"cameras.json unreadable: {e}"}
-                                   for aid in coll.annotation_ids)
-                    bar.update(len(coll))
+            jobs = _class_jobs(loaded, recon, class_names, settings, writer, skipped, bar)
+            current = None
+            for job, sample, reason in _stream(jobs, pool, workers):
+                bar.update(1)
+                if job["class"] != current and current is not None:
+                    writer.finish(current)  # a class is complete: written while the workers go on
+                current = job["class"]
+                if reason is not None:
+                    skipped[job["class"]].append({"annotation_id": job["annotation_id"], "class": job["class"],
+                                                  "source": job["source"], "reason": reason})
                     continue
-                writer.extent[cname] = class_extent(cams)
-                jobs = _jobs(coll, cname, ci, cdir, cams, {**settings, "extent": writer.extent[cname]}, skipped)
-                bar.update(len(coll) - len(jobs))
-                _run_jobs(jobs, pool, write, skipped, bar)
+                sample["annotation_id"], sample["image_id"] = _int_id(job["annotation_id"]), _int_id(job["image_id"])
+                writer.add(job["class"], sample, job)
+                samples.append({k: job[k] for k in ("class", "annotation_id", "image_id", "source")})
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
         bar.close()
-    for s in skipped:
+    skipped_list = _skipped_in_order(class_names, skipped)
+    for s in skipped_list:
         tqdm.write(f"export: {s['class']} annotation {s['annotation_id']} skipped: {s['reason']}")
     attrs = {"recon": str(recon), "data": str(data), "canvas_size": canvas, "resolution": resolution,
              "points": points, "seed": seed, "classes": class_names,
              "class_extent": {c: writer.extent[c] for c in class_names if c in writer.extent},
-             "skipped": skipped, "seconds": round(time.perf_counter() - t0, 3)}
+             "skipped": skipped_list, "seconds": round(time.perf_counter() - t0, 3)}
     writer.close(attrs)
     return {**writer.root.attrs[ATTRS_KEY], "samples": samples}
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m carvi_torch.export",
-                                 description="Export a reconstruction directory as a zarr v3 store for PyTorch "
-                                             "training (read it with carvi_torch.training.LiftedDataset; layout in "
-                                             "docs/export.md), or as CMR / U-CMR annotation files.")
-    ap.add_argument("--recon", required=True, help="output directory of carvi_torch.reconstruct")
-    ap.add_argument("--out", required=True, help="store (directory) to write")
-    ap.add_argument("--format", choices=["zarr", "cmr", "ucmr"], default="zarr",
-                    help="zarr: the training store (default); cmr: one .mat per class; ucmr: one .json per class")
-    ap.add_argument("--resolution", type=int, default=32, help="occupancy grid side (default 32)")
-    ap.add_argument("--points", type=int, default=2048, help="surface points per object (default 2048)")
-    ap.add_argument("--shard-size", type=int, default=256, help="samples per shard file (default 256)")
-    ap.add_argument("--mesh", action="store_true", help="also store every mesh (ragged mesh_vertices, mesh_faces)")
-    ap.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core; 0: none)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the surface sampling")
-    add_common(ap)
-    args = ap.parse_args(argv)
-    try:
-        if args.format != "zarr":
-            from .formats import export_format
-
-            written = export_format(args.recon, args.out, args.format, classes=split_classes(args.classes))
-            print(f"wrote {len(written)} {args.format} file(s) to {args.out}")
-            return 0
-        idx = export(args.recon, args.out, args.resolution, args.points, args.shard_size, args.seed,
-                     progress=not args.quiet, classes=split_classes(args.classes), workers=args.workers,
-                     mesh=args.mesh)
-    except (FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    print(f"exported {len(idx['samples'])} objects of {len(idx['classes'])} class(es) to {args.out} "
-          f"({idx['seconds']:.1f} s); skipped {len(idx['skipped'])}")
-    return 0

@@ -1,0 +1,78 @@
+"""``python -m carvi_torch.export``: the command line of the export.
+
+This module imports nothing heavy: it parses the arguments and, when worker processes will be
+used, starts the forkserver they fork from (which imports :data:`WORKER_MODULE` once) *before*
+the main process imports torch, zarr and the rest of :mod:`carvi_torch.export.run`, so that the
+two imports run side by side on two cores rather than one after the other.
+"""
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import sys
+
+from ..cli import add_common, split_classes
+
+__all__ = ["main", "parser", "start_worker_server", "WORKER_MODULE"]
+
+#: The module the export's worker processes run (imported once, by the forkserver).
+WORKER_MODULE = "carvi_torch.export.objects"
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m carvi_torch.export",
+                                 description="Export a reconstruction directory as a zarr v3 store for PyTorch "
+                                             "training (read it with carvi_torch.training.LiftedDataset; layout in "
+                                             "docs/export.md), or as CMR / U-CMR annotation files.")
+    ap.add_argument("--recon", required=True, help="output directory of carvi_torch.reconstruct")
+    ap.add_argument("--out", required=True, help="store (directory) to write")
+    ap.add_argument("--format", choices=["zarr", "cmr", "ucmr"], default="zarr",
+                    help="zarr: the training store (default); cmr: one .mat per class; ucmr: one .json per class")
+    ap.add_argument("--resolution", type=int, default=32, help="occupancy grid side (default 32)")
+    ap.add_argument("--points", type=int, default=2048, help="surface points per object (default 2048)")
+    ap.add_argument("--shard-size", type=int, default=256, help="samples per shard file (default 256)")
+    ap.add_argument("--mesh", action="store_true", help="also store every mesh (ragged mesh_vertices, mesh_faces)")
+    ap.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core; 0: none)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the surface sampling")
+    add_common(ap)
+    return ap
+
+
+def start_worker_server() -> bool:
+    """Start the forkserver now, preloading :data:`WORKER_MODULE` (True), where the platform has one
+    (False elsewhere: workers are spawned later). A forkserver already running is left as it is."""
+    if "forkserver" not in mp.get_all_start_methods():
+        return False
+    from multiprocessing import forkserver
+
+    mp.get_context("forkserver").set_forkserver_preload([WORKER_MODULE])
+    forkserver.ensure_running()
+    return True
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    if args.format == "zarr" and args.workers != 0:
+        start_worker_server()
+    from .run import export  # torch, zarr, ...: imported while the forkserver imports the worker module
+
+    try:
+        if args.format != "zarr":
+            from .formats import export_format
+
+            written = export_format(args.recon, args.out, args.format, classes=split_classes(args.classes))
+            print(f"wrote {len(written)} {args.format} file(s) to {args.out}")
+            return 0
+        idx = export(args.recon, args.out, args.resolution, args.points, args.shard_size, args.seed,
+                     progress=not args.quiet, classes=split_classes(args.classes), workers=args.workers,
+                     mesh=args.mesh)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"exported {len(idx['samples'])} objects of {len(idx['classes'])} class(es) to {args.out} "
+          f"({idx['seconds']:.1f} s); skipped {len(idx['skipped'])}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
