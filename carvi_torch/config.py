@@ -105,10 +105,19 @@ class ViewpointConfig:
     shipped PASCAL3D+ one of its name; ``viewpoints.frame``) and keep that solution when it places as many
     objects with a visible-keypoint RMS residual lower by more than ``viewpoints.TEMPLATE_START_MARGIN``
     (25%). Classes without a template and rotationally symmetric ones run one SfM."""
-    sfm_groups: int = 1
+    sfm_groups: int = 3
     """Most rigid shapes per class (``carvi_torch.viewpoints.mixture``): a class whose members differ in
-    proportions is split into groups, each with its own SfM shape, in one class frame. 1 = one mean
-    shape per class, as in the paper."""
+    proportions is split into groups, each with its own SfM shape, in one class frame, when one shape
+    misfits it (``sfm_group_misfit``) and the split passes ``sfm_group_gain``, ``sfm_group_agreement_deg``
+    and ``sfm_group_hull_gain``. 1 = one mean shape per class, as in the paper."""
+    sfm_group_misfit: float = 0.03
+    """The mixture is only fitted when the one-shape SfM misfits the class: the median over the objects of
+    the keypoint RMS residual over the diagonal of the mask's box is at least this (0 = always fit)."""
+    sfm_group_hull_gain: float = 0.01
+    """A split into ``k`` groups is only kept when every usable start of that ``k`` raises the median
+    agreement (IoU) of the masks with the convex hull of the projected group shape, under the SfM cameras,
+    by at least this over one shape (a silhouette test the keypoint-only fit does not optimise); -1 = no
+    such test."""
     sfm_group_min: int = 15
     """Fewest objects per shape group (a class with fewer than twice this keeps one shape)."""
     sfm_group_gain: float = 0.3
@@ -170,6 +179,8 @@ class ViewpointConfig:
             raise ConfigError(f"silhouette_robust must be >= 0 (0 = squared distance), got {self.silhouette_robust}")
         _within(self.sfm_group_gain, 0, 1, "sfm_group_gain", hi_open=True)
         _within(self.sfm_group_agreement_deg, 0, 180, "sfm_group_agreement_deg", lo_open=True)
+        _within(self.sfm_group_misfit, 0, 1, "sfm_group_misfit", note=" (0 = always fit the mixture)")
+        _within(self.sfm_group_hull_gain, -1, 1, "sfm_group_hull_gain", note=" (-1 = no hull test)")
 
 
 @dataclass

@@ -264,13 +264,74 @@ def _class_cameras(res: mix.MixtureResult) -> torch.Tensor:
     return R
 
 
+#: The pipeline's default decision whether a class is one shape (``sfm_group_misfit``, ``sfm_group_hull_gain``).
+GATE = {"min_misfit": 0.03, "hull_gain": 0.01}
+
+
 @pytest.fixture(scope="module")
 def two_shapes():
     coll, R, truth = _two_shape_class()
     both = coll.with_mirrors()
     dist = distance_to_mask(both.masks)
-    fitted = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6)
+    fitted = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, **GATE)
     return coll, both, dist, R, truth, fitted
+
+
+def test_gate_defaults_are_the_pipeline_defaults():
+    from carvi_torch.config import ViewpointConfig
+
+    cfg = ViewpointConfig()
+    assert GATE == {"min_misfit": cfg.sfm_group_misfit, "hull_gain": cfg.sfm_group_hull_gain} and cfg.sfm_groups > 1
+
+
+def test_misfit_against_a_loop():
+    """Median over the rows with a camera of residual / mask-box diagonal, checked against numpy."""
+    gen = torch.Generator().manual_seed(5)
+    masks = torch.zeros(5, 20, 20, dtype=torch.bool)
+    boxes = [(2, 9, 3, 15), (0, 20, 0, 20), (5, 6, 5, 8), (4, 12, 1, 3), (7, 17, 9, 18)]
+    for m, (y0, y1, x0, x1) in zip(masks, boxes):
+        m[y0:y1, x0:x1] = True
+    res = type("R", (), {})()
+    res.residual = torch.rand(5, generator=gen) * 3
+    res.valid = torch.tensor([True, True, False, True, True])
+    rel = sorted(float(res.residual[i]) / np.hypot(y1 - y0, x1 - x0)
+                 for i, (y0, y1, x0, x1) in enumerate(boxes) if bool(res.valid[i]))
+    want = rel[(len(rel) - 1) // 2]  # the lower median of an even count, as torch's
+    assert mix.misfit(res, masks) == pytest.approx(want, abs=1e-6)
+    res.valid[:] = False
+    assert np.isnan(mix.misfit(res, masks))
+
+
+def test_the_automatic_decision_splits_a_class_of_two_proportions(two_shapes):
+    """Long low cars and short tall ones: one rigid shape misfits them (residual over 3% of the box
+    diagonal), both starts of the two-group split raise the masks' agreement with the projected hulls
+    by more than 0.01, so the default decision keeps two shapes, the true ones."""
+    coll, both, dist, R, truth, fitted = two_shapes
+    assert fitted.misfit >= GATE["min_misfit"] and fitted.note is None
+    assert fitted.k == 2 and bool((fitted.labels == truth).all() or (fitted.labels == 1 - truth).all())
+    assert len(fitted.candidates) == 2 and all(c["hull_gain"] >= GATE["hull_gain"] for c in fitted.candidates)
+    # the recorded gain is the median over rows of the split's hull agreement minus one shape's
+    one = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=1, single=fitted.single)
+    gain = (mix.hull_agreements(fitted, both.masks) - mix.hull_agreements(one, both.masks)).median()
+    kept = next(c for c in fitted.candidates if c["kept"])
+    assert kept["hull_gain"] == pytest.approx(float(gain), abs=1e-5)
+    assert fitted.summary()["misfit"] == fitted.misfit
+
+
+def test_the_automatic_decision_keeps_one_shape_for_one_proportion():
+    """One rigid shape (0.2 px noise): the one-shape fit leaves a residual far under 3% of the box
+    diagonal, so no split is even tried (the mixture's cost is saved) and the class keeps one shape."""
+    coll, _R, _truth = _two_shape_class(sizes=(12, 12), seed=1, same_shape=True)
+    both = coll.with_mirrors()
+    calls = []
+
+    def counted(sub, init_shape=None):
+        calls.append(len(sub))
+        return _sfm(sub, init_shape)
+
+    fitted = mix.fit_mixture_of_shapes(both, distance_to_mask(both.masks), counted, max_groups=3, min_size=6, **GATE)
+    assert fitted.k == 1 and fitted.candidates == [] and calls == [48]  # the one-shape SfM only
+    assert fitted.misfit < 0.01 and "fits" in fitted.note and fitted.summary()["misfit"] == fitted.misfit
 
 
 def test_fit_finds_the_two_shapes_and_their_cameras(two_shapes):
@@ -303,7 +364,7 @@ def test_fit_finds_the_two_shapes_and_their_cameras(two_shapes):
 
 def test_fit_is_deterministic(two_shapes):
     coll, both, dist, R, truth, fitted = two_shapes
-    again = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6)
+    again = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, **GATE)
     assert torch.equal(again.labels, fitted.labels) and again.candidates == fitted.candidates
 
 
@@ -329,11 +390,12 @@ def test_fit_on_two_threads_equals_the_fit_on_one(two_shapes):
     lines = []
     before = torch.get_num_threads()
     again = mix.fit_mixture_of_shapes(both, dist, traced, max_groups=2, min_size=6, threads=2, log=lines.append,
-                                      threads_min_objects=1)
+                                      threads_min_objects=1, **GATE)
     assert torch.get_num_threads() == before
     assert len(seen - {threading.get_ident()}) == 2, seen  # both initialisations ran on worker threads
     assert [line.split("'")[1] for line in lines] == ["lifted", "residual"]  # logged in order
-    one = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, threads=1, threads_min_objects=1)
+    one = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, threads=1, threads_min_objects=1,
+                                    **GATE)
     for other in (again, one):
         assert other.k == fitted.k and torch.equal(other.labels, fitted.labels)
         assert other.candidates == fitted.candidates
@@ -542,7 +604,8 @@ def test_cad_sofas_fit_three_shapes_and_better_viewpoints(shared_data, tmp_path)
 def test_cad_monitors_never_split_off_the_flat_fronted_models(shared_data, tmp_path):
     """The four PASCAL3D+ tvmonitor models, 15 renders each. Two carry only the four coplanar
     front corners, whose views fit any shape's front; a group of them alone cannot fix its
-    cameras' tilt. With ``sfm_groups=3`` every candidate with such a group is recorded as not
+    cameras' tilt. With ``sfm_groups=3`` and every split tried (their keypoints fit one shape, so by
+    default the mixture is not fitted at all) every candidate with such a group is recorded as not
     usable, every kept group has a 3-D shape, and the cameras meet the 8-degree target.
 
     (Without the rule and with the EM's keypoint fits searching the sphere every round, the fit
@@ -553,7 +616,8 @@ def test_cad_monitors_never_split_off_the_flat_fronted_models(shared_data, tmp_p
 
     coll, R = _cad_class(shared_data, tmp_path, "tvmonitor", 4)
     n = len(coll)
-    vp = estimate_viewpoints(coll, Config().override({"sfm_groups": 3, "progress": False}).viewpoints)
+    forced = {"sfm_groups": 3, "sfm_group_misfit": 0, "sfm_group_hull_gain": -1, "progress": False}  # every split tried
+    vp = estimate_viewpoints(coll, Config().override(forced).viewpoints)
     img = vp.cameras[:n].compose_similarity(coll.canvas_from_image.inverse())
     info, err = vp.info["sfm_groups"], viewpoint_report(img.R.double(), R)["geodesic"]["median"]
     assert any("coplanar" in c.get("problem", "") for c in info["candidates"]), info["candidates"]
@@ -647,7 +711,8 @@ def test_pipeline_says_where_each_camera_came_from(groups):
     coll.visible[0, pair[0]] = True  # object 0: one keypoint, without a shape row -> silhouette only
     coll.visible[1] = False
     coll.visible[1, 0] = True  # object 1: one keypoint, with a shape row -> the mean shape helps
-    cfg = Config().override({"sfm_groups": groups, "sfm_group_min": 6, "progress": False, "refine_iters": 20})
+    cfg = Config().override({"sfm_groups": groups, "sfm_group_min": 6, "progress": False, "refine_iters": 20,
+                             "sfm_group_hull_gain": -1})  # the split is kept on its keypoints (box masks here)
     vp = estimate_viewpoints(coll, cfg.viewpoints)
     assert vp.groups.k == groups
     aid = [int(a) for a in coll.annotation_ids]

@@ -329,6 +329,7 @@ def main(argv=None) -> int:
             continue
         argv = [PYTHON, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(runs[m]),
                 "references=test", f"seed={args.seed}", "progress=false", "preview=false", "report=false",
+                "viewpoints.sfm_groups=1",  # Table 1 is the paper's method: one rigid shape per class
                 *( ["overwrite=true"] if args.fresh else []), *METHODS[m], *args.set]
         if classes:
             argv.append("classes=" + ",".join(classes))
