@@ -41,6 +41,30 @@ def render_cad_class(shared_data: Path, out: Path, prefix: str, views: int, seed
     return coll, R, models
 
 
+#: Objects per class of the embedded procedural collection that the end-to-end tests run on.
+PROCEDURAL_INSTANCES = 6
+
+
+@pytest.fixture(scope="session")
+def procedural_input(tmp_path_factory):
+    """The embedded procedural collection (``PROCEDURAL_INSTANCES`` per class, the default seed), generated
+    once per session as ``reconstruct`` generates it; a function that copies it to ``out/input``, where a
+    run of ``out`` without ``--data`` finds it complete and takes it instead of generating it again."""
+    import shutil
+
+    from carvi_torch.config import Config
+    from carvi_torch.synthetic import procedural
+
+    src = tmp_path_factory.mktemp("procedural") / "input"
+    procedural.default_collection(src, PROCEDURAL_INSTANCES, Config().seed)
+
+    def copy_to(out: Path) -> Path:
+        shutil.copytree(src, Path(out) / "input")
+        return Path(out) / "input" / "annotations.json"
+
+    return copy_to
+
+
 @pytest.fixture
 def generator() -> torch.Generator:
     """A seeded CPU generator, so every test is deterministic."""

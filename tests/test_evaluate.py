@@ -16,8 +16,9 @@ TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 3, "canvas_siz
 
 
 @pytest.fixture(scope="module")
-def recon(tmp_path_factory):
+def recon(tmp_path_factory, procedural_input):
     out = tmp_path_factory.mktemp("recon")
+    procedural_input(out)  # the embedded collection, generated once per session, where the run looks for it
     run(Config().override({**TINY, "out": str(out)}))
     return out
 

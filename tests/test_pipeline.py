@@ -19,7 +19,7 @@ from carvi_torch.config import Config
 from carvi_torch.runtime import StageTimer
 from carvi_torch.executors import run
 from carvi_torch.reconstruct import main as reconstruct_main
-from conftest import requires_cuda
+from conftest import PROCEDURAL_INSTANCES, requires_cuda
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "progress": False,
@@ -31,8 +31,11 @@ def _cfg(out, **extra):
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tmp_path_factory, procedural_input):
+    """A run without ``--data``: it takes the embedded collection (generated once per session) from ``out/input``."""
     out = tmp_path_factory.mktemp("run")
+    assert TINY["procedural_instances"] == PROCEDURAL_INSTANCES
+    procedural_input(out)
     summary = run(_cfg(out))
     return out, summary
 
@@ -167,11 +170,27 @@ def test_rerun_with_other_settings_says_so(tiny, tmp_path, capsys):
     assert "resumed_from_other_settings" not in fresh and fresh["classes"]["car"]["resumed"] == 0
 
 
-def test_same_seed_same_voxels(tiny, tmp_path):
+@pytest.fixture(scope="module")
+def car_again(tmp_path_factory):
+    """The car class run again from scratch with the same seed (its input generated anew), written inline
+    (no writer processes), one object per chunk, the torch carving and one torch thread: the folder, the
+    run's summary and the caller's torch thread count before and after the run."""
+    import carvi_torch.pipeline as P
+
+    other = tmp_path_factory.mktemp("again")
+    threads = torch.get_num_threads()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(P, "CPU_CHUNK_OBJECTS", 1)
+        res = run(_cfg(other, classes=["car"], preview=False, carve_backend="torch"), workers=0, threads=1)
+    return other, res, (threads, torch.get_num_threads())
+
+
+def test_same_seed_same_voxels(tiny, car_again):
     out, _ = tiny
-    other = tmp_path / "again"
-    run(_cfg(other, classes=["car"], preview=False))
-    for f in (out / "car" / "voxels").glob("*.npz"):
+    other, _res, _threads = car_again
+    files = sorted((out / "car" / "voxels").glob("*.npz"))
+    assert len(files) >= 5
+    for f in files:
         a, b = np.load(f), np.load(other / "car" / "voxels" / f.name)
         assert np.array_equal(a["occupancy"], b["occupancy"])
         assert np.allclose(a["voxel_to_camera"], b["voxel_to_camera"])
@@ -183,7 +202,7 @@ def test_nearest_pixel_carving_stays_close_to_bilinear(tiny, tmp_path):
     them (the synthetic benchmark's error figures: docs/benchmarks/README.md)."""
     out, summary = tiny
     other = tmp_path / "nearest"
-    res = run(_cfg(other, classes=["car"], preview=False, carve_interpolation="nearest"))
+    res = run(_cfg(other, data=summary["data"], classes=["car"], preview=False, carve_interpolation="nearest"))
     assert res["classes"]["car"]["reconstructed"] == summary["classes"]["car"]["reconstructed"]
     assert yaml.safe_load((other / "config.yaml").read_text())["carve"]["interpolation"] == "nearest"
     differ, total = 0, 0
@@ -195,17 +214,18 @@ def test_nearest_pixel_carving_stays_close_to_bilinear(tiny, tmp_path):
     assert 0 < differ < 0.02 * total, (differ, total)
 
 
-def test_stage_cameras_stops(tmp_path):
-    summary = run(_cfg(tmp_path, stage="cameras", classes=["chair"]))
+def test_stage_cameras_stops(tiny, tmp_path):
+    summary = run(_cfg(tmp_path, data=tiny[1]["data"], stage="cameras", classes=["chair"]))
     assert (tmp_path / "chair" / "cameras.json").is_file()
     assert not (tmp_path / "chair" / "meshes").exists()
     assert summary["classes"]["chair"]["status"] == "cameras"
 
 
-def test_oracle_cameras(tmp_path):
-    summary = run(_cfg(tmp_path, cameras="gt", classes=["car"], preview=False))
+def test_oracle_cameras(tiny, tmp_path):
+    data = Path(tiny[1]["data"])
+    summary = run(_cfg(tmp_path, data=str(data), cameras="gt", classes=["car"], preview=False))
     assert summary["classes"]["car"]["reconstructed"] >= 5
-    gt = json.loads((tmp_path / "input" / "gt.json").read_text())["annotations"]
+    gt = json.loads((data.parent / "gt.json").read_text())["annotations"]
     cams = json.loads((tmp_path / "car" / "cameras.json").read_text())["cameras"]
     for aid, entry in cams.items():
         assert np.allclose(entry["refined"]["R"], gt[aid]["R"], atol=1e-4)
@@ -263,11 +283,24 @@ def test_cli_bad_override(tmp_path, capsys):
     assert "resolution" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("module", ["reconstruct", "evaluate", "export", "datasets"])
-def test_help(module):
-    res = subprocess.run([sys.executable, "-m", f"carvi_torch.{module}", "--help"], cwd=ROOT, capture_output=True,
-                         text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
-    assert res.returncode == 0 and "usage" in res.stdout.lower()
+ENTRY_POINTS = ["reconstruct", "evaluate", "export", "datasets"]
+
+
+@pytest.fixture(scope="module")
+def helps() -> dict[str, tuple[int, str]]:
+    """``python -m carvi_torch.<module> --help`` of every entry point, the processes started at once
+    (each spends seconds importing torch): module -> (exit status, stdout)."""
+    procs = {m: subprocess.Popen([sys.executable, "-m", f"carvi_torch.{m}", "--help"], cwd=ROOT, text=True,
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                 env={**os.environ, "PYTHONPATH": str(ROOT)}) for m in ENTRY_POINTS}
+    outs = {m: p.communicate(timeout=120)[0] for m, p in procs.items()}
+    return {m: (procs[m].returncode, outs[m]) for m in ENTRY_POINTS}
+
+
+@pytest.mark.parametrize("module", ENTRY_POINTS)
+def test_help(module, helps):
+    rc, out = helps[module]
+    assert rc == 0 and "usage" in out.lower()
 
 
 def test_reference_split_and_saved_proposals(tiny, tmp_path):
@@ -309,24 +342,20 @@ def _files(root: Path, cls: str) -> dict:
     return out
 
 
-def test_writers_chunks_threads_and_backend_do_not_change_outputs(tiny, tmp_path, monkeypatch):
+def test_writers_chunks_threads_and_backend_do_not_change_outputs(tiny, car_again):
     """Inline writing vs writer processes, one object per chunk vs the default, the torch carving vs the
     default backend (the fused kernel where it builds): the same files, byte for byte; the torch thread
     count of the caller is restored; summary.json says which carving ran."""
-    import carvi_torch.pipeline as P
     from carvi_torch.carve import native
 
     out, summary = tiny
     assert summary["writer_workers"] >= 1  # the fixture ran with writer processes
     assert summary["carve_backend"]["backend"] == ("fused" if native.available() else "torch")
-    monkeypatch.setattr(P, "CPU_CHUNK_OBJECTS", 1)
-    threads = torch.get_num_threads()
-    res = run(_cfg(tmp_path / "inline", data=summary["data"], classes=["car"], preview=False, carve_backend="torch"),
-              workers=0, threads=1)
-    assert torch.get_num_threads() == threads
+    inline, res, (threads_before, threads_after) = car_again
+    assert threads_after == threads_before
     assert res["writer_workers"] == 0 and res["torch_threads"] == 1
     assert res["carve_backend"] == {"backend": "torch", "variant": None, "reason": None}
-    a, b = _files(out, "car"), _files(tmp_path / "inline", "car")
+    a, b = _files(out, "car"), _files(inline, "car")
     assert a.keys() == b.keys() and len(a) > 3
     for k in a:
         if k.startswith("voxels/"):
@@ -496,10 +525,9 @@ def test_cuda_chunk_has_no_per_object_host_reads(tiny):
     assert len(good) >= 4 and counts[0] > 0 and counts[1] <= counts[0] + 4, counts
 
 
-def test_silhouette_robust_reaches_refinement(monkeypatch, tmp_path):
+def test_silhouette_robust_reaches_refinement(tiny, monkeypatch, tmp_path):
     """``silhouette_robust`` is handed to the refinement: 0 means the paper's squared penalty (None)."""
     from carvi_torch.viewpoints import camera_fit as Rf
-    from carvi_torch.config import Config
 
     seen = []
     orig = Rf.refine_cameras
@@ -510,21 +538,19 @@ def test_silhouette_robust_reaches_refinement(monkeypatch, tmp_path):
 
     monkeypatch.setattr(Rf, "refine_cameras", spy)
     for value, expected in ((0.0, None), (0.3, 0.3)):
-        cfg = Config().override([f"out={tmp_path / str(value)}", "procedural_instances=6", "classes=car",
-                                 "stage=cameras",
-                                 f"silhouette_robust={value}", "progress=false", "preview=false", "report=false"])
-        run(cfg)
+        run(_cfg(tmp_path / str(value), data=tiny[1]["data"], classes=["car"], stage="cameras",
+                 silhouette_robust=value, preview=False))
         assert seen[-1] == expected
 
 
 @pytest.mark.parametrize("workers", [0, 1])
-def test_a_failing_write_is_booked_on_its_object(tmp_path, workers):
+def test_a_failing_write_is_booked_on_its_object(tiny, tmp_path, workers):
     """An error while writing an object (here: a file stands where its meshes folder should be) is that
     object's failure, with its reason, in its own class; the run goes on and the writers are stopped."""
     for cls in ("car", "chair"):
         (tmp_path / cls).mkdir(parents=True)
         (tmp_path / cls / "meshes").write_text("not a folder")
-    summary = run(_cfg(tmp_path, classes=["car", "chair"]), workers=workers)
+    summary = run(_cfg(tmp_path, data=tiny[1]["data"], classes=["car", "chair"]), workers=workers)
     for cls in ("car", "chair"):
         rep = summary["classes"][cls]
         assert rep["status"] != "failed", rep
@@ -548,7 +574,7 @@ def test_report_failures_do_not_depend_on_booking_order():
     assert [f["annotation_id"] for f in a.to_dict()["failures"]] == [None, 3, 7, 12]
 
 
-def test_a_class_failing_midway_keeps_finished_objects_and_their_scores(monkeypatch, tmp_path):
+def test_a_class_failing_midway_keeps_finished_objects_and_their_scores(tiny, monkeypatch, tmp_path):
     """An error after the first chunk: the class is reported failed, the run goes on, the objects of
     the first chunk are written with their proposal scores, and a rerun finishes the rest."""
     from carvi_torch import pipeline as P
@@ -564,7 +590,8 @@ def test_a_class_failing_midway_keeps_finished_objects_and_their_scores(monkeypa
 
     monkeypatch.setattr(P, "carve_and_select", flaky)
     monkeypatch.setattr(P, "CPU_CHUNK_OBJECTS", 3)
-    summary = run(_cfg(tmp_path, classes=["car"]), workers=0)
+    data = tiny[1]["data"]
+    summary = run(_cfg(tmp_path, data=data, classes=["car"]), workers=0)
     rep = summary["classes"]["car"]
     assert rep["status"] == "failed" and "simulated failure" in rep["failures"][0]["reason"]
     written = sorted(p.stem for p in (tmp_path / "car" / "meshes").glob("*.ply"))
@@ -572,7 +599,7 @@ def test_a_class_failing_midway_keeps_finished_objects_and_their_scores(monkeypa
     assert 1 <= len(written) <= 3 and scored == written
     assert not (tmp_path / "car" / "proposal_scores.json").exists()  # merged only when a class ends
     monkeypatch.setattr(P, "carve_and_select", orig)
-    again = run(_cfg(tmp_path, classes=["car"], preview=False), workers=0)["classes"]["car"]
+    again = run(_cfg(tmp_path, data=data, classes=["car"], preview=False), workers=0)["classes"]["car"]
     assert again["resumed"] == len(written) and again["resumed"] + again["reconstructed"] + again["skipped"] == 6
     merged = json.loads((tmp_path / "car" / "proposal_scores.json").read_text())
     assert set(written) <= set(merged) and len(merged) == again["resumed"] + again["reconstructed"]

@@ -37,11 +37,12 @@ def _ray():
 
 
 @pytest.fixture(scope="module")
-def local_started(tmp_path_factory):
+def local_started(tmp_path_factory, procedural_input):
     """The reference, the local executor's run of the tiny collection, started in a process of its own
     (it computes while the cluster below starts, which mostly waits)."""
     _ray()
     out = tmp_path_factory.mktemp("local")
+    procedural_input(out)  # the embedded collection, generated once per session, where the run looks for it
     config, err = out.parent / "local.yaml", out.parent / "local.err"
     config.write_text(_cfg(out).to_yaml())
     with open(err, "w") as f:

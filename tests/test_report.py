@@ -34,8 +34,9 @@ VENDORED_URLS = {"http://www.w3.org/1999/xhtml", "https://github.com/mrdoob/thre
 
 
 @pytest.fixture(scope="module")
-def recon(tmp_path_factory) -> Path:
+def recon(tmp_path_factory, procedural_input) -> Path:
     out = tmp_path_factory.mktemp("run")
+    procedural_input(out)  # the embedded collection, generated once per session, where the run looks for it
     summary = run(Config().override({**TINY, "out": str(out)}), workers=0)  # the report is on by default
     assert all(c["reconstructed"] == 6 for c in summary["classes"].values())
     return out

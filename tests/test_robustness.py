@@ -530,17 +530,30 @@ def test_export_finds_the_runs_data_and_names_a_broken_chunk(base, tmp_path, mon
 # --------------------------------------------------------------------------- 14, 15. CLI and logging
 
 
-def test_one_cli_and_a_log(base, tmp_path):
+def _carvi_in_process(argv: list[str], capsys) -> tuple[int, str, str]:
+    """``carvi ARGV`` through ``carvi_torch.cli.main`` in this process: (exit status, stdout, stderr)."""
+    from carvi_torch.cli import main
+
+    capsys.readouterr()
+    try:
+        rc = main(argv)
+    except SystemExit as e:  # a command's own --help ends its parser with SystemExit, as in a process
+        rc = e.code or 0
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_one_cli_and_a_log(base, tmp_path, capsys):
     carvi = [sys.executable, "-m", "carvi_torch.cli"]
-    # the version and every command's help, the processes started at once
-    asks = {cmd: carvi + ([cmd, "--help"] if cmd else ["--version"])
+    # the version and every command's help, through the same main as the command line below (in this process:
+    # each fresh process spends seconds importing torch; `python -m carvi_torch.X --help` of every module
+    # runs in processes of its own in test_pipeline.py)
+    said = {cmd: _carvi_in_process([cmd, "--help"] if cmd else ["--version"], capsys)
             for cmd in ("", "reconstruct", "evaluate", "export", "datasets")}
-    procs = {cmd: subprocess.Popen(a, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for cmd, a in asks.items()}
-    said = {cmd: p.communicate(timeout=120) for cmd, p in procs.items()}
-    assert procs[""].returncode == 0 and said[""][0].startswith("carvi_torch ")
+    assert said[""][0] == 0 and said[""][1].startswith("carvi_torch ")
     for cmd in ("reconstruct", "evaluate", "export", "datasets"):
-        assert procs[cmd].returncode == 0 and (cmd == "datasets" or "--classes" in said[cmd][0]), (cmd, said[cmd][1])
+        rc, out, err = said[cmd]
+        assert rc == 0 and "usage:" in out and (cmd == "datasets" or "--classes" in out), (cmd, err)
     data = _write(tmp_path, base)
     out = tmp_path / "run"
     r = subprocess.run(carvi + ["reconstruct", "--data", str(data), "--out", str(out), "--classes", "car",

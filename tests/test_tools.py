@@ -175,16 +175,37 @@ def test_tools_are_few_and_import_the_installed_package():
             assert f"import {name}\n" not in text and f"from {name} import" not in text, (tool, name)
 
 
+#: Runs each script named on its command line as ``python SCRIPT --help`` runs it (``__main__``, that
+#: argv), one after the other in this one fresh process, and prints {script: [status, stdout, stderr]}.
+_HELP_EACH = """
+import contextlib, io, json, runpy, sys, traceback
+scripts, done = sys.argv[1:], {}
+for script in scripts:
+    out, err, status = io.StringIO(), io.StringIO(), 0
+    sys.argv = [script, "--help"]
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            runpy.run_path(script, run_name="__main__")
+        except SystemExit as e:
+            status = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+        except BaseException:
+            status = 1
+            traceback.print_exc()
+    done[script] = [status, out.getvalue(), err.getvalue()]
+sys.stdout.write(json.dumps(done))
+"""
+
+
 @pytest.fixture(scope="module")
 def helps() -> dict[str, subprocess.CompletedProcess]:
-    """Every tool's ``--help``, the processes started at once (each spends seconds importing torch)."""
-    procs = {t: subprocess.Popen([sys.executable, str(ROOT / "tools" / t), "--help"], cwd=ROOT, text=True,
-                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE) for t in TOOLS}
-    done = {}
-    for t, p in procs.items():
-        out, err = p.communicate(timeout=180)
-        done[t] = subprocess.CompletedProcess(p.args, p.returncode, out, err)
-    return done
+    """Every tool's ``--help``, run as its own ``__main__`` in one fresh process (a process per tool would
+    import torch once per tool): tool -> its status, stdout and stderr."""
+    scripts = [str(ROOT / "tools" / t) for t in TOOLS]
+    res = subprocess.run([sys.executable, "-c", _HELP_EACH, *scripts], cwd=ROOT, capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    done = json.loads(res.stdout)
+    return {t: subprocess.CompletedProcess([sys.executable, s, "--help"], *done[s]) for t, s in zip(TOOLS, scripts)}
 
 
 @pytest.mark.parametrize("tool", TOOLS)
