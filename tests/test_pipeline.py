@@ -242,7 +242,8 @@ def test_help(module):
 
 
 def test_reference_split_and_saved_proposals(tiny, tmp_path):
-    """references=test reconstructs only test objects; save_proposals keeps every proposal, the vote of the best-ranked = the output."""
+    """references=test reconstructs only test objects; save_proposals keeps every proposal, and the vote of
+    the best-ranked ones is the output."""
     out, summary = tiny
     data = json.loads(Path(summary["data"]).read_text())
     cars = [a for a in data["annotations"] if a["category_id"] == next(c["id"] for c in data["categories"]
