@@ -198,12 +198,18 @@ class SurrogateConfig:
     """Widen the threshold by this while the second-smallest cluster has too few members."""
     cluster_max_threshold_deg: float = 45.0
     """Never widen beyond this."""
+    cluster_count_objects: bool = True
+    """Count a cluster's distinct physical objects (``object_id``), not its members, when deciding to widen:
+    views of one object alone would give every reference the same surrogate shape."""
     proposals: int = 20
     """Triplets (reconstruction proposals) sampled per reference instance."""
     symmetric_step_deg: float = 90.0
     """Rotationally symmetric classes: synthesise surrogate views every this many degrees."""
     symmetric_axis_in_image: bool = True
     """Rotationally symmetric classes: assume each photo sees the symmetry axis in its image plane."""
+    symmetric_axis_through_silhouette: bool = True
+    """Rotationally symmetric classes: the rotation axis passes through the centroid of each reference's
+    silhouette (``False``: through the class mean shape's centroid, wherever the camera projects it)."""
 
     def validate(self) -> None:
         _positive(self, "proposals")
@@ -239,9 +245,13 @@ class SelectConfig:
 
     plane_size: int = 64
     """Resolution of the average masks / proposal projections used for selection."""
+    consensus: int = 5
+    """The selected shape is the voxel-wise majority vote of this many best-ranked proposals
+    (``carvi_torch.select.vote_proposals``); 1: the best proposal alone (the paper's)."""
 
     def validate(self) -> None:
         _positive(self, "plane_size")
+        _positive(self, "consensus")
 
 
 @dataclass

@@ -134,7 +134,8 @@ def _maps(vp: Viewpoints, plan: surrogates.SurrogatePlan, todo: list[int], sel: 
     if plan.triplets is None and todo:
         with timer("surrogates"):
             todo_t = torch.tensor(todo, dtype=torch.long, device=maps.device)
-            extra, plan.rotated = surrogates.rotated_cameras(vp.cameras, vp.shape, todo_t, sel.centre, cfg.surrogates)
+            extra, plan.rotated = surrogates.rotated_cameras(vp.cameras, vp.shape, todo_t, sel.centre, cfg.surrogates,
+                                                              masks=vp.both.masks)
             maps = maps.with_entries(maps.entry_map[todo_t].repeat_interleave(plan.rotated), extra)
     return maps
 
@@ -147,7 +148,8 @@ def _surrogate_plan(coll, vp: Viewpoints, cfg: Config, generator, timer, report)
     mirrors = cfg.surrogates.mirrors and not coll.meta.articulated and vp.mirrored
     with timer("surrogates"):
         axes = surrogates.principal_directions(vp.shape)
-        clusters = surrogates.cluster_instances(vp.cameras.R[:n, 2, :], usable, axes, cfg.surrogates)
+        clusters = surrogates.cluster_instances(vp.cameras.R[:n, 2, :], usable, axes, cfg.surrogates,
+                                                groups=coll.object_groups)
         if coll.meta.symmetry == "rotational":
             trip, levels = None, ["rotated_views" if u else None for u in usable.tolist()]
         else:
@@ -228,7 +230,8 @@ def carve_and_select(ids: torch.Tensor, plan: ClassPlan, cfg: Config, timer: Sta
     with timer("select"):
         coll = plan.coll
         return select.select_proposals(grids, keep, valid, plan.viewpoints.cameras[kept_ref],
-                                       coll.keypoints[kept_ref], coll.visible[kept_ref], plan.selection)
+                                       coll.keypoints[kept_ref], coll.visible[kept_ref], plan.selection,
+                                       consensus=cfg.select.consensus)
 
 
 def _job(sel: select.Selection, j: int, i: int, sur, plan: ClassPlan, cfg: Config) -> dict:

@@ -43,6 +43,7 @@ __all__ = [
     "class_reference",
     "Selection",
     "select_proposals",
+    "vote_proposals",
     "boundary_voxels",
     "supersampling",
 ]
@@ -589,6 +590,8 @@ class Selection:
         ok: ``(R, P)`` bool valid and not empty; valid: ``(R, P)`` bool a valid triplet.
         best: ``(R,)`` long best proposal (-1: none).
         best_occupancy: ``(R, D, H, W)`` bool; best_transform: ``(R, 4, 4)`` float64 voxel -> canvas.
+        voted: whether the selected grids are votes of several proposals (:func:`vote_proposals`), not
+            carved proposals themselves.
     """
 
     grids: object
@@ -600,10 +603,75 @@ class Selection:
     best: torch.Tensor
     best_occupancy: torch.Tensor
     best_transform: torch.Tensor
+    voted: bool = False
+
+
+def vote_proposals(occupancy: torch.Tensor, voxel_to_camera: torch.Tensor, rows: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Voxel-wise majority vote of several proposals of each reference, on a common grid.
+
+    The proposals of one reference share their grid's columns (the reference's box) and differ only
+    in their depth range. The common grid spans the union of the voted proposals' depth ranges with
+    the same number ``D`` of depth steps; each proposal is read there at its nearest depth (empty
+    outside its range), and a voxel is occupied when more than half of the voted proposals hold it.
+    A column that the vote leaves empty but the first proposal fills keeps the first proposal's
+    column (so imprinting's guarantee, every foreground column filled, holds). With one proposal the
+    result is that proposal, voxel for voxel.
+
+    Args:
+        occupancy: ``(B, D, H, W)`` bool carved proposals; voxel_to_camera: ``(B, 4, 4)``, aligned
+            with the reference camera (depth index along ``z`` only).
+        rows: ``(R, K)`` long positions in ``B`` of each reference's voted proposals, best first, ``-1``
+            unused (the first of every row must be used).
+
+    Returns:
+        ``occupancy (R, D, H, W)`` bool and ``voxel_to_camera (R, 4, 4)`` float64.
+
+    Example:
+        >>> occ = torch.zeros(3, 4, 1, 1, dtype=torch.bool)
+        >>> occ[0, 1:3], occ[1, 1:4], occ[2, 0:1] = True, True, True
+        >>> T = torch.eye(4).expand(3, 4, 4).clone(); T[:, 2, 0] = 1.0; T[:, 2, 3] = 0.0
+        >>> out, T_out = vote_proposals(occ, T, torch.tensor([[0, 1, 2]]))
+        >>> out[0, :, 0, 0].tolist()
+        [False, True, True, False]
+    """
+    R, K = rows.shape
+    B, D = occupancy.shape[:2]
+    dev = occupancy.device
+    used = rows >= 0
+    r = rows.clamp(min=0).to(dev)
+    T = voxel_to_camera.to(device=dev, dtype=torch.float64)[r]  # (R, K, 4, 4)
+    sz, z0 = T[..., 2, 0], T[..., 2, 3]
+    z_end = z0 + sz * (D - 1)
+    inf = torch.full_like(z0, math.inf)
+    lo = torch.where(used, torch.minimum(z0, z_end), inf).amin(dim=1)
+    hi = torch.where(used, torch.maximum(z0, z_end), -inf).amax(dim=1)
+    step = (hi - lo) / max(D - 1, 1)
+    first_up = sz[:, 0] >= 0  # keep the first proposal's depth direction
+    start = torch.where(first_up, lo, hi)
+    step = torch.where(first_up, step, -step)
+    z = start[:, None] + step[:, None] * torch.arange(D, device=dev, dtype=torch.float64)  # (R, D)
+    votes = torch.zeros((R,) + tuple(occupancy.shape[1:]), dtype=torch.int16, device=dev)
+    first = None
+    for k in range(K):
+        step_k = torch.where(sz[:, k, None] == 0, 1.0, sz[:, k, None])
+        idx = torch.round((z - z0[:, k, None]) / step_k)
+        inside = (idx >= 0) & (idx <= D - 1) & used[:, k, None]
+        read = occupancy[r[:, k, None], idx.clamp(0, D - 1).long()] & inside[..., None, None]  # (R, D, H, W)
+        votes += read
+        if k == 0:
+            first = read
+    out = votes * 2 > used.sum(dim=1).to(dev)[:, None, None, None]
+    lost = ~out.any(dim=1) & first.any(dim=1)  # (R, H, W)
+    out = torch.where(lost[:, None], first, out)
+    T_out = T[:, 0].clone()
+    T_out[:, 2, 0], T_out[:, 2, 3] = step, start
+    return out, T_out
 
 
 def select_proposals(grids, keep: torch.Tensor, valid: torch.Tensor, cameras: ScaledOrthographic,
-                     keypoints: torch.Tensor, visible: torch.Tensor, reference: SelectionReference) -> Selection:
+                     keypoints: torch.Tensor, visible: torch.Tensor, reference: SelectionReference,
+                     consensus: int = 1) -> Selection:
     """Score, rank and pick the best of every reference's proposals.
 
     Args:
@@ -613,6 +681,8 @@ def select_proposals(grids, keep: torch.Tensor, valid: torch.Tensor, cameras: Sc
         cameras: ``(B)`` reference cameras of the carved proposals; keypoints: ``(B, K, 2)``;
             visible: ``(B, K)`` bool.
         reference: the class's :class:`SelectionReference`.
+        consensus: the selected grid is the majority vote (:func:`vote_proposals`) of this many of the
+            best-ranked valid proposals (``1``: the best proposal alone, the paper's choice).
 
     Returns:
         :class:`Selection`; the few tensors the writer needs come back to the host in one
@@ -630,10 +700,16 @@ def select_proposals(grids, keep: torch.Tensor, valid: torch.Tensor, cameras: Sc
     empty = torch.ones(R * P, dtype=torch.bool, device=dev)
     scores[keep], misses[keep], empty[keep] = sc, miss, grids.empty
     ok = valid.reshape(-1) & ~empty
-    _order, best = rank_proposals(scores.view(R, P), misses.view(R, P), ok.view(R, P))
+    order, best = rank_proposals(scores.view(R, P), misses.view(R, P), ok.view(R, P))
     pos = torch.full((R * P,), -1, dtype=torch.long, device=dev)
     pos[keep] = torch.arange(len(keep), device=dev)
-    if len(keep):
+    if len(keep) and consensus > 1:
+        top = order[:, :consensus]
+        rows = torch.where(ok.view(R, P).gather(1, top), pos.view(R, P).gather(1, top), torch.full_like(top, -1))
+        rows[:, 0] = rows[:, 0].clamp(min=0)  # a reference without a valid proposal: a placeholder, never used
+        best_occ, best_T = vote_proposals(grids.occupancy, grids.voxel_to_camera, rows)
+        best_occ, best_T = best_occ.cpu(), best_T.cpu()
+    elif len(keep):
         best_pos = pos.view(R, P).gather(1, best.clamp(min=0)[:, None])[:, 0].clamp(min=0)
         best_occ = grids.occupancy[best_pos].cpu()
         best_T = grids.voxel_to_camera[best_pos].double().cpu()
@@ -643,4 +719,4 @@ def select_proposals(grids, keep: torch.Tensor, valid: torch.Tensor, cameras: Sc
         best_T = torch.zeros(R, 4, 4, dtype=torch.float64)
     return Selection(grids=grids, pos=pos.cpu(), scores=scores.view(R, P).cpu(), misses=misses.view(R, P).cpu(),
                      ok=ok.view(R, P).cpu(), valid=valid.cpu(), best=best.cpu(), best_occupancy=best_occ,
-                     best_transform=best_T)
+                     best_transform=best_T, voted=bool(len(keep)) and consensus > 1)

@@ -40,6 +40,7 @@ __all__ = [
     "sample_triplets",
     "symmetry_axis",
     "symmetric_surrogates",
+    "axis_through_silhouettes",
     "axis_in_image_plane",
     "cluster_instances",
     "SurrogatePlan",
@@ -160,6 +161,7 @@ def cluster_by_direction(
     widen_step_deg: float = 5.0,
     max_threshold_deg: float = 45.0,
     min_second: int = 2,
+    groups: torch.Tensor | None = None,
 ) -> Clusters:
     """Cluster instances around the principal directions by their viewing direction.
 
@@ -171,7 +173,9 @@ def cluster_by_direction(
     Widening: while the second-smallest cluster has fewer than ``min_second`` members
     (so fewer than two clusters can provide surrogates), the threshold grows by
     ``widen_step_deg`` (the last step clipped to ``max_threshold_deg``), each widening
-    noted in ``log``.
+    noted in ``log``. With ``groups`` (physical objects, e.g. one per CAD model rendered many
+    times) a cluster's members are counted as distinct objects: a cluster holding views of one
+    object only gives every reference the same surrogate shape (and the same average mask).
 
     Args:
         view_dirs: ``(N, 3)`` viewing directions in the object frame
@@ -181,6 +185,7 @@ def cluster_by_direction(
         widen_step_deg: widening step (degrees, ``> 0``).
         max_threshold_deg: largest threshold (degrees, ``threshold_deg <= . <= 45``).
         min_second: members the second-smallest cluster should have (``>= 0``).
+        groups: optional ``(N,)`` long physical-object ids (default: every instance its own).
 
     Returns:
         :class:`Clusters` on the device of ``view_dirs``.
@@ -214,27 +219,40 @@ def cluster_by_direction(
     best_cos, nearest = cos.max(dim=-1)
     angle = torch.rad2deg(torch.acos(best_cos))  # NaN rows stay NaN and join no cluster
 
+    if groups is not None and (not isinstance(groups, torch.Tensor) or groups.shape != (v.shape[0],)):
+        raise ValueError(f"groups must be None or a ({v.shape[0]},) tensor")
+    what = "members" if groups is None else "objects"
     log: list[str] = []
     thr = float(threshold_deg)
     while True:
         labels = torch.where(angle < thr, nearest, torch.full_like(nearest, -1))
         sizes = torch.bincount(labels[labels >= 0], minlength=3)[:3]
-        second = int(sizes.sort().values[1])
+        counted = sizes if groups is None else _objects_per_cluster(labels, groups.to(dev))
+        second = int(counted.sort().values[1])
         if second >= min_second:
             break
         if thr >= max_threshold_deg:
             log.append(
-                f"second-smallest principal-direction cluster still has {second} < {min_second} members "
+                f"second-smallest principal-direction cluster still has {second} < {min_second} {what} "
                 f"at the maximum threshold {thr:g} deg (sizes {sizes.tolist()})"
             )
             break
         new = min(thr + widen_step_deg, float(max_threshold_deg))
         log.append(
             f"widened principal-direction threshold from {thr:g} to {new:g} deg: second-smallest cluster "
-            f"has {second} < {min_second} members (sizes {sizes.tolist()})"
+            f"has {second} < {min_second} {what} (sizes {sizes.tolist()})"
         )
         thr = new
     return Clusters(labels=labels, threshold_deg=thr, sizes=sizes, log=log, angle_deg=angle.to(view_dirs.dtype))
+
+
+def _objects_per_cluster(labels: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
+    """``(3,)`` long: distinct ``groups`` among each cluster's members (``labels (N,)``, ``groups (N,)``)."""
+    inside = labels >= 0
+    if not bool(inside.any()):
+        return torch.zeros(3, dtype=torch.long, device=labels.device)
+    pairs = torch.unique(torch.stack([labels[inside], groups[inside].long()], dim=1), dim=0)
+    return torch.bincount(pairs[:, 0], minlength=3)[:3]
 
 
 # --------------------------------------------------------------------------- triplets
@@ -536,6 +554,46 @@ def axis_in_image_plane(cameras: ScaledOrthographic, axis: torch.Tensor) -> torc
     return torch.where(ok, out, a.expand_as(out))
 
 
+def axis_through_silhouettes(cameras: ScaledOrthographic, masks: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+    """Per reference, the point ``centre`` moved within the reference's image plane onto its silhouette's centroid.
+
+    A solid of revolution seen from the side has a silhouette symmetric about the projected axis, so the
+    centroid of the silhouette lies on it; the class mean shape's centroid (the default rotation centre)
+    projects wherever the keypoints and the camera put it, and an axis off the silhouette's middle by
+    ``d`` pixels makes the reference's rotated copies carve ``2 d`` off its width. The depth of the
+    point along the reference's viewing ray stays that of ``centre`` (it only moves the hull along the ray).
+
+    Args:
+        cameras: ``N`` reference cameras; masks: ``(N, H, W)`` bool their silhouettes (same pixels);
+            centre: ``(3,)`` object-frame point.
+
+    Returns:
+        ``(N, 3)`` object-frame points projecting onto each silhouette's centroid (``centre`` for an
+        empty mask).
+
+    Example:
+        >>> cam = ScaledOrthographic(torch.eye(3)[None], torch.full((1,), 2.0), torch.zeros(1, 2))
+        >>> m = torch.zeros(1, 5, 9, dtype=torch.bool); m[0, 1:4, 5:8] = True   # centroid (x, y) = (6, 2)
+        >>> axis_through_silhouettes(cam, m, torch.tensor([0.0, 0.0, 7.0]))
+        tensor([[3., 1., 7.]])
+    """
+    if not isinstance(masks, torch.Tensor) or masks.dim() != 3 or masks.shape[0] != len(cameras):
+        raise ValueError(f"masks must be a ({len(cameras)}, H, W) tensor like the cameras")
+    m = masks.to(torch.float64)
+    area = m.sum(dim=(1, 2))
+    ys = torch.arange(m.shape[1], dtype=torch.float64, device=m.device)
+    xs = torch.arange(m.shape[2], dtype=torch.float64, device=m.device)
+    cx = (m.sum(dim=1) * xs).sum(dim=1) / area.clamp_min(1.0)
+    cy = (m.sum(dim=2) * ys).sum(dim=1) / area.clamp_min(1.0)
+    R, s, t = cameras.R.to(m), cameras.s.to(m), cameras.t.to(m)
+    c = centre.to(m)
+    seen = s[:, None] * (R[:, :2] @ c) + t  # (N, 2) where the reference sees ``centre``
+    move = (torch.stack([cx, cy], dim=1) - seen) / s[:, None]
+    move = torch.where((area > 0)[:, None], move, torch.zeros_like(move))
+    out = c + (R[:, :2].transpose(-1, -2) @ move[..., None])[..., 0]
+    return out.to(centre.dtype)
+
+
 def symmetric_surrogates(
     camera: ScaledOrthographic, axis: torch.Tensor, step_deg: float = 90.0, centre: torch.Tensor | None = None
 ) -> ScaledOrthographic:
@@ -556,7 +614,8 @@ def symmetric_surrogates(
         axis: ``(3,)`` symmetry axis in the object frame (:func:`symmetry_axis`), or ``(N, 3)`` one
             per reference (e.g. :func:`axis_in_image_plane`).
         step_deg: rotation step in degrees; ``360 / step_deg`` must be an integer ``>= 2``.
-        centre: optional ``(3,)`` point of the axis (object frame); default the origin.
+        centre: optional ``(3,)`` point of the axis (object frame), or ``(N, 3)`` one per reference
+            (e.g. :func:`axis_through_silhouettes`); default the origin.
 
     Returns:
         ``ScaledOrthographic`` of length ``N * (360 / step_deg - 1)`` on the camera's device,
@@ -588,10 +647,10 @@ def symmetric_surrogates(
     R = R0[:, None] @ rot  # (N, m, 3, 3)
     t = camera.t.double()[:, None, :].expand(N, m, 2).clone()
     if centre is not None:
-        if not isinstance(centre, torch.Tensor) or centre.shape != (3,):
-            raise ValueError("centre must be None or a (3,) tensor")
-        c = centre.to(device=R0.device, dtype=torch.float64)
-        shift = (R0[:, None, :2] @ c) - (R[:, :, :2, :] @ c)  # (N, m, 2): R (c - Rot c), image rows
+        if not isinstance(centre, torch.Tensor) or centre.shape not in ((3,), (N, 3)):
+            raise ValueError(f"centre must be None or a (3,) or ({N}, 3) tensor")
+        c = centre.to(device=R0.device, dtype=torch.float64).reshape(-1, 1, 3, 1).expand(N, m, 3, 1)
+        shift = (R0[:, None, :2] @ c - R[:, :, :2, :] @ c)[..., 0]  # (N, m, 2): R (c - Rot c), image rows
         t = t + camera.s.double()[:, None, None] * shift
     s_rep = camera.s[:, None].expand(N, m).reshape(-1).clone()
     return ScaledOrthographic(R.reshape(-1, 3, 3).to(camera.R.dtype), s_rep, t.reshape(-1, 2).to(camera.t.dtype))
@@ -601,19 +660,22 @@ def symmetric_surrogates(
 
 
 def cluster_instances(view_dirs: torch.Tensor, usable: torch.Tensor, axes: torch.Tensor,
-                      cfg: SurrogateConfig) -> Clusters:
+                      cfg: SurrogateConfig, groups: torch.Tensor | None = None) -> Clusters:
     """:func:`cluster_by_direction` of the instances that have a camera, with the configured
     thresholds; the others get label ``-1`` (never surrogates).
 
     Args:
-        view_dirs: ``(N, 3)`` viewing directions; usable: ``(N,)`` bool; axes: ``(3, 3)``.
+        view_dirs: ``(N, 3)`` viewing directions; usable: ``(N,)`` bool; axes: ``(3, 3)``;
+        groups: optional ``(N,)`` long physical objects, counted instead of members with
+        ``cfg.cluster_count_objects``.
     """
     labels = torch.full((len(view_dirs),), -1, dtype=torch.long, device=view_dirs.device)
     if not bool(usable.any()):
         return Clusters(labels, cfg.cluster_threshold_deg, torch.zeros(3, dtype=torch.long), ["no usable camera"])
     sub = cluster_by_direction(view_dirs[usable], axes, threshold_deg=cfg.cluster_threshold_deg,
                                widen_step_deg=cfg.cluster_widen_step_deg,
-                               max_threshold_deg=cfg.cluster_max_threshold_deg)
+                               max_threshold_deg=cfg.cluster_max_threshold_deg,
+                               groups=groups[usable] if groups is not None and cfg.cluster_count_objects else None)
     labels[usable] = sub.labels.to(labels.device)
     return Clusters(labels, float(sub.threshold_deg), sub.sizes, list(sub.log))
 
@@ -751,13 +813,15 @@ def plan_proposals(clusters: Clusters, groups: torch.Tensor, usable: torch.Tenso
 
 
 def rotated_cameras(cams: ScaledOrthographic, shape: torch.Tensor, todo: torch.Tensor, centre: torch.Tensor,
-                    cfg: SurrogateConfig) -> tuple[ScaledOrthographic, int]:
+                    cfg: SurrogateConfig, masks: torch.Tensor | None = None) -> tuple[ScaledOrthographic, int]:
     """A rotationally symmetric class's synthetic surrogates: every reference in ``todo`` seen from
     cameras rotated about the symmetry axis (:func:`symmetric_surrogates`).
 
     Args:
         cams: the class's ``(2N)`` cameras (originals first); shape: ``(K, 3)`` mean shape;
-        todo: ``(T,)`` long references; centre: ``(3,)`` rotation centre.
+        todo: ``(T,)`` long references; centre: ``(3,)`` rotation centre; masks: the originals'
+        ``(N, H, W)`` bool silhouettes, needed with ``cfg.symmetric_axis_through_silhouette``
+        (:func:`axis_through_silhouettes`).
 
     Returns:
         the cameras, reference-major (``T * m``), and ``m`` per reference.
@@ -767,5 +831,9 @@ def rotated_cameras(cams: ScaledOrthographic, shape: torch.Tensor, todo: torch.T
     axis = symmetry_axis(shape, up=up)
     if cfg.symmetric_axis_in_image:
         axis = axis_in_image_plane(cams[todo], axis)
+    if cfg.symmetric_axis_through_silhouette:
+        if masks is None:
+            raise ValueError("symmetric_axis_through_silhouette needs the references' masks")
+        centre = axis_through_silhouettes(cams[todo], masks[todo], centre)
     extra = symmetric_surrogates(cams[todo], axis, step_deg=cfg.symmetric_step_deg, centre=centre)
     return extra, len(extra) // len(todo)

@@ -304,7 +304,8 @@ def test_help(module, helps):
 
 
 def test_reference_split_and_saved_proposals(tiny, tmp_path):
-    """references=test reconstructs only test objects; save_proposals keeps every proposal, best = the output."""
+    """references=test reconstructs only test objects; save_proposals keeps every proposal, and the vote of
+    the best-ranked ones is the output."""
     out, summary = tiny
     data = json.loads(Path(summary["data"]).read_text())
     cars = [a for a in data["annotations"] if a["category_id"] == next(c["id"] for c in data["categories"]
@@ -326,8 +327,20 @@ def test_reference_split_and_saved_proposals(tiny, tmp_path):
         vox = np.load(tmp_path / "o" / "car" / "voxels" / f"{a['id']}.npz")
         occ = np.unpackbits(z["occupancy_bits"], axis=1)[:, :int(np.prod(z["shape"]))].reshape(-1, *z["shape"])
         assert occ.shape[0] == TINY["proposals"]
-        assert np.array_equal(occ[int(z["best"])].astype(bool), vox["occupancy"])
-        assert np.allclose(z["voxel_to_camera"][int(z["best"])], vox["voxel_to_camera"])
+        # the output is the vote of the best-ranked proposals (select.consensus), ranked from the saved scores
+        from carvi_torch.config import SelectConfig
+        from carvi_torch.select import rank_proposals, vote_proposals
+
+        occ = torch.from_numpy(occ.astype(bool))
+        ok = torch.from_numpy(z["valid"]).bool() & occ.flatten(1).any(1)
+        order, best = rank_proposals(torch.from_numpy(z["scores"])[None].float(), torch.from_numpy(z["misses"])[None],
+                                     ok[None])
+        assert int(best[0]) == int(z["best"])
+        top = order[:, :SelectConfig().consensus]
+        voted, T = vote_proposals(occ, torch.from_numpy(z["voxel_to_camera"]),
+                                  torch.where(ok[None].gather(1, top), top, torch.full_like(top, -1)))
+        assert np.array_equal(voted[0].numpy(), vox["occupancy"])
+        assert np.allclose(T[0].numpy(), vox["voxel_to_camera"])
 
 
 def _files(root: Path, cls: str) -> dict:

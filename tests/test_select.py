@@ -517,3 +517,44 @@ def test_cuda_matches_cpu(generator, axes):
     o_g, b_g = rank_proposals(s_g[None], torch.zeros(1, 2, dtype=torch.long, device="cuda"),
                               torch.ones(1, 2, dtype=torch.bool, device="cuda"))
     assert o_g.is_cuda and o_g.cpu().tolist() == o_c.tolist()
+
+
+class TestVoteProposals:
+    def test_vote_against_a_loop_over_voxels(self, generator):
+        """The majority vote on the common depth grid equals a plain loop: every voxel's camera depth read
+        in each proposal at its nearest depth index; a column the vote empties keeps the first proposal's."""
+        from carvi_torch.select import vote_proposals
+
+        B, D, H, W = 5, 7, 3, 4
+        occ = torch.rand(B, D, H, W, generator=generator) < 0.5
+        occ[3, :, 0, 0] = False
+        occ[3, 6, 0, 0] = True  # the first voted proposal of row 1 fills a column the others leave empty
+        occ[[1, 2], :, 0, 0] = False
+        T = torch.eye(4, dtype=torch.float64).repeat(B, 1, 1)
+        T[:, 0, 2], T[:, 1, 1] = 2.0, 2.0
+        T[:, 2, 0] = torch.tensor([1.0, 0.5, 1.5, 2.0, 0.8], dtype=torch.float64)
+        T[:, 2, 3] = torch.tensor([0.0, 1.0, -2.0, 3.0, 0.4], dtype=torch.float64)
+        rows = torch.tensor([[0, 1, 2, 4], [3, 1, 2, -1]])
+        out, T_out = vote_proposals(occ, T, rows)
+        for r in range(2):
+            used = [int(b) for b in rows[r] if b >= 0]
+            ends = [float(T[b, 2, 3] + T[b, 2, 0] * k) for b in used for k in (0, D - 1)]
+            lo, hi = min(ends), max(ends)
+            assert float(T_out[r, 2, 3]) == pytest.approx(lo)
+            assert float(T_out[r, 2, 0]) == pytest.approx((hi - lo) / (D - 1))
+            zs = [lo + (hi - lo) * d / (D - 1) for d in range(D)]
+
+            def read(b, z, h, w):
+                k = round((z - float(T[b, 2, 3])) / float(T[b, 2, 0]))
+                return 0 <= k < D and bool(occ[b, k, h, w])
+
+            for h in range(H):
+                for w in range(W):
+                    col = [2 * sum(read(b, z, h, w) for b in used) > len(used) for z in zs]
+                    if not any(col):  # the vote leaves the column empty: the first proposal's column
+                        col = [read(used[0], z, h, w) for z in zs]
+                    assert out[r, :, h, w].tolist() == col, (r, h, w)
+        assert bool(out[1, :, 0, 0].any())
+        # one proposal: itself, voxel for voxel
+        one, T_one = vote_proposals(occ, T, torch.tensor([[2], [4]]))
+        assert torch.equal(one, occ[[2, 4]]) and torch.allclose(T_one, T[[2, 4]])

@@ -163,6 +163,25 @@ class TestClusterByDirection:
         cl3 = cluster_by_direction(v, axes, threshold_deg=15.0, min_second=1)
         assert cl3.threshold_deg == 20.0 and len(cl3.log) == 1
 
+    def test_widening_counts_objects_when_given(self):
+        """With physical objects, a cluster holding views of one object counts once: the threshold widens
+        until the second-smallest cluster holds two objects (brute-force count at every threshold)."""
+        axes = random_rotations(1, torch.Generator().manual_seed(3))[0]
+        # axis 0: 5 views of objects 0-4; axis 1: two views of object 7 at 3 and 6 degrees, object 8 at 23
+        v = [_tilted(axes, 0, 1, d) for d in (1, 2, 3, 4, 5)] + [_tilted(axes, 1, 2, 3), _tilted(axes, 1, 2, 6),
+                                                                  _tilted(axes, 1, 0, 23, -1.0)]
+        v, groups = torch.stack(v), torch.tensor([0, 1, 2, 3, 4, 7, 7, 8])
+        assert cluster_by_direction(v, axes, threshold_deg=15.0, min_second=2).threshold_deg == 15.0
+        cl = cluster_by_direction(v, axes, threshold_deg=15.0, min_second=2, groups=groups)
+        assert cl.threshold_deg == 25.0 and cl.sizes.tolist() == [5, 3, 0]
+        assert "1 < 2 objects" in cl.log[0]
+        for thr, enough in ((15.0, False), (20.0, False), (25.0, True)):
+            lab = _brute_labels(v, axes, thr)
+            objects = [len({int(g) for g, l in zip(groups, lab) if l == j}) for j in range(3)]
+            assert (sorted(objects)[1] >= 2) == enough, (thr, objects)
+        with pytest.raises(ValueError, match="groups"):
+            cluster_by_direction(v, axes, groups=groups[:3])
+
     def test_widening_stops_at_maximum(self):
         axes = torch.eye(3)
         v = torch.stack([_tilted(axes, 0, 1, d) for d in (1, 2, 3)])
@@ -469,6 +488,46 @@ class TestSymmetry:
         wide = S * torch.tensor([4.0, 1.0, 0.5])  # wider than tall: 'up' decides
         assert symmetry_axis(wide, up=torch.tensor([0.1, 0.0, -1.0])).abs().argmax() == 2
         assert symmetry_axis(wide).abs().argmax() == 0
+
+    def test_axis_through_silhouettes(self, generator):
+        """Each reference's rotation centre moves in its image plane onto its silhouette's centroid (against
+        scipy's centre of mass); the half-turned camera then mirrors the silhouette about its own middle."""
+        from scipy import ndimage
+
+        from carvi_torch.cameras import random_rotations
+        from carvi_torch.surrogates import axis_in_image_plane, axis_through_silhouettes
+
+        f64 = dict(dtype=torch.float64)
+        cams = ScaledOrthographic(random_rotations(3, generator, dtype=torch.float64),
+                                  torch.tensor([2.0, 3.0, 1.5], **f64),
+                                  torch.tensor([[20.0, 18.0], [25.0, 22.0], [30.0, 15.0]], **f64))
+        masks = torch.zeros(3, 40, 50, dtype=torch.bool)
+        masks[0, 5:30, 10:17] = True
+        masks[1, 12:35, 30:41] = True
+        masks[2, 3:9, 4:44] = True
+        masks[2, 20:22, 20:23] = True  # not symmetric: the centroid still
+        c = torch.tensor([0.4, -0.3, 0.2], **f64)
+        out = axis_through_silhouettes(cams, masks, c)
+        com = torch.tensor([ndimage.center_of_mass(m.numpy())[::-1] for m in masks], **f64)  # (x, y)
+        seen = cams.s[:, None] * (cams.R[:, :2] @ out[..., None])[..., 0] + cams.t
+        torch.testing.assert_close(seen, com)
+        torch.testing.assert_close((cams.R[:, 2] * (out - c)).sum(-1), torch.zeros(3, **f64))  # same depth
+        # the image's vertical through the centroid as the axis: half a turn mirrors x about the centroid
+        axis = axis_in_image_plane(cams, cams.R[0, 1])  # camera 0's vertical, turned into each image plane
+        assert float((axis[0] - cams.R[0, 1]).abs().max()) < 1e-12
+        for i in range(3):
+            half = symmetric_surrogates(cams[i:i + 1], cams.R[i, 1], 180.0, centre=out[i])
+            X = out[i] + 5.0 * cams.R[i, 0] + 2.0 * cams.R[i, 1] + 4.0 * cams.R[i, 2]
+            u_ref, u_half = cams[i:i + 1].project(X[None])[0, 0], half.project(X[None])[0, 0]
+            torch.testing.assert_close(u_half[0] - com[i, 0], -(u_ref[0] - com[i, 0]))
+            torch.testing.assert_close(u_half[1], u_ref[1])
+        # per-reference centres: each reference as if alone
+        both = symmetric_surrogates(cams, axis, 90.0, centre=out)
+        for i in range(3):
+            one = symmetric_surrogates(cams[i:i + 1], axis[i], 90.0, centre=out[i])
+            torch.testing.assert_close(both.t[3 * i:3 * i + 3], one.t)
+        empty = axis_through_silhouettes(cams[:1], torch.zeros(1, 40, 50, dtype=torch.bool), c)
+        torch.testing.assert_close(empty[0], c)
 
     def test_batched_equals_one_by_one(self, generator):
         from carvi_torch.cameras import random_rotations

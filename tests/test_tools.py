@@ -294,3 +294,42 @@ def test_stress_inputs_checks_catch_bad_outcomes(tmp_path: Path):
     finally:
         left.kill()
         left.wait()
+
+
+def _synthetic_module():
+    spec = importlib.util.spec_from_file_location("benchmark_synthetic_tool", ROOT / "tools" / "benchmark_synthetic.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_synthetic_benchmark_seeds_table_and_keyed_record(tmp_path: Path):
+    """Several seeds: per class and method every seed's mean, missing objects and the mean over the seeds
+    (checked by hand on two classes); the record goes under ``--key`` with the file's other keys kept, and a
+    top-level write keeps the keyed records; ``--methods`` is case-insensitive and needs Full."""
+    bs = _synthetic_module()
+
+    def res(a, b, miss):
+        classes = {"bottle": {"Full": {"mean": a, "count": 8 - miss, "missing": miss}},
+                   "train": {"Full": {"mean": b, "count": 8, "missing": 0}}}
+        return {"methods": ["Full"], "classes": classes, "mean_over_classes": {"Full": (a + b) / 2}}
+
+    per_seed = {0: res(4.0, 6.0, 1), 1: res(5.0, 9.0, 0)}
+    table = bs.seeds_table(per_seed)
+    assert "| bottle (8) | 4.00 [1 missing] | 5.00 | 4.50 |" in table
+    assert "| train (8) | 6.00 | 9.00 | 7.50 |" in table
+    assert "| **mean, 2 classes** | **5.00** | **7.00** | **6.00** |" in table
+    rec = bs.seeds_record(per_seed, {0: {"a": 0}, 1: {"a": 1}}, "cmd")
+    assert rec["table"]["train"]["Full"] == {"0": 6.0, "1": 9.0, "mean": 7.5}
+    assert rec["missing"]["bottle"]["Full"] == {"0": 1, "1": 0}
+    assert rec["mean_over_classes"]["Full"] == {"0": 5.0, "1": 7.0, "mean": 6.0}
+    path = tmp_path / "benchmark_synthetic.json"
+    path.write_text(json.dumps({"table": "old", "command": "old"}))
+    bs.write_results(path, rec, "shapes8")
+    assert json.loads(path.read_text())["table"] == "old"
+    bs.write_results(path, {"table": "new", "command": "new"}, None)
+    records = json.loads(path.read_text())
+    assert records["table"] == "new" and records["shapes8"]["seeds"] == [0, 1]
+    assert bs.parse_methods("oracle,full") == ["Full", "oracle"]
+    with pytest.raises(ValueError, match="must include Full"):
+        bs.parse_methods("oracle")

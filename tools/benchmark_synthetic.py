@@ -20,14 +20,23 @@ Steps (each skipped when its output exists, unless ``--fresh``):
 4. **Write** ``benchmark_synthetic.json`` into ``--results`` (default ``docs/data/``, the record
    docs/results.md cites: everything, with the command line, the machine, wall and CPU times per
    step), and ``table1.md`` (per class + mean, the paper's numbers beside ours) and
-   ``viewpoints.md`` into ``--out``. With ``--classes`` the names end in ``_<classes>``.
+   ``viewpoints.md`` into ``--out``. With ``--classes`` the names end in ``_<classes>``. With
+   ``--key`` the record goes under that key of the JSON file, its other keys kept (a run
+   without ``--key`` writes the file's top level and keeps the keyed records too).
+
+``--seed 0,1`` runs steps 1-3 once per seed (into ``--out/seed<S>``) and ``table1.md`` then
+gives, per class and method, every seed's mean error, missing objects, and the mean over the
+seeds. The small-class shape benchmark of docs/results.md renders 8 views per model and
+reconstructs and evaluates all of them (``--pool 0 --test-views 8``): every render still takes
+part in SfM and may serve as another model's surrogate, as in the 30-view benchmark.
 
 Same seed, same numbers: the renders depend only on ``(seed, model name)``, the
 reconstructions on ``seed``.
 
 Command line (``--help`` lists every option); the numbers of docs/results.md:
 
-    python tools/benchmark_synthetic.py [--out outputs/benchmark] [--results docs/data] [--jobs 2]
+    python tools/benchmark_synthetic.py [--out outputs/benchmark] [--results docs/data] [--key KEY] [--jobs 2]
+                                        [--pool 20] [--test-views 5] [--seed 0[,1]]
                                         [--methods Full,-CRef,-SImp,oracle] [--classes C1,C2]
                                         [--set KEY=VALUE ...] [--no-baselines] [--fresh]
 """
@@ -267,10 +276,81 @@ def acceptance(res: dict) -> dict:
     return checks
 
 
+# --------------------------------------------------------------------------- several seeds
+
+
+def seeds_table(per_seed: dict) -> str:
+    """Markdown: per class, each method's mean error at every seed and over the seeds, with missing objects.
+
+    ``per_seed``: ``{seed: evaluate results}`` (:func:`merge_evaluations`). A class's seed mean is the
+    mean of its per-seed means; the last row is the mean over the classes (per seed, and of those).
+    """
+    seeds = list(per_seed)
+    first = per_seed[seeds[0]]
+    methods = [m for m in ("Full", "-CRef", "-SImp", "Puffball", "SFMc", "oracle") if m in first["methods"]]
+    cols = [f"{m} s{s}" for m in methods for s in seeds] + [f"{m} mean" for m in methods]
+    lines = ["| class (objects per seed) | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
+    for cls in first["classes"]:
+        cells, means = [], []
+        for m in methods:
+            vals = []
+            for s in seeds:
+                row = per_seed[s]["classes"].get(cls, {}).get(m, {})
+                v, miss = row.get("mean"), row.get("missing", 0)
+                vals.append(v)
+                cells.append(("-" if v is None else f"{v:.2f}") + (f" [{miss} missing]" if miss else ""))
+            ok = [v for v in vals if v is not None]
+            means.append(f"{sum(ok) / len(ok):.2f}" if len(ok) == len(vals) else "-")
+        row0 = first["classes"][cls][methods[0]]
+        lines.append(f"| {cls} ({row0['count'] + row0['missing']}) | " + " | ".join(cells + means) + " |")
+    cells, means = [], []
+    for m in methods:
+        vals = [per_seed[s]["mean_over_classes"].get(m) for s in seeds]
+        cells += ["-" if v is None else f"**{v:.2f}**" for v in vals]
+        means.append(f"**{sum(vals) / len(vals):.2f}**" if all(v is not None for v in vals) else "-")
+    lines.append(f"| **mean, {len(first['classes'])} classes** | " + " | ".join(cells + means) + " |")
+    return "\n".join(lines)
+
+
+def seeds_record(per_seed: dict, reports: dict, command: str) -> dict:
+    """The JSON record of a several-seed run: per seed the single-seed record, and the summary table
+    (per class and method: every seed's mean and missing count, the mean over the seeds)."""
+    seeds = list(per_seed)
+    first = per_seed[seeds[0]]
+    table, missing = {}, {}
+    for cls in first["classes"]:
+        for m in first["methods"]:
+            rows = [per_seed[s]["classes"].get(cls, {}).get(m, {}) for s in seeds]
+            vals = [r.get("mean") for r in rows]
+            table.setdefault(cls, {})[m] = {**{str(s): v for s, v in zip(seeds, vals)},
+                                            "mean": (sum(vals) / len(vals) if all(v is not None for v in vals)
+                                                     else None)}
+            missing.setdefault(cls, {})[m] = {str(s): r.get("missing", 0) for s, r in zip(seeds, rows)}
+    means = {m: {str(s): per_seed[s]["mean_over_classes"].get(m) for s in seeds} for m in first["methods"]}
+    for m, v in means.items():
+        vals = list(v.values())
+        v["mean"] = sum(vals) / len(vals) if all(x is not None for x in vals) else None
+    return {"command": command, "seeds": seeds, "table": table, "missing": missing, "mean_over_classes": means,
+            "per_seed": {str(s): reports[s] for s in seeds}}
+
+
+def write_results(path: Path, record: dict, key: str | None) -> None:
+    """``record`` into ``path``: under ``key`` (the file's other keys kept), or as the file's top level,
+    the keyed records already there kept."""
+    from carvi_torch.io.outputs import read_json, write_json, write_record
+
+    if key is not None:
+        write_record(path, record, key=key)
+        return
+    old = read_json(path) if path.is_file() else {}
+    kept = {k: v for k, v in old.items() if k not in record} if isinstance(old, dict) else {}
+    write_json(path, {**record, **kept})
+
+
 # --------------------------------------------------------------------------- main
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--models", default=str(ROOT.parent / "shared" / "data" / "pascal3d_cad"),
@@ -279,30 +359,47 @@ def main(argv=None) -> int:
     ap.add_argument("--results", default=str(ROOT / "docs" / "data"),
                     help="where benchmark_synthetic.json goes (default docs/data; table1.md and viewpoints.md go "
                          "to --out)")
+    ap.add_argument("--key", default=None,
+                    help="write the record under this key of benchmark_synthetic.json, its other keys kept "
+                         "(default: the file's top level, Table 1's record)")
     ap.add_argument("--pool", type=int, default=20, help="pool (surrogate) renders per model (default 20)")
     ap.add_argument("--test-views", type=int, default=5, help="test renders per model (default 5)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", default="0",
+                    help="seed, or comma-separated seeds (each rendered and reconstructed in --out/seed<S>)")
     ap.add_argument("--step-percent", type=float, default=1.0,
                     help="metric sampling step, %% of the GT bbox diagonal (paper 0.5; default 1.0, "
                          "see docs/results.md)")
-    ap.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {list(METHODS)}")
+    ap.add_argument("--methods", default=",".join(METHODS),
+                    help=f"comma-separated subset of {list(METHODS)} (case-insensitive; Full among them)")
     ap.add_argument("--classes", help="comma-separated classes (default: all)")
     ap.add_argument("--jobs", type=int, default=2, help="processes at once (default 2)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="extra reconstruct override for every method (repeatable)")
     ap.add_argument("--fresh", action="store_true", help="recompute every step (default: reuse finished outputs)")
     ap.add_argument("--no-baselines", action="store_true", help="skip Puffball and SFMc")
-    cli = sys.argv[1:] if argv is None else list(argv)
-    args = ap.parse_args(argv)
+    return ap
 
+
+def parse_methods(text: str) -> list[str]:
+    """``--methods``: names of :data:`METHODS`, case-insensitive, in :data:`METHODS` order.
+
+    Example:
+        >>> parse_methods("oracle,full")
+        ['Full', 'oracle']
+    """
+    by_lower = {m.lower(): m for m in METHODS}
+    asked = [m.strip() for m in text.split(",") if m.strip()]
+    unknown = [m for m in asked if m.lower() not in by_lower]
+    if unknown or "full" not in {m.lower() for m in asked}:
+        raise ValueError(f"--methods must include Full and come from {list(METHODS)}; got {asked}")
+    names = {by_lower[m.lower()] for m in asked}
+    return [m for m in METHODS if m in names]
+
+
+def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: str) -> tuple[dict, dict]:
+    """Render, reconstruct and evaluate at one seed into ``out``; returns the evaluation and the record."""
     t_start, cpu0 = time.perf_counter(), _cpu_self() + _cpu_children()
-    out = Path(args.out)
-    data = out / f"data_pool{args.pool}_test{args.test_views}_seed{args.seed}"
-    classes = args.classes.split(",") if args.classes else None
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    unknown = [m for m in methods if m not in METHODS]
-    if unknown or "Full" not in methods:
-        ap.error(f"--methods must include Full and come from {list(METHODS)}; got {methods}")
+    data = out / f"data_pool{args.pool}_test{args.test_views}_seed{seed}"
     ncpu = os.cpu_count() or 1
     jobs = max(1, args.jobs)
     threads = max(1, ncpu // jobs)
@@ -310,9 +407,9 @@ def main(argv=None) -> int:
 
     # 1. data
     t0, c0 = time.perf_counter(), _cpu_self()
-    if args.fresh or not _render_matches(data, args.pool, args.test_views, args.seed):
+    if args.fresh or not _render_matches(data, args.pool, args.test_views, seed):
         print(f"render {args.pool}+{args.test_views} views per model into {data}", flush=True)
-        info = render(Path(args.models), data, args.pool, args.test_views, args.seed)
+        info = render(Path(args.models), data, args.pool, args.test_views, seed)
         print(f"  {info['images']} renders of {info['models']} models in {info['seconds']:.0f} s", flush=True)
         timings["render"] = {"wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(_cpu_self() - c0, 1)}
     else:
@@ -328,8 +425,7 @@ def main(argv=None) -> int:
             print(f"reconstruct {m}: reusing {runs[m]}", flush=True)
             continue
         argv = [PYTHON, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(runs[m]),
-                "references=test", f"seed={args.seed}", "progress=false", "preview=false", "report=false",
-                "viewpoints.sfm_groups=1",  # Table 1 is the paper's method: one rigid shape per class
+                "references=test", f"seed={seed}", "progress=false", "preview=false", "report=false",
                 *( ["overwrite=true"] if args.fresh else []), *METHODS[m], *args.set]
         if classes:
             argv.append("classes=" + ",".join(classes))
@@ -360,23 +456,16 @@ def main(argv=None) -> int:
     res = merge_evaluations([json.loads((evals / f"part{i}" / "results.json").read_text())
                              for i in range(len(halves))])
 
-    # 4. results
-    from carvi_torch.evaluate import format_viewpoint_table
-    from carvi_torch.io.outputs import write_bytes, write_json
-
-    total_wall = time.perf_counter() - t_start
-    total_cpu = _cpu_self() + _cpu_children() - cpu0
-    results = Path(args.results)
-    command = "python tools/benchmark_synthetic.py " + " ".join(shlex.quote(a) for a in cli)
     summaries = {m: json.loads((runs[m] / "summary.json").read_text()) for m in methods}
     report = {
         "command": command,
         "machine": {"platform": platform.platform(), "cpus": ncpu, "python": platform.python_version(),
                     "load_average_at_end": list(os.getloadavg())},
-        "settings": {"pool": args.pool, "test_views": args.test_views, "seed": args.seed,
+        "settings": {"pool": args.pool, "test_views": args.test_views, "seed": seed,
                      "step_percent": args.step_percent, "jobs": jobs, "threads_per_job": threads,
                      "methods": {m: METHODS[m] + args.set for m in methods}},
-        "timings": timings, "total_wall_s": round(total_wall, 1), "total_cpu_s": round(total_cpu, 1),
+        "timings": timings, "total_wall_s": round(time.perf_counter() - t_start, 1),
+        "total_cpu_s": round(_cpu_self() + _cpu_children() - cpu0, 1),
         "acceptance": acceptance(res),
         "table": {c: {m: r[m]["mean"] for m in res["methods"]} for c, r in res["classes"].items()},
         "mean_over_classes": res["mean_over_classes"],
@@ -386,20 +475,54 @@ def main(argv=None) -> int:
         "clusters": {c: v.get("clusters") for c, v in summaries["Full"]["classes"].items()},
         "evaluation": res,
     }
+    return res, report
+
+
+def main(argv=None) -> int:
+    ap = _parser()
+    cli = sys.argv[1:] if argv is None else list(argv)
+    args = ap.parse_args(argv)
+    try:
+        methods = parse_methods(args.methods)
+        seeds = [int(s) for s in str(args.seed).split(",") if s.strip()]
+    except ValueError as e:
+        ap.error(str(e))
+    if not seeds or len(set(seeds)) != len(seeds):
+        ap.error(f"--seed must name distinct integer seeds, got {args.seed!r}")
+    out = Path(args.out)
+    classes = args.classes.split(",") if args.classes else None
+    command = "python tools/benchmark_synthetic.py " + " ".join(shlex.quote(a) for a in cli)
+
+    from carvi_torch.evaluate import format_viewpoint_table
+    from carvi_torch.io.outputs import write_bytes
+
+    results = Path(args.results)
     tag = "" if not classes else "_" + "_".join(classes)
-    write_json(results / f"benchmark_synthetic{tag}.json", report)
-    table = table1(res)
+    target = results / f"benchmark_synthetic{tag}.json"
+    per_seed, reports = {}, {}
+    for seed in seeds:
+        sout = out if len(seeds) == 1 else out / f"seed{seed}"
+        per_seed[seed], reports[seed] = run_seed(args, seed, sout, methods, classes, command)
+        write_bytes(sout / f"viewpoints{tag}.md", (format_viewpoint_table(per_seed[seed]) + "\n").encode())
+    if len(seeds) == 1:
+        res, record = per_seed[seeds[0]], reports[seeds[0]]
+        table = table1(res)
+        head = "the paper's Table 1 in brackets."
+    else:
+        record = seeds_record(per_seed, reports, command)
+        table = seeds_table(per_seed)
+        head = f"seeds {', '.join(map(str, seeds))} and their mean."
+    write_results(target, record, args.key)
     write_bytes(out / f"table1{tag}.md", (
         f"Symmetric RMS error, % of the ground-truth bounding-box diagonal (surface step {args.step_percent}% "
-        f"of it); the paper's Table 1 in brackets.\n\n{table}\n\nCommand: `{command}`\n").encode())
-    write_bytes(out / f"viewpoints{tag}.md", (format_viewpoint_table(res) + "\n").encode())
+        f"of it); {head}\n\n{table}\n\nCommand: `{command}`\n").encode())
     print()
     print(table)
     print()
-    for k, v in report["acceptance"].items():
-        print(f"  {k}: {v}")
-    print(f"total {total_wall / 60:.1f} min wall, {total_cpu / 60:.1f} min CPU; wrote "
-          f"{results / f'benchmark_synthetic{tag}.json'}, {out / f'table1{tag}.md'}, {out / f'viewpoints{tag}.md'}")
+    for seed in seeds:
+        for k, v in reports[seed]["acceptance"].items():
+            print(f"  seed {seed} {k}: {v}")
+    print(f"wrote {target}" + (f" (key {args.key})" if args.key else "") + f", {out / f'table1{tag}.md'}")
     return 0
 
 

@@ -114,7 +114,7 @@ def mesh_jobs(sel, puffed: set[int], jobs: list[dict], largest: bool, mesh_forma
     float32 vertices and int32 faces: they are sent so (fewer bytes to the writers, the same file)."""
     grids = sel.grids.occupancy
     R, P = sel.scores.shape
-    if len(grids) == 0:  # every reference a puffball
+    if len(grids) == 0 or sel.voted:  # every reference a puffball, or voted grids (held by the selection only)
         occ = sel.best_occupancy.to(grids.device)
     else:
         best_pos = sel.pos.view(R, P).gather(1, sel.best.clamp(min=0)[:, None])[:, 0].clamp(min=0)
