@@ -6,6 +6,8 @@ checkout has no such folder (a user's clone).
 """
 from __future__ import annotations
 
+import importlib.util
+import sys
 from pathlib import Path
 
 import pytest
@@ -22,6 +24,17 @@ def shared_data() -> Path:
         pytest.skip(f"real data not found at {SHARED_DATA} (../shared/data beside the checkout); "
                     "these tests need the PASCAL3D+ CAD models and PASCAL VOC aeroplanes")
     return SHARED_DATA
+
+
+def load_tool(name: str, as_name: str | None = None):
+    """``tools/<name>.py`` loaded as a module (registered in ``sys.modules`` under ``as_name``, default
+    ``name``, so that its dataclasses find their module)."""
+    as_name = as_name or name
+    spec = importlib.util.spec_from_file_location(as_name, ROOT / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[as_name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def render_cad_class(shared_data: Path, out: Path, prefix: str, views: int, seed: int = 0):

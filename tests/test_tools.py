@@ -1,7 +1,6 @@
 """The benchmark tools run, and what they report is consistent (a small class; seconds, not minutes)."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -10,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import load_tool
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -78,7 +78,7 @@ def test_write_record_sets_one_key_and_keeps_the_rest(tmp_path: Path):
 def test_benchmark_records_default_to_their_key_of_the_pages_file():
     """With no ``--out`` the benchmark's records are keys of docs/data/benchmarks.json (docs/benchmarks.md);
     ``--out`` alone is a file of its own."""
-    bm = _benchmark_module()
+    bm = load_tool("benchmark", "benchmark_tool")
     import argparse
 
     import torch
@@ -117,19 +117,12 @@ def test_docs_data_holds_few_records_each_named_by_a_page():
     assert files <= linked, sorted(files - linked)
 
 
-def _benchmark_module():
-    spec = importlib.util.spec_from_file_location("benchmark_tool", ROOT / "tools" / "benchmark.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_many_class_helpers_split_classes_and_fit_fixed_costs(tmp_path: Path):
     """The many-class benchmark's procedural stand-in splits each category round-robin into renamed classes
     with the same metadata; its fixed cost per class is the intercept of a least-squares line (numpy's polyfit)."""
     import numpy as np
 
-    bench = _benchmark_module()
+    bench = load_tool("benchmark", "benchmark_tool")
     cats = [{"id": 1, "name": "car", "symmetry": "none"}, {"id": 2, "name": "bottle", "symmetry": "rotational"}]
     anns = [{"id": i, "image_id": i, "category_id": 1 + i % 2} for i in range(10)]
     src = tmp_path / "src" / "annotations.json"
@@ -265,18 +258,10 @@ def test_stress_inputs_runs_a_few_cases(tmp_path: Path):
         ("control_valid", [0], True), ("json_truncated", [2], True), ("cli_device_tpu", [2], True)]
 
 
-def _load_stress():
-    spec = importlib.util.spec_from_file_location("stress_inputs", STRESS)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["stress_inputs"] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_stress_inputs_checks_catch_bad_outcomes(tmp_path: Path):
     """The tool's checks flag what they must: a wrong exit status, a traceback, a missing phrase, a
     file outside --out, a good object not made, a process of the run left running."""
-    st = _load_stress()
+    st = load_tool("stress_inputs")
     ctx = st.Ctx(st.Case("x", "x", rc=2, error=("device",)), tmp_path / "case", tmp_path, {"annotations": []}, 10)
     ctx.out.parent.mkdir(parents=True)
     before = st.snapshot(ctx.dir)
@@ -296,18 +281,11 @@ def test_stress_inputs_checks_catch_bad_outcomes(tmp_path: Path):
         left.wait()
 
 
-def _synthetic_module():
-    spec = importlib.util.spec_from_file_location("benchmark_synthetic_tool", ROOT / "tools" / "benchmark_synthetic.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_synthetic_benchmark_seeds_table_and_keyed_record(tmp_path: Path):
     """Several seeds: per class and method every seed's mean, missing objects and the mean over the seeds
     (checked by hand on two classes); the record goes under ``--key`` with the file's other keys kept, and a
     top-level write keeps the keyed records; ``--methods`` is case-insensitive and needs Full."""
-    bs = _synthetic_module()
+    bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")
 
     def res(a, b, miss):
         classes = {"bottle": {"Full": {"mean": a, "count": 8 - miss, "missing": miss}},

@@ -6,11 +6,9 @@ and the package's metrics; the real-data tests take the ``shared_data`` fixture.
 """
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,19 +18,12 @@ import trimesh
 
 from carvi_torch.cameras import random_rotations, rotation_from_azimuth_elevation_roll
 from carvi_torch.evaluation.metrics import voxel_iou
+from conftest import load_tool
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _load_tool():
-    spec = importlib.util.spec_from_file_location("voc_study", ROOT / "tools" / "voc_study.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["voc_study"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-vs = _load_tool()
+vs = load_tool("voc_study")
 
 
 def box_mesh(lo, hi) -> trimesh.Trimesh:
