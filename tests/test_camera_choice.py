@@ -178,3 +178,33 @@ def test_a_tilted_refined_camera_keeps_its_sfm_camera_and_a_level_one_keeps_its_
     sfm_bad = sfm.clone()
     sfm_bad[0] = rotation_from_azimuth_elevation_roll(t(a0), t(e0), t(math.radians(160.0 - TILT_MARGIN_DEG + 10)))
     assert not tilted(sfm_bad, refined, has, 30.0)[0]
+
+
+def test_the_pipeline_applies_the_tilt_test(tmp_path, procedural_input, monkeypatch):
+    """``estimate_viewpoints`` wires the tilt test through: a row the test marks tilted ends with its SfM
+    camera, its annotation id in ``refine.kept_sfm.tilted_ids``; the other rows keep the cameras they had."""
+    import carvi_torch.viewpoints as vps
+    from carvi_torch.config import Config
+    from carvi_torch.io.coco import load_coco
+
+    coll = next(iter(load_coco(procedural_input(tmp_path), classes=["car"]).collections.values()))
+    cfg = Config().override({"progress": False, "refine_iters": 20}).viewpoints
+    base = vps.estimate_viewpoints(coll, cfg)
+    assert base.info["refine"]["kept_sfm"]["tilted_ids"] == []
+    n = len(coll)
+    free = (~base.kept_sfm[:n] & base.sfm_valid[:n]).nonzero().squeeze(1)
+    assert len(free) > 0
+    r = int(free[0])
+    assert not torch.equal(base.cameras.R[r], base.sfm_cameras.R[r])
+
+    def row_r_tilted(sfm_R, refined_R, has_sfm, max_deg):
+        out = torch.zeros(len(sfm_R), dtype=torch.bool)
+        out[r] = True
+        return out
+
+    monkeypatch.setattr(vps, "tilted", row_r_tilted)
+    vp = vps.estimate_viewpoints(coll, cfg)
+    assert vp.info["refine"]["kept_sfm"]["tilted_ids"] == [coll.annotation_ids[r]]
+    assert torch.equal(vp.cameras.R[r], vp.sfm_cameras.R[r])
+    others = torch.arange(len(vp.cameras.R)) != r
+    assert torch.equal(vp.cameras.R[others], base.cameras.R[others])
