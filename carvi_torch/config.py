@@ -245,6 +245,11 @@ class SelectConfig:
 
     plane_size: int = 64
     """Resolution of the average masks / proposal projections used for selection."""
+    balance_objects: bool = True
+    """Weight every member of a principal direction's average mask by 1 / (its physical object's views in
+    that cluster, ``carvi_torch.surrogates.object_share``), so that each physical object (``object_id``)
+    counts once however often it was photographed (``False``: every member counts once, the paper's
+    average). Without repeated ``object_id`` (e.g. one annotation per object) nothing changes."""
     consensus: int = 5
     """The selected shape is the voxel-wise majority vote of this many best-ranked proposals
     (``carvi_torch.select.vote_proposals``); 1: the best proposal alone (the paper's)."""

@@ -206,9 +206,9 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     if not todo:  # everything done already (a resumed run) or nothing usable: no maps to prepare
         return None, [], report
     plan.set_todo(todo)
-    axes, clusters = plan.axes, plan.clusters
     with timer("select"):
-        sel = select.class_reference(vp.shape, coll.masks, vp.cameras[:n], clusters.labels, axes, cfg.select.plane_size)
+        sel = select.class_reference(vp.shape, coll.masks, vp.cameras[:n], plan.clusters.labels, plan.axes,
+                                     cfg.select.plane_size, coll.object_groups if cfg.select.balance_objects else None)
     report.info["average_mask_members"] = [int(c) for c in sel.counts.tolist()]
     maps = _maps(vp, plan, todo, sel, cfg, timer)
     return ClassPlan(coll, vp, plan, maps, sel, cdir), todo, report

@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from .cameras import ScaledOrthographic
+from .surrogates import object_share
 
 __all__ = [
     "plane_axes",
@@ -150,6 +151,7 @@ def average_masks(
     centre: torch.Tensor | None = None,
     mode: str = "bilinear",
     chunk: int = 256,
+    weights: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Average mask of each principal direction's cluster, in the class frame.
 
@@ -172,6 +174,8 @@ def average_masks(
         centre: optional ``(3,)`` plane centre (default the object-frame origin).
         mode: ``"bilinear"`` (soft) or ``"nearest"`` lookup.
         chunk: members aligned at once (bounds memory; not a per-instance loop).
+        weights: optional ``(N,)`` non-negative member weights (e.g.
+            :func:`carvi_torch.surrogates.object_share`): each average is then the weighted mean.
 
     Returns:
         ``averages (3, G, G)`` float32 in ``[0, 1]`` (zeros for a direction without
@@ -210,8 +214,16 @@ def average_masks(
         grid = (uv * scale - 1.0).reshape(-1, G, G, 2)
         m = masks[idx].to(torch.float32).unsqueeze(1)  # (c, 1, H, W)
         vals = F.grid_sample(m, grid, mode=mode, padding_mode="zeros", align_corners=True)  # (c,1,G,G)
-        sums.index_add_(0, labels[idx], vals.reshape(-1, G * G))
-    averages = sums / counts.clamp_min(1)[:, None].to(sums.dtype)
+        vals = vals.reshape(-1, G * G)
+        if weights is not None:
+            vals = vals * weights.to(device=dev, dtype=vals.dtype)[idx, None]
+        sums.index_add_(0, labels[idx], vals)
+    if weights is None:
+        total = counts.to(sums.dtype)
+    else:
+        w = weights.to(device=dev, dtype=sums.dtype)[members]
+        total = torch.zeros(3, dtype=sums.dtype, device=dev).index_add_(0, labels[members], w)
+    averages = sums / torch.where(total > 0, total, torch.ones_like(total))[:, None]
     return averages.reshape(3, G, G), counts
 
 
@@ -570,12 +582,16 @@ class SelectionReference:
 
 
 def class_reference(shape: torch.Tensor, masks: torch.Tensor, cameras: ScaledOrthographic, labels: torch.Tensor,
-                    axes: torch.Tensor, plane_size: int) -> SelectionReference:
+                    axes: torch.Tensor, plane_size: int, groups: torch.Tensor | None = None) -> SelectionReference:
     """The class's :class:`SelectionReference` from its mean shape ``(K, 3)``, masks ``(N, H, W)``,
-    cameras ``(N)``, cluster labels ``(N,)`` and principal directions ``(3, 3)``."""
+    cameras ``(N)``, cluster labels ``(N,)`` and principal directions ``(3, 3)``. With ``groups``
+    (``(N,)`` long physical objects) every member is weighted by
+    :func:`carvi_torch.surrogates.object_share`, so each object counts once in its cluster's average."""
     centre = plane_centre(shape)
     extent = plane_extent(shape, centre=centre)
-    avg, counts = average_masks(masks, cameras, labels, axes, plane_size=plane_size, extent=extent, centre=centre)
+    weights = None if groups is None else object_share(labels, groups.to(labels.device))
+    avg, counts = average_masks(masks, cameras, labels, axes, plane_size=plane_size, extent=extent, centre=centre,
+                                weights=weights)
     return SelectionReference(axes, centre, extent, avg, counts, plane_size)
 
 

@@ -37,6 +37,7 @@ __all__ = [
     "principal_directions",
     "cluster_by_direction",
     "cluster_weights",
+    "object_share",
     "sample_triplets",
     "symmetry_axis",
     "symmetric_surrogates",
@@ -324,6 +325,25 @@ def cluster_weights(
 
 #: Member weights (references x 3 x instances) built at once by :func:`sample_triplets`.
 _TRIPLET_CHUNK_ELEMS = 1 << 24
+
+
+def object_share(labels: torch.Tensor, object_ids: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` float: 1 / (members of the same cluster that are views of the same physical object).
+
+    Weighting cluster members by it gives every physical object of a cluster the same total weight,
+    however many views of it the cluster holds. Unclustered instances (label -1) get 1.
+
+    Args:
+        labels: ``(N,)`` long in ``{-1, 0, 1, 2}``; object_ids: ``(N,)`` long.
+
+    Example:
+        >>> object_share(torch.tensor([0, 0, 0, 1, -1]), torch.tensor([7, 7, 8, 7, 7])).tolist()
+        [0.5, 0.5, 1.0, 1.0, 1.0]
+    """
+    key = torch.stack([labels.long(), object_ids.long()], dim=1)
+    _, inverse, counts = torch.unique(key, dim=0, return_inverse=True, return_counts=True)
+    share = 1.0 / counts[inverse].to(torch.float32)
+    return torch.where(labels >= 0, share, torch.ones_like(share))
 
 
 def _member_draws(labels: torch.Tensor, object_ids: torch.Tensor, references: torch.Tensor, eligible: torch.Tensor,

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from carvi_torch.cameras import ScaledOrthographic, random_rotations
+from carvi_torch.surrogates import object_share
 from carvi_torch.select import (
     average_masks,
     keypoint_misses,
@@ -199,6 +200,32 @@ class TestAverageMasks:
         assert bool((avg[1] == 0).all())  # no members -> no average
         mismatch = np.abs(avg.numpy() - expected) > 1e-5
         assert mismatch.mean() < 0.01, mismatch.sum()
+
+    def test_object_weights_vs_one_member_at_a_time(self, generator):
+        """Each physical object counts once: the weighted average equals the mean over objects of each
+        object's mean aligned mask (brute force: one member at a time); unit weights change nothing."""
+        n, H, W, G, ext = 7, 30, 36, 12, 1.1
+        cams = ScaledOrthographic(random_rotations(n, generator), 9 + 3 * torch.rand(n, generator=generator),
+                                  torch.tensor([[18.0, 15.0]]) + 2 * torch.randn(n, 2, generator=generator))
+        masks = torch.rand(n, H, W, generator=generator) > 0.4
+        labels = torch.tensor([0, 0, 0, 0, 2, 2, -1])
+        objects = torch.tensor([5, 5, 5, 6, 5, 7, 6])  # cluster 0: three views of 5 and one of 6
+        axes = random_rotations(1, generator)[0]
+        weights = object_share(labels, objects)
+        avg, counts = average_masks(masks, cams, labels, axes, G, ext, weights=weights)
+        one = [average_masks(masks, cams, torch.where(torch.arange(n) == m, labels, -1), axes, G, ext)[0]
+               for m in range(n)]
+        for j in (0, 2):
+            per_object = {}
+            for m in range(n):
+                if int(labels[m]) == j:
+                    per_object.setdefault(int(objects[m]), []).append(one[m][j])
+            expected = torch.stack([torch.stack(v).mean(0) for v in per_object.values()]).mean(0)
+            torch.testing.assert_close(avg[j], expected, atol=1e-5, rtol=0)
+        assert counts.tolist() == [4, 0, 2] and bool((avg[1] == 0).all())
+        plain, _ = average_masks(masks, cams, labels, axes, G, ext)
+        assert torch.equal(average_masks(masks, cams, labels, axes, G, ext, weights=torch.ones(n))[0], plain)
+        assert not torch.allclose(avg[0], plain[0])  # the rule did something where an object repeats
 
     def test_exceptions(self, axes):
         cams = ScaledOrthographic(torch.eye(3)[None], torch.ones(1), torch.zeros(1, 2))

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from carvi_torch.cameras import ScaledOrthographic, random_rotations
 from carvi_torch.surrogates import (
+    object_share,
     Clusters,
     Triplets,
     cluster_by_direction,
@@ -281,6 +282,15 @@ class TestSampleTriplets:
         brute = [[sum(int(labels[m]) == j and int(object_ids[m]) != int(object_ids[r]) for m in range(len(labels)))
                   for j in range(3)] for r in refs.tolist()]
         assert elig.tolist() == brute
+
+    def test_object_share_vs_brute_force(self, generator):
+        labels = torch.randint(-1, 3, (40,), generator=generator)
+        objects = torch.randint(0, 6, (40,), generator=generator)
+        lab, obj = labels.tolist(), objects.tolist()
+        brute = [1.0 if lab[i] < 0 else 1.0 / sum(lab[k] == lab[i] and obj[k] == obj[i] for k in range(40))
+                 for i in range(40)]
+        torch.testing.assert_close(object_share(labels, objects), torch.tensor(brute), atol=1e-7, rtol=0)
+        assert torch.equal(object_share(labels, torch.arange(40)), torch.ones(40))  # no repeated object: all 1
 
     def test_cluster_weights_stated_rule(self):
         labels = torch.tensor([0] * 30 + [1] * 10 + [2] * 5 + [-1])
