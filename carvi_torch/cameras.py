@@ -119,10 +119,12 @@ def scaled_stiefel(M: torch.Tensor) -> torch.Tensor:
     tr = a + d
     delta = (a * d - b * b).clamp(min=0).sqrt()
     ok = delta > 1e-10 * tr
-    dsafe = torch.where(ok, delta, torch.ones_like(delta))
-    # adj(A + delta I) = [[d + delta, -b], [-b, a + delta]]
-    adj = torch.stack([torch.stack([d + delta, -b], -1), torch.stack([-b, a + delta], -1)], -2)
-    out = adj @ M / (2.0 * dsafe)[..., None, None]
+    # adj(A + delta I) = [[d + delta, -b], [-b, a + delta]] (few ops: this runs in every SfM and camera step)
+    nb = -b
+    adj = torch.stack([d + delta, nb, nb, a + delta], -1).unflatten(-1, (2, 2))
+    out = adj @ M / (2.0 * torch.where(ok, delta, 1.0))[..., None, None]
+    if bool(ok.all()):
+        return out
     # rank < 2 blocks go through the SVD; non-finite blocks stay non-finite (the SVD would fail)
     fallback = ~ok & torch.isfinite(M).flatten(-2).all(-1)
     if bool(fallback.any()):

@@ -491,15 +491,33 @@ def test_fit_rejects_bad_arguments():
 # --------------------------------------------------------------------------- in the pipeline
 
 
-def test_pipeline_viewpoints_refine_every_group_with_its_own_shape(two_shapes):
+def test_pipeline_viewpoints_refine_every_group_with_its_own_shape(two_shapes, monkeypatch):
     """``sfm_groups=2``: the pipeline's cameras (SfM and refined) of the two-shape class, its
-    ``cameras.json`` entries, and the one-shape default unchanged by the new code path."""
+    ``cameras.json`` entries, and the one-shape default unchanged by the new code path. A group's
+    cold SfM runs with :data:`~carvi_torch.viewpoints.mixture.COLD_GROUP_SFM` (the rigid model only),
+    a warm one and the class's own SfM with the run's settings."""
+    import carvi_torch.viewpoints as vpm
     from carvi_torch.config import Config
 
     coll, both, dist, R, truth, fitted = two_shapes
     n = len(coll)
     cfg = Config().override({"sfm_groups": 2, "sfm_group_min": 6, "progress": False, "silhouette_weight": 0.0})
+    calls, plain = [], vpm.class_sfm
+
+    def recorded(sub, cfg_, init_shape=None, **options):
+        res = plain(sub, cfg_, init_shape, **options)
+        calls.append((len(sub), init_shape is None, options, res.iterations, res.planar))
+        return res
+
+    monkeypatch.setattr(vpm, "class_sfm", recorded)
     vp = estimate_viewpoints(coll, cfg.viewpoints)
+    monkeypatch.undo()
+    cold = [c for c in calls if c[0] < 2 * n and c[1]]
+    assert cold and all(c[2] == mix.COLD_GROUP_SFM and not c[4] for c in cold)
+    assert any(not c[1] for c in calls) and all(c[2] == {} for c in calls if not (c[0] < 2 * n and c[1]))
+    assert class_sfm(both, cfg.viewpoints, max_outer=3).iterations <= 3
+    few = Config().override({"sfm_max_outer": 4}).viewpoints
+    assert class_sfm(both, few, max_outer=10 ** 6).iterations <= 4  # an option only lowers the run's limit
     assert vp.groups.k == 2 and torch.equal(vp.groups.labels, fitted.labels)
     assert vp.info["sfm_groups"]["groups"] == 2 and vp.info["sfm_groups"]["sizes"] == [12, 12]
     for key in ("sfm_cameras", "cameras"):

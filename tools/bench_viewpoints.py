@@ -31,6 +31,18 @@ with mixture" is the one-shape SfM, the fit and that refinement.
                                      [--group-threads 2] [--one-thread-too] [--threads-min-objects N]
                                      [--out PATH] [--key KEY]
 
+``--profile-mixture DATA`` runs none of that: it profiles the pipeline's mixture fit on a COCO file
+(``reconstruct stage=cameras`` in this process, ``--profile-set`` its overrides, default
+``sfm_groups=3``) with timers on the process's CPU clock around the fit's parts: every group's SfM
+started cold (the first EM round) and warm (later rounds), each split into its factorisation and
+bundle polish (:mod:`carvi_torch.viewpoints.sfm`) with the outer steps and polish rounds they ran, the
+keypoint-only camera fits, the hull agreements, the k-means starts, the whole fit and viewpoint stage
+per class (the timers only time: the cameras are the run's own). It prints a table per class and
+writes the numbers to ``--out`` (default ``outputs/profile_mixture.json``); docs/viewpoints.md's
+*Cost* profiles the many-class benchmark's renders:
+
+    python tools/bench_viewpoints.py --profile-mixture outputs/bench/data/cad_v8_s0/annotations.json
+
 The JSON record goes to ``--out`` (under ``--key`` when given), by default under the key
 ``viewpoints_speed[_groups<G>][_shapes<S>][_n<N>][_<device>]`` of ``docs/data/viewpoints.json``, the
 records of docs/viewpoints.md (it cites the default run's and ``--shapes 3 --groups 3``'s).
@@ -38,9 +50,12 @@ records of docs/viewpoints.md (it cites the default run's and ``--shapes 3 --gro
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
+import json
 import platform
 import resource
+import tempfile
 import time
 from pathlib import Path
 
@@ -136,6 +151,119 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+PARTS = ["cold:group_sfm", "cold:factorize", "cold:polish", "warm:group_sfm", "warm:factorize", "warm:polish",
+         "keypoint_fit", "hull_agreements", "kmeans", "mixture_total", "viewpoints_total"]
+
+
+class Clock:
+    """CPU seconds and calls per ``(class, part)``; the part's prefix says which kind of group SfM runs."""
+
+    def __init__(self):
+        self.seconds = collections.defaultdict(lambda: collections.defaultdict(float))
+        self.counts = collections.defaultdict(lambda: collections.defaultdict(int))
+        self.cls, self.kind = None, "single"
+
+    def wrap(self, name: str, fn, prefixed: bool = True):
+        def timed(*a, **k):
+            t0 = time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                key = f"{self.kind}:{name}" if prefixed else name
+                self.seconds[self.cls][key] += time.process_time() - t0
+                self.counts[self.cls][key] += 1
+        return timed
+
+    def add(self, name: str, n: int) -> None:
+        self.counts[self.cls][f"{self.kind}:{name}"] += n
+
+
+def instrument_mixture(clock: Clock) -> None:
+    """Wrap the fit's parts (module attributes, so every caller goes through the wrappers)."""
+    import carvi_torch.pipeline as pipeline
+    import carvi_torch.viewpoints.mixture as mixture
+    import carvi_torch.viewpoints.sfm as sfm
+
+    factorize, polish, group_sfm = sfm._factorize, sfm.bundle_polish, mixture._group_sfm
+    fit, viewpoints = mixture.fit_mixture_of_shapes, pipeline.estimate_viewpoints
+
+    def counted_factorize(*a, **k):
+        out = factorize(*a, **k)
+        clock.add("outer_steps", out[4])
+        return out
+
+    def counted_polish(*a, **k):
+        out = polish(*a, **k)
+        clock.add("polish_rounds", len(out[3]))
+        return out
+
+    def kind_group_sfm(both, labels, g, n, sfm_fn, full_shape, init=None):
+        before, clock.kind = clock.kind, "cold" if init is None else "warm"
+        try:
+            return clock.wrap("group_sfm", group_sfm)(both, labels, g, n, sfm_fn, full_shape, init)
+        finally:
+            clock.kind = before
+
+    def mixture_fit(*a, **k):
+        clock.kind = "mixture"
+        try:
+            return clock.wrap("mixture_total", fit, prefixed=False)(*a, **k)
+        finally:
+            clock.kind = "single"
+
+    def class_viewpoints(coll, *a, **k):
+        clock.cls = coll.meta.key
+        return clock.wrap("viewpoints_total", viewpoints, prefixed=False)(coll, *a, **k)
+
+    sfm._factorize = clock.wrap("factorize", counted_factorize)
+    sfm.bundle_polish = clock.wrap("polish", counted_polish)
+    mixture._group_sfm = kind_group_sfm
+    for name in ("keypoint_fit", "hull_agreements", "kmeans_labels"):
+        setattr(mixture, name, clock.wrap(name.replace("_labels", ""), getattr(mixture, name), prefixed=False))
+    mixture.fit_mixture_of_shapes = mixture_fit
+    pipeline.estimate_viewpoints = class_viewpoints
+
+
+def profile_table(clock: Clock) -> tuple[list[str], dict]:
+    """Markdown rows (seconds, and calls / outer steps / polish rounds of the group SfMs) and the JSON record."""
+    rec = {c: {"seconds": {k: round(v, 3) for k, v in sorted(clock.seconds[c].items())},
+               "counts": dict(sorted(clock.counts[c].items()))} for c in sorted(clock.seconds)}
+    total = collections.defaultdict(float)
+    for c in rec.values():
+        for k, v in c["seconds"].items():
+            total[k] += v
+    lines = ["| class | " + " | ".join(PARTS) + " |", "|---|" + "---:|" * len(PARTS)]
+    for c, r in list(rec.items()) + [("**all**", {"seconds": total, "counts": {}})]:
+        lines.append(f"| {c} | " + " | ".join(f"{r['seconds'].get(p, 0.0):.2f}" for p in PARTS) + " |")
+    steps = collections.Counter()
+    for r in rec.values():
+        steps.update(r["counts"])
+    for kind in ("cold", "warm"):
+        calls = steps[f"{kind}:group_sfm"]
+        if calls:
+            lines.append(f"{kind} group SfMs: {calls}, {steps[f'{kind}:outer_steps'] / calls:.1f} outer steps and "
+                         f"{steps[f'{kind}:polish_rounds'] / calls:.1f} polish rounds each")
+    return lines, {"classes": rec, "total_seconds": {k: round(v, 3) for k, v in sorted(total.items())}}
+
+
+def profile_mixture(data: str, overrides: list[str], out: Path) -> dict:
+    """``--profile-mixture``: the timed ``reconstruct stage=cameras`` run, its table and its JSON record."""
+    from carvi_torch import reconstruct
+
+    clock = Clock()
+    instrument_mixture(clock)
+    with tempfile.TemporaryDirectory() as tmp:
+        rc = reconstruct.main(["--data", data, "--out", tmp, "stage=cameras", "progress=false", *overrides])
+    if rc:
+        raise SystemExit(rc)
+    lines, rec = profile_table(clock)
+    print("\n".join(lines))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"data": data, "overrides": overrides, **rec}, indent=1))
+    print(f"wrote {out}")
+    return rec
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -168,7 +296,14 @@ def main(argv=None) -> dict:
     ap.add_argument("--key", default=None, help="write the record under this key of --out's JSON object, its other "
                                                 "keys kept (default with no --out: viewpoints_speed[...], named "
                                                 "after the options that differ from the defaults)")
+    ap.add_argument("--profile-mixture", metavar="DATA", default=None,
+                    help="instead: profile the pipeline's mixture fit on this COCO file (module docstring)")
+    ap.add_argument("--profile-set", nargs="*", default=["sfm_groups=3"], metavar="KEY=VALUE",
+                    help="--profile-mixture: reconstruct overrides (default sfm_groups=3)")
     args = ap.parse_args(argv)
+    if args.profile_mixture:
+        return profile_mixture(args.profile_mixture, args.profile_set,
+                               Path(args.out) if args.out else ROOT / "outputs" / "profile_mixture.json")
     dev = torch.device(args.device)
     vcfg = Config().viewpoints  # the pipeline's viewpoint settings
     out, key = (Path(args.out), args.key) if args.out else (ROOT / "docs" / "data" / "viewpoints.json", args.key or (

@@ -26,6 +26,7 @@ Example:
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
@@ -117,11 +118,17 @@ class Viewpoints:
         return dist
 
 
-def class_sfm(both: ClassCollection, cfg: ViewpointConfig, init_shape: torch.Tensor | None = None) -> sfm.SfMResult:
+def class_sfm(both: ClassCollection, cfg: ViewpointConfig, init_shape: torch.Tensor | None = None,
+              **options) -> sfm.SfMResult:
     """Rigid SfM of a collection with the configured limits and the category's rigid keypoints, names,
-    flip pairs and left/right convention (``init_shape``: a start, :func:`~carvi_torch.viewpoints.sfm.rigid_sfm`)."""
+    flip pairs and left/right convention (``init_shape``: a start, :func:`~carvi_torch.viewpoints.sfm.rigid_sfm`;
+    ``options``: :class:`~carvi_torch.viewpoints.sfm.SfMOptions` fields that replace the configured ones, a
+    ``max_outer`` only lowering ``sfm_max_outer``)."""
     m = both.meta
     opts = sfm.SfMOptions(max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner, tol=cfg.sfm_tol)
+    if "max_outer" in options:
+        options = dict(options, max_outer=min(int(options["max_outer"]), cfg.sfm_max_outer))
+    opts = dataclasses.replace(opts, **options)
     return sfm.rigid_sfm(both.keypoints, both.visible, opts, rigid_keypoints=m.rigid_keypoints,
                          keypoint_names=m.keypoint_names, flip_pairs=m.flip_pairs, left_convention=m.left_convention,
                          init_shape=init_shape)
@@ -207,7 +214,9 @@ def _shape_groups(both, dist, res, cfg: ViewpointConfig, source: str, seed: int,
         return mixture.fit_mixture_of_shapes(both, dist, None, max_groups=1, single=res)
     lines = []
     mix = mixture.fit_mixture_of_shapes(
-        both, dist, lambda sub, init_shape=None: class_sfm(sub, cfg, init_shape), max_groups=cfg.sfm_groups,
+        both, dist, lambda sub, init_shape=None: class_sfm(sub, cfg, init_shape,
+                                                           **(mixture.COLD_GROUP_SFM if init_shape is None else {})),
+        max_groups=cfg.sfm_groups,
         min_size=cfg.sfm_group_min, gain=cfg.sfm_group_gain, agreement_deg=cfg.sfm_group_agreement_deg,
         rounds=cfg.sfm_group_rounds, seed=seed, single=res, log=lines.append, threads=cfg.sfm_group_threads,
         min_misfit=cfg.sfm_group_misfit, hull_gain=None if cfg.sfm_group_hull_gain <= -1 else cfg.sfm_group_hull_gain)
