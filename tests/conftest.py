@@ -7,6 +7,8 @@ checkout has no such folder (a user's clone).
 from __future__ import annotations
 
 import importlib.util
+import json
+import os
 import sys
 from pathlib import Path
 
@@ -52,6 +54,62 @@ def render_cad_class(shared_data: Path, out: Path, prefix: str, views: int, seed
     gt = json.loads((out / "gt.json").read_text())["annotations"]
     R = torch.tensor([gt[str(a)]["R"] for a in coll.annotation_ids], dtype=torch.float64)
     return coll, R, models
+
+
+#: Runs each code of ``argv[1:]`` in a child forked from a process that imported torch and nothing of the
+#: package, the children at once; prints ``[[exit status, stdout, stderr], ...]`` as JSON. torch starts no
+#: thread on import and imports neither ``resource`` nor anything of the package, so a child is a fresh
+#: process for the package; torch's import (seconds per process) is paid once.
+_FORK_EACH = r"""
+import json, os, sys, tempfile, traceback
+import torch  # noqa: F401
+assert not [m for m in sys.modules if m.split(".")[0] == "carvi_torch"] and "resource" not in sys.modules
+tmp, pids = tempfile.mkdtemp(), []
+sys.stdout.flush()
+for i, code in enumerate(sys.argv[1:]):
+    pid = os.fork()
+    if pid == 0:
+        for fd, name in ((1, "out"), (2, "err")):
+            os.dup2(os.open(os.path.join(tmp, f"{i}.{name}"), os.O_WRONLY | os.O_CREAT, 0o600), fd)
+        try:
+            exec(compile(code, "<child>", "exec"), {"__name__": "__main__"})
+            status = 0
+        except SystemExit as e:
+            status = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+            if not isinstance(e.code, (int, type(None))):
+                print(e.code, file=sys.stderr)
+        except BaseException:
+            traceback.print_exc()
+            status = 1
+        sys.stdout.flush(); sys.stderr.flush()
+        os._exit(status)
+    pids.append(pid)
+res = []
+for i, pid in enumerate(pids):
+    status = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+    res.append([status] + [open(os.path.join(tmp, f"{i}.{n}")).read() for n in ("out", "err")])
+    for n in ("out", "err"):
+        os.unlink(os.path.join(tmp, f"{i}.{n}"))
+os.rmdir(tmp)
+print(json.dumps(res))
+"""
+
+
+def run_each_in_a_fresh_process(codes: list[str], **kwargs) -> list[tuple[int, str, str]]:
+    """Each Python source of ``codes`` run as ``__main__`` in a process of its own, all at once (``kwargs``:
+    ``cwd``, ``env`` of ``subprocess.run``): ``(exit status, stdout, stderr)`` per code. Where the system
+    forks, the processes are forked from one that imported torch alone (see ``_FORK_EACH``)."""
+    import subprocess
+
+    if not hasattr(os, "fork"):
+        procs = [subprocess.Popen([sys.executable, "-c", c], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                  text=True, **kwargs) for c in codes]
+        outs = [p.communicate(timeout=300) for p in procs]
+        return [(p.returncode, *o) for p, o in zip(procs, outs)]
+    proc = subprocess.run([sys.executable, "-c", _FORK_EACH, *codes], capture_output=True, text=True, timeout=300,
+                          **kwargs)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return [tuple(r) for r in json.loads(proc.stdout.strip().splitlines()[-1])]
 
 
 #: Objects per class of the embedded procedural collection that the end-to-end tests run on.

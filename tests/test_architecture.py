@@ -6,13 +6,12 @@ function, outside ``if TYPE_CHECKING:`` blocks), so a lazy import cannot hide a 
 from __future__ import annotations
 
 import ast
-import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from conftest import run_each_in_a_fresh_process
 
 PACKAGE = Path(__file__).resolve().parents[1] / "carvi_torch"
 
@@ -185,50 +184,12 @@ NO_RESOURCE = ("import sys; sys.modules['resource'] = None\n"
                "assert r.resource is None and r.peak_rss_mb() is None and r.peak_rss_mb(children=True) is None\n"
                "print('ok')")
 
-#: Runs each code of ``argv[1:]`` in a child forked from a process that imported torch and nothing of the
-#: package (torch's import, seconds per process, is shared; torch starts no thread on import and does not
-#: import ``resource``), the children at once; prints ``[[exit status, stdout, stderr], ...]`` as JSON.
-_FORK_EACH = r"""
-import json, os, sys, tempfile, traceback
-import torch  # noqa: F401
-assert not [m for m in sys.modules if m.split(".")[0] == "carvi_torch"] and "resource" not in sys.modules
-tmp, pids = tempfile.mkdtemp(), []
-sys.stdout.flush()
-for i, code in enumerate(sys.argv[1:]):
-    pid = os.fork()
-    if pid == 0:
-        for fd, name in ((1, "out"), (2, "err")):
-            os.dup2(os.open(os.path.join(tmp, f"{i}.{name}"), os.O_WRONLY | os.O_CREAT, 0o600), fd)
-        try:
-            exec(compile(code, "<child>", "exec"), {"__name__": "__main__"})
-            status = 0
-        except BaseException:
-            traceback.print_exc()
-            status = 1
-        sys.stdout.flush(); sys.stderr.flush()
-        os._exit(status)
-    pids.append(pid)
-res = []
-for i, pid in enumerate(pids):
-    status = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
-    res.append([status] + [open(os.path.join(tmp, f"{i}.{n}")).read() for n in ("out", "err")])
-print(json.dumps(res))
-"""
-
-
 @pytest.fixture(scope="module")
 def imported_alone() -> dict[str, tuple[int, str, str]]:
     """Each of ``ALONE`` imported in a fresh process (forked before anything of the package is imported), and
     :data:`NO_RESOURCE`; all at once: name or code -> (status, stdout, stderr)."""
-    codes = [f"import carvi_torch.{n}" for n in ALONE] + [NO_RESOURCE]
-    if not hasattr(os, "fork"):  # one process each where there is no fork
-        procs = [subprocess.run([sys.executable, "-c", c], capture_output=True, text=True, timeout=180) for c in codes]
-        res = [[p.returncode, p.stdout, p.stderr] for p in procs]
-    else:
-        proc = subprocess.run([sys.executable, "-c", _FORK_EACH, *codes], capture_output=True, text=True, timeout=180)
-        assert proc.returncode == 0, proc.stderr[-2000:]
-        res = json.loads(proc.stdout.strip().splitlines()[-1])
-    return dict(zip(ALONE + [NO_RESOURCE], map(tuple, res)))
+    res = run_each_in_a_fresh_process([f"import carvi_torch.{n}" for n in ALONE] + [NO_RESOURCE])
+    return dict(zip(ALONE + [NO_RESOURCE], res))
 
 
 @pytest.mark.parametrize("name", ALONE)

@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -19,7 +17,7 @@ from carvi_torch.config import Config
 from carvi_torch.runtime import StageTimer
 from carvi_torch.executors import run
 from carvi_torch.reconstruct import main as reconstruct_main
-from conftest import PROCEDURAL_INSTANCES, requires_cuda
+from conftest import PROCEDURAL_INSTANCES, requires_cuda, run_each_in_a_fresh_process
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "progress": False,
@@ -288,13 +286,12 @@ ENTRY_POINTS = ["reconstruct", "evaluate", "export", "datasets"]
 
 @pytest.fixture(scope="module")
 def helps() -> dict[str, tuple[int, str]]:
-    """``python -m carvi_torch.<module> --help`` of every entry point, the processes started at once
-    (each spends seconds importing torch): module -> (exit status, stdout)."""
-    procs = {m: subprocess.Popen([sys.executable, "-m", f"carvi_torch.{m}", "--help"], cwd=ROOT, text=True,
-                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                 env={**os.environ, "PYTHONPATH": str(ROOT)}) for m in ENTRY_POINTS}
-    outs = {m: p.communicate(timeout=120)[0] for m, p in procs.items()}
-    return {m: (procs[m].returncode, outs[m]) for m in ENTRY_POINTS}
+    """``python -m carvi_torch.<module> --help`` of every entry point (``runpy``, as ``-m`` runs it), each in a
+    fresh process, the processes started at once: module -> (exit status, stdout)."""
+    codes = [f"import runpy, sys; sys.argv = ['{m}', '--help']; runpy.run_module('carvi_torch.{m}', "
+             "run_name='__main__', alter_sys=True)" for m in ENTRY_POINTS]
+    res = run_each_in_a_fresh_process(codes, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    return {m: (rc, out) for m, (rc, out, _err) in zip(ENTRY_POINTS, res)}
 
 
 @pytest.mark.parametrize("module", ENTRY_POINTS)
