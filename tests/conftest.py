@@ -56,60 +56,118 @@ def render_cad_class(shared_data: Path, out: Path, prefix: str, views: int, seed
     return coll, R, models
 
 
-#: Runs each code of ``argv[1:]`` in a child forked from a process that imported torch and nothing of the
-#: package, the children at once; prints ``[[exit status, stdout, stderr], ...]`` as JSON. torch starts no
-#: thread on import and imports neither ``resource`` nor anything of the package, so a child is a fresh
-#: process for the package; torch's import (seconds per process) is paid once.
-_FORK_EACH = r"""
+#: The fork server of :func:`run_each_in_a_fresh_process`: a process that imported torch and nothing of the
+#: package, and forks a child per code it is sent (one request per stdin line: JSON ``{"codes", "argv",
+#: "env", "cwd"}``), the children of a request at once; it answers one line, ``[[exit status, stdout,
+#: stderr], ...]`` as JSON. torch starts no thread on import and imports neither ``resource`` nor anything of
+#: the package, so a child is a fresh process for the package; torch's import (seconds per process) is paid
+#: once per session.
+_ZYGOTE = r"""
 import json, os, sys, tempfile, traceback
 import torch  # noqa: F401
 assert not [m for m in sys.modules if m.split(".")[0] == "carvi_torch"] and "resource" not in sys.modules
-tmp, pids = tempfile.mkdtemp(), []
-sys.stdout.flush()
-for i, code in enumerate(sys.argv[1:]):
-    pid = os.fork()
-    if pid == 0:
-        for fd, name in ((1, "out"), (2, "err")):
-            os.dup2(os.open(os.path.join(tmp, f"{i}.{name}"), os.O_WRONLY | os.O_CREAT, 0o600), fd)
-        try:
-            exec(compile(code, "<child>", "exec"), {"__name__": "__main__"})
-            status = 0
-        except SystemExit as e:
-            status = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-            if not isinstance(e.code, (int, type(None))):
-                print(e.code, file=sys.stderr)
-        except BaseException:
-            traceback.print_exc()
-            status = 1
-        sys.stdout.flush(); sys.stderr.flush()
-        os._exit(status)
-    pids.append(pid)
-res = []
-for i, pid in enumerate(pids):
-    status = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
-    res.append([status] + [open(os.path.join(tmp, f"{i}.{n}")).read() for n in ("out", "err")])
-    for n in ("out", "err"):
-        os.unlink(os.path.join(tmp, f"{i}.{n}"))
-os.rmdir(tmp)
-print(json.dumps(res))
+requests, reply = sys.stdin, sys.stdout
+
+
+def child(code, argv, env, cwd, out, err):
+    os.dup2(os.open(os.devnull, os.O_RDONLY), 0)
+    for fd, path in ((1, out), (2, err)):
+        os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), fd)
+    try:
+        if env is not None:
+            os.environ.clear()
+            os.environ.update(env)
+        if cwd is not None:
+            os.chdir(cwd)
+        sys.argv = argv
+        exec(compile(code, "<child>", "exec"), {"__name__": "__main__"})
+        status = 0
+    except SystemExit as e:
+        status = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+        if not isinstance(e.code, (int, type(None))):
+            print(e.code, file=sys.stderr)
+    except BaseException:
+        traceback.print_exc()
+        status = 1
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
+
+
+for line in requests:
+    req = json.loads(line)
+    tmp, pids = tempfile.mkdtemp(), []
+    files = [(os.path.join(tmp, f"{i}.out"), os.path.join(tmp, f"{i}.err")) for i in range(len(req["codes"]))]
+    for code, (out, err) in zip(req["codes"], files):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:
+            child(code, req["argv"], req["env"], req["cwd"], out, err)
+        pids.append(pid)
+    res = []
+    for pid, paths in zip(pids, files):
+        status = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+        res.append([status] + [open(p, errors="replace").read() for p in paths])
+        for p in paths:
+            os.unlink(p)
+    os.rmdir(tmp)
+    reply.write(json.dumps(res) + "\n")
+    reply.flush()
 """
+_zygote: dict = {}
 
 
-def run_each_in_a_fresh_process(codes: list[str], **kwargs) -> list[tuple[int, str, str]]:
-    """Each Python source of ``codes`` run as ``__main__`` in a process of its own, all at once (``kwargs``:
-    ``cwd``, ``env`` of ``subprocess.run``): ``(exit status, stdout, stderr)`` per code. Where the system
-    forks, the processes are forked from one that imported torch alone (see ``_FORK_EACH``)."""
+def _zygote_process():
+    """The fork server, started on first use (stopped at the end of the session: :func:`pytest_sessionfinish`)."""
     import subprocess
 
+    proc = _zygote.get("proc")
+    if proc is None or proc.poll() is not None:
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+        proc = subprocess.Popen([sys.executable, "-c", _ZYGOTE], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                text=True, env=env)
+        _zygote.update(proc=proc)
+    return proc, proc.stdin
+
+
+def pytest_sessionfinish(session, exitstatus):
+    proc = _zygote.pop("proc", None)
+    if proc is not None:
+        proc.stdin.close()  # the server's loop ends
+        try:
+            proc.wait(timeout=30)
+        except Exception:  # noqa: BLE001
+            proc.kill()
+
+
+def run_each_in_a_fresh_process(codes: list[str], argv: list[str] | None = None, env: dict | None = None,
+                                cwd=None, timeout: float = 600) -> list[tuple[int, str, str]]:
+    """Each Python source of ``codes`` run as ``__main__`` in a process of its own, all at once, as ``python -c
+    CODE *argv`` would run it with environment ``env`` (default: this one's) in ``cwd``: ``(exit status,
+    stdout, stderr)`` per code. Where the system forks, the processes are forked from a server that imported
+    torch alone (``_ZYGOTE``); the package's folder is on their path, as ``PYTHONPATH`` puts it."""
+    import select
+    import subprocess
+
+    argv = ["-c", *(argv or [])]
     if not hasattr(os, "fork"):
-        procs = [subprocess.Popen([sys.executable, "-c", c], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                  text=True, **kwargs) for c in codes]
-        outs = [p.communicate(timeout=300) for p in procs]
+        env = {**(os.environ if env is None else env), "PYTHONPATH": str(ROOT)}
+        procs = [subprocess.Popen([sys.executable, "-c", c, *argv[1:]], stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True, env=env, cwd=cwd) for c in codes]
+        outs = [p.communicate(timeout=timeout) for p in procs]
         return [(p.returncode, *o) for p, o in zip(procs, outs)]
-    proc = subprocess.run([sys.executable, "-c", _FORK_EACH, *codes], capture_output=True, text=True, timeout=300,
-                          **kwargs)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return [tuple(r) for r in json.loads(proc.stdout.strip().splitlines()[-1])]
+    proc, requests = _zygote_process()
+    requests.write(json.dumps({"codes": codes, "argv": argv, "env": None if env is None else dict(env),
+                               "cwd": None if cwd is None else str(cwd)}) + "\n")
+    requests.flush()
+    ready, _, _ = select.select([proc.stdout], [], [], timeout)
+    if not ready:
+        proc.kill()
+        raise TimeoutError(f"the fork server's children did not finish within {timeout} s")
+    line = proc.stdout.readline()
+    assert line, "the fork server died"
+    return [tuple(r) for r in json.loads(line)]
 
 
 #: Objects per class of the embedded procedural collection that the end-to-end tests run on.

@@ -4,7 +4,8 @@ References: ``grid_sample`` (samples bit for bit), the torch carving and the per
 voxel for voxel, on random blobs, steep maps and the real PASCAL VOC aeroplanes), a count of the samples
 dense carving reads. The loader's checks are tested white-box (its private build and check functions). The cache's
 rules (private directory, owner, mode and SHA-256 of a library checked before it is loaded, atomic and
-concurrent builds) and the fallbacks without a compiler run in child processes with their own caches:
+concurrent builds) and the fallbacks without a compiler run in child processes with their own caches
+(forked from one that imported torch alone, so each is fresh for the package: conftest's fork server):
 a library that fails a check must be rebuilt, never loaded (a truncated one could kill the process). The
 children's ``c++`` is a shim that copies the library this process built (see ``compiler_shim``); the real
 compiles are this process's own (on a fresh cache) and the portable build's.
@@ -30,6 +31,7 @@ from carvi_torch.carve import carve_proposals, carve_proposals_loop, prepare_map
 from carvi_torch.carve.torch_backend import grid_sample_maps, kernel_inputs
 from carvi_torch.config import Config, ConfigError
 from carvi_torch.sdf import signed_distance
+from conftest import run_each_in_a_fresh_process
 from test_carve import blob_masks, random_cameras, random_proposals
 
 MODULE = "carvi_torch.carve.native"
@@ -233,12 +235,12 @@ print(json.dumps(dict(ok=ok, reason=native.unavailable_reason(), path=str(path),
 
 
 def _run_child(cache: Path, **env_extra) -> tuple[int, dict | None, str]:
+    """``_CHILD`` in a fresh process (forked from one that imported torch alone) with ``cache`` as its cache."""
     env = dict(os.environ, CARVI_TORCH_CACHE=str(cache), PYTHONPATH=str(ROOT))
     env.update(env_extra)
-    proc = subprocess.run([sys.executable, "-c", _CHILD, MODULE], env=env, capture_output=True, text=True,
-                          timeout=600)
-    lines = proc.stdout.strip().splitlines()
-    return proc.returncode, (json.loads(lines[-1]) if proc.returncode == 0 and lines else None), proc.stderr
+    [(rc, out, err)] = run_each_in_a_fresh_process([_CHILD], argv=[MODULE], env=env)
+    lines = out.strip().splitlines()
+    return rc, (json.loads(lines[-1]) if rc == 0 and lines else None), err
 
 
 _SHIM = """#!/bin/sh
@@ -284,12 +286,10 @@ def built_cache(tmp_path_factory, compiler_shim) -> tuple[Path, list]:
     before = log.read_text().count("\n") if log is not None and log.exists() else 0
     cache = tmp_path_factory.mktemp("built")
     env = dict(os.environ, CARVI_TORCH_CACHE=str(cache), PYTHONPATH=str(ROOT), CARVI_SHIM_SECONDS="1.5", **shim_env)
-    procs = [subprocess.Popen([sys.executable, "-c", _CHILD, MODULE], env=env, stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
-    outs = [p.communicate(timeout=600) for p in procs]
-    assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
+    outs = run_each_in_a_fresh_process([_CHILD, _CHILD], argv=[MODULE], env=env)  # two processes at once
+    assert all(rc == 0 for rc, _out, _err in outs), [err[-2000:] for _rc, _out, err in outs]
     assert log is None or log.read_text().count("\n") == before + 1  # one build: the compiler ran once
-    return cache, [json.loads(o[0].strip().splitlines()[-1]) for o in outs]
+    return cache, [json.loads(out.strip().splitlines()[-1]) for _rc, out, _err in outs]
 
 
 def _copy_cache(src: Path, dst: Path) -> Path:
