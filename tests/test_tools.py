@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import load_tool
+from conftest import load_tool, run_each_in_a_fresh_process
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -194,10 +194,9 @@ def helps() -> dict[str, subprocess.CompletedProcess]:
     """Every tool's ``--help``, run as its own ``__main__`` in one fresh process (a process per tool would
     import torch once per tool): tool -> its status, stdout and stderr."""
     scripts = [str(ROOT / "tools" / t) for t in TOOLS]
-    res = subprocess.run([sys.executable, "-c", _HELP_EACH, *scripts], cwd=ROOT, capture_output=True, text=True,
-                         timeout=300)
-    assert res.returncode == 0, res.stderr[-2000:]
-    done = json.loads(res.stdout)
+    [(rc, out, err)] = run_each_in_a_fresh_process([_HELP_EACH], argv=scripts, cwd=ROOT)
+    assert rc == 0, err[-2000:]
+    done = json.loads(out)
     return {t: subprocess.CompletedProcess([sys.executable, s, "--help"], *done[s]) for t, s in zip(TOOLS, scripts)}
 
 
