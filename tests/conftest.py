@@ -194,6 +194,26 @@ def procedural_input(tmp_path_factory):
     return copy_to
 
 
+#: The settings of :func:`pipeline_run`: every stage at a tiny size.
+PIPELINE_TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "progress": False,
+        "refine_iters": 30, "plane_size": 32, "preview": True, "report": False, "keep_all_scores": True}
+
+
+@pytest.fixture(scope="session")
+def pipeline_run(tmp_path_factory, procedural_input):
+    """A run of every class of the embedded collection with ``PIPELINE_TINY`` (without ``--data``: it takes the
+    collection from ``out/input``), once per session: ``(out, summary)``. Tests read it; test_pipeline.py's
+    reruns into it resume every object and change none of its outputs."""
+    from carvi_torch.config import Config
+    from carvi_torch.executors import run
+
+    out = tmp_path_factory.mktemp("run")
+    assert PIPELINE_TINY["procedural_instances"] == PROCEDURAL_INSTANCES
+    procedural_input(out)
+    summary = run(Config().override({**PIPELINE_TINY, "out": str(out)}))
+    return out, summary
+
+
 @pytest.fixture
 def generator() -> torch.Generator:
     """A seeded CPU generator, so every test is deterministic."""

@@ -17,11 +17,10 @@ from carvi_torch.config import Config
 from carvi_torch.runtime import StageTimer
 from carvi_torch.executors import run
 from carvi_torch.reconstruct import main as reconstruct_main
-from conftest import PROCEDURAL_INSTANCES, requires_cuda, run_each_in_a_fresh_process
+from conftest import PIPELINE_TINY, requires_cuda, run_each_in_a_fresh_process
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "progress": False,
-        "refine_iters": 30, "plane_size": 32, "preview": True, "report": False, "keep_all_scores": True}
+TINY = PIPELINE_TINY
 
 
 def _cfg(out, **extra):
@@ -29,13 +28,10 @@ def _cfg(out, **extra):
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory, procedural_input):
-    """A run without ``--data``: it takes the embedded collection (generated once per session) from ``out/input``."""
-    out = tmp_path_factory.mktemp("run")
-    assert TINY["procedural_instances"] == PROCEDURAL_INSTANCES
-    procedural_input(out)
-    summary = run(_cfg(out))
-    return out, summary
+def tiny(pipeline_run):
+    """A run without ``--data`` (settings ``TINY``): it took the embedded collection from ``out/input``; the
+    session's run, which test_frame.py reads too."""
+    return pipeline_run
 
 
 def test_outputs_exist(tiny):
