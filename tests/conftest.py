@@ -158,7 +158,8 @@ def run_each_in_a_fresh_process(codes: list[str], argv: list[str] | None = None,
         outs = [p.communicate(timeout=timeout) for p in procs]
         return [(p.returncode, *o) for p, o in zip(procs, outs)]
     proc, requests = _zygote_process()
-    requests.write(json.dumps({"codes": codes, "argv": argv, "env": None if env is None else dict(env),
+    env = dict(os.environ if env is None else env)  # as subprocess: the caller's environment of now
+    requests.write(json.dumps({"codes": codes, "argv": argv, "env": env,
                                "cwd": None if cwd is None else str(cwd)}) + "\n")
     requests.flush()
     ready, _, _ = select.select([proc.stdout], [], [], timeout)

@@ -20,12 +20,16 @@ def test_benchmark_carving_comparison_on_a_small_class(tmp_path: Path):
     record goes under ``--key`` of ``--out``, whose other records stay as they were."""
     out = tmp_path / "bench.json"
     out.write_text(json.dumps({"older": {"command": "kept"}}))
-    cmd = [sys.executable, str(ROOT / "tools" / "benchmark.py"), "--objects", "20", "--carve-objects", "2",
-           "--loop-objects", "1", "--repeat", "1", "--skip-e2e", "--threads", "1", "--resolution", "32",
-           "--proposals", "8", "--data-dir", str(tmp_path / "data"), "--work-dir", str(tmp_path / "runs"),
-           "--out", str(out), "--key", "small"]
-    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300,
-                         env=dict(os.environ, OMP_NUM_THREADS="1"))
+    script = str(ROOT / "tools" / "benchmark.py")
+    argv = [script, "--objects", "20", "--carve-objects", "2",
+            "--loop-objects", "1", "--repeat", "1", "--skip-e2e", "--threads", "1", "--resolution", "32",
+            "--proposals", "8", "--data-dir", str(tmp_path / "data"), "--work-dir", str(tmp_path / "runs"),
+            "--out", str(out), "--key", "small"]
+    # `python tools/benchmark.py ...` in a fresh process, on one torch thread (as OMP_NUM_THREADS=1 would run it)
+    code = (f"import runpy, sys, torch; torch.set_num_threads(1); sys.argv = {argv!r}; "
+            f"runpy.run_path({script!r}, run_name='__main__')")
+    [(rc, stdout, stderr)] = run_each_in_a_fresh_process([code], cwd=ROOT, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    res = subprocess.CompletedProcess(argv, rc, stdout, stderr)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     records = json.loads(out.read_text())
     assert sorted(records) == ["older", "small"] and records["older"] == {"command": "kept"}
