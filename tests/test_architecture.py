@@ -6,11 +6,12 @@ function, outside ``if TYPE_CHECKING:`` blocks), so a lazy import cannot hide a 
 from __future__ import annotations
 
 import ast
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from conftest import run_each_in_a_fresh_process
 
 PACKAGE = Path(__file__).resolve().parents[1] / "carvi_torch"
 
@@ -140,14 +141,10 @@ def test_pipeline_only_orders_the_stages():
     assert len((PACKAGE / "pipeline.py").read_text().splitlines()) <= 400
 
 
-def test_peak_memory_without_the_resource_module(monkeypatch):
+def test_peak_memory_without_the_resource_module(imported_alone):
     """Windows has no ``resource``: importing the package and running its process code must not need it."""
-    code = ("import sys; sys.modules['resource'] = None\n"
-            "import carvi_torch.pipeline, carvi_torch.runtime as r\n"
-            "assert r.resource is None and r.peak_rss_mb() is None and r.peak_rss_mb(children=True) is None\n"
-            "print('ok')")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+    rc, out, err = imported_alone[NO_RESOURCE]
+    assert rc == 0 and out.strip() == "ok", err[-2000:]
 
 
 def test_maxrss_units_per_platform():
@@ -181,19 +178,22 @@ def test_writer_processes_are_never_forked():
 
 
 ALONE = ["pipeline", "config", "viewpoints", "carve", "surrogates", "select"]
-
+#: The code of the ``resource`` check: the package imported where ``import resource`` fails, as on Windows.
+NO_RESOURCE = ("import sys; sys.modules['resource'] = None\n"
+               "import carvi_torch.pipeline, carvi_torch.runtime as r\n"
+               "assert r.resource is None and r.peak_rss_mb() is None and r.peak_rss_mb(children=True) is None\n"
+               "print('ok')")
 
 @pytest.fixture(scope="module")
-def imported_alone() -> dict[str, tuple[int, str]]:
-    """Each of ``ALONE`` imported in a fresh process, the processes started at once: name -> (status, stderr)."""
-    procs = {n: subprocess.Popen([sys.executable, "-c", f"import carvi_torch.{n}"], text=True,
-                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE) for n in ALONE}
-    errs = {n: p.communicate(timeout=180)[1] for n, p in procs.items()}
-    return {n: (procs[n].returncode, errs[n]) for n in ALONE}
+def imported_alone() -> dict[str, tuple[int, str, str]]:
+    """Each of ``ALONE`` imported in a fresh process (forked before anything of the package is imported), and
+    :data:`NO_RESOURCE`; all at once: name or code -> (status, stdout, stderr)."""
+    res = run_each_in_a_fresh_process([f"import carvi_torch.{n}" for n in ALONE] + [NO_RESOURCE])
+    return dict(zip(ALONE + [NO_RESOURCE], res))
 
 
 @pytest.mark.parametrize("name", ALONE)
 def test_stage_modules_import_alone(name, imported_alone):
     """Every stage module imports in a fresh process on its own (no hidden order dependency)."""
-    rc, err = imported_alone[name]
+    rc, _out, err = imported_alone[name]
     assert rc == 0, err[-2000:]

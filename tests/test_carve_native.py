@@ -4,8 +4,11 @@ References: ``grid_sample`` (samples bit for bit), the torch carving and the per
 voxel for voxel, on random blobs, steep maps and the real PASCAL VOC aeroplanes), a count of the samples
 dense carving reads. The loader's checks are tested white-box (its private build and check functions). The cache's
 rules (private directory, owner, mode and SHA-256 of a library checked before it is loaded, atomic and
-concurrent builds) and the fallbacks without a compiler run in child processes with their own caches:
-a library that fails a check must be rebuilt, never loaded (a truncated one could kill the process).
+concurrent builds) and the fallbacks without a compiler run in child processes with their own caches
+(forked from one that imported torch alone, so each is fresh for the package: conftest's fork server):
+a library that fails a check must be rebuilt, never loaded (a truncated one could kill the process). The
+children's ``c++`` is a shim that copies the library this process built (see ``compiler_shim``); the real
+compiles are this process's own (on a fresh cache) and the portable build's.
 """
 from __future__ import annotations
 
@@ -28,6 +31,7 @@ from carvi_torch.carve import carve_proposals, carve_proposals_loop, prepare_map
 from carvi_torch.carve.torch_backend import grid_sample_maps, kernel_inputs
 from carvi_torch.config import Config, ConfigError
 from carvi_torch.sdf import signed_distance
+from conftest import run_each_in_a_fresh_process
 from test_carve import blob_masks, random_cameras, random_proposals
 
 MODULE = "carvi_torch.carve.native"
@@ -144,9 +148,13 @@ def test_the_other_variant_carves_too():
 
 
 @needs_kernel
-def test_the_portable_build_carves_like_the_x86_one(tmp_path):
+def test_the_portable_build_carves_like_the_x86_one(tmp_path, monkeypatch):
     """The code for processors without AVX2 (``CARVI_NO_X86``: what aarch64 compiles, and MSVC) builds,
-    gives the plain variant's labels, and refuses the fma variant instead of running AVX2 code."""
+    gives the plain variant's labels, and refuses the fma variant instead of running AVX2 code. Built with
+    ``-O0`` instead of ``-O3`` (the same float arithmetic: ``-ffp-contract=off``, no fast math), which halves
+    the compile; the optimised build is the one every other test runs."""
+    assert native._FLAGS[0] == "-O3"
+    monkeypatch.setattr(native, "_FLAGS", ["-O0", *native._FLAGS[1:]])
     d = native._private_dir(tmp_path / "kernels")
     namespace = f"carvi_portable_{native._key()}"  # its own namespace: loading it beside the x86 one is safe
     path = d / f"{namespace}.so"
@@ -227,27 +235,61 @@ print(json.dumps(dict(ok=ok, reason=native.unavailable_reason(), path=str(path),
 
 
 def _run_child(cache: Path, **env_extra) -> tuple[int, dict | None, str]:
+    """``_CHILD`` in a fresh process (forked from one that imported torch alone) with ``cache`` as its cache."""
     env = dict(os.environ, CARVI_TORCH_CACHE=str(cache), PYTHONPATH=str(ROOT))
     env.update(env_extra)
-    proc = subprocess.run([sys.executable, "-c", _CHILD, MODULE], env=env, capture_output=True, text=True,
-                          timeout=600)
-    lines = proc.stdout.strip().splitlines()
-    return proc.returncode, (json.loads(lines[-1]) if proc.returncode == 0 and lines else None), proc.stderr
+    [(rc, out, err)] = run_each_in_a_fresh_process([_CHILD], argv=[MODULE], env=env)
+    lines = out.strip().splitlines()
+    return rc, (json.loads(lines[-1]) if rc == 0 and lines else None), err
+
+
+_SHIM = """#!/bin/sh
+# Stands in for the C++ compiler `c++` in the cache tests' child processes: it "builds" the kernel by
+# copying the library this process already built from the same sources, flags, compiler name and torch
+# (so the same file name and operator namespace), after a pause as long as a build's first seconds.
+echo "$*" >> "{log}"
+out=""; prev=""
+for a in "$@"; do [ "$prev" = "-o" ] && out="$a"; prev="$a"; done
+[ -n "$out" ] || {{ echo "c++ shim: no -o" >&2; exit 1; }}
+sleep "${{CARVI_SHIM_SECONDS:-0}}"
+exec cp "{lib}" "$out"
+"""
 
 
 @pytest.fixture(scope="module")
-def built_cache(tmp_path_factory) -> tuple[Path, list]:
-    """A cache built by two child processes started at once (the lock lets one build, the other wait and
-    load); the tests that tamper with it work on copies. Also the children's reports."""
+def compiler_shim(tmp_path_factory) -> tuple[dict, Path]:
+    """``PATH`` (and ``CXX`` unset) so that a child's build runs ``c++`` = a shim that copies this process's
+    library instead of compiling it again: the cache's rules, lock, atomic replace and checks all run as in a
+    real build, in a fraction of a compile's time. The key hashes the compiler's name, ``c++`` either way.
+    Also the log of the shim's invocations (one line per build). A real compile is this process's own build
+    (on a fresh cache) and the portable build's test."""
     if not native.available():
         pytest.skip(f"kernel unavailable: {native.unavailable_reason()}")
+    if os.environ.get("CXX"):  # the shim stands in for the default compiler `c++` only: children compile
+        return {}, None
+    lib = Path(native.status()["path"])
+    assert lib.name == f"carve_native-{native._key()}.so"
+    d = tmp_path_factory.mktemp("shim")
+    log = d / "builds.log"
+    (d / "c++").write_text(_SHIM.format(log=log, lib=lib))
+    os.chmod(d / "c++", 0o755)
+    env = {"PATH": f"{d}{os.pathsep}{os.environ.get('PATH', '')}", "CXX": ""}
+    return env, log
+
+
+@pytest.fixture(scope="module")
+def built_cache(tmp_path_factory, compiler_shim) -> tuple[Path, list]:
+    """A cache built by two child processes started at once (the lock lets one build, the other wait and
+    load); the tests that tamper with it work on copies. Also the children's reports. The build takes 1.5 s
+    (the shim's pause), so the second child finds the first one building."""
+    shim_env, log = compiler_shim
+    before = log.read_text().count("\n") if log is not None and log.exists() else 0
     cache = tmp_path_factory.mktemp("built")
-    env = dict(os.environ, CARVI_TORCH_CACHE=str(cache), PYTHONPATH=str(ROOT))
-    procs = [subprocess.Popen([sys.executable, "-c", _CHILD, MODULE], env=env, stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
-    outs = [p.communicate(timeout=600) for p in procs]
-    assert all(p.returncode == 0 for p in procs), [o[1][-2000:] for o in outs]
-    return cache, [json.loads(o[0].strip().splitlines()[-1]) for o in outs]
+    env = dict(os.environ, CARVI_TORCH_CACHE=str(cache), PYTHONPATH=str(ROOT), CARVI_SHIM_SECONDS="1.5", **shim_env)
+    outs = run_each_in_a_fresh_process([_CHILD, _CHILD], argv=[MODULE], env=env)  # two processes at once
+    assert all(rc == 0 for rc, _out, _err in outs), [err[-2000:] for _rc, _out, err in outs]
+    assert log is None or log.read_text().count("\n") == before + 1  # one build: the compiler ran once
+    return cache, [json.loads(out.strip().splitlines()[-1]) for _rc, out, _err in outs]
 
 
 def _copy_cache(src: Path, dst: Path) -> Path:
@@ -258,9 +300,10 @@ def _copy_cache(src: Path, dst: Path) -> Path:
     return lib[0]
 
 
-def _assert_rebuilt(cache: Path, lib: Path, tampered: bytes | None, why: str) -> None:
-    """A child process finds the library rejected for ``why``, rebuilds it (no crash) and uses it."""
-    rc, res, err = _run_child(cache)
+def _assert_rebuilt(cache: Path, lib: Path, tampered: bytes | None, why: str, env: dict) -> None:
+    """A child process (environment ``env`` added) finds the library rejected for ``why``, rebuilds it (no
+    crash) and uses it."""
+    rc, res, err = _run_child(cache, **env)
     assert rc == 0, f"child died ({rc}): {err[-2000:]}"
     assert res["ok"] and res["path"] == str(lib), res
     assert res["rebuilt"] is not None and why in res["rebuilt"], res
@@ -305,7 +348,7 @@ def _planted_library(tmp_path: Path, marker: Path) -> bytes:
 
 
 @needs_kernel
-def test_a_planted_library_is_rebuilt_not_loaded(tmp_path, built_cache):
+def test_a_planted_library_is_rebuilt_not_loaded(tmp_path, built_cache, compiler_shim):
     """A library of another owner, mode 0777, with a matching hash beside it: rebuilt, its constructor never runs."""
     marker = tmp_path / "marker"
     planted = _planted_library(tmp_path, marker)
@@ -318,7 +361,10 @@ def test_a_planted_library_is_rebuilt_not_loaded(tmp_path, built_cache):
     if os.getuid() == 0:
         os.chown(lib, 12345, 12345)
         why = "belongs to uid 12345"
-    _assert_rebuilt(cache, lib, planted, why)
+    shim_env, log = compiler_shim
+    before = log.read_text().count("\n") if log is not None else 0
+    _assert_rebuilt(cache, lib, planted, why, shim_env)
+    assert log is None or log.read_text().count("\n") == before + 1  # the rebuild ran the compiler
     assert not marker.exists(), "the planted library was loaded"
 
 

@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import warnings
 from pathlib import Path
 
@@ -13,6 +11,7 @@ import torch
 import trimesh
 
 from carvi_torch import datasets
+from conftest import run_each_in_a_fresh_process
 from carvi_torch.cameras import ScaledOrthographic
 from carvi_torch.synthetic.meshes import Model, infer_flip_pairs, load_cad_npz, load_models
 from carvi_torch.synthetic.render import rasterize_triangles, render_dataset
@@ -297,6 +296,9 @@ def test_cli_voc_converts_fixtures(tmp_path, capsys):
 
 
 def test_cli_module_entry_point():
-    res = subprocess.run([sys.executable, "-m", "carvi_torch.datasets", "synthetic", "--help"], cwd=ROOT,
-                         capture_output=True, text=True, env={"PYTHONPATH": str(ROOT), "PATH": ""}, timeout=120)
-    assert res.returncode == 0 and "--meshes" in res.stdout
+    """``python -m carvi_torch.datasets synthetic --help`` (``runpy``, as ``-m`` runs it) in a fresh process
+    whose environment holds only ``PYTHONPATH`` and an empty ``PATH``."""
+    code = ("import runpy, sys; sys.argv = ['datasets', 'synthetic', '--help']; "
+            "runpy.run_module('carvi_torch.datasets', run_name='__main__', alter_sys=True)")
+    [(rc, out, err)] = run_each_in_a_fresh_process([code], cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": ""})
+    assert rc == 0 and "--meshes" in out, err[-2000:]

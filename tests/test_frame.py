@@ -255,18 +255,14 @@ def test_camera_to_object_inverts_the_projection(generator):
 # --------------------------------------------------------------------------- end to end
 
 
-def test_outputs_are_written_in_the_pascal3d_frame(tmp_path):
+def test_outputs_are_written_in_the_pascal3d_frame(pipeline_run):
     """Procedural objects are built in the PASCAL3D+ frame: with the shipped templates the written cameras
     need no fitted rotation (absolute ~ aligned error), azimuth/elevation are PASCAL3D+'s, and the voxel
-    grids' ``voxel_to_object`` put each object upright (its largest extent along y for a car)."""
-    from carvi_torch.config import Config
+    grids' ``voxel_to_object`` put each object upright (its largest extent along y for a car). Read from the
+    session's tiny run (conftest's ``pipeline_run``: resolution 20, six procedural objects per class)."""
     from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report
-    from carvi_torch.executors import run
 
-    cfg = Config().override({"procedural_instances": 8, "resolution": 20, "proposals": 3, "canvas_size": 64,
-                             "progress": False, "refine_iters": 30, "plane_size": 32, "preview": False, "report": False,
-                             "classes": ["car"], "out": str(tmp_path)})
-    summary = run(cfg)
+    tmp_path, summary = pipeline_run
     assert summary["classes"]["car"]["frame"]["kind"] == "template"
     cams = json.loads((tmp_path / "car" / "cameras.json").read_text())
     assert cams["frame"] == "template" and cams["frame_info"]["residual"] < MAX_TEMPLATE_RESIDUAL

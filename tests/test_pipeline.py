@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -19,11 +17,10 @@ from carvi_torch.config import Config
 from carvi_torch.runtime import StageTimer
 from carvi_torch.executors import run
 from carvi_torch.reconstruct import main as reconstruct_main
-from conftest import PROCEDURAL_INSTANCES, requires_cuda
+from conftest import PIPELINE_TINY, requires_cuda, run_each_in_a_fresh_process
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "progress": False,
-        "refine_iters": 30, "plane_size": 32, "preview": True, "report": False, "keep_all_scores": True}
+TINY = PIPELINE_TINY
 
 
 def _cfg(out, **extra):
@@ -31,13 +28,10 @@ def _cfg(out, **extra):
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory, procedural_input):
-    """A run without ``--data``: it takes the embedded collection (generated once per session) from ``out/input``."""
-    out = tmp_path_factory.mktemp("run")
-    assert TINY["procedural_instances"] == PROCEDURAL_INSTANCES
-    procedural_input(out)
-    summary = run(_cfg(out))
-    return out, summary
+def tiny(pipeline_run):
+    """A run without ``--data`` (settings ``TINY``): it took the embedded collection from ``out/input``; the
+    session's run, which test_frame.py reads too."""
+    return pipeline_run
 
 
 def test_outputs_exist(tiny):
@@ -288,13 +282,12 @@ ENTRY_POINTS = ["reconstruct", "evaluate", "export", "datasets"]
 
 @pytest.fixture(scope="module")
 def helps() -> dict[str, tuple[int, str]]:
-    """``python -m carvi_torch.<module> --help`` of every entry point, the processes started at once
-    (each spends seconds importing torch): module -> (exit status, stdout)."""
-    procs = {m: subprocess.Popen([sys.executable, "-m", f"carvi_torch.{m}", "--help"], cwd=ROOT, text=True,
-                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                 env={**os.environ, "PYTHONPATH": str(ROOT)}) for m in ENTRY_POINTS}
-    outs = {m: p.communicate(timeout=120)[0] for m, p in procs.items()}
-    return {m: (procs[m].returncode, outs[m]) for m in ENTRY_POINTS}
+    """``python -m carvi_torch.<module> --help`` of every entry point (``runpy``, as ``-m`` runs it), each in a
+    fresh process, the processes started at once: module -> (exit status, stdout)."""
+    codes = [f"import runpy, sys; sys.argv = ['{m}', '--help']; runpy.run_module('carvi_torch.{m}', "
+             "run_name='__main__', alter_sys=True)" for m in ENTRY_POINTS]
+    res = run_each_in_a_fresh_process(codes, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    return {m: (rc, out) for m, (rc, out, _err) in zip(ENTRY_POINTS, res)}
 
 
 @pytest.mark.parametrize("module", ENTRY_POINTS)
@@ -618,13 +611,14 @@ def test_a_class_failing_midway_keeps_finished_objects_and_their_scores(tiny, mo
     assert set(written) <= set(merged) and len(merged) == again["resumed"] + again["reconstructed"]
 
 
-def test_shape_groups_run_end_to_end(tmp_path):
+def test_shape_groups_run_end_to_end(tmp_path, procedural_input):
     """``sfm_groups > 1`` through every stage: the fit is reported, cameras.json and meshes are written."""
-    summary = run(_cfg(tmp_path, classes=["car"], sfm_groups=2, sfm_group_min=2, procedural_instances=8,
+    procedural_input(tmp_path)  # the embedded collection of the session (6 per class), where the run looks for it
+    summary = run(_cfg(tmp_path, classes=["car"], sfm_groups=2, sfm_group_min=2,
                        sfm_group_misfit=0, sfm_group_hull_gain=-1))  # a split kept on the keypoint rules alone
     info = summary["classes"]["car"]["sfm_groups"]
-    assert info["groups"] == 2 and sum(info["sizes"]) == 8  # this seed splits: the per-group paths run
+    assert info["groups"] == 2 and sum(info["sizes"]) == 6  # this seed splits: the per-group paths run
     assert len(info["candidates"]) == 2 and all(c["k"] == 2 for c in info["candidates"])
     cams = json.loads((tmp_path / "car" / "cameras.json").read_text())
     assert len(cams["shape_groups"]) == 2 and {c["shape_group"] for c in cams["cameras"].values()} == {0, 1}
-    assert summary["classes"]["car"]["reconstructed"] == 8
+    assert summary["classes"]["car"]["reconstructed"] == 6

@@ -25,6 +25,7 @@ from carvi_torch.config import Config, ConfigError
 from carvi_torch.executors import exit_status, run
 from carvi_torch.io.coco import load_coco
 from carvi_torch.reconstruct import main as reconstruct_main
+from conftest import run_each_in_a_fresh_process
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = {"resolution": 16, "proposals": 3, "canvas_size": 48, "progress": False, "refine_iters": 20,
@@ -503,9 +504,10 @@ def test_exit_status_says_when_nothing_came_out(base, tmp_path):
 
 def test_files_take_the_umask(base, tmp_path):
     code = ("import os, sys; os.umask(0o022); from carvi_torch.io.outputs import write_json; "
-            "write_json(sys.argv[1], {'a': 1}); print(oct(os.stat(sys.argv[1]).st_mode & 0o777))")
-    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "x.json")], capture_output=True, text=True)
-    assert out.stdout.strip() == "0o644", out.stderr
+            f"path = {str(tmp_path / 'x.json')!r}; write_json(path, {{'a': 1}}); "
+            "print(oct(os.stat(path).st_mode & 0o777))")
+    [(rc, out, err)] = run_each_in_a_fresh_process([code])  # the umask is the process's own
+    assert rc == 0 and out.strip() == "0o644", err
 
 
 def test_export_finds_the_runs_data_and_names_a_broken_chunk(base, tmp_path, monkeypatch):
@@ -544,7 +546,6 @@ def _carvi_in_process(argv: list[str], capsys) -> tuple[int, str, str]:
 
 
 def test_one_cli_and_a_log(base, tmp_path, capsys):
-    carvi = [sys.executable, "-m", "carvi_torch.cli"]
     # the version and every command's help, through the same main as the command line below (in this process:
     # each fresh process spends seconds importing torch; `python -m carvi_torch.X --help` of every module
     # runs in processes of its own in test_pipeline.py)
@@ -556,12 +557,14 @@ def test_one_cli_and_a_log(base, tmp_path, capsys):
         assert rc == 0 and "usage:" in out and (cmd == "datasets" or "--classes" in out), (cmd, err)
     data = _write(tmp_path, base)
     out = tmp_path / "run"
-    r = subprocess.run(carvi + ["reconstruct", "--data", str(data), "--out", str(out), "--classes", "car",
-                                "sfm_max_outer=2", "resolution=16", "proposals=3", "canvas_size=48", "preview=false",
-                                "report=false"],
-                       capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr[-2000:]
+    argv = ["carvi", "reconstruct", "--data", str(data), "--out", str(out), "--classes", "car", "sfm_max_outer=2",
+            "resolution=16", "proposals=3", "canvas_size=48", "preview=false", "report=false"]
+    # `python -m carvi_torch.cli reconstruct ...` in a process of its own (runpy, as -m runs it)
+    [(rc, stdout, stderr)] = run_each_in_a_fresh_process(
+        [f"import runpy, sys; sys.argv = {argv!r}; runpy.run_module('carvi_torch.cli', run_name='__main__', "
+         "alter_sys=True)"])
+    assert rc == 0, stderr[-2000:]
     # a warning that reaches summary.json also reaches the terminal, the log and the table
-    assert "SfM stopped at its iteration limits" in r.stderr
+    assert "SfM stopped at its iteration limits" in stderr
     assert "SfM stopped at its iteration limits" in (out / "run.log").read_text()
-    assert "warnings" in r.stdout.splitlines()[0] and "warning: sfm:" in r.stdout
+    assert "warnings" in stdout.splitlines()[0] and "warning: sfm:" in stdout

@@ -152,7 +152,7 @@ def test_warm_and_cold_em_agree_on_two_shapes(two_shapes):
     (each SfM's own choice) are aligned."""
     coll, both, dist, R, truth, fitted = two_shapes
     n = len(coll)
-    single = _sfm(both)
+    single = fitted.single  # the one-shape SfM of this class (_sfm(both)): the fit ran it
     cost1, cams1 = mix.keypoint_fit(single.shape, both, dist, n)
     start = truth.clone()
     start[:3] = 1 - start[:3]  # three objects start in the wrong group
@@ -184,7 +184,7 @@ def test_a_warm_sfm_that_fails_is_run_cold(two_shapes):
             raise torch.linalg.LinAlgError("singular")
         return _sfm(sub)
 
-    single = _sfm(both)
+    single = fitted.single  # _sfm(both), run by the fit
     _c, cams1 = mix.keypoint_fit(single.shape, both, dist, n)
     start = truth.clone()
     start[:3] = 1 - start[:3]  # a second round is needed, whose SfM starts warm
@@ -347,10 +347,10 @@ def test_fit_finds_the_two_shapes_and_their_cameras(two_shapes):
         assert 1 <= c["rounds"] <= 7 and len(c["moved"]) == c["rounds"]
         assert c["settled"] == (c["moved"][-1] == 0)
     assert kept[0]["settled"]
-    capped = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, rounds=0)
+    capped = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, rounds=0, single=fitted.single)
     assert all(c["rounds"] == 1 for c in capped.candidates)
     assert [c["settled"] for c in capped.candidates] == [c["moved"][0] == 0 for c in capped.candidates]
-    one = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=1)
+    one = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=1, single=fitted.single)  # the one-shape SfM
     err_mix = viewpoint_report(_class_cameras(fitted)[:n].double(), R.double())
     err_one = viewpoint_report(_class_cameras(one)[:n].double(), R.double())
     assert not err_mix["mirrored"]
@@ -367,8 +367,9 @@ def test_fit_on_two_threads_equals_the_fit_on_one(two_shapes):
     bound lowered to this small class): every label, candidate, shape and camera is the same as on
     one thread, bit for bit. The two-thread run really used two worker threads, and leaves the
     caller's intra-op thread count as it was. Below the bound the fit stays on the caller's thread, and
-    is the fixture's fit again (the default ``threads=2``): the same seed gives the same labels and
-    candidates (the fit is deterministic)."""
+    is the fixture's fit again (the default ``threads=2``): the same seed gives the same fit, bit for bit
+    (the fit is deterministic). That fit on the caller's thread is the one-thread reference (``threads=1``
+    takes the same path: one worker)."""
     import threading
 
     coll, both, dist, R, truth, fitted = two_shapes
@@ -378,10 +379,18 @@ def test_fit_on_two_threads_equals_the_fit_on_one(two_shapes):
         seen.add(threading.get_ident())
         return _sfm(sub, init_shape)
 
+    def assert_same_fit(a, b):
+        assert a.k == b.k and torch.equal(a.labels, b.labels)
+        assert a.candidates == b.candidates
+        assert len(a.groups) == len(b.groups) and len(a.Q) == len(b.Q)
+        for (ra, x), (rb, y) in zip(a.groups, b.groups):
+            assert torch.equal(ra, rb) and torch.equal(x.shape, y.shape) and torch.equal(x.cameras.R, y.cameras.R)
+        assert all(torch.equal(qa, qb) for qa, qb in zip(a.Q, b.Q))
+
     assert len(coll) < mix.THREADS_MIN_OBJECTS
     small = mix.fit_mixture_of_shapes(both, dist, traced, max_groups=2, min_size=6, threads=2, **GATE)
-    assert seen == {threading.get_ident()} and torch.equal(small.labels, fitted.labels)
-    assert small.candidates == fitted.candidates
+    assert seen == {threading.get_ident()}  # one thread: the caller's
+    assert_same_fit(small, fitted)
     assert fitted.candidates and [c["init"] for c in fitted.candidates] == ["lifted", "residual"]  # in order
     seen.clear()
     lines = []
@@ -391,14 +400,7 @@ def test_fit_on_two_threads_equals_the_fit_on_one(two_shapes):
     assert torch.get_num_threads() == before
     assert len(seen - {threading.get_ident()}) == 2, seen  # both initialisations ran on worker threads
     assert [line.split("'")[1] for line in lines] == ["lifted", "residual"]  # logged in order
-    one = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, threads=1, threads_min_objects=1,
-                                    **GATE)
-    for other in (again, one):
-        assert other.k == fitted.k and torch.equal(other.labels, fitted.labels)
-        assert other.candidates == fitted.candidates
-        for (ra, a), (rb, b) in zip(other.groups, fitted.groups):
-            assert torch.equal(ra, rb) and torch.equal(a.shape, b.shape) and torch.equal(a.cameras.R, b.cameras.R)
-        assert all(torch.equal(qa, qb) for qa, qb in zip(other.Q, fitted.Q))
+    assert_same_fit(again, small)
 
 
 def test_an_error_on_a_worker_thread_reaches_the_caller(two_shapes):
@@ -417,7 +419,8 @@ def test_an_error_on_a_worker_thread_reaches_the_caller(two_shapes):
 
 def test_fit_keeps_one_shape_when_the_frames_must_agree_closely(two_shapes):
     coll, both, dist, R, truth, fitted = two_shapes
-    strict = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, agreement_deg=0.01)
+    strict = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, agreement_deg=0.01,
+                                       single=fitted.single)
     assert strict.k == 1 and not any(c["eligible"] or c["kept"] for c in strict.candidates)
     assert torch.equal(strict.shape(0), strict.single.shape)  # one group: the SfM shape itself
 
@@ -665,7 +668,8 @@ def test_a_split_without_a_class_frame_is_not_kept(two_shapes, monkeypatch):
 
     monkeypatch.setattr(mix, "group_rotations", no_frame)
     lines = []
-    out = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, log=lines.append)
+    out = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=2, min_size=6, log=lines.append,
+                                    single=fitted.single)
     assert out.k == 1 and len(out.candidates) == 2
     assert all(not c["eligible"] and c["problem"].startswith("no class frame") for c in out.candidates)
     assert all("no class frame" in line for line in lines)

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import load_tool
+from conftest import load_tool, run_each_in_a_fresh_process
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -20,12 +20,16 @@ def test_benchmark_carving_comparison_on_a_small_class(tmp_path: Path):
     record goes under ``--key`` of ``--out``, whose other records stay as they were."""
     out = tmp_path / "bench.json"
     out.write_text(json.dumps({"older": {"command": "kept"}}))
-    cmd = [sys.executable, str(ROOT / "tools" / "benchmark.py"), "--objects", "20", "--carve-objects", "2",
-           "--loop-objects", "1", "--repeat", "1", "--skip-e2e", "--threads", "1", "--resolution", "32",
-           "--proposals", "8", "--data-dir", str(tmp_path / "data"), "--work-dir", str(tmp_path / "runs"),
-           "--out", str(out), "--key", "small"]
-    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300,
-                         env=dict(os.environ, OMP_NUM_THREADS="1"))
+    script = str(ROOT / "tools" / "benchmark.py")
+    argv = [script, "--objects", "20", "--carve-objects", "2",
+            "--loop-objects", "1", "--repeat", "1", "--skip-e2e", "--threads", "1", "--resolution", "32",
+            "--proposals", "8", "--data-dir", str(tmp_path / "data"), "--work-dir", str(tmp_path / "runs"),
+            "--out", str(out), "--key", "small"]
+    # `python tools/benchmark.py ...` in a fresh process, on one torch thread (as OMP_NUM_THREADS=1 would run it)
+    code = (f"import runpy, sys, torch; torch.set_num_threads(1); sys.argv = {argv!r}; "
+            f"runpy.run_path({script!r}, run_name='__main__')")
+    [(rc, stdout, stderr)] = run_each_in_a_fresh_process([code], cwd=ROOT, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    res = subprocess.CompletedProcess(argv, rc, stdout, stderr)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     records = json.loads(out.read_text())
     assert sorted(records) == ["older", "small"] and records["older"] == {"command": "kept"}
@@ -194,10 +198,9 @@ def helps() -> dict[str, subprocess.CompletedProcess]:
     """Every tool's ``--help``, run as its own ``__main__`` in one fresh process (a process per tool would
     import torch once per tool): tool -> its status, stdout and stderr."""
     scripts = [str(ROOT / "tools" / t) for t in TOOLS]
-    res = subprocess.run([sys.executable, "-c", _HELP_EACH, *scripts], cwd=ROOT, capture_output=True, text=True,
-                         timeout=300)
-    assert res.returncode == 0, res.stderr[-2000:]
-    done = json.loads(res.stdout)
+    [(rc, out, err)] = run_each_in_a_fresh_process([_HELP_EACH], argv=scripts, cwd=ROOT)
+    assert rc == 0, err[-2000:]
+    done = json.loads(out)
     return {t: subprocess.CompletedProcess([sys.executable, s, "--help"], *done[s]) for t, s in zip(TOOLS, scripts)}
 
 
