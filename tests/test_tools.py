@@ -314,3 +314,41 @@ def test_synthetic_benchmark_seeds_table_and_keyed_record(tmp_path: Path):
     assert bs.parse_methods("oracle,full") == ["Full", "oracle"]
     with pytest.raises(ValueError, match="must include Full"):
         bs.parse_methods("oracle")
+
+
+def test_export_quality_study_ranks_against_scipy(tmp_path: Path):
+    """``bench_export --quality``: the pooled and per-class Spearman rho of quality against the shape
+    error equal scipy's on the same pairs; objects without a quality are left out; a reconstruction
+    folder that is not there (a relative --recon read from elsewhere) is one line, not an empty study."""
+    from scipy import stats
+
+    be = load_tool("bench_export")
+    recon, ev = tmp_path / "recon", tmp_path / "eval"
+    errors = {"a": [1.0, 3.0, 2.0, 5.0, 4.0], "b": [2.5, 0.5, 4.5, 1.5, 3.5]}
+    quality = {"a": [0.9, 0.4, 0.6, 0.1, 0.3], "b": [0.2, 0.8, 0.3, 0.7, 0.5]}
+    objects, pairs = {}, []
+    for c in errors:
+        cams = {}
+        for i, (e, q) in enumerate(zip(errors[c], quality[c])):
+            aid = f"{c}{i}"
+            objects[aid] = {"class": c, "Full": {"error_percent": e}}
+            cams[aid] = {"quality": q, "quality_signals": {"visible_keypoints": 4 + i}}
+            pairs.append((q, e))
+        objects[f"{c}x"] = {"class": c, "Full": {"error_percent": 9.0}}  # no quality: left out
+        (recon / c).mkdir(parents=True)
+        (recon / c / "cameras.json").write_text(json.dumps({"cameras": cams}))
+    ev.mkdir()
+    res = {"recons": {"Full": str(recon)}, "objects": objects, "step_percent": 3.0}
+    (ev / "results.json").write_text(json.dumps(res))
+    out = tmp_path / "rec.json"
+    assert be.quality_study([ev], None, str(out), "q", ["--quality", str(ev)]) == 0
+    rec = json.loads(out.read_text())["q"]
+    q, e = zip(*pairs)
+    assert rec["objects"] == 10
+    assert rec["pooled"]["rho"] == pytest.approx(stats.spearmanr(q, e).statistic, abs=1e-4)
+    for c in errors:
+        assert rec["per_class"][c]["rho"] == pytest.approx(stats.spearmanr(quality[c], errors[c]).statistic, abs=1e-4)
+    res["recons"]["Full"] = "recon"  # relative to a folder this process is not in
+    (ev / "results.json").write_text(json.dumps(res))
+    with pytest.raises(SystemExit, match="no such reconstruction folder"):
+        be.quality_study([ev], None, str(out), "q", [])

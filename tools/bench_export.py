@@ -244,6 +244,8 @@ def _quality_rows(res: dict, method: str) -> list[dict]:
     from carvi_torch.io.outputs import read_json
 
     recon, rows, cams = Path(res["recons"][method]), [], {}
+    if not recon.is_dir():  # evaluate records the --recon it was given, relative to where it ran
+        raise SystemExit(f"{recon}: no such reconstruction folder (run from the folder evaluate ran in)")
     for aid, obj in res["objects"].items():
         err = (obj.get(method) or {}).get("error_percent") if isinstance(obj.get(method), dict) else None
         cls = obj["class"]
