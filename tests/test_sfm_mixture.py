@@ -265,8 +265,9 @@ _SFM_FITS: dict = {}
 def _shared_sfm(sub, init_shape=None):
     """:func:`_sfm`, each sub-collection's fit computed once per module and handed out as a copy: the fits of
     the two-shape class that several tests repeat (the same groups of the same objects, the same start). The
-    SfM is deterministic (same input, same result, bit for bit: checked by the thread test, which runs
-    :func:`_sfm` itself, as the tests of the SfM proper do), so a test gets what its own call would compute."""
+    SfM is deterministic (same input, same result, bit for bit: checked by the thread test, whose two-thread
+    fit runs :func:`_sfm` itself, as the tests of the SfM proper do), so a test gets what its own call would
+    compute."""
     key = tuple(None if t is None else (tuple(t.shape), t.numpy().tobytes())
                 for t in (sub.keypoints, sub.visible, init_shape))
     if key not in _SFM_FITS:
@@ -393,15 +394,17 @@ def test_fit_on_two_threads_equals_the_fit_on_one(two_shapes):
     caller's intra-op thread count as it was. Below the bound the fit stays on the caller's thread, and
     is the fixture's fit again (the default ``threads=2``): the same seed gives the same fit, bit for bit
     (the fit is deterministic). That fit on the caller's thread is the one-thread reference (``threads=1``
-    takes the same path: one worker)."""
+    takes the same path: one worker). It takes the fixture's SfM fits (:func:`_shared_sfm`); the two-thread
+    run computes its own, so an SfM that is not deterministic fails the last comparison."""
     import threading
 
     coll, both, dist, R, truth, fitted = two_shapes
     seen = set()
+    sfm_fn = _shared_sfm
 
     def traced(sub, init_shape=None):
         seen.add(threading.get_ident())
-        return _sfm(sub, init_shape)
+        return sfm_fn(sub, init_shape)
 
     def assert_same_fit(a, b):
         assert a.k == b.k and torch.equal(a.labels, b.labels)
@@ -417,6 +420,7 @@ def test_fit_on_two_threads_equals_the_fit_on_one(two_shapes):
     assert_same_fit(small, fitted)
     assert fitted.candidates and [c["init"] for c in fitted.candidates] == ["lifted", "residual"]  # in order
     seen.clear()
+    sfm_fn = _sfm  # every SfM computed anew, on the worker threads
     lines = []
     before = torch.get_num_threads()
     again = mix.fit_mixture_of_shapes(both, dist, traced, max_groups=2, min_size=6, threads=2, log=lines.append,
