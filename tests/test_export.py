@@ -26,7 +26,7 @@ TINY = {"procedural_instances": 5, "resolution": 24, "proposals": 3, "canvas_siz
 @pytest.fixture(scope="module")
 def recon(tmp_path_factory):
     out = tmp_path_factory.mktemp("recon")
-    run(Config().override({**TINY, "out": str(out)}))
+    run(Config().override({**TINY, "out": str(out)}), workers=0)  # written inline: the same files, a second sooner
     return out
 
 

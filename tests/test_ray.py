@@ -136,7 +136,7 @@ def test_resume_across_executors(cluster, local, tmp_path):
     assert (car["reconstructed"], car["resumed"]) == (len(lost), 6 - len(lost))
     assert got["classes"]["bottle"] == ref["classes"]["bottle"] and got["classes_from_earlier_runs"] == ["bottle"]
     _same_files(out, tmp_path)
-    again = run(_cfg(tmp_path, data=ref["data"], classes=["car"]))["classes"]["car"]
+    again = run(_cfg(tmp_path, data=ref["data"], classes=["car"]), workers=0)["classes"]["car"]  # resumes: inline
     assert (again["resumed"], again["reconstructed"]) == (6, 0)
 
 

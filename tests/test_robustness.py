@@ -559,10 +559,12 @@ def test_one_cli_and_a_log(base, tmp_path, capsys):
     out = tmp_path / "run"
     argv = ["carvi", "reconstruct", "--data", str(data), "--out", str(out), "--classes", "car", "sfm_max_outer=2",
             "resolution=16", "proposals=3", "canvas_size=48", "preview=false", "report=false"]
-    # `python -m carvi_torch.cli reconstruct ...` in a process of its own (runpy, as -m runs it)
+    # `python -m carvi_torch.cli reconstruct ...` in a process of its own (runpy, as -m runs it); written inline
+    # (CARVI_WRITERS=0): what is checked is where the messages go, and a fresh process's writers take seconds
+    # to start (the writer processes of a command-line run: tools/stress_inputs.py's check in test_tools.py)
     [(rc, stdout, stderr)] = run_each_in_a_fresh_process(
         [f"import runpy, sys; sys.argv = {argv!r}; runpy.run_module('carvi_torch.cli', run_name='__main__', "
-         "alter_sys=True)"])
+         "alter_sys=True)"], env={**os.environ, "CARVI_WRITERS": "0"})
     assert rc == 0, stderr[-2000:]
     # a warning that reaches summary.json also reaches the terminal, the log and the table
     assert "SfM stopped at its iteration limits" in stderr
