@@ -352,3 +352,33 @@ def test_export_quality_study_ranks_against_scipy(tmp_path: Path):
     (ev / "results.json").write_text(json.dumps(res))
     with pytest.raises(SystemExit, match="no such reconstruction folder"):
         be.quality_study([ev], None, str(out), "q", [])
+
+
+_PROFILE = """
+import runpy, sys
+sys.argv = [sys.argv[1], "--profile-mixture", *sys.argv[2:]]
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+
+
+def test_mixture_profile_times_every_group_sfm(tmp_path: Path, procedural_input):
+    """``bench_viewpoints --profile-mixture`` (in a fresh process: it wraps module attributes): with the
+    mixture fitted for every class, each class's record counts cold and warm group SfMs with their outer
+    steps, and its parts' CPU seconds add up to no more than the fit, the fit to no more than the stage."""
+    data = procedural_input(tmp_path)
+    out = tmp_path / "profile.json"
+    args = [str(ROOT / "tools" / "bench_viewpoints.py"), str(data), "--profile-set", "sfm_groups=2",
+            "sfm_group_misfit=0", "sfm_group_hull_gain=-1", "sfm_group_min=2", "sfm_max_outer=30", "classes=[car]",
+            "--out", str(out)]
+    [(rc, stdout, err)] = run_each_in_a_fresh_process([_PROFILE], argv=args, cwd=ROOT)
+    assert rc == 0, err[-2000:]
+    rec = json.loads(out.read_text())
+    assert rec["classes"] and "group SfMs" in stdout
+    for cls, r in rec["classes"].items():
+        s, n = r["seconds"], r["counts"]
+        if not n.get("cold:group_sfm"):
+            continue  # a class too small to split has no group SfM to time
+        assert n["cold:outer_steps"] >= n["cold:group_sfm"], cls
+        parts = s["cold:group_sfm"] + s.get("warm:group_sfm", 0) + s.get("keypoint_fit", 0) + s.get("kmeans", 0)
+        assert parts <= s["mixture_total"] + 1e-3 and s["mixture_total"] <= s["viewpoints_total"] + 1e-3, cls
+    assert any(r["counts"].get("cold:group_sfm") for r in rec["classes"].values())
