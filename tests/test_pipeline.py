@@ -453,8 +453,9 @@ def test_writer_start_failure_surfaces_in_the_run(monkeypatch):
 
     monkeypatch.setattr(W, "start_method", lambda: "no-such-start-method")
     w = W.Writer(1)
-    with pytest.raises(ValueError, match="no-such-start-method"):
-        w.submit(dict(i=0), lambda res: None)
+    for _ in range(2):  # and again on the next object: never written inline in the processes' place
+        with pytest.raises(ValueError, match="no-such-start-method"):
+            w.submit(dict(i=0), lambda res: None)
     w.close(cancel=True)
     w = W.Writer(1)
     with pytest.raises(ValueError, match="no-such-start-method"):

@@ -176,15 +176,16 @@ class Writer:
 
     @property
     def pool(self) -> ProcessPoolExecutor | None:
-        """The worker processes (``None``: written inline), once started."""
+        """The worker processes (``None``: written inline), once started. A failed start is raised on every
+        access: nothing is ever written inline in their place without saying so."""
         if self._starting is not None:
             self._starting.join()
             self._starting = None
-            if self._start_error is not None:
-                if self._pool is not None:
-                    self._pool.shutdown(wait=True, cancel_futures=True)
-                    self._pool = None
-                raise self._start_error
+            if self._start_error is not None and self._pool is not None:
+                self._pool.shutdown(wait=True, cancel_futures=True)
+                self._pool = None
+        if self._start_error is not None:
+            raise self._start_error
         return self._pool
 
     def submit(self, job: dict, done) -> None:
