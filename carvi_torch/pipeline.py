@@ -334,7 +334,7 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
         raise
     if own_writer:
         writer.close()
-    finish_class(plan, cfg, report, from_report=True)
+    finish_class(plan, cfg, report)
     return report
 
 
@@ -372,19 +372,18 @@ def reconstruct_chunk(plan: ClassPlan, ids: list[int], cfg: Config) -> tuple[Cla
     return report, [i for i in ids if levels[i] == "puffball"]
 
 
-def finish_class(plan: ClassPlan, cfg: Config, report: ClassReport, puffballs: list[int] = (),
-                 from_report: bool = False) -> None:
+def finish_class(plan: ClassPlan, cfg: Config, report: ClassReport, puffballs: list[int] = ()) -> None:
     """The end of a class whose objects are written: ``puffballs`` (originals that became puffballs in
-    chunks carved elsewhere) marked, then :func:`_finish_class`. ``from_report``: the objects'
-    ``reconstruction_iou`` is the one ``report`` holds (the writers' results), else read from their voxels files."""
+    chunks carved elsewhere) marked, then :func:`_finish_class`. The objects' ``reconstruction_iou`` is the
+    one ``report`` holds: the writers' results, merged over the chunks, and the objects of earlier runs."""
     for i in puffballs:
         plan.surrogates.levels[i] = "puffball"
-    _finish_class(plan, cfg, report, report.reconstruction_iou if from_report else None)
+    _finish_class(plan, cfg, report)
 
 
-def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport, recon: dict | None) -> None:
+def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport) -> None:
     """Where every object's proposals came from (summary), cameras.json again with every object's quality
-    (its reconstruction is known now: ``recon``, else read from the files), and the merged proposal scores."""
+    (its reconstruction is known now: ``report.reconstruction_iou``), and the merged proposal scores."""
     levels = plan.surrogates.levels
     used = [lv for lv in surrogates.LEVELS if lv in levels]
     report.info["surrogates_from"] = {
@@ -392,8 +391,7 @@ def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport, recon: dict
         "fallbacks": {lv: [a for a, x in zip(plan.aids, levels) if x == lv] for lv in used
                       if lv not in ("triplet", "rotated_views")}}
     vp, sp = plan.viewpoints, plan.surrogates
-    recon = reconstruction_signals(plan.cdir, plan.aids) if recon is None else recon
-    cams = cameras_json(plan.coll, vp, sp.axes, sp.clusters, levels, recon)
+    cams = cameras_json(plan.coll, vp, sp.axes, sp.clusters, levels, report.reconstruction_iou)
     write_json(plan.cdir / "cameras.json", cams)
     report.info["quality"] = quality_summary(cams["cameras"])
     if cfg.study.keep_all_scores:
