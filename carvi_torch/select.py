@@ -207,6 +207,7 @@ def average_masks(
     if int(chunk) < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
     chunk = int(chunk)
+    weights = torch.ones(n, device=dev) if weights is None else weights.to(device=dev, dtype=torch.float32)
     for start in range(0, members.numel(), chunk):
         idx = members[start : start + chunk]
         cams = cameras[idx]
@@ -214,15 +215,8 @@ def average_masks(
         grid = (uv * scale - 1.0).reshape(-1, G, G, 2)
         m = masks[idx].to(torch.float32).unsqueeze(1)  # (c, 1, H, W)
         vals = F.grid_sample(m, grid, mode=mode, padding_mode="zeros", align_corners=True)  # (c,1,G,G)
-        vals = vals.reshape(-1, G * G)
-        if weights is not None:
-            vals = vals * weights.to(device=dev, dtype=vals.dtype)[idx, None]
-        sums.index_add_(0, labels[idx], vals)
-    if weights is None:
-        total = counts.to(sums.dtype)
-    else:
-        w = weights.to(device=dev, dtype=sums.dtype)[members]
-        total = torch.zeros(3, dtype=sums.dtype, device=dev).index_add_(0, labels[members], w)
+        sums.index_add_(0, labels[idx], vals.reshape(-1, G * G) * weights[idx, None])
+    total = torch.zeros(3, dtype=sums.dtype, device=dev).index_add_(0, labels[members], weights[members])
     averages = sums / torch.where(total > 0, total, torch.ones_like(total))[:, None]
     return averages.reshape(3, G, G), counts
 

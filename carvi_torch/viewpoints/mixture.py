@@ -600,9 +600,7 @@ def hull_agreements(mix: "MixtureResult", masks: torch.Tensor) -> torch.Tensor:
         rows, res = mix.groups[g]
         on = rows[res.valid.to(rows.device)]
         if on.numel():
-            sel = res.valid.nonzero().squeeze(1)
-            cams = mix.cameras(g)
-            cams = ScaledOrthographic(cams.R[sel], cams.s[sel], cams.t[sel])
+            cams = mix.cameras(g)[res.valid.nonzero().squeeze(1)]
             out[on.cpu()] = hull_agreement(mix.shape(g), cams, masks[on.to(masks.device)])
     return out
 
