@@ -133,7 +133,8 @@ def _zygote_process():
 
     proc = _zygote.get("proc")
     if proc is None or proc.poll() is not None:
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+        paths = [str(ROOT), *(p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p)]
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}  # no empty entry: the cwd stays off the path
         proc = subprocess.Popen([sys.executable, "-c", _ZYGOTE], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                 text=True, env=env)
         _zygote.update(proc=proc)

@@ -297,7 +297,8 @@ def test_cli_voc_converts_fixtures(tmp_path, capsys):
 
 def test_cli_module_entry_point():
     """``python -m carvi_torch.datasets synthetic --help`` (``runpy``, as ``-m`` runs it) in a fresh process
-    whose environment holds only ``PYTHONPATH`` and an empty ``PATH``."""
+    whose environment holds an empty ``PATH`` (no external program is needed; the package is found through
+    the fork server's path, as ``PYTHONPATH`` would put it)."""
     code = ("import runpy, sys; sys.argv = ['datasets', 'synthetic', '--help']; "
             "runpy.run_module('carvi_torch.datasets', run_name='__main__', alter_sys=True)")
     [(rc, out, err)] = run_each_in_a_fresh_process([code], cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": ""})

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -520,5 +522,6 @@ def test_worker_processes_write_the_same_store(recon, tmp_path):
     code = ("import sys, carvi_torch.export.command as c, carvi_torch.export.objects as o; "
             "assert c.WORKER_MODULE == o.__name__; "
             "print(sorted(m for m in ('torch', 'kornia', 'zarr') if m in sys.modules))")
-    res = __import__("subprocess").run([__import__("sys").executable, "-c", code], capture_output=True, text=True)
+    # a real process (the fork server has torch imported already)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert res.returncode == 0 and res.stdout.strip() == "[]", res.stderr[-2000:]

@@ -185,6 +185,9 @@ def car_again(tmp_path_factory):
 
 
 def test_same_seed_same_voxels(tiny, car_again):
+    """Same seed, same voxels, even across the run's varying parts (writer processes or inline, fused
+    native or torch carving, 2 threads or 1, chunks of any size): a seed that does not fix every draw fails
+    here, and so does any of those parts that changes a label (tell them apart by rerunning with one varied)."""
     out, _ = tiny
     other, _res, _threads = car_again
     files = sorted((out / "car" / "voxels").glob("*.npz"))

@@ -172,36 +172,18 @@ def test_tools_are_few_and_import_the_installed_package():
             assert f"import {name}\n" not in text and f"from {name} import" not in text, (tool, name)
 
 
-#: Runs each script named on its command line as ``python SCRIPT --help`` runs it (``__main__``, that
-#: argv), one after the other in this one fresh process, and prints {script: [status, stdout, stderr]}.
-_HELP_EACH = """
-import contextlib, io, json, runpy, sys, traceback
-scripts, done = sys.argv[1:], {}
-for script in scripts:
-    out, err, status = io.StringIO(), io.StringIO(), 0
-    sys.argv = [script, "--help"]
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            runpy.run_path(script, run_name="__main__")
-        except SystemExit as e:
-            status = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-        except BaseException:
-            status = 1
-            traceback.print_exc()
-    done[script] = [status, out.getvalue(), err.getvalue()]
-sys.stdout.write(json.dumps(done))
-"""
+#: ``python SCRIPT --help`` as a fresh process runs it (``__main__``, that argv).
+_HELP = "import runpy, sys; sys.argv = [{s!r}, '--help']; runpy.run_path({s!r}, run_name='__main__')"
 
 
 @pytest.fixture(scope="module")
 def helps() -> dict[str, subprocess.CompletedProcess]:
-    """Every tool's ``--help``, run as its own ``__main__`` in one fresh process (a process per tool would
-    import torch once per tool): tool -> its status, stdout and stderr."""
+    """Every tool's ``--help``, each in a fresh process of its own (forked from the session's server, so
+    torch's import is paid once; nothing one tool imports can make another's work): tool -> its status,
+    stdout and stderr."""
     scripts = [str(ROOT / "tools" / t) for t in TOOLS]
-    [(rc, out, err)] = run_each_in_a_fresh_process([_HELP_EACH], argv=scripts, cwd=ROOT)
-    assert rc == 0, err[-2000:]
-    done = json.loads(out)
-    return {t: subprocess.CompletedProcess([sys.executable, s, "--help"], *done[s]) for t, s in zip(TOOLS, scripts)}
+    done = run_each_in_a_fresh_process([_HELP.format(s=s) for s in scripts], cwd=ROOT)
+    return {t: subprocess.CompletedProcess([sys.executable, s, "--help"], *r) for t, s, r in zip(TOOLS, scripts, done)}
 
 
 @pytest.mark.parametrize("tool", TOOLS)
@@ -379,6 +361,8 @@ def test_mixture_profile_times_every_group_sfm(tmp_path: Path, procedural_input)
         if not n.get("cold:group_sfm"):
             continue  # a class too small to split has no group SfM to time
         assert n["cold:outer_steps"] >= n["cold:group_sfm"], cls
+        # the parts do not nest and run on one thread (a class under THREADS_MIN_OBJECTS), so their CPU
+        # seconds cannot exceed the fit's
         parts = s["cold:group_sfm"] + s.get("warm:group_sfm", 0) + s.get("keypoint_fit", 0) + s.get("kmeans", 0)
         assert parts <= s["mixture_total"] + 1e-3 and s["mixture_total"] <= s["viewpoints_total"] + 1e-3, cls
     assert any(r["counts"].get("cold:group_sfm") for r in rec["classes"].values())
