@@ -366,3 +366,25 @@ def test_mixture_profile_times_every_group_sfm(tmp_path: Path, procedural_input)
         parts = s["cold:group_sfm"] + s.get("warm:group_sfm", 0) + s.get("keypoint_fit", 0) + s.get("kmeans", 0)
         assert parts <= s["mixture_total"] + 1e-3 and s["mixture_total"] <= s["viewpoints_total"] + 1e-3, cls
     assert any(r["counts"].get("cold:group_sfm") for r in rec["classes"].values())
+
+
+def test_ranking_study_writes_its_figures_where_asked(tmp_path: Path):
+    """``studies.py ranking --figures DIR``: the per-class summary of two references with known errors (a
+    loop's top-ranked / mean / minimum) is plotted into DIR, and nothing is written to docs/figures."""
+    st = load_tool("studies", "studies_tool")
+    docs_figures = {p.name: p.stat().st_mtime_ns for p in (ROOT / "docs" / "figures").glob("*.png")}
+    nan = None
+    per_ref = {"1": {"class": "sofa", "errors": [5.0, 3.0, nan], "scores": [0.1, 0.2, 0.0], "misses": [0, 0, 0],
+                     "valid": [True, True, False], "best": 0},
+               "2": {"class": "sofa", "errors": [4.0, 6.0, 2.0], "scores": [0.3, 0.1, 0.2], "misses": [0, 0, 1],
+                     "valid": [True, True, True], "best": 1}}
+    out = st._ranking_summary(per_ref)
+    # reference 1: top = proposal 0 (lowest score among valid); reference 2: proposal 1 (fewest misses, then score)
+    assert out["classes"]["sofa"]["top"] == pytest.approx((5.0 + 6.0) / 2)
+    assert out["classes"]["sofa"]["random"] == pytest.approx((4.0 + 4.0) / 2)
+    assert out["classes"]["sofa"]["best"] == pytest.approx((3.0 + 2.0) / 2)
+    assert out["ranking_agrees_with_pipeline"] == "2/2"
+    out.update({"references": 2, "step_percent": 2.0})
+    st._plot_ranking(out, tmp_path / "cad8")
+    assert sorted(p.name for p in (tmp_path / "cad8").iterdir()) == ["pool_size.png", "ranking.png"]
+    assert {p.name: p.stat().st_mtime_ns for p in (ROOT / "docs" / "figures").glob("*.png")} == docs_figures

@@ -18,7 +18,8 @@ working directory, default outputs/benchmark):
   difference is measured on the selected proposals and written to the JSON). Per class: the
   top-ranked, random (expected error of a uniform pick among the valid proposals) and best
   available proposal (``ranking.png``); over all classes: the same against the size of the
-  proposal pool, 1..P, the top-ranked among the first k (``pool_size.png``).
+  proposal pool, 1..P, the top-ranked among the first k (``pool_size.png``). ``--figures`` and
+  ``--record`` put the figures and the record elsewhere (the 8-view study of docs/results.md).
 * ``threshold`` (c): Full rerun on ``--classes`` with ``surrogates.cluster_threshold_deg`` in
   ``--thresholds``; mean error per class and threshold (``threshold.png``).
 * ``viewpoints`` (d): median geodesic viewpoint error per class, SfM vs refined cameras, from
@@ -33,6 +34,8 @@ working directory, default outputs/benchmark):
 Example:
     python tools/studies.py frames
     python tools/studies.py ranking --jobs 2
+    python tools/studies.py ranking --bench outputs/final_t2/seed0 --views-per-model 2 --figures outputs/ranking_cad8 \
+        --record ranking_cad8_seed0
     python tools/studies.py threshold --classes aeroplane,car,chair,sofa
     python tools/studies.py viewpoints
     python tools/studies.py clusters
@@ -70,10 +73,11 @@ def _record(name: str) -> Path:
     return RECORDS / f"studies_{name}.json"
 
 
-def _figure(name: str) -> Path:
-    """``docs/figures/<name>.png`` (its folder made)."""
-    FIGURES.mkdir(parents=True, exist_ok=True)
-    return FIGURES / f"{name}.png"
+def _figure(name: str, folder: Path = FIGURES) -> Path:
+    """``<folder>/<name>.png`` (default ``docs/figures``; the folder made)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder / f"{name}.png"
 
 
 def _data_dir(bench: Path) -> Path:
@@ -185,8 +189,8 @@ def ranking(args) -> int:
                 "per_reference": per_ref})
     from carvi_torch.io.outputs import write_json
 
-    write_json(_record("ranking"), out)
-    _plot_ranking(out)
+    write_json(_record(args.record), out)
+    _plot_ranking(out, Path(args.figures))
     print(json.dumps({k: out[k] for k in ("mean", "selected_vs_table")}, indent=1))
     return 0
 
@@ -233,7 +237,7 @@ def _ranking_summary(per_ref: dict) -> dict:
                                           "mesh's error at the table's step"}}
 
 
-def _plot_ranking(out: dict) -> None:
+def _plot_ranking(out: dict, folder: Path = FIGURES) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -252,7 +256,7 @@ def _plot_ranking(out: dict) -> None:
     ax.set_title(f"Proposal ranking (Full, {out['references']} references, metric step {out['step_percent']}%)")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(_figure("ranking"), dpi=110)
+    fig.savefig(_figure("ranking", folder), dpi=110)
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(5.5, 4))
@@ -268,7 +272,7 @@ def _plot_ranking(out: dict) -> None:
     ax.set_title(f"Error against the size of the proposal pool ({len(out['pool_size']['classes'])} classes)",
                  fontsize=10)
     fig.tight_layout()
-    fig.savefig(_figure("pool_size"), dpi=110)
+    fig.savefig(_figure("pool_size", folder), dpi=110)
     plt.close(fig)
 
 
@@ -748,6 +752,9 @@ def main(argv=None) -> int:
     p.add_argument("--views-per-model", type=int, default=5, help="test views per model to study (subset)")
     p.add_argument("--classes", help="comma-separated subset")
     p.add_argument("--fresh", action="store_true", help="recompute the per-proposal errors even if cached")
+    p.add_argument("--figures", default=str(FIGURES),
+                   help="folder of ranking.png and pool_size.png (default docs/figures)")
+    p.add_argument("--record", default="ranking", help="the record's name: outputs/studies/studies_<NAME>.json")
     p = sub.add_parser("threshold", parents=[common], help="(c) error against the clustering threshold")
     p.add_argument("--classes", default="aeroplane,car,chair,sofa")
     p.add_argument("--thresholds", default="15,20,25,30,35,40,45")
