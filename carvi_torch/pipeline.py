@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 
 from . import carve, select, surrogates
 from .carve import CarveMaps
+from .carve.puffball import puffball_grids
 from .collection import ClassCollection
 from .config import Config
 from .io.layout import class_dir, finished, object_file
@@ -280,7 +281,7 @@ def _puffballs(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: C
     if not none:
         return set()
     rows = ids[torch.tensor(none, device=ids.device)]
-    grids = carve.puffball_grids(plan.coll.masks[rows], cfg.carve.resolution)
+    grids = puffball_grids(plan.coll.masks[rows], cfg.carve.resolution)
     for k, j in enumerate(none):
         sel.best_occupancy[j] = grids.occupancy[k].cpu()
         sel.best_transform[j] = grids.voxel_to_camera[k].double().cpu()
