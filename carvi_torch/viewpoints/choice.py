@@ -91,41 +91,85 @@ class CameraChoice:
     diagonal: torch.Tensor
 
 
-def _hull_mask(points: np.ndarray, size: int) -> np.ndarray:
-    """``(size, size)`` bool: the pixels whose centres lie in the convex hull of ``points (P, 2)`` (x, y)."""
+def _hull_vertices(points: np.ndarray) -> torch.Tensor:
+    """``(M, V, 2)`` float64 (x, y) vertices of the convex hull of each row's ``points (M, P, 2)``, in scipy's
+    order; a row with fewer repeats its last vertex (zero-length edges), a row without area (fewer than 3
+    points, collinear or coincident ones) is all NaN."""
     from scipy.spatial import ConvexHull, QhullError
-    from skimage.draw import polygon
 
-    out = np.zeros((size, size), dtype=bool)
-    if len(points) < 3:
-        return out
-    try:
-        hull = points[ConvexHull(points).vertices]
-    except (QhullError, ValueError):
-        return out  # collinear or coincident points: no area
-    rr, cc = polygon(hull[:, 1], hull[:, 0], shape=(size, size))
-    out[rr, cc] = True
+    hulls = []
+    for p in points:
+        try:
+            hulls.append(p[ConvexHull(p).vertices] if len(p) >= 3 else None)
+        except (QhullError, ValueError):
+            hulls.append(None)  # collinear or coincident points: no area
+    V = max([len(h) for h in hulls if h is not None], default=1)
+    out = np.full((len(points), V, 2), np.nan)
+    for i, h in enumerate(hulls):
+        if h is not None:
+            out[i, :len(h)], out[i, len(h):] = h, h[-1]
+    return torch.from_numpy(out)
+
+
+def polygon_masks(vertices: torch.Tensor, size: int) -> torch.Tensor:
+    """``(M, size, size)`` bool: the pixels ``[y, x]`` whose centres lie in or on the convex polygon of each
+    row's ``vertices (M, V, 2)`` float64 (x, y; NaN rows: empty), pixel for pixel what
+    ``skimage.draw.polygon`` draws (its crossing test, boundary and vertex tolerance included).
+
+    Each scan line ``y`` meets an edge at ``x_c``; the crossing test holds for every ``x`` on one side of
+    ``x_c`` but the integer nearest to it, where it is evaluated as scikit-image evaluates it.
+
+    Example:
+        >>> v = torch.tensor([[[1.0, 1.0], [3.0, 1.0], [3.0, 2.0], [1.0, 2.0]]], dtype=torch.float64)
+        >>> polygon_masks(v, 4)[0].int().tolist()
+        [[0, 0, 0, 0], [0, 1, 1, 1], [0, 1, 1, 1], [0, 0, 0, 0]]
+    """
+    y = torch.arange(size, device=vertices.device, dtype=torch.float64)
+    xi, yi = vertices[..., 0, None], vertices[..., 1, None] - y  # (M, V, size): edge (i - 1, i) at each scan line
+    xj, yj = xi.roll(1, dims=1), yi.roll(1, dims=1)
+    right, left = (yi > 0) != (yj > 0), (yi < 0) != (yj < 0)
+    xc = xi + yi / (yi - yj) * (xj - xi)  # where the edge meets the scan line (no cancellation: yi, yj straddle 0)
+    k = torch.where(right | left, xc.round(), 0.0)
+    x0, x1 = xi - k, xj - k
+    at_k = (x0 * yj - x1 * yi) / (yj - yi)  # scikit-image's test at the nearest integer
+    counts = []
+    for straddles, first in ((right, k + (at_k > 0)), (left, k + 1 - (at_k < 0).double())):
+        hist = torch.zeros(vertices.shape[0], size, size + 1, dtype=torch.int32, device=vertices.device)
+        hist.scatter_add_(2, first.clamp(0, size).long().transpose(1, 2), straddles.int().transpose(1, 2))
+        counts.append(hist)
+    right_odd = counts[0].flip(-1).cumsum(-1).flip(-1)[..., 1:] % 2 == 1  # edges crossed by the ray to +x
+    left_odd = counts[1].cumsum(-1)[..., :-1] % 2 == 1  # ... and by the ray to -x
+    return (right_odd | left_odd) | _vertex_pixels(vertices, size)
+
+
+def _vertex_pixels(vertices: torch.Tensor, size: int) -> torch.Tensor:
+    """``(M, size, size)`` bool: the pixel centres within scikit-image's tolerance (1e-12) of a vertex of
+    ``vertices (M, V, 2)``."""
+    near = vertices.round()
+    hit = ((vertices - near).abs() < 1e-12).all(-1) & (near >= 0).all(-1) & (near < size).all(-1)  # (M, V)
+    out = torch.zeros(vertices.shape[0], size, size, dtype=torch.bool, device=vertices.device)
+    m, v = hit.nonzero(as_tuple=True)
+    out[m, near[m, v, 1].long(), near[m, v, 0].long()] = True
     return out
 
 
 def hull_agreement(shape: torch.Tensor, cams: ScaledOrthographic, masks: torch.Tensor) -> torch.Tensor:
     """Intersection over union of each mask and the convex hull of the projected ``shape``.
 
+    The hull of each row comes from scipy, its pixels from :func:`polygon_masks`, every row at once.
+
     Args:
         shape: ``(K, 3)`` (NaN rows are left out); cams: ``M`` cameras; masks: ``(M, C, C)`` bool.
 
     Returns:
-        ``(M,)`` float64 in ``[0, 1]`` (0 where the hull or the union is empty).
+        ``(M,)`` float64 in ``[0, 1]`` (0 where the hull or the union is empty), on the host.
     """
     keep = torch.isfinite(shape).all(-1)
     P = cams.project(shape[keep].to(cams.R.dtype)).detach().double().cpu().numpy()  # (M, K', 2)
-    m = masks.detach().cpu().numpy()
-    out = np.zeros(len(m))
-    for i in range(len(m)):
-        h = _hull_mask(P[i], m.shape[-1])
-        union = np.count_nonzero(h | m[i])
-        out[i] = np.count_nonzero(h & m[i]) / union if union else 0.0
-    return torch.from_numpy(out)
+    hull = polygon_masks(_hull_vertices(P).to(masks.device), masks.shape[-1])
+    inter = (hull & masks).sum((1, 2)).double()
+    union = (hull | masks).sum((1, 2)).double()
+    return torch.where(union > 0, inter / union.clamp(min=1), 0.0).cpu()
 
 
 def keypoint_rms(shape: torch.Tensor, cams: ScaledOrthographic, keypoints: torch.Tensor,
