@@ -97,10 +97,28 @@ def test_hull_agreement_equals_the_per_row_reference(generator, grid):
     from carvi_torch.viewpoints.choice import _hull_vertices
 
     V = _hull_vertices(cams.project(shape[torch.isfinite(shape).all(-1)]).numpy())
-    for v, got in zip(V.numpy(), polygon_masks(V, C).numpy()):
+    for v, got in zip(V, polygon_masks(V, C)):
         want = np.zeros((C, C), dtype=bool)
         want[polygon(v[:, 1], v[:, 0], shape=(C, C))] = True
         assert np.array_equal(got, want)
+
+
+def test_a_scan_line_across_four_edges_is_drawn_by_scikit_image():
+    """A polygon convex only up to rounding can have a scan line across four edges, which two intervals do not
+    describe: such a row is drawn by ``skimage.draw.polygon`` itself (here a U, far from convex)."""
+    from skimage.draw import polygon
+    from carvi_torch.viewpoints.choice import _hull_counts
+
+    u = np.array([[1.0, 1], [9, 1], [9, 9], [6.5, 9], [6.5, 4], [3.5, 4], [3.5, 9], [1, 9]])
+    square = np.array([[2.0, 2], [5, 2], [5, 5], [2, 5], [2, 5], [2, 5], [2, 5], [2, 5]])
+    got = polygon_masks(np.stack([u, square]), 12)
+    for v, g in zip((u, square), got):
+        want = np.zeros((12, 12), dtype=bool)
+        want[polygon(v[:, 1], v[:, 0], shape=(12, 12))] = True
+        assert np.array_equal(g, want)
+    masks = np.random.default_rng(0).random((2, 12, 12)) < 0.5
+    pixels, inside = _hull_counts(np.stack([u, square]), masks)
+    assert pixels.tolist() == got.sum((1, 2)).tolist() and inside.tolist() == (got & masks).sum((1, 2)).tolist()
 
 
 def test_hull_agreement_equals_the_reference_on_cad_keypoints(shared_data, generator):
