@@ -122,11 +122,12 @@ def test_a_scan_line_across_four_edges_is_drawn_by_scikit_image():
 
 
 def test_hull_agreement_equals_the_reference_on_cad_keypoints(shared_data, generator):
-    """Real shapes: the 3D keypoints of every PASCAL3D+ CAD model seen by 3 random cameras on a 128-pixel
-    canvas, against the pixels its projected mesh vertices fall in; the same IoU as the slow reference."""
+    """Real shapes: the 3D keypoints of every other PASCAL3D+ CAD model (every class) seen by 3 random cameras on
+    a 128-pixel canvas, against the pixels its projected mesh vertices fall in; the same IoU as the slow
+    reference."""
     from carvi_torch.cameras import random_rotations
 
-    for path in sorted((shared_data / "pascal3d_cad").glob("*.npz")):
+    for path in sorted((shared_data / "pascal3d_cad").glob("*.npz"))[::2]:
         z = np.load(path)
         shape = torch.from_numpy(z["keypoints"]).double()
         cams = _cams(random_rotations(3, generator, dtype=torch.float64), torch.full((3,), 50.0),
