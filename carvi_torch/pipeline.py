@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 
 from . import carve, select, surrogates
 from .carve import CarveMaps
+from .carve.puffball import puffball_grids
 from .collection import ClassCollection
 from .config import Config
 from .io.layout import class_dir, finished, object_file
@@ -233,8 +234,8 @@ def carve_and_select(ids: torch.Tensor, plan: ClassPlan, cfg: Config, timer: Sta
                                        consensus=cfg.select.consensus)
 
 
-def _job(sel: select.Selection, j: int, i: int, sur, plan: ClassPlan, cfg: Config) -> dict:
-    """The writer's job for reference ``j`` (original ``i``) of a chunk (host data only)."""
+def _job(sel: select.Selection, occupancy: torch.Tensor, j: int, i: int, sur, plan: ClassPlan, cfg: Config) -> dict:
+    """The writer's job for reference ``j`` (original ``i``) of a chunk (host data only, the grids too)."""
     scale, offset, aid_of = plan.canvas_scale[i], plan.canvas_offset[i], plan.aids
     aid = aid_of[i]
     canvas_to_image = canvas_to_image_4x4(scale, offset)
@@ -242,7 +243,7 @@ def _job(sel: select.Selection, j: int, i: int, sur, plan: ClassPlan, cfg: Confi
     best = int(sel.best[j])
     sur_ids = [] if sur is None or best < 0 else [aid_of[s] for s in sur[j, best].tolist() if s >= 0]
     v2img = canvas_to_image @ v2c
-    return dict(aid=aid, occupancy=sel.best_occupancy[j].numpy(), voxel_to_canvas=v2c.numpy(),
+    return dict(aid=aid, occupancy=occupancy[j].numpy(), voxel_to_canvas=v2c.numpy(),
                 voxel_to_image=v2img.numpy(), voxel_to_object=(plan.object_from_camera[i] @ v2img).numpy(),
                 canvas_scale=float(scale),
                 canvas_offset=offset.float().numpy(), surrogates=id_array(sur_ids),
@@ -260,11 +261,11 @@ def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Conf
     sur = plan.surrogates.surrogates_of(ids)
     sur = None if sur is None else sur.cpu()
     puffed = _puffballs(sel, ids, plan, cfg)
-    aid_of = plan.aids
-    jobs = [_job(sel, j, i, None if j in puffed else sur, plan, cfg) for j, i in enumerate(ids.tolist())]
+    aid_of, occupancy = plan.aids, sel.best_occupancy.cpu()  # the selected grids (R, D, H, W), to the host once
+    jobs = [_job(sel, occupancy, j, i, None if j in puffed else sur, plan, cfg) for j, i in enumerate(ids.tolist())]
     if resolve_mesher(cfg.mesh.mesher, ids.device) == "torch":
         with timer("mesh_device"):
-            mesh_jobs(sel, puffed, jobs, cfg.mesh.largest_component, cfg.mesh.format)
+            mesh_jobs(sel, jobs, cfg.mesh.largest_component, cfg.mesh.format)
     for j, (i, job) in enumerate(zip(ids.tolist(), jobs)):
         aid, src = aid_of[i], plan.coll.sources[i]
         if cfg.study.keep_all_scores and j not in puffed:
@@ -280,9 +281,9 @@ def _puffballs(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: C
     if not none:
         return set()
     rows = ids[torch.tensor(none, device=ids.device)]
-    grids = carve.puffball_grids(plan.coll.masks[rows], cfg.carve.resolution)
+    grids = puffball_grids(plan.coll.masks[rows], cfg.carve.resolution)
     for k, j in enumerate(none):
-        sel.best_occupancy[j] = grids.occupancy[k].cpu()
+        sel.best_occupancy[j] = grids.occupancy[k].to(sel.best_occupancy.device)
         sel.best_transform[j] = grids.voxel_to_camera[k].double().cpu()
         sel.best[j] = -1
         plan.surrogates.levels[int(ids[j])] = "puffball"

@@ -591,7 +591,8 @@ def class_reference(shape: torch.Tensor, masks: torch.Tensor, cameras: ScaledOrt
 
 @dataclass
 class Selection:
-    """The ranked proposals of ``R`` references with ``P`` proposals each (host tensors but the grids).
+    """The ranked proposals of ``R`` references with ``P`` proposals each (host tensors but the grids and the
+    selected occupancy).
 
     Attributes:
         grids: the carved proposals (:class:`carvi_torch.carve.ProposalGrids`, on the device).
@@ -599,9 +600,8 @@ class Selection:
         scores: ``(R, P)`` float (``inf``: not carved); misses: ``(R, P)`` long (``10**6``: not carved).
         ok: ``(R, P)`` bool valid and not empty; valid: ``(R, P)`` bool a valid triplet.
         best: ``(R,)`` long best proposal (-1: none).
-        best_occupancy: ``(R, D, H, W)`` bool; best_transform: ``(R, 4, 4)`` float64 voxel -> canvas.
-        voted: whether the selected grids are votes of several proposals (:func:`vote_proposals`), not
-            carved proposals themselves.
+        best_occupancy: ``(R, D, H, W)`` bool selected grids, on the grids' device (the writer meshes them
+            there and takes them to the host once); best_transform: ``(R, 4, 4)`` float64 voxel -> canvas.
     """
 
     grids: object
@@ -613,7 +613,6 @@ class Selection:
     best: torch.Tensor
     best_occupancy: torch.Tensor
     best_transform: torch.Tensor
-    voted: bool = False
 
 
 def vote_proposals(occupancy: torch.Tensor, voxel_to_camera: torch.Tensor, rows: torch.Tensor
@@ -695,8 +694,8 @@ def select_proposals(grids, keep: torch.Tensor, valid: torch.Tensor, cameras: Sc
             best-ranked valid proposals (``1``: the best proposal alone, the paper's choice).
 
     Returns:
-        :class:`Selection`; the few tensors the writer needs come back to the host in one
-        transfer each.
+        :class:`Selection`; the scores and ranks come back to the host in one transfer each, the
+        selected grids stay on the device (the writer meshes them there).
     """
     R, P = valid.shape
     dev = valid.device
@@ -718,15 +717,15 @@ def select_proposals(grids, keep: torch.Tensor, valid: torch.Tensor, cameras: Sc
         rows = torch.where(ok.view(R, P).gather(1, top), pos.view(R, P).gather(1, top), torch.full_like(top, -1))
         rows[:, 0] = rows[:, 0].clamp(min=0)  # a reference without a valid proposal: a placeholder, never used
         best_occ, best_T = vote_proposals(grids.occupancy, grids.voxel_to_camera, rows)
-        best_occ, best_T = best_occ.cpu(), best_T.cpu()
+        best_T = best_T.cpu()
     elif len(keep):
         best_pos = pos.view(R, P).gather(1, best.clamp(min=0)[:, None])[:, 0].clamp(min=0)
-        best_occ = grids.occupancy[best_pos].cpu()
+        best_occ = grids.occupancy[best_pos]
         best_T = grids.voxel_to_camera[best_pos].double().cpu()
     else:  # no valid proposal: nothing will be written
         n = grids.occupancy.shape[-1]
-        best_occ = torch.zeros(R, n, n, n, dtype=torch.bool)
+        best_occ = torch.zeros(R, n, n, n, dtype=torch.bool, device=grids.occupancy.device)
         best_T = torch.zeros(R, 4, 4, dtype=torch.float64)
     return Selection(grids=grids, pos=pos.cpu(), scores=scores.view(R, P).cpu(), misses=misses.view(R, P).cpu(),
                      ok=ok.view(R, P).cpu(), valid=valid.cpu(), best=best.cpu(), best_occupancy=best_occ,
-                     best_transform=best_T, voted=bool(len(keep)) and consensus > 1)
+                     best_transform=best_T)

@@ -37,6 +37,7 @@ __all__ = [
     "principal_directions",
     "cluster_by_direction",
     "cluster_weights",
+    "members_per_object",
     "object_share",
     "sample_triplets",
     "symmetry_axis",
@@ -247,13 +248,33 @@ def cluster_by_direction(
     return Clusters(labels=labels, threshold_deg=thr, sizes=sizes, log=log, angle_deg=angle.to(view_dirs.dtype))
 
 
+def members_per_object(labels: torch.Tensor, object_ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Members of each cluster that are views of each physical object.
+
+    Args:
+        labels: ``(N,)`` long cluster labels in ``{-1, 0, 1, 2}`` (-1: unclustered, counted nowhere).
+        object_ids: ``(N,)`` integer physical-object ids.
+
+    Returns:
+        ``counts (G, 3)`` long, members of cluster ``j`` whose object is the ``g``-th distinct id (ascending),
+        and ``group (N,)`` long, the row of ``counts`` of each instance.
+
+    Example:
+        >>> counts, group = members_per_object(torch.tensor([0, 0, 2, -1]), torch.tensor([7, 7, 3, 3]))
+        >>> counts.tolist(), group.tolist()
+        ([[0, 0, 1], [2, 0, 0]], [1, 1, 0, 0])
+    """
+    ids, group = torch.unique(object_ids, return_inverse=True)
+    inside = labels >= 0
+    counts = torch.zeros(ids.shape[0], 3, dtype=torch.long, device=labels.device)
+    counts.index_put_((group[inside], labels[inside].long()), torch.ones_like(group[inside]), accumulate=True)
+    return counts, group
+
+
 def _objects_per_cluster(labels: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
     """``(3,)`` long: distinct ``groups`` among each cluster's members (``labels (N,)``, ``groups (N,)``)."""
-    inside = labels >= 0
-    if not bool(inside.any()):
-        return torch.zeros(3, dtype=torch.long, device=labels.device)
-    pairs = torch.unique(torch.stack([labels[inside], groups[inside].long()], dim=1), dim=0)
-    return torch.bincount(pairs[:, 0], minlength=3)[:3]
+    counts, _ = members_per_object(labels, groups)
+    return (counts > 0).sum(dim=0)
 
 
 # --------------------------------------------------------------------------- triplets
@@ -310,10 +331,7 @@ def cluster_weights(
     # eligible[r, j] = #{n : labels[n] == j, object_ids[n] != object_ids[ref_r]}
     #               = sizes[j] - #{n : labels[n] == j, object_ids[n] == object_ids[ref_r]}
     # (members per object id and cluster: O(N) memory, not a reference x instance matrix)
-    ids, group = torch.unique(object_ids, return_inverse=True)
-    clustered = labels >= 0
-    per_object = torch.zeros(ids.shape[0], 3, dtype=torch.long, device=labels.device)
-    per_object.index_put_((group[clustered], labels[clustered]), torch.ones_like(labels[clustered]), accumulate=True)
+    per_object, group = members_per_object(labels, object_ids)
     eligible = counts[None, :] - per_object[group[references]]  # (R, 3)
     w = base[None, :].expand(references.shape[0], 3).clone()
     own = labels[references]
@@ -340,9 +358,8 @@ def object_share(labels: torch.Tensor, object_ids: torch.Tensor) -> torch.Tensor
         >>> object_share(torch.tensor([0, 0, 0, 1, -1]), torch.tensor([7, 7, 8, 7, 7])).tolist()
         [0.5, 0.5, 1.0, 1.0, 1.0]
     """
-    key = torch.stack([labels.long(), object_ids.long()], dim=1)
-    _, inverse, counts = torch.unique(key, dim=0, return_inverse=True, return_counts=True)
-    share = 1.0 / counts[inverse].to(torch.float32)
+    counts, group = members_per_object(labels, object_ids)
+    share = 1.0 / counts[group, labels.long().clamp(min=0)].clamp(min=1).to(torch.float32)
     return torch.where(labels >= 0, share, torch.ones_like(share))
 
 

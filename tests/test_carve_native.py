@@ -7,8 +7,8 @@ rules (private directory, owner, mode and SHA-256 of a library checked before it
 concurrent builds) and the fallbacks without a compiler run in child processes with their own caches
 (forked from one that imported torch alone, so each is fresh for the package: conftest's fork server):
 a library that fails a check must be rebuilt, never loaded (a truncated one could kill the process). The
-children's ``c++`` is a shim that copies the library this process built (see ``compiler_shim``); the real
-compiles are this process's own (on a fresh cache) and the portable build's.
+children's compiler is a shim that copies a library built here, whatever ``$CXX`` is (see ``compiler_shim``);
+the real compiles are this process's own (on a fresh cache) and the portable build's.
 """
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ import hashlib
 import importlib
 import json
 import os
+import shlex
 import shutil
 import stat
 import subprocess
@@ -244,36 +245,57 @@ def _run_child(cache: Path, **env_extra) -> tuple[int, dict | None, str]:
 
 
 _SHIM = """#!/bin/sh
-# Stands in for the C++ compiler `c++` in the cache tests' child processes: it "builds" the kernel by
-# copying the library this process already built from the same sources, flags, compiler name and torch
-# (so the same file name and operator namespace), after a pause as long as a build's first seconds.
+# Stands in for the C++ compiler in the cache tests' child processes: it "builds" the kernel by copying a
+# library built from the same sources, flags, compiler name and torch (so the same file name and operator
+# namespace), after a pause as long as a build's first seconds.
 echo "$*" >> "{log}"
 out=""; prev=""
 for a in "$@"; do [ "$prev" = "-o" ] && out="$a"; prev="$a"; done
-[ -n "$out" ] || {{ echo "c++ shim: no -o" >&2; exit 1; }}
+[ -n "$out" ] || {{ echo "compiler shim: no -o" >&2; exit 1; }}
 sleep "${{CARVI_SHIM_SECONDS:-0}}"
 exec cp "{lib}" "$out"
 """
 
 
+def _library_for_children(env: dict, folder: Path) -> Path:
+    """The library a child with ``env`` (a ``CXX`` of its own) builds, compiled here by this process's compiler
+    with that child's key and operator namespace."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("CXX", env["CXX"])
+        key = native._key()
+    lib = folder / f"carve_native-{key}.so"
+    proc = subprocess.run(native._build_command(lib, f"carvi_{key}"), capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return lib
+
+
 @pytest.fixture(scope="module")
 def compiler_shim(tmp_path_factory) -> tuple[dict, Path]:
-    """``PATH`` (and ``CXX`` unset) so that a child's build runs ``c++`` = a shim that copies this process's
-    library instead of compiling it again: the cache's rules, lock, atomic replace and checks all run as in a
-    real build, in a fraction of a compile's time. The key hashes the compiler's name, ``c++`` either way.
-    Also the log of the shim's invocations (one line per build). A real compile is this process's own build
-    (on a fresh cache) and the portable build's test."""
+    """The environment (``PATH`` or ``CXX``) under which a child's build runs a shim that copies a library instead
+    of compiling it, whatever ``$CXX`` is: the cache's rules, lock, atomic replace and checks all run as in a
+    real build, in a fraction of a compile's time. Also the log of the shim's invocations (one line per build).
+
+    The key hashes the compiler's command line, so the children keep this process's: where ``$CXX`` (else
+    ``c++``) starts with a command looked up on ``PATH``, the shim takes that command's name in a folder first
+    on ``PATH`` and copies this process's library; where it starts with a path, the children's ``CXX`` is the
+    shim itself and the library it copies is compiled once here for their key. A real compile is this process's
+    own build (on a fresh cache), that one, and the portable build's test."""
     if not native.available():
         pytest.skip(f"kernel unavailable: {native.unavailable_reason()}")
-    if os.environ.get("CXX"):  # the shim stands in for the default compiler `c++` only: children compile
-        return {}, None
-    lib = Path(native.status()["path"])
-    assert lib.name == f"carve_native-{native._key()}.so"
+    command = shlex.split(os.environ.get("CXX") or "c++")[0]
     d = tmp_path_factory.mktemp("shim")
     log = d / "builds.log"
-    (d / "c++").write_text(_SHIM.format(log=log, lib=lib))
-    os.chmod(d / "c++", 0o755)
-    env = {"PATH": f"{d}{os.pathsep}{os.environ.get('PATH', '')}", "CXX": ""}
+    if os.sep in command:
+        shim = d / "compiler-shim"
+        env = {"CXX": str(shim)}
+        lib = _library_for_children(env, d)
+    else:
+        shim = d / command
+        env = {"PATH": f"{d}{os.pathsep}{os.environ.get('PATH', '')}"}
+        lib = Path(native.status()["path"])
+        assert lib.name == f"carve_native-{native._key()}.so"
+    shim.write_text(_SHIM.format(log=log, lib=lib))
+    os.chmod(shim, 0o755)
     return env, log
 
 
@@ -283,12 +305,12 @@ def built_cache(tmp_path_factory, compiler_shim) -> tuple[Path, list]:
     load); the tests that tamper with it work on copies. Also the children's reports. The build takes 1.5 s
     (the shim's pause), so the second child finds the first one building."""
     shim_env, log = compiler_shim
-    before = log.read_text().count("\n") if log is not None and log.exists() else 0
+    before = log.read_text().count("\n") if log.exists() else 0
     cache = tmp_path_factory.mktemp("built")
     env = dict(os.environ, CARVI_TORCH_CACHE=str(cache), PYTHONPATH=str(ROOT), CARVI_SHIM_SECONDS="1.5", **shim_env)
     outs = run_each_in_a_fresh_process([_CHILD, _CHILD], argv=[MODULE], env=env)  # two processes at once
     assert all(rc == 0 for rc, _out, _err in outs), [err[-2000:] for _rc, _out, err in outs]
-    assert log is None or log.read_text().count("\n") == before + 1  # one build: the compiler ran once
+    assert log.read_text().count("\n") == before + 1  # one build: the compiler ran once
     return cache, [json.loads(out.strip().splitlines()[-1]) for _rc, out, _err in outs]
 
 
@@ -314,8 +336,9 @@ def _assert_rebuilt(cache: Path, lib: Path, tampered: bytes | None, why: str, en
 
 
 @needs_kernel
-def test_a_fresh_cache_is_private_and_the_library_is_reused(tmp_path, built_cache):
+def test_a_fresh_cache_is_private_and_the_library_is_reused(tmp_path, built_cache, compiler_shim):
     built_cache, _ = built_cache
+    shim_env, _log = compiler_shim  # the children's compiler, so that they look for the library built with it
     kernels = built_cache / "kernels"
     assert stat.S_IMODE(kernels.stat().st_mode) == 0o700
     lib = [p for p in kernels.iterdir() if p.suffix == ".so"][0]
@@ -323,10 +346,10 @@ def test_a_fresh_cache_is_private_and_the_library_is_reused(tmp_path, built_cach
     assert (kernels / (lib.name + ".sha256")).read_text().strip() == hashlib.sha256(lib.read_bytes()).hexdigest()
     copy = _copy_cache(built_cache, tmp_path)
     mtime = copy.stat().st_mtime_ns
-    rc, res, err = _run_child(tmp_path)
+    rc, res, err = _run_child(tmp_path, **shim_env)
     assert rc == 0 and res["ok"] and res["rebuilt"] is None and res["mtime"] == mtime, (res, err)
     os.chmod(tmp_path / "kernels", 0o777)  # a cache directory of ours opened up: closed again
-    rc, res, err = _run_child(tmp_path)
+    rc, res, err = _run_child(tmp_path, **shim_env)
     assert rc == 0 and res["ok"] and stat.S_IMODE((tmp_path / "kernels").stat().st_mode) == 0o700, err
 
 
@@ -362,9 +385,9 @@ def test_a_planted_library_is_rebuilt_not_loaded(tmp_path, built_cache, compiler
         os.chown(lib, 12345, 12345)
         why = "belongs to uid 12345"
     shim_env, log = compiler_shim
-    before = log.read_text().count("\n") if log is not None else 0
+    before = log.read_text().count("\n")
     _assert_rebuilt(cache, lib, planted, why, shim_env)
-    assert log is None or log.read_text().count("\n") == before + 1  # the rebuild ran the compiler
+    assert log.read_text().count("\n") == before + 1  # the rebuild ran the compiler
     assert not marker.exists(), "the planted library was loaded"
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import subprocess
 import sys
@@ -15,6 +16,7 @@ from scipy import ndimage
 from scipy.spatial import ConvexHull
 from torch.utils.data import DataLoader
 
+from carvi_torch.cameras import azimuth_elevation_roll_from_rotation
 from carvi_torch.config import Config
 from carvi_torch.executors import run
 from carvi_torch.export import export, main as export_main
@@ -95,6 +97,11 @@ def test_round_trip_matches_reconstruction(recon, exported):
         cams = json.loads((recon / cls / "cameras.json").read_text())["cameras"][str(aid)]
         assert np.allclose(item["R"].numpy(), cams["refined"]["R"], atol=1e-5)
         assert np.isclose(float(item["s"]), cams["refined"]["s"])
+        # the angles are cameras.json's, in radians, and those of the stored R
+        angles = [math.radians(cams[k]) for k in ("azimuth_deg", "elevation_deg", "roll_deg")]
+        assert np.array_equal(item["viewpoint"].numpy(), np.array(angles, dtype=np.float32))
+        R = torch.as_tensor(cams["refined"]["R"], dtype=torch.float64)
+        assert np.allclose(torch.stack(azimuth_elevation_roll_from_rotation(R)).numpy(), angles, atol=1e-12)
         q = cams["quality"]  # every object with a camera has one, with the signals it combines
         assert 0.0 <= q <= 1.0 and np.isclose(float(item["quality"]), q) and "reconstruction_iou" in cams[
             "quality_signals"]
@@ -335,6 +342,9 @@ def test_missing_and_partial_objects_reported(recon, tmp_path, capsys):
     vox[0].unlink()  # missing
     mesh = broken / "car" / "meshes" / f"{vox[1].stem}.ply"
     mesh.write_bytes(mesh.read_bytes()[:50])  # partial file
+    cams = json.loads((broken / "car" / "cameras.json").read_text())
+    del cams["cameras"][vox[2].stem]["roll_deg"]  # a camera without its angles
+    (broken / "car" / "cameras.json").write_text(json.dumps(cams))
     rc = export_main(["--recon", str(broken), "--out", str(tmp_path / "exp"), "--resolution", "8", "--points",
                       "16", "--workers", "0"])
     assert rc == 0
@@ -344,6 +354,7 @@ def test_missing_and_partial_objects_reported(recon, tmp_path, capsys):
     reasons = {s["annotation_id"]: s["reason"] for s in attrs["skipped"]}
     assert int(vox[0].stem) in reasons and "no voxels" in reasons[int(vox[0].stem)]
     assert int(vox[1].stem) in reasons and "unreadable" in reasons[int(vox[1].stem)]
+    assert "no azimuth_deg, elevation_deg, roll_deg" in reasons[int(vox[2].stem)]
     assert "skipped" in capsys.readouterr().out
     # an earlier export is replaced; a folder holding anything else is left alone (exit 2, nothing written)
     args = ["--recon", str(broken), "--resolution", "4", "--points", "8", "--workers", "0", "--classes", "chair"]

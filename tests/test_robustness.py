@@ -82,6 +82,21 @@ def test_every_object_of_a_tiny_class_is_reconstructed(base, tmp_path):
     assert fallbacks, "this collection is small enough to need a fallback somewhere"
 
 
+def test_a_class_of_one_physical_object_without_mirrors_gets_puffballs(base, tmp_path):
+    """Every car is a view of one physical object and mirrors are off: no proposal at all, so every car is a
+    puffball, written with its voxels file (a grid with the mask's silhouette) and its mesh."""
+    data = copy.deepcopy(base)
+    car = next(c["id"] for c in data["categories"] if c["name"] == "car")
+    data["annotations"] = [dict(a, object_id=7) for a in data["annotations"] if a["category_id"] == car]
+    data["categories"] = [c for c in data["categories"] if c["id"] == car]
+    out = tmp_path / "run"
+    s = run(_cfg(out, _write(tmp_path, data), mirrors=False, mesher="torch"), workers=0)
+    c = s["classes"]["car"]
+    assert c["reconstructed"] == 6 and c["surrogates_from"]["counts"] == {"puffball": 6}, c["failures"]
+    for f in (out / "car" / "voxels").glob("*.npz"):
+        assert np.load(f)["occupancy"].any() and (out / "car" / "meshes" / f"{f.stem}.ply").stat().st_size > 0
+
+
 def test_fallback_levels_in_order():
     """One cluster only: widened clusters when the widening finds two; else a single surrogate; else (one
     physical object) the own mirrored copy; without mirrors, a puffball."""

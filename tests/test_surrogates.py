@@ -16,6 +16,7 @@ from carvi_torch.surrogates import (
     Triplets,
     cluster_by_direction,
     cluster_weights,
+    members_per_object,
     principal_components,
     principal_directions,
     sample_triplets,
@@ -291,6 +292,23 @@ class TestSampleTriplets:
                  for i in range(40)]
         torch.testing.assert_close(object_share(labels, objects), torch.tensor(brute), atol=1e-7, rtol=0)
         assert torch.equal(object_share(labels, torch.arange(40)), torch.ones(40))  # no repeated object: all 1
+
+    def test_members_per_object_vs_brute_force(self, generator):
+        """The one count behind the weights, shares and object counts: members of cluster j viewing object g,
+        counted by a loop over every (object, cluster) pair; the objects per cluster follow from it."""
+        from carvi_torch.surrogates import _objects_per_cluster
+
+        labels = torch.randint(-1, 3, (30,), generator=generator)
+        objects = torch.randint(0, 8, (30,), generator=generator) * 5 - 7  # sparse, some negative ids
+        counts, group = members_per_object(labels, objects)
+        distinct = sorted(set(objects.tolist()))
+        lab, obj = labels.tolist(), objects.tolist()
+        brute = [[sum(lab[n] == j and obj[n] == g for n in range(30)) for j in range(3)] for g in distinct]
+        assert counts.tolist() == brute
+        assert [distinct[k] for k in group.tolist()] == obj
+        seen = [len({obj[n] for n in range(30) if lab[n] == j}) for j in range(3)]
+        assert _objects_per_cluster(labels, objects).tolist() == seen
+        assert _objects_per_cluster(torch.full((4,), -1), torch.arange(4)).tolist() == [0, 0, 0]
 
     def test_cluster_weights_stated_rule(self):
         labels = torch.tensor([0] * 30 + [1] * 10 + [2] * 5 + [-1])

@@ -212,17 +212,6 @@ def load_mesh(path) -> tuple[np.ndarray, np.ndarray]:
 # =========================================================================== one object (worker processes)
 
 
-def _viewpoint(R: np.ndarray) -> list[float]:
-    """Azimuth, elevation, roll of ``R`` (:func:`carvi_torch.cameras.azimuth_elevation_roll_from_rotation`).
-    The main process computes them for every job; a worker only where that failed (a malformed camera),
-    to report the object with the error (torch is imported then, and only then)."""
-    import torch
-
-    from ..cameras import azimuth_elevation_roll_from_rotation
-
-    return [float(x) for x in azimuth_elevation_roll_from_rotation(torch.from_numpy(R))]
-
-
 def export_object(job: dict) -> dict:
     """Every field of one object from its job (host data and file paths; built by
     :func:`carvi_torch.export.run.export`); the ids are filled in by the caller."""
@@ -243,13 +232,14 @@ def export_object(job: dict) -> dict:
     pts, normals = sample_surface(verts, faces, job["points"], np.random.default_rng(job["seed"]))
     to_class = canvas_to_class(R, s_c, t_c)
     C, res = job["canvas"], job["resolution"]
-    viewpoint = job["viewpoint"] if job.get("viewpoint") is not None else _viewpoint(R)
+    if job.get("viewpoint") is None:
+        raise ValueError("cameras.json gives no azimuth_deg, elevation_deg, roll_deg for this camera")
     out = {
         "mask": job["mask"], "keypoints": job["keypoints"], "visible": job["visible"],
         "crop_box": np.concatenate([-b / a, (C - 1.0 - b) / a]).astype(np.float32),
         "canvas_scale": np.float32(a), "canvas_offset": b.astype(np.float32),
         "R": R.astype(np.float32), "s": np.float32(s), "t": t.astype(np.float32),
-        "viewpoint": np.array(viewpoint, dtype=np.float32),
+        "viewpoint": np.array(job["viewpoint"], dtype=np.float32),
         "quality": np.float32(job["quality"]),
         "occupancy_view": view_occupancy(occ, v2canvas, C, res, depth_centre, boundary),
         "occupancy_canonical": canonical_occupancy(occ, v2canvas, R, s_c, t_c, job["extent"], res, boundary),

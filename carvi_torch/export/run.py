@@ -15,6 +15,7 @@ the results in order as they come (:mod:`carvi_torch.export.command` is the comm
 from __future__ import annotations
 
 import concurrent.futures as cf
+import math
 import multiprocessing as mp
 import time
 from collections import deque
@@ -23,10 +24,8 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
-from ..cameras import azimuth_elevation_roll_from_rotation
 from ..io.coco import load_coco
 from ..io.layout import object_file
 from ..io.outputs import read_json
@@ -65,13 +64,16 @@ def class_extent(cams: dict) -> float:
 # =========================================================================== the export (main process)
 
 
-def _viewpoint_or_none(camera: dict) -> list[float] | None:
-    """Azimuth, elevation, roll of a camera entry's ``R`` (None where ``R`` is malformed: the worker then
-    reports the object with the error)."""
+#: The angles of a ``cameras.json`` entry, in the order of the store's ``viewpoint`` field.
+_ANGLE_KEYS = ("azimuth_deg", "elevation_deg", "roll_deg")
+
+
+def _viewpoint_or_none(entry: dict) -> list[float] | None:
+    """Azimuth, elevation, roll (radians) of a ``cameras.json`` entry, as the run wrote them (from its final
+    camera's ``R``); None where they are missing or not numbers (the worker then reports the object)."""
     try:
-        R = torch.as_tensor(np.asarray(camera["R"], dtype=np.float64))
-        return [float(x) for x in azimuth_elevation_roll_from_rotation(R)]
-    except Exception:  # noqa: BLE001 - reported by the worker, as every unreadable camera
+        return [math.radians(float(entry[k])) for k in _ANGLE_KEYS]
+    except (KeyError, TypeError, ValueError):
         return None
 
 
@@ -91,7 +93,7 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
             continue
         q = entry.get("quality")
         jobs.append({**settings, "class": cname, "class_index": ci, "annotation_id": aid,
-                     "viewpoint": _viewpoint_or_none(entry["refined"]), "image_id": coll.image_ids[i],
+                     "viewpoint": _viewpoint_or_none(entry), "image_id": coll.image_ids[i],
                      "source": coll.sources[i],
                      "seed": [settings["seed"], stable_hash(cname), i],
                      "mask": coll.masks[i].cpu().numpy(), "keypoints": coll.keypoints[i].cpu().numpy(),

@@ -104,24 +104,15 @@ def proposals_payload(sel, j: int, surrogates: torch.Tensor | None, canvas_to_im
                 misses=sel.misses[j].numpy(), best=np.int64(sel.best[j]), surrogates=sur)
 
 
-def mesh_jobs(sel, puffed: set[int], jobs: list[dict], largest: bool, mesh_format: str) -> None:
+def mesh_jobs(sel, jobs: list[dict], largest: bool, mesh_format: str) -> None:
     """Mesh a chunk's selected grids in one batch on the proposals' device (:mod:`carvi_torch.marching`)
     into its writer ``jobs`` (``mesh_vertices``, ``mesh_faces``): the writers then only write.
 
-    ``sel``: the chunk's :class:`~carvi_torch.select.Selection`; the grids are gathered again from its
-    proposals on the device, the ``puffed`` rows (puffballs) from the host. ``largest``: keep the largest
-    component first, on the host, as the writers would (the jobs' occupancy becomes it). A PLY file holds
-    float32 vertices and int32 faces: they are sent so (fewer bytes to the writers, the same file)."""
-    grids = sel.grids.occupancy
-    R, P = sel.scores.shape
-    if len(grids) == 0 or sel.voted:  # every reference a puffball, or voted grids (held by the selection only)
-        occ = sel.best_occupancy.to(grids.device)
-    else:
-        best_pos = sel.pos.view(R, P).gather(1, sel.best.clamp(min=0)[:, None])[:, 0].clamp(min=0)
-        occ = grids[best_pos.to(grids.device)]
-        if puffed:
-            rows = sorted(puffed)
-            occ[torch.tensor(rows, device=grids.device)] = sel.best_occupancy[rows].to(grids.device)
+    ``sel``: the chunk's :class:`~carvi_torch.select.Selection`; its ``best_occupancy`` ``(R, D, H, W)``
+    (puffballs included) is meshed where it lies. ``largest``: keep the largest component first, on the
+    host, as the writers would (the jobs' occupancy becomes it). A PLY file holds float32 vertices and
+    int32 faces: they are sent so (fewer bytes to the writers, the same file)."""
+    occ = sel.best_occupancy
     if largest:
         occ = largest_component(occ)
         for job, o in zip(jobs, occ.cpu().numpy()):
