@@ -15,7 +15,7 @@ import torch
 
 from carvi_torch.cameras import ScaledOrthographic, rotation_about_axis
 from carvi_torch.viewpoints.choice import (HULL_GAIN, KEYPOINT_GROWTH, box_diagonal, choose_cameras,
-                                           hull_agreement, keypoint_rms, polygon_masks)
+                                           hull_agreement, keypoint_rms)
 
 
 def _cams(R, s, t):
@@ -49,93 +49,6 @@ def test_hull_agreement_matches_a_point_in_polygon_reference(generator):
     with_nan = torch.cat([shape, torch.full((1, 3), math.nan, dtype=torch.float64)])
     assert torch.equal(hull_agreement(with_nan, cams, masks), hull_agreement(shape, cams, masks))
     assert float(hull_agreement(shape[:2], cams[:1], masks[:1])[0]) == 0.0
-
-
-def reference_hull_agreement(shape: torch.Tensor, cams: ScaledOrthographic, masks: torch.Tensor) -> torch.Tensor:
-    """The slow reference of :func:`hull_agreement`: row by row, scipy's hull drawn by ``skimage.draw.polygon``
-    and the pixels counted by numpy. ``(M,)`` float64."""
-    from scipy.spatial import ConvexHull, QhullError
-    from skimage.draw import polygon
-
-    keep = torch.isfinite(shape).all(-1)
-    P = cams.project(shape[keep].to(cams.R.dtype)).detach().double().cpu().numpy()
-    m = masks.cpu().numpy()
-    out = np.zeros(len(m))
-    for i in range(len(m)):
-        h = np.zeros(m.shape[1:], dtype=bool)
-        try:
-            v = P[i][ConvexHull(P[i]).vertices] if len(P[i]) >= 3 else None
-        except (QhullError, ValueError):
-            v = None
-        if v is not None:
-            rr, cc = polygon(v[:, 1], v[:, 0], shape=h.shape)
-            h[rr, cc] = True
-        union = np.count_nonzero(h | m[i])
-        out[i] = np.count_nonzero(h & m[i]) / union if union else 0.0
-    return torch.from_numpy(out)
-
-
-@pytest.mark.parametrize("grid", [None, 1.0, 0.5])
-def test_hull_agreement_equals_the_per_row_reference(generator, grid):
-    """Every row's IoU equals the slow reference's exactly, and every hull's pixels equal scikit-image's: with
-    projections at random points and on a pixel or half-pixel grid (pixel centres on the hull's edges and at
-    its vertices), hulls beyond the canvas, too few points, NaN rows."""
-    C, M = 40, 60
-    shape = torch.randn(9, 3, generator=generator, dtype=torch.float64) * 9
-    shape[3] = math.nan
-    if grid is not None:
-        shape = (shape / grid).round() * grid
-    R = torch.eye(3, dtype=torch.float64).expand(M, 3, 3).clone()
-    R[::2] = rotation_about_axis(torch.tensor([0.2, 1.0, 0.4], dtype=torch.float64), 0.9)
-    t = torch.randint(-5, C + 5, (M, 2), generator=generator).double()
-    cams = _cams(R if grid is None else torch.eye(3).expand(M, 3, 3), torch.ones(M), t)
-    masks = torch.rand(M, C, C, generator=generator) < 0.5
-    masks[5:10] = False
-    for s in (shape, shape[:3], shape[:2]):
-        assert torch.equal(hull_agreement(s, cams, masks), reference_hull_agreement(s, cams, masks))
-    from skimage.draw import polygon
-    from carvi_torch.viewpoints.choice import _hull_vertices
-
-    V = _hull_vertices(cams.project(shape[torch.isfinite(shape).all(-1)]).numpy())
-    for v, got in zip(V, polygon_masks(V, C)):
-        want = np.zeros((C, C), dtype=bool)
-        want[polygon(v[:, 1], v[:, 0], shape=(C, C))] = True
-        assert np.array_equal(got, want)
-
-
-def test_a_scan_line_across_four_edges_is_drawn_by_scikit_image():
-    """A polygon convex only up to rounding can have a scan line across four edges, which two intervals do not
-    describe: such a row is drawn by ``skimage.draw.polygon`` itself (here a U, far from convex)."""
-    from skimage.draw import polygon
-    from carvi_torch.viewpoints.choice import _hull_counts
-
-    u = np.array([[1.0, 1], [9, 1], [9, 9], [6.5, 9], [6.5, 4], [3.5, 4], [3.5, 9], [1, 9]])
-    square = np.array([[2.0, 2], [5, 2], [5, 5], [2, 5], [2, 5], [2, 5], [2, 5], [2, 5]])
-    got = polygon_masks(np.stack([u, square]), 12)
-    for v, g in zip((u, square), got):
-        want = np.zeros((12, 12), dtype=bool)
-        want[polygon(v[:, 1], v[:, 0], shape=(12, 12))] = True
-        assert np.array_equal(g, want)
-    masks = np.random.default_rng(0).random((2, 12, 12)) < 0.5
-    pixels, inside = _hull_counts(np.stack([u, square]), masks)
-    assert pixels.tolist() == got.sum((1, 2)).tolist() and inside.tolist() == (got & masks).sum((1, 2)).tolist()
-
-
-def test_hull_agreement_equals_the_reference_on_cad_keypoints(shared_data, generator):
-    """Real shapes: the 3D keypoints of every other PASCAL3D+ CAD model (every class) seen by 3 random cameras on
-    a 128-pixel canvas, against the pixels its projected mesh vertices fall in; the same IoU as the slow
-    reference."""
-    from carvi_torch.cameras import random_rotations
-
-    for path in sorted((shared_data / "pascal3d_cad").glob("*.npz"))[::2]:
-        z = np.load(path)
-        shape = torch.from_numpy(z["keypoints"]).double()
-        cams = _cams(random_rotations(3, generator, dtype=torch.float64), torch.full((3,), 50.0),
-                     torch.rand(3, 2, generator=generator, dtype=torch.float64) * 20 + 54)
-        px = cams.project(torch.from_numpy(z["vertices"][::7]).double()).round().long().clamp(0, 127)
-        masks = torch.zeros(3, 128, 128, dtype=torch.bool)
-        masks[torch.arange(3)[:, None], px[..., 1], px[..., 0]] = True
-        assert torch.equal(hull_agreement(shape, cams, masks), reference_hull_agreement(shape, cams, masks)), path
 
 
 def test_keypoint_rms_and_box_diagonal_match_loops(generator):

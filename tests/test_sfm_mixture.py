@@ -337,15 +337,6 @@ def test_the_automatic_decision_splits_a_class_of_two_proportions(two_shapes):
     # the recorded gain is the median over rows of the split's hull agreement minus one shape's
     one = mix.fit_mixture_of_shapes(both, dist, _sfm, max_groups=1, single=fitted.single)
     gain = (mix.hull_agreements(fitted, both.masks) - mix.hull_agreements(one, both.masks)).median()
-    # each row's agreement is the slow per-row reference's, exactly (the rows of each group under its shape)
-    from test_camera_choice import reference_hull_agreement
-
-    ref = torch.full((both.masks.shape[0],), float("nan"), dtype=torch.float64)
-    for g in range(fitted.k):
-        rows, res = fitted.groups[g]
-        for r, c in zip(rows[res.valid].tolist(), res.valid.nonzero().squeeze(1).tolist()):
-            ref[r] = reference_hull_agreement(fitted.shape(g), fitted.cameras(g)[[c]], both.masks[[r]])[0]
-    torch.testing.assert_close(mix.hull_agreements(fitted, both.masks), ref, rtol=0, atol=0, equal_nan=True)
     kept = next(c for c in fitted.candidates if c["kept"])
     assert kept["hull_gain"] == pytest.approx(float(gain), abs=1e-5)
     assert fitted.summary()["misfit"] == fitted.misfit

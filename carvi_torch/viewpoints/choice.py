@@ -91,133 +91,41 @@ class CameraChoice:
     diagonal: torch.Tensor
 
 
-def _hull_vertices(points: np.ndarray) -> np.ndarray:
-    """``(M, V, 2)`` float64 (x, y) vertices of the convex hull of each row's ``points (M, P, 2)``, in scipy's
-    order; a row with fewer repeats its last vertex (zero-length edges), a row without area (fewer than 3
-    points, collinear or coincident ones) is all NaN."""
+def _hull_mask(points: np.ndarray, size: int) -> np.ndarray:
+    """``(size, size)`` bool: the pixels whose centres lie in the convex hull of ``points (P, 2)`` (x, y)."""
     from scipy.spatial import ConvexHull, QhullError
-
-    hulls = []
-    for p in points:
-        try:
-            hulls.append(p[ConvexHull(p).vertices] if len(p) >= 3 else None)
-        except (QhullError, ValueError):
-            hulls.append(None)  # collinear or coincident points: no area
-    V = max([len(h) for h in hulls if h is not None], default=1)
-    out = np.full((len(points), V, 2), np.nan)
-    for i, h in enumerate(hulls):
-        if h is not None:
-            out[i, :len(h)], out[i, len(h):] = h, h[-1]
-    return out
-
-
-def _scan_intervals(vertices: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The pixels of each scan line that ``skimage.draw.polygon``'s crossing test puts inside the convex polygon
-    of ``vertices (M, V, 2)`` (x, y), but for pixel centres on a vertex (:func:`_vertex_hits`).
-
-    The test counts the edges crossed by the rays from a pixel centre to +x and to -x: the centre is in when
-    either count is odd. A convex polygon's scan line straddles two edges or none for each ray, so each gives
-    one half-open interval ``[lo, hi)`` of x. An edge meets the line at ``x_c``; the test holds for every x on
-    one side of it but the integer nearest to ``x_c``, where it is evaluated as scikit-image evaluates it.
-
-    Returns:
-        ``lo, hi`` ``(M, 2, size)`` int64 (the +x ray's interval, then the -x ray's; ``lo == hi``: empty) and
-        ``odd (M,)`` bool: rows with a scan line that straddles more than two edges (a polygon convex only up
-        to rounding), which these intervals do not describe.
-    """
-    xi, yi = vertices[..., 0, None], vertices[..., 1, None] - np.arange(size)  # (M, V, size): edge (i - 1, i)
-    xj, yj = np.roll(xi, 1, axis=1), np.roll(yi, 1, axis=1)
-    rays = np.stack([(yi > 0) != (yj > 0), (yi < 0) != (yj < 0)], axis=1)  # (M, 2, V, size)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        k = np.where(rays.any(1), np.round(xi + yi / (yi - yj) * (xj - xi)), 0.0)  # nearest integer to x_c
-        at_k = ((xi - k) * yj - (xj - k) * yi) / (yj - yi)  # scikit-image's test at it
-    first = np.stack([k + (at_k > 0), k + 1 - (at_k < 0)], axis=1).clip(0, size)  # +x: x < first; -x: x >= first
-    count = rays.sum(2)  # (M, 2, size)
-    lo = np.where(count == 2, np.where(rays, first, np.inf).min(2), 0).astype(np.int64)
-    hi = np.where(count == 2, np.where(rays, first, -np.inf).max(2), 0).astype(np.int64)
-    return lo, hi, (count > 2).any((1, 2))
-
-
-def _vertex_hits(vertices: np.ndarray, size: int) -> list[tuple[int, int, int]]:
-    """``(row, y, x)`` of the pixel centres within scikit-image's tolerance (1e-12) of a vertex, once each."""
-    near = np.round(vertices)
-    new = (vertices != np.roll(vertices, 1, axis=1)).any(-1)  # not a repeat of the previous vertex
-    hit = (np.abs(vertices - near) < 1e-12).all(-1) & (near >= 0).all(-1) & (near < size).all(-1) & new
-    m, v = np.nonzero(hit)
-    return sorted({(int(a), int(near[a, b, 1]), int(near[a, b, 0])) for a, b in zip(m, v)})
-
-
-def _polygon_mask(vertices: np.ndarray, size: int) -> np.ndarray:
-    """``(size, size)`` bool: ``skimage.draw.polygon`` of one row's ``vertices (V, 2)`` (x, y; NaN: empty)."""
     from skimage.draw import polygon
 
     out = np.zeros((size, size), dtype=bool)
-    if np.isfinite(vertices).all():
-        out[polygon(vertices[:, 1], vertices[:, 0], shape=(size, size))] = True
+    if len(points) < 3:
+        return out
+    try:
+        hull = points[ConvexHull(points).vertices]
+    except (QhullError, ValueError):
+        return out  # collinear or coincident points: no area
+    rr, cc = polygon(hull[:, 1], hull[:, 0], shape=(size, size))
+    out[rr, cc] = True
     return out
-
-
-def polygon_masks(vertices: np.ndarray, size: int) -> np.ndarray:
-    """``(M, size, size)`` bool: the pixels ``[y, x]`` whose centres lie in or on the convex polygon of each
-    row's ``vertices (M, V, 2)`` float64 (x, y; NaN rows: empty), pixel for pixel what ``skimage.draw.polygon``
-    draws (its crossing test, boundary and vertex tolerance included), every row at once.
-
-    Example:
-        >>> v = np.array([[[1.0, 1.0], [3.0, 1.0], [3.0, 2.0], [1.0, 2.0]]])
-        >>> polygon_masks(v, 4)[0].astype(int).tolist()
-        [[0, 0, 0, 0], [0, 1, 1, 1], [0, 1, 1, 1], [0, 0, 0, 0]]
-    """
-    lo, hi, odd = _scan_intervals(vertices, size)
-    x = np.arange(size)
-    out = ((lo[..., None] <= x) & (x < hi[..., None])).any(1)
-    for m, y, x in _vertex_hits(vertices, size):
-        out[m, y, x] = True
-    for m in np.nonzero(odd)[0]:
-        out[m] = _polygon_mask(vertices[m], size)
-    return out
-
-
-def _hull_counts(vertices: np.ndarray, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(M,)`` int64 pixels of :func:`polygon_masks` of ``vertices (M, V, 2)``, and those of them in ``masks
-    (M, C, C)`` bool, from its scan-line intervals and the masks' running sums along x (no hull pixels drawn)."""
-    M, C = masks.shape[0], masks.shape[-1]
-    lo, hi, odd = _scan_intervals(vertices, C)
-    both = np.stack([lo.max(1), np.maximum(hi.min(1), lo.max(1))], axis=1)[:, :, None]  # (M, 2, 1, C)
-    runs = np.zeros((M, C, C + 1), dtype=np.int32)
-    np.cumsum(masks, axis=2, dtype=np.int32, out=runs[..., 1:])
-    ends = np.concatenate([hi, both[:, 0]], axis=1).transpose(0, 2, 1)  # (M, C, 3): the counts added ...
-    starts = np.concatenate([lo, both[:, 1]], axis=1).transpose(0, 2, 1)  # ... and those taken away
-    pixels = (ends - starts).sum((1, 2), dtype=np.int64)
-    inside = (np.take_along_axis(runs, ends, axis=2) - np.take_along_axis(runs, starts, axis=2)).sum((1, 2),
-                                                                                                   dtype=np.int64)
-    for m, y, x in _vertex_hits(vertices, C):
-        if not ((lo[m, :, y] <= x) & (x < hi[m, :, y])).any():
-            pixels[m] += 1
-            inside[m] += masks[m, y, x]
-    for m in np.nonzero(odd)[0]:
-        h = _polygon_mask(vertices[m], C)
-        pixels[m], inside[m] = np.count_nonzero(h), np.count_nonzero(h & masks[m])
-    return pixels, inside
 
 
 def hull_agreement(shape: torch.Tensor, cams: ScaledOrthographic, masks: torch.Tensor) -> torch.Tensor:
     """Intersection over union of each mask and the convex hull of the projected ``shape``.
 
-    The hull of each row comes from scipy; its pixels are counted without drawing it (:func:`_hull_counts`,
-    every row at once): the counts of :func:`polygon_masks`, which are scikit-image's.
-
     Args:
         shape: ``(K, 3)`` (NaN rows are left out); cams: ``M`` cameras; masks: ``(M, C, C)`` bool.
 
     Returns:
-        ``(M,)`` float64 in ``[0, 1]`` (0 where the hull or the union is empty), on the host.
+        ``(M,)`` float64 in ``[0, 1]`` (0 where the hull or the union is empty).
     """
     keep = torch.isfinite(shape).all(-1)
     P = cams.project(shape[keep].to(cams.R.dtype)).detach().double().cpu().numpy()  # (M, K', 2)
     m = masks.detach().cpu().numpy()
-    pixels, inter = _hull_counts(_hull_vertices(P), m)
-    union = pixels + np.count_nonzero(m, axis=(1, 2)) - inter
-    return torch.from_numpy(np.where(union > 0, inter / np.maximum(union, 1), 0.0))
+    out = np.zeros(len(m))
+    for i in range(len(m)):
+        h = _hull_mask(P[i], m.shape[-1])
+        union = np.count_nonzero(h | m[i])
+        out[i] = np.count_nonzero(h & m[i]) / union if union else 0.0
+    return torch.from_numpy(out)
 
 
 def keypoint_rms(shape: torch.Tensor, cams: ScaledOrthographic, keypoints: torch.Tensor,

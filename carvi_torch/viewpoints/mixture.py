@@ -593,9 +593,8 @@ def misfit(res: SfMResult, masks: torch.Tensor) -> float:
 
 def hull_agreements(mix: "MixtureResult", masks: torch.Tensor) -> torch.Tensor:
     """``(2n,)`` float64: every row's agreement (IoU) of its mask with the convex hull of its group's mean
-    shape projected by its SfM camera (:func:`carvi_torch.viewpoints.choice.hull_agreement`, the rows of a
-    group at once); NaN for the rows without an SfM camera. A silhouette measure the keypoint-only EM does
-    not optimise."""
+    shape projected by its SfM camera (:func:`carvi_torch.viewpoints.choice.hull_agreement`); NaN for the
+    rows without an SfM camera. A silhouette measure the keypoint-only EM does not optimise."""
     out = torch.full((masks.shape[0],), float("nan"), dtype=torch.float64)
     for g in range(mix.k):
         rows, res = mix.groups[g]
