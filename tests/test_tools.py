@@ -377,7 +377,8 @@ while time.process_time() - t < burn:
 time.sleep(sleep)
 (out / "a").mkdir(parents=True)
 (out / "a" / "cameras.json").write_text(tag)
-(out / "summary.json").write_text(json.dumps({"classes": {"a": {"sfm_groups": {"groups": 3}}, "b": {}}}))
+classes = {"a": {"sfm_groups": {"groups": 3, "candidates": [1]}}, "b": {}}
+(out / "summary.json").write_text(json.dumps({"classes": classes}))
 """
 
 
@@ -401,7 +402,7 @@ def test_cameras_cpu_interleaves_variants_and_counts_child_cpu(tmp_path: Path):
         assert r["cpu_seconds"] >= 0.14 and r["load_average_before"] >= 0
     for r in rec["runs"]["sleep"]:
         assert r["cpu_seconds"] < 0.12 and r["wall_seconds"] >= 0.15
-        assert r["groups"] == {"a": 3, "b": 1}
+        assert r["groups"] == {"a": 3, "b": 1} and r["fitted"] == ["a"]
     cpu = {v: [r["cpu_seconds"] for r in rs] for v, rs in rec["runs"].items()}
     assert rec["cpu_over_first"]["burn"]["per_round"] == [round(b / s, 3) for b, s in zip(cpu["burn"], cpu["sleep"])]
     assert rec["cpu_over_first"]["burn"]["least"] == round(min(cpu["burn"]) / min(cpu["sleep"]), 3)

@@ -47,9 +47,10 @@ writes the numbers to ``--out`` (default ``outputs/profile_mixture.json``); docs
 processes, one per variant (``--variants``, each a space-separated list of overrides; default ``sfm_groups=1``
 against ``sfm_groups=3``), ``--rounds`` times (default 2), the variants interleaved (their order reversed every
 other round), and records each run's CPU seconds (user + system of the child and of the processes it waited
-for), wall seconds, the 1-minute load average before and after, the groups each class kept (``summary.json``)
-and a digest of every ``cameras.json`` (the same settings give the same cameras in every round); the ratios
-of every variant's CPU seconds to the first's, per round and of the least of each (docs/viewpoints.md, *Cost*):
+for), wall seconds, the 1-minute load average before and after, the groups each class kept and the classes the
+mixture was fitted for (``summary.json``) and a digest of every ``cameras.json`` (the same settings give the
+same cameras in every round); the ratios of every variant's CPU seconds to the first's, per round and of the
+least of each (docs/viewpoints.md, *Cost*):
 
     python tools/bench_viewpoints.py --cameras-cpu outputs/bench/data/cad_v8_s0/annotations.json --key cameras_cpu_cad8
 
@@ -328,6 +329,7 @@ def cameras_cpu(data: str, variants: list[str], rounds: int, command=reconstruct
                 summary = out / "summary.json"
                 classes = json.loads(summary.read_text())["classes"] if summary.is_file() else {}
                 rec["groups"] = {c: (s.get("sfm_groups") or {}).get("groups", 1) for c, s in sorted(classes.items())}
+                rec["fitted"] = [c for c, s in sorted(classes.items()) if (s.get("sfm_groups") or {}).get("candidates")]
                 rec["cameras_sha256"] = cameras_digest(out)
                 runs[v].append(rec)
                 order += 1
