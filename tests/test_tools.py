@@ -388,3 +388,46 @@ def test_ranking_study_writes_its_figures_where_asked(tmp_path: Path):
     st._plot_ranking(out, tmp_path / "cad8")
     assert sorted(p.name for p in (tmp_path / "cad8").iterdir()) == ["pool_size.png", "ranking.png"]
     assert {p.name: p.stat().st_mtime_ns for p in (ROOT / "docs" / "figures").glob("*.png")} == docs_figures
+
+
+_FAKE_RUN = """
+import json, pathlib, sys, time
+out, burn, sleep, tag = pathlib.Path(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3]), sys.argv[4]
+t = time.process_time()
+while time.process_time() - t < burn:
+    pass
+time.sleep(sleep)
+(out / "a").mkdir(parents=True)
+(out / "a" / "cameras.json").write_text(tag)
+classes = {"a": {"sfm_groups": {"groups": 3, "candidates": [1]}}, "b": {}}
+(out / "summary.json").write_text(json.dumps({"classes": classes}))
+"""
+
+
+def test_cameras_cpu_interleaves_variants_and_counts_child_cpu(tmp_path: Path):
+    """``bench_viewpoints --cameras-cpu``'s loop on stand-in children (a CPU burner and a sleeper): the
+    variants alternate their order by round, a child's CPU seconds are its own (the sleeper's wall time is
+    not CPU), the ratios are those of the recorded seconds, and a run whose cameras differ is flagged."""
+    bv = load_tool("bench_viewpoints")
+    seen = []
+
+    def command(data, out, overrides):
+        burn, sleep = (0.15, 0.0) if overrides == ["burn"] else (0.0, 0.15)
+        seen.append(overrides[0])
+        tag = f"{overrides[0]}{len(seen) if overrides == ['sleep'] else ''}"  # the sleeper's cameras change
+        return [sys.executable, "-c", _FAKE_RUN, str(out), str(burn), str(sleep), tag]
+
+    rec = bv.cameras_cpu("unused.json", ["sleep", "burn"], 2, command=command)
+    assert seen == ["sleep", "burn", "burn", "sleep"]
+    assert [r["order"] for r in rec["runs"]["sleep"]] == [0, 3] and [r["order"] for r in rec["runs"]["burn"]] == [1, 2]
+    for r in rec["runs"]["burn"]:
+        assert r["cpu_seconds"] >= 0.14 and r["load_average_before"] >= 0
+    for r in rec["runs"]["sleep"]:
+        assert r["cpu_seconds"] < 0.12 and r["wall_seconds"] >= 0.15
+        assert r["groups"] == {"a": 3, "b": 1} and r["fitted"] == ["a"]
+    cpu = {v: [r["cpu_seconds"] for r in rs] for v, rs in rec["runs"].items()}
+    assert rec["cpu_over_first"]["burn"]["per_round"] == [round(b / s, 3) for b, s in zip(cpu["burn"], cpu["sleep"])]
+    assert rec["cpu_over_first"]["burn"]["least"] == round(min(cpu["burn"]) / min(cpu["sleep"]), 3)
+    assert rec["same_cameras_every_round"] == {"sleep": False, "burn": True}
+    with pytest.raises(SystemExit, match="failed"):
+        bv.cameras_cpu("x", ["v"], 1, command=lambda d, o, v: [sys.executable, "-c", "raise SystemExit(3)"])

@@ -43,6 +43,17 @@ writes the numbers to ``--out`` (default ``outputs/profile_mixture.json``); docs
 
     python tools/bench_viewpoints.py --profile-mixture outputs/bench/data/cad_v8_s0/annotations.json
 
+``--cameras-cpu DATA`` runs none of that either: it times ``reconstruct --data DATA stage=cameras`` as child
+processes, one per variant (``--variants``, each a space-separated list of overrides; default ``sfm_groups=1``
+against ``sfm_groups=3``), ``--rounds`` times (default 2), the variants interleaved (their order reversed every
+other round), and records each run's CPU seconds (user + system of the child and of the processes it waited
+for), wall seconds, the 1-minute load average before and after, the groups each class kept and the classes the
+mixture was fitted for (``summary.json``) and a digest of every ``cameras.json`` (the same settings give the
+same cameras in every round); the ratios of every variant's CPU seconds to the first's, per round and of the
+least of each (docs/viewpoints.md, *Cost*):
+
+    python tools/bench_viewpoints.py --cameras-cpu outputs/bench/data/cad_v8_s0/annotations.json --key cameras_cpu_cad8
+
 The JSON record goes to ``--out`` (under ``--key`` when given), by default under the key
 ``viewpoints_speed[_groups<G>][_shapes<S>][_n<N>][_<device>]`` of ``docs/data/viewpoints.json``, the
 records of docs/viewpoints.md (it cites the default run's and ``--shapes 3 --groups 3``'s).
@@ -54,7 +65,12 @@ import collections
 import dataclasses
 import json
 import platform
+import hashlib
+import os
 import resource
+import shlex
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -264,6 +280,86 @@ def profile_mixture(data: str, overrides: list[str], out: Path) -> dict:
     return rec
 
 
+def _children_cpu() -> float:
+    """CPU seconds (user + system) of this process's finished and waited-for child processes, so far."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def timed_child(cmd: list[str], **kw) -> dict:
+    """Run ``cmd`` to its end (its output dropped; a failure raises ``SystemExit`` with the end of its error
+    output): its CPU seconds (user + system, its waited-for children included), wall seconds and the 1-minute
+    load average before and after."""
+    load0 = os.getloadavg()[0]
+    t0, c0 = time.perf_counter(), _children_cpu()
+    res = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **kw)
+    wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
+    if res.returncode:
+        raise SystemExit(f"{shlex.join(cmd)} failed ({res.returncode}):\n{res.stderr[-3000:]}")
+    return {"cpu_seconds": round(cpu, 2), "wall_seconds": round(wall, 2),
+            "load_average_before": load0, "load_average_after": os.getloadavg()[0]}
+
+
+def cameras_digest(out: Path) -> str:
+    """SHA-256 over every ``<class>/cameras.json`` of a run (sorted by class): equal runs, equal digests."""
+    h = hashlib.sha256()
+    for f in sorted(out.glob("*/cameras.json")):
+        h.update(f.parent.name.encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()
+
+
+def reconstruct_cameras(data: str, out: Path, overrides: list[str]) -> list[str]:
+    """The command line of one timed run: ``reconstruct stage=cameras`` of ``data`` into ``out``."""
+    return [sys.executable, "-m", "carvi_torch.reconstruct", "--data", data, "--out", str(out), "stage=cameras",
+            "progress=false", *overrides]
+
+
+def cameras_cpu(data: str, variants: list[str], rounds: int, command=reconstruct_cameras) -> dict:
+    """``--cameras-cpu``: every variant (a space-separated list of overrides) run ``rounds`` times, interleaved
+    (the order reversed every other round), each into a fresh folder; per run the timings of
+    :func:`timed_child`, its groups per class and its cameras' digest; per variant the least CPU seconds,
+    and the ratios of each variant's CPU seconds to the first variant's, per round and of the least."""
+    runs: dict[str, list] = {v: [] for v in variants}
+    order = 0
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(rounds):
+            for v in variants if r % 2 == 0 else variants[::-1]:
+                out = Path(tmp) / f"r{r}_{variants.index(v)}"
+                rec = {"round": r, "order": order, **timed_child(command(data, out, v.split()), cwd=ROOT)}
+                summary = out / "summary.json"
+                classes = json.loads(summary.read_text())["classes"] if summary.is_file() else {}
+                rec["groups"] = {c: (s.get("sfm_groups") or {}).get("groups", 1) for c, s in sorted(classes.items())}
+                rec["fitted"] = [c for c, s in sorted(classes.items()) if (s.get("sfm_groups") or {}).get("candidates")]
+                rec["cameras_sha256"] = cameras_digest(out)
+                runs[v].append(rec)
+                order += 1
+                print(f"round {r} {v}: CPU {rec['cpu_seconds']:.1f} s, wall {rec['wall_seconds']:.1f} s, load "
+                      f"{rec['load_average_before']:.1f} -> {rec['load_average_after']:.1f}", flush=True)
+    first = runs[variants[0]]
+    best = {v: min(x["cpu_seconds"] for x in rs) for v, rs in runs.items()}
+    return {"data": data, "variants": variants, "rounds": rounds, "runs": runs, "least_cpu_seconds": best,
+            "cpu_over_first": {v: {"least": round(best[v] / best[variants[0]], 3),
+                                   "per_round": [round(x["cpu_seconds"] / f["cpu_seconds"], 3)
+                                                 for x, f in zip(rs, first)]} for v, rs in runs.items()},
+            "same_cameras_every_round": {v: len({x["cameras_sha256"] for x in rs}) == 1 for v, rs in runs.items()}}
+
+
+def main_cameras_cpu(args, argv: list[str]) -> dict:
+    """``--cameras-cpu``: run, print and write (default: key ``cameras_cpu`` of ``docs/data/viewpoints.json``)."""
+    rec = {"command": shlex.join(["python", "tools/bench_viewpoints.py", *argv]),
+           **cameras_cpu(args.cameras_cpu, args.variants, max(1, args.rounds))}
+    for v in args.variants:
+        r = rec["cpu_over_first"][v]
+        print(f"{v}: least CPU {rec['least_cpu_seconds'][v]:.1f} s, / first {r['least']:.2f} (per round "
+              + ", ".join(f"{x:.2f}" for x in r["per_round"]) + "); groups kept "
+              + str({c: g for c, g in rec["runs"][v][0]["groups"].items() if g > 1}))
+    out, key = (Path(args.out), args.key) if args.out else (ROOT / "docs" / "data" / "viewpoints.json",
+                                                           args.key or "cameras_cpu")
+    write_record(out, rec, key)
+    print(f"wrote {out}" + (f", key {key}" if key else ""))
+    return rec
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -300,7 +396,16 @@ def main(argv=None) -> dict:
                     help="instead: profile the pipeline's mixture fit on this COCO file (module docstring)")
     ap.add_argument("--profile-set", nargs="*", default=["sfm_groups=3"], metavar="KEY=VALUE",
                     help="--profile-mixture: reconstruct overrides (default sfm_groups=3)")
+    ap.add_argument("--cameras-cpu", metavar="DATA", default=None,
+                    help="instead: CPU seconds of reconstruct stage=cameras on this COCO file per --variants, "
+                         "interleaved (module docstring)")
+    ap.add_argument("--variants", nargs="+", default=["sfm_groups=1", "sfm_groups=3"], metavar="OVERRIDES",
+                    help="--cameras-cpu: the variants, each a quoted space-separated list of overrides; ratios "
+                         "to the first (default: sfm_groups=1 sfm_groups=3)")
+    ap.add_argument("--rounds", type=int, default=2, help="--cameras-cpu: runs of each variant (default 2)")
     args = ap.parse_args(argv)
+    if args.cameras_cpu:
+        return main_cameras_cpu(args, list(sys.argv[1:] if argv is None else argv))
     if args.profile_mixture:
         return profile_mixture(args.profile_mixture, args.profile_set,
                                Path(args.out) if args.out else ROOT / "outputs" / "profile_mixture.json")
