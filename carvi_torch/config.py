@@ -159,7 +159,9 @@ class ViewpointConfig:
     """Also refine a camera from its planar twin (the other camera under which the plane of its visible
     keypoints looks the same) when those keypoints are this flat (thickness: smallest over middle
     spread; 1 = every camera, 0 = off); the twin's result is kept when its energy is at least 2% lower
-    (``viewpoints.camera_fit.TWIN_MARGIN``). The flat instances are refined twice."""
+    (``viewpoints.camera_fit.TWIN_MARGIN``), or lower by less and the convex hull of the projected mean shape
+    agrees better with the mask by more than 0.05 IoU (``viewpoints.camera_fit.twin_wins``). The flat
+    instances are refined twice."""
     frame: FrameChoice = "best"
     """The canonical object frame the outputs are written in (``carvi_torch.viewpoints.frame``): ``best`` (a
     template of 3-D keypoints when one fits: the category's ``keypoints_3d`` or the shipped PASCAL3D+ ones;

@@ -28,8 +28,10 @@ from carvi_torch.viewpoints.camera_fit import (
     sample_distance,
     sphere_rotations,
     supported_shape,
+    twin_wins,
 )
 from carvi_torch.sdf import distance_to_mask
+from carvi_torch.viewpoints.choice import HULL_GAIN
 import carvi_torch.viewpoints.camera_fit as refine_module
 from carvi_torch.viewpoints.sfm import rigid_sfm
 
@@ -452,9 +454,9 @@ def test_twin_start_off_or_unused_changes_nothing():
     assert (base.start == 0).all()
     # no instance this flat: the second start repeats the first, and the result is the same
     none_flat = refine_cameras(sfm.shape, sfm.cameras, d["kp"], d["vis"], dm, max_iters=40, twin_flatness=1e-9)
-    # every instance tried, but the twin must lower the energy by 99.9%: never kept here
+    # every instance tried, but the twin must lower the energy by 99.9% (no tie-break by the hull): never kept here
     strict = refine_cameras(sfm.shape, sfm.cameras, d["kp"], d["vis"], dm, max_iters=40, twin_flatness=1.0,
-                            twin_margin=0.999)
+                            twin_margin=0.999, twin_hull=False)
     for r in (none_flat, strict):
         assert (r.start == 0).all()
         assert torch.allclose(r.cameras.R, base.cameras.R, atol=1e-6)
@@ -464,6 +466,51 @@ def test_twin_start_off_or_unused_changes_nothing():
         refine_cameras(sfm.shape, sfm.cameras, d["kp"], d["vis"], dm, twin_flatness=-1.0)
     with pytest.raises(ValueError, match="twin"):
         refine_cameras(sfm.shape, sfm.cameras, d["kp"], d["vis"], dm, twin_flatness=0.1, twin_margin=1.0)
+
+
+def _iou_by_point_in_hull(points: np.ndarray, mask: np.ndarray) -> float:
+    """IoU of ``mask`` and the convex hull of ``points (P, 2)``, by testing every pixel centre against the hull's
+    half-planes (independent of the package's polygon fill)."""
+    eq = ConvexHull(points).equations  # inside: n . x + c <= 0 for every facet
+    ys, xs = np.mgrid[:mask.shape[0], :mask.shape[1]]
+    inside = ((np.stack([xs.ravel(), ys.ravel()], 1) @ eq[:, :2].T + eq[:, 2]) <= 1e-9).all(1).reshape(mask.shape)
+    return float((inside & mask).sum() / (inside | mask).sum())
+
+
+def test_twin_wins_by_energy_or_by_hull_agreement_within_the_margin():
+    """A twin clearly lower in energy wins, a higher one never does; within the margin it wins when its projected
+    hull agrees better with the mask by more than HULL_GAIN (the reference IoU by half-plane tests of every pixel
+    centre)."""
+    g = torch.Generator().manual_seed(3)
+    n = 48
+    S = torch.randn(7, 3, generator=g, dtype=torch.float64)
+    truth = ScaledOrthographic(random_rotations(n, g).double(), torch.full((n,), 14.0, dtype=torch.float64),
+                               CANVAS / 2 + 3 * torch.randn(n, 2, generator=g, dtype=torch.float64))
+
+    def near(scale):  # cameras up to ``scale`` radians and 15 * scale % of scale away from the truth
+        turn = axis_angle_to_rotation(scale * torch.randn(n, 3, generator=g, dtype=torch.float64))
+        return ScaledOrthographic(turn @ truth.R, truth.s * (1 + 0.5 * scale * torch.randn(n, generator=g)), truth.t)
+
+    own, twin = near(0.3), near(0.3)
+    slightly = torch.arange(n) % 8 == 5  # a twin barely larger than its own camera: a small hull gain, if any
+    twin = ScaledOrthographic(torch.where(slightly[:, None, None], own.R, twin.R),
+                              torch.where(slightly, own.s * 1.04, twin.s), twin.t)
+    masks = hull_masks(truth.project(S))
+    E = torch.full((n,), 100.0, dtype=torch.float64)
+    band = torch.arange(n) % 4  # 0: clearly lower, 1: lower within the margin, 2: equal, 3: higher
+    Et = torch.stack([E * 0.9, E * 0.99, E, E * 1.01]).gather(0, band[None])[0]
+    wins = twin_wins(S, own, E, twin, Et, masks, margin=0.02)
+    P_own, P_twin = own.project(S).numpy(), twin.project(S).numpy()
+    iou = np.array([[_iou_by_point_in_hull(P[i], masks[i].numpy()) for i in range(n)] for P in (P_own, P_twin)])
+    tie = band.numpy() == 1
+    gain = iou[1] - iou[0] - HULL_GAIN  # the twin must agree better by more than HULL_GAIN
+    clear = np.abs(gain) > 0.02  # pixels on a hull edge may fall either way
+    assert wins[band == 0].all() and not wins[band >= 2].any()
+    assert (tie & clear & (gain > 0)).sum() >= 3 and (tie & clear & (gain < 0) & (iou[1] > iou[0])).sum() >= 1
+    assert (tie & clear & (gain < 0)).sum() >= 3
+    assert np.array_equal(wins.numpy()[tie & clear], (gain > 0)[tie & clear])
+    # without masks, the energy alone: only the clear winners
+    assert torch.equal(twin_wins(S, own, E, twin, Et, None, margin=0.02), band == 0)
 
 
 def test_empty_masks_use_keypoints_only():

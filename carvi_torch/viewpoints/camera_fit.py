@@ -72,6 +72,12 @@ ROBUST_FRACTION = 0.2
 #: at least this fraction: nearly equal energies mean the data cannot tell the two apart, and
 #: the branch SfM chose (jointly with every other instance) is kept.
 TWIN_MARGIN = 0.02
+#: Default of :func:`refine_cameras`' ``twin_hull``: within that margin (the twin's energy lower, but by less
+#: than :data:`TWIN_MARGIN`) the twin still wins when the convex hull of the projected mean shape agrees clearly
+#: better with the mask (:func:`twin_wins`): the energy's silhouette term is one-sided (it only pulls points into
+#: the mask) and, for a flat object whose mean shape is deeper than it is, is dominated by the points that fall
+#: outside the mask under either camera.
+TWIN_HULL_TIEBREAK = True
 #: Default of :func:`supported_shape`: a mean-shape keypoint shown by fewer than this fraction of
 #: the instances being refined is left out of their refinement.
 MIN_SUPPORT = 0.1
@@ -87,6 +93,8 @@ __all__ = [
     "robust_scales",
     "ROBUST_FRACTION",
     "TWIN_MARGIN",
+    "TWIN_HULL_TIEBREAK",
+    "twin_wins",
     "MIN_SUPPORT",
     "COLLAPSE_PIXELS",
     "COLLAPSED_REASON",
@@ -660,6 +668,7 @@ def refine_cameras(
     silhouette_robust: float | None = ROBUST_FRACTION,
     twin_flatness: float = 0.0,
     twin_margin: float = TWIN_MARGIN,
+    twin_hull: bool = TWIN_HULL_TIEBREAK,
 ) -> RefineResult:
     """Refine every instance's camera against its keypoints and silhouette, at once.
 
@@ -685,6 +694,7 @@ def refine_cameras(
         twin_flatness: see above; 0 (the default): one start. The second start is run for
             the flat instances only.
         twin_margin: see above (:data:`TWIN_MARGIN`).
+        twin_hull: see above (:data:`TWIN_HULL_TIEBREAK`).
 
     Returns:
         :class:`RefineResult` (``energy_before``: the given cameras').
@@ -719,7 +729,9 @@ def refine_cameras(
                            sub(dist_maps), lam[idx], max_iters, tol, sub(rscale))
             R2, s2, t2, _, E2, Ek2, Es2, conv2 = (x[:, 0] for x in o2[:7] + o2[8:])
             it = max(it, o2[7])
-            wins = E2 < (1.0 - twin_margin) * E[idx]  # the twin must win clearly
+            masks = None if dist_maps is None or not twin_hull else dist_maps[idx] == 0
+            wins = twin_wins(shape, ScaledOrthographic(R[idx], s[idx], t[idx]), E[idx],
+                             ScaledOrthographic(R2, s2, t2), E2, masks, twin_margin)
             win = idx[wins]
             R, s, t = R.index_put((win,), R2[wins]), s.index_put((win,), s2[wins]), t.index_put((win,), t2[wins])
             E, Ek, Es = E.index_put((win,), E2[wins]), Ek.index_put((win,), Ek2[wins]), Es.index_put((win,), Es2[wins])
@@ -727,6 +739,41 @@ def refine_cameras(
             start = start.index_put((win,), torch.ones_like(win))
     cams = ScaledOrthographic(R, s, t)
     return RefineResult(cams, E0, E, it, conv, Ek, Es, start)
+
+
+def twin_wins(shape: torch.Tensor, own: ScaledOrthographic, energy: torch.Tensor, twin: ScaledOrthographic,
+              twin_energy: torch.Tensor, masks: torch.Tensor | None, margin: float = TWIN_MARGIN) -> torch.Tensor:
+    """``(M,)`` bool: the rows whose refined planar twin replaces their own refined camera.
+
+    The twin wins when its energy is lower by at least the fraction ``margin``, or (with ``masks``) when it is
+    lower by less and the convex hull of the projected ``shape`` agrees clearly better with the mask under the
+    twin: its IoU (:func:`~carvi_torch.viewpoints.choice.hull_agreement`, computed for those rows only) is higher
+    by more than :data:`~carvi_torch.viewpoints.choice.HULL_GAIN`, the gain that also clears a refined camera
+    of suspicion.
+
+    Args:
+        shape: ``(K, 3)``; own, twin: ``M`` cameras each; energy, twin_energy: ``(M,)``;
+        masks: ``(M, H, W)`` bool or ``None`` (the energy alone).
+
+    Example:
+        >>> S = torch.tensor([[-4., -4, 0], [4, -4, 0], [4, 4, 0], [-4, 4, 0]])
+        >>> big = ScaledOrthographic(torch.eye(3).expand(2, 3, 3), torch.full((2,), 2.0), torch.full((2, 2), 16.))
+        >>> small = ScaledOrthographic(big.R, torch.ones(2), big.t)
+        >>> mask = torch.zeros(2, 32, 32, dtype=torch.bool); mask[:, 8:25, 8:25] = True
+        >>> twin_wins(S, small, torch.tensor([10.0, 10.0]), big, torch.tensor([9.9, 8.0]), mask).tolist()
+        [True, True]
+        >>> twin_wins(S, big, torch.tensor([10.0, 10.0]), small, torch.tensor([9.9, 8.0]), mask).tolist()
+        [False, True]
+    """
+    wins = twin_energy < (1.0 - margin) * energy  # the twin must win clearly ...
+    tie = ~wins & (twin_energy < energy)
+    if masks is None or not bool(tie.any()):
+        return wins
+    from .choice import HULL_GAIN, hull_agreement
+
+    at = tie.nonzero().squeeze(1)
+    better = hull_agreement(shape, twin[at], masks[at]) > hull_agreement(shape, own[at], masks[at]) + HULL_GAIN
+    return wins.index_put((at,), better.to(wins.device))  # ... or agree better with the mask
 
 
 def mask_start_cameras(shape: torch.Tensor, masks: torch.Tensor | None, keypoints: torch.Tensor,
