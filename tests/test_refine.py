@@ -744,3 +744,29 @@ def test_cuda_matches_cpu():
     assert torch.allclose(a.energy_after, b.energy_after.cpu(), rtol=1e-3, atol=1e-2)
     c, e = estimate_camera(d["S0"].cuda(), d["kp"].cuda(), d["vis"].cuda(), d["masks"].cuda())
     assert c.R.device.type == "cuda" and bool(torch.isfinite(e).all())
+
+
+def test_refine_cameras_hands_the_masks_to_the_twin_rule_and_keeps_its_choice(monkeypatch):
+    """``refine_cameras`` asks :func:`twin_wins` about the flat rows with their masks (``dist == 0``) under
+    ``twin_hull`` and none without it, rows without a silhouette term get empty masks, and ``start`` is the rule's
+    answer: a spy that always picks the twin makes every tried row start 1."""
+    d = make_scene(6, n=12, k=10, deform=0.2)
+    dm = distance_to_mask(d["masks"])
+    sfm = rigid_sfm(d["kp"], d["vis"])
+    seen = []
+
+    def spy(shape, own, energy, twin, twin_energy, masks, margin):
+        seen.append(masks)
+        return torch.ones_like(energy, dtype=torch.bool)
+
+    monkeypatch.setattr(refine_module, "twin_wins", spy)
+    valid = torch.ones(12, dtype=torch.bool)
+    valid[3] = False
+    for hull in (True, False):
+        r = refine_cameras(sfm.shape, sfm.cameras, d["kp"], d["vis"], dm, max_iters=5, twin_flatness=1.0,
+                           twin_hull=hull, mask_valid=valid)
+        assert (r.start == 1).all()
+    assert seen[1] is None
+    expected = d["masks"].clone()
+    expected[3] = False
+    assert torch.equal(seen[0], expected)

@@ -65,6 +65,7 @@ import torch.nn.functional as F
 from ..cameras import ScaledOrthographic, axis_angle_to_rotation, complete_rotation, scaled_stiefel
 from ..runtime import cpu_single_thread
 from ..sdf import distance_to_mask
+from .choice import HULL_GAIN, hull_agreement
 
 #: Default robust scale of the silhouette penalty, as a fraction of the mask's larger side.
 ROBUST_FRACTION = 0.2
@@ -677,7 +678,9 @@ def refine_cameras(
     With ``twin_flatness > 0``, each instance whose visible keypoints are that flat (the
     thickness of :func:`planar_twin` below it; 1 takes every instance) is also refined from
     the planar twin of its camera; the twin's result is kept when its energy is lower than
-    the other's by at least the fraction ``twin_margin`` (``start`` says which was kept).
+    the other's by at least the fraction ``twin_margin``, or, with ``twin_hull``, lower by less and
+    its projected hull's IoU with the mask higher by more than ``HULL_GAIN`` (:func:`twin_wins`; rows
+    without a silhouette term are judged by the energy alone). ``start`` says which was kept.
 
     Args:
         shape: ``(K, 3)`` mean shape (NaN rows are ignored).
@@ -729,7 +732,10 @@ def refine_cameras(
                            sub(dist_maps), lam[idx], max_iters, tol, sub(rscale))
             R2, s2, t2, _, E2, Ek2, Es2, conv2 = (x[:, 0] for x in o2[:7] + o2[8:])
             it = max(it, o2[7])
-            masks = None if dist_maps is None or not twin_hull else dist_maps[idx] == 0
+            # the hull judges only rows whose energy has a silhouette term (an empty mask: IoU 0 either way)
+            masks = None
+            if dist_maps is not None and twin_hull:
+                masks = (dist_maps[idx] == 0) & (lam[idx] > 0)[:, None, None]
             wins = twin_wins(shape, ScaledOrthographic(R[idx], s[idx], t[idx]), E[idx],
                              ScaledOrthographic(R2, s2, t2), E2, masks, twin_margin)
             win = idx[wins]
@@ -769,8 +775,6 @@ def twin_wins(shape: torch.Tensor, own: ScaledOrthographic, energy: torch.Tensor
     tie = ~wins & (twin_energy < energy)
     if masks is None or not bool(tie.any()):
         return wins
-    from .choice import HULL_GAIN, hull_agreement
-
     at = tie.nonzero().squeeze(1)
     better = hull_agreement(shape, twin[at], masks[at]) > hull_agreement(shape, own[at], masks[at]) + HULL_GAIN
     return wins.index_put((at,), better.to(wins.device))  # ... or agree better with the mask
