@@ -343,7 +343,10 @@ def test_missing_and_partial_objects_reported(recon, tmp_path, capsys):
     mesh = broken / "car" / "meshes" / f"{vox[1].stem}.ply"
     mesh.write_bytes(mesh.read_bytes()[:50])  # partial file
     cams = json.loads((broken / "car" / "cameras.json").read_text())
-    del cams["cameras"][vox[2].stem]["roll_deg"]  # a camera without its angles
+    kept_angles = [math.radians(cams["cameras"][vox[2].stem][k]) for k in ("azimuth_deg", "elevation_deg", "roll_deg")]
+    del cams["cameras"][vox[2].stem]["roll_deg"]  # no angles: they come from R
+    del cams["cameras"][vox[3].stem]["roll_deg"]  # no angles and no readable R: skipped
+    cams["cameras"][vox[3].stem]["refined"]["R"] = [[1.0, 0.0]]
     (broken / "car" / "cameras.json").write_text(json.dumps(cams))
     rc = export_main(["--recon", str(broken), "--out", str(tmp_path / "exp"), "--resolution", "8", "--points",
                       "16", "--workers", "0"])
@@ -354,7 +357,11 @@ def test_missing_and_partial_objects_reported(recon, tmp_path, capsys):
     reasons = {s["annotation_id"]: s["reason"] for s in attrs["skipped"]}
     assert int(vox[0].stem) in reasons and "no voxels" in reasons[int(vox[0].stem)]
     assert int(vox[1].stem) in reasons and "unreadable" in reasons[int(vox[1].stem)]
-    assert "no azimuth_deg, elevation_deg, roll_deg" in reasons[int(vox[2].stem)]
+    assert int(vox[2].stem) not in reasons
+    assert "no readable azimuth/elevation/roll or R" in reasons[int(vox[3].stem)]
+    ds = LiftedDataset(tmp_path / "exp", fields=["viewpoint", "annotation_id"])
+    got = next(ds[i]["viewpoint"].numpy() for i in range(len(ds)) if int(ds[i]["annotation_id"]) == int(vox[2].stem))
+    assert np.allclose(got, kept_angles, atol=1e-6)
     assert "skipped" in capsys.readouterr().out
     # an earlier export is replaced; a folder holding anything else is left alone (exit 2, nothing written)
     args = ["--recon", str(broken), "--resolution", "4", "--points", "8", "--workers", "0", "--classes", "chair"]

@@ -232,8 +232,6 @@ def export_object(job: dict) -> dict:
     pts, normals = sample_surface(verts, faces, job["points"], np.random.default_rng(job["seed"]))
     to_class = canvas_to_class(R, s_c, t_c)
     C, res = job["canvas"], job["resolution"]
-    if job.get("viewpoint") is None:
-        raise ValueError("cameras.json gives no azimuth_deg, elevation_deg, roll_deg for this camera")
     out = {
         "mask": job["mask"], "keypoints": job["keypoints"], "visible": job["visible"],
         "crop_box": np.concatenate([-b / a, (C - 1.0 - b) / a]).astype(np.float32),

@@ -6,8 +6,8 @@ layout and fields in ``docs/export.md``). :class:`carvi_torch.training.LiftedDat
 and so does zarr alone. ``--format cmr`` / ``--format ucmr`` write the annotation files of
 category-specific mesh reconstruction codebases instead (:mod:`carvi_torch.export.formats`).
 
-Objects whose outputs are missing or unreadable (no voxels, no mesh, no camera, not in the
-annotations) are reported by annotation id with the reason, in the console and in the root
+Objects whose outputs are missing or unreadable (no voxels, no mesh, no camera or no readable angles,
+not in the annotations) are reported by annotation id with the reason, in the console and in the root
 group's ``skipped`` attribute; the rest is exported. The per-object work runs in ``--workers``
 processes (default: one per core), fed one stream of jobs over every class; the main process writes
 the results in order as they come (:mod:`carvi_torch.export.command` is the command line).
@@ -69,11 +69,21 @@ _ANGLE_KEYS = ("azimuth_deg", "elevation_deg", "roll_deg")
 
 
 def _viewpoint_or_none(entry: dict) -> list[float] | None:
-    """Azimuth, elevation, roll (radians) of a ``cameras.json`` entry, as the run wrote them (from its final
-    camera's ``R``); None where they are missing or not numbers (the worker then reports the object)."""
+    """Azimuth, elevation, roll (radians) of a ``cameras.json`` entry: the angles the run wrote (from its final
+    camera's ``R``), or, where a file from elsewhere has none, computed from ``refined.R``; None where neither
+    is readable (the object is then skipped with a reason)."""
     try:
         return [math.radians(float(entry[k])) for k in _ANGLE_KEYS]
     except (KeyError, TypeError, ValueError):
+        pass
+    try:
+        import torch  # the main process has it loaded already (the annotations)
+
+        from ..cameras import azimuth_elevation_roll_from_rotation
+
+        R = torch.as_tensor(np.asarray(entry["refined"]["R"], dtype=np.float64).reshape(3, 3))
+        return [float(x) for x in azimuth_elevation_roll_from_rotation(R)]
+    except Exception:  # noqa: BLE001 - any malformed R is the same reason
         return None
 
 
@@ -85,7 +95,9 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
         vox = object_file(cdir, "voxels", aid)
         mesh = next((p for p in (object_file(cdir, "meshes", aid, ext) for ext in MESH_FORMATS) if p.is_file()),
                     None)
+        viewpoint = _viewpoint_or_none(entry)
         reason = ("no camera in cameras.json" if entry.get("refined") is None else
+                  "no readable azimuth/elevation/roll or R in cameras.json" if viewpoint is None else
                   "no voxels (not reconstructed)" if not vox.is_file() else
                   "no mesh (not reconstructed)" if mesh is None else None)
         if reason is not None:
@@ -93,7 +105,7 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
             continue
         q = entry.get("quality")
         jobs.append({**settings, "class": cname, "class_index": ci, "annotation_id": aid,
-                     "viewpoint": _viewpoint_or_none(entry), "image_id": coll.image_ids[i],
+                     "viewpoint": viewpoint, "image_id": coll.image_ids[i],
                      "source": coll.sources[i],
                      "seed": [settings["seed"], stable_hash(cname), i],
                      "mask": coll.masks[i].cpu().numpy(), "keypoints": coll.keypoints[i].cpu().numpy(),
