@@ -93,7 +93,9 @@ def test_a_class_of_one_physical_object_without_mirrors_gets_puffballs(base, tmp
     s = run(_cfg(out, _write(tmp_path, data), mirrors=False, mesher="torch"), workers=0)
     c = s["classes"]["car"]
     assert c["reconstructed"] == 6 and c["surrogates_from"]["counts"] == {"puffball": 6}, c["failures"]
-    for f in (out / "car" / "voxels").glob("*.npz"):
+    files = sorted((out / "car" / "voxels").glob("*.npz"))
+    assert len(files) == 6
+    for f in files:
         assert np.load(f)["occupancy"].any() and (out / "car" / "meshes" / f"{f.stem}.ply").stat().st_size > 0
 
 

@@ -368,7 +368,7 @@ def test_mixture_profile_times_every_group_sfm(tmp_path: Path, procedural_input)
     assert any(r["counts"].get("cold:group_sfm") for r in rec["classes"].values())
 
 
-def test_ranking_study_writes_its_figures_where_asked(tmp_path: Path):
+def test_ranking_study_writes_its_figures_where_asked(tmp_path: Path, monkeypatch):
     """``studies.py ranking --figures DIR``: the per-class summary of two references with known errors (a
     loop's top-ranked / mean / minimum) is plotted into DIR, and nothing is written to docs/figures."""
     st = load_tool("studies", "studies_tool")
@@ -384,9 +384,21 @@ def test_ranking_study_writes_its_figures_where_asked(tmp_path: Path):
     assert out["classes"]["sofa"]["random"] == pytest.approx((4.0 + 4.0) / 2)
     assert out["classes"]["sofa"]["best"] == pytest.approx((3.0 + 2.0) / 2)
     assert out["ranking_agrees_with_pipeline"] == "2/2"
-    out.update({"references": 2, "step_percent": 2.0})
-    st._plot_ranking(out, tmp_path / "cad8")
+    # the command line: cached errors of a rendered benchmark folder, --figures and --record where asked
+    bench = tmp_path / "bench"
+    (bench / "data_pool1").mkdir(parents=True)
+    (bench / "ranking").mkdir()
+    anns = [{"id": i, "category_id": 1, "split": "test", "object_id": i} for i in (1, 2)]
+    (bench / "data_pool1" / "annotations.json").write_text(json.dumps(
+        {"categories": [{"id": 1, "name": "sofa"}], "annotations": anns}))
+    (bench / "data_pool1" / "gt.json").write_text(json.dumps({"annotations": {}}))
+    (bench / "ranking" / "errors_step2_v2.json").write_text(json.dumps({"per_reference": per_ref, "seconds": 1.0}))
+    monkeypatch.setattr(st, "RECORDS", tmp_path / "records")
+    assert st.main(["ranking", "--bench", str(bench), "--views-per-model", "2", "--figures", str(tmp_path / "cad8"),
+                    "--record", "cad8"]) == 0
     assert sorted(p.name for p in (tmp_path / "cad8").iterdir()) == ["pool_size.png", "ranking.png"]
+    rec = json.loads((tmp_path / "records" / "studies_cad8.json").read_text())
+    assert rec["classes"]["sofa"]["top"] == pytest.approx(5.5) and rec["references"] == 2
     assert {p.name: p.stat().st_mtime_ns for p in (ROOT / "docs" / "figures").glob("*.png")} == docs_figures
 
 

@@ -55,7 +55,8 @@ least of each (docs/viewpoints.md, *Cost*):
     python tools/bench_viewpoints.py --cameras-cpu outputs/bench/data/cad_v8_s0/annotations.json --key cameras_cpu_cad8
 
 The JSON record goes to ``--out`` (under ``--key`` when given), by default under the key
-``viewpoints_speed[_groups<G>][_shapes<S>][_n<N>][_<device>]`` of ``docs/data/viewpoints.json``, the
+``viewpoints_speed[_groups<G>][_shapes<S>][_n<N>][_<device>]`` (``cameras_cpu`` for ``--cameras-cpu``) of
+``docs/data/viewpoints.json``, the
 records of docs/viewpoints.md (it cites the default run's and ``--shapes 3 --groups 3``'s).
 """
 from __future__ import annotations
@@ -64,9 +65,9 @@ import argparse
 import collections
 import dataclasses
 import json
-import platform
 import hashlib
 import os
+import platform
 import resource
 import shlex
 import subprocess
@@ -319,6 +320,9 @@ def cameras_cpu(data: str, variants: list[str], rounds: int, command=reconstruct
     (the order reversed every other round), each into a fresh folder; per run the timings of
     :func:`timed_child`, its groups per class and its cameras' digest; per variant the least CPU seconds,
     and the ratios of each variant's CPU seconds to the first variant's, per round and of the least."""
+    if len(set(variants)) != len(variants):
+        raise ValueError(f"--variants names one variant twice: {variants}")
+    data = str(Path(data).resolve())  # the children run in the repository root
     runs: dict[str, list] = {v: [] for v in variants}
     order = 0
     with tempfile.TemporaryDirectory() as tmp:

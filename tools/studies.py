@@ -34,7 +34,7 @@ working directory, default outputs/benchmark):
 Example:
     python tools/studies.py frames
     python tools/studies.py ranking --jobs 2
-    python tools/studies.py ranking --bench outputs/final_t2/seed0 --views-per-model 2 --figures outputs/ranking_cad8 \
+    python tools/studies.py ranking --bench outputs/final_t2/seed0 --views-per-model 2 --figures outputs/ranking_cad8 \\
         --record ranking_cad8_seed0
     python tools/studies.py threshold --classes aeroplane,car,chair,sofa
     python tools/studies.py viewpoints
