@@ -265,7 +265,7 @@ def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Conf
     jobs = [_job(sel, occupancy, j, i, None if j in puffed else sur, plan, cfg) for j, i in enumerate(ids.tolist())]
     if resolve_mesher(cfg.mesh.mesher, ids.device) == "torch":
         with timer("mesh_device"):
-            mesh_jobs(sel, jobs, cfg.mesh.largest_component, cfg.mesh.format)
+            mesh_jobs(sel.best_occupancy, occupancy, jobs, cfg.mesh.largest_component, cfg.mesh.format)
     for j, (i, job) in enumerate(zip(ids.tolist(), jobs)):
         aid, src = aid_of[i], plan.coll.sources[i]
         if cfg.study.keep_all_scores and j not in puffed:

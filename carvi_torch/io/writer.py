@@ -104,19 +104,20 @@ def proposals_payload(sel, j: int, surrogates: torch.Tensor | None, canvas_to_im
                 misses=sel.misses[j].numpy(), best=np.int64(sel.best[j]), surrogates=sur)
 
 
-def mesh_jobs(sel, jobs: list[dict], largest: bool, mesh_format: str) -> None:
-    """Mesh a chunk's selected grids in one batch on the proposals' device (:mod:`carvi_torch.marching`)
-    into its writer ``jobs`` (``mesh_vertices``, ``mesh_faces``): the writers then only write.
+def mesh_jobs(occupancy: torch.Tensor, host: torch.Tensor, jobs: list[dict], largest: bool, mesh_format: str) -> None:
+    """Mesh a chunk's selected grids in one batch on their device (:mod:`carvi_torch.marching`) into its
+    writer ``jobs`` (``mesh_vertices``, ``mesh_faces``): the writers then only write.
 
-    ``sel``: the chunk's :class:`~carvi_torch.select.Selection`; its ``best_occupancy`` ``(R, D, H, W)``
-    (puffballs included) is meshed where it lies. ``largest``: keep the largest component first, on the
-    host, as the writers would (the jobs' occupancy becomes it). A PLY file holds float32 vertices and
-    int32 faces: they are sent so (fewer bytes to the writers, the same file)."""
-    occ = sel.best_occupancy
+    ``occupancy``: the chunk's selected grids ``(R, D, H, W)`` bool (puffballs included), meshed where they
+    lie; ``host``: the same grids on the host. ``largest``: keep the largest component first, on the host
+    copy, as the writers would (the jobs' occupancy becomes it). A PLY file holds float32 vertices and int32
+    faces: they are sent so (fewer bytes to the writers, the same file)."""
+    occ = occupancy
     if largest:
-        occ = largest_component(occ)
-        for job, o in zip(jobs, occ.cpu().numpy()):
+        kept = largest_component(host.numpy())
+        for job, o in zip(jobs, kept):
             job["occupancy"], job["largest_component"] = o, False
+        occ = torch.from_numpy(kept).to(occupancy.device)
     v2img = torch.from_numpy(np.stack([job["voxel_to_image"] for job in jobs]))
     vertex_type = np.float32 if mesh_format == "ply" else np.float64
     for job, (verts, faces) in zip(jobs, occupancy_to_meshes(occ, v2img)):
