@@ -351,10 +351,13 @@ def test_mixture_profile_times_every_group_sfm(tmp_path: Path, procedural_input)
     out = tmp_path / "profile.json"
     args = [str(ROOT / "tools" / "bench_viewpoints.py"), str(data), "--profile-set", "sfm_groups=2",
             "sfm_group_misfit=0", "sfm_group_hull_gain=-1", "sfm_group_min=2", "sfm_max_outer=30", "classes=[car]",
-            "--out", str(out)]
+            "--out", str(out), "--key", "prof"]
+    out.write_text(json.dumps({"other": 1}))  # a records file: the record joins its keys
     [(rc, stdout, err)] = run_each_in_a_fresh_process([_PROFILE], argv=args, cwd=ROOT)
     assert rc == 0, err[-2000:]
-    rec = json.loads(out.read_text())
+    records = json.loads(out.read_text())
+    assert records["other"] == 1 and records["prof"]["overrides"][0] == "sfm_groups=2"
+    rec = records["prof"]
     assert rec["classes"] and "group SfMs" in stdout
     for cls, r in rec["classes"].items():
         s, n = r["seconds"], r["counts"]

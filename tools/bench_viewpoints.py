@@ -38,10 +38,12 @@ started cold (the first EM round) and warm (later rounds), each split into its f
 bundle polish (:mod:`carvi_torch.viewpoints.sfm`) with the outer steps and polish rounds they ran, the
 keypoint-only camera fits, the hull agreements, the k-means starts, the whole fit and viewpoint stage
 per class (the timers only time: the cameras are the run's own). It prints a table per class and
-writes the numbers to ``--out`` (default ``outputs/profile_mixture.json``); docs/viewpoints.md's
-*Cost* profiles the many-class benchmark's renders:
+writes the numbers to ``--out`` (default ``outputs/profile_mixture.json``; with ``--key``, under that key of
+``--out``, default ``docs/data/viewpoints.json``); docs/viewpoints.md's *Cost* profiles the many-class
+benchmark's renders:
 
-    python tools/bench_viewpoints.py --profile-mixture outputs/bench/data/cad_v8_s0/annotations.json
+    python tools/bench_viewpoints.py --profile-mixture outputs/bench/data/cad_v8_s0/annotations.json \\
+        --key mixture_profile_cad8
 
 ``--cameras-cpu DATA`` runs none of that either: it times ``reconstruct --data DATA stage=cameras`` as child
 processes, one per variant (``--variants``, each a space-separated list of overrides; default ``sfm_groups=1``
@@ -263,7 +265,7 @@ def profile_table(clock: Clock) -> tuple[list[str], dict]:
     return lines, {"classes": rec, "total_seconds": {k: round(v, 3) for k, v in sorted(total.items())}}
 
 
-def profile_mixture(data: str, overrides: list[str], out: Path) -> dict:
+def profile_mixture(data: str, overrides: list[str], out: Path, key: str | None = None) -> dict:
     """``--profile-mixture``: the timed ``reconstruct stage=cameras`` run, its table and its JSON record."""
     from carvi_torch import reconstruct
 
@@ -275,9 +277,9 @@ def profile_mixture(data: str, overrides: list[str], out: Path) -> dict:
         raise SystemExit(rc)
     lines, rec = profile_table(clock)
     print("\n".join(lines))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"data": data, "overrides": overrides, **rec}, indent=1))
-    print(f"wrote {out}")
+    write_record(out, {"command": shlex.join(["python", *sys.argv]), "data": data, "overrides": overrides,
+                       "load_average_after": os.getloadavg()[0], **rec}, key)
+    print(f"wrote {out}" + (f", key {key}" if key else ""))
     return rec
 
 
@@ -411,8 +413,9 @@ def main(argv=None) -> dict:
     if args.cameras_cpu:
         return main_cameras_cpu(args, list(sys.argv[1:] if argv is None else argv))
     if args.profile_mixture:
-        return profile_mixture(args.profile_mixture, args.profile_set,
-                               Path(args.out) if args.out else ROOT / "outputs" / "profile_mixture.json")
+        default = ROOT / "docs" / "data" / "viewpoints.json" if args.key else ROOT / "outputs" / "profile_mixture.json"
+        return profile_mixture(args.profile_mixture, args.profile_set, Path(args.out) if args.out else default,
+                               args.key)
     dev = torch.device(args.device)
     vcfg = Config().viewpoints  # the pipeline's viewpoint settings
     out, key = (Path(args.out), args.key) if args.out else (ROOT / "docs" / "data" / "viewpoints.json", args.key or (
