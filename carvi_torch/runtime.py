@@ -24,7 +24,7 @@ try:  # POSIX only; peak memory is unknown elsewhere (Windows)
 except ImportError:  # pragma: no cover - exercised by tests that hide the module
     resource = None
 
-__all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb",
+__all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb", "cpu_seconds",
            "maxrss_to_mb", "stable_hash", "intra_op_threads", "log",
            "log_to_terminal", "log_to_file", "TqdmHandler"]
 
@@ -130,6 +130,20 @@ def peak_rss_mb(children: bool = False) -> float | None:
         return None
     who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
     return maxrss_to_mb(resource.getrusage(who).ru_maxrss)
+
+
+def cpu_seconds(children: bool = False) -> float:
+    """CPU seconds (user + system) of this process so far, or of its finished and waited-for child processes
+    (``children``); NaN where the platform does not say (no ``resource`` module). Benchmarks take differences.
+
+    Example:
+        >>> cpu_seconds() >= 0 and cpu_seconds(children=True) >= 0
+        True
+    """
+    if resource is None:
+        return float("nan")
+    r = resource.getrusage(resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def stable_hash(name: str) -> int:

@@ -70,7 +70,6 @@ import json
 import hashlib
 import os
 import platform
-import resource
 import shlex
 import subprocess
 import sys
@@ -87,6 +86,7 @@ from carvi_torch.cameras import FLIP_X, ScaledOrthographic, random_rotations
 from carvi_torch.config import Config
 from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report
 from carvi_torch.io.outputs import write_record
+from carvi_torch.runtime import cpu_seconds, peak_rss_mb
 from carvi_torch.sdf import distance_to_mask
 from carvi_torch.viewpoints import mixture as sfm_mixture
 from carvi_torch.viewpoints.camera_fit import refine_cameras, supported_shape
@@ -163,11 +163,6 @@ class _Rows:
 
     def __getitem__(self, rows) -> "_Rows":
         return _Rows(self.keypoints[rows], self.visible[rows])
-
-
-def peak_rss_mb() -> float:
-    """Peak resident set size of this process (MB; Linux reports KB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 PARTS = ["cold:group_sfm", "cold:factorize", "cold:polish", "warm:group_sfm", "warm:factorize", "warm:polish",
@@ -283,20 +278,14 @@ def profile_mixture(data: str, overrides: list[str], out: Path, key: str | None 
     return rec
 
 
-def _children_cpu() -> float:
-    """CPU seconds (user + system) of this process's finished and waited-for child processes, so far."""
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
-
-
 def timed_child(cmd: list[str], **kw) -> dict:
     """Run ``cmd`` to its end (its output dropped; a failure raises ``SystemExit`` with the end of its error
     output): its CPU seconds (user + system, its waited-for children included), wall seconds and the 1-minute
     load average before and after."""
     load0 = os.getloadavg()[0]
-    t0, c0 = time.perf_counter(), _children_cpu()
+    t0, c0 = time.perf_counter(), cpu_seconds(children=True)
     res = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **kw)
-    wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
+    wall, cpu = time.perf_counter() - t0, cpu_seconds(children=True) - c0
     if res.returncode:
         raise SystemExit(f"{shlex.join(cmd)} failed ({res.returncode}):\n{res.stderr[-3000:]}")
     return {"cpu_seconds": round(cpu, 2), "wall_seconds": round(wall, 2),

@@ -100,7 +100,7 @@ from carvi_torch.config import Config
 from carvi_torch.io import coco
 from carvi_torch.io.outputs import read_json, write_json, write_record
 from carvi_torch.io.writer import writer_workers
-from carvi_torch.runtime import intra_op_threads, stable_hash
+from carvi_torch.runtime import cpu_seconds, intra_op_threads, stable_hash
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -423,15 +423,6 @@ def _knows_report(pythonpath: str | None) -> bool:
     return "    report: bool" in config.read_text()
 
 
-def _children_cpu() -> float:
-    """CPU seconds (user + system) of this process's finished child processes, so far (a run's writer processes
-    are the forkserver's children, which the run does not wait for: not counted)."""
-    import resource
-
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
-
-
 def run_many(data: Path, out: Path, args, name: str, sets: list[str], pythonpath: str | None) -> dict:
     """One whole run of every class of ``data`` (a child process); its totals and per-class costs."""
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(data), "--out", str(out),
@@ -447,9 +438,9 @@ def run_many(data: Path, out: Path, args, name: str, sets: list[str], pythonpath
     if args.workers is not None:
         env["CARVI_WRITERS"] = str(args.workers)
     print(f"{name}:", f"PYTHONPATH={env['PYTHONPATH']}", " ".join(shlex.quote(c) for c in cmd), flush=True)
-    t0, c0 = time.perf_counter(), _children_cpu()
+    t0, c0 = time.perf_counter(), cpu_seconds(children=True)
     res = subprocess.run(cmd, cwd=pythonpath or ROOT, env=env, capture_output=True, text=True)
-    wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
+    wall, cpu = time.perf_counter() - t0, cpu_seconds(children=True) - c0
     if res.returncode != 0:
         raise SystemExit(f"{name}: reconstruct failed ({res.returncode}):\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}")
     summary = read_json(out / "summary.json")

@@ -46,12 +46,13 @@ import argparse
 import json
 import os
 import platform
-import resource
 import shlex
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from carvi_torch.runtime import cpu_seconds
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -84,16 +85,6 @@ PYTHON = sys.executable
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def _cpu_children() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
-
-
-def _cpu_self() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
 
 
 def _env(threads: int) -> dict:
@@ -398,7 +389,7 @@ def parse_methods(text: str) -> list[str]:
 
 def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: str) -> tuple[dict, dict]:
     """Render, reconstruct and evaluate at one seed into ``out``; returns the evaluation and the record."""
-    t_start, cpu0 = time.perf_counter(), _cpu_self() + _cpu_children()
+    t_start, cpu0 = time.perf_counter(), cpu_seconds() + cpu_seconds(children=True)
     data = out / f"data_pool{args.pool}_test{args.test_views}_seed{seed}"
     ncpu = os.cpu_count() or 1
     jobs = max(1, args.jobs)
@@ -406,12 +397,12 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
     timings: dict = {}
 
     # 1. data
-    t0, c0 = time.perf_counter(), _cpu_self()
+    t0, c0 = time.perf_counter(), cpu_seconds()
     if args.fresh or not _render_matches(data, args.pool, args.test_views, seed):
         print(f"render {args.pool}+{args.test_views} views per model into {data}", flush=True)
         info = render(Path(args.models), data, args.pool, args.test_views, seed)
         print(f"  {info['images']} renders of {info['models']} models in {info['seconds']:.0f} s", flush=True)
-        timings["render"] = {"wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(_cpu_self() - c0, 1)}
+        timings["render"] = {"wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(cpu_seconds() - c0, 1)}
     else:
         print(f"render: reusing {data}", flush=True)
         timings["render"] = {"reused": True}
@@ -430,13 +421,13 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
         if classes:
             argv.append("classes=" + ",".join(classes))
         cmds.append((m, argv, runs[m] / "log.txt"))
-    t0, c0 = time.perf_counter(), _cpu_children()
+    t0, c0 = time.perf_counter(), cpu_seconds(children=True)
     timings["reconstruct"] = run_parallel(cmds, jobs, threads) if cmds else {}
     timings["reconstruct_total"] = {"wall_s": round(time.perf_counter() - t0, 1),
-                                    "cpu_s": round(_cpu_children() - c0, 1)}
+                                    "cpu_s": round(cpu_seconds(children=True) - c0, 1)}
 
     # 3. evaluation
-    t0, c0 = time.perf_counter(), _cpu_children()
+    t0, c0 = time.perf_counter(), cpu_seconds(children=True)
     evals = out / "eval"
     names = sorted(c["name"] for c in json.loads(ann.read_text())["categories"])
     names = [c for c in names if not classes or c in classes]
@@ -452,7 +443,8 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
             argv.append(f"--recon={m}={runs[m]}")  # "=" form: names such as -CRef start with a dash
         ecmds.append((f"evaluate[{i}]", argv, evals / f"part{i}.log"))
     timings["evaluate"] = run_parallel(ecmds, jobs, threads)
-    timings["evaluate_total"] = {"wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(_cpu_children() - c0, 1)}
+    timings["evaluate_total"] = {"wall_s": round(time.perf_counter() - t0, 1),
+                                 "cpu_s": round(cpu_seconds(children=True) - c0, 1)}
     res = merge_evaluations([json.loads((evals / f"part{i}" / "results.json").read_text())
                              for i in range(len(halves))])
 
@@ -465,7 +457,7 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
                      "step_percent": args.step_percent, "jobs": jobs, "threads_per_job": threads,
                      "methods": {m: METHODS[m] + args.set for m in methods}},
         "timings": timings, "total_wall_s": round(time.perf_counter() - t_start, 1),
-        "total_cpu_s": round(_cpu_self() + _cpu_children() - cpu0, 1),
+        "total_cpu_s": round(cpu_seconds() + cpu_seconds(children=True) - cpu0, 1),
         "acceptance": acceptance(res),
         "table": {c: {m: r[m]["mean"] for m in res["methods"]} for c, r in res["classes"].items()},
         "mean_over_classes": res["mean_over_classes"],
