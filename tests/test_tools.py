@@ -172,6 +172,18 @@ def test_tools_are_few_and_import_the_installed_package():
             assert f"import {name}\n" not in text and f"from {name} import" not in text, (tool, name)
 
 
+def test_tools_read_cpu_time_and_memory_through_runtime():
+    """CPU seconds and peak memory come from ``carvi_torch.runtime`` (``cpu_seconds``, ``peak_rss_mb``), one clock
+    for every tool and the scripts they start: no tool reads ``resource.getrusage`` itself, and those that time
+    CPU or memory name runtime's functions."""
+    for tool in TOOLS:
+        text = (ROOT / "tools" / tool).read_text()
+        assert "getrusage" not in text and "import resource" not in text, tool
+    for tool in ("bench_export.py", "studies.py", "benchmark.py", "benchmark_synthetic.py", "bench_viewpoints.py"):
+        assert "cpu_seconds(children=True)" in (ROOT / "tools" / tool).read_text(), tool
+    assert (ROOT / "tools" / "bench_export.py").read_text().count("peak_rss_mb()") == 2  # the reader, the report
+
+
 #: ``python SCRIPT --help`` as a fresh process runs it (``__main__``, that argv).
 _HELP = "import runpy, sys; sys.argv = [{s!r}, '--help']; runpy.run_path({s!r}, run_name='__main__')"
 

@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import shlex
 import statistics
 import subprocess
@@ -44,13 +43,16 @@ import threading
 import time
 from pathlib import Path
 
+from carvi_torch.runtime import cpu_seconds
+
 ROOT = Path(__file__).resolve().parents[1]
 
 READER = r"""
-import json, resource, sys, time
+import json, sys, time
 import torch
 torch.set_num_threads(1)
 from torch.utils.data import DataLoader
+from carvi_torch.runtime import peak_rss_mb
 from carvi_torch.training import LiftedDataset, collate_lifted
 root, workers, fields = sys.argv[1], int(sys.argv[2]), (sys.argv[3].split(",") if sys.argv[3] else None)
 ds = LiftedDataset(root, fields=fields)
@@ -62,8 +64,7 @@ else:
     for b in DataLoader(ds, batch_size=64, num_workers=workers, collate_fn=collate_lifted):
         pass
 dt = time.perf_counter() - t
-print(json.dumps({"samples": len(ds), "seconds": dt,
-                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+print(json.dumps({"samples": len(ds), "seconds": dt, "peak_rss_mb": peak_rss_mb()}))
 """
 
 
@@ -318,12 +319,12 @@ def quality_study(eval_dirs: list[Path], method: str | None, out: str, key: str,
 
 
 REPORT = r"""
-import json, resource, sys, time
+import json, sys, time
 t = time.perf_counter()
 from carvi_torch.report import build_report
+from carvi_torch.runtime import peak_rss_mb
 r = build_report(sys.argv[1], sys.argv[2], workers=int(sys.argv[3]))
-print(json.dumps({"cards": r.cards, "seconds_inside": time.perf_counter() - t,
-                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+print(json.dumps({"cards": r.cards, "seconds_inside": time.perf_counter() - t, "peak_rss_mb": peak_rss_mb()}))
 """
 
 
@@ -336,11 +337,10 @@ def bench_report(recon: Path, work: Path, out: str, key: str | None, argv) -> in
         dest = work / f"report_{workers}"
         if dest.exists():
             shutil.rmtree(dest)
-        r0, t = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
+        c0, t = cpu_seconds(children=True), time.perf_counter()
         res = subprocess.run([sys.executable, "-c", REPORT, str(recon), str(dest), workers], cwd=ROOT,
                              capture_output=True, text=True)
-        dt, r1 = time.perf_counter() - t, resource.getrusage(resource.RUSAGE_CHILDREN)
-        cpu = (r1.ru_utime + r1.ru_stime) - (r0.ru_utime + r0.ru_stime)  # the report process (not its workers)
+        dt, cpu = time.perf_counter() - t, cpu_seconds(children=True) - c0  # the report process (not its workers)
         if res.returncode != 0:
             raise SystemExit(f"report failed:\n{res.stderr[-2000:]}")
         got = json.loads(res.stdout.strip().splitlines()[-1])

@@ -54,6 +54,8 @@ from pathlib import Path
 
 import numpy as np
 
+from carvi_torch.runtime import cpu_seconds
+
 ROOT = Path(__file__).resolve().parents[1]
 #: Where the figures go (docs/results.md, docs/conventions.md show them).
 FIGURES = ROOT / "docs" / "figures"
@@ -539,12 +541,9 @@ def step(args) -> int:
                 "test", "--quiet", "--step-percent", str(st), "--classes", args.classes, "--out", str(out),
                 "--baselines", *recon]
         print("  " + " ".join(shlex.quote(a) for a in argv), flush=True)
-        import resource
-
-        c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        c0 = cpu_seconds(children=True)
         subprocess.run(argv, env=env, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
-        c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        times[f"{st:g}"] = round(c1.ru_utime + c1.ru_stime - c0.ru_utime - c0.ru_stime, 1)
+        times[f"{st:g}"] = round(cpu_seconds(children=True) - c0, 1)
         res[f"{st:g}"] = json.loads((out / "results.json").read_text())
     a, b = (res[f"{st:g}"] for st in steps)
     diffs = {}
