@@ -93,8 +93,11 @@ CAMERAS = {"photo": {}, "level": {"elevation_deg": (15.0, 12.0), "elevation_rang
 
 
 def _rows(res: dict, recon: Path) -> list:
-    """One row per class of an evaluation of the run in ``recon`` (medians in degrees)."""
+    """One row per class of an evaluation of the run in ``recon`` (medians in degrees); with a mixture of
+    shapes (``sfm_groups > 1``) also the class's ``sfm_groups`` of ``summary.json`` (groups kept, misfit,
+    every candidate split with its residual cut, frame agreement and hull gain)."""
     rows = []
+    summary = json.loads((recon / "summary.json").read_text()).get("classes", {})
     for cls, per in sorted(res["viewpoints"].items()):
         rep = per.get("estimated", {})
         sfm, ref = rep.get("sfm", {}), rep.get("refined", {})
@@ -117,6 +120,8 @@ def _rows(res: dict, recon: Path) -> list:
             "absolute_elevation": ref["absolute"]["elevation"]["median"],
             "up_error_deg": _up_error(ref["alignment"]),
         })
+        if "sfm_groups" in summary.get(cls, {}):  # the mixture's decision (sfm_groups > 1): misfit, candidates
+            rows[-1]["sfm_groups"] = summary[cls]["sfm_groups"]
     return rows
 
 
