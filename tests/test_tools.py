@@ -458,3 +458,42 @@ def test_cameras_cpu_interleaves_variants_and_counts_child_cpu(tmp_path: Path):
     assert rec["same_cameras_every_round"] == {"sleep": False, "burn": True}
     with pytest.raises(SystemExit, match="failed"):
         bv.cameras_cpu("x", ["v"], 1, command=lambda d, o, v: [sys.executable, "-c", "raise SystemExit(3)"])
+
+
+def test_misses_study_scores_the_pipelines_cameras_against_the_true_ones_refined(tmp_path: Path):
+    """``studies.py misses`` through its command line on a small class (two views of each model): its final cameras
+    are the pipeline's (each model's median error is numpy's median of ``evaluate``'s errors of a ``reconstruct
+    stage=cameras`` run), the true camera put in the SfM frame is the truth again under the class's fitted rotation,
+    refining it never raises its energy, and the record joins the file's other keys."""
+    import numpy as np
+
+    from carvi_torch.evaluate import evaluate
+    from carvi_torch.reconstruct import main as reconstruct_main
+    from carvi_torch.synthetic import procedural
+
+    st = load_tool("studies", "studies_tool")
+    procedural.write_default_collection(tmp_path / "set", instances_per_class=6, views_per_instance=2,
+                                        categories=["car"], seed=0, progress=False)
+    data, recon = tmp_path / "set" / "annotations.json", tmp_path / "recon"
+    assert reconstruct_main(["--data", str(data), "--out", str(recon), "--quiet", "stage=cameras"]) == 0
+    res = evaluate(data, {"estimated": recon}, shapes=False, progress=False)
+    rep = res["viewpoints"]["car"]["estimated"]["refined"]
+    model = {a["id"]: a["source"] for a in json.loads(data.read_text())["annotations"]}
+    expected: dict = {}
+    for a, e in zip(rep["annotation_ids"], rep["per_instance_geodesic"]):
+        expected.setdefault(model[a], []).append(e)
+    out = tmp_path / "records.json"
+    out.write_text(json.dumps({"other": {"command": "kept"}}))
+    assert st.main(["misses", "--data", str(data), "--out", str(out), "--key", "k"]) == 0
+    records = json.loads(out.read_text())
+    assert records["other"] == {"command": "kept"}
+    per_model = records["k"]["sets"]["set"]["car"]
+    assert sorted(per_model) == sorted(expected) and len(per_model) == 6
+    for m, r in per_model.items():
+        assert r["n"] == 2 and r["final_deg"][1] == pytest.approx(np.median(expected[m]), abs=0.02), m
+        assert r["final_deg"][0] == pytest.approx(min(expected[m]), abs=0.02), m
+        assert max(r["true_deg"]) < 1e-2, m  # R_gt G^T, scored under G: the truth itself
+        e = r["energy"]
+        assert e["true_refined"] <= e["true"] * (1 + 1e-6), m
+        assert 0 <= min(r["hull"].values()) and max(r["hull"].values()) <= 1, m
+        assert set(r["energy"]) == {"final", "true", "true_refined", "mirror"}, m

@@ -1,6 +1,6 @@
 """Studies of the synthetic benchmark (after ``tools/benchmark_synthetic.py``), and the frames figure.
 
-    python tools/studies.py {frames,canonical,ranking,threshold,viewpoints,clusters,step} [options]
+    python tools/studies.py {frames,canonical,ranking,threshold,viewpoints,clusters,step,misses} [options]
 
 Figures go to ``docs/figures/<name>.png`` (docs/results.md and docs/conventions.md show them),
 JSON records to ``outputs/studies/studies_<name>.json`` (no docs table is built from them; the
@@ -30,6 +30,16 @@ working directory, default outputs/benchmark):
   (refined cameras), ``--points`` surface samples each, centred and scaled to unit RMS radius,
   a symmetric RMS chamfer distance matrix (:func:`carvi_torch.evaluation.studies.chamfer_matrix`), K-medoids
   into 5 clusters, the medoids drawn ordered by cluster size (``shape_clusters.png``).
+* ``misses``: where the viewpoint misses come from (docs/viewpoints.md, *Small classes*), on rendered sets
+  (``--data``: ``annotations.json`` with ``gt.json`` beside it, e.g. tools/viewpoints_cad.py's renders): per class
+  (default settings, :func:`carvi_torch.viewpoints.estimate_viewpoints`) each object's true camera is put in the
+  SfM frame by the class's fitted rotation (:func:`carvi_torch.evaluation.viewpoint_metrics.viewpoint_report` of
+  the final cameras; scale by the median ratio, offset from the visible keypoints) and refined with the same
+  energy (:func:`carvi_torch.viewpoints.refine.refine_with_shape`); the final camera's depth-reversed mirror
+  through the symmetry plane is scored beside it. Per CAD model: the errors of the final, true, true-refined and
+  mirror cameras, the angle from the true-refined camera to the final one, and each camera's energy, hull
+  agreement (:func:`carvi_torch.viewpoints.choice.hull_agreement`) and keypoint RMS. ``--out``/``--key`` put the
+  record under a key of a records file (docs/data/viewpoints.json).
 
 Example:
     python tools/studies.py frames
@@ -39,6 +49,8 @@ Example:
     python tools/studies.py threshold --classes aeroplane,car,chair,sofa
     python tools/studies.py viewpoints
     python tools/studies.py clusters
+    python tools/studies.py misses --data outputs/viewpoints_cad/renders_v8_s{0,1,2}/annotations.json \\
+        --out docs/data/viewpoints.json --key viewpoints_cad8_misses
 """
 from __future__ import annotations
 
@@ -524,6 +536,169 @@ def _plot_clusters(figs: dict, k: int) -> None:
     plt.close(fig)
 
 
+# =========================================================================== where the viewpoint misses come from
+
+
+def _model_of(annotations: Path) -> dict:
+    """Annotation id -> CAD model name (the stem of its ``source``, else its ``object_id``)."""
+    anns = json.loads(Path(annotations).read_text())["annotations"]
+    return {a["id"]: Path(str(a.get("source") or a.get("object_id"))).stem for a in anns}
+
+
+def _energy(S, cams, both, dist, cfg):
+    """``(M,)`` the refinement's energy of ``cams`` on the rows of ``both`` (its terms and weights as configured)."""
+    from carvi_torch.viewpoints import camera_fit
+
+    return camera_fit.refinement_energy(cams.s[:, None, None] * cams.R[:, :2], cams.t, S, both.keypoints, both.visible,
+                                        dist, silhouette_weight=cfg.silhouette_weight,
+                                        silhouette_robust=cfg.silhouette_robust or None)
+
+
+def _true_in_sfm_frame(true, final, ok, G, S, both):
+    """The true cameras ``true (2N, canvas pixels)`` put in the SfM frame: rotation ``R_gt G^T`` (``G`` the class's
+    fitted rotation, ``R_final G ~ R_gt``), scale over the median ratio of true to final scales (``ok`` rows), the
+    offset that centres the projected shape on the visible keypoints; rows outside ``ok`` keep ``final``."""
+    import torch
+
+    from carvi_torch.cameras import ScaledOrthographic
+
+    R = true.R @ G.to(true.R).T
+    s = true.s / (true.s[ok] / final.s[ok]).median()
+    w = (both.visible & torch.isfinite(S).all(-1)).to(R.dtype)
+    P = ScaledOrthographic(R, s, torch.zeros_like(true.t)).project(torch.nan_to_num(S).to(R.dtype))
+    t = ((torch.nan_to_num(both.keypoints).to(R.dtype) - P) * w[..., None]).sum(1) / w.sum(1).clamp(min=1)[:, None]
+    keep = ok & (w.sum(1) > 0)
+    return ScaledOrthographic(torch.where(keep[:, None, None], R, final.R), torch.where(keep, s, final.s),
+                              torch.where(keep[:, None], t, final.t))
+
+
+def _class_misses(coll, gt: dict, cfg, seed: int) -> dict | None:
+    """Per original with a camera and a true one, under the class's one mean shape (degrees; energies; hull IoU):
+    the final camera, the true camera in the SfM frame before (``true``) and after (``true_refined``) the
+    refinement, and the depth-reversed mirror of the final camera through the symmetry plane (``mirror``)."""
+    import torch
+
+    from carvi_torch.cameras import ScaledOrthographic, geodesic_angle, geodesic_errors
+    from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report
+    from carvi_torch.viewpoints import camera_fit, estimate_viewpoints, ground_truth_cameras
+    from carvi_torch.viewpoints.choice import box_diagonal, hull_agreement, keypoint_rms
+    from carvi_torch.viewpoints.refine import refine_with_shape
+
+    gtc, _why = ground_truth_cameras(gt, coll)
+    if gtc is None:
+        return None
+    n = len(coll)
+    vp = estimate_viewpoints(coll, cfg, seed=seed)
+    # the true cameras in canvas pixels, the mirrored copies' too (the pipeline's ground-truth source)
+    true = estimate_viewpoints(coll, cfg, source="gt", gt_cameras=gtc, seed=seed).cameras
+    ok = (vp.has_camera[:n] & torch.isfinite(gtc.R).flatten(1).all(1)).cpu()
+    if int(ok.sum()) < 3:
+        return None
+    final, both, dist = vp.cameras, vp.both, vp.distances
+    rep = viewpoint_report(final.R[:n].cpu(), gtc.R.cpu(), valid=ok)
+    G = torch.tensor(rep["alignment"], dtype=final.R.dtype)
+    S = camera_fit.supported_shape(vp.shape, both.visible, cfg.refine_min_support)
+    ok2 = torch.cat([ok, ok]) & vp.has_camera.cpu() & torch.isfinite(true.R).flatten(1).all(1).cpu()
+    start = _true_in_sfm_frame(true, final, ok2.to(final.R.device), G.to(final.R.device), S, both)
+    refined = refine_with_shape(vp.shape, start, both, dist, cfg).cameras
+    cams = {"final": final, "true": start, "true_refined": refined}
+    if vp.reflection is not None:  # F R P: the mirrored shape as R sees it, depths reversed (a proper rotation)
+        f = torch.tensor([1.0, 1.0, -1.0], dtype=final.R.dtype, device=final.R.device)
+        cams["mirror"] = ScaledOrthographic(f[:, None] * (final.R @ vp.reflection.to(final.R)), final.s, final.t)
+    idx = ok.nonzero().squeeze(1)
+    dev = final.R.device
+    part, part_dist, Rg = both[idx], dist[idx.to(dev)], gtc.R.cpu()[idx]
+    diag = box_diagonal(part.masks).double().cpu()
+    out = {"annotation_ids": [coll.annotation_ids[i] for i in idx.tolist()]}
+    for name, c in cams.items():
+        c = c[idx.to(dev)]
+        out[name] = {"error": geodesic_errors(c.R.cpu(), Rg, G).double(),
+                     "energy": _energy(S, c, part, part_dist, cfg).double().cpu(),
+                     "hull": hull_agreement(S, c, part.masks),
+                     "keypoint_rms": keypoint_rms(S, c, part.keypoints, part.visible).double().cpu() / diag}
+    at = idx.to(dev)
+    out["true_refined"]["to_final_deg"] = torch.rad2deg(geodesic_angle(refined.R[at].double(),
+                                                                       final.R[at].double())).cpu()
+    return out
+
+
+def _spread(v) -> list:
+    """``[min, median, max]`` of a 1-D tensor, 2 decimals (NaNs left out; ``[]`` when none is left); the median of
+    an even count is the mean of the middle two (numpy's, as ``evaluate``'s summaries; torch's takes the lower)."""
+    v = v.numpy()
+    v = v[np.isfinite(v)]
+    return [round(float(x), 2) for x in (v.min(), np.median(v), v.max())] if len(v) else []
+
+
+def _misses_per_model(rows: dict, model: dict) -> dict:
+    """Per CAD model of a class: the errors' ``[min, median, max]`` (degrees), the median angle between the
+    camera refined from the truth and the final one, and the median energy, hull agreement (IoU) and keypoint RMS
+    (over the box diagonal) of every camera."""
+    import torch
+
+    names = [model[a] for a in rows["annotation_ids"]]
+    out = {}
+    for m in sorted(set(names)):
+        at = torch.tensor([i for i, x in enumerate(names) if x == m])
+        med = lambda v: round(float(np.median(v[at].numpy())), 4)  # noqa: E731
+        cams = [c for c in ("final", "true", "true_refined", "mirror") if c in rows]
+        out[m] = {"n": len(at), **{f"{c}_deg": _spread(rows[c]["error"][at]) for c in cams},
+                  "true_refined_to_final_deg": _spread(rows["true_refined"]["to_final_deg"][at]),
+                  **{q: {c: med(rows[c][q]) for c in cams} for q in ("energy", "hull", "keypoint_rms")}}
+    return out
+
+
+def misses(args) -> int:
+    """Where the viewpoint misses come from: per class of each rendered set (``--data``), the final cameras against
+    the true cameras put in the SfM frame and refined with the same energy, and the mirrors of the final cameras."""
+    import torch
+
+    from carvi_torch.config import ViewpointConfig
+    from carvi_torch.io.coco import load_coco
+
+    torch.set_num_threads(1)
+    cfg = ViewpointConfig()
+    wanted = set(args.classes.split(",")) if args.classes else None
+    record = {"command": _command(), "note": "per CAD model: errors [min, median, max] in degrees after the class's "
+              "fitted rotation; energy, hull (IoU of mask and projected hull of the mean shape), keypoint_rms (over "
+              "the box diagonal): medians; cameras: final, true (the true camera in the SfM frame), true_refined "
+              "(refined from it), mirror (the final camera's depth-reversed mirror through the symmetry plane)",
+              "sets": {}}
+    for ann in args.data:
+        ann = Path(ann)
+        if not (ann.is_file() and (ann.parent / "gt.json").is_file()):
+            raise SystemExit(f"error: {ann} and a gt.json beside it are needed (render them with "
+                             "tools/viewpoints_cad.py)")
+        gt, model = json.loads((ann.parent / "gt.json").read_text()), _model_of(ann)
+        per_set = record["sets"][ann.parent.name] = {}
+        print(f"{ann.parent.name}: models with a final median over {args.threshold:g} degrees\n"
+              "| class | model | views | final | true refined | true refined to final | energy final / true / "
+              "true refined | hull final / true / true refined | mirror: error, energy, hull |\n" + "|---" * 9 + "|")
+        for cls, coll in sorted(load_coco(ann).collections.items()):
+            if wanted and cls not in wanted:
+                continue
+            rows = _class_misses(coll, gt, cfg, args.seed)
+            if rows is None:
+                print(f"{cls}: fewer than 3 objects with a camera and a true one: left out")
+                continue
+            per_set[cls] = _misses_per_model(rows, model)
+            for m, r in per_set[cls].items():
+                if r["final_deg"] and r["final_deg"][1] > args.threshold:
+                    e, h = r["energy"], r["hull"]
+                    mirror = (f"{r['mirror_deg'][1]:.1f}, {e['mirror']:.0f}, {h['mirror']:.2f}" if "mirror" in e
+                              else "-")
+                    print(f"| {cls} | {m} | {r['n']} | {r['final_deg'][1]:.1f} | {r['true_refined_deg'][1]:.1f} | "
+                          f"{r['true_refined_to_final_deg'][1]:.1f} | {e['final']:.0f} / {e['true']:.0f} / "
+                          f"{e['true_refined']:.0f} | {h['final']:.2f} / {h['true']:.2f} / {h['true_refined']:.2f} | "
+                          f"{mirror} |")
+    from carvi_torch.io.outputs import write_record
+
+    out = Path(args.out) if args.out else _record("misses")
+    write_record(out, record, args.key)
+    print(f"wrote {out}" + (f", key {args.key}" if args.key else ""))
+    return 0
+
+
 # =========================================================================== metric step
 
 
@@ -766,8 +941,18 @@ def main(argv=None) -> int:
     p = sub.add_parser("step", parents=[common], help="metric sampling step: 0.5%% vs 1%% on a subset")
     p.add_argument("--classes", default="bicycle,car,chair,sofa")
     p.add_argument("--steps", default="0.5,1.0")
+    p = sub.add_parser("misses", help="where the viewpoint misses come from: final cameras against the true ones "
+                                      "refined (docs/viewpoints.md)")
+    p.add_argument("--data", nargs="+", required=True, metavar="ANNOTATIONS",
+                   help="annotations.json of rendered sets, each with its gt.json (tools/viewpoints_cad.py's renders)")
+    p.add_argument("--classes", help="comma-separated subset")
+    p.add_argument("--seed", type=int, default=0, help="the pipeline's seed (the mixture's starts)")
+    p.add_argument("--threshold", type=float, default=10.0, help="print the models whose final median error "
+                                                                 "(degrees) exceeds this")
+    p.add_argument("--out", help="the JSON record (default outputs/studies/studies_misses.json)")
+    p.add_argument("--key", help="write the record under this key of --out's JSON object, its other keys kept")
     args = ap.parse_args(argv)
-    return {"frames": frames, "canonical": canonical, "ranking": ranking, "threshold": threshold,
+    return {"misses": misses, "frames": frames, "canonical": canonical, "ranking": ranking, "threshold": threshold,
             "viewpoints": viewpoints, "clusters": clusters, "step": step}[args.study](args)
 
 
