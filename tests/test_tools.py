@@ -414,6 +414,15 @@ def test_ranking_study_writes_its_figures_where_asked(tmp_path: Path, monkeypatc
     assert sorted(p.name for p in (tmp_path / "cad8").iterdir()) == ["pool_size.png", "ranking.png"]
     rec = json.loads((tmp_path / "records" / "studies_cad8.json").read_text())
     assert rec["classes"]["sofa"]["top"] == pytest.approx(5.5) and rec["references"] == 2
+    # --out/--key: the same record under a key of a records file, whose other keys stay
+    records = tmp_path / "benchmark_synthetic.json"
+    records.write_text(json.dumps({"table": "kept"}))
+    assert st.main(["ranking", "--bench", str(bench), "--views-per-model", "2", "--figures", str(tmp_path / "cad8"),
+                    "--out", str(records), "--key", "ranking_cad8"]) == 0
+    keyed = json.loads(records.read_text())
+    assert sorted(keyed) == ["ranking_cad8", "table"] and keyed["table"] == "kept"
+    assert {k: v for k, v in keyed["ranking_cad8"].items() if k != "command"} == \
+        {k: v for k, v in rec.items() if k != "command"}
     assert {p.name: p.stat().st_mtime_ns for p in (ROOT / "docs" / "figures").glob("*.png")} == docs_figures
 
 

@@ -3,9 +3,9 @@
     python tools/studies.py {frames,canonical,ranking,threshold,viewpoints,clusters,step,misses} [options]
 
 Figures go to ``docs/figures/<name>.png`` (docs/results.md and docs/conventions.md show them),
-JSON records to ``outputs/studies/studies_<name>.json`` (no docs table is built from them; the
-figures are what the docs show). Subcommands (``--bench`` is the benchmark's
-working directory, default outputs/benchmark):
+JSON records to ``outputs/studies/studies_<name>.json``, or with ``--out FILE --key KEY`` (``misses``,
+``ranking``) under a key of a records file of docs/data/ whose other keys are kept. Subcommands
+(``--bench`` is the benchmark's working directory, default outputs/benchmark):
 
 * ``frames``: the image, camera and voxel-grid frames of carvi_torch (``frames.png``,
   docs/conventions.md; ``--out`` moves it). Needs no benchmark.
@@ -19,7 +19,8 @@ working directory, default outputs/benchmark):
   top-ranked, random (expected error of a uniform pick among the valid proposals) and best
   available proposal (``ranking.png``); over all classes: the same against the size of the
   proposal pool, 1..P, the top-ranked among the first k (``pool_size.png``). ``--figures`` and
-  ``--record`` put the figures and the record elsewhere (the 8-view study of docs/results.md).
+  ``--record`` put the figures and the record elsewhere (the 8-view study of docs/results.md); ``--out FILE
+  [--key KEY]`` writes the record under a key of a records file instead (docs/data/benchmark_synthetic.json).
 * ``threshold`` (c): Full rerun on ``--classes`` with ``surrogates.cluster_threshold_deg`` in
   ``--thresholds``; mean error per class and threshold (``threshold.png``).
 * ``viewpoints`` (d): median geodesic viewpoint error per class, SfM vs refined cameras, from
@@ -201,9 +202,13 @@ def ranking(args) -> int:
     out.update({"command": _command(), "step_percent": args.step_percent, "table_step_percent": table_step,
                 "views_per_model": args.views_per_model, "references": len(per_ref), "seconds": round(seconds, 1),
                 "per_reference": per_ref})
-    from carvi_torch.io.outputs import write_json
+    from carvi_torch.io.outputs import write_json, write_record
 
-    write_json(_record(args.record), out)
+    if args.out:  # a key of a records file (docs/data/benchmark_synthetic.json), its other keys kept
+        write_record(args.out, out, args.key or args.record)
+        print(f"wrote {args.out}, key {args.key or args.record}")
+    else:
+        write_json(_record(args.record), out)
     _plot_ranking(out, Path(args.figures))
     print(json.dumps({k: out[k] for k in ("mean", "selected_vs_table")}, indent=1))
     return 0
@@ -929,6 +934,9 @@ def main(argv=None) -> int:
     p.add_argument("--figures", default=str(FIGURES),
                    help="folder of ranking.png and pool_size.png (default docs/figures)")
     p.add_argument("--record", default="ranking", help="the record's name: outputs/studies/studies_<NAME>.json")
+    p.add_argument("--out", help="instead, write the record under a key of this records file (e.g. "
+                                 "docs/data/benchmark_synthetic.json), its other keys kept")
+    p.add_argument("--key", help="the key of --out (default: the --record name)")
     p = sub.add_parser("threshold", parents=[common], help="(c) error against the clustering threshold")
     p.add_argument("--classes", default="aeroplane,car,chair,sofa")
     p.add_argument("--thresholds", default="15,20,25,30,35,40,45")
