@@ -338,6 +338,11 @@ class Config:
     """``executor=ray``: objects carved, meshed and written per task (each task reads its class plan,
     about 0.22 MB per object of the class at the default canvas, from the object store: larger classes
     want larger chunks)."""
+    pipeline_classes: bool = True
+    """``executor=local``: make the next class's viewpoints (SfM, the mixture of shapes, refinement, the
+    surrogate plan) on a background thread while this class carves, selects and writes, so that the
+    second core works during those single-threaded stages (one class's viewpoints more in memory; the
+    same outputs; docs/benchmarks.md, *Many classes*). ``False``: each class's stages one after the other."""
     input: InputConfig = field(default_factory=InputConfig)
     viewpoints: ViewpointConfig = field(default_factory=ViewpointConfig)
     surrogates: SurrogateConfig = field(default_factory=SurrogateConfig)
@@ -588,7 +593,7 @@ def _coerce_plain(value: Any, annotation: Any) -> Any:
 #: Settings that do not change how an object is reconstructed (a rerun may differ in them freely;
 #: the input files are the user's choice, and resumed objects are matched by annotation id).
 NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overwrite", "classes", "stage", "device",
-                    "executor", "ray_address", "ray_chunk_objects",  # where the work runs, not what it computes
+                    "executor", "ray_address", "ray_chunk_objects", "pipeline_classes",  # where the work runs
                     "viewpoints.sfm_group_threads",  # the mixture fit's result is the same on any number of threads
                     "carve.backend"}  # every carving backend gives the same labels voxel for voxel
 

@@ -37,8 +37,8 @@ from .runtime import StageTimer, log
 from .sdf import signed_distance
 from .viewpoints import NoMeanShape, Viewpoints, estimate_viewpoints, ground_truth_cameras
 
-__all__ = ["run_class", "prepare_class", "carve_and_select", "ClassPlan", "chunk_objects", "finished_objects",
-           "reconstruct_chunk", "finish_class"]
+__all__ = ["run_class", "class_viewpoints", "prepare_class", "carve_and_select", "ClassPlan", "chunk_objects",
+           "finished_objects", "reconstruct_chunk", "finish_class"]
 
 
 # =========================================================================== one class
@@ -88,8 +88,7 @@ def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None) -> li
 
 def _todo(coll: ClassCollection, vp: Viewpoints, done: list, cfg: Config, report: ClassReport) -> list[int]:
     """The originals to reconstruct: chosen (``references``), with a usable camera, not finished (resume)."""
-    aids = coll.annotation_ids
-    usable = vp.has_camera[:len(coll)].tolist()
+    aids, usable = coll.annotation_ids, vp.has_camera[:len(coll)].tolist()
     report.resumed = sum(done)
     chosen = [cfg.references == "all" or coll.splits[i] == cfg.references for i in range(len(coll))]
     report.info["references"] = sum(chosen)
@@ -144,8 +143,7 @@ def _maps(vp: Viewpoints, plan: surrogates.SurrogatePlan, todo: list[int], sel: 
 def _surrogate_plan(coll, vp: Viewpoints, cfg: Config, generator, timer, report) -> surrogates.SurrogatePlan:
     """Principal directions, clusters, and the triplets (or fallbacks) of every original: all of them,
     so that a resumed run samples the same ones."""
-    n = len(coll)
-    usable = vp.has_camera[:n]
+    n, usable = len(coll), vp.has_camera[:len(coll)]
     mirrors = cfg.surrogates.mirrors and not coll.meta.articulated and vp.mirrored
     with timer("surrogates"):
         axes = surrogates.principal_directions(vp.shape)
@@ -164,34 +162,41 @@ def _surrogate_plan(coll, vp: Viewpoints, cfg: Config, generator, timer, report)
     return surrogates.SurrogatePlan(n, axes, clusters, trip, mirrors, levels=levels)
 
 
+def class_viewpoints(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
+                     gt: dict | None = None, report: ClassReport | None = None) -> tuple:
+    """The part of :func:`prepare_class` that reads and writes no file (an executor may run it ahead, on another
+    thread): ``(coll, vp, surrogate_plan, report)``, the class on ``device``, its viewpoints and surrogate plan,
+    both ``None`` when the class stops there (too few instances, no true or SfM cameras)."""
+    report = ClassReport(coll.meta.key, objects=len(coll)) if report is None else report
+    if len(coll) < cfg.input.min_instances:
+        report.status = "skipped"
+        report.skip(f"class has {len(coll)} usable instance(s), fewer than min_instances={cfg.input.min_instances}",
+                    "class")
+        return coll, None, None, report
+    coll, timer = coll.to(device), StageTimer(device, report.seconds)
+    vp = _viewpoints(coll, cfg, gt, report, timer)
+    return coll, vp, (None if vp is None else _surrogate_plan(coll, vp, cfg, generator, timer, report)), report
+
+
 def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
                   gt: dict | None = None, out: Path | None = None, report: ClassReport | None = None,
-                  done: list[bool] | None = None):
+                  done: list[bool] | None = None, ahead: tuple | None = None):
     """Every stage of one class up to carving: viewpoints, clusters, triplets, prepared silhouettes.
 
     Writes ``out/<class>/cameras.json`` when ``out`` is given. ``done``: per original, finished by an
     earlier run (default :func:`finished_objects`; an executor that may run this twice passes it, so that
-    both runs plan the same objects).
+    both runs plan the same objects). ``ahead``: :func:`class_viewpoints`'s result, made beforehand.
 
     Returns:
         ``(plan, todo, report)``: the :class:`ClassPlan` (``None`` when the class stops before
         carving: too few instances, missing ground truth, ``stage=cameras``, nothing to do), the
         original indices to reconstruct, and the class report so far.
     """
-    report = ClassReport(coll.meta.key, objects=len(coll)) if report is None else report
-    timer = StageTimer(device, report.seconds)
-    cdir = class_dir(out if out is not None else ".", coll.meta.key)
-    if len(coll) < cfg.input.min_instances:
-        report.status = "skipped"
-        report.skip(f"class has {len(coll)} usable instance(s), fewer than min_instances={cfg.input.min_instances}",
-                    "class")
-        return None, [], report
-    coll = coll.to(device)
-    n = len(coll)
-    vp = _viewpoints(coll, cfg, gt, report, timer)
+    coll, vp, plan, report = class_viewpoints(coll, cfg, device, generator, gt, report) if ahead is None else ahead
     if vp is None:
         return None, [], report
-    plan = _surrogate_plan(coll, vp, cfg, generator, timer, report)
+    timer, n = StageTimer(device, report.seconds), len(coll)
+    cdir = class_dir(out if out is not None else ".", coll.meta.key)
     done = finished_objects(coll, cfg, out) if done is None else list(done)
     if out is not None:
         plan.levels = resumed_levels(cdir, coll, plan.levels, done)
@@ -220,8 +225,7 @@ def carve_and_select(ids: torch.Tensor, plan: ClassPlan, cfg: Config, timer: Sta
     and rank them (all device work of a chunk)."""
     with timer("surrogates"):
         flat_ref, views, flat_valid = plan.proposals(ids)
-    valid = flat_valid.view(len(ids), -1)
-    keep = flat_valid.nonzero().squeeze(1)
+    valid, keep = flat_valid.view(len(ids), -1), flat_valid.nonzero().squeeze(1)
     kept_ref = flat_ref[keep]
     with timer("carve"):
         grids = carve.carve_proposals(plan.maps, None, kept_ref, views[keep],
@@ -236,8 +240,7 @@ def carve_and_select(ids: torch.Tensor, plan: ClassPlan, cfg: Config, timer: Sta
 
 def _job(sel: select.Selection, occupancy: torch.Tensor, j: int, i: int, sur, plan: ClassPlan, cfg: Config) -> dict:
     """The writer's job for reference ``j`` (original ``i``) of a chunk (host data only, the grids too)."""
-    scale, offset, aid_of = plan.canvas_scale[i], plan.canvas_offset[i], plan.aids
-    aid = aid_of[i]
+    scale, offset, aid_of, aid = plan.canvas_scale[i], plan.canvas_offset[i], plan.aids, plan.aids[i]
     canvas_to_image = canvas_to_image_4x4(scale, offset)
     v2c = sel.best_transform[j]
     best = int(sel.best[j])
@@ -280,8 +283,7 @@ def _puffballs(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: C
     none = [j for j, ok in enumerate(sel.ok.any(dim=1).tolist()) if not ok]
     if not none:
         return set()
-    rows = ids[torch.tensor(none, device=ids.device)]
-    grids = puffball_grids(plan.coll.masks[rows], cfg.carve.resolution)
+    grids = puffball_grids(plan.coll.masks[ids[torch.tensor(none, device=ids.device)]], cfg.carve.resolution)
     for k, j in enumerate(none):
         sel.best_occupancy[j] = grids.occupancy[k].to(sel.best_occupancy.device)
         sel.best_transform[j] = grids.voxel_to_camera[k].double().cpu()
@@ -310,13 +312,13 @@ def chunk_objects(cfg: Config, device: torch.device) -> int:
 
 
 def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, device: torch.device,
-              generator: torch.Generator, writer: Writer | None = None) -> ClassReport:
+              generator: torch.Generator, writer: Writer | None = None, ahead: tuple | None = None) -> ClassReport:
     """Run every stage for one class; write ``out/<class>/``; return its report.
 
     ``writer`` meshes and writes the objects (worker processes, see :func:`run`); by default
-    they are written inline.
+    they are written inline. ``ahead``: :func:`class_viewpoints`'s result, made beforehand.
     """
-    plan, todo, report = prepare_class(coll, cfg, device, generator, gt=gt, out=out)
+    plan, todo, report = prepare_class(coll, cfg, device, generator, gt=gt, out=out, ahead=ahead)
     if plan is None:
         return report
     own_writer = writer is None
@@ -369,8 +371,7 @@ def reconstruct_chunk(plan: ClassPlan, ids: list[int], cfg: Config) -> tuple[Cla
     results). Returns the report of these objects and the originals of ``ids`` that became puffballs."""
     report = ClassReport(plan.coll.meta.key, objects=0)
     _carve_chunks(plan, list(ids), cfg, report, Writer(0))
-    levels = plan.surrogates.levels
-    return report, [i for i in ids if levels[i] == "puffball"]
+    return report, [i for i in ids if plan.surrogates.levels[i] == "puffball"]
 
 
 def finish_class(plan: ClassPlan, cfg: Config, report: ClassReport, puffballs: list[int] = ()) -> None:

@@ -11,12 +11,16 @@ Example:
 from __future__ import annotations
 
 import traceback
+from concurrent.futures import Future
+
+import torch
 
 from ..config import Config
 from ..io.results import ClassReport
 from ..io.writer import Writer, writer_workers
-from ..pipeline import run_class
+from ..pipeline import class_viewpoints, run_class
 from ..runtime import intra_op_threads, log, log_to_file, log_to_terminal, torch_threads
+from .ahead import Ahead
 from .common import RunSetup, announce, book_class, class_generator, finish_run, open_run
 
 __all__ = ["run"]
@@ -50,15 +54,43 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
 
 
 def _classes(setup: RunSetup, writer: Writer) -> None:
+    """The classes in name order; with ``pipeline_classes`` each class's viewpoints are made ahead, on a
+    background thread, while the class before it carves (:mod:`~carvi_torch.executors.ahead`)."""
     cfg = setup.cfg
-    for key in sorted(setup.loaded.collections):
-        coll = setup.loaded.collections[key]
-        log.info(f"{key}: {len(coll)} objects")
-        try:
-            rep = run_class(coll, cfg, setup.out, setup.gt, setup.device, class_generator(cfg, key), writer)
-        except Exception as e:  # noqa: BLE001 - one broken class must not stop the others
-            rep = ClassReport(key, objects=len(coll), status="failed")
-            rep.skip(f"{type(e).__name__}: {e}", "class")
-            log.error(f"{key}: failed: {type(e).__name__}: {e}")
-            log.debug(traceback.format_exc())
-        book_class(setup, key, rep)
+    keys = sorted(setup.loaded.collections)
+    ahead = Ahead(torch.get_num_threads()) if cfg.pipeline_classes and len(keys) > 1 else None
+    try:
+        made = [_make_ahead(setup, ahead, keys[0])] if ahead is not None else []
+        for i, key in enumerate(keys):
+            if ahead is not None and i + 1 < len(keys):
+                made.append(_make_ahead(setup, ahead, keys[i + 1]))  # runs while this class carves
+            _one_class(setup, writer, key, made.pop(0) if made else None)
+    except BaseException:
+        if ahead is not None:
+            ahead.close(cancel=True)  # the viewpoints in progress write nothing: left to end on their own
+        raise
+    if ahead is not None:
+        ahead.close()
+
+
+def _make_ahead(setup: RunSetup, ahead: Ahead, key: str) -> tuple[torch.Generator, Future]:
+    """Class ``key``'s generator and its :func:`~carvi_torch.pipeline.class_viewpoints`, on ``ahead``'s thread."""
+    generator = class_generator(setup.cfg, key)
+    return generator, ahead.submit(class_viewpoints, setup.loaded.collections[key], setup.cfg, setup.device,
+                                   generator, setup.gt)
+
+
+def _one_class(setup: RunSetup, writer: Writer, key: str, made: tuple[torch.Generator, Future] | None) -> None:
+    """Run class ``key`` (its viewpoints ``made`` ahead, or here) and book it; a class that fails (its viewpoints
+    ahead included) is booked with its reason and the run goes on."""
+    coll = setup.loaded.collections[key]
+    log.info(f"{key}: {len(coll)} objects")
+    try:
+        generator, early = (class_generator(setup.cfg, key), None) if made is None else (made[0], made[1].result())
+        rep = run_class(coll, setup.cfg, setup.out, setup.gt, setup.device, generator, writer, ahead=early)
+    except Exception as e:  # noqa: BLE001 - one broken class must not stop the others
+        rep = ClassReport(key, objects=len(coll), status="failed")
+        rep.skip(f"{type(e).__name__}: {e}", "class")
+        log.error(f"{key}: failed: {type(e).__name__}: {e}")
+        log.debug(traceback.format_exc())
+    book_class(setup, key, rep)

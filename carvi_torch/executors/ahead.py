@@ -1,0 +1,80 @@
+"""One class ahead: the next class's viewpoints made on a background thread while this class carves.
+
+The local executor runs the classes one after the other. With ``pipeline_classes`` a background
+thread makes class ``i + 1``'s :func:`~carvi_torch.pipeline.class_viewpoints` (SfM, the mixture of
+shapes, refinement, the canonical frame, the surrogate plan: hundreds of operations on small tensors
+that hold one core) while the run's thread carves, selects and hands class ``i`` to the writers
+(large operations, which release the GIL). That part reads and writes no file and draws only on the
+class's own generator (:func:`~carvi_torch.executors.common.class_generator`), so the outputs are the
+sequential run's; the rest of each class (the resume check, ``cameras.json``, the silhouettes, the
+carving) and its booking into ``summary.json`` stay on the run's thread, in class order. At most one
+class is made ahead: one class's viewpoints more in memory.
+
+Threads: with OpenMP (torch's CPU backend) the intra-op thread count is a per-thread setting, and a
+parallel operation splits its sums by it; the background thread sets the run's count for itself, so
+that every operation runs as it does in the sequential run (the solvers inside set one thread for
+themselves either way). Each Python thread gets its own team of intra-op threads.
+
+Example:
+    >>> ahead = Ahead(threads=1)
+    >>> ahead.submit(sum, [1, 2, 3]).result()
+    6
+    >>> ahead.close()
+"""
+from __future__ import annotations
+
+import queue
+import threading
+from concurrent.futures import Future
+from typing import Callable
+
+__all__ = ["Ahead"]
+
+
+class Ahead:
+    """A background thread that runs the calls submitted to it one at a time, in order.
+
+    A daemon thread: :meth:`close` with ``cancel`` (an error or Ctrl-C on its way out) cancels the
+    calls not started and abandons the one in progress, which must write nothing, instead of waiting
+    for it.
+    """
+
+    def __init__(self, threads: int):
+        self._calls: queue.SimpleQueue = queue.SimpleQueue()
+        self._futures: list[Future] = []
+        self._thread = threading.Thread(target=self._serve, args=(max(1, int(threads)),), name="carvi-class-ahead",
+                                        daemon=True)
+        self._thread.start()
+
+    def submit(self, fn: Callable, *args, **kwargs) -> Future:
+        """Run ``fn(*args, **kwargs)`` after the calls submitted before; its result (or exception) in the future."""
+        future: Future = Future()
+        self._futures = [f for f in self._futures if not f.done()] + [future]
+        self._calls.put((future, fn, args, kwargs))
+        return future
+
+    def _serve(self, threads: int) -> None:
+        import torch
+
+        torch.set_num_threads(threads)  # this thread's own count (OpenMP): the run's
+        while True:
+            call = self._calls.get()
+            if call is None:
+                return
+            future, fn, args, kwargs = call
+            del call
+            if future.set_running_or_notify_cancel():
+                try:
+                    future.set_result(fn(*args, **kwargs))
+                except BaseException as e:  # noqa: BLE001 - raised again by future.result(), in the run's thread
+                    future.set_exception(e)
+            del future, fn, args, kwargs  # the class's data is the caller's from here on
+
+    def close(self, cancel: bool = False) -> None:
+        """Stop the thread: once the submitted calls have run (joined), or with ``cancel`` at once."""
+        if cancel:
+            for f in self._futures:
+                f.cancel()
+        self._calls.put(None)
+        if not cancel:
+            self._thread.join()

@@ -1,0 +1,144 @@
+"""Pipelined classes (``pipeline_classes``, :mod:`carvi_torch.executors.ahead`): the next class's viewpoints made
+on a background thread while this class carves give the sequential run's files; a class whose viewpoints fail
+there fails alone, with the sequential run's reason; an interrupt does not wait for the thread, and the run
+resumes."""
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import carvi_torch.executors.local as L
+import carvi_torch.pipeline as P
+from carvi_torch.config import Config
+from carvi_torch.executors import run
+from conftest import PIPELINE_TINY
+
+#: Two classes of the embedded collection (6 objects each), written inline.
+CLASSES = ["car", "chair"]
+#: The mixture of shapes at a tiny size (as in test_pipeline's shape-group run): car splits into 2 groups.
+GROUPS = {"sfm_groups": 2, "sfm_group_min": 2, "sfm_group_misfit": 0, "sfm_group_hull_gain": -1, "sfm_max_outer": 40,
+          "sfm_group_rounds": 2}
+#: What differs between two runs of the same objects: timings, memory, where the input lies.
+UNTIMED = {"seconds", "total_seconds", "load_seconds", "peak_rss_mb", "peak_rss_workers_mb", "data", "gt"}
+
+
+def _cfg(out: Path, data: Path, **extra) -> Config:
+    return Config().override({**PIPELINE_TINY, "out": str(out), "data": str(data), "classes": CLASSES,
+                              "preview": False, **extra})
+
+
+def _untimed(x):
+    if isinstance(x, dict):
+        return {k: _untimed(v) for k, v in x.items() if k not in UNTIMED}
+    return [_untimed(v) for v in x] if isinstance(x, list) else x
+
+
+def _assert_same_outputs(a: Path, b: Path) -> int:
+    """Every file of the class folders the same (cameras.json and meshes byte for byte, every array of the
+    ``.npz`` files), and ``summary.json`` with its classes in the same order, timings aside; returns the files."""
+    sa, sb = (json.loads((d / "summary.json").read_text()) for d in (a, b))
+    assert list(sa["classes"]) == list(sb["classes"]) == CLASSES
+    assert _untimed(sa) == _untimed(sb)
+    files = sorted(p.relative_to(a) for c in CLASSES for p in (a / c).rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(b) for c in CLASSES for p in (b / c).rglob("*") if p.is_file())
+    for rel in files:
+        if rel.suffix == ".npz":
+            x, y = np.load(a / rel), np.load(b / rel)
+            assert x.files == y.files and all(np.array_equal(x[k], y[k]) for k in x.files), rel
+        else:
+            assert (a / rel).read_bytes() == (b / rel).read_bytes(), rel
+    return len(files)
+
+
+@pytest.mark.parametrize("extra", [{}, GROUPS], ids=["one_shape", "mixture"])
+def test_pipelined_classes_give_the_sequential_files(procedural_input, tmp_path, monkeypatch, extra):
+    """The chair's viewpoints are made on the background thread while the car carves (the car's carving waits
+    until they have started, so the overlap is certain), and every file is the sequential run's."""
+    data = procedural_input(tmp_path)
+    started, threads = threading.Event(), {}
+    make, carve = L.class_viewpoints, P._carve_chunks
+
+    def viewpoints(coll, *args, **kwargs):
+        threads[coll.meta.key] = threading.current_thread().name
+        if coll.meta.key == CLASSES[1]:
+            started.set()
+        return make(coll, *args, **kwargs)
+
+    def carve_waiting(plan, *args, **kwargs):
+        if plan.coll.meta.key == CLASSES[0]:
+            assert started.wait(60), "the next class's viewpoints did not start while this class carved"
+        return carve(plan, *args, **kwargs)
+
+    monkeypatch.setattr(L, "class_viewpoints", viewpoints)
+    monkeypatch.setattr(P, "_carve_chunks", carve_waiting)
+    piped = run(_cfg(tmp_path / "piped", data, **extra), workers=0)
+    monkeypatch.setattr(P, "_carve_chunks", carve)
+    assert set(threads) == set(CLASSES) and threading.main_thread().name not in threads.values()
+    sequential = run(_cfg(tmp_path / "sequential", data, pipeline_classes=False, **extra), workers=0)
+    assert set(threads) == set(CLASSES)  # the sequential run made its viewpoints in pipeline.prepare_class
+    assert all(piped["classes"][c]["reconstructed"] == sequential["classes"][c]["reconstructed"] == 6 for c in CLASSES)
+    if extra:
+        assert piped["classes"]["car"]["sfm_groups"]["groups"] == 2  # the mixture's paths ran
+    assert _assert_same_outputs(tmp_path / "piped", tmp_path / "sequential") >= 2 * (1 + 6 + 6)
+
+
+def test_a_class_whose_viewpoints_fail_ahead_fails_alone(procedural_input, tmp_path, monkeypatch):
+    """The car's viewpoints raise on the background thread: the car is failed with the one-line reason the
+    sequential run gives, the chair is reconstructed, the summary keeps class order."""
+    data = procedural_input(tmp_path)
+    where = []
+
+    def failing(make):
+        def viewpoints(coll, *args, **kwargs):
+            if coll.meta.key == "car":
+                where.append(threading.current_thread().name)
+                raise RuntimeError("simulated failure of the car's viewpoints")
+            return make(coll, *args, **kwargs)
+        return viewpoints
+
+    monkeypatch.setattr(L, "class_viewpoints", failing(L.class_viewpoints))
+    piped = run(_cfg(tmp_path / "piped", data), workers=0)
+    monkeypatch.setattr(P, "class_viewpoints", failing(P.class_viewpoints))
+    sequential = run(_cfg(tmp_path / "sequential", data, pipeline_classes=False, stage="cameras"), workers=0)
+    assert where[0] != threading.main_thread().name and where[1] == threading.main_thread().name
+    assert list(piped["classes"]) == CLASSES
+    car = piped["classes"]["car"]
+    assert car["status"] == "failed" and car["failures"] == [
+        {"annotation_id": None, "source": None, "stage": "class",
+         "reason": "RuntimeError: simulated failure of the car's viewpoints"}]
+    assert _untimed(car) == _untimed(sequential["classes"]["car"])
+    assert piped["classes"]["chair"]["status"] == "ok" and piped["classes"]["chair"]["reconstructed"] == 6
+
+
+def test_an_interrupt_does_not_wait_for_the_thread_and_the_run_resumes(procedural_input, tmp_path, monkeypatch):
+    """Ctrl-C while the car carves and the chair's viewpoints are still being made: the run stops at once
+    (the thread is abandoned, not joined: here it would wait for ever), nothing of the chair is written, and
+    a rerun reconstructs both classes."""
+    data = procedural_input(tmp_path)
+    release, returned = threading.Event(), threading.Event()
+    make, carve = L.class_viewpoints, P._carve_chunks
+
+    def slow_viewpoints(coll, *args, **kwargs):
+        if coll.meta.key == "chair":
+            release.wait(120)
+            returned.set()
+        return make(coll, *args, **kwargs)
+
+    def interrupted(plan, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(L, "class_viewpoints", slow_viewpoints)
+    monkeypatch.setattr(P, "_carve_chunks", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run(_cfg(tmp_path, data), workers=0)
+    assert not returned.is_set()  # run() came back while the chair's viewpoints were still on their way
+    release.set()
+    assert returned.wait(120)
+    assert not (tmp_path / "chair").exists()  # the thread writes nothing
+    monkeypatch.setattr(P, "_carve_chunks", carve)
+    again = run(_cfg(tmp_path, data), workers=0)["classes"]
+    assert all(again[c]["status"] == "ok" and again[c]["resumed"] + again[c]["reconstructed"] == 6 for c in CLASSES)
