@@ -30,10 +30,9 @@ and those it made better by over 2 degrees, and the classes a per-object choice 
 keep within their SfM medians at every seed (docs/viewpoints.md, *What separates a worse refined
 camera*).
 
-``key=value`` are reconstruct overrides (``sfm_groups=3``, ``viewpoints.frame=symmetry+up``). The
-JSON record goes to ``--out`` (under ``--key`` when given, the file's other keys kept); by default,
-for the default settings (no override, seed 0), under the key ``viewpoints_cad`` of
-``docs/data/viewpoints.json`` (the records of docs/viewpoints.md), else beside the run's cameras
+``key=value`` are reconstruct overrides (``sfm_groups=1``, ``viewpoints.frame=symmetry+up``). The
+JSON record goes to ``--out`` (under ``--key`` when given, the file's other keys kept; the records of
+docs/viewpoints.md are keys of ``docs/data/viewpoints.json``), by default beside the run's cameras
 (``<work>/cameras...json``).
 
 Needs ../shared/data/pascal3d_cad (the PASCAL3D+ CAD models, Xiang et al. 2014).
@@ -344,9 +343,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quiet", action="store_true", help="no render progress bar")
     ap.add_argument("--cad", default=str(ROOT / ".." / "shared" / "data" / "pascal3d_cad"))
     ap.add_argument("--work", default=str(ROOT / "outputs" / "viewpoints_cad"), help="renders and cameras go here")
-    ap.add_argument("--out", default=None, help="JSON record (default: key viewpoints_cad of "
-                                                "docs/data/viewpoints.json for the default settings, else beside "
-                                                "the cameras in --work)")
+    ap.add_argument("--out", default=None, help="JSON record (default: beside the cameras in --work)")
     ap.add_argument("--key", default=None, help="write the record under this key of --out's JSON object, its other "
                                                 "keys kept (e.g. --out docs/data/viewpoints.json --key "
                                                 "viewpoints_cad8)")
@@ -360,10 +357,7 @@ def main(argv=None) -> int:
     runs = [_run(args, seed, args.overrides) for seed in args.seed]
     refined = [_run(args, seed, [*args.overrides, "refine_keep=refined"]) for seed in args.seed] \
         if args.refined_too else None
-    default = not args.overrides and args.seed == [0] and args.cameras == "photo"
-    out, key = ((Path(args.out), args.key) if args.out else (ROOT / "docs" / "data" / "viewpoints.json",
-                                                             args.key or "viewpoints_cad") if default
-                else (runs[0]["recon"].with_suffix(".json"), args.key))
+    out, key = (Path(args.out), args.key) if args.out else (runs[0]["recon"].with_suffix(".json"), args.key)
     record = {"command": " ".join(shlex.quote(a) for a in ["python", "tools/viewpoints_cad.py",
                                                            *(argv if argv is not None else sys.argv[1:])]),
               "views": args.views, "cameras": args.cameras}
