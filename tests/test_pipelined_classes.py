@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 import carvi_torch.executors.local as L
 import carvi_torch.pipeline as P
@@ -59,11 +60,12 @@ def test_pipelined_classes_give_the_sequential_files(procedural_input, tmp_path,
     """The chair's viewpoints are made on the background thread while the car carves (the car's carving waits
     until they have started, so the overlap is certain), and every file is the sequential run's."""
     data = procedural_input(tmp_path)
-    started, threads = threading.Event(), {}
+    started, threads, counts = threading.Event(), {}, {}
     make, carve = L.class_viewpoints, P._carve_chunks
 
     def viewpoints(coll, *args, **kwargs):
         threads[coll.meta.key] = threading.current_thread().name
+        counts[coll.meta.key] = torch.get_num_threads()
         if coll.meta.key == CLASSES[1]:
             started.set()
         return make(coll, *args, **kwargs)
@@ -78,8 +80,10 @@ def test_pipelined_classes_give_the_sequential_files(procedural_input, tmp_path,
     piped = run(_cfg(tmp_path / "piped", data, **extra), workers=0)
     monkeypatch.setattr(P, "_carve_chunks", carve)
     assert set(threads) == set(CLASSES) and threading.main_thread().name not in threads.values()
+    assert set(counts.values()) == {piped["torch_threads"]}  # the thread runs the run's intra-op count
+    threads.clear()
     sequential = run(_cfg(tmp_path / "sequential", data, pipeline_classes=False, **extra), workers=0)
-    assert set(threads) == set(CLASSES)  # the sequential run made its viewpoints in pipeline.prepare_class
+    assert threads == {}  # the sequential run made its viewpoints in pipeline.prepare_class, on this thread
     assert all(piped["classes"][c]["reconstructed"] == sequential["classes"][c]["reconstructed"] == 6 for c in CLASSES)
     if extra:
         assert piped["classes"]["car"]["sfm_groups"]["groups"] == 2  # the mixture's paths ran
@@ -115,9 +119,9 @@ def test_a_class_whose_viewpoints_fail_ahead_fails_alone(procedural_input, tmp_p
 
 
 def test_an_interrupt_does_not_wait_for_the_thread_and_the_run_resumes(procedural_input, tmp_path, monkeypatch):
-    """Ctrl-C while the car carves and the chair's viewpoints are still being made: the run stops at once
-    (the thread is abandoned, not joined: here it would wait for ever), nothing of the chair is written, and
-    a rerun reconstructs both classes."""
+    """Ctrl-C while the car carves and the chair's viewpoints are still being made: ``run`` returns at once
+    (it does not join the thread: here it would wait for ever), the thread, once done, has written nothing of
+    the chair, and a rerun reconstructs both classes."""
     data = procedural_input(tmp_path)
     release, returned = threading.Event(), threading.Event()
     make, carve = L.class_viewpoints, P._carve_chunks
@@ -142,3 +146,41 @@ def test_an_interrupt_does_not_wait_for_the_thread_and_the_run_resumes(procedura
     monkeypatch.setattr(P, "_carve_chunks", carve)
     again = run(_cfg(tmp_path, data), workers=0)["classes"]
     assert all(again[c]["status"] == "ok" and again[c]["resumed"] + again[c]["reconstructed"] == 6 for c in CLASSES)
+
+
+#: A run interrupted while the background thread is inside torch operations (``sys.argv[1]``: out).
+INTERRUPTED_RUN = """
+import sys, time, torch
+import carvi_torch.executors.local as L, carvi_torch.pipeline as P
+from carvi_torch.config import Config
+from carvi_torch.executors import run
+def busy(coll, *args, **kwargs):  # the chair's viewpoints: torch work still running when the run leaves
+    if coll.meta.key == "chair":
+        end, x = time.monotonic() + 1.5, torch.randn(300, 300)
+        while time.monotonic() < end:
+            x = torch.tanh(x @ x.T / 300)
+    return make(coll, *args, **kwargs)
+def interrupted(*args, **kwargs):
+    raise KeyboardInterrupt
+make, L.class_viewpoints, P._carve_chunks = L.class_viewpoints, busy, interrupted
+cfg = Config().override({"out": sys.argv[1], "procedural_instances": 6, "canvas_size": 64, "resolution": 20,
+                         "proposals": 4, "progress": False, "preview": False, "report": False,
+                         "classes": ["car", "chair"]})
+try:
+    run(cfg, workers=0)
+except KeyboardInterrupt:
+    print("interrupted", flush=True)
+    sys.exit(130)
+"""
+
+
+def test_an_interrupted_process_exits_with_its_status(tmp_path):
+    """The process exits with the interrupt's status (130) once the background thread's operations end,
+    instead of being aborted by the interpreter stopping that thread inside torch at exit."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", INTERRUPTED_RUN, str(tmp_path / "out")], capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 130, done.stderr[-2000:]
+    assert done.stdout.strip() == "interrupted" and "terminate called" not in done.stderr

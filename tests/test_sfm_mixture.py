@@ -775,3 +775,20 @@ def test_pipeline_says_where_each_camera_came_from(groups):
     cams = cameras_json(coll, vp, None, None)["cameras"]
     assert [cams[str(a)]["camera_from"] for a in aid[:3]] == ["silhouette", "mean_shape", "sfm"]
     assert cams[str(aid[0])]["sfm"] is None and cams[str(aid[0])]["refined"] is not None
+
+
+def test_a_class_under_the_misfit_gate_gets_the_one_shape_cameras_bit_for_bit():
+    """The default ``sfm_groups=3`` on a class of one proportion (32 objects, enough for two groups): the
+    one-shape residual is under the gate, no split is tried, and every camera, the mean shape and the SfM
+    cameras equal those of ``sfm_groups=1`` exactly."""
+    from carvi_torch.config import Config
+
+    coll, _R, _truth = _two_shape_class(sizes=(16, 16), seed=2, same_shape=True)
+    base = {"progress": False, "sfm_max_outer": 40, "refine_iters": 30}
+    default = estimate_viewpoints(coll, Config().override(base).viewpoints)
+    one = estimate_viewpoints(coll, Config().override({**base, "sfm_groups": 1}).viewpoints)
+    assert Config().viewpoints.sfm_groups == 3 and default.groups.k == 1 and default.groups.candidates == []
+    assert default.groups.misfit < GATE["min_misfit"] and "fits the keypoints" in default.groups.note
+    for a, b in ((default.cameras, one.cameras), (default.sfm_cameras, one.sfm_cameras)):
+        assert torch.equal(a.R, b.R) and torch.equal(a.s, b.s) and torch.equal(a.t, b.t)
+    assert torch.equal(default.shape, one.shape)

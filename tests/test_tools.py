@@ -121,6 +121,25 @@ def test_docs_data_holds_few_records_each_named_by_a_page():
     assert files <= linked, sorted(files - linked)
 
 
+def test_many_class_cpu_clock_runs_keep_classes_sequential(tmp_path: Path):
+    """``--cpu-clock`` runs the classes one after the other (a process's CPU time cannot be split between two
+    threads' stages) where the compared code knows ``pipeline_classes``; wall-clock runs keep its default."""
+    import argparse
+
+    bench = load_tool("benchmark", "benchmark_tool")
+    old = tmp_path / "old" / "carvi_torch"
+    old.mkdir(parents=True)
+    (old / "config.py").write_text("    report: bool = True\n")  # a checkout before pipeline_classes
+    args = argparse.Namespace(device="cpu", set=["viewpoints.sfm_groups=1"], cpu_clock=True)
+    cmd = bench.many_command(Path("d.json"), Path("o"), args, ["x=1"], None)
+    assert cmd[1:3] == ["-c", bench.CPU_CLOCK] and cmd[-1] == "pipeline_classes=false"
+    assert "viewpoints.sfm_groups=1" in cmd and "x=1" in cmd
+    assert "pipeline_classes=false" not in bench.many_command(Path("d.json"), Path("o"), args, [], str(old.parent))
+    args.cpu_clock = False
+    wall = bench.many_command(Path("d.json"), Path("o"), args, [], None)
+    assert wall[1:3] == ["-m", "carvi_torch.reconstruct"] and "pipeline_classes=false" not in wall
+
+
 def test_many_class_helpers_split_classes_and_fit_fixed_costs(tmp_path: Path):
     """The many-class benchmark's procedural stand-in splits each category round-robin into renamed classes
     with the same metadata; its fixed cost per class is the intercept of a least-squares line (numpy's polyfit)."""

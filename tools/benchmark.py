@@ -73,7 +73,9 @@ every class, the variants interleaved (``--compare-with DIR``: another checkout'
 ``seconds = fixed + per_object * objects`` fitted across the classes: its intercept is the fixed
 cost per class. Prints whole-process time, objects per second, peak memory and those costs, and
 the ratios new / old and new / alt measured in the same invocation. ``--cpu-clock``: the runs' stage
-timers read their process's CPU time instead of the wall clock (a busy host's waits left out).
+timers read their process's CPU time instead of the wall clock (a busy host's waits left out); its
+runs keep their classes one after the other (``pipeline_classes=false``: the process's CPU time cannot
+be split between two threads' stages).
 """
 from __future__ import annotations
 
@@ -417,20 +419,33 @@ CPU_CLOCK = ("import runpy, sys, time; time.perf_counter = time.process_time; sy
              "runpy.run_module('carvi_torch.reconstruct', run_name='__main__')")
 
 
+def _knows_setting(pythonpath: str | None, line: str) -> bool:
+    """Whether the code at ``pythonpath`` (``None``: this checkout) declares a setting (its ``config.py`` line)."""
+    config = Path(pythonpath) / "carvi_torch" / "config.py" if pythonpath else ROOT / "carvi_torch" / "config.py"
+    return line in config.read_text()
+
+
 def _knows_report(pythonpath: str | None) -> bool:
     """Whether the code at ``pythonpath`` (``None``: this checkout) has the ``report`` setting."""
-    config = Path(pythonpath) / "carvi_torch" / "config.py" if pythonpath else ROOT / "carvi_torch" / "config.py"
-    return "    report: bool" in config.read_text()
+    return _knows_setting(pythonpath, "    report: bool")
 
 
-def run_many(data: Path, out: Path, args, name: str, sets: list[str], pythonpath: str | None) -> dict:
-    """One whole run of every class of ``data`` (a child process); its totals and per-class costs."""
+def many_command(data: Path, out: Path, args, sets: list[str], pythonpath: str | None) -> list[str]:
+    """The ``reconstruct`` command line of one many-class run of the code at ``pythonpath``."""
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(data), "--out", str(out),
            "progress=false", "preview=false", "overwrite=true", f"device={args.device}", *args.set, *sets]
     if args.cpu_clock:  # the same module run with its stage timers on the process's CPU time
         cmd[1:3] = ["-c", CPU_CLOCK]
     if _knows_report(pythonpath):  # no HTML report (a checkout compared with may predate the setting)
         cmd.append("report=false")
+    if args.cpu_clock and _knows_setting(pythonpath, "    pipeline_classes: bool"):
+        cmd.append("pipeline_classes=false")  # the process's CPU time cannot be split between two threads' stages
+    return cmd
+
+
+def run_many(data: Path, out: Path, args, name: str, sets: list[str], pythonpath: str | None) -> dict:
+    """One whole run of every class of ``data`` (a child process); its totals and per-class costs."""
+    cmd = many_command(data, out, args, sets, pythonpath)
     env = dict(os.environ)
     env["PYTHONPATH"] = pythonpath or str(ROOT)
     if args.threads:
@@ -1039,7 +1054,8 @@ def main(argv=None):
                     help="--many-classes: also run this checkout with these overrides (alt); report new / alt")
     ap.add_argument("--rounds", type=int, default=1, help="--many-classes: runs of each variant (best of)")
     ap.add_argument("--cpu-clock", action="store_true",
-                    help="--many-classes: stage timers (and total_seconds) on the run's CPU time, not the wall clock")
+                    help="--many-classes: stage timers (and total_seconds) on the run's CPU time, not the wall clock "
+                         "(classes one after the other)")
     ap.add_argument("--out", default=None, help="JSON path (default: docs/data/benchmarks.json, under --key; "
                                                 "with --executor ray docs/data/ray_scaling_<objects>.json)")
     ap.add_argument("--key", default=None, help="write the record under this key of --out's JSON object, its other "

@@ -655,16 +655,18 @@ def _misses_per_model(rows: dict, model: dict) -> dict:
 
 def misses(args) -> int:
     """Where the viewpoint misses come from: per class of each rendered set (``--data``), the final cameras against
-    the true cameras put in the SfM frame and refined with the same energy, and the mirrors of the final cameras."""
+    the true cameras put in the SfM frame and refined with the same energy, and the mirrors of the final cameras;
+    one mean shape per class (``sfm_groups=1``), under which every camera is scored."""
     import torch
 
     from carvi_torch.config import ViewpointConfig
     from carvi_torch.io.coco import load_coco
 
     torch.set_num_threads(1)
-    cfg = ViewpointConfig()
+    cfg = ViewpointConfig(sfm_groups=1)  # the study is of one mean shape per class: every camera scored under it
     wanted = set(args.classes.split(",")) if args.classes else None
-    record = {"command": _command(), "note": "per CAD model: errors [min, median, max] in degrees after the class's "
+    record = {"command": _command(), "viewpoints": {"sfm_groups": cfg.sfm_groups},
+              "note": "per CAD model: errors [min, median, max] in degrees after the class's "
               "fitted rotation; energy, hull (IoU of mask and projected hull of the mean shape), keypoint_rms (over "
               "the box diagonal): medians; cameras: final, true (the true camera in the SfM frame), true_refined "
               "(refined from it), mirror (the final camera's depth-reversed mirror through the symmetry plane)",
@@ -960,6 +962,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", help="the JSON record (default outputs/studies/studies_misses.json)")
     p.add_argument("--key", help="write the record under this key of --out's JSON object, its other keys kept")
     args = ap.parse_args(argv)
+    if args.study == "ranking" and args.key and not args.out:
+        ap.error("ranking: --key names a key of --out's records file; give --out too")
     return {"misses": misses, "frames": frames, "canonical": canonical, "ranking": ranking, "threshold": threshold,
             "viewpoints": viewpoints, "clusters": clusters, "step": step}[args.study](args)
 

@@ -1,6 +1,6 @@
 """One class ahead: the next class's viewpoints made on a background thread while this class carves.
 
-The local executor runs the classes one after the other. With ``pipeline_classes`` a background
+The local executor runs the classes one after the other. With ``pipeline_classes`` (on the CPU) a background
 thread makes class ``i + 1``'s :func:`~carvi_torch.pipeline.class_viewpoints` (SfM, the mixture of
 shapes, refinement, the canonical frame, the surrogate plan: hundreds of operations on small tensors
 that hold one core) while the run's thread carves, selects and hands class ``i`` to the writers
@@ -34,16 +34,16 @@ __all__ = ["Ahead"]
 class Ahead:
     """A background thread that runs the calls submitted to it one at a time, in order.
 
-    A daemon thread: :meth:`close` with ``cancel`` (an error or Ctrl-C on its way out) cancels the
-    calls not started and abandons the one in progress, which must write nothing, instead of waiting
-    for it.
+    :meth:`close` with ``cancel`` (an error or Ctrl-C on its way out) cancels the calls not started and
+    returns at once; the call in progress, which writes nothing, runs to its end on the thread. The
+    thread is not a daemon: the interpreter waits for it at exit (a daemon thread stopped inside a
+    torch operation at exit aborts the process instead of letting it exit with its status).
     """
 
     def __init__(self, threads: int):
         self._calls: queue.SimpleQueue = queue.SimpleQueue()
         self._futures: list[Future] = []
-        self._thread = threading.Thread(target=self._serve, args=(max(1, int(threads)),), name="carvi-class-ahead",
-                                        daemon=True)
+        self._thread = threading.Thread(target=self._serve, args=(max(1, int(threads)),), name="carvi-class-ahead")
         self._thread.start()
 
     def submit(self, fn: Callable, *args, **kwargs) -> Future:

@@ -54,11 +54,13 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
 
 
 def _classes(setup: RunSetup, writer: Writer) -> None:
-    """The classes in name order; with ``pipeline_classes`` each class's viewpoints are made ahead, on a
-    background thread, while the class before it carves (:mod:`~carvi_torch.executors.ahead`)."""
+    """The classes in name order; with ``pipeline_classes`` on the CPU each class's viewpoints are made ahead,
+    on a background thread, while the class before it carves (:mod:`~carvi_torch.executors.ahead`)."""
     cfg = setup.cfg
     keys = sorted(setup.loaded.collections)
-    ahead = Ahead(torch.get_num_threads()) if cfg.pipeline_classes and len(keys) > 1 else None
+    # on the CPU only: on a GPU both threads would share one stream and the free memory that sizes the chunks
+    ahead = Ahead(torch.get_num_threads()) if cfg.pipeline_classes and len(keys) > 1 and setup.device.type == "cpu" \
+        else None
     try:
         made = [_make_ahead(setup, ahead, keys[0])] if ahead is not None else []
         for i, key in enumerate(keys):
