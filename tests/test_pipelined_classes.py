@@ -119,12 +119,14 @@ def test_a_class_whose_viewpoints_fail_ahead_fails_alone(procedural_input, tmp_p
 
 
 def test_an_interrupt_does_not_wait_for_the_thread_and_the_run_resumes(procedural_input, tmp_path, monkeypatch):
-    """Ctrl-C while the car carves and the chair's viewpoints are still being made: ``run`` returns at once
-    (it does not join the thread: here it would wait for ever), the thread, once done, has written nothing of
-    the chair, and a rerun reconstructs both classes."""
+    """Ctrl-C while the car carves its second chunk (its first 4 objects written) and the chair's viewpoints are
+    still being made: ``run`` returns at once (it does not join the thread: here it would wait for ever), the
+    thread, once done, has written nothing of the chair, and a rerun resumes the car's 4 objects and
+    reconstructs the rest."""
     data = procedural_input(tmp_path)
-    release, returned = threading.Event(), threading.Event()
-    make, carve = L.class_viewpoints, P._carve_chunks
+    release, returned, chunks = threading.Event(), threading.Event(), []
+    make, carve = L.class_viewpoints, P.carve_and_select
+    assert P.CPU_CHUNK_OBJECTS == 4  # the car's 6 objects are carved in two chunks
 
     def slow_viewpoints(coll, *args, **kwargs):
         if coll.meta.key == "chair":
@@ -132,20 +134,24 @@ def test_an_interrupt_does_not_wait_for_the_thread_and_the_run_resumes(procedura
             returned.set()
         return make(coll, *args, **kwargs)
 
-    def interrupted(plan, *args, **kwargs):
-        raise KeyboardInterrupt
+    def interrupted(ids, plan, *args, **kwargs):
+        chunks.append(plan.coll.meta.key)
+        if len(chunks) == 2:
+            raise KeyboardInterrupt
+        return carve(ids, plan, *args, **kwargs)
 
     monkeypatch.setattr(L, "class_viewpoints", slow_viewpoints)
-    monkeypatch.setattr(P, "_carve_chunks", interrupted)
+    monkeypatch.setattr(P, "carve_and_select", interrupted)
     with pytest.raises(KeyboardInterrupt):
         run(_cfg(tmp_path, data), workers=0)
-    assert not returned.is_set()  # run() came back while the chair's viewpoints were still on their way
+    assert chunks == ["car", "car"] and not returned.is_set()  # run() came back while the chair's were on their way
     release.set()
     assert returned.wait(120)
     assert not (tmp_path / "chair").exists()  # the thread writes nothing
-    monkeypatch.setattr(P, "_carve_chunks", carve)
+    monkeypatch.setattr(P, "carve_and_select", carve)
     again = run(_cfg(tmp_path, data), workers=0)["classes"]
-    assert all(again[c]["status"] == "ok" and again[c]["resumed"] + again[c]["reconstructed"] == 6 for c in CLASSES)
+    assert [(again[c]["status"], again[c]["resumed"], again[c]["reconstructed"]) for c in CLASSES] == [
+        ("ok", 4, 2), ("ok", 0, 6)]
 
 
 #: A run interrupted while the background thread is inside torch operations (``sys.argv[1]``: out).
