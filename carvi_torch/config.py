@@ -110,8 +110,8 @@ class ViewpointConfig:
     proportions is split into groups, each with its own SfM shape, in one class frame, when one shape
     misfits it (``sfm_group_misfit``) and the split passes ``sfm_group_gain``, ``sfm_group_agreement_deg``
     and ``sfm_group_hull_gain``; every other class keeps one shape, bit for bit. 1 = one mean shape per
-    class, as in the paper (on the 8-view CAD renders sofa 10.9 against 8.9 degrees, shapes 5.51 against
-    5.38%; docs/viewpoints.md)."""
+    class, as in the paper (on the 8-view CAD renders sofa 10.9 against 8.9 degrees, docs/viewpoints.md;
+    shapes 5.51 against 5.38%, docs/results.md)."""
     sfm_group_misfit: float = 0.03
     """The mixture is only fitted when the one-shape SfM misfits the class: the median over the objects of
     the keypoint RMS residual over the diagonal of the mask's box is at least this (0 = always fit)."""

@@ -45,8 +45,8 @@ JSON records to ``outputs/studies/studies_<name>.json``, or with ``--out FILE --
 Example:
     python tools/studies.py frames
     python tools/studies.py ranking --jobs 2
-    python tools/studies.py ranking --bench outputs/final_t2/seed0 --views-per-model 2 --figures outputs/ranking_cad8 \\
-        --record ranking_cad8_seed0
+    python tools/studies.py ranking --bench outputs/final_t2_one/seed0 --views-per-model 2 \\
+        --figures outputs/ranking_cad8 --record ranking_cad8_seed0
     python tools/studies.py threshold --classes aeroplane,car,chair,sofa
     python tools/studies.py viewpoints
     python tools/studies.py clusters
