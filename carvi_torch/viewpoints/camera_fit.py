@@ -420,12 +420,16 @@ def _retract(R, s, t, delta):
 def _optimize(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale=None):
     """Levenberg-Marquardt over ``(N, B)`` cameras; see the module docstring.
 
-    Runs single-threaded on the CPU (:func:`cpu_single_thread`).
+    Runs single-threaded on the CPU (:func:`cpu_single_thread`), and without a silhouette term
+    (``maps`` None: nothing needs autograd) under ``torch.inference_mode`` (the same kernels, less
+    dispatch per tensor op); the results are then cloned into ordinary tensors.
 
     Returns ``R, s, t, E_before, E, E_kp, E_sil, iterations, converged (N, B)``.
     """
-    with cpu_single_thread(keypoints.device):
-        return _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale)
+    plain = maps is None
+    with cpu_single_thread(keypoints.device), torch.inference_mode(plain):
+        out = _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale)
+    return tuple(x.clone() if plain and isinstance(x, torch.Tensor) else x for x in out)
 
 
 #: The optimiser works on a shrinking set of rows: once at most this fraction of the rows it

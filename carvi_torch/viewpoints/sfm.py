@@ -1133,10 +1133,13 @@ def _fit_step(data: _Data, opts: SfMOptions, flip_pairs, init_shape, generator) 
         if planar is None:
             planar = False  # a warm start continues the rigid model: the planar one is not fitted
         S_init = _warm_start(init_shape, data.kp.shape[1], cols, dev)
-    with cpu_single_thread(dev):
+    # no autograd anywhere in the fit: inference mode runs the same kernels with less dispatch per tensor
+    # op; its results are cloned into ordinary tensors
+    with cpu_single_thread(dev), torch.inference_mode():
         fit = _fit(Wv, vv, planar, opts.planar_margin, opts.polish_iters, mirrors=layout,
                    tie_deg=opts.mirror_tie_deg, S_init=S_init, max_outer=opts.max_outer, inner=opts.inner,
                    tol=opts.tol, reg=opts.regularization, generator=generator)
+    fit.M, fit.t, fit.S = fit.M.clone(), fit.t.clone(), fit.S.clone()
     _fit_problems(opts, fit.mirrors, fit.converged, fit.history, data.problems)
     return fit
 
