@@ -422,12 +422,12 @@ def _optimize(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rsc
     """Levenberg-Marquardt over ``(N, B)`` cameras; see the module docstring.
 
     Runs single-threaded on the CPU (:func:`cpu_single_thread`), and without a silhouette term
-    (``maps`` None: nothing needs autograd) under ``torch.inference_mode`` (the same kernels, less
-    dispatch per tensor op); the results are then cloned into ordinary tensors.
+    (``maps`` None or ``lam`` 0 everywhere: nothing needs autograd) under ``torch.inference_mode``
+    (the same kernels, less dispatch per tensor op); the results are then cloned into ordinary tensors.
 
     Returns ``R, s, t, E_before, E, E_kp, E_sil, iterations, converged (N, B)``.
     """
-    plain = maps is None
+    plain = maps is None or not bool((lam > 0).any())
     with cpu_single_thread(keypoints.device), torch.inference_mode(plain):
         out = _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale)
     return tuple(x.clone() if plain and isinstance(x, torch.Tensor) else x for x in out)
