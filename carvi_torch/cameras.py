@@ -115,7 +115,7 @@ def scaled_stiefel(M: torch.Tensor) -> torch.Tensor:
                 [0., 3., 0.]])
     """
     A = M @ M.transpose(-1, -2)
-    a, b, d = A[..., 0, 0], A[..., 0, 1], A[..., 1, 1]
+    a, b, _, d = A.flatten(-2).unbind(-1)  # one view op instead of three indexings
     tr = a + d
     delta = (a * d - b * b).clamp(min=0).sqrt()
     ok = delta > 1e-10 * tr

@@ -1,6 +1,7 @@
 """Tests for carvi_torch.viewpoints.sfm: rigid factorisation with missing data, reflection, planar sets."""
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 
@@ -12,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from conftest import render_cad_class
 from carvi_torch.cameras import ScaledOrthographic, nearest_scaled_rotation, random_rotations, rotation_about_axis
+from carvi_torch.viewpoints.camera_fit import refine_cameras
 from carvi_torch.viewpoints.sfm import (
     SfMResult,
     keypoint_end,
@@ -338,6 +340,29 @@ def test_rigid_subset_and_triangulated_rest():
     # keypoints 8..10 were triangulated: the whole shape matches the truth up to similarity
     _, _, disp = procrustes(d["S"][:11].numpy(), res.shape[:11].double().numpy())
     assert disp < 1e-8
+
+
+def test_fit_under_inference_mode_gives_ordinary_tensors_equal_to_a_grad_mode_fit(monkeypatch):
+    """The factorisation, the bundle polish and keypoint-only camera fits run under inference mode (less
+    dispatch per tensor op). Their results must be ordinary tensors (later code writes into them and
+    differentiates through them) and the same bit for bit as the fit with inference mode off."""
+    d = make_class(3, n=60, k=10, missing=0.3, noise=1.0)
+    res = rigid_sfm(d["kp"], d["vis"])
+
+    def parts(r):
+        f = refine_cameras(r.shape, r.cameras, d["kp"], d["vis"], None, max_iters=5)
+        return [r.shape, r.cameras.R, r.cameras.s, r.cameras.t, r.residual, f.cameras.R, f.energy_after]
+
+    outs = parts(res)
+    assert not any(x.is_inference() for x in outs)
+    res.cameras.t[0] += 0.0  # an in-place write outside inference mode raises on an inference tensor
+    S = res.shape.clone().requires_grad_(True)
+    (S * res.cameras.s[:1]).sum().backward()
+    assert S.grad is not None
+    monkeypatch.setattr(torch, "inference_mode", lambda mode=True: contextlib.nullcontext())
+    res2 = rigid_sfm(d["kp"], d["vis"])
+    assert all(torch.equal(a, b) for a, b in zip(outs, parts(res2)))
+    assert res.history == res2.history and len(res.history) > 2
 
 
 def test_triangulate_known_points(generator):

@@ -331,13 +331,14 @@ def _terms(R, s, t, S, kmask, kp, wv, maps, lam, rscale=None):
         E_sil = torch.zeros_like(E_kp)
         gradD = None
     # Jacobian dp/d(omega, sigma, tau): (N, B, K, 2, 6)
-    Y0, Y1, Y2 = Y[..., 0], Y[..., 1], Y[..., 2]
+    Y0, Y1, Y2 = Y.unbind(-1)
     z = torch.zeros_like(Y0)
     o = torch.ones_like(Y0)
     sc = s[..., None]
-    Q = P - t[..., None, :]
-    row_x = torch.stack([z, sc * Y2, -sc * Y1, Q[..., 0], o, z], dim=-1)
-    row_y = torch.stack([-sc * Y2, z, sc * Y0, Q[..., 1], z, o], dim=-1)
+    nsc = -sc
+    Q0, Q1 = (P - t[..., None, :]).unbind(-1)
+    row_x = torch.stack([z, sc * Y2, nsc * Y1, Q0, o, z], dim=-1)
+    row_y = torch.stack([nsc * Y2, z, sc * Y0, Q1, z, o], dim=-1)
     J = torch.stack([row_x, row_y], dim=-2)
     g = torch.einsum("nbkr,nbkrj->nbj", gP, J)
     H = 2.0 * torch.einsum("nk,nbkri,nbkrj->nbij", wv, J, J)
@@ -420,12 +421,16 @@ def _retract(R, s, t, delta):
 def _optimize(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale=None):
     """Levenberg-Marquardt over ``(N, B)`` cameras; see the module docstring.
 
-    Runs single-threaded on the CPU (:func:`cpu_single_thread`).
+    Runs single-threaded on the CPU (:func:`cpu_single_thread`), and without a silhouette term
+    (``maps`` None or ``lam`` 0 everywhere: nothing needs autograd) under ``torch.inference_mode``
+    (the same kernels, less dispatch per tensor op); the results are then cloned into ordinary tensors.
 
     Returns ``R, s, t, E_before, E, E_kp, E_sil, iterations, converged (N, B)``.
     """
-    with cpu_single_thread(keypoints.device):
-        return _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale)
+    plain = maps is None or not bool((lam > 0).any())
+    with cpu_single_thread(keypoints.device), torch.inference_mode(plain):
+        out = _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale)
+    return tuple(x.clone() if plain and isinstance(x, torch.Tensor) else x for x in out)
 
 
 #: The optimiser works on a shrinking set of rows: once at most this fraction of the rows it

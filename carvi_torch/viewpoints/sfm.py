@@ -293,19 +293,22 @@ def outside_main_component(seen: torch.Tensor) -> tuple[torch.Tensor, torch.Tens
     return has_i & (li != main), has_k & (lk != main)
 
 
-def _visible_translation(M: torch.Tensor, S: torch.Tensor, W: torch.Tensor, vis: torch.Tensor):
+def _visible_translation(M: torch.Tensor, S: torch.Tensor, W: torch.Tensor, vis: torch.Tensor,
+                         counts: torch.Tensor | None = None):
     """Least-squares translation and residual on visible entries.
 
     Args:
         M: ``(N, 2, 3)``; S: ``(3, K)``; W: ``(N, 2, K)``; vis: ``(N, K)`` float (0/1).
+        counts: ``(N, 1)`` ``vis.sum(-1).clamp(min=1)[:, None]`` when already computed (loops).
 
     Returns:
         ``t (N, 2)`` and the per-instance sum of squared visible residuals ``(N,)``.
     """
-    P = M @ S  # (N, 2, K)
-    cnt = vis.sum(-1).clamp(min=1.0)
-    t = ((W - P) * vis[:, None]).sum(-1) / cnt[:, None]
-    r = ((W - P - t[..., None]) * vis[:, None]).pow(2).sum((1, 2))
+    D = W - M @ S  # (N, 2, K)
+    v = vis[:, None]
+    cnt = vis.sum(-1).clamp(min=1.0)[:, None] if counts is None else counts
+    t = (D * v).sum(-1) / cnt
+    r = ((D - t[..., None]) * v).pow(2).sum((1, 2))
     return t, r
 
 
@@ -397,6 +400,23 @@ def _planar_gauge(A: torch.Tensor) -> torch.Tensor:
     return H / torch.det(H).abs().sqrt()
 
 
+def _power_steps(Wc, S, eye, project, inner: int, reg: float, rank: int):
+    """Step 3 of the alternation: ``inner`` power-factorisation steps on the centred filled matrix
+    ``Wc (N, 2, K)`` from ``S (rank, K)``; returns the new ``S`` and the last blocks ``M (N, 2, rank)``.
+
+    The Tikhonov weights are host floats: the same double arithmetic as on 0-dim tensors, fewer
+    tensor ops per step."""
+    Mi = None
+    for _ in range(inner):
+        A = S @ S.T
+        lam = reg * float(A.diagonal().sum()) / rank + 1e-300
+        Mi = project(Wc @ S.T @ torch.linalg.inv(A + lam * eye))
+        B = torch.einsum("nri,nrj->ij", Mi, Mi)
+        lamS = reg * float(B.diagonal().sum()) / rank + 1e-300
+        S = torch.linalg.solve(B + lamS * eye, torch.einsum("nri,nrk->ik", Mi, Wc))
+    return S, Mi
+
+
 def _factorize(W, vis, *, rank, max_outer, inner, tol, reg, generator, S_init=None):
     """Marques-Costeira alternation on ``W (N, 2, K)`` float64 with ``vis (N, K)`` float 0/1.
 
@@ -436,16 +456,12 @@ def _factorize(W, vis, *, rank, max_outer, inner, tol, reg, generator, S_init=No
     converged = False
     it = 0
     idx = torch.arange(n, device=dev)
+    # loop invariants, computed once (the same values the loop used to recompute)
+    counts, known, entries = cnt[:, None], v2 > 0, (2 * vis.sum()).clamp(min=1)
     for it in range(1, max_outer + 1):
         t = Wf.mean(-1)
         Wc = Wf - t[..., None]
-        for _ in range(inner):
-            A = S @ S.T
-            lam = reg * A.diagonal().sum() / rank + 1e-300
-            Mi = project(Wc @ S.T @ torch.linalg.inv(A + lam * eye))
-            B = torch.einsum("nri,nrj->ij", Mi, Mi)
-            lamS = reg * B.diagonal().sum() / rank + 1e-300
-            S = torch.linalg.solve(B + lamS * eye, torch.einsum("nri,nrk->ik", Mi, Wc))
+        S, Mi = _power_steps(Wc, S, eye, project, inner, reg, rank)
         # per-instance safeguard: best of the candidate blocks on the visible entries
         cands = [Mi, project(_resect(S, W, vis, Mi, reg))]
         if rank == 3:
@@ -454,13 +470,13 @@ def _factorize(W, vis, *, rank, max_outer, inner, tol, reg, generator, S_init=No
             cands.append(Mi @ (eye - 2.0 * torch.outer(nrm, nrm)))
         if M is not None:
             cands.append(M)
-        res = [_visible_translation(c, S, W, vis) for c in cands]
+        res = [_visible_translation(c, S, W, vis, counts) for c in cands]
         r = torch.stack([x[1] for x in res])  # (C, N)
         best = r.argmin(0)
         M = torch.stack(cands)[best, idx]
         tv = torch.stack([x[0] for x in res])[best, idx]
-        rms = float((r[best, idx].sum() / (2 * vis.sum()).clamp(min=1)).sqrt())
-        Wf = torch.where(v2 > 0, W, M @ S + tv[..., None])
+        rms = float((r[best, idx].sum() / entries).sqrt())
+        Wf = torch.where(known, W, M @ S + tv[..., None])
         history.append(rms)
         if rms <= 1e-5 * scale or (len(history) >= 2 and abs(history[-2] - history[-1]) <= tol * history[-2]):
             converged = True
@@ -1133,10 +1149,13 @@ def _fit_step(data: _Data, opts: SfMOptions, flip_pairs, init_shape, generator) 
         if planar is None:
             planar = False  # a warm start continues the rigid model: the planar one is not fitted
         S_init = _warm_start(init_shape, data.kp.shape[1], cols, dev)
-    with cpu_single_thread(dev):
+    # no autograd anywhere in the fit: inference mode runs the same kernels with less dispatch per tensor
+    # op; its results are cloned into ordinary tensors
+    with cpu_single_thread(dev), torch.inference_mode():
         fit = _fit(Wv, vv, planar, opts.planar_margin, opts.polish_iters, mirrors=layout,
                    tie_deg=opts.mirror_tie_deg, S_init=S_init, max_outer=opts.max_outer, inner=opts.inner,
                    tol=opts.tol, reg=opts.regularization, generator=generator)
+    fit.M, fit.t, fit.S = fit.M.clone(), fit.t.clone(), fit.S.clone()
     _fit_problems(opts, fit.mirrors, fit.converged, fit.history, data.problems)
     return fit
 
