@@ -404,15 +404,17 @@ def _power_steps(Wc, S, eye, project, inner: int, reg: float, rank: int):
     """Step 3 of the alternation: ``inner`` power-factorisation steps on the centred filled matrix
     ``Wc (N, 2, K)`` from ``S (rank, K)``; returns the new ``S`` and the last blocks ``M (N, 2, rank)``.
 
-    The Tikhonov weights are host floats: the same double arithmetic as on 0-dim tensors, fewer
-    tensor ops per step."""
+    On the CPU the Tikhonov weights are host floats: the same double arithmetic as on 0-dim tensors,
+    fewer tensor ops per step; on a GPU they stay on the device (a host float would wait for it twice
+    per step)."""
+    trace = (lambda X: float(X.diagonal().sum())) if Wc.device.type == "cpu" else (lambda X: X.diagonal().sum())
     Mi = None
     for _ in range(inner):
         A = S @ S.T
-        lam = reg * float(A.diagonal().sum()) / rank + 1e-300
+        lam = reg * trace(A) / rank + 1e-300
         Mi = project(Wc @ S.T @ torch.linalg.inv(A + lam * eye))
         B = torch.einsum("nri,nrj->ij", Mi, Mi)
-        lamS = reg * float(B.diagonal().sum()) / rank + 1e-300
+        lamS = reg * trace(B) / rank + 1e-300
         S = torch.linalg.solve(B + lamS * eye, torch.einsum("nri,nrk->ik", Mi, Wc))
     return S, Mi
 
