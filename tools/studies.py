@@ -585,7 +585,7 @@ def _class_misses(coll, gt: dict, cfg, seed: int) -> dict | None:
 
     from carvi_torch.cameras import ScaledOrthographic, geodesic_angle, geodesic_errors
     from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report
-    from carvi_torch.viewpoints import camera_fit, estimate_viewpoints, ground_truth_cameras
+    from carvi_torch.viewpoints import camera_fit, estimate_viewpoints, ground_truth_cameras, true_canvas_cameras
     from carvi_torch.viewpoints.choice import box_diagonal, hull_agreement, keypoint_rms
     from carvi_torch.viewpoints.refine import refine_with_shape
 
@@ -594,8 +594,7 @@ def _class_misses(coll, gt: dict, cfg, seed: int) -> dict | None:
         return None
     n = len(coll)
     vp = estimate_viewpoints(coll, cfg, seed=seed)
-    # the true cameras in canvas pixels, the mirrored copies' too (the pipeline's ground-truth source)
-    true = estimate_viewpoints(coll, cfg, source="gt", gt_cameras=gtc, seed=seed).cameras
+    true = true_canvas_cameras(coll, vp.both, gtc)  # in canvas pixels, the mirrored copies' too
     ok = (vp.has_camera[:n] & torch.isfinite(gtc.R).flatten(1).all(1)).cpu()
     if int(ok.sum()) < 3:
         return None

@@ -48,7 +48,7 @@ if TYPE_CHECKING:
     from ..config import ViewpointConfig
 
 __all__ = ["Viewpoints", "CameraSource", "estimate_viewpoints", "class_sfm", "started_sfm", "TEMPLATE_START_MARGIN",
-           "GT_REFLECTION", "ground_truth_cameras",
+           "GT_REFLECTION", "ground_truth_cameras", "true_canvas_cameras",
            "NoMeanShape", "symmetry_plane", "NO_MIRRORS"]
 
 #: Where a run's cameras come from: ``estimate`` (SfM and refinement) or ``gt`` (the true cameras, a study).
@@ -222,14 +222,20 @@ def _shape_groups(both, dist, res, cfg: ViewpointConfig, source: str, seed: int,
     return mix
 
 
-def _ground_truth(coll: ClassCollection, both: ClassCollection, gt_img: ScaledOrthographic, vp: Viewpoints) -> None:
-    """Replace the cameras by the true ones (in canvas pixels, mirrors included) and express the mean
-    shape in the ground-truth frame, so that clusters and selection use that frame (a study)."""
+def true_canvas_cameras(coll: ClassCollection, both: ClassCollection, gt_img: ScaledOrthographic) -> ScaledOrthographic:
+    """The true cameras ``gt_img`` (``N``, image pixels; :func:`ground_truth_cameras`) in canvas pixels, the
+    mirrored copies' after them (``2N``, the rows of ``both``: the class with its mirrored copies)."""
     n = len(coll)
     w = coll.image_size[:, 0].to(gt_img.t.dtype)
     mirrored = gt_img.mirror(w, GT_REFLECTION.to(gt_img.R))
-    vp.cameras = ScaledOrthographic.cat([gt_img.compose_similarity(coll.canvas_from_image),
-                                         mirrored.compose_similarity(both.canvas_from_image[n:])])
+    return ScaledOrthographic.cat([gt_img.compose_similarity(coll.canvas_from_image),
+                                   mirrored.compose_similarity(both.canvas_from_image[n:])])
+
+
+def _ground_truth(coll: ClassCollection, both: ClassCollection, gt_img: ScaledOrthographic, vp: Viewpoints) -> None:
+    """Replace the cameras by the true ones (in canvas pixels, mirrors included) and express the mean
+    shape in the ground-truth frame, so that clusters and selection use that frame (a study)."""
+    vp.cameras = true_canvas_cameras(coll, both, gt_img)
     known = torch.isfinite(gt_img.s).to(both.keypoints.device)  # instances without a true camera get none
     vp.has_camera = torch.cat([known, known])
     ok = vp.groups.single.valid & vp.has_camera
