@@ -163,6 +163,21 @@ def intra_op_threads(workers: int) -> int:
     return env if env is not None else max(1, cores() - workers)
 
 
+def child_pythonpath(code: str | os.PathLike, inherited: str | None = None) -> str:
+    """``PYTHONPATH`` for a child process that runs the ``carvi_torch`` of the source tree ``code``: that
+    tree first, then the entries this process inherited (``inherited``, default ``$PYTHONPATH``), so
+    dependencies installed outside the environment (a private ``--target`` folder, say) stay importable.
+
+    Example:
+        >>> child_pythonpath("/src/old", inherited=os.pathsep.join(["/deps", "/src/new"])).split(os.pathsep)
+        ['/src/old', '/deps', '/src/new']
+        >>> child_pythonpath("/src/new", inherited="")
+        '/src/new'
+    """
+    rest = os.environ.get("PYTHONPATH", "") if inherited is None else inherited
+    return os.pathsep.join([os.fspath(code), *(p for p in rest.split(os.pathsep) if p)])
+
+
 class TqdmHandler(logging.StreamHandler):
     """A log handler that writes through ``tqdm.write``, so messages do not tear progress bars."""
 

@@ -140,6 +140,29 @@ def test_many_class_cpu_clock_runs_keep_classes_sequential(tmp_path: Path):
     assert wall[1:3] == ["-m", "carvi_torch.reconstruct"] and "pipeline_classes=false" not in wall
 
 
+def test_many_class_child_keeps_the_inherited_pythonpath(tmp_path: Path, monkeypatch):
+    """A compared run imports the code it names first and still finds dependencies installed outside the
+    environment (a lent machine's private ``--target`` folder on the inherited ``PYTHONPATH``)."""
+    import argparse
+
+    bench = load_tool("benchmark", "benchmark_tool")
+    seen = {}
+
+    def fake_run(cmd, cwd, env, **kw):
+        seen.update(env=env, cwd=cwd)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(["/deps/site", str(bench.ROOT)]))
+    monkeypatch.setattr(bench.subprocess, "run", fake_run)
+    (tmp_path / "old" / "carvi_torch").mkdir(parents=True)
+    (tmp_path / "old" / "carvi_torch" / "config.py").write_text("    report: bool = True\n")
+    args = argparse.Namespace(device="cpu", set=[], cpu_clock=False, threads=None, workers=None)
+    with pytest.raises(RuntimeError, match="stop here"):
+        bench.run_many(Path("d.json"), tmp_path, args, "old", [], str(tmp_path / "old"))
+    assert seen["env"]["PYTHONPATH"].split(os.pathsep) == [str(tmp_path / "old"), "/deps/site", str(bench.ROOT)]
+    assert seen["cwd"] == str(tmp_path / "old")
+
+
 def test_many_class_helpers_split_classes_and_fit_fixed_costs(tmp_path: Path):
     """The many-class benchmark's procedural stand-in splits each category round-robin into renamed classes
     with the same metadata; its fixed cost per class is the intercept of a least-squares line (numpy's polyfit)."""

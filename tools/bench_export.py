@@ -43,7 +43,7 @@ import threading
 import time
 from pathlib import Path
 
-from carvi_torch.runtime import cpu_seconds
+from carvi_torch.runtime import child_pythonpath, cpu_seconds
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -103,7 +103,7 @@ def _timed(cmd: list[str], cpu: dict | None = None, code: Path = ROOT, pids: lis
     """Wall seconds, peak memory of the process tree (sampled every 50 ms), stdout; ``cpu``: CPU seconds
     per process of the tree (as last sampled). ``code``: the source tree whose ``carvi_torch`` runs
     (working directory and ``PYTHONPATH``); ``pids`` gets the process id of ``cmd``."""
-    env = {**os.environ, "PYTHONPATH": str(code)}
+    env = {**os.environ, "PYTHONPATH": child_pythonpath(code)}
     t = time.perf_counter()
     p = subprocess.Popen(cmd, cwd=code, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     if pids is not None:

@@ -102,7 +102,7 @@ from carvi_torch.config import Config
 from carvi_torch.io import coco
 from carvi_torch.io.outputs import read_json, write_json, write_record
 from carvi_torch.io.writer import writer_workers
-from carvi_torch.runtime import cpu_seconds, intra_op_threads, stable_hash
+from carvi_torch.runtime import child_pythonpath, cpu_seconds, intra_op_threads, stable_hash
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -447,7 +447,7 @@ def run_many(data: Path, out: Path, args, name: str, sets: list[str], pythonpath
     """One whole run of every class of ``data`` (a child process); its totals and per-class costs."""
     cmd = many_command(data, out, args, sets, pythonpath)
     env = dict(os.environ)
-    env["PYTHONPATH"] = pythonpath or str(ROOT)
+    env["PYTHONPATH"] = child_pythonpath(pythonpath or ROOT)
     if args.threads:
         env["CARVI_THREADS"] = str(args.threads)
     if args.workers is not None:
@@ -463,7 +463,7 @@ def run_many(data: Path, out: Path, args, name: str, sets: list[str], pythonpath
     done = sum(c.get("reconstructed", 0) for c in summary["classes"].values())
     total = summary["total_seconds"]
     workers = summary.get("writer_workers", 0)
-    return {"name": name, "pythonpath": env["PYTHONPATH"], "overrides": sets,
+    return {"name": name, "pythonpath": pythonpath or str(ROOT), "overrides": sets,
             "command": " ".join(shlex.quote(x) for x in cmd), "classes": len(summary["classes"]),
             "objects": objects, "reconstructed": done, "total_seconds": total, "wall_seconds_with_startup": wall,
             "cpu_seconds": cpu,
