@@ -37,11 +37,12 @@ mkdir -p "$out"
 # and compares every object's final camera (degrees between the two), which start each class's
 # SfM kept and which camera each object kept (camera_choice). Needs ../shared/data/pascal3d_cad
 # (or CAD=path). Tolerance (docs/viewpoints.md): median angle <= 0.5 degrees per class.
+# DEVICES=cuda runs the CUDA side alone, against CPU cameras already in OUTDIR/cad8 (an earlier run's).
 if [ "$step" = "cad8" ]; then
     export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
     cad=${CAD:-../shared/data/pascal3d_cad}
     status=0
-    for dev in cpu cuda; do
+    for dev in ${DEVICES:-cpu cuda}; do
         "$py" tools/viewpoints_cad.py --views 8 --seed 2 --quiet --cad "$cad" --work "$out/cad8" \
             --out "$out/cad8_$dev.json" "device=$dev" 2>&1 | tee "$out/cad8_$dev.txt" || status=1
     done
