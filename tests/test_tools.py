@@ -276,6 +276,43 @@ def test_gpu_session_answers_help():
     assert res.returncode == 0 and usage in res.stdout
 
 
+def _cad8_runs(out: Path, turn_deg: float) -> None:
+    """Two fake 8-view camera runs in ``out/cad8``: class ``a`` on both devices, the CUDA camera of every object
+    turned by ``turn_deg`` about z; class ``b`` on the CPU alone (a CUDA run stopped before it)."""
+    import math
+
+    def rot(deg):
+        c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+        return [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+
+    for dev, classes in (("cpu", ("a", "b")), ("cuda", ("a",))):
+        run = out / "cad8" / f"cameras_device-{dev}_v8_renders-s2"
+        for cls in classes:
+            (run / cls).mkdir(parents=True)
+            cams = {str(i): {"refined": {"R": rot(0.0 if dev == "cpu" else turn_deg)}, "camera_choice": "refined"}
+                    for i in range(3)}
+            (run / cls / "cameras.json").write_text(json.dumps({"cameras": cams}))
+        summary = {"torch_threads": 2, "classes": {c: {"objects": 3, "seconds": {"sfm": 1.0, "refine": 0.5}}
+                                                   for c in classes}}
+        (run / "summary.json").write_text(json.dumps(summary))
+
+
+@pytest.mark.parametrize("turn_deg, status", [(0.3, 0), (0.8, 1)])
+def test_gpu_session_cad8_compares_the_runs_it_finds(tmp_path: Path, turn_deg: float, status: int):
+    """``DEVICES= gpu_session.sh cad8`` compares the CPU and CUDA cameras already there: the angle between
+    them per class against the 0.5 degree tolerance (exit status), a class the CUDA run missed named as such."""
+    _cad8_runs(tmp_path, turn_deg)
+    env = dict(os.environ, DEVICES="", PYTHON=sys.executable)
+    proc = subprocess.run(["bash", str(ROOT / "tools" / "gpu_session.sh"), "cad8", str(tmp_path)], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == status, proc.stdout + proc.stderr
+    assert "b            not reached by the CUDA run" in proc.stdout
+    rec = json.loads((tmp_path / "cad8_agreement.json").read_text())
+    assert rec["classes"]["a"]["median_deg"] == pytest.approx(turn_deg, abs=1e-3)
+    assert rec["classes"]["a"]["camera_choice_differs"] == 0 and set(rec["classes"]) == {"a"}
+    assert rec["viewpoint_seconds"] == {"cpu": 1.5, "cuda": 1.5}
+
+
 STRESS = ROOT / "tools" / "stress_inputs.py"
 
 

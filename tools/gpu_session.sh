@@ -37,23 +37,30 @@ mkdir -p "$out"
 # and compares every object's final camera (degrees between the two), which start each class's
 # SfM kept and which camera each object kept (camera_choice). Needs ../shared/data/pascal3d_cad
 # (or CAD=path). Tolerance (docs/viewpoints.md): median angle <= 0.5 degrees per class.
-# DEVICES=cuda runs the CUDA side alone, against CPU cameras already in OUTDIR/cad8 (an earlier run's).
+# DEVICES=cuda runs the CUDA side alone, against CPU cameras already in OUTDIR/cad8 (an earlier run's);
+# DEVICES= (empty) only compares the runs there. A class the CUDA run did not reach is listed as such.
+# Per class it also prints the viewpoint stages' seconds on each device (SfM with the mixture's fit,
+# refinement: summary.json), and writes all of it to OUTDIR/cad8_agreement.json.
 if [ "$step" = "cad8" ]; then
     export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
     cad=${CAD:-../shared/data/pascal3d_cad}
     status=0
-    for dev in ${DEVICES:-cpu cuda}; do
+    for dev in ${DEVICES-cpu cuda}; do
         "$py" tools/viewpoints_cad.py --views 8 --seed 2 --quiet --cad "$cad" --work "$out/cad8" \
             --out "$out/cad8_$dev.json" "device=$dev" 2>&1 | tee "$out/cad8_$dev.txt" || status=1
     done
-    "$py" - "$out/cad8" <<'PYEOF' 2>&1 | tee "$out/cad8_agreement.txt" || status=1
+    "$py" - "$out/cad8" "$out/cad8_agreement.json" <<'PYEOF' 2>&1 | tee "$out/cad8_agreement.txt" || status=1
 import json, math, sys
 from pathlib import Path
 import numpy as np
-work, worst = Path(sys.argv[1]), 0.0
+work, worst, rows = Path(sys.argv[1]), 0.0, {}
 runs = {d: work / f"cameras_device-{d}_v8_renders-s2" for d in ("cpu", "cuda")}
 summ = {d: json.loads((p / "summary.json").read_text())["classes"] for d, p in runs.items()}
+seconds = lambda d, cls: round(sum(summ[d][cls]["seconds"].get(k, 0.0) for k in ("sfm", "refine")), 2)
 for cls in sorted(summ["cpu"]):
+    if not (runs["cuda"] / cls / "cameras.json").is_file():
+        print(f"{cls:12s} not reached by the CUDA run")
+        continue
     cams = {d: json.loads((p / cls / "cameras.json").read_text())["cameras"] for d, p in runs.items()}
     ang, choice = [], 0
     for aid, c in cams["cpu"].items():
@@ -63,12 +70,24 @@ for cls in sorted(summ["cpu"]):
             ang.append(math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(M) - 1) / 2)))))
         choice += c.get("camera_choice") != g.get("camera_choice")
     start = [summ[d][cls].get("sfm", {}).get("start", {}).get("kept") for d in ("cpu", "cuda")]
+    groups = [summ[d][cls].get("sfm_groups", {}).get("groups", 1) for d in ("cpu", "cuda")]
     med = float(np.median(ang)) if ang else float("nan")
     worst = max(worst, med)
-    print(f"{cls:12s} median {med:.3f} deg, max {max(ang, default=float('nan')):.2f} deg, camera_choice differs "
-          f"in {choice}, SfM start cpu/cuda {start[0]}/{start[1]}")
+    rows[cls] = {"objects": summ["cpu"][cls]["objects"], "compared": len(ang), "median_deg": round(med, 3),
+                 "max_deg": round(max(ang, default=float("nan")), 3), "camera_choice_differs": choice,
+                 "sfm_start": start, "shape_groups": groups,
+                 "viewpoint_seconds": {"cpu": seconds("cpu", cls), "cuda": seconds("cuda", cls)}}
+    print(f"{cls:12s} median {med:.3f} deg, max {rows[cls]['max_deg']:.2f} deg, camera_choice differs in {choice}, "
+          f"SfM start cpu/cuda {start[0]}/{start[1]}, shape groups {groups[0]}/{groups[1]}, "
+          f"SfM + refinement {seconds('cpu', cls):.1f} s cpu, {seconds('cuda', cls):.1f} s cuda")
+cpu_s, cuda_s = (sum(r["viewpoint_seconds"][d] for r in rows.values()) for d in ("cpu", "cuda"))
+threads = json.loads((runs["cpu"] / "summary.json").read_text()).get("torch_threads")
+print(f"{len(rows)} classes compared; SfM + refinement {cpu_s:.1f} s on the CPU ({threads} torch threads), "
+      f"{cuda_s:.1f} s on CUDA")
 print(f"largest class median {worst:.3f} deg: {'within' if worst <= 0.5 else 'OUTSIDE'} the 0.5 degree tolerance")
-sys.exit(0 if worst <= 0.5 else 1)
+Path(sys.argv[2]).write_text(json.dumps({"classes": rows, "viewpoint_seconds": {"cpu": round(cpu_s, 2),
+                                         "cuda": round(cuda_s, 2)}, "largest_median_deg": round(worst, 3)}, indent=1))
+sys.exit(0 if rows and worst <= 0.5 else 1)
 PYEOF
     echo "results in $out"
     exit "$status"
