@@ -33,15 +33,12 @@ from .io.results import (ClassReport, cameras_json, canonical_image_cameras, qua
                          resumed_levels, scores_entry, write_scores)
 from .io.writer import Writer, canvas_to_image_4x4, id_array, mesh_jobs, proposals_payload
 from .marching import resolve_mesher
-from .runtime import StageTimer, log
+from .runtime import StageTimer, log, to_device
 from .sdf import signed_distance
 from .viewpoints import NoMeanShape, Viewpoints, estimate_viewpoints, ground_truth_cameras
 
 __all__ = ["run_class", "class_viewpoints", "prepare_class", "carve_and_select", "ClassPlan", "chunk_objects",
            "finished_objects", "reconstruct_chunk", "finish_class"]
-
-
-# =========================================================================== one class
 
 
 @dataclass
@@ -173,8 +170,10 @@ def class_viewpoints(coll: ClassCollection, cfg: Config, device: torch.device, g
         report.skip(f"class has {len(coll)} usable instance(s), fewer than min_instances={cfg.input.min_instances}",
                     "class")
         return coll, None, None, report
-    coll, timer = coll.to(device), StageTimer(device, report.seconds)
-    vp = _viewpoints(coll, cfg, gt, report, timer)
+    vdev = torch.device("cpu") if cfg.viewpoints.device == "cpu" else device  # then moved to the run's device
+    vp = _viewpoints(coll.to(vdev), cfg, gt, report, StageTimer(vdev, report.seconds))
+    vp, timer = (vp if vdev == device else to_device(vp, device)), StageTimer(device, report.seconds)
+    coll = coll.to(device)
     return coll, vp, (None if vp is None else _surrogate_plan(coll, vp, cfg, generator, timer, report)), report
 
 

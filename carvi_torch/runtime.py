@@ -12,6 +12,7 @@ Example:
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import os
 import sys
@@ -161,6 +162,41 @@ def intra_op_threads(workers: int) -> int:
     cores left to it beside ``workers`` writer processes (at least one)."""
     env = env_count("CARVI_THREADS", 1)
     return env if env is not None else max(1, cores() - workers)
+
+
+def to_device(obj, device):
+    """``obj`` with every tensor it holds on ``device``: tensors and objects with a ``to`` method of their own
+    (:class:`~carvi_torch.collection.ClassCollection`, the cameras) through it; other dataclasses as shallow
+    copies, field by field; lists, tuples and dicts element by element; anything else (numbers, strings,
+    ``None``) as is.
+
+    Example:
+        >>> import dataclasses, torch
+        >>> @dataclasses.dataclass
+        ... class Result:
+        ...     x: torch.Tensor
+        ...     parts: list
+        ...     note: str = "kept"
+        >>> r = to_device(Result(torch.ones(2), [(torch.zeros(1), 3)]), "meta")
+        >>> r.x.device.type, r.parts[0][0].device.type, r.parts[0][1], r.note
+        ('meta', 'meta', 3, 'kept')
+    """
+    import dataclasses
+
+    if callable(getattr(obj, "to", None)) and not isinstance(obj, type):
+        return obj.to(device)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        moved = copy.copy(obj)
+        for f in dataclasses.fields(obj):
+            object.__setattr__(moved, f.name, to_device(getattr(obj, f.name), device))
+        return moved
+    if isinstance(obj, tuple) and hasattr(obj, "_fields"):  # a named tuple
+        return type(obj)(*(to_device(v, device) for v in obj))
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(to_device(v, device) for v in obj)
+    if isinstance(obj, dict):
+        return {k: to_device(v, device) for k, v in obj.items()}
+    return obj
 
 
 def child_pythonpath(code: str | os.PathLike, inherited: str | None = None) -> str:

@@ -506,6 +506,34 @@ def test_cuda_run_matches_cpu(tiny, tmp_path):
 
 
 @requires_cuda
+def test_cuda_run_with_viewpoints_on_the_cpu_matches_the_cpu_run(tiny, tmp_path):
+    """``viewpoints.device=cpu`` in a CUDA run: the viewpoint stage runs on the CPU, as in a CPU run, so the
+    cameras are the CPU run's (up to the threads' rounding) with the same choices, and the voxels agree but for
+    float rounding at a few voxels."""
+    import math
+
+    out, summary = tiny
+    kw = dict(data=summary["data"], classes=["car"], preview=False)
+    cpu = run(_cfg(tmp_path / "cpu", **kw), workers=0)
+    gpu = run(_cfg(tmp_path / "gpu", device="cuda", **{"viewpoints.device": "cpu"}, **kw))
+    assert gpu["device"].startswith("cuda") and gpu["classes"]["car"]["reconstructed"] >= 5
+    assert gpu["classes"]["car"]["reconstructed"] == cpu["classes"]["car"]["reconstructed"]
+    cams = [json.loads((tmp_path / d / "car" / "cameras.json").read_text())["cameras"] for d in ("cpu", "gpu")]
+    assert cams[0].keys() == cams[1].keys()
+    for aid, c in cams[0].items():
+        g = cams[1][aid]
+        assert c.get("camera_choice") == g.get("camera_choice"), aid
+        if c.get("refined") and g.get("refined"):
+            M = np.array(c["refined"]["R"]) @ np.array(g["refined"]["R"]).T
+            assert math.degrees(math.acos(min(1.0, (np.trace(M) - 1) / 2))) < 0.1, aid
+    agree = []
+    for f in (tmp_path / "cpu" / "car" / "voxels").glob("*.npz"):
+        a, b = np.load(f)["occupancy"], np.load(tmp_path / "gpu" / "car" / "voxels" / f.name)["occupancy"]
+        agree.append((a == b).mean() if a.shape == b.shape else 0.0)
+    assert np.median(agree) > 0.999 and min(agree) > 0.95
+
+
+@requires_cuda
 def test_cuda_chunk_has_no_per_object_host_reads(tiny):
     """The device work of a chunk reads back from the GPU a fixed number of times, not once per object
     (a few more for a larger chunk are allowed: one per further group of equal sub-sampling in the

@@ -190,3 +190,47 @@ def test_an_interrupted_process_exits_with_its_status(tmp_path):
                           text=True, timeout=300)
     assert done.returncode == 130, done.stderr[-2000:]
     assert done.stdout.strip() == "interrupted" and "terminate called" not in done.stderr
+
+
+def _tensors(x, seen=None):
+    """Every tensor reachable from ``x``: through dataclass and object attributes, lists, tuples and dicts."""
+    seen = set() if seen is None else seen
+    if id(x) in seen or isinstance(x, (str, bytes, int, float, bool, type(None))):
+        return []
+    seen.add(id(x))
+    if isinstance(x, torch.Tensor):
+        return [x]
+    if isinstance(x, dict):
+        return [t for v in x.values() for t in _tensors(v, seen)]
+    if isinstance(x, (list, tuple, set)):
+        return [t for v in x for t in _tensors(v, seen)]
+    return [t for v in getattr(x, "__dict__", {}).values() for t in _tensors(v, seen)]
+
+
+@pytest.mark.parametrize("extra", [{}, GROUPS], ids=["one_shape", "mixture"])
+def test_viewpoints_on_the_cpu_reach_the_run_device_whole(procedural_input, tmp_path, monkeypatch, extra):
+    """``viewpoints.device=cpu``: the stage runs on the CPU, and every tensor of its result (cameras, shape groups
+    and their SfMs, distance maps, the frame) and of the class reaches the run's device before the surrogate plan.
+    ``meta`` stands in for a second device (a CUDA one in a CUDA run; the CUDA test compares the outputs)."""
+    from carvi_torch.io.coco import load_coco
+
+    cfg = _cfg(tmp_path, procedural_input(tmp_path), **{f"viewpoints.{k}": v for k, v in extra.items()},
+               **{"viewpoints.device": "cpu"})
+    coll = load_coco(cfg.data, canvas_size=cfg.input.canvas_size, classes=["car"]).collections["car"]
+    handed = {}
+
+    def plan(coll, vp, *a):
+        handed.update(coll=coll, vp=vp)
+        return "plan"
+
+    monkeypatch.setattr(P, "_surrogate_plan", plan)
+    seen_devices = []
+    estimate = P.estimate_viewpoints
+    monkeypatch.setattr(P, "estimate_viewpoints", lambda c, *a, **k: seen_devices.append(c.masks.device) or
+                        estimate(c, *a, **k))
+    coll_out, vp, got, _ = P.class_viewpoints(coll, cfg, torch.device("meta"), torch.Generator().manual_seed(0))
+    assert got == "plan" and seen_devices == [torch.device("cpu")]
+    assert handed["vp"] is vp and handed["coll"] is coll_out
+    assert extra == {} or vp.groups.k == 2  # the mixture's split, with its per-group SfMs, moved too
+    found = _tensors(vp) + _tensors(coll_out)
+    assert len(found) > 40 and {t.device.type for t in found} == {"meta"}
