@@ -272,8 +272,28 @@ def test_gpu_session_keeps_the_callers_python_path(tmp_path: Path):
 def test_gpu_session_answers_help():
     res = subprocess.run(["bash", str(ROOT / "tools" / "gpu_session.sh"), "--help"], cwd=ROOT, capture_output=True,
                          text=True, timeout=60)
-    usage = "bash tools/gpu_session.sh [all|tests|bench1000|bench9087|manyclasses]"
+    usage = "bash tools/gpu_session.sh [all|tests|bench1000|bench9087|manyclasses|cad8|lease]"
     assert res.returncode == 0 and usage in res.stdout
+
+
+def test_gpu_session_lease_runs_each_step_under_its_limit_and_packs_after_each(tmp_path: Path):
+    """``lease``: every step runs with its own time limit, its start, end and status go to ``steps.txt``, and
+    the results are packed after each step (here a step that fails at once and one stopped at its limit)."""
+    import tarfile
+
+    fake = tmp_path / "fakepython"  # the package check passes, then it sleeps past the step's limit
+    fake.write_text('#!/bin/sh\ncase "$2" in *kornia*) exit 0 ;; esac\nsleep 30\n')
+    fake.chmod(0o755)
+    out, pack = tmp_path / "gpu", tmp_path / "results.tgz"
+    env = dict(os.environ, PYTHON=str(fake), STEPS="nosuch:5 tests:2", PACK=str(pack))
+    proc = subprocess.run(["bash", str(ROOT / "tools" / "gpu_session.sh"), "lease", str(out)], cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    steps = (out / "steps.txt").read_text()
+    assert "end nosuch, status 2" in steps and "end tests, status 124" in steps, steps
+    assert "unknown step 'nosuch'" in (out / "nosuch.log").read_text()
+    with tarfile.open(pack) as tar:
+        assert {"./steps.txt", "./nosuch.log", "./tests.log"} <= set(tar.getnames())
 
 
 def _cad8_runs(out: Path, turn_deg: float) -> None:

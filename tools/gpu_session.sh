@@ -3,11 +3,14 @@
 # benchmarks (docs/benchmarks.md; tools/benchmark.py --device cuda), each new path timed against
 # the current one in the same run. Run from the repository root:
 #
-#     bash tools/gpu_session.sh [all|tests|bench1000|bench9087|manyclasses] [OUTDIR]
+#     bash tools/gpu_session.sh [all|tests|bench1000|bench9087|manyclasses|cad8|lease] [OUTDIR]
 #
 # OUTDIR defaults to $OUT (the lent machine's result folder) or outputs/gpu. Each step writes
-# its log and JSON there; steps can be run one by one (a lent machine limits one command to
-# 10 minutes; `all` should take 5-6 minutes on an H100: an estimate, not yet timed). Python is
+# its log and JSON there; steps can be run one by one, and on a short lease should be: a lent
+# machine limits one command to 10 minutes, and `all` takes longer. Measured on an H200 (16 slow
+# cores) at b9a1ed9: tests 117 s; bench9087 54 s for mesher=auto, the skimage run stopped unfinished
+# at 85 s; one many-class run did not finish in 110 s; cad8 80 s on the CPU, over 120 s on CUDA
+# (docs/benchmarks.md). Wrap each step in `timeout` and pack OUTDIR after each. Python is
 # $PYTHON or python3; it must have torch with CUDA. Packages the machine lacks can be carried as
 # wheels in .whl/ (installed into a private target, never into the system). The benchmark data
 # are generated on first use, or
@@ -19,7 +22,9 @@
 # New against current, same run (ratios appended to OUTDIR/ratios.txt):
 #   bench9087    the 9,087-object class with mesh.mesher=auto (batched torch marching cubes on the
 #                GPU, in the run's process) and with mesher=skimage (the writers mesh, as before)
-#   manyclasses  12 classes of about 50 objects, the same two meshers
+#   manyclasses  12 classes of about 50 objects: the viewpoint stage on the run's device (default) and
+#                on the CPU (viewpoints.device=cpu; on small classes the stage alone took 2.9x longer on
+#                CUDA than on that machine's CPU)
 set -uo pipefail
 if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then  # the comment above
     sed -n '2,/^set /p' "$0" | sed -e '$d' -e 's/^# \{0,1\}//'
@@ -29,6 +34,44 @@ step=${1:-all}
 out=${2:-${OUT:-outputs/gpu}}
 py=${PYTHON:-python3}
 mkdir -p "$out"
+
+# ---- lease: every step under its own time limit, OUTDIR's small files packed after each step
+#     STEPS="tests:170 bench9087:150 manyclasses:240 cad8:200" PACK=$OUT/results.tgz \
+#         bash tools/gpu_session.sh lease /tmp/gpu
+# A lent machine returns few files and stops a command at its limit: each step runs under
+# `timeout` (seconds after the colon), start and end go to OUTDIR/steps.txt, and after each step
+# OUTDIR (without meshes, voxels or arrays) is packed into PACK (default OUTDIR.tgz), so what
+# finished comes back even when a later step runs out of time.
+if [ "$step" = "lease" ]; then
+    pack=${PACK:-${out%/}.tgz}
+    t0=$(date +%s)
+    for s in ${STEPS:-tests:170 bench9087:150 manyclasses:240 cad8:200}; do
+        name=${s%%:*}
+        limit=${s##*:}
+        echo "[$(( $(date +%s) - t0 )) s] start $name (limit $limit s)" | tee -a "$out/steps.txt"
+        timeout -k 5 "$limit" bash "$0" "$name" "$out" > "$out/$name.log" 2>&1
+        rc=$?
+        echo "[$(( $(date +%s) - t0 )) s] end $name, status $rc" | tee -a "$out/steps.txt"
+        tar czf "$pack" -C "$out" --exclude=meshes --exclude='*.npz' --exclude='*.npy' --exclude='*.ply' \
+            --exclude='*.obj' --exclude='*.zarr' . || exit 1
+    done
+    exit 0
+fi
+
+case "$step" in
+    all|tests|bench1000|bench9087|manyclasses|cad8) ;;
+    *) echo "unknown step '$step' (all, tests, bench1000, bench9087, manyclasses, cad8, lease)" >&2; exit 2 ;;
+esac
+
+if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, scipy, skimage, yaml, tqdm, matplotlib, pytest" \
+        2>/dev/null \
+        && [ -d .whl ] && compgen -G ".whl/*.whl" >/dev/null; then
+    "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/carvi_site .whl/*.whl || exit 1
+    export PYTHONPATH="/tmp/carvi_site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
+else
+    export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+fi
 
 # ---- begin: small-class CAD benchmark, CPU against CUDA -------------------------------------
 #     bash tools/gpu_session.sh cad8 [OUTDIR]
@@ -42,7 +85,6 @@ mkdir -p "$out"
 # Per class it also prints the viewpoint stages' seconds on each device (SfM with the mixture's fit,
 # refinement: summary.json), and writes all of it to OUTDIR/cad8_agreement.json.
 if [ "$step" = "cad8" ]; then
-    export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
     cad=${CAD:-../shared/data/pascal3d_cad}
     status=0
     for dev in ${DEVICES-cpu cuda}; do
@@ -94,20 +136,6 @@ PYEOF
 fi
 # ---- end: small-class CAD benchmark, CPU against CUDA ---------------------------------------
 
-case "$step" in
-    all|tests|bench1000|bench9087|manyclasses) ;;
-    *) echo "unknown step '$step' (all, tests, bench1000, bench9087, manyclasses)" >&2; exit 2 ;;
-esac
-
-if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, scipy, skimage, yaml, tqdm, matplotlib, pytest" \
-        2>/dev/null \
-        && [ -d .whl ] && compgen -G ".whl/*.whl" >/dev/null; then
-    "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-        --target /tmp/carvi_site .whl/*.whl || exit 1
-    export PYTHONPATH="/tmp/carvi_site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
-else
-    export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
-fi
 
 if ! "$py" -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)"; then
     echo "no CUDA device visible to $py: nothing to do here" >&2
@@ -149,8 +177,8 @@ print(f"9087 objects: mesher=auto {new['total_seconds']:.1f} s, mesher=skimage {
 PY
 }
 
-many() {  # 12 classes of about 50 objects: the GPU meshing (new) and the writers' meshing (alt), interleaved
-    "$py" tools/benchmark.py --device cuda --many-classes --compare-set mesher=skimage \
+many() {  # 12 classes of about 50 objects: viewpoints on the GPU (default) and on the CPU (alt), interleaved
+    "$py" tools/benchmark.py --device cuda --many-classes --compare-set viewpoints.device=cpu \
         --out "$out/many_classes_cuda.json" 2>&1 | tee "$out/many_classes_cuda.txt"
     local rc=${PIPESTATUS[0]}
     grep "^new / " "$out/many_classes_cuda.txt" | sed 's/^/many classes: /' >> "$out/ratios.txt"
