@@ -483,6 +483,47 @@ def test_writer_processes_ignore_ctrl_c():
         w.close()
 
 
+WRITERS_SCRIPT = """
+import json, sys
+import numpy as np
+import torch  # the run's main module imports torch (carvi_torch.reconstruct does)
+from carvi_torch.io import write_worker
+from carvi_torch.io.writer import Writer
+
+def main(out):
+    w = Writer(2)
+    try:
+        occ = np.zeros((20, 20, 20), bool); occ[5:15, 5:15, 5:15] = True
+        job = dict(occupancy=occ, voxel_to_image=np.eye(4), voxel_to_canvas=np.eye(4)[[2, 1, 0, 3]], canvas_scale=1.0,
+                   canvas_offset=np.zeros(2, np.float32), surrogates=np.zeros(2, np.int64), largest_component=True,
+                   proposals=None, scores=None, mask=np.ones((64, 64), bool), voxel_path=out + "/v.npz",
+                   mesh_path=out + "/m.ply")
+        jobs = [w.pool.submit(write_worker.write_object_safe, job) for _ in range(4)]
+        ok = all(f.result(timeout=60)["ok"] for f in jobs)
+        pids = sorted(w.pool._processes)  # every writer process the pool started
+        torch_in = [("libtorch" in open(f"/proc/{p}/maps").read()) for p in pids]
+        print(json.dumps({"pids": pids, "ok": ok, "torch": torch_in}))
+    finally:
+        w.close()
+
+if __name__ == "__main__":
+    main(sys.argv[1])
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").is_file(), reason="reads /proc/<pid>/maps (Linux)")
+def test_writer_processes_start_without_torch(tmp_path):
+    """The writers neither re-import the run's main module (which imports torch) nor import torch to write an
+    object: each is a small process (about 80 MB against 270 with torch) that starts in a fraction of a second."""
+    script = tmp_path / "run_main.py"
+    script.write_text(WRITERS_SCRIPT)
+    res = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, timeout=180)
+    assert res.returncode == 0, res.stderr[-2000:]
+    got = json.loads(res.stdout.strip().splitlines()[-1])
+    assert got["ok"] and (tmp_path / "m.ply").is_file() and got["pids"]
+    assert got["torch"] == [False] * len(got["pids"])
+
+
 # --------------------------------------------------------------------------- 12, 13. errors and exit status
 
 

@@ -13,6 +13,7 @@ import json
 import math
 import os
 import re
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any, Callable
@@ -142,16 +143,16 @@ def read_json(path: str | os.PathLike) -> Any:
 
 
 def write_npz(path: str | os.PathLike, **arrays: Any) -> Path:
-    """Write a compressed ``.npz`` atomically (tensors are converted to numpy)."""
+    """Write a compressed ``.npz`` atomically (tensors are converted to numpy).
+
+    Never imports torch: a value can only be a tensor where torch is imported already, and a writer
+    process, which passes numpy arrays, starts faster and stays smaller without it.
+    """
+    torch = sys.modules.get("torch")
     conv = {}
     for k, v in arrays.items():
-        try:
-            import torch
-
-            if isinstance(v, torch.Tensor):
-                v = v.detach().cpu().numpy()
-        except ImportError:  # pragma: no cover
-            pass
+        if torch is not None and isinstance(v, torch.Tensor):
+            v = v.detach().cpu().numpy()
         conv[k] = np.asarray(v)
     return atomic_write(path, lambda f: np.savez_compressed(f, **conv))
 
