@@ -17,7 +17,9 @@ import logging
 import os
 import sys
 import time
+import types
 import zlib
+from concurrent.futures import ProcessPoolExecutor
 from typing import Iterator
 
 try:  # POSIX only; peak memory is unknown elsewhere (Windows)
@@ -197,6 +199,36 @@ def to_device(obj, device):
     if isinstance(obj, dict):
         return {k: to_device(v, device) for k, v in obj.items()}
     return obj
+
+
+@contextlib.contextmanager
+def without_main_module() -> Iterator[None]:
+    """Processes started meanwhile skip this process's main module.
+
+    ``spawn`` and ``forkserver`` children import the parent's ``__main__`` again (as ``__mp_main__``) so
+    that functions defined there can be unpickled. The package's worker processes run functions of its
+    own modules only, and a run's main module (``carvi_torch.reconstruct``, the ``carvi`` script) imports
+    torch and the whole package: about 160 MB and a second or more of CPU per worker, for nothing.
+    ``__main__`` is a blank module while the processes start (``multiprocessing`` reads it then), this
+    process's own again after.
+    """
+    main = sys.modules["__main__"]
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        sys.modules["__main__"] = main
+
+
+class LeanProcessPool(ProcessPoolExecutor):
+    """A process pool whose processes start without the parent's main module (:func:`without_main_module`)
+    whenever it starts one (``_spawn_process``, the one place a pool does; on a Python that names it
+    otherwise its processes start as in a plain pool, only heavier). Submit module-level functions of
+    importable modules, never ones defined in ``__main__``."""
+
+    def _spawn_process(self):
+        with without_main_module():
+            super()._spawn_process()
 
 
 def child_pythonpath(code: str | os.PathLike, inherited: str | None = None) -> str:

@@ -14,7 +14,6 @@ the results in order as they come (:mod:`carvi_torch.export.command` is the comm
 """
 from __future__ import annotations
 
-import concurrent.futures as cf
 import math
 import multiprocessing as mp
 import time
@@ -31,7 +30,7 @@ from ..io.layout import object_file
 from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
 from ..mesh import MESH_FORMATS
-from ..runtime import cores, stable_hash, torch_threads
+from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import data_path, recon_config
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
                       view_occupancy)
@@ -188,7 +187,7 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     ctx = mp.get_context(start_method())
     if workers > 0 and start_method() == "forkserver":  # workers fork from a server that imported them once
         ctx.set_forkserver_preload([safe_export_objects.__module__])
-    pool = cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=init_worker) if workers > 0 else None
+    pool = LeanProcessPool(workers, mp_context=ctx, initializer=init_worker) if workers > 0 else None
     try:
         with torch_threads(1):
             jobs = _class_jobs(loaded, recon, class_names, settings, writer, skipped, bar)

@@ -12,13 +12,10 @@ Example:
 """
 from __future__ import annotations
 
-import contextlib
 import multiprocessing as mp
 import os
-import sys
 import threading
 import time
-import types
 from collections import deque
 from concurrent.futures import ProcessPoolExecutor
 
@@ -27,7 +24,7 @@ import torch
 
 from ..marching import occupancy_to_meshes
 from ..mesh import largest_component
-from ..runtime import cores, env_count
+from ..runtime import LeanProcessPool, cores, env_count
 from . import write_worker
 from .write_worker import write_object_safe
 
@@ -38,34 +35,6 @@ __all__ = ["Writer", "writer_workers", "start_method", "canvas_to_image_4x4", "p
 def start_method() -> str:
     """How worker processes start: ``forkserver`` where available, else ``spawn`` (never ``fork``)."""
     return "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-
-
-@contextlib.contextmanager
-def _without_main_module():
-    """Worker processes started meanwhile skip the run's main module.
-
-    ``spawn`` and ``forkserver`` children import the parent's ``__main__`` again (as ``__mp_main__``) so
-    that functions defined there can be unpickled. A writer runs functions of :mod:`.write_worker` only,
-    and the run's main module (``carvi_torch.reconstruct``, the ``carvi`` script) imports torch and the
-    whole package: about 160 MB and a second or more of CPU per writer, for nothing. ``__main__`` is a
-    blank module while the processes start (``multiprocessing`` reads it then), the run's own again after.
-    """
-    main = sys.modules["__main__"]
-    sys.modules["__main__"] = types.ModuleType("__main__")
-    try:
-        yield
-    finally:
-        sys.modules["__main__"] = main
-
-
-class _WriterPool(ProcessPoolExecutor):
-    """A process pool whose processes start without the run's main module (:func:`_without_main_module`),
-    whenever the pool starts one (``_spawn_process``, the one place it does; on a Python that names it
-    otherwise they start as in a plain pool, only heavier)."""
-
-    def _spawn_process(self):
-        with _without_main_module():
-            super()._spawn_process()
 
 
 def writer_workers(stage: str = "all", device: torch.device | None = None) -> int:
@@ -190,7 +159,7 @@ class Writer:
             ctx = mp.get_context(start_method())
             if start_method() == "forkserver":
                 ctx.set_forkserver_preload([write_worker.__name__, "trimesh"])  # what every object needs
-            self._pool = _WriterPool(self.workers, mp_context=ctx, initializer=write_worker.init_worker,
+            self._pool = LeanProcessPool(self.workers, mp_context=ctx, initializer=write_worker.init_worker,
                                              initargs=(os.getpid(),))
             for f in [self._pool.submit(write_worker.start_worker) for _ in range(self.workers)]:
                 f.result()

@@ -25,11 +25,11 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Literal
 
 from ..io.outputs import safe_name
+from ..runtime import LeanProcessPool
 from .cards import Card, CardContext, ClassView, make_card
 from .charts import class_figure
 from .inputs import ReportError, RunInputs, read_run
@@ -119,7 +119,7 @@ def _make_cards(run: RunInputs, out: Path, max_faces: int, workers: int | None) 
     if workers > 0:
         method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         try:
-            with ProcessPoolExecutor(workers, mp_context=mp.get_context(method), initializer=_init_worker,
+            with LeanProcessPool(workers, mp_context=mp.get_context(method), initializer=_init_worker,
                                      initargs=args) as pool:
                 made = list(pool.map(_card_in_worker, jobs, chunksize=max(1, min(32, len(jobs) // (4 * workers)))))
         except (OSError, BrokenProcessPool) as e:  # no worker processes here: make the cards in this one
