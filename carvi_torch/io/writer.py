@@ -160,7 +160,7 @@ class Writer:
             if start_method() == "forkserver":
                 ctx.set_forkserver_preload([write_worker.__name__, "trimesh"])  # what every object needs
             self._pool = LeanProcessPool(self.workers, mp_context=ctx, initializer=write_worker.init_worker,
-                                             initargs=(os.getpid(),))
+                                         initargs=(os.getpid(),))
             for f in [self._pool.submit(write_worker.start_worker) for _ in range(self.workers)]:
                 f.result()
         except BaseException as e:  # noqa: BLE001 - raised again by `pool`, in the run's thread

@@ -120,7 +120,7 @@ def _make_cards(run: RunInputs, out: Path, max_faces: int, workers: int | None) 
         method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         try:
             with LeanProcessPool(workers, mp_context=mp.get_context(method), initializer=_init_worker,
-                                     initargs=args) as pool:
+                                 initargs=args) as pool:
                 made = list(pool.map(_card_in_worker, jobs, chunksize=max(1, min(32, len(jobs) // (4 * workers)))))
         except (OSError, BrokenProcessPool) as e:  # no worker processes here: make the cards in this one
             log.warning(f"report: worker processes failed ({type(e).__name__}: {e}); making the cards here")
