@@ -100,11 +100,12 @@ class ViewpointConfig:
 
     device: ViewpointDevice = "run"
     """Where the viewpoint stage (SfM, the mixture of shapes, refinement, cameras for unseen images) runs:
-    ``run`` on the run's ``device``; ``cpu`` on the CPU, its result then moved to the run's device. On CUDA a
-    small class's stage is hundreds of small steps of a few kernel launches each: on an H200, 7 classes of
-    40-80 objects took 91.5 s there against 31.9 s on the same machine's CPU (docs/viewpoints.md, *CPU and
-    CUDA*); large classes gain from the GPU (SfM of 9,087 objects 4.47 s). ``cpu`` in a CUDA run has not yet
-    been timed end to end on a GPU, so ``run`` stays the default."""
+    ``run`` on the run's ``device``; ``cpu`` on the CPU, its result then moved to the run's device (the
+    canonical frame stays on the host, as in every run). On CUDA a small class's stage is hundreds of small
+    steps of a few kernel launches each: on an H200, 7 classes of 40-80 objects took 91.5 s there against
+    31.9 s in a CPU run of 16 threads on the same machine (docs/viewpoints.md, *CPU and CUDA*); large classes
+    gain from the GPU (SfM of 9,087 objects 4.47 s). A CUDA run gives its main process one torch thread
+    beside the writers, and ``cpu`` there is unmeasured end to end, so ``run`` is the default."""
     sfm_max_outer: int = 200
     """Outer (fill) iterations of the missing-data factorisation at most."""
     sfm_inner: int = 10

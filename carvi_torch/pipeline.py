@@ -33,7 +33,7 @@ from .io.results import (ClassReport, cameras_json, canonical_image_cameras, qua
                          resumed_levels, scores_entry, write_scores)
 from .io.writer import Writer, canvas_to_image_4x4, id_array, mesh_jobs, proposals_payload
 from .marching import resolve_mesher
-from .runtime import StageTimer, log, to_device
+from .runtime import StageTimer, log
 from .sdf import signed_distance
 from .viewpoints import NoMeanShape, Viewpoints, estimate_viewpoints, ground_truth_cameras
 
@@ -171,9 +171,10 @@ def class_viewpoints(coll: ClassCollection, cfg: Config, device: torch.device, g
                     "class")
         return coll, None, None, report
     vdev = torch.device("cpu") if cfg.viewpoints.device == "cpu" else device  # then moved to the run's device
-    vp = _viewpoints(coll.to(vdev), cfg, gt, report, StageTimer(vdev, report.seconds))
-    vp, timer = (vp if vdev == device else to_device(vp, device)), StageTimer(device, report.seconds)
-    coll = coll.to(device)
+    vcoll = coll.to(vdev)
+    vp = _viewpoints(vcoll, cfg, gt, report, StageTimer(vdev, report.seconds))
+    vp, timer = (vp if vdev == device or vp is None else vp.to(device)), StageTimer(device, report.seconds)
+    coll = vcoll if vdev == device else coll.to(device)
     return coll, vp, (None if vp is None else _surrogate_plan(coll, vp, cfg, generator, timer, report)), report
 
 

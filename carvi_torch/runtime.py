@@ -166,11 +166,11 @@ def intra_op_threads(workers: int) -> int:
     return env if env is not None else max(1, cores() - workers)
 
 
-def to_device(obj, device):
+def to_device(obj, device, _memo: dict | None = None):
     """``obj`` with every tensor it holds on ``device``: tensors and objects with a ``to`` method of their own
     (:class:`~carvi_torch.collection.ClassCollection`, the cameras) through it; other dataclasses as shallow
-    copies, field by field; lists, tuples and dicts element by element; anything else (numbers, strings,
-    ``None``) as is.
+    copies, field by field (:func:`fields_to_device`); lists, tuples and dicts element by element; anything
+    else (numbers, strings, ``None``) as is. An object reached twice is moved once, and stays shared.
 
     Example:
         >>> import dataclasses, torch
@@ -185,20 +185,36 @@ def to_device(obj, device):
     """
     import dataclasses
 
+    memo = {} if _memo is None else _memo
+    if id(obj) in memo:
+        return memo[id(obj)][1]
     if callable(getattr(obj, "to", None)) and not isinstance(obj, type):
-        return obj.to(device)
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        moved = copy.copy(obj)
-        for f in dataclasses.fields(obj):
-            object.__setattr__(moved, f.name, to_device(getattr(obj, f.name), device))
-        return moved
-    if isinstance(obj, tuple) and hasattr(obj, "_fields"):  # a named tuple
-        return type(obj)(*(to_device(v, device) for v in obj))
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(to_device(v, device) for v in obj)
-    if isinstance(obj, dict):
-        return {k: to_device(v, device) for k, v in obj.items()}
-    return obj
+        moved = obj.to(device)
+    elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        moved = fields_to_device(obj, device, _memo=memo)
+    elif isinstance(obj, tuple) and hasattr(obj, "_fields"):  # a named tuple
+        moved = type(obj)(*(to_device(v, device, memo) for v in obj))
+    elif isinstance(obj, (list, tuple)):
+        moved = type(obj)(to_device(v, device, memo) for v in obj)
+    elif isinstance(obj, dict):
+        moved = {k: to_device(v, device, memo) for k, v in obj.items()}
+    else:
+        return obj
+    memo[id(obj)] = (obj, moved)  # the original is held too, so that its id is not reused meanwhile
+    return moved
+
+
+def fields_to_device(obj, device, keep: tuple = (), _memo: dict | None = None):
+    """A shallow copy of the dataclass ``obj`` with each field through :func:`to_device`, but the fields named
+    in ``keep``, which the copy shares with ``obj`` as they are."""
+    import dataclasses
+
+    memo = {} if _memo is None else _memo
+    moved = copy.copy(obj)
+    for f in dataclasses.fields(obj):
+        if f.name not in keep:
+            object.__setattr__(moved, f.name, to_device(getattr(obj, f.name), device, memo))
+    return moved
 
 
 @contextlib.contextmanager

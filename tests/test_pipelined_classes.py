@@ -210,8 +210,9 @@ def _tensors(x, seen=None):
 @pytest.mark.parametrize("extra", [{}, GROUPS], ids=["one_shape", "mixture"])
 def test_viewpoints_on_the_cpu_reach_the_run_device_whole(procedural_input, tmp_path, monkeypatch, extra):
     """``viewpoints.device=cpu``: the stage runs on the CPU, and every tensor of its result (cameras, shape groups
-    and their SfMs, distance maps, the frame) and of the class reaches the run's device before the surrogate plan.
-    ``meta`` stands in for a second device (a CUDA one in a CUDA run; the CUDA test compares the outputs)."""
+    and their SfMs, distance maps) and of the class reaches the run's device before the surrogate plan, but the
+    canonical frame's, which stay on the host as in every run. ``meta`` stands in for a second device (a CUDA
+    one in a CUDA run; the CUDA test compares the outputs)."""
     from carvi_torch.io.coco import load_coco
 
     cfg = _cfg(tmp_path, procedural_input(tmp_path), **{f"viewpoints.{k}": v for k, v in extra.items()},
@@ -232,5 +233,30 @@ def test_viewpoints_on_the_cpu_reach_the_run_device_whole(procedural_input, tmp_
     assert got == "plan" and seen_devices == [torch.device("cpu")]
     assert handed["vp"] is vp and handed["coll"] is coll_out
     assert extra == {} or vp.groups.k == 2  # the mixture's split, with its per-group SfMs, moved too
-    found = _tensors(vp) + _tensors(coll_out)
-    assert len(found) > 40 and {t.device.type for t in found} == {"meta"}
+    # the canonical frame stays on the host, where every run makes it and cameras.json reads it
+    frame = {id(t) for t in _tensors(vp.frame)}
+    assert frame and {t.device.type for t in _tensors(vp.frame)} == {"cpu"}
+    found = [t for t in _tensors(vp) + _tensors(coll_out) if id(t) not in frame]
+    assert len(found) > 30 and {t.device.type for t in found} == {"meta"}
+
+
+def test_viewpoints_handed_over_make_the_same_class_files(procedural_input, tmp_path):
+    """The hand-over path of ``viewpoints.device=cpu`` end to end up to carving, on the host: ``cpu:0`` names the
+    same memory as ``cpu`` but another device, so the result is handed over (``Viewpoints.to``) and the class's
+    ``cameras.json``, its selection reference and its carving maps come out as on the direct path."""
+    from carvi_torch.io.coco import load_coco
+
+    data = procedural_input(tmp_path)
+    plans = {}
+    for name, device, extra in (("direct", torch.device("cpu"), {}),
+                                ("handed", torch.device("cpu", 0), {"viewpoints.device": "cpu"})):
+        cfg = _cfg(tmp_path / name, data, **extra)
+        coll = load_coco(cfg.data, canvas_size=cfg.input.canvas_size, classes=["car"]).collections["car"]
+        plans[name], todo, _ = P.prepare_class(coll, cfg, device, torch.Generator().manual_seed(0), out=tmp_path / name)
+        assert todo
+    a, b = (json.loads((tmp_path / n / "car" / "cameras.json").read_text()) for n in ("direct", "handed"))
+    assert a == b
+    pa, pb = plans["direct"], plans["handed"]
+    assert torch.equal(pa.selection.averages, pb.selection.averages)
+    assert torch.equal(pa.maps.ext, pb.maps.ext) and torch.equal(pa.maps.entry_map, pb.maps.entry_map)
+    assert torch.equal(pa.object_from_camera, pb.object_from_camera)

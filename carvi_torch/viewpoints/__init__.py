@@ -36,7 +36,7 @@ import torch
 
 from ..cameras import ScaledOrthographic, align_rotations
 from ..collection import ClassCollection
-from ..runtime import StageTimer
+from ..runtime import StageTimer, fields_to_device
 from ..sdf import distance_to_mask
 from . import camera_fit, mixture, sfm
 from .choice import kept_rows, tilted
@@ -109,6 +109,11 @@ class Viewpoints:
     info: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     log: list = field(default_factory=list)
+
+    def to(self, device) -> "Viewpoints":
+        """These viewpoints with their tensors on ``device``, but the canonical frame: it is made from host
+        copies and read on the host (``cameras.json``) in every run, so it stays there."""
+        return fields_to_device(self, device, keep=("frame",))
 
     def take_distances(self) -> torch.Tensor:
         """The distance maps, released from this object (the carving needs them once)."""
