@@ -5,26 +5,28 @@
 #
 #     bash tools/gpu_session.sh [all|tests|bench1000|bench9087|manyclasses|cad8|lease] [OUTDIR]
 #
-# OUTDIR defaults to $OUT (the lent machine's result folder) or outputs/gpu. Each step writes
-# its log and JSON there; steps can be run one by one, and on a short lease should be: a lent
-# machine limits one command to 10 minutes, and `all` takes longer. Measured on an H200 (16 slow
-# cores) at b9a1ed9: tests 117 s; bench9087 54 s for mesher=auto, the skimage run stopped unfinished
-# at 85 s; one many-class run did not finish in 110 s; cad8 80 s on the CPU, over 120 s on CUDA
-# (docs/benchmarks.md). Wrap each step in `timeout` and pack OUTDIR after each. Python is
-# $PYTHON or python3; it must have torch with CUDA. Packages the machine lacks can be carried as
-# wheels in .whl/ (installed into a private target, never into the system). The benchmark data
-# are generated on first use, or
-# carried (the run tool's carry list): outputs/bench/data/car1000_s0/{annotations.json,gt.json}
-# (about 3 MB; the 9,087-object class is tiled from it) and
-# outputs/bench/data/cad_v8_s0/annotations.json (0.5 MB: the many-class data, 584 CAD renders;
-# without it and without ../shared/data/pascal3d_cad a procedural stand-in is generated, minutes).
+# OUTDIR defaults to $OUT (the lent machine's result folder) or outputs/gpu; each step writes its
+# log and JSON there. Python is $PYTHON or python3, with torch and CUDA. Packages the machine lacks
+# travel as wheels in .whl/ (installed once into /tmp/carvi_site, never into the system). The data
+# are generated on first use, or carried: outputs/bench/data/car1000_s0/{annotations.json,gt.json}
+# (3 MB; the 9,087-object class is tiled from it), outputs/bench/data/cad_v8_s0/annotations.json
+# (0.5 MB: the many-class data) and ../shared/data/pascal3d_cad (cad8; CAD=path elsewhere).
 #
-# New against current, same run (ratios appended to OUTDIR/ratios.txt):
-#   bench9087    the 9,087-object class with mesh.mesher=auto (batched torch marching cubes on the
-#                GPU, in the run's process) and with mesher=skimage (the writers mesh, as before)
-#   manyclasses  12 classes of about 50 objects: the viewpoint stage on the run's device (default) and
-#                on the CPU (viewpoints.device=cpu; on small classes the stage alone took 2.9x longer on
-#                CUDA than on that machine's CPU)
+# Steps (new paths against the current ones in the same run, ratios in OUTDIR/ratios.txt):
+#   tests        pytest -m cuda (117 s on an H200 at b9a1ed9)
+#   bench1000    tools/benchmark.py --device cuda --objects 1000, the carving comparison included
+#   bench9087    the 9,087-object class with mesher=auto (marching cubes batched on the GPU) and with
+#                mesher=skimage (the writers mesh); H200: 54 s for auto, skimage stopped at 85 s
+#   manyclasses  12 classes of about 50 objects, the viewpoint stage on the run's device (default)
+#                against viewpoints.device=cpu; one run did not finish in 110 s on the H200 (bba3577)
+#   cad8         the 8-view CAD renders' cameras on the CPU and on CUDA, compared object by object
+#                (tolerance 0.5 degrees median per class); DEVICES=cuda runs the CUDA side alone
+#                against a CPU run already in OUTDIR/cad8, DEVICES= only compares; H200: the CPU
+#                80 s, CUDA over 120 s
+#   all          tests, bench1000, bench9087 and manyclasses: longer than a lent machine's 10 minutes
+#   lease        STEPS="tests:170 bench9087:150 manyclasses:240 cad8:200" (step:seconds): each step
+#                under its own limit, OUTDIR's small files packed into PACK (default OUTDIR.tgz)
+#                after each, so what finished comes back when a later step runs out of time
 set -uo pipefail
 if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then  # the comment above
     sed -n '2,/^set /p' "$0" | sed -e '$d' -e 's/^# \{0,1\}//'
@@ -35,7 +37,23 @@ out=${2:-${OUT:-outputs/gpu}}
 py=${PYTHON:-python3}
 mkdir -p "$out"
 
+case "$step" in
+    all|tests|bench1000|bench9087|manyclasses|cad8|lease) ;;
+    *) echo "unknown step '$step' (all, tests, bench1000, bench9087, manyclasses, cad8, lease)" >&2; exit 2 ;;
+esac
+
+if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, scipy, skimage, yaml, tqdm, matplotlib, pytest" \
+        2>/dev/null \
+        && [ -d .whl ] && compgen -G ".whl/*.whl" >/dev/null; then
+    "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/carvi_site .whl/*.whl || exit 1
+    export PYTHONPATH="/tmp/carvi_site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
+else
+    export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+fi
+
 # ---- lease: every step under its own time limit, OUTDIR's small files packed after each step
+# (the packages above are installed once; each step's own check then finds them)
 #     STEPS="tests:170 bench9087:150 manyclasses:240 cad8:200" PACK=$OUT/results.tgz \
 #         bash tools/gpu_session.sh lease /tmp/gpu
 # A lent machine returns few files and stops a command at its limit: each step runs under
@@ -56,21 +74,6 @@ if [ "$step" = "lease" ]; then
             --exclude='*.obj' --exclude='*.zarr' . || exit 1
     done
     exit 0
-fi
-
-case "$step" in
-    all|tests|bench1000|bench9087|manyclasses|cad8) ;;
-    *) echo "unknown step '$step' (all, tests, bench1000, bench9087, manyclasses, cad8, lease)" >&2; exit 2 ;;
-esac
-
-if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, scipy, skimage, yaml, tqdm, matplotlib, pytest" \
-        2>/dev/null \
-        && [ -d .whl ] && compgen -G ".whl/*.whl" >/dev/null; then
-    "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-        --target /tmp/carvi_site .whl/*.whl || exit 1
-    export PYTHONPATH="/tmp/carvi_site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
-else
-    export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 fi
 
 # ---- begin: small-class CAD benchmark, CPU against CUDA -------------------------------------
@@ -100,7 +103,7 @@ runs = {d: work / f"cameras_device-{d}_v8_renders-s2" for d in ("cpu", "cuda")}
 summ = {d: json.loads((p / "summary.json").read_text())["classes"] for d, p in runs.items()}
 seconds = lambda d, cls: round(sum(summ[d][cls]["seconds"].get(k, 0.0) for k in ("sfm", "refine")), 2)
 for cls in sorted(summ["cpu"]):
-    if not (runs["cuda"] / cls / "cameras.json").is_file():
+    if cls not in summ["cuda"] or not (runs["cuda"] / cls / "cameras.json").is_file():
         print(f"{cls:12s} not reached by the CUDA run")
         continue
     cams = {d: json.loads((p / cls / "cameras.json").read_text())["cameras"] for d, p in runs.items()}
@@ -113,10 +116,13 @@ for cls in sorted(summ["cpu"]):
         choice += c.get("camera_choice") != g.get("camera_choice")
     start = [summ[d][cls].get("sfm", {}).get("start", {}).get("kept") for d in ("cpu", "cuda")]
     groups = [summ[d][cls].get("sfm_groups", {}).get("groups", 1) for d in ("cpu", "cuda")]
-    med = float(np.median(ang)) if ang else float("nan")
+    if not ang:
+        print(f"{cls:12s} no object with a refined camera on both devices")
+        continue
+    med = float(np.median(ang))
     worst = max(worst, med)
     rows[cls] = {"objects": summ["cpu"][cls]["objects"], "compared": len(ang), "median_deg": round(med, 3),
-                 "max_deg": round(max(ang, default=float("nan")), 3), "camera_choice_differs": choice,
+                 "max_deg": round(max(ang), 3), "camera_choice_differs": choice,
                  "sfm_start": start, "shape_groups": groups,
                  "viewpoint_seconds": {"cpu": seconds("cpu", cls), "cuda": seconds("cuda", cls)}}
     print(f"{cls:12s} median {med:.3f} deg, max {rows[cls]['max_deg']:.2f} deg, camera_choice differs in {choice}, "
