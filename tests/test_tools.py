@@ -608,3 +608,16 @@ def test_misses_study_scores_the_pipelines_cameras_against_the_true_ones_refined
         assert e["true_refined"] <= e["true"] * (1 + 1e-6), m
         assert 0 <= min(r["hull"].values()) and max(r["hull"].values()) <= 1, m
         assert set(r["energy"]) == {"final", "true", "true_refined", "mirror"}, m
+
+
+def test_benchmark_load_only_times_both_thread_counts_on_the_same_canvases(procedural_input, tmp_path):
+    """``--load-only``: both variants timed ``--repeat`` times, taking turns, and the canvases compared."""
+    import argparse
+
+    bm = load_tool("benchmark", "benchmark_tool")
+    args = argparse.Namespace(objects=6, category="car", repeat=2)
+    lo = bm.time_loading(procedural_input(tmp_path), args)
+    assert lo["objects"] == 6 and lo["same_canvases"] is True
+    assert set(lo["seconds"]) == {"one thread", "canvas_threads"} and all(len(v) == 2 for v in lo["seconds"].values())
+    assert lo["new_over_one_thread"] == lo["best_seconds"]["canvas_threads"] / lo["best_seconds"]["one thread"]
+    assert "canvas_threads / one thread" in bm._loading_table(lo)

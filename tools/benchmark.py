@@ -324,6 +324,39 @@ def time_meshing(recon: Path, device: torch.device, objects: int, repeat: int) -
                 len(b[0]), len(b[1])]}
 
 
+def time_loading(ann: Path, args) -> dict:
+    """``--load-only``: loading alone (``io.coco.load_coco`` at the default canvas size) with the canvases
+    resampled on one thread and on ``canvas_threads`` threads, taking turns, best of ``--repeat``; the
+    canvases are checked identical."""
+    from carvi_torch.io.coco import canvas_threads, load_coco
+
+    size = Config().input.canvas_size
+    variants = {"one thread": 1, "canvas_threads": canvas_threads(args.objects)}
+    seconds: dict = {k: [] for k in variants}
+    masks = {}
+    for r in range(max(1, args.repeat)):
+        for name, n in (list(variants.items()) if r % 2 == 0 else list(variants.items())[::-1]):
+            t0 = time.perf_counter()
+            masks[name] = load_coco(ann, canvas_size=size, classes=[args.category], threads=n).collections[
+                args.category].masks
+            seconds[name].append(round(time.perf_counter() - t0, 3))
+    best = {k: min(v) for k, v in seconds.items()}
+    return {"objects": len(masks["one thread"]), "threads": variants, "seconds": seconds, "best_seconds": best,
+            "new_over_one_thread": best["canvas_threads"] / best["one thread"],
+            "same_canvases": bool(torch.equal(masks["one thread"], masks["canvas_threads"]))}
+
+
+def _loading_table(lo: dict) -> str:
+    n, t = lo["objects"], lo["threads"]["canvas_threads"]
+    rows = [f"| loading {n} objects (load_coco) | one thread | canvas_threads ({t}) |", "|---|---:|---:|",
+            f"| seconds, best of {len(lo['seconds']['one thread'])} | {lo['best_seconds']['one thread']:.2f} | "
+            f"{lo['best_seconds']['canvas_threads']:.2f} |",
+            f"| objects per second | {n / lo['best_seconds']['one thread']:.0f} | "
+            f"{n / lo['best_seconds']['canvas_threads']:.0f} |"]
+    return "\n".join(rows) + (f"\n\ncanvas_threads / one thread: **{lo['new_over_one_thread']:.3f}**; the same "
+                              f"canvases: {lo['same_canvases']}")
+
+
 def run_evaluation(data: Path, recon: Path, out: Path, category: str) -> dict:
     """``python -m carvi_torch.evaluate`` on the run; returns its shape summary for the class."""
     cmd = [sys.executable, "-m", "carvi_torch.evaluate", "--data", str(data), "--recon", f"run={recon}", "--out",
@@ -1014,6 +1047,8 @@ def record_target(args, key: str) -> tuple[Path, str | None]:
 def default_key(device: torch.device, args) -> str:
     """``benchmark_<device>_<objects>``; the carving comparison alone (``--skip-e2e``):
     ``carving_<device>_threads<N>`` (N: the torch threads it will use)."""
+    if getattr(args, "load_only", False):
+        return f"loading_{device.type}_{args.objects}"
     if args.skip_e2e and not args.skip_carve:
         threads = args.threads or intra_op_threads(writer_workers("all", device))
         return f"carving_{device.type}_threads{threads}"
@@ -1043,6 +1078,9 @@ def main(argv=None):
     ap.add_argument("--skip-e2e", action="store_true", help="no end-to-end run (the carving comparison alone)")
     ap.add_argument("--skip-carve", action="store_true", help="no carving comparison (the end-to-end run alone)")
     ap.add_argument("--eval", action="store_true", help="also evaluate shape errors against gt.json")
+    ap.add_argument("--load-only", action="store_true",
+                    help="loading alone: the canvases on one thread against canvas_threads, best of --repeat "
+                         "(record key loading_<device>_<objects>)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="further config overrides")
     ap.add_argument("--mesh-objects", type=int, default=200,
                     help="grids of the end-to-end run meshed by scikit-image and by the batched torch op (timed)")
@@ -1089,6 +1127,10 @@ def main(argv=None):
               "config": {"objects": args.objects, "category": args.category, "resolution": args.resolution,
                          "proposals": args.proposals, "tiled": args.objects > args.base_objects and args.tile,
                          "overrides": args.set}}
+    if args.load_only:
+        result["loading"] = time_loading(data, args)
+        args.skip_e2e = args.skip_carve = True
+        print(_loading_table(result["loading"]))
     if not args.skip_e2e:
         recon = Path(args.work_dir) / name
         result["end_to_end"] = run_end_to_end(data, recon, args)

@@ -15,7 +15,8 @@
 # Steps (new paths against the current ones in the same run, ratios in OUTDIR/ratios.txt):
 #   tests        pytest -m cuda (117 s on an H200 at b9a1ed9)
 #   bench1000    tools/benchmark.py --device cuda --objects 1000, the carving comparison included
-#   bench9087    the 9,087-object class with mesher=auto (marching cubes batched on the GPU) and with
+#   bench9087    the 9,087-object class: its loading with the canvases on one thread and on
+#                canvas_threads (--load-only), then mesher=auto (marching cubes batched on the GPU) and
 #                mesher=skimage (the writers mesh); H200: 54 s for auto, skimage stopped at 85 s
 #   manyclasses  12 classes of about 50 objects, the viewpoint stage on the run's device (default)
 #                against viewpoints.device=cpu; one run did not finish in 110 s on the H200 (bba3577)
@@ -168,8 +169,10 @@ bench() {  # objects, extra arguments
     return "${PIPESTATUS[0]}"
 }
 
-bench_pair() {  # the 9,087-object class: the GPU meshing (default) and the writers' meshing, one after the other
-    local n=9087
+bench_pair() {  # the 9,087-object class: loading on one thread and on canvas_threads; the GPU meshing (default)
+    local n=9087  # and the writers' meshing, one after the other
+    "$py" tools/benchmark.py --objects $n --load-only --repeat 3 --out "$out/loading_$n.json" 2>&1 \
+        | tee "$out/loading_$n.txt" || return 1
     "$py" tools/benchmark.py --device cuda --objects $n --skip-carve --out "$out/benchmark_cuda_${n}.json" 2>&1 \
         | tee "$out/benchmark_cuda_${n}.txt" || return 1
     "$py" tools/benchmark.py --device cuda --objects $n --skip-carve --set mesher=skimage \

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -28,7 +29,7 @@ import torch
 from pycocotools import mask as mask_utils
 
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvas
-from ..runtime import torch_threads
+from ..runtime import cores, torch_threads
 from .layout import reserved
 from .outputs import read_json, safe_name, write_json
 
@@ -314,7 +315,7 @@ def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[
 
 def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, device: str | torch.device = "cpu",
               classes: Iterable[str] | None = None, skip_flags: bool = True,
-              max_image_pixels: int = MAX_IMAGE_PIXELS) -> LoadResult:
+              max_image_pixels: int = MAX_IMAGE_PIXELS, threads: int | None = None) -> LoadResult:
     """Read a COCO keypoint file into one :class:`ClassCollection` per category.
 
     Args:
@@ -324,6 +325,8 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
         classes: keep only these categories (by name, or by their folder name ``ClassMeta.key``).
         skip_flags: skip annotations flagged ``occluded`` / ``truncated`` / ``iscrowd``.
         max_image_pixels: skip objects whose image has more pixels (their mask would not fit in memory).
+        threads: threads that resample the masks into the canvases, an object each at a time (default
+            :func:`canvas_threads`); the canvases are the same for any number.
 
     Returns:
         :class:`LoadResult`, collections keyed by ``ClassMeta.key`` (two categories of one name are two
@@ -347,7 +350,8 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
         if item is not None:
             per_class[item[0]].append(item[1:])
     by_key = {key: meta for key, meta in metas.values() if meta is not None}
-    collections = {key: _build_collection(by_key[key], items, canvas_size, margin, torch.device(device))
+    collections = {key: _build_collection(by_key[key], items, canvas_size, margin, torch.device(device),
+                                          canvas_threads(len(items)) if threads is None else threads)
                    for key, items in per_class.items()}
     return LoadResult(collections=collections, problems=problems, dataset=data)
 
@@ -530,21 +534,34 @@ def _dense(values: list) -> torch.Tensor:
     return torch.tensor([index.setdefault(v, len(index)) for v in values], dtype=torch.long)
 
 
+def canvas_threads(objects: int) -> int:
+    """Threads that resample a class's masks into its canvases, one object each at a time: the cores
+    (at most 16), or 1 for a class of fewer than 64 objects (a pool costs more than it gives there).
+
+    Example:
+        >>> canvas_threads(10)
+        1
+    """
+    return 1 if objects < 64 else max(1, min(16, cores()))
+
+
 def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: float,
-                      device: torch.device) -> ClassCollection:
+                      device: torch.device, threads: int = 1) -> ClassCollection:
     """Crop each object into the canvas (box = mask extent; visible keypoints may stick out a little)."""
     boxes = []
     for _ann, _im, mask, _xy, _vis in items:
         ys, xs = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))  # occupied rows, columns
         boxes.append([xs[0], ys[0], xs[-1], ys[-1]])
     sim = canvas_similarity(torch.tensor(boxes, dtype=torch.float32), canvas_size, margin)
+
+    def canvas(i: int) -> torch.Tensor:
+        return resample_to_canvas(torch.from_numpy(items[i][2]), float(sim.scale[i]), sim.offset[i], canvas_size)
+
     # a few small operations per object: intra-op threads only add their synchronisation (on a busy
-    # 2-core machine 584 objects took 33 s with 2 threads, 2.2 s with 1), and change no value
-    with torch_threads(1):
-        masks = torch.stack([
-            resample_to_canvas(torch.from_numpy(m), float(sim.scale[i]), sim.offset[i], canvas_size)
-            for i, (_a, _im, m, _xy, _v) in enumerate(items)
-        ])
+    # 2-core machine 584 objects took 33 s with 2 threads, 2.2 s with 1); objects side by side on
+    # threads of their own do not (torch's operators release the GIL). Same values either way.
+    with torch_threads(1), ThreadPoolExecutor(max(1, threads)) as pool:
+        masks = torch.stack(list(pool.map(canvas, range(len(items)))))
     xy = torch.tensor(np.stack([it[3] for it in items]), dtype=torch.float32)
     vis = torch.tensor(np.stack([it[4] for it in items]), dtype=torch.bool)
     kp = torch.where(vis[..., None], sim.apply(xy), torch.zeros_like(xy))
