@@ -535,14 +535,14 @@ def _dense(values: list) -> torch.Tensor:
 
 
 def canvas_threads(objects: int) -> int:
-    """Threads that resample a class's masks into its canvases, one object each at a time: the cores
-    (at most 16), or 1 for a class of fewer than 64 objects (a pool costs more than it gives there).
+    """Threads that resample a class's masks into its canvases, one object each at a time: the cores, at
+    most 16 and at most one per object.
 
     Example:
-        >>> canvas_threads(10)
+        >>> canvas_threads(1)
         1
     """
-    return 1 if objects < 64 else max(1, min(16, cores()))
+    return max(1, min(16, cores(), objects))
 
 
 def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: float,
