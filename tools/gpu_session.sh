@@ -96,9 +96,11 @@ if [ "$step" = "cad8" ]; then
             --out "$out/cad8_$dev.json" "device=$dev" 2>&1 | tee "$out/cad8_$dev.txt" || status=1
     done
     "$py" - "$out/cad8" "$out/cad8_agreement.json" <<'PYEOF' 2>&1 | tee "$out/cad8_agreement.txt" || status=1
-import json, math, sys
+import json, sys
 from pathlib import Path
 import numpy as np
+import torch
+from carvi_torch.cameras import geodesic_angle
 work, worst, rows = Path(sys.argv[1]), 0.0, {}
 runs = {d: work / f"cameras_device-{d}_v8_renders-s2" for d in ("cpu", "cuda")}
 summ = {d: json.loads((p / "summary.json").read_text())["classes"] for d, p in runs.items()}
@@ -108,13 +110,10 @@ for cls in sorted(summ["cpu"]):
         print(f"{cls:12s} not reached by the CUDA run")
         continue
     cams = {d: json.loads((p / cls / "cameras.json").read_text())["cameras"] for d, p in runs.items()}
-    ang, choice = [], 0
-    for aid, c in cams["cpu"].items():
-        g = cams["cuda"].get(aid, {})
-        if c.get("refined") and g.get("refined"):
-            M = np.array(c["refined"]["R"]) @ np.array(g["refined"]["R"]).T
-            ang.append(math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(M) - 1) / 2)))))
-        choice += c.get("camera_choice") != g.get("camera_choice")
+    both = [a for a, c in cams["cpu"].items() if c.get("refined") and cams["cuda"].get(a, {}).get("refined")]
+    R = [torch.tensor([cams[d][a]["refined"]["R"] for a in both], dtype=torch.float64) for d in ("cpu", "cuda")]
+    ang = torch.rad2deg(geodesic_angle(*R)).tolist() if both else []
+    choice = sum(c.get("camera_choice") != cams["cuda"].get(a, {}).get("camera_choice") for a, c in cams["cpu"].items())
     start = [summ[d][cls].get("sfm", {}).get("start", {}).get("kept") for d in ("cpu", "cuda")]
     groups = [summ[d][cls].get("sfm_groups", {}).get("groups", 1) for d in ("cpu", "cuda")]
     if not ang:
