@@ -146,7 +146,7 @@ def canvas_similarity(boxes: torch.Tensor, canvas_size: int, margin: float) -> S
     return Similarity2D(scale, offset)
 
 
-def resample_to_canvas(mask: torch.Tensor, scale: float, offset: torch.Tensor, canvas_size: int,
+def resample_to_canvas(mask: torch.Tensor, scale: float, offset, canvas_size: int,
                        supersample: int | None = None) -> torch.Tensor:
     """Resample one image-size mask into the canvas.
 
@@ -156,7 +156,7 @@ def resample_to_canvas(mask: torch.Tensor, scale: float, offset: torch.Tensor, c
 
     Args:
         mask: ``(h, w)`` bool image mask.
-        scale: ``a``; offset: ``(2,)`` ``b``.
+        scale: ``a``; offset: ``b``, a ``(2,)`` tensor or two floats.
         canvas_size: ``C``.
         supersample: sub-samples per axis; default ``ceil(1 / a)`` clamped to [1, 4].
 

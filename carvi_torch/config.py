@@ -354,8 +354,8 @@ class Config:
     """``executor=local`` on the CPU: make the next class's viewpoints (SfM, the mixture of shapes, refinement,
     the surrogate plan) on a background thread while this class carves, selects and writes, so that the
     second core works during those single-threaded stages (one class's viewpoints more in memory; the
-    same outputs; docs/benchmarks.md, *Many classes*). A CUDA run keeps its classes one after the other (not
-    measured on a GPU yet). ``False``: each class's stages one after the other."""
+    same outputs; docs/benchmarks.md, *Many classes*). A CUDA run keeps its classes one after the other (the
+    pipeline is unmeasured on a GPU). ``False``: each class's stages one after the other."""
     input: InputConfig = field(default_factory=InputConfig)
     viewpoints: ViewpointConfig = field(default_factory=ViewpointConfig)
     surrogates: SurrogateConfig = field(default_factory=SurrogateConfig)
