@@ -105,7 +105,8 @@ class ViewpointConfig:
     steps of a few kernel launches each: on an H200, 7 classes of 40-80 objects took 91.5 s there against
     31.9 s in a CPU run of 16 threads on the same machine (docs/viewpoints.md, *CPU and CUDA*); large classes
     gain from the GPU (SfM of 9,087 objects 4.47 s). A CUDA run gives its main process one torch thread
-    beside the writers, and ``cpu`` there is unmeasured end to end, so ``run`` is the default."""
+    beside the writers, and ``cpu`` there is unmeasured end to end, so ``run`` is the default.
+    ``viewpoint_processes`` above 0 implies ``cpu``."""
     sfm_max_outer: int = 200
     """Outer (fill) iterations of the missing-data factorisation at most."""
     sfm_inner: int = 10
@@ -355,7 +356,17 @@ class Config:
     the surrogate plan) on a background thread while this class carves, selects and writes, so that the
     second core works during those single-threaded stages (one class's viewpoints more in memory; the
     same outputs; docs/benchmarks.md, *Many classes*). A CUDA run keeps its classes one after the other (the
-    pipeline is unmeasured on a GPU). ``False``: each class's stages one after the other."""
+    pipeline is unmeasured on a GPU), but for ``viewpoint_processes``. ``False``: each class's stages one after
+    the other. ``viewpoint_processes`` above 0 takes its place."""
+    viewpoint_processes: int = 0
+    """``executor=local``: worker processes that make the classes' viewpoint stages (SfM, the mixture of shapes,
+    refinement) ahead, several classes at once, on the CPU (as ``viewpoints.device=cpu``), each with the run's
+    torch thread count; the run takes them in class order, moves them to its device and goes on with carving.
+    At most this many classes wait beyond the one in progress. 0: none (the stage in the run's process; on the
+    CPU one class ahead on a thread, ``pipeline_classes``). For machines with many cores and many classes,
+    above all CUDA runs: a small class's viewpoint stage is slower on a GPU than on one CPU core
+    (docs/benchmarks.md, *Many classes*). The same cameras as the run's own process on the CPU. With
+    ``executor=ray`` each class's viewpoints are a task already, and this only puts them on the CPU."""
     input: InputConfig = field(default_factory=InputConfig)
     viewpoints: ViewpointConfig = field(default_factory=ViewpointConfig)
     surrogates: SurrogateConfig = field(default_factory=SurrogateConfig)
@@ -379,6 +390,7 @@ class Config:
     def validate(self) -> None:
         """Raise :class:`ConfigError` for values out of range."""
         _positive(self, "ray_chunk_objects")
+        _within(self.viewpoint_processes, 0, 256, "viewpoint_processes")
         for name in SECTIONS:
             getattr(self, name).validate()
 
@@ -607,6 +619,7 @@ def _coerce_plain(value: Any, annotation: Any) -> Any:
 #: the input files are the user's choice, and resumed objects are matched by annotation id).
 NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overwrite", "classes", "stage", "device",
                     "executor", "ray_address", "ray_chunk_objects", "pipeline_classes",  # where the work runs
+                    "viewpoint_processes",  # CPU viewpoints, as viewpoints.device=cpu ("device" is neutral too)
                     "viewpoints.sfm_group_threads",  # the mixture fit's result is the same on any number of threads
                     "carve.backend"}  # every carving backend gives the same labels voxel for voxel
 

@@ -37,8 +37,8 @@ from .runtime import StageTimer, log
 from .sdf import signed_distance
 from .viewpoints import NoMeanShape, Viewpoints, estimate_viewpoints, ground_truth_cameras
 
-__all__ = ["run_class", "class_viewpoints", "prepare_class", "carve_and_select", "ClassPlan", "chunk_objects",
-           "finished_objects", "reconstruct_chunk", "finish_class"]
+__all__ = ["run_class", "viewpoint_stage", "viewpoint_device", "class_viewpoints", "prepare_class", "carve_and_select",
+           "ClassPlan", "finished_objects", "reconstruct_chunk", "finish_class"]
 
 
 @dataclass
@@ -95,31 +95,6 @@ def _todo(coll: ClassCollection, vp: Viewpoints, done: list, cfg: Config, report
     return [i for i in range(len(coll)) if chosen[i] and not done[i] and usable[i]]
 
 
-def _viewpoints(coll, cfg, gt, report, timer) -> Viewpoints | None:
-    """The class's viewpoints; with ``cameras=gt`` the true ones, the objects without a usable one in
-    ``gt.json`` skipped with the reason. ``None`` (the class skipped, with the reason): no object has a
-    true camera, or SfM placed none."""
-    gt_img, gt_why = ground_truth_cameras(gt, coll) if cfg.study.cameras == "gt" else (None, [])
-    if cfg.study.cameras == "gt" and gt_img is None:
-        report.status = "skipped"
-        for aid, src, why in zip(coll.annotation_ids, coll.sources, gt_why):
-            report.skip(f"cameras=gt: {why}", "viewpoints", aid, src)
-        return None
-    try:
-        vp = estimate_viewpoints(coll, cfg.viewpoints, source=cfg.study.cameras, gt_cameras=gt_img, seed=cfg.seed,
-                                 timer=timer)
-    except NoMeanShape as e:
-        report.status = "skipped"
-        report.skip(str(e), "viewpoints")
-        return None
-    vp.no_camera.update({i: f"cameras=gt: {why}" for i, why in enumerate(gt_why) if why})
-    report.warnings.extend(vp.warnings)
-    report.info.update(vp.info)
-    for line in vp.log:
-        log.info(line)
-    return vp
-
-
 def _maps(vp: Viewpoints, plan: surrogates.SurrogatePlan, todo: list[int], sel: select.SelectionReference,
           cfg: Config, timer: StageTimer) -> CarveMaps:
     """The class's silhouettes prepared for carving (the outside distances reused), and for a
@@ -159,23 +134,60 @@ def _surrogate_plan(coll, vp: Viewpoints, cfg: Config, generator, timer, report)
     return surrogates.SurrogatePlan(n, axes, clusters, trip, mirrors, levels=levels)
 
 
-def class_viewpoints(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
-                     gt: dict | None = None, report: ClassReport | None = None) -> tuple:
-    """The part of :func:`prepare_class` that reads and writes no file (an executor may run it ahead, on another
-    thread): ``(coll, vp, surrogate_plan, report)``, the class on ``device``, its viewpoints and surrogate plan,
-    both ``None`` when the class stops there (too few instances, no true or SfM cameras)."""
+def viewpoint_stage(coll: ClassCollection, cfg: Config, gt: dict | None = None,
+                    report: ClassReport | None = None) -> tuple[Viewpoints | None, ClassReport]:
+    """The viewpoint stage of one class on its collection's device, reading and writing no file (a worker
+    process may run it): ``(vp, report)``; ``vp.log`` is the caller's to log. With ``cameras=gt`` the true
+    cameras, the objects without a usable one in ``gt.json`` skipped with the reason. ``vp`` is ``None``
+    (the class skipped, the reason in ``report``): too few instances, no object with a true camera, or
+    SfM placed none."""
     report = ClassReport(coll.meta.key, objects=len(coll)) if report is None else report
     if len(coll) < cfg.input.min_instances:
         report.status = "skipped"
         report.skip(f"class has {len(coll)} usable instance(s), fewer than min_instances={cfg.input.min_instances}",
                     "class")
+        return None, report
+    gt_img, gt_why = ground_truth_cameras(gt, coll) if cfg.study.cameras == "gt" else (None, [])
+    if cfg.study.cameras == "gt" and gt_img is None:
+        report.status = "skipped"
+        for aid, src, why in zip(coll.annotation_ids, coll.sources, gt_why):
+            report.skip(f"cameras=gt: {why}", "viewpoints", aid, src)
+        return None, report
+    try:
+        vp = estimate_viewpoints(coll, cfg.viewpoints, source=cfg.study.cameras, gt_cameras=gt_img, seed=cfg.seed,
+                                 timer=StageTimer(coll.device, report.seconds))
+    except NoMeanShape as e:
+        report.status = "skipped"
+        report.skip(str(e), "viewpoints")
+        return None, report
+    vp.no_camera.update({i: f"cameras=gt: {why}" for i, why in enumerate(gt_why) if why})
+    report.warnings.extend(vp.warnings)
+    report.info.update(vp.info)
+    return vp, report
+
+
+def viewpoint_device(cfg: Config, device: torch.device) -> torch.device:
+    """Where the viewpoint stage runs: the CPU with ``viewpoints.device=cpu`` or ``viewpoint_processes``,
+    else the run's ``device``."""
+    return torch.device("cpu") if cfg.viewpoints.device == "cpu" or cfg.viewpoint_processes > 0 else device
+
+
+def class_viewpoints(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
+                     gt: dict | None = None, report: ClassReport | None = None, made: tuple | None = None) -> tuple:
+    """The part of :func:`prepare_class` that reads and writes no file (an executor may run it ahead, on another
+    thread): ``(coll, vp, surrogate_plan, report)``, the class on ``device``, its viewpoints and surrogate plan,
+    both ``None`` when the class stops there (too few instances, no true or SfM cameras). ``made``: the
+    result of :func:`viewpoint_stage` on this class made elsewhere (a worker process), on the CPU."""
+    vdev = viewpoint_device(cfg, device)
+    vcoll = coll.to(vdev) if made is None else coll
+    vp, report = viewpoint_stage(vcoll, cfg, gt, report) if made is None else made
+    if vp is None:
         return coll, None, None, report
-    vdev = torch.device("cpu") if cfg.viewpoints.device == "cpu" else device  # then moved to the run's device
-    vcoll = coll.to(vdev)
-    vp = _viewpoints(vcoll, cfg, gt, report, StageTimer(vdev, report.seconds))
-    vp, timer = (vp if vdev == device or vp is None else vp.to(device)), StageTimer(device, report.seconds)
-    coll = vcoll if vdev == device else coll.to(device)
-    return coll, vp, (None if vp is None else _surrogate_plan(coll, vp, cfg, generator, timer, report)), report
+    for line in vp.log:
+        log.info(line)
+    vp, timer = (vp if vdev == device else vp.to(device)), StageTimer(device, report.seconds)
+    coll = vcoll if vcoll.device == device else coll.to(device)
+    return coll, vp, _surrogate_plan(coll, vp, cfg, generator, timer, report), report
 
 
 def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
@@ -292,25 +304,6 @@ def _puffballs(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: C
     return set(none)
 
 
-#: Objects per pipeline chunk on the CPU: small enough that a chunk's grids stay in the
-#: caches between carving and selection, large enough that per-chunk overheads vanish.
-CPU_CHUNK_OBJECTS = 4
-#: Fraction of the free CUDA memory a pipeline chunk may take (grids, costs, projections).
-CUDA_CHUNK_FRACTION = 0.25
-#: Bytes per voxel of one proposal held during a chunk on CUDA (occupancy, boundary, sampling temporaries).
-CUDA_BYTES_PER_VOXEL = 16
-
-
-def chunk_objects(cfg: Config, device: torch.device) -> int:
-    """References carved and selected together: a few on the CPU (the carving chunks further for its
-    caches); on CUDA as many as a quarter of the free device memory holds (few, large kernels)."""
-    per_object = max(1, cfg.surrogates.proposals) * cfg.carve.resolution ** 3
-    if device.type == "cuda":
-        free, _total = torch.cuda.mem_get_info(device)
-        return max(1, int(free * CUDA_CHUNK_FRACTION) // (per_object * CUDA_BYTES_PER_VOXEL))
-    return CPU_CHUNK_OBJECTS
-
-
 def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, device: torch.device,
               generator: torch.Generator, writer: Writer | None = None, ahead: tuple | None = None) -> ClassReport:
     """Run every stage for one class; write ``out/<class>/``; return its report.
@@ -344,11 +337,11 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
 def _carve_chunks(plan: ClassPlan, todo: list[int], cfg: Config, report: ClassReport, writer: Writer,
                   progress=None) -> None:
     """Carve, select and hand to ``writer`` the originals ``todo`` (a consecutive run of the plan's),
-    :func:`chunk_objects` at a time; wait for the writer at the end."""
+    :func:`carvi_torch.carve.chunk_objects` at a time; wait for the writer at the end."""
     device = plan.maps.device
     timer = StageTimer(device, report.seconds)
     todo_t = torch.tensor(todo, dtype=torch.long, device=device)
-    chunk = chunk_objects(cfg, device)
+    chunk = carve.chunk_objects(cfg.surrogates.proposals, cfg.carve.resolution, device)
     for c0 in range(0, len(todo), chunk):
         ids = todo_t[c0:c0 + chunk]
         sel = carve_and_select(ids, plan, cfg, timer)

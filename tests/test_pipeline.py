@@ -174,12 +174,12 @@ def car_again(tmp_path_factory):
     """The car class run again from scratch with the same seed (its input generated anew), written inline
     (no writer processes), one object per chunk, the torch carving and one torch thread: the folder, the
     run's summary and the caller's torch thread count before and after the run."""
-    import carvi_torch.pipeline as P
+    import carvi_torch.carve.chunks as chunks
 
     other = tmp_path_factory.mktemp("again")
     threads = torch.get_num_threads()
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(P, "CPU_CHUNK_OBJECTS", 1)
+        mp.setattr(chunks, "CPU_CHUNK_OBJECTS", 1)
         res = run(_cfg(other, classes=["car"], preview=False, carve_backend="torch"), workers=0, threads=1)
     return other, res, (threads, torch.get_num_threads())
 
@@ -532,6 +532,21 @@ def test_cuda_run_with_viewpoints_on_the_cpu_matches_the_cpu_run(tiny, tmp_path)
 
 
 @requires_cuda
+def test_cuda_run_with_viewpoint_processes_matches_viewpoints_on_the_cpu(tiny, tmp_path):
+    """``viewpoint_processes=2`` in a CUDA run: the classes' viewpoint stages made in worker processes on the CPU
+    (with the run's thread count) give every class the cameras.json of a CUDA run with ``viewpoints.device=cpu``,
+    byte for byte, and the same objects reconstructed."""
+    out, summary = tiny
+    kw = dict(data=summary["data"], classes=["aeroplane", "car", "chair"], preview=False, device="cuda")
+    base = run(_cfg(tmp_path / "base", **{"viewpoints.device": "cpu"}, **kw))
+    procs = run(_cfg(tmp_path / "procs", viewpoint_processes=2, **kw))
+    for c in kw["classes"]:
+        assert procs["classes"][c]["reconstructed"] == base["classes"][c]["reconstructed"] >= 5
+        assert (tmp_path / "procs" / c / "cameras.json").read_bytes() == (
+            tmp_path / "base" / c / "cameras.json").read_bytes()
+
+
+@requires_cuda
 def test_cuda_chunk_has_no_per_object_host_reads(tiny):
     """The device work of a chunk reads back from the GPU a fixed number of times, not once per object
     (a few more for a larger chunk are allowed: one per further group of equal sub-sampling in the
@@ -620,6 +635,7 @@ def test_a_class_failing_midway_keeps_finished_objects_and_their_scores(tiny, mo
     """An error after the first chunk: the class is reported failed, the run goes on, the objects of
     the first chunk are written with their proposal scores, and a rerun finishes the rest."""
     from carvi_torch import pipeline as P
+    from carvi_torch.carve import chunks
 
     orig = P.carve_and_select
     calls = {"n": 0}
@@ -631,7 +647,7 @@ def test_a_class_failing_midway_keeps_finished_objects_and_their_scores(tiny, mo
         return orig(ids, *args, **kwargs)
 
     monkeypatch.setattr(P, "carve_and_select", flaky)
-    monkeypatch.setattr(P, "CPU_CHUNK_OBJECTS", 3)
+    monkeypatch.setattr(chunks, "CPU_CHUNK_OBJECTS", 3)
     data = tiny[1]["data"]
     summary = run(_cfg(tmp_path, data=data, classes=["car"]), workers=0)
     rep = summary["classes"]["car"]

@@ -1,7 +1,7 @@
-"""Pipelined classes (``pipeline_classes``, :mod:`carvi_torch.executors.ahead`): the next class's viewpoints made
-on a background thread while this class carves give the sequential run's files; a class whose viewpoints fail
-there fails alone, with the sequential run's reason; an interrupt does not wait for the thread, and the run
-resumes."""
+"""Pipelined classes (``pipeline_classes``, ``viewpoint_processes``, :mod:`carvi_torch.executors.ahead`): the next
+classes' viewpoints made on a background thread or in worker processes while this class carves give the sequential
+run's files; a class whose viewpoints fail there fails alone, with the sequential run's reason; an interrupt does
+not wait for the thread, and the run resumes."""
 from __future__ import annotations
 
 import json
@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+import carvi_torch.carve.chunks as chunks_module
 import carvi_torch.executors.local as L
 import carvi_torch.pipeline as P
 from carvi_torch.config import Config
@@ -126,7 +127,7 @@ def test_an_interrupt_does_not_wait_for_the_thread_and_the_run_resumes(procedura
     data = procedural_input(tmp_path)
     release, returned, chunks = threading.Event(), threading.Event(), []
     make, carve = L.class_viewpoints, P.carve_and_select
-    assert P.CPU_CHUNK_OBJECTS == 4  # the car's 6 objects are carved in two chunks
+    assert chunks_module.CPU_CHUNK_OBJECTS == 4  # the car's 6 objects are carved in two chunks
 
     def slow_viewpoints(coll, *args, **kwargs):
         if coll.meta.key == "chair":
@@ -152,6 +153,51 @@ def test_an_interrupt_does_not_wait_for_the_thread_and_the_run_resumes(procedura
     again = run(_cfg(tmp_path, data), workers=0)["classes"]
     assert [(again[c]["status"], again[c]["resumed"], again[c]["reconstructed"]) for c in CLASSES] == [
         ("ok", 4, 2), ("ok", 0, 6)]
+
+
+def test_viewpoint_processes_give_the_sequential_files(procedural_input, tmp_path, monkeypatch):
+    """``viewpoint_processes=2``: both classes' viewpoint stages (the car's mixture of shapes included) are made in
+    worker processes and handed to the run (``made``), and every file is the sequential run's."""
+    data = procedural_input(tmp_path)
+    made, make = {}, L.class_viewpoints
+
+    def viewpoints(coll, *args, made_here=made, **kwargs):
+        made_here[coll.meta.key] = kwargs.get("made")
+        return make(coll, *args, **kwargs)
+
+    monkeypatch.setattr(L, "class_viewpoints", viewpoints)
+    procs = run(_cfg(tmp_path / "procs", data, viewpoint_processes=2, **GROUPS), workers=0)
+    assert set(made) == set(CLASSES) and all(m is not None and m[0] is not None for m in made.values())
+    assert procs["classes"]["car"]["sfm_groups"]["groups"] == 2 and "sfm" in procs["classes"]["car"]["seconds"]
+    run(_cfg(tmp_path / "sequential", data, pipeline_classes=False, **GROUPS), workers=0)
+    assert _assert_same_outputs(tmp_path / "procs", tmp_path / "sequential") >= 2 * (1 + 6 + 6)
+
+
+def test_viewpoint_processes_that_fail_leave_the_class_here_or_fail_it_alone(procedural_input, tmp_path,
+                                                                              monkeypatch):
+    """A worker process that died (``BrokenProcessPool``) leaves the car's viewpoints to the run, which logs it and
+    gives the sequential cameras; an error raised in a worker fails the chair alone with its one-line reason."""
+    from concurrent.futures import Future
+    from concurrent.futures.process import BrokenProcessPool
+
+    from carvi_torch.executors import ahead
+
+    data = procedural_input(tmp_path)
+
+    def submit(self, coll, cfg, gt=None):
+        future = Future()
+        future.set_exception(BrokenProcessPool("killed") if coll.meta.key == "car" else RuntimeError("chair broke"))
+        return future
+
+    monkeypatch.setattr(ahead.AheadProcesses, "submit", submit)
+    procs = run(_cfg(tmp_path / "procs", data, viewpoint_processes=2, stage="cameras"), workers=0)
+    run(_cfg(tmp_path / "sequential", data, pipeline_classes=False, stage="cameras"), workers=0)
+    assert (tmp_path / "procs" / "car" / "cameras.json").read_bytes() == (
+        tmp_path / "sequential" / "car" / "cameras.json").read_bytes()
+    assert "car: the viewpoint process stopped (killed)" in (tmp_path / "procs" / "run.log").read_text()
+    chair = procs["classes"]["chair"]
+    assert chair["status"] == "failed" and [f["reason"] for f in chair["failures"]] == ["RuntimeError: chair broke"]
+    assert not (tmp_path / "procs" / "chair").exists()
 
 
 #: A run interrupted while the background thread is inside torch operations (``sys.argv[1]``: out).

@@ -177,11 +177,11 @@ def pipeline_call_bounds(cfg: Config, valid: torch.Tensor, objects: int, device:
     """Where the pipeline's carving calls split the kept proposals of the first ``objects`` references.
 
     ``valid (objects * P,)`` bool marks the kept proposals (:meth:`carvi_torch.pipeline.ClassPlan.proposals`);
-    a run on ``device`` carves :func:`carvi_torch.pipeline.chunk_objects` references per call, so call ``i``
+    a run on ``device`` carves :func:`carvi_torch.carve.chunk_objects` references per call, so call ``i``
     takes the kept proposals ``bounds[i]:bounds[i + 1]``.
     """
     per_ref = valid.view(objects, -1).sum(1).tolist()
-    step = pipeline.chunk_objects(cfg, device)
+    step = C.chunk_objects(cfg.surrogates.proposals, cfg.carve.resolution, device)
     return [sum(per_ref[:a]) for a in range(0, objects, step)] + [sum(per_ref)]
 
 
@@ -628,7 +628,7 @@ def carve_and_select(data: Path, args, device: torch.device) -> dict:
     # The timed runs carve as the pipeline does: one call per pipeline chunk of references, each
     # chunk's grids released before the next (so the process reuses their memory instead of
     # touching fresh pages for one output of all K objects).
-    step = pipeline.chunk_objects(cfg, device)
+    step = C.chunk_objects(cfg.surrogates.proposals, cfg.carve.resolution, device)
     bounds = pipeline_call_bounds(cfg, valid, K, device)
     chunks = list(zip(bounds[:-1], bounds[1:]))
 

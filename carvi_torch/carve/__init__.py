@@ -18,7 +18,8 @@ Modules, in the order data flows through them:
 * :mod:`~carvi_torch.carve.reference`: the one-proposal-at-a-time loop the tests compare with;
 * :mod:`~carvi_torch.carve.dispatch`: :func:`carve_proposals`, which picks the backend, and
   :func:`imprinted_visual_hull`;
-* :mod:`~carvi_torch.carve.grids`: the results, :class:`VoxelGrid` and :class:`ProposalGrids`.
+* :mod:`~carvi_torch.carve.grids`: the results, :class:`VoxelGrid` and :class:`ProposalGrids`;
+* :mod:`~carvi_torch.carve.chunks`: how many references the pipeline carves together.
 
 Example:
     >>> import torch
@@ -29,6 +30,7 @@ Example:
     >>> grid.occupancy.shape
     torch.Size([20, 20, 20])
 """
+from .chunks import chunk_objects
 from .dispatch import BACKENDS, Backend, carve_proposals, imprinted_visual_hull, resolve_backend
 from .geometry import BIG, PAD, CarveMaps, extend_maps, mask_geometry, prepare_maps, proposal_geometry
 from .grids import ProposalGrids, VoxelGrid
@@ -37,4 +39,4 @@ from .torch_backend import INTERPOLATIONS, Interpolation, default_batch_voxels
 
 __all__ = ["imprinted_visual_hull", "carve_proposals", "carve_proposals_loop", "resolve_backend", "prepare_maps",
            "CarveMaps", "VoxelGrid", "ProposalGrids", "BACKENDS", "Backend", "INTERPOLATIONS", "Interpolation",
-           "default_batch_voxels", "extend_maps", "mask_geometry", "proposal_geometry", "PAD", "BIG"]
+           "default_batch_voxels", "chunk_objects", "extend_maps", "mask_geometry", "proposal_geometry", "PAD", "BIG"]

@@ -15,6 +15,12 @@ parallel operation splits its sums by it; the background thread sets the run's c
 that every operation runs as it does in the sequential run (the solvers inside set one thread for
 themselves either way). Each Python thread gets its own team of intra-op threads.
 
+With ``viewpoint_processes`` (:class:`AheadProcesses`) worker processes make the viewpoint stages
+(:func:`~carvi_torch.pipeline.viewpoint_stage`) of several classes at once, on the CPU, each process with the
+run's torch thread count; the run's thread takes each result in class order and finishes the class's
+:func:`~carvi_torch.pipeline.class_viewpoints` (the move to its device, the surrogate plan) itself. A class
+and its result travel pickled; a worker reads and writes no file.
+
 Example:
     >>> ahead = Ahead(threads=1)
     >>> ahead.submit(sum, [1, 2, 3]).result()
@@ -23,12 +29,16 @@ Example:
 """
 from __future__ import annotations
 
+import multiprocessing as mp
+import pickle
 import queue
 import threading
 from concurrent.futures import Future
 from typing import Callable
 
-__all__ = ["Ahead"]
+from ..runtime import LeanProcessPool
+
+__all__ = ["Ahead", "AheadProcesses"]
 
 
 class Ahead:
@@ -78,3 +88,44 @@ class Ahead:
         self._calls.put(None)
         if not cancel:
             self._thread.join()
+
+
+class AheadProcesses:
+    """Worker processes (started with ``spawn``, without the run's main module) that run
+    :func:`~carvi_torch.pipeline.viewpoint_stage` on classes submitted to them, several at once, with
+    ``threads`` torch threads each. :meth:`submit` returns a future of the pickled ``(vp, report)``
+    (:func:`result`). ``close(cancel=True)`` cancels the classes not started; those in progress end on their own."""
+
+    def __init__(self, processes: int, threads: int):
+        self._pool = LeanProcessPool(max(1, int(processes)), mp_context=mp.get_context("spawn"),
+                                     initializer=_init_process, initargs=(max(1, int(threads)),))
+
+    def submit(self, coll, cfg, gt: dict | None = None) -> Future:
+        """Make ``coll``'s viewpoint stage under ``cfg`` (``gt``: the ground truth, sent only with
+        ``cameras=gt``) in a worker process, on the CPU."""
+        gt = gt if cfg.study.cameras == "gt" else None
+        return self._pool.submit(_stage_in_process, pickle.dumps((coll.to("cpu"), cfg, gt), pickle.HIGHEST_PROTOCOL))
+
+    def close(self, cancel: bool = False) -> None:
+        """Stop the processes: once every submitted class is made (joined), or with ``cancel`` at once."""
+        self._pool.shutdown(wait=not cancel, cancel_futures=cancel)
+
+
+def result(future: Future) -> tuple:
+    """The ``(vp, report)`` of a class submitted to :class:`AheadProcesses` (its exception raised again)."""
+    return pickle.loads(future.result())
+
+
+def _init_process(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+
+
+def _stage_in_process(payload: bytes) -> bytes:
+    """In a worker process: :func:`~carvi_torch.pipeline.viewpoint_stage` of the pickled ``(coll, cfg, gt)``,
+    its ``(vp, report)`` pickled (plain pickle: tensors travel as bytes, not as shared memory)."""
+    from ..pipeline import viewpoint_stage
+
+    coll, cfg, gt = pickle.loads(payload)
+    return pickle.dumps(viewpoint_stage(coll, cfg, gt), pickle.HIGHEST_PROTOCOL)

@@ -11,7 +11,8 @@ Example:
 from __future__ import annotations
 
 import traceback
-from concurrent.futures import Future
+from concurrent.futures.process import BrokenProcessPool
+from typing import Callable
 
 import torch
 
@@ -20,7 +21,7 @@ from ..io.results import ClassReport
 from ..io.writer import Writer, writer_workers
 from ..pipeline import class_viewpoints, run_class
 from ..runtime import intra_op_threads, log, log_to_file, log_to_terminal, torch_threads
-from .ahead import Ahead
+from .ahead import Ahead, AheadProcesses, result
 from .common import RunSetup, announce, book_class, class_generator, finish_run, open_run
 
 __all__ = ["run"]
@@ -54,19 +55,18 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
 
 
 def _classes(setup: RunSetup, writer: Writer) -> None:
-    """The classes in name order; with ``pipeline_classes`` on the CPU each class's viewpoints are made ahead,
-    on a background thread, while the class before it carves (:mod:`~carvi_torch.executors.ahead`)."""
-    cfg = setup.cfg
+    """The classes in name order. With ``viewpoint_processes`` the viewpoint stages of the next classes are made
+    in worker processes; else with ``pipeline_classes`` on the CPU the next class's viewpoints are made on a
+    background thread while the class before it carves (:mod:`~carvi_torch.executors.ahead`)."""
     keys = sorted(setup.loaded.collections)
-    # on the CPU only: on a GPU both threads would share one stream and the free memory that sizes the chunks
-    ahead = Ahead(torch.get_num_threads()) if cfg.pipeline_classes and len(keys) > 1 and setup.device.type == "cpu" \
-        else None
+    ahead, depth = _ahead(setup, len(keys))
     try:
-        made = [_make_ahead(setup, ahead, keys[0])] if ahead is not None else []
+        made: dict = {}
         for i, key in enumerate(keys):
-            if ahead is not None and i + 1 < len(keys):
-                made.append(_make_ahead(setup, ahead, keys[i + 1]))  # runs while this class carves
-            _one_class(setup, writer, key, made.pop(0) if made else None)
+            for k in keys[i:i + depth + 1] if ahead is not None else ():  # this class and `depth` after it
+                if k not in made:
+                    made[k] = _make_ahead(setup, ahead, k)
+            _one_class(setup, writer, key, made.pop(key, None))
     except BaseException:
         if ahead is not None:
             ahead.close(cancel=True)  # the viewpoints in progress write nothing: left to end on their own
@@ -75,20 +75,46 @@ def _classes(setup: RunSetup, writer: Writer) -> None:
         ahead.close()
 
 
-def _make_ahead(setup: RunSetup, ahead: Ahead, key: str) -> tuple[torch.Generator, Future]:
-    """Class ``key``'s generator and its :func:`~carvi_torch.pipeline.class_viewpoints`, on ``ahead``'s thread."""
-    generator = class_generator(setup.cfg, key)
-    return generator, ahead.submit(class_viewpoints, setup.loaded.collections[key], setup.cfg, setup.device,
-                                   generator, setup.gt)
+def _ahead(setup: RunSetup, classes: int) -> tuple[Ahead | AheadProcesses | None, int]:
+    """Who makes the classes' viewpoints ahead of their carving, and how many classes ahead: ``viewpoint_processes``
+    worker processes, else (``pipeline_classes``, on the CPU only: on a GPU both threads would share one stream
+    and the free memory that sizes the chunks) one background thread, else no one."""
+    cfg = setup.cfg
+    if cfg.viewpoint_processes > 0 and classes > 1:
+        n = min(cfg.viewpoint_processes, classes)
+        return AheadProcesses(n, torch.get_num_threads()), n
+    if cfg.pipeline_classes and classes > 1 and setup.device.type == "cpu":
+        return Ahead(torch.get_num_threads()), 1
+    return None, 0
 
 
-def _one_class(setup: RunSetup, writer: Writer, key: str, made: tuple[torch.Generator, Future] | None) -> None:
+def _make_ahead(setup: RunSetup, ahead: Ahead | AheadProcesses | None, key: str) -> tuple[torch.Generator, Callable]:
+    """Class ``key``'s generator and a call that returns its :func:`~carvi_torch.pipeline.class_viewpoints`, made
+    on ``ahead``. A worker process that died (:class:`BrokenProcessPool`) leaves its classes to this process."""
+    coll, cfg, generator = setup.loaded.collections[key], setup.cfg, class_generator(setup.cfg, key)
+    args = (coll, cfg, setup.device, generator, setup.gt)
+    if isinstance(ahead, Ahead):
+        return generator, ahead.submit(class_viewpoints, *args).result
+    future = ahead.submit(coll, cfg, setup.gt)
+
+    def finish() -> tuple:
+        try:
+            made = result(future)
+        except BrokenProcessPool as e:
+            log.warning(f"{key}: the viewpoint process stopped ({e}); making its viewpoints here")
+            made = None
+        return class_viewpoints(*args, made=made)
+
+    return generator, finish
+
+
+def _one_class(setup: RunSetup, writer: Writer, key: str, made: tuple[torch.Generator, Callable] | None) -> None:
     """Run class ``key`` (its viewpoints ``made`` ahead, or here) and book it; a class that fails (its viewpoints
     ahead included) is booked with its reason and the run goes on."""
     coll = setup.loaded.collections[key]
     log.info(f"{key}: {len(coll)} objects")
     try:
-        generator, early = (class_generator(setup.cfg, key), None) if made is None else (made[0], made[1].result())
+        generator, early = (class_generator(setup.cfg, key), None) if made is None else (made[0], made[1]())
         rep = run_class(coll, setup.cfg, setup.out, setup.gt, setup.device, generator, writer, ahead=early)
     except Exception as e:  # noqa: BLE001 - one broken class must not stop the others
         rep = ClassReport(key, objects=len(coll), status="failed")
