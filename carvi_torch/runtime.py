@@ -196,8 +196,9 @@ def to_device(obj, device, _memo: dict | None = None):
         moved = type(obj)(*(to_device(v, device, memo) for v in obj))
     elif isinstance(obj, (list, tuple)):
         moved = type(obj)(to_device(v, device, memo) for v in obj)
-    elif isinstance(obj, dict):
-        moved = {k: to_device(v, device, memo) for k, v in obj.items()}
+    elif isinstance(obj, dict):  # a subclass (an ordered or default dict) stays one, through a shallow copy
+        moved = {} if type(obj) is dict else copy.copy(obj)
+        moved.update((k, to_device(v, device, memo)) for k, v in obj.items())
     else:
         return obj
     memo[id(obj)] = (obj, moved)  # the original is held too, so that its id is not reused meanwhile

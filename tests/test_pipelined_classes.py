@@ -306,3 +306,24 @@ def test_viewpoints_handed_over_make_the_same_class_files(procedural_input, tmp_
     assert torch.equal(pa.selection.averages, pb.selection.averages)
     assert torch.equal(pa.maps.ext, pb.maps.ext) and torch.equal(pa.maps.entry_map, pb.maps.entry_map)
     assert torch.equal(pa.object_from_camera, pb.object_from_camera)
+
+
+def test_to_device_keeps_containers_and_sharing():
+    """``runtime.to_device`` (what ``Viewpoints.to`` builds on): a dict subclass stays that subclass (a default
+    dict keeps its factory), a named tuple its type, an object reached twice is moved once and stays shared,
+    and non-tensors are left as they are."""
+    from collections import OrderedDict, defaultdict, namedtuple
+
+    from carvi_torch.runtime import to_device
+
+    Pair = namedtuple("Pair", "a b")
+    shared = torch.ones(3)
+    dd = defaultdict(list, {"x": shared})
+    obj = {"od": OrderedDict([("b", torch.zeros(1)), ("a", 2)]), "dd": dd, "pair": Pair(shared, "s"), "again": shared}
+    moved = to_device(obj, "meta")
+    assert type(moved) is dict and type(moved["od"]) is OrderedDict and list(moved["od"]) == ["b", "a"]
+    assert type(moved["dd"]) is defaultdict and moved["dd"].default_factory is list and moved["dd"] is not dd
+    assert moved["dd"]["missing"] == [] and "missing" not in dd  # the copy, not the original, grew
+    assert type(moved["pair"]) is Pair and moved["pair"].b == "s" and moved["od"]["a"] == 2
+    assert moved["again"] is moved["pair"].a is moved["dd"]["x"] and moved["again"].device.type == "meta"
+    assert shared.device.type == "cpu" and obj["od"]["b"].device.type == "cpu"  # the originals stay
