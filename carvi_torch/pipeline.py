@@ -250,8 +250,10 @@ def carve_and_select(ids: torch.Tensor, plan: ClassPlan, cfg: Config, timer: Sta
                                        consensus=cfg.select.consensus)
 
 
-def _job(sel: select.Selection, occupancy: torch.Tensor, j: int, i: int, sur, plan: ClassPlan, cfg: Config) -> dict:
-    """The writer's job for reference ``j`` (original ``i``) of a chunk (host data only, the grids too)."""
+def _job(sel: select.Selection, occupancy: torch.Tensor, masks: torch.Tensor, j: int, i: int, sur, plan: ClassPlan,
+         cfg: Config) -> dict:
+    """The writer's job for reference ``j`` (original ``i``) of a chunk (host data only: the chunk's grids and
+    masks read back once)."""
     scale, offset, aid_of, aid = plan.canvas_scale[i], plan.canvas_offset[i], plan.aids, plan.aids[i]
     canvas_to_image = canvas_to_image_4x4(scale, offset)
     v2c = sel.best_transform[j]
@@ -267,7 +269,7 @@ def _job(sel: select.Selection, occupancy: torch.Tensor, j: int, i: int, sur, pl
                 proposals_path=str(object_file(plan.cdir, "proposals", aid)),
                 proposals=(proposals_payload(sel, j, sur, canvas_to_image, aid_of)
                            if cfg.study.save_proposals and best >= 0 else None),
-                largest_component=cfg.mesh.largest_component, mask=plan.coll.masks[i].cpu().numpy())
+                largest_component=cfg.mesh.largest_component, mask=masks[j].numpy())
 
 
 def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config, report: ClassReport,
@@ -277,7 +279,9 @@ def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Conf
     sur = None if sur is None else sur.cpu()
     puffed = _puffballs(sel, ids, plan, cfg)
     aid_of, occupancy = plan.aids, sel.best_occupancy.cpu()  # the selected grids (R, D, H, W), to the host once
-    jobs = [_job(sel, occupancy, j, i, None if j in puffed else sur, plan, cfg) for j, i in enumerate(ids.tolist())]
+    masks = plan.coll.masks[ids].cpu()  # and the references' masks (R, S, S)
+    jobs = [_job(sel, occupancy, masks, j, i, None if j in puffed else sur, plan, cfg)
+            for j, i in enumerate(ids.tolist())]
     if resolve_mesher(cfg.mesh.mesher, ids.device) == "torch":
         with timer("mesh_device"):
             mesh_jobs(sel.best_occupancy, occupancy, jobs, cfg.mesh.largest_component, cfg.mesh.format)
@@ -286,7 +290,8 @@ def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Conf
         if cfg.study.keep_all_scores and j not in puffed:
             job["scores"], job["scores_path"] = scores_entry(sel, j, sur, aid_of), str(
                 object_file(plan.cdir, "scores", aid))
-        writer.submit(job, lambda res, aid=aid, src=src: report.book_write(res, aid, src))
+        # a chunk's objects may all wait: the next chunk's device work overlaps their writing
+        writer.submit(job, lambda res, aid=aid, src=src: report.book_write(res, aid, src), backlog=len(jobs))
 
 
 def _puffballs(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config) -> set[int]:

@@ -424,8 +424,8 @@ def _slow_job(job):
 
 
 def test_writer_books_back_pressure(monkeypatch):
-    """Submitting more than ``4 * workers`` objects waits for the oldest (``blocked`` counts that wait);
-    results stay in submission order."""
+    """Submitting more than ``4 * workers`` objects (or a larger ``backlog``) waits for the oldest (``blocked``
+    counts that wait); results stay in submission order."""
     from carvi_torch.io import writer as W
 
     monkeypatch.setattr(W.Writer, "write", staticmethod(_slow_job))
@@ -444,9 +444,16 @@ def test_writer_books_back_pressure(monkeypatch):
             assert len(w.pending) <= 4
         assert w.blocked > 0 and len(got) >= 6
         w.drain()
+        blocked = w.blocked
+        for i in range(10, 18):  # a chunk of 8 handed over at once may wait whole (backlog): never blocks
+            w.submit(dict(i=i, sleep=0.05), got.append, backlog=8)
+        assert w.blocked == blocked and len(w.pending) == 8
+        w.submit(dict(i=18, sleep=0.0), got.append, backlog=8)  # the ninth waits for the oldest
+        assert w.blocked > blocked and len(w.pending) == 8
+        w.drain()
     finally:
         w.close()
-    assert [g["i"] for g in got] == list(range(10))
+    assert [g["i"] for g in got] == list(range(19))
 
 
 def test_writer_start_failure_surfaces_in_the_run(monkeypatch):

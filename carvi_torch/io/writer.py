@@ -128,7 +128,8 @@ class Writer:
     """Meshes and files of reconstructed objects, in worker processes or inline.
 
     Results are booked in submission order (deterministic reports). At most
-    ``4 * workers`` objects wait at once, which bounds the memory of pending grids.
+    ``4 * workers`` objects wait at once (or the ``backlog`` a submission allows: a chunk of objects handed
+    over at once), which bounds the memory of pending grids.
     With ``workers == 0`` every object is written at once, in this process.
     ``blocked``: seconds :meth:`submit` spent waiting for a writer to finish (back-pressure:
     the writers, not the device work, then limit the run).
@@ -180,16 +181,17 @@ class Writer:
             raise self._start_error
         return self._pool
 
-    def submit(self, job: dict, done) -> None:
+    def submit(self, job: dict, done, backlog: int = 0) -> None:
         """Write ``job`` (:func:`~carvi_torch.io.write_worker.write_object`); ``done(result)`` is called
-        when it is booked."""
+        when it is booked. Waits first while more than ``max(4 * workers, backlog)`` objects are pending."""
         if self.pool is None:
             done(self.write(job))
             return
         self.pending.append((self.pool.submit(self.write, job), done))
-        if len(self.pending) > 4 * self.workers:
+        limit = max(4 * self.workers, backlog)
+        if len(self.pending) > limit:
             t0 = time.perf_counter()
-            while len(self.pending) > 4 * self.workers:
+            while len(self.pending) > limit:
                 self._finish_one()
             self.blocked += time.perf_counter() - t0
 
