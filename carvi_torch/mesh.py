@@ -212,8 +212,9 @@ def transform_mesh(mesh: trimesh.Trimesh, A) -> trimesh.Trimesh:
     return trimesh_mesh(verts.reshape(-1, 3), faces.reshape(-1, 3))
 
 
-def write_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:
-    """Write ``mesh`` atomically; the file type follows the extension.
+def write_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, sync: bool = True) -> Path:
+    """Write ``mesh`` atomically (``sync``: :func:`~carvi_torch.io.outputs.atomic_write`); the file type follows
+    the extension.
 
     ``.ply`` (binary), ``.obj``, ``.glb``, ``.stl`` or ``.off``; a path without an
     extension gets ``.ply``. Parent folders are created.
@@ -231,4 +232,4 @@ def write_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:
     data = mesh.export(file_type=ext)
     if isinstance(data, str):
         data = data.encode("utf-8")
-    return atomic_write(path, lambda f: f.write(data))
+    return atomic_write(path, lambda f: f.write(data), sync)

@@ -456,6 +456,29 @@ def test_writer_books_back_pressure(monkeypatch):
     assert [g["i"] for g in got] == list(range(19))
 
 
+def test_object_files_are_moved_into_place_unflushed_and_run_files_flushed(tmp_path, monkeypatch):
+    """An object's files (voxels, mesh, proposals, scores) are written whole and moved into place without an
+    ``fsync`` (a damaged one is redone on resume: test_robustness), the run's own files with one."""
+    import os
+
+    from carvi_torch.io import write_worker
+    from carvi_torch.io.outputs import write_json
+
+    synced = []
+    monkeypatch.setattr(os, "fsync", lambda fd: synced.append(fd))
+    occ = np.zeros((8, 8, 8), bool)
+    occ[2:6, 2:6, 2:6] = True
+    job = dict(occupancy=occ, voxel_to_image=np.eye(4), voxel_to_canvas=np.eye(4), canvas_scale=1.0,
+               canvas_offset=np.zeros(2, np.float32), surrogates=np.zeros(0, np.int64), largest_component=False,
+               proposals={"x": np.ones(3)}, proposals_path=str(tmp_path / "p.npz"), scores={"a": 1},
+               scores_path=str(tmp_path / "s.json"), voxel_path=str(tmp_path / "v.npz"),
+               mesh_path=str(tmp_path / "m.ply"))
+    assert write_worker.write_object(job)["ok"] and synced == []
+    assert all((tmp_path / n).is_file() for n in ("p.npz", "s.json", "v.npz", "m.ply"))
+    write_json(tmp_path / "summary.json", {"ok": True})
+    assert len(synced) == 1
+
+
 def test_writer_start_failure_surfaces_in_the_run(monkeypatch):
     """The writer processes start in a thread: a failure there is raised where the run first needs them
     (and a cancelling close, on an error's way out, does not raise it again)."""

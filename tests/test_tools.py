@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import load_tool, run_each_in_a_fresh_process
 
@@ -621,3 +622,25 @@ def test_benchmark_load_only_times_both_thread_counts_on_the_same_canvases(proce
     assert set(lo["seconds"]) == {"one thread", "canvas_threads"} and all(len(v) == 2 for v in lo["seconds"].values())
     assert lo["new_over_one_thread"] == lo["best_seconds"]["canvas_threads"] / lo["best_seconds"]["one thread"]
     assert "canvas_threads / one thread" in bm._loading_table(lo)
+
+
+def test_benchmark_times_writing_with_and_without_fsync(tmp_path, monkeypatch):
+    """The writing comparison flushes every file of the ``sync`` turns and none of the others, and leaves nothing
+    behind in its work folder."""
+    import os
+
+    bm = load_tool("benchmark", "benchmark_tool")
+    vox = tmp_path / "run" / "car" / "voxels"
+    vox.mkdir(parents=True)
+    for i in range(3):
+        occ = np.zeros((10, 10, 10), bool)
+        occ[2:7, 3:8, 2 + i:6 + i] = True
+        np.savez(vox / f"{i}.npz", occupancy=occ, voxel_to_camera=np.eye(4))
+    synced, real_fsync = [], os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: synced.append(fd) or real_fsync(fd))
+    wr = bm.time_writing(tmp_path / "run", objects=5, repeat=2, work=tmp_path / "w")
+    assert wr["objects"] == 3 and len(synced) == 2 * 3 * 2  # 2 sync turns x 3 objects x 2 files
+    assert set(wr["seconds"]) == {"sync", "no sync"} and all(len(v) == 2 for v in wr["seconds"].values())
+    assert wr["no_sync_over_sync"] == wr["ms_per_object"]["no sync"] / wr["ms_per_object"]["sync"]
+    assert not (tmp_path / "w").exists()
+    assert "flushed (fsync)" in bm.table({"writing": wr})

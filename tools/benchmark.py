@@ -324,6 +324,34 @@ def time_meshing(recon: Path, device: torch.device, objects: int, repeat: int) -
                 len(b[0]), len(b[1])]}
 
 
+def time_writing(recon: Path, objects: int, repeat: int, work: Path) -> dict | None:
+    """An object's two files (voxels ``.npz``, mesh ``.ply``) written for a run's first ``objects`` grids into
+    ``work``, flushed to the disk (``sync=True``, ``fsync`` before each move) and not (``sync=False``, the
+    writers' way), taking turns, best of ``repeat``; the meshes are made beforehand, out of the clock."""
+    import numpy as np
+
+    from carvi_torch.io.outputs import write_npz
+    from carvi_torch.mesh import occupancy_to_mesh, write_mesh
+
+    files = sorted(recon.glob("*/voxels/*.npz"))[:objects]
+    if not files:
+        return None
+    grids = [dict(np.load(f)) for f in files]
+    meshes = [occupancy_to_mesh(g["occupancy"], g["voxel_to_camera"]) for g in grids]
+    seconds: dict = {"sync": [], "no sync": []}
+    for r in range(max(1, repeat)):
+        for name in (["sync", "no sync"] if r % 2 == 0 else ["no sync", "sync"]):
+            t0 = time.perf_counter()
+            for i, (g, m) in enumerate(zip(grids, meshes)):
+                write_npz(work / f"{i}.npz", sync=name == "sync", **g)
+                write_mesh(m, work / f"{i}.ply", sync=name == "sync")
+            seconds[name].append(time.perf_counter() - t0)
+    shutil.rmtree(work, ignore_errors=True)
+    best = {k: 1000 * min(v) / len(files) for k, v in seconds.items()}
+    return {"objects": len(files), "ms_per_object": best, "no_sync_over_sync": best["no sync"] / best["sync"],
+            "seconds": seconds}
+
+
 def time_loading(ann: Path, args) -> dict:
     """``--load-only``: loading alone (``io.coco.load_coco`` at the default canvas size) with the canvases
     resampled on one thread and on ``canvas_threads`` threads, taking turns, best of ``--repeat``; the
@@ -1024,6 +1052,11 @@ def table(result: dict) -> str:
                   f"scikit-image {ms['skimage_ms_per_object']:.2f} ms per object (host, one by one), batched torch "
                   f"{ms['torch_ms_per_object']:.2f} on {ms['device']}: torch / scikit-image "
                   f"**{ms['torch_over_skimage']:.3f}**", ""]
+    wr = result.get("writing")
+    if wr:
+        lines += [f"writing {wr['objects']} objects' voxels and mesh files: {wr['ms_per_object']['sync']:.2f} ms per "
+                  f"object flushed (fsync), {wr['ms_per_object']['no sync']:.2f} not (the writers' way): "
+                  f"**{wr['no_sync_over_sync']:.3f}**", ""]
     if result.get("carving"):
         lines += _carving_table(result["carving"])
     ev = result.get("evaluation")
@@ -1083,7 +1116,8 @@ def main(argv=None):
                          "(record key loading_<device>_<objects>)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="further config overrides")
     ap.add_argument("--mesh-objects", type=int, default=200,
-                    help="grids of the end-to-end run meshed by scikit-image and by the batched torch op (timed)")
+                    help="grids of the end-to-end run meshed by scikit-image and by the batched torch op, and their "
+                         "files written with and without fsync (timed)")
     ap.add_argument("--many-classes", action="store_true",
                     help="the many-class benchmark instead (12 classes of about 50 objects; see the docstring)")
     ap.add_argument("--compare-with", default=None, metavar="DIR",
@@ -1135,6 +1169,7 @@ def main(argv=None):
         recon = Path(args.work_dir) / name
         result["end_to_end"] = run_end_to_end(data, recon, args)
         result["meshing"] = time_meshing(recon, device, args.mesh_objects, args.repeat)
+        result["writing"] = time_writing(recon, args.mesh_objects, args.repeat, Path(args.work_dir) / f"{name}_w")
         if args.eval:
             result["evaluation"] = run_evaluation(data, recon, Path(args.work_dir) / f"{name}_eval", args.category)
     if not args.skip_carve:

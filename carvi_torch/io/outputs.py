@@ -35,11 +35,13 @@ def _file_mode() -> int:
 FILE_MODE = _file_mode()
 
 
-def atomic_write(path: str | os.PathLike, write: Callable[[io.BufferedWriter], None]) -> Path:
+def atomic_write(path: str | os.PathLike, write: Callable[[io.BufferedWriter], None], sync: bool = True) -> Path:
     """Call ``write(fileobj)`` on a temporary file, then move it to ``path`` atomically.
 
     Parent directories are created. The file gets the mode the process's umask gives new files
-    (:data:`FILE_MODE`). Returns ``Path(path)``.
+    (:data:`FILE_MODE`). ``sync``: flush the file to the disk (``fsync``) before the move, so that it
+    survives a crash of the machine, not only of the process; an object's files skip it (a damaged
+    file is found and redone on resume: :func:`~carvi_torch.io.layout.finished`). Returns ``Path(path)``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -50,7 +52,8 @@ def atomic_write(path: str | os.PathLike, write: Callable[[io.BufferedWriter], N
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
-            os.fsync(f.fileno())
+            if sync:
+                os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         try:
@@ -61,9 +64,9 @@ def atomic_write(path: str | os.PathLike, write: Callable[[io.BufferedWriter], N
     return path
 
 
-def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically."""
-    return atomic_write(path, lambda f: f.write(data))
+def write_bytes(path: str | os.PathLike, data: bytes, sync: bool = True) -> Path:
+    """Write ``data`` to ``path`` atomically (``sync``: :func:`atomic_write`)."""
+    return atomic_write(path, lambda f: f.write(data), sync)
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -96,10 +99,10 @@ def to_jsonable(obj: Any) -> Any:
     return obj
 
 
-def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1) -> Path:
-    """Write ``obj`` (converted with :func:`to_jsonable`) as JSON, atomically."""
+def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1, sync: bool = True) -> Path:
+    """Write ``obj`` (converted with :func:`to_jsonable`) as JSON, atomically (``sync``: :func:`atomic_write`)."""
     text = json.dumps(to_jsonable(obj), indent=indent)
-    return write_bytes(path, text.encode("utf-8"))
+    return write_bytes(path, text.encode("utf-8"), sync)
 
 
 def write_record(path: str | os.PathLike, obj: Any, key: str | None = None) -> Path:
@@ -142,8 +145,8 @@ def read_json(path: str | os.PathLike) -> Any:
         raise ValueError(f"{path}: JSON nested too deeply to read") from None
 
 
-def write_npz(path: str | os.PathLike, **arrays: Any) -> Path:
-    """Write a compressed ``.npz`` atomically (tensors are converted to numpy).
+def write_npz(path: str | os.PathLike, sync: bool = True, **arrays: Any) -> Path:
+    """Write a compressed ``.npz`` atomically (tensors are converted to numpy; ``sync``: :func:`atomic_write`).
 
     Never imports torch: a value can only be a tensor where torch is imported already, and a writer
     process, which passes numpy arrays, starts faster and stays smaller without it.
@@ -154,7 +157,7 @@ def write_npz(path: str | os.PathLike, **arrays: Any) -> Path:
         if torch is not None and isinstance(v, torch.Tensor):
             v = v.detach().cpu().numpy()
         conv[k] = np.asarray(v)
-    return atomic_write(path, lambda f: np.savez_compressed(f, **conv))
+    return atomic_write(path, lambda f: np.savez_compressed(f, **conv), sync)
 
 
 def is_done(*paths: str | os.PathLike) -> bool:
