@@ -173,13 +173,14 @@ def test_report_with_a_given_alignment(generator):
 # --------------------------------------------------------------------------- real data
 
 
-def _camera_run(run, classes: dict, groups: int = 1, seconds: float = 1.0) -> None:
-    """A hand-made ``reconstruct`` output folder: ``classes`` = {class: {annotation id: refined R (3x3) or None}};
-    ``summary.json`` names every class, with its SfM start, shapes kept and seconds."""
+def _camera_run(run, classes: dict, groups: int = 1, seconds: float = 1.0, choice: str = "refined") -> None:
+    """A hand-made ``reconstruct`` output folder: ``classes`` = {class: {annotation id: refined R (3x3) or None}},
+    every object's ``camera_choice`` ``choice``; ``summary.json`` names every class, with its SfM start, shapes
+    kept and seconds."""
     entries = {}
     for cls, cams in classes.items():
         (run / cls).mkdir(parents=True)
-        doc = {str(k): ({"refined": {"R": np.asarray(R).tolist()}, "camera_choice": "refined"} if R is not None
+        doc = {str(k): ({"refined": {"R": np.asarray(R).tolist()}, "camera_choice": choice} if R is not None
                         else {"camera_choice": "none"}) for k, R in cams.items()}
         (run / cls / "cameras.json").write_text(json.dumps({"class": cls, "cameras": doc}))
         entries[cls] = {"objects": len(cams), "seconds": {"sfm": seconds, "refine": seconds / 2, "carve": 9.0},
@@ -226,13 +227,13 @@ def test_compare_camera_runs_reports_classes_one_run_lacks(tmp_path):
     one side: each named with its reason, the rest compared; no class at all does not agree."""
     R = Rotation.random(3, random_state=4).as_matrix()
     _camera_run(tmp_path / "a", {"car": {1: R[0]}, "sofa": {2: R[1]}, "train": {3: R[2]}, "tv": {4: R[0]}})
-    _camera_run(tmp_path / "b", {"car": {1: R[0]}, "train": {3: R[2]}, "tv": {4: None}})
+    _camera_run(tmp_path / "b", {"car": {1: R[0]}, "train": {3: R[2]}, "tv": {4: None}}, choice="sfm")
     (tmp_path / "b" / "train" / "cameras.json").unlink()
     rec = compare_camera_runs(tmp_path / "a", tmp_path / "b")
     assert set(rec["classes"]) == {"car"} and rec["agree"] is True
     assert rec["not_compared"] == {"sofa": "not reached by the cuda run", "train": "no cameras.json in the cuda run",
                                    "tv": "no object with a refined camera in both runs"}
-    assert rec["classes"]["car"]["compared"] == 1
+    assert rec["classes"]["car"]["compared"] == 1 and rec["classes"]["car"]["camera_choice_differs"] == 1
     empty = compare_camera_runs(tmp_path / "a", tmp_path / "nothing")
     assert empty["classes"] == {} and empty["agree"] is False and empty["largest_median_deg"] is None
     assert empty["not_compared"]["car"] == "not reached by the cuda run"

@@ -164,18 +164,26 @@ def _renders(args, seed: int) -> Path:
     return renders
 
 
+def recon_dir(work: Path, overrides: list, views: int = 30, seed: int = 0, cameras: str = "photo") -> Path:
+    """The folder of one run's cameras: one per render seed and set of overrides, so that runs with different
+    settings never mix their cameras (every character of an override but letters and digits becomes ``-``).
+
+    >>> recon_dir(Path("w"), ["device=cpu", "classes=[sofa,train]"], views=8, seed=2).name
+    'cameras_device-cpu_classes--sofa-train-_v8_renders-s2'
+    """
+    dist = "" if cameras == "photo" else f"_{cameras}"
+    return work / ("cameras" + "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in o) for o in overrides)
+                   + (f"_v{views}" if views != 30 else "") + (f"_renders-s{seed}" if seed else "") + dist)
+
+
 def _run(args, seed: int, overrides: list) -> dict:
     """Render (once) and reconstruct the cameras of one seed with ``overrides``; its rows and timings."""
     from carvi_torch.evaluate import evaluate
 
-    work = Path(args.work)
-    dist = "" if args.cameras == "photo" else f"_{args.cameras}"
     t0 = time.perf_counter()
     renders = _renders(args, seed)
     t_render = time.perf_counter() - t0
-    # one folder per render seed and set of overrides, so runs with different settings never mix their cameras
-    recon = work / ("cameras" + "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in o) for o in overrides)
-                    + (f"_v{args.views}" if args.views != 30 else "") + (f"_renders-s{seed}" if seed else "") + dist)
+    recon = recon_dir(Path(args.work), overrides, args.views, seed, args.cameras)
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(renders / "annotations.json"),
            "--out", str(recon), "stage=cameras", "progress=false", f"seed={seed}", *overrides]
     t1 = time.perf_counter()
