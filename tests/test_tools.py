@@ -397,17 +397,23 @@ def test_gpu_session_lease_runs_each_step_under_its_limit_and_packs_after_each(t
         assert {"./steps.txt", "./nosuch.log", "./tests.log", "./plan.txt"} <= set(tar.getnames())
 
 
-def _cad8_runs(out: Path, turn_deg: float) -> None:
-    """Two fake 8-view camera runs in ``out/cad8``: class ``a`` on both devices, the CUDA camera of every object
-    turned by ``turn_deg`` about z; class ``b`` on the CPU alone (a CUDA run stopped before it)."""
+def _cad_runs(out: Path, step: str, turn_deg: float) -> None:
+    """Two fake 8-view camera runs where ``gpu_session.sh STEP`` looks for them (``viewpoints_cad.recon_dir`` of
+    its overrides; cad5 names its classes): class ``a`` on both devices, the CUDA camera of every object turned by
+    ``turn_deg`` about z; class ``b`` on the CPU alone (a CUDA run stopped before it)."""
     import math
+    import re
+
+    recon_dir = load_tool("viewpoints_cad").recon_dir
+    classes = re.search(r"^CAD5_CLASSES=(\S+)$", GPU_SESSION.read_text(), flags=re.M).group(1)
+    extra = [f"classes=[{classes}]"] if step == "cad5" else []
 
     def rot(deg):
         c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
         return [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
 
     for dev, classes in (("cpu", ("a", "b")), ("cuda", ("a",))):
-        run = out / "cad8" / f"cameras_device-{dev}_v8_renders-s2"
+        run = recon_dir(out / step, [f"device={dev}", *extra], views=8, seed=2)
         for cls in classes:
             (run / cls).mkdir(parents=True)
             cams = {str(i): {"refined": {"R": rot(0.0 if dev == "cpu" else turn_deg)}, "camera_choice": "refined"}
@@ -418,20 +424,24 @@ def _cad8_runs(out: Path, turn_deg: float) -> None:
         (run / "summary.json").write_text(json.dumps(summary))
 
 
-@pytest.mark.parametrize("turn_deg, status", [(0.3, 0), (0.8, 1)])
-def test_gpu_session_cad8_compares_the_runs_it_finds(tmp_path: Path, turn_deg: float, status: int):
-    """``DEVICES= gpu_session.sh cad8`` compares the CPU and CUDA cameras already there: the angle between
-    them per class against the 0.5 degree tolerance (exit status), a class the CUDA run missed named as such."""
-    _cad8_runs(tmp_path, turn_deg)
+@pytest.mark.parametrize("step, turn_deg, status", [("cad8", 0.3, 0), ("cad5", 0.8, 1)])
+def test_gpu_session_cad_steps_compare_the_runs_they_find(tmp_path: Path, step: str, turn_deg: float, status: int):
+    """``DEVICES= gpu_session.sh cad8|cad5`` compares the CPU and CUDA cameras already there, in the folders that
+    tools/viewpoints_cad.py gives those runs: the angle between them per class against the 0.5 degree tolerance
+    (exit status), a class the CUDA run missed named as such, the comparison's lines in ratios.txt."""
+    _cad_runs(tmp_path, step, turn_deg)
     env = dict(os.environ, DEVICES="", PYTHON=sys.executable)
-    proc = subprocess.run(["bash", str(ROOT / "tools" / "gpu_session.sh"), "cad8", str(tmp_path)], cwd=ROOT,
-                          env=env, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(["bash", str(GPU_SESSION), step, str(tmp_path)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=120)
     assert proc.returncode == status, proc.stdout + proc.stderr
     assert "b            not reached by the cuda run" in proc.stdout
-    rec = json.loads((tmp_path / "cad8_agreement.json").read_text())
+    rec = json.loads((tmp_path / f"{step}_agreement.json").read_text())
     assert rec["classes"]["a"]["median_deg"] == pytest.approx(turn_deg, abs=1e-3)
     assert rec["classes"]["a"]["camera_choice_differs"] == 0 and set(rec["classes"]) == {"a"}
     assert rec["viewpoint_seconds"] == {"cpu": 1.5, "cuda": 1.5}
+    ratios = (tmp_path / "ratios.txt").read_text()
+    assert f"{step}: 1 classes compared" in ratios and f"{step}: largest class median {turn_deg:.3f} deg" in ratios
+    assert f"{step}: SfM + refinement of the classes compared, cuda 1.5 s / cpu 1.5 s: cuda / cpu 1.000" in ratios
 
 
 STRESS = ROOT / "tools" / "stress_inputs.py"
