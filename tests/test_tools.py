@@ -298,6 +298,7 @@ def test_gpu_session_plan_fits_the_budget_and_names_real_steps(tmp_path: Path):
     assert {"tests", "mesher2000", "many4", "cad5"} <= set(names), text
     assert total == sum(int(lim) for _, lim in rows) <= 470, text
     assert "UNKNOWN" not in text and "not valid" not in text
+    assert f"{total} s in all" in (ROOT / "docs" / "benchmarks.md").read_text()  # the docs give the plan's sum
     for name in names:  # a Python that fails at once: each step starts, fails its checks, and is not "unknown"
         res = subprocess.run(["bash", str(GPU_SESSION), name, str(tmp_path / name)], cwd=tmp_path,
                              env=dict(os.environ, PYTHON="false", DEVICES=""), capture_output=True, text=True,
@@ -397,51 +398,67 @@ def test_gpu_session_lease_runs_each_step_under_its_limit_and_packs_after_each(t
         assert {"./steps.txt", "./nosuch.log", "./tests.log", "./plan.txt"} <= set(tar.getnames())
 
 
-def _cad_runs(out: Path, step: str, turn_deg: float) -> None:
-    """Two fake 8-view camera runs where ``gpu_session.sh STEP`` looks for them (``viewpoints_cad.recon_dir`` of
-    its overrides; cad5 names its classes): class ``a`` on both devices, the CUDA camera of every object turned by
-    ``turn_deg`` about z; class ``b`` on the CPU alone (a CUDA run stopped before it)."""
+def _cad_runs(out: Path, step: str, turn_deg: float) -> set:
+    """Fake 8-view camera runs where ``gpu_session.sh STEP`` looks for them (``viewpoints_cad.recon_dir`` of its
+    overrides; cad5 names its classes and splits its CUDA side into processes of a few classes each): on both
+    devices class ``a`` (cad5: in the first CUDA process, ``c`` in the second), the CUDA camera of every object
+    turned by ``turn_deg`` about z; class ``b`` on the CPU alone (a CUDA run stopped before it). Returns the
+    classes both sides have."""
     import math
     import re
 
     recon_dir = load_tool("viewpoints_cad").recon_dir
-    classes = re.search(r"^CAD5_CLASSES=(\S+)$", GPU_SESSION.read_text(), flags=re.M).group(1)
-    extra = [f"classes=[{classes}]"] if step == "cad5" else []
+    text = GPU_SESSION.read_text()
+    cpu_ovr, cuda_runs = [], [([], ("a",))]
+    if step == "cad5":
+        cpu_classes = re.search(r"^CAD5_CLASSES=[$][{]CAD_CLASSES:-([^}]+)[}]", text, flags=re.M).group(1)
+        cpu_ovr = [f"classes=[{cpu_classes}]"]
+        groups = re.search(r"^CAD5_CUDA_GROUPS=[$][{]CAD_CLASSES:-([^}]+)[}]", text, flags=re.M).group(1).split()
+        assert len(groups) == 2
+        cuda_runs = [([f"classes=[{groups[0]}]"], ("a",)), ([f"classes=[{groups[1]}]"], ("c",))]
 
     def rot(deg):
         c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
         return [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
 
-    for dev, classes in (("cpu", ("a", "b")), ("cuda", ("a",))):
-        run = recon_dir(out / step, [f"device={dev}", *extra], views=8, seed=2)
+    runs = [(["device=cpu", *cpu_ovr], ("a", "b", "c") if step == "cad5" else ("a", "b"), 0.0)]
+    runs += [(["device=cuda", *ovr], classes, turn_deg) for ovr, classes in cuda_runs]
+    for ovr, classes, deg in runs:
+        run = recon_dir(out / step, ovr, views=8, seed=2)
         for cls in classes:
             (run / cls).mkdir(parents=True)
-            cams = {str(i): {"refined": {"R": rot(0.0 if dev == "cpu" else turn_deg)}, "camera_choice": "refined"}
-                    for i in range(3)}
+            cams = {str(i): {"refined": {"R": rot(deg)}, "camera_choice": "refined"} for i in range(3)}
             (run / cls / "cameras.json").write_text(json.dumps({"cameras": cams}))
         summary = {"torch_threads": 2, "classes": {c: {"objects": 3, "seconds": {"sfm": 1.0, "refine": 0.5}}
                                                    for c in classes}}
         (run / "summary.json").write_text(json.dumps(summary))
+    return {"a", "c"} if step == "cad5" else {"a"}
 
 
 @pytest.mark.parametrize("step, turn_deg, status", [("cad8", 0.3, 0), ("cad5", 0.8, 1)])
 def test_gpu_session_cad_steps_compare_the_runs_they_find(tmp_path: Path, step: str, turn_deg: float, status: int):
     """``DEVICES= gpu_session.sh cad8|cad5`` compares the CPU and CUDA cameras already there, in the folders that
-    tools/viewpoints_cad.py gives those runs: the angle between them per class against the 0.5 degree tolerance
-    (exit status), a class the CUDA run missed named as such, the comparison's lines in ratios.txt."""
-    _cad_runs(tmp_path, step, turn_deg)
+    tools/viewpoints_cad.py gives those runs (cad5: its CUDA processes' folders together): the angle between them
+    per class against the 0.5 degree tolerance (exit status), a class the CUDA run missed named as such, the
+    comparison's lines in ratios.txt."""
+    both = _cad_runs(tmp_path, step, turn_deg)
     env = dict(os.environ, DEVICES="", PYTHON=sys.executable)
+    env.pop("CAD_CLASSES", None)
     proc = subprocess.run(["bash", str(GPU_SESSION), step, str(tmp_path)], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=120)
     assert proc.returncode == status, proc.stdout + proc.stderr
     assert "b            not reached by the cuda run" in proc.stdout
     rec = json.loads((tmp_path / f"{step}_agreement.json").read_text())
-    assert rec["classes"]["a"]["median_deg"] == pytest.approx(turn_deg, abs=1e-3)
-    assert rec["classes"]["a"]["camera_choice_differs"] == 0 and set(rec["classes"]) == {"a"}
-    assert rec["viewpoint_seconds"] == {"cpu": 1.5, "cuda": 1.5}
+    assert set(rec["classes"]) == both
+    for cls in both:
+        assert rec["classes"][cls]["median_deg"] == pytest.approx(turn_deg, abs=1e-3)
+        assert rec["classes"][cls]["camera_choice_differs"] == 0
+    n = len(both)
+    assert rec["viewpoint_seconds"] == {"cpu": 1.5 * n, "cuda": 1.5 * n}
     ratios = (tmp_path / "ratios.txt").read_text()
-    assert f"{step}: 1 classes compared" in ratios and f"{step}: largest class median {turn_deg:.3f} deg" in ratios
-    assert f"{step}: SfM + refinement of the classes compared, cuda 1.5 s / cpu 1.5 s: cuda / cpu 1.000" in ratios
+    assert f"{step}: {n} classes compared" in ratios and f"{step}: largest class median {turn_deg:.3f} deg" in ratios
+    assert (f"{step}: SfM + refinement of the classes compared, cuda {1.5 * n:.1f} s / cpu {1.5 * n:.1f} s: cuda / cpu "
+            "1.000") in ratios
 
 
 STRESS = ROOT / "tools" / "stress_inputs.py"

@@ -241,6 +241,22 @@ def test_compare_camera_runs_reports_classes_one_run_lacks(tmp_path):
         compare_camera_runs(tmp_path / "a", tmp_path / "b", labels=("cpu", "cpu"))
 
 
+def test_compare_camera_runs_merges_a_run_split_across_folders(tmp_path):
+    """One side made by two processes (a folder each): their classes together are compared with the other side;
+    a class both folders hold is read from the first; a folder without summary.json adds nothing."""
+    rots = Rotation.random(4, random_state=5)
+    turned = Rotation.from_rotvec([0.0, 0.0, np.radians(20.0)]) * rots
+    _camera_run(tmp_path / "a", {"car": dict(enumerate(rots.as_matrix()[:2])), "bus": {2: rots.as_matrix()[2]}})
+    _camera_run(tmp_path / "b1", {"car": dict(enumerate(rots.as_matrix()[:2]))})
+    _camera_run(tmp_path / "b2", {"bus": {2: turned.as_matrix()[2]}, "car": dict(enumerate(turned.as_matrix()[:2]))})
+    (tmp_path / "b3").mkdir()
+    rec = compare_camera_runs(tmp_path / "a", [tmp_path / "b1", tmp_path / "b2", tmp_path / "b3"])
+    assert set(rec["classes"]) == {"bus", "car"} and rec["not_compared"] == {}
+    assert rec["classes"]["car"]["max_deg"] == 0.0  # from b1, listed first
+    assert rec["classes"]["bus"]["median_deg"] == pytest.approx(20.0, abs=1e-3)
+    assert rec["torch_threads"] == {"cpu": 2, "cuda": 2}
+
+
 def _voc_aeroplanes(root, canvas=128):
     """Berkeley keypoints + figure-ground polygons of the VOC aeroplanes, in canvas pixels.
 

@@ -21,7 +21,7 @@ default photo-like distribution.
                                    [--work outputs/viewpoints_cad] [--out PATH [--key KEY]] [key=value ...]
     python tools/viewpoints_cad.py --views 8 --seed 0,1,2 --choice-study [--out PATH]
     python tools/viewpoints_cad.py --views 8 --seed 2 --render-only [--work DIR]
-    python tools/viewpoints_cad.py --compare RUN_A RUN_B [--labels cpu,cuda] [--out PATH [--key KEY]]
+    python tools/viewpoints_cad.py --compare RUN_A RUN_B [RUN_B ...] [--labels cpu,cuda] [--out PATH [--key KEY]]
 
 ``--choice-study`` runs no table: every class of every seed is estimated with ``refine_keep=refined``,
 every object's SfM and refined cameras are compared with the truth and scored by what the pipeline
@@ -38,12 +38,13 @@ docs/viewpoints.md are keys of ``docs/data/viewpoints.json``), by default beside
 (``<work>/cameras...json``).
 
 ``--render-only`` renders the seeds (cached in ``--work``) and stops, so that several runs can then
-share the renders at the same time. ``--compare RUN_A RUN_B`` reconstructs nothing: it compares two runs of
-the same renders object by object (``carvi_torch.evaluation.viewpoint_metrics.compare_camera_runs``: per
-class the median and largest angle between the refined cameras, ``camera_choice`` differences, each run's
-SfM start, shapes kept and seconds; a class one run has not finished is listed, not an error), prints a line
-per class, writes the record to ``--out`` (default ``RUN_B/agreement.json``) and exits 1 when a class's median
-angle exceeds 0.5 degrees or no class was compared (``tools/gpu_session.sh`` compares the CPU with CUDA so).
+share the renders at the same time. ``--compare RUN_A RUN_B [RUN_B ...]`` reconstructs nothing: it compares
+two runs of the same renders object by object (several RUN_B folders: one run split across processes;
+``carvi_torch.evaluation.viewpoint_metrics.compare_camera_runs``: per class the median and largest angle
+between the refined cameras, ``camera_choice`` differences, each run's SfM start, shapes kept and seconds; a
+class one run has not finished is listed, not an error), prints a line per class, writes the record to
+``--out`` (default ``RUN_B/agreement.json``) and exits 1 when a class's median angle exceeds 0.5 degrees or
+no class was compared (``tools/gpu_session.sh`` compares the CPU with CUDA so).
 
 Needs ../shared/data/pascal3d_cad (the PASCAL3D+ CAD models, Xiang et al. 2014).
 """
@@ -345,7 +346,7 @@ def _compare(args) -> int:
     from carvi_torch.io.outputs import write_record
 
     labels = tuple(args.labels.split(","))
-    rec = compare_camera_runs(args.compare[0], args.compare[1], labels=labels)
+    rec = compare_camera_runs(args.compare[0], args.compare[1:], labels=labels)
     a, b = labels
     for cls, why in rec["not_compared"].items():
         print(f"{cls:12s} {why}")
@@ -362,7 +363,7 @@ def _compare(args) -> int:
     print("no class compared" if worst is None else
           f"largest class median {worst:.3f} deg: {'within' if rec['agree'] else 'OUTSIDE'} the "
           f"{rec['tolerance_deg']} degree tolerance")
-    rec["runs"] = {lab: str(Path(r).resolve()) for lab, r in zip(labels, args.compare)}
+    rec["runs"] = {a: [str(Path(args.compare[0]).resolve())], b: [str(Path(r).resolve()) for r in args.compare[1:]]}
     out = Path(args.out) if args.out else Path(args.compare[1]) / "agreement.json"
     write_record(out, rec, args.key)
     print(f"wrote {out}" + (f", key {args.key}" if args.key else ""))
@@ -396,13 +397,15 @@ def main(argv=None) -> int:
                                                 "keys kept (e.g. --out docs/data/viewpoints.json --key "
                                                 "viewpoints_cad8)")
     ap.add_argument("--render-only", action="store_true", help="render the seeds (cached in --work) and stop")
-    ap.add_argument("--compare", nargs=2, metavar=("RUN_A", "RUN_B"), default=None,
-                    help="instead: compare two runs' cameras object by object (exit 1 when a class's median angle "
-                         "exceeds 0.5 degrees)")
+    ap.add_argument("--compare", nargs="+", metavar="RUN", default=None,
+                    help="instead: compare two runs' cameras object by object, RUN_A then RUN_B (several folders: "
+                         "one run split across processes); exit 1 when a class's median angle exceeds 0.5 degrees")
     ap.add_argument("--labels", default="cpu,cuda", help="--compare: the two runs' names, comma-separated")
     ap.add_argument("overrides", nargs="*", metavar="key=value", help="extra reconstruct overrides")
     args = ap.parse_args(argv)
     if args.compare:
+        if len(args.compare) < 2:
+            ap.error("--compare needs RUN_A and RUN_B")
         if len(args.labels.split(",")) != 2 or len(set(args.labels.split(","))) != 2:
             ap.error(f"--labels needs two different names separated by a comma, got {args.labels!r}")
         return _compare(args)

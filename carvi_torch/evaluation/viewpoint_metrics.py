@@ -175,10 +175,23 @@ def viewpoint_report(
     return report
 
 
-def _summary_classes(run: Path) -> dict:
-    """``summary.json``'s classes of a run: ``{}`` when it has none (a run stopped before its first class)."""
-    path = run / "summary.json"
-    return read_json(path).get("classes", {}) if path.is_file() else {}
+def _run_side(runs) -> tuple[dict, dict, int | None]:
+    """One side of a comparison, one output folder or several (a run split across processes): every class of
+    their ``summary.json`` files with the folder that holds it (the first one listed), and the torch threads of
+    the first folder that says. A folder without ``summary.json`` (a run stopped before its first class) adds none.
+
+    Returns:
+        ``({class: summary entry}, {class: folder}, torch_threads or None)``.
+    """
+    folders = [Path(runs)] if isinstance(runs, (str, Path)) else [Path(r) for r in runs]
+    entries, where, threads = {}, {}, None
+    for f in folders:
+        summary = read_json(f / "summary.json") if (f / "summary.json").is_file() else {}
+        threads = threads if threads is not None else summary.get("torch_threads")
+        for cls, entry in summary.get("classes", {}).items():
+            if cls not in entries:
+                entries[cls], where[cls] = entry, f
+    return entries, where, threads
 
 
 def _viewpoint_seconds(entry: dict) -> float:
@@ -207,7 +220,7 @@ def _class_agreement(cams: tuple[dict, dict], entries: tuple[dict, dict], labels
             "viewpoint_seconds": {lab: _viewpoint_seconds(e) for lab, e in zip(labels, entries)}}
 
 
-def compare_camera_runs(run_a: str | Path, run_b: str | Path, labels: tuple[str, str] = ("cpu", "cuda"),
+def compare_camera_runs(run_a, run_b, labels: tuple[str, str] = ("cpu", "cuda"),
                         tolerance_deg: float = RUN_AGREEMENT_DEG) -> dict:
     """Two runs' cameras of the same data (``reconstruct`` output folders), object by object.
 
@@ -218,7 +231,8 @@ def compare_camera_runs(run_a: str | Path, run_b: str | Path, labels: tuple[str,
     limit) lands in ``not_compared`` with the reason; it is not an error.
 
     Args:
-        run_a, run_b: the two output folders (``summary.json``, ``<class>/cameras.json``).
+        run_a, run_b: each an output folder (``summary.json``, ``<class>/cameras.json``), or a list of folders
+            whose classes together make the run (one run split across processes).
         labels: the runs' names in the record (e.g. their devices).
         tolerance_deg: the largest median angle per class for the runs to agree.
 
@@ -232,33 +246,31 @@ def compare_camera_runs(run_a: str | Path, run_b: str | Path, labels: tuple[str,
     Example:
         >>> import tempfile
         >>> with tempfile.TemporaryDirectory() as d:
-        ...     compare_camera_runs(Path(d), Path(d))["not_compared"]
+        ...     compare_camera_runs(Path(d), [Path(d), Path(d)])["not_compared"]
         {}
     """
     if len(labels) != 2 or labels[0] == labels[1]:
         raise ValueError(f"compare_camera_runs: labels must be two different names, got {list(labels)}")
-    runs = (Path(run_a), Path(run_b))
-    summ = [_summary_classes(r) for r in runs]
+    sides = [_run_side(run_a), _run_side(run_b)]
     rows, skipped = {}, {}
-    for cls in sorted(set(summ[0]) | set(summ[1])):
-        missing = [lab for lab, s in zip(labels, summ) if cls not in s]
-        files = [r / cls / "cameras.json" for r in runs]
+    for cls in sorted(set(sides[0][0]) | set(sides[1][0])):
+        missing = [lab for lab, side in zip(labels, sides) if cls not in side[0]]
+        files = [side[1][cls] / cls / "cameras.json" for side in sides] if not missing else []
         no_file = [lab for lab, f in zip(labels, files) if not f.is_file()]
         if missing or no_file:
             skipped[cls] = (f"not reached by the {missing[0]} run" if missing
                             else f"no cameras.json in the {no_file[0]} run")
             continue
         row = _class_agreement(tuple(read_json(f).get("cameras", {}) for f in files),
-                               (summ[0][cls], summ[1][cls]), labels)
+                               (sides[0][0][cls], sides[1][0][cls]), labels)
         if isinstance(row, str):
             skipped[cls] = row
         else:
             rows[cls] = row
     worst = max((r["median_deg"] for r in rows.values()), default=None)
-    threads = {lab: (read_json(r / "summary.json").get("torch_threads") if (r / "summary.json").is_file() else None)
-               for lab, r in zip(labels, runs)}
     return {"labels": list(labels), "classes": rows, "not_compared": skipped,
             "viewpoint_seconds": {lab: round(sum(r["viewpoint_seconds"][lab] for r in rows.values()), 2)
                                   for lab in labels},
-            "torch_threads": threads, "largest_median_deg": worst, "tolerance_deg": tolerance_deg,
+            "torch_threads": {lab: side[2] for lab, side in zip(labels, sides)},
+            "largest_median_deg": worst, "tolerance_deg": tolerance_deg,
             "agree": worst is not None and worst <= tolerance_deg}
