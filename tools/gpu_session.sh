@@ -199,14 +199,14 @@ ratio() {  # LABEL NEW OLD NEW_SECONDS OLD_SECONDS: "LABEL: new / old" into rati
     local both='BEGIN { printf "%s %.1f s, %s %.1f s: %s / %s %.3f", a, x, b, y, a, b, x / y }'
     local below='BEGIN { printf "%s %.1f s (whole tool), %s stopped at its %d s limit: %s / %s < %.3f", a, x, b, y, a, b, x / y }'
     local above='BEGIN { printf "%s stopped at its %d s limit, %s %.1f s (whole tool): %s / %s > %.3f", a, x, b, y, a, b, x / y }'
-    if [ "$nrc" = 0 ] && [ "$orc" = 0 ] && [ -n "$4" ] && [ -n "$5" ]; then
+    if [ "$nrc" = 0 ] && [ "$orc" = 0 ] && awk -v x="$4" -v y="$5" 'BEGIN { exit !(x + 0 > 0 && y + 0 > 0) }'; then
         line=$(awk -v x="$4" -v y="$5" -v a="$new" -v b="$old" "$both")
     elif [ "$nrc" = 0 ] && { [ "$orc" = 124 ] || [ "$orc" = 137 ]; }; then
         line=$(awk -v x="$nw" -v y="$ol" -v a="$new" -v b="$old" "$below")
     elif { [ "$nrc" = 124 ] || [ "$nrc" = 137 ]; } && [ "$orc" = 0 ]; then
         line=$(awk -v x="$nl" -v y="$ow" -v a="$new" -v b="$old" "$above")
     else
-        line="no ratio: $new status $nrc, $old status $orc"
+        line="no ratio: $new status $nrc, $old status $orc; seconds in their records: '$4', '$5'"
     fi
     echo "$label: $line" | tee -a "$out/ratios.txt"
 }
@@ -410,8 +410,8 @@ loading() {  # the 2,000-object class loaded with its canvases on one thread and
     one=$(jval "$out/loading2000.json" "loading.best_seconds.one thread")
     new=$(jval "$out/loading2000.json" loading.best_seconds.canvas_threads)
     if [ -n "$r" ]; then
-        echo "loading 2000 objects: canvas_threads $new s, one thread $one s: canvas_threads / one thread $r" \
-            | tee -a "$out/ratios.txt"
+        awk -v r="$r" -v a="$new" -v b="$one" 'BEGIN { printf "loading 2000 objects: canvas_threads %.2f s, one " \
+            "thread %.2f s: canvas_threads / one thread %.3f\n", a, b, r }' | tee -a "$out/ratios.txt"
     fi
 }
 
