@@ -17,6 +17,9 @@
 #                of time (a lent machine returns few files); status 0
 #   STEPS="name:seconds ..." replaces the plan of all and lease (any step; steps outside the plan need seconds).
 #
+# On a lent machine, one command (its $OUT returns few files: the pack is one):
+#     PACK=$OUT/results.tgz bash tools/gpu_session.sh lease /tmp/gpu
+#
 # A step of the plan runs alone under its own limit too. Inside it each run gets a share (`timeout`): a run
 # stopped at its share leaves the other's time and still gives a bound on the ratio ("new / old < x").
 #
