@@ -273,11 +273,110 @@ def test_gpu_session_keeps_the_callers_python_path(tmp_path: Path):
     assert seen[1].split(":") == [str(work), "/carried/site"]
 
 
+GPU_SESSION = ROOT / "tools" / "gpu_session.sh"
+
+
+def _plan(env_steps: str | None = None) -> tuple[int, str, list[tuple[str, str]], int]:
+    """``gpu_session.sh --plan`` (STEPS=env_steps when given): status, output, (step, limit) rows, the sum."""
+    import re
+
+    env = {k: v for k, v in os.environ.items() if k != "STEPS"}
+    if env_steps is not None:
+        env["STEPS"] = env_steps
+    res = subprocess.run(["bash", str(GPU_SESSION), "--plan"], cwd=ROOT, env=env, capture_output=True, text=True,
+                         timeout=30)
+    rows = re.findall(r"^  (\S+) +(\d+|\?) s  ", res.stdout, flags=re.M)
+    total = re.search(r"^  sum +(\d+) s", res.stdout, flags=re.M)
+    return res.returncode, res.stdout, [r for r in rows if r[0] != "sum"], int(total.group(1)) if total else -1
+
+
+def test_gpu_session_plan_fits_the_budget_and_names_real_steps(tmp_path: Path):
+    """The plan of ``all`` and ``lease`` (``--plan`` runs nothing): its limits add up to at most 470 s of the
+    machine's 8 minutes, and the script runs every step it names (none is refused as unknown)."""
+    rc, text, rows, total = _plan()
+    assert rc == 0, text
+    names = [n for n, _ in rows]
+    assert {"tests", "mesher2000", "many4", "cad5"} <= set(names), text
+    assert total == sum(int(lim) for _, lim in rows) <= 470, text
+    assert "UNKNOWN" not in text and "not valid" not in text
+    assert f"{total} s in all" in (ROOT / "docs" / "benchmarks.md").read_text()  # the docs give the plan's sum
+    for name in names:  # a Python that fails at once: each step starts, fails its checks, and is not "unknown"
+        res = subprocess.run(["bash", str(GPU_SESSION), name, str(tmp_path / name)], cwd=tmp_path,
+                             env=dict(os.environ, PYTHON="false", DEVICES=""), capture_output=True, text=True,
+                             timeout=60)
+        assert "unknown step" not in res.stderr, (name, res.stderr)
+    # the check can fail: an unknown step, a step without seconds, a plan over the budget
+    assert _plan("tests:130 nosuch:5")[0] == 1 and "UNKNOWN STEP" in _plan("tests:130 nosuch:5")[1]
+    assert _plan("bench9087")[0] == 1
+    rc, text, _, total = _plan("tests:300 cad5:200")
+    assert rc == 1 and total == 500 and "OVER its budget" in text
+
+
+def test_gpu_session_script_is_valid_bash():
+    """``bash -n`` parses the script; shellcheck (where installed) finds nothing."""
+    import shutil
+
+    res = subprocess.run(["bash", "-n", str(GPU_SESSION)], capture_output=True, text=True, timeout=30)
+    assert res.returncode == 0, res.stderr
+    if shutil.which("shellcheck"):
+        res = subprocess.run(["shellcheck", str(GPU_SESSION)], capture_output=True, text=True, timeout=60)
+        assert res.returncode == 0, res.stdout
+
+
 def test_gpu_session_answers_help():
-    res = subprocess.run(["bash", str(ROOT / "tools" / "gpu_session.sh"), "--help"], cwd=ROOT, capture_output=True,
-                         text=True, timeout=60)
-    usage = "bash tools/gpu_session.sh [all|tests|bench1000|bench9087|manyclasses|cad8|lease]"
+    res = subprocess.run(["bash", str(GPU_SESSION), "--help"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    usage = "bash tools/gpu_session.sh [all|lease|tests|mesher2000|loading2000|many4|cad5|"
     assert res.returncode == 0 and usage in res.stdout
+    assert "\nplan: each step under `timeout`" in res.stdout and "  sum " in res.stdout  # the plan, from the code
+
+
+#: Stands in for ``python`` on a CUDA machine: the package and device checks pass, ``tools/benchmark.py`` writes its
+#: record at once (the ``mesher=skimage`` run after FAKE_OLD_SLEEP seconds); anything else runs on this interpreter.
+_FAKE_CUDA_PYTHON = """#!{python}
+import json, os, sys, time
+argv = sys.argv[1:]
+if argv[:1] == ["-c"] and ("import kornia" in argv[1] or "cuda.is_available" in argv[1]):
+    sys.exit(0)
+if argv and argv[0].endswith("benchmark.py"):
+    old = "mesher=skimage" in argv
+    if old:
+        time.sleep(float(os.environ.get("FAKE_OLD_SLEEP", "0")))
+    rec = {{"end_to_end": {{"wall_seconds_with_startup": 5.0 if old else 2.5}},
+           "meshing": None if old else {{"torch_over_skimage": 0.05}}}}
+    json.dump(rec, open(argv[argv.index("--out") + 1], "w"))
+    sys.exit(0)
+os.execv(sys.executable, [sys.executable, *argv])
+"""
+
+
+@pytest.mark.parametrize("old_sleep", [0, 60])
+def test_gpu_session_mesher_step_writes_a_ratio_or_a_bound(tmp_path: Path, old_sleep: int):
+    """``mesher2000`` under a step end 6-7 s away: both runs finish -> new / old from their records (2.5 / 5.0);
+    the old run stopped at its share -> a bound, the new run's wall time over the old run's limit."""
+    import re
+
+    fake = tmp_path / "python"
+    fake.write_text(_FAKE_CUDA_PYTHON.format(python=sys.executable))
+    fake.chmod(0o755)
+    out = tmp_path / "gpu"
+    env = dict(os.environ, PYTHON=str(fake), CARVI_GPU_READY="1", FAKE_OLD_SLEEP=str(old_sleep),
+               STEP_END=str(int(time.time()) + 7))
+    proc = subprocess.run(["bash", str(GPU_SESSION), "mesher2000", str(out)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=60)
+    ratios = (out / "ratios.txt").read_text()
+    if old_sleep == 0:
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        assert ("mesher2000_auto 2.5 s, mesher2000_skimage 5.0 s: mesher2000_auto / mesher2000_skimage 0.500"
+                in ratios), ratios
+        assert "2000 objects, marching cubes of 100 grids: batched torch op / scikit-image 0.050" in ratios
+        return
+    assert proc.returncode == 1  # a run stopped at its limit fails the step
+    rc, _, limit = (out / "mesher2000_skimage.run").read_text().split()
+    wall = float((out / "mesher2000_auto.run").read_text().split()[1])
+    assert rc == "124" and 1 <= int(limit) <= 4  # the step's end less the 3 s kept for the ratios
+    m = re.search(r"mesher2000_skimage stopped at its (\d+) s limit: mesher2000_auto / mesher2000_skimage < ([0-9.]+)",
+                  ratios)
+    assert m and m.group(1) == limit and float(m.group(2)) == pytest.approx(wall / int(limit), abs=1e-3), ratios
 
 
 def test_gpu_session_lease_runs_each_step_under_its_limit_and_packs_after_each(tmp_path: Path):
@@ -285,8 +384,8 @@ def test_gpu_session_lease_runs_each_step_under_its_limit_and_packs_after_each(t
     the results are packed after each step (here a step that fails at once and one stopped at its limit)."""
     import tarfile
 
-    fake = tmp_path / "fakepython"  # the package check passes, then it sleeps past the step's limit
-    fake.write_text('#!/bin/sh\ncase "$2" in *kornia*) exit 0 ;; esac\nsleep 30\n')
+    fake = tmp_path / "fakepython"  # the package and device checks pass, then it sleeps past the step's limit
+    fake.write_text('#!/bin/sh\ncase "$2" in *kornia*|*cuda*|*torch.__version__*) exit 0 ;; esac\nsleep 30\n')
     fake.chmod(0o755)
     out, pack = tmp_path / "gpu", tmp_path / "results.tgz"
     env = dict(os.environ, PYTHON=str(fake), STEPS="nosuch:5 tests:2", PACK=str(pack))
@@ -297,44 +396,70 @@ def test_gpu_session_lease_runs_each_step_under_its_limit_and_packs_after_each(t
     assert "end nosuch, status 2" in steps and "end tests, status 124" in steps, steps
     assert "unknown step 'nosuch'" in (out / "nosuch.log").read_text()
     with tarfile.open(pack) as tar:
-        assert {"./steps.txt", "./nosuch.log", "./tests.log"} <= set(tar.getnames())
+        assert {"./steps.txt", "./nosuch.log", "./tests.log", "./plan.txt"} <= set(tar.getnames())
 
 
-def _cad8_runs(out: Path, turn_deg: float) -> None:
-    """Two fake 8-view camera runs in ``out/cad8``: class ``a`` on both devices, the CUDA camera of every object
-    turned by ``turn_deg`` about z; class ``b`` on the CPU alone (a CUDA run stopped before it)."""
+def _cad_runs(out: Path, step: str, turn_deg: float) -> set:
+    """Fake 8-view camera runs where ``gpu_session.sh STEP`` looks for them (``viewpoints_cad.recon_dir`` of its
+    overrides; cad5 names its classes and splits its CUDA side into processes of a few classes each): on both
+    devices class ``a`` (cad5: in the first CUDA process, ``c`` in the second), the CUDA camera of every object
+    turned by ``turn_deg`` about z; class ``b`` on the CPU alone (a CUDA run stopped before it). Returns the
+    classes both sides have."""
     import math
+    import re
+
+    recon_dir = load_tool("viewpoints_cad").recon_dir
+    text = GPU_SESSION.read_text()
+    cpu_ovr, cuda_runs = [], [([], ("a",))]
+    if step == "cad5":
+        cpu_classes = re.search(r"^CAD5_CLASSES=[$][{]CAD_CLASSES:-([^}]+)[}]", text, flags=re.M).group(1)
+        cpu_ovr = [f"classes=[{cpu_classes}]"]
+        groups = re.search(r"^CAD5_CUDA_GROUPS=[$][{]CAD_CLASSES:-([^}]+)[}]", text, flags=re.M).group(1).split()
+        assert len(groups) == 2
+        cuda_runs = [([f"classes=[{groups[0]}]"], ("a",)), ([f"classes=[{groups[1]}]"], ("c",))]
 
     def rot(deg):
         c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
         return [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
 
-    for dev, classes in (("cpu", ("a", "b")), ("cuda", ("a",))):
-        run = out / "cad8" / f"cameras_device-{dev}_v8_renders-s2"
+    runs = [(["device=cpu", *cpu_ovr], ("a", "b", "c") if step == "cad5" else ("a", "b"), 0.0)]
+    runs += [(["device=cuda", *ovr], classes, turn_deg) for ovr, classes in cuda_runs]
+    for ovr, classes, deg in runs:
+        run = recon_dir(out / step, ovr, views=8, seed=2)
         for cls in classes:
             (run / cls).mkdir(parents=True)
-            cams = {str(i): {"refined": {"R": rot(0.0 if dev == "cpu" else turn_deg)}, "camera_choice": "refined"}
-                    for i in range(3)}
+            cams = {str(i): {"refined": {"R": rot(deg)}, "camera_choice": "refined"} for i in range(3)}
             (run / cls / "cameras.json").write_text(json.dumps({"cameras": cams}))
         summary = {"torch_threads": 2, "classes": {c: {"objects": 3, "seconds": {"sfm": 1.0, "refine": 0.5}}
                                                    for c in classes}}
         (run / "summary.json").write_text(json.dumps(summary))
+    return {"a", "c"} if step == "cad5" else {"a"}
 
 
-@pytest.mark.parametrize("turn_deg, status", [(0.3, 0), (0.8, 1)])
-def test_gpu_session_cad8_compares_the_runs_it_finds(tmp_path: Path, turn_deg: float, status: int):
-    """``DEVICES= gpu_session.sh cad8`` compares the CPU and CUDA cameras already there: the angle between
-    them per class against the 0.5 degree tolerance (exit status), a class the CUDA run missed named as such."""
-    _cad8_runs(tmp_path, turn_deg)
+@pytest.mark.parametrize("step, turn_deg, status", [("cad8", 0.3, 0), ("cad5", 0.8, 1)])
+def test_gpu_session_cad_steps_compare_the_runs_they_find(tmp_path: Path, step: str, turn_deg: float, status: int):
+    """``DEVICES= gpu_session.sh cad8|cad5`` compares the CPU and CUDA cameras already there, in the folders that
+    tools/viewpoints_cad.py gives those runs (cad5: its CUDA processes' folders together): the angle between them
+    per class against the 0.5 degree tolerance (exit status), a class the CUDA run missed named as such, the
+    comparison's lines in ratios.txt."""
+    both = _cad_runs(tmp_path, step, turn_deg)
     env = dict(os.environ, DEVICES="", PYTHON=sys.executable)
-    proc = subprocess.run(["bash", str(ROOT / "tools" / "gpu_session.sh"), "cad8", str(tmp_path)], cwd=ROOT,
-                          env=env, capture_output=True, text=True, timeout=120)
+    env.pop("CAD_CLASSES", None)
+    proc = subprocess.run(["bash", str(GPU_SESSION), step, str(tmp_path)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=120)
     assert proc.returncode == status, proc.stdout + proc.stderr
-    assert "b            not reached by the CUDA run" in proc.stdout
-    rec = json.loads((tmp_path / "cad8_agreement.json").read_text())
-    assert rec["classes"]["a"]["median_deg"] == pytest.approx(turn_deg, abs=1e-3)
-    assert rec["classes"]["a"]["camera_choice_differs"] == 0 and set(rec["classes"]) == {"a"}
-    assert rec["viewpoint_seconds"] == {"cpu": 1.5, "cuda": 1.5}
+    assert "b            not reached by the cuda run" in proc.stdout
+    rec = json.loads((tmp_path / f"{step}_agreement.json").read_text())
+    assert set(rec["classes"]) == both
+    for cls in both:
+        assert rec["classes"][cls]["median_deg"] == pytest.approx(turn_deg, abs=1e-3)
+        assert rec["classes"][cls]["camera_choice_differs"] == 0
+    n = len(both)
+    assert rec["viewpoint_seconds"] == {"cpu": 1.5 * n, "cuda": 1.5 * n}
+    ratios = (tmp_path / "ratios.txt").read_text()
+    assert f"{step}: {n} classes compared" in ratios and f"{step}: largest class median {turn_deg:.3f} deg" in ratios
+    assert (f"{step}: SfM + refinement of the classes compared, cuda {1.5 * n:.1f} s / cpu {1.5 * n:.1f} s: cuda / cpu "
+            "1.000") in ratios
 
 
 STRESS = ROOT / "tools" / "stress_inputs.py"

@@ -13,6 +13,7 @@ from carvi_torch.cameras import random_rotations, rotation_from_azimuth_elevatio
 from carvi_torch.evaluation.viewpoint_metrics import (
     align_rotations,
     angle_errors,
+    compare_camera_runs,
     geodesic_errors,
     necker_mirror,
     summarize,
@@ -170,6 +171,90 @@ def test_report_with_a_given_alignment(generator):
 
 
 # --------------------------------------------------------------------------- real data
+
+
+def _camera_run(run, classes: dict, groups: int = 1, seconds: float = 1.0, choice: str = "refined") -> None:
+    """A hand-made ``reconstruct`` output folder: ``classes`` = {class: {annotation id: refined R (3x3) or None}},
+    every object's ``camera_choice`` ``choice``; ``summary.json`` names every class, with its SfM start, shapes
+    kept and seconds."""
+    entries = {}
+    for cls, cams in classes.items():
+        (run / cls).mkdir(parents=True)
+        doc = {str(k): ({"refined": {"R": np.asarray(R).tolist()}, "camera_choice": choice} if R is not None
+                        else {"camera_choice": "none"}) for k, R in cams.items()}
+        (run / cls / "cameras.json").write_text(json.dumps({"class": cls, "cameras": doc}))
+        entries[cls] = {"objects": len(cams), "seconds": {"sfm": seconds, "refine": seconds / 2, "carve": 9.0},
+                        "sfm": {"start": {"kept": "cold"}}, "sfm_groups": {"groups": groups}}
+    (run / "summary.json").write_text(json.dumps({"torch_threads": 2, "classes": entries}))
+
+
+def test_compare_camera_runs_identical_runs_agree_at_zero(tmp_path):
+    rots = Rotation.random(6, random_state=1).as_matrix()
+    classes = {"car": {i: rots[i] for i in range(3)}, "bus": {i + 3: rots[i + 3] for i in range(3)}}
+    _camera_run(tmp_path / "a", classes)
+    _camera_run(tmp_path / "b", classes)
+    rec = compare_camera_runs(tmp_path / "a", tmp_path / "b")
+    assert set(rec["classes"]) == {"bus", "car"} and rec["not_compared"] == {}
+    for row in rec["classes"].values():
+        assert row["compared"] == 3 and row["median_deg"] == 0.0 and row["max_deg"] == 0.0
+        assert row["camera_choice_differs"] == 0 and row["sfm_start"] == ["cold", "cold"]
+        assert row["viewpoint_seconds"] == {"cpu": 1.5, "cuda": 1.5}  # SfM + refinement, not carving
+    assert rec["largest_median_deg"] == 0.0 and rec["agree"] is True
+    assert rec["viewpoint_seconds"] == {"cpu": 3.0, "cuda": 3.0} and rec["torch_threads"] == {"cpu": 2, "cuda": 2}
+
+
+def test_compare_camera_runs_measures_known_turns_against_scipy(tmp_path):
+    """Every object of the second run turned about its own random axis by a known angle: the median and the
+    largest angle are scipy's (the relative rotation's magnitude) and the nominal ones."""
+    turns = np.array([0.0, 0.3, 12.5, 37.0])
+    rots = Rotation.random(4, random_state=2)
+    axes = Rotation.random(4, random_state=3).apply([1.0, 0.0, 0.0])
+    turned = Rotation.from_rotvec(axes * np.radians(turns)[:, None]) * rots
+    _camera_run(tmp_path / "a", {"car": dict(enumerate(rots.as_matrix()))})
+    _camera_run(tmp_path / "b", {"car": dict(enumerate(turned.as_matrix()))}, groups=2)
+    row = compare_camera_runs(tmp_path / "a", tmp_path / "b", labels=("x", "y"), tolerance_deg=5.0)["classes"]["car"]
+    ref = np.degrees((rots * turned.inv()).magnitude())
+    np.testing.assert_allclose(ref, turns, atol=1e-9)  # the reference sees the nominal turns
+    assert row["median_deg"] == pytest.approx(float(np.median(ref)), abs=1e-3)  # 6.4: mean of the middle two
+    assert row["max_deg"] == pytest.approx(37.0, abs=1e-3)
+    assert row["shape_groups"] == [1, 2] and set(row["viewpoint_seconds"]) == {"x", "y"}
+    rec = compare_camera_runs(tmp_path / "a", tmp_path / "b")
+    assert rec["agree"] is False and rec["largest_median_deg"] == pytest.approx(6.4, abs=1e-3)
+
+
+def test_compare_camera_runs_reports_classes_one_run_lacks(tmp_path):
+    """A class the second run never reached, one whose cameras.json is missing, one without a refined camera on
+    one side: each named with its reason, the rest compared; no class at all does not agree."""
+    R = Rotation.random(3, random_state=4).as_matrix()
+    _camera_run(tmp_path / "a", {"car": {1: R[0]}, "sofa": {2: R[1]}, "train": {3: R[2]}, "tv": {4: R[0]}})
+    _camera_run(tmp_path / "b", {"car": {1: R[0]}, "train": {3: R[2]}, "tv": {4: None}}, choice="sfm")
+    (tmp_path / "b" / "train" / "cameras.json").unlink()
+    rec = compare_camera_runs(tmp_path / "a", tmp_path / "b")
+    assert set(rec["classes"]) == {"car"} and rec["agree"] is True
+    assert rec["not_compared"] == {"sofa": "not reached by the cuda run", "train": "no cameras.json in the cuda run",
+                                   "tv": "no object with a refined camera in both runs"}
+    assert rec["classes"]["car"]["compared"] == 1 and rec["classes"]["car"]["camera_choice_differs"] == 1
+    empty = compare_camera_runs(tmp_path / "a", tmp_path / "nothing")
+    assert empty["classes"] == {} and empty["agree"] is False and empty["largest_median_deg"] is None
+    assert empty["not_compared"]["car"] == "not reached by the cuda run"
+    with pytest.raises(ValueError, match="two different names"):
+        compare_camera_runs(tmp_path / "a", tmp_path / "b", labels=("cpu", "cpu"))
+
+
+def test_compare_camera_runs_merges_a_run_split_across_folders(tmp_path):
+    """One side made by two processes (a folder each): their classes together are compared with the other side;
+    a class both folders hold is read from the first; a folder without summary.json adds nothing."""
+    rots = Rotation.random(4, random_state=5)
+    turned = Rotation.from_rotvec([0.0, 0.0, np.radians(20.0)]) * rots
+    _camera_run(tmp_path / "a", {"car": dict(enumerate(rots.as_matrix()[:2])), "bus": {2: rots.as_matrix()[2]}})
+    _camera_run(tmp_path / "b1", {"car": dict(enumerate(rots.as_matrix()[:2]))})
+    _camera_run(tmp_path / "b2", {"bus": {2: turned.as_matrix()[2]}, "car": dict(enumerate(turned.as_matrix()[:2]))})
+    (tmp_path / "b3").mkdir()
+    rec = compare_camera_runs(tmp_path / "a", [tmp_path / "b1", tmp_path / "b2", tmp_path / "b3"])
+    assert set(rec["classes"]) == {"bus", "car"} and rec["not_compared"] == {}
+    assert rec["classes"]["car"]["max_deg"] == 0.0  # from b1, listed first
+    assert rec["classes"]["bus"]["median_deg"] == pytest.approx(20.0, abs=1e-3)
+    assert rec["torch_threads"] == {"cpu": 2, "cuda": 2}
 
 
 def _voc_aeroplanes(root, canvas=128):

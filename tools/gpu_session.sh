@@ -1,154 +1,365 @@
 #!/usr/bin/env bash
-# Everything to run when a CUDA machine is at hand, in one command: the CUDA tests and the GPU
-# benchmarks (docs/benchmarks.md; tools/benchmark.py --device cuda), each new path timed against
-# the current one in the same run. Run from the repository root:
+# Every GPU check in one command that fits a lent machine's 8 minutes: the CUDA tests and the GPU benchmarks
+# (docs/benchmarks.md), each new path timed against the current one in the same run (ratios in
+# OUTDIR/ratios.txt). Run from the repository root:
 #
-#     bash tools/gpu_session.sh [all|tests|bench1000|bench9087|manyclasses|cad8|lease] [OUTDIR]
+#     bash tools/gpu_session.sh [all|lease|tests|mesher2000|loading2000|many4|cad5|bench1000|bench9087|manyclasses|cad8] [OUTDIR]
+#     bash tools/gpu_session.sh --plan     # the plan of all and lease (steps, limits, their sum, the data); runs nothing
 #
-# OUTDIR defaults to $OUT (the lent machine's result folder) or outputs/gpu; each step writes its
-# log and JSON there. Python is $PYTHON or python3, with torch and CUDA. Packages the machine lacks
-# travel as wheels in .whl/ (installed once into /tmp/carvi_site, never into the system). The data
-# are generated on first use, or carried: outputs/bench/data/car1000_s0/{annotations.json,gt.json}
-# (3 MB; the 9,087-object class is tiled from it), outputs/bench/data/cad_v8_s0/annotations.json
-# (0.5 MB: the many-class data) and ../shared/data/pascal3d_cad (cad8; CAD=path elsewhere).
+# OUTDIR defaults to $OUT (the lent machine's result folder) or outputs/gpu; each step writes its log and JSON
+# there. Python is $PYTHON or python3, with torch and CUDA. Packages the machine lacks travel as wheels in
+# .whl/ (installed once into /tmp/carvi_site, never into the system).
 #
-# Steps (new paths against the current ones in the same run, ratios in OUTDIR/ratios.txt):
-#   tests        pytest -m cuda (117 s on an H200 at b9a1ed9)
+#   all          the plan below: each step under `timeout` at its limit, the limits adding up to at most the
+#                budget; each step's output on the terminal and in OUTDIR/<step>.log; status 1 when a step failed
+#   lease        the same plan, the output in OUTDIR/<step>.log only, OUTDIR's small files packed into PACK
+#                (default OUTDIR.tgz) after each step, so what finished comes back when a later one runs out
+#                of time (a lent machine returns few files); status 0
+#   STEPS="name:seconds ..." replaces the plan of all and lease (any step; steps outside the plan need seconds).
+#
+# On a lent machine, one command (its $OUT returns few files: the pack is one):
+#     PACK=$OUT/results.tgz bash tools/gpu_session.sh lease /tmp/gpu
+#
+# A step of the plan runs alone under its own limit too. Inside it each run gets a share (`timeout`): a run
+# stopped at its share leaves the other's time and still gives a bound on the ratio ("new / old < x").
+#
+# Steps outside the plan (no limit when run alone; H200 times: 16 slow cores, torch 2.11.0+cu130):
 #   bench1000    tools/benchmark.py --device cuda --objects 1000, the carving comparison included
-#   bench9087    the 9,087-object class: its loading with the canvases on one thread and on
-#                canvas_threads (--load-only), then mesher=auto (marching cubes batched on the GPU) and
-#                mesher=skimage (the writers mesh); H200: 54 s for auto, skimage stopped at 85 s
-#   manyclasses  12 classes of about 50 objects, the viewpoint stage on the run's device (default)
-#                against viewpoints.device=cpu; one run did not finish in 110 s on the H200 (bba3577)
-#   cad8         the 8-view CAD renders' cameras on the CPU and on CUDA, compared object by object
-#                (tolerance 0.5 degrees median per class); DEVICES=cuda runs the CUDA side alone
-#                against a CPU run already in OUTDIR/cad8, DEVICES= only compares; H200: the CPU
-#                80 s, CUDA over 120 s
-#   all          tests, bench1000, bench9087 and manyclasses: longer than a lent machine's 10 minutes
-#   lease        STEPS="tests:170 bench9087:150 manyclasses:240 cad8:200" (step:seconds): each step
-#                under its own limit, OUTDIR's small files packed into PACK (default OUTDIR.tgz)
-#                after each, so what finished comes back when a later step runs out of time
+#   bench9087    the 9,087-object class: its loading on one thread and on canvas_threads (--load-only), then
+#                mesher=auto and mesher=skimage end to end (H200: 54 s for auto, skimage stopped at 85 s)
+#   manyclasses  the 12 many-class classes: viewpoint_processes=12 (their viewpoints at once, in CPU
+#                processes), viewpoints.device=cpu, then the default (viewpoints on CUDA); the default did not
+#                finish in 110 s on the H200
+#   cad8         the 8-view CAD renders' cameras of the 12 classes, on the CPU then on CUDA, compared object by
+#                object (tools/viewpoints_cad.py --compare; median <= 0.5 degrees per class). DEVICES=cuda runs
+#                the CUDA side alone against a CPU run already in OUTDIR/cad8, DEVICES= only compares (cad5
+#                too); H200: the CPU 80 s, CUDA over 120 s
+#
+# Data (carry them: generating them takes minutes; --plan says which are here):
+#   outputs/bench/data/car1000_s0/{annotations,gt}.json      mesher2000, loading2000, bench* (larger classes are
+#                                                             tiled from it)
+#   outputs/bench/data/cad_v8_s0/annotations.json            many4, manyclasses
+#   outputs/viewpoints_cad/renders_v8_s2/{annotations,gt}.json   cad5, cad8 (RENDERS=dir elsewhere; else
+#                                                             rendered from ../shared/data/pascal3d_cad, CAD=path)
 set -uo pipefail
-if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then  # the comment above
+
+# ---- the plan: what `all` and `lease` run, set from the H200's times (docs/benchmarks.md) ----------------------
+BUDGET=470          # seconds the plan's limits may add up to: the 8 minutes, less 10 s of setup and packing
+PLAN="tests:130 mesher2000:100 loading2000:25 many4:80 cad5:130"
+MESHER_AUTO_S=45    # mesher2000: the mesher=auto run's share; mesher=skimage gets the rest
+MANY_CPU_S=35       # many4: the viewpoint_processes run's share; the default run gets the rest
+CAD_RENDER_S=30     # cad5: rendering, when the renders were not carried
+CAD_COMPARE_S=10    # cad5: the comparison (its interpreter imports torch)
+RATIO_S=3           # kept at a step's end to write its ratios
+MANY4_CLASSES=boat,bottle,bus,chair
+CAD5_CLASSES=${CAD_CLASSES:-diningtable,motorbike,sofa,train,tvmonitor}  # CAD_CLASSES=...: others (e.g. those a
+                                                                         # stopped run did not reach)
+# cad5's CUDA side: one process per group, all at once (a CUDA run keeps one CPU thread busy launching small
+# kernels): two groups of about 55-65 s of SfM each at the H200's 2.9x; with CAD_CLASSES, one process
+CAD5_CUDA_GROUPS=${CAD_CLASSES:-diningtable,train,tvmonitor motorbike,sofa}
+STEPS_KNOWN="tests mesher2000 loading2000 many4 cad5 bench1000 bench9087 manyclasses cad8"
+
+describe() {  # STEP: one line on what it runs
+    case "$1" in
+        tests) echo "pytest -m cuda (89-117 s on the H200)" ;;
+        mesher2000) echo "2,000 objects end to end: mesher=auto (marching cubes batched on the GPU; at most" \
+                         "${MESHER_AUTO_S} s) against mesher=skimage (the writers mesh; the rest); the batched op" \
+                         "against scikit-image on 100 of the run's grids (H200, 9,087 objects: 54 s for auto," \
+                         "skimage unfinished at 85 s)" ;;
+        loading2000) echo "the 2,000-object class loaded with its canvases on one thread and on canvas_threads," \
+                          "best of 2" ;;
+        many4) echo "the many-class benchmark on ${MANY4_CLASSES//,/, } (4 of 12): viewpoint_processes=4 (the" \
+                    "4 classes' viewpoints at once, in CPU processes; at most ${MANY_CPU_S} s) against the default," \
+                    "viewpoints on CUDA (the 12 classes did not finish in 110 s on the H200)" ;;
+        cad5) echo "the 8-view CAD cameras of ${CAD5_CLASSES//,/, } (by default the classes the H200's CUDA run" \
+                   "did not reach), compared object by object (median <= 0.5 degrees per class): the CPU side (4" \
+                   "torch threads) beside the CUDA side, in processes of ${CAD5_CUDA_GROUPS// / and } at the same" \
+                   "time (about 120 s of SfM in all at the H200's 2.9x); a class a side did not reach is listed" ;;
+        bench1000|bench9087|manyclasses|cad8) echo "(outside the plan: see --help)" ;;
+        *) echo "UNKNOWN STEP" ;;
+    esac
+}
+
+plan_entries() {  # the plan's "step seconds", one a line (STEPS replaces it; a step of PLAN may leave out its
+                 # seconds; a missing limit is "?")
+    local s limit
+    for s in ${STEPS:-$PLAN}; do
+        limit=${s#*:}
+        [ "$limit" = "$s" ] && limit=$(plan_limit "$s")
+        echo "${s%%:*} ${limit:-?}"
+    done
+}
+
+plan_limit() {  # STEP: its seconds in PLAN (empty when it is not in it)
+    local s
+    for s in $PLAN; do [ "${s%%:*}" = "$1" ] && { echo "${s#*:}"; return; }; done
+}
+
+print_plan() {  # prints the plan; status 1 when a step is unknown, a limit not a positive integer or the sum over budget
+    local name limit sum=0 bad=0
+    echo "plan: each step under \`timeout\` at its limit (seconds); budget $BUDGET s"
+    while read -r name limit; do
+        case " $STEPS_KNOWN " in *" $name "*) ;; *) bad=1 ;; esac
+        case "$limit" in ''|*[!0-9]*|0) bad=1; limit="?" ;; *) sum=$(( sum + limit )) ;; esac
+        describe "$name" | fold -s -w 88 | { read -r first; printf '  %-12s %4s s  %s\n' "$name" "$limit" "$first"
+                                             sed 's/^/                       /'; }
+    done < <(plan_entries)
+    printf '  %-12s %4s s  (budget %s s)\n' "sum" "$sum" "$BUDGET"
+    [ "$sum" -gt "$BUDGET" ] && { echo "the plan is OVER its budget"; bad=1; }
+    [ "$bad" = 1 ] && echo "the plan is not valid: unknown step, missing limit or over budget"
+    echo "data:"
+    data_line outputs/bench/data/car1000_s0/annotations.json "mesher2000, loading2000 (else generated: minutes, past their limits)"
+    data_line outputs/bench/data/cad_v8_s0/annotations.json "many4 (else rendered or generated: past its limit)"
+    data_line "${RENDERS:-outputs/viewpoints_cad/renders_v8_s2}/annotations.json" "cad5 (else rendered, at most $CAD_RENDER_S s)"
+    data_line ../shared/data "tests (the tests on real data skip without it)"
+    return "$bad"
+}
+
+data_line() {  # PATH WHAT
+    if [ -e "$1" ]; then printf '  here    %s\n' "$1"; else printf '  absent  %s: %s\n' "$1" "$2"; fi
+}
+
+if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then  # the comment above, then the plan
     sed -n '2,/^set /p' "$0" | sed -e '$d' -e 's/^# \{0,1\}//'
+    echo
+    print_plan
     exit 0
+fi
+if [ "${1:-}" = "--plan" ]; then
+    print_plan
+    exit $?
 fi
 step=${1:-all}
 out=${2:-${OUT:-outputs/gpu}}
 py=${PYTHON:-python3}
+case " all lease $STEPS_KNOWN " in
+    *" $step "*) ;;
+    *) echo "unknown step '$step' (all, lease, ${STEPS_KNOWN// /, })" >&2; exit 2 ;;
+esac
 mkdir -p "$out"
 
+# ---- packages: installed once; the steps of all and lease inherit the path (CARVI_GPU_READY) ------------------
+if [ -z "${CARVI_GPU_READY:-}" ]; then
+    if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, scipy, skimage, yaml, tqdm, matplotlib, pytest" \
+            2>/dev/null \
+            && [ -d .whl ] && compgen -G ".whl/*.whl" >/dev/null; then
+        "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+            --target /tmp/carvi_site .whl/*.whl || exit 1
+        export PYTHONPATH="/tmp/carvi_site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
+    else
+        export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+    fi
+fi
+
+# ---- how each step times its runs --------------------------------------------------------------------------
+# A step of the plan ends at STEP_END (epoch seconds): the runner's, or its plan limit from its start when it runs
+# alone. Every run inside gets at most its share and never goes past that end, so the step's own runs stop
+# before the runner's `timeout` stops the step. Steps outside the plan run without limits.
+part_limit() {  # SHARE RESERVE: the next run's seconds: at most SHARE (0: no share), RESERVE kept before the
+                # step's end; "none" (no limit) for a step without an end
+    [ -z "${STEP_END:-}" ] && { if [ "$1" -gt 0 ]; then echo "$1"; else echo none; fi; return; }
+    local left=$(( STEP_END - $(date +%s) - $2 ))
+    if [ "$1" -gt 0 ] && [ "$1" -lt "$left" ]; then echo "$1"; else echo "$left"; fi
+}
+
+timed() {  # NAME LIMIT CMD...: CMD under `timeout LIMIT` ("none": no limit; at most 0: not run), its output also in
+           # OUTDIR/NAME.txt, "status wall_seconds limit" in OUTDIR/NAME.run; returns its status (124, 137: stopped)
+    local name=$1 limit=$2 t0 rc
+    shift 2
+    if [ "$limit" != none ] && [ "$limit" -le 0 ]; then
+        echo "$name: not run, no time left in the step" | tee "$out/$name.txt"
+        echo "125 0 0" > "$out/$name.run"
+        return 125
+    fi
+    echo "$name (limit $limit s): $*"
+    t0=$(date +%s.%N)
+    if [ "$limit" = none ]; then
+        "$@" 2>&1 | tee "$out/$name.txt"
+    else
+        timeout -k 3 "$limit" "$@" 2>&1 | tee "$out/$name.txt"
+    fi
+    rc=${PIPESTATUS[0]}
+    echo "$rc $(awk -v a="$t0" -v b="$(date +%s.%N)" 'BEGIN { printf "%.1f", b - a }') $limit" > "$out/$name.run"
+    echo "$name: status $rc after $(cut -d' ' -f2 "$out/$name.run") s"
+    return "$rc"
+}
+
+jval() {  # FILE DOTTED.KEY: one value of a JSON record (empty when the file or the key is absent)
+    "$py" -c 'import json, sys
+try:
+    v = json.load(open(sys.argv[1]))
+    for k in sys.argv[2].split("."):
+        v = v[k]
+    print(v)
+except (OSError, ValueError, KeyError, TypeError):
+    pass' "$1" "$2" 2>/dev/null
+}
+
+ratio() {  # LABEL NEW OLD NEW_SECONDS OLD_SECONDS: "LABEL: new / old" into ratios.txt, from the runs' seconds (their
+           # JSON) when both finished, else a bound from their wall times and the limit of the one stopped
+    local label=$1 new=$2 old=$3 nrc=missing nw nl orc=missing ow ol line
+    [ -f "$out/$new.run" ] && read -r nrc nw nl < "$out/$new.run"
+    [ -f "$out/$old.run" ] && read -r orc ow ol < "$out/$old.run"
+    local both='BEGIN { printf "%s %.1f s, %s %.1f s: %s / %s %.3f", a, x, b, y, a, b, x / y }'
+    local below='BEGIN { printf "%s %.1f s (whole tool), %s stopped at its %d s limit: %s / %s < %.3f", a, x, b, y, a, b, x / y }'
+    local above='BEGIN { printf "%s stopped at its %d s limit, %s %.1f s (whole tool): %s / %s > %.3f", a, x, b, y, a, b, x / y }'
+    if [ "$nrc" = 0 ] && [ "$orc" = 0 ] && awk -v x="$4" -v y="$5" 'BEGIN { exit !(x + 0 > 0 && y + 0 > 0) }'; then
+        line=$(awk -v x="$4" -v y="$5" -v a="$new" -v b="$old" "$both")
+    elif [ "$nrc" = 0 ] && { [ "$orc" = 124 ] || [ "$orc" = 137 ]; }; then
+        line=$(awk -v x="$nw" -v y="$ol" -v a="$new" -v b="$old" "$below")
+    elif { [ "$nrc" = 124 ] || [ "$nrc" = 137 ]; } && [ "$orc" = 0 ]; then
+        line=$(awk -v x="$nl" -v y="$ow" -v a="$new" -v b="$old" "$above")
+    else
+        line="no ratio: $new status $nrc, $old status $orc; seconds in their records: '$4', '$5'"
+    fi
+    echo "$label: $line" | tee -a "$out/ratios.txt"
+}
+
+# ---- the 8-view CAD renders' cameras, CPU against CUDA (cad5, cad8) ---------------------------------------------
+#     bash tools/gpu_session.sh cad8|cad5 [OUTDIR]
+# Renders the PASCAL3D+ CAD models at 8 views per model (seed 2: the trains' template start), reconstructs their
+# cameras on the CPU and on CUDA (tools/viewpoints_cad.py, default settings) and compares them object by object
+# (tools/viewpoints_cad.py --compare: the angle between the final cameras, the SfM start each class kept, the
+# shapes its mixture kept, each object's camera_choice, each side's seconds of SfM and refinement), into
+# OUTDIR/<step>_agreement.json. Tolerance (docs/viewpoints.md): median angle <= 0.5 degrees per class. A class a
+# run did not reach is listed as such. cad8: every class, the CPU side then the CUDA side. cad5: five classes, the
+# CPU side (4 torch threads) and the CUDA side's processes (each main process keeps one thread) at the same time.
+cad_dir() {  # WORK OVERRIDE...: the folder of a run of tools/viewpoints_cad.py --views 8 --seed 2 (its recon_dir)
+    local d="$1/cameras" o
+    shift
+    for o in "$@"; do d+="_${o//[^[:alnum:]]/-}"; done
+    echo "${d}_v8_renders-s2"
+}
+
+cad() {  # STEP CPU_CLASSES CUDA_GROUPS BESIDE: the CPU side on CPU_CLASSES (comma-separated; empty: all), the CUDA
+         # side in one process per group of CUDA_GROUPS (space-separated; empty: one, with CPU_CLASSES); BESIDE=1:
+         # every process at the same time, else the CPU side then the CUDA side
+    local name=$1 work="$out/$1" cad=${CAD:-../shared/data/pascal3d_cad} renders dev limit pid status=0 k
+    local groups=() cpu_ovr=() cuda_dirs=() g cmd
+    [ -n "$2" ] && cpu_ovr=("classes=[$2]")
+    read -r -a groups <<< "$3"
+    [ "${#groups[@]}" = 0 ] && groups=("$2")
+    renders=${RENDERS:-outputs/viewpoints_cad/renders_v8_s2}
+    if [ -n "${DEVICES-cpu cuda}" ] && [ ! -f "$work/renders_v8_s2/annotations.json" ]; then
+        if [ -f "$renders/annotations.json" ]; then  # carried
+            mkdir -p "$work/renders_v8_s2" && cp "$renders/annotations.json" "$renders/gt.json" "$work/renders_v8_s2/"
+        else
+            timed "${name}_render" "$(part_limit "$CAD_RENDER_S" 0)" "$py" tools/viewpoints_cad.py --views 8 --seed 2 \
+                --quiet --cad "$cad" --work "$work" --render-only || status=1
+        fi
+    fi
+    local base=("$py" tools/viewpoints_cad.py --views 8 --seed 2 --quiet --cad "$cad" --work "$work") pids=()
+    for g in "${groups[@]}"; do
+        if [ -n "$g" ]; then cuda_dirs+=("$(cad_dir "$work" device=cuda "classes=[$g]")")
+        else cuda_dirs+=("$(cad_dir "$work" device=cuda)"); fi
+    done
+    for dev in ${DEVICES-cpu cuda}; do
+        limit=$(part_limit 0 "$CAD_COMPARE_S")
+        if [ "$dev" = cpu ]; then
+            cmd=("${base[@]}" --out "$out/${name}_cpu.json" device=cpu ${cpu_ovr[@]+"${cpu_ovr[@]}"})
+            if [ "$4" = 1 ]; then
+                timed "${name}_cpu" "$limit" env CARVI_THREADS=4 "${cmd[@]}" > /dev/null &
+                pids+=($!)
+            else
+                timed "${name}_cpu" "$limit" "${cmd[@]}" || status=1
+            fi
+            continue
+        fi
+        k=0
+        for g in "${groups[@]}"; do
+            k=$(( k + 1 ))
+            local tag="${name}_$dev" ovr=("device=$dev")
+            [ "${#groups[@]}" -gt 1 ] && tag+="$k"
+            [ -n "$g" ] && ovr+=("classes=[$g]")
+            cmd=("${base[@]}" --out "$out/$tag.json" "${ovr[@]}")
+            if [ "$4" = 1 ]; then
+                timed "$tag" "$limit" "${cmd[@]}" > /dev/null &
+                pids+=($!)
+            else
+                timed "$tag" "$limit" "${cmd[@]}" || status=1
+            fi
+        done
+    done
+    for pid in ${pids[@]+"${pids[@]}"}; do  # the runs that ran beside one another
+        wait "$pid" || status=1
+    done
+    timed "${name}_compare" "$(part_limit 0 0)" "$py" tools/viewpoints_cad.py --compare \
+        "$(cad_dir "$work" device=cpu ${cpu_ovr[@]+"${cpu_ovr[@]}"})" "${cuda_dirs[@]}" \
+        --out "$out/${name}_agreement.json" || status=1
+    local c g2
+    c=$(jval "$out/${name}_agreement.json" viewpoint_seconds.cpu)
+    g2=$(jval "$out/${name}_agreement.json" viewpoint_seconds.cuda)
+    { grep -h "classes compared\|largest class median\|no class compared" "$out/${name}_compare.txt" \
+          | sed "s/^/$name: /"
+      if [ -n "$c" ] && [ -n "$g2" ]; then
+          awk -v c="$c" -v g="$g2" -v n="$name" -v b="$4" -v p="${#groups[@]}" 'c > 0 && g > 0 {
+              printf "%s: SfM + refinement of the classes compared, cuda %.1f s / cpu %.1f s: cuda / cpu %.3f%s\n",
+              n, g, c, g / c, (b == 1 ? " (the CPU side and " p " CUDA process(es) at the same time)" : "") }' <<< ""
+      fi; } | tee -a "$out/ratios.txt"
+    return "$status"
+}
+
 case "$step" in
-    all|tests|bench1000|bench9087|manyclasses|cad8|lease) ;;
-    *) echo "unknown step '$step' (all, tests, bench1000, bench9087, manyclasses, cad8, lease)" >&2; exit 2 ;;
+    cad8) cad cad8 "" "" 0; rc=$?; echo "results in $out"; exit "$rc" ;;
+    cad5)
+        [ -z "${STEP_END:-}" ] && STEP_END=$(( $(date +%s) + $(plan_limit cad5) ))
+        cad cad5 "$CAD5_CLASSES" "$CAD5_CUDA_GROUPS" 1; rc=$?; echo "results in $out"; exit "$rc" ;;
 esac
 
-if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, scipy, skimage, yaml, tqdm, matplotlib, pytest" \
-        2>/dev/null \
-        && [ -d .whl ] && compgen -G ".whl/*.whl" >/dev/null; then
-    "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-        --target /tmp/carvi_site .whl/*.whl || exit 1
-    export PYTHONPATH="/tmp/carvi_site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
-else
-    export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+# ---- the device, once (the steps of all and lease inherit the check) ------------------------------------------
+if [ -z "${CARVI_GPU_READY:-}" ]; then
+    if ! "$py" -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)"; then
+        echo "no CUDA device visible to $py: nothing to do here" >&2
+        exit 2
+    fi
+    { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>/dev/null
+      "$py" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"; } | tee "$out/device.txt"
 fi
 
-# ---- lease: every step under its own time limit, OUTDIR's small files packed after each step
-# (the packages above are installed once; each step's own check then finds them)
-#     STEPS="tests:170 bench9087:150 manyclasses:240 cad8:200" PACK=$OUT/results.tgz \
-#         bash tools/gpu_session.sh lease /tmp/gpu
-# A lent machine returns few files and stops a command at its limit: each step runs under
-# `timeout` (seconds after the colon), start and end go to OUTDIR/steps.txt, and after each step
-# OUTDIR (without meshes, voxels or arrays) is packed into PACK (default OUTDIR.tgz), so what
-# finished comes back even when a later step runs out of time.
-if [ "$step" = "lease" ]; then
-    pack=${PACK:-${out%/}.tgz}
+# ---- all, lease: every step of the plan under its own limit ----------------------------------------------------
+#     STEPS="tests:170 cad5:200" PACK=$OUT/results.tgz bash tools/gpu_session.sh lease /tmp/gpu
+# Each step runs under `timeout` (the seconds after the colon); its start, end and status go to OUTDIR/steps.txt.
+# lease packs OUTDIR (without meshes, voxels or arrays) into PACK (default OUTDIR.tgz) after each step.
+run_plan() {  # PACK (empty: no packing)
+    local t0 name limit rc failed=0
+    print_plan | tee "$out/plan.txt"
+    export CARVI_GPU_READY=1
     t0=$(date +%s)
-    for s in ${STEPS:-tests:170 bench9087:150 manyclasses:240 cad8:200}; do
-        name=${s%%:*}
-        limit=${s##*:}
+    while read -r name limit <&3; do  # fd 3: the steps' commands keep the caller's standard input
+        if [ "$limit" = "?" ]; then
+            echo "[$(( $(date +%s) - t0 )) s] $name not run: no limit given" | tee -a "$out/steps.txt"
+            failed=1
+            continue
+        fi
         echo "[$(( $(date +%s) - t0 )) s] start $name (limit $limit s)" | tee -a "$out/steps.txt"
-        timeout -k 5 "$limit" bash "$0" "$name" "$out" > "$out/$name.log" 2>&1
-        rc=$?
+        if [ -n "$1" ]; then
+            STEP_END=$(( $(date +%s) + limit - 2 )) timeout -k 5 "$limit" bash "$0" "$name" "$out" > "$out/$name.log" 2>&1
+            rc=$?
+        else
+            STEP_END=$(( $(date +%s) + limit - 2 )) timeout -k 5 "$limit" bash "$0" "$name" "$out" 2>&1 \
+                | tee "$out/$name.log"
+            rc=${PIPESTATUS[0]}
+        fi
+        [ "$rc" = 0 ] || failed=1
         echo "[$(( $(date +%s) - t0 )) s] end $name, status $rc" | tee -a "$out/steps.txt"
-        tar czf "$pack" -C "$out" --exclude=meshes --exclude='*.npz' --exclude='*.npy' --exclude='*.ply' \
-            --exclude='*.obj' --exclude='*.zarr' . || exit 1
-    done
+        if [ -n "$1" ]; then
+            tar czf "$1" -C "$out" --exclude=meshes --exclude='*.npz' --exclude='*.npy' --exclude='*.ply' \
+                --exclude='*.obj' --exclude='*.zarr' --exclude=renders_v8_s2 . || exit 1
+        fi
+    done 3< <(plan_entries)
+    echo "ratios (new / current, measured in this run):"
+    cat "$out/ratios.txt" 2>/dev/null
+    return "$failed"
+}
+
+if [ "$step" = "lease" ]; then
+    run_plan "${PACK:-${out%/}.tgz}"
     exit 0
 fi
-
-# ---- begin: small-class CAD benchmark, CPU against CUDA -------------------------------------
-#     bash tools/gpu_session.sh cad8 [OUTDIR]
-# Renders the PASCAL3D+ CAD models at 8 views per model (seed 2: the trains' template start),
-# reconstructs their cameras on the CPU and on CUDA (tools/viewpoints_cad.py, default settings)
-# and compares every object's final camera (degrees between the two), which start each class's
-# SfM kept and which camera each object kept (camera_choice). Needs ../shared/data/pascal3d_cad
-# (or CAD=path). Tolerance (docs/viewpoints.md): median angle <= 0.5 degrees per class.
-# DEVICES=cuda runs the CUDA side alone, against CPU cameras already in OUTDIR/cad8 (an earlier run's);
-# DEVICES= (empty) only compares the runs there. A class the CUDA run did not reach is listed as such.
-# Per class it also prints the viewpoint stages' seconds on each device (SfM with the mixture's fit,
-# refinement: summary.json), and writes all of it to OUTDIR/cad8_agreement.json.
-if [ "$step" = "cad8" ]; then
-    cad=${CAD:-../shared/data/pascal3d_cad}
-    status=0
-    for dev in ${DEVICES-cpu cuda}; do
-        "$py" tools/viewpoints_cad.py --views 8 --seed 2 --quiet --cad "$cad" --work "$out/cad8" \
-            --out "$out/cad8_$dev.json" "device=$dev" 2>&1 | tee "$out/cad8_$dev.txt" || status=1
-    done
-    "$py" - "$out/cad8" "$out/cad8_agreement.json" <<'PYEOF' 2>&1 | tee "$out/cad8_agreement.txt" || status=1
-import json, sys
-from pathlib import Path
-import numpy as np
-import torch
-from carvi_torch.cameras import geodesic_angle
-work, worst, rows = Path(sys.argv[1]), 0.0, {}
-runs = {d: work / f"cameras_device-{d}_v8_renders-s2" for d in ("cpu", "cuda")}
-summ = {d: json.loads((p / "summary.json").read_text())["classes"] for d, p in runs.items()}
-seconds = lambda d, cls: round(sum(summ[d][cls]["seconds"].get(k, 0.0) for k in ("sfm", "refine")), 2)
-for cls in sorted(summ["cpu"]):
-    if cls not in summ["cuda"] or not (runs["cuda"] / cls / "cameras.json").is_file():
-        print(f"{cls:12s} not reached by the CUDA run")
-        continue
-    cams = {d: json.loads((p / cls / "cameras.json").read_text())["cameras"] for d, p in runs.items()}
-    both = [a for a, c in cams["cpu"].items() if c.get("refined") and cams["cuda"].get(a, {}).get("refined")]
-    R = [torch.tensor([cams[d][a]["refined"]["R"] for a in both], dtype=torch.float64) for d in ("cpu", "cuda")]
-    ang = torch.rad2deg(geodesic_angle(*R)).tolist() if both else []
-    choice = sum(c.get("camera_choice") != cams["cuda"].get(a, {}).get("camera_choice") for a, c in cams["cpu"].items())
-    start = [summ[d][cls].get("sfm", {}).get("start", {}).get("kept") for d in ("cpu", "cuda")]
-    groups = [summ[d][cls].get("sfm_groups", {}).get("groups", 1) for d in ("cpu", "cuda")]
-    if not ang:
-        print(f"{cls:12s} no object with a refined camera on both devices")
-        continue
-    med = float(np.median(ang))
-    worst = max(worst, med)
-    rows[cls] = {"objects": summ["cpu"][cls]["objects"], "compared": len(ang), "median_deg": round(med, 3),
-                 "max_deg": round(max(ang), 3), "camera_choice_differs": choice,
-                 "sfm_start": start, "shape_groups": groups,
-                 "viewpoint_seconds": {"cpu": seconds("cpu", cls), "cuda": seconds("cuda", cls)}}
-    print(f"{cls:12s} median {med:.3f} deg, max {rows[cls]['max_deg']:.2f} deg, camera_choice differs in {choice}, "
-          f"SfM start cpu/cuda {start[0]}/{start[1]}, shape groups {groups[0]}/{groups[1]}, "
-          f"SfM + refinement {seconds('cpu', cls):.1f} s cpu, {seconds('cuda', cls):.1f} s cuda")
-cpu_s, cuda_s = (sum(r["viewpoint_seconds"][d] for r in rows.values()) for d in ("cpu", "cuda"))
-threads = json.loads((runs["cpu"] / "summary.json").read_text()).get("torch_threads")
-print(f"{len(rows)} classes compared; SfM + refinement {cpu_s:.1f} s on the CPU ({threads} torch threads), "
-      f"{cuda_s:.1f} s on CUDA")
-print(f"largest class median {worst:.3f} deg: {'within' if worst <= 0.5 else 'OUTSIDE'} the 0.5 degree tolerance")
-Path(sys.argv[2]).write_text(json.dumps({"classes": rows, "viewpoint_seconds": {"cpu": round(cpu_s, 2),
-                                         "cuda": round(cuda_s, 2)}, "largest_median_deg": round(worst, 3)}, indent=1))
-sys.exit(0 if rows and worst <= 0.5 else 1)
-PYEOF
-    echo "results in $out"
-    exit "$status"
+if [ "$step" = "all" ]; then
+    run_plan ""
+    exit $?
 fi
-# ---- end: small-class CAD benchmark, CPU against CUDA ---------------------------------------
-
-
-if ! "$py" -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)"; then
-    echo "no CUDA device visible to $py: nothing to do here" >&2
-    exit 2
-fi
-{ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>/dev/null
-  "$py" -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"; } | tee "$out/device.txt"
 
 run_tests() {
     # pycolmap is only needed by the rotation cross-checks, which have no CUDA test
@@ -172,24 +383,65 @@ bench_pair() {  # the 9,087-object class: loading on one thread and on canvas_th
     local n=9087  # and the writers' meshing, one after the other
     "$py" tools/benchmark.py --objects $n --load-only --repeat 3 --out "$out/loading_$n.json" 2>&1 \
         | tee "$out/loading_$n.txt" || return 1
-    "$py" tools/benchmark.py --device cuda --objects $n --skip-carve --out "$out/benchmark_cuda_${n}.json" 2>&1 \
-        | tee "$out/benchmark_cuda_${n}.txt" || return 1
-    "$py" tools/benchmark.py --device cuda --objects $n --skip-carve --set mesher=skimage \
-        --out "$out/benchmark_cuda_${n}_skimage.json" 2>&1 | tee "$out/benchmark_cuda_${n}_skimage.txt" || return 1
-    "$py" - "$out" <<'PY' | tee -a "$out/ratios.txt"
-import json, sys
-d = sys.argv[1]
-new, old = (json.load(open(f"{d}/benchmark_cuda_9087{s}.json"))["end_to_end"] for s in ("", "_skimage"))
-print(f"9087 objects: mesher=auto {new['total_seconds']:.1f} s, mesher=skimage {old['total_seconds']:.1f} s, "
-      f"new / old {new['total_seconds'] / old['total_seconds']:.3f}")
-PY
+    mesher_pair "$n" 0 200
 }
 
-many() {  # 12 classes of about 50 objects: viewpoints on the GPU (default) and on the CPU (alt), interleaved
-    "$py" tools/benchmark.py --device cuda --many-classes --compare-set viewpoints.device=cpu \
-        --out "$out/many_classes_cuda.json" 2>&1 | tee "$out/many_classes_cuda.txt"
-    local rc=${PIPESTATUS[0]}
-    grep "^new / " "$out/many_classes_cuda.txt" | sed 's/^/many classes: /' >> "$out/ratios.txt"
+mesher_pair() {  # OBJECTS SHARE GRIDS: mesher=auto (at most SHARE s; 0: no share) against mesher=skimage, end to end;
+                 # the auto run also times the batched op against scikit-image on GRIDS of its grids
+    local n=$1 rc=0 common=(tools/benchmark.py --device cuda --objects "$1" --skip-carve)
+    timed "mesher${n}_auto" "$(part_limit "$2" 0)" "$py" "${common[@]}" --mesh-objects "$3" --repeat 2 \
+        --out "$out/mesher${n}_auto.json" || rc=1
+    timed "mesher${n}_skimage" "$(part_limit 0 "$RATIO_S")" "$py" "${common[@]}" --mesh-objects 0 \
+        --set mesher=skimage --out "$out/mesher${n}_skimage.json" || rc=1
+    ratio "$n objects end to end, interpreter start included" "mesher${n}_auto" "mesher${n}_skimage" \
+        "$(jval "$out/mesher${n}_auto.json" end_to_end.wall_seconds_with_startup)" \
+        "$(jval "$out/mesher${n}_skimage.json" end_to_end.wall_seconds_with_startup)"
+    local op
+    op=$(jval "$out/mesher${n}_auto.json" meshing.torch_over_skimage)
+    if [ -n "$op" ]; then
+        awk -v r="$op" -v n="$n" -v g="$3" \
+            'BEGIN { printf "%s objects, marching cubes of %s grids: batched torch op / scikit-image %.3f\n", n, g, r }' \
+            | tee -a "$out/ratios.txt"
+    fi
+    return "$rc"
+}
+
+loading() {  # the 2,000-object class loaded with its canvases on one thread and on canvas_threads
+    timed loading2000 "$(part_limit 0 0)" "$py" tools/benchmark.py --device cuda --objects 2000 --load-only \
+        --repeat 2 --out "$out/loading2000.json" || return 1
+    local r one new
+    r=$(jval "$out/loading2000.json" loading.new_over_one_thread)
+    one=$(jval "$out/loading2000.json" "loading.best_seconds.one thread")
+    new=$(jval "$out/loading2000.json" loading.best_seconds.canvas_threads)
+    if [ -n "$r" ]; then
+        awk -v r="$r" -v a="$new" -v b="$one" 'BEGIN { printf "loading 2000 objects: canvas_threads %.2f s, one " \
+            "thread %.2f s: canvas_threads / one thread %.3f\n", a, b, r }' | tee -a "$out/ratios.txt"
+    fi
+}
+
+many_pair() {  # NAME CLASSES (comma-separated; empty: all 12) SHARE VARIANTS: each variant's run (at most SHARE s;
+               # the last one the rest) against the default (viewpoints on CUDA), whole runs (tools/benchmark.py
+               # --many-classes, one round each). VARIANTS: procs (viewpoint_processes = the classes, at most 12:
+               # the viewpoints of the classes at once in CPU processes) and vpcpu (viewpoints.device=cpu)
+    local name=$1 rc=0 sel=() args=(tools/benchmark.py --device cuda --many-classes) v n
+    [ -n "$2" ] && sel=("classes=[$2]")
+    n=$(( $(echo "${2:-a,b,c,d,e,f,g,h,i,j,k,l}" | tr ',' '\n' | wc -l) ))
+    [ "$n" -gt 12 ] && n=12
+    for v in $4; do
+        case "$v" in
+            procs) setting="viewpoint_processes=$n" ;;
+            vpcpu) setting="viewpoints.device=cpu" ;;
+        esac
+        timed "${name}_$v" "$(part_limit "$3" 0)" "$py" "${args[@]}" --set ${sel[@]+"${sel[@]}"} "$setting" \
+            --out "$out/${name}_$v.json" || rc=1
+    done
+    timed "${name}_default" "$(part_limit 0 "$RATIO_S")" "$py" "${args[@]}" ${sel[@]+--set "${sel[@]}"} \
+        --out "$out/${name}_default.json" || rc=1
+    for v in $4; do
+        ratio "$name, whole processes" "${name}_$v" "${name}_default" \
+            "$(jval "$out/${name}_$v.json" many_classes.best.new.wall_seconds_with_startup)" \
+            "$(jval "$out/${name}_default.json" many_classes.best.new.wall_seconds_with_startup)"
+    done
     return "$rc"
 }
 
@@ -198,14 +450,14 @@ case "$step" in
     tests) run_tests || status=$? ;;
     bench1000) bench 1000 || status=$? ;;
     bench9087) bench_pair || status=$? ;;
-    manyclasses) many || status=$? ;;
-    all)
-        run_tests || status=$?
-        bench 1000 || status=$?
-        bench_pair || status=$?
-        many || status=$?
-        ;;
+    manyclasses) many_pair manyclasses "" 0 "procs vpcpu" || status=$? ;;
+    mesher2000|loading2000|many4)
+        [ -z "${STEP_END:-}" ] && STEP_END=$(( $(date +%s) + $(plan_limit "$step") ))
+        case "$step" in
+            mesher2000) mesher_pair 2000 "$MESHER_AUTO_S" 100 || status=$? ;;
+            loading2000) loading || status=$? ;;
+            many4) many_pair many4 "$MANY4_CLASSES" "$MANY_CPU_S" procs || status=$? ;;
+        esac ;;
 esac
-[ -f "$out/ratios.txt" ] && cat "$out/ratios.txt"
 echo "results in $out"
 exit "$status"

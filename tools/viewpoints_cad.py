@@ -20,6 +20,8 @@ default photo-like distribution.
     python tools/viewpoints_cad.py [--views 30] [--seed 0[,1,2]] [--cameras photo|level] [--quiet]
                                    [--work outputs/viewpoints_cad] [--out PATH [--key KEY]] [key=value ...]
     python tools/viewpoints_cad.py --views 8 --seed 0,1,2 --choice-study [--out PATH]
+    python tools/viewpoints_cad.py --views 8 --seed 2 --render-only [--work DIR]
+    python tools/viewpoints_cad.py --compare RUN_A RUN_B [RUN_B ...] [--labels cpu,cuda] [--out PATH [--key KEY]]
 
 ``--choice-study`` runs no table: every class of every seed is estimated with ``refine_keep=refined``,
 every object's SfM and refined cameras are compared with the truth and scored by what the pipeline
@@ -34,6 +36,15 @@ camera*).
 JSON record goes to ``--out`` (under ``--key`` when given, the file's other keys kept; the records of
 docs/viewpoints.md are keys of ``docs/data/viewpoints.json``), by default beside the run's cameras
 (``<work>/cameras...json``).
+
+``--render-only`` renders the seeds (cached in ``--work``) and stops, so that several runs can then
+share the renders at the same time. ``--compare RUN_A RUN_B [RUN_B ...]`` reconstructs nothing: it compares
+two runs of the same renders object by object (several RUN_B folders: one run split across processes;
+``carvi_torch.evaluation.viewpoint_metrics.compare_camera_runs``: per class the median and largest angle
+between the refined cameras, ``camera_choice`` differences, each run's SfM start, shapes kept and seconds; a
+class one run has not finished is listed, not an error), prints a line per class, writes the record to
+``--out`` (default ``RUN_B/agreement.json``) and exits 1 when a class's median angle exceeds 0.5 degrees or
+no class was compared (``tools/gpu_session.sh`` compares the CPU with CUDA so).
 
 Needs ../shared/data/pascal3d_cad (the PASCAL3D+ CAD models, Xiang et al. 2014).
 """
@@ -154,18 +165,26 @@ def _renders(args, seed: int) -> Path:
     return renders
 
 
+def recon_dir(work: Path, overrides: list, views: int = 30, seed: int = 0, cameras: str = "photo") -> Path:
+    """The folder of one run's cameras: one per render seed and set of overrides, so that runs with different
+    settings never mix their cameras (every character of an override but letters and digits becomes ``-``).
+
+    >>> recon_dir(Path("w"), ["device=cpu", "classes=[sofa,train]"], views=8, seed=2).name
+    'cameras_device-cpu_classes--sofa-train-_v8_renders-s2'
+    """
+    dist = "" if cameras == "photo" else f"_{cameras}"
+    return work / ("cameras" + "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in o) for o in overrides)
+                   + (f"_v{views}" if views != 30 else "") + (f"_renders-s{seed}" if seed else "") + dist)
+
+
 def _run(args, seed: int, overrides: list) -> dict:
     """Render (once) and reconstruct the cameras of one seed with ``overrides``; its rows and timings."""
     from carvi_torch.evaluate import evaluate
 
-    work = Path(args.work)
-    dist = "" if args.cameras == "photo" else f"_{args.cameras}"
     t0 = time.perf_counter()
     renders = _renders(args, seed)
     t_render = time.perf_counter() - t0
-    # one folder per render seed and set of overrides, so runs with different settings never mix their cameras
-    recon = work / ("cameras" + "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in o) for o in overrides)
-                    + (f"_v{args.views}" if args.views != 30 else "") + (f"_renders-s{seed}" if seed else "") + dist)
+    recon = recon_dir(Path(args.work), overrides, args.views, seed, args.cameras)
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(renders / "annotations.json"),
            "--out", str(recon), "stage=cameras", "progress=false", f"seed={seed}", *overrides]
     t1 = time.perf_counter()
@@ -321,6 +340,36 @@ def _choice_study(args) -> int:
     return 0
 
 
+def _compare(args) -> int:
+    """``--compare RUN_A RUN_B``: the two runs' cameras object by object; prints, writes, exit 0 when they agree."""
+    from carvi_torch.evaluation.viewpoint_metrics import compare_camera_runs
+    from carvi_torch.io.outputs import write_record
+
+    labels = tuple(args.labels.split(","))
+    rec = compare_camera_runs(args.compare[0], args.compare[1:], labels=labels)
+    a, b = labels
+    for cls, why in rec["not_compared"].items():
+        print(f"{cls:12s} {why}")
+    for cls, r in rec["classes"].items():
+        sec = r["viewpoint_seconds"]
+        print(f"{cls:12s} median {r['median_deg']:.3f} deg, max {r['max_deg']:.2f} deg, camera_choice differs in "
+              f"{r['camera_choice_differs']}, SfM start {a}/{b} {r['sfm_start'][0]}/{r['sfm_start'][1]}, shape "
+              f"groups {r['shape_groups'][0]}/{r['shape_groups'][1]}, SfM + refinement {sec[a]:.1f} s {a}, "
+              f"{sec[b]:.1f} s {b}")
+    sec, threads = rec["viewpoint_seconds"], rec["torch_threads"]
+    print(f"{len(rec['classes'])} classes compared; SfM + refinement {sec[a]:.1f} s {a} ({threads[a]} torch threads), "
+          f"{sec[b]:.1f} s {b} ({threads[b]} torch threads)")
+    worst = rec["largest_median_deg"]
+    print("no class compared" if worst is None else
+          f"largest class median {worst:.3f} deg: {'within' if rec['agree'] else 'OUTSIDE'} the "
+          f"{rec['tolerance_deg']} degree tolerance")
+    rec["runs"] = {a: [str(Path(args.compare[0]).resolve())], b: [str(Path(r).resolve()) for r in args.compare[1:]]}
+    out = Path(args.out) if args.out else Path(args.compare[1]) / "agreement.json"
+    write_record(out, rec, args.key)
+    print(f"wrote {out}" + (f", key {args.key}" if args.key else ""))
+    return 0 if rec["agree"] else 1
+
+
 def _seeds(text: str) -> list:
     """``"0,1,2"`` -> ``[0, 1, 2]`` (the ``--seed`` argument)."""
     try:
@@ -347,13 +396,28 @@ def main(argv=None) -> int:
     ap.add_argument("--key", default=None, help="write the record under this key of --out's JSON object, its other "
                                                 "keys kept (e.g. --out docs/data/viewpoints.json --key "
                                                 "viewpoints_cad8)")
+    ap.add_argument("--render-only", action="store_true", help="render the seeds (cached in --work) and stop")
+    ap.add_argument("--compare", nargs="+", metavar="RUN", default=None,
+                    help="instead: compare two runs' cameras object by object, RUN_A then RUN_B (several folders: "
+                         "one run split across processes); exit 1 when a class's median angle exceeds 0.5 degrees")
+    ap.add_argument("--labels", default="cpu,cuda", help="--compare: the two runs' names, comma-separated")
     ap.add_argument("overrides", nargs="*", metavar="key=value", help="extra reconstruct overrides")
     args = ap.parse_args(argv)
+    if args.compare:
+        if len(args.compare) < 2:
+            ap.error("--compare needs RUN_A and RUN_B")
+        if len(args.labels.split(",")) != 2 or len(set(args.labels.split(","))) != 2:
+            ap.error(f"--labels needs two different names separated by a comma, got {args.labels!r}")
+        return _compare(args)
     if not Path(args.cad).is_dir():
         print(f"error: {args.cad} not found (the PASCAL3D+ CAD models in ../shared/data)", file=sys.stderr)
         return 2
     if args.choice_study:
         return _choice_study(args)
+    if args.render_only:
+        for seed in args.seed:
+            print(_renders(args, seed))
+        return 0
     runs = [_run(args, seed, args.overrides) for seed in args.seed]
     refined = [_run(args, seed, [*args.overrides, "refine_keep=refined"]) for seed in args.seed] \
         if args.refined_too else None

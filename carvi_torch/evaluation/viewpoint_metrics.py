@@ -14,16 +14,21 @@ ambiguity, when its reflection vote fails): then ``R_est = F R_true Q F`` with
 ``F = diag(1, 1, -1)`` and no proper ``G`` aligns the sets. :func:`viewpoint_report`
 measures both hypotheses and *reports* a mirrored frame; it never silently fixes it.
 
+:func:`compare_camera_runs` compares two runs of the same data instead (e.g. the CPU's cameras
+with CUDA's): object by object, the angle between their refined rotations.
+
 All angles returned are in degrees.
 """
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import torch
 
 from ..cameras import (align_rotations, azimuth_elevation_roll_from_rotation, check_rotation_pairs,
-                       finite_rotation_pairs, geodesic_errors)
+                       finite_rotation_pairs, geodesic_angle, geodesic_errors)
+from ..io.outputs import read_json
 
 __all__ = [
     "align_rotations",
@@ -32,7 +37,13 @@ __all__ = [
     "summarize",
     "viewpoint_report",
     "necker_mirror",
+    "compare_camera_runs",
+    "RUN_AGREEMENT_DEG",
 ]
+
+#: Two runs of the same data agree when each class's median angle between their cameras is at most this
+#: (degrees; the CPU against CUDA, docs/viewpoints.md, *CPU and CUDA*).
+RUN_AGREEMENT_DEG = 0.5
 
 
 def necker_mirror(R: torch.Tensor) -> torch.Tensor:
@@ -162,3 +173,104 @@ def viewpoint_report(
         "per_instance_geodesic": per.double().cpu().tolist(),
     }
     return report
+
+
+def _run_side(runs) -> tuple[dict, dict, int | None]:
+    """One side of a comparison, one output folder or several (a run split across processes): every class of
+    their ``summary.json`` files with the folder that holds it (the first one listed), and the torch threads of
+    the first folder that says. A folder without ``summary.json`` (a run stopped before its first class) adds none.
+
+    Returns:
+        ``({class: summary entry}, {class: folder}, torch_threads or None)``.
+    """
+    folders = [Path(runs)] if isinstance(runs, (str, Path)) else [Path(r) for r in runs]
+    entries, where, threads = {}, {}, None
+    for f in folders:
+        summary = read_json(f / "summary.json") if (f / "summary.json").is_file() else {}
+        threads = threads if threads is not None else summary.get("torch_threads")
+        for cls, entry in summary.get("classes", {}).items():
+            if cls not in entries:
+                entries[cls], where[cls] = entry, f
+    return entries, where, threads
+
+
+def _viewpoint_seconds(entry: dict) -> float:
+    """A class's SfM (with the mixture's fit) and refinement seconds from its ``summary.json`` entry."""
+    return round(sum(entry.get("seconds", {}).get(k, 0.0) for k in ("sfm", "refine")), 2)
+
+
+def _class_agreement(cams: tuple[dict, dict], entries: tuple[dict, dict], labels: tuple[str, str]) -> dict | str:
+    """One class of two runs: its agreement row, or why there is none.
+
+    ``cams``: each run's ``cameras.json`` ``cameras`` (annotation id -> camera); ``entries``: each run's
+    ``summary.json`` entry of the class.
+    """
+    a, b = cams
+    both = [k for k, c in a.items() if c.get("refined") and (b.get(k) or {}).get("refined")]
+    if not both:
+        return "no object with a refined camera in both runs"
+    R = [torch.tensor([side[k]["refined"]["R"] for k in both], dtype=torch.float64) for side in (a, b)]
+    ang = torch.rad2deg(geodesic_angle(R[0], R[1]))
+    return {"objects": entries[0].get("objects", len(a)), "compared": len(both),
+            "median_deg": round(float(torch.quantile(ang, 0.5)), 3), "max_deg": round(float(ang.max()), 3),
+            "camera_choice_differs": sum(c.get("camera_choice") != (b.get(k) or {}).get("camera_choice")
+                                         for k, c in a.items()),
+            "sfm_start": [e.get("sfm", {}).get("start", {}).get("kept") for e in entries],
+            "shape_groups": [e.get("sfm_groups", {}).get("groups", 1) for e in entries],
+            "viewpoint_seconds": {lab: _viewpoint_seconds(e) for lab, e in zip(labels, entries)}}
+
+
+def compare_camera_runs(run_a, run_b, labels: tuple[str, str] = ("cpu", "cuda"),
+                        tolerance_deg: float = RUN_AGREEMENT_DEG) -> dict:
+    """Two runs' cameras of the same data (``reconstruct`` output folders), object by object.
+
+    For every class in either run's ``summary.json``: the angle between the two refined rotations of each
+    object that has one in both (:func:`carvi_torch.cameras.geodesic_angle`), its median and maximum, how many
+    objects' ``camera_choice`` differs, which SfM start each run kept and how many shapes its mixture kept,
+    and each run's SfM + refinement seconds. A class that one run has not finished (a run stopped at a time
+    limit) lands in ``not_compared`` with the reason; it is not an error.
+
+    Args:
+        run_a, run_b: each an output folder (``summary.json``, ``<class>/cameras.json``), or a list of folders
+            whose classes together make the run (one run split across processes).
+        labels: the runs' names in the record (e.g. their devices).
+        tolerance_deg: the largest median angle per class for the runs to agree.
+
+    Returns:
+        ``{"labels", "classes": {class: {"objects", "compared", "median_deg", "max_deg",
+        "camera_choice_differs", "sfm_start": [a, b], "shape_groups": [a, b], "viewpoint_seconds": {label: s}}},
+        "not_compared": {class: reason}, "viewpoint_seconds": {label: s} (the compared classes' sums),
+        "torch_threads": {label: n}, "largest_median_deg" (``None`` without a compared class),
+        "tolerance_deg", "agree"}`` (``agree``: a class was compared and every median is within tolerance).
+
+    Example:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     compare_camera_runs(Path(d), [Path(d), Path(d)])["not_compared"]
+        {}
+    """
+    if len(labels) != 2 or labels[0] == labels[1]:
+        raise ValueError(f"compare_camera_runs: labels must be two different names, got {list(labels)}")
+    sides = [_run_side(run_a), _run_side(run_b)]
+    rows, skipped = {}, {}
+    for cls in sorted(set(sides[0][0]) | set(sides[1][0])):
+        missing = [lab for lab, side in zip(labels, sides) if cls not in side[0]]
+        files = [side[1][cls] / cls / "cameras.json" for side in sides] if not missing else []
+        no_file = [lab for lab, f in zip(labels, files) if not f.is_file()]
+        if missing or no_file:
+            skipped[cls] = (f"not reached by the {missing[0]} run" if missing
+                            else f"no cameras.json in the {no_file[0]} run")
+            continue
+        row = _class_agreement(tuple(read_json(f).get("cameras", {}) for f in files),
+                               (sides[0][0][cls], sides[1][0][cls]), labels)
+        if isinstance(row, str):
+            skipped[cls] = row
+        else:
+            rows[cls] = row
+    worst = max((r["median_deg"] for r in rows.values()), default=None)
+    return {"labels": list(labels), "classes": rows, "not_compared": skipped,
+            "viewpoint_seconds": {lab: round(sum(r["viewpoint_seconds"][lab] for r in rows.values()), 2)
+                                  for lab in labels},
+            "torch_threads": {lab: side[2] for lab, side in zip(labels, sides)},
+            "largest_median_deg": worst, "tolerance_deg": tolerance_deg,
+            "agree": worst is not None and worst <= tolerance_deg}
