@@ -289,7 +289,7 @@ def _class_cameras(res: mix.MixtureResult) -> torch.Tensor:
 
 
 #: The pipeline's default decision whether a class is one shape (``sfm_group_misfit``, ``sfm_group_hull_gain``).
-GATE = {"min_misfit": 0.03, "hull_gain": 0.01}
+GATE = {"min_misfit": 0.025, "hull_gain": 0.01}
 
 
 @pytest.fixture(scope="module")
@@ -647,6 +647,30 @@ def test_cad_sofas_fit_three_shapes_and_better_viewpoints(shared_data, tmp_path)
             assert info["groups"] == 3 and min(info["sizes"]) >= 15 and info["frame_agreement_deg"] <= 60
     assert errors[1] > 9.0  # one shape: the target is missed
     assert errors[3] < 7.0 and errors[3] < 0.7 * errors[1], errors
+
+
+def test_cad_buses_just_under_the_old_gate_get_their_split(shared_data, tmp_path):
+    """The six PASCAL3D+ bus models, 8 renders each (render seed 1 of the 8-view benchmark,
+    docs/viewpoints.md). One rigid shape leaves 2.9% of the box diagonal, under the old gate of 3%: the
+    mixture was not fitted and the cameras stayed 9.8 degrees off (median; refined from their true cameras
+    under that one shape they end where they are, so no other start would help). With the default gate the
+    mixture is fitted, its split passes the hull test, and the cameras land near 3.8 degrees."""
+    from carvi_torch.config import ViewpointConfig
+
+    coll, R, models = render_cad_class(shared_data, tmp_path, "bus", views=8, seed=1)
+    assert len(models) == 6
+    n = len(coll)
+    errors, infos = {}, {}
+    for gate in (0.03, ViewpointConfig().sfm_group_misfit):
+        vp = estimate_viewpoints(coll, ViewpointConfig(sfm_group_misfit=gate), seed=1)
+        ok = vp.sfm_valid[:n]
+        errors[gate] = viewpoint_report(vp.cameras.R[:n][ok].double(), R[ok])["geodesic"]["median"]
+        infos[gate] = vp.info["sfm_groups"]
+    old, new = infos[0.03], infos[ViewpointConfig().sfm_group_misfit]
+    assert ViewpointConfig().sfm_group_misfit <= old["misfit"] < 0.03  # the case the default gate is for
+    assert old["groups"] == 1 and "note" in old and errors[0.03] > 8.0
+    assert new["groups"] >= 2 and all(c["hull_gain"] >= 0.01 for c in new["candidates"] if c["kept"])
+    assert errors[ViewpointConfig().sfm_group_misfit] < 5.0, errors
 
 
 def test_cad_monitors_never_split_off_the_flat_fronted_models(shared_data, tmp_path):
