@@ -365,11 +365,12 @@ class Config:
     """``executor=local``: worker processes that make the classes' viewpoint stages (SfM, the mixture of shapes,
     refinement) ahead, several classes at once, on the CPU (as ``viewpoints.device=cpu``), each with the run's
     torch thread count; the run takes them in class order, moves them to its device and goes on with carving.
-    At most this many classes wait beyond the one in progress. 0: none (the stage in the run's process; on the
+    At most this many classes wait beyond the one in progress; each process imports torch (a few hundred MB)
+    and uses the run's thread count, beside the run's own threads. 0: none (the stage in the run's process; on the
     CPU one class ahead on a thread, ``pipeline_classes``). For machines with many cores and many classes,
     above all CUDA runs: a small class's viewpoint stage is slower on a GPU than on one CPU core
-    (docs/benchmarks.md, *Many classes*). The same cameras as the run's own process on the CPU. With
-    ``executor=ray`` each class's viewpoints are a task already, and this only puts them on the CPU."""
+    (docs/benchmarks.md, *Many classes*). The same cameras as the run's own process on the CPU; on CUDA those of
+    ``viewpoints.device=cpu``. ``executor=ray`` runs each class's viewpoints as a task already."""
     input: InputConfig = field(default_factory=InputConfig)
     viewpoints: ViewpointConfig = field(default_factory=ViewpointConfig)
     surrogates: SurrogateConfig = field(default_factory=SurrogateConfig)
@@ -622,7 +623,6 @@ def _coerce_plain(value: Any, annotation: Any) -> Any:
 #: the input files are the user's choice, and resumed objects are matched by annotation id).
 NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overwrite", "classes", "stage", "device",
                     "executor", "ray_address", "ray_chunk_objects", "pipeline_classes",  # where the work runs
-                    "viewpoint_processes",  # CPU viewpoints, as viewpoints.device=cpu ("device" is neutral too)
                     "viewpoints.sfm_group_threads",  # the mixture fit's result is the same on any number of threads
                     "carve.backend"}  # every carving backend gives the same labels voxel for voxel
 

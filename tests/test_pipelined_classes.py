@@ -200,6 +200,62 @@ def test_viewpoint_processes_that_fail_leave_the_class_here_or_fail_it_alone(pro
     assert not (tmp_path / "procs" / "chair").exists()
 
 
+def test_a_broken_viewpoint_pool_leaves_the_classes_to_the_run(procedural_input, tmp_path, monkeypatch):
+    """A worker process dies before the first class is handed over: the pool is broken for good (every submission
+    raises), both classes' viewpoints are made in the run's process, with the sequential cameras, and it says so."""
+    import os
+    from concurrent.futures.process import BrokenProcessPool
+
+    from carvi_torch.executors import ahead
+
+    data = procedural_input(tmp_path)
+    real, broken = ahead.AheadProcesses.submit, []
+
+    def breaking(self, coll, cfg, gt=None):
+        if not broken:
+            with pytest.raises(BrokenProcessPool):
+                self._pool.submit(os._exit, 1).result(timeout=120)
+            broken.append(coll.meta.key)
+        return real(self, coll, cfg, gt)
+
+    monkeypatch.setattr(ahead.AheadProcesses, "submit", breaking)
+    procs = run(_cfg(tmp_path / "procs", data, viewpoint_processes=2, stage="cameras"), workers=0)
+    run(_cfg(tmp_path / "sequential", data, pipeline_classes=False, stage="cameras"), workers=0)
+    assert broken == ["car"] and [procs["classes"][c]["status"] for c in CLASSES] == ["cameras", "cameras"]
+    for c in CLASSES:
+        assert (tmp_path / "procs" / c / "cameras.json").read_bytes() == (
+            tmp_path / "sequential" / c / "cameras.json").read_bytes()
+        log_text = (tmp_path / "procs" / "run.log").read_text()
+        assert f"{c}: no viewpoint process can take it (BrokenProcessPool" in log_text
+
+
+def test_an_interrupt_stops_the_viewpoint_processes(procedural_input, tmp_path, monkeypatch):
+    """Ctrl-C while the car carves: the worker processes are stopped (SIGTERM), not left to finish their classes
+    (which the interpreter's exit would wait for), and nothing of the chair is written."""
+    import signal
+
+    from carvi_torch.executors import ahead
+
+    data = procedural_input(tmp_path)
+    made = []
+    monkeypatch.setattr(L, "AheadProcesses", lambda *a: made.append(ahead.AheadProcesses(*a)) or made[-1])
+
+    def interrupted(*args, **kwargs):
+        processes = list(made[0]._pool._processes.values())  # started by the submissions
+        made.append(processes)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(P, "_carve_chunks", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run(_cfg(tmp_path, data, viewpoint_processes=2), workers=0)
+    processes = made[1]
+    assert processes
+    for p in processes:
+        p.join(60)
+        assert p.exitcode == -signal.SIGTERM  # an idle worker told to shut down would exit with 0
+    assert not (tmp_path / "chair").exists()
+
+
 #: A run interrupted while the background thread is inside torch operations (``sys.argv[1]``: out).
 INTERRUPTED_RUN = """
 import sys, time, torch

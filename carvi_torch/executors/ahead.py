@@ -94,7 +94,9 @@ class AheadProcesses:
     """Worker processes (started with ``spawn``, without the run's main module) that run
     :func:`~carvi_torch.pipeline.viewpoint_stage` on classes submitted to them, several at once, with
     ``threads`` torch threads each. :meth:`submit` returns a future of the pickled ``(vp, report)``
-    (:func:`result`). ``close(cancel=True)`` cancels the classes not started; those in progress end on their own."""
+    (:func:`result`). ``close(cancel=True)`` cancels the classes not started and stops the processes (they write
+    nothing). The processes ignore Ctrl-C (SIGINT, which a terminal sends to the whole process group): the run
+    handles it and stops them."""
 
     def __init__(self, processes: int, threads: int):
         self._pool = LeanProcessPool(max(1, int(processes)), mp_context=mp.get_context("spawn"),
@@ -107,8 +109,13 @@ class AheadProcesses:
         return self._pool.submit(_stage_in_process, pickle.dumps((coll.to("cpu"), cfg, gt), pickle.HIGHEST_PROTOCOL))
 
     def close(self, cancel: bool = False) -> None:
-        """Stop the processes: once every submitted class is made (joined), or with ``cancel`` at once."""
+        """Stop the processes: once every submitted class is made (joined), or with ``cancel`` at once (the
+        classes in progress are dropped: otherwise the interpreter's exit would wait for them)."""
+        processes = list((getattr(self._pool, "_processes", None) or {}).values())  # no public handle to them
         self._pool.shutdown(wait=not cancel, cancel_futures=cancel)
+        if cancel:
+            for p in processes:
+                p.terminate()
 
 
 def result(future: Future) -> tuple:
@@ -117,8 +124,11 @@ def result(future: Future) -> tuple:
 
 
 def _init_process(threads: int) -> None:
+    import signal
+
     import torch
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle (close(cancel=True))
     torch.set_num_threads(threads)
 
 

@@ -10,6 +10,7 @@ Example:
 """
 from __future__ import annotations
 
+import pickle
 import traceback
 from concurrent.futures.process import BrokenProcessPool
 from typing import Callable
@@ -90,16 +91,21 @@ def _ahead(setup: RunSetup, classes: int) -> tuple[Ahead | AheadProcesses | None
 
 def _make_ahead(setup: RunSetup, ahead: Ahead | AheadProcesses | None, key: str) -> tuple[torch.Generator, Callable]:
     """Class ``key``'s generator and a call that returns its :func:`~carvi_torch.pipeline.class_viewpoints`, made
-    on ``ahead``. A worker process that died (:class:`BrokenProcessPool`) leaves its classes to this process."""
+    on ``ahead``. Where the worker processes cannot take the class (a worker died: :class:`BrokenProcessPool`;
+    the class would not pickle) or lose it, its viewpoints are made in this process, and the run goes on."""
     coll, cfg, generator = setup.loaded.collections[key], setup.cfg, class_generator(setup.cfg, key)
     args = (coll, cfg, setup.device, generator, setup.gt)
     if isinstance(ahead, Ahead):
         return generator, ahead.submit(class_viewpoints, *args).result
-    future = ahead.submit(coll, cfg, setup.gt)
+    try:
+        futures = [ahead.submit(coll, cfg, setup.gt)]
+    except (BrokenProcessPool, RuntimeError, pickle.PicklingError) as e:
+        log.warning(f"{key}: no viewpoint process can take it ({type(e).__name__}: {e}); making its viewpoints here")
+        return generator, lambda: class_viewpoints(*args)
 
     def finish() -> tuple:
         try:
-            made = result(future)
+            made = result(futures.pop())  # the pickled result is let go of once read
         except BrokenProcessPool as e:
             log.warning(f"{key}: the viewpoint process stopped ({e}); making its viewpoints here")
             made = None
