@@ -457,8 +457,9 @@ def test_writer_books_back_pressure(monkeypatch):
 
 
 def test_object_files_are_moved_into_place_unflushed_and_run_files_flushed(tmp_path, monkeypatch):
-    """An object's files (voxels, mesh, proposals, scores) are written whole and moved into place without an
-    ``fsync`` (a damaged one is redone on resume: test_robustness), the run's own files with one."""
+    """An object's voxels and mesh files are written whole and moved into place without an ``fsync`` (a damaged
+    one is redone on resume: test_robustness); its proposals and scores (studies, which no resume check reads)
+    and the run's own files with one."""
     import os
 
     from carvi_torch.io import write_worker
@@ -473,10 +474,10 @@ def test_object_files_are_moved_into_place_unflushed_and_run_files_flushed(tmp_p
                proposals={"x": np.ones(3)}, proposals_path=str(tmp_path / "p.npz"), scores={"a": 1},
                scores_path=str(tmp_path / "s.json"), voxel_path=str(tmp_path / "v.npz"),
                mesh_path=str(tmp_path / "m.ply"))
-    assert write_worker.write_object(job)["ok"] and synced == []
+    assert write_worker.write_object(job)["ok"] and len(synced) == 2  # the proposals and the scores
     assert all((tmp_path / n).is_file() for n in ("p.npz", "s.json", "v.npz", "m.ply"))
     write_json(tmp_path / "summary.json", {"ok": True})
-    assert len(synced) == 1
+    assert len(synced) == 3
 
 
 def test_writer_start_failure_surfaces_in_the_run(monkeypatch):

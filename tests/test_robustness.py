@@ -411,12 +411,14 @@ def test_resume_redoes_damaged_outputs_and_merges_partial_runs(base, tmp_path):
     # what a machine crash can leave of files moved into place unflushed (an object's files are not fsynced)
     meshes[2].write_bytes(b"")
     voxels[3].write_bytes(bytes(voxels[3].stat().st_size))
+    whole = meshes[4].read_bytes()  # the right size, its last half never written: zeros
+    meshes[4].write_bytes(whole[:len(whole) // 2] + bytes(len(whole) - len(whole) // 2))
     second = run(_cfg(out, data, classes="chair"), workers=0)
     assert sorted(second["classes"]) == ["car", "chair"]  # the earlier run's class is kept
     assert second["classes_from_earlier_runs"] == ["car"]
     again = run(_cfg(out, data, classes="car"), workers=0)["classes"]["car"]
-    assert again["resumed"] == 2 and again["reconstructed"] == 4
-    for m, v in zip(meshes[:4], voxels[:4]):
+    assert again["resumed"] == 1 and again["reconstructed"] == 5
+    for m, v in zip(meshes[:5], voxels[:5]):
         assert len(trimesh.load(m, force="mesh").faces) > 0 and np.load(v)["occupancy"].any()
 
 

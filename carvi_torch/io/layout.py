@@ -74,7 +74,8 @@ def _voxels_ok(path: Path) -> str | None:
     """Why a voxels file is not a finished object's (``None``: it is one)."""
     try:
         with np.load(path) as z:
-            occ, T = z["occupancy"], z["voxel_to_camera"]
+            members = {k: z[k] for k in z.files}  # every member read: the zip's checksums cover each
+            occ, T = members["occupancy"], members["voxel_to_camera"]
     except Exception as e:  # noqa: BLE001 - any damage means: redo the object
         return f"unreadable voxels ({type(e).__name__})"
     if occ.dtype != bool or occ.ndim != 3 or T.shape != (4, 4) or not np.isfinite(T).all():
@@ -90,8 +91,13 @@ def _mesh_ok(path: Path) -> str | None:
         m = trimesh.load(path, force="mesh", process=False)
     except Exception as e:  # noqa: BLE001
         return f"unreadable mesh ({type(e).__name__})"
-    if len(getattr(m, "faces", ())) == 0:
+    faces = np.asarray(getattr(m, "faces", np.zeros((0, 3))))
+    if len(faces) == 0:
         return "mesh without faces"
+    # a written mesh names three distinct vertices per face: zeros where a file's tail never reached the disk do not
+    if (faces.min() < 0 or faces.max() >= len(m.vertices) or (faces[:, 0] == faces[:, 1]).any()
+            or (faces[:, 1] == faces[:, 2]).any() or (faces[:, 0] == faces[:, 2]).any()):
+        return "mesh with broken faces"
     return None
 
 

@@ -38,9 +38,10 @@ def write_object(job: dict) -> dict:
     Takes host (numpy) data only; a job with ``mesh_vertices`` and ``mesh_faces`` was meshed by the
     run (its occupancy is final: ``largest_component`` is not applied again). Writes the proposals
     (studies) and scores first, then the voxels, then the mesh: an object counts as finished once its
-    mesh exists. Each file is moved into place whole but not flushed to the disk (``sync=False``: a machine
-    crash may leave a damaged file, which a resumed run finds and redoes; the flushes took about half of
-    the writing). Returns ``ok``, ``reason``, ``mesh_seconds``, ``write_seconds`` and ``reconstruction_iou``
+    mesh exists. The voxels and mesh files are moved into place whole but not flushed to the disk
+    (``sync=False``): a machine crash may leave one damaged, which a resumed run finds (every member of the
+    voxels file read, the mesh's faces checked) and redoes. The studies' proposals and scores, which no
+    check reads, are flushed. Returns ``ok``, ``reason``, ``mesh_seconds``, ``write_seconds`` and ``reconstruction_iou``
     (the value written into the voxels file, ``None`` without a ``mask``), which the run's ``cameras.json``
     takes without opening the file again.
     """
@@ -57,9 +58,9 @@ def write_object(job: dict) -> dict:
     if len(m.faces) == 0:
         return dict(ok=False, reason="selected proposal has no surface", mesh_seconds=t1 - t0, write_seconds=0.0)
     if job.get("proposals") is not None:
-        write_npz(job["proposals_path"], sync=False, **job["proposals"])
+        write_npz(job["proposals_path"], **job["proposals"])  # flushed: finished() does not check it
     if job.get("scores") is not None:
-        write_json(job["scores_path"], job["scores"], indent=None, sync=False)
+        write_json(job["scores_path"], job["scores"], indent=None)  # flushed: finished() does not check it
     extra = {}
     if job.get("mask") is not None:  # the quality signal of the reconstruction (carvi_torch.quality)
         extra["reconstruction_iou"] = np.float64(reconstruction_iou(occ, job["voxel_to_canvas"], job["mask"]))
