@@ -226,14 +226,16 @@ def test_compare_camera_runs_reports_classes_one_run_lacks(tmp_path):
     """A class the second run never reached, one whose cameras.json is missing, one without a refined camera on
     one side: each named with its reason, the rest compared; no class at all does not agree."""
     R = Rotation.random(3, random_state=4).as_matrix()
-    _camera_run(tmp_path / "a", {"car": {1: R[0]}, "sofa": {2: R[1]}, "train": {3: R[2]}, "tv": {4: R[0]}})
+    _camera_run(tmp_path / "a", {"car": {1: R[0], 5: R[1]}, "sofa": {2: R[1]}, "train": {3: R[2]}, "tv": {4: R[0]}})
     _camera_run(tmp_path / "b", {"car": {1: R[0]}, "train": {3: R[2]}, "tv": {4: None}}, choice="sfm")
     (tmp_path / "b" / "train" / "cameras.json").unlink()
     rec = compare_camera_runs(tmp_path / "a", tmp_path / "b")
     assert set(rec["classes"]) == {"car"} and rec["agree"] is True
     assert rec["not_compared"] == {"sofa": "not reached by the cuda run", "train": "no cameras.json in the cuda run",
                                    "tv": "no object with a refined camera in both runs"}
+    # car's object 5 is only in the first run: missing from the second, not a differing choice
     assert rec["classes"]["car"]["compared"] == 1 and rec["classes"]["car"]["camera_choice_differs"] == 1
+    assert rec["classes"]["car"]["missing"] == {"cpu": 0, "cuda": 1}
     empty = compare_camera_runs(tmp_path / "a", tmp_path / "nothing")
     assert empty["classes"] == {} and empty["agree"] is False and empty["largest_median_deg"] is None
     assert empty["not_compared"]["car"] == "not reached by the cuda run"

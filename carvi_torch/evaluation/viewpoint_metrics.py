@@ -213,8 +213,9 @@ def _class_agreement(cams: tuple[dict, dict], entries: tuple[dict, dict], labels
     ang = torch.rad2deg(geodesic_angle(R[0], R[1]))
     return {"objects": entries[0].get("objects", len(a)), "compared": len(both),
             "median_deg": round(float(torch.quantile(ang, 0.5)), 3), "max_deg": round(float(ang.max()), 3),
-            "camera_choice_differs": sum(c.get("camera_choice") != (b.get(k) or {}).get("camera_choice")
-                                         for k, c in a.items()),
+            "camera_choice_differs": sum(a[k].get("camera_choice") != b[k].get("camera_choice")
+                                         for k in a.keys() & b.keys()),
+            "missing": {labels[0]: len(b.keys() - a.keys()), labels[1]: len(a.keys() - b.keys())},
             "sfm_start": [e.get("sfm", {}).get("start", {}).get("kept") for e in entries],
             "shape_groups": [e.get("sfm_groups", {}).get("groups", 1) for e in entries],
             "viewpoint_seconds": {lab: _viewpoint_seconds(e) for lab, e in zip(labels, entries)}}
