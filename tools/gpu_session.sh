@@ -152,8 +152,8 @@ if [ -z "${CARVI_GPU_READY:-}" ]; then
 fi
 
 # ---- how each step times its runs --------------------------------------------------------------------------
-# A step of the plan ends at STEP_END (epoch seconds): the runner's, or its plan limit from its start when it runs
-# alone. Every run inside gets at most its share and never goes past that end, so the step's own runs stop
+# A step of the plan ends at STEP_END (epoch seconds): the runner's, or its plan limit (STEP_SECONDS, if set) from
+# its start when it runs alone. Every run inside gets at most its share and never goes past that end, so the step's own runs stop
 # before the runner's `timeout` stops the step. Steps outside the plan run without limits.
 part_limit() {  # SHARE RESERVE: the next run's seconds: at most SHARE (0: no share), RESERVE kept before the
                 # step's end; "none" (no limit) for a step without an end (run alone, outside the plan)
@@ -302,7 +302,7 @@ cad() {  # STEP CPU_CLASSES CUDA_GROUPS BESIDE: the CPU side on CPU_CLASSES (com
 case "$step" in
     cad8) cad cad8 "" "" 0; rc=$?; echo "results in $out"; exit "$rc" ;;
     cad5)
-        [ -z "${STEP_END:-}" ] && STEP_END=$(( $(date +%s) + $(plan_limit cad5) ))
+        [ -z "${STEP_END:-}" ] && STEP_END=$(( $(date +%s) + ${STEP_SECONDS:-$(plan_limit cad5)} ))
         cad cad5 "$CAD5_CLASSES" "$CAD5_CUDA_GROUPS" 1; rc=$?; echo "results in $out"; exit "$rc" ;;
 esac
 
@@ -453,7 +453,7 @@ case "$step" in
     bench9087) bench_pair || status=$? ;;
     manyclasses) many_pair manyclasses "" 0 "procs vpcpu" || status=$? ;;
     mesher2000|loading2000|many4)
-        [ -z "${STEP_END:-}" ] && STEP_END=$(( $(date +%s) + $(plan_limit "$step") ))
+        [ -z "${STEP_END:-}" ] && STEP_END=$(( $(date +%s) + ${STEP_SECONDS:-$(plan_limit "$step")} ))
         case "$step" in
             mesher2000) mesher_pair 2000 "$MESHER_AUTO_S" 100 || status=$? ;;
             loading2000) loading || status=$? ;;
