@@ -237,6 +237,18 @@ def without_main_module() -> Iterator[None]:
         sys.modules["__main__"] = main
 
 
+def start_method() -> str:
+    """How the package's worker processes start: ``forkserver`` where available, else ``spawn`` (never ``fork``).
+
+    Example:
+        >>> start_method() in ("forkserver", "spawn")
+        True
+    """
+    import multiprocessing as mp
+
+    return "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+
+
 class LeanProcessPool(ProcessPoolExecutor):
     """A process pool whose processes start without the parent's main module (:func:`without_main_module`)
     whenever it starts one (``_spawn_process``, the one place a pool does; on a Python that names it

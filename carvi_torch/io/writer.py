@@ -24,17 +24,12 @@ import torch
 
 from ..marching import occupancy_to_meshes
 from ..mesh import largest_component
-from ..runtime import LeanProcessPool, cores, env_count
+from ..runtime import LeanProcessPool, cores, env_count, start_method
 from . import write_worker
 from .write_worker import write_object_safe
 
 __all__ = ["Writer", "writer_workers", "start_method", "canvas_to_image_4x4", "proposals_payload", "id_array",
            "INT64_RANGE", "mesh_jobs"]
-
-
-def start_method() -> str:
-    """How worker processes start: ``forkserver`` where available, else ``spawn`` (never ``fork``)."""
-    return "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
 
 
 def writer_workers(stage: str = "all", device: torch.device | None = None) -> int:

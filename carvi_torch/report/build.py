@@ -29,7 +29,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Literal
 
 from ..io.outputs import safe_name
-from ..runtime import LeanProcessPool
+from ..runtime import LeanProcessPool, start_method
 from .cards import Card, CardContext, ClassView, make_card
 from .charts import class_figure
 from .inputs import ReportError, RunInputs, read_run
@@ -117,9 +117,8 @@ def _make_cards(run: RunInputs, out: Path, max_faces: int, workers: int | None) 
     workers = default_workers(len(jobs)) if workers is None else workers
     made = None
     if workers > 0:
-        method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         try:
-            with LeanProcessPool(workers, mp_context=mp.get_context(method), initializer=_init_worker,
+            with LeanProcessPool(workers, mp_context=mp.get_context(start_method()), initializer=_init_worker,
                                  initargs=args) as pool:
                 made = list(pool.map(_card_in_worker, jobs, chunksize=max(1, min(32, len(jobs) // (4 * workers)))))
         except (OSError, BrokenProcessPool) as e:  # no worker processes here: make the cards in this one
