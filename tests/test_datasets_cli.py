@@ -13,8 +13,9 @@ import trimesh
 from carvi_torch import datasets
 from conftest import run_each_in_a_fresh_process
 from carvi_torch.cameras import ScaledOrthographic
-from carvi_torch.synthetic.meshes import Model, infer_flip_pairs, load_cad_npz, load_models
-from carvi_torch.synthetic.render import rasterize_triangles, render_dataset
+from carvi_torch.synthetic.meshes import (Model, harmonize_sides, infer_flip_pairs, load_cad_npz, load_models,
+                                          side_disagreements)
+from carvi_torch.synthetic.render import rasterize_triangles, read_render_info, render_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -76,6 +77,71 @@ def test_load_cad_models(shared_data):
     assert car.keypoint_names == [str(n) for n in raw["keypoint_names"]]
     # keypoint sets differ between models of a class: kept as they are
     assert len({len(m.keypoint_names) for m in models if m.category == "car"}) > 1
+
+
+def _sided_model(name: str, xs: dict, width: float = 2.0, category: str = "thing") -> Model:
+    """A model of ``category`` whose keypoints sit at x = ``xs[name]`` (y, z = 0), ``width`` wide."""
+    box = torch.tensor([[-width / 2, 0.0, 0.0], [width / 2, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    pts = torch.tensor([[x, 0.0, 0.0] for x in xs.values()])
+    return Model(name, category, box, torch.tensor([[0, 1, 2]]), list(xs), pts)
+
+
+def test_side_disagreements_needs_two_unanimous_others_and_a_clear_separation():
+    std = {"left_a": -0.8, "right_a": 0.8, "nose": 0.0}
+    odd = {"left_a": 0.7, "right_a": -0.7, "nose": 0.0}
+    assert side_disagreements([_sided_model("m0", std), _sided_model("m1", std), _sided_model("m2", odd)]) == \
+        [(2, ("left_a", "right_a"), 2)]
+    # one other model only, a split class, or another class: nothing to go by
+    assert side_disagreements([_sided_model("m0", std), _sided_model("m1", odd)]) == []
+    assert side_disagreements([_sided_model("m0", std), _sided_model("m1", odd), _sided_model("m2", odd),
+                               _sided_model("m3", std)]) == []
+    assert side_disagreements([_sided_model("m0", std, category="a"), _sided_model("m1", std, category="a"),
+                               _sided_model("m2", odd, category="b")]) == []
+    # a pair 5% of the width apart does not vote
+    near = {"left_a": 0.05, "right_a": -0.05, "nose": 0.0}
+    assert side_disagreements([_sided_model("m0", std), _sided_model("m1", std), _sided_model("m2", near)]) == []
+    models = [_sided_model("m0", std), _sided_model("m1", std), _sided_model("m2", odd)]
+    with pytest.warns(UserWarning, match="m2: 'left_a' and 'right_a' exchanged"):
+        fixed = harmonize_sides(models)
+    assert fixed[2].keypoint_names == ["right_a", "left_a", "nose"] and fixed[2].side_swaps == [("left_a", "right_a")]
+    torch.testing.assert_close(fixed[2].keypoints, models[2].keypoints)  # the points stay, their names move
+    assert fixed[:2] == models[:2] and models[2].keypoint_names == ["left_a", "right_a", "nose"]
+    assert side_disagreements(fixed) == []
+
+
+@pytest.mark.shared
+def test_load_models_names_motorbike01s_handles_like_the_other_motorbikes(shared_data):
+    """PASCAL3D+'s motorbike01 puts ``left_handle_center`` at +x, where its left wheels are at -x and where the
+    other three motorbikes put their right handle; loading renames that pair and nothing else."""
+    with pytest.warns(UserWarning, match="motorbike01: 'left_handle_center' and 'right_handle_center' exchanged"):
+        models = load_models(shared_data / "pascal3d_cad")
+    given = load_models(shared_data / "pascal3d_cad", sides="as-given")
+    changed = [m.name for m, g in zip(models, given) if m.keypoint_names != g.keypoint_names]
+    assert changed == ["motorbike01"]
+    for m in models:
+        if m.category == "motorbike":
+            x = dict(zip(m.keypoint_names, m.keypoints[:, 0].tolist()))
+            assert x["left_handle_center"] < 0 < x["right_handle_center"], m.name
+            assert x["left_back_wheel"] < x["right_back_wheel"], m.name
+    assert side_disagreements(models) == [] and [m.side_swaps for m in given if m.side_swaps] == []
+    with pytest.raises(ValueError, match="sides"):
+        load_models(shared_data / "pascal3d_cad", sides="geometry")
+
+
+def test_render_info_records_the_side_swaps(tmp_path):
+    std = {"left_a": -0.8, "right_a": 0.8, "nose": 0.0}
+    odd = {"left_a": 0.7, "right_a": -0.7, "nose": 0.0}
+    with pytest.warns(UserWarning, match="exchanged"):
+        models = harmonize_sides([_sided_model("m0", std), _sided_model("m1", std), _sided_model("m2", odd)])
+    render_dataset(models, tmp_path / "r", views=1, progress=False, image_size=32)
+    info = read_render_info(tmp_path / "r")
+    assert info["side_swaps"] == {"m2": [["left_a", "right_a"]]} and info["views"] == 1
+    gt = json.loads((tmp_path / "r" / "gt.json").read_text())["models"]["m2"]["keypoints"]
+    assert gt["right_a"] == pytest.approx([0.7, 0.0, 0.0])
+    assert read_render_info(tmp_path / "absent") is None
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "annotations.json").write_text('{"images": []}')
+    assert read_render_info(tmp_path / "bad") is None
 
 
 def test_load_mesh_with_json_and_messy_keypoints(tmp_path):

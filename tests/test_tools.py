@@ -539,6 +539,49 @@ def test_synthetic_benchmark_seeds_table_and_keyed_record(tmp_path: Path):
         bs.parse_methods("oracle")
 
 
+def _three_sided_models(folder: Path) -> Path:
+    """Three CAD-like ``thing`` models, the last naming its left/right pair from the other side."""
+    folder.mkdir()
+    verts = np.array([[-1, -1, 0], [1, -1, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    faces = np.array([[0, 1, 2], [0, 1, 3], [1, 2, 3], [0, 2, 3]], np.int32)
+    for i, side in enumerate([-0.8, -0.8, 0.8]):
+        np.savez(folder / f"thing0{i}.npz", vertices=verts, faces=faces,
+                 keypoint_names=np.array(["left_a", "right_a", "top"]),
+                 keypoints=np.array([[side, 0, 0.2], [-side, 0, 0.2], [0, 0, 1]], np.float32))
+    return folder
+
+
+def test_cad_renders_made_with_other_side_names_are_refused_or_redone(tmp_path: Path):
+    """Renders made before the left/right names were harmonised (no ``side_swaps`` in their info): the viewpoint
+    benchmark stops with the reason instead of reusing them with their cameras, and the shape benchmark renders
+    again; renders with the current names are reused."""
+    import argparse
+
+    vc = load_tool("viewpoints_cad")
+    bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")
+    cad = _three_sided_models(tmp_path / "cad")
+    args = argparse.Namespace(work=str(tmp_path / "w"), views=1, cameras="photo", sides="class", cad=str(cad),
+                              quiet=True)
+    with pytest.warns(UserWarning, match="thing02"):
+        renders = vc._renders(args, 0)
+    info = json.loads((renders / "annotations.json").read_text())["info"]
+    assert info["side_swaps"] == {"thing02": [["left_a", "right_a"]]}
+    assert bs._render_matches(renders, 1, 0, 0) and not bs._render_matches(renders, 2, 0, 0)
+    stamp = (renders / "annotations.json").stat().st_mtime_ns
+    with pytest.warns(UserWarning, match="thing02"):
+        assert vc._renders(args, 0) == renders and (renders / "annotations.json").stat().st_mtime_ns == stamp
+    args.sides = "as-given"
+    as_given = vc._renders(args, 0)
+    assert as_given != renders and json.loads((as_given / "annotations.json").read_text())["info"]["side_swaps"] == {}
+    data = json.loads((renders / "annotations.json").read_text())
+    del data["info"]["side_swaps"]
+    (renders / "annotations.json").write_text(json.dumps(data))
+    args.sides = "class"
+    with pytest.warns(UserWarning, match="thing02"), pytest.raises(SystemExit, match="other left/right names"):
+        vc._renders(args, 0)
+    assert not bs._render_matches(renders, 1, 0, 0)
+
+
 def test_export_quality_study_ranks_against_scipy(tmp_path: Path):
     """``bench_export --quality``: the pooled and per-class Spearman rho of quality against the shape
     error equal scipy's on the same pairs; objects without a quality are left out; a reconstruction

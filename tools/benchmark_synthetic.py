@@ -148,16 +148,15 @@ def render(models_dir: Path, data_dir: Path, pool: int, test_views: int, seed: i
 
 
 def _render_matches(data_dir: Path, pool: int, test_views: int, seed: int) -> bool:
-    ann = data_dir / "annotations.json"
-    if not (ann.is_file() and (data_dir / "gt.json").is_file()):
+    """Whether ``data_dir`` holds this seed's renders, made with the models' left/right names harmonised
+    (``side_swaps`` recorded; renders made before that are redone, and so are their reconstructions)."""
+    from carvi_torch.synthetic.render import read_render_info
+
+    info = read_render_info(data_dir)
+    if info is None or not (data_dir / "gt.json").is_file():
         return False
-    with open(ann) as f:
-        head = f.read(4096)  # the "info" block comes first
-    try:
-        info = json.loads(head[head.index("{", 1):head.index("}") + 1])
-    except ValueError:
-        return False
-    return info.get("seed") == seed and info.get("views") == pool + test_views and info.get("test_views") == test_views
+    return (info.get("seed") == seed and info.get("views") == pool + test_views
+            and info.get("test_views") == test_views and "side_swaps" in info)
 
 
 def merge_evaluations(parts: list[dict]) -> dict:
@@ -398,7 +397,8 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
 
     # 1. data
     t0, c0 = time.perf_counter(), cpu_seconds()
-    if args.fresh or not _render_matches(data, args.pool, args.test_views, seed):
+    fresh = args.fresh or not _render_matches(data, args.pool, args.test_views, seed)
+    if fresh:
         print(f"render {args.pool}+{args.test_views} views per model into {data}", flush=True)
         info = render(Path(args.models), data, args.pool, args.test_views, seed)
         print(f"  {info['images']} renders of {info['models']} models in {info['seconds']:.0f} s", flush=True)
@@ -412,12 +412,12 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
     runs = {m: out / f"run_{m.lstrip('-').lower()}" for m in methods}
     cmds = []
     for m in methods:
-        if not args.fresh and (runs[m] / "summary.json").is_file() and _finished(runs[m]):
+        if not fresh and (runs[m] / "summary.json").is_file() and _finished(runs[m]):
             print(f"reconstruct {m}: reusing {runs[m]}", flush=True)
             continue
         argv = [PYTHON, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(runs[m]),
                 "references=test", f"seed={seed}", "progress=false", "preview=false", "report=false",
-                *( ["overwrite=true"] if args.fresh else []), *METHODS[m], *args.set]
+                *(["overwrite=true"] if fresh else []), *METHODS[m], *args.set]
         if classes:
             argv.append("classes=" + ",".join(classes))
         cmds.append((m, argv, runs[m] / "log.txt"))

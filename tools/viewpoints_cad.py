@@ -9,8 +9,10 @@ frame, +z up, front -y) and after one global rotation aligning the two
 automatic frame, which uses no template). SfM -> refined compares the same views (those with
 an SfM camera, ``evaluate``'s ``refined_with_sfm``); every view's refined median, the
 unseen-image cameras included, has a column of its own. The cameras of a run go to
-``<work>/cameras[_<overrides>][_v<views>][_renders-s<seed>][_<cameras>]`` (rerunning the same
-settings resumes there). With several seeds (``--seed 0,1,2``) every seed is rendered and reconstructed
+``<work>/cameras[_<overrides>][_v<views>][_renders-s<seed>][_<cameras>][_sides-as-given]`` (rerunning
+the same settings resumes there). The CAD models' left/right names are made consistent within each class
+(``--sides class``, the default: motorbike01's handles are renamed; ``--sides as-given`` keeps them); renders
+made with other names than the models have now stop the run with the reason. With several seeds (``--seed 0,1,2``) every seed is rendered and reconstructed
 in turn and a last table gives, per class and seed, the SfM -> refined medians, their means and
 whether refinement is no worse than SfM at every seed (the small-class benchmark: ``--views 8``,
 32-80 views per class). ``--cameras level`` draws the renders' cameras from a level camera held
@@ -153,19 +155,35 @@ def _table(rows: list) -> str:
 
 
 def _renders(args, seed: int) -> Path:
-    """The renders of one seed (rendered on first use): ``<work>/renders_v<views>_s<seed>[_<cameras>]``."""
+    """The renders of one seed (rendered on first use):
+    ``<work>/renders_v<views>_s<seed>[_<cameras>][_sides-as-given]``.
+
+    Raises:
+        SystemExit: the folder holds renders whose left/right names differ from the models' now (made
+            before :func:`~carvi_torch.synthetic.meshes.harmonize_sides`): their cameras are stale too.
+    """
     from carvi_torch.synthetic import load_models
-    from carvi_torch.synthetic.render import render_dataset
+    from carvi_torch.synthetic.render import read_render_info, render_dataset
 
     dist = "" if args.cameras == "photo" else f"_{args.cameras}"
-    renders = Path(args.work) / f"renders_v{args.views}_s{seed}{dist}"
-    if not (renders / "annotations.json").is_file():
-        render_dataset(load_models(Path(args.cad)), renders, views=args.views, seed=seed, progress=not args.quiet,
-                       camera_options=CAMERAS[args.cameras])
+    sides = "" if args.sides == "class" else "_sides-as-given"
+    renders = Path(args.work) / f"renders_v{args.views}_s{seed}{dist}{sides}"
+    models = load_models(Path(args.cad), sides=args.sides)
+    swaps = {m.name: [list(p) for p in m.side_swaps] for m in models if m.side_swaps}
+    if (renders / "annotations.json").is_file():
+        info = read_render_info(renders) or {}
+        if info.get("side_swaps") != swaps:
+            raise SystemExit(f"error: {renders} holds renders with other left/right names than the models have now "
+                             f"({info.get('side_swaps', 'not recorded')} against {swaps}); remove it and the camera "
+                             f"folders made from it (*_renders-s{seed}*), or use another --work")
+        return renders
+    render_dataset(models, renders, views=args.views, seed=seed, progress=not args.quiet,
+                   camera_options=CAMERAS[args.cameras])
     return renders
 
 
-def recon_dir(work: Path, overrides: list, views: int = 30, seed: int = 0, cameras: str = "photo") -> Path:
+def recon_dir(work: Path, overrides: list, views: int = 30, seed: int = 0, cameras: str = "photo",
+              sides: str = "class") -> Path:
     """The folder of one run's cameras: one per render seed and set of overrides, so that runs with different
     settings never mix their cameras (every character of an override but letters and digits becomes ``-``).
 
@@ -174,7 +192,8 @@ def recon_dir(work: Path, overrides: list, views: int = 30, seed: int = 0, camer
     """
     dist = "" if cameras == "photo" else f"_{cameras}"
     return work / ("cameras" + "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in o) for o in overrides)
-                   + (f"_v{views}" if views != 30 else "") + (f"_renders-s{seed}" if seed else "") + dist)
+                   + (f"_v{views}" if views != 30 else "") + (f"_renders-s{seed}" if seed else "") + dist
+                   + ("" if sides == "class" else "_sides-as-given"))
 
 
 def _run(args, seed: int, overrides: list) -> dict:
@@ -184,7 +203,7 @@ def _run(args, seed: int, overrides: list) -> dict:
     t0 = time.perf_counter()
     renders = _renders(args, seed)
     t_render = time.perf_counter() - t0
-    recon = recon_dir(Path(args.work), overrides, args.views, seed, args.cameras)
+    recon = recon_dir(Path(args.work), overrides, args.views, seed, args.cameras, args.sides)
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(renders / "annotations.json"),
            "--out", str(recon), "stage=cameras", "progress=false", f"seed={seed}", *overrides]
     t1 = time.perf_counter()
@@ -391,6 +410,9 @@ def main(argv=None) -> int:
                     help="instead of the tables: which refined cameras are worse than SfM's and what separates them")
     ap.add_argument("--quiet", action="store_true", help="no render progress bar")
     ap.add_argument("--cad", default=str(ROOT / ".." / "shared" / "data" / "pascal3d_cad"))
+    ap.add_argument("--sides", choices=("class", "as-given"), default="class",
+                    help="the CAD models' left/right keypoint names: 'class' renames a pair one model names from the "
+                         "other side than the rest of its class (motorbike01's handles), 'as-given' keeps them")
     ap.add_argument("--work", default=str(ROOT / "outputs" / "viewpoints_cad"), help="renders and cameras go here")
     ap.add_argument("--out", default=None, help="JSON record (default: beside the cameras in --work)")
     ap.add_argument("--key", default=None, help="write the record under this key of --out's JSON object, its other "

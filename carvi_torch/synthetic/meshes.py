@@ -14,21 +14,28 @@ Real data is messy: meshes are rarely watertight and keypoint sets differ betwee
 models of one class; both are kept as they are (a name a model lacks is simply absent
 from its ``keypoint_names``). Only unusable entries are dropped, with a warning naming
 the file: non-finite keypoints and repeated keypoint names (the first is kept).
+
+Left and right are not always named alike across a class's models: PASCAL3D+'s motorbike01
+names its handlebar ends from the other side than the other three motorbikes. A human
+annotator of its photographs would name them like the others, so :func:`load_models`
+exchanges such a pair's names (:func:`harmonize_sides`, with a warning naming the model);
+``sides="as-given"`` keeps the names as stored.
 """
 from __future__ import annotations
 
 import re
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Sequence
+from typing import Literal, Sequence
 
 import numpy as np
 import torch
 
 from ..collection import infer_flip_pairs  # re-exported: name-based left/right pairs
 
-__all__ = ["Model", "MESH_SUFFIXES", "load_cad_npz", "load_mesh_with_keypoints", "load_model", "load_models",
+__all__ = ["Model", "MESH_SUFFIXES", "SIDE_VOTE_MIN", "side_disagreements", "harmonize_sides",
+           "load_cad_npz", "load_mesh_with_keypoints", "load_model", "load_models",
            "infer_flip_pairs", "category_from_stem"]
 
 #: File suffixes read through trimesh (a ``.json`` with the keypoints must sit beside the mesh).
@@ -48,6 +55,8 @@ class Model:
         keypoints: ``(K, 3)`` float32 keypoint positions in the object frame.
         source: the file the model was read from (its name only), or a label for
             generated models; written as the annotations' ``source``.
+        side_swaps: left/right name pairs exchanged on loading (:func:`harmonize_sides`), each
+            ``(name, name)`` sorted; empty when the names are as stored.
     """
 
     name: str
@@ -57,6 +66,7 @@ class Model:
     keypoint_names: list[str] = field(default_factory=list)
     keypoints: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
     source: str = ""
+    side_swaps: list[tuple[str, str]] = field(default_factory=list)
 
     def __post_init__(self):
         self.vertices = torch.as_tensor(self.vertices, dtype=torch.float32)
@@ -93,7 +103,73 @@ class Model:
         return trimesh.Trimesh(self.vertices.numpy().astype(np.float64), self.faces.numpy(), process=False)
 
 
-# --------------------------------------------------------------------------- flip pairs
+# --------------------------------------------------------------------------- left and right
+
+#: A left/right pair votes on which side its first name lies when its two points are at least this
+#: fraction of the model's width (x extent) apart along x, the PASCAL3D+ frame's left-right axis.
+SIDE_VOTE_MIN = 0.1
+
+
+def _pair_sides(model: Model) -> dict[tuple[str, str], int]:
+    """``{(a, b): sign of x_a - x_b}`` for the model's left/right pairs (``a < b``) that vote."""
+    names, x = model.keypoint_names, model.keypoints[:, 0].double()
+    width = float(model.vertices[:, 0].max() - model.vertices[:, 0].min()) if len(model.vertices) else 0.0
+    sides = {}
+    for i, j in infer_flip_pairs(names):
+        (a, ia), (b, ib) = sorted([(names[i], i), (names[j], j)])
+        dx = float(x[ia] - x[ib])
+        if width > 0 and abs(dx) >= SIDE_VOTE_MIN * width:
+            sides[(a, b)] = 1 if dx > 0 else -1
+    return sides
+
+
+def side_disagreements(models: Sequence[Model]) -> list[tuple[int, tuple[str, str], int]]:
+    """Left/right pairs a model names from the other side than every other model of its class.
+
+    A pair counts when at least two other models of the class have it and all of them put its
+    first name on the other side of x than this model does (each pair judged by its x
+    separation, at least :data:`SIDE_VOTE_MIN` of the model's width).
+
+    Returns:
+        ``(model index, (name, name) sorted, how many other models agree)`` in model order.
+
+    Example:
+        >>> kp = lambda x: torch.tensor([[x, 0.0, 0.0], [-x, 0.0, 0.0]])
+        >>> box = torch.tensor([[-1.0, 0, 0], [1.0, 0, 0]])
+        >>> ms = [Model(f"m{i}", "m", box, torch.zeros(0, 3), ["left_a", "right_a"], kp(x))
+        ...       for i, x in enumerate([-0.8, -0.7, 0.9])]
+        >>> side_disagreements(ms)
+        [(2, ('left_a', 'right_a'), 2)]
+    """
+    sides = [_pair_sides(m) for m in models]
+    found = []
+    for k, model in enumerate(models):
+        for pair, sign in sides[k].items():
+            others = [s[pair] for o, s in enumerate(sides) if o != k and models[o].category == model.category
+                      and pair in s]
+            if len(others) >= 2 and all(o == -sign for o in others):
+                found.append((k, pair, len(others)))
+    return found
+
+
+def harmonize_sides(models: Sequence[Model], warn: bool = True) -> list[Model]:
+    """The models with every pair of :func:`side_disagreements` named like the rest of the class.
+
+    The two names of such a pair are exchanged on that model (its points stay where they are), and
+    ``side_swaps`` lists them; a warning names the model and the pair when ``warn``.
+    """
+    swaps: dict[int, list[tuple[str, str]]] = {}
+    for k, pair, agree in side_disagreements(models):
+        swaps.setdefault(k, []).append(pair)
+        if warn:
+            warnings.warn(f"{models[k].name}: {pair[0]!r} and {pair[1]!r} exchanged: the {agree} other "
+                          f"{models[k].category} models that have them name them from the other side", stacklevel=3)
+    out = list(models)
+    for k, pairs in swaps.items():
+        rename = {a: b for p in pairs for a, b in (p, p[::-1])}
+        out[k] = replace(models[k], keypoint_names=[rename.get(n, n) for n in models[k].keypoint_names],
+                         side_swaps=models[k].side_swaps + pairs)
+    return out
 
 # --------------------------------------------------------------------------- loading
 
@@ -224,11 +300,14 @@ def load_model(path: str | Path) -> Model:
     raise ValueError(f"{path}: unsupported model file (expected .npz or one of {', '.join(MESH_SUFFIXES)})")
 
 
-def load_models(directory: str | Path) -> list[Model]:
+def load_models(directory: str | Path, sides: Literal["class", "as-given"] = "class") -> list[Model]:
     """Every model of a directory (not recursive), sorted by file name (deterministic).
 
     Reads ``*.npz`` (PASCAL3D+ form) and meshes with a ``.json`` keypoint file beside
     them; a mesh without one is skipped with a warning (it has no keypoints to annotate).
+    With ``sides="class"`` (the default) a left/right pair that one model names from the other
+    side than the rest of its class is renamed (:func:`harmonize_sides`, with a warning);
+    ``"as-given"`` keeps every name as stored.
 
     Raises:
         FileNotFoundError: ``directory`` does not exist.
@@ -256,4 +335,6 @@ def load_models(directory: str | Path) -> list[Model]:
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ValueError(f"{directory}: several files share the model name(s) {dup}")
-    return models
+    if sides not in ("class", "as-given"):
+        raise ValueError(f"sides must be 'class' or 'as-given', got {sides!r}")
+    return harmonize_sides(models) if sides == "class" else models

@@ -40,6 +40,7 @@ __all__ = [
     "sample_cameras",
     "render_view",
     "render_dataset",
+    "read_render_info",
     "perturb_boundary",
     "seed_generator",
     "ROTATIONAL_CLASSES",
@@ -597,6 +598,10 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
       render in image pixels (our convention), and every model's 3-D keypoints.
     * ``out_dir/meshes/<model>.ply``: the mesh in its object frame (trimesh, binary PLY).
 
+    The ``info`` block of ``annotations.json`` records the seed, the views, the image size, the
+    noise and ``side_swaps`` (``{model: [[name, name], ...]}``, the left/right names exchanged on
+    loading, :func:`~carvi_torch.synthetic.meshes.harmonize_sides`); :func:`read_render_info` reads it.
+
     Ids: categories by sorted class name, then images = annotations numbered from 1 in
     model order, view order. Deterministic: the cameras and noise of a model depend only
     on ``(seed, model name)`` (:func:`seed_generator`).
@@ -691,10 +696,35 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
     bar.close()
     info = {"description": "synthetic renders of meshes with keypoints (carvi_torch.synthetic)", "seed": int(seed),
             "views": views, "test_views": test_views, "image_size": [w, h], "keypoint_noise": float(keypoint_noise),
-            "boundary_noise": float(boundary_noise)}
+            "boundary_noise": float(boundary_noise),
+            "side_swaps": {m.name: [list(pair) for pair in m.side_swaps]
+                           for m in models if getattr(m, "side_swaps", None)}}
     ann_path = write_json(out_dir / "annotations.json",
                           {"info": info, "images": images, "annotations": annotations, "categories": categories},
                           indent=None)
     gt_path = write_json(out_dir / "gt.json", {"annotations": gt, "models": gt_models}, indent=None)
     return {"annotations": str(ann_path), "gt": str(gt_path), "images": len(images), "models": len(models),
             "categories": classes, "seconds": time.perf_counter() - t_start}
+
+
+def read_render_info(out_dir: str | Path) -> dict | None:
+    """The ``info`` block of a :func:`render_dataset` folder's ``annotations.json``, or ``None``.
+
+    Only the file's head is read (``info`` is written first), so a large dataset costs nothing;
+    ``None`` when the file is missing or does not start with an ``info`` object.
+    """
+    import json
+
+    path = Path(out_dir) / "annotations.json"
+    if not path.is_file():
+        return None
+    with open(path) as f:
+        head = f.read(1 << 16)
+    start = head.find("{", 1)
+    if not head.startswith('{"info"') or start < 0:
+        return None
+    try:
+        info, _ = json.JSONDecoder().raw_decode(head, start)
+    except ValueError:
+        return None
+    return info if isinstance(info, dict) else None
