@@ -233,6 +233,7 @@ def test_a_broken_viewpoint_pool_leaves_the_classes_to_the_run(procedural_input,
 def test_an_interrupt_stops_the_viewpoint_processes(procedural_input, tmp_path, monkeypatch):
     """Ctrl-C while the car carves: the worker processes are stopped (SIGTERM), not left to finish their classes
     (which the interpreter's exit would wait for), and nothing of the chair is written."""
+    import multiprocessing
     import signal
 
     from carvi_torch.executors import ahead
@@ -242,7 +243,7 @@ def test_an_interrupt_stops_the_viewpoint_processes(procedural_input, tmp_path, 
     monkeypatch.setattr(L, "AheadProcesses", lambda *a: made.append(ahead.AheadProcesses(*a)) or made[-1])
 
     def interrupted(*args, **kwargs):
-        processes = list(made[0]._pool._processes.values())  # started by the submissions
+        processes = multiprocessing.active_children()  # the workers the submissions started
         made.append(processes)
         raise KeyboardInterrupt
 

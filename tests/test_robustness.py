@@ -490,7 +490,7 @@ def test_writer_processes_ignore_ctrl_c():
 
 
 WRITERS_SCRIPT = """
-import json, sys
+import json, multiprocessing, sys
 import numpy as np
 import torch  # the run's main module imports torch (carvi_torch.reconstruct does)
 from carvi_torch.io import write_worker
@@ -506,7 +506,7 @@ def main(out):
                    mesh_path=out + "/m.ply")
         jobs = [w.pool.submit(write_worker.write_object_safe, job) for _ in range(4)]
         ok = all(f.result(timeout=60)["ok"] for f in jobs)
-        pids = sorted(w.pool._processes)  # every writer process the pool started
+        pids = sorted(p.pid for p in multiprocessing.active_children())  # every writer process the pool started
         torch_in = [("libtorch" in open(f"/proc/{p}/maps").read()) for p in pids]
         print(json.dumps({"pids": pids, "ok": ok, "torch": torch_in}))
     finally:
