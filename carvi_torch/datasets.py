@@ -82,6 +82,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "RLE masks), OUT/gt.json (true cameras) and OUT/meshes/<model>.ply.")
     syn.add_argument("--meshes", required=True, metavar="DIR", help="directory of models")
     syn.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    syn.add_argument("--sides", choices=("class", "as-given"), default="class",
+                     help="left/right keypoint names: 'class' (default) renames a pair that one model names from "
+                          "the other side than every other model of its class (a warning names it); 'as-given' "
+                          "keeps the stored names")
     _add_render_options(syn, 30, "renders per model (default 30)")
 
     proc = sub.add_parser(
@@ -136,7 +140,7 @@ def _run_synthetic(args) -> int:
         print(f"error: --test-views ({args.test_views}) exceeds --views ({args.views})", file=sys.stderr)
         return 2
     try:
-        models = load_models(args.meshes)
+        models = load_models(args.meshes, sides=args.sides)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -339,6 +339,27 @@ def test_cli_synthetic_and_procedural(tmp_path, capsys):
     assert "wrote 2 renders" in capsys.readouterr().out
 
 
+def test_cli_synthetic_names_sides_like_the_class_unless_told(tmp_path):
+    """``datasets synthetic`` renders a model whose left/right pair is named from the other side with the class's
+    names (recorded in the info block), and with ``--sides as-given`` with its own."""
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    std = {"left_a": -0.8, "right_a": 0.8, "nose": 0.0}
+    for name, xs in [("thing1", std), ("thing2", std), ("thing3", {"left_a": 0.7, "right_a": -0.7, "nose": 0.0})]:
+        m = _sided_model(name, xs)
+        m.to_trimesh().export(meshes / f"{name}.ply")
+        (meshes / f"{name}.json").write_text(json.dumps({"class": "thing", "keypoints": m.keypoint_dict()}))
+    args = ["synthetic", "--meshes", str(meshes), "--views", "1", "--canvas", "32", "--quiet", "--out"]
+    with pytest.warns(UserWarning, match="thing3: 'left_a' and 'right_a' exchanged"):
+        assert datasets.main([*args, str(tmp_path / "class")]) == 0
+    assert datasets.main([*args, str(tmp_path / "given"), "--sides", "as-given"]) == 0
+    assert read_render_info(tmp_path / "class")["side_swaps"] == {"thing3": [["left_a", "right_a"]]}
+    assert read_render_info(tmp_path / "given")["side_swaps"] == {}
+    left = {d: json.loads((tmp_path / d / "gt.json").read_text())["models"]["thing3"]["keypoints"]["left_a"][0]
+            for d in ("class", "given")}
+    assert left["class"] == pytest.approx(-0.7) and left["given"] == pytest.approx(0.7)
+
+
 def test_cli_bad_input(tmp_path, capsys):
     assert datasets.main(["synthetic", "--meshes", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
     assert "no such directory" in capsys.readouterr().err
