@@ -14,7 +14,7 @@ from carvi_torch import datasets
 from conftest import run_each_in_a_fresh_process
 from carvi_torch.cameras import ScaledOrthographic
 from carvi_torch.synthetic.meshes import (Model, harmonize_sides, infer_flip_pairs, load_cad_npz, load_models,
-                                          side_disagreements)
+                                          side_disagreements, turned_models)
 from carvi_torch.synthetic.render import rasterize_triangles, read_render_info, render_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -86,27 +86,51 @@ def _sided_model(name: str, xs: dict, width: float = 2.0, category: str = "thing
     return Model(name, category, box, torch.tensor([[0, 1, 2]]), list(xs), pts)
 
 
+#: Left names at -x on both pairs; pair a named from the other side; both pairs turned (the model faces +y).
+STD = {"left_a": -0.8, "right_a": 0.8, "left_b": -0.5, "right_b": 0.5, "nose": 0.0}
+ODD = {"left_a": 0.7, "right_a": -0.7, "left_b": -0.6, "right_b": 0.6, "nose": 0.0}
+TURNED = {"left_a": 0.8, "right_a": -0.8, "left_b": 0.5, "right_b": -0.5, "nose": 0.0}
+
+
 def test_side_disagreements_needs_two_unanimous_others_and_a_clear_separation():
-    std = {"left_a": -0.8, "right_a": 0.8, "nose": 0.0}
-    odd = {"left_a": 0.7, "right_a": -0.7, "nose": 0.0}
-    assert side_disagreements([_sided_model("m0", std), _sided_model("m1", std), _sided_model("m2", odd)]) == \
+    assert side_disagreements([_sided_model("m0", STD), _sided_model("m1", STD), _sided_model("m2", ODD)]) == \
+        [(2, ("left_a", "right_a"), 2)]
+    # the names in another order on the model: the same pair
+    rev = dict(reversed(list(ODD.items())))
+    assert side_disagreements([_sided_model("m0", STD), _sided_model("m1", STD), _sided_model("m2", rev)]) == \
         [(2, ("left_a", "right_a"), 2)]
     # one other model only, a split class, or another class: nothing to go by
-    assert side_disagreements([_sided_model("m0", std), _sided_model("m1", odd)]) == []
-    assert side_disagreements([_sided_model("m0", std), _sided_model("m1", odd), _sided_model("m2", odd),
-                               _sided_model("m3", std)]) == []
-    assert side_disagreements([_sided_model("m0", std, category="a"), _sided_model("m1", std, category="a"),
-                               _sided_model("m2", odd, category="b")]) == []
-    # a pair 5% of the width apart does not vote
-    near = {"left_a": 0.05, "right_a": -0.05, "nose": 0.0}
-    assert side_disagreements([_sided_model("m0", std), _sided_model("m1", std), _sided_model("m2", near)]) == []
-    models = [_sided_model("m0", std), _sided_model("m1", std), _sided_model("m2", odd)]
+    assert side_disagreements([_sided_model("m0", STD), _sided_model("m1", ODD)]) == []
+    assert side_disagreements([_sided_model("m0", STD), _sided_model("m1", ODD), _sided_model("m2", ODD),
+                               _sided_model("m3", STD)]) == []
+    assert side_disagreements([_sided_model("m0", STD, category="a"), _sided_model("m1", STD, category="a"),
+                               _sided_model("m2", ODD, category="b")]) == []
+    # pair a 0.1 apart votes on a model 0.9 wide, not on one 1.1 wide (the threshold is 10% of the width)
+    near = {**STD, "left_a": 0.05, "right_a": -0.05}
+    for width, found in [(0.9, [(2, ("left_a", "right_a"), 2)]), (1.1, [])]:
+        assert side_disagreements([_sided_model("m0", STD), _sided_model("m1", STD),
+                                   _sided_model("m2", near, width=width)]) == found, width
+    # a model without vertices does not vote (nor is it judged)
+    empty = Model("m3", "thing", torch.zeros(0, 3), torch.zeros(0, 3, dtype=torch.long), list(ODD),
+                  torch.tensor([[x, 0.0, 0.0] for x in ODD.values()]))
+    assert side_disagreements([_sided_model("m0", STD), _sided_model("m1", STD), empty]) == []
+
+
+def test_harmonize_sides_renames_a_misnamed_pair_and_keeps_a_turned_model():
+    models = [_sided_model("m0", STD), _sided_model("m1", STD), _sided_model("m2", ODD)]
     with pytest.warns(UserWarning, match="m2: 'left_a' and 'right_a' exchanged"):
         fixed = harmonize_sides(models)
-    assert fixed[2].keypoint_names == ["right_a", "left_a", "nose"] and fixed[2].side_swaps == [("left_a", "right_a")]
+    assert fixed[2].keypoint_names == ["right_a", "left_a", "left_b", "right_b", "nose"]
+    assert fixed[2].side_swaps == [("left_a", "right_a")]
     torch.testing.assert_close(fixed[2].keypoints, models[2].keypoints)  # the points stay, their names move
-    assert fixed[:2] == models[:2] and models[2].keypoint_names == ["left_a", "right_a", "nose"]
+    assert fixed[0] is models[0] and fixed[1] is models[1] and models[2].keypoint_names == list(ODD)
     assert side_disagreements(fixed) == []
+    # every pair on the other side: a model turned in its frame keeps its names, with a warning
+    turned = [_sided_model("m0", STD), _sided_model("m1", STD), _sided_model("m2", TURNED)]
+    assert side_disagreements(turned) == [] and turned_models(turned) == [2]
+    with pytest.warns(UserWarning, match="m2: every left/right pair lies on the other side"):
+        kept = harmonize_sides(turned)
+    assert kept[2] is turned[2]
 
 
 @pytest.mark.shared
@@ -129,10 +153,8 @@ def test_load_models_names_motorbike01s_handles_like_the_other_motorbikes(shared
 
 
 def test_render_info_records_the_side_swaps(tmp_path):
-    std = {"left_a": -0.8, "right_a": 0.8, "nose": 0.0}
-    odd = {"left_a": 0.7, "right_a": -0.7, "nose": 0.0}
     with pytest.warns(UserWarning, match="exchanged"):
-        models = harmonize_sides([_sided_model("m0", std), _sided_model("m1", std), _sided_model("m2", odd)])
+        models = harmonize_sides([_sided_model("m0", STD), _sided_model("m1", STD), _sided_model("m2", ODD)])
     render_dataset(models, tmp_path / "r", views=1, progress=False, image_size=32)
     info = read_render_info(tmp_path / "r")
     assert info["side_swaps"] == {"m2": [["left_a", "right_a"]]} and info["views"] == 1
@@ -344,8 +366,7 @@ def test_cli_synthetic_names_sides_like_the_class_unless_told(tmp_path):
     names (recorded in the info block), and with ``--sides as-given`` with its own."""
     meshes = tmp_path / "meshes"
     meshes.mkdir()
-    std = {"left_a": -0.8, "right_a": 0.8, "nose": 0.0}
-    for name, xs in [("thing1", std), ("thing2", std), ("thing3", {"left_a": 0.7, "right_a": -0.7, "nose": 0.0})]:
+    for name, xs in [("thing1", STD), ("thing2", STD), ("thing3", ODD)]:
         m = _sided_model(name, xs)
         m.to_trimesh().export(meshes / f"{name}.ply")
         (meshes / f"{name}.json").write_text(json.dumps({"class": "thing", "keypoints": m.keypoint_dict()}))

@@ -242,8 +242,10 @@ def test_an_interrupt_stops_the_viewpoint_processes(procedural_input, tmp_path, 
     made = []
     monkeypatch.setattr(L, "AheadProcesses", lambda *a: made.append(ahead.AheadProcesses(*a)) or made[-1])
 
+    before = {p.pid for p in multiprocessing.active_children()}
+
     def interrupted(*args, **kwargs):
-        processes = multiprocessing.active_children()  # the workers the submissions started
+        processes = [p for p in multiprocessing.active_children() if p.pid not in before]  # the submissions' workers
         made.append(processes)
         raise KeyboardInterrupt
 

@@ -544,10 +544,11 @@ def _three_sided_models(folder: Path) -> Path:
     folder.mkdir()
     verts = np.array([[-1, -1, 0], [1, -1, 0], [0, 1, 0], [0, 0, 1]], np.float32)
     faces = np.array([[0, 1, 2], [0, 1, 3], [1, 2, 3], [0, 2, 3]], np.int32)
-    for i, side in enumerate([-0.8, -0.8, 0.8]):
+    for i, side in enumerate([-0.8, -0.8, 0.8]):  # pair b names the sides alike on all three
         np.savez(folder / f"thing0{i}.npz", vertices=verts, faces=faces,
-                 keypoint_names=np.array(["left_a", "right_a", "top"]),
-                 keypoints=np.array([[side, 0, 0.2], [-side, 0, 0.2], [0, 0, 1]], np.float32))
+                 keypoint_names=np.array(["left_a", "right_a", "left_b", "right_b", "top"]),
+                 keypoints=np.array([[side, 0, 0.2], [-side, 0, 0.2], [-0.5, 0, 0], [0.5, 0, 0], [0, 0, 1]],
+                                    np.float32))
     return folder
 
 
@@ -566,7 +567,9 @@ def test_cad_renders_made_with_other_side_names_are_refused_or_redone(tmp_path: 
         renders = vc._renders(args, 0)
     info = json.loads((renders / "annotations.json").read_text())["info"]
     assert info["side_swaps"] == {"thing02": [["left_a", "right_a"]]}
-    assert bs._render_matches(renders, 1, 0, 0) and not bs._render_matches(renders, 2, 0, 0)
+    swaps = {"thing02": [["left_a", "right_a"]]}
+    assert bs._render_matches(renders, 1, 0, 0, swaps) and not bs._render_matches(renders, 2, 0, 0, swaps)
+    assert not bs._render_matches(renders, 1, 0, 0, {})  # made with other names than asked for
     stamp = (renders / "annotations.json").stat().st_mtime_ns
     with pytest.warns(UserWarning, match="thing02"):
         assert vc._renders(args, 0) == renders and (renders / "annotations.json").stat().st_mtime_ns == stamp
@@ -579,7 +582,7 @@ def test_cad_renders_made_with_other_side_names_are_refused_or_redone(tmp_path: 
     args.sides = "class"
     with pytest.warns(UserWarning, match="thing02"), pytest.raises(SystemExit, match="other left/right names"):
         vc._renders(args, 0)
-    assert not bs._render_matches(renders, 1, 0, 0)
+    assert not bs._render_matches(renders, 1, 0, 0, swaps)
 
 
 def test_export_quality_study_ranks_against_scipy(tmp_path: Path):

@@ -408,15 +408,17 @@ def ensure_many_classes(data_dir: Path, seed: int, cad: Path = CAD_MESHES) -> Pa
     """``annotations.json`` of 12 classes of about 50 objects (cached): PASCAL3D+ CAD renders at 8 views per
     model (``carvi datasets synthetic``) where ``cad`` exists, else 4 procedural categories of 150 objects,
     each split round-robin into 3 classes ``<category>_<k>`` (their metadata copied)."""
+    from carvi_torch.synthetic.render import read_render_info
+
     d = data_dir / f"cad_v8_s{seed}"
-    if (d / "annotations.json").is_file():  # rendered earlier (or carried to a machine without the models)
+    current = "side_swaps" in (read_render_info(d) or {})  # made with the class's left/right names
+    if (d / "annotations.json").is_file() and (current or not cad.is_dir()):  # rendered earlier (or carried)
         return d / "annotations.json"
     if cad.is_dir():
-        if not (d / "annotations.json").is_file():
-            cmd = [sys.executable, "-m", "carvi_torch.cli", "datasets", "synthetic", "--meshes", str(cad), "--out",
-                   str(d), "--views", "8", "--seed", str(seed), "--quiet"]
-            print("rendering the many-class data (cached):", " ".join(cmd), flush=True)
-            subprocess.run(cmd, cwd=ROOT, check=True)
+        cmd = [sys.executable, "-m", "carvi_torch.cli", "datasets", "synthetic", "--meshes", str(cad), "--out",
+               str(d), "--views", "8", "--seed", str(seed), "--quiet"]
+        print("rendering the many-class data (cached):", " ".join(cmd), flush=True)
+        subprocess.run(cmd, cwd=ROOT, check=True)
         return d / "annotations.json"
     d = data_dir / f"procedural12_s{seed}"
     ann = d / "annotations.json"

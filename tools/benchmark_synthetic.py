@@ -133,13 +133,14 @@ def log_of(commands, name):
 # --------------------------------------------------------------------------- steps
 
 
-def render(models_dir: Path, data_dir: Path, pool: int, test_views: int, seed: int, classes=None) -> dict:
+def render(models_dir: Path, data_dir: Path, pool: int, test_views: int, seed: int, classes=None,
+           sides: str = "class") -> dict:
     """Render the dataset (step 1); returns ``render_dataset``'s summary."""
     import torch
 
     from carvi_torch.synthetic import load_models, render_dataset
 
-    models = load_models(models_dir)
+    models = load_models(models_dir, sides=sides)
     if classes:
         models = [m for m in models if m.category in classes]
     torch.manual_seed(seed)
@@ -147,16 +148,17 @@ def render(models_dir: Path, data_dir: Path, pool: int, test_views: int, seed: i
                           progress=False)
 
 
-def _render_matches(data_dir: Path, pool: int, test_views: int, seed: int) -> bool:
-    """Whether ``data_dir`` holds this seed's renders, made with the models' left/right names harmonised
-    (``side_swaps`` recorded; renders made before that are redone, and so are their reconstructions)."""
+def _render_matches(data_dir: Path, pool: int, test_views: int, seed: int, swaps: dict) -> bool:
+    """Whether ``data_dir`` holds this seed's renders, made with the left/right names the models have now
+    (``swaps``: :func:`~carvi_torch.synthetic.meshes.side_swaps_of`; renders made with other names are
+    redone, and so are their reconstructions)."""
     from carvi_torch.synthetic.render import read_render_info
 
     info = read_render_info(data_dir)
     if info is None or not (data_dir / "gt.json").is_file():
         return False
     return (info.get("seed") == seed and info.get("views") == pool + test_views
-            and info.get("test_views") == test_views and "side_swaps" in info)
+            and info.get("test_views") == test_views and info.get("side_swaps") == swaps)
 
 
 def merge_evaluations(parts: list[dict]) -> dict:
@@ -362,6 +364,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--methods", default=",".join(METHODS),
                     help=f"comma-separated subset of {list(METHODS)} (case-insensitive; Full among them)")
     ap.add_argument("--classes", help="comma-separated classes (default: all)")
+    ap.add_argument("--sides", choices=("class", "as-given"), default="class",
+                    help="the models' left/right keypoint names: 'class' renames a pair one model names from the "
+                         "other side than the rest of its class (motorbike01's handles), 'as-given' keeps them "
+                         "(its data folders end in _sides-as-given)")
     ap.add_argument("--jobs", type=int, default=2, help="processes at once (default 2)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="extra reconstruct override for every method (repeatable)")
@@ -389,7 +395,12 @@ def parse_methods(text: str) -> list[str]:
 def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: str) -> tuple[dict, dict]:
     """Render, reconstruct and evaluate at one seed into ``out``; returns the evaluation and the record."""
     t_start, cpu0 = time.perf_counter(), cpu_seconds() + cpu_seconds(children=True)
-    data = out / f"data_pool{args.pool}_test{args.test_views}_seed{seed}"
+    from carvi_torch.synthetic import load_models
+    from carvi_torch.synthetic.meshes import side_swaps_of
+
+    sides = "" if args.sides == "class" else "_sides-as-given"
+    data = out / f"data_pool{args.pool}_test{args.test_views}_seed{seed}{sides}"
+    swaps = side_swaps_of(load_models(Path(args.models), sides=args.sides))
     ncpu = os.cpu_count() or 1
     jobs = max(1, args.jobs)
     threads = max(1, ncpu // jobs)
@@ -397,10 +408,10 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
 
     # 1. data
     t0, c0 = time.perf_counter(), cpu_seconds()
-    fresh = args.fresh or not _render_matches(data, args.pool, args.test_views, seed)
+    fresh = args.fresh or not _render_matches(data, args.pool, args.test_views, seed, swaps)
     if fresh:
         print(f"render {args.pool}+{args.test_views} views per model into {data}", flush=True)
-        info = render(Path(args.models), data, args.pool, args.test_views, seed)
+        info = render(Path(args.models), data, args.pool, args.test_views, seed, sides=args.sides)
         print(f"  {info['images']} renders of {info['models']} models in {info['seconds']:.0f} s", flush=True)
         timings["render"] = {"wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(cpu_seconds() - c0, 1)}
     else:

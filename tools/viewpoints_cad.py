@@ -9,15 +9,15 @@ frame, +z up, front -y) and after one global rotation aligning the two
 automatic frame, which uses no template). SfM -> refined compares the same views (those with
 an SfM camera, ``evaluate``'s ``refined_with_sfm``); every view's refined median, the
 unseen-image cameras included, has a column of its own. The cameras of a run go to
-``<work>/cameras[_<overrides>][_v<views>][_renders-s<seed>][_<cameras>][_sides-as-given]`` (rerunning
-the same settings resumes there). The CAD models' left/right names are made consistent within each class
-(``--sides class``, the default: motorbike01's handles are renamed; ``--sides as-given`` keeps them); renders
-made with other names than the models have now stop the run with the reason. With several seeds (``--seed 0,1,2``) every seed is rendered and reconstructed
-in turn and a last table gives, per class and seed, the SfM -> refined medians, their means and
-whether refinement is no worse than SfM at every seed (the small-class benchmark: ``--views 8``,
-32-80 views per class). ``--cameras level`` draws the renders' cameras from a level camera held
-above the ground (elevation mostly 0-30 degrees, up to 50; roll sd 2) instead of the renderer's
-default photo-like distribution.
+``<work>/cameras[_<overrides>][_v<views>][_renders-s<seed>][_<cameras>][_sides-as-given]``
+(rerunning the same settings resumes there). The CAD models' left/right names are made consistent
+within each class (``--sides class``, the default: motorbike01's handles are renamed; ``--sides
+as-given`` keeps them); renders made with other names than the models have now stop the run. With
+several seeds (``--seed 0,1,2``) every seed is rendered and reconstructed in turn and a last table
+gives, per class and seed, the SfM -> refined medians, their means and whether refinement is no
+worse than SfM at every seed (the small-class benchmark: ``--views 8``, 32-80 views per class).
+``--cameras level`` draws the renders' cameras from a level camera held above the ground (elevation
+mostly 0-30 degrees, up to 50; roll sd 2) instead of the renderer's default photo-like distribution.
 
     python tools/viewpoints_cad.py [--views 30] [--seed 0[,1,2]] [--cameras photo|level] [--quiet]
                                    [--work outputs/viewpoints_cad] [--out PATH [--key KEY]] [key=value ...]
@@ -160,22 +160,23 @@ def _renders(args, seed: int) -> Path:
 
     Raises:
         SystemExit: the folder holds renders whose left/right names differ from the models' now (made
-            before :func:`~carvi_torch.synthetic.meshes.harmonize_sides`): their cameras are stale too.
+            before :func:`~carvi_torch.synthetic.meshes.harmonize_sides`, or from other models).
     """
     from carvi_torch.synthetic import load_models
+    from carvi_torch.synthetic.meshes import side_swaps_of
     from carvi_torch.synthetic.render import read_render_info, render_dataset
 
     dist = "" if args.cameras == "photo" else f"_{args.cameras}"
     sides = "" if args.sides == "class" else "_sides-as-given"
     renders = Path(args.work) / f"renders_v{args.views}_s{seed}{dist}{sides}"
     models = load_models(Path(args.cad), sides=args.sides)
-    swaps = {m.name: [list(p) for p in m.side_swaps] for m in models if m.side_swaps}
+    swaps = side_swaps_of(models)
     if (renders / "annotations.json").is_file():
         info = read_render_info(renders) or {}
         if info.get("side_swaps") != swaps:
             raise SystemExit(f"error: {renders} holds renders with other left/right names than the models have now "
-                             f"({info.get('side_swaps', 'not recorded')} against {swaps}); remove it and the camera "
-                             f"folders made from it (*_renders-s{seed}*), or use another --work")
+                             f"({info.get('side_swaps', 'not recorded')} against {swaps}); remove it, or use "
+                             "another --work")
         return renders
     render_dataset(models, renders, views=args.views, seed=seed, progress=not args.quiet,
                    camera_options=CAMERAS[args.cameras])

@@ -34,7 +34,8 @@ import torch
 
 from ..collection import infer_flip_pairs  # re-exported: name-based left/right pairs
 
-__all__ = ["Model", "MESH_SUFFIXES", "SIDE_VOTE_MIN", "side_disagreements", "harmonize_sides",
+__all__ = ["Model", "MESH_SUFFIXES", "SIDE_VOTE_MIN", "side_disagreements", "turned_models", "harmonize_sides",
+           "side_swaps_of",
            "load_cad_npz", "load_mesh_with_keypoints", "load_model", "load_models",
            "infer_flip_pairs", "category_from_stem"]
 
@@ -111,7 +112,14 @@ SIDE_VOTE_MIN = 0.1
 
 
 def _pair_sides(model: Model) -> dict[tuple[str, str], int]:
-    """``{(a, b): sign of x_a - x_b}`` for the model's left/right pairs (``a < b``) that vote."""
+    """``{(a, b): sign of x_a - x_b}`` for the model's left/right pairs (``a < b``) that vote.
+
+    Example:
+        >>> box = torch.tensor([[-1.0, 0, 0], [1.0, 0, 0]])
+        >>> kp = torch.tensor([[0.5, 0, 0], [-0.5, 0, 0], [0.05, 0, 0], [-0.05, 0, 0]])
+        >>> _pair_sides(Model("m", "m", box, torch.zeros(0, 3), ["right_a", "left_a", "left_b", "right_b"], kp))
+        {('left_a', 'right_a'): -1}
+    """
     names, x = model.keypoint_names, model.keypoints[:, 0].double()
     width = float(model.vertices[:, 0].max() - model.vertices[:, 0].min()) if len(model.vertices) else 0.0
     sides = {}
@@ -123,40 +131,62 @@ def _pair_sides(model: Model) -> dict[tuple[str, str], int]:
     return sides
 
 
+def _class_votes(models: Sequence[Model]) -> list[dict[tuple[str, str], tuple[bool, int]]]:
+    """Per model, ``{pair: (named like the class, how many other models decide)}`` for the pairs that at
+    least two other models of its class have and all put on one side (:func:`_pair_sides`)."""
+    sides = [_pair_sides(m) for m in models]
+    votes = []
+    for k, model in enumerate(models):
+        mine = {}
+        for pair, sign in sides[k].items():
+            others = [s[pair] for o, s in enumerate(sides)
+                      if o != k and models[o].category == model.category and pair in s]
+            if len(others) >= 2 and len(set(others)) == 1:
+                mine[pair] = (others[0] == sign, len(others))
+        votes.append(mine)
+    return votes
+
+
 def side_disagreements(models: Sequence[Model]) -> list[tuple[int, tuple[str, str], int]]:
     """Left/right pairs a model names from the other side than every other model of its class.
 
     A pair counts when at least two other models of the class have it and all of them put its
     first name on the other side of x than this model does (each pair judged by its x
-    separation, at least :data:`SIDE_VOTE_MIN` of the model's width).
+    separation, at least :data:`SIDE_VOTE_MIN` of the model's width), and when at least one
+    other pair of the model is named like the class: a model whose every such pair disagrees is
+    turned in its frame rather than misnamed (:func:`turned_models`).
 
     Returns:
         ``(model index, (name, name) sorted, how many other models agree)`` in model order.
 
     Example:
-        >>> kp = lambda x: torch.tensor([[x, 0.0, 0.0], [-x, 0.0, 0.0]])
+        >>> kp = lambda a, b: torch.tensor([[a, 0.0, 0.0], [-a, 0.0, 0.0], [b, 0.0, 0.0], [-b, 0.0, 0.0]])
         >>> box = torch.tensor([[-1.0, 0, 0], [1.0, 0, 0]])
-        >>> ms = [Model(f"m{i}", "m", box, torch.zeros(0, 3), ["left_a", "right_a"], kp(x))
-        ...       for i, x in enumerate([-0.8, -0.7, 0.9])]
+        >>> names = ["left_a", "right_a", "left_b", "right_b"]
+        >>> ms = [Model(f"m{i}", "m", box, torch.zeros(0, 3), names, kp(*x))
+        ...       for i, x in enumerate([(-0.8, -0.5), (-0.7, -0.6), (0.9, -0.5)])]
         >>> side_disagreements(ms)
         [(2, ('left_a', 'right_a'), 2)]
     """
-    sides = [_pair_sides(m) for m in models]
     found = []
-    for k, model in enumerate(models):
-        for pair, sign in sides[k].items():
-            others = [s[pair] for o, s in enumerate(sides) if o != k and models[o].category == model.category
-                      and pair in s]
-            if len(others) >= 2 and all(o == -sign for o in others):
-                found.append((k, pair, len(others)))
+    for k, mine in enumerate(_class_votes(models)):
+        if any(agree for agree, _ in mine.values()):
+            found += [(k, pair, n) for pair, (agree, n) in mine.items() if not agree]
     return found
+
+
+def turned_models(models: Sequence[Model]) -> list[int]:
+    """Indices of the models whose every pair that the class decides (:func:`side_disagreements`) lies
+    on the other side of x: most likely turned in their frame (front not towards -y), not misnamed."""
+    return [k for k, mine in enumerate(_class_votes(models)) if mine and not any(a for a, _ in mine.values())]
 
 
 def harmonize_sides(models: Sequence[Model], warn: bool = True) -> list[Model]:
     """The models with every pair of :func:`side_disagreements` named like the rest of the class.
 
     The two names of such a pair are exchanged on that model (its points stay where they are), and
-    ``side_swaps`` lists them; a warning names the model and the pair when ``warn``.
+    ``side_swaps`` lists them; a warning names the model and the pair when ``warn``, and each model
+    of :func:`turned_models` (kept as it is). Models without a swap are returned as they are.
     """
     swaps: dict[int, list[tuple[str, str]]] = {}
     for k, pair, agree in side_disagreements(models):
@@ -164,12 +194,23 @@ def harmonize_sides(models: Sequence[Model], warn: bool = True) -> list[Model]:
         if warn:
             warnings.warn(f"{models[k].name}: {pair[0]!r} and {pair[1]!r} exchanged: the {agree} other "
                           f"{models[k].category} models that have them name them from the other side", stacklevel=3)
+    for k in turned_models(models) if warn else []:
+        warnings.warn(f"{models[k].name}: every left/right pair lies on the other side of x than on the other "
+                      f"{models[k].category} models: is it turned in its frame (front towards -y)? names kept",
+                      stacklevel=3)
     out = list(models)
     for k, pairs in swaps.items():
         rename = {a: b for p in pairs for a, b in (p, p[::-1])}
         out[k] = replace(models[k], keypoint_names=[rename.get(n, n) for n in models[k].keypoint_names],
                          side_swaps=models[k].side_swaps + pairs)
     return out
+
+
+def side_swaps_of(models: Sequence[Model]) -> dict[str, list[list[str]]]:
+    """``{model name: [[name, name], ...]}`` of the models with renamed pairs (``side_swaps``), the form
+    a rendered dataset records in its ``info`` (:func:`~carvi_torch.synthetic.render.render_dataset`)."""
+    return {m.name: [list(p) for p in m.side_swaps] for m in models if getattr(m, "side_swaps", None)}
+
 
 # --------------------------------------------------------------------------- loading
 
@@ -313,6 +354,8 @@ def load_models(directory: str | Path, sides: Literal["class", "as-given"] = "cl
         FileNotFoundError: ``directory`` does not exist.
         ValueError: no model found, or two models share a name (file stem).
     """
+    if sides not in ("class", "as-given"):
+        raise ValueError(f"sides must be 'class' or 'as-given', got {sides!r}")
     directory = Path(directory)
     if not directory.is_dir():
         raise FileNotFoundError(f"{directory}: no such directory of models")
@@ -335,6 +378,4 @@ def load_models(directory: str | Path, sides: Literal["class", "as-given"] = "cl
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ValueError(f"{directory}: several files share the model name(s) {dup}")
-    if sides not in ("class", "as-given"):
-        raise ValueError(f"sides must be 'class' or 'as-given', got {sides!r}")
     return harmonize_sides(models) if sides == "class" else models

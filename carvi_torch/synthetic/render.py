@@ -624,6 +624,7 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
     from tqdm import tqdm
 
     from ..io.outputs import write_bytes, write_json
+    from .meshes import side_swaps_of
 
     t_start = time.perf_counter()
     w, h = parse_image_size(image_size)
@@ -697,8 +698,7 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
     info = {"description": "synthetic renders of meshes with keypoints (carvi_torch.synthetic)", "seed": int(seed),
             "views": views, "test_views": test_views, "image_size": [w, h], "keypoint_noise": float(keypoint_noise),
             "boundary_noise": float(boundary_noise),
-            "side_swaps": {m.name: [list(pair) for pair in m.side_swaps]
-                           for m in models if getattr(m, "side_swaps", None)}}
+            "side_swaps": side_swaps_of(models)}
     ann_path = write_json(out_dir / "annotations.json",
                           {"info": info, "images": images, "annotations": annotations, "categories": categories},
                           indent=None)
@@ -718,13 +718,13 @@ def read_render_info(out_dir: str | Path) -> dict | None:
     path = Path(out_dir) / "annotations.json"
     if not path.is_file():
         return None
+    prefix = '{"info": '
     with open(path) as f:
         head = f.read(1 << 16)
-    start = head.find("{", 1)
-    if not head.startswith('{"info"') or start < 0:
+    if not head.startswith(prefix):
         return None
     try:
-        info, _ = json.JSONDecoder().raw_decode(head, start)
+        info, _ = json.JSONDecoder().raw_decode(head, len(prefix))
     except ValueError:
         return None
     return info if isinstance(info, dict) else None
