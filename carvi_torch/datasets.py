@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from typing import Sequence
 
 from .cli import add_common, split_classes
@@ -140,10 +141,14 @@ def _run_synthetic(args) -> int:
         print(f"error: --test-views ({args.test_views}) exceeds --views ({args.views})", file=sys.stderr)
         return 2
     try:
-        models = load_models(args.meshes, sides=args.sides)
+        with warnings.catch_warnings(record=True) as caught:  # one "warning:" line each, not Python's form
+            warnings.simplefilter("always")
+            models = load_models(args.meshes, sides=args.sides)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
     summary = render_dataset(models, args.out, views=args.views, test_views=args.test_views, seed=args.seed,
                              image_size=_image_size(args), keypoint_noise=args.keypoint_noise,
                              boundary_noise=args.boundary_noise, progress=not args.quiet, device=args.device)
