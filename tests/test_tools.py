@@ -585,6 +585,47 @@ def test_cad_renders_made_with_other_side_names_are_refused_or_redone(tmp_path: 
     assert not bs._render_matches(renders, 1, 0, 0, swaps)
 
 
+def test_synthetic_benchmark_redoes_reconstructions_of_renders_made_again(tmp_path: Path, monkeypatch):
+    """``run_seed``: renders made now are reused with their finished runs; renders made with other left/right names
+    are rendered again and every run is redone over its folder (``overwrite=true``), finished or not."""
+    import argparse
+
+    bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")
+    cad = _three_sided_models(tmp_path / "cad")
+    args = argparse.Namespace(models=str(cad), pool=1, test_views=0, sides="class", jobs=1, fresh=False, set=[],
+                              step_percent=1.0, no_baselines=True)
+    started = []
+
+    class Stop(Exception):
+        pass
+
+    def run_parallel(commands, jobs, threads):
+        started.append([(name, argv) for name, argv, _ in commands])
+        raise Stop
+
+    def run() -> list:
+        started.clear()
+        with pytest.warns(UserWarning, match="thing02"), pytest.raises(Stop):
+            bs.run_seed(args, 0, tmp_path / "out", ["Full"], None, "cmd")
+        data = tmp_path / "out" / "data_pool1_test0_seed0"
+        assert bs._render_matches(data, 1, 0, 0, {"thing02": [["left_a", "right_a"]]})
+        return started[0]
+
+    monkeypatch.setattr(bs, "run_parallel", run_parallel)
+    monkeypatch.setattr(bs, "_finished", lambda run: True)
+    (first,) = run()
+    assert first[0] == "Full" and "overwrite=true" in first[1]
+    (tmp_path / "out" / "run_full").mkdir()
+    (tmp_path / "out" / "run_full" / "summary.json").write_text("{}")
+    assert all(name != "Full" for name, _ in run())  # reused: the first commands started are the evaluation's
+    ann = tmp_path / "out" / "data_pool1_test0_seed0" / "annotations.json"
+    data = json.loads(ann.read_text())
+    del data["info"]["side_swaps"]  # made before the names were harmonised
+    ann.write_text(json.dumps(data))
+    (again,) = run()
+    assert again[0] == "Full" and "overwrite=true" in again[1]
+
+
 def test_export_quality_study_ranks_against_scipy(tmp_path: Path):
     """``bench_export --quality``: the pooled and per-class Spearman rho of quality against the shape
     error equal scipy's on the same pairs; objects without a quality are left out; a reconstruction
