@@ -31,6 +31,9 @@ JSON records to ``outputs/studies/studies_<name>.json``, or with ``--out FILE --
   (refined cameras), ``--points`` surface samples each, centred and scaled to unit RMS radius,
   a symmetric RMS chamfer distance matrix (:func:`carvi_torch.evaluation.studies.chamfer_matrix`), K-medoids
   into 5 clusters, the medoids drawn ordered by cluster size (``shape_clusters.png``).
+* ``own-shapes``: whether the misses are the shapes' (docs/viewpoints.md, *Small classes*): on rendered sets
+  (``--data``), each view's final camera (one shape per class) refined again under its object's own keypoints and
+  under the mean shape stretched along the CAD frame's three axes onto them; medians per class and CAD model.
 * ``misses``: where the viewpoint misses come from (docs/viewpoints.md, *Small classes*), on rendered sets
   (``--data``: ``annotations.json`` with ``gt.json`` beside it, e.g. tools/viewpoints_cad.py's renders): per class
   (default settings, :func:`carvi_torch.viewpoints.estimate_viewpoints`) each object's true camera is put in the
@@ -52,6 +55,8 @@ Example:
     python tools/studies.py clusters
     python tools/studies.py misses --data outputs/viewpoints_cad/renders_v8_s{0,1,2}/annotations.json \\
         --out docs/data/viewpoints.json --key viewpoints_cad8_misses
+    python tools/studies.py own-shapes --data outputs/viewpoints_cad/renders_v8_s{0,1,2}/annotations.json \
+        --out docs/data/viewpoints.json --key viewpoints_cad8_own_shapes
 """
 from __future__ import annotations
 
@@ -705,6 +710,106 @@ def misses(args) -> int:
     return 0
 
 
+# =========================================================================== per-object shapes
+
+
+def _own_shapes(S, G, X):
+    """Two per-object shapes in the SfM frame, or ``None`` when fewer than 4 keypoints are shared: the object's true
+    keypoints ``X (K, 3)`` (CAD frame) at the mean shape's size and centre (the mean shape's point where the object has
+    none), and the mean shape ``S (K, 3)`` (SfM frame) stretched along the CAD frame's three axes by least squares onto
+    ``X``, at its own size. ``G``: the class's fitted rotation (``R_sfm G ~ R_true``: a CAD point ``x`` is ``G x``)."""
+    import torch
+
+    Sc = S @ G
+    both = torch.isfinite(Sc).all(1) & torch.isfinite(X).all(1)
+    if int(both.sum()) < 4:
+        return None
+    cS, cX = Sc[both].mean(0), X[both].mean(0)
+    A, B = Sc[both] - cS, X[both] - cX
+    own = (X - cX) * (A.norm() / B.norm()) + cS
+    axes = (A * B).sum(0) / (A * A).sum(0).clamp(min=1e-12)
+    stretched = (Sc - cS) * axes
+    stretched = stretched * (A.norm() / stretched[both].norm()) + cS
+    return torch.where(torch.isfinite(own), own, Sc) @ G.T, stretched @ G.T, axes / axes.norm() * 3 ** 0.5
+
+
+def _class_own_shapes(coll, gt: dict, cfg, seed: int) -> dict | None:
+    """Per original with a camera and a true one: the final camera's error, and the errors of that camera refined
+    again under the object's own shape and under the mean shape stretched onto it (:func:`_own_shapes`; degrees,
+    after the class's fitted rotation), with the three stretch factors (unit RMS)."""
+    import torch
+
+    from carvi_torch.cameras import geodesic_errors
+    from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report
+    from carvi_torch.viewpoints import estimate_viewpoints, ground_truth_cameras
+    from carvi_torch.viewpoints.refine import refine_with_shape
+
+    gtc, _why = ground_truth_cameras(gt, coll)
+    if gtc is None:
+        return None
+    n, vp = len(coll), estimate_viewpoints(coll, cfg, seed=seed)
+    ok = (vp.has_camera[:n].cpu() & torch.isfinite(gtc.R.cpu()).flatten(1).all(1))
+    if int(ok.sum()) < 3:
+        return None
+    Rt = gtc.R.cpu()
+    G = torch.tensor(viewpoint_report(vp.cameras.R[:n].cpu(), Rt, valid=ok)["alignment"], dtype=Rt.dtype)
+    S, names = vp.shape.cpu().to(Rt.dtype), coll.meta.keypoint_names
+    out: dict = {k: [] for k in ("annotation_ids", "final", "own_shape", "stretched", "axes")}
+    for i in ok.nonzero().squeeze(1).tolist():
+        kp = gt["models"][gt["annotations"][str(coll.annotation_ids[i])]["model"]]["keypoints"]
+        shapes = _own_shapes(S, G, torch.tensor([kp.get(k, [float("nan")] * 3) for k in names], dtype=S.dtype))
+        if shapes is None:
+            continue
+        row = torch.tensor([i], device=vp.cameras.R.device)
+        cam, err = vp.cameras[row], (lambda c: float(geodesic_errors(c.R.cpu().to(Rt), Rt[i:i + 1], G)[0]))
+        out["annotation_ids"].append(coll.annotation_ids[i])
+        out["final"].append(err(cam))
+        for key, shape in zip(("own_shape", "stretched"), shapes[:2]):
+            out[key].append(err(refine_with_shape(shape.to(cam.R), cam, vp.both[row], vp.distances[row], cfg).cameras))
+        out["axes"].append([round(float(a), 3) for a in shapes[2]])
+    return out
+
+
+def own_shapes(args) -> int:
+    """Whether a class's misses are its shape's: per class of each rendered set (``--data``), each view's final camera
+    refined again under its object's own keypoints and under the mean shape stretched per axis onto them; per CAD
+    model the medians. One mean shape per class (``sfm_groups=1``)."""
+    import numpy as np
+    import torch
+
+    from carvi_torch.config import ViewpointConfig
+    from carvi_torch.io.coco import load_coco
+    from carvi_torch.io.outputs import write_record
+
+    torch.set_num_threads(1)
+    cfg = ViewpointConfig(sfm_groups=1)
+    wanted = set(args.classes.split(",")) if args.classes else None
+    record = {"command": _command(), "viewpoints": {"sfm_groups": 1}, "sets": {},
+              "note": "median geodesic error (degrees, after the class's fitted rotation) of the final cameras, and of "
+                      "the same cameras refined again under each object's own keypoints (own_shape) and under the "
+                      "mean shape stretched along the CAD axes onto them (stretched); per class and per CAD model"}
+    print("| set | class | views | final | own shape | stretched (per axis) |\n|---|---|---|---|---|---|")
+    for ann in map(Path, args.data):
+        gt, model = json.loads((ann.parent / "gt.json").read_text()), _model_of(ann)
+        per_set = record["sets"][ann.parent.name] = {}
+        for cls, coll in sorted(load_coco(ann).collections.items()):
+            rows = None if wanted and cls not in wanted else _class_own_shapes(coll, gt, cfg, args.seed)
+            if rows is None:
+                continue
+            med = {k: round(float(np.median(rows[k])), 2) for k in ("final", "own_shape", "stretched")}
+            per_model: dict = {}
+            for a, *e in zip(rows["annotation_ids"], rows["final"], rows["own_shape"], rows["stretched"]):
+                per_model.setdefault(model[a], []).append(e)
+            per_set[cls] = {"n": len(rows["final"]), **med, "models": {
+                m: [round(float(v), 2) for v in np.median(np.array(e), axis=0)] for m, e in sorted(per_model.items())}}
+            print(f"| {ann.parent.name} | {cls} | {len(rows['final'])} | {med['final']:.1f} | {med['own_shape']:.1f} | "
+                  f"{med['stretched']:.1f} |")
+    out = Path(args.out) if args.out else _record("own_shapes")
+    write_record(out, record, args.key)
+    print(f"wrote {out}" + (f", key {args.key}" if args.key else ""))
+    return 0
+
+
 # =========================================================================== metric step
 
 
@@ -960,10 +1065,19 @@ def main(argv=None) -> int:
                                                                  "(degrees) exceeds this")
     p.add_argument("--out", help="the JSON record (default outputs/studies/studies_misses.json)")
     p.add_argument("--key", help="write the record under this key of --out's JSON object, its other keys kept")
+    p = sub.add_parser("own-shapes", help="whether the misses are the shapes': the final cameras refined again under "
+                                          "each object's own keypoints and a per-axis stretch of the mean shape")
+    p.add_argument("--data", nargs="+", required=True, metavar="ANNOTATIONS",
+                   help="annotations.json of rendered sets, each with its gt.json (tools/viewpoints_cad.py's renders)")
+    p.add_argument("--classes", help="comma-separated subset")
+    p.add_argument("--seed", type=int, default=0, help="the pipeline's seed")
+    p.add_argument("--out", help="the JSON record (default outputs/studies/studies_own_shapes.json)")
+    p.add_argument("--key", help="write the record under this key of --out's JSON object, its other keys kept")
     args = ap.parse_args(argv)
     if args.study == "ranking" and args.key and not args.out:
         ap.error("ranking: --key names a key of --out's records file; give --out too")
-    return {"misses": misses, "frames": frames, "canonical": canonical, "ranking": ranking, "threshold": threshold,
+    return {"misses": misses, "own-shapes": own_shapes, "frames": frames, "canonical": canonical, "ranking": ranking,
+            "threshold": threshold,
             "viewpoints": viewpoints, "clusters": clusters, "step": step}[args.study](args)
 
 
