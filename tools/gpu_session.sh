@@ -156,9 +156,11 @@ fi
 # its start when it runs alone. Every run inside gets at most its share and never goes past that end, so the step's own runs stop
 # before the runner's `timeout` stops the step. Steps outside the plan run without limits.
 part_limit() {  # SHARE RESERVE: the next run's seconds: at most SHARE (0: no share), RESERVE kept before the
-                # step's end; "none" (no limit) for a step without an end (run alone, outside the plan)
+                # step's end, and one more second for the clock's whole seconds (a run started late in a second
+                # still ends by the step's end); "none" (no limit) for a step without an end (run alone, outside
+                # the plan)
     [ -z "${STEP_END:-}" ] && { echo none; return; }
-    local left=$(( STEP_END - $(date +%s) - $2 ))
+    local left=$(( STEP_END - $(date +%s) - $2 - 1 ))
     if [ "$1" -gt 0 ] && [ "$1" -lt "$left" ]; then echo "$1"; else echo "$left"; fi
 }
 
