@@ -133,16 +133,12 @@ def log_of(commands, name):
 # --------------------------------------------------------------------------- steps
 
 
-def render(models_dir: Path, data_dir: Path, pool: int, test_views: int, seed: int, classes=None,
-           sides: str = "class") -> dict:
-    """Render the dataset (step 1); returns ``render_dataset``'s summary."""
+def render(models: list, data_dir: Path, pool: int, test_views: int, seed: int) -> dict:
+    """Render the dataset (step 1) from the loaded ``models``; returns ``render_dataset``'s summary."""
     import torch
 
-    from carvi_torch.synthetic import load_models, render_dataset
+    from carvi_torch.synthetic import render_dataset
 
-    models = load_models(models_dir, sides=sides)
-    if classes:
-        models = [m for m in models if m.category in classes]
     torch.manual_seed(seed)
     return render_dataset(models, data_dir, views=pool + test_views, test_views=test_views, seed=seed,
                           progress=False)
@@ -400,7 +396,8 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
 
     sides = "" if args.sides == "class" else "_sides-as-given"
     data = out / f"data_pool{args.pool}_test{args.test_views}_seed{seed}{sides}"
-    swaps = side_swaps_of(load_models(Path(args.models), sides=args.sides))
+    models = load_models(Path(args.models), sides=args.sides)  # once: the cache check and the render use them
+    swaps = side_swaps_of(models)
     ncpu = os.cpu_count() or 1
     jobs = max(1, args.jobs)
     threads = max(1, ncpu // jobs)
@@ -411,7 +408,7 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
     fresh = args.fresh or not _render_matches(data, args.pool, args.test_views, seed, swaps)
     if fresh:
         print(f"render {args.pool}+{args.test_views} views per model into {data}", flush=True)
-        info = render(Path(args.models), data, args.pool, args.test_views, seed, sides=args.sides)
+        info = render(models, data, args.pool, args.test_views, seed)
         print(f"  {info['images']} renders of {info['models']} models in {info['seconds']:.0f} s", flush=True)
         timings["render"] = {"wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(cpu_seconds() - c0, 1)}
     else:

@@ -549,6 +549,17 @@ def _plot_clusters(figs: dict, k: int) -> None:
 # =========================================================================== where the viewpoint misses come from
 
 
+def _rendered_set(ann: Path) -> tuple[dict, dict]:
+    """``gt.json``'s content beside a rendered set's ``annotations.json``, and its annotation id -> CAD model.
+
+    Raises:
+        SystemExit: either file is missing (one line).
+    """
+    if not (ann.is_file() and (ann.parent / "gt.json").is_file()):
+        raise SystemExit(f"error: {ann} and a gt.json beside it are needed (render them with tools/viewpoints_cad.py)")
+    return json.loads((ann.parent / "gt.json").read_text()), _model_of(ann)
+
+
 def _model_of(annotations: Path) -> dict:
     """Annotation id -> CAD model name (the stem of its ``source``, else its ``object_id``)."""
     anns = json.loads(Path(annotations).read_text())["annotations"]
@@ -675,12 +686,8 @@ def misses(args) -> int:
               "the box diagonal): medians; cameras: final, true (the true camera in the SfM frame), true_refined "
               "(refined from it), mirror (the final camera's depth-reversed mirror through the symmetry plane)",
               "sets": {}}
-    for ann in args.data:
-        ann = Path(ann)
-        if not (ann.is_file() and (ann.parent / "gt.json").is_file()):
-            raise SystemExit(f"error: {ann} and a gt.json beside it are needed (render them with "
-                             "tools/viewpoints_cad.py)")
-        gt, model = json.loads((ann.parent / "gt.json").read_text()), _model_of(ann)
+    for ann in map(Path, args.data):
+        gt, model = _rendered_set(ann)
         per_set = record["sets"][ann.parent.name] = {}
         print(f"{ann.parent.name}: models with a final median over {args.threshold:g} degrees\n"
               "| class | model | views | final | true refined | true refined to final | energy final / true / "
@@ -790,7 +797,7 @@ def own_shapes(args) -> int:
                       "mean shape stretched along the CAD axes onto them (stretched); per class and per CAD model"}
     print("| set | class | views | final | own shape | stretched (per axis) |\n|---|---|---|---|---|---|")
     for ann in map(Path, args.data):
-        gt, model = json.loads((ann.parent / "gt.json").read_text()), _model_of(ann)
+        gt, model = _rendered_set(ann)
         per_set = record["sets"][ann.parent.name] = {}
         for cls, coll in sorted(load_coco(ann).collections.items()):
             rows = None if wanted and cls not in wanted else _class_own_shapes(coll, gt, cfg, args.seed)
@@ -1055,24 +1062,20 @@ def main(argv=None) -> int:
     p = sub.add_parser("step", parents=[common], help="metric sampling step: 0.5%% vs 1%% on a subset")
     p.add_argument("--classes", default="bicycle,car,chair,sofa")
     p.add_argument("--steps", default="0.5,1.0")
-    p = sub.add_parser("misses", help="where the viewpoint misses come from: final cameras against the true ones "
-                                      "refined (docs/viewpoints.md)")
-    p.add_argument("--data", nargs="+", required=True, metavar="ANNOTATIONS",
-                   help="annotations.json of rendered sets, each with its gt.json (tools/viewpoints_cad.py's renders)")
-    p.add_argument("--classes", help="comma-separated subset")
-    p.add_argument("--seed", type=int, default=0, help="the pipeline's seed (the mixture's starts)")
+    rendered = argparse.ArgumentParser(add_help=False)  # the studies of rendered sets with their true cameras
+    rendered.add_argument("--data", nargs="+", required=True, metavar="ANNOTATIONS",
+                          help="annotations.json of rendered sets, each with its gt.json (tools/viewpoints_cad.py's "
+                               "renders)")
+    rendered.add_argument("--classes", help="comma-separated subset")
+    rendered.add_argument("--seed", type=int, default=0, help="the pipeline's seed (the mixture's starts)")
+    rendered.add_argument("--out", help="the JSON record (default outputs/studies/studies_<study>.json)")
+    rendered.add_argument("--key", help="write the record under this key of --out's JSON object, its other keys kept")
+    p = sub.add_parser("misses", parents=[rendered], help="where the viewpoint misses come from: final cameras "
+                                                          "against the true ones refined (docs/viewpoints.md)")
     p.add_argument("--threshold", type=float, default=10.0, help="print the models whose final median error "
                                                                  "(degrees) exceeds this")
-    p.add_argument("--out", help="the JSON record (default outputs/studies/studies_misses.json)")
-    p.add_argument("--key", help="write the record under this key of --out's JSON object, its other keys kept")
-    p = sub.add_parser("own-shapes", help="whether the misses are the shapes': the final cameras refined again under "
-                                          "each object's own keypoints and a per-axis stretch of the mean shape")
-    p.add_argument("--data", nargs="+", required=True, metavar="ANNOTATIONS",
-                   help="annotations.json of rendered sets, each with its gt.json (tools/viewpoints_cad.py's renders)")
-    p.add_argument("--classes", help="comma-separated subset")
-    p.add_argument("--seed", type=int, default=0, help="the pipeline's seed")
-    p.add_argument("--out", help="the JSON record (default outputs/studies/studies_own_shapes.json)")
-    p.add_argument("--key", help="write the record under this key of --out's JSON object, its other keys kept")
+    sub.add_parser("own-shapes", parents=[rendered], help="whether the misses are the shapes': the final cameras "
+                   "refined again under each object's own keypoints and a per-axis stretch of the mean shape")
     args = ap.parse_args(argv)
     if args.study == "ranking" and args.key and not args.out:
         ap.error("ranking: --key names a key of --out's records file; give --out too")

@@ -53,6 +53,7 @@ Needs ../shared/data/pascal3d_cad (the PASCAL3D+ CAD models, Xiang et al. 2014).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import shlex
 import subprocess
@@ -154,6 +155,14 @@ def _table(rows: list) -> str:
     return "\n".join(lines)
 
 
+@functools.lru_cache(maxsize=2)
+def _models(cad: str, sides: str) -> tuple:
+    """The CAD models of ``--cad`` with ``--sides``'s names, read once per run of the tool (every seed uses them)."""
+    from carvi_torch.synthetic import load_models
+
+    return tuple(load_models(Path(cad), sides=sides))
+
+
 def _renders(args, seed: int) -> Path:
     """The renders of one seed (rendered on first use):
     ``<work>/renders_v<views>_s<seed>[_<cameras>][_sides-as-given]``.
@@ -162,14 +171,13 @@ def _renders(args, seed: int) -> Path:
         SystemExit: the folder holds renders whose left/right names differ from the models' now (made
             before :func:`~carvi_torch.synthetic.meshes.harmonize_sides`, or from other models).
     """
-    from carvi_torch.synthetic import load_models
     from carvi_torch.synthetic.meshes import side_swaps_of
     from carvi_torch.synthetic.render import read_render_info, render_dataset
 
     dist = "" if args.cameras == "photo" else f"_{args.cameras}"
     sides = "" if args.sides == "class" else "_sides-as-given"
     renders = Path(args.work) / f"renders_v{args.views}_s{seed}{dist}{sides}"
-    models = load_models(Path(args.cad), sides=args.sides)
+    models = _models(str(args.cad), args.sides)
     swaps = side_swaps_of(models)
     if (renders / "annotations.json").is_file():
         info = read_render_info(renders) or {}
@@ -178,7 +186,7 @@ def _renders(args, seed: int) -> Path:
                              f"({info.get('side_swaps', 'not recorded')} against {swaps}); remove it, or use "
                              "another --work")
         return renders
-    render_dataset(models, renders, views=args.views, seed=seed, progress=not args.quiet,
+    render_dataset(list(models), renders, views=args.views, seed=seed, progress=not args.quiet,
                    camera_options=CAMERAS[args.cameras])
     return renders
 

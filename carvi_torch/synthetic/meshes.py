@@ -168,17 +168,27 @@ def side_disagreements(models: Sequence[Model]) -> list[tuple[int, tuple[str, st
         >>> side_disagreements(ms)
         [(2, ('left_a', 'right_a'), 2)]
     """
-    found = []
-    for k, mine in enumerate(_class_votes(models)):
-        if any(agree for agree, _ in mine.values()):
-            found += [(k, pair, n) for pair, (agree, n) in mine.items() if not agree]
-    return found
+    return _disagreements(_class_votes(models))
 
 
 def turned_models(models: Sequence[Model]) -> list[int]:
     """Indices of the models whose every pair that the class decides (:func:`side_disagreements`) lies
     on the other side of x: most likely turned in their frame (front not towards -y), not misnamed."""
-    return [k for k, mine in enumerate(_class_votes(models)) if mine and not any(a for a, _ in mine.values())]
+    return _turned(_class_votes(models))
+
+
+def _disagreements(votes: list[dict]) -> list[tuple[int, tuple[str, str], int]]:
+    """:func:`side_disagreements` from :func:`_class_votes`."""
+    found = []
+    for k, mine in enumerate(votes):
+        if any(agree for agree, _ in mine.values()):
+            found += [(k, pair, n) for pair, (agree, n) in mine.items() if not agree]
+    return found
+
+
+def _turned(votes: list[dict]) -> list[int]:
+    """:func:`turned_models` from :func:`_class_votes`."""
+    return [k for k, mine in enumerate(votes) if mine and not any(a for a, _ in mine.values())]
 
 
 def harmonize_sides(models: Sequence[Model], warn: bool = True) -> list[Model]:
@@ -188,13 +198,14 @@ def harmonize_sides(models: Sequence[Model], warn: bool = True) -> list[Model]:
     ``side_swaps`` lists them; a warning names the model and the pair when ``warn``, and each model
     of :func:`turned_models` (kept as it is). Models without a swap are returned as they are.
     """
+    votes = _class_votes(models)  # once, for both tests
     swaps: dict[int, list[tuple[str, str]]] = {}
-    for k, pair, agree in side_disagreements(models):
+    for k, pair, agree in _disagreements(votes):
         swaps.setdefault(k, []).append(pair)
         if warn:
             warnings.warn(f"{models[k].name}: {pair[0]!r} and {pair[1]!r} exchanged: the {agree} other "
                           f"{models[k].category} models that have them name them from the other side", stacklevel=3)
-    for k in turned_models(models) if warn else []:
+    for k in _turned(votes) if warn else []:
         warnings.warn(f"{models[k].name}: every left/right pair lies on the other side of x than on the other "
                       f"{models[k].category} models: is it turned in its frame (front towards -y)? names kept",
                       stacklevel=3)
