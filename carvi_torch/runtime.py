@@ -259,6 +259,14 @@ class LeanProcessPool(ProcessPoolExecutor):
         with without_main_module():
             super()._spawn_process()
 
+    def stop(self) -> None:
+        """Terminate the worker processes (the work in progress is dropped), then shut the pool down without
+        waiting; before the shutdown, which would let an idle process exit on its own first. The pool keeps its
+        processes in ``_processes``, the only handle there is to them."""
+        for p in list((getattr(self, "_processes", None) or {}).values()):
+            p.terminate()
+        self.shutdown(wait=False, cancel_futures=True)
+
 
 def child_pythonpath(code: str | os.PathLike, inherited: str | None = None) -> str:
     """``PYTHONPATH`` for a child process that runs the ``carvi_torch`` of the source tree ``code``: that

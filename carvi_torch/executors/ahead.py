@@ -111,10 +111,10 @@ class AheadProcesses:
     def close(self, cancel: bool = False) -> None:
         """Stop the processes: once every submitted class is made (joined), or with ``cancel`` at once (the
         classes in progress are dropped: otherwise the interpreter's exit would wait for them)."""
-        if cancel:  # before the shutdown, which would let an idle process exit on its own first
-            for p in list((getattr(self._pool, "_processes", None) or {}).values()):  # no public handle to them
-                p.terminate()
-        self._pool.shutdown(wait=not cancel, cancel_futures=cancel)
+        if cancel:
+            self._pool.stop()
+        else:
+            self._pool.shutdown(wait=True)
 
 
 def result(future: Future) -> tuple:
