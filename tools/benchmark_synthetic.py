@@ -1,6 +1,7 @@
 """The paper's synthetic benchmark (its Table 1) on the PASCAL3D+ CAD models, with one command.
 
-Steps (each skipped when its output exists, unless ``--fresh``):
+Steps (each skipped when its output exists, unless ``--fresh``; renders only when made with the same
+settings, models and left/right names, :func:`carvi_torch.synthetic.render.render_mismatch`):
 
 1. **Render** every model of ``--models`` (73 PASCAL3D+ CAD models, 12 classes) from
    ``--pool + --test-views`` cameras drawn like photographs
