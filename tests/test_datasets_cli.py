@@ -15,7 +15,8 @@ from conftest import run_each_in_a_fresh_process
 from carvi_torch.cameras import ScaledOrthographic
 from carvi_torch.synthetic.meshes import (Model, harmonize_sides, infer_flip_pairs, load_cad_npz, load_models,
                                           side_disagreements, turned_models)
-from carvi_torch.synthetic.render import rasterize_triangles, read_render_info, render_dataset
+from carvi_torch.synthetic.render import (rasterize_triangles, read_render_info, render_dataset, render_info,
+                                          render_mismatch)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -164,6 +165,64 @@ def test_render_info_records_the_side_swaps(tmp_path):
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / "annotations.json").write_text('{"images": []}')
     assert read_render_info(tmp_path / "bad") is None
+
+
+def test_render_mismatch_names_each_setting_that_differs(tmp_path):
+    """A folder rendered with these arguments matches them (after the JSON round trip: tuples come back as
+    lists); each setting, model list and left/right naming that differs gives its own one-line reason, and so
+    does a record without the setting (an older version's) or without any record."""
+    import inspect
+
+    with pytest.warns(UserWarning, match="exchanged"):
+        models = harmonize_sides([_sided_model("m0", STD), _sided_model("m1", STD), _sided_model("m2", ODD)])
+    as_given = [_sided_model("m0", STD), _sided_model("m1", STD), _sided_model("m2", ODD)]
+    cams = {"elevation_range_deg": (0.0, 50.0), "roll_sd_deg": 2.0}
+    asked = dict(views=2, test_views=1, seed=3, image_size=32, keypoint_noise=0.5, boundary_noise=0.25,
+                 camera_options=cams)
+    render_dataset(models, tmp_path / "r", progress=False, **asked)
+    info = read_render_info(tmp_path / "r")
+    assert render_mismatch(info, models, **asked) is None
+    assert info["camera_options"] == {"elevation_range_deg": [0.0, 50.0], "roll_sd_deg": 2.0}
+    assert info["models"] == ["m0", "m1", "m2"] and info["image_size"] == [32, 32]
+
+    def reason(models=models, **change):
+        return render_mismatch(info, models, **dict(asked, **change))
+
+    assert reason(views=3) == "views: 2 recorded, 3 wanted"
+    assert reason(test_views=0) == "test_views: 1 recorded, 0 wanted"
+    assert reason(seed=0) == "seed: 3 recorded, 0 wanted"
+    assert reason(image_size=(32, 24)) == "image_size: [32, 32] recorded, [32, 24] wanted"
+    assert reason(keypoint_noise=0.0) == "keypoint_noise: 0.5 recorded, 0.0 wanted"
+    assert reason(boundary_noise=1) == "boundary_noise: 0.25 recorded, 1.0 wanted"
+    assert reason(camera_options=None) == "camera_options elevation_range_deg: [0.0, 50.0] recorded, none wanted"
+    assert reason(camera_options=dict(cams, roll_sd_deg=3.0)) == \
+        "camera_options roll_sd_deg: 2.0 recorded, 3.0 wanted"
+    assert reason(models=models[:2]) == "models: 3 recorded, 2 wanted; not wanted: m2"
+    assert reason(models=models[::-1]) == "models: the same models in another order"
+    assert reason(models=as_given) == \
+        "other left/right names: m2: [['left_a', 'right_a']] recorded, none wanted"
+    for key in ("seed", "camera_options", "models", "side_swaps"):
+        older = {k: v for k, v in info.items() if k != key}
+        assert render_mismatch(older, models, **asked) == f"{key} not recorded (rendered by an older version)"
+    assert render_mismatch(None, models, **asked).startswith("no render record")
+    with pytest.raises(TypeError):
+        render_mismatch(info, models, **asked, device="cpu")  # not a setting of the renders
+    # its settings are render_dataset's, with render_dataset's defaults
+    ours = inspect.signature(render_info).parameters
+    theirs = inspect.signature(render_dataset).parameters
+    assert {k: p.default for k, p in ours.items()} == {k: theirs[k].default for k in ours}
+
+
+def test_read_render_info_reads_a_long_block_and_refuses_a_broken_one(tmp_path):
+    """An ``info`` block longer than the first read (10,000 model names) is read whole; one cut short is
+    refused (``None``)."""
+    names = [f"model{i:05d}" for i in range(10_000)]
+    (tmp_path / "long").mkdir()
+    (tmp_path / "long" / "annotations.json").write_text(json.dumps({"info": {"models": names}, "images": []}))
+    assert read_render_info(tmp_path / "long") == {"models": names}
+    (tmp_path / "cut").mkdir()
+    (tmp_path / "cut" / "annotations.json").write_text(json.dumps({"info": {"models": names}})[:-2])
+    assert read_render_info(tmp_path / "cut") is None
 
 
 def test_load_mesh_with_json_and_messy_keypoints(tmp_path):

@@ -552,13 +552,16 @@ def _three_sided_models(folder: Path) -> Path:
     return folder
 
 
-def test_cad_renders_made_with_other_side_names_are_refused_or_redone(tmp_path: Path):
-    """Renders made before the left/right names were harmonised (no ``side_swaps`` in their info): the viewpoint
-    benchmark stops with the reason instead of reusing them with their cameras, and the shape benchmark renders
-    again; renders with the current names are reused."""
+def test_cad_renders_made_otherwise_are_refused_or_redone(tmp_path: Path):
+    """CAD renders on disk are reused only when made with the run's settings, models and left/right names
+    (``render_mismatch``): the viewpoint benchmark stops with the reason, the shape benchmark renders again.
+    Renders of other models under the same ``--work`` (their swaps alike) and renders made before the names
+    were harmonised (no ``side_swaps`` in their info) are both refused."""
     import argparse
-
+    import shutil
     import warnings
+
+    from carvi_torch.synthetic import load_models
 
     vc = load_tool("viewpoints_cad")
     bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")
@@ -570,9 +573,11 @@ def test_cad_renders_made_with_other_side_names_are_refused_or_redone(tmp_path: 
         renders = vc._renders(args, 0)
     info = json.loads((renders / "annotations.json").read_text())["info"]
     assert info["side_swaps"] == {"thing02": [["left_a", "right_a"]]}
-    swaps = {"thing02": [["left_a", "right_a"]]}
-    assert bs._render_matches(renders, 1, 0, 0, swaps) and not bs._render_matches(renders, 2, 0, 0, swaps)
-    assert not bs._render_matches(renders, 1, 0, 0, {})  # made with other names than asked for
+    models = list(vc._models(str(cad), "class"))
+    assert bs._render_mismatch(renders, models, 1, 0, 0) is None
+    assert bs._render_mismatch(renders, models, 2, 0, 0) == "views: 1 recorded, 2 wanted"
+    assert bs._render_mismatch(renders, load_models(cad, sides="as-given"), 1, 0, 0) == \
+        "other left/right names: thing02: [['left_a', 'right_a']] recorded, none wanted"
     stamp = (renders / "annotations.json").stat().st_mtime_ns
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the models are read once per (--cad, --sides): no second warning
@@ -580,13 +585,58 @@ def test_cad_renders_made_with_other_side_names_are_refused_or_redone(tmp_path: 
     args.sides = "as-given"
     as_given = vc._renders(args, 0)
     assert as_given != renders and json.loads((as_given / "annotations.json").read_text())["info"]["side_swaps"] == {}
+    more = tmp_path / "cad4"  # one more model, named like the first: the same side_swaps, other renders
+    shutil.copytree(cad, more)
+    shutil.copy(cad / "thing00.npz", more / "thing03.npz")
+    args.cad, args.sides = str(more), "class"
+    with pytest.warns(UserWarning, match="thing02"), \
+            pytest.raises(SystemExit, match=r"models: 3 recorded, 4 wanted; not recorded: thing03"):
+        vc._renders(args, 0)
+    args.cad = str(cad)
     data = json.loads((renders / "annotations.json").read_text())
     del data["info"]["side_swaps"]
     (renders / "annotations.json").write_text(json.dumps(data))
-    args.sides = "class"
-    with pytest.raises(SystemExit, match="other left/right names"):
+    vc._models.cache_clear()
+    with pytest.warns(UserWarning, match="thing02"), pytest.raises(SystemExit, match="side_swaps not recorded"):
         vc._renders(args, 0)
-    assert not bs._render_matches(renders, 1, 0, 0, swaps)
+    assert bs._render_mismatch(renders, models, 1, 0, 0) == "side_swaps not recorded (rendered by an older version)"
+    (renders / "gt.json").unlink()
+    assert bs._render_mismatch(renders, models, 1, 0, 0) == "no gt.json"
+
+
+def test_many_class_cad_renders_are_reused_only_as_the_command_would_make_them(tmp_path: Path, monkeypatch):
+    """``benchmark.ensure_many_classes`` renders with ``carvi datasets synthetic`` (run here in-process), then
+    reuses what that command made (its defaults are ``render_dataset``'s), and renders again what another
+    seed or older renders left; without the CAD models it takes what is there."""
+    import warnings
+
+    from carvi_torch import cli
+
+    bench = load_tool("benchmark", "benchmark_tool")
+    cad = _three_sided_models(tmp_path / "cad")
+    calls = []
+
+    def run(cmd, cwd, check):
+        assert cmd[1:3] == ["-m", "carvi_torch.cli"] and check
+        calls.append(cmd)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            assert cli.main(cmd[3:]) == 0
+
+    monkeypatch.setattr(bench.subprocess, "run", run)
+    ann = bench.ensure_many_classes(tmp_path / "data", 1, cad)
+    assert len(calls) == 1 and ann == tmp_path / "data" / "cad_v8_s1" / "annotations.json"
+    info = json.loads(ann.read_text())["info"]
+    assert info["views"] == 8 and info["seed"] == 1 and info["side_swaps"] == {"thing02": [["left_a", "right_a"]]}
+    assert bench.ensure_many_classes(tmp_path / "data", 1, cad) == ann and len(calls) == 1  # reused
+    data = json.loads(ann.read_text())
+    data["info"]["seed"] = 0  # what seed 0's folder would hold
+    ann.write_text(json.dumps(data))
+    assert bench.ensure_many_classes(tmp_path / "data", 1, cad) == ann and len(calls) == 2
+    assert json.loads(ann.read_text())["info"]["seed"] == 1
+    del data["info"]["side_swaps"]
+    ann.write_text(json.dumps(data))
+    assert bench.ensure_many_classes(tmp_path / "data", 1, tmp_path / "absent") == ann and len(calls) == 2
 
 
 def test_synthetic_benchmark_redoes_reconstructions_of_renders_made_again(tmp_path: Path, monkeypatch):
@@ -595,7 +645,11 @@ def test_synthetic_benchmark_redoes_reconstructions_of_renders_made_again(tmp_pa
     import argparse
 
     bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")
+    from carvi_torch.synthetic import load_models
+
     cad = _three_sided_models(tmp_path / "cad")
+    with pytest.warns(UserWarning, match="thing02"):
+        models = load_models(cad)
     args = argparse.Namespace(models=str(cad), pool=1, test_views=0, sides="class", jobs=1, fresh=False, set=[],
                               step_percent=1.0, no_baselines=True)
     started = []
@@ -612,7 +666,7 @@ def test_synthetic_benchmark_redoes_reconstructions_of_renders_made_again(tmp_pa
         with pytest.warns(UserWarning, match="thing02"), pytest.raises(Stop):
             bs.run_seed(args, 0, tmp_path / "out", ["Full"], None, "cmd")
         data = tmp_path / "out" / "data_pool1_test0_seed0"
-        assert bs._render_matches(data, 1, 0, 0, {"thing02": [["left_a", "right_a"]]})
+        assert bs._render_mismatch(data, models, 1, 0, 0) is None
         return started[0]
 
     monkeypatch.setattr(bs, "run_parallel", run_parallel)

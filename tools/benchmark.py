@@ -404,21 +404,38 @@ CAD_MESHES = ROOT.parent / "shared" / "data" / "pascal3d_cad"
 SPLITS = 3
 
 
+def _cad_mismatch(renders: Path, cad: Path, settings: dict) -> str | None:
+    """Why ``renders`` are not ``carvi datasets synthetic --meshes cad`` with ``settings`` (its other options
+    left at their defaults, which are ``render_dataset``'s), or ``None``:
+    :func:`~carvi_torch.synthetic.render.render_mismatch` against the models read as that command reads them."""
+    import warnings
+
+    from carvi_torch.synthetic import load_models
+    from carvi_torch.synthetic.render import read_render_info, render_mismatch
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the renaming warnings: the rendering command prints them
+        models = load_models(cad)
+    return render_mismatch(read_render_info(renders), models, **settings)
+
+
 def ensure_many_classes(data_dir: Path, seed: int, cad: Path = CAD_MESHES) -> Path:
     """``annotations.json`` of 12 classes of about 50 objects (cached): PASCAL3D+ CAD renders at 8 views per
-    model (``carvi datasets synthetic``) where ``cad`` exists, else 4 procedural categories of 150 objects,
+    model (``carvi datasets synthetic``; rendered again where the cached ones differ from what it would
+    render now: :func:`_cad_mismatch`) where ``cad`` exists, else 4 procedural categories of 150 objects,
     each split round-robin into 3 classes ``<category>_<k>`` (their metadata copied)."""
-    from carvi_torch.synthetic.render import read_render_info
-
     d = data_dir / f"cad_v8_s{seed}"
-    current = "side_swaps" in (read_render_info(d) or {})  # made with the class's left/right names
-    if (d / "annotations.json").is_file() and (current or not cad.is_dir()):  # rendered earlier (or carried)
-        return d / "annotations.json"
     if cad.is_dir():
+        settings = {"views": 8, "seed": seed}
+        stale = _cad_mismatch(d, cad, settings) if (d / "annotations.json").is_file() else "not rendered yet"
+        if stale is None:
+            return d / "annotations.json"
         cmd = [sys.executable, "-m", "carvi_torch.cli", "datasets", "synthetic", "--meshes", str(cad), "--out",
-               str(d), "--views", "8", "--seed", str(seed), "--quiet"]
-        print("rendering the many-class data (cached):", " ".join(cmd), flush=True)
+               str(d), "--views", str(settings["views"]), "--seed", str(settings["seed"]), "--quiet"]
+        print(f"rendering the many-class data ({stale}; cached):", " ".join(cmd), flush=True)
         subprocess.run(cmd, cwd=ROOT, check=True)
+        return d / "annotations.json"
+    if (d / "annotations.json").is_file():  # carried without the models to check them against
         return d / "annotations.json"
     d = data_dir / f"procedural12_s{seed}"
     ann = d / "annotations.json"

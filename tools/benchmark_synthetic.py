@@ -1,6 +1,7 @@
 """The paper's synthetic benchmark (its Table 1) on the PASCAL3D+ CAD models, with one command.
 
-Steps (each skipped when its output exists, unless ``--fresh``):
+Steps (each skipped when its output exists, unless ``--fresh``; renders only when made with the same
+settings, models and left/right names, :func:`carvi_torch.synthetic.render.render_mismatch`):
 
 1. **Render** every model of ``--models`` (73 PASCAL3D+ CAD models, 12 classes) from
    ``--pool + --test-views`` cameras drawn like photographs
@@ -133,6 +134,11 @@ def log_of(commands, name):
 # --------------------------------------------------------------------------- steps
 
 
+def _render_settings(pool: int, test_views: int, seed: int) -> dict:
+    """``render_dataset``'s arguments that change the renders (the cache check and the render use them)."""
+    return {"views": pool + test_views, "test_views": test_views, "seed": seed}
+
+
 def render(models: list, data_dir: Path, pool: int, test_views: int, seed: int) -> dict:
     """Render the dataset (step 1) from the loaded ``models``; returns ``render_dataset``'s summary."""
     import torch
@@ -140,21 +146,18 @@ def render(models: list, data_dir: Path, pool: int, test_views: int, seed: int) 
     from carvi_torch.synthetic import render_dataset
 
     torch.manual_seed(seed)
-    return render_dataset(models, data_dir, views=pool + test_views, test_views=test_views, seed=seed,
-                          progress=False)
+    return render_dataset(models, data_dir, progress=False, **_render_settings(pool, test_views, seed))
 
 
-def _render_matches(data_dir: Path, pool: int, test_views: int, seed: int, swaps: dict) -> bool:
-    """Whether ``data_dir`` holds this seed's renders, made with the left/right names the models have now
-    (``swaps``: :func:`~carvi_torch.synthetic.meshes.side_swaps_of`; renders made with other names are
-    redone, and so are their reconstructions)."""
-    from carvi_torch.synthetic.render import read_render_info
+def _render_mismatch(data_dir: Path, models: list, pool: int, test_views: int, seed: int) -> str | None:
+    """Why ``data_dir`` does not hold the renders step 1 would make of ``models`` (other settings, models or
+    left/right names: :func:`~carvi_torch.synthetic.render.render_mismatch`; no ``gt.json``), or ``None``.
+    Such renders are made again, and their reconstructions redone."""
+    from carvi_torch.synthetic.render import read_render_info, render_mismatch
 
-    info = read_render_info(data_dir)
-    if info is None or not (data_dir / "gt.json").is_file():
-        return False
-    return (info.get("seed") == seed and info.get("views") == pool + test_views
-            and info.get("test_views") == test_views and info.get("side_swaps") == swaps)
+    if not (data_dir / "gt.json").is_file():
+        return "no gt.json"
+    return render_mismatch(read_render_info(data_dir), models, **_render_settings(pool, test_views, seed))
 
 
 def merge_evaluations(parts: list[dict]) -> dict:
@@ -392,12 +395,10 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
     """Render, reconstruct and evaluate at one seed into ``out``; returns the evaluation and the record."""
     t_start, cpu0 = time.perf_counter(), cpu_seconds() + cpu_seconds(children=True)
     from carvi_torch.synthetic import load_models
-    from carvi_torch.synthetic.meshes import side_swaps_of
 
     sides = "" if args.sides == "class" else "_sides-as-given"
     data = out / f"data_pool{args.pool}_test{args.test_views}_seed{seed}{sides}"
     models = load_models(Path(args.models), sides=args.sides)  # once: the cache check and the render use them
-    swaps = side_swaps_of(models)
     ncpu = os.cpu_count() or 1
     jobs = max(1, args.jobs)
     threads = max(1, ncpu // jobs)
@@ -405,9 +406,10 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
 
     # 1. data
     t0, c0 = time.perf_counter(), cpu_seconds()
-    fresh = args.fresh or not _render_matches(data, args.pool, args.test_views, seed, swaps)
+    stale = "--fresh" if args.fresh else _render_mismatch(data, models, args.pool, args.test_views, seed)
+    fresh = stale is not None
     if fresh:
-        print(f"render {args.pool}+{args.test_views} views per model into {data}", flush=True)
+        print(f"render {args.pool}+{args.test_views} views per model into {data} ({stale})", flush=True)
         info = render(models, data, args.pool, args.test_views, seed)
         print(f"  {info['images']} renders of {info['models']} models in {info['seconds']:.0f} s", flush=True)
         timings["render"] = {"wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(cpu_seconds() - c0, 1)}

@@ -12,10 +12,11 @@ unseen-image cameras included, has a column of its own. The cameras of a run go 
 ``<work>/cameras[_<overrides>][_v<views>][_renders-s<seed>][_<cameras>][_sides-as-given]``
 (rerunning the same settings resumes there). The CAD models' left/right names are made consistent
 within each class (``--sides class``, the default: motorbike01's handles are renamed; ``--sides
-as-given`` keeps them); renders made with other names than the models have now stop the run. With
-several seeds (``--seed 0,1,2``) every seed is rendered and reconstructed in turn and a last table
-gives, per class and seed, the SfM -> refined medians, their means and whether refinement is no
-worse than SfM at every seed (the small-class benchmark: ``--views 8``, 32-80 views per class).
+as-given`` keeps them); renders on disk made with other settings, models or names than the run's
+stop it with the reason. With several seeds (``--seed 0,1,2``) every seed is rendered and
+reconstructed in turn and a last table gives, per class and seed, the SfM -> refined medians, their
+means and whether refinement is no worse than SfM at every seed (the small-class benchmark:
+``--views 8``, 32-80 views per class).
 ``--cameras level`` draws the renders' cameras from a level camera held above the ground (elevation
 mostly 0-30 degrees, up to 50; roll sd 2) instead of the renderer's default photo-like distribution.
 
@@ -168,26 +169,25 @@ def _renders(args, seed: int) -> Path:
     ``<work>/renders_v<views>_s<seed>[_<cameras>][_sides-as-given]``.
 
     Raises:
-        SystemExit: the folder holds renders whose left/right names differ from the models' now (made
-            before :func:`~carvi_torch.synthetic.meshes.harmonize_sides`, or from other models).
+        SystemExit: the folder holds other renders than these arguments make (other views, seed,
+            cameras, models or left/right names, e.g. made before
+            :func:`~carvi_torch.synthetic.meshes.harmonize_sides`:
+            :func:`~carvi_torch.synthetic.render.render_mismatch` gives the reason).
     """
-    from carvi_torch.synthetic.meshes import side_swaps_of
-    from carvi_torch.synthetic.render import read_render_info, render_dataset
+    from carvi_torch.synthetic.render import read_render_info, render_dataset, render_mismatch
 
     dist = "" if args.cameras == "photo" else f"_{args.cameras}"
     sides = "" if args.sides == "class" else "_sides-as-given"
     renders = Path(args.work) / f"renders_v{args.views}_s{seed}{dist}{sides}"
     models = _models(str(args.cad), args.sides)
-    swaps = side_swaps_of(models)
+    settings = {"views": args.views, "seed": seed, "camera_options": CAMERAS[args.cameras]}
     if (renders / "annotations.json").is_file():
-        info = read_render_info(renders) or {}
-        if info.get("side_swaps") != swaps:
-            raise SystemExit(f"error: {renders} holds renders with other left/right names than the models have now "
-                             f"({info.get('side_swaps', 'not recorded')} against {swaps}); remove it, or use "
-                             "another --work")
+        reason = render_mismatch(read_render_info(renders), models, **settings)
+        if reason is not None:
+            raise SystemExit(f"error: {renders} holds other renders than these arguments make ({reason}); "
+                             "remove it, or use another --work")
         return renders
-    render_dataset(list(models), renders, views=args.views, seed=seed, progress=not args.quiet,
-                   camera_options=CAMERAS[args.cameras])
+    render_dataset(list(models), renders, progress=not args.quiet, **settings)
     return renders
 
 

@@ -41,6 +41,8 @@ __all__ = [
     "render_view",
     "render_dataset",
     "read_render_info",
+    "render_info",
+    "render_mismatch",
     "perturb_boundary",
     "seed_generator",
     "ROTATIONAL_CLASSES",
@@ -598,9 +600,9 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
       render in image pixels (our convention), and every model's 3-D keypoints.
     * ``out_dir/meshes/<model>.ply``: the mesh in its object frame (trimesh, binary PLY).
 
-    The ``info`` block of ``annotations.json`` records the seed, the views, the image size, the
-    noise and ``side_swaps`` (``{model: [[name, name], ...]}``, the left/right names exchanged on
-    loading, :func:`~carvi_torch.synthetic.meshes.harmonize_sides`); :func:`read_render_info` reads it.
+    The ``info`` block of ``annotations.json`` (written first) records every setting that changes the
+    renders: :func:`render_info`; :func:`read_render_info` reads it back and :func:`render_mismatch`
+    says whether a folder's renders are the ones asked for.
 
     Ids: categories by sorted class name, then images = annotations numbered from 1 in
     model order, view order. Deterministic: the cameras and noise of a model depend only
@@ -624,7 +626,6 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
     from tqdm import tqdm
 
     from ..io.outputs import write_bytes, write_json
-    from .meshes import side_swaps_of
 
     t_start = time.perf_counter()
     w, h = parse_image_size(image_size)
@@ -695,10 +696,8 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
                               "category": model.category, "model": model.name}
             bar.update(1)
     bar.close()
-    info = {"description": "synthetic renders of meshes with keypoints (carvi_torch.synthetic)", "seed": int(seed),
-            "views": views, "test_views": test_views, "image_size": [w, h], "keypoint_noise": float(keypoint_noise),
-            "boundary_noise": float(boundary_noise),
-            "side_swaps": side_swaps_of(models)}
+    info = render_info(models, views=views, test_views=test_views, seed=seed, image_size=(w, h),
+                       keypoint_noise=keypoint_noise, boundary_noise=boundary_noise, camera_options=camera_options)
     ann_path = write_json(out_dir / "annotations.json",
                           {"info": info, "images": images, "annotations": annotations, "categories": categories},
                           indent=None)
@@ -707,24 +706,112 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
             "categories": classes, "seconds": time.perf_counter() - t_start}
 
 
+def render_info(models: Sequence, views: int = 30, test_views: int = 0, seed: int = 0,
+                image_size: int | Sequence[int] = DEFAULT_IMAGE_SIZE, keypoint_noise: float = 0.0,
+                boundary_noise: float = 0.0, camera_options: dict | None = None) -> dict:
+    """The ``info`` block :func:`render_dataset` writes for these arguments (the same names and defaults).
+
+    Keys: ``description``, ``seed``, ``views``, ``test_views``, ``image_size`` (``[w, h]``),
+    ``keypoint_noise``, ``boundary_noise``, ``camera_options`` (:func:`sample_cameras`'s extra
+    arguments, ``{}`` for its defaults, in JSON form: tuples as lists), ``models`` (the model names
+    in render order) and ``side_swaps`` (``{model: [[name, name], ...]}``, the left/right names
+    exchanged on loading, :func:`~carvi_torch.synthetic.meshes.harmonize_sides`; models without
+    any are left out). Everything but ``description`` changes the renders.
+    """
+    import json
+
+    from .meshes import side_swaps_of
+
+    w, h = parse_image_size(image_size)
+    return {"description": "synthetic renders of meshes with keypoints (carvi_torch.synthetic)", "seed": int(seed),
+            "views": int(views), "test_views": int(test_views), "image_size": [w, h],
+            "keypoint_noise": float(keypoint_noise), "boundary_noise": float(boundary_noise),
+            "camera_options": json.loads(json.dumps(dict(camera_options or {}))),
+            "models": [m.name for m in models], "side_swaps": side_swaps_of(models)}
+
+
+def _first_difference(recorded: dict, wanted: dict) -> str:
+    """``"<key>: <recorded> recorded, <wanted> wanted"`` for the first key (sorted) whose values differ."""
+    key = min(k for k in recorded.keys() | wanted.keys() if recorded.get(k) != wanted.get(k))
+    return f"{key}: {recorded.get(key, 'none')} recorded, {wanted.get(key, 'none')} wanted"
+
+
+def _names_difference(recorded: list, wanted: list) -> str:
+    """How two lists of model names differ, in a few words."""
+    def some(names: list) -> str:
+        return ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
+
+    gone, new = sorted(set(recorded) - set(wanted)), sorted(set(wanted) - set(recorded))
+    if not (gone or new):
+        return "the same models in another order"
+    return (f"{len(recorded)} recorded, {len(wanted)} wanted" + (f"; not wanted: {some(gone)}" if gone else "")
+            + (f"; not recorded: {some(new)}" if new else ""))
+
+
+def render_mismatch(info: dict | None, models: Sequence, **settings) -> str | None:
+    """Why renders whose ``info`` block is ``info`` are not those of ``render_dataset(models, ...,
+    **settings)``, in one line; ``None`` when they are (the same settings, models and left/right names).
+
+    ``settings``: :func:`render_dataset`'s keyword arguments that change the renders (those of
+    :func:`render_info`, with its defaults; any other raises ``TypeError``). A tool that reuses renders
+    on disk passes the arguments it renders with; what it does with a reason (render again, or stop) is
+    its own choice. A setting the record lacks (renders of an older version) is a mismatch.
+
+    Args:
+        info: :func:`read_render_info` of the folder (``None``: nothing readable there).
+        models: the :class:`~carvi_torch.synthetic.meshes.Model` list the renders are meant to show.
+
+    Example:
+        >>> from carvi_torch.synthetic import Model
+        >>> tet = Model("tet1", "thing", [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], [[0, 1, 2]])
+        >>> info = render_info([tet], views=8, seed=2)
+        >>> render_mismatch(info, [tet], views=8, seed=2) is None
+        True
+        >>> render_mismatch(info, [tet], views=30, seed=2)
+        'views: 8 recorded, 30 wanted'
+        >>> render_mismatch({k: v for k, v in info.items() if k != "camera_options"}, [tet], views=8, seed=2)
+        'camera_options not recorded (rendered by an older version)'
+    """
+    if info is None:
+        return "no render record (no annotations.json, or not one written by render_dataset)"
+    for key, want in render_info(models, **settings).items():
+        got = info.get(key)
+        if key == "description" or got == want:
+            continue
+        if key not in info:
+            return f"{key} not recorded (rendered by an older version)"
+        if key == "models" and isinstance(got, list):
+            return f"models: {_names_difference(got, want)}"
+        if key == "side_swaps" and isinstance(got, dict):
+            return f"other left/right names: {_first_difference(got, want)}"
+        if key == "camera_options" and isinstance(got, dict):
+            return f"camera_options {_first_difference(got, want)}"
+        return f"{key}: {got} recorded, {want} wanted"
+    return None
+
+
 def read_render_info(out_dir: str | Path) -> dict | None:
     """The ``info`` block of a :func:`render_dataset` folder's ``annotations.json``, or ``None``.
 
-    Only the file's head is read (``info`` is written first), so a large dataset costs nothing;
-    ``None`` when the file is missing or does not start with an ``info`` object.
+    Only the file's head is read (``info`` is written first; the head grows while the block goes on,
+    as a long model list makes it), so a large dataset costs little; ``None`` when the file is missing
+    or does not start with an ``info`` object.
     """
     import json
 
     path = Path(out_dir) / "annotations.json"
     if not path.is_file():
         return None
-    prefix = '{"info": '
+    prefix, chunk = '{"info": ', 1 << 16
     with open(path) as f:
-        head = f.read(1 << 16)
-    if not head.startswith(prefix):
-        return None
-    try:
-        info, _ = json.JSONDecoder().raw_decode(head, len(prefix))
-    except ValueError:
-        return None
-    return info if isinstance(info, dict) else None
+        head = f.read(chunk)
+        while head.startswith(prefix):
+            try:
+                info, _ = json.JSONDecoder().raw_decode(head, len(prefix))
+                return info if isinstance(info, dict) else None
+            except ValueError:  # cut short (read on) or not JSON (read to the end, then give up)
+                more = f.read(chunk)
+                if not more:
+                    return None
+                head, chunk = head + more, chunk * 2
+    return None
