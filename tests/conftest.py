@@ -16,6 +16,8 @@ import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+import copy  # noqa: E402
+import functools  # noqa: E402
 import importlib.util  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
@@ -48,16 +50,29 @@ def load_tool(name: str, as_name: str | None = None):
     return module
 
 
+@functools.lru_cache(maxsize=None)
+def _read_cad_models(directory: str) -> tuple:
+    from carvi_torch.synthetic import load_models
+
+    return tuple(load_models(directory))
+
+
+def cad_models(shared_data: Path, prefix: str = "") -> list:
+    """The PASCAL3D+ CAD models named ``prefix*``, as ``load_models`` reads them (left/right names of the
+    class). The folder is read once per session (all 73 models, over a second each time); every call gets
+    deep copies, so that nothing one test does to a model reaches another."""
+    return [copy.deepcopy(m) for m in _read_cad_models(str(shared_data / "pascal3d_cad")) if m.name.startswith(prefix)]
+
+
 def render_cad_class(shared_data: Path, out: Path, prefix: str, views: int, seed: int = 0):
     """The PASCAL3D+ CAD models named ``prefix*`` rendered ``views`` times each into ``out``:
     ``(collection, true rotations (n, 3, 3) float64, models)``."""
     import json
 
     from carvi_torch.io.coco import load_coco
-    from carvi_torch.synthetic import load_models
     from carvi_torch.synthetic.render import render_dataset
 
-    models = [m for m in load_models(shared_data / "pascal3d_cad") if m.name.startswith(prefix)]
+    models = cad_models(shared_data, prefix)
     render_dataset(models, out, views=views, seed=seed, progress=False)
     coll = load_coco(out / "annotations.json").collections[prefix]
     gt = json.loads((out / "gt.json").read_text())["annotations"]

@@ -504,7 +504,9 @@ def test_real_aeroplanes_fused_equals_torch(shared_data, tmp_path):
 
     ann = tmp_path / "aeroplane.json"
     convert(shared_data / "pascal_voc_aeroplane" / "keypoints", ann)
-    cfg = Config().override(dict(data=str(ann), progress=False))
+    # sfm_groups=1: the default fits a mixture of shapes to the aeroplanes and keeps one shape (misfit 0.063), so
+    # the proposals, cameras and maps are those of the default, bit for bit, without the mixture's 6-7 s
+    cfg = Config().override(dict(data=str(ann), progress=False, sfm_groups=1))
     loaded = coco.load_coco(ann, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
                             device=torch.device("cpu"),
                             classes=["aeroplane"])

@@ -15,6 +15,7 @@ from carvi_torch.cameras import (ScaledOrthographic, azimuth_elevation_roll_from
 from carvi_torch.viewpoints.frame import (MAX_TEMPLATE_RESIDUAL, CanonicalFrame, FrameFit,
                                           build_templates, canonical_frame, fit_similarity, load_templates,
                                           symmetry_up_frame, template_points)
+from conftest import cad_models
 
 D = torch.float64
 
@@ -131,9 +132,7 @@ def test_shipped_templates_cover_the_pascal_classes():
 def test_shipped_templates_are_the_cad_models_averaged(shared_data):
     """templates.json is what build_templates makes of ../shared/data/pascal3d_cad, and its frame is
     PASCAL3D+'s: every class's front keypoints lie at lower y than its back ones, tops above bottoms."""
-    from carvi_torch.synthetic.meshes import load_models
-
-    built = build_templates(load_models(shared_data / "pascal3d_cad"))
+    built = build_templates(cad_models(shared_data))
     shipped = load_templates()["classes"]
     assert built.keys() == shipped.keys()
     for cls in built:

@@ -57,8 +57,35 @@ def _assert_same_outputs(a: Path, b: Path) -> int:
     return len(files)
 
 
+@pytest.fixture(scope="module")
+def sequential(procedural_input, tmp_path_factory):
+    """The sequential runs (``pipeline_classes=False``) that the tests compare with, each made once per settings:
+    ``sequential(**extra)`` gives ``(out, summary, the classes whose viewpoints went through
+    executors.local.class_viewpoints)``; the tests' runs go there, the sequential run makes them in
+    pipeline.prepare_class."""
+    runs = {}
+
+    def get(**extra):
+        key = json.dumps(extra, sort_keys=True)
+        if key not in runs:
+            out = tmp_path_factory.mktemp("sequential")
+            data, seen, make = procedural_input(out), [], L.class_viewpoints
+
+            def viewpoints(coll, *args, **kwargs):
+                seen.append(coll.meta.key)
+                return make(coll, *args, **kwargs)
+
+            with pytest.MonkeyPatch.context() as mp:
+                mp.setattr(L, "class_viewpoints", viewpoints)
+                summary = run(_cfg(out / "run", data, pipeline_classes=False, **extra), workers=0)
+            runs[key] = (out / "run", summary, seen)
+        return runs[key]
+
+    return get
+
+
 @pytest.mark.parametrize("extra", [{}, GROUPS], ids=["one_shape", "mixture"])
-def test_pipelined_classes_give_the_sequential_files(procedural_input, tmp_path, monkeypatch, extra):
+def test_pipelined_classes_give_the_sequential_files(procedural_input, tmp_path, monkeypatch, extra, sequential):
     """The chair's viewpoints are made on the background thread while the car carves (the car's carving waits
     until they have started, so the overlap is certain), and every file is the sequential run's."""
     data = procedural_input(tmp_path)
@@ -83,13 +110,12 @@ def test_pipelined_classes_give_the_sequential_files(procedural_input, tmp_path,
     monkeypatch.setattr(P, "_carve_chunks", carve)
     assert set(threads) == set(CLASSES) and threading.main_thread().name not in threads.values()
     assert set(counts.values()) == {piped["torch_threads"]}  # the thread runs the run's intra-op count
-    threads.clear()
-    sequential = run(_cfg(tmp_path / "sequential", data, pipeline_classes=False, **extra), workers=0)
-    assert threads == {}  # the sequential run made its viewpoints in pipeline.prepare_class, on this thread
-    assert all(piped["classes"][c]["reconstructed"] == sequential["classes"][c]["reconstructed"] == 6 for c in CLASSES)
+    seq_out, seq, seen = sequential(**extra)
+    assert seen == []  # the sequential run made its viewpoints in pipeline.prepare_class, on its thread
+    assert all(piped["classes"][c]["reconstructed"] == seq["classes"][c]["reconstructed"] == 6 for c in CLASSES)
     if extra:
         assert piped["classes"]["car"]["sfm_groups"]["groups"] == 2  # the mixture's paths ran
-    assert _assert_same_outputs(tmp_path / "piped", tmp_path / "sequential") >= 2 * (1 + 6 + 6)
+    assert _assert_same_outputs(tmp_path / "piped", seq_out) >= 2 * (1 + 6 + 6)
 
 
 def test_a_class_whose_viewpoints_fail_ahead_fails_alone(procedural_input, tmp_path, monkeypatch):
@@ -156,7 +182,7 @@ def test_an_interrupt_does_not_wait_for_the_thread_and_the_run_resumes(procedura
         ("ok", 4, 2), ("ok", 0, 6)]
 
 
-def test_viewpoint_processes_give_the_sequential_files(procedural_input, tmp_path, monkeypatch):
+def test_viewpoint_processes_give_the_sequential_files(procedural_input, tmp_path, monkeypatch, sequential):
     """``viewpoint_processes=2``: both classes' viewpoint stages (the car's mixture of shapes included) are made in
     worker processes and handed to the run (``made``), and every file is the sequential run's."""
     data = procedural_input(tmp_path)
@@ -170,12 +196,11 @@ def test_viewpoint_processes_give_the_sequential_files(procedural_input, tmp_pat
     procs = run(_cfg(tmp_path / "procs", data, viewpoint_processes=2, **GROUPS), workers=0)
     assert set(made) == set(CLASSES) and all(m is not None and m[0] is not None for m in made.values())
     assert procs["classes"]["car"]["sfm_groups"]["groups"] == 2 and "sfm" in procs["classes"]["car"]["seconds"]
-    run(_cfg(tmp_path / "sequential", data, pipeline_classes=False, **GROUPS), workers=0)
-    assert _assert_same_outputs(tmp_path / "procs", tmp_path / "sequential") >= 2 * (1 + 6 + 6)
+    assert _assert_same_outputs(tmp_path / "procs", sequential(**GROUPS)[0]) >= 2 * (1 + 6 + 6)
 
 
 def test_viewpoint_processes_that_fail_leave_the_class_here_or_fail_it_alone(procedural_input, tmp_path,
-                                                                              monkeypatch):
+                                                                              monkeypatch, sequential):
     """A worker process that died (``BrokenProcessPool``) leaves the car's viewpoints to the run, which logs it and
     gives the sequential cameras; an error raised in a worker fails the chair alone with its one-line reason."""
     from concurrent.futures import Future
@@ -192,16 +217,15 @@ def test_viewpoint_processes_that_fail_leave_the_class_here_or_fail_it_alone(pro
 
     monkeypatch.setattr(ahead.AheadProcesses, "submit", submit)
     procs = run(_cfg(tmp_path / "procs", data, viewpoint_processes=2, stage="cameras"), workers=0)
-    run(_cfg(tmp_path / "sequential", data, pipeline_classes=False, stage="cameras"), workers=0)
     assert (tmp_path / "procs" / "car" / "cameras.json").read_bytes() == (
-        tmp_path / "sequential" / "car" / "cameras.json").read_bytes()
+        sequential(stage="cameras")[0] / "car" / "cameras.json").read_bytes()
     assert "car: the viewpoint process stopped (killed)" in (tmp_path / "procs" / "run.log").read_text()
     chair = procs["classes"]["chair"]
     assert chair["status"] == "failed" and [f["reason"] for f in chair["failures"]] == ["RuntimeError: chair broke"]
     assert not (tmp_path / "procs" / "chair").exists()
 
 
-def test_a_broken_viewpoint_pool_leaves_the_classes_to_the_run(procedural_input, tmp_path, monkeypatch):
+def test_a_broken_viewpoint_pool_leaves_the_classes_to_the_run(procedural_input, tmp_path, monkeypatch, sequential):
     """A worker process dies before the first class is handed over: the pool is broken for good (every submission
     raises), both classes' viewpoints are made in the run's process, with the sequential cameras, and it says so."""
     import os
@@ -221,11 +245,10 @@ def test_a_broken_viewpoint_pool_leaves_the_classes_to_the_run(procedural_input,
 
     monkeypatch.setattr(ahead.AheadProcesses, "submit", breaking)
     procs = run(_cfg(tmp_path / "procs", data, viewpoint_processes=2, stage="cameras"), workers=0)
-    run(_cfg(tmp_path / "sequential", data, pipeline_classes=False, stage="cameras"), workers=0)
     assert broken == ["car"] and [procs["classes"][c]["status"] for c in CLASSES] == ["cameras", "cameras"]
     for c in CLASSES:
         assert (tmp_path / "procs" / c / "cameras.json").read_bytes() == (
-            tmp_path / "sequential" / c / "cameras.json").read_bytes()
+            sequential(stage="cameras")[0] / c / "cameras.json").read_bytes()
         log_text = (tmp_path / "procs" / "run.log").read_text()
         assert f"{c}: no viewpoint process can take it (BrokenProcessPool" in log_text
 
