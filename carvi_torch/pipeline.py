@@ -27,7 +27,7 @@ from .carve import CarveMaps
 from .carve.puffball import puffball_grids
 from .collection import ClassCollection
 from .config import Config
-from .io.layout import class_dir, finished, object_file
+from .io.layout import INPUTS_CHANGED, NO_INPUT_RECORD, class_dir, finished, object_file
 from .io.outputs import write_json
 from .io.results import (ClassReport, cameras_json, canonical_image_cameras, quality_summary, reconstruction_signals,
                          resumed_levels, scores_entry, write_scores)
@@ -68,18 +68,36 @@ class ClassPlan:
         return ids[:, None].expand(R, P).reshape(-1), views.reshape(R * P, -1), valid.reshape(-1)
 
 
-def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None) -> list[bool]:
-    """Per original: finished by an earlier run into ``out`` (its files exist and load), unless ``overwrite``;
-    damaged files are logged and their object is redone."""
+#: ``summary.json`` names of the reasons a finished object is redone (per class: ``redone``).
+REDONE = {INPUTS_CHANGED: "inputs_changed", NO_INPUT_RECORD: "no_input_record"}
+
+
+def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None,
+                     report: ClassReport | None = None) -> list[bool]:
+    """Per original: finished by an earlier run into ``out`` from the inputs it has now (its files exist and
+    load, and its voxels file holds its input fingerprint), unless ``overwrite``. Damaged files are logged
+    per object; objects made from other inputs (or by a run that recorded none) are counted in one line and
+    in ``report.info["redone"]`` (``{"count", "inputs_changed": [ids], "no_input_record": [ids]}``). All of
+    them are redone: their files are replaced when the new ones are written."""
     cdir = class_dir(out if out is not None else ".", coll.meta.key)
     if out is None or cfg.overwrite:
         return [False] * len(coll)
-    done = []
-    for a in coll.annotation_ids:
-        state = finished(cdir, a, cfg.mesh.format)
-        if isinstance(state, str):
+    done, redone = [], {}
+    for a, fp in zip(coll.annotation_ids, coll.fingerprints):
+        state = finished(cdir, a, cfg.mesh.format, fp)
+        if state in REDONE:
+            redone.setdefault(REDONE[state], []).append(a)
+        elif isinstance(state, str):
             log.warning(f"  {coll.meta.key}: annotation {a}: {state}; reconstructing it again")
         done.append(state is True)
+    if redone:
+        n = sum(len(v) for v in redone.values())
+        why = {"inputs_changed": "whose inputs changed since they were made",
+               "no_input_record": "made by an older run that recorded no inputs"}
+        log.warning(f"  {coll.meta.key}: redoing {n} finished object(s): "
+                    + "; ".join(f"{len(ids)} {why[k]}" for k, ids in sorted(redone.items())))
+        if report is not None:
+            report.info["redone"] = {"count": n, **dict(sorted(redone.items()))}
     return done
 
 
@@ -209,7 +227,7 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
         return None, [], report
     timer, n = StageTimer(device, report.seconds), len(coll)
     cdir = class_dir(out if out is not None else ".", coll.meta.key)
-    done = finished_objects(coll, cfg, out) if done is None else list(done)
+    done = finished_objects(coll, cfg, out, report) if done is None else list(done)
     if out is not None:
         plan.levels = resumed_levels(cdir, coll, plan.levels, done)
         finished_ids = [a for a, d in zip(coll.annotation_ids, done) if d]
@@ -269,7 +287,8 @@ def _job(sel: select.Selection, occupancy: torch.Tensor, masks: torch.Tensor, j:
                 proposals_path=str(object_file(plan.cdir, "proposals", aid)),
                 proposals=(proposals_payload(sel, j, sur, canvas_to_image, aid_of)
                            if cfg.study.save_proposals and best >= 0 else None),
-                largest_component=cfg.mesh.largest_component, mask=masks[j].numpy())
+                largest_component=cfg.mesh.largest_component, mask=masks[j].numpy(),
+                input_fingerprint=plan.coll.fingerprints[i])
 
 
 def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config, report: ClassReport,

@@ -93,7 +93,7 @@ def open_run(cfg: Config) -> RunSetup:
     if gt_problem is not None:
         loaded.problems.append(gt_problem)
         gt_path = None
-    earlier = _earlier_classes(out, cfg)
+    earlier, earlier_data = _earlier_classes(out, cfg)
     out.mkdir(parents=True, exist_ok=True)
     changed = settings_changed(out / "config.yaml", cfg)
     write_bytes(out / "config.yaml", cfg.to_yaml().encode())
@@ -102,6 +102,8 @@ def open_run(cfg: Config) -> RunSetup:
                "carve_backend": carve.resolve_backend(cfg.carve.backend, device, cfg.carve.interpolation),
                "load_seconds": round(load_s, 3), "input_problems": [p.to_dict() for p in loaded.problems],
                "classes": {}}
+    if earlier_data is not None and earlier_data != summary["data"]:
+        summary["data_changed"] = {"previous": earlier_data, "now": summary["data"]}
     return RunSetup(cfg, out, device, loaded, gt, summary, changed, earlier=earlier)
 
 
@@ -128,6 +130,10 @@ def announce(setup: RunSetup) -> None:
     there may be thousands), the classes asked for that have no usable object, and changed settings."""
     for p in setup.loaded.problems:
         (log.warning if p.fatal or p.annotation_id is None else log.info)(p.message())
+    moved = setup.summary.get("data_changed")
+    if moved:
+        log.warning(f"{setup.out} holds a run on other annotations ({moved['previous']}); its finished objects "
+                    "are resumed only where an object's own inputs are unchanged, the others are redone")
     if setup.changed:
         log.warning(f"{setup.out} holds a run made with other settings ("
                     + ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in setup.changed.items())
@@ -145,17 +151,18 @@ def class_generator(cfg: Config, key: str) -> torch.Generator:
     return torch.Generator(device="cpu").manual_seed(cfg.seed + stable_hash(key))
 
 
-def _earlier_classes(out: Path, cfg: Config) -> dict:
-    """The classes an earlier run into ``out`` reported (none with ``overwrite``): a dataset can be
-    processed in parts, and the summary keeps every part."""
+def _earlier_classes(out: Path, cfg: Config) -> tuple[dict, str | None]:
+    """The classes an earlier run into ``out`` reported and the annotation file it read (none with
+    ``overwrite``): a dataset can be processed in parts, and the summary keeps every part."""
     path = out / "summary.json"
     if cfg.overwrite or not path.is_file():
-        return {}
+        return {}, None
     try:
-        classes = read_json(path).get("classes", {})
+        earlier = read_json(path)
+        classes, data = earlier.get("classes", {}), earlier.get("data")
     except (ValueError, AttributeError, OSError):
-        return {}
-    return classes if isinstance(classes, dict) else {}
+        return {}, None
+    return (classes if isinstance(classes, dict) else {}), (data if isinstance(data, str) else None)
 
 
 def write_summary(setup: RunSetup) -> None:

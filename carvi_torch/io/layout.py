@@ -28,7 +28,8 @@ import numpy as np
 
 from .outputs import safe_name
 
-__all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS", "RUN_NAMES", "reserved"]
+__all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS", "RUN_NAMES", "reserved", "INPUTS_CHANGED",
+           "NO_INPUT_RECORD"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -70,17 +71,24 @@ def object_file(cdir: str | Path, kind: str, annotation_id, ext: str | None = No
     return Path(cdir) / kind / f"{object_stem(annotation_id)}.{ext}"
 
 
-def _voxels_ok(path: Path) -> str | None:
-    """Why a voxels file is not a finished object's (``None``: it is one)."""
+#: Why a finished object is redone although its files are sound: :func:`finished`'s reasons a run counts
+#: (``summary.json``: ``redone``) rather than logging each object's.
+INPUTS_CHANGED = "its inputs differ from those it was made from"
+NO_INPUT_RECORD = "its files hold no record of its inputs (an older run's)"
+
+
+def _voxels_state(path: Path) -> tuple[str | None, str | None]:
+    """``(why a voxels file is not a finished object's or None, the input fingerprint it holds or None)``."""
     try:
         with np.load(path) as z:
             members = {k: z[k] for k in z.files}  # every member read: the zip's checksums cover each
             occ, T = members["occupancy"], members["voxel_to_camera"]
     except Exception as e:  # noqa: BLE001 - any damage means: redo the object
-        return f"unreadable voxels ({type(e).__name__})"
+        return f"unreadable voxels ({type(e).__name__})", None
     if occ.dtype != bool or occ.ndim != 3 or T.shape != (4, 4) or not np.isfinite(T).all():
-        return f"voxels of the wrong kind (occupancy {occ.dtype} {occ.shape}, transform {T.shape})"
-    return None
+        return f"voxels of the wrong kind (occupancy {occ.dtype} {occ.shape}, transform {T.shape})", None
+    fp = members.get("input_fingerprint")
+    return None, (str(fp) if fp is not None and fp.dtype.kind == "U" and fp.ndim == 0 else None)
 
 
 def _mesh_ok(path: Path) -> str | None:
@@ -101,10 +109,21 @@ def _mesh_ok(path: Path) -> str | None:
     return None
 
 
-def finished(cdir: str | Path, annotation_id, mesh_format: str) -> str | bool:
+def finished(cdir: str | Path, annotation_id, mesh_format: str, fingerprint: str | None = None) -> str | bool:
     """Whether an earlier run finished an object: ``True``, ``False`` (no files), or the reason its files
-    cannot be trusted (a truncated or damaged mesh or voxels file: the object is redone)."""
+    cannot be trusted (the object is redone): a truncated or damaged mesh or voxels file, or, when its
+    current input ``fingerprint`` is given (``ClassCollection.fingerprints``), files made from other
+    inputs (:data:`INPUTS_CHANGED`) or holding no fingerprint (:data:`NO_INPUT_RECORD`).
+
+    Example:
+        >>> import tempfile
+        >>> finished(tempfile.mkdtemp(), 3, "ply")
+        False
+    """
     mesh, voxels = object_file(cdir, "meshes", annotation_id, mesh_format), object_file(cdir, "voxels", annotation_id)
     if not (mesh.is_file() and voxels.is_file()):
         return False
-    return _voxels_ok(voxels) or _mesh_ok(mesh) or True
+    why, held = _voxels_state(voxels)
+    if why is None and fingerprint:
+        why = None if held == fingerprint else (INPUTS_CHANGED if held else NO_INPUT_RECORD)
+    return why or _mesh_ok(mesh) or True
