@@ -27,7 +27,7 @@ from .carve import CarveMaps
 from .carve.puffball import puffball_grids
 from .collection import ClassCollection
 from .config import Config
-from .io.layout import INPUTS_CHANGED, NO_INPUT_RECORD, class_dir, finished, object_file
+from .io.layout import class_dir, object_file, resume_check
 from .io.outputs import write_json
 from .io.results import (ClassReport, cameras_json, canonical_image_cameras, quality_summary, reconstruction_signals,
                          resumed_levels, scores_entry, write_scores)
@@ -68,37 +68,20 @@ class ClassPlan:
         return ids[:, None].expand(R, P).reshape(-1), views.reshape(R * P, -1), valid.reshape(-1)
 
 
-#: ``summary.json`` names of the reasons a finished object is redone (per class: ``redone``).
-REDONE = {INPUTS_CHANGED: "inputs_changed", NO_INPUT_RECORD: "no_input_record"}
-
-
 def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None,
                      report: ClassReport | None = None) -> list[bool]:
-    """Per original: finished by an earlier run into ``out`` from the inputs it has now (its files exist and
-    load, and its voxels file holds its input fingerprint), unless ``overwrite``. Damaged files are logged
-    per object; objects made from other inputs (or by a run that recorded none) are counted in one line and
-    in ``report.info["redone"]`` (``{"count", "inputs_changed": [ids], "no_input_record": [ids]}``). All of
-    them are redone: their files are replaced when the new ones are written."""
-    cdir = class_dir(out if out is not None else ".", coll.meta.key)
+    """Per original: finished by an earlier run into ``out`` from its current inputs, unless ``overwrite``
+    (:func:`~carvi_torch.io.layout.resume_check`); the others are redone, those with damaged files logged per
+    object, those made from other inputs in one line and ``report.info["redone"]``."""
     if out is None or cfg.overwrite:
         return [False] * len(coll)
-    done, redone = [], {}
-    for a, fp in zip(coll.annotation_ids, coll.fingerprints):
-        state = finished(cdir, a, cfg.mesh.format, fp)
-        if state in REDONE:
-            redone.setdefault(REDONE[state], []).append(a)
-        elif isinstance(state, str):
-            log.warning(f"  {coll.meta.key}: annotation {a}: {state}; reconstructing it again")
-        done.append(state is True)
-    if redone:
-        n = sum(len(v) for v in redone.values())
-        why = {"inputs_changed": "whose inputs changed since they were made",
-               "no_input_record": "made by an older run that recorded no inputs"}
-        log.warning(f"  {coll.meta.key}: redoing {n} finished object(s): "
-                    + "; ".join(f"{len(ids)} {why[k]}" for k, ids in sorted(redone.items())))
-        if report is not None:
-            report.info["redone"] = {"count": n, **dict(sorted(redone.items()))}
-    return done
+    check = resume_check(class_dir(out, coll.meta.key), coll.annotation_ids, coll.fingerprints, cfg.mesh.format)
+    for a, why in check.damaged.items():
+        log.warning(f"  {coll.meta.key}: annotation {a}: {why}; reconstructing it again")
+    if check.redone:
+        log.warning(f"  {coll.meta.key}: {check.line()}")
+        (report.info if report is not None else {})["redone"] = check.summary()
+    return check.done
 
 
 def _todo(coll: ClassCollection, vp: Viewpoints, done: list, cfg: Config, report: ClassReport) -> list[int]:

@@ -22,6 +22,7 @@ Example:
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,7 @@ import numpy as np
 from .outputs import safe_name
 
 __all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS", "RUN_NAMES", "reserved", "INPUTS_CHANGED",
-           "NO_INPUT_RECORD"]
+           "NO_INPUT_RECORD", "ResumeCheck", "resume_check"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -127,3 +128,47 @@ def finished(cdir: str | Path, annotation_id, mesh_format: str, fingerprint: str
     if why is None and fingerprint:
         why = None if held == fingerprint else (INPUTS_CHANGED if held else NO_INPUT_RECORD)
     return why or _mesh_ok(mesh) or True
+
+
+#: ``summary.json`` names of the reasons a sound finished object is redone (per class: ``redone``).
+REDONE = {INPUTS_CHANGED: "inputs_changed", NO_INPUT_RECORD: "no_input_record"}
+
+
+@dataclass
+class ResumeCheck:
+    """What an earlier run left of a class's objects: ``done`` per object (resume it), ``damaged``
+    (``{annotation id: reason}``: files that cannot be trusted) and ``redone`` (``{reason name:
+    [annotation ids]}``: sound files made from other inputs, or without a record of them)."""
+
+    done: list = field(default_factory=list)
+    damaged: dict = field(default_factory=dict)
+    redone: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """``summary.json``'s ``redone`` of the class: ``count`` and the ids per reason."""
+        return {"count": sum(len(v) for v in self.redone.values()), **dict(sorted(self.redone.items()))}
+
+    def line(self) -> str:
+        """One line: how many finished objects are redone, and why.
+
+        Example:
+            >>> ResumeCheck(redone={"inputs_changed": [1, 2]}).line()
+            'redoing 2 finished object(s): 2 whose inputs changed since they were made'
+        """
+        why = {"inputs_changed": "whose inputs changed since they were made",
+               "no_input_record": "made by an older run that recorded no inputs"}
+        return (f"redoing {self.summary()['count']} finished object(s): "
+                + "; ".join(f"{len(ids)} {why[k]}" for k, ids in sorted(self.redone.items())))
+
+
+def resume_check(cdir: str | Path, annotation_ids: list, fingerprints: list, mesh_format: str) -> ResumeCheck:
+    """:func:`finished` for every object of a class (``fingerprints``: their current input fingerprints)."""
+    check = ResumeCheck()
+    for a, fp in zip(annotation_ids, fingerprints):
+        state = finished(cdir, a, mesh_format, fp)
+        if state in REDONE:
+            check.redone.setdefault(REDONE[state], []).append(a)
+        elif isinstance(state, str):
+            check.damaged[a] = state
+        check.done.append(state is True)
+    return check
