@@ -313,6 +313,35 @@ def test_an_object_whose_keypoints_collapse_is_skipped_alone(base, tmp_path):
     assert cams["2"]["refined"] is None and cams["2"]["azimuth_deg"] is None and cams["1"]["refined"] is not None
 
 
+def test_objects_skipped_at_load_count_in_their_class_and_get_report_cards(base, tmp_path):
+    """Objects dropped at load (an unknown image, a polygon of no area, every keypoint far off the image) are
+    their class's objects and skipped ones (summary, the closing table), with the load reason as their
+    failure, and each gets a report card giving it; ``input_problems`` still lists them."""
+    from carvi_torch.reconstruct import format_table
+    from carvi_torch.report import build_report
+
+    d = copy.deepcopy(base)
+    anns = {a["id"]: a for a in d["annotations"]}
+    anns[1]["image_id"] = 999
+    anns[2]["segmentation"] = [[10.0, 10.0, 20.0, 20.0, 30.0, 30.0]]  # three points on a line
+    anns[4]["keypoints"] = [v if i % 3 == 2 else -5000.0 for i, v in enumerate(anns[4]["keypoints"])]
+    out = tmp_path / "run"
+    s = run(_cfg(out, _write(tmp_path, d), classes="car"), workers=0)
+    c = s["classes"]["car"]
+    why = {1: "unknown image id 999", 2: "empty mask", 4: "no visible keypoint"}
+    assert (c["objects"], c["reconstructed"], c["skipped"]) == (6, 3, 3)
+    assert {f["annotation_id"]: (f["stage"], f["reason"]) for f in c["failures"]} == {
+        k: ("load", v) for k, v in why.items()}
+    assert {p["annotation_id"] for p in s["input_problems"] if p["skipped"]} == set(why)
+    row = next(line.split() for line in format_table(s).splitlines() if line.startswith("car "))
+    assert row[1:5] == ["6", "3", "0", "3"]  # objects, reconstructed, resumed, skipped
+    build_report(out, out / "report")
+    text = (out / "report" / "cards.js").read_text()
+    cards = json.loads(text[text.index("\n[") + 1:text.rindex(");")])
+    assert {int(k["id"]): k["skipped"] for k in cards if k.get("skipped")} == why
+    assert not any(k.get("problems") for k in cards)  # the reason is the card's, not an unreadable mask
+
+
 # --------------------------------------------------------------------------- categories without left/right pairs
 
 

@@ -58,6 +58,7 @@ class Problem:
     source: str | None = None
     stage: str = "load"
     fatal: bool = True  # False: a warning, the object is still used
+    class_key: str | None = None  # the folder of the object's class (``ClassMeta.key``), where known
 
     def message(self) -> str:
         who = []
@@ -473,7 +474,7 @@ def _annotation(ann, metas: dict, images: dict, seen: set, skip_flags: bool, max
     key, meta = metas[str(cid)]
     if meta is None:  # left out by `classes`, or a broken category (reported)
         return None
-    p = dict(annotation_id=aid, category=meta.name, source=source)
+    p = dict(annotation_id=aid, category=meta.name, source=source, class_key=key)
     if str(aid) in seen:
         problems.append(Problem(f"duplicate annotation id {aid!r}; keeping the first", **p))
         return None
