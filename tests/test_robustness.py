@@ -507,6 +507,14 @@ def test_resume_keeps_an_object_only_while_its_inputs_are_unchanged(base, tmp_pa
     older = run(_cfg(out, tmp_path / "others.json", classes="car"), workers=0)["classes"]["car"]
     assert (older["resumed"], older["reconstructed"]) == (5, 1)
     assert older["redone"] == {"count": 1, "no_input_record": [2]}
+    # the annotations edited after the run: export leaves out the object whose files no longer match them
+    from carvi_torch.export import export
+
+    others["annotations"][0]["segmentation"] = encode_mask(mask)
+    _write(tmp_path, others, "others.json")
+    index = export(out, tmp_path / "export", resolution=4, points=8, progress=False, workers=0)
+    assert len(index["samples"]) == 5 and [(s["annotation_id"], s["reason"]) for s in index["skipped"]] == [
+        (car_ids[0], "its files were made from other inputs than the annotation file's (rerun reconstruct)")]
 
 
 def test_a_killed_run_leaves_no_process_running(base, tmp_path):
