@@ -137,7 +137,8 @@ def announce(setup: RunSetup) -> None:
     if setup.changed:
         log.warning(f"{setup.out} holds a run made with other settings ("
                     + ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in setup.changed.items())
-                    + "); its finished objects are kept as they are (resumed), so pass overwrite=true to redo them")
+                    + "); its finished objects whose inputs are unchanged are kept as they are (resumed), so pass "
+                    "overwrite=true to redo them")
     names = {c.meta.name for c in setup.loaded.collections.values()} | set(setup.loaded.collections)
     for c in setup.cfg.classes or []:
         if c not in names:
