@@ -117,8 +117,7 @@ def finished(cdir: str | Path, annotation_id, mesh_format: str, fingerprint: str
     inputs (:data:`INPUTS_CHANGED`) or holding no fingerprint (:data:`NO_INPUT_RECORD`).
 
     Example:
-        >>> import tempfile
-        >>> finished(tempfile.mkdtemp(), 3, "ply")
+        >>> finished("no/such/run/car", 3, "ply")
         False
     """
     mesh, voxels = object_file(cdir, "meshes", annotation_id, mesh_format), object_file(cdir, "voxels", annotation_id)
