@@ -622,7 +622,8 @@ def _coerce_plain(value: Any, annotation: Any) -> Any:
 
 
 #: Settings that do not change how an object is reconstructed (a rerun may differ in them freely;
-#: the input files are the user's choice, and resumed objects are matched by annotation id).
+#: the input files are the user's choice: an object is resumed only when the fingerprint of its own inputs,
+#: recorded in its voxels file, matches, whatever file they come from).
 NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overwrite", "classes", "stage", "device",
                     "executor", "ray_address", "ray_chunk_objects", "pipeline_classes",  # where the work runs
                     "viewpoints.sfm_group_threads",  # the mixture fit's result is the same on any number of threads

@@ -110,7 +110,8 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
                      "mask": coll.masks[i].cpu().numpy(), "keypoints": coll.keypoints[i].cpu().numpy(),
                      "visible": coll.visible[i].cpu().numpy(), "canvas_scale": float(coll.canvas_from_image.scale[i]),
                      "canvas_offset": coll.canvas_from_image.offset[i].double().numpy(), "camera": entry["refined"],
-                     "quality": float(q) if q is not None else float("nan"), "voxels": str(vox), "mesh": str(mesh)})
+                     "quality": float(q) if q is not None else float("nan"), "voxels": str(vox), "mesh": str(mesh),
+                     "fingerprint": coll.fingerprints[i]})
     return jobs
 
 
