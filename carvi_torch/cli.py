@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 __all__ = ["main", "add_common", "split_classes", "version", "run_command", "CommandError", "os_error_line",
-           "writable_folder"]
+           "writable_folder", "writable_file"]
 
 #: Subcommand -> (module with ``main(argv)``, one line of help).
 COMMANDS = {
@@ -118,6 +118,23 @@ def writable_folder(path: str | os.PathLike, option: str = "--out") -> Path:
             pass
     except OSError as e:
         raise CommandError(f"{option} {out}: cannot write there ({os_error_line(e)})") from e
+    return out
+
+
+def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:
+    """Check, before a command does its work, that the output file ``path`` can be made: it is not a folder,
+    and the nearest existing folder above it is a folder this process may write; raises :class:`CommandError`
+    naming ``option``. Nothing is written (an error when the file is written is still one ``error:`` line)."""
+    out = Path(path)
+    if out.is_dir():
+        raise CommandError(f"{option} {out} is a folder; give the file to write")
+    parent = out.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise CommandError(f"{option} {out}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise CommandError(f"{option} {out}: {parent} is not writable")
     return out
 
 
