@@ -151,7 +151,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         except SystemExit as e:
             return int(e.code or 0)
     ns, rest = ap.parse_known_args(argv[:1])
-    module = importlib.import_module(COMMANDS[ns.command][0])
+    try:  # the command's imports (torch, ...) take seconds: Ctrl-C then is one line too
+        module = importlib.import_module(COMMANDS[ns.command][0])
+    except KeyboardInterrupt:
+        print("interrupted; nothing was written", file=sys.stderr)
+        return 130
     return int(module.main(argv[1:]) or 0)
 
 
