@@ -621,3 +621,24 @@ def test_camera_only_and_unfinished_runs_are_said_so(recon, tmp_path, capsys):
     assert export_main(["--recon", str(part), "--out", str(tmp_path / "e3")] + args) == 2
     assert "no object reconstructed yet" in capsys.readouterr().err
     assert not (tmp_path / "e3").exists()
+
+
+def test_export_workers_ignore_ctrl_c():
+    """Ctrl-C reaches the whole process group; an export worker ignores it (the export stops its pool and
+    prints one line) instead of dying with a traceback of its own."""
+    import multiprocessing as mp
+    import os
+    import signal
+    import time
+
+    from carvi_torch.export.objects import init_worker
+    from carvi_torch.runtime import LeanProcessPool, start_method
+
+    pool = LeanProcessPool(1, mp_context=mp.get_context(start_method()), initializer=init_worker)
+    try:
+        pid = pool.submit(os.getpid).result(timeout=60)
+        os.kill(pid, signal.SIGINT)
+        time.sleep(0.2)
+        assert pool.submit(os.getpid).result(timeout=60) == pid
+    finally:
+        pool.shutdown()
