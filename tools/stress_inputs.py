@@ -31,7 +31,11 @@ time, and exits 0 when every case is good, else 1 with the bad cases listed. ``-
 record: per case its commands, exit statuses, outcome and what was wrong. Each case's folder and
 its runs' stdout/stderr (``WORK/logs``) stay for a look until the next run of the tool.
 
-About 113 cases, 5 minutes with ``--jobs 2`` on 2 cores; every run waits about 2 s for its writer
+The ``cmd_`` cases run the other commands (``export``, ``report``, ``evaluate``, ``datasets``) on an output
+they cannot write (a file where a folder goes, a folder where a file goes, a folder holding other
+files): one ``error:`` line, exit 2, nothing written, as reconstruct's command-line cases.
+
+About 121 cases, 8 minutes with ``--jobs 2`` on 2 cores; every run waits about 2 s for its writer
 processes to start, so ``--jobs 4`` keeps 2 cores busier.
 """
 from __future__ import annotations
