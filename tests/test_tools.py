@@ -468,7 +468,8 @@ STRESS = ROOT / "tools" / "stress_inputs.py"
 
 def test_stress_inputs_runs_a_few_cases(tmp_path: Path):
     """A few of the hostile-input cases through the real command line (a valid file, a truncated JSON,
-    a bad device, another command's --out that is a file): each comes out as promised, so the tool exits 0 and its table marks every row good."""
+    a bad device, another command's --out that is a file): each comes out as promised, so the tool exits 0
+    and its table marks every row good."""
     cases = ["control_valid", "json_truncated", "cli_device_tpu", "cmd_datasets_procedural_out_file"]
     record = tmp_path / "stress.json"
     res = subprocess.run([sys.executable, str(STRESS), "--work", str(tmp_path / "work"), "--cases", ",".join(cases),

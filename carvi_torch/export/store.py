@@ -257,11 +257,16 @@ class StoreWriter:
         self.out = Path(out)
         _check_replaceable(self.out)
         self.created = not self.out.exists()
-        self.out.mkdir(parents=True, exist_ok=True)
-        _remove_stale(self.out)
         self.tmp = self.out / f"{PARTIAL_PREFIX}{os.getpid()}"
-        with deferred_interrupt():
-            self.root = zarr.open_group(str(self.tmp), mode="w", zarr_format=3)
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+            _remove_stale(self.out)
+            with deferred_interrupt():
+                self.root = zarr.open_group(str(self.tmp), mode="w", zarr_format=3)
+        except OSError as e:
+            self.abort()
+            raise ValueError(f"{self.out}: cannot write the store there ({e.strerror or e}; nothing was "
+                             "written)") from e
         self.shard_size = max(1, int(shard_size))
         self.fields = list(fields) if fields is not None else list(DEFAULT_FIELDS)
         self.classes: dict[str, _ClassArrays] = {}
