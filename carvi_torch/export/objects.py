@@ -277,7 +277,11 @@ def safe_export_objects(jobs: list[dict]) -> list[tuple[dict | None, str | None]
 
 def init_worker() -> None:
     """An export worker process: one torch thread where torch is imported (the processes are the
-    parallelism; the worker's own work is numpy, and it does not import torch)."""
+    parallelism; the worker's own work is numpy, and it does not import torch). It ignores Ctrl-C, which a
+    terminal sends to the whole process group: the main process handles it and stops the pool."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(1)
