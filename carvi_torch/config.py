@@ -125,7 +125,7 @@ class ViewpointConfig:
     and ``sfm_group_hull_gain``; every other class keeps one shape, bit for bit. 1 = one mean shape per
     class, as in the paper (on the 8-view CAD renders sofa 10.9 against 8.9 degrees, docs/viewpoints.md;
     shapes 5.51 against 5.38%, docs/results.md). More, smaller groups (``sfm_groups=4 sfm_group_min=10
-    sfm_group_gain=0.25``) put sofa at 5.7 / 3.5 / 6.7 degrees over three render seeds, for 1.27x the
+    sfm_group_gain=0.25``) put sofa at 5.7 / 3.5 / 6.7 degrees over three render seeds, for 1.33x the
     many-class run's time (docs/viewpoints.md, *More, smaller groups*)."""
     sfm_group_misfit: float = 0.025
     """The mixture is only fitted when the one-shape SfM misfits the class: the median over the objects of
