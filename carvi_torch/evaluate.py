@@ -35,7 +35,7 @@ import trimesh
 from tqdm.auto import tqdm
 
 from .cameras import ScaledOrthographic
-from .cli import add_common, split_classes
+from .cli import add_common, program, split_classes
 from .config import Config, read_run_config
 from .io.coco import CocoFormatError, class_keys, load_coco, object_id
 from .io.layout import object_file
@@ -389,7 +389,7 @@ def format_viewpoint_table(res: dict) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m carvi_torch.evaluate", description=__doc__,
+    ap = argparse.ArgumentParser(prog=program("carvi_torch.evaluate"), description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="COCO keypoint JSON the reconstruction ran on (gt.json beside it)")
     ap.add_argument("--recon", required=True, action="append",

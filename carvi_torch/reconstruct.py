@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .cli import add_common, split_classes
+from .cli import add_common, program, split_classes
 from .config import FIELD_DOCS, Config, ConfigError, load_config
 from .io.coco import CocoFormatError
 
@@ -43,7 +43,7 @@ def settings_help(width: int = 100) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m carvi_torch.reconstruct",
+    ap = argparse.ArgumentParser(prog=program("carvi_torch.reconstruct"),
                                  description="Lift annotated objects into 3D: a camera viewpoint and a dense shape "
                                              "for every object (Carreira et al., 'Lifting Object Detection "
                                              "Datasets into 3D').",
