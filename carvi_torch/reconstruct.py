@@ -16,7 +16,8 @@ from .config import FIELD_DOCS, Config, ConfigError, load_config
 from .io.coco import CocoFormatError
 
 EPILOG_HEAD = """\
-Outputs in --out: config.yaml (resolved), summary.json, preview.png, report/index.html and per class
+Outputs in --out: config.yaml (resolved), summary.json, run.log (the whole log, timestamped),
+preview.png, report/index.html, input/ (the embedded collection, when there is no --data) and per class
 <class>/cameras.json, <class>/meshes/<annotation_id>.ply, <class>/voxels/<annotation_id>.npz
 (meshes and voxels in the reference camera frame, image pixels). A rerun skips finished objects.
 

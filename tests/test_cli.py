@@ -36,3 +36,11 @@ def test_one_version(capsys):
     assert carvi_torch.__version__ == version("carvi_torch") != "unknown"
     assert main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == f"carvi_torch {carvi_torch.__version__}"
+
+
+def test_reconstruct_help_lists_every_file_of_a_run():
+    from carvi_torch.io.layout import RUN_NAMES
+    from carvi_torch.reconstruct import EPILOG_HEAD
+
+    listed = EPILOG_HEAD.split("key=value settings")[0]
+    assert [n for n in RUN_NAMES if n not in listed] == []
