@@ -178,3 +178,19 @@ def test_unknown_classes_and_foreign_reconstructions_are_refused(recon, tmp_path
         assert "\n" not in err and "was not made from" in err and str(recon / "input" / "annotations.json") in err
     # the data it was made from passes
     assert main(["--data", str(data), "--recon", str(recon), "--viewpoints-only", "--quiet"]) == 0
+
+
+def test_a_progress_bar_counts_the_objects_unless_quiet(recon, capsys):
+    data, gt = _gt(recon)
+    assert main(["--data", str(data), "--recon", str(recon), "--classes", "car", "--viewpoints-only"]) == 0
+    err = capsys.readouterr().err
+    assert "evaluate: 100%" in err and f"{len(gt)}/{len(gt)}" in err
+    assert main(["--data", str(data), "--recon", str(recon), "--classes", "car", "--viewpoints-only", "--quiet"]) == 0
+    assert "evaluate" not in capsys.readouterr().err
+
+
+def test_help_says_what_the_step_costs(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "progress bar counts the objects" in text and "1/step^2" in text and "0.25 s at 2" in text
