@@ -155,9 +155,9 @@ class InterruptWatch:
     """Whether a Ctrl-C (SIGINT) arrived while a :func:`watch_interrupts` block ran.
 
     Code that turns the exceptions of bad input into one-line reasons calls :meth:`check` after each
-    object: an interrupt that a library swallowed and turned into another exception (numpy restores
-    its own ``TypeError`` when a ``KeyboardInterrupt`` hits its fallback for old ``__array__``
-    methods, as pycocotools' mask decoder has) is raised again as ``KeyboardInterrupt``.
+    object: an interrupt that a library swallowed and turned into another exception is raised again
+    as ``KeyboardInterrupt`` (seen once: a Ctrl-C during loading came out of pycocotools' mask
+    decoding as numpy's ``TypeError`` about an old-style ``__array__`` method, the run went on).
     """
 
     def __init__(self) -> None:

@@ -209,8 +209,8 @@ class TestInterrupts:
         assert all("malformed segmentation" in m and "\n" not in m for m in reasons.values())
 
     def test_an_interrupt_that_the_decoder_turns_into_a_type_error_propagates(self, tmp_path, monkeypatch):
-        # numpy 2 restores its own TypeError when a KeyboardInterrupt hits its fallback for an old-style
-        # __array__ (pycocotools' decoder has one): the load must stop, not record a bad mask
+        # seen once: a Ctrl-C during loading came out of pycocotools' decoding as numpy's TypeError about an
+        # old-style __array__, and the run went on with a bad-mask reason. The load must stop instead
         import signal
 
         from carvi_torch.io import coco
