@@ -8,7 +8,9 @@
     carvi --version
 
 Every command spells its shared options the same way: ``--classes a,b`` (the classes to work on),
-``--quiet`` (no progress bars; warnings and errors only), ``--version``, ``--help``.
+``--quiet`` (no progress bars; warnings and errors only), ``--version``, ``--help``; and ends the same
+way (:func:`run_command`): a user error or an output that cannot be written is one ``error:`` line and
+exit status 2, Ctrl-C one line saying what is kept and exit status 130 (never a traceback).
 
 Example:
     >>> main(["--version"])  # doctest: +ELLIPSIS
@@ -19,10 +21,14 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
-from typing import Sequence
+import tempfile
+from pathlib import Path
+from typing import Callable, Sequence
 
-__all__ = ["main", "add_common", "split_classes", "version", "program"]
+__all__ = ["main", "add_common", "split_classes", "version", "program", "run_command", "CommandError",
+           "os_error_line", "writable_folder", "writable_file"]
 
 #: Subcommand -> (module with ``main(argv)``, one line of help).
 COMMANDS = {
@@ -71,6 +77,79 @@ def split_classes(value: str | None) -> list[str] | None:
     return names or None
 
 
+class CommandError(Exception):
+    """A user error a command reports as one ``error:`` line (exit status 2)."""
+
+
+def os_error_line(e: OSError) -> str:
+    """One line for an operating-system error: the path(s) and the system's reason.
+
+    Example:
+        >>> os_error_line(IsADirectoryError(21, "Is a directory", "out/annotations.json"))
+        'out/annotations.json: Is a directory'
+    """
+    names = [str(n) for n in (e.filename, e.filename2) if n is not None]
+    reason = e.strerror or str(e)
+    return f"{' -> '.join(names)}: {reason}" if names else reason
+
+
+def run_command(body: Callable[[], int | None], interrupted: str) -> int:
+    """Run a command's body and turn how it ends into an exit status: its own (0 by default); 2 with one
+    ``error:`` line for a :class:`CommandError` or an ``OSError`` (an output that cannot be made or written,
+    an input that cannot be read); 130 with the line ``interrupted`` on Ctrl-C.
+
+    Example:
+        >>> def body():
+        ...     raise FileExistsError(17, "File exists", "out")
+        >>> run_command(body, "interrupted")
+        2
+    """
+    try:
+        return int(body() or 0)
+    except KeyboardInterrupt:
+        print(interrupted, file=sys.stderr)
+        return 130
+    except CommandError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        print(f"error: {os_error_line(e)}", file=sys.stderr)
+        return 2
+
+
+def writable_folder(path: str | os.PathLike, option: str = "--out") -> Path:
+    """Make the output folder ``path`` (and its parents) and check that a file can be written in it, before a
+    command does its work; raises :class:`CommandError` naming ``option`` where it cannot (a file in the way,
+    a read-only place). Nothing outside ``path`` is written."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise CommandError(f"{option} {out} is a file, not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as e:
+        raise CommandError(f"{option} {out}: cannot write there ({os_error_line(e)})") from e
+    return out
+
+
+def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:
+    """Check, before a command does its work, that the output file ``path`` can be made: it is not a folder,
+    and the nearest existing folder above it is a folder this process may write; raises :class:`CommandError`
+    naming ``option``. Nothing is written (an error when the file is written is still one ``error:`` line)."""
+    out = Path(path)
+    if out.is_dir():
+        raise CommandError(f"{option} {out} is a folder; give the file to write")
+    parent = out.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise CommandError(f"{option} {out}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise CommandError(f"{option} {out}: {parent} is not writable")
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(prog="carvi", description="Lift object-detection datasets into 3D.",
@@ -84,7 +163,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         except SystemExit as e:
             return int(e.code or 0)
     ns, rest = ap.parse_known_args(argv[:1])
-    module = importlib.import_module(COMMANDS[ns.command][0])
+    try:  # the command's imports (torch, ...) take seconds: Ctrl-C then is one line too
+        module = importlib.import_module(COMMANDS[ns.command][0])
+    except KeyboardInterrupt:
+        print("interrupted; nothing was written", file=sys.stderr)
+        return 130
     global _running
     _running = f"{ap.prog} {ns.command}"
     try:

@@ -246,6 +246,10 @@ class ClassCollection:
         is_mirror: ``(N,)`` bool, True for flipped copies.
         sources: ``N`` strings (where each annotation came from).
         splits: ``N`` strings (``"pool"``, ``"test"`` or ``""``).
+        fingerprints: ``N`` strings, a hash of each object's inputs as loaded (its decoded mask, keypoints,
+            image entry, ids, class definition; :func:`carvi_torch.io.coco.input_fingerprints`), written with
+            its reconstruction so that a rerun resumes an object only when its inputs are unchanged
+            (``""``: unknown).
     """
 
     meta: ClassMeta
@@ -261,6 +265,7 @@ class ClassCollection:
     is_mirror: torch.Tensor
     sources: list = field(default_factory=list)
     splits: list = field(default_factory=list)
+    fingerprints: list = field(default_factory=list)
 
     def __post_init__(self):
         n = self.masks.shape[0]
@@ -278,6 +283,8 @@ class ClassCollection:
             self.sources = [""] * n
         if not self.splits:
             self.splits = [""] * n
+        if not self.fingerprints:
+            self.fingerprints = [""] * n
 
     # ---- basics
     def __len__(self) -> int:
@@ -320,6 +327,7 @@ class ClassCollection:
             is_mirror=self.is_mirror[ix],
             sources=[self.sources[i] for i in rows],
             splits=[self.splits[i] for i in rows],
+            fingerprints=[self.fingerprints[i] for i in rows],
         )
 
     def to(self, device) -> "ClassCollection":
@@ -338,6 +346,7 @@ class ClassCollection:
             is_mirror=self.is_mirror.to(device),
             sources=list(self.sources),
             splits=list(self.splits),
+            fingerprints=list(self.fingerprints),
         )
 
     @staticmethod
@@ -359,6 +368,7 @@ class ClassCollection:
             is_mirror=torch.cat([p.is_mirror for p in parts]),
             sources=[s for p in parts for s in p.sources],
             splits=[s for p in parts for s in p.splits],
+            fingerprints=[f for p in parts for f in p.fingerprints],
         )
 
     # ---- mirroring
@@ -395,6 +405,7 @@ class ClassCollection:
             is_mirror=~self.is_mirror,
             sources=list(self.sources),
             splits=list(self.splits),
+            fingerprints=list(self.fingerprints),
         )
 
     def with_mirrors(self) -> "ClassCollection":

@@ -124,7 +124,9 @@ class ViewpointConfig:
     misfits it (``sfm_group_misfit``) and the split passes ``sfm_group_gain``, ``sfm_group_agreement_deg``
     and ``sfm_group_hull_gain``; every other class keeps one shape, bit for bit. 1 = one mean shape per
     class, as in the paper (on the 8-view CAD renders sofa 10.9 against 8.9 degrees, docs/viewpoints.md;
-    shapes 5.51 against 5.38%, docs/results.md)."""
+    shapes 5.51 against 5.38%, docs/results.md). More, smaller groups (``sfm_groups=4 sfm_group_min=10
+    sfm_group_gain=0.25``) put sofa at 5.7 / 3.5 / 6.7 degrees over three render seeds, for 1.27x the
+    many-class run's time (docs/viewpoints.md, *More, smaller groups*)."""
     sfm_group_misfit: float = 0.025
     """The mixture is only fitted when the one-shape SfM misfits the class: the median over the objects of
     the keypoint RMS residual over the diagonal of the mask's box is at least this (0 = always fit). A gate
@@ -620,7 +622,8 @@ def _coerce_plain(value: Any, annotation: Any) -> Any:
 
 
 #: Settings that do not change how an object is reconstructed (a rerun may differ in them freely;
-#: the input files are the user's choice, and resumed objects are matched by annotation id).
+#: the input files are the user's choice: an object is resumed only when the fingerprint of its own inputs,
+#: recorded in its voxels file, matches, whatever file they come from).
 NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overwrite", "classes", "stage", "device",
                     "executor", "ray_address", "ray_chunk_objects", "pipeline_classes",  # where the work runs
                     "viewpoints.sfm_group_threads",  # the mixture fit's result is the same on any number of threads

@@ -21,7 +21,7 @@ import sys
 import warnings
 from typing import Sequence
 
-from .cli import add_common, program, split_classes
+from .cli import add_common, program, run_command, split_classes, writable_file, writable_folder
 
 __all__ = ["build_parser", "main"]
 
@@ -184,14 +184,23 @@ def _run_voc(args) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point; returns the exit status (0 success, 2 bad arguments or input)."""
+    """Entry point; returns the exit status (0 success; 2 bad arguments or input, or an ``--out`` that cannot be
+    written: one ``error:`` line, ``--out`` checked before the work; 130 interrupted by Ctrl-C)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
     runners = {"synthetic": _run_synthetic, "procedural": _run_procedural, "voc": _run_voc}
-    return int(runners[args.command](args) or 0)
+
+    def body() -> int:
+        if args.command == "voc":
+            writable_file(args.out)
+        else:
+            writable_folder(args.out)
+        return int(runners[args.command](args) or 0)
+
+    return run_command(body, f"interrupted; {args.out} is incomplete, run the command again")
 
 
 if __name__ == "__main__":

@@ -42,7 +42,7 @@ import trimesh
 from tqdm.auto import tqdm
 
 from .cameras import ScaledOrthographic
-from .cli import add_common, program, split_classes
+from .cli import add_common, program, run_command, split_classes, writable_folder
 from .config import Config, read_run_config
 from .io.coco import CocoFormatError, class_keys, load_coco, object_id
 from .io.layout import object_file
@@ -395,7 +395,17 @@ def format_viewpoint_table(res: dict) -> str:
     return "\n".join(lines)
 
 
+#: The line of an evaluation interrupted by Ctrl-C.
+INTERRUPTED = "interrupted; nothing was written"
+
+
 def main(argv=None) -> int:
+    """Exit status: 0 evaluated; 2 a user error or an ``--out`` that cannot be written (one ``error:`` line,
+    checked before the work); 130 interrupted by Ctrl-C (one line)."""
+    return run_command(lambda: _main(argv), INTERRUPTED)
+
+
+def _main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog=program("carvi_torch.evaluate"), description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="COCO keypoint JSON the reconstruction ran on (gt.json beside it)")
@@ -421,6 +431,27 @@ def main(argv=None) -> int:
         if not Path(p).is_dir():
             print(f"error: reconstruction directory {p} ({name}) not found", file=sys.stderr)
             return 2
+    made = bool(args.out) and not Path(args.out).exists()
+    if args.out:
+        writable_folder(args.out)  # before minutes of work, not after
+    status = None
+    try:
+        status = _evaluate_and_write(args, recons)
+    finally:
+        if made and status != 0:  # the folder made by the check above, left empty: removed
+            _remove_if_empty(Path(args.out))
+    return status
+
+
+def _remove_if_empty(folder: Path) -> None:
+    try:
+        folder.rmdir()
+    except OSError:
+        pass
+
+
+def _evaluate_and_write(args, recons: dict) -> int:
+    """The evaluation, its tables printed and, with ``--out``, written; the exit status."""
     try:
         res = evaluate(args.data, recons, gt=args.gt, split=args.split, baselines=args.baselines,
                        step_percent=args.step_percent, classes=split_classes(args.classes),

@@ -27,7 +27,7 @@ from .carve import CarveMaps
 from .carve.puffball import puffball_grids
 from .collection import ClassCollection
 from .config import Config
-from .io.layout import class_dir, finished, object_file
+from .io.layout import class_dir, object_file, resume_check
 from .io.outputs import write_json
 from .io.results import (ClassReport, cameras_json, canonical_image_cameras, quality_summary, reconstruction_signals,
                          resumed_levels, scores_entry, write_scores)
@@ -68,19 +68,20 @@ class ClassPlan:
         return ids[:, None].expand(R, P).reshape(-1), views.reshape(R * P, -1), valid.reshape(-1)
 
 
-def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None) -> list[bool]:
-    """Per original: finished by an earlier run into ``out`` (its files exist and load), unless ``overwrite``;
-    damaged files are logged and their object is redone."""
-    cdir = class_dir(out if out is not None else ".", coll.meta.key)
+def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None,
+                     report: ClassReport | None = None) -> list[bool]:
+    """Per original: finished by an earlier run into ``out`` from its current inputs, unless ``overwrite``
+    (:func:`~carvi_torch.io.layout.resume_check`); the others are redone, those with damaged files logged per
+    object, those made from other inputs in one line and ``report.info["redone"]``."""
     if out is None or cfg.overwrite:
         return [False] * len(coll)
-    done = []
-    for a in coll.annotation_ids:
-        state = finished(cdir, a, cfg.mesh.format)
-        if isinstance(state, str):
-            log.warning(f"  {coll.meta.key}: annotation {a}: {state}; reconstructing it again")
-        done.append(state is True)
-    return done
+    check = resume_check(class_dir(out, coll.meta.key), coll.annotation_ids, coll.fingerprints, cfg.mesh.format)
+    for a, why in check.damaged.items():
+        log.warning(f"  {coll.meta.key}: annotation {a}: {why}; reconstructing it again")
+    if check.redone:
+        log.warning(f"  {coll.meta.key}: {check.line()}")
+        (report.info if report is not None else {})["redone"] = check.summary()
+    return check.done
 
 
 def _todo(coll: ClassCollection, vp: Viewpoints, done: list, cfg: Config, report: ClassReport) -> list[int]:
@@ -209,7 +210,7 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
         return None, [], report
     timer, n = StageTimer(device, report.seconds), len(coll)
     cdir = class_dir(out if out is not None else ".", coll.meta.key)
-    done = finished_objects(coll, cfg, out) if done is None else list(done)
+    done = finished_objects(coll, cfg, out, report) if done is None else list(done)
     if out is not None:
         plan.levels = resumed_levels(cdir, coll, plan.levels, done)
         finished_ids = [a for a, d in zip(coll.annotation_ids, done) if d]
@@ -269,7 +270,8 @@ def _job(sel: select.Selection, occupancy: torch.Tensor, masks: torch.Tensor, j:
                 proposals_path=str(object_file(plan.cdir, "proposals", aid)),
                 proposals=(proposals_payload(sel, j, sur, canvas_to_image, aid_of)
                            if cfg.study.save_proposals and best >= 0 else None),
-                largest_component=cfg.mesh.largest_component, mask=masks[j].numpy())
+                largest_component=cfg.mesh.largest_component, mask=masks[j].numpy(),
+                input_fingerprint=plan.coll.fingerprints[i])
 
 
 def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config, report: ClassReport,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .cli import add_common, program, split_classes
+from .cli import add_common, program, run_command, split_classes
 from .config import FIELD_DOCS, Config, ConfigError, load_config
 from .io.coco import CocoFormatError
 
@@ -102,12 +102,9 @@ INTERRUPTED = "interrupted; finished objects are kept, rerun to resume"
 
 def main(argv=None) -> int:
     """Exit status: 0 the run made what it was asked for; 1 a class failed or nothing came out of it;
-    2 a user error (one ``error:`` line, nothing written); 130 interrupted by Ctrl-C (one line)."""
-    try:
-        return _main(argv)
-    except KeyboardInterrupt:
-        print(INTERRUPTED, file=sys.stderr)
-        return 130
+    2 a user error or an output that cannot be written (one ``error:`` line); 130 interrupted by Ctrl-C (one
+    line)."""
+    return run_command(lambda: _main(argv), INTERRUPTED)
 
 
 def _main(argv=None) -> int:

@@ -31,7 +31,7 @@ except ImportError:  # pragma: no cover - exercised by tests that hide the modul
 
 __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb", "cpu_seconds",
            "maxrss_to_mb", "stable_hash", "InterruptWatch", "watch_interrupts", "intra_op_threads", "log",
-           "log_to_terminal", "log_to_file", "TqdmHandler"]
+           "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt"]
 
 
 def cores() -> int:
@@ -284,6 +284,48 @@ def without_main_module() -> Iterator[None]:
         yield
     finally:
         sys.modules["__main__"] = main
+
+
+@contextlib.contextmanager
+def deferred_interrupt() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) back until the block ends, then raise the ``KeyboardInterrupt``: for work that
+    must not stop half-way (a zarr write, whose event-loop thread a ``KeyboardInterrupt`` would leave
+    running, or the renames that swap a finished store in). Outside the main thread it does nothing
+    (Python delivers signals to the main thread only).
+
+    Example:
+        >>> import signal
+        >>> try:
+        ...     with deferred_interrupt():
+        ...         signal.raise_signal(signal.SIGINT)
+        ...         print("the block finished")
+        ... except KeyboardInterrupt:
+        ...     print("then interrupted")
+        the block finished
+        then interrupted
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught:
+            raise KeyboardInterrupt
+
+
+def ignore_interrupt() -> None:
+    """Ignore Ctrl-C in this (worker) process: a terminal sends SIGINT to the whole process group, and the
+    main process handles it (it stops its workers), so that no worker prints a traceback of its own."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def start_method() -> str:

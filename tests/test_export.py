@@ -543,3 +543,102 @@ def test_worker_processes_write_the_same_store(recon, tmp_path):
     # a real process (the fork server has torch imported already)
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert res.returncode == 0 and res.stdout.strip() == "[]", res.stderr[-2000:]
+
+
+def _files(folder):
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_an_interrupted_export_leaves_the_earlier_one_intact(recon, tmp_path, monkeypatch, capsys):
+    """Ctrl-C during a re-export (after some shards are written): exit 130, one line, and the earlier export
+    byte for byte as it was, every sample readable; no hidden folder is left behind."""
+    from carvi_torch.export import store
+
+    out = tmp_path / "exp"
+    args = ["--recon", str(recon), "--out", str(out), "--resolution", "4", "--points", "8", "--workers", "0",
+            "--quiet"]
+    assert export_main(args) == 0
+    before = _files(out)
+    n = len(LiftedDataset(out))
+    added, real_add = [], store._ClassArrays.add
+
+    def add(self, sample, meta):  # the interrupt arrives when two shards of one sample are written
+        added.append(meta["annotation_id"])
+        if len(added) == 3:
+            raise KeyboardInterrupt
+        real_add(self, sample, meta)
+
+    monkeypatch.setattr(store._ClassArrays, "add", add)
+    capsys.readouterr()
+    assert export_main(args + ["--shard-size", "1", "--mesh"]) == 130
+    assert capsys.readouterr().err.strip().splitlines() == [f"interrupted; {out} is as it was before the export"]
+    assert _files(out) == before
+    ds = LiftedDataset(out)
+    assert len(ds) == n and float(ds[n - 1]["canvas_scale"]) > 0
+    # interrupted into a new folder: the folder is not left behind
+    added.clear()
+    assert export_main(args[:2] + ["--out", str(tmp_path / "new" / "exp")] + args[4:]) == 130
+    assert not (tmp_path / "new" / "exp").exists()
+
+
+def test_camera_only_and_unfinished_runs_are_said_so(recon, tmp_path, capsys):
+    """A camera-only run: one error line, exit 2, nothing written. An unfinished run (no totals in
+    summary.json): its finished objects exported, the others in one warning line; --quiet prints no
+    per-object line."""
+    import yaml
+
+    cams = tmp_path / "cams"
+    shutil.copytree(recon, cams)
+    cfg = yaml.safe_load((cams / "config.yaml").read_text())
+    cfg["stage"] = "cameras"
+    (cams / "config.yaml").write_text(yaml.safe_dump(cfg))
+    args = ["--resolution", "4", "--points", "8", "--workers", "0", "--quiet"]
+    capsys.readouterr()
+    assert export_main(["--recon", str(cams), "--out", str(tmp_path / "e1")] + args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and "camera-only" in err[0]
+    assert not (tmp_path / "e1").exists()
+
+    part = tmp_path / "part"
+    shutil.copytree(recon, part)
+    summary = json.loads((part / "summary.json").read_text())
+    del summary["total_seconds"]
+    (part / "summary.json").write_text(json.dumps(summary))
+    gone = sorted((part / "car" / "voxels").glob("*.npz"))[:2]
+    for p in gone:
+        p.unlink()
+    assert export_main(["--recon", str(part), "--out", str(tmp_path / "e2")] + args) == 0
+    cap = capsys.readouterr()
+    warn = [line for line in cap.err.splitlines() if line.strip()]
+    assert len(warn) == 1 and "unfinished run" in warn[0] and " 2 not reconstructed yet" in warn[0], cap.err
+    assert "skipped:" not in cap.out
+    attrs = json.loads((tmp_path / "e2" / "zarr.json").read_text())["attributes"]["carvi_export"]
+    assert sorted(s["annotation_id"] for s in attrs["skipped"]) == sorted(int(p.stem) for p in gone)
+    assert {s["reason"] for s in attrs["skipped"]} == {"not reconstructed yet (the run is unfinished)"}
+    # nothing finished at all: an error, nothing written
+    shutil.rmtree(part / "car")
+    shutil.rmtree(part / "chair")
+    assert export_main(["--recon", str(part), "--out", str(tmp_path / "e3")] + args) == 2
+    assert "no object reconstructed yet" in capsys.readouterr().err
+    assert not (tmp_path / "e3").exists()
+
+
+def test_export_workers_ignore_ctrl_c():
+    """Ctrl-C reaches the whole process group; an export worker ignores it (the export stops its pool and
+    prints one line) instead of dying with a traceback of its own."""
+    import multiprocessing as mp
+    import os
+    import signal
+    import time
+
+    from carvi_torch.export.objects import init_worker
+    from carvi_torch.runtime import LeanProcessPool, start_method
+
+    pool = LeanProcessPool(1, mp_context=mp.get_context(start_method()), initializer=init_worker)
+    try:
+        pid = pool.submit(os.getpid).result(timeout=60)
+        os.kill(pid, signal.SIGINT)
+        time.sleep(0.2)
+        assert pool.submit(os.getpid).result(timeout=60) == pid
+    finally:
+        pool.shutdown()

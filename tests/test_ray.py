@@ -18,6 +18,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from carvi_torch.config import Config, ConfigError
@@ -124,17 +125,24 @@ def test_ray_run_equals_local_run(cluster, local, tmp_path):
 
 
 def test_resume_across_executors(cluster, local, tmp_path):
-    """A local run's folder with some objects lost: a Ray run redoes just those (the same files again), and
-    its summary keeps the class it did not run (merged); a local rerun into that folder then resumes all."""
+    """A local run's folder with some objects lost, and one whose voxels file holds no input fingerprint (an
+    older run's): a Ray run redoes just those (the same files again), says so (``redone``), and its summary
+    keeps the class it did not run (merged); a local rerun into that folder then resumes all."""
     c, _ = cluster
     out, ref = local
     shutil.copytree(out, tmp_path, dirs_exist_ok=True)
-    lost = sorted((tmp_path / "car" / "meshes").glob("*.ply"))[:3]
+    meshes = sorted((tmp_path / "car" / "meshes").glob("*.ply"))
+    lost = meshes[:3]
     for p in lost:
         p.unlink()
+    older = tmp_path / "car" / "voxels" / f"{meshes[3].stem}.npz"
+    with np.load(older) as z:
+        members = {k: z[k] for k in z.files if k != "input_fingerprint"}
+    np.savez(older, **members)
     got = run(_cfg(tmp_path, data=ref["data"], executor="ray", ray_address=c.address, classes=["car"]))
     car = got["classes"]["car"]
-    assert (car["reconstructed"], car["resumed"]) == (len(lost), 6 - len(lost))
+    assert (car["reconstructed"], car["resumed"]) == (len(lost) + 1, 6 - len(lost) - 1)
+    assert car["redone"] == {"count": 1, "no_input_record": [int(meshes[3].stem)]}
     assert got["classes"]["bottle"] == ref["classes"]["bottle"] and got["classes_from_earlier_runs"] == ["bottle"]
     _same_files(out, tmp_path)
     again = run(_cfg(tmp_path, data=ref["data"], classes=["car"]), workers=0)["classes"]["car"]  # resumes: inline

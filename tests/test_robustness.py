@@ -313,6 +313,35 @@ def test_an_object_whose_keypoints_collapse_is_skipped_alone(base, tmp_path):
     assert cams["2"]["refined"] is None and cams["2"]["azimuth_deg"] is None and cams["1"]["refined"] is not None
 
 
+def test_objects_skipped_at_load_count_in_their_class_and_get_report_cards(base, tmp_path):
+    """Objects dropped at load (an unknown image, a polygon of no area, every keypoint far off the image) are
+    their class's objects and skipped ones (summary, the closing table), with the load reason as their
+    failure, and each gets a report card giving it; ``input_problems`` still lists them."""
+    from carvi_torch.reconstruct import format_table
+    from carvi_torch.report import build_report
+
+    d = copy.deepcopy(base)
+    anns = {a["id"]: a for a in d["annotations"]}
+    anns[1]["image_id"] = 999
+    anns[2]["segmentation"] = [[10.0, 10.0, 20.0, 20.0, 30.0, 30.0]]  # three points on a line
+    anns[4]["keypoints"] = [v if i % 3 == 2 else -5000.0 for i, v in enumerate(anns[4]["keypoints"])]
+    out = tmp_path / "run"
+    s = run(_cfg(out, _write(tmp_path, d), classes="car"), workers=0)
+    c = s["classes"]["car"]
+    why = {1: "unknown image id 999", 2: "empty mask", 4: "no visible keypoint"}
+    assert (c["objects"], c["reconstructed"], c["skipped"]) == (6, 3, 3)
+    assert {f["annotation_id"]: (f["stage"], f["reason"]) for f in c["failures"]} == {
+        k: ("load", v) for k, v in why.items()}
+    assert {p["annotation_id"] for p in s["input_problems"] if p["skipped"]} == set(why)
+    row = next(line.split() for line in format_table(s).splitlines() if line.startswith("car "))
+    assert row[1:5] == ["6", "3", "0", "3"]  # objects, reconstructed, resumed, skipped
+    build_report(out, out / "report")
+    text = (out / "report" / "cards.js").read_text()
+    cards = json.loads(text[text.index("\n[") + 1:text.rindex(");")])
+    assert {int(k["id"]): k["skipped"] for k in cards if k.get("skipped")} == why
+    assert not any(k.get("problems") for k in cards)  # the reason is the card's, not an unreadable mask
+
+
 # --------------------------------------------------------------------------- categories without left/right pairs
 
 
@@ -420,6 +449,72 @@ def test_resume_redoes_damaged_outputs_and_merges_partial_runs(base, tmp_path):
     assert again["resumed"] == 1 and again["reconstructed"] == 5
     for m, v in zip(meshes[:5], voxels[:5]):
         assert len(trimesh.load(m, force="mesh").faces) > 0 and np.load(v)["occupancy"].any()
+
+
+def _files(out: Path, cls: str = "car") -> dict:
+    """``{annotation id: (mesh bytes, voxels mtime)}`` of a class's finished objects."""
+    return {m.stem: (m.read_bytes(), (out / cls / "voxels" / f"{m.stem}.npz").stat().st_mtime_ns)
+            for m in (out / cls / "meshes").glob("*.ply")}
+
+
+def test_resume_keeps_an_object_only_while_its_inputs_are_unchanged(base, tmp_path):
+    """A rerun resumes an object only when its own inputs are those it was made from (the fingerprint in its
+    voxels file), whatever file they come from: a copy of the annotations elsewhere resumes all; an edited
+    mask redoes exactly that object (its reconstruction_iou renewed); a file whose objects are others under
+    the same ids redoes them all; files without a fingerprint (an older run's) are redone and counted."""
+    from carvi_torch.io.coco import decode_segmentation, encode_mask
+
+    out, data = tmp_path / "run", _write(tmp_path, base)
+    assert run(_cfg(out, data, classes="car"), workers=0)["classes"]["car"]["reconstructed"] == 6
+    first = _files(out)
+    (tmp_path / "elsewhere").mkdir()
+    copied = run(_cfg(out, _write(tmp_path / "elsewhere", base), classes="car"), workers=0)
+    c = copied["classes"]["car"]
+    assert (c["resumed"], c["reconstructed"]) == (6, 0) and "redone" not in c and _files(out) == first
+    assert copied["data_changed"]["previous"] == str(data.resolve())
+    # one object's mask edited: the left 40% of its columns taken away
+    edited = copy.deepcopy(base)
+    ann = next(a for a in edited["annotations"] if a["id"] == 3)
+    im = next(i for i in edited["images"] if i["id"] == ann["image_id"])
+    mask = decode_segmentation(ann["segmentation"], im["height"], im["width"])
+    cols = np.flatnonzero(mask.any(axis=0))
+    mask[:, :cols[0] + int(0.4 * len(cols))] = False
+    ann["segmentation"] = encode_mask(mask)
+    again = run(_cfg(out, _write(tmp_path, edited, "edited.json"), classes="car"), workers=0)["classes"]["car"]
+    assert (again["resumed"], again["reconstructed"]) == (5, 1)
+    assert again["redone"] == {"count": 1, "inputs_changed": [3]}
+    now = _files(out)
+    assert now["3"][0] != first["3"][0] and {k: v for k, v in now.items() if k != "3"} == {
+        k: v for k, v in first.items() if k != "3"}
+    cams = json.loads((out / "car" / "cameras.json").read_text())["cameras"]
+    iou = float(np.load(out / "car" / "voxels" / "3.npz")["reconstruction_iou"])
+    assert cams["3"]["quality_signals"]["reconstruction_iou"] == round(iou, 6)
+    # other objects under the same ids: the chairs, their category renamed car
+    car = next(c for c in base["categories"] if c["name"] == "car")
+    chair = next(c for c in base["categories"] if c["name"] == "chair")
+    car_ids = sorted(a["id"] for a in base["annotations"] if a["category_id"] == car["id"])
+    chairs = sorted((a for a in base["annotations"] if a["category_id"] == chair["id"]), key=lambda a: a["id"])
+    others = {"images": base["images"], "categories": [{**chair, "id": car["id"], "name": "car"}],
+              "annotations": [{**a, "id": i, "category_id": car["id"]} for a, i in zip(chairs, car_ids)]}
+    swapped = run(_cfg(out, _write(tmp_path, others, "others.json"), classes="car"), workers=0)["classes"]["car"]
+    assert (swapped["resumed"], swapped["reconstructed"]) == (0, 6)
+    assert swapped["redone"] == {"count": 6, "inputs_changed": car_ids}
+    # an older run's files, without a fingerprint: redone, and said so
+    vox = out / "car" / "voxels" / "2.npz"
+    with np.load(vox) as z:
+        members = {k: z[k] for k in z.files if k != "input_fingerprint"}
+    np.savez(vox, **members)
+    older = run(_cfg(out, tmp_path / "others.json", classes="car"), workers=0)["classes"]["car"]
+    assert (older["resumed"], older["reconstructed"]) == (5, 1)
+    assert older["redone"] == {"count": 1, "no_input_record": [2]}
+    # the annotations edited after the run: export leaves out the object whose files no longer match them
+    from carvi_torch.export import export
+
+    others["annotations"][0]["segmentation"] = encode_mask(mask)
+    _write(tmp_path, others, "others.json")
+    index = export(out, tmp_path / "export", resolution=4, points=8, progress=False, workers=0)
+    assert len(index["samples"]) == 5 and [(s["annotation_id"], s["reason"]) for s in index["skipped"]] == [
+        (car_ids[0], "its files were made from other inputs than the annotation file's (rerun reconstruct)")]
 
 
 def test_a_killed_run_leaves_no_process_running(base, tmp_path):

@@ -471,8 +471,9 @@ STRESS = ROOT / "tools" / "stress_inputs.py"
 
 def test_stress_inputs_runs_a_few_cases(tmp_path: Path):
     """A few of the hostile-input cases through the real command line (a valid file, a truncated JSON,
-    a bad device): each comes out as promised, so the tool exits 0 and its table marks every row good."""
-    cases = ["control_valid", "json_truncated", "cli_device_tpu"]
+    a bad device, another command's --out that is a file): each comes out as promised, so the tool exits 0
+    and its table marks every row good."""
+    cases = ["control_valid", "json_truncated", "cli_device_tpu", "cmd_datasets_procedural_out_file"]
     record = tmp_path / "stress.json"
     res = subprocess.run([sys.executable, str(STRESS), "--work", str(tmp_path / "work"), "--cases", ",".join(cases),
                           "--out-json", str(record), "--jobs", str(len(cases))],  # all at once: two exit early
@@ -482,10 +483,12 @@ def test_stress_inputs_runs_a_few_cases(tmp_path: Path):
     assert lines[:2] == ["| case | what is wrong | outcome | good? |", "|---|---|---|---|"]
     rows = {ln.split("|")[1].strip(" `"): ln for ln in lines[2:] if ln.startswith("| `")}
     assert sorted(rows) == sorted(cases) and all(r.endswith("| yes |") for r in rows.values()), rows
+    assert "exit 2: error: --out file is a file" in rows["cmd_datasets_procedural_out_file"]
     assert "exit 2: error: device" in rows["cli_device_tpu"] and "exit 0; 12 objects" in rows["control_valid"]
     rec = json.loads(record.read_text())["cases"]
     assert [(c["case"], c["exit"], c["good"]) for c in rec] == [
-        ("control_valid", [0], True), ("json_truncated", [2], True), ("cli_device_tpu", [2], True)]
+        ("control_valid", [0], True), ("json_truncated", [2], True), ("cli_device_tpu", [2], True),
+        ("cmd_datasets_procedural_out_file", [2], True)]
 
 
 def test_stress_inputs_checks_catch_bad_outcomes(tmp_path: Path):

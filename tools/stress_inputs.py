@@ -31,7 +31,11 @@ time, and exits 0 when every case is good, else 1 with the bad cases listed. ``-
 record: per case its commands, exit statuses, outcome and what was wrong. Each case's folder and
 its runs' stdout/stderr (``WORK/logs``) stay for a look until the next run of the tool.
 
-About 113 cases, 5 minutes with ``--jobs 2`` on 2 cores; every run waits about 2 s for its writer
+The ``cmd_`` cases run the other commands (``export``, ``report``, ``evaluate``, ``datasets``) on an output
+they cannot write (a file where a folder goes, a folder where a file goes, a folder holding other
+files): one ``error:`` line, exit 2, nothing written, as reconstruct's command-line cases.
+
+About 121 cases, 8 minutes with ``--jobs 2`` on 2 cores; every run waits about 2 s for its writer
 processes to start, so ``--jobs 4`` keeps 2 cores busier.
 """
 from __future__ import annotations
@@ -315,6 +319,7 @@ class Case:
     damage: Callable[[Path], None] | None = None  # resume: damage to a finished run, then a rerun
     redo: int = 0  # resume: objects the rerun must make again (the others it must resume)
     kill: int = 0  # a signal sent to a running reconstruct (then a rerun)
+    command: str = "reconstruct"  # another command (``cli`` is then its whole command line, exit 2 cases only)
     extra: Callable[[Any, dict], list] | None = None  # more checks: (context, summary) -> problems
 
     @property
@@ -620,6 +625,35 @@ def _cli_cases() -> list[Case]:
     ]
 
 
+def _command_cases() -> list[Case]:
+    """The other commands' outputs that cannot be written: one ``error:`` line, exit 2, nothing written."""
+    run = (("run/summary.json", b'{"classes": {}}'), ("run/config.yaml", b"stage: all\n"))
+    file, foreign = (("file", b"x"),), (("mine/notes.txt", b"keep"),)
+
+    def case(command, name, what, cli, files, *phrases):
+        return Case(f"cmd_{command}_{name}", what, command=command, cli=cli, files=files, rc=2, error=phrases,
+                    extra=_file_kept(files[-1][0], files[-1][1]))
+
+    return [
+        case("export", "out_file", "export --out is an existing file", ("--recon", "{dir}/run", "--out", "{dir}/file"),
+             run + file, "is not a folder"),
+        case("export", "out_under_file", "export --out below an existing file",
+             ("--recon", "{dir}/run", "--out", "{dir}/file/sub"), run + file, "Not a directory"),
+        case("export", "out_foreign", "export --out holds other files", ("--recon", "{dir}/run", "--out", "{dir}/mine"),
+             run + foreign, "not an earlier export"),
+        case("report", "out_file", "report --out is an existing file", ("--recon", "{dir}/run", "--out", "{dir}/file"),
+             run + file, "is a file"),
+        case("report", "out_foreign", "report --out holds other files", ("--recon", "{dir}/run", "--out", "{dir}/mine"),
+             run + foreign, "not an earlier report"),
+        case("evaluate", "out_file", "evaluate --out is an existing file",
+             ("--data", "{data}", "--recon", "{dir}/run", "--out", "{dir}/file"), run + file, "is a file"),
+        case("datasets", "procedural_out_file", "datasets procedural --out is an existing file",
+             ("procedural", "--out", "{dir}/file"), file, "is a file"),
+        case("datasets", "voc_out_folder", "datasets voc --out (a file) is a folder",
+             ("voc", "--keypoints", "{dir}/mine", "--out", "{dir}/mine"), foreign, "is a folder"),
+    ]
+
+
 def _resume_cases() -> list[Case]:
     return [
         Case("resume_mesh_cut", "a mesh cut to 300 bytes, then a rerun", damage=cut("meshes", 1, 300), redo=1),
@@ -653,7 +687,8 @@ def _kill_cases() -> list[Case]:
 
 
 CASES = (_json_cases() + _id_cases() + _category_cases() + _image_cases() + _keypoint_cases() + _mask_cases()
-         + _flag_cases() + _class_cases() + _cli_cases() + _resume_cases() + _kill_cases())
+         + _flag_cases() + _class_cases() + _cli_cases() + _command_cases() + _resume_cases()
+            + _kill_cases())
 
 
 # --------------------------------------------------------------------------- running a case
@@ -691,6 +726,8 @@ class Ctx:
 
     def argv(self, extra=()) -> list:
         cli = [a.format(data=self.data, out=self.out, dir=self.dir) for a in self.case.cli]
+        if self.case.command != "reconstruct":
+            return [sys.executable, "-m", f"carvi_torch.{self.case.command}", *cli, *self.case.args, *extra]
         return [*RECONSTRUCT, *cli, "--quiet", *SMALL, *self.case.args, *extra]
 
     def env(self, **extra) -> dict:

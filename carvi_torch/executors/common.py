@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -20,7 +20,7 @@ from ..io.outputs import read_json, write_bytes, write_json
 from ..runtime import log, peak_rss_mb, stable_hash
 
 __all__ = ["RunSetup", "check_request", "open_run", "finish_run", "exit_status", "class_generator",
-           "prepare_data", "read_ground_truth", "book_class"]
+           "prepare_data", "read_ground_truth", "book_class", "load_skips"]
 
 
 @dataclass
@@ -93,7 +93,7 @@ def open_run(cfg: Config) -> RunSetup:
     if gt_problem is not None:
         loaded.problems.append(gt_problem)
         gt_path = None
-    earlier = _earlier_classes(out, cfg)
+    earlier, earlier_data = _earlier_classes(out, cfg)
     out.mkdir(parents=True, exist_ok=True)
     changed = settings_changed(out / "config.yaml", cfg)
     write_bytes(out / "config.yaml", cfg.to_yaml().encode())
@@ -102,6 +102,8 @@ def open_run(cfg: Config) -> RunSetup:
                "carve_backend": carve.resolve_backend(cfg.carve.backend, device, cfg.carve.interpolation),
                "load_seconds": round(load_s, 3), "input_problems": [p.to_dict() for p in loaded.problems],
                "classes": {}}
+    if earlier_data is not None and earlier_data != summary["data"]:
+        summary["data_changed"] = {"previous": earlier_data, "now": summary["data"]}
     return RunSetup(cfg, out, device, loaded, gt, summary, changed, earlier=earlier)
 
 
@@ -128,10 +130,15 @@ def announce(setup: RunSetup) -> None:
     there may be thousands), the classes asked for that have no usable object, and changed settings."""
     for p in setup.loaded.problems:
         (log.warning if p.fatal or p.annotation_id is None else log.info)(p.message())
+    moved = setup.summary.get("data_changed")
+    if moved:
+        log.warning(f"{setup.out} holds a run on other annotations ({moved['previous']}); its finished objects "
+                    "are resumed only where an object's own inputs are unchanged, the others are redone")
     if setup.changed:
         log.warning(f"{setup.out} holds a run made with other settings ("
                     + ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in setup.changed.items())
-                    + "); its finished objects are kept as they are (resumed), so pass overwrite=true to redo them")
+                    + "); its finished objects whose inputs are unchanged are kept as they are (resumed), so pass "
+                    "overwrite=true to redo them")
     names = {c.meta.name for c in setup.loaded.collections.values()} | set(setup.loaded.collections)
     for c in setup.cfg.classes or []:
         if c not in names:
@@ -145,17 +152,18 @@ def class_generator(cfg: Config, key: str) -> torch.Generator:
     return torch.Generator(device="cpu").manual_seed(cfg.seed + stable_hash(key))
 
 
-def _earlier_classes(out: Path, cfg: Config) -> dict:
-    """The classes an earlier run into ``out`` reported (none with ``overwrite``): a dataset can be
-    processed in parts, and the summary keeps every part."""
+def _earlier_classes(out: Path, cfg: Config) -> tuple[dict, str | None]:
+    """The classes an earlier run into ``out`` reported and the annotation file it read (none with
+    ``overwrite``): a dataset can be processed in parts, and the summary keeps every part."""
     path = out / "summary.json"
     if cfg.overwrite or not path.is_file():
-        return {}
+        return {}, None
     try:
-        classes = read_json(path).get("classes", {})
+        earlier = read_json(path)
+        classes, data = earlier.get("classes", {}), earlier.get("data")
     except (ValueError, AttributeError, OSError):
-        return {}
-    return classes if isinstance(classes, dict) else {}
+        return {}, None
+    return (classes if isinstance(classes, dict) else {}), (data if isinstance(data, str) else None)
 
 
 def write_summary(setup: RunSetup) -> None:
@@ -169,10 +177,20 @@ def write_summary(setup: RunSetup) -> None:
     write_json(setup.out / "summary.json", s)
 
 
+def load_skips(problems: list, key: str) -> list[dict]:
+    """The objects of class ``key`` skipped at load (``input_problems`` that name one), as the class's
+    failures (stage ``load``): the class counts them among its objects and skipped ones."""
+    return [{"annotation_id": p.annotation_id, "source": p.source, "stage": p.stage, "reason": p.reason}
+            for p in problems if p.fatal and p.class_key == key and p.annotation_id is not None]
+
+
 def book_class(setup: RunSetup, key: str, rep) -> None:
-    """A finished class into the summary (classes in name order, whichever finished first), its skipped
-    objects and warnings into the log, and ``summary.json`` written."""
-    setup.summary["classes"][key] = rep.to_dict()
+    """A finished class into the summary (classes in name order, whichever finished first), with the
+    objects of it skipped at load (:func:`load_skips`), its skipped objects and warnings into the log (those
+    skipped at load were logged already), and ``summary.json`` written."""
+    at_load = load_skips(setup.loaded.problems, key)
+    whole = replace(rep, objects=rep.objects + len(at_load), skipped=rep.skipped + at_load) if at_load else rep
+    setup.summary["classes"][key] = whole.to_dict()
     setup.summary["classes"] = dict(sorted(setup.summary["classes"].items()))
     for s in rep.skipped:
         log.info(f"  {key}: annotation {s['annotation_id']} ({s['source']}) skipped at {s['stage']}: "

@@ -154,14 +154,14 @@ def _here() -> tuple[str, int, int | None]:
             int(attempt()) if attempt is not None else None)
 
 
-def prepare_task(coll, cfg: Config, gt: dict | None, out: str, done: list[bool]):
+def prepare_task(coll, cfg: Config, gt: dict | None, out: str, done: list[bool], report: ClassReport | None = None):
     """Task: every stage of class ``coll`` up to carving (:func:`~carvi_torch.pipeline.prepare_class`,
-    ``cameras.json`` written). Returns two objects: the plan, which stays in the object store, and
-    ``(todo, report, (node, attempt, peak MB))``."""
+    ``cameras.json`` written); ``report``: the class's report so far (the driver's resume check). Returns two
+    objects: the plan, which stays in the object store, and ``(todo, report, (node, attempt, peak MB))``."""
     node, cpus, attempt = _here()
     with torch_threads(cpus):
         plan, todo, report = prepare_class(coll, cfg, cfg.resolve_device(), class_generator(cfg, coll.meta.key),
-                                           gt=gt, out=Path(out), done=done)
+                                           gt=gt, out=Path(out), report=report, done=done)
     return plan, (todo, report, (node, attempt, peak_rss_mb()))
 
 
@@ -240,9 +240,10 @@ class _Driver:
         coll = self.setup.loaded.collections[key]
         log.info(f"{key}: {len(coll)} objects")
         c = self.classes[key] = _Class(key, len(coll))
-        done = finished_objects(coll, self.cfg, self.setup.out)
+        report = ClassReport(key, objects=len(coll))
+        done = finished_objects(coll, self.cfg, self.setup.out, report)
         c.plan, _ = self._submit("prepare_task", "prepare", key, self.ray.put(coll), self.cfg, self.gt,
-                                 str(self.setup.out), done)
+                                 str(self.setup.out), done, report)
 
     def run(self) -> dict:
         """Run every class; returns the executor's record for ``summary.json``."""

@@ -11,7 +11,7 @@ import argparse
 import multiprocessing as mp
 import sys
 
-from ..cli import add_common, program, split_classes
+from ..cli import add_common, program, run_command, split_classes
 
 __all__ = ["main", "parser", "start_worker_server", "WORKER_MODULE"]
 
@@ -51,7 +51,17 @@ def start_worker_server() -> bool:
 
 
 def main(argv=None) -> int:
+    """Exit status: 0 exported; 2 a user error or an output that cannot be written (one ``error:`` line, ``--out``
+    as it was); 130 interrupted by Ctrl-C (one line, ``--out`` as it was for the zarr store)."""
     args = parser().parse_args(argv)
+    if args.format == "zarr":
+        interrupted = f"interrupted; {args.out} is as it was before the export"
+    else:
+        interrupted = f"interrupted; the {args.format} files in {args.out} are each complete, rerun for the rest"
+    return run_command(lambda: _main(args), interrupted)
+
+
+def _main(args) -> int:
     if args.format == "zarr" and args.workers != 0:
         start_worker_server()
     from .run import export  # torch, zarr, ...: imported while the forkserver imports the worker module
@@ -66,7 +76,7 @@ def main(argv=None) -> int:
         idx = export(args.recon, args.out, args.resolution, args.points, args.shard_size, args.seed,
                      progress=not args.quiet, classes=split_classes(args.classes), workers=args.workers,
                      mesh=args.mesh)
-    except (FileNotFoundError, ValueError) as e:
+    except ValueError as e:  # a missing or unusable input: one line (an OSError is run_command's)
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(f"exported {len(idx['samples'])} objects of {len(idx['classes'])} class(es) to {args.out} "

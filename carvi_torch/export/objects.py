@@ -31,7 +31,7 @@ from .raster import zbuffer
 
 __all__ = ["splat_occupancy", "view_occupancy", "canonical_occupancy", "depth_map", "sample_surface",
            "load_mesh", "canvas_to_class", "export_object", "safe_export_object", "safe_export_objects",
-           "init_worker"]
+           "init_worker", "OtherInputs"]
 
 #: Most sub-samples per voxel and axis (a target cell finer than a quarter voxel is not a use case).
 MAX_SUBSAMPLES = 4
@@ -212,10 +212,19 @@ def load_mesh(path) -> tuple[np.ndarray, np.ndarray]:
 # =========================================================================== one object (worker processes)
 
 
+class OtherInputs(ValueError):
+    """An object's files were made from other inputs than the annotation file's (its input fingerprint)."""
+
+
 def export_object(job: dict) -> dict:
     """Every field of one object from its job (host data and file paths; built by
-    :func:`carvi_torch.export.run.export`); the ids are filled in by the caller."""
+    :func:`carvi_torch.export.run.export`); the ids are filled in by the caller. Raises :class:`OtherInputs`
+    when the voxels file holds an input fingerprint other than the job's ``fingerprint`` (the annotations
+    changed since the object was made, or its redo failed and left an earlier run's files)."""
     z = np.load(job["voxels"])
+    held = str(z["input_fingerprint"]) if "input_fingerprint" in z else None
+    if held is not None and job.get("fingerprint") and held != job["fingerprint"]:
+        raise OtherInputs("its files were made from other inputs than the annotation file's (rerun reconstruct)")
     occ = z["occupancy"].astype(bool)
     boundary = boundary_voxels(occ)  # shared by both occupancies
     a, b = float(job["canvas_scale"]), np.asarray(job["canvas_offset"], dtype=np.float64)
@@ -255,6 +264,8 @@ def safe_export_object(job: dict) -> tuple[dict | None, str | None]:
     """:func:`export_object`, or ``(None, reason)`` when the object's files are partial or corrupt."""
     try:
         return export_object(job), None
+    except OtherInputs as e:
+        return None, str(e)
     except Exception as e:  # noqa: BLE001 - partial/corrupt files: the object is reported, the run goes on
         return None, f"unreadable outputs: {type(e).__name__}: {e}"
 
@@ -266,7 +277,11 @@ def safe_export_objects(jobs: list[dict]) -> list[tuple[dict | None, str | None]
 
 def init_worker() -> None:
     """An export worker process: one torch thread where torch is imported (the processes are the
-    parallelism; the worker's own work is numpy, and it does not import torch)."""
+    parallelism; the worker's own work is numpy, and it does not import torch). It ignores Ctrl-C, which a
+    terminal sends to the whole process group: the main process handles it and stops the pool."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(1)

@@ -31,7 +31,7 @@ from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
 from ..mesh import MESH_FORMATS
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
-from .source import data_path, recon_config
+from .source import data_path, recon_config, unfinished
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
                       view_occupancy)
 from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, StoreWriter
@@ -41,6 +41,8 @@ __all__ = ["export", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "canonical_oc
 
 #: Objects per task handed to a worker process (fewer round trips than one object per task).
 TASK_OBJECTS = 4
+#: The reason of an object that an unfinished run has not reconstructed yet.
+NOT_YET = "not reconstructed yet (the run is unfinished)"
 #: Tasks queued per worker process at most (bounds the memory of queued jobs and of results not yet written).
 TASKS_PER_WORKER = 4
 
@@ -86,8 +88,10 @@ def _viewpoint_or_none(entry: dict) -> list[float] | None:
         return None
 
 
-def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, skipped: list):
-    """The jobs of a class's exportable objects (the others go to ``skipped`` with their reason)."""
+def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, skipped: list,
+          no_files: str = "no voxels (not reconstructed)"):
+    """The jobs of a class's exportable objects (the others go to ``skipped`` with their reason; ``no_files``:
+    that of an object without voxels)."""
     jobs = []
     for i, aid in enumerate(coll.annotation_ids):
         entry = cams.get("cameras", {}).get(str(aid)) or {}
@@ -97,7 +101,7 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
         viewpoint = _viewpoint_or_none(entry)
         reason = ("no camera in cameras.json" if entry.get("refined") is None else
                   "no readable azimuth/elevation/roll or R in cameras.json" if viewpoint is None else
-                  "no voxels (not reconstructed)" if not vox.is_file() else
+                  no_files if not vox.is_file() else
                   "no mesh (not reconstructed)" if mesh is None else None)
         if reason is not None:
             skipped.append({"annotation_id": aid, "class": cname, "source": coll.sources[i], "reason": reason})
@@ -110,15 +114,22 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
                      "mask": coll.masks[i].cpu().numpy(), "keypoints": coll.keypoints[i].cpu().numpy(),
                      "visible": coll.visible[i].cpu().numpy(), "canvas_scale": float(coll.canvas_from_image.scale[i]),
                      "canvas_offset": coll.canvas_from_image.offset[i].double().numpy(), "camera": entry["refined"],
-                     "quality": float(q) if q is not None else float("nan"), "voxels": str(vox), "mesh": str(mesh)})
+                     "quality": float(q) if q is not None else float("nan"), "voxels": str(vox), "mesh": str(mesh),
+                     "fingerprint": coll.fingerprints[i]})
     return jobs
 
 
-def _class_jobs(loaded, recon: Path, class_names: list, settings: dict, writer: StoreWriter, skipped: dict, bar):
+def _class_jobs(loaded, recon: Path, class_names: list, settings: dict, writer: StoreWriter, skipped: dict, bar,
+                no_files: str):
     """The jobs of every class, class by class, read lazily (a class's ``cameras.json`` when its first job is
     asked for); objects that cannot be exported go to ``skipped[class]`` with their reason."""
     for ci, cname in enumerate(class_names):
         coll, cdir = loaded.collections[cname], recon / cname
+        if not (cdir / "cameras.json").is_file() and no_files == NOT_YET:
+            skipped[cname].extend({"annotation_id": aid, "class": cname, "reason": NOT_YET}
+                                  for aid in coll.annotation_ids)
+            bar.update(len(coll))
+            continue
         try:
             cams = read_json(cdir / "cameras.json")
         except (FileNotFoundError, ValueError) as e:
@@ -127,7 +138,8 @@ def _class_jobs(loaded, recon: Path, class_names: list, settings: dict, writer: 
             bar.update(len(coll))
             continue
         writer.extent[cname] = class_extent(cams)
-        jobs = _jobs(coll, cname, ci, cdir, cams, {**settings, "extent": writer.extent[cname]}, skipped[cname])
+        jobs = _jobs(coll, cname, ci, cdir, cams, {**settings, "extent": writer.extent[cname]}, skipped[cname],
+                     no_files)
         bar.update(len(coll) - len(jobs))
         yield from jobs
 
@@ -161,28 +173,79 @@ def _skipped_in_order(class_names: list, skipped: dict) -> list:
     return [s for c in class_names for s in skipped[c]]
 
 
+def _report_skipped(recon: Path, skipped_list: list, exported: int, pending: bool, progress: bool) -> None:
+    """The skipped objects, one line each (a count alone when ``progress`` is off); an unfinished run's objects
+    not reconstructed yet in one line."""
+    import sys
+
+    other = [s for s in skipped_list if s["reason"] != NOT_YET]
+    for s in other if progress else ():
+        tqdm.write(f"export: {s['class']} annotation {s['annotation_id']} skipped: {s['reason']}")
+    if other and not progress:
+        print(f"export: {len(other)} object(s) skipped (reasons in the store's 'skipped' attribute)")
+    if pending:
+        n = len(skipped_list) - len(other)
+        print(f"warning: {recon} is an unfinished run (interrupted or still running): exported the {exported} "
+              f"object(s) it finished; {n} not reconstructed yet are left out (rerun reconstruct to finish it)",
+              file=sys.stderr)
+
+
+def _check_exportable(recon: Path, cfg) -> None:
+    if cfg.stage == "cameras":
+        raise ValueError(f"{recon} is a camera-only run (stage=cameras): it has no shapes for the zarr store "
+                         "(export --format cmr or ucmr takes its cameras; nothing was written)")
+
+
 def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int = 2048, shard_size: int = 256,
            seed: int = 0, progress: bool = True, classes=None, workers: int | None = None,
            mesh: bool = False) -> dict:
     """Export every reconstructed object of ``recon`` into a zarr v3 store at ``out``.
+
+    The store is swapped in at ``out`` when complete: an export that raises (Ctrl-C included) leaves ``out`` as
+    it was. A camera-only run (``stage=cameras``), or an unfinished one with no object finished, raises
+    ``ValueError`` (nothing written); an unfinished run's finished objects are exported, with one warning line.
 
     Returns the root group's description (its ``carvi_export`` attribute) plus ``samples``: one entry
     (class, annotation_id, image_id, source) per exported sample, in store order.
     """
     recon, out = Path(recon), Path(out)
     cfg = recon_config(recon)
+    _check_exportable(recon, cfg)
+    pending = unfinished(recon)
     data = data_path(recon, cfg)
     canvas = cfg.input.canvas_size
     workers = cores() if workers is None else max(0, int(workers))
     t0 = time.perf_counter()
-    with torch_threads(1):
-        loaded = load_coco(data, canvas_size=canvas, margin=cfg.input.canvas_margin, classes=classes)
-    class_names = sorted(c for c in loaded.collections if (recon / c).is_dir())
-    fields = DEFAULT_FIELDS + (MESH_FIELDS if mesh else [])
-    writer = StoreWriter(out, shard_size, fields)
-    skipped: dict[str, list] = {c: [] for c in class_names}
-    samples = []
+    writer = StoreWriter(out, shard_size, DEFAULT_FIELDS + (MESH_FIELDS if mesh else []))  # --out checked first
     settings = {"canvas": canvas, "resolution": resolution, "points": points, "seed": seed, "mesh_field": mesh}
+    try:
+        with torch_threads(1):
+            loaded = load_coco(data, canvas_size=canvas, margin=cfg.input.canvas_margin, classes=classes)
+        class_names = sorted(c for c in loaded.collections if (recon / c).is_dir())
+        skipped: dict[str, list] = {c: [] for c in class_names}
+        samples = _write_samples(loaded, recon, class_names, settings, writer, skipped, progress, workers,
+                                 NOT_YET if pending else "no voxels (not reconstructed)")
+        if pending and not samples:
+            raise ValueError(f"{recon} is an unfinished run with no object reconstructed yet: nothing to export "
+                             "(nothing was written)")
+        skipped_list = _skipped_in_order(class_names, skipped)
+        attrs = {"recon": str(recon), "data": str(data), "canvas_size": canvas, "resolution": resolution,
+                 "points": points, "seed": seed, "classes": class_names,
+                 "class_extent": {c: writer.extent[c] for c in class_names if c in writer.extent},
+                 "skipped": skipped_list, "seconds": round(time.perf_counter() - t0, 3)}
+        desc = writer.close(attrs)
+    except BaseException:
+        writer.abort()
+        raise
+    _report_skipped(recon, skipped_list, len(samples), pending, progress)
+    return {**desc, "samples": samples}
+
+
+def _write_samples(loaded, recon: Path, class_names: list, settings: dict, writer: StoreWriter, skipped: dict,
+                   progress: bool, workers: int, no_files: str) -> list:
+    """Compute every object (in ``workers`` processes, or here) and add it to ``writer``; returns the samples'
+    entries (class, annotation_id, image_id, source) in store order."""
+    samples = []
     bar = tqdm(total=sum(len(loaded.collections[c]) for c in class_names), desc="export", disable=not progress)
     ctx = mp.get_context(start_method())
     if workers > 0 and start_method() == "forkserver":  # workers fork from a server that imported them once
@@ -190,7 +253,7 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     pool = LeanProcessPool(workers, mp_context=ctx, initializer=init_worker) if workers > 0 else None
     try:
         with torch_threads(1):
-            jobs = _class_jobs(loaded, recon, class_names, settings, writer, skipped, bar)
+            jobs = _class_jobs(loaded, recon, class_names, settings, writer, skipped, bar, no_files)
             current = None
             for job, sample, reason in _stream(jobs, pool, workers):
                 bar.update(1)
@@ -208,12 +271,4 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
         if pool is not None:
             pool.shutdown(cancel_futures=True)
         bar.close()
-    skipped_list = _skipped_in_order(class_names, skipped)
-    for s in skipped_list:
-        tqdm.write(f"export: {s['class']} annotation {s['annotation_id']} skipped: {s['reason']}")
-    attrs = {"recon": str(recon), "data": str(data), "canvas_size": canvas, "resolution": resolution,
-             "points": points, "seed": seed, "classes": class_names,
-             "class_extent": {c: writer.extent[c] for c in class_names if c in writer.extent},
-             "skipped": skipped_list, "seconds": round(time.perf_counter() - t0, 3)}
-    writer.close(attrs)
-    return {**writer.root.attrs[ATTRS_KEY], "samples": samples}
+    return samples

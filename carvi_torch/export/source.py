@@ -6,7 +6,7 @@ from pathlib import Path
 from ..config import Config, read_run_config
 from ..io.outputs import read_json
 
-__all__ = ["recon_config", "data_path"]
+__all__ = ["recon_config", "data_path", "unfinished"]
 
 
 def recon_config(recon: Path) -> Config:
@@ -32,3 +32,13 @@ def data_path(recon: Path, cfg: Config) -> Path:
         if (base / p).is_file():
             return base / p
     return p
+
+
+def unfinished(recon: Path) -> bool:
+    """Whether the run in ``recon`` has not finished (interrupted, or still running): its ``summary.json`` is
+    missing, unreadable, or has no ``total_seconds`` (which a run writes when its last class is done)."""
+    try:
+        summary = read_json(recon / "summary.json")
+    except (OSError, ValueError):
+        return True
+    return not isinstance(summary, dict) or "total_seconds" not in summary

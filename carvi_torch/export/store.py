@@ -7,6 +7,10 @@ Layout (``docs/export.md`` has the full table)::
     <out>/<class>/zarr.json         class group; attributes: annotation_ids, image_ids, sources, class_extent
     <out>/<class>/<field>/...       array (N, *sample shape); chunk = one sample, shard = ``shard_size`` samples
 
+The store is written into a hidden folder inside ``<out>`` (``.carvi-export-partial-<pid>``) and swapped
+in only when it is complete (:meth:`StoreWriter.close`): an export that stops half-way (Ctrl-C, an error)
+leaves ``<out>`` as it was, an earlier export included, and writes nothing outside ``<out>``.
+
 Reading one sample reads one chunk of every field it asks for (zarr's sharding codec keeps
 the chunks of ``shard_size`` samples in one file, so a store of 100,000 objects is not
 millions of files). Any zarr v3 reader opens it: ``zarr.open_group(out, mode="r")["car"]["mask"][0]``.
@@ -17,13 +21,16 @@ Example:
     >>> w = StoreWriter(d, shard_size=2, fields=["quality"])
     >>> for q in (0.5, 0.25, 1.0):
     ...     w.add("car", {"quality": np.float32(q)}, {"annotation_id": 1, "image_id": 1, "source": ""})
-    >>> w.close({"classes": ["car"]})
+    >>> w.close({"classes": ["car"]})["counts"]
+    {'car': 3}
     >>> import zarr
     >>> zarr.open_group(d, mode="r")["car"]["quality"][:].tolist()
     [0.5, 0.25, 1.0]
 """
 from __future__ import annotations
 
+import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,7 +38,10 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
-__all__ = ["FieldSpec", "FIELDS", "DEFAULT_FIELDS", "MESH_FIELDS", "StoreWriter", "FORMAT_VERSION", "ATTRS_KEY"]
+from ..runtime import deferred_interrupt
+
+__all__ = ["FieldSpec", "FIELDS", "DEFAULT_FIELDS", "MESH_FIELDS", "StoreWriter", "FORMAT_VERSION", "ATTRS_KEY",
+           "PARTIAL_PREFIX"]
 
 FORMAT_VERSION = 2
 #: The root group's attribute that holds the export's description.
@@ -97,6 +107,10 @@ MESH_CHUNK_ROWS = 4096
 #: batch per chunk costs more in zarr's bookkeeping than the compression itself). The bytes written
 #: are the same.
 WRITE_BATCH = 256
+#: Names of the export's own hidden folders inside ``<out>``: the store being written (``-partial-<pid>``)
+#: and, for the moment of the swap, the earlier one (``-old-<pid>``).
+PARTIAL_PREFIX = ".carvi-export-partial-"
+OLD_PREFIX = ".carvi-export-old-"
 
 
 def _compressor(dtype: str) -> BloscCodec:
@@ -145,7 +159,7 @@ class _ClassArrays:
         n = len(self.buf[self.fields[0]]) if self.fields else 0
         if n == 0:
             return
-        with zarr.config.set({"codec_pipeline.batch_size": WRITE_BATCH}):
+        with deferred_interrupt(), zarr.config.set({"codec_pipeline.batch_size": WRITE_BATCH}):
             for k in self.fields:
                 if k in MESH_FIELDS:
                     self._append_ragged(k, self.buf[k])
@@ -166,6 +180,10 @@ class _ClassArrays:
 
     def close(self, extent: float) -> None:
         self.flush()
+        with deferred_interrupt():
+            self._close(extent)
+
+    def _close(self, extent: float) -> None:
         attrs = {**self.meta, "count": self.count, "class_extent": extent}
         if self.lengths[MESH_FIELDS[0]]:
             lengths = np.array([self.lengths[k] for k in MESH_FIELDS], dtype=np.int64).T  # (N, 2)
@@ -175,12 +193,35 @@ class _ClassArrays:
         self.group.attrs.update(attrs)
 
 
+def _own(name: str) -> bool:
+    """Whether ``name`` is one of the export's hidden folders (a store in progress, or one being swapped)."""
+    return name.startswith((PARTIAL_PREFIX, OLD_PREFIX))
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True
+    return True
+
+
+def _remove_stale(out: Path) -> None:
+    """Remove the hidden folders of exports into ``out`` that were killed (their process is gone)."""
+    for p in out.iterdir() if out.is_dir() else ():
+        pid = p.name.rpartition("-")[2]
+        if _own(p.name) and p.is_dir() and (not pid.isdigit() or not _pid_alive(int(pid))):
+            shutil.rmtree(p, ignore_errors=True)
+
+
 def _check_replaceable(out: Path) -> None:
-    """Refuse to write over a folder that holds anything but an earlier export (zarr's ``mode="w"`` empties
-    the folder first)."""
+    """Refuse to write over a folder that holds anything but an earlier export (its files are replaced by the
+    new store's once that is complete)."""
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out}: exists and is not a folder")
-    if not out.is_dir() or not any(out.iterdir()):
+    if not out.is_dir() or not any(not _own(p.name) for p in out.iterdir()):
         return
     try:
         import json
@@ -192,14 +233,40 @@ def _check_replaceable(out: Path) -> None:
     raise ValueError(f"{out}: not empty and not an earlier export; choose another --out (nothing was written)")
 
 
+def _swap_in(tmp: Path, out: Path) -> None:
+    """Replace the contents of ``out`` (an earlier export, or nothing) by those of ``tmp`` (the complete new
+    store), then remove ``tmp``. Ctrl-C waits until the swap is done. The earlier root ``zarr.json`` goes
+    first and the new one comes last, so that a reader during the swap finds no store rather than a mixed one."""
+    with deferred_interrupt():
+        old = out / f"{OLD_PREFIX}{os.getpid()}"
+        old.mkdir()
+        for p in sorted((p for p in out.iterdir() if not _own(p.name)), key=lambda p: p.name != "zarr.json"):
+            p.rename(old / p.name)
+        for p in sorted(tmp.iterdir(), key=lambda p: p.name == "zarr.json"):
+            p.rename(out / p.name)
+        tmp.rmdir()
+        shutil.rmtree(old)
+
+
 class StoreWriter:
     """Writes samples class by class into a zarr v3 store at ``out`` (created, or replaced when it holds
-    an earlier export's store)."""
+    an earlier export's store): into a hidden folder inside ``out`` first, swapped in by :meth:`close`;
+    :meth:`abort` removes it, leaving ``out`` as it was."""
 
     def __init__(self, out: str | Path, shard_size: int = 256, fields: list[str] | None = None):
         self.out = Path(out)
         _check_replaceable(self.out)
-        self.root = zarr.open_group(str(self.out), mode="w", zarr_format=3)
+        self.created = not self.out.exists()
+        self.tmp = self.out / f"{PARTIAL_PREFIX}{os.getpid()}"
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+            _remove_stale(self.out)
+            with deferred_interrupt():
+                self.root = zarr.open_group(str(self.tmp), mode="w", zarr_format=3)
+        except OSError as e:
+            self.abort()
+            raise ValueError(f"{self.out}: cannot write the store there ({e.strerror or e}; nothing was "
+                             "written)") from e
         self.shard_size = max(1, int(shard_size))
         self.fields = list(fields) if fields is not None else list(DEFAULT_FIELDS)
         self.classes: dict[str, _ClassArrays] = {}
@@ -209,7 +276,9 @@ class StoreWriter:
         """Append one sample (a dict with every field) of class ``cls``; ``meta``: annotation_id, image_id,
         source (ids as given: ints or strings)."""
         if cls not in self.classes:
-            self.classes[cls] = _ClassArrays(self.root.create_group(cls), self.fields, self.shard_size)
+            with deferred_interrupt():
+                group = self.root.create_group(cls)
+            self.classes[cls] = _ClassArrays(group, self.fields, self.shard_size)
         self.classes[cls].add(sample, meta)
 
     def finish(self, cls: str) -> None:
@@ -218,11 +287,26 @@ class StoreWriter:
         if cls in self.classes:
             self.classes[cls].flush()
 
-    def close(self, attrs: dict) -> None:
-        """Flush every class and write the root attributes (``attrs`` plus the fields and format version)."""
+    def close(self, attrs: dict) -> dict:
+        """Flush every class, write the root attributes (``attrs`` plus the fields and format version) and swap
+        the complete store in at ``out``; returns the root attributes written."""
         for cls, arrays in self.classes.items():
             arrays.close(self.extent.get(cls, 1.0))
         fields = {k: {"dtype": FIELDS[k].dtype, "returns": FIELDS[k].out_dtype, "shape": FIELDS[k].shape,
                       "doc": FIELDS[k].doc} for k in self.fields}
-        self.root.attrs[ATTRS_KEY] = {"format_version": FORMAT_VERSION, **attrs, "fields": fields,
-                                      "counts": {c: a.count for c, a in self.classes.items()}}
+        desc = {"format_version": FORMAT_VERSION, **attrs, "fields": fields,
+                "counts": {c: a.count for c, a in self.classes.items()}}
+        with deferred_interrupt():
+            self.root.attrs[ATTRS_KEY] = desc
+        _swap_in(self.tmp, self.out)
+        return desc
+
+    def abort(self) -> None:
+        """Remove the store in progress: ``out`` is left as it was before (removed when this writer made it and
+        it is empty)."""
+        shutil.rmtree(self.tmp, ignore_errors=True)
+        if self.created:
+            try:
+                self.out.rmdir()
+            except OSError:
+                pass

@@ -16,6 +16,7 @@ Validation never stops the run for one bad object: every problem becomes a
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from collections import defaultdict
@@ -35,7 +36,7 @@ from .outputs import read_json, safe_name, write_json
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
            "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "MAX_IMAGE_PIXELS", "object_id",
-           "flag", "class_keys"]
+           "flag", "class_keys", "input_fingerprints"]
 
 #: Keypoints farther outside the image than this fraction of its larger side are rejected.
 OUTSIDE_TOLERANCE = 0.5
@@ -57,6 +58,7 @@ class Problem:
     source: str | None = None
     stage: str = "load"
     fatal: bool = True  # False: a warning, the object is still used
+    class_key: str | None = None  # the folder of the object's class (``ClassMeta.key``), where known
 
     def message(self) -> str:
         who = []
@@ -474,7 +476,7 @@ def _annotation(ann, metas: dict, images: dict, seen: set, skip_flags: bool, max
     key, meta = metas[str(cid)]
     if meta is None:  # left out by `classes`, or a broken category (reported)
         return None
-    p = dict(annotation_id=aid, category=meta.name, source=source)
+    p = dict(annotation_id=aid, category=meta.name, source=source, class_key=key)
     if str(aid) in seen:
         problems.append(Problem(f"duplicate annotation id {aid!r}; keeping the first", **p))
         return None
@@ -547,6 +549,41 @@ def canvas_threads(objects: int) -> int:
     return max(1, min(16, cores(), objects))
 
 
+def input_fingerprints(meta: ClassMeta, items: list) -> list[str]:
+    """One hash per object of everything of its own that its reconstruction is made from: the class's
+    definition (name, category id, keypoint names, flip pairs, rigid keypoints, symmetry, articulation,
+    left convention, 3-D template), its annotation, image and object ids, its ``source``, its image's
+    ``file_name``, width and height, its decoded mask (shape and bits), and its keypoints and visibility as
+    loaded. The annotation file's own path is not part of it (a copy of the file gives the same hashes).
+
+    ``items``: ``(ann, image entry, mask (H, W) bool, xy (K, 2), visible (K,) bool)`` per object, as
+    :func:`load_coco` decodes them (a few tens of microseconds each: the mask is hashed as packed bits).
+
+    Example:
+        >>> meta = ClassMeta("car", ["a", "b"])
+        >>> item = ({"id": 1, "image_id": 7}, {"file_name": "x.jpg", "width": 4, "height": 3},
+        ...         np.eye(3, 4, dtype=bool), np.zeros((2, 2)), np.array([True, False]))
+        >>> moved = (item[0], item[1], np.eye(3, 4, 1, dtype=bool), item[3], item[4])
+        >>> a, b, c = input_fingerprints(meta, [item, item, moved])
+        >>> a == b, a == c, len(a)
+        (True, False, 32)
+    """
+    cls = json.dumps([meta.name, meta.category_id, meta.keypoint_names, meta.flip_pairs, meta.rigid_keypoints,
+                      meta.symmetry, meta.articulated, meta.left_convention, meta.keypoints_3d], default=str)
+    head = hashlib.blake2b(cls.encode(), digest_size=16).digest()
+    out = []
+    for ann, im, mask, xy, vis in items:
+        h = hashlib.blake2b(head, digest_size=16)
+        ids = [ann.get("id"), ann.get("image_id"), ann.get("object_id"), ann.get("source"), im.get("file_name"),
+               im.get("width"), im.get("height")]
+        h.update(json.dumps(ids, default=str).encode())
+        mask = np.asarray(mask, dtype=bool)
+        h.update(np.asarray(mask.shape, dtype=np.int64).tobytes() + np.packbits(mask).tobytes())
+        h.update(np.ascontiguousarray(xy, dtype=np.float64).tobytes() + np.asarray(vis, dtype=np.uint8).tobytes())
+        out.append(h.hexdigest())
+    return out
+
+
 def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: float,
                       device: torch.device, threads: int = 1) -> ClassCollection:
     """Crop each object into the canvas (box = mask extent; visible keypoints may stick out a little)."""
@@ -589,5 +626,6 @@ def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: fl
         is_mirror=torch.zeros(len(items), dtype=torch.bool),
         sources=[str(a.get("source") or f"annotation {a['id']}") for a in anns],
         splits=[str(a.get("split", "")) for a in anns],
+        fingerprints=input_fingerprints(meta, items),
     )
     return coll.to(device)

@@ -22,13 +22,15 @@ Example:
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .outputs import safe_name
 
-__all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS", "RUN_NAMES", "reserved"]
+__all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS", "RUN_NAMES", "reserved", "INPUTS_CHANGED",
+           "NO_INPUT_RECORD", "ResumeCheck", "resume_check"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -70,17 +72,24 @@ def object_file(cdir: str | Path, kind: str, annotation_id, ext: str | None = No
     return Path(cdir) / kind / f"{object_stem(annotation_id)}.{ext}"
 
 
-def _voxels_ok(path: Path) -> str | None:
-    """Why a voxels file is not a finished object's (``None``: it is one)."""
+#: Why a finished object is redone although its files are sound: :func:`finished`'s reasons a run counts
+#: (``summary.json``: ``redone``) rather than logging each object's.
+INPUTS_CHANGED = "its inputs differ from those it was made from"
+NO_INPUT_RECORD = "its files hold no record of its inputs (an older run's)"
+
+
+def _voxels_state(path: Path) -> tuple[str | None, str | None]:
+    """``(why a voxels file is not a finished object's or None, the input fingerprint it holds or None)``."""
     try:
         with np.load(path) as z:
             members = {k: z[k] for k in z.files}  # every member read: the zip's checksums cover each
             occ, T = members["occupancy"], members["voxel_to_camera"]
     except Exception as e:  # noqa: BLE001 - any damage means: redo the object
-        return f"unreadable voxels ({type(e).__name__})"
+        return f"unreadable voxels ({type(e).__name__})", None
     if occ.dtype != bool or occ.ndim != 3 or T.shape != (4, 4) or not np.isfinite(T).all():
-        return f"voxels of the wrong kind (occupancy {occ.dtype} {occ.shape}, transform {T.shape})"
-    return None
+        return f"voxels of the wrong kind (occupancy {occ.dtype} {occ.shape}, transform {T.shape})", None
+    fp = members.get("input_fingerprint")
+    return None, (str(fp) if fp is not None and fp.dtype.kind == "U" and fp.ndim == 0 else None)
 
 
 def _mesh_ok(path: Path) -> str | None:
@@ -101,10 +110,64 @@ def _mesh_ok(path: Path) -> str | None:
     return None
 
 
-def finished(cdir: str | Path, annotation_id, mesh_format: str) -> str | bool:
+def finished(cdir: str | Path, annotation_id, mesh_format: str, fingerprint: str | None = None) -> str | bool:
     """Whether an earlier run finished an object: ``True``, ``False`` (no files), or the reason its files
-    cannot be trusted (a truncated or damaged mesh or voxels file: the object is redone)."""
+    cannot be trusted (the object is redone): a truncated or damaged mesh or voxels file, or, when its
+    current input ``fingerprint`` is given (``ClassCollection.fingerprints``), files made from other
+    inputs (:data:`INPUTS_CHANGED`) or holding no fingerprint (:data:`NO_INPUT_RECORD`).
+
+    Example:
+        >>> finished("no/such/run/car", 3, "ply")
+        False
+    """
     mesh, voxels = object_file(cdir, "meshes", annotation_id, mesh_format), object_file(cdir, "voxels", annotation_id)
     if not (mesh.is_file() and voxels.is_file()):
         return False
-    return _voxels_ok(voxels) or _mesh_ok(mesh) or True
+    why, held = _voxels_state(voxels)
+    if why is None and fingerprint:
+        why = None if held == fingerprint else (INPUTS_CHANGED if held else NO_INPUT_RECORD)
+    return why or _mesh_ok(mesh) or True
+
+
+#: ``summary.json`` names of the reasons a sound finished object is redone (per class: ``redone``).
+REDONE = {INPUTS_CHANGED: "inputs_changed", NO_INPUT_RECORD: "no_input_record"}
+
+
+@dataclass
+class ResumeCheck:
+    """What an earlier run left of a class's objects: ``done`` per object (resume it), ``damaged``
+    (``{annotation id: reason}``: files that cannot be trusted) and ``redone`` (``{reason name:
+    [annotation ids]}``: sound files made from other inputs, or without a record of them)."""
+
+    done: list = field(default_factory=list)
+    damaged: dict = field(default_factory=dict)
+    redone: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """``summary.json``'s ``redone`` of the class: ``count`` and the ids per reason."""
+        return {"count": sum(len(v) for v in self.redone.values()), **dict(sorted(self.redone.items()))}
+
+    def line(self) -> str:
+        """One line: how many finished objects are redone, and why.
+
+        Example:
+            >>> ResumeCheck(redone={"inputs_changed": [1, 2]}).line()
+            'redoing 2 finished object(s): 2 whose inputs changed since they were made'
+        """
+        why = {"inputs_changed": "whose inputs changed since they were made",
+               "no_input_record": "made by an older run that recorded no inputs"}
+        return (f"redoing {self.summary()['count']} finished object(s): "
+                + "; ".join(f"{len(ids)} {why[k]}" for k, ids in sorted(self.redone.items())))
+
+
+def resume_check(cdir: str | Path, annotation_ids: list, fingerprints: list, mesh_format: str) -> ResumeCheck:
+    """:func:`finished` for every object of a class (``fingerprints``: their current input fingerprints)."""
+    check = ResumeCheck()
+    for a, fp in zip(annotation_ids, fingerprints):
+        state = finished(cdir, a, mesh_format, fp)
+        if state in REDONE:
+            check.redone.setdefault(REDONE[state], []).append(a)
+        elif isinstance(state, str):
+            check.damaged[a] = state
+        check.done.append(state is True)
+    return check

@@ -1081,22 +1081,25 @@ def run(args: Any) -> int:
             ``.annotations``, ``.classes`` (missing attributes count as ``None``).
 
     Returns:
-        0 when at least one object was converted, 1 when none was (nothing is written), 2 on
-        bad arguments (message on stderr, naming the option). Prints :meth:`Report.summary`.
+        0 when at least one object was converted, 1 when none was (nothing is written), 2 on bad
+        arguments or a missing folder (one ``error:`` line, naming the option). Prints :meth:`Report.summary`.
+        Another ``OSError`` (an output that cannot be written) is raised: ``datasets``' shared ending prints it
+        as one ``error:`` line.
     """
     keypoints, out = getattr(args, "keypoints", None), getattr(args, "out", None)
     if keypoints is None or out is None:
-        print("voc: error: --keypoints and --out are required", file=sys.stderr)
+        print("error: voc: --keypoints and --out are required", file=sys.stderr)
         return 2
     try:
         report = convert(keypoints, out, masks_dir=getattr(args, "masks", None),
                          annotations_dir=getattr(args, "annotations", None), classes=getattr(args, "classes", None))
     except (FileNotFoundError, ValueError) as e:
-        print(f"voc: error: {_option_names(str(e))}", file=sys.stderr)
+        said = f"{e.filename}: {e.strerror}" if getattr(e, "filename", None) and e.strerror else _option_names(str(e))
+        print(f"error: voc: {said}", file=sys.stderr)
         return 2
     print(report.summary(max_files=len(report.skipped) if not report.written else 20))
     if report.converted == 0:
-        print("voc: error: no object was converted", file=sys.stderr)
+        print("error: voc: no object was converted", file=sys.stderr)
         return 1
     return 0
 

@@ -37,13 +37,14 @@ def write_object(job: dict) -> dict:
 
     Takes host (numpy) data only; a job with ``mesh_vertices`` and ``mesh_faces`` was meshed by the
     run (its occupancy is final: ``largest_component`` is not applied again). Writes the proposals
-    (studies) and scores first, then the voxels, then the mesh: an object counts as finished once its
-    mesh exists. The voxels and mesh files are moved into place whole but not flushed to the disk
-    (``sync=False``): a machine crash may leave one damaged, which a resumed run finds (every member of the
-    voxels file read, the mesh's faces checked) and redoes. The studies' proposals and scores, which no
-    check reads, are flushed. Returns ``ok``, ``reason``, ``mesh_seconds``, ``write_seconds`` and ``reconstruction_iou``
-    (the value written into the voxels file, ``None`` without a ``mask``), which the run's ``cameras.json``
-    takes without opening the file again.
+    (studies) and scores first, then the mesh, then the voxels with the object's ``input_fingerprint`` (the
+    job's, when it has one): an object counts as finished once its voxels file exists and holds the
+    fingerprint of its current inputs (:func:`~carvi_torch.io.layout.finished`). The voxels and mesh files
+    are moved into place whole but not flushed to the disk (``sync=False``): a machine crash may leave one
+    damaged, which a resumed run finds (every member of the voxels file read, the mesh's faces checked) and
+    redoes. The studies' proposals and scores, which no check reads, are flushed. Returns ``ok``, ``reason``,
+    ``mesh_seconds``, ``write_seconds`` and ``reconstruction_iou`` (the value written into the voxels file,
+    ``None`` without a ``mask``), which the run's ``cameras.json`` takes without opening the file again.
     """
     t0 = time.perf_counter()
     occ = job["occupancy"]
@@ -64,11 +65,15 @@ def write_object(job: dict) -> dict:
     extra = {}
     if job.get("mask") is not None:  # the quality signal of the reconstruction (carvi_torch.quality)
         extra["reconstruction_iou"] = np.float64(reconstruction_iou(occ, job["voxel_to_canvas"], job["mask"]))
+    if job.get("input_fingerprint"):  # what the object was made from (a rerun resumes it only if unchanged)
+        extra["input_fingerprint"] = np.asarray(job["input_fingerprint"], dtype=str)
+    mesh.write_mesh(m, job["mesh_path"], sync=False)
+    # the voxels file last: it holds the fingerprint, so a stop between the two files leaves an earlier run's
+    # voxels (another fingerprint, or none) beside the new mesh, and the object is redone
     write_npz(job["voxel_path"], sync=False, occupancy=occ, voxel_to_camera=v2img,
               voxel_to_canvas=job["voxel_to_canvas"],
               voxel_to_object=job.get("voxel_to_object", np.full((4, 4), np.nan)), canvas_scale=job["canvas_scale"],
               canvas_offset=job["canvas_offset"], surrogates=job["surrogates"], **extra)
-    mesh.write_mesh(m, job["mesh_path"], sync=False)
     return dict(ok=True, reason=None, mesh_seconds=t1 - t0, write_seconds=time.perf_counter() - t1,
                 reconstruction_iou=float(extra["reconstruction_iou"]) if extra else None)
 

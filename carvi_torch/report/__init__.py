@@ -16,11 +16,11 @@ __all__ = ["build_report", "Report", "ReportError", "main"]
 
 
 def main(argv=None) -> int:
-    """``python -m carvi_torch.report``; exit status 0, or 2 when ``--recon`` is not a finished run."""
+    """``python -m carvi_torch.report``; exit status 0; 2 when ``--recon`` is not a finished run or ``--out``
+    cannot take the report (one ``error:`` line); 130 interrupted by Ctrl-C (one line)."""
     import argparse
-    import sys
 
-    from ..cli import add_common, program
+    from ..cli import add_common, program, run_command
 
     ap = argparse.ArgumentParser(prog=program("carvi_torch.report"),
                                  description="An HTML report of a finished run: per-class panels and one card per "
@@ -33,6 +33,14 @@ def main(argv=None) -> int:
                                                 "or below 100 objects, else one per core but one, at most 4)")
     add_common(ap, classes=False)
     args = ap.parse_args(argv)
+    where = args.out or f"{args.recon}/report"
+    return run_command(lambda: _main(args), f"interrupted; the report in {where} is incomplete, run the command "
+                                            "again")
+
+
+def _main(args) -> int:
+    import sys
+
     try:
         rep = build_report(args.recon, args.out, per_page=max(1, args.per_page),
                            workers=None if args.workers is None else max(0, args.workers))

@@ -138,6 +138,22 @@ def _copy_assets(out: Path) -> None:
         shutil.copyfile(STATIC / src, out / "assets" / dst)
 
 
+#: What a report writes in its folder: a folder holding only these is an earlier report (replaced).
+REPORT_NAMES = frozenset({"index.html", "cards.js", "assets", "classes", "objects"})
+
+
+def _check_replaceable(out: Path) -> None:
+    """Refuse an ``out`` that is a file, or a folder holding anything but an earlier report (as the export
+    refuses a folder holding anything but an earlier export), before anything is written."""
+    if out.exists() and not out.is_dir():
+        raise ReportError(f"--out {out} is a file, not a folder")
+    other = sorted(p.name for p in out.iterdir() if p.name not in REPORT_NAMES) if out.is_dir() else []
+    if other:
+        raise ReportError(f"--out {out}: not empty and not an earlier report (it holds {other[0]!r}"
+                          f"{f' and {len(other) - 1} more' if len(other) > 1 else ''}); choose another --out "
+                          "(nothing was written)")
+
+
 def build_report(recon: str | Path, out: str | Path | None = None, per_page: int = 24, max_faces: int = 4000,
                  title: str | None = None, workers: int | None = None) -> Report:
     """Write the report of the run in ``recon`` into ``out`` (default ``recon/report``).
@@ -147,13 +163,15 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
 
     Raises:
         carvi_torch.report.inputs.ReportError: ``recon`` has no readable ``summary.json``, or ``out`` is
-            the run's folder, a class folder, or cannot be made.
+            the run's folder, a class folder, a folder holding anything but an earlier report, or cannot be
+            made.
     """
     t0 = time.perf_counter()
     run = read_run(recon)
     out = Path(out) if out is not None else run.recon / "report"
     if out.resolve() == run.recon.resolve() or out.resolve() in {(run.recon / c.key).resolve() for c in run.classes}:
         raise ReportError(f"--out {out} is the run's folder or a class folder: give the report a folder of its own")
+    _check_replaceable(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:

@@ -226,7 +226,8 @@ def _overlay(ctx: CardContext, cls: ClassView, obj: ObjectInputs, card: Card, re
     try:
         mask = ctx.coco.annToMask(ann).astype(bool)
     except Exception as e:  # noqa: BLE001 - a damaged segmentation: the card says so
-        card.problems.append(f"mask unreadable ({type(e).__name__}): no overlay")
+        if obj.skipped is None:  # a skipped object's card gives the reason already (at load, often this one)
+            card.problems.append(f"mask unreadable ({type(e).__name__}): no overlay")
         return
     proj = np.zeros_like(mask)
     vox = ctx.recon / cls.key / "voxels" / f"{obj.stem}.npz"

@@ -1,0 +1,115 @@
+"""How every command ends when its output cannot be written or Ctrl-C stops it: one line, exit 2 or 130.
+
+The export's own cases (an interrupted re-export, camera-only and unfinished runs) are in test_export.py;
+``tools/stress_inputs.py`` runs reconstruct's in real processes.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from carvi_torch import cli, datasets, evaluate
+from carvi_torch import report as report_cmd
+
+VOC = Path(__file__).resolve().parent / "data" / "voc"
+
+
+def _one_line(capsys, start: str) -> str:
+    """The command's stderr: exactly one line, starting ``start``; no traceback anywhere."""
+    cap = capsys.readouterr()
+    lines = [line for line in cap.err.splitlines() if line.strip()]
+    assert "Traceback" not in cap.err + cap.out
+    assert len(lines) == 1 and lines[0].startswith(start), cap.err
+    return lines[0]
+
+
+@pytest.fixture
+def afile(tmp_path) -> Path:
+    p = tmp_path / "afile"
+    p.write_text("mine")
+    return p
+
+
+@pytest.mark.parametrize("argv", [
+    ["datasets", "procedural", "--instances", "1", "--views", "1", "--out", "{file}"],
+    ["datasets", "procedural", "--instances", "1", "--views", "1", "--out", "{file}/sub"],
+    ["datasets", "synthetic", "--meshes", "{tmp}", "--out", "{file}"],
+    ["datasets", "voc", "--keypoints", str(VOC / "keypoints"), "--out", "{tmp}"],
+    ["evaluate", "--data", "{tmp}/none.json", "--recon", "{tmp}", "--out", "{file}"],
+    ["evaluate", "--data", "{tmp}/none.json", "--recon", "{tmp}", "--out", "{file}/sub"],
+], ids=["procedural-file", "procedural-under-a-file", "synthetic-file", "voc-folder", "evaluate-file",
+        "evaluate-under-a-file"])
+def test_an_output_that_cannot_be_written_is_one_error_line(argv, tmp_path, afile, capsys, monkeypatch):
+    """Checked before any work: the work functions are never called; exit 2, one ``error:`` line naming
+    --out, the file in the way unchanged."""
+    called = []
+    monkeypatch.setattr(evaluate, "evaluate", lambda *a, **k: called.append("evaluate"))
+    monkeypatch.setattr("carvi_torch.synthetic.procedural.write_default_collection",
+                        lambda *a, **k: called.append("procedural"))
+    monkeypatch.setattr("carvi_torch.synthetic.meshes.load_models", lambda *a, **k: called.append("synthetic"))
+    monkeypatch.setattr("carvi_torch.io.voc.run", lambda *a, **k: called.append("voc"))
+    argv = [a.format(file=afile, tmp=tmp_path) for a in argv]
+    assert cli.main(argv) == 2
+    assert "--out" in _one_line(capsys, "error:")
+    assert called == [] and afile.read_text() == "mine"
+
+
+def test_an_os_error_during_the_work_is_one_error_line(tmp_path, capsys, monkeypatch):
+    """An output that fails only when written (a read-only place, a full disk) is one ``error:`` line with the
+    path and the system's reason, exit 2, in every command (their shared ending)."""
+    def fail(*a, **k):
+        raise PermissionError(13, "Permission denied", str(tmp_path / "out" / "annotations.json"))
+
+    monkeypatch.setattr("carvi_torch.synthetic.procedural.write_default_collection", fail)
+    assert datasets.main(["procedural", "--out", str(tmp_path / "out")]) == 2
+    assert _one_line(capsys, "error:") == f"error: {tmp_path / 'out' / 'annotations.json'}: Permission denied"
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc (a folder no one can write)")
+def test_reconstruct_into_an_impossible_folder_is_exit_2(capsys):
+    """``reconstruct --out /proc/...`` (a folder that cannot be made): one ``error:`` line, exit 2."""
+    from carvi_torch import reconstruct
+
+    assert reconstruct.main(["--out", "/proc/carvi-no-such/run", "procedural_instances=2"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("error: /proc/carvi-no-such")
+
+
+def test_ctrl_c_is_one_line_and_exit_130(tmp_path, capsys, monkeypatch):
+    """Ctrl-C in evaluate, report and datasets: the line saying what is kept, exit 130, no traceback; evaluate
+    leaves no --out folder it made."""
+    def interrupt(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(evaluate, "evaluate", interrupt)
+    out = tmp_path / "results"
+    assert evaluate.main(["--data", str(tmp_path / "a.json"), "--recon", str(tmp_path), "--out", str(out)]) == 130
+    assert _one_line(capsys, "interrupted;") == evaluate.INTERRUPTED
+    assert not out.exists()
+    monkeypatch.setattr(report_cmd, "build_report", interrupt)
+    assert report_cmd.main(["--recon", str(tmp_path)]) == 130
+    assert "incomplete" in _one_line(capsys, "interrupted;")
+    monkeypatch.setattr("carvi_torch.synthetic.procedural.write_default_collection", interrupt)
+    assert datasets.main(["procedural", "--out", str(tmp_path / "proc")]) == 130
+    _one_line(capsys, "interrupted;")
+
+
+def test_report_replaces_an_earlier_report_and_refuses_any_other_folder(tmp_path, capsys):
+    """As the export: --out is new, empty or an earlier report (written again); a folder holding anything
+    else is refused (exit 2, one line, nothing written)."""
+    recon = tmp_path / "run"
+    recon.mkdir()
+    (recon / "summary.json").write_text(json.dumps({"classes": {}}))
+    out = tmp_path / "rep"
+    assert report_cmd.main(["--recon", str(recon), "--out", str(out), "--quiet", "--workers", "0"]) == 0
+    assert (out / "index.html").is_file()
+    assert report_cmd.main(["--recon", str(recon), "--out", str(out), "--quiet", "--workers", "0"]) == 0
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    capsys.readouterr()
+    assert report_cmd.main(["--recon", str(recon), "--out", str(mine), "--quiet", "--workers", "0"]) == 2
+    assert "not an earlier report" in _one_line(capsys, "error:")
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]
