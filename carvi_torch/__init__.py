@@ -1,0 +1,16 @@
+"""carvi_torch: lift object-detection datasets into 3D (see DESIGN.md and README.md).
+
+``__version__`` is the installed package's version, read from its metadata (``pyproject.toml`` is the
+one place that sets it); ``"unknown"`` for a source tree that is not installed.
+
+Example:
+    >>> import carvi_torch
+    >>> carvi_torch.__version__ == carvi_torch.cli.version()
+    True
+"""
+from importlib.metadata import PackageNotFoundError, version as _version
+
+try:
+    __version__ = _version("carvi_torch")
+except PackageNotFoundError:  # a source tree on sys.path, not installed
+    __version__ = "unknown"

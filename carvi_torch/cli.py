@@ -27,8 +27,8 @@ import tempfile
 from pathlib import Path
 from typing import Callable, Sequence
 
-__all__ = ["main", "add_common", "split_classes", "version", "run_command", "CommandError", "os_error_line",
-           "writable_folder", "writable_file"]
+__all__ = ["main", "add_common", "split_classes", "version", "program", "run_command", "CommandError",
+           "os_error_line", "writable_folder", "writable_file"]
 
 #: Subcommand -> (module with ``main(argv)``, one line of help).
 COMMANDS = {
@@ -40,14 +40,26 @@ COMMANDS = {
 }
 
 
-def version() -> str:
-    """The installed package's version."""
-    try:
-        from importlib.metadata import version as _v
+#: The usage name of the subcommand ``carvi`` is running (``None``: none is; a front end run directly).
+_running: str | None = None
 
-        return _v("carvi_torch")
-    except Exception:  # noqa: BLE001 - not installed (a source tree on sys.path)
-        return "unknown"
+
+def version() -> str:
+    """The installed package's version (``carvi_torch.__version__``, from the package metadata)."""
+    from . import __version__
+
+    return __version__
+
+
+def program(module: str) -> str:
+    """The name a front end's usage line shows: ``carvi <command>`` while ``carvi`` runs it, otherwise
+    ``python -m <module>``.
+
+    Example:
+        >>> program("carvi_torch.report")
+        'python -m carvi_torch.report'
+    """
+    return _running or f"python -m {module}"
 
 
 def add_common(ap: argparse.ArgumentParser, classes: bool = True, quiet: bool = True) -> None:
@@ -156,8 +168,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted; nothing was written", file=sys.stderr)
         return 130
-    return int(module.main(argv[1:]) or 0)
+    global _running
+    _running = f"{ap.prog} {ns.command}"
+    try:
+        return int(module.main(argv[1:]) or 0)
+    finally:
+        _running = None
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from carvi_torch.cli import main as _main  # the module the front ends import, which holds _running
+
+    sys.exit(_main())

@@ -21,7 +21,7 @@ import sys
 import warnings
 from typing import Sequence
 
-from .cli import add_common, run_command, split_classes, writable_file, writable_folder
+from .cli import add_common, program, run_command, split_classes, writable_file, writable_folder
 
 __all__ = ["build_parser", "main"]
 
@@ -69,7 +69,7 @@ def _add_render_options(p: argparse.ArgumentParser, views_default: int, views_he
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``python -m carvi_torch.datasets``."""
     parser = argparse.ArgumentParser(
-        prog="python -m carvi_torch.datasets",
+        prog=program("carvi_torch.datasets"),
         description="Make COCO keypoint datasets for carvi_torch: render meshes with keypoints, build the "
                     "embedded procedural classes, or convert PASCAL VOC keypoint annotations.")
     add_common(parser, classes=False, quiet=False)

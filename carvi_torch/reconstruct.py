@@ -11,12 +11,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .cli import add_common, run_command, split_classes
+from .cli import add_common, program, run_command, split_classes
 from .config import FIELD_DOCS, Config, ConfigError, load_config
 from .io.coco import CocoFormatError
 
 EPILOG_HEAD = """\
-Outputs in --out: config.yaml (resolved), summary.json, preview.png, report/index.html and per class
+Outputs in --out: config.yaml (resolved), summary.json, run.log (the whole log, timestamped),
+preview.png, report/index.html, input/ (the embedded collection, when there is no --data) and per class
 <class>/cameras.json, <class>/meshes/<annotation_id>.ply, <class>/voxels/<annotation_id>.npz
 (meshes and voxels in the reference camera frame, image pixels). A rerun skips finished objects.
 
@@ -43,7 +44,7 @@ def settings_help(width: int = 100) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m carvi_torch.reconstruct",
+    ap = argparse.ArgumentParser(prog=program("carvi_torch.reconstruct"),
                                  description="Lift annotated objects into 3D: a camera viewpoint and a dense shape "
                                              "for every object (Carreira et al., 'Lifting Object Detection "
                                              "Datasets into 3D').",

@@ -15,7 +15,9 @@ import contextlib
 import copy
 import logging
 import os
+import signal
 import sys
+import threading
 import time
 import types
 import zlib
@@ -28,7 +30,7 @@ except ImportError:  # pragma: no cover - exercised by tests that hide the modul
     resource = None
 
 __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb", "cpu_seconds",
-           "maxrss_to_mb", "stable_hash", "intra_op_threads", "log",
+           "maxrss_to_mb", "stable_hash", "InterruptWatch", "watch_interrupts", "intra_op_threads", "log",
            "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt"]
 
 
@@ -147,6 +149,53 @@ def cpu_seconds(children: bool = False) -> float:
         return float("nan")
     r = resource.getrusage(resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF)
     return r.ru_utime + r.ru_stime
+
+
+class InterruptWatch:
+    """Whether a Ctrl-C (SIGINT) arrived while a :func:`watch_interrupts` block ran.
+
+    Code that turns the exceptions of bad input into one-line reasons calls :meth:`check` after each
+    object: an interrupt that a library swallowed and turned into another exception is raised again
+    as ``KeyboardInterrupt`` (seen once: a Ctrl-C during loading came out of pycocotools' mask
+    decoding as numpy's ``TypeError`` about an old-style ``__array__`` method, the run went on).
+    """
+
+    def __init__(self) -> None:
+        self.seen = False
+
+    def check(self) -> None:
+        """Raise ``KeyboardInterrupt`` when an interrupt arrived since the block began."""
+        if self.seen:
+            raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def watch_interrupts() -> Iterator[InterruptWatch]:
+    """Record SIGINTs while the block runs (the previous handler still runs, so Ctrl-C still raises
+    ``KeyboardInterrupt`` where it lands); outside the main thread, or when SIGINT is ignored or left
+    to the system, nothing is installed and the watch never fires.
+
+    Example:
+        >>> with watch_interrupts() as watch:
+        ...     watch.check()  # no Ctrl-C: nothing happens
+        >>> watch.seen
+        False
+    """
+    watch = InterruptWatch()
+    previous = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
+    if not callable(previous):
+        yield watch
+        return
+
+    def handler(signum, frame):
+        watch.seen = True
+        previous(signum, frame)
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield watch
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def stable_hash(name: str) -> int:

@@ -190,3 +190,56 @@ def test_canvases_made_on_several_threads_are_the_one_thread_ones(procedural_inp
     for key, coll in got[1].items():
         assert coll.annotation_ids == got[3][key].annotation_ids
         assert coll.masks.any() and torch.equal(coll.masks, got[3][key].masks), key
+
+
+class TestInterrupts:
+    """Ctrl-C during loading stops the load; only what bad input raises becomes a one-line reason."""
+
+    def _with_garbage(self, tmp_path):
+        anns = [{"id": 50, "image_id": 1, "category_id": 1, "keypoints": [40, 60, 2] * 4,
+                 "segmentation": {"counts": 5, "size": [120, 160]}},          # pycocotools: TypeError
+                {"id": 51, "image_id": 1, "category_id": 1, "keypoints": [40, 60, 2] * 4,
+                 "segmentation": [["a", "b", "c", "d", "e", "f"]]}]           # numpy: ValueError
+        return _dataset(tmp_path, anns, n=2)[0]
+
+    def test_malformed_segmentations_are_one_line_reasons(self, tmp_path):
+        res = load_coco(self._with_garbage(tmp_path))
+        reasons = {p.annotation_id: p.message() for p in res.problems}
+        assert set(reasons) == {50, 51} and len(res.collections["plane"]) == 2
+        assert all("malformed segmentation" in m and "\n" not in m for m in reasons.values())
+
+    def test_an_interrupt_that_the_decoder_turns_into_a_type_error_propagates(self, tmp_path, monkeypatch):
+        # seen once: a Ctrl-C during loading came out of pycocotools' decoding as numpy's TypeError about an
+        # old-style __array__, and the run went on with a bad-mask reason. The load must stop instead
+        import signal
+
+        from carvi_torch.io import coco
+
+        real, calls = coco.decode_segmentation, []
+
+        def decoder(seg, height, width):
+            calls.append(1)
+            if len(calls) == 2:
+                try:
+                    signal.raise_signal(signal.SIGINT)
+                    sum(range(100))  # the Python-level handler runs at a bytecode boundary
+                except KeyboardInterrupt:
+                    raise TypeError("__array__() got an unexpected keyword argument 'copy'") from None
+            return real(seg, height, width)
+
+        monkeypatch.setattr(coco, "decode_segmentation", decoder)
+        path = _dataset(tmp_path, n=3)[0]
+        with pytest.raises(KeyboardInterrupt):
+            load_coco(path)
+        assert len(calls) == 2 and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+    @pytest.mark.parametrize("error", [KeyboardInterrupt, RuntimeError, MemoryError])
+    def test_what_bad_input_does_not_raise_is_not_a_reason(self, tmp_path, monkeypatch, error):
+        from carvi_torch.io import coco
+
+        def decoder(seg, height, width):
+            raise error("not an input problem")
+
+        monkeypatch.setattr(coco, "decode_segmentation", decoder)
+        with pytest.raises(error):
+            load_coco(_dataset(tmp_path, n=2)[0])

@@ -140,3 +140,57 @@ def test_refinement_is_compared_on_the_objects_with_an_sfm_camera(recon, tmp_pat
                             torch.tensor([gt[str(a)]["R"] for a in keep], dtype=torch.float64))
     assert vp["refined_with_sfm"]["geodesic"]["median"] == pytest.approx(want["geodesic"]["median"], abs=1e-9)
     assert vp["refined_with_sfm"]["geodesic"]["n"] == vp["refined"]["geodesic"]["n"] - 1
+
+
+def test_classes_without_reconstruction_are_named(recon, tmp_path, capsys):
+    data, gt = _gt(recon)
+    cats = {c["name"] for c in json.loads(data.read_text())["categories"]}
+    assert "car" in cats and len(cats) > 1  # the run reconstructed car only
+    rc = main(["--data", str(data), "--recon", str(recon), "--viewpoints-only", "--quiet", "--out", str(tmp_path)])
+    notes = [line for line in capsys.readouterr().err.splitlines() if line.startswith("note:")]
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert rc == 0 and res["classes_without_reconstruction"] == {c: ["Full"] for c in sorted(cats - {"car"})}
+    assert notes == [f"note: class {c} has no reconstruction in Full; not evaluated" for c in sorted(cats - {"car"})]
+    assert set(res["viewpoints"]) == {"car"}
+    # asked for by name, such a class is evaluated (every object missing) and still named
+    res = evaluate(data, {"Full": recon}, classes=["car", "chair"], step_percent=5.0, progress=False)
+    assert res["classes_without_reconstruction"] == {"chair": ["Full"]}
+    assert res["classes"]["chair"]["Full"]["count"] == 0 and res["classes"]["chair"]["Full"]["missing"] > 0
+
+
+def test_unknown_classes_and_foreign_reconstructions_are_refused(recon, tmp_path, capsys):
+    data, gt = _gt(recon)
+    assert main(["--data", str(data), "--recon", str(recon), "--classes", "car,nosuch", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "'nosuch'" in err and "car" in err
+    dataset = json.loads(data.read_text())
+    gt_file = data.parent / "gt.json"
+    # the same ids naming other objects (another source), then ids the data does not have
+    for change in ({"source": "elsewhere.xml"}, {"id": None}):
+        other = json.loads(json.dumps(dataset))
+        for i, a in enumerate(other["annotations"]):
+            a.update({k: (v if v is not None else f"x{i}") for k, v in change.items()})
+        path = tmp_path / "other.json"
+        path.write_text(json.dumps(other))
+        assert main(["--data", str(path), "--recon", str(recon), "--gt", str(gt_file), "--viewpoints-only",
+                     "--quiet"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and "was not made from" in err and str(recon / "input" / "annotations.json") in err
+    # the data it was made from passes
+    assert main(["--data", str(data), "--recon", str(recon), "--viewpoints-only", "--quiet"]) == 0
+
+
+def test_a_progress_bar_counts_the_objects_unless_quiet(recon, capsys):
+    data, gt = _gt(recon)
+    assert main(["--data", str(data), "--recon", str(recon), "--classes", "car", "--viewpoints-only"]) == 0
+    err = capsys.readouterr().err
+    assert "evaluate: 100%" in err and f"{len(gt)}/{len(gt)}" in err
+    assert main(["--data", str(data), "--recon", str(recon), "--classes", "car", "--viewpoints-only", "--quiet"]) == 0
+    assert "evaluate" not in capsys.readouterr().err
+
+
+def test_help_says_what_the_step_costs(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "progress bar counts the objects" in text and "1/step^2" in text and "0.25 s at 2" in text

@@ -707,3 +707,14 @@ def test_shape_groups_run_end_to_end(tmp_path, procedural_input):
     cams = json.loads((tmp_path / "car" / "cameras.json").read_text())
     assert len(cams["shape_groups"]) == 2 and {c["shape_group"] for c in cams["cameras"].values()} == {0, 1}
     assert summary["classes"]["car"]["reconstructed"] == 6
+
+
+def test_local_run_records_the_executor_fields_a_ray_run_does(tiny):
+    """DESIGN.md: ``summary.json["executor"]`` = ``{name, address, nodes, tasks, retries}`` on every executor;
+    a local run: this machine, one task per class, no retries."""
+    import platform
+
+    out, summary = tiny
+    on_disk = json.loads((out / "summary.json").read_text())["executor"]
+    assert on_disk == summary["executor"] == {"name": "local", "address": None, "nodes": [platform.node()],
+                                              "tasks": len(summary["classes"]), "retries": 0}

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import shutil
 import signal
 import socket
@@ -120,7 +121,7 @@ def test_ray_run_equals_local_run(cluster, local, tmp_path):
     assert ex["name"] == "ray" and ex["address"] == c.address and ex["retries"] == 0
     assert ex["tasks"] == 2 * (1 + 3 + 1)
     assert sorted(ex["nodes"]) == sorted(n.node_id for n in nodes)
-    assert ref["executor"] == {"name": "local", "address": None}
+    assert ref["executor"] == {"name": "local", "address": None, "nodes": [platform.node()], "tasks": 2, "retries": 0}
 
 
 def test_resume_across_executors(cluster, local, tmp_path):

@@ -712,10 +712,41 @@ def test_run_prints_summary_and_writes_skipped(tmp_path, capsys):
 def test_run_exit_codes(tmp_path, capsys):
     kdir = keypoint_dir(tmp_path, "malformed")
     assert run(argparse.Namespace(keypoints=str(kdir), masks=None, out=str(tmp_path / "o.json"))) == 1
+    assert not (tmp_path / "o.json").exists()  # nothing converted: nothing written
+    first = capsys.readouterr()
+    assert "nothing written" in first.out and "no object was converted" in first.err
     assert run(argparse.Namespace(keypoints=str(tmp_path / "absent"), masks=None, out=str(tmp_path / "o.json"))) == 2
     assert run(argparse.Namespace(out="x.json")) == 2
     err = capsys.readouterr().err
-    assert "no object was converted" in err and "keypoint_dir" in err and "--keypoints" in err
+    assert f"--keypoints: {tmp_path / 'absent'} is not" in err
+    assert "keypoint_dir" not in err  # the options, not convert()'s argument names
+
+
+def test_run_names_the_options_and_writes_nothing_without_objects(tmp_path, capsys):
+    kdir, out = keypoint_dir(tmp_path, "valid"), tmp_path / "o.json"
+    assert run(argparse.Namespace(keypoints=str(kdir), out=str(out), classes="cat")) == 1
+    assert not out.exists() and "not asked for: aeroplane 1" in capsys.readouterr().out
+    assert run(argparse.Namespace(keypoints=str(kdir), out=str(out), masks=str(tmp_path / "no"))) == 2
+    assert run(argparse.Namespace(keypoints=str(kdir), out=str(out), classes="unicorn")) == 2
+    (tmp_path / "empty").mkdir()
+    assert run(argparse.Namespace(keypoints=str(tmp_path / "empty"), out=str(out))) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert [line.split(":")[2].strip() for line in err] == ["--masks", "--classes", "--keypoints"]
+    assert not out.exists()
+
+
+def test_unreadable_mask_files_are_reasons_but_other_errors_propagate(tmp_path, monkeypatch):
+    (tmp_path / "cut.png").write_bytes(write_png(tmp_path / "a.png", voc_object_map()).read_bytes()[:60])
+    with pytest.raises(VocFormatError, match="cannot read the PNG"):
+        read_voc_instances(tmp_path / "cut.png")
+    from PIL import Image
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("not a file problem")
+
+    monkeypatch.setattr(Image, "open", broken)
+    with pytest.raises(RuntimeError):
+        read_voc_instances(tmp_path / "a.png")
 
 
 # --------------------------------------------------------------------------- real data

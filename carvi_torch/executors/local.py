@@ -11,6 +11,7 @@ Example:
 from __future__ import annotations
 
 import pickle
+import platform
 import traceback
 from concurrent.futures.process import BrokenProcessPool
 from typing import Callable
@@ -25,7 +26,7 @@ from ..runtime import intra_op_threads, log, log_to_file, log_to_terminal, torch
 from .ahead import Ahead, AheadProcesses, result
 from .common import RunSetup, announce, book_class, class_generator, finish_run, open_run
 
-__all__ = ["run"]
+__all__ = ["run", "local_record"]
 
 
 def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> dict:
@@ -44,7 +45,7 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
             writer = Writer(writer_workers(cfg.stage, setup.device) if workers is None else workers)
             n = intra_op_threads(writer.workers) if threads is None else max(1, int(threads))
             setup.summary["torch_threads"] = n
-            setup.summary["executor"] = {"name": "local", "address": None}
+            setup.summary["executor"] = local_record(len(setup.loaded.collections))
             try:
                 with torch_threads(n):
                     _classes(setup, writer)
@@ -53,6 +54,18 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
                 raise
             writer.close()
             return finish_run(setup, writer.workers, writer.peak_rss_mb)
+
+
+def local_record(classes: int) -> dict:
+    """``summary.json["executor"]`` of a local run, with the fields a Ray run records (DESIGN.md): one node, this
+    machine (its host name); one task per class run; no retries (nothing runs twice here).
+
+    Example:
+        >>> rec = local_record(4); rec["name"], rec["address"], len(rec["nodes"]), rec["tasks"], rec["retries"]
+        ('local', None, 1, 4, 0)
+    """
+    return {"name": "local", "address": None, "nodes": [platform.node() or "localhost"], "tasks": classes,
+            "retries": 0}
 
 
 def _classes(setup: RunSetup, writer: Writer) -> None:

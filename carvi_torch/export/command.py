@@ -11,7 +11,7 @@ import argparse
 import multiprocessing as mp
 import sys
 
-from ..cli import add_common, run_command, split_classes
+from ..cli import add_common, program, run_command, split_classes
 
 __all__ = ["main", "parser", "start_worker_server", "WORKER_MODULE"]
 
@@ -20,7 +20,7 @@ WORKER_MODULE = "carvi_torch.export.objects"
 
 
 def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m carvi_torch.export",
+    ap = argparse.ArgumentParser(prog=program("carvi_torch.export"),
                                  description="Export a reconstruction directory as a zarr v3 store for PyTorch "
                                              "training (read it with carvi_torch.training.LiftedDataset; layout in "
                                              "docs/export.md), or as CMR / U-CMR annotation files.")

@@ -30,7 +30,7 @@ import torch
 from pycocotools import mask as mask_utils
 
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvas
-from ..runtime import cores, torch_threads
+from ..runtime import cores, torch_threads, watch_interrupts
 from .layout import reserved
 from .outputs import read_json, safe_name, write_json
 
@@ -347,10 +347,12 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
     images = _images(data.get("images") or [], problems)
     per_class: dict[str, list] = defaultdict(list)
     seen: set[str] = set()
-    for ann in data["annotations"]:
-        item = _annotation(ann, metas, images, seen, skip_flags, max_image_pixels, problems)
-        if item is not None:
-            per_class[item[0]].append(item[1:])
+    with watch_interrupts() as interrupts:
+        for ann in data["annotations"]:
+            item = _annotation(ann, metas, images, seen, skip_flags, max_image_pixels, problems)
+            interrupts.check()  # a Ctrl-C that a library turned into a bad-input error stops the load
+            if item is not None:
+                per_class[item[0]].append(item[1:])
     by_key = {key: meta for key, meta in metas.values() if meta is not None}
     collections = {key: _build_collection(by_key[key], items, canvas_size, margin, torch.device(device),
                                           canvas_threads(len(items)) if threads is None else threads)
@@ -525,7 +527,7 @@ def _mask(ann: dict, size: tuple[int, int]) -> np.ndarray | str:
         return "missing mask (no segmentation)"
     try:
         mask = decode_segmentation(seg, size[1], size[0])
-    except Exception as e:  # noqa: BLE001 - pycocotools raises various types on garbage
+    except (ValueError, TypeError, KeyError, IndexError, OverflowError) as e:  # what garbage raises
         return f"malformed segmentation: {e}"
     return mask if mask.any() else "empty mask"
 

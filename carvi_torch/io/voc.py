@@ -60,8 +60,10 @@ from __future__ import annotations
 
 import math
 import re
+import struct
 import sys
 import xml.etree.ElementTree as ET
+import zlib
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,6 +72,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from ..collection import infer_flip_pairs
+from ..runtime import watch_interrupts
 from .coco import encode_mask as encode_rle
 from .outputs import write_json
 from .vocmeta import (
@@ -417,11 +420,13 @@ def read_sbd_instances(path: str | Path) -> InstanceMasks:
         VocFormatError: unreadable file, no ``GTinst``/``Segmentation``, not 2-D.
     """
     from scipy.io import loadmat
+    from scipy.io.matlab import MatReadError
 
     path = Path(path)
     try:
         mat = loadmat(str(path), squeeze_me=True, struct_as_record=False)
-    except Exception as e:  # scipy raises several types for corrupt files
+    except (MatReadError, OSError, ValueError, TypeError, IndexError, KeyError, EOFError, NotImplementedError,
+            zlib.error, struct.error) as e:  # what scipy raises for corrupt files (an interrupt passes)
         raise VocFormatError(path, f"cannot read the .mat file: {e}") from None
     gt = mat.get("GTinst")
     if gt is None:
@@ -443,15 +448,15 @@ def read_sbd_instances(path: str | Path) -> InstanceMasks:
 def _read_index_png(path: Path) -> np.ndarray:
     from PIL import Image
 
+    bad_png = (OSError, ValueError, SyntaxError, EOFError, zlib.error, Image.DecompressionBombError)
     try:
         with Image.open(path) as im:
-            if im.mode not in ("P", "L", "I", "I;16"):
-                raise VocFormatError(path, f"PNG mode {im.mode!r}: expected a palette or grey-level index image")
-            return np.array(im).astype(np.int64)
-    except VocFormatError:
-        raise
-    except Exception as e:
+            mode, values = im.mode, np.array(im).astype(np.int64)
+    except bad_png as e:  # what Pillow raises for corrupt files (an interrupt passes)
         raise VocFormatError(path, f"cannot read the PNG: {e}") from None
+    if mode not in ("P", "L", "I", "I;16"):
+        raise VocFormatError(path, f"PNG mode {mode!r}: expected a palette or grey-level index image")
+    return values
 
 
 def read_voc_instances(path: str | Path, class_path: str | Path | None = None) -> InstanceMasks:
@@ -776,7 +781,8 @@ class Report:
     """Outcome of :func:`convert`.
 
     Attributes:
-        out_path: the JSON written.
+        out_path: the JSON asked for.
+        written: whether it was written (not when no object converted).
         counts: converted objects per class.
         skipped: ``(file name, reason)`` per object not converted, sorted by file name.
         excluded: parsed objects of classes not asked for (``classes=``), per class.
@@ -795,6 +801,7 @@ class Report:
     num_images: int = 0
     mask_sources: dict[str, int] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    written: bool = False
 
     @property
     def converted(self) -> int:
@@ -809,7 +816,7 @@ class Report:
     def summary(self, max_files: int = 20) -> str:
         """A short human-readable summary (the full skipped list is in the JSON)."""
         lines = [f"voc: converted {self.converted} objects in {self.num_images} images from "
-                 f"{self.num_files} files -> {self.out_path}"]
+                 f"{self.num_files} files -> " + (str(self.out_path) if self.written else "nothing written")]
         lines += [f"  {c}: {n}" for c, n in sorted(self.counts.items())]
         if self.mask_sources:
             lines.append("  masks: " + ", ".join(f"{k} {v}" for k, v in sorted(self.mask_sources.items())))
@@ -818,7 +825,7 @@ class Report:
         lines.append(f"skipped {len(self.skipped)}" + (":" if self.skipped else ""))
         lines += [f"  {n} x {k}" for k, n in self.skipped_by_reason().items()]
         lines += [f"    {f}: {r}" for f, r in self.skipped[:max_files]]
-        if len(self.skipped) > max_files:
+        if len(self.skipped) > max_files and self.written:
             lines.append(f"    ... {len(self.skipped) - max_files} more in 'carvi_skipped' of the output")
         lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
@@ -872,7 +879,7 @@ def convert(keypoint_dir: str | Path, out_path: str | Path, masks_dir: str | Pat
     """Convert Berkeley keypoint files (+ optional SBD / VOC masks) to COCO keypoint JSON.
 
     See the module docstring for inputs, coordinates, mask matching and image sizes.
-    The output (written atomically) holds ``info``, ``images`` (``{id, file_name:
+    The output (written atomically, and only when an object converts) holds ``info``, ``images`` (``{id, file_name:
     "<image>.jpg", width, height}``, ids by sorted image name), ``annotations`` (ids by
     sorted file path; ``segmentation`` compressed RLE with ``str`` counts, ``area``,
     ``bbox`` from the mask, ``iscrowd`` 0, ``keypoints`` ``[x, y, v] * K`` with ``v = 2``
@@ -910,10 +917,13 @@ def convert(keypoint_dir: str | Path, out_path: str | Path, masks_dir: str | Pat
     report = Report(out_path=Path(out_path), num_files=len(files))
     excluded: Counter = Counter()
     rank = {p: i for i, p in enumerate(files)}
-    by_image = _parse_files(files, one_based, report)
-    converted = []  # (file, obj, cls, mask_rle, size, mask_source, flags)
-    for image in sorted(by_image):
-        converted += _convert_image(image, by_image[image], mdir, adir, wanted, min_iou, report, excluded)
+    with watch_interrupts() as interrupts:  # a Ctrl-C that a reader turned into a bad-file error stops here
+        by_image = _parse_files(files, one_based, report)
+        interrupts.check()
+        converted = []  # (file, obj, cls, mask_rle, size, mask_source, flags)
+        for image in sorted(by_image):
+            converted += _convert_image(image, by_image[image], mdir, adir, wanted, min_iou, report, excluded)
+            interrupts.check()
     converted.sort(key=lambda c: rank[c[0]])
     categories, images, annotations, counts, sources = _coco_entries(converted)
     report.skipped.sort()
@@ -931,7 +941,9 @@ def convert(keypoint_dir: str | Path, out_path: str | Path, masks_dir: str | Pat
         "categories": categories,
         "carvi_skipped": [{"file": f, "reason": r} for f, r in report.skipped],
     }
-    write_json(out_path, data)
+    if annotations:  # nothing converted: nothing written (the report says why)
+        write_json(out_path, data)
+        report.written = True
     return report
 
 
@@ -1069,8 +1081,8 @@ def run(args: Any) -> int:
             ``.annotations``, ``.classes`` (missing attributes count as ``None``).
 
     Returns:
-        0 when at least one object was converted, 1 when none was (the JSON is still
-        written), 2 on bad arguments or a missing folder (one ``error:`` line). Prints :meth:`Report.summary`.
+        0 when at least one object was converted, 1 when none was (nothing is written), 2 on bad
+        arguments or a missing folder (one ``error:`` line, naming the option). Prints :meth:`Report.summary`.
         Another ``OSError`` (an output that cannot be written) is raised: ``datasets``' shared ending prints it
         as one ``error:`` line.
     """
@@ -1082,11 +1094,27 @@ def run(args: Any) -> int:
         report = convert(keypoints, out, masks_dir=getattr(args, "masks", None),
                          annotations_dir=getattr(args, "annotations", None), classes=getattr(args, "classes", None))
     except (FileNotFoundError, ValueError) as e:
-        said = f"{e.filename}: {e.strerror}" if getattr(e, "filename", None) and e.strerror else e
+        said = f"{e.filename}: {e.strerror}" if getattr(e, "filename", None) and e.strerror else _option_names(str(e))
         print(f"error: voc: {said}", file=sys.stderr)
         return 2
-    print(report.summary())
+    print(report.summary(max_files=len(report.skipped) if not report.written else 20))
     if report.converted == 0:
         print("error: voc: no object was converted", file=sys.stderr)
         return 1
     return 0
+
+
+#: :func:`convert`'s argument names and the command-line options that set them.
+_OPTIONS = {"keypoint_dir": "--keypoints", "masks_dir": "--masks", "annotations_dir": "--annotations",
+            "classes": "--classes"}
+
+
+def _option_names(message: str) -> str:
+    """A :func:`convert` error as the command line says it: the option instead of the argument name.
+
+    Example:
+        >>> _option_names("keypoint_dir: /x is not a directory")
+        '--keypoints: /x is not a directory'
+    """
+    name, sep, rest = message.partition(":")
+    return f"{_OPTIONS[name]}{sep}{rest}" if sep and name in _OPTIONS else message

@@ -20,9 +20,9 @@ def main(argv=None) -> int:
     cannot take the report (one ``error:`` line); 130 interrupted by Ctrl-C (one line)."""
     import argparse
 
-    from ..cli import add_common, run_command
+    from ..cli import add_common, program, run_command
 
-    ap = argparse.ArgumentParser(prog="python -m carvi_torch.report",
+    ap = argparse.ArgumentParser(prog=program("carvi_torch.report"),
                                  description="An HTML report of a finished run: per-class panels and one card per "
                                              "object (overlay, interactive 3D mesh), worst first. Open "
                                              "OUT/index.html in a browser; it needs no network.")

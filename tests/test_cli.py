@@ -1,0 +1,46 @@
+"""cli.py: one ``carvi`` command; each front end names itself as it was invoked; one version."""
+from __future__ import annotations
+
+import importlib
+from importlib.metadata import version
+
+import pytest
+
+import carvi_torch
+from carvi_torch.cli import COMMANDS, main
+
+
+def _help(fn, argv, capsys) -> str:
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        fn(argv)
+    assert e.value.code == 0
+    return capsys.readouterr().out
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_usage_names_the_command_as_invoked(command, capsys):
+    module = importlib.import_module(COMMANDS[command][0])
+    assert _help(main, [command, "--help"], capsys).startswith(f"usage: carvi {command} ")
+    assert _help(module.main, ["--help"], capsys).startswith(f"usage: python -m {COMMANDS[command][0]} ")
+
+
+def test_subcommand_of_a_subcommand_and_errors_name_it_too(capsys):
+    assert _help(main, ["datasets", "voc", "--help"], capsys).startswith("usage: carvi datasets voc ")
+    with pytest.raises(SystemExit):
+        main(["report"])  # --recon is required
+    assert "carvi report: error:" in capsys.readouterr().err
+
+
+def test_one_version(capsys):
+    assert carvi_torch.__version__ == version("carvi_torch") != "unknown"
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"carvi_torch {carvi_torch.__version__}"
+
+
+def test_reconstruct_help_lists_every_file_of_a_run():
+    from carvi_torch.io.layout import RUN_NAMES
+    from carvi_torch.reconstruct import EPILOG_HEAD
+
+    listed = EPILOG_HEAD.split("key=value settings")[0]
+    assert [n for n in RUN_NAMES if n not in listed] == []
