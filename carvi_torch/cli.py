@@ -137,16 +137,14 @@ def writable_file(path: str | os.PathLike, option: str = "--out") -> Path:
     """Check, before a command does its work, that the output file ``path`` can be made: it is not a folder,
     and the nearest existing folder above it is a folder this process may write; raises :class:`CommandError`
     naming ``option``. Nothing is written (an error when the file is written is still one ``error:`` line)."""
+    from .runtime import unwritable_above
+
     out = Path(path)
     if out.is_dir():
         raise CommandError(f"{option} {out} is a folder; give the file to write")
-    parent = out.parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise CommandError(f"{option} {out}: {parent} is a file, not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise CommandError(f"{option} {out}: {parent} is not writable")
+    why = unwritable_above(out)
+    if why:
+        raise CommandError(f"{option} {out}: {why}")
     return out
 
 

@@ -31,13 +31,31 @@ except ImportError:  # pragma: no cover - exercised by tests that hide the modul
 
 __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb", "cpu_seconds",
            "maxrss_to_mb", "stable_hash", "InterruptWatch", "watch_interrupts", "intra_op_threads", "log",
-           "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt"]
+           "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt",
+           "unwritable_above"]
 
 
 def cores() -> int:
     """CPU cores this process may run on."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
+
+
+def unwritable_above(path: str | os.PathLike) -> str | None:
+    """Why ``path`` (a file or folder that may not exist yet) cannot be made, judged by the nearest existing
+    path above it: ``"<it> is a file, not a folder"`` or ``"<it> is not writable"``; ``None`` when it can.
+    Nothing is created.
+
+    Example:
+        >>> unwritable_above(os.devnull + "/run/x") is None, unwritable_above(os.devnull + "/run/x")
+        (False, '/dev/null is a file, not a folder')
+    """
+    probe = os.path.dirname(os.path.abspath(path))
+    while not os.path.exists(probe):
+        probe = os.path.dirname(probe)
+    if not os.path.isdir(probe):
+        return f"{probe} is a file, not a folder"
+    return None if os.access(probe, os.W_OK | os.X_OK) else f"{probe} is not writable"
 
 def env_count(name: str, minimum: int) -> int | None:
     """The integer environment variable ``name`` (at least ``minimum``), or None when unset.

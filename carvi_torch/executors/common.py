@@ -6,7 +6,6 @@ folder, the annotation file), the classes (the executor's business), then :func:
 """
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -17,7 +16,7 @@ from .. import carve
 from ..config import Config, ConfigError, settings_changed
 from ..io import coco
 from ..io.outputs import read_json, write_bytes, write_json
-from ..runtime import log, peak_rss_mb, stable_hash
+from ..runtime import log, peak_rss_mb, stable_hash, unwritable_above
 
 __all__ = ["RunSetup", "check_request", "open_run", "finish_run", "exit_status", "class_generator",
            "prepare_data", "read_ground_truth", "book_class", "load_skips"]
@@ -42,13 +41,9 @@ def _check_out(out: Path) -> None:
     """The output folder must be a folder this process can create and write (nothing is created here)."""
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} is a file, not a folder")
-    probe = out
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir():
-        raise ConfigError(f"--out {out}: {probe} is a file, not a folder")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise ConfigError(f"--out {out}: {probe} is not writable")
+    why = unwritable_above(out / "summary.json")  # the folder itself where it exists, else the nearest above
+    if why:
+        raise ConfigError(f"--out {out}: {why}")
 
 
 def check_request(cfg: Config) -> torch.device:
