@@ -634,7 +634,8 @@ def test_export_workers_ignore_ctrl_c():
     from carvi_torch.export.objects import init_worker
     from carvi_torch.runtime import LeanProcessPool, start_method
 
-    pool = LeanProcessPool(1, mp_context=mp.get_context(start_method()), initializer=init_worker)
+    pool = LeanProcessPool(1, mp_context=mp.get_context(start_method()), initializer=init_worker,
+                           initargs=(os.getpid(),))
     try:
         pid = pool.submit(os.getpid).result(timeout=60)
         os.kill(pid, signal.SIGINT)
@@ -642,3 +643,45 @@ def test_export_workers_ignore_ctrl_c():
         assert pool.submit(os.getpid).result(timeout=60) == pid
     finally:
         pool.shutdown()
+
+
+#: A child process that exports ``argv[1]`` into ``argv[2]`` with two worker processes and stops for good at
+#: the first sample it is to write (after touching ``argv[3]``): the workers are running by then.
+_STALLED_EXPORT = """
+import sys, time, pathlib
+from carvi_torch.export import run as export_run
+
+def stall(self, cls, sample, meta):
+    pathlib.Path(sys.argv[3]).touch()
+    time.sleep(600)
+
+export_run.StoreWriter.add = stall
+export_run.export(sys.argv[1], sys.argv[2], resolution=4, points=8, progress=False, workers=2)
+"""
+
+
+def test_a_killed_export_leaves_no_process_running(recon, tmp_path):
+    """SIGKILL of the export while its worker processes are up: they (and the forkserver) notice and exit."""
+    import os
+    import signal
+    import time
+    import uuid
+
+    from conftest import gone_within, processes_marked
+
+    marker, started = uuid.uuid4().hex, tmp_path / "started"
+    proc = subprocess.Popen([sys.executable, "-c", _STALLED_EXPORT, str(recon), str(tmp_path / "out"), str(started)],
+                            env=dict(os.environ, CARVI_TEST_MARKER=marker), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while not started.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        ended = proc.poll() is not None
+        assert started.exists(), f"the export never reached its first sample: {proc.stderr.read() if ended else ''}"
+        assert len(processes_marked(marker)) >= 3  # the export, the forkserver, workers
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    left = gone_within(marker, 15.0)
+    assert not left, f"processes of the killed export still running: {left}"

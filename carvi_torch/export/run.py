@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
+import os
 import time
 from collections import deque
 from itertools import islice
@@ -250,7 +251,8 @@ def _write_samples(loaded, recon: Path, class_names: list, settings: dict, write
     ctx = mp.get_context(start_method())
     if workers > 0 and start_method() == "forkserver":  # workers fork from a server that imported them once
         ctx.set_forkserver_preload([safe_export_objects.__module__])
-    pool = LeanProcessPool(workers, mp_context=ctx, initializer=init_worker) if workers > 0 else None
+    pool = (LeanProcessPool(workers, mp_context=ctx, initializer=init_worker, initargs=(os.getpid(),))
+            if workers > 0 else None)
     try:
         with torch_threads(1):
             jobs = _class_jobs(loaded, recon, class_names, settings, writer, skipped, bar, no_files)
