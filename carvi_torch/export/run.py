@@ -8,9 +8,10 @@ category-specific mesh reconstruction codebases instead (:mod:`carvi_torch.expor
 
 Objects whose outputs are missing or unreadable (no voxels, no mesh, no camera or no readable angles,
 not in the annotations), and those the annotations' reader skips, are reported by annotation id with the
-reason, in the console and in the root group's ``skipped`` attribute; the rest is exported. The per-object work runs in ``--workers``
-processes (default: one per core), fed one stream of jobs over every class; the main process writes
-the results in order as they come (:mod:`carvi_torch.export.command` is the command line).
+reason, in the console and in the root group's ``skipped`` attribute; the rest is exported. The
+per-object work runs in ``--workers`` processes (default: one per core), fed one stream of jobs over
+every class; the main process writes the results in order as they come
+(:mod:`carvi_torch.export.command` is the command line).
 """
 from __future__ import annotations
 
