@@ -32,7 +32,7 @@ except ImportError:  # pragma: no cover - exercised by tests that hide the modul
 __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb", "cpu_seconds",
            "maxrss_to_mb", "stable_hash", "InterruptWatch", "watch_interrupts", "intra_op_threads", "log",
            "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt",
-           "unwritable_above"]
+           "unwritable_above", "watch_parent"]
 
 
 def cores() -> int:
@@ -356,6 +356,34 @@ def start_method() -> str:
     import multiprocessing as mp
 
     return "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's (a reused pid)
+        return True
+    return True
+
+
+def watch_parent(run_pid: int, period: float = 0.5) -> None:
+    """Process initializer: exit this process as soon as the run that started it (``run_pid``) is gone.
+
+    A process started by the forkserver is that server's child, and the server itself lives as long as
+    its children do, so the run's own pid is watched (where ``os.kill(pid, 0)`` can tell, on POSIX),
+    and the parent too (re-parenting: under spawn the parent is the run)."""
+    parent = os.getppid()
+    posix = os.name == "posix"
+
+    def watch():
+        while True:
+            time.sleep(period)
+            if os.getppid() != parent or (posix and run_pid != parent and not _alive(run_pid)):
+                os._exit(0)
+
+    threading.Thread(target=watch, name="carvi-run-watch", daemon=True).start()
 
 
 class LeanProcessPool(ProcessPoolExecutor):

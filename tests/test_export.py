@@ -19,6 +19,7 @@ from torch.utils.data import DataLoader
 from carvi_torch.cameras import azimuth_elevation_roll_from_rotation
 from carvi_torch.config import Config
 from carvi_torch.executors import run
+from carvi_torch.io.coco import load_coco
 from carvi_torch.export import export, main as export_main
 from carvi_torch.export.objects import canonical_occupancy, splat_occupancy
 from carvi_torch.training import LiftedDataset, collate_lifted
@@ -634,7 +635,8 @@ def test_export_workers_ignore_ctrl_c():
     from carvi_torch.export.objects import init_worker
     from carvi_torch.runtime import LeanProcessPool, start_method
 
-    pool = LeanProcessPool(1, mp_context=mp.get_context(start_method()), initializer=init_worker)
+    pool = LeanProcessPool(1, mp_context=mp.get_context(start_method()), initializer=init_worker,
+                           initargs=(os.getpid(),))
     try:
         pid = pool.submit(os.getpid).result(timeout=60)
         os.kill(pid, signal.SIGINT)
@@ -642,3 +644,122 @@ def test_export_workers_ignore_ctrl_c():
         assert pool.submit(os.getpid).result(timeout=60) == pid
     finally:
         pool.shutdown()
+
+
+#: A child process that exports ``argv[1]`` into ``argv[2]`` with two worker processes and stops for good at
+#: the first sample it is to write (after touching ``argv[3]``): the workers are running by then.
+_STALLED_EXPORT = """
+import sys, time, pathlib
+from carvi_torch.export import run as export_run
+
+def stall(self, cls, sample, meta):
+    pathlib.Path(sys.argv[3]).touch()
+    time.sleep(600)
+
+export_run.StoreWriter.add = stall
+export_run.export(sys.argv[1], sys.argv[2], resolution=4, points=8, progress=False, workers=2)
+"""
+
+
+def test_a_killed_export_leaves_no_process_running(recon, tmp_path):
+    """SIGKILL of the export while its worker processes are up: they (and the forkserver) notice and exit."""
+    import os
+    import signal
+    import time
+    import uuid
+
+    from conftest import gone_within, processes_marked
+
+    marker, started = uuid.uuid4().hex, tmp_path / "started"
+    proc = subprocess.Popen([sys.executable, "-c", _STALLED_EXPORT, str(recon), str(tmp_path / "out"), str(started)],
+                            env=dict(os.environ, CARVI_TEST_MARKER=marker), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while not started.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        ended = proc.poll() is not None
+        assert started.exists(), f"the export never reached its first sample: {proc.stderr.read() if ended else ''}"
+        assert len(processes_marked(marker)) >= 3  # the export, the forkserver, workers
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    left = gone_within(marker, 15.0)
+    assert not left, f"processes of the killed export still running: {left}"
+
+
+def _store_attrs(out) -> dict:
+    return json.loads((out / "zarr.json").read_text())["attributes"]["carvi_export"]
+
+
+def _run_copy(recon, dest, finished: bool = True):
+    """A copy of ``recon`` that reads its own ``input/annotations.json`` (returned with the file's contents);
+    ``finished=False``: as a run interrupted before its totals were written."""
+    shutil.copytree(recon, dest)
+    summary = json.loads((dest / "summary.json").read_text())
+    summary["data"] = str(dest / "input" / "annotations.json")
+    if not finished:
+        del summary["total_seconds"]
+    (dest / "summary.json").write_text(json.dumps(summary))
+    return json.loads((dest / "input" / "annotations.json").read_text())
+
+
+def test_an_unfinished_run_counts_every_object_it_has_not_reconstructed(recon, tmp_path, capsys):
+    """A run killed after some car meshes and before chair started: every object of the run's classes without
+    finished files is counted, per class, chair named as not started, and listed in the store (the
+    annotation file's other classes, outside the run's ``classes``, are not)."""
+    part = tmp_path / "part"
+    data = _run_copy(recon, part, finished=False)
+    shutil.rmtree(part / "chair")
+    gone = sorted((part / "car" / "voxels").glob("*.npz"))[:2]
+    for p in gone:
+        p.unlink()
+    cat_of = {c["id"]: c["name"] for c in data["categories"]}
+    ids = {c: sorted(a["id"] for a in data["annotations"] if cat_of[a["category_id"]] == c) for c in ("car", "chair")}
+    capsys.readouterr()
+    assert export_main(["--recon", str(part), "--out", str(tmp_path / "e"), "--resolution", "4", "--points", "8",
+                        "--workers", "0", "--quiet"]) == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and "exported the 3 object(s) it finished; 7 not reconstructed yet are left out: car 2, " \
+                              "chair 5 (not started)" in err[0], err
+    attrs = _store_attrs(tmp_path / "e")
+    assert attrs["classes"] == ["car", "chair"] and attrs["counts"] == {"car": len(ids["car"]) - 2, "chair": 0}
+    assert {s["reason"] for s in attrs["skipped"]} == {"not reconstructed yet (the run is unfinished)"}
+    assert sorted(s["annotation_id"] for s in attrs["skipped"] if s["class"] == "car") == [int(p.stem) for p in gone]
+    assert sorted(s["annotation_id"] for s in attrs["skipped"] if s["class"] == "chair") == ids["chair"]
+    assert LiftedDataset(tmp_path / "e", fields=["quality"]).class_names == ["car", "chair"]
+
+
+def test_an_unknown_class_is_refused_and_nothing_written(recon, tmp_path, capsys):
+    """``--classes`` naming a class the run does not have (a typo, another case, a class of the annotation file
+    the run left out): one error line naming it and the run's classes, exit 2, nothing written."""
+    args = ["--recon", str(recon), "--resolution", "4", "--points", "8", "--workers", "0", "--quiet"]
+    capsys.readouterr()
+    for i, (asked, fmt) in enumerate([("bogus", "zarr"), ("Car", "zarr"), ("car,bogus", "zarr"), ("bottle", "zarr"),
+                                      ("bogus", "ucmr")]):
+        out = tmp_path / f"e{i}"
+        assert export_main(args + ["--out", str(out), "--classes", asked, "--format", fmt]) == 2, asked
+        err = capsys.readouterr().err.strip().splitlines()
+        wrong = asked.split(",")[-1]
+        assert len(err) == 1 and err[0].startswith("error: --classes:") and repr(wrong) in err[0], err
+        assert "(its classes: car, chair;" in err[0] and not out.exists()
+    assert export_main(args + ["--out", str(tmp_path / "ok"), "--classes", "chair"]) == 0
+    assert _store_attrs(tmp_path / "ok")["classes"] == ["chair"]
+
+
+def test_objects_skipped_at_load_are_listed_with_their_reason(recon, tmp_path):
+    """Objects the annotations no longer let through (flagged crowd, no visible keypoint) are in the store's
+    ``skipped`` list with the reason the load gives (as summary.json's failures), beside those exported."""
+    run = tmp_path / "run"
+    data = _run_copy(recon, run)
+    cars = [a for a in data["annotations"] if a["category_id"] == next(c["id"] for c in data["categories"]
+                                                                       if c["name"] == "car")]
+    cars[0]["iscrowd"] = 1
+    cars[1]["keypoints"] = [0] * len(cars[1]["keypoints"])
+    (run / "input" / "annotations.json").write_text(json.dumps(data))
+    loaded = load_coco(run / "input" / "annotations.json", canvas_size=64, classes=["car", "chair"])
+    expected = sorted((p.annotation_id, p.reason) for p in loaded.problems if p.fatal)
+    assert [aid for aid, _ in expected] == sorted([cars[0]["id"], cars[1]["id"]])
+    index = export(run, tmp_path / "e", resolution=4, points=8, progress=False, workers=0)
+    assert sorted((s["annotation_id"], s["reason"]) for s in index["skipped"]) == expected
+    assert {s["class"] for s in index["skipped"]} == {"car"} and len(index["samples"]) == 10 - 2

@@ -25,7 +25,7 @@ from carvi_torch.config import Config, ConfigError
 from carvi_torch.executors import exit_status, run
 from carvi_torch.io.coco import load_coco
 from carvi_torch.reconstruct import main as reconstruct_main
-from conftest import run_each_in_a_fresh_process
+from conftest import gone_within, processes_marked, run_each_in_a_fresh_process
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = {"resolution": 16, "proposals": 3, "canvas_size": 48, "progress": False, "refine_iters": 20,
@@ -528,14 +528,7 @@ def test_a_killed_run_leaves_no_process_running(base, tmp_path):
                              settings], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
     def marked() -> list[int]:
-        pids = []
-        for p in Path("/proc").iterdir():
-            try:
-                if p.name.isdigit() and marker.encode() in (p / "environ").read_bytes():
-                    pids.append(int(p.name))
-            except OSError:
-                continue
-        return pids
+        return processes_marked(marker)
 
     for _ in range(600):  # wait for the writer processes (the main process plus at least two)
         if len(marked()) >= 3 or proc.poll() is not None:
@@ -544,13 +537,7 @@ def test_a_killed_run_leaves_no_process_running(base, tmp_path):
     assert proc.poll() is None and len(marked()) >= 3, "the run ended before its writers were seen"
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
-    for _ in range(100):
-        if not marked():
-            break
-        time.sleep(0.1)
-    left = marked()
-    for pid in left:
-        os.kill(pid, signal.SIGKILL)
+    left = gone_within(marker, 10.0)
     assert not left, f"processes of the killed run still running: {left}"
 
 

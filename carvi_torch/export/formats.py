@@ -40,7 +40,7 @@ from scipy.spatial import ConvexHull, distance
 
 from ..io.coco import load_coco
 from ..io.outputs import atomic_write, read_json, write_json
-from .source import data_path, recon_config
+from .source import class_scope, data_path, recon_config
 
 __all__ = ["normalised_shape", "cmr_pose", "export_format", "class_records", "quaternion_wxyz"]
 
@@ -149,9 +149,10 @@ def export_format(recon: str | Path, out: str | Path, fmt: str, classes=None) ->
     recon, out = Path(recon), Path(out)
     cfg = recon_config(recon)
     loaded = load_coco(data_path(recon, cfg), canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
-                       classes=classes)
+                       classes=classes or cfg.classes)
+    scope = class_scope(loaded.dataset["categories"], cfg.classes, classes, recon)  # an unknown class: ValueError
     written = []
-    for cname in sorted(c for c in loaded.collections if (recon / c / "cameras.json").is_file()):
+    for cname in (c for c in scope if c in loaded.collections and (recon / c / "cameras.json").is_file()):
         coll = loaded.collections[cname]
         recs, S, hull = class_records(recon, cname, coll)
         names = list(coll.meta.keypoint_names)

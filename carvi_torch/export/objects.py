@@ -27,6 +27,7 @@ import numpy as np
 import trimesh
 from trimesh.exchange.ply import load_ply
 
+from ..runtime import watch_parent
 from .raster import zbuffer
 
 __all__ = ["splat_occupancy", "view_occupancy", "canonical_occupancy", "depth_map", "sample_surface",
@@ -275,13 +276,16 @@ def safe_export_objects(jobs: list[dict]) -> list[tuple[dict | None, str | None]
     return [safe_export_object(job) for job in jobs]
 
 
-def init_worker() -> None:
+def init_worker(run_pid: int) -> None:
     """An export worker process: one torch thread where torch is imported (the processes are the
     parallelism; the worker's own work is numpy, and it does not import torch). It ignores Ctrl-C, which a
-    terminal sends to the whole process group: the main process handles it and stops the pool."""
+    terminal sends to the whole process group: the main process handles it and stops the pool. It exits
+    when the export that started it (``run_pid``) is gone, killed even with SIGKILL
+    (:func:`~carvi_torch.runtime.watch_parent`), and the forkserver that forked it follows."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    watch_parent(run_pid)
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(1)

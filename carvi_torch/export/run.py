@@ -7,17 +7,19 @@ and so does zarr alone. ``--format cmr`` / ``--format ucmr`` write the annotatio
 category-specific mesh reconstruction codebases instead (:mod:`carvi_torch.export.formats`).
 
 Objects whose outputs are missing or unreadable (no voxels, no mesh, no camera or no readable angles,
-not in the annotations) are reported by annotation id with the reason, in the console and in the root
-group's ``skipped`` attribute; the rest is exported. The per-object work runs in ``--workers``
-processes (default: one per core), fed one stream of jobs over every class; the main process writes
-the results in order as they come (:mod:`carvi_torch.export.command` is the command line).
+not in the annotations), and those the annotations' reader skips, are reported by annotation id with the
+reason, in the console and in the root group's ``skipped`` attribute; the rest is exported. The
+per-object work runs in ``--workers`` processes (default: one per core), fed one stream of jobs over
+every class; the main process writes the results in order as they come
+(:mod:`carvi_torch.export.command` is the command line).
 """
 from __future__ import annotations
 
 import math
 import multiprocessing as mp
+import os
 import time
-from collections import deque
+from collections import Counter, deque
 from itertools import islice
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -31,7 +33,7 @@ from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
 from ..mesh import MESH_FORMATS
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
-from .source import data_path, recon_config, unfinished
+from .source import class_scope, data_path, recon_config, unfinished
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
                       view_occupancy)
 from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, StoreWriter
@@ -124,10 +126,12 @@ def _class_jobs(loaded, recon: Path, class_names: list, settings: dict, writer: 
     """The jobs of every class, class by class, read lazily (a class's ``cameras.json`` when its first job is
     asked for); objects that cannot be exported go to ``skipped[class]`` with their reason."""
     for ci, cname in enumerate(class_names):
-        coll, cdir = loaded.collections[cname], recon / cname
+        coll, cdir = loaded.collections.get(cname), recon / cname
+        if coll is None:  # every object of the class skipped at load
+            continue
         if not (cdir / "cameras.json").is_file() and no_files == NOT_YET:
-            skipped[cname].extend({"annotation_id": aid, "class": cname, "reason": NOT_YET}
-                                  for aid in coll.annotation_ids)
+            skipped[cname].extend({"annotation_id": aid, "class": cname, "source": src, "reason": NOT_YET}
+                                  for aid, src in zip(coll.annotation_ids, coll.sources))
             bar.update(len(coll))
             continue
         try:
@@ -175,7 +179,7 @@ def _skipped_in_order(class_names: list, skipped: dict) -> list:
 
 def _report_skipped(recon: Path, skipped_list: list, exported: int, pending: bool, progress: bool) -> None:
     """The skipped objects, one line each (a count alone when ``progress`` is off); an unfinished run's objects
-    not reconstructed yet in one line."""
+    not reconstructed yet in one line, counted per class, with the classes it has not started."""
     import sys
 
     other = [s for s in skipped_list if s["reason"] != NOT_YET]
@@ -184,16 +188,45 @@ def _report_skipped(recon: Path, skipped_list: list, exported: int, pending: boo
     if other and not progress:
         print(f"export: {len(other)} object(s) skipped (reasons in the store's 'skipped' attribute)")
     if pending:
-        n = len(skipped_list) - len(other)
         print(f"warning: {recon} is an unfinished run (interrupted or still running): exported the {exported} "
-              f"object(s) it finished; {n} not reconstructed yet are left out (rerun reconstruct to finish it)",
+              f"object(s) it finished; {_not_yet(recon, skipped_list)} (rerun reconstruct to finish it)",
               file=sys.stderr)
+
+
+def _not_yet(recon: Path, skipped_list: list) -> str:
+    """``N not reconstructed yet are left out: car 28, chair 40 (not started)``."""
+    per_class = Counter(s["class"] for s in skipped_list if s["reason"] == NOT_YET)
+    parts = [f"{c} {n}" + ("" if (recon / c / "cameras.json").is_file() else " (not started)")
+             for c, n in per_class.items()]
+    return f"{sum(per_class.values())} not reconstructed yet are left out" + (": " + ", ".join(parts) if parts else "")
 
 
 def _check_exportable(recon: Path, cfg) -> None:
     if cfg.stage == "cameras":
         raise ValueError(f"{recon} is a camera-only run (stage=cameras): it has no shapes for the zarr store "
                          "(export --format cmr or ucmr takes its cameras; nothing was written)")
+
+
+def _load(recon: Path, cfg, data: Path, classes, pending: bool):
+    """The annotations of the classes to export (those of the run's that ``classes`` asks for; ``ValueError``
+    naming an unknown one) and the classes' names in store order: every class of the run's input when the run
+    is unfinished (a class not started yet included), else those the run has a folder for."""
+    with torch_threads(1):
+        loaded = load_coco(data, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
+                           classes=classes or cfg.classes)
+    scope = class_scope(loaded.dataset["categories"], cfg.classes, classes, recon)
+    return loaded, [c for c in scope if pending or (recon / c).is_dir()]
+
+
+def _load_skips(problems: list, class_names: list) -> dict[str, list]:
+    """``{class: [skipped objects]}``, each class's list started with its objects skipped when the annotations
+    were read (as ``summary.json`` lists them, stage ``load``), with their reason."""
+    skipped: dict[str, list] = {c: [] for c in class_names}
+    for p in problems:
+        if p.fatal and p.annotation_id is not None and p.class_key in skipped:
+            skipped[p.class_key].append({"annotation_id": p.annotation_id, "class": p.class_key, "source": p.source,
+                                         "reason": p.reason})
+    return skipped
 
 
 def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int = 2048, shard_size: int = 256,
@@ -219,10 +252,8 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     writer = StoreWriter(out, shard_size, DEFAULT_FIELDS + (MESH_FIELDS if mesh else []))  # --out checked first
     settings = {"canvas": canvas, "resolution": resolution, "points": points, "seed": seed, "mesh_field": mesh}
     try:
-        with torch_threads(1):
-            loaded = load_coco(data, canvas_size=canvas, margin=cfg.input.canvas_margin, classes=classes)
-        class_names = sorted(c for c in loaded.collections if (recon / c).is_dir())
-        skipped: dict[str, list] = {c: [] for c in class_names}
+        loaded, class_names = _load(recon, cfg, data, classes, pending)
+        skipped = _load_skips(loaded.problems, class_names)
         samples = _write_samples(loaded, recon, class_names, settings, writer, skipped, progress, workers,
                                  NOT_YET if pending else "no voxels (not reconstructed)")
         if pending and not samples:
@@ -246,11 +277,13 @@ def _write_samples(loaded, recon: Path, class_names: list, settings: dict, write
     """Compute every object (in ``workers`` processes, or here) and add it to ``writer``; returns the samples'
     entries (class, annotation_id, image_id, source) in store order."""
     samples = []
-    bar = tqdm(total=sum(len(loaded.collections[c]) for c in class_names), desc="export", disable=not progress)
+    bar = tqdm(total=sum(len(loaded.collections.get(c, ())) for c in class_names), desc="export",
+               disable=not progress)
     ctx = mp.get_context(start_method())
     if workers > 0 and start_method() == "forkserver":  # workers fork from a server that imported them once
         ctx.set_forkserver_preload([safe_export_objects.__module__])
-    pool = LeanProcessPool(workers, mp_context=ctx, initializer=init_worker) if workers > 0 else None
+    pool = (LeanProcessPool(workers, mp_context=ctx, initializer=init_worker, initargs=(os.getpid(),))
+            if workers > 0 else None)
     try:
         with torch_threads(1):
             jobs = _class_jobs(loaded, recon, class_names, settings, writer, skipped, bar, no_files)

@@ -4,9 +4,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..config import Config, read_run_config
+from ..io.coco import class_keys
 from ..io.outputs import read_json
 
-__all__ = ["recon_config", "data_path", "unfinished"]
+__all__ = ["recon_config", "data_path", "unfinished", "class_scope"]
 
 
 def recon_config(recon: Path) -> Config:
@@ -42,3 +43,35 @@ def unfinished(recon: Path) -> bool:
     except (OSError, ValueError):
         return True
     return not isinstance(summary, dict) or "total_seconds" not in summary
+
+
+def class_scope(categories: list, run_classes, asked, recon: Path) -> list[str]:
+    """The class folders an export covers: the annotation file's classes that the run covered (its ``classes``
+    setting, names or folder names; all without one), those of ``asked`` (``--classes``) alone when given.
+    ``ValueError`` naming any ``asked`` class that is not one of them, and the run's classes.
+
+    Example:
+        >>> cats = [{"id": 1, "name": "car", "keypoints": ["a"]}, {"id": 2, "name": "chair", "keypoints": ["a"]}]
+        >>> class_scope(cats, None, ["chair"], Path("runA"))
+        ['chair']
+        >>> class_scope(cats, ["car"], ["chair"], Path("runA"))
+        Traceback (most recent call last):
+        ...
+        ValueError: --classes: 'chair' is not a class of the run runA (its classes: car; names are case-sensitive)
+    """
+    keys = class_keys(categories)
+    names: dict[str, set] = {}
+    for cat in categories:
+        key = keys.get(str(cat.get("id"))) if isinstance(cat, dict) else None
+        if key is not None and (not run_classes or {key, str(cat.get("name"))} & set(run_classes)):
+            for n in (key, str(cat.get("name"))):
+                names.setdefault(n, set()).add(key)
+    in_run = sorted({k for ks in names.values() for k in ks})
+    if not asked:
+        return in_run
+    unknown = [c for c in asked if c not in names]
+    if unknown:
+        raise ValueError(f"--classes: {', '.join(map(repr, unknown))} "
+                         f"{'is not a class' if len(unknown) == 1 else 'are not classes'} of the run {recon} "
+                         f"(its classes: {', '.join(in_run) or 'none'}; names are case-sensitive)")
+    return sorted({k for c in asked for k in names[c]})

@@ -288,14 +288,16 @@ class StoreWriter:
             self.classes[cls].flush()
 
     def close(self, attrs: dict) -> dict:
-        """Flush every class, write the root attributes (``attrs`` plus the fields and format version) and swap
-        the complete store in at ``out``; returns the root attributes written."""
+        """Flush every class, write the root attributes (``attrs`` plus the fields, format version and ``counts``:
+        samples per class of ``attrs["classes"]``, 0 for one without any) and swap the complete store in at
+        ``out``; returns the root attributes written."""
         for cls, arrays in self.classes.items():
             arrays.close(self.extent.get(cls, 1.0))
         fields = {k: {"dtype": FIELDS[k].dtype, "returns": FIELDS[k].out_dtype, "shape": FIELDS[k].shape,
                       "doc": FIELDS[k].doc} for k in self.fields}
         desc = {"format_version": FORMAT_VERSION, **attrs, "fields": fields,
-                "counts": {c: a.count for c, a in self.classes.items()}}
+                "counts": {c: self.classes[c].count if c in self.classes else 0
+                           for c in attrs.get("classes", self.classes)}}
         with deferred_interrupt():
             self.root.attrs[ATTRS_KEY] = desc
         _swap_in(self.tmp, self.out)

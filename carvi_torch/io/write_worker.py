@@ -19,14 +19,13 @@ from __future__ import annotations
 
 import os
 import signal
-import threading
 import time
 
 import numpy as np
 
 from .. import mesh
 from ..quality import reconstruction_iou
-from ..runtime import peak_rss_mb
+from ..runtime import peak_rss_mb, watch_parent
 from .outputs import write_json, write_npz
 
 __all__ = ["write_object", "write_object_safe", "start_worker", "watch_parent", "init_worker"]
@@ -95,36 +94,8 @@ def start_worker() -> int:
     return os.getpid()
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, another user's (a reused pid)
-        return True
-    return True
-
-
 def init_worker(run_pid: int) -> None:
     """Process initializer of a writer: ignore Ctrl-C (the run stops its writers) and
     :func:`watch_parent` ``run_pid``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     watch_parent(run_pid)
-
-
-def watch_parent(run_pid: int, period: float = 0.5) -> None:
-    """Process initializer: exit this process as soon as the run that started it (``run_pid``) is gone.
-
-    A process started by the forkserver is that server's child, and the server itself lives as long as
-    its children do, so the run's own pid is watched (where ``os.kill(pid, 0)`` can tell, on POSIX),
-    and the parent too (re-parenting: under spawn the parent is the run)."""
-    parent = os.getppid()
-    posix = os.name == "posix"
-
-    def watch():
-        while True:
-            time.sleep(period)
-            if os.getppid() != parent or (posix and run_pid != parent and not _alive(run_pid)):
-                os._exit(0)
-
-    threading.Thread(target=watch, name="carvi-run-watch", daemon=True).start()
