@@ -113,9 +113,9 @@ def test_round_trip_matches_reconstruction(recon, exported):
 
 
 def _mesh_cells(m, R, lo, size):
-    """Cells ``[d, y, x]`` of an R^3 grid (origin ``lo``, cell ``size``, axes x, y, z) whose centre is in ``m``."""
-    c = (np.arange(R) + 0.5) * size
-    zz, yy, xx = np.meshgrid(lo[2] + c, lo[1] + c, lo[0] + c, indexing="ij")
+    """Cells ``[d, y, x]`` of an R^3 grid (origin ``lo``, cell ``size`` per axis x, y, z) whose centre is in ``m``."""
+    c = (np.arange(R) + 0.5)[:, None] * np.broadcast_to(size, (3,))
+    zz, yy, xx = np.meshgrid(lo[2] + c[:, 2], lo[1] + c[:, 1], lo[0] + c[:, 0], indexing="ij")
     return m.contains(np.stack([xx, yy, zz], -1).reshape(-1, 3)).reshape(R, R, R)
 
 
@@ -123,7 +123,7 @@ def test_view_occupancy_covers_the_mesh(recon, exported):
     """Every surface point of the mesh lies in the one-cell-dilated occupancy; the occupancy holds every
     cell whose centre is inside the mesh, and nothing farther than one cell from the mesh."""
     out, _ = exported
-    ds = LiftedDataset(out, fields=["occupancy_view", "canvas_scale", "canvas_offset", "annotation_id"])
+    ds = LiftedDataset(out, fields=["occupancy_view", "view_depth", "canvas_scale", "canvas_offset", "annotation_id"])
     cube = np.ones((3, 3, 3))
     checked_inside = 0
     for i in range(len(ds)):
@@ -132,15 +132,16 @@ def test_view_occupancy_covers_the_mesh(recon, exported):
                          item["canvas_offset"].numpy())
         occ = item["occupancy_view"].numpy()
         R, C = occ.shape[0], 64.0
-        zc = float(np.asarray(m.vertices)[:, 2].mean())
+        zc, dz = item["view_depth"].tolist()
         pts = m.sample(4000, seed=i)
-        cell = np.floor(np.stack([(pts[:, 2] - zc + C / 2), pts[:, 1] + 0.5, pts[:, 0] + 0.5], 1) * R / C)
-        cell = np.clip(cell.astype(int), 0, R - 1)
+        cell = np.floor(np.stack([(pts[:, 2] - zc) / dz + R / 2, (pts[:, 1] + 0.5) * R / C,
+                                  (pts[:, 0] + 0.5) * R / C], 1)).astype(int)
+        assert ((cell >= 0) & (cell < R)).all(), i  # the whole mesh is inside the grid
         assert ndimage.binary_dilation(occ, cube)[cell[:, 0], cell[:, 1], cell[:, 2]].mean() >= 0.99, i
         near = np.zeros_like(occ)
         near[cell[:, 0], cell[:, 1], cell[:, 2]] = True
         if checked_inside < 2 and m.is_watertight:  # containment tests are slow: two objects
-            ref = _mesh_cells(m, R, np.array([-0.5, -0.5, zc - C / 2]), C / R)
+            ref = _mesh_cells(m, R, np.array([-0.5, -0.5, zc - R / 2 * dz]), np.array([C / R, C / R, dz]))
             assert (ref & occ).sum() >= 0.98 * ref.sum(), i
             near |= ref
             checked_inside += 1
@@ -224,11 +225,11 @@ def test_canonical_occupancy_of_a_thin_rotated_plate():
 
 def test_depth_matches_ray_cast(recon, exported):
     out, _ = exported
-    ds = LiftedDataset(out, fields=["depth", "canvas_scale", "canvas_offset", "annotation_id"])
+    ds = LiftedDataset(out, fields=["depth", "view_depth", "canvas_scale", "canvas_offset", "annotation_id"])
     item = ds[1]
     m = _canvas_mesh(recon, item["class_name"], int(item["annotation_id"]), float(item["canvas_scale"]),
                      item["canvas_offset"].numpy())
-    zc = float(np.asarray(m.vertices)[:, 2].mean())
+    zc = float(item["view_depth"][0])
     depth = item["depth"].numpy()
     ys, xs = np.nonzero(np.isfinite(depth))
     pick = np.linspace(0, len(xs) - 1, 40).astype(int)
@@ -763,3 +764,82 @@ def test_objects_skipped_at_load_are_listed_with_their_reason(recon, tmp_path):
     index = export(run, tmp_path / "e", resolution=4, points=8, progress=False, workers=0)
     assert sorted((s["annotation_id"], s["reason"]) for s in index["skipped"]) == expected
     assert {s["class"] for s in index["skipped"]} == {"car"} and len(index["samples"]) == 10 - 2
+
+
+def _grid_to_canvas(step, origin):
+    """``(4, 4)`` voxel ``(d, h, w)`` -> canvas ``(x, y, z)`` of a grid aligned with the camera (as carving's)."""
+    M = np.zeros((4, 4))
+    M[0, 2] = M[1, 1] = M[2, 0] = step
+    M[:3, 3] = origin
+    M[3, 3] = 1.0
+    return M
+
+
+def test_view_grid_holds_an_object_deeper_than_the_canvas():
+    """A box seen end-on, 196 canvas pixels deep on a 128 canvas (cars seen from the front reach 207): every
+    vertex and surface point of its mesh (the voxel boxes' outer faces) lies inside the view grid and in its
+    occupied cells (one-cell dilated: a face on a cell boundary), the cells deepen only as much as needed
+    (the end layers stay empty, every other layer is occupied),
+    and the depth map stays within float16's 1/32 pixel. The cubic grid of the format's first release,
+    centred on the mean vertex depth, leaves about a third of the vertices outside."""
+    from carvi_torch.export.objects import boundary_voxels, depth_map, view_depth_frame, view_occupancy
+
+    C, res, step = 128, 32, 3.5
+    occ = np.zeros((60, 40, 40), bool)
+    occ[2:58, 15:25, 17:23] = True  # 56 voxels deep (196 px), 10 x 6 across
+    v2c = _grid_to_canvas(step, [64.0 - 20 * step, 64.0 - 20 * step, 40.0])
+    lo, hi = np.array([2, 15, 17]) - 0.5, np.array([57, 24, 22]) + 0.5  # the box in voxel indices (d, h, w)
+    corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), -1).reshape(-1, 3)
+    box = trimesh.convex.convex_hull(corners @ v2c[:3, :3].T + v2c[:3, 3])  # canvas (x, y, z)
+    box = box.subdivide().subdivide()  # vertices along its faces, not only its corners
+    pts = np.concatenate([box.vertices, box.sample(3000, seed=0)])
+    zc, dz = view_depth_frame(boundary_voxels(occ), v2c, C, res)
+    z0, z1 = box.vertices[:, 2].min(), box.vertices[:, 2].max()
+    assert np.isclose(zc, (z0 + z1) / 2) and np.isclose(dz, (z1 - z0) / (res - 2))  # a cell to spare each end
+    got = view_occupancy(occ, v2c, C, res, zc, cell_depth=dz)
+
+    def cells(p, centre, cell):
+        return np.floor(np.stack([(p[:, 2] - centre) / cell + res / 2, (p[:, 1] + 0.5) * res / C,
+                                  (p[:, 0] + 0.5) * res / C], 1)).astype(int)
+
+    c = cells(pts, zc, dz)
+    assert ((c >= 0) & (c < res)).all()  # 100% of the mesh is inside the grid
+    dil = ndimage.binary_dilation(got, np.ones((3, 3, 3)))
+    assert dil[c[:, 0], c[:, 1], c[:, 2]].all()
+    assert got[0].sum() == 0 and got[-1].sum() == 0 and got[1:-1].any(axis=(1, 2)).all()  # spans, whole
+    old = cells(box.vertices, box.vertices[:, 2].mean(), C / res)  # the cubic grid on the mean vertex depth
+    assert ((old[:, 0] < 0) | (old[:, 0] >= res)).mean() > 0.2
+    depth = depth_map(box.vertices, box.faces, C, zc)
+    hit = np.isfinite(depth)
+    assert hit.sum() == 10 * 6 * step * step  # the box's end face, 35 x 21 pixel centres
+    assert np.allclose(depth[hit], z0 - zc)  # the near face, 98 pixels before the centre
+    assert 64 < abs(z0 - zc) < 128  # float16 spacing 2^-4 there: stored within 2^-5 pixel
+    assert np.abs(depth[hit].astype(np.float16).astype(np.float64) - (z0 - zc)).max() <= 2.0 ** -5
+
+
+def test_view_grid_cell_mapping_equals_a_brute_force_reference():
+    """On a tiny grid whose voxel boxes meet the cell boundaries (2 voxels per cell in depth, 1 across), the
+    view occupancy equals looping over every cell and every occupied voxel and testing whether their boxes
+    overlap, each cell's box taken from the documented formula (x, y: ``[j C/res - 0.5, (j + 1) C/res -
+    0.5)``; depth: ``[zc + (j - res/2) dz, zc + (j + 1 - res/2) dz)``)."""
+    from carvi_torch.export.objects import view_occupancy
+
+    C, res, zc, dz = 16, 8, 29.5, 6.0
+    rng = np.random.default_rng(3)
+    occ = rng.random((10, 7, 8)) < 0.15
+    v2c = _grid_to_canvas(1.0, [0, 0, 0]) * np.r_[2.0, 2.0, 3.0, 1.0][:, None]  # x = 2w + 0.5, ...
+    v2c[:3, 3] = [0.5, 0.5, 7.0]  # ... y = 2h + 0.5, z = 3d + 7
+    want = np.zeros((res, res, res), bool)
+    for d, h, w in np.argwhere(occ):
+        vox = [(2 * w - 0.5, 2 * w + 1.5), (2 * h - 0.5, 2 * h + 1.5), (3 * d + 5.5, 3 * d + 8.5)]  # x, y, z
+        for j0 in range(res):
+            for j1 in range(res):
+                for j2 in range(res):
+                    cell = [(j2 * C / res - 0.5, (j2 + 1) * C / res - 0.5),
+                            (j1 * C / res - 0.5, (j1 + 1) * C / res - 0.5),
+                            (zc + (j0 - res / 2) * dz, zc + (j0 + 1 - res / 2) * dz)]
+                    if all(min(a[1], b[1]) - max(a[0], b[0]) > 1e-9 for a, b in zip(vox, cell)):
+                        want[j0, j1, j2] = True
+    got = view_occupancy(occ, v2c, C, res, zc, cell_depth=dz)
+    assert want.sum() > 10 and np.array_equal(got, want)
+    assert not np.array_equal(view_occupancy(occ, v2c, C, res, zc), want)  # cubic cells map elsewhere

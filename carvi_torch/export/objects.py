@@ -30,9 +30,9 @@ from trimesh.exchange.ply import load_ply
 from ..runtime import watch_parent
 from .raster import zbuffer
 
-__all__ = ["splat_occupancy", "view_occupancy", "canonical_occupancy", "depth_map", "sample_surface",
-           "load_mesh", "canvas_to_class", "export_object", "safe_export_object", "safe_export_objects",
-           "init_worker", "OtherInputs"]
+__all__ = ["splat_occupancy", "view_depth_frame", "view_occupancy", "canonical_occupancy", "depth_map",
+           "sample_surface", "load_mesh", "canvas_to_class", "export_object", "safe_export_object",
+           "safe_export_objects", "init_worker", "OtherInputs"]
 
 #: Most sub-samples per voxel and axis (a target cell finer than a quarter voxel is not a use case).
 MAX_SUBSAMPLES = 4
@@ -120,16 +120,45 @@ def splat_occupancy(occ: np.ndarray, voxel_to_target: np.ndarray, res: int,
     return out
 
 
+def view_depth_frame(boundary: np.ndarray, voxel_to_canvas: np.ndarray, canvas_size: int, res: int
+                     ) -> tuple[float, float]:
+    """The depth axis ``(depth_centre, cell_depth)`` of the view grid, in canvas pixels: centred on the depth
+    extent of the occupied voxels' boxes (``boundary``: :func:`boundary_voxels`, which spans them), and one
+    cell ``C / res`` deep (cubic cells) unless the boxes reach deeper than ``(res - 2)`` such cells; then the
+    cells deepen so that the middle ``res - 2`` of them hold the whole extent. The first and last layers of
+    depth therefore stay empty (``res >= 3``): the whole object is inside.
+
+    Example (a rod 200 voxels deep, seen by a 128 canvas: cells deepen from 4 to 200/30 pixels):
+        >>> b = np.array([[0.0, 0, 0], [199.0, 0, 0]])                   # (d, h, w): its two end voxels
+        >>> v2c = np.array([[0, 0, 1, 0], [0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 1]], float)  # z = d
+        >>> centre, cell = view_depth_frame(b, v2c, 128, 32)
+        >>> centre, round(cell * 30, 6)
+        (99.5, 200.0)
+    """
+    if len(boundary) == 0:
+        return 0.0, canvas_size / float(res)
+    corners = np.array(np.meshgrid(*[(-0.5, 0.5)] * 3, indexing="ij")).reshape(3, -1).T
+    lo, hi = boundary.min(axis=0).astype(np.float64), boundary.max(axis=0).astype(np.float64)
+    box = np.where(corners < 0, lo - 0.5, hi + 0.5)  # the 8 corners of the boxes' bounding box (voxel index)
+    z = box @ voxel_to_canvas[2, :3] + voxel_to_canvas[2, 3]
+    z0, z1 = float(z.min()), float(z.max())
+    inner = max(res - 2.0, 1.0)  # the layers that hold the object (all of them below 3: no spare ones)
+    return 0.5 * (z0 + z1), max(canvas_size / float(res), (z1 - z0) / inner)
+
+
 def view_occupancy(occ: np.ndarray, voxel_to_canvas: np.ndarray, canvas_size: int, res: int,
-                   depth_centre: float, boundary: np.ndarray | None = None) -> np.ndarray:
-    """Occupancy ``(res, res, res)`` ``[depth, y, x]`` over the canvas square and a cube of depth around the centre.
+                   depth_centre: float, boundary: np.ndarray | None = None,
+                   cell_depth: float | None = None) -> np.ndarray:
+    """Occupancy ``(res, res, res)`` ``[depth, y, x]`` over the canvas square and a range of depth around the centre.
 
     Cell ``j`` on ``x`` (and ``y``) covers canvas pixels ``[j C/res - 0.5, (j + 1) C/res - 0.5)``; on depth
-    ``[zc - C/2 + j C/res, zc - C/2 + (j + 1) C/res)``.
+    ``[zc + (j - res/2) dz, zc + (j + 1 - res/2) dz)``, ``dz = cell_depth`` (default ``C / res``; see
+    :func:`view_depth_frame` for the one that holds the whole object).
     """
     f = res / float(canvas_size)
+    fz = f if cell_depth is None else 1.0 / float(cell_depth)
     canvas_to_target = np.zeros((4, 4))  # (x, y, z, 1) -> (i_depth, i_y, i_x, 1)
-    canvas_to_target[0, 2], canvas_to_target[0, 3] = f, -f * (depth_centre - canvas_size / 2.0)
+    canvas_to_target[0, 2], canvas_to_target[0, 3] = fz, res / 2.0 - fz * depth_centre
     canvas_to_target[1, 1], canvas_to_target[1, 3] = f, 0.5 * f
     canvas_to_target[2, 0], canvas_to_target[2, 3] = f, 0.5 * f
     canvas_to_target[3, 3] = 1.0
@@ -238,10 +267,10 @@ def export_object(job: dict) -> dict:
     s_c, t_c = a * s, a * t + b  # the canvas camera
     verts, faces = load_mesh(job["mesh"])
     verts = verts * a + image_to_canvas[:3, 3]
-    depth_centre = float(verts[:, 2].mean())
+    C, res = job["canvas"], job["resolution"]
+    depth_centre, cell_depth = view_depth_frame(boundary, v2canvas, C, res)
     pts, normals = sample_surface(verts, faces, job["points"], np.random.default_rng(job["seed"]))
     to_class = canvas_to_class(R, s_c, t_c)
-    C, res = job["canvas"], job["resolution"]
     out = {
         "mask": job["mask"], "keypoints": job["keypoints"], "visible": job["visible"],
         "crop_box": np.concatenate([-b / a, (C - 1.0 - b) / a]).astype(np.float32),
@@ -249,7 +278,8 @@ def export_object(job: dict) -> dict:
         "R": R.astype(np.float32), "s": np.float32(s), "t": t.astype(np.float32),
         "viewpoint": np.array(job["viewpoint"], dtype=np.float32),
         "quality": np.float32(job["quality"]),
-        "occupancy_view": view_occupancy(occ, v2canvas, C, res, depth_centre, boundary),
+        "occupancy_view": view_occupancy(occ, v2canvas, C, res, depth_centre, boundary, cell_depth),
+        "view_depth": np.array([depth_centre, cell_depth], dtype=np.float32),
         "occupancy_canonical": canonical_occupancy(occ, v2canvas, R, s_c, t_c, job["extent"], res, boundary),
         "depth": depth_map(verts, faces, C, depth_centre),
         "points": pts @ to_class[:3, :3].T + to_class[:3, 3], "normals": normals @ R,

@@ -81,12 +81,15 @@ FIELDS: dict[str, FieldSpec] = {
     "quality": FieldSpec("float32", "()", "predicted reliability in [0, 1] (cameras.json 'quality'; NaN when "
                                           "the run wrote none)"),
     "occupancy_view": FieldSpec("bool", "(R, R, R)", "any-overlap occupancy in the view frame, [depth, y, x]: the "
-                                                     "canvas square in x, y and a depth range of the same size "
-                                                     "centred on the object"),
+                                                     "canvas square in x, y and R cells of depth view_depth[1] "
+                                                     "centred on view_depth[0] (the whole object)"),
+    "view_depth": FieldSpec("float32", "(2,)", "depth centre (canvas depth of the object's depth midpoint; the "
+                                               "class-frame origin is at 0) and depth of one occupancy_view "
+                                               "cell (C/R unless the object is deeper), canvas pixels"),
     "occupancy_canonical": FieldSpec("bool", "(R, R, R)", "any-overlap occupancy in the class frame, [z, y, x] over "
                                                           "[-E, E]^3 (E = class_extent)"),
     "depth": FieldSpec("float16", "(C, C)", "depth of the mesh's first surface per canvas pixel, canvas pixels, "
-                                            "relative to the object's depth centre; +inf where the ray misses",
+                                            "relative to view_depth[0]; +inf where the ray misses",
                        returns="float32"),
     "points": FieldSpec("float16", "(P, 3)", "surface points in the class frame (area-uniform samples)",
                         returns="float32"),
