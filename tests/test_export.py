@@ -58,7 +58,7 @@ def test_store_opens_with_zarr_alone(exported):
     out, index = exported
     root = zarr.open_group(str(out), mode="r")
     attrs = root.attrs["carvi_export"]
-    assert attrs["format_version"] == 2 and attrs["classes"] == ["car", "chair"]
+    assert attrs["format_version"] == 3 and attrs["classes"] == ["car", "chair"]
     assert json.loads((out / "zarr.json").read_text())["zarr_format"] == 3
     for c in attrs["classes"]:
         g = root[c]

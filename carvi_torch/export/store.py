@@ -43,7 +43,10 @@ from ..runtime import deferred_interrupt
 __all__ = ["FieldSpec", "FIELDS", "DEFAULT_FIELDS", "MESH_FIELDS", "StoreWriter", "FORMAT_VERSION", "ATTRS_KEY",
            "PARTIAL_PREFIX"]
 
-FORMAT_VERSION = 2
+#: The store's format: 3 centres ``occupancy_view``'s depth axis on the object's depth extent and records
+#: ``view_depth``; a format-2 store (no ``view_depth``) centred it on the mean vertex depth with cubic cells.
+#: :class:`carvi_torch.training.LiftedDataset` reads any format up to this one.
+FORMAT_VERSION = 3
 #: The root group's attribute that holds the export's description.
 ATTRS_KEY = "carvi_export"
 
