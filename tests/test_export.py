@@ -843,3 +843,22 @@ def test_view_grid_cell_mapping_equals_a_brute_force_reference():
     got = view_occupancy(occ, v2c, C, res, zc, cell_depth=dz)
     assert want.sum() > 10 and np.array_equal(got, want)
     assert not np.array_equal(view_occupancy(occ, v2c, C, res, zc), want)  # cubic cells map elsewhere
+
+
+def test_a_run_done_in_parts_exports_every_part(recon, tmp_path, capsys):
+    """A run made in parts into one ``--out`` (``classes=[chair]``, then ``classes=[car]``) keeps only the last
+    part's setting in ``config.yaml``: the export still covers every class the run has cameras for, in the store
+    and in the cmr files, and ``--classes chair`` is one of the run's classes."""
+    run = tmp_path / "run"
+    _run_copy(recon, run)
+    cfg = run / "config.yaml"
+    text = cfg.read_text()
+    assert "classes: [car, chair]" in text
+    cfg.write_text(text.replace("classes: [car, chair]", "classes: [car]"))
+    args = ["--recon", str(run), "--resolution", "4", "--points", "8", "--workers", "0", "--quiet"]
+    assert export_main(args + ["--out", str(tmp_path / "all")]) == 0
+    assert _store_attrs(tmp_path / "all")["classes"] == ["car", "chair"]
+    assert export_main(args + ["--out", str(tmp_path / "chair"), "--classes", "chair"]) == 0
+    assert _store_attrs(tmp_path / "chair")["classes"] == ["chair"]
+    assert export_main(args + ["--out", str(tmp_path / "cmr"), "--format", "cmr"]) == 0
+    assert sorted(p.name for p in (tmp_path / "cmr").glob("*.mat")) == ["car.mat", "chair.mat"]

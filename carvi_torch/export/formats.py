@@ -40,7 +40,7 @@ from scipy.spatial import ConvexHull, distance
 
 from ..io.coco import load_coco
 from ..io.outputs import atomic_write, read_json, write_json
-from .source import class_scope, data_path, recon_config
+from .source import class_scope, data_path, recon_config, run_classes
 
 __all__ = ["normalised_shape", "cmr_pose", "export_format", "class_records", "quaternion_wxyz"]
 
@@ -148,9 +148,10 @@ def export_format(recon: str | Path, out: str | Path, fmt: str, classes=None) ->
     ``out``; returns the files written."""
     recon, out = Path(recon), Path(out)
     cfg = recon_config(recon)
+    covered = run_classes(cfg.classes, recon)
     loaded = load_coco(data_path(recon, cfg), canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
-                       classes=classes or cfg.classes)
-    scope = class_scope(loaded.dataset["categories"], cfg.classes, classes, recon)  # an unknown class: ValueError
+                       classes=classes or covered)
+    scope = class_scope(loaded.dataset["categories"], covered, classes, recon)  # an unknown class: ValueError
     written = []
     for cname in (c for c in scope if c in loaded.collections and (recon / c / "cameras.json").is_file()):
         coll = loaded.collections[cname]

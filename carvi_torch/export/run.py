@@ -33,7 +33,7 @@ from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
 from ..mesh import MESH_FORMATS
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
-from .source import class_scope, data_path, recon_config, unfinished
+from .source import class_scope, data_path, recon_config, run_classes, unfinished
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
                       view_occupancy)
 from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, StoreWriter
@@ -211,10 +211,11 @@ def _load(recon: Path, cfg, data: Path, classes, pending: bool):
     """The annotations of the classes to export (those of the run's that ``classes`` asks for; ``ValueError``
     naming an unknown one) and the classes' names in store order: every class of the run's input when the run
     is unfinished (a class not started yet included), else those the run has a folder for."""
+    covered = run_classes(cfg.classes, recon)
     with torch_threads(1):
         loaded = load_coco(data, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
-                           classes=classes or cfg.classes)
-    scope = class_scope(loaded.dataset["categories"], cfg.classes, classes, recon)
+                           classes=classes or covered)
+    scope = class_scope(loaded.dataset["categories"], covered, classes, recon)
     return loaded, [c for c in scope if pending or (recon / c).is_dir()]
 
 

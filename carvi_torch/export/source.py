@@ -7,7 +7,7 @@ from ..config import Config, read_run_config
 from ..io.coco import class_keys
 from ..io.outputs import read_json
 
-__all__ = ["recon_config", "data_path", "unfinished", "class_scope"]
+__all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes"]
 
 
 def recon_config(recon: Path) -> Config:
@@ -43,6 +43,21 @@ def unfinished(recon: Path) -> bool:
     except (OSError, ValueError):
         return True
     return not isinstance(summary, dict) or "total_seconds" not in summary
+
+
+def run_classes(setting, recon: Path) -> list[str] | None:
+    """The classes a run covered: its ``classes`` setting (``None``: every class) and every class folder with
+    cameras that an earlier part of the run left in ``recon`` (a run done in parts, ``classes=[car]`` then
+    ``classes=[chair]`` into one ``--out``, keeps only the last part's setting).
+
+    Example:
+        >>> run_classes(None, Path("no/such/run")) is None, run_classes(["car"], Path("no/such/run"))
+        (True, ['car'])
+    """
+    if not setting:
+        return None
+    parts = [d.name for d in recon.iterdir() if (d / "cameras.json").is_file()] if recon.is_dir() else []
+    return sorted(set(setting) | set(parts))
 
 
 def class_scope(categories: list, run_classes, asked, recon: Path) -> list[str]:
