@@ -79,7 +79,16 @@ def posed_gt_mesh(entry: dict, root: Path, cache: dict | None = None) -> tuple[t
     return trimesh.Trimesh(Vc, np.asarray(base.faces), process=False), diag
 
 
-def _load_recon_mesh(recon: Path, cls: str, aid) -> trimesh.Trimesh | None:
+def _load_recon_mesh(recon: Path, cls: str, aid, current: dict) -> trimesh.Trimesh | None:
+    """The run's mesh of object ``aid``, or ``None``: no mesh, or the object is not in the class's
+    ``cameras.json``, which holds the objects of the run's latest input (a mesh an earlier run left for an
+    object the input has since dropped is not the run's; a folder of meshes without ``cameras.json``, another
+    method's, is taken as it is). ``current``: a cache of those ids per file (``None``: no file)."""
+    cams = recon / cls / "cameras.json"
+    if cams not in current:
+        current[cams] = frozenset(read_json(cams).get("cameras", {})) if cams.is_file() else None
+    if current[cams] is not None and str(aid) not in current[cams]:
+        return None
     for ext in MESH_FORMATS:
         p = object_file(recon / cls, "meshes", aid, ext)
         if p.is_file():
@@ -176,6 +185,7 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     methods = list(recons) + (["Puffball", "SFMc"] if baselines and shapes else [])
     objects: dict[str, dict] = {}
     mesh_cache: dict = {}
+    in_cameras: dict = {}
     t0 = time.perf_counter()
     for aid in tqdm(targets, desc="evaluate", disable=not progress):
         cls = ann_class[aid]
@@ -195,7 +205,7 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
             continue
         step = step_percent / 100.0 * gt_mesh.diag
         for name, rdir in recons.items():
-            m = _load_recon_mesh(Path(rdir), cls, aid)
+            m = _load_recon_mesh(Path(rdir), cls, aid, in_cameras)
             row[name] = _score(m, gt_mesh, step, "no reconstruction")
         if baselines:
             row["Puffball"] = _score(_puffball(coll_by_class.get(cls), aid), gt_mesh, step, "no mask")

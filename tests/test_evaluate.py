@@ -102,6 +102,22 @@ def test_missing_reconstruction_reported(recon, tmp_path):
     assert res["classes"]["car"]["Full"]["missing"] == before + 1
 
 
+
+def test_a_mesh_left_from_other_inputs_is_not_scored(recon, tmp_path):
+    """An object the run's latest input dropped (gone from ``cameras.json``) keeps the mesh an earlier run made;
+    that mesh is not the run's, so the object counts as having no reconstruction."""
+    data, _gt_entries = _gt(recon)
+    run = tmp_path / "run"
+    shutil.copytree(recon, run)
+    stale = sorted((run / "car" / "meshes").glob("*.ply"))[0]
+    cams = json.loads((run / "car" / "cameras.json").read_text())
+    del cams["cameras"][stale.stem]
+    (run / "car" / "cameras.json").write_text(json.dumps(cams))
+    res = evaluate(data, {"Full": run}, step_percent=2.0, progress=False, classes=["car"])
+    assert stale.is_file() and res["objects"][stale.stem]["Full"]["reason"] == "no reconstruction"
+    kept = [k for k, r in res["objects"].items() if k != stale.stem and "error_percent" in r["Full"]]
+    assert kept, "the other objects are still scored"
+
 def test_cli_errors(tmp_path, capsys):
     assert main(["--data", str(tmp_path / "a.json"), "--recon", str(tmp_path / "none")]) == 2
     assert "not found" in capsys.readouterr().err
