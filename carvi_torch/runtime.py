@@ -309,7 +309,7 @@ def deferred_interrupt() -> Iterator[None]:
     """Hold Ctrl-C (SIGINT) back until the block ends, then raise the ``KeyboardInterrupt``: for work that
     must not stop half-way (a zarr write, whose event-loop thread a ``KeyboardInterrupt`` would leave
     running, or the renames that swap a finished store in). Outside the main thread it does nothing
-    (Python delivers signals to the main thread only).
+    (Python delivers signals to the main thread only), and so it does where SIGINT is ignored.
 
     Example:
         >>> import signal
@@ -325,8 +325,8 @@ def deferred_interrupt() -> Iterator[None]:
     import signal
     import threading
 
-    if threading.current_thread() is not threading.main_thread():
-        yield
+    if threading.current_thread() is not threading.main_thread() or not callable(signal.getsignal(signal.SIGINT)):
+        yield  # not the main thread, or SIGINT ignored (a job started with `&`) or left to the system: as it is
         return
     caught: list[int] = []
     previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))

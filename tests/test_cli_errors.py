@@ -113,3 +113,25 @@ def test_report_replaces_an_earlier_report_and_refuses_any_other_folder(tmp_path
     assert report_cmd.main(["--recon", str(recon), "--out", str(mine), "--quiet", "--workers", "0"]) == 2
     assert "not an earlier report" in _one_line(capsys, "error:")
     assert [p.name for p in mine.iterdir()] == ["notes.txt"]
+
+
+def test_deferred_interrupt_leaves_an_ignored_sigint_ignored():
+    """Where SIGINT is ignored (a job started with ``&``), holding Ctrl-C back must not turn one into a
+    ``KeyboardInterrupt``; where it is handled, the interrupt comes after the block."""
+    import signal
+
+    from carvi_torch.runtime import deferred_interrupt
+
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        try:
+            with deferred_interrupt():
+                signal.raise_signal(signal.SIGINT)
+        except KeyboardInterrupt:
+            pytest.fail("an ignored SIGINT became a KeyboardInterrupt")
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    with pytest.raises(KeyboardInterrupt):
+        with deferred_interrupt():
+            signal.raise_signal(signal.SIGINT)

@@ -74,7 +74,7 @@ def write_object(job: dict) -> dict:
               voxel_to_object=job.get("voxel_to_object", np.full((4, 4), np.nan)), canvas_scale=job["canvas_scale"],
               canvas_offset=job["canvas_offset"], surrogates=job["surrogates"], **extra)
     return dict(ok=True, reason=None, mesh_seconds=t1 - t0, write_seconds=time.perf_counter() - t1,
-                reconstruction_iou=float(extra["reconstruction_iou"]) if extra else None)
+                reconstruction_iou=float(extra["reconstruction_iou"]) if "reconstruction_iou" in extra else None)
 
 
 def write_object_safe(job: dict) -> dict:
