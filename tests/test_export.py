@@ -862,3 +862,21 @@ def test_a_run_done_in_parts_exports_every_part(recon, tmp_path, capsys):
     assert _store_attrs(tmp_path / "chair")["classes"] == ["chair"]
     assert export_main(args + ["--out", str(tmp_path / "cmr"), "--format", "cmr"]) == 0
     assert sorted(p.name for p in (tmp_path / "cmr").glob("*.mat")) == ["car.mat", "chair.mat"]
+
+
+def test_a_leftover_folder_with_this_process_id_does_not_block_the_export(recon, tmp_path):
+    """A killed export's hidden folders are removed by the next export into the same ``--out``, also where the
+    next export runs under the same process id (a container's fixed pid): that folder cannot be its own yet."""
+    import os
+
+    from carvi_torch.export.store import OLD_PREFIX, PARTIAL_PREFIX
+
+    out = tmp_path / "e"
+    args = ["--recon", str(recon), "--resolution", "4", "--points", "8", "--workers", "0", "--quiet",
+            "--classes", "car", "--out", str(out)]
+    assert export_main(args) == 0
+    for prefix in (OLD_PREFIX, PARTIAL_PREFIX):
+        (out / f"{prefix}{os.getpid()}" / "car").mkdir(parents=True)
+    assert export_main(args) == 0
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".carvi")) == []
+    assert _store_attrs(out)["classes"] == ["car"]

@@ -215,10 +215,12 @@ def _pid_alive(pid: int) -> bool:
 
 
 def _remove_stale(out: Path) -> None:
-    """Remove the hidden folders of exports into ``out`` that were killed (their process is gone)."""
+    """Remove the hidden folders of exports into ``out`` that were killed (their process is gone, or is this
+    one: called before this export makes its own, so a folder with this pid is left from a killed process whose
+    pid came round again, as a container's fixed pid does)."""
     for p in out.iterdir() if out.is_dir() else ():
         pid = p.name.rpartition("-")[2]
-        if _own(p.name) and p.is_dir() and (not pid.isdigit() or not _pid_alive(int(pid))):
+        if _own(p.name) and p.is_dir() and (not pid.isdigit() or int(pid) == os.getpid() or not _pid_alive(int(pid))):
             shutil.rmtree(p, ignore_errors=True)
 
 
