@@ -36,7 +36,7 @@ from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import class_scope, data_path, recon_config, unfinished
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
                       view_occupancy)
-from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, StoreWriter
+from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, InterruptedAfterSwap, StoreWriter
 
 __all__ = ["export", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "canonical_occupancy", "depth_map",
            "ATTRS_KEY", "FORMAT_VERSION"]
@@ -236,8 +236,10 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     """Export every reconstructed object of ``recon`` into a zarr v3 store at ``out``.
 
     The store is swapped in at ``out`` when complete: an export that raises (Ctrl-C included) leaves ``out`` as
-    it was. A camera-only run (``stage=cameras``), or an unfinished one with no object finished, raises
-    ``ValueError`` (nothing written); an unfinished run's finished objects are exported, with one warning line.
+    it was, except :class:`~carvi_torch.export.store.InterruptedAfterSwap` (Ctrl-C during the swap: the new store
+    is in place, and its ``result`` is what this returns). A camera-only run (``stage=cameras``), or an
+    unfinished one with no object finished, raises ``ValueError`` (nothing written); an unfinished run's
+    finished objects are exported, with one warning line.
 
     Returns the root group's description (its ``carvi_export`` attribute) plus ``samples``: one entry
     (class, annotation_id, image_id, source) per exported sample, in store order.
@@ -266,6 +268,9 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
                  "class_extent": {c: writer.extent[c] for c in class_names if c in writer.extent},
                  "skipped": skipped_list, "seconds": round(time.perf_counter() - t0, 3)}
         desc = writer.close(attrs)
+    except InterruptedAfterSwap as e:  # Ctrl-C during the swap: the new store is complete, nothing to undo
+        e.result = {**e.result, "samples": samples}
+        raise
     except BaseException:
         writer.abort()
         raise
