@@ -583,6 +583,57 @@ def test_an_interrupted_export_leaves_the_earlier_one_intact(recon, tmp_path, mo
     assert not (tmp_path / "new" / "exp").exists()
 
 
+def test_ctrl_c_during_the_swap_says_the_new_store_is_complete(recon, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the finished store is swapped in (held back until the swap is done): exit 130, the new
+    store in place and readable, nothing removed, and the line says so rather than 'as it was'."""
+    import signal
+    import types
+
+    from carvi_torch.export import store
+
+    out = tmp_path / "exp"
+    args = ["--recon", str(recon), "--out", str(out), "--points", "8", "--workers", "0", "--quiet"]
+    assert export_main(args + ["--resolution", "4"]) == 0
+
+    def rmtree(p, *a, **k):  # the last step of the swap removes the earlier store
+        if store.OLD_PREFIX in str(p):
+            signal.raise_signal(signal.SIGINT)
+        return shutil.rmtree(p, *a, **k)
+
+    monkeypatch.setattr(store, "shutil", types.SimpleNamespace(rmtree=rmtree))
+    capsys.readouterr()
+    assert export_main(args + ["--resolution", "6"]) == 130
+    said = capsys.readouterr()
+    err = said.err.strip().splitlines()
+    assert said.out.startswith("exported ") and f" to {out} " in said.out, said.out
+    assert err == [f"interrupted after the export finished; {out} holds the new store, complete"], err
+    assert _store_attrs(out)["resolution"] == 6 and sorted(p.name for p in out.iterdir()) == ["car", "chair",
+                                                                                               "zarr.json"]
+    assert LiftedDataset(out)[0]["occupancy_view"].shape[-1] == 6
+
+
+def test_ctrl_c_while_the_store_is_made_leaves_no_folder_behind(recon, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the new store's group is made, and an export refused after ``--out`` was made: the folders
+    the export made (``--out`` and its new parents) are gone, and those it did not make are kept."""
+    import signal
+
+    from carvi_torch.export import store
+
+    real = store.zarr.open_group
+
+    def open_group(*a, **k):
+        group = real(*a, **k)
+        signal.raise_signal(signal.SIGINT)
+        return group
+
+    args = ["--recon", str(recon), "--resolution", "4", "--points", "8", "--workers", "0", "--quiet"]
+    (tmp_path / "kept").mkdir()
+    assert export_main(args + ["--out", str(tmp_path / "kept" / "a" / "b"), "--classes", "nosuch"]) == 2
+    monkeypatch.setattr(store.zarr, "open_group", open_group)
+    assert export_main(args + ["--out", str(tmp_path / "kept" / "x" / "y")]) == 130
+    assert list((tmp_path / "kept").iterdir()) == []
+
+
 def test_camera_only_and_unfinished_runs_are_said_so(recon, tmp_path, capsys):
     """A camera-only run: one error line, exit 2, nothing written. An unfinished run (no totals in
     summary.json): its finished objects exported, the others in one warning line; --quiet prints no

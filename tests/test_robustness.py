@@ -716,3 +716,23 @@ def test_one_cli_and_a_log(base, tmp_path, capsys):
     assert "SfM stopped at its iteration limits" in stderr
     assert "SfM stopped at its iteration limits" in (out / "run.log").read_text()
     assert "warnings" in stdout.splitlines()[0] and "warning: sfm:" in stdout
+
+
+def test_a_duplicate_id_leaves_the_first_objects_card_alone(base, tmp_path):
+    """A copy of annotation 2 with the same id: the copy is an input problem, while the object with that id
+    (the first) is reconstructed, not listed among the class's failures, and its report card has its mesh."""
+    from carvi_torch.export.run import _load_skips
+
+    d = copy.deepcopy(base)
+    first = next(a for a in d["annotations"] if a["id"] == 2)
+    d["annotations"].append({**copy.deepcopy(first), "source": "the copy"})
+    out = tmp_path / "run"
+    s = run(_cfg(out, _write(tmp_path, d), classes="car", report=True), workers=0)
+    c = s["classes"]["car"]
+    assert any("duplicate annotation id" in p["reason"] for p in s["input_problems"])
+    assert c["reconstructed"] == 6 and not c["failures"], c["failures"]
+    text = (out / "report" / "cards.js").read_text()
+    cards = json.loads(text[text.index("\n[") + 1:text.rindex("]") + 1])
+    card = next(c for c in cards if c["id"] == "2")
+    assert "skipped" not in card and card.get("mesh"), card
+    assert _load_skips(load_coco(_write(tmp_path, d), canvas_size=48).problems, ["car"]) == {"car": []}

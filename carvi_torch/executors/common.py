@@ -174,9 +174,11 @@ def write_summary(setup: RunSetup) -> None:
 
 def load_skips(problems: list, key: str) -> list[dict]:
     """The objects of class ``key`` skipped at load (``input_problems`` that name one), as the class's
-    failures (stage ``load``): the class counts them among its objects and skipped ones."""
+    failures (stage ``load``): the class counts them among its objects and skipped ones. A repeated annotation
+    id is left out (it stays in ``input_problems``): its id is the first annotation's, which is used."""
     return [{"annotation_id": p.annotation_id, "source": p.source, "stage": p.stage, "reason": p.reason}
-            for p in problems if p.fatal and p.class_key == key and p.annotation_id is not None]
+            for p in problems if p.fatal and p.class_key == key and p.annotation_id is not None
+            and not coco.is_duplicate(p)]
 
 
 def book_class(setup: RunSetup, key: str, rep) -> None:

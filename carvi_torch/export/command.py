@@ -52,7 +52,8 @@ def start_worker_server() -> bool:
 
 def main(argv=None) -> int:
     """Exit status: 0 exported; 2 a user error or an output that cannot be written (one ``error:`` line, ``--out``
-    as it was); 130 interrupted by Ctrl-C (one line, ``--out`` as it was for the zarr store)."""
+    as it was); 130 interrupted by Ctrl-C (one line, ``--out`` as it was for the zarr store, or complete when
+    Ctrl-C came while the finished store was swapped in, which the line says)."""
     args = parser().parse_args(argv)
     if args.format == "zarr":
         interrupted = f"interrupted; {args.out} is as it was before the export"
@@ -65,6 +66,7 @@ def _main(args) -> int:
     if args.format == "zarr" and args.workers != 0:
         start_worker_server()
     from .run import export  # torch, zarr, ...: imported while the forkserver imports the worker module
+    from .store import InterruptedAfterSwap
 
     try:
         if args.format != "zarr":
@@ -79,9 +81,17 @@ def _main(args) -> int:
     except ValueError as e:  # a missing or unusable input: one line (an OSError is run_command's)
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except InterruptedAfterSwap as e:  # Ctrl-C while the finished store was swapped in: it is there, complete
+        _exported(args, e.result)
+        print(f"interrupted after the export finished; {args.out} holds the new store, complete", file=sys.stderr)
+        return 130
+    _exported(args, idx)
+    return 0
+
+
+def _exported(args, idx: dict) -> None:
     print(f"exported {len(idx['samples'])} objects of {len(idx['classes'])} class(es) to {args.out} "
           f"({idx['seconds']:.1f} s); skipped {len(idx['skipped'])}")
-    return 0
 
 
 if __name__ == "__main__":

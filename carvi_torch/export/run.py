@@ -27,7 +27,7 @@ from typing import Iterable, Iterator
 import numpy as np
 from tqdm.auto import tqdm
 
-from ..io.coco import load_coco
+from ..io.coco import is_duplicate, load_coco
 from ..io.layout import object_file
 from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
@@ -36,7 +36,7 @@ from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import class_scope, data_path, recon_config, run_classes, unfinished
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
                       view_occupancy)
-from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, StoreWriter
+from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, InterruptedAfterSwap, StoreWriter
 
 __all__ = ["export", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "canonical_occupancy", "depth_map",
            "ATTRS_KEY", "FORMAT_VERSION"]
@@ -221,10 +221,11 @@ def _load(recon: Path, cfg, data: Path, classes, pending: bool):
 
 def _load_skips(problems: list, class_names: list) -> dict[str, list]:
     """``{class: [skipped objects]}``, each class's list started with its objects skipped when the annotations
-    were read (as ``summary.json`` lists them, stage ``load``), with their reason."""
+    were read (as ``summary.json`` lists them, stage ``load``), with their reason; a repeated annotation id is
+    left out (its id is the first annotation's, which is exported)."""
     skipped: dict[str, list] = {c: [] for c in class_names}
     for p in problems:
-        if p.fatal and p.annotation_id is not None and p.class_key in skipped:
+        if p.fatal and p.annotation_id is not None and p.class_key in skipped and not is_duplicate(p):
             skipped[p.class_key].append({"annotation_id": p.annotation_id, "class": p.class_key, "source": p.source,
                                          "reason": p.reason})
     return skipped
@@ -236,8 +237,10 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     """Export every reconstructed object of ``recon`` into a zarr v3 store at ``out``.
 
     The store is swapped in at ``out`` when complete: an export that raises (Ctrl-C included) leaves ``out`` as
-    it was. A camera-only run (``stage=cameras``), or an unfinished one with no object finished, raises
-    ``ValueError`` (nothing written); an unfinished run's finished objects are exported, with one warning line.
+    it was, except :class:`~carvi_torch.export.store.InterruptedAfterSwap` (Ctrl-C during the swap: the new store
+    is in place, and its ``result`` is what this returns). A camera-only run (``stage=cameras``), or an
+    unfinished one with no object finished, raises ``ValueError`` (nothing written); an unfinished run's
+    finished objects are exported, with one warning line.
 
     Returns the root group's description (its ``carvi_export`` attribute) plus ``samples``: one entry
     (class, annotation_id, image_id, source) per exported sample, in store order.
@@ -266,6 +269,9 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
                  "class_extent": {c: writer.extent[c] for c in class_names if c in writer.extent},
                  "skipped": skipped_list, "seconds": round(time.perf_counter() - t0, 3)}
         desc = writer.close(attrs)
+    except InterruptedAfterSwap as e:  # Ctrl-C during the swap: the new store is complete, nothing to undo
+        e.result = {**e.result, "samples": samples}
+        raise
     except BaseException:
         writer.abort()
         raise

@@ -41,7 +41,7 @@ from zarr.codecs import BloscCodec
 from ..runtime import deferred_interrupt
 
 __all__ = ["FieldSpec", "FIELDS", "DEFAULT_FIELDS", "MESH_FIELDS", "StoreWriter", "FORMAT_VERSION", "ATTRS_KEY",
-           "PARTIAL_PREFIX"]
+           "PARTIAL_PREFIX", "InterruptedAfterSwap"]
 
 #: The store's format: 3 centres ``occupancy_view``'s depth axis on the object's depth extent and records
 #: ``view_depth``; a format-2 store (no ``view_depth``) centred it on the mean vertex depth with cubic cells.
@@ -243,17 +243,37 @@ def _check_replaceable(out: Path) -> None:
 
 def _swap_in(tmp: Path, out: Path) -> None:
     """Replace the contents of ``out`` (an earlier export, or nothing) by those of ``tmp`` (the complete new
-    store), then remove ``tmp``. Ctrl-C waits until the swap is done. The earlier root ``zarr.json`` goes
-    first and the new one comes last, so that a reader during the swap finds no store rather than a mixed one."""
-    with deferred_interrupt():
-        old = out / f"{OLD_PREFIX}{os.getpid()}"
-        old.mkdir()
-        for p in sorted((p for p in out.iterdir() if not _own(p.name)), key=lambda p: p.name != "zarr.json"):
-            p.rename(old / p.name)
-        for p in sorted(tmp.iterdir(), key=lambda p: p.name == "zarr.json"):
-            p.rename(out / p.name)
-        tmp.rmdir()
-        shutil.rmtree(old)
+    store), then remove ``tmp`` (called with Ctrl-C held back: see :meth:`StoreWriter.close`). The earlier
+    root ``zarr.json`` goes first and the new one comes last, so that a reader during the swap finds no store
+    rather than a mixed one."""
+    old = out / f"{OLD_PREFIX}{os.getpid()}"
+    old.mkdir()
+    for p in sorted((p for p in out.iterdir() if not _own(p.name)), key=lambda p: p.name != "zarr.json"):
+        p.rename(old / p.name)
+    for p in sorted(tmp.iterdir(), key=lambda p: p.name == "zarr.json"):
+        p.rename(out / p.name)
+    tmp.rmdir()
+    shutil.rmtree(old)
+
+
+class InterruptedAfterSwap(KeyboardInterrupt):
+    """Ctrl-C that arrived while the complete store was being swapped in: the new store is in place at
+    ``out``. ``result`` is what the export returns (the root attributes written, plus what the caller adds)."""
+
+    def __init__(self, result: dict):
+        super().__init__("interrupted after the new store was swapped in")
+        self.result = result
+
+
+def _made_folders(out: Path) -> list[Path]:
+    """``out`` and those of its parents that do not exist yet (deepest first): what ``mkdir(parents=True)``
+    makes."""
+    made = []
+    for p in (out, *out.parents):
+        if p.exists() or p.is_symlink():
+            break
+        made.append(p)
+    return made
 
 
 class StoreWriter:
@@ -264,7 +284,8 @@ class StoreWriter:
     def __init__(self, out: str | Path, shard_size: int = 256, fields: list[str] | None = None):
         self.out = Path(out)
         _check_replaceable(self.out)
-        self.created = not self.out.exists()
+        self.made = _made_folders(self.out)  # removed by abort() when empty
+        self.swapped = False
         self.tmp = self.out / f"{PARTIAL_PREFIX}{os.getpid()}"
         try:
             self.out.mkdir(parents=True, exist_ok=True)
@@ -275,6 +296,9 @@ class StoreWriter:
             self.abort()
             raise ValueError(f"{self.out}: cannot write the store there ({e.strerror or e}; nothing was "
                              "written)") from e
+        except BaseException:  # Ctrl-C (held back until the group was made)
+            self.abort()
+            raise
         self.shard_size = max(1, int(shard_size))
         self.fields = list(fields) if fields is not None else list(DEFAULT_FIELDS)
         self.classes: dict[str, _ClassArrays] = {}
@@ -298,7 +322,8 @@ class StoreWriter:
     def close(self, attrs: dict) -> dict:
         """Flush every class, write the root attributes (``attrs`` plus the fields, format version and ``counts``:
         samples per class of ``attrs["classes"]``, 0 for one without any) and swap the complete store in at
-        ``out``; returns the root attributes written."""
+        ``out``; returns the root attributes written. Ctrl-C waits until the swap is done, and then raises
+        :class:`InterruptedAfterSwap` (the new store is complete; :attr:`swapped` is true)."""
         for cls, arrays in self.classes.items():
             arrays.close(self.extent.get(cls, 1.0))
         fields = {k: {"dtype": FIELDS[k].dtype, "returns": FIELDS[k].out_dtype, "shape": FIELDS[k].shape,
@@ -308,15 +333,22 @@ class StoreWriter:
                            for c in attrs.get("classes", self.classes)}}
         with deferred_interrupt():
             self.root.attrs[ATTRS_KEY] = desc
-        _swap_in(self.tmp, self.out)
+        try:
+            with deferred_interrupt():
+                _swap_in(self.tmp, self.out)
+                self.swapped = True
+        except KeyboardInterrupt:
+            if self.swapped:
+                raise InterruptedAfterSwap(desc) from None
+            raise
         return desc
 
     def abort(self) -> None:
-        """Remove the store in progress: ``out`` is left as it was before (removed when this writer made it and
-        it is empty)."""
+        """Remove the store in progress: ``out`` is left as it was before (the folders this writer made for it,
+        ``out`` and parents, are removed where empty; nothing else)."""
         shutil.rmtree(self.tmp, ignore_errors=True)
-        if self.created:
+        for p in self.made:
             try:
-                self.out.rmdir()
+                p.rmdir()
             except OSError:
-                pass
+                break

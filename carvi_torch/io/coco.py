@@ -36,7 +36,22 @@ from .outputs import read_json, safe_name, write_json
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
            "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "MAX_IMAGE_PIXELS", "object_id",
-           "flag", "class_keys", "input_fingerprints"]
+           "flag", "class_keys", "input_fingerprints", "DUPLICATE_ID", "is_duplicate"]
+
+#: How the reason of a repeated annotation id begins (the id's first annotation is the one used).
+DUPLICATE_ID = "duplicate annotation id"
+
+
+def is_duplicate(problem: Problem) -> bool:
+    """Whether ``problem`` is a repeated annotation id: its id names the first annotation with that id (the
+    object that is used), so a per-object failure keyed by id must leave it out.
+
+    Example:
+        >>> is_duplicate(Problem(f"{DUPLICATE_ID} 7; keeping the first", annotation_id=7))
+        True
+    """
+    return problem.reason.startswith(DUPLICATE_ID)
+
 
 #: Keypoints farther outside the image than this fraction of its larger side are rejected.
 OUTSIDE_TOLERANCE = 0.5
@@ -478,7 +493,7 @@ def _annotation(ann, metas: dict, images: dict, seen: set, skip_flags: bool, max
         return None
     p = dict(annotation_id=aid, category=meta.name, source=source, class_key=key)
     if str(aid) in seen:
-        problems.append(Problem(f"duplicate annotation id {aid!r}; keeping the first", **p))
+        problems.append(Problem(f"{DUPLICATE_ID} {aid!r}; keeping the first", **p))
         return None
     seen.add(str(aid))
     why = _flags(ann) if skip_flags else None
