@@ -124,11 +124,17 @@ def writable_folder(path: str | os.PathLike, option: str = "--out") -> Path:
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise CommandError(f"{option} {out} is a file, not a folder")
+    made = [d for d in (out, *out.parents) if not d.exists()]  # deepest first
     try:
         out.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=out):
             pass
     except OSError as e:
+        for d in made:  # the folders made here, while empty: a failed check leaves nothing behind
+            try:
+                d.rmdir()
+            except OSError:
+                break
         raise CommandError(f"{option} {out}: cannot write there ({os_error_line(e)})") from e
     return out
 

@@ -135,3 +135,18 @@ def test_deferred_interrupt_leaves_an_ignored_sigint_ignored():
     with pytest.raises(KeyboardInterrupt):
         with deferred_interrupt():
             signal.raise_signal(signal.SIGINT)
+
+
+def test_a_failed_output_check_leaves_no_folder_it_made(tmp_path, monkeypatch):
+    """When the write probe fails after the output folder was made, the folders the check made are removed
+    (those that were there before are kept)."""
+    kept = tmp_path / "kept"
+    kept.mkdir()
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(cli.tempfile, "TemporaryFile", refuse)
+    with pytest.raises(cli.CommandError, match="cannot write there"):
+        cli.writable_folder(kept / "a" / "b")
+    assert kept.is_dir() and list(kept.iterdir()) == []
