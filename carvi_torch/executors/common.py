@@ -19,7 +19,7 @@ from ..io.outputs import read_json, write_bytes, write_json
 from ..runtime import log, peak_rss_mb, stable_hash, unwritable_above
 
 __all__ = ["RunSetup", "check_request", "open_run", "finish_run", "exit_status", "class_generator",
-           "prepare_data", "read_ground_truth", "book_class", "load_skips"]
+           "prepare_data", "read_ground_truth", "book_class"]
 
 
 @dataclass
@@ -172,20 +172,11 @@ def write_summary(setup: RunSetup) -> None:
     write_json(setup.out / "summary.json", s)
 
 
-def load_skips(problems: list, key: str) -> list[dict]:
-    """The objects of class ``key`` skipped at load (``input_problems`` that name one), as the class's
-    failures (stage ``load``): the class counts them among its objects and skipped ones. A repeated annotation
-    id is left out (it stays in ``input_problems``): its id is the first annotation's, which is used."""
-    return [{"annotation_id": p.annotation_id, "source": p.source, "stage": p.stage, "reason": p.reason}
-            for p in problems if p.fatal and p.class_key == key and p.annotation_id is not None
-            and not coco.is_duplicate(p)]
-
-
 def book_class(setup: RunSetup, key: str, rep) -> None:
     """A finished class into the summary (classes in name order, whichever finished first), with the
-    objects of it skipped at load (:func:`load_skips`), its skipped objects and warnings into the log (those
-    skipped at load were logged already), and ``summary.json`` written."""
-    at_load = load_skips(setup.loaded.problems, key)
+    objects of it skipped at load (:func:`~carvi_torch.io.coco.skipped_at_load`), its skipped objects and
+    warnings into the log (those skipped at load were logged already), and ``summary.json`` written."""
+    at_load = coco.skipped_at_load(setup.loaded.problems, key)
     whole = replace(rep, objects=rep.objects + len(at_load), skipped=rep.skipped + at_load) if at_load else rep
     setup.summary["classes"][key] = whole.to_dict()
     setup.summary["classes"] = dict(sorted(setup.summary["classes"].items()))

@@ -27,7 +27,7 @@ from typing import Iterable, Iterator
 import numpy as np
 from tqdm.auto import tqdm
 
-from ..io.coco import is_duplicate, load_coco
+from ..io.coco import load_coco, skipped_at_load
 from ..io.layout import object_file
 from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
@@ -221,14 +221,8 @@ def _load(recon: Path, cfg, data: Path, classes, pending: bool):
 
 def _load_skips(problems: list, class_names: list) -> dict[str, list]:
     """``{class: [skipped objects]}``, each class's list started with its objects skipped when the annotations
-    were read (as ``summary.json`` lists them, stage ``load``), with their reason; a repeated annotation id is
-    left out (its id is the first annotation's, which is exported)."""
-    skipped: dict[str, list] = {c: [] for c in class_names}
-    for p in problems:
-        if p.fatal and p.annotation_id is not None and p.class_key in skipped and not is_duplicate(p):
-            skipped[p.class_key].append({"annotation_id": p.annotation_id, "class": p.class_key, "source": p.source,
-                                         "reason": p.reason})
-    return skipped
+    were read (:func:`~carvi_torch.io.coco.skipped_at_load`, as ``summary.json`` books them), with their reason."""
+    return {c: [{**s, "class": c} for s in skipped_at_load(problems, c)] for c in class_names}
 
 
 def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int = 2048, shard_size: int = 256,

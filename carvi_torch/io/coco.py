@@ -36,7 +36,7 @@ from .outputs import read_json, safe_name, write_json
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
            "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "MAX_IMAGE_PIXELS", "object_id",
-           "flag", "class_keys", "input_fingerprints", "DUPLICATE_ID", "is_duplicate"]
+           "flag", "class_keys", "input_fingerprints", "skipped_at_load", "DUPLICATE_ID", "is_duplicate"]
 
 #: How the reason of a repeated annotation id begins (the id's first annotation is the one used).
 DUPLICATE_ID = "duplicate annotation id"
@@ -51,6 +51,22 @@ def is_duplicate(problem: Problem) -> bool:
         True
     """
     return problem.reason.startswith(DUPLICATE_ID)
+
+
+def skipped_at_load(problems: list, key: str) -> list[dict]:
+    """The objects of class folder ``key`` that the load skipped (fatal problems naming an annotation), each as
+    ``{annotation_id, source, stage, reason}``: what ``summary.json`` books as the class's load failures and the
+    export lists as skipped. A repeated annotation id is left out (:func:`is_duplicate`; it stays among the
+    problems).
+
+    Example:
+        >>> skipped_at_load([Problem("empty mask", annotation_id=3, class_key="car"),
+        ...                  Problem(f"{DUPLICATE_ID} 4; keeping the first", annotation_id=4, class_key="car")], "car")
+        [{'annotation_id': 3, 'source': None, 'stage': 'load', 'reason': 'empty mask'}]
+    """
+    return [{"annotation_id": p.annotation_id, "source": p.source, "stage": p.stage, "reason": p.reason}
+            for p in problems if p.fatal and p.class_key == key and p.annotation_id is not None
+            and not is_duplicate(p)]
 
 
 #: Keypoints farther outside the image than this fraction of its larger side are rejected.
