@@ -32,7 +32,7 @@ except ImportError:  # pragma: no cover - exercised by tests that hide the modul
 __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb", "cpu_seconds",
            "maxrss_to_mb", "stable_hash", "InterruptWatch", "watch_interrupts", "intra_op_threads", "log",
            "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt",
-           "unwritable_above", "watch_parent"]
+           "unwritable_above", "watch_parent", "pid_alive"]
 
 
 def cores() -> int:
@@ -358,7 +358,13 @@ def start_method() -> str:
     return "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists on this host (another user's counts: a reused pid is alive).
+
+    Example:
+        >>> pid_alive(os.getpid())
+        True
+    """
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -380,7 +386,7 @@ def watch_parent(run_pid: int, period: float = 0.5) -> None:
     def watch():
         while True:
             time.sleep(period)
-            if os.getppid() != parent or (posix and run_pid != parent and not _alive(run_pid)):
+            if os.getppid() != parent or (posix and run_pid != parent and not pid_alive(run_pid)):
                 os._exit(0)
 
     threading.Thread(target=watch, name="carvi-run-watch", daemon=True).start()

@@ -38,7 +38,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
-from ..runtime import deferred_interrupt
+from ..runtime import deferred_interrupt, pid_alive
 
 __all__ = ["FieldSpec", "FIELDS", "DEFAULT_FIELDS", "MESH_FIELDS", "StoreWriter", "FORMAT_VERSION", "ATTRS_KEY",
            "PARTIAL_PREFIX", "InterruptedAfterSwap"]
@@ -204,23 +204,13 @@ def _own(name: str) -> bool:
     return name.startswith((PARTIAL_PREFIX, OLD_PREFIX))
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, OSError):
-        return True
-    return True
-
-
 def _remove_stale(out: Path) -> None:
     """Remove the hidden folders of exports into ``out`` that were killed (their process is gone, or is this
     one: called before this export makes its own, so a folder with this pid is left from a killed process whose
     pid came round again, as a container's fixed pid does)."""
     for p in out.iterdir() if out.is_dir() else ():
         pid = p.name.rpartition("-")[2]
-        if _own(p.name) and p.is_dir() and (not pid.isdigit() or int(pid) == os.getpid() or not _pid_alive(int(pid))):
+        if _own(p.name) and p.is_dir() and (not pid.isdigit() or int(pid) == os.getpid() or not pid_alive(int(pid))):
             shutil.rmtree(p, ignore_errors=True)
 
 
