@@ -36,7 +36,7 @@ import threading
 from concurrent.futures import Future
 from typing import Callable
 
-from ..runtime import LeanProcessPool
+from ..runtime import LeanProcessPool, ignore_interrupt
 
 __all__ = ["Ahead", "AheadProcesses"]
 
@@ -123,11 +123,9 @@ def result(future: Future) -> tuple:
 
 
 def _init_process(threads: int) -> None:
-    import signal
-
     import torch
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle (close(cancel=True))
+    ignore_interrupt()  # Ctrl-C is the run's to handle (close(cancel=True))
     torch.set_num_threads(threads)
 
 

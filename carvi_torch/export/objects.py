@@ -27,7 +27,7 @@ import numpy as np
 import trimesh
 from trimesh.exchange.ply import load_ply
 
-from ..runtime import watch_parent
+from ..runtime import ignore_interrupt, watch_parent
 from .raster import zbuffer
 
 __all__ = ["splat_occupancy", "view_depth_frame", "view_occupancy", "canonical_occupancy", "depth_map",
@@ -312,9 +312,7 @@ def init_worker(run_pid: int) -> None:
     terminal sends to the whole process group: the main process handles it and stops the pool. It exits
     when the export that started it (``run_pid``) is gone, killed even with SIGKILL
     (:func:`~carvi_torch.runtime.watch_parent`), and the forkserver that forked it follows."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ignore_interrupt()
     watch_parent(run_pid)
     torch = sys.modules.get("torch")
     if torch is not None:

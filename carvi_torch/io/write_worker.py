@@ -18,14 +18,13 @@ Example:
 from __future__ import annotations
 
 import os
-import signal
 import time
 
 import numpy as np
 
 from .. import mesh
 from ..quality import reconstruction_iou
-from ..runtime import peak_rss_mb, watch_parent
+from ..runtime import ignore_interrupt, peak_rss_mb, watch_parent
 from .outputs import write_json, write_npz
 
 __all__ = ["write_object", "write_object_safe", "start_worker", "watch_parent", "init_worker"]
@@ -97,5 +96,5 @@ def start_worker() -> int:
 def init_worker(run_pid: int) -> None:
     """Process initializer of a writer: ignore Ctrl-C (the run stops its writers) and
     :func:`watch_parent` ``run_pid``."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ignore_interrupt()
     watch_parent(run_pid)
