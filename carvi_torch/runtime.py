@@ -187,6 +187,21 @@ class InterruptWatch:
             raise KeyboardInterrupt
 
 
+def _replaceable_sigint():
+    """The SIGINT handler now in place when a block may put its own in for a while, else ``None``: Python
+    delivers signals to the main thread only, and a SIGINT that is ignored (a job started with `&`) or left
+    to the system (a handler set outside Python) stays as it is.
+
+    Example:
+        >>> _replaceable_sigint() is signal.getsignal(signal.SIGINT)
+        True
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    handler = signal.getsignal(signal.SIGINT)
+    return handler if callable(handler) else None
+
+
 @contextlib.contextmanager
 def watch_interrupts() -> Iterator[InterruptWatch]:
     """Record SIGINTs while the block runs (the previous handler still runs, so Ctrl-C still raises
@@ -200,8 +215,8 @@ def watch_interrupts() -> Iterator[InterruptWatch]:
         False
     """
     watch = InterruptWatch()
-    previous = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
-    if not callable(previous):
+    previous = _replaceable_sigint()
+    if previous is None:
         yield watch
         return
 
@@ -322,14 +337,12 @@ def deferred_interrupt() -> Iterator[None]:
         the block finished
         then interrupted
     """
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread() or not callable(signal.getsignal(signal.SIGINT)):
-        yield  # not the main thread, or SIGINT ignored (a job started with `&`) or left to the system: as it is
+    previous = _replaceable_sigint()
+    if previous is None:
+        yield
         return
     caught: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
     try:
         yield
     finally:
@@ -341,8 +354,6 @@ def deferred_interrupt() -> Iterator[None]:
 def ignore_interrupt() -> None:
     """Ignore Ctrl-C in this (worker) process: a terminal sends SIGINT to the whole process group, and the
     main process handles it (it stops its workers), so that no worker prints a traceback of its own."""
-    import signal
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 

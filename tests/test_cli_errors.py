@@ -137,6 +137,38 @@ def test_deferred_interrupt_leaves_an_ignored_sigint_ignored():
             signal.raise_signal(signal.SIGINT)
 
 
+@pytest.mark.parametrize("wrapper", ["watch_interrupts", "deferred_interrupt"])
+def test_sigint_wrappers_leave_an_ignored_sigint_and_other_threads_alone(wrapper):
+    """Both SIGINT wrappers follow one rule: an ignored SIGINT stays ignored, and outside the main thread
+    (where Python cannot install a handler) the block runs as it is."""
+    import signal
+    import threading
+
+    from carvi_torch import runtime
+
+    block = getattr(runtime, wrapper)
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with block():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            signal.raise_signal(signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    errors = []
+
+    def in_a_thread():
+        try:
+            with block():
+                pass
+        except Exception as e:  # noqa: BLE001 - a handler installed off the main thread raises ValueError
+            errors.append(e)
+
+    thread = threading.Thread(target=in_a_thread)
+    thread.start()
+    thread.join()
+    assert errors == [] and signal.getsignal(signal.SIGINT) is previous
+
+
 def test_a_failed_output_check_leaves_no_folder_it_made(tmp_path, monkeypatch):
     """When the write probe fails after the output folder was made, the folders the check made are removed
     (those that were there before are kept)."""
