@@ -27,6 +27,8 @@ import tempfile
 from pathlib import Path
 from typing import Callable, Sequence
 
+from .runtime import os_error_line  # re-exported: the commands' shared ending names OS errors with it
+
 __all__ = ["main", "add_common", "split_classes", "version", "program", "run_command", "CommandError",
            "os_error_line", "writable_folder", "writable_file"]
 
@@ -79,18 +81,6 @@ def split_classes(value: str | None) -> list[str] | None:
 
 class CommandError(Exception):
     """A user error a command reports as one ``error:`` line (exit status 2)."""
-
-
-def os_error_line(e: OSError) -> str:
-    """One line for an operating-system error: the path(s) and the system's reason.
-
-    Example:
-        >>> os_error_line(IsADirectoryError(21, "Is a directory", "out/annotations.json"))
-        'out/annotations.json: Is a directory'
-    """
-    names = [str(n) for n in (e.filename, e.filename2) if n is not None]
-    reason = e.strerror or str(e)
-    return f"{' -> '.join(names)}: {reason}" if names else reason
 
 
 def run_command(body: Callable[[], int | None], interrupted: str) -> int:

@@ -32,7 +32,7 @@ except ImportError:  # pragma: no cover - exercised by tests that hide the modul
 __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb", "cpu_seconds",
            "maxrss_to_mb", "stable_hash", "InterruptWatch", "watch_interrupts", "intra_op_threads", "log",
            "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt",
-           "unwritable_above", "watch_parent", "pid_alive"]
+           "unwritable_above", "os_error_line", "watch_parent", "pid_alive"]
 
 
 def cores() -> int:
@@ -56,6 +56,25 @@ def unwritable_above(path: str | os.PathLike) -> str | None:
     if not os.path.isdir(probe):
         return f"{probe} is a file, not a folder"
     return None if os.access(probe, os.W_OK | os.X_OK) else f"{probe} is not writable"
+
+
+def os_error_line(e: OSError, said: str | os.PathLike | None = None) -> str:
+    """One line for an operating-system error: the path(s) and the system's reason. A path equal to ``said``
+    (one the message around it names already) is left out; a different one (a parent folder that could not
+    be made) is kept.
+
+    Example:
+        >>> os_error_line(IsADirectoryError(21, "Is a directory", "out/annotations.json"))
+        'out/annotations.json: Is a directory'
+        >>> os_error_line(NotADirectoryError(20, "Not a directory", "file/sub"), said="file/sub/")
+        'Not a directory'
+    """
+    names = [str(n) for n in (e.filename, e.filename2) if n is not None]  # a path, or a descriptor's number
+    if said is not None:
+        names = [n for n in names if os.path.normpath(n) != os.path.normpath(os.fspath(said))]
+    reason = e.strerror or str(e)
+    return f"{' -> '.join(names)}: {reason}" if names else reason
+
 
 def env_count(name: str, minimum: int) -> int | None:
     """The integer environment variable ``name`` (at least ``minimum``), or None when unset.

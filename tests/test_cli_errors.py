@@ -137,6 +137,34 @@ def test_deferred_interrupt_leaves_an_ignored_sigint_ignored():
             signal.raise_signal(signal.SIGINT)
 
 
+@pytest.mark.parametrize("failed", ["out", "parent"])
+def test_an_output_folder_that_cannot_be_made_names_the_path_that_failed_once(failed, tmp_path, capsys,
+                                                                              monkeypatch):
+    """The report's and the export's --out that cannot be made: the system's reason, with the path that failed
+    where it is not --out itself (a parent folder), never --out twice."""
+    from carvi_torch.export.store import StoreWriter
+
+    recon = tmp_path / "run"
+    recon.mkdir()
+    (recon / "summary.json").write_text(json.dumps({"classes": {}}))
+    make = Path.mkdir
+
+    def mkdir(self, *a, **k):
+        if self.name in ("rep", "store"):
+            raise PermissionError(13, "Permission denied", str(self if failed == "out" else self.parent))
+        return make(self, *a, **k)
+
+    monkeypatch.setattr(Path, "mkdir", mkdir)
+    said = "" if failed == "out" else f"{tmp_path / 'ro'}: "
+    out = tmp_path / "ro" / "rep"
+    assert report_cmd.main(["--recon", str(recon), "--out", str(out), "--quiet", "--workers", "0"]) == 2
+    assert _one_line(capsys, "error:") == f"error: cannot make --out {out}: {said}Permission denied"
+    out = tmp_path / "ro" / "store"
+    with pytest.raises(ValueError) as e:
+        StoreWriter(out)
+    assert str(e.value) == f"{out}: cannot write the store there ({said}Permission denied; nothing was written)"
+
+
 @pytest.mark.parametrize("wrapper", ["watch_interrupts", "deferred_interrupt"])
 def test_sigint_wrappers_leave_an_ignored_sigint_and_other_threads_alone(wrapper):
     """Both SIGINT wrappers follow one rule: an ignored SIGINT stays ignored, and outside the main thread

@@ -38,7 +38,7 @@ from tqdm.auto import tqdm
 from ..config import Config, ConfigError
 from ..io.results import ClassReport
 from ..pipeline import finish_class, finished_objects, prepare_class, reconstruct_chunk
-from ..runtime import log, log_to_file, log_to_terminal, peak_rss_mb, torch_threads
+from ..runtime import log, log_to_file, log_to_terminal, os_error_line, peak_rss_mb, torch_threads
 from .common import RunSetup, announce, book_class, class_generator, finish_run, open_run
 
 __all__ = ["run", "import_ray", "connect", "loopback", "LOOPBACK_VAR", "prepare_task", "chunk_task", "finish_task",
@@ -109,7 +109,7 @@ def check_reachable(address: str) -> None:
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S).close()
     except OSError as e:
-        raise ConfigError(f"ray_address={address}: no Ray head answers there ({e.strerror or e})") from None
+        raise ConfigError(f"ray_address={address}: no Ray head answers there ({os_error_line(e)})") from None
 
 
 @contextlib.contextmanager

@@ -38,7 +38,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
-from ..runtime import deferred_interrupt, pid_alive
+from ..runtime import deferred_interrupt, os_error_line, pid_alive
 
 __all__ = ["FieldSpec", "FIELDS", "DEFAULT_FIELDS", "MESH_FIELDS", "StoreWriter", "FORMAT_VERSION", "ATTRS_KEY",
            "PARTIAL_PREFIX", "InterruptedAfterSwap"]
@@ -284,8 +284,8 @@ class StoreWriter:
                 self.root = zarr.open_group(str(self.tmp), mode="w", zarr_format=3)
         except OSError as e:
             self.abort()
-            raise ValueError(f"{self.out}: cannot write the store there ({e.strerror or e}; nothing was "
-                             "written)") from e
+            why = os_error_line(e, said=self.out)
+            raise ValueError(f"{self.out}: cannot write the store there ({why}; nothing was written)") from e
         except BaseException:  # Ctrl-C (held back until the group was made)
             self.abort()
             raise

@@ -30,7 +30,7 @@ import torch
 from pycocotools import mask as mask_utils
 
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvas
-from ..runtime import cores, torch_threads, watch_interrupts
+from ..runtime import cores, os_error_line, torch_threads, watch_interrupts
 from .layout import reserved
 from .outputs import read_json, safe_name, write_json
 
@@ -397,7 +397,7 @@ def _read(path: Path) -> dict:
     except (FileNotFoundError, ValueError) as e:
         raise CocoFormatError(str(e)) from None
     except OSError as e:
-        raise CocoFormatError(f"{path}: {e.strerror or e}") from None
+        raise CocoFormatError(f"{path}: {os_error_line(e, said=path)}") from None
     if not isinstance(data, dict):
         raise CocoFormatError(f"{path}: expected a JSON object with images, annotations and categories")
     for key in ("annotations", "categories"):

@@ -72,7 +72,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from ..collection import infer_flip_pairs
-from ..runtime import watch_interrupts
+from ..runtime import os_error_line, watch_interrupts
 from .coco import encode_mask as encode_rle
 from .outputs import write_json
 from .vocmeta import (
@@ -235,7 +235,7 @@ def _read_xml(path: Path) -> ET.Element:
         msg = str(e).rsplit(": line", 1)[0]
         raise VocFormatError(path, f"malformed XML at line {line}, column {col}: {msg}") from None
     except OSError as e:
-        raise VocFormatError(path, f"cannot read the file: {e.strerror or e}") from None
+        raise VocFormatError(path, f"cannot read the file: {os_error_line(e, said=path)}") from None
 
 
 def _coordinate_list(path: Path, text: str | None, what: str) -> np.ndarray:
@@ -1094,7 +1094,7 @@ def run(args: Any) -> int:
         report = convert(keypoints, out, masks_dir=getattr(args, "masks", None),
                          annotations_dir=getattr(args, "annotations", None), classes=getattr(args, "classes", None))
     except (FileNotFoundError, ValueError) as e:
-        said = f"{e.filename}: {e.strerror}" if getattr(e, "filename", None) and e.strerror else _option_names(str(e))
+        said = os_error_line(e) if getattr(e, "filename", None) and e.strerror else _option_names(str(e))
         print(f"error: voc: {said}", file=sys.stderr)
         return 2
     print(report.summary(max_files=len(report.skipped) if not report.written else 20))

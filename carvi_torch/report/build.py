@@ -29,7 +29,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Literal
 
 from ..io.outputs import safe_name
-from ..runtime import LeanProcessPool, start_method
+from ..runtime import LeanProcessPool, os_error_line, start_method
 from .cards import Card, CardContext, ClassView, make_card
 from .charts import class_figure
 from .inputs import ReportError, RunInputs, read_run
@@ -175,7 +175,7 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise ReportError(f"cannot make --out {out}: {e.strerror or e}") from e
+        raise ReportError(f"cannot make --out {out}: {os_error_line(e, said=out)}") from e
     per = _make_cards(run, out, max_faces, workers)
     cards, panels, names = [], [], []
     for cls in run.classes:
