@@ -22,7 +22,8 @@ import time
 import types
 import zlib
 from concurrent.futures import ProcessPoolExecutor
-from typing import Iterator
+from pathlib import Path
+from typing import Callable, Iterator
 
 try:  # POSIX only; peak memory is unknown elsewhere (Windows)
     import resource
@@ -32,7 +33,7 @@ except ImportError:  # pragma: no cover - exercised by tests that hide the modul
 __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb", "cpu_seconds",
            "maxrss_to_mb", "stable_hash", "InterruptWatch", "watch_interrupts", "intra_op_threads", "log",
            "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt",
-           "unwritable_above", "os_error_line", "watch_parent", "pid_alive"]
+           "unwritable_above", "check_replaceable", "os_error_line", "watch_parent", "pid_alive"]
 
 
 def cores() -> int:
@@ -56,6 +57,27 @@ def unwritable_above(path: str | os.PathLike) -> str | None:
     if not os.path.isdir(probe):
         return f"{probe} is a file, not a folder"
     return None if os.access(probe, os.W_OK | os.X_OK) else f"{probe} is not writable"
+
+
+def check_replaceable(out: Path, others: Callable[[Path], list[str]], what: str,
+                      error: type[Exception] = ValueError) -> None:
+    """Refuse, before anything is written, an output folder ``out`` that is a file, or a folder holding
+    anything but ``what`` (an earlier output of this command, which it replaces): ``others(out)`` names the
+    entries of the existing folder ``out`` that are not (none: ``out`` may be written over). Raises ``error``.
+
+    Example:
+        >>> check_replaceable(Path(os.devnull), lambda out: [], "an earlier report")
+        Traceback (most recent call last):
+        ...
+        ValueError: --out /dev/null is a file, not a folder
+    """
+    if out.exists() and not out.is_dir():
+        raise error(f"--out {out} is a file, not a folder")
+    other = sorted(others(out)) if out.is_dir() else []
+    if other:
+        raise error(f"--out {out}: not empty and not {what} (it holds {other[0]!r}"
+                    f"{f' and {len(other) - 1} more' if len(other) > 1 else ''}); choose another --out "
+                    "(nothing was written)")
 
 
 def os_error_line(e: OSError, said: str | os.PathLike | None = None) -> str:

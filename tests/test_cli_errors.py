@@ -137,6 +137,32 @@ def test_deferred_interrupt_leaves_an_ignored_sigint_ignored():
             signal.raise_signal(signal.SIGINT)
 
 
+def test_report_and_export_refuse_a_file_or_a_foreign_folder_in_the_same_words(tmp_path, afile, capsys):
+    """One rule for both: --out may be new, empty or the command's earlier output; a file or a folder holding
+    anything else is refused before anything is written, naming what it holds."""
+    from carvi_torch.export.store import StoreWriter
+
+    recon = tmp_path / "run"
+    recon.mkdir()
+    (recon / "summary.json").write_text(json.dumps({"classes": {}}))
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    for name in ("notes.txt", "b.txt"):
+        (mine / name).write_text("keep")
+    said = {}
+    for out in (afile, mine):
+        assert report_cmd.main(["--recon", str(recon), "--out", str(out), "--quiet", "--workers", "0"]) == 2
+        said["report", out] = _one_line(capsys, "error:").removeprefix("error: ")
+        with pytest.raises(ValueError) as e:
+            StoreWriter(out)
+        said["export", out] = str(e.value)
+    assert said["report", afile] == said["export", afile] == f"--out {afile} is a file, not a folder"
+    for command in ("report", "export"):
+        assert said[command, mine] == (f"--out {mine}: not empty and not an earlier {command} (it holds 'b.txt' "
+                                       "and 1 more); choose another --out (nothing was written)")
+    assert afile.read_text() == "mine" and sorted(p.name for p in mine.iterdir()) == ["b.txt", "notes.txt"]
+
+
 @pytest.mark.parametrize("failed", ["out", "parent"])
 def test_an_output_folder_that_cannot_be_made_names_the_path_that_failed_once(failed, tmp_path, capsys,
                                                                               monkeypatch):

@@ -636,7 +636,7 @@ def _command_cases() -> list[Case]:
 
     return [
         case("export", "out_file", "export --out is an existing file", ("--recon", "{dir}/run", "--out", "{dir}/file"),
-             run + file, "is not a folder"),
+             run + file, "is a file, not a folder"),
         case("export", "out_under_file", "export --out below an existing file",
              ("--recon", "{dir}/run", "--out", "{dir}/file/sub"), run + file, "Not a directory"),
         case("export", "out_foreign", "export --out holds other files", ("--recon", "{dir}/run", "--out", "{dir}/mine"),

@@ -38,7 +38,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
-from ..runtime import deferred_interrupt, os_error_line, pid_alive
+from ..runtime import check_replaceable, deferred_interrupt, os_error_line, pid_alive
 
 __all__ = ["FieldSpec", "FIELDS", "DEFAULT_FIELDS", "MESH_FIELDS", "StoreWriter", "FORMAT_VERSION", "ATTRS_KEY",
            "PARTIAL_PREFIX", "InterruptedAfterSwap"]
@@ -214,21 +214,21 @@ def _remove_stale(out: Path) -> None:
             shutil.rmtree(p, ignore_errors=True)
 
 
-def _check_replaceable(out: Path) -> None:
-    """Refuse to write over a folder that holds anything but an earlier export (its files are replaced by the
-    new store's once that is complete)."""
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder")
-    if not out.is_dir() or not any(not _own(p.name) for p in out.iterdir()):
-        return
+def _not_export(out: Path) -> list[str]:
+    """The entries of the folder ``out`` that are not an earlier export's (whose files the new store's replace
+    once that is complete): none where its root ``zarr.json`` says it is one, else all but the export's own
+    hidden folders."""
+    other = [p.name for p in out.iterdir() if not _own(p.name)]
+    if not other:
+        return []
     try:
         import json
 
         if ATTRS_KEY in json.loads((out / "zarr.json").read_text()).get("attributes", {}):
-            return
+            return []
     except (OSError, ValueError, AttributeError):
         pass
-    raise ValueError(f"{out}: not empty and not an earlier export; choose another --out (nothing was written)")
+    return other
 
 
 def _swap_in(tmp: Path, out: Path) -> None:
@@ -273,7 +273,7 @@ class StoreWriter:
 
     def __init__(self, out: str | Path, shard_size: int = 256, fields: list[str] | None = None):
         self.out = Path(out)
-        _check_replaceable(self.out)
+        check_replaceable(self.out, _not_export, "an earlier export")
         self.made = _made_folders(self.out)  # removed by abort() when empty
         self.swapped = False
         self.tmp = self.out / f"{PARTIAL_PREFIX}{os.getpid()}"

@@ -29,7 +29,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Literal
 
 from ..io.outputs import safe_name
-from ..runtime import LeanProcessPool, os_error_line, start_method
+from ..runtime import LeanProcessPool, check_replaceable, os_error_line, start_method
 from .cards import Card, CardContext, ClassView, make_card
 from .charts import class_figure
 from .inputs import ReportError, RunInputs, read_run
@@ -142,16 +142,9 @@ def _copy_assets(out: Path) -> None:
 REPORT_NAMES = frozenset({"index.html", "cards.js", "assets", "classes", "objects"})
 
 
-def _check_replaceable(out: Path) -> None:
-    """Refuse an ``out`` that is a file, or a folder holding anything but an earlier report (as the export
-    refuses a folder holding anything but an earlier export), before anything is written."""
-    if out.exists() and not out.is_dir():
-        raise ReportError(f"--out {out} is a file, not a folder")
-    other = sorted(p.name for p in out.iterdir() if p.name not in REPORT_NAMES) if out.is_dir() else []
-    if other:
-        raise ReportError(f"--out {out}: not empty and not an earlier report (it holds {other[0]!r}"
-                          f"{f' and {len(other) - 1} more' if len(other) > 1 else ''}); choose another --out "
-                          "(nothing was written)")
+def _not_report(out: Path) -> list[str]:
+    """The entries of the folder ``out`` that no report writes."""
+    return [p.name for p in out.iterdir() if p.name not in REPORT_NAMES]
 
 
 def build_report(recon: str | Path, out: str | Path | None = None, per_page: int = 24, max_faces: int = 4000,
@@ -171,7 +164,7 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
     out = Path(out) if out is not None else run.recon / "report"
     if out.resolve() == run.recon.resolve() or out.resolve() in {(run.recon / c.key).resolve() for c in run.classes}:
         raise ReportError(f"--out {out} is the run's folder or a class folder: give the report a folder of its own")
-    _check_replaceable(out)
+    check_replaceable(out, _not_report, "an earlier report", ReportError)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
