@@ -547,6 +547,34 @@ def test_worker_processes_write_the_same_store(recon, tmp_path):
     assert res.returncode == 0 and res.stdout.strip() == "[]", res.stderr[-2000:]
 
 
+@pytest.mark.parametrize("stored", ["abc", "xyz", np.array(["xyz"]), np.bytes_(b"xyz"), None],
+                         ids=["same", "other", "a-list", "bytes", "none"])
+def test_export_and_resume_read_a_voxels_fingerprint_by_one_rule(stored, tmp_path):
+    """The export refuses an object exactly where a rerun of reconstruct would find other inputs: both read
+    the fingerprint a voxels file holds the same way (one not written as the writers write it is none)."""
+    from carvi_torch.export.objects import OtherInputs, export_object
+    from carvi_torch.io.layout import INPUTS_CHANGED, finished, object_file
+
+    members = {"occupancy": np.ones((2, 2, 2), bool), "voxel_to_camera": np.eye(4)}
+    if stored is not None:
+        members["input_fingerprint"] = np.asarray(stored, dtype=str) if isinstance(stored, str) else stored
+    voxels = object_file(tmp_path, "voxels", 1)
+    voxels.parent.mkdir()
+    np.savez(voxels, **members)
+    mesh = object_file(tmp_path, "meshes", 1, "ply")
+    mesh.parent.mkdir()
+    trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], process=False).export(mesh)
+    try:
+        export_object({"voxels": voxels, "fingerprint": "abc"})
+        refused = False
+    except OtherInputs:
+        refused = True
+    except KeyError:  # past the check: the rest of the job is not given
+        refused = False
+    assert refused == (finished(tmp_path, 1, "ply", "abc") == INPUTS_CHANGED) == (isinstance(stored, str)
+                                                                                   and stored == "xyz")
+
+
 def _files(folder):
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 

@@ -27,6 +27,7 @@ import numpy as np
 import trimesh
 from trimesh.exchange.ply import load_ply
 
+from ..io.layout import held_fingerprint
 from ..runtime import ignore_interrupt, watch_parent
 from .raster import zbuffer
 
@@ -252,7 +253,7 @@ def export_object(job: dict) -> dict:
     when the voxels file holds an input fingerprint other than the job's ``fingerprint`` (the annotations
     changed since the object was made, or its redo failed and left an earlier run's files)."""
     z = np.load(job["voxels"])
-    held = str(z["input_fingerprint"]) if "input_fingerprint" in z else None
+    held = held_fingerprint(z)
     if held is not None and job.get("fingerprint") and held != job["fingerprint"]:
         raise OtherInputs("its files were made from other inputs than the annotation file's (rerun reconstruct)")
     occ = z["occupancy"].astype(bool)

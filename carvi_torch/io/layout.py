@@ -30,7 +30,7 @@ import numpy as np
 from .outputs import safe_name
 
 __all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS", "RUN_NAMES", "reserved", "INPUTS_CHANGED",
-           "NO_INPUT_RECORD", "ResumeCheck", "resume_check"]
+           "NO_INPUT_RECORD", "ResumeCheck", "resume_check", "held_fingerprint"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -78,6 +78,19 @@ INPUTS_CHANGED = "its inputs differ from those it was made from"
 NO_INPUT_RECORD = "its files hold no record of its inputs (an older run's)"
 
 
+def held_fingerprint(voxels) -> str | None:
+    """The input fingerprint an object's voxels hold (``voxels``: the opened ``npz`` file, or its members in a
+    dict): the string the writers store (a 0-d unicode array), or ``None`` where there is none or it is of
+    another kind (an older run's file, or a foreign one).
+
+    Example:
+        >>> held_fingerprint({"input_fingerprint": np.asarray("3f2a", dtype=str)}), held_fingerprint({})
+        ('3f2a', None)
+    """
+    fp = voxels["input_fingerprint"] if "input_fingerprint" in voxels else None
+    return str(fp) if fp is not None and fp.dtype.kind == "U" and fp.ndim == 0 else None
+
+
 def _voxels_state(path: Path) -> tuple[str | None, str | None]:
     """``(why a voxels file is not a finished object's or None, the input fingerprint it holds or None)``."""
     try:
@@ -88,8 +101,7 @@ def _voxels_state(path: Path) -> tuple[str | None, str | None]:
         return f"unreadable voxels ({type(e).__name__})", None
     if occ.dtype != bool or occ.ndim != 3 or T.shape != (4, 4) or not np.isfinite(T).all():
         return f"voxels of the wrong kind (occupancy {occ.dtype} {occ.shape}, transform {T.shape})", None
-    fp = members.get("input_fingerprint")
-    return None, (str(fp) if fp is not None and fp.dtype.kind == "U" and fp.ndim == 0 else None)
+    return None, held_fingerprint(members)
 
 
 def _mesh_ok(path: Path) -> str | None:
