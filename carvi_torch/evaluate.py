@@ -79,15 +79,18 @@ def posed_gt_mesh(entry: dict, root: Path, cache: dict | None = None) -> tuple[t
     return trimesh.Trimesh(Vc, np.asarray(base.faces), process=False), diag
 
 
-def _load_recon_mesh(recon: Path, cls: str, aid, current: dict) -> trimesh.Trimesh | None:
+def _read_cameras(rdir: Path, classes) -> dict[str, dict | None]:
+    """Each class's ``cameras.json`` of the reconstruction ``rdir``, read once for every use: class -> its
+    content (``None``: no file)."""
+    return {cls: read_json(p) if (p := rdir / cls / "cameras.json").is_file() else None for cls in sorted(classes)}
+
+
+def _load_recon_mesh(recon: Path, cls: str, aid, cams: dict | None) -> trimesh.Trimesh | None:
     """The run's mesh of object ``aid``, or ``None``: no mesh, or the object is not in the class's
-    ``cameras.json``, which holds the objects of the run's latest input (a mesh an earlier run left for an
-    object the input has since dropped is not the run's; a folder of meshes without ``cameras.json``, another
-    method's, is taken as it is). ``current``: a cache of those ids per file (``None``: no file)."""
-    cams = recon / cls / "cameras.json"
-    if cams not in current:
-        current[cams] = frozenset(read_json(cams).get("cameras", {})) if cams.is_file() else None
-    if current[cams] is not None and str(aid) not in current[cams]:
+    ``cameras.json`` (``cams``, its content), which holds the objects of the run's latest input (a mesh an
+    earlier run left for an object the input has since dropped is not the run's; a folder of meshes without
+    ``cameras.json`` (``cams`` ``None``), another method's, is taken as it is)."""
+    if cams is not None and str(aid) not in cams.get("cameras", {}):
         return None
     for ext in MESH_FORMATS:
         p = object_file(recon / cls, "meshes", aid, ext)
@@ -96,17 +99,16 @@ def _load_recon_mesh(recon: Path, cls: str, aid, current: dict) -> trimesh.Trime
     return None
 
 
-def _viewpoints(recon: Path, cls: str, gt_entries: dict, aids: list) -> dict | None:
+def _viewpoints(cameras: dict | None, gt_entries: dict, aids: list) -> dict | None:
     """Viewpoint reports of one class: ``sfm`` (objects with an SfM camera), ``refined`` (every
     object with a final camera) and, when ``refined`` holds objects without an SfM camera,
     ``refined_with_sfm``: the refined cameras of the objects that also have an SfM camera.
     Objects without an SfM camera get theirs from the unseen-image path, not from refinement;
     ``refined_with_sfm`` is the before/after comparison of the refinement itself. Each report is
-    aligned with its own global rotation."""
-    p = recon / cls / "cameras.json"
-    if not p.is_file():
+    aligned with its own global rotation. ``cameras``: the class's ``cameras.json`` (``None``: none)."""
+    if cameras is None:
         return None
-    cams = read_json(p).get("cameras", {})
+    cams = cameras.get("cameras", {})
     out = {}
     has_sfm = {a for a in aids if cams.get(str(a), {}).get("sfm") is not None}
     for stage, source, among in (("sfm", "sfm", None), ("refined", "refined", None),
@@ -175,8 +177,9 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     if not wanted:
         raise ValueError(f"no class of {data} ({', '.join(sorted(set(key_of.values()))) or 'none'}) has a folder in "
                          f"{' or '.join(map(str, recons.values()))}")
+    cameras = {name: _read_cameras(Path(rdir), wanted) for name, rdir in recons.items()}  # method -> class -> file
     for name, rdir in recons.items():
-        _check_same_objects(name, Path(rdir), wanted, ann_class, source_of, data)
+        _check_same_objects(name, Path(rdir), cameras[name], ann_class, source_of, data)
     in_scope = [a for a, c in ann_class.items()
                 if str(a) in gt_entries and (split is None or split_of.get(a) == split) and c is not None]
     without = _classes_without_reconstruction(recons, [ann_class[a] for a in in_scope], classes)
@@ -185,7 +188,6 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     methods = list(recons) + (["Puffball", "SFMc"] if baselines and shapes else [])
     objects: dict[str, dict] = {}
     mesh_cache: dict = {}
-    in_cameras: dict = {}
     t0 = time.perf_counter()
     for aid in tqdm(targets, desc="evaluate", disable=not progress):
         cls = ann_class[aid]
@@ -205,11 +207,11 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
             continue
         step = step_percent / 100.0 * gt_mesh.diag
         for name, rdir in recons.items():
-            m = _load_recon_mesh(Path(rdir), cls, aid, in_cameras)
+            m = _load_recon_mesh(Path(rdir), cls, aid, cameras[name][cls])
             row[name] = _score(m, gt_mesh, step, "no reconstruction")
         if baselines:
             row["Puffball"] = _score(_puffball(coll_by_class.get(cls), aid), gt_mesh, step, "no mask")
-            row["SFMc"] = _score(_sfmc(first, cls, aid), gt_mesh, step, "no SfM camera")
+            row["SFMc"] = _score(_sfmc(cameras[methods[0]][cls], aid), gt_mesh, step, "no SfM camera")
         objects[str(aid)] = row
     # per class aggregates
     per_class: dict[str, dict] = defaultdict(dict)
@@ -226,7 +228,7 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
         aids = [original[a] for a, r in objects.items() if r["class"] == cls]
         vp = {}
         for name, rdir in recons.items():
-            rep = _viewpoints(Path(rdir), cls, gt_entries, aids)
+            rep = _viewpoints(cameras[name][cls], gt_entries, aids)
             if rep:
                 vp[name] = rep
         viewpoints[cls] = vp
@@ -273,14 +275,14 @@ def _classes_without_reconstruction(recons: dict, classes_in_scope: list, asked)
     return out
 
 
-def _check_same_objects(name: str, rdir: Path, classes, ann_class: dict, source_of: dict, data: Path) -> None:
+def _check_same_objects(name: str, rdir: Path, cameras: dict, ann_class: dict, source_of: dict, data: Path) -> None:
     """``ValueError`` when the reconstruction ``rdir`` was made from other data than ``data``: an annotation
-    id of a ``cameras.json`` names another object in ``data`` (another class, or another ``source``), or
-    no id of it is in ``data`` at all. Ids that ``data`` lacks are allowed (a subset of the objects)."""
+    id of a ``cameras.json`` (``cameras``: class -> its content, ``None`` where there is none) names another
+    object in ``data`` (another class, or another ``source``), or no id of it is in ``data`` at all. Ids that
+    ``data`` lacks are allowed (a subset of the objects)."""
     seen, found = 0, 0
-    for cls in sorted(classes):
-        p = rdir / cls / "cameras.json"
-        cams = read_json(p).get("cameras") if p.is_file() else None
+    for cls in sorted(cameras):
+        cams = cameras[cls].get("cameras") if cameras[cls] is not None else None
         for aid, cam in (cams if isinstance(cams, dict) else {}).items():
             seen += 1
             if aid not in ann_class:
@@ -345,12 +347,11 @@ def _puffball(coll, aid: int):
     return trimesh.Trimesh(V, np.asarray(m.faces), process=False)
 
 
-def _sfmc(recon: Path, cls: str, aid: int):
-    """Convex hull of the SfM mean shape seen by the annotation's refined camera (image pixels)."""
-    p = recon / cls / "cameras.json"
-    if not p.is_file():
+def _sfmc(cj: dict | None, aid: int):
+    """Convex hull of the SfM mean shape seen by the annotation's refined camera (image pixels); ``cj``: the
+    class's ``cameras.json`` (``None``: none)."""
+    if cj is None:
         return None
-    cj = read_json(p)
     cam = cj.get("cameras", {}).get(str(aid), {}).get("refined")
     if cam is None:
         return None

@@ -90,6 +90,20 @@ def test_real_run_with_baselines(recon, tmp_path, capsys):
     assert format_shape_table(res).count("\n") == 3 and "refined" in format_viewpoint_table(res)
 
 
+def test_each_cameras_json_is_read_once(recon, monkeypatch):
+    """The objects' check, their meshes, the viewpoints and the SfM baseline share one reading of a class's
+    ``cameras.json`` (it grows with the objects; the baseline read it again for every object)."""
+    from carvi_torch import evaluate as module
+
+    data, gt = _gt(recon)
+    reads = []
+    read = module.read_json
+    monkeypatch.setattr(module, "read_json", lambda p: reads.append(p.name) or read(p))
+    res = evaluate(data, {"Full": recon}, baselines=True, step_percent=2.0, progress=False)
+    assert res["classes"]["car"]["SFMc"]["count"] >= 1 and res["viewpoints"]["car"]["Full"]
+    assert reads.count("cameras.json") == 1
+
+
 def test_missing_reconstruction_reported(recon, tmp_path):
     data, gt = _gt(recon)
     partial = tmp_path / "partial"
