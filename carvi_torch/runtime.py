@@ -33,7 +33,8 @@ except ImportError:  # pragma: no cover - exercised by tests that hide the modul
 __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb", "cpu_seconds",
            "maxrss_to_mb", "stable_hash", "InterruptWatch", "watch_interrupts", "intra_op_threads", "log",
            "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt",
-           "unwritable_above", "check_replaceable", "os_error_line", "watch_parent", "pid_alive"]
+           "unwritable_above", "check_replaceable", "os_error_line", "watch_parent", "pid_alive",
+           "processes_marked", "gone_within"]
 
 
 def cores() -> int:
@@ -424,6 +425,41 @@ def pid_alive(pid: int) -> bool:
     except PermissionError:  # alive, another user's (a reused pid)
         return True
     return True
+
+
+def processes_marked(needle: str) -> list[int]:
+    """The pids of the running processes whose environment holds ``needle``, read from Linux's ``/proc`` (none
+    where there is no ``/proc``). A process started with a unique environment variable passes it to every
+    process it starts (forkserver, workers, resource tracker): the tests and the stress tool find a run's
+    processes by it.
+
+    Example:
+        >>> processes_marked("CARVI_NO_SUCH_MARKER=" + "0" * 32)
+        []
+    """
+    pids = []
+    for p in Path("/proc").iterdir() if os.path.isdir("/proc") else ():
+        try:
+            if p.name.isdigit() and needle.encode() in (p / "environ").read_bytes():
+                pids.append(int(p.name))
+        except OSError:  # gone meanwhile, or another user's
+            continue
+    return pids
+
+
+def gone_within(needle: str, seconds: float, poll: float = 0.1) -> list[int]:
+    """Wait until no process holds ``needle`` (:func:`processes_marked`) or ``seconds`` have passed; SIGKILL
+    those left, by pid, and return their pids (empty: every one was gone in time)."""
+    deadline = time.monotonic() + seconds
+    while processes_marked(needle) and time.monotonic() < deadline:
+        time.sleep(poll)
+    left = processes_marked(needle)
+    for pid in left:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:  # gone meanwhile
+            pass
+    return left
 
 
 def watch_parent(run_pid: int, period: float = 0.5) -> None:

@@ -197,36 +197,6 @@ def run_each_in_a_fresh_process(codes: list[str], argv: list[str] | None = None,
 
 
 #: Objects per class of the embedded procedural collection that the end-to-end tests run on.
-def processes_marked(marker: str) -> list[int]:
-    """The pids of the running processes whose environment holds ``marker`` (a test gives a child process a
-    unique ``CARVI_TEST_MARKER``; every process it starts inherits it: forkserver, workers, resource tracker)."""
-    pids = []
-    for p in Path("/proc").iterdir():
-        try:
-            if p.name.isdigit() and marker.encode() in (p / "environ").read_bytes():
-                pids.append(int(p.name))
-        except OSError:
-            continue
-    return pids
-
-
-def gone_within(marker: str, seconds: float) -> list[int]:
-    """Poll until no process holds ``marker`` or ``seconds`` passed; SIGKILL those left and return their pids."""
-    import signal
-    import time
-
-    deadline = time.monotonic() + seconds
-    while processes_marked(marker) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    left = processes_marked(marker)
-    for pid in left:
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-    return left
-
-
 PROCEDURAL_INSTANCES = 6
 
 

@@ -748,7 +748,7 @@ def test_a_killed_export_leaves_no_process_running(recon, tmp_path):
     import time
     import uuid
 
-    from conftest import gone_within, processes_marked
+    from carvi_torch.runtime import gone_within, processes_marked
 
     marker, started = uuid.uuid4().hex, tmp_path / "started"
     proc = subprocess.Popen([sys.executable, "-c", _STALLED_EXPORT, str(recon), str(tmp_path / "out"), str(started)],

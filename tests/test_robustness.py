@@ -25,7 +25,8 @@ from carvi_torch.config import Config, ConfigError
 from carvi_torch.executors import exit_status, run
 from carvi_torch.io.coco import load_coco
 from carvi_torch.reconstruct import main as reconstruct_main
-from conftest import gone_within, processes_marked, run_each_in_a_fresh_process
+from carvi_torch.runtime import gone_within, processes_marked
+from conftest import run_each_in_a_fresh_process
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = {"resolution": 16, "proposals": 3, "canvas_size": 48, "progress": False, "refine_iters": 20,

@@ -61,6 +61,7 @@ import numpy as np
 import trimesh
 
 from carvi_torch.io.layout import finished
+from carvi_torch.runtime import gone_within, processes_marked
 
 SMALL = ("resolution=16", "proposals=3", "canvas_size=48", "refine_iters=20", "plane_size=24", "preview=false",
          "report=false")
@@ -826,14 +827,7 @@ def _wait(p: subprocess.Popen, ctx: Ctx, signal_when) -> int | None:
 
 def marked(marker: str) -> list[int]:
     """Pids of running processes whose environment carries the case's marker."""
-    pids, needle = [], f"{MARKER}={marker}".encode()
-    for p in Path("/proc").iterdir():
-        try:
-            if p.name.isdigit() and needle in (p / "environ").read_bytes():
-                pids.append(int(p.name))
-        except OSError:
-            continue
-    return pids
+    return processes_marked(f"{MARKER}={marker}")
 
 
 def snapshot(root: Path) -> dict:
@@ -887,15 +881,7 @@ def check_writes(ctx: Ctx, before: dict) -> list[str]:
 
 def check_processes(ctx: Ctx, wait: float = 10.0) -> list[str]:
     """No process of the case's runs left; leftovers are killed (by pid) after being reported."""
-    deadline = time.monotonic() + wait
-    while marked(ctx.marker) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    left = marked(ctx.marker)
-    for pid in left:
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except OSError:
-            pass
+    left = gone_within(f"{MARKER}={ctx.marker}", wait)
     return [f"{len(left)} processes of the run still running {wait:.0f} s after it ended"] if left else []
 
 
