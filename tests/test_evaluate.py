@@ -220,7 +220,34 @@ def test_a_progress_bar_counts_the_objects_unless_quiet(recon, capsys):
 
 
 def test_help_says_what_the_step_costs(capsys):
+    """--help's costs hold: the seconds per object that --step-percent quotes are the measured totals of the
+    default run that the description gives, over its objects; and the surface samples, whose number the
+    cost follows, fall as 1/step^2."""
+    import inspect
+    import re
+
+    import torch
+    import trimesh
+
+    from carvi_torch.evaluation.metrics import sample_surface
+
     with pytest.raises(SystemExit):
         main(["--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "progress bar counts the objects" in text and "1/step^2" in text and "0.25 s at 2" in text
+    assert "progress bar counts the objects" in text
+    run = re.search(r"default run's (\d+) objects took (\d+) s at the default `*--step-percent ([\d.]+)`* and (\d+) s "
+                    r"at ([\d.]+)", text)
+    quoted = re.search(r"on the default run ([\d.]+) s per object at ([\d.]+), ([\d.]+) s at ([\d.]+) ", text)
+    assert run and quoted, text
+    objects, fine_s, fine, coarse_s, coarse = (float(g) for g in run.groups())
+    default = inspect.signature(evaluate).parameters["step_percent"].default
+    assert (quoted[2], quoted[4]) == (run[3], run[5]) and fine == default  # the steps timed: the default, and 2
+    for per_object, total in ((quoted[1], fine_s), (quoted[3], coarse_s)):
+        digits = len(per_object.partition(".")[2])
+        assert float(per_object) == round(total / objects, digits), (per_object, total, objects)
+    assert "1/step^2" in text
+    sphere = trimesh.creation.icosphere(subdivisions=6)  # many small faces, as the ground truth's CAD meshes
+    V, F = torch.tensor(sphere.vertices, dtype=torch.float64), torch.tensor(sphere.faces)
+    diag = float(np.linalg.norm(sphere.extents))  # the steps are percent of the bounding-box diagonal
+    counts = [len(sample_surface(V, F, percent / 100 * diag)[0]) for percent in (fine, coarse)]
+    assert counts[0] / counts[1] == pytest.approx((coarse / fine) ** 2, rel=0.05)
