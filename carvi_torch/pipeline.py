@@ -68,8 +68,7 @@ class ClassPlan:
         return ids[:, None].expand(R, P).reshape(-1), views.reshape(R * P, -1), valid.reshape(-1)
 
 
-def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None,
-                     report: ClassReport | None = None) -> list[bool]:
+def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None, report: ClassReport) -> list[bool]:
     """Per original: finished by an earlier run into ``out`` from its current inputs, unless ``overwrite``
     (:func:`~carvi_torch.io.layout.resume_check`); the others are redone, those with damaged files logged per
     object, those made from other inputs in one line and ``report.info["redone"]``."""
@@ -80,7 +79,7 @@ def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None,
         log.warning(f"  {coll.meta.key}: annotation {a}: {why}; reconstructing it again")
     if check.redone:
         log.warning(f"  {coll.meta.key}: {check.line()}")
-        (report.info if report is not None else {})["redone"] = check.summary()
+        report.info["redone"] = check.summary()
     return check.done
 
 
