@@ -1,7 +1,9 @@
 """The paper's synthetic benchmark (its Table 1) on the PASCAL3D+ CAD models, with one command.
 
 Steps (each skipped when its output exists, unless ``--fresh``; renders only when made with the same
-settings, models and left/right names, :func:`carvi_torch.synthetic.render.render_mismatch`):
+settings, models and left/right names, :func:`carvi_torch.synthetic.render.render_mismatch`; a finished
+reconstruction only when its ``config.yaml`` names these renders and the method's and ``--set`` settings,
+else it is made again over its folder):
 
 1. **Render** every model of ``--models`` (73 PASCAL3D+ CAD models, 12 classes) from
    ``--pool + --test-views`` cameras drawn like photographs
@@ -422,14 +424,17 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
     runs = {m: out / f"run_{m.lstrip('-').lower()}" for m in methods}
     cmds = []
     for m in methods:
-        if not fresh and (runs[m] / "summary.json").is_file() and _finished(runs[m]):
+        settings = ["references=test", f"seed={seed}", *METHODS[m], *args.set]
+        redo = "renders made now" if fresh else _run_mismatch(runs[m], ann, settings)
+        if redo is None:
             print(f"reconstruct {m}: reusing {runs[m]}", flush=True)
             continue
         argv = [PYTHON, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(runs[m]),
-                "references=test", f"seed={seed}", "progress=false", "preview=false", "report=false",
-                *(["overwrite=true"] if fresh else []), *METHODS[m], *args.set]
+                "progress=false", "preview=false", "report=false",
+                *([] if redo in RESUMED else ["overwrite=true"]), *settings]
         if classes:
             argv.append("classes=" + ",".join(classes))
+        print(f"reconstruct {m} ({redo})", flush=True)
         cmds.append((m, argv, runs[m] / "log.txt"))
     t0, c0 = time.perf_counter(), cpu_seconds(children=True)
     timings["reconstruct"] = run_parallel(cmds, jobs, threads) if cmds else {}
@@ -463,7 +468,7 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
         "command": command,
         "machine": {"platform": platform.platform(), "cpus": ncpu, "python": platform.python_version(),
                     "load_average_at_end": list(os.getloadavg())},
-        "settings": {"pool": args.pool, "test_views": args.test_views, "seed": seed,
+        "settings": {"pool": args.pool, "test_views": args.test_views, "seed": seed, "sides": args.sides,
                      "step_percent": args.step_percent, "jobs": jobs, "threads_per_job": threads,
                      "methods": {m: METHODS[m] + args.set for m in methods}},
         "timings": timings, "total_wall_s": round(time.perf_counter() - t_start, 1),
@@ -531,9 +536,41 @@ def main(argv=None) -> int:
 def _finished(run: Path) -> bool:
     try:
         s = json.loads((run / "summary.json").read_text())
-    except ValueError:
+    except (OSError, ValueError):
         return False
     return "total_seconds" in s
+
+
+#: :func:`_run_mismatch`'s reasons for which the run is resumed (nothing there, or the same run cut short),
+#: not made again over its folder (``overwrite=true``).
+RESUMED = ("not run yet", "unfinished")
+
+
+def _run_mismatch(run: Path, ann: Path, settings: list[str]) -> str | None:
+    """Why the run in ``run`` is not a finished ``reconstruct --data ann settings``, or ``None`` (it is reused).
+
+    A run whose ``config.yaml`` names other data (renders of another ``--pool``, ``--test-views`` or
+    ``--sides``) or differs in a setting that changes the reconstructions (other ``--set``s, another method)
+    is made again over its folder; one of these data and settings cut short is resumed (:data:`RESUMED`)."""
+    from carvi_torch.config import NEUTRAL_SETTINGS, ConfigError, flatten_settings, load_config, read_yaml
+
+    if not (run / "config.yaml").exists():
+        return "not run yet" if not (run / "summary.json").exists() else "no config.yaml"
+    try:
+        saved = flatten_settings(read_yaml(run / "config.yaml"))
+    except ConfigError as e:
+        return f"unreadable config.yaml: {e}"
+    data = saved.get("data")
+    if not isinstance(data, str) or Path(data).resolve() != ann.resolve():
+        return f"made from {data}, not {ann}"
+    try:
+        wanted = load_config(None, settings).flat()
+    except ConfigError as e:  # reconstruct says so in its log
+        return f"settings not valid: {e}"
+    changed = [k for k, v in wanted.items() if k not in NEUTRAL_SETTINGS and saved.get(k) != v]
+    if changed:
+        return f"made with {changed[0]}={saved.get(changed[0])}, not {wanted[changed[0]]}"
+    return None if _finished(run) else "unfinished"
 
 
 if __name__ == "__main__":
