@@ -383,6 +383,32 @@ def test_render_dataset_noise_and_errors(tmp_path):
         render_dataset(models, tmp_path / "c", views=0, progress=False)
 
 
+def test_render_dataset_cut_short_leaves_no_record_of_its_files(tmp_path, monkeypatch):
+    """``annotations.json`` marks a complete folder: a render into a folder of other renders removes it first
+    and writes it last, so a render cut short (here while ``gt.json`` is written) leaves no record that passes
+    for the files, and ``gt.json`` is never older than the record beside it."""
+    from carvi_torch.io import outputs
+
+    models, out = _toy_models()[2:3], tmp_path / "r"
+    render_dataset(models, out, views=1, seed=0, image_size=32, progress=False)
+    written = outputs.write_json
+
+    def cut_short(path, obj, **kw):
+        if Path(path).name == "gt.json":
+            raise KeyboardInterrupt
+        return written(path, obj, **kw)
+
+    monkeypatch.setattr(outputs, "write_json", cut_short)
+    with pytest.raises(KeyboardInterrupt):
+        render_dataset(models, out, views=1, seed=1, image_size=32, progress=False)
+    assert not (out / "annotations.json").exists() and read_render_info(out) is None
+    monkeypatch.undo()
+    render_dataset(models, out, views=1, seed=1, image_size=32, progress=False)
+    render_dataset(models, tmp_path / "s1", views=1, seed=1, image_size=32, progress=False)
+    assert render_mismatch(read_render_info(out), models, views=1, seed=1, image_size=32) is None
+    assert (out / "gt.json").read_bytes() == (tmp_path / "s1" / "gt.json").read_bytes()
+
+
 # --------------------------------------------------------------------------- CLI
 
 

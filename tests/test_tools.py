@@ -609,6 +609,8 @@ def test_cad_renders_made_otherwise_are_refused_or_redone(tmp_path: Path):
     assert bs._render_mismatch(renders, models, 1, 0, 0) == "side_swaps not recorded (rendered by an older version)"
     (renders / "gt.json").unlink()
     assert bs._render_mismatch(renders, models, 1, 0, 0) == "no gt.json"
+    assert vc._renders(args, 0) == renders  # a folder without gt.json is incomplete: rendered again
+    assert (renders / "gt.json").is_file() and bs._render_mismatch(renders, models, 1, 0, 0) is None
 
 
 def test_many_class_cad_renders_are_reused_only_as_the_command_would_make_them(tmp_path: Path, monkeypatch):

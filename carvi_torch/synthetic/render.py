@@ -600,9 +600,11 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
       render in image pixels (our convention), and every model's 3-D keypoints.
     * ``out_dir/meshes/<model>.ply``: the mesh in its object frame (trimesh, binary PLY).
 
-    The ``info`` block of ``annotations.json`` (written first) records every setting that changes the
+    The ``info`` block of ``annotations.json`` (the file's first key) records every setting that changes the
     renders: :func:`render_info`; :func:`read_render_info` reads it back and :func:`render_mismatch`
-    says whether a folder's renders are the ones asked for.
+    says whether a folder's renders are the ones asked for. ``annotations.json`` marks a complete folder:
+    one already in ``out_dir`` is removed before the first render, and the new one is written after
+    everything else, so a render cut short leaves no record that passes for its files.
 
     Ids: categories by sorted class name, then images = annotations numbered from 1 in
     model order, view order. Deterministic: the cameras and noise of a model depend only
@@ -642,6 +644,7 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
         raise ValueError(f"model names must be unique, got duplicates {dupes}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "annotations.json").unlink(missing_ok=True)  # the completeness marker, written last
     dev = torch.device(device)
 
     classes = sorted({m.category for m in models})
@@ -698,10 +701,10 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
     bar.close()
     info = render_info(models, views=views, test_views=test_views, seed=seed, image_size=(w, h),
                        keypoint_noise=keypoint_noise, boundary_noise=boundary_noise, camera_options=camera_options)
-    ann_path = write_json(out_dir / "annotations.json",
+    gt_path = write_json(out_dir / "gt.json", {"annotations": gt, "models": gt_models}, indent=None)
+    ann_path = write_json(out_dir / "annotations.json",  # last: it marks the folder complete
                           {"info": info, "images": images, "annotations": annotations, "categories": categories},
                           indent=None)
-    gt_path = write_json(out_dir / "gt.json", {"annotations": gt, "models": gt_models}, indent=None)
     return {"annotations": str(ann_path), "gt": str(gt_path), "images": len(images), "models": len(models),
             "categories": classes, "seconds": time.perf_counter() - t_start}
 
