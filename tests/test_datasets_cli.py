@@ -15,8 +15,8 @@ from conftest import run_each_in_a_fresh_process
 from carvi_torch.cameras import ScaledOrthographic
 from carvi_torch.synthetic.meshes import (Model, harmonize_sides, infer_flip_pairs, load_cad_npz, load_models,
                                           side_disagreements, turned_models)
-from carvi_torch.synthetic.render import (rasterize_triangles, read_render_info, render_dataset, render_info,
-                                          render_mismatch)
+from carvi_torch.synthetic.render import (RENDER_VERSION, rasterize_triangles, read_render_info, render_dataset,
+                                          render_info, render_mismatch)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -201,7 +201,19 @@ def test_render_mismatch_names_each_setting_that_differs(tmp_path):
     assert reason(models=models[::-1]) == "models: the same models in another order"
     assert reason(models=as_given) == \
         "other left/right names: m2: [['left_a', 'right_a']] recorded, none wanted"
-    for key in ("seed", "camera_options", "models", "side_swaps"):
+    # the same names, other content: the mesh, a keypoint, the class
+    m1 = models[1]
+    bigger = Model(m1.name, m1.category, m1.vertices * 2, m1.faces, m1.keypoint_names, m1.keypoints)
+    moved = Model(m1.name, m1.category, m1.vertices, m1.faces, m1.keypoint_names, m1.keypoints + 0.01)
+    other = Model(m1.name, "other", m1.vertices, m1.faces, m1.keypoint_names, m1.keypoints)
+    for changed in (bigger, moved, other):
+        assert reason(models=[models[0], changed, models[2]]) == \
+            "models changed since rendered (mesh, keypoints, class or source): m1"
+    assert reason(models=[Model(m.name, m.category, m.vertices, m.faces, m.keypoint_names, m.keypoints,
+                                side_swaps=m.side_swaps) for m in models]) is None  # the same content again
+    assert render_mismatch(dict(info, render_version=0), models, **asked) == \
+        f"rendered by renderer version 0, this is version {RENDER_VERSION}"
+    for key in ("render_version", "seed", "camera_options", "models", "side_swaps", "model_hashes"):
         older = {k: v for k, v in info.items() if k != key}
         assert render_mismatch(older, models, **asked) == f"{key} not recorded (rendered by an older version)"
     assert render_mismatch(None, models, **asked).startswith("no render record")

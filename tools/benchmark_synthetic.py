@@ -1,7 +1,8 @@
 """The paper's synthetic benchmark (its Table 1) on the PASCAL3D+ CAD models, with one command.
 
 Steps (each skipped when its output exists, unless ``--fresh``; renders only when made with the same
-settings, models and left/right names, :func:`carvi_torch.synthetic.render.render_mismatch`; a finished
+settings, models (names and content) and left/right names,
+:func:`carvi_torch.synthetic.render.render_mismatch`; a finished
 reconstruction only when its ``config.yaml`` names these renders and the method's and ``--set`` settings,
 else it is made again over its folder):
 
