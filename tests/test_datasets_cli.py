@@ -225,6 +225,20 @@ def test_render_mismatch_names_each_setting_that_differs(tmp_path):
     assert {k: p.default for k, p in ours.items()} == {k: theirs[k].default for k in ours}
 
 
+def test_render_dataset_records_numpy_and_torch_camera_options(tmp_path):
+    """Camera options given as numpy numbers or torch dtypes are recorded in JSON form (numbers, the dtype's
+    name), and the same options, in either form, match the record."""
+    models = _toy_models()[2:3]
+    cams = {"roll_sd_deg": np.float32(2.0), "elevation_range_deg": (np.float64(0.0), np.int64(50)),
+            "dtype": torch.float64}
+    render_dataset(models, tmp_path / "r", views=1, image_size=32, progress=False, camera_options=cams)
+    info = read_render_info(tmp_path / "r")
+    assert info["camera_options"] == {"roll_sd_deg": 2.0, "elevation_range_deg": [0.0, 50], "dtype": "torch.float64"}
+    assert render_mismatch(info, models, views=1, image_size=32, camera_options=cams) is None
+    assert render_mismatch(info, models, views=1, image_size=32, camera_options=dict(
+        cams, roll_sd_deg=2.0, elevation_range_deg=(0.0, 50))) is None
+
+
 def test_read_render_info_reads_a_long_block_and_refuses_a_broken_one(tmp_path):
     """An ``info`` block longer than the first read (10,000 model names) is read whole; one cut short is
     refused (``None``)."""

@@ -651,6 +651,8 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
     if len(set(names)) != len(names):
         dupes = sorted({n for n in names if names.count(n) > 1})
         raise ValueError(f"model names must be unique, got duplicates {dupes}")
+    info = render_info(models, views=views, test_views=test_views, seed=seed, image_size=(w, h),
+                       keypoint_noise=keypoint_noise, boundary_noise=boundary_noise, camera_options=camera_options)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "annotations.json").unlink(missing_ok=True)  # the completeness marker, written last
@@ -708,8 +710,6 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
                               "category": model.category, "model": model.name}
             bar.update(1)
     bar.close()
-    info = render_info(models, views=views, test_views=test_views, seed=seed, image_size=(w, h),
-                       keypoint_noise=keypoint_noise, boundary_noise=boundary_noise, camera_options=camera_options)
     gt_path = write_json(out_dir / "gt.json", {"annotations": gt, "models": gt_models}, indent=None)
     ann_path = write_json(out_dir / "annotations.json",  # last: it marks the folder complete
                           {"info": info, "images": images, "annotations": annotations, "categories": categories},
@@ -740,6 +740,14 @@ def model_hash(model) -> str:
     return h.hexdigest()
 
 
+def _jsonable_options(options: dict | None) -> dict:
+    """``options`` in the JSON form it reads back as: tuples as lists, numpy and torch numbers as numbers,
+    anything else JSON has no type for (a torch dtype, a device) as its ``str``."""
+    from ..io.outputs import to_jsonable
+
+    return json.loads(json.dumps(to_jsonable(dict(options or {})), default=str))
+
+
 def render_info(models: Sequence, views: int = 30, test_views: int = 0, seed: int = 0,
                 image_size: int | Sequence[int] = DEFAULT_IMAGE_SIZE, keypoint_noise: float = 0.0,
                 boundary_noise: float = 0.0, camera_options: dict | None = None) -> dict:
@@ -752,6 +760,8 @@ def render_info(models: Sequence, views: int = 30, test_views: int = 0, seed: in
     exchanged on loading, :func:`~carvi_torch.synthetic.meshes.harmonize_sides`; models without
     any are left out), ``model_hashes`` (``{model: sha256}``, :func:`model_hash`: a model whose mesh,
     keypoints or class changed under the same name) and ``render_version`` (:data:`RENDER_VERSION`).
+    ``camera_options``' values are written as :func:`~carvi_torch.io.outputs.to_jsonable` makes them
+    (numpy scalars as numbers), anything JSON has no type for as its ``str`` (``"torch.float64"``).
     Everything but ``description`` changes the renders.
     """
     from .meshes import side_swaps_of
@@ -761,7 +771,7 @@ def render_info(models: Sequence, views: int = 30, test_views: int = 0, seed: in
             "render_version": RENDER_VERSION, "seed": int(seed),
             "views": int(views), "test_views": int(test_views), "image_size": [w, h],
             "keypoint_noise": float(keypoint_noise), "boundary_noise": float(boundary_noise),
-            "camera_options": json.loads(json.dumps(dict(camera_options or {}))),
+            "camera_options": _jsonable_options(camera_options),
             "models": [m.name for m in models], "side_swaps": side_swaps_of(models),
             "model_hashes": {m.name: model_hash(m) for m in models}}
 
