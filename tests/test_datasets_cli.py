@@ -497,11 +497,21 @@ def test_cli_synthetic_names_sides_like_the_class_unless_told(tmp_path, capsys):
 
 
 def test_cli_bad_input(tmp_path, capsys):
-    assert datasets.main(["synthetic", "--meshes", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
+    """A user error is one ``error:`` line and exit 2, and leaves no ``--out`` (nor its parents) behind."""
+    out = str(tmp_path / "made" / "here" / "o")
+    assert datasets.main(["synthetic", "--meshes", str(tmp_path / "none"), "--out", out]) == 2
     assert "no such directory" in capsys.readouterr().err
-    assert datasets.main(["synthetic", "--meshes", str(tmp_path), "--out", str(tmp_path / "o"), "--views", "2",
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "empty").mkdir()
+    assert datasets.main(["synthetic", "--meshes", str(tmp_path / "empty"), "--out", out]) == 2
+    assert datasets.main(["synthetic", "--meshes", str(tmp_path / "empty"), "--out", out, "--views", "2",
                           "--test-views", "3"]) == 2
-    assert datasets.main(["procedural", "--out", str(tmp_path / "o"), "--classes", "ship"]) == 2
+    assert datasets.main(["procedural", "--out", out, "--classes", "ship"]) == 2
+    assert datasets.main(["procedural", "--out", out, "--views", "1", "--test-views", "2"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 4 and all(line.startswith("error: ") for line in err), err
+    assert "unknown classes ['ship']" in err[2] and "--test-views (2) exceeds --views (1)" in err[3]
+    assert [p.name for p in tmp_path.iterdir()] == ["empty"]
     with pytest.raises(SystemExit):
         datasets.main(["synthetic", "--meshes", "x", "--out", "y", "--views", "0"])
     with pytest.raises(SystemExit):
