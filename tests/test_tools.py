@@ -692,6 +692,18 @@ def test_synthetic_benchmark_redoes_reconstructions_of_renders_made_again(tmp_pa
     assert again[0] == "Full" and "overwrite=true" in again[1]
 
 
+def test_synthetic_benchmark_without_models_is_one_error_line(tmp_path: Path, capsys):
+    """No ``--models`` folder, or one without models: one ``error:`` line naming it, exit 2, nothing written."""
+    bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")
+    (tmp_path / "empty").mkdir()
+    for models, why in [(tmp_path / "none", "not found"), (tmp_path / "empty", "no models")]:
+        argv = ["--models", str(models), "--out", str(tmp_path / "out"), "--results", str(tmp_path / "res")]
+        assert bs.main(argv) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and err[0].startswith(f"error: --models {models}") and why in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"]
+
+
 def _fake_reconstruct(argv: list) -> Path:
     """What ``reconstruct`` leaves in ``--out`` for the command ``argv`` (its resolved ``config.yaml`` and a
     finished ``summary.json``), without the work."""

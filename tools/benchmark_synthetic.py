@@ -394,6 +394,10 @@ def parse_methods(text: str) -> list[str]:
     return [m for m in METHODS if m in names]
 
 
+class ModelsError(Exception):
+    """``--models`` holds no models to render (one ``error:`` line, exit 2)."""
+
+
 def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: str) -> tuple[dict, dict]:
     """Render, reconstruct and evaluate at one seed into ``out``; returns the evaluation and the record."""
     t_start, cpu0 = time.perf_counter(), cpu_seconds() + cpu_seconds(children=True)
@@ -401,7 +405,10 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
 
     sides = "" if args.sides == "class" else "_sides-as-given"
     data = out / f"data_pool{args.pool}_test{args.test_views}_seed{seed}{sides}"
-    models = load_models(Path(args.models), sides=args.sides)  # once: the cache check and the render use them
+    try:
+        models = load_models(Path(args.models), sides=args.sides)  # once: the cache check and the render use them
+    except (FileNotFoundError, ValueError) as e:  # no such folder, no models in it, a broken model
+        raise ModelsError(f"--models {e}" if str(args.models) in str(e) else f"--models {args.models}: {e}") from None
     ncpu = os.cpu_count() or 1
     jobs = max(1, args.jobs)
     threads = max(1, ncpu // jobs)
@@ -497,6 +504,10 @@ def main(argv=None) -> int:
         ap.error(str(e))
     if not seeds or len(set(seeds)) != len(seeds):
         ap.error(f"--seed must name distinct integer seeds, got {args.seed!r}")
+    if not Path(args.models).is_dir():
+        print(f"error: --models {args.models} not found (the PASCAL3D+ CAD models in ../shared/data)",
+              file=sys.stderr)
+        return 2
     out = Path(args.out)
     classes = args.classes.split(",") if args.classes else None
     command = "python tools/benchmark_synthetic.py " + " ".join(shlex.quote(a) for a in cli)
@@ -510,7 +521,11 @@ def main(argv=None) -> int:
     per_seed, reports = {}, {}
     for seed in seeds:
         sout = out if len(seeds) == 1 else out / f"seed{seed}"
-        per_seed[seed], reports[seed] = run_seed(args, seed, sout, methods, classes, command)
+        try:
+            per_seed[seed], reports[seed] = run_seed(args, seed, sout, methods, classes, command)
+        except ModelsError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
         write_bytes(sout / f"viewpoints{tag}.md", (format_viewpoint_table(per_seed[seed]) + "\n").encode())
     if len(seeds) == 1:
         res, record = per_seed[seeds[0]], reports[seeds[0]]
