@@ -692,6 +692,19 @@ def test_synthetic_benchmark_redoes_reconstructions_of_renders_made_again(tmp_pa
     assert again[0] == "Full" and "overwrite=true" in again[1]
 
 
+def test_synthetic_benchmark_help_names_the_small_class_runs_as_recorded():
+    """The small-class benchmark's ``--pool`` and ``--test-views`` in the tool's help are those of the
+    ``shapes_cad8*`` records' commands (docs/results.md)."""
+    import re
+
+    bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")
+    said = re.findall(r"--pool \d+ --test-views \d+", " ".join(bs._parser().format_help().split()))
+    records = json.loads((ROOT / "docs" / "data" / "benchmark_synthetic.json").read_text())
+    run = {re.search(r"--pool \d+ --test-views \d+", v["command"]).group(0)
+           for k, v in records.items() if k.startswith("shapes_cad8")}
+    assert len(run) == 1 and said == list(run), (said, run)
+
+
 def test_synthetic_benchmark_without_models_is_one_error_line(tmp_path: Path, capsys):
     """No ``--models`` folder, or one without models: one ``error:`` line naming it, exit 2, nothing written."""
     bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")

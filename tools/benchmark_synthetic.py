@@ -31,8 +31,9 @@ else it is made again over its folder):
 ``--seed 0,1`` runs steps 1-3 once per seed (into ``--out/seed<S>``) and ``table1.md`` then
 gives, per class and method, every seed's mean error, missing objects, and the mean over the
 seeds. The small-class shape benchmark of docs/results.md renders 8 views per model and
-reconstructs and evaluates all of them (``--pool 0 --test-views 8``): every render still takes
-part in SfM and may serve as another model's surrogate, as in the 30-view benchmark.
+reconstructs and evaluates the first 2 of each (``--pool 6 --test-views 2``, records ``shapes_cad8*``):
+every render still takes part in SfM and may serve as another model's surrogate, as in the 30-view
+benchmark.
 
 Same seed, same numbers: the renders depend only on ``(seed, model name)``, the
 reconstructions on ``seed``.
