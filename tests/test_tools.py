@@ -705,6 +705,18 @@ def test_synthetic_benchmark_help_names_the_small_class_runs_as_recorded():
     assert len(run) == 1 and said == list(run), (said, run)
 
 
+@pytest.mark.parametrize("study", ["misses", "own-shapes"])
+def test_rendered_studies_help_names_the_record_they_write(study: str, capsys):
+    """The default record a study of rendered sets writes (``_record(<name>)`` in tools/studies.py) is the
+    one its ``--help`` names."""
+    st = load_tool("studies", "studies_tool")
+    name = f"studies_{study.replace('-', '_')}.json"
+    assert f'_record("{study.replace("-", "_")}")' in (ROOT / "tools" / "studies.py").read_text()
+    with pytest.raises(SystemExit):
+        st.main([study, "--help"])
+    assert name in " ".join(capsys.readouterr().out.split())
+
+
 def test_synthetic_benchmark_without_models_is_one_error_line(tmp_path: Path, capsys):
     """No ``--models`` folder, or one without models: one ``error:`` line naming it, exit 2, nothing written."""
     bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")
