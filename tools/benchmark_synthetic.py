@@ -395,6 +395,26 @@ def parse_methods(text: str) -> list[str]:
     return [m for m in METHODS if m in names]
 
 
+def _reconstructions(args, seed: int, ann: Path, runs: dict, classes, fresh: bool) -> list:
+    """The ``reconstruct`` commands of step 2, ``(method, argv, log)``: every method's run that is not reused
+    (:func:`_run_mismatch`; all of them over renders made now)."""
+    cmds = []
+    for m, run in runs.items():
+        settings = ["references=test", f"seed={seed}", *METHODS[m], *args.set]
+        redo = "renders made now" if fresh else _run_mismatch(run, ann, settings)
+        if redo is None:
+            print(f"reconstruct {m}: reusing {run}", flush=True)
+            continue
+        argv = [PYTHON, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(run),
+                "progress=false", "preview=false", "report=false",
+                *([] if redo in RESUMED else ["overwrite=true"]), *settings]
+        if classes:
+            argv.append("classes=" + ",".join(classes))
+        print(f"reconstruct {m} ({redo})", flush=True)
+        cmds.append((m, argv, run / "log.txt"))
+    return cmds
+
+
 class ModelsError(Exception):
     """``--models`` holds no models to render (one ``error:`` line, exit 2)."""
 
@@ -431,20 +451,7 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
 
     # 2. reconstructions
     runs = {m: out / f"run_{m.lstrip('-').lower()}" for m in methods}
-    cmds = []
-    for m in methods:
-        settings = ["references=test", f"seed={seed}", *METHODS[m], *args.set]
-        redo = "renders made now" if fresh else _run_mismatch(runs[m], ann, settings)
-        if redo is None:
-            print(f"reconstruct {m}: reusing {runs[m]}", flush=True)
-            continue
-        argv = [PYTHON, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(runs[m]),
-                "progress=false", "preview=false", "report=false",
-                *([] if redo in RESUMED else ["overwrite=true"]), *settings]
-        if classes:
-            argv.append("classes=" + ",".join(classes))
-        print(f"reconstruct {m} ({redo})", flush=True)
-        cmds.append((m, argv, runs[m] / "log.txt"))
+    cmds = _reconstructions(args, seed, ann, runs, classes, fresh)
     t0, c0 = time.perf_counter(), cpu_seconds(children=True)
     timings["reconstruct"] = run_parallel(cmds, jobs, threads) if cmds else {}
     timings["reconstruct_total"] = {"wall_s": round(time.perf_counter() - t0, 1),
