@@ -19,9 +19,10 @@ from __future__ import annotations
 import argparse
 import sys
 import warnings
-from typing import Sequence
+from pathlib import Path
+from typing import Callable, Sequence
 
-from .cli import add_common, program, run_command, split_classes, writable_file, writable_folder
+from .cli import CommandError, add_common, program, run_command, split_classes, writable_file, writable_folder
 
 __all__ = ["build_parser", "main"]
 
@@ -133,48 +134,43 @@ def _print_summary(summary: dict) -> None:
     print(f"  {summary['gt']}")
 
 
-def _run_synthetic(args) -> int:
+def _synthetic_job(args) -> Callable[[], dict]:
+    """Check ``synthetic``'s inputs and read its models (:class:`CommandError` on a user error); returns the
+    render."""
     from .synthetic.meshes import load_models
     from .synthetic.render import render_dataset
 
     if args.test_views > args.views:
-        print(f"error: --test-views ({args.test_views}) exceeds --views ({args.views})", file=sys.stderr)
-        return 2
+        raise CommandError(f"--test-views ({args.test_views}) exceeds --views ({args.views})")
     try:
         with warnings.catch_warnings(record=True) as caught:  # one "warning:" line each, not Python's form
             warnings.simplefilter("always")
             models = load_models(args.meshes, sides=args.sides)
     except (FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        raise CommandError(str(e)) from None
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
-    summary = render_dataset(models, args.out, views=args.views, test_views=args.test_views, seed=args.seed,
-                             image_size=_image_size(args), keypoint_noise=args.keypoint_noise,
-                             boundary_noise=args.boundary_noise, progress=not args.quiet, device=args.device)
-    _print_summary(summary)
-    return 0
+    return lambda: render_dataset(models, args.out, views=args.views, test_views=args.test_views, seed=args.seed,
+                                  image_size=_image_size(args), keypoint_noise=args.keypoint_noise,
+                                  boundary_noise=args.boundary_noise, progress=not args.quiet, device=args.device)
 
 
-def _run_procedural(args) -> int:
+def _procedural_job(args) -> Callable[[], dict]:
+    """Check ``procedural``'s inputs (:class:`CommandError` on a user error); returns the build and render."""
     from .synthetic.procedural import CATEGORIES, write_default_collection
 
     if args.test_views > args.views:
-        print(f"error: --test-views ({args.test_views}) exceeds --views ({args.views})", file=sys.stderr)
-        return 2
+        raise CommandError(f"--test-views ({args.test_views}) exceeds --views ({args.views})")
     classes = split_classes(args.classes)
     if classes is not None:
         bad = [c for c in classes if c not in CATEGORIES]
         if bad:
-            print(f"error: unknown classes {bad}; choose from {list(CATEGORIES)}", file=sys.stderr)
-            return 2
-    summary = write_default_collection(args.out, instances_per_class=args.instances, views_per_instance=args.views,
-                                       seed=args.seed, categories=classes, image_size=_image_size(args),
-                                       test_views=args.test_views, keypoint_noise=args.keypoint_noise,
-                                       boundary_noise=args.boundary_noise, progress=not args.quiet,
-                                       device=args.device)
-    _print_summary(summary)
-    return 0
+            raise CommandError(f"unknown classes {bad}; choose from {list(CATEGORIES)}")
+    return lambda: write_default_collection(args.out, instances_per_class=args.instances,
+                                            views_per_instance=args.views, seed=args.seed, categories=classes,
+                                            image_size=_image_size(args), test_views=args.test_views,
+                                            keypoint_noise=args.keypoint_noise, boundary_noise=args.boundary_noise,
+                                            progress=not args.quiet, device=args.device)
 
 
 def _run_voc(args) -> int:
@@ -183,22 +179,39 @@ def _run_voc(args) -> int:
     return voc.run(args)
 
 
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove ``folders`` (deepest first) while they are empty."""
+    for d in folders:
+        try:
+            d.rmdir()
+        except OSError:
+            break
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the exit status (0 success; 2 bad arguments or input, or an ``--out`` that cannot be
-    written: one ``error:`` line, ``--out`` checked before the work; 130 interrupted by Ctrl-C)."""
+    written: one ``error:`` line, ``--out`` and then the inputs checked before the work, and the folders made
+    for ``--out`` removed again on a user error in the inputs; 130 interrupted by Ctrl-C)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
-    runners = {"synthetic": _run_synthetic, "procedural": _run_procedural, "voc": _run_voc}
+    jobs = {"synthetic": _synthetic_job, "procedural": _procedural_job}
 
     def body() -> int:
         if args.command == "voc":
             writable_file(args.out)
-        else:
-            writable_folder(args.out)
-        return int(runners[args.command](args) or 0)
+            return int(_run_voc(args) or 0)
+        made = [d for d in (Path(args.out), *Path(args.out).parents) if not d.exists()]  # deepest first
+        writable_folder(args.out)
+        try:
+            job = jobs[args.command](args)
+        except BaseException:  # a user error in the inputs (or Ctrl-C) before any work: remove what was made
+            _remove_empty(made)
+            raise
+        _print_summary(job())
+        return 0
 
     return run_command(body, f"interrupted; {args.out} is incomplete, run the command again")
 

@@ -15,8 +15,8 @@ from conftest import run_each_in_a_fresh_process
 from carvi_torch.cameras import ScaledOrthographic
 from carvi_torch.synthetic.meshes import (Model, harmonize_sides, infer_flip_pairs, load_cad_npz, load_models,
                                           side_disagreements, turned_models)
-from carvi_torch.synthetic.render import (rasterize_triangles, read_render_info, render_dataset, render_info,
-                                          render_mismatch)
+from carvi_torch.synthetic.render import (RENDER_VERSION, rasterize_triangles, read_render_info, render_dataset,
+                                          render_info, render_mismatch)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -201,7 +201,19 @@ def test_render_mismatch_names_each_setting_that_differs(tmp_path):
     assert reason(models=models[::-1]) == "models: the same models in another order"
     assert reason(models=as_given) == \
         "other left/right names: m2: [['left_a', 'right_a']] recorded, none wanted"
-    for key in ("seed", "camera_options", "models", "side_swaps"):
+    # the same names, other content: the mesh, a keypoint, the class
+    m1 = models[1]
+    bigger = Model(m1.name, m1.category, m1.vertices * 2, m1.faces, m1.keypoint_names, m1.keypoints)
+    moved = Model(m1.name, m1.category, m1.vertices, m1.faces, m1.keypoint_names, m1.keypoints + 0.01)
+    other = Model(m1.name, "other", m1.vertices, m1.faces, m1.keypoint_names, m1.keypoints)
+    for changed in (bigger, moved, other):
+        assert reason(models=[models[0], changed, models[2]]) == \
+            "models changed since rendered (mesh, keypoints, class or source): m1"
+    assert reason(models=[Model(m.name, m.category, m.vertices, m.faces, m.keypoint_names, m.keypoints,
+                                side_swaps=m.side_swaps) for m in models]) is None  # the same content again
+    assert render_mismatch(dict(info, render_version=0), models, **asked) == \
+        f"rendered by renderer version 0, this is version {RENDER_VERSION}"
+    for key in ("render_version", "seed", "camera_options", "models", "side_swaps", "model_hashes"):
         older = {k: v for k, v in info.items() if k != key}
         assert render_mismatch(older, models, **asked) == f"{key} not recorded (rendered by an older version)"
     assert render_mismatch(None, models, **asked).startswith("no render record")
@@ -211,6 +223,20 @@ def test_render_mismatch_names_each_setting_that_differs(tmp_path):
     ours = inspect.signature(render_info).parameters
     theirs = inspect.signature(render_dataset).parameters
     assert {k: p.default for k, p in ours.items()} == {k: theirs[k].default for k in ours}
+
+
+def test_render_dataset_records_numpy_and_torch_camera_options(tmp_path):
+    """Camera options given as numpy numbers or torch dtypes are recorded in JSON form (numbers, the dtype's
+    name), and the same options, in either form, match the record."""
+    models = _toy_models()[2:3]
+    cams = {"roll_sd_deg": np.float32(2.0), "elevation_range_deg": (np.float64(0.0), np.int64(50)),
+            "dtype": torch.float64}
+    render_dataset(models, tmp_path / "r", views=1, image_size=32, progress=False, camera_options=cams)
+    info = read_render_info(tmp_path / "r")
+    assert info["camera_options"] == {"roll_sd_deg": 2.0, "elevation_range_deg": [0.0, 50], "dtype": "torch.float64"}
+    assert render_mismatch(info, models, views=1, image_size=32, camera_options=cams) is None
+    assert render_mismatch(info, models, views=1, image_size=32, camera_options=dict(
+        cams, roll_sd_deg=2.0, elevation_range_deg=(0.0, 50))) is None
 
 
 def test_read_render_info_reads_a_long_block_and_refuses_a_broken_one(tmp_path):
@@ -383,6 +409,32 @@ def test_render_dataset_noise_and_errors(tmp_path):
         render_dataset(models, tmp_path / "c", views=0, progress=False)
 
 
+def test_render_dataset_cut_short_leaves_no_record_of_its_files(tmp_path, monkeypatch):
+    """``annotations.json`` marks a complete folder: a render into a folder of other renders removes it first
+    and writes it last, so a render cut short (here while ``gt.json`` is written) leaves no record that passes
+    for the files, and ``gt.json`` is never older than the record beside it."""
+    from carvi_torch.io import outputs
+
+    models, out = _toy_models()[2:3], tmp_path / "r"
+    render_dataset(models, out, views=1, seed=0, image_size=32, progress=False)
+    written = outputs.write_json
+
+    def cut_short(path, obj, **kw):
+        if Path(path).name == "gt.json":
+            raise KeyboardInterrupt
+        return written(path, obj, **kw)
+
+    monkeypatch.setattr(outputs, "write_json", cut_short)
+    with pytest.raises(KeyboardInterrupt):
+        render_dataset(models, out, views=1, seed=1, image_size=32, progress=False)
+    assert not (out / "annotations.json").exists() and read_render_info(out) is None
+    monkeypatch.undo()
+    render_dataset(models, out, views=1, seed=1, image_size=32, progress=False)
+    render_dataset(models, tmp_path / "s1", views=1, seed=1, image_size=32, progress=False)
+    assert render_mismatch(read_render_info(out), models, views=1, seed=1, image_size=32) is None
+    assert (out / "gt.json").read_bytes() == (tmp_path / "s1" / "gt.json").read_bytes()
+
+
 # --------------------------------------------------------------------------- CLI
 
 
@@ -445,11 +497,21 @@ def test_cli_synthetic_names_sides_like_the_class_unless_told(tmp_path, capsys):
 
 
 def test_cli_bad_input(tmp_path, capsys):
-    assert datasets.main(["synthetic", "--meshes", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
+    """A user error is one ``error:`` line and exit 2, and leaves no ``--out`` (nor its parents) behind."""
+    out = str(tmp_path / "made" / "here" / "o")
+    assert datasets.main(["synthetic", "--meshes", str(tmp_path / "none"), "--out", out]) == 2
     assert "no such directory" in capsys.readouterr().err
-    assert datasets.main(["synthetic", "--meshes", str(tmp_path), "--out", str(tmp_path / "o"), "--views", "2",
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "empty").mkdir()
+    assert datasets.main(["synthetic", "--meshes", str(tmp_path / "empty"), "--out", out]) == 2
+    assert datasets.main(["synthetic", "--meshes", str(tmp_path / "empty"), "--out", out, "--views", "2",
                           "--test-views", "3"]) == 2
-    assert datasets.main(["procedural", "--out", str(tmp_path / "o"), "--classes", "ship"]) == 2
+    assert datasets.main(["procedural", "--out", out, "--classes", "ship"]) == 2
+    assert datasets.main(["procedural", "--out", out, "--views", "1", "--test-views", "2"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 4 and all(line.startswith("error: ") for line in err), err
+    assert "unknown classes ['ship']" in err[2] and "--test-views (2) exceeds --views (1)" in err[3]
+    assert [p.name for p in tmp_path.iterdir()] == ["empty"]
     with pytest.raises(SystemExit):
         datasets.main(["synthetic", "--meshes", "x", "--out", "y", "--views", "0"])
     with pytest.raises(SystemExit):

@@ -609,6 +609,8 @@ def test_cad_renders_made_otherwise_are_refused_or_redone(tmp_path: Path):
     assert bs._render_mismatch(renders, models, 1, 0, 0) == "side_swaps not recorded (rendered by an older version)"
     (renders / "gt.json").unlink()
     assert bs._render_mismatch(renders, models, 1, 0, 0) == "no gt.json"
+    assert vc._renders(args, 0) == renders  # a folder without gt.json is incomplete: rendered again
+    assert (renders / "gt.json").is_file() and bs._render_mismatch(renders, models, 1, 0, 0) is None
 
 
 def test_many_class_cad_renders_are_reused_only_as_the_command_would_make_them(tmp_path: Path, monkeypatch):
@@ -680,8 +682,7 @@ def test_synthetic_benchmark_redoes_reconstructions_of_renders_made_again(tmp_pa
     monkeypatch.setattr(bs, "_finished", lambda run: True)
     (first,) = run()
     assert first[0] == "Full" and "overwrite=true" in first[1]
-    (tmp_path / "out" / "run_full").mkdir()
-    (tmp_path / "out" / "run_full" / "summary.json").write_text("{}")
+    _fake_reconstruct(first[1])
     assert all(name != "Full" for name, _ in run())  # reused: the first commands started are the evaluation's
     ann = tmp_path / "out" / "data_pool1_test0_seed0" / "annotations.json"
     data = json.loads(ann.read_text())
@@ -689,6 +690,112 @@ def test_synthetic_benchmark_redoes_reconstructions_of_renders_made_again(tmp_pa
     ann.write_text(json.dumps(data))
     (again,) = run()
     assert again[0] == "Full" and "overwrite=true" in again[1]
+
+
+def test_synthetic_benchmark_help_names_the_small_class_runs_as_recorded():
+    """The small-class benchmark's ``--pool`` and ``--test-views`` in the tool's help are those of the
+    ``shapes_cad8*`` records' commands (docs/results.md)."""
+    import re
+
+    bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")
+    said = re.findall(r"--pool \d+ --test-views \d+", " ".join(bs._parser().format_help().split()))
+    records = json.loads((ROOT / "docs" / "data" / "benchmark_synthetic.json").read_text())
+    run = {re.search(r"--pool \d+ --test-views \d+", v["command"]).group(0)
+           for k, v in records.items() if k.startswith("shapes_cad8")}
+    assert len(run) == 1 and said == list(run), (said, run)
+
+
+@pytest.mark.parametrize("study", ["misses", "own-shapes"])
+def test_rendered_studies_help_names_the_record_they_write(study: str, capsys):
+    """The default record a study of rendered sets writes (``_record(<name>)`` in tools/studies.py) is the
+    one its ``--help`` names."""
+    st = load_tool("studies", "studies_tool")
+    name = f"studies_{study.replace('-', '_')}.json"
+    assert f'_record("{study.replace("-", "_")}")' in (ROOT / "tools" / "studies.py").read_text()
+    with pytest.raises(SystemExit):
+        st.main([study, "--help"])
+    assert name in " ".join(capsys.readouterr().out.split())
+
+
+def test_synthetic_benchmark_without_models_is_one_error_line(tmp_path: Path, capsys):
+    """No ``--models`` folder, or one without models: one ``error:`` line naming it, exit 2, nothing written."""
+    bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")
+    (tmp_path / "empty").mkdir()
+    for models, why in [(tmp_path / "none", "not found"), (tmp_path / "empty", "no models")]:
+        argv = ["--models", str(models), "--out", str(tmp_path / "out"), "--results", str(tmp_path / "res")]
+        assert bs.main(argv) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and err[0].startswith(f"error: --models {models}") and why in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"]
+
+
+def _fake_reconstruct(argv: list) -> Path:
+    """What ``reconstruct`` leaves in ``--out`` for the command ``argv`` (its resolved ``config.yaml`` and a
+    finished ``summary.json``), without the work."""
+    from carvi_torch.config import load_config
+
+    out = Path(argv[argv.index("--out") + 1])
+    settings = argv[argv.index("--out") + 2:]
+    cfg = load_config(None, settings).override({"data": argv[argv.index("--data") + 1], "out": str(out)})
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.yaml").write_text(cfg.to_yaml())
+    (out / "summary.json").write_text(json.dumps({"total_seconds": 1.0, "classes": {}}))
+    return out
+
+
+def test_synthetic_benchmark_reuses_a_run_only_of_its_data_and_settings(tmp_path: Path, monkeypatch):
+    """``run_seed`` reuses a finished run only when its ``config.yaml`` names this seed's renders and the method's
+    and ``--set`` settings: switching ``--sides`` (other renders, each folder current) or ``--set`` makes the run
+    again over its folder, and the record's settings name ``sides``."""
+    import argparse
+    import warnings
+
+    bs = load_tool("benchmark_synthetic", "benchmark_synthetic_tool")
+    cad = _three_sided_models(tmp_path / "cad")
+    args = argparse.Namespace(models=str(cad), pool=1, test_views=0, sides="class", jobs=1, fresh=False, set=[],
+                              step_percent=1.0, no_baselines=True)
+    started = []
+
+    def run_parallel(commands, jobs, threads):
+        for name, argv, _ in commands:
+            started.append((name, argv))
+            if name == "Full":
+                _fake_reconstruct(argv)
+            else:  # the evaluation of one class
+                out = Path(argv[argv.index("--out") + 1])
+                out.mkdir(parents=True, exist_ok=True)
+                row = {"Full": {"mean": 1.0, "count": 3, "missing": 0}}
+                (out / "results.json").write_text(json.dumps({
+                    "methods": ["Full"], "objects": {}, "classes": {"thing": row}, "viewpoints": {},
+                    "mean_over_classes": {"Full": 1.0}, "seconds": 0.0}))
+        return {}
+
+    def full_runs() -> list:
+        started.clear()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # thing02's renamed pair
+            _, record = bs.run_seed(args, 0, tmp_path / "out", ["Full"], None, "cmd")
+        assert record["settings"]["sides"] == args.sides
+        return [argv for name, argv in started if name == "Full"]
+
+    monkeypatch.setattr(bs, "run_parallel", run_parallel)
+    (first,) = full_runs()
+    assert first[first.index("--data") + 1].endswith("data_pool1_test0_seed0/annotations.json")
+    assert full_runs() == []  # reused
+    args.sides = "as-given"
+    (given,) = full_runs()  # new renders: made again
+    assert given[given.index("--data") + 1].endswith("_sides-as-given/annotations.json")
+    args.sides = "class"
+    (again,) = full_runs()  # the class-named renders are current, the run in run_full is not theirs
+    assert again == first and "overwrite=true" in again
+    assert full_runs() == []
+    args.set = ["carve.imprint=false"]
+    (imprint,) = full_runs()
+    assert "overwrite=true" in imprint and imprint[-1] == "carve.imprint=false"
+    assert full_runs() == []
+    (tmp_path / "out" / "run_full" / "summary.json").write_text("{}")  # cut short: resumed, not overwritten
+    (resumed,) = full_runs()
+    assert "overwrite=true" not in resumed
 
 
 def test_own_shapes_recover_a_stretched_object_exactly():

@@ -1,7 +1,10 @@
 """The paper's synthetic benchmark (its Table 1) on the PASCAL3D+ CAD models, with one command.
 
 Steps (each skipped when its output exists, unless ``--fresh``; renders only when made with the same
-settings, models and left/right names, :func:`carvi_torch.synthetic.render.render_mismatch`):
+settings, models (names and content) and left/right names,
+:func:`carvi_torch.synthetic.render.render_mismatch`; a finished
+reconstruction only when its ``config.yaml`` names these renders and the method's and ``--set`` settings,
+else it is made again over its folder):
 
 1. **Render** every model of ``--models`` (73 PASCAL3D+ CAD models, 12 classes) from
    ``--pool + --test-views`` cameras drawn like photographs
@@ -28,8 +31,9 @@ settings, models and left/right names, :func:`carvi_torch.synthetic.render.rende
 ``--seed 0,1`` runs steps 1-3 once per seed (into ``--out/seed<S>``) and ``table1.md`` then
 gives, per class and method, every seed's mean error, missing objects, and the mean over the
 seeds. The small-class shape benchmark of docs/results.md renders 8 views per model and
-reconstructs and evaluates all of them (``--pool 0 --test-views 8``): every render still takes
-part in SfM and may serve as another model's surrogate, as in the 30-view benchmark.
+reconstructs and evaluates the first 2 of each (``--pool 6 --test-views 2``, records ``shapes_cad8*``):
+every render still takes part in SfM and may serve as another model's surrogate, as in the 30-view
+benchmark.
 
 Same seed, same numbers: the renders depend only on ``(seed, model name)``, the
 reconstructions on ``seed``.
@@ -391,6 +395,30 @@ def parse_methods(text: str) -> list[str]:
     return [m for m in METHODS if m in names]
 
 
+def _reconstructions(args, seed: int, ann: Path, runs: dict, classes, fresh: bool) -> list:
+    """The ``reconstruct`` commands of step 2, ``(method, argv, log)``: every method's run that is not reused
+    (:func:`_run_mismatch`; all of them over renders made now)."""
+    cmds = []
+    for m, run in runs.items():
+        settings = ["references=test", f"seed={seed}", *METHODS[m], *args.set]
+        redo = "renders made now" if fresh else _run_mismatch(run, ann, settings)
+        if redo is None:
+            print(f"reconstruct {m}: reusing {run}", flush=True)
+            continue
+        argv = [PYTHON, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(run),
+                "progress=false", "preview=false", "report=false",
+                *([] if redo in RESUMED else ["overwrite=true"]), *settings]
+        if classes:
+            argv.append("classes=" + ",".join(classes))
+        print(f"reconstruct {m} ({redo})", flush=True)
+        cmds.append((m, argv, run / "log.txt"))
+    return cmds
+
+
+class ModelsError(Exception):
+    """``--models`` holds no models to render (one ``error:`` line, exit 2)."""
+
+
 def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: str) -> tuple[dict, dict]:
     """Render, reconstruct and evaluate at one seed into ``out``; returns the evaluation and the record."""
     t_start, cpu0 = time.perf_counter(), cpu_seconds() + cpu_seconds(children=True)
@@ -398,7 +426,10 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
 
     sides = "" if args.sides == "class" else "_sides-as-given"
     data = out / f"data_pool{args.pool}_test{args.test_views}_seed{seed}{sides}"
-    models = load_models(Path(args.models), sides=args.sides)  # once: the cache check and the render use them
+    try:
+        models = load_models(Path(args.models), sides=args.sides)  # once: the cache check and the render use them
+    except (FileNotFoundError, ValueError) as e:  # no such folder, no models in it, a broken model
+        raise ModelsError(f"--models {e}" if str(args.models) in str(e) else f"--models {args.models}: {e}") from None
     ncpu = os.cpu_count() or 1
     jobs = max(1, args.jobs)
     threads = max(1, ncpu // jobs)
@@ -420,17 +451,7 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
 
     # 2. reconstructions
     runs = {m: out / f"run_{m.lstrip('-').lower()}" for m in methods}
-    cmds = []
-    for m in methods:
-        if not fresh and (runs[m] / "summary.json").is_file() and _finished(runs[m]):
-            print(f"reconstruct {m}: reusing {runs[m]}", flush=True)
-            continue
-        argv = [PYTHON, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(runs[m]),
-                "references=test", f"seed={seed}", "progress=false", "preview=false", "report=false",
-                *(["overwrite=true"] if fresh else []), *METHODS[m], *args.set]
-        if classes:
-            argv.append("classes=" + ",".join(classes))
-        cmds.append((m, argv, runs[m] / "log.txt"))
+    cmds = _reconstructions(args, seed, ann, runs, classes, fresh)
     t0, c0 = time.perf_counter(), cpu_seconds(children=True)
     timings["reconstruct"] = run_parallel(cmds, jobs, threads) if cmds else {}
     timings["reconstruct_total"] = {"wall_s": round(time.perf_counter() - t0, 1),
@@ -463,7 +484,7 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
         "command": command,
         "machine": {"platform": platform.platform(), "cpus": ncpu, "python": platform.python_version(),
                     "load_average_at_end": list(os.getloadavg())},
-        "settings": {"pool": args.pool, "test_views": args.test_views, "seed": seed,
+        "settings": {"pool": args.pool, "test_views": args.test_views, "seed": seed, "sides": args.sides,
                      "step_percent": args.step_percent, "jobs": jobs, "threads_per_job": threads,
                      "methods": {m: METHODS[m] + args.set for m in methods}},
         "timings": timings, "total_wall_s": round(time.perf_counter() - t_start, 1),
@@ -491,6 +512,10 @@ def main(argv=None) -> int:
         ap.error(str(e))
     if not seeds or len(set(seeds)) != len(seeds):
         ap.error(f"--seed must name distinct integer seeds, got {args.seed!r}")
+    if not Path(args.models).is_dir():
+        print(f"error: --models {args.models} not found (the PASCAL3D+ CAD models in ../shared/data)",
+              file=sys.stderr)
+        return 2
     out = Path(args.out)
     classes = args.classes.split(",") if args.classes else None
     command = "python tools/benchmark_synthetic.py " + " ".join(shlex.quote(a) for a in cli)
@@ -504,7 +529,11 @@ def main(argv=None) -> int:
     per_seed, reports = {}, {}
     for seed in seeds:
         sout = out if len(seeds) == 1 else out / f"seed{seed}"
-        per_seed[seed], reports[seed] = run_seed(args, seed, sout, methods, classes, command)
+        try:
+            per_seed[seed], reports[seed] = run_seed(args, seed, sout, methods, classes, command)
+        except ModelsError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
         write_bytes(sout / f"viewpoints{tag}.md", (format_viewpoint_table(per_seed[seed]) + "\n").encode())
     if len(seeds) == 1:
         res, record = per_seed[seeds[0]], reports[seeds[0]]
@@ -531,9 +560,41 @@ def main(argv=None) -> int:
 def _finished(run: Path) -> bool:
     try:
         s = json.loads((run / "summary.json").read_text())
-    except ValueError:
+    except (OSError, ValueError):
         return False
     return "total_seconds" in s
+
+
+#: :func:`_run_mismatch`'s reasons for which the run is resumed (nothing there, or the same run cut short),
+#: not made again over its folder (``overwrite=true``).
+RESUMED = ("not run yet", "unfinished")
+
+
+def _run_mismatch(run: Path, ann: Path, settings: list[str]) -> str | None:
+    """Why the run in ``run`` is not a finished ``reconstruct --data ann settings``, or ``None`` (it is reused).
+
+    A run whose ``config.yaml`` names other data (renders of another ``--pool``, ``--test-views`` or
+    ``--sides``) or differs in a setting that changes the reconstructions (other ``--set``s, another method)
+    is made again over its folder; one of these data and settings cut short is resumed (:data:`RESUMED`)."""
+    from carvi_torch.config import NEUTRAL_SETTINGS, ConfigError, flatten_settings, load_config, read_yaml
+
+    if not (run / "config.yaml").exists():
+        return "not run yet" if not (run / "summary.json").exists() else "no config.yaml"
+    try:
+        saved = flatten_settings(read_yaml(run / "config.yaml"))
+    except ConfigError as e:
+        return f"unreadable config.yaml: {e}"
+    data = saved.get("data")
+    if not isinstance(data, str) or Path(data).resolve() != ann.resolve():
+        return f"made from {data}, not {ann}"
+    try:
+        wanted = load_config(None, settings).flat()
+    except ConfigError as e:  # reconstruct says so in its log
+        return f"settings not valid: {e}"
+    changed = [k for k, v in wanted.items() if k not in NEUTRAL_SETTINGS and saved.get(k) != v]
+    if changed:
+        return f"made with {changed[0]}={saved.get(changed[0])}, not {wanted[changed[0]]}"
+    return None if _finished(run) else "unfinished"
 
 
 if __name__ == "__main__":

@@ -1,11 +1,12 @@
 """Studies of the synthetic benchmark (after ``tools/benchmark_synthetic.py``), and the frames figure.
 
-    python tools/studies.py {frames,canonical,ranking,threshold,viewpoints,clusters,step,misses} [options]
+    python tools/studies.py {frames,canonical,ranking,threshold,viewpoints,clusters,step,misses,own-shapes} [options]
 
 Figures go to ``docs/figures/<name>.png`` (docs/results.md and docs/conventions.md show them),
-JSON records to ``outputs/studies/studies_<name>.json``, or with ``--out FILE --key KEY`` (``misses``,
-``ranking``) under a key of a records file of docs/data/ whose other keys are kept. Subcommands
-(``--bench`` is the benchmark's working directory, default outputs/benchmark):
+JSON records to ``outputs/studies/studies_<name>.json`` (``own-shapes``: ``studies_own_shapes.json``), or
+with ``--out FILE --key KEY`` (``misses``, ``own-shapes``, ``ranking``) under a key of a records file of
+docs/data/ whose other keys are kept. Subcommands (``--bench`` is the benchmark's working directory, default
+outputs/benchmark):
 
 * ``frames``: the image, camera and voxel-grid frames of carvi_torch (``frames.png``,
   docs/conventions.md; ``--out`` moves it). Needs no benchmark.
@@ -1068,7 +1069,8 @@ def main(argv=None) -> int:
                                "renders)")
     rendered.add_argument("--classes", help="comma-separated subset")
     rendered.add_argument("--seed", type=int, default=0, help="the pipeline's seed (the mixture's starts)")
-    rendered.add_argument("--out", help="the JSON record (default outputs/studies/studies_<study>.json)")
+    rendered.add_argument("--out", help="the JSON record (default outputs/studies/studies_<study>.json, dashes as "
+                                        "underscores: studies_misses.json, studies_own_shapes.json)")
     rendered.add_argument("--key", help="write the record under this key of --out's JSON object, its other keys kept")
     p = sub.add_parser("misses", parents=[rendered], help="where the viewpoint misses come from: final cameras "
                                                           "against the true ones refined (docs/viewpoints.md)")

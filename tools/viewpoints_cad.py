@@ -165,8 +165,8 @@ def _models(cad: str, sides: str) -> tuple:
 
 
 def _renders(args, seed: int) -> Path:
-    """The renders of one seed (rendered on first use):
-    ``<work>/renders_v<views>_s<seed>[_<cameras>][_sides-as-given]``.
+    """The renders of one seed (rendered on first use, or again over a folder without ``annotations.json`` or
+    ``gt.json``): ``<work>/renders_v<views>_s<seed>[_<cameras>][_sides-as-given]``.
 
     Raises:
         SystemExit: the folder holds other renders than these arguments make (other views, seed,
@@ -181,7 +181,7 @@ def _renders(args, seed: int) -> Path:
     renders = Path(args.work) / f"renders_v{args.views}_s{seed}{dist}{sides}"
     models = _models(str(args.cad), args.sides)
     settings = {"views": args.views, "seed": seed, "camera_options": CAMERAS[args.cameras]}
-    if (renders / "annotations.json").is_file():
+    if (renders / "annotations.json").is_file() and (renders / "gt.json").is_file():  # else incomplete: made again
         reason = render_mismatch(read_render_info(renders), models, **settings)
         if reason is not None:
             raise SystemExit(f"error: {renders} holds other renders than these arguments make ({reason}); "

@@ -19,6 +19,8 @@ at ``(x=j, y=i)``; scaled orthographic cameras ``uv = s * X @ R[:2].T + t``,
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import time
 import zlib
@@ -43,6 +45,8 @@ __all__ = [
     "read_render_info",
     "render_info",
     "render_mismatch",
+    "model_hash",
+    "RENDER_VERSION",
     "perturb_boundary",
     "seed_generator",
     "ROTATIONAL_CLASSES",
@@ -61,6 +65,11 @@ DEFAULT_IMAGE_SIZE = (320, 240)
 #: 67% at 1e-2, 71% at 2e-2, 76% at 5e-2), with no plateau; 2% keeps occlusion by any
 #: other part while treating self-crossings of thin parts as visible.
 VISIBILITY_EPS_REL = 0.02
+
+#: The version of what :func:`render_dataset` writes from given models and settings, recorded in its ``info``
+#: block (:func:`render_info`); raised whenever the same arguments would render other files, so that
+#: renders on disk made before are no longer taken for current ones (:func:`render_mismatch`).
+RENDER_VERSION = 1
 
 #: Classes written with ``symmetry: "rotational"`` (their keypoints are view-dependent).
 ROTATIONAL_CLASSES = frozenset({"bottle"})
@@ -600,9 +609,11 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
       render in image pixels (our convention), and every model's 3-D keypoints.
     * ``out_dir/meshes/<model>.ply``: the mesh in its object frame (trimesh, binary PLY).
 
-    The ``info`` block of ``annotations.json`` (written first) records every setting that changes the
+    The ``info`` block of ``annotations.json`` (the file's first key) records every setting that changes the
     renders: :func:`render_info`; :func:`read_render_info` reads it back and :func:`render_mismatch`
-    says whether a folder's renders are the ones asked for.
+    says whether a folder's renders are the ones asked for. ``annotations.json`` marks a complete folder:
+    one already in ``out_dir`` is removed before the first render, and the new one is written after
+    everything else, so a render cut short leaves no record that passes for its files.
 
     Ids: categories by sorted class name, then images = annotations numbered from 1 in
     model order, view order. Deterministic: the cameras and noise of a model depend only
@@ -640,8 +651,11 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
     if len(set(names)) != len(names):
         dupes = sorted({n for n in names if names.count(n) > 1})
         raise ValueError(f"model names must be unique, got duplicates {dupes}")
+    info = render_info(models, views=views, test_views=test_views, seed=seed, image_size=(w, h),
+                       keypoint_noise=keypoint_noise, boundary_noise=boundary_noise, camera_options=camera_options)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "annotations.json").unlink(missing_ok=True)  # the completeness marker, written last
     dev = torch.device(device)
 
     classes = sorted({m.category for m in models})
@@ -696,14 +710,42 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
                               "category": model.category, "model": model.name}
             bar.update(1)
     bar.close()
-    info = render_info(models, views=views, test_views=test_views, seed=seed, image_size=(w, h),
-                       keypoint_noise=keypoint_noise, boundary_noise=boundary_noise, camera_options=camera_options)
-    ann_path = write_json(out_dir / "annotations.json",
+    gt_path = write_json(out_dir / "gt.json", {"annotations": gt, "models": gt_models}, indent=None)
+    ann_path = write_json(out_dir / "annotations.json",  # last: it marks the folder complete
                           {"info": info, "images": images, "annotations": annotations, "categories": categories},
                           indent=None)
-    gt_path = write_json(out_dir / "gt.json", {"annotations": gt, "models": gt_models}, indent=None)
     return {"annotations": str(ann_path), "gt": str(gt_path), "images": len(images), "models": len(models),
             "categories": classes, "seconds": time.perf_counter() - t_start}
+
+
+def model_hash(model) -> str:
+    """SHA-256 (hex) of what a :class:`~carvi_torch.synthetic.meshes.Model` contributes to its renders: its
+    vertices (float32), faces (int64), keypoint names and coordinates (float32), class and source file,
+    each array with its shape, in a fixed byte order. Models equal in all of these hash alike, on any machine.
+
+    Example:
+        >>> from carvi_torch.synthetic import Model
+        >>> tet = Model("tet1", "thing", [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], [[0, 1, 2]])
+        >>> model_hash(tet) == model_hash(Model("tet2", "thing", tet.vertices, tet.faces))
+        True
+        >>> model_hash(tet) == model_hash(Model("tet1", "other", tet.vertices, tet.faces))
+        False
+    """
+    h = hashlib.sha256()
+    for array, dtype in ((model.vertices, "<f4"), (model.faces, "<i8"), (model.keypoints, "<f4")):
+        a = np.ascontiguousarray(torch.as_tensor(array).detach().cpu().numpy(), dtype=dtype)
+        h.update(json.dumps(list(a.shape)).encode())
+        h.update(a.tobytes())
+    h.update(json.dumps([list(model.keypoint_names), model.category, model.source]).encode())
+    return h.hexdigest()
+
+
+def _jsonable_options(options: dict | None) -> dict:
+    """``options`` in the JSON form it reads back as: tuples as lists, numpy and torch numbers as numbers,
+    anything else JSON has no type for (a torch dtype, a device) as its ``str``."""
+    from ..io.outputs import to_jsonable
+
+    return json.loads(json.dumps(to_jsonable(dict(options or {})), default=str))
 
 
 def render_info(models: Sequence, views: int = 30, test_views: int = 0, seed: int = 0,
@@ -714,20 +756,24 @@ def render_info(models: Sequence, views: int = 30, test_views: int = 0, seed: in
     Keys: ``description``, ``seed``, ``views``, ``test_views``, ``image_size`` (``[w, h]``),
     ``keypoint_noise``, ``boundary_noise``, ``camera_options`` (:func:`sample_cameras`'s extra
     arguments, ``{}`` for its defaults, in JSON form: tuples as lists), ``models`` (the model names
-    in render order) and ``side_swaps`` (``{model: [[name, name], ...]}``, the left/right names
+    in render order), ``side_swaps`` (``{model: [[name, name], ...]}``, the left/right names
     exchanged on loading, :func:`~carvi_torch.synthetic.meshes.harmonize_sides`; models without
-    any are left out). Everything but ``description`` changes the renders.
+    any are left out), ``model_hashes`` (``{model: sha256}``, :func:`model_hash`: a model whose mesh,
+    keypoints or class changed under the same name) and ``render_version`` (:data:`RENDER_VERSION`).
+    ``camera_options``' values are written as :func:`~carvi_torch.io.outputs.to_jsonable` makes them
+    (numpy scalars as numbers), anything JSON has no type for as its ``str`` (``"torch.float64"``).
+    Everything but ``description`` changes the renders.
     """
-    import json
-
     from .meshes import side_swaps_of
 
     w, h = parse_image_size(image_size)
-    return {"description": "synthetic renders of meshes with keypoints (carvi_torch.synthetic)", "seed": int(seed),
+    return {"description": "synthetic renders of meshes with keypoints (carvi_torch.synthetic)",
+            "render_version": RENDER_VERSION, "seed": int(seed),
             "views": int(views), "test_views": int(test_views), "image_size": [w, h],
             "keypoint_noise": float(keypoint_noise), "boundary_noise": float(boundary_noise),
-            "camera_options": json.loads(json.dumps(dict(camera_options or {}))),
-            "models": [m.name for m in models], "side_swaps": side_swaps_of(models)}
+            "camera_options": _jsonable_options(camera_options),
+            "models": [m.name for m in models], "side_swaps": side_swaps_of(models),
+            "model_hashes": {m.name: model_hash(m) for m in models}}
 
 
 def _first_difference(recorded: dict, wanted: dict) -> str:
@@ -736,16 +782,18 @@ def _first_difference(recorded: dict, wanted: dict) -> str:
     return f"{key}: {recorded.get(key, 'none')} recorded, {wanted.get(key, 'none')} wanted"
 
 
+def _some(names: list) -> str:
+    """The first three of ``names``, and ``...`` when there are more."""
+    return ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
+
+
 def _names_difference(recorded: list, wanted: list) -> str:
     """How two lists of model names differ, in a few words."""
-    def some(names: list) -> str:
-        return ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
-
     gone, new = sorted(set(recorded) - set(wanted)), sorted(set(wanted) - set(recorded))
     if not (gone or new):
         return "the same models in another order"
-    return (f"{len(recorded)} recorded, {len(wanted)} wanted" + (f"; not wanted: {some(gone)}" if gone else "")
-            + (f"; not recorded: {some(new)}" if new else ""))
+    return (f"{len(recorded)} recorded, {len(wanted)} wanted" + (f"; not wanted: {_some(gone)}" if gone else "")
+            + (f"; not recorded: {_some(new)}" if new else ""))
 
 
 def render_mismatch(info: dict | None, models: Sequence, **settings) -> str | None:
@@ -755,7 +803,8 @@ def render_mismatch(info: dict | None, models: Sequence, **settings) -> str | No
     ``settings``: :func:`render_dataset`'s keyword arguments that change the renders (those of
     :func:`render_info`, with its defaults; any other raises ``TypeError``). A tool that reuses renders
     on disk passes the arguments it renders with; what it does with a reason (render again, or stop) is
-    its own choice. A setting the record lacks (renders of an older version) is a mismatch.
+    its own choice. A setting the record lacks (renders of an older version) is a mismatch, and so is a
+    model whose content changed under the same name (``model_hashes``) and another :data:`RENDER_VERSION`.
 
     Args:
         info: :func:`read_render_info` of the folder (``None``: nothing readable there).
@@ -786,6 +835,11 @@ def render_mismatch(info: dict | None, models: Sequence, **settings) -> str | No
             return f"other left/right names: {_first_difference(got, want)}"
         if key == "camera_options" and isinstance(got, dict):
             return f"camera_options {_first_difference(got, want)}"
+        if key == "model_hashes" and isinstance(got, dict):
+            changed = [n for n in want if got.get(n) != want[n]]
+            return f"models changed since rendered (mesh, keypoints, class or source): {_some(changed)}"
+        if key == "render_version":
+            return f"rendered by renderer version {got}, this is version {want}"
         return f"{key}: {got} recorded, {want} wanted"
     return None
 
@@ -797,8 +851,6 @@ def read_render_info(out_dir: str | Path) -> dict | None:
     as a long model list makes it), so a large dataset costs little; ``None`` when the file is missing
     or does not start with an ``info`` object.
     """
-    import json
-
     path = Path(out_dir) / "annotations.json"
     if not path.is_file():
         return None
