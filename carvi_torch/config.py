@@ -113,6 +113,13 @@ class ViewpointConfig:
     """Inner (camera / shape) alternations per outer iteration."""
     sfm_tol: float = 1e-7
     """Stop when the relative change of the visible-entry residual falls below this."""
+    sfm_polish_iters: int = 30
+    """Bundle-polish rounds after the factorisation at most (``carvi_torch.viewpoints.sfm``; 0 = none); the
+    polish also stops at ``sfm_tol``. Shape groups' SfM runs (the mixture's hard EM) take this too. At 30 the
+    polish of most CAD classes at 8 views stops before its residual settles (boat: 0.1% lower every round);
+    run to its end (about 300 rounds, ``sfm_polish_iters=400``) it puts boat within 12 degrees at every seed
+    and makes its cameras agree across float paths, but train's seed-2 cameras worse and bottle's better
+    (docs/viewpoints.md, *Where a run's numbers move between machines*)."""
     sfm_template_start: bool = True
     """Also start the class's SfM from its template of 3-D keypoints (the category's ``keypoints_3d``, else the
     shipped PASCAL3D+ one of its name; ``viewpoints.frame``) and keep that solution when it places as many
@@ -193,6 +200,8 @@ class ViewpointConfig:
     def validate(self) -> None:
         _positive(self, "refine_iters", "sfm_max_outer", "sfm_inner", "sfm_groups", "sfm_group_min",
                   "sfm_group_rounds", "sfm_group_threads")
+        if self.sfm_polish_iters < 0:
+            raise ConfigError(f"sfm_polish_iters must be >= 0 (0 = no polish), got {self.sfm_polish_iters}")
         if not self.refine_twin_flatness >= 0:
             raise ConfigError(f"refine_twin_flatness must be >= 0 (0 = off), got {self.refine_twin_flatness}")
         _within(self.refine_min_support, 0, 1, "refine_min_support", note=" (0 = every keypoint)")

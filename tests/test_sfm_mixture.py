@@ -816,3 +816,23 @@ def test_a_class_under_the_misfit_gate_gets_the_one_shape_cameras_bit_for_bit():
     for a, b in ((default.cameras, one.cameras), (default.sfm_cameras, one.sfm_cameras)):
         assert torch.equal(a.R, b.R) and torch.equal(a.s, b.s) and torch.equal(a.t, b.t)
     assert torch.equal(default.shape, one.shape)
+
+
+def test_class_sfm_polishes_as_long_as_sfm_polish_iters_allows(two_shapes):
+    """``viewpoints.sfm_polish_iters`` caps the bundle polish of the class's SfM: 1 round stops before the
+    residual settles on this two-shape class (one shape cannot fit it exactly), enough rounds end at ``sfm_tol``
+    with a residual no higher; 0 runs none; a negative count is refused."""
+    from carvi_torch.config import Config, ConfigError
+
+    _coll, both, _dist, _R, _truth, _fitted = two_shapes
+    runs = {}
+    for iters in (0, 1, 400):
+        cfg = Config().override({"progress": False, "sfm_max_outer": 40, "sfm_polish_iters": iters})
+        runs[iters] = class_sfm(both, cfg.viewpoints)
+    assert runs[0].polish_rounds == 0
+    assert runs[1].polish_rounds == 1 and not runs[1].converged
+    assert 1 < runs[400].polish_rounds < 400 and runs[400].converged
+    rms = {k: float(r.history[-1]) for k, r in runs.items()}  # the visible-entry RMS residual at the end
+    assert rms[400] < rms[1] <= rms[0]
+    with pytest.raises(ConfigError, match="sfm_polish_iters"):
+        Config().override({"sfm_polish_iters": -1})

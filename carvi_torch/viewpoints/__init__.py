@@ -129,7 +129,8 @@ def class_sfm(both: ClassCollection, cfg: ViewpointConfig, init_shape: torch.Ten
     flip pairs and left/right convention (``init_shape``: a start, :func:`~carvi_torch.viewpoints.sfm.rigid_sfm`;
     ``options``: :class:`~carvi_torch.viewpoints.sfm.SfMOptions` fields that replace the configured ones)."""
     m = both.meta
-    opts = sfm.SfMOptions(max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner, tol=cfg.sfm_tol)
+    opts = sfm.SfMOptions(max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner, tol=cfg.sfm_tol,
+                          polish_iters=cfg.sfm_polish_iters)
     opts = dataclasses.replace(opts, **options)
     return sfm.rigid_sfm(both.keypoints, both.visible, opts, rigid_keypoints=m.rigid_keypoints,
                          keypoint_names=m.keypoint_names, flip_pairs=m.flip_pairs, left_convention=m.left_convention,
