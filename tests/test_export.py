@@ -959,3 +959,57 @@ def test_a_leftover_folder_with_this_process_id_does_not_block_the_export(recon,
     assert export_main(args) == 0
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".carvi")) == []
     assert _store_attrs(out)["classes"] == ["car"]
+
+
+def test_settings_out_of_range_are_refused_and_an_earlier_export_kept(recon, tmp_path, capsys):
+    """A setting out of range (a negative seed, a grid of 0 or 3000 cells a side, no points, no shard, negative
+    workers) is one ``error:`` line naming the option, exit 2, and the earlier export stays as it was."""
+    out = tmp_path / "exp"
+    base = ["--recon", str(recon), "--out", str(out), "--workers", "0", "--quiet", "--classes", "chair"]
+    assert export_main(base + ["--resolution", "4", "--points", "8"]) == 0
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    capsys.readouterr()
+    for option, value in [("--seed", "-1"), ("--resolution", "0"), ("--resolution", "1"), ("--resolution", "3000"),
+                          ("--points", "0"), ("--points", "-5"), ("--shard-size", "0"), ("--workers", "-1")]:
+        args = base + ["--resolution", "4", "--points", "8", option, value]
+        assert export_main(args) == 2, (option, value)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"error: {option} must be ") and err[0].endswith(
+            "(nothing was written)"), err
+        assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before, (option, value)
+    with pytest.raises(ValueError, match="points must be an integer >= 1"):
+        export(recon, tmp_path / "api", points=0, progress=False, workers=0)
+    assert not (tmp_path / "api").exists()
+
+
+def test_a_run_with_no_exportable_object_keeps_the_earlier_export(recon, tmp_path, capsys):
+    """When every object of the run fails (here: every mesh cut short), no empty store replaces the earlier
+    export: one ``error:`` line with the first reason, exit 2."""
+    broken = tmp_path / "recon"
+    shutil.copytree(recon, broken)
+    out = tmp_path / "exp"
+    args = ["--recon", str(broken), "--out", str(out), "--resolution", "4", "--points", "8", "--workers", "0",
+            "--quiet", "--classes", "chair"]
+    assert export_main(args) == 0
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    for mesh in (broken / "chair" / "meshes").glob("*.ply"):
+        mesh.write_bytes(mesh.read_bytes()[:50])
+    capsys.readouterr()
+    assert export_main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: none of the 5 object(s) could be exported") \
+        and "unreadable outputs" in err[0] and err[0].endswith(f"{out} is as it was"), err
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_a_fault_of_the_export_itself_is_raised_not_reported_as_a_skip(recon, tmp_path, monkeypatch):
+    """Only unreadable files make an object a skip; an error in the export's own computation surfaces."""
+    from carvi_torch.export import objects
+
+    def broken(*a, **k):
+        raise TypeError("a fault in the export")
+
+    monkeypatch.setattr(objects, "depth_map", broken)
+    with pytest.raises(TypeError, match="a fault in the export"):
+        export(recon, tmp_path / "e", resolution=4, points=8, progress=False, workers=0, classes=["chair"])
+    assert not (tmp_path / "e").exists()

@@ -2,6 +2,7 @@
 
 - :mod:`~carvi_torch.export.run`: the export (:func:`export`);
 - :mod:`~carvi_torch.export.command`: its command line (:func:`main`), light to import;
+- :mod:`~carvi_torch.export.settings`: the settings' ranges, checked by both before anything is written;
 - :mod:`~carvi_torch.export.store`: the zarr store's layout and fields;
 - :mod:`~carvi_torch.export.objects`: the per-object work (occupancy, depth, surface samples), run
   in worker processes;

@@ -11,14 +11,13 @@ import argparse
 import multiprocessing as mp
 import sys
 
-from ..cli import add_common, program, run_command, split_classes
+from ..cli import CommandError, add_common, program, run_command, split_classes
+from .settings import settings_problem
 
 __all__ = ["main", "parser", "start_worker_server", "WORKER_MODULE"]
 
 #: The module the export's worker processes run (imported once, by the forkserver).
 WORKER_MODULE = "carvi_torch.export.objects"
-
-
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog=program("carvi_torch.export"),
                                  description="Export a reconstruction directory as a zarr v3 store for PyTorch "
@@ -51,9 +50,10 @@ def start_worker_server() -> bool:
 
 
 def main(argv=None) -> int:
-    """Exit status: 0 exported; 2 a user error or an output that cannot be written (one ``error:`` line, ``--out``
-    as it was); 130 interrupted by Ctrl-C (one line, ``--out`` as it was for the zarr store, or complete when
-    Ctrl-C came while the finished store was swapped in, which the line says)."""
+    """Exit status: 0 exported; 2 a user error (a setting out of range included), an output that cannot be
+    written, or a run none of whose objects could be exported (one ``error:`` line, ``--out`` as it was); 130
+    interrupted by Ctrl-C (one line, ``--out`` as it was for the zarr store, or complete when Ctrl-C came
+    while the finished store was swapped in, which the line says)."""
     args = parser().parse_args(argv)
     if args.format == "zarr":
         interrupted = f"interrupted; {args.out} is as it was before the export"
@@ -63,6 +63,9 @@ def main(argv=None) -> int:
 
 
 def _main(args) -> int:
+    problem = settings_problem(args.resolution, args.points, args.shard_size, args.seed, args.workers)
+    if problem is not None:  # before anything is started or written
+        raise CommandError(f"{problem} (nothing was written)")
     if args.format == "zarr" and args.workers != 0:
         start_worker_server()
     from .run import export  # torch, zarr, ...: imported while the forkserver imports the worker module

@@ -22,6 +22,8 @@ from __future__ import annotations
 import functools
 import math
 import sys
+import zipfile
+import zlib
 
 import numpy as np
 import trimesh
@@ -33,7 +35,7 @@ from .raster import zbuffer
 
 __all__ = ["splat_occupancy", "view_depth_frame", "view_occupancy", "canonical_occupancy", "depth_map",
            "sample_surface", "load_mesh", "canvas_to_class", "export_object", "safe_export_object",
-           "safe_export_objects", "init_worker", "OtherInputs"]
+           "safe_export_objects", "init_worker", "OtherInputs", "UnreadableFiles", "READ_ERRORS"]
 
 #: Most sub-samples per voxel and axis (a target cell finer than a quarter voxel is not a use case).
 MAX_SUBSAMPLES = 4
@@ -247,12 +249,50 @@ class OtherInputs(ValueError):
     """An object's files were made from other inputs than the annotation file's (its input fingerprint)."""
 
 
+class UnreadableFiles(ValueError):
+    """An object's voxels or mesh file cannot be read (missing, partial or corrupt)."""
+
+
+#: What reading a partial or corrupt ``.npz`` or mesh file raises: ``np.load`` (``EOFError`` on an empty file,
+#: ``zipfile.BadZipFile`` on a cut or damaged one, ``zlib.error`` on damaged compressed data, ``KeyError`` on
+#: a missing member, ``ValueError``), trimesh's PLY reader (``ValueError``, ``IndexError`` on a cut header),
+#: and the file system (``OSError``). Anything else is a fault of the export, not of the files: it is raised.
+READ_ERRORS = (OSError, EOFError, ValueError, KeyError, IndexError, zipfile.BadZipFile, zlib.error)
+
+
+def _unreadable(path, e: BaseException) -> UnreadableFiles:
+    return UnreadableFiles(f"unreadable outputs: {path}: {type(e).__name__}: {e}")
+
+
+def _read_voxels(path) -> dict:
+    """The members of an object's voxels file that the export uses; :class:`UnreadableFiles` when it cannot
+    be read or lacks its grid or transform."""
+    try:
+        with np.load(path) as z:
+            vox = {k: np.asarray(z[k]) for k in ("occupancy", "voxel_to_canvas", "voxel_to_camera",
+                                                 "input_fingerprint") if k in z.files}
+        if "occupancy" not in vox or not {"voxel_to_canvas", "voxel_to_camera"} & vox.keys():
+            raise KeyError("no occupancy grid or no voxel transform in the voxels file")
+    except READ_ERRORS as e:
+        raise _unreadable(path, e) from e
+    return vox
+
+
+def _read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`load_mesh`, :class:`UnreadableFiles` when the file cannot be read."""
+    try:
+        return load_mesh(path)
+    except READ_ERRORS as e:
+        raise _unreadable(path, e) from e
+
+
 def export_object(job: dict) -> dict:
     """Every field of one object from its job (host data and file paths; built by
     :func:`carvi_torch.export.run.export`); the ids are filled in by the caller. Raises :class:`OtherInputs`
     when the voxels file holds an input fingerprint other than the job's ``fingerprint`` (the annotations
-    changed since the object was made, or its redo failed and left an earlier run's files)."""
-    z = np.load(job["voxels"])
+    changed since the object was made, or its redo failed and left an earlier run's files), and
+    :class:`UnreadableFiles` when its voxels or mesh file cannot be read."""
+    z = _read_voxels(job["voxels"])
     held = held_fingerprint(z)
     if held is not None and job.get("fingerprint") and held != job["fingerprint"]:
         raise OtherInputs("its files were made from other inputs than the annotation file's (rerun reconstruct)")
@@ -266,7 +306,7 @@ def export_object(job: dict) -> dict:
     R = np.asarray(cam["R"], dtype=np.float64)
     s, t = float(cam["s"]), np.asarray(cam["t"], dtype=np.float64)
     s_c, t_c = a * s, a * t + b  # the canvas camera
-    verts, faces = load_mesh(job["mesh"])
+    verts, faces = _read_mesh(job["mesh"])
     verts = verts * a + image_to_canvas[:3, 3]
     C, res = job["canvas"], job["resolution"]
     depth_centre, cell_depth = view_depth_frame(boundary, v2canvas, C, res)
@@ -293,13 +333,12 @@ def export_object(job: dict) -> dict:
 
 
 def safe_export_object(job: dict) -> tuple[dict | None, str | None]:
-    """:func:`export_object`, or ``(None, reason)`` when the object's files are partial or corrupt."""
+    """:func:`export_object`, or ``(None, reason)`` when the object's files are partial, corrupt or made from
+    other inputs (the object is reported, the export goes on); any other exception is raised."""
     try:
         return export_object(job), None
-    except OtherInputs as e:
+    except (OtherInputs, UnreadableFiles) as e:
         return None, str(e)
-    except Exception as e:  # noqa: BLE001 - partial/corrupt files: the object is reported, the run goes on
-        return None, f"unreadable outputs: {type(e).__name__}: {e}"
 
 
 def safe_export_objects(jobs: list[dict]) -> list[tuple[dict | None, str | None]]:

@@ -36,6 +36,7 @@ from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import class_scope, data_path, recon_config, run_classes, unfinished
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
                       view_occupancy)
+from .settings import settings_problem
 from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, InterruptedAfterSwap, StoreWriter
 
 __all__ = ["export", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "canonical_occupancy", "depth_map",
@@ -219,6 +220,13 @@ def _load(recon: Path, cfg, data: Path, classes, pending: bool):
     return loaded, [c for c in scope if pending or (recon / c).is_dir()]
 
 
+def _none_exported(skipped_list: list, out: Path) -> str:
+    """The line of an export that had objects and exported none of them (the first reason quoted)."""
+    first = skipped_list[0]
+    return (f"none of the {len(skipped_list)} object(s) could be exported (the first, {first['class']} annotation "
+            f"{first['annotation_id']}: {first['reason']}); {out} is as it was")
+
+
 def _load_skips(problems: list, class_names: list) -> dict[str, list]:
     """``{class: [skipped objects]}``, each class's list started with its objects skipped when the annotations
     were read (:func:`~carvi_torch.io.coco.skipped_at_load`, as ``summary.json`` books them), with their reason."""
@@ -239,13 +247,16 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     Returns the root group's description (its ``carvi_export`` attribute) plus ``samples``: one entry
     (class, annotation_id, image_id, source) per exported sample, in store order.
     """
+    problem = settings_problem(resolution, points, shard_size, seed, workers, options=False)
+    if problem is not None:
+        raise ValueError(f"{problem} (nothing was written)")
     recon, out = Path(recon), Path(out)
     cfg = recon_config(recon)
     _check_exportable(recon, cfg)
     pending = unfinished(recon)
     data = data_path(recon, cfg)
     canvas = cfg.input.canvas_size
-    workers = cores() if workers is None else max(0, int(workers))
+    workers = cores() if workers is None else int(workers)
     t0 = time.perf_counter()
     writer = StoreWriter(out, shard_size, DEFAULT_FIELDS + (MESH_FIELDS if mesh else []))  # --out checked first
     settings = {"canvas": canvas, "resolution": resolution, "points": points, "seed": seed, "mesh_field": mesh}
@@ -258,6 +269,8 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
             raise ValueError(f"{recon} is an unfinished run with no object reconstructed yet: nothing to export "
                              "(nothing was written)")
         skipped_list = _skipped_in_order(class_names, skipped)
+        if not samples and skipped_list:  # an empty store would replace an earlier, good one
+            raise ValueError(_none_exported(skipped_list, out))
         attrs = {"recon": str(recon), "data": str(data), "canvas_size": canvas, "resolution": resolution,
                  "points": points, "seed": seed, "classes": class_names,
                  "class_extent": {c: writer.extent[c] for c in class_names if c in writer.extent},
