@@ -59,9 +59,10 @@ class ZarrReader:
             g = group[c]
             ga = g.attrs.asdict()
             q = g["quality"][:] if "quality" in g else np.full(ga["count"], np.nan, np.float32)
+            category = {"class_name": ga.get("category_name", c), "category_id": ga.get("category_id")}
             for row in range(ga["count"]):
                 self.samples.append({"class": c, "row": row, "annotation_id": ga["annotation_ids"][row],
-                                     "source": ga["sources"][row], "quality": float(q[row])})
+                                     "source": ga["sources"][row], "quality": float(q[row]), **category})
         self._group = None
         self._arrays: dict[tuple[str, str], object] = {}  # opened once per process: metadata is read once
         self._offsets: dict[str, np.ndarray] = {}
@@ -114,8 +115,11 @@ class LiftedDataset(Dataset):
         storage_options: passed to zarr's fsspec store for a URL.
 
     Each item is a dict of tensors (one per field, with the dtype and shape of ``docs/export.md``;
-    fields stored as float16 come back as float32) plus ``class_name``, ``source`` and
-    ``annotation_key`` (the annotation id as a string, also for string ids) strings.
+    fields stored as float16 come back as float32) plus the strings ``class_name`` (the category's name as
+    the annotation file gives it), ``class_key`` (the class's folder key: what ``classes`` and
+    :attr:`class_names` hold, a safe spelling of the name), ``category_id`` (the COCO category id as a string;
+    ``""`` and ``class_name`` = ``class_key`` for a store written before the export recorded categories),
+    ``source`` and ``annotation_key`` (the annotation id as a string, also for string ids).
     """
 
     def __init__(self, root, classes: Iterable[str] | None = None, fields: Sequence[str] | None = None,
@@ -157,7 +161,10 @@ class LiftedDataset(Dataset):
         g = self._rows[i]
         out = {f: torch.from_numpy(self.reader.read(g, f)).to(self._dtypes[f]) for f in self.fields}
         meta = self.reader.samples[g]
-        out["class_name"] = meta["class"]
+        out["class_name"] = meta.get("class_name", meta["class"])
+        out["class_key"] = meta["class"]
+        cid = meta.get("category_id")
+        out["category_id"] = "" if cid is None else str(cid)
         out["source"] = meta.get("source", "") or ""
         out["annotation_key"] = str(meta.get("annotation_id", ""))
         if self.transform is not None:

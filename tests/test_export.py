@@ -93,7 +93,7 @@ def test_round_trip_matches_reconstruction(recon, exported):
     assert len(ds) == len(index["samples"]) >= 8
     for i in range(len(ds)):
         item = ds[i]
-        cls, aid = item["class_name"], int(item["annotation_id"])
+        cls, aid = item["class_key"], int(item["annotation_id"])
         assert item["annotation_key"] == str(aid)
         cams = json.loads((recon / cls / "cameras.json").read_text())["cameras"][str(aid)]
         assert np.allclose(item["R"].numpy(), cams["refined"]["R"], atol=1e-5)
@@ -128,7 +128,7 @@ def test_view_occupancy_covers_the_mesh(recon, exported):
     checked_inside = 0
     for i in range(len(ds)):
         item = ds[i]
-        m = _canvas_mesh(recon, item["class_name"], int(item["annotation_id"]), float(item["canvas_scale"]),
+        m = _canvas_mesh(recon, item["class_key"], int(item["annotation_id"]), float(item["canvas_scale"]),
                          item["canvas_offset"].numpy())
         occ = item["occupancy_view"].numpy()
         R, C = occ.shape[0], 64.0
@@ -155,7 +155,7 @@ def test_canonical_occupancy_covers_the_mesh(recon, exported):
     ds = LiftedDataset(out, fields=["occupancy_canonical", "mesh_vertices", "mesh_faces"])
     for i in range(len(ds)):
         item = ds[i]
-        E = index["class_extent"][item["class_name"]]
+        E = index["class_extent"][item["class_key"]]
         occ = item["occupancy_canonical"].numpy()
         R = occ.shape[0]
         m = trimesh.Trimesh(item["mesh_vertices"].numpy(), item["mesh_faces"].numpy(), process=False)
@@ -227,7 +227,7 @@ def test_depth_matches_ray_cast(recon, exported):
     out, _ = exported
     ds = LiftedDataset(out, fields=["depth", "view_depth", "canvas_scale", "canvas_offset", "annotation_id"])
     item = ds[1]
-    m = _canvas_mesh(recon, item["class_name"], int(item["annotation_id"]), float(item["canvas_scale"]),
+    m = _canvas_mesh(recon, item["class_key"], int(item["annotation_id"]), float(item["canvas_scale"]),
                      item["canvas_offset"].numpy())
     zc = float(item["view_depth"][0])
     depth = item["depth"].numpy()
@@ -256,7 +256,7 @@ def test_points_on_surface(recon, exported):
     R = item["R"].numpy().astype(np.float64)
     uvz = s_c * X @ R.T
     uvz[:, :2] += t_c
-    m = _canvas_mesh(recon, item["class_name"], int(item["annotation_id"]), a, item["canvas_offset"].numpy())
+    m = _canvas_mesh(recon, item["class_key"], int(item["annotation_id"]), a, item["canvas_offset"].numpy())
     _, dist, _ = trimesh.proximity.closest_point(m, uvz)
     # float16 class-frame points: 2^-11 relative, times s_c |X| (<= the canvas) -> under 0.05 canvas pixel
     assert dist.max() < 0.05
@@ -292,7 +292,7 @@ def test_collate_pads_mixed_classes(exported):
 
 def test_class_field_and_quality_filters(recon, exported, tmp_path):
     out, _ = exported
-    assert all(ds_item["class_name"] == "car" for ds_item in LiftedDataset(out, classes=["car"]))
+    assert all(ds_item["class_key"] == "car" for ds_item in LiftedDataset(out, classes=["car"]))
     with pytest.raises(ValueError, match="unknown field"):
         LiftedDataset(out, fields=["nope"])
     with pytest.raises(ValueError, match="not in the export"):
@@ -1013,3 +1013,29 @@ def test_a_fault_of_the_export_itself_is_raised_not_reported_as_a_skip(recon, tm
     with pytest.raises(TypeError, match="a fault in the export"):
         export(recon, tmp_path / "e", resolution=4, points=8, progress=False, workers=0, classes=["chair"])
     assert not (tmp_path / "e").exists()
+
+
+def test_items_carry_the_category_name_and_id_not_only_the_folder_key(recon, tmp_path):
+    """A category whose name is no safe folder name ('my car 🚗') keeps its name and id through the export:
+    the class group records them, and each item gives ``class_name`` (the name), ``class_key`` (the folder)
+    and ``category_id``."""
+    import zarr
+
+    data = json.loads((recon / "input" / "annotations.json").read_text())
+    keep = {c["id"] for c in data["categories"] if c["name"] == "car"}
+    data["categories"] = [{**c, "name": "my car 🚗"} for c in data["categories"] if c["id"] in keep]
+    data["annotations"] = [a for a in data["annotations"] if a["category_id"] in keep]
+    ann = tmp_path / "ann.json"
+    ann.write_text(json.dumps(data))
+    run(Config().override({**TINY, "classes": None, "data": str(ann), "out": str(tmp_path / "r")}), workers=0)
+    export(tmp_path / "r", tmp_path / "e", resolution=4, points=8, progress=False, workers=0)
+    (cid,) = keep
+    key = next(d.name for d in (tmp_path / "r").iterdir() if (d / "cameras.json").is_file())
+    assert key != "my car 🚗"
+    group = zarr.open_group(str(tmp_path / "e"), mode="r")[key]
+    assert group.attrs["category_name"] == "my car 🚗" and group.attrs["category_id"] == cid
+    ds = LiftedDataset(tmp_path / "e", fields=["quality"])
+    assert len(ds) > 0 and ds.class_names == [key]
+    assert {(it["class_name"], it["class_key"], it["category_id"]) for it in ds} == {("my car 🚗", key, str(cid))}
+    batch = collate_lifted([ds[0], ds[0]])
+    assert batch["class_name"] == ["my car 🚗"] * 2 and batch["category_id"] == [str(cid)] * 2

@@ -33,7 +33,7 @@ from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
 from ..mesh import MESH_FORMATS
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
-from .source import class_scope, data_path, recon_config, run_classes, unfinished
+from .source import class_categories, class_scope, data_path, recon_config, run_classes, unfinished
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
                       view_occupancy)
 from .settings import settings_problem
@@ -262,6 +262,7 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     settings = {"canvas": canvas, "resolution": resolution, "points": points, "seed": seed, "mesh_field": mesh}
     try:
         loaded, class_names = _load(recon, cfg, data, classes, pending)
+        writer.categories = class_categories(loaded.dataset["categories"], class_names)
         skipped = _load_skips(loaded.problems, class_names)
         samples = _write_samples(loaded, recon, class_names, settings, writer, skipped, progress, workers,
                                  NOT_YET if pending else "no voxels (not reconstructed)")
@@ -274,6 +275,7 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
         attrs = {"recon": str(recon), "data": str(data), "canvas_size": canvas, "resolution": resolution,
                  "points": points, "seed": seed, "classes": class_names,
                  "class_extent": {c: writer.extent[c] for c in class_names if c in writer.extent},
+                 "categories": writer.categories,
                  "skipped": skipped_list, "seconds": round(time.perf_counter() - t0, 3)}
         desc = writer.close(attrs)
     except InterruptedAfterSwap as e:  # Ctrl-C during the swap: the new store is complete, nothing to undo

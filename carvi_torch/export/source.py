@@ -7,7 +7,7 @@ from ..config import Config, read_run_config
 from ..io.coco import class_keys
 from ..io.outputs import read_json
 
-__all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes"]
+__all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories"]
 
 
 def recon_config(recon: Path) -> Config:
@@ -90,3 +90,22 @@ def class_scope(categories: list, run_classes, asked, recon: Path) -> list[str]:
                          f"{'is not a class' if len(unknown) == 1 else 'are not classes'} of the run {recon} "
                          f"(its classes: {', '.join(in_run) or 'none'}; names are case-sensitive)")
     return sorted({k for c in asked for k in names[c]})
+
+
+def class_categories(categories: list, class_names: list) -> dict[str, dict]:
+    """``{class key: {"name": category name, "id": category id}}`` of ``class_names`` (folder keys): the category
+    each key stands for, its name and id as the annotation file gives them (a key is a safe, unique spelling of
+    the name, which may differ from it).
+
+    Example:
+        >>> cats = [{"id": 7, "name": "my car", "keypoints": ["a"]}, {"id": 2, "name": "car", "keypoints": ["a"]}]
+        >>> class_keys(cats)["7"], class_categories(cats, list(class_keys(cats).values()))[class_keys(cats)["7"]]
+        ('my_car-47602f1b', {'name': 'my car', 'id': 7})
+    """
+    keys = class_keys(categories)
+    out = {}
+    for cat in categories:
+        key = keys.get(str(cat.get("id"))) if isinstance(cat, dict) else None
+        if key in class_names:
+            out[key] = {"name": str(cat.get("name")), "id": cat.get("id")}
+    return out

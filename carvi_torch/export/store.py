@@ -4,7 +4,8 @@ Layout (``docs/export.md`` has the full table)::
 
     <out>/zarr.json                 root group; attributes["carvi_export"]: format version, classes,
                                     canvas size, resolution, points, fields, skipped objects, ...
-    <out>/<class>/zarr.json         class group; attributes: annotation_ids, image_ids, sources, class_extent
+    <out>/<class>/zarr.json         class group; attributes: annotation_ids, image_ids, sources, class_extent,
+                                    category_name, category_id (the COCO category the folder key stands for)
     <out>/<class>/<field>/...       array (N, *sample shape); chunk = one sample, shard = ``shard_size`` samples
 
 The store is written into a hidden folder inside ``<out>`` (``.carvi-export-partial-<pid>``) and swapped
@@ -184,13 +185,14 @@ class _ClassArrays:
         self.ragged_rows[name] = start + len(block)
         self.lengths[name].extend(len(it) for it in items)
 
-    def close(self, extent: float) -> None:
+    def close(self, extent: float, category: dict | None = None) -> None:
         self.flush()
         with deferred_interrupt():
-            self._close(extent)
+            self._close(extent, category or {})
 
-    def _close(self, extent: float) -> None:
-        attrs = {**self.meta, "count": self.count, "class_extent": extent}
+    def _close(self, extent: float, category: dict) -> None:
+        attrs = {**self.meta, "count": self.count, "class_extent": extent,
+                 **{f"category_{k}": v for k, v in category.items()}}
         if self.lengths[MESH_FIELDS[0]]:
             lengths = np.array([self.lengths[k] for k in MESH_FIELDS], dtype=np.int64).T  # (N, 2)
             off = np.concatenate([np.zeros((1, 2), np.int64), np.cumsum(lengths, axis=0)])
@@ -293,6 +295,8 @@ class StoreWriter:
         self.fields = list(fields) if fields is not None else list(DEFAULT_FIELDS)
         self.classes: dict[str, _ClassArrays] = {}
         self.extent: dict[str, float] = {}
+        #: ``{class key: {"name": category name, "id": category id}}`` (the class groups' ``category_*``).
+        self.categories: dict[str, dict] = {}
 
     def add(self, cls: str, sample: dict, meta: dict) -> None:
         """Append one sample (a dict with every field) of class ``cls``; ``meta``: annotation_id, image_id,
@@ -315,7 +319,7 @@ class StoreWriter:
         ``out``; returns the root attributes written. Ctrl-C waits until the swap is done, and then raises
         :class:`InterruptedAfterSwap` (the new store is complete; :attr:`swapped` is true)."""
         for cls, arrays in self.classes.items():
-            arrays.close(self.extent.get(cls, 1.0))
+            arrays.close(self.extent.get(cls, 1.0), self.categories.get(cls))
         fields = {k: {"dtype": FIELDS[k].dtype, "returns": FIELDS[k].out_dtype, "shape": FIELDS[k].shape,
                       "doc": FIELDS[k].doc} for k in self.fields}
         desc = {"format_version": FORMAT_VERSION, **attrs, "fields": fields,
