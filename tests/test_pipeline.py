@@ -718,3 +718,21 @@ def test_local_run_records_the_executor_fields_a_ray_run_does(tiny):
     on_disk = json.loads((out / "summary.json").read_text())["executor"]
     assert on_disk == summary["executor"] == {"name": "local", "address": None, "nodes": [platform.node()],
                                               "tasks": len(summary["classes"]), "retries": 0}
+
+
+def test_a_rerun_with_other_procedural_settings_runs_on_the_collection_they_make(tmp_path):
+    """The embedded default in ``OUT/input`` follows ``procedural_instances`` and ``seed`` on a rerun into the same
+    ``--out`` (the run reconstructs the objects its config.yaml names, not those of the first run)."""
+    def car_objects(**extra):
+        run(_cfg(tmp_path, classes=["car"], preview=False, overwrite=True, **extra), workers=0)
+        data = json.loads((tmp_path / "input" / "annotations.json").read_text())
+        cams = json.loads((tmp_path / "car" / "cameras.json").read_text())["cameras"]
+        return data, sorted(cams)
+
+    data, cams = car_objects(procedural_instances=3, seed=0)
+    car = next(c["id"] for c in data["categories"] if c["name"] == "car")
+    assert len(cams) == 3 and data["info"]["seed"] == 0
+    data, cams = car_objects(procedural_instances=4, seed=1)
+    assert len(cams) == 4 and data["info"]["seed"] == 1
+    assert len([a for a in data["annotations"] if a["category_id"] == car]) == 4
+    assert yaml.safe_load((tmp_path / "config.yaml").read_text())["seed"] == 1

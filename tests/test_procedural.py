@@ -129,3 +129,30 @@ def test_write_default_collection_small(tmp_path):
     gt = json.loads((tmp_path / "gt.json").read_text())
     assert len(gt["annotations"]) == len(data["annotations"])
     assert all((tmp_path / g["mesh"]).is_file() for g in gt["annotations"].values())
+
+
+def test_default_collection_is_generated_again_for_other_settings(tmp_path):
+    """A rerun into the same folder with another ``procedural_instances`` or ``seed`` gets the collection those
+    settings make (not the one already there); the same settings reuse it."""
+    from carvi_torch.synthetic.procedural import GENERATION_RECORD, default_collection, generation_settings
+
+    def annotations(n, seed):
+        said = []
+        ann, _ = default_collection(tmp_path, n, seed, log=said.append)
+        data = json.loads(ann.read_text())
+        gt = json.loads((tmp_path / "gt.json").read_text())
+        assert len(gt["annotations"]) == len(data["annotations"])
+        return data, said
+
+    first, said = annotations(1, 0)
+    assert len(first["annotations"]) == len(CATEGORIES) and len(said) == 1
+    assert json.loads((tmp_path / GENERATION_RECORD).read_text()) == generation_settings(1, 0)
+    again, said = annotations(1, 0)
+    assert again == first and said == []
+    more, said = annotations(2, 0)
+    assert len(more["annotations"]) == 2 * len(CATEGORIES) and "instances_per_class 1 there, 2 now" in said[0]
+    other, said = annotations(2, 3)
+    assert other["info"]["seed"] == 3 and [a["keypoints"] for a in other["annotations"]] != \
+        [a["keypoints"] for a in more["annotations"]]
+    assert json.loads((tmp_path / GENERATION_RECORD).read_text()) == generation_settings(2, 3)
+    assert len(list((tmp_path / "meshes").iterdir())) == 2 * len(CATEGORIES)

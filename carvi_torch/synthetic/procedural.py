@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from .meshes import Model
-from .render import DEFAULT_IMAGE_SIZE, render_dataset, seed_generator
+from .render import DEFAULT_IMAGE_SIZE, RENDER_VERSION, render_dataset, seed_generator
 
 __all__ = ["CATEGORIES", "make_instance", "make_collection", "write_default_collection", "mesh_implicit"]
 
@@ -496,15 +496,71 @@ def write_default_collection(out_dir: str | Path, instances_per_class: int = 40,
     return summary
 
 
+#: The version of the procedural shapes: raise it when :func:`make_instance` builds other shapes for the same
+#: ``(seed, class, index)``, so that a run's ``input`` folder made by an older one is generated again.
+GENERATOR_VERSION = 1
+#: The record, in the folder of :func:`default_collection`, of the settings its collection was generated with.
+GENERATION_RECORD = "procedural.json"
+
+
+def generation_settings(instances_per_class: int, seed: int) -> dict:
+    """What :func:`default_collection` records (and compares) of a generated collection.
+
+    Example:
+        >>> generation_settings(40, 0)["instances_per_class"], generation_settings(40, 0)["seed"]
+        (40, 0)
+    """
+    return {"generator_version": GENERATOR_VERSION, "render_version": RENDER_VERSION,
+            "instances_per_class": int(instances_per_class), "seed": int(seed), "categories": list(CATEGORIES)}
+
+
+def _generated_with(target: Path) -> dict | None:
+    """The settings recorded in ``target`` (None: no readable record)."""
+    import json
+
+    try:
+        got = json.loads((target / GENERATION_RECORD).read_text())
+    except (OSError, ValueError):
+        return None
+    return got if isinstance(got, dict) else None
+
+
+def _why_generate(target: Path, wanted: dict) -> str | None:
+    """Why the collection in ``target`` is to be generated (None: it is complete and made with ``wanted``)."""
+    from ..io.outputs import is_done
+
+    if not is_done(target / "annotations.json", target / "gt.json"):
+        return "not generated yet"
+    got = _generated_with(target)
+    if got is None:
+        return f"no record of its settings ({GENERATION_RECORD})"
+    diff = sorted(k for k in wanted.keys() | got.keys() if got.get(k) != wanted.get(k))
+    if diff:
+        return "made with other settings: " + ", ".join(f"{k} {got.get(k)} there, {wanted.get(k)} now" for k in diff)
+    return None
+
+
 def default_collection(target: str | Path, instances_per_class: int, seed: int, progress: bool = False,
                        log=print) -> tuple[Path, Path]:
     """``annotations.json`` and ``gt.json`` of the embedded default collection in ``target``, generated
-    there (:func:`write_default_collection`) unless already complete."""
-    from ..io.outputs import is_done
+    there (:func:`write_default_collection`) unless it is complete and its record (:data:`GENERATION_RECORD`)
+    holds these settings (:func:`generation_settings`): a rerun into the same folder with another ``seed`` or
+    ``instances_per_class`` generates the collection again, its earlier files removed first."""
+    import shutil
+
+    from ..io.outputs import write_json
 
     target = Path(target)
     ann = target / "annotations.json"
-    if not is_done(ann, target / "gt.json"):
-        log(f"generating the embedded procedural collection ({instances_per_class} instances per class) in {target}")
+    wanted = generation_settings(instances_per_class, seed)
+    why = _why_generate(target, wanted)
+    if why is not None:
+        log(f"generating the embedded procedural collection ({instances_per_class} instances per class, seed "
+            f"{seed}) in {target}: {why}")
+        (target / GENERATION_RECORD).unlink(missing_ok=True)  # written last: a cut-short generation has none
+        for old in (ann, target / "gt.json"):
+            old.unlink(missing_ok=True)
+        shutil.rmtree(target / "meshes", ignore_errors=True)
         write_default_collection(target, instances_per_class=instances_per_class, seed=seed, progress=progress)
+        write_json(target / GENERATION_RECORD, wanted)
     return ann, target / "gt.json"
