@@ -29,8 +29,8 @@ from .collection import ClassCollection
 from .config import Config
 from .io.layout import class_dir, object_file, resume_check
 from .io.outputs import write_json
-from .io.results import (ClassReport, cameras_json, canonical_image_cameras, quality_summary, reconstruction_signals,
-                         resumed_levels, scores_entry, write_scores)
+from .io.results import (ClassReport, cameras_json, canonical_image_cameras, quality_summary, resumed_levels,
+                         resumed_objects, scores_entry, write_scores)
 from .io.writer import Writer, canvas_to_image_4x4, id_array, mesh_jobs, proposals_payload
 from .marching import resolve_mesher
 from .runtime import StageTimer, log
@@ -212,8 +212,7 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     done = finished_objects(coll, cfg, out, report) if done is None else list(done)
     if out is not None:
         plan.levels = resumed_levels(cdir, coll, plan.levels, done)
-        finished_ids = [a for a, d in zip(coll.annotation_ids, done) if d]
-        report.reconstruction_iou.update(reconstruction_signals(cdir, finished_ids))
+        report.reconstruction_iou.update(resumed_objects(cdir, coll, vp, done))  # voxel_to_object: this run's cameras
         cams = cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels, report.reconstruction_iou)
         write_json(cdir / "cameras.json", cams)
         report.info["quality"] = quality_summary(cams["cameras"])

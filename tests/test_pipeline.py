@@ -736,3 +736,35 @@ def test_a_rerun_with_other_procedural_settings_runs_on_the_collection_they_make
     assert len(cams) == 4 and data["info"]["seed"] == 1
     assert len([a for a in data["annotations"] if a["category_id"] == car]) == 4
     assert yaml.safe_load((tmp_path / "config.yaml").read_text())["seed"] == 1
+
+
+def test_resumed_objects_follow_the_refitted_cameras(tiny, tmp_path):
+    """One object's keypoints edited: the cameras are refitted jointly (every camera moves), the other objects
+    are resumed, and every voxels file's ``voxel_to_object`` is its grid mapped by the camera cameras.json now
+    holds (the resumed ones included)."""
+    import shutil
+
+    out, summary = tiny
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    data = json.loads(Path(summary["data"]).read_text())
+    car = next(c["id"] for c in data["categories"] if c["name"] == "car")
+    ann = next(a for a in data["annotations"] if a["category_id"] == car)
+    k = next(j for j in range(0, len(ann["keypoints"]), 3) if ann["keypoints"][j + 2] > 0)
+    ann["keypoints"][k] += 4.0
+    edited = tmp_path / "annotations.json"
+    edited.write_text(json.dumps(data))
+    before = json.loads((copy / "car" / "cameras.json").read_text())["cameras"]
+    again = run(_cfg(copy, data=str(edited), preview=False, classes=["car"]), workers=0)
+    assert again["classes"]["car"]["resumed"] == summary["classes"]["car"]["reconstructed"] - 1
+    cams = json.loads((copy / "car" / "cameras.json").read_text())["cameras"]
+    moved = 0
+    for f in sorted((copy / "car" / "voxels").glob("*.npz")):
+        cam = cams[f.stem]["refined"]
+        R, s, t = np.array(cam["R"]), float(cam["s"]), np.array(cam["t"])
+        to_object = np.eye(4)
+        to_object[:3, :3], to_object[:3, 3] = R.T / s, -(R.T[:, :2] @ t) / s
+        z = np.load(f)
+        assert np.allclose(z["voxel_to_object"], to_object @ z["voxel_to_camera"], atol=1e-9), f.stem
+        moved += f.stem != str(ann["id"]) and not np.allclose(before[f.stem]["refined"]["R"], R, atol=1e-9)
+    assert moved > 0  # resumed objects whose camera the refit moved

@@ -458,6 +458,15 @@ def _files(out: Path, cls: str = "car") -> dict:
             for m in (out / cls / "meshes").glob("*.ply")}
 
 
+def _grids(out: Path, cls: str = "car") -> dict:
+    """``{annotation id: (occupancy bytes, voxel_to_camera bytes, input fingerprint)}`` of a class's voxels files."""
+    grids = {}
+    for f in (out / cls / "voxels").glob("*.npz"):
+        with np.load(f) as z:
+            grids[f.stem] = (z["occupancy"].tobytes(), z["voxel_to_camera"].tobytes(), str(z["input_fingerprint"]))
+    return grids
+
+
 def test_resume_keeps_an_object_only_while_its_inputs_are_unchanged(base, tmp_path):
     """A rerun resumes an object only when its own inputs are those it was made from (the fingerprint in its
     voxels file), whatever file they come from: a copy of the annotations elsewhere resumes all; an edited
@@ -469,6 +478,7 @@ def test_resume_keeps_an_object_only_while_its_inputs_are_unchanged(base, tmp_pa
     assert run(_cfg(out, data, classes="car"), workers=0)["classes"]["car"]["reconstructed"] == 6
     first = _files(out)
     (tmp_path / "elsewhere").mkdir()
+    grids = _grids(out)
     copied = run(_cfg(out, _write(tmp_path / "elsewhere", base), classes="car"), workers=0)
     c = copied["classes"]["car"]
     assert (c["resumed"], c["reconstructed"]) == (6, 0) and "redone" not in c and _files(out) == first
@@ -485,8 +495,11 @@ def test_resume_keeps_an_object_only_while_its_inputs_are_unchanged(base, tmp_pa
     assert (again["resumed"], again["reconstructed"]) == (5, 1)
     assert again["redone"] == {"count": 1, "inputs_changed": [3]}
     now = _files(out)
-    assert now["3"][0] != first["3"][0] and {k: v for k, v in now.items() if k != "3"} == {
-        k: v for k, v in first.items() if k != "3"}
+    # the others are resumed: their meshes and grids kept (their voxels files are rewritten only in
+    # voxel_to_object, which follows the cameras, refitted jointly with the edited object's)
+    assert now["3"][0] != first["3"][0] and {k: v[0] for k, v in now.items() if k != "3"} == {
+        k: v[0] for k, v in first.items() if k != "3"}
+    assert {k: v for k, v in _grids(out).items() if k != "3"} == {k: v for k, v in grids.items() if k != "3"}
     cams = json.loads((out / "car" / "cameras.json").read_text())["cameras"]
     iou = float(np.load(out / "car" / "voxels" / "3.npz")["reconstruction_iou"])
     assert cams["3"]["quality_signals"]["reconstruction_iou"] == round(iou, 6)

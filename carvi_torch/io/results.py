@@ -18,10 +18,10 @@ import torch
 from .. import quality
 from ..cameras import azimuth_elevation_roll_from_rotation
 from .layout import object_file
-from .outputs import read_json, write_json
+from .outputs import read_json, write_json, write_npz
 
 __all__ = ["ClassReport", "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras",
-           "reconstruction_signals", "quality_summary"]
+           "reconstruction_signals", "resumed_objects", "quality_summary"]
 
 
 @dataclass
@@ -115,6 +115,36 @@ def reconstruction_signals(cdir: Path, annotation_ids: list) -> dict:
                     out[str(aid)] = float(z["reconstruction_iou"])
         except Exception:  # noqa: BLE001 - no file yet, or a damaged one (zipfile.BadZipFile...): the object is redone
             continue
+    return out
+
+
+def resumed_objects(cdir: Path, coll, vp, done: list) -> dict:
+    """The objects an earlier run finished (``done``, per original), brought up to this run's cameras:
+    each voxels file's ``voxel_to_object`` is rewritten from this run's camera where it differs (the cameras are
+    fitted jointly, so a change to any object's input moves every camera, while a resumed object keeps its
+    grid, which is in its image's frame: ``voxel_to_camera`` and every other member do not depend on the
+    camera); ``NaN`` where the object has no camera now. Returns :func:`reconstruction_signals` of them
+    (read from the same files). A file that cannot be read is left alone (the object is redone anyway)."""
+    ids = [i for i, d in enumerate(done) if d]
+    if not ids:
+        return {}
+    to_object = canonical_image_cameras(coll, vp).camera_to_object_4x4().cpu()
+    has_camera = vp.has_camera[:len(coll)].tolist()
+    out = {}
+    for i in ids:
+        aid = coll.annotation_ids[i]
+        path = object_file(cdir, "voxels", aid)
+        try:
+            with np.load(path) as z:
+                members = {k: z[k] for k in z.files}
+            v2img = torch.from_numpy(np.asarray(members["voxel_to_camera"], dtype=np.float64))
+        except Exception:  # noqa: BLE001 - as reconstruction_signals: a damaged file's object is redone
+            continue
+        if "reconstruction_iou" in members:
+            out[str(aid)] = float(members["reconstruction_iou"])
+        v2o = (to_object[i] @ v2img).numpy() if has_camera[i] else np.full((4, 4), np.nan)
+        if not np.array_equal(members.get("voxel_to_object"), v2o, equal_nan=True):
+            write_npz(path, sync=False, **{**members, "voxel_to_object": v2o})
     return out
 
 
