@@ -1080,3 +1080,23 @@ def test_benchmark_times_writing_with_and_without_fsync(tmp_path, monkeypatch):
     assert wr["no_sync_over_sync"] == wr["ms_per_object"]["no sync"] / wr["ms_per_object"]["sync"]
     assert not (tmp_path / "w").exists()
     assert "flushed (fsync)" in bm.table({"writing": wr})
+
+
+def test_train_example_with_too_few_objects_says_so(tmp_path, capsys):
+    """``--min-quality`` that keeps fewer than two objects (none to train on, or none to validate on) is one
+    ``error:`` line and exit status 2, not a traceback."""
+    from carvi_torch.export.store import StoreWriter
+
+    writer = StoreWriter(tmp_path / "exp", shard_size=2, fields=["mask", "viewpoint", "class_index", "quality"])
+    for i, q in enumerate((0.1, 0.5, 0.9)):
+        writer.add("car", {"mask": np.zeros((8, 8), bool), "viewpoint": np.zeros(3, np.float32),
+                           "class_index": np.int64(0), "quality": np.float32(q)},
+                   {"annotation_id": i + 1, "image_id": i + 1, "source": ""})
+    writer.close({"classes": ["car"]})
+    train = load_tool("train_example")
+    for cut, kept in (("0.95", 0), ("0.8", 1)):
+        capsys.readouterr()
+        assert train.main(["--export", str(tmp_path / "exp"), "--min-quality", cut, "--epochs", "1",
+                           "--workers", "0"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: ") and f"keeps {kept} of 3 object(s)" in err[0], err

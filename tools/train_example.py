@@ -73,6 +73,12 @@ def main(argv=None) -> int:
         subprocess.run([sys.executable, "-m", "carvi_torch.export", "--recon", str(recon), "--out", str(export)],
                        check=True, cwd=ROOT)
     ds = LiftedDataset(export, fields=["mask", "viewpoint", "class_index"], min_quality=args.min_quality)
+    if len(ds) < 2:  # one object to train on and one to validate on, at least
+        kept = f"--min-quality {args.min_quality} keeps {len(ds)} of {len(ds.reader.samples)}" \
+            if args.min_quality is not None else f"it holds {len(ds)}"
+        print(f"error: {export}: {kept} object(s); training needs at least 2 (one to train on, one to validate on)"
+              + ("; lower --min-quality" if args.min_quality is not None else ""), file=sys.stderr)
+        return 2
     n_val = max(1, len(ds) // 5)
     train, val = random_split(ds, [len(ds) - n_val, n_val], generator=torch.Generator().manual_seed(args.seed))
     kw = dict(batch_size=args.batch_size, num_workers=args.workers, collate_fn=collate_lifted)
