@@ -396,6 +396,7 @@ class Config:
         string values are parsed as YAML scalars."""
         values = self.flat()
         for key, value in _pairs(items):
+            _not_a_section(key, value)
             dotted = resolve_key(key)
             values[dotted] = _coerce(dotted, value, _ANNOTATIONS[dotted])
         cfg = _from_flat(values)
@@ -508,13 +509,32 @@ def _from_flat(values: dict[str, Any]) -> Config:
     return Config(**top, **sections)
 
 
+def _not_a_section(key: str, value: Any) -> None:
+    """:class:`ConfigError` when ``key`` names a section (``carve``) given something other than a mapping of
+    its settings: a known name used the wrong way, which an unknown key's message would misreport.
+
+    Example:
+        >>> _not_a_section("carve", 5)
+        Traceback (most recent call last):
+        ...
+        carvi_torch.config.ConfigError: 'carve' is a section of settings, not a setting: give it a mapping of them \
+(carve: {resolution: ...}, or carve.resolution=... on the command line), not 5
+    """
+    name = key.strip()
+    if name in SECTIONS:
+        first = next(iter(_section_fields(name)))
+        raise ConfigError(f"{name!r} is a section of settings, not a setting: give it a mapping of them "
+                          f"({name}: {{{first}: ...}}, or {name}.{first}=... on the command line), not {value!r}")
+
+
 def _pairs(items: list[str] | dict[str, Any]) -> list[tuple[str, Any]]:
-    """``(key, value)`` pairs of ``key=value`` strings or of a mapping (sections flattened)."""
+    """``(key, value)`` pairs of ``key=value`` strings or of a mapping (sections flattened; an empty section,
+    YAML's ``carve:`` with nothing under it, has none)."""
     if isinstance(items, dict):
         pairs = []
         for k, v in items.items():
-            if k in SECTIONS and isinstance(v, dict):
-                pairs.extend((f"{k}.{name}", val) for name, val in v.items())
+            if k in SECTIONS and (isinstance(v, dict) or v is None):  # None: a section with every key commented out
+                pairs.extend((f"{k}.{name}", val) for name, val in (v or {}).items())
             else:
                 pairs.append((k, v))
         return pairs

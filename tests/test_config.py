@@ -70,3 +70,22 @@ def test_to_yaml_round_trip():
     cfg = Config().override(["resolution=33", "classes=[a, b]"])
     assert yaml.safe_load(cfg.to_yaml()) == cfg.to_dict()
     assert "# Voxel grid steps per axis." in cfg.to_yaml()
+
+
+@pytest.mark.parametrize("text", ["carve: 5\n", "carve: [resolution, 48]\n", "carve: yes\n"])
+def test_a_section_given_a_scalar_is_named_as_a_section(tmp_path, text):
+    """``carve: 5`` names a known section the wrong way: the message says so (not 'unknown config key')."""
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=r"^'carve' is a section of settings, not a setting: .*carve\.resolution="):
+        load_config(p)
+    with pytest.raises(ConfigError, match="'carve' is a section of settings"):
+        Config().override(["carve=5"])
+
+
+def test_an_empty_section_sets_nothing(tmp_path):
+    """A section whose every key is commented out (``carve:`` with nothing under it) keeps the defaults."""
+    p = tmp_path / "c.yaml"
+    p.write_text("carve:\n#  resolution: 48\nproposals: 5\n")
+    cfg = load_config(p)
+    assert cfg.carve.resolution == Config().carve.resolution and cfg.surrogates.proposals == 5
