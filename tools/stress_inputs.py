@@ -35,7 +35,7 @@ The ``cmd_`` cases run the other commands (``export``, ``report``, ``evaluate``,
 they cannot write (a file where a folder goes, a folder where a file goes, a folder holding other
 files): one ``error:`` line, exit 2, nothing written, as reconstruct's command-line cases.
 
-About 121 cases, 8 minutes with ``--jobs 2`` on 2 cores; every run waits about 2 s for its writer
+About 122 cases, 8 minutes with ``--jobs 2`` on 2 cores; every run waits about 2 s for its writer
 processes to start, so ``--jobs 4`` keeps 2 cores busier.
 """
 from __future__ import annotations
@@ -543,6 +543,10 @@ def _mask_cases() -> list[Case]:
              edit=chain(segmentation(1, lambda h, w, b: {"size": [h, w], "counts": [h * w]}),
                         ann(7, segmentation=[[1000, 1000, 1100, 1000, 1100, 1100]])),
              bad=((1, "empty mask"), (7, "empty mask"))),
+        Case("ann_poly_far", "a polygon vertex at 1e12; a polygon wholly at 1e12",
+             edit=chain(ann(1, segmentation=[[0, 0, 1e12, 0, 1e12, 1e12]]),
+                        ann(7, segmentation=[[1e12, 1e12, 2e12, 1e12, 2e12, 2e12]])),
+             good=(1,), bad=((7, "empty mask"),)),
         Case("ann_mask_odd_usable", "a mask far from the keypoints / covering the image / of one pixel",
              edit=chain(ann(1, segmentation=[[0, 0, 20, 0, 20, 20, 0, 20]]),
                         segmentation(2, lambda h, w, b: {"size": [h, w], "counts": [0, h * w]}),
