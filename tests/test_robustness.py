@@ -637,6 +637,35 @@ def test_an_output_folder_that_is_a_file_or_under_one(tmp_path, capsys):
     assert f.read_text() == "x"
 
 
+@pytest.mark.parametrize("link", ["car", "car/meshes", "run.log", "report", "report/assets", "input"])
+def test_a_symbolic_link_where_the_run_writes_is_refused_with_nothing_written(base_dir, tmp_path, capsys, link):
+    """A link under --out would carry the run's files (or run.log's lines) outside --out: one error line,
+    exit 2, before any work; the link's target and --out are as they were."""
+    out, outside = tmp_path / "out", tmp_path / "outside"
+    outside.mkdir()
+    (outside / "kept.txt").write_text("mine")
+    (out / link).parent.mkdir(parents=True, exist_ok=True)
+    (out / link).symlink_to(outside / "kept.txt" if link == "run.log" else outside)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    rc = reconstruct_main(["--data", str(base_dir / "annotations.json"), "--out", str(out), "--quiet",
+                           *(f"{k}={v}" for k, v in SMALL.items())])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error:") and "symbolic link" in err[0], err
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+    assert (outside / "kept.txt").read_text() == "mine"
+
+
+def test_run_log_is_not_opened_through_a_link(tmp_path):
+    from carvi_torch.runtime import log, log_to_file
+    target = tmp_path / "target.log"
+    target.write_text("mine")
+    (tmp_path / "run.log").symlink_to(target)
+    with pytest.raises(OSError):
+        with log_to_file(tmp_path / "run.log"):
+            log.info("a line")
+    assert target.read_text() == "mine"
+
+
 def test_exit_status_says_when_nothing_came_out(base, tmp_path):
     d = copy.deepcopy(base)
     for a in d["annotations"]:

@@ -15,6 +15,7 @@ import torch
 from .. import carve
 from ..config import Config, ConfigError, settings_changed
 from ..io import coco
+from ..io.layout import linked_path
 from ..io.outputs import read_json, write_bytes, write_json
 from ..runtime import log, peak_rss_mb, stable_hash, unwritable_above
 
@@ -44,6 +45,15 @@ def _check_out(out: Path) -> None:
     why = unwritable_above(out / "summary.json")  # the folder itself where it exists, else the nearest above
     if why:
         raise ConfigError(f"--out {out}: {why}")
+    _check_links(out)
+
+
+def _check_links(out: Path, keys=()) -> None:
+    """No path the run writes under ``out`` is a symbolic link (:func:`~carvi_torch.io.layout.linked_path`)."""
+    link = linked_path(out, keys)
+    if link is not None:
+        raise ConfigError(f"--out {out}: {link} is a symbolic link, and a run writes nothing outside --out; "
+                          "remove the link or choose another --out")
 
 
 def check_request(cfg: Config) -> torch.device:
@@ -88,6 +98,7 @@ def open_run(cfg: Config) -> RunSetup:
     if gt_problem is not None:
         loaded.problems.append(gt_problem)
         gt_path = None
+    _check_links(out, loaded.collections)
     earlier, earlier_data = _earlier_classes(out, cfg)
     out.mkdir(parents=True, exist_ok=True)
     changed = settings_changed(out / "config.yaml", cfg)
