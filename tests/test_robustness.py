@@ -655,6 +655,21 @@ def test_a_symbolic_link_where_the_run_writes_is_refused_with_nothing_written(ba
     assert (outside / "kept.txt").read_text() == "mine"
 
 
+@pytest.mark.parametrize("where", ["car", "car/meshes", "chair/voxels"])
+def test_a_file_where_a_class_folder_goes_is_refused_before_the_work(base_dir, tmp_path, capsys, monkeypatch, where):
+    """Found once the classes are loaded, before the viewpoints: one error line, exit 2, the file kept."""
+    from carvi_torch.executors import local
+    out = tmp_path / "out"
+    (out / where).parent.mkdir(parents=True, exist_ok=True)
+    (out / where).write_text("mine")
+    monkeypatch.setattr(local, "_classes", lambda *a: pytest.fail("the classes ran"))
+    rc = reconstruct_main(["--data", str(base_dir / "annotations.json"), "--out", str(out), "--quiet",
+                           *(f"{k}={v}" for k, v in SMALL.items())])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error:") and f"{where} is a file" in err[0], err
+    assert (out / where).read_text() == "mine"
+
+
 def test_run_log_is_not_opened_through_a_link(tmp_path):
     from carvi_torch.runtime import log, log_to_file
     target = tmp_path / "target.log"

@@ -15,7 +15,7 @@ import torch
 from .. import carve
 from ..config import Config, ConfigError, settings_changed
 from ..io import coco
-from ..io.layout import linked_path
+from ..io.layout import KINDS, linked_path
 from ..io.outputs import read_json, write_bytes, write_json
 from ..runtime import log, peak_rss_mb, stable_hash, unwritable_above
 
@@ -54,6 +54,18 @@ def _check_links(out: Path, keys=()) -> None:
     if link is not None:
         raise ConfigError(f"--out {out}: {link} is a symbolic link, and a run writes nothing outside --out; "
                           "remove the link or choose another --out")
+
+
+def _check_class_folders(out: Path, keys) -> None:
+    """Once the classes are known, before any work: no link where the run writes (:func:`_check_links`), and
+    no file where a class's folder or one of its per-object folders goes (the class would fail after all its
+    work)."""
+    _check_links(out, keys)
+    for key in keys:
+        for path in (out / key, *(out / key / kind for kind in KINDS)):
+            if path.exists() and not path.is_dir():
+                raise ConfigError(f"--out {out}: {path} is a file where the run writes a folder of class "
+                                  f"{key!r}; move it or choose another --out")
 
 
 def check_request(cfg: Config) -> torch.device:
@@ -98,7 +110,7 @@ def open_run(cfg: Config) -> RunSetup:
     if gt_problem is not None:
         loaded.problems.append(gt_problem)
         gt_path = None
-    _check_links(out, loaded.collections)
+    _check_class_folders(out, loaded.collections)
     earlier, earlier_data = _earlier_classes(out, cfg)
     out.mkdir(parents=True, exist_ok=True)
     changed = settings_changed(out / "config.yaml", cfg)
