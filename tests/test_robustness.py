@@ -670,6 +670,20 @@ def test_a_file_where_a_class_folder_goes_is_refused_before_the_work(base_dir, t
     assert (out / where).read_text() == "mine"
 
 
+def test_references_of_a_split_no_object_has_is_a_user_error(base, tmp_path, capsys):
+    """Else the run reconstructs nothing, says ok per class and exits 1 without a reason."""
+    d = copy.deepcopy(base)
+    for i, a in enumerate(d["annotations"]):
+        a["split"] = "test" if i % 2 else "pool"
+    out = tmp_path / "out"
+    rc = reconstruct_main(["--data", str(_write(tmp_path, d)), "--out", str(out), "--quiet", "references=tset",
+                           *(f"{k}={v}" for k, v in SMALL.items())])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error:"), err
+    assert "references=tset" in err[0] and "'pool', 'test'" in err[0]
+    assert not out.exists()
+
+
 def test_run_log_is_not_opened_through_a_link(tmp_path):
     from carvi_torch.runtime import log, log_to_file
     target = tmp_path / "target.log"

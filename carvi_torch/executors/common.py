@@ -56,6 +56,17 @@ def _check_links(out: Path, keys=()) -> None:
                           "remove the link or choose another --out")
 
 
+def _check_references(references: str, collections: dict) -> None:
+    """``references`` names a split that some loaded object has (else the run would reconstruct nothing and
+    say nothing of why)."""
+    present = {s for c in collections.values() for s in c.splits}
+    if references != "all" and references not in present:
+        named = ", ".join(repr(s) for s in sorted(present - {""}))
+        raise ConfigError(f"references={references}: no loaded object has that split; "
+                          + (f"the splits present are {named} (or all)" if named else
+                             "no object has a split (references=all)"))
+
+
 def _check_class_folders(out: Path, keys) -> None:
     """Once the classes are known, before any work: no link where the run writes (:func:`_check_links`), and
     no file where a class's folder or one of its per-object folders goes (the class would fail after all its
@@ -110,6 +121,7 @@ def open_run(cfg: Config) -> RunSetup:
     if gt_problem is not None:
         loaded.problems.append(gt_problem)
         gt_path = None
+    _check_references(cfg.references, loaded.collections)
     _check_class_folders(out, loaded.collections)
     earlier, earlier_data = _earlier_classes(out, cfg)
     out.mkdir(parents=True, exist_ok=True)
