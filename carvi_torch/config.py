@@ -208,6 +208,8 @@ class ViewpointConfig:
         _within(self.refine_max_tilt_deg, 0, 180, "refine_max_tilt_deg", note=" (180 = off)")
         if self.silhouette_robust < 0:
             raise ConfigError(f"silhouette_robust must be >= 0 (0 = squared distance), got {self.silhouette_robust}")
+        if self.silhouette_weight < 0:
+            raise ConfigError(f"silhouette_weight must be >= 0 (0 = keypoints only), got {self.silhouette_weight}")
         _within(self.sfm_group_gain, 0, 1, "sfm_group_gain", hi_open=True)
         _within(self.sfm_group_agreement_deg, 0, 180, "sfm_group_agreement_deg", lo_open=True)
         _within(self.sfm_group_misfit, 0, 1, "sfm_group_misfit", note=" (0 = always fit the mixture)")
@@ -222,11 +224,11 @@ class SurrogateConfig:
     """Carve with the mirrored copies' silhouettes too (bilateral symmetry; articulated classes never
     do). SfM always uses the mirrored copies."""
     cluster_threshold_deg: float = 15.0
-    """An instance joins a principal direction's cluster within this angle (front or back)."""
+    """An instance joins a principal direction's cluster within this angle (front or back; at most 45)."""
     cluster_widen_step_deg: float = 5.0
     """Widen the threshold by this while the second-smallest cluster has too few members."""
     cluster_max_threshold_deg: float = 45.0
-    """Never widen beyond this."""
+    """Never widen beyond this (at most 45)."""
     cluster_count_objects: bool = True
     """Count a cluster's distinct physical objects (``object_id``), not its members, when deciding to widen:
     views of one object alone would give every reference the same surrogate shape."""
@@ -242,7 +244,12 @@ class SurrogateConfig:
 
     def validate(self) -> None:
         _positive(self, "proposals")
-        _within(self.cluster_threshold_deg, 0, 90, "cluster_threshold_deg", lo_open=True)
+        _within(self.cluster_threshold_deg, 0, 45, "cluster_threshold_deg", lo_open=True,
+                note=" (an instance is then near one principal direction at most)")
+        if not self.cluster_widen_step_deg > 0:
+            raise ConfigError(f"cluster_widen_step_deg must be > 0, got {self.cluster_widen_step_deg}")
+        _within(self.cluster_max_threshold_deg, self.cluster_threshold_deg, 45, "cluster_max_threshold_deg",
+                note=" (from cluster_threshold_deg to 45)")
         _within(self.symmetric_step_deg, 0, 360, "symmetric_step_deg", lo_open=True, hi_open=True)
 
 
@@ -284,7 +291,7 @@ class SelectConfig:
     (``carvi_torch.select.vote_proposals``); 1: the best proposal alone (the paper's)."""
 
     def validate(self) -> None:
-        _positive(self, "plane_size")
+        _within(self.plane_size, 2, 1024, "plane_size", note=" (memory grows with its square per proposal)")
         _positive(self, "consensus")
 
 
@@ -407,6 +414,7 @@ class Config:
         """Raise :class:`ConfigError` for values out of range."""
         _positive(self, "ray_chunk_objects")
         _within(self.viewpoint_processes, 0, 256, "viewpoint_processes")
+        _within(self.seed, 0, 2 ** 63 - 1, "seed", note=" (a 64-bit integer, not negative)")
         for name in SECTIONS:
             getattr(self, name).validate()
 

@@ -551,9 +551,18 @@ def log_to_terminal(quiet: bool = False):
     return _handler(h)
 
 
+class _AppendNoFollow(logging.FileHandler):
+    """A log file opened without following a symbolic link (``OSError`` where the path is one): the log
+    stays inside the run's folder."""
+
+    def _open(self):
+        fd = os.open(self.baseFilename, os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
+        return open(fd, "a", encoding=self.encoding, errors=self.errors)
+
+
 def log_to_file(path: str | os.PathLike):
     """Context: every record of the package's log (DEBUG and up, timestamped) appended to ``path``."""
-    h = logging.FileHandler(path, encoding="utf-8")
+    h = _AppendNoFollow(path, encoding="utf-8")
     h.setLevel(logging.DEBUG)
     h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     return _handler(h)

@@ -72,6 +72,78 @@ class TestEncodeDecode:
         with pytest.raises(ValueError):
             decode_segmentation([[1.0, 2.0]], 4, 5)
 
+    def test_a_far_polygon_vertex_is_cut_before_rasterising(self, monkeypatch):
+        """pycocotools rasterises a polygon at five samples per pixel of its edges: a vertex at 1e8 costs
+        gigabytes and one at 1e12 crashes the process, so what reaches it stays within the image's box."""
+        from carvi_torch.io import coco
+        real = coco.mask_utils.frPyObjects
+
+        def rasterise(polys, h, w):  # checks before pycocotools sees them (a crash would take pytest along)
+            pts = np.concatenate([np.reshape(p, (-1, 2)) for p in polys])
+            assert pts.min() >= -50 and (pts.max(0) <= [100, 80]).all()
+            return real(polys, h, w)
+        monkeypatch.setattr(coco.mask_utils, "frPyObjects", rasterise)
+        m = decode_segmentation([[0, 0, 1e12, 0, 1e12, 1e12], [2, 2, 8, 2, 8, 8, 2, 8]], 40, 50)
+        ys, xs = np.mgrid[:40, :50]
+        away = (xs > 9) | (ys > 9)  # off the small square
+        assert m[away & (ys < xs - 1)].all() and not m[away & (ys > xs + 1)].any()  # the triangle: below y = x
+
+    def test_a_polygon_vertex_at_1e12_does_not_crash_the_process(self):
+        import subprocess
+        import sys
+        code = ("from carvi_torch.io.coco import decode_segmentation as d; "
+                "print(int(d([[0, 0, 1e12, 0, 1e12, 1e12]], 30, 40).sum()))")
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-400:]
+        assert 500 < int(done.stdout) < 800  # about the 30 x 40 image's part below y = x: 30 * 40 - 30 * 30 / 2
+
+    def test_polygons_inside_the_box_are_rasterised_as_given(self):
+        from pycocotools import mask as mask_utils
+        rng = np.random.default_rng(1)
+        for _ in range(50):
+            poly = rng.uniform([-40, -30], [80, 60], (6, 2)).ravel()  # within [-W, 2W] x [-H, 2H]
+            want = mask_utils.decode(mask_utils.merge(mask_utils.frPyObjects([poly.tolist()], 30, 40))).astype(bool)
+            assert np.array_equal(decode_segmentation([poly.tolist()], 30, 40), want)
+
+    def test_a_polygon_entirely_outside_the_box_is_an_empty_mask(self):
+        assert not decode_segmentation([[1e9, 1e9, 2e9, 1e9, 2e9, 2e9]], 30, 40).any()
+
+
+def _shoelace(flat: np.ndarray) -> float:
+    x, y = np.reshape(flat, (-1, 2)).T
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def test_clip_polygon_is_the_intersection_with_the_box():
+    """The cut polygon covers what shapely's intersection with ``[-W, 2W] x [-H, 2H]`` covers (simple
+    polygons: the cut's area is the intersection's; the edges the cut adds along the box cancel)."""
+    shapely = pytest.importorskip("shapely")
+    from carvi_torch.io.coco import clip_polygon
+    rng = np.random.default_rng(0)
+    h, w = 30, 40
+    box = shapely.box(-w, -h, 2 * w, 2 * h)
+    done = 0
+    for scale in (1, 10, 1e6, 1e300):
+        for _ in range(60):
+            n = int(rng.integers(3, 9))  # a star-shaped polygon: simple, often not convex
+            angle, radius = np.sort(rng.uniform(0, 2 * np.pi, n)), rng.uniform(0.2, 1, n) * scale * w
+            pts = np.stack([np.cos(angle), np.sin(angle)], 1) * radius[:, None] + rng.uniform(-1, 1, 2) * scale * w
+            poly = shapely.Polygon(pts)
+            if not poly.is_valid:
+                continue
+            cut = clip_polygon(pts.ravel(), h, w)
+            assert np.isfinite(cut).all()
+            if scale < 1e100:
+                want = poly.intersection(box).area
+            else:  # beyond shapely's range: the box is all in or all out (shapely on the polygon scaled down)
+                want = box.area if shapely.Polygon(pts / scale).contains(shapely.Point(0, 0)) else 0.0
+            got = _shoelace(cut) if len(cut) >= 6 else 0.0
+            assert got == pytest.approx(want, rel=1e-9, abs=1e-6)
+            if 0 < want and scale < 1e100:
+                assert shapely.Polygon(np.reshape(cut, (-1, 2))).buffer(1e-6).covers(poly.intersection(box))
+            done += 1
+    assert done > 200
+
 
 class TestLoad:
     def test_collection(self, tmp_path):

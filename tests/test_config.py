@@ -27,6 +27,32 @@ def test_bad_overrides(item):
         Config().override([item])
 
 
+@pytest.mark.parametrize("item, says", [
+    ("seed=-1", "seed must be in [0, 9223372036854775807]"),
+    ("seed=9223372036854775808", "seed must be in [0, 9223372036854775807]"),
+    ("silhouette_weight=-1", "silhouette_weight must be >= 0"),
+    ("cluster_widen_step_deg=0", "cluster_widen_step_deg must be > 0"),
+    ("cluster_widen_step_deg=-5", "cluster_widen_step_deg must be > 0"),
+    ("cluster_max_threshold_deg=10", "cluster_max_threshold_deg must be in [15.0, 45]"),
+    ("cluster_max_threshold_deg=0", "cluster_max_threshold_deg must be in [15.0, 45]"),
+    ("cluster_max_threshold_deg=60", "cluster_max_threshold_deg must be in [15.0, 45]"),
+    ("cluster_threshold_deg=60", "cluster_threshold_deg must be in (0, 45]"),
+    ("plane_size=1", "plane_size must be in [2, 1024]"),
+    ("plane_size=100000", "plane_size must be in [2, 1024]"),
+])
+def test_settings_the_run_cannot_use_are_refused_up_front(item, says):
+    """Each of these failed late (a traceback, or a class failing after its viewpoints) or ran unbounded."""
+    with pytest.raises(ConfigError) as e:
+        Config().override([item])
+    assert says in str(e.value)
+
+
+def test_settings_at_their_bounds_are_accepted():
+    cfg = Config().override(["seed=9223372036854775807", "silhouette_weight=0", "cluster_threshold_deg=45",
+                             "cluster_max_threshold_deg=45", "plane_size=2"])
+    assert cfg.seed == 2 ** 63 - 1 and cfg.select.plane_size == 2
+
+
 def test_file_then_cli(tmp_path):
     p = tmp_path / "c.yaml"
     p.write_text("resolution: 40\nproposals: 5\n")

@@ -650,6 +650,64 @@ def test_an_output_folder_that_is_a_file_or_under_one(tmp_path, capsys):
     assert f.read_text() == "x"
 
 
+@pytest.mark.parametrize("link", ["car", "car/meshes", "run.log", "report", "report/assets", "input"])
+def test_a_symbolic_link_where_the_run_writes_is_refused_with_nothing_written(base_dir, tmp_path, capsys, link):
+    """A link under --out would carry the run's files (or run.log's lines) outside --out: one error line,
+    exit 2, before any work; the link's target and --out are as they were."""
+    out, outside = tmp_path / "out", tmp_path / "outside"
+    outside.mkdir()
+    (outside / "kept.txt").write_text("mine")
+    (out / link).parent.mkdir(parents=True, exist_ok=True)
+    (out / link).symlink_to(outside / "kept.txt" if link == "run.log" else outside)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    rc = reconstruct_main(["--data", str(base_dir / "annotations.json"), "--out", str(out), "--quiet",
+                           *(f"{k}={v}" for k, v in SMALL.items())])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error:") and "symbolic link" in err[0], err
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+    assert (outside / "kept.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize("where", ["car", "car/meshes", "chair/voxels"])
+def test_a_file_where_a_class_folder_goes_is_refused_before_the_work(base_dir, tmp_path, capsys, monkeypatch, where):
+    """Found once the classes are loaded, before the viewpoints: one error line, exit 2, the file kept."""
+    from carvi_torch.executors import local
+    out = tmp_path / "out"
+    (out / where).parent.mkdir(parents=True, exist_ok=True)
+    (out / where).write_text("mine")
+    monkeypatch.setattr(local, "_classes", lambda *a: pytest.fail("the classes ran"))
+    rc = reconstruct_main(["--data", str(base_dir / "annotations.json"), "--out", str(out), "--quiet",
+                           *(f"{k}={v}" for k, v in SMALL.items())])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error:") and f"{where} is a file" in err[0], err
+    assert (out / where).read_text() == "mine"
+
+
+def test_references_of_a_split_no_object_has_is_a_user_error(base, tmp_path, capsys):
+    """Else the run reconstructs nothing, says ok per class and exits 1 without a reason."""
+    d = copy.deepcopy(base)
+    for i, a in enumerate(d["annotations"]):
+        a["split"] = "test" if i % 2 else "pool"
+    out = tmp_path / "out"
+    rc = reconstruct_main(["--data", str(_write(tmp_path, d)), "--out", str(out), "--quiet", "references=tset",
+                           *(f"{k}={v}" for k, v in SMALL.items())])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error:"), err
+    assert "references=tset" in err[0] and "'pool', 'test'" in err[0]
+    assert not out.exists()
+
+
+def test_run_log_is_not_opened_through_a_link(tmp_path):
+    from carvi_torch.runtime import log, log_to_file
+    target = tmp_path / "target.log"
+    target.write_text("mine")
+    (tmp_path / "run.log").symlink_to(target)
+    with pytest.raises(OSError):
+        with log_to_file(tmp_path / "run.log"):
+            log.info("a line")
+    assert target.read_text() == "mine"
+
+
 def test_exit_status_says_when_nothing_came_out(base, tmp_path):
     d = copy.deepcopy(base)
     for a in d["annotations"]:

@@ -15,6 +15,7 @@ import torch
 from .. import carve
 from ..config import Config, ConfigError, settings_changed
 from ..io import coco
+from ..io.layout import KINDS, linked_path
 from ..io.outputs import read_json, write_bytes, write_json
 from ..runtime import log, peak_rss_mb, stable_hash, unwritable_above
 
@@ -44,6 +45,38 @@ def _check_out(out: Path) -> None:
     why = unwritable_above(out / "summary.json")  # the folder itself where it exists, else the nearest above
     if why:
         raise ConfigError(f"--out {out}: {why}")
+    _check_links(out)
+
+
+def _check_links(out: Path, keys=()) -> None:
+    """No path the run writes under ``out`` is a symbolic link (:func:`~carvi_torch.io.layout.linked_path`)."""
+    link = linked_path(out, keys)
+    if link is not None:
+        raise ConfigError(f"--out {out}: {link} is a symbolic link, and a run writes nothing outside --out; "
+                          "remove the link or choose another --out")
+
+
+def _check_references(references: str, collections: dict) -> None:
+    """``references`` names a split that some loaded object has (else the run would reconstruct nothing and
+    say nothing of why)."""
+    present = {s for c in collections.values() for s in c.splits}
+    if references != "all" and references not in present:
+        named = ", ".join(repr(s) for s in sorted(present - {""}))
+        raise ConfigError(f"references={references}: no loaded object has that split; "
+                          + (f"the splits present are {named} (or all)" if named else
+                             "no object has a split (references=all)"))
+
+
+def _check_class_folders(out: Path, keys) -> None:
+    """Once the classes are known, before any work: no link where the run writes (:func:`_check_links`), and
+    no file where a class's folder or one of its per-object folders goes (the class would fail after all its
+    work)."""
+    _check_links(out, keys)
+    for key in keys:
+        for path in (out / key, *(out / key / kind for kind in KINDS)):
+            if path.exists() and not path.is_dir():
+                raise ConfigError(f"--out {out}: {path} is a file where the run writes a folder of class "
+                                  f"{key!r}; move it or choose another --out")
 
 
 def check_request(cfg: Config) -> torch.device:
@@ -88,6 +121,8 @@ def open_run(cfg: Config) -> RunSetup:
     if gt_problem is not None:
         loaded.problems.append(gt_problem)
         gt_path = None
+    _check_references(cfg.references, loaded.collections)
+    _check_class_folders(out, loaded.collections)
     earlier, earlier_data = _earlier_classes(out, cfg)
     out.mkdir(parents=True, exist_ok=True)
     changed = settings_changed(out / "config.yaml", cfg)

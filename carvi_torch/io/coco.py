@@ -35,8 +35,8 @@ from .layout import reserved
 from .outputs import read_json, safe_name, write_json
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
-           "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "MAX_IMAGE_PIXELS", "object_id",
-           "flag", "class_keys", "input_fingerprints", "skipped_at_load", "DUPLICATE_ID", "is_duplicate"]
+           "clip_polygon", "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "MAX_IMAGE_PIXELS",
+           "object_id", "flag", "class_keys", "input_fingerprints", "skipped_at_load", "DUPLICATE_ID", "is_duplicate"]
 
 #: How the reason of a repeated annotation id begins (the id's first annotation is the one used).
 DUPLICATE_ID = "duplicate annotation id"
@@ -133,6 +133,42 @@ def encode_mask(mask: np.ndarray | torch.Tensor) -> dict:
     return {"size": [int(v) for v in rle["size"]], "counts": rle["counts"]}
 
 
+def clip_polygon(flat: np.ndarray, height: int, width: int) -> np.ndarray:
+    """A flat ``[x, y] * n`` polygon cut to the box of one image size around the image, ``[-W, 2W] x [-H, 2H]``
+    (Sutherland-Hodgman; flat again, possibly fewer than 3 points when nothing is left).
+
+    pycocotools rasterises a polygon edge by edge at five samples per pixel of its length, so one far vertex
+    (1e8) costs gigabytes and a farther one (1e12) crashes the process. A polygon inside the box comes back as
+    it is (its mask is exactly pycocotools'); a cut one covers the same part of the image, up to the rounding
+    of the edges that leave the box. The box's edges lie outside the image, so the cut's edges paint nothing.
+
+    Example:
+        >>> clip_polygon(np.array([0., 0., 1e12, 0., 0., 10.]), 10, 10).reshape(-1, 2).max(0).tolist()
+        [20.0, 10.0]
+    """
+    flat = np.asarray(flat, dtype=np.float64)
+    pts = flat[:len(flat) // 2 * 2].reshape(-1, 2)  # an odd last value is dropped, as pycocotools does
+    box = ((-float(width), 2.0 * width), (-float(height), 2.0 * height))
+    if ((pts >= [box[0][0], box[1][0]]) & (pts <= [box[0][1], box[1][1]])).all():
+        return flat
+    for axis in (0, 1):
+        for bound, inside in ((box[axis][0], np.greater_equal), (box[axis][1], np.less_equal)):
+            if not len(pts):
+                break
+            nxt = np.roll(pts, -1, axis=0)
+            keep, keep_next = inside(pts[:, axis], bound), inside(nxt[:, axis], bound)
+            out = []
+            for p, q, p_in, q_in in zip(pts / 4, nxt / 4, keep, keep_next):  # /4: no overflow near 1e308
+                if p_in:
+                    out.append(p)
+                if p_in != q_in:
+                    cut = p + (bound / 4 - p[axis]) / (q[axis] - p[axis]) * (q - p)
+                    cut[axis] = bound / 4
+                    out.append(cut)
+            pts = np.array(out).reshape(-1, 2) * 4
+    return pts.ravel()
+
+
 def decode_segmentation(seg: Any, height: int, width: int) -> np.ndarray:
     """Decode a COCO segmentation (polygons, RLE or uncompressed RLE) into an ``(H, W)`` bool mask.
 
@@ -145,6 +181,9 @@ def decode_segmentation(seg: Any, height: int, width: int) -> np.ndarray:
         arr = [np.asarray(p, dtype=np.float64) for p in polys]
         if any(not np.isfinite(a).all() for a in arr):
             raise ValueError("segmentation polygon has NaN or infinite coordinates")
+        arr = [a for a in (clip_polygon(a, height, width) for a in arr) if len(a) >= 6]
+        if not arr:  # every polygon lies outside the image
+            return np.zeros((height, width), dtype=bool)
         rles = mask_utils.frPyObjects([a.tolist() for a in arr], height, width)
         rle = mask_utils.merge(rles)
     elif isinstance(seg, dict) and "counts" in seg:

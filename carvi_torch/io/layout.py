@@ -22,6 +22,7 @@ Example:
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,7 +31,7 @@ import numpy as np
 from .outputs import safe_name
 
 __all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS", "RUN_NAMES", "reserved", "INPUTS_CHANGED",
-           "NO_INPUT_RECORD", "ResumeCheck", "resume_check", "held_fingerprint"]
+           "NO_INPUT_RECORD", "ResumeCheck", "resume_check", "held_fingerprint", "linked_path"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -55,6 +56,33 @@ def class_dir(out: str | Path, key: str) -> Path:
     if safe_name(key) != key or reserved(key):
         raise ValueError(f"class key {key!r} is not a safe folder name or is one of the run's own names")
     return Path(out) / key
+
+
+def linked_path(out: str | Path, keys=()) -> Path | None:
+    """The first path a run writes under ``out`` that is a symbolic link, or ``None``: a run writes only
+    inside ``out``, and a link would carry its files (or run.log's lines) elsewhere. Looked at: the run's
+    own names (:data:`RUN_NAMES`), everything below ``input/`` and ``report/``, and per class key the
+    class folder and its per-object folders (:data:`KINDS`). Files written whole replace a link rather than
+    follow it; these are the folders written into and the files appended to.
+
+    Example:
+        >>> linked_path("no/such/folder", ["car"]) is None
+        True
+    """
+    out = Path(out)
+    for name in RUN_NAMES:
+        if (out / name).is_symlink():
+            return out / name
+    for tree in ("input", "report"):
+        for top, dirs, files in os.walk(out / tree):  # not into linked folders: those are reported
+            for name in sorted(dirs + files):
+                if os.path.islink(os.path.join(top, name)):
+                    return Path(top) / name
+    for key in keys:
+        for path in (out / key, *(out / key / kind for kind in KINDS)):
+            if path.is_symlink():
+                return path
+    return None
 
 
 def object_stem(annotation_id) -> str:
