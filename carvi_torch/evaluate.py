@@ -48,6 +48,7 @@ from .io.coco import CocoFormatError, class_keys, load_coco, object_id
 from .io.layout import object_file
 from .mesh import MESH_FORMATS
 from .io.outputs import read_json, write_bytes, write_json
+from .io.results import annotation_source, same_object
 from .evaluation import metrics, reliability, viewpoint_metrics
 
 __all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "main"]
@@ -161,7 +162,7 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     key_of = class_keys(dataset.get("categories", []))
     ann_class = {str(a["id"]): key_of.get(str(a.get("category_id"))) for a in anns}
     original = {str(a["id"]): a["id"] for a in anns}  # ids as the file gives them (ints or strings)
-    source_of = {str(a["id"]): str(a.get("source") or f"annotation {a['id']}") for a in anns}  # as load_coco
+    source_of = {str(a["id"]): annotation_source(a) for a in anns}
     classes = _class_keys(classes, dataset.get("categories", []), key_of, data)
     first = Path(next(iter(recons.values())))
     cfg = read_run_config(first / "config.yaml") if (first / "config.yaml").is_file() else Config()
@@ -289,7 +290,7 @@ def _check_same_objects(name: str, rdir: Path, cameras: dict, ann_class: dict, s
                 continue
             found += 1
             src = cam.get("source") if isinstance(cam, dict) else None
-            if ann_class[aid] != cls or (src is not None and src != source_of[aid]):
+            if not same_object(cls, src, ann_class[aid], source_of[aid]):
                 made = _made_from(rdir)
                 raise ValueError(f"--recon {name}={rdir} was not made from {data}{made}: its {cls} annotation "
                                  f"{aid} is {src or 'unnamed'}, in {data.name} it is {ann_class[aid]} "
