@@ -26,7 +26,8 @@ import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
-from .cli import CommandError, add_common, program, run_command, split_classes, writable_file, writable_folder
+from .cli import (CommandError, add_common, nonneg_int, positive_int, program, run_command, split_classes,
+                  writable_file, writable_folder)
 from .runtime import check_replaceable
 
 __all__ = ["build_parser", "main", "DATASET_NAMES"]
@@ -42,29 +43,15 @@ def _nonneg_float(text: str) -> float:
     return v
 
 
-def _pos_int(text: str) -> int:
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text}")
-    return v
-
-
-def _nonneg_int(text: str) -> int:
-    v = int(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
-    return v
-
-
 def _add_render_options(p: argparse.ArgumentParser, views_default: int, views_help: str) -> None:
-    p.add_argument("--views", type=_pos_int, default=views_default, help=views_help)
-    p.add_argument("--test-views", type=_nonneg_int, default=0,
+    p.add_argument("--views", type=positive_int, default=views_default, help=views_help)
+    p.add_argument("--test-views", type=nonneg_int, default=0,
                    help="the first N renders of each model get split 'test', the others 'pool' (default 0)")
     p.add_argument("--seed", type=int, default=0, help="random seed; the same seed writes the same files (default 0)")
     size = p.add_mutually_exclusive_group()
-    size.add_argument("--image-size", type=_pos_int, nargs=2, metavar=("W", "H"), default=None,
+    size.add_argument("--image-size", type=positive_int, nargs=2, metavar=("W", "H"), default=None,
                       help="image width and height in pixels (default 320 240)")
-    size.add_argument("--canvas", type=_pos_int, metavar="S", default=None,
+    size.add_argument("--canvas", type=positive_int, metavar="S", default=None,
                       help="square S x S renders instead of --image-size")
     p.add_argument("--keypoint-noise", type=_nonneg_float, default=0.0, metavar="P",
                    help="standard deviation (pixels) of Gaussian noise on visible keypoints (default 0)")
@@ -104,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "keypoints) and render each --views times (default once: many instances, one photograph "
                     "each, like PASCAL VOC). Same outputs as 'synthetic'.")
     proc.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    proc.add_argument("--instances", type=_pos_int, default=40, help="instances per class (default 40)")
+    proc.add_argument("--instances", type=positive_int, default=40, help="instances per class (default 40)")
     proc.add_argument("--classes", default=None, metavar="A,B",
                       help="comma-separated classes to build (default: aeroplane,bottle,car,chair)")
     _add_render_options(proc, 1, "renders per instance (default 1)")

@@ -284,3 +284,12 @@ def test_overlay_refuses_an_annotation_the_file_changed_since_the_run(tmp_path):
     assert cards["8"].problems == ["annotation 8 is now car a.png, not the run's: no overlay"]
     assert cards["7"].img is None and cards["8"].img is None
     assert cards["9"].img == "objects/car/9.jpg" and "voxels missing" in cards["9"].problems[0]  # the same object
+
+
+@pytest.mark.parametrize("option", [["--per-page", "0"], ["--per-page", "-3"], ["--workers", "-1"]])
+def test_report_refuses_a_count_out_of_range(option, tmp_path, capsys):
+    """``--per-page`` below 1 and ``--workers`` below 0 are argparse errors (exit 2), not quietly made 1 and 0."""
+    with pytest.raises(SystemExit) as e:
+        report_main(["--recon", str(tmp_path), "--quiet", *option])
+    assert e.value.code == 2 and f"argument {option[0]}: expected an integer >= " in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
