@@ -58,15 +58,32 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _shorten(text: str, width: int) -> str:
+    """``text`` cut to at most ``width`` characters at a word boundary, ``…`` marking the cut (a number or word
+    is never cut in two, so a cut reason does not read as another; one word longer than ``width`` is cut).
+
+    Example:
+        >>> _shorten("views dropped from 15 to 2", 20), _shorten("short", 20)
+        ('views dropped from…', 'short')
+    """
+    text = " ".join(str(text).split())
+    if len(text) <= width:
+        return text
+    head = text[:width - 1]
+    if text[width - 1] != " " and " " in head:
+        head = head.rsplit(" ", 1)[0]
+    return head.rstrip(" ,;:(") + "…"
+
+
 def _main_reasons(c: dict) -> str:
     """The two most frequent skip reasons of a class, else its first warning."""
     reasons: dict[str, int] = {}
     for f in c.get("failures", []):
-        key = f.get("reason", "")[:48]
+        key = _shorten(f.get("reason", ""), 48)
         reasons[key] = reasons.get(key, 0) + 1
     top = "; ".join(f"{k} (x{v})" for k, v in sorted(reasons.items(), key=lambda kv: -kv[1])[:2])
     if not top and c.get("warnings"):
-        top = "warning: " + c["warnings"][0][:60]
+        top = "warning: " + _shorten(c["warnings"][0], 60)
     return top or "-"
 
 
