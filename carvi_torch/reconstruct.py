@@ -87,6 +87,11 @@ def _main_reasons(c: dict) -> str:
     return top or "-"
 
 
+def _count(n, noun: str) -> str:
+    """``1 thread``, ``2 threads`` (``None``: ``? threads``)."""
+    return f"{'?' if n is None else n} {noun}{'' if n == 1 else 's'}"
+
+
 def format_table(summary: dict) -> str:
     """The closing table: per class objects, reconstructed, skipped (with reasons), seconds."""
     rows = [("class", "objects", "recon.", "resumed", "skipped", "warnings", "seconds", "main reasons")]
@@ -107,7 +112,7 @@ def format_table(summary: dict) -> str:
         carving = {"fused": f"; carving: fused CPU kernel ({cb.get('variant')})", "torch": "; carving: torch"}.get(
             cb.get("backend"), "")
         lines.append(f"total {summary['total_seconds']:.1f} s on {summary.get('device')} "
-                     f"({summary.get('torch_threads')} threads{carving})")
+                     f"({_count(summary.get('torch_threads'), 'thread')}{carving})")
         if cb.get("reason"):
             lines.append(f"the fused carving kernel was not used: {cb['reason']}")
     return "\n".join(lines)

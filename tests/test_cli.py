@@ -60,3 +60,11 @@ def test_closing_table_cuts_reasons_at_a_word_and_marks_the_cut():
     bus = rows["bus"].rstrip().split("  ")[-1]
     assert car == "the views kept by the refinement of the camera: from 15 to…"
     assert bus == "no usable camera: its SfM residual grew from… (x1)"
+
+
+@pytest.mark.parametrize("threads, said", [(1, "(1 thread)"), (2, "(2 threads)")])
+def test_closing_table_counts_threads_in_words(threads, said):
+    from carvi_torch.reconstruct import format_table
+
+    summary = {"classes": {}, "total_seconds": 1.0, "device": "cpu", "torch_threads": threads}
+    assert f"total 1.0 s on cpu {said}" in format_table(summary)

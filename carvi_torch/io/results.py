@@ -67,7 +67,7 @@ class ClassReport:
             self.seconds[k] = self.seconds.get(k, 0.0) + v
 
     def book_write(self, out: dict, aid, src) -> None:
-        """Book a writer's result (:func:`carvi_torch.io.writer.write_object`) for object ``aid``."""
+        """Book a writer's result (:func:`carvi_torch.io.write_worker.write_object`) for object ``aid``."""
         self.seconds["mesh"] = self.seconds.get("mesh", 0.0) + out["mesh_seconds"]
         self.seconds["write"] = self.seconds.get("write", 0.0) + out["write_seconds"]
         if out["ok"]:
