@@ -12,9 +12,16 @@ computed on the fly (``--baselines``).
 
 Cost: nearly all of it is the shape error of each object (the depth-offset search and the exact
 distances of ``metrics.best_depth_offset``), whose surface samples grow as ``1 / step^2``; a progress
-bar counts the objects (``--quiet`` hides it). The default run's 160 objects took 111 s at the
-default ``--step-percent 0.5`` and 40 s at 2 on the 2-core development host (with other work on it),
-with every class mean within 0.01 and every object within 0.09 percentage points of the 0.5 errors;
+bar counts the objects (``--quiet`` hides it). The default run's 40 chairs took 32 s at the
+default ``--step-percent 0.5`` and 10 s at 2 (wall clock; 57 and 14 CPU-seconds, the interpreter's start
+included) on the 2-core development host at a load average of 1.6, the class mean 3.04 at both steps::
+
+    python -m carvi_torch.reconstruct --out D --classes chair
+    /usr/bin/time python -m carvi_torch.evaluate --data D/input/annotations.json --recon D --quiet --step-percent S
+
+The torch threads' OpenMP runtime spins while it waits, so on a host busy with other work the CPU time
+grows several-fold (70 CPU-seconds at step 2 at a load average of 4 to 6; 12 with ``OMP_WAIT_POLICY=PASSIVE``
+at 4); ``OMP_NUM_THREADS=1`` takes 9 and 36 CPU-seconds on the idle host, 9 and 40 s.
 ``--viewpoints-only`` takes seconds.
 
 Only what matches is scored, and what does not is said: a class of ``--data`` that a reconstruction
@@ -447,8 +454,9 @@ def _main(argv=None) -> int:
     ap.add_argument("--step-percent", type=_positive_finite, default=0.5,
                     help="surface sampling step in percent of the GT bounding-box diagonal (default 0.5; the tables "
                          "in docs/ say which step they used, mostly 1 to 3). A coarser step trades a little accuracy "
-                         "for time: on the default run 0.7 s per object at 0.5, 0.25 s at 2 (2 cores), the errors "
-                         "moving by hundredths of a percentage point (the samples fall as 1/step^2; the time less)")
+                         "for time: on the default run's chairs 0.8 s per object at 0.5, 0.25 s at 2 (wall clock, "
+                         "2 cores, the interpreter's start included), the errors moving by hundredths of a "
+                         "percentage point (the samples fall as 1/step^2; the time less)")
     ap.add_argument("--viewpoints-only", action="store_true", help="skip the shapes (e.g. after stage=cameras)")
     add_common(ap)
     args = ap.parse_args(argv)

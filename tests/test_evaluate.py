@@ -290,9 +290,10 @@ def test_help_says_what_the_step_costs(capsys):
         main(["--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "progress bar counts the objects" in text
-    run = re.search(r"default run's (\d+) objects took (\d+) s at the default `*--step-percent ([\d.]+)`* and (\d+) s "
+    run = re.search(r"default run's (\d+) chairs took (\d+) s at the default `*--step-percent ([\d.]+)`* and (\d+) s "
                     r"at ([\d.]+)", text)
-    quoted = re.search(r"on the default run ([\d.]+) s per object at ([\d.]+), ([\d.]+) s at ([\d.]+) ", text)
+    quoted = re.search(r"on the default run's chairs ([\d.]+) s per object at ([\d.]+), ([\d.]+) s at ([\d.]+) ",
+                       text)
     assert run and quoted, text
     objects, fine_s, fine, coarse_s, coarse = (float(g) for g in run.groups())
     default = inspect.signature(evaluate).parameters["step_percent"].default
