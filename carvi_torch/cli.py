@@ -30,7 +30,7 @@ from typing import Callable, Sequence
 from .runtime import os_error_line  # re-exported: the commands' shared ending names OS errors with it
 
 __all__ = ["main", "add_common", "split_classes", "version", "program", "run_command", "CommandError",
-           "os_error_line", "writable_folder", "writable_file"]
+           "os_error_line", "writable_folder", "writable_file", "positive_int", "nonneg_int"]
 
 #: Subcommand -> (module with ``main(argv)``, one line of help).
 COMMANDS = {
@@ -81,6 +81,22 @@ def split_classes(value: str | None) -> list[str] | None:
 
 class CommandError(Exception):
     """A user error a command reports as one ``error:`` line (exit status 2)."""
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1 (anything else: argparse's error, exit 2)."""
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text}")
+    return v
+
+
+def nonneg_int(text: str) -> int:
+    """An argparse type: an integer >= 0 (anything else: argparse's error, exit 2)."""
+    v = int(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
+    return v
 
 
 def run_command(body: Callable[[], int | None], interrupted: str) -> int:

@@ -12,19 +12,28 @@ a ``.json`` of keypoints beside it) from random photograph-like cameras; ``proce
 builds and renders the embedded procedural classes (the default data of
 ``python -m carvi_torch.reconstruct``); ``voc`` converts Berkeley keypoint XML files (and
 VOC/SBD masks) through :mod:`carvi_torch.io.voc`. Each writes ``annotations.json`` (and,
-for synthetic data, ``gt.json`` and ``meshes/``) into ``--out``.
+for synthetic data, ``gt.json`` and ``meshes/``) into ``--out``. ``synthetic`` and ``procedural`` write only
+into a new or empty folder, or over an earlier dataset of theirs, which they replace whole (its ``meshes/``
+is cleared first, so no file of the earlier models stays); any other ``--out`` is refused before anything
+is written.
 """
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
-from .cli import CommandError, add_common, program, run_command, split_classes, writable_file, writable_folder
+from .cli import (CommandError, add_common, nonneg_int, positive_int, program, run_command, split_classes,
+                  writable_file, writable_folder)
+from .runtime import check_replaceable
 
-__all__ = ["build_parser", "main"]
+__all__ = ["build_parser", "main", "DATASET_NAMES"]
+
+#: What ``synthetic`` and ``procedural`` write into ``--out`` (``images/``: the photographs a dataset may have).
+DATASET_NAMES = frozenset({"annotations.json", "gt.json", "meshes", "images"})
 
 
 def _nonneg_float(text: str) -> float:
@@ -34,29 +43,15 @@ def _nonneg_float(text: str) -> float:
     return v
 
 
-def _pos_int(text: str) -> int:
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text}")
-    return v
-
-
-def _nonneg_int(text: str) -> int:
-    v = int(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
-    return v
-
-
 def _add_render_options(p: argparse.ArgumentParser, views_default: int, views_help: str) -> None:
-    p.add_argument("--views", type=_pos_int, default=views_default, help=views_help)
-    p.add_argument("--test-views", type=_nonneg_int, default=0,
+    p.add_argument("--views", type=positive_int, default=views_default, help=views_help)
+    p.add_argument("--test-views", type=nonneg_int, default=0,
                    help="the first N renders of each model get split 'test', the others 'pool' (default 0)")
     p.add_argument("--seed", type=int, default=0, help="random seed; the same seed writes the same files (default 0)")
     size = p.add_mutually_exclusive_group()
-    size.add_argument("--image-size", type=_pos_int, nargs=2, metavar=("W", "H"), default=None,
+    size.add_argument("--image-size", type=positive_int, nargs=2, metavar=("W", "H"), default=None,
                       help="image width and height in pixels (default 320 240)")
-    size.add_argument("--canvas", type=_pos_int, metavar="S", default=None,
+    size.add_argument("--canvas", type=positive_int, metavar="S", default=None,
                       help="square S x S renders instead of --image-size")
     p.add_argument("--keypoint-noise", type=_nonneg_float, default=0.0, metavar="P",
                    help="standard deviation (pixels) of Gaussian noise on visible keypoints (default 0)")
@@ -96,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "keypoints) and render each --views times (default once: many instances, one photograph "
                     "each, like PASCAL VOC). Same outputs as 'synthetic'.")
     proc.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    proc.add_argument("--instances", type=_pos_int, default=40, help="instances per class (default 40)")
+    proc.add_argument("--instances", type=positive_int, default=40, help="instances per class (default 40)")
     proc.add_argument("--classes", default=None, metavar="A,B",
                       help="comma-separated classes to build (default: aeroplane,bottle,car,chair)")
     _add_render_options(proc, 1, "renders per instance (default 1)")
@@ -179,6 +174,27 @@ def _run_voc(args) -> int:
     return voc.run(args)
 
 
+def _not_dataset(out: Path) -> list[str]:
+    """The entries of the folder ``out`` that no dataset of ``synthetic``/``procedural`` holds (the temporary
+    files of an interrupted write of one of its files excepted)."""
+    def ours(name: str) -> bool:
+        return name in DATASET_NAMES or any(name.startswith(f".{n}.") and name.endswith(".tmp") for n in DATASET_NAMES)
+
+    return [p.name for p in out.iterdir() if not ours(p.name)]
+
+
+def _clear_earlier(out: Path) -> None:
+    """Remove an earlier dataset's completeness marker (``annotations.json``) and its folders of files, so that
+    the new dataset holds only its own files."""
+    (out / "annotations.json").unlink(missing_ok=True)
+    for name in ("meshes", "images"):
+        d = out / name
+        if d.is_symlink() or d.is_file():
+            d.unlink()
+        elif d.is_dir():
+            shutil.rmtree(d)
+
+
 def _remove_empty(folders: list[Path]) -> None:
     """Remove ``folders`` (deepest first) while they are empty."""
     for d in folders:
@@ -203,13 +219,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "voc":
             writable_file(args.out)
             return int(_run_voc(args) or 0)
-        made = [d for d in (Path(args.out), *Path(args.out).parents) if not d.exists()]  # deepest first
-        writable_folder(args.out)
+        out = Path(args.out)
+        check_replaceable(out, _not_dataset, "an earlier synthetic or procedural dataset", CommandError)
+        made = [d for d in (out, *out.parents) if not d.exists()]  # deepest first
+        writable_folder(out)
         try:
             job = jobs[args.command](args)
         except BaseException:  # a user error in the inputs (or Ctrl-C) before any work: remove what was made
             _remove_empty(made)
             raise
+        _clear_earlier(out)
         _print_summary(job())
         return 0
 

@@ -12,15 +12,24 @@ computed on the fly (``--baselines``).
 
 Cost: nearly all of it is the shape error of each object (the depth-offset search and the exact
 distances of ``metrics.best_depth_offset``), whose surface samples grow as ``1 / step^2``; a progress
-bar counts the objects (``--quiet`` hides it). The default run's 160 objects took 111 s at the
-default ``--step-percent 0.5`` and 40 s at 2 on the 2-core development host (with other work on it),
-with every class mean within 0.01 and every object within 0.09 percentage points of the 0.5 errors;
+bar counts the objects (``--quiet`` hides it). The default run's 40 chairs took 32 s at the
+default ``--step-percent 0.5`` and 10 s at 2 (wall clock; 57 and 14 CPU-seconds, the interpreter's start
+included) on the 2-core development host at a load average of 1.6, the class mean 3.04 at both steps::
+
+    python -m carvi_torch.reconstruct --out D --classes chair
+    /usr/bin/time python -m carvi_torch.evaluate --data D/input/annotations.json --recon D --quiet --step-percent S
+
+The torch threads' OpenMP runtime spins while it waits, so on a host busy with other work the CPU time
+grows several-fold (70 CPU-seconds at step 2 at a load average of 4 to 6; 12 with ``OMP_WAIT_POLICY=PASSIVE``
+at 4); ``OMP_NUM_THREADS=1`` takes 9 and 36 CPU-seconds on the idle host, 9 and 40 s.
 ``--viewpoints-only`` takes seconds.
 
 Only what matches is scored, and what does not is said: a class of ``--data`` that a reconstruction
-has no folder for gets a ``note:`` line (and ``classes_without_reconstruction`` in ``results.json``);
-an unknown ``--classes`` name, or a reconstruction whose annotation ids name other objects in
-``--data`` (another class or ``source``: it was made from other data), is an error (exit 2).
+has no folder for gets a ``note:`` line (and ``classes_without_reconstruction`` in ``results.json``),
+and so does a run that stopped after the cameras (``stage=cameras``) without ``--viewpoints-only``;
+an unknown ``--classes`` name, a ``--split`` that no annotation has, two ``--recon`` of one name, or a
+reconstruction whose annotation ids name other objects in ``--data`` (another class or ``source``: it was
+made from other data, or the file changed since the run), is an error (exit 2).
 
 Examples:
     python -m carvi_torch.evaluate --data renders/annotations.json --recon runs/full
@@ -48,6 +57,7 @@ from .io.coco import CocoFormatError, class_keys, load_coco, object_id
 from .io.layout import object_file
 from .mesh import MESH_FORMATS
 from .io.outputs import read_json, write_bytes, write_json
+from .io.results import annotation_source, same_object
 from .evaluation import metrics, reliability, viewpoint_metrics
 
 __all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "main"]
@@ -145,11 +155,15 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     ``shapes=False`` only the viewpoints are evaluated (e.g. after ``stage=cameras``).
 
     Raises:
-        ValueError: a name in ``classes`` that is no class of ``data``; a reconstruction whose objects
+        FileNotFoundError: no file ``data``, or no ground truth.
+        ValueError: a ``split`` that no annotation of ``data`` has; a name in ``classes`` that is no class of
+            ``data``; a reconstruction whose objects
             are not the ones of ``data`` (an annotation id of its ``cameras.json`` names another
             object there: another class or ``source``; or none of its ids is in ``data``).
     """
     data = Path(data)
+    if not data.is_file():
+        raise FileNotFoundError(f"{data}: no such annotation file")
     gt_path = Path(gt) if gt else data.with_name("gt.json")
     if not gt_path.is_file():
         raise FileNotFoundError(f"{gt_path}: no ground truth (gt.json beside the annotations)")
@@ -158,10 +172,13 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     dataset = read_json(data)
     anns = [a for a in dataset.get("annotations", []) if isinstance(a, dict) and object_id(a.get("id")) is not None]
     split_of = {str(a["id"]): a.get("split", "") for a in anns}
+    if split is not None and split not in split_of.values():
+        present = sorted({repr(s) if s else "none" for s in split_of.values()})
+        raise ValueError(f"no annotation of {data} is in split {split!r} (its splits: {', '.join(present) or 'none'})")
     key_of = class_keys(dataset.get("categories", []))
     ann_class = {str(a["id"]): key_of.get(str(a.get("category_id"))) for a in anns}
     original = {str(a["id"]): a["id"] for a in anns}  # ids as the file gives them (ints or strings)
-    source_of = {str(a["id"]): str(a.get("source") or f"annotation {a['id']}") for a in anns}  # as load_coco
+    source_of = {str(a["id"]): annotation_source(a) for a in anns}
     classes = _class_keys(classes, dataset.get("categories", []), key_of, data)
     first = Path(next(iter(recons.values())))
     cfg = read_run_config(first / "config.yaml") if (first / "config.yaml").is_file() else Config()
@@ -289,24 +306,31 @@ def _check_same_objects(name: str, rdir: Path, cameras: dict, ann_class: dict, s
                 continue
             found += 1
             src = cam.get("source") if isinstance(cam, dict) else None
-            if ann_class[aid] != cls or (src is not None and src != source_of[aid]):
-                made = _made_from(rdir)
-                raise ValueError(f"--recon {name}={rdir} was not made from {data}{made}: its {cls} annotation "
-                                 f"{aid} is {src or 'unnamed'}, in {data.name} it is {ann_class[aid]} "
-                                 f"{source_of[aid]}")
+            if not same_object(cls, src, ann_class[aid], source_of[aid]):
+                raise ValueError(f"{_not_made_from(name, rdir, data)}: its {cls} annotation {aid} is "
+                                 f"{src or 'unnamed'}, in {data.name} it is {ann_class[aid]} {source_of[aid]}")
     if seen and not found:
-        raise ValueError(f"--recon {name}={rdir} was not made from {data}{_made_from(rdir)}: none of its "
-                         f"{seen} annotation ids is in {data.name}")
+        raise ValueError(f"{_not_made_from(name, rdir, data)}: none of its {seen} annotation ids is in {data.name}")
 
 
-def _made_from(rdir: Path) -> str:
-    """`` (it was made from X)`` as the run's ``summary.json`` records its data, or nothing."""
+def _not_made_from(name: str, rdir: Path, data: Path) -> str:
+    """How a reconstruction differs from ``data``: made from another file (named where the run's ``summary.json``
+    records it), or from ``data`` itself, which changed since the run."""
     p = rdir / "summary.json"
     try:
         made = read_json(p).get("data") if p.is_file() else None
-    except ValueError:
+    except (ValueError, AttributeError):
         made = None
-    return f" (it was made from {made})" if made else ""
+    if not isinstance(made, str) or not made:
+        return f"--recon {name}={rdir} was not made from {data}"
+    try:
+        same = Path(made).resolve() == data.resolve() or Path(made).samefile(data)
+    except OSError:
+        same = False
+    if same:
+        return (f"--recon {name}={rdir} was made from {data}, but its objects differ from the file's current "
+                "contents (the file changed since the run)")
+    return f"--recon {name}={rdir} was not made from {data} (it was made from {made})"
 
 
 def _id_order(aid: str):
@@ -422,22 +446,29 @@ def _main(argv=None) -> int:
     ap.add_argument("--data", required=True, help="COCO keypoint JSON the reconstruction ran on (gt.json beside it)")
     ap.add_argument("--recon", required=True, action="append",
                     help="reconstruction directory, or NAME=DIR to name the method; repeat to compare methods")
-    ap.add_argument("--out", help="directory for results.json, shapes.md and viewpoints.md")
+    ap.add_argument("--out", help="directory for results.json, shapes.md (not with --viewpoints-only), viewpoints.md "
+                                  "and, where the runs score their objects' quality, quality.md")
     ap.add_argument("--gt", help="ground truth file (default: gt.json beside --data)")
     ap.add_argument("--split", help="evaluate only annotations of this split (e.g. test)")
     ap.add_argument("--baselines", action="store_true", help="also evaluate Puffball and SFMc")
-    ap.add_argument("--step-percent", type=float, default=0.5,
+    ap.add_argument("--step-percent", type=_positive_finite, default=0.5,
                     help="surface sampling step in percent of the GT bounding-box diagonal (default 0.5; the tables "
                          "in docs/ say which step they used, mostly 1 to 3). A coarser step trades a little accuracy "
-                         "for time: on the default run 0.7 s per object at 0.5, 0.25 s at 2 (2 cores), the errors "
-                         "moving by hundredths of a percentage point (the samples fall as 1/step^2; the time less)")
+                         "for time: on the default run's chairs 0.8 s per object at 0.5, 0.25 s at 2 (wall clock, "
+                         "2 cores, the interpreter's start included), the errors moving by hundredths of a "
+                         "percentage point (the samples fall as 1/step^2; the time less)")
     ap.add_argument("--viewpoints-only", action="store_true", help="skip the shapes (e.g. after stage=cameras)")
     add_common(ap)
     args = ap.parse_args(argv)
     recons = {}
     for item in args.recon:
         name, _, path = item.rpartition("=")
-        recons[name or ("Full" if not recons else Path(path).name)] = path
+        name = name or ("Full" if not recons else Path(path).name)
+        if name in recons:
+            print(f"error: two --recon are named {name} ({recons[name]} and {path}): name them apart "
+                  "(--recon NAME=DIR)", file=sys.stderr)
+            return 2
+        recons[name] = path
     for name, p in recons.items():
         if not Path(p).is_dir():
             print(f"error: reconstruction directory {p} ({name}) not found", file=sys.stderr)
@@ -452,6 +483,29 @@ def _main(argv=None) -> int:
         if made and status != 0:  # the folder made by the check above, left empty: removed
             _remove_if_empty(Path(args.out))
     return status
+
+
+def _positive_finite(text: str) -> float:
+    """``--step-percent``'s type: a finite number above 0 (argparse says what is wrong, exit 2)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
+    return v
+
+
+def _camera_only(recons: dict) -> list[str]:
+    """The methods whose run stopped after the cameras (``stage: cameras`` in its ``config.yaml``): no shapes."""
+    out = []
+    for name, rdir in recons.items():
+        try:
+            if read_run_config(Path(rdir) / "config.yaml").stage == "cameras":
+                out.append(name)
+        except Exception:  # noqa: BLE001 - no or damaged config: nothing to say
+            pass
+    return out
 
 
 def _remove_if_empty(folder: Path) -> None:
@@ -470,6 +524,10 @@ def _evaluate_and_write(args, recons: dict) -> int:
     except (FileNotFoundError, ValueError, CocoFormatError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    cams_only = [] if args.viewpoints_only else _camera_only(recons)
+    if cams_only:
+        print(f"note: {', '.join(cams_only)} stopped after the cameras (stage=cameras): no shapes to score; "
+              "--viewpoints-only evaluates the viewpoints alone", file=sys.stderr)
     for cls, lacking in res["classes_without_reconstruction"].items():
         print(f"note: class {cls} has no reconstruction in {', '.join(lacking)}"
               + ("" if args.classes or len(lacking) < len(recons) else "; not evaluated"), file=sys.stderr)
@@ -486,12 +544,13 @@ def _evaluate_and_write(args, recons: dict) -> int:
         print(quality)
     if args.out:
         out = Path(args.out)
+        tables = {"shapes.md": None if args.viewpoints_only else shapes, "viewpoints.md": views,
+                  "quality.md": quality or None}
         write_json(out / "results.json", res)
-        write_bytes(out / "shapes.md", (shapes + "\n").encode())
-        write_bytes(out / "viewpoints.md", (views + "\n").encode())
-        if quality:
-            write_bytes(out / "quality.md", (quality + "\n").encode())
-        print(f"wrote {out}/results.json, shapes.md, viewpoints.md" + (", quality.md" if quality else ""))
+        for name, text in tables.items():
+            if text is not None:
+                write_bytes(out / name, (text + "\n").encode())
+        print(f"wrote {out}/results.json, " + ", ".join(n for n, t in tables.items() if t is not None))
     return 0
 
 

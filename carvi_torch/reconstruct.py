@@ -58,16 +58,38 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _shorten(text: str, width: int) -> str:
+    """``text`` cut to at most ``width`` characters at a word boundary, ``…`` marking the cut (a number or word
+    is never cut in two, so a cut reason does not read as another; one word longer than ``width`` is cut).
+
+    Example:
+        >>> _shorten("views dropped from 15 to 2", 20), _shorten("short", 20)
+        ('views dropped from…', 'short')
+    """
+    text = " ".join(str(text).split())
+    if len(text) <= width:
+        return text
+    head = text[:width - 1]
+    if text[width - 1] != " " and " " in head:
+        head = head.rsplit(" ", 1)[0]
+    return head.rstrip(" ,;:(") + "…"
+
+
 def _main_reasons(c: dict) -> str:
     """The two most frequent skip reasons of a class, else its first warning."""
     reasons: dict[str, int] = {}
     for f in c.get("failures", []):
-        key = f.get("reason", "")[:48]
+        key = _shorten(f.get("reason", ""), 48)
         reasons[key] = reasons.get(key, 0) + 1
     top = "; ".join(f"{k} (x{v})" for k, v in sorted(reasons.items(), key=lambda kv: -kv[1])[:2])
     if not top and c.get("warnings"):
-        top = "warning: " + c["warnings"][0][:60]
+        top = "warning: " + _shorten(c["warnings"][0], 60)
     return top or "-"
+
+
+def _count(n, noun: str) -> str:
+    """``1 thread``, ``2 threads`` (``None``: ``? threads``)."""
+    return f"{'?' if n is None else n} {noun}{'' if n == 1 else 's'}"
 
 
 def format_table(summary: dict) -> str:
@@ -90,7 +112,7 @@ def format_table(summary: dict) -> str:
         carving = {"fused": f"; carving: fused CPU kernel ({cb.get('variant')})", "torch": "; carving: torch"}.get(
             cb.get("backend"), "")
         lines.append(f"total {summary['total_seconds']:.1f} s on {summary.get('device')} "
-                     f"({summary.get('torch_threads')} threads{carving})")
+                     f"({_count(summary.get('torch_threads'), 'thread')}{carving})")
         if cb.get("reason"):
             lines.append(f"the fused carving kernel was not used: {cb['reason']}")
     return "\n".join(lines)

@@ -197,3 +197,33 @@ def test_stage_modules_import_alone(name, imported_alone):
     """Every stage module imports in a fresh process on its own (no hidden order dependency)."""
     rc, _out, err = imported_alone[name]
     assert rc == 0, err[-2000:]
+
+
+def test_docstring_references_name_what_is_there():
+    """Every ``:func:``/``:class:``/``:attr:``/``:meth:``/``:mod:``/``:data:`` reference of the package to a
+    ``carvi_torch.*`` name resolves: a module, then attributes (a dataclass's fields and annotated names count),
+    so that a moved function leaves no reference to its old home."""
+    import importlib
+    import re
+
+    def module(parts: list[str]):
+        for i in range(len(parts), 0, -1):
+            try:
+                return i, importlib.import_module(".".join(parts[:i]))
+            except ImportError:
+                continue
+
+    bad = []
+    for p in sorted(PACKAGE.rglob("*.py")):
+        for m in re.finditer(r":(?:func|class|attr|meth|mod|data):`~?(carvi_torch(?:\.\w+)+)`", p.read_text()):
+            parts = m.group(1).split(".")
+            i, obj = module(parts)
+            for name in parts[i:]:
+                if hasattr(obj, name):
+                    obj = getattr(obj, name)
+                    continue
+                if name in getattr(obj, "__annotations__", {}):  # a field, not a class attribute
+                    break
+                bad.append(f"{p.relative_to(PACKAGE.parent)}: {m.group(1)}")
+                break
+    assert not bad, bad

@@ -44,3 +44,27 @@ def test_reconstruct_help_lists_every_file_of_a_run():
 
     listed = EPILOG_HEAD.split("key=value settings")[0]
     assert [n for n in RUN_NAMES if n not in listed] == []
+
+
+def test_closing_table_cuts_reasons_at_a_word_and_marks_the_cut():
+    """A long warning or skip reason in reconstruct's closing table ends at a whole word with ``…``: a number is
+    never cut in two (``from 15 to 2`` of ``from 15 to 24`` would read as another number)."""
+    from carvi_torch.reconstruct import format_table
+
+    warning = "the views kept by the refinement of the camera: from 15 to 24 after pruning"  # [:60]: "...to 2"
+    reason = "no usable camera: its SfM residual grew from 13.25 to 17.5 pixels"  # [:48]: "... from 13."
+    summary = {"classes": {"car": {"objects": 1, "reconstructed": 1, "warnings": [warning]},
+                           "bus": {"objects": 1, "failures": [{"reason": reason}]}}}
+    rows = {line.split()[0]: line for line in format_table(summary).splitlines()[2:]}
+    car = rows["car"].split("warning: ", 1)[1].rstrip()
+    bus = rows["bus"].rstrip().split("  ")[-1]
+    assert car == "the views kept by the refinement of the camera: from 15 to…"
+    assert bus == "no usable camera: its SfM residual grew from… (x1)"
+
+
+@pytest.mark.parametrize("threads, said", [(1, "(1 thread)"), (2, "(2 threads)")])
+def test_closing_table_counts_threads_in_words(threads, said):
+    from carvi_torch.reconstruct import format_table
+
+    summary = {"classes": {}, "total_seconds": 1.0, "device": "cpu", "torch_threads": threads}
+    assert f"total 1.0 s on cpu {said}" in format_table(summary)

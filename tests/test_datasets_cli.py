@@ -472,6 +472,28 @@ def test_cli_synthetic_and_procedural(tmp_path, capsys):
     assert "wrote 2 renders" in capsys.readouterr().out
 
 
+def test_cli_procedural_writes_only_over_an_earlier_dataset(tmp_path, capsys):
+    """``datasets procedural`` refuses a non-empty ``--out`` that is not an earlier dataset (one ``error:`` line,
+    exit 2, nothing written) and replaces an earlier one whole: no mesh of the earlier models stays."""
+    args = ["procedural", "--instances", "1", "--classes", "car", "--canvas", "32", "--quiet", "--out"]
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    assert datasets.main([*args, str(other)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: --out {other}: not empty") and "'notes.txt'" in err[0], err
+    assert [p.name for p in other.iterdir()] == ["notes.txt"]
+    out = tmp_path / "proc"
+    assert datasets.main([*args, str(out)]) == 0
+    meshes = sorted(p.name for p in (out / "meshes").iterdir())
+    (out / "meshes" / "car_stale.ply").write_bytes(b"an earlier model")
+    (out / "images").mkdir()
+    (out / "images" / "car_stale_v000.png").write_bytes(b"an earlier photograph")
+    assert datasets.main([*args, str(out)]) == 0
+    assert sorted(p.name for p in (out / "meshes").iterdir()) == meshes
+    assert sorted(p.name for p in out.iterdir()) == ["annotations.json", "gt.json", "meshes"]
+
+
 def test_cli_synthetic_names_sides_like_the_class_unless_told(tmp_path, capsys):
     """``datasets synthetic`` renders a model whose left/right pair is named from the other side with the class's
     names (recorded in the info block, and said on one ``warning:`` line), and with ``--sides as-given`` with its

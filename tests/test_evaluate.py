@@ -135,13 +135,52 @@ def test_a_mesh_left_from_other_inputs_is_not_scored(recon, tmp_path):
 def test_cli_errors(tmp_path, capsys):
     assert main(["--data", str(tmp_path / "a.json"), "--recon", str(tmp_path / "none")]) == 2
     assert "not found" in capsys.readouterr().err
+    # a missing --data is said as such (not as a missing gt.json beside it)
+    assert main(["--data", str(tmp_path / "a.json"), "--recon", str(tmp_path), "--quiet"]) == 2
+    assert capsys.readouterr().err == f"error: {tmp_path / 'a.json'}: no such annotation file\n"
+    # two --recon of one method name would overwrite each other's results
+    (tmp_path / "b").mkdir()
+    assert main(["--data", "x.json", "--recon", f"M={tmp_path}", "--recon", f"M={tmp_path / 'b'}"]) == 2
+    assert capsys.readouterr().err.startswith("error: two --recon are named M (")
+    assert main(["--data", "x.json", "--recon", str(tmp_path), "--recon", str(tmp_path / "b"),
+                 "--recon", f"{tmp_path}/x/../b"]) == 2
+    assert "two --recon are named b" in capsys.readouterr().err
+    for bad in ("0", "-1", "nan", "inf"):
+        with pytest.raises(SystemExit) as e:
+            main(["--data", "x.json", "--recon", str(tmp_path), "--step-percent", bad])
+        assert e.value.code == 2 and "--step-percent" in capsys.readouterr().err
 
 
 def test_viewpoints_only(recon, tmp_path, capsys):
     data, gt = _gt(recon)
-    rc = main(["--data", str(data), "--recon", str(recon), "--viewpoints-only", "--quiet"])
+    rc = main(["--data", str(data), "--recon", str(recon), "--viewpoints-only", "--quiet", "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert rc == 0 and "Symmetric RMS" not in out and "| car | Full | refined |" in out
+    assert not (tmp_path / "shapes.md").exists() and (tmp_path / "viewpoints.md").is_file()  # no empty table
+    assert f"wrote {tmp_path}/results.json, viewpoints.md" in out and "shapes.md" not in out
+
+
+def test_a_camera_only_run_gets_a_note(recon, tmp_path, capsys):
+    """A run that stopped after the cameras, evaluated without --viewpoints-only, gets a note suggesting it."""
+    cams = tmp_path / "cams"
+    shutil.copytree(recon, cams, ignore=shutil.ignore_patterns("meshes", "voxels"))
+    cfg = cams / "config.yaml"
+    cfg.write_text(cfg.read_text().replace("stage: all", "stage: cameras"))
+    data, gt = _gt(recon)
+    assert main(["--data", str(data), "--recon", str(cams), "--classes", "car", "--step-percent", "5", "--quiet"]) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if "stage=cameras" in line]
+    assert notes and notes[0].startswith("note: Full stopped after the cameras") and "--viewpoints-only" in notes[0]
+    assert main(["--data", str(data), "--recon", str(cams), "--classes", "car", "--viewpoints-only", "--quiet"]) == 0
+    assert "stage=cameras" not in capsys.readouterr().err
+
+
+def test_a_split_no_annotation_has_is_refused(recon, capsys):
+    data, gt = _gt(recon)
+    splits = sorted({a.get("split", "") for a in json.loads(data.read_text())["annotations"]})
+    assert main(["--data", str(data), "--recon", str(recon), "--split", "tset", "--viewpoints-only", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: no annotation of") and "split 'tset'" in err and "\n" == err[-1]
+    assert all((repr(s) if s else "none") in err for s in splits), (splits, err)
 
 
 def test_refinement_is_compared_on_the_objects_with_an_sfm_camera(recon, tmp_path):
@@ -208,6 +247,22 @@ def test_unknown_classes_and_foreign_reconstructions_are_refused(recon, tmp_path
         assert "\n" not in err and "was not made from" in err and str(recon / "input" / "annotations.json") in err
     # the data it was made from passes
     assert main(["--data", str(data), "--recon", str(recon), "--viewpoints-only", "--quiet"]) == 0
+    capsys.readouterr()
+    # the file the run was made from, changed since: said so, not "not made from X (it was made from X)"
+    moved = tmp_path / "moved"
+    shutil.copytree(recon, moved, ignore=shutil.ignore_patterns("meshes", "voxels", "report"))
+    summary = json.loads((moved / "summary.json").read_text())
+    summary["data"] = str(moved / "input" / "annotations.json")
+    (moved / "summary.json").write_text(json.dumps(summary))
+    changed = json.loads(json.dumps(dataset))
+    for a in changed["annotations"]:
+        a["source"] = "elsewhere.xml"
+    (moved / "input" / "annotations.json").write_text(json.dumps(changed))
+    assert main(["--data", str(moved / "input" / "annotations.json"), "--recon", str(moved), "--gt", str(gt_file),
+                 "--viewpoints-only", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "but its objects differ from the file's current contents" in err
+    assert "(the file changed since the run)" in err and "was not made from" not in err
 
 
 def test_a_progress_bar_counts_the_objects_unless_quiet(recon, capsys):
@@ -235,9 +290,10 @@ def test_help_says_what_the_step_costs(capsys):
         main(["--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "progress bar counts the objects" in text
-    run = re.search(r"default run's (\d+) objects took (\d+) s at the default `*--step-percent ([\d.]+)`* and (\d+) s "
+    run = re.search(r"default run's (\d+) chairs took (\d+) s at the default `*--step-percent ([\d.]+)`* and (\d+) s "
                     r"at ([\d.]+)", text)
-    quoted = re.search(r"on the default run ([\d.]+) s per object at ([\d.]+), ([\d.]+) s at ([\d.]+) ", text)
+    quoted = re.search(r"on the default run's chairs ([\d.]+) s per object at ([\d.]+), ([\d.]+) s at ([\d.]+) ",
+                       text)
     assert run and quoted, text
     objects, fine_s, fine, coarse_s, coarse = (float(g) for g in run.groups())
     default = inspect.signature(evaluate).parameters["step_percent"].default

@@ -257,3 +257,39 @@ def test_page_without_webgl_still_shows_every_card(recon):
     assert len(cards) == 6 and all(c["data-class"] == "chair" for c in cards)
     assert all(c["data-viewer"] == "failed" and "WebGL unavailable" in c["text"] for c in cards)
     assert dom.count('class="overlay"') == 6
+
+
+def test_overlay_refuses_an_annotation_the_file_changed_since_the_run(tmp_path):
+    """An annotation id whose class or ``source`` in the input file differs from the run's ``cameras.json``
+    entry is another object now: its card draws no overlay and says what the id is now."""
+    from carvi_torch.report.build import _context
+    from carvi_torch.report.cards import Card, ClassView, _overlay
+    from carvi_torch.report.inputs import ObjectInputs
+
+    poly = [[2.0, 2.0, 12.0, 2.0, 12.0, 12.0, 2.0, 12.0]]
+    data = tmp_path / "annotations.json"
+    data.write_text(json.dumps({
+        "images": [{"id": 1, "width": 16, "height": 16, "file_name": "none.png"}],
+        "categories": [{"id": 1, "name": "car", "keypoints": ["a"]}, {"id": 2, "name": "chair", "keypoints": ["a"]}],
+        "annotations": [{"id": i, "image_id": 1, "category_id": c, "segmentation": poly, "area": 100.0,
+                         "bbox": [2, 2, 10, 10], "keypoints": [5, 5, 2], "num_keypoints": 1, **extra}
+                        for i, c, extra in [(7, 2, {"source": "b.png"}), (8, 1, {"source": "a.png"}), (9, 1, {})]]}))
+    ctx = _context(tmp_path / "run", tmp_path / "rep", data, "ply", 100)
+    car = ClassView("car", [])
+    cards = {}
+    for aid, src in [("7", "a.png"), ("8", "c.png"), ("9", None)]:
+        cards[aid] = Card(id=aid, cls="car", key=f"car/{aid}")
+        _overlay(ctx, car, ObjectInputs(aid, aid, source=src), cards[aid], f"objects/car/{aid}.jpg")
+    assert cards["7"].problems == ["annotation 7 is now chair b.png, not the run's: no overlay"]
+    assert cards["8"].problems == ["annotation 8 is now car a.png, not the run's: no overlay"]
+    assert cards["7"].img is None and cards["8"].img is None
+    assert cards["9"].img == "objects/car/9.jpg" and "voxels missing" in cards["9"].problems[0]  # the same object
+
+
+@pytest.mark.parametrize("option", [["--per-page", "0"], ["--per-page", "-3"], ["--workers", "-1"]])
+def test_report_refuses_a_count_out_of_range(option, tmp_path, capsys):
+    """``--per-page`` below 1 and ``--workers`` below 0 are argparse errors (exit 2), not quietly made 1 and 0."""
+    with pytest.raises(SystemExit) as e:
+        report_main(["--recon", str(tmp_path), "--quiet", *option])
+    assert e.value.code == 2 and f"argument {option[0]}: expected an integer >= " in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []

@@ -81,8 +81,10 @@ def test_write_record_sets_one_key_and_keeps_the_rest(tmp_path: Path):
 
 
 def test_benchmark_records_default_to_their_key_of_the_pages_file():
-    """With no ``--out`` the benchmark's records are keys of docs/data/benchmarks.json (docs/benchmarks.md);
-    ``--out`` alone is a file of its own."""
+    """With neither ``--out`` nor ``--key`` the benchmark's record goes to its default key of
+    outputs/benchmarks.json (a plain run leaves the committed records alone); ``--key`` alone names a key of
+    docs/data/benchmarks.json (docs/benchmarks.md, whose commands name their key); ``--out`` alone is a file
+    of its own."""
     bm = load_tool("benchmark", "benchmark_tool")
     import argparse
 
@@ -92,7 +94,7 @@ def test_benchmark_records_default_to_their_key_of_the_pages_file():
 
     key = bm.default_key(torch.device("cpu"), args)
     assert key == "carving_cpu_threads2"
-    assert bm.record_target(args, key) == (ROOT / "docs" / "data" / "benchmarks.json", key)
+    assert bm.record_target(args, key) == (ROOT / "outputs" / "benchmarks.json", key)
     args.key = "meshing_cpu"
     assert bm.record_target(args, key) == (ROOT / "docs" / "data" / "benchmarks.json", "meshing_cpu")
     args.out, args.key = "x.json", None
@@ -108,6 +110,25 @@ def test_benchmark_records_default_to_their_key_of_the_pages_file():
                        ("benchmark_cuda_1000_h100", "reconstruction.md"), ("carving_cpu_threads1", "reconstruction.md"),
                        ("carving_cpu_threads2", "reconstruction.md")):
         assert f"`{name}`" in pages[page] and name in records, name
+
+
+def test_plain_runs_of_the_record_tools_leave_docs_data_alone(tmp_path: Path):
+    """bench_viewpoints, bench_export and voc_study write their records (and voc_study its figure) under
+    outputs/ unless ``--out`` (or ``--key``, a key of the docs' file) names the destination."""
+    import argparse
+
+    bv, be, vs = load_tool("bench_viewpoints"), load_tool("bench_export"), load_tool("voc_study")
+    docs = ROOT / "docs" / "data"
+    plain, keyed, own = (argparse.Namespace(out=o, key=k) for o, k in ((None, None), (None, "k"), ("x.json", None)))
+    assert bv._record_target(plain, "viewpoints_speed") == (ROOT / "outputs" / "viewpoints.json", "viewpoints_speed")
+    assert bv._record_target(keyed, "viewpoints_speed") == (docs / "viewpoints.json", "k")
+    assert bv._record_target(own, "viewpoints_speed") == (Path("x.json"), None)
+    assert be._record_target(plain, "report.json", "report_160") == (ROOT / "outputs" / "report.json", "report_160")
+    assert be._record_target(keyed, "export.json", "export") == (docs / "export.json", "k")
+    args = vs.build_parser().parse_args([])
+    assert vs.record_paths(args, tmp_path) == (tmp_path / "voc_study.json", tmp_path / "voc_aeroplanes.png")
+    args = vs.build_parser().parse_args(["--out", str(docs / "voc_study.json"), "--figure", "none"])
+    assert vs.record_paths(args, tmp_path) == (docs / "voc_study.json", None)
 
 
 def test_docs_data_holds_few_records_each_named_by_a_page():

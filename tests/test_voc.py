@@ -667,8 +667,9 @@ def test_convert_mask_size_mismatch_falls_back_to_polygon(tmp_path):
     write_sbd(masks, "2009_000010", np.ones((10, 10), np.uint8), np.array([[1]], np.uint8))
     report = convert(keypoint_dir(tmp_path, "valid"), tmp_path / "o.json", masks_dir=masks,
                      annotations_dir=DATA / "annotations")
-    assert report.mask_sources == {"polygon": 1} and len(report.warnings) == 1
+    assert report.mask_sources == {"polygon": 1} and len(report.warnings) == 2
     assert "10x10" in report.warnings[0] and "64x48" in report.warnings[0]
+    assert report.warnings[1].startswith(f"no instance mask under {masks} matched an object")
 
 
 def test_convert_classes_filter_and_errors(tmp_path):
@@ -724,8 +725,10 @@ def test_run_exit_codes(tmp_path, capsys):
 
 def test_run_names_the_options_and_writes_nothing_without_objects(tmp_path, capsys):
     kdir, out = keypoint_dir(tmp_path, "valid"), tmp_path / "o.json"
-    assert run(argparse.Namespace(keypoints=str(kdir), out=str(out), classes="cat")) == 1
-    assert not out.exists() and "not asked for: aeroplane 1" in capsys.readouterr().out
+    # a VOC class no file has is a user error (exit 2, as procedural's unknown class), naming the files' classes
+    assert run(argparse.Namespace(keypoints=str(kdir), out=str(out), classes="cat")) == 2
+    assert capsys.readouterr().err == (f"error: voc: --classes: no object of cat in the .xml files of {kdir} "
+                                       "(their classes: aeroplane)\n")
     assert run(argparse.Namespace(keypoints=str(kdir), out=str(out), masks=str(tmp_path / "no"))) == 2
     assert run(argparse.Namespace(keypoints=str(kdir), out=str(out), classes="unicorn")) == 2
     (tmp_path / "empty").mkdir()
@@ -733,6 +736,17 @@ def test_run_names_the_options_and_writes_nothing_without_objects(tmp_path, caps
     err = capsys.readouterr().err.splitlines()
     assert [line.split(":")[2].strip() for line in err] == ["--masks", "--classes", "--keypoints"]
     assert not out.exists()
+
+
+def test_run_warns_when_no_mask_of_masks_matched(tmp_path, capsys):
+    """``--masks`` given but no mask file of it matched an object: a warning says every mask is a polygon."""
+    kdir, out = keypoint_dir(tmp_path, "valid"), tmp_path / "o.json"
+    (tmp_path / "masks").mkdir()
+    assert run(argparse.Namespace(keypoints=str(kdir), out=str(out), masks=str(tmp_path / "masks"))) == 0
+    text = capsys.readouterr().out
+    assert f"warning: no instance mask under {tmp_path / 'masks'} matched an object" in text
+    assert run(argparse.Namespace(keypoints=str(kdir), out=str(out))) == 0  # no --masks: nothing to say
+    assert "warning" not in capsys.readouterr().out
 
 
 def test_unreadable_mask_files_are_reasons_but_other_errors_propagate(tmp_path, monkeypatch):

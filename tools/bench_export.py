@@ -12,8 +12,10 @@ part is not timed here (see tools/benchmark.py). Then it times, as separate proc
 ``python -m carvi_torch.export`` (whole process, start-up included: objects per second, peak
 memory of the process tree, bytes per object on disk, per field too), reading every sample with
 ``LiftedDataset`` on one worker (all fields, and three fields), and a ``DataLoader`` with 2
-workers. Prints a table and writes ``--out`` (under ``--key`` when given, the file's other keys kept;
-default: key ``export`` of ``docs/data/export.json``, the records of docs/export.md).
+workers. Prints a table and writes ``--out`` (under ``--key`` when given, the file's other keys kept);
+``--key`` without ``--out``: that key of ``docs/data/export.json``, the records of docs/export.md (the
+commands the page gives name their key); neither: key ``export`` of ``outputs/export.json``, so that a plain
+run leaves the committed records alone. The other modes' default keys below go the same way.
 
 With ``--quality EVAL_DIR ...`` it times nothing: it ranks the true shape errors of ``evaluate`` runs
 by the objects' ``quality`` (Spearman rho, pooled and per class, each signal alone, ``quality``
@@ -28,7 +30,8 @@ With ``--report`` it times ``python -m carvi_torch.report`` instead (whole proce
 cards made in the report's own process and once in 2 worker processes: objects per
 second, CPU time and peak memory of the report process (its workers are the forkserver's children:
 neither is counted), and bytes per object (overlay and mesh data; the shared assets apart). Default
-record: key ``report_<objects>`` of ``docs/data/report.json`` (docs/report.md).
+record: key ``report_<objects>`` of ``outputs/report.json`` (with ``--key`` alone: of ``docs/data/report.json``,
+docs/report.md's records).
 """
 from __future__ import annotations
 
@@ -375,6 +378,14 @@ def bench_report(recon: Path, work: Path, out: str, key: str | None, argv) -> in
     return 0
 
 
+def _record_target(args, name: str, default_key: str) -> tuple[Path, str | None]:
+    """``--out`` (under ``--key``); ``--key`` alone: that key of ``docs/data/<name>``; neither: ``default_key`` of
+    ``outputs/<name>`` (:func:`carvi_torch.io.outputs.record_target`)."""
+    from carvi_torch.io.outputs import record_target
+
+    return record_target(args.out, args.key, ROOT / "docs" / "data" / name, default_key, ROOT / "outputs" / name)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -382,7 +393,9 @@ def main(argv=None) -> int:
     ap.add_argument("--recon", help="existing reconstruction directory (default: build one)")
     ap.add_argument("--work", default=str(ROOT / "outputs" / "bench_export"))
     ap.add_argument("--workers", type=int, default=None, help="export worker processes (default: its own)")
-    ap.add_argument("--out", help="JSON record (default docs/data/export.json; with --report docs/data/report.json)")
+    ap.add_argument("--out", help="JSON record (default outputs/export.json, with --report outputs/report.json; "
+                                  "with --key alone docs/data/export.json or docs/data/report.json, the pages' "
+                                  "records)")
     ap.add_argument("--key", help="write the record under this key of --out's JSON object, its other keys kept "
                                   "(default with no --out: export; with --report report_<objects>)")
     ap.add_argument("--report", action="store_true", help="benchmark the HTML report instead of the export")
@@ -399,13 +412,13 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     argv = list(sys.argv[1:] if argv is None else argv)
     if args.quality:
-        out = args.out or str(ROOT / "docs" / "data" / "export.json")
-        return quality_study([Path(d) for d in args.quality], args.method, out, args.key or "quality_shape_cad", argv)
+        out, key = _record_target(args, "export.json", "quality_shape_cad")
+        return quality_study([Path(d) for d in args.quality], args.method, str(out), key, argv)
     args.objects = args.objects or (160 if args.report else 1000)
-    if not args.out:
-        args.out = str(ROOT / "docs" / "data" / ("report.json" if args.report else "export.json"))
-        args.key = args.key or (f"report_{args.objects}" if args.report else
-                                "export_compare" if args.compare_with else "export")
+    out, args.key = _record_target(args, "report.json" if args.report else "export.json",
+                                   f"report_{args.objects}" if args.report else
+                                   "export_compare" if args.compare_with else "export")
+    args.out = str(out)
     work, py = Path(args.work), sys.executable
     recon = Path(args.recon) if args.recon else _reconstruct(py, work, args.objects)
     if args.report:

@@ -56,10 +56,11 @@ least of each (docs/viewpoints.md, *Cost*):
 
     python tools/bench_viewpoints.py --cameras-cpu outputs/bench/data/cad_v8_s0/annotations.json --key cameras_cpu_cad8
 
-The JSON record goes to ``--out`` (under ``--key`` when given), by default under the key
+The JSON record goes to ``--out`` (under ``--key`` when given); by default under the key
 ``viewpoints_speed[_groups<G>][_shapes<S>][_n<N>][_<device>]`` (``cameras_cpu`` for ``--cameras-cpu``) of
-``docs/data/viewpoints.json``, the
-records of docs/viewpoints.md (it cites the default run's and ``--shapes 3 --groups 3``'s).
+``outputs/viewpoints.json``, so that a plain run leaves the committed records alone; ``--key`` without ``--out``
+writes that key of ``docs/data/viewpoints.json``, the records of docs/viewpoints.md (it cites the default run's
+and ``--shapes 3 --groups 3``'s, each under its default key).
 """
 from __future__ import annotations
 
@@ -85,7 +86,7 @@ from skimage.draw import polygon2mask
 from carvi_torch.cameras import FLIP_X, ScaledOrthographic, random_rotations
 from carvi_torch.config import Config
 from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report
-from carvi_torch.io.outputs import write_record
+from carvi_torch.io.outputs import record_target, write_record
 from carvi_torch.runtime import cpu_seconds, peak_rss_mb
 from carvi_torch.sdf import distance_to_mask
 from carvi_torch.viewpoints import mixture as sfm_mixture
@@ -339,8 +340,15 @@ def cameras_cpu(data: str, variants: list[str], rounds: int, command=reconstruct
             "same_cameras_every_round": {v: len({x["cameras_sha256"] for x in rs}) == 1 for v, rs in runs.items()}}
 
 
+def _record_target(args, default_key: str) -> tuple[Path, str | None]:
+    """``--out`` (under ``--key``); ``--key`` alone: that key of docs/data/viewpoints.json; neither:
+    ``default_key`` of outputs/viewpoints.json (:func:`carvi_torch.io.outputs.record_target`)."""
+    return record_target(args.out, args.key, ROOT / "docs" / "data" / "viewpoints.json", default_key,
+                         ROOT / "outputs" / "viewpoints.json")
+
+
 def main_cameras_cpu(args, argv: list[str]) -> dict:
-    """``--cameras-cpu``: run, print and write (default: key ``cameras_cpu`` of ``docs/data/viewpoints.json``)."""
+    """``--cameras-cpu``: run, print and write (default: key ``cameras_cpu`` of ``outputs/viewpoints.json``)."""
     rec = {"command": shlex.join(["python", "tools/bench_viewpoints.py", *argv]),
            **cameras_cpu(args.cameras_cpu, args.variants, max(1, args.rounds))}
     for v in args.variants:
@@ -348,8 +356,7 @@ def main_cameras_cpu(args, argv: list[str]) -> dict:
         print(f"{v}: least CPU {rec['least_cpu_seconds'][v]:.1f} s, / first {r['least']:.2f} (per round "
               + ", ".join(f"{x:.2f}" for x in r["per_round"]) + "); groups kept "
               + str({c: g for c, g in rec["runs"][v][0]["groups"].items() if g > 1}))
-    out, key = (Path(args.out), args.key) if args.out else (ROOT / "docs" / "data" / "viewpoints.json",
-                                                           args.key or "cameras_cpu")
+    out, key = _record_target(args, "cameras_cpu")
     write_record(out, rec, key)
     print(f"wrote {out}" + (f", key {key}" if key else ""))
     return rec
@@ -383,7 +390,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--one-thread-too", action="store_true",
                     help="with --groups: also time the warm fit on one Python thread, in the same run, and check "
                          "that it gives the same result")
-    ap.add_argument("--out", default=None, help="JSON record (default docs/data/viewpoints.json, under --key)")
+    ap.add_argument("--out", default=None, help="JSON record (default outputs/viewpoints.json, under the default key; "
+                                                "with --key alone docs/data/viewpoints.json, the pages' records)")
     ap.add_argument("--key", default=None, help="write the record under this key of --out's JSON object, its other "
                                                 "keys kept (default with no --out: viewpoints_speed[...], named "
                                                 "after the options that differ from the defaults)")
@@ -407,10 +415,10 @@ def main(argv=None) -> dict:
                                args.key)
     dev = torch.device(args.device)
     vcfg = Config().viewpoints  # the pipeline's viewpoint settings
-    out, key = (Path(args.out), args.key) if args.out else (ROOT / "docs" / "data" / "viewpoints.json", args.key or (
-        "viewpoints_speed" + (f"_groups{args.groups}" if args.groups > 1 else "")
-        + (f"_shapes{args.shapes}" if args.shapes > 1 else "") + (f"_n{args.n}" if args.n != 2000 else "")
-        + (f"_{dev.type}" if dev.type != "cpu" else "")))
+    out, key = _record_target(args, "viewpoints_speed" + (f"_groups{args.groups}" if args.groups > 1 else "")
+                              + (f"_shapes{args.shapes}" if args.shapes > 1 else "")
+                              + (f"_n{args.n}" if args.n != 2000 else "")
+                              + (f"_{dev.type}" if dev.type != "cpu" else ""))
 
     t0 = time.perf_counter()
     data = make_class(args.n, args.k, args.canvas, args.seed, args.shapes)

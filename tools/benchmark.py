@@ -50,9 +50,11 @@ generates them all.
 
 Prints a table (whole-process time, objects per second, peak memory; the carving variants as
 seconds per object and as ratios to the default backend timed in the same run) and writes
-everything as JSON, with the command line and the machine, to ``--out``, by default under the key
-``benchmark_<device>_<objects>`` (``carving_<device>_threads<N>`` with ``--skip-e2e``) of
-``docs/data/benchmarks.json``, the records of docs/benchmarks.md (``--key`` names another key).
+everything as JSON, with the command line and the machine, to ``--out`` (under ``--key`` when given); by
+default under the key ``benchmark_<device>_<objects>`` (``carving_<device>_threads<N>`` with ``--skip-e2e``)
+of ``outputs/benchmarks.json``, so that a plain run leaves the committed records alone; ``--key`` without
+``--out`` writes that key of ``docs/data/benchmarks.json``, the records of docs/benchmarks.md (the commands
+the pages give name their key).
 
 Examples::
 
@@ -100,6 +102,7 @@ from carvi_torch import pipeline, select
 from carvi_torch.carve import native, torch_backend
 from carvi_torch.config import Config
 from carvi_torch.io import coco
+from carvi_torch.io import outputs
 from carvi_torch.io.outputs import read_json, write_json, write_record
 from carvi_torch.io.writer import writer_workers
 from carvi_torch.runtime import child_pythonpath, cpu_seconds, intra_op_threads, stable_hash
@@ -1089,11 +1092,9 @@ BENCHMARKS_JSON = ROOT / "docs" / "data" / "benchmarks.json"  # docs/benchmarks.
 
 
 def record_target(args, key: str) -> tuple[Path, str | None]:
-    """Where the record goes: ``--out`` (under ``--key`` when given, else the whole file), by default
-    key ``key`` of ``docs/data/benchmarks.json``."""
-    if args.out:
-        return Path(args.out), args.key
-    return BENCHMARKS_JSON, args.key or key
+    """Where the record goes: ``--out`` (under ``--key`` when given, else the whole file); ``--key`` alone: that
+    key of ``docs/data/benchmarks.json``; neither: key ``key`` of ``outputs/benchmarks.json``."""
+    return outputs.record_target(args.out, args.key, BENCHMARKS_JSON, key, ROOT / "outputs" / "benchmarks.json")
 
 
 def default_key(device: torch.device, args) -> str:
@@ -1147,12 +1148,13 @@ def main(argv=None):
     ap.add_argument("--cpu-clock", action="store_true",
                     help="--many-classes: stage timers (and total_seconds) on the run's CPU time, not the wall clock "
                          "(classes one after the other)")
-    ap.add_argument("--out", default=None, help="JSON path (default: docs/data/benchmarks.json, under --key; "
-                                                "with --executor ray docs/data/ray_scaling_<objects>.json)")
+    ap.add_argument("--out", default=None, help="JSON path (default: outputs/benchmarks.json, under the default key; "
+                                                "with --key alone docs/data/benchmarks.json, the pages' records; "
+                                                "with --executor ray outputs/ray_scaling_<objects>.json)")
     ap.add_argument("--key", default=None, help="write the record under this key of --out's JSON object, its other "
                                                 "keys kept (default with no --out: benchmark_<device>_<objects>, "
                                                 "with --skip-e2e carving_<device>_threads<N>, with --many-classes "
-                                                "many_classes_<device>)")
+                                                "many_classes_<device>, in outputs/benchmarks.json)")
     ap.add_argument("--executor", choices=["local", "ray"], default="local",
                     help="ray: the Ray executor's throughput on local clusters of --ray-nodes worker nodes")
     ap.add_argument("--ray-nodes", default="1,2", help="--executor ray: worker node counts (1 CPU each)")
@@ -1161,8 +1163,10 @@ def main(argv=None):
     if args.executor == "ray":
         result = ray_scaling(args, argv)
         print(ray_table(result))
-        out_json = Path(args.out) if args.out else ROOT / "docs" / "data" / f"ray_scaling_{args.objects}.json"
-        write_record(out_json, result, args.key)
+        name = f"ray_scaling_{args.objects}.json"
+        out_json, key = outputs.record_target(args.out, args.key, ROOT / "docs" / "data" / name, None,
+                                              ROOT / "outputs" / name)
+        write_record(out_json, result, key)
         print(f"wrote {out_json}")
         return result
     device = torch.device(args.device)
@@ -1204,7 +1208,7 @@ def main(argv=None):
 
 def main_many(args, argv: list[str], device: torch.device) -> dict:
     """``--many-classes``: run, print and write (default: key ``many_classes_<device>`` of
-    ``docs/data/benchmarks.json``)."""
+    ``outputs/benchmarks.json``: :func:`record_target`)."""
     out_json, key = record_target(args, f"many_classes_{device.type}")
     result = {"command": " ".join(["python tools/benchmark.py"] + [shlex.quote(a) for a in argv]),
               "machine_at_start": machine(device)}

@@ -2,10 +2,14 @@
 
 One command reproduces every number of ``docs/voc.md``::
 
-    python tools/voc_study.py [--data ../shared/data] [--work outputs/voc] [--out docs/data/voc_study.json]
-                              [--figure docs/figures/voc_aeroplanes.png] [--seed 0] [--device cpu]
+    python tools/voc_study.py [--data ../shared/data] [--work outputs/voc] [--out WORK/voc_study.json]
+                              [--figure WORK/voc_aeroplanes.png] [--seed 0] [--device cpu]
                               [--set KEY=VALUE ...] [--skip-reconstruct] [--no-shapes] [--no-diagnose]
     python tools/voc_study.py --cameras-only [--set KEY=VALUE ...]   # steps 1-3 alone, about 20 s
+
+The record and the figure go under ``WORK`` unless ``--out`` and ``--figure`` name other files, so that a
+plain run leaves the committed ones alone; docs/voc.md's command names ``docs/data/voc_study.json`` and
+``docs/figures/voc_aeroplanes.png``.
 
 Steps (each prints a table; everything lands in ``--out`` as JSON with the command line, the
 per-object errors in ``WORK/per_object.json``):
@@ -1018,6 +1022,14 @@ def step_figure(path: Path, ann: Path, recon: Path, data: Path, gt: dict, vp: di
 # =========================================================================== main
 
 
+def record_paths(args, work: Path) -> tuple[Path, Path | None]:
+    """The record's and the figure's paths (``None``: no figure): ``--out`` and ``--figure``, by default
+    ``WORK/voc_study.json`` and ``WORK/voc_aeroplanes.png`` (never the committed docs/ files unless named)."""
+    out = Path(args.out).resolve() if args.out else work / "voc_study.json"
+    figure = None if args.figure == "none" else Path(args.figure) if args.figure else work / "voc_aeroplanes.png"
+    return out, figure
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -1026,9 +1038,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--work", default=str(ROOT / "outputs" / "voc"),
                     help="working folder: annotations.json and the reconstruction (default outputs/voc)")
     ap.add_argument("--out", default=None,
-                    help="JSON record (default docs/data/voc_study.json; with --cameras-only WORK/cameras_only.json)")
-    ap.add_argument("--figure", default=str(ROOT / "docs" / "figures" / "voc_aeroplanes.png"),
-                    help="figure path (default docs/figures/voc_aeroplanes.png); 'none' for no figure")
+                    help="JSON record (default WORK/voc_study.json, with --cameras-only WORK/cameras_only.json; "
+                         "docs/voc.md's record: docs/data/voc_study.json)")
+    ap.add_argument("--figure", default=None,
+                    help="figure path (default WORK/voc_aeroplanes.png; docs/voc.md's: "
+                         "docs/figures/voc_aeroplanes.png); 'none' for no figure")
     ap.add_argument("--seed", type=int, default=0, help="seed of the held-aside split (default 0)")
     ap.add_argument("--holdout", type=float, default=1 / 3, help="fraction held aside for unseen images (default 1/3)")
     ap.add_argument("--device", default="cpu", help="torch device (default cpu)")
@@ -1083,7 +1097,7 @@ def main(argv=None) -> dict:
                                                                              else sys.argv[1:]))
     if args.cameras_only:
         return cameras_only(args, data, work, command)
-    out = Path(args.out).resolve() if args.out else ROOT / "docs" / "data" / "voc_study.json"
+    out, figure = record_paths(args, work)
     load = os.getloadavg()
     print(f"voc_study: {command}\nload average at start: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, "
           f"{os.cpu_count()} cores")
@@ -1119,8 +1133,8 @@ def main(argv=None) -> dict:
     if not args.no_shapes:
         shapes = step_shapes(ann, recon, data, work, gt, cfg, other_cads=args.other_cads)
         result["shapes"] = {k: v for k, v in shapes.items() if k != "per_object"}
-    if args.figure != "none":
-        result["figure"] = step_figure(Path(args.figure), ann, recon, data, gt, vp, shapes)
+    if figure is not None:
+        result["figure"] = step_figure(figure, ann, recon, data, gt, vp, shapes)
     result["total_seconds"] = round(time.perf_counter() - t_start, 1)
     load = os.getloadavg()
     result["environment"]["load_average_end"] = [round(x, 2) for x in load]

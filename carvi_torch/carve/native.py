@@ -459,7 +459,8 @@ def carve_labels(ext: torch.Tensor, views: torch.Tensor, scale: torch.Tensor, G:
     on the CPU with ``backend="fused"``).
 
     Args:
-        ext: ``(K, Hp, Wp)`` float32 extended maps, unscaled (:attr:`carvi_torch.carve.geometry.CarveMaps.ext`).
+        ext: ``(K + 1, H + 2 PAD, W + 2 PAD)`` float32 extended maps, unscaled
+            (:attr:`carvi_torch.carve.geometry.CarveMaps.ext`: the ``K`` maps, then the unused-slot map).
         views: ``(B, V)`` int64 rows of ``ext`` per view slot, ``-1`` for an unused slot (``V <= MAX_VIEWS``).
         scale: ``(B, V)`` float32 per-slot scale of the map values.
         G: ``(B, V, 2, 4)`` float32 voxel index -> sampling coordinates

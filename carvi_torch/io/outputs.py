@@ -21,7 +21,7 @@ from typing import Any, Callable
 import numpy as np
 
 __all__ = ["atomic_write", "write_json", "write_record", "read_json", "read_text", "write_npz", "write_bytes",
-           "to_jsonable", "is_done", "safe_name"]
+           "to_jsonable", "is_done", "safe_name", "record_target"]
 
 
 def _file_mode() -> int:
@@ -116,6 +116,25 @@ def write_record(path: str | os.PathLike, obj: Any, key: str | None = None) -> P
         raise ValueError(f"{path}: not a JSON object of records; give another file or no key")
     records[key] = obj
     return write_json(path, records)
+
+
+def record_target(out: str | os.PathLike | None, key: str | None, pages_file: Path, default_key: str | None,
+                  scratch: Path) -> tuple[Path, str | None]:
+    """Where a benchmark tool writes its record (:func:`write_record`'s path and key): ``--out`` (under ``--key``
+    when given, else the whole file); ``--key`` alone: that key of ``pages_file``, the records a docs page cites
+    (the commands the pages give name their key); neither: ``default_key`` of ``scratch`` (a file under the
+    ignored ``outputs/``), so that a plain run never rewrites a committed record.
+
+    Example:
+        >>> docs, scratch = Path("docs/data/b.json"), Path("outputs/b.json")
+        >>> [record_target(o, k, docs, "run_cpu", scratch) for o, k in ((None, None), (None, "x"), ("my.json", None))]
+        [(PosixPath('outputs/b.json'), 'run_cpu'), (PosixPath('docs/data/b.json'), 'x'), (PosixPath('my.json'), None)]
+    """
+    if out:
+        return Path(out), key
+    if key:
+        return Path(pages_file), key
+    return Path(scratch), default_key
 
 
 def read_text(path: str | os.PathLike) -> str:

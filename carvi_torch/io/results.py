@@ -21,7 +21,7 @@ from .layout import object_file
 from .outputs import read_json, write_json, write_npz
 
 __all__ = ["ClassReport", "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras",
-           "reconstruction_signals", "resumed_objects", "quality_summary"]
+           "reconstruction_signals", "resumed_objects", "quality_summary", "annotation_source", "same_object"]
 
 
 @dataclass
@@ -67,7 +67,7 @@ class ClassReport:
             self.seconds[k] = self.seconds.get(k, 0.0) + v
 
     def book_write(self, out: dict, aid, src) -> None:
-        """Book a writer's result (:func:`carvi_torch.io.writer.write_object`) for object ``aid``."""
+        """Book a writer's result (:func:`carvi_torch.io.write_worker.write_object`) for object ``aid``."""
         self.seconds["mesh"] = self.seconds.get("mesh", 0.0) + out["mesh_seconds"]
         self.seconds["write"] = self.seconds.get("write", 0.0) + out["write_seconds"]
         if out["ok"]:
@@ -76,6 +76,27 @@ class ClassReport:
                 self.reconstruction_iou[str(aid)] = out["reconstruction_iou"]
         else:
             self.skip(out["reason"], "mesh", aid, src)
+
+
+def annotation_source(ann: dict) -> str:
+    """The ``source`` of a COCO annotation as :func:`carvi_torch.io.coco.load_coco` names the object (and
+    ``cameras.json`` records it): the annotation's ``source``, else ``annotation <id>``."""
+    return str(ann.get("source") or f"annotation {ann.get('id')}")
+
+
+def same_object(cls: str, source: str | None, now_class: str | None, now_source: str) -> bool:
+    """Whether an object a run recorded (its class key ``cls`` and ``cameras.json``'s ``source``, ``None``
+    where the entry has none) is the one an annotation file now holds under its id (``now_class``, the class
+    key of its category, and ``now_source``, :func:`annotation_source`): the readers of a run (evaluate,
+    report) check it before they compare or draw the file's annotation with the run's outputs.
+
+    Example:
+        >>> same_object("car", "a.xml", "car", "a.xml"), same_object("car", None, "car", "annotation 3")
+        (True, True)
+        >>> same_object("car", "a.xml", "car", "b.xml"), same_object("car", "a.xml", "chair", "a.xml")
+        (False, False)
+    """
+    return now_class == cls and (source is None or source == now_source)
 
 
 def _camera_from(has_cam: bool, ground_truth: bool, sfm_ok: bool, unseen: int) -> str | None:

@@ -905,7 +905,8 @@ def convert(keypoint_dir: str | Path, out_path: str | Path, masks_dir: str | Pat
 
     Raises:
         FileNotFoundError: a given folder does not exist.
-        ValueError: no ``.xml`` file in ``keypoint_dir``; unknown names in ``classes``.
+        ValueError: no ``.xml`` file in ``keypoint_dir``; unknown names in ``classes``, or a class of
+            ``classes`` that no parsed file has.
     """
     kdir = _check_dir(keypoint_dir, "keypoint_dir")
     mdir = _check_dir(masks_dir, "masks_dir")
@@ -920,6 +921,7 @@ def convert(keypoint_dir: str | Path, out_path: str | Path, masks_dir: str | Pat
     with watch_interrupts() as interrupts:  # a Ctrl-C that a reader turned into a bad-file error stops here
         by_image = _parse_files(files, one_based, report)
         interrupts.check()
+        _check_classes_present(wanted, by_image, kdir)
         converted = []  # (file, obj, cls, mask_rle, size, mask_source, flags)
         for image in sorted(by_image):
             converted += _convert_image(image, by_image[image], mdir, adir, wanted, min_iou, report, excluded)
@@ -931,6 +933,10 @@ def convert(keypoint_dir: str | Path, out_path: str | Path, masks_dir: str | Pat
     report.excluded = dict(sorted(excluded.items()))
     report.mask_sources = dict(sorted(sources.items()))
     report.num_images = len(images)
+    if mdir is not None and annotations and not set(sources) - {"polygon"}:
+        report.warnings.append(f"no instance mask under {mdir} matched an object (looked for inst/<image>.mat, "
+                               "<image>.mat, SegmentationObject/<image>.png, <image>.png): every mask is the "
+                               "XML polygons'")
     data = {
         "info": {"description": "PASCAL VOC Berkeley keypoints converted by carvi_torch.io.voc",
                  "keypoint_dir": str(kdir), "masks_dir": str(mdir) if mdir else None,
@@ -945,6 +951,15 @@ def convert(keypoint_dir: str | Path, out_path: str | Path, masks_dir: str | Pat
         write_json(out_path, data)
         report.written = True
     return report
+
+
+def _check_classes_present(wanted: set[str] | None, by_image: dict, kdir: Path) -> None:
+    """``ValueError`` when a class asked for has no object in the parsed files (naming the classes they have)."""
+    present = sorted({cls for group in by_image.values() for _, _, cls in group if cls is not None})
+    absent = sorted((wanted or set()) - set(present))
+    if absent:
+        raise ValueError(f"classes: no object of {', '.join(absent)} in the .xml files of {kdir} (their classes: "
+                         f"{', '.join(present) or 'none'})")
 
 
 def _parse_files(files: list[Path], one_based: bool, report: Report) -> dict:
@@ -1082,7 +1097,8 @@ def run(args: Any) -> int:
 
     Returns:
         0 when at least one object was converted, 1 when none was (nothing is written), 2 on bad
-        arguments or a missing folder (one ``error:`` line, naming the option). Prints :meth:`Report.summary`.
+        arguments (a ``--classes`` name that no file has, too) or a missing folder (one ``error:`` line, naming
+        the option). Prints :meth:`Report.summary`.
         Another ``OSError`` (an output that cannot be written) is raised: ``datasets``' shared ending prints it
         as one ``error:`` line.
     """

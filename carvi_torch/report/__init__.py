@@ -20,7 +20,7 @@ def main(argv=None) -> int:
     cannot take the report (one ``error:`` line); 130 interrupted by Ctrl-C (one line)."""
     import argparse
 
-    from ..cli import add_common, program, run_command
+    from ..cli import add_common, nonneg_int, positive_int, program, run_command
 
     ap = argparse.ArgumentParser(prog=program("carvi_torch.report"),
                                  description="An HTML report of a finished run: per-class panels and one card per "
@@ -28,9 +28,10 @@ def main(argv=None) -> int:
                                              "OUT/index.html in a browser; it needs no network.")
     ap.add_argument("--recon", required=True, help="the run's output folder (reconstruct --out)")
     ap.add_argument("--out", help="where to write the report (default: RECON/report)")
-    ap.add_argument("--per-page", type=int, default=24, help="cards per page (default: 24)")
-    ap.add_argument("--workers", type=int, help="processes making the cards (default: none on 2 cores or fewer "
-                                                "or below 100 objects, else one per core but one, at most 4)")
+    ap.add_argument("--per-page", type=positive_int, default=24, help="cards per page (default: 24)")
+    ap.add_argument("--workers", type=nonneg_int, help="processes making the cards (default: none on 2 cores or fewer "
+                                                "or below 100 objects, else one per core but one, at most 4; "
+                                                "0: all in this process)")
     add_common(ap, classes=False)
     args = ap.parse_args(argv)
     where = args.out or f"{args.recon}/report"
@@ -42,8 +43,7 @@ def _main(args) -> int:
     import sys
 
     try:
-        rep = build_report(args.recon, args.out, per_page=max(1, args.per_page),
-                           workers=None if args.workers is None else max(0, args.workers))
+        rep = build_report(args.recon, args.out, per_page=args.per_page, workers=args.workers)
     except ReportError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

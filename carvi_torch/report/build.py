@@ -28,6 +28,7 @@ from pathlib import Path
 from concurrent.futures.process import BrokenProcessPool
 from typing import Literal
 
+from ..io.coco import class_keys
 from ..io.outputs import safe_name
 from ..runtime import LeanProcessPool, check_replaceable, os_error_line, start_method
 from .cards import Card, CardContext, ClassView, make_card
@@ -73,7 +74,7 @@ def sort_cards(cards: list[Card]) -> tuple[list[Card], SortBy]:
 
 
 def _context(recon: Path, out: Path, data: Path | None, mesh_format: str, max_faces: int) -> CardContext:
-    anns, images, coco, problem = {}, {}, None, None
+    anns, images, coco, problem, ann_class = {}, {}, None, None, {}
     if data is None:
         problem = "summary.json names no input annotation file: no overlay"
     else:
@@ -84,10 +85,12 @@ def _context(recon: Path, out: Path, data: Path | None, mesh_format: str, max_fa
                 coco = COCO(str(data))
             anns = {str(k): v for k, v in coco.anns.items()}
             images = coco.imgs
+            key_of = class_keys(coco.dataset.get("categories", []))
+            ann_class = {k: key_of.get(str(a.get("category_id"))) for k, a in anns.items()}
         except Exception as e:  # noqa: BLE001 - no overlays, every card says why
             problem = f"input annotations {data.name} unreadable ({type(e).__name__}): no overlay"
     return CardContext(recon=recon, out=out, anns=anns, images=images, coco=coco, data=data,
-                       mesh_format=mesh_format, max_faces=max_faces, data_problem=problem)
+                       mesh_format=mesh_format, max_faces=max_faces, data_problem=problem, ann_class=ann_class)
 
 
 _WORKER_CTX: CardContext | None = None

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.results import annotation_source, same_object
 from ..preview import OVERLAY_COLOURS, crop_box, overlay_colours, project_silhouette
 from .inputs import ClassInputs, ObjectInputs
 
@@ -192,6 +193,8 @@ class CardContext:
     max_faces: int = 4000
     jpeg_quality: int = 82
     data_problem: str | None = None
+    ann_class: dict = field(default_factory=dict)
+    """Annotation id (as a string) -> the class key of its category in the input file (``None``: unknown)."""
 
 
 @dataclass
@@ -222,6 +225,11 @@ def _overlay(ctx: CardContext, cls: ClassView, obj: ObjectInputs, card: Card, re
     ann = ctx.anns.get(obj.annotation_id)
     if ann is None:
         card.problems.append(ctx.data_problem or "annotation not in the input file: no overlay")
+        return
+    now_class, now_source = ctx.ann_class.get(obj.annotation_id), annotation_source(ann)
+    if not same_object(cls.key, obj.source, now_class, now_source):  # the file changed since the run
+        card.problems.append(f"annotation {obj.annotation_id} is now {now_class} {now_source}, not the run's: "
+                             "no overlay")
         return
     try:
         mask = ctx.coco.annToMask(ann).astype(bool)
