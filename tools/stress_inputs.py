@@ -660,6 +660,8 @@ def _command_cases() -> list[Case]:
              ("--data", "{data}", "--recon", "{dir}/run", "--out", "{dir}/file"), run + file, "is a file"),
         case("datasets", "procedural_out_file", "datasets procedural --out is an existing file",
              ("procedural", "--out", "{dir}/file"), file, "is a file"),
+        case("datasets", "procedural_out_foreign", "datasets procedural --out holds other files",
+             ("procedural", "--out", "{dir}/mine"), foreign, "not an earlier synthetic"),
         case("datasets", "voc_out_folder", "datasets voc --out (a file) is a folder",
              ("voc", "--keypoints", "{dir}/mine", "--out", "{dir}/mine"), foreign, "is a folder"),
     ]
