@@ -683,6 +683,34 @@ def test_a_file_where_a_class_folder_goes_is_refused_before_the_work(base_dir, t
     assert (out / where).read_text() == "mine"
 
 
+@pytest.mark.parametrize("finished", ["car/meshes/1.ply", "chair/voxels/7.npz"])
+def test_stage_cameras_into_a_folder_with_finished_objects_is_refused(tmp_path, capsys, finished):
+    """A camera-only run would rewrite config.yaml, cameras.json and the class's summary entry beside shapes
+    made with other cameras: one error line, exit 2, the folder as it was."""
+    out = tmp_path / "out"
+    (out / finished).parent.mkdir(parents=True)
+    (out / finished).write_text("shape")
+    (out / "summary.json").write_text('{"classes": {"car": {"status": "ok", "reconstructed": 1}}}')
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    rc = reconstruct_main(["--out", str(out), "--quiet", "stage=cameras", *(f"{k}={v}" for k, v in SMALL.items())])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error:") and "stage=cameras" in err[0], err
+    assert "another --out" in err[0] and finished.rsplit("/", 1)[0] in err[0]
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_stage_cameras_into_an_empty_or_camera_only_folder_runs(base_dir, tmp_path):
+    """Empty (or holding only empty per-object folders) and camera-only folders take a camera-only run."""
+    out = tmp_path / "out"
+    (out / "car" / "meshes").mkdir(parents=True)
+    args = ["--data", str(base_dir / "annotations.json"), "--out", str(out), "--quiet", "--classes", "car",
+            "stage=cameras", *(f"{k}={v}" for k, v in SMALL.items())]
+    for _ in range(2):  # the second into the first's camera-only folder
+        assert reconstruct_main(args) == 0
+        assert json.loads((out / "summary.json").read_text())["classes"]["car"]["status"] == "cameras"
+        assert (out / "car" / "cameras.json").is_file() and not any((out / "car" / "meshes").iterdir())
+
+
 def test_references_of_a_split_no_object_has_is_a_user_error(base, tmp_path, capsys):
     """Else the run reconstructs nothing, says ok per class and exits 1 without a reason."""
     d = copy.deepcopy(base)

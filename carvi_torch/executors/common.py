@@ -15,7 +15,7 @@ import torch
 from .. import carve
 from ..config import Config, ConfigError, settings_changed
 from ..io import coco
-from ..io.layout import KINDS, linked_path
+from ..io.layout import KINDS, RUN_NAMES, linked_path
 from ..io.outputs import read_json, write_bytes, write_json
 from ..runtime import log, peak_rss_mb, stable_hash, unwritable_above
 
@@ -79,12 +79,30 @@ def _check_class_folders(out: Path, keys) -> None:
                                   f"{key!r}; move it or choose another --out")
 
 
+def _check_cameras_only(out: Path) -> None:
+    """``stage=cameras`` writes no shapes but would rewrite ``config.yaml``, the classes' ``cameras.json`` and
+    their summary entries: into a folder that holds finished objects (meshes or voxels of any class) it would
+    leave those objects next to cameras and a record they were not made with, so it is refused."""
+    if not out.is_dir():
+        return
+    for cdir in sorted(out.iterdir()):
+        if cdir.name in RUN_NAMES or not cdir.is_dir() or cdir.is_symlink():
+            continue
+        for kind in ("meshes", "voxels"):
+            folder = cdir / kind
+            if folder.is_dir() and not folder.is_symlink() and any(folder.iterdir()):
+                raise ConfigError(f"--out {out} holds finished objects ({folder}), and stage=cameras would replace "
+                                  "their run's cameras and record; choose another --out for a camera-only run")
+
+
 def check_request(cfg: Config) -> torch.device:
     """The user errors a run can have before it starts, as :class:`ConfigError` (nothing is written):
-    an unknown or absent device, an output folder that is a file or not writable, annotations that
-    do not exist. Returns the device."""
+    an unknown or absent device, an output folder that is a file or not writable (or, for ``stage=cameras``,
+    one that holds finished objects), annotations that do not exist. Returns the device."""
     device = cfg.resolve_device()
     _check_out(Path(cfg.out))
+    if cfg.stage == "cameras":
+        _check_cameras_only(Path(cfg.out))
     if cfg.data is not None and not Path(cfg.data).is_file():
         raise ConfigError(f"--data {cfg.data}: no such file")
     if cfg.gt is not None and not Path(cfg.gt).is_file():
