@@ -249,6 +249,21 @@ def test_page_in_chromium_filter_pages_and_reasons(recon, tmp_path):
     assert cards[1]["data-viewer"] == "ok"
 
 
+def test_class_link_is_url_encoded():
+    """A class key with '%' or '&' still links to its own cards (the page decodes the hash)."""
+    from carvi_torch.report.page import class_panel_html
+
+    html = class_panel_html({"objects": 1}, "100%&x", "100%&x", None, None)
+    assert "href='#class=100%25%26x&amp;page=1'" in html
+
+
+def test_page_with_a_malformed_class_in_the_url_shows_every_class(recon):
+    """'#class=100%&page=1' (a bare '%'): no class filter, every card, and the page is still ready."""
+    dom = _chromium((recon / "report" / "index.html").as_uri() + "#class=100%&page=1")
+    assert re.search(r'<body[^>]* data-ready="1"', dom), dom[:500]
+    assert sorted(c["data-annotation-id"] for c in _dom_cards(dom)) == sorted(_objects(recon))
+
+
 def test_page_without_webgl_still_shows_every_card(recon):
     """No WebGL: every 3D view says so, the overlays stay, and the page is still ready."""
     dom = _chromium((recon / "report" / "index.html").as_uri() + "#class=chair", extra=("--disable-webgl",))

@@ -11,6 +11,7 @@ Example:
 from __future__ import annotations
 
 from html import escape
+from urllib.parse import quote
 
 from .cards import legend
 
@@ -59,9 +60,10 @@ def class_panel_html(entry: dict, key: str, name: str, chart: str | None, proble
     img = (f"<img class=chart src='{escape(chart)}' alt='viewpoints, residuals and silhouette agreement of "
            f"{escape(name)}'>") if chart else ""
     warn = f"<p class=reason>{escape(problem)}</p>" if problem else ""
+    link = escape(quote(key, safe=""))  # URL-encoded: a key with '%' or '&' still names its class in the hash
     return (f"<details class=class-panel open data-class='{escape(key)}'><summary>{escape(name)}"
             f"{' (folder ' + escape(key) + ')' if key != name else ''}</summary>{warn}{_counts(entry)}"
-            f"<p>{line} (objects: <a href='#class={escape(key)}&amp;page=1'>cards</a>)</p>{img}{_reasons(entry)}"
+            f"<p>{line} (objects: <a href='#class={link}&amp;page=1'>cards</a>)</p>{img}{_reasons(entry)}"
             "</details>")
 
 

@@ -148,7 +148,10 @@
     var h = {};
     location.hash.replace(/^#/, '').split('&').forEach(function (kv) {
       var i = kv.indexOf('=');
-      if (i > 0) { h[decodeURIComponent(kv.slice(0, i))] = decodeURIComponent(kv.slice(i + 1)); }
+      if (i > 0) {
+        // a malformed escape (a hand-typed '%') drops that key: no class named means all classes
+        try { h[decodeURIComponent(kv.slice(0, i))] = decodeURIComponent(kv.slice(i + 1)); } catch (e) { }
+      }
     });
     return h;
   }
