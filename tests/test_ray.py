@@ -68,14 +68,17 @@ def cluster(local_started):
     with loopback(), pytest.MonkeyPatch.context() as mp:
         mp.setenv("RAY_TMPDIR", tmp)
         mp.setenv("RAY_USAGE_STATS_ENABLED", "0")
-        mp.chdir(tmp)
+        here = os.getcwd()
+        os.chdir(tmp)  # Ray's processes work there; the tests, back where they were
         c = Cluster(initialize_head=True, head_node_args=dict(num_cpus=0, include_dashboard=False,
                                                               node_ip_address="127.0.0.1"))
         try:
             nodes = [c.add_node(num_cpus=1, node_ip_address="127.0.0.1") for _ in range(2)]
             ray.init(address=c.address, log_to_driver=False)
+            os.chdir(here)
             yield c, nodes
         finally:
+            os.chdir(here)
             ray.shutdown()
             c.shutdown()
             shutil.rmtree(tmp, ignore_errors=True)
