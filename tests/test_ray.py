@@ -57,7 +57,8 @@ def local_started(tmp_path_factory, procedural_input):
 @pytest.fixture(scope="module")
 def cluster(local_started):
     """A head node that runs no task (0 CPUs: it holds the driver and Ray's services) and two worker
-    nodes of 1 CPU each, on 127.0.0.1; this process connected to it. Yields it and the worker nodes."""
+    nodes of 1 CPU each, on 127.0.0.1, started in a working folder of their own (not the tests'); this
+    process connected to it. Yields it and the worker nodes."""
     ray = _ray()
     from ray.cluster_utils import Cluster
 
@@ -67,13 +68,17 @@ def cluster(local_started):
     with loopback(), pytest.MonkeyPatch.context() as mp:
         mp.setenv("RAY_TMPDIR", tmp)
         mp.setenv("RAY_USAGE_STATS_ENABLED", "0")
+        here = os.getcwd()
+        os.chdir(tmp)  # Ray's processes work there; the tests, back where they were
         c = Cluster(initialize_head=True, head_node_args=dict(num_cpus=0, include_dashboard=False,
                                                               node_ip_address="127.0.0.1"))
         try:
             nodes = [c.add_node(num_cpus=1, node_ip_address="127.0.0.1") for _ in range(2)]
             ray.init(address=c.address, log_to_driver=False)
+            os.chdir(here)
             yield c, nodes
         finally:
+            os.chdir(here)
             ray.shutdown()
             c.shutdown()
             shutil.rmtree(tmp, ignore_errors=True)
@@ -214,3 +219,63 @@ def test_an_unreachable_head_is_one_line():
         s.listen()
         check_reachable(f"127.0.0.1:{port}")
     check_reachable("auto")
+
+
+def test_a_relative_out_is_the_drivers(cluster, local, tmp_path, monkeypatch):
+    """--out relative to the driver's working folder: the tasks, whose processes work in another folder,
+    write every object there too."""
+    c, _ = cluster
+    _, ref = local
+    monkeypatch.chdir(tmp_path)
+    got = run(_cfg("rel", data=ref["data"], executor="ray", ray_address=c.address, classes=["car"]))
+    assert got["classes"]["car"]["reconstructed"] == 6
+    assert len(list((tmp_path / "rel" / "car" / "meshes").glob("*.ply"))) == 6
+
+
+def _run_alone(tmp_path: Path, data: str, env: dict, **extra) -> subprocess.CompletedProcess:
+    """``carvi_torch.reconstruct`` with executor=ray for the car class, in a process of its own (this one
+    holds a Ray connection), with ``env`` over a copy of this environment without the loopback switch."""
+    from carvi_torch.executors.ray import LOOPBACK_VAR
+
+    config = tmp_path / "run.yaml"
+    config.write_text(_cfg(tmp_path / "out", data=data, executor="ray", classes=["car"], **extra).to_yaml())
+    env = {**{k: v for k, v in os.environ.items() if k != LOOPBACK_VAR}, **env}
+    return subprocess.run([sys.executable, "-m", "carvi_torch.reconstruct", "--config", str(config)], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=300)
+
+
+def test_a_ray_of_its_own_ignores_ray_address_and_home(local, tmp_path):
+    """ray_address unset: the run starts a Ray of its own, even where RAY_ADDRESS names a cluster (here
+    one that does not answer), without token authentication: no ``~/.ray`` (a token file) in the home
+    folder, no warning about tokens."""
+    _, ref = local
+    home = tmp_path / "home"
+    home.mkdir()
+    done = _run_alone(tmp_path, ref["data"], {"HOME": str(home), "RAY_ADDRESS": "127.0.0.1:1"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert len(list((tmp_path / "out" / "car" / "meshes").glob("*.ply"))) == 6
+    assert not [p for p in home.rglob("*") if ".ray" in p.parts or "ray" in p.name]
+    assert "token" not in done.stderr.lower()
+
+
+def test_a_loopback_address_connects_over_loopback(cluster, local, tmp_path):
+    """ray_address=127.0.0.1:PORT from a process without the loopback switch: the run connects over
+    loopback and finishes."""
+    c, _ = cluster
+    _, ref = local
+    done = _run_alone(tmp_path, ref["data"], {}, ray_address=c.address)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert len(list((tmp_path / "out" / "car" / "meshes").glob("*.ply"))) == 6
+
+
+def test_environ_sets_removes_and_restores(monkeypatch):
+    """The environment of the connect: variables set, removed, and restored afterwards."""
+    from carvi_torch.executors.ray import environ, is_loopback
+
+    monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:1")
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    with environ(RAY_AUTH_MODE="disabled", RAY_ADDRESS=None):
+        assert os.environ["RAY_AUTH_MODE"] == "disabled" and "RAY_ADDRESS" not in os.environ
+    assert os.environ["RAY_ADDRESS"] == "127.0.0.1:1" and "RAY_AUTH_MODE" not in os.environ
+    assert [is_loopback(a) for a in ("127.0.0.1:6379", "localhost:1", "[::1]:2", "10.0.0.5:6379", "auto")] == \
+        [True, True, True, False, False]

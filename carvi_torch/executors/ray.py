@@ -41,7 +41,8 @@ from ..pipeline import finish_class, finished_objects, prepare_class, reconstruc
 from ..runtime import log, log_to_file, log_to_terminal, os_error_line, peak_rss_mb, torch_threads
 from .common import RunSetup, announce, book_class, class_generator, finish_run, open_run
 
-__all__ = ["run", "import_ray", "connect", "loopback", "LOOPBACK_VAR", "prepare_task", "chunk_task", "finish_task",
+__all__ = ["run", "import_ray", "connect", "loopback", "environ", "is_loopback", "LOOPBACK_VAR",
+           "prepare_task", "chunk_task", "finish_task",
            "TASK_RETRIES", "TASK_CPUS",
            "PLAN_BYTES_PER_PIXEL", "STORE_SHARE", "check_reachable"]
 
@@ -113,13 +114,48 @@ def check_reachable(address: str) -> None:
 
 
 @contextlib.contextmanager
+def environ(**values: str | None):
+    """Context: the environment variables ``values`` set (``None``: removed) meanwhile, restored after."""
+    before = {k: os.environ.get(k) for k in values}
+    try:
+        for k, v in values.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+#: Host names of this machine's loopback interface.
+LOOPBACK_HOSTS = ("localhost", "::1")
+
+
+def is_loopback(address: str | None) -> bool:
+    """Whether ``address`` (``host:port``) names this machine's loopback interface.
+
+    Example:
+        >>> is_loopback("127.0.0.1:6379"), is_loopback("10.0.0.5:6379"), is_loopback("auto")
+        (True, False, False)
+    """
+    host = (address or "").rpartition(":")[0].strip("[]")
+    return host.startswith("127.") or host in LOOPBACK_HOSTS
+
+
+@contextlib.contextmanager
 def connect(address: str | None):
     """Ray, connected for the run; yields the cluster's address.
 
-    This process's existing connection is used as it is. Else ``address`` (``auto`` or ``host:port``);
-    ``None`` starts a Ray on this machine for the run: loopback only, no dashboard, no usage report,
-    its session files in a temporary folder removed afterwards. A cluster that cannot be reached is a
-    :class:`ConfigError`.
+    This process's existing connection is used as it is. Else ``address`` (``auto`` or ``host:port``;
+    a loopback ``host`` is connected to over loopback, :func:`loopback`); ``None`` starts a Ray on this
+    machine for the run: loopback only, without token authentication (nothing written to
+    ``~/.ray``), no dashboard, no usage report, its session files in a temporary folder removed
+    afterwards, whatever ``RAY_ADDRESS`` says. A cluster that cannot be reached is a :class:`ConfigError`.
     """
     ray = import_ray()
     if ray.is_initialized():
@@ -130,8 +166,10 @@ def connect(address: str | None):
     if address is not None:
         check_reachable(address)
     with contextlib.ExitStack() as stack:
-        if address is None:
+        if address is None or is_loopback(address):
             stack.enter_context(loopback())
+        if address is None:
+            stack.enter_context(environ(RAY_AUTH_MODE="disabled", RAY_ADDRESS=None))
             tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="carvi-ray-", ignore_cleanup_errors=True))
             kw.update(include_dashboard=False, _node_ip_address="127.0.0.1", _temp_dir=tmp)
         try:
@@ -215,6 +253,7 @@ class _Driver:
 
     def __init__(self, setup: RunSetup, ray):
         self.setup, self.ray, self.cfg = setup, ray, setup.cfg.override({"progress": False})
+        self.out = str(setup.out.resolve())  # absolute: a task resolves a relative path in its own folder
         self.remote = {f.__name__: ray.remote(f).options(num_cpus=TASK_CPUS, max_retries=TASK_RETRIES)
                        for f in (chunk_task, finish_task)}
         self.remote["prepare_task"] = ray.remote(prepare_task).options(num_cpus=TASK_CPUS, max_retries=TASK_RETRIES,
@@ -243,7 +282,7 @@ class _Driver:
         report = ClassReport(key, objects=len(coll))
         done = finished_objects(coll, self.cfg, self.setup.out, report)
         c.plan, _ = self._submit("prepare_task", "prepare", key, self.ray.put(coll), self.cfg, self.gt,
-                                 str(self.setup.out), done, report)
+                                 self.out, done, report)
 
     def run(self) -> dict:
         """Run every class; returns the executor's record for ``summary.json``."""
