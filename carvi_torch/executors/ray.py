@@ -80,17 +80,13 @@ def loopback():
     import_ray()
     from ray._private import ray_constants
 
-    before, switch = os.environ.get(LOOPBACK_VAR), ray_constants.ENABLE_RAY_CLUSTER
-    os.environ[LOOPBACK_VAR] = "0"
+    switch = ray_constants.ENABLE_RAY_CLUSTER
     ray_constants.ENABLE_RAY_CLUSTER = False
     try:
-        yield
+        with environ(**{LOOPBACK_VAR: "0"}):
+            yield
     finally:
         ray_constants.ENABLE_RAY_CLUSTER = switch
-        if before is None:
-            os.environ.pop(LOOPBACK_VAR, None)
-        else:
-            os.environ[LOOPBACK_VAR] = before
 
 
 #: Seconds to wait for a cluster's head to accept a connection before the run gives up.
@@ -116,20 +112,19 @@ def check_reachable(address: str) -> None:
 @contextlib.contextmanager
 def environ(**values: str | None):
     """Context: the environment variables ``values`` set (``None``: removed) meanwhile, restored after."""
+    def put(pairs):
+        for k, v in pairs.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
     before = {k: os.environ.get(k) for k in values}
     try:
-        for k, v in values.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+        put(values)
         yield
     finally:
-        for k, v in before.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+        put(before)
 
 
 #: Host names of this machine's loopback interface.
