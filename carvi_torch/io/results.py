@@ -21,7 +21,7 @@ from .layout import object_file
 from .outputs import read_json, write_json, write_npz
 
 __all__ = ["ClassReport", "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras",
-           "reconstruction_signals", "resumed_objects", "quality_summary", "annotation_source", "same_object"]
+           "resumed_objects", "quality_summary", "annotation_source", "same_object"]
 
 
 @dataclass
@@ -125,26 +125,12 @@ def _angles(az, el, ro, has_cam: bool) -> dict:
             for k, v in (("azimuth_deg", az), ("elevation_deg", el), ("roll_deg", ro))}
 
 
-def reconstruction_signals(cdir: Path, annotation_ids: list) -> dict:
-    """``{str(aid): reconstruction_iou}`` of the objects whose voxels file holds one (finished objects)."""
-    out = {}
-    for aid in annotation_ids:
-        p = object_file(cdir, "voxels", aid)
-        try:
-            with np.load(p) as z:
-                if "reconstruction_iou" in z:
-                    out[str(aid)] = float(z["reconstruction_iou"])
-        except Exception:  # noqa: BLE001 - no file yet, or a damaged one (zipfile.BadZipFile...): the object is redone
-            continue
-    return out
-
-
 def resumed_objects(cdir: Path, coll, vp, done: list) -> dict:
     """The objects an earlier run finished (``done``, per original), brought up to this run's cameras:
     each voxels file's ``voxel_to_object`` is rewritten from this run's camera where it differs (the cameras are
     fitted jointly, so a change to any object's input moves every camera, while a resumed object keeps its
     grid, which is in its image's frame: ``voxel_to_camera`` and every other member do not depend on the
-    camera); ``NaN`` where the object has no camera now. Returns :func:`reconstruction_signals` of them
+    camera); ``NaN`` where the object has no camera now. Returns ``{str(aid): reconstruction_iou}`` of them
     (read from the same files). A file that cannot be read is left alone (the object is redone anyway)."""
     ids = [i for i, d in enumerate(done) if d]
     if not ids:
@@ -159,7 +145,7 @@ def resumed_objects(cdir: Path, coll, vp, done: list) -> dict:
             with np.load(path) as z:
                 members = {k: z[k] for k in z.files}
             v2img = torch.from_numpy(np.asarray(members["voxel_to_camera"], dtype=np.float64))
-        except Exception:  # noqa: BLE001 - as reconstruction_signals: a damaged file's object is redone
+        except Exception:  # noqa: BLE001 - a damaged file (zipfile.BadZipFile...): its object is redone
             continue
         if "reconstruction_iou" in members:
             out[str(aid)] = float(members["reconstruction_iou"])
@@ -191,7 +177,7 @@ def _quality(entry: dict, cam: dict, recon_iou: float | None) -> tuple[float | N
 
 def _per_annotation(coll, vp, clusters, levels, recon: dict | None = None) -> dict:
     """``cameras.json``'s ``cameras``: per annotation id, SfM and final cameras in image pixels, canonical frame,
-    and the object's ``quality`` with its ``quality_signals`` (``recon``: :func:`reconstruction_signals`)."""
+    and the object's ``quality`` with its ``quality_signals`` (``recon``: :func:`resumed_objects`)."""
     n = len(coll)
     mix = vp.groups
     group_of = mix.labels.tolist() if mix.k > 1 else None  # one host read
@@ -241,7 +227,7 @@ def cameras_json(coll, vp, axes: torch.Tensor | None, clusters, levels: list | N
         coll: the class; vp: its :class:`carvi_torch.viewpoints.Viewpoints`; axes: ``(3, 3)``
             principal directions; clusters: :class:`carvi_torch.surrogates.Clusters`; levels: per
             object, where its proposals come from (:data:`carvi_torch.surrogates.LEVELS`); recon: per
-            annotation id, the reconstruction's quality signal (:func:`reconstruction_signals`).
+            annotation id, the reconstruction's quality signal (:func:`resumed_objects`, and the writers').
     """
     names = coll.meta.keypoint_names
 
