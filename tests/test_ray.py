@@ -279,3 +279,35 @@ def test_environ_sets_removes_and_restores(monkeypatch):
     assert os.environ["RAY_ADDRESS"] == "127.0.0.1:1" and "RAY_AUTH_MODE" not in os.environ
     assert [is_loopback(a) for a in ("127.0.0.1:6379", "localhost:1", "[::1]:2", "10.0.0.5:6379", "auto")] == \
         [True, True, True, False, False]
+
+
+def test_a_head_that_is_not_ray_is_a_bounded_wait(monkeypatch):
+    """ray_address where something other than Ray listens: Ray is imported (and so configured) with one try
+    of GCS_WAIT_S seconds (its default is 20 tries of 35 s), a setting the user made is kept, the environment is
+    restored after, and the failure is a ConfigError naming the address."""
+    import types
+
+    from carvi_torch.executors import ray as ray_executor
+
+    seen = {}
+
+    def init(address=None, **kw):
+        raise ConnectionError(f"Failed to connect to Ray cluster at {address}")
+
+    def import_ray():  # Ray reads the settings when it is imported
+        seen.update({k: os.environ.get(k) for k in ("RAY_py_gcs_connect_timeout_s", "RAY_gcs_server_port_wait_time_s")})
+        return types.SimpleNamespace(is_initialized=lambda: False, init=init, shutdown=lambda: None)
+
+    monkeypatch.setattr(ray_executor, "import_ray", import_ray)
+    monkeypatch.delenv("RAY_py_gcs_connect_timeout_s", raising=False)
+    monkeypatch.setenv("RAY_gcs_server_port_wait_time_s", "7")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        address = f"127.0.0.1:{s.getsockname()[1]}"
+        with pytest.raises(ConfigError, match=f"ray_address={address}: cannot start or reach Ray"):
+            with ray_executor.connect(address):
+                pass
+    assert seen == {"RAY_py_gcs_connect_timeout_s": str(ray_executor.GCS_WAIT_S),
+                    "RAY_gcs_server_port_wait_time_s": "7"}
+    assert "RAY_py_gcs_connect_timeout_s" not in os.environ and os.environ["RAY_gcs_server_port_wait_time_s"] == "7"

@@ -92,6 +92,24 @@ def loopback():
 #: Seconds to wait for a cluster's head to accept a connection before the run gives up.
 CONNECT_TIMEOUT_S = 10.0
 
+#: Seconds of each of Ray's waits for a cluster's head to answer as Ray (one try): where something else
+#: listens at the address, the run gives up after about 20 s, where ``ray.init`` would keep trying for about
+#: 14 minutes (20 tries of 35 s). ``RAY_py_gcs_connect_timeout_s`` / ``RAY_gcs_server_port_wait_time_s`` set
+#: by the user win. Ray reads them when it is imported: a process that imported Ray before waits as Ray says.
+GCS_WAIT_S = 10
+
+
+def gcs_wait_env() -> dict[str, str]:
+    """The Ray settings that bound the wait for a cluster's head (:data:`GCS_WAIT_S`, one try),
+    leaving out those the environment already sets.
+
+    Example:
+        >>> set(gcs_wait_env()) <= {"RAY_py_gcs_connect_timeout_s", "RAY_gcs_server_port_wait_time_s"}
+        True
+    """
+    wanted = {"RAY_py_gcs_connect_timeout_s": str(GCS_WAIT_S), "RAY_gcs_server_port_wait_time_s": "1"}
+    return {k: v for k, v in wanted.items() if k not in os.environ}
+
 
 def check_reachable(address: str) -> None:
     """:class:`ConfigError` unless ``host:port`` accepts a TCP connection within :data:`CONNECT_TIMEOUT_S`
@@ -152,15 +170,16 @@ def connect(address: str | None):
     ``~/.ray``), no dashboard, no usage report, its session files in a temporary folder removed
     afterwards, whatever ``RAY_ADDRESS`` says. A cluster that cannot be reached is a :class:`ConfigError`.
     """
-    ray = import_ray()
-    if ray.is_initialized():
-        yield ray.get_runtime_context().gcs_address
-        return
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    kw = dict(log_to_driver=False, logging_level=logging.WARNING)
-    if address is not None:
-        check_reachable(address)
     with contextlib.ExitStack() as stack:
+        if address is not None:
+            check_reachable(address)
+            stack.enter_context(environ(**gcs_wait_env()))  # before Ray's import: it reads them then
+        ray = import_ray()
+        if ray.is_initialized():
+            yield ray.get_runtime_context().gcs_address
+            return
+        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+        kw = dict(log_to_driver=False, logging_level=logging.WARNING)
         if address is None or is_loopback(address):
             stack.enter_context(loopback())
         if address is None:
