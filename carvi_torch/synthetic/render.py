@@ -19,6 +19,7 @@ at ``(x=j, y=i)``; scaled orthographic cameras ``uv = s * X @ R[:2].T + t``,
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -115,6 +116,87 @@ def _check_points_faces(points2d: torch.Tensor, faces: torch.Tensor, height: int
         raise ValueError(f"height and width must be positive, got {height} x {width}")
 
 
+def _snap_to_grid(points2d: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """``points2d (V, 2)`` as float64 on the grid of ``2^-m`` pixels (see ``_covered_pixels``); non-finite stay so."""
+    P = points2d.to(torch.float64)
+    finite = torch.isfinite(P)
+    largest = float(P.abs().where(finite, torch.zeros_like(P)).max()) if P.numel() else 0.0
+    m = 25 - math.ceil(math.log2(max(largest, float(width), float(height), 1.0)))
+    return torch.round(P * 2.0**m) / 2.0**m  # exact power-of-two scaling; non-finite values stay so
+
+
+@dataclasses.dataclass
+class _Boxes:
+    """The ``T`` triangles with candidate pixels, oriented counter-clockwise (all exact in float64)."""
+
+    keep: torch.Tensor  # (T,) long: face index
+    flip: torch.Tensor  # (T,) bool: b and c swapped to orient the face
+    pack: torch.Tensor  # (T, 10) float64: A, B, C (oriented), box origin x0, y0, box width, first candidate
+    area: torch.Tensor  # (T,) float64: twice the triangle's area
+    cnt: torch.Tensor  # (T,) long: candidate pixels (box size)
+    csum: torch.Tensor  # (T,) long: cumulative sum of cnt
+
+
+def _candidate_boxes(P: torch.Tensor, faces: torch.Tensor, height: int, width: int) -> _Boxes | None:
+    """Boxes of the finite, non-degenerate triangles of ``P (V, 2)``, ``faces (F, 3)`` that hold a pixel centre."""
+    tri = P[faces.long()]  # (F, 3, 2)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    lo = tri.amin(dim=1)
+    hi = tri.amax(dim=1)
+    x0 = lo[:, 0].ceil().clamp(min=0, max=width)
+    x1 = hi[:, 0].floor().clamp(min=-1, max=width - 1)
+    y0 = lo[:, 1].ceil().clamp(min=0, max=height)
+    y1 = hi[:, 1].floor().clamp(min=-1, max=height - 1)
+    ok = torch.isfinite(tri).all(dim=2).all(dim=1) & (area2 != 0)
+    bw = torch.where(ok, (x1 - x0 + 1).clamp(min=0), torch.zeros_like(x0)).long()
+    bh = torch.where(ok, (y1 - y0 + 1).clamp(min=0), torch.zeros_like(y0)).long()
+    count = bw * bh
+    keep = torch.nonzero(count > 0).squeeze(1)
+    if keep.numel() == 0:
+        return None
+    # orient every kept triangle counter-clockwise in the (x, y) plane: swap b and c when area < 0
+    flip = area2[keep] < 0
+    A = a[keep]
+    B = torch.where(flip[:, None], c[keep], b[keep])
+    C = torch.where(flip[:, None], b[keep], c[keep])
+    cnt = count[keep]
+    csum = torch.cumsum(cnt, 0)
+    # one row per kept triangle, gathered once per candidate pixel: vertices (oriented),
+    # box origin and width, index of its first candidate (all exact in float64)
+    pack = torch.stack([A[:, 0], A[:, 1], B[:, 0], B[:, 1], C[:, 0], C[:, 1], x0[keep], y0[keep],
+                        bw[keep].to(torch.float64), (csum - cnt).to(torch.float64)], dim=1)
+    return _Boxes(keep, flip, pack, area2[keep].abs(), cnt, csum)
+
+
+def _chunk_hits(boxes: _Boxes, start: int, end: int, width: int, barycentric: bool
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The covered pixels of the kept triangles ``start:end``: ``face (P,)``, ``pixel (P,)``, ``bary (P, 3) | None``."""
+    dev = boxes.pack.device
+    base = int(boxes.csum[start - 1]) if start > 0 else 0
+    total = int(boxes.csum[end - 1]) - base
+    local_tri = torch.repeat_interleave(torch.arange(end - start, device=dev), boxes.cnt[start:end], output_size=total)
+    G = boxes.pack[start:end].index_select(0, local_tri)  # (P, 10)
+    k = torch.arange(base, base + total, device=dev, dtype=torch.float64) - G[:, 9]
+    px = G[:, 6] + torch.remainder(k, G[:, 8])
+    py = G[:, 7] + torch.div(k, G[:, 8], rounding_mode="floor")
+    ax, ay, bx, by, cx, cy = G[:, 0], G[:, 1], G[:, 2], G[:, 3], G[:, 4], G[:, 5]
+    # edge functions: >= 0 on the inner side of each directed edge (or on it)
+    e_a = (cx - bx) * (py - by) - (cy - by) * (px - bx)  # opposite A
+    e_b = (ax - cx) * (py - cy) - (ay - cy) * (px - cx)  # opposite B
+    e_c = (bx - ax) * (py - ay) - (by - ay) * (px - ax)  # opposite C
+    idx = torch.nonzero((e_a >= 0) & (e_b >= 0) & (e_c >= 0)).squeeze(1)
+    pix = (py[idx] * width + px[idx]).long()
+    tri_local = local_tri[idx] + start
+    if barycentric:
+        bary = torch.stack([e_a[idx], e_b[idx], e_c[idx]], dim=1) / boxes.area[tri_local, None]
+        # barycentrics refer to the oriented (A, B, C); map back to the face's own vertex order
+        bary = torch.where(boxes.flip[tri_local, None], bary[:, [0, 2, 1]], bary)
+    else:
+        bary = None
+    return boxes.keep[tri_local], pix, bary
+
+
 def _covered_pixels(points2d: torch.Tensor, faces: torch.Tensor, height: int, width: int,
                     chunk: int = _DEFAULT_CHUNK, barycentric: bool = True
                     ) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]:
@@ -139,69 +221,17 @@ def _covered_pixels(points2d: torch.Tensor, faces: torch.Tensor, height: int, wi
         ``bary (P, 3) float64`` barycentric coordinates of the pixel centre (``None`` unless
         ``barycentric``).
     """
-    dev = points2d.device
-    P = points2d.to(torch.float64)
-    finite = torch.isfinite(P)
-    largest = float(P.abs().where(finite, torch.zeros_like(P)).max()) if P.numel() else 0.0
-    m = 25 - math.ceil(math.log2(max(largest, float(width), float(height), 1.0)))
-    P = torch.round(P * 2.0**m) / 2.0**m  # exact power-of-two scaling; non-finite values stay so
-    tri = P[faces.long()]  # (F, 3, 2)
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    lo = tri.amin(dim=1)
-    hi = tri.amax(dim=1)
-    x0 = lo[:, 0].ceil().clamp(min=0, max=width)
-    x1 = hi[:, 0].floor().clamp(min=-1, max=width - 1)
-    y0 = lo[:, 1].ceil().clamp(min=0, max=height)
-    y1 = hi[:, 1].floor().clamp(min=-1, max=height - 1)
-    ok = torch.isfinite(tri).all(dim=2).all(dim=1) & (area2 != 0)
-    bw = torch.where(ok, (x1 - x0 + 1).clamp(min=0), torch.zeros_like(x0)).long()
-    bh = torch.where(ok, (y1 - y0 + 1).clamp(min=0), torch.zeros_like(y0)).long()
-    count = bw * bh
-    keep = torch.nonzero(count > 0).squeeze(1)
-    if keep.numel() == 0:
+    boxes = _candidate_boxes(_snap_to_grid(points2d, height, width), faces, height, width)
+    if boxes is None:
         return
-    # orient every kept triangle counter-clockwise in the (x, y) plane: swap b and c when area < 0
-    flip = area2[keep] < 0
-    A = a[keep]
-    B = torch.where(flip[:, None], c[keep], b[keep])
-    C = torch.where(flip[:, None], b[keep], c[keep])
-    cnt = count[keep]
-    csum = torch.cumsum(cnt, 0)
-    # one row per kept triangle, gathered once per candidate pixel: vertices (oriented),
-    # box origin and width, index of its first candidate (all exact in float64)
-    pack = torch.stack([A[:, 0], A[:, 1], B[:, 0], B[:, 1], C[:, 0], C[:, 1], x0[keep], y0[keep],
-                        bw[keep].to(torch.float64), (csum - cnt).to(torch.float64)], dim=1)
-    area = area2[keep].abs()
-    n = keep.numel()
+    n = boxes.keep.numel()
     start = 0
     # chunk boundaries: consecutive triangles whose candidate counts add up to about `chunk`
     while start < n:
-        base = int(csum[start - 1]) if start > 0 else 0
-        end = int(torch.searchsorted(csum, torch.tensor(base + chunk, device=dev), right=True))
+        base = int(boxes.csum[start - 1]) if start > 0 else 0
+        end = int(torch.searchsorted(boxes.csum, torch.tensor(base + chunk, device=points2d.device), right=True))
         end = max(end, start + 1)
-        c_cnt = cnt[start:end]
-        total = int(csum[end - 1]) - base
-        local_tri = torch.repeat_interleave(torch.arange(end - start, device=dev), c_cnt, output_size=total)
-        G = pack[start:end].index_select(0, local_tri)  # (P, 10)
-        k = torch.arange(base, base + total, device=dev, dtype=torch.float64) - G[:, 9]
-        px = G[:, 6] + torch.remainder(k, G[:, 8])
-        py = G[:, 7] + torch.div(k, G[:, 8], rounding_mode="floor")
-        ax, ay, bx, by, cx, cy = G[:, 0], G[:, 1], G[:, 2], G[:, 3], G[:, 4], G[:, 5]
-        # edge functions: >= 0 on the inner side of each directed edge (or on it)
-        e_a = (cx - bx) * (py - by) - (cy - by) * (px - bx)  # opposite A
-        e_b = (ax - cx) * (py - cy) - (ay - cy) * (px - cx)  # opposite B
-        e_c = (bx - ax) * (py - ay) - (by - ay) * (px - ax)  # opposite C
-        idx = torch.nonzero((e_a >= 0) & (e_b >= 0) & (e_c >= 0)).squeeze(1)
-        pix = (py[idx] * width + px[idx]).long()
-        tri_local = local_tri[idx] + start
-        if barycentric:
-            bary = torch.stack([e_a[idx], e_b[idx], e_c[idx]], dim=1) / area[tri_local, None]
-            # barycentrics refer to the oriented (A, B, C); map back to the face's own vertex order
-            bary = torch.where(flip[tri_local, None], bary[:, [0, 2, 1]], bary)
-        else:
-            bary = None
-        yield keep[tri_local], pix, bary
+        yield _chunk_hits(boxes, start, end, width, barycentric)
         start = end
 
 
