@@ -154,16 +154,16 @@ def make_class(n: int, k: int, canvas: int, seed: int, shapes: int = 1):
 
 
 class _Rows:
-    """The two fields of a collection the mixture fit reads, indexable by rows."""
+    """The fields of a collection the mixture fit reads (keypoints, visibility, masks), indexable by rows."""
 
-    def __init__(self, keypoints: torch.Tensor, visible: torch.Tensor):
-        self.keypoints, self.visible = keypoints, visible
+    def __init__(self, keypoints: torch.Tensor, visible: torch.Tensor, masks: torch.Tensor):
+        self.keypoints, self.visible, self.masks = keypoints, visible, masks
 
     def __len__(self) -> int:
         return self.keypoints.shape[0]
 
     def __getitem__(self, rows) -> "_Rows":
-        return _Rows(self.keypoints[rows], self.visible[rows])
+        return _Rows(self.keypoints[rows], self.visible[rows], self.masks[rows])
 
 
 PARTS = ["cold:group_sfm", "cold:factorize", "cold:polish", "warm:group_sfm", "warm:factorize", "warm:polish",
@@ -466,7 +466,7 @@ def main(argv=None) -> dict:
         fits = {}
         for name, warm, threads in variants:
             t0 = time.perf_counter()
-            mix = fit_mixture_of_shapes(_Rows(kp, vis), dist,
+            mix = fit_mixture_of_shapes(_Rows(kp, vis, masks), dist,
                                         lambda sub, init_shape=None: rigid_sfm(sub.keypoints, sub.visible,
                                                                                max_outer=args.max_outer,
                                                                                inner=args.inner, init_shape=init_shape),
@@ -487,7 +487,7 @@ def main(argv=None) -> dict:
                 # the pipeline's refinement with the mixture: every group with its own mean shape
                 t0 = time.perf_counter()
                 cams_mix, _valid = group_sfm_cameras(mix)
-                refined_mix, _energy = refine_groups(mix, cams_mix, _Rows(kp, vis), dist,
+                refined_mix, _energy = refine_groups(mix, cams_mix, _Rows(kp, vis, masks), dist,
                                                      dataclasses.replace(vcfg, refine_iters=args.max_iters))
                 sync()
                 t_ref_mix = time.perf_counter() - t0
