@@ -1177,7 +1177,8 @@ def default_key(device: torch.device, args) -> str:
     return f"benchmark_{device.type}_{args.objects}"
 
 
-def main(argv=None):
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (the module docstring is its help)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog=__doc__.split("\n\n", 1)[1])
@@ -1227,17 +1228,14 @@ def main(argv=None):
     ap.add_argument("--executor", choices=["local", "ray"], default="local",
                     help="ray: the Ray executor's throughput on local clusters of --ray-nodes worker nodes")
     ap.add_argument("--ray-nodes", default="1,2", help="--executor ray: worker node counts (1 CPU each)")
+    return ap
+
+
+def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = ap.parse_args(argv)
+    args = build_parser().parse_args(argv)
     if args.executor == "ray":
-        result = ray_scaling(args, argv)
-        print(ray_table(result))
-        name = f"ray_scaling_{args.objects}.json"
-        out_json, key = outputs.record_target(args.out, args.key, ROOT / "docs" / "data" / name, None,
-                                              ROOT / "outputs" / name)
-        write_record(out_json, result, key)
-        print(f"wrote {out_json}")
-        return result
+        return main_ray(args, argv)
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda but no CUDA device is available")
@@ -1245,6 +1243,24 @@ def main(argv=None):
         native.available()  # build and self-test the kernel now, outside every timing
     if args.many_classes:
         return main_many(args, argv, device)
+    return main_class(args, argv, device)
+
+
+def main_ray(args, argv: list[str]) -> dict:
+    """``--executor ray``: run, print and write (default ``outputs/ray_scaling_<objects>.json``)."""
+    result = ray_scaling(args, argv)
+    print(ray_table(result))
+    name = f"ray_scaling_{args.objects}.json"
+    out_json, key = outputs.record_target(args.out, args.key, ROOT / "docs" / "data" / name, None,
+                                          ROOT / "outputs" / name)
+    write_record(out_json, result, key)
+    print(f"wrote {out_json}")
+    return result
+
+
+def main_class(args, argv: list[str], device: torch.device) -> dict:
+    """The one-class benchmark (end to end, carving, selection; or ``--load-only``): run, print and write
+    (default: :func:`default_key` of ``outputs/benchmarks.json``)."""
     data = ensure_data(args.objects, args.category, Path(args.data_dir), args.base_objects, args.tile, args.seed)
     name = f"benchmark_{device.type}_{args.objects}"
     out_json, key = record_target(args, default_key(device, args))
