@@ -1068,10 +1068,10 @@ def _e2e_table(e2e: dict) -> list[str]:
     return lines
 
 
-def _carving_table(cs: dict) -> list[str]:
+def _carving_rows(cs: dict) -> list[tuple[str, float, float]]:
+    """The carving table's rows: each variant's name, seconds and samples per object (NaN: none)."""
     s, sm = cs["seconds_per_object"], cs["samples_per_object"]
     fused = cs["carve_backend"] == "fused"
-    base = s["batched"]
     default = "native kernel (backend=fused)" if fused else "torch backend"
     L = cs["loop_objects"]
     rows = [(f"**default: {default}**, one call per pipeline chunk of {cs['pipeline_chunk_objects']} objects",
@@ -1099,16 +1099,29 @@ def _carving_table(cs: dict) -> list[str]:
         ("(b) naive floor, nearest pixel", s["floor_loop_naive_nearest"], sm["loop_naive"]),
         ("selection (select_proposals per chunk)", s["selection"], float("nan")),
         ("**carving + selection** (default backend)", s["carving_plus_selection"], float("nan"))]
+    return rows
+
+
+def _carving_table(cs: dict) -> list[str]:
+    """The carving comparison as markdown: seconds per object of every variant, then the ratios."""
+    base = cs["seconds_per_object"]["batched"]
     lines = [f"| carving, {cs['objects']} objects x {cs['proposals_per_object']:.0f} proposals, "
              f"{cs['torch_threads']} thread(s) | s per object | / default | Msamples per object |",
              "|---|---:|---:|---:|"]
-    for name, t, m in rows:
+    for name, t, m in _carving_rows(cs):
         lines.append(f"| {name} | {t:.4f} | {t / base:.2f} | {'' if math.isnan(m) else f'{m / 1e6:.2f}'} |")
+    return lines + _carving_ratios(cs)
+
+
+def _carving_ratios(cs: dict) -> list[str]:
+    """The carving comparison's ratios (same run) as markdown, and the voxel check."""
+    sm = cs["samples_per_object"]
+    fused = cs["carve_backend"] == "fused"
     w = cs["speedup_vs_loop_reference_structure_within_rounds"]
     fl = cs["over_its_floor_within_runs"]
     fk = "batched_torch" if fused else "batched"
     spread = lambda r, f="{:.1f}": f"{f.format(r['median'])} [{f.format(r['min'])}-{f.format(r['max'])}]"  # noqa: E731
-    lines += ["", "| ratio (same run) | value |", "|---|---:|",
+    lines = ["", "| ratio (same run) | value |", "|---|---:|",
               f"| default vs the reference loop, best-of | **{cs['speedup_vs_loop_reference_structure']:.1f}x** |",
               f"| the same, paired within rounds, median [min-max] | {spread(w['batched'], '{:.1f}x')} |",
               f"| default vs the loop with maps given / prepared once | {cs['speedup_vs_loop']:.1f}x / "
