@@ -871,18 +871,37 @@ def _arrow(ax, p, q, color, text, dx=0.0, dy=0.0):
     ax.text(q[0] + dx, q[1] + dy, text, color=color, fontsize=11, ha="center", va="center")
 
 
+def _save_figure(fig, out: str | Path, dpi: int) -> None:
+    """Lay out ``fig``, write it to ``out`` (its folder made), close it and say so."""
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    print(f"wrote {out}")
+
+
 def frames(args) -> int:
     """docs/figures/frames.png: the image, camera and voxel-grid frames of carvi_torch (docs/conventions.md)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Rectangle
 
     fig, axes = plt.subplots(1, 3, figsize=(16, 5.5))
+    _draw_pixel_frame(axes[0])
+    _draw_camera_frame(axes[1])
+    _draw_voxel_frame(fig, axes[2])
+    _save_figure(fig, args.out, 110)
+    return 0
 
-    # (a) image / canvas pixels
-    ax = axes[0]
+
+def _draw_pixel_frame(ax) -> None:
+    """(a) of frames.png: image and canvas pixels, their centres and the mask."""
+    from matplotlib.patches import Rectangle
+
     ax.set_title("(a) image and canvas pixels")
     for i in range(5):
         for j in range(6):
@@ -901,8 +920,9 @@ def frames(args) -> int:
     ax.set_aspect("equal")
     ax.axis("off")
 
-    # (b) scaled orthographic camera
-    ax = axes[1]
+
+def _draw_camera_frame(ax) -> None:
+    """(b) of frames.png: the scaled orthographic camera, its image plane and depth axis."""
     ax.set_title("(b) scaled orthographic camera")
     ax.plot([-2.5, 2.5], [2.2, 2.2], color="k", lw=3)
     ax.text(2.6, 2.2, "image plane", fontsize=9, va="center")
@@ -920,9 +940,11 @@ def frames(args) -> int:
     ax.set_aspect("equal")
     ax.axis("off")
 
-    # (c) voxel grid in the reference camera frame
+
+def _draw_voxel_frame(fig, flat_ax) -> None:
+    """(c) of frames.png: the voxel grid in the reference camera frame, on a 3-D axes in place of ``flat_ax``."""
     ax = fig.add_subplot(1, 3, 3, projection="3d")
-    axes[2].axis("off")
+    flat_ax.axis("off")
     ax.set_title("(c) voxel grid (D, H, W), reference camera frame", pad=4)
     n = 4
     for d in range(n):
@@ -943,14 +965,6 @@ def frames(args) -> int:
     ax.set_box_aspect((1, 1, 1))
     ax.set_axis_off()
 
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    print(f"wrote {out}")
-    return 0
-
 
 def canonical(args) -> int:
     """docs/figures/canonical_frame.png: the canonical object frame (the shipped aeroplane template) and
@@ -967,16 +981,29 @@ def canonical(args) -> int:
     from carvi_torch.viewpoints.frame import load_templates
 
     pts = load_templates()["classes"]["aeroplane"]["keypoints"]
-    P = np.array(list(pts.values()))
     az, el = 40.0, 25.0
     R = rotation_from_azimuth_elevation_roll(torch.tensor(math.radians(az), dtype=torch.float64),
                                              torch.tensor(math.radians(el), dtype=torch.float64),
                                              torch.tensor(0.0, dtype=torch.float64)).numpy()
-    cam = -R[2]  # unit vector from the object towards the camera
     fig, axes = plt.subplots(1, 3, figsize=(16, 5.4))
+    _draw_camera_angles(axes[:2], pts, R, az, el)
+    _draw_camera_view(axes[2], pts, R)
+    fig.suptitle("The canonical frame of the PASCAL3D+ classes (shipped aeroplane template): +z up, front towards "
+                 "-y.   R = diag(1, -1, -1) Rz(roll) Rx(elevation - 90) Rz(-azimuth)")
+    _save_figure(fig, args.out, 100)
+    return 0
+
+
+def _draw_camera_angles(axes, pts: dict, R: np.ndarray, az: float, el: float) -> None:
+    """(a), (b) of canonical_frame.png: keypoints ``pts`` (name -> xyz) and the camera of rotation ``R (3, 3)``
+    seen from above (its azimuth ``az``) and from the side in its vertical plane (its elevation ``el``), degrees."""
+    import math
+
+    P = np.array(list(pts.values()))
+    cam = -R[2]  # unit vector from the object towards the camera
     views = (("(a) from above: x right, y up the page", 0, 1, "x", "y"),
              ("(b) from the side, in the camera's vertical plane", None, 2, "horizontal", "z (up)"))
-    for ax, (title, i, j, xl, yl) in zip(axes[:2], views):
+    for ax, (title, i, j, xl, yl) in zip(axes, views):
         h = np.array([cam[0], cam[1], 0.0]) / math.hypot(cam[0], cam[1])
         X = P[:, i] if i is not None else P @ h
         Y = P[:, j]
@@ -1005,7 +1032,12 @@ def canonical(args) -> int:
         ax.set_ylim(-0.55, 0.55)
         ax.set_aspect("equal")
         ax.grid(alpha=0.3)
-    ax = axes[2]  # what that camera sees: uv = X R[:2]^T, image y down
+
+
+def _draw_camera_view(ax, pts: dict, R: np.ndarray) -> None:
+    """(c) of canonical_frame.png: what the camera of rotation ``R (3, 3)`` sees of the keypoints ``pts``
+    (``uv = X R[:2]^T``, image y down, roll 0)."""
+    P = np.array(list(pts.values()))
     uv = P @ R[:2].T
     ax.scatter(uv[:, 0], uv[:, 1], color="tab:blue", s=20)
     for (name, _), (u, v) in zip(pts.items(), uv):
@@ -1015,15 +1047,6 @@ def canonical(args) -> int:
     ax.set_aspect("equal")
     ax.grid(alpha=0.3)
     ax.set_title("(c) what it sees (image y down), roll 0")
-    fig.suptitle("The canonical frame of the PASCAL3D+ classes (shipped aeroplane template): +z up, front towards "
-                 "-y.   R = diag(1, -1, -1) Rz(roll) Rx(elevation - 90) Rz(-azimuth)")
-    fig.tight_layout()
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    print(f"wrote {out}")
-    return 0
 
 
 # =========================================================================== main
