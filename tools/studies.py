@@ -152,20 +152,13 @@ def _proposal_errors(job):
 
 
 def ranking(args) -> int:
-    from multiprocessing import get_context
-
-
+    """(a, b): every saved proposal of the Full run scored against the ground truth (module docstring)."""
     bench = Path(args.bench)
     data = _data_dir(bench)
     ann = json.loads((data / "annotations.json").read_text())
     gt = json.loads((data / "gt.json").read_text())["annotations"]
     cls_of = _classes_of(ann)
-    test = [a for a in ann["annotations"] if a.get("split") == "test"]
-    # subset: the first --views-per-model test views of every model
-    by_model: dict[int, list[int]] = {}
-    for a in sorted(test, key=lambda a: a["id"]):
-        by_model.setdefault(int(a["object_id"]), []).append(int(a["id"]))
-    chosen = sorted(i for ids in by_model.values() for i in ids[: args.views_per_model])
+    chosen = _test_views(ann, args.views_per_model)
     classes = set(args.classes.split(",")) if args.classes else None
     full = bench / "run_full"
     table_step = json.loads(BENCHMARK_JSON.read_text())["settings"]["step_percent"] \
@@ -189,35 +182,58 @@ def ranking(args) -> int:
         print(f"ranking: reusing {raw} ({len(per_ref)} references)", flush=True)
     else:
         print(f"ranking: {len(jobs)} references, step {args.step_percent}% ({args.jobs} processes)", flush=True)
-        t0 = time.perf_counter()
-        with get_context("fork").Pool(args.jobs) as pool:
-            rows = []
-            for i, r in enumerate(pool.imap(_proposal_errors, jobs, chunksize=1)):
-                rows.append(r)
-                if (i + 1) % 25 == 0:
-                    print(f"  {i + 1}/{len(jobs)} ({time.perf_counter() - t0:.0f} s)", flush=True)
-        seconds = time.perf_counter() - t0
-        per_ref = {}
-        for job, r in zip(jobs, rows):
-            aid = int(Path(job[0]).stem)
-            per_ref[str(aid)] = {"class": cls_of[aid], **r}
-        from carvi_torch.io.outputs import write_json
-
-        write_json(raw, {"per_reference": per_ref, "seconds": seconds}, indent=None)
+        per_ref, seconds = _errors_of_jobs(jobs, args.jobs, cls_of, raw)
     out = _ranking_summary(per_ref)
     out.update({"command": _command(), "step_percent": args.step_percent, "table_step_percent": table_step,
                 "views_per_model": args.views_per_model, "references": len(per_ref), "seconds": round(seconds, 1),
                 "per_reference": per_ref})
+    _write_ranking(args, out)
+    _plot_ranking(out, Path(args.figures))
+    print(json.dumps({k: out[k] for k in ("mean", "selected_vs_table")}, indent=1))
+    return 0
+
+
+def _test_views(ann: dict, views_per_model: int) -> list[int]:
+    """The sorted ids of the first ``views_per_model`` test views (by id) of every model."""
+    by_model: dict[int, list[int]] = {}
+    for a in sorted((a for a in ann["annotations"] if a.get("split") == "test"), key=lambda a: a["id"]):
+        by_model.setdefault(int(a["object_id"]), []).append(int(a["id"]))
+    return sorted(i for ids in by_model.values() for i in ids[:views_per_model])
+
+
+def _errors_of_jobs(jobs: list, processes: int, cls_of: dict, raw: Path) -> tuple[dict, float]:
+    """:func:`_proposal_errors` of every job on ``processes`` forked processes, per reference id (with its class),
+    and their seconds; both cached in ``raw``."""
+    from multiprocessing import get_context
+
+    from carvi_torch.io.outputs import write_json
+
+    t0 = time.perf_counter()
+    with get_context("fork").Pool(processes) as pool:
+        rows = []
+        for i, r in enumerate(pool.imap(_proposal_errors, jobs, chunksize=1)):
+            rows.append(r)
+            if (i + 1) % 25 == 0:
+                print(f"  {i + 1}/{len(jobs)} ({time.perf_counter() - t0:.0f} s)", flush=True)
+    seconds = time.perf_counter() - t0
+    per_ref = {}
+    for job, r in zip(jobs, rows):
+        aid = int(Path(job[0]).stem)
+        per_ref[str(aid)] = {"class": cls_of[aid], **r}
+    write_json(raw, {"per_reference": per_ref, "seconds": seconds}, indent=None)
+    return per_ref, seconds
+
+
+def _write_ranking(args, out: dict) -> None:
+    """The ranking record: under a key of ``--out`` (a records file such as docs/data/benchmark_synthetic.json, its
+    other keys kept), else ``outputs/studies/studies_<--record>.json``."""
     from carvi_torch.io.outputs import write_json, write_record
 
-    if args.out:  # a key of a records file (docs/data/benchmark_synthetic.json), its other keys kept
+    if args.out:
         write_record(args.out, out, args.key or args.record)
         print(f"wrote {args.out}, key {args.key or args.record}")
     else:
         write_json(_record(args.record), out)
-    _plot_ranking(out, Path(args.figures))
-    print(json.dumps({k: out[k] for k in ("mean", "selected_vs_table")}, indent=1))
-    return 0
 
 
 def _ranking_summary(per_ref: dict) -> dict:
