@@ -808,6 +808,18 @@ def load_models(data: Path, cache: Path | None, iou_step: float = 0.01) -> dict:
     return models
 
 
+@dataclass
+class _ShapeSources:
+    """What every object's shape scores read: its annotations, the run's cameras and collection, the CAD models."""
+
+    cc: object  # pycocotools COCO of the annotations
+    cams_json: dict  # the run's cameras.json
+    coll: object  # the loaded collection (the Puffball baseline's masks)
+    row_of: dict  # annotation id -> row of coll
+    models: dict  # subtype -> load_models' entry
+    recon: Path
+
+
 def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: Config, other_cads: int) -> dict:
     """Reconstructions (and baselines) vs the posed closest CAD model, for the objects with ground truth."""
     from pycocotools.coco import COCO
@@ -820,60 +832,78 @@ def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: C
     t0 = time.perf_counter()
     models = load_models(data, work / "cad_solids")
     t_models = time.perf_counter() - t0
+    src = _ShapeSources(cc, cams_json, coll, row_of, models, recon)
     anns = [a for a in sorted(cc.anns.values(), key=lambda a: a["id"]) if gt_key(a["source"]) in gt]
     with_others = set(int(i) for i in np.linspace(0, len(anns) - 1, other_cads).round()) if other_cads > 0 else set()
     per = {}
     t0 = time.perf_counter()
     for j, ann_entry in enumerate(anns):
         key = gt_key(ann_entry["source"])
-        aid = int(ann_entry["id"])
-        g = gt[key]
-        sub = int(g["subtype"])
-        R = np.asarray(g["R"], dtype=np.float64)
-        mask = cc.annToMask(ann_entry).astype(bool)
-        model = models[sub]
-        cad = model["cad"]
-        s, t = fit_cad_to_mask(cad["vertices"], cad["faces"], R, mask)
-        row = {"annotation_id": aid, "subtype": sub, "scale": s, "translation": t.tolist(),
-               "cad_mask_iou": silhouette_iou(cad["vertices"], cad["faces"], R, s, t, mask)}
-        # cross-check of the pose: the keypoints both sources name
-        kp = np.asarray(ann_entry["keypoints"], dtype=np.float64).reshape(-1, 3)
-        names = cc.cats[ann_entry["category_id"]]["keypoints"]
-        pairs = [(kp[i, :2], cad["keypoints"][BERKELEY_TO_PASCAL3D[nm]]) for i, nm in enumerate(names)
-                 if kp[i, 2] > 0 and nm in BERKELEY_TO_PASCAL3D and BERKELEY_TO_PASCAL3D[nm] in cad["keypoints"]]
-        if len(pairs) >= 2:
-            W = np.stack([p[0] for p in pairs])
-            P = np.stack([p[1] for p in pairs]) @ R[:2].T
-            s_kp, _, _ = fit_keypoints(P, W)
-            extent = s * float(np.ptp(cad["vertices"] @ R[:2].T, axis=0).max())
-            row["keypoint_scale_ratio"] = s_kp / s
-            rms = float(np.sqrt(((s * P + t - W) ** 2).sum(-1).mean()))
-            row["keypoint_rms_percent_of_extent"] = 100.0 * rms / extent
-        row["reconstruction"] = score_mesh(_recon_mesh(recon, aid), R, s, t, model)
-        if aid in row_of:
-            row["puffball"] = score_mesh(_puffball_image(coll, row_of[aid]), R, s, t, model)
-        row["sfm_hull"] = score_mesh(_sfmc_image(cams_json, aid), R, s, t, model)
-        if j in with_others:
-            others = {}
-            for k, other in models.items():
-                if k != sub:
-                    s_o, t_o = fit_cad_to_mask(other["cad"]["vertices"], other["cad"]["faces"], R, mask)
-                    others[str(k)] = score_other_cad(other, R, s, t, s_o, t_o, model)
-            row["other_cads"] = others
-        per[key] = row
+        per[key] = _shape_row(src, ann_entry, gt[key], j in with_others)
         if (j + 1) % 20 == 0 or j + 1 == len(anns):
             print(f"  shapes: {j + 1}/{len(anns)} objects, {time.perf_counter() - t0:.0f} s", flush=True)
     seconds = time.perf_counter() - t0
+    table, fit = _shape_tables(per, bool(with_others))
+    return {"table": table, "pose_fit": fit, "per_object": per,
+            "seconds": {"cad_models": round(t_models, 1), "evaluation": round(seconds, 1)}}
 
-    def agg(getter, rows=None) -> dict:
-        vals = [v for v in (getter(r) for r in (rows if rows is not None else per.values()))
-                if v is not None and math.isfinite(v)]
-        return {"n": len(vals), "median": float(np.median(vals)) if vals else None,
-                "mean": float(np.mean(vals)) if vals else None}
 
+def _shape_row(src: _ShapeSources, ann_entry: dict, g: dict, others: bool) -> dict:
+    """One object's record: its ground-truth CAD model posed on its mask, the pose's keypoint check, the
+    reconstruction's and baselines' scores (and with ``others`` the other CAD models')."""
+    aid = int(ann_entry["id"])
+    sub = int(g["subtype"])
+    R = np.asarray(g["R"], dtype=np.float64)
+    mask = src.cc.annToMask(ann_entry).astype(bool)
+    model = src.models[sub]
+    cad = model["cad"]
+    s, t = fit_cad_to_mask(cad["vertices"], cad["faces"], R, mask)
+    row = {"annotation_id": aid, "subtype": sub, "scale": s, "translation": t.tolist(),
+           "cad_mask_iou": silhouette_iou(cad["vertices"], cad["faces"], R, s, t, mask)}
+    row.update(_keypoint_check(src.cc, ann_entry, cad, R, s, t))
+    row["reconstruction"] = score_mesh(_recon_mesh(src.recon, aid), R, s, t, model)
+    if aid in src.row_of:
+        row["puffball"] = score_mesh(_puffball_image(src.coll, src.row_of[aid]), R, s, t, model)
+    row["sfm_hull"] = score_mesh(_sfmc_image(src.cams_json, aid), R, s, t, model)
+    if others:
+        row["other_cads"] = {}
+        for k, other in src.models.items():
+            if k != sub:
+                s_o, t_o = fit_cad_to_mask(other["cad"]["vertices"], other["cad"]["faces"], R, mask)
+                row["other_cads"][str(k)] = score_other_cad(other, R, s, t, s_o, t_o, model)
+    return row
+
+
+def _keypoint_check(cc, ann_entry: dict, cad: dict, R: np.ndarray, s: float, t: np.ndarray) -> dict:
+    """Cross-check of a CAD pose ``(R, s, t)`` with the keypoints the annotation and the CAD model both name: the
+    scale the keypoints give over ``s`` and their RMS misfit in % of the posed CAD's extent (none: fewer than 2)."""
+    kp = np.asarray(ann_entry["keypoints"], dtype=np.float64).reshape(-1, 3)
+    names = cc.cats[ann_entry["category_id"]]["keypoints"]
+    pairs = [(kp[i, :2], cad["keypoints"][BERKELEY_TO_PASCAL3D[nm]]) for i, nm in enumerate(names)
+             if kp[i, 2] > 0 and nm in BERKELEY_TO_PASCAL3D and BERKELEY_TO_PASCAL3D[nm] in cad["keypoints"]]
+    if len(pairs) < 2:
+        return {}
+    W = np.stack([p[0] for p in pairs])
+    P = np.stack([p[1] for p in pairs]) @ R[:2].T
+    s_kp, _, _ = fit_keypoints(P, W)
+    extent = s * float(np.ptp(cad["vertices"] @ R[:2].T, axis=0).max())
+    rms = float(np.sqrt(((s * P + t - W) ** 2).sum(-1).mean()))
+    return {"keypoint_scale_ratio": s_kp / s, "keypoint_rms_percent_of_extent": 100.0 * rms / extent}
+
+
+def _agg(vals) -> dict:
+    """Count, median and mean of the finite values of ``vals`` (``None``: skipped)."""
+    vals = [v for v in vals if v is not None and math.isfinite(v)]
+    return {"n": len(vals), "median": float(np.median(vals)) if vals else None,
+            "mean": float(np.mean(vals)) if vals else None}
+
+
+def _shape_tables(per: dict, with_others: bool) -> tuple[dict, dict]:
+    """Print and return the shape errors per method (and against the other CAD models on their subset) and the
+    quality of the CAD poses, over the objects' records ``per``."""
     methods = {"reconstruction": "reconstruction", "puffball": "Puffball", "sfm_hull": "SfM convex hull"}
-    table = {m: {"rms_percent": agg(lambda r, m=m: r.get(m, {}).get("rms_percent")),
-                 "iou": agg(lambda r, m=m: r.get(m, {}).get("iou"))} for m in methods}
+    table = {m: {"rms_percent": _agg(r.get(m, {}).get("rms_percent") for r in per.values()),
+                 "iou": _agg(r.get(m, {}).get("iou") for r in per.values())} for m in methods}
     if with_others:
         sub_rows = [r for r in per.values() if "other_cads" in r]
 
@@ -881,19 +911,19 @@ def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: C
             v = [o[field] for o in r["other_cads"].values() if o.get(field) is not None]
             return float(fn(v)) if v else None
 
-        table["reconstruction_on_subset"] = {"rms_percent": agg(lambda r: r["reconstruction"].get("rms_percent"),
-                                                                sub_rows),
-                                             "iou": agg(lambda r: r["reconstruction"].get("iou"), sub_rows)}
-        table["other_cad_median"] = {"rms_percent": agg(lambda r: other(r, np.median, "rms_percent"), sub_rows),
-                                     "iou": agg(lambda r: other(r, np.median, "iou"), sub_rows)}
-        table["other_cad_best"] = {"rms_percent": agg(lambda r: other(r, np.min, "rms_percent"), sub_rows),
-                                   "iou": agg(lambda r: other(r, np.max, "iou"), sub_rows)}
+        table["reconstruction_on_subset"] = {"rms_percent": _agg(r["reconstruction"].get("rms_percent")
+                                                                 for r in sub_rows),
+                                             "iou": _agg(r["reconstruction"].get("iou") for r in sub_rows)}
+        table["other_cad_median"] = {"rms_percent": _agg(other(r, np.median, "rms_percent") for r in sub_rows),
+                                     "iou": _agg(other(r, np.median, "iou") for r in sub_rows)}
+        table["other_cad_best"] = {"rms_percent": _agg(other(r, np.min, "rms_percent") for r in sub_rows),
+                                   "iou": _agg(other(r, np.max, "iou") for r in sub_rows)}
         methods.update({"reconstruction_on_subset": f"reconstruction ({len(sub_rows)}-object subset)",
                         "other_cad_median": "another CAD model (median of 7, subset)",
                         "other_cad_best": "the closest other CAD model (subset)"})
-    fit = {"cad_mask_iou": agg(lambda r: r["cad_mask_iou"]),
-           "keypoint_scale_ratio": agg(lambda r: r.get("keypoint_scale_ratio")),
-           "keypoint_rms_percent_of_extent": agg(lambda r: r.get("keypoint_rms_percent_of_extent"))}
+    fit = {"cad_mask_iou": _agg(r["cad_mask_iou"] for r in per.values()),
+           "keypoint_scale_ratio": _agg(r.get("keypoint_scale_ratio") for r in per.values()),
+           "keypoint_rms_percent_of_extent": _agg(r.get("keypoint_rms_percent_of_extent") for r in per.values())}
     print_table(f"shapes vs the posed closest PASCAL3D+ CAD model ({len(per)} objects; RMS in % of the CAD "
                 "diagonal, lower is better; voxel IoU at 1% of the diagonal, higher is better)",
                 ["shape", "n", "RMS med", "RMS mean", "IoU med", "IoU mean"],
@@ -902,8 +932,7 @@ def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: C
     print_table("posing the CAD model (rotation = ground truth, scale + translation from the mask)",
                 ["quantity", "n", "median", "mean"],
                 [[k, str(v["n"]), v["median"], v["mean"]] for k, v in fit.items()])
-    return {"table": table, "pose_fit": fit, "per_object": per,
-            "seconds": {"cad_models": round(t_models, 1), "evaluation": round(seconds, 1)}}
+    return table, fit
 
 
 # =========================================================================== figure
