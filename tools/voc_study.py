@@ -543,6 +543,13 @@ def step_viewpoints(recon: Path, gt: dict, subcategory: dict | None = None) -> d
     return out
 
 
+_UNSEEN_NAMES = {"train_sfm": "training: SfM", "train_refined": "training: refined",
+                 "unseen_keypoints_only": "unseen: keypoints only",
+                 "unseen_keypoints_silhouette": "unseen: keypoints + silhouette",
+                 "unseen_keypoints_only_self_aligned": "unseen: keypoints only (own G)",
+                 "unseen_keypoints_silhouette_self_aligned": "unseen: kp + silhouette (own G)"}
+
+
 def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, device: str,
                 seen: dict | None = None) -> dict:
     """Cameras of a held-aside third from the mean shape learned on the other two thirds.
@@ -558,6 +565,37 @@ def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, de
     test = perm[:n_test].sort().values
     train = perm[n_test:].sort().values
     tr, te = coll[train], coll[test]
+    res, rr, est_kp, est_sil, seconds = _unseen_cameras(tr, te, cfg)
+    n_tr = len(tr)
+    R_tr_sfm, Rg_tr, _ = _with_gt(tr, res.cameras.R[:n_tr], gt)
+    R_tr_ref, _, _ = _with_gt(tr, rr.cameras.R[:n_tr], gt)
+    G = align_rotations(R_tr_ref, Rg_tr)
+    R_kp, Rg_te, keys_te = _with_gt(te, est_kp.R, gt)
+    R_sil, _, _ = _with_gt(te, est_sil.R, gt)
+    reps = {
+        "train_sfm": viewpoint_report(R_tr_sfm, Rg_tr),
+        "train_refined": viewpoint_report(R_tr_ref, Rg_tr),
+        "unseen_keypoints_only": viewpoint_report(R_kp, Rg_te, alignment=G),
+        "unseen_keypoints_silhouette": viewpoint_report(R_sil, Rg_te, alignment=G),
+        "unseen_keypoints_only_self_aligned": viewpoint_report(R_kp, Rg_te),
+        "unseen_keypoints_silhouette_self_aligned": viewpoint_report(R_sil, Rg_te),
+    }
+    rows = [_summary_row(_UNSEEN_NAMES[k], v) for k, v in reps.items()]
+    seen_rows = _same_objects_rows(seen, keys_te, rows) if seen is not None else {}
+    print_table(f"unseen images: {n_test} held aside (seed {seed}), mean shape from the other {n - n_test}; "
+                "G from the training objects unless 'own G'", VP_HEADER, rows)
+    per = {k: {"keypoints_only": float(a), "keypoints_silhouette": float(b)}
+           for k, a, b in zip(keys_te, reps["unseen_keypoints_only"]["per_instance_geodesic"],
+                              reps["unseen_keypoints_silhouette"]["per_instance_geodesic"])}
+    return {"seed": seed, "held_aside": n_test, "training": n - n_test,
+            "held_aside_sources": [gt_key(s) for s in te.sources], "alignment_from_training": G.tolist(),
+            "seconds": seconds, "reports": {k: _compact(v) for k, v in reps.items()},
+            "same_objects_full_run": seen_rows, "per_object_geodesic": per}
+
+
+def _unseen_cameras(tr, te, cfg: Config):
+    """SfM and refinement on the training collection ``tr`` (with mirrors), then the held-aside ``te``'s cameras
+    from its mean shape, from keypoints alone and with the silhouette; their seconds."""
     t0 = time.perf_counter()
     both = tr.with_mirrors()
     res = class_sfm(both, cfg.viewpoints)  # the pipeline's SfM (one shape)
@@ -573,52 +611,30 @@ def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, de
     est_sil, _ = camera_fit.estimate_camera(shape, te.keypoints, te.visible, dist,
                                             silhouette_weight=vcfg.silhouette_weight, max_iters=vcfg.refine_iters)
     t_test = time.perf_counter() - t0
+    return res, rr, est_kp, est_sil, {"training_sfm_refine": round(t_train, 2),
+                                      "estimate_camera_both_variants": round(t_test, 2)}
 
-    def with_gt(c, R):
-        keys = [gt_key(s) for s in c.sources]
-        idx = [i for i, k in enumerate(keys) if k in gt]
-        Rg = torch.tensor([gt[keys[i]]["R"] for i in idx], dtype=torch.float64)
-        return R[idx].double().cpu(), Rg, [keys[i] for i in idx]
 
-    n_tr = len(tr)
-    R_tr_sfm, Rg_tr, _ = with_gt(tr, res.cameras.R[:n_tr])
-    R_tr_ref, _, _ = with_gt(tr, rr.cameras.R[:n_tr])
-    G = align_rotations(R_tr_ref, Rg_tr)
-    R_kp, Rg_te, keys_te = with_gt(te, est_kp.R)
-    R_sil, _, _ = with_gt(te, est_sil.R)
-    reps = {
-        "train_sfm": viewpoint_report(R_tr_sfm, Rg_tr),
-        "train_refined": viewpoint_report(R_tr_ref, Rg_tr),
-        "unseen_keypoints_only": viewpoint_report(R_kp, Rg_te, alignment=G),
-        "unseen_keypoints_silhouette": viewpoint_report(R_sil, Rg_te, alignment=G),
-        "unseen_keypoints_only_self_aligned": viewpoint_report(R_kp, Rg_te),
-        "unseen_keypoints_silhouette_self_aligned": viewpoint_report(R_sil, Rg_te),
-    }
-    names = {"train_sfm": "training: SfM", "train_refined": "training: refined",
-             "unseen_keypoints_only": "unseen: keypoints only",
-             "unseen_keypoints_silhouette": "unseen: keypoints + silhouette",
-             "unseen_keypoints_only_self_aligned": "unseen: keypoints only (own G)",
-             "unseen_keypoints_silhouette_self_aligned": "unseen: kp + silhouette (own G)"}
-    rows = [_summary_row(names[k], v) for k, v in reps.items()]
+def _with_gt(c, R: torch.Tensor, gt: dict):
+    """The rotations ``R (n, 3, 3)`` of the objects of collection ``c`` with ground truth (float64, CPU), theirs,
+    and their keys."""
+    keys = [gt_key(s) for s in c.sources]
+    idx = [i for i, k in enumerate(keys) if k in gt]
+    Rg = torch.tensor([gt[keys[i]]["R"] for i in idx], dtype=torch.float64)
+    return R[idx].double().cpu(), Rg, [keys[i] for i in idx]
+
+
+def _same_objects_rows(seen: dict, keys: list[str], rows: list) -> dict:
+    """The full run's errors (SfM, refined) on the objects ``keys``, summarised; a table row each added to ``rows``."""
     seen_rows = {}
-    if seen is not None:
-        for stage, label in (("sfm", "same objects, full run: SfM"), ("refined", "same objects, full run: refined")):
-            per = [seen[stage]["per_object"][k] for k in keys_te if k in seen[stage]["per_object"]]
-            seen_rows[stage] = {f: summarize(torch.tensor([p[f] for p in per], dtype=torch.float64))
-                                for f in ("geodesic", "azimuth_error", "elevation_error")}
-            v = seen_rows[stage]
-            rows.append([label, str(v["geodesic"]["n"]), v["geodesic"]["median"], v["geodesic"]["acc_at_30"],
-                         v["azimuth_error"]["median"], v["elevation_error"]["median"], "-"])
-    print_table(f"unseen images: {n_test} held aside (seed {seed}), mean shape from the other {n - n_test}; "
-                "G from the training objects unless 'own G'", VP_HEADER, rows)
-    per = {k: {"keypoints_only": float(a), "keypoints_silhouette": float(b)}
-           for k, a, b in zip(keys_te, reps["unseen_keypoints_only"]["per_instance_geodesic"],
-                              reps["unseen_keypoints_silhouette"]["per_instance_geodesic"])}
-    return {"seed": seed, "held_aside": n_test, "training": n - n_test,
-            "held_aside_sources": [gt_key(s) for s in te.sources], "alignment_from_training": G.tolist(),
-            "seconds": {"training_sfm_refine": round(t_train, 2), "estimate_camera_both_variants": round(t_test, 2)},
-            "reports": {k: _compact(v) for k, v in reps.items()}, "same_objects_full_run": seen_rows,
-            "per_object_geodesic": per}
+    for stage, label in (("sfm", "same objects, full run: SfM"), ("refined", "same objects, full run: refined")):
+        per = [seen[stage]["per_object"][k] for k in keys if k in seen[stage]["per_object"]]
+        seen_rows[stage] = {f: summarize(torch.tensor([p[f] for p in per], dtype=torch.float64))
+                            for f in ("geodesic", "azimuth_error", "elevation_error")}
+        v = seen_rows[stage]
+        rows.append([label, str(v["geodesic"]["n"]), v["geodesic"]["median"], v["geodesic"]["acc_at_30"],
+                     v["azimuth_error"]["median"], v["elevation_error"]["median"], "-"])
+    return seen_rows
 
 
 def camera_variant(coll, gt: dict, cfg: Config, *, mirrors: bool = True, rigid: list[int] | None = None,
