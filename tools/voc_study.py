@@ -976,6 +976,21 @@ def _render_mesh(ax, V: np.ndarray, F: np.ndarray, R: np.ndarray, title: str) ->
     ax.set_title(title, fontsize=8)
 
 
+@dataclass
+class _FigureSources:
+    """What each object's panels read: the annotations, the run's cameras, the viewpoint and shape records."""
+
+    cc: object  # pycocotools COCO of the annotations
+    cams_json: dict  # the run's cameras.json
+    per: dict  # step_viewpoints' refined per-object records
+    S: np.ndarray  # (K, 3) the mean shape, NaN where a keypoint has none
+    G: np.ndarray  # (3, 3) the alignment of the SfM frame with the CAD frame
+    views: list  # (R (3, 3), label) of the mesh views
+    recon: Path
+    data: Path
+    shapes: dict | None  # step_shapes' result
+
+
 def step_figure(path: Path, ann: Path, recon: Path, data: Path, gt: dict, vp: dict, shapes: dict | None,
                 count: int = 12) -> dict:
     """A dozen objects: mask polygon + reconstruction silhouette + keypoints, and two views of the mesh."""
@@ -1009,50 +1024,11 @@ def step_figure(path: Path, ann: Path, recon: Path, data: Path, gt: dict, vp: di
                                                    torch.tensor(math.radians(e), dtype=torch.float64),
                                                    torch.tensor(0.0, dtype=torch.float64)).numpy(), lbl)
              for a, e, lbl in ((45.0, 20.0, "az 45, el 20"), (0.0, 80.0, "from above"))]
+    src = _FigureSources(cc, cams_json, per, S, G, views, recon, data, shapes)
     for j, key in enumerate(picks):
-        aid = per[key]["annotation_id"]
-        a0 = axes[j // per_row, (j % per_row) * cols]
-        ann_e = cc.anns[aid]
-        mask = cc.annToMask(ann_e).astype(bool)
-        mesh = trimesh.load(recon / CLASS / "meshes" / f"{aid}.ply", force="mesh", process=False)
-        V = np.asarray(mesh.vertices, dtype=np.float64)
-        F = np.asarray(mesh.faces, dtype=np.int64)
-        sil = silhouette(V[:, :2], F, np.zeros(2), mask.shape)
-        ys, xs = np.nonzero(mask | sil)
-        pad = 8
-        y0, y1 = max(0, ys.min() - pad), min(mask.shape[0], ys.max() + pad + 1)
-        x0, x1 = max(0, xs.min() - pad), min(mask.shape[1], xs.max() + pad + 1)
-        rgb = np.ones(mask.shape + (3,))
-        rgb[mask & sil] = (0.55, 0.85, 0.55)
-        rgb[mask & ~sil] = (0.95, 0.55, 0.55)
-        rgb[~mask & sil] = (0.55, 0.65, 0.95)
-        a0.imshow(rgb[y0:y1, x0:x1], extent=(x0 - 0.5, x1 - 0.5, y1 - 0.5, y0 - 0.5))
-        obj = voc.parse_keypoint_xml(data / "pascal_voc_aeroplane" / "keypoints" / ann_e["source"])
-        for poly in obj.polygons:
-            p = np.vstack([poly, poly[:1]])
-            a0.plot(p[:, 0], p[:, 1], "-", color="k", lw=0.6)
-        kp = np.asarray(ann_e["keypoints"], dtype=np.float64).reshape(-1, 3)
-        v = kp[:, 2] > 0
-        a0.plot(kp[v, 0], kp[v, 1], "o", ms=3, color="orange", mec="k", mew=0.3)
-        cam = cams_json["cameras"][str(aid)]["refined"]
-        if cam is not None:
-            c = ScaledOrthographic.from_list([cam], dtype=torch.float64)
-            q = c.project(torch.from_numpy(S))[0].numpy()
-            a0.plot(q[:, 0], q[:, 1], "x", ms=3.5, color="purple", mew=0.8)
-        a0.set_xlim(x0 - 0.5, x1 - 0.5)
-        a0.set_ylim(y1 - 0.5, y0 - 0.5)
-        title = f"{key}  geo {per[key]['geodesic']:.0f} deg"
-        if shapes and key in shapes["per_object"]:
-            rr = shapes["per_object"][key]["reconstruction"]
-            if rr.get("rms_percent") is not None:
-                title += f"\nRMS {rr['rms_percent']:.1f}%  IoU {rr.get('iou', float('nan')):.2f}"
-        a0.set_title(title, fontsize=7)
-        # the mesh in the CAD-aligned object frame: X_sfm = R^T (v - t) / s, X_cad = G^T X_sfm
-        if cam is not None:
-            Rr = np.asarray(cam["R"], dtype=np.float64)
-            X = unpose_points(V, Rr, float(cam["s"]), np.asarray(cam["t"], dtype=np.float64)) @ G
-            for k, (Rv, lbl) in enumerate(views):
-                _render_mesh(axes[j // per_row, (j % per_row) * cols + 1 + k], X, F, Rv, lbl)
+        first = (j % per_row) * cols
+        _draw_voc_object(src, key, axes[j // per_row, first],
+                         [axes[j // per_row, first + 1 + k] for k in range(len(views))])
     fig.suptitle("PASCAL VOC aeroplanes: mask (polygon outline), reconstruction silhouette (green = both, red = mask "
                  "only, blue = reconstruction only), annotated keypoints (orange) and mean shape by the refined "
                  "camera (purple x); the mesh seen from two PASCAL3D+ viewpoints", fontsize=8)
@@ -1062,6 +1038,59 @@ def step_figure(path: Path, ann: Path, recon: Path, data: Path, gt: dict, vp: di
     plt.close(fig)
     print(f"\nwrote {path}")
     return {"figure": str(path), "objects": picks}
+
+
+def _draw_voc_object(src: _FigureSources, key: str, a0, mesh_axes: list) -> None:
+    """One object's panels: on ``a0`` its mask and polygons, the reconstruction's silhouette, the annotated keypoints
+    and the mean shape by the refined camera; on ``mesh_axes`` the mesh in the CAD-aligned frame, one per view."""
+    aid = src.per[key]["annotation_id"]
+    ann_e = src.cc.anns[aid]
+    mask = src.cc.annToMask(ann_e).astype(bool)
+    mesh = trimesh.load(src.recon / CLASS / "meshes" / f"{aid}.ply", force="mesh", process=False)
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    F = np.asarray(mesh.faces, dtype=np.int64)
+    x0, x1, y0, y1 = _draw_overlap(a0, mask, silhouette(V[:, :2], F, np.zeros(2), mask.shape))
+    obj = voc.parse_keypoint_xml(src.data / "pascal_voc_aeroplane" / "keypoints" / ann_e["source"])
+    for poly in obj.polygons:
+        p = np.vstack([poly, poly[:1]])
+        a0.plot(p[:, 0], p[:, 1], "-", color="k", lw=0.6)
+    kp = np.asarray(ann_e["keypoints"], dtype=np.float64).reshape(-1, 3)
+    v = kp[:, 2] > 0
+    a0.plot(kp[v, 0], kp[v, 1], "o", ms=3, color="orange", mec="k", mew=0.3)
+    cam = src.cams_json["cameras"][str(aid)]["refined"]
+    if cam is not None:
+        c = ScaledOrthographic.from_list([cam], dtype=torch.float64)
+        q = c.project(torch.from_numpy(src.S))[0].numpy()
+        a0.plot(q[:, 0], q[:, 1], "x", ms=3.5, color="purple", mew=0.8)
+    a0.set_xlim(x0 - 0.5, x1 - 0.5)
+    a0.set_ylim(y1 - 0.5, y0 - 0.5)
+    title = f"{key}  geo {src.per[key]['geodesic']:.0f} deg"
+    if src.shapes and key in src.shapes["per_object"]:
+        rr = src.shapes["per_object"][key]["reconstruction"]
+        if rr.get("rms_percent") is not None:
+            title += f"\nRMS {rr['rms_percent']:.1f}%  IoU {rr.get('iou', float('nan')):.2f}"
+    a0.set_title(title, fontsize=7)
+    # the mesh in the CAD-aligned object frame: X_sfm = R^T (v - t) / s, X_cad = G^T X_sfm
+    if cam is not None:
+        Rr = np.asarray(cam["R"], dtype=np.float64)
+        X = unpose_points(V, Rr, float(cam["s"]), np.asarray(cam["t"], dtype=np.float64)) @ src.G
+        for ax, (Rv, lbl) in zip(mesh_axes, src.views):
+            _render_mesh(ax, X, F, Rv, lbl)
+
+
+def _draw_overlap(ax, mask: np.ndarray, sil: np.ndarray) -> tuple[int, int, int, int]:
+    """Show where the ``(H, W)`` mask and silhouette agree (green), the mask alone (red), the silhouette alone (blue),
+    cropped to both with a margin; the crop ``x0, x1, y0, y1`` (ends excluded)."""
+    ys, xs = np.nonzero(mask | sil)
+    pad = 8
+    y0, y1 = max(0, ys.min() - pad), min(mask.shape[0], ys.max() + pad + 1)
+    x0, x1 = max(0, xs.min() - pad), min(mask.shape[1], xs.max() + pad + 1)
+    rgb = np.ones(mask.shape + (3,))
+    rgb[mask & sil] = (0.55, 0.85, 0.55)
+    rgb[mask & ~sil] = (0.95, 0.55, 0.55)
+    rgb[~mask & sil] = (0.55, 0.65, 0.95)
+    ax.imshow(rgb[y0:y1, x0:x1], extent=(x0 - 0.5, x1 - 0.5, y1 - 0.5, y0 - 0.5))
+    return x0, x1, y0, y1
 
 
 # =========================================================================== main
