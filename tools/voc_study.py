@@ -1186,16 +1186,8 @@ def main(argv=None) -> dict:
     result["conversion"] = conv
     ann = Path(conv["annotations"])
     recon = work / "recon"
-    if args.skip_reconstruct:
-        if not (recon / CLASS / "cameras.json").is_file():
-            raise SystemExit(f"voc_study: --skip-reconstruct but {recon}/{CLASS}/cameras.json is missing")
-        summ = read_json(recon / "summary.json")
-        c = summ["classes"][CLASS]
-        result["reconstruction"] = {"objects": c["objects"], "failures": c["failures"], "warnings": c["warnings"],
-                                    "seconds": c["seconds"], "total_seconds": summ.get("total_seconds"),
-                                    "note": "reused an existing reconstruction (--skip-reconstruct)"}
-    else:
-        result["reconstruction"] = step_reconstruct(ann, recon, args.overrides, args.device)
+    result["reconstruction"] = _reused_reconstruction(recon) if args.skip_reconstruct else \
+        step_reconstruct(ann, recon, args.overrides, args.device)
     subcategory = {gt_key(a["source"]): a.get("subcategory") for a in read_json(ann)["annotations"]}
     vp = step_viewpoints(recon, gt, subcategory)
     result["viewpoints"] = {k: ({kk: vv for kk, vv in v.items() if kk != "per_object"} if isinstance(v, dict)
@@ -1213,18 +1205,34 @@ def main(argv=None) -> dict:
     load = os.getloadavg()
     result["environment"]["load_average_end"] = [round(x, 2) for x in load]
     write_json(out, result)
-    per_object = {}
-    for k in vp["refined"]["per_object"]:
-        row = {"sfm": vp["sfm"]["per_object"].get(k), "refined": vp["refined"]["per_object"][k]}
-        if k in result["unseen"]["per_object_geodesic"]:
-            row["unseen_geodesic"] = result["unseen"]["per_object_geodesic"][k]
-        if shapes and k in shapes["per_object"]:
-            row["shape"] = shapes["per_object"][k]
-        per_object[k] = row
-    write_json(work / "per_object.json", {"command": command, "objects": per_object})
+    write_json(work / "per_object.json", {"command": command, "objects": _per_object(vp, result["unseen"], shapes)})
     print(f"\nwrote {out} and {work / 'per_object.json'} in {result['total_seconds']:.0f} s "
           f"(load average at end {load[0]:.2f})")
     return result
+
+
+def _reused_reconstruction(recon: Path) -> dict:
+    """``--skip-reconstruct``: what the existing run's ``summary.json`` says of its aeroplanes."""
+    if not (recon / CLASS / "cameras.json").is_file():
+        raise SystemExit(f"voc_study: --skip-reconstruct but {recon}/{CLASS}/cameras.json is missing")
+    summ = read_json(recon / "summary.json")
+    c = summ["classes"][CLASS]
+    return {"objects": c["objects"], "failures": c["failures"], "warnings": c["warnings"],
+            "seconds": c["seconds"], "total_seconds": summ.get("total_seconds"),
+            "note": "reused an existing reconstruction (--skip-reconstruct)"}
+
+
+def _per_object(vp: dict, unseen: dict, shapes: dict | None) -> dict:
+    """Every object with a refined camera: its SfM and refined errors, unseen-image error and shape record."""
+    per_object = {}
+    for k in vp["refined"]["per_object"]:
+        row = {"sfm": vp["sfm"]["per_object"].get(k), "refined": vp["refined"]["per_object"][k]}
+        if k in unseen["per_object_geodesic"]:
+            row["unseen_geodesic"] = unseen["per_object_geodesic"][k]
+        if shapes and k in shapes["per_object"]:
+            row["shape"] = shapes["per_object"][k]
+        per_object[k] = row
+    return per_object
 
 
 if __name__ == "__main__":
