@@ -39,6 +39,7 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -162,6 +163,65 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
             object there: another class or ``source``; or none of its ids is in ``data``).
     """
     data = Path(data)
+    ann = _read_annotations(data, gt, split)
+    classes = _class_keys(classes, ann.categories, ann.key_of, data)
+    first = Path(next(iter(recons.values())))
+    cfg = read_run_config(first / "config.yaml") if (first / "config.yaml").is_file() else Config()
+    canvas_size = canvas_size or cfg.input.canvas_size
+    coll_by_class = {}
+    if baselines:
+        loaded = load_coco(data, canvas_size=canvas_size, margin=cfg.input.canvas_margin,
+                           classes=classes)
+        coll_by_class = loaded.collections
+    wanted = _wanted_classes(classes, recons, ann, data)
+    cameras = {name: _read_cameras(Path(rdir), wanted) for name, rdir in recons.items()}  # method -> class -> file
+    for name, rdir in recons.items():
+        _check_same_objects(name, Path(rdir), cameras[name], ann.ann_class, ann.source_of, data)
+    in_scope = [a for a, c in ann.ann_class.items()
+                if str(a) in ann.gt_entries and (split is None or ann.split_of.get(a) == split) and c is not None]
+    without = _classes_without_reconstruction(recons, [ann.ann_class[a] for a in in_scope], classes)
+    targets = [a for a in in_scope if ann.ann_class[a] in wanted]
+    targets.sort(key=_id_order)
+    methods = list(recons) + (["Puffball", "SFMc"] if baselines and shapes else [])
+    scorer = _ShapeScorer(ann.gt_path.parent, recons, cameras, step_percent, baselines, coll_by_class)
+    objects: dict[str, dict] = {}
+    t0 = time.perf_counter()
+    for aid in tqdm(targets, desc="evaluate", disable=not progress):
+        row = {"class": ann.ann_class[aid], "split": ann.split_of.get(aid, "")}
+        if shapes:
+            scorer.score(aid, ann.gt_entries[str(aid)], row)
+        objects[str(aid)] = row
+    per_class = _class_errors(objects, methods)
+    viewpoints = _class_viewpoints(list(per_class), objects, ann, cameras)
+    means = {}
+    for mth in methods:
+        vals = [per_class[c][mth]["mean"] for c in per_class if per_class[c][mth]["mean"] is not None]
+        means[mth] = float(np.mean(vals)) if vals else None
+    res = {"data": str(data), "gt": str(ann.gt_path), "split": split, "step_percent": step_percent,
+           "methods": methods, "recons": {k: str(v) for k, v in recons.items()}, "objects": objects,
+           "classes": per_class, "mean_over_classes": means, "viewpoints": viewpoints,
+           "classes_without_reconstruction": without}
+    res["quality"] = reliability.quality_vs_error(res)
+    res["seconds"] = round(time.perf_counter() - t0, 2)
+    return res
+
+
+@dataclasses.dataclass
+class _Annotations:
+    """What :func:`evaluate` reads of the annotation file and its ground truth; ids as strings."""
+
+    gt_path: Path
+    gt_entries: dict  # id -> its gt.json record
+    categories: list  # the file's categories
+    key_of: dict  # category id -> class folder
+    split_of: dict  # id -> split ("" without one)
+    ann_class: dict  # id -> class folder (None: an unknown category)
+    original: dict  # id -> the id as the file gives it (int or str)
+    source_of: dict  # id -> the annotation's source
+
+
+def _read_annotations(data: Path, gt, split: str | None) -> _Annotations:
+    """Read ``data`` and its ground truth (``gt``, default ``gt.json`` beside it); errors as :func:`evaluate`'s."""
     if not data.is_file():
         raise FileNotFoundError(f"{data}: no such annotation file")
     gt_path = Path(gt) if gt else data.with_name("gt.json")
@@ -176,90 +236,84 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
         present = sorted({repr(s) if s else "none" for s in split_of.values()})
         raise ValueError(f"no annotation of {data} is in split {split!r} (its splits: {', '.join(present) or 'none'})")
     key_of = class_keys(dataset.get("categories", []))
-    ann_class = {str(a["id"]): key_of.get(str(a.get("category_id"))) for a in anns}
-    original = {str(a["id"]): a["id"] for a in anns}  # ids as the file gives them (ints or strings)
-    source_of = {str(a["id"]): annotation_source(a) for a in anns}
-    classes = _class_keys(classes, dataset.get("categories", []), key_of, data)
-    first = Path(next(iter(recons.values())))
-    cfg = read_run_config(first / "config.yaml") if (first / "config.yaml").is_file() else Config()
-    canvas_size = canvas_size or cfg.input.canvas_size
-    coll_by_class = {}
-    if baselines:
-        loaded = load_coco(data, canvas_size=canvas_size, margin=cfg.input.canvas_margin,
-                           classes=classes)
-        coll_by_class = loaded.collections
-    # default: the classes some reconstruction directory has
-    wanted = set(classes) if classes else {c for r in recons.values() for c in ann_class.values()
+    return _Annotations(gt_path=gt_path, gt_entries=gt_entries, categories=dataset.get("categories", []),
+                        key_of=key_of, split_of=split_of,
+                        ann_class={str(a["id"]): key_of.get(str(a.get("category_id"))) for a in anns},
+                        original={str(a["id"]): a["id"] for a in anns},
+                        source_of={str(a["id"]): annotation_source(a) for a in anns})
+
+
+def _wanted_classes(classes: list[str] | None, recons: dict, ann: _Annotations, data: Path) -> set[str]:
+    """The classes to evaluate: ``classes``, by default those some reconstruction has a folder for (``ValueError``:
+    none)."""
+    wanted = set(classes) if classes else {c for r in recons.values() for c in ann.ann_class.values()
                                            if c is not None and (Path(r) / c).is_dir()}
     if not wanted:
-        raise ValueError(f"no class of {data} ({', '.join(sorted(set(key_of.values()))) or 'none'}) has a folder in "
-                         f"{' or '.join(map(str, recons.values()))}")
-    cameras = {name: _read_cameras(Path(rdir), wanted) for name, rdir in recons.items()}  # method -> class -> file
-    for name, rdir in recons.items():
-        _check_same_objects(name, Path(rdir), cameras[name], ann_class, source_of, data)
-    in_scope = [a for a, c in ann_class.items()
-                if str(a) in gt_entries and (split is None or split_of.get(a) == split) and c is not None]
-    without = _classes_without_reconstruction(recons, [ann_class[a] for a in in_scope], classes)
-    targets = [a for a in in_scope if ann_class[a] in wanted]
-    targets.sort(key=_id_order)
-    methods = list(recons) + (["Puffball", "SFMc"] if baselines and shapes else [])
-    objects: dict[str, dict] = {}
-    mesh_cache: dict = {}
-    t0 = time.perf_counter()
-    for aid in tqdm(targets, desc="evaluate", disable=not progress):
-        cls = ann_class[aid]
-        entry = gt_entries[str(aid)]
-        row = {"class": cls, "split": split_of.get(aid, "")}
-        if not shapes:
-            objects[str(aid)] = row
-            continue
+        raise ValueError(f"no class of {data} ({', '.join(sorted(set(ann.key_of.values()))) or 'none'}) has a folder "
+                         f"in {' or '.join(map(str, recons.values()))}")
+    return wanted
+
+
+@dataclasses.dataclass
+class _ShapeScorer:
+    """The shape errors of one object: every method's mesh (and the baselines') against its posed ground truth."""
+
+    gt_root: Path  # the folder the meshes of gt.json are relative to
+    recons: dict  # method -> reconstruction folder
+    cameras: dict  # method -> class -> cameras.json content (None: none)
+    step_percent: float
+    baselines: bool
+    collections: dict  # class -> its loaded collection (the baselines' masks)
+    mesh_cache: dict = dataclasses.field(default_factory=dict)
+
+    def score(self, aid: str, entry: dict, row: dict) -> None:
+        """Add each method's error (or why there is none) to ``row``, or a ``reason`` when the ground truth fails."""
+        cls = row["class"]
         try:
-            posed, diag = posed_gt_mesh(entry, gt_path.parent, mesh_cache)
+            posed, diag = posed_gt_mesh(entry, self.gt_root, self.mesh_cache)
             gt_mesh = metrics.EvaluationMesh(posed, name="gt")
             gt_mesh.require_valid()
             gt_mesh = gt_mesh.with_diag(diag)
         except (ValueError, FileNotFoundError, KeyError) as e:
             row["reason"] = f"ground truth unusable: {e}"
-            objects[str(aid)] = row
-            continue
-        step = step_percent / 100.0 * gt_mesh.diag
-        for name, rdir in recons.items():
-            m = _load_recon_mesh(Path(rdir), cls, aid, cameras[name][cls])
+            return
+        step = self.step_percent / 100.0 * gt_mesh.diag
+        for name, rdir in self.recons.items():
+            m = _load_recon_mesh(Path(rdir), cls, aid, self.cameras[name][cls])
             row[name] = _score(m, gt_mesh, step, "no reconstruction")
-        if baselines:
-            row["Puffball"] = _score(_puffball(coll_by_class.get(cls), aid), gt_mesh, step, "no mask")
-            row["SFMc"] = _score(_sfmc(cameras[methods[0]][cls], aid), gt_mesh, step, "no SfM camera")
-        objects[str(aid)] = row
-    # per class aggregates
-    per_class: dict[str, dict] = defaultdict(dict)
+        if self.baselines:
+            row["Puffball"] = _score(_puffball(self.collections.get(cls), aid), gt_mesh, step, "no mask")
+            first = next(iter(self.recons))
+            row["SFMc"] = _score(_sfmc(self.cameras[first][cls], aid), gt_mesh, step, "no SfM camera")
+
+
+def _class_errors(objects: dict, methods: list[str]) -> dict[str, dict]:
+    """Per class (sorted) and method: mean, median, count and missing of the objects' finite ``error_percent``."""
+    per_class: dict[str, dict] = {}
     for cls in sorted({r["class"] for r in objects.values()}):
         rows = [r for r in objects.values() if r["class"] == cls]
+        per_class[cls] = {}
         for mth in methods:
             errs = [r[mth]["error_percent"] for r in rows if isinstance(r.get(mth), dict)
                     and r[mth].get("error_percent") is not None and math.isfinite(r[mth]["error_percent"])]
             per_class[cls][mth] = {"mean": float(np.mean(errs)) if errs else None,
                                    "median": float(np.median(errs)) if errs else None,
                                    "count": len(errs), "missing": len(rows) - len(errs)}
+    return per_class
+
+
+def _class_viewpoints(classes: list[str], objects: dict, ann: _Annotations, cameras: dict) -> dict[str, dict]:
+    """Per class and method with cameras: the :func:`_viewpoints` reports of the class's objects."""
     viewpoints = {}
-    for cls in per_class:
-        aids = [original[a] for a, r in objects.items() if r["class"] == cls]
+    for cls in classes:
+        aids = [ann.original[a] for a, r in objects.items() if r["class"] == cls]
         vp = {}
-        for name, rdir in recons.items():
-            rep = _viewpoints(cameras[name][cls], gt_entries, aids)
+        for name in cameras:
+            rep = _viewpoints(cameras[name][cls], ann.gt_entries, aids)
             if rep:
                 vp[name] = rep
         viewpoints[cls] = vp
-    means = {}
-    for mth in methods:
-        vals = [per_class[c][mth]["mean"] for c in per_class if per_class[c][mth]["mean"] is not None]
-        means[mth] = float(np.mean(vals)) if vals else None
-    res = {"data": str(data), "gt": str(gt_path), "split": split, "step_percent": step_percent,
-           "methods": methods, "recons": {k: str(v) for k, v in recons.items()}, "objects": objects,
-           "classes": dict(per_class), "mean_over_classes": means, "viewpoints": viewpoints,
-           "classes_without_reconstruction": without}
-    res["quality"] = reliability.quality_vs_error(res)
-    res["seconds"] = round(time.perf_counter() - t0, 2)
-    return res
+    return viewpoints
 
 
 def _class_keys(classes, categories: list, key_of: dict, data: Path) -> list[str] | None:

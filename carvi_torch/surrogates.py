@@ -436,6 +436,28 @@ def sample_triplets(
         >>> t.surrogates.shape, bool(t.valid.any())
         (torch.Size([1, 4, 2]), True)
     """
+    _check_triplet_args(labels, object_ids, references, proposals, own_cluster_weight, floor)
+    out_dev = labels.device
+    dev = generator.device if generator is not None else torch.device("cpu")
+    labels = labels.to(dev).long()
+    object_ids = object_ids.to(dev).long()
+    references = references.to(dev).long()
+    P = int(proposals)
+
+    w, eligible = cluster_weights(labels, object_ids, references, own_cluster_weight, floor)  # (R, 3)
+    usable = (w > 0).sum(dim=-1) >= 2  # (R,)
+    pick = _cluster_pairs(w, usable, P, generator)
+    surrogates = _members_of_pairs(labels, object_ids, references, eligible, pick, generator)
+    surrogates, valid, clusters = _drop_repeated_pairs(surrogates, pick, usable, labels.shape[0])
+    reasons = _no_pair_reasons(labels, references, usable, eligible, w)
+    return Triplets(
+        surrogates=surrogates.to(out_dev), valid=valid.to(out_dev), reasons=reasons, clusters=clusters.to(out_dev)
+    )
+
+
+def _check_triplet_args(labels: torch.Tensor, object_ids: torch.Tensor, references: torch.Tensor, proposals: int,
+                        own_cluster_weight: float, floor: float) -> None:
+    """``ValueError`` unless the arguments are as :func:`sample_triplets` documents them."""
     for name, x in (("labels", labels), ("object_ids", object_ids), ("references", references)):
         if not isinstance(x, torch.Tensor) or x.dim() != 1:
             raise ValueError(f"{name} must be a 1-D tensor")
@@ -453,48 +475,57 @@ def sample_triplets(
     if own_cluster_weight < 0 or floor < 0:
         raise ValueError(f"own_cluster_weight and floor must be >= 0, got {own_cluster_weight}, {floor}")
 
-    out_dev = labels.device
-    dev = generator.device if generator is not None else torch.device("cpu")
-    labels = labels.to(dev).long()
-    object_ids = object_ids.to(dev).long()
-    references = references.to(dev).long()
-    R, P = references.shape[0], int(proposals)
 
-    w, eligible = cluster_weights(labels, object_ids, references, own_cluster_weight, floor)  # (R, 3)
-    usable = (w > 0).sum(dim=-1) >= 2  # (R,)
-
-    # 1. two different clusters per proposal.
+def _cluster_pairs(w: torch.Tensor, usable: torch.Tensor, P: int, generator: torch.Generator | None) -> torch.Tensor:
+    """Two different clusters per proposal: ``(R, P, 2)`` long drawn with weights ``w (R, 3)``
+    (rows not ``usable (R,)`` draw from placeholder weights)."""
+    R, dev = w.shape[0], w.device
     w_draw = torch.where(usable[:, None], w, torch.ones_like(w))  # placeholder rows keep multinomial happy
     w_draw = w_draw[:, None, :].expand(R, P, 3).reshape(R * P, 3)
     if R * P:
-        pick = torch.multinomial(w_draw, 2, replacement=False, generator=generator).reshape(R, P, 2)
-    else:
-        pick = torch.zeros(R, P, 2, dtype=torch.long, device=dev)
+        return torch.multinomial(w_draw, 2, replacement=False, generator=generator).reshape(R, P, 2)
+    return torch.zeros(R, P, 2, dtype=torch.long, device=dev)
 
-    # 2. one eligible member of every cluster per slot, then keep the chosen cluster's. The
-    # (references, 3, N) member weights are built a chunk of references at a time (bounded memory
-    # for large classes); multinomial draws row by row, so chunks give the same draws.
-    if R * P and n:
-        per = max(1, _TRIPLET_CHUNK_ELEMS // (3 * n))
-        draws = torch.cat([_member_draws(labels, object_ids, references[r:r + per], eligible[r:r + per], 2 * P,
-                                         generator) for r in range(0, R, per)])
-        draws = draws.reshape(R, 3, P, 2)
-        surrogates = draws.permute(0, 2, 3, 1).gather(-1, pick[..., None]).squeeze(-1)  # (R, P, 2)
-    else:
-        surrogates = torch.full((R, P, 2), -1, dtype=torch.long, device=dev)
 
-    # 3. invalid rows and duplicated unordered pairs.
+def _members_of_pairs(labels: torch.Tensor, object_ids: torch.Tensor, references: torch.Tensor,
+                      eligible: torch.Tensor, pick: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+    """One eligible member of each picked cluster: ``(R, P, 2)`` instance indices (``-1`` when there are none).
+
+    One member of every cluster is drawn per slot, then the chosen cluster's kept. The ``(references, 3, N)``
+    member weights are built a chunk of references at a time (bounded memory for large classes);
+    multinomial draws row by row, so chunks give the same draws."""
+    (R, P, _), n = pick.shape, labels.shape[0]
+    if not (R * P and n):
+        return torch.full((R, P, 2), -1, dtype=torch.long, device=pick.device)
+    per = max(1, _TRIPLET_CHUNK_ELEMS // (3 * n))
+    draws = torch.cat([_member_draws(labels, object_ids, references[r:r + per], eligible[r:r + per], 2 * P,
+                                     generator) for r in range(0, R, per)])
+    draws = draws.reshape(R, 3, P, 2)
+    return draws.permute(0, 2, 3, 1).gather(-1, pick[..., None]).squeeze(-1)  # (R, P, 2)
+
+
+def _drop_repeated_pairs(surrogates: torch.Tensor, pick: torch.Tensor, usable: torch.Tensor, n: int
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``surrogates``, ``valid (R, P)`` and ``clusters`` with the rows not ``usable`` and every repeat of an
+    earlier proposal's unordered pair marked invalid (``-1``); ``surrogates``, ``pick``: ``(R, P, 2)``."""
+    R, P, _ = surrogates.shape
     valid = usable[:, None].expand(R, P).clone()
     key = surrogates.min(dim=-1).values * max(n, 1) + surrogates.max(dim=-1).values  # (R, P)
     same = key[:, :, None] == key[:, None, :]  # (R, P, P): [r, p, q]
-    earlier = torch.ones(P, P, dtype=torch.bool, device=dev).tril(diagonal=-1)  # q < p
+    earlier = torch.ones(P, P, dtype=torch.bool, device=surrogates.device).tril(diagonal=-1)  # q < p
     dup = (same & earlier).any(dim=-1)
     valid &= ~dup
     surrogates = torch.where(valid[..., None], surrogates, torch.full_like(surrogates, -1))
     clusters = torch.where(valid[..., None], pick, torch.full_like(pick, -1))
+    return surrogates, valid, clusters
 
+
+def _no_pair_reasons(labels: torch.Tensor, references: torch.Tensor, usable: torch.Tensor, eligible: torch.Tensor,
+                     w: torch.Tensor) -> dict[int, str]:
+    """Why each reference not ``usable (R,)`` gets no pair: ``{instance index: reason}`` from its ``eligible``
+    members and weights ``w`` (both ``(R, 3)``)."""
     reasons: dict[int, str] = {}
-    if R and not bool(usable.all()):
+    if references.shape[0] and not bool(usable.all()):
         sizes = torch.bincount(labels[labels >= 0], minlength=3)[:3].tolist()
         for r in (~usable).nonzero().squeeze(-1).tolist():  # only the failing references
             ref = int(references[r])
@@ -504,9 +535,7 @@ def sample_triplets(
                 f"direction {eligible[r].tolist()} (cluster sizes {sizes}, own cluster {own}, weights "
                 f"{[round(x, 3) for x in w[r].tolist()]}); members sharing the reference's object_id are excluded"
             )
-    return Triplets(
-        surrogates=surrogates.to(out_dev), valid=valid.to(out_dev), reasons=reasons, clusters=clusters.to(out_dev)
-    )
+    return reasons
 
 
 # --------------------------------------------------------------------------- rotational symmetry

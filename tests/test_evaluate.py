@@ -132,6 +132,24 @@ def test_a_mesh_left_from_other_inputs_is_not_scored(recon, tmp_path):
     kept = [k for k, r in res["objects"].items() if k != stale.stem and "error_percent" in r["Full"]]
     assert kept, "the other objects are still scored"
 
+
+def test_an_object_whose_ground_truth_fails_gets_a_reason_and_no_scores(recon, tmp_path):
+    """A ground-truth mesh that cannot be read leaves its object unscored, with the reason, for every method and
+    baseline; the class's other objects are scored."""
+    data, gt = _gt(recon)
+    inputs = tmp_path / "input"
+    shutil.copytree(data.parent, inputs)
+    gt_all = json.loads((inputs / "gt.json").read_text())
+    broken = sorted(gt)[0]
+    gt_all["annotations"][broken]["mesh"] = "meshes/missing.ply"
+    (inputs / "gt.json").write_text(json.dumps(gt_all))
+    res = evaluate(inputs / "annotations.json", {"Full": recon}, baselines=True, step_percent=5.0, progress=False,
+                   classes=["car"])
+    row = res["objects"][broken]
+    assert row["reason"].startswith("ground truth unusable:") and "missing.ply" in row["reason"]
+    assert not {"Full", "Puffball", "SFMc"} & set(row)
+    assert res["classes"]["car"]["Full"]["missing"] >= 1 and res["classes"]["car"]["Full"]["count"] >= 1
+
 def test_cli_errors(tmp_path, capsys):
     assert main(["--data", str(tmp_path / "a.json"), "--recon", str(tmp_path / "none")]) == 2
     assert "not found" in capsys.readouterr().err

@@ -1121,3 +1121,18 @@ def test_train_example_with_too_few_objects_says_so(tmp_path, capsys):
                            "--workers", "0"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: ") and f"keeps {kept} of 3 object(s)" in err[0], err
+
+
+def test_bench_viewpoints_times_the_mixture_fit_on_a_small_class(tmp_path: Path, capsys):
+    """``bench_viewpoints --groups 2`` hands the mixture fit the masks it reads and records the fit, the groups'
+    refinement and the stage with the mixture; ``--one-thread-too`` checks that one thread gives the same fit."""
+    bv = load_tool("bench_viewpoints")
+    out = tmp_path / "viewpoints.json"
+    rec = bv.main(["--n", "30", "--k", "10", "--canvas", "48", "--max-outer", "10", "--max-iters", "5", "--groups", "2",
+                   "--one-thread-too", "--group-threads", "2", "--threads-min-objects", "0", "--out", str(out)])
+    assert json.loads(out.read_text())["config"]["with_mirrors"] == 60
+    mix = rec["mixture_fit"]
+    assert mix["warm"]["groups"] >= 1 and sum(mix["warm"]["sizes"]) <= 30
+    assert mix["warm"]["stage_seconds"] > mix["warm"]["seconds"] > 0 and mix["warm"]["refinement_seconds"] > 0
+    assert mix["threads_same_result"] is True
+    assert "stage with mixture" in capsys.readouterr().out

@@ -386,7 +386,8 @@ def _record_target(args, name: str, default_key: str) -> tuple[Path, str | None]
     return record_target(args.out, args.key, ROOT / "docs" / "data" / name, default_key, ROOT / "outputs" / name)
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (the module docstring is its help)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--objects", type=int, help="objects to reconstruct without --recon (default 1000; --report 160)")
@@ -409,7 +410,11 @@ def main(argv=None) -> int:
                          "--viewpoints-only) by quality: Spearman rho pooled, per class, per signal and with each "
                          "factor left out (default record: key quality_shape_cad)")
     ap.add_argument("--method", help="with --quality: the evaluated method (default: the first)")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     argv = list(sys.argv[1:] if argv is None else argv)
     if args.quality:
         out, key = _record_target(args, "export.json", "quality_shape_cad")
@@ -425,15 +430,30 @@ def main(argv=None) -> int:
         return bench_report(recon, work, args.out, args.key, argv)
     if args.compare_with:
         return compare_exports(py, recon, work, args, argv)
+    return bench_export(py, recon, work, args, argv)
+
+
+def bench_export(py: str, recon: Path, work: Path, args, argv) -> int:
+    """Time the export of ``recon`` and three reads of its store; print the table, write the record."""
     exp = work / "export"
     load0 = os.getloadavg()[0]
     run = time_export(py, recon, exp, args.workers)
-    t_exp, peak_exp, cpu_s, n = run["seconds"], run["peak_tree_rss_mb"], run["cpu_seconds"], run["objects"]
     reads = {}
     for name, w, fields in (("all", 0, ""), ("three", 0, "mask,viewpoint,occupancy_canonical"), ("loader", 2, "")):
         _, _, out = _timed([py, "-c", READER, str(exp), str(w), fields])
         reads[name] = json.loads(out.strip().splitlines()[-1])
     sizes = _sizes(exp)
+    _print_export(run, reads, sizes, load0)
+    from carvi_torch.io.outputs import write_record
+
+    write_record(args.out, _export_record(run, reads, sizes, load0, argv), args.key)
+    print(f"wrote {args.out}" + (f", key {args.key}" if args.key else ""))
+    return 0
+
+
+def _print_export(run: dict, reads: dict, sizes: dict, load0: float) -> None:
+    """The export's and the reads' table, bytes per object by field, CPU time, cores and load."""
+    t_exp, peak_exp, cpu_s, n = run["seconds"], run["peak_tree_rss_mb"], run["cpu_seconds"], run["objects"]
     per_obj = sum(sizes.values()) / max(n, 1)
 
     def mb(v):
@@ -455,9 +475,13 @@ def main(argv=None) -> int:
     print(f"export CPU time (process tree, user + system): {cpu_s:.1f} s = {1000 * cpu_s / max(n, 1):.1f} ms/object, "
           f"so at most {2 * n / cpu_s:.0f} objects/s on 2 idle cores (start-up included)")
     print(f"{os.cpu_count()} cores; load average {load0:.1f} before the export, {os.getloadavg()[0]:.1f} after")
-    from carvi_torch.io.outputs import write_record
 
-    write_record(args.out, {
+
+def _export_record(run: dict, reads: dict, sizes: dict, load0: float, argv) -> dict:
+    """The JSON record of an export benchmark (rates rounded; the load average now is the one after)."""
+    t_exp, peak_exp, cpu_s, n = run["seconds"], run["peak_tree_rss_mb"], run["cpu_seconds"], run["objects"]
+    per_obj = sum(sizes.values()) / max(n, 1)
+    return {
         "command": "python tools/bench_export.py " + " ".join(shlex.quote(a) for a in argv),
         "objects": n, "export_seconds": round(t_exp, 2), "export_objects_per_second": round(n / t_exp, 2),
         "export_peak_tree_rss_mb": round(peak_exp) if peak_exp else None,
@@ -469,9 +493,7 @@ def main(argv=None) -> int:
         "read_samples_per_second_1_worker_3_fields": round(reads["three"]["samples"] / reads["three"]["seconds"]),
         "dataloader_samples_per_second_2_workers": round(reads["loader"]["samples"] / reads["loader"]["seconds"]),
         "load_average_before": round(load0, 2), "load_average_after": round(os.getloadavg()[0], 2),
-        "cpus": os.cpu_count()}, args.key)
-    print(f"wrote {args.out}" + (f", key {args.key}" if args.key else ""))
-    return 0
+        "cpus": os.cpu_count()}
 
 
 if __name__ == "__main__":

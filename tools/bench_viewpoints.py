@@ -154,16 +154,16 @@ def make_class(n: int, k: int, canvas: int, seed: int, shapes: int = 1):
 
 
 class _Rows:
-    """The two fields of a collection the mixture fit reads, indexable by rows."""
+    """The fields of a collection the mixture fit reads (keypoints, visibility, masks), indexable by rows."""
 
-    def __init__(self, keypoints: torch.Tensor, visible: torch.Tensor):
-        self.keypoints, self.visible = keypoints, visible
+    def __init__(self, keypoints: torch.Tensor, visible: torch.Tensor, masks: torch.Tensor):
+        self.keypoints, self.visible, self.masks = keypoints, visible, masks
 
     def __len__(self) -> int:
         return self.keypoints.shape[0]
 
     def __getitem__(self, rows) -> "_Rows":
-        return _Rows(self.keypoints[rows], self.visible[rows])
+        return _Rows(self.keypoints[rows], self.visible[rows], self.masks[rows])
 
 
 PARTS = ["cold:group_sfm", "cold:factorize", "cold:polish", "warm:group_sfm", "warm:factorize", "warm:polish",
@@ -362,7 +362,8 @@ def main_cameras_cpu(args, argv: list[str]) -> dict:
     return rec
 
 
-def main(argv=None) -> dict:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (the module docstring is its help)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=2000, help="instances before mirroring (default 2000)")
@@ -406,122 +407,191 @@ def main(argv=None) -> dict:
                     help="--cameras-cpu: the variants, each a quoted space-separated list of overrides; ratios "
                          "to the first (default: sfm_groups=1 sfm_groups=3)")
     ap.add_argument("--rounds", type=int, default=2, help="--cameras-cpu: runs of each variant (default 2)")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> dict:
+    args = build_parser().parse_args(argv)
     if args.cameras_cpu:
         return main_cameras_cpu(args, list(sys.argv[1:] if argv is None else argv))
     if args.profile_mixture:
         default = ROOT / "docs" / "data" / "viewpoints.json" if args.key else ROOT / "outputs" / "profile_mixture.json"
         return profile_mixture(args.profile_mixture, args.profile_set, Path(args.out) if args.out else default,
                                args.key)
+    return main_speed(args)
+
+
+@dataclasses.dataclass
+class _Bench:
+    """The benchmark's class on its device (originals then mirrors: ``2n`` rows) and the run's settings."""
+
+    args: argparse.Namespace
+    dev: torch.device
+    vcfg: object  # the pipeline's viewpoint settings (Config().viewpoints)
+    kp: torch.Tensor  # (2n, K, 2) keypoints
+    vis: torch.Tensor  # (2n, K) bool
+    rows: _Rows  # the same rows as the mixture fit reads them (masks included)
+    R_true: torch.Tensor  # (2n, 3, 3) the true rotations (CPU)
+    dist: torch.Tensor | None = None  # (2n, H, W) distance maps of the masks, once timed
+
+    def sync(self) -> None:
+        """Wait for the device, so that the clock reads finished work."""
+        if self.dev.type == "cuda":
+            torch.cuda.synchronize()
+
+    def timed(self, fn):
+        """``fn()`` and its seconds (the device synchronised before the clock stops)."""
+        t0 = time.perf_counter()
+        out = fn()
+        self.sync()
+        return out, time.perf_counter() - t0
+
+
+@dataclasses.dataclass
+class _Stages:
+    """The one-shape stages' results and seconds, and the mixture fits' record (``None``: not run)."""
+
+    sfm: object  # SfMResult
+    ref: object  # refine_cameras' result
+    seconds: dict  # data_generation, distance_maps, sfm, refinement
+    mixture: dict | None = None
+    min_objects: int | None = None
+
+
+def main_speed(args) -> dict:
+    """The default run: time the viewpoint stages (and the mixture fit) on a generated class; print and write."""
     dev = torch.device(args.device)
     vcfg = Config().viewpoints  # the pipeline's viewpoint settings
     out, key = _record_target(args, "viewpoints_speed" + (f"_groups{args.groups}" if args.groups > 1 else "")
                               + (f"_shapes{args.shapes}" if args.shapes > 1 else "")
                               + (f"_n{args.n}" if args.n != 2000 else "")
                               + (f"_{dev.type}" if dev.type != "cpu" else ""))
+    b, st = _time_stages(args, dev, vcfg)
+    if args.groups > 1:
+        st.mixture, st.min_objects = _mixture_fits(b, st)
+    result = _record(b, st)
+    _print_report(b, st, result)
+    write_record(out, result, key)
+    print(f"wrote {out}" + (f", key {key}" if key else ""))
+    return result
 
+
+def _time_stages(args, dev: torch.device, vcfg) -> tuple[_Bench, _Stages]:
+    """Generate the class, then time its distance maps, rigid SfM and refinement (the pipeline's settings)."""
     t0 = time.perf_counter()
     data = make_class(args.n, args.k, args.canvas, args.seed, args.shapes)
     t_data = time.perf_counter() - t0
     kp = data["keypoints"].to(dev)
     vis = data["visible"].to(dev)
     masks = data["masks"].to(dev)
-    n_all = kp.shape[0]
-
-    def sync():
-        if dev.type == "cuda":
-            torch.cuda.synchronize()
-
+    b = _Bench(args, dev, vcfg, kp, vis, _Rows(kp, vis, masks), data["R_true"])
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats()
-    sync()
-    t0 = time.perf_counter()
-    dist = distance_to_mask(masks)
-    sync()
-    t_dist = time.perf_counter() - t0
+    b.sync()
+    b.dist, t_dist = b.timed(lambda: distance_to_mask(masks))
+    sfm, t_sfm = b.timed(lambda: rigid_sfm(kp, vis, max_outer=args.max_outer, inner=args.inner))
 
-    t0 = time.perf_counter()
-    sfm = rigid_sfm(kp, vis, max_outer=args.max_outer, inner=args.inner)
-    sync()
-    t_sfm = time.perf_counter() - t0
+    def refine():  # the pipeline's refinement settings (the planar-twin start and the keypoint support rule included)
+        shape = supported_shape(sfm.shape, vis, vcfg.refine_min_support)
+        return refine_cameras(shape, sfm.cameras, kp, vis, b.dist, max_iters=args.max_iters,
+                              twin_flatness=vcfg.refine_twin_flatness)
 
-    t0 = time.perf_counter()
-    # the pipeline's refinement settings (the planar-twin start and the keypoint support rule included)
-    shape = supported_shape(sfm.shape, vis, vcfg.refine_min_support)
-    ref = refine_cameras(shape, sfm.cameras, kp, vis, dist, max_iters=args.max_iters,
-                         twin_flatness=vcfg.refine_twin_flatness)
-    sync()
-    t_ref = time.perf_counter() - t0
+    ref, t_ref = b.timed(refine)
+    return b, _Stages(sfm, ref, {"data_generation": t_data, "distance_maps": t_dist, "sfm": t_sfm,
+                                 "refinement": t_ref})
 
-    mixture = None
-    if args.groups > 1:
-        mixture = {}
-        min_objects = (sfm_mixture.THREADS_MIN_OBJECTS if args.threads_min_objects is None
-                       else args.threads_min_objects)
-        variants = [("warm", True, args.group_threads)]
-        if args.one_thread_too and args.group_threads != 1:
-            variants.append(("warm_one_thread", True, 1))
-        if args.cold_too:
-            variants.append(("cold", False, args.group_threads))
-        fits = {}
-        for name, warm, threads in variants:
-            t0 = time.perf_counter()
-            mix = fit_mixture_of_shapes(_Rows(kp, vis), dist,
-                                        lambda sub, init_shape=None: rigid_sfm(sub.keypoints, sub.visible,
-                                                                               max_outer=args.max_outer,
-                                                                               inner=args.inner, init_shape=init_shape),
-                                        max_groups=args.groups, min_size=vcfg.sfm_group_min, gain=vcfg.sfm_group_gain,
-                                        agreement_deg=vcfg.sfm_group_agreement_deg, rounds=vcfg.sfm_group_rounds,
-                                        seed=args.seed, single=sfm, warm_start=warm, threads=threads,
-                                        threads_min_objects=min_objects)
-            sync()
-            seconds = time.perf_counter() - t0
-            fits[name] = mix
-            R_mix = mix.single.cameras.R.clone()  # the groups' SfM cameras, in the class frame
-            for gi in range(mix.k):
-                R_mix[mix.groups[gi][0]] = mix.cameras(gi).R
-            rep = viewpoint_report(R_mix.cpu(), data["R_true"], valid=mix.single.valid.cpu())
-            mixture[name] = {"seconds": seconds, "threads": threads, "max_groups": args.groups, **mix.summary(),
-                             "sfm_geodesic_deg": rep["geodesic"]}
-            if name == "warm":
-                # the pipeline's refinement with the mixture: every group with its own mean shape
-                t0 = time.perf_counter()
-                cams_mix, _valid = group_sfm_cameras(mix)
-                refined_mix, _energy = refine_groups(mix, cams_mix, _Rows(kp, vis), dist,
-                                                     dataclasses.replace(vcfg, refine_iters=args.max_iters))
-                sync()
-                t_ref_mix = time.perf_counter() - t0
-                rep = viewpoint_report(refined_mix.R.cpu(), data["R_true"], valid=mix.single.valid.cpu())
-                mixture[name].update(refinement_seconds=t_ref_mix, refined_geodesic_deg=rep["geodesic"])
-        for name in fits:
-            # the viewpoint stage with the mixture: the one-shape SfM, the fit, the groups' refinement
-            mixture[name]["stage_seconds"] = t_sfm + mixture[name]["seconds"] + t_ref_mix
-        if "warm_one_thread" in fits:
-            a, b = fits["warm"], fits["warm_one_thread"]
-            mixture["one_thread_over_threads"] = mixture["warm_one_thread"]["seconds"] / mixture["warm"]["seconds"]
-            mixture["threads_same_result"] = bool(
-                a.k == b.k and torch.equal(a.labels, b.labels)
-                and all(torch.equal(ga[1].shape, gb[1].shape) and torch.equal(ga[1].cameras.R, gb[1].cameras.R)
-                        for ga, gb in zip(a.groups, b.groups))
-                and a.candidates == b.candidates)
-        if "cold" in mixture:
-            mixture["cold_over_warm"] = mixture["cold"]["seconds"] / mixture["warm"]["seconds"]
 
-    rep_sfm = viewpoint_report(sfm.cameras.R.cpu(), data["R_true"], valid=sfm.valid.cpu())
-    rep_ref = viewpoint_report(ref.cameras.R.cpu(), data["R_true"], valid=sfm.valid.cpu())
+def _mixture_fits(b: _Bench, st: _Stages) -> tuple[dict, int]:
+    """Time the mixture fit (warm; on one thread and cold too when asked) and the groups' refinement; the record
+    of each fit and their comparisons, and the class size from which the fit used its threads."""
+    args = b.args
+    mixture = {}
+    min_objects = (sfm_mixture.THREADS_MIN_OBJECTS if args.threads_min_objects is None
+                   else args.threads_min_objects)
+    variants = [("warm", True, args.group_threads)]
+    if args.one_thread_too and args.group_threads != 1:
+        variants.append(("warm_one_thread", True, 1))
+    if args.cold_too:
+        variants.append(("cold", False, args.group_threads))
+    fits = {}
+    for name, warm, threads in variants:
+        mix, seconds = b.timed(lambda warm=warm, threads=threads: _fit_mixture(b, st.sfm, warm, threads, min_objects))
+        fits[name] = mix
+        R_mix = mix.single.cameras.R.clone()  # the groups' SfM cameras, in the class frame
+        for gi in range(mix.k):
+            R_mix[mix.groups[gi][0]] = mix.cameras(gi).R
+        rep = viewpoint_report(R_mix.cpu(), b.R_true, valid=mix.single.valid.cpu())
+        mixture[name] = {"seconds": seconds, "threads": threads, "max_groups": args.groups, **mix.summary(),
+                         "sfm_geodesic_deg": rep["geodesic"]}
+        if name == "warm":
+            mixture[name].update(_refine_mixture(b, mix))
+    for name in fits:
+        # the viewpoint stage with the mixture: the one-shape SfM, the fit, the groups' refinement
+        mixture[name]["stage_seconds"] = (st.seconds["sfm"] + mixture[name]["seconds"]
+                                          + mixture["warm"]["refinement_seconds"])
+    if "warm_one_thread" in fits:
+        mixture["one_thread_over_threads"] = mixture["warm_one_thread"]["seconds"] / mixture["warm"]["seconds"]
+        mixture["threads_same_result"] = _same_fit(fits["warm"], fits["warm_one_thread"])
+    if "cold" in mixture:
+        mixture["cold_over_warm"] = mixture["cold"]["seconds"] / mixture["warm"]["seconds"]
+    return mixture, min_objects
+
+
+def _fit_mixture(b: _Bench, sfm, warm: bool, threads: int, min_objects: int):
+    """The pipeline's mixture fit (``sfm_group*`` settings) of the class, given its one-shape SfM ``sfm``."""
+    args, vcfg = b.args, b.vcfg
+    return fit_mixture_of_shapes(b.rows, b.dist,
+                                 lambda sub, init_shape=None: rigid_sfm(sub.keypoints, sub.visible,
+                                                                        max_outer=args.max_outer,
+                                                                        inner=args.inner, init_shape=init_shape),
+                                 max_groups=args.groups, min_size=vcfg.sfm_group_min, gain=vcfg.sfm_group_gain,
+                                 agreement_deg=vcfg.sfm_group_agreement_deg, rounds=vcfg.sfm_group_rounds,
+                                 seed=args.seed, single=sfm, warm_start=warm, threads=threads,
+                                 threads_min_objects=min_objects)
+
+
+def _refine_mixture(b: _Bench, mix) -> dict:
+    """The pipeline's refinement with the mixture (every group with its own mean shape): seconds and errors."""
+
+    def refine():
+        cams_mix, _valid = group_sfm_cameras(mix)
+        refined_mix, _energy = refine_groups(mix, cams_mix, b.rows, b.dist,
+                                             dataclasses.replace(b.vcfg, refine_iters=b.args.max_iters))
+        return refined_mix
+
+    refined_mix, t_ref_mix = b.timed(refine)
+    rep = viewpoint_report(refined_mix.R.cpu(), b.R_true, valid=mix.single.valid.cpu())
+    return {"refinement_seconds": t_ref_mix, "refined_geodesic_deg": rep["geodesic"]}
+
+
+def _same_fit(a, b) -> bool:
+    """Whether two mixture fits kept the same groups: labels, shapes, cameras and candidates."""
+    return bool(
+        a.k == b.k and torch.equal(a.labels, b.labels)
+        and all(torch.equal(ga[1].shape, gb[1].shape) and torch.equal(ga[1].cameras.R, gb[1].cameras.R)
+                for ga, gb in zip(a.groups, b.groups))
+        and a.candidates == b.candidates)
+
+
+def _record(b: _Bench, st: _Stages) -> dict:
+    """The JSON record of a run: settings, environment, seconds, throughput, memory, results, errors."""
+    args, dev, sfm, ref = b.args, b.dev, st.sfm, st.ref
+    n_all = b.kp.shape[0]
+    t_sfm, t_ref = st.seconds["sfm"], st.seconds["refinement"]
+    rep_sfm = viewpoint_report(sfm.cameras.R.cpu(), b.R_true, valid=sfm.valid.cpu())
+    rep_ref = viewpoint_report(ref.cameras.R.cpu(), b.R_true, valid=sfm.valid.cpu())
     for rep in (rep_sfm, rep_ref):
         rep.pop("per_instance_geodesic")
-    result = {
+    return {
         "config": {"instances": args.n, "with_mirrors": n_all, "keypoints": args.k, "canvas": args.canvas,
                    "shapes": args.shapes,
                    "seed": args.seed, "device": str(dev), "max_outer": args.max_outer, "inner": args.inner,
-                   "twin_flatness": vcfg.refine_twin_flatness,
+                   "twin_flatness": b.vcfg.refine_twin_flatness,
                    "refine_max_iters": args.max_iters},
         "environment": {"torch": torch.__version__, "python": platform.python_version(),
                         "cpu_threads": torch.get_num_threads(), "machine": platform.machine(),
                         "cuda_device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None},
-        "seconds": {"data_generation": t_data, "distance_maps": t_dist, "sfm": t_sfm, "refinement": t_ref,
-                    "sfm_plus_refinement": t_sfm + t_ref},
+        "seconds": {**st.seconds, "sfm_plus_refinement": t_sfm + t_ref},
         "instances_per_second": {"sfm": n_all / t_sfm, "refinement": n_all / t_ref,
                                  "sfm_plus_refinement": n_all / (t_sfm + t_ref)},
         "peak_memory_mb": {
@@ -536,11 +606,16 @@ def main(argv=None) -> dict:
                        "energy_after_median": float(ref.energy_after.median()),
                        "energy_raised": int((ref.energy_after > ref.energy_before).sum())},
         "viewpoint_error_deg": {"sfm": rep_sfm, "refined": rep_ref},
-        "mixture_fit": mixture,
-        "threads_min_objects": None if mixture is None else min_objects,
+        "mixture_fit": st.mixture,
+        "threads_min_objects": None if st.mixture is None else st.min_objects,
         "target_seconds_sfm_plus_refinement": 60.0,
     }
-    rows = [("distance maps", t_dist), ("rigid SfM", t_sfm), ("refinement", t_ref), ("SfM + refinement", t_sfm + t_ref)]
+
+
+def _stage_rows(args, sec: dict, mixture: dict | None) -> list[tuple[str, float]]:
+    """The table's rows: each stage's name and seconds."""
+    rows = [("distance maps", sec["distance_maps"]), ("rigid SfM", sec["sfm"]), ("refinement", sec["refinement"]),
+            ("SfM + refinement", sec["sfm_plus_refinement"])]
     if mixture is not None:
         rows.append((f"mixture fit (<= {args.groups})", mixture["warm"]["seconds"]))
         if "warm_one_thread" in mixture:
@@ -549,10 +624,17 @@ def main(argv=None) -> dict:
             rows.append(("  without warm starts", mixture["cold"]["seconds"]))
         rows.append(("  groups' refinement", mixture["warm"]["refinement_seconds"]))
         rows.append(("stage with mixture", mixture["warm"]["stage_seconds"]))
+    return rows
+
+
+def _print_report(b: _Bench, st: _Stages, result: dict) -> None:
+    """Print the stages' table, the mixture fits, memory, and the SfM and refinement results."""
+    args, dev, sfm, mixture = b.args, b.dev, st.sfm, st.mixture
+    n_all = b.kp.shape[0]
     print(f"viewpoints benchmark: {n_all} instances ({args.n} + mirrors), K={args.k}, canvas {args.canvas}, "
           f"device {dev}, {torch.get_num_threads()} CPU threads")
     print(f"{'stage':<22}{'seconds':>10}{'inst/s':>12}")
-    for name, sec in rows:
+    for name, sec in _stage_rows(args, result["seconds"], mixture):
         print(f"{name:<22}{sec:>10.2f}{n_all / sec:>12.0f}")
     for name, m in (mixture or {}).items():
         if isinstance(m, dict):
@@ -570,15 +652,14 @@ def main(argv=None) -> dict:
           + (f", peak CUDA {result['peak_memory_mb']['cuda_allocated']:.0f} MB" if dev.type == "cuda" else ""))
     print(f"SfM: {sfm.iterations} outer iterations, converged={sfm.converged}, reflection "
           f"{sfm.reflection_votes['decided_by']} ({sfm.reflection_votes['for']}/{sfm.reflection_votes['against']})")
-    for name, rep in (("SfM", rep_sfm), ("refined", rep_ref)):
+    errors = result["viewpoint_error_deg"]
+    for name, rep in (("SfM", errors["sfm"]), ("refined", errors["refined"])):
         gsum = rep["geodesic"]
         print(f"{name:<8} geodesic error median {gsum['median']:.2f} deg, mean {gsum['mean']:.2f}, "
               f"acc@30 {gsum['acc_at_30']:.3f}, mirrored frame: {rep['mirrored']}")
-    print(f"refinement: {ref.iterations} iterations, energy median {result['refinement']['energy_before_median']:.1f}"
-          f" -> {result['refinement']['energy_after_median']:.1f}, raised for {result['refinement']['energy_raised']}")
-    write_record(out, result, key)
-    print(f"wrote {out}" + (f", key {key}" if key else ""))
-    return result
+    r = result["refinement"]
+    print(f"refinement: {st.ref.iterations} iterations, energy median {r['energy_before_median']:.1f}"
+          f" -> {r['energy_after_median']:.1f}, raised for {r['energy_raised']}")
 
 
 if __name__ == "__main__":

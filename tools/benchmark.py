@@ -661,211 +661,280 @@ def _spread(ratios: list[float]) -> dict:
 def carve_and_select(data: Path, args, device: torch.device) -> dict:
     """Timings of the carving backends, the loop ladder, the floors and the selection on the run's proposals."""
     torch.set_num_threads(args.threads or intra_op_threads(writer_workers("all", device)))
-    cfg, plan, todo = _plan(data, args, device)
-    K = min(args.carve_objects, len(todo))
-    ids = torch.tensor(todo[:K], dtype=torch.long, device=device)
-    reference, views, valid = plan.proposals(ids)
-    keep = valid.nonzero().squeeze(1)
-    reference, views = reference[keep], views[keep]
-    P = len(reference) / K
-    n, imprint, rep = cfg.carve.resolution, cfg.carve.imprint, args.repeat
-    resolved = C.resolve_backend(cfg.carve.backend, device)  # what the pipeline's carving runs (bilinear)
-    fused = resolved["backend"] == "fused"
+    bench = _CarvingBench(data, args, device)
+    bench.reference_grids()
+    bench.time_variants()
+    bench.time_floors()
+    bench.time_ladder()
+    bench.time_paired()
+    bench.time_naive_floors()
+    bench.time_selection()
+    return bench.record()
 
-    def carve(a: int, b: int, **kw):
-        return C.carve_proposals(plan.maps, None, reference[a:b], views[a:b], resolution=n, imprint=imprint, **kw)
 
-    # The timed runs carve as the pipeline does: one call per pipeline chunk of references, each
-    # chunk's grids released before the next (so the process reuses their memory instead of
-    # touching fresh pages for one output of all K objects).
-    step = C.chunk_objects(cfg.surrogates.proposals, cfg.carve.resolution, device)
-    bounds = pipeline_call_bounds(cfg, valid, K, device)
-    chunks = list(zip(bounds[:-1], bounds[1:]))
+class _CarvingBench:
+    """The carving comparison on the run's proposals: one method a step, in :func:`carve_and_select`'s order,
+    each keeping its measurements as attributes for :meth:`record`.
 
-    def batched_chunks(**kw):
+    The timed runs carve as the pipeline does: one call per pipeline chunk of references, each chunk's grids
+    released before the next (so the process reuses their memory instead of touching fresh pages for one output
+    of all ``K`` objects). The variants: "batched" is what the pipeline runs (the native kernel on the CPU where
+    it is available); "batched_torch" the grid_sample carving, whose samples define the floor; "batched_nearest"
+    the torch backend reading the nearest pixel (an approximation: not identical).
+    """
+
+    def __init__(self, data: Path, args, device: torch.device):
+        self.cfg, self.plan, todo = _plan(data, args, device)
+        self.device, self.rep = device, args.repeat
+        self.K = K = min(args.carve_objects, len(todo))
+        ids = torch.tensor(todo[:K], dtype=torch.long, device=device)
+        reference, views, self.valid = self.plan.proposals(ids)
+        keep = self.valid.nonzero().squeeze(1)
+        self.reference, self.views = reference[keep], views[keep]  # (N,), (N, V): the kept proposals
+        self.n, self.imprint = self.cfg.carve.resolution, self.cfg.carve.imprint
+        self.resolved = C.resolve_backend(self.cfg.carve.backend, device)  # the pipeline's carving (bilinear)
+        self.fused = self.resolved["backend"] == "fused"
+        self.step = C.chunk_objects(self.cfg.surrogates.proposals, self.cfg.carve.resolution, device)
+        bounds = pipeline_call_bounds(self.cfg, self.valid, K, device)
+        self.chunks = list(zip(bounds[:-1], bounds[1:]))
+        self.variants = {"batched": dict(backend=self.resolved["backend"]), "batched_torch": dict(backend="torch"),
+                         "batched_nearest": dict(backend="torch", interpolation="nearest")}
+        self.L = min(args.loop_objects, K)  # the loops run on the first L objects (extrapolated to K)
+        self.m = int(self.valid.view(K, -1)[:self.L].sum())  # their kept proposals: the first m
+        self.rep_loop = max(1, min(self.rep, 2))
+        self._subset = _subset_maps(self.plan.maps, self.reference[:self.m], self.views[:self.m])
+
+    def carve(self, a: int, b: int, **kw):
+        """The grids of kept proposals ``a:b``."""
+        return C.carve_proposals(self.plan.maps, None, self.reference[a:b], self.views[a:b], resolution=self.n,
+                                 imprint=self.imprint, **kw)
+
+    def carve_chunks(self, **kw) -> int:
+        """Carve every pipeline chunk, each chunk's grids released before the next; the count of empty grids."""
         empty = 0
-        for a, b in chunks:
-            grids = carve(a, b, **kw)
+        for a, b in self.chunks:
+            grids = self.carve(a, b, **kw)
             empty += int(grids.empty.sum())
             del grids
         return empty
 
-    # "batched" is what the pipeline runs (the native kernel on the CPU where it is available);
-    # "batched_torch" the grid_sample carving, whose samples define the floor; "batched_nearest"
-    # the torch backend reading the nearest pixel (an approximation: not identical).
-    variants = {"batched": dict(backend=resolved["backend"]), "batched_torch": dict(backend="torch"),
-                "batched_nearest": dict(backend="torch", interpolation="nearest")}
-    out = [carve(a, b, **variants["batched"]) for a, b in chunks]  # the grids every variant is checked against
-    out_nearest = [carve(a, b, **variants["batched_nearest"]) for a, b in chunks]
-    voxels = sum(g.occupancy.numel() for g in out)
-    nearest_differs = sum(int((gn.occupancy != g.occupancy).sum()) for g, gn in zip(out, out_nearest)) / voxels
+    def reference_grids(self) -> None:
+        """The default and nearest-pixel grids per chunk, every other carving's reference; their disagreement."""
+        self.out = [self.carve(a, b, **self.variants["batched"]) for a, b in self.chunks]
+        self.out_nearest = [self.carve(a, b, **self.variants["batched_nearest"]) for a, b in self.chunks]
+        self.voxels = sum(g.occupancy.numel() for g in self.out)
+        self.nearest_differs = sum(int((gn.occupancy != g.occupancy).sum())
+                                   for g, gn in zip(self.out, self.out_nearest)) / self.voxels
 
-    def first(grids: list, m: int) -> torch.Tensor:
-        """Occupancy of the first ``m`` kept proposals of per-chunk grids."""
-        return torch.cat([g.occupancy for g in grids])[:m]
+    def time_variants(self) -> None:
+        """Best-of seconds of each variant per chunk and of the default in one call; their voxels compared."""
+        self.times = {}
+        for name, kw in self.variants.items():
+            self.carve_chunks(**kw)  # warm-up: the first runs of a call pattern pay for growing the process's memory
+            self.times[name] = best_of(lambda kw=kw: self.carve_chunks(**kw), self.rep, self.device)
+        self.identical = {"batched_torch": all(
+            torch.equal(self.carve(a, b, **self.variants["batched_torch"]).occupancy, g.occupancy)
+            for (a, b), g in zip(self.chunks, self.out))}
+        one = self.carve(0, len(self.reference), **self.variants["batched"])
+        self.identical["pipeline_chunks_vs_one_call"] = all(torch.equal(one.occupancy[a:b], g.occupancy)
+                                                            for (a, b), g in zip(self.chunks, self.out))
+        del one
+        self.t_one_call = best_of(lambda: self.carve(0, len(self.reference), **self.variants["batched"]), self.rep,
+                                  self.device)
 
-    times = {}
-    for name, kw in variants.items():
-        batched_chunks(**kw)  # warm-up: the first runs of a call pattern pay for growing the process's memory
-        times[name] = best_of(lambda kw=kw: batched_chunks(**kw), rep, device)
-    identical = {"batched_torch": all(torch.equal(carve(a, b, **variants["batched_torch"]).occupancy, g.occupancy)
-                                      for (a, b), g in zip(chunks, out))}
-    one = carve(0, len(reference), **variants["batched"])
-    identical["pipeline_chunks_vs_one_call"] = all(torch.equal(one.occupancy[a:b], g.occupancy)
-                                                   for (a, b), g in zip(chunks, out))
-    del one
-    t_one_call = best_of(lambda: carve(0, len(reference), **variants["batched"]), rep, device)
+    def time_floors(self) -> None:
+        """The floors: the grid_sample calls timed in place.
 
-    # The floors: the grid_sample calls timed in place. Each of these runs also gives the ratio of
-    # the whole carving to its own sampling within one run (same load, same caches): the median of
-    # those ratios is steadier on a shared machine than the ratio of two best-of timings.
-    floors, samples, in_run = {}, {}, {}
-    for name, kw in variants.items():
-        if kw["backend"] == "fused":
-            continue  # the native kernel calls no grid_sample per voxel: its floor is batched_torch's
-        best, ratios = math.inf, []
-        for _ in range(max(1, rep)):
-            with GridSampleClock(device) as clock:
-                sync(device)
-                t0 = time.perf_counter()
-                batched_chunks(**kw)
-                sync(device)
-                wall = time.perf_counter() - t0
-            clock.check(name)
-            best, samples[name] = min(best, clock.seconds), clock.samples
-            ratios.append(wall / clock.seconds)
-        floors[name] = best
-        in_run[name] = _spread(ratios)
-    if fused:
-        # the samples the carving needs, as grid_sample takes them; and the native kernel's own reads
-        floors["batched"], samples["batched"] = floors["batched_torch"], samples["batched_torch"]
-        fused_samples = sum(native_samples(plan.maps, reference[a:b], views[a:b], n, imprint) for a, b in chunks)
+        Each of these runs also gives the ratio of the whole carving to its own sampling within one run (same
+        load, same caches): the median of those ratios is steadier on a shared machine than the ratio of two
+        best-of timings."""
+        self.floors, self.samples, self.in_run = {}, {}, {}
+        for name, kw in self.variants.items():
+            if kw["backend"] == "fused":
+                continue  # the native kernel calls no grid_sample per voxel: its floor is batched_torch's
+            best, ratios = math.inf, []
+            for _ in range(max(1, self.rep)):
+                with GridSampleClock(self.device) as clock:
+                    sync(self.device)
+                    t0 = time.perf_counter()
+                    self.carve_chunks(**kw)
+                    sync(self.device)
+                    wall = time.perf_counter() - t0
+                clock.check(name)
+                best, self.samples[name] = min(best, clock.seconds), clock.samples
+                ratios.append(wall / clock.seconds)
+            self.floors[name] = best
+            self.in_run[name] = _spread(ratios)
+        if self.fused:
+            # the samples the carving needs, as grid_sample takes them; and the native kernel's own reads
+            self.floors["batched"] = self.floors["batched_torch"]
+            self.samples["batched"] = self.samples["batched_torch"]
+            self.fused_samples = sum(native_samples(self.plan.maps, self.reference[a:b], self.views[a:b], self.n,
+                                                    self.imprint) for a, b in self.chunks)
 
-    # The ladder of per-proposal loops on the first L objects (extrapolated to K): what each
-    # per-proposal saving is worth.
-    L = min(args.loop_objects, K)
-    m = int(valid.view(K, -1)[:L].sum())  # their kept proposals: the first m
-    sdf_l, cams_l, ref_l, views_l = _subset_maps(plan.maps, reference[:m], views[:m])
-    rep_loop = max(1, min(rep, 2))
-    occ_m, occ_nearest_m = first(out, m), first(out_nearest, m)
+    def loop(self, masks: bool = False, interpolation: str = "bilinear", **kw):
+        """A per-proposal loop (:func:`carvi_torch.carve.carve_proposals_loop`) over the first ``m`` proposals,
+        on their own maps (``masks``: from the masks, distance maps computed per proposal)."""
+        sdf_l, cams_l, ref_l, views_l = self._subset
+        return lambda: C.carve_proposals_loop(sdf_l < 0 if masks else sdf_l, cams_l, ref_l, views_l,
+                                              resolution=self.n, imprint=self.imprint, interpolation=interpolation,
+                                              **kw)
 
-    def loop(masks: bool = False, interpolation: str = "bilinear", **kw):
-        return lambda: C.carve_proposals_loop(sdf_l < 0 if masks else sdf_l, cams_l, ref_l, views_l, resolution=n,
-                                              imprint=imprint, interpolation=interpolation, **kw)
+    def ladder(self) -> dict:
+        """The ladder of per-proposal loops: what each per-proposal saving is worth."""
+        return {
+            # distance maps of every silhouette computed per proposal, the reference sampled at every voxel
+            "loop_reference_structure": self.loop(masks=True, reference_every_voxel=True),
+            # distance maps per proposal, the reference sampled once per column
+            "loop_maps_per_proposal": self.loop(masks=True),
+            # the maps given (extended and measured per proposal)
+            "loop": self.loop(),
+            # the class's maps prepared once (extended, measured), shared by every proposal
+            "loop_prepared_maps": lambda: C.carve_proposals_loop(self.plan.maps, None, self.reference[:self.m],
+                                                                 self.views[:self.m], resolution=self.n,
+                                                                 imprint=self.imprint),
+        }
 
-    ladder = {
-        # distance maps of every silhouette computed per proposal, the reference sampled at every voxel
-        "loop_reference_structure": loop(masks=True, reference_every_voxel=True),
-        # distance maps per proposal, the reference sampled once per column
-        "loop_maps_per_proposal": loop(masks=True),
-        # the maps given (extended and measured per proposal)
-        "loop": loop(),
-        # the class's maps prepared once (extended, measured), shared by every proposal
-        "loop_prepared_maps": lambda: C.carve_proposals_loop(plan.maps, None, reference[:m], views[:m], resolution=n,
-                                                             imprint=imprint),
-    }
-    t_ladder = {}
-    for name, fn in ladder.items():
-        identical[f"{name}_vs_batched"] = bool(torch.equal(fn().occupancy, occ_m))  # also its warm-up
-        t_ladder[name] = best_of(fn, rep_loop, device) * K / L
-    # the nearest-pixel option against loops of its own kind (the same structure, maps read at the pixel)
-    loop_nearest = loop(interpolation="nearest")
-    ref_structure_nearest = loop(masks=True, reference_every_voxel=True, interpolation="nearest")
-    identical["loop_nearest_vs_batched_nearest"] = bool(torch.equal(loop_nearest().occupancy, occ_nearest_m))
-    identical["loop_reference_structure_nearest_vs_batched_nearest"] = bool(torch.equal(
-        ref_structure_nearest().occupancy, occ_nearest_m))  # also its warm-up
-    t_ladder["loop_reference_structure_nearest"] = best_of(ref_structure_nearest, rep_loop, device) * K / L
+    def time_ladder(self) -> None:
+        """Seconds of each loop per ``K`` objects, their voxels checked against the batched carving of their kind."""
+        occ_m = torch.cat([g.occupancy for g in self.out])[:self.m]
+        occ_nearest_m = torch.cat([g.occupancy for g in self.out_nearest])[:self.m]
+        self.t_ladder = {}
+        for name, fn in self.ladder().items():
+            self.identical[f"{name}_vs_batched"] = bool(torch.equal(fn().occupancy, occ_m))  # also its warm-up
+            self.t_ladder[name] = best_of(fn, self.rep_loop, self.device) * self.K / self.L
+        # the nearest-pixel option against loops of its own kind (the same structure, maps read at the pixel)
+        ref_structure_nearest = self.loop(masks=True, reference_every_voxel=True, interpolation="nearest")
+        self.identical["loop_nearest_vs_batched_nearest"] = bool(torch.equal(
+            self.loop(interpolation="nearest")().occupancy, occ_nearest_m))
+        self.identical["loop_reference_structure_nearest_vs_batched_nearest"] = bool(torch.equal(
+            ref_structure_nearest().occupancy, occ_nearest_m))  # also its warm-up
+        self.t_ladder["loop_reference_structure_nearest"] = best_of(ref_structure_nearest, self.rep_loop,
+                                                                    self.device) * self.K / self.L
 
-    # The same comparisons paired in time: each round runs the batched carving (K objects) and then
-    # the loop (L objects, scaled to K) back to back (single runs, always in that order); the median
-    # of the per-round ratios is less sensitive to a load swing between two best-of timings, not
-    # immune to load.
-    paired = {}
-    for name, fn in (("batched", ladder["loop_reference_structure"]),
-                     *((("batched_torch", ladder["loop_reference_structure"]),) if fused else ()),
-                     ("batched_nearest", ref_structure_nearest)):
-        ratios = []
-        for _ in range(max(1, rep)):
-            t_b = best_of(lambda kw=variants[name]: batched_chunks(**kw), 1, device)
-            ratios.append(best_of(fn, 1, device) * K / L / t_b)
-        paired[name] = _spread(ratios)
+    def time_paired(self) -> None:
+        """The batched carvings against the reference-structure loop, paired in time.
 
-    def naive_floor(fn, what: str) -> tuple[float, float]:
+        Each round runs the batched carving (K objects) and then the loop (L objects, scaled to K) back to back
+        (single runs, always in that order); the median of the per-round ratios is less sensitive to a load swing
+        between two best-of timings, not immune to load."""
+        ref_structure = self.loop(masks=True, reference_every_voxel=True)
+        ref_structure_nearest = self.loop(masks=True, reference_every_voxel=True, interpolation="nearest")
+        self.paired = {}
+        for name, fn in (("batched", ref_structure), *((("batched_torch", ref_structure),) if self.fused else ()),
+                         ("batched_nearest", ref_structure_nearest)):
+            ratios = []
+            for _ in range(max(1, self.rep)):
+                t_b = best_of(lambda kw=self.variants[name]: self.carve_chunks(**kw), 1, self.device)
+                ratios.append(best_of(fn, 1, self.device) * self.K / self.L / t_b)
+            self.paired[name] = _spread(ratios)
+
+    def _naive_floor(self, fn, what: str) -> tuple[float, float]:
         """Best time of the grid_sample calls of a loop and their samples, both per ``K`` objects."""
         best, count = math.inf, 0
-        for _ in range(rep_loop):
-            with GridSampleClock(device) as clock:
+        for _ in range(self.rep_loop):
+            with GridSampleClock(self.device) as clock:
                 fn()
             clock.check(what)
             best, count = min(best, clock.seconds), clock.samples
-        return best * K / L, count * K / L
+        return best * self.K / self.L, count * self.K / self.L
 
-    (floor_loop, samples_loop), (floor_loop_nearest, _) = naive_floor(ladder["loop"], "loop"), \
-        naive_floor(loop_nearest, "loop, nearest")
-    with GridSampleClock(device) as clock:
-        ladder["loop_reference_structure"]()
-    clock.check("loop_reference_structure")
-    samples_ref_structure = clock.samples * K / L
+    def time_naive_floors(self) -> None:
+        """The naive floors (every voxel of every proposal sampled, bilinear and nearest) and the reference
+        structure's samples, per ``K`` objects."""
+        (self.floor_loop, self.samples_loop), (self.floor_loop_nearest, _) = \
+            self._naive_floor(self.loop(), "loop"), self._naive_floor(self.loop(interpolation="nearest"),
+                                                                      "loop, nearest")
+        with GridSampleClock(self.device) as clock:
+            self.loop(masks=True, reference_every_voxel=True)()
+        clock.check("loop_reference_structure")
+        self.samples_ref_structure = clock.samples * self.K / self.L
 
-    # selection on the default carving's grids, per pipeline chunk, as the pipeline does it
-    sel_inputs = []
-    valid_rp = valid.view(K, -1)
-    for c, (a, b) in enumerate(chunks):
-        valid_c = valid_rp[c * step:(c + 1) * step]
-        kept_ref = reference[a:b]
-        sel_inputs.append((out[c], valid_c.reshape(-1).nonzero().squeeze(1), valid_c, plan.viewpoints.cameras[kept_ref],
-                           plan.coll.keypoints[kept_ref], plan.coll.visible[kept_ref]))
+    def time_selection(self) -> None:
+        """Best-of seconds of the selection on the default carving's grids, per pipeline chunk as the pipeline
+        runs it."""
+        sel_inputs = []
+        valid_rp = self.valid.view(self.K, -1)
+        coll = self.plan.coll
+        for c, (a, b) in enumerate(self.chunks):
+            valid_c = valid_rp[c * self.step:(c + 1) * self.step]
+            kept_ref = self.reference[a:b]
+            sel_inputs.append((self.out[c], valid_c.reshape(-1).nonzero().squeeze(1), valid_c,
+                               self.plan.viewpoints.cameras[kept_ref], coll.keypoints[kept_ref],
+                               coll.visible[kept_ref]))
 
-    def selection():
-        return [select.select_proposals(g, keep_c, valid_c, cams, kp, vis, plan.selection)
-                for g, keep_c, valid_c, cams, kp, vis in sel_inputs]
+        def selection():
+            return [select.select_proposals(g, keep_c, valid_c, cams, kp, vis, self.plan.selection)
+                    for g, keep_c, valid_c, cams, kp, vis in sel_inputs]
 
-    selection()
-    t_select = best_of(selection, rep, device)
-    per = lambda t: t / K  # noqa: E731
-    res = {
-        "objects": K, "proposals_per_object": P, "loop_objects": L,
-        "max_batch_voxels": C.default_batch_voxels(device), "pipeline_chunk_objects": step,
-        "seconds_per_object": {**{k: per(v) for k, v in times.items()}, "batched_one_call": per(t_one_call),
-                               **{k: per(v) for k, v in t_ladder.items()},
-                               **{f"floor_{k}": per(v) for k, v in floors.items()},
-                               "floor_loop_naive": per(floor_loop), "floor_loop_naive_nearest": per(floor_loop_nearest),
-                               "selection": per(t_select), "carving_plus_selection": per(times["batched"] + t_select)},
-        "samples_per_object": {**{k: v / K for k, v in samples.items()}, "loop_naive": samples_loop / K,
-                               "loop_reference_structure": samples_ref_structure / K},
-        # reference-structure loop / batched carving of its kind, paired within rounds (median, min, max)
-        "speedup_vs_loop_reference_structure_within_rounds": paired,
-        **{f"speedup_vs_{k}": v / times["batched"] for k, v in t_ladder.items()
-           if k != "loop_reference_structure_nearest"},
-        # the nearest-pixel carving (an approximation, carve.interpolation=nearest) against the
-        # same loops, which read the maps bilinearly as the reference implementation did
-        "nearest_speedup_vs_loop_reference_structure": t_ladder["loop_reference_structure"] / times["batched_nearest"],
-        "nearest_speedup_vs_loop_reference_structure_nearest":
-            t_ladder["loop_reference_structure_nearest"] / times["batched_nearest"],
-        "nearest_over_its_floor": times["batched_nearest"] / floors["batched_nearest"],
-        "nearest_over_naive_nearest_floor": times["batched_nearest"] / floor_loop_nearest,
-        "nearest_over_batched": times["batched_nearest"] / times["batched"],
-        "nearest_voxels_differing": nearest_differs,
-        "nearest_occupied_fraction": sum(float(g.occupancy.sum()) for g in out_nearest) / voxels,
-        "batched_over_its_floor": times["batched"] / floors["batched"],
-        # which backend the pipeline's carving ran, and (native kernel) the map reads its early exit left
-        "carve_backend": resolved["backend"],
-        **({"fused_kernel_variant": resolved["variant"], "fused_samples_per_object": fused_samples / K,
-            # with the native kernel, floor_batched and samples_per_object["batched"] are the torch
-            # backend's: the samples the carving needs, taken by grid_sample
-            "floor_batched_is": "batched_torch",
-            "torch_speedup_vs_loop_reference_structure": t_ladder["loop_reference_structure"] / times["batched_torch"],
-            "fused_over_torch": times["batched"] / times["batched_torch"],
-            "torch_over_its_floor": times["batched_torch"] / floors["batched_torch"]} if fused else {}),
-        # whole carving / its own grid_sample time within each floor run (median, min, max over the runs)
-        "over_its_floor_within_runs": in_run,
-        "batched_over_naive_floor": times["batched"] / floor_loop,
-        "identical": identical,
-        "occupied_fraction": sum(float(g.occupancy.sum()) for g in out) / voxels,
-        "foreground_column_fraction": float(torch.cat([g.reference_columns for g in out]).float().mean()),
-        "torch_threads": torch.get_num_threads(),
-    }
-    return res
+        selection()
+        self.t_select = best_of(selection, self.rep, self.device)
+
+    def _seconds_per_object(self) -> dict:
+        per = lambda t: t / self.K  # noqa: E731
+        return {**{k: per(v) for k, v in self.times.items()}, "batched_one_call": per(self.t_one_call),
+                **{k: per(v) for k, v in self.t_ladder.items()},
+                **{f"floor_{k}": per(v) for k, v in self.floors.items()},
+                "floor_loop_naive": per(self.floor_loop), "floor_loop_naive_nearest": per(self.floor_loop_nearest),
+                "selection": per(self.t_select), "carving_plus_selection": per(self.times["batched"] + self.t_select)}
+
+    def _speedups(self) -> dict:
+        times, t_ladder, floors = self.times, self.t_ladder, self.floors
+        return {
+            **{f"speedup_vs_{k}": v / times["batched"] for k, v in t_ladder.items()
+               if k != "loop_reference_structure_nearest"},
+            # the nearest-pixel carving (an approximation, carve.interpolation=nearest) against the
+            # same loops, which read the maps bilinearly as the reference implementation did
+            "nearest_speedup_vs_loop_reference_structure":
+                t_ladder["loop_reference_structure"] / times["batched_nearest"],
+            "nearest_speedup_vs_loop_reference_structure_nearest":
+                t_ladder["loop_reference_structure_nearest"] / times["batched_nearest"],
+            "nearest_over_its_floor": times["batched_nearest"] / floors["batched_nearest"],
+            "nearest_over_naive_nearest_floor": times["batched_nearest"] / self.floor_loop_nearest,
+            "nearest_over_batched": times["batched_nearest"] / times["batched"],
+            "nearest_voxels_differing": self.nearest_differs,
+            "nearest_occupied_fraction": sum(float(g.occupancy.sum()) for g in self.out_nearest) / self.voxels,
+            "batched_over_its_floor": times["batched"] / floors["batched"],
+        }
+
+    def _fused_record(self) -> dict:
+        """With the native kernel: its variant and reads, and the torch backend's ratios (floor_batched and
+        samples_per_object["batched"] are the torch backend's: the samples the carving needs, taken by
+        grid_sample)."""
+        if not self.fused:
+            return {}
+        times = self.times
+        return {"fused_kernel_variant": self.resolved["variant"],
+                "fused_samples_per_object": self.fused_samples / self.K,
+                "floor_batched_is": "batched_torch",
+                "torch_speedup_vs_loop_reference_structure": self.t_ladder["loop_reference_structure"]
+                / times["batched_torch"],
+                "fused_over_torch": times["batched"] / times["batched_torch"],
+                "torch_over_its_floor": times["batched_torch"] / self.floors["batched_torch"]}
+
+    def record(self) -> dict:
+        """The comparison's record: per-object seconds and samples, speedups and ratios, the voxel checks."""
+        K = self.K
+        return {
+            "objects": K, "proposals_per_object": len(self.reference) / K, "loop_objects": self.L,
+            "max_batch_voxels": C.default_batch_voxels(self.device), "pipeline_chunk_objects": self.step,
+            "seconds_per_object": self._seconds_per_object(),
+            "samples_per_object": {**{k: v / K for k, v in self.samples.items()}, "loop_naive": self.samples_loop / K,
+                                   "loop_reference_structure": self.samples_ref_structure / K},
+            # reference-structure loop / batched carving of its kind, paired within rounds (median, min, max)
+            "speedup_vs_loop_reference_structure_within_rounds": self.paired,
+            **self._speedups(),
+            # which backend the pipeline's carving ran, and (native kernel) the map reads its early exit left
+            "carve_backend": self.resolved["backend"],
+            **self._fused_record(),
+            # whole carving / its own grid_sample time within each floor run (median, min, max over the runs)
+            "over_its_floor_within_runs": self.in_run,
+            "batched_over_naive_floor": self.times["batched"] / self.floor_loop,
+            "identical": self.identical,
+            "occupied_fraction": sum(float(g.occupancy.sum()) for g in self.out) / self.voxels,
+            "foreground_column_fraction": float(torch.cat([g.reference_columns for g in self.out]).float().mean()),
+            "torch_threads": torch.get_num_threads(),
+        }
 
 
 # =========================================================================== report
@@ -999,10 +1068,10 @@ def _e2e_table(e2e: dict) -> list[str]:
     return lines
 
 
-def _carving_table(cs: dict) -> list[str]:
+def _carving_rows(cs: dict) -> list[tuple[str, float, float]]:
+    """The carving table's rows: each variant's name, seconds and samples per object (NaN: none)."""
     s, sm = cs["seconds_per_object"], cs["samples_per_object"]
     fused = cs["carve_backend"] == "fused"
-    base = s["batched"]
     default = "native kernel (backend=fused)" if fused else "torch backend"
     L = cs["loop_objects"]
     rows = [(f"**default: {default}**, one call per pipeline chunk of {cs['pipeline_chunk_objects']} objects",
@@ -1030,16 +1099,29 @@ def _carving_table(cs: dict) -> list[str]:
         ("(b) naive floor, nearest pixel", s["floor_loop_naive_nearest"], sm["loop_naive"]),
         ("selection (select_proposals per chunk)", s["selection"], float("nan")),
         ("**carving + selection** (default backend)", s["carving_plus_selection"], float("nan"))]
+    return rows
+
+
+def _carving_table(cs: dict) -> list[str]:
+    """The carving comparison as markdown: seconds per object of every variant, then the ratios."""
+    base = cs["seconds_per_object"]["batched"]
     lines = [f"| carving, {cs['objects']} objects x {cs['proposals_per_object']:.0f} proposals, "
              f"{cs['torch_threads']} thread(s) | s per object | / default | Msamples per object |",
              "|---|---:|---:|---:|"]
-    for name, t, m in rows:
+    for name, t, m in _carving_rows(cs):
         lines.append(f"| {name} | {t:.4f} | {t / base:.2f} | {'' if math.isnan(m) else f'{m / 1e6:.2f}'} |")
+    return lines + _carving_ratios(cs)
+
+
+def _carving_ratios(cs: dict) -> list[str]:
+    """The carving comparison's ratios (same run) as markdown, and the voxel check."""
+    sm = cs["samples_per_object"]
+    fused = cs["carve_backend"] == "fused"
     w = cs["speedup_vs_loop_reference_structure_within_rounds"]
     fl = cs["over_its_floor_within_runs"]
     fk = "batched_torch" if fused else "batched"
     spread = lambda r, f="{:.1f}": f"{f.format(r['median'])} [{f.format(r['min'])}-{f.format(r['max'])}]"  # noqa: E731
-    lines += ["", "| ratio (same run) | value |", "|---|---:|",
+    lines = ["", "| ratio (same run) | value |", "|---|---:|",
               f"| default vs the reference loop, best-of | **{cs['speedup_vs_loop_reference_structure']:.1f}x** |",
               f"| the same, paired within rounds, median [min-max] | {spread(w['batched'], '{:.1f}x')} |",
               f"| default vs the loop with maps given / prepared once | {cs['speedup_vs_loop']:.1f}x / "
@@ -1108,7 +1190,8 @@ def default_key(device: torch.device, args) -> str:
     return f"benchmark_{device.type}_{args.objects}"
 
 
-def main(argv=None):
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (the module docstring is its help)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog=__doc__.split("\n\n", 1)[1])
@@ -1158,17 +1241,14 @@ def main(argv=None):
     ap.add_argument("--executor", choices=["local", "ray"], default="local",
                     help="ray: the Ray executor's throughput on local clusters of --ray-nodes worker nodes")
     ap.add_argument("--ray-nodes", default="1,2", help="--executor ray: worker node counts (1 CPU each)")
+    return ap
+
+
+def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = ap.parse_args(argv)
+    args = build_parser().parse_args(argv)
     if args.executor == "ray":
-        result = ray_scaling(args, argv)
-        print(ray_table(result))
-        name = f"ray_scaling_{args.objects}.json"
-        out_json, key = outputs.record_target(args.out, args.key, ROOT / "docs" / "data" / name, None,
-                                              ROOT / "outputs" / name)
-        write_record(out_json, result, key)
-        print(f"wrote {out_json}")
-        return result
+        return main_ray(args, argv)
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda but no CUDA device is available")
@@ -1176,6 +1256,24 @@ def main(argv=None):
         native.available()  # build and self-test the kernel now, outside every timing
     if args.many_classes:
         return main_many(args, argv, device)
+    return main_class(args, argv, device)
+
+
+def main_ray(args, argv: list[str]) -> dict:
+    """``--executor ray``: run, print and write (default ``outputs/ray_scaling_<objects>.json``)."""
+    result = ray_scaling(args, argv)
+    print(ray_table(result))
+    name = f"ray_scaling_{args.objects}.json"
+    out_json, key = outputs.record_target(args.out, args.key, ROOT / "docs" / "data" / name, None,
+                                          ROOT / "outputs" / name)
+    write_record(out_json, result, key)
+    print(f"wrote {out_json}")
+    return result
+
+
+def main_class(args, argv: list[str], device: torch.device) -> dict:
+    """The one-class benchmark (end to end, carving, selection; or ``--load-only``): run, print and write
+    (default: :func:`default_key` of ``outputs/benchmarks.json``)."""
     data = ensure_data(args.objects, args.category, Path(args.data_dir), args.base_objects, args.tile, args.seed)
     name = f"benchmark_{device.type}_{args.objects}"
     out_json, key = record_target(args, default_key(device, args))

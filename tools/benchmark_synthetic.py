@@ -436,17 +436,7 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
     timings: dict = {}
 
     # 1. data
-    t0, c0 = time.perf_counter(), cpu_seconds()
-    stale = "--fresh" if args.fresh else _render_mismatch(data, models, args.pool, args.test_views, seed)
-    fresh = stale is not None
-    if fresh:
-        print(f"render {args.pool}+{args.test_views} views per model into {data} ({stale})", flush=True)
-        info = render(models, data, args.pool, args.test_views, seed)
-        print(f"  {info['images']} renders of {info['models']} models in {info['seconds']:.0f} s", flush=True)
-        timings["render"] = {"wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(cpu_seconds() - c0, 1)}
-    else:
-        print(f"render: reusing {data}", flush=True)
-        timings["render"] = {"reused": True}
+    fresh = _render_data(args, models, data, seed, timings)
     ann = data / "annotations.json"
 
     # 2. reconstructions
@@ -460,24 +450,12 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
     # 3. evaluation
     t0, c0 = time.perf_counter(), cpu_seconds(children=True)
     evals = out / "eval"
-    names = sorted(c["name"] for c in json.loads(ann.read_text())["categories"])
-    names = [c for c in names if not classes or c in classes]
-    halves = [names[i::jobs] for i in range(jobs)] if jobs > 1 else [names]
-    halves = [h for h in halves if h]
-    ecmds = []
-    for i, part in enumerate(halves):
-        argv = [PYTHON, "-m", "carvi_torch.evaluate", "--data", str(ann), "--split", "test", "--quiet",
-                "--step-percent", str(args.step_percent), "--classes", ",".join(part), "--out", str(evals / f"part{i}")]
-        if not args.no_baselines:
-            argv.append("--baselines")
-        for m in methods:
-            argv.append(f"--recon={m}={runs[m]}")  # "=" form: names such as -CRef start with a dash
-        ecmds.append((f"evaluate[{i}]", argv, evals / f"part{i}.log"))
+    ecmds = _evaluations(args, ann, runs, classes, evals, jobs)
     timings["evaluate"] = run_parallel(ecmds, jobs, threads)
     timings["evaluate_total"] = {"wall_s": round(time.perf_counter() - t0, 1),
                                  "cpu_s": round(cpu_seconds(children=True) - c0, 1)}
     res = merge_evaluations([json.loads((evals / f"part{i}" / "results.json").read_text())
-                             for i in range(len(halves))])
+                             for i in range(len(ecmds))])
 
     summaries = {m: json.loads((runs[m] / "summary.json").read_text()) for m in methods}
     report = {
@@ -499,6 +477,41 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
         "evaluation": res,
     }
     return res, report
+
+
+def _render_data(args, models: list, data: Path, seed: int, timings: dict) -> bool:
+    """Render the pool and test views into ``data`` unless renders of these settings are there (``--fresh``:
+    always); their timing goes to ``timings["render"]``. Whether it rendered."""
+    t0, c0 = time.perf_counter(), cpu_seconds()
+    stale = "--fresh" if args.fresh else _render_mismatch(data, models, args.pool, args.test_views, seed)
+    if stale is not None:
+        print(f"render {args.pool}+{args.test_views} views per model into {data} ({stale})", flush=True)
+        info = render(models, data, args.pool, args.test_views, seed)
+        print(f"  {info['images']} renders of {info['models']} models in {info['seconds']:.0f} s", flush=True)
+        timings["render"] = {"wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(cpu_seconds() - c0, 1)}
+    else:
+        print(f"render: reusing {data}", flush=True)
+        timings["render"] = {"reused": True}
+    return stale is not None
+
+
+def _evaluations(args, ann: Path, runs: dict, classes, evals: Path, jobs: int) -> list:
+    """``(name, argv, log)`` of the evaluation commands: the classes (those asked) dealt round-robin over ``jobs``
+    processes, each scoring every method's run (``runs``: method -> folder) into ``evals/part<i>``."""
+    names = sorted(c["name"] for c in json.loads(ann.read_text())["categories"])
+    names = [c for c in names if not classes or c in classes]
+    halves = [names[i::jobs] for i in range(jobs)] if jobs > 1 else [names]
+    halves = [h for h in halves if h]
+    ecmds = []
+    for i, part in enumerate(halves):
+        argv = [PYTHON, "-m", "carvi_torch.evaluate", "--data", str(ann), "--split", "test", "--quiet",
+                "--step-percent", str(args.step_percent), "--classes", ",".join(part), "--out", str(evals / f"part{i}")]
+        if not args.no_baselines:
+            argv.append("--baselines")
+        for m in runs:
+            argv.append(f"--recon={m}={runs[m]}")  # "=" form: names such as -CRef start with a dash
+        ecmds.append((f"evaluate[{i}]", argv, evals / f"part{i}.log"))
+    return ecmds
 
 
 def main(argv=None) -> int:

@@ -152,20 +152,13 @@ def _proposal_errors(job):
 
 
 def ranking(args) -> int:
-    from multiprocessing import get_context
-
-
+    """(a, b): every saved proposal of the Full run scored against the ground truth (module docstring)."""
     bench = Path(args.bench)
     data = _data_dir(bench)
     ann = json.loads((data / "annotations.json").read_text())
     gt = json.loads((data / "gt.json").read_text())["annotations"]
     cls_of = _classes_of(ann)
-    test = [a for a in ann["annotations"] if a.get("split") == "test"]
-    # subset: the first --views-per-model test views of every model
-    by_model: dict[int, list[int]] = {}
-    for a in sorted(test, key=lambda a: a["id"]):
-        by_model.setdefault(int(a["object_id"]), []).append(int(a["id"]))
-    chosen = sorted(i for ids in by_model.values() for i in ids[: args.views_per_model])
+    chosen = _test_views(ann, args.views_per_model)
     classes = set(args.classes.split(",")) if args.classes else None
     full = bench / "run_full"
     table_step = json.loads(BENCHMARK_JSON.read_text())["settings"]["step_percent"] \
@@ -189,35 +182,58 @@ def ranking(args) -> int:
         print(f"ranking: reusing {raw} ({len(per_ref)} references)", flush=True)
     else:
         print(f"ranking: {len(jobs)} references, step {args.step_percent}% ({args.jobs} processes)", flush=True)
-        t0 = time.perf_counter()
-        with get_context("fork").Pool(args.jobs) as pool:
-            rows = []
-            for i, r in enumerate(pool.imap(_proposal_errors, jobs, chunksize=1)):
-                rows.append(r)
-                if (i + 1) % 25 == 0:
-                    print(f"  {i + 1}/{len(jobs)} ({time.perf_counter() - t0:.0f} s)", flush=True)
-        seconds = time.perf_counter() - t0
-        per_ref = {}
-        for job, r in zip(jobs, rows):
-            aid = int(Path(job[0]).stem)
-            per_ref[str(aid)] = {"class": cls_of[aid], **r}
-        from carvi_torch.io.outputs import write_json
-
-        write_json(raw, {"per_reference": per_ref, "seconds": seconds}, indent=None)
+        per_ref, seconds = _errors_of_jobs(jobs, args.jobs, cls_of, raw)
     out = _ranking_summary(per_ref)
     out.update({"command": _command(), "step_percent": args.step_percent, "table_step_percent": table_step,
                 "views_per_model": args.views_per_model, "references": len(per_ref), "seconds": round(seconds, 1),
                 "per_reference": per_ref})
+    _write_ranking(args, out)
+    _plot_ranking(out, Path(args.figures))
+    print(json.dumps({k: out[k] for k in ("mean", "selected_vs_table")}, indent=1))
+    return 0
+
+
+def _test_views(ann: dict, views_per_model: int) -> list[int]:
+    """The sorted ids of the first ``views_per_model`` test views (by id) of every model."""
+    by_model: dict[int, list[int]] = {}
+    for a in sorted((a for a in ann["annotations"] if a.get("split") == "test"), key=lambda a: a["id"]):
+        by_model.setdefault(int(a["object_id"]), []).append(int(a["id"]))
+    return sorted(i for ids in by_model.values() for i in ids[:views_per_model])
+
+
+def _errors_of_jobs(jobs: list, processes: int, cls_of: dict, raw: Path) -> tuple[dict, float]:
+    """:func:`_proposal_errors` of every job on ``processes`` forked processes, per reference id (with its class),
+    and their seconds; both cached in ``raw``."""
+    from multiprocessing import get_context
+
+    from carvi_torch.io.outputs import write_json
+
+    t0 = time.perf_counter()
+    with get_context("fork").Pool(processes) as pool:
+        rows = []
+        for i, r in enumerate(pool.imap(_proposal_errors, jobs, chunksize=1)):
+            rows.append(r)
+            if (i + 1) % 25 == 0:
+                print(f"  {i + 1}/{len(jobs)} ({time.perf_counter() - t0:.0f} s)", flush=True)
+    seconds = time.perf_counter() - t0
+    per_ref = {}
+    for job, r in zip(jobs, rows):
+        aid = int(Path(job[0]).stem)
+        per_ref[str(aid)] = {"class": cls_of[aid], **r}
+    write_json(raw, {"per_reference": per_ref, "seconds": seconds}, indent=None)
+    return per_ref, seconds
+
+
+def _write_ranking(args, out: dict) -> None:
+    """The ranking record: under a key of ``--out`` (a records file such as docs/data/benchmark_synthetic.json, its
+    other keys kept), else ``outputs/studies/studies_<--record>.json``."""
     from carvi_torch.io.outputs import write_json, write_record
 
-    if args.out:  # a key of a records file (docs/data/benchmark_synthetic.json), its other keys kept
+    if args.out:
         write_record(args.out, out, args.key or args.record)
         print(f"wrote {args.out}, key {args.key or args.record}")
     else:
         write_json(_record(args.record), out)
-    _plot_ranking(out, Path(args.figures))
-    print(json.dumps({k: out[k] for k in ("mean", "selected_vs_table")}, indent=1))
-    return 0
 
 
 def _ranking_summary(per_ref: dict) -> dict:
@@ -871,18 +887,37 @@ def _arrow(ax, p, q, color, text, dx=0.0, dy=0.0):
     ax.text(q[0] + dx, q[1] + dy, text, color=color, fontsize=11, ha="center", va="center")
 
 
+def _save_figure(fig, out: str | Path, dpi: int) -> None:
+    """Lay out ``fig``, write it to ``out`` (its folder made), close it and say so."""
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    print(f"wrote {out}")
+
+
 def frames(args) -> int:
     """docs/figures/frames.png: the image, camera and voxel-grid frames of carvi_torch (docs/conventions.md)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Rectangle
 
     fig, axes = plt.subplots(1, 3, figsize=(16, 5.5))
+    _draw_pixel_frame(axes[0])
+    _draw_camera_frame(axes[1])
+    _draw_voxel_frame(fig, axes[2])
+    _save_figure(fig, args.out, 110)
+    return 0
 
-    # (a) image / canvas pixels
-    ax = axes[0]
+
+def _draw_pixel_frame(ax) -> None:
+    """(a) of frames.png: image and canvas pixels, their centres and the mask."""
+    from matplotlib.patches import Rectangle
+
     ax.set_title("(a) image and canvas pixels")
     for i in range(5):
         for j in range(6):
@@ -901,8 +936,9 @@ def frames(args) -> int:
     ax.set_aspect("equal")
     ax.axis("off")
 
-    # (b) scaled orthographic camera
-    ax = axes[1]
+
+def _draw_camera_frame(ax) -> None:
+    """(b) of frames.png: the scaled orthographic camera, its image plane and depth axis."""
     ax.set_title("(b) scaled orthographic camera")
     ax.plot([-2.5, 2.5], [2.2, 2.2], color="k", lw=3)
     ax.text(2.6, 2.2, "image plane", fontsize=9, va="center")
@@ -920,9 +956,11 @@ def frames(args) -> int:
     ax.set_aspect("equal")
     ax.axis("off")
 
-    # (c) voxel grid in the reference camera frame
+
+def _draw_voxel_frame(fig, flat_ax) -> None:
+    """(c) of frames.png: the voxel grid in the reference camera frame, on a 3-D axes in place of ``flat_ax``."""
     ax = fig.add_subplot(1, 3, 3, projection="3d")
-    axes[2].axis("off")
+    flat_ax.axis("off")
     ax.set_title("(c) voxel grid (D, H, W), reference camera frame", pad=4)
     n = 4
     for d in range(n):
@@ -943,14 +981,6 @@ def frames(args) -> int:
     ax.set_box_aspect((1, 1, 1))
     ax.set_axis_off()
 
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    print(f"wrote {out}")
-    return 0
-
 
 def canonical(args) -> int:
     """docs/figures/canonical_frame.png: the canonical object frame (the shipped aeroplane template) and
@@ -967,16 +997,29 @@ def canonical(args) -> int:
     from carvi_torch.viewpoints.frame import load_templates
 
     pts = load_templates()["classes"]["aeroplane"]["keypoints"]
-    P = np.array(list(pts.values()))
     az, el = 40.0, 25.0
     R = rotation_from_azimuth_elevation_roll(torch.tensor(math.radians(az), dtype=torch.float64),
                                              torch.tensor(math.radians(el), dtype=torch.float64),
                                              torch.tensor(0.0, dtype=torch.float64)).numpy()
-    cam = -R[2]  # unit vector from the object towards the camera
     fig, axes = plt.subplots(1, 3, figsize=(16, 5.4))
+    _draw_camera_angles(axes[:2], pts, R, az, el)
+    _draw_camera_view(axes[2], pts, R)
+    fig.suptitle("The canonical frame of the PASCAL3D+ classes (shipped aeroplane template): +z up, front towards "
+                 "-y.   R = diag(1, -1, -1) Rz(roll) Rx(elevation - 90) Rz(-azimuth)")
+    _save_figure(fig, args.out, 100)
+    return 0
+
+
+def _draw_camera_angles(axes, pts: dict, R: np.ndarray, az: float, el: float) -> None:
+    """(a), (b) of canonical_frame.png: keypoints ``pts`` (name -> xyz) and the camera of rotation ``R (3, 3)``
+    seen from above (its azimuth ``az``) and from the side in its vertical plane (its elevation ``el``), degrees."""
+    import math
+
+    P = np.array(list(pts.values()))
+    cam = -R[2]  # unit vector from the object towards the camera
     views = (("(a) from above: x right, y up the page", 0, 1, "x", "y"),
              ("(b) from the side, in the camera's vertical plane", None, 2, "horizontal", "z (up)"))
-    for ax, (title, i, j, xl, yl) in zip(axes[:2], views):
+    for ax, (title, i, j, xl, yl) in zip(axes, views):
         h = np.array([cam[0], cam[1], 0.0]) / math.hypot(cam[0], cam[1])
         X = P[:, i] if i is not None else P @ h
         Y = P[:, j]
@@ -1005,7 +1048,12 @@ def canonical(args) -> int:
         ax.set_ylim(-0.55, 0.55)
         ax.set_aspect("equal")
         ax.grid(alpha=0.3)
-    ax = axes[2]  # what that camera sees: uv = X R[:2]^T, image y down
+
+
+def _draw_camera_view(ax, pts: dict, R: np.ndarray) -> None:
+    """(c) of canonical_frame.png: what the camera of rotation ``R (3, 3)`` sees of the keypoints ``pts``
+    (``uv = X R[:2]^T``, image y down, roll 0)."""
+    P = np.array(list(pts.values()))
     uv = P @ R[:2].T
     ax.scatter(uv[:, 0], uv[:, 1], color="tab:blue", s=20)
     for (name, _), (u, v) in zip(pts.items(), uv):
@@ -1015,15 +1063,6 @@ def canonical(args) -> int:
     ax.set_aspect("equal")
     ax.grid(alpha=0.3)
     ax.set_title("(c) what it sees (image y down), roll 0")
-    fig.suptitle("The canonical frame of the PASCAL3D+ classes (shipped aeroplane template): +z up, front towards "
-                 "-y.   R = diag(1, -1, -1) Rz(roll) Rx(elevation - 90) Rz(-azimuth)")
-    fig.tight_layout()
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    print(f"wrote {out}")
-    return 0
 
 
 # =========================================================================== main

@@ -51,7 +51,8 @@ def targets(batch):
     return torch.stack([torch.cos(az), torch.sin(az), el], dim=1)
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (the module docstring is its help)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--export", help="export (zarr store) directory (default: build one from the embedded collection)")
@@ -61,17 +62,15 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--min-quality", type=float, default=None,
                     help="train and validate only on objects whose quality is at least this")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     torch.manual_seed(args.seed)
     export = Path(args.export) if args.export else ROOT / "outputs" / "train_example" / "export"
     if not (export / "zarr.json").is_file():  # the zarr store of python -m carvi_torch.export
-        recon = export.parent / "recon"
-        print(f"no export at {export}: reconstructing the embedded collection into {recon}")
-        subprocess.run([sys.executable, "-m", "carvi_torch.reconstruct", "--out", str(recon), "preview=false",
-                        "report=false"],
-                       check=True, cwd=ROOT)
-        subprocess.run([sys.executable, "-m", "carvi_torch.export", "--recon", str(recon), "--out", str(export)],
-                       check=True, cwd=ROOT)
+        _build_export(export)
     ds = LiftedDataset(export, fields=["mask", "viewpoint", "class_index"], min_quality=args.min_quality)
     if len(ds) < 2:  # one object to train on and one to validate on, at least
         kept = f"--min-quality {args.min_quality} keeps {len(ds)} of {len(ds.reader.samples)}" \
@@ -90,30 +89,52 @@ def main(argv=None) -> int:
     print("epoch  train loss  val loss  val median azimuth error (deg)  seconds")
     for epoch in range(1, args.epochs + 1):
         t0 = time.perf_counter()
-        net.train()
-        total, count = 0.0, 0
-        for batch in train_loader:
-            pred = net(batch["mask"][:, None].float(), batch["class_index"])
-            loss = F.mse_loss(pred, targets(batch))
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            total += float(loss.detach()) * len(pred)
-            count += len(pred)
-        net.eval()
-        vtotal, vcount, errs = 0.0, 0, []
-        with torch.no_grad():
-            for batch in val_loader:
-                pred = net(batch["mask"][:, None].float(), batch["class_index"])
-                y = targets(batch)
-                vtotal += float(F.mse_loss(pred, y)) * len(pred)
-                vcount += len(pred)
-                d = torch.atan2(pred[:, 1], pred[:, 0]) - torch.atan2(y[:, 1], y[:, 0])
-                errs.append(torch.rad2deg(torch.atan2(torch.sin(d), torch.cos(d)).abs()))
-        med = float(torch.cat(errs).median())
+        train_loss = _train_epoch(net, opt, train_loader)
+        val_loss, med = _validate(net, val_loader)
         secs = time.perf_counter() - t0
-        print(f"{epoch:5d}  {total / count:10.4f}  {vtotal / vcount:8.4f}  {med:30.1f}  {secs:7.1f}")
+        print(f"{epoch:5d}  {train_loss:10.4f}  {val_loss:8.4f}  {med:30.1f}  {secs:7.1f}")
     return 0
+
+
+def _build_export(export: Path) -> None:
+    """Reconstruct the embedded collection beside ``export`` and export it there (child processes)."""
+    recon = export.parent / "recon"
+    print(f"no export at {export}: reconstructing the embedded collection into {recon}")
+    subprocess.run([sys.executable, "-m", "carvi_torch.reconstruct", "--out", str(recon), "preview=false",
+                    "report=false"],
+                   check=True, cwd=ROOT)
+    subprocess.run([sys.executable, "-m", "carvi_torch.export", "--recon", str(recon), "--out", str(export)],
+                   check=True, cwd=ROOT)
+
+
+def _train_epoch(net: ViewpointNet, opt, loader) -> float:
+    """One pass over ``loader`` with Adam steps; the mean training loss per object."""
+    net.train()
+    total, count = 0.0, 0
+    for batch in loader:
+        pred = net(batch["mask"][:, None].float(), batch["class_index"])
+        loss = F.mse_loss(pred, targets(batch))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        total += float(loss.detach()) * len(pred)
+        count += len(pred)
+    return total / count
+
+
+def _validate(net: ViewpointNet, loader) -> tuple[float, float]:
+    """The mean validation loss per object and the median azimuth error (degrees) over ``loader``."""
+    net.eval()
+    vtotal, vcount, errs = 0.0, 0, []
+    with torch.no_grad():
+        for batch in loader:
+            pred = net(batch["mask"][:, None].float(), batch["class_index"])  # (B, 3)
+            y = targets(batch)
+            vtotal += float(F.mse_loss(pred, y)) * len(pred)
+            vcount += len(pred)
+            d = torch.atan2(pred[:, 1], pred[:, 0]) - torch.atan2(y[:, 1], y[:, 0])
+            errs.append(torch.rad2deg(torch.atan2(torch.sin(d), torch.cos(d)).abs()))
+    return vtotal / vcount, float(torch.cat(errs).median())
 
 
 if __name__ == "__main__":

@@ -406,7 +406,8 @@ def _seeds(text: str) -> list:
         raise argparse.ArgumentTypeError(f"seeds must be integers separated by commas, got {text!r}") from None
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (the module docstring is its help)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--views", type=int, default=30, help="renders per CAD model (default 30)")
@@ -433,6 +434,11 @@ def main(argv=None) -> int:
                          "one run split across processes); exit 1 when a class's median angle exceeds 0.5 degrees")
     ap.add_argument("--labels", default="cpu,cuda", help="--compare: the two runs' names, comma-separated")
     ap.add_argument("overrides", nargs="*", metavar="key=value", help="extra reconstruct overrides")
+    return ap
+
+
+def main(argv=None) -> int:
+    ap = build_parser()
     args = ap.parse_args(argv)
     if args.compare:
         if len(args.compare) < 2:
@@ -449,6 +455,12 @@ def main(argv=None) -> int:
         for seed in args.seed:
             print(_renders(args, seed))
         return 0
+    return _tables(args, argv)
+
+
+def _tables(args, argv) -> int:
+    """The default run: every seed's cameras (and with ``--refined-too`` the refined ones), their tables printed
+    and recorded (``--out``, default beside the first seed's cameras)."""
     runs = [_run(args, seed, args.overrides) for seed in args.seed]
     refined = [_run(args, seed, [*args.overrides, "refine_keep=refined"]) for seed in args.seed] \
         if args.refined_too else None
@@ -457,20 +469,7 @@ def main(argv=None) -> int:
                                                            *(argv if argv is not None else sys.argv[1:])]),
               "views": args.views, "cameras": args.cameras}
     for run in runs:
-        rows = run["rows"]
-        table = _table(rows)
-        print(f"seed {run['seed']}\n{table}")
-        print("(SfM -> refined: the views with an SfM camera, before and after refinement; views without one take "
-              "their camera from the unseen-image path and count in the 'every view' column only)")
-        improved = sum(1 for r in rows
-                       if r["sfm_geodesic"] is not None and r["refined_geodesic_sfm_objects"] < r["sfm_geodesic"])
-        up_ok = sum(1 for r in rows if r["up_error_deg"] <= 10.0)
-        print(f"refinement lowers the median geodesic error in {improved} of {len(rows)} classes")
-        print(f"the written up axis lies within 10 degrees of the CAD +z in {up_ok} of {len(rows)} classes")
-        print(f"render {run['render_seconds']:.1f} s, SfM + refinement of all classes {run['cameras_seconds']:.1f} s")
-        rec = {"seed": run["seed"], "rows": rows, "table": table, "refinement_lowers": improved,
-               "up_within_10deg": up_ok, "per_model": run["per_model"], "render_seconds": run["render_seconds"],
-               "cameras_seconds": run["cameras_seconds"]}
+        rec = _seed_report(run)
         if len(runs) == 1:
             record.update(rec)
         else:
@@ -486,6 +485,24 @@ def main(argv=None) -> int:
     write_record(out, record, key)
     print(f"wrote {out}" + (f", key {key}" if key else ""))
     return 0
+
+
+def _seed_report(run: dict) -> dict:
+    """Print one seed's table and what refinement did; its part of the record."""
+    rows = run["rows"]
+    table = _table(rows)
+    print(f"seed {run['seed']}\n{table}")
+    print("(SfM -> refined: the views with an SfM camera, before and after refinement; views without one take "
+          "their camera from the unseen-image path and count in the 'every view' column only)")
+    improved = sum(1 for r in rows
+                   if r["sfm_geodesic"] is not None and r["refined_geodesic_sfm_objects"] < r["sfm_geodesic"])
+    up_ok = sum(1 for r in rows if r["up_error_deg"] <= 10.0)
+    print(f"refinement lowers the median geodesic error in {improved} of {len(rows)} classes")
+    print(f"the written up axis lies within 10 degrees of the CAD +z in {up_ok} of {len(rows)} classes")
+    print(f"render {run['render_seconds']:.1f} s, SfM + refinement of all classes {run['cameras_seconds']:.1f} s")
+    return {"seed": run["seed"], "rows": rows, "table": table, "refinement_lowers": improved,
+            "up_within_10deg": up_ok, "per_model": run["per_model"], "render_seconds": run["render_seconds"],
+            "cameras_seconds": run["cameras_seconds"]}
 
 
 if __name__ == "__main__":

@@ -543,6 +543,13 @@ def step_viewpoints(recon: Path, gt: dict, subcategory: dict | None = None) -> d
     return out
 
 
+_UNSEEN_NAMES = {"train_sfm": "training: SfM", "train_refined": "training: refined",
+                 "unseen_keypoints_only": "unseen: keypoints only",
+                 "unseen_keypoints_silhouette": "unseen: keypoints + silhouette",
+                 "unseen_keypoints_only_self_aligned": "unseen: keypoints only (own G)",
+                 "unseen_keypoints_silhouette_self_aligned": "unseen: kp + silhouette (own G)"}
+
+
 def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, device: str,
                 seen: dict | None = None) -> dict:
     """Cameras of a held-aside third from the mean shape learned on the other two thirds.
@@ -558,6 +565,37 @@ def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, de
     test = perm[:n_test].sort().values
     train = perm[n_test:].sort().values
     tr, te = coll[train], coll[test]
+    res, rr, est_kp, est_sil, seconds = _unseen_cameras(tr, te, cfg)
+    n_tr = len(tr)
+    R_tr_sfm, Rg_tr, _ = _with_gt(tr, res.cameras.R[:n_tr], gt)
+    R_tr_ref, _, _ = _with_gt(tr, rr.cameras.R[:n_tr], gt)
+    G = align_rotations(R_tr_ref, Rg_tr)
+    R_kp, Rg_te, keys_te = _with_gt(te, est_kp.R, gt)
+    R_sil, _, _ = _with_gt(te, est_sil.R, gt)
+    reps = {
+        "train_sfm": viewpoint_report(R_tr_sfm, Rg_tr),
+        "train_refined": viewpoint_report(R_tr_ref, Rg_tr),
+        "unseen_keypoints_only": viewpoint_report(R_kp, Rg_te, alignment=G),
+        "unseen_keypoints_silhouette": viewpoint_report(R_sil, Rg_te, alignment=G),
+        "unseen_keypoints_only_self_aligned": viewpoint_report(R_kp, Rg_te),
+        "unseen_keypoints_silhouette_self_aligned": viewpoint_report(R_sil, Rg_te),
+    }
+    rows = [_summary_row(_UNSEEN_NAMES[k], v) for k, v in reps.items()]
+    seen_rows = _same_objects_rows(seen, keys_te, rows) if seen is not None else {}
+    print_table(f"unseen images: {n_test} held aside (seed {seed}), mean shape from the other {n - n_test}; "
+                "G from the training objects unless 'own G'", VP_HEADER, rows)
+    per = {k: {"keypoints_only": float(a), "keypoints_silhouette": float(b)}
+           for k, a, b in zip(keys_te, reps["unseen_keypoints_only"]["per_instance_geodesic"],
+                              reps["unseen_keypoints_silhouette"]["per_instance_geodesic"])}
+    return {"seed": seed, "held_aside": n_test, "training": n - n_test,
+            "held_aside_sources": [gt_key(s) for s in te.sources], "alignment_from_training": G.tolist(),
+            "seconds": seconds, "reports": {k: _compact(v) for k, v in reps.items()},
+            "same_objects_full_run": seen_rows, "per_object_geodesic": per}
+
+
+def _unseen_cameras(tr, te, cfg: Config):
+    """SfM and refinement on the training collection ``tr`` (with mirrors), then the held-aside ``te``'s cameras
+    from its mean shape, from keypoints alone and with the silhouette; their seconds."""
     t0 = time.perf_counter()
     both = tr.with_mirrors()
     res = class_sfm(both, cfg.viewpoints)  # the pipeline's SfM (one shape)
@@ -573,52 +611,30 @@ def step_unseen(ann: Path, gt: dict, cfg: Config, seed: int, fraction: float, de
     est_sil, _ = camera_fit.estimate_camera(shape, te.keypoints, te.visible, dist,
                                             silhouette_weight=vcfg.silhouette_weight, max_iters=vcfg.refine_iters)
     t_test = time.perf_counter() - t0
+    return res, rr, est_kp, est_sil, {"training_sfm_refine": round(t_train, 2),
+                                      "estimate_camera_both_variants": round(t_test, 2)}
 
-    def with_gt(c, R):
-        keys = [gt_key(s) for s in c.sources]
-        idx = [i for i, k in enumerate(keys) if k in gt]
-        Rg = torch.tensor([gt[keys[i]]["R"] for i in idx], dtype=torch.float64)
-        return R[idx].double().cpu(), Rg, [keys[i] for i in idx]
 
-    n_tr = len(tr)
-    R_tr_sfm, Rg_tr, _ = with_gt(tr, res.cameras.R[:n_tr])
-    R_tr_ref, _, _ = with_gt(tr, rr.cameras.R[:n_tr])
-    G = align_rotations(R_tr_ref, Rg_tr)
-    R_kp, Rg_te, keys_te = with_gt(te, est_kp.R)
-    R_sil, _, _ = with_gt(te, est_sil.R)
-    reps = {
-        "train_sfm": viewpoint_report(R_tr_sfm, Rg_tr),
-        "train_refined": viewpoint_report(R_tr_ref, Rg_tr),
-        "unseen_keypoints_only": viewpoint_report(R_kp, Rg_te, alignment=G),
-        "unseen_keypoints_silhouette": viewpoint_report(R_sil, Rg_te, alignment=G),
-        "unseen_keypoints_only_self_aligned": viewpoint_report(R_kp, Rg_te),
-        "unseen_keypoints_silhouette_self_aligned": viewpoint_report(R_sil, Rg_te),
-    }
-    names = {"train_sfm": "training: SfM", "train_refined": "training: refined",
-             "unseen_keypoints_only": "unseen: keypoints only",
-             "unseen_keypoints_silhouette": "unseen: keypoints + silhouette",
-             "unseen_keypoints_only_self_aligned": "unseen: keypoints only (own G)",
-             "unseen_keypoints_silhouette_self_aligned": "unseen: kp + silhouette (own G)"}
-    rows = [_summary_row(names[k], v) for k, v in reps.items()]
+def _with_gt(c, R: torch.Tensor, gt: dict):
+    """The rotations ``R (n, 3, 3)`` of the objects of collection ``c`` with ground truth (float64, CPU), theirs,
+    and their keys."""
+    keys = [gt_key(s) for s in c.sources]
+    idx = [i for i, k in enumerate(keys) if k in gt]
+    Rg = torch.tensor([gt[keys[i]]["R"] for i in idx], dtype=torch.float64)
+    return R[idx].double().cpu(), Rg, [keys[i] for i in idx]
+
+
+def _same_objects_rows(seen: dict, keys: list[str], rows: list) -> dict:
+    """The full run's errors (SfM, refined) on the objects ``keys``, summarised; a table row each added to ``rows``."""
     seen_rows = {}
-    if seen is not None:
-        for stage, label in (("sfm", "same objects, full run: SfM"), ("refined", "same objects, full run: refined")):
-            per = [seen[stage]["per_object"][k] for k in keys_te if k in seen[stage]["per_object"]]
-            seen_rows[stage] = {f: summarize(torch.tensor([p[f] for p in per], dtype=torch.float64))
-                                for f in ("geodesic", "azimuth_error", "elevation_error")}
-            v = seen_rows[stage]
-            rows.append([label, str(v["geodesic"]["n"]), v["geodesic"]["median"], v["geodesic"]["acc_at_30"],
-                         v["azimuth_error"]["median"], v["elevation_error"]["median"], "-"])
-    print_table(f"unseen images: {n_test} held aside (seed {seed}), mean shape from the other {n - n_test}; "
-                "G from the training objects unless 'own G'", VP_HEADER, rows)
-    per = {k: {"keypoints_only": float(a), "keypoints_silhouette": float(b)}
-           for k, a, b in zip(keys_te, reps["unseen_keypoints_only"]["per_instance_geodesic"],
-                              reps["unseen_keypoints_silhouette"]["per_instance_geodesic"])}
-    return {"seed": seed, "held_aside": n_test, "training": n - n_test,
-            "held_aside_sources": [gt_key(s) for s in te.sources], "alignment_from_training": G.tolist(),
-            "seconds": {"training_sfm_refine": round(t_train, 2), "estimate_camera_both_variants": round(t_test, 2)},
-            "reports": {k: _compact(v) for k, v in reps.items()}, "same_objects_full_run": seen_rows,
-            "per_object_geodesic": per}
+    for stage, label in (("sfm", "same objects, full run: SfM"), ("refined", "same objects, full run: refined")):
+        per = [seen[stage]["per_object"][k] for k in keys if k in seen[stage]["per_object"]]
+        seen_rows[stage] = {f: summarize(torch.tensor([p[f] for p in per], dtype=torch.float64))
+                            for f in ("geodesic", "azimuth_error", "elevation_error")}
+        v = seen_rows[stage]
+        rows.append([label, str(v["geodesic"]["n"]), v["geodesic"]["median"], v["geodesic"]["acc_at_30"],
+                     v["azimuth_error"]["median"], v["elevation_error"]["median"], "-"])
+    return seen_rows
 
 
 def camera_variant(coll, gt: dict, cfg: Config, *, mirrors: bool = True, rigid: list[int] | None = None,
@@ -808,6 +824,18 @@ def load_models(data: Path, cache: Path | None, iou_step: float = 0.01) -> dict:
     return models
 
 
+@dataclass
+class _ShapeSources:
+    """What every object's shape scores read: its annotations, the run's cameras and collection, the CAD models."""
+
+    cc: object  # pycocotools COCO of the annotations
+    cams_json: dict  # the run's cameras.json
+    coll: object  # the loaded collection (the Puffball baseline's masks)
+    row_of: dict  # annotation id -> row of coll
+    models: dict  # subtype -> load_models' entry
+    recon: Path
+
+
 def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: Config, other_cads: int) -> dict:
     """Reconstructions (and baselines) vs the posed closest CAD model, for the objects with ground truth."""
     from pycocotools.coco import COCO
@@ -820,60 +848,78 @@ def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: C
     t0 = time.perf_counter()
     models = load_models(data, work / "cad_solids")
     t_models = time.perf_counter() - t0
+    src = _ShapeSources(cc, cams_json, coll, row_of, models, recon)
     anns = [a for a in sorted(cc.anns.values(), key=lambda a: a["id"]) if gt_key(a["source"]) in gt]
     with_others = set(int(i) for i in np.linspace(0, len(anns) - 1, other_cads).round()) if other_cads > 0 else set()
     per = {}
     t0 = time.perf_counter()
     for j, ann_entry in enumerate(anns):
         key = gt_key(ann_entry["source"])
-        aid = int(ann_entry["id"])
-        g = gt[key]
-        sub = int(g["subtype"])
-        R = np.asarray(g["R"], dtype=np.float64)
-        mask = cc.annToMask(ann_entry).astype(bool)
-        model = models[sub]
-        cad = model["cad"]
-        s, t = fit_cad_to_mask(cad["vertices"], cad["faces"], R, mask)
-        row = {"annotation_id": aid, "subtype": sub, "scale": s, "translation": t.tolist(),
-               "cad_mask_iou": silhouette_iou(cad["vertices"], cad["faces"], R, s, t, mask)}
-        # cross-check of the pose: the keypoints both sources name
-        kp = np.asarray(ann_entry["keypoints"], dtype=np.float64).reshape(-1, 3)
-        names = cc.cats[ann_entry["category_id"]]["keypoints"]
-        pairs = [(kp[i, :2], cad["keypoints"][BERKELEY_TO_PASCAL3D[nm]]) for i, nm in enumerate(names)
-                 if kp[i, 2] > 0 and nm in BERKELEY_TO_PASCAL3D and BERKELEY_TO_PASCAL3D[nm] in cad["keypoints"]]
-        if len(pairs) >= 2:
-            W = np.stack([p[0] for p in pairs])
-            P = np.stack([p[1] for p in pairs]) @ R[:2].T
-            s_kp, _, _ = fit_keypoints(P, W)
-            extent = s * float(np.ptp(cad["vertices"] @ R[:2].T, axis=0).max())
-            row["keypoint_scale_ratio"] = s_kp / s
-            rms = float(np.sqrt(((s * P + t - W) ** 2).sum(-1).mean()))
-            row["keypoint_rms_percent_of_extent"] = 100.0 * rms / extent
-        row["reconstruction"] = score_mesh(_recon_mesh(recon, aid), R, s, t, model)
-        if aid in row_of:
-            row["puffball"] = score_mesh(_puffball_image(coll, row_of[aid]), R, s, t, model)
-        row["sfm_hull"] = score_mesh(_sfmc_image(cams_json, aid), R, s, t, model)
-        if j in with_others:
-            others = {}
-            for k, other in models.items():
-                if k != sub:
-                    s_o, t_o = fit_cad_to_mask(other["cad"]["vertices"], other["cad"]["faces"], R, mask)
-                    others[str(k)] = score_other_cad(other, R, s, t, s_o, t_o, model)
-            row["other_cads"] = others
-        per[key] = row
+        per[key] = _shape_row(src, ann_entry, gt[key], j in with_others)
         if (j + 1) % 20 == 0 or j + 1 == len(anns):
             print(f"  shapes: {j + 1}/{len(anns)} objects, {time.perf_counter() - t0:.0f} s", flush=True)
     seconds = time.perf_counter() - t0
+    table, fit = _shape_tables(per, bool(with_others))
+    return {"table": table, "pose_fit": fit, "per_object": per,
+            "seconds": {"cad_models": round(t_models, 1), "evaluation": round(seconds, 1)}}
 
-    def agg(getter, rows=None) -> dict:
-        vals = [v for v in (getter(r) for r in (rows if rows is not None else per.values()))
-                if v is not None and math.isfinite(v)]
-        return {"n": len(vals), "median": float(np.median(vals)) if vals else None,
-                "mean": float(np.mean(vals)) if vals else None}
 
+def _shape_row(src: _ShapeSources, ann_entry: dict, g: dict, others: bool) -> dict:
+    """One object's record: its ground-truth CAD model posed on its mask, the pose's keypoint check, the
+    reconstruction's and baselines' scores (and with ``others`` the other CAD models')."""
+    aid = int(ann_entry["id"])
+    sub = int(g["subtype"])
+    R = np.asarray(g["R"], dtype=np.float64)
+    mask = src.cc.annToMask(ann_entry).astype(bool)
+    model = src.models[sub]
+    cad = model["cad"]
+    s, t = fit_cad_to_mask(cad["vertices"], cad["faces"], R, mask)
+    row = {"annotation_id": aid, "subtype": sub, "scale": s, "translation": t.tolist(),
+           "cad_mask_iou": silhouette_iou(cad["vertices"], cad["faces"], R, s, t, mask)}
+    row.update(_keypoint_check(src.cc, ann_entry, cad, R, s, t))
+    row["reconstruction"] = score_mesh(_recon_mesh(src.recon, aid), R, s, t, model)
+    if aid in src.row_of:
+        row["puffball"] = score_mesh(_puffball_image(src.coll, src.row_of[aid]), R, s, t, model)
+    row["sfm_hull"] = score_mesh(_sfmc_image(src.cams_json, aid), R, s, t, model)
+    if others:
+        row["other_cads"] = {}
+        for k, other in src.models.items():
+            if k != sub:
+                s_o, t_o = fit_cad_to_mask(other["cad"]["vertices"], other["cad"]["faces"], R, mask)
+                row["other_cads"][str(k)] = score_other_cad(other, R, s, t, s_o, t_o, model)
+    return row
+
+
+def _keypoint_check(cc, ann_entry: dict, cad: dict, R: np.ndarray, s: float, t: np.ndarray) -> dict:
+    """Cross-check of a CAD pose ``(R, s, t)`` with the keypoints the annotation and the CAD model both name: the
+    scale the keypoints give over ``s`` and their RMS misfit in % of the posed CAD's extent (none: fewer than 2)."""
+    kp = np.asarray(ann_entry["keypoints"], dtype=np.float64).reshape(-1, 3)
+    names = cc.cats[ann_entry["category_id"]]["keypoints"]
+    pairs = [(kp[i, :2], cad["keypoints"][BERKELEY_TO_PASCAL3D[nm]]) for i, nm in enumerate(names)
+             if kp[i, 2] > 0 and nm in BERKELEY_TO_PASCAL3D and BERKELEY_TO_PASCAL3D[nm] in cad["keypoints"]]
+    if len(pairs) < 2:
+        return {}
+    W = np.stack([p[0] for p in pairs])
+    P = np.stack([p[1] for p in pairs]) @ R[:2].T
+    s_kp, _, _ = fit_keypoints(P, W)
+    extent = s * float(np.ptp(cad["vertices"] @ R[:2].T, axis=0).max())
+    rms = float(np.sqrt(((s * P + t - W) ** 2).sum(-1).mean()))
+    return {"keypoint_scale_ratio": s_kp / s, "keypoint_rms_percent_of_extent": 100.0 * rms / extent}
+
+
+def _agg(vals) -> dict:
+    """Count, median and mean of the finite values of ``vals`` (``None``: skipped)."""
+    vals = [v for v in vals if v is not None and math.isfinite(v)]
+    return {"n": len(vals), "median": float(np.median(vals)) if vals else None,
+            "mean": float(np.mean(vals)) if vals else None}
+
+
+def _shape_tables(per: dict, with_others: bool) -> tuple[dict, dict]:
+    """Print and return the shape errors per method (and against the other CAD models on their subset) and the
+    quality of the CAD poses, over the objects' records ``per``."""
     methods = {"reconstruction": "reconstruction", "puffball": "Puffball", "sfm_hull": "SfM convex hull"}
-    table = {m: {"rms_percent": agg(lambda r, m=m: r.get(m, {}).get("rms_percent")),
-                 "iou": agg(lambda r, m=m: r.get(m, {}).get("iou"))} for m in methods}
+    table = {m: {"rms_percent": _agg(r.get(m, {}).get("rms_percent") for r in per.values()),
+                 "iou": _agg(r.get(m, {}).get("iou") for r in per.values())} for m in methods}
     if with_others:
         sub_rows = [r for r in per.values() if "other_cads" in r]
 
@@ -881,19 +927,19 @@ def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: C
             v = [o[field] for o in r["other_cads"].values() if o.get(field) is not None]
             return float(fn(v)) if v else None
 
-        table["reconstruction_on_subset"] = {"rms_percent": agg(lambda r: r["reconstruction"].get("rms_percent"),
-                                                                sub_rows),
-                                             "iou": agg(lambda r: r["reconstruction"].get("iou"), sub_rows)}
-        table["other_cad_median"] = {"rms_percent": agg(lambda r: other(r, np.median, "rms_percent"), sub_rows),
-                                     "iou": agg(lambda r: other(r, np.median, "iou"), sub_rows)}
-        table["other_cad_best"] = {"rms_percent": agg(lambda r: other(r, np.min, "rms_percent"), sub_rows),
-                                   "iou": agg(lambda r: other(r, np.max, "iou"), sub_rows)}
+        table["reconstruction_on_subset"] = {"rms_percent": _agg(r["reconstruction"].get("rms_percent")
+                                                                 for r in sub_rows),
+                                             "iou": _agg(r["reconstruction"].get("iou") for r in sub_rows)}
+        table["other_cad_median"] = {"rms_percent": _agg(other(r, np.median, "rms_percent") for r in sub_rows),
+                                     "iou": _agg(other(r, np.median, "iou") for r in sub_rows)}
+        table["other_cad_best"] = {"rms_percent": _agg(other(r, np.min, "rms_percent") for r in sub_rows),
+                                   "iou": _agg(other(r, np.max, "iou") for r in sub_rows)}
         methods.update({"reconstruction_on_subset": f"reconstruction ({len(sub_rows)}-object subset)",
                         "other_cad_median": "another CAD model (median of 7, subset)",
                         "other_cad_best": "the closest other CAD model (subset)"})
-    fit = {"cad_mask_iou": agg(lambda r: r["cad_mask_iou"]),
-           "keypoint_scale_ratio": agg(lambda r: r.get("keypoint_scale_ratio")),
-           "keypoint_rms_percent_of_extent": agg(lambda r: r.get("keypoint_rms_percent_of_extent"))}
+    fit = {"cad_mask_iou": _agg(r["cad_mask_iou"] for r in per.values()),
+           "keypoint_scale_ratio": _agg(r.get("keypoint_scale_ratio") for r in per.values()),
+           "keypoint_rms_percent_of_extent": _agg(r.get("keypoint_rms_percent_of_extent") for r in per.values())}
     print_table(f"shapes vs the posed closest PASCAL3D+ CAD model ({len(per)} objects; RMS in % of the CAD "
                 "diagonal, lower is better; voxel IoU at 1% of the diagonal, higher is better)",
                 ["shape", "n", "RMS med", "RMS mean", "IoU med", "IoU mean"],
@@ -902,8 +948,7 @@ def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: C
     print_table("posing the CAD model (rotation = ground truth, scale + translation from the mask)",
                 ["quantity", "n", "median", "mean"],
                 [[k, str(v["n"]), v["median"], v["mean"]] for k, v in fit.items()])
-    return {"table": table, "pose_fit": fit, "per_object": per,
-            "seconds": {"cad_models": round(t_models, 1), "evaluation": round(seconds, 1)}}
+    return table, fit
 
 
 # =========================================================================== figure
@@ -929,6 +974,21 @@ def _render_mesh(ax, V: np.ndarray, F: np.ndarray, R: np.ndarray, title: str) ->
     ax.set_ylim(c[1] + r, c[1] - r)
     ax.set_aspect("equal")
     ax.set_title(title, fontsize=8)
+
+
+@dataclass
+class _FigureSources:
+    """What each object's panels read: the annotations, the run's cameras, the viewpoint and shape records."""
+
+    cc: object  # pycocotools COCO of the annotations
+    cams_json: dict  # the run's cameras.json
+    per: dict  # step_viewpoints' refined per-object records
+    S: np.ndarray  # (K, 3) the mean shape, NaN where a keypoint has none
+    G: np.ndarray  # (3, 3) the alignment of the SfM frame with the CAD frame
+    views: list  # (R (3, 3), label) of the mesh views
+    recon: Path
+    data: Path
+    shapes: dict | None  # step_shapes' result
 
 
 def step_figure(path: Path, ann: Path, recon: Path, data: Path, gt: dict, vp: dict, shapes: dict | None,
@@ -964,50 +1024,11 @@ def step_figure(path: Path, ann: Path, recon: Path, data: Path, gt: dict, vp: di
                                                    torch.tensor(math.radians(e), dtype=torch.float64),
                                                    torch.tensor(0.0, dtype=torch.float64)).numpy(), lbl)
              for a, e, lbl in ((45.0, 20.0, "az 45, el 20"), (0.0, 80.0, "from above"))]
+    src = _FigureSources(cc, cams_json, per, S, G, views, recon, data, shapes)
     for j, key in enumerate(picks):
-        aid = per[key]["annotation_id"]
-        a0 = axes[j // per_row, (j % per_row) * cols]
-        ann_e = cc.anns[aid]
-        mask = cc.annToMask(ann_e).astype(bool)
-        mesh = trimesh.load(recon / CLASS / "meshes" / f"{aid}.ply", force="mesh", process=False)
-        V = np.asarray(mesh.vertices, dtype=np.float64)
-        F = np.asarray(mesh.faces, dtype=np.int64)
-        sil = silhouette(V[:, :2], F, np.zeros(2), mask.shape)
-        ys, xs = np.nonzero(mask | sil)
-        pad = 8
-        y0, y1 = max(0, ys.min() - pad), min(mask.shape[0], ys.max() + pad + 1)
-        x0, x1 = max(0, xs.min() - pad), min(mask.shape[1], xs.max() + pad + 1)
-        rgb = np.ones(mask.shape + (3,))
-        rgb[mask & sil] = (0.55, 0.85, 0.55)
-        rgb[mask & ~sil] = (0.95, 0.55, 0.55)
-        rgb[~mask & sil] = (0.55, 0.65, 0.95)
-        a0.imshow(rgb[y0:y1, x0:x1], extent=(x0 - 0.5, x1 - 0.5, y1 - 0.5, y0 - 0.5))
-        obj = voc.parse_keypoint_xml(data / "pascal_voc_aeroplane" / "keypoints" / ann_e["source"])
-        for poly in obj.polygons:
-            p = np.vstack([poly, poly[:1]])
-            a0.plot(p[:, 0], p[:, 1], "-", color="k", lw=0.6)
-        kp = np.asarray(ann_e["keypoints"], dtype=np.float64).reshape(-1, 3)
-        v = kp[:, 2] > 0
-        a0.plot(kp[v, 0], kp[v, 1], "o", ms=3, color="orange", mec="k", mew=0.3)
-        cam = cams_json["cameras"][str(aid)]["refined"]
-        if cam is not None:
-            c = ScaledOrthographic.from_list([cam], dtype=torch.float64)
-            q = c.project(torch.from_numpy(S))[0].numpy()
-            a0.plot(q[:, 0], q[:, 1], "x", ms=3.5, color="purple", mew=0.8)
-        a0.set_xlim(x0 - 0.5, x1 - 0.5)
-        a0.set_ylim(y1 - 0.5, y0 - 0.5)
-        title = f"{key}  geo {per[key]['geodesic']:.0f} deg"
-        if shapes and key in shapes["per_object"]:
-            rr = shapes["per_object"][key]["reconstruction"]
-            if rr.get("rms_percent") is not None:
-                title += f"\nRMS {rr['rms_percent']:.1f}%  IoU {rr.get('iou', float('nan')):.2f}"
-        a0.set_title(title, fontsize=7)
-        # the mesh in the CAD-aligned object frame: X_sfm = R^T (v - t) / s, X_cad = G^T X_sfm
-        if cam is not None:
-            Rr = np.asarray(cam["R"], dtype=np.float64)
-            X = unpose_points(V, Rr, float(cam["s"]), np.asarray(cam["t"], dtype=np.float64)) @ G
-            for k, (Rv, lbl) in enumerate(views):
-                _render_mesh(axes[j // per_row, (j % per_row) * cols + 1 + k], X, F, Rv, lbl)
+        first = (j % per_row) * cols
+        _draw_voc_object(src, key, axes[j // per_row, first],
+                         [axes[j // per_row, first + 1 + k] for k in range(len(views))])
     fig.suptitle("PASCAL VOC aeroplanes: mask (polygon outline), reconstruction silhouette (green = both, red = mask "
                  "only, blue = reconstruction only), annotated keypoints (orange) and mean shape by the refined "
                  "camera (purple x); the mesh seen from two PASCAL3D+ viewpoints", fontsize=8)
@@ -1017,6 +1038,59 @@ def step_figure(path: Path, ann: Path, recon: Path, data: Path, gt: dict, vp: di
     plt.close(fig)
     print(f"\nwrote {path}")
     return {"figure": str(path), "objects": picks}
+
+
+def _draw_voc_object(src: _FigureSources, key: str, a0, mesh_axes: list) -> None:
+    """One object's panels: on ``a0`` its mask and polygons, the reconstruction's silhouette, the annotated keypoints
+    and the mean shape by the refined camera; on ``mesh_axes`` the mesh in the CAD-aligned frame, one per view."""
+    aid = src.per[key]["annotation_id"]
+    ann_e = src.cc.anns[aid]
+    mask = src.cc.annToMask(ann_e).astype(bool)
+    mesh = trimesh.load(src.recon / CLASS / "meshes" / f"{aid}.ply", force="mesh", process=False)
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    F = np.asarray(mesh.faces, dtype=np.int64)
+    x0, x1, y0, y1 = _draw_overlap(a0, mask, silhouette(V[:, :2], F, np.zeros(2), mask.shape))
+    obj = voc.parse_keypoint_xml(src.data / "pascal_voc_aeroplane" / "keypoints" / ann_e["source"])
+    for poly in obj.polygons:
+        p = np.vstack([poly, poly[:1]])
+        a0.plot(p[:, 0], p[:, 1], "-", color="k", lw=0.6)
+    kp = np.asarray(ann_e["keypoints"], dtype=np.float64).reshape(-1, 3)
+    v = kp[:, 2] > 0
+    a0.plot(kp[v, 0], kp[v, 1], "o", ms=3, color="orange", mec="k", mew=0.3)
+    cam = src.cams_json["cameras"][str(aid)]["refined"]
+    if cam is not None:
+        c = ScaledOrthographic.from_list([cam], dtype=torch.float64)
+        q = c.project(torch.from_numpy(src.S))[0].numpy()
+        a0.plot(q[:, 0], q[:, 1], "x", ms=3.5, color="purple", mew=0.8)
+    a0.set_xlim(x0 - 0.5, x1 - 0.5)
+    a0.set_ylim(y1 - 0.5, y0 - 0.5)
+    title = f"{key}  geo {src.per[key]['geodesic']:.0f} deg"
+    if src.shapes and key in src.shapes["per_object"]:
+        rr = src.shapes["per_object"][key]["reconstruction"]
+        if rr.get("rms_percent") is not None:
+            title += f"\nRMS {rr['rms_percent']:.1f}%  IoU {rr.get('iou', float('nan')):.2f}"
+    a0.set_title(title, fontsize=7)
+    # the mesh in the CAD-aligned object frame: X_sfm = R^T (v - t) / s, X_cad = G^T X_sfm
+    if cam is not None:
+        Rr = np.asarray(cam["R"], dtype=np.float64)
+        X = unpose_points(V, Rr, float(cam["s"]), np.asarray(cam["t"], dtype=np.float64)) @ src.G
+        for ax, (Rv, lbl) in zip(mesh_axes, src.views):
+            _render_mesh(ax, X, F, Rv, lbl)
+
+
+def _draw_overlap(ax, mask: np.ndarray, sil: np.ndarray) -> tuple[int, int, int, int]:
+    """Show where the ``(H, W)`` mask and silhouette agree (green), the mask alone (red), the silhouette alone (blue),
+    cropped to both with a margin; the crop ``x0, x1, y0, y1`` (ends excluded)."""
+    ys, xs = np.nonzero(mask | sil)
+    pad = 8
+    y0, y1 = max(0, ys.min() - pad), min(mask.shape[0], ys.max() + pad + 1)
+    x0, x1 = max(0, xs.min() - pad), min(mask.shape[1], xs.max() + pad + 1)
+    rgb = np.ones(mask.shape + (3,))
+    rgb[mask & sil] = (0.55, 0.85, 0.55)
+    rgb[mask & ~sil] = (0.95, 0.55, 0.55)
+    rgb[~mask & sil] = (0.55, 0.65, 0.95)
+    ax.imshow(rgb[y0:y1, x0:x1], extent=(x0 - 0.5, x1 - 0.5, y1 - 0.5, y0 - 0.5))
+    return x0, x1, y0, y1
 
 
 # =========================================================================== main
@@ -1112,16 +1186,8 @@ def main(argv=None) -> dict:
     result["conversion"] = conv
     ann = Path(conv["annotations"])
     recon = work / "recon"
-    if args.skip_reconstruct:
-        if not (recon / CLASS / "cameras.json").is_file():
-            raise SystemExit(f"voc_study: --skip-reconstruct but {recon}/{CLASS}/cameras.json is missing")
-        summ = read_json(recon / "summary.json")
-        c = summ["classes"][CLASS]
-        result["reconstruction"] = {"objects": c["objects"], "failures": c["failures"], "warnings": c["warnings"],
-                                    "seconds": c["seconds"], "total_seconds": summ.get("total_seconds"),
-                                    "note": "reused an existing reconstruction (--skip-reconstruct)"}
-    else:
-        result["reconstruction"] = step_reconstruct(ann, recon, args.overrides, args.device)
+    result["reconstruction"] = _reused_reconstruction(recon) if args.skip_reconstruct else \
+        step_reconstruct(ann, recon, args.overrides, args.device)
     subcategory = {gt_key(a["source"]): a.get("subcategory") for a in read_json(ann)["annotations"]}
     vp = step_viewpoints(recon, gt, subcategory)
     result["viewpoints"] = {k: ({kk: vv for kk, vv in v.items() if kk != "per_object"} if isinstance(v, dict)
@@ -1139,18 +1205,34 @@ def main(argv=None) -> dict:
     load = os.getloadavg()
     result["environment"]["load_average_end"] = [round(x, 2) for x in load]
     write_json(out, result)
-    per_object = {}
-    for k in vp["refined"]["per_object"]:
-        row = {"sfm": vp["sfm"]["per_object"].get(k), "refined": vp["refined"]["per_object"][k]}
-        if k in result["unseen"]["per_object_geodesic"]:
-            row["unseen_geodesic"] = result["unseen"]["per_object_geodesic"][k]
-        if shapes and k in shapes["per_object"]:
-            row["shape"] = shapes["per_object"][k]
-        per_object[k] = row
-    write_json(work / "per_object.json", {"command": command, "objects": per_object})
+    write_json(work / "per_object.json", {"command": command, "objects": _per_object(vp, result["unseen"], shapes)})
     print(f"\nwrote {out} and {work / 'per_object.json'} in {result['total_seconds']:.0f} s "
           f"(load average at end {load[0]:.2f})")
     return result
+
+
+def _reused_reconstruction(recon: Path) -> dict:
+    """``--skip-reconstruct``: what the existing run's ``summary.json`` says of its aeroplanes."""
+    if not (recon / CLASS / "cameras.json").is_file():
+        raise SystemExit(f"voc_study: --skip-reconstruct but {recon}/{CLASS}/cameras.json is missing")
+    summ = read_json(recon / "summary.json")
+    c = summ["classes"][CLASS]
+    return {"objects": c["objects"], "failures": c["failures"], "warnings": c["warnings"],
+            "seconds": c["seconds"], "total_seconds": summ.get("total_seconds"),
+            "note": "reused an existing reconstruction (--skip-reconstruct)"}
+
+
+def _per_object(vp: dict, unseen: dict, shapes: dict | None) -> dict:
+    """Every object with a refined camera: its SfM and refined errors, unseen-image error and shape record."""
+    per_object = {}
+    for k in vp["refined"]["per_object"]:
+        row = {"sfm": vp["sfm"]["per_object"].get(k), "refined": vp["refined"]["per_object"][k]}
+        if k in unseen["per_object_geodesic"]:
+            row["unseen_geodesic"] = unseen["per_object_geodesic"][k]
+        if shapes and k in shapes["per_object"]:
+            row["shape"] = shapes["per_object"][k]
+        per_object[k] = row
+    return per_object
 
 
 if __name__ == "__main__":

@@ -335,28 +335,46 @@ def proposal_geometry(box: torch.Tensor, nonempty: torch.Tensor, radius: torch.T
         depth column is exactly 0); ``scale (B, V)`` float64 ``s_r / s_m`` (1 for
         unused slots).
     """
-    dev = box.device
-    f64 = dict(dtype=torch.float64, device=dev)
+    f64 = dict(dtype=torch.float64, device=box.device)
     B, V = views.shape
-    n = resolution
     valid = views >= 0
     vi = views.clamp(min=0)
     R, s, t = cams.R.to(**f64), cams.s.to(**f64), cams.t.to(**f64)
-    Rr, sr, tr = R[reference], s[reference], t[reference]
-
-    # x, y: the reference box tiled by n - 2 voxel cells, plus one voxel each side.
+    sr = s[reference]
     rb = box[reference]
-    sx = (rb[:, 1] - rb[:, 0]) / (n - 2)
-    sy = (rb[:, 3] - rb[:, 2]) / (n - 2)
-    x0 = rb[:, 0] - sx / 2
-    y0 = rb[:, 2] - sy / 2
+    A, c = _view_maps(R, s, t, reference, vi)
+    z_lo, z_hi = _depth_bounds(A, c, rb, box[vi].reshape(B, V, 2, 2), valid & nonempty[vi])
+    rho = torch.where(valid, radius[vi] / s[vi], torch.zeros_like(s[vi]))
+    cap = sr * torch.maximum(radius[reference] / sr, rho.amax(dim=1) if V else torch.zeros_like(sr))
+    T = _voxel_to_camera(rb, z_lo, z_hi, cap, resolution)
 
-    # u_m = A p + c, p in the reference camera frame.
+    Hp, Wp = map_size
+    norm = torch.tensor([2.0 / (Wp - 1), 2.0 / (Hp - 1)], **f64)
+    G = _to_sampling(T, A, c, norm)
+    eye = torch.eye(3, **f64)[:2].expand(B, 2, 3)
+    G_ref = _to_sampling(T, eye, torch.zeros(B, 2, **f64), norm)
+    scale = torch.where(valid, sr[:, None] / s[vi], torch.ones_like(s[vi]))
+    return T, G, G_ref, scale
+
+
+def _view_maps(R: torch.Tensor, s: torch.Tensor, t: torch.Tensor, reference: torch.Tensor, vi: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``u_m = A p + c``, ``p`` in the reference camera frame: ``A (B, V, 2, 3)``, ``c (B, V, 2)`` float64 of the
+    views ``vi (B, V)``, from every map's ``R (M, 3, 3)``, ``s (M,)``, ``t (M, 2)``."""
+    Rr, sr, tr = R[reference], s[reference], t[reference]
     A = (s[vi] / sr[:, None])[..., None, None] * _mm(R[vi][:, :, :2, :], Rr.transpose(-1, -2)[:, None])  # (B, V, 2, 3)
     c = t[vi] - _mm(A[..., :2], tr[:, None, :, None])[..., 0]  # (B, V, 2)
+    return A, c
 
-    # Depth bounds from each view's box, one interval per image axis (interval arithmetic).
-    vb = box[vi].reshape(B, V, 2, 2)  # (B, V, axis, lo/hi)
+
+def _depth_bounds(A: torch.Tensor, c: torch.Tensor, rb: torch.Tensor, vb: torch.Tensor, seen: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth interval ``(B,)``, ``(B,)`` of the reference box ``rb (B, 4)`` that every view keeps inside its box.
+
+    ``A (B, V, 2, 3)``, ``c (B, V, 2)``: :func:`_view_maps`; ``vb (B, V, axis, lo/hi)``: the views' boxes;
+    ``seen (B, V)`` bool: slots that bound (used, non-empty). One interval per image axis (interval
+    arithmetic); inconsistent views give the span between their bounds; no view bounds: infinite."""
+    B = A.shape[0]
     a0, a1, a2 = A[..., 0], A[..., 1], A[..., 2]  # (B, V, 2)
     X0, X1 = rb[:, 0, None, None], rb[:, 1, None, None]
     Y0, Y1 = rb[:, 2, None, None], rb[:, 3, None, None]
@@ -364,45 +382,50 @@ def proposal_geometry(box: torch.Tensor, nonempty: torch.Tensor, radius: torch.T
     xy_hi = torch.maximum(a0 * X0, a0 * X1) + torch.maximum(a1 * Y0, a1 * Y1)
     lo = vb[..., 0] - c - xy_hi  # a2 z >= lo
     hi = vb[..., 1] - c - xy_lo  # a2 z <= hi
-    usable = valid[..., None] & nonempty[vi][..., None] & (a2.abs() > 1e-9)
+    usable = seen[..., None] & (a2.abs() > 1e-9)
     safe = torch.where(usable, a2, torch.ones_like(a2))
     z_a, z_b = lo / safe, hi / safe
     inf = torch.full_like(z_a, math.inf)
-    unbounded = torch.full((B, 1), math.inf, **f64)  # so that V = 0 reduces too
+    unbounded = torch.full((B, 1), math.inf, dtype=torch.float64, device=A.device)  # so that V = 0 reduces too
     z_lo = torch.cat([torch.where(usable, torch.minimum(z_a, z_b), -inf).flatten(1), -unbounded], 1).amax(dim=1)
     z_hi = torch.cat([torch.where(usable, torch.maximum(z_a, z_b), inf).flatten(1), unbounded], 1).amin(dim=1)
-    z_lo, z_hi = torch.minimum(z_lo, z_hi), torch.maximum(z_lo, z_hi)  # inconsistent views: span between them
-    rho = torch.where(valid, radius[vi] / s[vi], torch.zeros_like(s[vi]))
-    cap = sr * torch.maximum(radius[reference] / sr, rho.amax(dim=1) if V else torch.zeros_like(sr))
+    return torch.minimum(z_lo, z_hi), torch.maximum(z_lo, z_hi)
+
+
+def _voxel_to_camera(rb: torch.Tensor, z_lo: torch.Tensor, z_hi: torch.Tensor, cap: torch.Tensor, n: int
+                     ) -> torch.Tensor:
+    """``T (B, 4, 4)`` float64 voxel ``(d, h, w, 1)`` -> reference camera frame.
+
+    x, y: the reference box ``rb (B, 4)`` tiled by ``n - 2`` voxel cells, plus one voxel each side; depth: the
+    interval ``z_lo``-``z_hi`` ``(B,)`` clipped to ``[-cap, cap]`` and at least one pixel long, tiled likewise."""
+    sx = (rb[:, 1] - rb[:, 0]) / (n - 2)
+    sy = (rb[:, 3] - rb[:, 2]) / (n - 2)
+    x0 = rb[:, 0] - sx / 2
+    y0 = rb[:, 2] - sy / 2
     z_lo = torch.minimum(torch.maximum(z_lo, -cap), cap)
     z_hi = torch.minimum(torch.maximum(z_hi, -cap), cap)
     mid, half = (z_lo + z_hi) / 2, torch.clamp((z_hi - z_lo) / 2, min=0.5)
     z_lo, z_hi = mid - half, mid + half
     sz = (z_hi - z_lo) / (n - 2)
     z0 = z_lo - sz / 2
-
-    T = torch.zeros(B, 4, 4, **f64)
+    T = torch.zeros(rb.shape[0], 4, 4, dtype=torch.float64, device=rb.device)
     T[:, 0, 2], T[:, 0, 3] = sx, x0
     T[:, 1, 1], T[:, 1, 3] = sy, y0
     T[:, 2, 0], T[:, 2, 3] = sz, z0
     T[:, 3, 3] = 1.0
+    return T
 
-    Hp, Wp = map_size
-    norm = torch.tensor([2.0 / (Wp - 1), 2.0 / (Hp - 1)], **f64)
 
-    def to_sampling(Am, cm):  # (..., 2, 3), (..., 2) -> (..., 2, 4)
-        T3 = T[:, :3].reshape((B,) + (1,) * (Am.dim() - 3) + (3, 4))
-        P = _mm(Am, T3)
-        P[..., 3] = P[..., 3] + cm + PAD
-        P = P * norm[:, None]
-        P[..., 3] = P[..., 3] - 1.0
-        return P
-
-    G = to_sampling(A, c)
-    eye = torch.eye(3, **f64)[:2].expand(B, 2, 3)
-    G_ref = to_sampling(eye, torch.zeros(B, 2, **f64))
-    scale = torch.where(valid, sr[:, None] / s[vi], torch.ones_like(s[vi]))
-    return T, G, G_ref, scale
+def _to_sampling(T: torch.Tensor, Am: torch.Tensor, cm: torch.Tensor, norm: torch.Tensor) -> torch.Tensor:
+    """``(..., 2, 4)`` voxel index -> ``grid_sample`` coordinates of maps ``u = Am p + cm`` (``(..., 2, 3)``,
+    ``(..., 2)``), through ``T (B, 4, 4)`` and the extended map's ``norm (2,)``."""
+    B = T.shape[0]
+    T3 = T[:, :3].reshape((B,) + (1,) * (Am.dim() - 3) + (3, 4))
+    P = _mm(Am, T3)
+    P[..., 3] = P[..., 3] + cm + PAD
+    P = P * norm[:, None]
+    P[..., 3] = P[..., 3] - 1.0
+    return P
 
 
 def extend_maps(sdf: torch.Tensor, pad: int = PAD) -> torch.Tensor:

@@ -522,6 +522,67 @@ def _morton_order(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, bits: int 
     return np.argsort(code, kind="stable")
 
 
+def _checked_frame(tri: torch.Tensor, frame: torch.Tensor | None) -> torch.Tensor:
+    """The boxes' axes for triangles ``tri (F, 3, 3)``: ``frame`` or :func:`_box_frame`'s, ``(3, 3)`` float64 (CPU);
+    ``ValueError`` unless orthogonal."""
+    frame = _box_frame(tri.detach().double().cpu()) if frame is None else \
+        torch.as_tensor(frame, dtype=torch.float64).cpu()
+    eye = torch.eye(3, dtype=torch.float64)
+    if frame.shape != (3, 3) or not torch.allclose(frame.T @ frame, eye, atol=1e-9):
+        raise ValueError(f"frame must be a (3, 3) orthogonal matrix, got {frame}")
+    return frame
+
+
+def _triangle_table(tri: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``(15, F)`` rows a (3), ab (3), ac (3), d00, d01, d11 of the canonical triangles ``tri (F, 3, 3)``."""
+    a, b, c = _canonical_triangles(*tri.double().unbind(dim=1))
+    ab, ac = b - a, c - a
+    return torch.cat([a.T, ab.T, ac.T, torch.stack([(ab * ab).sum(-1), (ab * ac).sum(-1),
+                                                   (ac * ac).sum(-1)])]).to(dtype).contiguous()
+
+
+def _box_levels(pieces: np.ndarray, centroid: np.ndarray, w: int) -> list[np.ndarray]:
+    """The box tree over ``pieces (n, 3, 3)``: per level ``(blocks, w, 9)`` lo, hi and representative of each child.
+
+    Level 0 holds the pieces (their centroids ``(n, 3)`` as representatives), then leaves, up to the root
+    block; padding children have empty boxes and infinite representatives."""
+    box = np.concatenate([pieces.min(axis=1), pieces.max(axis=1)], axis=1)
+    rep = centroid
+    levels = []
+    while True:
+        pad = (-box.shape[0]) % w
+        box = np.concatenate([box, np.tile(np.r_[[np.inf] * 3, [-np.inf] * 3], (pad, 1))])
+        rep = np.concatenate([rep, np.full((pad, 3), np.inf)])
+        levels.append(np.concatenate([box, rep], axis=1).reshape(-1, w, 9))
+        if box.shape[0] <= w:
+            return levels
+        grouped = levels[-1]
+        box = np.concatenate([grouped[:, :, :3].min(axis=1), grouped[:, :, 3:6].max(axis=1)], axis=1)
+        mid = 0.5 * (box[:, :3] + box[:, 3:])
+        crep = grouped[:, :, 6:]
+        with np.errstate(invalid="ignore"):
+            pick = np.nan_to_num(((crep - mid[:, None, :]) ** 2).sum(-1), nan=np.inf).argmin(axis=1)
+        rep = crep[np.arange(crep.shape[0]), pick]
+
+
+def _seed_grid(centroid: np.ndarray, lo: np.ndarray, hi: np.ndarray, largest: float, grid: int
+               ) -> tuple[float, np.ndarray, np.ndarray]:
+    """Cell side, grid shape ``(3,)`` and the flat ``(cells,)`` piece each cell of the box ``lo``-``hi`` starts from.
+
+    Every cell names a piece whose centroid (``centroid (n, 3)``) lies in the nearest occupied cell;
+    ``largest``: the largest absolute coordinate (bounds the side of a flat box)."""
+    ext = np.maximum(hi - lo, 1e-12 * max(1.0, largest))
+    cell = float(ext.max()) / grid
+    grid_shape = np.maximum(1, np.ceil(ext / cell).astype(np.int64))
+    cells = np.minimum((((centroid - lo) / cell).astype(np.int64)), grid_shape - 1)
+    occupied = np.zeros(grid_shape, dtype=bool)
+    owner = np.zeros(grid_shape, dtype=np.int64)
+    occupied[tuple(cells.T)] = True
+    owner[tuple(cells.T)] = np.arange(cells.shape[0])
+    near_cell = ndimage.distance_transform_edt(~occupied, return_distances=False, return_indices=True)
+    return cell, grid_shape, owner[tuple(near_cell)].reshape(-1)
+
+
 class MeshDistanceIndex:
     """Exact point-to-mesh distances through a bounding-box hierarchy traversed in batches.
 
@@ -601,20 +662,12 @@ class MeshDistanceIndex:
         self.width, self.chunk = int(width), int(chunk)
         # work in the frame (given, or the vertices' or their principal axes) where the
         # triangles' boxes are smallest: distances do not change, pruning gets tighter
-        self.frame = _box_frame(tri.detach().double().cpu()) if frame is None else \
-            torch.as_tensor(frame, dtype=torch.float64).cpu()
-        eye = torch.eye(3, dtype=torch.float64)
-        if self.frame.shape != (3, 3) or not torch.allclose(self.frame.T @ self.frame, eye,
-                                                           atol=1e-9):
-            raise ValueError(f"frame must be a (3, 3) orthogonal matrix, got {self.frame}")
+        self.frame = _checked_frame(tri, frame)
         self._frame_t = self.frame.to(device=self.device, dtype=self.dtype)
         tri = (tri.double() @ self.frame.to(tri.device)).to(self.dtype)
         self.exact_dtype = torch.promote_types(self.dtype, exact_dtype)
-        a, b, c = _canonical_triangles(*tri.double().unbind(dim=1))
-        ab, ac = b - a, c - a
         # per-triangle table, one row per quantity (structure of arrays): a, ab, ac, d00, d01, d11
-        self.table = torch.cat([a.T, ab.T, ac.T, torch.stack([(ab * ab).sum(-1), (ab * ac).sum(-1),
-                                                             (ac * ac).sum(-1)])]).to(self.exact_dtype).contiguous()
+        self.table = _triangle_table(tri, self.exact_dtype)
         tri64 = tri.double().cpu().numpy()
         flat = tri64.reshape(-1, 3)
         self.lo_all, self.hi_all = flat.min(0), flat.max(0)
@@ -627,41 +680,15 @@ class MeshDistanceIndex:
         order = _morton_order(centroid, self.lo_all, self.hi_all)
         pieces, face, centroid = pieces[order], face[order], centroid[order]
         self.n_pieces = int(face.size)
-        # level 0 = pieces, then leaves, ... up to the root block; per node a box (lo, hi) and a rep
         w = self.width
-        box = np.concatenate([pieces.min(axis=1), pieces.max(axis=1)], axis=1)
-        rep = centroid
-        levels = []
-        while True:
-            pad = (-box.shape[0]) % w
-            box = np.concatenate([box, np.tile(np.r_[[np.inf] * 3, [-np.inf] * 3], (pad, 1))])
-            rep = np.concatenate([rep, np.full((pad, 3), np.inf)])
-            levels.append(np.concatenate([box, rep], axis=1).reshape(-1, w, 9))
-            if box.shape[0] <= w:
-                break
-            grouped = levels[-1]
-            box = np.concatenate([grouped[:, :, :3].min(axis=1), grouped[:, :, 3:6].max(axis=1)], axis=1)
-            mid = 0.5 * (box[:, :3] + box[:, 3:])
-            crep = grouped[:, :, 6:]
-            with np.errstate(invalid="ignore"):
-                pick = np.nan_to_num(((crep - mid[:, None, :]) ** 2).sum(-1), nan=np.inf).argmin(axis=1)
-            rep = crep[np.arange(crep.shape[0]), pick]
         # level l: (blocks, 9 * w): bounds lo (3), hi (3), representative (3) of each child of a
         # block of siblings; a query gathers blocks, then transposes so that pairs are innermost
         self.levels = [torch.from_numpy(np.ascontiguousarray(b.transpose(0, 2, 1).reshape(b.shape[0], 9 * w)))
-                       .to(self.device, self.dtype) for b in levels]
-        # seed grid: every cell names a piece whose centroid lies in the nearest occupied cell,
-        # so that a query starts from the exact distance to a nearby triangle
-        ext = np.maximum(self.hi_all - self.lo_all, 1e-12 * max(1.0, float(np.abs(flat).max())))
-        self.cell = float(ext.max()) / grid
-        self.grid_shape = np.maximum(1, np.ceil(ext / self.cell).astype(np.int64))
-        cells = np.minimum((((centroid - self.lo_all) / self.cell).astype(np.int64)), self.grid_shape - 1)
-        occupied = np.zeros(self.grid_shape, dtype=bool)
-        owner = np.zeros(self.grid_shape, dtype=np.int64)
-        occupied[tuple(cells.T)] = True
-        owner[tuple(cells.T)] = np.arange(cells.shape[0])
-        near_cell = ndimage.distance_transform_edt(~occupied, return_distances=False, return_indices=True)
-        self.seed = torch.from_numpy(owner[tuple(near_cell)].reshape(-1)).to(self.device)  # (cells,) piece id
+                       .to(self.device, self.dtype) for b in _box_levels(pieces, centroid, w)]
+        # seed grid: a query starts from the exact distance to a nearby triangle
+        self.cell, self.grid_shape, seed = _seed_grid(centroid, self.lo_all, self.hi_all, float(np.abs(flat).max()),
+                                                      grid)
+        self.seed = torch.from_numpy(seed).to(self.device)  # (cells,) piece id
         face = np.concatenate([face, np.zeros((-face.size) % w, dtype=face.dtype)])  # padding: never reached
         self.piece_face = torch.from_numpy(face).to(self.device)
         self.last_pairs = 0

@@ -200,12 +200,44 @@ def _car(g: torch.Generator) -> _Shape:
     return _Shape(parts, kp, min_feature=ww)
 
 
-def _aeroplane(g: torch.Generator) -> _Shape:
-    Lf = 1.0
+_PLANE_LENGTH = 1.0  # fuselage length, nose to tail (raw units)
+
+
+@dataclass(frozen=True)
+class _PlaneDims:
+    """An aeroplane's random dimensions (raw units): fuselage, wing, fin, elevator (tailplane), engines."""
+
+    rf: float  # fuselage radius
+    ln: float  # nose length
+    lt: float  # tail cone length
+    span: float  # wing: span, chord, thickness, sweep and dihedral (per unit |x|), centre (y, z)
+    chord: float
+    tw: float
+    sweep: float
+    dihedral: float
+    yw: float
+    zw: float
+    hf: float  # fin: height above the fuselage, chord, sweep, centre y
+    cf: float
+    kf: float
+    yfin: float
+    se: float  # elevator: span, chord, sweep, thickness, centre (y, z)
+    ce: float
+    ke: float
+    te: float
+    ye: float
+    ze: float
+    engines: bool  # two engines under the wings: x offset, radius, length
+    xe: float
+    re: float
+    le: float
+
+
+def _plane_dims(g: torch.Generator) -> _PlaneDims:
+    """Draw an aeroplane's dimensions from ``g`` (a T-tail one time in five, engines one in two)."""
     rf = _uniform(g, 0.045, 0.075)  # fuselage radius
     ln = _uniform(g, 0.08, 0.16)  # nose length
     lt = _uniform(g, 0.2, 0.3)  # tail cone length
-    yn, yt = -Lf / 2 + ln, Lf / 2 - lt  # cylinder ends
     span = _uniform(g, 0.75, 1.05)
     chord = _uniform(g, 0.12, 0.2)
     tw = _uniform(g, 0.022, 0.032)
@@ -217,7 +249,7 @@ def _aeroplane(g: torch.Generator) -> _Shape:
     hf = _uniform(g, 0.12, 0.22)  # fin height above the fuselage
     cf = _uniform(g, 0.12, 0.2)
     kf = _uniform(g, 0.3, 1.0)  # fin sweep
-    yfin = Lf / 2 - cf / 2 - _uniform(g, 0.0, 0.04)
+    yfin = _PLANE_LENGTH / 2 - cf / 2 - _uniform(g, 0.0, 0.04)
     se = span * _uniform(g, 0.3, 0.45)  # elevator span
     ce = chord * _uniform(g, 0.5, 0.7)
     ke = _uniform(g, 0.0, 0.5)
@@ -227,45 +259,65 @@ def _aeroplane(g: torch.Generator) -> _Shape:
         ye = yfin + kf * hf
     else:
         ze = rf * _uniform(g, 0.0, 0.5)
-        ye = Lf / 2 - ce / 2 - _uniform(g, 0.02, 0.06)
+        ye = _PLANE_LENGTH / 2 - ce / 2 - _uniform(g, 0.02, 0.06)
     engines = _chance(g, 0.5)
     xe = span * _uniform(g, 0.18, 0.3)
     re = _uniform(g, 0.025, 0.04)
     le = _uniform(g, 0.12, 0.2)
+    return _PlaneDims(rf, ln, lt, span, chord, tw, sweep, dihedral, yw, zw, hf, cf, kf, yfin, se, ce, ke, te, ye, ze,
+                      engines, xe, re, le)
+
+
+def _plane_parts(d: _PlaneDims) -> list[_Part]:
+    """Fuselage (cylinder, nose and tail cone), wing, elevator, fin and the engines of an aeroplane."""
+    yn, yt = -_PLANE_LENGTH / 2 + d.ln, _PLANE_LENGTH / 2 - d.lt  # cylinder ends
 
     def wing(p):  # swept back and raised (dihedral) with |x|
-        q = _shear(_shear(p, 1, 0, sweep, absolute=True), 2, 0, dihedral, absolute=True)
-        return _box(q, (0, yw, zw), (span / 2, chord / 2, tw / 2))
+        q = _shear(_shear(p, 1, 0, d.sweep, absolute=True), 2, 0, d.dihedral, absolute=True)
+        return _box(q, (0, d.yw, d.zw), (d.span / 2, d.chord / 2, d.tw / 2))
 
     def elevator(p):
-        return _box(_shear(p, 1, 0, ke, absolute=True), (0, ye, ze), (se / 2, ce / 2, te / 2))
+        return _box(_shear(p, 1, 0, d.ke, absolute=True), (0, d.ye, d.ze), (d.se / 2, d.ce / 2, d.te / 2))
 
     def fin(p):  # from the fuselage axis up, swept back above the fuselage top
-        return _box(_shear(p, 1, 2, kf, origin=rf), (0, yfin, (rf + hf) / 2), (te / 2, cf / 2, (rf + hf) / 2))
+        return _box(_shear(p, 1, 2, d.kf, origin=d.rf), (0, d.yfin, (d.rf + d.hf) / 2),
+                    (d.te / 2, d.cf / 2, (d.rf + d.hf) / 2))
 
     parts = [
-        _cylinder_part((0, (yn + yt) / 2, 0), 1, rf, (yt - yn) / 2),
-        _ellipsoid_part((0, yn, 0), (rf, ln, rf)),
-        _ellipsoid_part((0, yt, 0), (rf, lt, rf)),
-        _Part(wing, (-span / 2, yw - chord / 2, zw - tw / 2),
-              (span / 2, yw + chord / 2 + sweep * span / 2, zw + tw / 2 + dihedral * span / 2)),
-        _Part(elevator, (-se / 2, ye - ce / 2, ze - te / 2), (se / 2, ye + ce / 2 + ke * se / 2, ze + te / 2)),
-        _Part(fin, (-te / 2, yfin - cf / 2 - kf * rf, 0.0), (te / 2, yfin + cf / 2 + kf * hf, rf + hf)),
+        _cylinder_part((0, (yn + yt) / 2, 0), 1, d.rf, (yt - yn) / 2),
+        _ellipsoid_part((0, yn, 0), (d.rf, d.ln, d.rf)),
+        _ellipsoid_part((0, yt, 0), (d.rf, d.lt, d.rf)),
+        _Part(wing, (-d.span / 2, d.yw - d.chord / 2, d.zw - d.tw / 2),
+              (d.span / 2, d.yw + d.chord / 2 + d.sweep * d.span / 2, d.zw + d.tw / 2 + d.dihedral * d.span / 2)),
+        _Part(elevator, (-d.se / 2, d.ye - d.ce / 2, d.ze - d.te / 2),
+              (d.se / 2, d.ye + d.ce / 2 + d.ke * d.se / 2, d.ze + d.te / 2)),
+        _Part(fin, (-d.te / 2, d.yfin - d.cf / 2 - d.kf * d.rf, 0.0),
+              (d.te / 2, d.yfin + d.cf / 2 + d.kf * d.hf, d.rf + d.hf)),
     ]
-    if engines:
-        y_e = yw + sweep * xe - 0.03
-        z_e = zw + dihedral * xe - tw / 2 - re * 0.8
-        parts += [_cylinder_part((sx * xe, y_e, z_e), 1, re, le / 2, 0.01) for sx in (-1, 1)]
+    if d.engines:
+        y_e = d.yw + d.sweep * d.xe - 0.03
+        z_e = d.zw + d.dihedral * d.xe - d.tw / 2 - d.re * 0.8
+        parts += [_cylinder_part((sx * d.xe, y_e, z_e), 1, d.re, d.le / 2, 0.01) for sx in (-1, 1)]
+    return parts
+
+
+def _plane_keypoints(d: _PlaneDims) -> dict[str, tuple[float, float, float]]:
+    """The aeroplane's keypoints: nose gear, tail, rudder ends, wing and elevator tips."""
     kp = {
-        "noselanding": (0.0, -Lf / 2 + 0.15 * ln, -0.5 * rf),
-        "tail": (0.0, Lf / 2, 0.0),
-        "rudder_upper": (0.0, yfin + cf / 2 + kf * hf, rf + hf),
-        "rudder_lower": (0.0, yfin - cf / 2, rf),
+        "noselanding": (0.0, -_PLANE_LENGTH / 2 + 0.15 * d.ln, -0.5 * d.rf),
+        "tail": (0.0, _PLANE_LENGTH / 2, 0.0),
+        "rudder_upper": (0.0, d.yfin + d.cf / 2 + d.kf * d.hf, d.rf + d.hf),
+        "rudder_lower": (0.0, d.yfin - d.cf / 2, d.rf),
     }
     for side, sx in _SIDES:
-        kp[f"{side}_wing"] = (sx * span / 2, yw + sweep * span / 2, zw + dihedral * span / 2)
-        kp[f"{side}_elevator"] = (sx * se / 2, ye + ke * se / 2, ze)
-    return _Shape(parts, kp, min_feature=min(tw, te))
+        kp[f"{side}_wing"] = (sx * d.span / 2, d.yw + d.sweep * d.span / 2, d.zw + d.dihedral * d.span / 2)
+        kp[f"{side}_elevator"] = (sx * d.se / 2, d.ye + d.ke * d.se / 2, d.ze)
+    return kp
+
+
+def _aeroplane(g: torch.Generator) -> _Shape:
+    d = _plane_dims(g)
+    return _Shape(_plane_parts(d), _plane_keypoints(d), min_feature=min(d.tw, d.te))
 
 
 def _chair(g: torch.Generator) -> _Shape:

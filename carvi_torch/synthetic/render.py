@@ -19,6 +19,7 @@ at ``(x=j, y=i)``; scaled orthographic cameras ``uv = s * X @ R[:2].T + t``,
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -115,6 +116,87 @@ def _check_points_faces(points2d: torch.Tensor, faces: torch.Tensor, height: int
         raise ValueError(f"height and width must be positive, got {height} x {width}")
 
 
+def _snap_to_grid(points2d: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """``points2d (V, 2)`` as float64 on the grid of ``2^-m`` pixels (see ``_covered_pixels``); non-finite stay so."""
+    P = points2d.to(torch.float64)
+    finite = torch.isfinite(P)
+    largest = float(P.abs().where(finite, torch.zeros_like(P)).max()) if P.numel() else 0.0
+    m = 25 - math.ceil(math.log2(max(largest, float(width), float(height), 1.0)))
+    return torch.round(P * 2.0**m) / 2.0**m  # exact power-of-two scaling; non-finite values stay so
+
+
+@dataclasses.dataclass
+class _Boxes:
+    """The ``T`` triangles with candidate pixels, oriented counter-clockwise (all exact in float64)."""
+
+    keep: torch.Tensor  # (T,) long: face index
+    flip: torch.Tensor  # (T,) bool: b and c swapped to orient the face
+    pack: torch.Tensor  # (T, 10) float64: A, B, C (oriented), box origin x0, y0, box width, first candidate
+    area: torch.Tensor  # (T,) float64: twice the triangle's area
+    cnt: torch.Tensor  # (T,) long: candidate pixels (box size)
+    csum: torch.Tensor  # (T,) long: cumulative sum of cnt
+
+
+def _candidate_boxes(P: torch.Tensor, faces: torch.Tensor, height: int, width: int) -> _Boxes | None:
+    """Boxes of the finite, non-degenerate triangles of ``P (V, 2)``, ``faces (F, 3)`` that hold a pixel centre."""
+    tri = P[faces.long()]  # (F, 3, 2)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    lo = tri.amin(dim=1)
+    hi = tri.amax(dim=1)
+    x0 = lo[:, 0].ceil().clamp(min=0, max=width)
+    x1 = hi[:, 0].floor().clamp(min=-1, max=width - 1)
+    y0 = lo[:, 1].ceil().clamp(min=0, max=height)
+    y1 = hi[:, 1].floor().clamp(min=-1, max=height - 1)
+    ok = torch.isfinite(tri).all(dim=2).all(dim=1) & (area2 != 0)
+    bw = torch.where(ok, (x1 - x0 + 1).clamp(min=0), torch.zeros_like(x0)).long()
+    bh = torch.where(ok, (y1 - y0 + 1).clamp(min=0), torch.zeros_like(y0)).long()
+    count = bw * bh
+    keep = torch.nonzero(count > 0).squeeze(1)
+    if keep.numel() == 0:
+        return None
+    # orient every kept triangle counter-clockwise in the (x, y) plane: swap b and c when area < 0
+    flip = area2[keep] < 0
+    A = a[keep]
+    B = torch.where(flip[:, None], c[keep], b[keep])
+    C = torch.where(flip[:, None], b[keep], c[keep])
+    cnt = count[keep]
+    csum = torch.cumsum(cnt, 0)
+    # one row per kept triangle, gathered once per candidate pixel: vertices (oriented),
+    # box origin and width, index of its first candidate (all exact in float64)
+    pack = torch.stack([A[:, 0], A[:, 1], B[:, 0], B[:, 1], C[:, 0], C[:, 1], x0[keep], y0[keep],
+                        bw[keep].to(torch.float64), (csum - cnt).to(torch.float64)], dim=1)
+    return _Boxes(keep, flip, pack, area2[keep].abs(), cnt, csum)
+
+
+def _chunk_hits(boxes: _Boxes, start: int, end: int, width: int, barycentric: bool
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The covered pixels of the kept triangles ``start:end``: ``face (P,)``, ``pixel (P,)``, ``bary (P, 3) | None``."""
+    dev = boxes.pack.device
+    base = int(boxes.csum[start - 1]) if start > 0 else 0
+    total = int(boxes.csum[end - 1]) - base
+    local_tri = torch.repeat_interleave(torch.arange(end - start, device=dev), boxes.cnt[start:end], output_size=total)
+    G = boxes.pack[start:end].index_select(0, local_tri)  # (P, 10)
+    k = torch.arange(base, base + total, device=dev, dtype=torch.float64) - G[:, 9]
+    px = G[:, 6] + torch.remainder(k, G[:, 8])
+    py = G[:, 7] + torch.div(k, G[:, 8], rounding_mode="floor")
+    ax, ay, bx, by, cx, cy = G[:, 0], G[:, 1], G[:, 2], G[:, 3], G[:, 4], G[:, 5]
+    # edge functions: >= 0 on the inner side of each directed edge (or on it)
+    e_a = (cx - bx) * (py - by) - (cy - by) * (px - bx)  # opposite A
+    e_b = (ax - cx) * (py - cy) - (ay - cy) * (px - cx)  # opposite B
+    e_c = (bx - ax) * (py - ay) - (by - ay) * (px - ax)  # opposite C
+    idx = torch.nonzero((e_a >= 0) & (e_b >= 0) & (e_c >= 0)).squeeze(1)
+    pix = (py[idx] * width + px[idx]).long()
+    tri_local = local_tri[idx] + start
+    if barycentric:
+        bary = torch.stack([e_a[idx], e_b[idx], e_c[idx]], dim=1) / boxes.area[tri_local, None]
+        # barycentrics refer to the oriented (A, B, C); map back to the face's own vertex order
+        bary = torch.where(boxes.flip[tri_local, None], bary[:, [0, 2, 1]], bary)
+    else:
+        bary = None
+    return boxes.keep[tri_local], pix, bary
+
+
 def _covered_pixels(points2d: torch.Tensor, faces: torch.Tensor, height: int, width: int,
                     chunk: int = _DEFAULT_CHUNK, barycentric: bool = True
                     ) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]:
@@ -139,69 +221,17 @@ def _covered_pixels(points2d: torch.Tensor, faces: torch.Tensor, height: int, wi
         ``bary (P, 3) float64`` barycentric coordinates of the pixel centre (``None`` unless
         ``barycentric``).
     """
-    dev = points2d.device
-    P = points2d.to(torch.float64)
-    finite = torch.isfinite(P)
-    largest = float(P.abs().where(finite, torch.zeros_like(P)).max()) if P.numel() else 0.0
-    m = 25 - math.ceil(math.log2(max(largest, float(width), float(height), 1.0)))
-    P = torch.round(P * 2.0**m) / 2.0**m  # exact power-of-two scaling; non-finite values stay so
-    tri = P[faces.long()]  # (F, 3, 2)
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    lo = tri.amin(dim=1)
-    hi = tri.amax(dim=1)
-    x0 = lo[:, 0].ceil().clamp(min=0, max=width)
-    x1 = hi[:, 0].floor().clamp(min=-1, max=width - 1)
-    y0 = lo[:, 1].ceil().clamp(min=0, max=height)
-    y1 = hi[:, 1].floor().clamp(min=-1, max=height - 1)
-    ok = torch.isfinite(tri).all(dim=2).all(dim=1) & (area2 != 0)
-    bw = torch.where(ok, (x1 - x0 + 1).clamp(min=0), torch.zeros_like(x0)).long()
-    bh = torch.where(ok, (y1 - y0 + 1).clamp(min=0), torch.zeros_like(y0)).long()
-    count = bw * bh
-    keep = torch.nonzero(count > 0).squeeze(1)
-    if keep.numel() == 0:
+    boxes = _candidate_boxes(_snap_to_grid(points2d, height, width), faces, height, width)
+    if boxes is None:
         return
-    # orient every kept triangle counter-clockwise in the (x, y) plane: swap b and c when area < 0
-    flip = area2[keep] < 0
-    A = a[keep]
-    B = torch.where(flip[:, None], c[keep], b[keep])
-    C = torch.where(flip[:, None], b[keep], c[keep])
-    cnt = count[keep]
-    csum = torch.cumsum(cnt, 0)
-    # one row per kept triangle, gathered once per candidate pixel: vertices (oriented),
-    # box origin and width, index of its first candidate (all exact in float64)
-    pack = torch.stack([A[:, 0], A[:, 1], B[:, 0], B[:, 1], C[:, 0], C[:, 1], x0[keep], y0[keep],
-                        bw[keep].to(torch.float64), (csum - cnt).to(torch.float64)], dim=1)
-    area = area2[keep].abs()
-    n = keep.numel()
+    n = boxes.keep.numel()
     start = 0
     # chunk boundaries: consecutive triangles whose candidate counts add up to about `chunk`
     while start < n:
-        base = int(csum[start - 1]) if start > 0 else 0
-        end = int(torch.searchsorted(csum, torch.tensor(base + chunk, device=dev), right=True))
+        base = int(boxes.csum[start - 1]) if start > 0 else 0
+        end = int(torch.searchsorted(boxes.csum, torch.tensor(base + chunk, device=points2d.device), right=True))
         end = max(end, start + 1)
-        c_cnt = cnt[start:end]
-        total = int(csum[end - 1]) - base
-        local_tri = torch.repeat_interleave(torch.arange(end - start, device=dev), c_cnt, output_size=total)
-        G = pack[start:end].index_select(0, local_tri)  # (P, 10)
-        k = torch.arange(base, base + total, device=dev, dtype=torch.float64) - G[:, 9]
-        px = G[:, 6] + torch.remainder(k, G[:, 8])
-        py = G[:, 7] + torch.div(k, G[:, 8], rounding_mode="floor")
-        ax, ay, bx, by, cx, cy = G[:, 0], G[:, 1], G[:, 2], G[:, 3], G[:, 4], G[:, 5]
-        # edge functions: >= 0 on the inner side of each directed edge (or on it)
-        e_a = (cx - bx) * (py - by) - (cy - by) * (px - bx)  # opposite A
-        e_b = (ax - cx) * (py - cy) - (ay - cy) * (px - cx)  # opposite B
-        e_c = (bx - ax) * (py - ay) - (by - ay) * (px - ax)  # opposite C
-        idx = torch.nonzero((e_a >= 0) & (e_b >= 0) & (e_c >= 0)).squeeze(1)
-        pix = (py[idx] * width + px[idx]).long()
-        tri_local = local_tri[idx] + start
-        if barycentric:
-            bary = torch.stack([e_a[idx], e_b[idx], e_c[idx]], dim=1) / area[tri_local, None]
-            # barycentrics refer to the oriented (A, B, C); map back to the face's own vertex order
-            bary = torch.where(flip[tri_local, None], bary[:, [0, 2, 1]], bary)
-        else:
-            bary = None
-        yield keep[tri_local], pix, bary
+        yield _chunk_hits(boxes, start, end, width, barycentric)
         start = end
 
 
@@ -585,6 +615,110 @@ def _encode(mask: np.ndarray) -> tuple[dict, float, list[float]]:
     return rle, float(mask_utils.area(coded)), [float(v) for v in mask_utils.toBbox(coded)]
 
 
+@dataclasses.dataclass(frozen=True)
+class _RenderJob:
+    """What the renders of every model share: the folder, view counts, seed, image size, noise, cameras, device."""
+
+    out_dir: Path
+    views: int
+    test_views: int
+    seed: int
+    size: tuple[int, int]  # (width, height)
+    keypoint_noise: float
+    boundary_noise: float
+    camera_options: dict | None
+    device: torch.device
+
+
+@dataclasses.dataclass
+class _Records:
+    """What the renders add up to: COCO images and annotations, ``gt.json``'s two maps, the next id."""
+
+    images: list = dataclasses.field(default_factory=list)
+    annotations: list = dataclasses.field(default_factory=list)
+    gt: dict = dataclasses.field(default_factory=dict)
+    gt_models: dict = dataclasses.field(default_factory=dict)
+    next_id: int = 1
+
+
+def _checked_counts(models: Sequence, views, test_views) -> tuple[int, int]:
+    """``views`` and ``test_views`` as ints; ``ValueError`` for counts out of range, no models or repeated names."""
+    views, test_views = int(views), int(test_views)
+    if views < 1:
+        raise ValueError(f"views must be >= 1, got {views}")
+    if not 0 <= test_views <= views:
+        raise ValueError(f"test_views must be in [0, views={views}], got {test_views}")
+    if not models:
+        raise ValueError("models is empty")
+    names = [m.name for m in models]
+    if len(set(names)) != len(names):
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        raise ValueError(f"model names must be unique, got duplicates {dupes}")
+    return views, test_views
+
+
+def _class_keypoints(model, names_k: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The model's keypoints in its class's slots ``names_k``: ``(K, 3)`` float (zeros where absent), ``(K,)`` bool."""
+    slot = {n: i for i, n in enumerate(names_k)}
+    kp3d = torch.zeros(len(names_k), 3)
+    valid = torch.zeros(len(names_k), dtype=torch.bool)
+    if model.keypoint_names:
+        rows = torch.tensor([slot[n] for n in model.keypoint_names])
+        kp3d[rows] = model.keypoints.float()
+        valid[rows] = True
+    return kp3d, valid
+
+
+def _render_model(model, obj_index: int, names_k: list[str], cat_id: int, job: _RenderJob, rec: _Records, bar) -> None:
+    """Write the model's mesh and add its ``job.views`` renders to ``rec`` (one ``bar`` step each)."""
+    from ..io.outputs import write_bytes
+
+    kp3d, valid = _class_keypoints(model, names_k)
+    mesh_rel = f"meshes/{model.name}.ply"
+    tm = model.to_trimesh()
+    write_bytes(job.out_dir / mesh_rel, tm.export(file_type="ply"))
+    rec.gt_models[model.name] = {"mesh": mesh_rel, "category": model.category, "source": model.source,
+                                 "object_id": obj_index + 1, "keypoints": model.keypoint_dict()}
+    gen = seed_generator(job.seed, model.name)
+    radius = max(model.bounding_radius, float(model.keypoints.norm(dim=1).max()) if len(model.keypoints) else 0.0)
+    cams = sample_cameras(job.views, gen, job.size, radius=max(radius, 1e-6), **(job.camera_options or {}))
+    V = model.vertices.to(job.device)
+    F = model.faces.to(job.device)
+    for v in range(job.views):
+        out = render_view(V, F, kp3d.to(job.device), valid.to(job.device), cams[v], job.size, generator=gen,
+                          keypoint_noise=job.keypoint_noise, boundary_noise=job.boundary_noise)
+        ident = rec.next_id
+        rec.next_id += 1
+        image, ann = _view_records(out, ident, model, obj_index, cat_id, v, job)
+        rec.images.append(image)
+        rec.annotations.append(ann)
+        cam = cams[v].to_list()[0]
+        rec.gt[str(ident)] = {"mesh": mesh_rel, "R": cam["R"], "s": cam["s"], "t": cam["t"],
+                              "category": model.category, "model": model.name}
+        bar.update(1)
+
+
+def _view_records(out: dict, ident: int, model, obj_index: int, cat_id: int, v: int, job: _RenderJob
+                  ) -> tuple[dict, dict]:
+    """The COCO image and annotation of view ``v`` of the model, ``out`` its :func:`render_view` dict."""
+    mask = out["mask"].cpu().numpy()
+    kp = out["keypoints"].cpu().double().numpy()
+    vis = out["visible"].cpu().numpy()
+    rle, area, bbox = _encode(mask)
+    flat: list = []
+    for (x, y), ok in zip(kp, vis):
+        flat += [round(float(x), 4), round(float(y), 4), 2] if ok else [0, 0, 0]
+    w, h = job.size
+    image = {"id": ident, "file_name": f"{model.name}_v{v:03d}.png", "width": w, "height": h}
+    ann = {
+        "id": ident, "image_id": ident, "category_id": cat_id, "segmentation": rle,
+        "area": area, "bbox": bbox, "iscrowd": 0, "keypoints": flat, "num_keypoints": int(vis.sum()),
+        "object_id": obj_index + 1, "source": model.source or f"{model.name}",
+        "split": "test" if v < job.test_views else "pool",
+    }
+    return image, ann
+
+
 def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_views: int = 0, seed: int = 0,
                    image_size: int | Sequence[int] = DEFAULT_IMAGE_SIZE, keypoint_noise: float = 0.0,
                    boundary_noise: float = 0.0, progress: bool = True, device: str | torch.device = "cpu",
@@ -636,85 +770,34 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
     """
     from tqdm import tqdm
 
-    from ..io.outputs import write_bytes, write_json
+    from ..io.outputs import write_json
 
     t_start = time.perf_counter()
     w, h = parse_image_size(image_size)
-    views, test_views = int(views), int(test_views)
-    if views < 1:
-        raise ValueError(f"views must be >= 1, got {views}")
-    if not 0 <= test_views <= views:
-        raise ValueError(f"test_views must be in [0, views={views}], got {test_views}")
-    if not models:
-        raise ValueError("models is empty")
-    names = [m.name for m in models]
-    if len(set(names)) != len(names):
-        dupes = sorted({n for n in names if names.count(n) > 1})
-        raise ValueError(f"model names must be unique, got duplicates {dupes}")
+    views, test_views = _checked_counts(models, views, test_views)
     info = render_info(models, views=views, test_views=test_views, seed=seed, image_size=(w, h),
                        keypoint_noise=keypoint_noise, boundary_noise=boundary_noise, camera_options=camera_options)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "annotations.json").unlink(missing_ok=True)  # the completeness marker, written last
-    dev = torch.device(device)
+    job = _RenderJob(out_dir, views, test_views, int(seed), (w, h), keypoint_noise, boundary_noise, camera_options,
+                     torch.device(device))
 
     classes = sorted({m.category for m in models})
     cat_keypoints = {c: sorted({n for m in models if m.category == c for n in m.keypoint_names}) for c in classes}
     categories = [_category_entry(i + 1, c, cat_keypoints[c]) for i, c in enumerate(classes)]
     cat_id = {c: i + 1 for i, c in enumerate(classes)}
 
-    images, annotations, gt, gt_models = [], [], {}, {}
+    rec = _Records()
     bar = tqdm(total=len(models) * views, desc="render", unit="view", disable=not progress)
-    next_id = 1
     for obj_index, model in enumerate(models):
-        names_k = cat_keypoints[model.category]
-        slot = {n: i for i, n in enumerate(names_k)}
-        K = len(names_k)
-        kp3d = torch.zeros(K, 3)
-        valid = torch.zeros(K, dtype=torch.bool)
-        if model.keypoint_names:
-            rows = torch.tensor([slot[n] for n in model.keypoint_names])
-            kp3d[rows] = model.keypoints.float()
-            valid[rows] = True
-        mesh_rel = f"meshes/{model.name}.ply"
-        tm = model.to_trimesh()
-        write_bytes(out_dir / mesh_rel, tm.export(file_type="ply"))
-        gt_models[model.name] = {"mesh": mesh_rel, "category": model.category, "source": model.source,
-                                 "object_id": obj_index + 1, "keypoints": model.keypoint_dict()}
-        gen = seed_generator(int(seed), model.name)
-        radius = max(model.bounding_radius, float(model.keypoints.norm(dim=1).max()) if len(model.keypoints) else 0.0)
-        cams = sample_cameras(views, gen, (w, h), radius=max(radius, 1e-6), **(camera_options or {}))
-        V = model.vertices.to(dev)
-        F = model.faces.to(dev)
-        for v in range(views):
-            out = render_view(V, F, kp3d.to(dev), valid.to(dev), cams[v], (w, h), generator=gen,
-                              keypoint_noise=keypoint_noise, boundary_noise=boundary_noise)
-            mask = out["mask"].cpu().numpy()
-            kp = out["keypoints"].cpu().double().numpy()
-            vis = out["visible"].cpu().numpy()
-            rle, area, bbox = _encode(mask)
-            flat: list = []
-            for (x, y), ok in zip(kp, vis):
-                flat += [round(float(x), 4), round(float(y), 4), 2] if ok else [0, 0, 0]
-            ident = next_id
-            next_id += 1
-            images.append({"id": ident, "file_name": f"{model.name}_v{v:03d}.png", "width": w, "height": h})
-            annotations.append({
-                "id": ident, "image_id": ident, "category_id": cat_id[model.category], "segmentation": rle,
-                "area": area, "bbox": bbox, "iscrowd": 0, "keypoints": flat, "num_keypoints": int(vis.sum()),
-                "object_id": obj_index + 1, "source": model.source or f"{model.name}",
-                "split": "test" if v < test_views else "pool",
-            })
-            cam = cams[v].to_list()[0]
-            gt[str(ident)] = {"mesh": mesh_rel, "R": cam["R"], "s": cam["s"], "t": cam["t"],
-                              "category": model.category, "model": model.name}
-            bar.update(1)
+        _render_model(model, obj_index, cat_keypoints[model.category], cat_id[model.category], job, rec, bar)
     bar.close()
-    gt_path = write_json(out_dir / "gt.json", {"annotations": gt, "models": gt_models}, indent=None)
+    gt_path = write_json(out_dir / "gt.json", {"annotations": rec.gt, "models": rec.gt_models}, indent=None)
     ann_path = write_json(out_dir / "annotations.json",  # last: it marks the folder complete
-                          {"info": info, "images": images, "annotations": annotations, "categories": categories},
-                          indent=None)
-    return {"annotations": str(ann_path), "gt": str(gt_path), "images": len(images), "models": len(models),
+                          {"info": info, "images": rec.images, "annotations": rec.annotations,
+                           "categories": categories}, indent=None)
+    return {"annotations": str(ann_path), "gt": str(gt_path), "images": len(rec.images), "models": len(models),
             "categories": classes, "seconds": time.perf_counter() - t_start}
 
 
