@@ -1039,3 +1039,17 @@ def test_items_carry_the_category_name_and_id_not_only_the_folder_key(recon, tmp
     assert {(it["class_name"], it["class_key"], it["category_id"]) for it in ds} == {("my car 🚗", key, str(cid))}
     batch = collate_lifted([ds[0], ds[0]])
     assert batch["class_name"] == ["my car 🚗"] * 2 and batch["category_id"] == [str(cid)] * 2
+
+
+def test_export_help_gives_defaults_and_says_which_options_are_the_stores():
+    """``--help`` names every default and marks the options that only the zarr store takes (``--format cmr`` and
+    ``ucmr`` read ``--recon``, ``--out`` and ``--classes`` alone)."""
+    from carvi_torch.export.command import parser
+
+    ap = parser()
+    text = " ".join(ap.format_help().split())
+    assert "seed of the surface sampling (default 0)" in text
+    for action in ap._actions:
+        if action.dest in ("resolution", "points", "shard_size", "mesh", "workers", "seed"):
+            assert action.help.startswith("zarr: "), action.dest
+    assert "cmr" in next(a.help for a in ap._actions if a.dest == "out")

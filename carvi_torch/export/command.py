@@ -24,15 +24,17 @@ def parser() -> argparse.ArgumentParser:
                                              "training (read it with carvi_torch.training.LiftedDataset; layout in "
                                              "docs/export.md), or as CMR / U-CMR annotation files.")
     ap.add_argument("--recon", required=True, help="output directory of carvi_torch.reconstruct")
-    ap.add_argument("--out", required=True, help="store (directory) to write")
+    ap.add_argument("--out", required=True,
+                    help="folder to write: the zarr store, or the .mat / .json files of --format cmr / ucmr")
     ap.add_argument("--format", choices=["zarr", "cmr", "ucmr"], default="zarr",
                     help="zarr: the training store (default); cmr: one .mat per class; ucmr: one .json per class")
-    ap.add_argument("--resolution", type=int, default=32, help="occupancy grid side (default 32)")
-    ap.add_argument("--points", type=int, default=2048, help="surface points per object (default 2048)")
-    ap.add_argument("--shard-size", type=int, default=256, help="samples per shard file (default 256)")
-    ap.add_argument("--mesh", action="store_true", help="also store every mesh (ragged mesh_vertices, mesh_faces)")
-    ap.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core; 0: none)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the surface sampling")
+    ap.add_argument("--resolution", type=int, default=32, help="zarr: occupancy grid side (default 32)")
+    ap.add_argument("--points", type=int, default=2048, help="zarr: surface points per object (default 2048)")
+    ap.add_argument("--shard-size", type=int, default=256, help="zarr: samples per shard file (default 256)")
+    ap.add_argument("--mesh", action="store_true",
+                    help="zarr: also store every mesh (ragged mesh_vertices, mesh_faces)")
+    ap.add_argument("--workers", type=int, default=None, help="zarr: worker processes (default: one per core; 0: none)")
+    ap.add_argument("--seed", type=int, default=0, help="zarr: seed of the surface sampling (default 0)")
     add_common(ap)
     return ap
 
