@@ -771,3 +771,13 @@ def test_resumed_objects_follow_the_refitted_cameras(tiny, tmp_path):
         assert np.allclose(z["voxel_to_object"], to_object @ z["voxel_to_camera"], atol=1e-9), f.stem
         moved += f.stem != str(ann["id"]) and not np.allclose(before[f.stem]["refined"]["R"], R, atol=1e-9)
     assert moved > 0  # resumed objects whose camera the refit moved
+
+
+def test_readme_names_every_member_of_a_voxels_file(tiny):
+    """README's table of a run's files names every array a ``<class>/voxels/<id>.npz`` holds."""
+    out, _ = tiny
+    row = next(line for line in (ROOT / "README.md").read_text().splitlines()
+               if line.startswith("| `<class>/voxels/<id>.npz` |"))
+    members = set(np.load(next((out / "car" / "voxels").glob("*.npz"))).files)
+    assert {"occupancy", "voxel_to_camera", "voxel_to_object", "input_fingerprint"} <= members
+    assert [m for m in sorted(members) if f"`{m}" not in row] == []
