@@ -227,3 +227,20 @@ def test_docstring_references_name_what_is_there():
                 bad.append(f"{p.relative_to(PACKAGE.parent)}: {m.group(1)}")
                 break
     assert not bad, bad
+
+
+def test_docs_pages_named_in_the_code_exist():
+    """Every ``docs/<page>.md`` that the package, the tools or the tests name is a page of docs/, so that a merged
+    or renamed page leaves no pointer to its old place (PyTorch3D's own ``docs/notes/cameras.md`` and git's
+    ``commit:docs/...`` excepted)."""
+    import re
+
+    root = PACKAGE.parent
+    external = {"docs/notes/cameras.md"}
+    bad = []
+    for folder in ("carvi_torch", "tools", "tests"):
+        for p in sorted((root / folder).rglob("*.py")):
+            for m in re.finditer(r"(?<![\w/.:])docs/[\w/.-]+?\.md\b", p.read_text()):
+                if m.group(0) not in external and not (root / m.group(0)).is_file():
+                    bad.append(f"{p.relative_to(root)}: {m.group(0)}")
+    assert not bad, bad

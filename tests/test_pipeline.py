@@ -201,7 +201,7 @@ def test_same_seed_same_voxels(tiny, car_again):
 def test_nearest_pixel_carving_stays_close_to_bilinear(tiny, tmp_path):
     """``carve_interpolation=nearest`` through the pipeline: the same objects reconstructed, on the
     same voxel grids, with labels that differ from the bilinear run's in some voxels, under 2% of
-    them (the synthetic benchmark's error figures: docs/benchmarks/README.md)."""
+    them (the synthetic benchmark's error figures: docs/reconstruction.md, *Nearest-pixel reading*)."""
     out, summary = tiny
     other = tmp_path / "nearest"
     res = run(_cfg(other, data=summary["data"], classes=["car"], preview=False, carve_interpolation="nearest"),
