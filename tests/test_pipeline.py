@@ -781,3 +781,41 @@ def test_readme_names_every_member_of_a_voxels_file(tiny):
     members = set(np.load(next((out / "car" / "voxels").glob("*.npz"))).files)
     assert {"occupancy", "voxel_to_camera", "voxel_to_object", "input_fingerprint"} <= members
     assert [m for m in sorted(members) if f"`{m}" not in row] == []
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_files_of_objects_the_data_no_longer_holds_are_named(tmp_path, caplog, overwrite):
+    """A rerun into an ``--out`` whose class folder holds files of objects that the data no longer has (other
+    ``--data``, fewer ``procedural_instances``) keeps them but says so: one warning line and ``summary.json``'s
+    ``other_objects``; the current objects' files are not counted; ``overwrite=true`` says it too."""
+    import logging
+    from types import SimpleNamespace
+
+    from carvi_torch.pipeline import finished_objects
+
+    cdir = tmp_path / "car"
+    for kind, ext in (("meshes", "ply"), ("voxels", "npz")):
+        (cdir / kind).mkdir(parents=True)
+        for stem in ("2", "17", "9", "x-d6b96a97"):
+            (cdir / kind / f"{stem}.{ext}").write_bytes(b"")
+    (cdir / "voxels" / ".17.npz.abc.tmp").write_bytes(b"")  # a write cut short: no object's file
+    coll = SimpleNamespace(meta=SimpleNamespace(key="car"), annotation_ids=[2, 3], fingerprints=["a", "b"])
+    cfg = SimpleNamespace(overwrite=overwrite, mesh=SimpleNamespace(format="ply"))
+    report = SimpleNamespace(info={})
+    with caplog.at_level(logging.WARNING):
+        done = finished_objects(_Sized(coll, 2), cfg, tmp_path, report)
+    assert done == [False, False]
+    assert report.info["other_objects"] == {"count": 3, "stems": ["9", "17", "x-d6b96a97"]}
+    lines = [r.getMessage() for r in caplog.records if "no longer holds" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].startswith("  car: 3 object(s)") and "9, 17, x-d6b96a97" in lines[0]
+
+
+class _Sized:
+    """A stand-in collection: the attributes of ``inner`` and a length."""
+
+    def __init__(self, inner, n: int):
+        self.__dict__.update(vars(inner))
+        self._n = n
+
+    def __len__(self) -> int:
+        return self._n
