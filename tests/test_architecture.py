@@ -244,3 +244,14 @@ def test_docs_pages_named_in_the_code_exist():
                 if m.group(0) not in external and not (root / m.group(0)).is_file():
                     bad.append(f"{p.relative_to(root)}: {m.group(0)}")
     assert not bad, bad
+
+
+def test_readme_layout_names_every_module():
+    """README's *Layout* names every module of the package (by file name), so that the file list says where each
+    stage lives."""
+    root = PACKAGE.parent
+    text = (root / "README.md").read_text()
+    layout = text[text.index("## Layout"):text.index("## Tests")]
+    missing = [p.relative_to(PACKAGE).as_posix() for p in sorted(PACKAGE.rglob("*.py"))
+               if p.name not in ("__init__.py", "__main__.py") and p.name not in layout]
+    assert not missing, missing
