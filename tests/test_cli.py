@@ -90,3 +90,24 @@ def test_reconstruct_takes_settings_on_both_sides_of_an_option(monkeypatch, caps
         status = e.code
     assert seen == ["procedural_instances=3", "preview=false", "report=false"]
     assert status == 2 and "error: stop here" in capsys.readouterr().err
+
+
+def test_readme_commands_name_every_option(capsys):
+    """README's *Commands* block gives each command (and each ``datasets`` subcommand) exactly the options its
+    ``--help`` usage lists, ``--help`` and ``--version`` aside."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = text[text.index("## Commands"):].split("```")[1]
+    entries: dict[tuple, set] = {}
+    key = None
+    for line in block.strip().splitlines():
+        if line.startswith("carvi "):
+            words = line.split()
+            key = (words[1], words[2]) if words[1] == "datasets" else (words[1],)
+        entries.setdefault(key, set()).update(re.findall(r"--[a-z][a-z-]*", line))
+    assert {k[0] for k in entries} == set(COMMANDS)
+    for key, listed in entries.items():
+        usage = _help(main, [*key, "--help"], capsys).split("\n\n")[0]
+        assert listed == set(re.findall(r"--[a-z][a-z-]*", usage)) - {"--help", "--version"}, key
