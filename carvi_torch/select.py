@@ -1,6 +1,6 @@
 """Reconstruction selection: average masks per principal direction, proposal scores.
 
-Step 8 of the pipeline (DESIGN.md; paper, "Reconstruction selection"): every proposal
+The selection stage (:mod:`carvi_torch.pipeline`; paper, "Reconstruction selection"): every proposal
 of a reference instance is projected onto three planes, one perpendicular to each
 principal direction, and compared with the class' average mask on that plane
 (:func:`score_proposals`); proposals that miss the fewest visible reference keypoints rank first,

@@ -713,8 +713,8 @@ def test_shape_groups_run_end_to_end(tmp_path, procedural_input):
 
 
 def test_local_run_records_the_executor_fields_a_ray_run_does(tiny):
-    """DESIGN.md: ``summary.json["executor"]`` = ``{name, address, nodes, tasks, retries}`` on every executor;
-    a local run: this machine, one task per class, no retries."""
+    """README (*On a cluster*): ``summary.json["executor"]`` = ``{name, address, nodes, tasks, retries}`` on every
+    executor; a local run: this machine, one task per class, no retries."""
     import platform
 
     out, summary = tiny
