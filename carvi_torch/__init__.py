@@ -5,7 +5,8 @@ one place that sets it); ``"unknown"`` for a source tree that is not installed.
 
 Example:
     >>> import carvi_torch
-    >>> carvi_torch.__version__ == carvi_torch.cli.version()
+    >>> from carvi_torch.cli import version
+    >>> carvi_torch.__version__ == version()
     True
 """
 from importlib.metadata import PackageNotFoundError, version as _version
