@@ -257,3 +257,18 @@ def test_readme_layout_names_every_module():
     missing = [p.relative_to(PACKAGE).as_posix() for p in sorted(PACKAGE.rglob("*.py"))
                if p.name not in ("__init__.py", "__main__.py") and p.name not in layout]
     assert not missing, missing
+
+
+def test_package_docstrings_that_list_modules_name_all_of_them():
+    """A package whose docstring lists its modules ("Modules, in the order data flows ...") names every one."""
+    import ast
+
+    missing = []
+    for init in sorted(PACKAGE.rglob("__init__.py")):
+        doc = ast.get_docstring(ast.parse(init.read_text())) or ""
+        if "Modules" not in doc:
+            continue
+        for mod in sorted(init.parent.glob("*.py")):
+            if mod.stem not in ("__init__", "__main__") and mod.stem not in doc:
+                missing.append(f"{init.parent.relative_to(PACKAGE)}: {mod.stem}")
+    assert not missing, missing
