@@ -1053,3 +1053,14 @@ def test_export_help_gives_defaults_and_says_which_options_are_the_stores():
         if action.dest in ("resolution", "points", "shard_size", "mesh", "workers", "seed"):
             assert action.help.startswith("zarr: "), action.dest
     assert "cmr" in next(a.help for a in ap._actions if a.dest == "out")
+
+
+@pytest.mark.parametrize("extra", [["--mesh"], ["--resolution", "64", "--seed", "3"]])
+def test_cmr_refuses_the_zarr_stores_options(tmp_path, capsys, extra):
+    """``--format cmr`` with an option that only the zarr store takes (``--mesh``, ``--resolution``, ...) is one
+    ``error:`` line naming it, exit status 2, nothing written, rather than files without what was asked for."""
+    out = tmp_path / "cmr"
+    assert export_main(["--recon", str(tmp_path / "no_run"), "--out", str(out), "--format", "cmr", *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {extra[0]}") and "zarr only" in err[0], err
+    assert not out.exists()

@@ -18,6 +18,9 @@ __all__ = ["main", "parser", "start_worker_server", "WORKER_MODULE"]
 
 #: The module the export's worker processes run (imported once, by the forkserver).
 WORKER_MODULE = "carvi_torch.export.objects"
+#: The options that only the zarr store takes (option, argparse dest): ``--format cmr`` / ``ucmr`` refuse them.
+ZARR_ONLY = (("--resolution", "resolution"), ("--points", "points"), ("--shard-size", "shard_size"),
+             ("--mesh", "mesh"), ("--workers", "workers"), ("--seed", "seed"))
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog=program("carvi_torch.export"),
                                  description="Export a reconstruction directory as a zarr v3 store for PyTorch "
@@ -68,6 +71,10 @@ def _main(args) -> int:
     problem = settings_problem(args.resolution, args.points, args.shard_size, args.seed, args.workers)
     if problem is not None:  # before anything is started or written
         raise CommandError(f"{problem} (nothing was written)")
+    given = [opt for opt, dest in ZARR_ONLY if getattr(args, dest) != parser().get_default(dest)]
+    if args.format != "zarr" and given:  # asked for, and the CMR / U-CMR files would not have it
+        raise CommandError(f"{', '.join(given)}: for --format zarr only; --format {args.format} writes the cameras "
+                           "and mean shape alone (nothing was written)")
     if args.format == "zarr" and args.workers != 0:
         start_worker_server()
     from .run import export  # torch, zarr, ...: imported while the forkserver imports the worker module
