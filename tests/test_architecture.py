@@ -260,13 +260,14 @@ def test_readme_layout_names_every_module():
 
 
 def test_package_docstrings_that_list_modules_name_all_of_them():
-    """A package whose docstring lists its modules ("Modules, in the order data flows ...") names every one."""
+    """A package whose docstring lists its modules ("Modules, in the order data flows ...", or a list of three or
+    more ``:mod:`` references to them) names every one."""
     import ast
 
     missing = []
     for init in sorted(PACKAGE.rglob("__init__.py")):
         doc = ast.get_docstring(ast.parse(init.read_text())) or ""
-        if "Modules" not in doc:
+        if "Modules" not in doc and doc.count(":mod:`~carvi_torch.") < 3:
             continue
         for mod in sorted(init.parent.glob("*.py")):
             if mod.stem not in ("__init__", "__main__") and mod.stem not in doc:
