@@ -18,7 +18,8 @@ __all__ = ["main", "parser", "start_worker_server", "WORKER_MODULE"]
 
 #: The module the export's worker processes run (imported once, by the forkserver).
 WORKER_MODULE = "carvi_torch.export.objects"
-#: The options that only the zarr store takes (option, argparse dest): ``--format cmr`` / ``ucmr`` refuse them.
+#: The options that only the zarr store takes (option, argparse dest): ``--format cmr`` / ``ucmr`` name them in a
+#: warning and go on without them.
 ZARR_ONLY = (("--resolution", "resolution"), ("--points", "points"), ("--shard-size", "shard_size"),
              ("--mesh", "mesh"), ("--workers", "workers"), ("--seed", "seed"))
 def parser() -> argparse.ArgumentParser:
@@ -71,10 +72,6 @@ def _main(args) -> int:
     problem = settings_problem(args.resolution, args.points, args.shard_size, args.seed, args.workers)
     if problem is not None:  # before anything is started or written
         raise CommandError(f"{problem} (nothing was written)")
-    given = [opt for opt, dest in ZARR_ONLY if getattr(args, dest) != parser().get_default(dest)]
-    if args.format != "zarr" and given:  # asked for, and the CMR / U-CMR files would not have it
-        raise CommandError(f"{', '.join(given)}: for --format zarr only; --format {args.format} writes the cameras "
-                           "and mean shape alone (nothing was written)")
     if args.format == "zarr" and args.workers != 0:
         start_worker_server()
     from .run import export  # torch, zarr, ...: imported while the forkserver imports the worker module
@@ -86,6 +83,7 @@ def _main(args) -> int:
 
             written = export_format(args.recon, args.out, args.format, classes=split_classes(args.classes))
             print(f"wrote {len(written)} {args.format} file(s) to {args.out}")
+            _ignored(args)
             return 0
         idx = export(args.recon, args.out, args.resolution, args.points, args.shard_size, args.seed,
                      progress=not args.quiet, classes=split_classes(args.classes), workers=args.workers,
@@ -99,6 +97,14 @@ def _main(args) -> int:
         return 130
     _exported(args, idx)
     return 0
+
+
+def _ignored(args) -> None:
+    """One warning line naming the zarr store's options that a CMR / U-CMR export was given and went without."""
+    given = [opt for opt, dest in ZARR_ONLY if getattr(args, dest) != parser().get_default(dest)]
+    if given:
+        print(f"warning: {', '.join(given)}: for --format zarr only, ignored: --format {args.format} writes the "
+              "cameras and mean shape alone", file=sys.stderr)
 
 
 def _exported(args, idx: dict) -> None:
