@@ -819,3 +819,24 @@ class _Sized:
 
     def __len__(self) -> int:
         return self._n
+
+
+def test_a_class_name_the_data_lacks_is_called_so(caplog):
+    """``--classes Aeroplane`` (a typo or another case) is reported as a name the data has no class of, with the
+    data's classes; a class of the data with no usable object keeps the plain reason."""
+    import logging
+    from types import SimpleNamespace
+
+    from carvi_torch.executors.common import announce
+    from carvi_torch.io.coco import LoadResult
+
+    data = {"categories": [{"id": 1, "name": "aeroplane"}, {"id": 2, "name": "chair"}]}
+    setup = SimpleNamespace(loaded=LoadResult(collections={}, dataset=data), summary={"classes": {}}, changed={},
+                            out=Path("run"), cfg=SimpleNamespace(classes=["Aeroplane", "chair"]))
+    with caplog.at_level(logging.WARNING):
+        announce(setup)
+    typo, chair = (setup.summary["classes"][c]["failures"][0]["reason"] for c in ("Aeroplane", "chair"))
+    assert typo == ("no usable object of this class: the data has no class of that name (its classes: aeroplane, "
+                    "chair)")
+    assert chair == "no usable object of this class"
+    assert f"Aeroplane: {typo}" in caplog.text
