@@ -22,6 +22,8 @@ WORKER_MODULE = "carvi_torch.export.objects"
 #: warning and go on without them.
 ZARR_ONLY = (("--resolution", "resolution"), ("--points", "points"), ("--shard-size", "shard_size"),
              ("--mesh", "mesh"), ("--workers", "workers"), ("--seed", "seed"))
+
+
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog=program("carvi_torch.export"),
                                  description="Export a reconstruction directory as a zarr v3 store for PyTorch "
