@@ -501,7 +501,8 @@ def _main(argv=None) -> int:
     ap.add_argument("--recon", required=True, action="append",
                     help="reconstruction directory, or NAME=DIR to name the method; repeat to compare methods")
     ap.add_argument("--out", help="directory for results.json, shapes.md (not with --viewpoints-only), viewpoints.md "
-                                  "and, where the runs score their objects' quality, quality.md")
+                                  "and, where the runs score their objects' quality, quality.md (default: none, "
+                                  "the tables are printed only)")
     ap.add_argument("--gt", help="ground truth file (default: gt.json beside --data)")
     ap.add_argument("--split", help="evaluate only annotations of this split (e.g. test)")
     ap.add_argument("--baselines", action="store_true", help="also evaluate Puffball and SFMc")

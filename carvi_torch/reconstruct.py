@@ -58,6 +58,16 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def parse_args(argv=None) -> argparse.Namespace:
+    """The command line, ``key=value`` settings anywhere among the options (``--out D a=1 --quiet b=2``).
+
+    Example:
+        >>> parse_args(["--out", "D", "resolution=40", "--quiet", "preview=false"]).overrides
+        ['resolution=40', 'preview=false']
+    """
+    return build_parser().parse_intermixed_args(argv)
+
+
 def _shorten(text: str, width: int) -> str:
     """``text`` cut to at most ``width`` characters at a word boundary, ``…`` marking the cut (a number or word
     is never cut in two, so a cut reason does not read as another; one word longer than ``width`` is cut).
@@ -130,7 +140,7 @@ def main(argv=None) -> int:
 
 
 def _main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    args = parse_args(argv)
     try:
         cfg = load_config(args.config, args.overrides)
         extra = {k: v for k, v in (("data", args.data), ("out", args.out), ("classes", args.classes)) if v}

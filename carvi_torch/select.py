@@ -1,10 +1,13 @@
 """Reconstruction selection: average masks per principal direction, proposal scores.
 
-Step 8 of the pipeline (DESIGN.md; paper, "Reconstruction selection"): every proposal
+The selection stage (:mod:`carvi_torch.pipeline`; paper, "Reconstruction selection"): every proposal
 of a reference instance is projected onto three planes, one perpendicular to each
-principal direction, and compared with the class' average mask on that plane; the
-proposal closest to the class average (after the fewest missed reference keypoints)
-wins.
+principal direction, and compared with the class' average mask on that plane
+(:func:`score_proposals`); proposals that miss the fewest visible reference keypoints rank first,
+then the closest to the class average (:func:`rank_proposals`). The selected shape is the
+voxel-wise majority vote of the ``select.consensus`` best-ranked valid proposals
+(:func:`vote_proposals`, 5 by default); ``consensus=1`` keeps the best proposal alone, the paper's
+choice.
 
 Plane convention. Plane ``j`` is perpendicular to axis ``e_j = axes[j]`` and spanned by
 the two other axes in cyclic order, ``(e_a, e_b) = (axes[(j+1) % 3], axes[(j+2) % 3])``,

@@ -1,6 +1,6 @@
 """Principal directions of a class, viewpoint clusters and surrogate triplets.
 
-Steps 5 and 6 of the pipeline (DESIGN.md; paper, "Sampling shape surrogates"):
+The surrogate stage (:mod:`carvi_torch.pipeline`; paper, "Sampling shape surrogates"):
 
 1. :func:`principal_directions` — PCA axes of the SfM mean shape ``S``.
 2. :func:`cluster_by_direction` — instances seen (front or back) within a threshold of a

@@ -68,3 +68,46 @@ def test_closing_table_counts_threads_in_words(threads, said):
 
     summary = {"classes": {}, "total_seconds": 1.0, "device": "cpu", "torch_threads": threads}
     assert f"total 1.0 s on cpu {said}" in format_table(summary)
+
+
+
+def test_reconstruct_takes_settings_on_both_sides_of_an_option(monkeypatch, capsys):
+    """``--out D a=1 --quiet b=2`` (README's ``--quiet preview=false`` after a setting) hands every setting to
+    the configuration, not a usage error."""
+    from carvi_torch import reconstruct
+    from carvi_torch.config import ConfigError
+
+    seen = []
+
+    def load_config(path, overrides):
+        seen.extend(overrides)
+        raise ConfigError("stop here")
+
+    monkeypatch.setattr(reconstruct, "load_config", load_config)
+    try:
+        status = reconstruct.main(["--out", "D", "procedural_instances=3", "--quiet", "preview=false", "report=false"])
+    except SystemExit as e:  # argparse's usage error
+        status = e.code
+    assert seen == ["procedural_instances=3", "preview=false", "report=false"]
+    assert status == 2 and "error: stop here" in capsys.readouterr().err
+
+
+def test_readme_commands_name_every_option(capsys):
+    """README's *Commands* block gives each command (and each ``datasets`` subcommand) exactly the options its
+    ``--help`` usage lists, ``--help`` and ``--version`` aside."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = text[text.index("## Commands"):].split("```")[1]
+    entries: dict[tuple, set] = {}
+    key = None
+    for line in block.strip().splitlines():
+        if line.startswith("carvi "):
+            words = line.split()
+            key = (words[1], words[2]) if words[1] == "datasets" else (words[1],)
+        entries.setdefault(key, set()).update(re.findall(r"--[a-z][a-z-]*", line))
+    assert {k[0] for k in entries} == set(COMMANDS)
+    for key, listed in entries.items():
+        usage = _help(main, [*key, "--help"], capsys).split("\n\n")[0]
+        assert listed == set(re.findall(r"--[a-z][a-z-]*", usage)) - {"--help", "--version"}, key

@@ -325,3 +325,10 @@ def test_help_says_what_the_step_costs(capsys):
     diag = float(np.linalg.norm(sphere.extents))  # the steps are percent of the bounding-box diagonal
     counts = [len(sample_surface(V, F, percent / 100 * diag)[0]) for percent in (fine, coarse)]
     assert counts[0] / counts[1] == pytest.approx((coarse / fine) ** 2, rel=0.05)
+
+
+def test_help_says_what_happens_without_out(capsys):
+    """--out is optional: --help says that without it the tables are printed and no file is written."""
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    assert "(default: none, the tables are printed only)" in " ".join(capsys.readouterr().out.split())

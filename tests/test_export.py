@@ -1039,3 +1039,32 @@ def test_items_carry_the_category_name_and_id_not_only_the_folder_key(recon, tmp
     assert {(it["class_name"], it["class_key"], it["category_id"]) for it in ds} == {("my car 🚗", key, str(cid))}
     batch = collate_lifted([ds[0], ds[0]])
     assert batch["class_name"] == ["my car 🚗"] * 2 and batch["category_id"] == [str(cid)] * 2
+
+
+def test_export_help_gives_defaults_and_says_which_options_are_the_stores():
+    """``--help`` names every default and marks the options that only the zarr store takes (``--format cmr`` and
+    ``ucmr`` read ``--recon``, ``--out`` and ``--classes`` alone)."""
+    from carvi_torch.export.command import parser
+
+    ap = parser()
+    text = " ".join(ap.format_help().split())
+    assert "seed of the surface sampling (default 0)" in text
+    for action in ap._actions:
+        if action.dest in ("resolution", "points", "shard_size", "mesh", "workers", "seed"):
+            assert action.help.startswith("zarr: "), action.dest
+    assert "cmr" in next(a.help for a in ap._actions if a.dest == "out")
+
+
+def test_cmr_says_it_ignores_the_zarr_stores_options(recon, tmp_path, capsys):
+    """``--format cmr`` with options that only the zarr store takes (``--mesh``, ``--resolution``, ...) writes its
+    files and says in one warning line which options it ignored, rather than dropping them unsaid."""
+    out = tmp_path / "cmr"
+    capsys.readouterr()
+    assert export_main(["--recon", str(recon), "--out", str(out), "--format", "cmr", "--mesh", "--resolution", "64",
+                        "--quiet"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["warning: --resolution, --mesh: for --format zarr only, ignored: --format cmr writes the cameras "
+                   "and mean shape alone"]
+    assert any(out.glob("*.mat"))
+    assert export_main(["--recon", str(recon), "--out", str(tmp_path / "cmr2"), "--format", "cmr", "--quiet"]) == 0
+    assert "warning" not in capsys.readouterr().err

@@ -201,7 +201,7 @@ def test_same_seed_same_voxels(tiny, car_again):
 def test_nearest_pixel_carving_stays_close_to_bilinear(tiny, tmp_path):
     """``carve_interpolation=nearest`` through the pipeline: the same objects reconstructed, on the
     same voxel grids, with labels that differ from the bilinear run's in some voxels, under 2% of
-    them (the synthetic benchmark's error figures: docs/benchmarks/README.md)."""
+    them (the synthetic benchmark's error figures: docs/reconstruction.md, *Nearest-pixel reading*)."""
     out, summary = tiny
     other = tmp_path / "nearest"
     res = run(_cfg(other, data=summary["data"], classes=["car"], preview=False, carve_interpolation="nearest"),
@@ -713,8 +713,8 @@ def test_shape_groups_run_end_to_end(tmp_path, procedural_input):
 
 
 def test_local_run_records_the_executor_fields_a_ray_run_does(tiny):
-    """DESIGN.md: ``summary.json["executor"]`` = ``{name, address, nodes, tasks, retries}`` on every executor;
-    a local run: this machine, one task per class, no retries."""
+    """README (*On a cluster*): ``summary.json["executor"]`` = ``{name, address, nodes, tasks, retries}`` on every
+    executor; a local run: this machine, one task per class, no retries."""
     import platform
 
     out, summary = tiny
@@ -771,3 +771,72 @@ def test_resumed_objects_follow_the_refitted_cameras(tiny, tmp_path):
         assert np.allclose(z["voxel_to_object"], to_object @ z["voxel_to_camera"], atol=1e-9), f.stem
         moved += f.stem != str(ann["id"]) and not np.allclose(before[f.stem]["refined"]["R"], R, atol=1e-9)
     assert moved > 0  # resumed objects whose camera the refit moved
+
+
+def test_readme_names_every_member_of_a_voxels_file(tiny):
+    """README's table of a run's files names every array a ``<class>/voxels/<id>.npz`` holds."""
+    out, _ = tiny
+    row = next(line for line in (ROOT / "README.md").read_text().splitlines()
+               if line.startswith("| `<class>/voxels/<id>.npz` |"))
+    members = set(np.load(next((out / "car" / "voxels").glob("*.npz"))).files)
+    assert {"occupancy", "voxel_to_camera", "voxel_to_object", "input_fingerprint"} <= members
+    assert [m for m in sorted(members) if f"`{m}" not in row] == []
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_files_of_objects_the_data_no_longer_holds_are_named(tmp_path, caplog, overwrite):
+    """A rerun into an ``--out`` whose class folder holds files of objects that the data no longer has (other
+    ``--data``, fewer ``procedural_instances``) keeps them but says so: one warning line and ``summary.json``'s
+    ``other_objects``; the current objects' files are not counted; ``overwrite=true`` says it too."""
+    import logging
+    from types import SimpleNamespace
+
+    from carvi_torch.pipeline import finished_objects
+
+    cdir = tmp_path / "car"
+    for kind, ext in (("meshes", "ply"), ("voxels", "npz")):
+        (cdir / kind).mkdir(parents=True)
+        for stem in ("2", "17", "9", "x-d6b96a97"):
+            (cdir / kind / f"{stem}.{ext}").write_bytes(b"")
+    (cdir / "voxels" / ".17.npz.abc.tmp").write_bytes(b"")  # a write cut short: no object's file
+    coll = SimpleNamespace(meta=SimpleNamespace(key="car"), annotation_ids=[2, 3], fingerprints=["a", "b"])
+    cfg = SimpleNamespace(overwrite=overwrite, mesh=SimpleNamespace(format="ply"))
+    report = SimpleNamespace(info={})
+    with caplog.at_level(logging.WARNING):
+        done = finished_objects(_Sized(coll, 2), cfg, tmp_path, report)
+    assert done == [False, False]
+    assert report.info["other_objects"] == {"count": 3, "stems": ["9", "17", "x-d6b96a97"]}
+    lines = [r.getMessage() for r in caplog.records if "no longer holds" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].startswith("  car: 3 object(s)") and "9, 17, x-d6b96a97" in lines[0]
+
+
+class _Sized:
+    """A stand-in collection: the attributes of ``inner`` and a length."""
+
+    def __init__(self, inner, n: int):
+        self.__dict__.update(vars(inner))
+        self._n = n
+
+    def __len__(self) -> int:
+        return self._n
+
+
+def test_a_class_name_the_data_lacks_is_called_so(caplog):
+    """``--classes Aeroplane`` (a typo or another case) is reported as a name the data has no class of, with the
+    data's classes; a class of the data with no usable object keeps the plain reason."""
+    import logging
+    from types import SimpleNamespace
+
+    from carvi_torch.executors.common import announce
+    from carvi_torch.io.coco import LoadResult
+
+    data = {"categories": [{"id": 1, "name": "aeroplane"}, {"id": 2, "name": "chair"}]}
+    setup = SimpleNamespace(loaded=LoadResult(collections={}, dataset=data), summary={"classes": {}}, changed={},
+                            out=Path("run"), cfg=SimpleNamespace(classes=["Aeroplane", "chair"]))
+    with caplog.at_level(logging.WARNING):
+        announce(setup)
+    typo, chair = (setup.summary["classes"][c]["failures"][0]["reason"] for c in ("Aeroplane", "chair"))
+    assert typo == ("no usable object of this class: the data has no class of that name (its classes: aeroplane, "
+                    "chair)")
+    assert chair == "no usable object of this class"
+    assert f"Aeroplane: {typo}" in caplog.text

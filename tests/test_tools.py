@@ -1136,3 +1136,25 @@ def test_bench_viewpoints_times_the_mixture_fit_on_a_small_class(tmp_path: Path,
     assert mix["warm"]["stage_seconds"] > mix["warm"]["seconds"] > 0 and mix["warm"]["refinement_seconds"] > 0
     assert mix["threads_same_result"] is True
     assert "stage with mixture" in capsys.readouterr().out
+
+
+def test_train_example_refuses_an_export_that_is_not_there(tmp_path, monkeypatch, capsys):
+    """``--export`` naming a folder without an export (a typo) is one ``error:`` line and exit status 2; it does
+    not reconstruct and export the embedded collection beside it instead (minutes of work, outside what was
+    asked)."""
+    train = load_tool("train_example")
+    built = []
+    monkeypatch.setattr(train, "_build_export", built.append)
+    capsys.readouterr()
+    assert train.main(["--export", str(tmp_path / "exprot"), "--epochs", "1", "--workers", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert built == [] and len(err) == 1 and err[0].startswith("error: --export "), err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_train_example_help_gives_every_default(capsys):
+    train = load_tool("train_example")
+    text = " ".join(train.build_parser().format_help().split())
+    for option, default in (("--epochs", "8"), ("--batch-size", "32"), ("--workers", "2"), ("--seed", "0")):
+        assert f"{option} {option[2:].upper().replace('-', '_')} " in text
+        assert f"(default {default}" in text.split(f"{option} {option[2:].upper().replace('-', '_')} ", 1)[1][:200]

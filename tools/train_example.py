@@ -9,7 +9,8 @@ loss printed per epoch should fall.
     python tools/train_example.py --export exports/default --epochs 8 [--min-quality 0.3]
 
 With no --export, it reconstructs and exports the embedded procedural collection first
-(a few minutes).
+(a few minutes) into outputs/train_example/ of the checkout; an --export that holds no export is
+an error.
 """
 from __future__ import annotations
 
@@ -55,13 +56,15 @@ def build_parser() -> argparse.ArgumentParser:
     """The command line (the module docstring is its help)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--export", help="export (zarr store) directory (default: build one from the embedded collection)")
-    ap.add_argument("--epochs", type=int, default=8)
-    ap.add_argument("--batch-size", type=int, default=32)
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--export", help="export (zarr store) directory; it must hold one (default: "
+                                     "outputs/train_example/export, built from the embedded collection when absent)")
+    ap.add_argument("--epochs", type=int, default=8, help="passes over the training objects (default 8)")
+    ap.add_argument("--batch-size", type=int, default=32, help="objects per batch (default 32)")
+    ap.add_argument("--workers", type=int, default=2, help="DataLoader worker processes (default 2; 0: none)")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="seed of the weights, the train / validation split and the shuffling (default 0)")
     ap.add_argument("--min-quality", type=float, default=None,
-                    help="train and validate only on objects whose quality is at least this")
+                    help="train and validate only on objects whose quality is at least this (default: all)")
     return ap
 
 
@@ -69,6 +72,10 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     torch.manual_seed(args.seed)
     export = Path(args.export) if args.export else ROOT / "outputs" / "train_example" / "export"
+    if args.export and not any((export / name).is_file() for name in ("zarr.json", "index.json")):
+        print(f"error: --export {export}: no export there (python -m carvi_torch.export makes one; without "
+              "--export this example builds one from the embedded collection)", file=sys.stderr)
+        return 2
     if not (export / "zarr.json").is_file():  # the zarr store of python -m carvi_torch.export
         _build_export(export)
     ds = LiftedDataset(export, fields=["mask", "viewpoint", "class_index"], min_quality=args.min_quality)

@@ -750,8 +750,8 @@ def _sfmc_image(cams_json: dict, aid: int) -> trimesh.Trimesh | None:
 
 #: Surface sampling step of the RMS error, as a fraction of the CAD diagonal. 1% rather than the
 #: metric's default 0.5%: blobby reconstructions of thin aeroplanes put many samples far from the
-#: CAD surface, where exact queries are slow; on the metric's benchmark (docs/tried.md, tools/bench_metrics.py)
-#: 1% and 0.5% agree within 0.02 points of percentage.
+#: CAD surface, where exact queries are slow; on the metric's benchmark (docs/tried.md: the retired
+#: tools/bench_metrics.py) 1% and 0.5% agree within 0.02 points of percentage.
 RMS_STEP = 0.01
 
 

@@ -19,7 +19,9 @@ Modules, in the order data flows through them:
 * :mod:`~carvi_torch.carve.dispatch`: :func:`carve_proposals`, which picks the backend, and
   :func:`imprinted_visual_hull`;
 * :mod:`~carvi_torch.carve.grids`: the results, :class:`VoxelGrid` and :class:`ProposalGrids`;
-* :mod:`~carvi_torch.carve.chunks`: how many references the pipeline carves together.
+* :mod:`~carvi_torch.carve.chunks`: how many references the pipeline carves together;
+* :mod:`~carvi_torch.carve.puffball`: the last fallback, a shape from one silhouette, on the
+  carving's grids.
 
 Example:
     >>> import torch

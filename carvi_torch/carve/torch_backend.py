@@ -227,8 +227,9 @@ def default_batch_voxels(device: torch.device | str) -> int:
     CUDA: ``2**25``. CPU: ``2**19`` voxels per intra-op thread (``torch.get_num_threads()``),
     at most ``2**21``: a chunk's coordinates and samples then stay near the cores' caches,
     while the per-chunk work stays amortised. Measured on the pipeline's proposals
-    (docs/benchmarks/README.md): with 1 thread ``2**19`` was 9% faster than ``2**20``
-    (bilinear and nearest), with 2 threads ``2**20`` 7% faster than ``2**19`` (bilinear).
+    (``git show bcd899f^:docs/benchmarks/README.md``, the records before docs/benchmarks.md): with 1
+    thread ``2**19`` was 9% faster than ``2**20`` (bilinear and nearest), with 2
+    threads ``2**20`` 7% faster than ``2**19`` (bilinear).
 
     Example:
         >>> default_batch_voxels("cuda")
@@ -248,7 +249,7 @@ def chunk_multiple(device: torch.device) -> int:
     batch entries each, so a chunk of 7 proposals on 2 threads keeps one thread idle for a
     proposal's time (13% slower per proposal than 8 in a scratch measurement). With this
     rounding (and the per-chunk coordinate terms) the carving was 1.14x faster bilinear and
-    1.24x nearest at 2 threads (docs/benchmarks/README.md, "Balanced threads"); splitting each
+    1.24x nearest at 2 threads (``git show bcd899f^:docs/benchmarks/README.md``, "Balanced threads"); splitting each
     proposal's depths into one batch entry per thread instead was slower (its maps are copied
     once per thread).
     """

@@ -3,5 +3,7 @@
 * :mod:`~carvi_torch.evaluation.metrics`: the paper's symmetric RMS surface distance, voxel IoU;
 * :mod:`~carvi_torch.evaluation.viewpoint_metrics`: rotation errors after one global alignment;
 * :mod:`~carvi_torch.evaluation.baselines`: Puffball and the SfM convex hull;
-* :mod:`~carvi_torch.evaluation.studies`: ranking curves and shape clusters for the studies in ``tools/``.
+* :mod:`~carvi_torch.evaluation.studies`: ranking curves and shape clusters for the studies in ``tools/``;
+* :mod:`~carvi_torch.evaluation.reliability`: how well the objects' ``quality`` ranks their true errors
+  (Spearman's rho; ``evaluate``'s ``quality.md``).
 """

@@ -1238,7 +1238,7 @@ def voxelize_solid(vertices: torch.Tensor, faces: torch.Tensor, pitch: float, or
     voxelisation: the volume exceeds the solid's by up to ``area * pitch``), so compare
     occupancies made at one pitch.
 
-    Grid convention (DESIGN.md): occupancy indexed ``(D, H, W)`` = ``(z, y, x)``; voxel
+    Grid convention (docs/conventions.md, *Voxel grids*): occupancy indexed ``(D, H, W)`` = ``(z, y, x)``; voxel
     ``(d, h, w)`` is centred at ``origin + pitch * (w, h, d)`` (``origin`` in ``(x, y, z)``).
 
     Args:

@@ -188,11 +188,16 @@ def announce(setup: RunSetup) -> None:
                     + "); its finished objects whose inputs are unchanged are kept as they are (resumed), so pass "
                     "overwrite=true to redo them")
     names = {c.meta.name for c in setup.loaded.collections.values()} | set(setup.loaded.collections)
+    known = sorted({str(c["name"]) for c in setup.loaded.dataset.get("categories", []) if isinstance(c, dict)
+                    and "name" in c})
     for c in setup.cfg.classes or []:
         if c not in names:
+            why = "no usable object of this class"
+            if c not in known:  # a typo, another case: say so, and what the data has
+                why += f": the data has no class of that name (its classes: {', '.join(known) or 'none'})"
             setup.summary["classes"][c] = {"status": "skipped", "objects": 0, "reconstructed": 0,
-                                           "failures": [{"stage": "load", "reason": "no usable object of this class"}]}
-            log.warning(f"{c}: no usable object of this class")
+                                           "failures": [{"stage": "load", "reason": why}]}
+            log.warning(f"{c}: {why}")
 
 
 def class_generator(cfg: Config, key: str) -> torch.Generator:

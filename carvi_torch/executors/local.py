@@ -57,8 +57,8 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
 
 
 def local_record(classes: int) -> dict:
-    """``summary.json["executor"]`` of a local run, with the fields a Ray run records (DESIGN.md): one node, this
-    machine (its host name); one task per class run; no retries (nothing runs twice here).
+    """``summary.json["executor"]`` of a local run, with the fields a Ray run records (README, *On a cluster*): one
+    node, this machine (its host name); one task per class run; no retries (nothing runs twice here).
 
     Example:
         >>> rec = local_record(4); rec["name"], rec["address"], len(rec["nodes"]), rec["tasks"], rec["retries"]

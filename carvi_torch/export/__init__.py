@@ -4,8 +4,9 @@
 - :mod:`~carvi_torch.export.command`: its command line (:func:`main`), light to import;
 - :mod:`~carvi_torch.export.settings`: the settings' ranges, checked by both before anything is written;
 - :mod:`~carvi_torch.export.store`: the zarr store's layout and fields;
+- :mod:`~carvi_torch.export.source`: what the export reads (the run's configuration and annotations);
 - :mod:`~carvi_torch.export.objects`: the per-object work (occupancy, depth, surface samples), run
-  in worker processes;
+  in worker processes; :mod:`~carvi_torch.export.raster`: its depth maps' numpy z-buffer;
 - :mod:`~carvi_torch.export.formats`: CMR ``.mat`` and U-CMR ``.json`` annotation files;
 - :mod:`~carvi_torch.export.legacy`: reading the deprecated shard layout (format 1).
 

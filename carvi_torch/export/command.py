@@ -18,21 +18,29 @@ __all__ = ["main", "parser", "start_worker_server", "WORKER_MODULE"]
 
 #: The module the export's worker processes run (imported once, by the forkserver).
 WORKER_MODULE = "carvi_torch.export.objects"
+#: The options that only the zarr store takes (option, argparse dest): ``--format cmr`` / ``ucmr`` name them in a
+#: warning and go on without them.
+ZARR_ONLY = (("--resolution", "resolution"), ("--points", "points"), ("--shard-size", "shard_size"),
+             ("--mesh", "mesh"), ("--workers", "workers"), ("--seed", "seed"))
+
+
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog=program("carvi_torch.export"),
                                  description="Export a reconstruction directory as a zarr v3 store for PyTorch "
                                              "training (read it with carvi_torch.training.LiftedDataset; layout in "
                                              "docs/export.md), or as CMR / U-CMR annotation files.")
     ap.add_argument("--recon", required=True, help="output directory of carvi_torch.reconstruct")
-    ap.add_argument("--out", required=True, help="store (directory) to write")
+    ap.add_argument("--out", required=True,
+                    help="folder to write: the zarr store, or the .mat / .json files of --format cmr / ucmr")
     ap.add_argument("--format", choices=["zarr", "cmr", "ucmr"], default="zarr",
                     help="zarr: the training store (default); cmr: one .mat per class; ucmr: one .json per class")
-    ap.add_argument("--resolution", type=int, default=32, help="occupancy grid side (default 32)")
-    ap.add_argument("--points", type=int, default=2048, help="surface points per object (default 2048)")
-    ap.add_argument("--shard-size", type=int, default=256, help="samples per shard file (default 256)")
-    ap.add_argument("--mesh", action="store_true", help="also store every mesh (ragged mesh_vertices, mesh_faces)")
-    ap.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core; 0: none)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the surface sampling")
+    ap.add_argument("--resolution", type=int, default=32, help="zarr: occupancy grid side (default 32)")
+    ap.add_argument("--points", type=int, default=2048, help="zarr: surface points per object (default 2048)")
+    ap.add_argument("--shard-size", type=int, default=256, help="zarr: samples per shard file (default 256)")
+    ap.add_argument("--mesh", action="store_true",
+                    help="zarr: also store every mesh (ragged mesh_vertices, mesh_faces)")
+    ap.add_argument("--workers", type=int, default=None, help="zarr: worker processes (default: one per core; 0: none)")
+    ap.add_argument("--seed", type=int, default=0, help="zarr: seed of the surface sampling (default 0)")
     add_common(ap)
     return ap
 
@@ -77,6 +85,7 @@ def _main(args) -> int:
 
             written = export_format(args.recon, args.out, args.format, classes=split_classes(args.classes))
             print(f"wrote {len(written)} {args.format} file(s) to {args.out}")
+            _ignored(args)
             return 0
         idx = export(args.recon, args.out, args.resolution, args.points, args.shard_size, args.seed,
                      progress=not args.quiet, classes=split_classes(args.classes), workers=args.workers,
@@ -90,6 +99,14 @@ def _main(args) -> int:
         return 130
     _exported(args, idx)
     return 0
+
+
+def _ignored(args) -> None:
+    """One warning line naming the zarr store's options that a CMR / U-CMR export was given and went without."""
+    given = [opt for opt, dest in ZARR_ONLY if getattr(args, dest) != parser().get_default(dest)]
+    if given:
+        print(f"warning: {', '.join(given)}: for --format zarr only, ignored: --format {args.format} writes the "
+              "cameras and mean shape alone", file=sys.stderr)
 
 
 def _exported(args, idx: dict) -> None:

@@ -31,7 +31,7 @@ import numpy as np
 from .outputs import safe_name
 
 __all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS", "RUN_NAMES", "reserved", "INPUTS_CHANGED",
-           "NO_INPUT_RECORD", "ResumeCheck", "resume_check", "held_fingerprint", "linked_path"]
+           "NO_INPUT_RECORD", "ResumeCheck", "resume_check", "other_objects", "held_fingerprint", "linked_path"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -176,12 +176,38 @@ REDONE = {INPUTS_CHANGED: "inputs_changed", NO_INPUT_RECORD: "no_input_record"}
 @dataclass
 class ResumeCheck:
     """What an earlier run left of a class's objects: ``done`` per object (resume it), ``damaged``
-    (``{annotation id: reason}``: files that cannot be trusted) and ``redone`` (``{reason name:
-    [annotation ids]}``: sound files made from other inputs, or without a record of them)."""
+    (``{annotation id: reason}``: files that cannot be trusted), ``redone`` (``{reason name:
+    [annotation ids]}``: sound files made from other inputs, or without a record of them) and ``others``
+    (:func:`other_objects`: the stems of mesh or voxels files of objects the data no longer holds)."""
 
     done: list = field(default_factory=list)
     damaged: dict = field(default_factory=dict)
     redone: dict = field(default_factory=dict)
+    others: list = field(default_factory=list)
+
+    def lines(self, key: str) -> list[str]:
+        """The run's warning lines for class ``key``: each damaged object, then the redone and the others'
+        counts.
+
+        Example:
+            >>> ResumeCheck(others=["17", "18"]).lines("car")[0][:60]
+            '  car: 2 object(s) of an earlier run that the data no longer'
+        """
+        out = [f"  {key}: annotation {a}: {why}; reconstructing it again" for a, why in self.damaged.items()]
+        if self.redone:
+            out.append(f"  {key}: {self.line()}")
+        if self.others:
+            shown = ", ".join(self.others[:5]) + (", ..." if len(self.others) > 5 else "")
+            out.append(f"  {key}: {len(self.others)} object(s) of an earlier run that the data no longer holds keep "
+                       f"their files in meshes/ and voxels/ ({shown}); cameras.json, the report and the export "
+                       "leave them out")
+        return out
+
+    def info(self) -> dict:
+        """``summary.json``'s entries of the class: ``redone`` and ``other_objects`` (``count``, ``stems``), where
+        there are any."""
+        return ({"redone": self.summary()} if self.redone else {}) | (
+            {"other_objects": {"count": len(self.others), "stems": self.others}} if self.others else {})
 
     def summary(self) -> dict:
         """``summary.json``'s ``redone`` of the class: ``count`` and the ids per reason."""
@@ -198,6 +224,20 @@ class ResumeCheck:
                "no_input_record": "made by an older run that recorded no inputs"}
         return (f"redoing {self.summary()['count']} finished object(s): "
                 + "; ".join(f"{len(ids)} {why[k]}" for k, ids in sorted(self.redone.items())))
+
+
+def other_objects(cdir: str | Path, annotation_ids: list) -> list[str]:
+    """The stems of the mesh and voxels files in class folder ``cdir`` that belong to none of ``annotation_ids``
+    (an earlier run's objects that the data no longer holds), shorter first (numeric ids in order).
+
+    Example:
+        >>> other_objects("no/such/run/car", [1, 2])
+        []
+    """
+    ours = {object_stem(a) for a in annotation_ids}
+    stems = {f.stem for kind in ("meshes", "voxels") if (Path(cdir) / kind).is_dir()
+             for f in (Path(cdir) / kind).iterdir() if f.is_file() and not f.name.startswith(".")}
+    return sorted(stems - ours, key=lambda s: (len(s), s))
 
 
 def resume_check(cdir: str | Path, annotation_ids: list, fingerprints: list, mesh_format: str) -> ResumeCheck:

@@ -8,6 +8,10 @@ Modules, in the order data flows through them:
 * :mod:`~carvi_torch.viewpoints.mixture`: optionally several rigid shapes per class;
 * :mod:`~carvi_torch.viewpoints.refine`: silhouette refinement per shape group, and cameras for
   the instances SfM could not place (the unseen-image path).
+* :mod:`~carvi_torch.viewpoints.choice`: each object's SfM or refined camera, judged without ground
+  truth (``refine_keep``);
+* :mod:`~carvi_torch.viewpoints.frame`: the class's canonical frame (a template of 3-D keypoints,
+  ``templates.json``, or the automatic frame), in which the cameras and the mean shape are written.
 
 :func:`estimate_viewpoints` runs them in order on a class and its mirrored copies and returns
 a :class:`Viewpoints`. Cameras are in canvas pixels (``carvi_torch.cameras`` conventions).
