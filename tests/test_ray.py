@@ -247,11 +247,15 @@ def _run_alone(tmp_path: Path, data: str, env: dict, **extra) -> subprocess.Comp
 def test_a_ray_of_its_own_ignores_ray_address_and_home(local, tmp_path):
     """ray_address unset: the run starts a Ray of its own, even where RAY_ADDRESS names a cluster (here
     one that does not answer), without token authentication: no ``~/.ray`` (a token file) in the home
-    folder, no warning about tokens."""
+    folder, no warning about tokens. The carving kernel's cache stays this process's (``CARVI_TORCH_CACHE``):
+    a fresh home would have the run compile the kernel again."""
+    from carvi_torch.carve import native
+
     _, ref = local
     home = tmp_path / "home"
     home.mkdir()
-    done = _run_alone(tmp_path, ref["data"], {"HOME": str(home), "RAY_ADDRESS": "127.0.0.1:1"})
+    done = _run_alone(tmp_path, ref["data"], {"HOME": str(home), "RAY_ADDRESS": "127.0.0.1:1",
+                                              "CARVI_TORCH_CACHE": str(native.library_path().parents[1])})
     assert done.returncode == 0, done.stderr[-2000:]
     assert len(list((tmp_path / "out" / "car" / "meshes").glob("*.ply"))) == 6
     assert not [p for p in home.rglob("*") if ".ray" in p.parts or "ray" in p.name]
