@@ -232,40 +232,65 @@ def test_a_relative_out_is_the_drivers(cluster, local, tmp_path, monkeypatch):
     assert len(list((tmp_path / "rel" / "car" / "meshes").glob("*.ply"))) == 6
 
 
-def _run_alone(tmp_path: Path, data: str, env: dict, **extra) -> subprocess.CompletedProcess:
-    """``carvi_torch.reconstruct`` with executor=ray for the car class, in a process of its own (this one
-    holds a Ray connection), with ``env`` over a copy of this environment without the loopback switch."""
+def _start_alone(tmp_path: Path, data: str, env: dict, **extra) -> subprocess.Popen:
+    """``carvi_torch.reconstruct`` with executor=ray for the car class, started in a process of its own (this
+    one holds a Ray connection), with ``env`` over a copy of this environment without the loopback switch;
+    its output goes to ``tmp_path/out``, its stderr to ``tmp_path/stderr``."""
     from carvi_torch.executors.ray import LOOPBACK_VAR
 
     config = tmp_path / "run.yaml"
     config.write_text(_cfg(tmp_path / "out", data=data, executor="ray", classes=["car"], **extra).to_yaml())
     env = {**{k: v for k, v in os.environ.items() if k != LOOPBACK_VAR}, **env}
-    return subprocess.run([sys.executable, "-m", "carvi_torch.reconstruct", "--config", str(config)], cwd=ROOT,
-                          env=env, capture_output=True, text=True, timeout=300)
+    with open(tmp_path / "stderr", "w") as err:
+        return subprocess.Popen([sys.executable, "-m", "carvi_torch.reconstruct", "--config", str(config)], cwd=ROOT,
+                                env=env, stdout=subprocess.DEVNULL, stderr=err)
 
 
-def test_a_ray_of_its_own_ignores_ray_address_and_home(local, tmp_path):
+@pytest.fixture(scope="module")
+def runs_alone(cluster, local, tmp_path_factory):
+    """The two runs in processes of their own, started at once (each mostly waits for Ray and torch to start):
+    ``own`` with ray_address unset, with a fresh home folder (``own/home``) and RAY_ADDRESS naming a cluster that
+    does not answer; ``loopback`` with ray_address the cluster's 127.0.0.1:PORT. The carving kernel's cache stays
+    this process's (``CARVI_TORCH_CACHE``): a fresh home would have the run compile the kernel again. Yields a
+    function that waits for a run: ``(folder, exit status, stderr)``."""
+    from carvi_torch.carve import native
+
+    c, _ = cluster
+    _, ref = local
+    own, loop = tmp_path_factory.mktemp("own"), tmp_path_factory.mktemp("loopback")
+    (own / "home").mkdir()
+    procs = {"own": (own, _start_alone(own, ref["data"], {"HOME": str(own / "home"), "RAY_ADDRESS": "127.0.0.1:1",
+                                                          "CARVI_TORCH_CACHE": str(native.library_path().parents[1])})),
+             "loopback": (loop, _start_alone(loop, ref["data"], {}, ray_address=c.address))}
+
+    def wait(name):
+        folder, proc = procs[name]
+        return folder, proc.wait(timeout=300), (folder / "stderr").read_text()
+
+    yield wait
+    for _, proc in procs.values():
+        proc.kill()
+        proc.wait()
+
+
+def test_a_ray_of_its_own_ignores_ray_address_and_home(runs_alone):
     """ray_address unset: the run starts a Ray of its own, even where RAY_ADDRESS names a cluster (here
     one that does not answer), without token authentication: no ``~/.ray`` (a token file) in the home
     folder, no warning about tokens."""
-    _, ref = local
-    home = tmp_path / "home"
-    home.mkdir()
-    done = _run_alone(tmp_path, ref["data"], {"HOME": str(home), "RAY_ADDRESS": "127.0.0.1:1"})
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert len(list((tmp_path / "out" / "car" / "meshes").glob("*.ply"))) == 6
+    folder, status, stderr = runs_alone("own")
+    assert status == 0, stderr[-2000:]
+    assert len(list((folder / "out" / "car" / "meshes").glob("*.ply"))) == 6
+    home = folder / "home"
     assert not [p for p in home.rglob("*") if ".ray" in p.parts or "ray" in p.name]
-    assert "token" not in done.stderr.lower()
+    assert "token" not in stderr.lower()
 
 
-def test_a_loopback_address_connects_over_loopback(cluster, local, tmp_path):
+def test_a_loopback_address_connects_over_loopback(runs_alone):
     """ray_address=127.0.0.1:PORT from a process without the loopback switch: the run connects over
     loopback and finishes."""
-    c, _ = cluster
-    _, ref = local
-    done = _run_alone(tmp_path, ref["data"], {}, ray_address=c.address)
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert len(list((tmp_path / "out" / "car" / "meshes").glob("*.ply"))) == 6
+    folder, status, stderr = runs_alone("loopback")
+    assert status == 0, stderr[-2000:]
+    assert len(list((folder / "out" / "car" / "meshes").glob("*.ply"))) == 6
 
 
 def test_environ_sets_removes_and_restores(monkeypatch):
