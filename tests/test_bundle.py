@@ -10,7 +10,7 @@ from scipy.optimize import least_squares
 
 from carvi_torch.cameras import ScaledOrthographic, axis_angle_to_rotation, random_rotations
 from carvi_torch.config import Config, ConfigError
-from carvi_torch.viewpoints import class_sfm, sfm
+from carvi_torch.viewpoints import bundle, class_sfm, sfm
 from carvi_torch.viewpoints.bundle import jacobians, joint_bundle_adjust, residuals
 
 F64 = torch.float64
@@ -249,3 +249,25 @@ def test_config_passes_sfm_polish_to_the_class_sfm(monkeypatch):
     with pytest.raises(ConfigError, match="sfm_polish"):
         Config().override({"sfm_polish": "both"})
 
+
+
+def test_a_step_without_predicted_gain_is_taken(monkeypatch):
+    """A step that lowers the cost while the linear model predicts no gain (rounding near a minimum) is
+    accepted, the damping update bounded (a gain ratio of ``1 / 1e-300`` would overflow the cube)."""
+    cams, X, w, vis, g = problem(12, n=8, k=6, noise=0.5)
+    start, X0 = perturbed(cams, X, g)
+    real_ne, real_solve, grads = bundle._normal_equations, bundle._solve, {}
+
+    def no_gradient(A, B, r):
+        U, W, V, gc, gx = real_ne(A, B, r)
+        grads["g"] = (gc, gx)
+        return U, W, V, torch.zeros_like(gc), torch.zeros_like(gx)  # what the gain prediction sees
+
+    def undamped(U, W, V, gc, gx, lam):
+        dc, dx, Dc, Dx = real_solve(U, W, V, *grads["g"], lam)
+        return dc, dx, 0 * Dc, 0 * Dx
+
+    monkeypatch.setattr(bundle, "_normal_equations", no_gradient)
+    monkeypatch.setattr(bundle, "_solve", undamped)
+    res = joint_bundle_adjust(start, X0, w, vis, iters=5, tol=0.0)
+    assert len(res.history) >= 2 and res.history[-1] < rms(start, X0, w, vis)

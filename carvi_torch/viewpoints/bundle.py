@@ -210,7 +210,7 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
             lam, nu = lam * nu, nu * 2.0
             converged = lam > MAX_DAMPING
             continue
-        rho = (cost - cost_new) / max(pred, 1e-300)
+        rho = min((cost - cost_new) / max(pred, 1e-300), 1.0)  # gain ratio; above 1 the factor is 1/3 anyway
         lam, nu = lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 2.0
         prev = (cost / entries) ** 0.5
         (R, logs, t, X), r, Y, cost = new, r_new, Y_new, cost_new

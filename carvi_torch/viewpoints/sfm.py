@@ -43,7 +43,9 @@ table-top keypoints carry names no other model uses).
 Then a **bundle polish** (``polish_iters`` rounds, same stopping rule): alternate
 every camera's constrained least-squares fit to the shape on its visible keypoints
 (a few Levenberg-Marquardt steps on scaled rotations, ``refine.refine_cameras``
-without the silhouette) and the shape's exact least-squares solve given the cameras.
+without the silhouette) and the shape's exact least-squares solve given the cameras;
+or, with ``polish="joint"``, Levenberg-Marquardt over every camera and the shape at once
+(:mod:`carvi_torch.viewpoints.bundle`), which settles in far fewer rounds.
 Both steps lower the objective, which steps 3-4 ("solve unconstrained, then
 project") do not guarantee on noisy data: on the 330 real PASCAL VOC aeroplanes
 (with mirrors) the polish took the RMS residual from 8.0 to 5.9 canvas pixels and
@@ -127,7 +129,8 @@ class SfMResult:
         residual_all: ``(N,)`` the same over all visible keypoints with a finite
             shape row (the non-rigid ones included).
         iterations: outer factorisation iterations run.
-        polish_rounds: bundle-polish rounds run (0 for the planar model).
+        polish_rounds: bundle-polish rounds run (0 for the planar model; ``polish="joint"``: accepted
+            Levenberg-Marquardt steps).
         converged: whether the last stage's stopping rule fired before its limit.
         reflection_votes: how the reflection was decided: ``{"for": int, "against":
             int, "voters": int, "decided_by": "visibility" | "handedness" |
