@@ -175,10 +175,11 @@ def test_deterministic():
     (lambda a: a.update(visible=a["visible"][:-1]), "visible must be"),
     (lambda a: a.update(cameras=ScaledOrthographic(a["cameras"].R, 0 * a["cameras"].s, a["cameras"].t)),
      "scales must be"),
+    (lambda a: a["shape"].__setitem__((1, 2), float("nan")), "must be finite"),
 ])
 def test_bad_inputs_raise(change, match):
     cams, X, w, vis, _ = problem(8, n=5, k=4)
-    args = {"cameras": cams, "shape": X, "keypoints": w, "visible": vis}
+    args = {"cameras": cams, "shape": X.clone(), "keypoints": w, "visible": vis}
     change(args)
     with pytest.raises(ValueError, match=match):
         joint_bundle_adjust(**args)

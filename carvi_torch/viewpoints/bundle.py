@@ -152,7 +152,7 @@ def _apply(R, logs, t, X, dc, dx):
 
 
 def _check(cameras: ScaledOrthographic, shape: torch.Tensor, keypoints: torch.Tensor, visible: torch.Tensor):
-    """Raise ``ValueError`` for inconsistent shapes, a non-bool mask or non-positive scales."""
+    """Raise ``ValueError`` for inconsistent shapes, a non-bool mask, non-positive scales or a non-finite start."""
     n, k = len(cameras), shape.shape[0]
     if shape.dim() != 2 or shape.shape[1] != 3 or k == 0:
         raise ValueError(f"shape must be (K, 3), got {tuple(shape.shape)}")
@@ -163,6 +163,8 @@ def _check(cameras: ScaledOrthographic, shape: torch.Tensor, keypoints: torch.Te
         raise ValueError(f"visible must be ({n}, {k}) bool, got {tuple(visible.shape)} {visible.dtype}")
     if bool((cameras.s <= 0).any()) or not bool(torch.isfinite(cameras.s).all()):
         raise ValueError("camera scales must be finite and positive (degenerate blocks sit out: leave them out)")
+    if not all(bool(torch.isfinite(x).all()) for x in (shape, cameras.R, cameras.t)):
+        raise ValueError("the start (shape, rotations, translations) must be finite")
 
 
 def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoints: torch.Tensor,
