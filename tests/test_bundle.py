@@ -272,3 +272,22 @@ def test_a_step_without_predicted_gain_is_taken(monkeypatch):
     monkeypatch.setattr(bundle, "_solve", undamped)
     res = joint_bundle_adjust(start, X0, w, vis, iters=5, tol=0.0)
     assert len(res.history) >= 2 and res.history[-1] < rms(start, X0, w, vis)
+
+
+@pytest.mark.shared
+def test_real_aeroplanes_keep_every_camera(shared_data, tmp_path):
+    """The 327 real PASCAL VOC aeroplanes (and mirrors) polished jointly: no camera degenerates and the polish
+    settles below the alternation's residual. Without the step bound (``MAX_STEP``) one joint step turned an
+    aeroplane that shows only its nose and rudder points by thousands of radians (the others' gain lowered the
+    total) and its scale then collapsed to 0: two objects lost their SfM camera."""
+    from carvi_torch.io.coco import load_coco
+    from carvi_torch.io.voc import convert
+
+    ann = tmp_path / "aeroplane.json"
+    convert(shared_data / "pascal_voc_aeroplane" / "keypoints", ann)
+    both = load_coco(ann, classes=["aeroplane"]).collections["aeroplane"].with_mirrors()
+    cfg = Config().override({"sfm_polish": "joint", "progress": False}).viewpoints
+    res = class_sfm(both, cfg, polish_iters=100)
+    assert not [p for p in res.problems if "degenerate" in p]
+    assert res.converged and int(res.valid.sum()) == len(both)
+    assert res.history[-1] < 5.9  # the alternation's 30 rounds end at 5.9 px RMS (docs/viewpoints.md)

@@ -20,7 +20,8 @@ system is solved for the shape (``K`` is a class's keypoint count, about 10-20),
 cameras are back-substituted. The damping is Marquardt's (``lambda`` times the matrix's
 diagonal, floored), updated by Nielsen's rule; it also keeps the 7 gauge directions (a global
 rotation, scale and 3-D translation of the solution) defined, and a step is accepted only
-where the cost falls, so the cost never rises. Stopping rule, as the alternation's
+where the cost falls (and no camera's rotation or log-scale moves by more than :data:`MAX_STEP`), so the
+cost never rises. Stopping rule, as the alternation's
 (``sfm.bundle_polish``): an accepted step lowered the RMS residual by at most ``tol`` of it,
 or the RMS residual is at most ``floor``, or the damping exceeds :data:`MAX_DAMPING` (no
 descent step is left at float precision); else after ``iters`` damped solves.
@@ -49,10 +50,16 @@ import torch
 
 from ..cameras import ScaledOrthographic, axis_angle_to_rotation
 
-__all__ = ["BundleResult", "joint_bundle_adjust", "residuals", "jacobians", "MAX_DAMPING"]
+__all__ = ["BundleResult", "joint_bundle_adjust", "residuals", "jacobians", "MAX_DAMPING", "MAX_STEP"]
 
 #: Damping above which no descent step is left (the step is at float precision's noise): converged.
 MAX_DAMPING = 1e12
+#: Longest step of any camera's rotation (radians) or log-scale: a longer one is rejected as a failed step
+#: (the damping grows). A camera whose visible keypoints are nearly collinear has a nearly unobservable
+#: rotation; without the bound one joint step turned such a camera (a real PASCAL VOC aeroplane showing its
+#: nose and rudder points) by thousands of radians while the other cameras' gain lowered the total, and its
+#: scale then collapsed to 0.
+MAX_STEP = 0.5
 #: Marquardt's damping: ``lambda * max(diag, DIAG_FLOOR * mean diag)`` per parameter block (cameras,
 #: shape), so unobserved parameters (a keypoint no camera sees) stay defined.
 DIAG_FLOOR = 1e-9
@@ -200,6 +207,8 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
         A, B = jacobians(R, logs.exp(), Y, v)
         U, W, V, gc, gx = _normal_equations(A, B, r)
         step = _solve(U, W, V, gc, gx, lam)
+        if step is not None and float(step[0][:, :4].abs().max()) > MAX_STEP:
+            step = None  # outside the trust region of the linearised rotations and scales
         accepted = False
         if step is not None:
             dc, dx, Dc, Dx = step
