@@ -38,6 +38,7 @@ from .mesh import MeshFormat
 from .viewpoints import CameraSource
 from .viewpoints.choice import CameraKeep
 from .viewpoints.frame import FrameChoice
+from .viewpoints.sfm import PolishMethod
 
 __all__ = ["Config", "ConfigError", "load_config", "read_run_config", "settings_changed", "flatten_settings",
            "NEUTRAL_SETTINGS", "resolve_key", "all_keys", "FIELD_DOCS", "InputConfig",
@@ -119,7 +120,16 @@ class ViewpointConfig:
     polish of most CAD classes at 8 views stops before its residual settles (boat: 0.1% lower every round);
     run to its end (about 300 rounds, ``sfm_polish_iters=400``) it puts boat within 12 degrees at every seed
     and makes its cameras agree across float paths, but train's seed-2 cameras worse and bottle's better
-    (docs/viewpoints.md, *Where a run's numbers move between machines*)."""
+    (docs/viewpoints.md, *Where a run's numbers move between machines*). With ``sfm_polish=joint`` a round is
+    one damped Levenberg-Marquardt solve."""
+    sfm_polish: PolishMethod = "alternate"
+    """How the bundle polish minimises the visible-keypoint residual after the factorisation
+    (``carvi_torch.viewpoints.sfm.bundle_polish``): ``alternate`` (every camera's fit to the shape, then the
+    shape's exact solve, in turn) or ``joint`` (Levenberg-Marquardt over every camera and the shape at once,
+    the cameras eliminated by the Schur complement: ``carvi_torch.viewpoints.bundle``). Shape groups' SfM runs
+    take this too. ``joint`` settles most CAD classes at 8 views in 4-25 rounds (boat within 12 degrees at
+    every seed, summed medians 233.8 -> 222.7, 0.80x the many-class CPU time); the real VOC aeroplanes need
+    about 40 (``sfm_polish_iters=100``); docs/viewpoints.md, *A joint bundle adjustment*."""
     sfm_template_start: bool = True
     """Also start the class's SfM from its template of 3-D keypoints (the category's ``keypoints_3d``, else the
     shipped PASCAL3D+ one of its name; ``viewpoints.frame``) and keep that solution when it places as many

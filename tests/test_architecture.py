@@ -18,8 +18,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "carvi_torch"
 #: The stages in the order data flows through them; a module of a stage may import modules of its
 #: own stage (the order inside a stage is checked for cycles below) and of earlier stages only.
 STAGES = [
-    ("viewpoints", ["viewpoints.camera_fit", "viewpoints.sfm", "viewpoints.mixture", "viewpoints.refine",
-                    "viewpoints"]),
+    ("viewpoints", ["viewpoints.bundle", "viewpoints.camera_fit", "viewpoints.sfm", "viewpoints.mixture",
+                    "viewpoints.refine", "viewpoints"]),
     ("surrogates", ["surrogates"]),
     ("carve", ["carve.geometry", "carve.grids", "carve.torch_backend", "carve.native", "carve.reference",
                "carve.dispatch", "carve"]),

@@ -655,7 +655,8 @@ def camera_variant(coll, gt: dict, cfg: Config, *, mirrors: bool = True, rigid: 
     both = coll.with_mirrors() if mirrors else coll
     meta = coll.meta
     opts = sfm.SfMOptions(max_outer=cfg.viewpoints.sfm_max_outer, inner=cfg.viewpoints.sfm_inner,
-                          tol=cfg.viewpoints.sfm_tol, polish_iters=cfg.viewpoints.sfm_polish_iters)
+                          tol=cfg.viewpoints.sfm_tol, polish_iters=cfg.viewpoints.sfm_polish_iters,
+                          polish=cfg.viewpoints.sfm_polish)
     res = sfm.rigid_sfm(both.keypoints, both.visible, opts,
                         rigid_keypoints=meta.rigid_keypoints if rigid is None else rigid,
                         keypoint_names=meta.keypoint_names, flip_pairs=meta.flip_pairs,

@@ -5,6 +5,8 @@ Modules, in the order data flows through them:
 * :mod:`~carvi_torch.viewpoints.camera_fit`: fitting scaled orthographic cameras to a fixed
   shape (keypoints and silhouettes; Levenberg-Marquardt on scaled rotations), the shared maths;
 * :mod:`~carvi_torch.viewpoints.sfm`: rigid structure from motion with missing data;
+* :mod:`~carvi_torch.viewpoints.bundle`: SfM's joint bundle adjustment of all cameras and the shape
+  (``sfm_polish=joint``);
 * :mod:`~carvi_torch.viewpoints.mixture`: optionally several rigid shapes per class;
 * :mod:`~carvi_torch.viewpoints.refine`: silhouette refinement per shape group, and cameras for
   the instances SfM could not place (the unseen-image path).
@@ -134,7 +136,7 @@ def class_sfm(both: ClassCollection, cfg: ViewpointConfig, init_shape: torch.Ten
     ``options``: :class:`~carvi_torch.viewpoints.sfm.SfMOptions` fields that replace the configured ones)."""
     m = both.meta
     opts = sfm.SfMOptions(max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner, tol=cfg.sfm_tol,
-                          polish_iters=cfg.sfm_polish_iters)
+                          polish_iters=cfg.sfm_polish_iters, polish=cfg.sfm_polish)
     opts = dataclasses.replace(opts, **options)
     return sfm.rigid_sfm(both.keypoints, both.visible, opts, rigid_keypoints=m.rigid_keypoints,
                          keypoint_names=m.keypoint_names, flip_pairs=m.flip_pairs, left_convention=m.left_convention,

@@ -43,7 +43,9 @@ table-top keypoints carry names no other model uses).
 Then a **bundle polish** (``polish_iters`` rounds, same stopping rule): alternate
 every camera's constrained least-squares fit to the shape on its visible keypoints
 (a few Levenberg-Marquardt steps on scaled rotations, ``refine.refine_cameras``
-without the silhouette) and the shape's exact least-squares solve given the cameras.
+without the silhouette) and the shape's exact least-squares solve given the cameras;
+or, with ``polish="joint"``, Levenberg-Marquardt over every camera and the shape at once
+(:mod:`carvi_torch.viewpoints.bundle`), which settles in far fewer rounds.
 Both steps lower the objective, which steps 3-4 ("solve unconstrained, then
 project") do not guarantee on noisy data: on the 330 real PASCAL VOC aeroplanes
 (with mirrors) the polish took the RMS residual from 8.0 to 5.9 canvas pixels and
@@ -61,14 +63,16 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import typing
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Literal, Sequence
 
 import numpy as np
 import torch
 
 from ..cameras import ScaledOrthographic, complete_rotation, geodesic_angle, scaled_stiefel
 from ..runtime import cpu_single_thread
+from .bundle import joint_bundle_adjust
 from .camera_fit import refine_cameras
 
 __all__ = [
@@ -87,7 +91,14 @@ __all__ = [
     "mirror_layout",
     "mirror_tie_angles",
     "MirrorLayout",
+    "PolishMethod",
+    "POLISH_METHODS",
 ]
+
+#: How the bundle polish after the factorisation minimises (:func:`bundle_polish`): ``alternate`` (cameras,
+#: then the shape, in turn) or ``joint`` (Levenberg-Marquardt over both at once, ``viewpoints.bundle``).
+PolishMethod = Literal["alternate", "joint"]
+POLISH_METHODS = typing.get_args(PolishMethod)
 
 #: ``diag(1, 1, -1)``: the reflection that maps a solution onto its Necker mirror.
 _FLIP_Z = (1.0, 1.0, -1.0)
@@ -118,7 +129,8 @@ class SfMResult:
         residual_all: ``(N,)`` the same over all visible keypoints with a finite
             shape row (the non-rigid ones included).
         iterations: outer factorisation iterations run.
-        polish_rounds: bundle-polish rounds run (0 for the planar model).
+        polish_rounds: bundle-polish rounds run (0 for the planar model; ``polish="joint"``: accepted
+            Levenberg-Marquardt steps).
         converged: whether the last stage's stopping rule fired before its limit.
         reflection_votes: how the reflection was decided: ``{"for": int, "against":
             int, "voters": int, "decided_by": "visibility" | "handedness" |
@@ -500,22 +512,26 @@ def _planar_solution(W, vis, **kw):
     return M, tv, S, history, it, conv
 
 
-def bundle_polish(M, t, S, W, vis, *, iters, tol, lm_iters=5):
-    """Bundle polish of a rigid solution on the visible entries (block coordinate descent).
+def bundle_polish(M, t, S, W, vis, *, iters, tol, lm_iters=5, method: PolishMethod = "alternate"):
+    """Bundle polish of a rigid solution on the visible entries.
 
-    Alternates (a) every camera's constrained least-squares fit to the current shape
-    (:func:`carvi_torch.viewpoints.camera_fit.refine_cameras` with the keypoint term only: a few
-    Levenberg-Marquardt steps on scaled rotations, never raising an instance's
-    residual) and (b) the shape's exact least-squares solve given the cameras
-    (:func:`triangulate`). Both steps lower the visible-entry residual, which the
-    factorisation's "unconstrained solve, then project" steps do not guarantee on
-    noisy data. Stops when the RMS residual changes by less than ``tol`` (relative),
-    reaches the exact-fit floor, or after ``iters`` rounds.
+    ``method="alternate"`` (block coordinate descent) alternates (a) every camera's constrained
+    least-squares fit to the current shape (:func:`carvi_torch.viewpoints.camera_fit.refine_cameras` with
+    the keypoint term only: ``lm_iters`` Levenberg-Marquardt steps on scaled rotations, never raising an
+    instance's residual) and (b) the shape's exact least-squares solve given the cameras
+    (:func:`triangulate`); one round is (a) then (b). ``method="joint"``: Levenberg-Marquardt over every
+    camera and the shape at once (:func:`carvi_torch.viewpoints.bundle.joint_bundle_adjust`); one round
+    is one damped solve. Both lower the visible-entry residual, which the factorisation's "unconstrained
+    solve, then project" steps do not guarantee on noisy data. Stops when the RMS residual changes by
+    less than ``tol`` (relative), reaches the exact-fit floor, or after ``iters`` rounds. Degenerate
+    blocks (:func:`_usable_blocks`) sit out and keep theirs.
 
     Args: ``M (N, 2, 3)``, ``t (N, 2)``, ``S (3, K)``, ``W (N, 2, K)``, ``vis (N, K)`` float.
 
-    Returns ``M, t, S, history, converged``.
+    Returns ``M, t, S, history, converged`` (history: the RMS residual after every (accepted) round).
     """
+    if method not in POLISH_METHODS:
+        raise ValueError(f"method must be one of {POLISH_METHODS}, got {method!r}")
     kp = W.transpose(1, 2).contiguous()
     s = M[:, 0].norm(dim=-1)
     # degenerate blocks (zero scale: e.g. an instance whose visible keypoints coincide in
@@ -530,10 +546,24 @@ def bundle_polish(M, t, S, W, vis, *, iters, tol, lm_iters=5):
     shape = S.T.contiguous()
     floor = 1e-5 * float(((W - (W * vis[:, None]).sum(-1, keepdim=True) / vis.sum(-1).clamp(min=1)[:, None, None])
                           .pow(2) * vis[:, None]).sum() / (2 * vis.sum()).clamp(min=1)) ** 0.5
+    if method == "joint":
+        res = joint_bundle_adjust(cams, shape, kp, visb, iters=iters, tol=tol, floor=floor)
+        cams, shape, history, converged = res.cameras, res.shape, res.history, res.converged
+    else:
+        cams, shape, history, converged = _alternate(cams, shape, kp, visb, iters, tol, floor, lm_iters)
+    M_out = torch.where(ok[:, None, None], cams.M, M)
+    t_out = torch.where(ok[:, None], cams.t, t)
+    return M_out, t_out, shape.T.contiguous(), history, converged
+
+
+def _alternate(cams: ScaledOrthographic, shape, kp, visb, iters: int, tol: float, floor: float, lm_iters: int):
+    """The alternation of :func:`bundle_polish` from ``cams`` and ``shape (K, 3)`` on ``kp (N, K, 2)``,
+    ``visb (N, K)`` bool; returns ``cams, shape, history, converged``."""
+    count = (2 * visb.sum()).clamp(min=1)
 
     def rms(c, X):
         e = torch.where(visb, ((c.project(X) - kp) ** 2).sum(-1), 0.0)
-        return float((e.sum() / (2 * vis.sum()).clamp(min=1)).sqrt())
+        return float((e.sum() / count).sqrt())
 
     history: list[float] = []
     prev = rms(cams, shape)
@@ -547,9 +577,7 @@ def bundle_polish(M, t, S, W, vis, *, iters, tol, lm_iters=5):
             converged = True
             break
         prev = cur
-    M_out = torch.where(ok[:, None, None], cams.M, M)
-    t_out = torch.where(ok[:, None], cams.t, t)
-    return M_out, t_out, shape.T.contiguous(), history, converged
+    return cams, shape, history, converged
 
 
 def _usable_blocks(M: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -663,14 +691,15 @@ def mirror_tie_angles(M: torch.Tensor, S: torch.Tensor, mir: MirrorLayout) -> to
     return torch.rad2deg(geodesic_angle(Ro, Rm))
 
 
-def _seed_from_originals(Wv, vv, mir: MirrorLayout, M_joint, t_joint, polish_iters, **kw):
+def _seed_from_originals(Wv, vv, mir: MirrorLayout, M_joint, t_joint, polish_iters, polish_method, **kw):
     """Solve the originals alone, derive their copies' cameras by mirroring, polish all rows together.
 
     Returns ``M, t, S, history`` (history: originals' factorisation and polish, then the joint polish).
     """
     o = mir.original
     Mo, to, So, hist, _, _ = _factorize(Wv[o], vv[o], rank=3, **kw)
-    Mo, to, So, ph, _ = bundle_polish(Mo, to, So, Wv[o], vv[o], iters=polish_iters, tol=kw["tol"])
+    Mo, to, So, ph, _ = bundle_polish(Mo, to, So, Wv[o], vv[o], iters=polish_iters, tol=kw["tol"],
+                                      method=polish_method)
     seen = vv[o].sum(0)
     pairs = [(i, j) for i, j in mir.pairs if seen[i] >= 2 and seen[j] >= 2]
     M, t = M_joint.clone(), t_joint.clone()
@@ -689,7 +718,7 @@ def _seed_from_originals(Wv, vv, mir: MirrorLayout, M_joint, t_joint, polish_ite
     cams = ScaledOrthographic(complete_rotation(M / s[:, None, None]), s, t)
     S = triangulate(cams, Wv.transpose(1, 2), vv > 0, min_views=1).T
     S = torch.where(torch.isfinite(S), S, So)
-    M, t, S, ph2, _ = bundle_polish(M, t, S, Wv, vv, iters=polish_iters, tol=kw["tol"])
+    M, t, S, ph2, _ = bundle_polish(M, t, S, Wv, vv, iters=polish_iters, tol=kw["tol"], method=polish_method)
     return M, t, S, hist + ph + ph2
 
 
@@ -717,7 +746,7 @@ WARM_OUTER = 10
 
 
 def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: MirrorLayout | None = None, tie_deg: float = 5.0,
-         S_init: torch.Tensor | None = None, **kw):
+         S_init: torch.Tensor | None = None, polish_method: PolishMethod = "alternate", **kw):
     """Rigid (factorisation + polish) or planar solution; ``planar=None`` picks by residual.
 
     With ``mirrors`` (rows that are mirrored copies of others), a rigid solution whose
@@ -736,7 +765,8 @@ def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: MirrorLayout | No
         return _Fit(M, tv, Sc, history, iters, 0, converged, True, report)
     kw3 = kw if S_init is None else dict(kw, max_outer=min(kw["max_outer"], WARM_OUTER))
     M, tv, Sc, history, iters, converged = _factorize(Wv, vv, rank=3, S_init=S_init, **kw3)
-    M, tv, Sc, phist, pconv = bundle_polish(M, tv, Sc, Wv, vv, iters=polish_iters, tol=kw["tol"])
+    M, tv, Sc, phist, pconv = bundle_polish(M, tv, Sc, Wv, vv, iters=polish_iters, tol=kw["tol"],
+                                            method=polish_method)
     history = history + phist
     converged = pconv if polish_iters > 0 else converged
     if mirrors is not None:
@@ -744,7 +774,7 @@ def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: MirrorLayout | No
         report = {"width": mirrors.width, "tie_deg_median": None if tie is None else float(tie.median()),
                   "reseeded": False}
         if tie is not None and float(tie.median()) > tie_deg and int(mirrors.original.sum()) >= 2:
-            seeded = _seed_from_originals(Wv, vv, mirrors, M, tv, polish_iters, **kw)
+            seeded = _seed_from_originals(Wv, vv, mirrors, M, tv, polish_iters, polish_method, **kw)
             report["rms_joint"] = history[-1]
             if seeded is not None:
                 report["rms_seeded"] = seeded[3][-1]
@@ -943,6 +973,8 @@ class SfMOptions:
     """Relative change of the visible-entry RMS residual that stops the outer loop and the polish."""
     polish_iters: int = 30
     """Bundle-polish rounds after the factorisation (0: none)."""
+    polish: PolishMethod = "alternate"
+    """How the bundle polish minimises (:func:`bundle_polish`): ``alternate`` or ``joint``."""
     regularization: float = 1e-6
     """Relative Tikhonov weight of the shape and camera solves (keeps rank-deficient, e.g. planar
     or two-view, problems defined)."""
@@ -969,9 +1001,11 @@ class SfMOptions:
     above which the joint solution is re-seeded from the originals."""
 
     def check(self) -> None:
-        """Raise ``ValueError`` for limits below 1."""
+        """Raise ``ValueError`` for limits below 1 and an unknown polish method."""
         if self.max_outer < 1 or self.inner < 1:
             raise ValueError(f"max_outer and inner must be >= 1, got {self.max_outer} and {self.inner}")
+        if self.polish not in POLISH_METHODS:
+            raise ValueError(f"polish must be one of {POLISH_METHODS}, got {self.polish!r}")
 
 
 @dataclass
@@ -1155,7 +1189,8 @@ def _fit_step(data: _Data, opts: SfMOptions, flip_pairs, init_shape, generator) 
     # op; its results are cloned into ordinary tensors
     with cpu_single_thread(dev), torch.inference_mode():
         fit = _fit(Wv, vv, planar, opts.planar_margin, opts.polish_iters, mirrors=layout,
-                   tie_deg=opts.mirror_tie_deg, S_init=S_init, max_outer=opts.max_outer, inner=opts.inner,
+                   tie_deg=opts.mirror_tie_deg, S_init=S_init, polish_method=opts.polish, max_outer=opts.max_outer,
+                   inner=opts.inner,
                    tol=opts.tol, reg=opts.regularization, generator=generator)
     fit.M, fit.t, fit.S = fit.M.clone(), fit.t.clone(), fit.S.clone()
     _fit_problems(opts, fit.mirrors, fit.converged, fit.history, data.problems)
