@@ -4,6 +4,8 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.carvi-installed
 OUT    ?= outputs/default
+# pytest processes for make test, a test file each (most tests wait on a child process or use one thread)
+TEST_WORKERS ?= 2
 
 .PHONY: install run test lint clean
 
@@ -22,9 +24,10 @@ run: install
 lint: install
 	$(PY) -m ruff check carvi_torch tests tools
 
-# lint, then the suite (doctests of the package included: pyproject.toml's pytest options)
+# lint, then the suite (doctests of the package included: pyproject.toml's pytest options) in
+# TEST_WORKERS processes (make test TEST_WORKERS=0: all in this one)
 test: lint
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 clean:
 	rm -rf $(VENV) outputs .pytest_cache
