@@ -291,3 +291,26 @@ def test_real_aeroplanes_keep_every_camera(shared_data, tmp_path):
     assert not [p for p in res.problems if "degenerate" in p]
     assert res.converged and int(res.valid.sum()) == len(both)
     assert res.history[-1] < 5.9  # the alternation's 30 rounds end at 5.9 px RMS (docs/viewpoints.md)
+
+
+def test_no_step_turns_a_camera_by_more_than_max_step(monkeypatch):
+    """The trust bound is on a camera's rotation angle ``|omega|``: a camera started 0.7 rad away about the
+    diagonal axis (0.40 rad per component, each below ``MAX_STEP``) is reached in shorter steps. A bound on each
+    component alone took a first step of about 0.6 rad."""
+    g = torch.Generator().manual_seed(0)
+    n, k = 8, 10
+    X = 20.0 * torch.randn(k, 3, generator=g, dtype=F64)
+    cams = ScaledOrthographic(random_rotations(n, g, F64), torch.ones(n, dtype=F64), torch.zeros(n, 2, dtype=F64))
+    turn = torch.eye(3, dtype=F64).repeat(n, 1, 1)
+    turn[0] = axis_angle_to_rotation(torch.full((1, 3), 0.7 / 3 ** 0.5, dtype=F64))[0]
+    start = ScaledOrthographic(turn @ cams.R, cams.s, cams.t)
+    tried, real = [], bundle._apply
+
+    def apply(R, logs, t, X, dc, dx):
+        tried.append(float(dc[:, :3].norm(dim=-1).max()))
+        return real(R, logs, t, X, dc, dx)
+
+    monkeypatch.setattr(bundle, "_apply", apply)
+    res = joint_bundle_adjust(start, X, cams.project(X), torch.ones(n, k, dtype=torch.bool), iters=60, tol=1e-12)
+    assert res.history[-1] < 1e-8 and len(tried) >= 2
+    assert max(tried) <= bundle.MAX_STEP

@@ -153,6 +153,12 @@ def _solve(U, W, V, gc, gx, lam: float):
     return dc, dx, Dc, Dx
 
 
+def _step_length(dc: torch.Tensor) -> float:
+    """The longest move of any camera in ``dc (N, 6)``: its rotation's angle ``|omega|`` (radians: the rotation
+    ``exp([omega]_x)`` turns by ``|omega|`` whatever the axis) or its log-scale change ``|rho|``."""
+    return float(torch.maximum(dc[:, :3].norm(dim=-1), dc[:, 3].abs()).max())
+
+
 def _apply(R, logs, t, X, dc, dx):
     """Parameters after the step: ``R <- exp([omega]_x) R``, ``log s <- log s + rho``, ``t <- t + tau``."""
     return axis_angle_to_rotation(dc[:, :3]) @ R, logs + dc[:, 3], t + dc[:, 4:], X + dx
@@ -207,7 +213,7 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
         A, B = jacobians(R, logs.exp(), Y, v)
         U, W, V, gc, gx = _normal_equations(A, B, r)
         step = _solve(U, W, V, gc, gx, lam)
-        if step is not None and float(step[0][:, :4].abs().max()) > MAX_STEP:
+        if step is not None and _step_length(step[0]) > MAX_STEP:
             step = None  # outside the trust region of the linearised rotations and scales
         accepted = False
         if step is not None:
