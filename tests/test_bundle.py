@@ -176,6 +176,11 @@ def test_deterministic():
     (lambda a: a.update(cameras=ScaledOrthographic(a["cameras"].R, 0 * a["cameras"].s, a["cameras"].t)),
      "scales must be"),
     (lambda a: a["shape"].__setitem__((1, 2), float("nan")), "must be finite"),
+    (lambda a: a.update(shape=a["shape"][0, 0]), "shape must be"),
+    (lambda a: a.update(damping=0.0), "damping must be"),
+    (lambda a: a.update(damping=-1e-3), "damping must be"),
+    (lambda a: a.update(damping=float("nan")), "damping must be"),
+    (lambda a: a.update(iters=-1), "iters must be"),
 ])
 def test_bad_inputs_raise(change, match):
     cams, X, w, vis, _ = problem(8, n=5, k=4)

@@ -164,11 +164,18 @@ def _apply(R, logs, t, X, dc, dx):
     return axis_angle_to_rotation(dc[:, :3]) @ R, logs + dc[:, 3], t + dc[:, 4:], X + dx
 
 
-def _check(cameras: ScaledOrthographic, shape: torch.Tensor, keypoints: torch.Tensor, visible: torch.Tensor):
-    """Raise ``ValueError`` for inconsistent shapes, a non-bool mask, non-positive scales or a non-finite start."""
-    n, k = len(cameras), shape.shape[0]
-    if shape.dim() != 2 or shape.shape[1] != 3 or k == 0:
+def _check(cameras: ScaledOrthographic, shape: torch.Tensor, keypoints: torch.Tensor, visible: torch.Tensor,
+           iters: int, damping: float):
+    """Raise ``ValueError`` for inconsistent shapes, a non-bool mask, non-positive scales, a non-finite start,
+    a negative ``iters`` or a damping that is not finite and positive (``lambda`` only ever multiplies: from 0 no
+    rejected step would raise it, and every damped solve would fail the same way)."""
+    if not 0.0 < damping < float("inf"):
+        raise ValueError(f"damping must be finite and positive, got {damping}")
+    if iters < 0:
+        raise ValueError(f"iters must be at least 0, got {iters}")
+    if shape.dim() != 2 or shape.shape[1] != 3 or shape.shape[0] == 0:
         raise ValueError(f"shape must be (K, 3), got {tuple(shape.shape)}")
+    n, k = len(cameras), shape.shape[0]
     if keypoints.shape != (n, k, 2):
         raise ValueError(f"keypoints must be ({n}, {k}, 2) for {n} cameras and {k} shape points, "
                          f"got {tuple(keypoints.shape)}")
@@ -193,12 +200,12 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
         iters: damped solves at most (0: the start is returned).
         tol: relative change of the RMS residual that stops the run.
         floor: RMS residual (pixels) at or below which the run stops (an exact fit).
-        damping: initial Marquardt ``lambda``.
+        damping: initial Marquardt ``lambda`` (finite, positive).
 
     Returns:
         :class:`BundleResult` (float64; the history holds the accepted steps' RMS residuals).
     """
-    _check(cameras, shape, keypoints, visible)
+    _check(cameras, shape, keypoints, visible, iters, damping)
     f64 = torch.float64
     v = (visible & torch.isfinite(keypoints).all(-1)).to(f64)
     w = torch.nan_to_num(keypoints.to(f64))
