@@ -319,3 +319,17 @@ def test_no_step_turns_a_camera_by_more_than_max_step(monkeypatch):
     res = joint_bundle_adjust(start, X, cams.project(X), torch.ones(n, k, dtype=torch.bool), iters=60, tol=1e-12)
     assert res.history[-1] < 1e-8 and len(tried) >= 2
     assert max(tried) <= bundle.MAX_STEP
+
+
+def test_results_come_back_in_the_callers_dtype():
+    """float32 cameras, shape and keypoints: the solve runs in float64 (the same solution as from float64 inputs
+    rounded to float32) and the cameras and shape come back in float32."""
+    cams, X, w, vis, g = problem(13, n=8, k=6, noise=0.5)
+    start, X0 = perturbed(cams, X, g)
+    f32 = ScaledOrthographic(start.R.float(), start.s.float(), start.t.float())
+    res = joint_bundle_adjust(f32, X0.float(), w.float(), vis, iters=50)
+    ref = joint_bundle_adjust(ScaledOrthographic(f32.R.double(), f32.s.double(), f32.t.double()), X0.float().double(),
+                              w.float().double(), vis, iters=50)
+    assert {res.shape.dtype, res.cameras.R.dtype, res.cameras.s.dtype, res.cameras.t.dtype} == {torch.float32}
+    torch.testing.assert_close(res.shape, ref.shape.float())
+    assert res.history == ref.history

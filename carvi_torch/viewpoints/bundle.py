@@ -10,7 +10,7 @@ Conventions (``carvi_torch.cameras``): image x right, y down, points ``(x, y)``;
 ``uv = s * X @ R[:2].T + t``; ``R`` proper, rows = image x, image y, viewing direction.
 Shapes: cameras ``R (N, 3, 3)``, ``s (N,)``, ``t (N, 2)``; shape ``X (K, 3)``; keypoints
 ``w (N, K, 2)``; ``visible (N, K)`` bool. Everything runs in float64, batched over the
-instances (no Python loop over them), on the tensors' device.
+instances (no Python loop over them), on the tensors' device; the results come back in the shape's dtype.
 
 Parameters of one step: per camera 6 numbers ``(omega, rho, tau)`` -- ``R <- exp([omega]_x) R``
 (a rotation about the camera axes), ``s <- s exp(rho)``, ``t <- t + tau`` -- and the shape's
@@ -70,8 +70,8 @@ class BundleResult:
     """Output of :func:`joint_bundle_adjust`.
 
     Attributes:
-        cameras: N adjusted cameras (float64).
-        shape: ``(K, 3)`` float64.
+        cameras: N adjusted cameras (the start shape's dtype).
+        shape: ``(K, 3)`` (the start shape's dtype).
         history: RMS residual (pixels, over the visible entries) after every accepted step.
         converged: the stopping rule (not the iteration cap) ended the run.
         iterations: damped solves run (accepted and rejected steps).
@@ -203,7 +203,7 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
         damping: initial Marquardt ``lambda`` (finite, positive).
 
     Returns:
-        :class:`BundleResult` (float64; the history holds the accepted steps' RMS residuals).
+        :class:`BundleResult` (in ``shape``'s dtype; the history holds the accepted steps' RMS residuals).
     """
     _check(cameras, shape, keypoints, visible, iters, damping)
     f64 = torch.float64
@@ -241,4 +241,5 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
         cur = (cost / entries) ** 0.5
         history.append(cur)
         converged = cur <= floor or prev - cur <= tol * prev
-    return BundleResult(ScaledOrthographic(R, logs.exp(), t), X, history, converged, it)
+    dt = shape.dtype
+    return BundleResult(ScaledOrthographic(R.to(dt), logs.exp().to(dt), t.to(dt)), X.to(dt), history, converged, it)
