@@ -131,32 +131,30 @@ def _damping(H: torch.Tensor, lam: float) -> torch.Tensor:
     """The damping added to the diagonal of square blocks ``H (..., m, m)``: ``lam * max(diag H, DIAG_FLOOR *
     mean diag)``, shape ``(..., m)``."""
     d = H.diagonal(dim1=-2, dim2=-1)
-    return lam * d.clamp(min=DIAG_FLOOR * float(d.mean()) + 1e-300)
+    return lam * d.clamp(min=DIAG_FLOOR * d.mean() + 1e-300)  # a tensor bound: no read-back to the host
 
 
 def _solve(U, W, V, gc, gx, lam: float):
     """The damped step by the Schur complement (cameras eliminated): ``dc (N, 6)``, ``dx (3K,)`` and the
-    damping added to the diagonals, ``Dc (N, 6)``, ``Dx (3K,)``; ``None`` when a damped system is not positive
-    definite."""
+    damping added to the diagonals, ``Dc (N, 6)``, ``Dx (3K,)``; ``dc`` and ``dx`` are NaN when a damped system
+    is not positive definite (the caller reads that with the step's cost, in one read-back)."""
     Dc, Dx = _damping(U, lam), _damping(V, lam).reshape(-1)
     L, info = torch.linalg.cholesky_ex(U + torch.diag_embed(Dc))
-    if bool((info != 0).any()):
-        return None
     UiW = torch.cholesky_solve(torch.cat([W, gc[..., None]], -1), L)  # (N, 6, 3K + 1)
     S = torch.block_diag(*V.unbind(0)) + torch.diag(Dx) - torch.einsum("nai,naj->ij", W, UiW[..., :-1])
     rhs = torch.einsum("nai,na->i", W, UiW[..., -1]) - gx.reshape(-1)
-    Ls, info = torch.linalg.cholesky_ex(S)
-    if int(info) != 0:
-        return None
+    Ls, info_s = torch.linalg.cholesky_ex(S)
     dx = torch.cholesky_solve(rhs[:, None], Ls)[:, 0]
     dc = -UiW[..., -1] - torch.einsum("naj,j->na", UiW[..., :-1], dx)
-    return dc, dx, Dc, Dx
+    failed = (info != 0).any() | (info_s != 0)
+    return dc.masked_fill(failed, float("nan")), dx.masked_fill(failed, float("nan")), Dc, Dx
 
 
-def _step_length(dc: torch.Tensor) -> float:
-    """The longest move of any camera in ``dc (N, 6)``: its rotation's angle ``|omega|`` (radians: the rotation
-    ``exp([omega]_x)`` turns by ``|omega|`` whatever the axis) or its log-scale change ``|rho|``."""
-    return float(torch.maximum(dc[:, :3].norm(dim=-1), dc[:, 3].abs()).max())
+def _step_length(dc: torch.Tensor) -> torch.Tensor:
+    """The longest move of any camera in ``dc (N, 6)`` (0-d): its rotation's angle ``|omega|`` (radians: the
+    rotation ``exp([omega]_x)`` turns by ``|omega|`` whatever the axis) or its log-scale change ``|rho|``; NaN
+    for a NaN step."""
+    return torch.maximum(dc[:, :3].norm(dim=-1), dc[:, 3].abs()).max()
 
 
 def _apply(R, logs, t, X, dc, dx):
@@ -219,18 +217,14 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
         it += 1
         A, B = jacobians(R, logs.exp(), Y, v)
         U, W, V, gc, gx = _normal_equations(A, B, r)
-        step = _solve(U, W, V, gc, gx, lam)
-        if step is not None and _step_length(step[0]) > MAX_STEP:
-            step = None  # outside the trust region of the linearised rotations and scales
-        accepted = False
-        if step is not None:
-            dc, dx, Dc, Dx = step
-            new = _apply(R, logs, t, X, dc, dx.reshape(-1, 3))
-            r_new, Y_new = residuals(new[0], new[1].exp(), new[2], new[3], w, v)
-            cost_new = float((r_new * r_new).sum())
-            pred = float((dc * (Dc * dc - gc)).sum() + (dx * (Dx * dx - gx.reshape(-1))).sum())
-            accepted = cost_new < cost
-        if not accepted:
+        dc, dx, Dc, Dx = _solve(U, W, V, gc, gx, lam)
+        new = _apply(R, logs, t, X, dc, dx.reshape(-1, 3))
+        r_new, Y_new = residuals(new[0], new[1].exp(), new[2], new[3], w, v)
+        pred = (dc * (Dc * dc - gc)).sum() + (dx * (Dx * dx - gx.reshape(-1))).sum()
+        # the iteration's one read-back: a failed solve is NaN, and NaN compares False
+        length, cost_new, pred = torch.stack([_step_length(dc), (r_new * r_new).sum(), pred]).tolist()
+        # a step outside the trust region of the linearised rotations and scales is a failed one
+        if not (length <= MAX_STEP and cost_new < cost):
             lam, nu = lam * nu, nu * 2.0
             converged = lam > MAX_DAMPING
             continue
