@@ -176,6 +176,11 @@ def test_deterministic():
     (lambda a: a.update(cameras=ScaledOrthographic(a["cameras"].R, 0 * a["cameras"].s, a["cameras"].t)),
      "scales must be"),
     (lambda a: a["shape"].__setitem__((1, 2), float("nan")), "must be finite"),
+    (lambda a: a.update(shape=a["shape"][0, 0]), "shape must be"),
+    (lambda a: a.update(damping=0.0), "damping must be"),
+    (lambda a: a.update(damping=-1e-3), "damping must be"),
+    (lambda a: a.update(damping=float("nan")), "damping must be"),
+    (lambda a: a.update(iters=-1), "iters must be"),
 ])
 def test_bad_inputs_raise(change, match):
     cams, X, w, vis, _ = problem(8, n=5, k=4)
@@ -291,3 +296,111 @@ def test_real_aeroplanes_keep_every_camera(shared_data, tmp_path):
     assert not [p for p in res.problems if "degenerate" in p]
     assert res.converged and int(res.valid.sum()) == len(both)
     assert res.history[-1] < 5.9  # the alternation's 30 rounds end at 5.9 px RMS (docs/viewpoints.md)
+
+
+def test_no_step_turns_a_camera_by_more_than_max_step():
+    """The trust bound is on a camera's rotation angle ``|omega|``: a camera started 0.7 rad away about the
+    diagonal axis (0.40 rad per component, each below ``MAX_STEP``) is reached in accepted steps of at most
+    ``MAX_STEP`` each (the runs with 1, 2, ... solves are the prefixes of one run). A bound on each component
+    alone accepted a first step of about 0.6 rad."""
+    g = torch.Generator().manual_seed(0)
+    n, k = 8, 10
+    X = 20.0 * torch.randn(k, 3, generator=g, dtype=F64)
+    cams = ScaledOrthographic(random_rotations(n, g, F64), torch.ones(n, dtype=F64), torch.zeros(n, 2, dtype=F64))
+    turn = torch.eye(3, dtype=F64).repeat(n, 1, 1)
+    turn[0] = axis_angle_to_rotation(torch.full((1, 3), 0.7 / 3 ** 0.5, dtype=F64))[0]
+    start = ScaledOrthographic(turn @ cams.R, cams.s, cams.t)
+    w, vis = cams.project(X), torch.ones(n, k, dtype=torch.bool)
+    prev, turns = start.R, []
+    for iters in range(1, 16):
+        res = joint_bundle_adjust(start, X, w, vis, iters=iters, tol=1e-12)
+        cos = (((res.cameras.R @ prev.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
+        turns.append(float(torch.arccos(cos).max()))
+        prev = res.cameras.R
+    assert res.history[-1] < 1e-8 and sum(t > 0.05 for t in turns) >= 2
+    assert max(turns) <= bundle.MAX_STEP + 1e-9
+
+
+def test_results_come_back_in_the_callers_dtype():
+    """float32 cameras, shape and keypoints: the solve runs in float64 (the same solution as from float64 inputs
+    rounded to float32) and the cameras and shape come back in float32."""
+    cams, X, w, vis, g = problem(13, n=8, k=6, noise=0.5)
+    start, X0 = perturbed(cams, X, g)
+    f32 = ScaledOrthographic(start.R.float(), start.s.float(), start.t.float())
+    res = joint_bundle_adjust(f32, X0.float(), w.float(), vis, iters=50)
+    ref = joint_bundle_adjust(ScaledOrthographic(f32.R.double(), f32.s.double(), f32.t.double()), X0.float().double(),
+                              w.float().double(), vis, iters=50)
+    assert {res.shape.dtype, res.cameras.R.dtype, res.cameras.s.dtype, res.cameras.t.dtype} == {torch.float32}
+    torch.testing.assert_close(res.shape, ref.shape.float())
+    assert res.history == ref.history
+
+
+def test_one_read_back_to_the_host_per_solve():
+    """Each damped solve reads one tensor back to the host (the step's length, cost and predicted gain
+    together): on a GPU every read waits for the device. Counted as calls of ``item``, ``tolist``, ``float``,
+    ``bool`` and ``int`` on tensors, 20 solves against 10."""
+    from torch.overrides import TorchFunctionMode
+
+    reads_of = {torch.Tensor.item, torch.Tensor.tolist, torch.Tensor.__bool__, torch.Tensor.__float__,
+                torch.Tensor.__int__, torch.Tensor.__index__}
+
+    class Reads(TorchFunctionMode):
+        count = 0
+
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            self.count += func in reads_of
+            return func(*args, **(kwargs or {}))
+
+    cams, X, w, vis, g = problem(14, n=8, k=10, noise=0.3)
+    start, X0 = perturbed(cams, X, g, deg=20.0)
+    counts = []
+    for iters in (10, 20):
+        with Reads() as reads:
+            res = joint_bundle_adjust(start, X0, w, vis, iters=iters, tol=0.0)
+        assert res.iterations == iters
+        counts.append(reads.count)
+    assert counts[1] - counts[0] == 10
+
+
+def test_a_failed_factorisation_is_a_rejected_step(monkeypatch):
+    """A damped system that is not positive definite gives a NaN step (``_solve``); the iteration rejects it
+    like a step that raises the cost (the damping grows) and goes on from the same solution."""
+    U = -torch.eye(6, dtype=F64)[None].repeat(2, 1, 1)
+    dc, dx, _, _ = bundle._solve(U, torch.zeros(2, 6, 3, dtype=F64), torch.eye(3, dtype=F64)[None],
+                                 torch.ones(2, 6, dtype=F64), torch.ones(1, 3, dtype=F64), 1e-3)
+    assert bool(dc.isnan().all() & dx.isnan().all())
+    cams, X, w, vis, g = problem(15, n=8, k=6, noise=0.5)
+    start, X0 = perturbed(cams, X, g)
+    real, calls = bundle._solve, []
+
+    def first_fails(U, W, V, gc, gx, lam):
+        calls.append(lam)
+        step = real(U, W, V, gc, gx, lam)
+        return (step[0] * float("nan"), step[1] * float("nan"), *step[2:]) if len(calls) == 1 else step
+
+    monkeypatch.setattr(bundle, "_solve", first_fails)
+    res = joint_bundle_adjust(start, X0, w, vis, iters=30)
+    assert calls[1] == 2 * calls[0] and res.converged
+    assert res.iterations == len(res.history) + 1 and res.history[-1] < rms(start, X0, w, vis)
+
+
+def test_schur_step_equals_the_dense_damped_solve():
+    """``_solve``'s step (cameras eliminated, shape solved, cameras back-substituted) equals the dense solve of
+    ``(J^T J + D) d = -J^T r`` with ``J`` assembled from the blocks, a camera that sees nothing included: a sign or
+    transpose in the elimination changes the step, which the final-cost comparison with scipy would not see."""
+    cams, X, w, vis, _ = problem(16, n=5, k=6, missing=0.3, noise=0.5)
+    vis[4] = False
+    n, k = vis.shape
+    v = vis.double()
+    r, Y = residuals(cams.R, cams.s, cams.t, X, w, v)
+    A, B = jacobians(cams.R, cams.s, Y, v)
+    dc, dx, Dc, Dx = bundle._solve(*bundle._normal_equations(A, B, r), 0.1)
+    J = torch.zeros(n, k, 2, 6 * n + 3 * k, dtype=F64)
+    for i in range(n):
+        J[i, :, :, 6 * i:6 * i + 6] = A[i]
+    for j in range(k):
+        J[:, j, :, 6 * n + 3 * j:6 * n + 3 * j + 3] = B[:, j]
+    J = J.reshape(-1, 6 * n + 3 * k)
+    d = torch.linalg.solve(J.T @ J + torch.diag(torch.cat([Dc.reshape(-1), Dx])), -J.T @ r.reshape(-1))
+    torch.testing.assert_close(torch.cat([dc.reshape(-1), dx]), d, rtol=1e-9, atol=1e-12)
+    assert float(d.abs().max()) > 1e-3 and bool((dc[4] == 0).all())

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -1158,3 +1159,27 @@ def test_train_example_help_gives_every_default(capsys):
     for option, default in (("--epochs", "8"), ("--batch-size", "32"), ("--workers", "2"), ("--seed", "0")):
         assert f"{option} {option[2:].upper().replace('-', '_')} " in text
         assert f"(default {default}" in text.split(f"{option} {option[2:].upper().replace('-', '_')} ", 1)[1][:200]
+
+
+def test_train_example_reads_a_format_one_export_it_is_given(tmp_path, monkeypatch, capsys):
+    """``--export`` naming a format-1 export (``index.json``, no ``zarr.json``) is read as it is: the example
+    neither reconstructs the embedded collection beside it nor exports into it."""
+    train = load_tool("train_example")
+    built, opened = [], []
+
+    class Empty:
+        reader = SimpleNamespace(samples=[])
+
+        def __init__(self, root, **kw):
+            opened.append(Path(root))
+
+        def __len__(self):
+            return 0
+
+    monkeypatch.setattr(train, "_build_export", built.append)
+    monkeypatch.setattr(train, "LiftedDataset", Empty)
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "index.json").write_text("{}")
+    assert train.main(["--export", str(tmp_path / "old"), "--epochs", "1", "--workers", "0"]) == 2
+    assert built == [] and opened == [tmp_path / "old"]
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["index.json", "old"]

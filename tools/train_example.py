@@ -76,8 +76,8 @@ def main(argv=None) -> int:
         print(f"error: --export {export}: no export there (python -m carvi_torch.export makes one; without "
               "--export this example builds one from the embedded collection)", file=sys.stderr)
         return 2
-    if not (export / "zarr.json").is_file():  # the zarr store of python -m carvi_torch.export
-        _build_export(export)
+    if not args.export and not (export / "zarr.json").is_file():  # the zarr store of python -m carvi_torch.export
+        _build_export(export)  # only the default's: a given --export holds one (a zarr store or a format-1 export)
     ds = LiftedDataset(export, fields=["mask", "viewpoint", "class_index"], min_quality=args.min_quality)
     if len(ds) < 2:  # one object to train on and one to validate on, at least
         kept = f"--min-quality {args.min_quality} keeps {len(ds)} of {len(ds.reader.samples)}" \

@@ -10,7 +10,7 @@ Conventions (``carvi_torch.cameras``): image x right, y down, points ``(x, y)``;
 ``uv = s * X @ R[:2].T + t``; ``R`` proper, rows = image x, image y, viewing direction.
 Shapes: cameras ``R (N, 3, 3)``, ``s (N,)``, ``t (N, 2)``; shape ``X (K, 3)``; keypoints
 ``w (N, K, 2)``; ``visible (N, K)`` bool. Everything runs in float64, batched over the
-instances (no Python loop over them), on the tensors' device.
+instances (no Python loop over them), on the tensors' device; the results come back in the shape's dtype.
 
 Parameters of one step: per camera 6 numbers ``(omega, rho, tau)`` -- ``R <- exp([omega]_x) R``
 (a rotation about the camera axes), ``s <- s exp(rho)``, ``t <- t + tau`` -- and the shape's
@@ -70,8 +70,8 @@ class BundleResult:
     """Output of :func:`joint_bundle_adjust`.
 
     Attributes:
-        cameras: N adjusted cameras (float64).
-        shape: ``(K, 3)`` float64.
+        cameras: N adjusted cameras (the start shape's dtype).
+        shape: ``(K, 3)`` (the start shape's dtype).
         history: RMS residual (pixels, over the visible entries) after every accepted step.
         converged: the stopping rule (not the iteration cap) ended the run.
         iterations: damped solves run (accepted and rejected steps).
@@ -131,26 +131,30 @@ def _damping(H: torch.Tensor, lam: float) -> torch.Tensor:
     """The damping added to the diagonal of square blocks ``H (..., m, m)``: ``lam * max(diag H, DIAG_FLOOR *
     mean diag)``, shape ``(..., m)``."""
     d = H.diagonal(dim1=-2, dim2=-1)
-    return lam * d.clamp(min=DIAG_FLOOR * float(d.mean()) + 1e-300)
+    return lam * d.clamp(min=DIAG_FLOOR * d.mean() + 1e-300)  # a tensor bound: no read-back to the host
 
 
 def _solve(U, W, V, gc, gx, lam: float):
     """The damped step by the Schur complement (cameras eliminated): ``dc (N, 6)``, ``dx (3K,)`` and the
-    damping added to the diagonals, ``Dc (N, 6)``, ``Dx (3K,)``; ``None`` when a damped system is not positive
-    definite."""
+    damping added to the diagonals, ``Dc (N, 6)``, ``Dx (3K,)``; ``dc`` and ``dx`` are NaN when a damped system
+    is not positive definite (the caller reads that with the step's cost, in one read-back)."""
     Dc, Dx = _damping(U, lam), _damping(V, lam).reshape(-1)
     L, info = torch.linalg.cholesky_ex(U + torch.diag_embed(Dc))
-    if bool((info != 0).any()):
-        return None
     UiW = torch.cholesky_solve(torch.cat([W, gc[..., None]], -1), L)  # (N, 6, 3K + 1)
     S = torch.block_diag(*V.unbind(0)) + torch.diag(Dx) - torch.einsum("nai,naj->ij", W, UiW[..., :-1])
     rhs = torch.einsum("nai,na->i", W, UiW[..., -1]) - gx.reshape(-1)
-    Ls, info = torch.linalg.cholesky_ex(S)
-    if int(info) != 0:
-        return None
+    Ls, info_s = torch.linalg.cholesky_ex(S)
     dx = torch.cholesky_solve(rhs[:, None], Ls)[:, 0]
     dc = -UiW[..., -1] - torch.einsum("naj,j->na", UiW[..., :-1], dx)
-    return dc, dx, Dc, Dx
+    failed = (info != 0).any() | (info_s != 0)
+    return dc.masked_fill(failed, float("nan")), dx.masked_fill(failed, float("nan")), Dc, Dx
+
+
+def _step_length(dc: torch.Tensor) -> torch.Tensor:
+    """The longest move of any camera in ``dc (N, 6)`` (0-d): its rotation's angle ``|omega|`` (radians: the
+    rotation ``exp([omega]_x)`` turns by ``|omega|`` whatever the axis) or its log-scale change ``|rho|``; NaN
+    for a NaN step."""
+    return torch.maximum(dc[:, :3].norm(dim=-1), dc[:, 3].abs()).max()
 
 
 def _apply(R, logs, t, X, dc, dx):
@@ -158,11 +162,18 @@ def _apply(R, logs, t, X, dc, dx):
     return axis_angle_to_rotation(dc[:, :3]) @ R, logs + dc[:, 3], t + dc[:, 4:], X + dx
 
 
-def _check(cameras: ScaledOrthographic, shape: torch.Tensor, keypoints: torch.Tensor, visible: torch.Tensor):
-    """Raise ``ValueError`` for inconsistent shapes, a non-bool mask, non-positive scales or a non-finite start."""
-    n, k = len(cameras), shape.shape[0]
-    if shape.dim() != 2 or shape.shape[1] != 3 or k == 0:
+def _check(cameras: ScaledOrthographic, shape: torch.Tensor, keypoints: torch.Tensor, visible: torch.Tensor,
+           iters: int, damping: float):
+    """Raise ``ValueError`` for inconsistent shapes, a non-bool mask, non-positive scales, a non-finite start,
+    a negative ``iters`` or a damping that is not finite and positive (``lambda`` only ever multiplies: from 0 no
+    rejected step would raise it, and every damped solve would fail the same way)."""
+    if not 0.0 < damping < float("inf"):
+        raise ValueError(f"damping must be finite and positive, got {damping}")
+    if iters < 0:
+        raise ValueError(f"iters must be at least 0, got {iters}")
+    if shape.dim() != 2 or shape.shape[1] != 3 or shape.shape[0] == 0:
         raise ValueError(f"shape must be (K, 3), got {tuple(shape.shape)}")
+    n, k = len(cameras), shape.shape[0]
     if keypoints.shape != (n, k, 2):
         raise ValueError(f"keypoints must be ({n}, {k}, 2) for {n} cameras and {k} shape points, "
                          f"got {tuple(keypoints.shape)}")
@@ -187,12 +198,12 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
         iters: damped solves at most (0: the start is returned).
         tol: relative change of the RMS residual that stops the run.
         floor: RMS residual (pixels) at or below which the run stops (an exact fit).
-        damping: initial Marquardt ``lambda``.
+        damping: initial Marquardt ``lambda`` (finite, positive).
 
     Returns:
-        :class:`BundleResult` (float64; the history holds the accepted steps' RMS residuals).
+        :class:`BundleResult` (in ``shape``'s dtype; the history holds the accepted steps' RMS residuals).
     """
-    _check(cameras, shape, keypoints, visible)
+    _check(cameras, shape, keypoints, visible, iters, damping)
     f64 = torch.float64
     v = (visible & torch.isfinite(keypoints).all(-1)).to(f64)
     w = torch.nan_to_num(keypoints.to(f64))
@@ -206,18 +217,14 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
         it += 1
         A, B = jacobians(R, logs.exp(), Y, v)
         U, W, V, gc, gx = _normal_equations(A, B, r)
-        step = _solve(U, W, V, gc, gx, lam)
-        if step is not None and float(step[0][:, :4].abs().max()) > MAX_STEP:
-            step = None  # outside the trust region of the linearised rotations and scales
-        accepted = False
-        if step is not None:
-            dc, dx, Dc, Dx = step
-            new = _apply(R, logs, t, X, dc, dx.reshape(-1, 3))
-            r_new, Y_new = residuals(new[0], new[1].exp(), new[2], new[3], w, v)
-            cost_new = float((r_new * r_new).sum())
-            pred = float((dc * (Dc * dc - gc)).sum() + (dx * (Dx * dx - gx.reshape(-1))).sum())
-            accepted = cost_new < cost
-        if not accepted:
+        dc, dx, Dc, Dx = _solve(U, W, V, gc, gx, lam)
+        new = _apply(R, logs, t, X, dc, dx.reshape(-1, 3))
+        r_new, Y_new = residuals(new[0], new[1].exp(), new[2], new[3], w, v)
+        pred = (dc * (Dc * dc - gc)).sum() + (dx * (Dx * dx - gx.reshape(-1))).sum()
+        # the iteration's one read-back: a failed solve is NaN, and NaN compares False
+        length, cost_new, pred = torch.stack([_step_length(dc), (r_new * r_new).sum(), pred]).tolist()
+        # a step outside the trust region of the linearised rotations and scales is a failed one
+        if not (length <= MAX_STEP and cost_new < cost):
             lam, nu = lam * nu, nu * 2.0
             converged = lam > MAX_DAMPING
             continue
@@ -228,4 +235,5 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
         cur = (cost / entries) ** 0.5
         history.append(cur)
         converged = cur <= floor or prev - cur <= tol * prev
-    return BundleResult(ScaledOrthographic(R, logs.exp(), t), X, history, converged, it)
+    dt = shape.dtype
+    return BundleResult(ScaledOrthographic(R.to(dt), logs.exp().to(dt), t.to(dt)), X.to(dt), history, converged, it)
