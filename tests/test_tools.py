@@ -73,6 +73,8 @@ def test_write_record_sets_one_key_and_keeps_the_rest(tmp_path: Path):
     write_record(p, {"b": [2, 3]}, "second")
     write_record(p, {"a": 4}, "first")
     assert json.loads(p.read_text()) == {"first": {"a": 4}, "second": {"b": [2, 3]}}
+    # one record per line, compact: a rewrite changes one line, the pages' files stay small
+    assert p.read_text().splitlines() == ["{", '"first": {"a":4},', '"second": {"b":[2,3]}', "}"]
     whole = tmp_path / "whole.json"
     write_record(whole, [1, 2])
     assert json.loads(whole.read_text()) == [1, 2]

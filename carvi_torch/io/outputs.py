@@ -115,7 +115,22 @@ def write_record(path: str | os.PathLike, obj: Any, key: str | None = None) -> P
     if not isinstance(records, dict):
         raise ValueError(f"{path}: not a JSON object of records; give another file or no key")
     records[key] = obj
-    return write_json(path, records)
+    return write_bytes(path, records_text(records).encode("utf-8"))
+
+
+def records_text(records: dict) -> str:
+    """A JSON object of records, one record per line in compact JSON: a page's records stay small, and a
+    record's rewrite changes one line of the file.
+
+    Example:
+        >>> print(records_text({"a": {"x": [1, 2]}, "b": 3}), end="")
+        {
+        "a": {"x":[1,2]},
+        "b": 3
+        }
+    """
+    lines = (f"{json.dumps(str(k))}: {json.dumps(to_jsonable(v), separators=(',', ':'))}" for k, v in records.items())
+    return "{\n" + ",\n".join(lines) + "\n}\n"
 
 
 def record_target(out: str | os.PathLike | None, key: str | None, pages_file: Path, default_key: str | None,
