@@ -98,7 +98,8 @@ def _check_cameras_only(out: Path) -> None:
 def check_request(cfg: Config) -> torch.device:
     """The user errors a run can have before it starts, as :class:`ConfigError` (nothing is written):
     an unknown or absent device, an output folder that is a file or not writable (or, for ``stage=cameras``,
-    one that holds finished objects), annotations that do not exist. Returns the device."""
+    one that holds finished objects), annotations that do not exist, a ``classes`` name that is no class of the
+    embedded collection (without ``data``; those of a file are checked once it is read). Returns the device."""
     device = cfg.resolve_device()
     _check_out(Path(cfg.out))
     if cfg.stage == "cameras":
@@ -107,7 +108,21 @@ def check_request(cfg: Config) -> torch.device:
         raise ConfigError(f"--data {cfg.data}: no such file")
     if cfg.gt is not None and not Path(cfg.gt).is_file():
         raise ConfigError(f"gt={cfg.gt}: no such file")
+    if cfg.data is None and cfg.classes:  # the embedded collection's classes, known before it is generated
+        from ..synthetic.procedural import CATEGORIES
+
+        _check_classes(cfg.classes, {c: [c] for c in CATEGORIES}, "the embedded collection")
     return device
+
+
+def _check_classes(asked, names: dict, where: str) -> None:
+    """Every name of ``classes`` is a class of the data (:func:`~carvi_torch.io.coco.select_classes`, the check of
+    every command's ``--classes``): else a user error naming the unknown ones and the data's classes."""
+    if asked:
+        try:
+            coco.select_classes(asked, names, where)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
 
 
 def prepare_data(cfg: Config) -> tuple[Path, Path | None]:
@@ -135,6 +150,7 @@ def open_run(cfg: Config) -> RunSetup:
     loaded = coco.load_coco(data_path, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
                             device=device, classes=cfg.classes, max_image_pixels=cfg.input.max_image_pixels)
     load_s = time.perf_counter() - t0
+    _check_classes(cfg.classes, coco.class_names(loaded.dataset["categories"]), f"--data {data_path}")
     gt, gt_problem = read_ground_truth(gt_path, cfg.study.cameras == "gt")
     if gt_problem is not None:
         loaded.problems.append(gt_problem)
@@ -188,13 +204,9 @@ def announce(setup: RunSetup) -> None:
                     + "); its finished objects whose inputs are unchanged are kept as they are (resumed), so pass "
                     "overwrite=true to redo them")
     names = {c.meta.name for c in setup.loaded.collections.values()} | set(setup.loaded.collections)
-    known = sorted({str(c["name"]) for c in setup.loaded.dataset.get("categories", []) if isinstance(c, dict)
-                    and "name" in c})
-    for c in setup.cfg.classes or []:
+    for c in setup.cfg.classes or []:  # each a class of the data (open_run refuses any other name)
         if c not in names:
             why = "no usable object of this class"
-            if c not in known:  # a typo, another case: say so, and what the data has
-                why += f": the data has no class of that name (its classes: {', '.join(known) or 'none'})"
             setup.summary["classes"][c] = {"status": "skipped", "objects": 0, "reconstructed": 0,
                                            "failures": [{"stage": "load", "reason": why}]}
             log.warning(f"{c}: {why}")
