@@ -15,7 +15,7 @@ import torch
 from .. import carve
 from ..config import Config, ConfigError, settings_changed
 from ..io import coco
-from ..io.layout import KINDS, RUN_NAMES, linked_path
+from ..io.layout import KINDS, RUN_NAMES, ResumeCheck, class_dir, linked_path, other_objects
 from ..io.outputs import read_json, write_bytes, write_json
 from ..runtime import log, peak_rss_mb, stable_hash, unwritable_above
 
@@ -204,12 +204,29 @@ def announce(setup: RunSetup) -> None:
                     + "); its finished objects whose inputs are unchanged are kept as they are (resumed), so pass "
                     "overwrite=true to redo them")
     names = {c.meta.name for c in setup.loaded.collections.values()} | set(setup.loaded.collections)
+    keys = coco.class_names(setup.loaded.dataset.get("categories", []))
     for c in setup.cfg.classes or []:  # each a class of the data (open_run refuses any other name)
         if c not in names:
             why = "no usable object of this class"
             setup.summary["classes"][c] = {"status": "skipped", "objects": 0, "reconstructed": 0,
-                                           "failures": [{"stage": "load", "reason": why}]}
+                                           "failures": [{"stage": "load", "reason": why}],
+                                           **_other_objects(setup, c, keys.get(c, [c]))}
             log.warning(f"{c}: {why}")
+
+
+def _other_objects(setup: RunSetup, name: str, keys: list[str]) -> dict:
+    """``summary.json``'s ``other_objects`` of class ``name`` (folders ``keys``): the mesh and voxels files there
+    of objects that are none of the class's usable objects in this run's data
+    (:func:`~carvi_torch.io.layout.other_objects`), with their warning line. Every class this run reports gets
+    it, whatever became of the class (reconstructed, skipped, failed, or without a usable object)."""
+    stems: set[str] = set()
+    for key in keys:
+        coll = setup.loaded.collections.get(key)
+        stems.update(other_objects(class_dir(setup.out, key), coll.annotation_ids if coll is not None else []))
+    check = ResumeCheck(others=sorted(stems, key=lambda s: (len(s), s)))
+    for line in check.lines(name):
+        log.warning(line)
+    return check.info()
 
 
 def class_generator(cfg: Config, key: str) -> torch.Generator:
@@ -244,11 +261,12 @@ def write_summary(setup: RunSetup) -> None:
 
 def book_class(setup: RunSetup, key: str, rep) -> None:
     """A finished class into the summary (classes in name order, whichever finished first), with the
-    objects of it skipped at load (:func:`~carvi_torch.io.coco.skipped_at_load`), its skipped objects and
+    objects of it skipped at load (:func:`~carvi_torch.io.coco.skipped_at_load`) and the files in its folder of
+    objects the data no longer holds (:func:`_other_objects`, however the class ended), its skipped objects and
     warnings into the log (those skipped at load were logged already), and ``summary.json`` written."""
     at_load = coco.skipped_at_load(setup.loaded.problems, key)
     whole = replace(rep, objects=rep.objects + len(at_load), skipped=rep.skipped + at_load) if at_load else rep
-    setup.summary["classes"][key] = whole.to_dict()
+    setup.summary["classes"][key] = whole.to_dict() | _other_objects(setup, key, [key])
     setup.summary["classes"] = dict(sorted(setup.summary["classes"].items()))
     for s in rep.skipped:
         log.info(f"  {key}: annotation {s['annotation_id']} ({s['source']}) skipped at {s['stage']}: "
