@@ -43,7 +43,6 @@ import dataclasses
 import math
 import sys
 import time
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +53,7 @@ from tqdm.auto import tqdm
 from .cameras import ScaledOrthographic
 from .cli import add_common, program, run_command, split_classes, writable_folder
 from .config import Config, read_run_config
-from .io.coco import CocoFormatError, class_keys, load_coco, object_id
+from .io.coco import CocoFormatError, class_keys, class_names, load_coco, object_id, select_classes
 from .io.layout import object_file
 from .mesh import MESH_FORMATS
 from .io.outputs import read_json, write_bytes, write_json
@@ -164,7 +163,7 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     """
     data = Path(data)
     ann = _read_annotations(data, gt, split)
-    classes = _class_keys(classes, ann.categories, ann.key_of, data)
+    classes = select_classes(classes, class_names(ann.categories), str(data)) if classes else None
     first = Path(next(iter(recons.values())))
     cfg = read_run_config(first / "config.yaml") if (first / "config.yaml").is_file() else Config()
     canvas_size = canvas_size or cfg.input.canvas_size
@@ -314,25 +313,6 @@ def _class_viewpoints(classes: list[str], objects: dict, ann: _Annotations, came
                 vp[name] = rep
         viewpoints[cls] = vp
     return viewpoints
-
-
-def _class_keys(classes, categories: list, key_of: dict, data: Path) -> list[str] | None:
-    """The class folders that ``classes`` (names or folder names) ask for; ``ValueError`` naming an unknown
-    one and the classes the data has."""
-    if not classes:
-        return None
-    by_name: dict[str, list] = defaultdict(list)
-    for cat in categories:
-        key = key_of.get(str(cat.get("id"))) if isinstance(cat, dict) else None
-        if key is not None:
-            by_name[key].append(key)
-            if str(cat.get("name")) != key:
-                by_name[str(cat.get("name"))].append(key)
-    unknown = [c for c in classes if c not in by_name]
-    if unknown:
-        raise ValueError(f"--classes: {', '.join(map(repr, unknown))} not in {data} (its classes: "
-                         f"{', '.join(sorted(set(key_of.values()))) or 'none'})")
-    return sorted({k for c in classes for k in by_name[c]})
 
 
 def _classes_without_reconstruction(recons: dict, classes_in_scope: list, asked) -> dict[str, list[str]]:

@@ -27,7 +27,7 @@ from .carve import CarveMaps
 from .carve.puffball import puffball_grids
 from .collection import ClassCollection
 from .config import Config
-from .io.layout import ResumeCheck, class_dir, object_file, other_objects, resume_check
+from .io.layout import ResumeCheck, class_dir, object_file, resume_check
 from .io.outputs import write_json
 from .io.results import (ClassReport, cameras_json, canonical_image_cameras, quality_summary, resumed_levels,
                          resumed_objects, scores_entry, write_scores)
@@ -71,14 +71,13 @@ class ClassPlan:
 def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None, report: ClassReport) -> list[bool]:
     """Per original: finished by an earlier run into ``out`` from its current inputs, unless ``overwrite``
     (:func:`~carvi_torch.io.layout.resume_check`); the others are redone, those with damaged files logged per
-    object, those made from other inputs in one line and ``report.info["redone"]``; the files of objects that
-    the data no longer holds are named in one line and ``report.info["other_objects"]`` (with ``overwrite`` too)."""
+    object, those made from other inputs in one line and ``report.info["redone"]`` (the executor names the files
+    of objects that the data no longer holds, for every class: :func:`carvi_torch.executors.common.book_class`)."""
     if out is None:
         return [False] * len(coll)
     cdir = class_dir(out, coll.meta.key)
     check = (ResumeCheck(done=[False] * len(coll)) if cfg.overwrite
              else resume_check(cdir, coll.annotation_ids, coll.fingerprints, cfg.mesh.format))
-    check.others = other_objects(cdir, coll.annotation_ids)
     for line in check.lines(coll.meta.key):
         log.warning(line)
     report.info.update(check.info())

@@ -111,3 +111,36 @@ def test_readme_commands_name_every_option(capsys):
     for key, listed in entries.items():
         usage = _help(main, [*key, "--help"], capsys).split("\n\n")[0]
         assert listed == set(re.findall(r"--[a-z][a-z-]*", usage)) - {"--help", "--version"}, key
+
+
+@pytest.mark.parametrize("executor", ["local", "ray"])
+@pytest.mark.parametrize("data", [False, True], ids=["embedded", "data"])
+def test_reconstruct_refuses_a_class_the_data_lacks(executor, data, tmp_path, monkeypatch, capsys):
+    """``--classes`` with a name that is no class of the data (a typo, another case), on either executor: exit 2
+    before any work, one ``error:`` line naming the unknown names and the data's classes, as evaluate's and the
+    export's; nothing written (the embedded collection is not even generated)."""
+    import contextlib
+    import json
+
+    from carvi_torch import reconstruct
+    from carvi_torch.executors import ray as ray_executor
+
+    generated = []
+    monkeypatch.setattr("carvi_torch.synthetic.procedural.write_default_collection",
+                        lambda *a, **k: generated.append(a))
+    monkeypatch.setattr(ray_executor, "import_ray", lambda: None)  # no cluster: the check comes before the work
+    monkeypatch.setattr(ray_executor, "connect", lambda address: contextlib.nullcontext("local"))
+    argv = ["--out", str(tmp_path / "run"), "--classes", "car,Chair,nosuch", "--quiet", f"executor={executor}"]
+    known = "aeroplane, bottle, car, chair"
+    if data:
+        cats = [{"id": i, "name": n, "keypoints": ["a", "b", "c"]} for i, n in enumerate(["car", "chair"], 1)]
+        (tmp_path / "ann.json").write_text(json.dumps({"images": [], "annotations": [], "categories": cats}))
+        argv, known = argv + ["--data", str(tmp_path / "ann.json")], "car, chair"
+    capsys.readouterr()
+    assert reconstruct.main(argv) == 2
+    cap = capsys.readouterr()
+    lines = cap.err.strip().splitlines()
+    assert "Traceback" not in cap.err + cap.out and len(lines) == 1, cap.err
+    assert lines[0].startswith("error: --classes: 'Chair', 'nosuch' are not classes of "), lines[0]
+    assert f"(its classes: {known};" in lines[0]
+    assert generated == [] and sorted(p.name for p in tmp_path.iterdir()) == (["ann.json"] if data else [])

@@ -783,15 +783,18 @@ def test_readme_names_every_member_of_a_voxels_file(tiny):
     assert [m for m in sorted(members) if f"`{m}" not in row] == []
 
 
-@pytest.mark.parametrize("overwrite", [False, True])
-def test_files_of_objects_the_data_no_longer_holds_are_named(tmp_path, caplog, overwrite):
+@pytest.mark.parametrize("ending", ["reconstructed", "skipped", "failed", "no usable object"])
+def test_files_of_objects_the_data_no_longer_holds_are_named(tmp_path, caplog, ending):
     """A rerun into an ``--out`` whose class folder holds files of objects that the data no longer has (other
     ``--data``, fewer ``procedural_instances``) keeps them but says so: one warning line and ``summary.json``'s
-    ``other_objects``; the current objects' files are not counted; ``overwrite=true`` says it too."""
+    ``other_objects``; the current objects' files are not counted. The same for every class of the run, however
+    it ends: reconstructed, skipped (too few objects, no camera), failed, or asked for with no usable object."""
     import logging
     from types import SimpleNamespace
 
-    from carvi_torch.pipeline import finished_objects
+    from carvi_torch.executors.common import announce, book_class
+    from carvi_torch.io.coco import LoadResult
+    from carvi_torch.io.results import ClassReport
 
     cdir = tmp_path / "car"
     for kind, ext in (("meshes", "ply"), ("voxels", "npz")):
@@ -799,31 +802,42 @@ def test_files_of_objects_the_data_no_longer_holds_are_named(tmp_path, caplog, o
         for stem in ("2", "17", "9", "x-d6b96a97"):
             (cdir / kind / f"{stem}.{ext}").write_bytes(b"")
     (cdir / "voxels" / ".17.npz.abc.tmp").write_bytes(b"")  # a write cut short: no object's file
-    coll = SimpleNamespace(meta=SimpleNamespace(key="car"), annotation_ids=[2, 3], fingerprints=["a", "b"])
-    cfg = SimpleNamespace(overwrite=overwrite, mesh=SimpleNamespace(format="ply"))
-    report = SimpleNamespace(info={})
+    usable = ending != "no usable object"
+    coll = SimpleNamespace(annotation_ids=[2, 3], meta=SimpleNamespace(name="car", key="car"))
+    loaded = LoadResult(collections={"car": coll} if usable else {},
+                        dataset={"categories": [{"id": 1, "name": "car", "keypoints": ["a", "b", "c"]}]})
+    setup = SimpleNamespace(loaded=loaded, summary={"classes": {}}, changed={}, out=tmp_path, earlier={},
+                            cfg=SimpleNamespace(classes=["car"]))
     with caplog.at_level(logging.WARNING):
-        done = finished_objects(_Sized(coll, 2), cfg, tmp_path, report)
-    assert done == [False, False]
-    assert report.info["other_objects"] == {"count": 3, "stems": ["9", "17", "x-d6b96a97"]}
+        announce(setup)
+        if usable:
+            status = "ok" if ending == "reconstructed" else ending
+            book_class(setup, "car", ClassReport("car", objects=2, status=status))
+    stems = ["9", "17", "x-d6b96a97"] if usable else ["2", "9", "17", "x-d6b96a97"]
+    assert setup.summary["classes"]["car"]["other_objects"] == {"count": len(stems), "stems": stems}
     lines = [r.getMessage() for r in caplog.records if "no longer holds" in r.getMessage()]
-    assert len(lines) == 1 and lines[0].startswith("  car: 3 object(s)") and "9, 17, x-d6b96a97" in lines[0]
+    assert len(lines) == 1 and lines[0].startswith(f"  car: {len(stems)} object(s)") and ", ".join(stems) in lines[0]
+    if usable:  # booked into summary.json as it stands
+        assert json.loads((tmp_path / "summary.json").read_text())["classes"]["car"]["other_objects"]["stems"] == stems
 
 
-class _Sized:
-    """A stand-in collection: the attributes of ``inner`` and a length."""
+def test_a_class_skipped_before_its_viewpoints_names_files_it_no_longer_holds(tmp_path):
+    """A run whose every class has too few objects (skipped before the viewpoint stage) still names the files in a
+    class's folder of objects the data does not hold, in ``summary.json``."""
+    from carvi_torch.reconstruct import main
 
-    def __init__(self, inner, n: int):
-        self.__dict__.update(vars(inner))
-        self._n = n
+    out = tmp_path / "run"
+    (out / "car" / "meshes").mkdir(parents=True)
+    (out / "car" / "meshes" / "999.ply").write_bytes(b"")
+    assert main(["--out", str(out), "--quiet", "procedural_instances=2", "preview=false", "report=false"]) == 1
+    classes = json.loads((out / "summary.json").read_text())["classes"]
+    assert classes["car"]["status"] == "skipped" and classes["car"]["other_objects"] == {"count": 1, "stems": ["999"]}
+    assert [k for k, c in classes.items() if "other_objects" in c] == ["car"]
 
-    def __len__(self) -> int:
-        return self._n
 
-
-def test_a_class_name_the_data_lacks_is_called_so(caplog):
-    """``--classes Aeroplane`` (a typo or another case) is reported as a name the data has no class of, with the
-    data's classes; a class of the data with no usable object keeps the plain reason."""
+def test_a_class_asked_for_without_a_usable_object_is_reported_skipped(caplog):
+    """A class of the data asked for with no usable object is a skipped class in the summary and a warning (a
+    name that is no class of the data never gets here: the run refuses it, tests/test_cli.py)."""
     import logging
     from types import SimpleNamespace
 
@@ -832,11 +846,9 @@ def test_a_class_name_the_data_lacks_is_called_so(caplog):
 
     data = {"categories": [{"id": 1, "name": "aeroplane"}, {"id": 2, "name": "chair"}]}
     setup = SimpleNamespace(loaded=LoadResult(collections={}, dataset=data), summary={"classes": {}}, changed={},
-                            out=Path("run"), cfg=SimpleNamespace(classes=["Aeroplane", "chair"]))
+                            out=Path("run"), cfg=SimpleNamespace(classes=["chair"]))
     with caplog.at_level(logging.WARNING):
         announce(setup)
-    typo, chair = (setup.summary["classes"][c]["failures"][0]["reason"] for c in ("Aeroplane", "chair"))
-    assert typo == ("no usable object of this class: the data has no class of that name (its classes: aeroplane, "
-                    "chair)")
-    assert chair == "no usable object of this class"
-    assert f"Aeroplane: {typo}" in caplog.text
+    assert setup.summary["classes"] == {"chair": {"status": "skipped", "objects": 0, "reconstructed": 0, "failures": [
+        {"stage": "load", "reason": "no usable object of this class"}]}}
+    assert "chair: no usable object of this class" in caplog.text

@@ -630,8 +630,8 @@ def _cli_cases() -> list[Case]:
         Case("cli_config_unknown_key", "--config with an unknown key", cli=with_config,
              files=(("config.yaml", b"colour: red\n"),), rc=2, error=("colour",)),
         Case("cli_config_missing", "--config names no file", cli=with_config, rc=2, error=("config.yaml",)),
-        Case("cli_classes_unknown", "--classes bicycle (no such class): nothing to do",
-             cli=DEFAULT_CLI + ("--classes", "bicycle"), rc=1, lost=ALL, bad=((Cls("bicycle"), "no usable object"),)),
+        Case("cli_classes_unknown", "--classes bicycle (no such class)", cli=DEFAULT_CLI + ("--classes", "bicycle"),
+             rc=2, error=("'bicycle' is not a class", "its classes: car, chair")),
         Case("cli_out_odd_name", "--out with spaces, unicode and a leading dash", out="deep/er/-out dir \u00e9\u00e8"),
     ]
 

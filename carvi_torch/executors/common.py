@@ -15,7 +15,7 @@ import torch
 from .. import carve
 from ..config import Config, ConfigError, settings_changed
 from ..io import coco
-from ..io.layout import KINDS, RUN_NAMES, linked_path
+from ..io.layout import KINDS, RUN_NAMES, ResumeCheck, class_dir, linked_path, other_objects
 from ..io.outputs import read_json, write_bytes, write_json
 from ..runtime import log, peak_rss_mb, stable_hash, unwritable_above
 
@@ -98,7 +98,8 @@ def _check_cameras_only(out: Path) -> None:
 def check_request(cfg: Config) -> torch.device:
     """The user errors a run can have before it starts, as :class:`ConfigError` (nothing is written):
     an unknown or absent device, an output folder that is a file or not writable (or, for ``stage=cameras``,
-    one that holds finished objects), annotations that do not exist. Returns the device."""
+    one that holds finished objects), annotations that do not exist, a ``classes`` name that is no class of the
+    embedded collection (without ``data``; those of a file are checked once it is read). Returns the device."""
     device = cfg.resolve_device()
     _check_out(Path(cfg.out))
     if cfg.stage == "cameras":
@@ -107,7 +108,21 @@ def check_request(cfg: Config) -> torch.device:
         raise ConfigError(f"--data {cfg.data}: no such file")
     if cfg.gt is not None and not Path(cfg.gt).is_file():
         raise ConfigError(f"gt={cfg.gt}: no such file")
+    if cfg.data is None and cfg.classes:  # the embedded collection's classes, known before it is generated
+        from ..synthetic.procedural import CATEGORIES
+
+        _check_classes(cfg.classes, {c: [c] for c in CATEGORIES}, "the embedded collection")
     return device
+
+
+def _check_classes(asked, names: dict, where: str) -> None:
+    """Every name of ``classes`` is a class of the data (:func:`~carvi_torch.io.coco.select_classes`, the check of
+    every command's ``--classes``): else a user error naming the unknown ones and the data's classes."""
+    if asked:
+        try:
+            coco.select_classes(asked, names, where)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
 
 
 def prepare_data(cfg: Config) -> tuple[Path, Path | None]:
@@ -135,6 +150,7 @@ def open_run(cfg: Config) -> RunSetup:
     loaded = coco.load_coco(data_path, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
                             device=device, classes=cfg.classes, max_image_pixels=cfg.input.max_image_pixels)
     load_s = time.perf_counter() - t0
+    _check_classes(cfg.classes, coco.class_names(loaded.dataset["categories"]), f"--data {data_path}")
     gt, gt_problem = read_ground_truth(gt_path, cfg.study.cameras == "gt")
     if gt_problem is not None:
         loaded.problems.append(gt_problem)
@@ -188,16 +204,29 @@ def announce(setup: RunSetup) -> None:
                     + "); its finished objects whose inputs are unchanged are kept as they are (resumed), so pass "
                     "overwrite=true to redo them")
     names = {c.meta.name for c in setup.loaded.collections.values()} | set(setup.loaded.collections)
-    known = sorted({str(c["name"]) for c in setup.loaded.dataset.get("categories", []) if isinstance(c, dict)
-                    and "name" in c})
-    for c in setup.cfg.classes or []:
+    keys = coco.class_names(setup.loaded.dataset.get("categories", []))
+    for c in setup.cfg.classes or []:  # each a class of the data (open_run refuses any other name)
         if c not in names:
             why = "no usable object of this class"
-            if c not in known:  # a typo, another case: say so, and what the data has
-                why += f": the data has no class of that name (its classes: {', '.join(known) or 'none'})"
             setup.summary["classes"][c] = {"status": "skipped", "objects": 0, "reconstructed": 0,
-                                           "failures": [{"stage": "load", "reason": why}]}
+                                           "failures": [{"stage": "load", "reason": why}],
+                                           **_other_objects(setup, c, keys.get(c, [c]))}
             log.warning(f"{c}: {why}")
+
+
+def _other_objects(setup: RunSetup, name: str, keys: list[str]) -> dict:
+    """``summary.json``'s ``other_objects`` of class ``name`` (folders ``keys``): the mesh and voxels files there
+    of objects that are none of the class's usable objects in this run's data
+    (:func:`~carvi_torch.io.layout.other_objects`), with their warning line. Every class this run reports gets
+    it, whatever became of the class (reconstructed, skipped, failed, or without a usable object)."""
+    stems: set[str] = set()
+    for key in keys:
+        coll = setup.loaded.collections.get(key)
+        stems.update(other_objects(class_dir(setup.out, key), coll.annotation_ids if coll is not None else []))
+    check = ResumeCheck(others=sorted(stems, key=lambda s: (len(s), s)))
+    for line in check.lines(name):
+        log.warning(line)
+    return check.info()
 
 
 def class_generator(cfg: Config, key: str) -> torch.Generator:
@@ -232,11 +261,12 @@ def write_summary(setup: RunSetup) -> None:
 
 def book_class(setup: RunSetup, key: str, rep) -> None:
     """A finished class into the summary (classes in name order, whichever finished first), with the
-    objects of it skipped at load (:func:`~carvi_torch.io.coco.skipped_at_load`), its skipped objects and
+    objects of it skipped at load (:func:`~carvi_torch.io.coco.skipped_at_load`) and the files in its folder of
+    objects the data no longer holds (:func:`_other_objects`, however the class ended), its skipped objects and
     warnings into the log (those skipped at load were logged already), and ``summary.json`` written."""
     at_load = coco.skipped_at_load(setup.loaded.problems, key)
     whole = replace(rep, objects=rep.objects + len(at_load), skipped=rep.skipped + at_load) if at_load else rep
-    setup.summary["classes"][key] = whole.to_dict()
+    setup.summary["classes"][key] = whole.to_dict() | _other_objects(setup, key, [key])
     setup.summary["classes"] = dict(sorted(setup.summary["classes"].items()))
     for s in rep.skipped:
         log.info(f"  {key}: annotation {s['annotation_id']} ({s['source']}) skipped at {s['stage']}: "

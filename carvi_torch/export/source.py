@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..config import Config, read_run_config
-from ..io.coco import class_keys
+from ..io.coco import class_keys, class_names, select_classes
 from ..io.outputs import read_json
 
 __all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories"]
@@ -74,22 +74,13 @@ def class_scope(categories: list, run_classes, asked, recon: Path) -> list[str]:
         ...
         ValueError: --classes: 'chair' is not a class of the run runA (its classes: car; names are case-sensitive)
     """
-    keys = class_keys(categories)
-    names: dict[str, set] = {}
-    for cat in categories:
-        key = keys.get(str(cat.get("id"))) if isinstance(cat, dict) else None
-        if key is not None and (not run_classes or {key, str(cat.get("name"))} & set(run_classes)):
-            for n in (key, str(cat.get("name"))):
-                names.setdefault(n, set()).add(key)
-    in_run = sorted({k for ks in names.values() for k in ks})
+    names = class_names(categories)
+    if run_classes:
+        in_run = {k for n in run_classes for k in names.get(n, ())}
+        names = {n: [k for k in ks if k in in_run] for n, ks in names.items() if set(ks) & in_run}
     if not asked:
-        return in_run
-    unknown = [c for c in asked if c not in names]
-    if unknown:
-        raise ValueError(f"--classes: {', '.join(map(repr, unknown))} "
-                         f"{'is not a class' if len(unknown) == 1 else 'are not classes'} of the run {recon} "
-                         f"(its classes: {', '.join(in_run) or 'none'}; names are case-sensitive)")
-    return sorted({k for c in asked for k in names[c]})
+        return sorted({k for ks in names.values() for k in ks})
+    return select_classes(asked, names, f"the run {recon}")
 
 
 def class_categories(categories: list, class_names: list) -> dict[str, dict]:

@@ -36,7 +36,8 @@ from .outputs import read_json, safe_name, write_json
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
            "clip_polygon", "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "MAX_IMAGE_PIXELS",
-           "object_id", "flag", "class_keys", "input_fingerprints", "skipped_at_load", "DUPLICATE_ID", "is_duplicate"]
+           "object_id", "flag", "class_keys", "class_names", "select_classes", "input_fingerprints", "skipped_at_load",
+           "DUPLICATE_ID", "is_duplicate"]
 
 #: How the reason of a repeated annotation id begins (the id's first annotation is the one used).
 DUPLICATE_ID = "duplicate annotation id"
@@ -481,6 +482,42 @@ def class_keys(categories: list) -> dict[str, str]:
         {'1': 'car', '2': 'car-2'}
     """
     return {cid: key for cid, (key, meta) in _categories(categories, None, []).items() if meta is not None}
+
+
+def class_names(categories: list) -> dict[str, list[str]]:
+    """``{name: class keys}``: every name a file's usable categories answer to (a category's name and its folder
+    name, as :func:`load_coco`'s ``classes`` matches them) with the class folders it selects.
+
+    Example:
+        >>> class_names([{"id": 1, "name": "car", "keypoints": ["a"]}, {"id": 2, "name": "car", "keypoints": ["a"]}])
+        {'car': ['car', 'car-2'], 'car-2': ['car-2']}
+    """
+    names: dict[str, list[str]] = {}
+    for key, meta in _categories(categories, None, []).values():
+        if meta is not None:
+            for name in dict.fromkeys((key, meta.name)):
+                names.setdefault(name, []).append(key)
+    return dict(sorted(names.items()))
+
+
+def select_classes(asked, names: dict, where: str) -> list[str]:
+    """The class folders that the names ``asked`` (``--classes``) select among ``names`` (:func:`class_names`);
+    ``ValueError`` naming every name that is none of them, ``where``'s classes and that case matters: the one
+    check of the commands that take ``--classes``.
+
+    Example:
+        >>> select_classes(["Car"], {"car": ["car"]}, "data.json")
+        Traceback (most recent call last):
+        ...
+        ValueError: --classes: 'Car' is not a class of data.json (its classes: car; names are case-sensitive)
+    """
+    unknown = [c for c in asked if c not in names]
+    if unknown:
+        keys = sorted({k for ks in names.values() for k in ks})
+        raise ValueError(f"--classes: {', '.join(map(repr, unknown))} "
+                         f"{'is not a class' if len(unknown) == 1 else 'are not classes'} of {where} "
+                         f"(its classes: {', '.join(keys) or 'none'}; names are case-sensitive)")
+    return sorted({k for c in asked for k in names[c]})
 
 
 def _unique_key(name: str, cid, taken: set) -> str:
