@@ -114,36 +114,36 @@ class ViewpointConfig:
     """Inner (camera / shape) alternations per outer iteration."""
     sfm_tol: float = 1e-7
     """Stop when the relative change of the visible-entry residual falls below this."""
-    sfm_polish_iters: int = 30
+    sfm_polish_iters: int = 100
     """Bundle-polish rounds after the factorisation at most (``carvi_torch.viewpoints.sfm``; 0 = none); the
-    polish also stops at ``sfm_tol``. Shape groups' SfM runs (the mixture's hard EM) take this too. At 30 the
-    polish of most CAD classes at 8 views stops before its residual settles (boat: 0.1% lower every round);
-    run to its end (about 300 rounds, ``sfm_polish_iters=400``) it puts boat within 12 degrees at every seed
-    and makes its cameras agree across float paths, but train's seed-2 cameras worse and bottle's better
-    (docs/viewpoints.md, *Where a run's numbers move between machines*). With ``sfm_polish=joint`` a round is
-    one damped Levenberg-Marquardt solve."""
-    sfm_polish: PolishMethod = "alternate"
+    polish also stops at ``sfm_tol``. Shape groups' SfM runs (the mixture's hard EM) take this too. With the
+    joint polish a round is one damped Levenberg-Marquardt solve: most CAD classes at 8 views settle in
+    4-25, the real VOC aeroplanes in about 40, bottle (rotationally symmetric) stops at the cap. The
+    alternation (``sfm_polish=alternate``) crawls: at 30 rounds most CAD classes at 8 views stop before their
+    residual settles (boat: 0.1% lower every round), run to its end it needs about 300
+    (docs/viewpoints.md, *Where a run's numbers move between machines*)."""
+    sfm_polish: PolishMethod = "joint"
     """How the bundle polish minimises the visible-keypoint residual after the factorisation
-    (``carvi_torch.viewpoints.sfm.bundle_polish``): ``alternate`` (every camera's fit to the shape, then the
-    shape's exact solve, in turn) or ``joint`` (Levenberg-Marquardt over every camera and the shape at once,
-    the cameras eliminated by the Schur complement: ``carvi_torch.viewpoints.bundle``). Shape groups' SfM runs
-    take this too. ``joint`` settles most CAD classes at 8 views in 4-25 rounds (boat within 12 degrees at
-    every seed, summed medians 233.8 -> 222.7, 0.80x the many-class CPU time); the real VOC aeroplanes need
-    about 40 (``sfm_polish_iters=100``); docs/viewpoints.md, *A joint bundle adjustment*."""
+    (``carvi_torch.viewpoints.sfm.bundle_polish``): ``joint`` (Levenberg-Marquardt over every camera and the
+    shape at once, the cameras eliminated by the Schur complement: ``carvi_torch.viewpoints.bundle``) or
+    ``alternate`` (every camera's fit to the shape, then the shape's exact solve, in turn). Shape groups' SfM
+    runs take this too. ``joint`` settles where the alternation stops at its caps (boat within 12 degrees
+    at every seed of the 8-view CAD renders; summed medians 233.8 -> 202.7 with this config's defaults
+    against the alternation's 30 rounds, ``sfm_max_outer=200`` and the mixture's three larger groups) in
+    0.73x the many-class CPU time; docs/viewpoints.md, *A joint bundle adjustment*."""
     sfm_template_start: bool = True
     """Also start the class's SfM from its template of 3-D keypoints (the category's ``keypoints_3d``, else the
     shipped PASCAL3D+ one of its name; ``viewpoints.frame``) and keep that solution when it places as many
     objects with a visible-keypoint RMS residual lower by more than ``viewpoints.TEMPLATE_START_MARGIN``
     (25%). Classes without a template and rotationally symmetric ones run one SfM."""
-    sfm_groups: int = 3
+    sfm_groups: int = 4
     """Most rigid shapes per class (``carvi_torch.viewpoints.mixture``). A class whose members differ in
     proportions is split into groups, each with its own SfM shape, in one class frame, when one shape
     misfits it (``sfm_group_misfit``) and the split passes ``sfm_group_gain``, ``sfm_group_agreement_deg``
     and ``sfm_group_hull_gain``; every other class keeps one shape, bit for bit. 1 = one mean shape per
-    class, as in the paper (on the 8-view CAD renders sofa 10.9 against 8.9 degrees, docs/viewpoints.md;
-    shapes 5.51 against 5.38%, docs/results.md). More, smaller groups (``sfm_groups=4 sfm_group_min=10
-    sfm_group_gain=0.25``) put sofa at 5.7 / 3.5 / 6.7 degrees over three render seeds, for 1.33x the
-    many-class run's time (docs/viewpoints.md, *More, smaller groups*)."""
+    class, as in the paper. Up to four groups of at least ``sfm_group_min`` (10) objects put the 8-view CAD
+    sofas at 6.0 / 6.0 / 4.3 degrees over three render seeds (``sfm_groups=3 sfm_group_min=15
+    sfm_group_gain=0.3``: 8.5 / 9.4 / 10.1; docs/viewpoints.md, *A joint bundle adjustment*)."""
     sfm_group_misfit: float = 0.025
     """The mixture is only fitted when the one-shape SfM misfits the class: the median over the objects of
     the keypoint RMS residual over the diagonal of the mask's box is at least this (0 = always fit). A gate
@@ -155,9 +155,9 @@ class ViewpointConfig:
     agreement (IoU) of the masks with the convex hull of the projected group shape, under the SfM cameras,
     by at least this over one shape (a silhouette test the keypoint-only fit does not optimise); -1 = no
     such test."""
-    sfm_group_min: int = 15
+    sfm_group_min: int = 10
     """Fewest objects per shape group (a class with fewer than twice this keeps one shape)."""
-    sfm_group_gain: float = 0.3
+    sfm_group_gain: float = 0.25
     """A split into one more group is kept when it cuts the keypoint residual by more than this fraction."""
     sfm_group_agreement_deg: float = 60.0
     """A split is only considered when its groups' frames agree within this many degrees (median over
@@ -176,7 +176,7 @@ class ViewpointConfig:
     """Which camera an object with an SfM camera keeps (``carvi_torch.viewpoints.choice``). A refined camera is
     suspect when it raised the keypoint error by more than 1% of the mask's box diagonal while raising the
     agreement of the mask with the projected mean shape's hull by less than 0.05. ``class``: the whole class
-    keeps its SfM cameras when more than half its refined cameras are suspect; ``objects``: every suspect
+    keeps its SfM cameras when more than a third of its refined cameras are suspect; ``objects``: every suspect
     object keeps its SfM camera; ``refined``: always the refined one (the paper's). With ``class`` and
     ``objects`` a tilted refined camera (``refine_max_tilt_deg``) keeps its SfM camera too. ``cameras.json``
     says which (``camera_choice``)."""

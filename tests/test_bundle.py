@@ -251,7 +251,7 @@ def test_config_passes_sfm_polish_to_the_class_sfm(monkeypatch):
     for method in ("joint", "alternate"):
         class_sfm(both, Config().override({"sfm_polish": method}).viewpoints)
     assert seen == ["joint", "alternate"]
-    assert Config().viewpoints.sfm_polish == "alternate"
+    assert Config().viewpoints.sfm_polish == "joint"
     with pytest.raises(ConfigError, match="sfm_polish"):
         Config().override({"sfm_polish": "both"})
 

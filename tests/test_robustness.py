@@ -804,7 +804,7 @@ def test_one_cli_and_a_log(base, tmp_path, capsys):
     data = _write(tmp_path, base)
     out = tmp_path / "run"
     argv = ["carvi", "reconstruct", "--data", str(data), "--out", str(out), "--classes", "car", "sfm_max_outer=2",
-            "resolution=16", "proposals=3", "canvas_size=48", "preview=false", "report=false"]
+            "sfm_polish_iters=1", "resolution=16", "proposals=3", "canvas_size=48", "preview=false", "report=false"]
     # `python -m carvi_torch.cli reconstruct ...` in a process of its own (runpy, as -m runs it); written inline
     # (CARVI_WRITERS=0): what is checked is where the messages go, and a fresh process's writers take seconds
     # to start (the writer processes of a command-line run: tools/stress_inputs.py's check in test_tools.py)

@@ -566,7 +566,7 @@ def test_pipeline_viewpoints_refine_every_group_with_its_own_shape(two_shapes, m
     assert out["mean_shape"] == out["shape_groups"][out["mean_shape_group"]]["mean_shape"]
 
     # the one-group path is compared with the SfM and refinement run here, exactly: 40 outer steps do for that
-    cfg1 = Config().override({"progress": False, "silhouette_weight": 0.0, "sfm_max_outer": 40})
+    cfg1 = Config().override({"progress": False, "silhouette_weight": 0.0, "sfm_max_outer": 40, "sfm_groups": 1})
     one = estimate_viewpoints(coll, cfg1.viewpoints)
     assert one.groups.k == 1 and torch.equal(one.shape, one.groups.single.shape)
     # one group: exactly the one-shape SfM and its refinement, as before the mixture existed
@@ -593,7 +593,7 @@ def test_pipeline_refines_without_keypoints_few_instances_show():
     support = both.visible.float().mean(0)
     weak = support < 0.1
     assert weak.nonzero().squeeze(1).tolist() == [0, 6]
-    on = Config().override({"progress": False, "refine_min_support": 0.1, "sfm_max_outer": 40})
+    on = Config().override({"progress": False, "refine_min_support": 0.1, "sfm_max_outer": 40, "sfm_groups": 1})
     off = on.override({"refine_min_support": 0.0})
     got = refine_with_shape(res.shape, res.cameras, both, dist, on.viewpoints)
     want = refine.refine_cameras(refine.supported_shape(res.shape, both.visible, 0.1), res.cameras, both.keypoints,
@@ -627,26 +627,28 @@ def _cad_class(shared_data, tmp_path, prefix: str, count: int, views: int = 15):
     return coll, R
 
 
-def test_cad_sofas_fit_three_shapes_and_better_viewpoints(shared_data, tmp_path):
+def test_cad_sofas_fit_several_shapes_and_better_viewpoints(shared_data, tmp_path):
     """The six PASCAL3D+ sofa models (a long low couch, an armchair, ordinary sofas), 15 renders each.
 
-    One rigid shape cannot fit them (10.4 deg median here; 9.5 at 30 renders, docs/viewpoints.md).
-    The pipeline with ``sfm_groups=3`` splits them into three shapes whose frames agree and lands
-    below the 8-degree target (5.5 here, 5.7 at 30 renders); the ground truth only scores."""
+    One rigid shape cannot fit them: its cameras are 19.7 deg off (median; the joint polish settles where the
+    keypoints fit it best, the alternation's 30 rounds stop at 10.4). The default mixture splits them into
+    groups of at least ``sfm_group_min`` whose frames agree and lands below the 8-degree target (5.7 here);
+    the ground truth only scores."""
     from carvi_torch.config import Config
 
     coll, R = _cad_class(shared_data, tmp_path, "sofa", 6)
     n = len(coll)
-    errors = {}
-    for groups in (1, 3):
+    errors, default = {}, Config().viewpoints
+    for groups in (1, default.sfm_groups):
         vp = estimate_viewpoints(coll, Config().override({"sfm_groups": groups, "progress": False}).viewpoints)
         img = vp.cameras[:n].compose_similarity(coll.canvas_from_image.inverse())
         errors[groups] = viewpoint_report(img.R.double(), R)["geodesic"]["median"]
-        if groups == 3:
+        if groups > 1:
             info = vp.info["sfm_groups"]
-            assert info["groups"] == 3 and min(info["sizes"]) >= 15 and info["frame_agreement_deg"] <= 60
+            assert info["groups"] >= 3 and min(info["sizes"]) >= default.sfm_group_min
+            assert info["frame_agreement_deg"] <= default.sfm_group_agreement_deg
     assert errors[1] > 9.0  # one shape: the target is missed
-    assert errors[3] < 7.0 and errors[3] < 0.7 * errors[1], errors
+    assert errors[default.sfm_groups] < 7.0 and errors[default.sfm_groups] < 0.7 * errors[1], errors
 
 
 def test_cad_buses_just_under_the_old_gate_get_their_split(shared_data, tmp_path):
@@ -802,7 +804,7 @@ def test_pipeline_says_where_each_camera_came_from(groups):
 
 
 def test_a_class_under_the_misfit_gate_gets_the_one_shape_cameras_bit_for_bit():
-    """The default ``sfm_groups=3`` on a class of one proportion (32 objects, enough for two groups): the
+    """The default ``sfm_groups`` (more than 1) on a class of one proportion (32 objects, enough for two groups): the
     one-shape residual is under the gate, no split is tried, and every camera, the mean shape and the SfM
     cameras equal those of ``sfm_groups=1`` exactly."""
     from carvi_torch.config import Config
@@ -811,7 +813,7 @@ def test_a_class_under_the_misfit_gate_gets_the_one_shape_cameras_bit_for_bit():
     base = {"progress": False, "sfm_max_outer": 40, "refine_iters": 30}
     default = estimate_viewpoints(coll, Config().override(base).viewpoints)
     one = estimate_viewpoints(coll, Config().override({**base, "sfm_groups": 1}).viewpoints)
-    assert Config().viewpoints.sfm_groups == 3 and default.groups.k == 1 and default.groups.candidates == []
+    assert Config().viewpoints.sfm_groups > 1 and default.groups.k == 1 and default.groups.candidates == []
     assert default.groups.misfit < GATE["min_misfit"] and "fits the keypoints" in default.groups.note
     for a, b in ((default.cameras, one.cameras), (default.sfm_cameras, one.sfm_cameras)):
         assert torch.equal(a.R, b.R) and torch.equal(a.s, b.s) and torch.equal(a.t, b.t)
