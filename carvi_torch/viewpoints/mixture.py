@@ -63,9 +63,10 @@ needs them to reach ``min_size``.
 
 The acceptance rule and its thresholds (``gain = 0.3``, ``agreement_deg = 60``, and the pipeline's
 ``sfm_group_misfit = 0.025``, ``sfm_group_hull_gain = 0.01``) were set on the renders of the PASCAL3D+
-CAD models (docs/viewpoints.md); they are not tuned on any other data. More, smaller groups
-(``max_groups=4``, ``min_size=10``, ``gain=0.25``) fit the small CAD classes better at 1.33x the
-many-class run's time (docs/viewpoints.md, *More, smaller groups*).
+CAD models (docs/viewpoints.md); they are not tuned on any other data. The pipeline's defaults ask for more,
+smaller groups (``sfm_groups=4``, ``sfm_group_min=10``, ``sfm_group_gain=0.25``), which with the joint
+bundle adjustment put every small CAD class within its viewpoint bound (docs/viewpoints.md, *The joint
+bundle adjustment*).
 
 Example:
     >>> import torch
