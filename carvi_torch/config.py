@@ -118,7 +118,8 @@ class ViewpointConfig:
     """Bundle-polish rounds after the factorisation at most (``carvi_torch.viewpoints.sfm``; 0 = none); the
     polish also stops at ``sfm_tol``. Shape groups' SfM runs (the mixture's hard EM) take this too. With the
     joint polish a round is one damped Levenberg-Marquardt solve: most CAD classes at 8 views settle in
-    4-25, the real VOC aeroplanes in about 40, bottle (rotationally symmetric) stops at the cap. The
+    4-25, the real VOC aeroplanes in about 40; bottle (rotationally symmetric) stops at the cap, sofa and
+    train at some seeds. The
     alternation (``sfm_polish=alternate``) crawls: at 30 rounds most CAD classes at 8 views stop before their
     residual settles (boat: 0.1% lower every round), run to its end it needs about 300
     (docs/viewpoints.md, *Where a run's numbers move between machines*)."""
@@ -145,13 +146,14 @@ class ViewpointConfig:
     and ``sfm_group_hull_gain``; every other class keeps one shape, bit for bit. 1 = one mean shape per
     class, as in the paper. Up to four groups of at least ``sfm_group_min`` (10) objects put the 8-view CAD
     sofas at 6.0 / 6.0 / 4.3 degrees over three render seeds (``sfm_groups=3 sfm_group_min=15
-    sfm_group_gain=0.3``: 8.5 / 9.4 / 10.1; docs/viewpoints.md, *The joint bundle adjustment*)."""
+    sfm_group_gain=0.3`` and 30 solves: 8.5 / 9.4 / 10.1; docs/viewpoints.md, *The joint bundle adjustment*)."""
     sfm_group_misfit: float = 0.025
     """The mixture is only fitted when the one-shape SfM misfits the class: the median over the objects of
     the keypoint RMS residual over the diagonal of the mask's box is at least this (0 = always fit). A gate
     of cost only: whether a split is kept is ``sfm_group_hull_gain``'s and the others' decision. On the
-    8-view CAD renders the buses sit at 0.028-0.031 and keep a split wherever it is fitted (seed 1: 9.8 ->
-    3.8 degrees, seed 2: 8.1 -> 6.3); at 0.03 they were left on one shape there (docs/viewpoints.md)."""
+    8-view CAD renders the buses sit at 0.028-0.031 and keep a split wherever it is fitted (with the
+    alternation's settings seed 1: 9.8 -> 3.8 degrees, seed 2: 8.1 -> 6.3); at 0.03 they were left on one
+    shape there (docs/viewpoints.md)."""
     sfm_group_hull_gain: float = 0.01
     """A split into ``k`` groups is only kept when every usable start of that ``k`` raises the median
     agreement (IoU) of the masks with the convex hull of the projected group shape, under the SfM cameras,
