@@ -16,9 +16,9 @@ A refined camera is *suspect* when the keypoint growth exceeds :data:`KEYPOINT_G
 agreement rises by less than :data:`HULL_GAIN`: it pays for its silhouette fit with the keypoints
 and gains little two-sided agreement. ``refine_keep="class"`` (the default) keeps the SfM cameras of
 the whole class when more than :data:`CLASS_SUSPECT` of its objects' refined cameras are suspect
-(the mean shape itself does not fit the class's silhouettes: the CAD trains, 41-66% of their rows at 8
-views and 45-46% at 30, against at most 20% in any other class of those renders and 2% of the VOC
-aeroplanes); ``"objects"`` keeps each suspect object's SfM camera.
+(the mean shape itself does not fit the class's silhouettes: the CAD trains, 41-72% of their rows at 8
+views and 45-46% at 30, against at most 27% in any other class of those renders and 2% of the VOC
+aeroplanes; docs/viewpoints.md); ``"objects"`` keeps each suspect object's SfM camera.
 
 A third test judges each object on its own, with either rule: **tilt**. Photographs are taken with a
 level camera, so the image x axes of a class's cameras are horizontal in the object frame, and the
