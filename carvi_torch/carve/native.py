@@ -76,7 +76,7 @@ except ImportError:  # Windows: no advisory locks; builds stay atomic (os.replac
     fcntl = None
 
 __all__ = ["available", "unavailable_reason", "carve_labels", "sample", "variant", "library_path", "status",
-           "operators", "cache_entry_problem", "MAX_VIEWS", "MAX_RESOLUTION"]
+           "operators", "library_operators", "cache_entry_problem", "MAX_VIEWS", "MAX_RESOLUTION"]
 #: Largest resolution the kernel takes (``CARVI_MAX_RESOLUTION`` in the C++ source).
 MAX_RESOLUTION = 2048
 #: Most view slots a proposal may use (``CARVI_MAX_VIEWS`` in the C++ source).
@@ -84,7 +84,7 @@ MAX_VIEWS = 64
 
 _KERNELS = Path(__file__).resolve().parent / "kernels"
 _SOURCE = _KERNELS / "carve_native.cpp"
-_HEADERS = (_KERNELS / "carve_core.h",)
+_HEADERS = (_KERNELS / "carve_core.h", _KERNELS / "sfm_steps.h")
 _FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math",
           "-fno-unsafe-math-optimizations"]
 _BUILD_TIMEOUT_S = 600
@@ -301,6 +301,7 @@ def _load() -> dict:
             ops, path, rebuilt = _open_library()
             if ops is None:
                 raise RuntimeError(f"{path.name} loaded but registered no carving operators")
+            _state["library"] = ops
             name = _self_test(ops)
             if name is None:
                 raise RuntimeError("the kernel's bilinear samples differ from torch's grid_sample on this machine "
@@ -316,6 +317,13 @@ def operators():
     """The loaded operators (``torch.ops.<namespace>``: ``carve_labels``, ``sample``, ``line``, ``has_fma``),
     or ``None`` where the kernel is not available."""
     return _load()["ops"]
+
+
+def library_operators():
+    """The library's operators whether or not the carving's self-test passed (``None`` where it did not build
+    or load): its ``sfm_factorize`` (the rigid SfM's factorisation, ``kernels/sfm_steps.h``) does not sample
+    maps, so the self-test's bilinear samples do not concern it."""
+    return _load().get("library")
 
 
 def status() -> dict:

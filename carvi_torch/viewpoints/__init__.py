@@ -136,7 +136,7 @@ def class_sfm(both: ClassCollection, cfg: ViewpointConfig, init_shape: torch.Ten
     ``options``: :class:`~carvi_torch.viewpoints.sfm.SfMOptions` fields that replace the configured ones)."""
     m = both.meta
     opts = sfm.SfMOptions(max_outer=cfg.sfm_max_outer, inner=cfg.sfm_inner, tol=cfg.sfm_tol,
-                          polish_iters=cfg.sfm_polish_iters, polish=cfg.sfm_polish)
+                          polish_iters=cfg.sfm_polish_iters, polish=cfg.sfm_polish, native=cfg.sfm_native)
     opts = dataclasses.replace(opts, **options)
     return sfm.rigid_sfm(both.keypoints, both.visible, opts, rigid_keypoints=m.rigid_keypoints,
                          keypoint_names=m.keypoint_names, flip_pairs=m.flip_pairs, left_convention=m.left_convention,

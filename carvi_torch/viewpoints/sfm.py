@@ -71,6 +71,7 @@ import numpy as np
 import torch
 
 from ..cameras import ScaledOrthographic, complete_rotation, geodesic_angle, scaled_stiefel
+from ..carve import native
 from ..runtime import cpu_single_thread
 from .bundle import joint_bundle_adjust
 from .camera_fit import refine_cameras
@@ -431,13 +432,16 @@ def _power_steps(Wc, S, eye, project, inner: int, reg: float, rank: int):
     return S, Mi
 
 
-def _factorize(W, vis, *, rank, max_outer, inner, tol, reg, generator, S_init=None):
+def _factorize(W, vis, *, rank, max_outer, inner, tol, reg, generator, S_init=None, native=True):
     """Marques-Costeira alternation on ``W (N, 2, K)`` float64 with ``vis (N, K)`` float 0/1.
 
     ``rank=3``: blocks projected onto scaled Stiefel matrices after every solve (the
     rigid model). ``rank=2``: the planar model, ``2x2`` blocks left free (every
     ``2x2`` map is a scaled orthographic view of a plane), completed to ``2x3``
     cameras and gauge-fixed afterwards (:func:`_planar_gauge`, :func:`_complete_planar`).
+
+    ``native``: the outer loop in the compiled kernel on the CPU where it applies (:func:`_native_factorize`),
+    else in torch operators (:func:`_fill_loop`).
 
     Returns ``M (N, 2, rank)``, ``t (N, 2)``, ``S (rank, K)``, ``history``,
     ``iterations``, ``converged``.
@@ -465,13 +469,46 @@ def _factorize(W, vis, *, rank, max_outer, inner, tol, reg, generator, S_init=No
         fill = M0 @ S + t0[..., None]
         ok = solved[:, None, None] & torch.isfinite(fill)
         Wf = torch.where(v2 > 0, W, torch.where(ok, fill, Wf))  # an unsolved row keeps the centroid fill
+    if native:
+        out = _native_factorize(W, vis, Wf, S, max_outer=max_outer, inner=inner, tol=tol, reg=reg, scale=scale)
+        if out is not None:
+            return out
+    return _fill_loop(W, vis, Wf, S, eye, project, max_outer=max_outer, inner=inner, tol=tol, reg=reg, scale=scale)
+
+
+def _native_factorize(W, vis, Wf, S, **kw):
+    """:func:`_fill_loop` in the compiled kernel (``carve/kernels/sfm_steps.h``, built with the fused carving's
+    library), with its return values; ``None`` where it does not apply (not float64 on the CPU, no kernel)
+    or declines (a block of rank < 2, where the torch path's projection takes an SVD; a singular solve; a
+    non-finite value): the torch path then runs from the same inputs. Equal to the torch path to rounding
+    (its sums run in another order): one outer step is a few thousand flops instead of about two hundred
+    tensor operators' dispatch."""
+    if W.device.type != "cpu" or not all(x.dtype == torch.float64 for x in (W, vis, Wf, S)):
+        return None
+    ops = native.library_operators()
+    if ops is None:
+        return None
+    M, t, S, history, steps = ops.sfm_factorize(W.contiguous(), vis.contiguous(), Wf.contiguous(), S.contiguous(),
+                                                kw["max_outer"], kw["inner"], kw["tol"], kw["reg"], kw["scale"])
+    if steps == 0:
+        return None
+    it = abs(steps)
+    return M, t, S, history[:it].tolist(), it, steps < 0
+
+
+def _fill_loop(W, vis, Wf, S, eye, project, *, max_outer, inner, tol, reg, scale):
+    """The outer loop of :func:`_factorize` from the filled matrix ``Wf (N, 2, K)`` and the shape ``S``:
+    power steps, the best candidate block per instance, the refill, until the RMS settles."""
+    n, rank = W.shape[0], S.shape[0]
+    dev = W.device
+    v2 = vis[:, None, :]
     M = None
     history: list[float] = []
     converged = False
     it = 0
     idx = torch.arange(n, device=dev)
     # loop invariants, computed once (the same values the loop used to recompute)
-    counts, known, entries = cnt[:, None], v2 > 0, (2 * vis.sum()).clamp(min=1)
+    counts, known, entries = vis.sum(-1).clamp(min=1.0)[:, None], v2 > 0, (2 * vis.sum()).clamp(min=1)
     for it in range(1, max_outer + 1):
         t = Wf.mean(-1)
         Wc = Wf - t[..., None]
@@ -999,6 +1036,9 @@ class SfMOptions:
     mirror_tie_deg: float = 5.0
     """Median angle (degrees) between the copies' cameras and their originals' mirrored cameras
     above which the joint solution is re-seeded from the originals."""
+    native: bool = True
+    """On the CPU, run the factorisation's outer loop in the compiled kernel (:func:`_native_factorize`;
+    float64, equal to the torch operators to rounding) where it builds; ``False``: torch operators only."""
 
     def check(self) -> None:
         """Raise ``ValueError`` for limits below 1 and an unknown polish method."""
@@ -1190,7 +1230,7 @@ def _fit_step(data: _Data, opts: SfMOptions, flip_pairs, init_shape, generator) 
     with cpu_single_thread(dev), torch.inference_mode():
         fit = _fit(Wv, vv, planar, opts.planar_margin, opts.polish_iters, mirrors=layout,
                    tie_deg=opts.mirror_tie_deg, S_init=S_init, polish_method=opts.polish, max_outer=opts.max_outer,
-                   inner=opts.inner,
+                   inner=opts.inner, native=opts.native,
                    tol=opts.tol, reg=opts.regularization, generator=generator)
     fit.M, fit.t, fit.S = fit.M.clone(), fit.t.clone(), fit.S.clone()
     _fit_problems(opts, fit.mirrors, fit.converged, fit.history, data.problems)
