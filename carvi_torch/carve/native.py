@@ -41,6 +41,10 @@ dispatcher releases the GIL during the call. No fork handling: a forked child is
 every torch operator there (with GNU OpenMP, a child that runs a parallel region after its parent
 ran one waits forever, whichever operator it is, unless it sets ``torch.set_num_threads(1)``).
 
+The same library holds the rigid SfM's factorisation loop (``kernels/sfm_steps.h``, operator ``sfm_factorize``,
+used by :mod:`carvi_torch.viewpoints.sfm` through :func:`library_operators`): it samples no maps, so it is
+available whenever the library loads, whatever the self-test says.
+
 NaN. A NaN sample does not win the kernel's maximum, while ``torch.maximum`` propagates it; the
 carving never sees one (the maps and the cameras are checked finite).
 
