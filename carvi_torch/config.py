@@ -114,7 +114,7 @@ class ViewpointConfig:
     """Inner (camera / shape) alternations per outer iteration."""
     sfm_native: bool = True
     """On the CPU, run the factorisation's inner steps in a compiled kernel (built with the fused carving's,
-    ``carvi_torch/carve/kernels/sfm_steps.h``; float64, equal to the torch operators to rounding): the
+    ``carvi_torch/kernels/sfm_steps.h``; float64, equal to the torch operators to rounding): the
     mixture of shapes' fit, where small classes spend their time, is several times faster
     (docs/benchmarks.md, *Many classes*). ``false``, or no compiler: torch operators only."""
     sfm_tol: float = 1e-7

@@ -37,6 +37,7 @@ from test_carve import blob_masks, random_cameras, random_proposals
 
 MODULE = "carvi_torch.carve.native"
 native = importlib.import_module(MODULE)
+native_library = importlib.import_module("carvi_torch.native_library")
 ROOT = Path(sys.modules["carvi_torch"].__file__).resolve().parents[1]
 
 needs_kernel = pytest.mark.skipif(not native.available(), reason=f"kernel unavailable: {native.unavailable_reason()}")
@@ -154,13 +155,13 @@ def test_the_portable_build_carves_like_the_x86_one(tmp_path, monkeypatch):
     gives the plain variant's labels, and refuses the fma variant instead of running AVX2 code. Built with
     ``-O0`` instead of ``-O3`` (the same float arithmetic: ``-ffp-contract=off``, no fast math), which halves
     the compile; the optimised build is the one every other test runs."""
-    assert native._FLAGS[0] == "-O3"
-    monkeypatch.setattr(native, "_FLAGS", ["-O0", *native._FLAGS[1:]])
-    d = native._private_dir(tmp_path / "kernels")
-    namespace = f"carvi_portable_{native._key()}"  # its own namespace: loading it beside the x86 one is safe
+    assert native_library._FLAGS[0] == "-O3"
+    monkeypatch.setattr(native_library, "_FLAGS", ["-O0", *native_library._FLAGS[1:]])
+    d = native_library._private_dir(tmp_path / "kernels")
+    namespace = f"carvi_portable_{native_library._key()}"  # its own namespace: safe beside the x86 one
     path = d / f"{namespace}.so"
-    with native._dir_lock(d, exclusive=True):
-        native._build(path, namespace, ("-DCARVI_NO_X86",))
+    with native_library._dir_lock(d, exclusive=True):
+        native_library._build(path, namespace, ("-DCARVI_NO_X86",))
     assert native.cache_entry_problem(path) is None
     torch.ops.load_library(str(path))
     ops = getattr(torch.ops, namespace)
@@ -262,9 +263,9 @@ def _library_for_children(env: dict, folder: Path) -> Path:
     with that child's key and operator namespace."""
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("CXX", env["CXX"])
-        key = native._key()
+        key = native_library._key()
     lib = folder / f"carve_native-{key}.so"
-    proc = subprocess.run(native._build_command(lib, f"carvi_{key}"), capture_output=True, text=True)
+    proc = subprocess.run(native_library._build_command(lib, f"carvi_{key}"), capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
     return lib
 
@@ -293,7 +294,7 @@ def compiler_shim(tmp_path_factory) -> tuple[dict, Path]:
         shim = d / command
         env = {"PATH": f"{d}{os.pathsep}{os.environ.get('PATH', '')}"}
         lib = Path(native.status()["path"])
-        assert lib.name == f"carve_native-{native._key()}.so"
+        assert lib.name == f"carve_native-{native_library._key()}.so"
     shim.write_text(_SHIM.format(log=log, lib=lib))
     os.chmod(shim, 0o755)
     return env, log
@@ -487,7 +488,7 @@ def test_a_forked_child_carves_as_torch_operators_do():
 @needs_kernel
 def test_loading_again_in_the_same_process_reuses_the_operators():
     """A second library defining the same operator namespace would abort the process: it is never loaded."""
-    ops, path, rebuilt = native._open_library()
+    ops, path, rebuilt = native_library._open_library()
     assert ops is native.operators() or ops.carve_labels is native.operators().carve_labels
     assert rebuilt is None and path == native.library_path()
 

@@ -10,11 +10,11 @@ import pytest
 import torch
 
 from carvi_torch.cameras import random_rotations
-from carvi_torch.carve import native
+from carvi_torch import native_library
 from carvi_torch.viewpoints import sfm
 
-pytestmark = pytest.mark.skipif(native.library_operators() is None,
-                                reason=f"no compiled kernel here: {native.unavailable_reason()}")
+pytestmark = pytest.mark.skipif(native_library.library_operators() is None,
+                                reason=f"no compiled kernel here: {native_library.load()['reason']}")
 
 KW = dict(max_outer=200, inner=10, tol=1e-7, reg=1e-6)
 
@@ -115,7 +115,7 @@ def test_native_does_not_apply_to_float32_or_other_devices():
 
 
 def test_native_operator_checks_its_arguments():
-    ops = native.library_operators()
+    ops = native_library.library_operators()
     W, vis = _problem(10, 6, 0)
     S = torch.randn(3, 6, dtype=torch.float64)
     args = (200, 10, 1e-7, 1e-6, 1.0)

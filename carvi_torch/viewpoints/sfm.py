@@ -71,7 +71,7 @@ import numpy as np
 import torch
 
 from ..cameras import ScaledOrthographic, complete_rotation, geodesic_angle, scaled_stiefel
-from ..carve import native
+from .. import native_library
 from ..runtime import cpu_single_thread
 from .bundle import joint_bundle_adjust
 from .camera_fit import refine_cameras
@@ -477,15 +477,15 @@ def _factorize(W, vis, *, rank, max_outer, inner, tol, reg, generator, S_init=No
 
 
 def _native_factorize(W, vis, Wf, S, **kw):
-    """:func:`_fill_loop` in the compiled kernel (``carve/kernels/sfm_steps.h``, built with the fused carving's
-    library), with its return values; ``None`` where it does not apply (not float64 on the CPU, no kernel)
-    or declines (a block of rank < 2, where the torch path's projection takes an SVD; a singular solve; a
-    non-finite value): the torch path then runs from the same inputs. Equal to the torch path to rounding
-    (its sums run in another order): one outer step is a few thousand flops instead of about two hundred
-    tensor operators' dispatch."""
+    """:func:`_fill_loop` in the compiled kernel (``carvi_torch/kernels/sfm_steps.h``, built and loaded by
+    :mod:`carvi_torch.native_library`), with its return values; ``None`` where it does not apply (not float64
+    on the CPU, no kernel) or declines (a block of rank < 2, where the torch path's projection takes an SVD;
+    a singular solve; a non-finite value): the torch path then runs from the same inputs. Equal to the torch
+    path to rounding (its sums run in another order): one outer step is a few thousand flops instead of about
+    two hundred tensor operators' dispatch."""
     if W.device.type != "cpu" or not all(x.dtype == torch.float64 for x in (W, vis, Wf, S)):
         return None
-    ops = native.library_operators()
+    ops = native_library.library_operators()
     if ops is None:
         return None
     M, t, S, history, steps = ops.sfm_factorize(W.contiguous(), vis.contiguous(), Wf.contiguous(), S.contiguous(),
