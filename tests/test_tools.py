@@ -1141,6 +1141,28 @@ def test_bench_viewpoints_times_the_mixture_fit_on_a_small_class(tmp_path: Path,
     assert "stage with mixture" in capsys.readouterr().out
 
 
+def test_bench_viewpoints_runs_sfm_with_the_pipelines_settings(tmp_path: Path):
+    """The tool's SfM and the mixture's group SfMs take the pipeline's polish, rounds, tolerance and compiled
+    factorisation (the config's defaults, or ``--set``), with its own ``--max-outer`` and ``--inner``."""
+    from carvi_torch.config import Config
+
+    bv = load_tool("bench_viewpoints")
+    default = Config().viewpoints
+    args = bv.build_parser().parse_args(["--max-outer", "7"])
+    opts = bv.sfm_options(args, Config().override(args.set).viewpoints)
+    assert (opts.polish, opts.polish_iters, opts.tol, opts.native, opts.max_outer) == (
+        default.sfm_polish, default.sfm_polish_iters, default.sfm_tol, default.sfm_native, 7)
+    args = bv.build_parser().parse_args(["--set", "viewpoints.sfm_polish=alternate", "viewpoints.sfm_polish_iters=30",
+                                         "viewpoints.sfm_native=false"])
+    opts = bv.sfm_options(args, Config().override(args.set).viewpoints)
+    assert (opts.polish, opts.polish_iters, opts.native) == ("alternate", 30, False)
+    out = tmp_path / "viewpoints.json"
+    rec = bv.main(["--n", "20", "--k", "10", "--canvas", "48", "--max-outer", "10", "--max-iters", "5",
+                   "--set", "viewpoints.sfm_polish=alternate", "--out", str(out)])
+    assert rec["config"]["sfm_options"]["polish"] == "alternate"
+    assert json.loads(out.read_text())["config"]["sfm_options"]["max_outer"] == 10
+
+
 def test_train_example_refuses_an_export_that_is_not_there(tmp_path, monkeypatch, capsys):
     """``--export`` naming a folder without an export (a typo) is one ``error:`` line and exit status 2; it does
     not reconstruct and export the embedded collection beside it instead (minutes of work, outside what was

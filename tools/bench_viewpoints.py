@@ -8,7 +8,9 @@ hulls of the instance's projected keypoints. Every instance also gets its
 left-right mirrored copy (x' = W - 1 - x, left/right labels swapped), as the
 pipeline does, so the class holds ``2 n`` instances.
 
-Timed stages: exact distance maps, rigid SfM, silhouette refinement. Prints a
+Timed stages: exact distance maps, rigid SfM, silhouette refinement, with the pipeline's settings
+(``ViewpointConfig``: the polish, its rounds, the tolerance, the compiled factorisation, the mixture's
+groups; ``--set`` changes them, e.g. ``--set viewpoints.sfm_polish=alternate``). Prints a
 table (seconds, instances per second, peak memory) and the viewpoint errors
 against the true cameras, and writes everything to ``--out`` as JSON.
 
@@ -93,7 +95,7 @@ from carvi_torch.viewpoints import mixture as sfm_mixture
 from carvi_torch.viewpoints.camera_fit import refine_cameras, supported_shape
 from carvi_torch.viewpoints.mixture import fit_mixture_of_shapes
 from carvi_torch.viewpoints.refine import group_sfm_cameras, refine_groups
-from carvi_torch.viewpoints.sfm import rigid_sfm
+from carvi_torch.viewpoints.sfm import SfMOptions, rigid_sfm
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -373,6 +375,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--max-outer", type=int, default=200)
     ap.add_argument("--inner", type=int, default=10)
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="viewpoint settings of the pipeline's config for SfM, the mixture and refinement (e.g. "
+                         "viewpoints.sfm_polish=alternate viewpoints.sfm_native=false); default: the defaults")
     ap.add_argument("--max-iters", type=int, default=100, help="refinement iterations")
     ap.add_argument("--groups", type=int, default=1,
                     help="also time the mixture fit with at most this many rigid shapes (default 1: not run)")
@@ -461,7 +466,7 @@ class _Stages:
 def main_speed(args) -> dict:
     """The default run: time the viewpoint stages (and the mixture fit) on a generated class; print and write."""
     dev = torch.device(args.device)
-    vcfg = Config().viewpoints  # the pipeline's viewpoint settings
+    vcfg = Config().override(args.set).viewpoints  # the pipeline's viewpoint settings, with --set
     out, key = _record_target(args, "viewpoints_speed" + (f"_groups{args.groups}" if args.groups > 1 else "")
                               + (f"_shapes{args.shapes}" if args.shapes > 1 else "")
                               + (f"_n{args.n}" if args.n != 2000 else "")
@@ -474,6 +479,13 @@ def main_speed(args) -> dict:
     write_record(out, result, key)
     print(f"wrote {out}" + (f", key {key}" if key else ""))
     return result
+
+
+def sfm_options(args, vcfg) -> SfMOptions:
+    """The pipeline's SfM settings (``vcfg``, a ``ViewpointConfig``: the polish, its rounds, the tolerance, the
+    compiled factorisation) with the tool's ``--max-outer`` and ``--inner``."""
+    return SfMOptions(max_outer=args.max_outer, inner=args.inner, tol=vcfg.sfm_tol, polish_iters=vcfg.sfm_polish_iters,
+                      polish=vcfg.sfm_polish, native=vcfg.sfm_native)
 
 
 def _time_stages(args, dev: torch.device, vcfg) -> tuple[_Bench, _Stages]:
@@ -489,7 +501,7 @@ def _time_stages(args, dev: torch.device, vcfg) -> tuple[_Bench, _Stages]:
         torch.cuda.reset_peak_memory_stats()
     b.sync()
     b.dist, t_dist = b.timed(lambda: distance_to_mask(masks))
-    sfm, t_sfm = b.timed(lambda: rigid_sfm(kp, vis, max_outer=args.max_outer, inner=args.inner))
+    sfm, t_sfm = b.timed(lambda: rigid_sfm(kp, vis, sfm_options(args, vcfg)))
 
     def refine():  # the pipeline's refinement settings (the planar-twin start and the keypoint support rule included)
         shape = supported_shape(sfm.shape, vis, vcfg.refine_min_support)
@@ -542,8 +554,8 @@ def _fit_mixture(b: _Bench, sfm, warm: bool, threads: int, min_objects: int):
     args, vcfg = b.args, b.vcfg
     return fit_mixture_of_shapes(b.rows, b.dist,
                                  lambda sub, init_shape=None: rigid_sfm(sub.keypoints, sub.visible,
-                                                                        max_outer=args.max_outer,
-                                                                        inner=args.inner, init_shape=init_shape),
+                                                                        sfm_options(args, vcfg),
+                                                                        init_shape=init_shape),
                                  max_groups=args.groups, min_size=vcfg.sfm_group_min, gain=vcfg.sfm_group_gain,
                                  agreement_deg=vcfg.sfm_group_agreement_deg, rounds=vcfg.sfm_group_rounds,
                                  seed=args.seed, single=sfm, warm_start=warm, threads=threads,
@@ -586,6 +598,7 @@ def _record(b: _Bench, st: _Stages) -> dict:
         "config": {"instances": args.n, "with_mirrors": n_all, "keypoints": args.k, "canvas": args.canvas,
                    "shapes": args.shapes,
                    "seed": args.seed, "device": str(dev), "max_outer": args.max_outer, "inner": args.inner,
+                   "sfm_options": dataclasses.asdict(sfm_options(b.args, b.vcfg)),
                    "twin_flatness": b.vcfg.refine_twin_flatness,
                    "refine_max_iters": args.max_iters},
         "environment": {"torch": torch.__version__, "python": platform.python_version(),
