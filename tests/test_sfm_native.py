@@ -183,3 +183,18 @@ def test_the_setting_reaches_the_factorisation(monkeypatch):
     assert calls == []
     class_sfm(coll, Config().viewpoints)
     assert calls and all(calls)  # called, and the kernel ran (float64 inputs on the CPU) rather than declining
+
+
+def test_an_instance_with_two_visible_keypoints_sends_a_cold_rigid_start_to_torch(monkeypatch):
+    """Its centred, centroid-filled rows are proportional: the first power step's block has rank 1, so the kernel
+    declines the cold rigid factorisation (docs/viewpoints.md) and the torch path's result comes back."""
+    W, vis = _problem(40, 12, 0)
+    vis[5] = 0.0
+    vis[5, [4, 8]] = 1.0
+    calls = []
+    real = sfm._native_factorize
+    monkeypatch.setattr(sfm, "_native_factorize",
+                        lambda *a, **k: (lambda out: calls.append(out is not None) or out)(real(*a, **k)))
+    a, b = _both(W, vis, 3)
+    assert calls == [False]
+    assert all(torch.equal(x, y) for x, y in zip(a[:3], b[:3])) and a[3] == b[3]
