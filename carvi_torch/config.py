@@ -113,9 +113,9 @@ class ViewpointConfig:
     sfm_inner: int = 10
     """Inner (camera / shape) alternations per outer iteration."""
     sfm_native: bool = True
-    """On the CPU, run the factorisation's inner steps in a compiled kernel (built with the fused carving's,
-    ``carvi_torch/kernels/sfm_steps.h``; float64, equal to the torch operators to rounding): the
-    mixture of shapes' fit, where small classes spend their time, is several times faster
+    """On the CPU, run the factorisation's outer loop in a compiled kernel (built with the fused carving's,
+    ``carvi_torch/kernels/sfm_steps.h``; float64, equal to the torch operators to rounding): SfM with the
+    mixture of shapes' fit, where small classes spend their time, takes about a third of the time
     (docs/benchmarks.md, *Many classes*). ``false``, or no compiler: torch operators only."""
     sfm_tol: float = 1e-7
     """Stop when the relative change of the visible-entry residual falls below this."""

@@ -204,7 +204,7 @@ def _build(path: Path, namespace: str, extra: tuple[str, ...] = ()) -> None:
         except OSError as exc:  # no such compiler
             raise RuntimeError(f"no C++ compiler to build the kernels ({cmd[0]}): {exc}") from exc
         if proc.returncode != 0 or not out.is_file():
-            raise RuntimeError(f"compiling the fused carving kernel failed ({shlex.join(cmd)}):\n"
+            raise RuntimeError(f"compiling the kernels' library failed ({shlex.join(cmd)}):\n"
                                f"{proc.stderr.strip()[-4000:]}")
         os.chmod(out, 0o700)
         digest = _sha256(out)

@@ -86,6 +86,28 @@ def test_native_factorisation_fits_an_exact_rigid_class():
                                                       native=True, **KW)
     assert converged and hist[-1] < 1e-6
     torch.testing.assert_close(M @ Sh + t[..., None], W, rtol=0, atol=1e-5)
+    # the exact-fit floor (RMS <= 1e-5 of the data's scale) stops both paths at the same step
+    with torch.inference_mode():
+        ref = sfm._factorize(W, vis, rank=3, generator=torch.Generator().manual_seed(0), native=False, **KW)
+    assert (len(hist), converged) == (len(ref[3]), ref[5]) and len(hist) < 5
+
+
+@pytest.mark.parametrize("max_outer", [3, 200])
+def test_native_keeps_the_first_candidate_on_ties(max_outer):
+    """An instance with one visible keypoint fits it exactly with every candidate block (residual 0): both
+    paths keep the first (the power step's block), not the previous step's."""
+    W, vis = _problem(40, 12, 0)
+    vis[5] = 0.0
+    vis[5, 4] = 1.0
+    kw = dict(KW, max_outer=max_outer)
+    out = []
+    with torch.inference_mode():
+        for use in (False, True):
+            out.append(sfm._factorize(W, vis, rank=2, generator=torch.Generator().manual_seed(3), native=use, **kw))
+        S = torch.randn(2, 12, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+        assert sfm._native_factorize(W, vis, W.clone(), S, **dict(kw, scale=1.0)) is not None  # the kernel runs
+    assert out[0][4] == out[1][4]
+    torch.testing.assert_close(out[1][0], out[0][0], rtol=0, atol=1e-11)
 
 
 def test_native_declines_a_rank_deficient_block_and_the_torch_path_runs():
@@ -152,11 +174,27 @@ def test_the_setting_reaches_the_factorisation(monkeypatch):
 
     calls = []
     real = sfm._native_factorize
-    monkeypatch.setattr(sfm, "_native_factorize", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(sfm, "_native_factorize",
+                        lambda *a, **k: (lambda out: calls.append(out is not None) or out)(real(*a, **k)))
     W, vis = _problem(20, 8, 6)
     meta = SimpleNamespace(rigid_keypoints=None, keypoint_names=None, flip_pairs=None, left_convention="object")
     coll = SimpleNamespace(keypoints=W.transpose(1, 2).float(), visible=vis > 0, meta=meta)
     class_sfm(coll, Config().override({"sfm_native": False}).viewpoints)
     assert calls == []
     class_sfm(coll, Config().viewpoints)
-    assert calls
+    assert calls and all(calls)  # called, and the kernel ran (float64 inputs on the CPU) rather than declining
+
+
+def test_an_instance_with_two_visible_keypoints_sends_a_cold_rigid_start_to_torch(monkeypatch):
+    """Its centred, centroid-filled rows are proportional: the first power step's block has rank 1, so the kernel
+    declines the cold rigid factorisation (docs/viewpoints.md) and the torch path's result comes back."""
+    W, vis = _problem(40, 12, 0)
+    vis[5] = 0.0
+    vis[5, [4, 8]] = 1.0
+    calls = []
+    real = sfm._native_factorize
+    monkeypatch.setattr(sfm, "_native_factorize",
+                        lambda *a, **k: (lambda out: calls.append(out is not None) or out)(real(*a, **k)))
+    a, b = _both(W, vis, 3)
+    assert calls == [False]
+    assert all(torch.equal(x, y) for x, y in zip(a[:3], b[:3])) and a[3] == b[3]

@@ -1156,6 +1156,11 @@ def test_bench_viewpoints_runs_sfm_with_the_pipelines_settings(tmp_path: Path):
                                          "viewpoints.sfm_native=false"])
     opts = bv.sfm_options(args, Config().override(args.set).viewpoints)
     assert (opts.polish, opts.polish_iters, opts.native) == ("alternate", 30, False)
+    assert (opts.max_outer, opts.inner) == (default.sfm_max_outer, default.sfm_inner)
+    # the config's outer and inner steps reach SfM too (``--max-outer`` and ``--inner`` win where given)
+    args = bv.build_parser().parse_args(["--set", "viewpoints.sfm_max_outer=7", "viewpoints.sfm_inner=3"])
+    opts = bv.sfm_options(args, Config().override(args.set).viewpoints)
+    assert (opts.max_outer, opts.inner) == (7, 3)
     out = tmp_path / "viewpoints.json"
     rec = bv.main(["--n", "20", "--k", "10", "--canvas", "48", "--max-outer", "10", "--max-iters", "5",
                    "--set", "viewpoints.sfm_polish=alternate", "--out", str(out)])

@@ -373,8 +373,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--canvas", type=int, default=128, help="canvas side in pixels (default 128)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--max-outer", type=int, default=200)
-    ap.add_argument("--inner", type=int, default=10)
+    ap.add_argument("--max-outer", type=int, default=None,
+                    help="SfM's outer steps at most (default: the config's viewpoints.sfm_max_outer, 200)")
+    ap.add_argument("--inner", type=int, default=None,
+                    help="SfM's power steps per outer step (default: the config's viewpoints.sfm_inner, 10)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="viewpoint settings of the pipeline's config for SfM, the mixture and refinement (e.g. "
                          "viewpoints.sfm_polish=alternate viewpoints.sfm_native=false); default: the defaults")
@@ -483,8 +485,10 @@ def main_speed(args) -> dict:
 
 def sfm_options(args, vcfg) -> SfMOptions:
     """The pipeline's SfM settings (``vcfg``, a ``ViewpointConfig``: the polish, its rounds, the tolerance, the
-    compiled factorisation) with the tool's ``--max-outer`` and ``--inner``."""
-    return SfMOptions(max_outer=args.max_outer, inner=args.inner, tol=vcfg.sfm_tol, polish_iters=vcfg.sfm_polish_iters,
+    compiled factorisation, the outer and inner steps), the tool's ``--max-outer`` and ``--inner`` where given."""
+    max_outer = vcfg.sfm_max_outer if args.max_outer is None else args.max_outer
+    inner = vcfg.sfm_inner if args.inner is None else args.inner
+    return SfMOptions(max_outer=max_outer, inner=inner, tol=vcfg.sfm_tol, polish_iters=vcfg.sfm_polish_iters,
                       polish=vcfg.sfm_polish, native=vcfg.sfm_native)
 
 
@@ -588,6 +592,7 @@ def _same_fit(a, b) -> bool:
 def _record(b: _Bench, st: _Stages) -> dict:
     """The JSON record of a run: settings, environment, seconds, throughput, memory, results, errors."""
     args, dev, sfm, ref = b.args, b.dev, st.sfm, st.ref
+    opts = sfm_options(args, b.vcfg)
     n_all = b.kp.shape[0]
     t_sfm, t_ref = st.seconds["sfm"], st.seconds["refinement"]
     rep_sfm = viewpoint_report(sfm.cameras.R.cpu(), b.R_true, valid=sfm.valid.cpu())
@@ -597,8 +602,8 @@ def _record(b: _Bench, st: _Stages) -> dict:
     return {
         "config": {"instances": args.n, "with_mirrors": n_all, "keypoints": args.k, "canvas": args.canvas,
                    "shapes": args.shapes,
-                   "seed": args.seed, "device": str(dev), "max_outer": args.max_outer, "inner": args.inner,
-                   "sfm_options": dataclasses.asdict(sfm_options(b.args, b.vcfg)),
+                   "seed": args.seed, "device": str(dev), "max_outer": opts.max_outer, "inner": opts.inner,
+                   "sfm_options": dataclasses.asdict(opts),
                    "twin_flatness": b.vcfg.refine_twin_flatness,
                    "refine_max_iters": args.max_iters},
         "environment": {"torch": torch.__version__, "python": platform.python_version(),

@@ -45,7 +45,7 @@ namespace {
 void check_tensor(const at::Tensor &t, const char *name, at::ScalarType dtype, int64_t dim)
 {
     TORCH_CHECK_VALUE(t.defined(), "carvi: ", name, " is undefined");
-    TORCH_CHECK_VALUE(t.device().is_cpu(), "carvi: the fused carving takes CPU tensors; ", name, " is on ",
+    TORCH_CHECK_VALUE(t.device().is_cpu(), "carvi: the kernels take CPU tensors; ", name, " is on ",
                       t.device());
     TORCH_CHECK_VALUE(t.layout() == at::kStrided, "carvi: ", name, " must be a strided (dense) tensor");
     TORCH_CHECK_TYPE(t.scalar_type() == dtype, "carvi: ", name, " must be ", dtype, ", got ", t.scalar_type());

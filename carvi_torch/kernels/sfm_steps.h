@@ -1,6 +1,7 @@
-// The rigid SfM's power-factorisation steps (carvi_torch.viewpoints.sfm._power_steps) in plain C++.
+// The rigid SfM factorisation's outer loop (carvi_torch.viewpoints.sfm._fill_loop) in plain C++: the power
+// steps (_power_steps), the candidate blocks, the refill and the stopping test.
 //
-// Each step, on the centred filled measurement matrix Wc (N blocks of 2 x K) and the shape S (r x K),
+// Each power step, on the centred filled measurement matrix Wc (N blocks of 2 x K) and the shape S (r x K),
 // r = 2 (planar: blocks left free) or 3 (rigid: blocks projected onto scaled Stiefel matrices):
 //
 //   lam  = reg tr(S S^T) / r + 1e-300         M_n = project(Wc_n S^T (S S^T + lam I)^-1)
@@ -14,7 +15,7 @@
 // with partial pivoting, the products are summed in a different order), not bit for bit.
 //
 // A block of rank < 2 (delta <= 1e-10 tr, where scaled_stiefel falls back to an SVD) or a non-finite
-// value makes power_steps return false; the caller then runs the torch path from the same inputs.
+// value makes factorize_loop return 0; the caller then runs the torch path from the same inputs.
 #pragma once
 
 #include <cmath>
@@ -88,7 +89,7 @@ inline bool scaled_stiefel_block(double *M)
 inline bool power_steps(const double *Wc, int64_t N, int64_t K, double *S, int r, int64_t inner, double reg,
                         bool stiefel, double *M)
 {
-    std::vector<double> P(K * r), C(r * K);
+    std::vector<double> C(r * K);
     for (int64_t step = 0; step < inner; ++step) {
         // G = S S^T + lam I; P = S^T G^-1, i.e. G P^T = S (G symmetric): solve with S as r x K right-hand sides
         double G[9] = {0};
