@@ -56,7 +56,7 @@ __all__ = ["library_path", "cache_entry_problem", "load", "library_operators"]
 
 _KERNELS = Path(__file__).resolve().parent / "kernels"
 _SOURCE = _KERNELS / "carve_native.cpp"
-_HEADERS = (_KERNELS / "carve_core.h", _KERNELS / "sfm_steps.h")
+_HEADERS = (_KERNELS / "carve_core.h", _KERNELS / "sfm_steps.h", _KERNELS / "camera_steps.h")
 _FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math",
           "-fno-unsafe-math-optimizations"]
 _BUILD_TIMEOUT_S = 600

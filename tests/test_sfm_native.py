@@ -198,3 +198,98 @@ def test_an_instance_with_two_visible_keypoints_sends_a_cold_rigid_start_to_torc
     a, b = _both(W, vis, 3)
     assert calls == [False]
     assert all(torch.equal(x, y) for x, y in zip(a[:3], b[:3])) and a[3] == b[3]
+
+
+# --------------------------------------------------------------------------- the keypoint-only camera fit
+
+
+def _camera_problem(n: int, b: int, k: int, seed: int, dtype):
+    """A shape with one unknown (NaN) keypoint, ``n`` instances seen by random cameras (0.5 px noise, 30% hidden)
+    and ``b`` starts each, every start within about 20 degrees of its instance's camera."""
+    from carvi_torch.cameras import axis_angle_to_rotation
+
+    g = torch.Generator().manual_seed(seed)
+    S = 10 * torch.randn(k, 3, generator=g, dtype=dtype)
+    S[3] = float("nan")
+    R = random_rotations(n, generator=g).to(dtype)
+    kp = (20 * R[:, :2] @ torch.nan_to_num(S).T).transpose(1, 2) + 64
+    kp = kp + 0.5 * torch.randn(kp.shape, generator=g, dtype=dtype)
+    visible = torch.rand(n, k, generator=g) > 0.3
+    visible[:, :4] = True
+    turn = axis_angle_to_rotation(0.2 * torch.randn(n, b, 3, generator=g, dtype=dtype))
+    R0 = turn @ R[:, None]
+    s0 = 20 * (1 + 0.1 * torch.randn(n, b, generator=g, dtype=dtype))
+    t0 = 64 + 2 * torch.randn(n, b, 2, generator=g, dtype=dtype)
+    return S, kp, visible, R0, s0, t0
+
+
+@pytest.mark.parametrize("dtype,atol", [(torch.float64, 1e-7), (torch.float32, 2e-3)])
+def test_native_camera_fit_equals_the_torch_one(dtype, atol):
+    """Levenberg-Marquardt from starts near the truth: the same cameras, energies and stopping (rotations within
+    ``atol``; float32's tolerance covers its rounding over some forty steps, and its last camera may stop one
+    step apart)."""
+    from carvi_torch.viewpoints import camera_fit as cf
+
+    S, kp, visible, R0, s0, t0 = _camera_problem(40, 3, 12, 0, dtype)
+    lam = torch.zeros(40, dtype=dtype)
+    a = cf._optimize(R0, s0, t0, S, kp, visible, None, lam, 100, 1e-6)
+    b = cf._optimize(R0, s0, t0, S, kp, visible, None, lam, 100, 1e-6, native=True)
+    assert abs(b[7] - a[7]) <= (1 if dtype == torch.float32 else 0) and torch.equal(b[8], a[8]) and bool(a[8].all())
+    torch.testing.assert_close(b[0], a[0], rtol=0, atol=atol)
+    torch.testing.assert_close(b[1], a[1], rtol=1e-5 if dtype == torch.float32 else 1e-10, atol=0)
+    torch.testing.assert_close(b[4], a[4], rtol=1e-4 if dtype == torch.float32 else 1e-9, atol=1e-6)
+    torch.testing.assert_close(b[3], a[3], rtol=1e-6 if dtype == torch.float32 else 1e-12, atol=0)
+    assert torch.equal(b[6], torch.zeros_like(b[6])) and torch.equal(b[5], b[4])
+
+
+def test_native_camera_fit_recovers_exact_cameras():
+    """No noise, every keypoint seen: the fit lands on the true cameras (an analytic solution)."""
+    from carvi_torch.viewpoints import camera_fit as cf
+
+    g = torch.Generator().manual_seed(3)
+    S = torch.randn(8, 3, generator=g, dtype=torch.float64)
+    R = random_rotations(6, generator=g).double()
+    kp = (10 * R[:, :2] @ S.T).transpose(1, 2) + 5
+    visible = torch.ones(6, 8, dtype=torch.bool)
+    from carvi_torch.cameras import axis_angle_to_rotation
+    R0 = (axis_angle_to_rotation(0.1 * torch.randn(6, 3, generator=g, dtype=torch.float64)) @ R)[:, None]
+    cams, E = cf.refine_starts_keypoints_only(S, R0, torch.full((6, 1), 9.0, dtype=torch.float64),
+                                              torch.full((6, 1, 2), 5.0, dtype=torch.float64), kp, visible,
+                                              native=True, tol=1e-12)
+    assert bool((E < 1e-12).all())
+    torch.testing.assert_close(cams.R, R, rtol=0, atol=1e-6)
+    torch.testing.assert_close(cams.s, torch.full((6,), 10.0, dtype=torch.float64), rtol=1e-6, atol=0)
+
+
+def test_native_camera_fit_operator_checks_its_arguments():
+    ops = native_library.library_operators()
+    S, kp, visible, R0, s0, t0 = _camera_problem(4, 1, 6, 1, torch.float64)
+    S = torch.nan_to_num(S)
+    wv = visible.double()
+    args = (R0[:, 0].contiguous(), s0[:, 0].contiguous(), t0[:, 0].contiguous(), S, kp.contiguous(), wv)
+    ops.fit_cameras(*args, 10, 1e-6)
+    with pytest.raises(TypeError, match="Float or Double"):
+        ops.fit_cameras(*args[:4], kp.half(), wv, 10, 1e-6)
+    with pytest.raises(TypeError, match="must be Double"):
+        ops.fit_cameras(args[0].float(), *args[1:], 10, 1e-6)
+    with pytest.raises(ValueError, match="S, kp, wv must be"):
+        ops.fit_cameras(*args[:3], S[:5].contiguous(), args[4], wv, 10, 1e-6)
+    with pytest.raises(ValueError, match="max_iters"):
+        ops.fit_cameras(*args, -1, 1e-6)
+
+
+def test_the_setting_reaches_the_mixtures_camera_fits(monkeypatch):
+    """The mixture's keypoint fits use the compiled fit with ``native=True`` (the pipeline passes ``sfm_native``)
+    and never without."""
+    from carvi_torch.viewpoints import camera_fit as cf
+    from carvi_torch.viewpoints import mixture
+
+    calls = []
+    real = cf._native_optimize
+    monkeypatch.setattr(cf, "_native_optimize", lambda *a, **k: calls.append(1) or real(*a, **k))
+    S, kp, visible, R0, s0, t0 = _camera_problem(6, 2, 8, 2, torch.float32)
+    both = __import__("types").SimpleNamespace(keypoints=kp, visible=visible)
+    for native in (False, True):
+        calls.clear()
+        mixture.keypoint_fit(S, both, torch.zeros(6, 4, 4), 3, starts=(R0, s0, t0), native=native)
+        assert bool(calls) == native

@@ -10,6 +10,9 @@
 //   carvi::sfm_factorize(Tensor W, Tensor vis, Tensor Wf, Tensor S, int max_outer, int inner, float tol, float reg,
 //                        float scale) -> (Tensor M, Tensor t, Tensor S, Tensor history, int steps)
 //     (the rigid SfM's factorisation, sfm_steps.h; nothing to do with the carving but its build)
+//   carvi::fit_cameras(Tensor R, Tensor s, Tensor t, Tensor S, Tensor kp, Tensor wv, int max_iters, float tol)
+//                      -> (Tensor R, Tensor s, Tensor t, Tensor E_before, Tensor E, Tensor converged, int iters, bool ok)
+//     (the keypoint-only camera fit, camera_steps.h)
 //
 // Every argument is checked here, at the operators' boundary: device, dtype, layout, contiguity, shapes,
 // index ranges and sizes (the kernel reads raw pointers: it must never read outside its inputs, whatever
@@ -35,6 +38,7 @@
 
 #include "carve_core.h"
 #include "sfm_steps.h"
+#include "camera_steps.h"
 
 #ifndef CARVI_SCHEDULE
 #define CARVI_SCHEDULE 2 // 0: parallel_for's own split; 1: weighted ranges, 4 per thread; 2: heaviest first
@@ -258,6 +262,64 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t> sfm_factoriz
     return {M, t, S_out, history, steps};
 }
 
+template <typename T>
+void fit_cameras_typed(at::Tensor &R, at::Tensor &s, at::Tensor &t, const at::Tensor &S, const at::Tensor &kp,
+                       const at::Tensor &wv, int64_t max_iters, double tol, at::Tensor &E0, at::Tensor &E,
+                       at::Tensor &conv, int64_t &iters, bool &ok)
+{
+    const int64_t M = R.size(0), K = S.size(0);
+    T *Rp = R.data_ptr<T>(), *sp = s.data_ptr<T>(), *tp = t.data_ptr<T>(), *E0p = E0.data_ptr<T>(), *Ep = E.data_ptr<T>();
+    const T *Sp = S.data_ptr<T>(), *kpp = kp.data_ptr<T>(), *wvp = wv.data_ptr<T>();
+    bool *cp = conv.data_ptr<bool>();
+    iters = 0;
+    ok = true;
+    for (int64_t m = 0; m < M && ok; ++m) {
+        bool c = false;
+        const int64_t it = carvi_fit::fit_camera<T>(Rp + 9 * m, sp[m], tp + 2 * m, Sp, kpp + 2 * K * m, wvp + K * m, K,
+                                                    max_iters, tol, E0p[m], Ep[m], c);
+        cp[m] = c;
+        ok = it >= 0;
+        iters = it > iters ? it : iters;
+    }
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t, bool> fit_cameras(
+    const at::Tensor &R, const at::Tensor &s, const at::Tensor &t, const at::Tensor &S, const at::Tensor &kp,
+    const at::Tensor &wv, int64_t max_iters, double tol)
+{
+    const at::ScalarType dt = kp.scalar_type();
+    TORCH_CHECK_TYPE(dt == at::kFloat || dt == at::kDouble, "carvi: kp must be Float or Double, got ", dt);
+    check_tensor(R, "R", dt, 3);
+    check_tensor(s, "s", dt, 1);
+    check_tensor(t, "t", dt, 2);
+    check_tensor(S, "S", dt, 2);
+    check_tensor(kp, "kp", dt, 3);
+    check_tensor(wv, "wv", dt, 2);
+    const int64_t M = R.size(0), K = S.size(0);
+    TORCH_CHECK_VALUE(R.size(1) == 3 && R.size(2) == 3 && s.size(0) == M && t.size(0) == M && t.size(1) == 2,
+                      "carvi: R, s, t must be (M, 3, 3), (M,), (M, 2), got ", R.sizes(), ", ", s.sizes(), ", ",
+                      t.sizes());
+    TORCH_CHECK_VALUE(S.size(1) == 3 && kp.size(0) == M && kp.size(1) == K && kp.size(2) == 2 && wv.size(0) == M &&
+                          wv.size(1) == K,
+                      "carvi: S, kp, wv must be (K, 3), (M, K, 2), (M, K), got ", S.sizes(), ", ", kp.sizes(), ", ",
+                      wv.sizes());
+    TORCH_CHECK_VALUE(max_iters >= 0, "carvi: max_iters must be >= 0, got ", max_iters);
+    at::Tensor Ro = at::empty(R.sizes(), R.options()), so = at::empty(s.sizes(), s.options());
+    at::Tensor to = at::empty(t.sizes(), t.options());
+    std::memcpy(Ro.data_ptr(), R.data_ptr(), R.nbytes());
+    std::memcpy(so.data_ptr(), s.data_ptr(), s.nbytes());
+    std::memcpy(to.data_ptr(), t.data_ptr(), t.nbytes());
+    at::Tensor E0 = at::zeros({M}, s.options()), E = at::zeros({M}, s.options());
+    at::Tensor conv = at::zeros({M}, s.options().dtype(at::kBool));
+    int64_t iters = 0;
+    bool ok = true;
+    if (dt == at::kFloat)
+        fit_cameras_typed<float>(Ro, so, to, S, kp, wv, max_iters, tol, E0, E, conv, iters, ok);
+    else
+        fit_cameras_typed<double>(Ro, so, to, S, kp, wv, max_iters, tol, E0, E, conv, iters, ok);
+    return {Ro, so, to, E0, E, conv, iters, ok};
+}
+
 } // namespace
 
 #ifndef CARVI_NS
@@ -273,6 +335,8 @@ TORCH_LIBRARY(CARVI_NS, m)
     m.def("has_fma() -> bool", &has_fma);
     m.def("sfm_factorize(Tensor W, Tensor vis, Tensor Wf, Tensor S, int max_outer, int inner, float tol, float reg, "
           "float scale) -> (Tensor, Tensor, Tensor, Tensor, int)");
+    m.def("fit_cameras(Tensor R, Tensor s, Tensor t, Tensor S, Tensor kp, Tensor wv, int max_iters, float tol) -> "
+          "(Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, int, bool)");
 }
 
 // CompositeExplicitAutograd: one kernel for every device, so that a tensor on another device reaches the
@@ -283,4 +347,5 @@ TORCH_LIBRARY_IMPL(CARVI_NS, CompositeExplicitAutograd, m)
     m.impl("sample", &sample);
     m.impl("line", &line);
     m.impl("sfm_factorize", &sfm_factorize);
+    m.impl("fit_cameras", &fit_cameras);
 }

@@ -228,7 +228,8 @@ def _shape_groups(both, dist, res, cfg: ViewpointConfig, source: str, seed: int,
         max_groups=cfg.sfm_groups,
         min_size=cfg.sfm_group_min, gain=cfg.sfm_group_gain, agreement_deg=cfg.sfm_group_agreement_deg,
         rounds=cfg.sfm_group_rounds, seed=seed, single=res, log=lines.append, threads=cfg.sfm_group_threads,
-        min_misfit=cfg.sfm_group_misfit, hull_gain=None if cfg.sfm_group_hull_gain <= -1 else cfg.sfm_group_hull_gain)
+        min_misfit=cfg.sfm_group_misfit, hull_gain=None if cfg.sfm_group_hull_gain <= -1 else cfg.sfm_group_hull_gain,
+        native=cfg.sfm_native)
     log.extend(f"  {both.name}: {line}" for line in lines)
     info["sfm_groups"] = mix.summary()
     return mix

@@ -62,6 +62,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from .. import native_library
 from ..cameras import ScaledOrthographic, axis_angle_to_rotation, complete_rotation, scaled_stiefel
 from ..runtime import cpu_single_thread
 from ..sdf import distance_to_mask
@@ -418,19 +419,51 @@ def _retract(R, s, t, delta):
     return complete_rotation(rows), s * torch.exp(delta[..., 3]), t + delta[..., 4:]
 
 
-def _optimize(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale=None):
+def _optimize(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale=None, native=False):
     """Levenberg-Marquardt over ``(N, B)`` cameras; see the module docstring.
 
     Runs single-threaded on the CPU (:func:`cpu_single_thread`), and without a silhouette term
     (``maps`` None or ``lam`` 0 everywhere: nothing needs autograd) under ``torch.inference_mode``
     (the same kernels, less dispatch per tensor op); the results are then cloned into ordinary tensors.
+    ``native``: without a silhouette term, on the CPU, the compiled fit (:func:`_native_optimize`) where
+    it applies.
 
     Returns ``R, s, t, E_before, E, E_kp, E_sil, iterations, converged (N, B)``.
     """
     plain = maps is None or not bool((lam > 0).any())
+    if native and plain:
+        out = _native_optimize(R, s, t, shape, keypoints, visible, max_iters, tol)
+        if out is not None:
+            return out
     with cpu_single_thread(keypoints.device), torch.inference_mode(plain):
         out = _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale)
     return tuple(x.clone() if plain and isinstance(x, torch.Tensor) else x for x in out)
+
+
+def _native_optimize(R, s, t, shape, keypoints, visible, max_iters, tol):
+    """:func:`_optimize_impl` without a silhouette term in the compiled kernel (``carvi_torch/kernels/camera_steps.h``,
+    :mod:`carvi_torch.native_library`): every camera on its own, the same steps, equal to rounding (the torch
+    code's sums run in another order); its return values, or ``None`` where it does not apply (not on the CPU,
+    not float32/64, no kernel) or declines (a retraction of rank < 2): the torch code then runs."""
+    dt = keypoints.dtype
+    if keypoints.device.type != "cpu" or dt not in (torch.float32, torch.float64):
+        return None
+    ops = native_library.library_operators()
+    if ops is None:
+        return None
+    n, b = s.shape
+    kmask = torch.isfinite(shape).all(-1)
+    S = torch.nan_to_num(shape).to(dt).contiguous()
+    wv = (visible & kmask & torch.isfinite(keypoints).all(-1)).to(dt).repeat_interleave(b, 0).contiguous()
+    kp = torch.nan_to_num(keypoints).repeat_interleave(b, 0).contiguous()
+    Rf, sf, tf, E0, E, conv, it, ok = ops.fit_cameras(R.to(dt).reshape(n * b, 3, 3).contiguous(),
+                                                     s.to(dt).reshape(n * b).contiguous(),
+                                                     t.to(dt).reshape(n * b, 2).contiguous(), S, kp, wv, max_iters, tol)
+    if not ok:
+        return None
+    E0, E, conv = E0.reshape(n, b), E.reshape(n, b), conv.reshape(n, b)
+    cams = (Rf.reshape(n, b, 3, 3), sf.reshape(n, b), tf.reshape(n, b, 2))
+    return (*cams, E0, E, E.clone(), torch.zeros_like(E), it, conv)
 
 
 #: The optimiser works on a shrinking set of rows: once at most this fraction of the rows it
@@ -888,12 +921,14 @@ def refine_starts_keypoints_only(
     *,
     max_iters: int = 100,
     tol: float = 1e-6,
+    native: bool = False,
 ) -> tuple[ScaledOrthographic, torch.Tensor]:
     """Keypoint-only refinement of ``B`` given starts per instance, keeping each instance's best.
 
     Args:
         shape: ``(K, 3)``; R ``(N, B, 3, 3)``, s ``(N, B)``, t ``(N, B, 2)``: the starts;
         keypoints ``(N, K, 2)``; visible ``(N, K)``.
+        native: on the CPU, the compiled fit (equal to rounding; the mixture's EM, ``sfm_native``).
 
     Returns:
         ``cameras`` (N) and ``energy (N,)`` (the squared keypoint residual of each).
@@ -910,7 +945,7 @@ def refine_starts_keypoints_only(
     _check(shape, keypoints, visible, None, R.shape[0])
     lam = torch.zeros(keypoints.shape[0], dtype=keypoints.dtype, device=keypoints.device)
     dt = keypoints.dtype
-    out = _optimize(R.to(dt), s.to(dt), t.to(dt), shape, keypoints, visible, None, lam, max_iters, tol)
+    out = _optimize(R.to(dt), s.to(dt), t.to(dt), shape, keypoints, visible, None, lam, max_iters, tol, native=native)
     Rb, sb, tb, Eb, _best = _pick(out[0], out[1], out[2], out[4])
     return ScaledOrthographic(Rb, sb, tb), Eb
 

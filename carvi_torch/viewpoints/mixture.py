@@ -133,7 +133,7 @@ def group_rows(idx: torch.Tensor, n: int) -> torch.Tensor:
 
 
 def keypoint_fit(shape: torch.Tensor, both, dist: torch.Tensor, n: int, *, n_starts: int = 16,
-                 starts: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+                 starts: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None, native: bool = False
                  ) -> tuple[torch.Tensor, ScaledOrthographic]:
     """Keypoint-only cameras of every row of ``both`` under ``shape``, and what they cost.
 
@@ -151,6 +151,8 @@ def keypoint_fit(shape: torch.Tensor, both, dist: torch.Tensor, n: int, *, n_sta
             finds the basins that the warm starts miss (on the sofa renders, warm starts alone
             ended worse than the search for up to 11% of the objects under a group's shape,
             with the resection for none).
+        native: the warm starts' refinement in the compiled fit on the CPU (equal to rounding;
+            :func:`carvi_torch.viewpoints.camera_fit.refine_starts_keypoints_only`).
 
     Returns:
         ``cost (n,)`` squared pixel residual of every object plus its mirrored copy, and the ``2n``
@@ -165,7 +167,7 @@ def keypoint_fit(shape: torch.Tensor, both, dist: torch.Tensor, n: int, *, n_sta
         R = torch.cat([R, torch.where(ok[:, None, None], rc.R.to(R), R[:, 0])[:, None]], 1)
         s = torch.cat([s, torch.where(ok, rc.s.to(s), s[:, 0])[:, None]], 1)
         t = torch.cat([t, torch.where(ok[:, None], rc.t.to(t), t[:, 0])[:, None]], 1)
-        cams, _ = camera_fit.refine_starts_keypoints_only(shape, R, s, t, both.keypoints, both.visible)
+        cams, _ = camera_fit.refine_starts_keypoints_only(shape, R, s, t, both.keypoints, both.visible, native=native)
     P = cams.project(torch.nan_to_num(shape).to(cams.R))
     vis = both.visible & torch.isfinite(shape).all(-1)[None] & torch.isfinite(both.keypoints).all(-1)
     r = ((P - torch.nan_to_num(both.keypoints)).pow(2).sum(-1) * vis).sum(-1)
@@ -373,7 +375,7 @@ def _warm_starts(groups, labels: torch.Tensor, prev, prior) -> list:
 
 def hard_em(both, n: int, dist: torch.Tensor, sfm_fn: SfMFn, labels: torch.Tensor, k: int, min_size: int,
             rounds: int = 6, full_shape: torch.Tensor | None = None,
-            warm: tuple[torch.Tensor, ScaledOrthographic] | None = None):
+            warm: tuple[torch.Tensor, ScaledOrthographic] | None = None, native: bool = False):
     """Hard EM over ``k`` rigid shapes from ``labels (n,)``.
 
     Args:
@@ -408,7 +410,8 @@ def hard_em(both, n: int, dist: torch.Tensor, sfm_fn: SfMFn, labels: torch.Tenso
             inits = [None] * k if prev is None else prev[0]
         groups = [_group_sfm(both, labels, g, n, sfm_fn, full_shape, inits[g]) for g in range(k)]
         starts = [None] * k if warm is None else _warm_starts(groups, labels, prev, warm)
-        fits = [keypoint_fit(res.shape, both, dist, n, starts=st) for (_rows, res), st in zip(groups, starts)]
+        fits = [keypoint_fit(res.shape, both, dist, n, starts=st, native=native)
+                for (_rows, res), st in zip(groups, starts)]
         prev = ([res.shape for _rows, res in groups], [c for _cost, c in fits])
         cost = torch.stack([c for c, _cams in fits], 1)
         new = top_up(cost.argmin(1), cost, k, min_size)
@@ -620,7 +623,7 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
                           single: SfMResult | None = None, log: Callable[[str], None] | None = None,
                           warm_start: bool = True, threads: int = 2,
                           threads_min_objects: int = THREADS_MIN_OBJECTS, min_misfit: float = 0.0,
-                          hull_gain: float | None = None) -> MixtureResult:
+                          hull_gain: float | None = None, native: bool = False) -> MixtureResult:
     """Fit at most ``max_groups`` rigid shapes to a class (see the module docstring for the rule).
 
     Args:
@@ -650,6 +653,8 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
             agreement of the rows (:func:`hull_agreements`, under each row's group shape and SfM
             camera) by at least this over one shape; the starts after one that fails are not run
             (nor recorded). ``None``: not measured, no such test.
+        native: the EM's keypoint-only camera fits in the compiled kernel on the CPU (:func:`keypoint_fit`; the
+            pipeline's ``sfm_native``).
 
     Returns:
         :class:`MixtureResult`.
@@ -696,7 +701,8 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
             try:
                 lab, groups, cost, rotations, hist = hard_em(both, n, dist, sfm_fn, lab0, k, min_size, rounds,
                                                               full_shape=res1.shape,
-                                                              warm=(res1.shape, cams1) if warm_start else None)
+                                                              warm=(res1.shape, cams1) if warm_start else None,
+                                                              native=native)
             except SplitFailed as e:
                 row["problem"] = str(e)
                 return row, None, f"{k} shapes from '{name}': not usable: {e}"
