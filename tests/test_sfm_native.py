@@ -92,6 +92,17 @@ def test_native_factorisation_fits_an_exact_rigid_class():
     assert (len(hist), converged) == (len(ref[3]), ref[5]) and len(hist) < 5
 
 
+def _kernel_once(W, vis, S, **kw):
+    """One call of the kernel from the centroid-filled matrix and ``S``: ``(steps, status)``."""
+    ops = native_library.library_operators()
+    n, rank = W.shape[0], S.shape[0]
+    cnt = vis.sum(-1).clamp(min=1.0)
+    Wf = torch.where(vis[:, None] > 0, W, ((W * vis[:, None]).sum(-1) / cnt[:, None])[..., None])
+    out = ops.sfm_factorize(W, vis, Wf.contiguous(), S, torch.zeros(n, 2, rank, dtype=torch.float64), False, 1,
+                            float("nan"), kw["max_outer"], kw["inner"], kw["tol"], kw["reg"], 1.0)
+    return out[5], out[6]
+
+
 @pytest.mark.parametrize("max_outer", [3, 200])
 def test_native_keeps_the_first_candidate_on_ties(max_outer):
     """An instance with one visible keypoint fits it exactly with every candidate block (residual 0): both
@@ -105,52 +116,58 @@ def test_native_keeps_the_first_candidate_on_ties(max_outer):
         for use in (False, True):
             out.append(sfm._factorize(W, vis, rank=2, generator=torch.Generator().manual_seed(3), native=use, **kw))
         S = torch.randn(2, 12, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-        assert sfm._native_factorize(W, vis, W.clone(), S, **dict(kw, scale=1.0)) is not None  # the kernel runs
+        assert _kernel_once(W, vis, S, **kw)[0] > 0  # the kernel runs its steps
     assert out[0][4] == out[1][4]
     torch.testing.assert_close(out[1][0], out[0][0], rtol=0, atol=1e-11)
 
 
-def test_native_declines_a_rank_deficient_block_and_the_torch_path_runs():
+def test_native_declines_a_rank_deficient_block_and_the_torch_path_runs_that_step():
     """An instance whose visible keypoints lie on one image line starts with a rank-1 block, which the torch
-    path's projection takes through an SVD: the kernel declines, and ``native=True`` gives the torch path's
-    result bit for bit."""
+    path's projection takes through an SVD: the kernel declines the first step (no step run), the torch path
+    runs it, and the kernel goes on from there: the torch path's result to rounding, in as many steps."""
     W, vis = _problem(20, 8, 2)
     vis[4] = 0.0
     vis[4, :3] = 1.0
     W[4, 1] = 0.5 * W[4, 0] + 3.0
-    kw = dict(KW, scale=1.0)
     with torch.inference_mode():
         S = torch.randn(3, 8, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-        assert sfm._native_factorize(W, vis, W.clone(), S, **kw) is None
+        assert _kernel_once(W, vis, S, **KW) == (0, 2)
         a, b = _both(W, vis, 3)
+    assert (a[4], a[5]) == (b[4], b[5])
     for x, y in zip(a[:3], b[:3]):
-        assert torch.equal(x, y)
-    assert a[3] == b[3]
+        torch.testing.assert_close(y, x, rtol=0, atol=1e-9)
 
 
 def test_native_does_not_apply_to_float32_or_other_devices():
     W, vis = _problem(10, 6, 0)
     S = torch.randn(3, 6, dtype=torch.float64)
-    kw = dict(KW, scale=1.0)
-    assert sfm._native_factorize(W.float(), vis, W.float(), S, **kw) is None
-    assert sfm._native_factorize(W.to("meta"), vis.to("meta"), W.to("meta"), S.to("meta"), **kw) is None
+    assert sfm._native_ops(W, vis, W, S) is not None
+    assert sfm._native_ops(W.float(), vis, W.float(), S) is None
+    assert sfm._native_ops(W.to("meta"), vis.to("meta"), W.to("meta"), S.to("meta")) is None
 
 
 def test_native_operator_checks_its_arguments():
     ops = native_library.library_operators()
     W, vis = _problem(10, 6, 0)
     S = torch.randn(3, 6, dtype=torch.float64)
+    M = torch.zeros(10, 2, 3, dtype=torch.float64)
+    state = (False, 1, float("nan"))
     args = (200, 10, 1e-7, 1e-6, 1.0)
+    ops.sfm_factorize(W, vis, W, S, M, *state, *args)
     with pytest.raises(ValueError, match="vis must be"):
-        ops.sfm_factorize(W, vis[:, :5].contiguous(), W, S, *args)
+        ops.sfm_factorize(W, vis[:, :5].contiguous(), W, S, M, *state, *args)
     with pytest.raises(ValueError, match="S must be"):
-        ops.sfm_factorize(W, vis, W, torch.randn(4, 6, dtype=torch.float64), *args)
+        ops.sfm_factorize(W, vis, W, torch.randn(4, 6, dtype=torch.float64), M, *state, *args)
+    with pytest.raises(ValueError, match="M must be"):
+        ops.sfm_factorize(W, vis, W, S, M[:, :, :2].contiguous(), *state, *args)
     with pytest.raises(TypeError, match="must be Double"):
-        ops.sfm_factorize(W.float(), vis, W, S, *args)
+        ops.sfm_factorize(W.float(), vis, W, S, M, *state, *args)
     with pytest.raises(ValueError, match="contiguous"):
-        ops.sfm_factorize(W.transpose(0, 2), vis, W, S, *args)
-    with pytest.raises(ValueError, match="max_outer and inner"):
-        ops.sfm_factorize(W, vis, W, S, 0, 10, 1e-7, 1e-6, 1.0)
+        ops.sfm_factorize(W.transpose(0, 2), vis, W, S, M, *state, *args)
+    with pytest.raises(ValueError, match="max_outer, inner and first_it"):
+        ops.sfm_factorize(W, vis, W, S, M, *state, 0, 10, 1e-7, 1e-6, 1.0)
+    with pytest.raises(ValueError, match="max_outer, inner and first_it"):
+        ops.sfm_factorize(W, vis, W, S, M, False, 0, float("nan"), *args)
 
 
 def test_rigid_sfm_cameras_agree_with_and_without_the_kernel():
@@ -173,31 +190,33 @@ def test_the_setting_reaches_the_factorisation(monkeypatch):
     from carvi_torch.viewpoints import class_sfm
 
     calls = []
-    real = sfm._native_factorize
-    monkeypatch.setattr(sfm, "_native_factorize",
-                        lambda *a, **k: (lambda out: calls.append(out is not None) or out)(real(*a, **k)))
+    real = sfm._native_steps
+    monkeypatch.setattr(sfm, "_native_steps", lambda ops, W, vis, st, **k: (
+        lambda n0, out: calls.append(len(st.history) > n0) or out)(len(st.history), real(ops, W, vis, st, **k)))
     W, vis = _problem(20, 8, 6)
     meta = SimpleNamespace(rigid_keypoints=None, keypoint_names=None, flip_pairs=None, left_convention="object")
     coll = SimpleNamespace(keypoints=W.transpose(1, 2).float(), visible=vis > 0, meta=meta)
     class_sfm(coll, Config().override({"sfm_native": False}).viewpoints)
     assert calls == []
     class_sfm(coll, Config().viewpoints)
-    assert calls and all(calls)  # called, and the kernel ran (float64 inputs on the CPU) rather than declining
+    assert calls and all(calls)  # called, and the kernel ran steps (float64 inputs on the CPU)
 
 
-def test_an_instance_with_two_visible_keypoints_sends_a_cold_rigid_start_to_torch(monkeypatch):
+def test_an_instance_with_two_visible_keypoints_costs_a_cold_rigid_start_one_torch_step(monkeypatch):
     """Its centred, centroid-filled rows are proportional: the first power step's block has rank 1, so the kernel
-    declines the cold rigid factorisation (docs/viewpoints.md) and the torch path's result comes back."""
+    declines the first step of a cold rigid factorisation; the torch path runs that one and the kernel the rest
+    (docs/viewpoints.md), to the torch path's result."""
     W, vis = _problem(40, 12, 0)
     vis[5] = 0.0
     vis[5, [4, 8]] = 1.0
-    calls = []
-    real = sfm._native_factorize
-    monkeypatch.setattr(sfm, "_native_factorize",
-                        lambda *a, **k: (lambda out: calls.append(out is not None) or out)(real(*a, **k)))
+    torch_steps = []
+    real = sfm._fill_step
+    monkeypatch.setattr(sfm, "_fill_step", lambda *a, **k: torch_steps.append(1) or real(*a, **k))
     a, b = _both(W, vis, 3)
-    assert calls == [False]
-    assert all(torch.equal(x, y) for x, y in zip(a[:3], b[:3])) and a[3] == b[3]
+    assert len(torch_steps) == a[4] + 1  # every step of the torch run, then the kernel's one declined step
+    assert (a[4], a[5]) == (b[4], b[5])
+    for x, y in zip(a[:3], b[:3]):  # the two-keypoint instance's block is underdetermined: 1e-7 relative
+        torch.testing.assert_close(y, x, rtol=1e-7, atol=1e-9)
 
 
 # --------------------------------------------------------------------------- the keypoint-only camera fit

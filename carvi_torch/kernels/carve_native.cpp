@@ -7,8 +7,9 @@
 //   carvi::sample(Tensor ext, int k, float scale, Tensor grid, bool fma) -> Tensor
 //   carvi::line(Tensor ext, int k, float scale, float g0x, float g0y, float cx, float cy, int m, bool fma) -> Tensor
 //   carvi::has_fma() -> bool
-//   carvi::sfm_factorize(Tensor W, Tensor vis, Tensor Wf, Tensor S, int max_outer, int inner, float tol, float reg,
-//                        float scale) -> (Tensor M, Tensor t, Tensor S, Tensor history, int steps)
+//   carvi::sfm_factorize(Tensor W, Tensor vis, Tensor Wf, Tensor S, Tensor M, bool have_prev, int first_it,
+//                        float prev_rms, int max_outer, int inner, float tol, float reg, float scale)
+//                        -> (Tensor M, Tensor t, Tensor S, Tensor Wf, Tensor history, int steps, int status)
 //     (the rigid SfM's factorisation, sfm_steps.h; nothing to do with the carving but its build)
 //   carvi::fit_cameras(Tensor R, Tensor s, Tensor t, Tensor S, Tensor kp, Tensor wv, int max_iters, float tol)
 //                      -> (Tensor R, Tensor s, Tensor t, Tensor E_before, Tensor E, Tensor converged, int iters, bool ok)
@@ -234,32 +235,38 @@ at::Tensor line(const at::Tensor &ext, int64_t k, double scale, double g0x, doub
 
 bool has_fma() { return carvi::has_fma() != 0; }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t> sfm_factorize(
-    const at::Tensor &W, const at::Tensor &vis, const at::Tensor &Wf, const at::Tensor &S, int64_t max_outer,
-    int64_t inner, double tol, double reg, double scale)
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t, int64_t> sfm_factorize(
+    const at::Tensor &W, const at::Tensor &vis, const at::Tensor &Wf, const at::Tensor &S, const at::Tensor &M,
+    bool have_prev, int64_t first_it, double prev_rms, int64_t max_outer, int64_t inner, double tol, double reg,
+    double scale)
 {
     check_tensor(W, "W", at::kDouble, 3);
     check_tensor(vis, "vis", at::kDouble, 2);
     check_tensor(Wf, "Wf", at::kDouble, 3);
     check_tensor(S, "S", at::kDouble, 2);
+    check_tensor(M, "M", at::kDouble, 3);
     const int64_t N = W.size(0), K = W.size(2), r = S.size(0);
     TORCH_CHECK_VALUE(W.size(1) == 2 && Wf.sizes() == W.sizes(), "carvi: W and Wf must be (N, 2, K), got ",
                       W.sizes(), " and ", Wf.sizes());
     TORCH_CHECK_VALUE(vis.size(0) == N && vis.size(1) == K, "carvi: vis must be (N, K) = (", N, ", ", K, "), got ",
                       vis.sizes());
     TORCH_CHECK_VALUE((r == 2 || r == 3) && S.size(1) == K, "carvi: S must be (2 or 3, K = ", K, "), got ", S.sizes());
-    TORCH_CHECK_VALUE(max_outer >= 1 && inner >= 1, "carvi: max_outer and inner must be >= 1, got ", max_outer,
-                      " and ", inner);
+    TORCH_CHECK_VALUE(M.size(0) == N && M.size(1) == 2 && M.size(2) == r, "carvi: M must be (N, 2, r) = (", N, ", 2, ",
+                      r, "), got ", M.sizes());
+    TORCH_CHECK_VALUE(max_outer >= 1 && inner >= 1 && first_it >= 1, "carvi: max_outer, inner and first_it must be "
+                      ">= 1, got ", max_outer, ", ", inner, " and ", first_it);
     at::Tensor Wf_out = at::empty(Wf.sizes(), Wf.options()), S_out = at::empty(S.sizes(), S.options());
+    at::Tensor M_out = at::empty(M.sizes(), M.options()), t = at::zeros({N, 2}, W.options());
     std::memcpy(Wf_out.data_ptr<double>(), Wf.data_ptr<double>(), sizeof(double) * N * 2 * K);
     std::memcpy(S_out.data_ptr<double>(), S.data_ptr<double>(), sizeof(double) * r * K);
-    at::Tensor M = at::zeros({N, 2, r}, W.options()), t = at::zeros({N, 2}, W.options());
-    at::Tensor history = at::zeros({max_outer}, W.options());
-    const int64_t steps = carvi_sfm::factorize_loop(W.data_ptr<double>(), vis.data_ptr<double>(),
-                                                    Wf_out.data_ptr<double>(), N, K, S_out.data_ptr<double>(),
-                                                    (int)r, max_outer, inner, tol, reg, scale, M.data_ptr<double>(),
-                                                    t.data_ptr<double>(), history.data_ptr<double>());
-    return {M, t, S_out, history, steps};
+    std::memcpy(M_out.data_ptr<double>(), M.data_ptr<double>(), sizeof(double) * N * 2 * r);
+    at::Tensor history = at::zeros({max_outer >= first_it ? max_outer - first_it + 1 : 0}, W.options());
+    int status = 0;
+    const int64_t steps = carvi_sfm::factorize_loop(
+        W.data_ptr<double>(), vis.data_ptr<double>(), Wf_out.data_ptr<double>(), N, K, S_out.data_ptr<double>(), (int)r,
+        first_it, max_outer, inner, tol, reg, scale, prev_rms, have_prev, M_out.data_ptr<double>(), t.data_ptr<double>(),
+        history.data_ptr<double>(), status);
+    return {M_out, t, S_out, Wf_out, history, steps, (int64_t)status};
 }
 
 template <typename T>
@@ -333,8 +340,9 @@ TORCH_LIBRARY(CARVI_NS, m)
     m.def("sample(Tensor ext, int k, float scale, Tensor grid, bool fma) -> Tensor");
     m.def("line(Tensor ext, int k, float scale, float g0x, float g0y, float cx, float cy, int m, bool fma) -> Tensor");
     m.def("has_fma() -> bool", &has_fma);
-    m.def("sfm_factorize(Tensor W, Tensor vis, Tensor Wf, Tensor S, int max_outer, int inner, float tol, float reg, "
-          "float scale) -> (Tensor, Tensor, Tensor, Tensor, int)");
+    m.def("sfm_factorize(Tensor W, Tensor vis, Tensor Wf, Tensor S, Tensor M, bool have_prev, int first_it, "
+          "float prev_rms, int max_outer, int inner, float tol, float reg, float scale) -> "
+          "(Tensor, Tensor, Tensor, Tensor, Tensor, int, int)");
     m.def("fit_cameras(Tensor R, Tensor s, Tensor t, Tensor S, Tensor kp, Tensor wv, int max_iters, float tol) -> "
           "(Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, int, bool)");
 }

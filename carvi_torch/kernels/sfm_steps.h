@@ -262,17 +262,108 @@ inline bool resect_block(const double *S, int r, int64_t K, const double *w, con
     return true;
 }
 
-// The outer loop of carvi_torch.viewpoints.sfm._factorize from its filled matrix Wf (N, 2, K; updated)
-// and shape S (r x K; updated): per step the power steps, the per-instance best of the candidate blocks
-// (the power step's, the resection's, for r = 3 the power step's reflected through the shape's plane, and
-// the last step's), the refill. Writes M (N, 2, r), t (N, 2) and the RMS history (max_outer); returns the
-// steps run, negated when converged, or 0 where the torch path must run instead (see power_steps).
-inline int64_t factorize_loop(const double *W, const double *vis, double *Wf, int64_t N, int64_t K, double *S,
-                              int r, int64_t max_outer, int64_t inner, double tol, double reg, double scale,
-                              double *M, double *t, double *history)
+// The reflection through the plane of the centred shape's two largest directions: H = I - 2 n n^T (3 x 3).
+inline void shape_reflection(const double *S, int64_t K, double *H)
 {
-    const bool stiefel = r == 3;
-    std::vector<double> Wc(N * 2 * K), Mi(N * 2 * r), counts(N);
+    double C[9] = {0}, mean[3] = {0, 0, 0}, nrm[3];
+    for (int c = 0; c < 3; ++c) {
+        for (int64_t k = 0; k < K; ++k)
+            mean[c] += S[c * K + k];
+        mean[c] /= (double)K;
+    }
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            for (int64_t k = 0; k < K; ++k)
+                C[i * 3 + j] += (S[i * K + k] - mean[i]) * (S[j * K + k] - mean[j]);
+    smallest_eigenvector(C, nrm);
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            H[i * 3 + j] = (i == j ? 1.0 : 0.0) - 2.0 * nrm[i] * nrm[j];
+}
+
+// One instance's best candidate block (the power step's Mi, the projected resection, for r = 3 Mi reflected by H,
+// the last step's Mprev when given) by visible residual, the first on ties. Writes M (2 x r), t (2) and the
+// residual; false where the torch path must run (singular resection, rank < 2 block, non-finite residual).
+inline bool best_block(const double *S, int r, int64_t K, const double *w, const double *v, const double *Mi,
+                       const double *Mprev, const double *H, double reg, double scale_S, double count, double *M,
+                       double *t, double &res)
+{
+    double cand[4][6], tc[4][2], rc[4];
+    int C = 0;
+    std::copy(Mi, Mi + 2 * r, cand[C++]);
+    if (!resect_block(S, r, K, w, v, Mi, reg, scale_S, cand[C]) || (r == 3 && !scaled_stiefel_block(cand[C])))
+        return false;
+    ++C;
+    if (r == 3) {
+        for (int row = 0; row < 2; ++row)
+            for (int j = 0; j < 3; ++j) {
+                double x = 0.0;
+                for (int i = 0; i < 3; ++i)
+                    x += cand[0][row * 3 + i] * H[i * 3 + j];
+                cand[C][row * 3 + j] = x;
+            }
+        ++C;
+    }
+    if (Mprev != nullptr)
+        std::copy(Mprev, Mprev + 2 * r, cand[C++]);
+    int best = 0;
+    for (int c = 0; c < C; ++c) {
+        rc[c] = visible_residual(cand[c], r, S, w, v, K, count, tc[c]);
+        if (!std::isfinite(rc[c]))
+            return false;
+        if (rc[c] < rc[best])
+            best = c;
+    }
+    std::copy(cand[best], cand[best] + 2 * r, M);
+    t[0] = tc[best][0];
+    t[1] = tc[best][1];
+    res = rc[best];
+    return true;
+}
+
+// Wc = Wf minus each row's mean (N x 2 rows of K).
+inline void centre_rows(const double *Wf, int64_t rows, int64_t K, double *Wc)
+{
+    for (int64_t i = 0; i < rows; ++i) {
+        double mean = 0.0;
+        for (int64_t k = 0; k < K; ++k)
+            mean += Wf[i * K + k];
+        mean /= (double)K;
+        for (int64_t k = 0; k < K; ++k)
+            Wc[i * K + k] = Wf[i * K + k] - mean;
+    }
+}
+
+// The hidden entries of Wf refilled from the blocks: M S + t.
+inline void refill(const double *vis, const double *S, const double *M, const double *t, int64_t N, int64_t K, int r,
+                   double *Wf)
+{
+    for (int64_t n = 0; n < N; ++n)
+        for (int row = 0; row < 2; ++row)
+            for (int64_t k = 0; k < K; ++k) {
+                if (vis[n * K + k] > 0.0)
+                    continue;
+                double p = t[n * 2 + row];
+                for (int c = 0; c < r; ++c)
+                    p += M[n * 2 * r + row * r + c] * S[c * K + k];
+                Wf[(n * 2 + row) * K + k] = p;
+            }
+}
+
+enum { RAN_OUT = 0, CONVERGED = 1, DECLINED = 2 };
+
+// Steps first_it.. of the outer loop of carvi_torch.viewpoints.sfm._factorize from the filled matrix Wf (N, 2, K),
+// the shape S (r x K) and, with have_prev, the last step's blocks M (N, 2, r) (its RMS prev_rms): per step the
+// power steps, every instance's best candidate block, the refill, the convergence test. Updates Wf, S, M, t (N, 2)
+// and writes each step's RMS to history[step - first_it]. Returns the steps run; status: CONVERGED, RAN_OUT (at
+// max_outer), or DECLINED: the next step needs the torch path (see power_steps, best_block), and Wf, S, M, t are
+// those after the steps run.
+inline int64_t factorize_loop(const double *W, const double *vis, double *Wf, int64_t N, int64_t K, double *S, int r,
+                              int64_t first_it, int64_t max_outer, int64_t inner, double tol, double reg,
+                              double scale, double prev_rms, bool have_prev, double *M, double *t, double *history,
+                              int &status)
+{
+    std::vector<double> Wc(N * 2 * K), Mi(N * 2 * r), counts(N), S0(S, S + r * K), Mn(N * 2 * r), tn(N * 2);
     double entries = 0.0;
     for (int64_t n = 0; n < N; ++n) {
         double c = 0.0;
@@ -282,92 +373,44 @@ inline int64_t factorize_loop(const double *W, const double *vis, double *Wf, in
         counts[n] = c < 1.0 ? 1.0 : c;
     }
     entries = entries < 1.0 ? 1.0 : entries;
-    bool have_prev = false;
-    for (int64_t it = 1; it <= max_outer; ++it) {
-        for (int64_t n = 0; n < N; ++n)
-            for (int row = 0; row < 2; ++row) {
-                const double *f = Wf + (n * 2 + row) * K;
-                double mean = 0.0;
-                for (int64_t k = 0; k < K; ++k)
-                    mean += f[k];
-                mean /= (double)K;
-                for (int64_t k = 0; k < K; ++k)
-                    Wc[(n * 2 + row) * K + k] = f[k] - mean;
-            }
-        if (!power_steps(Wc.data(), N, K, S, r, inner, reg, stiefel, Mi.data()))
-            return 0;
-        double scale_S = 0.0, H[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
-        for (int64_t i = 0; i < r * K; ++i)
+    double last = prev_rms;
+    status = RAN_OUT;
+    for (int64_t it = first_it; it <= max_outer; ++it) {
+        std::copy(S, S + r * K, S0.begin());
+        centre_rows(Wf, N * 2, K, Wc.data());
+        double H[9] = {0}, scale_S = 0.0, total = 0.0;
+        bool ok = power_steps(Wc.data(), N, K, S, r, inner, reg, r == 3, Mi.data());
+        for (int64_t i = 0; ok && i < r * K; ++i)
             scale_S += S[i] * S[i];
         scale_S /= (double)(r * K);
-        if (r == 3) { // reflection through the plane of the centred shape's two largest directions
-            double C[9] = {0}, mean[3] = {0, 0, 0}, nrm[3];
-            for (int c = 0; c < 3; ++c) {
-                for (int64_t k = 0; k < K; ++k)
-                    mean[c] += S[c * K + k];
-                mean[c] /= (double)K;
-            }
-            for (int i = 0; i < 3; ++i)
-                for (int j = 0; j < 3; ++j)
-                    for (int64_t k = 0; k < K; ++k)
-                        C[i * 3 + j] += (S[i * K + k] - mean[i]) * (S[j * K + k] - mean[j]);
-            smallest_eigenvector(C, nrm);
-            for (int i = 0; i < 3; ++i)
-                for (int j = 0; j < 3; ++j)
-                    H[i * 3 + j] -= 2.0 * nrm[i] * nrm[j];
+        if (ok && r == 3)
+            shape_reflection(S, K, H);
+        for (int64_t n = 0; ok && n < N; ++n) {
+            double res = 0.0;
+            ok = best_block(S, r, K, W + n * 2 * K, vis + n * K, Mi.data() + n * 2 * r,
+                            have_prev ? M + n * 2 * r : nullptr, H, reg, scale_S, counts[n], Mn.data() + n * 2 * r,
+                            tn.data() + n * 2, res);
+            total += res;
         }
-        double total = 0.0;
-        for (int64_t n = 0; n < N; ++n) {
-            const double *w = W + n * 2 * K, *v = vis + n * K;
-            double cand[4][6], tc[4][2], res[4];
-            int C = 0;
-            std::copy(Mi.begin() + n * 2 * r, Mi.begin() + (n + 1) * 2 * r, cand[C++]);
-            if (!resect_block(S, r, K, w, v, Mi.data() + n * 2 * r, reg, scale_S, cand[C]))
-                return 0;
-            if (stiefel && !scaled_stiefel_block(cand[C]))
-                return 0;
-            ++C;
-            if (r == 3) {
-                for (int row = 0; row < 2; ++row)
-                    for (int j = 0; j < 3; ++j) {
-                        double x = 0.0;
-                        for (int i = 0; i < 3; ++i)
-                            x += cand[0][row * 3 + i] * H[i * 3 + j];
-                        cand[C][row * 3 + j] = x;
-                    }
-                ++C;
-            }
-            if (have_prev)
-                std::copy(M + n * 2 * r, M + (n + 1) * 2 * r, cand[C++]);
-            int best = 0;
-            for (int c = 0; c < C; ++c) {
-                res[c] = visible_residual(cand[c], r, S, w, v, K, counts[n], tc[c]);
-                if (!std::isfinite(res[c]))
-                    return 0;
-                if (res[c] < res[best])
-                    best = c;
-            }
-            std::copy(cand[best], cand[best] + 2 * r, M + n * 2 * r);
-            t[n * 2] = tc[best][0];
-            t[n * 2 + 1] = tc[best][1];
-            total += res[best];
-            for (int row = 0; row < 2; ++row)
-                for (int64_t k = 0; k < K; ++k) {
-                    if (v[k] > 0.0)
-                        continue;
-                    double p = t[n * 2 + row];
-                    for (int c = 0; c < r; ++c)
-                        p += M[n * 2 * r + row * r + c] * S[c * K + k];
-                    Wf[(n * 2 + row) * K + k] = p;
-                }
+        if (!ok) {
+            std::copy(S0.begin(), S0.end(), S);
+            status = DECLINED;
+            return it - first_it;
         }
+        std::copy(Mn.begin(), Mn.end(), M);
+        std::copy(tn.begin(), tn.end(), t);
         have_prev = true;
+        refill(vis, S, M, t, N, K, r, Wf);
         const double rms = std::sqrt(total / entries);
-        history[it - 1] = rms;
-        if (rms <= 1e-5 * scale || (it >= 2 && std::fabs(history[it - 2] - rms) <= tol * history[it - 2]))
-            return -it;
+        history[it - first_it] = rms;
+        const bool settled = it > 1 && std::fabs(last - rms) <= tol * last;
+        last = rms;
+        if (rms <= 1e-5 * scale || settled) {
+            status = CONVERGED;
+            return it - first_it + 1;
+        }
     }
-    return max_outer;
+    return max_outer >= first_it ? max_outer - first_it + 1 : 0;
 }
 
 } // namespace carvi_sfm

@@ -440,8 +440,8 @@ def _factorize(W, vis, *, rank, max_outer, inner, tol, reg, generator, S_init=No
     ``2x2`` map is a scaled orthographic view of a plane), completed to ``2x3``
     cameras and gauge-fixed afterwards (:func:`_planar_gauge`, :func:`_complete_planar`).
 
-    ``native``: the outer loop in the compiled kernel on the CPU where it applies (:func:`_native_factorize`),
-    else in torch operators (:func:`_fill_loop`).
+    ``native``: the outer loop's steps in the compiled kernel on the CPU where it applies (:func:`_fill_loop`),
+    else in torch operators.
 
     Returns ``M (N, 2, rank)``, ``t (N, 2)``, ``S (rank, K)``, ``history``,
     ``iterations``, ``converged``.
@@ -469,71 +469,94 @@ def _factorize(W, vis, *, rank, max_outer, inner, tol, reg, generator, S_init=No
         fill = M0 @ S + t0[..., None]
         ok = solved[:, None, None] & torch.isfinite(fill)
         Wf = torch.where(v2 > 0, W, torch.where(ok, fill, Wf))  # an unsolved row keeps the centroid fill
-    if native:
-        out = _native_factorize(W, vis, Wf, S, max_outer=max_outer, inner=inner, tol=tol, reg=reg, scale=scale)
-        if out is not None:
-            return out
-    return _fill_loop(W, vis, Wf, S, eye, project, max_outer=max_outer, inner=inner, tol=tol, reg=reg, scale=scale)
+    return _fill_loop(W, vis, Wf, S, eye, project, max_outer=max_outer, inner=inner, tol=tol, reg=reg, scale=scale,
+                      native=native)
 
 
-def _native_factorize(W, vis, Wf, S, **kw):
-    """:func:`_fill_loop` in the compiled kernel (``carvi_torch/kernels/sfm_steps.h``, built and loaded by
-    :mod:`carvi_torch.native_library`), with its return values; ``None`` where it does not apply (not float64
-    on the CPU, no kernel) or declines (a block of rank < 2, where the torch path's projection takes an SVD;
-    a singular solve; a non-finite value): the torch path then runs from the same inputs. Equal to the torch
-    path to rounding (its sums run in another order): one outer step is a few thousand flops instead of about
-    two hundred tensor operators' dispatch."""
+@dataclass
+class _FillState:
+    """The outer loop's state: the filled matrix, the shape, the last step's blocks and translations, the RMS
+    of every step run."""
+
+    Wf: torch.Tensor  # (N, 2, K)
+    S: torch.Tensor  # (rank, K)
+    M: torch.Tensor | None = None  # (N, 2, rank)
+    t: torch.Tensor | None = None  # (N, 2)
+    history: list = field(default_factory=list)
+
+
+def _fill_loop(W, vis, Wf, S, eye, project, *, max_outer, inner, tol, reg, scale, native=False):
+    """The outer loop of :func:`_factorize` from the filled matrix ``Wf (N, 2, K)`` and the shape ``S``:
+    power steps, the best candidate block per instance, the refill, until the RMS settles (:func:`_fill_step`).
+
+    ``native``: the steps run in the compiled kernel (:func:`_native_steps`) where it applies; a step it
+    declines runs here, and the kernel goes on after it."""
+    st = _FillState(Wf, S)
+    ops = _native_ops(W, vis, Wf, S) if native else None
+    W, vis = W.contiguous(), vis.contiguous()
+    converged = False
+    while len(st.history) < max_outer and not converged:
+        if ops is not None:
+            converged = _native_steps(ops, W, vis, st, max_outer=max_outer, inner=inner, tol=tol, reg=reg,
+                                      scale=scale)
+            if converged or len(st.history) >= max_outer:
+                break
+        _fill_step(W, vis, st, eye, project, inner, reg)
+        h = st.history
+        converged = h[-1] <= 1e-5 * scale or (len(h) >= 2 and abs(h[-2] - h[-1]) <= tol * h[-2])
+    tv, _ = _visible_translation(st.M, st.S, W, vis)
+    return st.M, tv, st.S, st.history, len(st.history), converged
+
+
+def _fill_step(W, vis, st: _FillState, eye, project, inner: int, reg: float) -> None:
+    """One outer step in torch operators, updating ``st``: power steps, every instance's best candidate block
+    (the power step's, the projected resection, for the rigid model the power step's reflected through the
+    shape's plane, the last step's), the refill."""
+    n, rank = W.shape[0], st.S.shape[0]
+    idx = torch.arange(n, device=W.device)
+    counts, known, entries = vis.sum(-1).clamp(min=1.0)[:, None], vis[:, None, :] > 0, (2 * vis.sum()).clamp(min=1)
+    Wc = st.Wf - st.Wf.mean(-1)[..., None]
+    S, Mi = _power_steps(Wc, st.S, eye, project, inner, reg, rank)
+    cands = [Mi, project(_resect(S, W, vis, Mi, reg))]
+    if rank == 3:
+        Sc = S - S.mean(1, keepdim=True)
+        nrm = torch.linalg.svd(Sc, full_matrices=True)[0][:, 2]
+        cands.append(Mi @ (eye - 2.0 * torch.outer(nrm, nrm)))
+    if st.M is not None:
+        cands.append(st.M)
+    res = [_visible_translation(c, S, W, vis, counts) for c in cands]
+    r = torch.stack([x[1] for x in res])  # (C, N)
+    best = r.argmin(0)
+    st.M = torch.stack(cands)[best, idx]
+    st.t = torch.stack([x[0] for x in res])[best, idx]
+    st.S = S
+    st.Wf = torch.where(known, W, st.M @ S + st.t[..., None])
+    st.history.append(float((r[best, idx].sum() / entries).sqrt()))
+
+
+def _native_ops(W, vis, Wf, S):
+    """The compiled library's operators where the kernel applies (float64 on the CPU, the library loaded)."""
     if W.device.type != "cpu" or not all(x.dtype == torch.float64 for x in (W, vis, Wf, S)):
         return None
-    ops = native_library.library_operators()
-    if ops is None:
-        return None
-    M, t, S, history, steps = ops.sfm_factorize(W.contiguous(), vis.contiguous(), Wf.contiguous(), S.contiguous(),
-                                                kw["max_outer"], kw["inner"], kw["tol"], kw["reg"], kw["scale"])
-    if steps == 0:
-        return None
-    it = abs(steps)
-    return M, t, S, history[:it].tolist(), it, steps < 0
+    return native_library.library_operators()
 
 
-def _fill_loop(W, vis, Wf, S, eye, project, *, max_outer, inner, tol, reg, scale):
-    """The outer loop of :func:`_factorize` from the filled matrix ``Wf (N, 2, K)`` and the shape ``S``:
-    power steps, the best candidate block per instance, the refill, until the RMS settles."""
-    n, rank = W.shape[0], S.shape[0]
-    dev = W.device
-    v2 = vis[:, None, :]
-    M = None
-    history: list[float] = []
-    converged = False
-    it = 0
-    idx = torch.arange(n, device=dev)
-    # loop invariants, computed once (the same values the loop used to recompute)
-    counts, known, entries = vis.sum(-1).clamp(min=1.0)[:, None], v2 > 0, (2 * vis.sum()).clamp(min=1)
-    for it in range(1, max_outer + 1):
-        t = Wf.mean(-1)
-        Wc = Wf - t[..., None]
-        S, Mi = _power_steps(Wc, S, eye, project, inner, reg, rank)
-        # per-instance safeguard: best of the candidate blocks on the visible entries
-        cands = [Mi, project(_resect(S, W, vis, Mi, reg))]
-        if rank == 3:
-            Sc = S - S.mean(1, keepdim=True)
-            nrm = torch.linalg.svd(Sc, full_matrices=True)[0][:, 2]
-            cands.append(Mi @ (eye - 2.0 * torch.outer(nrm, nrm)))
-        if M is not None:
-            cands.append(M)
-        res = [_visible_translation(c, S, W, vis, counts) for c in cands]
-        r = torch.stack([x[1] for x in res])  # (C, N)
-        best = r.argmin(0)
-        M = torch.stack(cands)[best, idx]
-        tv = torch.stack([x[0] for x in res])[best, idx]
-        rms = float((r[best, idx].sum() / entries).sqrt())
-        Wf = torch.where(known, W, M @ S + tv[..., None])
-        history.append(rms)
-        if rms <= 1e-5 * scale or (len(history) >= 2 and abs(history[-2] - history[-1]) <= tol * history[-2]):
-            converged = True
-            break
-    tv, _ = _visible_translation(M, S, W, vis)
-    return M, tv, S, history, it, converged
+def _native_steps(ops, W, vis, st: _FillState, *, max_outer, inner, tol, reg, scale) -> bool:
+    """Steps of :func:`_fill_loop` in the compiled kernel (``carvi_torch/kernels/sfm_steps.h``) from ``st``, until
+    the RMS settles (returns True), ``max_outer`` steps or a step the kernel declines (a block of rank < 2, which
+    the torch path projects through an SVD; a singular solve; a non-finite value: ``st`` is then the state before
+    it). Equal to :func:`_fill_step` to rounding (its sums run in another order): one step is a few thousand flops
+    instead of about two hundred tensor operators' dispatch."""
+    n, rank = W.shape[0], st.S.shape[0]
+    M = st.M if st.M is not None else W.new_zeros(n, 2, rank)
+    prev = st.history[-1] if st.history else float("nan")
+    M, t, S, Wf, hist, steps, status = ops.sfm_factorize(
+        W, vis, st.Wf.contiguous(), st.S.contiguous(), M.contiguous(), st.M is not None, len(st.history) + 1, prev,
+        max_outer, inner, tol, reg, scale)
+    if steps > 0:
+        st.M, st.t, st.S, st.Wf = M, t, S, Wf
+        st.history += hist[:steps].tolist()
+    return status == 1
 
 
 def _planar_solution(W, vis, **kw):
@@ -1037,7 +1060,7 @@ class SfMOptions:
     """Median angle (degrees) between the copies' cameras and their originals' mirrored cameras
     above which the joint solution is re-seeded from the originals."""
     native: bool = True
-    """On the CPU, run the factorisation's outer loop in the compiled kernel (:func:`_native_factorize`;
+    """On the CPU, run the factorisation's outer loop in the compiled kernel (:func:`_native_steps`;
     float64, equal to the torch operators to rounding) where it builds; ``False``: torch operators only."""
 
     def check(self) -> None:
