@@ -13,8 +13,8 @@ from carvi_torch.cameras import random_rotations
 from carvi_torch import native_library
 from carvi_torch.viewpoints import sfm
 
-pytestmark = pytest.mark.skipif(native_library.library_operators() is None,
-                                reason=f"no compiled kernel here: {native_library.load()['reason']}")
+needs_library = pytest.mark.skipif(native_library.library_operators() is None,
+                                   reason=f"no compiled kernel here: {native_library.load()['reason']}")
 
 KW = dict(max_outer=200, inner=10, tol=1e-7, reg=1e-6)
 
@@ -44,6 +44,7 @@ def _both(W, vis, rank: int, S_init=None):
     return out
 
 
+@needs_library
 @pytest.mark.parametrize("rank,planar", [(3, False), (2, True)])
 @pytest.mark.parametrize("warm", [False, True])
 @pytest.mark.parametrize("seed", [0, 1])
@@ -61,6 +62,7 @@ def test_native_factorisation_equals_the_torch_one(rank, planar, warm, seed):
     torch.testing.assert_close(torch.tensor(h1), torch.tensor(h0), rtol=1e-12, atol=0)
 
 
+@needs_library
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_native_factorisation_equals_the_torch_one_on_thin_shapes(seed):
     """A thin shape (its third axis a tenth of the others) nearly has a tilt ambiguity: the candidate block
@@ -74,6 +76,7 @@ def test_native_factorisation_equals_the_torch_one_on_thin_shapes(seed):
     torch.testing.assert_close(S1, S0, rtol=0, atol=1e-8)
 
 
+@needs_library
 def test_native_factorisation_fits_an_exact_rigid_class():
     """No noise, nothing hidden: the factorisation reproduces the measurements (an analytic solution)."""
     g = torch.Generator().manual_seed(5)
@@ -103,6 +106,7 @@ def _kernel_once(W, vis, S, **kw):
     return out[5], out[6]
 
 
+@needs_library
 @pytest.mark.parametrize("max_outer", [3, 200])
 def test_native_keeps_the_first_candidate_on_ties(max_outer):
     """An instance with one visible keypoint fits it exactly with every candidate block (residual 0): both
@@ -121,6 +125,7 @@ def test_native_keeps_the_first_candidate_on_ties(max_outer):
     torch.testing.assert_close(out[1][0], out[0][0], rtol=0, atol=1e-11)
 
 
+@needs_library
 def test_native_declines_a_rank_deficient_block_and_the_torch_path_runs_that_step():
     """An instance whose visible keypoints lie on one image line starts with a rank-1 block, which the torch
     path's projection takes through an SVD: the kernel declines the first step (no step run), the torch path
@@ -138,6 +143,7 @@ def test_native_declines_a_rank_deficient_block_and_the_torch_path_runs_that_ste
         torch.testing.assert_close(y, x, rtol=0, atol=1e-9)
 
 
+@needs_library
 def test_native_does_not_apply_to_float32_or_other_devices():
     W, vis = _problem(10, 6, 0)
     S = torch.randn(3, 6, dtype=torch.float64)
@@ -146,6 +152,7 @@ def test_native_does_not_apply_to_float32_or_other_devices():
     assert sfm._native_ops(W.to("meta"), vis.to("meta"), W.to("meta"), S.to("meta")) is None
 
 
+@needs_library
 def test_native_operator_checks_its_arguments():
     ops = native_library.library_operators()
     W, vis = _problem(10, 6, 0)
@@ -170,6 +177,7 @@ def test_native_operator_checks_its_arguments():
         ops.sfm_factorize(W, vis, W, S, M, False, 0, float("nan"), *args)
 
 
+@needs_library
 def test_rigid_sfm_cameras_agree_with_and_without_the_kernel():
     """The whole SfM (mirrored copies, the polish, the planar test) on a class with hidden keypoints."""
     W, vis = _problem(30, 10, 4)
@@ -182,6 +190,7 @@ def test_rigid_sfm_cameras_agree_with_and_without_the_kernel():
     torch.testing.assert_close(res[1].shape, res[0].shape, rtol=0, atol=1e-4)
 
 
+@needs_library
 def test_the_setting_reaches_the_factorisation(monkeypatch):
     """``viewpoints.sfm_native=false`` never calls the kernel; the default does."""
     from types import SimpleNamespace
@@ -202,6 +211,7 @@ def test_the_setting_reaches_the_factorisation(monkeypatch):
     assert calls and all(calls)  # called, and the kernel ran steps (float64 inputs on the CPU)
 
 
+@needs_library
 def test_an_instance_with_two_visible_keypoints_costs_a_cold_rigid_start_one_torch_step(monkeypatch):
     """Its centred, centroid-filled rows are proportional: the first power step's block has rank 1, so the kernel
     declines the first step of a cold rigid factorisation; the torch path runs that one and the kernel the rest
@@ -242,6 +252,7 @@ def _camera_problem(n: int, b: int, k: int, seed: int, dtype):
     return S, kp, visible, R0, s0, t0
 
 
+@needs_library
 @pytest.mark.parametrize("dtype,atol", [(torch.float64, 1e-7), (torch.float32, 2e-3)])
 def test_native_camera_fit_equals_the_torch_one(dtype, atol):
     """Levenberg-Marquardt from starts near the truth: the same cameras, energies and stopping (rotations within
@@ -261,6 +272,7 @@ def test_native_camera_fit_equals_the_torch_one(dtype, atol):
     assert torch.equal(b[6], torch.zeros_like(b[6])) and torch.equal(b[5], b[4])
 
 
+@needs_library
 def test_native_camera_fit_recovers_exact_cameras():
     """No noise, every keypoint seen: the fit lands on the true cameras (an analytic solution)."""
     from carvi_torch.viewpoints import camera_fit as cf
@@ -280,6 +292,7 @@ def test_native_camera_fit_recovers_exact_cameras():
     torch.testing.assert_close(cams.s, torch.full((6,), 10.0, dtype=torch.float64), rtol=1e-6, atol=0)
 
 
+@needs_library
 def test_native_camera_fit_operator_checks_its_arguments():
     ops = native_library.library_operators()
     S, kp, visible, R0, s0, t0 = _camera_problem(4, 1, 6, 1, torch.float64)
@@ -297,6 +310,7 @@ def test_native_camera_fit_operator_checks_its_arguments():
         ops.fit_cameras(*args, -1, 1e-6)
 
 
+@needs_library
 def test_the_setting_reaches_the_mixtures_camera_fits(monkeypatch):
     """The mixture's keypoint fits use the compiled fit with ``native=True`` (the pipeline passes ``sfm_native``)
     and never without."""
@@ -312,3 +326,21 @@ def test_the_setting_reaches_the_mixtures_camera_fits(monkeypatch):
         calls.clear()
         mixture.keypoint_fit(S, both, torch.zeros(6, 4, 4), 3, starts=(R0, s0, t0), native=native)
         assert bool(calls) == native
+
+
+def test_without_the_library_both_fits_run_in_torch(monkeypatch):
+    """No compiler (``library_operators`` None): ``native=True`` gives the torch paths' results bit for bit."""
+    from carvi_torch.viewpoints import camera_fit as cf
+
+    W, vis = _problem(30, 10, 5)
+    with torch.inference_mode():
+        a = sfm._factorize(W, vis, rank=3, generator=torch.Generator().manual_seed(3), native=False, **KW)
+    S, kp, visible, R0, s0, t0 = _camera_problem(10, 2, 8, 4, torch.float32)
+    lam = torch.zeros(10)
+    c = cf._optimize(R0, s0, t0, S, kp, visible, None, lam, 100, 1e-6)
+    monkeypatch.setattr(native_library, "library_operators", lambda: None)
+    with torch.inference_mode():
+        b = sfm._factorize(W, vis, rank=3, generator=torch.Generator().manual_seed(3), native=True, **KW)
+    d = cf._optimize(R0, s0, t0, S, kp, visible, None, lam, 100, 1e-6, native=True)
+    assert all(torch.equal(x, y) for x, y in zip(a[:3], b[:3])) and a[3:] == b[3:]
+    assert all(torch.equal(x, y) if isinstance(x, torch.Tensor) else x == y for x, y in zip(c, d))

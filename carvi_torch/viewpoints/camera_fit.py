@@ -53,6 +53,10 @@ the rows the optimiser holds still has an active camera, the finished rows are w
 and dropped (their data with them), so the batch shrinks geometrically while a few slow
 cameras run on. With no silhouette term every start is its own row. Each camera's arithmetic
 is unchanged, so the results are those of stepping the whole batch to the end.
+
+Compiled fit. Without a silhouette term, on the CPU, ``native=True`` (the mixture's EM, the pipeline's
+``sfm_native``) runs the same steps per camera in a C++ kernel (``carvi_torch/kernels/camera_steps.h``),
+equal to this code to rounding (:func:`_native_optimize`).
 """
 from __future__ import annotations
 
