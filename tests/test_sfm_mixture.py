@@ -634,8 +634,8 @@ def test_cad_sofas_fit_several_shapes_and_better_viewpoints(shared_data, tmp_pat
     keypoints fit it best, the alternation's 30 rounds stop at 10.4). The default mixture splits them into
     groups of at least ``sfm_group_min`` whose frames agree and more than halves that error; the ground truth
     only scores. Where it lands depends on the float rounding of the machine: the hard EM's four-group starts
-    end in different local optima, 5.7 degrees with the torch factorisation on an AVX-512 processor, 8.4-8.5
-    with it on AVX2 (``ATEN_CPU_CAPABILITY=avx2``) and with the compiled one (``sfm_native``, the default), which
+    end in different local optima, 5.7 degrees with the torch operators on an AVX-512 processor, 8.4 with them
+    on AVX2 (``ATEN_CPU_CAPABILITY=avx2``) and 8.2 with the compiled kernels (``sfm_native``, the default), which
     misses the 8-degree bound the 8-view benchmark holds sofa to; this test bounds what every float path
     reaches."""
     from carvi_torch.config import Config
