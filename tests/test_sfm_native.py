@@ -143,6 +143,51 @@ def test_native_declines_a_rank_deficient_block_and_the_torch_path_runs_that_ste
         torch.testing.assert_close(y, x, rtol=0, atol=1e-9)
 
 
+def _centroid_filled(W, vis):
+    cnt = vis.sum(-1).clamp(min=1.0)
+    return torch.where(vis[:, None] > 0, W, ((W * vis[:, None]).sum(-1) / cnt[:, None])[..., None]).contiguous()
+
+
+@needs_library
+def test_a_declined_step_hands_back_the_state_before_it():
+    """The kernel's power steps update the shape in place before a block is declined: the declined call hands
+    back the shape, the blocks and the filled matrix it was given (the torch path runs that step from them),
+    also when it resumes (``first_it`` > 1, the last step's blocks given)."""
+    ops = native_library.library_operators()
+    W, vis = _problem(20, 8, 2)
+    vis[4] = 0.0
+    vis[4, :3] = 1.0
+    W[4, 1] = 0.5 * W[4, 0] + 3.0
+    Wf = _centroid_filled(W, vis)
+    S = torch.randn(3, 8, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    M = torch.randn(20, 2, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    for have_prev, first_it in ((False, 1), (True, 5)):
+        M_out, _t, S_out, Wf_out, hist, steps, status = ops.sfm_factorize(
+            W, vis, Wf, S, M, have_prev, first_it, 1.0, 200, 10, 1e-7, 1e-6, 1.0)
+        assert (steps, status) == (0, 2) and hist.shape == (200 - first_it + 1,)
+        assert torch.equal(S_out, S) and torch.equal(M_out, M) and torch.equal(Wf_out, Wf)
+
+
+@needs_library
+def test_a_resumed_kernel_call_tests_convergence_against_the_last_rms_given():
+    """Resuming at step 2 (after a step run elsewhere), the kernel compares step 2's RMS with ``prev_rms``: equal
+    to it, the loop has settled at step 2; the first step's RMS, it goes on."""
+    ops = native_library.library_operators()
+    W, vis = _problem(30, 10, 0)
+    Wf = _centroid_filled(W, vis)
+    S = torch.randn(3, 10, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    M0 = torch.zeros(30, 2, 3, dtype=torch.float64)
+    args = (10, 1e-7, 1e-6, 1.0)
+    _, _, _, _, h, steps, status = ops.sfm_factorize(W, vis, Wf, S, M0, False, 1, float("nan"), 2, *args)
+    assert (steps, status) == (2, 0) and abs(h[0] - h[1]) > 1e-7 * h[0]  # two steps, not settled
+    M1, _t, S1, Wf1, _, steps, status = ops.sfm_factorize(W, vis, Wf, S, M0, False, 1, float("nan"), 1, *args)
+    assert (steps, status) == (1, 0)
+    for prev, settled in ((float(h[1]), True), (float(h[0]), False)):
+        _, _, _, _, h2, steps, status = ops.sfm_factorize(W, vis, Wf1, S1, M1, True, 2, prev, 3, *args)
+        assert h2[0] == h[1]  # the same step 2
+        assert (steps, status) == ((1, 1) if settled else (2, 0))
+
+
 @needs_library
 def test_native_does_not_apply_to_float32_or_other_devices():
     W, vis = _problem(10, 6, 0)
