@@ -18,6 +18,7 @@
 // value makes factorize_loop return 0; the caller then runs the torch path from the same inputs.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <vector>
