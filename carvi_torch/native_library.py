@@ -1,9 +1,10 @@
 """The package's compiled C++ library: its build, its cache and its loading.
 
 One shared library holds the package's C++ kernels (``carvi_torch/kernels/``): the fused carving
-(``carve_core.h``, used by :mod:`carvi_torch.carve.native`) and the rigid SfM's factorisation loop
-(``sfm_steps.h``, used by :mod:`carvi_torch.viewpoints.sfm`), registered as ``torch.library`` operators
-by ``carve_native.cpp``. This module builds, caches and loads it; the stages that use an operator decide
+(``carve_core.h``, used by :mod:`carvi_torch.carve.native`), the rigid SfM's factorisation loop
+(``sfm_steps.h``, used by :mod:`carvi_torch.viewpoints.sfm`) and the keypoint-only camera fit
+(``camera_steps.h``, used by :mod:`carvi_torch.viewpoints.camera_fit`), registered as ``torch.library``
+operators by ``carve_native.cpp``. This module builds, caches and loads it; the stages that use an operator decide
 whether they trust it (the carving runs a self-test first, :func:`carvi_torch.carve.native.available`).
 
 Building. On first use the C++ compiler of the machine (``$CXX``, else ``c++``) builds a plain shared
