@@ -53,7 +53,7 @@ try:
 except ImportError:  # Windows: no advisory locks; builds stay atomic (os.replace), concurrent ones may repeat work
     fcntl = None
 
-__all__ = ["library_path", "cache_entry_problem", "load", "library_operators"]
+__all__ = ["library_path", "cache_entry_problem", "load", "library_operators", "once"]
 
 _KERNELS = Path(__file__).resolve().parent / "kernels"
 _SOURCE = _KERNELS / "carve_native.cpp"
@@ -252,34 +252,45 @@ def _open_library():
         return _ops(namespace), path, why
 
 
-_lock = threading.Lock()
+_lock = threading.RLock()
 _state: dict = {}
 
 
 def _after_fork_in_child() -> None:
     """A child forked while another thread held the lock (during a build, say) would wait on it forever."""
     global _lock
-    _lock = threading.Lock()
+    _lock = threading.RLock()
 
 
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
+def once(state: dict, fill) -> dict:
+    """``state``, filled by ``fill(state)`` the first time (under one process-wide re-entrant lock, fresh in a
+    forked child), so that a library is built, loaded and checked once per process, whichever thread asks
+    first. :func:`load` and the carving's self-test (:mod:`carvi_torch.carve.native`) share it."""
+    with _lock:
+        if not state:
+            fill(state)
+        return state
+
+
+def _fill(state: dict) -> None:
+    try:
+        ops, path, rebuilt = _open_library()
+        if ops is None:
+            raise RuntimeError(f"{path.name} loaded but registered no operators")
+        state.update(ops=ops, path=path, rebuilt=rebuilt, reason=None)
+    except Exception as exc:  # noqa: BLE001 -- whatever fails, the stages run their torch code
+        state.update(ops=None, path=None, rebuilt=None, reason=f"{type(exc).__name__}: {exc}")
+
+
 def load() -> dict:
     """Build (when needed) and load the library once per process: ``ops`` (``torch.ops.<namespace>``, or
     ``None``), ``path``, ``rebuilt`` (why this process built it; ``None`` when it was loaded as found) and
     ``reason`` (why ``ops`` is ``None``)."""
-    with _lock:
-        if not _state:
-            try:
-                ops, path, rebuilt = _open_library()
-                if ops is None:
-                    raise RuntimeError(f"{path.name} loaded but registered no operators")
-                _state.update(ops=ops, path=path, rebuilt=rebuilt, reason=None)
-            except Exception as exc:  # noqa: BLE001 -- whatever fails, the stages run their torch code
-                _state.update(ops=None, path=None, rebuilt=None, reason=f"{type(exc).__name__}: {exc}")
-        return _state
+    return once(_state, _fill)
 
 
 def library_operators():

@@ -40,8 +40,6 @@ Example:
 """
 from __future__ import annotations
 
-import os
-import threading
 from types import SimpleNamespace
 
 import torch
@@ -60,38 +58,28 @@ MAX_RESOLUTION = 2048
 #: Most view slots a proposal may use (``CARVI_MAX_VIEWS`` in the C++ source).
 MAX_VIEWS = 64
 
-_lock = threading.Lock()
 _state: dict = {}
 
 
-def _after_fork_in_child() -> None:
-    """A child forked while another thread held the lock (during a build, say) would wait on it forever."""
-    global _lock
-    _lock = threading.Lock()
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_after_fork_in_child)
+def _checked(state: dict) -> None:
+    """The library's operators and the variant whose samples pass the self-test, into ``state``."""
+    lib = native_library.load()
+    try:
+        ops, path, rebuilt = lib["ops"], lib["path"], lib["rebuilt"]
+        if ops is None:
+            raise RuntimeError(lib["reason"])
+        name = _self_test(ops)
+        if name is None:
+            raise RuntimeError("the kernel's bilinear samples differ from torch's grid_sample on this machine "
+                               f"(CPU capability {torch.backends.cpu.get_cpu_capability()}), so its labels "
+                               "could differ from the torch carving's")
+        state.update(ops=ops, variant=name, reason=None, path=path, rebuilt=rebuilt)
+    except Exception as exc:  # noqa: BLE001 -- whatever fails, the torch carving runs instead
+        state.update(ops=None, variant=None, reason=f"{type(exc).__name__}: {exc}", path=None, rebuilt=None)
 
 
 def _load() -> dict:
-    with _lock:
-        if _state:
-            return _state
-        lib = native_library.load()
-        try:
-            ops, path, rebuilt = lib["ops"], lib["path"], lib["rebuilt"]
-            if ops is None:
-                raise RuntimeError(lib["reason"])
-            name = _self_test(ops)
-            if name is None:
-                raise RuntimeError("the kernel's bilinear samples differ from torch's grid_sample on this machine "
-                                   f"(CPU capability {torch.backends.cpu.get_cpu_capability()}), so its labels "
-                                   "could differ from the torch carving's")
-            _state.update(ops=ops, variant=name, reason=None, path=path, rebuilt=rebuilt)
-        except Exception as exc:  # noqa: BLE001 -- whatever fails, the torch carving runs instead
-            _state.update(ops=None, variant=None, reason=f"{type(exc).__name__}: {exc}", path=None, rebuilt=None)
-        return _state
+    return native_library.once(_state, _checked)
 
 
 def operators():
