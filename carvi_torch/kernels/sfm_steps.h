@@ -84,6 +84,17 @@ inline bool scaled_stiefel_block(double *M)
     return true;
 }
 
+// A + (reg tr(A) / r + 1e-300) I for an r x r matrix A, in place: the power steps' relative Tikhonov weight.
+inline void add_relative_ridge(double *A, int r, double reg)
+{
+    double trace = 0.0;
+    for (int i = 0; i < r; ++i)
+        trace += A[i * r + i];
+    const double lam = reg * trace / r + 1e-300;
+    for (int i = 0; i < r; ++i)
+        A[i * r + i] += lam;
+}
+
 // `inner` power steps. Wc: (N, 2, K) row-major; S: (r, K), updated in place; M: (N, 2, r), the last
 // step's blocks. False (S and M then unspecified) on a rank < 2 block, a singular solve or a
 // non-finite value.
@@ -101,12 +112,7 @@ inline bool power_steps(const double *Wc, int64_t N, int64_t K, double *S, int r
                     v += S[i * K + k] * S[j * K + k];
                 G[i * r + j] = v;
             }
-        double trace = 0.0;
-        for (int i = 0; i < r; ++i)
-            trace += G[i * r + i];
-        const double lam = reg * trace / r + 1e-300;
-        for (int i = 0; i < r; ++i)
-            G[i * r + i] += lam;
+        add_relative_ridge(G, r, reg);
         std::vector<double> PT(S, S + r * K); // P^T (r x K)
         if (!solve_small(G, r, PT.data(), K))
             return false;
@@ -133,12 +139,7 @@ inline bool power_steps(const double *Wc, int64_t N, int64_t K, double *S, int r
                 for (int64_t k = 0; k < K; ++k)
                     C[i * K + k] += mn[i] * w[k] + mn[r + i] * w[K + k];
         }
-        double traceB = 0.0;
-        for (int i = 0; i < r; ++i)
-            traceB += B[i * r + i];
-        const double lamS = reg * traceB / r + 1e-300;
-        for (int i = 0; i < r; ++i)
-            B[i * r + i] += lamS;
+        add_relative_ridge(B, r, reg);
         if (!solve_small(B, r, C.data(), K))
             return false;
         for (int64_t i = 0; i < r * K; ++i) {

@@ -494,6 +494,9 @@ def _fill_loop(W, vis, Wf, S, eye, project, *, max_outer, inner, tol, reg, scale
     st = _FillState(Wf, S)
     ops = _native_ops(W, vis, Wf, S) if native else None
     W, vis = W.contiguous(), vis.contiguous()
+    # loop invariants of the torch steps, computed once: counts, known entries, entries, row indices
+    fixed = (vis.sum(-1).clamp(min=1.0)[:, None], vis[:, None, :] > 0, (2 * vis.sum()).clamp(min=1),
+             torch.arange(W.shape[0], device=W.device))
     converged = False
     while len(st.history) < max_outer and not converged:
         if ops is not None:
@@ -501,20 +504,19 @@ def _fill_loop(W, vis, Wf, S, eye, project, *, max_outer, inner, tol, reg, scale
                                       scale=scale)
             if converged or len(st.history) >= max_outer:
                 break
-        _fill_step(W, vis, st, eye, project, inner, reg)
+        _fill_step(W, vis, st, eye, project, inner, reg, fixed)
         h = st.history
         converged = h[-1] <= 1e-5 * scale or (len(h) >= 2 and abs(h[-2] - h[-1]) <= tol * h[-2])
     tv, _ = _visible_translation(st.M, st.S, W, vis)
     return st.M, tv, st.S, st.history, len(st.history), converged
 
 
-def _fill_step(W, vis, st: _FillState, eye, project, inner: int, reg: float) -> None:
+def _fill_step(W, vis, st: _FillState, eye, project, inner: int, reg: float, fixed) -> None:
     """One outer step in torch operators, updating ``st``: power steps, every instance's best candidate block
     (the power step's, the projected resection, for the rigid model the power step's reflected through the
-    shape's plane, the last step's), the refill."""
-    n, rank = W.shape[0], st.S.shape[0]
-    idx = torch.arange(n, device=W.device)
-    counts, known, entries = vis.sum(-1).clamp(min=1.0)[:, None], vis[:, None, :] > 0, (2 * vis.sum()).clamp(min=1)
+    shape's plane, the last step's), the refill. ``fixed``: the loop's invariants (:func:`_fill_loop`)."""
+    rank = st.S.shape[0]
+    counts, known, entries, idx = fixed
     Wc = st.Wf - st.Wf.mean(-1)[..., None]
     S, Mi = _power_steps(Wc, st.S, eye, project, inner, reg, rank)
     cands = [Mi, project(_resect(S, W, vis, Mi, reg))]
