@@ -358,6 +358,55 @@ def test_the_automatic_decision_keeps_one_shape_for_one_proportion():
     assert fitted.misfit < 0.01 and "fits" in fitted.note and fitted.summary()["misfit"] == fitted.misfit
 
 
+def test_split_labels_splits_the_costliest_group_with_room_for_two():
+    X = torch.tensor([[0.0], [0.1], [0.2], [5.0], [5.1], [9.0], [9.1], [9.2], [20.0], [20.1]])
+    labels = torch.tensor([0, 0, 0, 1, 1, 1, 1, 1, 2, 2])
+    cost = torch.zeros(10, 3)
+    cost[:3, 0] = 1.0
+    cost[3:8, 1] = 2.0
+    cost[8:, 2] = 50.0  # the costliest group, but too small to split into two of 2
+    out = mix.split_labels(labels, cost, X, 2, seed=0)
+    # group 1 (sum 10) splits by its features: {5.0, 5.1} (the smaller part) becomes group 3
+    assert out.tolist() == [0, 0, 0, 3, 3, 1, 1, 1, 2, 2]
+    assert torch.equal(out, mix.split_labels(labels, cost, X, 2, seed=0))  # deterministic
+    assert mix.split_labels(labels, cost, X, 3, seed=0) is None  # no group has 6 objects
+
+
+def test_split_labels_of_equal_parts_moves_the_part_without_the_first_object():
+    X = torch.tensor([[9.0], [9.1], [0.0], [0.1]])
+    one = torch.zeros(4, dtype=torch.long)
+    assert mix.split_labels(one, torch.ones(4, 1), X, 2, seed=0).tolist() == [0, 0, 1, 1]
+    assert mix.split_labels(one, torch.ones(4, 1), X.flip(0), 2, seed=0).tolist() == [0, 0, 1, 1]
+
+
+def test_the_next_k_also_starts_from_the_kept_groups_split_in_two(two_shapes, monkeypatch):
+    """Three groups tried after the two true ones: besides the k-means and quantile starts, the EM starts
+    from the kept two groups with one of them split in two (the kept split's costs decide which)."""
+    coll, both, dist, R, truth, fitted = two_shapes
+    starts, ends, em = [], [], mix.hard_em
+
+    def recorded(both_, n, dist_, sfm_fn, labels, k, *args, **kwargs):
+        starts.append((k, labels.clone()))
+        ends.append(em(both_, n, dist_, sfm_fn, labels, k, *args, **kwargs))
+        return ends[-1]
+
+    monkeypatch.setattr(mix, "hard_em", recorded)
+    three = mix.fit_mixture_of_shapes(both, dist, _shared_sfm, max_groups=3, min_size=6, single=fitted.single,
+                                      rounds=1, threads=1)
+    inits = [(c["k"], c["init"]) for c in three.candidates]
+    assert inits == [(2, "lifted"), (2, "residual"), (3, "lifted"), (3, "residual"), (3, "split")]
+    assert [k for k, _ in starts] == [2, 2, 3, 3, 3]
+    kept = next(i for i, c in enumerate(three.candidates) if c["kept"] and c["k"] == 2)
+    kept2, cost2 = ends[kept][0], ends[kept][2]
+    split = starts[-1][1]
+    moved = split == 2
+    assert 6 <= int(moved.sum()) <= 12 and len(set(kept2[moved].tolist())) == 1  # one kept group split in two
+    own = cost2.gather(1, kept2[:, None])[:, 0]
+    sse = [float(own[kept2 == g].sum()) for g in range(2)]
+    assert int(kept2[moved][0]) == max(range(2), key=sse.__getitem__)  # the costlier one
+    assert torch.equal(split[~moved], kept2[~moved])
+
+
 def test_fit_finds_the_two_shapes_and_their_cameras(two_shapes):
     coll, both, dist, R, truth, fitted = two_shapes
     n = len(coll)
@@ -633,11 +682,11 @@ def test_cad_sofas_fit_several_shapes_and_better_viewpoints(shared_data, tmp_pat
     One rigid shape cannot fit them: its cameras are 19.7 deg off (median; the joint polish settles where the
     keypoints fit it best, the alternation's 30 rounds stop at 10.4). The default mixture splits them into
     groups of at least ``sfm_group_min`` whose frames agree and more than halves that error; the ground truth
-    only scores. Where it lands depends on the float rounding of the machine: the hard EM's four-group starts
-    end in different local optima, 5.7 degrees with the torch operators on an AVX-512 processor, 8.4 with them
-    on AVX2 (``ATEN_CPU_CAPABILITY=avx2``) and 8.2 with the compiled kernels (``sfm_native``, the default), which
-    misses the 8-degree bound the 8-view benchmark holds sofa to; this test bounds what every float path
-    reaches."""
+    only scores. The hard EM's starts end in local optima that depend on the float rounding of the machine;
+    the start from the kept three groups with one split in two (``split``) finds four groups near 5 degrees
+    on every float path measured: 4.75 with the compiled kernels (``sfm_native``, the default), 5.67 with the
+    torch operators on an AVX-512 processor, 4.80 with them on AVX2 (``ATEN_CPU_CAPABILITY=avx2``); without
+    it the kernels' EM ended at 8.2. The bound is the one the 8-view benchmark holds sofa to."""
     from carvi_torch.config import Config
 
     coll, R = _cad_class(shared_data, tmp_path, "sofa", 6)
@@ -652,7 +701,7 @@ def test_cad_sofas_fit_several_shapes_and_better_viewpoints(shared_data, tmp_pat
             assert info["groups"] >= 3 and min(info["sizes"]) >= default.sfm_group_min
             assert info["frame_agreement_deg"] <= default.sfm_group_agreement_deg
     assert errors[1] > 9.0  # one shape: the target is missed
-    assert errors[default.sfm_groups] < 9.0 and errors[default.sfm_groups] < 0.5 * errors[1], errors
+    assert errors[default.sfm_groups] < 8.0 and errors[default.sfm_groups] < 0.5 * errors[1], errors
     # one shape: the joint polish settles at a lower keypoint residual than the alternation's 30 rounds, with
     # cameras farther from the truth (they absorb the models' differences in proportions)
     both, rms, err = coll.with_mirrors(), {}, {}

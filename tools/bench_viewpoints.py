@@ -20,7 +20,7 @@ settings) on the same class. The class is one rigid shape, so the fit tries two
 groups (two initialisations), finds no residual cut worth a split and stops: a
 lower bound on what the option costs on a class that does split; ``--shapes 3`` makes one
 (every third instance stretched longer and lower, every third shorter and taller), so the fit
-also tries three groups. The fit runs each ``k``'s two initialisations on ``--group-threads``
+also tries three groups (three initialisations). The fit runs each ``k``'s initialisations on ``--group-threads``
 Python threads (the pipeline's ``sfm_group_threads``); ``--one-thread-too`` also times it on one
 and checks that the result is the same (below ``sfm_mixture.THREADS_MIN_OBJECTS`` objects the fit
 stays on one thread; ``--threads-min-objects 0`` lifts that, to measure what threads do to a

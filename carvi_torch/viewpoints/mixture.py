@@ -12,10 +12,15 @@ gate) no split is tried and the class keeps one shape at no further cost.
 
 The fit, for ``k = 2, 3, ...`` while a split is accepted:
 
-1. Two initial labellings: ``lifted`` = k-means (``scipy.cluster.vq.kmeans2``, k-means++, best of
+1. Initial labellings: ``lifted`` = k-means (``scipy.cluster.vq.kmeans2``, k-means++, best of
    10 restarts) of every object's one-shape reprojection residuals lifted into the object frame
    (``R[:2]^T r / s``; the object and its mirrored copy side by side, unit norm);
-   ``residual`` = quantiles of every object's one-shape keypoint residual.
+   ``residual`` = quantiles of every object's one-shape keypoint residual; from ``k = 3``,
+   ``split`` = the kept ``k - 1`` groups with the one of the largest residual that has room for two
+   groups split in two by k-means of its objects' lifted residuals (:func:`split_labels`). The EM
+   ends in another local optimum from each; ``split`` carries the groups already found forward
+   (on the 15-render CAD sofas the four-group residual 6,237 px^2 -> 3,070, 8.2 -> 4.4 degrees, and
+   the float paths that took the other starts to different optima agree within 1.3 degrees).
 2. Alternation (at most ``rounds``): rigid SfM of every group (its objects with their mirrored
    copies); a keypoint-only camera of every object under every group's shape
    (:func:`carvi_torch.viewpoints.camera_fit.estimate_camera`); every object moves to the group with the lowest
@@ -33,13 +38,13 @@ The fit, for ``k = 2, 3, ...`` while a split is accepted:
    its last shape (``init_shape``). On the 2,000-instance benchmark class this cut the fit from
    459 s to 25 s; on the CAD renders it keeps as many groups as the search did in 11 of 12
    classes (boat: three instead of two; docs/viewpoints.md).
-   The two initialisations of a ``k`` are independent: on a class of at least
+   The initialisations of a ``k`` are independent: on a class of at least
    :data:`THREADS_MIN_OBJECTS` objects they run side by side on ``threads`` Python threads (same
    result as one after the other; 1.43x faster on 2 cores for a 2,000-instance class that splits
    in three, 1.47x for one that does not).
 3. One class frame: every group's shape is rotated onto group 0's (a proper rotation on their
    shared keypoints, centred and scaled, :func:`rotation_onto`), and its cameras with it.
-4. Acceptance: among the two candidates whose groups' frames agree within ``agreement_deg``
+4. Acceptance: among the candidates whose groups' frames agree within ``agreement_deg``
    (:func:`frame_agreement`: the median, over the objects with an SfM camera, of the angle
    between an object's rotations under two groups' rotated shapes), the one with the lower
    residual is taken when it cuts the residual of ``k - 1`` groups by more than ``gain``.
@@ -94,7 +99,7 @@ from .choice import box_diagonal, hull_agreement
 from .sfm import SfMResult, resect_cameras
 
 __all__ = ["MixtureResult", "fit_mixture_of_shapes", "shape_thickness", "PLANAR_THICKNESS", "group_rows",
-           "keypoint_fit", "transfer_cameras", "lifted_residuals", "kmeans_labels", "top_up",
+           "keypoint_fit", "transfer_cameras", "lifted_residuals", "kmeans_labels", "split_labels", "top_up",
            "hard_em", "rotation_onto", "group_rotations", "frame_agreement", "EM_SETTLED",
            "THREADS_MIN_OBJECTS", "misfit", "hull_agreements", "COLD_GROUP_SFM"]
 
@@ -105,7 +110,7 @@ __all__ = ["MixtureResult", "fit_mixture_of_shapes", "shape_thickness", "PLANAR_
 #: rounds before those 8, 37, 15 and 106; each candidate's ``"moved"``).
 EM_SETTLED = 0.0025
 
-#: The fit runs a ``k``'s two initialisations on two threads only for classes of at least this many
+#: The fit runs a ``k``'s initialisations on two threads only for classes of at least this many
 #: objects. The solvers are chains of small tensor ops; torch releases the interpreter lock inside
 #: each, but on a small class the ops are so short that the two threads mostly wait for the lock
 #: and for each other's wake-ups. Measured (2 cores, 1 intra-op thread each, three proportions,
@@ -233,6 +238,40 @@ def kmeans_labels(X: torch.Tensor, k: int, seed: int, restarts: int = 10) -> tor
         if cost < best_cost:
             best, best_cost = labels, cost
     return torch.as_tensor(best, dtype=torch.long, device=X.device)
+
+
+def split_labels(labels: torch.Tensor, cost: torch.Tensor, X: torch.Tensor, min_size: int,
+                 seed: int) -> torch.Tensor | None:
+    """``(n,)`` labels of ``k + 1`` groups: ``k`` groups with the one of the largest summed cost among those
+    of at least ``2 * min_size`` objects split in two by :func:`kmeans_labels` of its rows of ``X``; the
+    part with fewer objects takes label ``k`` (of equal parts, the one without the group's first object).
+
+    Args:
+        labels: ``(n,)`` long groups ``0 .. k - 1``; cost: ``(n, k)`` every object's cost in every group;
+        X: ``(n, d)`` features to split by (the lifted residuals).
+
+    Returns:
+        The new labels, or None when no group has ``2 * min_size`` objects.
+
+    Example:
+        >>> X = torch.tensor([[0.], [0.1], [5.], [5.1], [9.], [9.1]])
+        >>> cost = torch.tensor([[1., 9.], [1., 9.], [9., 4.], [9., 4.], [9., 4.], [9., 4.]])
+        >>> split_labels(torch.tensor([0, 0, 1, 1, 1, 1]), cost, X, 2, 0).tolist()
+        [0, 0, 1, 1, 2, 2]
+    """
+    k = cost.shape[1]
+    own = cost.gather(1, labels[:, None])[:, 0].double()
+    sse = torch.zeros(k, dtype=torch.float64, device=own.device).index_add_(0, labels, own)
+    sse[torch.bincount(labels, minlength=k) < 2 * min_size] = float("-inf")
+    if not bool(torch.isfinite(sse).any()):
+        return None
+    members = (labels == int(sse.argmax())).nonzero()[:, 0]
+    part = kmeans_labels(X[members], 2, seed)
+    ones = int(part.sum())
+    moving = 1 - int(part[0]) if 2 * ones == len(part) else int(2 * ones < len(part))
+    out = labels.clone()
+    out[members[part == moving]] = k
+    return out
 
 
 def top_up(labels: torch.Tensor, cost: torch.Tensor, k: int, min_size: int) -> torch.Tensor:
@@ -532,6 +571,8 @@ class MixtureResult:
         single: the one-shape SfM of the whole class (always run first).
         note: why no split was tried (``None`` when one was).
         misfit: :func:`misfit` of the one-shape SfM (``None`` when not measured).
+        cost: ``(n, k)`` every object's squared keypoint residual under every group's shape, from the
+            EM's last round (``None`` for one shape); the next ``k``'s ``split`` start reads it.
     """
 
     k: int
@@ -543,6 +584,7 @@ class MixtureResult:
     candidates: list = field(default_factory=list)
     note: str | None = None
     misfit: float | None = None
+    cost: torch.Tensor | None = None
 
     def shape(self, g: int) -> torch.Tensor:
         """``(K, 3)`` mean shape of group ``g`` in the class frame (one group: the SfM shape itself)."""
@@ -640,7 +682,7 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
         log: called with a line per candidate.
         warm_start: the EM's keypoint fits start from the one-shape fit and then from the last
             round (:func:`hard_em`'s ``warm``); False: every fit searches the sphere (slower).
-        threads: Python threads that run a ``k``'s two initialisations side by side (1: one after
+        threads: Python threads that run a ``k``'s initialisations side by side (1: one after
             the other), on classes of at least ``threads_min_objects`` objects (smaller ones
             run on one). The result is the same either way (each EM is the same sequence of tensor
             ops, each on one intra-op thread); on the CPU the two share the cores, on a GPU the
@@ -693,6 +735,9 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
             break
         inits = {"lifted": kmeans_labels(lifted, k, seed),
                  "residual": ((cost1 / nvis_obj).argsort(stable=True).argsort(stable=True) * k // n).clamp(max=k - 1)}
+        split = None if best.cost is None else split_labels(best.labels, best.cost, lifted, min_size, seed)
+        if split is not None:
+            inits["split"] = split
         def candidate(name, lab0, k=k, sse_prev=sse_prev):
             """``(row, MixtureResult or None, log line)`` of one initialisation."""
             lab0 = top_up(lab0, torch.zeros(n, k, device=lab0.device), k, min_size)
@@ -719,7 +764,7 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
                 return row, None, f"{k} shapes from '{name}': sizes {row['sizes']}, {row['problem']}"
             row["agreement_deg"] = frame_agreement(rotations, Q, valid=res1.valid[:n])
             row["eligible"] = bool(row["agreement_deg"] <= agreement_deg and math.isfinite(sse))
-            out = MixtureResult(k, lab, groups, Q, row["agreement_deg"], res1, misfit=best.misfit)
+            out = MixtureResult(k, lab, groups, Q, row["agreement_deg"], res1, misfit=best.misfit, cost=cost)
             line = (f"{k} shapes from '{name}': sizes {row['sizes']}, residual cut {row['cut']:.0%}, "
                     f"frames agree within {row['agreement_deg']:.0f} deg")
             if hull1 is not None:
