@@ -135,11 +135,11 @@ class ViewpointConfig:
     shape at once, the cameras eliminated by the Schur complement: ``carvi_torch.viewpoints.bundle``) or
     ``alternate`` (every camera's fit to the shape, then the shape's exact solve, in turn). Shape groups' SfM
     runs take this too. ``joint`` settles where the alternation stops at its caps (boat within 12 degrees
-    at every seed of the 8-view CAD renders; summed medians 233.8 -> 202.8 with this config's defaults
-    against the alternation's 30 rounds and the mixture's three larger groups) in 1.03x the many-class run's
-    time. With one shape for a class whose models differ in proportions its settled cameras absorb the
-    difference (CAD sofas at 30 views 17.3 degrees against 9.5); docs/viewpoints.md, *The joint bundle
-    adjustment*."""
+    at every seed of the 8-view CAD renders; summed medians 233.8 -> 202.8 with four groups of at least 10,
+    196.2 with this config's defaults, against the alternation's 30 rounds and the mixture's three larger
+    groups) in 1.03x the many-class run's time. With one shape for a class whose models differ in
+    proportions its settled cameras absorb the difference (CAD sofas at 30 views 17.3 degrees against 9.5);
+    docs/viewpoints.md, *The joint bundle adjustment*."""
     sfm_template_start: bool = True
     """Also start the class's SfM from its template of 3-D keypoints (the category's ``keypoints_3d``, else the
     shipped PASCAL3D+ one of its name; ``viewpoints.frame``) and keep that solution when it places as many
@@ -151,8 +151,9 @@ class ViewpointConfig:
     misfits it (``sfm_group_misfit``) and the split passes ``sfm_group_gain``, ``sfm_group_agreement_deg``
     and ``sfm_group_hull_gain``; every other class keeps one shape, bit for bit. 1 = one mean shape per
     class, as in the paper. Up to four groups of at least ``sfm_group_min`` (10) objects put the 8-view CAD
-    sofas at 6.0 / 6.0 / 4.3 degrees over three render seeds (``sfm_groups=3 sfm_group_min=15
-    sfm_group_gain=0.3`` and 30 solves: 8.5 / 9.4 / 10.1; docs/viewpoints.md, *The joint bundle adjustment*)."""
+    sofas at 5.6 / 3.7 / 4.2 degrees over three render seeds (``sfm_groups=3 sfm_group_min=15
+    sfm_group_gain=0.3``, 30 solves and the EM's two starts: 8.5 / 9.4 / 10.1; docs/viewpoints.md, *Small
+    classes*)."""
     sfm_group_misfit: float = 0.025
     """The mixture is only fitted when the one-shape SfM misfits the class: the median over the objects of
     the keypoint RMS residual over the diagonal of the mask's box is at least this (0 = always fit). A gate

@@ -17,7 +17,7 @@ against the true cameras, and writes everything to ``--out`` as JSON.
 With ``--groups 3`` it also times the fit of a mixture of rigid shapes
 (:func:`carvi_torch.viewpoints.mixture.fit_mixture_of_shapes`, the pipeline's ``sfm_groups``
 settings) on the same class. The class is one rigid shape, so the fit tries two
-groups (two initialisations), finds no residual cut worth a split and stops: a
+groups (two initialisations, as every k = 2), finds no residual cut worth a split and stops: a
 lower bound on what the option costs on a class that does split; ``--shapes 3`` makes one
 (every third instance stretched longer and lower, every third shorter and taller), so the fit
 also tries three groups (three initialisations). The fit runs each ``k``'s initialisations on ``--group-threads``

@@ -19,8 +19,8 @@ The fit, for ``k = 2, 3, ...`` while a split is accepted:
    ``split`` = the kept ``k - 1`` groups with the one of the largest residual that has room for two
    groups split in two by k-means of its objects' lifted residuals (:func:`split_labels`). The EM
    ends in another local optimum from each; ``split`` carries the groups already found forward
-   (on the 15-render CAD sofas the four-group residual 6,237 px^2 -> 3,070, 8.2 -> 4.4 degrees, and
-   the float paths that took the other starts to different optima agree within 1.3 degrees).
+   (on the 15-render CAD sofas with the compiled kernels the kept four-group residual 6,237 px^2 ->
+   3,054, 8.2 -> 4.9 degrees; the three float paths measured now agree within 1.2 degrees).
 2. Alternation (at most ``rounds``): rigid SfM of every group (its objects with their mirrored
    copies); a keypoint-only camera of every object under every group's shape
    (:func:`carvi_torch.viewpoints.camera_fit.estimate_camera`); every object moves to the group with the lowest
@@ -40,8 +40,8 @@ The fit, for ``k = 2, 3, ...`` while a split is accepted:
    classes (boat: three instead of two; docs/viewpoints.md).
    The initialisations of a ``k`` are independent: on a class of at least
    :data:`THREADS_MIN_OBJECTS` objects they run side by side on ``threads`` Python threads (same
-   result as one after the other; 1.43x faster on 2 cores for a 2,000-instance class that splits
-   in three, 1.47x for one that does not).
+   result as one after the other; with two starts per ``k``, 1.43x faster on 2 cores for a
+   2,000-instance class that splits in three, 1.47x for one that does not).
 3. One class frame: every group's shape is rotated onto group 0's (a proper rotation on their
    shared keypoints, centred and scaled, :func:`rotation_onto`), and its cameras with it.
 4. Acceptance: among the candidates whose groups' frames agree within ``agreement_deg``
@@ -251,7 +251,8 @@ def split_labels(labels: torch.Tensor, cost: torch.Tensor, X: torch.Tensor, min_
         X: ``(n, d)`` features to split by (the lifted residuals).
 
     Returns:
-        The new labels, or None when no group has ``2 * min_size`` objects.
+        The new labels, or None when no group has ``2 * min_size`` objects or k-means finds one part
+        only (the group's rows of ``X`` all alike, e.g. objects without an SfM camera).
 
     Example:
         >>> X = torch.tensor([[0.], [0.1], [5.], [5.1], [9.], [9.1]])
@@ -262,12 +263,15 @@ def split_labels(labels: torch.Tensor, cost: torch.Tensor, X: torch.Tensor, min_
     k = cost.shape[1]
     own = cost.gather(1, labels[:, None])[:, 0].double()
     sse = torch.zeros(k, dtype=torch.float64, device=own.device).index_add_(0, labels, own)
-    sse[torch.bincount(labels, minlength=k) < 2 * min_size] = float("-inf")
-    if not bool(torch.isfinite(sse).any()):
+    room = torch.bincount(labels, minlength=k) >= 2 * min_size
+    if not bool(room.any()):
         return None
-    members = (labels == int(sse.argmax())).nonzero()[:, 0]
+    worst = int(torch.where(room, torch.nan_to_num(sse, nan=-1.0), float("-inf")).argmax())  # costs are >= 0
+    members = (labels == worst).nonzero()[:, 0]
     part = kmeans_labels(X[members], 2, seed)
     ones = int(part.sum())
+    if ones in (0, len(part)):
+        return None
     moving = 1 - int(part[0]) if 2 * ones == len(part) else int(2 * ones < len(part))
     out = labels.clone()
     out[members[part == moving]] = k
