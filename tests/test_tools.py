@@ -1212,3 +1212,50 @@ def test_train_example_reads_a_format_one_export_it_is_given(tmp_path, monkeypat
     assert train.main(["--export", str(tmp_path / "old"), "--epochs", "1", "--workers", "0"]) == 2
     assert built == [] and opened == [tmp_path / "old"]
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["index.json", "old"]
+
+
+def test_voc_study_paired_comparison_known_values():
+    vs = load_tool("voc_study")
+    a = np.array([1.0, 4.0, 2.0, 8.0, 5.0])
+    shifted = vs.paired_comparison(a, a + 1.5)  # every object 1.5 closer under a: every resample says -1.5
+    assert shifted["difference"] == -1.5 and shifted["interval_95"] == [-1.5, -1.5]
+    assert (shifted["a_lower"], shifted["b_lower"]) == (5, 0)
+    assert shifted["sign_test_p"] == pytest.approx(2 * 0.5 ** 5)  # two-sided, all five one way
+    same = vs.paired_comparison(a, a.copy())
+    assert same["difference"] == 0.0 and same["interval_95"] == [0.0, 0.0]
+    assert (same["a_lower"], same["b_lower"], same["sign_test_p"]) == (0, 0, 1.0)
+    assert same["median_a"] == same["median_b"] == 4.0
+
+
+def test_voc_study_paired_comparison_against_a_brute_force_sign_test_and_bootstrap():
+    from math import comb
+
+    vs = load_tool("voc_study")
+    gen = np.random.default_rng(3)
+    a = gen.random(10)
+    b = a + np.where(np.arange(10) < 7, 0.1, -0.1)  # a closer for 7 objects, b for 3
+    r = vs.paired_comparison(a, b, resamples=300, seed=5)
+    assert (r["a_lower"], r["b_lower"]) == (7, 3)
+    assert r["sign_test_p"] == pytest.approx(2 * sum(comb(10, k) for k in range(7, 11)) / 2 ** 10)  # 0.34375
+    draws = np.random.default_rng(5).integers(0, 10, (300, 10))
+    loop = [np.median(a[d]) - np.median(b[d]) for d in draws]  # one resample at a time
+    assert r["interval_95"] == pytest.approx([np.percentile(loop, 2.5), np.percentile(loop, 97.5)])
+    assert r == vs.paired_comparison(a, b, resamples=300, seed=5)  # same seed, same interval
+    with pytest.raises(ValueError, match="equal"):
+        vs.paired_comparison(a, b[:9])
+
+
+def test_voc_study_compare_set_needs_cameras_only(tmp_path: Path):
+    vs = load_tool("voc_study")
+    data = tmp_path / "data" / "pascal_voc_aeroplane"
+    (data / "keypoints").mkdir(parents=True)
+    (data / "viewpoints_dev.json").write_text("{}")
+    with pytest.raises(SystemExit, match="--compare-set needs --cameras-only"):
+        vs.main(["--data", str(tmp_path / "data"), "--work", str(tmp_path / "work"), "--compare-set", "refine=false"])
+
+
+def test_voc_study_doctests_run():
+    import doctest
+
+    result = doctest.testmod(load_tool("voc_study"), verbose=False)  # paired_comparison's example among them
+    assert result.attempted >= 2 and result.failed == 0
