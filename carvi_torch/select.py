@@ -7,7 +7,9 @@ principal direction, and compared with the class' average mask on that plane
 then the closest to the class average (:func:`rank_proposals`). The selected shape is the
 voxel-wise majority vote of the ``select.consensus`` best-ranked valid proposals
 (:func:`vote_proposals`, 5 by default); ``consensus=1`` keeps the best proposal alone, the paper's
-choice.
+choice. On the CPU the projection's boundary test and splat run in the package's compiled library
+(``carvi_torch/kernels/splat_planes.h``, the same planes bit for bit; torch operators where it does not load
+and on other devices).
 
 Plane convention. Plane ``j`` is perpendicular to axis ``e_j = axes[j]`` and spanned by
 the two other axes in cyclic order, ``(e_a, e_b) = (axes[(j+1) % 3], axes[(j+2) % 3])``,
@@ -30,6 +32,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from . import native_library
 from .cameras import ScaledOrthographic
 from .surrogates import object_share
 
@@ -292,8 +295,21 @@ def _axis_tables(U: torch.Tensor, sizes: tuple[int, int, int], ms: tuple[int, in
     return out
 
 
+def _splat_operators(device: torch.device, native: bool | None):
+    """The compiled library's operators when the splat runs there (``native``: None = on the CPU where the
+    library loads, False = never, True = always, an error where it cannot)."""
+    if native is False or (native is None and device.type != "cpu"):
+        return None
+    if device.type != "cpu":
+        raise ValueError(f"native=True needs CPU tensors, got {device}")
+    ops = native_library.library_operators()
+    if ops is None and native:
+        raise RuntimeError(f"native=True but the compiled library is not available: {native_library.load()['reason']}")
+    return ops
+
+
 def _splat(out: torch.Tensor, occupancy: torch.Tensor, U: torch.Tensor, rows: torch.Tensor, ms: tuple[int, int, int],
-           G: int, chunk_points: int) -> None:
+           G: int, chunk_points: int, ops=None) -> None:
     """Set the plane samples hit by the sub-voxel points of the boundary voxels of some grids.
 
     Args:
@@ -302,6 +318,9 @@ def _splat(out: torch.Tensor, occupancy: torch.Tensor, U: torch.Tensor, rows: to
         occupancy: ``(b, D, H, W)`` bool grids, all with the sub-sampling ``ms``.
         U: ``(b, 3, 4)`` index -> plane-sample coordinates.
         rows: ``(b,)`` long position of each grid in ``out``.
+        ops: the compiled library's operators (:func:`_splat_operators`): its ``splat_planes`` does the same
+            (``carvi_torch/kernels/splat_planes.h``, the same float32 sums and rounding, the grids in parallel);
+            None: torch operators, ``chunk_points`` sub-voxel points at a time.
     """
     dev = occupancy.device
     D, H, W = occupancy.shape[1:]
@@ -309,6 +328,9 @@ def _splat(out: torch.Tensor, occupancy: torch.Tensor, U: torch.Tensor, rows: to
     m3 = md * mh * mw
     Gp = G + 2
     Ld, Lh, Lw = _axis_tables(U, (D, H, W), ms)
+    if ops is not None:
+        ops.splat_planes(out, occupancy.contiguous(), Ld, Lh, Lw, rows.contiguous(), md, mh, mw, G)
+        return
     voxels = boundary_voxels(occupancy).nonzero()  # (M, 4) b, d, h, w
     base = rows * (3 * Gp * Gp) + Gp + 1  # + Gp + 1: the border shift of both coordinates
     per = max(1, int(chunk_points) // m3)
@@ -342,6 +364,7 @@ def project_proposals(
     supersample: int | None = None,
     chunk_points: int | None = None,
     chunk_voxels: int | None = None,
+    native: bool | None = None,
 ) -> torch.Tensor:
     """Orthographic projections of voxel proposals onto the three principal planes.
 
@@ -381,6 +404,10 @@ def project_proposals(
         chunk_voxels: voxels of the grids handled at once (the dense boundary pass); default
             ``2**20`` on the CPU (a few MB stay in its caches), ``2**27`` on other devices
             (few, large kernels).
+        native: the boundary test and the splat in the compiled library's ``splat_planes``
+            (``carvi_torch/kernels/splat_planes.h``; the same planes bit for bit, the grids in parallel on torch's
+            intra-op threads): None (default) on the CPU where the library loads, False never, True always (an
+            error where it cannot).
 
     Returns:
         ``(B, 3, G, G)`` bool on the occupancy's device.
@@ -427,11 +454,12 @@ def project_proposals(
     for b, key in enumerate(map(tuple, ms.tolist())):  # one host read per call
         groups.setdefault(key, []).append(b)
     per = max(1, int(chunk_voxels) // max(1, D * H * W))
+    ops = _splat_operators(dev, native)
     for key, members in groups.items():
         members = torch.tensor(members, device=dev)
         for c0 in range(0, len(members), per):
             rows = members[c0:c0 + per]
-            _splat(out, occupancy[rows], U[rows], rows, key, G, chunk_points)
+            _splat(out, occupancy[rows], U[rows], rows, key, G, chunk_points, ops)
     return out.view(B, 3, Gp, Gp)[:, :, 1:-1, 1:-1].contiguous()
 
 

@@ -298,8 +298,9 @@ class TestProjectProposals:
         # centres alone leave holes: the footprint sampling is what fills them
         assert sum(int((~single[0, j].numpy())[inner[j]].sum()) for j in range(3)) > 50
 
+    @pytest.mark.parametrize("native", [False, None])
     @pytest.mark.parametrize("m", [1, 2])
-    def test_vs_brute_force(self, generator, m):
+    def test_vs_brute_force(self, generator, m, native):
         B, D, H, W, G, ext = 2, 5, 6, 7, 12, 1.0
         occ = torch.rand(B, D, H, W, generator=generator) > 0.7
         cams = ScaledOrthographic(random_rotations(B, generator), torch.tensor([9.0, 12.0]),
@@ -310,7 +311,7 @@ class TestProjectProposals:
         T[:, 3, 3] = 1
         axes = random_rotations(1, generator)[0]
         centre = torch.tensor([0.05, -0.1, 0.02])
-        got = project_proposals(occ, T, cams, axes, G, ext, centre=centre, supersample=m)
+        got = project_proposals(occ, T, cams, axes, G, ext, centre=centre, supersample=m, native=native)
         expected = np.zeros((B, 3, G, G), bool)
         ax = axes.double().numpy()
         o = (np.arange(m) + 0.5) / m - 0.5
@@ -383,6 +384,86 @@ class TestProjectProposals:
             project_proposals(occ, T, cams, axes, 8)
         with pytest.raises(ValueError, match="supersample"):
             project_proposals(occ, T, cams, axes, 8, 1.0, supersample=0)
+
+
+def _library():
+    from carvi_torch import native_library
+
+    ops = native_library.library_operators()
+    if ops is None:
+        pytest.skip(f"the compiled library is not available here: {native_library.load()['reason']}")
+    return ops
+
+
+class TestNativeSplat:
+    """The compiled splat (``carvi_torch/kernels/splat_planes.h``) against the torch operators, bit for bit."""
+
+    @pytest.mark.parametrize("supersample", [None, 1, 2, 3])
+    def test_equals_the_torch_operators(self, generator, supersample):
+        _library()
+        B, D, H, W = 5, 9, 7, 11
+        occ = torch.rand(B, D, H, W, generator=generator) > 0.45
+        occ[1] = True  # full: only its outer layer is boundary
+        occ[2] = False  # empty
+        occ[3, :, :, -1] = True  # touching the grid's edge
+        cams = _ref_cameras(generator, B)
+        T = torch.zeros(B, 4, 4, dtype=torch.float64)
+        T[:, :3, :3] = torch.diag_embed(torch.rand(B, 3, generator=generator, dtype=torch.float64) * 3 + 0.2)
+        T[:, :3, 3] = torch.randn(B, 3, generator=generator, dtype=torch.float64) * 5
+        T[:, 3, 3] = 1
+        axes = random_rotations(1, generator)[0]
+        for ext in (1.0, 0.3):  # 0.3: many points fall off the planes (clamped to the border)
+            a = project_proposals(occ, T, cams, axes, 24, ext, supersample=supersample, native=False)
+            b = project_proposals(occ, T, cams, axes, 24, ext, supersample=supersample, native=True)
+            assert torch.equal(a, b), ext
+            assert bool(a.any()) and not bool(a[2].any())
+
+    def test_default_uses_the_kernel_on_the_cpu_and_falls_back(self, generator, axes, monkeypatch):
+        from carvi_torch import native_library
+
+        ops = _library()
+        occ = torch.rand(2, 6, 6, 6, generator=generator) > 0.5
+        T = torch.eye(4, dtype=torch.float64).expand(2, 4, 4) * 0.1
+        T = T.clone()
+        T[:, 3, 3] = 1
+        cams = _ref_cameras(generator, 2)
+        calls = []
+
+        class Spy:
+            def splat_planes(self, *args):
+                calls.append(args[0].shape)
+                return ops.splat_planes(*args)
+
+        monkeypatch.setattr(native_library, "library_operators", lambda: Spy())
+        got = project_proposals(occ, T, cams, axes, 16, 1.0)
+        assert calls, "the default did not take the kernel on the CPU"
+        monkeypatch.setattr(native_library, "library_operators", lambda: None)
+        monkeypatch.setattr(native_library, "load", lambda: {"reason": "no compiler"})
+        assert torch.equal(project_proposals(occ, T, cams, axes, 16, 1.0), got)  # the torch operators
+        with pytest.raises(RuntimeError, match="no compiler"):
+            project_proposals(occ, T, cams, axes, 16, 1.0, native=True)
+
+    def test_operator_checks_its_arguments(self):
+        ops = _library()
+        G, Gp = 4, 6
+        out = torch.zeros(2 * 3 * Gp * Gp, dtype=torch.bool)
+        occ = torch.ones(2, 2, 3, 4, dtype=torch.bool)
+        Ld, Lh, Lw = torch.zeros(3, 4), torch.zeros(3, 6), torch.zeros(3, 8)
+        rows = torch.tensor([0, 1])
+        ops.splat_planes(out, occ, Ld, Lh, Lw, rows, 1, 1, 1, G)
+        assert bool(out.view(2, 3, Gp, Gp)[:, :, 1, 1].all())  # every point at coordinate 0 -> sample (0, 0)
+        with pytest.raises(ValueError, match="distinct"):
+            ops.splat_planes(out, occ, Ld, Lh, Lw, torch.tensor([1, 1]), 1, 1, 1, G)
+        with pytest.raises(ValueError, match="distinct"):
+            ops.splat_planes(out, occ, Ld, Lh, Lw, torch.tensor([0, 2]), 1, 1, 1, G)
+        with pytest.raises(ValueError, match="Lh must be"):
+            ops.splat_planes(out, occ, Ld, torch.zeros(3, 5), Lw, rows, 1, 1, 1, G)
+        with pytest.raises(ValueError, match="whole sets"):
+            ops.splat_planes(out[:-1], occ, Ld, Lh, Lw, rows, 1, 1, 1, G)
+        with pytest.raises(TypeError, match="occ must be Bool"):
+            ops.splat_planes(out, occ.float(), Ld, Lh, Lw, rows, 1, 1, 1, G)
+        with pytest.raises(ValueError, match=">= 1"):
+            ops.splat_planes(out, occ, Ld, Lh, Lw, rows, 0, 1, 1, G)
 
 
 # --------------------------------------------------------------------------- score_proposals

@@ -14,6 +14,9 @@
 //   carvi::fit_cameras(Tensor R, Tensor s, Tensor t, Tensor S, Tensor kp, Tensor wv, int max_iters, float tol)
 //                      -> (Tensor R, Tensor s, Tensor t, Tensor E_before, Tensor E, Tensor converged, int iters, bool ok)
 //     (the keypoint-only camera fit, camera_steps.h)
+//   carvi::splat_planes(Tensor(a!) out, Tensor occ, Tensor Ld, Tensor Lh, Tensor Lw, Tensor rows, int md, int mh,
+//                       int mw, int G) -> ()
+//     (the selection's projection of proposals onto the principal planes, splat_planes.h; grids in parallel)
 //
 // Every argument is checked here, at the operators' boundary: device, dtype, layout, contiguity, shapes,
 // index ranges and sizes (the kernel reads raw pointers: it must never read outside its inputs, whatever
@@ -40,6 +43,7 @@
 #include "carve_core.h"
 #include "sfm_steps.h"
 #include "camera_steps.h"
+#include "splat_planes.h"
 
 #ifndef CARVI_SCHEDULE
 #define CARVI_SCHEDULE 2 // 0: parallel_for's own split; 1: weighted ranges, 4 per thread; 2: heaviest first
@@ -327,6 +331,43 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     return {Ro, so, to, E0, E, conv, iters, ok};
 }
 
+void splat_planes(const at::Tensor &out, const at::Tensor &occ, const at::Tensor &Ld, const at::Tensor &Lh,
+                  const at::Tensor &Lw, const at::Tensor &rows, int64_t md, int64_t mh, int64_t mw, int64_t G)
+{
+    check_tensor(out, "out", at::kBool, 1);
+    check_tensor(occ, "occ", at::kBool, 4);
+    check_tensor(rows, "rows", at::kLong, 1);
+    TORCH_CHECK_VALUE(G >= 1 && md >= 1 && mh >= 1 && mw >= 1, "carvi: G, md, mh and mw must be >= 1, got ", G, ", ",
+                      md, ", ", mh, " and ", mw);
+    const int64_t nb = occ.size(0), D = occ.size(1), H = occ.size(2), W = occ.size(3), plane = (G + 2) * (G + 2);
+    const at::Tensor *tables[3] = {&Ld, &Lh, &Lw};
+    const int64_t m[3] = {md, mh, mw}, size[3] = {D, H, W};
+    const char *names[3] = {"Ld", "Lh", "Lw"};
+    for (int a = 0; a < 3; ++a) {
+        check_tensor(*tables[a], names[a], at::kFloat, 2);
+        TORCH_CHECK_VALUE(tables[a]->size(0) == 3 * m[a] && tables[a]->size(1) == nb * size[a], "carvi: ", names[a],
+                          " must be (3 * ", m[a], ", ", nb, " * ", size[a], "), got ", tables[a]->sizes());
+    }
+    TORCH_CHECK_VALUE(rows.size(0) == nb, "carvi: rows must hold one position per grid (", nb, "), got ", rows.sizes());
+    TORCH_CHECK_VALUE(out.numel() % (3 * plane) == 0, "carvi: out must hold whole sets of three ", G + 2, " x ", G + 2,
+                      " planes, got ", out.numel(), " samples");
+    const int64_t B = out.numel() / (3 * plane);
+    const int64_t *r = rows.data_ptr<int64_t>();
+    std::vector<char> taken(B, 0);
+    for (int64_t i = 0; i < nb; ++i) {  // distinct positions: the grids are splatted in parallel
+        TORCH_CHECK_VALUE(r[i] >= 0 && r[i] < B && !taken[r[i]], "carvi: rows must be distinct positions in 0 .. ",
+                          B - 1, ", got ", r[i], " at ", i);
+        taken[r[i]] = 1;
+    }
+    const uint8_t *g = reinterpret_cast<const uint8_t *>(occ.data_ptr<bool>());
+    uint8_t *o = reinterpret_cast<uint8_t *>(out.data_ptr<bool>());
+    const float *ld = Ld.data_ptr<float>(), *lh = Lh.data_ptr<float>(), *lw = Lw.data_ptr<float>();
+    at::parallel_for(0, nb, 1, [&](int64_t b0, int64_t b1) {
+        for (int64_t b = b0; b < b1; ++b)
+            carvi_splat::splat_grid(g + b * D * H * W, b, D, H, W, ld, lh, lw, md, mh, mw, G, nb, o + r[b] * 3 * plane);
+    });
+}
+
 } // namespace
 
 #ifndef CARVI_NS
@@ -345,6 +386,8 @@ TORCH_LIBRARY(CARVI_NS, m)
           "(Tensor, Tensor, Tensor, Tensor, Tensor, int, int)");
     m.def("fit_cameras(Tensor R, Tensor s, Tensor t, Tensor S, Tensor kp, Tensor wv, int max_iters, float tol) -> "
           "(Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, int, bool)");
+    m.def("splat_planes(Tensor(a!) out, Tensor occ, Tensor Ld, Tensor Lh, Tensor Lw, Tensor rows, int md, int mh, "
+          "int mw, int G) -> ()");
 }
 
 // CompositeExplicitAutograd: one kernel for every device, so that a tensor on another device reaches the
@@ -356,4 +399,5 @@ TORCH_LIBRARY_IMPL(CARVI_NS, CompositeExplicitAutograd, m)
     m.impl("line", &line);
     m.impl("sfm_factorize", &sfm_factorize);
     m.impl("fit_cameras", &fit_cameras);
+    m.impl("splat_planes", &splat_planes);
 }
