@@ -240,6 +240,8 @@ def _check_grids(occupancy: torch.Tensor, voxel_to_camera: torch.Tensor) -> None
 
 #: Default ``chunk_voxels`` of :func:`project_proposals` per device type.
 _CHUNK_VOXELS = {"cpu": 1 << 20, "cuda": 1 << 27}
+#: Default ``chunk_voxels`` of :func:`project_proposals` with the compiled splat (its threads take whole grids).
+_NATIVE_CHUNK_VOXELS = 1 << 24
 #: Default ``chunk_points`` of :func:`project_proposals` per device type.
 _CHUNK_POINTS = {"cpu": 1 << 22, "cuda": 1 << 24}
 
@@ -399,11 +401,12 @@ def project_proposals(
         extent: plane half-width (object units), required (see :func:`plane_extent`).
         centre: optional ``(3,)`` plane centre (default the object-frame origin).
         supersample: ``m`` (``>= 1``) or ``None`` for the rule above.
-        chunk_points: sub-voxel points handled at once (bounds memory); default ``2**22`` on
-            the CPU, ``2**24`` on other devices.
-        chunk_voxels: voxels of the grids handled at once (the dense boundary pass); default
-            ``2**20`` on the CPU (a few MB stay in its caches), ``2**27`` on other devices
-            (few, large kernels).
+        chunk_points: sub-voxel points handled at once by the torch operators (bounds memory); default
+            ``2**22`` on the CPU, ``2**24`` on other devices. The compiled splat takes no such chunks.
+        chunk_voxels: voxels of the grids handled at once (the torch operators' dense boundary pass; the
+            compiled splat's grids go to its threads a chunk at a time); default ``2**20`` on the CPU with the
+            torch operators (a few MB stay in its caches), ``2**24`` with the compiled splat (about 77 grids of
+            60^3), ``2**27`` on other devices (few, large kernels).
         native: the boundary test and the splat in the compiled library's ``splat_planes``
             (``carvi_torch/kernels/splat_planes.h``; the same planes bit for bit, the grids in parallel on torch's
             intra-op threads): None (default) on the CPU where the library loads, False never, True always (an
@@ -421,8 +424,10 @@ def project_proposals(
         raise ValueError(f"ref_cameras must hold B={B} cameras, got {len(ref_cameras)}")
     if supersample is not None and int(supersample) < 1:
         raise ValueError(f"supersample must be None or >= 1, got {supersample}")
+    ops = _splat_operators(occupancy.device, native)
     kind = occupancy.device.type if occupancy.device.type in _CHUNK_VOXELS else "cuda"
-    chunk_voxels = _CHUNK_VOXELS[kind] if chunk_voxels is None else chunk_voxels
+    if chunk_voxels is None:
+        chunk_voxels = _NATIVE_CHUNK_VOXELS if ops is not None else _CHUNK_VOXELS[kind]
     chunk_points = _CHUNK_POINTS[kind] if chunk_points is None else chunk_points
     if int(chunk_points) < 1 or int(chunk_voxels) < 1:
         raise ValueError(f"chunk_points and chunk_voxels must be >= 1, got {chunk_points}, {chunk_voxels}")
@@ -443,6 +448,8 @@ def project_proposals(
     if centre is not None:
         A[:, :, 3] -= ax @ centre.to(device=dev, dtype=torch.float64)
 
+    if not bool(torch.isfinite(A).all()):
+        raise ValueError("voxel_to_camera and ref_cameras must map every grid to finite plane coordinates")
     spacing = 2.0 * extent / (G - 1)
     ms = supersampling(A, spacing, supersample)
     # In plane-sample units u = (c + extent) / spacing, a sample's index is round(u).
@@ -454,7 +461,6 @@ def project_proposals(
     for b, key in enumerate(map(tuple, ms.tolist())):  # one host read per call
         groups.setdefault(key, []).append(b)
     per = max(1, int(chunk_voxels) // max(1, D * H * W))
-    ops = _splat_operators(dev, native)
     for key, members in groups.items():
         members = torch.tensor(members, device=dev)
         for c0 in range(0, len(members), per):

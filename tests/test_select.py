@@ -443,6 +443,37 @@ class TestNativeSplat:
         with pytest.raises(RuntimeError, match="no compiler"):
             project_proposals(occ, T, cams, axes, 16, 1.0, native=True)
 
+    def test_sum_order_and_ties_of_the_torch_code(self):
+        """One voxel, one sub-voxel point, crafted tables: coordinate 0 is (0.5 + 2^-25) + 2^-25 = 0.5 in float32 (the
+        torch code's order; 0.5 + (2^-25 + 2^-25) would be 0.5 + 2^-24), which rounds to 0; coordinates 1 and 2 are
+        the ties 2.5 and 1.5, which round to the even 2."""
+        ops = _library()
+        G, Gp = 4, 6
+        out = torch.zeros(3 * Gp * Gp, dtype=torch.bool)
+        tiny = 2.0 ** -25
+        Ld = torch.tensor([[0.5], [2.5], [1.5]])
+        Lh = torch.tensor([[tiny], [0.0], [0.0]])
+        one = torch.ones(1, 1, 1, 1, dtype=torch.bool)
+        ops.splat_planes(out, one, Ld, Lh, Lh.clone(), torch.tensor([0]), 1, 1, 1, G)
+        k = (0, 2, 2)
+        expected = torch.zeros(3, Gp, Gp, dtype=torch.bool)
+        for j in range(3):  # plane j: (a, b) = (k[(j + 1) % 3], k[(j + 2) % 3]) at [b + 1, a + 1]
+            expected[j, k[(j + 2) % 3] + 1, k[(j + 1) % 3] + 1] = True
+        assert torch.equal(out.view(3, Gp, Gp), expected)
+
+    def test_small_chunks_and_non_finite_maps(self, generator, axes):
+        _library()
+        cams = _ref_cameras(generator, 3)
+        occ = torch.rand(3, 8, 8, 8, generator=generator) > 0.4
+        T = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1) * 0.2
+        T[:, 3, 3] = 1
+        full = project_proposals(occ, T, cams, axes, 20, 1.0, native=False)
+        assert torch.equal(project_proposals(occ, T, cams, axes, 20, 1.0, native=True, chunk_voxels=1), full)
+        T[1, 0, 0] = float("nan")
+        for native in (False, True):
+            with pytest.raises(ValueError, match="finite"):
+                project_proposals(occ, T, cams, axes, 20, 1.0, native=native)
+
     def test_operator_checks_its_arguments(self):
         ops = _library()
         G, Gp = 4, 6
@@ -464,6 +495,8 @@ class TestNativeSplat:
             ops.splat_planes(out, occ.float(), Ld, Lh, Lw, rows, 1, 1, 1, G)
         with pytest.raises(ValueError, match=">= 1"):
             ops.splat_planes(out, occ, Ld, Lh, Lw, rows, 0, 1, 1, G)
+        with pytest.raises(ValueError, match="2\\^20"):
+            ops.splat_planes(out, occ, Ld, Lh, Lw, rows, 1, 1, 1, 1 << 40)
 
 
 # --------------------------------------------------------------------------- score_proposals

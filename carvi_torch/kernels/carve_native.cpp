@@ -337,8 +337,8 @@ void splat_planes(const at::Tensor &out, const at::Tensor &occ, const at::Tensor
     check_tensor(out, "out", at::kBool, 1);
     check_tensor(occ, "occ", at::kBool, 4);
     check_tensor(rows, "rows", at::kLong, 1);
-    TORCH_CHECK_VALUE(G >= 1 && md >= 1 && mh >= 1 && mw >= 1, "carvi: G, md, mh and mw must be >= 1, got ", G, ", ",
-                      md, ", ", mh, " and ", mw);
+    TORCH_CHECK_VALUE(G >= 1 && G <= (int64_t(1) << 20) && md >= 1 && mh >= 1 && mw >= 1,
+                      "carvi: G must be in 1 .. 2^20 and md, mh, mw >= 1, got ", G, ", ", md, ", ", mh, " and ", mw);
     const int64_t nb = occ.size(0), D = occ.size(1), H = occ.size(2), W = occ.size(3), plane = (G + 2) * (G + 2);
     const at::Tensor *tables[3] = {&Ld, &Lh, &Lw};
     const int64_t m[3] = {md, mh, mw}, size[3] = {D, H, W};
