@@ -240,8 +240,10 @@ def _check_grids(occupancy: torch.Tensor, voxel_to_camera: torch.Tensor) -> None
 
 #: Default ``chunk_voxels`` of :func:`project_proposals` per device type.
 _CHUNK_VOXELS = {"cpu": 1 << 20, "cuda": 1 << 27}
-#: Default ``chunk_voxels`` of :func:`project_proposals` with the compiled splat (its threads take whole grids).
-_NATIVE_CHUNK_VOXELS = 1 << 24
+#: Default ``chunk_voxels`` of :func:`project_proposals` with the compiled splat, per torch intra-op thread (its
+#: threads take whole grids; at least the torch operators' CPU chunk). On the 1,000-car class 2**24 voxels per
+#: call (77 grids) raised the run's peak memory by 45 MB for no speed on 2 cores.
+_NATIVE_CHUNK_VOXELS_PER_THREAD = 1 << 19
 #: Default ``chunk_points`` of :func:`project_proposals` per device type.
 _CHUNK_POINTS = {"cpu": 1 << 22, "cuda": 1 << 24}
 
@@ -405,8 +407,9 @@ def project_proposals(
             ``2**22`` on the CPU, ``2**24`` on other devices. The compiled splat takes no such chunks.
         chunk_voxels: voxels of the grids handled at once (the torch operators' dense boundary pass; the
             compiled splat's grids go to its threads a chunk at a time); default ``2**20`` on the CPU with the
-            torch operators (a few MB stay in its caches), ``2**24`` with the compiled splat (about 77 grids of
-            60^3), ``2**27`` on other devices (few, large kernels).
+            torch operators (a few MB stay in its caches), ``2**19`` per intra-op thread and at least ``2**20``
+            with the compiled splat (4 grids of 60^3 on 2 threads, 38 on 16), ``2**27`` on other devices (few,
+            large kernels).
         native: the boundary test and the splat in the compiled library's ``splat_planes``
             (``carvi_torch/kernels/splat_planes.h``; the same planes bit for bit, the grids in parallel on torch's
             intra-op threads): None (default) on the CPU where the library loads, False never, True always (an
@@ -427,7 +430,8 @@ def project_proposals(
     ops = _splat_operators(occupancy.device, native)
     kind = occupancy.device.type if occupancy.device.type in _CHUNK_VOXELS else "cuda"
     if chunk_voxels is None:
-        chunk_voxels = _NATIVE_CHUNK_VOXELS if ops is not None else _CHUNK_VOXELS[kind]
+        chunk_voxels = _CHUNK_VOXELS[kind] if ops is None else max(
+            _CHUNK_VOXELS["cpu"], _NATIVE_CHUNK_VOXELS_PER_THREAD * torch.get_num_threads())
     chunk_points = _CHUNK_POINTS[kind] if chunk_points is None else chunk_points
     if int(chunk_points) < 1 or int(chunk_voxels) < 1:
         raise ValueError(f"chunk_points and chunk_voxels must be >= 1, got {chunk_points}, {chunk_voxels}")
