@@ -297,3 +297,17 @@ def load() -> dict:
 def library_operators():
     """The library's operators (``None`` where it did not build or load; :func:`load` says why)."""
     return load()["ops"]
+
+
+def operators_on(device, *, required: bool = False):
+    """The library's operators for tensors on ``device``: ``None`` off the CPU (the kernels take CPU tensors) or where
+    the library did not build or load. ``required``: an error instead of ``None`` (``ValueError`` off the CPU,
+    ``RuntimeError`` with :func:`load`'s reason where the library is missing)."""
+    if torch.device(device).type != "cpu":
+        if required:
+            raise ValueError(f"the compiled kernels need CPU tensors, got {device}")
+        return None
+    ops = library_operators()
+    if ops is None and required:
+        raise RuntimeError(f"the compiled library is not available: {load()['reason']}")
+    return ops

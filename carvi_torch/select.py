@@ -302,14 +302,7 @@ def _axis_tables(U: torch.Tensor, sizes: tuple[int, int, int], ms: tuple[int, in
 def _splat_operators(device: torch.device, native: bool | None):
     """The compiled library's operators when the splat runs there (``native``: None = on the CPU where the
     library loads, False = never, True = always, an error where it cannot)."""
-    if native is False or (native is None and device.type != "cpu"):
-        return None
-    if device.type != "cpu":
-        raise ValueError(f"native=True needs CPU tensors, got {device}")
-    ops = native_library.library_operators()
-    if ops is None and native:
-        raise RuntimeError(f"native=True but the compiled library is not available: {native_library.load()['reason']}")
-    return ops
+    return None if native is False else native_library.operators_on(device, required=bool(native))
 
 
 def _splat(out: torch.Tensor, occupancy: torch.Tensor, U: torch.Tensor, rows: torch.Tensor, ms: tuple[int, int, int],

@@ -389,3 +389,20 @@ def test_without_the_library_both_fits_run_in_torch(monkeypatch):
     d = cf._optimize(R0, s0, t0, S, kp, visible, None, lam, 100, 1e-6, native=True)
     assert all(torch.equal(x, y) for x, y in zip(a[:3], b[:3])) and a[3:] == b[3:]
     assert all(torch.equal(x, y) if isinstance(x, torch.Tensor) else x == y for x, y in zip(c, d))
+
+
+def test_operators_on_serves_cpu_tensors_only(monkeypatch):
+    """The one gate every compiled stage asks (SfM, the camera fit, the selection's splat)."""
+    from carvi_torch import native_library
+
+    assert native_library.operators_on("meta") is None
+    with pytest.raises(ValueError, match="CPU tensors"):
+        native_library.operators_on("meta", required=True)
+    monkeypatch.setattr(native_library, "library_operators", lambda: None)
+    monkeypatch.setattr(native_library, "load", lambda: {"reason": "no compiler found"})
+    assert native_library.operators_on("cpu") is None
+    with pytest.raises(RuntimeError, match="no compiler found"):
+        native_library.operators_on(torch.device("cpu"), required=True)
+    sentinel = object()
+    monkeypatch.setattr(native_library, "library_operators", lambda: sentinel)
+    assert native_library.operators_on("cpu", required=True) is sentinel

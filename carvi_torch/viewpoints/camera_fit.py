@@ -450,9 +450,7 @@ def _native_optimize(R, s, t, shape, keypoints, visible, max_iters, tol):
     code's sums run in another order); its return values, or ``None`` where it does not apply (not on the CPU,
     not float32/64, no kernel) or declines (a retraction of rank < 2): the torch code then runs."""
     dt = keypoints.dtype
-    if keypoints.device.type != "cpu" or dt not in (torch.float32, torch.float64):
-        return None
-    ops = native_library.library_operators()
+    ops = native_library.operators_on(keypoints.device) if dt in (torch.float32, torch.float64) else None
     if ops is None:
         return None
     n, b = s.shape

@@ -538,9 +538,9 @@ def _fill_step(W, vis, st: _FillState, eye, project, inner: int, reg: float, fix
 
 def _native_ops(W, vis, Wf, S):
     """The compiled library's operators where the kernel applies (float64 on the CPU, the library loaded)."""
-    if W.device.type != "cpu" or not all(x.dtype == torch.float64 for x in (W, vis, Wf, S)):
+    if not all(x.dtype == torch.float64 for x in (W, vis, Wf, S)):
         return None
-    return native_library.library_operators()
+    return native_library.operators_on(W.device)
 
 
 def _native_steps(ops, W, vis, st: _FillState, *, max_outer, inner, tol, reg, scale) -> bool:
