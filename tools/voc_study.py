@@ -517,16 +517,22 @@ def paired_comparison(a: np.ndarray, b: np.ndarray, resamples: int = 4000, seed:
             "a_lower": a_lower, "b_lower": b_lower, "sign_test_p": float(p)}
 
 
+def _aligned_errors(R: torch.Tensor, Rg: torch.Tensor) -> tuple[dict, torch.Tensor, torch.Tensor, dict]:
+    """``(report, G, geodesic (n,), angle errors)`` of rotations ``R`` against ``Rg`` after the least-squares
+    rotation ``G`` of :func:`viewpoint_report`."""
+    rep = viewpoint_report(R, Rg)
+    G = torch.tensor(rep["alignment"], dtype=torch.float64)
+    return rep, G, geodesic_errors(R, Rg, G), angle_errors(R, Rg, G)
+
+
 def step_compare(recon_a: Path, recon_b: Path, gt: dict, names: tuple[str, str]) -> dict:
     """The refined cameras of two reconstructions of the same objects, object by object (each after its own
     least-squares ``G``): per angle :func:`paired_comparison`, printed and returned."""
     per = []
     for recon in (recon_a, recon_b):
         keys, _aids, R, Rg = _gt_arrays(read_json(recon / CLASS / "cameras.json")["cameras"], gt, "refined")
-        G = torch.tensor(viewpoint_report(R, Rg)["alignment"], dtype=torch.float64)
-        ang = angle_errors(R, Rg, G)
-        per.append(dict(zip(keys, zip(geodesic_errors(R, Rg, G).tolist(), ang["azimuth"].tolist(),
-                                      ang["elevation"].tolist()))))
+        _rep, _G, geo, ang = _aligned_errors(R, Rg)
+        per.append(dict(zip(keys, zip(geo.tolist(), ang["azimuth"].tolist(), ang["elevation"].tolist()))))
     both = sorted(set(per[0]) & set(per[1]))
     out = {"a": names[0], "b": names[1], "n": len(both)}
     for i, angle in enumerate(("geodesic", "azimuth", "elevation")):
@@ -546,11 +552,8 @@ def step_viewpoints(recon: Path, gt: dict, subcategory: dict | None = None) -> d
     out, rows = {}, []
     for stage in ("sfm", "refined"):
         keys, aids, R, Rg = _gt_arrays(cams, gt, stage)
-        rep = viewpoint_report(R, Rg)
+        rep, G, geo, ang = _aligned_errors(R, Rg)
         rob = viewpoint_report(R, Rg, robust=True)
-        G = torch.tensor(rep["alignment"], dtype=torch.float64)
-        ang = angle_errors(R, Rg, G)
-        geo = geodesic_errors(R, Rg, G)
         signed = signed_azimuth_errors(R, Rg, G)
         a_gt, e_gt, _ = azimuth_elevation_roll_from_rotation(Rg)
         per = {k: {"annotation_id": a, "geodesic": float(g), "azimuth_error": float(az), "elevation_error": float(el),
