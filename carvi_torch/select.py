@@ -312,9 +312,9 @@ def _splat(out: torch.Tensor, occupancy: torch.Tensor, U: torch.Tensor, rows: to
     Args:
         out: ``(B * 3 * (G + 2)^2,)`` bool planes with a one-sample border that takes every
             point off the plane (coordinates are clamped to ``[-1, G]``).
-        occupancy: ``(b, D, H, W)`` bool grids, all with the sub-sampling ``ms``.
-        U: ``(b, 3, 4)`` index -> plane-sample coordinates.
-        rows: ``(b,)`` long position of each grid in ``out``.
+        occupancy: ``(B, D, H, W)`` bool grids of every plane set in ``out``.
+        U: ``(b, 3, 4)`` index -> plane-sample coordinates of the grids ``rows``, all with the sub-sampling ``ms``.
+        rows: ``(b,)`` long the grids to splat (their positions in ``occupancy`` and ``out``).
         ops: the compiled library's operators (:func:`_splat_operators`): its ``splat_planes`` does the same
             (``carvi_torch/kernels/splat_planes.h``, the same float32 sums and rounding, the grids in parallel);
             None: torch operators, ``chunk_points`` sub-voxel points at a time.
@@ -325,9 +325,10 @@ def _splat(out: torch.Tensor, occupancy: torch.Tensor, U: torch.Tensor, rows: to
     m3 = md * mh * mw
     Gp = G + 2
     Ld, Lh, Lw = _axis_tables(U, (D, H, W), ms)
-    if ops is not None:
-        ops.splat_planes(out, occupancy.contiguous(), Ld, Lh, Lw, rows.contiguous(), md, mh, mw, G)
+    if ops is not None:  # the kernel reads the grids in place
+        ops.splat_planes(out, occupancy, Ld, Lh, Lw, rows.contiguous(), md, mh, mw, G)
         return
+    occupancy = occupancy[rows]
     voxels = boundary_voxels(occupancy).nonzero()  # (M, 4) b, d, h, w
     base = rows * (3 * Gp * Gp) + Gp + 1  # + Gp + 1: the border shift of both coordinates
     per = max(1, int(chunk_points) // m3)
@@ -458,11 +459,13 @@ def project_proposals(
     for b, key in enumerate(map(tuple, ms.tolist())):  # one host read per call
         groups.setdefault(key, []).append(b)
     per = max(1, int(chunk_voxels) // max(1, D * H * W))
+    if ops is not None:
+        occupancy = occupancy.contiguous()  # once: the kernel reads every chunk's grids in place
     for key, members in groups.items():
         members = torch.tensor(members, device=dev)
         for c0 in range(0, len(members), per):
             rows = members[c0:c0 + per]
-            _splat(out, occupancy[rows], U[rows], rows, key, G, chunk_points, ops)
+            _splat(out, occupancy, U[rows], rows, key, G, chunk_points, ops)
     return out.view(B, 3, Gp, Gp)[:, :, 1:-1, 1:-1].contiguous()
 
 

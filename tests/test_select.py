@@ -489,6 +489,9 @@ class TestNativeSplat:
             ops.splat_planes(out, occ, Ld, Lh, Lw, torch.tensor([0, 2]), 1, 1, 1, G)
         with pytest.raises(ValueError, match="Lh must be"):
             ops.splat_planes(out, occ, Ld, torch.zeros(3, 5), Lw, rows, 1, 1, 1, G)
+        with pytest.raises(ValueError, match="occ must hold the 2 grids"):
+            one = [x[:, :n].clone() for x, n in ((Ld, 2), (Lh, 3), (Lw, 4))]  # tables of one grid
+            ops.splat_planes(out, occ[:1], *one, rows[:1], 1, 1, 1, G)
         with pytest.raises(ValueError, match="whole sets"):
             ops.splat_planes(out[:-1], occ, Ld, Lh, Lw, rows, 1, 1, 1, G)
         with pytest.raises(TypeError, match="occ must be Bool"):

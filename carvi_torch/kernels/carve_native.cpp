@@ -339,7 +339,7 @@ void splat_planes(const at::Tensor &out, const at::Tensor &occ, const at::Tensor
     check_tensor(rows, "rows", at::kLong, 1);
     TORCH_CHECK_VALUE(G >= 1 && G <= (int64_t(1) << 20) && md >= 1 && mh >= 1 && mw >= 1,
                       "carvi: G must be in 1 .. 2^20 and md, mh, mw >= 1, got ", G, ", ", md, ", ", mh, " and ", mw);
-    const int64_t nb = occ.size(0), D = occ.size(1), H = occ.size(2), W = occ.size(3), plane = (G + 2) * (G + 2);
+    const int64_t nb = rows.size(0), D = occ.size(1), H = occ.size(2), W = occ.size(3), plane = (G + 2) * (G + 2);
     const at::Tensor *tables[3] = {&Ld, &Lh, &Lw};
     const int64_t m[3] = {md, mh, mw}, size[3] = {D, H, W};
     const char *names[3] = {"Ld", "Lh", "Lw"};
@@ -348,10 +348,10 @@ void splat_planes(const at::Tensor &out, const at::Tensor &occ, const at::Tensor
         TORCH_CHECK_VALUE(tables[a]->size(0) == 3 * m[a] && tables[a]->size(1) == nb * size[a], "carvi: ", names[a],
                           " must be (3 * ", m[a], ", ", nb, " * ", size[a], "), got ", tables[a]->sizes());
     }
-    TORCH_CHECK_VALUE(rows.size(0) == nb, "carvi: rows must hold one position per grid (", nb, "), got ", rows.sizes());
     TORCH_CHECK_VALUE(out.numel() % (3 * plane) == 0, "carvi: out must hold whole sets of three ", G + 2, " x ", G + 2,
                       " planes, got ", out.numel(), " samples");
     const int64_t B = out.numel() / (3 * plane);
+    TORCH_CHECK_VALUE(occ.size(0) == B, "carvi: occ must hold the ", B, " grids of out, got ", occ.sizes());
     const int64_t *r = rows.data_ptr<int64_t>();
     std::vector<char> taken(B, 0);
     for (int64_t i = 0; i < nb; ++i) {  // distinct positions: the grids are splatted in parallel
@@ -364,7 +364,7 @@ void splat_planes(const at::Tensor &out, const at::Tensor &occ, const at::Tensor
     const float *ld = Ld.data_ptr<float>(), *lh = Lh.data_ptr<float>(), *lw = Lw.data_ptr<float>();
     at::parallel_for(0, nb, 1, [&](int64_t b0, int64_t b1) {
         for (int64_t b = b0; b < b1; ++b)
-            carvi_splat::splat_grid(g + b * D * H * W, b, D, H, W, ld, lh, lw, md, mh, mw, G, nb, o + r[b] * 3 * plane);
+            carvi_splat::splat_grid(g + r[b] * D * H * W, b, D, H, W, ld, lh, lw, md, mh, mw, G, nb, o + r[b] * 3 * plane);
     });
 }
 
