@@ -710,86 +710,18 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
     if threads < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
     n = len(both) // 2
-    dev = both.keypoints.device
-    rows1 = torch.arange(2 * n, device=dev)
-    res1 = sfm_fn(both) if single is None else single
-    eye = torch.eye(3, dtype=res1.shape.dtype, device=res1.shape.device)
-    labels1 = torch.zeros(n, dtype=torch.long, device=both.keypoints.device)
-    best = MixtureResult(1, labels1, [(rows1, res1)], [eye], 0.0, res1)
-    if max_groups == 1:
+    best = _one_shape(both, sfm_fn(both) if single is None else single)
+    if not _worth_splitting(best, both, n, max_groups, min_size, min_misfit):
         return best
-    if n < 2 * min_size:
-        best.note = f"one shape: {n} objects, fewer than twice the smallest group ({min_size})"
-        return best
-    best.misfit = misfit(res1, both.masks)
-    if min_misfit > 0 and not best.misfit >= min_misfit:
-        best.note = (f"one shape: it fits the keypoints (residual {best.misfit:.4f} of the box diagonal, "
-                     f"under {min_misfit})")
-        return best
-    hull1 = hull_agreements(best, both.masks) if hull_gain is not None else None
-    cost1, cams1 = keypoint_fit(res1.shape, both, dist, n)  # the one search over the sphere
-    seen = both.visible & torch.isfinite(both.keypoints).all(-1)
-    nvis_obj = (seen[:n].sum(-1) + seen[n:].sum(-1)).clamp(min=1)
-    lifted = lifted_residuals(res1, both.keypoints, both.visible)
-    lifted = torch.cat([lifted[:n], lifted[n:]], 1)
-    lifted = lifted / lifted.norm(dim=1, keepdim=True).clamp(min=1e-9)
-    sse_prev = float(cost1.sum())
+    ctx = _em_context(best, both, dist, n, sfm_fn, rounds=rounds, min_size=min_size, agreement_deg=agreement_deg,
+                      warm_start=warm_start, native=native, hull_gain=hull_gain)
+    workers = threads if n >= threads_min_objects else 1
+    sse_prev = float(ctx.cost1.sum())
     for k in range(2, max_groups + 1):
         if n < k * min_size:
             break
-        inits = {"lifted": kmeans_labels(lifted, k, seed),
-                 "residual": ((cost1 / nvis_obj).argsort(stable=True).argsort(stable=True) * k // n).clamp(max=k - 1)}
-        split = None if best.cost is None else split_labels(best.labels, best.cost, lifted, min_size, seed)
-        if split is not None:
-            inits["split"] = split
-        def candidate(name, lab0, k=k, sse_prev=sse_prev):
-            """``(row, MixtureResult or None, log line)`` of one initialisation."""
-            lab0 = top_up(lab0, torch.zeros(n, k, device=lab0.device), k, min_size)
-            row = {"k": k, "init": name, "sizes": None, "sse_px2": float("inf"), "cut": float("-inf"),
-                   "agreement_deg": float("inf"), "eligible": False, "kept": False}
-            try:
-                lab, groups, cost, rotations, hist = hard_em(both, n, dist, sfm_fn, lab0, k, min_size, rounds,
-                                                              full_shape=res1.shape,
-                                                              warm=(res1.shape, cams1) if warm_start else None,
-                                                              native=native)
-            except SplitFailed as e:
-                row["problem"] = str(e)
-                return row, None, f"{k} shapes from '{name}': not usable: {e}"
-            sse = float(cost.gather(1, lab[:, None]).sum())
-            row.update(sizes=torch.bincount(lab, minlength=k).tolist(), sse_px2=sse, cut=1 - sse / max(sse_prev, 1e-12),
-                       rounds=len(hist), moved=[h["moved"] for h in hist],
-                       settled=hist[-1]["moved"] <= int(EM_SETTLED * n))
-            try:
-                Q = group_rotations(groups)
-            except ValueError as e:  # a group's shape cannot be put in the class frame: not a usable split
-                row["problem"] = f"no class frame: {e}"
-                Q = None
-            if Q is None:
-                return row, None, f"{k} shapes from '{name}': sizes {row['sizes']}, {row['problem']}"
-            row["agreement_deg"] = frame_agreement(rotations, Q, valid=res1.valid[:n])
-            row["eligible"] = bool(row["agreement_deg"] <= agreement_deg and math.isfinite(sse))
-            out = MixtureResult(k, lab, groups, Q, row["agreement_deg"], res1, misfit=best.misfit, cost=cost)
-            line = (f"{k} shapes from '{name}': sizes {row['sizes']}, residual cut {row['cut']:.0%}, "
-                    f"frames agree within {row['agreement_deg']:.0f} deg")
-            if hull1 is not None:
-                row["hull_gain"] = _hull_gain(hull_agreements(out, both.masks), hull1)
-                line += f", hull agreement {row['hull_gain']:+.3f}"
-            return row, out, line
-
-        cands = []
-        workers = threads if n >= threads_min_objects else 1
-        fails = None if hull1 is None else (lambda r: not r[0].get("hull_gain", hull_gain) >= hull_gain)
-        for row, res, line in _map_candidates(candidate, list(inits.items()), workers, dev, stop=fails):
-            best.candidates.append(row)
-            if res is not None:
-                cands.append((row, res))
-            if log is not None:
-                log(line)
-        if hull1 is not None:  # every usable start of this k must raise the hull agreement enough
-            gains = [c[0]["hull_gain"] for c in cands]
-            floor = min(gains) if gains and all(math.isfinite(g) for g in gains) else float("nan")
-            for row, _res in cands:
-                row["eligible"] = bool(row["eligible"] and floor >= hull_gain)
+        inits = _starts(ctx, best, k, seed)
+        cands = _run_starts(ctx, best, k, inits, sse_prev, workers, log)
         ok = [c for c in cands if c[0]["eligible"]]
         if not ok:
             break
@@ -800,3 +732,133 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
         res.candidates = best.candidates
         best, sse_prev = res, row["sse_px2"]
     return best
+
+
+def _one_shape(both, res1: SfMResult) -> MixtureResult:
+    """The one-shape :class:`MixtureResult` of ``both`` from its SfM ``res1``."""
+    n = len(both) // 2
+    eye = torch.eye(3, dtype=res1.shape.dtype, device=res1.shape.device)
+    labels1 = torch.zeros(n, dtype=torch.long, device=both.keypoints.device)
+    return MixtureResult(1, labels1, [(torch.arange(2 * n, device=both.keypoints.device), res1)], [eye], 0.0, res1)
+
+
+def _worth_splitting(best: MixtureResult, both, n: int, max_groups: int, min_size: int, min_misfit: float) -> bool:
+    """Whether :func:`fit_mixture_of_shapes` tries a split; when not, ``best.note`` says why (and
+    ``best.misfit`` is measured once the class is large enough)."""
+    if max_groups == 1:
+        return False
+    if n < 2 * min_size:
+        best.note = f"one shape: {n} objects, fewer than twice the smallest group ({min_size})"
+        return False
+    best.misfit = misfit(best.single, both.masks)
+    if min_misfit > 0 and not best.misfit >= min_misfit:
+        best.note = (f"one shape: it fits the keypoints (residual {best.misfit:.4f} of the box diagonal, "
+                     f"under {min_misfit})")
+        return False
+    return True
+
+
+@dataclass
+class _EMContext:
+    """What every start of one class's EM shares: the class, its one-shape fit and the rule's settings."""
+
+    both: object
+    n: int
+    dist: torch.Tensor
+    sfm_fn: SfMFn
+    res1: SfMResult
+    cost1: torch.Tensor  # (n, 1) each object's keypoint cost under the one shape
+    cams1: ScaledOrthographic  # the one shape's keypoint fit (the EM's warm start)
+    lifted: torch.Tensor  # (n, 2 K 3) unit lifted residuals of each object and its mirrored copy
+    nvis_obj: torch.Tensor  # (n,) visible keypoints of each object and its copy (at least 1)
+    rounds: int
+    min_size: int
+    agreement_deg: float
+    warm_start: bool
+    native: bool
+    hull_gain: float | None
+    hull1: torch.Tensor | None  # the rows' hull agreements under one shape (None: no hull test)
+
+
+def _em_context(best: MixtureResult, both, dist, n, sfm_fn, *, rounds, min_size, agreement_deg, warm_start, native,
+                hull_gain) -> _EMContext:
+    """The one-shape measures every start reads: hull agreements, the keypoint fit over the sphere, the
+    lifted residuals (unit rows) and the visible counts."""
+    res1 = best.single
+    hull1 = hull_agreements(best, both.masks) if hull_gain is not None else None
+    cost1, cams1 = keypoint_fit(res1.shape, both, dist, n)  # the one search over the sphere
+    seen = both.visible & torch.isfinite(both.keypoints).all(-1)
+    lifted = lifted_residuals(res1, both.keypoints, both.visible)
+    lifted = torch.cat([lifted[:n], lifted[n:]], 1)
+    return _EMContext(both, n, dist, sfm_fn, res1, cost1, cams1,
+                      lifted / lifted.norm(dim=1, keepdim=True).clamp(min=1e-9),
+                      (seen[:n].sum(-1) + seen[n:].sum(-1)).clamp(min=1), rounds, min_size, agreement_deg,
+                      warm_start, native, hull_gain, hull1)
+
+
+def _starts(ctx: _EMContext, best: MixtureResult, k: int, seed: int) -> dict[str, torch.Tensor]:
+    """The EM's starting labels for ``k`` groups: k-means of the lifted residuals, bands of the one-shape
+    residual and, from the kept ``k - 1`` groups, the costliest one split in two (when it can be)."""
+    n = ctx.n
+    inits = {"lifted": kmeans_labels(ctx.lifted, k, seed),
+             "residual": ((ctx.cost1 / ctx.nvis_obj).argsort(stable=True).argsort(stable=True) * k // n)
+             .clamp(max=k - 1)}
+    split = None if best.cost is None else split_labels(best.labels, best.cost, ctx.lifted, ctx.min_size, seed)
+    if split is not None:
+        inits["split"] = split
+    return inits
+
+
+def _run_starts(ctx: _EMContext, best: MixtureResult, k: int, inits: dict, sse_prev: float, workers: int,
+                log: Callable[[str], None] | None) -> list:
+    """Every start's EM for ``k`` groups (side by side on ``workers`` threads; with the hull test, none
+    after the first that fails it): ``[(row, MixtureResult)]`` of the usable ones, each row also appended
+    to ``best.candidates`` and logged, each row's ``eligible`` set."""
+    cands = []
+    fails = None if ctx.hull1 is None else (lambda r: not r[0].get("hull_gain", ctx.hull_gain) >= ctx.hull_gain)
+    items = [(ctx, best.misfit, name, lab0, k, sse_prev) for name, lab0 in inits.items()]
+    for row, res, line in _map_candidates(_candidate, items, workers, ctx.both.keypoints.device, stop=fails):
+        best.candidates.append(row)
+        if res is not None:
+            cands.append((row, res))
+        if log is not None:
+            log(line)
+    if ctx.hull1 is not None:  # every usable start of this k must raise the hull agreement enough
+        gains = [c[0]["hull_gain"] for c in cands]
+        floor = min(gains) if gains and all(math.isfinite(g) for g in gains) else float("nan")
+        for row, _res in cands:
+            row["eligible"] = bool(row["eligible"] and floor >= ctx.hull_gain)
+    return cands
+
+
+def _candidate(ctx: _EMContext, misfit1: float | None, name: str, lab0: torch.Tensor, k: int, sse_prev: float):
+    """``(row, MixtureResult or None, log line)`` of the EM from one start."""
+    n = ctx.n
+    lab0 = top_up(lab0, torch.zeros(n, k, device=lab0.device), k, ctx.min_size)
+    row = {"k": k, "init": name, "sizes": None, "sse_px2": float("inf"), "cut": float("-inf"),
+           "agreement_deg": float("inf"), "eligible": False, "kept": False}
+    try:
+        lab, groups, cost, rotations, hist = hard_em(ctx.both, n, ctx.dist, ctx.sfm_fn, lab0, k, ctx.min_size,
+                                                      ctx.rounds, full_shape=ctx.res1.shape,
+                                                      warm=(ctx.res1.shape, ctx.cams1) if ctx.warm_start else None,
+                                                      native=ctx.native)
+    except SplitFailed as e:
+        row["problem"] = str(e)
+        return row, None, f"{k} shapes from '{name}': not usable: {e}"
+    sse = float(cost.gather(1, lab[:, None]).sum())
+    row.update(sizes=torch.bincount(lab, minlength=k).tolist(), sse_px2=sse, cut=1 - sse / max(sse_prev, 1e-12),
+               rounds=len(hist), moved=[h["moved"] for h in hist], settled=hist[-1]["moved"] <= int(EM_SETTLED * n))
+    try:
+        Q = group_rotations(groups)
+    except ValueError as e:  # a group's shape cannot be put in the class frame: not a usable split
+        row["problem"] = f"no class frame: {e}"
+        return row, None, f"{k} shapes from '{name}': sizes {row['sizes']}, {row['problem']}"
+    row["agreement_deg"] = frame_agreement(rotations, Q, valid=ctx.res1.valid[:n])
+    row["eligible"] = bool(row["agreement_deg"] <= ctx.agreement_deg and math.isfinite(sse))
+    out = MixtureResult(k, lab, groups, Q, row["agreement_deg"], ctx.res1, misfit=misfit1, cost=cost)
+    line = (f"{k} shapes from '{name}': sizes {row['sizes']}, residual cut {row['cut']:.0%}, "
+            f"frames agree within {row['agreement_deg']:.0f} deg")
+    if ctx.hull1 is not None:
+        row["hull_gain"] = _hull_gain(hull_agreements(out, ctx.both.masks), ctx.hull1)
+        line += f", hull agreement {row['hull_gain']:+.3f}"
+    return row, out, line
