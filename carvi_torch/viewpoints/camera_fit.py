@@ -506,41 +506,11 @@ def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol
     data = [kp, wv, maps, lam, rscale]
     it = 0
     for it in range(1, max_iters + 1):
-        R, s, t, E, E_kp, E_sil, g, H, mu, active, converged = state
-        kp_w, wv_w, maps_w, lam_w, rscale_w = data
         if n_live == 0:
             it -= 1
             break
-        # damped 6x6 solves in float64: H can be rank-deficient (an instance with one
-        # visible keypoint whose shape points all fall inside its mask has no
-        # information about most directions); the relative ridge keeps A definite
-        H64 = H.double()
-        diagH = H64.diagonal(dim1=-2, dim2=-1)
-        ridge = 1e-6 * diagH.mean(-1, keepdim=True) + 1e-12
-        A = H64 + mu.double()[..., None, None] * torch.diag_embed(diagH + ridge)
-        sol, info = torch.linalg.solve_ex(A, g.double().unsqueeze(-1))
-        delta = (-sol.squeeze(-1)).to(dt)
-        ok = active & (info == 0) & torch.isfinite(delta).all(-1)
-        delta = torch.where(ok[..., None], delta, torch.zeros_like(delta))
-        Rt, st, tt = _retract(R, s, t, delta)
-        Et, Ekt, Est, gt, Ht = _terms(Rt, st, tt, S, kmf, kp_w, wv_w, maps_w, lam_w, rscale_w)
-        accept = active & torch.isfinite(Et) & (Et <= E)
-        small = accept & ((E - Et) <= tol * E)
-        a2, a3, a4 = accept[..., None], accept[..., None, None], accept[..., None, None]
-        R = torch.where(a4, Rt, R)
-        s = torch.where(accept, st, s)
-        t = torch.where(a2, tt, t)
-        E = torch.where(accept, Et, E)
-        E_kp = torch.where(accept, Ekt, E_kp)
-        E_sil = torch.where(accept, Est, E_sil)
-        g = torch.where(a2, gt, g)
-        H = torch.where(a3, Ht, H)
-        mu = torch.where(accept, mu / 3.0, torch.where(active, mu * 4.0, mu))
-        done = small | (mu > 1e8)
-        converged = converged | (active & done)
-        active = active & ~done
-        state = [R, s, t, E, E_kp, E_sil, g, H, mu, active, converged]
-        live = active.any(-1)
+        state = _lm_step(state, data, S, kmf, tol)
+        live = state[9].any(-1)  # active
         n_live = int(live.sum())
         if 0 < n_live <= COMPACT_FRACTION * live.shape[0]:
             _write_back(full, rows, state)
@@ -554,6 +524,40 @@ def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol
         R, s, t = R.reshape(n, b, 3, 3), s.reshape(n, b), t.reshape(n, b, 2)
         E_before, E, E_kp, E_sil, converged = (x.reshape(n, b) for x in (E_before, E, E_kp, E_sil, converged))
     return R, s, t, E_before, E, E_kp, E_sil, it, converged
+
+
+def _lm_step(state: list, data: list, S: torch.Tensor, kmf: torch.Tensor, tol: float) -> list:
+    """One Levenberg-Marquardt step of :func:`_optimize_impl` on its working set.
+
+    ``state`` is ``[R, s, t, E, E_kp, E_sil, g, H, mu, active, converged]`` and ``data``
+    ``[keypoints, weights, maps, lam, rscale]``, both row-aligned; returns the new state. A camera
+    takes its step only where the energy does not rise (its damping then falls by 3, else rises by
+    4); it stops when the relative decrease is at most ``tol`` or the damping passes 1e8.
+    """
+    R, s, t, E, E_kp, E_sil, g, H, mu, active, converged = state
+    kp_w, wv_w, maps_w, lam_w, rscale_w = data
+    dt = kp_w.dtype
+    # damped 6x6 solves in float64: H can be rank-deficient (an instance with one
+    # visible keypoint whose shape points all fall inside its mask has no
+    # information about most directions); the relative ridge keeps A definite
+    H64 = H.double()
+    diagH = H64.diagonal(dim1=-2, dim2=-1)
+    ridge = 1e-6 * diagH.mean(-1, keepdim=True) + 1e-12
+    A = H64 + mu.double()[..., None, None] * torch.diag_embed(diagH + ridge)
+    sol, info = torch.linalg.solve_ex(A, g.double().unsqueeze(-1))
+    delta = (-sol.squeeze(-1)).to(dt)
+    ok = active & (info == 0) & torch.isfinite(delta).all(-1)
+    delta = torch.where(ok[..., None], delta, torch.zeros_like(delta))
+    Rt, st, tt = _retract(R, s, t, delta)
+    Et, Ekt, Est, gt, Ht = _terms(Rt, st, tt, S, kmf, kp_w, wv_w, maps_w, lam_w, rscale_w)
+    accept = active & torch.isfinite(Et) & (Et <= E)
+    small = accept & ((E - Et) <= tol * E)
+    a2, a3, a4 = accept[..., None], accept[..., None, None], accept[..., None, None]
+    mu = torch.where(accept, mu / 3.0, torch.where(active, mu * 4.0, mu))
+    done = small | (mu > 1e8)
+    return [torch.where(a4, Rt, R), torch.where(accept, st, s), torch.where(a2, tt, t), torch.where(accept, Et, E),
+            torch.where(accept, Ekt, E_kp), torch.where(accept, Est, E_sil), torch.where(a2, gt, g),
+            torch.where(a3, Ht, H), mu, active & ~done, converged | (active & done)]
 
 
 def _write_back(full: list, rows, state: list) -> None:
