@@ -546,6 +546,120 @@ def step_compare(recon_a: Path, recon_b: Path, gt: dict, names: tuple[str, str])
     return out
 
 
+def fit_orthographic_pose(X: np.ndarray, W: np.ndarray, R0: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """The scaled orthographic camera nearest ``R0`` that best fits 3-D points to image points.
+
+    Minimises ``sum_k ||s R[:2] X_k + t - W_k||^2`` over ``R``, ``s`` and ``t`` by scipy's ``least_squares``
+    from ``R0`` (a small rotation ``exp([w]x) R0``, the scale and offset of :func:`fit_keypoints` at ``R0``).
+
+    Args:
+        X: ``(M, 3)`` model points; W: ``(M, 2)`` image points, ``M >= 3``; R0: ``(3, 3)`` start.
+
+    Returns:
+        ``R (3, 3)``, ``s``, ``t (2,)`` and the RMS residual (pixels).
+    """
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    if len(X) < 3:
+        raise ValueError(f"fit_orthographic_pose needs 3 or more points, got {len(X)}")
+    s0, t0, _ = fit_keypoints(X @ R0[:2].T, W)
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        R = Rotation.from_rotvec(p[:3]).as_matrix() @ R0
+        return (p[3] * X @ R[:2].T + p[4:] - W).ravel()
+
+    sol = least_squares(residual, np.r_[0.0, 0.0, 0.0, s0, t0])
+    R = Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0
+    return R, float(sol.x[3]), sol.x[4:].copy(), float(np.sqrt((sol.fun ** 2).reshape(-1, 2).sum(-1).mean()))
+
+
+def signed_elevation_errors(R_est: torch.Tensor, R_gt: torch.Tensor) -> np.ndarray:
+    """``(N,)`` elevation of ``R_est`` minus that of ``R_gt`` (degrees; > 0: the estimate looks from higher)."""
+    _, e_est, _ = azimuth_elevation_roll_from_rotation(R_est)
+    _, e_gt, _ = azimuth_elevation_roll_from_rotation(R_gt.to(R_est))
+    return torch.rad2deg(e_est - e_gt).numpy()
+
+
+def elevation_trend(error: np.ndarray, elevation: np.ndarray, within: float = 30.0) -> dict:
+    """How a signed elevation error follows the true elevation (both ``(N,)``, degrees).
+
+    A least-squares line ``error = intercept + slope * elevation`` over the objects whose true elevation is
+    within ``within`` degrees of level: a slope of -0.2 means the estimates come out 20% nearer level than
+    the truth. Returns ``{"n", "slope", "intercept", "median_signed"}`` (NaNs below 2 objects).
+
+    Example:
+        >>> t = elevation_trend(np.array([2.0, 0.0, -2.0, 50.0]), np.array([-10.0, 0.0, 10.0, 60.0]))
+        >>> round(t["slope"], 6), abs(round(t["intercept"], 6)), t["n"]
+        (-0.2, 0.0, 3)
+    """
+    error, elevation = np.asarray(error, dtype=np.float64), np.asarray(elevation, dtype=np.float64)
+    m = np.abs(elevation) <= within
+    if m.sum() < 2:
+        return {"n": int(m.sum()), "slope": float("nan"), "intercept": float("nan"), "median_signed": float("nan")}
+    slope, intercept = np.polyfit(elevation[m], error[m], 1)
+    return {"n": int(m.sum()), "slope": float(slope), "intercept": float(intercept),
+            "median_signed": float(np.median(error[m]))}
+
+
+def _cad_fit_rotations(ann: Path, data: Path, gt: dict) -> tuple[list[str], torch.Tensor, torch.Tensor]:
+    """Keys, :func:`fit_orthographic_pose` rotations and ground truth of the objects whose annotator's CAD
+    model names at least 3 of their visible keypoints."""
+    coll = read_json(ann)
+    names = coll["categories"][0]["keypoints"]
+    cads: dict[int, dict] = {}
+    keys, R_fit, R_gt = [], [], []
+    for a in coll["annotations"]:
+        k = gt_key(a["source"])
+        if k not in gt:
+            continue
+        sub = int(gt[k]["subtype"])
+        cad_kp = cads.setdefault(sub, load_cad(data / "pascal3d_cad" / f"aeroplane{sub:02d}.npz"))["keypoints"]
+        kp = np.asarray(a["keypoints"], dtype=np.float64).reshape(-1, 3)
+        pairs = [(kp[i, :2], cad_kp[BERKELEY_TO_PASCAL3D[n]]) for i, n in enumerate(names)
+                 if kp[i, 2] > 0 and BERKELEY_TO_PASCAL3D.get(n) in cad_kp]
+        if len(pairs) < 3:
+            continue
+        R0 = np.asarray(gt[k]["R"], dtype=np.float64)
+        R_fit.append(fit_orthographic_pose(np.stack([p[1] for p in pairs]), np.stack([p[0] for p in pairs]), R0)[0])
+        R_gt.append(R0)
+        keys.append(k)
+    return keys, torch.tensor(np.array(R_fit)), torch.tensor(np.array(R_gt))
+
+
+def step_cad_floor(ann: Path, data: Path, gt: dict, vp: dict) -> dict:
+    """What an orthographic camera reaches on these labels: the annotator's own CAD model fitted to each object.
+
+    For every object with ground truth whose PASCAL3D+ CAD model (its ``subtype``) names at least 3 of its
+    visible keypoints, :func:`fit_orthographic_pose` from the ground-truth rotation: the best orthographic
+    camera near the truth for the very model the annotator aligned. Its errors need no fitted ``G`` (the CAD
+    frame is the ground truth's). Beside it, the pipeline's refined cameras (least-squares ``G``) on the same
+    objects; :func:`elevation_trend` for both. Printed and returned.
+    """
+    keys, R_fit, R_gt = _cad_fit_rotations(ann, data, gt)
+    geo, ang = geodesic_errors(R_fit, R_gt).numpy(), angle_errors(R_fit, R_gt)
+    el_gt = torch.rad2deg(azimuth_elevation_roll_from_rotation(R_gt)[1]).numpy()
+    fit = {"n": len(keys), "geodesic_median": float(np.median(geo)),
+           "azimuth_median": float(np.median(ang["azimuth"].numpy())),
+           "elevation_median": float(np.median(ang["elevation"].numpy())),
+           "elevation_trend": elevation_trend(signed_elevation_errors(R_fit, R_gt), el_gt)}
+    per = vp["refined"]["per_object"]
+    rows = [per[k] for k in keys if k in per]
+    refined = {"n": len(rows), **{f"{a}_median": float(np.median([r[f] for r in rows])) for a, f in
+                                  (("geodesic", "geodesic"), ("azimuth", "azimuth_error"),
+                                   ("elevation", "elevation_error"))},
+               "elevation_trend": elevation_trend(np.array([r["signed_elevation_error"] for r in rows]),
+                                                  np.array([r["gt_elevation"] for r in rows]))}
+    out = {"annotator_cad_fit": fit, "refined": refined}
+    print_table("the annotator's own CAD model fitted by an orthographic camera near the truth, against the "
+                "refined cameras on the same objects (degrees; elevation trend over |true elevation| <= 30)",
+                ["cameras", "n", "geodesic", "azimuth", "elevation", "el. slope", "el. intercept"],
+                [[name, str(r["n"]), r["geodesic_median"], r["azimuth_median"], r["elevation_median"],
+                  r["elevation_trend"]["slope"], r["elevation_trend"]["intercept"]]
+                 for name, r in (("annotator's CAD, orthographic fit", fit), ("refined (least-squares G)", refined))])
+    return out
+
+
 def step_viewpoints(recon: Path, gt: dict, subcategory: dict | None = None) -> dict:
     """SfM and refined cameras of the pipeline vs PASCAL3D+ (``subcategory``: key -> Berkeley subcategory)."""
     cams = read_json(recon / CLASS / "cameras.json")["cameras"]
@@ -554,13 +668,13 @@ def step_viewpoints(recon: Path, gt: dict, subcategory: dict | None = None) -> d
         keys, aids, R, Rg = _gt_arrays(cams, gt, stage)
         rep, G, geo, ang = _aligned_errors(R, Rg)
         rob = viewpoint_report(R, Rg, robust=True)
-        signed = signed_azimuth_errors(R, Rg, G)
+        signed, signed_el = signed_azimuth_errors(R, Rg, G), signed_elevation_errors(R @ G, Rg)
         a_gt, e_gt, _ = azimuth_elevation_roll_from_rotation(Rg)
         per = {k: {"annotation_id": a, "geodesic": float(g), "azimuth_error": float(az), "elevation_error": float(el),
-                   "signed_azimuth_error": float(sa), "gt_azimuth": math.degrees(float(ag)) % 360.0,
-                   "gt_elevation": math.degrees(float(eg))}
-               for k, a, g, az, el, sa, ag, eg in zip(keys, aids, geo, ang["azimuth"], ang["elevation"], signed,
-                                                     a_gt, e_gt)}
+                   "signed_azimuth_error": float(sa), "signed_elevation_error": float(se),
+                   "gt_azimuth": math.degrees(float(ag)) % 360.0, "gt_elevation": math.degrees(float(eg))}
+               for k, a, g, az, el, sa, se, ag, eg in zip(keys, aids, geo, ang["azimuth"], ang["elevation"], signed,
+                                                         signed_el, a_gt, e_gt)}
         gross = sorted(((k, v) for k, v in per.items() if v["geodesic"] > 30.0), key=lambda kv: -kv[1]["geodesic"])
         out[stage] = {"report": _compact(rep), "robust_alignment": _compact(rob), "by_azimuth": azimuth_bins(R, Rg, G),
                       "side_view_bias": side_view_bias(per, subcategory or {}),
@@ -1210,6 +1324,7 @@ def cameras_only(args, data: Path, work: Path, command: str) -> dict:
     recon = step_reconstruct(ann, work / "cameras", ["stage=cameras", "overwrite=true", *args.overrides], args.device)
     subcategory = {gt_key(a["source"]): a.get("subcategory") for a in read_json(ann)["annotations"]}
     vp = step_viewpoints(work / "cameras", gt, subcategory)
+    floor = step_cad_floor(ann, data, gt, vp)
     summary = {stage: {"n": vp[stage]["report"]["n"],
                        **{f"{a}_median": vp[stage]["report"][a]["median"] for a in ("geodesic", "azimuth",
                                                                                     "elevation")},
@@ -1217,7 +1332,7 @@ def cameras_only(args, data: Path, work: Path, command: str) -> dict:
                        "mirrored": vp[stage]["report"]["mirrored"]} for stage in ("sfm", "refined")}
     out = Path(args.out) if args.out else work / "cameras_only.json"
     result = {"command": command, "objects": conv["converted"], **summary, "acceptance": vp["acceptance"],
-              "cameras_seconds": recon["total_seconds"]}
+              "cad_floor": floor, "cameras_seconds": recon["total_seconds"]}
     if args.compare_set:
         step_reconstruct(ann, work / "cameras_compare", ["stage=cameras", "overwrite=true", *args.overrides,
                                                           *args.compare_set], args.device)
@@ -1263,6 +1378,7 @@ def main(argv=None) -> dict:
     vp = step_viewpoints(recon, gt, subcategory)
     result["viewpoints"] = {k: ({kk: vv for kk, vv in v.items() if kk != "per_object"} if isinstance(v, dict)
                                 and "per_object" in v else v) for k, v in vp.items()}
+    result["cad_floor"] = step_cad_floor(ann, data, gt, vp)
     result["unseen"] = step_unseen(ann, gt, cfg, args.seed, args.holdout, args.device, seen=vp)
     if not args.no_diagnose:
         result["diagnosis"] = step_diagnose(data, work, gt, cfg, args.device)
