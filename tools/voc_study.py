@@ -395,7 +395,8 @@ def step_convert(data: Path, work: Path) -> dict:
 
 
 def step_reconstruct(ann: Path, recon: Path, overrides: list[str], device: str) -> dict:
-    """Run ``python -m carvi_torch.reconstruct`` (resumes a finished or interrupted run)."""
+    """Run ``python -m carvi_torch.reconstruct`` (the study passes ``overwrite=true``: its record's stage times are
+    a whole run's, never those of a resumed one; ``--skip-reconstruct`` reuses an existing run instead)."""
     cmd = [sys.executable, "-m", "carvi_torch.reconstruct", "--data", str(ann), "--out", str(recon),
            "progress=false", f"device={device}", *overrides]
     print("\n$ " + " ".join(shlex.quote(c) for c in cmd), flush=True)
@@ -1373,7 +1374,7 @@ def main(argv=None) -> dict:
     ann = Path(conv["annotations"])
     recon = work / "recon"
     result["reconstruction"] = _reused_reconstruction(recon) if args.skip_reconstruct else \
-        step_reconstruct(ann, recon, args.overrides, args.device)
+        step_reconstruct(ann, recon, ["overwrite=true", *args.overrides], args.device)
     subcategory = {gt_key(a["source"]): a.get("subcategory") for a in read_json(ann)["annotations"]}
     vp = step_viewpoints(recon, gt, subcategory)
     result["viewpoints"] = {k: ({kk: vv for kk, vv in v.items() if kk != "per_object"} if isinstance(v, dict)
