@@ -45,7 +45,7 @@ Monotonicity: a trial step is accepted for an instance only when it does not rai
 that instance's energy; otherwise the instance keeps its camera and its damping
 ``mu`` grows (x4, a shorter step: per-instance backtracking), on acceptance ``mu``
 shrinks (/3). Stopping rule, per instance: an accepted step lowered the energy by
-less than ``tol`` times its value, or ``mu`` exceeded ``1e8`` (no descent step left),
+at most ``tol`` times its value, or ``mu`` exceeded ``1e8`` (no descent step left),
 or ``max_iters`` iterations.
 
 Working set: a finished camera is no longer stepped. Once at most :data:`COMPACT_FRACTION` of
@@ -468,12 +468,17 @@ def _native_optimize(R, s, t, shape, keypoints, visible, max_iters, tol):
     return (*cams, E0, E, E.clone(), torch.zeros_like(E), it, conv)
 
 
+#: Index of ``active`` in :func:`_lm_step`'s state.
+_ACTIVE = 9
 #: The optimiser works on a shrinking set of rows: once at most this fraction of the rows it
 #: holds still has an active camera, the others are written back and dropped (module docstring).
 COMPACT_FRACTION = 0.5
 
 
 def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale=None):
+    """:func:`_optimize`'s torch path: Levenberg-Marquardt steps (:func:`_lm_step`) on a working set of rows that
+    shrinks as cameras finish (:data:`COMPACT_FRACTION`); returns its ``(R, s, t, E_before, E, E_kp, E_sil, it,
+    converged)``."""
     dt = keypoints.dtype
     n, b = s.shape
     kmask = torch.isfinite(shape).all(-1)
@@ -509,8 +514,8 @@ def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol
         if n_live == 0:
             it -= 1
             break
-        state = _lm_step(state, data, S, kmf, tol)
-        live = state[9].any(-1)  # active
+        state = _lm_step(state, data, S, kmf, tol, dt)
+        live = state[_ACTIVE].any(-1)
         n_live = int(live.sum())
         if 0 < n_live <= COMPACT_FRACTION * live.shape[0]:
             _write_back(full, rows, state)
@@ -526,17 +531,17 @@ def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol
     return R, s, t, E_before, E, E_kp, E_sil, it, converged
 
 
-def _lm_step(state: list, data: list, S: torch.Tensor, kmf: torch.Tensor, tol: float) -> list:
+def _lm_step(state: list, data: list, S: torch.Tensor, kmf: torch.Tensor, tol: float, dt: torch.dtype) -> list:
     """One Levenberg-Marquardt step of :func:`_optimize_impl` on its working set.
 
     ``state`` is ``[R, s, t, E, E_kp, E_sil, g, H, mu, active, converged]`` and ``data``
-    ``[keypoints, weights, maps, lam, rscale]``, both row-aligned; returns the new state. A camera
-    takes its step only where the energy does not rise (its damping then falls by 3, else rises by
-    4); it stops when the relative decrease is at most ``tol`` or the damping passes 1e8.
+    ``[keypoints, weights, maps, lam, rscale]``, both row-aligned; ``dt`` is the working dtype (the
+    keypoints'), in which the step is taken. Returns the new state. An active camera takes its step only
+    where the energy does not rise (its damping is then divided by 3, else multiplied by 4); it stops
+    when the relative decrease is at most ``tol`` or the damping passes 1e8.
     """
     R, s, t, E, E_kp, E_sil, g, H, mu, active, converged = state
     kp_w, wv_w, maps_w, lam_w, rscale_w = data
-    dt = kp_w.dtype
     # damped 6x6 solves in float64: H can be rank-deficient (an instance with one
     # visible keypoint whose shape points all fall inside its mask has no
     # information about most directions); the relative ridge keeps A definite
@@ -553,11 +558,17 @@ def _lm_step(state: list, data: list, S: torch.Tensor, kmf: torch.Tensor, tol: f
     accept = active & torch.isfinite(Et) & (Et <= E)
     small = accept & ((E - Et) <= tol * E)
     a2, a3, a4 = accept[..., None], accept[..., None, None], accept[..., None, None]
+    R = torch.where(a4, Rt, R)
+    s = torch.where(accept, st, s)
+    t = torch.where(a2, tt, t)
+    E = torch.where(accept, Et, E)
+    E_kp = torch.where(accept, Ekt, E_kp)
+    E_sil = torch.where(accept, Est, E_sil)
+    g = torch.where(a2, gt, g)
+    H = torch.where(a3, Ht, H)
     mu = torch.where(accept, mu / 3.0, torch.where(active, mu * 4.0, mu))
     done = small | (mu > 1e8)
-    return [torch.where(a4, Rt, R), torch.where(accept, st, s), torch.where(a2, tt, t), torch.where(accept, Et, E),
-            torch.where(accept, Ekt, E_kp), torch.where(accept, Est, E_sil), torch.where(a2, gt, g),
-            torch.where(a3, Ht, H), mu, active & ~done, converged | (active & done)]
+    return [R, s, t, E, E_kp, E_sil, g, H, mu, active & ~done, converged | (active & done)]
 
 
 def _write_back(full: list, rows, state: list) -> None:

@@ -697,8 +697,8 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
             shape fits the class; the mixture's cost is saved). 0: always try.
         hull_gain: a ``k`` is only eligible when each of its usable starts raises the median hull
             agreement of the rows (:func:`hull_agreements`, under each row's group shape and SfM
-            camera) by at least this over one shape; the starts after one that fails are not run
-            (nor recorded). ``None``: not measured, no such test.
+            camera) by at least this over one shape; the starts after one that fails are not recorded
+            (on one thread not run). ``None``: not measured, no such test.
         native: the EM's keypoint-only camera fits in the compiled kernel on the CPU (:func:`keypoint_fit`; the
             pipeline's ``sfm_native``).
 
@@ -711,7 +711,7 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
         raise ValueError(f"threads must be >= 1, got {threads}")
     n = len(both) // 2
     best = _one_shape(both, sfm_fn(both) if single is None else single)
-    if not _worth_splitting(best, both, n, max_groups, min_size, min_misfit):
+    if not _split_gate(best, both, n, max_groups, min_size, min_misfit):
         return best
     ctx = _em_context(best, both, dist, n, sfm_fn, rounds=rounds, min_size=min_size, agreement_deg=agreement_deg,
                       warm_start=warm_start, native=native, hull_gain=hull_gain)
@@ -720,7 +720,7 @@ def fit_mixture_of_shapes(both, dist: torch.Tensor, sfm_fn: SfMFn, *, max_groups
     for k in range(2, max_groups + 1):
         if n < k * min_size:
             break
-        inits = _starts(ctx, best, k, seed)
+        inits = _initial_labels(ctx, best, k, seed)
         cands = _run_starts(ctx, best, k, inits, sse_prev, workers, log)
         ok = [c for c in cands if c[0]["eligible"]]
         if not ok:
@@ -742,9 +742,9 @@ def _one_shape(both, res1: SfMResult) -> MixtureResult:
     return MixtureResult(1, labels1, [(torch.arange(2 * n, device=both.keypoints.device), res1)], [eye], 0.0, res1)
 
 
-def _worth_splitting(best: MixtureResult, both, n: int, max_groups: int, min_size: int, min_misfit: float) -> bool:
-    """Whether :func:`fit_mixture_of_shapes` tries a split; when not, ``best.note`` says why (and
-    ``best.misfit`` is measured once the class is large enough)."""
+def _split_gate(best: MixtureResult, both, n: int, max_groups: int, min_size: int, min_misfit: float) -> bool:
+    """Sets ``best.misfit`` (with ``max_groups > 1`` and at least ``2 * min_size`` objects) and, when no split is
+    to be tried, ``best.note`` saying why; returns whether :func:`fit_mixture_of_shapes` tries one."""
     if max_groups == 1:
         return False
     if n < 2 * min_size:
@@ -758,18 +758,19 @@ def _worth_splitting(best: MixtureResult, both, n: int, max_groups: int, min_siz
     return True
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class _EMContext:
-    """What every start of one class's EM shares: the class, its one-shape fit and the rule's settings."""
+    """What every start of one class's EM shares (read only, also by worker threads): the class, its one-shape
+    fit and the rule's settings."""
 
-    both: object
+    both: object  # the 2n collection (originals, then mirrored copies), as fit_mixture_of_shapes's ``both``
     n: int
     dist: torch.Tensor
     sfm_fn: SfMFn
     res1: SfMResult
-    cost1: torch.Tensor  # (n, 1) each object's keypoint cost under the one shape
+    cost1: torch.Tensor  # (n,) each object's keypoint cost under the one shape
     cams1: ScaledOrthographic  # the one shape's keypoint fit (the EM's warm start)
-    lifted: torch.Tensor  # (n, 2 K 3) unit lifted residuals of each object and its mirrored copy
+    lifted: torch.Tensor  # (n, 6K) unit rows: the object's lifted residuals (3K), then its mirrored copy's
     nvis_obj: torch.Tensor  # (n,) visible keypoints of each object and its copy (at least 1)
     rounds: int
     min_size: int
@@ -790,13 +791,14 @@ def _em_context(best: MixtureResult, both, dist, n, sfm_fn, *, rounds, min_size,
     seen = both.visible & torch.isfinite(both.keypoints).all(-1)
     lifted = lifted_residuals(res1, both.keypoints, both.visible)
     lifted = torch.cat([lifted[:n], lifted[n:]], 1)
-    return _EMContext(both, n, dist, sfm_fn, res1, cost1, cams1,
-                      lifted / lifted.norm(dim=1, keepdim=True).clamp(min=1e-9),
-                      (seen[:n].sum(-1) + seen[n:].sum(-1)).clamp(min=1), rounds, min_size, agreement_deg,
-                      warm_start, native, hull_gain, hull1)
+    return _EMContext(both=both, n=n, dist=dist, sfm_fn=sfm_fn, res1=res1, cost1=cost1, cams1=cams1,
+                      lifted=lifted / lifted.norm(dim=1, keepdim=True).clamp(min=1e-9),
+                      nvis_obj=(seen[:n].sum(-1) + seen[n:].sum(-1)).clamp(min=1), rounds=rounds, min_size=min_size,
+                      agreement_deg=agreement_deg, warm_start=warm_start, native=native, hull_gain=hull_gain,
+                      hull1=hull1)
 
 
-def _starts(ctx: _EMContext, best: MixtureResult, k: int, seed: int) -> dict[str, torch.Tensor]:
+def _initial_labels(ctx: _EMContext, best: MixtureResult, k: int, seed: int) -> dict[str, torch.Tensor]:
     """The EM's starting labels for ``k`` groups: k-means of the lifted residuals, bands of the one-shape
     residual and, from the kept ``k - 1`` groups, the costliest one split in two (when it can be)."""
     n = ctx.n
@@ -811,9 +813,10 @@ def _starts(ctx: _EMContext, best: MixtureResult, k: int, seed: int) -> dict[str
 
 def _run_starts(ctx: _EMContext, best: MixtureResult, k: int, inits: dict, sse_prev: float, workers: int,
                 log: Callable[[str], None] | None) -> list:
-    """Every start's EM for ``k`` groups (side by side on ``workers`` threads; with the hull test, none
-    after the first that fails it): ``[(row, MixtureResult)]`` of the usable ones, each row also appended
-    to ``best.candidates`` and logged, each row's ``eligible`` set."""
+    """Every start's EM for ``k`` groups, side by side on ``workers`` threads (:func:`_map_candidates`; with
+    the hull test the starts after the first that fails it are not recorded, and on one thread not run):
+    ``[(row, MixtureResult)]`` of the usable ones, each row also appended to ``best.candidates`` and
+    logged, each row's ``eligible`` set."""
     cands = []
     fails = None if ctx.hull1 is None else (lambda r: not r[0].get("hull_gain", ctx.hull_gain) >= ctx.hull_gain)
     items = [(ctx, best.misfit, name, lab0, k, sse_prev) for name, lab0 in inits.items()]
@@ -832,7 +835,13 @@ def _run_starts(ctx: _EMContext, best: MixtureResult, k: int, inits: dict, sse_p
 
 
 def _candidate(ctx: _EMContext, misfit1: float | None, name: str, lab0: torch.Tensor, k: int, sse_prev: float):
-    """``(row, MixtureResult or None, log line)`` of the EM from one start."""
+    """``(row, MixtureResult or None, log line)`` of the EM from one start.
+
+    Args:
+        ctx: the class's shared measures; misfit1: the one-shape :func:`misfit`, copied into the result.
+        name: the start's name (``row["init"]``); lab0: ``(n,)`` its labels, topped up to ``min_size`` here.
+        k: groups; sse_prev: the residual of the best ``k - 1`` groups, against which ``row["cut"]`` is taken.
+    """
     n = ctx.n
     lab0 = top_up(lab0, torch.zeros(n, k, device=lab0.device), k, ctx.min_size)
     row = {"k": k, "init": name, "sizes": None, "sse_px2": float("inf"), "cut": float("-inf"),
