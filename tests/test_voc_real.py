@@ -188,6 +188,28 @@ def test_fit_orthographic_pose_recovers_a_known_pose(generator):
         vs.fit_orthographic_pose(X[:2], W[:2], R0)
 
 
+def test_fit_perspective_pose_recovers_pascal3ds_camera(generator):
+    X = torch.randn(9, 3, generator=generator, dtype=torch.float64).numpy()
+    R = rotation_from_azimuth_elevation_roll(*torch.tensor([2.3, 0.25, -0.05], dtype=torch.float64)).numpy()
+    d, p = 12.0, np.array([210.0, 140.0])
+    Y = X @ R.T + np.array([0.0, 0.0, d])  # PASCAL3D+'s camera: the origin on the optical axis
+    W = 3000.0 * Y[:, :2] / Y[:, 2:] + p
+    turn = rotation_from_azimuth_elevation_roll(*torch.tensor([0.1, 1.7, 0.08], dtype=torch.float64)).numpy()
+    R0 = np.diag([1.0, -1.0, -1.0]) @ turn @ R  # a turn of about 7.5 degrees
+    R_fit, d_fit, p_fit, rms = vs.fit_perspective_pose(X, W, R0)
+    np.testing.assert_allclose(R_fit, R, atol=1e-6)
+    assert d_fit == pytest.approx(d, rel=1e-6) and p_fit == pytest.approx(p, abs=1e-4) and rms < 1e-5
+    # the same points seen from far away: the perspective fit's rotation is the orthographic fit's
+    far = X @ R.T + np.array([0.0, 0.0, 1e5])
+    noise = torch.randn(9, 2, generator=generator, dtype=torch.float64).numpy() * 1e-3
+    W_far = 3000.0 * far[:, :2] / far[:, 2:] + p + noise
+    R_p = vs.fit_perspective_pose(X, W_far, R0)[0]
+    R_o = vs.fit_orthographic_pose(X, W_far, R0)[0]
+    assert math.degrees(math.acos(min(1.0, (np.trace(R_p @ R_o.T) - 1) / 2))) < 0.05
+    with pytest.raises(ValueError, match="3 or more"):
+        vs.fit_perspective_pose(X[:2], W[:2], R0)
+
+
 def test_signed_elevation_errors_and_their_trend():
     aer = torch.tensor([[0.3, 0.2, 0.0], [2.0, -0.4, 0.1], [4.0, 0.05, -0.1]], dtype=torch.float64)
     moved = aer + torch.tensor([[0.0, 0.1, 0.0], [0.5, -0.2, 0.0], [-1.0, 0.3, 0.2]], dtype=torch.float64)
