@@ -210,18 +210,42 @@ def test_fit_perspective_pose_recovers_pascal3ds_camera(generator):
         vs.fit_perspective_pose(X[:2], W[:2], R0)
 
 
-def test_signed_elevation_errors_and_their_trend():
+def test_signed_elevation_errors():
     aer = torch.tensor([[0.3, 0.2, 0.0], [2.0, -0.4, 0.1], [4.0, 0.05, -0.1]], dtype=torch.float64)
     moved = aer + torch.tensor([[0.0, 0.1, 0.0], [0.5, -0.2, 0.0], [-1.0, 0.3, 0.2]], dtype=torch.float64)
     err = vs.signed_elevation_errors(rotation_from_azimuth_elevation_roll(*moved.T),
                                      rotation_from_azimuth_elevation_roll(*aer.T))
     np.testing.assert_allclose(err, np.degrees([0.1, -0.2, 0.3]), atol=1e-9)
-    # estimates 20% nearer level than the truth, 1 degree high: the line comes back; |elevation| > 30 left out
-    el = np.array([-25.0, -10.0, 0.0, 5.0, 20.0, 60.0])
-    t = vs.elevation_trend(1.0 - 0.2 * el + np.array([0, 0, 0, 0, 0, 30.0]), el)
-    assert t["n"] == 5 and t["slope"] == pytest.approx(-0.2) and t["intercept"] == pytest.approx(1.0)
-    assert t["median_signed"] == pytest.approx(1.0)
-    assert math.isnan(vs.elevation_trend(np.array([1.0, 2.0]), np.array([0.0, 45.0]))["slope"])
+
+
+def test_cad_floor_end_to_end_on_a_synthetic_collection(tmp_path, generator):
+    """step_cad_floor pairs the Berkeley names with the subtype's CAD keypoints, skips objects with fewer than
+    CAD_FIT_MIN_POINTS pairs, fits both cameras and reads the refined rows of the same objects: on keypoints
+    projected exactly by the orthographic ground truth its orthographic fit returns the truth."""
+    names = sorted(vs.BERKELEY_TO_PASCAL3D)
+    X = torch.randn(len(names), 3, generator=generator, dtype=torch.float64).numpy()
+    (tmp_path / "pascal3d_cad").mkdir()
+    np.savez(tmp_path / "pascal3d_cad" / "aeroplane02.npz", vertices=X.astype(np.float32),
+             faces=np.zeros((1, 3), np.int32), keypoint_names=np.array([vs.BERKELEY_TO_PASCAL3D[n] for n in names]),
+             keypoints=X.astype(np.float32))
+    X = X.astype(np.float32).astype(np.float64)
+    gt, anns, per = {}, [], {}
+    angles = torch.tensor([[0.4, 0.2, 0.0], [2.1, -0.3, 0.1], [4.0, 0.1, -0.05]], dtype=torch.float64)
+    for i, R in enumerate(rotation_from_azimuth_elevation_roll(*angles.T).numpy()):
+        key = f"2008_00000{i}_1"
+        W = 40.0 * X @ R[:2].T + np.array([100.0, 80.0])
+        vis = np.ones(len(names)) if i < 2 else (np.arange(len(names)) < 3)  # the third shows 3 keypoints
+        anns.append({"source": f"{key}.xml", "keypoints": np.c_[W, 2 * vis].ravel().tolist()})
+        gt[key] = {"R": R.tolist(), "subtype": 2}
+        per[key] = {"geodesic": 1.0 + i, "azimuth_error": 2.0 + i, "elevation_error": 3.0 + i}
+    ann = tmp_path / "annotations.json"
+    ann.write_text(json.dumps({"categories": [{"keypoints": names}], "annotations": anns}))
+    floor = vs.step_cad_floor(ann, tmp_path, gt, {"refined": {"per_object": per}})
+    ortho, persp, ref = floor["annotator_cad_fit"], floor["annotator_cad_perspective"], floor["refined"]
+    assert ortho["n"] == persp["n"] == ref["n"] == 2
+    assert ortho["geodesic_median"] < 1e-4 and ortho["elevation_median"] < 1e-4
+    assert persp["geodesic_median"] < 1.0  # a perspective camera nearly fits orthographic data from far away
+    assert (ref["geodesic_median"], ref["azimuth_median"], ref["elevation_median"]) == (1.5, 2.5, 3.5)
 
 
 def test_print_table_formats(capsys):
@@ -272,7 +296,8 @@ def test_keypoint_name_mapping_fits_the_pascal3d_poses(shared_data):
 
 def test_orthographic_fit_of_the_annotators_cad_on_real_objects(shared_data):
     """On real objects the fit of the annotator's own CAD model lowers the keypoint RMS below that of the
-    ground-truth rotation and stays near it (the floor of docs/voc.md section 2)."""
+    ground-truth rotation and stays near it: the model is only the closest of eight (the keypoints sit 8.9% of
+    the object's extent from it at the truth, docs/voc.md section 4), so a few degrees, not tens."""
     from carvi_torch.io.voc import parse_keypoint_xml
 
     gt = json.loads((shared_data / "pascal_voc_aeroplane" / "viewpoints_dev.json").read_text())
@@ -283,13 +308,13 @@ def test_orthographic_fit_of_the_annotators_cad_on_real_objects(shared_data):
         cad = cads[gt[key]["subtype"]]["keypoints"]
         pairs = [(np.array(v[:2]), cad[vs.BERKELEY_TO_PASCAL3D[n]]) for n, v in obj.keypoints.items()
                  if v[2] and n in vs.BERKELEY_TO_PASCAL3D]
-        if len(pairs) < 3:
+        if len(pairs) < vs.CAD_FIT_MIN_POINTS:
             continue
         X, W, R = np.stack([p[1] for p in pairs]), np.stack([p[0] for p in pairs]), np.asarray(gt[key]["R"])
         R_fit, _, _, rms = vs.fit_orthographic_pose(X, W, R)
         assert rms <= vs.fit_keypoints(X @ R[:2].T, W)[2] + 1e-9
         turned.append(math.degrees(math.acos(min(1.0, (np.trace(R_fit @ R.T) - 1) / 2))))
-    assert len(turned) >= 12 and np.median(turned) < 15.0
+    assert len(turned) >= 12 and np.median(turned) < 10.0
 
 
 def test_converter_and_cameras_on_real_files(shared_data, tmp_path):

@@ -618,31 +618,15 @@ def signed_elevation_errors(R_est: torch.Tensor, R_gt: torch.Tensor) -> np.ndarr
     return torch.rad2deg(e_est - e_gt).numpy()
 
 
-def elevation_trend(error: np.ndarray, elevation: np.ndarray, within: float = 30.0) -> dict:
-    """How a signed elevation error follows the true elevation (both ``(N,)``, degrees).
-
-    A least-squares line ``error = intercept + slope * elevation`` over the objects whose true elevation is
-    within ``within`` degrees of level: a slope of -0.2 means the estimates come out 20% nearer level than
-    the truth. Returns ``{"n", "slope", "intercept", "median_signed"}`` (NaNs below 2 objects).
-
-    Example:
-        >>> t = elevation_trend(np.array([2.0, 0.0, -2.0, 50.0]), np.array([-10.0, 0.0, 10.0, 60.0]))
-        >>> round(t["slope"], 6), abs(round(t["intercept"], 6)), t["n"]
-        (-0.2, 0.0, 3)
-    """
-    error, elevation = np.asarray(error, dtype=np.float64), np.asarray(elevation, dtype=np.float64)
-    m = np.abs(elevation) <= within
-    if m.sum() < 2:
-        return {"n": int(m.sum()), "slope": float("nan"), "intercept": float("nan"), "median_signed": float("nan")}
-    slope, intercept = np.polyfit(elevation[m], error[m], 1)
-    return {"n": int(m.sum()), "slope": float(slope), "intercept": float(intercept),
-            "median_signed": float(np.median(error[m]))}
+#: Fewest keypoint pairs for :func:`step_cad_floor`'s fits: 4 give 8 equations for the 6 unknowns of either
+#: camera, so no fit is exact by construction.
+CAD_FIT_MIN_POINTS = 4
 
 
 def _cad_fit_rotations(ann: Path, data: Path, gt: dict) -> tuple[list[str], dict, torch.Tensor]:
     """Keys, rotations of :func:`fit_orthographic_pose` and :func:`fit_perspective_pose` (``{"orthographic",
-    "perspective"}``) and ground truth of the objects whose annotator's CAD model names at least 3 of their
-    visible keypoints."""
+    "perspective"}``) and ground truth of the objects whose annotator's CAD model names at least
+    :data:`CAD_FIT_MIN_POINTS` of their visible keypoints."""
     coll = read_json(ann)
     names = coll["categories"][0]["keypoints"]
     cads: dict[int, dict] = {}
@@ -656,7 +640,7 @@ def _cad_fit_rotations(ann: Path, data: Path, gt: dict) -> tuple[list[str], dict
         kp = np.asarray(a["keypoints"], dtype=np.float64).reshape(-1, 3)
         pairs = [(kp[i, :2], cad_kp[BERKELEY_TO_PASCAL3D[n]]) for i, n in enumerate(names)
                  if kp[i, 2] > 0 and BERKELEY_TO_PASCAL3D.get(n) in cad_kp]
-        if len(pairs) < 3:
+        if len(pairs) < CAD_FIT_MIN_POINTS:
             continue
         R0 = np.asarray(gt[k]["R"], dtype=np.float64)
         X, W = np.stack([p[1] for p in pairs]), np.stack([p[0] for p in pairs])
@@ -668,37 +652,32 @@ def _cad_fit_rotations(ann: Path, data: Path, gt: dict) -> tuple[list[str], dict
 
 
 def step_cad_floor(ann: Path, data: Path, gt: dict, vp: dict) -> dict:
-    """What a camera reaches on these labels: the annotator's own CAD model fitted to each object.
+    """How far the labels sit from the annotator's own CAD model fitted to each object's keypoints.
 
-    For every object with ground truth whose PASCAL3D+ CAD model (its ``subtype``) names at least 3 of its
-    visible keypoints, :func:`fit_orthographic_pose` and :func:`fit_perspective_pose` (PASCAL3D+'s own camera)
-    from the ground-truth rotation: the best camera near the truth for the very model the annotator aligned.
-    Their errors need no fitted ``G`` (the CAD frame is the ground truth's). Beside them, the pipeline's refined
-    cameras (least-squares ``G``) on the same objects; :func:`elevation_trend` for each. Printed and returned.
+    For every object with ground truth whose PASCAL3D+ CAD model (its ``subtype``) names at least
+    :data:`CAD_FIT_MIN_POINTS` of its visible keypoints, :func:`fit_orthographic_pose` and
+    :func:`fit_perspective_pose` (PASCAL3D+'s own camera), each from the ground-truth rotation (the local optimum
+    nearest the truth). Their errors need no fitted ``G`` (the CAD frame is the ground truth's). Beside them, the
+    pipeline's refined cameras on the same objects, after the least-squares ``G`` fitted on all objects with
+    ground truth. Median errors; printed and returned.
     """
     keys, R_fit, R_gt = _cad_fit_rotations(ann, data, gt)
-    el_gt = torch.rad2deg(azimuth_elevation_roll_from_rotation(R_gt)[1]).numpy()
     fits = {}
     for model, R in R_fit.items():
         geo, ang = geodesic_errors(R, R_gt).numpy(), angle_errors(R, R_gt)
         fits[model] = {"n": len(keys), "geodesic_median": float(np.median(geo)),
                        "azimuth_median": float(np.median(ang["azimuth"].numpy())),
-                       "elevation_median": float(np.median(ang["elevation"].numpy())),
-                       "elevation_trend": elevation_trend(signed_elevation_errors(R, R_gt), el_gt)}
+                       "elevation_median": float(np.median(ang["elevation"].numpy()))}
     per = vp["refined"]["per_object"]
     rows = [per[k] for k in keys if k in per]
     refined = {"n": len(rows), **{f"{a}_median": float(np.median([r[f] for r in rows])) for a, f in
                                   (("geodesic", "geodesic"), ("azimuth", "azimuth_error"),
-                                   ("elevation", "elevation_error"))},
-               "elevation_trend": elevation_trend(np.array([r["signed_elevation_error"] for r in rows]),
-                                                  np.array([r["gt_elevation"] for r in rows]))}
+                                   ("elevation", "elevation_error"))}}
     out = {"annotator_cad_fit": fits["orthographic"], "annotator_cad_perspective": fits["perspective"],
            "refined": refined}
     print_table("the annotator's own CAD model fitted near the truth, against the refined cameras on the same "
-                "objects (degrees; elevation trend over |true elevation| <= 30)",
-                ["cameras", "n", "geodesic", "azimuth", "elevation", "el. slope", "el. intercept"],
-                [[name, str(r["n"]), r["geodesic_median"], r["azimuth_median"], r["elevation_median"],
-                  r["elevation_trend"]["slope"], r["elevation_trend"]["intercept"]]
+                "objects (median degrees)", ["cameras", "n", "geodesic", "azimuth", "elevation"],
+                [[name, str(r["n"]), r["geodesic_median"], r["azimuth_median"], r["elevation_median"]]
                  for name, r in (("annotator's CAD, orthographic fit", fits["orthographic"]),
                                  ("annotator's CAD, PASCAL3D+'s camera", fits["perspective"]),
                                  ("refined (least-squares G)", refined))])
