@@ -548,7 +548,7 @@ def step_compare(recon_a: Path, recon_b: Path, gt: dict, names: tuple[str, str])
 
 
 def fit_orthographic_pose(X: np.ndarray, W: np.ndarray, R0: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, float]:
-    """The scaled orthographic camera nearest ``R0`` that best fits 3-D points to image points.
+    """The scaled orthographic camera that best fits 3-D points to image points, reached from ``R0``.
 
     Minimises ``sum_k ||s R[:2] X_k + t - W_k||^2`` over ``R``, ``s`` and ``t`` by scipy's ``least_squares``
     from ``R0`` (a small rotation ``exp([w]x) R0``, the scale and offset of :func:`fit_keypoints` at ``R0``).
@@ -581,7 +581,7 @@ PASCAL3D_FOCAL = 3000.0
 
 def fit_perspective_pose(X: np.ndarray, W: np.ndarray, R0: np.ndarray, focal: float = PASCAL3D_FOCAL
                          ) -> tuple[np.ndarray, float, np.ndarray, float]:
-    """PASCAL3D+'s perspective camera nearest ``R0`` that best fits 3-D points to image points.
+    """PASCAL3D+'s perspective camera that best fits 3-D points to image points, reached from ``R0``.
 
     As PASCAL3D+ poses its CAD models: the object's origin on the optical axis at distance ``d``, the image
     shifted by a principal point ``p``: ``uv = focal * Y[:2] / Y[2] + p`` with ``Y = R X + (0, 0, d)``.
@@ -636,7 +636,9 @@ def _cad_fit_rotations(ann: Path, data: Path, gt: dict) -> tuple[list[str], dict
         if k not in gt:
             continue
         sub = int(gt[k]["subtype"])
-        cad_kp = cads.setdefault(sub, load_cad(data / "pascal3d_cad" / f"aeroplane{sub:02d}.npz"))["keypoints"]
+        if sub not in cads:
+            cads[sub] = load_cad(data / "pascal3d_cad" / f"aeroplane{sub:02d}.npz")
+        cad_kp = cads[sub]["keypoints"]
         kp = np.asarray(a["keypoints"], dtype=np.float64).reshape(-1, 3)
         pairs = [(kp[i, :2], cad_kp[BERKELEY_TO_PASCAL3D[n]]) for i, n in enumerate(names)
                  if kp[i, 2] > 0 and BERKELEY_TO_PASCAL3D.get(n) in cad_kp]
@@ -657,9 +659,9 @@ def step_cad_floor(ann: Path, data: Path, gt: dict, vp: dict) -> dict:
     For every object with ground truth whose PASCAL3D+ CAD model (its ``subtype``) names at least
     :data:`CAD_FIT_MIN_POINTS` of its visible keypoints, :func:`fit_orthographic_pose` and
     :func:`fit_perspective_pose` (PASCAL3D+'s own camera), each from the ground-truth rotation (the local optimum
-    nearest the truth). Their errors need no fitted ``G`` (the CAD frame is the ground truth's). Beside them, the
-    pipeline's refined cameras on the same objects, after the least-squares ``G`` fitted on all objects with
-    ground truth. Median errors; printed and returned.
+    reached from it: a fit never crosses to a flipped view). Their errors need no fitted ``G`` (the CAD frame is
+    the ground truth's). Beside them, the pipeline's refined cameras on the same objects, after the
+    least-squares ``G`` fitted on all objects with ground truth. Median errors; printed and returned.
     """
     keys, R_fit, R_gt = _cad_fit_rotations(ann, data, gt)
     fits = {}

@@ -573,7 +573,7 @@ class MixtureResult:
             that changed group after each round) and ``"settled"`` (whether the last round moved
             at most :data:`EM_SETTLED` of the objects; False: stopped at the cap).
         single: the one-shape SfM of the whole class (always run first).
-        note: why no split was tried (``None`` when one was).
+        note: why no split was tried (``None`` when one was, or with ``max_groups = 1``).
         misfit: :func:`misfit` of the one-shape SfM (``None`` when not measured).
         cost: ``(n, k)`` every object's squared keypoint residual under every group's shape, from the
             EM's last round (``None`` for one shape); the next ``k``'s ``split`` start reads it.
@@ -744,7 +744,8 @@ def _one_shape(both, res1: SfMResult) -> MixtureResult:
 
 def _split_gate(best: MixtureResult, both, n: int, max_groups: int, min_size: int, min_misfit: float) -> bool:
     """Sets ``best.misfit`` (with ``max_groups > 1`` and at least ``2 * min_size`` objects) and, when no split is
-    to be tried, ``best.note`` saying why; returns whether :func:`fit_mixture_of_shapes` tries one."""
+    to be tried with ``max_groups > 1``, ``best.note`` saying why; returns whether :func:`fit_mixture_of_shapes`
+    tries one."""
     if max_groups == 1:
         return False
     if n < 2 * min_size:
