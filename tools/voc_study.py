@@ -547,6 +547,25 @@ def step_compare(recon_a: Path, recon_b: Path, gt: dict, names: tuple[str, str])
     return out
 
 
+def _pose_from(X: np.ndarray, W: np.ndarray, R0: np.ndarray, project, start, name: str):
+    """The least-squares camera reached from ``R0``: a small rotation ``exp([w]x) R0`` and parameters ``q`` with
+    ``project(X R^T, q) ~ W``, by scipy's ``least_squares`` from ``w = 0`` and ``q = start(s, t)`` (the scale
+    and offset of :func:`fit_keypoints` at ``R0``). Returns ``R``, ``q`` and the RMS residual (pixels)."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    if len(X) < 3:
+        raise ValueError(f"{name} needs 3 or more points, got {len(X)}")
+    s0, t0, _ = fit_keypoints(X @ R0[:2].T, W)
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        return (project(X @ (Rotation.from_rotvec(p[:3]).as_matrix() @ R0).T, p[3:]) - W).ravel()
+
+    sol = least_squares(residual, np.r_[0.0, 0.0, 0.0, start(s0, t0)])
+    R = Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0
+    return R, sol.x[3:].copy(), float(np.sqrt((sol.fun ** 2).reshape(-1, 2).sum(-1).mean()))
+
+
 def fit_orthographic_pose(X: np.ndarray, W: np.ndarray, R0: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, float]:
     """The scaled orthographic camera that best fits 3-D points to image points, reached from ``R0``.
 
@@ -559,20 +578,9 @@ def fit_orthographic_pose(X: np.ndarray, W: np.ndarray, R0: np.ndarray) -> tuple
     Returns:
         ``R (3, 3)``, ``s``, ``t (2,)`` and the RMS residual (pixels).
     """
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
-    if len(X) < 3:
-        raise ValueError(f"fit_orthographic_pose needs 3 or more points, got {len(X)}")
-    s0, t0, _ = fit_keypoints(X @ R0[:2].T, W)
-
-    def residual(p: np.ndarray) -> np.ndarray:
-        R = Rotation.from_rotvec(p[:3]).as_matrix() @ R0
-        return (p[3] * X @ R[:2].T + p[4:] - W).ravel()
-
-    sol = least_squares(residual, np.r_[0.0, 0.0, 0.0, s0, t0])
-    R = Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0
-    return R, float(sol.x[3]), sol.x[4:].copy(), float(np.sqrt((sol.fun ** 2).reshape(-1, 2).sum(-1).mean()))
+    R, q, rms = _pose_from(X, W, R0, lambda Y, q: q[0] * Y[:, :2] + q[1:], lambda s, t: np.r_[s, t],
+                           "fit_orthographic_pose")
+    return R, float(q[0]), q[1:], rms
 
 
 #: PASCAL3D+'s focal length in pixels (its tools' ``focal`` 1 times ``viewport`` 3000).
@@ -595,20 +603,9 @@ def fit_perspective_pose(X: np.ndarray, W: np.ndarray, R0: np.ndarray, focal: fl
     Returns:
         ``R (3, 3)``, ``d``, ``p (2,)`` and the RMS residual (pixels).
     """
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
-    if len(X) < 3:
-        raise ValueError(f"fit_perspective_pose needs 3 or more points, got {len(X)}")
-    s0, t0, _ = fit_keypoints(X @ R0[:2].T, W)
-
-    def residual(q: np.ndarray) -> np.ndarray:
-        Y = X @ (Rotation.from_rotvec(q[:3]).as_matrix() @ R0).T + np.array([0.0, 0.0, q[3]])
-        return (focal * Y[:, :2] / Y[:, 2:] + q[4:] - W).ravel()
-
-    sol = least_squares(residual, np.r_[0.0, 0.0, 0.0, focal / s0, t0])
-    R = Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0
-    return R, float(sol.x[3]), sol.x[4:].copy(), float(np.sqrt((sol.fun ** 2).reshape(-1, 2).sum(-1).mean()))
+    R, q, rms = _pose_from(X, W, R0, lambda Y, q: focal * Y[:, :2] / (Y[:, 2:] + q[0]) + q[1:],
+                           lambda s, t: np.r_[focal / s, t], "fit_perspective_pose")
+    return R, float(q[0]), q[1:], rms
 
 
 def signed_elevation_errors(R_est: torch.Tensor, R_gt: torch.Tensor) -> np.ndarray:
