@@ -196,7 +196,7 @@ def test_compare_camera_runs_identical_runs_agree_at_zero(tmp_path):
     rec = compare_camera_runs(tmp_path / "a", tmp_path / "b")
     assert set(rec["classes"]) == {"bus", "car"} and rec["not_compared"] == {}
     for row in rec["classes"].values():
-        assert row["compared"] == 3 and row["median_deg"] == 0.0 and row["max_deg"] == 0.0
+        assert row["compared"] == 3 and row["median_deg"] == 0.0 and row["max_deg"] == 0.0 and row["turned"] == {}
         assert row["camera_choice_differs"] == 0 and row["sfm_start"] == ["cold", "cold"]
         assert row["viewpoint_seconds"] == {"cpu": 1.5, "cuda": 1.5}  # SfM + refinement, not carving
     assert rec["largest_median_deg"] == 0.0 and rec["agree"] is True
@@ -217,6 +217,8 @@ def test_compare_camera_runs_measures_known_turns_against_scipy(tmp_path):
     np.testing.assert_allclose(ref, turns, atol=1e-9)  # the reference sees the nominal turns
     assert row["median_deg"] == pytest.approx(float(np.median(ref)), abs=1e-3)  # 6.4: mean of the middle two
     assert row["max_deg"] == pytest.approx(37.0, abs=1e-3)
+    assert list(row["turned"]) == ["3", "2"]  # over RUN_TURNED_DEG (1 degree), largest first; 0.3 is not
+    np.testing.assert_allclose(list(row["turned"].values()), ref[[3, 2]], atol=0.01)
     assert row["shape_groups"] == [1, 2] and set(row["viewpoint_seconds"]) == {"x", "y"}
     rec = compare_camera_runs(tmp_path / "a", tmp_path / "b")
     assert rec["agree"] is False and rec["largest_median_deg"] == pytest.approx(6.4, abs=1e-3)

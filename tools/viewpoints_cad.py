@@ -370,7 +370,7 @@ def _choice_study(args) -> int:
 
 def _compare(args) -> int:
     """``--compare RUN_A RUN_B``: the two runs' cameras object by object; prints, writes, exit 0 when they agree."""
-    from carvi_torch.evaluation.viewpoint_metrics import compare_camera_runs
+    from carvi_torch.evaluation.viewpoint_metrics import RUN_TURNED_DEG, compare_camera_runs
     from carvi_torch.io.outputs import write_record
 
     labels = tuple(args.labels.split(","))
@@ -380,7 +380,8 @@ def _compare(args) -> int:
         print(f"{cls:12s} {why}")
     for cls, r in rec["classes"].items():
         sec = r["viewpoint_seconds"]
-        print(f"{cls:12s} median {r['median_deg']:.3f} deg, max {r['max_deg']:.2f} deg, camera_choice differs in "
+        print(f"{cls:12s} median {r['median_deg']:.3f} deg, max {r['max_deg']:.2f} deg, {len(r['turned'])} of "
+              f"{r['compared']} over {RUN_TURNED_DEG:g} deg, camera_choice differs in "
               f"{r['camera_choice_differs']}, SfM start {a}/{b} {r['sfm_start'][0]}/{r['sfm_start'][1]}, shape "
               f"groups {r['shape_groups'][0]}/{r['shape_groups'][1]}, SfM + refinement {sec[a]:.1f} s {a}, "
               f"{sec[b]:.1f} s {b}")

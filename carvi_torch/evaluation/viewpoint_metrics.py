@@ -39,11 +39,16 @@ __all__ = [
     "necker_mirror",
     "compare_camera_runs",
     "RUN_AGREEMENT_DEG",
+    "RUN_TURNED_DEG",
 ]
 
 #: Two runs of the same data agree when each class's median angle between their cameras is at most this
 #: (degrees; the CPU against CUDA, docs/viewpoints.md, *CPU and CUDA*).
 RUN_AGREEMENT_DEG = 0.5
+#: An object whose two cameras are further apart than this (degrees) is listed by :func:`compare_camera_runs`
+#: (``turned``): a median hides the few views that flip between near-equal solutions (planar twins, cameras from
+#: the silhouette alone).
+RUN_TURNED_DEG = 1.0
 
 
 def necker_mirror(R: torch.Tensor) -> torch.Tensor:
@@ -213,6 +218,8 @@ def _class_agreement(cams: tuple[dict, dict], entries: tuple[dict, dict], labels
     ang = torch.rad2deg(geodesic_angle(R[0], R[1]))
     return {"objects": entries[0].get("objects", len(a)), "compared": len(both),
             "median_deg": round(float(torch.quantile(ang, 0.5)), 3), "max_deg": round(float(ang.max()), 3),
+            "turned": {k: round(float(x), 2) for x, k in sorted(zip(ang.tolist(), both), reverse=True)
+                       if x > RUN_TURNED_DEG},
             "camera_choice_differs": sum(a[k].get("camera_choice") != b[k].get("camera_choice")
                                          for k in a.keys() & b.keys()),
             "missing": {labels[0]: len(b.keys() - a.keys()), labels[1]: len(a.keys() - b.keys())},
@@ -227,8 +234,8 @@ def compare_camera_runs(run_a, run_b, labels: tuple[str, str] = ("cpu", "cuda"),
 
     For every class in either run's ``summary.json``: the angle between the two refined rotations of each
     object that has one in both (:func:`carvi_torch.cameras.geodesic_angle`), its median and maximum, how many
-    objects' ``camera_choice`` differs, which SfM start each run kept and how many shapes its mixture kept,
-    and each run's SfM + refinement seconds. A class that one run has not finished (a run stopped at a time
+    objects' ``camera_choice`` differs, the objects whose cameras are over :data:`RUN_TURNED_DEG` apart, which
+    SfM start each run kept and how many shapes its mixture kept, and each run's SfM + refinement seconds. A class that one run has not finished (a run stopped at a time
     limit) lands in ``not_compared`` with the reason; it is not an error.
 
     Args:
@@ -238,8 +245,8 @@ def compare_camera_runs(run_a, run_b, labels: tuple[str, str] = ("cpu", "cuda"),
         tolerance_deg: the largest median angle per class for the runs to agree.
 
     Returns:
-        ``{"labels", "classes": {class: {"objects", "compared", "median_deg", "max_deg",
-        "camera_choice_differs", "sfm_start": [a, b], "shape_groups": [a, b], "viewpoint_seconds": {label: s}}},
+        ``{"labels", "classes": {class: {"objects", "compared", "median_deg", "max_deg", "turned" (annotation id
+        -> angle, largest first), "camera_choice_differs", "sfm_start": [a, b], "shape_groups": [a, b], "viewpoint_seconds": {label: s}}},
         "not_compared": {class: reason}, "viewpoint_seconds": {label: s} (the compared classes' sums),
         "torch_threads": {label: n}, "largest_median_deg" (``None`` without a compared class),
         "tolerance_deg", "agree"}`` (``agree``: a class was compared and every median is within tolerance).
