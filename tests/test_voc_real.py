@@ -240,12 +240,25 @@ def test_cad_floor_end_to_end_on_a_synthetic_collection(tmp_path, generator):
         per[key] = {"geodesic": 1.0 + i, "azimuth_error": 2.0 + i, "elevation_error": 3.0 + i}
     ann = tmp_path / "annotations.json"
     ann.write_text(json.dumps({"categories": [{"keypoints": names}], "annotations": anns}))
-    floor = vs.step_cad_floor(ann, tmp_path, gt, {"refined": {"per_object": per}})
+    # the pipeline's mean shape: the same points scaled and shifted (a fit absorbs both), one name it lacks
+    mean_shape = {n: (2.0 * x + 0.3).tolist() for n, x in zip(names[1:], X[1:])}
+    floor = vs.step_cad_floor(ann, tmp_path, gt, {"refined": {"per_object": per}}, mean_shape)
     ortho, persp, ref = floor["annotator_cad_fit"], floor["annotator_cad_perspective"], floor["refined"]
-    assert ortho["n"] == persp["n"] == ref["n"] == 2
+    assert ortho["n"] == persp["n"] == ref["n"] == floor["mean_shape_fit"]["n"] == 2
     assert ortho["geodesic_median"] < 1e-4 and ortho["elevation_median"] < 1e-4
+    assert floor["mean_shape_fit"]["geodesic_median"] < 1e-4
     assert persp["geodesic_median"] < 1.0  # a perspective camera nearly fits orthographic data from far away
     assert (ref["geodesic_median"], ref["azimuth_median"], ref["elevation_median"]) == (1.5, 2.5, 3.5)
+    assert list(floor["by_subtype"]) == ["2"] and floor["by_subtype"]["2"]["refined"] == ref
+    assert math.isnan(floor["wing_station"]["mean_shape"])  # it lacks Bot_Rudder
+    kp = dict(zip(names, X))
+    axis = kp["Bot_Rudder"] - kp["NoseTip"]
+    by_hand = np.mean([(kp[n] - kp["NoseTip"]) @ axis / (axis @ axis) for n in ("L_WingTip", "R_WingTip")])
+    assert floor["wing_station"]["aeroplane02"] == pytest.approx(by_hand, abs=1e-12)
+    # a mean shape stretched along one axis no longer fits: the fit from the truth moves off it
+    stretched = {n: (np.array([1.0, 1.6, 1.0]) * x).tolist() for n, x in zip(names, X)}
+    off = vs.step_cad_floor(ann, tmp_path, gt, {"refined": {"per_object": per}}, stretched)["mean_shape_fit"]
+    assert off["geodesic_median"] > 0.5
 
 
 def test_print_table_formats(capsys):

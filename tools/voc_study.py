@@ -620,14 +620,18 @@ def signed_elevation_errors(R_est: torch.Tensor, R_gt: torch.Tensor) -> np.ndarr
 CAD_FIT_MIN_POINTS = 4
 
 
-def _cad_fit_rotations(ann: Path, data: Path, gt: dict) -> tuple[list[str], dict, torch.Tensor]:
-    """Keys, rotations of :func:`fit_orthographic_pose` and :func:`fit_perspective_pose` (``{"orthographic",
-    "perspective"}``) and ground truth of the objects whose annotator's CAD model names at least
-    :data:`CAD_FIT_MIN_POINTS` of their visible keypoints."""
+def _cad_fit_rotations(ann: Path, data: Path, gt: dict, mean_shape: dict | None = None
+                       ) -> tuple[list[str], list[int], dict, torch.Tensor]:
+    """Keys, subtypes, rotations and ground truth of the objects whose annotator's CAD model names at least
+    :data:`CAD_FIT_MIN_POINTS` of their visible keypoints. Rotations: ``{"orthographic", "perspective"}``, the
+    CAD model fitted by :func:`fit_orthographic_pose` and :func:`fit_perspective_pose`, and with ``mean_shape``
+    (Berkeley name -> ``(3,)``, the pipeline's in its written frame) ``"mean_shape"``: the orthographic fit of every
+    visible keypoint it names. Every fit starts from the ground-truth rotation."""
     coll = read_json(ann)
     names = coll["categories"][0]["keypoints"]
     cads: dict[int, dict] = {}
-    keys, R_fit, R_gt = [], {"orthographic": [], "perspective": []}, []
+    keys, subtypes, R_gt = [], [], []
+    R_fit = {m: [] for m in ("orthographic", "perspective", *(("mean_shape",) if mean_shape else ()))}
     for a in coll["annotations"]:
         k = gt_key(a["source"])
         if k not in gt:
@@ -635,52 +639,116 @@ def _cad_fit_rotations(ann: Path, data: Path, gt: dict) -> tuple[list[str], dict
         sub = int(gt[k]["subtype"])
         if sub not in cads:
             cads[sub] = load_cad(data / "pascal3d_cad" / f"aeroplane{sub:02d}.npz")
-        cad_kp = cads[sub]["keypoints"]
         kp = np.asarray(a["keypoints"], dtype=np.float64).reshape(-1, 3)
-        pairs = [(kp[i, :2], cad_kp[BERKELEY_TO_PASCAL3D[n]]) for i, n in enumerate(names)
-                 if kp[i, 2] > 0 and BERKELEY_TO_PASCAL3D.get(n) in cad_kp]
-        if len(pairs) < CAD_FIT_MIN_POINTS:
+        seen = {n: kp[i, :2] for i, n in enumerate(names) if kp[i, 2] > 0}
+        X, W = _named_pairs(seen, {b: cads[sub]["keypoints"].get(p) for b, p in BERKELEY_TO_PASCAL3D.items()})
+        if len(X) < CAD_FIT_MIN_POINTS:
             continue
         R0 = np.asarray(gt[k]["R"], dtype=np.float64)
-        X, W = np.stack([p[1] for p in pairs]), np.stack([p[0] for p in pairs])
         R_fit["orthographic"].append(fit_orthographic_pose(X, W, R0)[0])
         R_fit["perspective"].append(fit_perspective_pose(X, W, R0)[0])
+        if mean_shape:
+            R_fit["mean_shape"].append(fit_orthographic_pose(*_named_pairs(seen, mean_shape), R0)[0])
         R_gt.append(R0)
         keys.append(k)
-    return keys, {m: torch.tensor(np.array(R)) for m, R in R_fit.items()}, torch.tensor(np.array(R_gt))
+        subtypes.append(sub)
+    return keys, subtypes, {m: torch.tensor(np.array(R)) for m, R in R_fit.items()}, torch.tensor(np.array(R_gt))
 
 
-def step_cad_floor(ann: Path, data: Path, gt: dict, vp: dict) -> dict:
-    """How far the labels sit from the annotator's own CAD model fitted to each object's keypoints.
+def _named_pairs(seen: dict, model: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``(X (M, 3), W (M, 2))``: the model points and image points of the names both give (``model``'s ``None``
+    values count as absent)."""
+    both = [n for n in seen if model.get(n) is not None]
+    return (np.array([np.asarray(model[n], dtype=np.float64) for n in both]).reshape(-1, 3),
+            np.array([seen[n] for n in both]).reshape(-1, 2))
+
+
+def wing_station(shape: dict) -> float:
+    """Where the wing tips sit along the fuselage: the mean over both tips of the projection of
+    ``tip - NoseTip`` onto ``Bot_Rudder - NoseTip``, over that length (0 at the nose, 1 at the tail's foot).
+    A swept wing's tips sit further back. ``shape``: Berkeley name -> ``(3,)``; NaN when it lacks one of the four.
+
+    Example:
+        >>> wing_station({"NoseTip": [0, -1, 0], "Bot_Rudder": [0, 1, 0], "L_WingTip": [1, 0.5, 0],
+        ...               "R_WingTip": [-1, 0.5, 0]})
+        0.75
+    """
+    if any(shape.get(n) is None for n in ("NoseTip", "Bot_Rudder", "L_WingTip", "R_WingTip")):
+        return float("nan")
+    nose, tail = (np.asarray(shape[n], dtype=np.float64) for n in ("NoseTip", "Bot_Rudder"))
+    axis = tail - nose
+    return float(np.mean([(np.asarray(shape[n], dtype=np.float64) - nose) @ axis / (axis @ axis)
+                          for n in ("L_WingTip", "R_WingTip")]))
+
+
+def _medians(R: torch.Tensor, R_gt: torch.Tensor, rows: np.ndarray | None = None) -> dict:
+    """``{"n", "geodesic_median", "azimuth_median", "elevation_median"}`` of ``R`` against ``R_gt`` (no fitted
+    rotation), over ``rows`` (a boolean mask) when given."""
+    if rows is not None:
+        R, R_gt = R[torch.as_tensor(rows)], R_gt[torch.as_tensor(rows)]
+    geo, ang = geodesic_errors(R, R_gt).numpy(), angle_errors(R, R_gt)
+    return {"n": len(R), "geodesic_median": float(np.median(geo)),
+            "azimuth_median": float(np.median(ang["azimuth"].numpy())),
+            "elevation_median": float(np.median(ang["elevation"].numpy()))}
+
+
+def step_cad_floor(ann: Path, data: Path, gt: dict, vp: dict, mean_shape: dict | None = None) -> dict:
+    """How far the labels sit from the annotator's own CAD model, and the pipeline's mean shape, fitted to each
+    object's keypoints.
 
     For every object with ground truth whose PASCAL3D+ CAD model (its ``subtype``) names at least
     :data:`CAD_FIT_MIN_POINTS` of its visible keypoints, :func:`fit_orthographic_pose` and
     :func:`fit_perspective_pose` (PASCAL3D+'s own camera), each from the ground-truth rotation (the local optimum
-    reached from it: a fit never crosses to a flipped view). Their errors need no fitted ``G`` (the CAD frame is
-    the ground truth's). Beside them, the pipeline's refined cameras on the same objects, after the
-    least-squares ``G`` fitted on all objects with ground truth. Median errors; printed and returned.
+    reached from it: a fit never crosses to a flipped view); with ``mean_shape`` (the pipeline's, in its written
+    frame, which is the CAD frame where the class has a template) its orthographic fit the same way: what the one
+    shape allows the keypoints to reach. These errors need no fitted ``G``. Beside them, the pipeline's refined
+    cameras on the same objects, after the least-squares ``G`` fitted on all objects with ground truth. Median
+    errors, over all and per subtype; printed and returned.
     """
-    keys, R_fit, R_gt = _cad_fit_rotations(ann, data, gt)
-    fits = {}
-    for model, R in R_fit.items():
-        geo, ang = geodesic_errors(R, R_gt).numpy(), angle_errors(R, R_gt)
-        fits[model] = {"n": len(keys), "geodesic_median": float(np.median(geo)),
-                       "azimuth_median": float(np.median(ang["azimuth"].numpy())),
-                       "elevation_median": float(np.median(ang["elevation"].numpy()))}
+    keys, subtypes, R_fit, R_gt = _cad_fit_rotations(ann, data, gt, mean_shape)
     per = vp["refined"]["per_object"]
-    rows = [per[k] for k in keys if k in per]
-    refined = {"n": len(rows), **{f"{a}_median": float(np.median([r[f] for r in rows])) for a, f in
+
+    def refined(rows) -> dict:
+        sel = [per[k] for k, r in zip(keys, rows) if r and k in per]
+        return {"n": len(sel), **{f"{a}_median": float(np.median([r[f] for r in sel])) for a, f in
                                   (("geodesic", "geodesic"), ("azimuth", "azimuth_error"),
                                    ("elevation", "elevation_error"))}}
-    out = {"annotator_cad_fit": fits["orthographic"], "annotator_cad_perspective": fits["perspective"],
-           "refined": refined}
-    print_table("the annotator's own CAD model fitted near the truth, against the refined cameras on the same "
-                "objects (median degrees)", ["cameras", "n", "geodesic", "azimuth", "elevation"],
-                [[name, str(r["n"]), r["geodesic_median"], r["azimuth_median"], r["elevation_median"]]
-                 for name, r in (("annotator's CAD, orthographic fit", fits["orthographic"]),
-                                 ("annotator's CAD, PASCAL3D+'s camera", fits["perspective"]),
-                                 ("refined (least-squares G)", refined))])
+
+    names = {"orthographic": "annotator_cad_fit", "perspective": "annotator_cad_perspective",
+             "mean_shape": "mean_shape_fit"}
+    out = {names[m]: _medians(R, R_gt) for m, R in R_fit.items()}
+    out["refined"] = refined([True] * len(keys))
+    sub = np.array(subtypes)
+    out["by_subtype"] = {str(s): {**{names[m]: _medians(R, R_gt, sub == s) for m, R in R_fit.items()},
+                                  "refined": refined(sub == s)} for s in sorted(set(subtypes))}
+    cads = {f.stem: load_cad(f)["keypoints"] for f in sorted((data / "pascal3d_cad").glob("aeroplane*.npz"))}
+    out["wing_station"] = {**({"mean_shape": wing_station(mean_shape)} if mean_shape else {}),
+                           **{name: wing_station({b: kp[p] for b, p in BERKELEY_TO_PASCAL3D.items()})
+                              for name, kp in cads.items()}}
+    _print_floor(out)
     return out
+
+
+_FLOOR_ROWS = (("annotator_cad_fit", "annotator's CAD, orthographic fit"),
+               ("annotator_cad_perspective", "annotator's CAD, PASCAL3D+'s camera"),
+               ("mean_shape_fit", "the pipeline's mean shape, orthographic fit"),
+               ("refined", "refined (least-squares G)"))
+
+
+def _print_floor(out: dict) -> None:
+    """The tables of :func:`step_cad_floor`: all objects, then azimuth / elevation medians per subtype."""
+    print_table("the annotator's own CAD model and the pipeline's mean shape fitted near the truth, against the "
+                "refined cameras on the same objects (median degrees)", ["cameras", "n", "geodesic", "azimuth",
+                                                                         "elevation"],
+                [[name, str(out[k]["n"]), out[k]["geodesic_median"], out[k]["azimuth_median"],
+                  out[k]["elevation_median"]] for k, name in _FLOOR_ROWS if k in out])
+    cols = [(k, name) for k, name in _FLOOR_ROWS if k in out and k != "annotator_cad_perspective"]
+    print_table("the same by the annotator's CAD model (subtype): azimuth / elevation medians (degrees)",
+                ["subtype", "n", *[name.split(",")[0] for _k, name in cols]],
+                [[s, str(v["refined"]["n"]), *[f"{v[k]['azimuth_median']:.1f} / {v[k]['elevation_median']:.1f}"
+                                               for k, _name in cols]] for s, v in out["by_subtype"].items()])
+    print("wing tips along the fuselage (0 nose, 1 tail): " + ", ".join(f"{k} {v:.2f}" for k, v in
+                                                                         out["wing_station"].items()))
 
 
 def step_viewpoints(recon: Path, gt: dict, subcategory: dict | None = None) -> dict:
@@ -1347,7 +1415,7 @@ def cameras_only(args, data: Path, work: Path, command: str) -> dict:
     recon = step_reconstruct(ann, work / "cameras", ["stage=cameras", "overwrite=true", *args.overrides], args.device)
     subcategory = {gt_key(a["source"]): a.get("subcategory") for a in read_json(ann)["annotations"]}
     vp = step_viewpoints(work / "cameras", gt, subcategory)
-    floor = step_cad_floor(ann, data, gt, vp)
+    floor = step_cad_floor(ann, data, gt, vp, read_json(work / "cameras" / CLASS / "cameras.json")["mean_shape"])
     summary = {stage: {"n": vp[stage]["report"]["n"],
                        **{f"{a}_median": vp[stage]["report"][a]["median"] for a in ("geodesic", "azimuth",
                                                                                     "elevation")},
@@ -1401,7 +1469,7 @@ def main(argv=None) -> dict:
     vp = step_viewpoints(recon, gt, subcategory)
     result["viewpoints"] = {k: ({kk: vv for kk, vv in v.items() if kk != "per_object"} if isinstance(v, dict)
                                 and "per_object" in v else v) for k, v in vp.items()}
-    result["cad_floor"] = step_cad_floor(ann, data, gt, vp)
+    result["cad_floor"] = step_cad_floor(ann, data, gt, vp, read_json(recon / CLASS / "cameras.json")["mean_shape"])
     result["unseen"] = step_unseen(ann, gt, cfg, args.seed, args.holdout, args.device, seen=vp)
     if not args.no_diagnose:
         result["diagnosis"] = step_diagnose(data, work, gt, cfg, args.device)
