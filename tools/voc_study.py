@@ -26,7 +26,9 @@ per-object errors in ``WORK/per_object.json``):
    (:func:`carvi_torch.evaluation.viewpoint_metrics.viewpoint_report`): median geodesic error,
    accuracy at 30 degrees, median azimuth / elevation errors; errors by ground-truth
    azimuth; the gross errors (> 30 degrees) by name. Beside them, the labels as written (the
-   class's canonical frame, no fitted rotation) against ``ABSOLUTE_TARGETS``.
+   class's canonical frame, no fitted rotation) against ``ABSOLUTE_TARGETS``; then what keypoints allow
+   (:func:`step_cad_floor`): the annotator's own CAD model and the pipeline's mean shape, each fitted to every
+   object's keypoints from its ground-truth rotation, over all objects and per CAD model.
 4. **unseen images**: a random third of the objects (``--seed``) is held aside; rigid SfM
    (with mirrors, the pipeline's settings) and refinement run on the rest; the held-aside
    cameras come from :func:`carvi_torch.viewpoints.camera_fit.estimate_camera` with the mean shape learned
