@@ -11,7 +11,7 @@ import torch
 
 from carvi_torch.cameras import random_rotations
 from carvi_torch import native_library
-from carvi_torch.viewpoints import sfm
+from carvi_torch.viewpoints import factorization, sfm
 
 needs_library = pytest.mark.skipif(native_library.library_operators() is None,
                                    reason=f"no compiled kernel here: {native_library.load()['reason']}")
@@ -39,7 +39,7 @@ def _both(W, vis, rank: int, S_init=None):
     out = []
     for use in (False, True):
         with torch.inference_mode():
-            out.append(sfm._factorize(W, vis, rank=rank, generator=torch.Generator().manual_seed(3),
+            out.append(factorization.factorize(W, vis, rank=rank, generator=torch.Generator().manual_seed(3),
                                       S_init=S_init, native=use, **KW))
     return out
 
@@ -85,13 +85,13 @@ def test_native_factorisation_fits_an_exact_rigid_class():
     W = R[:, :2] @ S + torch.randn(30, 2, 1, generator=g, dtype=torch.float64)
     vis = torch.ones(30, 10, dtype=torch.float64)
     with torch.inference_mode():
-        M, t, Sh, hist, _, converged = sfm._factorize(W, vis, rank=3, generator=torch.Generator().manual_seed(0),
-                                                      native=True, **KW)
+        M, t, Sh, hist, _, converged = factorization.factorize(W, vis, rank=3, native=True, **KW,
+                                                               generator=torch.Generator().manual_seed(0))
     assert converged and hist[-1] < 1e-6
     torch.testing.assert_close(M @ Sh + t[..., None], W, rtol=0, atol=1e-5)
     # the exact-fit floor (RMS <= 1e-5 of the data's scale) stops both paths at the same step
     with torch.inference_mode():
-        ref = sfm._factorize(W, vis, rank=3, generator=torch.Generator().manual_seed(0), native=False, **KW)
+        ref = factorization.factorize(W, vis, rank=3, generator=torch.Generator().manual_seed(0), native=False, **KW)
     assert (len(hist), converged) == (len(ref[3]), ref[5]) and len(hist) < 5
 
 
@@ -118,7 +118,8 @@ def test_native_keeps_the_first_candidate_on_ties(max_outer):
     out = []
     with torch.inference_mode():
         for use in (False, True):
-            out.append(sfm._factorize(W, vis, rank=2, generator=torch.Generator().manual_seed(3), native=use, **kw))
+            out.append(factorization.factorize(W, vis, rank=2, generator=torch.Generator().manual_seed(3), native=use,
+                                               **kw))
         S = torch.randn(2, 12, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
         assert _kernel_once(W, vis, S, **kw)[0] > 0  # the kernel runs its steps
     assert out[0][4] == out[1][4]
@@ -192,9 +193,9 @@ def test_a_resumed_kernel_call_tests_convergence_against_the_last_rms_given():
 def test_native_does_not_apply_to_float32_or_other_devices():
     W, vis = _problem(10, 6, 0)
     S = torch.randn(3, 6, dtype=torch.float64)
-    assert sfm._native_ops(W, vis, W, S) is not None
-    assert sfm._native_ops(W.float(), vis, W.float(), S) is None
-    assert sfm._native_ops(W.to("meta"), vis.to("meta"), W.to("meta"), S.to("meta")) is None
+    assert factorization._native_ops(W, vis, W, S) is not None
+    assert factorization._native_ops(W.float(), vis, W.float(), S) is None
+    assert factorization._native_ops(W.to("meta"), vis.to("meta"), W.to("meta"), S.to("meta")) is None
 
 
 @needs_library
@@ -244,8 +245,8 @@ def test_the_setting_reaches_the_factorisation(monkeypatch):
     from carvi_torch.viewpoints import class_sfm
 
     calls = []
-    real = sfm._native_steps
-    monkeypatch.setattr(sfm, "_native_steps", lambda ops, W, vis, st, **k: (
+    real = factorization._native_steps
+    monkeypatch.setattr(factorization, "_native_steps", lambda ops, W, vis, st, **k: (
         lambda n0, out: calls.append(len(st.history) > n0) or out)(len(st.history), real(ops, W, vis, st, **k)))
     W, vis = _problem(20, 8, 6)
     meta = SimpleNamespace(rigid_keypoints=None, keypoint_names=None, flip_pairs=None, left_convention="object")
@@ -265,8 +266,8 @@ def test_an_instance_with_two_visible_keypoints_costs_a_cold_rigid_start_one_tor
     vis[5] = 0.0
     vis[5, [4, 8]] = 1.0
     torch_steps = []
-    real = sfm._fill_step
-    monkeypatch.setattr(sfm, "_fill_step", lambda *a, **k: torch_steps.append(1) or real(*a, **k))
+    real = factorization._fill_step
+    monkeypatch.setattr(factorization, "_fill_step", lambda *a, **k: torch_steps.append(1) or real(*a, **k))
     a, b = _both(W, vis, 3)
     assert len(torch_steps) == a[4] + 1  # every step of the torch run, then the kernel's one declined step
     assert (a[4], a[5]) == (b[4], b[5])
@@ -379,13 +380,13 @@ def test_without_the_library_both_fits_run_in_torch(monkeypatch):
 
     W, vis = _problem(30, 10, 5)
     with torch.inference_mode():
-        a = sfm._factorize(W, vis, rank=3, generator=torch.Generator().manual_seed(3), native=False, **KW)
+        a = factorization.factorize(W, vis, rank=3, generator=torch.Generator().manual_seed(3), native=False, **KW)
     S, kp, visible, R0, s0, t0 = _camera_problem(10, 2, 8, 4, torch.float32)
     lam = torch.zeros(10)
     c = cf._optimize(R0, s0, t0, S, kp, visible, None, lam, 100, 1e-6)
     monkeypatch.setattr(native_library, "library_operators", lambda: None)
     with torch.inference_mode():
-        b = sfm._factorize(W, vis, rank=3, generator=torch.Generator().manual_seed(3), native=True, **KW)
+        b = factorization.factorize(W, vis, rank=3, generator=torch.Generator().manual_seed(3), native=True, **KW)
     d = cf._optimize(R0, s0, t0, S, kp, visible, None, lam, 100, 1e-6, native=True)
     assert all(torch.equal(x, y) for x, y in zip(a[:3], b[:3])) and a[3:] == b[3:]
     assert all(torch.equal(x, y) if isinstance(x, torch.Tensor) else x == y for x, y in zip(c, d))

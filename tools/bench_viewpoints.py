@@ -34,15 +34,15 @@ with mixture" is the one-shape SfM, the fit and that refinement.
                                      [--out PATH] [--key KEY]
 
 ``--profile-mixture DATA`` runs none of that: it profiles the pipeline's mixture fit on a COCO file
-(``reconstruct stage=cameras`` in this process, ``--profile-set`` its overrides, default
-``sfm_groups=3``) with timers on the process's CPU clock around the fit's parts: every group's SfM
-started cold (the first EM round) and warm (later rounds), each split into its factorisation and
-bundle polish (:mod:`carvi_torch.viewpoints.sfm`) with the outer steps and polish rounds they ran, the
-keypoint-only camera fits, the hull agreements, the k-means starts, the whole fit and viewpoint stage
-per class (the timers only time: the cameras are the run's own). It prints a table per class and
-writes the numbers to ``--out`` (default ``outputs/profile_mixture.json``; with ``--key``, under that key of
-``--out``, default ``docs/data/viewpoints.json``); docs/viewpoints.md's *Cost* profiles the many-class
-benchmark's renders:
+(``reconstruct stage=cameras`` in this process, ``--profile-set`` its overrides, default ``sfm_groups=3``)
+with timers on the process's CPU clock around the fit's parts: every group's SfM started cold (the first EM
+round) and warm (later rounds), each split into its factorisation
+(:mod:`carvi_torch.viewpoints.factorization`) and bundle polish (:mod:`carvi_torch.viewpoints.sfm`) with the
+outer steps and polish rounds they ran, the keypoint-only camera fits, the hull agreements, the k-means
+starts, the whole fit and viewpoint stage per class (the timers only time: the cameras are the run's own). It
+prints a table per class and writes the numbers to ``--out`` (default ``outputs/profile_mixture.json``; with
+``--key``, under that key of ``--out``, default ``docs/data/viewpoints.json``); docs/viewpoints.md's *Cost*
+profiles the many-class benchmark's renders:
 
     python tools/bench_viewpoints.py --profile-mixture outputs/bench/data/cad_v8_s0/annotations.json \\
         --key mixture_profile_cad8
@@ -198,10 +198,11 @@ class Clock:
 def instrument_mixture(clock: Clock) -> None:
     """Wrap the fit's parts (module attributes, so every caller goes through the wrappers)."""
     import carvi_torch.pipeline as pipeline
+    import carvi_torch.viewpoints.factorization as factorization
     import carvi_torch.viewpoints.mixture as mixture
     import carvi_torch.viewpoints.sfm as sfm
 
-    factorize, polish, group_sfm = sfm._factorize, sfm.bundle_polish, mixture._group_sfm
+    factorize, polish, group_sfm = factorization.factorize, sfm.bundle_polish, mixture._group_sfm
     fit, viewpoints = mixture.fit_mixture_of_shapes, pipeline.estimate_viewpoints
 
     def counted_factorize(*a, **k):
@@ -232,7 +233,8 @@ def instrument_mixture(clock: Clock) -> None:
         clock.cls = coll.meta.key
         return clock.wrap("viewpoints_total", viewpoints, prefixed=False)(coll, *a, **k)
 
-    sfm._factorize = clock.wrap("factorize", counted_factorize)
+    # the planar factorisation calls it from its own module, rigid_sfm from sfm's
+    factorization.factorize = sfm.factorize = clock.wrap("factorize", counted_factorize)
     sfm.bundle_polish = clock.wrap("polish", counted_polish)
     mixture._group_sfm = kind_group_sfm
     for name in ("keypoint_fit", "hull_agreements", "kmeans_labels"):

@@ -235,8 +235,9 @@ def compare_camera_runs(run_a, run_b, labels: tuple[str, str] = ("cpu", "cuda"),
     For every class in either run's ``summary.json``: the angle between the two refined rotations of each
     object that has one in both (:func:`carvi_torch.cameras.geodesic_angle`), its median and maximum, how many
     objects' ``camera_choice`` differs, the objects whose cameras are over :data:`RUN_TURNED_DEG` apart, which
-    SfM start each run kept and how many shapes its mixture kept, and each run's SfM + refinement seconds. A class that one run has not finished (a run stopped at a time
-    limit) lands in ``not_compared`` with the reason; it is not an error.
+    SfM start each run kept and how many shapes its mixture kept, and each run's SfM + refinement seconds. A
+    class that one run has not finished (a run stopped at a time limit) lands in ``not_compared`` with the
+    reason; it is not an error.
 
     Args:
         run_a, run_b: each an output folder (``summary.json``, ``<class>/cameras.json``), or a list of folders
@@ -246,7 +247,8 @@ def compare_camera_runs(run_a, run_b, labels: tuple[str, str] = ("cpu", "cuda"),
 
     Returns:
         ``{"labels", "classes": {class: {"objects", "compared", "median_deg", "max_deg", "turned" (annotation id
-        -> angle, largest first), "camera_choice_differs", "sfm_start": [a, b], "shape_groups": [a, b], "viewpoint_seconds": {label: s}}},
+        -> angle, largest first), "camera_choice_differs", "sfm_start": [a, b], "shape_groups": [a, b],
+        "viewpoint_seconds": {label: s}}},
         "not_compared": {class: reason}, "viewpoint_seconds": {label: s} (the compared classes' sums),
         "torch_threads": {label: n}, "largest_median_deg" (``None`` without a compared class),
         "tolerance_deg", "agree"}`` (``agree``: a class was compared and every median is within tolerance).

@@ -1,4 +1,4 @@
-// The rigid SfM factorisation's outer loop (carvi_torch.viewpoints.sfm._fill_loop) in plain C++: the power
+// The rigid SfM factorisation's outer loop (carvi_torch.viewpoints.factorization._fill_loop) in plain C++: the power
 // steps (_power_steps), the candidate blocks, the refill and the stopping test.
 //
 // Each power step, on the centred filled measurement matrix Wc (N blocks of 2 x K) and the shape S (r x K),
@@ -225,7 +225,7 @@ inline double visible_residual(const double *M, int r, const double *S, const do
     return res;
 }
 
-// The affine resection of one instance (carvi_torch.viewpoints.sfm._resect): [M t] minimising the visible
+// The affine resection of one instance (carvi_torch.viewpoints.factorization.resect): [M t] minimising the visible
 // residual plus mu ||M - M_prev||^2, mu = reg (spread + scale_S). Writes M (2 x r); false on a zero pivot.
 inline bool resect_block(const double *S, int r, int64_t K, const double *w, const double *vis, const double *Mprev,
                          double reg, double scale_S, double *M)
@@ -354,7 +354,7 @@ inline void refill(const double *vis, const double *S, const double *M, const do
 
 enum { RAN_OUT = 0, CONVERGED = 1, DECLINED = 2 };
 
-// Steps first_it.. of the outer loop of carvi_torch.viewpoints.sfm._factorize from the filled matrix Wf (N, 2, K),
+// Steps first_it.. of the outer loop of carvi_torch.viewpoints.factorization.factorize from the filled matrix Wf (N, 2, K),
 // the shape S (r x K) and, with have_prev, the last step's blocks M (N, 2, r) (its RMS prev_rms): per step the
 // power steps, every instance's best candidate block, the refill, the convergence test. Updates Wf, S, M, t (N, 2)
 // and writes each step's RMS to history[step - first_it]. Returns the steps run; status: CONVERGED, RAN_OUT (at

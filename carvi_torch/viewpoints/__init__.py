@@ -5,6 +5,8 @@ Modules, in the order data flows through them:
 * :mod:`~carvi_torch.viewpoints.camera_fit`: fitting scaled orthographic cameras to a fixed
   shape (keypoints and silhouettes; Levenberg-Marquardt on scaled rotations), the shared maths;
 * :mod:`~carvi_torch.viewpoints.sfm`: rigid structure from motion with missing data;
+* :mod:`~carvi_torch.viewpoints.factorization`: SfM's missing-data factorisation (the alternation of filling
+  and power steps, its compiled kernel on the CPU);
 * :mod:`~carvi_torch.viewpoints.bundle`: SfM's joint bundle adjustment of all cameras and the shape
   (``sfm_polish=joint``);
 * :mod:`~carvi_torch.viewpoints.mixture`: optionally several rigid shapes per class;
