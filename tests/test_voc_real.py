@@ -218,47 +218,81 @@ def test_signed_elevation_errors():
     np.testing.assert_allclose(err, np.degrees([0.1, -0.2, 0.3]), atol=1e-9)
 
 
-def test_cad_floor_end_to_end_on_a_synthetic_collection(tmp_path, generator):
-    """step_cad_floor pairs the Berkeley names with the subtype's CAD keypoints, skips objects with fewer than
-    CAD_FIT_MIN_POINTS pairs, fits both cameras and reads the refined rows of the same objects: on keypoints
-    projected exactly by the orthographic ground truth its orthographic fit returns the truth."""
+def _floor_collection(tmp_path, generator):
+    """Two CAD models (subtypes 2 and 5, the same random keypoints) and five objects whose keypoints both models
+    project exactly under the orthographic truth (azimuths 90, 30, 270, 200 and 100 degrees); the last shows
+    3 keypoints, under CAD_FIT_MIN_POINTS. Returns the names, the keypoints, ground truth and the annotation file."""
     names = sorted(vs.BERKELEY_TO_PASCAL3D)
     X = torch.randn(len(names), 3, generator=generator, dtype=torch.float64).numpy()
     (tmp_path / "pascal3d_cad").mkdir()
-    np.savez(tmp_path / "pascal3d_cad" / "aeroplane02.npz", vertices=X.astype(np.float32),
-             faces=np.zeros((1, 3), np.int32), keypoint_names=np.array([vs.BERKELEY_TO_PASCAL3D[n] for n in names]),
-             keypoints=X.astype(np.float32))
+    for sub in (2, 5):
+        np.savez(tmp_path / "pascal3d_cad" / f"aeroplane{sub:02d}.npz", vertices=X.astype(np.float32),
+                 faces=np.zeros((1, 3), np.int32), keypoints=X.astype(np.float32),
+                 keypoint_names=np.array([vs.BERKELEY_TO_PASCAL3D[n] for n in names]))
     X = X.astype(np.float32).astype(np.float64)
-    gt, anns, per = {}, [], {}
-    angles = torch.tensor([[0.4, 0.2, 0.0], [2.1, -0.3, 0.1], [4.0, 0.1, -0.05]], dtype=torch.float64)
-    for i, R in enumerate(rotation_from_azimuth_elevation_roll(*angles.T).numpy()):
+    angles = torch.tensor([[90.0, 10.0, 0.0], [30.0, -15.0, 3.0], [270.0, 5.0, -2.0], [200.0, 20.0, 0.0],
+                           [100.0, 0.0, 0.0]], dtype=torch.float64).deg2rad()
+    gt, anns = {}, []
+    for i, (R, sub) in enumerate(zip(rotation_from_azimuth_elevation_roll(*angles.T).numpy(), (2, 2, 5, 5, 2))):
         key = f"2008_00000{i}_1"
         W = 40.0 * X @ R[:2].T + np.array([100.0, 80.0])
-        vis = np.ones(len(names)) if i < 2 else (np.arange(len(names)) < 3)  # the third shows 3 keypoints
+        vis = np.ones(len(names)) if i < 4 else (np.arange(len(names)) < 3)
         anns.append({"source": f"{key}.xml", "keypoints": np.c_[W, 2 * vis].ravel().tolist()})
-        gt[key] = {"R": R.tolist(), "subtype": 2}
-        per[key] = {"geodesic": 1.0 + i, "azimuth_error": 2.0 + i, "elevation_error": 3.0 + i}
+        gt[key] = {"R": R.tolist(), "subtype": sub}
     ann = tmp_path / "annotations.json"
     ann.write_text(json.dumps({"categories": [{"keypoints": names}], "annotations": anns}))
-    # the pipeline's mean shape: the same points scaled and shifted (a fit absorbs both), one name it lacks
-    mean_shape = {n: (2.0 * x + 0.3).tolist() for n, x in zip(names[1:], X[1:])}
-    floor = vs.step_cad_floor(ann, tmp_path, gt, {"refined": {"per_object": per}}, mean_shape)
+    return names, X, gt, ann, angles
+
+
+def test_cad_floor_end_to_end_on_a_synthetic_collection(tmp_path, generator):
+    """step_cad_floor pairs the Berkeley names with the subtype's CAD keypoints, skips objects with fewer than
+    CAD_FIT_MIN_POINTS pairs, fits both cameras and the mean shape, reads the refined rows of the same objects per
+    subtype and measures the written cameras in their own frame: on keypoints projected exactly by the
+    orthographic truth the orthographic fits return the truth, and written cameras turned by 3 degrees of azimuth
+    towards the front (back, at azimuth 270) give those 3 degrees, signed per subcategory."""
+    names, X, gt, ann, angles = _floor_collection(tmp_path, generator)
+    keys = sorted(gt)
+    per = {k: {"geodesic": 1.0 + i, "azimuth_error": 2.0 + i, "elevation_error": 3.0 + 2 * i}
+           for i, k in enumerate(keys)}
+    turned = rotation_from_azimuth_elevation_roll(*(angles - torch.tensor([math.radians(3.0), 0.0, 0.0])).T)
+    written = {"mean_shape": {n: (2.0 * x + 0.3).tolist() for n, x in zip(names[1:], X[1:])},  # no Bot_Rudder
+               "cameras": {str(i): {"source": f"{k}.xml", "refined": {"R": turned[i].tolist()}}
+                           for i, k in enumerate(keys)}}
+    sub = {k: ("Passenger" if gt[k]["subtype"] == 2 else "Propeller") for k in keys}
+    floor = vs.step_cad_floor(ann, tmp_path, gt, {"refined": {"per_object": per}}, written, sub)
     ortho, persp, ref = floor["annotator_cad_fit"], floor["annotator_cad_perspective"], floor["refined"]
-    assert ortho["n"] == persp["n"] == ref["n"] == floor["mean_shape_fit"]["n"] == 2
+    assert ortho["n"] == persp["n"] == ref["n"] == floor["mean_shape_fit"]["n"] == 4
     assert ortho["geodesic_median"] < 1e-4 and ortho["elevation_median"] < 1e-4
-    assert floor["mean_shape_fit"]["geodesic_median"] < 1e-4
+    assert floor["mean_shape_fit"]["geodesic_median"] < 1e-4  # a scaled, shifted copy: the fit absorbs both
     assert persp["geodesic_median"] < 1.0  # a perspective camera nearly fits orthographic data from far away
-    assert (ref["geodesic_median"], ref["azimuth_median"], ref["elevation_median"]) == (1.5, 2.5, 3.5)
-    assert list(floor["by_subtype"]) == ["2"] and floor["by_subtype"]["2"]["refined"] == ref
+    assert (ref["geodesic_median"], ref["azimuth_median"], ref["elevation_median"]) == (2.5, 3.5, 6.0)
+    assert floor["refined_as_written"]["azimuth_median"] == pytest.approx(3.0, abs=1e-6)
+    by = floor["by_subtype"]
+    assert list(by) == ["2", "5"] and by["2"]["refined"]["elevation_median"] == 4.0  # objects 0 and 1, not 4
+    assert by["5"]["refined"]["elevation_median"] == 8.0 and by["5"]["refined"]["n"] == 2
+    bias = floor["side_view_bias"]["refined_as_written"]  # side views: object 0 (az 90) and object 2 (az 270)
+    assert bias["Passenger"]["n"] == bias["Propeller"]["n"] == 1
+    assert bias["Passenger"]["median_toward_front"] == pytest.approx(3.0, abs=1e-6)
+    assert bias["Propeller"]["median_toward_front"] == pytest.approx(-3.0, abs=1e-6)
+    assert floor["side_view_bias"]["mean_shape_fit"]["all"]["median_toward_front"] == pytest.approx(0.0, abs=1e-4)
     assert math.isnan(floor["wing_station"]["mean_shape"])  # it lacks Bot_Rudder
     kp = dict(zip(names, X))
     axis = kp["Bot_Rudder"] - kp["NoseTip"]
     by_hand = np.mean([(kp[n] - kp["NoseTip"]) @ axis / (axis @ axis) for n in ("L_WingTip", "R_WingTip")])
-    assert floor["wing_station"]["aeroplane02"] == pytest.approx(by_hand, abs=1e-12)
+    assert floor["wing_station"]["aeroplane05"] == pytest.approx(by_hand, abs=1e-12)
     # a mean shape stretched along one axis no longer fits: the fit from the truth moves off it
-    stretched = {n: (np.array([1.0, 1.6, 1.0]) * x).tolist() for n, x in zip(names, X)}
-    off = vs.step_cad_floor(ann, tmp_path, gt, {"refined": {"per_object": per}}, stretched)["mean_shape_fit"]
+    written["mean_shape"] = {n: (np.array([1.0, 1.6, 1.0]) * x).tolist() for n, x in zip(names, X)}
+    off = vs.step_cad_floor(ann, tmp_path, gt, {"refined": {"per_object": per}}, written, sub)["mean_shape_fit"]
     assert off["geodesic_median"] > 0.5
+
+
+def test_wing_station_known_values():
+    """Tips halfway between the wing root and the tail's foot of a unit fuselage sit at 0.75; swept further back,
+    further; a shape without a tip has none."""
+    shape = {"NoseTip": [0, -1, 0], "Bot_Rudder": [0, 1, 0], "L_WingTip": [1, 0.5, 0], "R_WingTip": [-1, 0.5, 0]}
+    assert vs.wing_station(shape) == pytest.approx(0.75)
+    assert vs.wing_station({**shape, "L_WingTip": [1, 0.9, 0.2]}) == pytest.approx((0.75 + 0.95) / 2)
+    assert math.isnan(vs.wing_station({k: v for k, v in shape.items() if k != "R_WingTip"}))
 
 
 def test_print_table_formats(capsys):

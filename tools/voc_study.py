@@ -633,7 +633,9 @@ def _cad_fit_rotations(ann: Path, data: Path, gt: dict, mean_shape: dict | None 
     names = coll["categories"][0]["keypoints"]
     cads: dict[int, dict] = {}
     keys, subtypes, R_gt = [], [], []
-    R_fit = {m: [] for m in ("orthographic", "perspective", *(("mean_shape",) if mean_shape else ()))}
+    R_fit: dict[str, list] = {"orthographic": [], "perspective": []}
+    if mean_shape:
+        R_fit["mean_shape"] = []
     for a in coll["annotations"]:
         k = gt_key(a["source"])
         if k not in gt:
@@ -694,61 +696,102 @@ def _medians(R: torch.Tensor, R_gt: torch.Tensor, rows: np.ndarray | None = None
             "elevation_median": float(np.median(ang["elevation"].numpy()))}
 
 
-def step_cad_floor(ann: Path, data: Path, gt: dict, vp: dict, mean_shape: dict | None = None) -> dict:
-    """How far the labels sit from the annotator's own CAD model, and the pipeline's mean shape, fitted to each
-    object's keypoints.
+def step_cad_floor(ann: Path, data: Path, gt: dict, vp: dict, written: dict | None = None,
+                   subcategory: dict | None = None) -> dict:
+    """How far the labels sit from the annotator's own CAD model, and from the pipeline's mean shape, fitted to
+    each object's keypoints.
 
     For every object with ground truth whose PASCAL3D+ CAD model (its ``subtype``) names at least
     :data:`CAD_FIT_MIN_POINTS` of its visible keypoints, :func:`fit_orthographic_pose` and
     :func:`fit_perspective_pose` (PASCAL3D+'s own camera), each from the ground-truth rotation (the local optimum
-    reached from it: a fit never crosses to a flipped view); with ``mean_shape`` (the pipeline's, in its written
-    frame, which is the CAD frame where the class has a template) its orthographic fit the same way: what the one
-    shape allows the keypoints to reach. These errors need no fitted ``G``. Beside them, the pipeline's refined
-    cameras on the same objects, after the least-squares ``G`` fitted on all objects with ground truth. Median
-    errors, over all and per subtype; printed and returned.
+    reached from it: a fit never crosses to a flipped view). These need no fitted ``G``: the CAD frame is the
+    labels'. With ``written`` (the run's ``cameras.json``) its mean shape is fitted the same way, in the frame the
+    run writes (the template's: the CAD frame to within the template's residual), beside the refined cameras as
+    written: what one rigid shape lets keypoints reach from the truth, against what the pipeline reached. Then the
+    refined cameras after the least-squares ``G`` fitted on all objects with ground truth (the headline
+    alignment). Median errors over all objects and per subtype, the side views' azimuth bias per Berkeley
+    ``subcategory`` (key -> name) of each fit (:func:`side_view_bias`) and the shapes' wing stations
+    (:func:`wing_station`); printed and returned.
     """
+    mean_shape = written["mean_shape"] if written else None
     keys, subtypes, R_fit, R_gt = _cad_fit_rotations(ann, data, gt, mean_shape)
-    per = vp["refined"]["per_object"]
-
-    def refined(rows) -> dict:
-        sel = [per[k] for k, r in zip(keys, rows) if r and k in per]
-        return {"n": len(sel), **{f"{a}_median": float(np.median([r[f] for r in sel])) for a, f in
-                                  (("geodesic", "geodesic"), ("azimuth", "azimuth_error"),
-                                   ("elevation", "elevation_error"))}}
-
+    if written:
+        R_fit["as_written"] = _written_rotations(written, keys)
     names = {"orthographic": "annotator_cad_fit", "perspective": "annotator_cad_perspective",
-             "mean_shape": "mean_shape_fit"}
-    out = {names[m]: _medians(R, R_gt) for m, R in R_fit.items()}
-    out["refined"] = refined([True] * len(keys))
+             "mean_shape": "mean_shape_fit", "as_written": "refined_as_written"}
+    per = vp["refined"]["per_object"]
     sub = np.array(subtypes)
+    out = {names[m]: _medians(R, R_gt) for m, R in R_fit.items()}
+    out["refined"] = _refined_medians(per, keys, np.ones(len(keys), dtype=bool))
     out["by_subtype"] = {str(s): {**{names[m]: _medians(R, R_gt, sub == s) for m, R in R_fit.items()},
-                                  "refined": refined(sub == s)} for s in sorted(set(subtypes))}
-    cads = {f.stem: load_cad(f)["keypoints"] for f in sorted((data / "pascal3d_cad").glob("aeroplane*.npz"))}
-    out["wing_station"] = {**({"mean_shape": wing_station(mean_shape)} if mean_shape else {}),
-                           **{name: wing_station({b: kp[p] for b, p in BERKELEY_TO_PASCAL3D.items()})
-                              for name, kp in cads.items()}}
+                                  "refined": _refined_medians(per, keys, sub == s)} for s in sorted(set(subtypes))}
+    out["side_view_bias"] = {names[m]: side_view_bias(_signed_rows(keys, R, R_gt), subcategory or {})
+                             for m, R in R_fit.items() if m != "perspective"}
+    out["wing_station"] = _wing_stations(data, mean_shape)
     _print_floor(out)
     return out
+
+
+def _written_rotations(written: dict, keys: list[str]) -> torch.Tensor:
+    """``(len(keys), 3, 3)`` the refined rotations of ``cameras.json`` for ``keys`` (NaN where an object has none)."""
+    by_key = {gt_key(c["source"]): c["refined"]["R"] for c in written["cameras"].values() if c.get("refined")}
+    nan = [[float("nan")] * 3] * 3
+    return torch.tensor([by_key.get(k, nan) for k in keys], dtype=torch.float64)
+
+
+def _refined_medians(per: dict, keys: list[str], rows: np.ndarray) -> dict:
+    """The medians of ``step_viewpoints``'s per-object refined errors (least-squares ``G``) over ``keys[rows]``."""
+    sel = [per[k] for k, r in zip(keys, rows) if r and k in per]
+    return {"n": len(sel), **{f"{a}_median": float(np.median([r[f] for r in sel])) for a, f in
+                              (("geodesic", "geodesic"), ("azimuth", "azimuth_error"),
+                               ("elevation", "elevation_error"))}}
+
+
+def _signed_rows(keys: list[str], R: torch.Tensor, R_gt: torch.Tensor) -> dict:
+    """Per key ``{"signed_azimuth_error", "gt_azimuth"}`` of ``R`` against ``R_gt`` (no fitted rotation; rows
+    with a NaN rotation left out), as :func:`side_view_bias` reads them."""
+    ok = torch.isfinite(R).flatten(1).all(1)
+    signed = signed_azimuth_errors(R[ok], R_gt[ok], torch.eye(3, dtype=R.dtype))
+    a_gt, _, _ = azimuth_elevation_roll_from_rotation(R_gt[ok])
+    kept = [k for k, o in zip(keys, ok.tolist()) if o]
+    return {k: {"signed_azimuth_error": float(e), "gt_azimuth": math.degrees(float(a)) % 360.0}
+            for k, e, a in zip(kept, signed, a_gt)}
+
+
+def _wing_stations(data: Path, mean_shape: dict | None) -> dict:
+    """:func:`wing_station` of the mean shape (when given) and of every PASCAL3D+ aeroplane CAD model."""
+    cads = {f.stem: load_cad(f)["keypoints"] for f in sorted((data / "pascal3d_cad").glob("aeroplane*.npz"))}
+    return {**({"mean_shape": wing_station(mean_shape)} if mean_shape else {}),
+            **{name: wing_station({b: kp.get(p) for b, p in BERKELEY_TO_PASCAL3D.items()})
+               for name, kp in cads.items()}}
 
 
 _FLOOR_ROWS = (("annotator_cad_fit", "annotator's CAD, orthographic fit"),
                ("annotator_cad_perspective", "annotator's CAD, PASCAL3D+'s camera"),
                ("mean_shape_fit", "the pipeline's mean shape, orthographic fit"),
+               ("refined_as_written", "refined, as written (no G)"),
                ("refined", "refined (least-squares G)"))
 
 
 def _print_floor(out: dict) -> None:
-    """The tables of :func:`step_cad_floor`: all objects, then azimuth / elevation medians per subtype."""
+    """The tables of :func:`step_cad_floor`: all objects, azimuth / elevation medians per subtype (no fitted
+    rotation), the side views' bias per subcategory, the wing stations."""
     print_table("the annotator's own CAD model and the pipeline's mean shape fitted near the truth, against the "
                 "refined cameras on the same objects (median degrees)", ["cameras", "n", "geodesic", "azimuth",
                                                                          "elevation"],
                 [[name, str(out[k]["n"]), out[k]["geodesic_median"], out[k]["azimuth_median"],
                   out[k]["elevation_median"]] for k, name in _FLOOR_ROWS if k in out])
-    cols = [(k, name) for k, name in _FLOOR_ROWS if k in out and k != "annotator_cad_perspective"]
+    cols = [(k, name) for k, name in _FLOOR_ROWS if k in out and k not in ("annotator_cad_perspective", "refined")]
     print_table("the same by the annotator's CAD model (subtype): azimuth / elevation medians (degrees)",
                 ["subtype", "n", *[name.split(",")[0] for _k, name in cols]],
                 [[s, str(v["refined"]["n"]), *[f"{v[k]['azimuth_median']:.1f} / {v[k]['elevation_median']:.1f}"
                                                for k, _name in cols]] for s, v in out["by_subtype"].items()])
+    bias = out["side_view_bias"]
+    groups = sorted({g for b in bias.values() for g in b})
+    print_table("side views (azimuth 60-120, 240-300; |azimuth error| < 45), no fitted rotation: median azimuth "
+                "error towards the nose (degrees) by Berkeley subcategory", ["fit", *groups],
+                [[k, *[f"{b[g]['median_toward_front']:+.1f} ({b[g]['n']})" if g in b else "-" for g in groups]]
+                 for k, b in bias.items()])
     print("wing tips along the fuselage (0 nose, 1 tail): " + ", ".join(f"{k} {v:.2f}" for k, v in
                                                                          out["wing_station"].items()))
 
@@ -1417,7 +1460,7 @@ def cameras_only(args, data: Path, work: Path, command: str) -> dict:
     recon = step_reconstruct(ann, work / "cameras", ["stage=cameras", "overwrite=true", *args.overrides], args.device)
     subcategory = {gt_key(a["source"]): a.get("subcategory") for a in read_json(ann)["annotations"]}
     vp = step_viewpoints(work / "cameras", gt, subcategory)
-    floor = step_cad_floor(ann, data, gt, vp, read_json(work / "cameras" / CLASS / "cameras.json")["mean_shape"])
+    floor = step_cad_floor(ann, data, gt, vp, read_json(work / "cameras" / CLASS / "cameras.json"), subcategory)
     summary = {stage: {"n": vp[stage]["report"]["n"],
                        **{f"{a}_median": vp[stage]["report"][a]["median"] for a in ("geodesic", "azimuth",
                                                                                     "elevation")},
@@ -1471,7 +1514,7 @@ def main(argv=None) -> dict:
     vp = step_viewpoints(recon, gt, subcategory)
     result["viewpoints"] = {k: ({kk: vv for kk, vv in v.items() if kk != "per_object"} if isinstance(v, dict)
                                 and "per_object" in v else v) for k, v in vp.items()}
-    result["cad_floor"] = step_cad_floor(ann, data, gt, vp, read_json(recon / CLASS / "cameras.json")["mean_shape"])
+    result["cad_floor"] = step_cad_floor(ann, data, gt, vp, read_json(recon / CLASS / "cameras.json"), subcategory)
     result["unseen"] = step_unseen(ann, gt, cfg, args.seed, args.holdout, args.device, seen=vp)
     if not args.no_diagnose:
         result["diagnosis"] = step_diagnose(data, work, gt, cfg, args.device)

@@ -46,8 +46,8 @@ __all__ = [
 #: (degrees; the CPU against CUDA, docs/viewpoints.md, *CPU and CUDA*).
 RUN_AGREEMENT_DEG = 0.5
 #: An object whose two cameras are further apart than this (degrees) is listed by :func:`compare_camera_runs`
-#: (``turned``): a median hides the few views that flip between near-equal solutions (planar twins, cameras from
-#: the silhouette alone).
+#: (``turned``): a median hides the few views that flip between near-equal solutions (views with few visible
+#: keypoints: front and back exchanged, cameras from the silhouette or the mean shape alone).
 RUN_TURNED_DEG = 1.0
 
 
