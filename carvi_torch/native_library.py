@@ -2,7 +2,7 @@
 
 One shared library holds the package's C++ kernels (``carvi_torch/kernels/``): the fused carving
 (``carve_core.h``, used by :mod:`carvi_torch.carve.native`), the rigid SfM's factorisation loop
-(``sfm_steps.h``, used by :mod:`carvi_torch.viewpoints.sfm`), the keypoint-only camera fit
+(``sfm_steps.h``, used by :mod:`carvi_torch.viewpoints.factorization`), the keypoint-only camera fit
 (``camera_steps.h``, used by :mod:`carvi_torch.viewpoints.camera_fit`) and the selection's projection onto the
 principal planes (``splat_planes.h``, used by :mod:`carvi_torch.select`), registered as ``torch.library``
 operators by ``carve_native.cpp``. This module builds, caches and loads it; the stages that use an operator decide

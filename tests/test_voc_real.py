@@ -221,7 +221,8 @@ def test_signed_elevation_errors():
 def _floor_collection(tmp_path, generator):
     """Two CAD models (subtypes 2 and 5, the same random keypoints) and five objects whose keypoints both models
     project exactly under the orthographic truth (azimuths 90, 30, 270, 200 and 100 degrees); the last shows
-    3 keypoints, under CAD_FIT_MIN_POINTS. Returns the names, the keypoints, ground truth and the annotation file."""
+    3 keypoints, under CAD_FIT_MIN_POINTS. Returns the names, the keypoints, ground truth, the annotation file and
+    the ``(5, 3)`` azimuth, elevation and roll (radians)."""
     names = sorted(vs.BERKELEY_TO_PASCAL3D)
     X = torch.randn(len(names), 3, generator=generator, dtype=torch.float64).numpy()
     (tmp_path / "pascal3d_cad").mkdir()
@@ -267,6 +268,11 @@ def test_cad_floor_end_to_end_on_a_synthetic_collection(tmp_path, generator):
     assert persp["geodesic_median"] < 1.0  # a perspective camera nearly fits orthographic data from far away
     assert (ref["geodesic_median"], ref["azimuth_median"], ref["elevation_median"]) == (2.5, 3.5, 6.0)
     assert floor["refined_as_written"]["azimuth_median"] == pytest.approx(3.0, abs=1e-6)
+    # an object without a written camera is left out of the written rows, not a NaN median
+    del written["cameras"]["1"]
+    partial = vs.step_cad_floor(ann, tmp_path, gt, {"refined": {"per_object": per}}, written, sub)
+    assert partial["refined_as_written"]["n"] == 3 and partial["by_subtype"]["2"]["refined_as_written"]["n"] == 1
+    assert partial["refined_as_written"]["azimuth_median"] == pytest.approx(3.0, abs=1e-6)
     by = floor["by_subtype"]
     assert list(by) == ["2", "5"] and by["2"]["refined"]["elevation_median"] == 4.0  # objects 0 and 1, not 4
     assert by["5"]["refined"]["elevation_median"] == 8.0 and by["5"]["refined"]["n"] == 2
@@ -287,8 +293,8 @@ def test_cad_floor_end_to_end_on_a_synthetic_collection(tmp_path, generator):
 
 
 def test_wing_station_known_values():
-    """Tips halfway between the wing root and the tail's foot of a unit fuselage sit at 0.75; swept further back,
-    further; a shape without a tip has none."""
+    """Tips level with the point halfway between the fuselage's middle and the tail's foot sit at 0.75; swept
+    further back, further; a shape without a tip has none."""
     shape = {"NoseTip": [0, -1, 0], "Bot_Rudder": [0, 1, 0], "L_WingTip": [1, 0.5, 0], "R_WingTip": [-1, 0.5, 0]}
     assert vs.wing_station(shape) == pytest.approx(0.75)
     assert vs.wing_station({**shape, "L_WingTip": [1, 0.9, 0.2]}) == pytest.approx((0.75 + 0.95) / 2)

@@ -687,9 +687,11 @@ def wing_station(shape: dict) -> float:
 
 def _medians(R: torch.Tensor, R_gt: torch.Tensor, rows: np.ndarray | None = None) -> dict:
     """``{"n", "geodesic_median", "azimuth_median", "elevation_median"}`` of ``R`` against ``R_gt`` (no fitted
-    rotation), over ``rows`` (a boolean mask) when given."""
+    rotation), over ``rows`` (a boolean mask) when given; rows whose ``R`` is not finite (no camera) left out."""
+    keep = torch.isfinite(R).flatten(1).all(1)
     if rows is not None:
-        R, R_gt = R[torch.as_tensor(rows)], R_gt[torch.as_tensor(rows)]
+        keep &= torch.as_tensor(rows, dtype=torch.bool)
+    R, R_gt = R[keep], R_gt[keep]
     geo, ang = geodesic_errors(R, R_gt).numpy(), angle_errors(R, R_gt)
     return {"n": len(R), "geodesic_median": float(np.median(geo)),
             "azimuth_median": float(np.median(ang["azimuth"].numpy())),

@@ -354,8 +354,9 @@ inline void refill(const double *vis, const double *S, const double *M, const do
 
 enum { RAN_OUT = 0, CONVERGED = 1, DECLINED = 2 };
 
-// Steps first_it.. of the outer loop of carvi_torch.viewpoints.factorization.factorize from the filled matrix Wf (N, 2, K),
-// the shape S (r x K) and, with have_prev, the last step's blocks M (N, 2, r) (its RMS prev_rms): per step the
+// Steps first_it.. of the outer loop of carvi_torch.viewpoints.factorization.factorize from the filled matrix
+// Wf (N, 2, K), the shape S (r x K) and, with have_prev, the last step's blocks M (N, 2, r) (its RMS prev_rms): per
+// step the
 // power steps, every instance's best candidate block, the refill, the convergence test. Updates Wf, S, M, t (N, 2)
 // and writes each step's RMS to history[step - first_it]. Returns the steps run; status: CONVERGED, RAN_OUT (at
 // max_outer), or DECLINED: the next step needs the torch path (see power_steps, best_block), and Wf, S, M, t are

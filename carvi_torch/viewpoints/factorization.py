@@ -47,7 +47,7 @@ __all__ = ["factorize", "planar_factorize", "resect", "visible_translation"]
 
 
 def visible_translation(M: torch.Tensor, S: torch.Tensor, W: torch.Tensor, vis: torch.Tensor,
-                         counts: torch.Tensor | None = None):
+                        counts: torch.Tensor | None = None):
     """Least-squares translation and residual on visible entries.
 
     Args:
@@ -66,7 +66,7 @@ def visible_translation(M: torch.Tensor, S: torch.Tensor, W: torch.Tensor, vis: 
 
 
 def resect(S: torch.Tensor, W: torch.Tensor, vis: torch.Tensor, M_prev: torch.Tensor, reg: float,
-            checked: bool = False):
+           checked: bool = False):
     """Affine resection on visible entries, Tikhonov-pulled towards ``M_prev``.
 
     ``[M t] = argmin sum_k vis_k ||w_k - M S_k - t||^2 + mu ||M - M_prev||^2`` for every

@@ -55,8 +55,8 @@ import torch
 from ..cameras import ScaledOrthographic, complete_rotation, geodesic_angle, scaled_stiefel
 from ..runtime import cpu_single_thread
 from .bundle import joint_bundle_adjust
-from .factorization import factorize, planar_factorize, resect, visible_translation
 from .camera_fit import refine_cameras
+from .factorization import factorize, planar_factorize, resect, visible_translation
 
 __all__ = [
     "SfMResult",
@@ -776,8 +776,9 @@ class SfMOptions:
     """Median angle (degrees) between the copies' cameras and their originals' mirrored cameras
     above which the joint solution is re-seeded from the originals."""
     native: bool = True
-    """On the CPU, run the factorisation's outer loop in the compiled kernel (:func:`_native_steps`;
-    float64, equal to the torch operators to rounding) where it builds; ``False``: torch operators only."""
+    """On the CPU, run the factorisation's outer loop in the compiled kernel
+    (:func:`~carvi_torch.viewpoints.factorization._native_steps`; float64, equal to the torch operators to rounding)
+    where it builds; ``False``: torch operators only."""
 
     def check(self) -> None:
         """Raise ``ValueError`` for limits below 1 and an unknown polish method."""
