@@ -7,6 +7,7 @@ answer is known: two groups, the true split, and cameras far better than one sha
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -340,6 +341,32 @@ def test_the_automatic_decision_splits_a_class_of_two_proportions(two_shapes):
     kept = next(c for c in fitted.candidates if c["kept"])
     assert kept["hull_gain"] == pytest.approx(float(gain), abs=1e-5)
     assert fitted.summary()["misfit"] == fitted.misfit
+
+
+def test_group_shapes_are_centred_and_project_as_their_own_sfm(two_shapes):
+    """In the class frame every group's shape is centred on all its keypoints, and its cameras project it where
+    the group's own SfM cameras project the group's own shape. A group whose SfM put its origin elsewhere (its
+    shape shifted, its cameras' translations with it: the same projections) gives the same class-frame shape and
+    cameras: the origin no longer depends on which keypoints a group's objects show."""
+    *_, fitted = two_shapes
+    assert fitted.k == 2
+    for g, (_rows, res) in enumerate(fitted.groups):
+        S = fitted.shape(g)
+        ok = torch.isfinite(S).all(-1)
+        torch.testing.assert_close(S[ok].mean(0), torch.zeros(3, dtype=S.dtype), atol=1e-5, rtol=0)
+        own = res.cameras.project(torch.nan_to_num(res.shape))[res.valid][:, ok]
+        torch.testing.assert_close(fitted.cameras(g).project(torch.nan_to_num(S))[res.valid][:, ok], own,
+                                   atol=1e-3, rtol=1e-5)
+    rows, res = fitted.groups[1]
+    d = torch.tensor([0.3, -0.2, 0.5], dtype=res.shape.dtype) * res.shape[torch.isfinite(res.shape).all(-1)].std()
+    c = res.cameras
+    shifted = type(c)(c.R, c.s, c.t - c.s[:, None] * (c.R[:, :2, :] @ d))
+    moved = dataclasses.replace(res, shape=res.shape + d, cameras=shifted)
+    off = dataclasses.replace(fitted, groups=[fitted.groups[0], (rows, moved)])
+    torch.testing.assert_close(moved.cameras.project(torch.nan_to_num(moved.shape)),
+                               c.project(torch.nan_to_num(res.shape)), atol=1e-3, rtol=1e-5)
+    torch.testing.assert_close(off.shape(1), fitted.shape(1), atol=1e-4, rtol=1e-5)
+    torch.testing.assert_close(off.cameras(1).t, fitted.cameras(1).t, atol=1e-3, rtol=1e-5)
 
 
 def test_the_automatic_decision_keeps_one_shape_for_one_proportion():

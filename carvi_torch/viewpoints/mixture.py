@@ -591,14 +591,35 @@ class MixtureResult:
     cost: torch.Tensor | None = None
 
     def shape(self, g: int) -> torch.Tensor:
-        """``(K, 3)`` mean shape of group ``g`` in the class frame (one group: the SfM shape itself)."""
+        """``(K, 3)`` mean shape of group ``g`` in the class frame, centred on all its keypoints (one group: the
+        SfM shape itself).
+
+        A group's SfM centres its shape on the keypoints its own objects show, and the rows it lacks are filled
+        from the class's shape afterwards (:func:`fill_missing_rows`), so its origin is not the same point of the
+        object as another group's (on the 8-view CAD trains up to 65% of the object's extent apart in the image):
+        a surrogate of one group would be carved into a reference of another that far off. Centred on every
+        row, as the one-shape SfM's shape is, every group's cameras place one point, the keypoints' centroid.
+        """
         S = self.groups[g][1].shape
-        return S if self.k == 1 else S @ self.Q[g].to(S)
+        if self.k == 1:
+            return S
+        S = S @ self.Q[g].to(S)
+        return S - self._origin(g).to(S)
 
     def cameras(self, g: int) -> ScaledOrthographic:
-        """SfM cameras of group ``g``'s rows (``groups[g][0]``) in the class frame."""
+        """SfM cameras of group ``g``'s rows (``groups[g][0]``) in the class frame, for :meth:`shape` (its
+        projections are those of the group's own SfM shape and cameras)."""
         c = self.groups[g][1].cameras
-        return ScaledOrthographic(c.R @ self.Q[g].to(c.R), c.s, c.t)
+        R = c.R @ self.Q[g].to(c.R)
+        if self.k == 1:
+            return ScaledOrthographic(R, c.s, c.t)
+        return ScaledOrthographic(R, c.s, c.t + c.s[:, None] * (R[:, :2, :] @ self._origin(g).to(R)))
+
+    def _origin(self, g: int) -> torch.Tensor:
+        """``(3,)`` the centroid of group ``g``'s keypoints in the class frame (its SfM shape's finite rows)."""
+        S = self.groups[g][1].shape
+        S = S @ self.Q[g].to(S)
+        return S[torch.isfinite(S).all(-1)].mean(0)
 
     def sizes(self) -> list[int]:
         """Objects per group (host ints)."""
