@@ -344,10 +344,11 @@ def test_the_automatic_decision_splits_a_class_of_two_proportions(two_shapes):
 
 
 def test_group_shapes_are_centred_and_project_as_their_own_sfm(two_shapes):
-    """In the class frame every group's shape is centred on all its keypoints, and its cameras project it where
-    the group's own SfM cameras project the group's own shape. A group whose SfM put its origin elsewhere (its
-    shape shifted, its cameras' translations with it: the same projections) gives the same class-frame shape and
-    cameras: the origin no longer depends on which keypoints a group's objects show."""
+    """In the class frame every group's shape is centred on the keypoints all groups placed (here every one),
+    and its cameras project it where the group's own SfM cameras project the group's own shape. A group whose
+    SfM put its origin elsewhere (its shape shifted, its cameras' translations with it: the same projections)
+    gives the same class-frame shape and cameras, and a row filled from the class's shape (seen by none of the
+    group's objects) does not move the origin however it was placed."""
     *_, fitted = two_shapes
     assert fitted.k == 2
     for g, (_rows, res) in enumerate(fitted.groups):
@@ -367,6 +368,16 @@ def test_group_shapes_are_centred_and_project_as_their_own_sfm(two_shapes):
                                c.project(torch.nan_to_num(res.shape)), atol=1e-3, rtol=1e-5)
     torch.testing.assert_close(off.shape(1), fitted.shape(1), atol=1e-4, rtol=1e-5)
     torch.testing.assert_close(off.cameras(1).t, fitted.cameras(1).t, atol=1e-3, rtol=1e-5)
+    seen = res.seen.clone()
+    seen[0] = 0
+    filled = dataclasses.replace(res, shape=res.shape.clone(), seen=seen)
+    filled.shape[0] += 5.0 * d
+    far = dataclasses.replace(fitted, groups=[fitted.groups[0], (rows, filled)])
+    kept = fitted.shape(1)[1:]  # every group's origin is now the centroid of rows 1.., the moved row's aside
+    torch.testing.assert_close(far.shape(1)[1:], kept - kept.mean(0), atol=1e-3, rtol=1e-5)
+    torch.testing.assert_close(far.shape(0)[1:].mean(0), torch.zeros(3, dtype=kept.dtype), atol=1e-5, rtol=0)
+    own = res.cameras.project(torch.nan_to_num(res.shape))[res.valid][:, 1:]
+    torch.testing.assert_close(far.cameras(1).project(far.shape(1))[res.valid][:, 1:], own, atol=1e-3, rtol=1e-5)
 
 
 def test_the_automatic_decision_keeps_one_shape_for_one_proportion():

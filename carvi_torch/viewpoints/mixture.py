@@ -591,14 +591,14 @@ class MixtureResult:
     cost: torch.Tensor | None = None
 
     def shape(self, g: int) -> torch.Tensor:
-        """``(K, 3)`` mean shape of group ``g`` in the class frame, centred on all its keypoints (one group: the
-        SfM shape itself).
+        """``(K, 3)`` mean shape of group ``g`` in the class frame, centred on the keypoints every group's own
+        SfM placed (one group: the SfM shape itself).
 
         A group's SfM centres its shape on the keypoints its own objects show, and the rows it lacks are filled
         from the class's shape afterwards (:func:`fill_missing_rows`), so its origin is not the same point of the
-        object as another group's (on the 8-view CAD trains up to 65% of the object's extent apart in the image):
-        a surrogate of one group would be carved into a reference of another that far off. Centred on every
-        row, as the one-shape SfM's shape is, every group's cameras place one point, the keypoints' centroid.
+        object as another group's: a surrogate of one group would be carved into a reference of another that
+        far off. Centred on the same named keypoints in every group, every group's cameras place one point of
+        the object.
         """
         S = self.groups[g][1].shape
         if self.k == 1:
@@ -616,10 +616,17 @@ class MixtureResult:
         return ScaledOrthographic(R, c.s, c.t + c.s[:, None] * (R[:, :2, :] @ self._origin(g).to(R)))
 
     def _origin(self, g: int) -> torch.Tensor:
-        """``(3,)`` the centroid of group ``g``'s keypoints in the class frame (its SfM shape's finite rows)."""
+        """``(3,)`` group ``g``'s centroid of the keypoints every group's own SfM placed (seen by one of its
+        objects, not filled from the class's shape), in the class frame; of all its finite rows where the groups
+        share fewer than 3 such keypoints."""
         S = self.groups[g][1].shape
         S = S @ self.Q[g].to(S)
-        return S[torch.isfinite(S).all(-1)].mean(0)
+        common = torch.ones(S.shape[0], dtype=torch.bool, device=S.device)
+        for _rows, res in self.groups:
+            common &= torch.isfinite(res.shape).all(-1).to(common.device) & (res.seen.to(common.device) > 0)
+        if int(common.sum()) < 3:
+            common = torch.isfinite(S).all(-1)
+        return S[common].mean(0)
 
     def sizes(self) -> list[int]:
         """Objects per group (host ints)."""
