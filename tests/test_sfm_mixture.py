@@ -368,9 +368,9 @@ def test_group_shapes_are_centred_and_project_as_their_own_sfm(two_shapes):
                                c.project(torch.nan_to_num(res.shape)), atol=1e-3, rtol=1e-5)
     torch.testing.assert_close(off.shape(1), fitted.shape(1), atol=1e-4, rtol=1e-5)
     torch.testing.assert_close(off.cameras(1).t, fitted.cameras(1).t, atol=1e-3, rtol=1e-5)
-    seen = res.seen.clone()
-    seen[0] = 0
-    filled = dataclasses.replace(res, shape=res.shape.clone(), seen=seen)
+    mask = torch.zeros(len(res.shape), dtype=torch.bool)
+    mask[0] = True
+    filled = dataclasses.replace(res, shape=res.shape.clone(), filled=mask)
     filled.shape[0] += 5.0 * d
     far = dataclasses.replace(fitted, groups=[fitted.groups[0], (rows, filled)])
     kept = fitted.shape(1)[1:]  # every group's origin is now the centroid of rows 1.., the moved row's aside
@@ -378,6 +378,27 @@ def test_group_shapes_are_centred_and_project_as_their_own_sfm(two_shapes):
     torch.testing.assert_close(far.shape(0)[1:].mean(0), torch.zeros(3, dtype=kept.dtype), atol=1e-5, rtol=0)
     own = res.cameras.project(torch.nan_to_num(res.shape))[res.valid][:, 1:]
     torch.testing.assert_close(far.cameras(1).project(far.shape(1))[res.valid][:, 1:], own, atol=1e-3, rtol=1e-5)
+
+
+def test_a_keypoint_one_object_of_a_group_shows_is_filled_and_leaves_the_origin(two_shapes):
+    """Through the real fill path: a keypoint shown by one object of a group only gets no row from the group's
+    SfM (it needs two views), is filled from the class's shape and marked ``filled``; the groups' origin is the
+    centroid of the keypoints both groups placed, so it leaves that keypoint out of every group."""
+    _coll, both, _dist, _R, _truth, fitted = two_shapes
+    n, g = len(both) // 2, 1
+    members = (fitted.labels == g).nonzero().squeeze(1)
+    vis = both.visible.clone()
+    hide = torch.cat([members[1:], members + n])
+    vis[hide, 0] = False  # keypoint 0: one object of group 1, in one view (not in the mirrored copies)
+    sub = both.replace(visible=vis)
+    rows, res = mix._group_sfm(sub, fitted.labels, g, n, _sfm, fitted.single.shape)
+    assert bool(res.filled[0]) and not bool(res.filled[1:].any())
+    _rows0, res0 = mix._group_sfm(sub, fitted.labels, 0, n, _sfm, fitted.single.shape)
+    assert res0.filled is not None and not bool(res0.filled.any())
+    two = dataclasses.replace(fitted, groups=[(_rows0, res0), (rows, res)])
+    for h in range(2):
+        S = two.shape(h)
+        torch.testing.assert_close(S[1:].mean(0), torch.zeros(3, dtype=S.dtype), atol=1e-4, rtol=0)
 
 
 def test_the_automatic_decision_keeps_one_shape_for_one_proportion():

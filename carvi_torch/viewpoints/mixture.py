@@ -377,7 +377,9 @@ def _group_sfm(both, labels: torch.Tensor, g: int, n: int, sfm_fn: SfMFn, full_s
         raise SplitFailed(f"group {g} ({len(rows) // 2} objects) shows only (nearly) coplanar keypoints (thickness "
                           f"{thickness:.3f} < {PLANAR_THICKNESS}): the tilt of its cameras is undetermined")
     if full_shape is not None:
+        placed = torch.isfinite(res.shape).all(-1)
         res = dataclasses.replace(res, shape=fill_missing_rows(res.shape, full_shape))
+        res = dataclasses.replace(res, filled=torch.isfinite(res.shape).all(-1) & ~placed)
     return rows, res
 
 
@@ -616,15 +618,17 @@ class MixtureResult:
         return ScaledOrthographic(R, c.s, c.t + c.s[:, None] * (R[:, :2, :] @ self._origin(g).to(R)))
 
     def _origin(self, g: int) -> torch.Tensor:
-        """``(3,)`` group ``g``'s centroid of the keypoints every group's own SfM placed (seen by one of its
-        objects, not filled from the class's shape), in the class frame; of all its finite rows where the groups
-        share fewer than 3 such keypoints."""
+        """``(3,)`` group ``g``'s centroid of the keypoints every group's own SfM placed (not filled from the
+        class's shape: ``SfMResult.filled``), in the class frame; of all its finite rows where the groups share no
+        such keypoint."""
         S = self.groups[g][1].shape
         S = S @ self.Q[g].to(S)
         common = torch.ones(S.shape[0], dtype=torch.bool, device=S.device)
         for _rows, res in self.groups:
-            common &= torch.isfinite(res.shape).all(-1).to(common.device) & (res.seen.to(common.device) > 0)
-        if int(common.sum()) < 3:
+            common &= torch.isfinite(res.shape).all(-1).to(common.device)
+            if res.filled is not None:
+                common &= ~res.filled.to(common.device)
+        if not bool(common.any()):
             common = torch.isfinite(S).all(-1)
         return S[common].mean(0)
 

@@ -135,6 +135,9 @@ class SfMResult:
             mirrored through the shape's symmetry plane (0 for a solution consistent
             with the object's symmetry), and whether the solution was re-seeded from
             the originals (with both residuals, ``rms_joint`` and ``rms_seeded``).
+        filled: ``(K,)`` bool, the shape's rows taken from another shape rather than placed by this SfM (a
+            shape group's rows its objects do not show, :func:`carvi_torch.viewpoints.mixture.fill_missing_rows`);
+            ``None``: none.
     """
 
     shape: torch.Tensor
@@ -154,6 +157,7 @@ class SfMResult:
     problems: list[str] = field(default_factory=list)
     history: list[float] = field(default_factory=list)
     mirrors: dict = field(default_factory=dict)
+    filled: torch.Tensor | None = None
 
     def summary(self) -> dict:
         """JSON-ready summary (counts, flags, messages) for ``summary.json``."""
