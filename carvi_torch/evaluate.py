@@ -12,16 +12,18 @@ computed on the fly (``--baselines``).
 
 Cost: nearly all of it is the shape error of each object (the depth-offset search and the exact
 distances of ``metrics.best_depth_offset``), whose surface samples grow as ``1 / step^2``; a progress
-bar counts the objects (``--quiet`` hides it). The default run's 40 chairs took 32 s at the
-default ``--step-percent 0.5`` and 10 s at 2 (wall clock; 57 and 14 CPU-seconds, the interpreter's start
-included) on the 2-core development host at a load average of 1.6, the class mean 3.04 at both steps::
+bar counts the objects (``--quiet`` hides it). The objects are scored in worker processes, one per core
+(at most 8; ``--jobs``), each with one torch thread, or in this process below 16 objects; the errors are
+the same either way. The default run's 40 chairs took 32 s at the default ``--step-percent 0.5`` and 12 s
+at 2 (wall clock, the interpreter's start included) on the 2-core development host, the class mean 3.04
+at both steps; in this process alone (``--jobs 1``) 55-63 s and 14-16 s::
 
     python -m carvi_torch.reconstruct --out D --classes chair
-    /usr/bin/time python -m carvi_torch.evaluate --data D/input/annotations.json --recon D --quiet --step-percent S
+    python -m carvi_torch.evaluate --data D/input/annotations.json --recon D --quiet --step-percent S
 
-The torch threads' OpenMP runtime spins while it waits, so on a host busy with other work the CPU time
-grows several-fold (70 CPU-seconds at step 2 at a load average of 4 to 6; 12 with ``OMP_WAIT_POLICY=PASSIVE``
-at 4); ``OMP_NUM_THREADS=1`` takes 9 and 36 CPU-seconds on the idle host, 9 and 40 s.
+One process with two torch threads instead took 49-53 s and 12 s there, and its threads, which spin while
+they wait for each other, slow down by an order of magnitude on a busy host: two such evaluations side by
+side at step 2 took 102 s, against 19 s with the worker processes.
 ``--viewpoints-only`` takes seconds.
 
 Only what matches is scored, and what does not is said: a class of ``--data`` that a reconstruction
@@ -47,66 +49,22 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import trimesh
-from tqdm.auto import tqdm
 
-from .cameras import ScaledOrthographic
 from .cli import add_common, program, run_command, split_classes, writable_folder
 from .config import Config, read_run_config
 from .io.coco import CocoFormatError, class_keys, class_names, load_coco, object_id, select_classes
-from .io.layout import object_file
-from .mesh import MESH_FORMATS
 from .io.outputs import read_json, write_bytes, write_json
 from .io.results import annotation_source, same_object
-from .evaluation import metrics, reliability, viewpoint_metrics
+from .evaluation import reliability, viewpoint_metrics
+from .evaluation.scoring import MAX_JOBS, POOL_FROM, ShapeScorer, default_jobs, posed_gt_mesh, score_shapes
 
 __all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "main"]
-
-
-def posed_gt_mesh(entry: dict, root: Path, cache: dict | None = None) -> tuple[trimesh.Trimesh, float]:
-    """The ground-truth mesh of one annotation in its reference camera frame (image pixels).
-
-    ``entry`` is the annotation's record of ``gt.json`` (``mesh`` path relative to ``root``, true
-    ``R``, ``s``, ``t``): vertices ``X`` go to ``(u, v, depth) = (s R[:2] X + t, s R[2] X)``.
-
-    Returns:
-        the posed mesh and the normalising diagonal: ``s`` times the bounding-box diagonal of the
-        model in its own frame (the paper's normalisation; a box taken in the camera frame would
-        depend on the view).
-    """
-    path = (root / entry["mesh"]).resolve()
-    if cache is not None and path in cache:
-        base = cache[path]
-    else:
-        base = trimesh.load(path, force="mesh", process=False)
-        if cache is not None:
-            cache[path] = base
-    cam = ScaledOrthographic.from_list([entry], dtype=torch.float64)
-    V = torch.from_numpy(np.asarray(base.vertices, dtype=np.float64))
-    Vc = cam.to_camera_frame(V)[0].numpy()
-    used = np.unique(np.asarray(base.faces))
-    diag = float(cam.s[0]) * metrics.bounding_box_diagonal(V[used])
-    return trimesh.Trimesh(Vc, np.asarray(base.faces), process=False), diag
 
 
 def _read_cameras(rdir: Path, classes) -> dict[str, dict | None]:
     """Each class's ``cameras.json`` of the reconstruction ``rdir``, read once for every use: class -> its
     content (``None``: no file)."""
     return {cls: read_json(p) if (p := rdir / cls / "cameras.json").is_file() else None for cls in sorted(classes)}
-
-
-def _load_recon_mesh(recon: Path, cls: str, aid, cams: dict | None) -> trimesh.Trimesh | None:
-    """The run's mesh of object ``aid``, or ``None``: no mesh, or the object is not in the class's
-    ``cameras.json`` (``cams``, its content), which holds the objects of the run's latest input (a mesh an
-    earlier run left for an object the input has since dropped is not the run's; a folder of meshes without
-    ``cameras.json`` (``cams`` ``None``), another method's, is taken as it is)."""
-    if cams is not None and str(aid) not in cams.get("cameras", {}):
-        return None
-    for ext in MESH_FORMATS:
-        p = object_file(recon / cls, "meshes", aid, ext)
-        if p.is_file():
-            return trimesh.load(p, force="mesh", process=False)
-    return None
 
 
 def _viewpoints(cameras: dict | None, gt_entries: dict, aids: list) -> dict | None:
@@ -144,7 +102,8 @@ def _viewpoints(cameras: dict | None, gt_entries: dict, aids: list) -> dict | No
 
 def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path | None = None,
              split: str | None = None, baselines: bool = False, step_percent: float = 0.5,
-             classes=None, progress: bool = True, canvas_size: int | None = None, shapes: bool = True) -> dict:
+             classes=None, progress: bool = True, canvas_size: int | None = None, shapes: bool = True,
+             jobs: int | None = None) -> dict:
     """Evaluate reconstruction directories ``recons`` (method name -> directory) against ``gt.json``.
 
     Returns a dict with ``objects`` (per annotation id: class, and per method the error or the
@@ -152,7 +111,9 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     ``viewpoints`` (per class and method: SfM and refined viewpoint reports) and
     ``classes_without_reconstruction`` (per class of the data in scope that some method has no folder
     for: those methods; without ``classes``, a class no method has is not evaluated). With
-    ``shapes=False`` only the viewpoints are evaluated (e.g. after ``stage=cameras``).
+    ``shapes=False`` only the viewpoints are evaluated (e.g. after ``stage=cameras``). The shapes are scored
+    with one torch thread per process, in this process or in ``jobs`` worker processes (default
+    :func:`default_jobs`); the errors are the same either way.
 
     Raises:
         FileNotFoundError: no file ``data``, or no ground truth.
@@ -182,14 +143,13 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     targets = [a for a in in_scope if ann.ann_class[a] in wanted]
     targets.sort(key=_id_order)
     methods = list(recons) + (["Puffball", "SFMc"] if baselines and shapes else [])
-    scorer = _ShapeScorer(ann.gt_path.parent, recons, cameras, step_percent, baselines, coll_by_class)
-    objects: dict[str, dict] = {}
+    scorer = ShapeScorer(ann.gt_path.parent, recons, cameras, step_percent, baselines, coll_by_class)
     t0 = time.perf_counter()
-    for aid in tqdm(targets, desc="evaluate", disable=not progress):
-        row = {"class": ann.ann_class[aid], "split": ann.split_of.get(aid, "")}
-        if shapes:
-            scorer.score(aid, ann.gt_entries[str(aid)], row)
-        objects[str(aid)] = row
+    work = [(aid, ann.gt_entries[str(aid)], {"class": ann.ann_class[aid], "split": ann.split_of.get(aid, "")})
+            for aid in targets]
+    rows = score_shapes(scorer, work, default_jobs(len(work)) if jobs is None else jobs, progress) if shapes \
+        else [row for _aid, _entry, row in work]
+    objects: dict[str, dict] = {str(aid): row for aid, row in zip(targets, rows)}
     per_class = _class_errors(objects, methods)
     viewpoints = _class_viewpoints(list(per_class), objects, ann, cameras)
     means = {}
@@ -251,39 +211,6 @@ def _wanted_classes(classes: list[str] | None, recons: dict, ann: _Annotations, 
         raise ValueError(f"no class of {data} ({', '.join(sorted(set(ann.key_of.values()))) or 'none'}) has a folder "
                          f"in {' or '.join(map(str, recons.values()))}")
     return wanted
-
-
-@dataclasses.dataclass
-class _ShapeScorer:
-    """The shape errors of one object: every method's mesh (and the baselines') against its posed ground truth."""
-
-    gt_root: Path  # the folder the meshes of gt.json are relative to
-    recons: dict  # method -> reconstruction folder
-    cameras: dict  # method -> class -> cameras.json content (None: none)
-    step_percent: float
-    baselines: bool
-    collections: dict  # class -> its loaded collection (the baselines' masks)
-    mesh_cache: dict = dataclasses.field(default_factory=dict)
-
-    def score(self, aid: str, entry: dict, row: dict) -> None:
-        """Add each method's error (or why there is none) to ``row``, or a ``reason`` when the ground truth fails."""
-        cls = row["class"]
-        try:
-            posed, diag = posed_gt_mesh(entry, self.gt_root, self.mesh_cache)
-            gt_mesh = metrics.EvaluationMesh(posed, name="gt")
-            gt_mesh.require_valid()
-            gt_mesh = gt_mesh.with_diag(diag)
-        except (ValueError, FileNotFoundError, KeyError) as e:
-            row["reason"] = f"ground truth unusable: {e}"
-            return
-        step = self.step_percent / 100.0 * gt_mesh.diag
-        for name, rdir in self.recons.items():
-            m = _load_recon_mesh(Path(rdir), cls, aid, self.cameras[name][cls])
-            row[name] = _score(m, gt_mesh, step, "no reconstruction")
-        if self.baselines:
-            row["Puffball"] = _score(_puffball(self.collections.get(cls), aid), gt_mesh, step, "no mask")
-            first = next(iter(self.recons))
-            row["SFMc"] = _score(_sfmc(self.cameras[first][cls], aid), gt_mesh, step, "no SfM camera")
 
 
 def _class_errors(objects: dict, methods: list[str]) -> dict[str, dict]:
@@ -372,55 +299,6 @@ def _id_order(aid: str):
     return (0, int(aid), "") if aid.lstrip("-").isdigit() else (1, 0, aid)
 
 
-def _score(mesh, gt_mesh, step, missing_reason) -> dict:
-    if mesh is None:
-        return {"error_percent": None, "reason": missing_reason}
-    try:
-        r = metrics.evaluate_reconstruction(mesh, gt_mesh, step=step)
-    except ValueError as e:
-        return {"error_percent": None, "reason": str(e)}
-    err = r["error_percent"]
-    return {"error_percent": float(err) if math.isfinite(err) else None, "offset": r.get("offset"),
-            "reason": r.get("reason")}
-
-
-def _puffball(coll, aid: int):
-    """Puffball of the annotation's canvas mask, mapped to image pixels (``None`` without a mask)."""
-    if coll is None:
-        return None
-    keys = [str(a) for a in coll.annotation_ids]
-    if str(aid) not in keys:
-        return None
-    i = keys.index(str(aid))
-    from .evaluation.baselines import puffball
-
-    m = puffball(coll.masks[i])
-    if m is None or len(m.faces) == 0:
-        return None
-    a = float(coll.canvas_from_image.scale[i])
-    b = coll.canvas_from_image.offset[i].double().numpy()
-    V = np.asarray(m.vertices, dtype=np.float64).copy()
-    V[:, :2] = (V[:, :2] - b) / a
-    V[:, 2] = V[:, 2] / a
-    return trimesh.Trimesh(V, np.asarray(m.faces), process=False)
-
-
-def _sfmc(cj: dict | None, aid: int):
-    """Convex hull of the SfM mean shape seen by the annotation's refined camera (image pixels); ``cj``: the
-    class's ``cameras.json`` (``None``: none)."""
-    if cj is None:
-        return None
-    cam = cj.get("cameras", {}).get(str(aid), {}).get("refined")
-    if cam is None:
-        return None
-    S = torch.tensor([v for v in cj.get("mean_shape", {}).values() if v is not None], dtype=torch.float64)
-    if len(S) < 4:
-        return None
-    from .evaluation.baselines import sfm_convex_hull
-
-    return sfm_convex_hull(S, ScaledOrthographic.from_list([cam], dtype=torch.float64))
-
-
 # --------------------------------------------------------------------------- tables
 
 
@@ -489,10 +367,14 @@ def _main(argv=None) -> int:
     ap.add_argument("--step-percent", type=_positive_finite, default=0.5,
                     help="surface sampling step in percent of the GT bounding-box diagonal (default 0.5; the tables "
                          "in docs/ say which step they used, mostly 1 to 3). A coarser step trades a little accuracy "
-                         "for time: on the default run's chairs 0.8 s per object at 0.5, 0.25 s at 2 (wall clock, "
+                         "for time: on the default run's chairs 0.8 s per object at 0.5, 0.3 s at 2 (wall clock, "
                          "2 cores, the interpreter's start included), the errors moving by hundredths of a "
                          "percentage point (the samples fall as 1/step^2; the time less)")
     ap.add_argument("--viewpoints-only", action="store_true", help="skip the shapes (e.g. after stage=cameras)")
+    ap.add_argument("--jobs", type=_positive_int, default=None,
+                    help="processes that score the shapes, one torch thread each (default: one per core, at most "
+                         f"{MAX_JOBS}; this process alone below {POOL_FROM} objects). 1: this process; the errors "
+                         "are the same for every count")
     add_common(ap)
     args = ap.parse_args(argv)
     recons = {}
@@ -518,6 +400,17 @@ def _main(argv=None) -> int:
         if made and status != 0:  # the folder made by the check above, left empty: removed
             _remove_if_empty(Path(args.out))
     return status
+
+
+def _positive_int(text: str) -> int:
+    """``--jobs``' type: a whole number of at least 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text}")
+    return v
 
 
 def _positive_finite(text: str) -> float:
@@ -555,7 +448,7 @@ def _evaluate_and_write(args, recons: dict) -> int:
     try:
         res = evaluate(args.data, recons, gt=args.gt, split=args.split, baselines=args.baselines,
                        step_percent=args.step_percent, classes=split_classes(args.classes),
-                       progress=not args.quiet, shapes=not args.viewpoints_only)
+                       progress=not args.quiet, shapes=not args.viewpoints_only, jobs=args.jobs)
     except (FileNotFoundError, ValueError, CocoFormatError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

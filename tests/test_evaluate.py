@@ -279,10 +279,12 @@ def test_unknown_classes_and_foreign_reconstructions_are_refused(recon, tmp_path
 
 def test_a_progress_bar_counts_the_objects_unless_quiet(recon, capsys):
     data, gt = _gt(recon)
-    assert main(["--data", str(data), "--recon", str(recon), "--classes", "car", "--viewpoints-only"]) == 0
-    err = capsys.readouterr().err
-    assert "evaluate: 100%" in err and f"{len(gt)}/{len(gt)}" in err
-    assert main(["--data", str(data), "--recon", str(recon), "--classes", "car", "--viewpoints-only", "--quiet"]) == 0
+    for jobs in ("1", "2"):  # in this process, and in worker processes
+        assert main(["--data", str(data), "--recon", str(recon), "--classes", "car", "--step-percent", "5",
+                     "--jobs", jobs]) == 0
+        err = capsys.readouterr().err
+        assert "evaluate: 100%" in err and f"{len(gt)}/{len(gt)}" in err, jobs
+    assert main(["--data", str(data), "--recon", str(recon), "--classes", "car", "--step-percent", "5", "--quiet"]) == 0
     assert "evaluate" not in capsys.readouterr().err
 
 
@@ -326,3 +328,61 @@ def test_help_says_what_happens_without_out(capsys):
     with pytest.raises(SystemExit):
         main(["--help"])
     assert "(default: none, the tables are printed only)" in " ".join(capsys.readouterr().out.split())
+
+
+def test_worker_processes_give_the_errors_of_one_process(recon, tmp_path):
+    """Scored in two worker processes or in this one, every object gets the same errors, to the bit (one torch
+    thread each way); and the rows stay tied to their objects."""
+    data, gt = _gt(recon)
+    one = evaluate(data, {"Full": recon}, step_percent=5.0, progress=False, baselines=True, jobs=1)
+    two = evaluate(data, {"Full": recon}, step_percent=5.0, progress=False, baselines=True, jobs=2)
+    assert len(one["objects"]) == len(gt) >= 2
+    assert two["objects"] == one["objects"]
+    errors = [r[m]["error_percent"] for r in one["objects"].values() for m in ("Full", "Puffball", "SFMc")]
+    assert None not in errors and len(set(errors)) == len(errors)  # every object and method scored, and apart
+
+
+def test_workers_that_cannot_start_leave_the_scoring_to_this_process(recon, monkeypatch, caplog):
+    from carvi_torch.evaluation import scoring
+
+    def no_processes(*args, **kwargs):
+        raise OSError("no processes here")
+
+    data, _ = _gt(recon)
+    want = evaluate(data, {"Full": recon}, step_percent=5.0, progress=False, jobs=1)["objects"]
+    monkeypatch.setattr(scoring, "LeanProcessPool", no_processes)
+    with caplog.at_level("WARNING", logger=scoring.__name__):
+        got = evaluate(data, {"Full": recon}, step_percent=5.0, progress=False, jobs=2)["objects"]
+    assert got == want
+    assert "worker processes failed (OSError: no processes here); scoring here" in caplog.text
+
+
+def test_default_jobs_follow_the_cores_and_the_object_count(monkeypatch):
+    from carvi_torch.evaluation import scoring
+
+    for n_cores, n_objects, want in ((4, 100, 4), (4, scoring.POOL_FROM - 1, 1), (1, 100, 1),
+                                     (64, 100, scoring.MAX_JOBS), (2, scoring.POOL_FROM, 2)):
+        monkeypatch.setattr(scoring, "cores", lambda n=n_cores: n)
+        assert scoring.default_jobs(n_objects) == want, (n_cores, n_objects)
+
+
+def test_jobs_must_be_a_whole_number_of_at_least_one(tmp_path, capsys):
+    for bad in ("0", "-2", "1.5", "two"):
+        with pytest.raises(SystemExit) as e:
+            main(["--data", "x.json", "--recon", str(tmp_path), "--jobs", bad])
+        assert e.value.code == 2 and "--jobs: expected a whole number >= 1" in capsys.readouterr().err
+
+
+def test_the_command_scores_in_worker_processes(recon, tmp_path):
+    """``python -m carvi_torch.evaluate --jobs 2``, where the command's module is ``__main__``: its workers get what
+    they run from an importable module, and give the errors of the in-process scoring."""
+    import subprocess
+    import sys
+
+    data, _ = _gt(recon)
+    argv = [sys.executable, "-m", "carvi_torch.evaluate", "--data", str(data), "--recon", f"Full={recon}",
+            "--step-percent", "5", "--quiet", "--jobs", "2", "--out", str(tmp_path / "ev")]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "worker processes failed" not in done.stderr, done.stderr[-2000:]
+    got = json.loads((tmp_path / "ev" / "results.json").read_text())["objects"]
+    assert got == evaluate(data, {"Full": recon}, step_percent=5.0, progress=False, jobs=1)["objects"]

@@ -497,14 +497,15 @@ def _render_data(args, models: list, data: Path, seed: int, timings: dict) -> bo
 
 def _evaluations(args, ann: Path, runs: dict, classes, evals: Path, jobs: int) -> list:
     """``(name, argv, log)`` of the evaluation commands: the classes (those asked) dealt round-robin over ``jobs``
-    processes, each scoring every method's run (``runs``: method -> folder) into ``evals/part<i>``."""
+    processes, each scoring every method's run (``runs``: method -> folder) into ``evals/part<i>`` in its own process
+    (``--jobs 1``: the classes are what runs side by side)."""
     names = sorted(c["name"] for c in json.loads(ann.read_text())["categories"])
     names = [c for c in names if not classes or c in classes]
     halves = [names[i::jobs] for i in range(jobs)] if jobs > 1 else [names]
     halves = [h for h in halves if h]
     ecmds = []
     for i, part in enumerate(halves):
-        argv = [PYTHON, "-m", "carvi_torch.evaluate", "--data", str(ann), "--split", "test", "--quiet",
+        argv = [PYTHON, "-m", "carvi_torch.evaluate", "--data", str(ann), "--split", "test", "--quiet", "--jobs", "1",
                 "--step-percent", str(args.step_percent), "--classes", ",".join(part), "--out", str(evals / f"part{i}")]
         if not args.no_baselines:
             argv.append("--baselines")

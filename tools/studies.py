@@ -848,8 +848,8 @@ def step(args) -> int:
     for st in steps:
         out = bench / "step" / f"s{st:g}"
         argv = [sys.executable, "-m", "carvi_torch.evaluate", "--data", str(data / "annotations.json"), "--split",
-                "test", "--quiet", "--step-percent", str(st), "--classes", args.classes, "--out", str(out),
-                "--baselines", *recon]
+                "test", "--quiet", "--jobs", "1", "--step-percent", str(st), "--classes", args.classes,
+                "--out", str(out), "--baselines", *recon]
         print("  " + " ".join(shlex.quote(a) for a in argv), flush=True)
         c0 = cpu_seconds(children=True)
         subprocess.run(argv, env=env, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)

@@ -1,0 +1,220 @@
+"""The shape error of every object of an evaluation (:func:`carvi_torch.evaluate.evaluate`'s scoring).
+
+* :func:`posed_gt_mesh`: an annotation's ground-truth mesh in its reference camera frame;
+* :func:`load_recon_mesh`: a run's mesh of an object;
+* :class:`ShapeScorer`: one object's error for every method (and the baselines) against its posed ground truth;
+* :func:`score_shapes`: every object's, in this process or in worker processes (:func:`default_jobs`), one
+  torch thread each: the errors do not depend on how many.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import multiprocessing as mp
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from tqdm.auto import tqdm
+
+from ..cameras import ScaledOrthographic
+from ..io.layout import object_file
+from ..mesh import MESH_FORMATS
+from ..runtime import LeanProcessPool, cores, start_method, torch_threads
+from . import metrics
+
+__all__ = ["POOL_FROM", "MAX_JOBS", "default_jobs", "posed_gt_mesh", "load_recon_mesh", "ShapeScorer", "score_shapes",
+           "score_mesh", "puffball_mesh", "sfmc_mesh"]
+
+log = logging.getLogger(__name__)
+
+#: Objects from which :func:`default_jobs` scores the shapes in worker processes (starting them, a second or two
+#: each, costs more than it saves on fewer).
+POOL_FROM = 16
+#: At most this many worker processes by default (each holds torch and its ground-truth meshes: a few hundred MB).
+MAX_JOBS = 8
+
+
+def posed_gt_mesh(entry: dict, root: Path, cache: dict | None = None) -> tuple[trimesh.Trimesh, float]:
+    """The ground-truth mesh of one annotation in its reference camera frame (image pixels).
+
+    ``entry`` is the annotation's record of ``gt.json`` (``mesh`` path relative to ``root``, true
+    ``R``, ``s``, ``t``): vertices ``X`` go to ``(u, v, depth) = (s R[:2] X + t, s R[2] X)``.
+
+    Returns:
+        the posed mesh and the normalising diagonal: ``s`` times the bounding-box diagonal of the
+        model in its own frame (the paper's normalisation; a box taken in the camera frame would
+        depend on the view).
+    """
+    path = (root / entry["mesh"]).resolve()
+    if cache is not None and path in cache:
+        base = cache[path]
+    else:
+        base = trimesh.load(path, force="mesh", process=False)
+        if cache is not None:
+            cache[path] = base
+    cam = ScaledOrthographic.from_list([entry], dtype=torch.float64)
+    V = torch.from_numpy(np.asarray(base.vertices, dtype=np.float64))
+    Vc = cam.to_camera_frame(V)[0].numpy()
+    used = np.unique(np.asarray(base.faces))
+    diag = float(cam.s[0]) * metrics.bounding_box_diagonal(V[used])
+    return trimesh.Trimesh(Vc, np.asarray(base.faces), process=False), diag
+
+
+def load_recon_mesh(recon: Path, cls: str, aid, cams: dict | None) -> trimesh.Trimesh | None:
+    """The run's mesh of object ``aid``, or ``None``: no mesh, or the object is not in the class's
+    ``cameras.json`` (``cams``, its content), which holds the objects of the run's latest input (a mesh an
+    earlier run left for an object the input has since dropped is not the run's; a folder of meshes without
+    ``cameras.json`` (``cams`` ``None``), another method's, is taken as it is)."""
+    if cams is not None and str(aid) not in cams.get("cameras", {}):
+        return None
+    for ext in MESH_FORMATS:
+        p = object_file(recon / cls, "meshes", aid, ext)
+        if p.is_file():
+            return trimesh.load(p, force="mesh", process=False)
+    return None
+
+
+@dataclasses.dataclass
+class ShapeScorer:
+    """The shape errors of one object: every method's mesh (and the baselines') against its posed ground truth."""
+
+    gt_root: Path  # the folder the meshes of gt.json are relative to
+    recons: dict  # method -> reconstruction folder
+    cameras: dict  # method -> class -> cameras.json content (None: none)
+    step_percent: float
+    baselines: bool
+    collections: dict  # class -> its loaded collection (the baselines' masks)
+    mesh_cache: dict = dataclasses.field(default_factory=dict)
+
+    def score(self, aid: str, entry: dict, row: dict) -> None:
+        """Add each method's error (or why there is none) to ``row``, or a ``reason`` when the ground truth fails."""
+        cls = row["class"]
+        try:
+            posed, diag = posed_gt_mesh(entry, self.gt_root, self.mesh_cache)
+            gt_mesh = metrics.EvaluationMesh(posed, name="gt")
+            gt_mesh.require_valid()
+            gt_mesh = gt_mesh.with_diag(diag)
+        except (ValueError, FileNotFoundError, KeyError) as e:
+            row["reason"] = f"ground truth unusable: {e}"
+            return
+        step = self.step_percent / 100.0 * gt_mesh.diag
+        for name, rdir in self.recons.items():
+            m = load_recon_mesh(Path(rdir), cls, aid, self.cameras[name][cls])
+            row[name] = score_mesh(m, gt_mesh, step, "no reconstruction")
+        if self.baselines:
+            row["Puffball"] = score_mesh(puffball_mesh(self.collections.get(cls), aid), gt_mesh, step, "no mask")
+            first = next(iter(self.recons))
+            row["SFMc"] = score_mesh(sfmc_mesh(self.cameras[first][cls], aid), gt_mesh, step, "no SfM camera")
+
+
+def default_jobs(n_objects: int) -> int:
+    """Processes that score ``n_objects`` objects' shapes: one per core, at most :data:`MAX_JOBS`; 1 (this
+    process) below :data:`POOL_FROM` objects or on one core.
+
+    One torch thread per process: the scoring is many small tensor operations, which two threads share at a
+    gain of about 1.2x on an idle host, while threads that wait for one another slow down by an order of
+    magnitude once the host is busy (``carvi_torch.evaluate``'s docstring, *Cost*).
+
+    Example:
+        >>> default_jobs(3)
+        1
+    """
+    return 1 if n_objects < POOL_FROM else max(1, min(cores(), MAX_JOBS))
+
+
+#: The scorer of a worker process (:func:`_init_scorer`).
+_WORKER_SCORER: ShapeScorer | None = None
+
+
+def _init_scorer(scorer: ShapeScorer) -> None:
+    global _WORKER_SCORER
+    torch.set_num_threads(1)
+    _WORKER_SCORER = scorer
+
+
+def _score_in_worker(job: tuple) -> dict:
+    aid, entry, row = job
+    _WORKER_SCORER.score(aid, entry, row)
+    return row
+
+
+def score_shapes(scorer: ShapeScorer, work: list, jobs: int, progress: bool) -> list[dict]:
+    """Every ``(aid, entry, row)`` of ``work`` scored (:meth:`ShapeScorer.score`), its rows in order: in ``jobs``
+    worker processes, or in this one with one torch thread (``jobs`` 1, or when the processes cannot start)."""
+    if jobs > 1 and len(work) > 1:
+        pool = None
+        try:
+            pool = LeanProcessPool(min(jobs, len(work)), mp_context=mp.get_context(start_method()),
+                                   initializer=_init_scorer, initargs=(scorer,))
+            chunk = max(1, min(16, len(work) // (4 * jobs)))
+            rows = list(tqdm(pool.map(_score_in_worker, work, chunksize=chunk), total=len(work), desc="evaluate",
+                             disable=not progress))
+            pool.shutdown()
+            return rows
+        except (OSError, BrokenProcessPool) as e:
+            log.warning(f"evaluate: worker processes failed ({type(e).__name__}: {e}); scoring here")
+            if pool is not None:
+                pool.stop()
+        except BaseException:
+            if pool is not None:
+                pool.stop()
+            raise
+    with torch_threads(1):
+        for aid, entry, row in tqdm(work, desc="evaluate", disable=not progress):
+            scorer.score(aid, entry, row)
+    return [row for _aid, _entry, row in work]
+
+
+def score_mesh(mesh, gt_mesh, step, missing_reason) -> dict:
+    """``{"error_percent", "offset", "reason"}`` of one mesh against its posed ground truth (``error_percent``
+    ``None`` and ``missing_reason`` without a mesh, or the metric's reason when it cannot score it)."""
+    if mesh is None:
+        return {"error_percent": None, "reason": missing_reason}
+    try:
+        r = metrics.evaluate_reconstruction(mesh, gt_mesh, step=step)
+    except ValueError as e:
+        return {"error_percent": None, "reason": str(e)}
+    err = r["error_percent"]
+    return {"error_percent": float(err) if math.isfinite(err) else None, "offset": r.get("offset"),
+            "reason": r.get("reason")}
+
+
+def puffball_mesh(coll, aid: int):
+    """Puffball of the annotation's canvas mask, mapped to image pixels (``None`` without a mask)."""
+    if coll is None:
+        return None
+    keys = [str(a) for a in coll.annotation_ids]
+    if str(aid) not in keys:
+        return None
+    i = keys.index(str(aid))
+    from .baselines import puffball
+
+    m = puffball(coll.masks[i])
+    if m is None or len(m.faces) == 0:
+        return None
+    a = float(coll.canvas_from_image.scale[i])
+    b = coll.canvas_from_image.offset[i].double().numpy()
+    V = np.asarray(m.vertices, dtype=np.float64).copy()
+    V[:, :2] = (V[:, :2] - b) / a
+    V[:, 2] = V[:, 2] / a
+    return trimesh.Trimesh(V, np.asarray(m.faces), process=False)
+
+
+def sfmc_mesh(cj: dict | None, aid: int):
+    """Convex hull of the SfM mean shape seen by the annotation's refined camera (image pixels); ``cj``: the
+    class's ``cameras.json`` (``None``: none)."""
+    if cj is None:
+        return None
+    cam = cj.get("cameras", {}).get(str(aid), {}).get("refined")
+    if cam is None:
+        return None
+    S = torch.tensor([v for v in cj.get("mean_shape", {}).values() if v is not None], dtype=torch.float64)
+    if len(S) < 4:
+        return None
+    from .baselines import sfm_convex_hull
+
+    return sfm_convex_hull(S, ScaledOrthographic.from_list([cam], dtype=torch.float64))
