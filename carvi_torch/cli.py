@@ -99,6 +99,17 @@ def nonneg_int(text: str) -> int:
     return v
 
 
+def _take_over_ctrl_c() -> None:
+    """Ctrl-C raises ``KeyboardInterrupt`` again where the package's start had it end the process
+    (:func:`carvi_torch.interrupted_while_starting`): the command's body handles it from here."""
+    import signal
+
+    import carvi_torch
+
+    if signal.getsignal(signal.SIGINT) is carvi_torch.interrupted_while_starting:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def run_command(body: Callable[[], int | None], interrupted: str) -> int:
     """Run a command's body and turn how it ends into an exit status: its own (0 by default); 2 with one
     ``error:`` line for a :class:`CommandError` or an ``OSError`` (an output that cannot be made or written,
@@ -110,6 +121,7 @@ def run_command(body: Callable[[], int | None], interrupted: str) -> int:
         >>> run_command(body, "interrupted")
         2
     """
+    _take_over_ctrl_c()
     try:
         return int(body() or 0)
     except KeyboardInterrupt:

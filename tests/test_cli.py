@@ -2,6 +2,10 @@
 from __future__ import annotations
 
 import importlib
+import os
+import subprocess
+import sys
+import time
 from importlib.metadata import version
 
 import pytest
@@ -144,3 +148,45 @@ def test_reconstruct_refuses_a_class_the_data_lacks(executor, data, tmp_path, mo
     assert lines[0].startswith("error: --classes: 'Chair', 'nosuch' are not classes of "), lines[0]
     assert f"(its classes: {known};" in lines[0]
     assert generated == [] and sorted(p.name for p in tmp_path.iterdir()) == (["ann.json"] if data else [])
+
+
+def _start_then_ctrl_c(argv0: str) -> subprocess.CompletedProcess:
+    """A Python whose ``argv[0]`` is ``argv0`` while it imports the package, then Ctrl-C (SIGINT) to itself."""
+    code = (f"import sys; sys.argv[0] = {argv0!r}; import carvi_torch, os, signal, time; "
+            "os.kill(os.getpid(), signal.SIGINT); time.sleep(30)")
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+
+
+def test_ctrl_c_while_a_command_starts_is_one_line_and_130():
+    """``python -m carvi_torch.X`` imports the package while ``argv[0]`` is ``-m`` (the ``carvi`` script: its
+    name): a Ctrl-C in the seconds of imports before the command's own handling is one line, exit 130."""
+    for argv0 in ("-m", "/usr/local/bin/carvi"):
+        done = _start_then_ctrl_c(argv0)
+        assert done.returncode == 130, (argv0, done.stderr)
+        assert done.stderr == "interrupted while starting; nothing was written\n", argv0
+
+
+def test_importing_the_package_elsewhere_leaves_ctrl_c_alone():
+    done = _start_then_ctrl_c("-c")
+    assert done.returncode != 130 and "KeyboardInterrupt" in done.stderr
+
+
+def test_a_command_takes_ctrl_c_over_from_the_start(capsys):
+    """Once a command's body runs, Ctrl-C is its own: ``run_command`` gives Python's handler back, so the
+    body's ``KeyboardInterrupt`` ends in the command's line (what is kept), not the start's."""
+    import signal
+
+    import carvi_torch
+    from carvi_torch.cli import run_command
+
+    def body():
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(5)
+
+    before = signal.signal(signal.SIGINT, carvi_torch.interrupted_while_starting)
+    try:
+        assert run_command(body, "interrupted; the run's objects are kept") == 130
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert capsys.readouterr().err == "interrupted; the run's objects are kept\n"

@@ -380,4 +380,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from ..cli import run_command
+
+    raise SystemExit(run_command(main, "interrupted; the templates file is as it was"))
