@@ -152,9 +152,13 @@ def test_reconstruct_refuses_a_class_the_data_lacks(executor, data, tmp_path, mo
 
 def _start_then_ctrl_c(argv0: str) -> subprocess.CompletedProcess:
     """A Python whose ``argv[0]`` is ``argv0`` while it imports the package, then Ctrl-C (SIGINT) to itself."""
+    import signal
+
     code = (f"import sys; sys.argv[0] = {argv0!r}; import carvi_torch, os, signal, time; "
-            "os.kill(os.getpid(), signal.SIGINT); time.sleep(30)")
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+            "os.kill(os.getpid(), signal.SIGINT); time.sleep(10)")
+    # Ctrl-C as a terminal gives it, also where this test runs with SIGINT ignored (a background job)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def test_ctrl_c_while_a_command_starts_is_one_line_and_130():
