@@ -21,9 +21,9 @@ at both steps; in this process alone (``--jobs 1``) 55-63 s and 14-16 s::
     python -m carvi_torch.reconstruct --out D --classes chair
     python -m carvi_torch.evaluate --data D/input/annotations.json --recon D --quiet --step-percent S
 
-One process with two torch threads instead took 49-53 s and 12 s there, and its threads, which spin while
-they wait for each other, slow down by an order of magnitude on a busy host: two such evaluations side by
-side at step 2 took 102 s, against 19 s with the worker processes.
+One process with two torch threads instead (the code of commit 6febb78) took 49-53 s and 12 s there, and
+its threads, which spin while they wait for each other, slow down by an order of magnitude on a busy host:
+two such evaluations side by side at step 2 took 102 s, against 19 s with the worker processes.
 ``--viewpoints-only`` takes seconds.
 
 Only what matches is scored, and what does not is said: a class of ``--data`` that a reconstruction
