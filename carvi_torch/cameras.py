@@ -232,11 +232,11 @@ def finite_rotation_pairs(R_est: torch.Tensor, R_gt: torch.Tensor) -> torch.Tens
 
 
 def _procrustes(A: torch.Tensor) -> torch.Tensor:
-    """Proper rotation ``G`` maximising ``trace(G^T A)`` for ``A (3, 3)``."""
+    """Proper rotation ``G`` maximising ``trace(G^T A)`` for ``A (..., 3, 3)``."""
     U, _, Vh = torch.linalg.svd(A)
     d = torch.sign(torch.det(U @ Vh))
     d = torch.where(d == 0, torch.ones_like(d), d)
-    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))
     return U @ D @ Vh
 
 
@@ -261,10 +261,11 @@ def align_rotations(
         R_est, R_gt: ``(N, 3, 3)`` proper rotations.
         robust: use the reweighted variant.
         iters: reweighting iterations.
-        weights: ``(N,)`` optional non-negative weights.
+        weights: ``(N,)`` optional non-negative weights, or ``(B, N)``: B weightings at once (e.g. bootstrap
+            resamples; not with ``robust``).
 
     Returns:
-        ``(3, 3)`` in ``R_est``'s dtype (computed in float64).
+        ``(3, 3)`` (``(B, 3, 3)`` with ``(B, N)`` weights) in ``R_est``'s dtype (computed in float64).
 
     Example:
         >>> from carvi_torch.cameras import random_rotations
@@ -280,10 +281,13 @@ def align_rotations(
     Rg = R_gt[ok].double()
     w = torch.ones(Re.shape[0], dtype=torch.float64, device=Re.device)
     if weights is not None:
-        w = torch.as_tensor(weights, device=Re.device).double()[ok.to(Re.device)]
+        w = torch.as_tensor(weights, device=Re.device).double()
+        if w.shape[-1:] != ok.shape or w.dim() > 2 or (robust and w.dim() == 2):
+            raise ValueError(f"weights must be ({len(ok)},) or (B, {len(ok)}) (not with robust), got {tuple(w.shape)}")
+        w = w[..., ok.to(Re.device)]
         if bool((w < 0).any()):
             raise ValueError("weights must be non-negative")
-    G = _procrustes(torch.einsum("n,nji,njk->ik", w, Re, Rg))
+    G = _procrustes(torch.einsum("...n,nji,njk->...ik", w, Re, Rg))
     if robust:
         floor = math.radians(1.0)
         for _ in range(iters):

@@ -58,7 +58,7 @@ from .io.results import annotation_source, same_object
 from .evaluation import reliability, viewpoint_metrics
 from .evaluation.scoring import MAX_JOBS, POOL_FROM, ShapeScorer, default_jobs, posed_gt_mesh, score_shapes
 
-__all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "main"]
+__all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "format_change", "main"]
 
 
 def _read_cameras(rdir: Path, classes) -> dict[str, dict | None]:
@@ -67,13 +67,16 @@ def _read_cameras(rdir: Path, classes) -> dict[str, dict | None]:
     return {cls: read_json(p) if (p := rdir / cls / "cameras.json").is_file() else None for cls in sorted(classes)}
 
 
-def _viewpoints(cameras: dict | None, gt_entries: dict, aids: list) -> dict | None:
+def _viewpoints(cameras: dict | None, gt_entries: dict, aids: list, object_of: dict | None = None) -> dict | None:
     """Viewpoint reports of one class: ``sfm`` (objects with an SfM camera), ``refined`` (every
     object with a final camera) and, when ``refined`` holds objects without an SfM camera,
     ``refined_with_sfm``: the refined cameras of the objects that also have an SfM camera.
     Objects without an SfM camera get theirs from the unseen-image path, not from refinement;
-    ``refined_with_sfm`` is the before/after comparison of the refinement itself. Each report is
-    aligned with its own global rotation. ``cameras``: the class's ``cameras.json`` (``None``: none)."""
+    ``refined_with_sfm`` is the before/after comparison of the refinement itself, and its report (or
+    ``refined``'s, when the objects are the same) carries ``change_from_sfm``: the change of the median with a
+    bootstrap interval over the physical objects (:func:`_refinement_change`). Each report is
+    aligned with its own global rotation. ``cameras``: the class's ``cameras.json`` (``None``: none);
+    ``object_of``: annotation id (str) -> physical object (default: every annotation its own)."""
     if cameras is None:
         return None
     cams = cameras.get("cameras", {})
@@ -97,7 +100,26 @@ def _viewpoints(cameras: dict | None, gt_entries: dict, aids: list) -> dict | No
                                                      torch.tensor(ref, dtype=torch.float64))
             rep["annotation_ids"] = used  # aligned with rep["per_instance_geodesic"]
             out[stage] = rep
+    same = out.get("refined_with_sfm", out.get("refined"))
+    if same is not None and "sfm" in out:
+        same["change_from_sfm"] = _refinement_change(cams, gt_entries, same["annotation_ids"], object_of or {})
     return out or None
+
+
+def _refinement_change(cams: dict, gt_entries: dict, aids: list, object_of: dict) -> dict | None:
+    """:func:`~carvi_torch.evaluation.viewpoint_metrics.median_change` from the SfM to the refined cameras of the
+    objects ``aids`` (each with both), resampling physical objects (the views of one object share its shape);
+    ``None`` for fewer than 2 objects or a non-finite camera."""
+    pairs = [a for a in aids if cams[str(a)].get("sfm") is not None]
+    if len(pairs) < 2:
+        return None
+    rot = lambda rows: torch.tensor([r["R"] for r in rows], dtype=torch.float64)  # noqa: E731
+    sets = [rot(cams[str(a)]["sfm"] for a in pairs), rot(cams[str(a)]["refined"] for a in pairs),
+            rot(gt_entries[str(a)] for a in pairs)]
+    if not all(bool(torch.isfinite(R).all()) for R in sets):
+        return None
+    res = viewpoint_metrics.median_change(*sets, [object_of.get(str(a), ("annotation", str(a))) for a in pairs])
+    return {k: round(v, 3) if isinstance(v, float) else v for k, v in res.items()}
 
 
 def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path | None = None,
@@ -177,6 +199,7 @@ class _Annotations:
     ann_class: dict  # id -> class folder (None: an unknown category)
     original: dict  # id -> the id as the file gives it (int or str)
     source_of: dict  # id -> the annotation's source
+    object_of: dict  # id -> its physical object ("object_id", else the annotation itself)
 
 
 def _read_annotations(data: Path, gt, split: str | None) -> _Annotations:
@@ -199,7 +222,14 @@ def _read_annotations(data: Path, gt, split: str | None) -> _Annotations:
                         key_of=key_of, split_of=split_of,
                         ann_class={str(a["id"]): key_of.get(str(a.get("category_id"))) for a in anns},
                         original={str(a["id"]): a["id"] for a in anns},
-                        source_of={str(a["id"]): annotation_source(a) for a in anns})
+                        source_of={str(a["id"]): annotation_source(a) for a in anns},
+                        object_of={str(a["id"]): _physical_object(a) for a in anns})
+
+
+def _physical_object(a: dict) -> tuple:
+    """The physical object of annotation ``a``: its ``object_id`` within its category, else the annotation."""
+    oid = object_id(a.get("object_id"))
+    return ("annotation", str(a["id"])) if oid is None else ("object", str(a.get("category_id")), str(oid))
 
 
 def _wanted_classes(classes: list[str] | None, recons: dict, ann: _Annotations, data: Path) -> set[str]:
@@ -235,7 +265,7 @@ def _class_viewpoints(classes: list[str], objects: dict, ann: _Annotations, came
         aids = [ann.original[a] for a, r in objects.items() if r["class"] == cls]
         vp = {}
         for name in cameras:
-            rep = _viewpoints(cameras[name][cls], ann.gt_entries, aids)
+            rep = _viewpoints(cameras[name][cls], ann.gt_entries, aids, ann.object_of)
             if rep:
                 vp[name] = rep
         viewpoints[cls] = vp
@@ -324,10 +354,12 @@ def format_shape_table(res: dict) -> str:
 
 def format_viewpoint_table(res: dict) -> str:
     """Per class and method: median geodesic / azimuth / elevation error as written (absolute: the
-    labels a user trains on) and after one fitted global rotation (aligned: the cameras alone), and
-    the accuracy at 30 degrees of each."""
+    labels a user trains on) and after one fitted global rotation (aligned: the cameras alone), the
+    accuracy at 30 degrees of each, and on the refinement's before/after row the change of the aligned
+    median from SfM with its 95% interval over the physical objects (``change_from_sfm``)."""
     lines = ["| class | method | stage | n | geodesic abs / aligned | azimuth abs / aligned | "
-             "elevation abs / aligned | acc@30 abs / aligned | mirrored |", "|---|---|---|---|---|---|---|---|---|"]
+             "elevation abs / aligned | acc@30 abs / aligned | mirrored | aligned median - SfM's [95%] |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for cls, per in sorted(res["viewpoints"].items()):
         for mth, stages in per.items():
             for stage, rep in stages.items():
@@ -338,8 +370,20 @@ def format_viewpoint_table(res: dict) -> str:
 
                 lines.append(f"| {cls} | {mth} | {stage} | {rep.get('geodesic', {}).get('n', '-')} | "
                              f"{pair('geodesic')} | {pair('azimuth')} | {pair('elevation')} | "
-                             f"{pair('geodesic', 'acc_at_30', 2)} | {rep.get('mirrored', False)} |")
+                             f"{pair('geodesic', 'acc_at_30', 2)} | {rep.get('mirrored', False)} | "
+                             f"{format_change(rep.get('change_from_sfm'))} |")
     return "\n".join(lines)
+
+
+def format_change(change: dict | None) -> str:
+    """``change_from_sfm`` as ``+0.3 [-0.5, +1.9]`` (degrees), ``-`` for none.
+
+    >>> format_change({"change": 0.283, "low": -0.512, "high": 1.857})
+    '+0.3 [-0.5, +1.9]'
+    """
+    if not change:
+        return "-"
+    return f"{change['change']:+.1f} [{change['low']:+.1f}, {change['high']:+.1f}]"
 
 
 #: The line of an evaluation interrupted by Ctrl-C.

@@ -223,6 +223,32 @@ def test_refinement_is_compared_on_the_objects_with_an_sfm_camera(recon, tmp_pat
     assert vp["refined_with_sfm"]["geodesic"]["n"] == vp["refined"]["geodesic"]["n"] - 1
 
 
+def test_the_refinement_change_resamples_physical_objects(recon, tmp_path):
+    """``change_from_sfm`` is the refined median minus the SfM median of the same objects (the two reports
+    of evaluate, each aligned on its own); its interval resamples whole ``object_id``s: with the views
+    given pairwise to one object, half as many clusters; with none, one per view."""
+    from carvi_torch.evaluate import format_change
+
+    data, _gt_car = _gt(recon)
+    vp = evaluate(data, {"Full": recon}, shapes=False, progress=False)["viewpoints"]["car"]["Full"]
+    ch = vp["refined"]["change_from_sfm"]
+    assert ch["change"] == pytest.approx(vp["refined"]["geodesic"]["median"] - vp["sfm"]["geodesic"]["median"],
+                                         abs=2e-3)  # rounded to 3 decimals
+    assert ch["low"] <= ch["change"] <= ch["high"] and ch["objects"] == vp["sfm"]["geodesic"]["n"]
+    assert "change_from_sfm" not in vp["sfm"] and format_change(ch) in format_viewpoint_table(
+        {"viewpoints": {"car": {"Full": vp}}})
+    doc = json.loads(data.read_text())
+    cars = sorted((a for a in doc["annotations"] if str(a["id"]) in _gt_car), key=lambda a: a["id"])
+    for i, a in enumerate(cars):
+        a["object_id"] = f"pair{i // 2}"
+    paired = tmp_path / "input" / "annotations.json"
+    shutil.copytree(data.parent, paired.parent)
+    paired.write_text(json.dumps(doc))
+    ch2 = evaluate(paired, {"Full": recon}, shapes=False, progress=False)["viewpoints"]["car"]["Full"]["refined"]
+    assert ch2["change_from_sfm"]["clusters"] == (ch["objects"] + 1) // 2 and ch["clusters"] == ch["objects"]
+    assert ch2["change_from_sfm"]["change"] == ch["change"]
+
+
 def test_classes_without_reconstruction_are_named(recon, tmp_path, capsys):
     data, gt = _gt(recon)
     cats = {c["name"] for c in json.loads(data.read_text())["categories"]}

@@ -12,9 +12,11 @@ from scipy.spatial.transform import Rotation
 from carvi_torch.cameras import random_rotations, rotation_from_azimuth_elevation_roll
 from carvi_torch.evaluation.viewpoint_metrics import (
     align_rotations,
+    aligned_median,
     angle_errors,
     compare_camera_runs,
     geodesic_errors,
+    median_change,
     necker_mirror,
     summarize,
     viewpoint_report,
@@ -34,6 +36,84 @@ def test_align_rotations_matches_scipy_chordal_mean(generator):
     assert abs(float(torch.det(G)) - 1.0) < 1e-10
     exact = align_rotations(R_gt @ G_true.T, R_gt)
     assert torch.allclose(exact, G_true, atol=1e-10)
+
+
+def test_align_rotations_with_a_batch_of_weightings_equals_one_at_a_time(generator):
+    R_gt = random_rotations(12, generator, dtype=torch.float64)
+    R_est = torch.from_numpy(Rotation.from_rotvec(np.random.default_rng(1).normal(scale=0.3, size=(12, 3)))
+                             .as_matrix()) @ R_gt
+    W = torch.from_numpy(np.random.default_rng(2).integers(0, 4, size=(5, 12))).double()
+    W[:, 0] += 1  # every weighting has a positive sum
+    G = align_rotations(R_est, R_gt, weights=W)
+    assert G.shape == (5, 3, 3)
+    for b in range(5):
+        torch.testing.assert_close(G[b], align_rotations(R_est, R_gt, weights=W[b]), atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="not with robust"):
+        align_rotations(R_est, R_gt, weights=W, robust=True)
+    with pytest.raises(ValueError, match="weights must be"):
+        align_rotations(R_est, R_gt, weights=W[:, :5])
+
+
+def _turned(R_gt: torch.Tensor, rotvecs: np.ndarray) -> torch.Tensor:
+    """``R_gt_n Q_n``: each camera turned in its object frame by the rotation vector ``rotvecs[n]``."""
+    return R_gt @ torch.from_numpy(Rotation.from_rotvec(rotvecs).as_matrix())
+
+
+def test_aligned_median_of_counts_is_the_median_of_the_repeated_set(generator):
+    """Brute force: weights 0-3 against the pairs repeated that many times, aligned and summarised again."""
+    rng = np.random.default_rng(3)
+    R_gt = random_rotations(9, generator, dtype=torch.float64)
+    R_est = _turned(R_gt, rng.normal(scale=0.2, size=(9, 3)))
+    W = torch.from_numpy(rng.integers(0, 4, size=(20, 9))).double()
+    W[W.sum(1) == 0, 0] = 1
+    got = aligned_median(R_est, R_gt, W)
+    for w, m in zip(W, got):
+        rep = torch.repeat_interleave(torch.arange(9), w.long())
+        want = viewpoint_report(R_est[rep], R_gt[rep])["geodesic"]["median"]  # numpy's median of an even count
+        assert float(m) == pytest.approx(want, abs=1e-9)
+    assert float(aligned_median(R_est, R_gt)) == pytest.approx(viewpoint_report(R_est, R_gt)["geodesic"]["median"],
+                                                               abs=1e-9)
+    with pytest.raises(ValueError, match="positive sum"):
+        aligned_median(R_est, R_gt, torch.zeros(9))
+
+
+def test_median_change_resamples_whole_clusters(generator):
+    """Analytic: each cluster holds the six turns by ``c`` about +-x, +-y, +-z, so any draw of whole clusters
+    aligns with the identity and every error is ``c``: change ``c``, interval ``[c, c]``. Drawing single
+    views breaks the symmetry and the interval widens."""
+    c = math.radians(4.0)
+    turns = np.concatenate([np.eye(3), -np.eye(3)]) * c
+    R_gt = random_rotations(30, generator, dtype=torch.float64)
+    R_after = _turned(R_gt, np.tile(turns, (5, 1)))
+    clusters = [f"object{i // 6}" for i in range(30)]
+    res = median_change(R_gt, R_after, R_gt, clusters, resamples=200)
+    assert (res["clusters"], res["objects"]) == (5, 30)
+    for key in ("change", "low", "high"):
+        assert res[key] == pytest.approx(4.0, abs=1e-9)
+    views = median_change(R_gt, R_after, R_gt, resamples=200)
+    assert views["change"] == pytest.approx(4.0, abs=1e-9) and views["high"] - views["low"] > 0.05
+    assert median_change(R_after, R_after, R_gt, clusters, resamples=50)["high"] == 0.0
+
+
+def test_median_change_interval_is_seeded_and_brackets_a_real_change(generator):
+    rng = np.random.default_rng(4)
+    R_gt = random_rotations(40, generator, dtype=torch.float64)
+    before = _turned(R_gt, rng.normal(scale=math.radians(2), size=(40, 3)))
+    after = _turned(R_gt, rng.normal(scale=math.radians(6), size=(40, 3)))
+    a = median_change(before, after, R_gt, seed=7)
+    assert a == median_change(before, after, R_gt, seed=7)
+    assert a != median_change(before, after, R_gt, seed=8)
+    assert 0 < a["low"] <= a["change"] <= a["high"]  # three times the noise: worse beyond the interval
+    b = median_change(after, before, R_gt, seed=7)
+    assert b["change"] == pytest.approx(-a["change"]) and b["high"] < 0
+
+
+def test_median_change_checks_its_input(generator):
+    R = random_rotations(4, generator, dtype=torch.float64)
+    with pytest.raises(ValueError, match="rotation sets"):
+        median_change(R, R[:3], R)
+    with pytest.raises(ValueError, match="3 cluster labels for 4 objects"):
+        median_change(R, R, R, ["a", "b", "c"])
 
 
 def test_robust_alignment_resists_outliers(generator):

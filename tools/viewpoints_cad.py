@@ -15,8 +15,11 @@ within each class (``--sides class``, the default: motorbike01's handles are ren
 as-given`` keeps them); renders on disk made with other settings, models or names than the run's
 stop it with the reason. With several seeds (``--seed 0,1,2``) every seed is rendered and
 reconstructed in turn and a last table gives, per class and seed, the SfM -> refined medians, their
-means and whether refinement is no worse than SfM at every seed (the small-class benchmark:
-``--views 8``, 32-80 views per class).
+means, whether refinement is no worse than SfM at every seed, and whether it is worse beyond the 95%
+interval of the change that another draw of the CAD models gives at some seed (``evaluate``'s
+``change_from_sfm``: a bootstrap over whole models, the views of one model sharing its shape; each
+seed's table shows the change and its interval too) (the small-class benchmark: ``--views 8``, 32-80
+views per class).
 ``--cameras level`` draws the renders' cameras from a level camera held above the ground (elevation
 mostly 0-30 degrees, up to 50; roll sd 2) instead of the renderer's default photo-like distribution.
 
@@ -124,7 +127,7 @@ def _rows(res: dict, recon: Path) -> list:
             "class": cls, "n": ref["geodesic"]["n"], "n_sfm": sfm.get("geodesic", {}).get("n", 0),
             "sfm_geodesic": sfm.get("geodesic", {}).get("median"),
             "refined_geodesic_sfm_objects": same["geodesic"]["median"],
-            "refined_geodesic": ref["geodesic"]["median"],
+            "refined_geodesic": ref["geodesic"]["median"], "change_from_sfm": same.get("change_from_sfm"),
             "sfm_azimuth": sfm.get("azimuth", {}).get("median"), "refined_azimuth": same["azimuth"]["median"],
             "sfm_elevation": sfm.get("elevation", {}).get("median"), "refined_elevation": same["elevation"]["median"],
             "sfm_acc30": sfm.get("geodesic", {}).get("acc_at_30"), "refined_acc30": ref["geodesic"]["acc_at_30"],
@@ -140,16 +143,19 @@ def _rows(res: dict, recon: Path) -> list:
 
 
 def _table(rows: list) -> str:
+    from carvi_torch.evaluate import format_change
+
     f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
-    lines = ["| class | views (with an SfM camera) | median geodesic SfM -> refined | median azimuth SfM -> refined | "
+    lines = ["| class | views (with an SfM camera) | median geodesic SfM -> refined (change [95% over models]) | "
+             "median azimuth SfM -> refined | "
              "median elevation SfM -> refined | every view: refined median, acc@30 | frame mirrored | "
              "frame (up error) | absolute: geodesic, azimuth, elevation |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        worse = r["sfm_geodesic"] is not None and r["refined_geodesic_sfm_objects"] > r["sfm_geodesic"]
+        change = f" ({format_change(r['change_from_sfm'])})" if r.get("change_from_sfm") else ""
         views = f"{r['n']}" + ("" if r["n_sfm"] == r["n"] else f" ({r['n_sfm']})")
         lines.append(f"| {r['class']} | {views} | {f(r['sfm_geodesic'])} -> {f(r['refined_geodesic_sfm_objects'])}"
-                     f"{' (worse)' if worse else ''} | {f(r['sfm_azimuth'])} -> {f(r['refined_azimuth'])} | "
+                     f"{change} | {f(r['sfm_azimuth'])} -> {f(r['refined_azimuth'])} | "
                      f"{f(r['sfm_elevation'])} -> {f(r['refined_elevation'])} | {f(r['refined_geodesic'])}, "
                      f"{r['refined_acc30']:.2f} | {r['mirrored']} | {r['frame']} ({f(r['up_error_deg'])}) | "
                      f"{f(r['absolute_geodesic'])}, {f(r['absolute_azimuth'])}, {f(r['absolute_elevation'])} |")
@@ -227,11 +233,13 @@ def _run(args, seed: int, overrides: list) -> dict:
 def _seeds_table(runs: list, refined: list | None = None) -> tuple[str, dict]:
     """Per class and seed: the SfM and final (kept) medians (degrees, the views with an SfM camera), with
     ``refined`` (the runs with ``refine_keep=refined``) the refined ones between them; the means over the
-    seeds, and whether the final median is no worse than the SfM one at every seed."""
+    seeds; whether the final median is no worse than the SfM one at every seed; and whether it is worse beyond
+    the 95% interval of the change that another draw of the CAD models gives (``evaluate``'s
+    ``change_from_sfm``, which resamples the views of whole models) at some seed."""
     f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
     what = "SfM / refined / final" if refined else "SfM -> refined"
     lines = ["| class | " + " | ".join(f"seed {r['seed']}: {what}" for r in runs) + f" | mean {what} | "
-             "final <= SfM at every seed |", "|---" * (len(runs) + 3) + "|"]
+             "final <= SfM at every seed | worse beyond the 95% interval |", "|---" * (len(runs) + 4) + "|"]
     out = {}
     for cls in [r["class"] for r in runs[0]["rows"]]:
         rows = [next(x for x in run["rows"] if x["class"] == cls) for run in runs]
@@ -240,14 +248,18 @@ def _seeds_table(runs: list, refined: list | None = None) -> tuple[str, dict]:
             cols["refined"] = [next(x for x in run["rows"] if x["class"] == cls)["refined_geodesic_sfm_objects"]
                                for run in refined]
         ok = all(s is None or r <= s for s, r in zip(cols["sfm"], cols["final"]))
+        changes = [r.get("change_from_sfm") for r in rows]
+        beyond = [run["seed"] for run, c in zip(runs, changes) if c and c["low"] > 0]
         mean = {k: sum(v for v in vs if v is not None) / max(1, sum(v is not None for v in vs))
                 for k, vs in cols.items()}
         order = ["sfm", "refined", "final"] if refined else ["sfm", "final"]
         sep = " / " if refined else " -> "
         out[cls] = {**cols, **{f"mean_{k}": round(v, 2) for k, v in mean.items()}, "final_not_worse": ok,
+                    "change_from_sfm": changes, "worse_beyond_interval_at_seeds": beyond,
                     "kept_sfm": [r.get("kept_sfm") for r in rows]}
         lines.append(f"| {cls} | " + " | ".join(sep.join(f(cols[k][i]) for k in order) for i in range(len(runs)))
-                     + f" | {sep.join(f(mean[k]) for k in order)} | {'yes' if ok else 'no'} |")
+                     + f" | {sep.join(f(mean[k]) for k in order)} | {'yes' if ok else 'no'} | "
+                     + (f"seed {', '.join(map(str, beyond))}" if beyond else "no") + " |")
     return "\n".join(lines), out
 
 
