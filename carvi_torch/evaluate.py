@@ -354,12 +354,13 @@ def format_shape_table(res: dict) -> str:
 
 def format_viewpoint_table(res: dict) -> str:
     """Per class and method: median geodesic / azimuth / elevation error as written (absolute: the
-    labels a user trains on) and after one fitted global rotation (aligned: the cameras alone), the
+    labels a user trains on) and after one fitted global rotation (aligned: the cameras alone), the up axis
+    error that ignores azimuth (rotationally symmetric classes, ``viewpoint_metrics.up_axis_errors``), the
     accuracy at 30 degrees of each, and on the refinement's before/after row the change of the aligned
     median from SfM with its 95% interval over the physical objects (``change_from_sfm``)."""
     lines = ["| class | method | stage | n | geodesic abs / aligned | azimuth abs / aligned | "
-             "elevation abs / aligned | acc@30 abs / aligned | mirrored | aligned median - SfM's [95%] |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "elevation abs / aligned | up axis abs / aligned | acc@30 abs / aligned | mirrored | "
+             "aligned median - SfM's [95%] |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for cls, per in sorted(res["viewpoints"].items()):
         for mth, stages in per.items():
             for stage, rep in stages.items():
@@ -369,7 +370,7 @@ def format_viewpoint_table(res: dict) -> str:
                     return f"{_fmt(ab.get(key, {}).get(stat), nd)} / {_fmt(rep.get(key, {}).get(stat), nd)}"
 
                 lines.append(f"| {cls} | {mth} | {stage} | {rep.get('geodesic', {}).get('n', '-')} | "
-                             f"{pair('geodesic')} | {pair('azimuth')} | {pair('elevation')} | "
+                             f"{pair('geodesic')} | {pair('azimuth')} | {pair('elevation')} | {pair('up_axis')} | "
                              f"{pair('geodesic', 'acc_at_30', 2)} | {rep.get('mirrored', False)} | "
                              f"{format_change(rep.get('change_from_sfm'))} |")
     return "\n".join(lines)

@@ -15,10 +15,12 @@ from carvi_torch.evaluation.viewpoint_metrics import (
     aligned_median,
     angle_errors,
     compare_camera_runs,
+    fit_up_axis,
     geodesic_errors,
     median_change,
     necker_mirror,
     summarize,
+    up_axis_errors,
     viewpoint_report,
 )
 
@@ -114,6 +116,47 @@ def test_median_change_checks_its_input(generator):
         median_change(R, R[:3], R)
     with pytest.raises(ValueError, match="3 cluster labels for 4 objects"):
         median_change(R, R, R, ["a", "b", "c"])
+
+
+def _rz(phi: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(Rotation.from_euler("z", np.asarray(phi)[:, None]).as_matrix())
+
+
+def test_up_axis_errors_ignore_azimuth_and_equal_the_best_turn_about_the_axis(generator):
+    """Known values: a turn about the object's up axis costs nothing, a tilt by t costs t. Brute force: the
+    error equals the smallest geodesic error over a 0.05-degree grid of turns about +z (scipy's angles)."""
+    rng = np.random.default_rng(5)
+    R_gt = random_rotations(30, generator, dtype=torch.float64)
+    spun = R_gt @ _rz(rng.uniform(-np.pi, np.pi, 30))  # the object turned about its up axis
+    assert float(up_axis_errors(spun, R_gt, align=False).max()) < 1e-6
+    assert float(geodesic_errors(spun, R_gt).median()) > 30
+    tilt = torch.from_numpy(Rotation.from_euler("x", np.full((30, 1), 7.0), degrees=True).as_matrix())
+    torch.testing.assert_close(up_axis_errors(R_gt @ tilt, R_gt, align=False), torch.full((30,), 7.0,
+                                                                                           dtype=torch.float64))
+    R_est = _turned(R_gt, rng.normal(scale=0.3, size=(30, 3)))[:6]
+    grid = np.deg2rad(np.arange(0, 360, 0.05))
+    for Re, Rg in zip(R_est.numpy(), R_gt[:6].numpy()):
+        best = (Rotation.from_matrix(Re[None] @ Rotation.from_euler("z", grid[:, None]).as_matrix()).inv()
+                * Rotation.from_matrix(Rg)).magnitude().min()
+        got = float(up_axis_errors(torch.from_numpy(Re[None]), torch.from_numpy(Rg[None]), align=False)[0])
+        assert got == pytest.approx(np.rad2deg(best), abs=0.03)
+
+
+def test_up_axis_alignment_finds_the_up_of_a_turned_frame(generator):
+    """An estimate written in a frame turned by G0 and spun about the true up per object: the aligned
+    error is 0 and the fitted axis is the true up in the estimate's frame; as written the error is the
+    frame's tilt."""
+    rng = np.random.default_rng(6)
+    R_gt = random_rotations(25, generator, dtype=torch.float64)
+    G0 = torch.from_numpy(Rotation.from_euler("x", 20, degrees=True).as_matrix())
+    R_est = R_gt @ _rz(rng.uniform(-np.pi, np.pi, 25)) @ G0.T  # R_est G0 = R_gt Rz(phi_n)
+    assert float(up_axis_errors(R_est, R_gt).max()) < 1e-6
+    torch.testing.assert_close(fit_up_axis(R_est, R_gt), G0[:, 2], atol=1e-9, rtol=0)  # R_est^T R_gt e_z = G0 e_z
+    torch.testing.assert_close(up_axis_errors(R_est, R_gt, align=False), torch.full((25,), 20.0, dtype=torch.float64))
+    R_est[3] = float("nan")
+    assert torch.isnan(up_axis_errors(R_est, R_gt)[3]) and float(up_axis_errors(R_est, R_gt)[:3].max()) < 1e-6
+    rep = viewpoint_report(R_est, R_gt)
+    assert rep["up_axis"]["median"] < 1e-6 and rep["absolute"]["up_axis"]["median"] == pytest.approx(20.0)
 
 
 def test_robust_alignment_resists_outliers(generator):

@@ -130,6 +130,7 @@ def _rows(res: dict, recon: Path) -> list:
             "refined_geodesic": ref["geodesic"]["median"], "change_from_sfm": same.get("change_from_sfm"),
             "sfm_azimuth": sfm.get("azimuth", {}).get("median"), "refined_azimuth": same["azimuth"]["median"],
             "sfm_elevation": sfm.get("elevation", {}).get("median"), "refined_elevation": same["elevation"]["median"],
+            "sfm_up_axis": sfm.get("up_axis", {}).get("median"), "refined_up_axis": same["up_axis"]["median"],
             "sfm_acc30": sfm.get("geodesic", {}).get("acc_at_30"), "refined_acc30": ref["geodesic"]["acc_at_30"],
             "mirrored": bool(ref.get("mirrored")), "frame": cj.get("frame"), "kept_sfm": choice.count("sfm"),
             "absolute_geodesic": ref["absolute"]["geodesic"]["median"],
@@ -147,16 +148,17 @@ def _table(rows: list) -> str:
 
     f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
     lines = ["| class | views (with an SfM camera) | median geodesic SfM -> refined (change [95% over models]) | "
-             "median azimuth SfM -> refined | "
-             "median elevation SfM -> refined | every view: refined median, acc@30 | frame mirrored | "
+             "median azimuth SfM -> refined | median elevation SfM -> refined | "
+             "median up axis (ignores azimuth) SfM -> refined | every view: refined median, acc@30 | frame mirrored | "
              "frame (up error) | absolute: geodesic, azimuth, elevation |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         change = f" ({format_change(r['change_from_sfm'])})" if r.get("change_from_sfm") else ""
         views = f"{r['n']}" + ("" if r["n_sfm"] == r["n"] else f" ({r['n_sfm']})")
         lines.append(f"| {r['class']} | {views} | {f(r['sfm_geodesic'])} -> {f(r['refined_geodesic_sfm_objects'])}"
                      f"{change} | {f(r['sfm_azimuth'])} -> {f(r['refined_azimuth'])} | "
-                     f"{f(r['sfm_elevation'])} -> {f(r['refined_elevation'])} | {f(r['refined_geodesic'])}, "
+                     f"{f(r['sfm_elevation'])} -> {f(r['refined_elevation'])} | "
+                     f"{f(r.get('sfm_up_axis'))} -> {f(r.get('refined_up_axis'))} | {f(r['refined_geodesic'])}, "
                      f"{r['refined_acc30']:.2f} | {r['mirrored']} | {r['frame']} ({f(r['up_error_deg'])}) | "
                      f"{f(r['absolute_geodesic'])}, {f(r['absolute_azimuth'])}, {f(r['absolute_elevation'])} |")
     return "\n".join(lines)

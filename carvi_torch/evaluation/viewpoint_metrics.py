@@ -43,6 +43,8 @@ __all__ = [
     "RUN_TURNED_DEG",
     "aligned_median",
     "median_change",
+    "fit_up_axis",
+    "up_axis_errors",
 ]
 
 #: Two runs of the same data agree when each class's median angle between their cameras is at most this
@@ -82,6 +84,65 @@ def angle_errors(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor | None
     a1, e1, r1 = azimuth_elevation_roll_from_rotation(Re)
     a2, e2, r2 = azimuth_elevation_roll_from_rotation(R_gt.to(Re))
     return {"azimuth": _wrap_deg(a1 - a2), "elevation": _wrap_deg(e1 - e2), "roll": _wrap_deg(r1 - r2)}
+
+
+def fit_up_axis(R_est: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:
+    """The estimated frame's direction that best matches the ground truth's up (+z) in every camera.
+
+    ``u`` maximises ``sum_n <R_est_n u, R_gt_n e_z>``: ``u = normalize(sum_n R_est_n^T R_gt_n e_z)``, the
+    least-squares alignment of the up axes alone (a rotation about the up axis is left free, as it is for an
+    object that looks the same from every azimuth). Pairs with a non-finite entry are ignored.
+
+    Args:
+        R_est, R_gt: ``(N, 3, 3)`` rotations.
+
+    Returns:
+        ``(3,)`` unit vector in the estimated object frame, in ``R_est``'s dtype.
+
+    Example:
+        >>> from carvi_torch.cameras import random_rotations
+        >>> R = random_rotations(3, torch.Generator().manual_seed(0))
+        >>> fit_up_axis(R, R).round(decimals=4).tolist()
+        [0.0, 0.0, 1.0]
+    """
+    check_rotation_pairs(R_est, R_gt)
+    ok = finite_rotation_pairs(R_est, R_gt)
+    if not bool(ok.any()):
+        raise ValueError("fit_up_axis: no pair of finite rotations")
+    v = torch.einsum("nji,nj->i", R_est[ok].double(), R_gt[ok].double()[..., :, 2])
+    return (v / v.norm().clamp(min=1e-300)).to(R_est.dtype)
+
+
+def up_axis_errors(R_est: torch.Tensor, R_gt: torch.Tensor, align: bool = True) -> torch.Tensor:
+    """Angle (degrees) between where two cameras see the object's up axis: the viewpoint error that ignores
+    azimuth, for rotationally symmetric objects (bottles).
+
+    The up axis is the ground truth's +z (PASCAL3D+'s CAD frame; a bottle's axis of symmetry). The
+    angle between ``R_est_n u`` and ``R_gt_n e_z`` equals the smallest geodesic error of ``R_est_n`` over
+    every rotation of the object about that axis: elevation and roll count, azimuth does not. ``u`` is
+    :func:`fit_up_axis` with ``align`` (the aligned error), the estimate's own +z without (as written).
+
+    Args:
+        R_est, R_gt: ``(N, 3, 3)`` rotations.
+        align: fit ``u`` (else ``u = e_z``).
+
+    Returns:
+        ``(N,)`` in ``[0, 180]``; NaN where an input is not finite.
+
+    Example:
+        >>> from carvi_torch.cameras import random_rotations, rotation_from_azimuth_elevation_roll
+        >>> R = rotation_from_azimuth_elevation_roll(torch.tensor([0.0]), torch.tensor([0.3]), torch.tensor([0.0]))
+        >>> turned = rotation_from_azimuth_elevation_roll(torch.tensor([2.0]), torch.tensor([0.3]), torch.tensor([0.0]))
+        >>> up_axis_errors(turned, R, align=False).abs().item() < 1e-3  # an azimuth error alone
+        True
+    """
+    check_rotation_pairs(R_est, R_gt)
+    u = fit_up_axis(R_est, R_gt) if align else torch.tensor([0.0, 0.0, 1.0], dtype=R_est.dtype)
+    a = R_est.double() @ u.to(R_est.device).double()
+    b = R_gt.to(R_est.device).double()[..., :, 2]
+    cos = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1))
+    sin = torch.linalg.cross(a, b).norm(dim=-1) / (a.norm(dim=-1) * b.norm(dim=-1))
+    return torch.rad2deg(torch.atan2(sin, cos)).to(R_est.dtype)
 
 
 def summarize(errors: torch.Tensor, threshold: float = 30.0) -> dict:
@@ -228,7 +289,9 @@ def viewpoint_report(
 
     Returns:
         ``{"n", "alignment" (3x3 list), "geodesic", "azimuth", "elevation", "roll"
-        (each a :func:`summarize` dict, after the alignment), "absolute" (the same four
+        (each a :func:`summarize` dict, after the alignment), "up_axis" (:func:`up_axis_errors`
+        summarised: the error that ignores azimuth, for rotationally symmetric classes; its own
+        alignment of the up axes, not ``alignment``), "absolute" (the same five
         without any fitted rotation), "mirrored" (bool), "mirrored_geodesic" (summary of
         the mirrored hypothesis), "per_instance_geodesic" (list, NaN for unused pairs)}``.
     """
@@ -263,8 +326,10 @@ def viewpoint_report(
         "azimuth": summarize(ang["azimuth"]),
         "elevation": summarize(ang["elevation"]),
         "roll": summarize(ang["roll"]),
+        "up_axis": summarize(up_axis_errors(Re, Rg)),
         "absolute": {"geodesic": summarize(geodesic_errors(Re, Rg)),
-                     **{k: summarize(ang_abs[k]) for k in ("azimuth", "elevation", "roll")}},
+                     **{k: summarize(ang_abs[k]) for k in ("azimuth", "elevation", "roll")},
+                     "up_axis": summarize(up_axis_errors(Re, Rg, align=False))},
         "mirrored": bool(geo_m.median() < geo.median()),
         "mirrored_geodesic": summarize(geo_m),
         "per_instance_geodesic": per.double().cpu().tolist(),
