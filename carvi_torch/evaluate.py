@@ -109,16 +109,16 @@ def _viewpoints(cameras: dict | None, gt_entries: dict, aids: list, object_of: d
 def _refinement_change(cams: dict, gt_entries: dict, aids: list, object_of: dict) -> dict | None:
     """:func:`~carvi_torch.evaluation.viewpoint_metrics.median_change` from the SfM to the refined cameras of the
     objects ``aids`` (each with both), resampling physical objects (the views of one object share its shape);
-    ``None`` for fewer than 2 objects or a non-finite camera."""
+    objects with a non-finite camera are left out; ``None`` with fewer than 2 physical objects left."""
     pairs = [a for a in aids if cams[str(a)].get("sfm") is not None]
-    if len(pairs) < 2:
-        return None
-    rot = lambda rows: torch.tensor([r["R"] for r in rows], dtype=torch.float64)  # noqa: E731
+    rot = lambda rows: torch.tensor([r["R"] for r in rows], dtype=torch.float64).reshape(-1, 3, 3)  # noqa: E731
     sets = [rot(cams[str(a)]["sfm"] for a in pairs), rot(cams[str(a)]["refined"] for a in pairs),
             rot(gt_entries[str(a)] for a in pairs)]
-    if not all(bool(torch.isfinite(R).all()) for R in sets):
+    ok = torch.stack([torch.isfinite(R).flatten(1).all(1) for R in sets]).all(0)
+    labels = [object_of.get(str(a), ("annotation", str(a))) for a, k in zip(pairs, ok.tolist()) if k]
+    if len(set(labels)) < 2:
         return None
-    res = viewpoint_metrics.median_change(*sets, [object_of.get(str(a), ("annotation", str(a))) for a in pairs])
+    res = viewpoint_metrics.median_change(*(R[ok] for R in sets), labels)
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in res.items()}
 
 
@@ -360,7 +360,7 @@ def format_viewpoint_table(res: dict) -> str:
     median from SfM with its 95% interval over the physical objects (``change_from_sfm``)."""
     lines = ["| class | method | stage | n | geodesic abs / aligned | azimuth abs / aligned | "
              "elevation abs / aligned | up axis abs / aligned | acc@30 abs / aligned | mirrored | "
-             "aligned median - SfM's [95%] |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "refined - SfM median [95% over objects] |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for cls, per in sorted(res["viewpoints"].items()):
         for mth, stages in per.items():
             for stage, rep in stages.items():
@@ -384,7 +384,8 @@ def format_change(change: dict | None) -> str:
     """
     if not change:
         return "-"
-    return f"{change['change']:+.1f} [{change['low']:+.1f}, {change['high']:+.1f}]"
+    c, lo, hi = (round(change[k], 1) + 0.0 for k in ("change", "low", "high"))  # + 0.0: no "-0.0"
+    return f"{c:+.1f} [{lo:+.1f}, {hi:+.1f}]"
 
 
 #: The line of an evaluation interrupted by Ctrl-C.

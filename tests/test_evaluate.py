@@ -247,6 +247,25 @@ def test_the_refinement_change_resamples_physical_objects(recon, tmp_path):
     ch2 = evaluate(paired, {"Full": recon}, shapes=False, progress=False)["viewpoints"]["car"]["Full"]["refined"]
     assert ch2["change_from_sfm"]["clusters"] == (ch["objects"] + 1) // 2 and ch["clusters"] == ch["objects"]
     assert ch2["change_from_sfm"]["change"] == ch["change"]
+    for a in cars:
+        a["object_id"] = "one"  # one physical object: no interval, and no error
+    paired.write_text(json.dumps(doc))
+    one = evaluate(paired, {"Full": recon}, shapes=False, progress=False)["viewpoints"]["car"]["Full"]["refined"]
+    assert one["change_from_sfm"] is None and one["geodesic"]["median"] == vp["refined"]["geodesic"]["median"]
+
+
+def test_a_non_finite_camera_leaves_the_refinement_change_to_the_others(recon, tmp_path):
+    data, _gt_car = _gt(recon)
+    part = tmp_path / "part"
+    shutil.copytree(recon, part)
+    p = part / "car" / "cameras.json"
+    cj = json.loads(p.read_text())
+    ids = sorted(int(a) for a in cj["cameras"] if str(a) in _gt_car)
+    cj["cameras"][str(ids[0])]["refined"]["R"] = [[float("nan")] * 3] * 3
+    p.write_text(json.dumps(cj))
+    vp = evaluate(data, {"Full": part}, shapes=False, progress=False)["viewpoints"]["car"]["Full"]
+    ch = vp["refined"]["change_from_sfm"]
+    assert ch is not None and ch["objects"] == vp["sfm"]["geodesic"]["n"] - 1
 
 
 def test_classes_without_reconstruction_are_named(recon, tmp_path, capsys):

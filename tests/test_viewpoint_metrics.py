@@ -77,6 +77,8 @@ def test_aligned_median_of_counts_is_the_median_of_the_repeated_set(generator):
                                                                abs=1e-9)
     with pytest.raises(ValueError, match="positive sum"):
         aligned_median(R_est, R_gt, torch.zeros(9))
+    with pytest.raises(ValueError, match="integer counts"):
+        aligned_median(R_est, R_gt, torch.full((9,), 0.5))
 
 
 def test_median_change_resamples_whole_clusters(generator):
@@ -116,6 +118,8 @@ def test_median_change_checks_its_input(generator):
         median_change(R, R[:3], R)
     with pytest.raises(ValueError, match="3 cluster labels for 4 objects"):
         median_change(R, R, R, ["a", "b", "c"])
+    with pytest.raises(ValueError, match="one cluster"):
+        median_change(R, R, R, ["a"] * 4)
 
 
 def _rz(phi: np.ndarray) -> torch.Tensor:
@@ -157,6 +161,10 @@ def test_up_axis_alignment_finds_the_up_of_a_turned_frame(generator):
     assert torch.isnan(up_axis_errors(R_est, R_gt)[3]) and float(up_axis_errors(R_est, R_gt)[:3].max()) < 1e-6
     rep = viewpoint_report(R_est, R_gt)
     assert rep["up_axis"]["median"] < 1e-6 and rep["absolute"]["up_axis"]["median"] == pytest.approx(20.0)
+    # a global alignment fitted elsewhere gives the axis (G e_z), as it gives the other errors
+    assert viewpoint_report(R_est, R_gt, alignment=G0)["up_axis"]["median"] < 1e-6
+    assert viewpoint_report(R_est, R_gt, alignment=torch.eye(3, dtype=torch.float64))["up_axis"]["median"] == \
+        pytest.approx(20.0)
 
 
 def test_robust_alignment_resists_outliers(generator):

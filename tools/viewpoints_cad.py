@@ -153,7 +153,9 @@ def _table(rows: list) -> str:
              "frame (up error) | absolute: geodesic, azimuth, elevation |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        change = f" ({format_change(r['change_from_sfm'])})" if r.get("change_from_sfm") else ""
+        worse = r["sfm_geodesic"] is not None and r["refined_geodesic_sfm_objects"] > r["sfm_geodesic"]
+        change = f" ({format_change(r['change_from_sfm'])})" if r.get("change_from_sfm") else \
+            (" (worse)" if worse else "")
         views = f"{r['n']}" + ("" if r["n_sfm"] == r["n"] else f" ({r['n_sfm']})")
         lines.append(f"| {r['class']} | {views} | {f(r['sfm_geodesic'])} -> {f(r['refined_geodesic_sfm_objects'])}"
                      f"{change} | {f(r['sfm_azimuth'])} -> {f(r['refined_azimuth'])} | "

@@ -54,6 +54,8 @@ RUN_AGREEMENT_DEG = 0.5
 #: (``turned``): a median hides the few views that flip between near-equal solutions (views with few visible
 #: keypoints: front and back exchanged, cameras from the silhouette or the mean shape alone).
 RUN_TURNED_DEG = 1.0
+#: Bootstrap resamples evaluated at once by :func:`median_change` (memory grows with it times the objects).
+BOOTSTRAP_BATCH = 100
 
 
 def necker_mirror(R: torch.Tensor) -> torch.Tensor:
@@ -113,18 +115,21 @@ def fit_up_axis(R_est: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:
     return (v / v.norm().clamp(min=1e-300)).to(R_est.dtype)
 
 
-def up_axis_errors(R_est: torch.Tensor, R_gt: torch.Tensor, align: bool = True) -> torch.Tensor:
+def up_axis_errors(R_est: torch.Tensor, R_gt: torch.Tensor, align: bool = True,
+                   axis: torch.Tensor | None = None) -> torch.Tensor:
     """Angle (degrees) between where two cameras see the object's up axis: the viewpoint error that ignores
     azimuth, for rotationally symmetric objects (bottles).
 
     The up axis is the ground truth's +z (PASCAL3D+'s CAD frame; a bottle's axis of symmetry). The
     angle between ``R_est_n u`` and ``R_gt_n e_z`` equals the smallest geodesic error of ``R_est_n`` over
     every rotation of the object about that axis: elevation and roll count, azimuth does not. ``u`` is
-    :func:`fit_up_axis` with ``align`` (the aligned error), the estimate's own +z without (as written).
+    :func:`fit_up_axis` with ``align`` (the aligned error), the estimate's own +z without (as written), or
+    ``axis`` when given (e.g. ``G e_z`` of a global alignment ``G`` fitted elsewhere).
 
     Args:
         R_est, R_gt: ``(N, 3, 3)`` rotations.
         align: fit ``u`` (else ``u = e_z``).
+        axis: ``(3,)`` unit ``u`` in the estimated frame; overrides ``align``.
 
     Returns:
         ``(N,)`` in ``[0, 180]``; NaN where an input is not finite.
@@ -137,7 +142,10 @@ def up_axis_errors(R_est: torch.Tensor, R_gt: torch.Tensor, align: bool = True) 
         True
     """
     check_rotation_pairs(R_est, R_gt)
-    u = fit_up_axis(R_est, R_gt) if align else torch.tensor([0.0, 0.0, 1.0], dtype=R_est.dtype)
+    if axis is not None:
+        u = torch.as_tensor(axis, dtype=R_est.dtype)
+    else:
+        u = fit_up_axis(R_est, R_gt) if align else torch.tensor([0.0, 0.0, 1.0], dtype=R_est.dtype)
     a = R_est.double() @ u.to(R_est.device).double()
     b = R_gt.to(R_est.device).double()[..., :, 2]
     cos = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1))
@@ -193,9 +201,10 @@ def aligned_median(R_est: torch.Tensor, R_gt: torch.Tensor, weights: torch.Tenso
         tensor(True)
     """
     w = torch.ones(len(R_est), dtype=torch.float64) if weights is None else torch.as_tensor(weights).double().cpu()
-    if w.shape[-1:] != (len(R_est),) or w.dim() > 2 or not bool((w >= 0).all()) or not bool((w.sum(-1) > 0).all()):
-        raise ValueError(f"weights must be ({len(R_est)},) or (B, {len(R_est)}) non-negative counts, each row with "
-                         f"a positive sum, got {tuple(w.shape)}")
+    if (w.shape[-1:] != (len(R_est),) or w.dim() > 2 or not bool((w >= 0).all()) or not bool((w == w.round()).all())
+            or not bool((w.sum(-1) > 0).all())):
+        raise ValueError(f"weights must be ({len(R_est)},) or (B, {len(R_est)}) non-negative integer counts, each row "
+                         f"with a positive sum, got {tuple(w.shape)}")
     Re, Rg = R_est.double().cpu(), R_gt.double().cpu()
     G = align_rotations(Re, Rg, weights=w)  # (3, 3) or (B, 3, 3)
     err = torch.rad2deg(geodesic_angle(Re @ G[..., None, :, :], Rg))  # (N,) or (B, N)
@@ -220,7 +229,7 @@ def median_change(R_before: torch.Tensor, R_after: torch.Tensor, R_gt: torch.Ten
 
     Args:
         R_before, R_after, R_gt: ``(N, 3, 3)`` finite rotations of the same N objects.
-        clusters: ``N`` hashable labels (default: every object its own cluster).
+        clusters: ``N`` hashable labels, at least 2 distinct (default: every object its own cluster).
         resamples: bootstrap resamples.
         level: the interval's confidence level.
         seed: the resampling's seed (same seed, same interval).
@@ -244,6 +253,8 @@ def median_change(R_before: torch.Tensor, R_after: torch.Tensor, R_gt: torch.Ten
     if len(labels) != n:
         raise ValueError(f"median_change: {len(labels)} cluster labels for {n} objects")
     index = {lab: i for i, lab in enumerate(dict.fromkeys(labels))}
+    if len(index) < 2:
+        raise ValueError("median_change: one cluster; the bootstrap needs at least 2")
     of = torch.tensor([index[lab] for lab in labels])
 
     def change(drawn, axis=-1) -> np.ndarray:  # drawn: (..., C) cluster indices, one resample per row
@@ -254,7 +265,7 @@ def median_change(R_before: torch.Tensor, R_after: torch.Tensor, R_gt: torch.Ten
         return (aligned_median(R_after, R_gt, w) - aligned_median(R_before, R_gt, w)).numpy()
 
     full = float(change(np.arange(len(index))))
-    res = bootstrap((np.arange(len(index)),), change, vectorized=True, n_resamples=resamples, batch=resamples,
+    res = bootstrap((np.arange(len(index)),), change, vectorized=True, n_resamples=resamples, batch=BOOTSTRAP_BATCH,
                     confidence_level=level, method="percentile", rng=np.random.default_rng(seed))
     lo, hi = (float(x) for x in (res.confidence_interval.low, res.confidence_interval.high))
     return {"change": full, "low": lo, "high": hi, "clusters": len(index), "objects": n,
@@ -290,8 +301,8 @@ def viewpoint_report(
     Returns:
         ``{"n", "alignment" (3x3 list), "geodesic", "azimuth", "elevation", "roll"
         (each a :func:`summarize` dict, after the alignment), "up_axis" (:func:`up_axis_errors`
-        summarised: the error that ignores azimuth, for rotationally symmetric classes; its own
-        alignment of the up axes, not ``alignment``), "absolute" (the same five
+        summarised: the error that ignores azimuth, for rotationally symmetric classes; the up axes
+        aligned on their own, or by the given ``alignment``), "absolute" (the same five
         without any fitted rotation), "mirrored" (bool), "mirrored_geodesic" (summary of
         the mirrored hypothesis), "per_instance_geodesic" (list, NaN for unused pairs)}``.
     """
@@ -326,7 +337,7 @@ def viewpoint_report(
         "azimuth": summarize(ang["azimuth"]),
         "elevation": summarize(ang["elevation"]),
         "roll": summarize(ang["roll"]),
-        "up_axis": summarize(up_axis_errors(Re, Rg)),
+        "up_axis": summarize(up_axis_errors(Re, Rg, axis=None if alignment is None else G[:, 2])),
         "absolute": {"geodesic": summarize(geodesic_errors(Re, Rg)),
                      **{k: summarize(ang_abs[k]) for k in ("azimuth", "elevation", "roll")},
                      "up_axis": summarize(up_axis_errors(Re, Rg, align=False))},
