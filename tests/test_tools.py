@@ -1214,6 +1214,32 @@ def test_train_example_reads_a_format_one_export_it_is_given(tmp_path, monkeypat
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["index.json", "old"]
 
 
+def test_voc_study_refinement_change_uses_the_objects_with_both_cameras():
+    """The SfM -> refined change of the VOC study is median_change on exactly the objects with an SfM camera, a
+    refined one and ground truth, in one order, each annotation its own object."""
+    import torch
+
+    from carvi_torch.cameras import random_rotations
+    from carvi_torch.evaluation.viewpoint_metrics import median_change
+
+    vs = load_tool("voc_study")
+    g = torch.Generator().manual_seed(0)
+    R = random_rotations(3 * 8, g, dtype=torch.float64).reshape(3, 8, 3, 3)
+    cams = {str(i): {"source": f"2008_{i:06d}_1.xml", "sfm": {"R": R[0, i].tolist()},
+                     "refined": {"R": R[1, i].tolist()}} for i in range(8)}
+    cams["0"]["sfm"] = None  # no SfM camera: left out
+    cams["5"]["refined"] = None  # no refined camera: left out
+    gt = {f"2008_{i:06d}_1": {"R": R[2, i].tolist()} for i in range(8) if i != 3}  # no truth for 3
+    got = vs._refinement_change(cams, gt)
+    keep = [1, 2, 4, 6, 7]
+    want = median_change(R[0, keep], R[1, keep], R[2, keep])
+    assert got["objects"] == got["clusters"] == 5
+    assert (got["change"], got["low"], got["high"]) == pytest.approx((want["change"], want["low"], want["high"]),
+                                                                    abs=1e-3)
+    cams["6"]["refined"]["R"] = cams["6"]["sfm"]["R"]  # one object unchanged by refinement: another change
+    assert vs._refinement_change(cams, gt)["change"] != pytest.approx(got["change"], abs=1e-3)
+
+
 def test_voc_study_paired_comparison_known_values():
     vs = load_tool("voc_study")
     a = np.array([1.0, 4.0, 2.0, 8.0, 5.0])

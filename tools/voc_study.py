@@ -87,6 +87,7 @@ from carvi_torch.evaluation.viewpoint_metrics import (
     align_rotations,
     angle_errors,
     geodesic_errors,
+    median_change,
     summarize,
     viewpoint_report,
 )
@@ -432,6 +433,18 @@ def _gt_arrays(cams: dict, gt: dict, stage: str):
             R.append(c[stage]["R"])
             Rg.append(gt[k]["R"])
     return keys, aids, torch.tensor(R, dtype=torch.float64), torch.tensor(Rg, dtype=torch.float64)
+
+
+def _refinement_change(cams: dict, gt: dict) -> dict:
+    """:func:`~carvi_torch.evaluation.viewpoint_metrics.median_change` from the SfM to the refined cameras of the
+    objects with both (each VOC annotation its own physical object)."""
+    keys, _aids, R_sfm, Rg = _gt_arrays(cams, gt, "sfm")
+    ref_keys, _a, R_ref, _g = _gt_arrays(cams, gt, "refined")
+    at = {k: i for i, k in enumerate(ref_keys)}
+    both = [i for i, k in enumerate(keys) if k in at]
+    R_ref = R_ref[[at[keys[i]] for i in both]]
+    return {k: round(v, 3) if isinstance(v, float) else v
+            for k, v in median_change(R_sfm[both], R_ref, Rg[both], [keys[i] for i in both]).items()}
 
 
 def azimuth_bins(R_est: torch.Tensor, R_gt: torch.Tensor, G: torch.Tensor, width: float = 30.0) -> list[dict]:
@@ -823,6 +836,10 @@ def step_viewpoints(recon: Path, gt: dict, subcategory: dict | None = None) -> d
                                  {**rep, **rep["absolute"]}))
     print_table(f"viewpoints vs PASCAL3D+ ({out['refined']['report']['n']} objects with ground truth; degrees)",
                 VP_HEADER, rows)
+    out["refinement_change"] = _refinement_change(cams, gt)
+    ch = out["refinement_change"]
+    print(f"refined - SfM median geodesic on the {ch['objects']} objects with both: {ch['change']:+.2f} degrees, "
+          f"95% interval over the objects [{ch['low']:+.2f}, {ch['high']:+.2f}] (viewpoint_metrics.median_change)")
     ref, sf = out["refined"]["report"], out["sfm"]["report"]
     checks = {}
     for name, target in TARGETS.items():
