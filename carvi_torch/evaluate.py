@@ -4,7 +4,11 @@ Shapes: the symmetric RMS mesh distance of the paper (``carvi_torch.evaluation.m
 the ground-truth bounding-box diagonal, in the reference camera frame (the ground-truth mesh
 posed by its true camera, image pixels) after the best depth offset. Viewpoints: geodesic,
 azimuth, elevation and roll errors after one global rotation aligning the class frame with
-the ground-truth frame (``carvi_torch.evaluation.viewpoint_metrics``), for SfM and refined cameras.
+the ground-truth frame (``carvi_torch.evaluation.viewpoint_metrics``), for SfM and refined cameras;
+the up-axis error that ignores azimuth (``up_axis``, for rotationally symmetric classes such as
+bottles); and refinement's change of the median from SfM with a 95% bootstrap interval over the
+physical objects (``change_from_sfm``, whose ``object_id`` groups the views of one object): an
+interval above 0 says refinement made the class worse beyond what another draw of objects moves it.
 
 Several reconstruction directories (e.g. Full, -CRef, -SImp, oracle) are compared in one run,
 so every ground-truth mesh is sampled and indexed once; the baselines Puffball and SFMc are
