@@ -1214,6 +1214,40 @@ def test_train_example_reads_a_format_one_export_it_is_given(tmp_path, monkeypat
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["index.json", "old"]
 
 
+def test_viewpoints_cad_change_over_seeds_draws_models_across_the_seeds(tmp_path: Path):
+    """The seeds table's last column: median_change over both seeds' views with a view's CAD model as its cluster
+    and its seed as its run, read from each seed's cameras.json, gt.json and annotations.json; a view without an
+    SfM camera is left out."""
+    import torch
+
+    from carvi_torch.cameras import random_rotations
+    from carvi_torch.evaluation.viewpoint_metrics import median_change
+
+    vc = load_tool("viewpoints_cad")
+    g = torch.Generator().manual_seed(3)
+    runs, want = [], []
+    for seed in (0, 1):
+        R = random_rotations(3 * 6, g, dtype=torch.float64).reshape(3, 6, 3, 3)
+        renders, recon = tmp_path / f"renders{seed}", tmp_path / f"recon{seed}"
+        (recon / "thing").mkdir(parents=True)
+        renders.mkdir()
+        anns = [{"id": i, "source": f"thing0{i % 3}.npz"} for i in range(6)]
+        (renders / "annotations.json").write_text(json.dumps({"annotations": anns}))
+        (renders / "gt.json").write_text(json.dumps({"annotations": {str(i): {"R": R[2, i].tolist()}
+                                                                     for i in range(6)}}))
+        cams = {str(i): {"sfm": {"R": R[0, i].tolist()}, "refined": {"R": R[1, i].tolist()}} for i in range(6)}
+        cams["4"]["sfm"] = None
+        (recon / "thing" / "cameras.json").write_text(json.dumps({"cameras": cams}))
+        runs.append({"seed": seed, "renders": renders, "recon": recon, "rows": [{"class": "thing"}]})
+        want += [(R[0, i], R[1, i], R[2, i], f"thing0{i % 3}", seed) for i in range(6) if i != 4]
+    got = vc._change_over_seeds(runs)["thing"]
+    ref = median_change(*(torch.stack([w[k] for w in want]) for k in range(3)), [w[3] for w in want],
+                        runs=[w[4] for w in want])
+    assert (got["objects"], got["clusters"], got["runs"]) == (10, 3, 2)
+    assert (got["change"], got["low"], got["high"]) == pytest.approx((ref["change"], ref["low"], ref["high"]),
+                                                                    abs=1e-3)
+
+
 def test_voc_study_refinement_change_uses_the_objects_with_both_cameras():
     """The SfM -> refined change of the VOC study is median_change on exactly the objects with an SfM camera, a
     refined one and ground truth, in one order, each annotation its own object."""

@@ -112,6 +112,36 @@ def test_median_change_interval_is_seeded_and_brackets_a_real_change(generator):
     assert b["change"] == pytest.approx(-a["change"]) and b["high"] < 0
 
 
+def test_median_change_over_runs_aligns_each_run_and_draws_clusters_across_them(generator):
+    """Two runs of the same objects: the same run twice gives the one run's change and interval (a drawn cluster
+    counts in both); a run written in a turned frame changes nothing (each run is aligned on its own), while
+    pooling its objects into one run does."""
+    rng = np.random.default_rng(9)
+    R_gt = random_rotations(24, generator, dtype=torch.float64)
+    before = _turned(R_gt, rng.normal(scale=math.radians(3), size=(24, 3)))
+    after = _turned(R_gt, rng.normal(scale=math.radians(4), size=(24, 3)))
+    clusters = [f"model{i % 6}" for i in range(24)]
+    one = median_change(before, after, R_gt, clusters, resamples=300)
+    twice = median_change(torch.cat([before, before]), torch.cat([after, after]), torch.cat([R_gt, R_gt]),
+                          clusters * 2, runs=[0] * 24 + [1] * 24, resamples=300)
+    assert twice["runs"] == 2 and twice["clusters"] == 6
+    for k in ("change", "low", "high"):
+        assert twice[k] == pytest.approx(one[k], abs=1e-9)
+    G = torch.from_numpy(Rotation.from_euler("xyz", [30, -50, 70], degrees=True).as_matrix())
+    turned = median_change(torch.cat([before, before @ G]), torch.cat([after, after @ G]), torch.cat([R_gt, R_gt]),
+                           clusters * 2, runs=[0] * 24 + [1] * 24, resamples=300)
+    for k in ("change", "low", "high"):
+        assert turned[k] == pytest.approx(one[k], abs=1e-6)
+    pooled = median_change(torch.cat([before, before @ G]), torch.cat([after, after @ G]), torch.cat([R_gt, R_gt]),
+                           clusters * 2, resamples=300)
+    assert abs(pooled["change"] - one["change"]) > 0.01 or abs(pooled["high"] - one["high"]) > 0.01
+    only0 = [0, 6, 12, 18]  # a second run holding model0 alone: a third of the resamples draw none of it
+    part = median_change(torch.cat([before, before[only0]]), torch.cat([after, after[only0]]),
+                         torch.cat([R_gt, R_gt[only0]]), clusters + ["model0"] * 4, runs=[0] * 24 + [1] * 4,
+                         resamples=300)
+    assert all(math.isfinite(part[k]) for k in ("change", "low", "high")) and part["low"] <= part["high"]
+
+
 def test_median_change_checks_its_input(generator):
     R = random_rotations(4, generator, dtype=torch.float64)
     with pytest.raises(ValueError, match="rotation sets"):
@@ -120,6 +150,8 @@ def test_median_change_checks_its_input(generator):
         median_change(R, R, R, ["a", "b", "c"])
     with pytest.raises(ValueError, match="one cluster"):
         median_change(R, R, R, ["a"] * 4)
+    with pytest.raises(ValueError, match="3 run labels for 4 objects"):
+        median_change(R, R, R, runs=[0, 0, 1])
 
 
 def _rz(phi: np.ndarray) -> torch.Tensor:

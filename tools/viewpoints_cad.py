@@ -229,21 +229,63 @@ def _run(args, seed: int, overrides: list) -> dict:
     subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
     t_cams = time.perf_counter() - t1
     res = evaluate(renders / "annotations.json", {"estimated": recon}, shapes=False, progress=False)
-    return {"seed": seed, "recon": recon, "rows": _rows(res, recon),
+    return {"seed": seed, "recon": recon, "renders": renders, "rows": _rows(res, recon),
             "per_model": _per_model(renders / "annotations.json", res["viewpoints"]),
             "render_seconds": round(t_render, 1), "cameras_seconds": round(t_cams, 1)}
+
+
+def _seed_rotations(run: dict) -> dict:
+    """Per class of one seed's run: ``(sfm, final, truth, model, seed)`` of every view with all three cameras."""
+    ann = json.loads((run["renders"] / "annotations.json").read_text())["annotations"]
+    model = {str(a["id"]): Path(a.get("source") or str(a.get("object_id"))).stem for a in ann}
+    gt_all = json.loads((run["renders"] / "gt.json").read_text())
+    gt = gt_all.get("annotations", gt_all)
+    out: dict = {}
+    for row in run["rows"]:
+        cams = json.loads((run["recon"] / row["class"] / "cameras.json").read_text())["cameras"]
+        out[row["class"]] = [(c["sfm"]["R"], c["refined"]["R"], gt[aid]["R"], model[aid], run["seed"])
+                             for aid, c in cams.items() if c.get("sfm") and c.get("refined") and aid in gt]
+    return out
+
+
+def _change_over_seeds(runs: list) -> dict:
+    """Per class: refinement's change of the median over every seed at once (``median_change`` with the seeds as
+    its runs: each seed aligned on its own, the change the mean of the seeds', a drawn CAD model counting in
+    every seed); ``None`` where fewer than 2 models have cameras."""
+    from carvi_torch.evaluation.viewpoint_metrics import median_change
+
+    views: dict = {}
+    for run in runs:
+        for cls, rows in _seed_rotations(run).items():
+            views.setdefault(cls, []).extend(rows)
+    out = {}
+    for cls, rows in views.items():
+        R = [torch.tensor([r[i] for r in rows], dtype=torch.float64).reshape(-1, 3, 3) for i in range(3)]
+        ok = torch.stack([torch.isfinite(x).flatten(1).all(1) for x in R]).all(0)
+        kept = [r for r, k in zip(rows, ok.tolist()) if k]
+        if len({r[3] for r in kept}) < 2:
+            out[cls] = None
+            continue
+        res = median_change(*(x[ok] for x in R), [r[3] for r in kept], runs=[r[4] for r in kept])
+        out[cls] = {k: round(v, 3) if isinstance(v, float) else v for k, v in res.items()}
+    return out
 
 
 def _seeds_table(runs: list, refined: list | None = None) -> tuple[str, dict]:
     """Per class and seed: the SfM and final (kept) medians (degrees, the views with an SfM camera), with
     ``refined`` (the runs with ``refine_keep=refined``) the refined ones between them; the means over the
-    seeds; whether the final median is no worse than the SfM one at every seed; and whether it is worse beyond
+    seeds; whether the final median is no worse than the SfM one at every seed; whether it is worse beyond
     the 95% interval of the change that another draw of the CAD models gives (``evaluate``'s
-    ``change_from_sfm``, which resamples the views of whole models) at some seed."""
+    ``change_from_sfm``, which resamples the views of whole models) at some seed; and that change over every
+    seed at once with its interval (:func:`_change_over_seeds`)."""
+    from carvi_torch.evaluate import format_change
+
     f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
     what = "SfM / refined / final" if refined else "SfM -> refined"
+    over = _change_over_seeds(runs)
     lines = ["| class | " + " | ".join(f"seed {r['seed']}: {what}" for r in runs) + f" | mean {what} | "
-             "final <= SfM at every seed | worse beyond the 95% interval |", "|---" * (len(runs) + 4) + "|"]
+             "final <= SfM at every seed | worse beyond the 95% interval | every seed: final - SfM [95%] |",
+             "|---" * (len(runs) + 5) + "|"]
     out = {}
     for cls in [r["class"] for r in runs[0]["rows"]]:
         rows = [next(x for x in run["rows"] if x["class"] == cls) for run in runs]
@@ -260,10 +302,12 @@ def _seeds_table(runs: list, refined: list | None = None) -> tuple[str, dict]:
         sep = " / " if refined else " -> "
         out[cls] = {**cols, **{f"mean_{k}": round(v, 2) for k, v in mean.items()}, "final_not_worse": ok,
                     "change_from_sfm": changes, "worse_beyond_interval_at_seeds": beyond,
+                    "change_over_seeds": over.get(cls),
                     "kept_sfm": [r.get("kept_sfm") for r in rows]}
         lines.append(f"| {cls} | " + " | ".join(sep.join(f(cols[k][i]) for k in order) for i in range(len(runs)))
                      + f" | {sep.join(f(mean[k]) for k in order)} | {'yes' if ok else 'no'} | "
-                     + (f"seed {', '.join(map(str, beyond))}" if beyond else "no") + " |")
+                     + (f"seed {', '.join(map(str, beyond))}" if beyond else "no")
+                     + f" | {format_change(over.get(cls))} |")
     return "\n".join(lines), out
 
 

@@ -218,24 +218,28 @@ def aligned_median(R_est: torch.Tensor, R_gt: torch.Tensor, weights: torch.Tenso
 
 
 def median_change(R_before: torch.Tensor, R_after: torch.Tensor, R_gt: torch.Tensor, clusters=None, *,
-                  resamples: int = 1000, level: float = 0.95, seed: int = 0) -> dict:
+                  runs=None, resamples: int = 1000, level: float = 0.95, seed: int = 0) -> dict:
     """Change of the aligned median geodesic error from one set of cameras to another, with a bootstrap interval.
 
     ``change = aligned_median(R_after) - aligned_median(R_before)``, each set aligned with the ground truth by
     its own global rotation. The interval is the percentile bootstrap (``scipy.stats.bootstrap``) over
     ``clusters``: whole clusters (e.g. the views of one physical object, which share its shape) are drawn with
     replacement and both sets are aligned again on every resample. An interval that lies above 0 says the
-    second set is worse beyond what another draw of the objects moves the medians.
+    second set is worse beyond what another draw of the objects moves the medians. With ``runs`` (e.g. renders
+    of the same objects from other cameras, each estimated on its own) every run is aligned on its own, the
+    change is the mean of the runs' changes, and a drawn cluster counts in every run that holds it.
 
     Args:
         R_before, R_after, R_gt: ``(N, 3, 3)`` finite rotations of the same N objects.
         clusters: ``N`` hashable labels, at least 2 distinct (default: every object its own cluster).
+        runs: ``N`` hashable labels of the run each object belongs to (default: one run).
         resamples: bootstrap resamples.
         level: the interval's confidence level.
         seed: the resampling's seed (same seed, same interval).
 
     Returns:
-        ``{"change", "low", "high"}`` (degrees) and ``"clusters"``, ``"objects"``, ``"resamples"``, ``"level"``.
+        ``{"change", "low", "high"}`` (degrees) and ``"clusters"``, ``"objects"``, ``"runs"``, ``"resamples"``,
+        ``"level"``.
 
     Example:
         >>> from carvi_torch.cameras import random_rotations
@@ -256,19 +260,29 @@ def median_change(R_before: torch.Tensor, R_after: torch.Tensor, R_gt: torch.Ten
     if len(index) < 2:
         raise ValueError("median_change: one cluster; the bootstrap needs at least 2")
     of = torch.tensor([index[lab] for lab in labels])
+    run_of = [0] * n if runs is None else list(runs)
+    if len(run_of) != n:
+        raise ValueError(f"median_change: {len(run_of)} run labels for {n} objects")
+    groups = [torch.tensor([i for i, r in enumerate(run_of) if r == g]) for g in dict.fromkeys(run_of)]
 
     def change(drawn, axis=-1) -> np.ndarray:  # drawn: (..., C) cluster indices, one resample per row
         d = torch.as_tensor(np.asarray(drawn), dtype=torch.long)
         counts = torch.zeros(*d.shape[:-1], len(index), dtype=torch.float64).scatter_add_(
             -1, d, torch.ones_like(d, dtype=torch.float64))
-        w = counts[..., of]
-        return (aligned_median(R_after, R_gt, w) - aligned_median(R_before, R_gt, w)).numpy()
+        parts = []
+        for idx in groups:
+            w = counts[..., of[idx]]
+            empty = w.sum(-1) == 0  # a resample that draws none of this run's clusters leaves the run out
+            w = torch.where(empty[..., None], torch.ones_like(w), w)
+            c = aligned_median(R_after[idx], R_gt[idx], w) - aligned_median(R_before[idx], R_gt[idx], w)
+            parts.append(torch.where(empty, torch.nan, c))
+        return torch.nanmean(torch.stack(parts), 0).numpy()
 
     full = float(change(np.arange(len(index))))
     res = bootstrap((np.arange(len(index)),), change, vectorized=True, n_resamples=resamples, batch=BOOTSTRAP_BATCH,
                     confidence_level=level, method="percentile", rng=np.random.default_rng(seed))
     lo, hi = (float(x) for x in (res.confidence_interval.low, res.confidence_interval.high))
-    return {"change": full, "low": lo, "high": hi, "clusters": len(index), "objects": n,
+    return {"change": full, "low": lo, "high": hi, "clusters": len(index), "objects": n, "runs": len(groups),
             "resamples": resamples, "level": level}
 
 
