@@ -195,6 +195,19 @@ def test_a_split_no_annotation_has_is_refused(recon, capsys):
     assert all((repr(s) if s else "none") in err for s in splits), (splits, err)
 
 
+def _with_first_car_camera_edited(recon, tmp_path, gt, edit):
+    """A copy of the run whose first car with ground truth has its ``cameras.json`` entry changed by ``edit``:
+    the copy, that annotation id and the edited ``cameras.json``."""
+    part = tmp_path / "part"
+    shutil.copytree(recon, part)
+    p = part / "car" / "cameras.json"
+    cj = json.loads(p.read_text())
+    first = sorted(int(a) for a in cj["cameras"] if str(a) in gt)[0]
+    edit(cj["cameras"][str(first)])
+    p.write_text(json.dumps(cj))
+    return part, first, cj
+
+
 def test_refinement_is_compared_on_the_objects_with_an_sfm_camera(recon, tmp_path):
     """An object without an SfM camera (its camera came from the unseen-image path) counts in
     ``refined`` but not in ``sfm``; ``refined_with_sfm`` scores the refined cameras of exactly the
@@ -204,14 +217,7 @@ def test_refinement_is_compared_on_the_objects_with_an_sfm_camera(recon, tmp_pat
     from carvi_torch.evaluation.viewpoint_metrics import viewpoint_report
 
     data, gt = _gt(recon)
-    part = tmp_path / "part"
-    shutil.copytree(recon, part)
-    p = part / "car" / "cameras.json"
-    cj = json.loads(p.read_text())
-    ids = sorted(int(a) for a in cj["cameras"] if str(a) in gt)
-    dropped = ids[0]
-    cj["cameras"][str(dropped)]["sfm"] = None
-    p.write_text(json.dumps(cj))
+    part, dropped, cj = _with_first_car_camera_edited(recon, tmp_path, gt, lambda c: c.update(sfm=None))
     vp = evaluate(data, {"Full": part}, shapes=False, progress=False)["viewpoints"]["car"]["Full"]
     assert set(vp) == {"sfm", "refined", "refined_with_sfm"}
     assert dropped in vp["refined"]["annotation_ids"] and dropped not in vp["sfm"]["annotation_ids"]
@@ -255,14 +261,9 @@ def test_the_refinement_change_resamples_physical_objects(recon, tmp_path):
 
 
 def test_a_non_finite_camera_leaves_the_refinement_change_to_the_others(recon, tmp_path):
-    data, _gt_car = _gt(recon)
-    part = tmp_path / "part"
-    shutil.copytree(recon, part)
-    p = part / "car" / "cameras.json"
-    cj = json.loads(p.read_text())
-    ids = sorted(int(a) for a in cj["cameras"] if str(a) in _gt_car)
-    cj["cameras"][str(ids[0])]["refined"]["R"] = [[float("nan")] * 3] * 3
-    p.write_text(json.dumps(cj))
+    data, gt = _gt(recon)
+    part, _aid, _cj = _with_first_car_camera_edited(recon, tmp_path, gt,
+                                                   lambda c: c["refined"].update(R=[[float("nan")] * 3] * 3))
     vp = evaluate(data, {"Full": part}, shapes=False, progress=False)["viewpoints"]["car"]["Full"]
     ch = vp["refined"]["change_from_sfm"]
     assert ch is not None and ch["objects"] == vp["sfm"]["geodesic"]["n"] - 1
