@@ -1246,6 +1246,14 @@ def test_viewpoints_cad_change_over_seeds_draws_models_across_the_seeds(tmp_path
     assert (got["objects"], got["clusters"], got["runs"]) == (10, 3, 2)
     assert (got["change"], got["low"], got["high"]) == pytest.approx((ref["change"], ref["low"], ref["high"]),
                                                                     abs=1e-3)
+    from carvi_torch.evaluate import format_change
+
+    for run in runs:  # the seed table's rows, as _rows makes them: its last column is the change over the seeds
+        run["rows"][0].update(sfm_geodesic=5.0, refined_geodesic_sfm_objects=5.5, kept_sfm=0,
+                              change_from_sfm={"change": 0.5, "low": 0.1, "high": 0.9})
+    table, per_class = vc._seeds_table(runs)
+    line = next(t for t in table.splitlines() if t.startswith("| thing |"))
+    assert line.endswith(f"| seed 0, 1 | {format_change(got)} |") and per_class["thing"]["change_over_seeds"] == got
 
 
 def test_voc_study_refinement_change_uses_the_objects_with_both_cameras():

@@ -140,6 +140,8 @@ def test_median_change_over_runs_aligns_each_run_and_draws_clusters_across_them(
                          torch.cat([R_gt, R_gt[only0]]), clusters + ["model0"] * 4, runs=[0] * 24 + [1] * 4,
                          resamples=300)
     assert all(math.isfinite(part[k]) for k in ("change", "low", "high")) and part["low"] <= part["high"]
+    alone = median_change(before[only0], after[only0], R_gt[only0], resamples=50)["change"]
+    assert part["change"] == pytest.approx((one["change"] + alone) / 2, abs=1e-9)  # the mean of the runs' changes
 
 
 def test_median_change_checks_its_input(generator):

@@ -237,7 +237,8 @@ def _run(args, seed: int, overrides: list) -> dict:
 def _seed_rotations(run: dict) -> dict:
     """Per class of one seed's run: ``(sfm, final, truth, model, seed)`` of every view with all three cameras."""
     ann = json.loads((run["renders"] / "annotations.json").read_text())["annotations"]
-    model = {str(a["id"]): Path(a.get("source") or str(a.get("object_id"))).stem for a in ann}
+    model = {str(a["id"]): Path(a.get("source") or str(a.get("object_id") or f"annotation{a['id']}")).stem
+             for a in ann}
     gt_all = json.loads((run["renders"] / "gt.json").read_text())
     gt = gt_all.get("annotations", gt_all)
     out: dict = {}

@@ -227,7 +227,8 @@ def median_change(R_before: torch.Tensor, R_after: torch.Tensor, R_gt: torch.Ten
     replacement and both sets are aligned again on every resample. An interval that lies above 0 says the
     second set is worse beyond what another draw of the objects moves the medians. With ``runs`` (e.g. renders
     of the same objects from other cameras, each estimated on its own) every run is aligned on its own, the
-    change is the mean of the runs' changes, and a drawn cluster counts in every run that holds it.
+    change is the mean of the runs' changes, and a drawn cluster counts in every run that holds it; a
+    resample that draws none of a run's clusters takes the mean over the other runs.
 
     Args:
         R_before, R_after, R_gt: ``(N, 3, 3)`` finite rotations of the same N objects.
