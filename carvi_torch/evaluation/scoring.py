@@ -89,6 +89,16 @@ class ShapeScorer:
     baselines: bool
     collections: dict  # class -> its loaded collection (the baselines' masks)
     mesh_cache: dict = dataclasses.field(default_factory=dict)
+    rows_of: dict = dataclasses.field(default_factory=dict)  # class -> annotation id (str) -> its collection row
+
+    def _row(self, cls: str, aid) -> int | None:
+        """The row of ``aid`` in its class's collection (``None``: not there), the class's index built once."""
+        coll = self.collections.get(cls)
+        if coll is None:
+            return None
+        if cls not in self.rows_of:
+            self.rows_of[cls] = {str(a): i for i, a in enumerate(coll.annotation_ids)}
+        return self.rows_of[cls].get(str(aid))
 
     def score(self, aid: str, entry: dict, row: dict) -> None:
         """Add each method's error (or why there is none) to ``row``, or a ``reason`` when the ground truth fails."""
@@ -106,7 +116,8 @@ class ShapeScorer:
             m = load_recon_mesh(Path(rdir), cls, aid, self.cameras[name][cls])
             row[name] = score_mesh(m, gt_mesh, step, "no reconstruction")
         if self.baselines:
-            row["Puffball"] = score_mesh(puffball_mesh(self.collections.get(cls), aid), gt_mesh, step, "no mask")
+            row["Puffball"] = score_mesh(puffball_mesh(self.collections.get(cls), self._row(cls, aid)), gt_mesh,
+                                         step, "no mask")
             first = next(iter(self.recons))
             row["SFMc"] = score_mesh(sfmc_mesh(self.cameras[first][cls], aid), gt_mesh, step, "no SfM camera")
 
@@ -183,14 +194,11 @@ def score_mesh(mesh, gt_mesh, step, missing_reason) -> dict:
             "reason": r.get("reason")}
 
 
-def puffball_mesh(coll, aid: int):
-    """Puffball of the annotation's canvas mask, mapped to image pixels (``None`` without a mask)."""
-    if coll is None:
+def puffball_mesh(coll, i: int | None):
+    """Puffball of row ``i``'s canvas mask in the collection ``coll``, mapped to image pixels (``None`` without a
+    collection, a row or a mask)."""
+    if coll is None or i is None:
         return None
-    keys = [str(a) for a in coll.annotation_ids]
-    if str(aid) not in keys:
-        return None
-    i = keys.index(str(aid))
     from .baselines import puffball
 
     m = puffball(coll.masks[i])
