@@ -92,22 +92,25 @@ class InputConfig:
 
 
 #: Where the viewpoint stage runs (``viewpoints.device``).
-ViewpointDevice = Literal["run", "cpu"]
+ViewpointDevice = Literal["auto", "run", "cpu"]
 
 
 @dataclass
 class ViewpointConfig:
     """Rigid SfM (``carvi_torch.viewpoints.sfm``), its mixture of shapes and the silhouette refinement."""
 
-    device: ViewpointDevice = "run"
+    device: ViewpointDevice = "auto"
     """Where the viewpoint stage (SfM, the mixture of shapes, refinement, cameras for unseen images) runs:
     ``run`` on the run's ``device``; ``cpu`` on the CPU, its result then moved to the run's device (the
-    canonical frame stays on the host, as in every run). On CUDA a small class's stage is hundreds of small
-    steps of a few kernel launches each: on an H200, 7 classes of 40-80 objects took 91.5 s there against
-    31.9 s in a CPU run of 16 threads on the same machine (docs/viewpoints.md, *CPU and CUDA*); large classes
-    gain from the GPU (SfM of 9,087 objects 4.47 s). A CUDA run gives its main process one torch thread
-    beside the writers, and ``cpu`` there is unmeasured end to end, so ``run`` is the default.
+    canonical frame stays on the host, as in every run); ``auto`` the CPU for a class of fewer than
+    ``gpu_min_objects`` objects when the run is on a GPU, else the run's device. On CUDA a small class's stage
+    is hundreds of small steps of a few kernel launches each: on an H100 four 8-view CAD classes of 32-48
+    objects took 108 s there against 6.3 s on 4 threads of the same machine's CPU, run side by side
+    (docs/viewpoints.md, *CPU and CUDA*), while a class of 9,087 objects takes 5.9 s there.
     ``viewpoint_processes`` above 0 implies ``cpu``."""
+    gpu_min_objects: int = 1000
+    """``device=auto`` on a GPU run: a class of at least this many objects makes its viewpoints on the GPU, a
+    smaller one on the CPU (with the run's torch threads)."""
     sfm_max_outer: int = 200
     """Outer (fill) iterations of the missing-data factorisation at most."""
     sfm_inner: int = 10
@@ -226,6 +229,8 @@ class ViewpointConfig:
                   "sfm_group_rounds", "sfm_group_threads")
         if self.sfm_polish_iters < 0:
             raise ConfigError(f"sfm_polish_iters must be >= 0 (0 = no polish), got {self.sfm_polish_iters}")
+        if self.gpu_min_objects < 0:
+            raise ConfigError(f"gpu_min_objects must be >= 0 (0 = every class on the GPU), got {self.gpu_min_objects}")
         if not self.refine_twin_flatness >= 0:
             raise ConfigError(f"refine_twin_flatness must be >= 0 (0 = off), got {self.refine_twin_flatness}")
         _within(self.refine_min_support, 0, 1, "refine_min_support", note=" (0 = every keypoint)")
@@ -461,6 +466,21 @@ class Config:
             value = yaml.safe_dump({name: _get(self, key)}, default_flow_style=True).strip()[1:-1]
             lines.append(indent + value)
         return "\n".join(lines) + "\n"
+
+    def viewpoint_device(self, device, objects: int):
+        """The torch device on which a class of ``objects`` makes its viewpoints, in a run on ``device``: the CPU
+        with ``viewpoints.device=cpu``, with ``viewpoint_processes`` or with ``auto`` on a GPU below
+        ``viewpoints.gpu_min_objects``; else ``device``.
+
+        >>> import torch
+        >>> Config().viewpoint_device(torch.device("cuda"), 48), Config().viewpoint_device(torch.device("cuda"), 9087)
+        (device(type='cpu'), device(type='cuda'))
+        """
+        import torch
+
+        v = self.viewpoints
+        small = v.device == "auto" and device.type != "cpu" and objects < v.gpu_min_objects
+        return torch.device("cpu") if v.device == "cpu" or self.viewpoint_processes > 0 or small else device
 
     def resolve_device(self):
         import torch

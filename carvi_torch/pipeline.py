@@ -37,7 +37,7 @@ from .runtime import StageTimer, log
 from .sdf import signed_distance
 from .viewpoints import NoMeanShape, Viewpoints, estimate_viewpoints, ground_truth_cameras
 
-__all__ = ["run_class", "viewpoint_stage", "viewpoint_device", "class_viewpoints", "prepare_class", "carve_and_select",
+__all__ = ["run_class", "viewpoint_stage", "class_viewpoints", "prepare_class", "carve_and_select",
            "ClassPlan", "finished_objects", "reconstruct_chunk", "finish_class"]
 
 
@@ -167,19 +167,13 @@ def viewpoint_stage(coll: ClassCollection, cfg: Config, gt: dict | None = None,
     return vp, report
 
 
-def viewpoint_device(cfg: Config, device: torch.device) -> torch.device:
-    """Where the viewpoint stage runs: the CPU with ``viewpoints.device=cpu`` or ``viewpoint_processes``,
-    else the run's ``device``."""
-    return torch.device("cpu") if cfg.viewpoints.device == "cpu" or cfg.viewpoint_processes > 0 else device
-
-
 def class_viewpoints(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
                      gt: dict | None = None, report: ClassReport | None = None, made: tuple | None = None) -> tuple:
     """The part of :func:`prepare_class` that reads and writes no file (an executor may run it ahead, on another
     thread): ``(coll, vp, surrogate_plan, report)``, the class on ``device``, its viewpoints and surrogate plan,
     both ``None`` when the class stops there (too few instances, no true or SfM cameras). ``made``: the
     result of :func:`viewpoint_stage` on this class made elsewhere (a worker process), on the CPU."""
-    vdev = viewpoint_device(cfg, device)
+    vdev = cfg.viewpoint_device(device, len(coll))
     vcoll = coll.to(vdev) if made is None else coll
     vp, report = viewpoint_stage(vcoll, cfg, gt, report) if made is None else made
     if vp is None:

@@ -11,6 +11,25 @@ from carvi_torch.config import Config, ConfigError, load_config
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.parametrize("setting, run_device, objects, expect", [
+    ([], "cuda", 48, "cpu"),  # auto: a small class on a GPU run makes its viewpoints on the CPU
+    ([], "cuda", 999, "cpu"),
+    ([], "cuda", 1000, "cuda"),  # from gpu_min_objects on, the run's device
+    ([], "cuda:1", 9087, "cuda:1"),
+    ([], "cpu", 48, "cpu"),
+    (["viewpoints.gpu_min_objects=0"], "cuda", 1, "cuda"),
+    (["viewpoints.gpu_min_objects=50"], "cuda", 49, "cpu"),
+    (["viewpoints.device=run"], "cuda", 48, "cuda"),
+    (["viewpoints.device=cpu"], "cuda", 9087, "cpu"),
+    (["viewpoint_processes=2", "viewpoints.device=run"], "cuda", 9087, "cpu"),  # processes work on the CPU
+])
+def test_viewpoint_device(setting, run_device, objects, expect):
+    import torch
+
+    cfg = Config().override(setting)
+    assert cfg.viewpoint_device(torch.device(run_device), objects) == torch.device(expect)
+
+
 def test_overrides_are_typed():
     cfg = Config().override(["resolution=32", "imprint=false", "silhouette_weight=2", "classes=car,chair",
                              "device=cpu", "data="])
@@ -38,6 +57,8 @@ def test_bad_overrides(item):
     ("cluster_max_threshold_deg=60", "cluster_max_threshold_deg must be in [15.0, 45]"),
     ("cluster_threshold_deg=60", "cluster_threshold_deg must be in (0, 45]"),
     ("plane_size=1", "plane_size must be in [2, 1024]"),
+    ("viewpoints.gpu_min_objects=-1", "gpu_min_objects must be >= 0"),
+    ("viewpoints.device=gpu", "viewpoints.device"),
     ("plane_size=100000", "plane_size must be in [2, 1024]"),
 ])
 def test_settings_the_run_cannot_use_are_refused_up_front(item, says):

@@ -361,6 +361,14 @@ import json, os, sys, time
 argv = sys.argv[1:]
 if argv[:1] == ["-c"] and ("import kornia" in argv[1] or "cuda.is_available" in argv[1]):
     sys.exit(0)
+if argv and argv[0].endswith("benchmark.py") and "--many-classes" in argv:
+    on_cuda, procs = "viewpoints.device=run" in argv, any(a.startswith("viewpoint_processes=") for a in argv)
+    if on_cuda:
+        time.sleep(float(os.environ.get("FAKE_OLD_SLEEP", "0")))
+    wall = 8.0 if on_cuda else 3.0 if procs else 4.0
+    rec = {{"many_classes": {{"best": {{"new": {{"wall_seconds_with_startup": wall}}}}}}}}
+    json.dump(rec, open(argv[argv.index("--out") + 1], "w"))
+    sys.exit(0)
 if argv and argv[0].endswith("benchmark.py"):
     old = "mesher=skimage" in argv
     if old:
@@ -402,6 +410,35 @@ def test_gpu_session_mesher_step_writes_a_ratio_or_a_bound(tmp_path: Path, old_s
     m = re.search(r"mesher2000_skimage stopped at its (\d+) s limit: mesher2000_auto / mesher2000_skimage < ([0-9.]+)",
                   ratios)
     assert m and m.group(1) == limit and float(m.group(2)) == pytest.approx(wall / int(limit), abs=1e-3), ratios
+
+
+@pytest.mark.parametrize("step, old_sleep", [("many4", 0), ("many4", 60), ("manyclasses", 0)])
+def test_gpu_session_many_class_steps_write_ratios_or_bounds(tmp_path: Path, step: str, old_sleep: int):
+    """``many4`` (and ``manyclasses``, both variants) in a step of 10 s: the default (``auto``) against
+    ``viewpoints.device=run`` as new / old (4.0 / 8.0), or a bound when the CUDA run is stopped at its share;
+    ``viewpoint_processes`` against the default (3.0 / 4.0)."""
+    import re
+
+    fake = tmp_path / "python"
+    fake.write_text(_FAKE_CUDA_PYTHON.format(python=sys.executable))
+    fake.chmod(0o755)
+    out = tmp_path / "gpu"
+    env = dict(os.environ, PYTHON=str(fake), CARVI_GPU_READY="1", FAKE_OLD_SLEEP=str(old_sleep), STEP_SECONDS="10",
+               MANY_RUN_S="3", MANY_ALL_S="3")
+    proc = subprocess.run(["bash", str(GPU_SESSION), step, str(out)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=60)
+    ratios = (out / "ratios.txt").read_text()
+    assert proc.returncode == (1 if old_sleep else 0), proc.stdout + proc.stderr
+    if old_sleep == 0:
+        assert f"{step}_default 4.0 s, {step}_vprun 8.0 s: {step}_default / {step}_vprun 0.500" in ratios, ratios
+    else:
+        m = re.search(r"many4_vprun stopped at its (\d+) s limit: many4_default / many4_vprun < ([0-9.]+)", ratios)
+        assert m and m.group(1) == "3" and 0 <= float(m.group(2)) < 1, ratios
+    if step == "manyclasses":
+        assert "manyclasses_procs 3.0 s, manyclasses_default 4.0 s: manyclasses_procs / manyclasses_default 0.750" \
+            in ratios, ratios
+        assert "viewpoint_processes=12" in (out / "manyclasses_procs.txt").read_text() + (
+            out / "manyclasses_procs.run").read_text() + proc.stdout
 
 
 def test_gpu_session_lease_runs_each_step_under_its_limit_and_packs_after_each(tmp_path: Path):
@@ -448,7 +485,7 @@ def _cad_runs(out: Path, step: str, turn_deg: float) -> set:
         return [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
 
     runs = [(["device=cpu", *cpu_ovr], ("a", "b", "c") if step == "cad5" else ("a", "b"), 0.0)]
-    runs += [(["device=cuda", *ovr], classes, turn_deg) for ovr, classes in cuda_runs]
+    runs += [(["device=cuda", "viewpoints.device=run", *ovr], classes, turn_deg) for ovr, classes in cuda_runs]
     for ovr, classes, deg in runs:
         run = recon_dir(out / step, ovr, views=8, seed=2)
         for cls in classes:
@@ -1077,11 +1114,18 @@ def test_benchmark_load_only_times_both_thread_counts_on_the_same_canvases(proce
 
     bm = load_tool("benchmark", "benchmark_tool")
     args = argparse.Namespace(objects=6, category="car", repeat=2)
-    lo = bm.time_loading(procedural_input(tmp_path), args)
+    data = procedural_input(tmp_path)
+    lo = bm.time_loading(data, args)
     assert lo["objects"] == 6 and lo["same_canvases"] is True
     assert set(lo["seconds"]) == {"one thread", "canvas_threads"} and all(len(v) == 2 for v in lo["seconds"].values())
     assert lo["new_over_one_thread"] == lo["best_seconds"]["canvas_threads"] / lo["best_seconds"]["one thread"]
     assert "canvas_threads / one thread" in bm._loading_table(lo)
+    # --load-threads: each count a further column, every canvas compared with the one thread's
+    lo = bm.time_loading(data, argparse.Namespace(objects=6, category="car", repeat=1, load_threads=[1, 3]))
+    assert set(lo["seconds"]) == {"one thread", "canvas_threads", "3 threads"} and lo["threads"]["3 threads"] == 3
+    assert lo["same_canvases"] is True
+    table = bm._loading_table(lo).splitlines()
+    assert table[0].endswith("| 3 threads |") and table[-3].startswith("| over one thread | 1.000 |")
 
 
 def test_benchmark_times_writing_with_and_without_fsync(tmp_path, monkeypatch):

@@ -357,12 +357,13 @@ def time_writing(recon: Path, objects: int, repeat: int, work: Path) -> dict | N
 
 def time_loading(ann: Path, args) -> dict:
     """``--load-only``: loading alone (``io.coco.load_coco`` at the default canvas size) with the canvases
-    resampled on one thread and on ``canvas_threads`` threads, taking turns, best of ``--repeat``; the
-    canvases are checked identical."""
+    resampled on one thread, on ``canvas_threads`` threads and on each of ``--load-threads``, taking turns, best of
+    ``--repeat``; the canvases are checked identical."""
     from carvi_torch.io.coco import canvas_threads, load_coco
 
     size = Config().input.canvas_size
     variants = {"one thread": 1, "canvas_threads": canvas_threads(args.objects)}
+    variants.update({f"{n} threads": n for n in getattr(args, "load_threads", None) or [] if n > 1})
     seconds: dict = {k: [] for k in variants}
     masks = {}
     for r in range(max(1, args.repeat)):
@@ -374,16 +375,18 @@ def time_loading(ann: Path, args) -> dict:
     best = {k: min(v) for k, v in seconds.items()}
     return {"objects": len(masks["one thread"]), "threads": variants, "seconds": seconds, "best_seconds": best,
             "new_over_one_thread": best["canvas_threads"] / best["one thread"],
-            "same_canvases": bool(torch.equal(masks["one thread"], masks["canvas_threads"]))}
+            "same_canvases": all(torch.equal(masks["one thread"], m) for m in masks.values())}
 
 
 def _loading_table(lo: dict) -> str:
-    n, t = lo["objects"], lo["threads"]["canvas_threads"]
-    rows = [f"| loading {n} objects (load_coco) | one thread | canvas_threads ({t}) |", "|---|---:|---:|",
-            f"| seconds, best of {len(lo['seconds']['one thread'])} | {lo['best_seconds']['one thread']:.2f} | "
-            f"{lo['best_seconds']['canvas_threads']:.2f} |",
-            f"| objects per second | {n / lo['best_seconds']['one thread']:.0f} | "
-            f"{n / lo['best_seconds']['canvas_threads']:.0f} |"]
+    n, names = lo["objects"], list(lo["threads"])
+    head = " | ".join(k if k != "canvas_threads" else f"canvas_threads ({lo['threads'][k]})" for k in names)
+    best = lo["best_seconds"]
+    rows = [f"| loading {n} objects (load_coco) | {head} |", "|---|" + "---:|" * len(names),
+            f"| seconds, best of {len(lo['seconds']['one thread'])} | "
+            + " | ".join(f"{best[k]:.2f}" for k in names) + " |",
+            "| objects per second | " + " | ".join(f"{n / best[k]:.0f}" for k in names) + " |",
+            "| over one thread | " + " | ".join(f"{best[k] / best['one thread']:.3f}" for k in names) + " |"]
     return "\n".join(rows) + (f"\n\ncanvas_threads / one thread: **{lo['new_over_one_thread']:.3f}**; the same "
                               f"canvases: {lo['same_canvases']}")
 
@@ -1217,6 +1220,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--load-only", action="store_true",
                     help="loading alone: the canvases on one thread against canvas_threads, best of --repeat "
                          "(record key loading_<device>_<objects>)")
+    ap.add_argument("--load-threads", type=int, nargs="+", default=None, metavar="N",
+                    help="with --load-only: also time the loading on each of these thread counts")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="further config overrides")
     ap.add_argument("--mesh-objects", type=int, default=200,
                     help="grids of the end-to-end run meshed by scikit-image and by the batched torch op, and their "

@@ -28,8 +28,9 @@
 #   bench9087    the 9,087-object class: its loading on one thread and on canvas_threads (--load-only), then
 #                mesher=auto and mesher=skimage end to end (H200: 54 s for auto, skimage stopped at 85 s)
 #   manyclasses  the 12 many-class classes: viewpoint_processes=12 (their viewpoints at once, in CPU
-#                processes), viewpoints.device=cpu, then the default (viewpoints on CUDA); the default did not
-#                finish in 110 s on the H200
+#                processes), viewpoints.device=run (on CUDA: did not finish in 110 s on the H200), then the
+#                default (auto: their viewpoints on the CPU), each variant at most MANY_ALL_S s with STEP_SECONDS
+#                (MANY_VARIANTS="procs vprun" by default)
 #   cad8         the 8-view CAD renders' cameras of the 12 classes, on the CPU then on CUDA, compared object by
 #                object (tools/viewpoints_cad.py --compare; median <= 0.5 degrees per class). DEVICES=cuda runs
 #                the CUDA side alone against a CPU run already in OUTDIR/cad8, DEVICES= only compares (cad5
@@ -47,7 +48,8 @@ set -uo pipefail
 BUDGET=470          # seconds the plan's limits may add up to: the 8 minutes, less 10 s of setup and packing
 PLAN="tests:130 mesher2000:100 loading2000:25 many4:80 cad5:130"
 MESHER_AUTO_S=45    # mesher2000: the mesher=auto run's share; mesher=skimage gets the rest
-MANY_CPU_S=35       # many4: the viewpoint_processes run's share; the default run gets the rest
+MANY_RUN_S=${MANY_RUN_S:-35}  # many4: the viewpoints.device=run run's share (CUDA; stopped there on the H100); the default the rest
+MANY_ALL_S=${MANY_ALL_S:-45}  # manyclasses: each variant's share; the default run gets the rest
 CAD_RENDER_S=30     # cad5: rendering, when the renders were not carried
 CAD_COMPARE_S=10    # cad5: the comparison (its interpreter imports torch)
 RATIO_S=3           # kept at a step's end to write its ratios
@@ -68,9 +70,9 @@ describe() {  # STEP: one line on what it runs
                          "skimage unfinished at 85 s)" ;;
         loading2000) echo "the 2,000-object class loaded with its canvases on one thread and on canvas_threads," \
                           "best of 2" ;;
-        many4) echo "the many-class benchmark on ${MANY4_CLASSES//,/, } (4 of 12): viewpoint_processes=4 (the" \
-                    "4 classes' viewpoints at once, in CPU processes; at most ${MANY_CPU_S} s) against the default," \
-                    "viewpoints on CUDA (the 12 classes did not finish in 110 s on the H200)" ;;
+        many4) echo "the many-class benchmark on ${MANY4_CLASSES//,/, } (4 of 12): viewpoints.device=run (the" \
+                    "viewpoints on CUDA; at most ${MANY_RUN_S} s, unfinished at 47 s on the H100) against the" \
+                    "default, auto (these small classes' viewpoints on the CPU)" ;;
         cad5) echo "the 8-view CAD cameras of ${CAD5_CLASSES//,/, } (by default the classes the H200's CUDA run" \
                    "did not reach), compared object by object (median <= 0.5 degrees per class): the CPU side (4" \
                    "torch threads) beside the CUDA side, in processes of ${CAD5_CUDA_GROUPS// / and } at the same" \
@@ -252,8 +254,8 @@ cad() {  # STEP CPU_CLASSES CUDA_GROUPS BESIDE: the CPU side on CPU_CLASSES (com
     fi
     local base=("$py" tools/viewpoints_cad.py --views 8 --seed 2 --quiet --cad "$cad" --work "$work") pids=()
     for g in "${groups[@]}"; do
-        if [ -n "$g" ]; then cuda_dirs+=("$(cad_dir "$work" device=cuda "classes=[$g]")")
-        else cuda_dirs+=("$(cad_dir "$work" device=cuda)"); fi
+        if [ -n "$g" ]; then cuda_dirs+=("$(cad_dir "$work" device=cuda viewpoints.device=run "classes=[$g]")")
+        else cuda_dirs+=("$(cad_dir "$work" device=cuda viewpoints.device=run)"); fi
     done
     for dev in ${DEVICES-cpu cuda}; do
         limit=$(part_limit 0 "$CAD_COMPARE_S")
@@ -270,7 +272,7 @@ cad() {  # STEP CPU_CLASSES CUDA_GROUPS BESIDE: the CPU side on CPU_CLASSES (com
         k=0
         for g in "${groups[@]}"; do
             k=$(( k + 1 ))
-            local tag="${name}_$dev" ovr=("device=$dev")
+            local tag="${name}_$dev" ovr=("device=$dev" viewpoints.device=run)  # not auto: the CPU for these classes
             [ "${#groups[@]}" -gt 1 ] && tag+="$k"
             [ -n "$g" ] && ovr+=("classes=[$g]")
             cmd=("${base[@]}" --out "$out/$tag.json" "${ovr[@]}")
@@ -422,10 +424,11 @@ loading() {  # the 2,000-object class loaded with its canvases on one thread and
     fi
 }
 
-many_pair() {  # NAME CLASSES (comma-separated; empty: all 12) SHARE VARIANTS: each variant's run (at most SHARE s;
-               # the last one the rest) against the default (viewpoints on CUDA), whole runs (tools/benchmark.py
-               # --many-classes, one round each). VARIANTS: procs (viewpoint_processes = the classes, at most 12:
-               # the viewpoints of the classes at once in CPU processes) and vpcpu (viewpoints.device=cpu)
+many_pair() {  # NAME CLASSES (comma-separated; empty: all 12) SHARE VARIANTS: each variant's run (at most SHARE s
+               # each), then the default (the rest; viewpoints.device=auto: the CPU for these small classes), whole
+               # runs (tools/benchmark.py --many-classes, one round each). VARIANTS: vprun (viewpoints.device=run:
+               # on CUDA, the default before auto; its ratio is default / vprun) and procs (viewpoint_processes = the
+               # classes, at most 12: their viewpoints at once in CPU processes; procs / default)
     local name=$1 rc=0 sel=() args=(tools/benchmark.py --device cuda --many-classes) v n
     [ -n "$2" ] && sel=("classes=[$2]")
     n=$(( $(echo "${2:-a,b,c,d,e,f,g,h,i,j,k,l}" | tr ',' '\n' | wc -l) ))
@@ -433,17 +436,22 @@ many_pair() {  # NAME CLASSES (comma-separated; empty: all 12) SHARE VARIANTS: e
     for v in $4; do
         case "$v" in
             procs) setting="viewpoint_processes=$n" ;;
-            vpcpu) setting="viewpoints.device=cpu" ;;
+            vprun) setting="viewpoints.device=run" ;;
         esac
         timed "${name}_$v" "$(part_limit "$3" 0)" "$py" "${args[@]}" --set ${sel[@]+"${sel[@]}"} "$setting" \
             --out "$out/${name}_$v.json" || rc=1
     done
     timed "${name}_default" "$(part_limit 0 "$RATIO_S")" "$py" "${args[@]}" ${sel[@]+--set "${sel[@]}"} \
         --out "$out/${name}_default.json" || rc=1
+    local key=many_classes.best.new.wall_seconds_with_startup
     for v in $4; do
-        ratio "$name, whole processes" "${name}_$v" "${name}_default" \
-            "$(jval "$out/${name}_$v.json" many_classes.best.new.wall_seconds_with_startup)" \
-            "$(jval "$out/${name}_default.json" many_classes.best.new.wall_seconds_with_startup)"
+        if [ "$v" = vprun ]; then
+            ratio "$name, whole processes" "${name}_default" "${name}_$v" "$(jval "$out/${name}_default.json" $key)" \
+                "$(jval "$out/${name}_$v.json" $key)"
+        else
+            ratio "$name, whole processes" "${name}_$v" "${name}_default" "$(jval "$out/${name}_$v.json" $key)" \
+                "$(jval "$out/${name}_default.json" $key)"
+        fi
     done
     return "$rc"
 }
@@ -453,13 +461,15 @@ case "$step" in
     tests) run_tests || status=$? ;;
     bench1000) bench 1000 || status=$? ;;
     bench9087) bench_pair || status=$? ;;
-    manyclasses) many_pair manyclasses "" 0 "procs vpcpu" || status=$? ;;
+    manyclasses)
+        [ -z "${STEP_END:-}" ] && [ -n "${STEP_SECONDS:-}" ] && STEP_END=$(( $(date +%s) + STEP_SECONDS ))
+        many_pair manyclasses "" "$MANY_ALL_S" "${MANY_VARIANTS:-procs vprun}" || status=$? ;;
     mesher2000|loading2000|many4)
         [ -z "${STEP_END:-}" ] && STEP_END=$(( $(date +%s) + ${STEP_SECONDS:-$(plan_limit "$step")} ))
         case "$step" in
             mesher2000) mesher_pair 2000 "$MESHER_AUTO_S" 100 || status=$? ;;
             loading2000) loading || status=$? ;;
-            many4) many_pair many4 "$MANY4_CLASSES" "$MANY_CPU_S" procs || status=$? ;;
+            many4) many_pair many4 "$MANY4_CLASSES" "$MANY_RUN_S" vprun || status=$? ;;
         esac ;;
 esac
 echo "results in $out"

@@ -647,13 +647,16 @@ def _dense(values: list) -> torch.Tensor:
 
 def canvas_threads(objects: int) -> int:
     """Threads that resample a class's masks into its canvases, one object each at a time: the cores, at
-    most 16 and at most one per object.
+    most 2 and at most one per object. The work holds the interpreter's lock for much of each object, so more
+    threads cost more than they give: 1,000 objects on 2 cores took 0.50 s on 2 threads, 0.56 on 4, 0.72 on
+    16 and 0.61 on one; 2,000 on an H100 host's 16 cores took 2.44 s on 16 threads against 2.05 on one
+    (docs/benchmarks.md).
 
     Example:
-        >>> canvas_threads(1)
-        1
+        >>> canvas_threads(1), canvas_threads(5000) <= 2
+        (1, True)
     """
-    return max(1, min(16, cores(), objects))
+    return max(1, min(2, cores(), objects))
 
 
 def input_fingerprints(meta: ClassMeta, items: list) -> list[str]:
