@@ -1128,6 +1128,33 @@ def test_benchmark_load_only_times_both_thread_counts_on_the_same_canvases(proce
     assert table[0].endswith("| 3 threads |") and table[-3].startswith("| over one thread | 1.000 |")
 
 
+def test_benchmark_end_to_end_counts_the_loading(tmp_path, monkeypatch):
+    """summary.json's ``total_seconds`` starts after the annotations are read: the end-to-end figure adds
+    ``load_seconds``, and the main process's "other" time is what the stages of the main process leave of it
+    (the writers' stages overlap and do not count)."""
+    import argparse
+
+    bm = load_tool("benchmark", "benchmark_tool")
+    out = tmp_path / "run"
+    summary = {"total_seconds": 10.0, "load_seconds": 3.0, "peak_rss_mb": 100.0, "writer_workers": 1,
+               "peak_rss_workers_mb": 50.0, "classes": {"car": {"objects": 4, "reconstructed": 4, "skipped": [],
+                                                                "seconds": {"sfm": 2.0, "carve": 5.0, "write": 9.0}}}}
+
+    def fake_run(cmd, **kw):
+        out.mkdir()
+        (out / "summary.json").write_text(json.dumps(summary))
+        return subprocess.CompletedProcess(cmd, 0, "", "")
+
+    monkeypatch.setattr(bm.subprocess, "run", fake_run)
+    args = argparse.Namespace(device="cpu", resolution=60, proposals=20, category="car", set=[], threads=None,
+                              workers=None)
+    e2e = bm.run_end_to_end(tmp_path / "a.json", out, args)
+    assert e2e["end_to_end_seconds"] == 13.0 and e2e["total_seconds"] == 10.0
+    assert e2e["other_main_seconds"] == pytest.approx(13.0 - 3.0 - 2.0 - 5.0)
+    assert e2e["objects_per_second"] == pytest.approx(4 / 13.0)
+    assert any("loading included" in line and "| 13.0 |" in line for line in bm._e2e_table(e2e))
+
+
 def test_benchmark_times_writing_with_and_without_fsync(tmp_path, monkeypatch):
     """The writing comparison flushes every file of the ``sync`` turns and none of the others, and leaves nothing
     behind in its work folder."""

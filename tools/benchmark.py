@@ -277,7 +277,8 @@ def run_end_to_end(data: Path, out: Path, args) -> dict:
     c = summary["classes"][args.category]
     seconds = dict(c["seconds"])
     seconds["load"] = summary["load_seconds"]
-    total = summary["total_seconds"]
+    # summary.json's total_seconds starts once the annotations are read: end to end adds the loading
+    total = summary["total_seconds"] + summary["load_seconds"]
     n = c["reconstructed"]
     workers = summary.get("writer_workers", 0)
     peak_main = summary["peak_rss_mb"]
@@ -286,7 +287,8 @@ def run_end_to_end(data: Path, out: Path, args) -> dict:
         "command": " ".join(shlex.quote(x) for x in cmd),
         "objects": c["objects"], "reconstructed": n, "skipped": c["skipped"],
         "seconds_per_stage": {k: round(seconds.get(k, 0.0), 3) for k, _ in STAGES},
-        "total_seconds": total, "wall_seconds_with_startup": round(wall, 3),
+        "total_seconds": summary["total_seconds"], "end_to_end_seconds": round(total, 3),
+        "wall_seconds_with_startup": round(wall, 3),
         # what the main process spent outside the timed stages (the writers' stages overlap it)
         "other_main_seconds": round(total - sum(v for k, v in seconds.items()
                                                 if k not in WRITER_STAGES and k in dict(STAGES)), 3),
@@ -1053,8 +1055,8 @@ def _e2e_table(e2e: dict) -> list[str]:
         lines.append(f"| other (main process: clustering, cameras.json, scores, summary) | {other:.2f} | "
                      f"{1000 * other / n:.1f} |")
     per = e2e["seconds_per_object"]
-    lines += [f"| **end to end** ({e2e['reconstructed']} of {e2e['objects']} objects) | "
-              f"{e2e['total_seconds']:.1f} | {'' if per is None else f'{1000 * per:.1f}'} |",
+    lines += [f"| **end to end**, loading included ({e2e['reconstructed']} of {e2e['objects']} objects) | "
+              f"{e2e['end_to_end_seconds']:.1f} | {'' if per is None else f'{1000 * per:.1f}'} |",
               f"| with the interpreter's start | {e2e['wall_seconds_with_startup']:.1f} | |", ""]
     ops = e2e["objects_per_second"]
     backend = e2e.get("carve_backend") or {}
