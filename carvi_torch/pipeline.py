@@ -206,10 +206,11 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     cdir = class_dir(out if out is not None else ".", coll.meta.key)
     done = finished_objects(coll, cfg, out, report) if done is None else list(done)
     if out is not None:
-        plan.levels = resumed_levels(cdir, coll, plan.levels, done)
-        report.reconstruction_iou.update(resumed_objects(cdir, coll, vp, done))  # voxel_to_object: this run's cameras
-        cams = cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels, report.reconstruction_iou)
-        write_json(cdir / "cameras.json", cams)
+        with timer("class_files"):
+            plan.levels = resumed_levels(cdir, coll, plan.levels, done)
+            report.reconstruction_iou.update(resumed_objects(cdir, coll, vp, done))  # voxel_to_object: these cameras
+            cams = cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels, report.reconstruction_iou)
+            write_json(cdir / "cameras.json", cams)
         report.info["quality"] = quality_summary(cams["cameras"])
     if cfg.stage == "cameras":
         report.status = "cameras"
@@ -386,8 +387,9 @@ def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport) -> None:
         "fallbacks": {lv: [a for a, x in zip(plan.aids, levels) if x == lv] for lv in used
                       if lv not in ("triplet", "rotated_views")}}
     vp, sp = plan.viewpoints, plan.surrogates
-    cams = cameras_json(plan.coll, vp, sp.axes, sp.clusters, levels, report.reconstruction_iou)
-    write_json(plan.cdir / "cameras.json", cams)
+    with StageTimer("cpu", report.seconds)("class_files"):  # host work: nothing to wait for on the device
+        cams = cameras_json(plan.coll, vp, sp.axes, sp.clusters, levels, report.reconstruction_iou)
+        write_json(plan.cdir / "cameras.json", cams)
+        if cfg.study.keep_all_scores:
+            write_scores(plan.cdir, plan.aids, cfg.overwrite)
     report.info["quality"] = quality_summary(cams["cameras"])
-    if cfg.study.keep_all_scores:
-        write_scores(plan.cdir, plan.aids, cfg.overwrite)

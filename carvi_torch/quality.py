@@ -76,9 +76,8 @@ def camera_signals(coll, vp) -> list[dict]:
     shapes = {g: (vp.groups.shape(g) if vp.groups.k > 1 else vp.shape).double().cpu() for g in set(labels)}
     kp, vis = coll.keypoints.double().cpu(), coll.visible.cpu()
     masks = coll.masks.cpu()
-    C = masks.shape[-1]
-    has = vp.has_camera.cpu()
-    sfm_ok = vp.sfm_valid[:n].cpu()
+    has = vp.has_camera.cpu().tolist()
+    sfm_ok = vp.sfm_valid[:n].cpu().tolist()
     turn = _geodesic_deg(vp.sfm_cameras.R[:n].double().cpu(), R).tolist()
     rotational = getattr(getattr(coll, "meta", None), "symmetry", "none") == "rotational"
     mirror = [None] * n
@@ -86,31 +85,52 @@ def camera_signals(coll, vp) -> list[dict]:
         flip = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
         pred = flip @ R @ vp.reflection.double().cpu()
         ang = _geodesic_deg(pred, cams.R[n:2 * n].double().cpu()).tolist()
-        mirror = [a if bool(has[i]) and bool(has[i + n]) and math.isfinite(a) else None for i, a in enumerate(ang)]
+        mirror = [a if has[i] and has[i + n] and math.isfinite(a) else None for i, a in enumerate(ang)]
+    res, inside = _projection_signals(s, R, t, torch.stack([shapes[g] for g in labels]) if n else None, kp, vis, masks)
+    counts = vis.sum(1).tolist()
     out = []
     for i in range(n):
-        if not bool(has[i]):
+        if not has[i]:
             out.append({"keypoint_residual": None, "silhouette_inside": None, "mirror_deg": None,
-                        "visible_keypoints": int(vis[i].sum()), "refinement_deg": None, "rotational": rotational})
+                        "visible_keypoints": counts[i], "refinement_deg": None, "rotational": rotational})
             continue
-        S = shapes[labels[i]]
-        ok = torch.isfinite(S).all(1)
-        uv = s[i] * S[ok] @ R[i, :2].T + t[i]
-        v = vis[i] & ok
-        res = None
-        if bool(v.any()):
-            d = s[i] * S[v] @ R[i, :2].T + t[i] - kp[i, v]
-            res = float(d.pow(2).sum(1).mean().sqrt()) / C
-        px = uv.round().long()
-        inb = (px >= 0).all(1) & (px < C).all(1)
-        inside = torch.zeros(len(px), dtype=torch.bool)
-        inside[inb] = masks[i][px[inb, 1], px[inb, 0]]
-        out.append({"keypoint_residual": res, "silhouette_inside": float(inside.float().mean()) if len(px) else None,
-                    "mirror_deg": mirror[i], "visible_keypoints": int(vis[i].sum()),
-                    "refinement_deg": turn[i] if bool(sfm_ok[i]) and math.isfinite(turn[i])
+        out.append({"keypoint_residual": res[i], "silhouette_inside": inside[i], "mirror_deg": mirror[i],
+                    "visible_keypoints": counts[i],
+                    "refinement_deg": turn[i] if sfm_ok[i] and math.isfinite(turn[i])
                     and getattr(vp, "source", "estimate") != "gt" else None,
                     "rotational": rotational})
     return out
+
+
+def _projection_signals(s, R, t, S, kp, vis, masks) -> tuple[list, list]:
+    """Per object, the RMS distance (over the canvas size) of its visible keypoints from the projections of its
+    shape's points, and the fraction of those points that fall inside its mask (``None``: no visible keypoint
+    with a point, no finite point), all objects at once.
+
+    Args:
+        s, R, t: ``(N,)``, ``(N, 3, 3)``, ``(N, 2)`` float64 cameras; S: ``(N, K, 3)`` each object's shape
+            (non-finite rows: keypoints the shape lacks), ``None`` when ``N = 0``; kp, vis: ``(N, K, 2)``,
+            ``(N, K)``; masks: ``(N, C, C)`` bool canvases.
+    """
+    import torch
+
+    if S is None:
+        return [], []
+    n, C = len(S), masks.shape[-1]
+    ok = torch.isfinite(S).all(-1)  # (N, K)
+    uv = s[:, None, None] * torch.where(ok[..., None], S, 0.0) @ R[:, :2].transpose(1, 2) + t[:, None]
+    v = vis & ok
+    d2 = torch.where(v, (uv - torch.where(v[..., None], kp, 0.0)).pow(2).sum(-1), 0.0)
+    m = v.sum(1)
+    rms = (d2.sum(1) / m.clamp(min=1)).sqrt() / C
+    px = uv.round().long()
+    inb = ok & ((px >= 0) & (px < C)).all(-1)
+    pc = px.clamp(0, C - 1)
+    hit = masks[torch.arange(n)[:, None], pc[..., 1], pc[..., 0]] & inb
+    points = ok.sum(1)
+    frac = hit.sum(1).float() / points.clamp(min=1).float()  # float32, as a mean of booleans
+    return ([float(r) if k else None for r, k in zip(rms.tolist(), m.tolist())],
+            [float(f) if k else None for f, k in zip(frac.tolist(), points.tolist())])
 
 
 def reconstruction_iou(occupancy: np.ndarray, voxel_to_canvas: np.ndarray, mask: np.ndarray) -> float:

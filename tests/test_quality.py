@@ -89,3 +89,60 @@ def test_camera_signals_measure_residual_silhouette_and_mirror_disagreement():
     assert sig[1]["refinement_deg"] == pytest.approx(7.0, abs=1e-6)
     assert (sig[0]["visible_keypoints"], sig[1]["visible_keypoints"]) == (8, 5) and not sig[0]["rotational"]
     assert combine(sig[1]) < combine(sig[0])
+
+
+def _signals_loop(coll, vp) -> list[tuple]:
+    """The residual and inside fraction object by object (the reference for ``camera_signals``' batched form)."""
+    n = len(coll)
+    cams = vp.cameras
+    R, s, t = cams.R[:n].double(), cams.s[:n].double(), cams.t[:n].double()
+    labels = vp.groups.labels[:n].tolist() if vp.groups.k > 1 else [0] * n
+    C = coll.masks.shape[-1]
+    out = []
+    for i in range(n):
+        if not bool(vp.has_camera[i]):
+            out.append((None, None))
+            continue
+        S = (vp.groups.shape(labels[i]) if vp.groups.k > 1 else vp.shape).double()
+        ok = torch.isfinite(S).all(1)
+        uv = s[i] * S[ok] @ R[i, :2].T + t[i]
+        v = coll.visible[i] & ok
+        res = None
+        if bool(v.any()):
+            d = s[i] * S[v] @ R[i, :2].T + t[i] - coll.keypoints[i, v].double()
+            res = float(d.pow(2).sum(1).mean().sqrt()) / C
+        px = uv.round().long()
+        inb = (px >= 0).all(1) & (px < C).all(1)
+        inside = torch.zeros(len(px), dtype=torch.bool)
+        inside[inb] = coll.masks[i][px[inb, 1], px[inb, 0]]
+        out.append((res, float(inside.float().mean()) if len(px) else None))
+    return out
+
+
+def test_camera_signals_match_an_object_by_object_loop(procedural_input, tmp_path):
+    """On a real class's viewpoints (some cameras removed, a keypoint the shape lacks, a camera moved so that
+    part of its points leave the mask): the batched residual and inside fraction equal the loop's."""
+    from carvi_torch.config import Config
+    from carvi_torch.io.coco import load_coco
+    from carvi_torch.viewpoints import estimate_viewpoints
+
+    cfg = Config()
+    coll = load_coco(procedural_input(tmp_path), canvas_size=cfg.input.canvas_size, classes=["car"]).collections["car"]
+    vp = estimate_viewpoints(coll, cfg.viewpoints)
+    assert vp.groups.k == 1  # one shape: the (K, 3) rows below are its
+    n = len(coll)
+    vp.has_camera = vp.has_camera.clone()
+    vp.has_camera[[1, 4]] = False
+    vp.cameras.t[2] += 0.12 * coll.masks.shape[-1]
+    vp.shape = vp.shape.clone()
+    vp.shape[0] = float("nan")
+    sig = camera_signals(coll, vp)
+    ref = _signals_loop(coll, vp)
+    assert len(sig) == n and sum(r[0] is None for r in ref) == 2
+    for got, (res, inside) in zip(sig, ref):
+        assert (got["keypoint_residual"] is None) == (res is None) and (got["silhouette_inside"] is None) == (
+            inside is None)
+        if res is not None:
+            assert got["keypoint_residual"] == pytest.approx(res, rel=1e-12, abs=1e-15)
+            assert got["silhouette_inside"] == inside  # counts of pixels: exactly the loop's
+    assert 0 < sig[2]["silhouette_inside"] < 1

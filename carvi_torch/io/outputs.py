@@ -69,18 +69,32 @@ def write_bytes(path: str | os.PathLike, data: bytes, sync: bool = True) -> Path
     return atomic_write(path, lambda f: f.write(data), sync)
 
 
+#: Types that JSON writes as they are (exact types: ``np.float64`` subclasses ``float`` and goes the long way).
+_PLAIN = (str, int, bool, type(None))
+
+
 def to_jsonable(obj: Any) -> Any:
     """Convert tensors, numpy arrays and scalars, paths and tuples to JSON types.
 
-    Non-finite floats become ``None`` (JSON has no NaN).
-    """
-    try:
-        import torch
+    Non-finite floats become ``None`` (JSON has no NaN). Plain values return at once: a class's
+    ``cameras.json`` holds about a hundred of them per object.
 
-        if isinstance(obj, torch.Tensor):
-            obj = obj.detach().cpu().numpy()
-    except ImportError:  # pragma: no cover
-        pass
+    Example:
+        >>> to_jsonable({"R": np.eye(2), "s": np.float32(2.5), "t": (1, float("nan")), 3: Path("a")})
+        {'R': [[1.0, 0.0], [0.0, 1.0]], 's': 2.5, 't': [1, None], '3': 'a'}
+    """
+    kind = type(obj)
+    if kind in _PLAIN:
+        return obj
+    if kind is float:
+        return obj if math.isfinite(obj) else None
+    if kind is dict:
+        return {k if type(k) is str else str(k): to_jsonable(v) for k, v in obj.items()}
+    if kind is list or kind is tuple:
+        return [to_jsonable(v) for v in obj]
+    torch = sys.modules.get("torch")  # a tensor exists only where torch was imported
+    if torch is not None and isinstance(obj, torch.Tensor):
+        obj = obj.detach().cpu().numpy()
     if isinstance(obj, np.ndarray):
         return to_jsonable(obj.tolist())
     if isinstance(obj, (np.floating, float)):
