@@ -106,11 +106,15 @@ class ViewpointConfig:
     ``gpu_min_objects`` objects when the run is on a GPU, else the run's device. On CUDA a small class's stage
     is hundreds of small steps of a few kernel launches each: on an H100 four 8-view CAD classes of 32-48
     objects took 108 s there against 6.3 s on 4 threads of the same machine's CPU, run side by side
-    (docs/viewpoints.md, *CPU and CUDA*), while a class of 9,087 objects takes 5.9 s there.
-    ``viewpoint_processes`` above 0 implies ``cpu``."""
+    (docs/viewpoints.md, *CPU and CUDA*). ``summary.json`` names the device each class used
+    (``viewpoint_device``). ``viewpoint_processes`` above 0 implies ``cpu``."""
     gpu_min_objects: int = 1000
     """``device=auto`` on a GPU run: a class of at least this many objects makes its viewpoints on the GPU, a
-    smaller one on the CPU (with the run's torch threads)."""
+    smaller one on the CPU, with the run's torch threads (one in a CUDA run, beside the writers). Where the
+    two meet, estimated from measured parts: SfM and refinement of 1,000 cars took 3.8 s on an H100 and of
+    9,087 5.9 s; on one CPU thread 2,000 instances take 4.2 s on the 2-core development host, whose cores
+    run the viewpoint stage 2.4x as fast as the GPU hosts' (docs/viewpoints.md), so about 2 s per 1,000 there
+    and 5 s on a GPU host's core."""
     sfm_max_outer: int = 200
     """Outer (fill) iterations of the missing-data factorisation at most."""
     sfm_inner: int = 10

@@ -176,6 +176,7 @@ def class_viewpoints(coll: ClassCollection, cfg: Config, device: torch.device, g
     vdev = cfg.viewpoint_device(device, len(coll))
     vcoll = coll.to(vdev) if made is None else coll
     vp, report = viewpoint_stage(vcoll, cfg, gt, report) if made is None else made
+    report.info["viewpoint_device"] = str(vdev)
     if vp is None:
         return coll, None, None, report
     for line in vp.log:

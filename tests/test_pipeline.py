@@ -43,7 +43,7 @@ def test_outputs_exist(tiny):
     assert (out / "config.yaml").is_file() and (out / "summary.json").is_file() and (out / "preview.png").is_file()
     assert set(summary["classes"]) == {"aeroplane", "bottle", "car", "chair"}
     for cls, rep in summary["classes"].items():
-        assert rep["objects"] == 6
+        assert rep["objects"] == 6 and rep["viewpoint_device"] == "cpu"
         assert rep["reconstructed"] + rep["skipped"] == 6, rep["failures"]
         assert rep["reconstructed"] >= 5, (cls, rep["failures"])
         cams = json.loads((out / cls / "cameras.json").read_text())
@@ -517,14 +517,18 @@ def test_writer_and_thread_rules(monkeypatch):
 
 
 @requires_cuda
-def test_cuda_run_matches_cpu(tiny, tmp_path):
+@pytest.mark.parametrize("where", ["auto", "run"])
+def test_cuda_run_matches_cpu(tiny, tmp_path, where):
     """device=cuda end to end: the same objects reconstructed; with the true cameras (no SfM or refinement
-    differences) the voxels agree with the CPU run but for float rounding at a few voxels."""
+    differences) the voxels agree with the CPU run but for float rounding at a few voxels. ``auto`` makes this
+    small class's viewpoint stage on the CPU, ``run`` on the GPU (the path of a class of gpu_min_objects)."""
     out, summary = tiny
     kw = dict(data=summary["data"], classes=["car"], preview=False, cameras="gt")
     cpu = run(_cfg(tmp_path / "cpu", **kw), workers=0)
-    gpu = run(_cfg(tmp_path / "gpu", device="cuda", **kw))
+    gpu = run(_cfg(tmp_path / "gpu", device="cuda", **{"viewpoints.device": where}, **kw))
     assert gpu["device"].startswith("cuda") and gpu["peak_cuda_mb"] > 0
+    assert gpu["classes"]["car"]["viewpoint_device"].startswith("cpu" if where == "auto" else "cuda")
+    assert cpu["classes"]["car"]["viewpoint_device"] == "cpu"
     assert gpu["classes"]["car"]["reconstructed"] == cpu["classes"]["car"]["reconstructed"] >= 5
     agree = []
     for f in (tmp_path / "cpu" / "car" / "voxels").glob("*.npz"):

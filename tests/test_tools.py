@@ -441,6 +441,16 @@ def test_gpu_session_many_class_steps_write_ratios_or_bounds(tmp_path: Path, ste
             out / "manyclasses_procs.run").read_text() + proc.stdout
 
 
+def test_gpu_session_refuses_an_unknown_many_class_variant(tmp_path: Path):
+    """A variant the script does not know (here the name of one it had before) stops the step with a reason,
+    instead of timing another variant under that name."""
+    env = dict(os.environ, PYTHON="false", CARVI_GPU_READY="1", STEP_SECONDS="5", MANY_VARIANTS="vpcpu")
+    proc = subprocess.run(["bash", str(GPU_SESSION), "manyclasses", str(tmp_path / "gpu")], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "unknown variant 'vpcpu'" in proc.stderr, proc.stdout + proc.stderr
+    assert not (tmp_path / "gpu" / "manyclasses_vpcpu.run").exists()
+
+
 def test_gpu_session_lease_runs_each_step_under_its_limit_and_packs_after_each(tmp_path: Path):
     """``lease``: every step runs with its own time limit, its start, end and status go to ``steps.txt``, and
     the results are packed after each step (here a step that fails at once and one stopped at its limit)."""

@@ -114,7 +114,7 @@ STAGES = [("load", "loading"), ("sfm", "SfM"), ("refine", "refinement"), ("surro
           ("sdf", "distance maps"), ("carve", "carving"), ("select", "selection"),
           ("mesh_device", "meshing (main process, batched torch)"), ("mesh", "meshing (writers)"),
           ("write", "writing (writers)"), ("handoff", "handing objects to the writers"),
-          ("write_wait", "waiting for writers"), ("class_files", "class files (cameras.json twice, scores)")]
+          ("write_wait", "waiting for writers"), ("class_files", "class files (cameras.json, scores)")]
 #: Stages run by the writer processes, overlapped with the main process's.
 WRITER_STAGES = ("mesh", "write")
 

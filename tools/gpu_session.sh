@@ -429,7 +429,7 @@ many_pair() {  # NAME CLASSES (comma-separated; empty: all 12) SHARE VARIANTS: e
                # runs (tools/benchmark.py --many-classes, one round each). VARIANTS: vprun (viewpoints.device=run:
                # on CUDA, the default before auto; its ratio is default / vprun) and procs (viewpoint_processes = the
                # classes, at most 12: their viewpoints at once in CPU processes; procs / default)
-    local name=$1 rc=0 sel=() args=(tools/benchmark.py --device cuda --many-classes) v n
+    local name=$1 rc=0 sel=() args=(tools/benchmark.py --device cuda --many-classes) v n setting
     [ -n "$2" ] && sel=("classes=[$2]")
     n=$(( $(echo "${2:-a,b,c,d,e,f,g,h,i,j,k,l}" | tr ',' '\n' | wc -l) ))
     [ "$n" -gt 12 ] && n=12
@@ -437,6 +437,7 @@ many_pair() {  # NAME CLASSES (comma-separated; empty: all 12) SHARE VARIANTS: e
         case "$v" in
             procs) setting="viewpoint_processes=$n" ;;
             vprun) setting="viewpoints.device=run" ;;
+            *) echo "$name: unknown variant '$v' (procs, vprun)" >&2; return 2 ;;
         esac
         timed "${name}_$v" "$(part_limit "$3" 0)" "$py" "${args[@]}" --set ${sel[@]+"${sel[@]}"} "$setting" \
             --out "$out/${name}_$v.json" || rc=1
