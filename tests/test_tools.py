@@ -320,7 +320,7 @@ def test_gpu_session_plan_fits_the_budget_and_names_real_steps(tmp_path: Path):
     rc, text, rows, total = _plan()
     assert rc == 0, text
     names = [n for n, _ in rows]
-    assert {"tests", "mesher2000", "many4", "cad5"} <= set(names), text
+    assert {"tests", "e2e9087", "many4", "cad5"} <= set(names), text
     assert total == sum(int(lim) for _, lim in rows) <= 470, text
     assert "UNKNOWN" not in text and "not valid" not in text
     assert f"{total} s in all" in (ROOT / "docs" / "benchmarks.md").read_text()  # the docs give the plan's sum
@@ -349,7 +349,7 @@ def test_gpu_session_script_is_valid_bash():
 
 def test_gpu_session_answers_help():
     res = subprocess.run(["bash", str(GPU_SESSION), "--help"], cwd=ROOT, capture_output=True, text=True, timeout=60)
-    usage = "bash tools/gpu_session.sh [all|lease|tests|mesher2000|loading2000|many4|cad5|"
+    usage = "bash tools/gpu_session.sh [all|lease|tests|e2e9087|many4|cad5|mesher2000|loading2000|"
     assert res.returncode == 0 and usage in res.stdout
     assert "\nplan: each step under `timeout`" in res.stdout and "  sum " in res.stdout  # the plan, from the code
 

@@ -3,7 +3,7 @@
 # (docs/benchmarks.md), each new path timed against the current one in the same run (ratios in
 # OUTDIR/ratios.txt). Run from the repository root:
 #
-#     bash tools/gpu_session.sh [all|lease|tests|mesher2000|loading2000|many4|cad5|bench1000|bench9087|manyclasses|cad8] [OUTDIR]
+#     bash tools/gpu_session.sh [all|lease|tests|e2e9087|many4|cad5|mesher2000|loading2000|bench1000|bench9087|manyclasses|cad8] [OUTDIR]
 #     bash tools/gpu_session.sh --plan     # the plan of all and lease (steps, limits, their sum, the data); runs nothing
 #
 # OUTDIR defaults to $OUT (the lent machine's result folder) or outputs/gpu; each step writes its log and JSON
@@ -24,6 +24,8 @@
 # stopped at its share leaves the other's time and still gives a bound on the ratio ("new / old < x").
 #
 # Steps outside the plan (no limit when run alone; H200 times: 16 slow cores, torch 2.11.0+cu130):
+#   mesher2000   2,000 objects end to end, mesher=auto against mesher=skimage (H100: 1.163x, the writers kept up)
+#   loading2000  2,000 objects loaded on one thread and on canvas_threads (H100: 16 threads 1.189x one)
 #   bench1000    tools/benchmark.py --device cuda --objects 1000, the carving comparison included
 #   bench9087    the 9,087-object class: its loading on one thread and on canvas_threads (--load-only), then
 #                mesher=auto and mesher=skimage end to end (H200: 54 s for auto, skimage stopped at 85 s)
@@ -37,8 +39,8 @@
 #                too); H200: the CPU 80 s, CUDA over 120 s
 #
 # Data (carry them: generating them takes minutes; --plan says which are here):
-#   outputs/bench/data/car1000_s0/{annotations,gt}.json      mesher2000, loading2000, bench* (larger classes are
-#                                                             tiled from it)
+#   outputs/bench/data/car1000_s0/{annotations,gt}.json      e2e9087, mesher2000, loading2000, bench* (larger
+#                                                             classes are tiled from it)
 #   outputs/bench/data/cad_v8_s0/annotations.json            many4, manyclasses
 #   outputs/viewpoints_cad/renders_v8_s2/{annotations,gt}.json   cad5, cad8 (RENDERS=dir elsewhere; else
 #                                                             rendered from ../shared/data/pascal3d_cad, CAD=path)
@@ -46,7 +48,7 @@ set -uo pipefail
 
 # ---- the plan: what `all` and `lease` run, set from the H200's times (docs/benchmarks.md) ----------------------
 BUDGET=470          # seconds the plan's limits may add up to: the 8 minutes, less 10 s of setup and packing
-PLAN="tests:130 mesher2000:100 loading2000:25 many4:80 cad5:130"
+PLAN="tests:130 e2e9087:100 many4:80 cad5:150"
 MESHER_AUTO_S=45    # mesher2000: the mesher=auto run's share; mesher=skimage gets the rest
 MANY_RUN_S=${MANY_RUN_S:-35}  # many4: the viewpoints.device=run run's share (CUDA; stopped there on the H100); the default the rest
 MANY_ALL_S=${MANY_ALL_S:-45}  # manyclasses: each variant's share; the default run gets the rest
@@ -54,29 +56,32 @@ CAD_RENDER_S=30     # cad5: rendering, when the renders were not carried
 CAD_COMPARE_S=10    # cad5: the comparison (its interpreter imports torch)
 RATIO_S=3           # kept at a step's end to write its ratios
 MANY4_CLASSES=boat,bottle,bus,chair
-CAD5_CLASSES=${CAD_CLASSES:-diningtable,motorbike,sofa,train,tvmonitor}  # CAD_CLASSES=...: others (e.g. those a
-                                                                         # stopped run did not reach)
+CAD5_CLASSES=${CAD_CLASSES:-sofa,diningtable}  # CAD_CLASSES=...: others (sofa: the class no CUDA run reached yet;
+                                               # diningtable: the one whose silhouette-only views parted)
 # cad5's CUDA side: one process per group, all at once (a CUDA run keeps one CPU thread busy launching small
-# kernels): two groups of about 55-65 s of SfM each at the H200's 2.9x; with CAD_CLASSES, one process
-CAD5_CUDA_GROUPS=${CAD_CLASSES:-diningtable,train,tvmonitor motorbike,sofa}
-STEPS_KNOWN="tests mesher2000 loading2000 many4 cad5 bench1000 bench9087 manyclasses cad8"
+# kernels): on the H100 diningtable took 70 s there, sofa over 67 s; with CAD_CLASSES, one process
+CAD5_CUDA_GROUPS=${CAD_CLASSES:-sofa diningtable}
+STEPS_KNOWN="tests e2e9087 many4 cad5 mesher2000 loading2000 bench1000 bench9087 manyclasses cad8"
 
 describe() {  # STEP: one line on what it runs
     case "$1" in
-        tests) echo "pytest -m cuda (89-117 s on the H200)" ;;
-        mesher2000) echo "2,000 objects end to end: mesher=auto (marching cubes batched on the GPU; at most" \
+        tests) echo "pytest -m cuda (89-117 s on the H200, 108 s on the H100)" ;;
+        e2e9087) echo "the 9,087-object class end to end with the defaults, once (the 10 s target; 60.5 s with the" \
+                      "interpreter's start on the H100 at ba4e251: its canvases on 16 threads, its quality signals" \
+                      "object by object)" ;;
+        mesher2000) echo "(outside the plan since the H100's run) 2,000 objects end to end: mesher=auto (marching cubes batched on the GPU; at most" \
                          "${MESHER_AUTO_S} s) against mesher=skimage (the writers mesh; the rest); the batched op" \
                          "against scikit-image on 100 of the run's grids (H200, 9,087 objects: 54 s for auto," \
                          "skimage unfinished at 85 s)" ;;
-        loading2000) echo "the 2,000-object class loaded with its canvases on one thread and on canvas_threads," \
+        loading2000) echo "(outside the plan since the H100's run) the 2,000-object class loaded with its canvases on one thread and on canvas_threads," \
                           "best of 2" ;;
         many4) echo "the many-class benchmark on ${MANY4_CLASSES//,/, } (4 of 12): viewpoints.device=run (the" \
                     "viewpoints on CUDA; at most ${MANY_RUN_S} s, unfinished at 47 s on the H100) against the" \
                     "default, auto (these small classes' viewpoints on the CPU)" ;;
-        cad5) echo "the 8-view CAD cameras of ${CAD5_CLASSES//,/, } (by default the classes the H200's CUDA run" \
-                   "did not reach), compared object by object (median <= 0.5 degrees per class): the CPU side (4" \
-                   "torch threads) beside the CUDA side, in processes of ${CAD5_CUDA_GROUPS// / and } at the same" \
-                   "time (about 120 s of SfM in all at the H200's 2.9x); a class a side did not reach is listed" ;;
+        cad5) echo "the 8-view CAD cameras of ${CAD5_CLASSES//,/, } (sofa: no CUDA run reached it yet), compared" \
+                   "object by object (median <= 0.5 degrees per class): the CPU side (4 torch threads) beside the" \
+                   "CUDA side (viewpoints.device=run), in processes of ${CAD5_CUDA_GROUPS// / and } at the same" \
+                   "time; a class a side did not reach is listed" ;;
         bench1000|bench9087|manyclasses|cad8) echo "(outside the plan: see --help)" ;;
         *) echo "UNKNOWN STEP" ;;
     esac
@@ -110,7 +115,7 @@ print_plan() {  # prints the plan; status 1 when a step is unknown, a limit not 
     [ "$sum" -gt "$BUDGET" ] && { echo "the plan is OVER its budget"; bad=1; }
     [ "$bad" = 1 ] && echo "the plan is not valid: unknown step, missing limit or over budget"
     echo "data:"
-    data_line outputs/bench/data/car1000_s0/annotations.json "mesher2000, loading2000 (else generated: minutes, past their limits)"
+    data_line outputs/bench/data/car1000_s0/annotations.json "e2e9087 (else generated: minutes, past its limit)"
     data_line outputs/bench/data/cad_v8_s0/annotations.json "many4 (else rendered or generated: past its limit)"
     data_line "${RENDERS:-outputs/viewpoints_cad/renders_v8_s2}/annotations.json" "cad5 (else rendered, at most $CAD_RENDER_S s)"
     data_line ../shared/data "tests (the tests on real data skip without it)"
@@ -462,6 +467,10 @@ case "$step" in
     tests) run_tests || status=$? ;;
     bench1000) bench 1000 || status=$? ;;
     bench9087) bench_pair || status=$? ;;
+    e2e9087)
+        [ -z "${STEP_END:-}" ] && STEP_END=$(( $(date +%s) + ${STEP_SECONDS:-$(plan_limit e2e9087)} ))
+        timed e2e9087 "$(part_limit 0 0)" "$py" tools/benchmark.py --device cuda --objects 9087 --skip-carve \
+            --mesh-objects 0 --out "$out/e2e9087.json" || status=$? ;;
     manyclasses)
         [ -z "${STEP_END:-}" ] && [ -n "${STEP_SECONDS:-}" ] && STEP_END=$(( $(date +%s) + STEP_SECONDS ))
         many_pair manyclasses "" "$MANY_ALL_S" "${MANY_VARIANTS:-procs vprun}" || status=$? ;;
