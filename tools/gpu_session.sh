@@ -8,7 +8,9 @@
 #
 # OUTDIR defaults to $OUT (the lent machine's result folder) or outputs/gpu; each step writes its log and JSON
 # there. Python is $PYTHON or python3, with torch and CUDA. Packages the machine lacks travel as wheels in
-# .whl/ (installed once into /tmp/carvi_site, never into the system).
+# .whl/ (installed once into /tmp/carvi_site, never into the system); an H100 image with torch 2.11 lacked
+# kornia, kornia_rs, trimesh, pycocotools, fast_simplification, zarr, numcodecs, donfig, google-crc32c, shapely
+# and rtree (21 MB of cp312 manylinux wheels; the tests that need pycolmap skip without it).
 #
 #   all          the plan below: each step under `timeout` at its limit, the limits adding up to at most the
 #                budget; each step's output on the terminal and in OUTDIR/<step>.log; status 1 when a step failed
