@@ -712,6 +712,8 @@ def _coerce_plain(value: Any, annotation: Any) -> Any:
 NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overwrite", "classes", "stage", "device",
                     "executor", "ray_address", "ray_chunk_objects", "pipeline_classes",  # where the work runs
                     "viewpoints.sfm_group_threads",  # the mixture fit's result is the same on any number of threads
+                    # where the viewpoint stage runs, like `device`: another device rounds differently, no more
+                    "viewpoints.device", "viewpoints.gpu_min_objects", "viewpoint_processes",
                     "carve.backend"}  # every carving backend gives the same labels voxel for voxel
 
 

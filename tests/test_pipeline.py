@@ -111,7 +111,8 @@ def test_rerun_skips_finished(tiny, tmp_path):
     out, summary = tiny
     before = {p: p.stat().st_mtime_ns for p in out.glob("*/meshes/*.ply")}
     cameras = {p: p.read_bytes() for p in out.glob("*/cameras.json")}
-    again = run(_cfg(out, preview=False, sfm_group_threads=1), workers=0)
+    again = run(_cfg(out, preview=False, sfm_group_threads=1, viewpoint_processes=1,
+                     **{"viewpoints.device": "cpu", "viewpoints.gpu_min_objects": 5}), workers=0)
     complete = []
     for cls, rep in again["classes"].items():
         assert rep["resumed"] == summary["classes"][cls]["reconstructed"]
@@ -124,7 +125,7 @@ def test_rerun_skips_finished(tiny, tmp_path):
             assert (out / cls / "cameras.json").read_bytes() == cameras[out / cls / "cameras.json"], cls
     assert complete, "no class was complete after the first run: the check above did not run"
     assert before == {p: p.stat().st_mtime_ns for p in out.glob("*/meshes/*.ply")}
-    assert "resumed_from_other_settings" not in again  # only `preview` and the fit's threads differed: neutral
+    assert "resumed_from_other_settings" not in again  # only `preview`, threads and devices differed: neutral
 
 
 def test_cameras_json_quality_holds_the_voxels_files_reconstruction_iou(tiny):
