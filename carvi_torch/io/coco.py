@@ -648,9 +648,9 @@ def _dense(values: list) -> torch.Tensor:
 def canvas_threads(objects: int) -> int:
     """Threads that resample a class's masks into its canvases, one object each at a time: the cores, at
     most 2 and at most one per object. The work holds the interpreter's lock for much of each object, so more
-    threads cost more than they give: 1,000 objects on 2 cores took 0.50 s on 2 threads, 0.56 on 4, 0.72 on
-    16 and 0.61 on one; 2,000 on an H100 host's 16 cores took 2.44 s on 16 threads against 2.05 on one
-    (docs/benchmarks.md).
+    threads cost more than they give: 9,087 objects on 2 cores took 4.62 s on 2 threads, 5.34 on 4, 6.54 on
+    16 and 5.82 on one; 2,000 on an H100 host's 16 cores took 2.44 s on 16 threads against 2.05 on one
+    (docs/benchmarks.md, records ``loading_cpu_9087`` and ``loading_cuda_2000_h100``).
 
     Example:
         >>> canvas_threads(1), canvas_threads(5000) <= 2
