@@ -72,8 +72,9 @@ def camera_signals(coll, vp) -> list[dict]:
     n = len(coll)
     cams = vp.cameras
     R, s, t = cams.R[:n].double().cpu(), cams.s[:n].double().cpu(), cams.t[:n].double().cpu()
-    labels = vp.groups.labels[:n].cpu().tolist() if vp.groups.k > 1 else [0] * n
-    shapes = {g: (vp.groups.shape(g) if vp.groups.k > 1 else vp.shape).double().cpu() for g in set(labels)}
+    k = vp.groups.k
+    labels = vp.groups.labels[:n].cpu().long() if k > 1 else torch.zeros(n, dtype=torch.long)
+    shapes = torch.stack([(vp.groups.shape(g) if k > 1 else vp.shape).double().cpu() for g in range(k)])  # (k, K, 3)
     kp, vis = coll.keypoints.double().cpu(), coll.visible.cpu()
     masks = coll.masks.cpu()
     has = vp.has_camera.cpu().tolist()
@@ -86,7 +87,7 @@ def camera_signals(coll, vp) -> list[dict]:
         pred = flip @ R @ vp.reflection.double().cpu()
         ang = _geodesic_deg(pred, cams.R[n:2 * n].double().cpu()).tolist()
         mirror = [a if has[i] and has[i + n] and math.isfinite(a) else None for i, a in enumerate(ang)]
-    res, inside = _projection_signals(s, R, t, torch.stack([shapes[g] for g in labels]) if n else None, kp, vis, masks)
+    res, inside = _projection_signals(s, R, t, shapes[labels] if n else None, kp, vis, masks)
     counts = vis.sum(1).tolist()
     out = []
     for i in range(n):

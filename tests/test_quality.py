@@ -146,3 +146,13 @@ def test_camera_signals_match_an_object_by_object_loop(procedural_input, tmp_pat
             assert got["keypoint_residual"] == pytest.approx(res, rel=1e-12, abs=1e-15)
             assert got["silhouette_inside"] == inside  # counts of pixels: exactly the loop's
     assert 0 < sig[2]["silhouette_inside"] < 1
+    # two shape groups: each object projected with its own group's shape (the second one a third larger)
+    two = [vp.shape, vp.shape * 1.3]
+    vp.groups = SimpleNamespace(k=2, labels=torch.tensor([0, 1] * n)[:2 * n], shape=lambda g: two[g])
+    got = camera_signals(coll, vp)
+    assert [g["keypoint_residual"] for g in got] != [g["keypoint_residual"] for g in sig]  # the groups count
+    for g, (res, inside) in zip(got, _signals_loop(coll, vp)):
+        assert g["silhouette_inside"] == inside
+        assert (g["keypoint_residual"] is None) == (res is None)
+        if res is not None:
+            assert g["keypoint_residual"] == pytest.approx(res, rel=1e-12, abs=1e-15)
