@@ -254,8 +254,8 @@ class TestLoad:
 
 
 def test_canvases_made_on_several_threads_are_the_one_thread_ones(procedural_input, tmp_path):
-    """Objects' canvases resampled side by side on threads (``threads``; ``canvas_threads`` by default): the
-    same masks, bit for bit, and in the same order, as one thread gives."""
+    """Objects' canvases resampled side by side on threads (``threads``; one by default): the same masks, bit
+    for bit, and in the same order, as one thread gives."""
     data = procedural_input(tmp_path)
     got = {n: load_coco(data, canvas_size=64, threads=n).collections for n in (1, 3)}
     assert set(got[1]) == set(got[3]) and len(got[1]) >= 4

@@ -6,7 +6,7 @@ import torch
 
 from carvi_torch.cameras import ScaledOrthographic, Similarity2D, random_rotations
 from carvi_torch.collection import (ClassCollection, ClassMeta, canvas_similarity, flip_permutation,
-                                    infer_flip_pairs, resample_to_canvas)
+                                    infer_flip_pairs, resample_to_canvas, resample_to_canvases, canvas_supersample)
 
 
 class TestInferFlipPairs:
@@ -50,6 +50,44 @@ class TestCanvas:
         ref = torch.zeros(32, 32, dtype=torch.bool)
         ref[5:15, 10:25] = True
         assert (half ^ ref).sum() <= 4
+
+
+class TestResampleToCanvases:
+    """The batched resampling that loading uses: the per-object reference's canvases, bit for bit."""
+
+    def _cases(self, n, seed=0):
+        g = torch.Generator().manual_seed(seed)
+        masks, scales, offsets = [], [], []
+        for i in range(n):
+            h, w = (1, 1) if i == 0 else (1, 40) if i == 1 else torch.randint(2, 200, (2,), generator=g).tolist()
+            masks.append(torch.rand(h, w, generator=g) < torch.rand((), generator=g))
+            # scales 0.05-3: every sub-sampling 1-4; offsets push parts of the image off the canvas
+            scales.append(float(0.05 + 2.95 * torch.rand((), generator=g) ** 2))
+            offsets.append((torch.randn(2, generator=g) * 30).tolist())
+        return masks, torch.tensor(scales), torch.tensor(offsets)
+
+    @pytest.mark.parametrize("threads", [1, 3])
+    def test_the_reference_bit_for_bit(self, threads):
+        masks, scale, offset = self._cases(60)
+        got = resample_to_canvases(masks, scale, offset, 40, threads=threads)
+        ref = torch.stack([resample_to_canvas(m, a, b, 40) for m, a, b in zip(masks, scale.tolist(), offset)])
+        assert got.shape == (60, 40, 40) and got.dtype == torch.bool
+        assert {canvas_supersample(a) for a in scale.tolist()} == {1, 2, 3, 4}
+        assert ref.any() and torch.equal(got, ref)
+
+    def test_known_values(self):
+        # identity scale, no sub-sampling: the canvas is the image where they overlap
+        m = torch.zeros(20, 30, dtype=torch.bool)
+        m[3:9, 4:17] = True
+        got = resample_to_canvases([m], torch.tensor([1.0]), torch.tensor([[2.0, 1.0]]), 24)[0]
+        ref = torch.zeros(24, 24, dtype=torch.bool)
+        ref[4:10, 6:19] = True
+        assert torch.equal(got, ref)
+
+    def test_empty_and_mismatched(self):
+        assert resample_to_canvases([], torch.zeros(0), torch.zeros(0, 2), 8).shape == (0, 8, 8)
+        with pytest.raises(ValueError, match="2 masks"):
+            resample_to_canvases([torch.ones(3, 3, dtype=torch.bool)] * 2, torch.ones(1), torch.zeros(1, 2), 8)
 
 
 def _collection(n=4, k=5, C=32, g=None):

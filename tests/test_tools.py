@@ -369,6 +369,11 @@ if argv and argv[0].endswith("benchmark.py") and "--many-classes" in argv:
     rec = {{"many_classes": {{"best": {{"new": {{"wall_seconds_with_startup": wall}}}}}}}}
     json.dump(rec, open(argv[argv.index("--out") + 1], "w"))
     sys.exit(0)
+if argv and argv[0].endswith("benchmark.py") and "--load-only" in argv:
+    rec = {{"loading": {{"best_seconds": {{"one thread": 1.5}},
+                        "resampling": {{"batched_over_reference": 0.4, "same_canvases": True}}}}}}
+    json.dump(rec, open(argv[argv.index("--out") + 1], "w"))
+    sys.exit(0)
 if argv and argv[0].endswith("benchmark.py"):
     old = "mesher=skimage" in argv
     if old:
@@ -410,6 +415,21 @@ def test_gpu_session_mesher_step_writes_a_ratio_or_a_bound(tmp_path: Path, old_s
     m = re.search(r"mesher2000_skimage stopped at its (\d+) s limit: mesher2000_auto / mesher2000_skimage < ([0-9.]+)",
                   ratios)
     assert m and m.group(1) == limit and float(m.group(2)) == pytest.approx(wall / int(limit), abs=1e-3), ratios
+
+
+def test_gpu_session_loading_step_writes_the_resampling_ratio(tmp_path: Path):
+    """``loading2000``: the load's seconds and the batched resampling over the per-object reference, from the
+    record, with whether their canvases agree."""
+    fake = tmp_path / "python"
+    fake.write_text(_FAKE_CUDA_PYTHON.format(python=sys.executable))
+    fake.chmod(0o755)
+    out = tmp_path / "gpu"
+    env = dict(os.environ, PYTHON=str(fake), CARVI_GPU_READY="1", STEP_SECONDS="8")
+    proc = subprocess.run(["bash", str(GPU_SESSION), "loading2000", str(out)], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert ("loading 2000 objects: 1.50 s; resampling: batched op / per-object reference 0.400 (the same canvases: "
+            "True)") in (out / "ratios.txt").read_text()
 
 
 @pytest.mark.parametrize("step, old_sleep", [("many4", 0), ("many4", 60), ("manyclasses", 0)])
@@ -1118,24 +1138,33 @@ def test_misses_study_scores_the_pipelines_cameras_against_the_true_ones_refined
         assert set(r["energy"]) == {"final", "true", "true_refined", "mirror"}, m
 
 
-def test_benchmark_load_only_times_both_thread_counts_on_the_same_canvases(procedural_input, tmp_path):
-    """``--load-only``: both variants timed ``--repeat`` times, taking turns, and the canvases compared."""
+def test_benchmark_load_only_times_thread_counts_and_the_resampling_on_the_same_canvases(procedural_input, tmp_path):
+    """``--load-only``: each thread count timed ``--repeat`` times, taking turns, the canvases compared; the
+    resampling alone by the batched op and the per-object reference, both checked against the loaded canvases."""
     import argparse
 
     bm = load_tool("benchmark", "benchmark_tool")
-    args = argparse.Namespace(objects=6, category="car", repeat=2)
     data = procedural_input(tmp_path)
-    lo = bm.time_loading(data, args)
+    lo = bm.time_loading(data, argparse.Namespace(objects=6, category="car", repeat=2, load_threads=[1, 3]))
     assert lo["objects"] == 6 and lo["same_canvases"] is True
-    assert set(lo["seconds"]) == {"one thread", "canvas_threads"} and all(len(v) == 2 for v in lo["seconds"].values())
-    assert lo["new_over_one_thread"] == lo["best_seconds"]["canvas_threads"] / lo["best_seconds"]["one thread"]
-    assert "canvas_threads / one thread" in bm._loading_table(lo)
-    # --load-threads: each count a further column, every canvas compared with the one thread's
-    lo = bm.time_loading(data, argparse.Namespace(objects=6, category="car", repeat=1, load_threads=[1, 3]))
-    assert set(lo["seconds"]) == {"one thread", "canvas_threads", "3 threads"} and lo["threads"]["3 threads"] == 3
-    assert lo["same_canvases"] is True
+    assert set(lo["seconds"]) == {"one thread", "3 threads"} and lo["threads"]["3 threads"] == 3
+    assert all(len(v) == 2 for v in lo["seconds"].values())
+    rs = lo["resampling"]
+    assert rs["same_canvases"] is True and all(len(v) == 2 for v in rs["seconds"].values())
+    assert rs["batched_over_reference"] == min(rs["seconds"]["batched"]) / min(rs["seconds"]["reference"])
     table = bm._loading_table(lo).splitlines()
-    assert table[0].endswith("| 3 threads |") and table[-3].startswith("| over one thread | 1.000 |")
+    assert table[0].endswith("| 3 threads |") and table[4].startswith("| over one thread | 1.000 |")
+    assert "per-object reference" in table[-1] and table[-1].endswith("the same canvases: True")
+
+    # a canvas that differs from the loaded one is reported, not hidden
+    from dataclasses import replace
+
+    from carvi_torch.io.coco import load_coco
+    coll = load_coco(data, canvas_size=32, classes=["car"]).collections["car"]
+    assert bm.time_resampling(data, coll, 32, 1)["same_canvases"] is True
+    bad = coll.masks.clone()
+    bad[0, 0, 0] = ~bad[0, 0, 0]
+    assert bm.time_resampling(data, replace(coll, masks=bad), 32, 1)["same_canvases"] is False
 
 
 def test_benchmark_end_to_end_counts_the_loading(tmp_path, monkeypatch):

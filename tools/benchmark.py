@@ -358,39 +358,74 @@ def time_writing(recon: Path, objects: int, repeat: int, work: Path) -> dict | N
 
 
 def time_loading(ann: Path, args) -> dict:
-    """``--load-only``: loading alone (``io.coco.load_coco`` at the default canvas size) with the canvases
-    resampled on one thread, on ``canvas_threads`` threads and on each of ``--load-threads``, taking turns, best of
-    ``--repeat``; the canvases are checked identical."""
-    from carvi_torch.io.coco import canvas_threads, load_coco
+    """``--load-only``: loading alone (``io.coco.load_coco`` at the default canvas size) on one thread and on each
+    of ``--load-threads``, taking turns, best of ``--repeat``, the canvases compared; then the resampling alone
+    (:func:`time_resampling`)."""
+    from carvi_torch.io.coco import load_coco
 
     size = Config().input.canvas_size
-    variants = {"one thread": 1, "canvas_threads": canvas_threads(args.objects)}
+    variants = {"one thread": 1}
     variants.update({f"{n} threads": n for n in getattr(args, "load_threads", None) or [] if n > 1})
     seconds: dict = {k: [] for k in variants}
-    masks = {}
+    colls = {}
     for r in range(max(1, args.repeat)):
         for name, n in (list(variants.items()) if r % 2 == 0 else list(variants.items())[::-1]):
             t0 = time.perf_counter()
-            masks[name] = load_coco(ann, canvas_size=size, classes=[args.category], threads=n).collections[
-                args.category].masks
+            colls[name] = load_coco(ann, canvas_size=size, classes=[args.category], threads=n).collections[
+                args.category]
             seconds[name].append(round(time.perf_counter() - t0, 3))
-    best = {k: min(v) for k, v in seconds.items()}
-    return {"objects": len(masks["one thread"]), "threads": variants, "seconds": seconds, "best_seconds": best,
-            "new_over_one_thread": best["canvas_threads"] / best["one thread"],
-            "same_canvases": all(torch.equal(masks["one thread"], m) for m in masks.values())}
+    one = colls["one thread"]
+    return {"objects": len(one.masks), "threads": variants, "seconds": seconds,
+            "best_seconds": {k: min(v) for k, v in seconds.items()},
+            "same_canvases": all(torch.equal(one.masks, c.masks) for c in colls.values()),
+            "resampling": time_resampling(ann, one, size, args.repeat)}
+
+
+def time_resampling(ann: Path, coll, size: int, repeat: int) -> dict:
+    """The class's masks resampled into its canvases by the per-object reference
+    (``collection.resample_to_canvas``) and by the batched op (``resample_to_canvases``, what loading uses), both
+    on one torch thread, taking turns, best of ``repeat``; both compared with the loaded canvases."""
+    from carvi_torch.collection import resample_to_canvas, resample_to_canvases
+    from carvi_torch.io.coco import decode_segmentation
+    from carvi_torch.runtime import torch_threads
+
+    data = json.loads(Path(ann).read_text())
+    images = {im["id"]: im for im in data["images"]}
+    anns = {a["id"]: a for a in data["annotations"]}
+    masks = []
+    for aid in coll.annotation_ids:
+        im = images[anns[aid]["image_id"]]
+        masks.append(torch.from_numpy(decode_segmentation(anns[aid]["segmentation"], im["height"], im["width"])))
+    sim = coll.canvas_from_image.to("cpu")
+    scales, offsets = sim.scale.tolist(), sim.offset.tolist()
+    ops = {"reference": lambda: torch.stack([resample_to_canvas(m, a, b, size)
+                                             for m, a, b in zip(masks, scales, offsets)]),
+           "batched": lambda: resample_to_canvases(masks, sim.scale, sim.offset, size)}
+    seconds: dict = {k: [] for k in ops}
+    same = True
+    with torch_threads(1):
+        for r in range(max(1, repeat)):
+            for name, op in (list(ops.items()) if r % 2 == 0 else list(ops.items())[::-1]):
+                t0 = time.perf_counter()
+                canvases = op()
+                seconds[name].append(round(time.perf_counter() - t0, 3))
+                same = same and torch.equal(canvases, coll.masks.cpu())
+    return {"seconds": seconds, "batched_over_reference": min(seconds["batched"]) / min(seconds["reference"]),
+            "same_canvases": same}
 
 
 def _loading_table(lo: dict) -> str:
     n, names = lo["objects"], list(lo["threads"])
-    head = " | ".join(k if k != "canvas_threads" else f"canvas_threads ({lo['threads'][k]})" for k in names)
-    best = lo["best_seconds"]
-    rows = [f"| loading {n} objects (load_coco) | {head} |", "|---|" + "---:|" * len(names),
+    best, rs = lo["best_seconds"], lo["resampling"]
+    rows = [f"| loading {n} objects (load_coco) | {' | '.join(names)} |", "|---|" + "---:|" * len(names),
             f"| seconds, best of {len(lo['seconds']['one thread'])} | "
             + " | ".join(f"{best[k]:.2f}" for k in names) + " |",
             "| objects per second | " + " | ".join(f"{n / best[k]:.0f}" for k in names) + " |",
             "| over one thread | " + " | ".join(f"{best[k] / best['one thread']:.3f}" for k in names) + " |"]
-    return "\n".join(rows) + (f"\n\ncanvas_threads / one thread: **{lo['new_over_one_thread']:.3f}**; the same "
-                              f"canvases: {lo['same_canvases']}")
+    ref, new = min(rs["seconds"]["reference"]), min(rs["seconds"]["batched"])
+    return "\n".join(rows) + (f"\n\nthe same canvases on every thread count: {lo['same_canvases']}\n"
+                              f"resampling alone: the batched op {new:.2f} s, the per-object reference {ref:.2f} s: "
+                              f"**{rs['batched_over_reference']:.3f}x**; the same canvases: {rs['same_canvases']}")
 
 
 def run_evaluation(data: Path, recon: Path, out: Path, category: str) -> dict:
@@ -1220,7 +1255,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--skip-carve", action="store_true", help="no carving comparison (the end-to-end run alone)")
     ap.add_argument("--eval", action="store_true", help="also evaluate shape errors against gt.json")
     ap.add_argument("--load-only", action="store_true",
-                    help="loading alone: the canvases on one thread against canvas_threads, best of --repeat "
+                    help="loading alone on one thread (and --load-threads), then the canvases' resampling by the "
+                         "batched op against the per-object reference, best of --repeat "
                          "(record key loading_<device>_<objects>)")
     ap.add_argument("--load-threads", type=int, nargs="+", default=None, metavar="N",
                     help="with --load-only: also time the loading on each of these thread counts")

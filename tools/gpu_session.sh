@@ -27,9 +27,10 @@
 #
 # Steps outside the plan (no limit when run alone; H200 times: 16 slow cores, torch 2.11.0+cu130):
 #   mesher2000   2,000 objects end to end, mesher=auto against mesher=skimage (H100: 1.163x, the writers kept up)
-#   loading2000  2,000 objects loaded on one thread and on canvas_threads (H100: 16 threads 1.189x one)
+#   loading2000  2,000 objects loaded; the canvases' resampling: the batched op against the per-object reference
+#                (the 2 CPU cores: 0.467x at 9,087 objects)
 #   bench1000    tools/benchmark.py --device cuda --objects 1000, the carving comparison included
-#   bench9087    the 9,087-object class: its loading on one thread and on canvas_threads (--load-only), then
+#   bench9087    the 9,087-object class: its loading (--load-only, as loading2000), then
 #                mesher=auto and mesher=skimage end to end (H200: 54 s for auto, skimage stopped at 85 s)
 #   manyclasses  the 12 many-class classes: viewpoint_processes=12 (their viewpoints at once, in CPU
 #                processes), viewpoints.device=run (on CUDA: did not finish in 110 s on the H200), then the
@@ -75,8 +76,8 @@ describe() {  # STEP: one line on what it runs
                          "${MESHER_AUTO_S} s) against mesher=skimage (the writers mesh; the rest); the batched op" \
                          "against scikit-image on 100 of the run's grids (H200, 9,087 objects: 54 s for auto," \
                          "skimage unfinished at 85 s)" ;;
-        loading2000) echo "(outside the plan since the H100's run) the 2,000-object class loaded with its canvases on one thread and on canvas_threads," \
-                          "best of 2" ;;
+        loading2000) echo "the 2,000-object class loaded, best of 2; the resampling of its canvases by the batched" \
+                          "op against the per-object reference" ;;
         many4) echo "the many-class benchmark on ${MANY4_CLASSES//,/, } (4 of 12): viewpoints.device=run (the" \
                     "viewpoints on CUDA; at most ${MANY_RUN_S} s, unfinished at 47 s on the H100) against the" \
                     "default, auto (these small classes' viewpoints on the CPU)" ;;
@@ -391,7 +392,7 @@ bench() {  # objects, extra arguments
     return "${PIPESTATUS[0]}"
 }
 
-bench_pair() {  # the 9,087-object class: loading on one thread and on canvas_threads; the GPU meshing (default)
+bench_pair() {  # the 9,087-object class: loading and its resampling (as loading2000); the GPU meshing (default)
     local n=9087  # and the writers' meshing, one after the other
     "$py" tools/benchmark.py --objects $n --load-only --repeat 3 --out "$out/loading_$n.json" 2>&1 \
         | tee "$out/loading_$n.txt" || return 1
@@ -418,16 +419,16 @@ mesher_pair() {  # OBJECTS SHARE GRIDS: mesher=auto (at most SHARE s; 0: no shar
     return "$rc"
 }
 
-loading() {  # the 2,000-object class loaded with its canvases on one thread and on canvas_threads
+loading() {  # the 2,000-object class loaded; its canvases resampled by the batched op and the per-object reference
     timed loading2000 "$(part_limit 0 0)" "$py" tools/benchmark.py --device cuda --objects 2000 --load-only \
         --repeat 2 --out "$out/loading2000.json" || return 1
-    local r one new
-    r=$(jval "$out/loading2000.json" loading.new_over_one_thread)
+    local r one same
+    r=$(jval "$out/loading2000.json" loading.resampling.batched_over_reference)
     one=$(jval "$out/loading2000.json" "loading.best_seconds.one thread")
-    new=$(jval "$out/loading2000.json" loading.best_seconds.canvas_threads)
+    same=$(jval "$out/loading2000.json" loading.resampling.same_canvases)
     if [ -n "$r" ]; then
-        awk -v r="$r" -v a="$new" -v b="$one" 'BEGIN { printf "loading 2000 objects: canvas_threads %.2f s, one " \
-            "thread %.2f s: canvas_threads / one thread %.3f\n", a, b, r }' | tee -a "$out/ratios.txt"
+        awk -v r="$r" -v a="$one" -v s="$same" 'BEGIN { printf "loading 2000 objects: %.2f s; resampling: batched " \
+            "op / per-object reference %.3f (the same canvases: %s)\n", a, r, s }' | tee -a "$out/ratios.txt"
     fi
 }
 

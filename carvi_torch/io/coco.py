@@ -20,7 +20,6 @@ import hashlib
 import json
 import math
 from collections import defaultdict
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -29,8 +28,8 @@ import numpy as np
 import torch
 from pycocotools import mask as mask_utils
 
-from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvas
-from ..runtime import cores, os_error_line, torch_threads, watch_interrupts
+from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvases
+from ..runtime import os_error_line, torch_threads, watch_interrupts
 from .layout import reserved
 from .outputs import read_json, safe_name, write_json
 
@@ -388,7 +387,7 @@ def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[
 
 def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, device: str | torch.device = "cpu",
               classes: Iterable[str] | None = None, skip_flags: bool = True,
-              max_image_pixels: int = MAX_IMAGE_PIXELS, threads: int | None = None) -> LoadResult:
+              max_image_pixels: int = MAX_IMAGE_PIXELS, threads: int = 1) -> LoadResult:
     """Read a COCO keypoint file into one :class:`ClassCollection` per category.
 
     Args:
@@ -398,8 +397,10 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
         classes: keep only these categories (by name, or by their folder name ``ClassMeta.key``).
         skip_flags: skip annotations flagged ``occluded`` / ``truncated`` / ``iscrowd``.
         max_image_pixels: skip objects whose image has more pixels (their mask would not fit in memory).
-        threads: threads that resample the masks into the canvases, an object each at a time (default
-            :func:`canvas_threads`); the canvases are the same for any number.
+        threads: threads that resample the masks into the canvases, an object each at a time; the canvases
+            are the same for any number. The work holds the interpreter's lock for much of each object, so
+            one thread is the fastest (9,087 objects on 2 cores: 2.89 s on one, 3.22 on 2, 3.51 on 4;
+            docs/benchmarks.md, record ``loading_cpu_9087``).
 
     Returns:
         :class:`LoadResult`, collections keyed by ``ClassMeta.key`` (two categories of one name are two
@@ -425,8 +426,7 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
             if item is not None:
                 per_class[item[0]].append(item[1:])
     by_key = {key: meta for key, meta in metas.values() if meta is not None}
-    collections = {key: _build_collection(by_key[key], items, canvas_size, margin, torch.device(device),
-                                          canvas_threads(len(items)) if threads is None else threads)
+    collections = {key: _build_collection(by_key[key], items, canvas_size, margin, torch.device(device), threads)
                    for key, items in per_class.items()}
     return LoadResult(collections=collections, problems=problems, dataset=data)
 
@@ -645,20 +645,6 @@ def _dense(values: list) -> torch.Tensor:
     return torch.tensor([index.setdefault(v, len(index)) for v in values], dtype=torch.long)
 
 
-def canvas_threads(objects: int) -> int:
-    """Threads that resample a class's masks into its canvases, one object each at a time: the cores, at
-    most 2 and at most one per object. The work holds the interpreter's lock for much of each object, so more
-    threads cost more than they give: 9,087 objects on 2 cores took 4.62 s on 2 threads, 5.34 on 4, 6.54 on
-    16 and 5.82 on one; 2,000 on an H100 host's 16 cores took 2.44 s on 16 threads against 2.05 on one
-    (docs/benchmarks.md, records ``loading_cpu_9087`` and ``loading_cuda_2000_h100``).
-
-    Example:
-        >>> canvas_threads(1), canvas_threads(5000) <= 2
-        (1, True)
-    """
-    return max(1, min(2, cores(), objects))
-
-
 def input_fingerprints(meta: ClassMeta, items: list) -> list[str]:
     """One hash per object of everything of its own that its reconstruction is made from: the class's
     definition (name, category id, keypoint names, flip pairs, rigid keypoints, symmetry, articulation,
@@ -703,16 +689,11 @@ def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: fl
         boxes.append([xs[0], ys[0], xs[-1], ys[-1]])
     sim = canvas_similarity(torch.tensor(boxes, dtype=torch.float32), canvas_size, margin)
 
-    scales, offsets = sim.scale.tolist(), sim.offset.tolist()  # host floats, read once
-
-    def canvas(i: int) -> torch.Tensor:
-        return resample_to_canvas(torch.from_numpy(items[i][2]), scales[i], offsets[i], canvas_size)
-
     # a few small operations per object: intra-op threads only add their synchronisation (on a busy
-    # 2-core machine 584 objects took 33 s with 2 threads, 2.2 s with 1); objects side by side on
-    # threads of their own do not (torch's operators release the GIL). Same values either way.
-    with torch_threads(1), ThreadPoolExecutor(max(1, threads)) as pool:
-        masks = torch.stack(list(pool.map(canvas, range(len(items)))))
+    # 2-core machine 584 objects took 33 s with 2 threads, 2.2 s with 1). Same values either way.
+    with torch_threads(1):
+        masks = resample_to_canvases([torch.from_numpy(it[2]) for it in items], sim.scale, sim.offset,
+                                     canvas_size, threads)
     xy = torch.tensor(np.stack([it[3] for it in items]), dtype=torch.float32)
     vis = torch.tensor(np.stack([it[4] for it in items]), dtype=torch.bool)
     kp = torch.where(vis[..., None], sim.apply(xy), torch.zeros_like(xy))
