@@ -261,15 +261,19 @@ def _orient_and_map(mc: MarchingCubes, voxel_to_camera: torch.Tensor) -> tuple[t
     return cam, faces
 
 
-def occupancy_to_meshes(occupancy: torch.Tensor, voxel_to_camera: torch.Tensor) -> list[tuple[np.ndarray, np.ndarray]]:
+def occupancy_to_meshes(occupancy: torch.Tensor, voxel_to_camera: torch.Tensor, *,
+                        vertex_dtype: torch.dtype = torch.float64,
+                        face_dtype: torch.dtype = torch.int64) -> list[tuple[np.ndarray, np.ndarray]]:
     """Closed surfaces of a batch of grids in their camera frames: :func:`~carvi_torch.mesh.occupancy_to_mesh`
     for every grid at once, on the grids' device.
 
     Args:
         occupancy: ``(B, D, H, W)`` bool; voxel_to_camera: ``(B, 4, 4)`` float, ``(d, h, w, 1) -> (x, y, z, 1)``.
+        vertex_dtype, face_dtype: the returned arrays' types, cast on the device (computed in float64 and
+            int64): a PLY file's float32 and int32 copy half the bytes to the host and none there.
 
     Returns:
-        Per grid ``(vertices (V, 3) float64, faces (F, 3) int64)`` numpy arrays (host), faces
+        Per grid ``(vertices (V, 3), faces (F, 3))`` numpy arrays (host) of those types, faces
         outward; a grid without surface gives ``(0, 3)`` arrays.
 
     Example:
@@ -284,8 +288,8 @@ def occupancy_to_meshes(occupancy: torch.Tensor, voxel_to_camera: torch.Tensor) 
     cam, faces = _orient_and_map(mc, voxel_to_camera)
     starts = torch.cumsum(mc.vertex_counts, 0) - mc.vertex_counts
     faces = faces - starts.repeat_interleave(mc.face_counts)[:, None]
-    vs = cam.cpu().numpy()
-    fs = faces.cpu().numpy()
+    vs = cam.to(vertex_dtype).cpu().numpy()
+    fs = faces.to(face_dtype).cpu().numpy()
     vc, fc = mc.vertex_counts.tolist(), mc.face_counts.tolist()
     vo, fo = np.cumsum([0] + vc), np.cumsum([0] + fc)
     return [(vs[vo[i]:vo[i + 1]], fs[fo[i]:fo[i + 1]]) for i in range(len(vc))]

@@ -60,6 +60,18 @@ def test_random_grids_match_scikit_image(shape, density, generator):
     assert meshes[2][0].shape == (0, 3) and meshes[2][1].shape == (0, 3)
 
 
+def test_types_cast_on_the_device_are_the_host_casts(generator):
+    """``vertex_dtype``/``face_dtype`` (a PLY file's float32 and int32): the float64 / int64 meshes cast, value for
+    value, with the types asked for."""
+    occ = torch.rand(4, 9, 8, 10, generator=generator) < 0.4
+    T = random_affine(generator, 4)
+    wide = occupancy_to_meshes(occ, T)
+    narrow = occupancy_to_meshes(occ, T, vertex_dtype=torch.float32, face_dtype=torch.int32)
+    for (v, f), (v32, f32) in zip(wide, narrow):
+        assert v.dtype == np.float64 and f.dtype == np.int64 and v32.dtype == np.float32 and f32.dtype == np.int32
+        assert len(v) > 0 and np.array_equal(v.astype(np.float32), v32) and np.array_equal(f, f32)
+
+
 def test_every_cube_pattern_matches_scikit_image():
     """All 256 corner patterns, each alone in its own grid (and in one batch)."""
     occ = torch.zeros(256, 2, 2, 2, dtype=torch.bool)

@@ -114,9 +114,10 @@ def mesh_jobs(occupancy: torch.Tensor, host: torch.Tensor, jobs: list[dict], lar
             job["occupancy"], job["largest_component"] = o, False
         occ = torch.from_numpy(kept).to(occupancy.device)
     v2img = torch.from_numpy(np.stack([job["voxel_to_image"] for job in jobs]))
-    vertex_type = np.float32 if mesh_format == "ply" else np.float64
-    for job, (verts, faces) in zip(jobs, occupancy_to_meshes(occ, v2img)):
-        job["mesh_vertices"], job["mesh_faces"] = verts.astype(vertex_type), faces.astype(np.int32)
+    vertex_type = torch.float32 if mesh_format == "ply" else torch.float64
+    for job, (verts, faces) in zip(jobs, occupancy_to_meshes(occ, v2img, vertex_dtype=vertex_type,
+                                                              face_dtype=torch.int32)):
+        job["mesh_vertices"], job["mesh_faces"] = verts, faces
 
 
 class Writer:
