@@ -283,11 +283,26 @@ def stable_hash(name: str) -> int:
     return zlib.crc32(name.encode()) % (2 ** 31)
 
 
-def intra_op_threads(workers: int) -> int:
-    """Intra-op threads of this process during a run: ``CARVI_THREADS`` if set, else the CPU
-    cores left to it beside ``workers`` writer processes (at least one)."""
+def intra_op_threads(workers: int, device="cpu") -> int:
+    """Intra-op threads of this process during a run: ``CARVI_THREADS`` if set; else, on the CPU, the cores
+    less half the ``workers`` writer processes' count; on a GPU, the cores less the writers (at least one).
+
+    On the CPU the writers need about a quarter of the main process's CPU time (meshing and writing 12.6 s
+    against 56 s for 1,000 cars on 2 cores), so their processes share the cores the carving and the selection's
+    kernels use: on 2 cores, 2 threads beside the one writer take 0.77x the time of one thread
+    (docs/benchmarks.md, records ``benchmark_cpu_1000_today`` and ``benchmark_cpu_1000_one_thread``). On a
+    GPU the main process mostly launches kernels and the writers limit the run.
+
+    Example:
+        >>> import os; os.environ.pop("CARVI_THREADS", None) and None
+        >>> intra_op_threads(1) >= intra_op_threads(1, "cuda") >= 1
+        True
+    """
     env = env_count("CARVI_THREADS", 1)
-    return env if env is not None else max(1, cores() - workers)
+    if env is not None:
+        return env
+    gpu = str(device).split(":")[0] != "cpu"  # a str or a torch.device (torch is not imported here)
+    return max(1, cores() - (workers if gpu else workers // 2))
 
 
 def to_device(obj, device, _memo: dict | None = None):

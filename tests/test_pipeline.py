@@ -511,7 +511,13 @@ def test_writer_and_thread_rules(monkeypatch):
     assert writer_workers() == min(8, max(1, cores - 1))
     assert writer_workers("all", torch.device("cpu")) == min(8, max(1, cores - 1))
     assert writer_workers("all", torch.device("cuda")) == min(16, max(1, cores - 1))  # no device needed
-    assert intra_op_threads(writer_workers()) == max(1, cores - writer_workers())
+    # the CPU: the cores less half the writers (who need about a quarter of the main process's CPU time);
+    # a GPU: the cores less the writers
+    assert intra_op_threads(writer_workers()) == max(1, cores - writer_workers() // 2)
+    monkeypatch.setattr("carvi_torch.runtime.cores", lambda: 2)
+    assert [intra_op_threads(1), intra_op_threads(1, torch.device("cuda")), intra_op_threads(1, "cuda:0")] == [2, 1, 1]
+    monkeypatch.setattr("carvi_torch.runtime.cores", lambda: 16)
+    assert [intra_op_threads(8), intra_op_threads(15, "cuda"), intra_op_threads(0, "cpu")] == [12, 1, 16]
     monkeypatch.setenv("CARVI_THREADS", "many")
     with pytest.raises(ValueError, match="CARVI_THREADS"):
         intra_op_threads(1)

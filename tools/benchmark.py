@@ -700,7 +700,7 @@ def _spread(ratios: list[float]) -> dict:
 
 def carve_and_select(data: Path, args, device: torch.device) -> dict:
     """Timings of the carving backends, the loop ladder, the floors and the selection on the run's proposals."""
-    torch.set_num_threads(args.threads or intra_op_threads(writer_workers("all", device)))
+    torch.set_num_threads(args.threads or intra_op_threads(writer_workers("all", device), device))
     bench = _CarvingBench(data, args, device)
     bench.reference_grids()
     bench.time_variants()
@@ -1225,7 +1225,7 @@ def default_key(device: torch.device, args) -> str:
     if getattr(args, "load_only", False):
         return f"loading_{device.type}_{args.objects}"
     if args.skip_e2e and not args.skip_carve:
-        threads = args.threads or intra_op_threads(writer_workers("all", device))
+        threads = args.threads or intra_op_threads(writer_workers("all", device), device)
         return f"carving_{device.type}_threads{threads}"
     return f"benchmark_{device.type}_{args.objects}"
 

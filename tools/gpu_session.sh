@@ -25,10 +25,11 @@
 # A step of the plan runs alone under its own limit too. Inside it each run gets a share (`timeout`): a run
 # stopped at its share leaves the other's time and still gives a bound on the ratio ("new / old < x").
 #
+# In the plan, loading2000: 2,000 objects loaded; the canvases' resampling by the batched op against the
+# per-object reference (the 2 CPU cores: 0.467x at 9,087 objects).
+#
 # Steps outside the plan (no limit when run alone; H200 times: 16 slow cores, torch 2.11.0+cu130):
 #   mesher2000   2,000 objects end to end, mesher=auto against mesher=skimage (H100: 1.163x, the writers kept up)
-#   loading2000  2,000 objects loaded; the canvases' resampling: the batched op against the per-object reference
-#                (the 2 CPU cores: 0.467x at 9,087 objects)
 #   bench1000    tools/benchmark.py --device cuda --objects 1000, the carving comparison included
 #   bench9087    the 9,087-object class: its loading (--load-only, as loading2000), then
 #                mesher=auto and mesher=skimage end to end (H200: 54 s for auto, skimage stopped at 85 s)
@@ -51,7 +52,7 @@ set -uo pipefail
 
 # ---- the plan: what `all` and `lease` run, set from the H200's times (docs/benchmarks.md) ----------------------
 BUDGET=470          # seconds the plan's limits may add up to: the 8 minutes, less 10 s of setup and packing
-PLAN="tests:130 e2e9087:100 many4:80 cad5:150"
+PLAN="tests:130 e2e9087:80 loading2000:20 many4:80 cad5:150"
 MESHER_AUTO_S=45    # mesher2000: the mesher=auto run's share; mesher=skimage gets the rest
 MANY_RUN_S=${MANY_RUN_S:-35}  # many4: the viewpoints.device=run run's share (CUDA; stopped there on the H100); the default the rest
 MANY_ALL_S=${MANY_ALL_S:-45}  # manyclasses: each variant's share; the default run gets the rest

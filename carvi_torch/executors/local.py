@@ -43,7 +43,7 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
         with log_to_file(setup.out / "run.log"):
             announce(setup)
             writer = Writer(writer_workers(cfg.stage, setup.device) if workers is None else workers)
-            n = intra_op_threads(writer.workers) if threads is None else max(1, int(threads))
+            n = intra_op_threads(writer.workers, setup.device) if threads is None else max(1, int(threads))
             setup.summary["torch_threads"] = n
             setup.summary["executor"] = local_record(len(setup.loaded.collections))
             try:
