@@ -193,7 +193,7 @@ def canvas_supersample(scale: float) -> int:
 
 def resample_to_canvases(masks: Sequence[torch.Tensor], scale: torch.Tensor, offset: torch.Tensor,
                          canvas_size: int, threads: int = 1) -> torch.Tensor:
-    """:func:`resample_to_canvas` of many masks, bit for bit, at a third of its time and less.
+    """:func:`resample_to_canvas` of many masks, bit for bit, in under half its time.
 
     The sample positions of all objects are computed at once, each object's sub-samples are laid out
     sub-sample-major (``(k, C, k, C)``: contiguous blocks) and summed in the order the reference's mean
@@ -257,7 +257,8 @@ def _resample_one(mask: torch.Tensor, gx: torch.Tensor, gy: torch.Tensor, k: int
     """One canvas from its sub-sample-major axes (:func:`_sample_axes`)."""
     n = len(gx)
     grid = torch.stack((gx.expand(n, n), gy[:, None].expand(n, n)), dim=-1)[None]  # (1, kC, kC, 2) (x, y)
-    image = mask.view(torch.uint8)[None, None].float()  # the same 0 and 1 as from bool, in a fifth of the time
+    # a bool mask read as bytes: the same 0 and 1 as bool -> float, in a fifth of the time
+    image = (mask.view(torch.uint8) if mask.dtype == torch.bool else mask)[None, None].float()
     s = F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[0, 0]
     if k == 1:
         return s >= 0.5

@@ -84,6 +84,13 @@ class TestResampleToCanvases:
         ref[4:10, 6:19] = True
         assert torch.equal(got, ref)
 
+    def test_masks_of_other_types_as_the_reference_reads_them(self):
+        masks, scale, offset = self._cases(6, seed=1)
+        as_bytes = [m.to(torch.uint8) for m in masks]
+        got = resample_to_canvases(as_bytes, scale, offset, 24)
+        ref = torch.stack([resample_to_canvas(m, a, b, 24) for m, a, b in zip(as_bytes, scale.tolist(), offset)])
+        assert torch.equal(got, ref) and torch.equal(got, resample_to_canvases(masks, scale, offset, 24))
+
     def test_empty_and_mismatched(self):
         assert resample_to_canvases([], torch.zeros(0), torch.zeros(0, 2), 8).shape == (0, 8, 8)
         with pytest.raises(ValueError, match="2 masks"):
