@@ -85,10 +85,11 @@ class TestResampleToCanvases:
         assert torch.equal(got, ref)
 
     def test_masks_of_other_types_as_the_reference_reads_them(self):
+        """A float mask is read as its values, as the reference reads it (not viewed as bytes)."""
         masks, scale, offset = self._cases(6, seed=1)
-        as_bytes = [m.to(torch.uint8) for m in masks]
-        got = resample_to_canvases(as_bytes, scale, offset, 24)
-        ref = torch.stack([resample_to_canvas(m, a, b, 24) for m, a, b in zip(as_bytes, scale.tolist(), offset)])
+        as_floats = [m.float() for m in masks]
+        got = resample_to_canvases(as_floats, scale, offset, 24)
+        ref = torch.stack([resample_to_canvas(m, a, b, 24) for m, a, b in zip(as_floats, scale.tolist(), offset)])
         assert torch.equal(got, ref) and torch.equal(got, resample_to_canvases(masks, scale, offset, 24))
 
     def test_empty_and_mismatched(self):
