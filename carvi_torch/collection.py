@@ -159,7 +159,7 @@ def resample_to_canvas(mask: torch.Tensor, scale: float, offset, canvas_size: in
         mask: ``(h, w)`` bool image mask.
         scale: ``a``; offset: ``b``, a ``(2,)`` tensor or two floats.
         canvas_size: ``C``.
-        supersample: sub-samples per axis; default ``ceil(1 / a)`` clamped to [1, 4].
+        supersample: sub-samples per axis; default ``round(1 / a)`` clamped to [1, 4] (:func:`canvas_supersample`).
 
     Returns:
         ``(C, C)`` bool.
@@ -193,7 +193,8 @@ def canvas_supersample(scale: float) -> int:
 
 def resample_to_canvases(masks: Sequence[torch.Tensor], scale: torch.Tensor, offset: torch.Tensor,
                          canvas_size: int, threads: int = 1) -> torch.Tensor:
-    """:func:`resample_to_canvas` of many masks, bit for bit, in under half its time.
+    """:func:`resample_to_canvas` of many masks, in under half its time: bit for bit on the CPU (what loading
+    passes); on a GPU to float rounding (CUDA divides by a Python number through its reciprocal).
 
     The sample positions of all objects are computed at once, each object's sub-samples are laid out
     sub-sample-major (``(k, C, k, C)``: contiguous blocks) and summed in the order the reference's mean
@@ -203,7 +204,8 @@ def resample_to_canvases(masks: Sequence[torch.Tensor], scale: torch.Tensor, off
         masks: ``N`` image masks ``(h_i, w_i)`` bool, on the CPU or one device.
         scale: ``(N,)``; offset: ``(N, 2)``: the image-to-canvas similarities (:func:`canvas_similarity`).
         canvas_size: ``C``.
-        threads: objects resampled side by side (torch's operators release the interpreter's lock).
+        threads: objects resampled side by side; the same canvases for any number (one is the fastest:
+            much of each object holds the interpreter's lock).
 
     Returns:
         ``(N, C, C)`` bool on the masks' device.
@@ -257,8 +259,9 @@ def _resample_one(mask: torch.Tensor, gx: torch.Tensor, gy: torch.Tensor, k: int
     """One canvas from its sub-sample-major axes (:func:`_sample_axes`)."""
     n = len(gx)
     grid = torch.stack((gx.expand(n, n), gy[:, None].expand(n, n)), dim=-1)[None]  # (1, kC, kC, 2) (x, y)
-    # a bool mask read as bytes: the same 0 and 1 as bool -> float, in a fifth of the time
-    image = (mask.view(torch.uint8) if mask.dtype == torch.bool else mask)[None, None].float()
+    # a bool mask read as bytes, clamped to 1 (a bool tensor made from foreign bytes may hold 2 or 255): the
+    # same 0 and 1 as bool -> float, in a fraction of the time
+    image = (mask.view(torch.uint8).clamp(max=1) if mask.dtype == torch.bool else mask)[None, None].float()
     s = F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[0, 0]
     if k == 1:
         return s >= 0.5

@@ -287,21 +287,24 @@ def intra_op_threads(workers: int, device="cpu") -> int:
     """Intra-op threads of this process during a run: ``CARVI_THREADS`` if set; else, on the CPU, the cores
     less half the ``workers`` writer processes' count; on a GPU, the cores less the writers (at least one).
 
-    On the CPU the writers need about a quarter of the main process's CPU time (meshing and writing 12.6 s
-    against 56 s for 1,000 cars on 2 cores), so their processes share the cores the carving and the selection's
-    kernels use: on 2 cores, 2 threads beside the one writer take 0.77x the time of one thread
-    (docs/benchmarks.md, records ``benchmark_cpu_1000_today`` and ``benchmark_cpu_1000_one_thread``). On a
-    GPU the main process mostly launches kernels and the writers limit the run.
+    On the CPU the writers need about a quarter of the main process's CPU time (meshing and writing 13.6 s
+    against 55.9 s for 1,000 cars on 2 cores, one thread), so their processes share the cores the carving and
+    the selection's kernels use: on 2 cores, 2 threads beside the one writer take 0.786x the time of one thread
+    (docs/benchmarks.md, records ``benchmark_cpu_1000_today`` and ``benchmark_cpu_1000_one_thread``). Only that
+    case is measured; on 16 cores the rule gives 12 threads beside 8 writers. On a GPU the main process
+    mostly launches kernels and the writers limit the run. ``device``: a str or a torch.device (``None``: the CPU).
 
     Example:
-        >>> import os; os.environ.pop("CARVI_THREADS", None) and None
-        >>> intra_op_threads(1) >= intra_op_threads(1, "cuda") >= 1
-        True
+        >>> from unittest import mock
+        >>> with mock.patch.dict(os.environ, {}, clear=False), mock.patch(__name__ + ".cores", lambda: 16):
+        ...     _ = os.environ.pop("CARVI_THREADS", None)
+        ...     intra_op_threads(8), intra_op_threads(15, "cuda:1"), intra_op_threads(1, None)
+        (12, 1, 16)
     """
     env = env_count("CARVI_THREADS", 1)
     if env is not None:
         return env
-    gpu = str(device).split(":")[0] != "cpu"  # a str or a torch.device (torch is not imported here)
+    gpu = device is not None and str(device).split(":")[0].lower() != "cpu"  # torch is not imported here
     return max(1, cores() - (workers if gpu else workers // 2))
 
 

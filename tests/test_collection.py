@@ -92,6 +92,16 @@ class TestResampleToCanvases:
         ref = torch.stack([resample_to_canvas(m, a, b, 24) for m, a, b in zip(as_floats, scale.tolist(), offset)])
         assert torch.equal(got, ref) and torch.equal(got, resample_to_canvases(masks, scale, offset, 24))
 
+    def test_bool_masks_of_foreign_bytes_read_as_ones(self):
+        """A bool tensor over bytes other than 0 and 1 (numpy's ``view(bool)``) gives the clean mask's canvas."""
+        import numpy as np
+
+        raw = (np.random.default_rng(0).random((30, 40)) < 0.5).astype(np.uint8) * 255
+        dirty, clean = torch.from_numpy(raw.view(bool)), torch.from_numpy(raw != 0)
+        scale, offset = torch.tensor([0.5]), torch.tensor([[3.0, 4.0]])
+        got = resample_to_canvases([dirty], scale, offset, 24)[0]
+        assert torch.equal(got, resample_to_canvas(clean, 0.5, [3.0, 4.0], 24))
+
     def test_empty_and_mismatched(self):
         assert resample_to_canvases([], torch.zeros(0), torch.zeros(0, 2), 8).shape == (0, 8, 8)
         with pytest.raises(ValueError, match="2 masks"):

@@ -387,7 +387,7 @@ def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[
 
 def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, device: str | torch.device = "cpu",
               classes: Iterable[str] | None = None, skip_flags: bool = True,
-              max_image_pixels: int = MAX_IMAGE_PIXELS, threads: int = 1) -> LoadResult:
+              max_image_pixels: int = MAX_IMAGE_PIXELS, threads: int | None = 1) -> LoadResult:
     """Read a COCO keypoint file into one :class:`ClassCollection` per category.
 
     Args:
@@ -399,7 +399,7 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
         max_image_pixels: skip objects whose image has more pixels (their mask would not fit in memory).
         threads: threads that resample the masks into the canvases, an object each at a time; the canvases
             are the same for any number. The work holds the interpreter's lock for much of each object, so
-            one thread is the fastest (9,087 objects on 2 cores: 2.89 s on one, 3.22 on 2, 3.51 on 4;
+            one thread (also ``None``) is the fastest (9,087 objects on 2 cores: 2.95 s on one, 3.34 on 2, 3.51 on 4;
             docs/benchmarks.md, record ``loading_cpu_9087``).
 
     Returns:
@@ -426,7 +426,8 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
             if item is not None:
                 per_class[item[0]].append(item[1:])
     by_key = {key: meta for key, meta in metas.values() if meta is not None}
-    collections = {key: _build_collection(by_key[key], items, canvas_size, margin, torch.device(device), threads)
+    collections = {key: _build_collection(by_key[key], items, canvas_size, margin, torch.device(device),
+                                          threads or 1)
                    for key, items in per_class.items()}
     return LoadResult(collections=collections, problems=problems, dataset=data)
 
