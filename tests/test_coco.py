@@ -317,3 +317,26 @@ class TestInterrupts:
         monkeypatch.setattr(coco, "decode_segmentation", decoder)
         with pytest.raises(error):
             load_coco(_dataset(tmp_path, n=2)[0])
+
+
+@pytest.mark.parametrize("size", [128, 64])
+def test_real_aeroplanes_canvases_are_the_per_object_references(shared_data, tmp_path, size):
+    """The VOC aeroplanes (real masks, photos of many sizes): loading's batched canvases are the per-object
+    reference's (``collection.resample_to_canvas``) bit for bit."""
+    from carvi_torch.collection import resample_to_canvas
+    from carvi_torch.io.voc import convert
+
+    ann = tmp_path / "aeroplane.json"
+    convert(shared_data / "pascal_voc_aeroplane" / "keypoints", ann)
+    (coll,) = load_coco(ann, canvas_size=size).collections.values()
+    data = json.loads(ann.read_text())
+    images = {im["id"]: im for im in data["images"]}
+    anns = {a["id"]: a for a in data["annotations"]}
+    sim = coll.canvas_from_image
+    ref = []
+    for i, aid in enumerate(coll.annotation_ids):
+        im = images[anns[aid]["image_id"]]
+        mask = torch.from_numpy(decode_segmentation(anns[aid]["segmentation"], im["height"], im["width"]))
+        ref.append(resample_to_canvas(mask, float(sim.scale[i]), sim.offset[i], size))
+    assert len(ref) > 300 and len({tuple(wh) for wh in coll.image_size.tolist()}) > 10  # photos of many sizes
+    assert torch.equal(coll.masks, torch.stack(ref))

@@ -1138,6 +1138,23 @@ def test_misses_study_scores_the_pipelines_cameras_against_the_true_ones_refined
         assert set(r["energy"]) == {"final", "true", "true_refined", "mirror"}, m
 
 
+def test_benchmark_compares_the_class_folders_byte_for_byte(tmp_path):
+    """``differing_outputs``: the class folders' files (those beside a ``cameras.json``) compared byte for byte;
+    the run's own records ignored; a changed byte, a missing file and an extra file each listed."""
+    bm = load_tool("benchmark", "benchmark_tool")
+    for run in ("a", "b"):
+        for rel, data in {"car/cameras.json": b"{}", "car/voxels/1.npz": b"x1", "car/meshes/1.ply": b"m",
+                          "summary.json": run.encode(), "run.log": run.encode()}.items():
+            (tmp_path / run / rel).parent.mkdir(parents=True, exist_ok=True)
+            (tmp_path / run / rel).write_bytes(data)
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert bm.differing_outputs(a, b) == []
+    (b / "car/voxels/1.npz").write_bytes(b"x2")
+    (b / "car/voxels/2.npz").write_bytes(b"y")
+    (a / "car/meshes/1.ply").unlink()
+    assert bm.differing_outputs(a, b) == ["car/meshes/1.ply", "car/voxels/1.npz", "car/voxels/2.npz"]
+
+
 def test_benchmark_load_only_times_thread_counts_and_the_resampling_on_the_same_canvases(procedural_input, tmp_path):
     """``--load-only``: each thread count timed ``--repeat`` times, taking turns, the canvases compared; the
     resampling alone by the batched op and the per-object reference, both checked against the loaded canvases."""

@@ -606,11 +606,27 @@ def many_classes(args, device: torch.device) -> dict:
     if args.compare_set:
         variants.append(("alt", list(args.compare_set), None))
     runs: dict[str, list] = {v[0]: [] for v in variants}
+    outs = {name: Path(args.work_dir) / f"many_{device.type}_{name}" for name, _, _ in variants}
     for r in range(max(1, args.rounds)):
         for name, sets, path in (variants if r % 2 == 0 else variants[::-1]):
-            out = Path(args.work_dir) / f"many_{device.type}_{name}"
-            runs[name].append(run_many(data, out, args, name, sets, path))
-    return {"data": str(data), "runs": runs, **many_summary(runs)}
+            runs[name].append(run_many(data, outs[name], args, name, sets, path))
+    differ = {name: differing_outputs(outs["new"], out) for name, out in outs.items() if name != "new"}
+    return {"data": str(data), "runs": runs, **many_summary(runs), "differing_files": differ}
+
+
+def differing_outputs(a: Path, b: Path) -> list[str]:
+    """The files of the class folders (those with a ``cameras.json``: the cameras, voxels, meshes; not the run's
+    own records, summary, log, preview or report) that two runs' folders do not hold byte for byte alike,
+    relative paths, sorted; a file one of them lacks counts."""
+    import filecmp
+
+    def files(root: Path) -> set[str]:
+        return {str(p.relative_to(root)) for c in root.glob("*/cameras.json") for p in c.parent.rglob("*")
+                if p.is_file()}
+
+    fa, fb = files(a), files(b)
+    same = fa & fb
+    return sorted((fa ^ fb) | {f for f in same if not filecmp.cmp(a / f, b / f, shallow=False)})
 
 
 def many_summary(runs: dict[str, list]) -> dict:
@@ -652,6 +668,9 @@ def _many_table(m: dict) -> list[str]:
                                     f"{1000 * b['costs']['fits'][key]['per_object']:.1f}")
                 if key in b["costs"]["fits"] else "")
     lines.append("")
+    for k, diff in m.get("differing_files", {}).items():
+        lines.append(f"output files of new and {k}: " + ("the same byte for byte" if not diff else
+                                                           f"{len(diff)} differ (first: {diff[0]})"))
     for k, r in m["new_over"].items():
         for key, what in (("wall_seconds_with_startup", "whole process"), ("total_seconds", "run after loading"),
                           ("cpu_seconds", "CPU seconds of the main process")):
