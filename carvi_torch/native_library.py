@@ -3,7 +3,8 @@
 One shared library holds the package's C++ kernels (``carvi_torch/kernels/``): the fused carving
 (``carve_core.h``, used by :mod:`carvi_torch.carve.native`), the rigid SfM's factorisation loop
 (``sfm_steps.h``, used by :mod:`carvi_torch.viewpoints.factorization`), the keypoint-only camera fit
-(``camera_steps.h``, used by :mod:`carvi_torch.viewpoints.camera_fit`) and the selection's projection onto the
+(``camera_steps.h``, used by :mod:`carvi_torch.viewpoints.camera_fit`), the SfM's joint bundle adjustment
+(``bundle_steps.h``, used by :mod:`carvi_torch.viewpoints.bundle`) and the selection's projection onto the
 principal planes (``splat_planes.h``, used by :mod:`carvi_torch.select`), registered as ``torch.library``
 operators by ``carve_native.cpp``. This module builds, caches and loads it; the stages that use an operator decide
 whether they trust it (the carving runs a self-test first, :func:`carvi_torch.carve.native.available`).
@@ -58,7 +59,8 @@ __all__ = ["library_path", "cache_entry_problem", "load", "library_operators", "
 
 _KERNELS = Path(__file__).resolve().parent / "kernels"
 _SOURCE = _KERNELS / "carve_native.cpp"
-_HEADERS = tuple(_KERNELS / name for name in ("carve_core.h", "sfm_steps.h", "camera_steps.h", "splat_planes.h"))
+_HEADERS = tuple(_KERNELS / name for name in ("carve_core.h", "sfm_steps.h", "camera_steps.h", "bundle_steps.h",
+                                            "splat_planes.h"))
 _FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math",
           "-fno-unsafe-math-optimizations"]
 _BUILD_TIMEOUT_S = 600

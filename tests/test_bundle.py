@@ -8,6 +8,7 @@ import pytest
 import torch
 from scipy.optimize import least_squares
 
+from carvi_torch import native_library
 from carvi_torch.cameras import ScaledOrthographic, axis_angle_to_rotation, random_rotations
 from carvi_torch.config import Config, ConfigError
 from carvi_torch.viewpoints import bundle, class_sfm, sfm
@@ -404,3 +405,117 @@ def test_schur_step_equals_the_dense_damped_solve():
     d = torch.linalg.solve(J.T @ J + torch.diag(torch.cat([Dc.reshape(-1), Dx])), -J.T @ r.reshape(-1))
     torch.testing.assert_close(torch.cat([dc.reshape(-1), dx]), d, rtol=1e-9, atol=1e-12)
     assert float(d.abs().max()) > 1e-3 and bool((dc[4] == 0).all())
+
+
+# --------------------------------------------------------------------------- the compiled kernel
+
+needs_library = pytest.mark.skipif(native_library.library_operators() is None,
+                                   reason=f"no compiled kernel here: {native_library.load()['reason']}")
+
+
+def _both_paths(start, X0, w, vis, **kw):
+    return [joint_bundle_adjust(start, X0, w, vis, native=use, **kw) for use in (False, True)]
+
+
+@needs_library
+@pytest.mark.parametrize("seed, n, k, missing, deg, damping", [
+    (20, 12, 8, 0.0, 5.0, 1e-3),
+    (21, 40, 12, 0.4, 15.0, 1e-3),
+    (22, 96, 10, 0.3, 10.0, 1e-3),
+    (23, 10, 8, 0.3, 60.0, 1e-12),  # a far start with almost no damping: rejected steps and the step bound
+])
+def test_native_matches_the_torch_operators(seed, n, k, missing, deg, damping):
+    """The compiled loop (``bundle_steps.h``) against the torch operators from the same noisy start: the same
+    damped solves and accepted steps, every RMS of the history within 1e-10 relative, cameras (rotations,
+    scales, translations in pixels) and shape within 1e-8: the same float64 steps summed in another order."""
+    cams, X, w, vis, g = problem(seed, n=n, k=k, missing=missing, noise=1.0)
+    w = torch.where(vis[..., None], w, float("nan"))  # hidden entries are read as unseen whatever they hold
+    start, X0 = perturbed(cams, X, g, deg=deg, shape_noise=3.0)
+    ref, nat = _both_paths(start, X0, w, vis, iters=60, tol=1e-9, damping=damping)
+    assert nat.iterations == ref.iterations and nat.converged == ref.converged
+    assert len(nat.history) == len(ref.history) >= 2
+    torch.testing.assert_close(torch.tensor(nat.history), torch.tensor(ref.history), rtol=1e-10, atol=0)
+    for a, b in [(nat.cameras.R, ref.cameras.R), (nat.cameras.s, ref.cameras.s), (nat.cameras.t, ref.cameras.t),
+                 (nat.shape, ref.shape)]:
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-8)
+    if damping < 1e-6:
+        assert nat.iterations > len(nat.history)  # the case does reject steps
+
+
+@needs_library
+def test_native_keeps_float32_and_the_start_with_no_iterations():
+    """A float32 problem comes back in float32 (solved in float64); ``iters=0`` returns the start."""
+    cams, X, w, vis, g = problem(24, n=8, k=6, noise=0.5)
+    start, X0 = perturbed(cams, X, g)
+    s32 = ScaledOrthographic(start.R.float(), start.s.float(), start.t.float())
+    ref, nat = _both_paths(s32, X0.float(), w.float(), vis, iters=30)
+    assert nat.shape.dtype == torch.float32 and nat.cameras.R.dtype == torch.float32
+    torch.testing.assert_close(nat.shape, ref.shape, rtol=0, atol=1e-4)
+    none = joint_bundle_adjust(start, X0, w, vis, iters=0, native=True)
+    assert none.iterations == 0 and none.converged and torch.equal(none.shape, X0) and none.history == []
+
+
+@needs_library
+@pytest.mark.parametrize("change, error", [
+    (lambda a: a.__setitem__(0, a[0].float()), TypeError),
+    (lambda a: a.__setitem__(1, a[1][:-1]), ValueError),
+    (lambda a: a.__setitem__(3, a[3][:, :2].contiguous()), ValueError),
+    (lambda a: a.__setitem__(4, a[4].transpose(0, 1)), ValueError),
+    (lambda a: a.__setitem__(6, -1), ValueError),
+    (lambda a: a.__setitem__(9, 0.0), ValueError),
+])
+def test_native_operator_checks_its_inputs(change, error):
+    """The operator refuses wrong dtypes, shapes, layouts, a negative ``iters`` and a non-positive damping
+    (it reads raw pointers: nothing may reach it that it could read outside of)."""
+    cams, X, w, vis, _ = problem(25, n=5, k=4)
+    args = [cams.R.contiguous(), cams.s.log(), cams.t.contiguous(), X.contiguous(), w.contiguous(), vis.double(),
+            10, 1e-7, 0.0, 1e-3, bundle.MAX_STEP, bundle.MAX_DAMPING, bundle.DIAG_FLOOR]
+    native_library.library_operators().joint_bundle(*args)  # the unchanged arguments run
+    change(args)
+    with pytest.raises(error):
+        native_library.library_operators().joint_bundle(*args)
+
+
+@needs_library
+def test_rigid_sfm_native_polish_matches_the_torch_polish():
+    """``rigid_sfm`` with the joint polish, the compiled factorisation on both sides, the polish compiled or in
+    torch: the same cameras within 1e-7 and the same residuals within 1e-9 px."""
+    cams, X, w, vis, _ = problem(26, n=30, k=10, missing=0.3, noise=0.5)
+    opts = sfm.SfMOptions(max_outer=50, polish_iters=100, planar=False, mirrors=False, polish="joint")
+    calls = []
+    plain = sfm.joint_bundle_adjust
+
+    def polish(*a, native_as=None, **kw):
+        calls.append(kw["native"])
+        return plain(*a, **{**kw, "native": native_as})
+
+    out = []
+    for native in (False, True):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(sfm, "joint_bundle_adjust", lambda *a, **kw: polish(*a, native_as=native, **kw))
+            out.append(sfm.rigid_sfm(w, vis, opts))
+    assert calls and all(calls)  # the SfM asks for the compiled polish by default (SfMOptions.native)
+    torch.testing.assert_close(out[1].cameras.R, out[0].cameras.R, rtol=0, atol=1e-7)
+    torch.testing.assert_close(out[1].residual, out[0].residual, rtol=0, atol=1e-9)
+
+
+@pytest.mark.shared
+@needs_library
+def test_real_aeroplanes_native_polish_matches_torch(shared_data, tmp_path):
+    """The real VOC aeroplanes and mirrors (654 rows, missing keypoints): the joint adjustment from the
+    factorisation's cameras, compiled against torch operators: the same steps, RMS within 1e-9 relative,
+    rotations within 1e-6."""
+    from carvi_torch.io.coco import load_coco
+    from carvi_torch.io.voc import convert
+
+    ann = tmp_path / "aeroplane.json"
+    convert(shared_data / "pascal_voc_aeroplane" / "keypoints", ann)
+    both = load_coco(ann, classes=["aeroplane"]).collections["aeroplane"].with_mirrors()
+    start = class_sfm(both, Config().override({"progress": False}).viewpoints, polish_iters=0)
+    v = start.valid
+    cams = ScaledOrthographic(start.cameras.R[v], start.cameras.s[v], start.cameras.t[v])
+    shape = torch.nan_to_num(start.shape)
+    ref, nat = _both_paths(cams, shape, both.keypoints[v], both.visible[v], iters=20, tol=1e-9)
+    assert nat.iterations == ref.iterations and len(nat.history) == len(ref.history) >= 2
+    torch.testing.assert_close(torch.tensor(nat.history), torch.tensor(ref.history), rtol=1e-9, atol=0)
+    torch.testing.assert_close(nat.cameras.R, ref.cameras.R, rtol=0, atol=1e-6)

@@ -14,6 +14,10 @@
 //   carvi::fit_cameras(Tensor R, Tensor s, Tensor t, Tensor S, Tensor kp, Tensor wv, int max_iters, float tol)
 //                      -> (Tensor R, Tensor s, Tensor t, Tensor E_before, Tensor E, Tensor converged, int iters, bool ok)
 //     (the keypoint-only camera fit, camera_steps.h)
+//   carvi::joint_bundle(Tensor R, Tensor logs, Tensor t, Tensor X, Tensor w, Tensor v, int iters, float tol,
+//                       float floor, float damping, float max_step, float max_damping, float diag_floor)
+//                       -> (Tensor R, Tensor logs, Tensor t, Tensor X, Tensor history, int iterations, bool converged)
+//     (the SfM's joint bundle adjustment, bundle_steps.h; float64)
 //   carvi::splat_planes(Tensor(a!) out, Tensor occ, Tensor Ld, Tensor Lh, Tensor Lw, Tensor rows, int md, int mh,
 //                       int mw, int G) -> ()
 //     (the selection's projection of proposals onto the principal planes, splat_planes.h; grids in parallel)
@@ -43,6 +47,7 @@
 #include "carve_core.h"
 #include "sfm_steps.h"
 #include "camera_steps.h"
+#include "bundle_steps.h"
 #include "splat_planes.h"
 
 #ifndef CARVI_SCHEDULE
@@ -331,6 +336,45 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     return {Ro, so, to, E0, E, conv, iters, ok};
 }
 
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t, bool> joint_bundle(
+    const at::Tensor &R, const at::Tensor &logs, const at::Tensor &t, const at::Tensor &X, const at::Tensor &w,
+    const at::Tensor &v, int64_t iters, double tol, double floor, double damping, double max_step, double max_damping,
+    double diag_floor)
+{
+    check_tensor(R, "R", at::kDouble, 3);
+    check_tensor(logs, "logs", at::kDouble, 1);
+    check_tensor(t, "t", at::kDouble, 2);
+    check_tensor(X, "X", at::kDouble, 2);
+    check_tensor(w, "w", at::kDouble, 3);
+    check_tensor(v, "v", at::kDouble, 2);
+    const int64_t N = R.size(0), K = X.size(0);
+    TORCH_CHECK_VALUE(R.size(1) == 3 && R.size(2) == 3 && logs.size(0) == N && t.size(0) == N && t.size(1) == 2,
+                      "carvi: R, logs, t must be (N, 3, 3), (N,), (N, 2), got ", R.sizes(), ", ", logs.sizes(), ", ",
+                      t.sizes());
+    TORCH_CHECK_VALUE(K >= 1 && X.size(1) == 3 && w.size(0) == N && w.size(1) == K && w.size(2) == 2 &&
+                          v.size(0) == N && v.size(1) == K,
+                      "carvi: X, w, v must be (K, 3), (N, K, 2), (N, K) with K >= 1, got ", X.sizes(), ", ", w.sizes(),
+                      ", ", v.sizes());
+    TORCH_CHECK_VALUE(iters >= 0 && damping > 0.0 && std::isfinite(damping), "carvi: iters must be >= 0 and damping "
+                      "finite and positive, got ", iters, " and ", damping);
+    at::Tensor Ro = at::empty(R.sizes(), R.options()), lo = at::empty(logs.sizes(), logs.options());
+    at::Tensor to = at::empty(t.sizes(), t.options()), Xo = at::empty(X.sizes(), X.options());
+    std::memcpy(Ro.data_ptr(), R.data_ptr(), R.nbytes());
+    std::memcpy(lo.data_ptr(), logs.data_ptr(), logs.nbytes());
+    std::memcpy(to.data_ptr(), t.data_ptr(), t.nbytes());
+    std::memcpy(Xo.data_ptr(), X.data_ptr(), X.nbytes());
+    std::vector<double> history;
+    bool converged = false;
+    const carvi_bundle::Problem p{N, K, w.data_ptr<double>(), v.data_ptr<double>()};
+    const carvi_bundle::Settings cfg{iters, tol, floor, damping, max_step, max_damping, diag_floor};
+    const int64_t it = carvi_bundle::adjust(p, Ro.data_ptr<double>(), lo.data_ptr<double>(), to.data_ptr<double>(),
+                                            Xo.data_ptr<double>(), cfg, history, converged);
+    at::Tensor h = at::empty({(int64_t)history.size()}, R.options());
+    if (!history.empty())
+        std::memcpy(h.data_ptr<double>(), history.data(), sizeof(double) * history.size());
+    return {Ro, lo, to, Xo, h, it, converged};
+}
+
 void splat_planes(const at::Tensor &out, const at::Tensor &occ, const at::Tensor &Ld, const at::Tensor &Lh,
                   const at::Tensor &Lw, const at::Tensor &rows, int64_t md, int64_t mh, int64_t mw, int64_t G)
 {
@@ -386,6 +430,9 @@ TORCH_LIBRARY(CARVI_NS, m)
           "(Tensor, Tensor, Tensor, Tensor, Tensor, int, int)");
     m.def("fit_cameras(Tensor R, Tensor s, Tensor t, Tensor S, Tensor kp, Tensor wv, int max_iters, float tol) -> "
           "(Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, int, bool)");
+    m.def("joint_bundle(Tensor R, Tensor logs, Tensor t, Tensor X, Tensor w, Tensor v, int iters, float tol, "
+          "float floor, float damping, float max_step, float max_damping, float diag_floor) -> "
+          "(Tensor, Tensor, Tensor, Tensor, Tensor, int, bool)");
     m.def("splat_planes(Tensor(a!) out, Tensor occ, Tensor Ld, Tensor Lh, Tensor Lw, Tensor rows, int md, int mh, "
           "int mw, int G) -> ()");
 }
@@ -399,5 +446,6 @@ TORCH_LIBRARY_IMPL(CARVI_NS, CompositeExplicitAutograd, m)
     m.impl("line", &line);
     m.impl("sfm_factorize", &sfm_factorize);
     m.impl("fit_cameras", &fit_cameras);
+    m.impl("joint_bundle", &joint_bundle);
     m.impl("splat_planes", &splat_planes);
 }

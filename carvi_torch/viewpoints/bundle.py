@@ -48,6 +48,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .. import native_library
 from ..cameras import ScaledOrthographic, axis_angle_to_rotation
 
 __all__ = ["BundleResult", "joint_bundle_adjust", "residuals", "jacobians", "MAX_DAMPING", "MAX_STEP"]
@@ -162,6 +163,18 @@ def _apply(R, logs, t, X, dc, dx):
     return axis_angle_to_rotation(dc[:, :3]) @ R, logs + dc[:, 3], t + dc[:, 4:], X + dx
 
 
+def _native_adjust(ops, problem: tuple, dtype: torch.dtype, iters: int, tol: float, floor: float,
+                   damping: float) -> BundleResult:
+    """:func:`joint_bundle_adjust`'s loop in the compiled kernel (``carvi_torch/kernels/bundle_steps.h``): the same
+    steps in float64, its sums in another order. ``problem``: ``R, log s, t, X, w, v`` in float64 (``w`` with
+    non-finite entries zeroed, ``v`` the 0/1 mask)."""
+    R, logs, t, X, w, v = (x.contiguous() for x in problem)
+    R, logs, t, X, hist, it, converged = ops.joint_bundle(R, logs, t, X, w, v, iters, tol, floor, damping, MAX_STEP,
+                                                          MAX_DAMPING, DIAG_FLOOR)
+    cams = ScaledOrthographic(R.to(dtype), logs.exp().to(dtype), t.to(dtype))
+    return BundleResult(cams, X.to(dtype), hist.tolist(), bool(converged), int(it))
+
+
 def _check(cameras: ScaledOrthographic, shape: torch.Tensor, keypoints: torch.Tensor, visible: torch.Tensor,
            iters: int, damping: float):
     """Raise ``ValueError`` for inconsistent shapes, a non-bool mask, non-positive scales, a non-finite start,
@@ -187,7 +200,7 @@ def _check(cameras: ScaledOrthographic, shape: torch.Tensor, keypoints: torch.Te
 
 def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoints: torch.Tensor,
                         visible: torch.Tensor, *, iters: int = 100, tol: float = 1e-7, floor: float = 0.0,
-                        damping: float = 1e-3) -> BundleResult:
+                        damping: float = 1e-3, native: bool = False) -> BundleResult:
     """Joint LM over every camera and the shape (module docstring), the cost never rising.
 
     Args:
@@ -199,6 +212,8 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
         tol: relative change of the RMS residual that stops the run.
         floor: RMS residual (pixels) at or below which the run stops (an exact fit).
         damping: initial Marquardt ``lambda`` (finite, positive).
+        native: on the CPU, run the same steps in the compiled kernel (:func:`_native_adjust`; equal to this
+            code to rounding, not bit for bit); elsewhere, or where the library did not build, this code.
 
     Returns:
         :class:`BundleResult` (in ``shape``'s dtype; the history holds the accepted steps' RMS residuals).
@@ -209,6 +224,8 @@ def joint_bundle_adjust(cameras: ScaledOrthographic, shape: torch.Tensor, keypoi
     w = torch.nan_to_num(keypoints.to(f64))
     R, logs, t, X = cameras.R.to(f64), cameras.s.to(f64).log(), cameras.t.to(f64), shape.to(f64)
     entries = max(2.0 * float(v.sum()), 1.0)
+    if native and (ops := native_library.operators_on(shape.device)) is not None:
+        return _native_adjust(ops, (R, logs, t, X, w, v), shape.dtype, iters, tol, floor, damping)
     r, Y = residuals(R, logs.exp(), t, X, w, v)
     cost = float((r * r).sum())
     history: list[float] = []

@@ -292,7 +292,8 @@ def outside_main_component(seen: torch.Tensor) -> tuple[torch.Tensor, torch.Tens
     return has_i & (li != main), has_k & (lk != main)
 
 
-def bundle_polish(M, t, S, W, vis, *, iters, tol, lm_iters=5, method: PolishMethod = "alternate"):
+def bundle_polish(M, t, S, W, vis, *, iters, tol, lm_iters=5, method: PolishMethod = "alternate",
+                  native: bool = False):
     """Bundle polish of a rigid solution on the visible entries.
 
     ``method="alternate"`` (block coordinate descent) alternates (a) every camera's constrained
@@ -301,8 +302,9 @@ def bundle_polish(M, t, S, W, vis, *, iters, tol, lm_iters=5, method: PolishMeth
     instance's residual) and (b) the shape's exact least-squares solve given the cameras
     (:func:`triangulate`); one round is (a) then (b). ``method="joint"``: Levenberg-Marquardt over every
     camera and the shape at once (:func:`carvi_torch.viewpoints.bundle.joint_bundle_adjust`); one round
-    is one damped solve. Both lower the visible-entry residual, which the factorisation's "unconstrained
-    solve, then project" steps do not guarantee on noisy data. Stops when the RMS residual changes by
+    is one damped solve (``native``: on the CPU, in the compiled kernel, equal to rounding). Both lower the
+    visible-entry residual, which the factorisation's "unconstrained solve, then project" steps do not
+    guarantee on noisy data. Stops when the RMS residual changes by
     less than ``tol`` (relative), reaches the exact-fit floor, or after ``iters`` rounds. Degenerate
     blocks (:func:`_usable_blocks`) sit out and keep theirs.
 
@@ -327,7 +329,7 @@ def bundle_polish(M, t, S, W, vis, *, iters, tol, lm_iters=5, method: PolishMeth
     floor = 1e-5 * float(((W - (W * vis[:, None]).sum(-1, keepdim=True) / vis.sum(-1).clamp(min=1)[:, None, None])
                           .pow(2) * vis[:, None]).sum() / (2 * vis.sum()).clamp(min=1)) ** 0.5
     if method == "joint":
-        res = joint_bundle_adjust(cams, shape, kp, visb, iters=iters, tol=tol, floor=floor)
+        res = joint_bundle_adjust(cams, shape, kp, visb, iters=iters, tol=tol, floor=floor, native=native)
         cams, shape, history, converged = res.cameras, res.shape, res.history, res.converged
     else:
         cams, shape, history, converged = _alternate(cams, shape, kp, visb, iters, tol, floor, lm_iters)
@@ -479,7 +481,7 @@ def _seed_from_originals(Wv, vv, mir: MirrorLayout, M_joint, t_joint, polish_ite
     o = mir.original
     Mo, to, So, hist, _, _ = factorize(Wv[o], vv[o], rank=3, **kw)
     Mo, to, So, ph, _ = bundle_polish(Mo, to, So, Wv[o], vv[o], iters=polish_iters, tol=kw["tol"],
-                                      method=polish_method)
+                                      method=polish_method, native=kw.get("native", False))
     seen = vv[o].sum(0)
     pairs = [(i, j) for i, j in mir.pairs if seen[i] >= 2 and seen[j] >= 2]
     M, t = M_joint.clone(), t_joint.clone()
@@ -498,7 +500,8 @@ def _seed_from_originals(Wv, vv, mir: MirrorLayout, M_joint, t_joint, polish_ite
     cams = ScaledOrthographic(complete_rotation(M / s[:, None, None]), s, t)
     S = triangulate(cams, Wv.transpose(1, 2), vv > 0, min_views=1).T
     S = torch.where(torch.isfinite(S), S, So)
-    M, t, S, ph2, _ = bundle_polish(M, t, S, Wv, vv, iters=polish_iters, tol=kw["tol"], method=polish_method)
+    M, t, S, ph2, _ = bundle_polish(M, t, S, Wv, vv, iters=polish_iters, tol=kw["tol"], method=polish_method,
+                                    native=kw.get("native", False))
     return M, t, S, hist + ph + ph2
 
 
@@ -546,7 +549,7 @@ def _fit(Wv, vv, planar, planar_margin, polish_iters, mirrors: MirrorLayout | No
     kw3 = kw if S_init is None else dict(kw, max_outer=min(kw["max_outer"], WARM_OUTER))
     M, tv, Sc, history, iters, converged = factorize(Wv, vv, rank=3, S_init=S_init, **kw3)
     M, tv, Sc, phist, pconv = bundle_polish(M, tv, Sc, Wv, vv, iters=polish_iters, tol=kw["tol"],
-                                            method=polish_method)
+                                            method=polish_method, native=kw.get("native", False))
     history = history + phist
     converged = pconv if polish_iters > 0 else converged
     if mirrors is not None:
