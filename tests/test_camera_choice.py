@@ -1,7 +1,8 @@
 """Keeping the better of an object's SfM and refined cameras (``viewpoints.choice``).
 
 The scores are checked against independent references: the hull agreement against matplotlib's
-point-in-polygon test of every pixel centre, the keypoint error against a loop over the points;
+point-in-polygon test of every pixel centre and, bit for bit, against scikit-image's polygon fill of scipy's
+hull (``hull_agreement_reference``), the keypoint error against a loop over the points;
 and the choice on constructed cameras whose outcome the rule fixes (``tests/test_pipeline.py`` checks
 the run's cameras against the choice ``cameras.json`` reports).
 """
@@ -13,9 +14,9 @@ import numpy as np
 import pytest
 import torch
 
-from carvi_torch.cameras import ScaledOrthographic, rotation_about_axis
+from carvi_torch.cameras import ScaledOrthographic, random_rotations, rotation_about_axis
 from carvi_torch.viewpoints.choice import (HULL_GAIN, KEYPOINT_GROWTH, box_diagonal, choose_cameras,
-                                           hull_agreement, keypoint_rms)
+                                           hull_agreement, hull_agreement_reference, keypoint_rms)
 
 
 def _cams(R, s, t):
@@ -49,6 +50,54 @@ def test_hull_agreement_matches_a_point_in_polygon_reference(generator):
     with_nan = torch.cat([shape, torch.full((1, 3), math.nan, dtype=torch.float64)])
     assert torch.equal(hull_agreement(with_nan, cams, masks), hull_agreement(shape, cams, masks))
     assert float(hull_agreement(shape[:2], cams[:1], masks[:1])[0]) == 0.0
+
+
+@pytest.mark.parametrize("k, spread, seed", [(3, 20.0, 0), (7, 30.0, 1), (12, 40.0, 2), (15, 90.0, 3), (5, 2.0, 4)])
+def test_hull_agreement_equals_its_reference_pixel_for_pixel(k, spread, seed):
+    """The batched spans against scipy's hull filled by scikit-image (``hull_agreement_reference``): the same
+    IoU, bit for bit, on random shapes and cameras (hulls inside, across and beyond the canvas edge, a hull of
+    a few pixels) and masks of random blobs."""
+    g = torch.Generator().manual_seed(seed)
+    C, M = 64, 40
+    shape = spread * torch.randn(k, 3, generator=g, dtype=torch.float64)
+    cams = _cams(random_rotations(M, g, torch.float64), 0.2 + 0.6 * torch.rand(M, generator=g, dtype=torch.float64),
+                 C * torch.rand(M, 2, generator=g, dtype=torch.float64))
+    yy, xx = torch.meshgrid(torch.arange(C), torch.arange(C), indexing="ij")
+    c = C * torch.rand(M, 2, 1, 1, generator=g)
+    r = C / 6 + C / 3 * torch.rand(M, 1, 1, generator=g)
+    masks = (xx - c[:, 0]) ** 2 + (yy - c[:, 1]) ** 2 <= r ** 2
+    got, ref = hull_agreement(shape, cams, masks), hull_agreement_reference(shape, cams, masks)
+    assert got.dtype == torch.float64 and got.shape == (M,)
+    assert torch.equal(got, ref)
+    assert int((ref > 0).sum()) >= M // 4  # the case is not all empty
+
+
+def test_hull_agreement_of_collinear_points_is_the_references():
+    """Points on one line have no hull: agreement 0, as scipy's hull refusing them gives the reference."""
+    shape = torch.tensor([[0.0, 0, 0], [5, 0, 0], [10, 0, 0], [-4, 0, 0]], dtype=torch.float64)
+    cams = _cams(torch.eye(3)[None].expand(2, 3, 3), [1.0, 2.0], [[16.0, 16.0], [10.0, 20.5]])
+    masks = torch.ones(2, 32, 32, dtype=torch.bool)
+    assert torch.equal(hull_agreement(shape, cams, masks), hull_agreement_reference(shape, cams, masks))
+    assert torch.equal(hull_agreement(shape, cams, masks), torch.zeros(2, dtype=torch.float64))
+
+
+@pytest.mark.shared
+def test_hull_agreement_equals_its_reference_on_the_real_aeroplanes(shared_data, tmp_path):
+    """The real VOC aeroplanes and mirrors (654 masks at the default canvas) under their SfM cameras and mean
+    shape: the batched IoU equals the reference's on every row."""
+    from carvi_torch.config import Config
+    from carvi_torch.io.coco import load_coco
+    from carvi_torch.io.voc import convert
+    from carvi_torch.viewpoints import class_sfm
+
+    ann = tmp_path / "aeroplane.json"
+    convert(shared_data / "pascal_voc_aeroplane" / "keypoints", ann)
+    both = load_coco(ann, classes=["aeroplane"]).collections["aeroplane"].with_mirrors()
+    res = class_sfm(both, Config().override({"progress": False}).viewpoints, polish_iters=0)
+    rows = res.valid.nonzero().squeeze(1)
+    got = hull_agreement(res.shape, res.cameras[rows], both.masks[rows])
+    assert len(rows) > 600 and float(got.median()) > 0.3  # 0.42: eight keypoints outline an aeroplane roughly
+    assert torch.equal(got, hull_agreement_reference(res.shape, res.cameras[rows], both.masks[rows]))
 
 
 def test_keypoint_rms_and_box_diagonal_match_loops(generator):

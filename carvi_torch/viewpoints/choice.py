@@ -50,8 +50,8 @@ import torch
 from ..cameras import ScaledOrthographic
 
 __all__ = ["CameraKeep", "KEYPOINT_GROWTH", "HULL_GAIN", "CLASS_SUSPECT", "TILT_MARGIN_DEG", "UP_MARGIN",
-           "MIN_UP_LENGTH", "CameraChoice", "kept_rows", "hull_agreement", "keypoint_rms", "box_diagonal",
-           "choose_cameras", "class_up", "image_tilt", "tilted"]
+           "MIN_UP_LENGTH", "CameraChoice", "kept_rows", "hull_agreement", "hull_agreement_reference", "keypoint_rms",
+           "box_diagonal", "choose_cameras", "class_up", "image_tilt", "tilted"]
 
 #: Which camera an object with an SfM camera keeps after refinement: ``refined`` (always the refined
 #: one, the paper's), ``class`` (the SfM cameras of a class most of whose refined cameras are suspect)
@@ -93,7 +93,8 @@ class CameraChoice:
 
 
 def _hull_mask(points: np.ndarray, size: int) -> np.ndarray:
-    """``(size, size)`` bool: the pixels whose centres lie in the convex hull of ``points (P, 2)`` (x, y)."""
+    """``(size, size)`` bool: the pixels whose centres lie in the convex hull of ``points (P, 2)`` (x, y), its
+    boundary included (scikit-image's polygon fill); empty for fewer than 3 points or collinear ones."""
     from scipy.spatial import ConvexHull, QhullError
     from skimage.draw import polygon
 
@@ -109,15 +110,9 @@ def _hull_mask(points: np.ndarray, size: int) -> np.ndarray:
     return out
 
 
-def hull_agreement(shape: torch.Tensor, cams: ScaledOrthographic, masks: torch.Tensor) -> torch.Tensor:
-    """Intersection over union of each mask and the convex hull of the projected ``shape``.
-
-    Args:
-        shape: ``(K, 3)`` (NaN rows are left out); cams: ``M`` cameras; masks: ``(M, C, C)`` bool.
-
-    Returns:
-        ``(M,)`` float64 in ``[0, 1]`` (0 where the hull or the union is empty).
-    """
+def hull_agreement_reference(shape: torch.Tensor, cams: ScaledOrthographic, masks: torch.Tensor) -> torch.Tensor:
+    """:func:`hull_agreement` one row at a time: scipy's convex hull filled by scikit-image's polygon (the
+    reference of the batched op; rows of collinear points have no hull and agree 0)."""
     keep = torch.isfinite(shape).all(-1)
     P = cams.project(shape[keep].to(cams.R.dtype)).detach().double().cpu().numpy()  # (M, K', 2)
     m = masks.detach().cpu().numpy()
@@ -127,6 +122,98 @@ def hull_agreement(shape: torch.Tensor, cams: ScaledOrthographic, masks: torch.T
         union = np.count_nonzero(h | m[i])
         out[i] = np.count_nonzero(h & m[i]) / union if union else 0.0
     return torch.from_numpy(out)
+
+
+#: Elements of the largest tensors :func:`hull_agreement` builds at once (rows x pixels, rows x point pairs x points).
+_HULL_CHUNK = 1 << 22
+
+
+def _hull_edges(P: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The point pairs of ``P (M, K, 2)`` that are edges of their row's convex hull: every other point on one
+    side of their line (to 1e-12 of the extent squared: a pair along a nearly straight stretch of the boundary
+    counts too, and does no harm). Returns ``a, b (M, H)`` point indices and ``ok (M, H)`` bool (padding
+    false), ``H`` the most edges of any row."""
+    k = P.shape[1]
+    i, j = torch.triu_indices(k, k, offset=1, device=P.device)
+    d = P[:, j] - P[:, i]  # (M, E, 2)
+    rel = P[:, None] - P[:, i, None]  # (M, E, K, 2)
+    cross = d[..., None, 0] * rel[..., 1] - d[..., None, 1] * rel[..., 0]
+    extent = (P - P[:, :1]).abs().amax((1, 2))
+    eps = (1e-12 * extent * extent)[:, None, None]
+    edge = (cross >= -eps).all(-1) | (cross <= eps).all(-1)  # (M, E)
+    h = max(int(edge.sum(-1).max()), 1)
+    order = torch.sort(edge.to(torch.int8), dim=-1, descending=True, stable=True).indices[:, :h]
+    return i[order], j[order], edge.gather(-1, order)
+
+
+def _hull_spans(P: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """First and last pixel column inside the convex hull of ``P (M, K, 2)`` (x, y; float64) on each pixel row
+    ``y = 0 .. size - 1``: ``(M, size)`` long each, ``first > last`` where the row misses the hull.
+
+    A horizontal line meets the hull in the interval spanned by its crossings of the hull's edges
+    (:func:`_hull_edges`); pixel centres on its boundary are inside, as in scikit-image's polygon fill."""
+    a, b, ok = _hull_edges(P)
+    rows = torch.arange(len(P), device=P.device)[:, None]
+    xa, ya, xb, yb = (v[:, None] for v in (P[rows, a, 0], P[rows, a, 1], P[rows, b, 0], P[rows, b, 1]))  # (M, 1, H)
+    y = torch.arange(size, dtype=P.dtype, device=P.device)[None, :, None]
+    flat = ya == yb
+    x = xa + (y - ya) * (xb - xa) / torch.where(flat, 1.0, yb - ya)
+    meets = (torch.minimum(ya, yb) <= y) & (y <= torch.maximum(ya, yb)) & ok[:, None]
+    inf = torch.tensor(float("inf"), dtype=P.dtype, device=P.device)
+    left = torch.where(meets, torch.where(flat, torch.minimum(xa, xb), x), inf).amin(-1)
+    right = torch.where(meets, torch.where(flat, torch.maximum(xa, xb), x), -inf).amax(-1)
+    first = left.ceil().clamp(0, size).long()
+    last = right.floor().clamp(-1, size - 1).long()
+    return first, last
+
+
+def _flat(P: torch.Tensor) -> torch.Tensor:
+    """``(M,)`` bool: rows of ``P (M, K, 2)`` whose points are collinear (or coincident) to 1e-9 of their extent:
+    scipy's hull refuses them (the reference then agrees 0); they are left to it."""
+    d = P - P[:, :1]
+    cross = d[:, :, None, 0] * d[:, None, :, 1] - d[:, :, None, 1] * d[:, None, :, 0]
+    extent = d.abs().amax((1, 2))
+    return cross.abs().amax((1, 2)) <= 1e-9 * extent * extent
+
+
+def hull_agreement(shape: torch.Tensor, cams: ScaledOrthographic, masks: torch.Tensor) -> torch.Tensor:
+    """Intersection over union of each mask and the convex hull of the projected ``shape``.
+
+    Batched over the rows on the masks' device: each pixel row of the hull is one span of columns
+    (:func:`_hull_spans`). The same counts as
+    :func:`hull_agreement_reference` (scipy's hull, scikit-image's fill) except for a pixel centre within
+    rounding (about 1e-12 pixels) of the hull's boundary.
+
+    Args:
+        shape: ``(K, 3)`` (NaN rows are left out); cams: ``M`` cameras; masks: ``(M, C, C)`` bool.
+
+    Returns:
+        ``(M,)`` float64 on the CPU, in ``[0, 1]`` (0 where the hull or the union is empty).
+    """
+    keep = torch.isfinite(shape).all(-1)
+    out = torch.zeros(len(masks), dtype=torch.float64)
+    if int(keep.sum()) < 3 or len(masks) == 0:
+        return out
+    P = cams.project(shape[keep].to(cams.R.dtype)).detach().to(masks.device, torch.float64)  # (M, K', 2)
+    k, size = P.shape[1], masks.shape[-1]
+    step = max(1, _HULL_CHUNK // (size * max(size, k * k)))
+    for a in range(0, len(masks), step):
+        out[a:a + step] = _span_iou(P[a:a + step], masks[a:a + step]).cpu()
+    flat = _flat(P).cpu()
+    if bool(flat.any()):
+        rows = flat.nonzero().squeeze(1)
+        out[rows] = hull_agreement_reference(shape, cams[rows], masks[rows.to(masks.device)])
+    return out
+
+
+def _span_iou(P: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+    """IoU of ``masks (M, C, C)`` and the hulls of ``P (M, K, 2)`` from the hull's spans per pixel row."""
+    first, last = _hull_spans(P, masks.shape[-1])
+    x = torch.arange(masks.shape[-1], device=masks.device)
+    inside = (x >= first[..., None]) & (x <= last[..., None])  # (M, C, C)
+    inter = (inside & masks).sum((1, 2))
+    union = (last - first + 1).clamp(min=0).sum(-1) + masks.sum((1, 2)) - inter
+    return torch.where(union > 0, inter.double() / union.clamp(min=1).double(), 0.0)
 
 
 def keypoint_rms(shape: torch.Tensor, cams: ScaledOrthographic, keypoints: torch.Tensor,
