@@ -72,6 +72,18 @@ def test_hull_agreement_equals_its_reference_pixel_for_pixel(k, spread, seed):
     assert int((ref > 0).sum()) >= M // 4  # the case is not all empty
 
 
+@pytest.mark.parametrize("order", [(0, 1, 2), (2, 0, 1), (1, 2, 0), (2, 1, 0)])
+def test_hull_agreement_keeps_a_corner_on_a_pixel_centre(order):
+    """A hull corner exactly on a pixel centre (2, 8) is inside whatever the points' order: the crossing at an
+    edge's end is the end itself (computed, it can land one unit in the last place outside and drop the pixel)."""
+    pts = torch.tensor([[14.4, 1.3, 0.0], [8.6, 9.3, 0.0], [2.0, 8.0, 0.0]], dtype=torch.float64)[list(order)]
+    cams = _cams(torch.eye(3)[None], [1.0], [[0.0, 0.0]])
+    masks = torch.ones(1, 16, 16, dtype=torch.bool)
+    ref = hull_agreement_reference(pts, cams, masks)
+    assert float(ref[0]) == 30 / 256
+    assert torch.equal(hull_agreement(pts, cams, masks), ref)
+
+
 def test_hull_agreement_of_collinear_points_is_the_references():
     """Points on one line have no hull: agreement 0, as scipy's hull refusing them gives the reference."""
     shape = torch.tensor([[0.0, 0, 0], [5, 0, 0], [10, 0, 0], [-4, 0, 0]], dtype=torch.float64)

@@ -158,6 +158,7 @@ def _hull_spans(P: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]
     y = torch.arange(size, dtype=P.dtype, device=P.device)[None, :, None]
     flat = ya == yb
     x = xa + (y - ya) * (xb - xa) / torch.where(flat, 1.0, yb - ya)
+    x = torch.where(y == yb, xb, torch.where(y == ya, xa, x))  # an end exactly: a corner on a pixel centre is in
     meets = (torch.minimum(ya, yb) <= y) & (y <= torch.maximum(ya, yb)) & ok[:, None]
     inf = torch.tensor(float("inf"), dtype=P.dtype, device=P.device)
     left = torch.where(meets, torch.where(flat, torch.minimum(xa, xb), x), inf).amin(-1)
@@ -192,11 +193,11 @@ def hull_agreement(shape: torch.Tensor, cams: ScaledOrthographic, masks: torch.T
     """
     keep = torch.isfinite(shape).all(-1)
     out = torch.zeros(len(masks), dtype=torch.float64)
-    if int(keep.sum()) < 3 or len(masks) == 0:
+    if int(keep.sum()) < 3 or len(masks) == 0 or masks.shape[-1] == 0:
         return out
     P = cams.project(shape[keep].to(cams.R.dtype)).detach().to(masks.device, torch.float64)  # (M, K', 2)
     k, size = P.shape[1], masks.shape[-1]
-    step = max(1, _HULL_CHUNK // (size * max(size, k * k)))
+    step = max(1, _HULL_CHUNK // max(size * size, size * k, k ** 3))
     for a in range(0, len(masks), step):
         out[a:a + step] = _span_iou(P[a:a + step], masks[a:a + step]).cpu()
     flat = _flat(P).cpu()
