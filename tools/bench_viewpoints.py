@@ -34,7 +34,7 @@ with mixture" is the one-shape SfM, the fit and that refinement.
                                      [--out PATH] [--key KEY]
 
 ``--profile-mixture DATA`` runs none of that: it profiles the pipeline's mixture fit on a COCO file
-(``reconstruct stage=cameras`` in this process, ``--profile-set`` its overrides, default ``sfm_groups=3``)
+(``reconstruct stage=cameras`` in this process, ``--profile-set`` its overrides, default none: the defaults)
 with timers on the process's CPU clock around the fit's parts: every group's SfM started cold (the first EM
 round) and warm (later rounds), each split into its factorisation
 (:mod:`carvi_torch.viewpoints.factorization`) and bundle polish (:mod:`carvi_torch.viewpoints.sfm`) with the
@@ -49,12 +49,12 @@ profiles the many-class benchmark's renders:
 
 ``--cameras-cpu DATA`` runs none of that either: it times ``reconstruct --data DATA stage=cameras`` as child
 processes, one per variant (``--variants``, each a space-separated list of overrides; default ``sfm_groups=1``
-against ``sfm_groups=3``), ``--rounds`` times (default 2), the variants interleaved (their order reversed every
-other round), and records each run's CPU seconds (user + system of the child and of the processes it waited
+against the default ``sfm_groups``), ``--rounds`` times (default 2), the variants interleaved (their order reversed
+every other round), and records each run's CPU seconds (user + system of the child and of the processes it waited
 for), wall seconds, the 1-minute load average before and after, the groups each class kept and the classes the
-mixture was fitted for (``summary.json``) and a digest of every ``cameras.json`` (the same settings give the
-same cameras in every round); the ratios of every variant's CPU seconds to the first's, per round and of the
-least of each (docs/viewpoints.md, *Cost*):
+mixture was fitted for (``summary.json``) and a digest of every ``cameras.json`` (the same settings give the same
+cameras in every round); the ratios of every variant's CPU seconds to the first's, per round and of the least of
+each (docs/viewpoints.md, *Cost*):
 
     python tools/bench_viewpoints.py --cameras-cpu outputs/bench/data/cad_v8_s0/annotations.json --key cameras_cpu_cad8
 
@@ -407,14 +407,15 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "after the options that differ from the defaults)")
     ap.add_argument("--profile-mixture", metavar="DATA", default=None,
                     help="instead: profile the pipeline's mixture fit on this COCO file (module docstring)")
-    ap.add_argument("--profile-set", nargs="*", default=["sfm_groups=3"], metavar="KEY=VALUE",
-                    help="--profile-mixture: reconstruct overrides (default sfm_groups=3)")
+    ap.add_argument("--profile-set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="--profile-mixture: reconstruct overrides (default none: the defaults)")
     ap.add_argument("--cameras-cpu", metavar="DATA", default=None,
                     help="instead: CPU seconds of reconstruct stage=cameras on this COCO file per --variants, "
                          "interleaved (module docstring)")
-    ap.add_argument("--variants", nargs="+", default=["sfm_groups=1", "sfm_groups=3"], metavar="OVERRIDES",
+    mixture = f"sfm_groups={Config().viewpoints.sfm_groups}"  # the default mixture, named
+    ap.add_argument("--variants", nargs="+", default=["sfm_groups=1", mixture], metavar="OVERRIDES",
                     help="--cameras-cpu: the variants, each a quoted space-separated list of overrides; ratios "
-                         "to the first (default: sfm_groups=1 sfm_groups=3)")
+                         f"to the first (default: sfm_groups=1 {mixture}, the default)")
     ap.add_argument("--rounds", type=int, default=2, help="--cameras-cpu: runs of each variant (default 2)")
     return ap
 
