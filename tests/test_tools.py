@@ -432,11 +432,13 @@ def test_gpu_session_loading_step_writes_the_resampling_ratio(tmp_path: Path):
             "True)") in (out / "ratios.txt").read_text()
 
 
-@pytest.mark.parametrize("step, old_sleep", [("many4", 0), ("many4", 60), ("manyclasses", 0)])
-def test_gpu_session_many_class_steps_write_ratios_or_bounds(tmp_path: Path, step: str, old_sleep: int):
-    """``many4`` (and ``manyclasses``, both variants) in a step of 10 s: the default (``auto``) against
-    ``viewpoints.device=run`` as new / old (4.0 / 8.0), or a bound when the CUDA run is stopped at its share;
-    ``viewpoint_processes`` against the default (3.0 / 4.0)."""
+@pytest.mark.parametrize("step, variants, old_sleep", [("many4", "procs vprun", 0), ("many4", "vprun", 60),
+                                                      ("manyclasses", None, 0), ("many4", None, 0)])
+def test_gpu_session_many_class_steps_write_ratios_or_bounds(tmp_path: Path, step: str, variants, old_sleep: int):
+    """``many4`` (its variants as asked; by default ``procs`` alone) and ``manyclasses`` (both variants) in a step
+    of 10 s: the default (``auto``) against ``viewpoints.device=run`` as new / old (4.0 / 8.0), or a bound when
+    the CUDA run is stopped at its share; ``viewpoint_processes`` (the classes' count, at most 12) against the
+    default (3.0 / 4.0)."""
     import re
 
     fake = tmp_path / "python"
@@ -445,20 +447,28 @@ def test_gpu_session_many_class_steps_write_ratios_or_bounds(tmp_path: Path, ste
     out = tmp_path / "gpu"
     env = dict(os.environ, PYTHON=str(fake), CARVI_GPU_READY="1", FAKE_OLD_SLEEP=str(old_sleep), STEP_SECONDS="10",
                MANY_RUN_S="3", MANY_ALL_S="3")
+    if variants is not None:
+        env["MANY4_VARIANTS"] = variants
     proc = subprocess.run(["bash", str(GPU_SESSION), step, str(out)], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=60)
     ratios = (out / "ratios.txt").read_text()
     assert proc.returncode == (1 if old_sleep else 0), proc.stdout + proc.stderr
-    if old_sleep == 0:
+    vprun = step == "manyclasses" or "vprun" in (variants or "")
+    procs = step == "manyclasses" or "procs" in (variants or "procs")
+    if vprun and old_sleep == 0:
         assert f"{step}_default 4.0 s, {step}_vprun 8.0 s: {step}_default / {step}_vprun 0.500" in ratios, ratios
-    else:
+    elif vprun:
         m = re.search(r"many4_vprun stopped at its (\d+) s limit: many4_default / many4_vprun < ([0-9.]+)", ratios)
         assert m and m.group(1) == "3" and 0 <= float(m.group(2)) < 1, ratios
-    if step == "manyclasses":
-        assert "manyclasses_procs 3.0 s, manyclasses_default 4.0 s: manyclasses_procs / manyclasses_default 0.750" \
-            in ratios, ratios
-        assert "viewpoint_processes=12" in (out / "manyclasses_procs.txt").read_text() + (
-            out / "manyclasses_procs.run").read_text() + proc.stdout
+    else:
+        assert "vprun" not in ratios, ratios
+    if procs:
+        assert f"{step}_procs 3.0 s, {step}_default 4.0 s: {step}_procs / {step}_default 0.750" in ratios, ratios
+        count = 12 if step == "manyclasses" else 4
+        assert f"viewpoint_processes={count}" in (out / f"{step}_procs.txt").read_text() + (
+            out / f"{step}_procs.run").read_text() + proc.stdout
+    else:
+        assert "procs" not in ratios, ratios
 
 
 def test_gpu_session_refuses_an_unknown_many_class_variant(tmp_path: Path):

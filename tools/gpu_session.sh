@@ -26,7 +26,9 @@
 # stopped at its share leaves the other's time and still gives a bound on the ratio ("new / old < x").
 #
 # In the plan, loading2000: 2,000 objects loaded; the canvases' resampling by the batched op against the
-# per-object reference (the 2 CPU cores: 0.467x at 9,087 objects).
+# per-object reference (the 2 CPU cores: 0.467x at 9,087 objects). many4: 4 small classes, viewpoint_processes=4
+# (their viewpoints at once, in CPU processes) against the default (auto: one after the other on the CPU);
+# MANY4_VARIANTS="procs vprun" adds viewpoints.device=run (on CUDA, the default before auto).
 #
 # Steps outside the plan (no limit when run alone; H200 times: 16 slow cores, torch 2.11.0+cu130):
 #   mesher2000   2,000 objects end to end, mesher=auto against mesher=skimage (H100: 1.163x, the writers kept up)
@@ -54,7 +56,7 @@ set -uo pipefail
 BUDGET=470          # seconds the plan's limits may add up to: the 8 minutes, less 10 s of setup and packing
 PLAN="tests:130 e2e9087:80 loading2000:20 many4:80 cad5:150"
 MESHER_AUTO_S=45    # mesher2000: the mesher=auto run's share; mesher=skimage gets the rest
-MANY_RUN_S=${MANY_RUN_S:-35}  # many4: the viewpoints.device=run run's share (CUDA; stopped there on the H100); the default the rest
+MANY_RUN_S=${MANY_RUN_S:-35}  # many4: each variant's share (vprun: stopped there on the H100); the default the rest
 MANY_ALL_S=${MANY_ALL_S:-45}  # manyclasses: each variant's share; the default run gets the rest
 CAD_RENDER_S=30     # cad5: rendering, when the renders were not carried
 CAD_COMPARE_S=10    # cad5: the comparison (its interpreter imports torch)
@@ -79,9 +81,10 @@ describe() {  # STEP: one line on what it runs
                          "skimage unfinished at 85 s)" ;;
         loading2000) echo "the 2,000-object class loaded, best of 2; the resampling of its canvases by the batched" \
                           "op against the per-object reference" ;;
-        many4) echo "the many-class benchmark on ${MANY4_CLASSES//,/, } (4 of 12): viewpoints.device=run (the" \
-                    "viewpoints on CUDA; at most ${MANY_RUN_S} s, unfinished at 47 s on the H100) against the" \
-                    "default, auto (these small classes' viewpoints on the CPU)" ;;
+        many4) echo "the many-class benchmark on ${MANY4_CLASSES//,/, } (4 of 12): ${MANY4_VARIANTS:-procs}" \
+                    "(procs: viewpoint_processes=4, their viewpoints at once in CPU processes; vprun:" \
+                    "viewpoints.device=run, unfinished at 47 s on the H100; each at most ${MANY_RUN_S} s)" \
+                    "against the default, auto (these small classes' viewpoints on the CPU, one after the other)" ;;
         cad5) echo "the 8-view CAD cameras of ${CAD5_CLASSES//,/, } (sofa: no CUDA run reached it yet), compared" \
                    "object by object (median <= 0.5 degrees per class): the CPU side (4 torch threads) beside the" \
                    "CUDA side (viewpoints.device=run), in processes of ${CAD5_CUDA_GROUPS// / and } at the same" \
@@ -483,7 +486,7 @@ case "$step" in
         case "$step" in
             mesher2000) mesher_pair 2000 "$MESHER_AUTO_S" 100 || status=$? ;;
             loading2000) loading || status=$? ;;
-            many4) many_pair many4 "$MANY4_CLASSES" "$MANY_RUN_S" vprun || status=$? ;;
+            many4) many_pair many4 "$MANY4_CLASSES" "$MANY_RUN_S" "${MANY4_VARIANTS:-procs}" || status=$? ;;
         esac ;;
 esac
 echo "results in $out"
