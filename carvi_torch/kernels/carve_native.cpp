@@ -69,6 +69,15 @@ void check_tensor(const at::Tensor &t, const char *name, at::ScalarType dtype, i
     TORCH_CHECK_VALUE(t.numel() == 0 || t.has_storage(), "carvi: ", name, " has no storage");
 }
 
+// A new contiguous tensor holding a checked (contiguous) tensor's values (an empty one copies nothing).
+at::Tensor copy_of(const at::Tensor &t)
+{
+    at::Tensor out = at::empty(t.sizes(), t.options());
+    if (t.nbytes() > 0)
+        std::memcpy(out.data_ptr(), t.data_ptr(), t.nbytes());
+    return out;
+}
+
 // (K, Hp, Wp) float32 maps whose 32-bit pixel offsets cannot overflow.
 void check_maps(const at::Tensor &ext)
 {
@@ -320,11 +329,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
                       "carvi: S, kp, wv must be (K, 3), (M, K, 2), (M, K), got ", S.sizes(), ", ", kp.sizes(), ", ",
                       wv.sizes());
     TORCH_CHECK_VALUE(max_iters >= 0, "carvi: max_iters must be >= 0, got ", max_iters);
-    at::Tensor Ro = at::empty(R.sizes(), R.options()), so = at::empty(s.sizes(), s.options());
-    at::Tensor to = at::empty(t.sizes(), t.options());
-    std::memcpy(Ro.data_ptr(), R.data_ptr(), R.nbytes());
-    std::memcpy(so.data_ptr(), s.data_ptr(), s.nbytes());
-    std::memcpy(to.data_ptr(), t.data_ptr(), t.nbytes());
+    at::Tensor Ro = copy_of(R), so = copy_of(s), to = copy_of(t);
     at::Tensor E0 = at::zeros({M}, s.options()), E = at::zeros({M}, s.options());
     at::Tensor conv = at::zeros({M}, s.options().dtype(at::kBool));
     int64_t iters = 0;
@@ -357,12 +362,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t, 
                       ", ", v.sizes());
     TORCH_CHECK_VALUE(iters >= 0 && damping > 0.0 && std::isfinite(damping), "carvi: iters must be >= 0 and damping "
                       "finite and positive, got ", iters, " and ", damping);
-    at::Tensor Ro = at::empty(R.sizes(), R.options()), lo = at::empty(logs.sizes(), logs.options());
-    at::Tensor to = at::empty(t.sizes(), t.options()), Xo = at::empty(X.sizes(), X.options());
-    std::memcpy(Ro.data_ptr(), R.data_ptr(), R.nbytes());
-    std::memcpy(lo.data_ptr(), logs.data_ptr(), logs.nbytes());
-    std::memcpy(to.data_ptr(), t.data_ptr(), t.nbytes());
-    std::memcpy(Xo.data_ptr(), X.data_ptr(), X.nbytes());
+    at::Tensor Ro = copy_of(R), lo = copy_of(logs), to = copy_of(t), Xo = copy_of(X);
     std::vector<double> history;
     bool converged = false;
     const carvi_bundle::Problem p{N, K, w.data_ptr<double>(), v.data_ptr<double>()};
