@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import requires_cuda
 from carvi_torch.cameras import ScaledOrthographic, random_rotations, rotation_about_axis
 from carvi_torch.viewpoints.choice import (HULL_GAIN, KEYPOINT_GROWTH, box_diagonal, choose_cameras,
                                            hull_agreement, hull_agreement_reference, keypoint_rms)
@@ -82,6 +83,23 @@ def test_hull_agreement_keeps_a_corner_on_a_pixel_centre(order):
     ref = hull_agreement_reference(pts, cams, masks)
     assert float(ref[0]) == 30 / 256
     assert torch.equal(hull_agreement(pts, cams, masks), ref)
+
+
+@requires_cuda
+def test_hull_agreement_on_cuda_masks_equals_the_reference():
+    """Masks on the GPU (a CUDA run's viewpoints on the device): the spans run there and give the reference's IoU
+    on the CPU, bit for bit."""
+    g = torch.Generator().manual_seed(5)
+    C, M = 64, 30
+    shape = 30.0 * torch.randn(9, 3, generator=g, dtype=torch.float64)
+    cams = _cams(random_rotations(M, g, torch.float64), 0.2 + 0.6 * torch.rand(M, generator=g, dtype=torch.float64),
+                 C * torch.rand(M, 2, generator=g, dtype=torch.float64))
+    masks = torch.rand(M, C, C, generator=g) > 0.4
+    ref = hull_agreement_reference(shape, cams, masks)
+    dev = torch.device("cuda")
+    got = hull_agreement(shape.to(dev), ScaledOrthographic(cams.R.to(dev), cams.s.to(dev), cams.t.to(dev)),
+                         masks.to(dev))
+    assert got.device.type == "cpu" and torch.equal(got, ref)
 
 
 def test_hull_agreement_of_collinear_points_is_the_references():

@@ -142,7 +142,7 @@ def _hull_edges(P: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     eps = (1e-12 * extent * extent)[:, None, None]
     edge = (cross >= -eps).all(-1) | (cross <= eps).all(-1)  # (M, E)
     h = max(int(edge.sum(-1).max()), 1)
-    order = torch.sort(edge.to(torch.int8), dim=-1, descending=True, stable=True).indices[:, :h]
+    order = torch.sort(edge.to(torch.int32), dim=-1, descending=True, stable=True).indices[:, :h]
     return i[order], j[order], edge.gather(-1, order)
 
 
