@@ -181,9 +181,9 @@ def hull_agreement(shape: torch.Tensor, cams: ScaledOrthographic, masks: torch.T
     """Intersection over union of each mask and the convex hull of the projected ``shape``.
 
     Batched over the rows on the masks' device: each pixel row of the hull is one span of columns
-    (:func:`_hull_spans`). The same counts as
-    :func:`hull_agreement_reference` (scipy's hull, scikit-image's fill) except for a pixel centre within
-    rounding (about 1e-12 pixels) of the hull's boundary.
+    (:func:`_hull_spans`). The same counts as :func:`hull_agreement_reference` (scipy's hull, scikit-image's
+    fill) but for a pixel centre within rounding of the hull's boundary (about 1e-16 of the coordinates:
+    1e-13 pixels at a few hundred; a corner exactly on a pixel centre is in, as there).
 
     Args:
         shape: ``(K, 3)`` (NaN rows are left out); cams: ``M`` cameras; masks: ``(M, C, C)`` bool.
