@@ -1464,3 +1464,22 @@ def test_voc_study_doctests_run():
 
     result = doctest.testmod(load_tool("voc_study"), verbose=False)  # paired_comparison's example among them
     assert result.attempted >= 2 and result.failed == 0
+
+
+def test_bench_viewpoints_kernels_compares_both_paths_per_class(tmp_path: Path, procedural_input):
+    """``bench_viewpoints --kernels``: per class of the embedded collection the compiled bundle adjustment takes
+    the torch path's damped solves and ends within 1e-6 degrees of it, and the batched hull agreements equal the
+    reference's; the table and the record say so."""
+    from carvi_torch import native_library
+
+    if native_library.library_operators() is None:
+        pytest.skip(f"no compiled kernel here: {native_library.load()['reason']}")
+    bv = load_tool("bench_viewpoints")
+    data = procedural_input(tmp_path)
+    out = tmp_path / "k.json"
+    rec = bv.main(["--kernels", str(data), "--rounds", "1", "--out", str(out), "--key", "k"])
+    assert json.loads(out.read_text())["k"]["classes"].keys() == rec["classes"].keys() and len(rec["classes"]) >= 2
+    for name, r in rec["classes"].items():
+        assert r["solves"][0] == r["solves"][1] >= 1, name
+        assert r["bundle_max_angle_deg"] < 1e-6 and r["hull_equal"] and r["hull_rows"] > 0, name
+        assert min(r["bundle_ms_per_solve"].values()) > 0, name

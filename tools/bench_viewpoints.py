@@ -58,6 +58,15 @@ each (docs/viewpoints.md, *Cost*):
 
     python tools/bench_viewpoints.py --cameras-cpu outputs/bench/data/cad_v8_s0/annotations.json --key cameras_cpu_cad8
 
+``--kernels DATA`` times two of the mixture's inner operations class by class on a COCO file, on one thread, best
+of ``--rounds``: the joint bundle adjustment (from the class's factorisation, 100 damped solves at most) in the
+compiled kernel against the torch operators, per damped solve and with the two results' largest camera angle; and
+the hull agreements of every row under its SfM camera, batched against the per-row reference, with whether they
+are equal (docs/viewpoints.md, the compiled kernels and *Keeping SfM cameras*):
+
+    python tools/bench_viewpoints.py --kernels outputs/bench/data/cad_v8_s0/annotations.json --key kernels_cad8
+    python tools/bench_viewpoints.py --kernels outputs/bench/data/car1000_s0/annotations.json --key kernels_car1000
+
 The JSON record goes to ``--out`` (under ``--key`` when given); by default under the key
 ``viewpoints_speed[_groups<G>][_shapes<S>][_n<N>][_<device>]`` (``cameras_cpu`` for ``--cameras-cpu``) of
 ``outputs/viewpoints.json``, so that a plain run leaves the committed records alone; ``--key`` without ``--out``
@@ -366,6 +375,71 @@ def main_cameras_cpu(args, argv: list[str]) -> dict:
     return rec
 
 
+def _best(fn, rounds: int):
+    """``fn()``'s result and its best wall seconds over ``rounds`` calls."""
+    best = float("inf")
+    for _ in range(rounds):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return out, best
+
+
+def kernel_row(both, vcfg, rounds: int) -> dict:
+    """``--kernels`` on one class with its mirrors: the bundle adjustment from the factorisation's cameras,
+    compiled and in torch, and the hull agreements under the SfM cameras, batched and per row."""
+    from carvi_torch.cameras import geodesic_angle
+    from carvi_torch.viewpoints import class_sfm
+    from carvi_torch.viewpoints.bundle import joint_bundle_adjust
+    from carvi_torch.viewpoints.choice import hull_agreement, hull_agreement_reference
+
+    start = class_sfm(both, vcfg, polish_iters=0)
+    rows = start.valid.nonzero().squeeze(1)
+    cams, shape = start.cameras[rows], torch.nan_to_num(start.shape)
+    args = (cams, shape, both.keypoints[rows], both.visible[rows])
+    runs = {n: _best(lambda n=n: joint_bundle_adjust(*args, iters=100, tol=vcfg.sfm_tol, native=n), rounds)
+            for n in (True, False)}
+    (nat, t_nat), (ref, t_ref) = runs[True], runs[False]
+    sfm = class_sfm(both, vcfg)
+    hrows = sfm.valid.nonzero().squeeze(1)
+    hull_args = (sfm.shape, sfm.cameras[hrows], both.masks[hrows])
+    (h_fast, t_fast), (h_ref, t_hull_ref) = (_best(lambda f=f: f(*hull_args), rounds)
+                                             for f in (hull_agreement, hull_agreement_reference))
+    angle = torch.rad2deg(geodesic_angle(nat.cameras.R.double(), ref.cameras.R.double())).max()
+    return {"rows": len(rows), "keypoints": int(shape.shape[0]), "solves": [nat.iterations, ref.iterations],
+            "bundle_ms_per_solve": {"compiled": 1e3 * t_nat / max(nat.iterations, 1),
+                                    "torch": 1e3 * t_ref / max(ref.iterations, 1)},
+            "bundle_max_angle_deg": float(angle), "hull_rows": len(hrows),
+            "hull_seconds": {"batched": t_fast, "reference": t_hull_ref},
+            "hull_equal": bool(torch.equal(h_fast, h_ref))}
+
+
+def main_kernels(args, argv: list[str]) -> dict:
+    """``--kernels``: every class of the file, one thread; table and record (default key ``kernels``)."""
+    from carvi_torch.io.coco import load_coco
+
+    torch.set_num_threads(1)
+    vcfg = Config().viewpoints
+    rows = {}
+    print("| class | rows | solves compiled / torch | ms per solve: compiled / torch | largest angle (deg) | hull "
+          "agreements: batched / reference (s) | equal |\n|---|---:|---:|---:|---:|---:|---|")
+    for name, coll in sorted(load_coco(args.kernels).collections.items()):
+        r = rows[name] = kernel_row(coll.with_mirrors(), vcfg, max(1, args.rounds))
+        b, h = r["bundle_ms_per_solve"], r["hull_seconds"]
+        print(f"| {name} | {r['rows']} | {r['solves'][0]} / {r['solves'][1]} | {b['compiled']:.3f} / "
+              f"{b['torch']:.3f} ({b['compiled'] / b['torch']:.3f}x) | {r['bundle_max_angle_deg']:.1e} | "
+              f"{h['batched']:.4f} / {h['reference']:.4f} ({h['batched'] / h['reference']:.3f}x) | {r['hull_equal']} |")
+    total = {k: sum(r["hull_seconds"][k] for r in rows.values()) for k in ("batched", "reference")}
+    print(f"hull agreements, all classes: {total['batched']:.3f} / {total['reference']:.3f} s "
+          f"({total['batched'] / total['reference']:.3f}x)")
+    rec = {"command": shlex.join(["python", "tools/bench_viewpoints.py", *argv]), "data": args.kernels,
+           "threads": 1, "rounds": max(1, args.rounds), "classes": rows, "hull_seconds_all": total}
+    out, key = _record_target(args, "kernels")
+    write_record(out, rec, key)
+    print(f"wrote {out}" + (f", key {key}" if key else ""))
+    return rec
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command line (the module docstring is its help)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
@@ -416,7 +490,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--variants", nargs="+", default=["sfm_groups=1", mixture], metavar="OVERRIDES",
                     help="--cameras-cpu: the variants, each a quoted space-separated list of overrides; ratios "
                          f"to the first (default: sfm_groups=1 {mixture}, the default)")
-    ap.add_argument("--rounds", type=int, default=2, help="--cameras-cpu: runs of each variant (default 2)")
+    ap.add_argument("--rounds", type=int, default=2, help="--cameras-cpu: runs of each variant; --kernels: "
+                                                           "repeats of each timing, the best kept (default 2)")
+    ap.add_argument("--kernels", metavar="DATA", default=None,
+                    help="instead: the bundle adjustment (compiled / torch) and the hull agreements (batched / "
+                         "reference) per class of this COCO file (module docstring)")
     return ap
 
 
@@ -424,6 +502,8 @@ def main(argv=None) -> dict:
     args = build_parser().parse_args(argv)
     if args.cameras_cpu:
         return main_cameras_cpu(args, list(sys.argv[1:] if argv is None else argv))
+    if args.kernels:
+        return main_kernels(args, list(sys.argv[1:] if argv is None else argv))
     if args.profile_mixture:
         default = ROOT / "docs" / "data" / "viewpoints.json" if args.key else ROOT / "outputs" / "profile_mixture.json"
         return profile_mixture(args.profile_mixture, args.profile_set, Path(args.out) if args.out else default,
