@@ -16,7 +16,6 @@ similarity has the same scale and offset ``b_x' = C - 1 - a (w - 1) - b_x``.
 from __future__ import annotations
 
 import re
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Sequence
 
@@ -192,7 +191,7 @@ def canvas_supersample(scale: float) -> int:
 
 
 def resample_to_canvases(masks: Sequence[torch.Tensor], scale: torch.Tensor, offset: torch.Tensor,
-                         canvas_size: int, threads: int = 1) -> torch.Tensor:
+                         canvas_size: int) -> torch.Tensor:
     """:func:`resample_to_canvas` of many masks, in under half its time: bit for bit on the CPU (what loading
     passes); on a GPU to float rounding (CUDA divides by a Python number through its reciprocal).
 
@@ -204,8 +203,6 @@ def resample_to_canvases(masks: Sequence[torch.Tensor], scale: torch.Tensor, off
         masks: ``N`` image masks ``(h_i, w_i)`` bool, on the CPU or one device.
         scale: ``(N,)``; offset: ``(N, 2)``: the image-to-canvas similarities (:func:`canvas_similarity`).
         canvas_size: ``C``.
-        threads: objects resampled side by side; the same canvases for any number (one is the fastest:
-            much of each object holds the interpreter's lock).
 
     Returns:
         ``(N, C, C)`` bool on the masks' device.
@@ -226,13 +223,7 @@ def resample_to_canvases(masks: Sequence[torch.Tensor], scale: torch.Tensor, off
     ks = [canvas_supersample(a) for a in scale.tolist()]
     axes = _sample_axes(masks, scale.to(dev, torch.float32), offset.to(dev, torch.float32), canvas_size, ks)
 
-    def one(i: int) -> torch.Tensor:
-        return _resample_one(masks[i], *axes[i], ks[i], canvas_size)
-
-    if threads <= 1:
-        return torch.stack([one(i) for i in range(N)])
-    with ThreadPoolExecutor(threads) as pool:
-        return torch.stack(list(pool.map(one, range(N))))
+    return torch.stack([_resample_one(masks[i], *axes[i], ks[i], canvas_size) for i in range(N)])
 
 
 def _sample_axes(masks, scale: torch.Tensor, offset: torch.Tensor, C: int, ks: list[int]) -> list:

@@ -253,19 +253,6 @@ class TestLoad:
         assert load_coco(path, classes=["car"]).collections == {}
 
 
-def test_canvases_made_on_several_threads_are_the_one_thread_ones(procedural_input, tmp_path):
-    """Objects' canvases resampled side by side on threads (``threads``; one by default): the same masks, bit
-    for bit, and in the same order, as one thread gives."""
-    data = procedural_input(tmp_path)
-    got = {n: load_coco(data, canvas_size=64, threads=n).collections for n in (1, 3)}
-    assert all(torch.equal(c.masks, got[1][k].masks)  # None: the default, one thread
-               for k, c in load_coco(data, canvas_size=64, threads=None).collections.items())
-    assert set(got[1]) == set(got[3]) and len(got[1]) >= 4
-    for key, coll in got[1].items():
-        assert coll.annotation_ids == got[3][key].annotation_ids
-        assert coll.masks.any() and torch.equal(coll.masks, got[3][key].masks), key
-
-
 class TestInterrupts:
     """Ctrl-C during loading stops the load; only what bad input raises becomes a one-line reason."""
 

@@ -358,27 +358,18 @@ def time_writing(recon: Path, objects: int, repeat: int, work: Path) -> dict | N
 
 
 def time_loading(ann: Path, args) -> dict:
-    """``--load-only``: loading alone (``io.coco.load_coco`` at the default canvas size) on one thread and on each
-    of ``--load-threads``, taking turns, best of ``--repeat``, the canvases compared; then the resampling alone
-    (:func:`time_resampling`)."""
+    """``--load-only``: loading alone (``io.coco.load_coco`` at the default canvas size, one thread: its
+    resampling runs there), best of ``--repeat``; then the resampling alone (:func:`time_resampling`)."""
     from carvi_torch.io.coco import load_coco
 
     size = Config().input.canvas_size
-    variants = {"one thread": 1}
-    variants.update({f"{n} threads": n for n in getattr(args, "load_threads", None) or [] if n > 1})
-    seconds: dict = {k: [] for k in variants}
-    colls = {}
-    for r in range(max(1, args.repeat)):
-        for name, n in (list(variants.items()) if r % 2 == 0 else list(variants.items())[::-1]):
-            t0 = time.perf_counter()
-            colls[name] = load_coco(ann, canvas_size=size, classes=[args.category], threads=n).collections[
-                args.category]
-            seconds[name].append(round(time.perf_counter() - t0, 3))
-    one = colls["one thread"]
-    return {"objects": len(one.masks), "threads": variants, "seconds": seconds,
-            "best_seconds": {k: min(v) for k, v in seconds.items()},
-            "same_canvases": all(torch.equal(one.masks, c.masks) for c in colls.values()),
-            "resampling": time_resampling(ann, one, size, args.repeat)}
+    seconds: list = []
+    for _ in range(max(1, args.repeat)):
+        t0 = time.perf_counter()
+        one = load_coco(ann, canvas_size=size, classes=[args.category]).collections[args.category]
+        seconds.append(round(time.perf_counter() - t0, 3))
+    return {"objects": len(one.masks), "seconds": {"one thread": seconds},
+            "best_seconds": {"one thread": min(seconds)}, "resampling": time_resampling(ann, one, size, args.repeat)}
 
 
 def time_resampling(ann: Path, coll, size: int, repeat: int) -> dict:
@@ -415,17 +406,14 @@ def time_resampling(ann: Path, coll, size: int, repeat: int) -> dict:
 
 
 def _loading_table(lo: dict) -> str:
-    n, names = lo["objects"], list(lo["threads"])
-    best, rs = lo["best_seconds"], lo["resampling"]
-    rows = [f"| loading {n} objects (load_coco) | {' | '.join(names)} |", "|---|" + "---:|" * len(names),
-            f"| seconds, best of {len(lo['seconds']['one thread'])} | "
-            + " | ".join(f"{best[k]:.2f}" for k in names) + " |",
-            "| objects per second | " + " | ".join(f"{n / best[k]:.0f}" for k in names) + " |",
-            "| over one thread | " + " | ".join(f"{best[k] / best['one thread']:.3f}" for k in names) + " |"]
+    n, best, rs = lo["objects"], lo["best_seconds"]["one thread"], lo["resampling"]
+    rows = [f"| loading {n} objects (load_coco) | one thread |", "|---|---:|",
+            f"| seconds, best of {len(lo['seconds']['one thread'])} | {best:.2f} |",
+            f"| objects per second | {n / best:.0f} |"]
     ref, new = min(rs["seconds"]["reference"]), min(rs["seconds"]["batched"])
-    return "\n".join(rows) + (f"\n\nthe same canvases on every thread count: {lo['same_canvases']}\n"
-                              f"resampling alone: the batched op {new:.2f} s, the per-object reference {ref:.2f} s: "
-                              f"**{rs['batched_over_reference']:.3f}x**; the same canvases: {rs['same_canvases']}")
+    return "\n".join(rows) + (f"\n\nresampling alone: the batched op {new:.2f} s, the per-object reference "
+                              f"{ref:.2f} s: **{rs['batched_over_reference']:.3f}x**; the same canvases: "
+                              f"{rs['same_canvases']}")
 
 
 def run_evaluation(data: Path, recon: Path, out: Path, category: str) -> dict:
@@ -1274,11 +1262,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--skip-carve", action="store_true", help="no carving comparison (the end-to-end run alone)")
     ap.add_argument("--eval", action="store_true", help="also evaluate shape errors against gt.json")
     ap.add_argument("--load-only", action="store_true",
-                    help="loading alone on one thread (and --load-threads), then the canvases' resampling by the "
-                         "batched op against the per-object reference, best of --repeat "
-                         "(record key loading_<device>_<objects>)")
-    ap.add_argument("--load-threads", type=int, nargs="+", default=None, metavar="N",
-                    help="with --load-only: also time the loading on each of these thread counts")
+                    help="loading alone, then the canvases' resampling by the batched op against the per-object "
+                         "reference, best of --repeat (record key loading_<device>_<objects>)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="further config overrides")
     ap.add_argument("--mesh-objects", type=int, default=200,
                     help="grids of the end-to-end run meshed by scikit-image and by the batched torch op, and their "

@@ -387,7 +387,7 @@ def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[
 
 def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, device: str | torch.device = "cpu",
               classes: Iterable[str] | None = None, skip_flags: bool = True,
-              max_image_pixels: int = MAX_IMAGE_PIXELS, threads: int | None = 1) -> LoadResult:
+              max_image_pixels: int = MAX_IMAGE_PIXELS) -> LoadResult:
     """Read a COCO keypoint file into one :class:`ClassCollection` per category.
 
     Args:
@@ -397,10 +397,6 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
         classes: keep only these categories (by name, or by their folder name ``ClassMeta.key``).
         skip_flags: skip annotations flagged ``occluded`` / ``truncated`` / ``iscrowd``.
         max_image_pixels: skip objects whose image has more pixels (their mask would not fit in memory).
-        threads: threads that resample the masks into the canvases, an object each at a time; the canvases
-            are the same for any number. The work holds the interpreter's lock for much of each object, so
-            one thread (also ``None``) is the fastest (9,087 objects on 2 cores: 2.95 s on one, 3.34 on 2, 3.51 on 4;
-            docs/benchmarks.md, record ``loading_cpu_9087``).
 
     Returns:
         :class:`LoadResult`, collections keyed by ``ClassMeta.key`` (two categories of one name are two
@@ -426,8 +422,7 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
             if item is not None:
                 per_class[item[0]].append(item[1:])
     by_key = {key: meta for key, meta in metas.values() if meta is not None}
-    collections = {key: _build_collection(by_key[key], items, canvas_size, margin, torch.device(device),
-                                          threads or 1)
+    collections = {key: _build_collection(by_key[key], items, canvas_size, margin, torch.device(device))
                    for key, items in per_class.items()}
     return LoadResult(collections=collections, problems=problems, dataset=data)
 
@@ -682,7 +677,7 @@ def input_fingerprints(meta: ClassMeta, items: list) -> list[str]:
 
 
 def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: float,
-                      device: torch.device, threads: int = 1) -> ClassCollection:
+                      device: torch.device) -> ClassCollection:
     """Crop each object into the canvas (box = mask extent; visible keypoints may stick out a little)."""
     boxes = []
     for _ann, _im, mask, _xy, _vis in items:
@@ -694,7 +689,7 @@ def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: fl
     # 2-core machine 584 objects took 33 s with 2 threads, 2.2 s with 1). Same values either way.
     with torch_threads(1):
         masks = resample_to_canvases([torch.from_numpy(it[2]) for it in items], sim.scale, sim.offset,
-                                     canvas_size, threads)
+                                     canvas_size)
     xy = torch.tensor(np.stack([it[3] for it in items]), dtype=torch.float32)
     vis = torch.tensor(np.stack([it[4] for it in items]), dtype=torch.bool)
     kp = torch.where(vis[..., None], sim.apply(xy), torch.zeros_like(xy))
