@@ -9,12 +9,21 @@ nodes, child processes) on few cores, where OpenMP threads that spin after each 
 cores the other threads and processes need (the test files that compute most ran 5 to 7 times slower that
 way on a loaded 2-core machine). Set here, before torch loads its OpenMP runtime; the child processes
 inherit it. Only the waiting changes: thread counts and results are the same.
+
+Ctrl-C is made to raise again where the suite was started with SIGINT ignored (``nohup``, or ``make test &``
+from a script: a background job inherits the ignored signal, and so would every child process the tests
+interrupt, which then rightly keeps ignoring it); the tests of interrupts need the default behaviour.
 """
 from __future__ import annotations
 
 import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import signal  # noqa: E402
+
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:  # a Python handler: child processes start with the default
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 import copy  # noqa: E402
 import functools  # noqa: E402
