@@ -25,9 +25,10 @@ lint: install
 	$(PY) -m ruff check carvi_torch tests tools
 
 # lint, then the suite (doctests of the package included: pyproject.toml's pytest options) in
-# TEST_WORKERS processes (make test TEST_WORKERS=0: all in this one)
+# TEST_WORKERS processes (make test TEST_WORKERS=0: all in this one), whole files in collection order
+# (the longest first: tests/conftest.py)
 test: lint
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 clean:
 	rm -rf $(VENV) outputs .pytest_cache

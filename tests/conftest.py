@@ -265,8 +265,23 @@ def cuda_available() -> bool:
 requires_cuda = pytest.mark.cuda
 
 
+#: The test files that take longest (``pytest --durations``, summed per file: 20-60 s each on the 2-core host),
+#: longest first. :func:`pytest_collection_modifyitems` puts them first, so that ``make test``'s processes
+#: (``--dist loadfile --no-loadscope-reorder``: whole files, in this order) end together instead of one of
+#: them running the last long file alone.
+LONGEST_FIRST = ("test_tools", "test_ray", "test_sfm_mixture", "test_pipelined_classes", "test_evaluate",
+                 "test_robustness", "test_export", "test_carve_native", "test_pipeline", "test_metrics")
+
+
+def _file_rank(item) -> int:
+    stem = item.path.stem
+    return LONGEST_FIRST.index(stem) if stem in LONGEST_FIRST else len(LONGEST_FIRST)
+
+
 def pytest_collection_modifyitems(config, items):
-    """Skip the tests marked ``cuda`` when no CUDA device is present, with the reason."""
+    """The longest test files first (:data:`LONGEST_FIRST`; a stable sort: the tests of a file keep their order);
+    skip the tests marked ``cuda`` when no CUDA device is present, with the reason."""
+    items.sort(key=_file_rank)
     if torch.cuda.is_available():
         return
     skip = pytest.mark.skip(reason="needs a CUDA device (CI has none)")
