@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import run_each_in_a_fresh_process
+from conftest import LONGEST_FIRST, run_each_in_a_fresh_process
 
 PACKAGE = Path(__file__).resolve().parents[1] / "carvi_torch"
 
@@ -246,6 +246,14 @@ def test_docs_pages_named_in_the_code_exist():
                 if name not in external and not (root / name).is_file() and name not in upper:
                     bad.append(f"{p.relative_to(root)}: {name}")
     assert not bad, bad
+
+
+def test_the_longest_first_files_exist():
+    """``make test`` orders whole files by ``conftest.LONGEST_FIRST``: each name there is a test file (a renamed
+    file would drop out of the order unnoticed), named once."""
+    tests = {p.stem for p in (PACKAGE.parent / "tests").glob("test_*.py")}
+    assert [n for n in LONGEST_FIRST if n not in tests] == []
+    assert len(set(LONGEST_FIRST)) == len(LONGEST_FIRST)
 
 
 def test_readme_layout_names_every_module():
