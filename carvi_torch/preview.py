@@ -102,8 +102,29 @@ def crop_box(mask: np.ndarray, pad: int = 10) -> tuple[int, int, int, int]:
             min(mask.shape[1], xs.max() + pad + 1))
 
 
+#: Height of one object's row in ``preview.png``, in inches (80 pixels each).
+PREVIEW_ROW_INCHES = 2.8
+
+
+def _picks(out: Path, summary: dict, coco, max_objects: int) -> list[tuple[str, Path, dict]]:
+    """Up to ``max_objects`` ``(class, voxels file, annotation)``, spread over the classes: each class's first
+    objects in id order (numeric stems by value). A file is matched to its annotation through the stem the run
+    gives it (:func:`~carvi_torch.io.layout.object_stem`: string ids too); a file no annotation has is passed over."""
+    from .io.layout import object_stem
+
+    by_stem = {object_stem(aid): ann for aid, ann in coco.anns.items()}
+    classes = [c for c in summary.get("classes", {}) if (out / c / "voxels").is_dir()]
+    per = max(1, max_objects // max(1, len(classes)))
+    picks = []
+    for c in classes:
+        files = sorted((out / c / "voxels").glob("*.npz"), key=lambda p: int(p.stem) if p.stem.isdigit() else 0)
+        picks += [(c, f, by_stem[f.stem]) for f in files if f.stem in by_stem][:per]
+    return picks[:max_objects]
+
+
 def write_preview(out: str | Path, summary: dict, max_objects: int = 8) -> Path | None:
-    """Draw up to ``max_objects`` reconstructions (spread over the classes) into ``out/preview.png``."""
+    """Draw up to ``max_objects`` reconstructions (spread over the classes) into ``out/preview.png``, a row of
+    ``PREVIEW_ROW_INCHES`` per object; ``None`` (nothing written) when no object of the run is in its data."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -118,23 +139,14 @@ def write_preview(out: str | Path, summary: dict, max_objects: int = 8) -> Path 
 
     with contextlib.redirect_stdout(io.StringIO()):  # pycocotools prints progress lines
         coco = COCO(summary["data"]) if summary.get("data") else None
-    picks = []
-    classes = [c for c in summary.get("classes", {}) if (out / c / "voxels").is_dir()]
-    per = max(1, max_objects // max(1, len(classes)))
-    for c in classes:
-        files = sorted((out / c / "voxels").glob("*.npz"), key=lambda p: int(p.stem) if p.stem.isdigit() else 0)
-        picks += [(c, f) for f in files[:per]]
-    picks = picks[:max_objects]
-    if not picks or coco is None:
+    picks = [] if coco is None else _picks(out, summary, coco, max_objects)
+    if not picks:
         return None
-    fig, axes = plt.subplots(len(picks), 4, figsize=(12, 2.8 * len(picks)), squeeze=False)
-    for row, (cls, f) in zip(axes, picks):
+    fig, axes = plt.subplots(len(picks), 4, figsize=(12, PREVIEW_ROW_INCHES * len(picks)), squeeze=False)
+    for row, (cls, f, ann) in zip(axes, picks):
         z = np.load(f)
         occ, v2c = z["occupancy"], z["voxel_to_camera"]
-        aid = int(f.stem)
-        ann = coco.anns.get(aid)
-        if ann is None:
-            continue
+        aid = ann["id"]
         mask = coco.annToMask(ann).astype(bool)
         y0, y1, x0, x1 = crop_box(mask)
         row[0].imshow(mask[y0:y1, x0:x1], cmap="gray")
