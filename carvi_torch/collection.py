@@ -24,8 +24,8 @@ import torch.nn.functional as F
 
 from .cameras import Similarity2D
 
-__all__ = ["ClassMeta", "ClassCollection", "infer_flip_pairs", "mirror_name", "flip_permutation", "canvas_similarity",
-           "resample_to_canvas", "resample_to_canvases", "canvas_supersample"]
+__all__ = ["ClassMeta", "ClassCollection", "infer_flip_pairs", "mirror_name", "keypoint_side", "flip_permutation",
+           "canvas_similarity", "resample_to_canvas", "resample_to_canvases", "canvas_supersample"]
 
 
 # --------------------------------------------------------------------------- left/right names
@@ -44,21 +44,39 @@ def _match_case(word: str, like: str) -> str:
     return word
 
 
-def _swap_token(token: str) -> str:
-    """A name part with its side swapped, or unchanged when it names no side.
-
-    Whole parts ``left``/``right``/``l``/``r`` (any case) swap, and so does a ``left`` /
-    ``right`` prefix of a longer part (``leftcorner`` -> ``rightcorner``). Single letters
-    swap only as whole parts.
-    """
+def _side_head(token: str) -> str:
+    """The part of a name part that names a side: the whole part when it is ``left``/``right``/``l``/``r`` (any
+    case), its first word when it starts with ``left`` or ``right`` (``leftcorner``: ``left``), else ``""``.
+    Single letters count only as whole parts. A part that merely starts with a side word counts too
+    (``Leftover``: ``Left``): keypoint names are not prose."""
     low = token.lower()
     if low in _SIDE_SWAP:
-        return _match_case(_SIDE_SWAP[low], token)
-    for side in ("left", "right"):
-        if low.startswith(side) and len(low) > len(side):
-            head, rest = token[: len(side)], token[len(side):]
-            return _match_case(_SIDE_SWAP[side], head) + rest
-    return token
+        return token
+    return next((token[:len(side)] for side in ("left", "right") if low.startswith(side)), "")
+
+
+def _swap_token(token: str) -> str:
+    """A name part with its side (:func:`_side_head`) swapped, or unchanged when it names no side
+    (``leftcorner`` -> ``rightcorner``, ``L`` -> ``R``)."""
+    head = _side_head(token)
+    return _match_case(_SIDE_SWAP[head.lower()], head) + token[len(head):] if head else token
+
+
+def _name_parts(name: str) -> list[str]:
+    """The words of a keypoint name (:data:`_SEPARATORS` split it; the separators dropped)."""
+    return _SEPARATORS.split(name)[::2]
+
+
+def keypoint_side(name: str) -> str | None:
+    """``"left"``, ``"right"`` or ``None`` from a keypoint name: the side its parts name (:func:`mirror_name`'s
+    rule), ``None`` when they name both or neither.
+
+    Example:
+        >>> keypoint_side("L_Stabilizer"), keypoint_side("leftcorner_windshield"), keypoint_side("tail")
+        ('left', 'left', None)
+    """
+    sides = {"left" if h.lower() in ("left", "l") else "right" for h in map(_side_head, _name_parts(name)) if h}
+    return sides.pop() if len(sides) == 1 else None
 
 
 def mirror_name(name: str) -> str:

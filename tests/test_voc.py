@@ -35,8 +35,8 @@ from carvi_torch.io.voc import (
     read_voc_instances,
     rigid_keypoint_indices,
     run,
-    swap_side,
 )
+from carvi_torch.collection import keypoint_side, mirror_name
 from carvi_torch.io.vocmeta import VOC_CLASSES, category_id, normalize_class_name
 
 # pycocotools' decode trips a numpy 2 deprecation warning inside the library; not ours to fix.
@@ -218,17 +218,26 @@ def test_parse_voc_record_without_size(tmp_path):
 # --------------------------------------------------------------------------- names
 
 
-def test_name_words_and_swap_side():
+def test_name_words():
     assert name_words("L_EarBase") == ["l", "ear", "base"]
     assert name_words("Bot_Rudder_Front") == ["bot", "rudder", "front"]
     assert name_words("leftEye") == ["left", "eye"]
+
+
+def test_mirror_name_and_keypoint_side_follow_one_rule():
+    """The Berkeley and PASCAL3D+ spellings swap (an involution), and the side a name gives is the one its swap
+    leaves: one rule for the flip pairs the loader infers and the left the SfM frame takes from them."""
     cases = {"L_WingTip": "R_WingTip", "Left_Wing_Base": "Right_Wing_Base", "l_eye": "r_eye",
              "eye_left": "eye_right", "wheel_R": "wheel_L", "LEFT_EAR": "RIGHT_EAR", "leftEye": "rightEye",
-             "Hull_Mid_Left_Bot": "Hull_Mid_Right_Bot", "NoseTip": "NoseTip", "Leftover": "Leftover",
-             "Roof_Front_Middle": "Roof_Front_Middle", "R_F_Paw": "L_F_Paw"}
+             "Hull_Mid_Left_Bot": "Hull_Mid_Right_Bot", "NoseTip": "NoseTip", "Leftover": "Rightover",
+             "leftcorner_windshield": "rightcorner_windshield", "Roof_Front_Middle": "Roof_Front_Middle",
+             "R_F_Paw": "L_F_Paw", "mid1_left_top": "mid1_right_top"}
+    flip = {"left": "right", "right": "left", None: None}
     for name, swapped in cases.items():
-        assert swap_side(name) == swapped, name
-        assert swap_side(swap_side(name)) == name  # an involution
+        assert mirror_name(name) == swapped, name
+        assert mirror_name(swapped) == name  # an involution
+        assert keypoint_side(swapped) == flip[keypoint_side(name)], name
+        assert (keypoint_side(name) is None) == (swapped == name), name
 
 
 def _name_pairs(names, pairs):

@@ -103,7 +103,6 @@ __all__ = [
     "read_voc_instances",
     "find_mask_file",
     "name_words",
-    "swap_side",
     "infer_flip_pairs",
     "rigid_keypoint_indices",
     "category_entry",
@@ -662,7 +661,6 @@ def rasterize_polygons(polygons: Sequence[np.ndarray], height: int, width: int) 
 
 
 _WORD = re.compile(r"[A-Z]?[a-z]+|[A-Z]+(?![a-z])|\d+")
-_SIDE_SWAP = {"left": "right", "right": "left", "l": "r", "r": "l"}
 
 
 def name_words(name: str) -> list[str]:
@@ -676,30 +674,6 @@ def name_words(name: str) -> list[str]:
         (['l', 'ear', 'base'], ['upper', 'neck', 'base'], ['head', 'back'])
     """
     return [w.lower() for w in _WORD.findall(name)]
-
-
-def _swap_word(m: re.Match) -> str:
-    w = m.group(0)
-    s = _SIDE_SWAP.get(w.lower())
-    if s is None:
-        return w
-    if w.isupper():
-        return s.upper()
-    return s.capitalize() if w[0].isupper() else s
-
-
-def swap_side(name: str) -> str:
-    """The name with every left/right word swapped (case kept), other characters untouched.
-
-    Side words are ``left``/``right`` and the single letters ``l``/``r`` as whole words of
-    :func:`name_words` (so ``L_WingTip``, ``Left_Wing_Base``, ``l_eye``, ``wheel_left``,
-    ``leftEye`` are swapped, ``Leftover`` and ``Roof`` are not).
-
-    Example:
-        >>> swap_side("L_WingTip"), swap_side("Hull_Mid_Left_Bot"), swap_side("NoseTip")
-        ('R_WingTip', 'Hull_Mid_Right_Bot', 'NoseTip')
-    """
-    return _WORD.sub(_swap_word, name)
 
 
 def _is_head_or_torso(words: list[str]) -> bool:

@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 import typing
 from dataclasses import dataclass, field
 from typing import Literal, Sequence
@@ -53,6 +52,7 @@ import numpy as np
 import torch
 
 from ..cameras import ScaledOrthographic, complete_rotation, geodesic_angle, scaled_stiefel
+from ..collection import keypoint_side
 from ..runtime import cpu_single_thread
 from .bundle import joint_bundle_adjust
 from .camera_fit import refine_cameras
@@ -180,33 +180,6 @@ class SfMResult:
 
 
 # --------------------------------------------------------------------------- names
-
-
-_TOKEN = re.compile(r"[A-Z]?[a-z]+|[A-Z]+(?![a-z])|\d+")
-
-
-def _tokens(name: str) -> list[str]:
-    """Lower-case word tokens of a keypoint name: ``"L_WingTip"`` -> ``["l", "wing", "tip"]``."""
-    return [t.lower() for t in _TOKEN.findall(name)]
-
-
-def keypoint_side(name: str) -> str | None:
-    """``"left"``, ``"right"`` or ``None`` from a keypoint name.
-
-    A name is on the left when one of its word tokens is ``l`` or starts with
-    ``left`` (``"L_WingTip"``, ``"left_wing"``, ``"leftcorner_windshield"``), likewise
-    for the right; a name matching both or neither gives ``None``.
-
-    Example:
-        >>> keypoint_side("L_Stabilizer"), keypoint_side("right_wing"), keypoint_side("tail")
-        ('left', 'right', None)
-    """
-    toks = _tokens(name)
-    left = any(t == "l" or t.startswith("left") for t in toks)
-    right = any(t == "r" or t.startswith("right") for t in toks)
-    if left == right:
-        return None
-    return "left" if left else "right"
 
 
 _FRONT = ("front", "nose", "head")
