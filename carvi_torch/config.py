@@ -123,9 +123,9 @@ class ViewpointConfig:
     """On the CPU, run the factorisation's outer loop, the joint bundle adjustment and the mixture's keypoint-only
     camera fits in compiled kernels (``carvi_torch/kernels/sfm_steps.h``, ``bundle_steps.h``, ``camera_steps.h``,
     built with the fused carving's on the first run, about 14 s; the same steps as the torch operators, equal to
-    rounding): SfM with the mixture of shapes' fit, where small classes spend their time, takes about a fifth of
-    the time, the many-class run 0.40x, then 0.90x with the bundle adjustment (docs/benchmarks.md, *Many
-    classes*). ``false``, a GPU or no compiler: torch operators only."""
+    rounding): SfM with the mixture of shapes' fit, where small classes spend their time, takes about a seventh of
+    the time, the many-class run 0.254x (docs/benchmarks.md, *Many classes*). ``false``, a GPU or no compiler:
+    torch operators only."""
     sfm_tol: float = 1e-7
     """Stop when the relative change of the visible-entry residual falls below this."""
     sfm_polish_iters: int = 100
