@@ -176,7 +176,14 @@ def axis_angle_to_rotation(v: torch.Tensor) -> torch.Tensor:
 
 
 def rotation_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
-    """Rotations ``(..., 3, 3)`` to axis-angle vectors ``(..., 3)`` (through the quaternion)."""
+    """Rotations ``(..., 3, 3)`` to axis-angle vectors ``(..., 3)`` (through the quaternion); the inverse of
+    :func:`axis_angle_to_rotation` for angles below pi.
+
+    Example:
+        >>> v = torch.tensor([0.0, 0.0, 1.5])
+        >>> torch.allclose(rotation_to_axis_angle(axis_angle_to_rotation(v)), v, atol=1e-6)
+        True
+    """
     return kconv.quaternion_to_axis_angle(rotation_to_quaternion(R))
 
 

@@ -84,8 +84,11 @@ class CommandError(Exception):
 
 
 def positive_int(text: str) -> int:
-    """An argparse type: an integer >= 1 (anything else: argparse's error, exit 2)."""
-    v = int(text)
+    """An argparse type: an integer >= 1 (anything else: argparse's error saying so, exit 2)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text}") from None
     if v < 1:
         raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text}")
     return v

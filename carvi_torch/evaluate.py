@@ -54,7 +54,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .cli import add_common, program, run_command, split_classes, writable_folder
+from .cli import add_common, positive_int, program, run_command, split_classes, writable_folder
 from .config import Config, read_run_config
 from .io.coco import CocoFormatError, class_keys, class_names, load_coco, object_id, select_classes
 from .io.outputs import read_json, write_bytes, write_json
@@ -421,7 +421,7 @@ def _main(argv=None) -> int:
                          "2 cores, the interpreter's start included), the errors moving by hundredths of a "
                          "percentage point (the samples fall as 1/step^2; the time less)")
     ap.add_argument("--viewpoints-only", action="store_true", help="skip the shapes (e.g. after stage=cameras)")
-    ap.add_argument("--jobs", type=_positive_int, default=None,
+    ap.add_argument("--jobs", type=positive_int, default=None,
                     help="processes that score the shapes, one torch thread each (default: one per core, at most "
                          f"{MAX_JOBS}; this process alone below {POOL_FROM} objects). 1: this process; the errors "
                          "are the same for every count")
@@ -450,17 +450,6 @@ def _main(argv=None) -> int:
         if made and status != 0:  # the folder made by the check above, left empty: removed
             _remove_if_empty(Path(args.out))
     return status
-
-
-def _positive_int(text: str) -> int:
-    """``--jobs``' type: a whole number of at least 1."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text}")
-    return v
 
 
 def _positive_finite(text: str) -> float:

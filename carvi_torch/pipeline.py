@@ -120,13 +120,13 @@ def _surrogate_plan(coll, vp: Viewpoints, cfg: Config, generator, timer, report)
     mirrors = cfg.surrogates.mirrors and not coll.meta.articulated and vp.mirrored
     with timer("surrogates"):
         axes = surrogates.principal_directions(vp.shape)
-        clusters = surrogates.cluster_instances(vp.cameras.R[:n, 2, :], usable, axes, cfg.surrogates,
-                                                groups=coll.object_groups)
+        views = vp.cameras.view_direction[:n]
+        clusters = surrogates.cluster_instances(views, usable, axes, cfg.surrogates, groups=coll.object_groups)
         if coll.meta.symmetry == "rotational":
             trip, levels = None, ["rotated_views" if u else None for u in usable.tolist()]
         else:
-            trip, levels = surrogates.plan_proposals(clusters, coll.object_groups, usable, vp.cameras.R[:n, 2, :],
-                                                     axes, cfg.surrogates.proposals, mirrors, generator)
+            trip, levels = surrogates.plan_proposals(clusters, coll.object_groups, usable, views, axes,
+                                                     cfg.surrogates.proposals, mirrors, generator)
     for line in clusters.log:
         log.info(f"  {coll.meta.key}: {line}")
         report.warnings.append(f"clusters: {line}")
@@ -310,7 +310,7 @@ def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, de
               generator: torch.Generator, writer: Writer | None = None, ahead: tuple | None = None) -> ClassReport:
     """Run every stage for one class; write ``out/<class>/``; return its report.
 
-    ``writer`` meshes and writes the objects (worker processes, see :func:`run`); by default
+    ``writer`` meshes and writes the objects (worker processes, see :func:`carvi_torch.executors.local.run`); by default
     they are written inline. ``ahead``: :func:`class_viewpoints`'s result, made beforehand.
     """
     plan, todo, report = prepare_class(coll, cfg, device, generator, gt=gt, out=out, ahead=ahead)

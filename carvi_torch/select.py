@@ -34,7 +34,7 @@ import torch.nn.functional as F
 
 from . import native_library
 from .cameras import ScaledOrthographic
-from .surrogates import object_share
+from .surrogates import check_axes, object_share
 
 __all__ = [
     "plane_axes",
@@ -68,7 +68,7 @@ def plane_axes(axes: torch.Tensor) -> torch.Tensor:
     Args:
         axes: ``(3, 3)`` principal axes (rows).
     """
-    _check_axes(axes)
+    check_axes(axes)
     idx = torch.tensor([[1, 2], [2, 0], [0, 1]], device=axes.device)
     return axes[idx]
 
@@ -107,11 +107,6 @@ def plane_extent(S: torch.Tensor, factor: float = 1.3, centre: torch.Tensor | No
     if not r > 0:
         raise ValueError("S must have two distinct finite keypoints to define a plane extent")
     return factor * r
-
-
-def _check_axes(axes: torch.Tensor) -> None:
-    if not isinstance(axes, torch.Tensor) or axes.shape != (3, 3):
-        raise ValueError("axes must be a (3, 3) tensor (rows = principal axes)")
 
 
 def _check_plane(plane_size: int, extent: float | None) -> None:
@@ -196,7 +191,7 @@ def average_masks(
         raise ValueError(f"labels must be a ({n},) tensor")
     if mode not in ("bilinear", "nearest"):
         raise ValueError(f"mode must be 'bilinear' or 'nearest', got {mode!r}")
-    _check_axes(axes)
+    check_axes(axes)
     _check_plane(plane_size, extent)
     extent = float(extent)
     if h < 2 or w < 2:
@@ -412,7 +407,7 @@ def project_proposals(
         ``(B, 3, G, G)`` bool on the occupancy's device.
     """
     _check_grids(occupancy, voxel_to_camera)
-    _check_axes(axes)
+    check_axes(axes)
     _check_plane(plane_size, extent)
     extent = float(extent)
     B = occupancy.shape[0]

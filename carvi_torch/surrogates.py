@@ -32,6 +32,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Clusters",
+    "check_axes",
     "Triplets",
     "principal_components",
     "principal_directions",
@@ -150,7 +151,8 @@ class Clusters:
     angle_deg: torch.Tensor | None = None
 
 
-def _check_axes(axes: torch.Tensor) -> None:
+def check_axes(axes: torch.Tensor) -> None:
+    """``ValueError`` unless ``axes`` is a ``(3, 3)`` tensor (rows: principal axes)."""
     if not isinstance(axes, torch.Tensor) or axes.shape != (3, 3):
         shape = tuple(axes.shape) if isinstance(axes, torch.Tensor) else type(axes).__name__
         raise ValueError(f"axes must be a (3, 3) tensor (rows = principal axes), got {shape}")
@@ -200,7 +202,7 @@ def cluster_by_direction(
     if not isinstance(view_dirs, torch.Tensor) or view_dirs.dim() != 2 or view_dirs.shape[-1] != 3:
         shape = tuple(view_dirs.shape) if isinstance(view_dirs, torch.Tensor) else type(view_dirs).__name__
         raise ValueError(f"view_dirs must be a (N, 3) tensor, got {shape}")
-    _check_axes(axes)
+    check_axes(axes)
     if not threshold_deg > 0:
         raise ValueError(f"threshold_deg must be > 0, got {threshold_deg}")
     if not widen_step_deg > 0:

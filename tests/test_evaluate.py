@@ -411,7 +411,7 @@ def test_jobs_must_be_a_whole_number_of_at_least_one(tmp_path, capsys):
     for bad in ("0", "-2", "1.5", "two"):
         with pytest.raises(SystemExit) as e:
             main(["--data", "x.json", "--recon", str(tmp_path), "--jobs", bad])
-        assert e.value.code == 2 and "--jobs: expected a whole number >= 1" in capsys.readouterr().err
+        assert e.value.code == 2 and "--jobs: expected an integer >= 1" in capsys.readouterr().err
 
 
 def test_the_command_scores_in_worker_processes(recon, tmp_path):

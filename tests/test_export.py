@@ -456,11 +456,11 @@ def _centre_reference(occ, A, b, res):
 def _splat_reference(occ, v2t, res):
     """The any-overlap occupancy written plainly: every cell centre's nearest voxel, every boundary box's
     sub-samples (the formulas of :func:`splat_occupancy`, with no restriction to the object's box)."""
-    from carvi_torch.export.objects import MAX_SUBSAMPLES, _boundary
+    from carvi_torch.export.objects import MAX_SUBSAMPLES, surface_voxel_indices
 
     A, b = v2t[:3, :3], v2t[:3, 3]
     out = _centre_reference(occ, A, b, res)
-    idx = np.argwhere(_boundary(occ)).astype(np.float32)
+    idx = surface_voxel_indices(occ)
     k = [int(min(MAX_SUBSAMPLES, max(1, np.ceil(2.0 * np.abs(A[:, j]).sum())))) for j in range(3)]
     subs = [(np.arange(n, dtype=np.float32) + 0.5) / n - 0.5 for n in k]
     offs = np.stack(np.meshgrid(*subs, indexing="ij"), -1).reshape(-1, 3)
@@ -861,7 +861,7 @@ def test_view_grid_holds_an_object_deeper_than_the_canvas():
     (the end layers stay empty, every other layer is occupied),
     and the depth map stays within float16's 1/32 pixel. The cubic grid of the format's first release,
     centred on the mean vertex depth, leaves about a third of the vertices outside."""
-    from carvi_torch.export.objects import boundary_voxels, depth_map, view_depth_frame, view_occupancy
+    from carvi_torch.export.objects import depth_map, surface_voxel_indices, view_depth_frame, view_occupancy
 
     C, res, step = 128, 32, 3.5
     occ = np.zeros((60, 40, 40), bool)
@@ -872,7 +872,7 @@ def test_view_grid_holds_an_object_deeper_than_the_canvas():
     box = trimesh.convex.convex_hull(corners @ v2c[:3, :3].T + v2c[:3, 3])  # canvas (x, y, z)
     box = box.subdivide().subdivide()  # vertices along its faces, not only its corners
     pts = np.concatenate([box.vertices, box.sample(3000, seed=0)])
-    zc, dz = view_depth_frame(boundary_voxels(occ), v2c, C, res)
+    zc, dz = view_depth_frame(surface_voxel_indices(occ), v2c, C, res)
     z0, z1 = box.vertices[:, 2].min(), box.vertices[:, 2].max()
     assert np.isclose(zc, (z0 + z1) / 2) and np.isclose(dz, (z1 - z0) / (res - 2))  # a cell to spare each end
     got = view_occupancy(occ, v2c, C, res, zc, cell_depth=dz)
@@ -1068,3 +1068,20 @@ def test_cmr_says_it_ignores_the_zarr_stores_options(recon, tmp_path, capsys):
     assert any(out.glob("*.mat"))
     assert export_main(["--recon", str(recon), "--out", str(tmp_path / "cmr2"), "--format", "cmr", "--quiet"]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_surface_voxels_equal_a_loop_over_the_neighbours():
+    """The surface voxels (an empty or outside 6-neighbour) against a loop over every voxel, on random grids
+    from sparse to full and one voxel thick."""
+    from carvi_torch.export.objects import surface_voxel_indices
+
+    rng = np.random.default_rng(3)
+    steps = [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]
+    for p, shape in [(0.3, (6, 7, 5)), (0.8, (9, 9, 9)), (1.0, (4, 5, 6)), (0.7, (1, 6, 6))]:
+        occ = rng.random(shape) < p
+        want = []
+        for d, h, w in np.argwhere(occ):
+            around = [(d + a, h + b, w + c) for a, b, c in steps]
+            if any(not all(0 <= i < n for i, n in zip(q, shape)) or not occ[q] for q in around):
+                want.append((d, h, w))
+        np.testing.assert_array_equal(surface_voxel_indices(occ), np.asarray(want, np.float32).reshape(-1, 3))

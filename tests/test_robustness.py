@@ -183,7 +183,7 @@ def test_string_ids_are_carried_to_every_output(base, tmp_path):
 def test_an_integer_id_beyond_64_bits_is_kept_as_written(base, tmp_path):
     """Annotation id 10**30 (no int64 holds it): the object is made, its files and cameras.json
     carry its digits, and the arrays that hold ids fall back to strings instead of overflowing."""
-    from carvi_torch.export import _int_id
+    from carvi_torch.export.run import _int_id
     from carvi_torch.io.layout import object_file
     from carvi_torch.io.writer import id_array
 

@@ -23,10 +23,11 @@ from skimage import morphology
 
 from .grids import ProposalGrids
 
-__all__ = ["medial_balls", "puffball_height", "puffball_grids"]
+__all__ = ["medial_balls", "puffball_height", "puffball_grids", "check_mask"]
 
 
-def _check_mask(mask) -> torch.Tensor:
+def check_mask(mask) -> torch.Tensor:
+    """``mask`` as a ``(H, W)`` bool tensor; ``ValueError`` for any other number of dimensions."""
     m = torch.as_tensor(mask)
     if m.dim() != 2:
         raise ValueError(f"mask must be (H, W), got {tuple(m.shape)}")
@@ -56,7 +57,7 @@ def medial_balls(mask: torch.Tensor, seed: int = 0) -> tuple[torch.Tensor, torch
         >>> c[r.argmax()].tolist(), float(r.max())
         ([2.0, 2.0], 2.0)
     """
-    m = _check_mask(mask)
+    m = check_mask(mask)
     skel, dist = morphology.medial_axis(m.cpu().numpy(), return_distance=True, rng=seed)
     ys, xs = np.nonzero(skel)
     centres = torch.from_numpy(np.stack([xs, ys], axis=1).astype(np.float32))
@@ -86,7 +87,7 @@ def puffball_height(mask: torch.Tensor, chunk_elems: int = 1 << 24) -> torch.Ten
     Returns:
         ``(H, W)`` float32 on the mask's device; ``h >= log 2`` on the foreground.
     """
-    m = _check_mask(mask)
+    m = check_mask(mask)
     centres, radii = medial_balls(m)
     h = torch.zeros(m.shape, dtype=torch.float32, device=m.device)
     if centres.shape[0] == 0:

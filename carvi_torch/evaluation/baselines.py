@@ -21,16 +21,9 @@ import trimesh
 from skimage import measure
 
 from ..cameras import ScaledOrthographic
-from ..carve.puffball import medial_balls, puffball_height  # noqa: F401 - re-exported: the baseline's pieces
+from ..carve.puffball import check_mask, medial_balls, puffball_height  # noqa: F401 - re-exported: the baseline's pieces
 
 __all__ = ["medial_balls", "puffball_height", "puffball", "sfm_convex_hull"]
-
-
-def _check_mask(mask) -> torch.Tensor:
-    m = torch.as_tensor(mask)
-    if m.dim() != 2:
-        raise ValueError(f"mask must be (H, W), got {tuple(m.shape)}")
-    return m.bool()
 
 
 def puffball(mask: torch.Tensor, camera: ScaledOrthographic | None = None, depth_step: float = 1.0,
@@ -65,7 +58,7 @@ def puffball(mask: torch.Tensor, camera: ScaledOrthographic | None = None, depth
         >>> mesh.is_watertight, round(float(mesh.vertices[:, 2].max()) / 8, 1)
         (True, 1.1)
     """
-    m = _check_mask(mask)
+    m = check_mask(mask)
     if camera is not None and len(camera) != 1:
         raise ValueError(f"camera must hold one camera, got {len(camera)}")
     if not depth_step > 0:

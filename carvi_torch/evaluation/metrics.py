@@ -374,20 +374,15 @@ def _triangle_distance2_soa(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, d00,
 
     Every argument is a tensor, all broadcastable; ``d00, d01, d11`` are the triangle's
     ``ab . ab``, ``ab . ac``, ``ac . ac``. The residual is formed as a vector, so points close
-    to the surface keep their accuracy.
+    to the surface keep their accuracy (:func:`_triangle_residual_soa`).
     """
-    qx, qy, qz = px - ax, py - ay, pz - az
-    d1 = bx * qx + by * qy + bz * qz
-    d2 = cx * qx + cy * qy + cz * qz
-    s, t = _closest_barycentric(d1, d2, d00, d01, d11)
-    rx = qx - s * bx - t * cx
-    ry = qy - s * by - t * cy
-    rz = qz - s * bz - t * cz
+    rx, ry, rz = _triangle_residual_soa(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, d00, d01, d11)
     return rx * rx + ry * ry + rz * rz
 
 
 def _triangle_residual_soa(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz, d00, d01, d11):
-    """Residual vectors ``p - closest`` (three component tensors), same arguments as above."""
+    """Residual vectors ``p - closest`` (three component tensors), same arguments as
+    :func:`_triangle_distance2_soa`."""
     qx, qy, qz = px - ax, py - ay, pz - az
     d1 = bx * qx + by * qy + bz * qz
     d2 = cx * qx + cy * qy + cz * qz

@@ -24,7 +24,7 @@ def __getattr__(name: str):
         from .command import main
 
         return main
-    if name in __all__ or name == "_int_id":
+    if name in __all__:
         from . import run
 
         return getattr(run, name)

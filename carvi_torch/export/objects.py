@@ -27,6 +27,7 @@ import zlib
 
 import numpy as np
 import trimesh
+from scipy import ndimage
 from trimesh.exchange.ply import load_ply
 
 from ..io.layout import held_fingerprint
@@ -41,18 +42,11 @@ __all__ = ["splat_occupancy", "view_depth_frame", "view_occupancy", "canonical_o
 MAX_SUBSAMPLES = 4
 
 
-def _boundary(occ: np.ndarray) -> np.ndarray:
-    """Occupied voxels with an empty (or outside) 6-neighbour."""
-    inner = np.zeros_like(occ)
-    c = occ[1:-1, 1:-1, 1:-1]
-    inner[1:-1, 1:-1, 1:-1] = (c & occ[:-2, 1:-1, 1:-1] & occ[2:, 1:-1, 1:-1] & occ[1:-1, :-2, 1:-1]
-                               & occ[1:-1, 2:, 1:-1] & occ[1:-1, 1:-1, :-2] & occ[1:-1, 1:-1, 2:])
-    return occ & ~inner
-
-
-def boundary_voxels(occ: np.ndarray) -> np.ndarray:
-    """Indices ``(N, 3)`` float32 of the occupied voxels with an empty (or outside) 6-neighbour, in C order."""
-    return np.argwhere(_boundary(np.asarray(occ, dtype=bool))).astype(np.float32)
+def surface_voxel_indices(occ: np.ndarray) -> np.ndarray:
+    """Indices ``(N, 3)`` float32 of the occupied voxels with an empty (or outside) 6-neighbour, in C order:
+    what a 6-neighbour erosion removes (``scipy.ndimage.binary_erosion``, the outside empty)."""
+    occ = np.asarray(occ, dtype=bool)
+    return np.argwhere(occ & ~ndimage.binary_erosion(occ)).astype(np.float32)
 
 
 @functools.lru_cache(maxsize=4)
@@ -92,7 +86,7 @@ def splat_occupancy(occ: np.ndarray, voxel_to_target: np.ndarray, res: int,
         voxel_to_target: ``(4, 4)`` affine: source voxel index ``(d, h, w, 1)`` -> continuous target
             index ``(i0, i1, i2, 1)``; target cell ``[i0, i1, i2]`` covers ``[i, i + 1)`` on each axis.
         res: target side.
-        boundary: :func:`boundary_voxels` of ``occ``, when the caller has it already (one grid, two targets).
+        boundary: :func:`surface_voxel_indices` of ``occ``, when the caller has it already (one grid, two targets).
 
     Returns:
         ``(res, res, res)`` bool: a cell is occupied when its centre lies in an occupied voxel's box, or
@@ -105,7 +99,7 @@ def splat_occupancy(occ: np.ndarray, voxel_to_target: np.ndarray, res: int,
     out = np.zeros((res, res, res), dtype=bool)
     A = voxel_to_target[:3, :3].astype(np.float64)
     b = voxel_to_target[:3, 3].astype(np.float64)
-    idx = boundary_voxels(occ) if boundary is None else boundary
+    idx = surface_voxel_indices(occ) if boundary is None else boundary
     if len(idx) == 0:  # no occupied voxel (every occupied region has a boundary)
         return out
     # 1. cell centres inside an occupied box (nearest voxel); the boundary spans the occupied voxels
@@ -126,7 +120,7 @@ def splat_occupancy(occ: np.ndarray, voxel_to_target: np.ndarray, res: int,
 def view_depth_frame(boundary: np.ndarray, voxel_to_canvas: np.ndarray, canvas_size: int, res: int
                      ) -> tuple[float, float]:
     """The depth axis ``(depth_centre, cell_depth)`` of the view grid, in canvas pixels: centred on the depth
-    extent of the occupied voxels' boxes (``boundary``: :func:`boundary_voxels`, which spans them), and one
+    extent of the occupied voxels' boxes (``boundary``: :func:`surface_voxel_indices`, which spans them), and one
     cell ``C / res`` deep (cubic cells) unless the boxes reach deeper than ``(res - 2)`` such cells; then the
     cells deepen so that the middle ``res - 2`` of them hold the whole extent. The first and last layers of
     depth therefore stay empty (``res >= 3``): the whole object is inside.
@@ -297,7 +291,7 @@ def export_object(job: dict) -> dict:
     if held is not None and job.get("fingerprint") and held != job["fingerprint"]:
         raise OtherInputs("its files were made from other inputs than the annotation file's (rerun reconstruct)")
     occ = z["occupancy"].astype(bool)
-    boundary = boundary_voxels(occ)  # shared by both occupancies
+    boundary = surface_voxel_indices(occ)  # shared by both occupancies
     a, b = float(job["canvas_scale"]), np.asarray(job["canvas_offset"], dtype=np.float64)
     image_to_canvas = np.diag([a, a, a, 1.0])
     image_to_canvas[:2, 3] = b

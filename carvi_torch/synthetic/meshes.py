@@ -373,16 +373,13 @@ def load_models(directory: str | Path, sides: Literal["class", "as-given"] = "cl
     models: list[Model] = []
     for path in sorted(directory.iterdir(), key=lambda p: p.name):
         suffix = path.suffix.lower()
-        if not path.is_file() or path.name.startswith("."):
+        if not path.is_file() or path.name.startswith(".") or suffix not in (".npz", *MESH_SUFFIXES):
             continue
-        if suffix == ".npz":
-            models.append(load_cad_npz(path))
-        elif suffix in MESH_SUFFIXES:
-            if not path.with_suffix(".json").is_file():
-                warnings.warn(f"{path}: no {path.stem}.json with its class and keypoints beside it; skipped",
-                              stacklevel=2)
-                continue
-            models.append(load_mesh_with_keypoints(path))
+        if suffix != ".npz" and not path.with_suffix(".json").is_file():
+            warnings.warn(f"{path}: no {path.stem}.json with its class and keypoints beside it; skipped",
+                          stacklevel=2)
+            continue
+        models.append(load_model(path))
     if not models:
         raise ValueError(f"{directory}: no models (.npz, or {'/'.join(MESH_SUFFIXES)} with a .json beside)")
     names = [m.name for m in models]

@@ -245,7 +245,7 @@ class CanonicalFrame:
         say of it (kind, residuals, template source, ambiguities, why a template was refused).
     """
 
-    kind: str
+    kind: FrameKind
     fits: list
     info: dict = field(default_factory=dict)
 
