@@ -345,6 +345,38 @@ def _splat(out: torch.Tensor, occupancy: torch.Tensor, U: torch.Tensor, rows: to
             out.index_fill_(0, flat.view(-1), True)
 
 
+def _splat_settings(dev: torch.device, native: bool | None, chunk_points: int | None, chunk_voxels: int | None):
+    """``(operators, chunk_points, chunk_voxels)`` of :func:`project_proposals` on ``dev``: the compiled splat's
+    operators (or ``None``: the torch operators) and the chunk sizes, their defaults filled in and checked."""
+    ops = _splat_operators(dev, native)
+    kind = dev.type if dev.type in _CHUNK_VOXELS else "cuda"
+    if chunk_voxels is None:
+        chunk_voxels = _CHUNK_VOXELS[kind] if ops is None else max(
+            _CHUNK_VOXELS["cpu"], _NATIVE_CHUNK_VOXELS_PER_THREAD * torch.get_num_threads())
+    chunk_points = _CHUNK_POINTS[kind] if chunk_points is None else chunk_points
+    if int(chunk_points) < 1 or int(chunk_voxels) < 1:
+        raise ValueError(f"chunk_points and chunk_voxels must be >= 1, got {chunk_points}, {chunk_voxels}")
+    return ops, chunk_points, chunk_voxels
+
+
+def _plane_map(voxel_to_camera: torch.Tensor, ref_cameras: ScaledOrthographic, axes: torch.Tensor,
+               centre: torch.Tensor | None, dev: torch.device) -> torch.Tensor:
+    """``A (B, 3, 4)`` float64: plane coordinates along the three axes of each grid's voxel index, ``c = A h``
+    (``c = axes R^T (T[:3] h - [t, 0]) / s - axes centre``); checked finite."""
+    B = voxel_to_camera.shape[0]
+    T = voxel_to_camera.to(device=dev, dtype=torch.float64)
+    cams = ref_cameras.to(device=dev, dtype=torch.float64)
+    shift = torch.zeros(B, 3, 4, dtype=torch.float64, device=dev)
+    shift[:, :2, 3] = cams.t
+    ax = axes.to(device=dev, dtype=torch.float64)
+    A = ax @ cams.R.transpose(-1, -2) @ (T[:, :3, :] - shift) / cams.s[:, None, None]
+    if centre is not None:
+        A[:, :, 3] -= ax @ centre.to(device=dev, dtype=torch.float64)
+    if not bool(torch.isfinite(A).all()):
+        raise ValueError("voxel_to_camera and ref_cameras must map every grid to finite plane coordinates")
+    return A
+
+
 def project_proposals(
     occupancy: torch.Tensor,
     voxel_to_camera: torch.Tensor,
@@ -415,33 +447,13 @@ def project_proposals(
         raise ValueError(f"ref_cameras must hold B={B} cameras, got {len(ref_cameras)}")
     if supersample is not None and int(supersample) < 1:
         raise ValueError(f"supersample must be None or >= 1, got {supersample}")
-    ops = _splat_operators(occupancy.device, native)
-    kind = occupancy.device.type if occupancy.device.type in _CHUNK_VOXELS else "cuda"
-    if chunk_voxels is None:
-        chunk_voxels = _CHUNK_VOXELS[kind] if ops is None else max(
-            _CHUNK_VOXELS["cpu"], _NATIVE_CHUNK_VOXELS_PER_THREAD * torch.get_num_threads())
-    chunk_points = _CHUNK_POINTS[kind] if chunk_points is None else chunk_points
-    if int(chunk_points) < 1 or int(chunk_voxels) < 1:
-        raise ValueError(f"chunk_points and chunk_voxels must be >= 1, got {chunk_points}, {chunk_voxels}")
+    ops, chunk_points, chunk_voxels = _splat_settings(occupancy.device, native, chunk_points, chunk_voxels)
     dev = occupancy.device
     G = int(plane_size)
     Gp = G + 2
     if B == 0:
         return torch.zeros(0, 3, G, G, dtype=torch.bool, device=dev)
-
-    T = voxel_to_camera.to(device=dev, dtype=torch.float64)
-    cams = ref_cameras.to(device=dev, dtype=torch.float64)
-    # Plane coordinates along all three axes are an affine function of the index:
-    # c = axes R^T (T[:3] h - [t, 0]) / s - axes centre  ->  A (B, 3, 4) with c = A h.
-    shift = torch.zeros(B, 3, 4, dtype=torch.float64, device=dev)
-    shift[:, :2, 3] = cams.t
-    ax = axes.to(device=dev, dtype=torch.float64)
-    A = ax @ cams.R.transpose(-1, -2) @ (T[:, :3, :] - shift) / cams.s[:, None, None]
-    if centre is not None:
-        A[:, :, 3] -= ax @ centre.to(device=dev, dtype=torch.float64)
-
-    if not bool(torch.isfinite(A).all()):
-        raise ValueError("voxel_to_camera and ref_cameras must map every grid to finite plane coordinates")
+    A = _plane_map(voxel_to_camera, ref_cameras, axes, centre, dev)
     spacing = 2.0 * extent / (G - 1)
     ms = supersampling(A, spacing, supersample)
     # In plane-sample units u = (c + extent) / spacing, a sample's index is round(u).

@@ -158,6 +158,37 @@ def check_axes(axes: torch.Tensor) -> None:
         raise ValueError(f"axes must be a (3, 3) tensor (rows = principal axes), got {shape}")
 
 
+def _check_clustering(view_dirs, axes, threshold_deg, widen_step_deg, max_threshold_deg, min_second, groups) -> None:
+    """:func:`cluster_by_direction`'s argument checks (``ValueError`` naming the argument)."""
+    if not isinstance(view_dirs, torch.Tensor) or view_dirs.dim() != 2 or view_dirs.shape[-1] != 3:
+        shape = tuple(view_dirs.shape) if isinstance(view_dirs, torch.Tensor) else type(view_dirs).__name__
+        raise ValueError(f"view_dirs must be a (N, 3) tensor, got {shape}")
+    check_axes(axes)
+    if not threshold_deg > 0:
+        raise ValueError(f"threshold_deg must be > 0, got {threshold_deg}")
+    if not widen_step_deg > 0:
+        raise ValueError(f"widen_step_deg must be > 0, got {widen_step_deg}")
+    if not threshold_deg <= max_threshold_deg <= 45.0:
+        raise ValueError(
+            f"max_threshold_deg must lie in [threshold_deg={threshold_deg}, 45], got {max_threshold_deg}"
+        )
+    if min_second < 0:
+        raise ValueError(f"min_second must be >= 0, got {min_second}")
+    if groups is not None and (not isinstance(groups, torch.Tensor) or groups.shape != (view_dirs.shape[0],)):
+        raise ValueError(f"groups must be None or a ({view_dirs.shape[0]},) tensor")
+
+
+def _nearest_axis(view_dirs: torch.Tensor, axes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(angle_deg, nearest)`` ``(N,)``: each direction's angle (float64 degrees) to its nearest axis, front or
+    back (``+axes[j]`` or ``-axes[j]``), and that axis's index; a non-finite row gets a NaN angle."""
+    v = view_dirs.double()
+    v = v / v.norm(dim=-1, keepdim=True)
+    a = axes.to(device=view_dirs.device, dtype=torch.float64)
+    a = a / a.norm(dim=-1, keepdim=True)
+    best_cos, nearest = (v @ a.T).abs().clamp(max=1.0).max(dim=-1)
+    return torch.rad2deg(torch.acos(best_cos)), nearest
+
+
 def cluster_by_direction(
     view_dirs: torch.Tensor,
     axes: torch.Tensor,
@@ -199,32 +230,9 @@ def cluster_by_direction(
         >>> cluster_by_direction(v, torch.eye(3), min_second=1).labels
         tensor([ 2,  2,  0, -1])
     """
-    if not isinstance(view_dirs, torch.Tensor) or view_dirs.dim() != 2 or view_dirs.shape[-1] != 3:
-        shape = tuple(view_dirs.shape) if isinstance(view_dirs, torch.Tensor) else type(view_dirs).__name__
-        raise ValueError(f"view_dirs must be a (N, 3) tensor, got {shape}")
-    check_axes(axes)
-    if not threshold_deg > 0:
-        raise ValueError(f"threshold_deg must be > 0, got {threshold_deg}")
-    if not widen_step_deg > 0:
-        raise ValueError(f"widen_step_deg must be > 0, got {widen_step_deg}")
-    if not threshold_deg <= max_threshold_deg <= 45.0:
-        raise ValueError(
-            f"max_threshold_deg must lie in [threshold_deg={threshold_deg}, 45], got {max_threshold_deg}"
-        )
-    if min_second < 0:
-        raise ValueError(f"min_second must be >= 0, got {min_second}")
-
+    _check_clustering(view_dirs, axes, threshold_deg, widen_step_deg, max_threshold_deg, min_second, groups)
     dev = view_dirs.device
-    v = view_dirs.double()
-    v = v / v.norm(dim=-1, keepdim=True)
-    a = axes.to(device=dev, dtype=torch.float64)
-    a = a / a.norm(dim=-1, keepdim=True)
-    cos = (v @ a.T).abs().clamp(max=1.0)  # (N, 3)
-    best_cos, nearest = cos.max(dim=-1)
-    angle = torch.rad2deg(torch.acos(best_cos))  # NaN rows stay NaN and join no cluster
-
-    if groups is not None and (not isinstance(groups, torch.Tensor) or groups.shape != (v.shape[0],)):
-        raise ValueError(f"groups must be None or a ({v.shape[0]},) tensor")
+    angle, nearest = _nearest_axis(view_dirs, axes)
     what = "members" if groups is None else "objects"
     log: list[str] = []
     thr = float(threshold_deg)

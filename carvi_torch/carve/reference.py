@@ -21,6 +21,19 @@ from .torch_backend import (INTERPOLATIONS, empty_grids, label_columns, prepare_
 __all__ = ["carve_proposals_loop"]
 
 
+def _proposal_maps(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: torch.Tensor, views: torch.Tensor,
+                   resolution: int, from_masks: bool) -> tuple[CarveMaps, torch.Tensor, torch.Tensor]:
+    """One proposal's prepared maps and its reference ``(1,)`` and view ``(1, V)`` indices into them: with
+    ``from_masks``, the distance maps of its own silhouettes alone, computed here; else the given maps."""
+    if not from_masks:
+        return as_maps(sdf, cameras, reference, views, resolution)
+    dev = sdf.device
+    used = torch.cat([reference, views[0][views[0] >= 0]])
+    mine = torch.where(views >= 0, torch.cumsum((views >= 0).long(), 1), -1)
+    return as_maps(signed_distance(sdf[used]), cameras.to(dev)[used], torch.zeros(1, dtype=torch.long, device=dev),
+                   mine, resolution)
+
+
 def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, reference: torch.Tensor, views: torch.Tensor,
                          *, resolution: int = 60, imprint: bool = True,
                          reference_every_voxel: bool = False, interpolation: str = "bilinear") -> ProposalGrids:
@@ -60,15 +73,9 @@ def carve_proposals_loop(sdf: torch.Tensor, cameras: ScaledOrthographic, referen
     h, w = column_hw(torch.arange(n * n, device=dev)[None], n)
     grids = []
     for b in range(B):
-        if prepared:
-            one, ref_b, views_b = maps, reference[b:b + 1], views[b:b + 1]
-        elif from_masks:
-            used = torch.cat([reference[b:b + 1], views[b][views[b] >= 0]])
-            mine = torch.where(views[b:b + 1] >= 0, torch.cumsum((views[b:b + 1] >= 0).long(), 1), -1)
-            one, ref_b, views_b = as_maps(signed_distance(sdf[used]), cameras.to(dev)[used],
-                                           torch.zeros(1, dtype=torch.long, device=dev), mine, resolution)
-        else:
-            one, ref_b, views_b = as_maps(sdf, cameras, reference[b:b + 1], views[b:b + 1], resolution)
+        one, ref_b, views_b = maps, reference[b:b + 1], views[b:b + 1]
+        if not prepared:
+            one, ref_b, views_b = _proposal_maps(sdf, cameras, ref_b, views_b, resolution, from_masks)
         ext, ref_u, views_u, T, G, G_ref, scale = prepare_proposals(one, ref_b, views_b, resolution)
         column_cost = reference_columns(ext, ref_u, G_ref, n, n, interpolation)  # (1, HW)
         if reference_every_voxel:

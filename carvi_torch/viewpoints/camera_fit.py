@@ -776,30 +776,39 @@ def refine_cameras(
     R, s, t, E0, E, Ek, Es, conv = (x[:, 0] for x in out[:7] + out[8:])
     it = out[7]
     start = torch.zeros(len(cameras), dtype=torch.long, device=keypoints.device)
-    if twin_flatness > 0:
-        # the second start, for the flat instances only (instances are optimised independently)
-        tw, thickness = planar_twin(shape, ScaledOrthographic(cameras.R.to(dt), cameras.s.to(dt), cameras.t.to(dt)),
-                                    visible)
+    res = (R, s, t, E, Ek, Es, conv, start, it)
+    if twin_flatness > 0:  # the second start, for the flat instances only (instances are optimised independently)
+        twin, thickness = planar_twin(shape, ScaledOrthographic(cameras.R.to(dt), cameras.s.to(dt),
+                                                                cameras.t.to(dt)), visible)
         idx = (thickness < twin_flatness).nonzero().squeeze(1)
         if idx.numel():
-            sub = lambda x: None if x is None else x[idx]  # noqa: E731
-            o2 = _optimize(tw.R[idx, None], tw.s[idx, None], tw.t[idx, None], shape, keypoints[idx], visible[idx],
-                           sub(dist_maps), lam[idx], max_iters, tol, sub(rscale))
-            R2, s2, t2, _, E2, Ek2, Es2, conv2 = (x[:, 0] for x in o2[:7] + o2[8:])
-            it = max(it, o2[7])
-            # the hull judges only rows whose energy has a silhouette term (an empty mask: IoU 0 either way)
-            masks = None
-            if dist_maps is not None and twin_hull:
-                masks = (dist_maps[idx] == 0) & (lam[idx] > 0)[:, None, None]
-            wins = twin_wins(shape, ScaledOrthographic(R[idx], s[idx], t[idx]), E[idx],
-                             ScaledOrthographic(R2, s2, t2), E2, masks, twin_margin)
-            win = idx[wins]
-            R, s, t = R.index_put((win,), R2[wins]), s.index_put((win,), s2[wins]), t.index_put((win,), t2[wins])
-            E, Ek, Es = E.index_put((win,), E2[wins]), Ek.index_put((win,), Ek2[wins]), Es.index_put((win,), Es2[wins])
-            conv = conv.index_put((win,), conv2[wins])
-            start = start.index_put((win,), torch.ones_like(win))
-    cams = ScaledOrthographic(R, s, t)
-    return RefineResult(cams, E0, E, it, conv, Ek, Es, start)
+            terms = (shape, keypoints, visible, dist_maps, lam, max_iters, tol, rscale)
+            res = _twin_restart(res, twin, idx, terms, twin_margin, twin_hull)
+    R, s, t, E, Ek, Es, conv, start, it = res
+    return RefineResult(ScaledOrthographic(R, s, t), E0, E, it, conv, Ek, Es, start)
+
+
+def _twin_restart(res: tuple, twin: ScaledOrthographic, idx: torch.Tensor, terms: tuple, twin_margin: float,
+                  twin_hull: bool) -> tuple:
+    """:func:`refine_cameras`' second start: rows ``idx`` refined from their planar ``twin`` cameras, each twin kept
+    where :func:`twin_wins`. ``res``: ``(R, s, t, E, Ek, Es, conv, start, iterations)`` of the first start, returned
+    updated; ``terms``: ``(shape, keypoints, visible, dist_maps, lam, max_iters, tol, rscale)`` of the energy."""
+    R, s, t, E, Ek, Es, conv, start, it = res
+    shape, keypoints, visible, dist_maps, lam, max_iters, tol, rscale = terms
+    sub = lambda x: None if x is None else x[idx]  # noqa: E731
+    o2 = _optimize(twin.R[idx, None], twin.s[idx, None], twin.t[idx, None], shape, keypoints[idx], visible[idx],
+                   sub(dist_maps), lam[idx], max_iters, tol, sub(rscale))
+    R2, s2, t2, _, E2, Ek2, Es2, conv2 = (x[:, 0] for x in o2[:7] + o2[8:])
+    # the hull judges only rows whose energy has a silhouette term (an empty mask: IoU 0 either way)
+    masks = None
+    if dist_maps is not None and twin_hull:
+        masks = (dist_maps[idx] == 0) & (lam[idx] > 0)[:, None, None]
+    wins = twin_wins(shape, ScaledOrthographic(R[idx], s[idx], t[idx]), E[idx], ScaledOrthographic(R2, s2, t2), E2,
+                     masks, twin_margin)
+    win = idx[wins]
+    put = lambda x, y: x.index_put((win,), y[wins])  # noqa: E731
+    return (put(R, R2), put(s, s2), put(t, t2), put(E, E2), put(Ek, Ek2), put(Es, Es2), put(conv, conv2),
+            start.index_put((win,), torch.ones_like(win)), max(it, o2[7]))
 
 
 def twin_wins(shape: torch.Tensor, own: ScaledOrthographic, energy: torch.Tensor, twin: ScaledOrthographic,
