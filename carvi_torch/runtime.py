@@ -1,4 +1,13 @@
-"""Process resources every stage shares: CPU cores, torch threads, stage timers, peak memory.
+"""What every stage and command shares about the process it runs in.
+
+- resources: CPU cores (:func:`cores`), torch threads (:func:`torch_threads`, :func:`intra_op_threads`), stage
+  timers (:class:`StageTimer`), peak memory and CPU time (:func:`peak_rss_mb`, :func:`cpu_seconds`);
+- output folders before a run writes: :func:`unwritable_above`, :func:`check_replaceable`, :func:`os_error_line`;
+- Ctrl-C and signals: :func:`watch_interrupts`, :func:`deferred_interrupt`, :func:`ignore_interrupt`;
+- child processes: :func:`start_method`, :class:`LeanProcessPool`, :func:`watch_parent`, :func:`processes_marked`,
+  :func:`child_pythonpath`;
+- moving objects between devices: :func:`to_device`, :func:`fields_to_device`;
+- logging to the terminal (tqdm-safe) and to ``run.log``: :func:`log_to_terminal`, :func:`log_to_file`.
 
 Nothing here knows a pipeline stage; every stage may import it. torch is imported on first use
 only, so that processes that never need it (the writers) start fast.

@@ -57,7 +57,7 @@ if TYPE_CHECKING:
 
 __all__ = ["Viewpoints", "CameraSource", "estimate_viewpoints", "class_sfm", "started_sfm", "TEMPLATE_START_MARGIN",
            "GT_REFLECTION", "ground_truth_cameras", "true_canvas_cameras",
-           "NoMeanShape", "symmetry_plane", "NO_MIRRORS"]
+           "NoMeanShape", "symmetry_plane_or_none", "NO_MIRRORS"]
 
 #: Where a run's cameras come from: ``estimate`` (SfM and refinement) or ``gt`` (the true cameras, a study).
 CameraSource = Literal["estimate", "gt"]
@@ -409,7 +409,7 @@ def estimate_viewpoints(coll: ClassCollection, cfg: ViewpointConfig, *, source: 
     cams_sfm, sfm_valid = group_sfm_cameras(mix)
     shape = mix.shape(mix.largest())
     vp = Viewpoints(both, cams_sfm, sfm_valid, cams_sfm, sfm_valid.clone(), shape,
-                    symmetry_plane(shape, coll.meta.flip_pairs), mix, None, source=source, mirrored=mirrored,
+                    symmetry_plane_or_none(shape, coll.meta.flip_pairs), mix, None, source=source, mirrored=mirrored,
                     distances=dist, info=info, warnings=warnings, log=log)
     if source == "gt":
         _ground_truth(coll, both, gt_cameras, vp)
@@ -448,7 +448,7 @@ def _mirrored_rows(coll: ClassCollection) -> tuple[ClassCollection, bool]:
     return both.replace(visible=both.visible & ~both.is_mirror[:, None]), False
 
 
-def symmetry_plane(shape: torch.Tensor, flip_pairs) -> torch.Tensor | None:
+def symmetry_plane_or_none(shape: torch.Tensor, flip_pairs) -> torch.Tensor | None:
     """:func:`~carvi_torch.viewpoints.sfm.symmetry_plane` of ``shape (K, 3)``, or ``None`` when no flip
     pair has two distinct finite points (a class without left/right keypoints)."""
     if not flip_pairs:
@@ -486,7 +486,7 @@ def _frame(coll: ClassCollection, vp: Viewpoints, cfg: ViewpointConfig) -> Canon
         return CanonicalFrame("ground_truth", [FrameFit(torch.eye(3, dtype=torch.float64))], {"kind": "ground_truth"})
     n = len(coll)
     mix = vp.groups
-    reflection = symmetry_plane(vp.shape, coll.meta.flip_pairs)
+    reflection = symmetry_plane_or_none(vp.shape, coll.meta.flip_pairs)
     seen = vp.has_camera[:n]
     return canonical_frame(cfg.frame, coll.meta.name, coll.meta.keypoint_names,
                            [mix.shape(g).cpu() for g in range(mix.k)], vp.shape.cpu(),
