@@ -62,6 +62,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -120,6 +121,24 @@ __all__ = [
 
 
 # --------------------------------------------------------------------------- primitives
+
+
+class Fitted(NamedTuple):
+    """What :func:`_optimize` gives: ``(N, B)`` cameras and energies of ``N`` rows from ``B`` starts each."""
+
+    R: torch.Tensor
+    s: torch.Tensor
+    t: torch.Tensor
+    E_before: torch.Tensor
+    E: torch.Tensor
+    E_kp: torch.Tensor
+    E_sil: torch.Tensor
+    iterations: int
+    converged: torch.Tensor
+
+    def first_start(self) -> "Fitted":
+        """The same for start 0 alone: ``(N,)`` tensors."""
+        return self._replace(**{k: getattr(self, k)[:, 0] for k in self._fields if k != "iterations"})
 
 
 @dataclass
@@ -432,16 +451,16 @@ def _optimize(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rsc
     ``native``: without a silhouette term, on the CPU, the compiled fit (:func:`_native_optimize`) where
     it applies.
 
-    Returns ``R, s, t, E_before, E, E_kp, E_sil, iterations, converged (N, B)``.
+    Returns :class:`Fitted`.
     """
     plain = maps is None or not bool((lam > 0).any())
     if native and plain:
         out = _native_optimize(R, s, t, shape, keypoints, visible, max_iters, tol)
         if out is not None:
-            return out
+            return Fitted(*out)
     with cpu_single_thread(keypoints.device), torch.inference_mode(plain):
         out = _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale)
-    return tuple(x.clone() if plain and isinstance(x, torch.Tensor) else x for x in out)
+    return Fitted(*(x.clone() if plain and isinstance(x, torch.Tensor) else x for x in out))
 
 
 def _native_optimize(R, s, t, shape, keypoints, visible, max_iters, tol):
@@ -772,9 +791,8 @@ def refine_cameras(
     rscale = None
     if dist_maps is not None and silhouette_robust is not None:
         rscale = robust_scales(dist_maps, silhouette_robust)
-    out = _optimize(R, s, t, shape, keypoints, visible, dist_maps, lam, max_iters, tol, rscale)
-    R, s, t, E0, E, Ek, Es, conv = (x[:, 0] for x in out[:7] + out[8:])
-    it = out[7]
+    R, s, t, E0, E, Ek, Es, it, conv = _optimize(R, s, t, shape, keypoints, visible, dist_maps, lam, max_iters, tol,
+                                                 rscale).first_start()
     start = torch.zeros(len(cameras), dtype=torch.long, device=keypoints.device)
     res = (R, s, t, E, Ek, Es, conv, start, it)
     if twin_flatness > 0:  # the second start, for the flat instances only (instances are optimised independently)
@@ -797,18 +815,17 @@ def _twin_restart(res: tuple, twin: ScaledOrthographic, idx: torch.Tensor, terms
     shape, keypoints, visible, dist_maps, lam, max_iters, tol, rscale = terms
     sub = lambda x: None if x is None else x[idx]  # noqa: E731
     o2 = _optimize(twin.R[idx, None], twin.s[idx, None], twin.t[idx, None], shape, keypoints[idx], visible[idx],
-                   sub(dist_maps), lam[idx], max_iters, tol, sub(rscale))
-    R2, s2, t2, _, E2, Ek2, Es2, conv2 = (x[:, 0] for x in o2[:7] + o2[8:])
+                   sub(dist_maps), lam[idx], max_iters, tol, sub(rscale)).first_start()
     # the hull judges only rows whose energy has a silhouette term (an empty mask: IoU 0 either way)
     masks = None
     if dist_maps is not None and twin_hull:
         masks = (dist_maps[idx] == 0) & (lam[idx] > 0)[:, None, None]
-    wins = twin_wins(shape, ScaledOrthographic(R[idx], s[idx], t[idx]), E[idx], ScaledOrthographic(R2, s2, t2), E2,
-                     masks, twin_margin)
+    wins = twin_wins(shape, ScaledOrthographic(R[idx], s[idx], t[idx]), E[idx], ScaledOrthographic(o2.R, o2.s, o2.t),
+                     o2.E, masks, twin_margin)
     win = idx[wins]
     put = lambda x, y: x.index_put((win,), y[wins])  # noqa: E731
-    return (put(R, R2), put(s, s2), put(t, t2), put(E, E2), put(Ek, Ek2), put(Es, Es2), put(conv, conv2),
-            start.index_put((win,), torch.ones_like(win)), max(it, o2[7]))
+    return (put(R, o2.R), put(s, o2.s), put(t, o2.t), put(E, o2.E), put(Ek, o2.E_kp), put(Es, o2.E_sil),
+            put(conv, o2.converged), start.index_put((win,), torch.ones_like(win)), max(it, o2.iterations))
 
 
 def twin_wins(shape: torch.Tensor, own: ScaledOrthographic, energy: torch.Tensor, twin: ScaledOrthographic,
@@ -972,7 +989,7 @@ def refine_starts_keypoints_only(
     lam = torch.zeros(keypoints.shape[0], dtype=keypoints.dtype, device=keypoints.device)
     dt = keypoints.dtype
     out = _optimize(R.to(dt), s.to(dt), t.to(dt), shape, keypoints, visible, None, lam, max_iters, tol, native=native)
-    Rb, sb, tb, Eb, _best = _pick(out[0], out[1], out[2], out[4])
+    Rb, sb, tb, Eb, _best = _pick(out.R, out.s, out.t, out.E)
     return ScaledOrthographic(Rb, sb, tb), Eb
 
 
