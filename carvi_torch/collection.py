@@ -16,7 +16,7 @@ similarity has the same scale and offset ``b_x' = C - 1 - a (w - 1) - b_x``.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Sequence
 
 import torch
@@ -407,6 +407,25 @@ class ClassCollection:
     def _index_list(self, idx) -> list[int]:
         return torch.arange(len(self))[idx].reshape(-1).tolist()
 
+    def _map_rows(self, tensor, rows_of_list, similarity, **changes) -> "ClassCollection":
+        """A collection of the same class whose per-row fields are mapped: tensors by ``tensor``, lists (ids,
+        sources, ...) by ``rows_of_list``, the canvas similarity by ``similarity``; the fields of ``changes``
+        set to them instead."""
+        values = dict(changes)
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in changes:
+                continue
+            if f.name == "meta":
+                values[f.name] = v
+            elif isinstance(v, torch.Tensor):
+                values[f.name] = tensor(v)
+            elif isinstance(v, list):
+                values[f.name] = rows_of_list(v)
+            else:
+                values[f.name] = similarity(v)
+        return ClassCollection(**values)
+
     def __getitem__(self, idx) -> "ClassCollection":
         """Subset by a slice, a list/tensor of indices or a bool mask (always a collection)."""
         if isinstance(idx, int):
@@ -415,63 +434,27 @@ class ClassCollection:
             idx = idx.to("cpu")
         rows = self._index_list(idx)
         ix = torch.tensor(rows, dtype=torch.long, device=self.device)
-        return ClassCollection(
-            meta=self.meta,
-            masks=self.masks[ix],
-            keypoints=self.keypoints[ix],
-            visible=self.visible[ix],
-            canvas_from_image=self.canvas_from_image[ix],
-            image_size=self.image_size[ix],
-            annotation_ids=[self.annotation_ids[i] for i in rows],
-            image_ids=[self.image_ids[i] for i in rows],
-            object_ids=[self.object_ids[i] for i in rows],
-            object_groups=self.object_groups[ix],
-            is_mirror=self.is_mirror[ix],
-            sources=[self.sources[i] for i in rows],
-            splits=[self.splits[i] for i in rows],
-            fingerprints=[self.fingerprints[i] for i in rows],
-        )
+        return self._map_rows(lambda x: x[ix], lambda values: [values[i] for i in rows], lambda sim: sim[ix])
 
     def to(self, device) -> "ClassCollection":
         """Move every tensor to ``device``."""
-        return ClassCollection(
-            meta=self.meta,
-            masks=self.masks.to(device),
-            keypoints=self.keypoints.to(device),
-            visible=self.visible.to(device),
-            canvas_from_image=self.canvas_from_image.to(device),
-            image_size=self.image_size.to(device),
-            annotation_ids=list(self.annotation_ids),
-            image_ids=list(self.image_ids),
-            object_ids=list(self.object_ids),
-            object_groups=self.object_groups.to(device),
-            is_mirror=self.is_mirror.to(device),
-            sources=list(self.sources),
-            splits=list(self.splits),
-            fingerprints=list(self.fingerprints),
-        )
+        return self._map_rows(lambda x: x.to(device), list, lambda sim: sim.to(device))
 
     @staticmethod
     def cat(parts: Sequence["ClassCollection"]) -> "ClassCollection":
         """Concatenate collections of the same class."""
-        first = parts[0]
-        return ClassCollection(
-            meta=first.meta,
-            masks=torch.cat([p.masks for p in parts]),
-            keypoints=torch.cat([p.keypoints for p in parts]),
-            visible=torch.cat([p.visible for p in parts]),
-            canvas_from_image=Similarity2D(torch.cat([p.canvas_from_image.scale for p in parts]),
-                                           torch.cat([p.canvas_from_image.offset for p in parts])),
-            image_size=torch.cat([p.image_size for p in parts]),
-            annotation_ids=[a for p in parts for a in p.annotation_ids],
-            image_ids=[a for p in parts for a in p.image_ids],
-            object_ids=[a for p in parts for a in p.object_ids],
-            object_groups=torch.cat([p.object_groups for p in parts]),
-            is_mirror=torch.cat([p.is_mirror for p in parts]),
-            sources=[s for p in parts for s in p.sources],
-            splits=[s for p in parts for s in p.splits],
-            fingerprints=[f for p in parts for f in p.fingerprints],
-        )
+        values = {"meta": parts[0].meta}
+        for f in fields(parts[0]):
+            if f.name == "meta":
+                continue
+            got = [getattr(p, f.name) for p in parts]
+            if isinstance(got[0], torch.Tensor):
+                values[f.name] = torch.cat(got)
+            elif isinstance(got[0], list):
+                values[f.name] = [v for part in got for v in part]
+            else:
+                values[f.name] = Similarity2D(torch.cat([g.scale for g in got]), torch.cat([g.offset for g in got]))
+        return ClassCollection(**values)
 
     # ---- mirroring
     @property
@@ -493,22 +476,9 @@ class ClassCollection:
         off = sim.offset.clone()
         w = self.image_size[:, 0].to(off.dtype)
         off[:, 0] = (C - 1) - sim.scale * (w - 1) - sim.offset[:, 0]
-        return ClassCollection(
-            meta=self.meta,
-            masks=self.masks.flip(-1),
-            keypoints=kp,
-            visible=self.visible[:, perm],
-            canvas_from_image=Similarity2D(sim.scale.clone(), off),
-            image_size=self.image_size.clone(),
-            annotation_ids=list(self.annotation_ids),
-            image_ids=list(self.image_ids),
-            object_ids=list(self.object_ids),
-            object_groups=self.object_groups.clone(),
-            is_mirror=~self.is_mirror,
-            sources=list(self.sources),
-            splits=list(self.splits),
-            fingerprints=list(self.fingerprints),
-        )
+        return self._map_rows(torch.clone, list, None, masks=self.masks.flip(-1), keypoints=kp,
+                              visible=self.visible[:, perm], canvas_from_image=Similarity2D(sim.scale.clone(), off),
+                              is_mirror=~self.is_mirror)
 
     def with_mirrors(self) -> "ClassCollection":
         """The originals followed by their mirrored copies (``2N`` instances; copy ``i + N`` mirrors ``i``)."""
