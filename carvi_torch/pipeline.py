@@ -16,8 +16,9 @@ lives in the stage modules.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from tqdm.auto import tqdm
@@ -38,12 +39,14 @@ from .sdf import signed_distance
 from .viewpoints import NoMeanShape, Viewpoints, estimate_viewpoints, ground_truth_cameras
 
 __all__ = ["run_class", "viewpoint_stage", "class_viewpoints", "prepare_class", "carve_and_select",
-           "ClassPlan", "finished_objects", "reconstruct_chunk", "finish_class"]
+           "ClassPlan", "ClassViewpoints", "PreparedClass", "finished_objects", "reconstruct_chunk", "finish_class"]
 
 
 @dataclass
 class ClassPlan:
-    """What carving and selection need for every chunk of one class (built once per class)."""
+    """What carving and selection need for every chunk of one class (built once per class); ``aids`` to
+    ``object_from_camera`` are host copies of what the hand-off reads per object (``object_from_camera``:
+    ``(N, 4, 4)`` camera frame in image pixels -> canonical frame)."""
 
     coll: ClassCollection
     viewpoints: Viewpoints
@@ -51,13 +54,16 @@ class ClassPlan:
     maps: CarveMaps  # entries: 2N silhouettes (+ rotated reference cameras, symmetric classes)
     selection: select.SelectionReference
     cdir: Path
+    aids: list = field(init=False)
+    canvas_scale: torch.Tensor = field(init=False)
+    canvas_offset: torch.Tensor = field(init=False)
+    object_from_camera: torch.Tensor = field(init=False)
 
-    def __post_init__(self):  # host copies, read once per object by the hand-off
+    def __post_init__(self):
         sim = self.coll.canvas_from_image
         self.aids = list(self.coll.annotation_ids)
-        self.canvas_scale = sim.scale.detach().double().cpu()  # (N,)
-        self.canvas_offset = sim.offset.detach().double().cpu()  # (N, 2)
-        # camera frame (image pixels) -> canonical object frame, per original (its final camera)
+        self.canvas_scale = sim.scale.detach().double().cpu()
+        self.canvas_offset = sim.offset.detach().double().cpu()
         self.object_from_camera = canonical_image_cameras(self.coll, self.viewpoints).camera_to_object_4x4().cpu()
 
     def proposals(self, ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -68,11 +74,28 @@ class ClassPlan:
         return ids[:, None].expand(R, P).reshape(-1), views.reshape(R * P, -1), valid.reshape(-1)
 
 
+class ClassViewpoints(NamedTuple):
+    """:func:`class_viewpoints`' result (``viewpoints`` and ``surrogates`` ``None``: the class stops there)."""
+
+    coll: ClassCollection
+    viewpoints: Viewpoints | None
+    surrogates: surrogates.SurrogatePlan | None
+    report: ClassReport
+
+
+class PreparedClass(NamedTuple):
+    """:func:`prepare_class`' result: the plan (``None``: no carving), the originals to reconstruct, the report."""
+
+    plan: ClassPlan | None
+    todo: list[int]
+    report: ClassReport
+
+
 def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None, report: ClassReport) -> list[bool]:
     """Per original: finished by an earlier run into ``out`` from its current inputs, unless ``overwrite``
-    (:func:`~carvi_torch.io.layout.resume_check`); the others are redone, those with damaged files logged per
-    object, those made from other inputs in one line and ``report.info["redone"]`` (the executor names the files
-    of objects that the data no longer holds, for every class: :func:`carvi_torch.executors.common.book_class`)."""
+    (:func:`~carvi_torch.io.layout.resume_check`); the others are redone, those with damaged files logged per object,
+    those made from other inputs in one line and ``report.info["redone"]`` (files of objects the data no longer holds:
+    :func:`carvi_torch.executors.common.book_class`)."""
     if out is None:
         return [False] * len(coll)
     cdir = class_dir(out, coll.meta.key)
@@ -144,23 +167,17 @@ def viewpoint_stage(coll: ClassCollection, cfg: Config, gt: dict | None = None,
     SfM placed none."""
     report = ClassReport(coll.meta.key, objects=len(coll)) if report is None else report
     if len(coll) < cfg.input.min_instances:
-        report.status = "skipped"
-        report.skip(f"class has {len(coll)} usable instance(s), fewer than min_instances={cfg.input.min_instances}",
-                    "class")
-        return None, report
+        why = f"class has {len(coll)} usable instance(s), fewer than min_instances={cfg.input.min_instances}"
+        return None, report.skip_class([(why, "class", None, None)])
     gt_img, gt_why = ground_truth_cameras(gt, coll) if cfg.study.cameras == "gt" else (None, [])
     if cfg.study.cameras == "gt" and gt_img is None:
-        report.status = "skipped"
-        for aid, src, why in zip(coll.annotation_ids, coll.sources, gt_why):
-            report.skip(f"cameras=gt: {why}", "viewpoints", aid, src)
-        return None, report
+        return None, report.skip_class([(f"cameras=gt: {why}", "viewpoints", aid, src)
+                                        for aid, src, why in zip(coll.annotation_ids, coll.sources, gt_why)])
     try:
         vp = estimate_viewpoints(coll, cfg.viewpoints, source=cfg.study.cameras, gt_cameras=gt_img, seed=cfg.seed,
                                  timer=StageTimer(coll.device, report.seconds))
     except NoMeanShape as e:
-        report.status = "skipped"
-        report.skip(str(e), "viewpoints")
-        return None, report
+        return None, report.skip_class([(str(e), "viewpoints", None, None)])
     vp.no_camera.update({i: f"cameras=gt: {why}" for i, why in enumerate(gt_why) if why})
     report.warnings.extend(vp.warnings)
     report.info.update(vp.info)
@@ -168,27 +185,28 @@ def viewpoint_stage(coll: ClassCollection, cfg: Config, gt: dict | None = None,
 
 
 def class_viewpoints(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
-                     gt: dict | None = None, report: ClassReport | None = None, made: tuple | None = None) -> tuple:
+                     gt: dict | None = None, report: ClassReport | None = None,
+                     made: tuple | None = None) -> ClassViewpoints:
     """The part of :func:`prepare_class` that reads and writes no file (an executor may run it ahead, on another
-    thread): ``(coll, vp, surrogate_plan, report)``, the class on ``device``, its viewpoints and surrogate plan,
-    both ``None`` when the class stops there (too few instances, no true or SfM cameras). ``made``: the
-    result of :func:`viewpoint_stage` on this class made elsewhere (a worker process), on the CPU."""
+    thread): the class on ``device``, its viewpoints and surrogate plan, both ``None`` when the class stops there
+    (too few instances, no true or SfM cameras). ``made``: the result of :func:`viewpoint_stage` on this class
+    made elsewhere (a worker process), on the CPU."""
     vdev = cfg.viewpoint_device(device, len(coll))
     vcoll = coll.to(vdev) if made is None else coll
     vp, report = viewpoint_stage(vcoll, cfg, gt, report) if made is None else made
     report.info["viewpoint_device"] = str(vdev)
     if vp is None:
-        return coll, None, None, report
+        return ClassViewpoints(coll, None, None, report)
     for line in vp.log:
         log.info(line)
     vp, timer = (vp if vdev == device else vp.to(device)), StageTimer(device, report.seconds)
     coll = vcoll if vcoll.device == device else coll.to(device)
-    return coll, vp, _surrogate_plan(coll, vp, cfg, generator, timer, report), report
+    return ClassViewpoints(coll, vp, _surrogate_plan(coll, vp, cfg, generator, timer, report), report)
 
 
 def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
                   gt: dict | None = None, out: Path | None = None, report: ClassReport | None = None,
-                  done: list[bool] | None = None, ahead: tuple | None = None):
+                  done: list[bool] | None = None, ahead: ClassViewpoints | None = None) -> PreparedClass:
     """Every stage of one class up to carving: viewpoints, clusters, triplets, prepared silhouettes.
 
     Writes ``out/<class>/cameras.json`` when ``out`` is given. ``done``: per original, finished by an
@@ -196,13 +214,12 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     both runs plan the same objects). ``ahead``: :func:`class_viewpoints`'s result, made beforehand.
 
     Returns:
-        ``(plan, todo, report)``: the :class:`ClassPlan` (``None`` when the class stops before
-        carving: too few instances, missing ground truth, ``stage=cameras``, nothing to do), the
-        original indices to reconstruct, and the class report so far.
+        :class:`PreparedClass`: the plan is ``None`` when the class stops before carving (too few instances,
+        missing ground truth, ``stage=cameras``, nothing to do).
     """
     coll, vp, plan, report = class_viewpoints(coll, cfg, device, generator, gt, report) if ahead is None else ahead
     if vp is None:
-        return None, [], report
+        return PreparedClass(None, [], report)
     timer, n = StageTimer(device, report.seconds), len(coll)
     cdir = class_dir(out if out is not None else ".", coll.meta.key)
     done = finished_objects(coll, cfg, out, report) if done is None else list(done)
@@ -215,22 +232,21 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
         report.info["quality"] = quality_summary(cams["cameras"])
     if cfg.stage == "cameras":
         report.status = "cameras"
-        return None, [], report
+        return PreparedClass(None, [], report)
     todo = _todo(coll, vp, done, cfg, report)
     if not todo:  # everything done already (a resumed run) or nothing usable: no maps to prepare
-        return None, [], report
+        return PreparedClass(None, [], report)
     plan.set_todo(todo)
     with timer("select"):
         sel = select.class_reference(vp.shape, coll.masks, vp.cameras[:n], plan.clusters.labels, plan.axes,
                                      cfg.select.plane_size, coll.object_groups if cfg.select.balance_objects else None)
     report.info["average_mask_members"] = [int(c) for c in sel.counts.tolist()]
     maps = _maps(vp, plan, todo, sel, cfg, timer)
-    return ClassPlan(coll, vp, plan, maps, sel, cdir), todo, report
+    return PreparedClass(ClassPlan(coll, vp, plan, maps, sel, cdir), todo, report)
 
 
 def carve_and_select(ids: torch.Tensor, plan: ClassPlan, cfg: Config, timer: StageTimer) -> select.Selection:
-    """Carve every proposal of the references ``ids`` (originals, a consecutive run of ``todo``), score
-    and rank them (all device work of a chunk)."""
+    """Carve, score and rank every proposal of the originals ``ids`` (a run of ``todo``): a chunk's device work."""
     with timer("surrogates"):
         flat_ref, views, flat_valid = plan.proposals(ids)
     valid, keep = flat_valid.view(len(ids), -1), flat_valid.nonzero().squeeze(1)
@@ -248,18 +264,14 @@ def carve_and_select(ids: torch.Tensor, plan: ClassPlan, cfg: Config, timer: Sta
 
 def _job(sel: select.Selection, occupancy: torch.Tensor, masks: torch.Tensor, j: int, i: int, sur, plan: ClassPlan,
          cfg: Config) -> dict:
-    """The writer's job for reference ``j`` (original ``i``) of a chunk (host data only: the chunk's grids and
-    masks read back once)."""
+    """The writer's job for reference ``j`` (original ``i``) of a chunk, of host data (grids and masks read once)."""
     scale, offset, aid_of, aid = plan.canvas_scale[i], plan.canvas_offset[i], plan.aids, plan.aids[i]
-    canvas_to_image = canvas_to_image_4x4(scale, offset)
-    v2c = sel.best_transform[j]
-    best = int(sel.best[j])
+    canvas_to_image, v2c, best = canvas_to_image_4x4(scale, offset), sel.best_transform[j], int(sel.best[j])
     sur_ids = [] if sur is None or best < 0 else [aid_of[s] for s in sur[j, best].tolist() if s >= 0]
     v2img = canvas_to_image @ v2c
     return dict(aid=aid, occupancy=occupancy[j].numpy(), voxel_to_canvas=v2c.numpy(),
                 voxel_to_image=v2img.numpy(), voxel_to_object=(plan.object_from_camera[i] @ v2img).numpy(),
-                canvas_scale=float(scale),
-                canvas_offset=offset.float().numpy(), surrogates=id_array(sur_ids),
+                canvas_scale=float(scale), canvas_offset=offset.float().numpy(), surrogates=id_array(sur_ids),
                 voxel_path=str(object_file(plan.cdir, "voxels", aid)),
                 mesh_path=str(object_file(plan.cdir, "meshes", aid, cfg.mesh.format)),
                 proposals_path=str(object_file(plan.cdir, "proposals", aid)),
@@ -272,8 +284,7 @@ def _job(sel: select.Selection, occupancy: torch.Tensor, masks: torch.Tensor, j:
 def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config, report: ClassReport,
             writer: Writer, timer: StageTimer) -> None:
     """Hand a chunk's references to the writer (puffballs where no proposal is left; meshed first: mesher=torch)."""
-    sur = plan.surrogates.surrogates_of(ids)
-    sur = None if sur is None else sur.cpu()
+    sur = None if (sur := plan.surrogates.surrogates_of(ids)) is None else sur.cpu()
     puffed = _puffballs(sel, ids, plan, cfg)
     aid_of, occupancy = plan.aids, sel.best_occupancy.cpu()  # the selected grids (R, D, H, W), to the host once
     masks = plan.coll.masks[ids].cpu()  # and the references' masks (R, S, S)
@@ -297,17 +308,16 @@ def _puffballs(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: C
     none = [j for j, ok in enumerate(sel.ok.any(dim=1).tolist()) if not ok]
     if not none:
         return set()
-    grids = puffball_grids(plan.coll.masks[ids[torch.tensor(none, device=ids.device)]], cfg.carve.resolution)
-    for k, j in enumerate(none):
-        sel.best_occupancy[j] = grids.occupancy[k].to(sel.best_occupancy.device)
-        sel.best_transform[j] = grids.voxel_to_camera[k].double().cpu()
-        sel.best[j] = -1
+    sel.take_grids(none, puffball_grids(plan.coll.masks[ids[torch.tensor(none, device=ids.device)]],
+                                        cfg.carve.resolution))
+    for j in none:
         plan.surrogates.levels[int(ids[j])] = "puffball"
     return set(none)
 
 
 def run_class(coll: ClassCollection, cfg: Config, out: Path, gt: dict | None, device: torch.device,
-              generator: torch.Generator, writer: Writer | None = None, ahead: tuple | None = None) -> ClassReport:
+              generator: torch.Generator, writer: Writer | None = None,
+              ahead: ClassViewpoints | None = None) -> ClassReport:
     """Run every stage for one class; write ``out/<class>/``; return its report.
 
     ``writer`` meshes and writes the objects (worker processes, see :func:`carvi_torch.executors.local.run`); by default
@@ -360,27 +370,21 @@ def _carve_chunks(plan: ClassPlan, todo: list[int], cfg: Config, report: ClassRe
 
 
 def reconstruct_chunk(plan: ClassPlan, ids: list[int], cfg: Config) -> tuple[ClassReport, list[int]]:
-    """Carve, select, mesh and write the originals ``ids`` (a consecutive run of the class's ``todo``), the
-    files written here: the work of one task of a distributed executor, on a plan built by
-    :func:`prepare_class` (the same files as :func:`run_class` writes for them: chunking does not change
-    results). Returns the report of these objects and the originals of ``ids`` that became puffballs."""
+    """Carve, select, mesh and write here the originals ``ids`` (a consecutive run of the class's ``todo``): a
+    distributed executor's task, on a :func:`prepare_class` plan (the files :func:`run_class` writes for them).
+    Returns the report of these objects and the originals of ``ids`` that became puffballs."""
     report = ClassReport(plan.coll.meta.key, objects=0)
     _carve_chunks(plan, list(ids), cfg, report, Writer(0))
     return report, [i for i in ids if plan.surrogates.levels[i] == "puffball"]
 
 
 def finish_class(plan: ClassPlan, cfg: Config, report: ClassReport, puffballs: list[int] = ()) -> None:
-    """The end of a class whose objects are written: ``puffballs`` (originals that became puffballs in
-    chunks carved elsewhere) marked, then :func:`_finish_class`. The objects' ``reconstruction_iou`` is the
-    one ``report`` holds: the writers' results, merged over the chunks, and the objects of earlier runs."""
+    """The end of a class whose objects are written: ``puffballs`` (originals that became puffballs in chunks
+    carved elsewhere) marked; where every object's proposals came from (summary); cameras.json again with every
+    object's quality (its reconstruction is known now: ``report.reconstruction_iou``, the writers' results merged
+    over the chunks and the objects of earlier runs); the merged proposal scores."""
     for i in puffballs:
         plan.surrogates.levels[i] = "puffball"
-    _finish_class(plan, cfg, report)
-
-
-def _finish_class(plan: ClassPlan, cfg: Config, report: ClassReport) -> None:
-    """Where every object's proposals came from (summary), cameras.json again with every object's quality
-    (its reconstruction is known now: ``report.reconstruction_iou``), and the merged proposal scores."""
     levels = plan.surrogates.levels
     used = [lv for lv in surrogates.LEVELS if lv in levels]
     report.info["surrogates_from"] = {

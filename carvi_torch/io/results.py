@@ -44,6 +44,14 @@ class ClassReport:
     def skip(self, reason: str, stage: str, annotation_id=None, source=None):
         self.skipped.append({"annotation_id": annotation_id, "source": source, "stage": stage, "reason": reason})
 
+    def skip_class(self, reasons: list[tuple]) -> "ClassReport":
+        """The class is skipped (``status``), for ``reasons``: :meth:`skip`'s arguments, one tuple per entry.
+        Returns this report."""
+        self.status = "skipped"
+        for reason in reasons:
+            self.skip(*reason)
+        return self
+
     def failures(self) -> list:
         """The skipped objects, class-level entries first, then by annotation id (the order in which
         writer processes finish must not change the report)."""
