@@ -83,8 +83,9 @@ def camera_signals(coll, vp) -> list[dict]:
     rotational = getattr(getattr(coll, "meta", None), "symmetry", "none") == "rotational"
     mirror = [None] * n
     if vp.mirrored and vp.reflection is not None:
-        flip = torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
-        pred = flip @ R @ vp.reflection.double().cpu()
+        from .cameras import FLIP_X  # here: writer processes import this module without torch
+
+        pred = FLIP_X.double() @ R @ vp.reflection.double().cpu()
         ang = _geodesic_deg(pred, cams.R[n:2 * n].double().cpu()).tolist()
         mirror = [a if has[i] and has[i + n] and math.isfinite(a) else None for i, a in enumerate(ang)]
     res, inside = _projection_signals(s, R, t, shapes[labels] if n else None, kp, vis, masks)

@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 import torch
 
-from ..cameras import ScaledOrthographic, align_rotations
+from ..cameras import FLIP_X, ScaledOrthographic, align_rotations
 from ..collection import ClassCollection
 from ..runtime import StageTimer, fields_to_device
 from ..sdf import distance_to_mask
@@ -63,7 +63,7 @@ __all__ = ["Viewpoints", "CameraSource", "estimate_viewpoints", "class_sfm", "st
 CameraSource = Literal["estimate", "gt"]
 
 #: Reflection of the ground-truth object frames (PASCAL3D+ and procedural: left/right along x).
-GT_REFLECTION = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
+GT_REFLECTION = FLIP_X
 
 
 @dataclass
