@@ -1482,3 +1482,25 @@ def test_bench_viewpoints_kernels_compares_both_paths_per_class(tmp_path: Path, 
         assert r["solves"][0] == r["solves"][1] >= 1, name
         assert r["bundle_max_angle_deg"] < 1e-6 and r["hull_equal"] and r["hull_rows"] > 0, name
         assert min(r["bundle_ms_per_solve"].values()) > 0, name
+
+
+def test_gpu_session_packs_what_a_lease_carries(tmp_path: Path):
+    """``--pack`` (wheels off: no network in tests) copies ../shared/data and the steps' inputs that are there into
+    .gpu_shared/, skips those that are not, and prints the ``run`` call that carries .whl and .gpu_shared."""
+    work = tmp_path / "repo"
+    (tmp_path / "shared" / "data" / "pascal3d_cad").mkdir(parents=True)
+    (tmp_path / "shared" / "data" / "pascal3d_cad" / "car01.npz").write_bytes(b"x")
+    car = work / "outputs" / "bench" / "data" / "car1000_s0"
+    car.mkdir(parents=True)
+    for name in ("annotations.json", "gt.json"):
+        (car / name).write_text("{}")
+    (car / "meshes").mkdir()  # not carried: the steps read the JSON files only
+    res = subprocess.run(["bash", str(GPU_SESSION), "--pack"], cwd=work, env=dict(os.environ, PACK_WHEELS=""),
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    packed = sorted(p.relative_to(work / ".gpu_shared").as_posix() for p in (work / ".gpu_shared").rglob("*")
+                    if p.is_file())
+    assert packed == ["data/pascal3d_cad/car01.npz", "outputs/bench/data/car1000_s0/annotations.json",
+                      "outputs/bench/data/car1000_s0/gt.json"]
+    assert not (work / ".whl").exists()
+    assert 'run(carry=[".whl", ".gpu_shared"]' in res.stdout and "gpu_session.sh lease /tmp/gpu" in res.stdout

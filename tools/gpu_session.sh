@@ -5,6 +5,8 @@
 #
 #     bash tools/gpu_session.sh [all|lease|tests|e2e9087|many4|cad5|mesher2000|loading2000|bench1000|bench9087|manyclasses|cad8] [OUTDIR]
 #     bash tools/gpu_session.sh --plan     # the plan of all and lease (steps, limits, their sum, the data); runs nothing
+#     bash tools/gpu_session.sh --pack     # here, before a lease: what the lent machine lacks, into .whl/ and
+#                                          # .gpu_shared/ (git-ignored), and the `run` call that carries them
 #
 # OUTDIR defaults to $OUT (the lent machine's result folder) or outputs/gpu; each step writes its log and JSON
 # there. Python is $PYTHON or python3, with torch and CUDA. Packages the machine lacks travel as wheels in
@@ -129,6 +131,31 @@ print_plan() {  # prints the plan; status 1 when a step is unknown, a limit not 
     return "$bad"
 }
 
+# What --pack downloads: the packages an H100 image with torch 2.11 lacked (cp312 manylinux wheels, no deps).
+PACK_WHEELS=${PACK_WHEELS-"kornia kornia_rs trimesh pycocotools fast-simplification zarr numcodecs donfig google-crc32c shapely rtree"}
+PACK_PYTHON=${PACK_PYTHON:-3.12}  # the lent machine's Python
+
+pack_for_lease() {  # .whl/ (PACK_WHEELS; none when empty) and .gpu_shared/ (../shared/data, the steps' inputs)
+    local f
+    if [ -n "$PACK_WHEELS" ]; then
+        # shellcheck disable=SC2086  # the list splits into packages
+        "${PYTHON:-python3}" -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: \
+            --implementation cp --python-version "$PACK_PYTHON" --platform manylinux2014_x86_64 \
+            --platform manylinux_2_17_x86_64 --platform manylinux_2_28_x86_64 -d .whl $PACK_WHEELS || return 1
+    fi
+    rm -rf .gpu_shared && mkdir -p .gpu_shared/outputs || return 1
+    [ -d ../shared/data ] && cp -r ../shared/data .gpu_shared/data
+    for f in outputs/bench/data/car1000_s0/{annotations,gt}.json outputs/bench/data/cad_v8_s0/annotations.json \
+             outputs/viewpoints_cad/renders_v8_s2/{annotations,gt}.json; do
+        [ -e "$f" ] && mkdir -p ".gpu_shared/$(dirname "$f")" && cp "$f" ".gpu_shared/$f"
+    done
+    echo "packed: $(find .whl -type f -name '*.whl' 2>/dev/null | wc -l) wheels in .whl/, $(du -sh .gpu_shared | cut -f1) in .gpu_shared/"
+    echo "then: run(carry=[\".whl\", \".gpu_shared\"], timeout_s=595, command=\"set -o pipefail; mkdir -p ../shared &&" \
+         "{ [ ! -d .gpu_shared/data ] || cp -r .gpu_shared/data ../shared/; } && cp -r .gpu_shared/outputs . &&" \
+         "export CARVI_TORCH_CACHE=/tmp/ct_cache PYTHONUNBUFFERED=1 && PACK=\$OUT/results.tgz bash tools/gpu_session.sh" \
+         "lease /tmp/gpu > \$OUT/lease.log 2>&1; cat /tmp/gpu/steps.txt /tmp/gpu/ratios.txt\")"
+}
+
 data_line() {  # PATH WHAT
     if [ -e "$1" ]; then printf '  here    %s\n' "$1"; else printf '  absent  %s: %s\n' "$1" "$2"; fi
 }
@@ -141,6 +168,10 @@ if [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then  # the comment above, th
 fi
 if [ "${1:-}" = "--plan" ]; then
     print_plan
+    exit $?
+fi
+if [ "${1:-}" = "--pack" ]; then
+    pack_for_lease
     exit $?
 fi
 step=${1:-all}
