@@ -109,10 +109,15 @@ PREVIEW_ROW_INCHES = 2.8
 def _picks(out: Path, summary: dict, coco, max_objects: int) -> list[tuple[str, Path, dict]]:
     """Up to ``max_objects`` ``(class, voxels file, annotation)``, spread over the classes: each class's first
     objects in id order (numeric stems by value). A file is matched to its annotation through the stem the run
-    gives it (:func:`~carvi_torch.io.layout.object_stem`: string ids too); a file no annotation has is passed over."""
+    gives it (:func:`~carvi_torch.io.layout.object_stem`: string ids too; of ids equal as text the first, as the
+    loader keeps it); a file no annotation has is passed over."""
+    from .io.coco import object_id
     from .io.layout import object_stem
 
-    by_stem = {object_stem(aid): ann for aid, ann in coco.anns.items()}
+    by_stem: dict = {}
+    for aid, ann in coco.anns.items():  # the ids the run takes (no null, float or bool), the first of equal ones
+        if object_id(aid) is not None:
+            by_stem.setdefault(object_stem(aid), ann)
     classes = [c for c in summary.get("classes", {}) if (out / c / "voxels").is_dir()]
     per = max(1, max_objects // max(1, len(classes)))
     picks = []

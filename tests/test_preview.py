@@ -1,6 +1,9 @@
 """``preview.png``: one row per object of the run found in its data, string annotation ids included."""
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import matplotlib.pyplot as plt
 import numpy as np
 
@@ -32,10 +35,20 @@ def _run_folder(tmp_path, ids):
 def test_string_ids_get_their_rows(tmp_path):
     """String ids (one that is no safe file name) are drawn, a row each; a file the data lacks is passed over."""
     out, summary = _run_folder(tmp_path, ["obj-7", "../x", "orphan"])
-    path = write_preview(out, summary)
-    assert path == out / "preview.png"
-    height = plt.imread(path).shape[0]
-    assert height == round(2 * PREVIEW_ROW_INCHES * 80)
+    assert write_preview(out, summary) is not None
+    assert plt.imread(out / "preview.png").shape[0] == round(2 * PREVIEW_ROW_INCHES * 80)
+
+
+def test_ids_the_run_rejects_take_no_row(tmp_path):
+    """An annotation whose id the loader rejects (a boolean) is no object of the run, even where its spelling is a
+    file's stem (``True``, a string id of the run)."""
+    out, summary = _run_folder(tmp_path, ["True", "orphan"])
+    data = json.loads(Path(summary["data"]).read_text())
+    # a boolean id, first, on an image the data lacks: drawing it would fail (no image to size its mask)
+    data["annotations"].insert(0, {**data["annotations"][0], "id": True, "image_id": 99})
+    Path(summary["data"]).write_text(json.dumps(data))
+    assert write_preview(out, summary) == out / "preview.png"
+    assert plt.imread(out / "preview.png").shape[0] == round(PREVIEW_ROW_INCHES * 80)  # the string id's row alone
 
 
 def test_nothing_drawn_without_objects_in_the_data(tmp_path):
