@@ -1221,11 +1221,16 @@ def test_benchmark_end_to_end_counts_the_loading(tmp_path, monkeypatch):
 
 
 def test_benchmark_times_writing_with_and_without_fsync(tmp_path, monkeypatch):
-    """The writing comparison flushes every file of the ``sync`` turns and none of the others, and leaves nothing
-    behind in its work folder."""
+    """The writing comparison flushes every file of the ``sync`` turns and none of the others, checks trimesh's
+    cache on hashlib in the ``hashlib checks`` turns alone (and puts its hash back), and leaves nothing behind in
+    its work folder."""
     import os
 
+    import trimesh.caching
+
     bm = load_tool("benchmark", "benchmark_tool")
+    fast, hashed = trimesh.caching.hash_fast, []
+    monkeypatch.setattr(trimesh.caching, "hash_fallback", lambda b: hashed.append(len(b)) or 7)
     vox = tmp_path / "run" / "car" / "voxels"
     vox.mkdir(parents=True)
     for i in range(3):
@@ -1236,10 +1241,13 @@ def test_benchmark_times_writing_with_and_without_fsync(tmp_path, monkeypatch):
     monkeypatch.setattr(os, "fsync", lambda fd: synced.append(fd) or real_fsync(fd))
     wr = bm.time_writing(tmp_path / "run", objects=5, repeat=2, work=tmp_path / "w")
     assert wr["objects"] == 3 and len(synced) == 2 * 3 * 2  # 2 sync turns x 3 objects x 2 files
-    assert set(wr["seconds"]) == {"sync", "no sync"} and all(len(v) == 2 for v in wr["seconds"].values())
+    assert set(wr["seconds"]) == {"sync", "no sync", "hashlib checks"} and all(len(v) == 2
+                                                                            for v in wr["seconds"].values())
     assert wr["no_sync_over_sync"] == wr["ms_per_object"]["no sync"] / wr["ms_per_object"]["sync"]
+    assert wr["xxhash_over_hashlib"] == wr["ms_per_object"]["no sync"] / wr["ms_per_object"]["hashlib checks"]
+    assert hashed and trimesh.caching.hash_fast is fast  # the fallback hashed the meshes of its turns; put back
     assert not (tmp_path / "w").exists()
-    assert "flushed (fsync)" in bm.table({"writing": wr})
+    assert "flushed (fsync)" in bm.table({"writing": wr}) and "against hashlib's blake2b" in bm.table({"writing": wr})
 
 
 def test_train_example_with_too_few_objects_says_so(tmp_path, capsys):

@@ -131,8 +131,9 @@ print_plan() {  # prints the plan; status 1 when a step is unknown, a limit not 
     return "$bad"
 }
 
-# What --pack downloads: the packages an H100 image with torch 2.11 lacked (cp312 manylinux wheels, no deps).
-PACK_WHEELS=${PACK_WHEELS-"kornia kornia_rs trimesh pycocotools fast-simplification zarr numcodecs donfig google-crc32c shapely rtree"}
+# What --pack downloads: the packages an H100 image with torch 2.11 lacked, and xxhash (cp312 manylinux wheels, no
+# deps).
+PACK_WHEELS=${PACK_WHEELS-"kornia kornia_rs trimesh pycocotools fast-simplification zarr numcodecs donfig google-crc32c shapely rtree xxhash"}
 PACK_PYTHON=${PACK_PYTHON:-3.12}  # the lent machine's Python
 
 pack_for_lease() {  # .whl/ (PACK_WHEELS; none when empty) and .gpu_shared/ (../shared/data, the steps' inputs)
