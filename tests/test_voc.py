@@ -240,6 +240,26 @@ def test_mirror_name_and_keypoint_side_follow_one_rule():
         assert (keypoint_side(name) is None) == (swapped == name), name
 
 
+def test_every_real_keypoint_name_has_one_side_rule(shared_data):
+    """Every keypoint name of the 73 PASCAL3D+ CAD models: its mirror swaps back (an involution), names the opposite
+    side by :func:`keypoint_side`, and is a name of the same class wherever the name has a side (the flip pairs
+    the loader infers are the pairs the SfM frame reads sides from)."""
+    by_class: dict = {}
+    for path in sorted((shared_data / "pascal3d_cad").glob("*.npz")):
+        names = [str(n) for n in np.load(path)["keypoint_names"]]
+        by_class.setdefault(re.sub(r"\d+$", "", path.stem), set()).update(names)
+    flip = {"left": "right", "right": "left", None: None}
+    sided = 0
+    for cls, names in by_class.items():
+        for name in names:
+            mirrored = mirror_name(name)
+            assert mirror_name(mirrored) == name and keypoint_side(mirrored) == flip[keypoint_side(name)], name
+            if keypoint_side(name) is not None:
+                sided += 1
+                assert mirrored in names, (cls, name)
+    assert len(by_class) == 12 and sided > 50
+
+
 def _name_pairs(names, pairs):
     return {frozenset((names[i], names[j])) for i, j in pairs}
 
