@@ -147,20 +147,39 @@ def reconstruction_iou(occupancy: np.ndarray, voxel_to_canvas: np.ndarray, mask:
     """
     A = np.asarray(voxel_to_canvas, dtype=np.float64)
     sil = np.asarray(occupancy, dtype=bool).any(axis=0)  # (H, W)
-    C = mask.shape[0]
     # canvas (x, y) -> voxel (h, w) through the x, y rows of the affine restricted to the (h, w) columns
     M = A[:2, 1:3]
     if abs(A[0, 0]) > 1e-6 * np.abs(M).max() or abs(A[1, 0]) > 1e-6 * np.abs(M).max():
         raise ValueError("the grid's depth axis is not the camera's ray")
+    inv = np.linalg.inv(M)
+    proj = (_silhouette_on_canvas_axes if inv[0, 0] == 0 and inv[1, 1] == 0 else _silhouette_on_canvas)(
+        sil, inv, A[:2, 3], mask.shape[0])
+    m = np.asarray(mask, dtype=bool)
+    union = int((proj | m).sum())
+    return float((proj & m).sum()) / union if union else 0.0
+
+
+def _silhouette_on_canvas(sil: np.ndarray, inv: np.ndarray, offset: np.ndarray, C: int) -> np.ndarray:
+    """``(C, C)`` bool: the silhouette ``sil (H, W)`` at every canvas pixel centre, its nearest column ``(h, w) =
+    rint(inv @ ((x, y) - offset))`` (``inv``: the ``(2, 2)`` inverse of the (h, w) -> (x, y) map)."""
     ys, xs = np.mgrid[0:C, 0:C]
-    xy = np.stack([xs.ravel() - A[0, 3], ys.ravel() - A[1, 3]], 1)
-    hw = np.rint(xy @ np.linalg.inv(M).T).astype(np.int64)
+    xy = np.stack([xs.ravel() - offset[0], ys.ravel() - offset[1]], 1)
+    hw = np.rint(xy @ inv.T).astype(np.int64)
     ok = (hw >= 0).all(1) & (hw[:, 0] < sil.shape[0]) & (hw[:, 1] < sil.shape[1])
     proj = np.zeros(C * C, dtype=bool)
     proj[ok] = sil[hw[ok, 0], hw[ok, 1]]
-    m = np.asarray(mask, dtype=bool).ravel()
-    union = int((proj | m).sum())
-    return float((proj & m).sum()) / union if union else 0.0
+    return proj.reshape(C, C)
+
+
+def _silhouette_on_canvas_axes(sil: np.ndarray, inv: np.ndarray, offset: np.ndarray, C: int) -> np.ndarray:
+    """:func:`_silhouette_on_canvas` where ``h`` follows ``y`` alone and ``w`` ``x`` alone (``inv`` zero on its
+    diagonal: the carving's grids, aligned with the canvas): one row and one column index per canvas line, the
+    same values (each index its one product, the other term an exact zero)."""
+    lines = np.arange(C, dtype=np.float64)
+    h = np.rint((lines - offset[1]) * inv[0, 1]).astype(np.int64)
+    w = np.rint((lines - offset[0]) * inv[1, 0]).astype(np.int64)
+    oh, ow = (h >= 0) & (h < sil.shape[0]), (w >= 0) & (w < sil.shape[1])
+    return sil[np.clip(h, 0, sil.shape[0] - 1)][:, np.clip(w, 0, sil.shape[1] - 1)] & oh[:, None] & ow[None, :]
 
 
 def _half_at(value: float, scale: float) -> float:

@@ -35,6 +35,39 @@ def test_reconstruction_iou_against_a_pixel_loop():
         reconstruction_iou(occ, tilted, mask)
 
 
+def test_grids_on_the_canvas_axes_take_the_general_projection_s_values():
+    """The per-line projection of grids aligned with the canvas (the carving's) gives the general projection's
+    silhouette pixel for pixel, with flipped axes, offsets off the canvas and voxels finer or coarser than pixels;
+    a grid turned in the image plane takes the general path and matches a loop over the pixels."""
+    from carvi_torch import quality
+
+    rng = np.random.default_rng(4)
+    for _ in range(40):
+        sil = rng.random((int(rng.integers(3, 40)), int(rng.integers(3, 40)))) < 0.5
+        sx, sy = rng.uniform(0.3, 4.0, 2) * rng.choice([-1.0, 1.0], 2)
+        M, offset = np.array([[0.0, sx], [sy, 0.0]]), rng.uniform(-20.0, 60.0, 2)
+        inv = np.linalg.inv(M)
+        assert inv[0, 0] == 0 and inv[1, 1] == 0
+        np.testing.assert_array_equal(quality._silhouette_on_canvas_axes(sil, inv, offset, 48),
+                                      quality._silhouette_on_canvas(sil, inv, offset, 48))
+    occ = rng.random((3, 8, 8)) < 0.4
+    A = np.eye(4)[[2, 1, 0, 3]] * 1.0
+    c, s_ = np.cos(0.4), np.sin(0.4)
+    A[:2, 1:3] = [[1.5 * s_, 1.5 * c], [1.5 * c, -1.5 * s_]]  # (h, w) -> (x, y) turned by 0.4 rad
+    A[:2, 3] = [12.0, 9.0]
+    mask = rng.random((24, 24)) < 0.4
+    sil, inv = occ.any(0), np.linalg.inv(A[:2, 1:3])
+    inter = union = 0
+    for y in range(24):
+        for x in range(24):
+            h, w = inv @ np.array([x - 12.0, y - 9.0])
+            hi, wi = int(np.rint(h)), int(np.rint(w))
+            p = 0 <= hi < 8 and 0 <= wi < 8 and sil[hi, wi]
+            inter += p and mask[y, x]
+            union += p or mask[y, x]
+    assert reconstruction_iou(occ, A, mask) == pytest.approx(inter / union, abs=1e-12)
+
+
 def test_combine_is_monotone_and_bounded():
     base = {"keypoint_residual": 0.01, "visible_keypoints": 6, "refinement_deg": 2.0, "mirror_deg": 5.0,
             "camera_from": "sfm", "reconstruction_iou": 0.9, "surrogates_from": "triplet"}

@@ -1222,8 +1222,8 @@ def test_benchmark_end_to_end_counts_the_loading(tmp_path, monkeypatch):
 
 def test_benchmark_times_writing_with_and_without_fsync(tmp_path, monkeypatch):
     """The writing comparison flushes every file of the ``sync`` turns and none of the others, checks trimesh's
-    cache on hashlib in the ``hashlib checks`` turns alone (and puts its hash back), and leaves nothing behind in
-    its work folder."""
+    cache on hashlib in the ``hashlib checks`` turns alone (and puts its hash back), times the quality signal's two
+    projections (which agree), and leaves nothing behind in its work folder."""
     import os
 
     import trimesh.caching
@@ -1236,7 +1236,8 @@ def test_benchmark_times_writing_with_and_without_fsync(tmp_path, monkeypatch):
     for i in range(3):
         occ = np.zeros((10, 10, 10), bool)
         occ[2:7, 3:8, 2 + i:6 + i] = True
-        np.savez(vox / f"{i}.npz", occupancy=occ, voxel_to_camera=np.eye(4))
+        np.savez(vox / f"{i}.npz", occupancy=occ, voxel_to_camera=np.eye(4),
+                 voxel_to_canvas=np.eye(4)[[2, 1, 0, 3]] * [[3.0], [2.0], [1.0], [1.0]])
     synced, real_fsync = [], os.fsync
     monkeypatch.setattr(os, "fsync", lambda fd: synced.append(fd) or real_fsync(fd))
     wr = bm.time_writing(tmp_path / "run", objects=5, repeat=2, work=tmp_path / "w")
@@ -1246,6 +1247,9 @@ def test_benchmark_times_writing_with_and_without_fsync(tmp_path, monkeypatch):
     assert wr["no_sync_over_sync"] == wr["ms_per_object"]["no sync"] / wr["ms_per_object"]["sync"]
     assert wr["xxhash_over_hashlib"] == wr["ms_per_object"]["no sync"] / wr["ms_per_object"]["hashlib checks"]
     assert hashed and trimesh.caching.hash_fast is fast  # the fallback hashed the meshes of its turns; put back
+    iou = wr["reconstruction_iou"]
+    assert iou["same"] and iou["per_line_over_general"] == iou["ms_per_object"]["per line"] / iou["ms_per_object"][
+        "general"]
     assert not (tmp_path / "w").exists()
     assert "flushed (fsync)" in bm.table({"writing": wr}) and "against hashlib's blake2b" in bm.table({"writing": wr})
 

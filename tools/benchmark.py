@@ -364,7 +364,32 @@ def time_writing(recon: Path, objects: int, repeat: int, work: Path) -> dict | N
     best = {k: 1000 * min(v) / len(files) for k, v in seconds.items()}
     return {"objects": len(files), "ms_per_object": best, "no_sync_over_sync": best["no sync"] / best["sync"],
             "xxhash_over_hashlib": best["no sync"] / best["hashlib checks"],
-            "xxhash": fast is not trimesh.caching.hash_fallback, "seconds": seconds}
+            "xxhash": fast is not trimesh.caching.hash_fallback, "seconds": seconds,
+            "reconstruction_iou": time_reconstruction_iou(grids, repeat)}
+
+
+def time_reconstruction_iou(grids: list[dict], repeat: int) -> dict:
+    """The projection of the writers' quality signal (``quality.reconstruction_iou``: each grid's silhouette at the
+    pixels of a canvas of the default size): the per-line one it takes for grids on the canvas axes against the
+    general one, taking turns, best of ``repeat``; ms per object, and whether the two agree on every grid."""
+    import numpy as np
+
+    from carvi_torch import quality
+
+    C = Config().input.canvas_size
+    args = [(g["occupancy"].any(0), np.linalg.inv(g["voxel_to_canvas"][:2, 1:3]), g["voxel_to_canvas"][:2, 3], C)
+            for g in grids]
+    runs = {"per line": quality._silhouette_on_canvas_axes, "general": quality._silhouette_on_canvas}
+    same = all(np.array_equal(runs["per line"](*a), runs["general"](*a)) for a in args)
+    seconds: dict = {name: [] for name in runs}
+    for r in range(max(1, repeat)):
+        for name in (list(runs) if r % 2 == 0 else list(runs)[::-1]):
+            t0 = time.perf_counter()
+            for a in args:
+                runs[name](*a)
+            seconds[name].append(time.perf_counter() - t0)
+    best = {k: 1000 * min(v) / len(grids) for k, v in seconds.items()}
+    return {"ms_per_object": best, "per_line_over_general": best["per line"] / best["general"], "same": same}
 
 
 def time_loading(ann: Path, args) -> dict:
@@ -1220,6 +1245,12 @@ def table(result: dict) -> str:
                   f"**{wr['no_sync_over_sync']:.3f}**; trimesh's cache checks on "
                   f"{'xxhash' if wr['xxhash'] else 'hashlib (xxhash not installed)'} against hashlib's blake2b "
                   f"({wr['ms_per_object']['hashlib checks']:.2f} ms): **{wr['xxhash_over_hashlib']:.3f}**", ""]
+        iou = wr.get("reconstruction_iou")
+        if iou:
+            lines += [f"the writers' quality signal (reconstruction_iou), its projection per canvas line "
+                      f"{iou['ms_per_object']['per line']:.3f} ms per object against the general one "
+                      f"{iou['ms_per_object']['general']:.3f}: **{iou['per_line_over_general']:.3f}** "
+                      f"({'the same' if iou['same'] else 'DIFFERENT'} silhouettes)", ""]
     if result.get("carving"):
         lines += _carving_table(result["carving"])
     ev = result.get("evaluation")
