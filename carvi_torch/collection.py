@@ -24,15 +24,16 @@ import torch.nn.functional as F
 
 from .cameras import Similarity2D
 
-__all__ = ["ClassMeta", "ClassCollection", "infer_flip_pairs", "mirror_name", "keypoint_side", "flip_permutation",
-           "canvas_similarity", "resample_to_canvas", "resample_to_canvases", "canvas_supersample"]
+__all__ = ["ClassMeta", "ClassCollection", "infer_flip_pairs", "mirror_name", "keypoint_side", "name_words",
+           "flip_permutation", "canvas_similarity", "resample_to_canvas", "resample_to_canvases", "canvas_supersample"]
 
 
 # --------------------------------------------------------------------------- left/right names
 
 _SIDE_SWAP = {"left": "right", "right": "left", "l": "r", "r": "l"}
-# word separators: '_', '-', '.', spaces, and a lower->upper camel-case boundary (kept by split)
-_SEPARATORS = re.compile(r"([_\-\s.]+|(?<=[a-z])(?=[A-Z]))")
+#: The words of a keypoint name: runs of letters split at case changes (``LWing``: ``L``, ``Wing``; ``leftEye``:
+#: ``left``, ``Eye``; ``LEFT_EAR``: ``LEFT``, ``EAR``) and runs of digits; every other character separates them.
+NAME_WORD = re.compile(r"[A-Z]?[a-z]+|[A-Z]+(?![a-z])|\d+")
 
 
 def _match_case(word: str, like: str) -> str:
@@ -45,9 +46,9 @@ def _match_case(word: str, like: str) -> str:
 
 
 def _side_head(token: str) -> str:
-    """The part of a name part that names a side: the whole part when it is ``left``/``right``/``l``/``r`` (any
-    case), its first word when it starts with ``left`` or ``right`` (``leftcorner``: ``left``), else ``""``.
-    Single letters count only as whole parts. A part that merely starts with a side word counts too
+    """The part of a name's word that names a side: the whole word when it is ``left``/``right``/``l``/``r`` (any
+    case), its start when it starts with ``left`` or ``right`` (``leftcorner``: ``left``), else ``""``.
+    Single letters count only as whole words. A word that merely starts with a side word counts too
     (``Leftover``: ``Left``): keypoint names are not prose."""
     low = token.lower()
     if low in _SIDE_SWAP:
@@ -62,9 +63,14 @@ def _swap_token(token: str) -> str:
     return _match_case(_SIDE_SWAP[head.lower()], head) + token[len(head):] if head else token
 
 
-def _name_parts(name: str) -> list[str]:
-    """The words of a keypoint name (:data:`_SEPARATORS` split it; the separators dropped)."""
-    return _SEPARATORS.split(name)[::2]
+def name_words(name: str) -> list[str]:
+    """Lower-cased words of a keypoint name (:data:`NAME_WORD`).
+
+    Example:
+        >>> name_words("L_EarBase"), name_words("Upper_Neck_Base"), name_words("wheel1L")
+        (['l', 'ear', 'base'], ['upper', 'neck', 'base'], ['wheel', '1', 'l'])
+    """
+    return [w.lower() for w in NAME_WORD.findall(name)]
 
 
 def keypoint_side(name: str) -> str | None:
@@ -75,31 +81,29 @@ def keypoint_side(name: str) -> str | None:
         >>> keypoint_side("L_Stabilizer"), keypoint_side("leftcorner_windshield"), keypoint_side("tail")
         ('left', 'left', None)
     """
-    sides = {"left" if h.lower() in ("left", "l") else "right" for h in map(_side_head, _name_parts(name)) if h}
+    sides = {"left" if h in ("left", "l") else "right" for h in map(_side_head, name_words(name)) if h}
     return sides.pop() if len(sides) == 1 else None
 
 
 def mirror_name(name: str) -> str:
-    """The keypoint name with every side word part swapped (``L_WingTip`` -> ``R_WingTip``).
+    """The keypoint name with every side word (:data:`NAME_WORD`) swapped, case and every other character kept
+    (``L_WingTip`` -> ``R_WingTip``).
 
     Example:
-        >>> mirror_name("body_back_left_lower"), mirror_name("leftEye"), mirror_name("NoseTip")
-        ('body_back_right_lower', 'rightEye', 'NoseTip')
+        >>> mirror_name("body_back_left_lower"), mirror_name("leftEye"), mirror_name("LWing"), mirror_name("NoseTip")
+        ('body_back_right_lower', 'rightEye', 'RWing', 'NoseTip')
     """
-    parts = _SEPARATORS.split(name)
-    # split keeps separators at odd positions; swap only the words (even positions)
-    return "".join(_swap_token(p) if i % 2 == 0 else p for i, p in enumerate(parts))
+    return NAME_WORD.sub(lambda m: _swap_token(m.group(0)), name)
 
 
 def infer_flip_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
     """Left/right keypoint pairs from their names.
 
-    Name parts are separated by ``_``, ``-``, ``.``, spaces or a camel-case boundary. Every
-    part that names a side is swapped at once: ``left``/``right`` and ``l``/``r`` as whole
-    parts in any case and position (``left_wing``, ``body_back_left_lower``, ``L_WingTip``,
-    ``Left_Wing_Base``, ``wheel_l``, ``leftEye``) and ``left``/``right`` as the start of a
-    longer part (``leftcorner_windshield``). ``i`` and ``j`` pair when the swapped name of
-    ``names[i]`` is exactly ``names[j]``.
+    Every word of a name (:data:`NAME_WORD`: letters split at case changes, digits, the rest separators) that
+    names a side is swapped at once: ``left``/``right`` and ``l``/``r`` as whole words in any case and position
+    (``left_wing``, ``body_back_left_lower``, ``L_WingTip``, ``LWing``, ``Left_Wing_Base``, ``wheel_l``, ``leftEye``)
+    and ``left``/``right`` as the start of a longer word (``leftcorner_windshield``). ``i`` and ``j`` pair when
+    the swapped name of ``names[i]`` is exactly ``names[j]``.
 
     Args:
         names: keypoint names of one class (``K`` strings).
@@ -420,10 +424,10 @@ class ClassCollection:
                 values[f.name] = v
             elif isinstance(v, torch.Tensor):
                 values[f.name] = tensor(v)
-            elif isinstance(v, list):
-                values[f.name] = rows_of_list(v)
-            else:
+            elif isinstance(v, Similarity2D):
                 values[f.name] = similarity(v)
+            else:  # a sequence of one value per row (a list, or a tuple as a caller gave it)
+                values[f.name] = rows_of_list(v)
         return ClassCollection(**values)
 
     def __getitem__(self, idx) -> "ClassCollection":
@@ -450,10 +454,10 @@ class ClassCollection:
             got = [getattr(p, f.name) for p in parts]
             if isinstance(got[0], torch.Tensor):
                 values[f.name] = torch.cat(got)
-            elif isinstance(got[0], list):
-                values[f.name] = [v for part in got for v in part]
-            else:
+            elif isinstance(got[0], Similarity2D):
                 values[f.name] = Similarity2D(torch.cat([g.scale for g in got]), torch.cat([g.offset for g in got]))
+            else:
+                values[f.name] = [v for part in got for v in part]
         return ClassCollection(**values)
 
     # ---- mirroring

@@ -115,8 +115,9 @@ def _picks(out: Path, summary: dict, coco, max_objects: int) -> list[tuple[str, 
     from .io.layout import object_stem
 
     by_stem: dict = {}
-    for aid, ann in coco.anns.items():  # the ids the run takes (no null, float or bool), the first of equal ones
-        if object_id(aid) is not None:
+    for ann in coco.dataset.get("annotations", []):  # in file order: the first of ids equal as text, as the loader
+        aid = ann.get("id") if isinstance(ann, dict) else None
+        if object_id(aid) is not None:  # the ids the run takes (no null, float or bool)
             by_stem.setdefault(object_stem(aid), ann)
     classes = [c for c in summary.get("classes", {}) if (out / c / "voxels").is_dir()]
     per = max(1, max_objects // max(1, len(classes)))

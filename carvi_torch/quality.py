@@ -152,8 +152,8 @@ def reconstruction_iou(occupancy: np.ndarray, voxel_to_canvas: np.ndarray, mask:
     if abs(A[0, 0]) > 1e-6 * np.abs(M).max() or abs(A[1, 0]) > 1e-6 * np.abs(M).max():
         raise ValueError("the grid's depth axis is not the camera's ray")
     inv = np.linalg.inv(M)
-    proj = (_silhouette_on_canvas_axes if inv[0, 0] == 0 and inv[1, 1] == 0 else _silhouette_on_canvas)(
-        sil, inv, A[:2, 3], mask.shape[0])
+    on_axes = inv[0, 0] == 0 and inv[1, 1] == 0 and sil.size > 0
+    proj = (_silhouette_on_canvas_axes if on_axes else _silhouette_on_canvas)(sil, inv, A[:2, 3], mask.shape[0])
     m = np.asarray(mask, dtype=bool)
     union = int((proj | m).sum())
     return float((proj & m).sum()) / union if union else 0.0

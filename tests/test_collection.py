@@ -127,6 +127,16 @@ class TestClassCollection:
         assert len(sub) == 2 and sub.annotation_ids == [10, 12] and sub.sources == ["s0", "s2"]
         assert len(c[1:]) == 3 and len(c[[3]]) == 1
 
+    def test_per_row_sequences_given_as_tuples(self):
+        """Sources, splits and fingerprints given as tuples: subsets, moves, mirrors and concatenations take them
+        row by row, as lists."""
+        c = _collection()
+        c = c.replace(sources=("a", "b", "c", "d"), splits=("pool",) * 4, fingerprints=("f0", "f1", "f2", "f3"))
+        assert c[[2, 0]].sources == ["c", "a"] and c[[2, 0]].fingerprints == ["f2", "f0"]
+        assert c.to("cpu").splits == ["pool"] * 4 and c.mirror().sources == ["a", "b", "c", "d"]
+        both = ClassCollection.cat([c[:1], c[3:]])
+        assert both.sources == ["a", "d"] and both.annotation_ids == [10, 13]
+
     def test_bad_shapes(self):
         c = _collection()
         with pytest.raises(ValueError):

@@ -51,6 +51,17 @@ def test_ids_the_run_rejects_take_no_row(tmp_path):
     assert plt.imread(out / "preview.png").shape[0] == round(PREVIEW_ROW_INCHES * 80)  # the string id's row alone
 
 
+def test_an_id_equal_to_a_rejected_one_keeps_its_row(tmp_path):
+    """A boolean id ``true`` before the integer id 1 (one key in pycocotools' index, which keeps the boolean):
+    object 1 is the run's and gets its row."""
+    out, summary = _run_folder(tmp_path, [1, "orphan"])
+    data = json.loads(Path(summary["data"]).read_text())
+    data["annotations"].insert(0, {**data["annotations"][0], "id": True, "image_id": 99})
+    Path(summary["data"]).write_text(json.dumps(data))
+    assert write_preview(out, summary) == out / "preview.png"
+    assert plt.imread(out / "preview.png").shape[0] == round(PREVIEW_ROW_INCHES * 80)
+
+
 def test_nothing_drawn_without_objects_in_the_data(tmp_path):
     """No voxels file of the run names an annotation of its data: no preview."""
     out, summary = _run_folder(tmp_path, ["only-in-the-folder"])

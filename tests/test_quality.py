@@ -189,3 +189,12 @@ def test_camera_signals_match_an_object_by_object_loop(procedural_input, tmp_pat
         assert (g["keypoint_residual"] is None) == (res is None)
         if res is not None:
             assert g["keypoint_residual"] == pytest.approx(res, rel=1e-12, abs=1e-15)
+
+
+def test_an_empty_grid_on_the_canvas_axes_has_no_silhouette():
+    """A grid with no column (zero rows or columns), aligned with the canvas: IoU 0, as the general projection
+    gives, not an error."""
+    A = np.eye(4)[[2, 1, 0, 3]] * 1.0
+    mask = np.ones((8, 8), bool)
+    assert reconstruction_iou(np.zeros((3, 0, 4), bool), A, mask) == 0.0
+    assert reconstruction_iou(np.zeros((3, 4, 0), bool), A, mask) == 0.0

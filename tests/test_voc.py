@@ -231,7 +231,8 @@ def test_mirror_name_and_keypoint_side_follow_one_rule():
              "eye_left": "eye_right", "wheel_R": "wheel_L", "LEFT_EAR": "RIGHT_EAR", "leftEye": "rightEye",
              "Hull_Mid_Left_Bot": "Hull_Mid_Right_Bot", "NoseTip": "NoseTip", "Leftover": "Rightover",
              "leftcorner_windshield": "rightcorner_windshield", "Roof_Front_Middle": "Roof_Front_Middle",
-             "R_F_Paw": "L_F_Paw", "mid1_left_top": "mid1_right_top"}
+             "R_F_Paw": "L_F_Paw", "mid1_left_top": "mid1_right_top", "LWing": "RWing", "L2": "R2",
+             "wheel1L": "wheel1R", "XLeft": "XRight"}
     flip = {"left": "right", "right": "left", None: None}
     for name, swapped in cases.items():
         assert mirror_name(name) == swapped, name

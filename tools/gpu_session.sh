@@ -139,6 +139,7 @@ PACK_PYTHON=${PACK_PYTHON:-3.12}  # the lent machine's Python
 pack_for_lease() {  # .whl/ (PACK_WHEELS; none when empty) and .gpu_shared/ (../shared/data, the steps' inputs)
     local f
     if [ -n "$PACK_WHEELS" ]; then
+        rm -rf .whl  # an earlier pack's versions beside newer ones would make the lease's install fail
         # shellcheck disable=SC2086  # the list splits into packages
         "${PYTHON:-python3}" -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: \
             --implementation cp --python-version "$PACK_PYTHON" --platform manylinux2014_x86_64 \
@@ -186,7 +187,7 @@ mkdir -p "$out"
 
 # ---- packages: installed once; the steps of all and lease inherit the path (CARVI_GPU_READY) ------------------
 if [ -z "${CARVI_GPU_READY:-}" ]; then
-    if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, scipy, skimage, yaml, tqdm, matplotlib, pytest" \
+    if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, rtree, zarr, fast_simplification, xxhash, scipy, skimage, yaml, tqdm, matplotlib, pytest" \
             2>/dev/null \
             && [ -d .whl ] && compgen -G ".whl/*.whl" >/dev/null; then
         "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \

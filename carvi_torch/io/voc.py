@@ -71,7 +71,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from ..collection import infer_flip_pairs
+from ..collection import infer_flip_pairs, name_words  # name_words re-exported: the converter's word rule
 from ..runtime import os_error_line, watch_interrupts
 from .coco import encode_mask as encode_rle
 from .outputs import write_json
@@ -658,22 +658,6 @@ def rasterize_polygons(polygons: Sequence[np.ndarray], height: int, width: int) 
 
 
 # --------------------------------------------------------------------------- names
-
-
-_WORD = re.compile(r"[A-Z]?[a-z]+|[A-Z]+(?![a-z])|\d+")
-
-
-def name_words(name: str) -> list[str]:
-    """Lower-cased words of a keypoint name.
-
-    Splits at ``_``, ``-``, spaces and other non-letters, digits and camel-case
-    boundaries.
-
-    Example:
-        >>> name_words("L_EarBase"), name_words("Upper_Neck_Base"), name_words("HeadBack")
-        (['l', 'ear', 'base'], ['upper', 'neck', 'base'], ['head', 'back'])
-    """
-    return [w.lower() for w in _WORD.findall(name)]
 
 
 def _is_head_or_torso(words: list[str]) -> bool:
