@@ -8,8 +8,8 @@ import pytest
 import torch
 from pycocotools.coco import COCO
 
-from carvi_torch.io.coco import (CocoFormatError, decode_segmentation, encode_mask, load_coco, make_annotation,
-                                 make_category, write_coco)
+from carvi_torch.io.coco import (CocoFormatError, decode_counts, decode_segmentation, encode_mask, load_coco,
+                                 make_annotation, make_category, rle_counts, write_coco)
 
 NAMES = ["left_wing", "right_wing", "nose", "tail"]
 
@@ -71,6 +71,59 @@ class TestEncodeDecode:
             decode_segmentation({"size": [3, 3], "counts": "x"}, 4, 5)
         with pytest.raises(ValueError):
             decode_segmentation([[1.0, 2.0]], 4, 5)
+
+    @staticmethod
+    def _runs(m: np.ndarray) -> list[int]:
+        """Column-major run lengths of a mask, background first, by a loop over the pixels."""
+        runs, cur, n = [], False, 0
+        for v in m.flatten(order="F"):
+            if v == cur:
+                n += 1
+            else:
+                runs.append(n)
+                cur, n = v, 1
+        return runs + [n]
+
+    def test_compressed_counts_are_the_run_lengths(self):
+        """rle_counts against a pixel loop on random masks (empty, full, sparse, dense; runs long enough to take
+        several 5-bit groups and negative differences); decode_counts is pycocotools' decode, order included."""
+        from pycocotools import mask as mask_utils
+        rng = np.random.default_rng(3)
+        for t in range(120):
+            h, w = (int(v) for v in rng.integers(1, 70, 2))
+            m = rng.random((h, w)) < [0.0, 1.0, 0.02, 0.5, 0.98][t % 5]
+            rle = mask_utils.encode(np.asfortranarray(m.astype(np.uint8)))
+            counts = rle_counts(rle["counts"])
+            assert counts.tolist() == self._runs(m)
+            ref = mask_utils.decode(rle).astype(bool)
+            out = decode_counts(counts, h, w)
+            assert np.array_equal(out, ref) and out.flags.f_contiguous == ref.flags.f_contiguous
+        big = np.zeros((1500, 2000), dtype=np.uint8, order="F")
+        big[10:1400, 3:1990] = 1
+        assert rle_counts(mask_utils.encode(big)["counts"]).tolist() == [10 + 3 * 1500] + [1390, 110] * 1986 + [
+            1390, 100 + 10 * 1500]
+
+    @pytest.mark.parametrize("counts, reason", [
+        ("", "sum to 0, not"), ("0d", "end inside a run"), ("  ", "outside the compressed alphabet"),
+        ("PPPPPPPP0", "too long"), ("1O", "negative run")])
+    def test_short_or_broken_compressed_counts_are_refused(self, counts, reason):
+        """pycocotools decodes counts that stop short of H x W into a mask whose rest is unset memory; such counts,
+        and any other string that is not a compressed RLE, are a ValueError naming why."""
+        with pytest.raises(ValueError, match=reason):
+            decode_segmentation({"size": [20, 30], "counts": counts}, 20, 30)
+
+    def test_counts_cut_after_a_run_are_refused(self):
+        m = _ellipse(20, 30, 15, 10, 9, 6)
+        text = encode_mask(m)["counts"]
+        assert decode_segmentation({"size": [20, 30], "counts": text}, 20, 30).tolist() == m.tolist()
+        cut = max(k for k in range(1, len(text) // 2) if ord(text[k - 1]) - 48 < 32)  # ends on a whole run
+        with pytest.raises(ValueError, match=r"sum to \d+, not width x height = 30 x 20 = 600"):
+            decode_segmentation({"size": [20, 30], "counts": text[:cut]}, 20, 30)
+
+    def test_a_list_holding_an_rle_says_so(self):
+        rle = encode_mask(np.ones((4, 5), bool))
+        with pytest.raises(ValueError, match="list holding an RLE object"):
+            decode_segmentation([rle], 4, 5)
 
     def test_a_far_polygon_vertex_is_cut_before_rasterising(self, monkeypatch):
         """pycocotools rasterises a polygon at five samples per pixel of its edges: a vertex at 1e8 costs
@@ -251,6 +304,62 @@ class TestLoad:
         assert c.meta.rigid_keypoints == [0, 1, 2] and c.meta.symmetry == "rotational" and c.meta.articulated
         assert c.meta.left_convention == "viewer"
         assert load_coco(path, classes=["car"]).collections == {}
+
+    @pytest.mark.parametrize("field, value", [
+        ("flip_pairs", [[0, 1], [0, 2]]), ("flip_pairs", [[1, 1]]), ("flip_pairs", ["01"]),
+        ("flip_pairs", [[10 ** 400, 1]]), ("flip_pairs", [[float("inf"), 1]]), ("flip_pairs", [[0.5, 1]]),
+        ("rigid_keypoints", [0.5, 1.7, 2.2]), ("rigid_keypoints", "012"), ("rigid_keypoints", [0, 1, float("inf")]),
+        ("keypoints_3d", [[1, 2, 10 ** 400], None, None, None])])
+    def test_a_bad_category_field_is_a_warning_not_a_crash(self, tmp_path, field, value):
+        """Overlapping or self pairs (the mirror would not be a permutation), strings, fractions, integers beyond
+        float64 and infinities: one warning naming the field, the field's default, every object loaded."""
+        path, _, _ = _dataset(tmp_path)
+        data = json.loads(path.read_text())
+        data["categories"][0][field] = value
+        path.write_text(json.dumps(data))
+        res = load_coco(path, canvas_size=32)
+        c = res.collections["plane"]
+        assert len(c) == 4 and [p.fatal for p in res.problems] == [False]
+        assert field in res.problems[0].reason and len(res.problems[0].message()) < 300
+        assert c.meta.flip_pairs == [(0, 1)] and c.meta.rigid_keypoints is None and c.meta.keypoints_3d is None
+
+    def test_keypoints_beyond_float64_skip_their_object(self, tmp_path):
+        bad = make_annotation(9, 1, 1, _ellipse(120, 160, 70, 60, 40, 20), np.ones((4, 2)), np.ones(4, bool))
+        bad["keypoints"][0] = 10 ** 400
+        path, _, _ = _dataset(tmp_path, [bad])
+        res = load_coco(path, canvas_size=32)
+        assert [(p.annotation_id, p.fatal) for p in res.problems] == [(9, True)]
+        assert "beyond floating point" in res.problems[0].reason and len(res.collections["plane"]) == 4
+
+    def test_ids_that_name_the_same_files_keep_the_first_and_say_what_became_of_it(self, tmp_path):
+        """An id is the object's file name (``object_stem``): a second annotation with the same id, or with an id
+        spelled alike there (``"a/b"`` is written as ``a_b-<hash>``), is skipped with a reason
+        naming the first, whose fate (kept or why not) the reason tells; ids that differ in letter case only are
+        two objects; the rule does not depend on ``classes``."""
+        from carvi_torch.io.layout import object_stem
+        ell = _ellipse(120, 160, 70, 60, 40, 20)
+        kp = np.array([[40.0, 60], [100, 60], [70, 45], [70, 75]])
+
+        def ann(aid, cat=1, **extra):
+            return {**make_annotation(0, 1, cat, ell, kp, np.ones(4, bool)), "id": aid, **extra}
+        stem = object_stem("a/b")
+        extra = [ann("a/b"), ann(stem), ann("Obj-A"), ann("obj-a"), ann(77, segmentation=None), ann(77),
+                 ann(3, cat=2)]
+        path, _, _ = _dataset(tmp_path, extra)
+        data = json.loads(path.read_text())
+        data["categories"].append(make_category(2, "other", NAMES))
+        path.write_text(json.dumps(data))
+        for classes in (None, ["other"]):
+            res = load_coco(path, canvas_size=32, classes=classes)
+            why = {(p.annotation_id, p.reason) for p in res.problems}
+            if classes is None:
+                assert res.collections["plane"].annotation_ids == [1, 2, 3, 4, "a/b", "Obj-A", "obj-a"]
+                assert (stem, f"annotation id {stem!r} and the earlier 'a/b' name the same output files "
+                              f"({stem!r}); keeping the first") in why
+                assert (77, "duplicate annotation id 77; the first is not reconstructed either: missing mask "
+                            "(no segmentation)") in why
+            assert "other" not in res.collections  # id 3 is a plane's first, whichever classes are run
+            assert any(a == 3 and r.startswith("duplicate annotation id 3;") for a, r in why)
 
 
 class TestInterrupts:

@@ -215,6 +215,51 @@ def test_parse_voc_record_without_size(tmp_path):
         parse_voc_record(p)
 
 
+@pytest.mark.parametrize("edit, problem", [
+    (("<width>64</width>", "<width>1e12</width>"), "more than 200000000 pixels"),
+    (("<truncated>1</truncated>", "<truncated>inf</truncated>"), "<truncated> is not 0/1"),
+])
+def test_parse_voc_record_refuses_sizes_beyond_memory_and_infinite_flags(tmp_path, edit, problem):
+    """A size no mask of it could fit in memory, and a flag of ``inf`` (``int(inf)`` overflows): a VocFormatError
+    naming the file (the converter warns and takes the size from elsewhere), never MemoryError or OverflowError."""
+    p = tmp_path / "2009_000010.xml"
+    p.write_text((DATA / "annotations" / "2009_000010.xml").read_text().replace(*edit))
+    with pytest.raises(VocFormatError, match=re.escape(problem)) as err:
+        parse_voc_record(p)
+    assert str(p) in str(err.value)
+
+
+def _edited_fixture(tmp_path: Path, old: str, new: str) -> Path:
+    """The valid fixture with ``old`` replaced by ``new``, alone in a keypoint folder."""
+    d = keypoint_dir(tmp_path, "valid")
+    f = d / FIXTURES["valid"]
+    text = f.read_text()
+    assert old in text
+    f.write_text(text.replace(old, new))
+    return d
+
+
+def test_convert_drops_a_keypoint_far_off_its_object_with_a_warning(tmp_path):
+    """A mistyped coordinate (x 200001 for 51) would stretch the image size taken from the objects' extent and so
+    look inside it; it is not visible, named in a warning, and the size is the one without it."""
+    d = _edited_fixture(tmp_path, 'x="51.00" y="21.00"', 'x="200001.00" y="21.00"')
+    report = convert(d, tmp_path / "out.json")
+    data = load(tmp_path / "out.json")
+    assert (data["images"][0]["width"], data["images"][0]["height"]) == (51, 31)
+    assert keypoint_dict(data, data["annotations"][0])["NoseTip"] == (0, 0, 0)
+    assert any(w.startswith(f"{FIXTURES['valid']}: keypoint(s) NoseTip lie far outside") for w in report.warnings)
+
+
+def test_convert_skips_an_object_whose_extent_is_no_image_size(tmp_path):
+    """A polygon vertex at 1e12 and no VOC record: the image size from the extent would be 1e12 pixels wide (a mask
+    of terabytes); the object is skipped with the reason, nothing is allocated."""
+    d = _edited_fixture(tmp_path, 'x="11.00 51.00 51.00 11.00 "', 'x="11.00 1e12 51.00 11.00 "')
+    report = convert(d, tmp_path / "out.json")
+    assert not report.written and report.counts == {}
+    ((name, reason),) = report.skipped
+    assert name == FIXTURES["valid"] and reason.startswith("no image size: no VOC record or instance map")
+
+
 # --------------------------------------------------------------------------- names
 
 

@@ -60,7 +60,7 @@ from typing import Any, Callable
 import numpy as np
 import trimesh
 
-from carvi_torch.io.layout import finished
+from carvi_torch.io.layout import finished, object_stem
 from carvi_torch.runtime import gone_within, processes_marked
 
 SMALL = ("resolution=16", "proposals=3", "canvas_size=48", "refine_iters=20", "plane_size=24", "preview=false",
@@ -212,6 +212,15 @@ def segmentation(aid, fn: Callable[[int, int, list], Any]) -> Edit:
         im = _entry(d, "images", a["image_id"])
         a["segmentation"] = fn(im["height"], im["width"], a["bbox"])
     return _inplace(fn_)
+
+
+def _counts_cut(aid) -> Edit:
+    """Annotation ``aid``'s compressed RLE counts cut after the last whole run of their first half."""
+    def fn(d):
+        seg = _ann(d, aid)["segmentation"]
+        text = seg["counts"]
+        seg["counts"] = text[:max(k for k in range(1, len(text) // 2) if ord(text[k - 1]) - 48 < 32)]
+    return _inplace(fn)
 
 
 def one_pixel(h: int, w: int, bbox: list) -> dict:
@@ -401,6 +410,12 @@ def _id_cases() -> list[Case]:
              bad=((Src(3), "duplicate annotation id"),)),
         Case("id_int_and_string", "ids \"5\" and 5 (equal as text)", edit=ann(1, id="5"), good=("5",),
              bad=((Src(5), "duplicate annotation id"),)),
+        Case("id_duplicate_first_skipped", "id 1 twice, the first without a mask: neither is the object",
+             edit=chain(ann_del(1, "segmentation"), ann(2, id=1)), lost=(2,),
+             bad=((1, "missing mask"), (1, "the first is not reconstructed either"))),
+        Case("id_file_name_clash", f"ids \"a/b\" and {object_stem('a/b')!r}, which names a/b's files",
+             edit=chain(ann(1, id="a/b"), ann(2, id=object_stem("a/b"))), good=("a/b",),
+             bad=((object_stem("a/b"), "name the same output files"),)),
         Case("id_lookalikes", "ids that differ only in case or in a / _ and space: " + ", ".join(lookalikes),
              edit=chain(*(ann(a, id=i) for a, i in zip(CARS, lookalikes))), good=lookalikes),
         Case("id_path", "ids \"../etc/passwd\", \"..\", \"/tmp/abs-id\"",
@@ -448,6 +463,14 @@ def _category_cases() -> list[Case]:
         Case("cat_flip_pairs_junk", "flip_pairs [[0, 99]] and \"abc\"",
              edit=chain(cat(1, flip_pairs=[[0, 99]]), cat(2, flip_pairs="abc")), good=ALL,
              warn=((Cls("car"), "invalid flip_pairs"), (Cls("chair"), "invalid flip_pairs"))),
+        Case("cat_flip_pairs_overlap", "flip_pairs [[0, 8], [0, 9]] (0 in two pairs) and [[1, 1]]",
+             edit=chain(cat(1, flip_pairs=[[0, 8], [0, 9]]), cat(2, flip_pairs=[[1, 1]])), good=ALL,
+             warn=((Cls("car"), "invalid flip_pairs"), (Cls("chair"), "invalid flip_pairs"))),
+        Case("cat_huge_numbers", "flip_pairs [[10**400, 1]], rigid_keypoints [0, 1, Infinity], keypoints_3d 10**400",
+             edit=chain(cat(1, flip_pairs=[[10 ** 400, 1]], rigid_keypoints=[0, 1, Lit("Infinity")]),
+                        cat(2, keypoints_3d=[[0, 0, 10 ** 400]] * 10)), good=ALL,
+             warn=((Cls("car"), "invalid flip_pairs"), (Cls("car"), "invalid rigid_keypoints"),
+                   (Cls("chair"), "keypoints_3d"))),
         Case("cat_rigid_bad", "rigid_keypoints [0, 1] (too few) and [\"x\"]",
              edit=chain(cat(1, rigid_keypoints=[0, 1]), cat(2, rigid_keypoints=["x"])), good=ALL,
              warn=((Cls("car"), "invalid rigid_keypoints"), (Cls("chair"), "invalid rigid_keypoints"))),
@@ -510,6 +533,10 @@ def _keypoint_cases() -> list[Case]:
                         keypoints(7, visible(lambda x, y, v: (x, y, 3))),
                         keypoints(8, visible(lambda x, y, v: (x, y, -1), 2))),
              good=(1, 7, 8), warn=((1, "far outside"),)),
+        Case("ann_kp_huge_int", "a keypoint x and a visibility written as 10**400 (beyond float64)",
+             edit=chain(keypoints(1, visible(lambda x, y, v: (10 ** 400, y, v), 1)),
+                        keypoints(7, visible(lambda x, y, v: (x, y, 10 ** 400), 1))),
+             bad=((1, "beyond floating point"), (7, "beyond floating point"))),
         Case("ann_kp_collapsed", "every visible keypoint of one object at one pixel (250, 150)",
              edit=keypoints(2, visible(lambda x, y, v: (250.0, 150.0, v))), bad=((2, "collapse to one point"),)),
     ]
@@ -537,6 +564,9 @@ def _mask_cases() -> list[Case]:
         Case("ann_rle_garbage", "compressed RLE counts \"!!garbage~~\"",
              edit=segmentation(1, lambda h, w, b: {"size": [h, w], "counts": "!!garbage~~"}),
              bad=((1, "segmentation"),)),
+        Case("ann_rle_short", "compressed RLE counts \"\" / cut after their first half (a copy that stopped)",
+             edit=chain(segmentation(1, lambda h, w, b: {"size": [h, w], "counts": ""}), _counts_cut(7)),
+             bad=((1, "sum to 0"), (7, "sum to"))),
         Case("ann_rle_unicode", "compressed RLE counts with non-ASCII characters",
              edit=segmentation(1, lambda h, w, b: {"size": [h, w], "counts": "\u00e9t\u00e9"}), bad=((1, mal),)),
         Case("ann_mask_empty", "an all-zero RLE; a polygon entirely outside the image",

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,13 +29,13 @@ from pycocotools import mask as mask_utils
 
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvases
 from ..runtime import os_error_line, torch_threads, watch_interrupts
-from .layout import reserved
+from .layout import object_stem, reserved
 from .outputs import read_json, safe_name, write_json
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
            "clip_polygon", "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "MAX_IMAGE_PIXELS",
            "object_id", "flag", "class_keys", "class_names", "select_classes", "input_fingerprints", "skipped_at_load",
-           "DUPLICATE_ID", "is_duplicate"]
+           "DUPLICATE_ID", "is_duplicate", "rle_counts", "decode_counts"]
 
 #: How the reason of a repeated annotation id begins (the id's first annotation is the one used).
 DUPLICATE_ID = "duplicate annotation id"
@@ -176,6 +175,8 @@ def decode_segmentation(seg: Any, height: int, width: int) -> np.ndarray:
     """
     if isinstance(seg, list):
         polys = [p for p in seg if isinstance(p, (list, tuple)) and len(p) >= 6]
+        if not polys and any(isinstance(p, dict) for p in seg):
+            raise ValueError("segmentation is a list holding an RLE object, not polygons (give the RLE object itself)")
         if not polys:
             raise ValueError("segmentation has no polygon with at least 3 points")
         arr = [np.asarray(p, dtype=np.float64) for p in polys]
@@ -191,18 +192,70 @@ def decode_segmentation(seg: Any, height: int, width: int) -> np.ndarray:
             raise ValueError(f"RLE size {seg.get('size')} does not match the image ({height}, {width})")
         if isinstance(seg["counts"], list):
             counts = seg["counts"]
-            if not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in counts):
+            if not all(isinstance(c, int) and not isinstance(c, bool) and 0 <= c <= height * width for c in counts):
                 raise ValueError("uncompressed RLE counts must be non-negative integers")
-            if sum(counts) != height * width:
-                raise ValueError(f"uncompressed RLE counts sum to {sum(counts)}, not width x height = "
-                                 f"{width} x {height} = {width * height}")
-            rle = mask_utils.frPyObjects(seg, height, width)
-        else:
-            rle = {"size": seg["size"], "counts": seg["counts"].encode("ascii") if isinstance(seg["counts"], str)
-                   else seg["counts"]}
+            return decode_counts(np.asarray(counts, dtype=np.int64), height, width)
+        text = seg["counts"].encode("ascii") if isinstance(seg["counts"], str) else seg["counts"]
+        if not isinstance(text, bytes):
+            raise ValueError(f"RLE counts are {_describe(text)}, not a string or a list")
+        return decode_counts(rle_counts(text), height, width)
     else:
         raise ValueError("segmentation is neither polygons nor RLE")
     return mask_utils.decode(rle).astype(bool)
+
+
+def rle_counts(text: bytes) -> np.ndarray:
+    """The run lengths of a compressed COCO RLE string (pycocotools' ``counts`` bytes), ``(N,)`` int64.
+
+    Each run is a little-endian sequence of 5-bit groups, one character each (``48 +`` the group, bit 5
+    set on every group but the last, bit 4 of the last the sign); from the third run on, a run is stored
+    as its difference from the run two places before it. ``ValueError`` for a character outside the
+    alphabet, a string cut inside a run, a run of over 7 groups (35 bits) or a negative run.
+
+    Example:
+        >>> from pycocotools import mask
+        >>> m = np.zeros((4, 5), dtype=np.uint8, order="F"); m[1:3, 1:4] = 1
+        >>> rle_counts(mask.encode(m)["counts"]).tolist()
+        [5, 2, 2, 2, 2, 2, 5]
+    """
+    c = np.frombuffer(text, dtype=np.uint8) - np.uint8(48)  # a character below "0" wraps above 63
+    if not len(c):
+        return np.zeros(0, dtype=np.int64)
+    if c.max() > 63:
+        raise ValueError("RLE counts hold a character outside the compressed alphabet")
+    last = c < 32  # the last group of each run
+    if not last[-1]:
+        raise ValueError("RLE counts end inside a run")
+    ends = np.flatnonzero(last)
+    starts = np.empty_like(ends)
+    starts[0], starts[1:] = 0, ends[:-1] + 1
+    groups = ends - starts + 1
+    if groups.max() > 7:
+        raise ValueError("RLE counts hold a run too long to be a pixel count")
+    shift = 5 * (np.arange(len(c)) - np.repeat(starts, groups))
+    x = np.add.reduceat((c & 31).astype(np.int64) << shift, starts)
+    x -= (c[ends] >= 16) * (np.int64(1) << (5 * groups))  # sign-extend
+    x[1::2], x[2::2] = np.cumsum(x[1::2]), np.cumsum(x[2::2])  # undo the differences along each parity
+    if (x < 0).any():
+        raise ValueError("RLE counts hold a negative run")
+    return x
+
+
+def decode_counts(counts: np.ndarray, height: int, width: int) -> np.ndarray:
+    """The ``(H, W)`` bool mask of RLE run lengths (background first, column-major, as COCO stores them),
+    checked: ``ValueError`` unless they sum to ``H * W`` (pycocotools leaves the rest of a short mask unset).
+    The same array as ``pycocotools.mask.decode(...).astype(bool)``, Fortran order included.
+
+    Example:
+        >>> decode_counts(np.array([1, 2, 3]), 2, 3).astype(int).tolist()
+        [[0, 1, 0], [1, 0, 0]]
+    """
+    total = int(counts.sum())
+    if total != height * width:
+        raise ValueError(f"RLE counts sum to {total}, not width x height = {width} x {height} = {width * height}")
+    values = np.zeros(len(counts), dtype=bool)
+    values[1::2] = True
+    return np.repeat(values, counts).reshape(width, height).T
 
 
 # --------------------------------------------------------------------------- writing
@@ -305,27 +358,22 @@ def _category_meta(cat: dict, problems: list) -> ClassMeta | None:
     names = [str(n) for n in names]
     k = len(names)
     pairs = cat.get("flip_pairs")
-    if pairs is None:
-        pairs = infer_flip_pairs(names)
-    else:
-        try:
-            pairs = [(int(a), int(b)) for a, b in pairs]
-            if any(not (0 <= a < k and 0 <= b < k) for a, b in pairs):
-                raise ValueError
-        except (TypeError, ValueError):
-            problems.append(Problem(f"invalid flip_pairs {cat.get('flip_pairs')!r}; inferring them from names",
-                                    category=name, fatal=False))
-            pairs = infer_flip_pairs(names)
+    if pairs is not None:
+        pairs = _flip_pairs(pairs, k)
+        if pairs is None:
+            problems.append(Problem(f"invalid flip_pairs {_short(cat.get('flip_pairs'))} (pairs of two different "
+                                    f"keypoint indices below {k}, each index in one pair at most); inferring them "
+                                    "from names", category=name, fatal=False))
+    pairs = infer_flip_pairs(names) if pairs is None else pairs
     rigid = cat.get("rigid_keypoints")
     if rigid is not None:
-        try:
-            rigid = sorted({int(i) for i in rigid})
-            if any(not 0 <= i < k for i in rigid) or len(rigid) < 3:
-                raise ValueError
-        except (TypeError, ValueError):
-            problems.append(Problem(f"invalid rigid_keypoints {cat.get('rigid_keypoints')!r}; using all keypoints",
-                                    category=name, fatal=False))
+        rigid = _indices(rigid, k)
+        if rigid is None or len(set(rigid)) < 3:
+            problems.append(Problem(f"invalid rigid_keypoints {_short(cat.get('rigid_keypoints'))} (at least 3 "
+                                    f"keypoint indices below {k}); using all keypoints", category=name, fatal=False))
             rigid = None
+        else:
+            rigid = sorted(set(rigid))
     symmetry = str(cat.get("symmetry", "none"))
     if symmetry not in ("none", "rotational"):
         problems.append(Problem(f"unknown symmetry {symmetry!r}; using 'none'", category=name, fatal=False))
@@ -340,20 +388,49 @@ def _category_meta(cat: dict, problems: list) -> ClassMeta | None:
                      keypoints_3d=_keypoints_3d(cat, k, name, problems))
 
 
+def _indices(values, k: int) -> list[int] | None:
+    """``values`` as keypoint indices (JSON integers, or integral numbers, in ``[0, k)``), or ``None``."""
+    if not isinstance(values, list) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < k and float(v).is_integer()
+            for v in values):
+        return None
+    return [int(v) for v in values]
+
+
+def _flip_pairs(pairs, k: int) -> list[tuple[int, int]] | None:
+    """A category's ``flip_pairs`` checked: pairs of two different indices, no index in two pairs (so the
+    mirror is a permutation); ``None`` when they are not."""
+    if not isinstance(pairs, list) or not all(isinstance(p, list) and len(p) == 2 for p in pairs):
+        return None
+    flat = _indices([i for p in pairs for i in p], k)
+    if flat is None or len(set(flat)) != len(flat):
+        return None
+    return list(zip(flat[0::2], flat[1::2]))
+
+
+def _short(value, limit: int = 80) -> str:
+    """``repr`` of a value from the file, cut to ``limit`` characters (a reason stays one readable line)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 def _keypoints_3d(cat: dict, k: int, name: str, problems: list) -> list | None:
     """The category's ``keypoints_3d`` (``K`` points or nulls), or ``None`` (absent or unusable: reported)."""
     pts = cat.get("keypoints_3d")
     if pts is None:
         return None
     ok = isinstance(pts, list) and len(pts) == k and all(
-        p is None or (isinstance(p, list) and len(p) == 3 and all(isinstance(v, (int, float)) and not
-                                                                  isinstance(v, bool) and math.isfinite(v) for v in p))
-        for p in pts)
+        p is None or (isinstance(p, list) and len(p) == 3 and all(_finite_number(v) for v in p)) for p in pts)
     if not ok:
         problems.append(Problem(f"keypoints_3d must hold {k} points [x, y, z] or nulls; ignored", category=name,
                                 fatal=False))
         return None
     return pts
+
+
+def _finite_number(v) -> bool:
+    """A JSON number (not a boolean) that is finite as a float (JSON integers may be far larger)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and abs(v) < 1e300 and v == v
 
 
 def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[np.ndarray, np.ndarray] | str:
@@ -365,8 +442,8 @@ def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[
         return f"has {len(kp)} keypoint values, the category defines {k} keypoints ({3 * k} values)"
     try:
         arr = np.asarray(kp, dtype=np.float64).reshape(k, 3)
-    except (TypeError, ValueError):
-        return "keypoints are not numbers"
+    except (TypeError, ValueError, OverflowError):  # OverflowError: a JSON integer beyond float64
+        return "keypoints are not numbers (or beyond floating point)"
     xy, v = arr[:, :2], arr[:, 2]
     visible = v >= 2
     bad = visible & ~np.isfinite(xy).all(axis=1)
@@ -401,7 +478,7 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
     Returns:
         :class:`LoadResult`, collections keyed by ``ClassMeta.key`` (two categories of one name are two
         classes with different keys). Objects are skipped (with a :class:`Problem`) for: an unusable or
-        duplicate id, unknown category or image, an image too large or without a size, keypoint count not
+        duplicate id (or one whose output files an earlier id names, :func:`_claim_id`), unknown category or image, an image too large or without a size, keypoint count not
         matching the category, no visible keypoint, missing/empty/malformed mask, occluded/truncated
         flags (or unreadable ones). NaN or far-outside keypoints are dropped with a warning.
 
@@ -414,7 +491,7 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
     metas = _categories(data["categories"], set(classes) if classes else None, problems)
     images = _images(data.get("images") or [], problems)
     per_class: dict[str, list] = defaultdict(list)
-    seen: set[str] = set()
+    seen: dict[str, dict] = {}
     with watch_interrupts() as interrupts:
         for ann in data["annotations"]:
             item = _annotation(ann, metas, images, seen, skip_flags, max_image_pixels, problems)
@@ -560,7 +637,7 @@ def _image_size(im: dict, max_pixels: int) -> tuple[int, int] | str:
     return width, height
 
 
-def _annotation(ann, metas: dict, images: dict, seen: set, skip_flags: bool, max_pixels: int, problems: list):
+def _annotation(ann, metas: dict, images: dict, seen: dict, skip_flags: bool, max_pixels: int, problems: list):
     """One annotation checked and decoded: ``(class key, ann, image, mask, xy, visible)``, or ``None``
     with its :class:`Problem` recorded."""
     if not isinstance(ann, dict):
@@ -572,18 +649,22 @@ def _annotation(ann, metas: dict, images: dict, seen: set, skip_flags: bool, max
         problems.append(Problem(f"annotation id is {_describe(ann.get('id'))}, not an integer or a string",
                                 source=source or str(ann)[:60]))
         return None
+    first, claimed = _claim_id(aid, seen)
     cid = object_id(ann.get("category_id"))
     if cid is None or str(cid) not in metas:
+        if claimed:
+            first["why"] = f"unknown category id {_short(ann.get('category_id'), 40)}"
         problems.append(Problem(f"unknown category id {ann.get('category_id')!r}", annotation_id=aid, source=source))
         return None
     key, meta = metas[str(cid)]
     if meta is None:  # left out by `classes`, or a broken category (reported)
+        if claimed:
+            first["why"] = "its class is left out by the run's classes, or unusable"
         return None
     p = dict(annotation_id=aid, category=meta.name, source=source, class_key=key)
-    if str(aid) in seen:
-        problems.append(Problem(f"{DUPLICATE_ID} {aid!r}; keeping the first", **p))
+    if not claimed:
+        problems.append(Problem(_clash(aid, first), **p))
         return None
-    seen.add(str(aid))
     why = _flags(ann) if skip_flags else None
     if why is None:
         why, im, size = _image_of(ann, images, max_pixels)
@@ -596,9 +677,32 @@ def _annotation(ann, metas: dict, images: dict, seen: set, skip_flags: bool, max
         mask = _mask(ann, size)
         why = mask if isinstance(mask, str) else None
     if why is not None:
+        first["why"] = why
         problems.append(Problem(why, **p))
         return None
     return key, ann, im, mask, parsed[0], parsed[1]
+
+
+def _claim_id(aid, seen: dict) -> tuple[dict, bool]:
+    """The record ``{"id", "why"}`` of the first annotation of the file whose output files ``aid``'s would be
+    (the same id, or another that :func:`~carvi_torch.io.layout.object_stem` spells alike: ``"a/b"`` and
+    ``"a_b-c14cddc0"``), and whether that is this annotation (then registered); ``why``: the reason the first
+    is not reconstructed. Ids that differ in letter case only stay apart, as on a case-sensitive file system."""
+    stem = object_stem(aid)
+    if stem in seen:
+        return seen[stem], False
+    seen[stem] = {"id": aid, "why": None}
+    return seen[stem], True
+
+
+def _clash(aid, first: dict) -> str:
+    """The reason an annotation whose output files an earlier one claimed (:func:`_claim_id`) is skipped."""
+    fate = ("keeping the first" if first["why"] is None
+            else f"the first is not reconstructed either: {first['why']}")
+    if str(first["id"]) == str(aid):
+        return f"{DUPLICATE_ID} {aid!r}; {fate}"
+    return (f"annotation id {aid!r} and the earlier {first['id']!r} name the same output files "
+            f"({object_stem(first['id'])!r}); {fate}")
 
 
 def _flags(ann: dict) -> str | None:

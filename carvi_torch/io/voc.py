@@ -50,14 +50,19 @@ segments are united).
 
 Image size: the VOC record's ``<size>`` when given, else the instance-map size, else the
 extent of all objects of the image (polygons, visible keypoints, ``visible_bounds``):
-``ceil(max) + 1`` in 0-based coordinates.
+``ceil(max) + 1`` in 0-based coordinates. A visible keypoint farther outside its object's
+polygons and ``visible_bounds`` than half their larger side is a typing error: it is made not
+visible, with a warning (:func:`far_keypoints`), before any size is taken. A size of more than
+``MAX_IMAGE_PIXELS`` pixels is no size: a record giving one is warned about and not used.
 
 Skipped objects (reported by file name with the reason, the rest goes on): malformed files,
 unknown categories, fewer than 2 visible keypoints, no mask (no polygon and no matching
-instance), empty masks.
+instance), empty masks, no image size (no record, no instance map, and an extent beyond
+``MAX_IMAGE_PIXELS``).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import struct
@@ -73,6 +78,7 @@ import numpy as np
 
 from ..collection import infer_flip_pairs, name_words  # name_words re-exported: the converter's word rule
 from ..runtime import os_error_line, watch_interrupts
+from .coco import MAX_IMAGE_PIXELS, OUTSIDE_TOLERANCE
 from .coco import encode_mask as encode_rle
 from .outputs import write_json
 from .vocmeta import (
@@ -99,6 +105,7 @@ __all__ = [
     "Report",
     "parse_keypoint_xml",
     "parse_voc_record",
+    "far_keypoints",
     "read_sbd_instances",
     "read_voc_instances",
     "find_mask_file",
@@ -360,13 +367,15 @@ def parse_voc_record(path: str | Path) -> VocRecord:
     w = _float(path, _text(path, size, "width"), "size width")
     h = _float(path, _text(path, size, "height"), "size height")
     if w < 1 or h < 1 or w != int(w) or h != int(h):
-        raise VocFormatError(path, f"size {w}x{h} is not a positive integer size")
+        raise VocFormatError(path, f"size {w:g}x{h:g} is not a positive integer size")
+    if w * h > MAX_IMAGE_PIXELS:
+        raise VocFormatError(path, f"size {w:g}x{h:g} is more than {MAX_IMAGE_PIXELS} pixels")
 
     def flag(el: ET.Element, tag: str) -> bool:
         t = el.findtext(tag)
         try:
             return bool(int(float(t))) if t is not None and t.strip() else False
-        except ValueError:
+        except (ValueError, OverflowError):  # OverflowError: "inf"
             raise VocFormatError(path, f"<{tag}> is not 0/1: {t!r}") from None
 
     objects = tuple({"name": (o.findtext("name") or "").strip(), "truncated": flag(o, "truncated"),
@@ -819,12 +828,18 @@ def _find_record(annotations_dir: Path, image: str) -> Path | None:
     return None
 
 
-def _extent_size(objs: Sequence[VocObject]) -> tuple[int, int] | None:
+def _extent_size(objs: Sequence[VocObject]) -> tuple[int, int] | str | None:
+    """``(W, H)`` spanning the objects (``ceil(max) + 1``), ``None`` without any point, or why it is no size:
+    over :data:`~carvi_torch.io.coco.MAX_IMAGE_PIXELS` pixels (a coordinate far off, e.g. ``1e12``)."""
     ext = np.array([o.extent() for o in objs], dtype=np.float64).reshape(-1, 2)
     if np.isnan(ext).all():
         return None
     mx = np.nanmax(ext, axis=0)
-    return max(1, math.ceil(mx[0]) + 1), max(1, math.ceil(mx[1]) + 1)
+    w, h = (max(1.0, math.ceil(v) + 1.0) for v in mx)
+    if w * h > MAX_IMAGE_PIXELS:
+        return (f"no image size: no VOC record or instance map, and the objects span {w:.0f}x{h:.0f} pixels, "
+                f"more than {MAX_IMAGE_PIXELS}")
+    return int(w), int(h)
 
 
 def _round(v: float) -> float:
@@ -911,6 +926,31 @@ def convert(keypoint_dir: str | Path, out_path: str | Path, masks_dir: str | Pat
     return report
 
 
+def far_keypoints(obj: VocObject, tolerance: float = OUTSIDE_TOLERANCE) -> tuple[str, ...]:
+    """Names of the visible keypoints farther outside the object's own outline (its polygons and
+    ``visible_bounds``; none without either) than ``tolerance`` times the outline's larger side: a mistyped
+    coordinate, which would otherwise stretch the image size taken from the objects' extent.
+
+    Example:
+        >>> sq = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
+        >>> o = VocObject("a.xml", "a", 1, "car", None, None, {"x": (12.0, 5.0, True), "y": (2e5, 5.0, True)},
+        ...               sq, (sq,))
+        >>> far_keypoints(o)
+        ('y',)
+    """
+    pts = list(obj.polygons)
+    if obj.visible_bounds is not None:
+        x, y, w, h = obj.visible_bounds
+        pts.append(np.array([[x, y], [x + w, y + h]]))
+    if not pts:
+        return ()
+    pts = np.concatenate(pts)
+    lo, hi = pts.min(0), pts.max(0)
+    tol = tolerance * max(float((hi - lo).max()), 1.0)
+    return tuple(n for n, (x, y, v) in obj.keypoints.items()
+                 if v and not (lo[0] - tol <= x <= hi[0] + tol and lo[1] - tol <= y <= hi[1] + tol))
+
+
 def _check_classes_present(wanted: set[str] | None, by_image: dict, kdir: Path) -> None:
     """``ValueError`` when a class asked for has no object in the parsed files (naming the classes they have)."""
     present = sorted({cls for group in by_image.values() for _, _, cls in group if cls is not None})
@@ -929,6 +969,12 @@ def _parse_files(files: list[Path], one_based: bool, report: Report) -> dict:
         except VocFormatError as e:
             report.skipped.append((f.name, f"malformed file: {e.problem}"))
             continue
+        far = far_keypoints(obj)
+        if far:
+            report.warnings.append(f"{f.name}: keypoint(s) {', '.join(far)} lie far outside the object's outline; "
+                                   "treated as not visible")
+            obj = dataclasses.replace(obj, keypoints={n: (x, y, v and n not in far)
+                                                      for n, (x, y, v) in obj.keypoints.items()})
         cls = normalize_class_name(obj.category)
         if cls is None:
             report.skipped.append((f.name, f"unknown category: {obj.category!r} is not a PASCAL VOC class"))
@@ -957,6 +1003,8 @@ def _image_sources(image: str, group: list, mdir, adir, report: Report):
         size = (inst.shape[1], inst.shape[0])
     else:
         size = _extent_size([o for _, o, _ in group])
+    if isinstance(size, str):
+        report.warnings.append(f"{image}: {size}")
     if inst is not None and size is not None and inst.shape != (size[1], size[0]):
         report.warnings.append(f"{inst.path}: instance map is {inst.shape[1]}x{inst.shape[0]}, the VOC record "
                                f"says {size[0]}x{size[1]}; using polygons for {image}")
@@ -969,6 +1017,8 @@ def _object_mask(obj: VocObject, j: int, inst, size, mdir, reasons: list):
     mask, source = None, None
     if j >= 0:
         mask, source = inst.masks[j], inst.source
+    elif obj.polygons and isinstance(size, str):
+        reasons.append(size)
     elif obj.polygons and size is not None:
         mask, source = rasterize_polygons(obj.polygons, size[1], size[0]), "polygon"
     else:
