@@ -1190,6 +1190,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> int:
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:  # started in the background (nohup, `&` in a script):
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # the runs start with the default, as from a shell
     args = parse_args(argv)
     cases = select(args.cases)
     if args.list:

@@ -442,8 +442,10 @@ def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[
         return f"has {len(kp)} keypoint values, the category defines {k} keypoints ({3 * k} values)"
     try:
         arr = np.asarray(kp, dtype=np.float64).reshape(k, 3)
-    except (TypeError, ValueError, OverflowError):  # OverflowError: a JSON integer beyond float64
-        return "keypoints are not numbers (or beyond floating point)"
+    except (TypeError, ValueError):
+        return "keypoints are not numbers"
+    except OverflowError:  # a JSON integer beyond float64
+        return "a keypoint value is an integer beyond floating point"
     xy, v = arr[:, :2], arr[:, 2]
     visible = v >= 2
     bad = visible & ~np.isfinite(xy).all(axis=1)
@@ -478,9 +480,10 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
     Returns:
         :class:`LoadResult`, collections keyed by ``ClassMeta.key`` (two categories of one name are two
         classes with different keys). Objects are skipped (with a :class:`Problem`) for: an unusable or
-        duplicate id (or one whose output files an earlier id names, :func:`_claim_id`), unknown category or image, an image too large or without a size, keypoint count not
-        matching the category, no visible keypoint, missing/empty/malformed mask, occluded/truncated
-        flags (or unreadable ones). NaN or far-outside keypoints are dropped with a warning.
+        duplicate id (or one whose output files an earlier id names, :func:`_claim_id`), unknown category or
+        image, an image too large or without a size, keypoint count not matching the category, no visible
+        keypoint, missing/empty/malformed mask, occluded/truncated flags (or unreadable ones). NaN or
+        far-outside keypoints are dropped with a warning.
 
     Raises:
         CocoFormatError: the file is missing, not UTF-8, not JSON (message with line and column), nested
