@@ -308,3 +308,122 @@ def test_report_refuses_a_count_out_of_range(option, tmp_path, capsys):
         report_main(["--recon", str(tmp_path), "--quiet", *option])
     assert e.value.code == 2 and f"argument {option[0]}: expected an integer >= " in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_report_never_writes_through_a_link_in_out(recon, tmp_path, capsys):
+    """A symbolic link among the report's entries in --out (a file's name, a folder, one deep in ``objects/``)
+    is refused with one ``error:`` line naming it (exit 2): nothing is written, its target least of all. A
+    temporary file left by a killed report does not make --out foreign."""
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "precious.txt").write_text("precious")
+    rep = tmp_path / "rep"
+    rep.mkdir()
+    (rep / "index.html").symlink_to(victim / "precious.txt")
+    (rep / "assets").symlink_to(victim)
+    argv = ["--recon", str(recon), "--out", str(rep), "--quiet", "--workers", "0"]
+    for name in ("assets", "index.html", "objects/car/1.jpg"):
+        if name == "objects/car/1.jpg":
+            (rep / "objects" / "car").mkdir(parents=True)
+            (rep / name).symlink_to(victim / "precious.txt")
+        before = sorted(p.relative_to(rep).as_posix() for p in rep.rglob("*"))
+        assert report_main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1 and f"'{name}' is a symbolic link" in err, err
+        assert sorted(p.relative_to(rep).as_posix() for p in rep.rglob("*")) == before
+        assert [p.name for p in victim.iterdir()] == ["precious.txt"]
+        assert (victim / "precious.txt").read_text() == "precious"
+        (rep / name).unlink()
+    (rep / ".index.html.k3j_x2.tmp").write_text("<html")  # a report killed while writing index.html
+    assert report_main(argv) == 0
+    assert (rep / "index.html").is_file() and not (rep / "index.html").is_symlink()
+    assert (victim / "precious.txt").read_text() == "precious" and len(list(victim.iterdir())) == 1
+
+
+def test_writes_replace_a_link_and_refuse_a_linked_folder(tmp_path):
+    """Every write of the report (:func:`~carvi_torch.io.outputs.write_within`) replaces a link standing at the
+    file's name (its target untouched) and refuses a link where a folder is, also a link planted after the
+    command's check: a card written into a linked folder fails with the reason, nothing lands in the target."""
+    from carvi_torch.io.outputs import folder_within, write_within
+    from carvi_torch.report.cards import CardContext, ClassView, make_card
+    from carvi_torch.report.inputs import ObjectInputs
+
+    victim, root = tmp_path / "victim", tmp_path / "rep"
+    victim.mkdir()
+    root.mkdir()
+    (victim / "precious.txt").write_text("precious")
+    (root / "a.txt").symlink_to(victim / "precious.txt")
+    write_within(root, "a.txt", b"mine", sync=False)
+    assert not (root / "a.txt").is_symlink() and (root / "a.txt").read_text() == "mine"
+    (root / "objects").mkdir()
+    (root / "objects" / "car").symlink_to(victim)
+    with pytest.raises(NotADirectoryError, match="symbolic link"):
+        write_within(root, "objects/car/b.txt", b"mine")
+    (root / "file").write_text("x")
+    with pytest.raises(NotADirectoryError, match="a file"):
+        folder_within(root, "file/sub")
+    with pytest.raises(ValueError):
+        folder_within(root, "../victim")
+    mesh = trimesh.creation.box()
+    run = tmp_path / "run"
+    (run / "car" / "meshes").mkdir(parents=True)
+    mesh.export(run / "car" / "meshes" / "7.ply")
+    ctx = CardContext(recon=run, out=root, anns={}, images={}, coco=None, data=None, data_problem="no data")
+    card = make_card(ctx, ClassView("car", []), ObjectInputs("7", "7"), "car")
+    assert card.mesh is None and "card failed (NotADirectoryError" in card.problems[-1], card
+    assert sorted(p.name for p in victim.iterdir()) == ["precious.txt"]
+    assert (victim / "precious.txt").read_text() == "precious"
+
+
+def test_object_missing_from_cameras_json_gets_a_card(recon, tmp_path):
+    """An annotated object that summary.json counts reconstructed but its class's cameras.json lacks gets a
+    card (first, with the reason, its overlay and mesh), and the class panel says how many are missing."""
+    run = tmp_path / "run"
+    shutil.copytree(recon, run, ignore=shutil.ignore_patterns("report"))
+    cams = json.loads((run / "chair" / "cameras.json").read_text())
+    gone = list(cams["cameras"])[2]
+    del cams["cameras"][gone]
+    (run / "chair" / "cameras.json").write_text(json.dumps(cams))
+    rep = build_report(run, run / "rep", workers=0)
+    _, cards = _cards(run / "rep")
+    assert rep.cards == 12 and sorted(c["id"] for c in cards) == sorted(_objects(recon))
+    chair = [c for c in cards if c["cls"] == "chair"]
+    assert chair[0]["id"] == gone, chair[0]
+    assert chair[0]["problems"] == ["camera missing from cameras.json (summary.json counts the object as "
+                                    "reconstructed)"]
+    assert chair[0]["img"] and chair[0]["mesh"] and 0.3 < chair[0]["iou"] <= 1
+    assert "chair/cameras.json lists 5 of the 6 objects summary.json counts as reconstructed" in (
+        run / "rep" / "index.html").read_text()
+
+
+def test_photo_is_read_only_beside_the_annotations(tmp_path):
+    """An image entry's ``file_name`` is read relative to the annotation file's folder or the folder above it;
+    an absolute name, one climbing farther, a missing file, a folder, a pipe, a file that is no image and an
+    image of another size give no photo (the overlay on white), never an error."""
+    import os
+
+    from PIL import Image
+
+    from carvi_torch.report.cards import CardContext, _photo
+
+    ds = tmp_path / "ds"
+    (ds / "ann").mkdir(parents=True)
+    (ds / "img").mkdir()
+    pixels = np.full((12, 16, 3), 200, np.uint8)
+    for p in (ds / "ann" / "in.png", ds / "img" / "up.png", tmp_path / "far.png"):
+        Image.fromarray(pixels).save(p)
+    Image.fromarray(pixels[:6]).save(ds / "ann" / "small.png")
+    (ds / "ann" / "text.png").write_text("not an image")
+    (ds / "ann" / "dir.png").mkdir()
+    os.mkfifo(ds / "ann" / "fifo.png")
+    names = {"in.png": True, "../img/up.png": True, "sub/../in.png": True, str(tmp_path / "far.png"): False,
+             "../../far.png": False, "../img/../../far.png": False, "small.png": False, "text.png": False,
+             "dir.png": False, "fifo.png": False, "missing.png": False, None: False, 5: False}
+    images = {i: {"id": i, "file_name": name} for i, name in enumerate(names)}
+    ctx = CardContext(recon=tmp_path, out=tmp_path / "rep", anns={}, images=images, coco=None,
+                      data=ds / "ann" / "annotations.json")
+    for i, (name, read) in enumerate(names.items()):
+        photo = _photo(ctx, {"image_id": i}, (12, 16))
+        assert (photo is not None) == read, name
+        if read:
+            assert photo.shape == (12, 16, 3) and np.allclose(photo, 200 / 255)

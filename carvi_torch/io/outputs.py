@@ -7,6 +7,7 @@ or the complete new one, never a partial file.
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import io
 import json
@@ -21,7 +22,7 @@ from typing import Any, Callable
 import numpy as np
 
 __all__ = ["atomic_write", "write_json", "write_record", "read_json", "read_text", "write_npz", "write_bytes",
-           "to_jsonable", "is_done", "safe_name", "record_target"]
+           "to_jsonable", "is_done", "safe_name", "record_target", "folder_within", "write_within"]
 
 
 def _file_mode() -> int:
@@ -67,6 +68,47 @@ def atomic_write(path: str | os.PathLike, write: Callable[[io.BufferedWriter], N
 def write_bytes(path: str | os.PathLike, data: bytes, sync: bool = True) -> Path:
     """Write ``data`` to ``path`` atomically (``sync``: :func:`atomic_write`)."""
     return atomic_write(path, lambda f: f.write(data), sync)
+
+
+def folder_within(root: str | os.PathLike, rel: str | os.PathLike = "") -> Path:
+    """``root/rel``, its folders below ``root`` made where missing and none of them a symbolic link, so that
+    nothing written into it lands outside ``root`` (``root`` itself is the caller's: made with its parents
+    where missing, and it may be a link).
+
+    Raises:
+        NotADirectoryError: a link or a file stands where one of the folders is (named; it is left alone).
+        ValueError: ``rel`` is absolute or climbs out of ``root`` (``..``).
+
+    Example:
+        >>> folder_within("/tmp", "..")
+        Traceback (most recent call last):
+        ...
+        ValueError: '..' is not a path inside /tmp
+    """
+    path, rel = Path(root), Path(rel)
+    if rel.is_absolute() or ".." in rel.parts:
+        raise ValueError(f"{str(rel)!r} is not a path inside {root}")
+    path.mkdir(parents=True, exist_ok=True)
+    for part in rel.parts:
+        path = path / part
+        try:
+            os.mkdir(path)  # never through a link: a link standing there is an existing entry
+        except FileExistsError:
+            if path.is_symlink() or not path.is_dir():
+                kind = "a symbolic link" if path.is_symlink() else "a file"
+                raise NotADirectoryError(errno.ENOTDIR, f"{kind}, not a folder: nothing is written through it",
+                                         str(path)) from None
+    return path
+
+
+def write_within(root: str | os.PathLike, rel: str | os.PathLike, write: Callable[[io.BufferedWriter], None] | bytes,
+                 sync: bool = True) -> Path:
+    """Write the file ``root/rel`` (``write``: bytes, or :func:`atomic_write`'s callable) atomically without
+    following a symbolic link: its folders come from :func:`folder_within`, and a link standing at its own
+    name is replaced by the file (``os.replace``), its target left alone. Returns the file's path."""
+    rel = Path(rel)
+    path = folder_within(root, rel.parent) / rel.name
+    return atomic_write(path, write if callable(write) else (lambda f: f.write(write)), sync)
 
 
 #: Types that JSON writes as they are (exact types: ``np.float64`` subclasses ``float`` and goes the long way).

@@ -1,5 +1,7 @@
 """Build the report of a finished run: ``OUT/index.html``, ``OUT/cards.js``, ``OUT/assets/``,
-``OUT/classes/<class>.png``, ``OUT/objects/<class>/<stem>.{jpg,js}``; nothing outside ``OUT``.
+``OUT/classes/<class>.png``, ``OUT/objects/<class>/<stem>.{jpg,js}``; nothing outside ``OUT``. Every file is
+written to a temporary name in its folder and moved into place (:func:`carvi_torch.io.outputs.write_within`):
+nothing is written through a symbolic link, and one among the report's entries is refused before any work.
 
 Cards are sorted worst first (:data:`SortBy`): by ``quality`` ascending when the run scored its
 objects, else by the selected proposal's score descending (a disagreement with the class's average
@@ -21,7 +23,6 @@ import json
 import logging
 import multiprocessing as mp
 import os
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +30,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Literal
 
 from ..io.coco import class_keys
-from ..io.outputs import safe_name
+from ..io.outputs import folder_within, safe_name, write_within
 from ..runtime import LeanProcessPool, check_replaceable, os_error_line, start_method
 from .cards import Card, CardContext, ClassView, make_card
 from .charts import class_figure
@@ -136,18 +137,52 @@ def _make_cards(run: RunInputs, out: Path, max_faces: int, workers: int | None) 
 
 
 def _copy_assets(out: Path) -> None:
-    (out / "assets").mkdir(parents=True, exist_ok=True)
     for src, dst in ASSETS.items():
-        shutil.copyfile(STATIC / src, out / "assets" / dst)
+        write_within(out, f"assets/{dst}", (STATIC / src).read_bytes(), sync=False)
 
 
 #: What a report writes in its folder: a folder holding only these is an earlier report (replaced).
 REPORT_NAMES = frozenset({"index.html", "cards.js", "assets", "classes", "objects"})
+#: The files written in the folder itself: a temporary ``.<name>.<random>.tmp`` of one (left by a report
+#: killed while writing it) belongs to a report too.
+TOP_FILES = ("index.html", "cards.js")
 
 
 def _not_report(out: Path) -> list[str]:
     """The entries of the folder ``out`` that no report writes."""
-    return [p.name for p in out.iterdir() if p.name not in REPORT_NAMES]
+    def ours(name: str) -> bool:
+        return name in REPORT_NAMES or (name.endswith(".tmp") and name.startswith(tuple(f".{n}." for n in TOP_FILES)))
+
+    return [p.name for p in out.iterdir() if not ours(p.name)]
+
+
+def _linked(out: Path) -> Path | None:
+    """The first symbolic link among the report's entries in ``out`` (at any depth), or ``None``: the report
+    never writes through one (the command refuses it: nothing written)."""
+    for name in sorted(REPORT_NAMES):
+        if (out / name).is_symlink():
+            return out / name
+        for top, dirs, files in os.walk(out / name):  # never into a linked folder: that is reported
+            for entry in sorted(dirs + files):
+                if os.path.islink(os.path.join(top, entry)):
+                    return Path(top) / entry
+    return None
+
+
+def _prepare(out: Path, run: RunInputs) -> None:
+    """Refuse an ``out`` that cannot take the report (see :func:`build_report`), then make it and the folders
+    the cards write into."""
+    check_replaceable(out, _not_report, "an earlier report", ReportError)
+    link = _linked(out) if out.is_dir() else None
+    if link is not None:
+        raise ReportError(f"--out {out}: {link.relative_to(out).as_posix()!r} is a symbolic link; the report never "
+                          "writes through one: remove it or choose another --out (nothing was written)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for cls in run.classes:
+            folder_within(out, f"objects/{safe_name(cls.key)}")
+    except OSError as e:
+        raise ReportError(f"cannot make --out {out}: {os_error_line(e, said=out)}") from e
 
 
 def build_report(recon: str | Path, out: str | Path | None = None, per_page: int = 24, max_faces: int = 4000,
@@ -159,19 +194,15 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
 
     Raises:
         carvi_torch.report.inputs.ReportError: ``recon`` has no readable ``summary.json``, or ``out`` is
-            the run's folder, a class folder, a folder holding anything but an earlier report, or cannot be
-            made.
+            the run's folder, a class folder, a folder holding anything but an earlier report or a symbolic link
+            among the report's entries (nothing is written through a link), or cannot be made.
     """
     t0 = time.perf_counter()
     run = read_run(recon)
     out = Path(out) if out is not None else run.recon / "report"
     if out.resolve() == run.recon.resolve() or out.resolve() in {(run.recon / c.key).resolve() for c in run.classes}:
         raise ReportError(f"--out {out} is the run's folder or a class folder: give the report a folder of its own")
-    check_replaceable(out, _not_report, "an earlier report", ReportError)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ReportError(f"cannot make --out {out}: {os_error_line(e, said=out)}") from e
+    _prepare(out, run)
     per = _make_cards(run, out, max_faces, workers)
     cards, panels, names = [], [], []
     for cls in run.classes:
@@ -180,7 +211,7 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
         chart = None
         if mine:
             try:
-                class_figure(mine, out / "classes" / f"{key}.png")
+                class_figure(mine, out, f"classes/{key}.png")
                 chart = f"classes/{key}.png"
             except Exception as e:  # noqa: BLE001 - a figure that fails leaves its panel without it
                 log.warning(f"report: the figure of class {cls.key} failed ({type(e).__name__}: {e})")
@@ -189,10 +220,10 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
         cards += mine
     order, by = sort_cards(cards)
     meta = {"per_page": per_page, "sort_by": by, "names": dict(names)}
-    (out / "cards.js").write_text("carviReport.index(" + json.dumps(meta) + ",\n["
-                                  + ",\n".join(json.dumps(c.to_json()) for c in order) + "]);\n")
+    write_within(out, "cards.js", ("carviReport.index(" + json.dumps(meta) + ",\n["
+                                   + ",\n".join(json.dumps(c.to_json()) for c in order) + "]);\n").encode(), sync=False)
     _copy_assets(out)
     title = title or f"carvi_torch report: {run.recon.resolve().name}"
-    index = out / "index.html"
-    index.write_text(index_html(run.summary, title, panels, names, len(order), by))
+    index = write_within(out, "index.html", index_html(run.summary, title, panels, names, len(order), by).encode(),
+                         sync=False)
     return Report(index=index, cards=len(order), sort_by=by, seconds=time.perf_counter() - t0)

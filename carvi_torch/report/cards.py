@@ -20,17 +20,19 @@ from __future__ import annotations
 import base64
 import json
 import math
+import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ..io.outputs import write_within
 from ..io.results import annotation_source, same_object
 from ..preview import OVERLAY_COLOURS, crop_box, overlay_colours, project_silhouette
 from .inputs import ClassInputs, ObjectInputs
 
 __all__ = ["Card", "CardContext", "ClassView", "legend", "encode_mesh", "decode_positions", "make_card",
-           "keypoint_residual", "KEYPOINT_COLOURS", "CROP_SIZE"]
+           "keypoint_residual", "image_path", "KEYPOINT_COLOURS", "CROP_SIZE"]
 
 #: Marker colours (RGB 0-255) of the keypoints on the overlay, and what each means (the legend reads them).
 KEYPOINT_COLOURS = {"annotated": ((255, 150, 0), "annotated keypoint"),
@@ -160,22 +162,42 @@ def _draw(mask, proj, photo, kp, uv) -> "Image.Image":  # noqa: F821 - PIL is im
     return img
 
 
-def _photo(ctx, ann: dict, shape) -> np.ndarray | None:
-    """The object's image as ``(h, w, 3)`` floats in [0, 1], when the file lies beside the annotations."""
-    img = ctx.images.get(ann.get("image_id")) or {}
-    name = img.get("file_name")
-    if not name or ctx.data is None:
+def image_path(data: Path, name) -> Path | None:
+    """The image file ``name`` (an image entry's ``file_name``) of the annotation file ``data``: relative to
+    ``data``'s folder, or to the folder above it (``../images/a.jpg``: images kept beside the annotation
+    folder); ``None`` for a name that is not a string, is absolute, or climbs farther (never read).
+
+    Example:
+        >>> data = Path("d/ann/a.json")
+        >>> image_path(data, "x.jpg").as_posix(), image_path(data, "../img/x.jpg").as_posix()
+        ('d/ann/x.jpg', 'd/img/x.jpg')
+        >>> image_path(data, "/etc/passwd"), image_path(data, "../../x.jpg")
+        (None, None)
+    """
+    if not isinstance(name, str) or not name or "\0" in name:
         return None
-    path = ctx.data.parent / str(name)
+    rel = Path(os.path.normpath(name))
+    if rel.is_absolute() or rel.parts.count("..") > 1:  # normpath leaves ".." only at the start
+        return None
+    return Path(os.path.normpath(data.parent / rel))
+
+
+def _photo(ctx, ann: dict, shape) -> np.ndarray | None:
+    """The object's image as ``(h, w, 3)`` floats in [0, 1], when :func:`image_path` names a regular file
+    that is an image of the mask's size; else ``None`` (the overlay is drawn on white)."""
+    img = ctx.images.get(ann.get("image_id")) or {}
+    path = image_path(ctx.data, img.get("file_name")) if ctx.data is not None else None
     try:
-        if not path.is_file():
+        if path is None or not path.is_file():  # not a folder, a pipe or a device
             return None
         from PIL import Image
 
-        a = np.asarray(Image.open(path).convert("RGB"), dtype=np.float64) / 255.0
-    except Exception:  # noqa: BLE001 - no photo: the overlay is drawn on white
+        with Image.open(path) as im:
+            if im.size != (shape[1], shape[0]):  # another image: not decoded
+                return None
+            return np.asarray(im.convert("RGB"), dtype=np.float64) / 255.0
+    except Exception:  # noqa: BLE001 - unreadable or not an image: the overlay is drawn on white
         return None
-    return a if a.shape[:2] == tuple(shape) else None
 
 
 @dataclass
@@ -211,7 +233,6 @@ class ClassView:
 
 def _links(ctx: CardContext, cls: ClassView, obj: ObjectInputs) -> dict:
     """Relative links from the report to the object's files (only those that exist)."""
-    import os
     from urllib.parse import quote
 
     cdir = ctx.recon / cls.key
@@ -256,9 +277,7 @@ def _overlay(ctx: CardContext, cls: ClassView, obj: ObjectInputs, card: Card, re
         card.residual_sfm = keypoint_residual(obj.sfm, shape, kp)
     vis = kp[kp[:, 2] >= 2] if len(kp) else None
     img = _draw(mask, proj, _photo(ctx, ann, mask.shape), vis, uv)
-    path = ctx.out / rel
-    path.parent.mkdir(parents=True, exist_ok=True)
-    img.save(path, format="JPEG", quality=ctx.jpeg_quality)
+    write_within(ctx.out, rel, lambda f: img.save(f, format="JPEG", quality=ctx.jpeg_quality), sync=False)
     card.img = rel
 
 
@@ -274,9 +293,8 @@ def _mesh(ctx: CardContext, cls: ClassView, obj: ObjectInputs, card: Card, rel: 
         card.problems.append(f"mesh unreadable ({type(e).__name__}: {str(e)[:80]}): no 3D view")
         return
     data = encode_mesh(v, f)
-    path = ctx.out / rel
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(f"carviReport.mesh({json.dumps(card.key)},{json.dumps(data, separators=(',', ':'))});\n")
+    text = f"carviReport.mesh({json.dumps(card.key)},{json.dumps(data, separators=(',', ':'))});\n"
+    write_within(ctx.out, rel, text.encode(), sync=False)
     card.mesh, card.faces = rel, int(len(f))
 
 
@@ -295,6 +313,8 @@ def _make_card(ctx: CardContext, cls: ClassView, obj: ObjectInputs, out_key: str
                 quality=obj.quality, score=obj.score, az=obj.azimuth_deg, el=obj.elevation_deg,
                 camera_from=obj.camera_from, surrogates_from=obj.surrogates_from, skipped=obj.skipped)
     card.files = _links(ctx, cls, obj)
+    if obj.problem is not None:
+        card.problems.append(obj.problem)
     base = f"objects/{out_key}/{obj.stem}"
     _overlay(ctx, cls, obj, card, base + ".jpg")
     if obj.skipped is None:

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.outputs import write_within
+
 __all__ = ["class_figure"]
 
 
@@ -27,9 +29,10 @@ def _hist(ax, values: np.ndarray, title: str, xlabel: str, bins=20, rng=None) ->
     ax.tick_params(labelsize=7)
 
 
-def class_figure(cards: list, path: Path) -> Path:
-    """Draw the class's panels into ``path`` (PNG): azimuth (a polar histogram) with elevation, the SfM
-    and refined keypoint residuals, the silhouette IoU, and the quality when the run scored it."""
+def class_figure(cards: list, out: Path, rel: str) -> Path:
+    """Draw the class's panels into ``out/rel`` (PNG; :func:`carvi_torch.io.outputs.write_within`: never through
+    a symbolic link): azimuth (a polar histogram) with elevation, the SfM and refined keypoint residuals, the
+    silhouette IoU, and the quality when the run scored it. Returns the file's path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -58,7 +61,7 @@ def class_figure(cards: list, path: Path) -> Path:
     if len(quality):
         _hist(fig.add_subplot(1, n, 5), quality, "quality", "higher is better")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, format="png")
-    plt.close(fig)
-    return path
+    try:
+        return write_within(out, rel, lambda f: fig.savefig(f, format="png"), sync=False)
+    finally:
+        plt.close(fig)

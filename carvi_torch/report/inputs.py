@@ -2,7 +2,9 @@
 
 Nothing here writes anything. A class whose ``cameras.json`` is missing or unreadable keeps its
 ``summary.json`` entry and says why (``ClassInputs.problem``); an object keeps its entry whatever its
-files look like (the card says what is wrong with them, :mod:`carvi_torch.report.cards`).
+files look like (the card says what is wrong with them, :mod:`carvi_torch.report.cards`). An annotated
+object that ``summary.json`` counts reconstructed but ``cameras.json`` lacks gets an entry too, with the
+problem (:data:`NO_CAMERA`).
 
 Example:
     >>> _number({"quality": 0.5}, "quality"), _number({"quality": float("nan")}, "quality"), _number({}, "q")
@@ -16,10 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.coco import class_keys, object_id
 from ..io.layout import object_stem
 from ..io.outputs import read_json
 
-__all__ = ["ReportError", "ObjectInputs", "ClassInputs", "RunInputs", "read_run"]
+__all__ = ["ReportError", "ObjectInputs", "ClassInputs", "RunInputs", "read_run", "NO_CAMERA"]
 
 
 class ReportError(Exception):
@@ -50,6 +53,8 @@ class ObjectInputs:
     """The selected proposal's score (``proposal_scores.json``; a disagreement: lower is better)."""
     skipped: str | None = None
     """Why the run skipped the object (``summary.json``'s failures), else ``None``."""
+    problem: str | None = None
+    """What the run's records lack for the object (its camera is missing from ``cameras.json``), else ``None``."""
 
 
 @dataclass
@@ -65,7 +70,10 @@ class ClassInputs:
     """Per shape group, ``(K, 3)`` float, the canonical-frame mean shape (NaN rows: not in it)."""
     frame: str | None = None
     problem: str | None = None
-    """Why the class has no objects to show (``cameras.json`` missing or unreadable), else ``None``."""
+    """Why the class has no objects to show (``cameras.json`` missing or unreadable), or that ``cameras.json``
+    lists fewer objects than ``summary.json`` counts reconstructed; else ``None``."""
+    missing: int = 0
+    """How many of the objects ``summary.json`` counts reconstructed (or resumed) ``cameras.json`` lacks."""
 
 
 @dataclass
@@ -152,7 +160,41 @@ def _read_class(recon: Path, key: str, entry: dict) -> ClassInputs:
     if cls.keypoint_names:
         cls.mean_shapes = _mean_shapes(cams, cls.keypoint_names)
     cls.objects = _objects(cams, failures, _chosen_scores(recon / key))
+    listed = sum(o.skipped is None for o in cls.objects)
+    counted = sum(int(_number(entry, k) or 0) for k in ("reconstructed", "resumed"))
+    if cls.problem is None and counted > listed:
+        cls.missing = counted - listed
+        cls.problem = (f"{key}/cameras.json lists {listed} of the {counted} objects summary.json counts as "
+                       "reconstructed")
     return cls
+
+
+#: The card problem of an annotated object whose class's ``cameras.json`` lacks it (:func:`_add_unlisted`).
+NO_CAMERA = "camera missing from cameras.json (summary.json counts the object as reconstructed)"
+
+
+def _add_unlisted(classes: list[ClassInputs], data: Path | None) -> None:
+    """Give every class whose ``cameras.json`` lacks objects (``ClassInputs.missing``) an object for each
+    annotation of its class in ``data`` that neither ``cameras.json`` nor the failures list, with the problem
+    :data:`NO_CAMERA`. The file is read only then; unreadable, it adds nothing (the panel says how many)."""
+    short = {c.key: c for c in classes if c.missing}
+    if not short or data is None:
+        return
+    try:
+        coco = read_json(data)
+        key_of = class_keys(coco.get("categories") or [])
+        anns = [a for a in coco.get("annotations") or [] if isinstance(a, dict)]
+    except (OSError, ValueError, AttributeError, TypeError):
+        return
+    known = {c.key: {o.annotation_id for o in c.objects} for c in short.values()}
+    for a in anns:
+        aid, cls = object_id(a.get("id")), short.get(key_of.get(str(a.get("category_id"))))
+        if aid is None or cls is None or str(aid) in known[cls.key]:
+            continue
+        known[cls.key].add(str(aid))
+        source = a.get("source") if isinstance(a.get("source"), str) else None
+        cls.objects.append(ObjectInputs(annotation_id=str(aid), stem=object_stem(aid), source=source,
+                                        problem=NO_CAMERA))
 
 
 def read_run(recon: str | Path) -> RunInputs:
@@ -173,6 +215,7 @@ def read_run(recon: str | Path) -> RunInputs:
     data = Path(summary["data"]) if isinstance(summary.get("data"), str) else None
     if (data is None or not data.is_file()) and (recon / "input" / "annotations.json").is_file():
         data = recon / "input" / "annotations.json"  # the embedded collection, in a run folder that moved
+    _add_unlisted(classes, data)
     fmt = "ply"
     try:
         import yaml
