@@ -38,9 +38,11 @@ class ZarrReader:
         self.root, self.storage_options = root, storage_options
         try:
             group = self._open()
-        except FileNotFoundError:
-            raise
         except Exception as e:  # noqa: BLE001 - zarr's "no group here" errors differ by store
+            local = isinstance(root, Path) or (isinstance(root, str) and "://" not in root)
+            if local and not Path(root).exists():
+                raise FileNotFoundError(f"{root}: no such export (write one with python -m carvi_torch.export)") \
+                    from None
             raise ValueError(f"{root}: not a zarr export ({type(e).__name__}: {e}); write one with python -m "
                              f"carvi_torch.export") from None
         attrs = group.attrs.asdict().get(ATTRS_KEY)

@@ -1085,3 +1085,231 @@ def test_surface_voxels_equal_a_loop_over_the_neighbours():
             if any(not all(0 <= i < n for i, n in zip(q, shape)) or not occ[q] for q in around):
                 want.append((d, h, w))
         np.testing.assert_array_equal(surface_voxel_indices(occ), np.asarray(want, np.float32).reshape(-1, 3))
+
+
+# --------------------------------------------------------------------------- bad inputs: skipped or refused, named
+
+_SMALL = ["--resolution", "4", "--points", "8", "--workers", "0"]
+
+
+def _reasons(out) -> dict:
+    return {(s["class"], s["annotation_id"]): s["reason"] for s in _store_attrs(out)["skipped"]}
+
+
+def _rewrite_npz(path, **members):
+    z = dict(np.load(path))
+    z.update(members)
+    np.savez(path, **z)
+
+
+def _ids(data, cls) -> list:
+    cid = next(c["id"] for c in data["categories"] if c["name"] == cls)
+    return sorted(a["id"] for a in data["annotations"] if a["category_id"] == cid)
+
+
+def test_voxels_and_meshes_that_open_but_hold_bad_data_are_skipped_with_a_reason(recon, tmp_path, capsys):
+    """A voxels file whose transform is cut to 3 x 3, whose occupancy is all empty or of zero size, and a mesh with
+    a face index past its vertices: each object skipped with a one-line reason naming it, the rest exported."""
+    from carvi_torch.export.objects import load_mesh
+
+    run = tmp_path / "run"
+    _run_copy(recon, run)
+    vox = sorted((run / "car" / "voxels").glob("*.npz"), key=lambda p: int(p.stem))
+    _rewrite_npz(vox[0], voxel_to_canvas=np.load(vox[0])["voxel_to_canvas"][:3, :3])
+    _rewrite_npz(vox[1], occupancy=np.zeros_like(np.load(vox[1])["occupancy"]))
+    _rewrite_npz(vox[2], occupancy=np.zeros((0, 0, 0), bool))
+    mesh = run / "car" / "meshes" / f"{vox[3].stem}.ply"
+    m = trimesh.load(mesh, force="mesh", process=False)
+    faces = m.faces.copy()
+    faces[0, 0] = len(m.vertices) + 5
+    mesh.write_bytes(trimesh.exchange.ply.export_ply(trimesh.Trimesh(m.vertices, faces, process=False)))
+    capsys.readouterr()
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "e")] + _SMALL) == 0
+    said, reasons = capsys.readouterr().out, _reasons(tmp_path / "e")
+    want = ["voxel_to_canvas of shape (3, 3) is not 4 x 4 finite numbers", "has no occupied voxel",
+            "occupancy of shape (0, 0, 0) (bool) is not a 3-D grid", f"face index {len(m.vertices) + 5} is outside"]
+    for p, why in zip(vox, want):
+        reason = reasons[("car", int(p.stem))]
+        assert reason.startswith("unreadable outputs: ") and why in reason, reason
+        assert f"export: car annotation {p.stem} skipped: unreadable outputs" in said
+    assert _store_attrs(tmp_path / "e")["counts"] == {"car": 1, "chair": 5}
+    faces[0, 0] = -1  # a negative index wraps round in numpy: refused as well
+    mesh.write_bytes(trimesh.exchange.ply.export_ply(trimesh.Trimesh(m.vertices, faces, process=False)))
+    with pytest.raises(ValueError, match="face index -1 is outside"):
+        load_mesh(mesh)
+
+
+def test_an_unusable_camera_skips_its_object_naming_it_in_every_format(recon, tmp_path, capsys):
+    """``R`` not 3 x 3, ``s`` a string or negative, ``t`` three numbers: the zarr store, cmr and ucmr skip that
+    object with a reason naming it (class and annotation id) and export the rest."""
+    import scipy.io
+
+    run = tmp_path / "run"
+    _run_copy(recon, run)
+    path = run / "chair" / "cameras.json"
+    cams = json.loads(path.read_text())
+    ids = sorted(cams["cameras"], key=int)
+    bad = {ids[0]: ("R", [[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]), ids[1]: ("s", "abc"), ids[2]: ("s", -2.0),
+           ids[3]: ("t", [1.0, 2.0, 3.0])}
+    for aid, (key, value) in bad.items():
+        cams["cameras"][aid]["refined"][key] = value
+    path.write_text(json.dumps(cams))
+    capsys.readouterr()
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "e")] + _SMALL) == 0
+    said, reasons = capsys.readouterr().out, _reasons(tmp_path / "e")
+    for aid, (key, _) in bad.items():
+        assert reasons[("chair", int(aid))].startswith(f"bad camera in cameras.json: {key} is "), reasons
+        assert f"export: chair annotation {aid} skipped: bad camera in cameras.json: {key} is" in said
+    assert _store_attrs(tmp_path / "e")["counts"] == {"car": 5, "chair": 1}
+    for fmt in ("cmr", "ucmr"):
+        assert export_main(["--recon", str(run), "--out", str(tmp_path / fmt), "--format", fmt]) == 0
+        said = capsys.readouterr().out
+        for aid, (key, _) in bad.items():
+            assert f"export: chair annotation {aid} skipped: bad camera in cameras.json: {key} is" in said, said
+        assert said.strip().splitlines()[-1].endswith("skipped 4")
+    js = json.loads((tmp_path / "ucmr" / "chair.json").read_text())
+    assert [str(r["annotation_id"]) for r in js["images"]] == [ids[4]]
+    assert sorted(str(s["annotation_id"]) for s in js["skipped"]) == sorted(bad)
+    mat = scipy.io.loadmat(tmp_path / "cmr" / "chair.mat", struct_as_record=False, squeeze_me=True)
+    assert str(mat["annotation_ids"]) == ids[4] and sorted(mat["skipped_ids"]) == sorted(bad)
+
+
+def test_a_re_export_refuses_a_folder_holding_the_users_own_files(recon, tmp_path, monkeypatch, capsys):
+    """An earlier export with the user's files beside it (``NOTES.txt``, ``checkpoints/model.pt``) or inside a class
+    group: refused with one error line naming the first, exit 2, everything kept; a file that appears while
+    the export runs is kept too (the folder is checked again before the swap). The export alone is replaced."""
+    from carvi_torch.export import store
+
+    out = tmp_path / "exp"
+    args = ["--recon", str(recon), "--out", str(out), "--quiet", "--classes", "chair"] + _SMALL
+    assert export_main(args) == 0
+    (out / "NOTES.txt").write_text("mine")
+    (out / "checkpoints").mkdir()
+    (out / "checkpoints" / "model.pt").write_bytes(b"weights")
+    before = _files(out)
+    capsys.readouterr()
+    assert export_main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "'NOTES.txt' and 1 more" in err[0], err
+    assert _files(out) == before
+    (out / "NOTES.txt").unlink()
+    shutil.rmtree(out / "checkpoints")
+    (out / "chair" / "mine.txt").write_text("mine")
+    assert export_main(args) == 2
+    assert "'chair/mine.txt'" in capsys.readouterr().err and (out / "chair" / "mine.txt").read_text() == "mine"
+    (out / "chair" / "mine.txt").unlink()
+    real_add = store._ClassArrays.add
+
+    def add(self, sample, meta):  # the user saves a file into --out while the export runs
+        (out / "NOTES.txt").write_text("mine")
+        real_add(self, sample, meta)
+
+    monkeypatch.setattr(store._ClassArrays, "add", add)
+    assert export_main(args) == 2
+    assert "'NOTES.txt'" in capsys.readouterr().err and (out / "NOTES.txt").read_text() == "mine"
+    assert sorted(p.name for p in out.iterdir()) == ["NOTES.txt", "chair", "zarr.json"]
+    monkeypatch.undo()
+    (out / "NOTES.txt").unlink()
+    assert export_main(args) == 0 and len(LiftedDataset(out)) == 5
+
+
+def test_a_finished_run_without_a_class_folder_lists_that_class_objects(recon, tmp_path, capsys):
+    """``rm -r run/chair`` after the run finished: every chair object is listed as skipped with a reason (the zarr
+    store and cmr), rather than the class vanishing; a class the run itself skipped gives summary.json's reason."""
+    run = tmp_path / "run"
+    data = _run_copy(recon, run)
+    shutil.rmtree(run / "chair")
+    capsys.readouterr()
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "e")] + _SMALL) == 0
+    said = capsys.readouterr().out
+    reasons = _reasons(tmp_path / "e")
+    assert sorted(aid for c, aid in reasons if c == "chair") == _ids(data, "chair")
+    assert all(r == f"no cameras.json in {run / 'chair'} (the class folder was removed, or never written)"
+               for (c, _), r in reasons.items() if c == "chair")
+    assert said.strip().splitlines()[-1].endswith("skipped 5") and "export: chair annotation" in said
+    assert _store_attrs(tmp_path / "e")["counts"] == {"car": 5}
+    summary = json.loads((run / "summary.json").read_text())
+    why = "class has 5 usable instance(s), fewer than min_instances=6"
+    summary["classes"]["chair"].update(status="skipped", failures=[{"annotation_id": None, "source": None,
+                                                                     "stage": "class", "reason": why}])
+    (run / "summary.json").write_text(json.dumps(summary))
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "e2"), "--quiet"] + _SMALL) == 0
+    assert {r for (c, _), r in _reasons(tmp_path / "e2").items() if c == "chair"} == {
+        f"the run skipped the class: {why}"}
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "cmr"), "--format", "cmr"]) == 0
+    said = capsys.readouterr().out
+    assert f"export: chair annotation {_ids(data, 'chair')[0]} skipped: the run skipped the class: {why}" in said
+    assert said.strip().splitlines()[-1].endswith("skipped 5")
+
+
+def test_cmr_and_ucmr_report_what_they_leave_out_and_box_the_annotation(recon, tmp_path, capsys):
+    """The objects CMR and U-CMR files leave out (skipped at load, no camera) are reported as the zarr export
+    reports them and listed in the files; the U-CMR ``bbox`` is the annotation's box (not the padded canvas),
+    and ``err_sfm_reproj`` is normalised by that box's longer side, as the format documents."""
+    import scipy.io
+
+    run = tmp_path / "run"
+    data = _run_copy(recon, run)
+    cars = [a for a in data["annotations"] if a["id"] in _ids(data, "car")]
+    cars[0]["iscrowd"] = 1
+    (run / "input" / "annotations.json").write_text(json.dumps(data))
+    cams = json.loads((run / "car" / "cameras.json").read_text())
+    del cams["cameras"][str(cars[1]["id"])]
+    (run / "car" / "cameras.json").write_text(json.dumps(cams))
+    capsys.readouterr()
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "ucmr"), "--format", "ucmr"]) == 0
+    said = capsys.readouterr().out
+    assert f"export: car annotation {cars[0]['id']} skipped: " in said
+    assert f"export: car annotation {cars[1]['id']} skipped: no camera in cameras.json" in said
+    js = json.loads((tmp_path / "ucmr" / "car.json").read_text())
+    assert sorted(s["annotation_id"] for s in js["skipped"]) == [cars[0]["id"], cars[1]["id"]]
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "cmr"), "--format", "cmr", "--quiet"]) == 0
+    assert "export: 2 object(s) skipped" in capsys.readouterr().out
+    m = scipy.io.loadmat(tmp_path / "cmr" / "car.mat", struct_as_record=False, squeeze_me=True)
+    assert sorted(int(i) for i in m["skipped_ids"]) == [cars[0]["id"], cars[1]["id"]]
+    coll = load_coco(run / "input" / "annotations.json", canvas_size=64, classes=["car"]).collections["car"]
+    kp, vis = coll.keypoints_in_image().double().numpy(), coll.visible.numpy()
+    by_id = {a["id"]: a for a in cars}
+    assert len(js["images"]) == len(m["sfm_anno"]) == 3
+    for rec, a, aid in zip(js["images"], m["sfm_anno"], m["annotation_ids"]):
+        x, y, w, h = by_id[rec["annotation_id"]]["bbox"]
+        assert rec["bbox"] == [x, y, x + w - 1, y + h - 1] and str(rec["annotation_id"]) == str(aid)
+        i = coll.annotation_ids.index(rec["annotation_id"])
+        proj = a.scale * m["S"].T @ a.rot[:2].T + a.trans - 1.0
+        want = ((proj - kp[i]) ** 2).sum(axis=1)[vis[i]].sum() / (len(kp[i]) * max(w, h) ** 2)
+        assert np.isclose(a.err_sfm_reproj, want, rtol=1e-9)
+
+
+def test_camera_entries_of_no_annotated_object_are_reported(recon, tmp_path, capsys):
+    """An entry of cameras.json whose id is no object of the annotation file: listed as skipped with the reason
+    (store and U-CMR file), with one warning line counting such entries per class; the rest exported as before."""
+    run = tmp_path / "run"
+    _run_copy(recon, run)
+    path = run / "car" / "cameras.json"
+    cams = json.loads(path.read_text())
+    cams["cameras"]["987654"] = next(iter(cams["cameras"].values()))
+    path.write_text(json.dumps(cams))
+    capsys.readouterr()
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "e"), "--quiet"] + _SMALL) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    ann = run / "input" / "annotations.json"
+    assert err == [f"warning: 1 camera(s) in cameras.json name no object of the annotation file {ann}: car 1 "
+                   "(listed as skipped; was the run made from another file?)"], err
+    assert _reasons(tmp_path / "e") == {
+        ("car", 987654): f"in cameras.json but not an object of the annotation file {ann}"}
+    assert _store_attrs(tmp_path / "e")["counts"] == {"car": 5, "chair": 5}
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "u"), "--format", "ucmr", "--quiet"]) == 0
+    assert "car 1" in capsys.readouterr().err
+    js = json.loads((tmp_path / "u" / "car.json").read_text())
+    assert [s["annotation_id"] for s in js["skipped"]] == [987654] and len(js["images"]) == 5
+
+
+def test_lifted_dataset_on_a_folder_without_a_store_says_what_to_do(recon, tmp_path):
+    """A reconstruction run folder or an empty folder: a ValueError saying it is not a zarr export and how to
+    write one (not zarr's GroupNotFoundError); a path that does not exist: FileNotFoundError, saying so."""
+    (tmp_path / "empty").mkdir()
+    for folder in (recon, tmp_path / "empty"):
+        with pytest.raises(ValueError, match=r"not a zarr export .*write one with python -m carvi_torch.export"):
+            LiftedDataset(folder)
+    with pytest.raises(FileNotFoundError, match="no such export"):
+        LiftedDataset(tmp_path / "nowhere")

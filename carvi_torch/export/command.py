@@ -83,8 +83,10 @@ def _main(args) -> int:
         if args.format != "zarr":
             from .formats import export_format
 
-            written = export_format(args.recon, args.out, args.format, classes=split_classes(args.classes))
-            print(f"wrote {len(written)} {args.format} file(s) to {args.out}")
+            done = export_format(args.recon, args.out, args.format, classes=split_classes(args.classes),
+                                 progress=not args.quiet)
+            print(f"wrote {len(done['files'])} {args.format} file(s) of {done['objects']} object(s) to {args.out}; "
+                  f"skipped {len(done['skipped'])}")
             _ignored(args)
             return 0
         idx = export(args.recon, args.out, args.resolution, args.points, args.shard_size, args.seed,

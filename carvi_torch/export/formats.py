@@ -3,25 +3,32 @@
 ``--format cmr`` writes ``<out>/<class>.mat`` the way CMR (Kanazawa et al. 2018) reads its SfM
 annotations (``scipy.io.loadmat(path, struct_as_record=False, squeeze_me=True)``):
 
-- ``sfm_anno``: a 1 x N struct array, one element per object that has a camera, with ``rot``
+- ``sfm_anno``: a 1 x N struct array, one element per object that has a usable camera, with ``rot``
   (3 x 3: rows image x, image y (down), viewing direction, as ours), ``scale`` (scalar),
   ``trans`` (2, image pixels, **1-based** as MATLAB's), ``err_sfm_reproj`` (sum over the K
   keypoints of the squared reprojection error of the visible ones, divided by
   ``K * box_scale^2``, ``box_scale`` = the longer side of the object's box in image pixels, the
-  normalisation of CMR's ``pascal_sfm.m``); a keypoint ``X`` (a column of ``S``) projects to
+  normalisation of CMR's ``pascal_sfm.m``; the box is the annotation's, :func:`annotation_boxes`, not the
+  padded canvas around it); a keypoint ``X`` (a column of ``S``) projects to
   ``scale * rot[:2] @ X + trans``.
 - ``S``: 3 x K mean shape in the class's canonical frame, centred on its mean and scaled so that
   its largest pairwise keypoint distance is 2 (CMR's normalisation); keypoints the mean shape
   lacks are placed at the centre.
 - ``conv_tri``: F x 3 triangles of the convex hull of ``S`` (``scipy.spatial.ConvexHull``),
   **1-based** (CMR subtracts 1 when it loads them).
-- ``annotation_ids``, ``image_ids``, ``sources``, ``kp_names``: which object each element is.
+- ``annotation_ids``, ``image_ids``, ``sources``, ``kp_names``: which object each element is;
+  ``skipped_ids``, ``skipped_reasons``: the class's objects left out, and why.
 
 ``--format ucmr`` writes ``<out>/<class>.json`` with one record per object: ``annotation_id``,
-``image_id``, ``source``, ``bbox`` (x0, y0, x1, y1, image pixels, 0-based), ``quality`` and
+``image_id``, ``source``, ``bbox`` (the annotation's box, x0, y0, x1, y1: its extreme pixel centres, image
+pixels, 0-based), ``quality`` and
 ``sfmpose = [s, [tx, ty], [qw, qx, qy, qz]]``: CMR's pose of the same object (``trans`` 1-based,
 the quaternion of ``rot``, scalar first as CMR's ``quaternion_from_matrix`` gives it); plus the
-mean shape ``S`` (K x 3) and ``faces`` (0-based).
+mean shape ``S`` (K x 3), ``faces`` (0-based) and ``skipped`` (the class's objects left out, with the reason).
+
+Objects left out (skipped when the annotations were read, without a usable camera, of a class whose
+``cameras.json`` is missing, and the entries of ``cameras.json`` that name no object of the annotation file)
+are reported as the zarr export reports its own.
 
 Example:
     >>> import numpy as np
@@ -38,11 +45,12 @@ import numpy as np
 import scipy.io
 from scipy.spatial import ConvexHull, distance
 
-from ..io.coco import load_coco
+from ..io.coco import load_coco, object_id, skipped_at_load
 from ..io.outputs import atomic_write, read_json, write_json
-from .source import class_scope, data_path, recon_config, run_classes
+from .source import (NOT_YET, camera_entry, camera_problem, class_scope, data_path, extra_cameras,
+                     missing_class_reason, recon_config, run_classes, unfinished)
 
-__all__ = ["normalised_shape", "cmr_pose", "export_format", "class_records", "quaternion_wxyz"]
+__all__ = ["normalised_shape", "cmr_pose", "export_format", "class_records", "quaternion_wxyz", "annotation_boxes"]
 
 
 def normalised_shape(S: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -88,29 +96,63 @@ def _mean_shape(cams: dict, names: list) -> np.ndarray:
     return np.array([r if r is not None else c for r in rows], dtype=np.float64)
 
 
-def class_records(recon: Path, cname: str, coll) -> tuple[list[dict], np.ndarray, np.ndarray]:
-    """Per object with a camera: ids, CMR pose, reprojection error, box and quality; the normalised mean
-    shape ``(K, 3)``; its convex hull triangles ``(F, 3)`` (0-based)."""
-    cams = read_json(recon / cname / "cameras.json")
+def annotation_boxes(annotations: list) -> dict[str, list[float]]:
+    """``{str(annotation id): [x0, y0, x1, y1]}``: the box of each annotation with a usable COCO ``bbox``
+    (``[x, y, w, h]``, ``w, h > 0``, finite) as the extreme pixel centres it spans, ``[x, y, x + w - 1, y + h - 1]``
+    (0-based, inclusive: CMR's ``bbox`` less 1); the first annotation of a repeated id, as the loader keeps it.
+
+    Example:
+        >>> annotation_boxes([{"id": 3, "bbox": [10, 20, 5, 8]}, {"id": 4, "bbox": [0, 0, 0, 1]}])
+        {'3': [10.0, 20.0, 14.0, 27.0]}
+    """
+    out: dict[str, list[float]] = {}
+    for ann in annotations:
+        aid, box = object_id(ann.get("id")) if isinstance(ann, dict) else None, None
+        try:
+            x, y, w, h = (float(v) for v in ann["bbox"])
+            box = [x, y, x + w - 1.0, y + h - 1.0] if w > 0 and h > 0 and np.isfinite([x, y, w, h]).all() else None
+        except (KeyError, TypeError, ValueError):
+            pass
+        if aid is not None and box is not None:
+            out.setdefault(str(aid), box)
+    return out
+
+
+def _mask_box(coll, i: int) -> np.ndarray:
+    """The image box ``(x0, y0, x1, y1)`` of object ``i``'s canvas mask (its extreme pixel centres, mapped back
+    to the image: within a canvas pixel of the mask's own box), for an annotation without a usable ``bbox``."""
+    a = float(coll.canvas_from_image.scale[i])
+    b = coll.canvas_from_image.offset[i].double().cpu().numpy()
+    m = coll.masks[i].cpu().numpy()
+    ys, xs = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+    lo, hi = (np.array([xs[0], ys[0]]), np.array([xs[-1], ys[-1]])) if len(xs) else (0.0, m.shape[-1] - 1.0)
+    return np.concatenate([(lo - b) / a, (hi - b) / a])
+
+
+def class_records(cams: dict, cname: str, coll, boxes: dict, skipped: list) -> tuple[list[dict], np.ndarray,
+                                                                                      np.ndarray]:
+    """Per object with a usable camera: ids, CMR pose, reprojection error, box (``boxes``:
+    :func:`annotation_boxes`; the mask's box for an object without one) and quality; the normalised mean shape
+    ``(K, 3)``; its convex hull triangles ``(F, 3)`` (0-based). The objects without a camera, or with one that
+    is not usable (:func:`~carvi_torch.export.source.camera_problem`), go to ``skipped`` with their reason."""
     names = list(coll.meta.keypoint_names)
     S, centre, k = normalised_shape(_mean_shape(cams, names))
     hull = _outward_hull(S)
     kp_img = coll.keypoints_in_image().double().cpu().numpy()
     vis = coll.visible.cpu().numpy()
-    C = coll.masks.shape[-1]
     out = []
     for i, aid in enumerate(coll.annotation_ids):
-        entry = cams.get("cameras", {}).get(str(aid)) or {}
-        cam = entry.get("refined")
-        if cam is None:
+        entry = camera_entry(cams, aid)
+        reason = "no camera in cameras.json" if entry.get("refined") is None else camera_problem(entry)
+        if reason is not None:
+            skipped.append({"annotation_id": aid, "class": cname, "source": coll.sources[i], "reason": reason})
             continue
-        R, s, t = np.asarray(cam["R"]), float(cam["s"]), np.asarray(cam["t"], dtype=np.float64)
+        cam = entry["refined"]
+        R, s, t = np.asarray(cam["R"], dtype=np.float64), float(cam["s"]), np.asarray(cam["t"], dtype=np.float64)
         scale, trans = cmr_pose(R, s, t, centre, k)
         proj = (scale * S @ R[:2].T) + trans
-        a = float(coll.canvas_from_image.scale[i])
-        b = coll.canvas_from_image.offset[i].double().cpu().numpy()
-        box = np.concatenate([-b / a, (C - 1.0 - b) / a])
-        box_scale = float(max(box[2] - box[0], box[3] - box[1]))  # the canvas's side in image pixels
+        box = np.asarray(boxes[str(aid)]) if str(aid) in boxes else _mask_box(coll, i)
+        box_scale = float(max(box[2] - box[0], box[3] - box[1])) + 1.0  # the box's longer side, in pixels
         err = float(((proj - kp_img[i]) ** 2).sum(axis=1)[vis[i]].sum()) / (len(names) * box_scale ** 2)
         out.append({"annotation_id": aid, "image_id": coll.image_ids[i], "source": coll.sources[i], "rot": R,
                     "scale": scale, "trans": trans, "err_sfm_reproj": err, "bbox": box.tolist(),
@@ -118,7 +160,7 @@ def class_records(recon: Path, cname: str, coll) -> tuple[list[dict], np.ndarray
     return out, S, hull
 
 
-def _write_cmr(path: Path, recs: list, S: np.ndarray, hull: np.ndarray, names: list) -> None:
+def _write_cmr(path: Path, recs: list, S: np.ndarray, hull: np.ndarray, names: list, skipped: list) -> None:
     anno = np.zeros((1, len(recs)), dtype=[("rot", object), ("scale", object), ("trans", object),
                                            ("err_sfm_reproj", object)])
     for j, r in enumerate(recs):
@@ -127,11 +169,14 @@ def _write_cmr(path: Path, recs: list, S: np.ndarray, hull: np.ndarray, names: l
     data = {"sfm_anno": anno, "S": S.T.copy(), "conv_tri": (hull + 1).astype(np.float64),
             "annotation_ids": ids, "image_ids": np.array([str(r["image_id"]) for r in recs], dtype=object),
             "sources": np.array([r["source"] or "" for r in recs], dtype=object),
-            "kp_names": np.array(names, dtype=object)}
+            "kp_names": np.array(names, dtype=object),
+            "skipped_ids": np.array([str(r["annotation_id"]) for r in skipped], dtype=object),
+            "skipped_reasons": np.array([r["reason"] for r in skipped], dtype=object)}
     atomic_write(path, lambda f: scipy.io.savemat(f, data, do_compression=True))
 
 
-def _write_ucmr(path: Path, cname: str, recs: list, S: np.ndarray, hull: np.ndarray, names: list) -> None:
+def _write_ucmr(path: Path, cname: str, recs: list, S: np.ndarray, hull: np.ndarray, names: list,
+                skipped: list) -> None:
     items = [{"annotation_id": r["annotation_id"], "image_id": r["image_id"], "source": r["source"],
               "bbox": r["bbox"], "quality": r["quality"],
               "sfmpose": [float(r["scale"]), (r["trans"] + 1.0).tolist(), quaternion_wxyz(r["rot"]).tolist()]}
@@ -140,27 +185,68 @@ def _write_ucmr(path: Path, cname: str, recs: list, S: np.ndarray, hull: np.ndar
                       "convention": "sfmpose = [s, [tx, ty], [qw, qx, qy, qz]]: keypoint X of S projects to "
                                     "s * R(q)[:2] @ X + t in image pixels, 1-based (CMR's); R rows = image x, "
                                     "image y (down), viewing direction",
-                      "images": items})
+                      "images": items,
+                      "skipped": [{k: r.get(k) for k in ("annotation_id", "source", "reason")} for r in skipped]})
 
 
-def export_format(recon: str | Path, out: str | Path, fmt: str, classes=None) -> list[Path]:
-    """Write one ``cmr`` ``.mat`` or ``ucmr`` ``.json`` file per reconstructed class of ``recon`` into
-    ``out``; returns the files written."""
+def _class_skips(loaded, recon: Path, cname: str, data: Path) -> tuple[dict | None, list]:
+    """A class's ``cameras.json`` (None where it has none, or it cannot be read) and its skipped objects so far:
+    those skipped at load, every other one where there are no cameras (the reason: not reconstructed yet in
+    an unfinished run, else :func:`~carvi_torch.export.source.missing_class_reason`), and the entries of
+    ``cameras.json`` that name no object of the annotation file ``data``."""
+    skipped = [{**s, "class": cname} for s in skipped_at_load(loaded.problems, cname)]
+    coll, path = loaded.collections.get(cname), recon / cname / "cameras.json"
+    cams, reason = None, None
+    if coll is not None and not path.is_file():
+        reason = NOT_YET if unfinished(recon) else missing_class_reason(recon, cname)
+    elif coll is not None:
+        try:
+            cams = read_json(path)
+            if not isinstance(cams, dict):
+                raise ValueError(f"{path}: not a JSON object")
+        except ValueError as e:
+            cams, reason = None, f"cameras.json unreadable: {e}"
+    if reason is not None:
+        skipped += [{"annotation_id": aid, "class": cname, "source": src, "reason": reason}
+                    for aid, src in zip(coll.annotation_ids, coll.sources)]
+    if cams is not None:
+        known = {str(a) for a in coll.annotation_ids} | {str(s["annotation_id"]) for s in skipped}
+        skipped += extra_cameras(cams, cname, known, data)
+    return cams, skipped
+
+
+def export_format(recon: str | Path, out: str | Path, fmt: str, classes=None, progress: bool = True) -> dict:
+    """Write one ``cmr`` ``.mat`` or ``ucmr`` ``.json`` file per reconstructed class of ``recon`` into ``out``;
+    returns ``{"files": [the files written], "objects": how many they hold, "skipped": [objects not written, with
+    their reason]}``: the objects skipped at load, those without a usable camera (their class's ``cameras.json``
+    missing included), and the entries of ``cameras.json`` that name no object of the annotation file. Each file
+    lists its class's in ``skipped``, and they are reported as the zarr export reports its own
+    (:func:`~carvi_torch.export.run.report_skipped`; one line each, a count alone when ``progress`` is off)."""
+    from .run import report_skipped
+
     recon, out = Path(recon), Path(out)
     cfg = recon_config(recon)
     covered = run_classes(cfg.classes, recon)
-    loaded = load_coco(data_path(recon, cfg), canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
+    data = data_path(recon, cfg)
+    loaded = load_coco(data, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
                        classes=classes or covered)
     scope = class_scope(loaded.dataset["categories"], covered, classes, recon)  # an unknown class: ValueError
-    written = []
-    for cname in (c for c in scope if c in loaded.collections and (recon / c / "cameras.json").is_file()):
-        coll = loaded.collections[cname]
-        recs, S, hull = class_records(recon, cname, coll)
-        names = list(coll.meta.keypoint_names)
-        path = out / f"{cname}.{'mat' if fmt == 'cmr' else 'json'}"
-        if fmt == "cmr":
-            _write_cmr(path, recs, S, hull, names)
-        else:
-            _write_ucmr(path, cname, recs, S, hull, names)
-        written.append(path)
-    return written
+    boxes = annotation_boxes(loaded.dataset["annotations"])
+    written, skipped, objects = [], [], 0
+    for cname in scope:
+        cams, class_skipped = _class_skips(loaded, recon, cname, data)
+        if cams is not None:
+            coll = loaded.collections[cname]
+            recs, S, hull = class_records(cams, cname, coll, boxes, class_skipped)
+            names = list(coll.meta.keypoint_names)
+            path = out / f"{cname}.{'mat' if fmt == 'cmr' else 'json'}"
+            if fmt == "cmr":
+                _write_cmr(path, recs, S, hull, names, class_skipped)
+            else:
+                _write_ucmr(path, cname, recs, S, hull, names, class_skipped)
+            written.append(path)
+            objects += len(recs)
+        skipped += class_skipped
+    report_skipped(recon, skipped, objects, unfinished(recon), progress, data,
+                   where="without --quiet each is listed with its reason")
+    return {"files": written, "objects": objects, "skipped": skipped}

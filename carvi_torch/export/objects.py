@@ -221,7 +221,8 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, rng: np.
 
 
 def load_mesh(path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices ``(V, 3)`` float64 and faces ``(F, 3)`` int64 of a mesh file (no processing)."""
+    """Vertices ``(V, 3)`` float64 and faces ``(F, 3)`` int64 of a mesh file (no processing); ``ValueError`` when
+    it has no face, vertices that are not finite ``(V, 3)``, or a face index outside ``[0, V)``."""
     if str(path).endswith(".ply"):  # the writer's format: read without building a Trimesh (10x faster)
         with open(path, "rb") as fh:
             kw = load_ply(fh)
@@ -233,6 +234,11 @@ def load_mesh(path) -> tuple[np.ndarray, np.ndarray]:
     f = np.asarray(f, dtype=np.int64).reshape(-1, 3)
     if len(f) == 0:
         raise ValueError("mesh has no faces")
+    if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
+        raise ValueError(f"mesh vertices of shape {v.shape} are not (V, 3) finite numbers")
+    if f.min() < 0 or f.max() >= len(v):
+        raise ValueError(f"mesh face index {int(f.min() if f.min() < 0 else f.max())} is outside its "
+                         f"{len(v)} vertices")
     return v, f
 
 
@@ -244,7 +250,9 @@ class OtherInputs(ValueError):
 
 
 class UnreadableFiles(ValueError):
-    """An object's voxels or mesh file cannot be read (missing, partial or corrupt)."""
+    """An object's voxels or mesh file cannot be read (missing, partial or corrupt) or holds unusable data (an
+    occupancy that is not a 3-D grid with an occupied voxel, a voxel transform that is not 4 x 4 finite
+    numbers, a face index outside the mesh's vertices)."""
 
 
 #: What reading a partial or corrupt ``.npz`` or mesh file raises: ``np.load`` (``EOFError`` on an empty file,
@@ -258,22 +266,42 @@ def _unreadable(path, e: BaseException) -> UnreadableFiles:
     return UnreadableFiles(f"unreadable outputs: {path}: {type(e).__name__}: {e}")
 
 
+#: The voxel transforms a voxels file may hold (the export uses the first it has).
+VOXEL_TRANSFORMS = ("voxel_to_canvas", "voxel_to_camera")
+
+
+def _check_voxels(vox: dict) -> None:
+    """``ValueError`` naming what is wrong with a voxels file's members: no occupancy or no voxel transform, an
+    occupancy that is not a non-empty 3-D grid of numbers with at least one occupied voxel, or a transform that
+    is not 4 x 4 finite numbers."""
+    if "occupancy" not in vox or not set(VOXEL_TRANSFORMS) & vox.keys():
+        raise KeyError("no occupancy grid or no voxel transform in the voxels file")
+    occ = vox["occupancy"]
+    if occ.ndim != 3 or occ.size == 0 or occ.dtype.kind not in "biuf":
+        raise ValueError(f"occupancy of shape {occ.shape} ({occ.dtype}) is not a 3-D grid")
+    if not occ.astype(bool).any():
+        raise ValueError(f"occupancy {occ.shape} has no occupied voxel")
+    for k in VOXEL_TRANSFORMS:
+        m = vox.get(k)
+        if m is not None and (m.shape != (4, 4) or m.dtype.kind not in "iuf" or not np.isfinite(m).all()):
+            raise ValueError(f"{k} of shape {m.shape} is not 4 x 4 finite numbers")
+
+
 def _read_voxels(path) -> dict:
     """The members of an object's voxels file that the export uses; :class:`UnreadableFiles` when it cannot
-    be read or lacks its grid or transform."""
+    be read, lacks its grid or transform, or holds unusable ones (:func:`_check_voxels`)."""
     try:
         with np.load(path) as z:
-            vox = {k: np.asarray(z[k]) for k in ("occupancy", "voxel_to_canvas", "voxel_to_camera",
-                                                 "input_fingerprint") if k in z.files}
-        if "occupancy" not in vox or not {"voxel_to_canvas", "voxel_to_camera"} & vox.keys():
-            raise KeyError("no occupancy grid or no voxel transform in the voxels file")
+            vox = {k: np.asarray(z[k]) for k in ("occupancy", *VOXEL_TRANSFORMS, "input_fingerprint")
+                   if k in z.files}
+        _check_voxels(vox)
     except READ_ERRORS as e:
         raise _unreadable(path, e) from e
     return vox
 
 
 def _read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`load_mesh`, :class:`UnreadableFiles` when the file cannot be read."""
+    """:func:`load_mesh`, :class:`UnreadableFiles` when the file cannot be read or holds no usable mesh."""
     try:
         return load_mesh(path)
     except READ_ERRORS as e:

@@ -6,9 +6,10 @@ layout and fields in ``docs/export.md``). :class:`carvi_torch.training.LiftedDat
 and so does zarr alone. ``--format cmr`` / ``--format ucmr`` write the annotation files of
 category-specific mesh reconstruction codebases instead (:mod:`carvi_torch.export.formats`).
 
-Objects whose outputs are missing or unreadable (no voxels, no mesh, no camera or no readable angles,
-not in the annotations), and those the annotations' reader skips, are reported by annotation id with the
-reason, in the console and in the root group's ``skipped`` attribute; the rest is exported. The
+Objects whose outputs are missing or unreadable (no voxels, no mesh, files holding unusable data, no camera,
+an unusable camera or no readable angles, a finished run's class folder missing), those the annotations' reader
+skips, and the ``cameras.json`` entries that name no object of the annotations are reported by annotation id
+with the reason, in the console and in the root group's ``skipped`` attribute; the rest is exported. The
 per-object work runs in ``--workers`` processes (default: one per core), fed one stream of jobs over
 every class; the main process writes the results in order as they come
 (:mod:`carvi_torch.export.command` is the command line).
@@ -33,19 +34,18 @@ from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
 from ..mesh import MESH_FORMATS
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
-from .source import class_categories, class_scope, data_path, recon_config, run_classes, unfinished
+from .source import (NOT_YET, NOT_IN_ANNOTATIONS, camera_entry, camera_problem, class_categories, class_scope,
+                     data_path, extra_cameras, missing_class_reason, recon_config, run_classes, unfinished)
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
                       view_occupancy)
 from .settings import settings_problem
 from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, InterruptedAfterSwap, StoreWriter
 
-__all__ = ["export", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "canonical_occupancy", "depth_map",
-           "ATTRS_KEY", "FORMAT_VERSION"]
+__all__ = ["export", "report_skipped", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "canonical_occupancy",
+           "depth_map", "ATTRS_KEY", "FORMAT_VERSION"]
 
 #: Objects per task handed to a worker process (fewer round trips than one object per task).
 TASK_OBJECTS = 4
-#: The reason of an object that an unfinished run has not reconstructed yet.
-NOT_YET = "not reconstructed yet (the run is unfinished)"
 #: Tasks queued per worker process at most (bounds the memory of queued jobs and of results not yet written).
 TASKS_PER_WORKER = 4
 
@@ -77,7 +77,9 @@ def _viewpoint_or_none(entry: dict) -> list[float] | None:
     camera's ``R``), or, where a file from elsewhere has none, computed from ``refined.R``; None where neither
     is readable (the object is then skipped with a reason)."""
     try:
-        return [math.radians(float(entry[k])) for k in _ANGLE_KEYS]
+        angles = [math.radians(float(entry[k])) for k in _ANGLE_KEYS]
+        if all(math.isfinite(a) for a in angles):
+            return angles
     except (KeyError, TypeError, ValueError):
         pass
     try:
@@ -97,15 +99,16 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
     that of an object without voxels)."""
     jobs = []
     for i, aid in enumerate(coll.annotation_ids):
-        entry = cams.get("cameras", {}).get(str(aid)) or {}
+        entry = camera_entry(cams, aid)
         vox = object_file(cdir, "voxels", aid)
         mesh = next((p for p in (object_file(cdir, "meshes", aid, ext) for ext in MESH_FORMATS) if p.is_file()),
                     None)
         viewpoint = _viewpoint_or_none(entry)
         reason = ("no camera in cameras.json" if entry.get("refined") is None else
                   "no readable azimuth/elevation/roll or R in cameras.json" if viewpoint is None else
-                  no_files if not vox.is_file() else
-                  "no mesh (not reconstructed)" if mesh is None else None)
+                  camera_problem(entry))
+        if reason is None:
+            reason = no_files if not vox.is_file() else "no mesh (not reconstructed)" if mesh is None else None
         if reason is not None:
             skipped.append({"annotation_id": aid, "class": cname, "source": coll.sources[i], "reason": reason})
             continue
@@ -122,24 +125,42 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
     return jobs
 
 
+def _skip_all(coll, cname: str, reason: str) -> list[dict]:
+    """Every object of a class's collection as a skipped object with ``reason``."""
+    return [{"annotation_id": aid, "class": cname, "source": src, "reason": reason}
+            for aid, src in zip(coll.annotation_ids, coll.sources)]
+
+
+def _class_cameras(coll, cname: str, cdir: Path, skipped: list, no_files: str, data: Path) -> dict | None:
+    """A class's ``cameras.json``, its entries that name no object of the annotation file added to ``skipped``
+    (:func:`~carvi_torch.export.source.extra_cameras`); None, with every object in ``skipped``, when it is
+    missing in an unfinished run, unreadable, or not a JSON object."""
+    if not (cdir / "cameras.json").is_file() and no_files == NOT_YET:
+        skipped.extend(_skip_all(coll, cname, NOT_YET))
+        return None
+    try:
+        cams = read_json(cdir / "cameras.json")
+        if not isinstance(cams, dict):
+            raise ValueError(f"{cdir / 'cameras.json'}: not a JSON object")
+    except (FileNotFoundError, ValueError) as e:
+        skipped.extend(_skip_all(coll, cname, f"cameras.json unreadable: {e}"))
+        return None
+    known = {str(a) for a in coll.annotation_ids} | {str(s["annotation_id"]) for s in skipped}
+    skipped.extend(extra_cameras(cams, cname, known, data))
+    return cams
+
+
 def _class_jobs(loaded, recon: Path, class_names: list, settings: dict, writer: StoreWriter, skipped: dict, bar,
-                no_files: str):
+                no_files: str, data: Path):
     """The jobs of every class, class by class, read lazily (a class's ``cameras.json`` when its first job is
-    asked for); objects that cannot be exported go to ``skipped[class]`` with their reason."""
+    asked for); objects that cannot be exported go to ``skipped[class]`` with their reason, and so do the
+    entries of ``cameras.json`` that name no object of the annotation file ``data``."""
     for ci, cname in enumerate(class_names):
         coll, cdir = loaded.collections.get(cname), recon / cname
         if coll is None:  # every object of the class skipped at load
             continue
-        if not (cdir / "cameras.json").is_file() and no_files == NOT_YET:
-            skipped[cname].extend({"annotation_id": aid, "class": cname, "source": src, "reason": NOT_YET}
-                                  for aid, src in zip(coll.annotation_ids, coll.sources))
-            bar.update(len(coll))
-            continue
-        try:
-            cams = read_json(cdir / "cameras.json")
-        except (FileNotFoundError, ValueError) as e:
-            skipped[cname].extend({"annotation_id": aid, "class": cname, "reason": f"cameras.json unreadable: {e}"}
-                                  for aid in coll.annotation_ids)
+        cams = _class_cameras(coll, cname, cdir, skipped[cname], no_files, data)
+        if cams is None:
             bar.update(len(coll))
             continue
         writer.extent[cname] = class_extent(cams)
@@ -178,16 +199,24 @@ def _skipped_in_order(class_names: list, skipped: dict) -> list:
     return [s for c in class_names for s in skipped[c]]
 
 
-def _report_skipped(recon: Path, skipped_list: list, exported: int, pending: bool, progress: bool) -> None:
-    """The skipped objects, one line each (a count alone when ``progress`` is off); an unfinished run's objects
-    not reconstructed yet in one line, counted per class, with the classes it has not started."""
+def report_skipped(recon: Path, skipped_list: list, exported: int, pending: bool, progress: bool, data: Path,
+                   where: str = "reasons in the store's 'skipped' attribute") -> None:
+    """The skipped objects, one line each (a count alone when ``progress`` is off; ``where``: where the reasons
+    are); one warning line counting, per class, the ``cameras.json`` entries that name no object of the
+    annotation file ``data``; an unfinished run's objects not reconstructed yet in one line, counted per class,
+    with the classes it has not started."""
     import sys
 
     other = [s for s in skipped_list if s["reason"] != NOT_YET]
     for s in other if progress else ():
         tqdm.write(f"export: {s['class']} annotation {s['annotation_id']} skipped: {s['reason']}")
     if other and not progress:
-        print(f"export: {len(other)} object(s) skipped (reasons in the store's 'skipped' attribute)")
+        print(f"export: {len(other)} object(s) skipped ({where})")
+    extra = Counter(s["class"] for s in other if s["reason"].startswith(NOT_IN_ANNOTATIONS))
+    if extra:
+        print(f"warning: {sum(extra.values())} camera(s) in cameras.json name no object of the annotation file "
+              f"{data}: {', '.join(f'{c} {n}' for c, n in extra.items())} (listed as skipped; was the run made "
+              "from another file?)", file=sys.stderr)
     if pending:
         print(f"warning: {recon} is an unfinished run (interrupted or still running): exported the {exported} "
               f"object(s) it finished; {_not_yet(recon, skipped_list)} (rerun reconstruct to finish it)",
@@ -210,14 +239,27 @@ def _check_exportable(recon: Path, cfg) -> None:
 
 def _load(recon: Path, cfg, data: Path, classes, pending: bool):
     """The annotations of the classes to export (those of the run's that ``classes`` asks for; ``ValueError``
-    naming an unknown one) and the classes' names in store order: every class of the run's input when the run
-    is unfinished (a class not started yet included), else those the run has a folder for."""
+    naming an unknown one), the classes' names in store order: every class of the run's input when the run
+    is unfinished (a class not started yet included), else those the run has a folder for; and the classes of
+    a finished run without a folder (skipped by the run, or their folder removed: their objects are reported)."""
     covered = run_classes(cfg.classes, recon)
     with torch_threads(1):
         loaded = load_coco(data, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
                            classes=classes or covered)
     scope = class_scope(loaded.dataset["categories"], covered, classes, recon)
-    return loaded, [c for c in scope if pending or (recon / c).is_dir()]
+    present = [c for c in scope if pending or (recon / c).is_dir()]
+    return loaded, present, [c for c in scope if c not in present]
+
+
+def _missing_class_skips(loaded, recon: Path, missing: list) -> dict[str, list]:
+    """``{class: [skipped objects]}`` of the classes of a finished run that have no folder: the objects skipped at
+    load and every other object of the class, with the reason
+    (:func:`~carvi_torch.export.source.missing_class_reason`)."""
+    out = _load_skips(loaded.problems, missing)
+    for c in missing:
+        coll = loaded.collections.get(c)
+        out[c].extend(_skip_all(coll, c, missing_class_reason(recon, c)) if coll is not None else ())
+    return out
 
 
 def _none_exported(skipped_list: list, out: Path) -> str:
@@ -261,15 +303,16 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     writer = StoreWriter(out, shard_size, DEFAULT_FIELDS + (MESH_FIELDS if mesh else []))  # --out checked first
     settings = {"canvas": canvas, "resolution": resolution, "points": points, "seed": seed, "mesh_field": mesh}
     try:
-        loaded, class_names = _load(recon, cfg, data, classes, pending)
+        loaded, class_names, missing = _load(recon, cfg, data, classes, pending)
         writer.categories = class_categories(loaded.dataset["categories"], class_names)
         skipped = _load_skips(loaded.problems, class_names)
         samples = _write_samples(loaded, recon, class_names, settings, writer, skipped, progress, workers,
-                                 NOT_YET if pending else "no voxels (not reconstructed)")
+                                 NOT_YET if pending else "no voxels (not reconstructed)", data)
         if pending and not samples:
             raise ValueError(f"{recon} is an unfinished run with no object reconstructed yet: nothing to export "
                              "(nothing was written)")
-        skipped_list = _skipped_in_order(class_names, skipped)
+        skipped.update(_missing_class_skips(loaded, recon, missing))
+        skipped_list = _skipped_in_order([*class_names, *missing], skipped)
         if not samples and skipped_list:  # an empty store would replace an earlier, good one
             raise ValueError(_none_exported(skipped_list, out))
         attrs = {"recon": str(recon), "data": str(data), "canvas_size": canvas, "resolution": resolution,
@@ -284,12 +327,12 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     except BaseException:
         writer.abort()
         raise
-    _report_skipped(recon, skipped_list, len(samples), pending, progress)
+    report_skipped(recon, skipped_list, len(samples), pending, progress, data)
     return {**desc, "samples": samples}
 
 
 def _write_samples(loaded, recon: Path, class_names: list, settings: dict, writer: StoreWriter, skipped: dict,
-                   progress: bool, workers: int, no_files: str) -> list:
+                   progress: bool, workers: int, no_files: str, data: Path) -> list:
     """Compute every object (in ``workers`` processes, or here) and add it to ``writer``; returns the samples'
     entries (class, annotation_id, image_id, source) in store order."""
     samples = []
@@ -302,7 +345,7 @@ def _write_samples(loaded, recon: Path, class_names: list, settings: dict, write
             if workers > 0 else None)
     try:
         with torch_threads(1):
-            jobs = _class_jobs(loaded, recon, class_names, settings, writer, skipped, bar, no_files)
+            jobs = _class_jobs(loaded, recon, class_names, settings, writer, skipped, bar, no_files, data)
             current = None
             for job, sample, reason in _stream(jobs, pool, workers):
                 bar.update(1)

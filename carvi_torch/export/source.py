@@ -1,13 +1,22 @@
 """Where an export reads from: a reconstruction directory's configuration and the annotations it ran on."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
+
+import numpy as np
 
 from ..config import Config, read_run_config
 from ..io.coco import class_keys, class_names, select_classes
 from ..io.outputs import read_json
 
-__all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories"]
+__all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories",
+           "camera_problem", "camera_entry", "missing_class_reason", "extra_cameras", "NOT_YET", "NOT_IN_ANNOTATIONS"]
+
+#: The reason of an object that an unfinished run has not reconstructed yet.
+NOT_YET = "not reconstructed yet (the run is unfinished)"
+#: How the reason of a ``cameras.json`` entry that names no object of the annotation file begins.
+NOT_IN_ANNOTATIONS = "in cameras.json but not an object of the annotation file"
 
 
 def recon_config(recon: Path) -> Config:
@@ -99,4 +108,91 @@ def class_categories(categories: list, class_names: list) -> dict[str, dict]:
         key = keys.get(str(cat.get("id"))) if isinstance(cat, dict) else None
         if key in class_names:
             out[key] = {"name": str(cat.get("name")), "id": cat.get("id")}
+    return out
+
+
+def _numbers(value, shape: tuple) -> bool:
+    """Whether ``value`` is an array (nested lists) of ``shape`` finite real numbers (no strings, no booleans)."""
+    try:
+        a = np.asarray(value)
+    except (ValueError, TypeError):  # ragged lists
+        return False
+    return a.shape == shape and a.dtype.kind in "iuf" and bool(np.isfinite(a).all())
+
+
+def _shown(value) -> str:
+    """A JSON value as a message quotes it (cut to 60 characters)."""
+    text = json.dumps(value, default=str)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def camera_problem(entry: dict) -> str | None:
+    """What makes a ``cameras.json`` entry's camera unusable (``refined``: ``R`` 3 x 3 finite numbers, a rotation
+    within 1e-3; ``s`` a finite positive number; ``t`` two finite numbers; ``quality``, where given, a number),
+    None when nothing does.
+
+    Example:
+        >>> camera_problem({"refined": {"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "s": 2.0, "t": [1, 2]}}) is None
+        True
+        >>> camera_problem({"refined": {"R": [[1, 0, 0], [0, 1, 0]], "s": 2.0, "t": [1, 2]}})
+        'bad camera in cameras.json: R is not 3 x 3 finite numbers'
+    """
+    cam = entry.get("refined")
+    if not isinstance(cam, dict):
+        return "bad camera in cameras.json: 'refined' is not an object with R, s and t"
+    R, s = cam.get("R"), cam.get("s")
+    if not _numbers(R, (3, 3)):
+        return "bad camera in cameras.json: R is not 3 x 3 finite numbers"
+    R = np.asarray(R, dtype=np.float64)
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+        return "bad camera in cameras.json: R is not a rotation"
+    if not _numbers(s, ()) or float(s) <= 0:
+        return f"bad camera in cameras.json: s is {_shown(s)}, not a finite positive number"
+    if not _numbers(cam.get("t"), (2,)):
+        return f"bad camera in cameras.json: t is {_shown(cam.get('t'))}, not 2 finite numbers"
+    q = entry.get("quality")
+    if q is not None and (isinstance(q, bool) or not isinstance(q, (int, float))):
+        return f"bad quality in cameras.json: {_shown(q)} is not a number"
+    return None
+
+
+def camera_entry(cams, aid) -> dict:
+    """The ``cameras.json`` entry of annotation ``aid`` (``{}`` where there is none, or it is not an object)."""
+    entry = cams.get("cameras") if isinstance(cams, dict) else None
+    entry = entry.get(str(aid)) if isinstance(entry, dict) else None
+    return entry if isinstance(entry, dict) else {}
+
+
+def missing_class_reason(recon: Path, key: str) -> str:
+    """Why the objects of class ``key`` of a finished run have no outputs, its folder (or its ``cameras.json``)
+    being missing: the run skipped the class (``summary.json``'s status, with its first reason), or the folder
+    was removed (or never written)."""
+    try:
+        entry = read_json(recon / "summary.json")["classes"][key]
+        if entry.get("status") == "skipped":
+            why = next((f["reason"] for f in entry.get("failures") or () if isinstance(f, dict)), None)
+            return "the run skipped the class" + (f": {why}" if why else "")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        pass
+    return f"no cameras.json in {recon / key} (the class folder was removed, or never written)"
+
+
+def _as_given(key: str):
+    """A ``cameras.json`` key as the annotation id it names: an int where it spells one, else the string."""
+    try:
+        return int(key) if str(int(key)) == key else key
+    except ValueError:
+        return key
+
+
+def extra_cameras(cams, cname: str, known, data: Path) -> list[dict]:
+    """The entries of a class's ``cameras.json`` that are not objects of the annotation file (``known``: the
+    annotation ids, as strings, the export read or skipped at load), as skipped objects with their reason."""
+    entries = cams.get("cameras") if isinstance(cams, dict) else None
+    out = []
+    for k, entry in (entries.items() if isinstance(entries, dict) else ()):
+        if k not in known:
+            source = entry.get("source") if isinstance(entry, dict) else None
+            out.append({"annotation_id": _as_given(k), "class": cname, "source": source,
+                        "reason": f"{NOT_IN_ANNOTATIONS} {data}"})
     return out

@@ -216,21 +216,36 @@ def _remove_stale(out: Path) -> None:
             shutil.rmtree(p, ignore_errors=True)
 
 
-def _not_export(out: Path) -> list[str]:
-    """The entries of the folder ``out`` that are not an earlier export's (whose files the new store's replace
-    once that is complete): none where its root ``zarr.json`` says it is one, else all but the export's own
-    hidden folders."""
-    other = [p.name for p in out.iterdir() if not _own(p.name)]
-    if not other:
-        return []
-    try:
-        import json
+def _earlier_export(out: Path) -> dict | None:
+    """The ``carvi_export`` attribute of the store at ``out`` (None where ``out`` holds no export's root
+    ``zarr.json``)."""
+    import json
 
-        if ATTRS_KEY in json.loads((out / "zarr.json").read_text()).get("attributes", {}):
-            return []
+    try:
+        attrs = json.loads((out / "zarr.json").read_text()).get("attributes", {}).get(ATTRS_KEY)
     except (OSError, ValueError, AttributeError):
-        pass
-    return other
+        return None
+    return attrs if isinstance(attrs, dict) else None
+
+
+def _not_export(out: Path) -> list[str]:
+    """The entries of the folder ``out`` that an earlier export did not write (the new store's files replace
+    that export's once it is complete): all but the export's own hidden folders where ``out`` holds no export's
+    root ``zarr.json``; else anything beside its ``zarr.json`` and class groups (the folders of its ``classes``),
+    and anything in a class group but its ``zarr.json`` and arrays (of its ``fields``, and ``mesh_offsets``),
+    named ``class/entry``: a file of the user's (notes, checkpoints) is never removed with the earlier export."""
+    other = [p.name for p in out.iterdir() if not _own(p.name)]
+    attrs = _earlier_export(out) if other else None
+    if attrs is None:
+        return other
+    classes = {c for c in attrs.get("classes") or () if isinstance(c, str)}
+    fields = attrs.get("fields")
+    arrays = {"zarr.json", "mesh_offsets", *FIELDS, *(fields if isinstance(fields, dict) else ())}
+    foreign = [n for n in other if n != "zarr.json" and not (n in classes and (out / n).is_dir())]
+    for c in sorted(classes & set(other)):
+        if (out / c).is_dir():
+            foreign += [f"{c}/{p.name}" for p in (out / c).iterdir() if p.name not in arrays]
+    return foreign
 
 
 def _swap_in(tmp: Path, out: Path) -> None:
@@ -270,8 +285,9 @@ def _made_folders(out: Path) -> list[Path]:
 
 class StoreWriter:
     """Writes samples class by class into a zarr v3 store at ``out`` (created, or replaced when it holds
-    an earlier export's store): into a hidden folder inside ``out`` first, swapped in by :meth:`close`;
-    :meth:`abort` removes it, leaving ``out`` as it was."""
+    an earlier export's store and nothing else: ``ValueError`` naming the first entry the export did not write,
+    checked when the writer is made and again before the swap): into a hidden folder inside ``out`` first,
+    swapped in by :meth:`close`; :meth:`abort` removes it, leaving ``out`` as it was."""
 
     def __init__(self, out: str | Path, shard_size: int = 256, fields: list[str] | None = None):
         self.out = Path(out)
@@ -327,6 +343,7 @@ class StoreWriter:
                            for c in attrs.get("classes", self.classes)}}
         with deferred_interrupt():
             self.root.attrs[ATTRS_KEY] = desc
+        check_replaceable(self.out, _not_export, "an earlier export")  # nothing of the user's came meanwhile
         try:
             with deferred_interrupt():
                 _swap_in(self.tmp, self.out)
