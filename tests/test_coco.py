@@ -262,6 +262,23 @@ class TestLoad:
         for p in res.problems:
             assert str(p.annotation_id) in p.message()
 
+    def test_chunks_of_the_load_change_no_bit(self, tmp_path, monkeypatch):
+        """The load resamples and hashes masks a chunk at a time (its memory bound): chunks of 3 and of 2 give
+        the collection of one chunk, canvases, similarities, keypoints and fingerprints to the bit."""
+        from carvi_torch.io import coco
+        path, _, _ = _dataset(tmp_path, n=7)
+        runs = []
+        for chunk in (10 ** 6, 3, 2):
+            monkeypatch.setattr(coco._Canvases, "CHUNK", chunk)
+            runs.append(load_coco(path, canvas_size=32).collections["plane"])
+        one = runs[0]
+        for c in runs[1:]:
+            assert torch.equal(c.masks, one.masks) and torch.equal(c.keypoints, one.keypoints)
+            assert torch.equal(c.canvas_from_image.scale, one.canvas_from_image.scale)
+            assert torch.equal(c.canvas_from_image.offset, one.canvas_from_image.offset)
+            assert c.fingerprints == one.fingerprints and c.annotation_ids == one.annotation_ids
+        assert len(set(one.fingerprints)) == 7 and one.masks.any(dim=(1, 2)).all()
+
     def test_malformed_json(self, tmp_path):
         p = tmp_path / "bad.json"
         p.write_text('{"images": [], "annotations": [1, 2,, 3]}')

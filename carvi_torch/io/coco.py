@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -493,17 +492,18 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
     problems: list[Problem] = []
     metas = _categories(data["categories"], set(classes) if classes else None, problems)
     images = _images(data.get("images") or [], problems)
-    per_class: dict[str, list] = defaultdict(list)
+    by_key = {key: meta for key, meta in metas.values() if meta is not None}
+    per_class: dict[str, _Canvases] = {}
     seen: dict[str, dict] = {}
     with watch_interrupts() as interrupts:
         for ann in data["annotations"]:
             item = _annotation(ann, metas, images, seen, skip_flags, max_image_pixels, problems)
             interrupts.check()  # a Ctrl-C that a library turned into a bad-input error stops the load
             if item is not None:
-                per_class[item[0]].append(item[1:])
-    by_key = {key: meta for key, meta in metas.values() if meta is not None}
-    collections = {key: _build_collection(by_key[key], items, canvas_size, margin, torch.device(device))
-                   for key, items in per_class.items()}
+                if item[0] not in per_class:
+                    per_class[item[0]] = _Canvases(by_key[item[0]], canvas_size, margin)
+                per_class[item[0]].add(item[1:])
+    collections = {key: _build_collection(c, torch.device(device)) for key, c in per_class.items()}
     return LoadResult(collections=collections, problems=problems, dataset=data)
 
 
@@ -783,22 +783,56 @@ def input_fingerprints(meta: ClassMeta, items: list) -> list[str]:
     return out
 
 
-def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: float,
-                      device: torch.device) -> ClassCollection:
-    """Crop each object into the canvas (box = mask extent; visible keypoints may stick out a little)."""
-    boxes = []
-    for _ann, _im, mask, _xy, _vis in items:
-        ys, xs = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))  # occupied rows, columns
-        boxes.append([xs[0], ys[0], xs[-1], ys[-1]])
-    sim = canvas_similarity(torch.tensor(boxes, dtype=torch.float32), canvas_size, margin)
+class _Canvases:
+    """One class's objects as the load decodes them: every :attr:`CHUNK` objects their image-size masks are
+    resampled into canvases (box = mask extent) and hashed (:func:`input_fingerprints`), then dropped, so a load
+    holds at most ``CHUNK`` image-size masks per class (about 0.3 MB each at 640 x 480) whatever its size. Each
+    object's canvas and similarity are its own (no operation mixes objects), so the chunks change no bit."""
 
-    # a few small operations per object: intra-op threads only add their synchronisation (on a busy
-    # 2-core machine 584 objects took 33 s with 2 threads, 2.2 s with 1). Same values either way.
-    with torch_threads(1):
-        masks = resample_to_canvases([torch.from_numpy(it[2]) for it in items], sim.scale, sim.offset,
-                                     canvas_size)
-    xy = torch.tensor(np.stack([it[3] for it in items]), dtype=torch.float32)
-    vis = torch.tensor(np.stack([it[4] for it in items]), dtype=torch.bool)
+    CHUNK = 256
+
+    def __init__(self, meta: ClassMeta, canvas_size: int, margin: float):
+        self.meta, self.canvas_size, self.margin = meta, canvas_size, margin
+        self.items: list = []  # (ann, image entry, xy, visible) per object, masks dropped
+        self.boxes: list = []
+        self.canvases: list[torch.Tensor] = []
+        self.fingerprints: list[str] = []
+        self.pending: list = []  # (ann, image entry, mask, xy, visible) not resampled yet
+
+    def add(self, item: tuple) -> None:
+        self.pending.append(item)
+        if len(self.pending) >= self.CHUNK:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self.pending:
+            return
+        boxes = []
+        for _ann, _im, mask, _xy, _vis in self.pending:
+            ys, xs = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))  # occupied rows, columns
+            boxes.append([xs[0], ys[0], xs[-1], ys[-1]])
+        sim = canvas_similarity(torch.tensor(boxes, dtype=torch.float32), self.canvas_size, self.margin)
+        # a few small operations per object: intra-op threads only add their synchronisation (on a busy
+        # 2-core machine 584 objects took 33 s with 2 threads, 2.2 s with 1). Same values either way.
+        with torch_threads(1):
+            self.canvases.append(resample_to_canvases([torch.from_numpy(it[2]) for it in self.pending], sim.scale,
+                                                      sim.offset, self.canvas_size))
+        self.fingerprints += input_fingerprints(self.meta, self.pending)
+        self.boxes += boxes
+        self.items += [(ann, im, xy, vis) for ann, im, _mask, xy, vis in self.pending]
+        self.pending = []
+
+
+def _build_collection(canvases: _Canvases, device: torch.device) -> ClassCollection:
+    """The class's collection from its objects' canvases (:class:`_Canvases`); visible keypoints may stick out
+    of the canvas a little."""
+    canvases.flush()
+    meta, items = canvases.meta, canvases.items
+    sim = canvas_similarity(torch.tensor(canvases.boxes, dtype=torch.float32), canvases.canvas_size,
+                            canvases.margin)
+    masks = torch.cat(canvases.canvases)
+    xy = torch.tensor(np.stack([it[2] for it in items]), dtype=torch.float32)
+    vis = torch.tensor(np.stack([it[3] for it in items]), dtype=torch.bool)
     kp = torch.where(vis[..., None], sim.apply(xy), torch.zeros_like(xy))
     anns = [it[0] for it in items]
     ims = [it[1] for it in items]
@@ -820,6 +854,6 @@ def _build_collection(meta: ClassMeta, items: list, canvas_size: int, margin: fl
         is_mirror=torch.zeros(len(items), dtype=torch.bool),
         sources=[str(a.get("source") or f"annotation {a['id']}") for a in anns],
         splits=[str(a.get("split", "")) for a in anns],
-        fingerprints=input_fingerprints(meta, items),
+        fingerprints=canvases.fingerprints,
     )
     return coll.to(device)
