@@ -150,9 +150,7 @@ def _surrogate_plan(coll, vp: Viewpoints, cfg: Config, generator, timer, report)
         else:
             trip, levels = surrogates.plan_proposals(clusters, coll.object_groups, usable, views, axes,
                                                      cfg.surrogates.proposals, mirrors, generator)
-    for line in clusters.log:
-        log.info(f"  {coll.meta.key}: {line}")
-        report.warnings.append(f"clusters: {line}")
+    report.warnings += [f"clusters: {line}" for line in clusters.log]  # logged with the class's other warnings
     report.info["clusters"] = {"threshold_deg": float(clusters.threshold_deg),
                                "sizes": [int(v) for v in clusters.sizes.tolist()]}
     return surrogates.SurrogatePlan(n, axes, clusters, trip, mirrors, levels=levels)
