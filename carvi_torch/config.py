@@ -11,6 +11,14 @@ they name one setting: the field alone (``resolution``) and ``<section>_<field>`
 (``carve_backend``, ``mesh_format``). Enumerated settings take their values from the
 ``Literal`` types of the modules that own them.
 
+Values. On the command line a text setting (``out``, ``data``, ``device``, ...) takes the text after ``=`` as
+typed (``out=007`` is the folder ``007``; quotes around the whole value are removed: ``data='null'``); a list
+(``classes``) takes ``a,b`` or ``[a, b]``; ``null`` or nothing unsets a setting that may be unset (``data=null``).
+A YAML file's values are YAML's, but a text setting refuses a boolean, list or mapping (quote it) and takes a
+number as it was written (``out: 1.50``). Integers are read in decimal everywhere (``seed=010`` is 10, not YAML
+1.1's octal 8); booleans are ``true/false``, ``yes/no``, ``on/off`` or ``1/0``. A file that gives a key twice,
+or one setting under two names, or a key that is not text (``on:``, ``123:``), is refused.
+
 Example:
     >>> cfg = Config().override(["resolution=32", "imprint=false", "carve.backend=torch"])
     >>> cfg.carve.resolution, cfg.carve.imprint, cfg.carve.backend
@@ -23,10 +31,11 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import os
 import sys
 import typing
 from dataclasses import dataclass, field, fields
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any, Literal, Optional
 
 import yaml
@@ -41,7 +50,7 @@ from .viewpoints.frame import FrameChoice
 from .viewpoints.sfm import PolishMethod
 
 __all__ = ["Config", "ConfigError", "load_config", "read_run_config", "settings_changed", "flatten_settings",
-           "NEUTRAL_SETTINGS", "resolve_key", "all_keys", "FIELD_DOCS", "InputConfig",
+           "NEUTRAL_SETTINGS", "resolve_key", "all_keys", "FIELD_DOCS", "override_text", "NULL_WORDS", "InputConfig",
            "ViewpointConfig", "SurrogateConfig", "CarveConfig", "SelectConfig", "MeshConfig", "StudyConfig",
            "Stage", "Executor"]
 
@@ -433,13 +442,19 @@ class Config:
 
     # ------------------------------------------------------------------ helpers
     def override(self, items: list[str] | dict[str, Any]) -> "Config":
-        """Return a copy with ``key=value`` strings (or a mapping, flat or nested by section) applied;
-        string values are parsed as YAML scalars."""
-        values = self.flat()
+        """Return a copy with ``key=value`` strings (or a mapping, flat or nested by section) applied. A string's
+        value is read by its setting's type (:func:`_typed`; of two strings for one setting the last wins); a
+        mapping's values are YAML's or Python's, and a mapping that names one setting twice is refused."""
+        values, named = self.flat(), {}
+        typed = not isinstance(items, dict)
         for key, value in _pairs(items):
             _not_a_section(key, value)
             dotted = resolve_key(key)
-            values[dotted] = _coerce(dotted, value, _ANNOTATIONS[dotted])
+            if not typed and dotted in named:
+                raise ConfigError(f"{dotted} is given twice ({named[dotted]!r} and {key!r}); keep one")
+            named[dotted] = key
+            annotation = _ANNOTATIONS[dotted]
+            values[dotted] = _coerce(dotted, _typed(dotted, value, annotation) if typed else value, annotation)
         cfg = _from_flat(values)
         cfg.validate()
         return cfg
@@ -547,7 +562,7 @@ def resolve_key(key: str) -> str:
         return key
     if key in _ALIASES:
         return _ALIASES[key]
-    close = difflib.get_close_matches(key, list(_ANNOTATIONS) + list(_ALIASES), n=3, cutoff=0.6)
+    close = difflib.get_close_matches(key, list(_ANNOTATIONS) + list(_ALIASES) + list(SECTIONS), n=3, cutoff=0.6)
     hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
     raise ConfigError(f"unknown config key {key!r}{hint} (reconstruct --help lists every key)")
 
@@ -585,39 +600,64 @@ def _not_a_section(key: str, value: Any) -> None:
 
 
 def _pairs(items: list[str] | dict[str, Any]) -> list[tuple[str, Any]]:
-    """``(key, value)`` pairs of ``key=value`` strings or of a mapping (sections flattened; an empty section,
-    YAML's ``carve:`` with nothing under it, has none)."""
+    """``(key, value)`` pairs of ``key=value`` strings (the value the text after ``=``, for :func:`_typed`) or
+    of a mapping (sections flattened; an empty section, YAML's ``carve:`` with nothing under it, has none; a
+    key that is not text is a :class:`ConfigError`)."""
     if isinstance(items, dict):
         pairs = []
         for k, v in items.items():
             if k in SECTIONS and (isinstance(v, dict) or v is None):  # None: a section with every key commented out
-                pairs.extend((f"{k}.{name}", val) for name, val in (v or {}).items())
+                pairs.extend((f"{k}.{_name(name)}", val) for name, val in (v or {}).items())
             else:
-                pairs.append((k, v))
+                pairs.append((_name(k), v))
         return pairs
     pairs = []
     for item in items:
         if "=" not in item:
             raise ConfigError(f"override {item!r} is not of the form key=value")
         k, v = item.split("=", 1)
-        try:
-            value = yaml.safe_load(v) if v.strip() != "" else None
-        except yaml.YAMLError:
-            value = v
-        pairs.append((k.strip(), value))
+        pairs.append((k.strip(), v))
     return pairs
 
 
-def flatten_settings(data: dict) -> dict[str, Any]:
+def _name(key: Any) -> str:
+    """A key of a mapping of settings, which must be text (YAML reads ``on:`` as True, ``123:`` as a number).
+
+    Example:
+        >>> _name(123)
+        Traceback (most recent call last):
+        ...
+        carvi_torch.config.ConfigError: config key 123 is not a setting name (reconstruct --help lists every key)
+    """
+    if not isinstance(key, str):
+        raise ConfigError(f"config key {key!r} is not a setting name (reconstruct --help lists every key)")
+    return key
+
+
+def flatten_settings(data: dict, written: bool = False) -> dict[str, Any]:
     """``{dotted key: value}`` of a saved configuration (nested, or flat with short keys); unknown
-    keys are kept as they are (a file written by another version)."""
+    keys are kept as they are (a file written by another version), a key that is not text is a
+    :class:`ConfigError`. Numbers are plain ``int`` and ``float``, or with ``written`` as :func:`read_yaml`
+    gives them (with the text they were written as, for :meth:`Config.override`)."""
     out = {}
     for k, v in _pairs(data):
+        v = v if written else _plain(v)
         try:
             out[resolve_key(k)] = v
         except ConfigError:
             out[k] = v
     return out
+
+
+def _plain(value: Any) -> Any:
+    """``value`` with :func:`read_yaml`'s numbers as plain ``int`` and ``float`` (in lists and mappings too)."""
+    if isinstance(value, (_WrittenInt, _WrittenFloat)):
+        return (int if isinstance(value, int) else float)(value)
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {_plain(k): _plain(v) for k, v in value.items()}
+    return value
 
 
 # --------------------------------------------------------------------------- docs and types
@@ -662,49 +702,161 @@ _ANNOTATIONS: dict[str, Any] = _annotations()
 _ALIASES: dict[str, str] = _aliases()
 
 
-def _coerce(key: str, value: Any, annotation: Any) -> Any:
-    """Check/convert ``value`` against the field's type (``Optional``, ``Literal``, bool, int, float, str, list)."""
+#: What ``key=value`` gives to unset a setting that may be unset: nothing, or YAML's spellings of null.
+NULL_WORDS = ("", "null", "Null", "NULL", "~")
+_BOOLS = {"true": True, "yes": True, "on": True, "1": True, "false": False, "no": False, "off": False, "0": False}
+
+
+def _base(annotation: Any) -> Any:
+    """The type of ``Optional[T]``: ``T``; any other annotation as it is."""
     args = typing.get_args(annotation)
     if typing.get_origin(annotation) is typing.Union and type(None) in args:
-        if value is None:
-            return None
-        annotation = next(a for a in args if a is not type(None))
+        return next(a for a in args if a is not type(None))
+    return annotation
+
+
+def _is_text(annotation: Any) -> bool:
+    """Whether a setting of this type (not ``Optional``) holds text: ``str`` or a path."""
+    return annotation is str or (isinstance(annotation, type) and issubclass(annotation, PurePath))
+
+
+def _quoted(word: str) -> str | None:
+    """What ``word`` holds when it is one YAML quoted string from end to end (``'007'``: ``007``); else ``None``."""
+    if len(word) < 2 or word[0] != word[-1] or word[0] not in "'\"":
+        return None
+    try:
+        value = yaml.safe_load(word)
+    except yaml.YAMLError:
+        return None
+    return value if isinstance(value, str) else None
+
+
+def _typed(key: str, text: str, annotation: Any) -> Any:
+    """The value ``key=text`` on the command line gives a setting of type ``annotation``, for :func:`_coerce`:
+    ``None`` for nothing or ``null`` (:data:`NULL_WORDS`); what a quoted value holds (``data='null'``); a text
+    setting's text as typed (``out=007`` is the folder ``007``, not YAML's 7); a list's ``[a, b]`` (YAML, a
+    number's text kept) or ``a,b``; any other setting's text without the blanks around it.
+
+    Example:
+        >>> _typed("out", "007", str), _typed("data", "null", Optional[str]), _typed("seed", " 010", int)
+        ('007', None, '010')
+    """
+    word = text.strip()
+    if word in NULL_WORDS:
+        return None
+    quoted = _quoted(word)
+    if quoted is not None:
+        return quoted
+    base = _base(annotation)
+    if _is_text(base):
+        return text
+    if base is list and word.startswith("["):
+        try:
+            return yaml.load(word, Loader=_ConfigLoader)
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{key}: malformed list {word}{_yaml_where(e)}") from None
+    return word
+
+
+def _coerce(key: str, value: Any, annotation: Any) -> Any:
+    """Check/convert ``value`` (YAML's, Python's or :func:`_typed`'s) against the field's type (``Optional``,
+    ``Literal``, bool, int, float, text, a list of names)."""
+    base = _base(annotation)
     if value is None:
-        raise ConfigError(f"{key} cannot be empty")
-    if typing.get_origin(annotation) is Literal:
-        choices = typing.get_args(annotation)
+        if base is not annotation:
+            return None
+        raise ConfigError(f"{key} cannot be empty or null")
+    if typing.get_origin(base) is Literal:
+        choices = typing.get_args(base)
         if value not in choices:
             raise ConfigError(f"{key} must be one of {', '.join(map(str, choices))}; got {value!r}")
         return value
+    if _is_text(base):
+        return base(_text(key, value))
+    if base is list:
+        if isinstance(value, (str, _WrittenInt, _WrittenFloat)):  # a,b; a number of a file as written
+            return [v.strip() for v in _text(key, value).split(",") if v.strip()]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key}: expected a list of names (a,b or [a, b]), got {value!r}")
+        return [_text(key, v) for v in value]
     try:
-        return _coerce_plain(value, annotation)
-    except (TypeError, ValueError):
-        name = getattr(annotation, "__name__", str(annotation))
-        raise ConfigError(f"{key}: expected {name}, got {value!r}") from None
+        return _coerce_plain(value, base)
+    except (TypeError, ValueError, OverflowError):
+        name = "bool (true/false, yes/no, on/off or 1/0)" if base is bool else getattr(base, "__name__", str(base))
+        shown = value.text if isinstance(value, (_WrittenInt, _WrittenFloat)) else repr(value)
+        raise ConfigError(f"{key}: expected {name}, got {shown}") from None
+
+
+def _text(key: str, value: Any) -> str:
+    """A text setting's value: text as it is, a path as its text, a number of a config file as it was written
+    (``out: 007`` is ``007``); :class:`ConfigError` for anything else (YAML's booleans, lists, mappings)."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, (_WrittenInt, _WrittenFloat)):
+        return value.text
+    if isinstance(value, os.PathLike):
+        return str(os.fspath(value))
+    kind = ("the boolean" if isinstance(value, bool) else "a list" if isinstance(value, (list, tuple))
+            else "a mapping" if isinstance(value, dict) else "the number" if isinstance(value, (int, float))
+            else type(value).__name__)
+    why = " (YAML reads yes/no, on/off and true/false so)" if isinstance(value, bool) else ""
+    raise ConfigError(f"{key}: expected text, got {kind} {value!r}{why}; quote it to mean text: "
+                      f"{key.rpartition('.')[2]}: \"...\"")
 
 
 def _coerce_plain(value: Any, annotation: Any) -> Any:
+    """A bool (also ``1``/``0``, ``"yes"``, ...), an int (text, a YAML number's included, read in decimal: ``010``
+    is 10) or a finite float; ``ValueError`` when ``value`` is none."""
     if annotation is bool:
         if isinstance(value, bool):
             return value
-        if isinstance(value, str) and value.lower() in ("true", "yes", "1", "on", "false", "no", "0", "off"):
-            return value.lower() in ("true", "yes", "1", "on")
+        if isinstance(value, int) and value in (0, 1):
+            return bool(value)
+        if isinstance(value, str) and value.strip().lower() in _BOOLS:
+            return _BOOLS[value.strip().lower()]
         raise ValueError
     if annotation is int:
-        if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+        if isinstance(value, bool):
+            raise ValueError
+        value = value.text if isinstance(value, (_WrittenInt, _WrittenFloat)) else value
+        if isinstance(value, str):
+            try:
+                return int(value)
+            except ValueError:
+                value = float(value)
+        if isinstance(value, float) and not value.is_integer():
             raise ValueError
         return int(value)
     if annotation is float:
         if isinstance(value, bool) or not math.isfinite(float(value)):
             raise ValueError
         return float(value)
-    if annotation is str:
-        return str(value)
-    if annotation is list:
-        if isinstance(value, str):
-            return [v.strip() for v in value.split(",") if v.strip()]
-        return list(value)
     return value
+
+
+def override_text(value: Any) -> str:
+    """``value`` as a ``key=value`` override spells it (``reconstruct --help`` shows the defaults so): ``null``,
+    ``true``/``false``, a list's names joined by commas, a number or text as it is (quoted where it would read as
+    something else).
+
+    Example:
+        >>> override_text(None), override_text(False), override_text(["car", "chair"]), override_text(1e-07)
+        ('null', 'false', 'car,chair', '1e-07')
+        >>> override_text("outputs/default"), override_text("null"), override_text([])
+        ('outputs/default', "'null'", '[]')
+    """
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        names = [str(v) for v in value]
+        if names and all(n.strip() == n and n and "," not in n and n[0] not in "['\"" for n in names):
+            return ",".join(names)
+        return yaml.safe_dump(names, default_flow_style=True, width=10 ** 6).strip()
+    if isinstance(value, str) and (value.strip() in NULL_WORDS or _quoted(value.strip()) is not None):
+        return "'" + value.replace("'", "''") + "'"
+    return str(value)
 
 
 #: Settings that do not change how an object is reconstructed (a rerun may differ in them freely;
@@ -719,24 +871,58 @@ NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overw
 
 
 def settings_changed(previous: Path, cfg: Config) -> dict:
-    """``{key: (old, new)}`` of the settings in which ``cfg`` differs from the run saved at
-    ``previous`` (its ``config.yaml``), when that run's finished objects would be resumed
-    (no ``overwrite``); empty otherwise, or when the file is missing or unreadable."""
-    if cfg.overwrite or cfg.stage != "all" or not previous.is_file():
+    """``{key: (made, ..., now)}``: the settings in which finished objects in the run folder of ``previous`` (its
+    ``config.yaml``) may have been made otherwise than ``cfg`` says (``now``), with the values they were made with
+    (``made``, oldest first, ``now`` among them where objects were made with it too). Those values are the ones
+    its ``summary.json`` records (``resumed_from_other_settings``, the same form: a record is carried from run to
+    run, so that a rerun with the same settings still says how its resumed objects were made), else that run's.
+    A key the old file lacks (a setting added since) counts, as ``None``; settings of :data:`NEUTRAL_SETTINGS` do
+    not, nor files the studies write besides the objects (``keep_all_scores``, ``save_proposals``). Empty for
+    ``stage=cameras``, or without a readable ``config.yaml``. ``overwrite`` is the caller's to weigh: it redoes
+    the classes it runs, not those it leaves (:func:`carvi_torch.executors.common.announce`).
+
+    Example:
+        >>> import tempfile
+        >>> d = Path(tempfile.mkdtemp())
+        >>> _ = (d / "config.yaml").write_text(Config().to_yaml())
+        >>> settings_changed(d / "config.yaml", Config().override(["resolution=24"]))
+        {'carve.resolution': (60, 24)}
+        >>> _ = (d / "summary.json").write_text('{"resumed_from_other_settings": {"carve.resolution": [16, 60]}}')
+        >>> settings_changed(d / "config.yaml", Config()), settings_changed(d / "config.yaml", Config(overwrite=True))
+        ({'carve.resolution': (16, 60)}, {'carve.resolution': (16, 60)})
+    """
+    import json
+
+    if cfg.stage != "all" or not previous.is_file():
         return {}
     try:
         old = flatten_settings(read_yaml(previous))
     except (ConfigError, AttributeError):
         return {}
-    # a key the old file lacks (a setting added since) counts as changed: that run predates it
-    return {k: (old.get(k), v) for k, v in cfg.flat().items() if k not in NEUTRAL_SETTINGS and old.get(k) != v}
+    try:
+        record = json.loads(read_text(previous.with_name("summary.json"))).get("resumed_from_other_settings") or {}
+    except (OSError, ValueError, AttributeError, RecursionError):
+        record = {}
+    besides = {"study.keep_all_scores", "study.save_proposals"}  # written beside the objects: not how one is made
+    out = {}
+    for k, now in cfg.flat().items():
+        if k in NEUTRAL_SETTINGS or k in besides:
+            continue
+        held = record.get(k) if isinstance(record, dict) else None
+        made = list(held[:-1]) if isinstance(held, list) and len(held) > 1 else []
+        if not made or old.get(k) != held[-1]:  # no record of it, or a config.yaml other than the record's run's
+            made.append(old.get(k))
+        made = [v for i, v in enumerate(made) if v not in made[:i]]
+        if any(v != now for v in made):
+            out[k] = (*made, now)
+    return out
 
 
 
 def read_yaml(path: str | Path) -> Any:
-    """A YAML file's content (UTF-8, a byte order mark allowed; empty: ``{}``). Raises :class:`ConfigError`
-    with one line naming the file (and the line and column of malformed YAML): missing, not UTF-8,
-    malformed.
+    """A YAML file's content (UTF-8, a byte order mark allowed; empty: ``{}``), read as a config file
+    (:class:`_ConfigLoader`). Raises :class:`ConfigError` with one line naming the file (and the line and column
+    of malformed YAML): missing, not UTF-8, malformed, a key that is not text or is given twice.
 
     Example:
         >>> import tempfile
@@ -750,7 +936,7 @@ def read_yaml(path: str | Path) -> Any:
     """
     p = Path(path)
     try:
-        return yaml.safe_load(read_text(p)) or {}
+        return yaml.load(read_text(p), Loader=_ConfigLoader) or {}
     except (OSError, ValueError) as e:
         raise ConfigError(str(e) if str(p) in str(e) else f"{p}: {e}") from None
     except yaml.YAMLError as e:
@@ -769,6 +955,58 @@ def _yaml_where(e: yaml.YAMLError) -> str:
     return f"{where}: {problem}" + (f" ({context.replace('while parsing', 'in')})" if context else "")
 
 
+class _WrittenInt(int):
+    """An integer of a config file, with ``text``: how it was written (``010``, which YAML 1.1 reads as 8)."""
+
+    text = ""
+
+
+class _WrittenFloat(float):
+    """A float of a config file, with ``text``: how it was written (``1.50``)."""
+
+    text = ""
+
+
+class _ConfigLoader(yaml.SafeLoader):
+    """YAML read as a config file: a number keeps the text it was written as (:class:`_WrittenInt`,
+    :class:`_WrittenFloat`: ``out: 007`` is the folder ``007``, ``seed: 010`` is ten), a date stays text, and a
+    mapping's keys must be text, each once (:class:`ConfigError` naming the key and its line)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            lines: dict[str, int] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":  # <<: an anchor's keys, which this mapping may override
+                    continue
+                line = key_node.start_mark.line + 1
+                if not isinstance(key_node, yaml.ScalarNode):
+                    raise ConfigError(f"config key at line {line} is a {key_node.id}, not a setting name")
+                key = self.construct_object(key_node, deep=deep)
+                if not isinstance(key, str):
+                    raise ConfigError(f"config key {key_node.value!r} at line {line} is not a setting name (YAML "
+                                      f"reads it as {key!r}; reconstruct --help lists every key)")
+                if key in lines:
+                    raise ConfigError(f"config key {key!r} is given twice (lines {lines[key]} and {line}); keep one")
+                lines[key] = line
+        return super().construct_mapping(node, deep)
+
+
+def _keep_text(cls: type, construct: Any) -> Any:
+    """A YAML constructor: ``construct``'s number as ``cls``, with ``text`` the scalar as written."""
+
+    def build(loader, node):
+        value = cls(construct(loader, node))
+        value.text = node.value
+        return value
+    return build
+
+
+_ConfigLoader.add_constructor("tag:yaml.org,2002:int", _keep_text(_WrittenInt, yaml.SafeLoader.construct_yaml_int))
+_ConfigLoader.add_constructor("tag:yaml.org,2002:float",
+                              _keep_text(_WrittenFloat, yaml.SafeLoader.construct_yaml_float))
+_ConfigLoader.add_constructor("tag:yaml.org,2002:timestamp", yaml.SafeLoader.construct_scalar)
+
+
 def read_run_config(path: str | Path) -> Config:
     """The configuration a run saved (its ``config.yaml``, nested or flat); settings this version does
     not know are ignored, so outputs of other versions stay readable."""
@@ -776,7 +1014,7 @@ def read_run_config(path: str | Path) -> Config:
     data = read_yaml(p)
     if not isinstance(data, dict):
         raise ConfigError(f"{p}: expected a mapping of key: value")
-    known = {k: v for k, v in flatten_settings(data).items() if k in _ANNOTATIONS}
+    known = {k: v for k, v in flatten_settings(data, written=True).items() if k in _ANNOTATIONS}
     return Config().override(known)
 
 

@@ -12,7 +12,7 @@ import argparse
 import sys
 
 from .cli import add_common, program, run_command, split_classes
-from .config import FIELD_DOCS, Config, ConfigError, load_config
+from .config import FIELD_DOCS, Config, ConfigError, load_config, override_text
 from .io.coco import CocoFormatError
 
 EPILOG_HEAD = """\
@@ -22,12 +22,16 @@ preview.png, report/index.html, input/ (the embedded collection, when there is n
 (meshes and voxels in the reference camera frame, image pixels). A rerun skips finished objects.
 
 key=value settings: a full dotted key (carve.resolution=40) or a short one where it names one
-setting (resolution=40, carve_backend=torch). Every key, with its default:
+setting (resolution=40, carve_backend=torch). Text is taken as typed (out=007), a list as a,b or [a, b],
+null unsets (data=null), integers are decimal, booleans true/false, yes/no, on/off or 1/0. Every key, with
+its default:
 """
 
 
 def settings_help(width: int = 100) -> str:
-    """Every configuration key with its default and docstring, grouped by section."""
+    """Every configuration key with its default, as ``key=value`` on the command line takes it back
+    (:func:`~carvi_torch.config.override_text`: ``data=null``, ``imprint=true``), and its docstring, grouped by
+    section."""
     import textwrap
 
     defaults = Config().flat()
@@ -38,7 +42,7 @@ def settings_help(width: int = 100) -> str:
         if head != section:
             section = head
             lines.append(f"\n[{section}]" if section else "[run]")
-        lines.append(f"  {key}={defaults[key]!r}")
+        lines.append(f"  {key}={override_text(defaults[key])}")
         lines.extend(textwrap.wrap(doc, width, initial_indent="      ", subsequent_indent="      "))
     return "\n".join(lines)
 

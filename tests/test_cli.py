@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 from importlib.metadata import version
+from typing import Optional
 
 import pytest
 
@@ -196,3 +197,29 @@ def test_a_command_takes_ctrl_c_over_from_the_start(capsys):
     finally:
         signal.signal(signal.SIGINT, before)
     assert capsys.readouterr().err == "interrupted; the run's objects are kept\n"
+
+
+def test_reconstruct_help_shows_defaults_as_they_are_typed(capsys):
+    """``--help`` showed ``data=None``, ``classes=None``, ``imprint=True`` (Python's spellings, some of which a
+    ``key=value`` reads as text): every default it shows, typed back, gives the default."""
+    import re
+
+    from carvi_torch.config import Config, _get, all_keys
+    from carvi_torch.reconstruct import settings_help
+
+    text = settings_help()
+    shown = dict(re.findall(r"^  (\S+?)=(.*)$", text, flags=re.M))
+    assert sorted(shown) == sorted(all_keys())
+    assert "None" not in shown.values() and "True" not in shown.values() and "'" not in "".join(shown.values())
+    assert shown["data"] == shown["classes"] == shown["gt"] == "null" and shown["carve.imprint"] == "true"
+    typed_back = Config().override([f"{k}={v}" for k, v in shown.items()])
+    assert {k: _get(typed_back, k) for k in shown} == Config().flat()
+
+
+@pytest.mark.parametrize("value", [None, True, False, 0, 7, 1e-07, 0.1, "outputs/default", "007", "null", "",
+                                   " x", "'q'", ["car", "chair"], ["a,b", "007"], [], ["[x"]])
+def test_override_text_types_back(value):
+    from carvi_torch.config import _coerce, _typed, override_text
+
+    annotation = Optional[type(value) if value is not None else str]
+    assert _coerce("k", _typed("k", override_text(value), annotation), annotation) == value

@@ -236,3 +236,29 @@ def test_a_failed_output_check_leaves_no_folder_it_made(tmp_path, monkeypatch):
     with pytest.raises(cli.CommandError, match="cannot write there"):
         cli.writable_folder(kept / "a" / "b")
     assert kept.is_dir() and list(kept.iterdir()) == []
+
+
+@pytest.mark.parametrize("text, said", [
+    ("123: 4\n", "config key '123' at line 1 is not a setting name"),
+    ("on: true\n", "config key 'on' at line 1 is not a setting name"),
+    ("carv: {resolution: 16}\n", "unknown config key 'carv'; did you mean 'carve'?"),
+    ("resolution: 16\nresolution: 20\n", "config key 'resolution' is given twice (lines 1 and 2)"),
+    ("out: [a, b]\n", "out: expected text, got a list"),
+], ids=["number", "boolean", "misspelt-section", "twice", "list-for-text"])
+def test_a_bad_config_file_is_one_error_line(text, said, tmp_path, capsys):
+    """A key that is not text (``on:`` is True to YAML 1.1) was an AttributeError traceback, exit 1."""
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    assert cli.main(["reconstruct", "--config", str(p), "--out", str(tmp_path / "run")]) == 2
+    assert said in _one_line(capsys, "error:")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("text", ["123: 4\n", "on: true\n"])
+def test_export_of_a_run_whose_config_has_a_key_that_is_not_text_is_one_error_line(text, tmp_path, capsys):
+    recon = tmp_path / "run"
+    recon.mkdir()
+    (recon / "config.yaml").write_text(text)
+    status = cli.main(["export", "--recon", str(recon), "--out", str(tmp_path / "x"), "--workers", "0", "--quiet"])
+    assert status == 2
+    assert f"{recon / 'config.yaml'}: config key '{text.split(':')[0]}'" in _one_line(capsys, "error:")
