@@ -32,10 +32,28 @@ two such evaluations side by side at step 2 took 102 s, against 19 s with the wo
 
 Only what matches is scored, and what does not is said: a class of ``--data`` that a reconstruction
 has no folder for gets a ``note:`` line (and ``classes_without_reconstruction`` in ``results.json``),
-and so does a run that stopped after the cameras (``stage=cameras``) without ``--viewpoints-only``;
-an unknown ``--classes`` name, a ``--split`` that no annotation has, two ``--recon`` of one name, or a
-reconstruction whose annotation ids name other objects in ``--data`` (another class or ``source``: it was
-made from other data, or the file changed since the run), is an error (exit 2).
+and so does a run that stopped after the cameras (``stage=cameras``) without ``--viewpoints-only``, and
+an unfinished run (``unfinished``); an unknown ``--classes`` name, a ``--split`` that no annotation has, two
+``--recon`` of one name, a ``gt.json`` or ``--data`` that is not a JSON object, or a reconstruction whose
+annotation ids name other objects in ``--data`` (another class or ``source``: it was made from other data, or
+the file changed since the run), is an error (exit 2).
+
+Bad input leaves out what it touches, with a one-line reason on stderr that names the object, and the rest is
+evaluated: an object that ``gt.json`` has no entry for, or whose entry is unusable (``R`` not a rotation within
+1e-3, ``s`` not a positive number, a mesh file that cannot be read, ...), is skipped for every method (its
+``reason`` in ``results.json``'s ``objects``); a method's mesh that cannot be read, or that the run skipped, leaves
+that method without the object's shape error (the reason naming the file, or the run's reason); an unusable
+camera of a run's ``cameras.json`` (or an unusable file) leaves its viewpoint out (``camera_problems``).
+
+Methods are compared on the same objects: a class's row of the shape table is, for every method, the mean over
+the objects that every method (the baselines included) has an error for (``compared``; ``car (4 of 6)`` where
+some method misses some), the best in bold, and the table's mean is over the classes with such objects
+(``mean_over_classes_compared``); a class without any such object shows each method's mean over its own
+objects with their number, and bolds none. A ``note:`` line says per class how many objects each method misses
+and why (``missing_reasons``: the reasons up to their first colon, with the objects' ids), and how many have no
+usable refined camera, or too few for a viewpoint report (``viewpoint_coverage``: the global alignment needs
+two). ``classes`` keeps each method's ``mean``, ``median`` and ``count`` over its own objects, and
+``mean_over_classes`` their mean over its classes.
 
 Examples:
     python -m carvi_torch.evaluate --data renders/annotations.json --recon runs/full
@@ -54,21 +72,71 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .cli import add_common, positive_int, program, run_command, split_classes, writable_folder
+from .cli import CommandError, add_common, positive_int, program, run_command, split_classes, writable_folder
 from .config import Config, read_run_config
 from .io.coco import CocoFormatError, class_keys, class_names, load_coco, object_id, select_classes
 from .io.outputs import read_json, write_bytes, write_json
 from .io.results import annotation_source, same_object
 from .evaluation import reliability, viewpoint_metrics
-from .evaluation.scoring import MAX_JOBS, POOL_FROM, ShapeScorer, default_jobs, posed_gt_mesh, score_shapes
+from .evaluation.scoring import (MAX_JOBS, POOL_FROM, ShapeScorer, camera_problem, default_jobs, gt_problem, numbers,
+                                 posed_gt_mesh, score_shapes)
 
-__all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "format_change", "main"]
+__all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "format_change", "main",
+           "NO_GROUND_TRUTH", "NOT_YET"]
+
+#: The reason of an object in scope that ``gt.json`` has no entry for.
+NO_GROUND_TRUTH = "no ground truth: gt.json has no entry for it"
+#: The reason of an object that an unfinished run (interrupted, or still running) has no mesh for.
+NOT_YET = "not reconstructed yet (the run is unfinished)"
 
 
-def _read_cameras(rdir: Path, classes) -> dict[str, dict | None]:
+def _read_cameras(rdir: Path, classes) -> tuple[dict[str, dict | None], dict[str, dict]]:
     """Each class's ``cameras.json`` of the reconstruction ``rdir``, read once for every use: class -> its
-    content (``None``: no file)."""
-    return {cls: read_json(p) if (p := rdir / cls / "cameras.json").is_file() else None for cls in sorted(classes)}
+    content (``None``: no file) made safe to read (:func:`_usable_cameras`), and class -> what was unusable in it
+    (``{"file": why the file is, or None, "objects": {annotation id: why its camera is}}``; classes without any
+    left out)."""
+    contents, problems = {}, {}
+    for cls in sorted(classes):
+        p = rdir / cls / "cameras.json"
+        if not p.is_file():
+            contents[cls] = None
+            continue
+        try:
+            content = read_json(p)
+        except (OSError, ValueError) as e:
+            contents[cls], problems[cls] = {"cameras": {}}, {"file": str(e), "objects": {}}
+            continue
+        contents[cls], problem = _usable_cameras(p, content)
+        if problem:
+            problems[cls] = problem
+    return contents, problems
+
+
+def _usable_cameras(path: Path, content) -> tuple[dict, dict]:
+    """``cameras.json`` (``content``, read from ``path``) with what cannot be used taken out, and what that was:
+    a file that is not an object with a ``cameras`` object becomes one without cameras; an entry that is not an
+    object an empty one; an ``sfm`` or ``refined`` camera that :func:`~carvi_torch.evaluation.scoring.camera_problem`
+    finds unusable ``None``. Problems as :func:`_read_cameras`'s (``{}``: none).
+
+    Example:
+        >>> _usable_cameras(Path("c.json"), {"cameras": {"3": "oops"}})
+        ({'cameras': {'3': {}}}, {'file': None, 'objects': {'3': "its cameras.json entry is 'oops', not an object"}})
+    """
+    if not isinstance(content, dict) or not isinstance(content.get("cameras"), dict):
+        what = "not a JSON object" if not isinstance(content, dict) else "its 'cameras' is not an object"
+        return {"cameras": {}}, {"file": f"{path}: {what}", "objects": {}}
+    bad = {}
+    for aid, entry in content["cameras"].items():
+        if not isinstance(entry, dict):
+            content["cameras"][aid] = {}
+            bad[aid] = f"its cameras.json entry is {entry!r:.40}, not an object"
+            continue
+        for stage in ("sfm", "refined"):
+            why = camera_problem(entry[stage]) if entry.get(stage) is not None else None
+            if why:
+                entry[stage] = None
+                bad[aid] = f"unusable {stage} camera in cameras.json: {why}"
+    return content, ({"file": None, "objects": bad} if bad else {})
 
 
 def _viewpoints(cameras: dict | None, gt_entries: dict, aids: list, object_of: dict | None = None) -> dict | None:
@@ -100,8 +168,11 @@ def _viewpoints(cameras: dict | None, gt_entries: dict, aids: list, object_of: d
         if among is not None and "refined" in out and used == out["refined"]["annotation_ids"]:
             continue  # the same objects: the refined report already is the comparison
         if len(est) >= 2:
-            rep = viewpoint_metrics.viewpoint_report(torch.tensor(est, dtype=torch.float64),
-                                                     torch.tensor(ref, dtype=torch.float64))
+            try:
+                rep = viewpoint_metrics.viewpoint_report(torch.tensor(est, dtype=torch.float64),
+                                                         torch.tensor(ref, dtype=torch.float64))
+            except ValueError:  # no pair of finite rotations: nothing to report (viewpoint_coverage says why)
+                continue
             rep["annotation_ids"] = used  # aligned with rep["per_instance_geodesic"]
             out[stage] = rep
     same = out.get("refined_with_sfm", out.get("refined"))
@@ -132,20 +203,26 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
              jobs: int | None = None) -> dict:
     """Evaluate reconstruction directories ``recons`` (method name -> directory) against ``gt.json``.
 
-    Returns a dict with ``objects`` (per annotation id: class, and per method the error or the
-    reason it is missing), ``classes`` (per class and method: mean and median error, count),
-    ``viewpoints`` (per class and method: SfM and refined viewpoint reports) and
-    ``classes_without_reconstruction`` (per class of the data in scope that some method has no folder
-    for: those methods; without ``classes``, a class no method has is not evaluated). With
-    ``shapes=False`` only the viewpoints are evaluated (e.g. after ``stage=cameras``). The shapes are scored
-    with one torch thread per process, in this process or in ``jobs`` worker processes (default
-    :func:`default_jobs`); the errors are the same either way.
+    Returns a dict with ``objects`` (per annotation id in scope: class, and per method the error or the
+    reason it is missing; or, for an object without usable ground truth, the ``reason`` alone), ``classes``
+    (per class and method: mean and median error, count, over the method's own objects; ``missing`` and
+    ``missing_reasons``, the objects with usable ground truth it has no error for; ``compared_mean`` and
+    ``compared_median`` over the objects every method has an error for), ``compared`` (per class: its
+    ``objects`` in scope, those ``without_ground_truth``, and the ids ``compared``), ``mean_over_classes`` and
+    ``mean_over_classes_compared``, ``viewpoints`` (per class and method: SfM and refined viewpoint reports),
+    ``viewpoint_coverage`` (per class and method with cameras: the objects with a refined camera to score, and
+    why the others have none), ``camera_problems`` (per method and class: what of its ``cameras.json`` was
+    unusable), ``unfinished`` (the methods whose run has not finished) and ``classes_without_reconstruction``
+    (per class of the data in scope that some method has no folder for: those methods; without ``classes``, a
+    class no method has is not evaluated). With ``shapes=False`` only the viewpoints are evaluated (e.g. after
+    ``stage=cameras``). The shapes are scored with one torch thread per process, in this process or in ``jobs``
+    worker processes (default :func:`default_jobs`); the errors are the same either way.
 
     Raises:
         FileNotFoundError: no file ``data``, or no ground truth.
-        ValueError: a ``split`` that no annotation of ``data`` has; a name in ``classes`` that is no class of
-            ``data``; a reconstruction whose objects
-            are not the ones of ``data`` (an annotation id of its ``cameras.json`` names another
+        ValueError: a ``data`` or ``gt.json`` that is not a JSON object of the expected kind; a ``split`` that no
+            annotation of ``data`` has; a name in ``classes`` that is no class of ``data``; a reconstruction whose
+            objects are not the ones of ``data`` (an annotation id of its ``cameras.json`` names another
             object there: another class or ``source``; or none of its ids is in ``data``).
     """
     data = Path(data)
@@ -153,42 +230,117 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     classes = select_classes(classes, class_names(ann.categories), str(data)) if classes else None
     first = Path(next(iter(recons.values())))
     cfg = read_run_config(first / "config.yaml") if (first / "config.yaml").is_file() else Config()
-    canvas_size = canvas_size or cfg.input.canvas_size
-    coll_by_class = {}
-    if baselines:
-        loaded = load_coco(data, canvas_size=canvas_size, margin=cfg.input.canvas_margin,
-                           classes=classes)
-        coll_by_class = loaded.collections
+    coll_by_class = load_coco(data, canvas_size=canvas_size or cfg.input.canvas_size, margin=cfg.input.canvas_margin,
+                              classes=classes).collections if baselines else {}
     wanted = _wanted_classes(classes, recons, ann, data)
-    cameras = {name: _read_cameras(Path(rdir), wanted) for name, rdir in recons.items()}  # method -> class -> file
+    read = {name: _read_cameras(Path(rdir), wanted) for name, rdir in recons.items()}
+    cameras = {name: got[0] for name, got in read.items()}  # method -> class -> cameras.json (None: none)
     for name, rdir in recons.items():
         _check_same_objects(name, Path(rdir), cameras[name], ann.ann_class, ann.source_of, data)
     in_scope = [a for a, c in ann.ann_class.items()
-                if str(a) in ann.gt_entries and (split is None or ann.split_of.get(a) == split) and c is not None]
+                if (split is None or ann.split_of.get(a) == split) and c is not None]
     without = _classes_without_reconstruction(recons, [ann.ann_class[a] for a in in_scope], classes)
-    targets = [a for a in in_scope if ann.ann_class[a] in wanted]
-    targets.sort(key=_id_order)
+    targets = sorted((a for a in in_scope if ann.ann_class[a] in wanted), key=_id_order)
     methods = list(recons) + (["Puffball", "SFMc"] if baselines and shapes else [])
-    scorer = ShapeScorer(ann.gt_path.parent, recons, cameras, step_percent, baselines, coll_by_class)
+    unfinished = [name for name, rdir in recons.items() if _unfinished(Path(rdir))]
+    problems = _scoped({name: got[1] for name, got in read.items()}, set(targets))
+    scorer = ShapeScorer(ann.gt_path.parent, recons, cameras, step_percent, baselines, coll_by_class,
+                         missing=_missing_reasons(recons, problems, unfinished))
     t0 = time.perf_counter()
-    work = [(aid, ann.gt_entries[str(aid)], {"class": ann.ann_class[aid], "split": ann.split_of.get(aid, "")})
-            for aid in targets]
-    rows = score_shapes(scorer, work, default_jobs(len(work)) if jobs is None else jobs, progress) if shapes \
-        else [row for _aid, _entry, row in work]
-    objects: dict[str, dict] = {str(aid): row for aid, row in zip(targets, rows)}
-    per_class = _class_errors(objects, methods)
-    viewpoints = _class_viewpoints(list(per_class), objects, ann, cameras)
-    means = {}
-    for mth in methods:
-        vals = [per_class[c][mth]["mean"] for c in per_class if per_class[c][mth]["mean"] is not None]
-        means[mth] = float(np.mean(vals)) if vals else None
+    objects = _score_objects(scorer, targets, ann, shapes, jobs, progress)
+    per_class, compared = _class_errors(objects, methods)
     res = {"data": str(data), "gt": str(ann.gt_path), "split": split, "step_percent": step_percent,
            "methods": methods, "recons": {k: str(v) for k, v in recons.items()}, "objects": objects,
-           "classes": per_class, "mean_over_classes": means, "viewpoints": viewpoints,
-           "classes_without_reconstruction": without}
+           "classes": per_class, "compared": compared,
+           "mean_over_classes": _mean_over_classes(per_class, methods, "mean"),
+           "mean_over_classes_compared": _mean_over_classes(per_class, methods, "compared_mean"),
+           "viewpoints": _class_viewpoints(list(per_class), objects, ann, cameras),
+           "viewpoint_coverage": _viewpoint_coverage(objects, ann, cameras, problems),
+           "camera_problems": problems, "unfinished": unfinished, "classes_without_reconstruction": without}
     res["quality"] = reliability.quality_vs_error(res)
     res["seconds"] = round(time.perf_counter() - t0, 2)
     return res
+
+
+def _score_objects(scorer: ShapeScorer, targets: list, ann: "_Annotations", shapes: bool, jobs: int | None,
+                   progress: bool) -> dict[str, dict]:
+    """Each object of ``targets``'s row: ``class``, ``split`` and, with ``shapes``, every method's error or why
+    there is none (:func:`score_shapes`); an object without usable ground truth gets its ``reason`` instead and is
+    not scored."""
+    rows = {aid: {"class": ann.ann_class[aid], "split": ann.split_of.get(aid, "")} for aid in targets}
+    for aid, row in rows.items():
+        if aid in ann.gt_problems:
+            row["reason"] = ann.gt_problems[aid]
+    work = [(aid, ann.gt_entries[aid], row) for aid, row in rows.items() if "reason" not in row]
+    if shapes and work:
+        scored = score_shapes(scorer, work, default_jobs(len(work)) if jobs is None else jobs, progress)
+        rows.update({aid: row for (aid, _entry, _row), row in zip(work, scored)})
+    return rows
+
+
+def _mean_over_classes(per_class: dict, methods: list[str], key: str) -> dict:
+    """Per method: the mean over classes of its class means ``key`` (``mean`` or ``compared_mean``), the classes
+    without one left out (``None``: none has one)."""
+    vals = {m: [row[m][key] for row in per_class.values() if row[m][key] is not None] for m in methods}
+    return {m: float(np.mean(v)) if v else None for m, v in vals.items()}
+
+
+def _scoped(problems: dict, objects: set) -> dict:
+    """:func:`_read_cameras`'s problems per method, of the objects in scope (``objects``) only; methods and classes
+    without any left out."""
+    out = {}
+    for name, per in problems.items():
+        for cls, p in per.items():
+            kept = {a: why for a, why in p["objects"].items() if a in objects}
+            if p["file"] or kept:
+                out.setdefault(name, {})[cls] = {"file": p["file"], "objects": kept}
+    return out
+
+
+def _unfinished(rdir: Path) -> bool:
+    """Whether ``rdir`` holds a reconstruction run that has not finished (interrupted, or still running): a class's
+    ``cameras.json``, but no ``summary.json`` with ``total_seconds`` (which a run writes when its last class is
+    done). A folder of meshes without ``cameras.json`` (another method's) is no such run."""
+    if not any(rdir.glob("*/cameras.json")):
+        return False
+    try:
+        summary = read_json(rdir / "summary.json")
+    except (OSError, ValueError):
+        return True
+    return not isinstance(summary, dict) or "total_seconds" not in summary
+
+
+def _run_failures(rdir: Path) -> list[tuple[str, str, str]]:
+    """``(class, annotation id, reason)`` of each object the run in ``rdir`` skipped, as its ``summary.json`` books
+    them (none without a readable one)."""
+    try:
+        summary = read_json(rdir / "summary.json")
+    except (OSError, ValueError):
+        return []
+    classes = summary.get("classes") if isinstance(summary, dict) else None
+    out = []
+    for cls, entry in classes.items() if isinstance(classes, dict) else ():
+        failures = entry.get("failures") if isinstance(entry, dict) else None
+        for f in failures if isinstance(failures, list) else ():
+            if isinstance(f, dict) and f.get("annotation_id") is not None and isinstance(f.get("reason"), str):
+                out.append((cls, str(f["annotation_id"]), f["reason"]))
+    return out
+
+
+def _missing_reasons(recons: dict, problems: dict, unfinished: list) -> dict:
+    """:class:`ShapeScorer`'s ``missing``: per method, why an object has no mesh where more is known than that
+    there is none: the run skipped it (its ``summary.json``, with the run's reason), its class's ``cameras.json``
+    is unusable, or the run is unfinished."""
+    out = {}
+    for name, rdir in recons.items():
+        why = {(None, None): NOT_YET} if name in unfinished else {}
+        for cls, p in problems.get(name, {}).items():
+            if p["file"]:
+                why[(cls, None)] = f"unusable cameras.json: {p['file']}"
+        for cls, aid, reason in _run_failures(Path(rdir)):
+            why[(cls, aid)] = f"skipped by the run: {reason}"
+        out[name] = why
+    return out
 
 
 @dataclasses.dataclass
@@ -196,7 +348,8 @@ class _Annotations:
     """What :func:`evaluate` reads of the annotation file and its ground truth; ids as strings."""
 
     gt_path: Path
-    gt_entries: dict  # id -> its gt.json record
+    gt_entries: dict  # id -> its gt.json record, the usable ones (gt_problem finds nothing wrong)
+    gt_problems: dict  # id -> why the annotation has no usable ground truth (the annotations of the file only)
     categories: list  # the file's categories
     key_of: dict  # category id -> class folder
     split_of: dict  # id -> split ("" without one)
@@ -214,20 +367,60 @@ def _read_annotations(data: Path, gt, split: str | None) -> _Annotations:
     if not gt_path.is_file():
         raise FileNotFoundError(f"{gt_path}: no ground truth (gt.json beside the annotations)")
     gt_all = read_json(gt_path)
-    gt_entries = gt_all.get("annotations", gt_all)
+    gt_entries = gt_all.get("annotations", gt_all) if isinstance(gt_all, dict) else gt_all
+    if not isinstance(gt_entries, dict):
+        raise ValueError(f"{gt_path}: expected a JSON object of annotation id -> ground truth (or one under "
+                         f"'annotations'), got {_json_kind(gt_entries)}")
     dataset = read_json(data)
+    if not isinstance(dataset, dict):
+        raise ValueError(f"{data}: expected a COCO JSON object (images, annotations, categories), got "
+                         f"{_json_kind(dataset)}")
+    if not isinstance(dataset.get("annotations", []), list):
+        raise ValueError(f"{data}: its 'annotations' is {_json_kind(dataset['annotations'])}, not a list")
     anns = [a for a in dataset.get("annotations", []) if isinstance(a, dict) and object_id(a.get("id")) is not None]
     split_of = {str(a["id"]): a.get("split", "") for a in anns}
     if split is not None and split not in split_of.values():
         present = sorted({repr(s) if s else "none" for s in split_of.values()})
         raise ValueError(f"no annotation of {data} is in split {split!r} (its splits: {', '.join(present) or 'none'})")
     key_of = class_keys(dataset.get("categories", []))
-    return _Annotations(gt_path=gt_path, gt_entries=gt_entries, categories=dataset.get("categories", []),
+    gt_problems = {str(a["id"]): _gt_problem(gt_entries, str(a["id"])) for a in anns}
+    return _Annotations(gt_path=gt_path, gt_problems={a: why for a, why in gt_problems.items() if why},
+                        gt_entries={a: gt_entries[a] for a, why in gt_problems.items() if not why},
+                        categories=dataset.get("categories", []),
                         key_of=key_of, split_of=split_of,
                         ann_class={str(a["id"]): key_of.get(str(a.get("category_id"))) for a in anns},
                         original={str(a["id"]): a["id"] for a in anns},
                         source_of={str(a["id"]): annotation_source(a) for a in anns},
                         object_of={str(a["id"]): _physical_object(a) for a in anns})
+
+
+def _gt_problem(gt_entries: dict, aid: str) -> str | None:
+    """Why annotation ``aid`` has no usable ground truth in ``gt_entries`` (``gt.json``'s records), ``None`` when it
+    has (:func:`~carvi_torch.evaluation.scoring.gt_problem`).
+
+    Example:
+        >>> _gt_problem({"3": {"mesh": "m.ply", "R": [[2, 0, 0], [0, 2, 0], [0, 0, 2]], "s": 1, "t": [0, 0]}}, "3")
+        'ground truth unusable: R is not a rotation'
+        >>> _gt_problem({}, "3")
+        'no ground truth: gt.json has no entry for it'
+    """
+    if aid not in gt_entries:
+        return NO_GROUND_TRUTH
+    why = gt_problem(gt_entries[aid])
+    return f"ground truth unusable: {why}" if why else None
+
+
+def _json_kind(value) -> str:
+    """What kind of JSON value ``value`` is, with its article (``a list``, ``a string``, ``null``, ...).
+
+    Example:
+        >>> _json_kind([1]), _json_kind(None), _json_kind(2.5)
+        ('a list', 'null', 'a number')
+    """
+    if value is None:
+        return "null"
+    kinds = ((bool, "a boolean"), ((int, float), "a number"), (str, "a string"), (list, "a list"), (dict, "an object"))
+    return next(name for kind, name in kinds if isinstance(value, kind))
 
 
 def _physical_object(a: dict) -> tuple:
@@ -247,19 +440,77 @@ def _wanted_classes(classes: list[str] | None, recons: dict, ann: _Annotations, 
     return wanted
 
 
-def _class_errors(objects: dict, methods: list[str]) -> dict[str, dict]:
-    """Per class (sorted) and method: mean, median, count and missing of the objects' finite ``error_percent``."""
+def _class_errors(objects: dict, methods: list[str]) -> tuple[dict[str, dict], dict[str, dict]]:
+    """Per class (sorted) and method (:func:`_method_errors`), and per class what the methods are compared on:
+    ``objects`` (in scope), ``without_ground_truth`` (those with a ``reason``, scored for no method) and
+    ``compared``, the ids of the objects every method has a finite ``error_percent`` for."""
     per_class: dict[str, dict] = {}
+    compared: dict[str, dict] = {}
     for cls in sorted({r["class"] for r in objects.values()}):
-        rows = [r for r in objects.values() if r["class"] == cls]
-        per_class[cls] = {}
-        for mth in methods:
-            errs = [r[mth]["error_percent"] for r in rows if isinstance(r.get(mth), dict)
-                    and r[mth].get("error_percent") is not None and math.isfinite(r[mth]["error_percent"])]
-            per_class[cls][mth] = {"mean": float(np.mean(errs)) if errs else None,
-                                   "median": float(np.median(errs)) if errs else None,
-                                   "count": len(errs), "missing": len(rows) - len(errs)}
-    return per_class
+        rows = {a: r for a, r in objects.items() if r["class"] == cls}
+        usable = {a: r for a, r in rows.items() if "reason" not in r}
+        errs = {m: {a: e for a, r in usable.items() if (e := _error(r, m)) is not None} for m in methods}
+        common = [a for a in usable if all(a in errs[m] for m in methods)]
+        per_class[cls] = {m: _method_errors(usable, m, errs[m], common) for m in methods}
+        compared[cls] = {"objects": len(rows), "without_ground_truth": len(rows) - len(usable), "compared": common}
+    return per_class, compared
+
+
+def _error(row: dict, method: str) -> float | None:
+    """``method``'s finite ``error_percent`` in an object's ``row`` (``None``: none)."""
+    e = row[method].get("error_percent") if isinstance(row.get(method), dict) else None
+    return e if e is not None and math.isfinite(e) else None
+
+
+def _method_errors(usable: dict, method: str, errs: dict, common: list) -> dict:
+    """One method's entry of a class: ``mean``, ``median`` and ``count`` of its errors ``errs`` (id -> error);
+    ``missing``, the objects of ``usable`` (those with usable ground truth) it has none for, and
+    ``missing_reasons``, their ids per reason (cut at its first ``": "``: the rest, such as the file, is the
+    object's in ``objects``); ``compared_mean`` and ``compared_median`` over the objects ``common`` to every
+    method.
+
+    Example:
+        >>> usable = {"1": {"A": {"error_percent": 2.0}}, "2": {"A": {"error_percent": None, "reason": "no mesh"}}}
+        >>> e = _method_errors(usable, "A", {"1": 2.0}, ["1"])
+        >>> e["count"], e["missing"], e["missing_reasons"], e["compared_mean"]
+        (1, 1, {'no mesh': ['2']}, 2.0)
+    """
+    vals, both = list(errs.values()), [errs[a] for a in common]
+    reasons: dict[str, list] = {}
+    for a, r in usable.items():
+        if a not in errs:
+            why = r[method].get("reason") if isinstance(r.get(method), dict) else "not scored"
+            reasons.setdefault((why or "no finite error").split(": ", 1)[0], []).append(a)
+    return {"mean": float(np.mean(vals)) if vals else None, "median": float(np.median(vals)) if vals else None,
+            "count": len(vals), "missing": len(usable) - len(vals), "missing_reasons": reasons,
+            "compared_mean": float(np.mean(both)) if both else None,
+            "compared_median": float(np.median(both)) if both else None}
+
+
+def _viewpoint_coverage(objects: dict, ann: "_Annotations", cameras: dict, problems: dict) -> dict[str, dict]:
+    """Per class and method with a ``cameras.json``: ``objects``, how many of the class's objects with usable ground
+    truth have a refined camera to score, and ``missing``, why each of the others has none (annotation id ->
+    reason: not in ``cameras.json``, no refined camera, a non-finite one, or an unusable one or file,
+    ``problems`` as :func:`_scoped` gives them)."""
+    out: dict[str, dict] = {}
+    for name, per in cameras.items():
+        for cls, content in per.items():
+            aids = [a for a, r in objects.items() if r["class"] == cls and a in ann.gt_entries]
+            if content is None or not aids:
+                continue
+            bad = problems.get(name, {}).get(cls, {"file": None, "objects": {}})
+            missing = {}
+            for a in aids:
+                cam = content["cameras"].get(a)
+                refined = cam.get("refined") if cam is not None else None
+                if bad["file"] or (refined is None and a in bad["objects"]):
+                    missing[a] = f"unusable cameras.json: {bad['file']}" if bad["file"] else bad["objects"][a]
+                elif refined is None:
+                    missing[a] = "not in cameras.json" if cam is None else "no refined camera"
+                elif not numbers(refined["R"], (3, 3)):
+                    missing[a] = "non-finite refined camera"
+            out.setdefault(cls, {})[name] = {"objects": len(aids) - len(missing), "missing": missing}
+    return out
 
 
 def _class_viewpoints(classes: list[str], objects: dict, ann: _Annotations, cameras: dict) -> dict[str, dict]:
@@ -341,19 +592,54 @@ def _fmt(v, digits=2):
 
 
 def format_shape_table(res: dict) -> str:
-    """Markdown table in the shape of the paper's Table 1: per class mean error per method, and the mean."""
-    methods = res["methods"]
+    """Markdown table in the shape of the paper's Table 1: per class every method's mean error over the objects
+    that every method has an error for (``compared``), the best in bold, and their mean over the classes with such
+    objects; the objects compared in brackets, ``4 of 6`` where some method misses some of the class's objects in
+    scope. A class without an object every method has shows each method's mean over its own objects, with their
+    number, and bolds none (:func:`_shape_row`). A ``res`` without ``compared`` (an older ``results.json``) shows
+    each method's own means.
+
+    Example:
+        >>> res = {"methods": ["A", "B"], "compared": {"car": {"objects": 3, "compared": ["1", "2"]}},
+        ...        "classes": {"car": {"A": {"mean": 3.0, "count": 3, "compared_mean": 2.0},
+        ...                            "B": {"mean": 2.5, "count": 2, "compared_mean": 2.5}}},
+        ...        "mean_over_classes": {"A": 3.0, "B": 2.5}, "mean_over_classes_compared": {"A": 2.0, "B": 2.5}}
+        >>> print(format_shape_table(res))
+        | class | A | B |
+        |---|---|---|
+        | car (2 of 3) | **2.00** | 2.50 |
+        | **mean** | 2.00 | 2.50 |
+    """
+    methods, compared = res["methods"], res.get("compared")
     lines = ["| class | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
     for cls, row in sorted(res["classes"].items()):
-        vals = [row[m]["mean"] for m in methods]
-        finite = [v for v in vals if v is not None]
-        best = min(finite) if finite else None
-        cells = [f"**{_fmt(v)}**" if v is not None and v == best else _fmt(v) for v in vals]
-        n = max(row[m]["count"] for m in methods)
-        lines.append(f"| {cls} ({n}) | " + " | ".join(cells) + " |")
-    means = [res["mean_over_classes"][m] for m in methods]
-    lines.append("| **mean** | " + " | ".join(_fmt(v) for v in means) + " |")
+        lines.append(_shape_row(cls, row, methods, None if compared is None else compared.get(cls)))
+    means = res["mean_over_classes"] if compared is None else res["mean_over_classes_compared"]
+    used = sum(1 for c in (compared or {}).values() if c["compared"])
+    label = "**mean**" if compared is None or used == len(compared) else f"**mean** ({used} of {len(compared)} classes)"
+    lines.append(f"| {label} | " + " | ".join(_fmt(means[m]) for m in methods) + " |")
     return "\n".join(lines)
+
+
+def _shape_row(cls: str, row: dict, methods: list[str], compared: dict | None) -> str:
+    """One class's row of :func:`format_shape_table` (``compared``: the class's entry of ``res["compared"]``,
+    ``None`` for each method's own objects)."""
+    n = len(compared["compared"]) if compared else 0
+    apart = compared is not None and not n  # no object every method has: each its own, not to be ranked
+    vals = [row[m]["compared_mean" if n else "mean"] for m in methods]
+    if compared is None:
+        label = f"{cls} ({max(row[m]['count'] for m in methods)})"
+    elif n == compared["objects"]:
+        label = f"{cls} ({n})"
+    else:
+        label = f"{cls} ({n or ('none' if len(methods) > 1 else 0)} of {compared['objects']}" \
+                + (" in common)" if apart and len(methods) > 1 else ")")
+    finite = [v for v in vals if v is not None]
+    best = min(finite) if finite and not apart else None
+    cells = [f"**{_fmt(v)}**" if v is not None and v == best else _fmt(v) for v in vals]
+    if apart:
+        cells = [c if v is None else f"{c} ({row[m]['count']})" for c, v, m in zip(cells, vals, methods)]
+    return f"| {label} | " + " | ".join(cells) + " |"
 
 
 def format_viewpoint_table(res: dict) -> str:
@@ -407,7 +693,8 @@ def _main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="COCO keypoint JSON the reconstruction ran on (gt.json beside it)")
     ap.add_argument("--recon", required=True, action="append",
-                    help="reconstruction directory, or NAME=DIR to name the method; repeat to compare methods")
+                    help="reconstruction directory, or NAME=DIR to name the method (an existing directory whose "
+                         "path holds '=' is that directory); repeat to compare methods")
     ap.add_argument("--out", help="directory for results.json, shapes.md (not with --viewpoints-only), viewpoints.md "
                                   "and, where the runs score their objects' quality, quality.md (default: none, "
                                   "the tables are printed only)")
@@ -427,29 +714,39 @@ def _main(argv=None) -> int:
                          "are the same for every count")
     add_common(ap)
     args = ap.parse_args(argv)
-    recons = {}
-    for item in args.recon:
-        name, _, path = item.rpartition("=")
-        name = name or ("Full" if not recons else Path(path).name)
-        if name in recons:
-            print(f"error: two --recon are named {name} ({recons[name]} and {path}): name them apart "
-                  "(--recon NAME=DIR)", file=sys.stderr)
-            return 2
-        recons[name] = path
-    for name, p in recons.items():
-        if not Path(p).is_dir():
-            print(f"error: reconstruction directory {p} ({name}) not found", file=sys.stderr)
-            return 2
-    made = bool(args.out) and not Path(args.out).exists()
+    recons = _parse_recons(args.recon)
+    # the folders the check below makes (--out and the parents it lacks, deepest first): removed on failure
+    made = [d for d in (Path(args.out), *Path(args.out).parents) if not d.exists()] if args.out else []
     if args.out:
         writable_folder(args.out)  # before minutes of work, not after
     status = None
     try:
         status = _evaluate_and_write(args, recons)
     finally:
-        if made and status != 0:  # the folder made by the check above, left empty: removed
-            _remove_if_empty(Path(args.out))
+        if status != 0:
+            _remove_empty(made)
     return status
+
+
+def _parse_recons(items: list[str]) -> dict[str, str]:
+    """``--recon``'s values as method name -> directory: an existing directory is itself (whatever its path
+    holds: ``runs/a=b``), else ``NAME=DIR`` (split at the first ``=``), else a directory; unnamed, the first is
+    ``Full`` and the others their folder's name. :class:`~carvi_torch.cli.CommandError` for two of one name or
+    a directory that is not there."""
+    recons: dict[str, str] = {}
+    for item in items:
+        name, sep, path = ("", "", item) if Path(item).is_dir() else item.partition("=")
+        if not sep:
+            name, path = "", item
+        name = name or ("Full" if not recons else Path(path).name)
+        if name in recons:
+            raise CommandError(f"two --recon are named {name} ({recons[name]} and {path}): name them apart "
+                               "(--recon NAME=DIR)")
+        recons[name] = path
+    for name, p in recons.items():
+        if not Path(p).is_dir():
+            raise CommandError(f"reconstruction directory {p} ({name}) not found")
+    return recons
 
 
 def _positive_finite(text: str) -> float:
@@ -475,11 +772,93 @@ def _camera_only(recons: dict) -> list[str]:
     return out
 
 
-def _remove_if_empty(folder: Path) -> None:
-    try:
-        folder.rmdir()
-    except OSError:
-        pass
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove ``folders`` (deepest first) while they are empty: the ones this command made, left behind by a
+    failure."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
+def _print_notes(args, recons: dict, res: dict) -> None:
+    """On stderr: what was left out (:func:`_left_out_lines`), then notes on the runs (one that stopped after
+    the cameras, an unfinished one), the classes some method has no folder for, and per class each method's
+    misses (:func:`_miss_notes`)."""
+    lines = _left_out_lines(res, not args.viewpoints_only)
+    cams_only = [] if args.viewpoints_only else _camera_only(recons)
+    if cams_only:
+        lines.append(f"note: {', '.join(cams_only)} stopped after the cameras (stage=cameras): no shapes to score; "
+                     "--viewpoints-only evaluates the viewpoints alone")
+    for name in res["unfinished"]:
+        lines.append(f"note: {name} ({recons[name]}) is an unfinished run (interrupted or still running): the "
+                     "objects it has not reconstructed yet count as missing")
+    for cls, lacking in res["classes_without_reconstruction"].items():
+        lines.append(f"note: class {cls} has no reconstruction in {', '.join(lacking)}"
+                     + ("" if args.classes or len(lacking) < len(recons) else "; not evaluated"))
+    lines += _miss_notes(res, not args.viewpoints_only)
+    for line in lines:
+        print(line, file=sys.stderr)
+
+
+def _left_out_lines(res: dict, shapes: bool) -> list[str]:
+    """One line per object left out for a reason that names it: without usable ground truth (for every method);
+    a method's mesh that cannot be read or that the run skipped (``shapes``: the reason has a detail after its
+    first ``": "``, a whole unusable ``cameras.json`` aside); a method's unusable ``cameras.json`` (one line) or
+    camera."""
+    lines = []
+    for aid, row in res["objects"].items():
+        if "reason" in row:
+            lines.append(f"evaluate: {row['class']} annotation {aid} skipped: {row['reason']}")
+        for m in res["methods"] if shapes else ():
+            why = row[m].get("reason") if isinstance(row.get(m), dict) and _error(row, m) is None else None
+            if why and ": " in why and not why.startswith("unusable cameras.json"):
+                lines.append(f"evaluate: {row['class']} annotation {aid}: {m} has no shape error: {why}")
+    for name, per in res["camera_problems"].items():
+        for cls, p in per.items():
+            if p["file"]:
+                lines.append(f"evaluate: {cls}: {name}'s cameras.json is unusable, its objects left out: {p['file']}")
+            lines += [f"evaluate: {cls} annotation {aid}: {name}: {why}" for aid, why in p["objects"].items()]
+    return lines
+
+
+def _miss_notes(res: dict, shapes: bool) -> list[str]:
+    """Per class: a note per method with objects it has no shape error for (``shapes``), with the reasons and the
+    objects, saying what the shape table compares; a note per method with objects without a usable refined camera,
+    and one where a method has too few for a viewpoint report."""
+    lines = []
+    for cls, row in res["classes"].items():
+        comp = res["compared"][cls]
+        usable, n = comp["objects"] - comp["without_ground_truth"], len(comp["compared"])
+        for m in res["methods"] if shapes else ():
+            if row[m]["missing"]:
+                table = (f"the shape table compares {cls} on the {n} objects every method has" if n else
+                         f"no {cls} object has every method's: the shape table shows each method's own mean, unranked")
+                lines.append(f"note: {cls}: {m} has no shape error for {row[m]['missing']} of {usable} objects "
+                             f"({_grouped(row[m]['missing_reasons'])}); {table}")
+        for m, cov in res["viewpoint_coverage"].get(cls, {}).items():
+            groups: dict[str, list] = {}
+            for aid, why in cov["missing"].items():
+                groups.setdefault(why.split(": ", 1)[0], []).append(aid)
+            if groups:
+                lines.append(f"note: {cls}: {m} has no usable refined camera for {len(cov['missing'])} of {usable} "
+                             f"objects ({_grouped(groups)}); its viewpoint rows count the others")
+            if cov["objects"] < 2:
+                lines.append(f"note: {cls}: no viewpoint report for {m}: {cov['objects']} object(s) with a refined "
+                             "camera and ground truth (the global alignment needs at least 2)")
+    return lines
+
+
+def _grouped(groups: dict, most: int = 10) -> str:
+    """Reasons with their objects' ids, the first ``most`` of each.
+
+    Example:
+        >>> _grouped({"no reconstruction": ["3", "4"], "unreadable mesh": [str(i) for i in range(12)]})
+        'no reconstruction: 3, 4; unreadable mesh: 0, 1, 2, 3, 4, 5, 6, 7, 8, 9 and 2 more'
+    """
+    return "; ".join(f"{why}: {', '.join(ids[:most])}" + (f" and {len(ids) - most} more" if len(ids) > most else "")
+                     for why, ids in groups.items())
 
 
 def _evaluate_and_write(args, recons: dict) -> int:
@@ -491,16 +870,11 @@ def _evaluate_and_write(args, recons: dict) -> int:
     except (FileNotFoundError, ValueError, CocoFormatError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    cams_only = [] if args.viewpoints_only else _camera_only(recons)
-    if cams_only:
-        print(f"note: {', '.join(cams_only)} stopped after the cameras (stage=cameras): no shapes to score; "
-              "--viewpoints-only evaluates the viewpoints alone", file=sys.stderr)
-    for cls, lacking in res["classes_without_reconstruction"].items():
-        print(f"note: class {cls} has no reconstruction in {', '.join(lacking)}"
-              + ("" if args.classes or len(lacking) < len(recons) else "; not evaluated"), file=sys.stderr)
+    _print_notes(args, recons, res)
     shapes, views = format_shape_table(res), format_viewpoint_table(res)
     if not args.viewpoints_only:
-        print("Symmetric RMS error, % of the ground-truth bounding-box diagonal (objects per class in brackets)")
+        print("Symmetric RMS error, % of the ground-truth bounding-box diagonal (per class the objects every method "
+              "is compared on in brackets, of those in scope)")
         print(shapes)
         print()
     print("Viewpoint errors (degrees) after global alignment")

@@ -39,27 +39,43 @@ def spearman(x, y) -> dict:
 
 
 def _per_object(res: dict, method: str, recon: Path) -> dict:
-    """``{aid: {"class", "quality", signals..., "viewpoint_deg", "shape_percent"}}`` of one method."""
+    """``{aid: {"class", "quality", signals..., "viewpoint_deg", "shape_percent"}}`` of one method (an entry of
+    ``cameras.json`` that is not an object, or whose quality is not a number, left out; a file that cannot be
+    read as one, all of its class: evaluate says why)."""
     rows: dict = {}
     for cls, per in res.get("viewpoints", {}).items():
-        p = recon / cls / "cameras.json"
-        cams = read_json(p).get("cameras", {}) if p.is_file() else {}
+        cams = _cameras(recon / cls / "cameras.json")
         rep = per.get(method, {}).get("refined") or {}
         geo = dict(zip(map(str, rep.get("annotation_ids", [])), rep.get("per_instance_geodesic", [])))
         for aid, entry in cams.items():
-            q = entry.get("quality")
-            if q is None:
+            q = entry.get("quality") if isinstance(entry, dict) else None
+            if isinstance(q, bool) or not isinstance(q, (int, float)):
                 continue
             obj = res.get("objects", {}).get(aid, {}).get(method)
             shape = obj.get("error_percent") if isinstance(obj, dict) else None
-            sig = entry.get("quality_signals") or {}
+            sig = entry.get("quality_signals") if isinstance(entry.get("quality_signals"), dict) else {}
             rows[aid] = {"class": cls, "quality": q, **{k: sig.get(k) for k in SIGNALS},
                          "viewpoint_deg": geo.get(aid), "shape_percent": shape}
     return rows
 
 
+def _cameras(path: Path) -> dict:
+    """The ``cameras`` of a ``cameras.json`` (``{}`` without a file, or one that is not a JSON object with them)."""
+    try:
+        content = read_json(path) if path.is_file() else {}
+    except (OSError, ValueError):
+        return {}
+    cams = content.get("cameras") if isinstance(content, dict) else None
+    return cams if isinstance(cams, dict) else {}
+
+
 def _nan(v) -> float:
-    return float(v) if v is not None and math.isfinite(float(v)) else float("nan")
+    """``v`` as a float, NaN for ``None``, a non-finite value or anything that is not a number."""
+    try:
+        v = float(v)
+    except (TypeError, ValueError, OverflowError):
+        return float("nan")
+    return v if math.isfinite(v) else float("nan")
 
 
 def quality_vs_error(res: dict) -> dict:

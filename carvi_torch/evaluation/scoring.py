@@ -1,8 +1,12 @@
 """The shape error of every object of an evaluation (:func:`carvi_torch.evaluate.evaluate`'s scoring).
 
+* :func:`gt_problem`, :func:`camera_problem`: what makes a ``gt.json`` record or a run's camera unusable (the
+  object is then left out with that reason, and the rest evaluated);
 * :func:`posed_gt_mesh`: an annotation's ground-truth mesh in its reference camera frame;
-* :func:`load_recon_mesh`: a run's mesh of an object;
-* :class:`ShapeScorer`: one object's error for every method (and the baselines) against its posed ground truth;
+* :func:`load_recon_mesh`: a run's mesh of an object (:func:`read_mesh`: a file trimesh cannot read is a
+  ``ValueError`` naming it);
+* :class:`ShapeScorer`: one object's error for every method (and the baselines) against its posed ground truth,
+  or why there is none;
 * :func:`score_shapes`: every object's, in this process or in worker processes (:func:`default_jobs`), one
   torch thread each: the errors do not depend on how many.
 """
@@ -26,8 +30,9 @@ from ..mesh import MESH_FORMATS
 from ..runtime import LeanProcessPool, cores, start_method, torch_threads
 from . import metrics
 
-__all__ = ["POOL_FROM", "MAX_JOBS", "default_jobs", "posed_gt_mesh", "load_recon_mesh", "ShapeScorer", "score_shapes",
-           "score_mesh", "puffball_mesh", "sfmc_mesh"]
+__all__ = ["POOL_FROM", "MAX_JOBS", "ROTATION_TOLERANCE", "NO_RECONSTRUCTION", "default_jobs", "numbers",
+           "rotation_problem", "gt_problem", "camera_problem", "read_mesh", "posed_gt_mesh", "load_recon_mesh",
+           "ShapeScorer", "score_shapes", "score_mesh", "puffball_mesh", "sfmc_mesh"]
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +41,122 @@ log = logging.getLogger(__name__)
 POOL_FROM = 16
 #: At most this many worker processes by default (each holds torch and its ground-truth meshes: a few hundred MB).
 MAX_JOBS = 8
+#: How far ``R R^T`` may be from the identity for ``R`` (of ``gt.json`` or of a run) to count as a rotation.
+ROTATION_TOLERANCE = 1e-3
+#: The reason of an object that a method has no mesh for (and nothing more is known).
+NO_RECONSTRUCTION = "no reconstruction"
+
+
+def numbers(value, shape: tuple, finite: bool = True) -> bool:
+    """Whether ``value`` is nested lists of ``shape`` holding numbers (not booleans; finite ones where ``finite``).
+
+    Example:
+        >>> numbers([[1, 2.5], [3, 4]], (2, 2)), numbers([1, "2"], (2,)), numbers(None, ())
+        (True, False, False)
+        >>> numbers(float("nan"), ()), numbers(float("nan"), (), finite=False)
+        (False, True)
+    """
+    if shape:
+        return isinstance(value, list) and len(value) == shape[0] and all(numbers(v, shape[1:], finite)
+                                                                          for v in value)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return not finite or math.isfinite(value)
+    except OverflowError:  # an integer too large for a float
+        return False
+
+
+def _shown(value, width: int = 40) -> str:
+    """``value`` as one short line (its ``repr``, cut at ``width`` characters)."""
+    text = " ".join(repr(value).split())
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
+def rotation_problem(R) -> str | None:
+    """Why ``R`` is no rotation matrix (3 x 3 finite numbers whose ``R R^T`` is the identity within
+    :data:`ROTATION_TOLERANCE`, determinant +1); ``None`` when it is one.
+
+    Example:
+        >>> rotation_problem([[0, -1, 0], [1, 0, 0], [0, 0, 1]]) is None
+        True
+        >>> rotation_problem([[2, 0, 0], [0, 2, 0], [0, 0, 2]]), rotation_problem([[1, 0, 0], [0, 1, 0]])
+        ('R is not a rotation', 'R is not 3 x 3 finite numbers')
+    """
+    if not numbers(R, (3, 3)):
+        return "R is not 3 x 3 finite numbers"
+    R = np.asarray(R, dtype=np.float64)
+    if np.abs(R @ R.T - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+        return "R is not a rotation"
+    return None
+
+
+def gt_problem(entry) -> str | None:
+    """What makes an annotation's ``gt.json`` record unusable (an object with ``mesh``, a file name; ``R`` a
+    rotation, :func:`rotation_problem`; ``s`` a finite positive number; ``t`` two finite numbers), ``None`` when
+    nothing does. The mesh file itself is read when the object is scored (:func:`posed_gt_mesh`).
+
+    Example:
+        >>> gt_problem({"mesh": "m.ply", "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "s": 2.0, "t": [0, 1]}) is None
+        True
+        >>> gt_problem({"mesh": "m.ply", "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "s": None, "t": [0, 1]})
+        's is None, not a finite positive number'
+        >>> gt_problem("oops")
+        "its entry is 'oops', not an object"
+    """
+    if not isinstance(entry, dict):
+        return f"its entry is {_shown(entry)}, not an object"
+    mesh, s, t = entry.get("mesh"), entry.get("s"), entry.get("t")
+    if not isinstance(mesh, str) or not mesh:
+        return f"mesh is {_shown(mesh)}, not a file name"
+    why = rotation_problem(entry.get("R"))
+    if why:
+        return why
+    if not numbers(s, ()) or s <= 0:
+        return f"s is {_shown(s)}, not a finite positive number"
+    if not numbers(t, (2,)):
+        return f"t is {_shown(t)}, not 2 finite numbers"
+    return None
+
+
+def camera_problem(cam) -> str | None:
+    """What makes a camera of a run's ``cameras.json`` (an entry's ``sfm`` or ``refined``) unusable, ``None`` when
+    nothing does: ``R`` 3 x 3 numbers, a rotation (:func:`rotation_problem`) where finite; ``s`` a number; ``t``
+    two numbers. A non-finite camera (an estimate that failed) is usable: the viewpoint report leaves it out.
+
+    Example:
+        >>> camera_problem({"R": [[1, 0, 0], [0, 1, 0]], "s": 1.0, "t": [0, 0]})
+        'R is not 3 x 3 numbers'
+        >>> camera_problem({"R": [[float("nan")] * 3] * 3, "s": 1.0, "t": [0, 0]}) is None
+        True
+    """
+    if not isinstance(cam, dict):
+        return f"{_shown(cam)} is not an object with R, s and t"
+    R, s, t = cam.get("R"), cam.get("s"), cam.get("t")
+    if not numbers(R, (3, 3), finite=False):
+        return "R is not 3 x 3 numbers"
+    if numbers(R, (3, 3)) and rotation_problem(R):
+        return rotation_problem(R)
+    if not numbers(s, (), finite=False):
+        return f"s is {_shown(s)}, not a number"
+    if not numbers(t, (2,), finite=False):
+        return f"t is {_shown(t)}, not 2 numbers"
+    return None
+
+
+def read_mesh(path: Path) -> trimesh.Trimesh:
+    """The mesh in the file ``path``; ``ValueError`` naming the file when there is none it can be read as (no
+    file, a format trimesh does not read, a damaged file)."""
+    if not Path(path).is_file():
+        raise ValueError(f"cannot read {path}: {'a folder, not a file' if Path(path).is_dir() else 'no such file'}")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # noqa: BLE001 - trimesh raises many kinds for a file it cannot read
+        lines = str(e).strip().splitlines()
+        raise ValueError(f"cannot read {path}: {lines[0] if lines else type(e).__name__}") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise ValueError(f"cannot read {path}: it holds no mesh")
+    return mesh
 
 
 def posed_gt_mesh(entry: dict, root: Path, cache: dict | None = None) -> tuple[trimesh.Trimesh, float]:
@@ -53,7 +174,7 @@ def posed_gt_mesh(entry: dict, root: Path, cache: dict | None = None) -> tuple[t
     if cache is not None and path in cache:
         base = cache[path]
     else:
-        base = trimesh.load(path, force="mesh", process=False)
+        base = read_mesh(path)
         if cache is not None:
             cache[path] = base
     cam = ScaledOrthographic.from_list([entry], dtype=torch.float64)
@@ -68,13 +189,14 @@ def load_recon_mesh(recon: Path, cls: str, aid, cams: dict | None) -> trimesh.Tr
     """The run's mesh of object ``aid``, or ``None``: no mesh, or the object is not in the class's
     ``cameras.json`` (``cams``, its content), which holds the objects of the run's latest input (a mesh an
     earlier run left for an object the input has since dropped is not the run's; a folder of meshes without
-    ``cameras.json`` (``cams`` ``None``), another method's, is taken as it is)."""
+    ``cameras.json`` (``cams`` ``None``), another method's, is taken as it is). A file it cannot read is a
+    ``ValueError`` naming it (:func:`read_mesh`)."""
     if cams is not None and str(aid) not in cams.get("cameras", {}):
         return None
     for ext in MESH_FORMATS:
         p = object_file(recon / cls, "meshes", aid, ext)
         if p.is_file():
-            return trimesh.load(p, force="mesh", process=False)
+            return read_mesh(p)
     return None
 
 
@@ -90,6 +212,21 @@ class ShapeScorer:
     collections: dict  # class -> its loaded collection (the baselines' masks)
     mesh_cache: dict = dataclasses.field(default_factory=dict)
     rows_of: dict = dataclasses.field(default_factory=dict)  # class -> annotation id (str) -> its collection row
+    #: method -> why an object has no mesh: keyed ``(class, annotation id as str)``, then ``(class, None)`` for
+    #: every object of the class, then ``(None, None)`` for every object (:meth:`missing_reason`)
+    missing: dict = dataclasses.field(default_factory=dict)
+
+    def missing_reason(self, name: str, cls: str, aid) -> str:
+        """Why method ``name`` has no mesh of object ``aid``: the most specific reason :attr:`missing` knows,
+        else :data:`NO_RECONSTRUCTION`.
+
+        Example:
+            >>> s = ShapeScorer(Path("."), {}, {}, 1.0, False, {}, missing={"B": {(None, None): "unfinished"}})
+            >>> s.missing_reason("B", "car", 3), s.missing_reason("A", "car", 3)
+            ('unfinished', 'no reconstruction')
+        """
+        why = self.missing.get(name, {})
+        return why.get((cls, str(aid))) or why.get((cls, None)) or why.get((None, None)) or NO_RECONSTRUCTION
 
     def _row(self, cls: str, aid) -> int | None:
         """The row of ``aid`` in its class's collection (``None``: not there), the class's index built once."""
@@ -113,8 +250,12 @@ class ShapeScorer:
             return
         step = self.step_percent / 100.0 * gt_mesh.diag
         for name, rdir in self.recons.items():
-            m = load_recon_mesh(Path(rdir), cls, aid, self.cameras[name][cls])
-            row[name] = score_mesh(m, gt_mesh, step, "no reconstruction")
+            try:
+                m = load_recon_mesh(Path(rdir), cls, aid, self.cameras[name][cls])
+            except ValueError as e:  # a file that is no mesh: this method's object, the others go on
+                row[name] = {"error_percent": None, "reason": f"unreadable mesh: {e}"}
+                continue
+            row[name] = score_mesh(m, gt_mesh, step, self.missing_reason(name, cls, aid))
         if self.baselines:
             row["Puffball"] = score_mesh(puffball_mesh(self.collections.get(cls), self._row(cls, aid)), gt_mesh,
                                          step, "no mask")
@@ -218,9 +359,10 @@ def sfmc_mesh(cj: dict | None, aid: int):
     if cj is None:
         return None
     cam = cj.get("cameras", {}).get(str(aid), {}).get("refined")
-    if cam is None:
+    shape = cj.get("mean_shape")
+    if cam is None or camera_problem(cam) or not isinstance(shape, dict):
         return None
-    S = torch.tensor([v for v in cj.get("mean_shape", {}).values() if v is not None], dtype=torch.float64)
+    S = torch.tensor([v for v in shape.values() if numbers(v, (3,))], dtype=torch.float64)
     if len(S) < 4:
         return None
     from .baselines import sfm_convex_hull
