@@ -14,20 +14,24 @@ builds and renders the embedded procedural classes (the default data of
 VOC/SBD masks) through :mod:`carvi_torch.io.voc`. Each writes ``annotations.json`` (and,
 for synthetic data, ``gt.json`` and ``meshes/``) into ``--out``. ``synthetic`` and ``procedural`` write only
 into a new or empty folder, or over an earlier dataset of theirs, which they replace whole (its ``meshes/``
-is cleared first, so no file of the earlier models stays); any other ``--out`` is refused before anything
-is written.
+and ``images/`` are cleared first, so no file of the earlier models stays); any other ``--out`` is refused
+before anything is written, and so is a ``--meshes`` inside ``--out`` (or the other way round). ``synthetic``
+skips a model it cannot render (an unreadable file, a malformed keypoint file, no faces or no extent, no
+keypoints, keypoints far off the mesh: :mod:`carvi_torch.synthetic.meshes`) with one ``warning:`` line naming
+the file and renders the rest; only when no model is left is it an error.
 """
 from __future__ import annotations
 
 import argparse
+import math
 import shutil
 import sys
 import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
-from .cli import (CommandError, add_common, nonneg_int, positive_int, program, run_command, split_classes,
-                  writable_file, writable_folder)
+from .cli import (CommandError, add_common, positive_int, program, run_command, split_classes, writable_file,
+                  writable_folder)
 from .runtime import check_replaceable
 
 __all__ = ["build_parser", "main", "DATASET_NAMES"]
@@ -37,17 +41,33 @@ DATASET_NAMES = frozenset({"annotations.json", "gt.json", "meshes", "images"})
 
 
 def _nonneg_float(text: str) -> float:
-    v = float(text)
-    if not v >= 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text}")
+    """An argparse type: a finite number >= 0 (argparse's error naming the option otherwise)."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0 (pixels), got {text!r}")
+    return v
+
+
+def _nonneg_int(text: str) -> int:
+    """An argparse type: an integer >= 0 (argparse's error naming the option otherwise)."""
+    try:
+        v = int(text)
+    except ValueError:
+        v = -1
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
     return v
 
 
 def _add_render_options(p: argparse.ArgumentParser, views_default: int, views_help: str) -> None:
     p.add_argument("--views", type=positive_int, default=views_default, help=views_help)
-    p.add_argument("--test-views", type=nonneg_int, default=0,
+    p.add_argument("--test-views", type=_nonneg_int, default=0,
                    help="the first N renders of each model get split 'test', the others 'pool' (default 0)")
-    p.add_argument("--seed", type=int, default=0, help="random seed; the same seed writes the same files (default 0)")
+    p.add_argument("--seed", type=_nonneg_int, default=0,
+                   help="random seed, an integer >= 0; the same seed writes the same files (default 0)")
     size = p.add_mutually_exclusive_group()
     size.add_argument("--image-size", type=positive_int, nargs=2, metavar=("W", "H"), default=None,
                       help="image width and height in pixels (default 320 240)")
@@ -58,8 +78,14 @@ def _add_render_options(p: argparse.ArgumentParser, views_default: int, views_he
     p.add_argument("--boundary-noise", type=_nonneg_float, default=0.0, metavar="P",
                    help="standard deviation (pixels) of a smooth random displacement of the mask "
                         "boundary along its normal (default 0)")
-    p.add_argument("--device", default="cpu", help="torch device for rasterisation (default cpu)")
+    p.add_argument("--device", default="cpu", help="torch device for rasterisation: cpu, cuda or cuda:N (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+#: What ``synthetic``'s and ``procedural``'s ``--help`` say about ``--out``.
+_OUT_RULE = ("--out must be a new or empty folder or an earlier dataset of 'synthetic' or 'procedural', which is "
+             "replaced: its annotations.json and gt.json are rewritten and its meshes/ and images/ folders deleted "
+             "first; any other --out is refused before anything is written.")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -73,12 +99,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     syn = sub.add_parser(
         "synthetic", help="render meshes with 3-D keypoints into masks + 2-D keypoints",
-        description="Render every model of --meshes (PASCAL3D+ .npz files, or .ply/.obj/.off/.stl/.glb meshes "
-                    "with a .json of {'class', 'keypoints': {name: [x, y, z]}} beside them) from random "
+        description="Render every model of --meshes (PASCAL3D+ .npz files, or .ply/.obj/.off/.stl/.glb/.gltf "
+                    "meshes with a .json of {'class', 'keypoints': {name: [x, y, z]}} beside them) from random "
                     "photograph-like scaled orthographic cameras. Writes OUT/annotations.json (COCO keypoints, "
-                    "RLE masks), OUT/gt.json (true cameras) and OUT/meshes/<model>.ply.")
-    syn.add_argument("--meshes", required=True, metavar="DIR", help="directory of models")
-    syn.add_argument("--out", required=True, metavar="DIR", help="output directory")
+                    "RLE masks), OUT/gt.json (true cameras) and OUT/meshes/<model>.ply. A model that cannot be "
+                    "rendered (unreadable, no faces or extent, no keypoints, keypoints far off the mesh) is "
+                    "skipped with a warning naming its file; exit status 2 when none can be. " + _OUT_RULE)
+    syn.add_argument("--meshes", required=True, metavar="DIR", help="directory of models (outside --out)")
+    syn.add_argument("--out", required=True, metavar="DIR",
+                     help="output directory: new, empty, or an earlier dataset (replaced whole)")
     syn.add_argument("--sides", choices=("class", "as-given"), default="class",
                      help="left/right keypoint names: 'class' (default) renames a pair that one model names from "
                           "the other side than every other model of its class (a warning names it); 'as-given' "
@@ -89,8 +118,9 @@ def build_parser() -> argparse.ArgumentParser:
         "procedural", help="build and render the embedded procedural classes (car, aeroplane, chair, bottle)",
         description="Build --instances random instances of each procedural class (meshes from parts, with "
                     "keypoints) and render each --views times (default once: many instances, one photograph "
-                    "each, like PASCAL VOC). Same outputs as 'synthetic'.")
-    proc.add_argument("--out", required=True, metavar="DIR", help="output directory")
+                    "each, like PASCAL VOC). Same outputs as 'synthetic'. " + _OUT_RULE)
+    proc.add_argument("--out", required=True, metavar="DIR",
+                      help="output directory: new, empty, or an earlier dataset (replaced whole)")
     proc.add_argument("--instances", type=positive_int, default=40, help="instances per class (default 40)")
     proc.add_argument("--classes", default=None, metavar="A,B",
                       help="comma-separated classes to build (default: aeroplane,bottle,car,chair)")
@@ -129,25 +159,83 @@ def _print_summary(summary: dict) -> None:
     print(f"  {summary['gt']}")
 
 
+def _checked_device(text: str):
+    """The ``torch.device`` of ``--device`` (:class:`CommandError` for one that is no torch device, is neither CPU
+    nor CUDA, or is absent on this machine), checked before any work."""
+    import torch
+
+    try:
+        dev = torch.device(text)
+    except (RuntimeError, ValueError):
+        raise CommandError(f"--device {text!r}: not a torch device (use cpu, cuda or cuda:N)") from None
+    if dev.type == "cpu":
+        return dev
+    if dev.type != "cuda":
+        raise CommandError(f"--device {text}: the renders run on cpu or cuda[:N]")
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if count == 0:
+        raise CommandError(f"--device {text}: no CUDA device is available (use --device cpu)")
+    if (dev.index or 0) >= count:
+        raise CommandError(f"--device {text}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
+    return dev
+
+
+def _check_apart(meshes: str, out: str) -> None:
+    """:class:`CommandError` when ``--meshes`` and ``--out`` overlap (after links): a dataset written into ``--out``
+    replaces its ``meshes/`` and ``images/`` and writes files there, so models inside it would be lost, and an
+    ``--out`` inside the folder of models would mix outputs with the inputs."""
+    m, o = Path(meshes).resolve(), Path(out).resolve()
+    if m == o:
+        raise CommandError(f"--meshes {meshes} and --out {out} are the same folder; the dataset would replace the "
+                           "models: choose another --out (nothing was written)")
+    if o in m.parents:
+        raise CommandError(f"--meshes {meshes} lies inside --out {out}, whose meshes/ and images/ a new dataset "
+                           "replaces: keep the models elsewhere or choose another --out (nothing was written)")
+    if m in o.parents:
+        raise CommandError(f"--out {out} lies inside --meshes {meshes}: choose an --out outside the folder of "
+                           "models (nothing was written)")
+
+
+def _read_models(args) -> list:
+    """The models of ``--meshes`` (:func:`~carvi_torch.synthetic.meshes.load_models`): each warning (a model skipped,
+    a left/right pair renamed) printed as one ``warning:`` line; :class:`CommandError` when none can be used."""
+    from .synthetic.meshes import load_models
+
+    with warnings.catch_warnings(record=True) as caught:  # one "warning:" line each, not Python's form
+        warnings.simplefilter("always", UserWarning)
+        try:
+            return load_models(args.meshes, sides=args.sides)
+        except (FileNotFoundError, ValueError) as e:
+            raise CommandError(str(e)) from None
+        finally:
+            for w in caught:
+                if issubclass(w.category, UserWarning):
+                    print(f"warning: {w.message}", file=sys.stderr)
+
+
 def _synthetic_job(args) -> Callable[[], dict]:
     """Check ``synthetic``'s inputs and read its models (:class:`CommandError` on a user error); returns the
-    render."""
-    from .synthetic.meshes import load_models
+    render, which says each view left out (an empty mask) on a ``warning:`` line."""
     from .synthetic.render import render_dataset
 
     if args.test_views > args.views:
         raise CommandError(f"--test-views ({args.test_views}) exceeds --views ({args.views})")
-    try:
-        with warnings.catch_warnings(record=True) as caught:  # one "warning:" line each, not Python's form
-            warnings.simplefilter("always")
-            models = load_models(args.meshes, sides=args.sides)
-    except (FileNotFoundError, ValueError) as e:
-        raise CommandError(str(e)) from None
-    for w in caught:
-        print(f"warning: {w.message}", file=sys.stderr)
-    return lambda: render_dataset(models, args.out, views=args.views, test_views=args.test_views, seed=args.seed,
-                                  image_size=_image_size(args), keypoint_noise=args.keypoint_noise,
-                                  boundary_noise=args.boundary_noise, progress=not args.quiet, device=args.device)
+    device = _checked_device(args.device)
+    models = _read_models(args)
+    sources = {m.name: m.source or m.name for m in models}
+
+    def render() -> dict:
+        summary = render_dataset(models, args.out, views=args.views, test_views=args.test_views, seed=args.seed,
+                                 image_size=_image_size(args), keypoint_noise=args.keypoint_noise,
+                                 boundary_noise=args.boundary_noise, progress=not args.quiet, device=device)
+        for name, n in summary.get("empty_views", {}).items():
+            print(f"warning: {sources[name]}: {n} of {args.views} views show no pixel of the mesh (seen edge-on?); "
+                  "left out", file=sys.stderr)
+        if not summary["images"]:
+            raise CommandError(f"no view of any model shows a pixel of it; {args.out} holds no annotation")
+        return summary
+
+    return render
 
 
 def _procedural_job(args) -> Callable[[], dict]:
@@ -161,11 +249,12 @@ def _procedural_job(args) -> Callable[[], dict]:
         bad = [c for c in classes if c not in CATEGORIES]
         if bad:
             raise CommandError(f"unknown classes {bad}; choose from {list(CATEGORIES)}")
+    device = _checked_device(args.device)
     return lambda: write_default_collection(args.out, instances_per_class=args.instances,
                                             views_per_instance=args.views, seed=args.seed, categories=classes,
                                             image_size=_image_size(args), test_views=args.test_views,
                                             keypoint_noise=args.keypoint_noise, boundary_noise=args.boundary_noise,
-                                            progress=not args.quiet, device=args.device)
+                                            progress=not args.quiet, device=device)
 
 
 def _run_voc(args) -> int:
@@ -207,12 +296,13 @@ def _remove_empty(folders: list[Path]) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the exit status (0 success; 2 bad arguments or input, or an ``--out`` that cannot be
     written: one ``error:`` line, ``--out`` and then the inputs checked before the work, and the folders made
-    for ``--out`` removed again on a user error in the inputs; 130 interrupted by Ctrl-C)."""
+    for ``--out`` removed again on a user error in the inputs; 130 interrupted by Ctrl-C). ``synthetic`` skips
+    each model it cannot render with a ``warning:`` line naming the file and renders the rest: exit status 2
+    only when no model is left."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
-        parser.print_help()
-        return 2
+        parser.error("choose what to make: synthetic, procedural or voc (each has --help)")
     jobs = {"synthetic": _synthetic_job, "procedural": _procedural_job}
 
     def body() -> int:
@@ -221,6 +311,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return int(_run_voc(args) or 0)
         out = Path(args.out)
         check_replaceable(out, _not_dataset, "an earlier synthetic or procedural dataset", CommandError)
+        if args.command == "synthetic":
+            _check_apart(args.meshes, args.out)
         made = [d for d in (out, *out.parents) if not d.exists()]  # deepest first
         writable_folder(out)
         try:

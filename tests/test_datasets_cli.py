@@ -447,6 +447,11 @@ def test_cli_help(command, capsys):
     assert "usage" in text
     if command == ["synthetic"]:
         assert "--meshes" in text and "--boundary-noise" in text and "--image-size" in text and "--canvas" in text
+        from carvi_torch.synthetic.meshes import MESH_SUFFIXES
+
+        words = " ".join(text.split())  # argparse wraps lines anywhere
+        assert all(s in words for s in (".npz", *MESH_SUFFIXES)), words
+        assert "meshes/ and images/ folders deleted first" in words and "replaced" in words
     if command == ["voc"]:
         assert "--keypoints" in text and "--masks" in text
 
@@ -558,3 +563,96 @@ def test_cli_module_entry_point():
             "runpy.run_module('carvi_torch.datasets', run_name='__main__', alter_sys=True)")
     [(rc, out, err)] = run_each_in_a_fresh_process([code], cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": ""})
     assert rc == 0 and "--meshes" in out, err[-2000:]
+
+
+def _models_folder(folder: Path, names=("thing1", "thing2")) -> dict[str, bytes]:
+    """Good models (box + keypoint JSON) in ``folder``; returns every file's bytes."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        m = _sided_model(name, STD)
+        m.to_trimesh().export(folder / f"{name}.ply")
+        (folder / f"{name}.json").write_text(json.dumps({"class": "thing", "keypoints": m.keypoint_dict()}))
+    return {p.name: p.read_bytes() for p in folder.iterdir()}
+
+
+@pytest.mark.parametrize("out", ["{d}", "{d}/meshes", "{d}/meshes/o", "{link}"])
+def test_cli_synthetic_refuses_an_out_that_holds_or_lies_in_its_models(out, tmp_path, capsys):
+    """Models in D/meshes and ``--out D`` (which holds only ``meshes``, so looks like an earlier dataset) used to
+    exit 0 with every keypoint file deleted and the meshes overwritten; overlapping folders (also through a link)
+    are one ``error:`` line, exit 2, nothing written or removed."""
+    d = tmp_path / "D"
+    before = _models_folder(d / "meshes")
+    (tmp_path / "link").symlink_to(d)
+    out = out.format(d=d, link=tmp_path / "link")
+    rc = datasets.main(["synthetic", "--meshes", str(d / "meshes"), "--out", out, "--views", "1", "--canvas", "32",
+                        "--quiet"])
+    err = capsys.readouterr().err.splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error: --"), err
+    assert {p.name: p.read_bytes() for p in (d / "meshes").iterdir()} == before
+    assert sorted(p.name for p in d.iterdir()) == ["meshes"]
+
+
+def test_cli_synthetic_skips_each_bad_model_with_a_warning_and_renders_the_rest(tmp_path, capsys):
+    """Bad models used to stop the whole dataset (exit 2, a traceback, an error without the file's name) or
+    render empty masks silently; each is now one ``warning:`` line naming its file, the good ones are rendered
+    (exit 0, every annotation with a mask), and a folder of nothing but bad models is exit 2."""
+    meshes = tmp_path / "meshes"
+    _models_folder(meshes, ["thing1"])
+    (meshes / "thing2.npz").write_bytes(b"PK\x03\x04 junk")
+    (meshes / "thing3.ply").write_text("OBJ text, not PLY\n")
+    (meshes / "thing4.obj").write_bytes(b"")
+    (meshes / "thing5.json").write_text("[1, 2]")
+    _sided_model("thing5", STD).to_trimesh().export(meshes / "thing5.ply")
+    for n in ("thing3", "thing4"):
+        (meshes / f"{n}.json").write_text(json.dumps({"keypoints": {"top": [0, 0, 0]}}))
+    args = ["synthetic", "--meshes", str(meshes), "--views", "2", "--canvas", "32", "--quiet", "--out"]
+    assert datasets.main([*args, str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert [line.split(":")[1].strip() for line in err] == [str(meshes / f) for f in
+                                                           ("thing2.npz", "thing3.ply", "thing4.obj", "thing5.json")]
+    assert all(line.startswith("warning: ") and line.endswith("skipped") for line in err), err
+    data = json.loads((tmp_path / "out" / "annotations.json").read_text())
+    assert {a["source"] for a in data["annotations"]} == {"thing1.ply"} and len(data["annotations"]) == 2
+    assert all(a["area"] > 0 for a in data["annotations"])
+    (meshes / "thing1.json").unlink()
+    assert datasets.main([*args, str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 6 and err[-1].startswith("error: ") and "no usable models" in err[-1], err
+    assert "Traceback" not in "".join(err) and not (tmp_path / "none").exists()
+
+
+@pytest.mark.parametrize("option, value, said", [
+    ("--seed", "-1", "expected an integer >= 0"), ("--seed", "x", "expected an integer >= 0"),
+    ("--test-views", "abc", "expected an integer >= 0"), ("--keypoint-noise", "inf", "expected a finite number"),
+    ("--keypoint-noise", "abc", "expected a finite number"), ("--boundary-noise", "nan", "expected a finite number"),
+    ("--views", "two", "expected an integer >= 1")])
+def test_cli_option_values_are_checked_by_argparse_naming_the_option(option, value, said, tmp_path, capsys):
+    """``--seed -1`` used to fail mid-render with a traceback, ``--keypoint-noise inf`` to write null keypoints
+    marked visible, and a bad value's message to name a function (``invalid _nonneg_float value``)."""
+    with pytest.raises(SystemExit) as e:
+        datasets.main(["synthetic", "--meshes", str(tmp_path), "--out", str(tmp_path / "o"), option, value])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and f"error: argument {option}: {said}" in err and "invalid" not in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("device", ["bogus", "cuda:7", "meta"])
+def test_cli_device_is_checked_before_any_work(device, tmp_path, capsys):
+    if device == "cuda:7" and torch.cuda.is_available() and torch.cuda.device_count() > 7:
+        pytest.skip("this machine has a cuda:7")
+    meshes = tmp_path / "meshes"
+    _models_folder(meshes, ["thing1"])
+    for command in (["synthetic", "--meshes", str(meshes)], ["procedural", "--instances", "1"]):
+        assert datasets.main([*command, "--out", str(tmp_path / "o"), "--device", device, "--quiet"]) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and err[0].startswith("error: --device ") and device in err[0], err
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["meshes"]
+
+
+def test_cli_without_a_subcommand_is_a_usage_error(capsys):
+    """It printed the help to stdout with exit status 2 and no ``error:`` line."""
+    with pytest.raises(SystemExit) as e:
+        datasets.main([])
+    cap = capsys.readouterr()
+    assert e.value.code == 2 and cap.out == ""
+    assert "error: choose what to make: synthetic, procedural or voc" in cap.err.splitlines()[-1]

@@ -18,6 +18,7 @@ from carvi_torch.synthetic.render import (
     perturb_boundary,
     rasterize_depth,
     rasterize_triangles,
+    render_dataset,
     render_view,
     sample_cameras,
     seed_generator,
@@ -367,3 +368,59 @@ def test_render_on_cuda_matches_cpu(generator):
                                    rasterize_depth(uv, z, F, 48, 64))
     noisy = perturb_boundary(cpu["mask"].cuda(), 1.5, torch.Generator().manual_seed(0))
     assert noisy.is_cuda and noisy.shape == (48, 64)
+
+
+# --------------------------------------------------------------------------- render_dataset: degenerate models
+
+
+def _box_model(name: str = "box1", scale: float = 1.0):
+    from carvi_torch.synthetic.meshes import Model
+
+    V, F = cube_mesh(0.5)
+    kp = torch.tensor([[-0.5, -0.5, 0.5], [0.5, -0.5, 0.5], [0.0, 0.0, 0.5]])
+    return Model(name, "thing", V.double() * scale, F, ["left_front", "right_front", "top"], kp.double() * scale)
+
+
+def test_render_dataset_masks_are_the_same_in_any_unit(tmp_path):
+    """The cameras frame the model by its own size: a box 1e-12 or 1e12 wide renders as the unit box does (no
+    absolute size floor, which made a 1e-12 box an empty mask with visible keypoints)."""
+    import json
+
+    anns = {}
+    for scale in (1.0, 1e-12, 1e12):
+        render_dataset([_box_model(scale=scale)], tmp_path / str(scale), views=3, seed=1, image_size=48,
+                       progress=False)
+        anns[scale] = json.loads((tmp_path / str(scale) / "annotations.json").read_text())["annotations"]
+    for scale in (1e-12, 1e12):
+        assert [a["area"] for a in anns[scale]] == [a["area"] for a in anns[1.0]], scale
+        for a, b in zip(anns[scale], anns[1.0]):
+            assert a["area"] > 0 and a["segmentation"] == b["segmentation"]
+            np.testing.assert_allclose(a["keypoints"], b["keypoints"], atol=1e-3)
+
+
+def test_render_dataset_leaves_out_views_with_an_empty_mask(tmp_path):
+    """A flat model seen edge-on (a horizontal square, cameras at elevation 0) covers no pixel: no image and no
+    annotation for those views (they had area 0 and visible keypoints), counted in the summary."""
+    import json
+
+    from carvi_torch.synthetic.meshes import Model
+
+    flat = Model("flat1", "thing", [[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]],
+                 ["a", "b"], [[-1, -1, 0], [1, 1, 0]])
+    summary = render_dataset([_box_model(), flat], tmp_path / "r", views=3, seed=0, image_size=48, progress=False,
+                             camera_options={"elevation_deg": (0.0, 0.0), "roll_sd_deg": 0.0})
+    data = json.loads((tmp_path / "r" / "annotations.json").read_text())
+    gt = json.loads((tmp_path / "r" / "gt.json").read_text())
+    assert summary["images"] == 3 and summary["empty_views"] == {"flat1": 3}
+    assert [a["id"] for a in data["annotations"]] == [i["id"] for i in data["images"]] == [1, 2, 3]
+    assert all(a["area"] > 0 for a in data["annotations"])
+    assert {g["model"] for g in gt["annotations"].values()} == {"box1"} and "flat1" in gt["models"]
+
+
+def test_render_dataset_refuses_a_model_with_nothing_to_render_before_writing(tmp_path):
+    from carvi_torch.synthetic.meshes import Model
+
+    point = Model("point1", "thing", torch.zeros(4, 3), [[0, 1, 2]], ["a"], [[0.0, 0, 0]], source="point1.ply")
+    with pytest.raises(ValueError, match="point1.ply: nothing to render"):
+        render_dataset([_box_model(), point], tmp_path / "r", views=1, image_size=32, progress=False)
+    assert not (tmp_path / "r").exists()

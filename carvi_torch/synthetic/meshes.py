@@ -13,7 +13,15 @@ Object frame (as PASCAL3D+): +z up, the object's front towards -y, unit-ish size
 Real data is messy: meshes are rarely watertight and keypoint sets differ between
 models of one class; both are kept as they are (a name a model lacks is simply absent
 from its ``keypoint_names``). Only unusable entries are dropped, with a warning naming
-the file: non-finite keypoints and repeated keypoint names (the first is kept).
+the file: non-finite keypoints and repeated keypoint names (in a ``.json`` a key given
+twice, in an ``.npz`` a name repeated: the first is kept).
+
+A model the renders cannot use is refused whole, with a one-line reason naming its file
+(:class:`BadModelFile`; :func:`load_models` skips it with a warning and reads the rest): a
+file no reader understands, a malformed or misshapen keypoint file, non-finite vertices, a
+mesh without faces or without extent (every vertex at one point, every triangle flat), no
+keypoints at all, or keypoints far outside the mesh (:data:`KEYPOINT_OFF_MESH_MAX`: in other
+units than the mesh). Sizes are judged relative to the mesh, so a model in any unit renders alike.
 
 Left and right are not always named alike across a class's models: PASCAL3D+'s motorbike01
 names its handlebar ends from the other side than the other three motorbikes. A human
@@ -23,6 +31,7 @@ exchanges such a pair's names (:func:`harmonize_sides`, with a warning naming th
 """
 from __future__ import annotations
 
+import json
 import re
 import warnings
 from dataclasses import dataclass, field, replace
@@ -34,13 +43,22 @@ import torch
 
 from ..collection import infer_flip_pairs  # re-exported: name-based left/right pairs
 
-__all__ = ["Model", "MESH_SUFFIXES", "SIDE_VOTE_MIN", "side_disagreements", "turned_models", "harmonize_sides",
-           "side_swaps_of",
+__all__ = ["Model", "BadModelFile", "MESH_SUFFIXES", "KEYPOINT_OFF_MESH_MAX", "SIDE_VOTE_MIN", "side_disagreements",
+           "turned_models", "harmonize_sides", "side_swaps_of",
            "load_cad_npz", "load_mesh_with_keypoints", "load_model", "load_models",
            "infer_flip_pairs", "category_from_stem"]
 
 #: File suffixes read through trimesh (a ``.json`` with the keypoints must sit beside the mesh).
 MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".glb", ".gltf")
+
+#: A keypoint farther than this fraction of the mesh's bounding-box diagonal outside that box refuses the model
+#: (PASCAL3D+'s keypoints lie within 2% of the diagonal from the surface): keypoints in other units than the
+#: mesh (millimetres on a mesh in metres) would put the mesh, framed with its keypoints, in a corner of the view.
+KEYPOINT_OFF_MESH_MAX = 0.25
+
+
+class BadModelFile(ValueError):
+    """A model file (or its keypoint file) that cannot be rendered; the message, one line, names the file."""
 
 
 @dataclass
@@ -58,6 +76,10 @@ class Model:
             generated models; written as the annotations' ``source``.
         side_swaps: left/right name pairs exchanged on loading (:func:`harmonize_sides`), each
             ``(name, name)`` sorted; empty when the names are as stored.
+
+    Raises:
+        ValueError: naming the model: arrays of other shapes, faces that are not integers or index outside
+            the vertices, non-finite vertices or keypoints (also values beyond float32), repeated names.
     """
 
     name: str
@@ -71,13 +93,24 @@ class Model:
 
     def __post_init__(self):
         self.vertices = torch.as_tensor(self.vertices, dtype=torch.float32)
-        self.faces = torch.as_tensor(self.faces, dtype=torch.long)
-        self.keypoints = torch.as_tensor(self.keypoints, dtype=torch.float32).reshape(-1, 3)
+        faces = torch.as_tensor(self.faces)
+        if faces.dtype == torch.bool or (faces.is_floating_point() and not bool((faces == faces.round()).all())):
+            raise ValueError(f"{self.name}: faces must be integer vertex indices, got "
+                             f"{'booleans' if faces.dtype == torch.bool else 'fractions'}")
+        self.faces = faces.to(torch.long)
+        self.keypoints = torch.as_tensor(self.keypoints, dtype=torch.float32)
+        if self.keypoints.numel() == 0:
+            self.keypoints = self.keypoints.reshape(0, 3)
         self.keypoint_names = [str(n) for n in self.keypoint_names]
         if self.vertices.dim() != 2 or self.vertices.shape[1] != 3:
             raise ValueError(f"{self.name}: vertices must be (V, 3), got {tuple(self.vertices.shape)}")
         if self.faces.dim() != 2 or self.faces.shape[1] != 3:
             raise ValueError(f"{self.name}: faces must be (F, 3), got {tuple(self.faces.shape)}")
+        if self.keypoints.dim() != 2 or self.keypoints.shape[1] != 3:
+            raise ValueError(f"{self.name}: keypoints must be (K, 3), got {tuple(self.keypoints.shape)}")
+        for what, x in (("vertices", self.vertices), ("keypoints", self.keypoints)):
+            if not bool(torch.isfinite(x).all()):
+                raise ValueError(f"{self.name}: {what} hold non-finite coordinates (NaN, or beyond float32's range)")
         if self.faces.numel() and (int(self.faces.min()) < 0 or int(self.faces.max()) >= self.vertices.shape[0]):
             raise ValueError(f"{self.name}: faces index outside [0, {self.vertices.shape[0]})")
         if len(self.keypoint_names) != self.keypoints.shape[0]:
@@ -239,12 +272,24 @@ def category_from_stem(stem: str) -> str:
     return cat
 
 
+def _reason(e: BaseException) -> str:
+    """An exception as one short line: its message (else its type's name), whitespace folded, cut at 160 characters."""
+    text = " ".join(str(e).split()) or type(e).__name__
+    return text if len(text) <= 160 else text[:157] + "..."
+
+
 def _clean_keypoints(names: Sequence[str], points: np.ndarray, where: str) -> tuple[list[str], np.ndarray]:
-    """Drop non-finite and repeated keypoints (with a warning naming ``where``)."""
+    """Drop non-finite and repeated keypoints (with a warning naming ``where``); ``points`` must be ``(K, 3)`` for
+    the ``K`` names (else :class:`BadModelFile`)."""
     names = [str(n) for n in names]
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    points = np.asarray(points, dtype=np.float64)
+    if points.size == 0 and not names:
+        points = points.reshape(0, 3)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise BadModelFile(f"{where}: keypoints must be (K, 3), one row of x, y, z per name; got shape "
+                           f"{tuple(points.shape)}")
     if len(names) != len(points):
-        raise ValueError(f"{where}: {len(names)} keypoint names for {len(points)} keypoints")
+        raise BadModelFile(f"{where}: {len(names)} keypoint names for {len(points)} keypoints")
     keep_names, keep = [], []
     seen = set()
     for n, p in zip(names, points):
@@ -261,38 +306,160 @@ def _clean_keypoints(names: Sequence[str], points: np.ndarray, where: str) -> tu
     return keep_names, arr
 
 
+def _model_from(path: Path, category: str | None, vertices, faces, names: list[str], points) -> Model:
+    """The :class:`Model` read from ``path`` (named by its stem, ``category`` default from the stem); a failed
+    check raises :class:`BadModelFile` naming ``path``."""
+    try:
+        category = category or category_from_stem(path.stem)
+        return Model(name=path.stem, category=category, vertices=vertices, faces=faces, keypoint_names=names,
+                     keypoints=points, source=path.name)
+    except (TypeError, ValueError) as e:  # Model's checks name the model (the stem): name the file instead
+        raise BadModelFile(f"{path}: {_reason(e).removeprefix(path.stem + ': ')}") from None
+
+
+#: The arrays of a PASCAL3D+ ``.npz``.
+_NPZ_ARRAYS = ("vertices", "faces", "keypoint_names", "keypoints")
+
+
+def _npz_arrays(path: Path) -> dict[str, np.ndarray]:
+    """The arrays :data:`_NPZ_ARRAYS` of an ``.npz`` (never unpickled); :class:`BadModelFile` when it is no
+    readable archive holding them."""
+    with open(path, "rb") as f:  # numpy leaves a file it opened itself open when it is no archive
+        try:
+            data = np.load(f, allow_pickle=False)
+        except Exception as e:  # zipfile, numpy and OS errors of a file that is not an .npz
+            raise BadModelFile(f"{path}: not a readable .npz archive ({_reason(e)})") from None
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise BadModelFile(f"{path}: a single array (.npy), not an .npz archive of {', '.join(_NPZ_ARRAYS)}")
+        with data:
+            missing = [k for k in _NPZ_ARRAYS if k not in data.files]
+            if missing:
+                raise BadModelFile(f"{path}: missing array(s) {missing} (a model needs {', '.join(_NPZ_ARRAYS)})")
+            arrays = {}
+            for k in _NPZ_ARRAYS:
+                try:
+                    arrays[k] = data[k]
+                except Exception as e:  # an object array (pickled), a damaged member
+                    raise BadModelFile(f"{path}: array {k!r} cannot be read ({_reason(e)})") from None
+    return arrays
+
+
 def load_cad_npz(path: str | Path) -> Model:
     """Read a PASCAL3D+ CAD ``.npz`` (``vertices``, ``faces``, ``keypoint_names``, ``keypoints``).
 
-    CPU-side. The class is the file stem without digits.
+    CPU-side. The class is the file stem without digits. Nothing is unpickled.
 
     Returns:
         :class:`Model` with ``vertices (V,3) float32``, ``faces (F,3) long``, keypoints as stored
         (non-finite or repeated ones dropped with a warning), ``source`` = the file name.
 
     Raises:
-        ValueError: a required array is missing or malformed.
+        BadModelFile: not a readable ``.npz``, or an array missing or malformed (``keypoints`` must be
+            ``(K, 3)`` for ``K`` names); the message names the file.
     """
     path = Path(path)
-    with np.load(path, allow_pickle=False) as data:
-        missing = [k for k in ("vertices", "faces") if k not in data]
-        if missing:
-            raise ValueError(f"{path}: missing array(s) {missing}")
-        vertices = np.asarray(data["vertices"], dtype=np.float32)
-        faces = np.asarray(data["faces"], dtype=np.int64)
-        names = [str(n) for n in data["keypoint_names"]] if "keypoint_names" in data else []
-        points = np.asarray(data["keypoints"]) if "keypoints" in data else np.zeros((0, 3))
+    a = _npz_arrays(path)
+    try:
+        vertices = np.asarray(a["vertices"], dtype=np.float32)
+        if a["keypoint_names"].ndim != 1:
+            raise ValueError(f"keypoint_names must be a list (K,), got shape {a['keypoint_names'].shape}")
+        names = [str(n) for n in a["keypoint_names"]]
+        points = np.asarray(a["keypoints"], dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise BadModelFile(f"{path}: {_reason(e)}") from None
     names, points = _clean_keypoints(names, points, str(path))
-    return Model(name=path.stem, category=category_from_stem(path.stem), vertices=torch.from_numpy(vertices),
-                 faces=torch.from_numpy(faces), keypoint_names=names, keypoints=torch.from_numpy(points),
-                 source=path.name)
+    return _model_from(path, None, vertices, a["faces"], names, points)
+
+
+def _read_json_first_kept(path: Path):
+    """A JSON file (:func:`~carvi_torch.io.outputs.read_text`); a key given twice in one object keeps its first
+    value, with a warning naming the file. :class:`BadModelFile` naming the file when it is no JSON."""
+    from ..io.outputs import read_text
+
+    repeated: list[str] = []
+
+    def first_kept(pairs: list) -> dict:
+        obj: dict = {}
+        for k, v in pairs:
+            if k in obj:
+                repeated.append(k)
+            else:
+                obj[k] = v
+        return obj
+
+    try:
+        data = json.loads(read_text(path), object_pairs_hook=first_kept)
+    except json.JSONDecodeError as e:
+        raise BadModelFile(f"{path}: malformed JSON at line {e.lineno}, column {e.colno} (char {e.pos}): "
+                           f"{e.msg}") from None
+    except RecursionError:
+        raise BadModelFile(f"{path}: JSON nested too deeply to read") from None
+    except ValueError as e:  # not UTF-8 (the message names the file)
+        raise BadModelFile(_reason(e)) from None
+    for k in dict.fromkeys(repeated):
+        warnings.warn(f"{path}: key {k!r} given more than once; keeping the first", stacklevel=4)
+    return data
+
+
+def _coordinate(c) -> float | None:
+    """A JSON number as a float (beyond float range: infinite); ``None`` for anything else (text, booleans)."""
+    if isinstance(c, bool) or not isinstance(c, (int, float)):
+        return None
+    try:
+        return float(c)
+    except OverflowError:  # an integer beyond float range
+        return float("inf") if c > 0 else float("-inf")
+
+
+def _read_keypoint_json(jpath: Path) -> tuple[str | None, list[str], np.ndarray]:
+    """The class (``None``: not given) and keypoint names and ``(K, 3)`` points of a model's ``.json``
+    (:class:`BadModelFile` naming it when malformed; null keypoints are absent)."""
+    meta = _read_json_first_kept(jpath)
+    if not isinstance(meta, dict):
+        raise BadModelFile(f"{jpath}: expected a JSON object with 'class' and 'keypoints', got a "
+                           f"{type(meta).__name__.replace('dict', 'object')}")
+    cls = meta.get("class")
+    if cls is not None and not isinstance(cls, str):
+        raise BadModelFile(f"{jpath}: 'class' must be a class name (text), got {json.dumps(cls)[:60]}")
+    kps = meta.get("keypoints")
+    kps = {} if kps is None else kps
+    if not isinstance(kps, dict):
+        raise BadModelFile(f"{jpath}: 'keypoints' must be an object {{name: [x, y, z], ...}}, got "
+                           f"{json.dumps(kps)[:60]}")
+    names, points = [], []
+    for n, p in kps.items():
+        if p is None:
+            continue
+        xyz = [_coordinate(c) for c in p] if isinstance(p, list) else []
+        if len(xyz) != 3 or None in xyz:
+            raise BadModelFile(f"{jpath}: keypoint {n!r} is not three numbers [x, y, z]: {json.dumps(p)[:60]}")
+        names.append(str(n))
+        points.append(xyz)
+    names, pts = _clean_keypoints(names, np.asarray(points, dtype=np.float64).reshape(-1, 3), str(jpath))
+    return (cls.strip() or None) if cls is not None else None, names, pts
+
+
+def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``vertices (V, 3) float32`` and ``faces (F, 3) int64`` of a trimesh-readable file (a scene concatenated
+    into one mesh; nothing merged); :class:`BadModelFile` naming the file when no reader understands it."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(str(path), force="mesh", process=False)
+        with np.errstate(over="ignore"):  # beyond float32: infinite, refused by Model's check
+            vertices = np.asarray(mesh.vertices, dtype=np.float32).reshape(-1, 3)
+        faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    except Exception as e:  # trimesh's readers raise many kinds on a file that is not what its name says
+        raise BadModelFile(f"{path}: not a readable {path.suffix.lower()} mesh ({_reason(e)})") from None
+    return vertices, faces
 
 
 def load_mesh_with_keypoints(path: str | Path, keypoints_json: str | Path | None = None) -> Model:
     """Read a trimesh-readable mesh and its keypoint file ``<stem>.json`` (CPU-side).
 
     The JSON is ``{"class": "car", "keypoints": {"name": [x, y, z], ...}}``; ``class``
-    defaults to the stem without digits; a keypoint given as ``null`` is absent.
+    defaults to the stem without digits; a keypoint given as ``null`` is absent; a key given
+    twice keeps its first value (with a warning).
 
     Args:
         path: ``.ply``, ``.obj``, ``.off``, ``.stl``, ``.glb`` or ``.gltf`` file.
@@ -303,12 +470,8 @@ def load_mesh_with_keypoints(path: str | Path, keypoints_json: str | Path | None
 
     Raises:
         FileNotFoundError: the mesh or its JSON is missing.
-        ValueError: the JSON is malformed.
+        BadModelFile: the JSON is malformed, the mesh unreadable or its vertices not finite (naming the file).
     """
-    import trimesh
-
-    from ..io.outputs import read_json
-
     path = Path(path)
     jpath = Path(keypoints_json) if keypoints_json is not None else path.with_suffix(".json")
     if not path.is_file():
@@ -316,54 +479,95 @@ def load_mesh_with_keypoints(path: str | Path, keypoints_json: str | Path | None
     if not jpath.is_file():
         raise FileNotFoundError(f"{path}: keypoint file {jpath.name} not found beside it "
                                 '(expected {"class": ..., "keypoints": {"name": [x, y, z], ...}})')
-    meta = read_json(jpath)
-    if not isinstance(meta, dict):
-        raise ValueError(f"{jpath}: expected a JSON object with 'class' and 'keypoints'")
-    kps = meta.get("keypoints", {}) or {}
-    if not isinstance(kps, dict):
-        raise ValueError(f"{jpath}: 'keypoints' must be an object {{name: [x, y, z]}}")
-    names, points = [], []
-    for n, p in kps.items():
-        if p is None:
-            continue
-        try:
-            arr = np.asarray(p, dtype=np.float64).reshape(3)
-        except (TypeError, ValueError):
-            raise ValueError(f"{jpath}: keypoint {n!r} is not three numbers: {p!r}") from None
-        names.append(str(n))
-        points.append(arr)
-    names, pts = _clean_keypoints(names, np.asarray(points).reshape(-1, 3), str(jpath))
-    mesh = trimesh.load(str(path), force="mesh", process=False)
-    vertices = np.asarray(mesh.vertices, dtype=np.float32).reshape(-1, 3)
-    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
-    category = str(meta.get("class") or category_from_stem(path.stem))
-    return Model(name=path.stem, category=category, vertices=torch.from_numpy(vertices),
-                 faces=torch.from_numpy(faces), keypoint_names=names, keypoints=torch.from_numpy(pts),
-                 source=path.name)
+    category, names, pts = _read_keypoint_json(jpath)
+    vertices, faces = _read_mesh(path)
+    return _model_from(path, category, vertices, faces, names, pts)
+
+
+def _some(names: Sequence[str]) -> str:
+    """The first three ``names`` quoted, and how many more."""
+    shown = ", ".join(repr(n) for n in names[:3])
+    return shown + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+
+
+def _check_renderable(model: Model, path: Path) -> None:
+    """:class:`BadModelFile` naming ``path`` when renders of ``model`` would be empty or meaningless: no faces, no
+    extent (sizes relative to the mesh, any unit), no keypoints, or keypoints far outside the mesh
+    (:data:`KEYPOINT_OFF_MESH_MAX`)."""
+    if model.faces.shape[0] == 0:
+        raise BadModelFile(f"{path}: no faces (an empty or unreadable file, or points only): nothing to render")
+    tri = model.vertices.double()[model.faces]  # (F, 3, 3)
+    lo, hi = tri.reshape(-1, 3).amin(0), tri.reshape(-1, 3).amax(0)
+    diag = float((hi - lo).norm())
+    if not diag > 1e-6 * float(tri.abs().max()):  # below float32's resolution of its coordinates, or zero
+        raise BadModelFile(f"{path}: every vertex of its faces lies at one point (no extent): nothing to render")
+    area = float(torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=1).norm(dim=1).sum())
+    if not area > 1e-9 * diag**2:
+        raise BadModelFile(f"{path}: every triangle is flat (no area): nothing to render")
+    if model.keypoints.shape[0] == 0:
+        raise BadModelFile(f"{path}: no keypoints (every render annotates keypoints)")
+    kp = model.keypoints.double()
+    off = (kp - torch.maximum(torch.minimum(kp, hi), lo)).norm(dim=1)  # distance from the mesh's bounding box
+    far = [n for n, d in zip(model.keypoint_names, off.tolist()) if d > KEYPOINT_OFF_MESH_MAX * diag]
+    if far:
+        raise BadModelFile(f"{path}: keypoint(s) {_some(far)} lie far outside the mesh (up to "
+                           f"{float(off.max()) / diag:.3g} times its size away; in other units than the mesh?)")
 
 
 def load_model(path: str | Path) -> Model:
-    """Read one model: ``.npz`` through :func:`load_cad_npz`, else :func:`load_mesh_with_keypoints`."""
+    """Read one model: ``.npz`` through :func:`load_cad_npz`, else :func:`load_mesh_with_keypoints`; and check
+    that renders can use it (faces with an extent, keypoints on or near the mesh).
+
+    Raises:
+        FileNotFoundError: the file, or a mesh's keypoint file, is missing.
+        BadModelFile: anything else wrong with it, in one line naming the file (see the module's docstring).
+    """
     path = Path(path)
-    if path.suffix.lower() == ".npz":
-        return load_cad_npz(path)
-    if path.suffix.lower() in MESH_SUFFIXES:
-        return load_mesh_with_keypoints(path)
-    raise ValueError(f"{path}: unsupported model file (expected .npz or one of {', '.join(MESH_SUFFIXES)})")
+    suffix = path.suffix.lower()
+    if suffix not in (".npz", *MESH_SUFFIXES):
+        raise BadModelFile(f"{path}: unsupported model file (expected .npz or one of {', '.join(MESH_SUFFIXES)})")
+    try:
+        model = load_cad_npz(path) if suffix == ".npz" else load_mesh_with_keypoints(path)
+    except BadModelFile:
+        raise
+    except (TypeError, ValueError) as e:  # any other check: name the file
+        raise BadModelFile(f"{path}: {_reason(e)}") from None
+    _check_renderable(model, path)
+    return model
+
+
+def _skip_line(e: Exception, path: Path) -> str:
+    """Why the model file ``path`` is skipped, in one line naming it (``e`` from :func:`load_model`)."""
+    if isinstance(e, OSError) and e.strerror:  # the system's error reading it
+        return f"{path}: {e.strerror}; skipped"
+    return f"{e}; skipped"
+
+
+def _distinct_names(models: list[Model], directory: Path) -> list[Model]:
+    """``models`` less those whose name (file stem) another one shares, each such name with a warning."""
+    names = [m.name for m in models]
+    for dup in sorted({n for n in names if names.count(n) > 1}):
+        files = ", ".join(m.source for m in models if m.name == dup)
+        warnings.warn(f"{directory}: files {files} share the model name {dup!r} (and its keypoint file); "
+                      "skipped: rename all but one", stacklevel=3)
+    return [m for m in models if names.count(m.name) == 1]
 
 
 def load_models(directory: str | Path, sides: Literal["class", "as-given"] = "class") -> list[Model]:
     """Every model of a directory (not recursive), sorted by file name (deterministic).
 
     Reads ``*.npz`` (PASCAL3D+ form) and meshes with a ``.json`` keypoint file beside
-    them; a mesh without one is skipped with a warning (it has no keypoints to annotate).
+    them. A file that cannot be used is skipped with a warning, one line naming it, and the
+    rest are read: a mesh without a ``.json`` (it has no keypoints to annotate), any
+    :class:`BadModelFile` of :func:`load_model`, a file the system cannot read, and files
+    sharing one model name (file stem).
     With ``sides="class"`` (the default) a left/right pair that one model names from the other
     side than the rest of its class is renamed (:func:`harmonize_sides`, with a warning);
     ``"as-given"`` keeps every name as stored.
 
     Raises:
         FileNotFoundError: ``directory`` does not exist.
-        ValueError: no model found, or two models share a name (file stem).
+        ValueError: no usable model found.
     """
     if sides not in ("class", "as-given"):
         raise ValueError(f"sides must be 'class' or 'as-given', got {sides!r}")
@@ -371,6 +575,7 @@ def load_models(directory: str | Path, sides: Literal["class", "as-given"] = "cl
     if not directory.is_dir():
         raise FileNotFoundError(f"{directory}: no such directory of models")
     models: list[Model] = []
+    skipped = 0
     for path in sorted(directory.iterdir(), key=lambda p: p.name):
         suffix = path.suffix.lower()
         if not path.is_file() or path.name.startswith(".") or suffix not in (".npz", *MESH_SUFFIXES):
@@ -378,12 +583,17 @@ def load_models(directory: str | Path, sides: Literal["class", "as-given"] = "cl
         if suffix != ".npz" and not path.with_suffix(".json").is_file():
             warnings.warn(f"{path}: no {path.stem}.json with its class and keypoints beside it; skipped",
                           stacklevel=2)
+            skipped += 1
             continue
-        models.append(load_model(path))
+        try:
+            models.append(load_model(path))
+        except (BadModelFile, OSError) as e:  # one bad model: its reason, and the rest goes on
+            warnings.warn(_skip_line(e, path), stacklevel=2)
+            skipped += 1
+    distinct = _distinct_names(models, directory)
+    skipped += len(models) - len(distinct)
+    models = distinct
     if not models:
-        raise ValueError(f"{directory}: no models (.npz, or {'/'.join(MESH_SUFFIXES)} with a .json beside)")
-    names = [m.name for m in models]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise ValueError(f"{directory}: several files share the model name(s) {dup}")
+        raise ValueError(f"{directory}: no usable models (each skipped above)" if skipped else
+                         f"{directory}: no models (.npz, or {'/'.join(MESH_SUFFIXES)} with a .json beside)")
     return harmonize_sides(models) if sides == "class" else models

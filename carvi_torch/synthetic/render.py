@@ -632,12 +632,14 @@ class _RenderJob:
 
 @dataclasses.dataclass
 class _Records:
-    """What the renders add up to: COCO images and annotations, ``gt.json``'s two maps, the next id."""
+    """What the renders add up to: COCO images and annotations, ``gt.json``'s two maps, the views left out, the
+    next id."""
 
     images: list = dataclasses.field(default_factory=list)
     annotations: list = dataclasses.field(default_factory=list)
     gt: dict = dataclasses.field(default_factory=dict)
     gt_models: dict = dataclasses.field(default_factory=dict)
+    empty: dict = dataclasses.field(default_factory=dict)  # model name -> views left out (empty mask)
     next_id: int = 1
 
 
@@ -669,8 +671,22 @@ def _class_keypoints(model, names_k: list[str]) -> tuple[torch.Tensor, torch.Ten
     return kp3d, valid
 
 
+def _frame_radius(model) -> float:
+    """The radius the model's cameras frame (:func:`sample_cameras`): the largest distance of a vertex or keypoint
+    from the object-frame origin, in float64 (any unit); ``ValueError`` naming the model when it is not positive
+    and finite."""
+    points = torch.cat([model.vertices.reshape(-1, 3), model.keypoints.reshape(-1, 3)]).double()
+    radius = float(points.norm(dim=1).max()) if len(points) else 0.0
+    if not (math.isfinite(radius) and radius > 0):
+        raise ValueError(f"{model.source or model.name}: nothing to render (no vertex or keypoint off the origin, "
+                         f"or one not finite: radius {radius})")
+    return radius
+
+
 def _render_model(model, obj_index: int, names_k: list[str], cat_id: int, job: _RenderJob, rec: _Records, bar) -> None:
-    """Write the model's mesh and add its ``job.views`` renders to ``rec`` (one ``bar`` step each)."""
+    """Write the model's mesh and add its ``job.views`` renders to ``rec`` (one ``bar`` step each); a view whose
+    mask is empty (a flat mesh seen edge-on, a speck erased by boundary noise) is left out, counted in
+    ``rec.empty``."""
     from ..io.outputs import write_bytes
 
     kp3d, valid = _class_keypoints(model, names_k)
@@ -680,13 +696,16 @@ def _render_model(model, obj_index: int, names_k: list[str], cat_id: int, job: _
     rec.gt_models[model.name] = {"mesh": mesh_rel, "category": model.category, "source": model.source,
                                  "object_id": obj_index + 1, "keypoints": model.keypoint_dict()}
     gen = seed_generator(job.seed, model.name)
-    radius = max(model.bounding_radius, float(model.keypoints.norm(dim=1).max()) if len(model.keypoints) else 0.0)
-    cams = sample_cameras(job.views, gen, job.size, radius=max(radius, 1e-6), **(job.camera_options or {}))
+    cams = sample_cameras(job.views, gen, job.size, radius=_frame_radius(model), **(job.camera_options or {}))
     V = model.vertices.to(job.device)
     F = model.faces.to(job.device)
     for v in range(job.views):
         out = render_view(V, F, kp3d.to(job.device), valid.to(job.device), cams[v], job.size, generator=gen,
                           keypoint_noise=job.keypoint_noise, boundary_noise=job.boundary_noise)
+        bar.update(1)
+        if not bool(out["mask"].any()):  # no object in the picture: no annotation (nor visible keypoints)
+            rec.empty[model.name] = rec.empty.get(model.name, 0) + 1
+            continue
         ident = rec.next_id
         rec.next_id += 1
         image, ann = _view_records(out, ident, model, obj_index, cat_id, v, job)
@@ -695,7 +714,6 @@ def _render_model(model, obj_index: int, names_k: list[str], cat_id: int, job: _
         cam = cams[v].to_list()[0]
         rec.gt[str(ident)] = {"mesh": mesh_rel, "R": cam["R"], "s": cam["s"], "t": cam["t"],
                               "category": model.category, "model": model.name}
-        bar.update(1)
 
 
 def _view_records(out: dict, ident: int, model, obj_index: int, cat_id: int, v: int, job: _RenderJob
@@ -736,7 +754,8 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
       (``v = 2`` visible; occluded, outside the image, or absent on the model: ``0, 0, 0``),
       ``num_keypoints``, ``object_id`` (one per model), ``source`` (the model's file),
       ``split`` (``"test"`` for the first ``test_views`` renders of each model, else
-      ``"pool"``).
+      ``"pool"``). A view whose mask is empty (no pixel of the object: a flat mesh seen
+      edge-on) has no image nor annotation; the summary counts such views per model.
     * ``out_dir/gt.json``: ``{"annotations": {"<ann id>": {"mesh": "meshes/<model>.ply",
       "R", "s", "t", "category", "model"}}, "models": {"<model>": {"mesh", "category",
       "source", "object_id", "keypoints": {name: [x, y, z]}}}}``: the true camera of every
@@ -766,7 +785,11 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
 
     Returns:
         ``dict(annotations=<path>, gt=<path>, images=<count>, models=<count>,
-        categories=<sorted names>, seconds=<wall time>)``.
+        categories=<sorted names>, empty_views={model: views left out}, seconds=<wall time>)``.
+
+    Raises:
+        ValueError: counts out of range, no models, repeated names, or a model with nothing to render
+            (every vertex and keypoint at the origin, or not finite), before anything is written.
     """
     from tqdm import tqdm
 
@@ -775,6 +798,8 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
     t_start = time.perf_counter()
     w, h = parse_image_size(image_size)
     views, test_views = _checked_counts(models, views, test_views)
+    for m in models:  # before anything is written
+        _frame_radius(m)
     info = render_info(models, views=views, test_views=test_views, seed=seed, image_size=(w, h),
                        keypoint_noise=keypoint_noise, boundary_noise=boundary_noise, camera_options=camera_options)
     out_dir = Path(out_dir)
@@ -798,7 +823,7 @@ def render_dataset(models: Sequence, out_dir: str | Path, views: int = 30, test_
                           {"info": info, "images": rec.images, "annotations": rec.annotations,
                            "categories": categories}, indent=None)
     return {"annotations": str(ann_path), "gt": str(gt_path), "images": len(rec.images), "models": len(models),
-            "categories": classes, "seconds": time.perf_counter() - t_start}
+            "categories": classes, "empty_views": rec.empty, "seconds": time.perf_counter() - t_start}
 
 
 def model_hash(model) -> str:
