@@ -30,8 +30,8 @@ from .collection import ClassCollection
 from .config import Config
 from .io.layout import ResumeCheck, class_dir, object_file, resume_check
 from .io.outputs import write_json
-from .io.results import (ClassReport, cameras_json, canonical_image_cameras, quality_summary, resumed_levels,
-                         resumed_objects, scores_entry, write_scores)
+from .io.results import (ClassReport, cameras_json, canonical_image_cameras, drop_cameras, quality_summary,
+                         resumed_levels, resumed_objects, scores_entry, write_scores)
 from .io.writer import Writer, canvas_to_image_4x4, id_array, mesh_jobs, proposals_payload
 from .marching import resolve_mesher
 from .runtime import StageTimer, log
@@ -92,15 +92,15 @@ class PreparedClass(NamedTuple):
 
 
 def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None, report: ClassReport) -> list[bool]:
-    """Per original: finished by an earlier run into ``out`` from its current inputs, unless ``overwrite``
-    (:func:`~carvi_torch.io.layout.resume_check`); the others are redone, those with damaged files logged per object,
-    those made from other inputs in one line and ``report.info["redone"]`` (files of objects the data no longer holds:
-    :func:`carvi_torch.executors.common.book_class`)."""
+    """Per original: finished by an earlier run into ``out`` from its current inputs and canvas, unless
+    ``overwrite`` (:func:`~carvi_torch.io.layout.resume_check`); the others are redone, those with damaged files
+    logged per object, those made from other inputs or canvases in one line and ``report.info["redone"]`` (files
+    of objects the data no longer holds: :func:`carvi_torch.executors.common.book_class`)."""
     if out is None:
         return [False] * len(coll)
     cdir = class_dir(out, coll.meta.key)
     check = (ResumeCheck(done=[False] * len(coll)) if cfg.overwrite
-             else resume_check(cdir, coll.annotation_ids, coll.fingerprints, cfg.mesh.format))
+             else resume_check(cdir, coll.annotation_ids, coll.fingerprints, cfg.mesh.format, coll.canvas_from_image))
     for line in check.lines(coll.meta.key):
         log.warning(line)
     report.info.update(check.info())
@@ -110,7 +110,7 @@ def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None, repor
 def _todo(coll: ClassCollection, vp: Viewpoints, done: list, cfg: Config, report: ClassReport) -> list[int]:
     """The originals to reconstruct: chosen (``references``), with a usable camera, not finished (resume)."""
     aids, usable = coll.annotation_ids, vp.has_camera[:len(coll)].tolist()
-    report.resumed = sum(done)
+    report.resumed = sum(d and u for d, u in zip(done, usable))  # a finished object without a camera: skipped
     chosen = [cfg.references == "all" or coll.splits[i] == cfg.references for i in range(len(coll))]
     report.info["references"] = sum(chosen)
     for i in range(len(coll)):
@@ -207,9 +207,10 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
                   done: list[bool] | None = None, ahead: ClassViewpoints | None = None) -> PreparedClass:
     """Every stage of one class up to carving: viewpoints, clusters, triplets, prepared silhouettes.
 
-    Writes ``out/<class>/cameras.json`` when ``out`` is given. ``done``: per original, finished by an
-    earlier run (default :func:`finished_objects`; an executor that may run this twice passes it, so that
-    both runs plan the same objects). ``ahead``: :func:`class_viewpoints`'s result, made beforehand.
+    Writes ``out/<class>/cameras.json`` when ``out`` is given (an earlier run's removed if the class stops first:
+    :func:`~carvi_torch.io.results.drop_cameras`). ``done``: per original, finished by an earlier run (default
+    :func:`finished_objects`; an executor that may run this twice passes it, so that both runs plan the same
+    objects). ``ahead``: :func:`class_viewpoints`'s result, made beforehand.
 
     Returns:
         :class:`PreparedClass`: the plan is ``None`` when the class stops before carving (too few instances,
@@ -217,6 +218,7 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     """
     coll, vp, plan, report = class_viewpoints(coll, cfg, device, generator, gt, report) if ahead is None else ahead
     if vp is None:
+        drop_cameras(out, coll.meta.key, report)
         return PreparedClass(None, [], report)
     timer, n = StageTimer(device, report.seconds), len(coll)
     cdir = class_dir(out if out is not None else ".", coll.meta.key)
@@ -224,7 +226,7 @@ def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, gene
     if out is not None:
         with timer("class_files"):
             plan.levels = resumed_levels(cdir, coll, plan.levels, done)
-            report.reconstruction_iou.update(resumed_objects(cdir, coll, vp, done))  # voxel_to_object: these cameras
+            report.reconstruction_iou.update(resumed_objects(cdir, coll, vp, done, cfg.mesh.format))
             cams = cameras_json(coll, vp, plan.axes, plan.clusters, plan.levels, report.reconstruction_iou)
             write_json(cdir / "cameras.json", cams)
         report.info["quality"] = quality_summary(cams["cameras"])

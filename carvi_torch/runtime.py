@@ -43,7 +43,7 @@ __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTim
            "maxrss_to_mb", "stable_hash", "InterruptWatch", "watch_interrupts", "intra_op_threads", "log",
            "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt",
            "unwritable_above", "check_replaceable", "os_error_line", "watch_parent", "pid_alive",
-           "processes_marked", "gone_within"]
+           "processes_marked", "gone_within", "FolderLock", "FolderBusy"]
 
 
 def cores() -> int:
@@ -593,3 +593,59 @@ def log_to_file(path: str | os.PathLike):
     h.setLevel(logging.DEBUG)
     h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     return _handler(h)
+
+
+class FolderBusy(Exception):
+    """Another process holds :class:`FolderLock` on the folder (the message names it and that process)."""
+
+
+class FolderLock:
+    """An exclusive lock on a folder for one process: an advisory ``flock`` on ``folder/name`` (a hidden file,
+    opened without following a link and closed on ``exec``), held until :meth:`release` (or the context's end,
+    or the process's). Two runs into one ``--out`` would overwrite each other's ``config.yaml``,
+    ``summary.json`` and files; the second is refused instead. The file stays after the release (it holds the
+    last holder's pid, which the refusal names).
+
+    Example:
+        >>> import tempfile
+        >>> d = tempfile.mkdtemp()
+        >>> with FolderLock(d):
+        ...     try:
+        ...         FolderLock(d)
+        ...     except FolderBusy as e:
+        ...         print("busy")
+        busy
+        >>> FolderLock(d).release()
+    """
+
+    NAME = ".carvi_torch.lock"
+
+    def __init__(self, folder: str | os.PathLike, name: str = NAME):
+        import fcntl
+
+        self.path = Path(folder) / name
+        flags = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+        self.fd: int | None = os.open(self.path, flags, 0o666)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(self.fd, 32, 0).decode("ascii", "replace").strip() or "?"
+            self.release()
+            raise FolderBusy(f"{folder}: another process (pid {holder}) is writing into it") from None
+        except BaseException:
+            self.release()
+            raise
+        os.ftruncate(self.fd, 0)
+        os.pwrite(self.fd, str(os.getpid()).encode(), 0)
+
+    def release(self) -> None:
+        """Unlock (closing the file); a second call does nothing."""
+        if self.fd is not None:
+            fd, self.fd = self.fd, None
+            os.close(fd)  # closing the last descriptor drops the flock
+
+    def __enter__(self) -> "FolderLock":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()

@@ -167,7 +167,10 @@ def test_rerun_with_other_settings_says_so(tiny, tmp_path, capsys):
     assert "other settings (viewpoints.refine_iters" in (copy / "run.log").read_text()
     fresh = run(_cfg(copy, data=summary["data"], preview=False, refine_iters=7, classes=["car"], overwrite=True),
                 workers=0)
-    assert "resumed_from_other_settings" not in fresh and fresh["classes"]["car"]["resumed"] == 0
+    assert fresh["classes"]["car"]["resumed"] == 0
+    # the cars are made again with 7; the classes this run does not touch keep their objects, made with `want`
+    assert fresh["classes_from_earlier_runs"] == ["aeroplane", "bottle", "chair"]
+    assert fresh["resumed_from_other_settings"] == {"viewpoints.refine_iters": [want, 7, 7]}
 
 
 @pytest.fixture(scope="module")

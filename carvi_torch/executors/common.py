@@ -15,9 +15,10 @@ import torch
 from .. import carve
 from ..config import Config, ConfigError, settings_changed
 from ..io import coco
-from ..io.layout import KINDS, RUN_NAMES, ResumeCheck, class_dir, linked_path, other_objects
+from ..io.layout import KINDS, PER_OBJECT_SETTINGS, RUN_NAMES, ResumeCheck, class_dir, linked_path, other_objects
 from ..io.outputs import read_json, write_bytes, write_json
-from ..runtime import log, peak_rss_mb, stable_hash, unwritable_above
+from ..io.results import ClassReport, drop_cameras
+from ..runtime import FolderBusy, FolderLock, log, peak_rss_mb, stable_hash, unwritable_above
 
 __all__ = ["RunSetup", "check_request", "open_run", "finish_run", "exit_status", "class_generator",
            "prepare_data", "read_ground_truth", "book_class"]
@@ -33,9 +34,11 @@ class RunSetup:
     loaded: coco.LoadResult
     gt: dict | None
     summary: dict
-    changed: dict = field(default_factory=dict)
+    changed: dict = field(default_factory=dict)  # {setting: (values finished objects were made with, ..., now)}
     t_start: float = field(default_factory=time.perf_counter)
     earlier: dict = field(default_factory=dict)  # classes an earlier run into the same folder reported
+    lock: FolderLock | None = None  # held on ``out`` until the run ends (the executor releases it)
+    kept: list = field(default_factory=list)  # those of them, with objects, that this run does not touch
 
 
 def _check_out(out: Path) -> None:
@@ -157,10 +160,14 @@ def open_run(cfg: Config) -> RunSetup:
         gt_path = None
     _check_references(cfg.references, loaded.collections)
     _check_class_folders(out, loaded.collections)
-    earlier, earlier_data = _earlier_classes(out, cfg)
-    out.mkdir(parents=True, exist_ok=True)
-    changed = settings_changed(out / "config.yaml", cfg)
-    write_bytes(out / "config.yaml", cfg.to_yaml().encode())
+    lock = _lock(out)
+    try:
+        earlier, earlier_data = _earlier_classes(out, cfg)
+        changed = settings_changed(out / "config.yaml", cfg)
+        write_bytes(out / "config.yaml", cfg.to_yaml().encode())
+    except BaseException:
+        lock.release()
+        raise
     summary = {"data": str(Path(data_path).resolve()), "gt": str(Path(gt_path).resolve()) if gt_path else None,
                "device": str(device), "torch_threads": torch.get_num_threads(),
                "carve_backend": carve.resolve_backend(cfg.carve.backend, device, cfg.carve.interpolation),
@@ -168,7 +175,17 @@ def open_run(cfg: Config) -> RunSetup:
                "classes": {}}
     if earlier_data is not None and earlier_data != summary["data"]:
         summary["data_changed"] = {"previous": earlier_data, "now": summary["data"]}
-    return RunSetup(cfg, out, device, loaded, gt, summary, changed, earlier=earlier)
+    return RunSetup(cfg, out, device, loaded, gt, summary, changed, earlier=earlier, lock=lock)
+
+
+def _lock(out: Path) -> FolderLock:
+    """``out`` made and locked for this run (:class:`~carvi_torch.runtime.FolderLock`): a second run into it while
+    this one lives is a user error, before it writes anything."""
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        return FolderLock(out)
+    except FolderBusy as e:
+        raise ConfigError(f"--out {e}; wait for that run to end or choose another --out") from None
 
 
 def read_ground_truth(path: Path | None, needed: bool) -> tuple[dict | None, coco.Problem | None]:
@@ -191,27 +208,92 @@ def read_ground_truth(path: Path | None, needed: bool) -> tuple[dict | None, coc
 
 def announce(setup: RunSetup) -> None:
     """Log the input problems (those of a whole file or class as warnings, an object's warnings as info:
-    there may be thousands), the classes asked for that have no usable object, and changed settings."""
+    there may be thousands), the classes asked for that have no usable object, and changed settings
+    (:func:`_settings_record`)."""
     for p in setup.loaded.problems:
         (log.warning if p.fatal or p.annotation_id is None else log.info)(p.message())
     moved = setup.summary.get("data_changed")
     if moved:
         log.warning(f"{setup.out} holds a run on other annotations ({moved['previous']}); its finished objects "
                     "are resumed only where an object's own inputs are unchanged, the others are redone")
-    if setup.changed:
-        log.warning(f"{setup.out} holds a run made with other settings ("
-                    + ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in setup.changed.items())
-                    + "); its finished objects whose inputs are unchanged are kept as they are (resumed), so pass "
-                    "overwrite=true to redo them")
+    _skipped_classes(setup)
+    _settings_record(setup)
+
+
+def _skipped_classes(setup: RunSetup) -> None:
+    """The classes asked for that have no usable object: skipped, into the summary and the log (an earlier run's
+    ``cameras.json`` of one removed: :func:`~carvi_torch.io.results.drop_cameras`)."""
     names = {c.meta.name for c in setup.loaded.collections.values()} | set(setup.loaded.collections)
     keys = coco.class_names(setup.loaded.dataset.get("categories", []))
     for c in setup.cfg.classes or []:  # each a class of the data (open_run refuses any other name)
         if c not in names:
             why = "no usable object of this class"
+            report = ClassReport(c)
+            for key in keys.get(c, [c]):
+                drop_cameras(setup.out, key, report)
             setup.summary["classes"][c] = {"status": "skipped", "objects": 0, "reconstructed": 0,
                                            "failures": [{"stage": "load", "reason": why}],
+                                           **({"warnings": report.warnings} if report.warnings else {}),
                                            **_other_objects(setup, c, keys.get(c, [c]))}
             log.warning(f"{c}: {why}")
+            for w in report.warnings:
+                log.warning(f"  {c}: {w}")
+
+
+def _settings_record(setup: RunSetup) -> None:
+    """The settings finished objects in the folder were made with, other than this run's (``setup.changed``, from
+    :func:`~carvi_torch.config.settings_changed`), kept where such objects can stay: those this run resumes (not
+    with ``overwrite``; never for :data:`~carvi_torch.io.layout.PER_OBJECT_SETTINGS`, which the resume check
+    handles object by object) and those of the classes with objects that it does not touch (``setup.kept``:
+    an earlier run's classes that it leaves). Logged in one line and put into the summary
+    (``resumed_from_other_settings``, :func:`_settings_entry`), which is written at once: a run stopped before
+    its first class still carries the record on."""
+    if not setup.changed:
+        return
+    ours = set(setup.loaded.collections) | set(setup.summary["classes"])
+    setup.kept = sorted(k for k, v in setup.earlier.items() if k not in ours and isinstance(v, dict)
+                        and (v.get("reconstructed") or v.get("resumed")))
+    resumes = not setup.cfg.overwrite
+    setup.changed = {k: v for k, v in setup.changed.items()
+                     if setup.kept or (resumes and k not in PER_OBJECT_SETTINGS)}
+    if not setup.changed:
+        return
+    where = []
+    if resumes and set(setup.changed) - set(PER_OBJECT_SETTINGS):
+        where.append("its finished objects whose inputs are unchanged are kept as they are (resumed), so pass "
+                     "overwrite=true to redo them")
+    if setup.kept:
+        where.append(f"the classes this run does not touch keep their objects as they are ({', '.join(setup.kept)})")
+    log.warning(f"{setup.out} holds finished objects made with other settings ("
+                + ", ".join(f"{k}: {_made_with(v)}" for k, v in setup.changed.items()) + "); " + "; ".join(where))
+    setup.summary["resumed_from_other_settings"] = _settings_entry(setup.changed, wrote=True)
+    write_summary(setup)
+
+
+def _made_with(values: tuple) -> str:
+    """``16, 20 -> 24``: the values other than this run's, then this run's (``values``: a ``setup.changed`` entry).
+
+    Example:
+        >>> _made_with((16, 24, 24)), _made_with(("ply", "obj"))
+        ('16 -> 24', "'ply' -> 'obj'")
+    """
+    return ", ".join(repr(v) for v in values[:-1] if v != values[-1]) + f" -> {values[-1]!r}"
+
+
+def _settings_entry(changed: dict, wrote: bool) -> dict:
+    """``summary.json``'s ``resumed_from_other_settings``: per setting, the values finished objects in the folder
+    were made with, oldest first, then this run's (``[16, 24]``: made with 16, this run's 24; ``[16, 24, 24]``:
+    made with 16 and 24). ``wrote``: this run made objects (with its value, then among those they were made with).
+
+    Example:
+        >>> _settings_entry({"carve.resolution": (16, 24)}, wrote=True), _settings_entry({"a": (1, 2)}, wrote=False)
+        ({'carve.resolution': [16, 24, 24]}, {'a': [1, 2]})
+    """
+    out = {}
+    for k, values in changed.items():
+        made, now = list(values[:-1]), values[-1]
+        out[k] = made + ([now] if wrote and now not in made else []) + [now]
+    return out
 
 
 def _other_objects(setup: RunSetup, name: str, keys: list[str]) -> dict:
@@ -235,17 +317,19 @@ def class_generator(cfg: Config, key: str) -> torch.Generator:
 
 
 def _earlier_classes(out: Path, cfg: Config) -> tuple[dict, str | None]:
-    """The classes an earlier run into ``out`` reported and the annotation file it read (none with
-    ``overwrite``): a dataset can be processed in parts, and the summary keeps every part."""
+    """The classes an earlier run into ``out`` reported and the annotation file it read (the file ``None`` with
+    ``overwrite``, which resumes nothing): a dataset can be processed in parts, and the summary keeps every part
+    (with ``overwrite`` too: it redoes the classes it runs, and those it does not touch keep their files)."""
     path = out / "summary.json"
-    if cfg.overwrite or not path.is_file():
+    if not path.is_file():
         return {}, None
     try:
         earlier = read_json(path)
         classes, data = earlier.get("classes", {}), earlier.get("data")
     except (ValueError, AttributeError, OSError):
         return {}, None
-    return (classes if isinstance(classes, dict) else {}), (data if isinstance(data, str) else None)
+    data = data if isinstance(data, str) and not cfg.overwrite else None
+    return (classes if isinstance(classes, dict) else {}), data
 
 
 def write_summary(setup: RunSetup) -> None:
@@ -288,8 +372,7 @@ def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = 
     s["peak_rss_workers_mb"] = round(workers_mb, 1) if writer_workers and workers_mb is not None else 0.0
     if setup.device.type == "cuda":
         s["peak_cuda_mb"] = round(torch.cuda.max_memory_allocated(setup.device) / 2 ** 20, 1)
-    if setup.changed:
-        s["resumed_from_other_settings"] = {k: list(v) for k, v in setup.changed.items()}
+    _settings_at_end(setup)
     s["writer_workers"] = writer_workers
     write_summary(setup)
     if setup.cfg.preview and setup.cfg.stage == "all":
@@ -307,6 +390,21 @@ def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = 
         except Exception as e:  # noqa: BLE001 - the report must never fail the run
             log.warning(f"report/index.html not written: {e}")
     return read_json(setup.out / "summary.json")
+
+
+def _settings_at_end(setup: RunSetup) -> None:
+    """``resumed_from_other_settings`` as the run leaves the folder (:func:`_settings_record` wrote it as if the run
+    made objects): gone where no finished object made otherwise can be left (the run resumed none and no class is
+    kept from an earlier run), and without this run's value among those objects were made with where it made
+    none."""
+    s = setup.summary
+    if not setup.changed:
+        return
+    if not setup.kept and not any(c.get("resumed") for c in s["classes"].values()):
+        s.pop("resumed_from_other_settings", None)
+        return
+    s["resumed_from_other_settings"] = _settings_entry(setup.changed, any(c.get("reconstructed")
+                                                                          for c in s["classes"].values()))
 
 
 def exit_status(summary: dict, stage: str = "all") -> int:

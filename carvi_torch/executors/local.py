@@ -40,7 +40,7 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
     """
     with log_to_terminal(quiet=not cfg.progress):
         setup = open_run(cfg)
-        with log_to_file(setup.out / "run.log"):
+        with setup.lock, log_to_file(setup.out / "run.log"):
             announce(setup)
             writer = Writer(writer_workers(cfg.stage, setup.device) if workers is None else workers)
             n = intra_op_threads(writer.workers, setup.device) if threads is None else max(1, int(threads))

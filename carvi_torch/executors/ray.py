@@ -402,7 +402,7 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
         raise ConfigError(f"executor=ray carves on the CPU; got device={cfg.device}")
     with log_to_terminal(quiet=not cfg.progress), connect(cfg.ray_address) as address:
         setup = open_run(cfg)
-        with log_to_file(setup.out / "run.log"):
+        with setup.lock, log_to_file(setup.out / "run.log"):
             announce(setup)
             log.info(f"Ray at {address}: {ray.cluster_resources().get('CPU', 0):g} CPUs")
             record = _Driver(setup, ray).run()

@@ -29,7 +29,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..io.coco import load_coco, skipped_at_load
-from ..io.layout import object_file
+from ..io.layout import held_fingerprint, object_file, same_canvas
 from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
 from ..mesh import MESH_FORMATS
@@ -98,17 +98,21 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
     """The jobs of a class's exportable objects (the others go to ``skipped`` with their reason; ``no_files``:
     that of an object without voxels)."""
     jobs = []
+    ours = settings.get("mesh_format")
+    formats = [ours, *(f for f in MESH_FORMATS if f != ours)] if ours in MESH_FORMATS else list(MESH_FORMATS)
     for i, aid in enumerate(coll.annotation_ids):
         entry = camera_entry(cams, aid)
         vox = object_file(cdir, "voxels", aid)
-        mesh = next((p for p in (object_file(cdir, "meshes", aid, ext) for ext in MESH_FORMATS) if p.is_file()),
-                    None)
+        mesh = next((p for p in (object_file(cdir, "meshes", aid, ext) for ext in formats) if p.is_file()), None)
         viewpoint = _viewpoint_or_none(entry)
         reason = ("no camera in cameras.json" if entry.get("refined") is None else
                   "no readable azimuth/elevation/roll or R in cameras.json" if viewpoint is None else
                   camera_problem(entry))
         if reason is None:
             reason = no_files if not vox.is_file() else "no mesh (not reconstructed)" if mesh is None else None
+        canvas = (float(coll.canvas_from_image.scale[i]), coll.canvas_from_image.offset[i].double().numpy())
+        if reason is None:
+            reason = _canvas_problem(vox, canvas, coll.fingerprints[i])
         if reason is not None:
             skipped.append({"annotation_id": aid, "class": cname, "source": coll.sources[i], "reason": reason})
             continue
@@ -118,11 +122,32 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
                      "source": coll.sources[i],
                      "seed": [settings["seed"], stable_hash(cname), i],
                      "mask": coll.masks[i].cpu().numpy(), "keypoints": coll.keypoints[i].cpu().numpy(),
-                     "visible": coll.visible[i].cpu().numpy(), "canvas_scale": float(coll.canvas_from_image.scale[i]),
-                     "canvas_offset": coll.canvas_from_image.offset[i].double().numpy(), "camera": entry["refined"],
+                     "visible": coll.visible[i].cpu().numpy(), "canvas_scale": canvas[0],
+                     "canvas_offset": canvas[1], "camera": entry["refined"],
                      "quality": float(q) if q is not None else float("nan"), "voxels": str(vox), "mesh": str(mesh),
                      "fingerprint": coll.fingerprints[i]})
     return jobs
+
+
+#: The reason of an object whose voxels were carved on another canvas than the one ``config.yaml`` gives (a class
+#: a later run with another ``canvas_size`` or ``canvas_margin`` did not touch): its grid would not line up.
+OTHER_CANVAS = ("carved on another canvas than config.yaml's (canvas_size or canvas_margin changed since); rerun "
+                "reconstruct on its class")
+
+
+def _canvas_problem(vox: Path, canvas: tuple, fingerprint: str) -> str | None:
+    """:data:`OTHER_CANVAS` where the voxels file ``vox`` records a canvas other than ``canvas`` (``(scale, (x, y))``,
+    the object's canvas as the export loads it), else ``None``: also for a file that cannot be read, or that was
+    made from other inputs than ``fingerprint`` (the export worker reads the file and says so)."""
+    try:
+        with np.load(vox) as z:  # members read one by one (about 0.1 ms each): the fingerprint only if needed
+            held = {k: z[k] for k in ("canvas_scale", "canvas_offset") if k in z.files}
+            if same_canvas(held, canvas) is not False:
+                return None
+            other_inputs = fingerprint and held_fingerprint(z) not in (None, fingerprint)
+    except Exception:  # noqa: BLE001 - any damage: the worker reads the file and says what is wrong
+        return None
+    return None if other_inputs else OTHER_CANVAS
 
 
 def _skip_all(coll, cname: str, reason: str) -> list[dict]:
@@ -240,14 +265,15 @@ def _check_exportable(recon: Path, cfg) -> None:
 def _load(recon: Path, cfg, data: Path, classes, pending: bool):
     """The annotations of the classes to export (those of the run's that ``classes`` asks for; ``ValueError``
     naming an unknown one), the classes' names in store order: every class of the run's input when the run
-    is unfinished (a class not started yet included), else those the run has a folder for; and the classes of
-    a finished run without a folder (skipped by the run, or their folder removed: their objects are reported)."""
+    is unfinished (a class not started yet included), else those the run wrote cameras for; and the classes of
+    a finished run without a ``cameras.json`` (skipped by the run, or their folder removed: their objects are
+    reported)."""
     covered = run_classes(cfg.classes, recon)
     with torch_threads(1):
         loaded = load_coco(data, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
                            classes=classes or covered)
     scope = class_scope(loaded.dataset["categories"], covered, classes, recon)
-    present = [c for c in scope if pending or (recon / c).is_dir()]
+    present = [c for c in scope if pending or (recon / c / "cameras.json").is_file()]
     return loaded, present, [c for c in scope if c not in present]
 
 
@@ -301,7 +327,8 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     workers = cores() if workers is None else int(workers)
     t0 = time.perf_counter()
     writer = StoreWriter(out, shard_size, DEFAULT_FIELDS + (MESH_FIELDS if mesh else []))  # --out checked first
-    settings = {"canvas": canvas, "resolution": resolution, "points": points, "seed": seed, "mesh_field": mesh}
+    settings = {"canvas": canvas, "resolution": resolution, "points": points, "seed": seed, "mesh_field": mesh,
+                "mesh_format": cfg.mesh.format}  # the run's own meshes first, where another format's are left
     try:
         loaded, class_names, missing = _load(recon, cfg, data, classes, pending)
         writer.categories = class_categories(loaded.dataset["categories"], class_names)

@@ -30,8 +30,9 @@ import numpy as np
 
 from .outputs import safe_name
 
-__all__ = ["class_dir", "object_stem", "object_file", "finished", "KINDS", "RUN_NAMES", "reserved", "INPUTS_CHANGED",
-           "NO_INPUT_RECORD", "ResumeCheck", "resume_check", "other_objects", "held_fingerprint", "linked_path"]
+__all__ = ["class_dir", "object_stem", "object_file", "object_mesh", "finished", "KINDS", "RUN_NAMES", "reserved",
+           "INPUTS_CHANGED", "NO_INPUT_RECORD", "CANVAS_CHANGED", "PER_OBJECT_SETTINGS", "ResumeCheck", "resume_check",
+           "same_canvas", "other_objects", "held_fingerprint", "linked_path"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -100,10 +101,34 @@ def object_file(cdir: str | Path, kind: str, annotation_id, ext: str | None = No
     return Path(cdir) / kind / f"{object_stem(annotation_id)}.{ext}"
 
 
+def object_mesh(cdir: str | Path, annotation_id, mesh_format: str) -> Path | None:
+    """The mesh file of an object: in ``mesh_format``, else in another format a run writes (an earlier run's with
+    another ``mesh_format``: :func:`finished` takes it, and the resumed object's mesh is written again in the run's
+    format), else ``None``.
+
+    Example:
+        >>> object_mesh("no/such/run/car", 3, "obj") is None
+        True
+    """
+    from ..mesh import MESH_FORMATS
+
+    for ext in (mesh_format, *(f for f in MESH_FORMATS if f != mesh_format)):
+        path = object_file(cdir, "meshes", annotation_id, ext)
+        if path.is_file():
+            return path
+    return None
+
+
 #: Why a finished object is redone although its files are sound: :func:`finished`'s reasons a run counts
 #: (``summary.json``: ``redone``) rather than logging each object's.
 INPUTS_CHANGED = "its inputs differ from those it was made from"
 NO_INPUT_RECORD = "its files hold no record of its inputs (an older run's)"
+CANVAS_CHANGED = "it was carved on another canvas (canvas_size or canvas_margin changed since)"
+#: The settings whose change a rerun takes care of object by object, so that no object it resumes was made with
+#: another value: a canvas setting changes every object's canvas (:data:`CANVAS_CHANGED`: the object is redone),
+#: and a resumed object whose mesh is in another format gets its mesh written again in the run's. Only the
+#: classes a run does not touch (kept from an earlier run) can hold objects made with another value.
+PER_OBJECT_SETTINGS = ("input.canvas_size", "input.canvas_margin", "mesh.format")
 
 
 def held_fingerprint(voxels) -> str | None:
@@ -119,17 +144,35 @@ def held_fingerprint(voxels) -> str | None:
     return str(fp) if fp is not None and fp.dtype.kind == "U" and fp.ndim == 0 else None
 
 
-def _voxels_state(path: Path) -> tuple[str | None, str | None]:
-    """``(why a voxels file is not a finished object's or None, the input fingerprint it holds or None)``."""
+def _voxels_state(path: Path) -> tuple[str | None, dict]:
+    """``(why a voxels file is not a finished object's or None, its members)``."""
     try:
         with np.load(path) as z:
             members = {k: z[k] for k in z.files}  # every member read: the zip's checksums cover each
             occ, T = members["occupancy"], members["voxel_to_camera"]
     except Exception as e:  # noqa: BLE001 - any damage means: redo the object
-        return f"unreadable voxels ({type(e).__name__})", None
+        return f"unreadable voxels ({type(e).__name__})", {}
     if occ.dtype != bool or occ.ndim != 3 or T.shape != (4, 4) or not np.isfinite(T).all():
-        return f"voxels of the wrong kind (occupancy {occ.dtype} {occ.shape}, transform {T.shape})", None
-    return None, held_fingerprint(members)
+        return f"voxels of the wrong kind (occupancy {occ.dtype} {occ.shape}, transform {T.shape})", {}
+    return None, members
+
+
+def same_canvas(members: dict, canvas) -> bool | None:
+    """Whether a voxels file's ``canvas_scale`` and ``canvas_offset`` are ``canvas`` (``(scale, (x, y))``, the
+    object's canvas now: ``ClassCollection.canvas_from_image``), to rounding; ``None`` where the file holds none.
+
+    Example:
+        >>> same_canvas({"canvas_scale": np.float64(0.5), "canvas_offset": np.float32([3, 4])}, (0.5, (3.0, 4.0)))
+        True
+        >>> same_canvas({"canvas_scale": np.float64(0.5), "canvas_offset": np.float32([3, 4])}, (0.6, (3.0, 4.0)))
+        False
+    """
+    try:
+        scale, offset = float(members["canvas_scale"]), np.asarray(members["canvas_offset"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        return None
+    return bool(offset.shape == (2,) and np.isclose(scale, canvas[0], rtol=1e-5, atol=0)
+                and np.allclose(offset, canvas[1], rtol=1e-5, atol=1e-3))
 
 
 def _mesh_ok(path: Path) -> str | None:
@@ -150,64 +193,95 @@ def _mesh_ok(path: Path) -> str | None:
     return None
 
 
-def finished(cdir: str | Path, annotation_id, mesh_format: str, fingerprint: str | None = None) -> str | bool:
+def finished(cdir: str | Path, annotation_id, mesh_format: str, fingerprint: str | None = None,
+             canvas: tuple | None = None) -> str | bool:
     """Whether an earlier run finished an object: ``True``, ``False`` (no files), or the reason its files
     cannot be trusted (the object is redone): a truncated or damaged mesh or voxels file, or, when its
     current input ``fingerprint`` is given (``ClassCollection.fingerprints``), files made from other
-    inputs (:data:`INPUTS_CHANGED`) or holding no fingerprint (:data:`NO_INPUT_RECORD`).
+    inputs (:data:`INPUTS_CHANGED`) or holding no fingerprint (:data:`NO_INPUT_RECORD`), or, when its current
+    ``canvas`` is given (``(scale, (x, y))`` of ``ClassCollection.canvas_from_image``), voxels carved on another
+    canvas (:data:`CANVAS_CHANGED`; none recorded: :data:`NO_INPUT_RECORD`). The mesh may be in another format
+    than ``mesh_format`` (:func:`object_mesh`).
 
     Example:
         >>> finished("no/such/run/car", 3, "ply")
         False
     """
-    mesh, voxels = object_file(cdir, "meshes", annotation_id, mesh_format), object_file(cdir, "voxels", annotation_id)
-    if not (mesh.is_file() and voxels.is_file()):
+    mesh, voxels = object_mesh(cdir, annotation_id, mesh_format), object_file(cdir, "voxels", annotation_id)
+    if mesh is None or not voxels.is_file():
         return False
-    why, held = _voxels_state(voxels)
+    why, members = _voxels_state(voxels)
     if why is None and fingerprint:
+        held = held_fingerprint(members)
         why = None if held == fingerprint else (INPUTS_CHANGED if held else NO_INPUT_RECORD)
+    if why is None and canvas is not None:
+        same = same_canvas(members, canvas)
+        why = None if same else NO_INPUT_RECORD if same is None else CANVAS_CHANGED
     return why or _mesh_ok(mesh) or True
 
 
 #: ``summary.json`` names of the reasons a sound finished object is redone (per class: ``redone``).
-REDONE = {INPUTS_CHANGED: "inputs_changed", NO_INPUT_RECORD: "no_input_record"}
+REDONE = {INPUTS_CHANGED: "inputs_changed", NO_INPUT_RECORD: "no_input_record", CANVAS_CHANGED: "canvas_changed"}
 
 
 @dataclass
 class ResumeCheck:
     """What an earlier run left of a class's objects: ``done`` per object (resume it), ``damaged``
     (``{annotation id: reason}``: files that cannot be trusted), ``redone`` (``{reason name:
-    [annotation ids]}``: sound files made from other inputs, or without a record of them) and ``others``
-    (:func:`other_objects`: the stems of mesh or voxels files of objects the data no longer holds)."""
+    [annotation ids]}``: sound files made from other inputs or canvases, or without a record of them),
+    ``others`` (:func:`other_objects`: the stems of mesh or voxels files of objects the data no longer holds),
+    ``converted`` (``{format: [annotation ids]}``: finished objects whose mesh is in that format only, another
+    than the run's: resumed, their mesh written again in the run's format and that file removed) and
+    ``other_formats`` (the file names of meshes of the class's objects in another format that stay: an object
+    redone, or with a mesh in the run's format too)."""
 
     done: list = field(default_factory=list)
     damaged: dict = field(default_factory=dict)
     redone: dict = field(default_factory=dict)
     others: list = field(default_factory=list)
+    converted: dict = field(default_factory=dict)
+    other_formats: list = field(default_factory=list)
 
     def lines(self, key: str) -> list[str]:
         """The run's warning lines for class ``key``: each damaged object, then the redone and the others'
-        counts.
+        counts, the converted meshes and those in another format that stay.
 
         Example:
             >>> ResumeCheck(others=["17", "18"]).lines("car")[0][:60]
             '  car: 2 object(s) of an earlier run that the data no longer'
+            >>> ResumeCheck(converted={"ply": [1, 2]}).lines("car")[0][:72]
+            '  car: 2 finished object(s) have their mesh in another format (ply): res'
         """
         out = [f"  {key}: annotation {a}: {why}; reconstructing it again" for a, why in self.damaged.items()]
         if self.redone:
             out.append(f"  {key}: {self.line()}")
         if self.others:
-            shown = ", ".join(self.others[:5]) + (", ..." if len(self.others) > 5 else "")
             out.append(f"  {key}: {len(self.others)} object(s) of an earlier run that the data no longer holds keep "
-                       f"their files in meshes/ and voxels/ ({shown}); cameras.json, the report and the export "
-                       "leave them out")
+                       f"their files in meshes/ and voxels/ ({_shown(self.others)}); cameras.json, the report and "
+                       "the export leave them out")
+        if self.converted:
+            n, formats = sum(len(v) for v in self.converted.values()), ", ".join(sorted(self.converted))
+            out.append(f"  {key}: {n} finished object(s) have their mesh in another format ({formats}): resumed, "
+                       f"their meshes written again in this run's format from their voxels (the {formats} files "
+                       "removed)")
+        if self.other_formats:
+            out.append(f"  {key}: {len(self.other_formats)} mesh file(s) of an earlier run in another format than "
+                       f"this run's stay in meshes/ ({_shown(self.other_formats)}): not this run's meshes of "
+                       "their objects; remove them if they are not wanted")
         return out
 
     def info(self) -> dict:
-        """``summary.json``'s entries of the class: ``redone`` and ``other_objects`` (``count``, ``stems``), where
-        there are any."""
-        return ({"redone": self.summary()} if self.redone else {}) | (
+        """``summary.json``'s entries of the class, where there are any: ``redone``, ``other_objects`` (``count``,
+        ``stems``), ``meshes_converted`` (``count``, and the ids per earlier format) and ``other_format_meshes``
+        (``count``, ``files``)."""
+        out = ({"redone": self.summary()} if self.redone else {}) | (
             {"other_objects": {"count": len(self.others), "stems": self.others}} if self.others else {})
+        if self.converted:
+            out["meshes_converted"] = {"count": sum(len(v) for v in self.converted.values()),
+                                       **dict(sorted(self.converted.items()))}
+        if self.other_formats:
+            out["other_format_meshes"] = {"count": len(self.other_formats), "files": self.other_formats}
+        return out
 
     def summary(self) -> dict:
         """``summary.json``'s ``redone`` of the class: ``count`` and the ids per reason."""
@@ -221,9 +295,15 @@ class ResumeCheck:
             'redoing 2 finished object(s): 2 whose inputs changed since they were made'
         """
         why = {"inputs_changed": "whose inputs changed since they were made",
+               "canvas_changed": "carved on another canvas (canvas_size or canvas_margin changed since)",
                "no_input_record": "made by an older run that recorded no inputs"}
         return (f"redoing {self.summary()['count']} finished object(s): "
                 + "; ".join(f"{len(ids)} {why[k]}" for k, ids in sorted(self.redone.items())))
+
+
+def _shown(names: list) -> str:
+    """The first five of ``names``, then ``...``."""
+    return ", ".join(map(str, names[:5])) + (", ..." if len(names) > 5 else "")
 
 
 def other_objects(cdir: str | Path, annotation_ids: list) -> list[str]:
@@ -240,14 +320,44 @@ def other_objects(cdir: str | Path, annotation_ids: list) -> list[str]:
     return sorted(stems - ours, key=lambda s: (len(s), s))
 
 
-def resume_check(cdir: str | Path, annotation_ids: list, fingerprints: list, mesh_format: str) -> ResumeCheck:
-    """:func:`finished` for every object of a class (``fingerprints``: their current input fingerprints)."""
+def resume_check(cdir: str | Path, annotation_ids: list, fingerprints: list, mesh_format: str,
+                 canvases=None) -> ResumeCheck:
+    """:func:`finished` for every object of a class (``fingerprints``: their current input fingerprints;
+    ``canvases``: their current canvases, ``ClassCollection.canvas_from_image``, ``.scale (N,)`` and ``.offset
+    (N, 2)``), and the meshes of its objects in other formats than ``mesh_format`` (``ResumeCheck.converted``,
+    ``ResumeCheck.other_formats``)."""
     check = ResumeCheck()
-    for a, fp in zip(annotation_ids, fingerprints):
-        state = finished(cdir, a, mesh_format, fp)
+    formats = _mesh_formats(cdir, mesh_format)
+    canvases = ([None] * len(annotation_ids) if canvases is None
+                else list(zip(canvases.scale.tolist(), canvases.offset.tolist())))
+    for a, fp, canvas in zip(annotation_ids, fingerprints, canvases):
+        state = finished(cdir, a, mesh_format, fp, canvas)
         if state in REDONE:
             check.redone.setdefault(REDONE[state], []).append(a)
         elif isinstance(state, str):
             check.damaged[a] = state
         check.done.append(state is True)
+        stem = object_stem(a)
+        others = [f for f in formats.get(stem, []) if f != mesh_format]
+        if state is True and mesh_format not in formats.get(stem, ()):
+            taken = object_mesh(cdir, a, mesh_format).suffix[1:]  # the mesh finished() took: converted
+            check.converted.setdefault(taken, []).append(a)
+            others.remove(taken)
+        check.other_formats += [f"{stem}.{f}" for f in others]
     return check
+
+
+def _mesh_formats(cdir: str | Path, mesh_format: str) -> dict[str, list[str]]:
+    """``{stem: [formats]}`` of the mesh files in class folder ``cdir`` (one listing of ``meshes/``), each object's
+    formats in :func:`object_mesh`'s order."""
+    from ..mesh import MESH_FORMATS
+
+    order = (mesh_format, *(f for f in MESH_FORMATS if f != mesh_format))
+    folder, out = Path(cdir) / "meshes", {}
+    if not folder.is_dir():
+        return out
+    for f in folder.iterdir():
+        stem, _, ext = f.name.rpartition(".")
+        if ext in order and stem and not f.name.startswith(".") and f.is_file():
+            out.setdefault(stem, []).append(ext)
+    return {stem: sorted(exts, key=order.index) for stem, exts in out.items()}

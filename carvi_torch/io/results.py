@@ -17,11 +17,12 @@ import torch
 
 from .. import quality
 from ..cameras import azimuth_elevation_roll_from_rotation
-from .layout import object_file
+from ..mesh import occupancy_to_mesh, write_mesh
+from .layout import class_dir, object_file, object_mesh
 from .outputs import read_json, write_json, write_npz
 
 __all__ = ["ClassReport", "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras",
-           "resumed_objects", "quality_summary", "annotation_source", "same_object"]
+           "resumed_objects", "drop_cameras", "quality_summary", "annotation_source", "same_object"]
 
 
 @dataclass
@@ -133,13 +134,16 @@ def _angles(az, el, ro, has_cam: bool) -> dict:
             for k, v in (("azimuth_deg", az), ("elevation_deg", el), ("roll_deg", ro))}
 
 
-def resumed_objects(cdir: Path, coll, vp, done: list) -> dict:
+def resumed_objects(cdir: Path, coll, vp, done: list, mesh_format: str | None = None) -> dict:
     """The objects an earlier run finished (``done``, per original), brought up to this run's cameras:
     each voxels file's ``voxel_to_object`` is rewritten from this run's camera where it differs (the cameras are
     fitted jointly, so a change to any object's input moves every camera, while a resumed object keeps its
     grid, which is in its image's frame: ``voxel_to_camera`` and every other member do not depend on the
-    camera); ``NaN`` where the object has no camera now. Returns ``{str(aid): reconstruction_iou}`` of them
-    (read from the same files). A file that cannot be read is left alone (the object is redone anyway)."""
+    camera); ``NaN`` where the object has no camera now. With ``mesh_format``, a resumed object whose mesh is in
+    another format only (an earlier run's ``mesh_format``) gets its mesh made again from its voxels (as the
+    writers make it) in ``mesh_format``, and the other file is removed (:func:`_convert_mesh`). Returns
+    ``{str(aid): reconstruction_iou}`` of them (read from the same files). A file that cannot be read is left
+    alone (the object is redone anyway)."""
     ids = [i for i, d in enumerate(done) if d]
     if not ids:
         return {}
@@ -160,7 +164,41 @@ def resumed_objects(cdir: Path, coll, vp, done: list) -> dict:
         v2o = (to_object[i] @ v2img).numpy() if has_camera[i] else np.full((4, 4), np.nan)
         if not np.array_equal(members.get("voxel_to_object"), v2o, equal_nan=True):
             write_npz(path, sync=False, **{**members, "voxel_to_object": v2o})
+        if mesh_format is not None:
+            _convert_mesh(cdir, aid, members, mesh_format)
     return out
+
+
+def _convert_mesh(cdir: Path, aid, members: dict, mesh_format: str) -> None:
+    """A resumed object's mesh in ``mesh_format`` where it has one in another format only: made from its voxels
+    file's ``members`` (the occupancy is the written one, its largest component already taken), written, then the
+    other file removed (the same shape, in a format the run no longer writes)."""
+    if object_file(cdir, "meshes", aid, mesh_format).is_file():
+        return
+    earlier = object_mesh(cdir, aid, mesh_format)
+    write_mesh(occupancy_to_mesh(members["occupancy"], members["voxel_to_camera"]),
+               object_file(cdir, "meshes", aid, mesh_format), sync=False)
+    if earlier is not None:
+        earlier.unlink(missing_ok=True)
+
+
+def drop_cameras(out: Path | None, key: str, report: "ClassReport") -> None:
+    """A class that stops before its cameras (skipped: too few instances, no true or SfM camera) has no
+    ``cameras.json`` from this run: an earlier run's, which would list objects this run leaves out (and have the
+    report draw them), is removed, with a warning (one that cannot be removed is named in it); the objects' meshes
+    and voxels stay (finished work is never removed: a rerun that reconstructs the class resumes them). Nothing
+    without ``out``."""
+    path = class_dir(out, key) / "cameras.json" if out is not None else None
+    if path is None or not path.is_file():
+        return
+    try:
+        path.unlink()
+    except OSError as e:  # a folder the run cannot write: the class stays skipped, and the file is named
+        report.warnings.append(f"cameras.json of an earlier run not removed ({e}): it lists objects this run "
+                               "leaves out")
+        return
+    report.warnings.append("cameras.json of an earlier run removed (this run skips the class; the meshes and "
+                           "voxels of its objects stay, left out of the report and the export)")
 
 
 def quality_summary(cameras: dict) -> dict:

@@ -1,0 +1,229 @@
+"""Reruns into one ``--out`` with other settings or inputs: what the summary records of how the finished objects
+were made, which settings redo objects (the canvas) and which are taken care of object by object (the mesh
+format), counts that add up, and class records that agree with the files.
+
+Every test starts from a copy of one finished run of six procedural cars and six chairs.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from carvi_torch.config import Config
+from carvi_torch.executors import run
+from carvi_torch.io.layout import finished
+
+SMALL = {"resolution": 16, "proposals": 3, "canvas_size": 48, "progress": False, "refine_iters": 20,
+         "plane_size": 24, "preview": False, "report": False}
+
+
+@pytest.fixture(scope="module")
+def first(tmp_path_factory) -> tuple[Path, Path]:
+    """``(data, out)``: annotations (with gt.json beside them) and a finished run of both classes on them."""
+    from carvi_torch.synthetic import procedural
+
+    d = tmp_path_factory.mktemp("data")
+    procedural.write_default_collection(d, instances_per_class=6, categories=["car", "chair"], seed=1,
+                                        progress=False)
+    out = tmp_path_factory.mktemp("first") / "run"
+    summary = run(_cfg(out, d / "annotations.json"), workers=0)
+    assert [summary["classes"][c]["reconstructed"] for c in ("car", "chair")] == [6, 6]
+    return d / "annotations.json", out
+
+
+def _cfg(out: Path, data: Path, **extra) -> Config:
+    return Config().override({**SMALL, "out": str(out), "data": str(data), **extra})
+
+
+@pytest.fixture
+def copy(first, tmp_path) -> tuple[Path, Path]:
+    """``(data, out)``: a copy of the first run, for a test to rerun into."""
+    data, out = first
+    shutil.copytree(out, tmp_path / "run")
+    return data, tmp_path / "run"
+
+
+def _counts(summary: dict, cls: str = "car") -> tuple[int, int, int]:
+    c = summary["classes"][cls]
+    return c["reconstructed"], c["resumed"], c["skipped"]
+
+
+def _adds_up(summary: dict) -> None:
+    """Every class of the summary counts each of its objects once: reconstructed, resumed or skipped."""
+    for name, c in summary["classes"].items():
+        assert c["reconstructed"] + c["resumed"] + c["skipped"] == c["objects"], (name, c)
+
+
+# --------------------------------------------------------------------------- the record of changed settings
+
+
+def test_the_record_of_other_settings_stays_while_their_objects_do(copy, caplog):
+    """The resumed objects were made at resolution 16: rerunning the same command at 24 again keeps saying so
+    (it used to forget after one rerun, leaving config.yaml's 24 as the only record); back at 16, every object
+    is one of 16 again and the record goes; overwrite redoes everything and records nothing."""
+    data, out = copy
+    once = run(_cfg(out, data, resolution=24), workers=0)
+    assert once["resumed_from_other_settings"] == {"carve.resolution": [16, 24]}
+    caplog.clear()
+    again = run(_cfg(out, data, resolution=24), workers=0)
+    assert _counts(again) == (0, 6, 0)
+    assert again["resumed_from_other_settings"] == {"carve.resolution": [16, 24]}
+    assert "other settings (carve.resolution: 16 -> 24)" in caplog.text
+    assert "carve.resolution: [16, 24]" not in (out / "run.log").read_text()  # one line, the warning's
+    back = run(_cfg(out, data), workers=0)
+    assert "resumed_from_other_settings" not in back and _counts(back) == (0, 6, 0)
+    fresh = run(_cfg(out, data, resolution=24, overwrite=True), workers=0)
+    assert "resumed_from_other_settings" not in fresh and _counts(fresh) == (6, 0, 0)
+    then = run(_cfg(out, data, resolution=24), workers=0)
+    assert "resumed_from_other_settings" not in then and _counts(then) == (0, 6, 0)
+
+
+def test_objects_made_with_two_earlier_values_are_both_recorded(copy):
+    """Objects made at 16, then new objects at 24 (the chairs, redone by overwrite): a rerun at 20 says both."""
+    data, out = copy
+    run(_cfg(out, data, resolution=24, overwrite=True, classes="chair"), workers=0)
+    mixed = run(_cfg(out, data, resolution=20), workers=0)
+    assert mixed["resumed_from_other_settings"] == {"carve.resolution": [16, 24, 20]}
+    assert run(_cfg(out, data, resolution=20), workers=0)["resumed_from_other_settings"] == {
+        "carve.resolution": [16, 24, 20]}
+
+
+def test_files_written_besides_the_objects_are_no_changed_setting(copy):
+    """keep_all_scores and save_proposals add study files; the objects are made the same (README: what is
+    written besides does not count)."""
+    data, out = copy
+    summary = run(_cfg(out, data, keep_all_scores=True, save_proposals=True), workers=0)
+    assert "resumed_from_other_settings" not in summary and _counts(summary) == (0, 6, 0)
+
+
+# --------------------------------------------------------------------------- the canvas
+
+
+def test_another_canvas_redoes_every_object(copy):
+    """canvas_size changes every object's canvas, which its voxels are carved and exported in: the objects are
+    redone (and counted), not resumed next to a config.yaml that gives another canvas."""
+    data, out = copy
+    summary = run(_cfg(out, data, canvas_size=64), workers=0)
+    for cls, ids in (("car", [1, 2, 3, 4, 5, 6]), ("chair", [7, 8, 9, 10, 11, 12])):
+        assert _counts(summary, cls) == (6, 0, 0)
+        assert summary["classes"][cls]["redone"] == {"count": 6, "canvas_changed": ids}
+    assert "resumed_from_other_settings" not in summary
+    margin = run(_cfg(out, data, canvas_size=64, canvas_margin=0.2, classes="car"), workers=0)
+    assert margin["classes"]["car"]["redone"]["canvas_changed"] == [1, 2, 3, 4, 5, 6]
+    # the chairs are left as they were: the record says so, and the export leaves them out rather than
+    # misplace their grids on the canvas config.yaml now gives
+    assert margin["classes_from_earlier_runs"] == ["chair"]
+    assert margin["resumed_from_other_settings"] == {"input.canvas_margin": [0.1, 0.2, 0.2]}
+    from carvi_torch.export import export
+
+    index = export(out, out.parent / "export", resolution=4, points=8, progress=False, workers=0)
+    assert sorted(s["annotation_id"] for s in index["samples"]) == [1, 2, 3, 4, 5, 6]
+    assert {s["annotation_id"]: s["reason"].split(" (")[0] for s in index["skipped"]} == {
+        i: "carved on another canvas than config.yaml's" for i in range(7, 13)}
+
+
+# --------------------------------------------------------------------------- the mesh format
+
+
+def test_another_mesh_format_resumes_the_objects_with_their_meshes_in_it(copy):
+    """mesh_format=obj: the finished objects are resumed (nothing redone), each mesh made again from its voxels
+    in the new format and the .ply removed; no setting is recorded as resumed otherwise. A mesh in another format
+    beside one in the run's is named in the summary, not taken."""
+    data, out = copy
+    ply = {f.stem: trimesh.load(f, force="mesh", process=False) for f in (out / "car" / "meshes").glob("*.ply")}
+    summary = run(_cfg(out, data, mesh_format="obj"), workers=0)
+    assert _counts(summary) == (0, 6, 0) and "resumed_from_other_settings" not in summary
+    assert summary["classes"]["car"]["meshes_converted"] == {"count": 6, "ply": [1, 2, 3, 4, 5, 6]}
+    assert sorted(f.name for f in (out / "car" / "meshes").iterdir()) == [f"{i}.obj" for i in range(1, 7)]
+    for stem, m in ply.items():
+        obj = trimesh.load(out / "car" / "meshes" / f"{stem}.obj", force="mesh", process=False)
+        assert np.allclose(obj.bounds, m.bounds, atol=1e-3) and abs(obj.volume - m.volume) < 1e-3 * abs(m.volume)
+        assert finished(out / "car", int(stem), "obj") is True
+    shutil.copy(out / "chair" / "meshes" / "7.obj", out / "chair" / "meshes" / "7.ply")
+    again = run(_cfg(out, data, mesh_format="obj"), workers=0)
+    assert _counts(again, "chair") == (0, 6, 0) and "meshes_converted" not in again["classes"]["chair"]
+    assert again["classes"]["chair"]["other_format_meshes"] == {"count": 1, "files": ["7.ply"]}
+
+
+# --------------------------------------------------------------------------- counts and class records
+
+
+def test_an_object_without_a_camera_now_is_skipped_not_also_resumed(copy):
+    """cameras=gt with a gt.json that lacks two objects: those are skipped, and counted there alone."""
+    data, out = copy
+    run(_cfg(out, data, cameras="gt", overwrite=True), workers=0)
+    gt = json.loads((data.parent / "gt.json").read_text())
+    for aid in ("1", "7"):
+        del gt["annotations"][aid]
+    partial = out.parent / "gt_partial.json"
+    partial.write_text(json.dumps(gt))
+    summary = run(_cfg(out, data, cameras="gt", gt=str(partial)), workers=0)
+    _adds_up(summary)
+    assert _counts(summary, "car") == (0, 5, 1) and _counts(summary, "chair") == (0, 5, 1)
+    cams = json.loads((out / "car" / "cameras.json").read_text())["cameras"]
+    assert cams["1"]["refined"] is None and cams["2"]["refined"] is not None
+
+
+def test_overwrite_of_one_class_keeps_the_others_in_the_summary(copy):
+    """overwrite=true classes=car redoes the cars; the chairs' files stay, and so does their summary entry (and
+    the record that they were made with other settings)."""
+    data, out = copy
+    summary = run(_cfg(out, data, overwrite=True, classes="car", refine_iters=25), workers=0)
+    assert sorted(summary["classes"]) == ["car", "chair"] and summary["classes_from_earlier_runs"] == ["chair"]
+    assert _counts(summary) == (6, 0, 0) and summary["classes"]["chair"]["reconstructed"] == 6
+    assert summary["resumed_from_other_settings"] == {"viewpoints.refine_iters": [20, 25, 25]}
+    assert "data_changed" not in summary
+
+
+def test_a_class_skipped_on_a_rerun_leaves_no_cameras_json_behind(copy):
+    """Skipped on a rerun (fewer objects than min_instances), a class has no cameras from this run: the earlier
+    cameras.json, which listed objects the run now leaves out, is removed and the summary says so; the objects'
+    files stay, and a rerun that reconstructs the class again resumes them."""
+    data, out = copy
+    summary = run(_cfg(out, data, min_instances=7), workers=0)
+    for cls in ("car", "chair"):
+        assert summary["classes"][cls]["status"] == "skipped"
+        assert not (out / cls / "cameras.json").exists()
+        assert any("cameras.json of an earlier run removed" in w for w in summary["classes"][cls]["warnings"])
+        assert len(list((out / cls / "voxels").glob("*.npz"))) == 6
+    from carvi_torch.report import build_report
+
+    build_report(out, out / "report")
+    cards = (out / "report" / "cards.js").read_text()  # a card per object the report draws
+    assert '"id": "1"' not in cards and '"mesh": "../car/meshes/1.ply"' not in cards
+    back = run(_cfg(out, data), workers=0)
+    assert _counts(back) == (0, 6, 0) and (out / "car" / "cameras.json").is_file()
+
+
+# --------------------------------------------------------------------------- one run at a time
+
+
+def test_a_second_run_into_a_folder_a_run_holds_is_refused_before_writing(copy, monkeypatch):
+    """While a run holds ``--out`` (its lock), another run into it is a user error naming the holder's pid, and
+    writes nothing there (``config.yaml`` and ``summary.json`` untouched); once the holder ends, a run goes on
+    (the lock is released however the run ends)."""
+    from carvi_torch.config import ConfigError
+    from carvi_torch.runtime import FolderLock
+
+    data, out = copy
+    before = {p: p.read_bytes() for p in (out / "config.yaml", out / "summary.json")}
+    with FolderLock(out):
+        with pytest.raises(ConfigError, match=rf"--out {out}: another process \(pid \d+\) is writing into it"):
+            run(_cfg(out, data, resolution=24), workers=0)
+    assert {p: p.read_bytes() for p in before} == before
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("stopped inside the run")
+    with monkeypatch.context() as m:
+        m.setattr("carvi_torch.executors.local._classes", broken)
+        with pytest.raises(RuntimeError, match="stopped inside"):
+            run(_cfg(out, data), workers=0)
+    FolderLock(out).release()  # the failed run let it go
+    summary = run(_cfg(out, data), workers=0)
+    assert _counts(summary) == (0, 6, 0)
+    FolderLock(out).release()
