@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 
 from ..cameras import ScaledOrthographic
 from ..io.layout import object_file
+from ..io.results import ROTATION_TOLERANCE, camera_record_problem, numbers, rotation_problem, shown
 from ..mesh import MESH_FORMATS
 from ..runtime import LeanProcessPool, cores, start_method, torch_threads
 from . import metrics
@@ -41,54 +42,8 @@ log = logging.getLogger(__name__)
 POOL_FROM = 16
 #: At most this many worker processes by default (each holds torch and its ground-truth meshes: a few hundred MB).
 MAX_JOBS = 8
-#: How far ``R R^T`` may be from the identity for ``R`` (of ``gt.json`` or of a run) to count as a rotation.
-ROTATION_TOLERANCE = 1e-3
 #: The reason of an object that a method has no mesh for (and nothing more is known).
 NO_RECONSTRUCTION = "no reconstruction"
-
-
-def numbers(value, shape: tuple, finite: bool = True) -> bool:
-    """Whether ``value`` is nested lists of ``shape`` holding numbers (not booleans; finite ones where ``finite``).
-
-    Example:
-        >>> numbers([[1, 2.5], [3, 4]], (2, 2)), numbers([1, "2"], (2,)), numbers(None, ())
-        (True, False, False)
-        >>> numbers(float("nan"), ()), numbers(float("nan"), (), finite=False)
-        (False, True)
-    """
-    if shape:
-        return isinstance(value, list) and len(value) == shape[0] and all(numbers(v, shape[1:], finite)
-                                                                          for v in value)
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return False
-    try:
-        return not finite or math.isfinite(value)
-    except OverflowError:  # an integer too large for a float
-        return False
-
-
-def _shown(value, width: int = 40) -> str:
-    """``value`` as one short line (its ``repr``, cut at ``width`` characters)."""
-    text = " ".join(repr(value).split())
-    return text if len(text) <= width else text[:width - 3] + "..."
-
-
-def rotation_problem(R) -> str | None:
-    """Why ``R`` is no rotation matrix (3 x 3 finite numbers whose ``R R^T`` is the identity within
-    :data:`ROTATION_TOLERANCE`, determinant +1); ``None`` when it is one.
-
-    Example:
-        >>> rotation_problem([[0, -1, 0], [1, 0, 0], [0, 0, 1]]) is None
-        True
-        >>> rotation_problem([[2, 0, 0], [0, 2, 0], [0, 0, 2]]), rotation_problem([[1, 0, 0], [0, 1, 0]])
-        ('R is not a rotation', 'R is not 3 x 3 finite numbers')
-    """
-    if not numbers(R, (3, 3)):
-        return "R is not 3 x 3 finite numbers"
-    R = np.asarray(R, dtype=np.float64)
-    if np.abs(R @ R.T - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
-        return "R is not a rotation"
-    return None
 
 
 def gt_problem(entry) -> str | None:
@@ -105,24 +60,17 @@ def gt_problem(entry) -> str | None:
         "its entry is 'oops', not an object"
     """
     if not isinstance(entry, dict):
-        return f"its entry is {_shown(entry)}, not an object"
-    mesh, s, t = entry.get("mesh"), entry.get("s"), entry.get("t")
+        return f"its entry is {shown(entry)}, not an object"
+    mesh = entry.get("mesh")
     if not isinstance(mesh, str) or not mesh:
-        return f"mesh is {_shown(mesh)}, not a file name"
-    why = rotation_problem(entry.get("R"))
-    if why:
-        return why
-    if not numbers(s, ()) or s <= 0:
-        return f"s is {_shown(s)}, not a finite positive number"
-    if not numbers(t, (2,)):
-        return f"t is {_shown(t)}, not 2 finite numbers"
-    return None
+        return f"mesh is {shown(mesh)}, not a file name"
+    return camera_record_problem(entry)
 
 
 def camera_problem(cam) -> str | None:
     """What makes a camera of a run's ``cameras.json`` (an entry's ``sfm`` or ``refined``) unusable, ``None`` when
-    nothing does: ``R`` 3 x 3 numbers, a rotation (:func:`rotation_problem`) where finite; ``s`` a number; ``t``
-    two numbers. A non-finite camera (an estimate that failed) is usable: the viewpoint report leaves it out.
+    nothing does (:func:`~carvi_torch.io.results.camera_record_problem` with ``finite=False``: a non-finite
+    camera, an estimate that failed, is usable; the viewpoint report leaves it out).
 
     Example:
         >>> camera_problem({"R": [[1, 0, 0], [0, 1, 0]], "s": 1.0, "t": [0, 0]})
@@ -130,18 +78,7 @@ def camera_problem(cam) -> str | None:
         >>> camera_problem({"R": [[float("nan")] * 3] * 3, "s": 1.0, "t": [0, 0]}) is None
         True
     """
-    if not isinstance(cam, dict):
-        return f"{_shown(cam)} is not an object with R, s and t"
-    R, s, t = cam.get("R"), cam.get("s"), cam.get("t")
-    if not numbers(R, (3, 3), finite=False):
-        return "R is not 3 x 3 numbers"
-    if numbers(R, (3, 3)) and rotation_problem(R):
-        return rotation_problem(R)
-    if not numbers(s, (), finite=False):
-        return f"s is {_shown(s)}, not a number"
-    if not numbers(t, (2,), finite=False):
-        return f"t is {_shown(t)}, not 2 numbers"
-    return None
+    return camera_record_problem(cam, finite=False)
 
 
 def read_mesh(path: Path) -> trimesh.Trimesh:

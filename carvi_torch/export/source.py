@@ -4,11 +4,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
-
 from ..config import Config, read_run_config
 from ..io.coco import class_keys, class_names, select_classes
 from ..io.outputs import read_json
+from ..io.results import camera_record_problem
 
 __all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories",
            "camera_problem", "camera_entry", "missing_class_reason", "extra_cameras", "NOT_YET", "NOT_IN_ANNOTATIONS"]
@@ -111,15 +110,6 @@ def class_categories(categories: list, class_names: list) -> dict[str, dict]:
     return out
 
 
-def _numbers(value, shape: tuple) -> bool:
-    """Whether ``value`` is an array (nested lists) of ``shape`` finite real numbers (no strings, no booleans)."""
-    try:
-        a = np.asarray(value)
-    except (ValueError, TypeError):  # ragged lists
-        return False
-    return a.shape == shape and a.dtype.kind in "iuf" and bool(np.isfinite(a).all())
-
-
 def _shown(value) -> str:
     """A JSON value as a message quotes it (cut to 60 characters)."""
     text = json.dumps(value, default=str)
@@ -140,16 +130,9 @@ def camera_problem(entry: dict) -> str | None:
     cam = entry.get("refined")
     if not isinstance(cam, dict):
         return "bad camera in cameras.json: 'refined' is not an object with R, s and t"
-    R, s = cam.get("R"), cam.get("s")
-    if not _numbers(R, (3, 3)):
-        return "bad camera in cameras.json: R is not 3 x 3 finite numbers"
-    R = np.asarray(R, dtype=np.float64)
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
-        return "bad camera in cameras.json: R is not a rotation"
-    if not _numbers(s, ()) or float(s) <= 0:
-        return f"bad camera in cameras.json: s is {_shown(s)}, not a finite positive number"
-    if not _numbers(cam.get("t"), (2,)):
-        return f"bad camera in cameras.json: t is {_shown(cam.get('t'))}, not 2 finite numbers"
+    why = camera_record_problem(cam)
+    if why is not None:
+        return f"bad camera in cameras.json: {why}"
     q = entry.get("quality")
     if q is not None and (isinstance(q, bool) or not isinstance(q, (int, float))):
         return f"bad quality in cameras.json: {_shown(q)} is not a number"

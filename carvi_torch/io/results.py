@@ -21,7 +21,8 @@ from ..mesh import occupancy_to_mesh, write_mesh
 from .layout import class_dir, object_file, object_mesh
 from .outputs import read_json, write_json, write_npz
 
-__all__ = ["ClassReport", "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras",
+__all__ = ["ROTATION_TOLERANCE", "numbers", "rotation_problem", "camera_record_problem", "shown", "ClassReport",
+           "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras",
            "resumed_objects", "drop_cameras", "quality_summary", "annotation_source", "same_object"]
 
 
@@ -347,3 +348,83 @@ def resumed_levels(cdir: Path, coll, levels: list, done: list) -> list:
         previous = {}
     return [("puffball" if d and (previous.get(str(a)) or {}).get("surrogates_from") == "puffball" else lv)
             for a, lv, d in zip(coll.annotation_ids, levels, done)]
+
+
+# --------------------------------------------------------------------------- camera records read back
+
+
+#: How far ``R R^T`` may be from the identity for ``R`` (of ``gt.json`` or of a run) to count as a rotation.
+ROTATION_TOLERANCE = 1e-3
+
+
+def numbers(value, shape: tuple, finite: bool = True) -> bool:
+    """Whether ``value`` is nested lists of ``shape`` holding numbers (not booleans; finite ones where ``finite``).
+
+    Example:
+        >>> numbers([[1, 2.5], [3, 4]], (2, 2)), numbers([1, "2"], (2,)), numbers(None, ())
+        (True, False, False)
+        >>> numbers(float("nan"), ()), numbers(float("nan"), (), finite=False)
+        (False, True)
+    """
+    if shape:
+        return isinstance(value, list) and len(value) == shape[0] and all(numbers(v, shape[1:], finite)
+                                                                          for v in value)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return not finite or math.isfinite(value)
+    except OverflowError:  # an integer too large for a float
+        return False
+
+
+def shown(value, width: int = 40) -> str:
+    """``value`` as one short line (its ``repr``, cut at ``width`` characters)."""
+    text = " ".join(repr(value).split())
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
+def rotation_problem(R) -> str | None:
+    """Why ``R`` is no rotation matrix (3 x 3 finite numbers whose ``R R^T`` is the identity within
+    :data:`ROTATION_TOLERANCE`, determinant +1); ``None`` when it is one.
+
+    Example:
+        >>> rotation_problem([[0, -1, 0], [1, 0, 0], [0, 0, 1]]) is None
+        True
+        >>> rotation_problem([[2, 0, 0], [0, 2, 0], [0, 0, 2]]), rotation_problem([[1, 0, 0], [0, 1, 0]])
+        ('R is not a rotation', 'R is not 3 x 3 finite numbers')
+    """
+    if not numbers(R, (3, 3)):
+        return "R is not 3 x 3 finite numbers"
+    R = np.asarray(R, dtype=np.float64)
+    if np.abs(R @ R.T - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+        return "R is not a rotation"
+    return None
+
+
+def camera_record_problem(cam, finite: bool = True) -> str | None:
+    """What makes a camera record unusable (``R``, ``s``, ``t``: an entry of ``cameras.json``'s ``sfm`` or
+    ``refined``, or of ``gt.json``), ``None`` when nothing does: ``R`` a rotation (:func:`rotation_problem`), ``s``
+    a positive number and ``t`` two numbers, all finite; with ``finite=False`` non-finite numbers (an estimate that
+    failed) pass, ``R`` being a rotation where it is finite. The one check of the commands that read cameras back
+    (evaluate, export).
+
+    Example:
+        >>> camera_record_problem({"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "s": 2.0, "t": [0, 1]}) is None
+        True
+        >>> camera_record_problem({"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "s": None, "t": [0, 1]})
+        's is None, not a finite positive number'
+    """
+    if not isinstance(cam, dict):
+        return f"{shown(cam)} is not an object with R, s and t"
+    R, s, t = cam.get("R"), cam.get("s"), cam.get("t")
+    if not numbers(R, (3, 3), finite):
+        return "R is not 3 x 3 finite numbers" if finite else "R is not 3 x 3 numbers"
+    if numbers(R, (3, 3)) and rotation_problem(R):
+        return rotation_problem(R)
+    if finite and not (numbers(s, ()) and s > 0):
+        return f"s is {shown(s)}, not a finite positive number"
+    if not numbers(s, (), finite):
+        return f"s is {shown(s)}, not a number"
+    if not numbers(t, (2,), finite):
+        return f"t is {shown(t)}, not 2 {'finite ' if finite else ''}numbers"
+    return None
