@@ -227,3 +227,22 @@ def test_a_second_run_into_a_folder_a_run_holds_is_refused_before_writing(copy, 
     summary = run(_cfg(out, data), workers=0)
     assert _counts(summary) == (0, 6, 0)
     FolderLock(out).release()
+
+
+def test_a_read_only_class_folder_is_refused_before_any_work(copy, monkeypatch):
+    """A class folder (or its meshes/ or voxels/) the run cannot write into: every object of the class would fail
+    after its work, so the run stops first with one user error naming the folder, nothing written. (Simulated:
+    the tests may run as root, whom file modes do not stop.)"""
+    import os
+
+    from carvi_torch.config import ConfigError
+    from carvi_torch.executors import common
+
+    data, out = copy
+    real = os.access
+    meshes = out / "car" / "meshes"
+    monkeypatch.setattr(common.os, "access", lambda p, mode: False if Path(p) == meshes else real(p, mode))
+    before = (out / "config.yaml").read_bytes()
+    with pytest.raises(ConfigError, match=rf"--out {out}: {meshes} is not writable \(the run writes class 'car'"):
+        run(_cfg(out, data, resolution=24), workers=0)
+    assert (out / "config.yaml").read_bytes() == before

@@ -6,6 +6,7 @@ folder, the annotation file), the classes (the executor's business), then :func:
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -71,15 +72,18 @@ def _check_references(references: str, collections: dict) -> None:
 
 
 def _check_class_folders(out: Path, keys) -> None:
-    """Once the classes are known, before any work: no link where the run writes (:func:`_check_links`), and
-    no file where a class's folder or one of its per-object folders goes (the class would fail after all its
-    work)."""
+    """Once the classes are known, before any work: no link where the run writes (:func:`_check_links`), no
+    file where a class's folder or one of its per-object folders goes, and none of those folders read-only (the
+    class would fail after all its work)."""
     _check_links(out, keys)
     for key in keys:
         for path in (out / key, *(out / key / kind for kind in KINDS)):
             if path.exists() and not path.is_dir():
                 raise ConfigError(f"--out {out}: {path} is a file where the run writes a folder of class "
                                   f"{key!r}; move it or choose another --out")
+            if path.is_dir() and not os.access(path, os.W_OK | os.X_OK):  # every object of the class would fail
+                raise ConfigError(f"--out {out}: {path} is not writable (the run writes class {key!r} there); "
+                                  "give yourself write access or choose another --out")
 
 
 def _check_cameras_only(out: Path) -> None:
