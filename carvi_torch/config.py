@@ -734,8 +734,9 @@ def _quoted(word: str) -> str | None:
 def _typed(key: str, text: str, annotation: Any) -> Any:
     """The value ``key=text`` on the command line gives a setting of type ``annotation``, for :func:`_coerce`:
     ``None`` for nothing or ``null`` (:data:`NULL_WORDS`); what a quoted value holds (``data='null'``); a text
-    setting's text as typed (``out=007`` is the folder ``007``, not YAML's 7); a list's ``[a, b]`` (YAML, a
-    number's text kept) or ``a,b``; any other setting's text without the blanks around it.
+    setting's text as typed, the blanks around it dropped (``out=007`` is the folder ``007``, not YAML's 7;
+    ``device=cpu `` is ``cpu``); a list's ``[a, b]`` (YAML, a number's text kept) or ``a,b``; any other setting's
+    text without the blanks around it.
 
     Example:
         >>> _typed("out", "007", str), _typed("data", "null", Optional[str]), _typed("seed", " 010", int)
@@ -749,7 +750,7 @@ def _typed(key: str, text: str, annotation: Any) -> Any:
         return quoted
     base = _base(annotation)
     if _is_text(base):
-        return text
+        return word  # blanks around a value are the shell's, not the setting's (quote them to keep them)
     if base is list and word.startswith("["):
         try:
             return yaml.load(word, Loader=_ConfigLoader)
@@ -854,7 +855,8 @@ def override_text(value: Any) -> str:
         if names and all(n.strip() == n and n and "," not in n and n[0] not in "['\"" for n in names):
             return ",".join(names)
         return yaml.safe_dump(names, default_flow_style=True, width=10 ** 6).strip()
-    if isinstance(value, str) and (value.strip() in NULL_WORDS or _quoted(value.strip()) is not None):
+    if isinstance(value, str) and (value.strip() in NULL_WORDS or _quoted(value.strip()) is not None
+                                   or value.strip() != value):  # blanks around it are kept only when quoted
         return "'" + value.replace("'", "''") + "'"
     return str(value)
 

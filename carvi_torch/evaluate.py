@@ -252,8 +252,8 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     res = {"data": str(data), "gt": str(ann.gt_path), "split": split, "step_percent": step_percent,
            "methods": methods, "recons": {k: str(v) for k, v in recons.items()}, "objects": objects,
            "classes": per_class, "compared": compared,
-           "mean_over_classes": _mean_over_classes(per_class, methods, "mean"),
-           "mean_over_classes_compared": _mean_over_classes(per_class, methods, "compared_mean"),
+           "mean_over_classes": mean_over_classes(per_class, methods, "mean"),
+           "mean_over_classes_compared": mean_over_classes(per_class, methods, "compared_mean"),
            "viewpoints": _class_viewpoints(list(per_class), objects, ann, cameras),
            "viewpoint_coverage": _viewpoint_coverage(objects, ann, cameras, problems),
            "camera_problems": problems, "unfinished": unfinished, "classes_without_reconstruction": without}
@@ -278,10 +278,10 @@ def _score_objects(scorer: ShapeScorer, targets: list, ann: "_Annotations", shap
     return rows
 
 
-def _mean_over_classes(per_class: dict, methods: list[str], key: str) -> dict:
+def mean_over_classes(per_class: dict, methods: list[str], key: str) -> dict:
     """Per method: the mean over classes of its class means ``key`` (``mean`` or ``compared_mean``), the classes
-    without one left out (``None``: none has one)."""
-    vals = {m: [row[m][key] for row in per_class.values() if row[m][key] is not None] for m in methods}
+    without one (or from an older ``results.json``, without the key) left out (``None``: none has one)."""
+    vals = {m: [row[m][key] for row in per_class.values() if row[m].get(key) is not None] for m in methods}
     return {m: float(np.mean(v)) if v else None for m, v in vals.items()}
 
 
@@ -615,8 +615,9 @@ def format_shape_table(res: dict) -> str:
     for cls, row in sorted(res["classes"].items()):
         lines.append(_shape_row(cls, row, methods, None if compared is None else compared.get(cls)))
     means = res["mean_over_classes"] if compared is None else res["mean_over_classes_compared"]
-    used = sum(1 for c in (compared or {}).values() if c["compared"])
-    label = "**mean**" if compared is None or used == len(compared) else f"**mean** ({used} of {len(compared)} classes)"
+    scored = [c for c in (compared or {}).values() if c["objects"] > c.get("without_ground_truth", 0)]
+    used = sum(1 for c in scored if c["compared"])
+    label = "**mean**" if compared is None or used == len(scored) else f"**mean** ({used} of {len(scored)} classes)"
     lines.append(f"| {label} | " + " | ".join(_fmt(means[m]) for m in methods) + " |")
     return "\n".join(lines)
 
@@ -625,15 +626,20 @@ def _shape_row(cls: str, row: dict, methods: list[str], compared: dict | None) -
     """One class's row of :func:`format_shape_table` (``compared``: the class's entry of ``res["compared"]``,
     ``None`` for each method's own objects)."""
     n = len(compared["compared"]) if compared else 0
-    apart = compared is not None and not n  # no object every method has: each its own, not to be ranked
+    no_gt = compared.get("without_ground_truth", 0) if compared else 0
+    scored = compared["objects"] - no_gt if compared else 0  # the objects with usable ground truth
+    apart = compared is not None and not n and scored > 0  # none every method has: each its own, not ranked
     vals = [row[m]["compared_mean" if n else "mean"] for m in methods]
     if compared is None:
         label = f"{cls} ({max(row[m]['count'] for m in methods)})"
+    elif not scored:
+        label = f"{cls} (no ground truth for its {compared['objects']})"
     elif n == compared["objects"]:
         label = f"{cls} ({n})"
     else:
         label = f"{cls} ({n or ('none' if len(methods) > 1 else 0)} of {compared['objects']}" \
-                + (" in common)" if apart and len(methods) > 1 else ")")
+                + (" in common" if apart and len(methods) > 1 else "") \
+                + (f"; {no_gt} without ground truth)" if no_gt else ")")
     finite = [v for v in vals if v is not None]
     best = min(finite) if finite and not apart else None
     cells = [f"**{_fmt(v)}**" if v is not None and v == best else _fmt(v) for v in vals]

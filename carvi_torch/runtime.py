@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import errno
 import logging
 import os
 import signal
@@ -624,19 +625,29 @@ class FolderLock:
         import fcntl
 
         self.path = Path(folder) / name
-        flags = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
-        self.fd: int | None = os.open(self.path, flags, 0o666)
+        flags = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+        try:
+            self.fd: int | None = os.open(self.path, os.O_RDWR | os.O_CREAT | flags, 0o666)
+        except PermissionError:  # another user's lock file in a shared folder: flock needs no write access
+            self.fd = os.open(self.path, os.O_RDONLY | flags)
         try:
             fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(self.fd, 32, 0).decode("ascii", "replace").strip() or "?"
             self.release()
             raise FolderBusy(f"{folder}: another process (pid {holder}) is writing into it") from None
+        except OSError as e:  # a file system without locks (Lustre without -o flock, some NFS): run unlocked
+            if e.errno not in (errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP):
+                self.release()
+                raise
+            log.warning(f"{folder}: this file system cannot lock it ({e.strerror}); make sure no other run writes "
+                        "into it meanwhile")
         except BaseException:
             self.release()
             raise
-        os.ftruncate(self.fd, 0)
-        os.pwrite(self.fd, str(os.getpid()).encode(), 0)
+        with contextlib.suppress(OSError):  # the pid, for another run's message (not where the file is read-only)
+            os.ftruncate(self.fd, 0)
+            os.pwrite(self.fd, str(os.getpid()).encode(), 0)
 
     def release(self) -> None:
         """Unlock (closing the file); a second call does nothing."""

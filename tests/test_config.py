@@ -330,3 +330,9 @@ def test_flattened_settings_are_plain_values(tmp_path):
                                                             "viewpoints.silhouette_weight": 1.5, "classes": [7]}
     cfg = read_run_config(p)  # the saved file's text, as load_config reads it
     assert (cfg.out, cfg.carve.resolution, cfg.classes) == ("007", 40, ["007"])
+
+
+def test_blanks_around_a_typed_text_value_are_dropped_unless_quoted():
+    """``device=cpu `` (a blank the shell passed on) was the device ``'cpu '``; a quoted value keeps its blanks."""
+    cfg = load_config(None, ["device=cpu ", "references= train", "out=' x '"])
+    assert (cfg.device, cfg.references, cfg.out) == ("cpu", "train", " x ")

@@ -468,7 +468,7 @@ def test_objects_without_ground_truth_are_reported(recon, tmp_path, capsys):
     assert res["objects"][cars[1]] == {"class": "car", "split": res["objects"][cars[1]]["split"],
                                        "reason": "no ground truth: gt.json has no entry for it"}
     assert res["compared"]["car"]["objects"] == len(cars) and res["compared"]["car"]["without_ground_truth"] == 1
-    assert f"| car ({len(res['compared']['car']['compared'])} of {len(cars)}) |" in \
+    assert f"| car ({len(res['compared']['car']['compared'])} of {len(cars)}; 1 without ground truth) |" in \
         (tmp_path / "ev" / "shapes.md").read_text()
 
 
@@ -650,3 +650,21 @@ def test_a_recon_folder_whose_path_holds_an_equals_sign(recon, tmp_path, capsys)
     assert "| car | Full | refined |" in capsys.readouterr().out
     assert main(["--data", str(data), "--recon", f"M={odd}", "--viewpoints-only", "--quiet"]) == 0
     assert "| car | M | refined |" in capsys.readouterr().out
+
+
+def test_a_class_without_ground_truth_is_labelled_so_and_left_out_of_the_mean_count():
+    """No method misses anything where the ground truth is absent: the row says so, and the mean's class count
+    leaves that class out (it read "none of 6 in common" and "1 of 2 classes")."""
+    from carvi_torch.evaluate import format_shape_table
+
+    res = {"methods": ["A", "B"],
+           "compared": {"car": {"objects": 3, "without_ground_truth": 0, "compared": ["1", "2", "3"]},
+                        "chair": {"objects": 6, "without_ground_truth": 6, "compared": []}},
+           "classes": {"car": {"A": {"mean": 3.0, "count": 3, "compared_mean": 3.0},
+                               "B": {"mean": 2.5, "count": 3, "compared_mean": 2.5}},
+                       "chair": {"A": {"mean": None, "count": 0, "compared_mean": None},
+                                 "B": {"mean": None, "count": 0, "compared_mean": None}}},
+           "mean_over_classes": {"A": 3.0, "B": 2.5}, "mean_over_classes_compared": {"A": 3.0, "B": 2.5}}
+    table = format_shape_table(res)
+    assert "| chair (no ground truth for its 6) | - | - |" in table
+    assert "| **mean** | 3.00 | 2.50 |" in table and "in common" not in table

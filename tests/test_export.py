@@ -1293,13 +1293,13 @@ def test_camera_entries_of_no_annotated_object_are_reported(recon, tmp_path, cap
     assert export_main(["--recon", str(run), "--out", str(tmp_path / "e"), "--quiet"] + _SMALL) == 0
     err = capsys.readouterr().err.strip().splitlines()
     ann = run / "input" / "annotations.json"
-    assert err == [f"warning: 1 camera(s) in cameras.json name no object of the annotation file {ann}: car 1 "
-                   "(listed as skipped; was the run made from another file?)"], err
+    assert err == [f"warning: 1 camera(s) in cameras.json name no object of the annotation file {ann}: 1 of class "
+                   "car (listed as skipped; was the run made from another file?)"], err
     assert _reasons(tmp_path / "e") == {
         ("car", 987654): f"in cameras.json but not an object of the annotation file {ann}"}
     assert _store_attrs(tmp_path / "e")["counts"] == {"car": 5, "chair": 5}
     assert export_main(["--recon", str(run), "--out", str(tmp_path / "u"), "--format", "ucmr", "--quiet"]) == 0
-    assert "car 1" in capsys.readouterr().err
+    assert "1 of class car" in capsys.readouterr().err
     js = json.loads((tmp_path / "u" / "car.json").read_text())
     assert [s["annotation_id"] for s in js["skipped"]] == [987654] and len(js["images"]) == 5
 

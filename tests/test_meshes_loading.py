@@ -177,3 +177,18 @@ def test_a_mesh_in_any_unit_loads(tmp_path):
         warnings.simplefilter("error")
         models = load_models(tmp_path)
     assert [m.name for m in models] == ["huge1", "tiny1"]
+
+
+def test_strict_raises_where_a_model_would_be_skipped(tmp_path):
+    """The benchmarks read a fixed set of CAD models: ``strict`` makes a broken one an error (it used to be one
+    before models were skipped), not a run on fewer models."""
+    _write(tmp_path, "thing1.ply", BOX)
+    _write(tmp_path, "thing1.json", GOOD)
+    assert [m.name for m in load_models(tmp_path, strict=True)] == ["thing1"]
+    _write(tmp_path, "thing2.npz", b"junk")
+    with pytest.raises(ValueError, match=r"thing2\.npz"):
+        load_models(tmp_path, strict=True)
+    (tmp_path / "thing2.npz").unlink()
+    _write(tmp_path, "thing1.obj", BOX)
+    with pytest.raises(ValueError, match="share a model name"):
+        load_models(tmp_path, strict=True)

@@ -389,10 +389,10 @@ def test_object_missing_from_cameras_json_gets_a_card(recon, tmp_path):
     assert rep.cards == 12 and sorted(c["id"] for c in cards) == sorted(_objects(recon))
     chair = [c for c in cards if c["cls"] == "chair"]
     assert chair[0]["id"] == gone, chair[0]
-    assert chair[0]["problems"] == ["camera missing from cameras.json (summary.json counts the object as "
-                                    "reconstructed)"]
+    assert chair[0]["problems"] == ["camera missing from cameras.json (summary.json counts the object in its "
+                                    "class)"]
     assert chair[0]["img"] and chair[0]["mesh"] and 0.3 < chair[0]["iou"] <= 1
-    assert "chair/cameras.json lists 5 of the 6 objects summary.json counts as reconstructed" in (
+    assert "chair/cameras.json and the failures of the class name 5 of the 6 objects summary.json counts" in (
         run / "rep" / "index.html").read_text()
 
 

@@ -182,14 +182,18 @@ def test_overwrite_of_one_class_keeps_the_others_in_the_summary(copy):
 
 def test_a_class_skipped_on_a_rerun_leaves_no_cameras_json_behind(copy):
     """Skipped on a rerun (fewer objects than min_instances), a class has no cameras from this run: the earlier
-    cameras.json, which listed objects the run now leaves out, is removed and the summary says so; the objects'
-    files stay, and a rerun that reconstructs the class again resumes them."""
+    cameras.json, which listed objects the run now leaves out, is moved aside (hidden) and the summary says so;
+    the objects' files stay, and a rerun that reconstructs the class again resumes them, an object that was a
+    puffball still recorded as one (only the earlier cameras.json knew it)."""
     data, out = copy
+    cams = json.loads((out / "car" / "cameras.json").read_text())
+    cams["cameras"]["1"]["surrogates_from"] = "puffball"
+    (out / "car" / "cameras.json").write_text(json.dumps(cams))
     summary = run(_cfg(out, data, min_instances=7), workers=0)
     for cls in ("car", "chair"):
         assert summary["classes"][cls]["status"] == "skipped"
-        assert not (out / cls / "cameras.json").exists()
-        assert any("cameras.json of an earlier run removed" in w for w in summary["classes"][cls]["warnings"])
+        assert not (out / cls / "cameras.json").exists() and (out / cls / ".cameras_earlier.json").is_file()
+        assert any("cameras.json of an earlier run moved to" in w for w in summary["classes"][cls]["warnings"])
         assert len(list((out / cls / "voxels").glob("*.npz"))) == 6
     from carvi_torch.report import build_report
 
@@ -198,6 +202,8 @@ def test_a_class_skipped_on_a_rerun_leaves_no_cameras_json_behind(copy):
     assert '"id": "1"' not in cards and '"mesh": "../car/meshes/1.ply"' not in cards
     back = run(_cfg(out, data), workers=0)
     assert _counts(back) == (0, 6, 0) and (out / "car" / "cameras.json").is_file()
+    again = json.loads((out / "car" / "cameras.json").read_text())["cameras"]
+    assert again["1"]["surrogates_from"] == "puffball" and again["2"]["surrogates_from"] != "puffball"
 
 
 # --------------------------------------------------------------------------- one run at a time
@@ -246,3 +252,40 @@ def test_a_read_only_class_folder_is_refused_before_any_work(copy, monkeypatch):
     with pytest.raises(ConfigError, match=rf"--out {out}: {meshes} is not writable \(the run writes class 'car'"):
         run(_cfg(out, data, resolution=24), workers=0)
     assert (out / "config.yaml").read_bytes() == before
+
+
+def test_the_lock_works_on_another_users_file_and_without_file_system_locks(tmp_path, monkeypatch, caplog):
+    """A lock file this process cannot open for writing (another user's, in a shared folder) is locked read-only;
+    a file system without flock (ENOLCK, ENOSYS, EOPNOTSUPP) runs unlocked with a warning; any other error is
+    raised."""
+    import errno
+    import fcntl
+    import os
+
+    from carvi_torch import runtime
+    from carvi_torch.runtime import FolderBusy, FolderLock
+
+    real_open = os.open
+
+    def no_write(path, flags, *mode):
+        if str(path).endswith(FolderLock.NAME) and flags & os.O_RDWR:
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real_open(path, flags, *mode)
+    (tmp_path / FolderLock.NAME).write_text("123")
+    with monkeypatch.context() as m:
+        m.setattr(runtime.os, "open", no_write)
+        with FolderLock(tmp_path):
+            with pytest.raises(FolderBusy, match=r"pid 123\)"):  # read-only: the pid is the last holder's
+                FolderLock(tmp_path)
+    for code in (errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP, errno.EIO):
+        def no_flock(fd, op, code=code):
+            raise OSError(code, os.strerror(code))
+        with monkeypatch.context() as m:
+            m.setattr(fcntl, "flock", no_flock)
+            if code == errno.EIO:
+                with pytest.raises(OSError):
+                    FolderLock(tmp_path)
+            else:
+                with caplog.at_level("WARNING", logger="carvi_torch"):
+                    FolderLock(tmp_path).release()
+                assert "cannot lock it" in caplog.text

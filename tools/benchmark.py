@@ -485,7 +485,7 @@ def _cad_mismatch(renders: Path, cad: Path, settings: dict) -> str | None:
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the renaming warnings: the rendering command prints them
-        models = load_models(cad)
+        models = load_models(cad, strict=True)
     return render_mismatch(read_render_info(renders), models, **settings)
 
 

@@ -165,21 +165,24 @@ def _render_mismatch(data_dir: Path, models: list, pool: int, test_views: int, s
 
 
 def merge_evaluations(parts: list[dict]) -> dict:
-    """Merge ``evaluate`` results computed on disjoint class subsets (recomputes the mean over classes)."""
-    import numpy as np
+    """Merge ``evaluate`` results computed on disjoint class subsets: the per-object and per-class fields joined,
+    the means over classes and the quality study computed again (a joint evaluation's result, but ``seconds``)."""
+    from carvi_torch.evaluate import mean_over_classes
+    from carvi_torch.evaluation import reliability
 
     out = dict(parts[0])
-    out["objects"], out["classes"], out["viewpoints"] = {}, {}, {}
-    for p in parts:
-        out["objects"].update(p["objects"])
-        out["classes"].update(p["classes"])
-        out["viewpoints"].update(p["viewpoints"])
+    for key in ("objects", "classes", "viewpoints", "compared", "viewpoint_coverage"):  # keyed by object or class
+        out[key] = {k: v for p in parts for k, v in (p.get(key) or {}).items()}
+    for key in ("camera_problems",):  # per method, then per class
+        out[key] = {}
+        for p in parts:
+            for m, per in (p.get(key) or {}).items():
+                out[key].setdefault(m, {}).update(per)
+    out["unfinished"] = sorted({m for p in parts for m in p.get("unfinished") or ()})
     out["classes"] = dict(sorted(out["classes"].items()))
-    means = {}
-    for m in out["methods"]:
-        vals = [c[m]["mean"] for c in out["classes"].values() if c[m]["mean"] is not None]
-        means[m] = float(np.mean(vals)) if vals else None
-    out["mean_over_classes"] = means
+    out["mean_over_classes"] = mean_over_classes(out["classes"], out["methods"], "mean")
+    out["mean_over_classes_compared"] = mean_over_classes(out["classes"], out["methods"], "compared_mean")
+    out["quality"] = reliability.quality_vs_error(out)
     out["seconds"] = [p["seconds"] for p in parts]
     return out
 
@@ -427,7 +430,7 @@ def run_seed(args, seed: int, out: Path, methods: list[str], classes, command: s
     sides = "" if args.sides == "class" else "_sides-as-given"
     data = out / f"data_pool{args.pool}_test{args.test_views}_seed{seed}{sides}"
     try:
-        models = load_models(Path(args.models), sides=args.sides)  # once: the cache check and the render use them
+        models = load_models(Path(args.models), sides=args.sides, strict=True)  # once: the cache check, the render
     except (FileNotFoundError, ValueError) as e:  # no such folder, no models in it, a broken model
         raise ModelsError(f"--models {e}" if str(args.models) in str(e) else f"--models {args.models}: {e}") from None
     ncpu = os.cpu_count() or 1

@@ -171,7 +171,7 @@ def _models(cad: str, sides: str) -> tuple:
     """The CAD models of ``--cad`` with ``--sides``'s names, read once per run of the tool (every seed uses them)."""
     from carvi_torch.synthetic import load_models
 
-    return tuple(load_models(Path(cad), sides=sides))
+    return tuple(load_models(Path(cad), sides=sides, strict=True))
 
 
 def _renders(args, seed: int) -> Path:

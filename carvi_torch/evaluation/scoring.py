@@ -90,7 +90,7 @@ def read_mesh(path: Path) -> trimesh.Trimesh:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as e:  # noqa: BLE001 - trimesh raises many kinds for a file it cannot read
         lines = str(e).strip().splitlines()
-        raise ValueError(f"cannot read {path}: {lines[0] if lines else type(e).__name__}") from None
+        raise ValueError(f"cannot read {path}: {type(e).__name__}" + (f": {lines[0]}" if lines else "")) from None
     if not isinstance(mesh, trimesh.Trimesh):
         raise ValueError(f"cannot read {path}: it holds no mesh")
     return mesh

@@ -102,20 +102,22 @@ def annotation_boxes(annotations: list) -> dict[str, list[float]]:
     (0-based, inclusive: CMR's ``bbox`` less 1); the first annotation of a repeated id, as the loader keeps it.
 
     Example:
-        >>> annotation_boxes([{"id": 3, "bbox": [10, 20, 5, 8]}, {"id": 4, "bbox": [0, 0, 0, 1]}])
+        >>> annotation_boxes([{"id": 3, "bbox": [10, 20, 5, 8]}, {"id": 4, "bbox": [0, 0, 0, 1]},
+        ...                   {"id": 4, "bbox": [1, 1, 5, 5]}])
         {'3': [10.0, 20.0, 14.0, 27.0]}
     """
-    out: dict[str, list[float]] = {}
+    out: dict[str, list[float] | None] = {}
     for ann in annotations:
         aid, box = object_id(ann.get("id")) if isinstance(ann, dict) else None, None
+        if aid is None or str(aid) in out:  # a later annotation of a repeated id is not the object
+            continue
         try:
             x, y, w, h = (float(v) for v in ann["bbox"])
             box = [x, y, x + w - 1.0, y + h - 1.0] if w > 0 and h > 0 and np.isfinite([x, y, w, h]).all() else None
         except (KeyError, TypeError, ValueError):
             pass
-        if aid is not None and box is not None:
-            out.setdefault(str(aid), box)
-    return out
+        out[str(aid)] = box
+    return {a: b for a, b in out.items() if b is not None}
 
 
 def _mask_box(coll, i: int) -> np.ndarray:

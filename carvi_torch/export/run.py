@@ -240,8 +240,8 @@ def report_skipped(recon: Path, skipped_list: list, exported: int, pending: bool
     extra = Counter(s["class"] for s in other if s["reason"].startswith(NOT_IN_ANNOTATIONS))
     if extra:
         print(f"warning: {sum(extra.values())} camera(s) in cameras.json name no object of the annotation file "
-              f"{data}: {', '.join(f'{c} {n}' for c, n in extra.items())} (listed as skipped; was the run made "
-              "from another file?)", file=sys.stderr)
+              f"{data}: {', '.join(f'{n} of class {c}' for c, n in extra.items())} (listed as skipped; was the run "
+              "made from another file?)", file=sys.stderr)
     if pending:
         print(f"warning: {recon} is an unfinished run (interrupted or still running): exported the {exported} "
               f"object(s) it finished; {_not_yet(recon, skipped_list)} (rerun reconstruct to finish it)",

@@ -207,7 +207,7 @@ def rle_counts(text: bytes) -> np.ndarray:
     """The run lengths of a compressed COCO RLE string (pycocotools' ``counts`` bytes), ``(N,)`` int64.
 
     Each run is a little-endian sequence of 5-bit groups, one character each (``48 +`` the group, bit 5
-    set on every group but the last, bit 4 of the last the sign); from the third run on, a run is stored
+    set on every group but the last, bit 4 of the last the sign); from the fourth run on, a run is stored
     as its difference from the run two places before it. ``ValueError`` for a character outside the
     alphabet, a string cut inside a run, a run of over 7 groups (35 bits) or a negative run.
 

@@ -186,20 +186,26 @@ def _convert_mesh(cdir: Path, aid, members: dict, mesh_format: str) -> None:
 def drop_cameras(out: Path | None, key: str, report: "ClassReport") -> None:
     """A class that stops before its cameras (skipped: too few instances, no true or SfM camera) has no
     ``cameras.json`` from this run: an earlier run's, which would list objects this run leaves out (and have the
-    report draw them), is removed, with a warning (one that cannot be removed is named in it); the objects' meshes
+    report draw them), is moved aside to :data:`EARLIER_CAMERAS`, with a warning (one that cannot be moved is named
+    in it); the objects' meshes
     and voxels stay (finished work is never removed: a rerun that reconstructs the class resumes them). Nothing
     without ``out``."""
     path = class_dir(out, key) / "cameras.json" if out is not None else None
     if path is None or not path.is_file():
         return
     try:
-        path.unlink()
+        path.replace(path.with_name(EARLIER_CAMERAS))  # kept hidden: the puffball records (resumed_levels)
     except OSError as e:  # a folder the run cannot write: the class stays skipped, and the file is named
         report.warnings.append(f"cameras.json of an earlier run not removed ({e}): it lists objects this run "
                                "leaves out")
         return
-    report.warnings.append("cameras.json of an earlier run removed (this run skips the class; the meshes and "
-                           "voxels of its objects stay, left out of the report and the export)")
+    report.warnings.append(f"cameras.json of an earlier run moved to {EARLIER_CAMERAS} (this run skips the class; "
+                           "the meshes and voxels of its objects stay, left out of the report and the export)")
+
+
+#: Where :func:`drop_cameras` keeps a skipped class's earlier ``cameras.json`` (hidden: no reader lists it), so that
+#: a later run resuming the class's objects still knows which were puffballs (:func:`resumed_levels`).
+EARLIER_CAMERAS = ".cameras_earlier.json"
 
 
 def quality_summary(cameras: dict) -> dict:
@@ -340,12 +346,15 @@ def write_scores(cdir: Path, annotation_ids: list, overwrite: bool) -> None:
 
 
 def resumed_levels(cdir: Path, coll, levels: list, done: list) -> list:
-    """``levels`` with the puffball fallbacks of finished objects kept from the earlier run's cameras.json
-    (a puffball is decided after carving, which a resumed object does not repeat)."""
-    try:
-        previous = read_json(cdir / "cameras.json").get("cameras", {}) if (cdir / "cameras.json").is_file() else {}
-    except (ValueError, AttributeError):
-        previous = {}
+    """``levels`` with the puffball fallbacks of finished objects kept from the earlier run's cameras.json (or the
+    one :func:`drop_cameras` moved aside; a puffball is decided after carving, which a resumed object does not
+    repeat)."""
+    previous: dict = {}
+    for name in (EARLIER_CAMERAS, "cameras.json"):  # the later run's records last: they win
+        try:
+            previous.update(read_json(cdir / name).get("cameras", {}) if (cdir / name).is_file() else {})
+        except (ValueError, AttributeError, TypeError):  # unreadable records: no puffball known from them
+            pass
     return [("puffball" if d and (previous.get(str(a)) or {}).get("surrogates_from") == "puffball" else lv)
             for a, lv, d in zip(coll.annotation_ids, levels, done)]
 

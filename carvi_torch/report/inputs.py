@@ -3,8 +3,8 @@
 Nothing here writes anything. A class whose ``cameras.json`` is missing or unreadable keeps its
 ``summary.json`` entry and says why (``ClassInputs.problem``); an object keeps its entry whatever its
 files look like (the card says what is wrong with them, :mod:`carvi_torch.report.cards`). An annotated
-object that ``summary.json`` counts reconstructed but ``cameras.json`` lacks gets an entry too, with the
-problem (:data:`NO_CAMERA`).
+object that ``summary.json`` counts in its class but neither ``cameras.json`` nor the failures name gets an entry
+too, with the problem (:data:`NO_CAMERA`).
 
 Example:
     >>> _number({"quality": 0.5}, "quality"), _number({"quality": float("nan")}, "quality"), _number({}, "q")
@@ -70,10 +70,11 @@ class ClassInputs:
     """Per shape group, ``(K, 3)`` float, the canonical-frame mean shape (NaN rows: not in it)."""
     frame: str | None = None
     problem: str | None = None
-    """Why the class has no objects to show (``cameras.json`` missing or unreadable), or that ``cameras.json``
-    lists fewer objects than ``summary.json`` counts reconstructed; else ``None``."""
+    """Why the class has no objects to show (``cameras.json`` missing or unreadable), or that ``cameras.json`` and
+    the class's failures name fewer objects than ``summary.json`` counts; else ``None``."""
     missing: int = 0
-    """How many of the objects ``summary.json`` counts reconstructed (or resumed) ``cameras.json`` lacks."""
+    """How many of the class's objects (``summary.json``'s count) neither ``cameras.json`` nor the failures name
+    (``cameras.json`` lists every object of the class, chosen as a reference or not, with its camera or without)."""
 
 
 @dataclass
@@ -160,17 +161,17 @@ def _read_class(recon: Path, key: str, entry: dict) -> ClassInputs:
     if cls.keypoint_names:
         cls.mean_shapes = _mean_shapes(cams, cls.keypoint_names)
     cls.objects = _objects(cams, failures, _chosen_scores(recon / key))
-    listed = sum(o.skipped is None for o in cls.objects)
-    counted = sum(int(_number(entry, k) or 0) for k in ("reconstructed", "resumed"))
-    if cls.problem is None and counted > listed:
-        cls.missing = counted - listed
-        cls.problem = (f"{key}/cameras.json lists {listed} of the {counted} objects summary.json counts as "
-                       "reconstructed")
+    known = len(cls.objects)  # cameras.json's entries (every object with or without a camera) and the failures
+    counted = int(_number(entry, "objects") or 0)
+    if cls.problem is None and counted > known:
+        cls.missing = counted - known
+        cls.problem = (f"{key}/cameras.json and the failures of the class name {known} of the {counted} objects "
+                       "summary.json counts")
     return cls
 
 
 #: The card problem of an annotated object whose class's ``cameras.json`` lacks it (:func:`_add_unlisted`).
-NO_CAMERA = "camera missing from cameras.json (summary.json counts the object as reconstructed)"
+NO_CAMERA = "camera missing from cameras.json (summary.json counts the object in its class)"
 
 
 def _add_unlisted(classes: list[ClassInputs], data: Path | None) -> None:

@@ -553,7 +553,8 @@ def _distinct_names(models: list[Model], directory: Path) -> list[Model]:
     return [m for m in models if names.count(m.name) == 1]
 
 
-def load_models(directory: str | Path, sides: Literal["class", "as-given"] = "class") -> list[Model]:
+def load_models(directory: str | Path, sides: Literal["class", "as-given"] = "class", strict: bool = False
+                ) -> list[Model]:
     """Every model of a directory (not recursive), sorted by file name (deterministic).
 
     Reads ``*.npz`` (PASCAL3D+ form) and meshes with a ``.json`` keypoint file beside
@@ -563,11 +564,12 @@ def load_models(directory: str | Path, sides: Literal["class", "as-given"] = "cl
     sharing one model name (file stem).
     With ``sides="class"`` (the default) a left/right pair that one model names from the other
     side than the rest of its class is renamed (:func:`harmonize_sides`, with a warning);
-    ``"as-given"`` keeps every name as stored.
+    ``"as-given"`` keeps every name as stored. With ``strict`` the first file that would be skipped raises
+    instead (a benchmark on a fixed set of models must not run on fewer).
 
     Raises:
         FileNotFoundError: ``directory`` does not exist.
-        ValueError: no usable model found.
+        ValueError: no usable model found; with ``strict``, any file skipped (its reason).
     """
     if sides not in ("class", "as-given"):
         raise ValueError(f"sides must be 'class' or 'as-given', got {sides!r}")
@@ -580,17 +582,22 @@ def load_models(directory: str | Path, sides: Literal["class", "as-given"] = "cl
         suffix = path.suffix.lower()
         if not path.is_file() or path.name.startswith(".") or suffix not in (".npz", *MESH_SUFFIXES):
             continue
+        why = None
         if suffix != ".npz" and not path.with_suffix(".json").is_file():
-            warnings.warn(f"{path}: no {path.stem}.json with its class and keypoints beside it; skipped",
-                          stacklevel=2)
-            skipped += 1
-            continue
-        try:
-            models.append(load_model(path))
-        except (BadModelFile, OSError) as e:  # one bad model: its reason, and the rest goes on
-            warnings.warn(_skip_line(e, path), stacklevel=2)
+            why = f"{path}: no {path.stem}.json with its class and keypoints beside it; skipped"
+        else:
+            try:
+                models.append(load_model(path))
+            except (BadModelFile, OSError) as e:  # one bad model: its reason, and the rest goes on
+                why = _skip_line(e, path)
+        if why is not None:
+            if strict:
+                raise ValueError(why)
+            warnings.warn(why, stacklevel=2)
             skipped += 1
     distinct = _distinct_names(models, directory)
+    if strict and len(distinct) < len(models):
+        raise ValueError(f"{directory}: files share a model name (their stems)")
     skipped += len(models) - len(distinct)
     models = distinct
     if not models:

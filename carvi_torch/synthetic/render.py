@@ -673,10 +673,9 @@ def _class_keypoints(model, names_k: list[str]) -> tuple[torch.Tensor, torch.Ten
 
 def _frame_radius(model) -> float:
     """The radius the model's cameras frame (:func:`sample_cameras`): the largest distance of a vertex or keypoint
-    from the object-frame origin, in float64 (any unit); ``ValueError`` naming the model when it is not positive
-    and finite."""
-    points = torch.cat([model.vertices.reshape(-1, 3), model.keypoints.reshape(-1, 3)]).double()
-    radius = float(points.norm(dim=1).max()) if len(points) else 0.0
+    from the object-frame origin, in the model's own precision as renders have always taken it (any unit);
+    ``ValueError`` naming the model when it is not positive and finite."""
+    radius = max(model.bounding_radius, float(model.keypoints.norm(dim=1).max()) if len(model.keypoints) else 0.0)
     if not (math.isfinite(radius) and radius > 0):
         raise ValueError(f"{model.source or model.name}: nothing to render (no vertex or keypoint off the origin, "
                          f"or one not finite: radius {radius})")

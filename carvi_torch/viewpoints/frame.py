@@ -375,7 +375,7 @@ def main(argv=None) -> int:
     write_json(args.out, {"source": "PASCAL3D+ CAD models (Xiang, Mottaghi, Savarese 2014): each centred on its "
                                     "bounding box, scaled to a unit diagonal, keypoints averaged over the models",
                           "frame": "+z up, front towards -y (the PASCAL3D+ CAD frame)",
-                          "classes": build_templates(load_models(args.build)), "aliases": VOC_ALIASES})
+                          "classes": build_templates(load_models(args.build, strict=True)), "aliases": VOC_ALIASES})
     return 0
 
 
