@@ -1,12 +1,11 @@
 """Where an export reads from: a reconstruction directory's configuration and the annotations it ran on."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from ..config import Config, read_run_config
 from ..io.coco import class_keys, class_names, select_classes
-from ..io.outputs import read_json
+from ..io.outputs import read_json, shown
 from ..io.results import camera_record_problem
 
 __all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories",
@@ -110,12 +109,6 @@ def class_categories(categories: list, class_names: list) -> dict[str, dict]:
     return out
 
 
-def _shown(value) -> str:
-    """A JSON value as a message quotes it (cut to 60 characters)."""
-    text = json.dumps(value, default=str)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
 def camera_problem(entry: dict) -> str | None:
     """What makes a ``cameras.json`` entry's camera unusable (``refined``: ``R`` 3 x 3 finite numbers, a rotation
     within 1e-3; ``s`` a finite positive number; ``t`` two finite numbers; ``quality``, where given, a number),
@@ -135,7 +128,7 @@ def camera_problem(entry: dict) -> str | None:
         return f"bad camera in cameras.json: {why}"
     q = entry.get("quality")
     if q is not None and (isinstance(q, bool) or not isinstance(q, (int, float))):
-        return f"bad quality in cameras.json: {_shown(q)} is not a number"
+        return f"bad quality in cameras.json: {shown(q)} is not a number"
     return None
 
 

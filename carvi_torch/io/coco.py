@@ -29,7 +29,7 @@ from pycocotools import mask as mask_utils
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvases
 from ..runtime import os_error_line, torch_threads, watch_interrupts
 from .layout import object_stem, reserved
-from .outputs import read_json, safe_name, write_json
+from .outputs import read_json, safe_name, shown, write_json
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
            "clip_polygon", "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "MAX_IMAGE_PIXELS",
@@ -360,7 +360,7 @@ def _category_meta(cat: dict, problems: list) -> ClassMeta | None:
     if pairs is not None:
         pairs = _flip_pairs(pairs, k)
         if pairs is None:
-            problems.append(Problem(f"invalid flip_pairs {_short(cat.get('flip_pairs'))} (pairs of two different "
+            problems.append(Problem(f"invalid flip_pairs {shown(cat.get('flip_pairs'), 80)} (pairs of two different "
                                     f"keypoint indices below {k}, each index in one pair at most); inferring them "
                                     "from names", category=name, fatal=False))
     pairs = infer_flip_pairs(names) if pairs is None else pairs
@@ -368,7 +368,7 @@ def _category_meta(cat: dict, problems: list) -> ClassMeta | None:
     if rigid is not None:
         rigid = _indices(rigid, k)
         if rigid is None or len(set(rigid)) < 3:
-            problems.append(Problem(f"invalid rigid_keypoints {_short(cat.get('rigid_keypoints'))} (at least 3 "
+            problems.append(Problem(f"invalid rigid_keypoints {shown(cat.get('rigid_keypoints'), 80)} (at least 3 "
                                     f"keypoint indices below {k}); using all keypoints", category=name, fatal=False))
             rigid = None
         else:
@@ -405,12 +405,6 @@ def _flip_pairs(pairs, k: int) -> list[tuple[int, int]] | None:
     if flat is None or len(set(flat)) != len(flat):
         return None
     return list(zip(flat[0::2], flat[1::2]))
-
-
-def _short(value, limit: int = 80) -> str:
-    """``repr`` of a value from the file, cut to ``limit`` characters (a reason stays one readable line)."""
-    text = repr(value)
-    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def _keypoints_3d(cat: dict, k: int, name: str, problems: list) -> list | None:
@@ -656,7 +650,7 @@ def _annotation(ann, metas: dict, images: dict, seen: dict, skip_flags: bool, ma
     cid = object_id(ann.get("category_id"))
     if cid is None or str(cid) not in metas:
         if claimed:
-            first["why"] = f"unknown category id {_short(ann.get('category_id'), 40)}"
+            first["why"] = f"unknown category id {shown(ann.get('category_id'))}"
         problems.append(Problem(f"unknown category id {ann.get('category_id')!r}", annotation_id=aid, source=source))
         return None
     key, meta = metas[str(cid)]

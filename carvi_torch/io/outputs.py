@@ -22,7 +22,7 @@ from typing import Any, Callable
 import numpy as np
 
 __all__ = ["atomic_write", "write_json", "write_record", "read_json", "read_text", "write_npz", "write_bytes",
-           "to_jsonable", "is_done", "safe_name", "record_target", "folder_within", "write_within"]
+           "to_jsonable", "is_done", "safe_name", "record_target", "shown", "folder_within", "write_within"]
 
 
 def _file_mode() -> int:
@@ -275,3 +275,14 @@ def safe_name(name) -> str:
         return text
     slug = re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._-")[:60] or "x"
     return f"{slug}-{hashlib.sha256(text.encode('utf-8', 'surrogatepass')).hexdigest()[:8]}"
+
+
+def shown(value, width: int = 40) -> str:
+    """``value`` (from a user's file) as a reason quotes it: its ``repr`` on one line, cut at ``width`` characters.
+
+    Example:
+        >>> shown([1, 2]), shown("x" * 50, 10)
+        ('[1, 2]', "'xxxxxx...")
+    """
+    text = " ".join(repr(value).split())
+    return text if len(text) <= width else text[:width - 3] + "..."

@@ -19,7 +19,7 @@ from .. import quality
 from ..cameras import azimuth_elevation_roll_from_rotation
 from ..mesh import occupancy_to_mesh, write_mesh
 from .layout import class_dir, object_file, object_mesh
-from .outputs import read_json, write_json, write_npz
+from .outputs import read_json, shown, write_json, write_npz
 
 __all__ = ["ROTATION_TOLERANCE", "numbers", "rotation_problem", "camera_record_problem", "shown", "ClassReport",
            "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras",
@@ -384,12 +384,6 @@ def numbers(value, shape: tuple, finite: bool = True) -> bool:
         return not finite or math.isfinite(value)
     except OverflowError:  # an integer too large for a float
         return False
-
-
-def shown(value, width: int = 40) -> str:
-    """``value`` as one short line (its ``repr``, cut at ``width`` characters)."""
-    text = " ".join(repr(value).split())
-    return text if len(text) <= width else text[:width - 3] + "..."
 
 
 def rotation_problem(R) -> str | None:
