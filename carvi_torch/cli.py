@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import os
 import sys
 import tempfile
@@ -95,10 +96,30 @@ def positive_int(text: str) -> int:
 
 
 def nonneg_int(text: str) -> int:
-    """An argparse type: an integer >= 0 (anything else: argparse's error, exit 2)."""
-    v = int(text)
+    """An argparse type: an integer >= 0 (anything else: argparse's error saying so, exit 2; it named this
+    function for text that is no integer).
+
+    Example:
+        >>> nonneg_int("3")
+        3
+    """
+    try:
+        v = int(text)
+    except ValueError:
+        v = -1
     if v < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return v
+
+
+def nonneg_float(text: str) -> float:
+    """An argparse type: a finite number >= 0 (anything else: argparse's error saying so, exit 2)."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
     return v
 
 

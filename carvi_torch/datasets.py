@@ -23,15 +23,14 @@ the file and renders the rest; only when no model is left is it an error.
 from __future__ import annotations
 
 import argparse
-import math
 import shutil
 import sys
 import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
-from .cli import (CommandError, add_common, positive_int, program, run_command, split_classes, writable_file,
-                  writable_folder)
+from .cli import (CommandError, add_common, nonneg_float, nonneg_int, positive_int, program, run_command,
+                  split_classes, writable_file, writable_folder)
 from .runtime import check_replaceable
 
 __all__ = ["build_parser", "main", "DATASET_NAMES"]
@@ -40,42 +39,20 @@ __all__ = ["build_parser", "main", "DATASET_NAMES"]
 DATASET_NAMES = frozenset({"annotations.json", "gt.json", "meshes", "images"})
 
 
-def _nonneg_float(text: str) -> float:
-    """An argparse type: a finite number >= 0 (argparse's error naming the option otherwise)."""
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not (math.isfinite(v) and v >= 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0 (pixels), got {text!r}")
-    return v
-
-
-def _nonneg_int(text: str) -> int:
-    """An argparse type: an integer >= 0 (argparse's error naming the option otherwise)."""
-    try:
-        v = int(text)
-    except ValueError:
-        v = -1
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
-    return v
-
-
 def _add_render_options(p: argparse.ArgumentParser, views_default: int, views_help: str) -> None:
     p.add_argument("--views", type=positive_int, default=views_default, help=views_help)
-    p.add_argument("--test-views", type=_nonneg_int, default=0,
+    p.add_argument("--test-views", type=nonneg_int, default=0,
                    help="the first N renders of each model get split 'test', the others 'pool' (default 0)")
-    p.add_argument("--seed", type=_nonneg_int, default=0,
+    p.add_argument("--seed", type=nonneg_int, default=0,
                    help="random seed, an integer >= 0; the same seed writes the same files (default 0)")
     size = p.add_mutually_exclusive_group()
     size.add_argument("--image-size", type=positive_int, nargs=2, metavar=("W", "H"), default=None,
                       help="image width and height in pixels (default 320 240)")
     size.add_argument("--canvas", type=positive_int, metavar="S", default=None,
                       help="square S x S renders instead of --image-size")
-    p.add_argument("--keypoint-noise", type=_nonneg_float, default=0.0, metavar="P",
+    p.add_argument("--keypoint-noise", type=nonneg_float, default=0.0, metavar="P",
                    help="standard deviation (pixels) of Gaussian noise on visible keypoints (default 0)")
-    p.add_argument("--boundary-noise", type=_nonneg_float, default=0.0, metavar="P",
+    p.add_argument("--boundary-noise", type=nonneg_float, default=0.0, metavar="P",
                    help="standard deviation (pixels) of a smooth random displacement of the mask "
                         "boundary along its normal (default 0)")
     p.add_argument("--device", default="cpu", help="torch device for rasterisation: cpu, cuda or cuda:N (default cpu)")
@@ -208,9 +185,8 @@ def _read_models(args) -> list:
         except (FileNotFoundError, ValueError) as e:
             raise CommandError(str(e)) from None
         finally:
-            for w in caught:
-                if issubclass(w.category, UserWarning):
-                    print(f"warning: {w.message}", file=sys.stderr)
+            for w in caught:  # every warning the loaders gave, as the command always showed them
+                print(f"warning: {w.message}", file=sys.stderr)
 
 
 def _synthetic_job(args) -> Callable[[], dict]:

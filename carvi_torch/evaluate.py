@@ -75,6 +75,7 @@ import torch
 from .cli import CommandError, add_common, positive_int, program, run_command, split_classes, writable_folder
 from .config import Config, read_run_config
 from .io.coco import CocoFormatError, class_keys, class_names, load_coco, object_id, select_classes
+from .io.layout import NOT_YET, unfinished
 from .io.outputs import read_json, write_bytes, write_json
 from .io.results import annotation_source, same_object
 from .evaluation import reliability, viewpoint_metrics
@@ -86,8 +87,6 @@ __all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_
 
 #: The reason of an object in scope that ``gt.json`` has no entry for.
 NO_GROUND_TRUTH = "no ground truth: gt.json has no entry for it"
-#: The reason of an object that an unfinished run (interrupted, or still running) has no mesh for.
-NOT_YET = "not reconstructed yet (the run is unfinished)"
 
 
 def _read_cameras(rdir: Path, classes) -> tuple[dict[str, dict | None], dict[str, dict]]:
@@ -301,13 +300,7 @@ def _unfinished(rdir: Path) -> bool:
     """Whether ``rdir`` holds a reconstruction run that has not finished (interrupted, or still running): a class's
     ``cameras.json``, but no ``summary.json`` with ``total_seconds`` (which a run writes when its last class is
     done). A folder of meshes without ``cameras.json`` (another method's) is no such run."""
-    if not any(rdir.glob("*/cameras.json")):
-        return False
-    try:
-        summary = read_json(rdir / "summary.json")
-    except (OSError, ValueError):
-        return True
-    return not isinstance(summary, dict) or "total_seconds" not in summary
+    return any(rdir.glob("*/cameras.json")) and unfinished(rdir)
 
 
 def _run_failures(rdir: Path) -> list[tuple[str, str, str]]:

@@ -660,10 +660,10 @@ class Selection:
     def take_grids(self, rows: list[int], grids) -> None:
         """References ``rows`` (positions in this selection) take ``grids`` (:class:`carvi_torch.carve.ProposalGrids`
         of ``len(rows)``, e.g. puffballs where no proposal was left) as their selected shape: ``best`` -1."""
-        for k, j in enumerate(rows):
-            self.best_occupancy[j] = grids.occupancy[k].to(self.best_occupancy.device)
-            self.best_transform[j] = grids.voxel_to_camera[k].double().cpu()
-            self.best[j] = -1
+        idx = torch.as_tensor(rows, dtype=torch.long)
+        self.best_occupancy[idx.to(self.best_occupancy.device)] = grids.occupancy.to(self.best_occupancy.device)
+        self.best_transform[idx] = grids.voxel_to_camera.double().cpu()
+        self.best[idx.to(self.best.device)] = -1
 
 
 def vote_proposals(occupancy: torch.Tensor, voxel_to_camera: torch.Tensor, rows: torch.Tensor

@@ -498,8 +498,8 @@ def test_malformed_ground_truth_skips_its_objects_and_evaluates_the_rest(recon, 
         assert res["objects"][aid]["reason"] == f"ground truth unusable: {why}" and "Full" not in res["objects"][aid]
     scored = [a for a in cars if a not in want and res["objects"][a]["Full"]["error_percent"] is not None]
     assert scored and set(res["compared"]["car"]["compared"]) == set(scored)
-    vp_ids = {str(a) for a in res["viewpoints"]["car"]["Full"]["sfm"]["annotation_ids"]} if len(scored) > 1 else set()
-    assert not vp_ids & set(want)
+    coverage = res["viewpoint_coverage"]["car"]["Full"]  # the objects the viewpoint report may score
+    assert coverage["objects"] == len(scored) and not set(coverage["missing"]) & set(want), coverage
     # a gt.json that is not an object of records: one error line
     (data.parent / "gt.json").write_text("[1, 2]")
     assert main(["--data", str(data), "--recon", str(recon), "--quiet", "--viewpoints-only"]) == 2

@@ -50,7 +50,7 @@ def _nan_box() -> trimesh.Trimesh:
 #: wrongly, or stopped the whole command (exit 2 or a traceback) before.
 BAD = {
     "empty_obj": ({"thing2.obj": b"", "thing2.json": GOOD}, "thing2.obj: no faces"),
-    "random_stl": ({"thing2.stl": bytes(range(256)) * 2, "thing2.json": GOOD}, "thing2.stl: "),
+    "random_stl": ({"thing2.stl": bytes(range(256)) * 2, "thing2.json": GOOD}, "thing2.stl: no faces"),
     "no_faces": ({"thing2.ply": _scaled(faces=np.zeros((0, 3), int)), "thing2.json": GOOD}, "thing2.ply: no faces"),
     "all_zero": ({"thing2.ply": _scaled(0.0), "thing2.json": {"class": "thing", "keypoints": {"a": [0, 0, 0]}}},
                  "thing2.ply: every vertex of its faces lies at one point"),

@@ -29,10 +29,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..io.coco import load_coco, skipped_at_load
-from ..io.layout import held_fingerprint, object_file, same_canvas
+from ..io.layout import held_fingerprint, object_file, object_mesh, same_canvas
 from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
-from ..mesh import MESH_FORMATS
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import (NOT_YET, NOT_IN_ANNOTATIONS, camera_entry, camera_problem, class_categories, class_scope,
                      data_path, extra_cameras, missing_class_reason, recon_config, run_classes, unfinished)
@@ -98,12 +97,10 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
     """The jobs of a class's exportable objects (the others go to ``skipped`` with their reason; ``no_files``:
     that of an object without voxels)."""
     jobs = []
-    ours = settings.get("mesh_format")
-    formats = [ours, *(f for f in MESH_FORMATS if f != ours)] if ours in MESH_FORMATS else list(MESH_FORMATS)
     for i, aid in enumerate(coll.annotation_ids):
         entry = camera_entry(cams, aid)
         vox = object_file(cdir, "voxels", aid)
-        mesh = next((p for p in (object_file(cdir, "meshes", aid, ext) for ext in formats) if p.is_file()), None)
+        mesh = object_mesh(cdir, aid, settings["mesh_format"])  # the run's own format first
         viewpoint = _viewpoint_or_none(entry)
         reason = ("no camera in cameras.json" if entry.get("refined") is None else
                   "no readable azimuth/elevation/roll or R in cameras.json" if viewpoint is None else

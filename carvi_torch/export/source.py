@@ -5,14 +5,13 @@ from pathlib import Path
 
 from ..config import Config, read_run_config
 from ..io.coco import class_keys, class_names, select_classes
+from ..io.layout import NOT_YET, unfinished  # noqa: F401 - the export's names for them
 from ..io.outputs import read_json, shown
 from ..io.results import camera_record_problem
 
 __all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories",
            "camera_problem", "camera_entry", "missing_class_reason", "extra_cameras", "NOT_YET", "NOT_IN_ANNOTATIONS"]
 
-#: The reason of an object that an unfinished run has not reconstructed yet.
-NOT_YET = "not reconstructed yet (the run is unfinished)"
 #: How the reason of a ``cameras.json`` entry that names no object of the annotation file begins.
 NOT_IN_ANNOTATIONS = "in cameras.json but not an object of the annotation file"
 
@@ -40,16 +39,6 @@ def data_path(recon: Path, cfg: Config) -> Path:
         if (base / p).is_file():
             return base / p
     return p
-
-
-def unfinished(recon: Path) -> bool:
-    """Whether the run in ``recon`` has not finished (interrupted, or still running): its ``summary.json`` is
-    missing, unreadable, or has no ``total_seconds`` (which a run writes when its last class is done)."""
-    try:
-        summary = read_json(recon / "summary.json")
-    except (OSError, ValueError):
-        return True
-    return not isinstance(summary, dict) or "total_seconds" not in summary
 
 
 def run_classes(setting, recon: Path) -> list[str] | None:

@@ -28,9 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .outputs import safe_name
+from .outputs import read_json, safe_name
 
-__all__ = ["class_dir", "object_stem", "object_file", "object_mesh", "finished", "KINDS", "RUN_NAMES", "reserved",
+__all__ = ["unfinished", "NOT_YET",
+           "class_dir", "object_stem", "object_file", "object_mesh", "finished", "KINDS", "RUN_NAMES", "reserved",
            "INPUTS_CHANGED", "NO_INPUT_RECORD", "CANVAS_CHANGED", "PER_OBJECT_SETTINGS", "ResumeCheck", "resume_check",
            "same_canvas", "other_objects", "held_fingerprint", "linked_path"]
 
@@ -361,3 +362,17 @@ def _mesh_formats(cdir: str | Path, mesh_format: str) -> dict[str, list[str]]:
         if ext in order and stem and not f.name.startswith(".") and f.is_file():
             out.setdefault(stem, []).append(ext)
     return {stem: sorted(exts, key=order.index) for stem, exts in out.items()}
+
+
+#: The reason of an object that an unfinished run (:func:`unfinished`) has not reconstructed yet.
+NOT_YET = "not reconstructed yet (the run is unfinished)"
+
+
+def unfinished(recon: Path) -> bool:
+    """Whether the run in ``recon`` has not finished (interrupted, or still running): its ``summary.json`` is
+    missing, unreadable, or has no ``total_seconds`` (which a run writes when its last class is done)."""
+    try:
+        summary = read_json(Path(recon) / "summary.json")
+    except (OSError, ValueError):
+        return True
+    return not isinstance(summary, dict) or "total_seconds" not in summary
