@@ -1254,7 +1254,7 @@ def table(result: dict) -> str:
             lines += [f"the writers' quality signal (reconstruction_iou), its projection per canvas line "
                       f"{iou['ms_per_object']['per line']:.3f} ms per object against the general one "
                       f"{iou['ms_per_object']['general']:.3f}: **{iou['per_line_over_general']:.3f}** "
-                      f"({'the same' if iou['same'] else 'DIFFERENT'} silhouettes)", ""]
+                      f"({'the same' if iou['same'] else 'DIFFERENT'} silhouettes on {iou['objects']} grids)", ""]
     if result.get("carving"):
         lines += _carving_table(result["carving"])
     ev = result.get("evaluation")
