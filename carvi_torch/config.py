@@ -650,9 +650,13 @@ def flatten_settings(data: dict, written: bool = False) -> dict[str, Any]:
 
 
 def _plain(value: Any) -> Any:
-    """``value`` with :func:`read_yaml`'s numbers as plain ``int`` and ``float`` (in lists and mappings too)."""
-    if isinstance(value, (_WrittenInt, _WrittenFloat)):
-        return (int if isinstance(value, int) else float)(value)
+    """``value`` with :func:`read_yaml`'s numbers as plain ``int`` and ``float`` (in lists and mappings too); an
+    integer as its decimal text reads (``040`` is 40, as :func:`read_run_config` takes it, not YAML 1.1's 32)."""
+    if isinstance(value, _WrittenInt):
+        text = value.text.replace("_", "").strip()
+        return int(text, 10) if text.lstrip("+-").isdigit() else int(value)
+    if isinstance(value, _WrittenFloat):
+        return float(value)
     if isinstance(value, list):
         return [_plain(v) for v in value]
     if isinstance(value, dict):
@@ -869,7 +873,8 @@ NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overw
                     "viewpoints.sfm_group_threads",  # the mixture fit's result is the same on any number of threads
                     # where the viewpoint stage runs, like `device`: another device rounds differently, no more
                     "viewpoints.device", "viewpoints.gpu_min_objects", "viewpoint_processes",
-                    "carve.backend"}  # every carving backend gives the same labels voxel for voxel
+                    "carve.backend",  # every carving backend gives the same labels voxel for voxel
+                    "study.keep_all_scores", "study.save_proposals"}  # files written beside the objects
 
 
 def settings_changed(previous: Path, cfg: Config) -> dict:
@@ -905,10 +910,9 @@ def settings_changed(previous: Path, cfg: Config) -> dict:
         record = json.loads(read_text(previous.with_name("summary.json"))).get("resumed_from_other_settings") or {}
     except (OSError, ValueError, AttributeError, RecursionError):
         record = {}
-    besides = {"study.keep_all_scores", "study.save_proposals"}  # written beside the objects: not how one is made
     out = {}
     for k, now in cfg.flat().items():
-        if k in NEUTRAL_SETTINGS or k in besides:
+        if k in NEUTRAL_SETTINGS:
             continue
         held = record.get(k) if isinstance(record, dict) else None
         made = list(held[:-1]) if isinstance(held, list) and len(held) > 1 else []

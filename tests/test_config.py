@@ -326,7 +326,7 @@ def test_flattened_settings_are_plain_values(tmp_path):
     p = tmp_path / "config.yaml"
     p.write_text("out: 007\ncarve: {resolution: 040}\nsilhouette_weight: 1.50\nclasses: [007]\n")
     flat = flatten_settings(read_yaml(p))
-    assert yaml.safe_load(yaml.safe_dump(flat)) == flat == {"out": 7, "carve.resolution": 32,
+    assert yaml.safe_load(yaml.safe_dump(flat)) == flat == {"out": 7, "carve.resolution": 40,
                                                             "viewpoints.silhouette_weight": 1.5, "classes": [7]}
     cfg = read_run_config(p)  # the saved file's text, as load_config reads it
     assert (cfg.out, cfg.carve.resolution, cfg.classes) == ("007", 40, ["007"])

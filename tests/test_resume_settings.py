@@ -286,6 +286,7 @@ def test_the_lock_works_on_another_users_file_and_without_file_system_locks(tmp_
                 with pytest.raises(OSError):
                     FolderLock(tmp_path)
             else:
+                caplog.clear()
                 with caplog.at_level("WARNING", logger="carvi_torch"):
                     FolderLock(tmp_path).release()
                 assert "cannot lock it" in caplog.text
