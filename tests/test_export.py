@@ -21,6 +21,7 @@ from carvi_torch.config import Config
 from carvi_torch.executors import run
 from carvi_torch.io.coco import load_coco
 from carvi_torch.export import export, main as export_main
+from carvi_torch.export.formats import export_format
 from carvi_torch.export.objects import canonical_occupancy, splat_occupancy
 from carvi_torch.training import LiftedDataset, collate_lifted
 
@@ -1302,6 +1303,22 @@ def test_camera_entries_of_no_annotated_object_are_reported(recon, tmp_path, cap
     assert "1 of class car" in capsys.readouterr().err
     js = json.loads((tmp_path / "u" / "car.json").read_text())
     assert [s["annotation_id"] for s in js["skipped"]] == [987654] and len(js["images"]) == 5
+
+
+def test_a_cameras_json_that_is_no_json_object_skips_its_class_in_every_format(recon, tmp_path, capsys):
+    """A class whose ``cameras.json`` holds a JSON list: the zarr store and the ucmr files list every object of the
+    class as skipped with the same reason naming the file, and export the other class."""
+    run = tmp_path / "run"
+    data = _run_copy(recon, run)
+    path = run / "chair" / "cameras.json"
+    path.write_text("[]")
+    why = f"cameras.json unreadable: {path}: not a JSON object"
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "e"), "--quiet"] + _SMALL) == 0
+    assert _reasons(tmp_path / "e") == {("chair", aid): why for aid in _ids(data, "chair")}
+    assert _store_attrs(tmp_path / "e")["counts"] == {"car": 5, "chair": 0}
+    res = export_format(run, tmp_path / "u", "ucmr", progress=False)
+    assert {(s["class"], s["annotation_id"]): s["reason"] for s in res["skipped"]} == _reasons(tmp_path / "e")
+    assert [f.name for f in res["files"]] == ["car.json"] and res["objects"] == 5
 
 
 def test_lifted_dataset_on_a_folder_without_a_store_says_what_to_do(recon, tmp_path):

@@ -46,9 +46,9 @@ import scipy.io
 from scipy.spatial import ConvexHull, distance
 
 from ..io.coco import load_coco, object_id, skipped_at_load
-from ..io.outputs import atomic_write, read_json, write_json
-from .source import (NOT_YET, camera_entry, camera_problem, class_scope, data_path, extra_cameras,
-                     missing_class_reason, recon_config, run_classes, unfinished)
+from ..io.outputs import atomic_write, write_json
+from .source import (camera_entry, camera_problem, class_cameras, class_scope, data_path, recon_config, run_classes,
+                     unfinished)
 
 __all__ = ["normalised_shape", "cmr_pose", "export_format", "class_records", "quaternion_wxyz", "annotation_boxes"]
 
@@ -191,29 +191,14 @@ def _write_ucmr(path: Path, cname: str, recs: list, S: np.ndarray, hull: np.ndar
                       "skipped": [{k: r.get(k) for k in ("annotation_id", "source", "reason")} for r in skipped]})
 
 
-def _class_skips(loaded, recon: Path, cname: str, data: Path) -> tuple[dict | None, list]:
+def _class_skips(loaded, recon: Path, cname: str, data: Path, pending: bool) -> tuple[dict | None, list]:
     """A class's ``cameras.json`` (None where it has none, or it cannot be read) and its skipped objects so far:
-    those skipped at load, every other one where there are no cameras (the reason: not reconstructed yet in
-    an unfinished run, else :func:`~carvi_torch.export.source.missing_class_reason`), and the entries of
-    ``cameras.json`` that name no object of the annotation file ``data``."""
+    those skipped at load, every other one where there are no cameras, and the entries of ``cameras.json`` that
+    name no object of the annotation file ``data`` (:func:`~carvi_torch.export.source.class_cameras`; ``pending``:
+    the run is unfinished)."""
     skipped = [{**s, "class": cname} for s in skipped_at_load(loaded.problems, cname)]
-    coll, path = loaded.collections.get(cname), recon / cname / "cameras.json"
-    cams, reason = None, None
-    if coll is not None and not path.is_file():
-        reason = NOT_YET if unfinished(recon) else missing_class_reason(recon, cname)
-    elif coll is not None:
-        try:
-            cams = read_json(path)
-            if not isinstance(cams, dict):
-                raise ValueError(f"{path}: not a JSON object")
-        except ValueError as e:
-            cams, reason = None, f"cameras.json unreadable: {e}"
-    if reason is not None:
-        skipped += [{"annotation_id": aid, "class": cname, "source": src, "reason": reason}
-                    for aid, src in zip(coll.annotation_ids, coll.sources)]
-    if cams is not None:
-        known = {str(a) for a in coll.annotation_ids} | {str(s["annotation_id"]) for s in skipped}
-        skipped += extra_cameras(cams, cname, known, data)
+    coll = loaded.collections.get(cname)
+    cams = class_cameras(coll, cname, recon, skipped, pending, data) if coll is not None else None
     return cams, skipped
 
 
@@ -234,9 +219,9 @@ def export_format(recon: str | Path, out: str | Path, fmt: str, classes=None, pr
                        classes=classes or covered)
     scope = class_scope(loaded.dataset["categories"], covered, classes, recon)  # an unknown class: ValueError
     boxes = annotation_boxes(loaded.dataset["annotations"])
-    written, skipped, objects = [], [], 0
+    written, skipped, objects, pending = [], [], 0, unfinished(recon)
     for cname in scope:
-        cams, class_skipped = _class_skips(loaded, recon, cname, data)
+        cams, class_skipped = _class_skips(loaded, recon, cname, data, pending)
         if cams is not None:
             coll = loaded.collections[cname]
             recs, S, hull = class_records(cams, cname, coll, boxes, class_skipped)
@@ -249,6 +234,6 @@ def export_format(recon: str | Path, out: str | Path, fmt: str, classes=None, pr
             written.append(path)
             objects += len(recs)
         skipped += class_skipped
-    report_skipped(recon, skipped, objects, unfinished(recon), progress, data,
+    report_skipped(recon, skipped, objects, pending, progress, data,
                    where="without --quiet each is listed with its reason")
     return {"files": written, "objects": objects, "skipped": skipped}

@@ -30,11 +30,10 @@ from tqdm.auto import tqdm
 
 from ..io.coco import load_coco, skipped_at_load
 from ..io.layout import held_fingerprint, object_file, object_mesh, same_canvas
-from ..io.outputs import read_json
 from ..io.writer import INT64_RANGE, start_method
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
-from .source import (NOT_YET, NOT_IN_ANNOTATIONS, camera_entry, camera_problem, class_categories, class_scope,
-                     data_path, extra_cameras, missing_class_reason, recon_config, run_classes, unfinished)
+from .source import (NOT_YET, NOT_IN_ANNOTATIONS, camera_entry, camera_problem, class_cameras, class_categories,
+                     class_scope, data_path, missing_class_reason, recon_config, run_classes, skip_all, unfinished)
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
                       view_occupancy)
 from .settings import settings_problem
@@ -147,31 +146,6 @@ def _canvas_problem(vox: Path, canvas: tuple, fingerprint: str) -> str | None:
     return None if other_inputs else OTHER_CANVAS
 
 
-def _skip_all(coll, cname: str, reason: str) -> list[dict]:
-    """Every object of a class's collection as a skipped object with ``reason``."""
-    return [{"annotation_id": aid, "class": cname, "source": src, "reason": reason}
-            for aid, src in zip(coll.annotation_ids, coll.sources)]
-
-
-def _class_cameras(coll, cname: str, cdir: Path, skipped: list, no_files: str, data: Path) -> dict | None:
-    """A class's ``cameras.json``, its entries that name no object of the annotation file added to ``skipped``
-    (:func:`~carvi_torch.export.source.extra_cameras`); None, with every object in ``skipped``, when it is
-    missing in an unfinished run, unreadable, or not a JSON object."""
-    if not (cdir / "cameras.json").is_file() and no_files == NOT_YET:
-        skipped.extend(_skip_all(coll, cname, NOT_YET))
-        return None
-    try:
-        cams = read_json(cdir / "cameras.json")
-        if not isinstance(cams, dict):
-            raise ValueError(f"{cdir / 'cameras.json'}: not a JSON object")
-    except (FileNotFoundError, ValueError) as e:
-        skipped.extend(_skip_all(coll, cname, f"cameras.json unreadable: {e}"))
-        return None
-    known = {str(a) for a in coll.annotation_ids} | {str(s["annotation_id"]) for s in skipped}
-    skipped.extend(extra_cameras(cams, cname, known, data))
-    return cams
-
-
 def _class_jobs(loaded, recon: Path, class_names: list, settings: dict, writer: StoreWriter, skipped: dict, bar,
                 no_files: str, data: Path):
     """The jobs of every class, class by class, read lazily (a class's ``cameras.json`` when its first job is
@@ -181,7 +155,7 @@ def _class_jobs(loaded, recon: Path, class_names: list, settings: dict, writer: 
         coll, cdir = loaded.collections.get(cname), recon / cname
         if coll is None:  # every object of the class skipped at load
             continue
-        cams = _class_cameras(coll, cname, cdir, skipped[cname], no_files, data)
+        cams = class_cameras(coll, cname, recon, skipped[cname], no_files == NOT_YET, data)
         if cams is None:
             bar.update(len(coll))
             continue
@@ -281,7 +255,7 @@ def _missing_class_skips(loaded, recon: Path, missing: list) -> dict[str, list]:
     out = _load_skips(loaded.problems, missing)
     for c in missing:
         coll = loaded.collections.get(c)
-        out[c].extend(_skip_all(coll, c, missing_class_reason(recon, c)) if coll is not None else ())
+        out[c].extend(skip_all(coll, c, missing_class_reason(recon, c)) if coll is not None else ())
     return out
 
 

@@ -10,7 +10,8 @@ from ..io.outputs import read_json, shown
 from ..io.results import camera_record_problem
 
 __all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories",
-           "camera_problem", "camera_entry", "missing_class_reason", "extra_cameras", "NOT_YET", "NOT_IN_ANNOTATIONS"]
+           "camera_problem", "camera_entry", "missing_class_reason", "extra_cameras", "skip_all", "class_cameras",
+           "NOT_YET", "NOT_IN_ANNOTATIONS"]
 
 #: How the reason of a ``cameras.json`` entry that names no object of the annotation file begins.
 NOT_IN_ANNOTATIONS = "in cameras.json but not an object of the annotation file"
@@ -161,3 +162,33 @@ def extra_cameras(cams, cname: str, known, data: Path) -> list[dict]:
             out.append({"annotation_id": _as_given(k), "class": cname, "source": source,
                         "reason": f"{NOT_IN_ANNOTATIONS} {data}"})
     return out
+
+
+def skip_all(coll, cname: str, reason: str) -> list[dict]:
+    """Every object of a class's collection as a skipped object with ``reason``."""
+    return [{"annotation_id": aid, "class": cname, "source": src, "reason": reason}
+            for aid, src in zip(coll.annotation_ids, coll.sources)]
+
+
+def class_cameras(coll, cname: str, recon: Path, skipped: list, pending: bool, data: Path) -> dict | None:
+    """The ``cameras.json`` of class ``cname`` of the run ``recon``, its entries that name no object of the
+    annotation file ``data`` added to ``skipped`` (:func:`extra_cameras`; ``skipped`` holds the class's objects
+    skipped so far, those skipped at load among them). None, with every object of ``coll`` added to ``skipped``,
+    where the file is missing (the reason: :data:`NOT_YET` in an unfinished run, ``pending``, else
+    :func:`missing_class_reason`), unreadable, or not a JSON object."""
+    path, reason = recon / cname / "cameras.json", None
+    if not path.is_file():
+        reason = NOT_YET if pending else missing_class_reason(recon, cname)
+    else:
+        try:
+            cams = read_json(path)
+            if not isinstance(cams, dict):
+                raise ValueError(f"{path}: not a JSON object")
+        except (FileNotFoundError, ValueError) as e:
+            reason = f"cameras.json unreadable: {e}"
+    if reason is not None:
+        skipped.extend(skip_all(coll, cname, reason))
+        return None
+    known = {str(a) for a in coll.annotation_ids} | {str(s["annotation_id"]) for s in skipped}
+    skipped.extend(extra_cameras(cams, cname, known, data))
+    return cams
