@@ -566,7 +566,7 @@ def test_export_and_resume_read_a_voxels_fingerprint_by_one_rule(stored, tmp_pat
     mesh.parent.mkdir()
     trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], process=False).export(mesh)
     try:
-        export_object({"voxels": voxels, "fingerprint": "abc"})
+        export_object({"voxels": voxels, "fingerprint": "abc", "canvas_scale": 1.0, "canvas_offset": [0.0, 0.0]})
         refused = False
     except OtherInputs:
         refused = True
@@ -1138,6 +1138,32 @@ def test_voxels_and_meshes_that_open_but_hold_bad_data_are_skipped_with_a_reason
     mesh.write_bytes(trimesh.exchange.ply.export_ply(trimesh.Trimesh(m.vertices, faces, process=False)))
     with pytest.raises(ValueError, match="face index -1 is outside"):
         load_mesh(mesh)
+
+
+def test_each_voxels_file_is_opened_once_and_skips_keep_their_order(recon, tmp_path, monkeypatch):
+    """Cars on another canvas, one without voxels and one with a cut mesh: the export opens each voxels file once
+    (the worker checks the canvas as it reads the grid), and lists the class's skipped objects in annotation order:
+    those without files or on another canvas first, then those whose files cannot be read; with worker processes
+    too."""
+    run = tmp_path / "run"
+    _run_copy(recon, run)
+    vox = sorted((run / "car" / "voxels").glob("*.npz"), key=lambda p: int(p.stem))
+    mesh = run / "car" / "meshes" / f"{vox[0].stem}.ply"
+    mesh.write_bytes(mesh.read_bytes()[:60])
+    for p in (vox[1], vox[3]):
+        _rewrite_npz(p, canvas_scale=np.load(p)["canvas_scale"] * 1.5)
+    vox[2].unlink()
+    opened, load = [], np.load
+    monkeypatch.setattr(np, "load", lambda f, *a, **k: opened.append(str(f)) or load(f, *a, **k))
+    one = export(run, tmp_path / "w0", resolution=4, points=8, progress=False, workers=0)
+    monkeypatch.undo()
+    assert sorted(opened) == sorted(str(p) for p in (vox[0], vox[1], vox[3], *vox[4:], *(run / "chair").glob(
+        "voxels/*.npz"))), opened
+    assert [(s["annotation_id"], s["reason"].split(" (")[0].split(":")[0]) for s in one["skipped"]] == [
+        (int(vox[1].stem), "carved on another canvas than config.yaml's"), (int(vox[2].stem), "no voxels"),
+        (int(vox[3].stem), "carved on another canvas than config.yaml's"), (int(vox[0].stem), "unreadable outputs")]
+    two = export(run, tmp_path / "w2", resolution=4, points=8, progress=False, workers=2)
+    assert two["skipped"] == one["skipped"] and two["samples"] == one["samples"] and len(one["samples"]) == 6
 
 
 def test_an_unusable_camera_skips_its_object_naming_it_in_every_format(recon, tmp_path, capsys):

@@ -30,13 +30,14 @@ import trimesh
 from scipy import ndimage
 from trimesh.exchange.ply import load_ply
 
-from ..io.layout import held_fingerprint
+from ..io.layout import held_fingerprint, same_canvas
 from ..runtime import ignore_interrupt, watch_parent
 from .raster import zbuffer
 
 __all__ = ["splat_occupancy", "view_depth_frame", "view_occupancy", "canonical_occupancy", "depth_map",
            "sample_surface", "load_mesh", "canvas_to_class", "export_object", "safe_export_object",
-           "safe_export_objects", "init_worker", "OtherInputs", "UnreadableFiles", "READ_ERRORS"]
+           "safe_export_objects", "init_worker", "OtherInputs", "OtherCanvas", "UnreadableFiles", "READ_ERRORS",
+           "OTHER_CANVAS"]
 
 #: Most sub-samples per voxel and axis (a target cell finer than a quarter voxel is not a use case).
 MAX_SUBSAMPLES = 4
@@ -249,6 +250,16 @@ class OtherInputs(ValueError):
     """An object's files were made from other inputs than the annotation file's (its input fingerprint)."""
 
 
+#: The reason of an object whose voxels were carved on another canvas than the one ``config.yaml`` gives (a class
+#: a later run with another ``canvas_size`` or ``canvas_margin`` did not touch): its grid would not line up.
+OTHER_CANVAS = ("carved on another canvas than config.yaml's (canvas_size or canvas_margin changed since); rerun "
+                "reconstruct on its class")
+
+
+class OtherCanvas(ValueError):
+    """An object's voxels were carved on another canvas than the job's (:data:`OTHER_CANVAS`)."""
+
+
 class UnreadableFiles(ValueError):
     """An object's voxels or mesh file cannot be read (missing, partial or corrupt) or holds unusable data (an
     occupancy that is not a 3-D grid with an occupied voxel, a voxel transform that is not 4 x 4 finite
@@ -287,14 +298,37 @@ def _check_voxels(vox: dict) -> None:
             raise ValueError(f"{k} of shape {m.shape} is not 4 x 4 finite numbers")
 
 
-def _read_voxels(path) -> dict:
-    """The members of an object's voxels file that the export uses; :class:`UnreadableFiles` when it cannot
-    be read, lacks its grid or transform, or holds unusable ones (:func:`_check_voxels`)."""
+#: The members of a voxels file that record the canvas its grid was carved on.
+CANVAS_MEMBERS = ("canvas_scale", "canvas_offset")
+
+
+def _other_canvas(z, canvas: tuple, fingerprint: str | None) -> bool:
+    """Whether the opened voxels file ``z`` records a canvas other than ``canvas`` (``(scale, (x, y))``, the
+    object's canvas as the export loads it); False also where it records none, where its canvas cannot be read,
+    and where it was made from other inputs than ``fingerprint`` (the rest of the read says what is wrong)."""
+    try:  # members are read one by one (about 0.1 ms each): the fingerprint only where the canvas differs
+        held = {k: z[k] for k in CANVAS_MEMBERS if k in z.files}
+        if same_canvas(held, canvas) is not False:
+            return False
+        return not (fingerprint and held_fingerprint(z) not in (None, fingerprint))
+    except Exception:  # noqa: BLE001 - any damage: the rest of the read says what is wrong
+        return False
+
+
+def _read_voxels(path, canvas: tuple | None = None, fingerprint: str | None = None) -> dict:
+    """The members of an object's voxels file that the export uses, the file opened once. :class:`OtherCanvas`
+    where it records a canvas other than ``canvas`` (:func:`_other_canvas`; checked first, not where ``canvas``
+    is None); else :class:`UnreadableFiles` when it cannot be read, lacks its grid or transform, or holds
+    unusable ones (:func:`_check_voxels`)."""
     try:
         with np.load(path) as z:
+            if canvas is not None and _other_canvas(z, canvas, fingerprint):
+                raise OtherCanvas(OTHER_CANVAS)
             vox = {k: np.asarray(z[k]) for k in ("occupancy", *VOXEL_TRANSFORMS, "input_fingerprint")
                    if k in z.files}
         _check_voxels(vox)
+    except OtherCanvas:
+        raise
     except READ_ERRORS as e:
         raise _unreadable(path, e) from e
     return vox
@@ -310,17 +344,18 @@ def _read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
 
 def export_object(job: dict) -> dict:
     """Every field of one object from its job (host data and file paths; built by
-    :func:`carvi_torch.export.run.export`); the ids are filled in by the caller. Raises :class:`OtherInputs`
-    when the voxels file holds an input fingerprint other than the job's ``fingerprint`` (the annotations
+    :func:`carvi_torch.export.run.export`); the ids are filled in by the caller. Raises :class:`OtherCanvas`
+    when the voxels file records a canvas other than the job's (``canvas_scale``, ``canvas_offset``),
+    :class:`OtherInputs` when it holds an input fingerprint other than the job's ``fingerprint`` (the annotations
     changed since the object was made, or its redo failed and left an earlier run's files), and
     :class:`UnreadableFiles` when its voxels or mesh file cannot be read."""
-    z = _read_voxels(job["voxels"])
+    a, b = float(job["canvas_scale"]), np.asarray(job["canvas_offset"], dtype=np.float64)
+    z = _read_voxels(job["voxels"], (a, b), job.get("fingerprint"))
     held = held_fingerprint(z)
     if held is not None and job.get("fingerprint") and held != job["fingerprint"]:
         raise OtherInputs("its files were made from other inputs than the annotation file's (rerun reconstruct)")
     occ = z["occupancy"].astype(bool)
     boundary = surface_voxel_indices(occ)  # shared by both occupancies
-    a, b = float(job["canvas_scale"]), np.asarray(job["canvas_offset"], dtype=np.float64)
     image_to_canvas = np.diag([a, a, a, 1.0])
     image_to_canvas[:2, 3] = b
     v2canvas = z["voxel_to_canvas"] if "voxel_to_canvas" in z else image_to_canvas @ z["voxel_to_camera"]
@@ -355,11 +390,12 @@ def export_object(job: dict) -> dict:
 
 
 def safe_export_object(job: dict) -> tuple[dict | None, str | None]:
-    """:func:`export_object`, or ``(None, reason)`` when the object's files are partial, corrupt or made from
-    other inputs (the object is reported, the export goes on); any other exception is raised."""
+    """:func:`export_object`, or ``(None, reason)`` when the object's files are partial, corrupt, made from
+    other inputs or carved on another canvas (the object is reported, the export goes on); any other exception
+    is raised."""
     try:
         return export_object(job), None
-    except (OtherInputs, UnreadableFiles) as e:
+    except (OtherCanvas, OtherInputs, UnreadableFiles) as e:
         return None, str(e)
 
 

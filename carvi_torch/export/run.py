@@ -29,13 +29,13 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..io.coco import load_coco, skipped_at_load
-from ..io.layout import held_fingerprint, object_file, object_mesh, same_canvas
+from ..io.layout import object_file, object_mesh
 from ..io.writer import INT64_RANGE, start_method
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import (NOT_YET, NOT_IN_ANNOTATIONS, camera_entry, camera_problem, class_cameras, class_categories,
                      class_scope, data_path, missing_class_reason, recon_config, run_classes, skip_all, unfinished)
-from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object, safe_export_objects,
-                      view_occupancy)
+from .objects import (OTHER_CANVAS, canonical_occupancy, depth_map, init_worker, safe_export_object,
+                      safe_export_objects, view_occupancy)
 from .settings import settings_problem
 from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, InterruptedAfterSwap, StoreWriter
 
@@ -93,8 +93,9 @@ def _viewpoint_or_none(entry: dict) -> list[float] | None:
 
 def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, skipped: list,
           no_files: str = "no voxels (not reconstructed)"):
-    """The jobs of a class's exportable objects (the others go to ``skipped`` with their reason; ``no_files``:
-    that of an object without voxels)."""
+    """The jobs of a class's objects that have a usable camera, voxels and a mesh (the others go to ``skipped``
+    with their reason; ``no_files``: that of an object without voxels); a job's ``skipped_before``: how many
+    objects ``skipped`` holds before it (:func:`_book_skip`)."""
     jobs = []
     for i, aid in enumerate(coll.annotation_ids):
         entry = camera_entry(cams, aid)
@@ -106,9 +107,6 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
                   camera_problem(entry))
         if reason is None:
             reason = no_files if not vox.is_file() else "no mesh (not reconstructed)" if mesh is None else None
-        canvas = (float(coll.canvas_from_image.scale[i]), coll.canvas_from_image.offset[i].double().numpy())
-        if reason is None:
-            reason = _canvas_problem(vox, canvas, coll.fingerprints[i])
         if reason is not None:
             skipped.append({"annotation_id": aid, "class": cname, "source": coll.sources[i], "reason": reason})
             continue
@@ -118,32 +116,12 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
                      "source": coll.sources[i],
                      "seed": [settings["seed"], stable_hash(cname), i],
                      "mask": coll.masks[i].cpu().numpy(), "keypoints": coll.keypoints[i].cpu().numpy(),
-                     "visible": coll.visible[i].cpu().numpy(), "canvas_scale": canvas[0],
-                     "canvas_offset": canvas[1], "camera": entry["refined"],
+                     "visible": coll.visible[i].cpu().numpy(),
+                     "canvas_scale": float(coll.canvas_from_image.scale[i]),
+                     "canvas_offset": coll.canvas_from_image.offset[i].double().numpy(), "camera": entry["refined"],
                      "quality": float(q) if q is not None else float("nan"), "voxels": str(vox), "mesh": str(mesh),
-                     "fingerprint": coll.fingerprints[i]})
+                     "fingerprint": coll.fingerprints[i], "skipped_before": len(skipped)})
     return jobs
-
-
-#: The reason of an object whose voxels were carved on another canvas than the one ``config.yaml`` gives (a class
-#: a later run with another ``canvas_size`` or ``canvas_margin`` did not touch): its grid would not line up.
-OTHER_CANVAS = ("carved on another canvas than config.yaml's (canvas_size or canvas_margin changed since); rerun "
-                "reconstruct on its class")
-
-
-def _canvas_problem(vox: Path, canvas: tuple, fingerprint: str) -> str | None:
-    """:data:`OTHER_CANVAS` where the voxels file ``vox`` records a canvas other than ``canvas`` (``(scale, (x, y))``,
-    the object's canvas as the export loads it), else ``None``: also for a file that cannot be read, or that was
-    made from other inputs than ``fingerprint`` (the export worker reads the file and says so)."""
-    try:
-        with np.load(vox) as z:  # members read one by one (about 0.1 ms each): the fingerprint only if needed
-            held = {k: z[k] for k in ("canvas_scale", "canvas_offset") if k in z.files}
-            if same_canvas(held, canvas) is not False:
-                return None
-            other_inputs = fingerprint and held_fingerprint(z) not in (None, fingerprint)
-    except Exception:  # noqa: BLE001 - any damage: the worker reads the file and says what is wrong
-        return None
-    return None if other_inputs else OTHER_CANVAS
 
 
 def _class_jobs(loaded, recon: Path, class_names: list, settings: dict, writer: StoreWriter, skipped: dict, bar,
@@ -329,6 +307,21 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     return {**desc, "samples": samples}
 
 
+def _book_skip(skipped: list, job: dict, reason: str, other_canvas: Counter) -> None:
+    """Add the object of ``job`` that a worker could not export to its class's ``skipped``, which lists, in
+    annotation order each: the objects skipped before the export (no camera, no voxels or no mesh) and those whose
+    voxels were carved on another canvas (:data:`~carvi_torch.export.objects.OTHER_CANVAS`), then those whose files
+    cannot be read or were made from other inputs. ``job["skipped_before"]``: how many of the class's objects
+    ``skipped`` held when the job was made; ``other_canvas``: per class, how many objects on another canvas are
+    listed already."""
+    entry = {"annotation_id": job["annotation_id"], "class": job["class"], "source": job["source"], "reason": reason}
+    if reason != OTHER_CANVAS:
+        skipped.append(entry)
+        return
+    skipped.insert(job["skipped_before"] + other_canvas[job["class"]], entry)
+    other_canvas[job["class"]] += 1
+
+
 def _write_samples(loaded, recon: Path, class_names: list, settings: dict, writer: StoreWriter, skipped: dict,
                    progress: bool, workers: int, no_files: str, data: Path) -> list:
     """Compute every object (in ``workers`` processes, or here) and add it to ``writer``; returns the samples'
@@ -344,15 +337,14 @@ def _write_samples(loaded, recon: Path, class_names: list, settings: dict, write
     try:
         with torch_threads(1):
             jobs = _class_jobs(loaded, recon, class_names, settings, writer, skipped, bar, no_files, data)
-            current = None
+            current, other_canvas = None, Counter()
             for job, sample, reason in _stream(jobs, pool, workers):
                 bar.update(1)
                 if job["class"] != current and current is not None:
                     writer.finish(current)  # a class is complete: written while the workers go on
                 current = job["class"]
                 if reason is not None:
-                    skipped[job["class"]].append({"annotation_id": job["annotation_id"], "class": job["class"],
-                                                  "source": job["source"], "reason": reason})
+                    _book_skip(skipped[current], job, reason, other_canvas)
                     continue
                 sample["annotation_id"], sample["image_id"] = _int_id(job["annotation_id"]), _int_id(job["image_id"])
                 writer.add(job["class"], sample, job)
