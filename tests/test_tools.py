@@ -1165,6 +1165,43 @@ def test_benchmark_compares_the_class_folders_byte_for_byte(tmp_path):
     assert bm.differing_outputs(a, b) == ["car/meshes/1.ply", "car/voxels/1.npz", "car/voxels/2.npz"]
 
 
+def test_benchmark_variants_take_turns_round_by_round(tmp_path, monkeypatch):
+    """``take_turns``: each variant once a round, in their order in even rounds and in reverse in odd ones, at
+    least one round; the many-class runs go through it (with ``--compare-with`` and ``--compare-set``: new, old,
+    alt, then alt, old, new) and their record keeps each variant's rounds in order, the best round and the ratios
+    taken from them."""
+    import argparse
+    import doctest
+
+    bm = load_tool("benchmark", "benchmark_tool")
+    assert doctest.testmod(bm).failed == 0  # take_turns' example
+    calls = []
+    turns = bm.take_turns({k: (lambda k=k: calls.append(k) or len(calls)) for k in "abc"}, 0)
+    assert calls == ["a", "b", "c"] and turns == {"a": [1], "b": [2], "c": [3]}
+    calls.clear()
+    turns = bm.take_turns({k: (lambda k=k: calls.append(k) or len(calls)) for k in "abc"}, 4)
+    assert calls == list("abccbaabccba") and list(turns) == ["a", "b", "c"]
+    assert turns["a"] == [1, 6, 7, 12] and turns["c"] == [3, 4, 9, 10]
+
+    order = []
+
+    def fake_run_many(data, out, args, name, sets, path):
+        order.append(name)
+        return {"name": name, "sets": sets, "wall_seconds_with_startup": float(len(order)), "total_seconds": 1.0}
+
+    monkeypatch.setattr(bm, "ensure_many_classes", lambda data_dir, seed: tmp_path / "annotations.json")
+    monkeypatch.setattr(bm, "run_many", fake_run_many)
+    monkeypatch.setattr(bm, "differing_outputs", lambda a, b: [])
+    args = argparse.Namespace(data_dir=str(tmp_path), seed=0, compare_with=str(tmp_path), compare_set=["x=1"],
+                              rounds=2, work_dir=str(tmp_path / "runs"))
+    m = bm.many_classes(args, bm.torch.device("cpu"))
+    assert order == ["new", "old", "alt", "alt", "old", "new"]
+    assert {k: [r["wall_seconds_with_startup"] for r in v] for k, v in m["runs"].items()} == {
+        "new": [1.0, 6.0], "old": [2.0, 5.0], "alt": [3.0, 4.0]}
+    assert m["runs"]["alt"][0]["sets"] == ["x=1"] and m["best"]["old"]["wall_seconds_with_startup"] == 2.0
+    assert m["new_over"]["alt"]["wall_seconds_with_startup"]["per_round"] == [1 / 3, 6 / 4]
+
+
 def test_benchmark_load_only_times_the_loading_and_the_resampling_on_the_same_canvases(procedural_input, tmp_path):
     """``--load-only``: the loading timed ``--repeat`` times; the resampling alone by the batched op and the
     per-object reference, both checked against the loaded canvases."""

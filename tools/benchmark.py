@@ -82,6 +82,7 @@ be split between two threads' stages).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -137,6 +138,24 @@ def best_of(fn, repeat: int, device: torch.device) -> float:
         sync(device)
         times.append(time.perf_counter() - t0)
     return min(times)
+
+
+def take_turns(runs: dict, rounds: int) -> dict[str, list]:
+    """Each of ``runs`` (name: a function of no argument) called once a round for ``rounds`` rounds (at least one),
+    taking turns: in their order in even rounds, in reverse in odd ones (so that none always runs first); each
+    one's results in round order, under its name, in the order of ``runs``.
+
+    >>> calls = []
+    >>> take_turns({"a": lambda: calls.append("a") or 1, "b": lambda: calls.append("b") or 2}, 3)
+    {'a': [1, 1, 1], 'b': [2, 2, 2]}
+    >>> calls
+    ['a', 'b', 'b', 'a', 'a', 'b']
+    """
+    results: dict = {name: [] for name in runs}
+    for r in range(max(1, rounds)):
+        for name in (list(runs) if r % 2 == 0 else list(runs)[::-1]):
+            results[name].append(runs[name]())
+    return results
 
 
 class GridSampleClock:
@@ -348,18 +367,19 @@ def time_writing(recon: Path, objects: int, repeat: int, work: Path) -> dict | N
     arrays = [(np.asarray(m.vertices), np.asarray(m.faces))
               for m in (occupancy_to_mesh(g["occupancy"], g["voxel_to_camera"]) for g in grids)]
     fast = trimesh.caching.hash_fast
-    names = ["sync", "no sync", "hashlib checks"]
-    seconds: dict = {name: [] for name in names}
+
+    def write_all(name: str) -> float:
+        meshes = [trimesh_mesh(v, f) for v, f in arrays]
+        trimesh.caching.hash_fast = trimesh.caching.hash_fallback if name == "hashlib checks" else fast
+        t0 = time.perf_counter()
+        for i, (g, m) in enumerate(zip(grids, meshes)):
+            write_npz(work / f"{i}.npz", sync=name == "sync", **g)
+            write_mesh(m, work / f"{i}.ply", sync=name == "sync")
+        return time.perf_counter() - t0
+
     try:
-        for r in range(max(1, repeat)):
-            for name in (names if r % 2 == 0 else names[::-1]):
-                meshes = [trimesh_mesh(v, f) for v, f in arrays]
-                trimesh.caching.hash_fast = trimesh.caching.hash_fallback if name == "hashlib checks" else fast
-                t0 = time.perf_counter()
-                for i, (g, m) in enumerate(zip(grids, meshes)):
-                    write_npz(work / f"{i}.npz", sync=name == "sync", **g)
-                    write_mesh(m, work / f"{i}.ply", sync=name == "sync")
-                seconds[name].append(time.perf_counter() - t0)
+        seconds = take_turns({name: functools.partial(write_all, name) for name in ("sync", "no sync",
+                                                                                   "hashlib checks")}, repeat)
     finally:
         trimesh.caching.hash_fast = fast
     shutil.rmtree(work, ignore_errors=True)
@@ -384,13 +404,14 @@ def time_reconstruction_iou(grids: list[dict], repeat: int) -> dict:
     args = [a for a in args if a[1][0, 0] == 0 and a[1][1, 1] == 0 and a[0].size]  # the grids the per-line one takes
     runs = {"per line": quality._silhouette_on_canvas_axes, "general": quality._silhouette_on_canvas}
     same = all(np.array_equal(runs["per line"](*a), runs["general"](*a)) for a in args)
-    seconds: dict = {name: [] for name in runs}
-    for r in range(max(1, repeat)):
-        for name in (list(runs) if r % 2 == 0 else list(runs)[::-1]):
-            t0 = time.perf_counter()
-            for a in args:
-                runs[name](*a)
-            seconds[name].append(time.perf_counter() - t0)
+
+    def project_all(fn) -> float:
+        t0 = time.perf_counter()
+        for a in args:
+            fn(*a)
+        return time.perf_counter() - t0
+
+    seconds = take_turns({name: functools.partial(project_all, fn) for name, fn in runs.items()}, repeat)
     best = {k: 1000 * min(v) / max(1, len(args)) for k, v in seconds.items()}
     return {"objects": len(args), "ms_per_object": best, "per_line_over_general": best["per line"] / best["general"],
             "same": same}
@@ -431,15 +452,16 @@ def time_resampling(ann: Path, coll, size: int, repeat: int) -> dict:
     ops = {"reference": lambda: torch.stack([resample_to_canvas(m, a, b, size)
                                              for m, a, b in zip(masks, scales, offsets)]),
            "batched": lambda: resample_to_canvases(masks, sim.scale, sim.offset, size)}
-    seconds: dict = {k: [] for k in ops}
-    same = True
+
+    def resample(op) -> tuple[float, bool]:  # its seconds, and whether its canvases are the loaded ones
+        t0 = time.perf_counter()
+        canvases = op()
+        return round(time.perf_counter() - t0, 3), torch.equal(canvases, coll.masks.cpu())
+
     with torch_threads(1):
-        for r in range(max(1, repeat)):
-            for name, op in (list(ops.items()) if r % 2 == 0 else list(ops.items())[::-1]):
-                t0 = time.perf_counter()
-                canvases = op()
-                seconds[name].append(round(time.perf_counter() - t0, 3))
-                same = same and torch.equal(canvases, coll.masks.cpu())
+        turns = take_turns({name: functools.partial(resample, op) for name, op in ops.items()}, repeat)
+    seconds = {name: [t for t, _ in turns[name]] for name in ops}
+    same = all(ok for runs in turns.values() for _, ok in runs)
     return {"seconds": seconds, "batched_over_reference": min(seconds["batched"]) / min(seconds["reference"]),
             "same_canvases": same}
 
@@ -632,11 +654,9 @@ def many_classes(args, device: torch.device) -> dict:
         variants.append(("old", [], str(Path(args.compare_with).resolve())))
     if args.compare_set:
         variants.append(("alt", list(args.compare_set), None))
-    runs: dict[str, list] = {v[0]: [] for v in variants}
     outs = {name: Path(args.work_dir) / f"many_{device.type}_{name}" for name, _, _ in variants}
-    for r in range(max(1, args.rounds)):
-        for name, sets, path in (variants if r % 2 == 0 else variants[::-1]):
-            runs[name].append(run_many(data, outs[name], args, name, sets, path))
+    runs = take_turns({name: functools.partial(run_many, data, outs[name], args, name, sets, path)
+                       for name, sets, path in variants}, args.rounds)
     differ = {name: differing_outputs(outs["new"], out) for name, out in outs.items() if name != "new"}
     return {"data": str(data), "runs": runs, **many_summary(runs), "differing_files": differ}
 
