@@ -359,7 +359,7 @@ def test_gpu_session_answers_help():
 _FAKE_CUDA_PYTHON = """#!{python}
 import json, os, sys, time
 argv = sys.argv[1:]
-if argv[:1] == ["-c"] and ("import kornia" in argv[1] or "cuda.is_available" in argv[1]):
+if argv[:1] == ["-c"] and (argv[2:3] == ["check"] or "cuda.is_available" in argv[1]):
     sys.exit(0)
 if argv and argv[0].endswith("benchmark.py") and "--many-classes" in argv:
     on_cuda, procs = "viewpoints.device=run" in argv, any(a.startswith("viewpoint_processes=") for a in argv)
@@ -487,7 +487,8 @@ def test_gpu_session_lease_runs_each_step_under_its_limit_and_packs_after_each(t
     import tarfile
 
     fake = tmp_path / "fakepython"  # the package and device checks pass, then it sleeps past the step's limit
-    fake.write_text('#!/bin/sh\ncase "$2" in *kornia*|*cuda*|*torch.__version__*) exit 0 ;; esac\nsleep 30\n')
+    fake.write_text('#!/bin/sh\n[ "$3" = check ] && exit 0\ncase "$2" in *cuda*|*torch.__version__*) exit 0 ;; esac\n'
+                    'sleep 30\n')
     fake.chmod(0o755)
     out, pack = tmp_path / "gpu", tmp_path / "results.tgz"
     env = dict(os.environ, PYTHON=str(fake), STEPS="nosuch:5 tests:2", PACK=str(pack))
@@ -1553,3 +1554,85 @@ def test_gpu_session_packs_what_a_lease_carries(tmp_path: Path):
                       "outputs/bench/data/car1000_s0/gt.json"]
     assert not (work / ".whl").exists()
     assert 'run(carry=[".whl", ".gpu_shared"]' in res.stdout and "gpu_session.sh lease /tmp/gpu" in res.stdout
+
+
+def _script_list(name: str) -> list[str]:
+    """The names of one of the GPU script's package lists (``NAME="..."``)."""
+    import re
+
+    return re.search(rf'^{name}="([^"]*)"', GPU_SESSION.read_text(), flags=re.M).group(1).split()
+
+
+def _requirement_key(req: str) -> str:
+    import re
+
+    return re.sub(r"[-_.]+", "-", re.match(r"[A-Za-z0-9._-]+", req).group()).lower()
+
+
+def test_gpu_session_packs_the_wheels_of_pyprojects_requirements(tmp_path: Path):
+    """``--pack`` downloads pyproject.toml's dependencies and test extra as written there, less those the lent
+    image has (IMAGE_HAS) and those whose tests skip without them (NOT_CARRIED), and the dependencies of theirs
+    the image lacked (ALSO_CARRIED); a dependency added to pyproject.toml is packed with no other change, and each
+    name the script keeps names a requirement of pyproject.toml."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11 or later, as the script's reading of pyproject.toml
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    reqs = project["dependencies"] + project["optional-dependencies"]["test"]
+    image, skip, also = _script_list("IMAGE_HAS"), _script_list("NOT_CARRIED"), _script_list("ALSO_CARRIED")
+    keys = {_requirement_key(r) for r in reqs}
+    assert {_requirement_key(n) for n in image + skip} <= keys and not keys & {_requirement_key(n) for n in also}
+    repo = tmp_path / "repo"
+    (repo / "tools").mkdir(parents=True)
+    (repo / "tools" / "gpu_session.sh").write_text(GPU_SESSION.read_text())
+    added = "dependencies = [\n    'carvi-new-dep>=1.2',\n"  # a dependency pyproject.toml gains
+    (repo / "pyproject.toml").write_text((ROOT / "pyproject.toml").read_text().replace("dependencies = [\n", added, 1))
+    log = tmp_path / "pip.json"
+    fake = tmp_path / "python"  # records what pip would download; anything else runs on this interpreter
+    fake.write_text(f"""#!{sys.executable}
+import json, os, sys
+if sys.argv[1:4] == ["-m", "pip", "download"]:
+    json.dump(sys.argv[sys.argv.index("-d") + 2:], open({str(log)!r}, "w"))
+    sys.exit(0)
+os.execv(sys.executable, [sys.executable, *sys.argv[1:]])
+""")
+    fake.chmod(0o755)
+    env = {k: v for k, v in os.environ.items() if k != "PACK_WHEELS"}
+    res = subprocess.run(["bash", "tools/gpu_session.sh", "--pack"], cwd=repo, env=dict(env, PYTHON=str(fake)),
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stdout + res.stderr
+    left_out = {_requirement_key(n) for n in image + skip}
+    expected = ["carvi-new-dep>=1.2"] + [r for r in reqs if _requirement_key(r) not in left_out] + also
+    assert json.loads(log.read_text()) == expected
+    assert "kornia>=0.9" in expected and not any(_requirement_key(r) == "torch" for r in expected)
+
+
+def test_gpu_session_installs_the_wheels_when_a_requirement_does_not_import(tmp_path: Path):
+    """On the lent machine the script imports each of pyproject.toml's requirements (PyYAML as yaml, Pillow as
+    PIL; NOT_CARRIED's left out) and installs the carried wheels when one fails, else goes on to the device."""
+    repo, stubs = tmp_path / "repo", tmp_path / "stubs"
+    (repo / "tools").mkdir(parents=True)
+    (repo / ".whl").mkdir()
+    (repo / ".whl" / "carried-1.0-py3-none-any.whl").write_bytes(b"")
+    (repo / "tools" / "gpu_session.sh").write_text(GPU_SESSION.read_text())
+    (repo / "pyproject.toml").write_text('[project]\nname = "p"\ndependencies = ["PyYAML>=6.0", "Pillow>=9.0"]\n'
+                                         '[project.optional-dependencies]\ntest = ["ray>=2.9"]\n')
+    stubs.mkdir()
+    (stubs / "ray.py").write_text("raise ImportError('not carried')\n")  # a NOT_CARRIED one fails: not checked
+    log = tmp_path / "calls.txt"
+    fake = tmp_path / "python"  # the package check on this interpreter; every other call fails and is logged
+    fake.write_text(f'#!/bin/sh\n[ "$3" = check ] && exec "{sys.executable}" "$@"\necho "$@" >> "{log}"\nexit 1\n')
+    fake.chmod(0o755)
+
+    def run() -> tuple[int, str]:
+        log.write_text("")
+        res = subprocess.run(["bash", "tools/gpu_session.sh", "tests", str(tmp_path / "out")], cwd=repo,
+                             env=dict(os.environ, PYTHON=str(fake), PYTHONPATH=str(stubs)), capture_output=True,
+                             text=True, timeout=60)
+        return res.returncode, log.read_text()
+
+    rc, calls = run()
+    assert rc == 2 and "pip install" not in calls and "cuda.is_available" in calls, calls
+    (stubs / "yaml.py").write_text("raise ImportError('not installed')\n")
+    rc, calls = run()
+    assert rc == 1 and "pip install" in calls and "carried-1.0-py3-none-any.whl" in calls, calls
+

@@ -9,10 +9,10 @@
 #                                          # .gpu_shared/ (git-ignored), and the `run` call that carries them
 #
 # OUTDIR defaults to $OUT (the lent machine's result folder) or outputs/gpu; each step writes its log and JSON
-# there. Python is $PYTHON or python3, with torch and CUDA. Packages the machine lacks travel as wheels in
-# .whl/ (installed once into /tmp/carvi_site, never into the system); an H100 image with torch 2.11 lacked
-# kornia, kornia_rs, trimesh, pycocotools, fast_simplification, zarr, numcodecs, donfig, google-crc32c, shapely
-# and rtree (21 MB of cp312 manylinux wheels; the tests that need pycolmap skip without it).
+# there. Python is $PYTHON or python3, with torch and CUDA. The packages of pyproject.toml (its dependencies and
+# test extra) that the machine lacks travel as wheels in .whl/ (installed once into /tmp/carvi_site, never into
+# the system): those an H100 image with torch 2.11 lacked, about 21 MB of cp312 manylinux wheels (the script's
+# IMAGE_HAS, NOT_CARRIED and ALSO_CARRIED; the tests that need pycolmap skip without it).
 #
 #   all          the plan below: each step under `timeout` at its limit, the limits adding up to at most the
 #                budget; each step's output on the terminal and in OUTDIR/<step>.log; status 1 when a step failed
@@ -131,14 +131,48 @@ print_plan() {  # prints the plan; status 1 when a step is unknown, a limit not 
     return "$bad"
 }
 
-# What --pack downloads: the packages an H100 image with torch 2.11 lacked, and xxhash (cp312 manylinux wheels, no
-# deps).
-PACK_WHEELS=${PACK_WHEELS-"kornia kornia_rs trimesh pycocotools fast-simplification zarr numcodecs donfig google-crc32c shapely rtree xxhash"}
+# ---- packages: pyproject.toml's dependencies and test extra, the one list of them ------------------------------
+# The lent machine imports them all (NOT_CARRIED left out), or else installs the wheels of .whl/. --pack downloads
+# (cp312 manylinux wheels, without their dependencies) those IMAGE_HAS leaves, and ALSO_CARRIED; PACK_WHEELS="..."
+# replaces that list (empty: no wheels).
+IMAGE_HAS="torch numpy scipy scikit-image tqdm matplotlib PyYAML Pillow pytest"  # an H100 image with torch 2.11
+NOT_CARRIED="pycolmap ray ruff pytest-xdist"  # the tests that need them skip without them
+ALSO_CARRIED="kornia_rs numcodecs donfig google-crc32c"  # kornia's and zarr's dependencies the image lacked
+PYPROJECT="$(dirname "$0")/../pyproject.toml"
 PACK_PYTHON=${PACK_PYTHON:-3.12}  # the lent machine's Python
+# argv: MODE PYPROJECT IMAGE_HAS NOT_CARRIED ALSO_CARRIED. wheels: the requirements --pack downloads, one a line;
+# check: imports the modules of the requirements, status 1 when one fails. Python 3.11 or later (tomllib).
+PACKAGES_PY='import importlib, re, sys, tomllib
+mode, path, image, skip, also = sys.argv[1:6]
+key = lambda r: re.sub(r"[-_.]+", "-", re.match(r"[A-Za-z0-9._-]+", r).group()).lower()
+image, skip = ({key(n) for n in names.split()} for names in (image, skip))
+with open(path, "rb") as f:
+    project = tomllib.load(f)["project"]
+reqs = [r for r in project["dependencies"] + project["optional-dependencies"]["test"] if key(r) not in skip]
+if mode == "wheels":
+    print(*[r for r in reqs if key(r) not in image], *also.split(), sep="\n")
+    sys.exit(0)
+modules = {"scikit-image": "skimage", "pyyaml": "yaml", "pillow": "PIL"}
+failed = []
+for r in reqs:
+    try:
+        importlib.import_module(modules.get(key(r), key(r).replace("-", "_")))
+    except Exception:
+        failed.append(r)
+sys.exit(f"not importable: {failed}" if failed else 0)'
 
-pack_for_lease() {  # .whl/ (PACK_WHEELS; none when empty) and .gpu_shared/ (../shared/data, the steps' inputs)
+packages() {  # PYTHON MODE: PACKAGES_PY's MODE (wheels, check) on PYPROJECT
+    "$1" -c "$PACKAGES_PY" "$2" "$PYPROJECT" "$IMAGE_HAS" "$NOT_CARRIED" "$ALSO_CARRIED"
+}
+
+pack_for_lease() {  # .whl/ (PACK_WHEELS, else `packages wheels`; none when empty) and .gpu_shared/ (../shared/data,
+                    # the steps' inputs)
     local f
+    if [ -z "${PACK_WHEELS+set}" ]; then
+        PACK_WHEELS=$(packages "${PYTHON:-python3}" wheels) || return 1
+    fi
     if [ -n "$PACK_WHEELS" ]; then
+        echo "wheels: ${PACK_WHEELS//$'\n'/ }"
         rm -rf .whl  # an earlier pack's versions beside newer ones would make the lease's install fail
         # shellcheck disable=SC2086  # the list splits into packages
         "${PYTHON:-python3}" -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: \
@@ -187,9 +221,7 @@ mkdir -p "$out"
 
 # ---- packages: installed once; the steps of all and lease inherit the path (CARVI_GPU_READY) ------------------
 if [ -z "${CARVI_GPU_READY:-}" ]; then
-    if ! "$py" -c "import kornia, trimesh, pycocotools, shapely, rtree, zarr, fast_simplification, xxhash, scipy, skimage, yaml, tqdm, matplotlib, pytest" \
-            2>/dev/null \
-            && [ -d .whl ] && compgen -G ".whl/*.whl" >/dev/null; then
+    if ! packages "$py" check 2>/dev/null && [ -d .whl ] && compgen -G ".whl/*.whl" >/dev/null; then
         "$py" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
             --target /tmp/carvi_site .whl/*.whl || exit 1
         export PYTHONPATH="/tmp/carvi_site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
