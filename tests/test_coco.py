@@ -322,14 +322,26 @@ class TestLoad:
         assert c.meta.left_convention == "viewer"
         assert load_coco(path, classes=["car"]).collections == {}
 
+    def test_keypoints_3d_of_finite_numbers_and_nulls_are_kept(self, tmp_path):
+        path, _, _ = _dataset(tmp_path)
+        data = json.loads(path.read_text())
+        pts = [[0, 0, 1], None, [-1e299, 2, 3.5], [10 ** 20, 0.0, -7]]
+        data["categories"][0]["keypoints_3d"] = pts
+        path.write_text(json.dumps(data))
+        res = load_coco(path, canvas_size=32)
+        assert res.collections["plane"].meta.keypoints_3d == pts and res.problems == []
+
     @pytest.mark.parametrize("field, value", [
         ("flip_pairs", [[0, 1], [0, 2]]), ("flip_pairs", [[1, 1]]), ("flip_pairs", ["01"]),
         ("flip_pairs", [[10 ** 400, 1]]), ("flip_pairs", [[float("inf"), 1]]), ("flip_pairs", [[0.5, 1]]),
         ("rigid_keypoints", [0.5, 1.7, 2.2]), ("rigid_keypoints", "012"), ("rigid_keypoints", [0, 1, float("inf")]),
-        ("keypoints_3d", [[1, 2, 10 ** 400], None, None, None])])
+        ("rigid_keypoints", [0, 1, True]), ("keypoints_3d", [[1, 2, 10 ** 400], None, None, None]),
+        ("keypoints_3d", [[1, 2, 1e301], None, None, None]), ("keypoints_3d", [[1, 2, False], None, None, None]),
+        ("keypoints_3d", [[1, 2], None, None, None])])
     def test_a_bad_category_field_is_a_warning_not_a_crash(self, tmp_path, field, value):
         """Overlapping or self pairs (the mirror would not be a permutation), strings, fractions, integers beyond
-        float64 and infinities: one warning naming the field, the field's default, every object loaded."""
+        float64, infinities, booleans, 3-D coordinates beyond 1e300: one warning naming the field, the field's
+        default, every object loaded."""
         path, _, _ = _dataset(tmp_path)
         data = json.loads(path.read_text())
         data["categories"][0][field] = value

@@ -30,6 +30,7 @@ from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_fl
 from ..runtime import os_error_line, torch_threads, watch_interrupts
 from .layout import object_stem, reserved
 from .outputs import read_json, safe_name, shown, write_json
+from .results import numbers
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
            "clip_polygon", "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "MAX_IMAGE_PIXELS",
@@ -69,6 +70,8 @@ def skipped_at_load(problems: list, key: str) -> list[dict]:
 
 #: Keypoints farther outside the image than this fraction of its larger side are rejected.
 OUTSIDE_TOLERANCE = 0.5
+#: Bound on the magnitude of a category's ``keypoints_3d`` coordinates: a larger one is no template point.
+_KEYPOINTS_3D_BOUND = 1e300
 #: Default bound on an image's pixels (a mask is decoded at one byte per pixel of its image).
 MAX_IMAGE_PIXELS = 200_000_000
 
@@ -389,9 +392,8 @@ def _category_meta(cat: dict, problems: list) -> ClassMeta | None:
 
 def _indices(values, k: int) -> list[int] | None:
     """``values`` as keypoint indices (JSON integers, or integral numbers, in ``[0, k)``), or ``None``."""
-    if not isinstance(values, list) or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < k and float(v).is_integer()
-            for v in values):
+    if not (isinstance(values, list) and numbers(values, (len(values),))
+            and all(0 <= v < k and float(v).is_integer() for v in values)):
         return None
     return [int(v) for v in values]
 
@@ -413,17 +415,12 @@ def _keypoints_3d(cat: dict, k: int, name: str, problems: list) -> list | None:
     if pts is None:
         return None
     ok = isinstance(pts, list) and len(pts) == k and all(
-        p is None or (isinstance(p, list) and len(p) == 3 and all(_finite_number(v) for v in p)) for p in pts)
+        p is None or (numbers(p, (3,)) and all(abs(v) < _KEYPOINTS_3D_BOUND for v in p)) for p in pts)
     if not ok:
         problems.append(Problem(f"keypoints_3d must hold {k} points [x, y, z] or nulls; ignored", category=name,
                                 fatal=False))
         return None
     return pts
-
-
-def _finite_number(v) -> bool:
-    """A JSON number (not a boolean) that is finite as a float (JSON integers may be far larger)."""
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and abs(v) < 1e300 and v == v
 
 
 def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[np.ndarray, np.ndarray] | str:
