@@ -167,6 +167,35 @@ def _shoelace(flat: np.ndarray) -> float:
     return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
 
 
+def test_a_keypoint_on_the_edge_of_the_image_band_stays_visible():
+    """The band a visible keypoint may lie in is the image widened by OUTSIDE_TOLERANCE of its larger side
+    (160 pixels for 320 x 240) past the pixel centres, edges included: on the edge each side the keypoint stays,
+    one float step beyond it goes, with one warning naming it."""
+    from carvi_torch.io.coco import OUTSIDE_TOLERANCE, _parse_keypoints
+    tol = OUTSIDE_TOLERANCE * 320
+    edge = np.array([[-tol, 100.0], [319 + tol, 100.0], [100.0, -tol], [100.0, 239 + tol]])
+    outward = np.array([[-np.inf, 100.0], [np.inf, 100.0], [100.0, -np.inf], [100.0, np.inf]])
+    for i in range(5):
+        xy = edge.copy()
+        if i < 4:
+            xy[i] = np.nextafter(edge[i], outward[i])
+        warnings = []
+        kp = np.concatenate([xy, np.full((4, 1), 2.0)], axis=1).ravel().tolist()
+        _, visible = _parse_keypoints({"keypoints": kp}, 4, 320, 240, warnings.append)
+        assert visible.tolist() == [j != i for j in range(4)]
+        assert warnings == ([] if i == 4 else [f"keypoint(s) [{i}] lie far outside the 320x240 image; "
+                                               "treated as not visible"])
+
+
+def test_far_outside_is_the_box_widened_by_the_tolerance():
+    from carvi_torch.io.coco import far_outside
+    xy = np.array([[-2.5, 0.0], [np.nextafter(-2.5, -3), 0.0], [0.0, 12.5], [0.0, np.nextafter(12.5, 13)],
+                   [np.nan, 1.0], [3.0, 4.0]])
+    assert far_outside(xy, (0, 2), (5, 10), 5).tolist() == [False, True, False, True, True, False]
+    assert far_outside(xy, (0, 2), (5, 10), 5, tolerance=0.0).tolist() == [True, True, True, True, True, False]
+    assert far_outside(np.zeros((0, 2)), (0, 0), (1, 1), 1).shape == (0,)
+
+
 def test_clip_polygon_is_the_intersection_with_the_box():
     """The cut polygon covers what shapely's intersection with ``[-W, 2W] x [-H, 2H]`` covers (simple
     polygons: the cut's area is the intersection's; the edges the cut adds along the box cancel)."""

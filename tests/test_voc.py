@@ -250,6 +250,22 @@ def test_convert_drops_a_keypoint_far_off_its_object_with_a_warning(tmp_path):
     assert any(w.startswith(f"{FIXTURES['valid']}: keypoint(s) NoseTip lie far outside") for w in report.warnings)
 
 
+def test_far_keypoints_band_is_the_outline_widened_by_half_its_larger_side():
+    """The outline (a 10 x 6 polygon and ``visible_bounds`` inside it) widened by 5 each side, edges included: a
+    visible keypoint on the edge stays, one a float step beyond, or NaN, is far; a hidden one never is, and
+    without an outline nothing is."""
+    from carvi_torch.io.voc import VocObject, far_keypoints
+    poly = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 6.0], [0.0, 6.0]])
+    kps = {"w": (-5.0, 3.0, True), "e": (15.0, 3.0, True), "n": (4.0, -5.0, True), "s": (4.0, 11.0, True),
+           "w+": (np.nextafter(-5.0, -6.0), 3.0, True), "s+": (4.0, np.nextafter(11.0, 12.0), True),
+           "nan": (float("nan"), 3.0, True), "hidden": (1e9, 3.0, False)}
+    obj = VocObject("a.xml", "a", 1, "car", None, (1.0, 1.0, 2.0, 2.0), kps, poly, (poly,))
+    assert far_keypoints(obj) == ("w+", "s+", "nan")
+    assert far_keypoints(obj, tolerance=0.0) == ("w", "e", "n", "s", "w+", "s+", "nan")
+    assert far_keypoints(VocObject("a.xml", "a", 1, "car", None, None, kps, None, ())) == ()
+    assert far_keypoints(VocObject("a.xml", "a", 1, "car", None, None, {}, poly, (poly,))) == ()
+
+
 def test_convert_skips_an_object_whose_extent_is_no_image_size(tmp_path):
     """A polygon vertex at 1e12 and no VOC record: the image size from the extent would be 1e12 pixels wide (a mask
     of terabytes); the object is skipped with the reason, nothing is allocated."""

@@ -33,9 +33,9 @@ from .outputs import read_json, safe_name, shown, write_json
 from .results import numbers
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
-           "clip_polygon", "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "MAX_IMAGE_PIXELS",
-           "object_id", "flag", "class_keys", "class_names", "select_classes", "input_fingerprints", "skipped_at_load",
-           "DUPLICATE_ID", "is_duplicate", "rle_counts", "decode_counts"]
+           "clip_polygon", "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "far_outside",
+           "MAX_IMAGE_PIXELS", "object_id", "flag", "class_keys", "class_names", "select_classes",
+           "input_fingerprints", "skipped_at_load", "DUPLICATE_ID", "is_duplicate", "rle_counts", "decode_counts"]
 
 #: How the reason of a repeated annotation id begins (the id's first annotation is the one used).
 DUPLICATE_ID = "duplicate annotation id"
@@ -74,6 +74,21 @@ OUTSIDE_TOLERANCE = 0.5
 _KEYPOINTS_3D_BOUND = 1e300
 #: Default bound on an image's pixels (a mask is decoded at one byte per pixel of its image).
 MAX_IMAGE_PIXELS = 200_000_000
+
+
+def far_outside(xy: np.ndarray, lo, hi, side: float, tolerance: float = OUTSIDE_TOLERANCE) -> np.ndarray:
+    """``(N,)`` bool: which points of ``xy`` ``(N, 2)`` float64 lie farther than ``tolerance * side`` outside the
+    box ``lo`` to ``hi`` (each ``(x, y)``, bounds inclusive); a NaN coordinate is outside. The one rule of a
+    mistyped keypoint, of COCO (the box is the image) and of the VOC converter (the object's outline).
+
+    Example:
+        >>> far_outside(np.array([[-4.0, 5.0], [-6.0, 5.0], [9.0, 25.0]]), (0, 0), (9, 9), 10)
+        array([False,  True,  True])
+    """
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    tol = tolerance * side
+    with np.errstate(invalid="ignore"):
+        return ~((lo - tol <= xy) & (xy <= hi + tol)).all(axis=-1)
 
 
 class CocoFormatError(ValueError):
@@ -442,10 +457,7 @@ def _parse_keypoints(ann: dict, k: int, width: int, height: int, warn) -> tuple[
     if bad.any():
         warn(f"keypoint(s) {np.nonzero(bad)[0].tolist()} have NaN/infinite coordinates; treated as not visible")
         visible &= ~bad
-    tol = OUTSIDE_TOLERANCE * max(width, height)
-    with np.errstate(invalid="ignore"):
-        far = visible & ((xy[:, 0] < -tol) | (xy[:, 1] < -tol) | (xy[:, 0] > width - 1 + tol)
-                         | (xy[:, 1] > height - 1 + tol))
+    far = visible & far_outside(xy, (0, 0), (width - 1, height - 1), max(width, height))
     if far.any():
         warn(f"keypoint(s) {np.nonzero(far)[0].tolist()} lie far outside the {width}x{height} image; "
              "treated as not visible")

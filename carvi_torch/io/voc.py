@@ -78,7 +78,7 @@ import numpy as np
 
 from ..collection import infer_flip_pairs, name_words  # name_words re-exported: the converter's word rule
 from ..runtime import os_error_line, watch_interrupts
-from .coco import MAX_IMAGE_PIXELS, OUTSIDE_TOLERANCE
+from .coco import MAX_IMAGE_PIXELS, OUTSIDE_TOLERANCE, far_outside
 from .coco import encode_mask as encode_rle
 from .outputs import write_json
 from .vocmeta import (
@@ -946,9 +946,9 @@ def far_keypoints(obj: VocObject, tolerance: float = OUTSIDE_TOLERANCE) -> tuple
         return ()
     pts = np.concatenate(pts)
     lo, hi = pts.min(0), pts.max(0)
-    tol = tolerance * max(float((hi - lo).max()), 1.0)
-    return tuple(n for n, (x, y, v) in obj.keypoints.items()
-                 if v and not (lo[0] - tol <= x <= hi[0] + tol and lo[1] - tol <= y <= hi[1] + tol))
+    xy = np.array([(x, y) for x, y, _v in obj.keypoints.values()], dtype=np.float64).reshape(-1, 2)
+    far = far_outside(xy, lo, hi, max(float((hi - lo).max()), 1.0), tolerance)
+    return tuple(n for (n, (_x, _y, v)), f in zip(obj.keypoints.items(), far) if v and f)
 
 
 def _check_classes_present(wanted: set[str] | None, by_image: dict, kdir: Path) -> None:
