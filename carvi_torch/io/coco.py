@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from pycocotools import mask as mask_utils
 
+from ..cameras import Similarity2D
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvases
 from ..runtime import os_error_line, torch_threads, watch_interrupts
 from .layout import object_stem, reserved
@@ -788,16 +789,17 @@ def input_fingerprints(meta: ClassMeta, items: list) -> list[str]:
 
 class _Canvases:
     """One class's objects as the load decodes them: every :attr:`CHUNK` objects their image-size masks are
-    resampled into canvases (box = mask extent) and hashed (:func:`input_fingerprints`), then dropped, so a load
-    holds at most ``CHUNK`` image-size masks per class (about 0.3 MB each at 640 x 480) whatever its size. Each
-    object's canvas and similarity are its own (no operation mixes objects), so the chunks change no bit."""
+    resampled into canvases (box = mask extent, :func:`canvas_similarity`) and hashed (:func:`input_fingerprints`),
+    then dropped, so a load holds at most ``CHUNK`` image-size masks per class (about 0.3 MB each at 640 x 480)
+    whatever its size. Each object's canvas and similarity are its own (no operation mixes objects), so the chunks
+    change no bit: the chunks' similarities joined (:meth:`similarity`) are those of all boxes at once."""
 
     CHUNK = 256
 
     def __init__(self, meta: ClassMeta, canvas_size: int, margin: float):
         self.meta, self.canvas_size, self.margin = meta, canvas_size, margin
         self.items: list = []  # (ann, image entry, xy, visible) per object, masks dropped
-        self.boxes: list = []
+        self.similarities: list[Similarity2D] = []  # per chunk: scale (n,), offset (n, 2)
         self.canvases: list[torch.Tensor] = []
         self.fingerprints: list[str] = []
         self.pending: list = []  # (ann, image entry, mask, xy, visible) not resampled yet
@@ -821,9 +823,14 @@ class _Canvases:
             self.canvases.append(resample_to_canvases([torch.from_numpy(it[2]) for it in self.pending], sim.scale,
                                                       sim.offset, self.canvas_size))
         self.fingerprints += input_fingerprints(self.meta, self.pending)
-        self.boxes += boxes
+        self.similarities.append(sim)
         self.items += [(ann, im, xy, vis) for ann, im, _mask, xy, vis in self.pending]
         self.pending = []
+
+    def similarity(self) -> Similarity2D:
+        """The image -> canvas similarity of every object flushed so far, in the order they were added."""
+        return Similarity2D(torch.cat([s.scale for s in self.similarities]),
+                            torch.cat([s.offset for s in self.similarities]))
 
 
 def _build_collection(canvases: _Canvases, device: torch.device) -> ClassCollection:
@@ -831,8 +838,7 @@ def _build_collection(canvases: _Canvases, device: torch.device) -> ClassCollect
     of the canvas a little."""
     canvases.flush()
     meta, items = canvases.meta, canvases.items
-    sim = canvas_similarity(torch.tensor(canvases.boxes, dtype=torch.float32), canvases.canvas_size,
-                            canvases.margin)
+    sim = canvases.similarity()
     masks = torch.cat(canvases.canvases)
     xy = torch.tensor(np.stack([it[2] for it in items]), dtype=torch.float32)
     vis = torch.tensor(np.stack([it[3] for it in items]), dtype=torch.bool)
