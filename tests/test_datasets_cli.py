@@ -198,6 +198,9 @@ def test_render_mismatch_names_each_setting_that_differs(tmp_path):
     assert reason(camera_options=dict(cams, roll_sd_deg=3.0)) == \
         "camera_options roll_sd_deg: 2.0 recorded, 3.0 wanted"
     assert reason(models=models[:2]) == "models: 3 recorded, 2 wanted; not wanted: m2"
+    more = [Model(f"n{i}", m.category, m.vertices, m.faces, m.keypoint_names, m.keypoints)
+            for i, m in enumerate(models + models)]
+    assert reason(models=models + more) == "models: 3 recorded, 9 wanted; not recorded: n0, n1, n2 and 3 more"
     assert reason(models=models[::-1]) == "models: the same models in another order"
     assert reason(models=as_given) == \
         "other left/right names: m2: [['left_a', 'right_a']] recorded, none wanted"

@@ -835,6 +835,17 @@ def test_files_of_objects_the_data_no_longer_holds_are_named(tmp_path, caplog, e
         assert json.loads((tmp_path / "summary.json").read_text())["classes"]["car"]["other_objects"]["stems"] == stems
 
 
+def test_a_long_list_of_files_kept_names_five_and_counts_the_rest():
+    """The warnings about files an earlier run left name the first five and say how many more there are."""
+    from carvi_torch.io.layout import ResumeCheck
+
+    stems = [str(i) for i in range(10, 17)]
+    check = ResumeCheck(others=stems, other_formats=[f"{s}.ply" for s in stems[:5]])
+    others, formats = check.lines("car")
+    assert "(10, 11, 12, 13, 14 and 2 more); cameras.json" in others, others
+    assert "(10.ply, 11.ply, 12.ply, 13.ply, 14.ply): not this run's" in formats, formats
+
+
 def test_a_class_skipped_before_its_viewpoints_names_files_it_no_longer_holds(tmp_path):
     """A run whose every class has too few objects (skipped before the viewpoint stage) still names the files in a
     class's folder of objects the data does not hold, in ``summary.json``."""

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .outputs import read_json, safe_name
+from .outputs import read_json, safe_name, shown_names
 
 __all__ = ["unfinished", "NOT_YET",
            "class_dir", "object_stem", "object_file", "object_mesh", "finished", "KINDS", "RUN_NAMES", "reserved",
@@ -258,8 +258,8 @@ class ResumeCheck:
             out.append(f"  {key}: {self.line()}")
         if self.others:
             out.append(f"  {key}: {len(self.others)} object(s) of an earlier run that the data no longer holds keep "
-                       f"their files in meshes/ and voxels/ ({_shown(self.others)}); cameras.json, the report and "
-                       "the export leave them out")
+                       f"their files in meshes/ and voxels/ ({shown_names(self.others, 5)}); cameras.json, the report "
+                       "and the export leave them out")
         if self.converted:
             n, formats = sum(len(v) for v in self.converted.values()), ", ".join(sorted(self.converted))
             out.append(f"  {key}: {n} finished object(s) have their mesh in another format ({formats}): resumed, "
@@ -267,7 +267,7 @@ class ResumeCheck:
                        "removed)")
         if self.other_formats:
             out.append(f"  {key}: {len(self.other_formats)} mesh file(s) of an earlier run in another format than "
-                       f"this run's stay in meshes/ ({_shown(self.other_formats)}): not this run's meshes of "
+                       f"this run's stay in meshes/ ({shown_names(self.other_formats, 5)}): not this run's meshes of "
                        "their objects; remove them if they are not wanted")
         return out
 
@@ -300,11 +300,6 @@ class ResumeCheck:
                "no_input_record": "made by an older run that recorded no inputs"}
         return (f"redoing {self.summary()['count']} finished object(s): "
                 + "; ".join(f"{len(ids)} {why[k]}" for k, ids in sorted(self.redone.items())))
-
-
-def _shown(names: list) -> str:
-    """The first five of ``names``, then ``...``."""
-    return ", ".join(map(str, names[:5])) + (", ..." if len(names) > 5 else "")
 
 
 def other_objects(cdir: str | Path, annotation_ids: list) -> list[str]:

@@ -17,12 +17,13 @@ import re
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 __all__ = ["atomic_write", "write_json", "write_record", "read_json", "read_text", "write_npz", "write_bytes",
-           "to_jsonable", "is_done", "safe_name", "record_target", "shown", "folder_within", "write_within"]
+           "to_jsonable", "is_done", "safe_name", "record_target", "shown", "shown_names", "folder_within",
+           "write_within"]
 
 
 def _file_mode() -> int:
@@ -286,3 +287,15 @@ def shown(value, width: int = 40) -> str:
     """
     text = " ".join(repr(value).split())
     return text if len(text) <= width else text[:width - 3] + "..."
+
+
+def shown_names(names: Sequence, first: int = 3, quoted: bool = False) -> str:
+    """The first ``first`` of ``names`` (a sequence) as a reason lists them: joined by commas (each ``str``, or
+    ``repr`` with ``quoted``), then how many more there are.
+
+    Example:
+        >>> shown_names(["m1", "m2", "m3", "m4", "m5"]), shown_names(["nose tip"], quoted=True), shown_names([7, 8], 1)
+        ('m1, m2, m3 and 2 more', "'nose tip'", '7 and 1 more')
+    """
+    text = ", ".join(map(repr if quoted else str, names[:first]))
+    return text + (f" and {len(names) - first} more" if len(names) > first else "")

@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from ..collection import infer_flip_pairs  # re-exported: name-based left/right pairs
+from ..io.outputs import shown_names
 
 __all__ = ["Model", "BadModelFile", "MESH_SUFFIXES", "KEYPOINT_OFF_MESH_MAX", "SIDE_VOTE_MIN", "side_disagreements",
            "turned_models", "harmonize_sides", "side_swaps_of",
@@ -484,12 +485,6 @@ def load_mesh_with_keypoints(path: str | Path, keypoints_json: str | Path | None
     return _model_from(path, category, vertices, faces, names, pts)
 
 
-def _some(names: Sequence[str]) -> str:
-    """The first three ``names`` quoted, and how many more."""
-    shown = ", ".join(repr(n) for n in names[:3])
-    return shown + (f" and {len(names) - 3} more" if len(names) > 3 else "")
-
-
 def _check_renderable(model: Model, path: Path) -> None:
     """:class:`BadModelFile` naming ``path`` when renders of ``model`` would be empty or meaningless: no faces, no
     extent (sizes relative to the mesh, any unit), no keypoints, or keypoints far outside the mesh
@@ -510,7 +505,7 @@ def _check_renderable(model: Model, path: Path) -> None:
     off = (kp - torch.maximum(torch.minimum(kp, hi), lo)).norm(dim=1)  # distance from the mesh's bounding box
     far = [n for n, d in zip(model.keypoint_names, off.tolist()) if d > KEYPOINT_OFF_MESH_MAX * diag]
     if far:
-        raise BadModelFile(f"{path}: keypoint(s) {_some(far)} lie far outside the mesh (up to "
+        raise BadModelFile(f"{path}: keypoint(s) {shown_names(far, quoted=True)} lie far outside the mesh (up to "
                            f"{float(off.max()) / diag:.3g} times its size away; in other units than the mesh?)")
 
 

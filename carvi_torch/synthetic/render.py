@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from ..cameras import ScaledOrthographic, rotation_from_azimuth_elevation_roll
+from ..io.outputs import shown_names
 
 __all__ = [
     "DEFAULT_IMAGE_SIZE",
@@ -889,18 +890,14 @@ def _first_difference(recorded: dict, wanted: dict) -> str:
     return f"{key}: {recorded.get(key, 'none')} recorded, {wanted.get(key, 'none')} wanted"
 
 
-def _some(names: list) -> str:
-    """The first three of ``names``, and ``...`` when there are more."""
-    return ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
-
-
 def _names_difference(recorded: list, wanted: list) -> str:
     """How two lists of model names differ, in a few words."""
     gone, new = sorted(set(recorded) - set(wanted)), sorted(set(wanted) - set(recorded))
     if not (gone or new):
         return "the same models in another order"
-    return (f"{len(recorded)} recorded, {len(wanted)} wanted" + (f"; not wanted: {_some(gone)}" if gone else "")
-            + (f"; not recorded: {_some(new)}" if new else ""))
+    return (f"{len(recorded)} recorded, {len(wanted)} wanted"
+            + (f"; not wanted: {shown_names(gone)}" if gone else "")
+            + (f"; not recorded: {shown_names(new)}" if new else ""))
 
 
 def render_mismatch(info: dict | None, models: Sequence, **settings) -> str | None:
@@ -944,7 +941,7 @@ def render_mismatch(info: dict | None, models: Sequence, **settings) -> str | No
             return f"camera_options {_first_difference(got, want)}"
         if key == "model_hashes" and isinstance(got, dict):
             changed = [n for n in want if got.get(n) != want[n]]
-            return f"models changed since rendered (mesh, keypoints, class or source): {_some(changed)}"
+            return f"models changed since rendered (mesh, keypoints, class or source): {shown_names(changed)}"
         if key == "render_version":
             return f"rendered by renderer version {got}, this is version {want}"
         return f"{key}: {got} recorded, {want} wanted"
