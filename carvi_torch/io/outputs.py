@@ -222,13 +222,23 @@ def read_text(path: str | os.PathLike) -> str:
                          "save it as UTF-8") from None
 
 
-def read_json(path: str | os.PathLike) -> Any:
+def read_json(path: str | os.PathLike, object_pairs_hook: Callable[[list], Any] | None = None) -> Any:
     """Read JSON (:func:`read_text`); a malformed file raises ``ValueError`` naming the file, line and
-    column, and one nested too deeply for the parser ``ValueError`` naming the file."""
+    column, and one nested too deeply for the parser ``ValueError`` naming the file.
+
+    ``object_pairs_hook``: called with each object's ``(key, value)`` pairs in the file's order, its result
+    standing for the object (:func:`json.loads`'s); ``None``: a ``dict``, a key given twice keeping its last value.
+
+    Example:
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     p = write_bytes(Path(d) / "a.json", b'{"k": 1, "k": 2}')
+        ...     read_json(p), read_json(p, object_pairs_hook=list)
+        ({'k': 2}, [('k', 1), ('k', 2)])
+    """
     path = Path(path)
     text = read_text(path)
     try:
-        return json.loads(text)
+        return json.loads(text, object_pairs_hook=object_pairs_hook)
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: malformed JSON at line {e.lineno}, column {e.colno} (char {e.pos}): "
                          f"{e.msg}") from None

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from ..collection import infer_flip_pairs  # re-exported: name-based left/right pairs
-from ..io.outputs import shown_names
+from ..io.outputs import read_json, shown_names
 
 __all__ = ["Model", "BadModelFile", "MESH_SUFFIXES", "KEYPOINT_OFF_MESH_MAX", "SIDE_VOTE_MIN", "side_disagreements",
            "turned_models", "harmonize_sides", "side_swaps_of",
@@ -373,10 +373,8 @@ def load_cad_npz(path: str | Path) -> Model:
 
 
 def _read_json_first_kept(path: Path):
-    """A JSON file (:func:`~carvi_torch.io.outputs.read_text`); a key given twice in one object keeps its first
+    """A JSON file (:func:`~carvi_torch.io.outputs.read_json`); a key given twice in one object keeps its first
     value, with a warning naming the file. :class:`BadModelFile` naming the file when it is no JSON."""
-    from ..io.outputs import read_text
-
     repeated: list[str] = []
 
     def first_kept(pairs: list) -> dict:
@@ -389,14 +387,9 @@ def _read_json_first_kept(path: Path):
         return obj
 
     try:
-        data = json.loads(read_text(path), object_pairs_hook=first_kept)
-    except json.JSONDecodeError as e:
-        raise BadModelFile(f"{path}: malformed JSON at line {e.lineno}, column {e.colno} (char {e.pos}): "
-                           f"{e.msg}") from None
-    except RecursionError:
-        raise BadModelFile(f"{path}: JSON nested too deeply to read") from None
-    except ValueError as e:  # not UTF-8 (the message names the file)
-        raise BadModelFile(_reason(e)) from None
+        data = read_json(path, object_pairs_hook=first_kept)
+    except ValueError as e:  # malformed, nested too deeply or not UTF-8 (the message names the file)
+        raise BadModelFile(str(e)) from None
     for k in dict.fromkeys(repeated):
         warnings.warn(f"{path}: key {k!r} given more than once; keeping the first", stacklevel=4)
     return data
