@@ -55,7 +55,8 @@ def _add_render_options(p: argparse.ArgumentParser, views_default: int, views_he
     p.add_argument("--boundary-noise", type=nonneg_float, default=0.0, metavar="P",
                    help="standard deviation (pixels) of a smooth random displacement of the mask "
                         "boundary along its normal (default 0)")
-    p.add_argument("--device", default="cpu", help="torch device for rasterisation: cpu, cuda or cuda:N (default cpu)")
+    p.add_argument("--device", default="cpu",
+                   help="torch device for rasterisation: cpu, cuda, cuda:N or auto (CUDA when available; default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -137,22 +138,20 @@ def _print_summary(summary: dict) -> None:
 
 
 def _checked_device(text: str):
-    """The ``torch.device`` of ``--device`` (:class:`CommandError` for one that is no torch device, is neither CPU
-    nor CUDA, or is absent on this machine), checked before any work."""
+    """The ``torch.device`` of ``--device`` (:meth:`~carvi_torch.config.Config.resolve_device`'s: ``cpu``, ``cuda``,
+    ``cuda:N`` or ``auto``), checked before any work: :class:`CommandError` in one line for a device that is none of
+    these, a CUDA device on a machine without one, or a CUDA index beyond the machine's devices."""
     import torch
 
+    from .config import Config, ConfigError
+
     try:
-        dev = torch.device(text)
-    except (RuntimeError, ValueError):
-        raise CommandError(f"--device {text!r}: not a torch device (use cpu, cuda or cuda:N)") from None
-    if dev.type == "cpu":
-        return dev
-    if dev.type != "cuda":
-        raise CommandError(f"--device {text}: the renders run on cpu or cuda[:N]")
-    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-    if count == 0:
-        raise CommandError(f"--device {text}: no CUDA device is available (use --device cpu)")
-    if (dev.index or 0) >= count:
+        dev = Config(device=text).resolve_device()
+    except ConfigError:
+        none = "" if torch.cuda.is_available() else ", and this machine has no CUDA device (use --device cpu)"
+        raise CommandError(f"--device {text!r}: the renders run on cpu, cuda, cuda:N or auto{none}") from None
+    count = torch.cuda.device_count() if dev.type == "cuda" else 0
+    if dev.type == "cuda" and (dev.index or 0) >= count:
         raise CommandError(f"--device {text}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
     return dev
 

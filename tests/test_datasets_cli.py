@@ -652,6 +652,30 @@ def test_cli_device_is_checked_before_any_work(device, tmp_path, capsys):
         assert sorted(p.name for p in tmp_path.iterdir()) == ["meshes"]
 
 
+def test_cli_device_takes_a_runs_spellings_and_says_which_in_one_line(monkeypatch):
+    """``--device`` takes what a run's ``device`` takes (``auto``: CUDA where the machine has it); another, or a
+    CUDA device the machine lacks, is refused in one line that says what the renders take."""
+    from carvi_torch.cli import CommandError
+
+    assert datasets._checked_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert datasets._checked_device("cpu") == torch.device("cpu")
+    takes = "the renders run on cpu, cuda, cuda:N or auto"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for text in ("cuda", "cuda:1", "meta", "gpu"):
+        with pytest.raises(CommandError) as e:
+            datasets._checked_device(text)
+        assert str(e.value) == f"--device {text!r}: {takes}, and this machine has no CUDA device (use --device cpu)"
+    assert datasets._checked_device("auto") == torch.device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert datasets._checked_device("cuda:1") == torch.device("cuda:1")
+    for text, said in (("meta", f"--device 'meta': {takes}"),
+                       ("cuda:2", "--device cuda:2: this machine has 2 CUDA device(s), cuda:0 to cuda:1")):
+        with pytest.raises(CommandError) as e:
+            datasets._checked_device(text)
+        assert str(e.value) == said
+
+
 def test_cli_without_a_subcommand_is_a_usage_error(capsys):
     """It printed the help to stdout with exit status 2 and no ``error:`` line."""
     with pytest.raises(SystemExit) as e:
