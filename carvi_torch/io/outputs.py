@@ -23,7 +23,7 @@ import numpy as np
 
 __all__ = ["atomic_write", "write_json", "write_record", "read_json", "read_text", "write_npz", "write_bytes",
            "to_jsonable", "is_done", "safe_name", "record_target", "shown", "shown_names", "folder_within",
-           "write_within"]
+           "write_within", "first_link"]
 
 
 def _file_mode() -> int:
@@ -110,6 +110,29 @@ def write_within(root: str | os.PathLike, rel: str | os.PathLike, write: Callabl
     rel = Path(rel)
     path = folder_within(root, rel.parent) / rel.name
     return atomic_write(path, write if callable(write) else (lambda f: f.write(write)), sync)
+
+
+def first_link(root: str | os.PathLike, names) -> Path | None:
+    """The first symbolic link among ``root/name`` for each of ``names`` (in their order) and, below each, at any
+    depth (each folder's entries sorted by name), or ``None``: a writer that never writes through a link refuses
+    a folder that holds one before it writes anything. Linked folders are named, never entered.
+
+    Example:
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     (Path(d) / "a" / "b").mkdir(parents=True)
+        ...     (Path(d) / "a" / "b" / "c").symlink_to(d)
+        ...     first_link(d, ["x", "a"]).relative_to(d).as_posix(), first_link(d, ["x"])
+        ('a/b/c', None)
+    """
+    root = Path(root)
+    for name in names:
+        if (root / name).is_symlink():
+            return root / name
+        for top, dirs, files in os.walk(root / name):  # os.walk enters no linked folder
+            for entry in sorted(dirs + files):
+                if os.path.islink(os.path.join(top, entry)):
+                    return Path(top) / entry
+    return None
 
 
 #: Types that JSON writes as they are (exact types: ``np.float64`` subclasses ``float`` and goes the long way).

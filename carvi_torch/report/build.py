@@ -30,7 +30,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Literal
 
 from ..io.coco import class_keys
-from ..io.outputs import folder_within, safe_name, write_within
+from ..io.outputs import first_link, folder_within, safe_name, write_within
 from ..runtime import LeanProcessPool, check_replaceable, os_error_line, start_method
 from .cards import Card, CardContext, ClassView, make_card
 from .charts import class_figure
@@ -156,24 +156,11 @@ def _not_report(out: Path) -> list[str]:
     return [p.name for p in out.iterdir() if not ours(p.name)]
 
 
-def _linked(out: Path) -> Path | None:
-    """The first symbolic link among the report's entries in ``out`` (at any depth), or ``None``: the report
-    never writes through one (the command refuses it: nothing written)."""
-    for name in sorted(REPORT_NAMES):
-        if (out / name).is_symlink():
-            return out / name
-        for top, dirs, files in os.walk(out / name):  # never into a linked folder: that is reported
-            for entry in sorted(dirs + files):
-                if os.path.islink(os.path.join(top, entry)):
-                    return Path(top) / entry
-    return None
-
-
 def _prepare(out: Path, run: RunInputs) -> None:
     """Refuse an ``out`` that cannot take the report (see :func:`build_report`), then make it and the folders
     the cards write into."""
     check_replaceable(out, _not_report, "an earlier report", ReportError)
-    link = _linked(out) if out.is_dir() else None
+    link = first_link(out, sorted(REPORT_NAMES)) if out.is_dir() else None
     if link is not None:
         raise ReportError(f"--out {out}: {link.relative_to(out).as_posix()!r} is a symbolic link; the report never "
                           "writes through one: remove it or choose another --out (nothing was written)")
