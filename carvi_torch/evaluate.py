@@ -36,7 +36,7 @@ and so does a run that stopped after the cameras (``stage=cameras``) without ``-
 an unfinished run (``unfinished``); an unknown ``--classes`` name, a ``--split`` that no annotation has, two
 ``--recon`` of one name, a ``gt.json`` or ``--data`` that is not a JSON object, or a reconstruction whose
 annotation ids name other objects in ``--data`` (another class or ``source``: it was made from other data, or
-the file changed since the run), is an error (exit 2).
+the file changed since the run), or a run's ``config.yaml`` that cannot be read, is an error (exit 2).
 
 Bad input leaves out what it touches, with a one-line reason on stderr that names the object, and the rest is
 evaluated: an object that ``gt.json`` has no entry for, or whose entry is unusable (``R`` not a rotation within
@@ -222,13 +222,15 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
         ValueError: a ``data`` or ``gt.json`` that is not a JSON object of the expected kind; a ``split`` that no
             annotation of ``data`` has; a name in ``classes`` that is no class of ``data``; a reconstruction whose
             objects are not the ones of ``data`` (an annotation id of its ``cameras.json`` names another
-            object there: another class or ``source``; or none of its ids is in ``data``).
+            object there: another class or ``source``; or none of its ids is in ``data``); a run's ``config.yaml``
+            that cannot be read (:class:`~carvi_torch.config.ConfigError`: its ``mesh_format`` says which of its
+            mesh files are its own).
     """
     data = Path(data)
     ann = _read_annotations(data, gt, split)
     classes = select_classes(classes, class_names(ann.categories), str(data)) if classes else None
-    first = Path(next(iter(recons.values())))
-    cfg = read_run_config(first / "config.yaml") if (first / "config.yaml").is_file() else Config()
+    configs = {name: _run_config(Path(rdir)) for name, rdir in recons.items()}
+    cfg = next(iter(configs.values()))
     coll_by_class = load_coco(data, canvas_size=canvas_size or cfg.input.canvas_size, margin=cfg.input.canvas_margin,
                               classes=classes).collections if baselines else {}
     wanted = _wanted_classes(classes, recons, ann, data)
@@ -243,7 +245,8 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     methods = list(recons) + (["Puffball", "SFMc"] if baselines and shapes else [])
     unfinished = [name for name, rdir in recons.items() if _unfinished(Path(rdir))]
     problems = _scoped({name: got[1] for name, got in read.items()}, set(targets))
-    scorer = ShapeScorer(ann.gt_path.parent, recons, cameras, step_percent, baselines, coll_by_class,
+    scorer = ShapeScorer(ann.gt_path.parent, recons, cameras, {name: c.mesh.format for name, c in configs.items()},
+                         step_percent, baselines, coll_by_class,
                          missing=_missing_reasons(recons, problems, unfinished))
     t0 = time.perf_counter()
     objects = _score_objects(scorer, targets, ann, shapes, jobs, progress)
@@ -259,6 +262,12 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     res["quality"] = reliability.quality_vs_error(res)
     res["seconds"] = round(time.perf_counter() - t0, 2)
     return res
+
+
+def _run_config(rdir: Path) -> Config:
+    """The configuration of the run in ``rdir`` (its ``config.yaml``; the defaults without one: a folder of meshes,
+    another method's). :class:`~carvi_torch.config.ConfigError` for a file that cannot be read as one."""
+    return read_run_config(rdir / "config.yaml") if (rdir / "config.yaml").is_file() else Config()
 
 
 def _score_objects(scorer: ShapeScorer, targets: list, ann: "_Annotations", shapes: bool, jobs: int | None,

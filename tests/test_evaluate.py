@@ -127,6 +127,25 @@ def test_a_mesh_left_from_other_inputs_is_not_scored(recon, tmp_path):
     assert kept, "the other objects are still scored"
 
 
+def test_the_mesh_scored_is_the_one_of_the_runs_mesh_format(recon, tmp_path):
+    """A run whose ``mesh_format`` changed keeps the other format's meshes beside its own: evaluate scores the file
+    the export takes (the run's format), not the first format it knows of."""
+    from carvi_torch.config import read_run_config
+    from carvi_torch.io.layout import object_mesh
+
+    data, gt = _gt(recon)
+    run = tmp_path / "run"
+    shutil.copytree(recon, run)
+    (run / "config.yaml").write_text(read_run_config(run / "config.yaml").override(["mesh_format=obj"]).to_yaml())
+    leftover = sorted((run / "car" / "meshes").glob("*.ply"))[0]
+    current = leftover.with_suffix(".obj")
+    posed_gt_mesh(gt[leftover.stem], data.parent)[0].export(current)  # the run's mesh: the ground truth itself
+    assert object_mesh(run / "car", leftover.stem, "obj") == current
+    res = evaluate(data, {"Full": run, "ply": recon}, classes=["car"], step_percent=2.0, progress=False)
+    assert res["objects"][leftover.stem]["Full"]["error_percent"] < 0.05
+    assert res["objects"][leftover.stem]["ply"]["error_percent"] > 0.5  # the leftover .ply: the run's old carving
+
+
 def test_an_object_whose_ground_truth_fails_gets_a_reason_and_no_scores(recon, tmp_path):
     """A ground-truth mesh that cannot be read leaves its object unscored, with the reason, for every method and
     baseline; the class's other objects are scored."""

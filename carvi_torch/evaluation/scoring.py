@@ -25,9 +25,8 @@ import trimesh
 from tqdm.auto import tqdm
 
 from ..cameras import ScaledOrthographic
-from ..io.layout import object_file
+from ..io.layout import object_mesh
 from ..io.results import ROTATION_TOLERANCE, camera_record_problem, numbers, rotation_problem, shown
-from ..mesh import MESH_FORMATS
 from ..runtime import LeanProcessPool, cores, start_method, torch_threads
 from . import metrics
 
@@ -122,19 +121,18 @@ def posed_gt_mesh(entry: dict, root: Path, cache: dict | None = None) -> tuple[t
     return trimesh.Trimesh(Vc, np.asarray(base.faces), process=False), diag
 
 
-def load_recon_mesh(recon: Path, cls: str, aid, cams: dict | None) -> trimesh.Trimesh | None:
+def load_recon_mesh(recon: Path, cls: str, aid, cams: dict | None, mesh_format: str) -> trimesh.Trimesh | None:
     """The run's mesh of object ``aid``, or ``None``: no mesh, or the object is not in the class's
     ``cameras.json`` (``cams``, its content), which holds the objects of the run's latest input (a mesh an
     earlier run left for an object the input has since dropped is not the run's; a folder of meshes without
-    ``cameras.json`` (``cams`` ``None``), another method's, is taken as it is). A file it cannot read is a
-    ``ValueError`` naming it (:func:`read_mesh`)."""
+    ``cameras.json`` (``cams`` ``None``), another method's, is taken as it is). The file is the one the export
+    takes (:func:`~carvi_torch.io.layout.object_mesh`): in the run's ``mesh_format`` where there is one, so a
+    mesh of another format left beside it (from before a change of ``mesh_format``) is not scored. A file it
+    cannot read is a ``ValueError`` naming it (:func:`read_mesh`)."""
     if cams is not None and str(aid) not in cams.get("cameras", {}):
         return None
-    for ext in MESH_FORMATS:
-        p = object_file(recon / cls, "meshes", aid, ext)
-        if p.is_file():
-            return read_mesh(p)
-    return None
+    path = object_mesh(recon / cls, aid, mesh_format)
+    return None if path is None else read_mesh(path)
 
 
 @dataclasses.dataclass
@@ -144,6 +142,7 @@ class ShapeScorer:
     gt_root: Path  # the folder the meshes of gt.json are relative to
     recons: dict  # method -> reconstruction folder
     cameras: dict  # method -> class -> cameras.json content (None: none)
+    mesh_formats: dict  # method -> its run's mesh_format (config.yaml's mesh.format; the default without one)
     step_percent: float
     baselines: bool
     collections: dict  # class -> its loaded collection (the baselines' masks)
@@ -158,7 +157,7 @@ class ShapeScorer:
         else :data:`NO_RECONSTRUCTION`.
 
         Example:
-            >>> s = ShapeScorer(Path("."), {}, {}, 1.0, False, {}, missing={"B": {(None, None): "unfinished"}})
+            >>> s = ShapeScorer(Path("."), {}, {}, {}, 1.0, False, {}, missing={"B": {(None, None): "unfinished"}})
             >>> s.missing_reason("B", "car", 3), s.missing_reason("A", "car", 3)
             ('unfinished', 'no reconstruction')
         """
@@ -188,7 +187,7 @@ class ShapeScorer:
         step = self.step_percent / 100.0 * gt_mesh.diag
         for name, rdir in self.recons.items():
             try:
-                m = load_recon_mesh(Path(rdir), cls, aid, self.cameras[name][cls])
+                m = load_recon_mesh(Path(rdir), cls, aid, self.cameras[name][cls], self.mesh_formats[name])
             except ValueError as e:  # a file that is no mesh: this method's object, the others go on
                 row[name] = {"error_percent": None, "reason": f"unreadable mesh: {e}"}
                 continue
