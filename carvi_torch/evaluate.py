@@ -259,7 +259,7 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
            "viewpoints": _class_viewpoints(list(per_class), objects, ann, cameras),
            "viewpoint_coverage": _viewpoint_coverage(objects, ann, cameras, problems),
            "camera_problems": problems, "unfinished": unfinished, "classes_without_reconstruction": without}
-    res["quality"] = reliability.quality_vs_error(res)
+    res["quality"] = reliability.quality_vs_error(res, cameras)
     res["seconds"] = round(time.perf_counter() - t0, 2)
     return res
 

@@ -70,13 +70,15 @@ def test_perfect_and_shifted_reconstructions(recon, tmp_path):
 
 def test_real_run_with_baselines(recon, tmp_path, capsys, monkeypatch):
     """The command line on a real run with the baselines: every method scores every object, the viewpoint
-    report, the tables. The objects' check, their meshes, the viewpoints and the SfM baseline share one reading
-    of a class's ``cameras.json`` (it grows with the objects; the baseline read it again for every object)."""
+    report, the tables. The objects' check, their meshes, the viewpoints, the SfM baseline and the quality study
+    share one reading of a class's ``cameras.json`` (it grows with the objects)."""
     from carvi_torch import evaluate as module
+    from carvi_torch.evaluation import reliability
 
     data, gt = _gt(recon)
     reads, read = [], module.read_json
-    monkeypatch.setattr(module, "read_json", lambda p: reads.append(p.name) or read(p))
+    for reader in (module, reliability):
+        monkeypatch.setattr(reader, "read_json", lambda p: reads.append(p.name) or read(p))
     rc = main(["--data", str(data), "--recon", f"Full={recon}", "--baselines", "--step-percent", "2",
                "--out", str(tmp_path / "ev"), "--quiet"])
     assert rc == 0
@@ -95,7 +97,18 @@ def test_real_run_with_baselines(recon, tmp_path, capsys, monkeypatch):
     assert f"| car ({len(gt)}) |" in text and "refined" in text
     assert (tmp_path / "ev" / "shapes.md").read_text().startswith("| class |")
     assert format_shape_table(res).count("\n") == 3 and "refined" in format_viewpoint_table(res)
-    assert reads.count("cameras.json") == 1
+    assert reads.count("cameras.json") == 1 and res["quality"]["Full"]["car"]["viewpoint_deg"]["quality"]["n"] > 0
+
+
+def test_the_quality_study_of_results_alone_reads_the_cameras_it_is_not_given(recon):
+    """``quality_vs_error`` on results alone (e.g. merged from ``results.json`` files) reads each run's
+    ``cameras.json`` and finds what the evaluation found with the cameras it had read."""
+    from carvi_torch.evaluation.reliability import quality_vs_error
+
+    data, _gt_entries = _gt(recon)
+    res = evaluate(data, {"Full": recon}, classes=["car"], shapes=False, progress=False)
+    assert res["quality"]["Full"]["car"]["viewpoint_deg"]["quality"]["n"] > 0
+    assert quality_vs_error(json.loads(json.dumps(res))) == res["quality"]
 
 
 def test_missing_reconstruction_reported(recon, tmp_path):

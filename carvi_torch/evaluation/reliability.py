@@ -38,13 +38,14 @@ def spearman(x, y) -> dict:
     return {"rho": round(float(r.statistic), 4), "p": float(r.pvalue), "n": int(ok.sum())}
 
 
-def _per_object(res: dict, method: str, recon: Path) -> dict:
+def _per_object(res: dict, method: str, recon: Path, cameras: dict) -> dict:
     """``{aid: {"class", "quality", signals..., "viewpoint_deg", "shape_percent"}}`` of one method (an entry of
     ``cameras.json`` that is not an object, or whose quality is not a number, left out; a file that cannot be
-    read as one, all of its class: evaluate says why)."""
+    read as one, all of its class: evaluate says why). ``cameras``: class -> its ``cameras.json`` content as
+    already read (``None``: no file); a class it lacks is read from ``recon``."""
     rows: dict = {}
     for cls, per in res.get("viewpoints", {}).items():
-        cams = _cameras(recon / cls / "cameras.json")
+        cams = _entries(cameras[cls]) if cls in cameras else _entries(_read(recon / cls / "cameras.json"))
         rep = per.get(method, {}).get("refined") or {}
         geo = dict(zip(map(str, rep.get("annotation_ids", [])), rep.get("per_instance_geodesic", [])))
         for aid, entry in cams.items():
@@ -59,12 +60,22 @@ def _per_object(res: dict, method: str, recon: Path) -> dict:
     return rows
 
 
-def _cameras(path: Path) -> dict:
-    """The ``cameras`` of a ``cameras.json`` (``{}`` without a file, or one that is not a JSON object with them)."""
+def _read(path: Path):
+    """The content of a ``cameras.json`` (``None`` without a file, or one that cannot be read as JSON)."""
     try:
-        content = read_json(path) if path.is_file() else {}
+        return read_json(path) if path.is_file() else None
     except (OSError, ValueError):
-        return {}
+        return None
+
+
+def _entries(content) -> dict:
+    """The ``cameras`` of a ``cameras.json``'s ``content`` (``{}`` for ``None``, or one that is not a JSON object
+    with them).
+
+    Example:
+        >>> _entries({"cameras": {"3": {"quality": 0.5}}}), _entries(None), _entries({"cameras": []})
+        ({'3': {'quality': 0.5}}, {}, {})
+    """
     cams = content.get("cameras") if isinstance(content, dict) else None
     return cams if isinstance(cams, dict) else {}
 
@@ -78,12 +89,17 @@ def _nan(v) -> float:
     return v if math.isfinite(v) else float("nan")
 
 
-def quality_vs_error(res: dict) -> dict:
+def quality_vs_error(res: dict, cameras: dict | None = None) -> dict:
     """Per method: Spearman rho of quality (and of each signal) against the viewpoint and shape errors,
-    pooled (``all``) and per class, and the median errors of the objects above / below the median quality."""
+    pooled (``all``) and per class, and the median errors of the objects above / below the median quality.
+
+    ``res``: an evaluation's results (``recons``, ``viewpoints``, ``objects``); ``cameras``: method -> class -> its
+    ``cameras.json`` content as the evaluation read it (``None``: no file), so that no file is read twice; a method
+    or class it lacks (all of them without it, e.g. for results merged from ``results.json`` files) is read from
+    the method's folder in ``recons``."""
     out = {}
     for method, rdir in res.get("recons", {}).items():
-        rows = _per_object(res, method, Path(rdir))
+        rows = _per_object(res, method, Path(rdir), (cameras or {}).get(method, {}))
         if not rows:
             continue
         entry = {}
