@@ -50,9 +50,9 @@ the objects that every method (the baselines included) has an error for (``compa
 some method misses some), the best in bold, and the table's mean is over the classes with such objects
 (``mean_over_classes_compared``); a class without any such object shows each method's mean over its own
 objects with their number, and bolds none. A ``note:`` line says per class how many objects each method misses
-and why (``missing_reasons``: the reasons up to their first colon, with the objects' ids), and how many have no
-usable refined camera, or too few for a viewpoint report (``viewpoint_coverage``: the global alignment needs
-two). ``classes`` keeps each method's ``mean``, ``median`` and ``count`` over its own objects, and
+and why (``missing_reasons``: the kinds of reason, with the objects' ids), and how many have no usable refined
+camera, and why, or too few for a viewpoint report (``viewpoint_coverage``: the global alignment needs two).
+``classes`` keeps each method's ``mean``, ``median`` and ``count`` over its own objects, and
 ``mean_over_classes`` their mean over its classes.
 
 Examples:
@@ -79,8 +79,8 @@ from .io.layout import NOT_YET, unfinished
 from .io.outputs import read_json, write_bytes, write_json
 from .io.results import annotation_source, same_object
 from .evaluation import reliability, viewpoint_metrics
-from .evaluation.scoring import (MAX_JOBS, POOL_FROM, ShapeScorer, camera_problem, default_jobs, gt_problem, numbers,
-                                 posed_gt_mesh, score_shapes)
+from .evaluation.scoring import (MAX_JOBS, POOL_FROM, Reason, ShapeScorer, camera_problem, default_jobs, gt_problem,
+                                 numbers, posed_gt_mesh, score_shapes)
 
 __all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "format_change", "main",
            "NO_GROUND_TRUTH", "NOT_YET"]
@@ -92,8 +92,8 @@ NO_GROUND_TRUTH = "no ground truth: gt.json has no entry for it"
 def _read_cameras(rdir: Path, classes) -> tuple[dict[str, dict | None], dict[str, dict]]:
     """Each class's ``cameras.json`` of the reconstruction ``rdir``, read once for every use: class -> its
     content (``None``: no file) made safe to read (:func:`_usable_cameras`), and class -> what was unusable in it
-    (``{"file": why the file is, or None, "objects": {annotation id: why its camera is}}``; classes without any
-    left out)."""
+    (``{"file": why the file is, or None, "objects": {annotation id: why its camera is, a Reason}}``; classes
+    without any left out)."""
     contents, problems = {}, {}
     for cls in sorted(classes):
         p = rdir / cls / "cameras.json"
@@ -118,8 +118,9 @@ def _usable_cameras(path: Path, content) -> tuple[dict, dict]:
     finds unusable ``None``. Problems as :func:`_read_cameras`'s (``{}``: none).
 
     Example:
-        >>> _usable_cameras(Path("c.json"), {"cameras": {"3": "oops"}})
-        ({'cameras': {'3': {}}}, {'file': None, 'objects': {'3': "its cameras.json entry is 'oops', not an object"}})
+        >>> content, problems = _usable_cameras(Path("c.json"), {"cameras": {"3": "oops"}})
+        >>> content, problems["objects"]["3"].text
+        ({'cameras': {'3': {}}}, "its cameras.json entry is 'oops', not an object")
     """
     if not isinstance(content, dict) or not isinstance(content.get("cameras"), dict):
         what = "not a JSON object" if not isinstance(content, dict) else "its 'cameras' is not an object"
@@ -128,13 +129,15 @@ def _usable_cameras(path: Path, content) -> tuple[dict, dict]:
     for aid, entry in content["cameras"].items():
         if not isinstance(entry, dict):
             content["cameras"][aid] = {}
-            bad[aid] = f"its cameras.json entry is {entry!r:.40}, not an object"
+            bad[aid] = Reason("cameras.json entry not an object",
+                              f"its cameras.json entry is {entry!r:.40}, not an object")
             continue
-        for stage in ("sfm", "refined"):
+        for stage, kind in (("sfm", "unusable sfm camera in cameras.json"),
+                            ("refined", "unusable refined camera in cameras.json")):
             why = camera_problem(entry[stage]) if entry.get(stage) is not None else None
             if why:
                 entry[stage] = None
-                bad[aid] = f"unusable {stage} camera in cameras.json: {why}"
+                bad[aid] = Reason.of(kind, why)
     return content, ({"file": None, "objects": bad} if bad else {})
 
 
@@ -203,19 +206,21 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     """Evaluate reconstruction directories ``recons`` (method name -> directory) against ``gt.json``.
 
     Returns a dict with ``objects`` (per annotation id in scope: class, and per method the error or the
-    reason it is missing; or, for an object without usable ground truth, the ``reason`` alone), ``classes``
-    (per class and method: mean and median error, count, over the method's own objects; ``missing`` and
-    ``missing_reasons``, the objects with usable ground truth it has no error for; ``compared_mean`` and
+    reason it is missing with the reason's ``kind``, :class:`~carvi_torch.evaluation.scoring.Reason`; or, for an
+    object without usable ground truth, the ``reason`` alone), ``classes`` (per class and method: mean and median
+    error, count, over the method's own objects; ``missing`` and ``missing_reasons``, the objects with usable
+    ground truth it has no error for, and their ids per kind of reason; ``compared_mean`` and
     ``compared_median`` over the objects every method has an error for), ``compared`` (per class: its
     ``objects`` in scope, those ``without_ground_truth``, and the ids ``compared``), ``mean_over_classes`` and
     ``mean_over_classes_compared``, ``viewpoints`` (per class and method: SfM and refined viewpoint reports),
-    ``viewpoint_coverage`` (per class and method with cameras: the objects with a refined camera to score, and
-    why the others have none), ``camera_problems`` (per method and class: what of its ``cameras.json`` was
-    unusable), ``unfinished`` (the methods whose run has not finished) and ``classes_without_reconstruction``
-    (per class of the data in scope that some method has no folder for: those methods; without ``classes``, a
-    class no method has is not evaluated). With ``shapes=False`` only the viewpoints are evaluated (e.g. after
-    ``stage=cameras``). The shapes are scored with one torch thread per process, in this process or in ``jobs``
-    worker processes (default :func:`default_jobs`); the errors are the same either way.
+    ``viewpoint_coverage`` (per class and method with cameras: the objects with a refined camera to score, why
+    the others have none, and their ids per kind of reason), ``camera_problems`` (per method and class: what of
+    its ``cameras.json`` was unusable), ``unfinished`` (the methods whose run has not finished) and
+    ``classes_without_reconstruction`` (per class of the data in scope that some method has no folder for: those
+    methods; without ``classes``, a class no method has is not evaluated). With ``shapes=False`` only the
+    viewpoints are evaluated (e.g. after ``stage=cameras``). The shapes are scored with one torch thread per
+    process, in this process or in ``jobs`` worker processes (default :func:`default_jobs`); the errors are the
+    same either way.
 
     Raises:
         FileNotFoundError: no file ``data``, or no ground truth.
@@ -258,7 +263,8 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
            "mean_over_classes_compared": mean_over_classes(per_class, methods, "compared_mean"),
            "viewpoints": _class_viewpoints(list(per_class), objects, ann, cameras),
            "viewpoint_coverage": _viewpoint_coverage(objects, ann, cameras, problems),
-           "camera_problems": problems, "unfinished": unfinished, "classes_without_reconstruction": without}
+           "camera_problems": _problem_texts(problems), "unfinished": unfinished,
+           "classes_without_reconstruction": without}
     res["quality"] = reliability.quality_vs_error(res, cameras)
     res["seconds"] = round(time.perf_counter() - t0, 2)
     return res
@@ -305,6 +311,13 @@ def _scoped(problems: dict, objects: set) -> dict:
     return out
 
 
+def _problem_texts(problems: dict) -> dict:
+    """:func:`_scoped`'s problems with each object's :class:`~carvi_torch.evaluation.scoring.Reason` as its text
+    (``results.json``'s ``camera_problems``)."""
+    return {name: {cls: {"file": p["file"], "objects": {a: why.text for a, why in p["objects"].items()}}
+                   for cls, p in per.items()} for name, per in problems.items()}
+
+
 def _unfinished(rdir: Path) -> bool:
     """Whether ``rdir`` holds a reconstruction run that has not finished (interrupted, or still running): a class's
     ``cameras.json``, but no ``summary.json`` with ``total_seconds`` (which a run writes when its last class is
@@ -335,12 +348,12 @@ def _missing_reasons(recons: dict, problems: dict, unfinished: list) -> dict:
     is unusable, or the run is unfinished."""
     out = {}
     for name, rdir in recons.items():
-        why = {(None, None): NOT_YET} if name in unfinished else {}
+        why = {(None, None): Reason("not reconstructed yet", NOT_YET)} if name in unfinished else {}
         for cls, p in problems.get(name, {}).items():
             if p["file"]:
-                why[(cls, None)] = f"unusable cameras.json: {p['file']}"
+                why[(cls, None)] = Reason.of("unusable cameras.json", p["file"])
         for cls, aid, reason in _run_failures(Path(rdir)):
-            why[(cls, aid)] = f"skipped by the run: {reason}"
+            why[(cls, aid)] = Reason.of("skipped by the run", reason)
         out[name] = why
     return out
 
@@ -467,22 +480,21 @@ def _error(row: dict, method: str) -> float | None:
 def _method_errors(usable: dict, method: str, errs: dict, common: list) -> dict:
     """One method's entry of a class: ``mean``, ``median`` and ``count`` of its errors ``errs`` (id -> error);
     ``missing``, the objects of ``usable`` (those with usable ground truth) it has none for, and
-    ``missing_reasons``, their ids per reason (cut at its first ``": "``: the rest, such as the file, is the
-    object's in ``objects``); ``compared_mean`` and ``compared_median`` over the objects ``common`` to every
-    method.
+    ``missing_reasons``, their ids per kind of reason (the entry's ``kind``: the reason itself, such as the file, is
+    the object's in ``objects``; ``not scored`` without an entry); ``compared_mean`` and ``compared_median`` over
+    the objects ``common`` to every method.
 
     Example:
-        >>> usable = {"1": {"A": {"error_percent": 2.0}}, "2": {"A": {"error_percent": None, "reason": "no mesh"}}}
+        >>> usable = {"1": {"A": {"error_percent": 2.0}}, "2": {"A": Reason.of("unreadable mesh", "m.ply").entry()}}
         >>> e = _method_errors(usable, "A", {"1": 2.0}, ["1"])
         >>> e["count"], e["missing"], e["missing_reasons"], e["compared_mean"]
-        (1, 1, {'no mesh': ['2']}, 2.0)
+        (1, 1, {'unreadable mesh': ['2']}, 2.0)
     """
     vals, both = list(errs.values()), [errs[a] for a in common]
     reasons: dict[str, list] = {}
     for a, r in usable.items():
         if a not in errs:
-            why = r[method].get("reason") if isinstance(r.get(method), dict) else "not scored"
-            reasons.setdefault((why or "no finite error").split(": ", 1)[0], []).append(a)
+            reasons.setdefault(r[method]["kind"] if method in r else "not scored", []).append(a)
     return {"mean": float(np.mean(vals)) if vals else None, "median": float(np.median(vals)) if vals else None,
             "count": len(vals), "missing": len(usable) - len(vals), "missing_reasons": reasons,
             "compared_mean": float(np.mean(both)) if both else None,
@@ -491,9 +503,9 @@ def _method_errors(usable: dict, method: str, errs: dict, common: list) -> dict:
 
 def _viewpoint_coverage(objects: dict, ann: "_Annotations", cameras: dict, problems: dict) -> dict[str, dict]:
     """Per class and method with a ``cameras.json``: ``objects``, how many of the class's objects with usable ground
-    truth have a refined camera to score, and ``missing``, why each of the others has none (annotation id ->
-    reason: not in ``cameras.json``, no refined camera, a non-finite one, or an unusable one or file,
-    ``problems`` as :func:`_scoped` gives them)."""
+    truth have a refined camera to score; ``missing``, why each of the others has none (annotation id -> reason:
+    :func:`_no_refined_camera`, ``problems`` as :func:`_scoped` gives them); and ``missing_reasons``, their ids per
+    kind of reason."""
     out: dict[str, dict] = {}
     for name, per in cameras.items():
         for cls, content in per.items():
@@ -501,18 +513,35 @@ def _viewpoint_coverage(objects: dict, ann: "_Annotations", cameras: dict, probl
             if content is None or not aids:
                 continue
             bad = problems.get(name, {}).get(cls, {"file": None, "objects": {}})
-            missing = {}
-            for a in aids:
-                cam = content["cameras"].get(a)
-                refined = cam.get("refined") if cam is not None else None
-                if bad["file"] or (refined is None and a in bad["objects"]):
-                    missing[a] = f"unusable cameras.json: {bad['file']}" if bad["file"] else bad["objects"][a]
-                elif refined is None:
-                    missing[a] = "not in cameras.json" if cam is None else "no refined camera"
-                elif not numbers(refined["R"], (3, 3)):
-                    missing[a] = "non-finite refined camera"
-            out.setdefault(cls, {})[name] = {"objects": len(aids) - len(missing), "missing": missing}
+            missing = {a: why for a in aids if (why := _no_refined_camera(content["cameras"].get(a), bad, a))}
+            kinds: dict[str, list] = {}
+            for a, why in missing.items():
+                kinds.setdefault(why.kind, []).append(a)
+            out.setdefault(cls, {})[name] = {"objects": len(aids) - len(missing),
+                                             "missing": {a: why.text for a, why in missing.items()},
+                                             "missing_reasons": kinds}
     return out
+
+
+def _no_refined_camera(cam: dict | None, bad: dict, aid: str) -> Reason | None:
+    """Why object ``aid`` has no refined camera to score (``None``: it has one): its class's ``cameras.json`` or its
+    entry or camera there is unusable (``bad``: the class's problems, as :func:`_scoped` gives them), it is not in
+    the file (``cam``: its entry, made safe to read, ``None``: none), the entry has no refined camera, or a
+    non-finite one.
+
+    Example:
+        >>> fine = {"file": None, "objects": {}}
+        >>> _no_refined_camera(None, fine, "3").text, _no_refined_camera({"refined": None}, fine, "3").kind
+        ('not in cameras.json', 'no refined camera')
+    """
+    refined = cam.get("refined") if cam is not None else None
+    if bad["file"]:
+        return Reason.of("unusable cameras.json", bad["file"])
+    if refined is None and aid in bad["objects"]:
+        return bad["objects"][aid]
+    if refined is None:
+        return Reason.of("not in cameras.json" if cam is None else "no refined camera")
+    return None if numbers(refined["R"], (3, 3)) else Reason.of("non-finite refined camera")
 
 
 def _class_viewpoints(classes: list[str], objects: dict, ann: _Annotations, cameras: dict) -> dict[str, dict]:
@@ -810,19 +839,23 @@ def _print_notes(args, recons: dict, res: dict) -> None:
         print(line, file=sys.stderr)
 
 
+#: The kinds of reason a method has no shape error for whose text says what of the object itself failed (its mesh
+#: file, the run's reason, what the metric found): each such object gets a line of its own.
+OWN_LINE_KINDS = frozenset({"skipped by the run", "unreadable mesh", "unscorable mesh"})
+
+
 def _left_out_lines(res: dict, shapes: bool) -> list[str]:
     """One line per object left out for a reason that names it: without usable ground truth (for every method);
-    a method's mesh that cannot be read or that the run skipped (``shapes``: the reason has a detail after its
-    first ``": "``, a whole unusable ``cameras.json`` aside); a method's unusable ``cameras.json`` (one line) or
-    camera."""
+    a method's mesh whose reason is of a kind in :data:`OWN_LINE_KINDS` (``shapes``); a method's unusable
+    ``cameras.json`` (one line) or camera."""
     lines = []
     for aid, row in res["objects"].items():
         if "reason" in row:
             lines.append(f"evaluate: {row['class']} annotation {aid} skipped: {row['reason']}")
         for m in res["methods"] if shapes else ():
-            why = row[m].get("reason") if isinstance(row.get(m), dict) and _error(row, m) is None else None
-            if why and ": " in why and not why.startswith("unusable cameras.json"):
-                lines.append(f"evaluate: {row['class']} annotation {aid}: {m} has no shape error: {why}")
+            entry = row.get(m) if _error(row, m) is None else None
+            if isinstance(entry, dict) and entry.get("kind") in OWN_LINE_KINDS:
+                lines.append(f"evaluate: {row['class']} annotation {aid}: {m} has no shape error: {entry['reason']}")
     for name, per in res["camera_problems"].items():
         for cls, p in per.items():
             if p["file"]:
@@ -846,12 +879,9 @@ def _miss_notes(res: dict, shapes: bool) -> list[str]:
                 lines.append(f"note: {cls}: {m} has no shape error for {row[m]['missing']} of {usable} objects "
                              f"({_grouped(row[m]['missing_reasons'])}); {table}")
         for m, cov in res["viewpoint_coverage"].get(cls, {}).items():
-            groups: dict[str, list] = {}
-            for aid, why in cov["missing"].items():
-                groups.setdefault(why.split(": ", 1)[0], []).append(aid)
-            if groups:
+            if cov["missing"]:
                 lines.append(f"note: {cls}: {m} has no usable refined camera for {len(cov['missing'])} of {usable} "
-                             f"objects ({_grouped(groups)}); its viewpoint rows count the others")
+                             f"objects ({_grouped(cov['missing_reasons'])}); its viewpoint rows count the others")
             if cov["objects"] < 2:
                 lines.append(f"note: {cls}: no viewpoint report for {m}: {cov['objects']} object(s) with a refined "
                              "camera and ground truth (the global alignment needs at least 2)")

@@ -563,6 +563,49 @@ def test_malformed_cameras_of_a_run_leave_out_their_viewpoints(recon, tmp_path, 
     assert set(res["viewpoint_coverage"]["car"]["Full"]["missing"]) == {ids[0], ids[1]}
 
 
+def test_missing_refined_cameras_are_grouped_by_the_kind_of_their_reason(recon, tmp_path, capsys):
+    """The note on the objects without a usable refined camera groups them by the kind of their reason, whatever
+    its text holds (an entry quoted with a colon in it), as ``viewpoint_coverage``'s ``missing_reasons`` does."""
+    data, gt = _gt(recon)
+    part = tmp_path / "part"
+    shutil.copytree(recon, part)
+    p = part / "car" / "cameras.json"
+    cj = json.loads(p.read_text())
+    ids = sorted((a for a in cj["cameras"] if a in gt), key=int)
+    cj["cameras"][ids[0]] = "oops: no camera"
+    cj["cameras"][ids[1]]["refined"] = None
+    p.write_text(json.dumps(cj))
+    assert main(["--data", str(data), "--recon", str(part), "--viewpoints-only", "--quiet", "--out",
+                 str(tmp_path / "ev")]) == 0
+    note = next(line for line in _err_lines(capsys) if "has no usable refined camera" in line)
+    assert f"(cameras.json entry not an object: {ids[0]}; no refined camera: {ids[1]})" in note, note
+    coverage = json.loads((tmp_path / "ev" / "results.json").read_text())["viewpoint_coverage"]["car"]["Full"]
+    assert coverage["missing_reasons"] == {"cameras.json entry not an object": [ids[0]], "no refined camera": [ids[1]]}
+    assert coverage["missing"][ids[0]] == "its cameras.json entry is 'oops: no camera', not an object"
+
+
+def test_a_mesh_the_metric_cannot_score_is_named_and_grouped_by_kind(recon, tmp_path, capsys):
+    """A run's mesh without surface (its faces flat to lines) leaves that method without the object's error: a line
+    names the object and what the metric found, and the note and ``missing_reasons`` count it as an unscorable
+    mesh."""
+    import trimesh
+
+    data, gt = _gt(recon)
+    flat = tmp_path / "flat"
+    shutil.copytree(recon, flat)
+    ply = sorted((flat / "car" / "meshes").glob("*.ply"), key=lambda q: int(q.stem))[0]
+    trimesh.Trimesh([[0, 0, 0], [1, 1, 1], [2, 2, 2]], [[0, 1, 2]], process=False).export(ply)
+    assert main(["--data", str(data), "--recon", f"A={recon}", "--recon", f"B={flat}", "--classes", "car",
+                 "--step-percent", "5", "--quiet", "--out", str(tmp_path / "ev")]) == 0
+    err = _err_lines(capsys)
+    assert f"evaluate: car annotation {ply.stem}: B has no shape error: recon has zero surface area" in err, err
+    assert any(line.startswith(f"note: car: B has no shape error for 1 of {len(gt)} objects (unscorable mesh: "
+                               f"{ply.stem})") for line in err), err
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert res["classes"]["car"]["B"]["missing_reasons"] == {"unscorable mesh": [ply.stem]}
+    assert res["objects"][ply.stem]["B"]["kind"] == "unscorable mesh"
+
+
 def test_unreadable_meshes_skip_their_object_with_the_file_named(recon, tmp_path, capsys):
     """A ground-truth mesh trimesh cannot read (an .npz) skips its object for every method; a run's truncated .ply
     leaves that method without the object's error: each reason names the file, and the rest is evaluated."""

@@ -2,6 +2,8 @@
 
 * :func:`gt_problem`, :func:`camera_problem`: what makes a ``gt.json`` record or a run's camera unusable (the
   object is then left out with that reason, and the rest evaluated);
+* :class:`Reason`: why an object has no shape error or no refined camera, with its kind (:data:`ReasonKind`),
+  which the objects are grouped and counted under;
 * :func:`posed_gt_mesh`: an annotation's ground-truth mesh in its reference camera frame;
 * :func:`load_recon_mesh`: a run's mesh of an object (:func:`read_mesh`: a file trimesh cannot read is a
   ``ValueError`` naming it);
@@ -18,6 +20,7 @@ import math
 import multiprocessing as mp
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -30,9 +33,9 @@ from ..io.results import ROTATION_TOLERANCE, camera_record_problem, numbers, rot
 from ..runtime import LeanProcessPool, cores, start_method, torch_threads
 from . import metrics
 
-__all__ = ["POOL_FROM", "MAX_JOBS", "ROTATION_TOLERANCE", "NO_RECONSTRUCTION", "default_jobs", "numbers",
-           "rotation_problem", "gt_problem", "camera_problem", "read_mesh", "posed_gt_mesh", "load_recon_mesh",
-           "ShapeScorer", "score_shapes", "score_mesh", "puffball_mesh", "sfmc_mesh"]
+__all__ = ["POOL_FROM", "MAX_JOBS", "ROTATION_TOLERANCE", "NO_RECONSTRUCTION", "ReasonKind", "Reason",
+           "default_jobs", "numbers", "rotation_problem", "gt_problem", "camera_problem", "read_mesh", "posed_gt_mesh",
+           "load_recon_mesh", "ShapeScorer", "score_shapes", "score_mesh", "puffball_mesh", "sfmc_mesh"]
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +46,46 @@ POOL_FROM = 16
 MAX_JOBS = 8
 #: The reason of an object that a method has no mesh for (and nothing more is known).
 NO_RECONSTRUCTION = "no reconstruction"
+
+#: The kinds of :class:`Reason`: what the objects left out are grouped and counted under (``missing_reasons``, the
+#: notes). Why a method has no shape error for an object: no mesh (:data:`NO_RECONSTRUCTION`), an unfinished run's
+#: object not reconstructed yet, one the run skipped, an unusable ``cameras.json`` of its class, a mesh file that
+#: cannot be read, a mesh the metric cannot score, a baseline's missing input (``no mask``, ``no SfM camera``),
+#: or not scored at all (``--viewpoints-only``). Why an object has no usable refined camera: not in
+#: ``cameras.json``, none there, a non-finite one, an unusable file, or an unusable entry or camera (these three
+#: also say what of a ``cameras.json`` was unusable: ``camera_problems``).
+ReasonKind = Literal["no reconstruction", "not reconstructed yet", "skipped by the run", "unusable cameras.json",
+                     "unreadable mesh", "unscorable mesh", "no mask", "no SfM camera", "not scored",
+                     "not in cameras.json", "no refined camera", "non-finite refined camera",
+                     "cameras.json entry not an object", "unusable sfm camera in cameras.json",
+                     "unusable refined camera in cameras.json"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Reason:
+    """Why an object is left out of a score: its ``kind``, which such objects are grouped and counted under, and the
+    ``text`` that says it for this object (naming its file, the run's reason or what the metric found, where there
+    is more to say than the kind).
+
+    Example:
+        >>> Reason.of("unreadable mesh", "cannot read 3.ply: no such file")
+        Reason(kind='unreadable mesh', text='unreadable mesh: cannot read 3.ply: no such file')
+        >>> Reason.of(NO_RECONSTRUCTION).entry()
+        {'error_percent': None, 'reason': 'no reconstruction', 'kind': 'no reconstruction'}
+    """
+
+    kind: ReasonKind
+    text: str
+
+    @classmethod
+    def of(cls, kind: ReasonKind, detail: str | None = None) -> Reason:
+        """The reason of ``kind`` whose text is the kind, followed by ``": "`` and ``detail`` where there is one."""
+        return cls(kind, kind if detail is None else f"{kind}: {detail}")
+
+    def entry(self, **fields) -> dict:
+        """A method's entry in an object's row without a shape error: ``error_percent`` ``None``, ``fields``, and
+        the ``reason`` (its text) with its ``kind``."""
+        return {"error_percent": None, **fields, "reason": self.text, "kind": self.kind}
 
 
 def gt_problem(entry) -> str | None:
@@ -148,21 +191,24 @@ class ShapeScorer:
     collections: dict  # class -> its loaded collection (the baselines' masks)
     mesh_cache: dict = dataclasses.field(default_factory=dict)
     rows_of: dict = dataclasses.field(default_factory=dict)  # class -> annotation id (str) -> its collection row
-    #: method -> why an object has no mesh: keyed ``(class, annotation id as str)``, then ``(class, None)`` for
-    #: every object of the class, then ``(None, None)`` for every object (:meth:`missing_reason`)
+    #: method -> why an object has no mesh (a :class:`Reason`): keyed ``(class, annotation id as str)``, then
+    #: ``(class, None)`` for every object of the class, then ``(None, None)`` for every object
+    #: (:meth:`missing_reason`)
     missing: dict = dataclasses.field(default_factory=dict)
 
-    def missing_reason(self, name: str, cls: str, aid) -> str:
+    def missing_reason(self, name: str, cls: str, aid) -> Reason:
         """Why method ``name`` has no mesh of object ``aid``: the most specific reason :attr:`missing` knows,
         else :data:`NO_RECONSTRUCTION`.
 
         Example:
-            >>> s = ShapeScorer(Path("."), {}, {}, {}, 1.0, False, {}, missing={"B": {(None, None): "unfinished"}})
-            >>> s.missing_reason("B", "car", 3), s.missing_reason("A", "car", 3)
-            ('unfinished', 'no reconstruction')
+            >>> late = Reason("not reconstructed yet", "not reconstructed yet (the run is unfinished)")
+            >>> s = ShapeScorer(Path("."), {}, {}, {}, 1.0, False, {}, missing={"B": {(None, None): late}})
+            >>> s.missing_reason("B", "car", 3).kind, s.missing_reason("A", "car", 3).kind
+            ('not reconstructed yet', 'no reconstruction')
         """
         why = self.missing.get(name, {})
-        return why.get((cls, str(aid))) or why.get((cls, None)) or why.get((None, None)) or NO_RECONSTRUCTION
+        return (why.get((cls, str(aid))) or why.get((cls, None)) or why.get((None, None))
+                or Reason.of(NO_RECONSTRUCTION))
 
     def _row(self, cls: str, aid) -> int | None:
         """The row of ``aid`` in its class's collection (``None``: not there), the class's index built once."""
@@ -189,14 +235,15 @@ class ShapeScorer:
             try:
                 m = load_recon_mesh(Path(rdir), cls, aid, self.cameras[name][cls], self.mesh_formats[name])
             except ValueError as e:  # a file that is no mesh: this method's object, the others go on
-                row[name] = {"error_percent": None, "reason": f"unreadable mesh: {e}"}
+                row[name] = Reason.of("unreadable mesh", str(e)).entry()
                 continue
             row[name] = score_mesh(m, gt_mesh, step, self.missing_reason(name, cls, aid))
         if self.baselines:
             row["Puffball"] = score_mesh(puffball_mesh(self.collections.get(cls), self._row(cls, aid)), gt_mesh,
-                                         step, "no mask")
+                                         step, Reason.of("no mask"))
             first = next(iter(self.recons))
-            row["SFMc"] = score_mesh(sfmc_mesh(self.cameras[first][cls], aid), gt_mesh, step, "no SfM camera")
+            row["SFMc"] = score_mesh(sfmc_mesh(self.cameras[first][cls], aid), gt_mesh, step,
+                                    Reason.of("no SfM camera"))
 
 
 def default_jobs(n_objects: int) -> int:
@@ -257,18 +304,20 @@ def score_shapes(scorer: ShapeScorer, work: list, jobs: int, progress: bool) -> 
     return [row for _aid, _entry, row in work]
 
 
-def score_mesh(mesh, gt_mesh, step, missing_reason) -> dict:
-    """``{"error_percent", "offset", "reason"}`` of one mesh against its posed ground truth (``error_percent``
-    ``None`` and ``missing_reason`` without a mesh, or the metric's reason when it cannot score it)."""
+def score_mesh(mesh, gt_mesh, step, missing_reason: Reason) -> dict:
+    """``{"error_percent", "offset", "reason": None}`` of one mesh against its posed ground truth; without an error,
+    :meth:`Reason.entry`'s: ``missing_reason`` without a mesh, or an ``unscorable mesh`` with the metric's reason
+    when it cannot score it."""
     if mesh is None:
-        return {"error_percent": None, "reason": missing_reason}
+        return missing_reason.entry()
     try:
         r = metrics.evaluate_reconstruction(mesh, gt_mesh, step=step)
     except ValueError as e:
-        return {"error_percent": None, "reason": str(e)}
+        return Reason("unscorable mesh", str(e)).entry()
     err = r["error_percent"]
-    return {"error_percent": float(err) if math.isfinite(err) else None, "offset": r.get("offset"),
-            "reason": r.get("reason")}
+    if not math.isfinite(err):
+        return Reason("unscorable mesh", r.get("reason") or "no finite error").entry(offset=r.get("offset"))
+    return {"error_percent": float(err), "offset": r.get("offset"), "reason": None}
 
 
 def puffball_mesh(coll, i: int | None):
