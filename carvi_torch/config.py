@@ -877,12 +877,13 @@ NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overw
                     "study.keep_all_scores", "study.save_proposals"}  # files written beside the objects
 
 
-def settings_changed(previous: Path, cfg: Config) -> dict:
+def settings_changed(previous: Path, cfg: Config, summary: dict) -> dict:
     """``{key: (made, ..., now)}``: the settings in which finished objects in the run folder of ``previous`` (its
     ``config.yaml``) may have been made otherwise than ``cfg`` says (``now``), with the values they were made with
     (``made``, oldest first, ``now`` among them where objects were made with it too). Those values are the ones
-    its ``summary.json`` records (``resumed_from_other_settings``, the same form: a record is carried from run to
-    run, so that a rerun with the same settings still says how its resumed objects were made), else that run's.
+    its ``summary.json`` records (``summary``: that file's content, ``{}`` without one; its
+    ``resumed_from_other_settings``, the same form: a record is carried from run to run, so that a rerun with the
+    same settings still says how its resumed objects were made), else that run's.
     A key the old file lacks (a setting added since) counts, as ``None``; settings of :data:`NEUTRAL_SETTINGS` do
     not, nor files the studies write besides the objects (``keep_all_scores``, ``save_proposals``). Empty for
     ``stage=cameras``, or without a readable ``config.yaml``. ``overwrite`` is the caller's to weigh: it redoes
@@ -892,24 +893,21 @@ def settings_changed(previous: Path, cfg: Config) -> dict:
         >>> import tempfile
         >>> d = Path(tempfile.mkdtemp())
         >>> _ = (d / "config.yaml").write_text(Config().to_yaml())
-        >>> settings_changed(d / "config.yaml", Config().override(["resolution=24"]))
+        >>> settings_changed(d / "config.yaml", Config().override(["resolution=24"]), {})
         {'carve.resolution': (60, 24)}
-        >>> _ = (d / "summary.json").write_text('{"resumed_from_other_settings": {"carve.resolution": [16, 60]}}')
-        >>> settings_changed(d / "config.yaml", Config()), settings_changed(d / "config.yaml", Config(overwrite=True))
-        ({'carve.resolution': (16, 60)}, {'carve.resolution': (16, 60)})
+        >>> record = {"resumed_from_other_settings": {"carve.resolution": [16, 60]}}
+        >>> settings_changed(d / "config.yaml", Config(), record)
+        {'carve.resolution': (16, 60)}
+        >>> settings_changed(d / "config.yaml", Config(overwrite=True), record)
+        {'carve.resolution': (16, 60)}
     """
-    import json
-
     if cfg.stage != "all" or not previous.is_file():
         return {}
     try:
         old = flatten_settings(read_yaml(previous))
     except (ConfigError, AttributeError):
         return {}
-    try:
-        record = json.loads(read_text(previous.with_name("summary.json"))).get("resumed_from_other_settings") or {}
-    except (OSError, ValueError, AttributeError, RecursionError):
-        record = {}
+    record = summary.get("resumed_from_other_settings") or {}
     out = {}
     for k, now in cfg.flat().items():
         if k in NEUTRAL_SETTINGS:

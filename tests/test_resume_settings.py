@@ -83,6 +83,27 @@ def test_the_record_of_other_settings_stays_while_their_objects_do(copy, caplog)
     assert "resumed_from_other_settings" not in then and _counts(then) == (0, 6, 0)
 
 
+def test_opening_a_rerun_reads_the_earlier_summary_once(copy, monkeypatch):
+    """Opening a run into a folder with a ``summary.json`` reads that file once: the classes it keeps and the record
+    of the settings its objects were made with both come from that one reading."""
+    from carvi_torch.executors import common
+
+    data, out = copy
+    summary = json.loads((out / "summary.json").read_text())
+    summary["resumed_from_other_settings"] = {"carve.resolution": [12, 16]}
+    (out / "summary.json").write_text(json.dumps(summary))
+    reads, real = [], Path.read_text
+
+    def counted(self, *args, **kwargs):
+        reads.append(self.name)
+        return real(self, *args, **kwargs)
+    monkeypatch.setattr(Path, "read_text", counted)
+    setup = common.open_run(_cfg(out, data, resolution=24))
+    setup.lock.release()
+    assert reads.count("summary.json") == 1
+    assert setup.changed == {"carve.resolution": (12, 24)} and sorted(setup.earlier) == ["car", "chair"]
+
+
 def test_objects_made_with_two_earlier_values_are_both_recorded(copy):
     """Objects made at 16, then new objects at 24 (the chairs, redone by overwrite): a rerun at 20 says both."""
     data, out = copy

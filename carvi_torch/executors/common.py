@@ -166,8 +166,9 @@ def open_run(cfg: Config) -> RunSetup:
     _check_class_folders(out, loaded.collections)
     lock = _lock(out)
     try:
-        earlier, earlier_data = _earlier_classes(out, cfg)
-        changed = settings_changed(out / "config.yaml", cfg)
+        previous = _earlier_summary(out)
+        earlier, earlier_data = _earlier_classes(previous, cfg)
+        changed = settings_changed(out / "config.yaml", cfg, previous)
         write_bytes(out / "config.yaml", cfg.to_yaml().encode())
     except BaseException:
         lock.release()
@@ -320,18 +321,30 @@ def class_generator(cfg: Config, key: str) -> torch.Generator:
     return torch.Generator(device="cpu").manual_seed(cfg.seed + stable_hash(key))
 
 
-def _earlier_classes(out: Path, cfg: Config) -> tuple[dict, str | None]:
-    """The classes an earlier run into ``out`` reported and the annotation file it read (the file ``None`` with
-    ``overwrite``, which resumes nothing): a dataset can be processed in parts, and the summary keeps every part
-    (with ``overwrite`` too: it redoes the classes it runs, and those it does not touch keep their files)."""
+def _earlier_summary(out: Path) -> dict:
+    """The ``summary.json`` an earlier run into ``out`` wrote, read once per run (``{}`` where there is none, or
+    it cannot be read or holds no JSON object)."""
     path = out / "summary.json"
     if not path.is_file():
-        return {}, None
+        return {}
     try:
         earlier = read_json(path)
-        classes, data = earlier.get("classes", {}), earlier.get("data")
-    except (ValueError, AttributeError, OSError):
-        return {}, None
+    except (ValueError, OSError):
+        return {}
+    return earlier if isinstance(earlier, dict) else {}
+
+
+def _earlier_classes(earlier: dict, cfg: Config) -> tuple[dict, str | None]:
+    """The classes an earlier run reported (``earlier``: its ``summary.json``, :func:`_earlier_summary`) and the
+    annotation file it read (the file ``None`` with ``overwrite``, which resumes nothing): a dataset can be
+    processed in parts, and the summary keeps every part (with ``overwrite`` too: it redoes the classes it runs,
+    and those it does not touch keep their files).
+
+    Example:
+        >>> _earlier_classes({"classes": {"car": {}}, "data": "a.json"}, Config()), _earlier_classes({}, Config())
+        (({'car': {}}, 'a.json'), ({}, None))
+    """
+    classes, data = earlier.get("classes", {}), earlier.get("data")
     data = data if isinstance(data, str) and not cfg.overwrite else None
     return (classes if isinstance(classes, dict) else {}), data
 
