@@ -91,15 +91,15 @@ class PreparedClass(NamedTuple):
     report: ClassReport
 
 
-def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None, report: ClassReport) -> list[bool]:
-    """Per original: finished by an earlier run into ``out`` from its current inputs and canvas, unless
-    ``overwrite`` (:func:`~carvi_torch.io.layout.resume_check`); the others are redone, those with damaged files
-    logged per object, those made from other inputs or canvases in one line and ``report.info["redone"]`` (files
-    of objects the data no longer holds: :func:`carvi_torch.executors.common.book_class`)."""
+def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None, report: ClassReport) -> list[str | None]:
+    """Per original: the format of its mesh where an earlier run into ``out`` finished it from its current inputs
+    and canvas, else ``None`` (always with ``overwrite``): :func:`~carvi_torch.io.layout.resume_check`. Damaged
+    files are logged per object, those made from other inputs or canvases in one line and ``report.info["redone"]``
+    (files of objects the data no longer holds: :func:`carvi_torch.executors.common.book_class`)."""
     if out is None:
-        return [False] * len(coll)
+        return [None] * len(coll)
     cdir = class_dir(out, coll.meta.key)
-    check = (ResumeCheck(done=[False] * len(coll)) if cfg.overwrite
+    check = (ResumeCheck(done=[None] * len(coll)) if cfg.overwrite
              else resume_check(cdir, coll.annotation_ids, coll.fingerprints, cfg.mesh.format, coll.canvas_from_image))
     for line in check.lines(coll.meta.key):
         log.warning(line)
@@ -110,7 +110,7 @@ def finished_objects(coll: ClassCollection, cfg: Config, out: Path | None, repor
 def _todo(coll: ClassCollection, vp: Viewpoints, done: list, cfg: Config, report: ClassReport) -> list[int]:
     """The originals to reconstruct: chosen (``references``), with a usable camera, not finished (resume)."""
     aids, usable = coll.annotation_ids, vp.has_camera[:len(coll)].tolist()
-    report.resumed = sum(d and u for d, u in zip(done, usable))  # a finished object without a camera: skipped
+    report.resumed = sum(u for d, u in zip(done, usable) if d)  # a finished object without a camera: skipped
     chosen = [cfg.references == "all" or coll.splits[i] == cfg.references for i in range(len(coll))]
     report.info["references"] = sum(chosen)
     for i in range(len(coll)):
@@ -204,13 +204,13 @@ def class_viewpoints(coll: ClassCollection, cfg: Config, device: torch.device, g
 
 def prepare_class(coll: ClassCollection, cfg: Config, device: torch.device, generator: torch.Generator,
                   gt: dict | None = None, out: Path | None = None, report: ClassReport | None = None,
-                  done: list[bool] | None = None, ahead: ClassViewpoints | None = None) -> PreparedClass:
+                  done: list[str | None] | None = None, ahead: ClassViewpoints | None = None) -> PreparedClass:
     """Every stage of one class up to carving: viewpoints, clusters, triplets, prepared silhouettes.
 
     Writes ``out/<class>/cameras.json`` when ``out`` is given (an earlier run's removed if the class stops first:
-    :func:`~carvi_torch.io.results.drop_cameras`). ``done``: per original, finished by an earlier run (default
-    :func:`finished_objects`; an executor that may run this twice passes it, so that both runs plan the same
-    objects). ``ahead``: :func:`class_viewpoints`'s result, made beforehand.
+    :func:`~carvi_torch.io.results.drop_cameras`). ``done``: per original, the format of the mesh of an object an
+    earlier run finished, else ``None`` (default :func:`finished_objects`; an executor that may run this twice
+    passes it, so that both runs plan the same objects). ``ahead``: :func:`class_viewpoints`'s result, made first.
 
     Returns:
         :class:`PreparedClass`: the plan is ``None`` when the class stops before carving (too few instances,

@@ -171,6 +171,26 @@ def test_another_mesh_format_resumes_the_objects_with_their_meshes_in_it(copy):
     assert again["classes"]["chair"]["other_format_meshes"] == {"count": 1, "files": ["7.ply"]}
 
 
+def test_a_rerun_looks_up_each_objects_mesh_once(copy, monkeypatch):
+    """A rerun in another mesh format looks up each object's mesh file once (the resume check's lookup, passed on to
+    the conversion), and still converts every mesh."""
+    from collections import Counter
+
+    from carvi_torch.io import layout, results
+
+    data, out = copy
+    looked_up, real = Counter(), layout.object_mesh
+
+    def counted(cdir, annotation_id, mesh_format):
+        looked_up[(Path(cdir).name, annotation_id)] += 1
+        return real(cdir, annotation_id, mesh_format)
+    monkeypatch.setattr(layout, "object_mesh", counted)
+    monkeypatch.setattr(results, "object_mesh", counted, raising=False)
+    summary = run(_cfg(out, data, mesh_format="obj"), workers=0)
+    assert [summary["classes"][c]["meshes_converted"]["count"] for c in ("car", "chair")] == [6, 6]
+    assert len(looked_up) == 12 and set(looked_up.values()) == {1}, looked_up
+
+
 # --------------------------------------------------------------------------- counts and class records
 
 

@@ -206,7 +206,8 @@ def _here() -> tuple[str, int, int | None]:
             int(attempt()) if attempt is not None else None)
 
 
-def prepare_task(coll, cfg: Config, gt: dict | None, out: str, done: list[bool], report: ClassReport | None = None):
+def prepare_task(coll, cfg: Config, gt: dict | None, out: str, done: list[str | None],
+                 report: ClassReport | None = None):
     """Task: every stage of class ``coll`` up to carving (:func:`~carvi_torch.pipeline.prepare_class`,
     ``cameras.json`` written); ``report``: the class's report so far (the driver's resume check). Returns two
     objects: the plan, which stays in the object store, and ``(todo, report, (node, attempt, peak MB))``."""

@@ -208,7 +208,13 @@ def finished(cdir: str | Path, annotation_id, mesh_format: str, fingerprint: str
         >>> finished("no/such/run/car", 3, "ply")
         False
     """
-    mesh, voxels = object_mesh(cdir, annotation_id, mesh_format), object_file(cdir, "voxels", annotation_id)
+    return _finished(object_mesh(cdir, annotation_id, mesh_format), object_file(cdir, "voxels", annotation_id),
+                     fingerprint, canvas)
+
+
+def _finished(mesh: Path | None, voxels: Path, fingerprint: str | None, canvas: tuple | None) -> str | bool:
+    """:func:`finished` of an object whose mesh file is ``mesh`` (:func:`object_mesh`, looked up by the caller) and
+    whose voxels file is ``voxels``."""
     if mesh is None or not voxels.is_file():
         return False
     why, members = _voxels_state(voxels)
@@ -227,7 +233,8 @@ REDONE = {INPUTS_CHANGED: "inputs_changed", NO_INPUT_RECORD: "no_input_record", 
 
 @dataclass
 class ResumeCheck:
-    """What an earlier run left of a class's objects: ``done`` per object (resume it), ``damaged``
+    """What an earlier run left of a class's objects: ``done`` per object (the format of the mesh file of a
+    finished object, which is resumed with that file; ``None``: none to resume), ``damaged``
     (``{annotation id: reason}``: files that cannot be trusted), ``redone`` (``{reason name:
     [annotation ids]}``: sound files made from other inputs or canvases, or without a record of them),
     ``others`` (:func:`other_objects`: the stems of mesh or voxels files of objects the data no longer holds),
@@ -321,22 +328,24 @@ def resume_check(cdir: str | Path, annotation_ids: list, fingerprints: list, mes
     """:func:`finished` for every object of a class (``fingerprints``: their current input fingerprints;
     ``canvases``: their current canvases, ``ClassCollection.canvas_from_image``, ``.scale (N,)`` and ``.offset
     (N, 2)``), and the meshes of its objects in other formats than ``mesh_format`` (``ResumeCheck.converted``,
-    ``ResumeCheck.other_formats``)."""
+    ``ResumeCheck.other_formats``). Each object's mesh file is looked up once (:func:`object_mesh`): its format is
+    the object's ``ResumeCheck.done``."""
     check = ResumeCheck()
     formats = _mesh_formats(cdir, mesh_format)
     canvases = ([None] * len(annotation_ids) if canvases is None
                 else list(zip(canvases.scale.tolist(), canvases.offset.tolist())))
     for a, fp, canvas in zip(annotation_ids, fingerprints, canvases):
-        state = finished(cdir, a, mesh_format, fp, canvas)
+        mesh = object_mesh(cdir, a, mesh_format)
+        state = _finished(mesh, object_file(cdir, "voxels", a), fp, canvas)
         if state in REDONE:
             check.redone.setdefault(REDONE[state], []).append(a)
         elif isinstance(state, str):
             check.damaged[a] = state
-        check.done.append(state is True)
+        taken = mesh.suffix[1:] if state is True else None  # the format of the mesh the object is resumed with
+        check.done.append(taken)
         stem = object_stem(a)
         others = [f for f in formats.get(stem, []) if f != mesh_format]
-        if state is True and mesh_format not in formats.get(stem, ()):
-            taken = object_mesh(cdir, a, mesh_format).suffix[1:]  # the mesh finished() took: converted
+        if taken is not None and taken != mesh_format:  # converted (results.resumed_objects)
             check.converted.setdefault(taken, []).append(a)
             others.remove(taken)
         check.other_formats += [f"{stem}.{f}" for f in others]

@@ -18,7 +18,7 @@ import torch
 from .. import quality
 from ..cameras import azimuth_elevation_roll_from_rotation
 from ..mesh import occupancy_to_mesh, write_mesh
-from .layout import class_dir, object_file, object_mesh
+from .layout import class_dir, object_file
 from .outputs import read_json, shown, write_json, write_npz
 
 __all__ = ["ROTATION_TOLERANCE", "numbers", "rotation_problem", "camera_record_problem", "shown", "ClassReport",
@@ -136,7 +136,8 @@ def _angles(az, el, ro, has_cam: bool) -> dict:
 
 
 def resumed_objects(cdir: Path, coll, vp, done: list, mesh_format: str | None = None) -> dict:
-    """The objects an earlier run finished (``done``, per original), brought up to this run's cameras:
+    """The objects an earlier run finished (``done``, per original: the format of its mesh, else ``None``,
+    :func:`~carvi_torch.io.layout.resume_check`), brought up to this run's cameras:
     each voxels file's ``voxel_to_object`` is rewritten from this run's camera where it differs (the cameras are
     fitted jointly, so a change to any object's input moves every camera, while a resumed object keeps its
     grid, which is in its image's frame: ``voxel_to_camera`` and every other member do not depend on the
@@ -166,21 +167,20 @@ def resumed_objects(cdir: Path, coll, vp, done: list, mesh_format: str | None = 
         if not np.array_equal(members.get("voxel_to_object"), v2o, equal_nan=True):
             write_npz(path, sync=False, **{**members, "voxel_to_object": v2o})
         if mesh_format is not None:
-            _convert_mesh(cdir, aid, members, mesh_format)
+            _convert_mesh(cdir, aid, members, mesh_format, done[i])
     return out
 
 
-def _convert_mesh(cdir: Path, aid, members: dict, mesh_format: str) -> None:
-    """A resumed object's mesh in ``mesh_format`` where it has one in another format only: made from its voxels
-    file's ``members`` (the occupancy is the written one, its largest component already taken), written, then the
-    other file removed (the same shape, in a format the run no longer writes)."""
-    if object_file(cdir, "meshes", aid, mesh_format).is_file():
+def _convert_mesh(cdir: Path, aid, members: dict, mesh_format: str, taken: str) -> None:
+    """A resumed object's mesh in ``mesh_format`` where the one it is resumed with is in another format (``taken``,
+    its ``done`` entry: the resume check found no mesh in ``mesh_format``): made from its voxels file's
+    ``members`` (the occupancy is the written one, its largest component already taken), written, then the other
+    file removed (the same shape, in a format the run no longer writes)."""
+    if taken == mesh_format:
         return
-    earlier = object_mesh(cdir, aid, mesh_format)
     write_mesh(occupancy_to_mesh(members["occupancy"], members["voxel_to_camera"]),
                object_file(cdir, "meshes", aid, mesh_format), sync=False)
-    if earlier is not None:
-        earlier.unlink(missing_ok=True)
+    object_file(cdir, "meshes", aid, taken).unlink(missing_ok=True)
 
 
 def drop_cameras(out: Path | None, key: str, report: "ClassReport") -> None:
