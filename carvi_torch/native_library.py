@@ -50,10 +50,7 @@ from pathlib import Path
 
 import torch
 
-try:
-    import fcntl
-except ImportError:  # Windows: no advisory locks; builds stay atomic (os.replace), concurrent ones may repeat work
-    fcntl = None
+from .runtime import FileLock
 
 __all__ = ["library_path", "cache_entry_problem", "load", "library_operators", "once"]
 
@@ -164,16 +161,12 @@ def cache_entry_problem(path: Path) -> str | None:
 
 @contextmanager
 def _dir_lock(directory: Path, exclusive: bool):
-    """An advisory lock of the cache directory: exclusive to build, shared to check and load (POSIX)."""
-    if fcntl is None:
+    """An advisory lock of the cache directory (:class:`~carvi_torch.runtime.FileLock` on its ``.lock``, waited
+    for): exclusive to build, shared to check and load. Where the platform has no ``flock`` (Windows) nothing is
+    locked: builds stay atomic (``os.replace``), concurrent ones may repeat work."""
+    with FileLock(directory / ".lock", mode=0o600) as lock:
+        lock.lock(exclusive)
         yield
-        return
-    fd = os.open(directory / ".lock", os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o600)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
-        yield
-    finally:
-        os.close(fd)  # releases the lock
 
 
 # --------------------------------------------------------------------------- building and loading

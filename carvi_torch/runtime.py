@@ -7,7 +7,8 @@
 - child processes: :func:`start_method`, :class:`LeanProcessPool`, :func:`watch_parent`, :func:`processes_marked`,
   :func:`child_pythonpath`;
 - moving objects between devices: :func:`to_device`, :func:`fields_to_device`;
-- logging to the terminal (tqdm-safe) and to ``run.log``: :func:`log_to_terminal`, :func:`log_to_file`.
+- logging to the terminal (tqdm-safe) and to ``run.log``: :func:`log_to_terminal`, :func:`log_to_file`;
+- locks between processes: :class:`FileLock` (an advisory ``flock``), :class:`FolderLock` (one run per folder).
 
 Nothing here knows a pipeline stage; every stage may import it. torch is imported on first use
 only, so that processes that never need it (the writers) start fast.
@@ -39,12 +40,16 @@ try:  # POSIX only; peak memory is unknown elsewhere (Windows)
     import resource
 except ImportError:  # pragma: no cover - exercised by tests that hide the module
     resource = None
+try:  # POSIX only; nothing is locked elsewhere (Windows): FileLock.lock
+    import fcntl
+except ImportError:  # pragma: no cover - Windows (tests set it to None)
+    fcntl = None
 
 __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb", "cpu_seconds",
            "maxrss_to_mb", "stable_hash", "InterruptWatch", "watch_interrupts", "intra_op_threads", "log",
            "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt",
            "unwritable_above", "check_replaceable", "os_error_line", "watch_parent", "pid_alive",
-           "processes_marked", "gone_within", "FolderLock", "FolderBusy"]
+           "processes_marked", "gone_within", "FileLock", "FolderLock", "FolderBusy", "NO_LOCKS"]
 
 
 def cores() -> int:
@@ -596,16 +601,75 @@ def log_to_file(path: str | os.PathLike):
     return _handler(h)
 
 
+#: The errors of ``flock`` where the file system has no locks (Lustre without ``-o flock``, some NFS).
+NO_LOCKS = (errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP)
+
+
+class FileLock:
+    """An open lock file, for an advisory ``flock`` between processes: :meth:`lock` takes it, :meth:`release` (or
+    the context's end, or the process's) lets it go. The file is created where missing (``mode``, less the
+    umask), opened without following a link and closed on ``exec``; one this process may not open for writing
+    (another user's, in a shared folder) is opened read-only, as ``flock`` needs no write access. The file stays
+    after the release.
+
+    Example:
+        >>> import tempfile
+        >>> path = Path(tempfile.mkdtemp()) / "lock"
+        >>> with FileLock(path) as a, FileLock(path) as b:  # shared: both hold it, and an exclusive lock waits
+        ...     a.lock(exclusive=False) and b.lock(exclusive=False)
+        ...     with FileLock(path) as c:
+        ...         try:
+        ...             c.lock(wait=False)
+        ...         except BlockingIOError:
+        ...             print("held by a and b")
+        True
+        held by a and b
+        >>> with FileLock(path) as c:
+        ...     c.lock(wait=False)
+        True
+    """
+
+    def __init__(self, path: str | os.PathLike, mode: int = 0o666):
+        self.path = Path(path)
+        flags = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+        try:
+            self.fd: int | None = os.open(self.path, os.O_RDWR | os.O_CREAT | flags, mode)
+        except PermissionError:  # another user's lock file in a shared folder
+            self.fd = os.open(self.path, os.O_RDONLY | flags)
+
+    def lock(self, exclusive: bool = True, wait: bool = True) -> bool:
+        """Take the lock, ``exclusive`` or shared; while another holder (another process, or another
+        :class:`FileLock` of this one) keeps it from this, wait (``wait``) or raise :class:`BlockingIOError`.
+        ``False`` where the platform has no ``flock`` (nothing is locked), an ``OSError`` of :data:`NO_LOCKS` where
+        the file system has none."""
+        if fcntl is None:
+            return False
+        fcntl.flock(self.fd, (fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH) | (0 if wait else fcntl.LOCK_NB))
+        return True
+
+    def release(self) -> None:
+        """Unlock (closing the file); a second call does nothing."""
+        if self.fd is not None:
+            fd, self.fd = self.fd, None
+            os.close(fd)  # closing the last descriptor drops the flock
+
+    def __enter__(self) -> "FileLock":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
 class FolderBusy(Exception):
     """Another process holds :class:`FolderLock` on the folder (the message names it and that process)."""
 
 
-class FolderLock:
-    """An exclusive lock on a folder for one process: an advisory ``flock`` on ``folder/name`` (a hidden file,
-    opened without following a link and closed on ``exec``), held until :meth:`release` (or the context's end,
-    or the process's). Two runs into one ``--out`` would overwrite each other's ``config.yaml``,
-    ``summary.json`` and files; the second is refused instead. The file stays after the release (it holds the
-    last holder's pid, which the refusal names).
+class FolderLock(FileLock):
+    """An exclusive lock on a folder for one process: a :class:`FileLock` on ``folder/name`` (a hidden file), held
+    until :meth:`release` (or the context's end, or the process's). Two runs into one ``--out`` would overwrite
+    each other's ``config.yaml``, ``summary.json`` and files; the second is refused instead (:class:`FolderBusy`,
+    naming the last holder's pid, which the file holds). On a file system or platform without locks the folder
+    is used unlocked, with a warning.
 
     Example:
         >>> import tempfile
@@ -622,22 +686,16 @@ class FolderLock:
     NAME = ".carvi_torch.lock"
 
     def __init__(self, folder: str | os.PathLike, name: str = NAME):
-        import fcntl
-
-        self.path = Path(folder) / name
-        flags = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+        super().__init__(Path(folder) / name)
         try:
-            self.fd: int | None = os.open(self.path, os.O_RDWR | os.O_CREAT | flags, 0o666)
-        except PermissionError:  # another user's lock file in a shared folder: flock needs no write access
-            self.fd = os.open(self.path, os.O_RDONLY | flags)
-        try:
-            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if not self.lock(exclusive=True, wait=False):
+                raise OSError(errno.ENOSYS, "this platform has no flock")
         except BlockingIOError:
             holder = os.pread(self.fd, 32, 0).decode("ascii", "replace").strip() or "?"
             self.release()
             raise FolderBusy(f"{folder}: another process (pid {holder}) is writing into it") from None
-        except OSError as e:  # a file system without locks (Lustre without -o flock, some NFS): run unlocked
-            if e.errno not in (errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP):
+        except OSError as e:
+            if e.errno not in NO_LOCKS:
                 self.release()
                 raise
             log.warning(f"{folder}: this file system cannot lock it ({e.strerror}); make sure no other run writes "
@@ -648,15 +706,3 @@ class FolderLock:
         with contextlib.suppress(OSError):  # the pid, for another run's message (not where the file is read-only)
             os.ftruncate(self.fd, 0)
             os.pwrite(self.fd, str(os.getpid()).encode(), 0)
-
-    def release(self) -> None:
-        """Unlock (closing the file); a second call does nothing."""
-        if self.fd is not None:
-            fd, self.fd = self.fd, None
-            os.close(fd)  # closing the last descriptor drops the flock
-
-    def __enter__(self) -> "FolderLock":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.release()

@@ -436,6 +436,50 @@ def test_two_processes_building_at_once(built_cache):
     assert (lib.parent / (lib.name + ".sha256")).read_text().strip() == hashlib.sha256(lib.read_bytes()).hexdigest()
 
 
+def test_the_cache_lock_is_shared_to_load_and_exclusive_to_build(tmp_path, monkeypatch):
+    """The cache directory's lock (``.lock``, private): checks and loads share it, a build holds it alone; a lock
+    file this process cannot open for writing is locked read-only; where the platform has no ``flock`` nothing is
+    locked and the build goes on."""
+    import errno
+    import threading
+
+    from carvi_torch import runtime
+    from carvi_torch.runtime import FileLock
+
+    def attempt(exclusive: bool) -> bool:
+        """Whether another holder could take the lock now, ``exclusive`` or shared."""
+        with FileLock(tmp_path / ".lock") as other:
+            try:
+                return other.lock(exclusive, wait=False)
+            except BlockingIOError:
+                return False
+    with native_library._dir_lock(tmp_path, exclusive=False), native_library._dir_lock(tmp_path, exclusive=False):
+        assert attempt(exclusive=False) and not attempt(exclusive=True)
+    assert not stat.S_IMODE((tmp_path / ".lock").stat().st_mode) & 0o077
+    real_open = os.open
+
+    def no_write(path, flags, *mode):
+        if str(path).endswith(".lock") and flags & os.O_RDWR:
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real_open(path, flags, *mode)
+    with monkeypatch.context() as m:
+        m.setattr(runtime.os, "open", no_write)
+        with native_library._dir_lock(tmp_path, exclusive=True):
+            assert not attempt(exclusive=False)
+    assert attempt(exclusive=True)
+    with FileLock(tmp_path / ".lock") as held:
+        held.lock()
+        monkeypatch.setattr(runtime, "fcntl", None)
+
+        def build_under_the_lock():
+            with native_library._dir_lock(tmp_path, exclusive=True):
+                pass
+        build = threading.Thread(target=build_under_the_lock, daemon=True)
+        build.start()
+        build.join(timeout=30)
+        assert not build.is_alive()  # it did not wait for the holder
+
+
 @pytest.mark.parametrize("how", ["CXX=/nonexistent", "empty PATH"])
 def test_without_a_compiler_the_kernel_is_unavailable_with_the_reason(tmp_path, how):
     extra = {"CXX": "/nonexistent/c++"} if how.startswith("CXX") else {"PATH": "", "CXX": ""}
