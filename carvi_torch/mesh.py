@@ -39,9 +39,8 @@ from .io.outputs import atomic_write
 if TYPE_CHECKING:
     import trimesh
 
-__all__ = ["occupancy_to_mesh", "largest_component", "transform_mesh", "write_mesh", "empty_mesh", "trimesh_mesh",
-           "MESH_FORMATS",
-           "MeshFormat"]
+__all__ = ["occupancy_to_mesh", "largest_component", "transform_mesh", "write_mesh", "read_mesh_arrays", "empty_mesh",
+           "trimesh_mesh", "MESH_FORMATS", "MeshFormat"]
 
 #: Mesh file formats :func:`write_mesh` writes (by the path's extension).
 MeshFormat = Literal["ply", "obj", "glb", "stl", "off"]
@@ -233,3 +232,50 @@ def write_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, sync: bool = True
     if isinstance(data, str):
         data = data.encode("utf-8")
     return atomic_write(path, lambda f: f.write(data), sync)
+
+
+def read_mesh_arrays(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``(V, 3)`` float64 and faces ``(F, 3)`` int64 of a mesh file as written (no processing: no vertex
+    merged, no face dropped). PLY, :func:`write_mesh`'s default, is parsed without building a ``Trimesh`` (about
+    10x faster); the other formats go through ``trimesh.load``.
+
+    Raises ``ValueError`` when the file holds no face, vertices that are not finite ``(V, 3)`` numbers, or a face
+    index outside ``[0, V)``; what the parser raises on a file it cannot read (``OSError``, ``ValueError``,
+    ``KeyError``, ...) propagates.
+
+    Example:
+        >>> import tempfile
+        >>> path = write_mesh(trimesh_mesh(np.eye(3), np.array([[0, 1, 2]])), Path(tempfile.mkdtemp()) / "t.ply")
+        >>> v, f = read_mesh_arrays(path)
+        >>> v.shape, v.dtype, f.tolist()
+        ((3, 3), dtype('float64'), [[0, 1, 2]])
+    """
+    v, f = _ply_arrays(path) if str(path).lower().endswith(".ply") else (None, None)
+    if f is None:
+        import trimesh
+
+        m = trimesh.load(path, force="mesh", process=False)
+        v, f = getattr(m, "vertices", np.zeros((0, 3))), getattr(m, "faces", np.zeros((0, 3)))
+    v = np.asarray(v, dtype=np.float64)
+    f = np.asarray(f, dtype=np.int64).reshape(-1, 3)
+    if len(f) == 0:
+        raise ValueError("mesh has no faces")
+    if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
+        raise ValueError(f"mesh vertices of shape {v.shape} are not (V, 3) finite numbers")
+    if f.min() < 0 or f.max() >= len(v):
+        raise ValueError(f"mesh face index {int(f.min() if f.min() < 0 else f.max())} is outside its "
+                         f"{len(v)} vertices")
+    return v, f
+
+
+def _ply_arrays(path) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Vertices and triangles of a PLY file read by trimesh's parser alone, or ``(None, None)`` where its faces are
+    other polygons than triangles (``trimesh.load`` splits them)."""
+    from trimesh.exchange.ply import load_ply
+
+    with open(path, "rb") as fh:
+        kw = load_ply(fh)
+    f = np.asarray(kw.get("faces", np.zeros((0, 3))))
+    if f.ndim != 2 or (len(f) and f.shape[1] != 3):
+        return None, None
+    return kw["vertices"], f

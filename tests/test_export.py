@@ -411,7 +411,7 @@ def test_cmr_and_ucmr_files_round_trip(recon, tmp_path):
 
 def _recon_meshes(recon, n=4):
     """Up to ``n`` (vertices in canvas pixels, faces) of the fixture's reconstruction."""
-    from carvi_torch.export.objects import load_mesh
+    from carvi_torch.mesh import read_mesh_arrays as load_mesh
 
     out = []
     for p in sorted(recon.glob("*/meshes/*.ply"))[:n]:
@@ -1111,7 +1111,7 @@ def _ids(data, cls) -> list:
 def test_voxels_and_meshes_that_open_but_hold_bad_data_are_skipped_with_a_reason(recon, tmp_path, capsys):
     """A voxels file whose transform is cut to 3 x 3, whose occupancy is all empty or of zero size, and a mesh with
     a face index past its vertices: each object skipped with a one-line reason naming it, the rest exported."""
-    from carvi_torch.export.objects import load_mesh
+    from carvi_torch.mesh import read_mesh_arrays as load_mesh
 
     run = tmp_path / "run"
     _run_copy(recon, run)

@@ -13,7 +13,8 @@ import pytest
 import torch
 import trimesh
 
-from carvi_torch.mesh import empty_mesh, largest_component, occupancy_to_mesh, transform_mesh, write_mesh
+from carvi_torch.mesh import (empty_mesh, largest_component, occupancy_to_mesh, read_mesh_arrays, transform_mesh,
+                              write_mesh)
 
 
 def grid_T(sx=1.0, sy=1.0, sz=1.0, origin=(0.0, 0.0, 0.0)) -> torch.Tensor:
@@ -186,3 +187,51 @@ def test_write_mesh_bad_extension_and_empty_mesh(tmp_path):
         write_mesh(empty_mesh(), tmp_path / "m.xyz")
     path = write_mesh(empty_mesh(), tmp_path / "e.ply")
     assert path.stat().st_size > 0
+
+
+@pytest.mark.parametrize("fmt", ["ply", "obj", "stl", "off", "glb"])
+def test_read_mesh_arrays_gives_trimeshs_unprocessed_arrays(tmp_path, fmt):
+    """Every format the writer writes reads back as ``trimesh.load(process=False)`` reads it (PLY through the
+    parser alone), as float64 ``(V, 3)`` and int64 ``(F, 3)``."""
+    mesh = occupancy_to_mesh(ball(8, 2.5), grid_T(0.5, 1.0, 2.0))
+    path = write_mesh(mesh, tmp_path / f"m.{fmt}")
+    v, f = read_mesh_arrays(path)
+    ref = trimesh.load(path, force="mesh", process=False)
+    assert v.dtype == np.float64 and f.dtype == np.int64 and v.shape[1] == 3 and f.shape[1] == 3
+    np.testing.assert_array_equal(v, np.asarray(ref.vertices, dtype=np.float64))
+    np.testing.assert_array_equal(f, np.asarray(ref.faces))
+    assert trimesh.Trimesh(v, f, process=False).volume == pytest.approx(mesh.volume, rel=1e-5)
+
+
+def test_read_mesh_arrays_splits_a_ply_of_quads_as_trimesh_does(tmp_path):
+    """A PLY of quadrilaterals (another tool's file) is not read as triangles by reshaping: trimesh splits it."""
+    path = tmp_path / "quad.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+                    "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")
+    v, f = read_mesh_arrays(path)
+    assert f.shape == (2, 3) and sorted(set(f.ravel().tolist())) == [0, 1, 2, 3]
+    np.testing.assert_array_equal(f, trimesh.load(path, force="mesh", process=False).faces)
+
+
+@pytest.mark.parametrize("vertices, faces, why", [
+    (np.eye(3), np.zeros((0, 3), int), "has no faces"),
+    (np.array([[0.0, 0, 0], [1, 0, 0], [np.nan, 1, 0]]), np.array([[0, 1, 2]]), "not \\(V, 3\\) finite"),
+    (np.eye(3), np.array([[0, 1, 7]]), "face index 7 is outside its 3 vertices"),
+    (np.eye(3), np.array([[0, -1, 2]]), "face index -1 is outside"),
+])
+def test_read_mesh_arrays_refuses_unusable_meshes(tmp_path, vertices, faces, why):
+    path = tmp_path / "bad.ply"
+    path.write_bytes(trimesh.exchange.ply.export_ply(trimesh.Trimesh(vertices, faces, process=False)))
+    with pytest.raises(ValueError, match=why):
+        read_mesh_arrays(path)
+
+
+def test_read_mesh_arrays_lets_the_parsers_errors_through(tmp_path):
+    """A file cut inside its header, and one that does not exist: the parser's or the file system's error."""
+    path = write_mesh(occupancy_to_mesh(ball(8, 2.5), grid_T(0.5, 1.0, 2.0)), tmp_path / "m.ply")
+    path.write_bytes(path.read_bytes()[:40])
+    with pytest.raises((ValueError, IndexError, KeyError)):
+        read_mesh_arrays(path)
+    with pytest.raises(FileNotFoundError):
+        read_mesh_arrays(tmp_path / "none.ply")

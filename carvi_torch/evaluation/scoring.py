@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 
 from ..cameras import ScaledOrthographic
 from ..io.layout import object_mesh
+from ..mesh import read_mesh_arrays
 from ..io.results import ROTATION_TOLERANCE, camera_record_problem, numbers, rotation_problem, shown
 from ..runtime import LeanProcessPool, cores, start_method, torch_threads
 from . import metrics
@@ -124,18 +125,17 @@ def camera_problem(cam) -> str | None:
 
 
 def read_mesh(path: Path) -> trimesh.Trimesh:
-    """The mesh in the file ``path``; ``ValueError`` naming the file when there is none it can be read as (no
-    file, a format trimesh does not read, a damaged file)."""
+    """The mesh in the file ``path`` as written (:func:`~carvi_torch.mesh.read_mesh_arrays`); ``ValueError`` naming
+    the file when there is none it can be read as (no file, a format trimesh does not read, a damaged file, no
+    face, vertices that are not finite, a face index outside the vertices)."""
     if not Path(path).is_file():
         raise ValueError(f"cannot read {path}: {'a folder, not a file' if Path(path).is_dir() else 'no such file'}")
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
+        v, f = read_mesh_arrays(path)
     except Exception as e:  # noqa: BLE001 - trimesh raises many kinds for a file it cannot read
         lines = str(e).strip().splitlines()
         raise ValueError(f"cannot read {path}: {type(e).__name__}" + (f": {lines[0]}" if lines else "")) from None
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise ValueError(f"cannot read {path}: it holds no mesh")
-    return mesh
+    return trimesh.Trimesh(v, f, process=False)
 
 
 def posed_gt_mesh(entry: dict, root: Path, cache: dict | None = None) -> tuple[trimesh.Trimesh, float]:

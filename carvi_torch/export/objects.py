@@ -26,16 +26,15 @@ import zipfile
 import zlib
 
 import numpy as np
-import trimesh
 from scipy import ndimage
-from trimesh.exchange.ply import load_ply
 
 from ..io.layout import held_fingerprint, same_canvas
+from ..mesh import read_mesh_arrays
 from ..runtime import ignore_interrupt, watch_parent
 from .raster import zbuffer
 
 __all__ = ["splat_occupancy", "view_depth_frame", "view_occupancy", "canonical_occupancy", "depth_map",
-           "sample_surface", "load_mesh", "canvas_to_class", "export_object", "safe_export_object",
+           "sample_surface", "canvas_to_class", "export_object", "safe_export_object",
            "safe_export_objects", "init_worker", "OtherInputs", "OtherCanvas", "UnreadableFiles", "READ_ERRORS",
            "OTHER_CANVAS"]
 
@@ -221,28 +220,6 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, rng: np.
     return pts, normals
 
 
-def load_mesh(path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices ``(V, 3)`` float64 and faces ``(F, 3)`` int64 of a mesh file (no processing); ``ValueError`` when
-    it has no face, vertices that are not finite ``(V, 3)``, or a face index outside ``[0, V)``."""
-    if str(path).endswith(".ply"):  # the writer's format: read without building a Trimesh (10x faster)
-        with open(path, "rb") as fh:
-            kw = load_ply(fh)
-        v, f = kw["vertices"], kw["faces"]
-    else:
-        m = trimesh.load(path, force="mesh", process=False)
-        v, f = m.vertices, m.faces
-    v = np.asarray(v, dtype=np.float64)
-    f = np.asarray(f, dtype=np.int64).reshape(-1, 3)
-    if len(f) == 0:
-        raise ValueError("mesh has no faces")
-    if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
-        raise ValueError(f"mesh vertices of shape {v.shape} are not (V, 3) finite numbers")
-    if f.min() < 0 or f.max() >= len(v):
-        raise ValueError(f"mesh face index {int(f.min() if f.min() < 0 else f.max())} is outside its "
-                         f"{len(v)} vertices")
-    return v, f
-
-
 # =========================================================================== one object (worker processes)
 
 
@@ -335,9 +312,10 @@ def _read_voxels(path, canvas: tuple | None = None, fingerprint: str | None = No
 
 
 def _read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`load_mesh`, :class:`UnreadableFiles` when the file cannot be read or holds no usable mesh."""
+    """:func:`~carvi_torch.mesh.read_mesh_arrays`, :class:`UnreadableFiles` when the file cannot be read or holds
+    no usable mesh."""
     try:
-        return load_mesh(path)
+        return read_mesh_arrays(path)
     except READ_ERRORS as e:
         raise _unreadable(path, e) from e
 

@@ -177,20 +177,17 @@ def same_canvas(members: dict, canvas) -> bool | None:
 
 
 def _mesh_ok(path: Path) -> str | None:
-    """Why a mesh file is not a finished object's (``None``: it is one)."""
-    import trimesh
+    """Why a mesh file is not a finished object's (``None``: it is one): it cannot be read, holds no usable mesh
+    (:func:`~carvi_torch.mesh.read_mesh_arrays`), or a face names a vertex twice, which no written face does
+    (zeros where a file's tail never reached the disk do)."""
+    from ..mesh import read_mesh_arrays
 
     try:
-        m = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # noqa: BLE001
-        return f"unreadable mesh ({type(e).__name__})"
-    faces = np.asarray(getattr(m, "faces", np.zeros((0, 3))))
-    if len(faces) == 0:
-        return "mesh without faces"
-    # a written mesh names three distinct vertices per face: zeros where a file's tail never reached the disk do not
-    if (faces.min() < 0 or faces.max() >= len(m.vertices) or (faces[:, 0] == faces[:, 1]).any()
-            or (faces[:, 1] == faces[:, 2]).any() or (faces[:, 0] == faces[:, 2]).any()):
-        return "mesh with broken faces"
+        _, faces = read_mesh_arrays(path)
+    except Exception as e:  # noqa: BLE001 - any damage: the object is redone
+        return f"unreadable mesh ({type(e).__name__}: {' '.join(str(e).split())[:80]})"
+    if ((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])).any():
+        return "mesh with broken faces (a face names one vertex twice)"
     return None
 
 
