@@ -14,6 +14,7 @@ from skimage.draw import polygon2mask
 from carvi_torch.cameras import ScaledOrthographic, axis_angle_to_rotation, random_rotations, rotation_about_axis
 from carvi_torch.viewpoints.camera_fit import (
     TWIN_MARGIN,
+    Fitted,
     RefineResult,
     _terms,
     collapsed_keypoints,
@@ -565,6 +566,29 @@ def test_refine_starts_keypoints_only_keeps_each_instances_best_start():
     assert float(rot_err_deg(cams.R, c.R).max()) < 0.1 and float(e.max()) < 1e-4
     with pytest.raises(ValueError):
         refine_starts_keypoints_only(d["S0"], R[:3], s[:3], t[:3], d["kp"], d["vis"])
+
+
+def test_fitted_takes_every_field_from_each_rows_best_start():
+    """``Fitted.best_start``: per row the start of the lowest energy, every tensor from that start (none mixed), the
+    iteration count kept; ``first_start`` is start 0 alike, and ``cameras`` gives that start's ``R, s, t``."""
+    g = torch.Generator().manual_seed(0)
+    n, b = 4, 3
+    E = torch.tensor([[3.0, 1.0, 2.0], [0.5, 4.0, 1.0], [2.0, 2.5, 0.1], [1.0, 1.0, 9.0]])
+    mark = torch.arange(n * b, dtype=torch.float64).reshape(n, b)  # row n, start j -> n * b + j
+    R = random_rotations(n * b, generator=g).reshape(n, b, 3, 3)
+    fit = Fitted(R=R, s=mark + 1, t=torch.stack([mark, -mark], -1),
+                 E_before=mark + 100, E=E, E_kp=mark + 200, E_sil=mark + 300, iterations=7, converged=(mark % 2) == 0)
+    won, best = fit.best_start()
+    assert best.tolist() == [1, 0, 2, 0] and won.iterations == 7
+    rows = torch.arange(n)
+    picked = rows * b + best
+    assert won.s.tolist() == (picked + 1).tolist() and won.E_kp.tolist() == (picked + 200).tolist()
+    assert won.E_before.tolist() == (picked + 100).tolist() and won.E_sil.tolist() == (picked + 300).tolist()
+    assert won.E.tolist() == E[rows, best].tolist() and won.converged.tolist() == (picked % 2 == 0).tolist()
+    assert torch.equal(won.cameras.R, fit.R[rows, best]) and torch.equal(won.cameras.t[:, 1], -picked.double())
+    first = fit.first_start()
+    assert first.s.tolist() == (rows * b + 1).tolist() and first.iterations == 7
+    assert torch.equal(first.cameras.R, fit.R[:, 0]) and first.E.tolist() == E[:, 0].tolist()
 
 
 def test_mask_start_cameras_centre_and_scale():

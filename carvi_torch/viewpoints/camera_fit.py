@@ -61,7 +61,7 @@ equal to this code to rounding (:func:`_native_optimize`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import torch
@@ -138,7 +138,26 @@ class Fitted(NamedTuple):
 
     def first_start(self) -> "Fitted":
         """The same for start 0 alone: ``(N,)`` tensors."""
-        return self._replace(**{k: getattr(self, k)[:, 0] for k in self._fields if k != "iterations"})
+        return self.each(lambda x: x[:, 0])
+
+    def at_start(self, start: torch.Tensor) -> "Fitted":
+        """The same for start ``start[n]`` of row ``n`` alone (``start``: ``(N,)`` int64): ``(N,)`` tensors."""
+        rows = torch.arange(start.shape[0], device=start.device)
+        return self.each(lambda x: x[rows, start])
+
+    def best_start(self) -> tuple["Fitted", torch.Tensor]:
+        """Each row's start of the lowest energy ``E``: :meth:`at_start` of them, and their ``(N,)`` int64 index."""
+        best = self.E.argmin(1)
+        return self.at_start(best), best
+
+    def each(self, op) -> "Fitted":
+        """The same with ``op`` applied to every tensor (every field but ``iterations``)."""
+        return self._replace(**{k: op(getattr(self, k)) for k in self._fields if k != "iterations"})
+
+    @property
+    def cameras(self) -> ScaledOrthographic:
+        """``R, s, t`` as cameras, of a one-start result (:meth:`first_start`, :meth:`at_start`)."""
+        return ScaledOrthographic(self.R, self.s, self.t)
 
 
 @dataclass
@@ -457,16 +476,16 @@ def _optimize(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rsc
     if native and plain:
         out = _native_optimize(R, s, t, shape, keypoints, visible, max_iters, tol)
         if out is not None:
-            return Fitted(*out)
+            return out
     with cpu_single_thread(keypoints.device), torch.inference_mode(plain):
         out = _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale)
-    return Fitted(*(x.clone() if plain and isinstance(x, torch.Tensor) else x for x in out))
+    return out.each(torch.Tensor.clone) if plain else out
 
 
-def _native_optimize(R, s, t, shape, keypoints, visible, max_iters, tol):
+def _native_optimize(R, s, t, shape, keypoints, visible, max_iters, tol) -> Fitted | None:
     """:func:`_optimize_impl` without a silhouette term in the compiled kernel (``carvi_torch/kernels/camera_steps.h``,
     :mod:`carvi_torch.native_library`): every camera on its own, the same steps, equal to rounding (the torch
-    code's sums run in another order); its return values, or ``None`` where it does not apply (not on the CPU,
+    code's sums run in another order); its :class:`Fitted`, or ``None`` where it does not apply (not on the CPU,
     not float32/64, no kernel) or declines (a retraction of rank < 2): the torch code then runs."""
     dt = keypoints.dtype
     ops = native_library.operators_on(keypoints.device) if dt in (torch.float32, torch.float64) else None
@@ -482,9 +501,9 @@ def _native_optimize(R, s, t, shape, keypoints, visible, max_iters, tol):
                                                      t.to(dt).reshape(n * b, 2).contiguous(), S, kp, wv, max_iters, tol)
     if not ok:
         return None
-    E0, E, conv = E0.reshape(n, b), E.reshape(n, b), conv.reshape(n, b)
-    cams = (Rf.reshape(n, b, 3, 3), sf.reshape(n, b), tf.reshape(n, b, 2))
-    return (*cams, E0, E, E.clone(), torch.zeros_like(E), it, conv)
+    E = E.reshape(n, b)
+    return Fitted(R=Rf.reshape(n, b, 3, 3), s=sf.reshape(n, b), t=tf.reshape(n, b, 2), E_before=E0.reshape(n, b), E=E,
+                  E_kp=E.clone(), E_sil=torch.zeros_like(E), iterations=it, converged=conv.reshape(n, b))
 
 
 #: Index of ``active`` in :func:`_lm_step`'s state.
@@ -494,10 +513,9 @@ _ACTIVE = 9
 COMPACT_FRACTION = 0.5
 
 
-def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale=None):
+def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale=None) -> Fitted:
     """:func:`_optimize`'s torch path: Levenberg-Marquardt steps (:func:`_lm_step`) on a working set of rows that
-    shrinks as cameras finish (:data:`COMPACT_FRACTION`); returns its ``(R, s, t, E_before, E, E_kp, E_sil, it,
-    converged)``."""
+    shrinks as cameras finish (:data:`COMPACT_FRACTION`)."""
     dt = keypoints.dtype
     n, b = s.shape
     kmask = torch.isfinite(shape).all(-1)
@@ -547,7 +565,7 @@ def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol
     if flat:
         R, s, t = R.reshape(n, b, 3, 3), s.reshape(n, b), t.reshape(n, b, 2)
         E_before, E, E_kp, E_sil, converged = (x.reshape(n, b) for x in (E_before, E, E_kp, E_sil, converged))
-    return R, s, t, E_before, E, E_kp, E_sil, it, converged
+    return Fitted(R=R, s=s, t=t, E_before=E_before, E=E, E_kp=E_kp, E_sil=E_sil, iterations=it, converged=converged)
 
 
 def _lm_step(state: list, data: list, S: torch.Tensor, kmf: torch.Tensor, tol: float, dt: torch.dtype) -> list:
@@ -601,13 +619,6 @@ def _write_back(full: list, rows, state: list) -> None:
 
 def _as_batched(cameras: ScaledOrthographic, dtype):
     return cameras.R.to(dtype)[:, None], cameras.s.to(dtype)[:, None], cameras.t.to(dtype)[:, None]
-
-
-def _pick(R, s, t, E, *extra):
-    """Keep, per map, the start with the lowest energy. Inputs ``(N, B, ...)``."""
-    best = E.argmin(1)
-    idx = torch.arange(E.shape[0], device=E.device)
-    return (R[idx, best], s[idx, best], t[idx, best], E[idx, best], *[x[idx, best] for x in extra], best)
 
 
 def planar_twin(shape: torch.Tensor, cameras: ScaledOrthographic,
@@ -787,45 +798,75 @@ def refine_cameras(
         lam = torch.zeros(keypoints.shape[0], dtype=dt, device=keypoints.device)
     else:
         lam = silhouette_weight * _mask_valid(dist_maps, mask_valid).to(dt)
-    R, s, t = _as_batched(cameras, dt)
     rscale = None
     if dist_maps is not None and silhouette_robust is not None:
         rscale = robust_scales(dist_maps, silhouette_robust)
-    R, s, t, E0, E, Ek, Es, it, conv = _optimize(R, s, t, shape, keypoints, visible, dist_maps, lam, max_iters, tol,
-                                                 rscale).first_start()
-    start = torch.zeros(len(cameras), dtype=torch.long, device=keypoints.device)
-    res = (R, s, t, E, Ek, Es, conv, start, it)
+    energy = _Energy(shape=shape, keypoints=keypoints, visible=visible, dist_maps=dist_maps, lam=lam, rscale=rscale,
+                     max_iters=max_iters, tol=tol)
+    res = _result(energy.refine(cameras), torch.zeros(len(cameras), dtype=torch.long, device=keypoints.device))
     if twin_flatness > 0:  # the second start, for the flat instances only (instances are optimised independently)
         twin, thickness = planar_twin(shape, ScaledOrthographic(cameras.R.to(dt), cameras.s.to(dt),
                                                                 cameras.t.to(dt)), visible)
         idx = (thickness < twin_flatness).nonzero().squeeze(1)
         if idx.numel():
-            terms = (shape, keypoints, visible, dist_maps, lam, max_iters, tol, rscale)
-            res = _twin_restart(res, twin, idx, terms, twin_margin, twin_hull)
-    R, s, t, E, Ek, Es, conv, start, it = res
-    return RefineResult(ScaledOrthographic(R, s, t), E0, E, it, conv, Ek, Es, start)
+            res = _twin_restart(res, twin[idx], idx, energy, twin_margin, twin_hull)
+    return res
 
 
-def _twin_restart(res: tuple, twin: ScaledOrthographic, idx: torch.Tensor, terms: tuple, twin_margin: float,
-                  twin_hull: bool) -> tuple:
-    """:func:`refine_cameras`' second start: rows ``idx`` refined from their planar ``twin`` cameras, each twin kept
-    where :func:`twin_wins`. ``res``: ``(R, s, t, E, Ek, Es, conv, start, iterations)`` of the first start, returned
-    updated; ``terms``: ``(shape, keypoints, visible, dist_maps, lam, max_iters, tol, rscale)`` of the energy."""
-    R, s, t, E, Ek, Es, conv, start, it = res
-    shape, keypoints, visible, dist_maps, lam, max_iters, tol, rscale = terms
-    sub = lambda x: None if x is None else x[idx]  # noqa: E731
-    o2 = _optimize(twin.R[idx, None], twin.s[idx, None], twin.t[idx, None], shape, keypoints[idx], visible[idx],
-                   sub(dist_maps), lam[idx], max_iters, tol, sub(rscale)).first_start()
+def _result(fit: Fitted, start: torch.Tensor) -> RefineResult:
+    """``fit``, one start per row (``(N,)`` tensors), as a :class:`RefineResult` whose rows won ``start`` ``(N,)``."""
+    return RefineResult(cameras=fit.cameras, energy_before=fit.E_before, energy_after=fit.E, iterations=fit.iterations,
+                        converged=fit.converged, keypoint_energy=fit.E_kp, silhouette_energy=fit.E_sil, start=start)
+
+
+@dataclass(frozen=True)
+class _Energy:
+    """:func:`refine_cameras`' energy of ``N`` rows and its stopping rule: ``shape (K, 3)``, ``keypoints (N, K, 2)``,
+    ``visible (N, K)``, ``dist_maps (N, H, W)`` or ``None``, ``lam (N,)`` (``lambda`` per row), ``rscale (N,)``
+    (the robust scales, :func:`robust_scales`) or ``None`` (squared distances), ``max_iters``, ``tol``."""
+
+    shape: torch.Tensor
+    keypoints: torch.Tensor
+    visible: torch.Tensor
+    dist_maps: torch.Tensor | None
+    lam: torch.Tensor
+    rscale: torch.Tensor | None
+    max_iters: int
+    tol: float
+
+    def rows(self, idx: torch.Tensor) -> "_Energy":
+        """The energy of rows ``idx`` (``(M,)`` int64) alone."""
+        sub = lambda x: None if x is None else x[idx]  # noqa: E731
+        return replace(self, keypoints=self.keypoints[idx], visible=self.visible[idx], dist_maps=sub(self.dist_maps),
+                       lam=self.lam[idx], rscale=sub(self.rscale))
+
+    def refine(self, cameras: ScaledOrthographic) -> Fitted:
+        """``N`` cameras, one start each, refined (:func:`_optimize` in the keypoints' dtype): ``(N,)`` tensors."""
+        R, s, t = _as_batched(cameras, self.keypoints.dtype)
+        return _optimize(R, s, t, self.shape, self.keypoints, self.visible, self.dist_maps, self.lam, self.max_iters,
+                         self.tol, self.rscale).first_start()
+
+
+def _twin_restart(first: RefineResult, twin: ScaledOrthographic, idx: torch.Tensor, energy: _Energy,
+                  twin_margin: float, twin_hull: bool) -> RefineResult:
+    """:func:`refine_cameras`' second start: rows ``idx`` (``(M,)`` int64) refined from their planar ``twin`` cameras
+    (``M``), each twin kept where :func:`twin_wins`. ``first``: the result of the first start over all ``N`` rows,
+    returned with the winning twins' cameras, energies and stopping in their rows and ``start`` 1 there."""
+    sub = energy.rows(idx)
+    o2 = sub.refine(twin)
     # the hull judges only rows whose energy has a silhouette term (an empty mask: IoU 0 either way)
     masks = None
-    if dist_maps is not None and twin_hull:
-        masks = (dist_maps[idx] == 0) & (lam[idx] > 0)[:, None, None]
-    wins = twin_wins(shape, ScaledOrthographic(R[idx], s[idx], t[idx]), E[idx], ScaledOrthographic(o2.R, o2.s, o2.t),
-                     o2.E, masks, twin_margin)
+    if sub.dist_maps is not None and twin_hull:
+        masks = (sub.dist_maps == 0) & (sub.lam > 0)[:, None, None]
+    wins = twin_wins(energy.shape, first.cameras[idx], first.energy_after[idx], o2.cameras, o2.E, masks, twin_margin)
     win = idx[wins]
     put = lambda x, y: x.index_put((win,), y[wins])  # noqa: E731
-    return (put(R, o2.R), put(s, o2.s), put(t, o2.t), put(E, o2.E), put(Ek, o2.E_kp), put(Es, o2.E_sil),
-            put(conv, o2.converged), start.index_put((win,), torch.ones_like(win)), max(it, o2.iterations))
+    cams = first.cameras
+    return replace(first, cameras=ScaledOrthographic(put(cams.R, o2.R), put(cams.s, o2.s), put(cams.t, o2.t)),
+                   energy_after=put(first.energy_after, o2.E), iterations=max(first.iterations, o2.iterations),
+                   converged=put(first.converged, o2.converged), keypoint_energy=put(first.keypoint_energy, o2.E_kp),
+                   silhouette_energy=put(first.silhouette_energy, o2.E_sil),
+                   start=first.start.index_put((win,), torch.ones_like(win)))
 
 
 def twin_wins(shape: torch.Tensor, own: ScaledOrthographic, energy: torch.Tensor, twin: ScaledOrthographic,
@@ -949,9 +990,9 @@ def refine_keypoints_only(
     s = torch.cat([s0, c1.s[:, None]], 1)
     t = torch.cat([t0, c1.t[:, None]], 1)
     lam = torch.zeros(keypoints.shape[0], dtype=dt, device=keypoints.device)
-    R, s, t, E0, E, Ek, Es, it, conv = _optimize(R, s, t, shape, keypoints, visible, None, lam, max_iters, tol)
-    Rb, sb, tb, Eb, Ekb, Esb, cb, best = _pick(R, s, t, E, Ek, Es, conv)
-    return RefineResult(ScaledOrthographic(Rb, sb, tb), E0[:, 0], Eb, it, cb, Ekb, Esb, best)
+    fit = _optimize(R, s, t, shape, keypoints, visible, None, lam, max_iters, tol)
+    won, best = fit.best_start()
+    return _result(won._replace(E_before=fit.E_before[:, 0]), best)
 
 
 def refine_starts_keypoints_only(
@@ -988,9 +1029,9 @@ def refine_starts_keypoints_only(
     _check(shape, keypoints, visible, None, R.shape[0])
     lam = torch.zeros(keypoints.shape[0], dtype=keypoints.dtype, device=keypoints.device)
     dt = keypoints.dtype
-    out = _optimize(R.to(dt), s.to(dt), t.to(dt), shape, keypoints, visible, None, lam, max_iters, tol, native=native)
-    Rb, sb, tb, Eb, _best = _pick(out.R, out.s, out.t, out.E)
-    return ScaledOrthographic(Rb, sb, tb), Eb
+    fit = _optimize(R.to(dt), s.to(dt), t.to(dt), shape, keypoints, visible, None, lam, max_iters, tol, native=native)
+    won, _best = fit.best_start()
+    return won.cameras, won.E
 
 
 def sphere_rotations(n: int, dtype=torch.float32, device="cpu") -> torch.Tensor:
@@ -1127,10 +1168,8 @@ def estimate_camera(
     _check_robust(silhouette_robust)
     maps = maps.to(dev)
     rscale = None if silhouette_robust is None else robust_scales(maps, silhouette_robust)
-    R, s, t, E0, E, Ek, Es, it, conv = _optimize(R, s, t, shape, keypoints, visible, maps, lam,
-                                                 max_iters, tol, rscale)
-    Rb, sb, tb, Eb, _ = _pick(R, s, t, E)
-    return _without_collapsed(ScaledOrthographic(Rb, sb, tb), Eb, collapsed_keypoints(keypoints, visible, shape))
+    won, _best = _optimize(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale).best_start()
+    return _without_collapsed(won.cameras, won.E, collapsed_keypoints(keypoints, visible, shape))
 
 
 def _without_collapsed(cams: ScaledOrthographic, energy: torch.Tensor,
