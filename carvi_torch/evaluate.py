@@ -76,7 +76,7 @@ from .cli import CommandError, add_common, positive_int, program, run_command, s
 from .config import Config, read_run_config
 from .io.coco import CocoFormatError, class_keys, class_names, load_coco, object_id, select_classes
 from .io.layout import NOT_YET, unfinished
-from .io.outputs import read_json, write_bytes, write_json
+from .io.outputs import read_json, shown_names, write_bytes, write_json
 from .io.results import annotation_source, same_object
 from .evaluation import reliability, viewpoint_metrics
 from .evaluation.scoring import (MAX_JOBS, POOL_FROM, Reason, ShapeScorer, camera_problem, default_jobs, gt_problem,
@@ -895,8 +895,7 @@ def _grouped(groups: dict, most: int = 10) -> str:
         >>> _grouped({"no reconstruction": ["3", "4"], "unreadable mesh": [str(i) for i in range(12)]})
         'no reconstruction: 3, 4; unreadable mesh: 0, 1, 2, 3, 4, 5, 6, 7, 8, 9 and 2 more'
     """
-    return "; ".join(f"{why}: {', '.join(ids[:most])}" + (f" and {len(ids) - most} more" if len(ids) > most else "")
-                     for why, ids in groups.items())
+    return "; ".join(f"{why}: {shown_names(ids, most)}" for why, ids in groups.items())
 
 
 def _evaluate_and_write(args, recons: dict) -> int:

@@ -87,12 +87,14 @@ def check_replaceable(out: Path, others: Callable[[Path], list[str]], what: str,
         ...
         ValueError: --out /dev/null is a file, not a folder
     """
+    from .io.outputs import shown_names
+
     if out.exists() and not out.is_dir():
         raise error(f"--out {out} is a file, not a folder")
     other = sorted(others(out)) if out.is_dir() else []
     if other:
-        raise error(f"--out {out}: not empty and not {what} (it holds {other[0]!r}"
-                    f"{f' and {len(other) - 1} more' if len(other) > 1 else ''}); choose another --out "
+        raise error(f"--out {out}: not empty and not {what} (it holds "
+                    f"{shown_names(other, 1, quoted=True)}); choose another --out "
                     "(nothing was written)")
 
 

@@ -22,13 +22,12 @@ Example:
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .outputs import read_json, safe_name, shown_names
+from .outputs import first_link, read_json, safe_name, shown_names
 
 __all__ = ["unfinished", "NOT_YET",
            "class_dir", "object_stem", "object_file", "object_mesh", "finished", "KINDS", "RUN_NAMES", "reserved",
@@ -75,11 +74,9 @@ def linked_path(out: str | Path, keys=()) -> Path | None:
     for name in RUN_NAMES:
         if (out / name).is_symlink():
             return out / name
-    for tree in ("input", "report"):
-        for top, dirs, files in os.walk(out / tree):  # not into linked folders: those are reported
-            for name in sorted(dirs + files):
-                if os.path.islink(os.path.join(top, name)):
-                    return Path(top) / name
+    linked = first_link(out, ("input", "report"))
+    if linked is not None:
+        return linked
     for key in keys:
         for path in (out / key, *(out / key / kind for kind in KINDS)):
             if path.is_symlink():

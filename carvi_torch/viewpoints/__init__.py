@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from ..cameras import FLIP_X, ScaledOrthographic, align_rotations
+from ..io.outputs import shown_names
 from ..collection import ClassCollection
 from ..runtime import StageTimer, fields_to_device
 from ..sdf import distance_to_mask
@@ -316,8 +317,7 @@ def _unseen_step(coll: ClassCollection, vp: Viewpoints, missing: torch.Tensor, d
         vp.warnings.append(
             f"{len(blind)} annotation(s) without an SfM camera got one from the silhouette alone (none of "
             f"their visible keypoints has a row in the mean shape): unreliable, a silhouette often fits "
-            f"several viewpoints (cameras.json: camera_from 'silhouette'); ids {blind[:20]}"
-            + (" ..." if len(blind) > 20 else ""))
+            f"several viewpoints (cameras.json: camera_from 'silhouette'); ids {shown_names(blind, 20)}")
     vp.has_camera = vp.has_camera | missing
 
 
