@@ -36,13 +36,15 @@ and so does a run that stopped after the cameras (``stage=cameras``) without ``-
 an unfinished run (``unfinished``); an unknown ``--classes`` name, a ``--split`` that no annotation has, two
 ``--recon`` of one name, a ``gt.json`` or ``--data`` that is not a JSON object, or a reconstruction whose
 annotation ids name other objects in ``--data`` (another class or ``source``: it was made from other data, or
-the file changed since the run), or a run's ``config.yaml`` that cannot be read, is an error (exit 2).
+the file changed since the run), or a first run's ``config.yaml`` that cannot be read, is an error (exit 2); another
+method's folder may hold another tool's ``config.yaml`` (a note names it).
 
 Bad input leaves out what it touches, with a one-line reason on stderr that names the object, and the rest is
 evaluated: an object that ``gt.json`` has no entry for, or whose entry is unusable (``R`` not a rotation within
 1e-3, ``s`` not a positive number, a mesh file that cannot be read, ...), is skipped for every method (its
-``reason`` in ``results.json``'s ``objects``); a method's mesh that cannot be read, or that the run skipped, leaves
-that method without the object's shape error (the reason naming the file, or the run's reason); an unusable
+``reason`` in ``results.json``'s ``objects``); a method's mesh that cannot be read, that the metric cannot score
+(no surface area, ...), or that the run skipped, leaves that method without the object's shape error (the reason
+naming the file, the metric's, or the run's reason, each on its own line); an unusable
 camera of a run's ``cameras.json`` (or an unusable file) leaves its viewpoint out (``camera_problems``).
 
 Methods are compared on the same objects: a class's row of the shape table is, for every method, the mean over
@@ -73,7 +75,7 @@ import numpy as np
 import torch
 
 from .cli import CommandError, add_common, positive_int, program, run_command, split_classes, writable_folder
-from .config import Config, read_run_config
+from .config import Config, ConfigError, read_run_config
 from .io.coco import CocoFormatError, class_keys, class_names, load_coco, object_id, select_classes
 from .io.layout import NOT_YET, unfinished
 from .io.outputs import read_json, shown_names, write_bytes, write_json
@@ -227,14 +229,15 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
         ValueError: a ``data`` or ``gt.json`` that is not a JSON object of the expected kind; a ``split`` that no
             annotation of ``data`` has; a name in ``classes`` that is no class of ``data``; a reconstruction whose
             objects are not the ones of ``data`` (an annotation id of its ``cameras.json`` names another
-            object there: another class or ``source``; or none of its ids is in ``data``); a run's ``config.yaml``
-            that cannot be read (:class:`~carvi_torch.config.ConfigError`: its ``mesh_format`` says which of its
-            mesh files are its own).
+            object there: another class or ``source``; or none of its ids is in ``data``); a first run whose
+            ``config.yaml`` cannot be read (:class:`~carvi_torch.config.ConfigError`: its canvas loads the masks).
+            Another method's ``config.yaml`` that is no configuration of this package (another tool's file) is
+            listed in ``unread_configs`` and its meshes are found in the default ``mesh_format`` first.
     """
     data = Path(data)
     ann = _read_annotations(data, gt, split)
     classes = select_classes(classes, class_names(ann.categories), str(data)) if classes else None
-    configs = {name: _run_config(Path(rdir)) for name, rdir in recons.items()}
+    configs, unread_configs = _run_configs(recons)
     cfg = next(iter(configs.values()))
     coll_by_class = load_coco(data, canvas_size=canvas_size or cfg.input.canvas_size, margin=cfg.input.canvas_margin,
                               classes=classes).collections if baselines else {}
@@ -264,7 +267,7 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
            "viewpoints": _class_viewpoints(list(per_class), objects, ann, cameras),
            "viewpoint_coverage": _viewpoint_coverage(objects, ann, cameras, problems),
            "camera_problems": _problem_texts(problems), "unfinished": unfinished,
-           "classes_without_reconstruction": without}
+           "classes_without_reconstruction": without, "unread_configs": unread_configs}
     res["quality"] = reliability.quality_vs_error(res, cameras)
     res["seconds"] = round(time.perf_counter() - t0, 2)
     return res
@@ -274,6 +277,22 @@ def _run_config(rdir: Path) -> Config:
     """The configuration of the run in ``rdir`` (its ``config.yaml``; the defaults without one: a folder of meshes,
     another method's). :class:`~carvi_torch.config.ConfigError` for a file that cannot be read as one."""
     return read_run_config(rdir / "config.yaml") if (rdir / "config.yaml").is_file() else Config()
+
+
+def _run_configs(recons: dict) -> tuple[dict, dict]:
+    """Each method's run configuration (:func:`_run_config`) and, per method whose ``config.yaml`` could not be
+    read, why: the first method's must be read (its canvas loads the baselines' masks); another's may be another
+    tool's file, and the defaults stand in (its ``mesh_format`` only orders the formats its meshes are looked up in).
+    """
+    configs, unread = {}, {}
+    for k, (name, rdir) in enumerate(recons.items()):
+        try:
+            configs[name] = _run_config(Path(rdir))
+        except ConfigError as e:
+            if k == 0:
+                raise
+            configs[name], unread[name] = Config(), " ".join(str(e).split())
+    return configs, unread
 
 
 def _score_objects(scorer: ShapeScorer, targets: list, ann: "_Annotations", shapes: bool, jobs: int | None,
@@ -828,6 +847,9 @@ def _print_notes(args, recons: dict, res: dict) -> None:
     if cams_only:
         lines.append(f"note: {', '.join(cams_only)} stopped after the cameras (stage=cameras): no shapes to score; "
                      "--viewpoints-only evaluates the viewpoints alone")
+    for name, why in res.get("unread_configs", {}).items():
+        lines.append(f"note: {name}'s config.yaml is no configuration of this package ({why[:120]}): its meshes are "
+                     f"looked up as {Config().mesh.format} first, then in the other formats")
     for name in res["unfinished"]:
         lines.append(f"note: {name} ({recons[name]}) is an unfinished run (interrupted or still running): the "
                      "objects it has not reconstructed yet count as missing")

@@ -159,6 +159,27 @@ def test_the_mesh_scored_is_the_one_of_the_runs_mesh_format(recon, tmp_path):
     assert res["objects"][leftover.stem]["ply"]["error_percent"] > 0.5  # the leftover .ply: the run's old carving
 
 
+def test_another_tools_config_yaml_beside_a_methods_meshes_is_noted_not_fatal(recon, tmp_path, capsys):
+    """A method's folder holding another tool's ``config.yaml`` is evaluated (its meshes looked up in the default
+    format first) and named in a note; the first run's ``config.yaml`` must be this package's (its canvas loads the
+    masks), so a foreign one there is an error."""
+    data, _ = _gt(recon)
+    other = tmp_path / "other"
+    shutil.copytree(recon, other)
+    (other / "config.yaml").write_text("seed: 42\ndata:\n  root: /x\n")
+    res = evaluate(data, {"Full": recon, "Other": other}, classes=["car"], step_percent=2.0, progress=False)
+    assert list(res["unread_configs"]) == ["Other"] and "data" in res["unread_configs"]["Other"]
+    scored = [r["Other"]["error_percent"] for r in res["objects"].values() if "Other" in r]
+    assert scored and all(e is not None for e in scored)
+    assert scored == [r["Full"]["error_percent"] for r in res["objects"].values() if "Full" in r]
+    capsys.readouterr()
+    assert main(["--data", str(data), "--recon", f"Full={recon}", "--recon", f"Other={other}", "--classes", "car",
+                 "--step-percent", "2", "--viewpoints-only"]) == 0
+    assert "note: Other's config.yaml is no configuration of this package" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="data"):
+        evaluate(data, {"Other": other, "Full": recon}, classes=["car"], step_percent=2.0, progress=False)
+
+
 def test_an_object_whose_ground_truth_fails_gets_a_reason_and_no_scores(recon, tmp_path):
     """A ground-truth mesh that cannot be read leaves its object unscored, with the reason, for every method and
     baseline; the class's other objects are scored."""

@@ -5,8 +5,9 @@
 * :class:`Reason`: why an object has no shape error or no refined camera, with its kind (:data:`ReasonKind`),
   which the objects are grouped and counted under;
 * :func:`posed_gt_mesh`: an annotation's ground-truth mesh in its reference camera frame;
-* :func:`load_recon_mesh`: a run's mesh of an object (:func:`read_mesh`: a file trimesh cannot read is a
-  ``ValueError`` naming it);
+* :func:`load_recon_mesh`: a run's mesh of an object (:func:`read_mesh`: a file that holds no usable mesh, one
+  that cannot be read, has no face, non-finite vertices or a face index outside them, is a ``ValueError`` naming
+  it; the ground-truth meshes are read the same way);
 * :class:`ShapeScorer`: one object's error for every method (and the baselines) against its posed ground truth,
   or why there is none;
 * :func:`score_shapes`: every object's, in this process or in worker processes (:func:`default_jobs`), one
