@@ -1143,8 +1143,8 @@ def test_voxels_and_meshes_that_open_but_hold_bad_data_are_skipped_with_a_reason
 def test_each_voxels_file_is_opened_once_and_skips_keep_their_order(recon, tmp_path, monkeypatch):
     """Cars on another canvas, one without voxels and one with a cut mesh: the export opens each voxels file once
     (the worker checks the canvas as it reads the grid), and lists the class's skipped objects in annotation order:
-    those without files or on another canvas first, then those whose files cannot be read; with worker processes
-    too."""
+    those skipped before any file is read (no voxels) first, then those a worker could not export (a cut mesh,
+    another canvas); with worker processes too."""
     run = tmp_path / "run"
     _run_copy(recon, run)
     vox = sorted((run / "car" / "voxels").glob("*.npz"), key=lambda p: int(p.stem))
@@ -1160,8 +1160,9 @@ def test_each_voxels_file_is_opened_once_and_skips_keep_their_order(recon, tmp_p
     assert sorted(opened) == sorted(str(p) for p in (vox[0], vox[1], vox[3], *vox[4:], *(run / "chair").glob(
         "voxels/*.npz"))), opened
     assert [(s["annotation_id"], s["reason"].split(" (")[0].split(":")[0]) for s in one["skipped"]] == [
-        (int(vox[1].stem), "carved on another canvas than config.yaml's"), (int(vox[2].stem), "no voxels"),
-        (int(vox[3].stem), "carved on another canvas than config.yaml's"), (int(vox[0].stem), "unreadable outputs")]
+        (int(vox[2].stem), "no voxels"), (int(vox[0].stem), "unreadable outputs"),
+        (int(vox[1].stem), "carved on another canvas than config.yaml's"),
+        (int(vox[3].stem), "carved on another canvas than config.yaml's")]
     two = export(run, tmp_path / "w2", resolution=4, points=8, progress=False, workers=2)
     assert two["skipped"] == one["skipped"] and two["samples"] == one["samples"] and len(one["samples"]) == 6
 

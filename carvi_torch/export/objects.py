@@ -27,6 +27,7 @@ import zlib
 
 import numpy as np
 from scipy import ndimage
+from trimesh.exchange import ply as _ply  # noqa: F401 - mesh.read_mesh_arrays' parser, loaded before the workers fork
 
 from ..io.layout import held_fingerprint, same_canvas
 from ..mesh import read_mesh_arrays

@@ -34,7 +34,7 @@ from ..io.writer import INT64_RANGE, start_method
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import (NOT_YET, NOT_IN_ANNOTATIONS, camera_entry, camera_problem, class_cameras, class_categories,
                      class_scope, data_path, missing_class_reason, recon_config, run_classes, skip_all, unfinished)
-from .objects import (OTHER_CANVAS, canonical_occupancy, depth_map, init_worker, safe_export_object,
+from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object,
                       safe_export_objects, view_occupancy)
 from .settings import settings_problem
 from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, InterruptedAfterSwap, StoreWriter
@@ -94,8 +94,7 @@ def _viewpoint_or_none(entry: dict) -> list[float] | None:
 def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, skipped: list,
           no_files: str = "no voxels (not reconstructed)"):
     """The jobs of a class's objects that have a usable camera, voxels and a mesh (the others go to ``skipped``
-    with their reason; ``no_files``: that of an object without voxels); a job's ``skipped_before``: how many
-    objects ``skipped`` holds before it (:func:`_book_skip`)."""
+    with their reason; ``no_files``: that of an object without voxels)."""
     jobs = []
     for i, aid in enumerate(coll.annotation_ids):
         entry = camera_entry(cams, aid)
@@ -120,7 +119,7 @@ def _jobs(coll, cname: str, ci: int, cdir: Path, cams: dict, settings: dict, ski
                      "canvas_scale": float(coll.canvas_from_image.scale[i]),
                      "canvas_offset": coll.canvas_from_image.offset[i].double().numpy(), "camera": entry["refined"],
                      "quality": float(q) if q is not None else float("nan"), "voxels": str(vox), "mesh": str(mesh),
-                     "fingerprint": coll.fingerprints[i], "skipped_before": len(skipped)})
+                     "fingerprint": coll.fingerprints[i]})
     return jobs
 
 
@@ -307,21 +306,6 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     return {**desc, "samples": samples}
 
 
-def _book_skip(skipped: list, job: dict, reason: str, other_canvas: Counter) -> None:
-    """Add the object of ``job`` that a worker could not export to its class's ``skipped``, which lists, in
-    annotation order each: the objects skipped before the export (no camera, no voxels or no mesh) and those whose
-    voxels were carved on another canvas (:data:`~carvi_torch.export.objects.OTHER_CANVAS`), then those whose files
-    cannot be read or were made from other inputs. ``job["skipped_before"]``: how many of the class's objects
-    ``skipped`` held when the job was made; ``other_canvas``: per class, how many objects on another canvas are
-    listed already."""
-    entry = {"annotation_id": job["annotation_id"], "class": job["class"], "source": job["source"], "reason": reason}
-    if reason != OTHER_CANVAS:
-        skipped.append(entry)
-        return
-    skipped.insert(job["skipped_before"] + other_canvas[job["class"]], entry)
-    other_canvas[job["class"]] += 1
-
-
 def _write_samples(loaded, recon: Path, class_names: list, settings: dict, writer: StoreWriter, skipped: dict,
                    progress: bool, workers: int, no_files: str, data: Path) -> list:
     """Compute every object (in ``workers`` processes, or here) and add it to ``writer``; returns the samples'
@@ -337,14 +321,15 @@ def _write_samples(loaded, recon: Path, class_names: list, settings: dict, write
     try:
         with torch_threads(1):
             jobs = _class_jobs(loaded, recon, class_names, settings, writer, skipped, bar, no_files, data)
-            current, other_canvas = None, Counter()
+            current = None
             for job, sample, reason in _stream(jobs, pool, workers):
                 bar.update(1)
                 if job["class"] != current and current is not None:
                     writer.finish(current)  # a class is complete: written while the workers go on
                 current = job["class"]
-                if reason is not None:
-                    _book_skip(skipped[current], job, reason, other_canvas)
+                if reason is not None:  # after the objects skipped before the export: both in annotation order
+                    skipped[current].append({k: job[k] for k in ("annotation_id", "class", "source")}
+                                            | {"reason": reason})
                     continue
                 sample["annotation_id"], sample["image_id"] = _int_id(job["annotation_id"]), _int_id(job["image_id"])
                 writer.add(job["class"], sample, job)
