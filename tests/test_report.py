@@ -202,6 +202,20 @@ def test_quality_orders_the_cards_and_damaged_files_are_named(recon, tmp_path):
     assert not (tmp_path / "nothing").exists()
 
 
+def test_a_class_meshes_in_an_earlier_format_get_their_3d_view_and_link(recon, tmp_path):
+    """A run whose ``mesh_format`` changed after a class was made keeps that class's meshes in the earlier format: its
+    cards show and link the file the export takes (:func:`~carvi_torch.io.layout.object_mesh`), not "no mesh file"."""
+    from carvi_torch.config import read_run_config
+
+    run = tmp_path / "run"
+    shutil.copytree(recon, run, ignore=shutil.ignore_patterns("report"))
+    (run / "config.yaml").write_text(read_run_config(run / "config.yaml").override(["mesh_format=obj"]).to_yaml())
+    assert report_main(["--recon", str(run), "--out", str(tmp_path / "rep"), "--quiet"]) == 0
+    _, cards = _cards(tmp_path / "rep")
+    assert cards and all(c.get("mesh") and not c.get("problems") for c in cards), cards[0]
+    assert all(c["files"]["mesh"].endswith(f"meshes/{c['id']}.ply") for c in cards)
+
+
 def test_no_network_reference_and_vendored_files_intact(recon):
     for p in (recon / "report").rglob("*"):
         if p.suffix in (".jpg", ".png") or p.name in ("LICENSE.three.txt", "VENDOR.md") or not p.is_file():

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.layout import object_mesh
 from ..io.outputs import write_within
 from ..io.results import annotation_source, same_object
 from ..preview import OVERLAY_COLOURS, crop_box, overlay_colours, project_silhouette
@@ -236,9 +237,10 @@ def _links(ctx: CardContext, cls: ClassView, obj: ObjectInputs) -> dict:
     from urllib.parse import quote
 
     cdir = ctx.recon / cls.key
-    files = {"mesh": cdir / "meshes" / f"{obj.stem}.{ctx.mesh_format}", "voxels": cdir / "voxels" / f"{obj.stem}.npz",
-             "cameras": cdir / "cameras.json"}
-    return {k: quote(Path(os.path.relpath(p, ctx.out)).as_posix()) for k, p in files.items() if p.is_file()}
+    files = {"mesh": object_mesh(cdir, obj.annotation_id, ctx.mesh_format),
+             "voxels": cdir / "voxels" / f"{obj.stem}.npz", "cameras": cdir / "cameras.json"}
+    return {k: quote(Path(os.path.relpath(p, ctx.out)).as_posix()) for k, p in files.items()
+            if p is not None and p.is_file()}
 
 
 def _overlay(ctx: CardContext, cls: ClassView, obj: ObjectInputs, card: Card, rel: str) -> None:
@@ -282,10 +284,11 @@ def _overlay(ctx: CardContext, cls: ClassView, obj: ObjectInputs, card: Card, re
 
 
 def _mesh(ctx: CardContext, cls: ClassView, obj: ObjectInputs, card: Card, rel: str) -> None:
-    """The decimated mesh as a registration script ``ctx.out / rel``."""
-    src = ctx.recon / cls.key / "meshes" / f"{obj.stem}.{ctx.mesh_format}"
-    if not src.is_file():
-        card.problems.append(f"no mesh file ({src.name}): no 3D view")
+    """The decimated mesh (the file the export takes: :func:`~carvi_torch.io.layout.object_mesh`) as a registration
+    script ``ctx.out / rel``."""
+    src = object_mesh(ctx.recon / cls.key, obj.annotation_id, ctx.mesh_format)
+    if src is None:
+        card.problems.append(f"no mesh file ({obj.stem}.{ctx.mesh_format}): no 3D view")
         return
     try:
         v, f = _decimated(src, ctx.max_faces)
