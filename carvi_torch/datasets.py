@@ -148,8 +148,13 @@ def _checked_device(text: str):
     try:
         dev = Config(device=text).resolve_device()
     except ConfigError:
-        none = "" if torch.cuda.is_available() else ", and this machine has no CUDA device (use --device cpu)"
-        raise CommandError(f"--device {text!r}: the renders run on cpu, cuda, cuda:N or auto{none}") from None
+        try:
+            cuda = torch.device(text).type == "cuda"
+        except RuntimeError:
+            cuda = False
+        why = ("this machine has no CUDA device (use --device cpu)" if cuda
+               else "the renders run on cpu, cuda, cuda:N or auto")
+        raise CommandError(f"--device {text!r}: {why}") from None
     count = torch.cuda.device_count() if dev.type == "cuda" else 0
     if dev.type == "cuda" and (dev.index or 0) >= count:
         raise CommandError(f"--device {text}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")

@@ -653,8 +653,8 @@ def test_cli_device_is_checked_before_any_work(device, tmp_path, capsys):
 
 
 def test_cli_device_takes_a_runs_spellings_and_says_which_in_one_line(monkeypatch):
-    """``--device`` takes what a run's ``device`` takes (``auto``: CUDA where the machine has it); another, or a
-    CUDA device the machine lacks, is refused in one line that says what the renders take."""
+    """``--device`` takes what a run's ``device`` takes (``auto``: CUDA where the machine has it); another is refused
+    in one line that says what the renders take, a CUDA device the machine lacks in one that says it has none."""
     from carvi_torch.cli import CommandError
 
     assert datasets._checked_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
@@ -664,7 +664,8 @@ def test_cli_device_takes_a_runs_spellings_and_says_which_in_one_line(monkeypatc
     for text in ("cuda", "cuda:1", "meta", "gpu"):
         with pytest.raises(CommandError) as e:
             datasets._checked_device(text)
-        assert str(e.value) == f"--device {text!r}: {takes}, and this machine has no CUDA device (use --device cpu)"
+        why = "this machine has no CUDA device (use --device cpu)" if text.startswith("cuda") else takes
+        assert str(e.value) == f"--device {text!r}: {why}"
     assert datasets._checked_device("auto") == torch.device("cpu")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
