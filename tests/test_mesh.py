@@ -190,17 +190,24 @@ def test_write_mesh_bad_extension_and_empty_mesh(tmp_path):
 
 
 @pytest.mark.parametrize("fmt", ["ply", "obj", "stl", "off", "glb"])
-def test_read_mesh_arrays_gives_trimeshs_unprocessed_arrays(tmp_path, fmt):
-    """Every format the writer writes reads back as ``trimesh.load(process=False)`` reads it (PLY through the
-    parser alone), as float64 ``(V, 3)`` and int64 ``(F, 3)``."""
+def test_read_mesh_arrays_gives_the_written_triangles(tmp_path, fmt):
+    """Every format the writer writes reads back as the written triangles (their centroids and the enclosed volume,
+    within the formats' float32), as float64 ``(V, 3)`` and int64 ``(F, 3)``; PLY, read by the parser alone, gives
+    ``trimesh.load(process=False)``'s arrays exactly."""
     mesh = occupancy_to_mesh(ball(8, 2.5), grid_T(0.5, 1.0, 2.0))
     path = write_mesh(mesh, tmp_path / f"m.{fmt}")
     v, f = read_mesh_arrays(path)
-    ref = trimesh.load(path, force="mesh", process=False)
-    assert v.dtype == np.float64 and f.dtype == np.int64 and v.shape[1] == 3 and f.shape[1] == 3
-    np.testing.assert_array_equal(v, np.asarray(ref.vertices, dtype=np.float64))
-    np.testing.assert_array_equal(f, np.asarray(ref.faces))
+    assert v.dtype == np.float64 and f.dtype == np.int64 and v.shape[1] == 3 and f.shape == mesh.faces.shape
+
+    def centroids(vertices, faces):
+        c = np.asarray(vertices, dtype=np.float64)[faces].mean(axis=1)
+        return c[np.lexsort(np.round(c, 3).T[::-1])]
+    np.testing.assert_allclose(centroids(v, f), centroids(mesh.vertices, mesh.faces), atol=1e-4)
     assert trimesh.Trimesh(v, f, process=False).volume == pytest.approx(mesh.volume, rel=1e-5)
+    if fmt == "ply":
+        ref = trimesh.load(path, force="mesh", process=False)
+        np.testing.assert_array_equal(v, np.asarray(ref.vertices, dtype=np.float64))
+        np.testing.assert_array_equal(f, np.asarray(ref.faces))
 
 
 def test_read_mesh_arrays_splits_a_ply_of_quads_as_trimesh_does(tmp_path):
