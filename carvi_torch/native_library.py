@@ -50,7 +50,7 @@ from pathlib import Path
 
 import torch
 
-from .runtime import FileLock
+from .runtime import NO_LOCKS, FileLock
 
 __all__ = ["library_path", "cache_entry_problem", "load", "library_operators", "once"]
 
@@ -163,9 +163,14 @@ def cache_entry_problem(path: Path) -> str | None:
 def _dir_lock(directory: Path, exclusive: bool):
     """An advisory lock of the cache directory (:class:`~carvi_torch.runtime.FileLock` on its ``.lock``, waited
     for): exclusive to build, shared to check and load. Where the platform has no ``flock`` (Windows) nothing is
-    locked: builds stay atomic (``os.replace``), concurrent ones may repeat work."""
+    locked: builds stay atomic (``os.replace``), concurrent ones may repeat work; nor where the file system has no
+    locks (:data:`~carvi_torch.runtime.NO_LOCKS`: Lustre without ``-o flock``, a read-only NFS lock file)."""
     with FileLock(directory / ".lock", mode=0o600) as lock:
-        lock.lock(exclusive)
+        try:
+            lock.lock(exclusive)
+        except OSError as e:
+            if e.errno not in NO_LOCKS:
+                raise
         yield
 
 

@@ -611,8 +611,9 @@ class FileLock:
     """An open lock file, for an advisory ``flock`` between processes: :meth:`lock` takes it, :meth:`release` (or
     the context's end, or the process's) lets it go. The file is created where missing (``mode``, less the
     umask), opened without following a link and closed on ``exec``; one this process may not open for writing
-    (another user's, in a shared folder) is opened read-only, as ``flock`` needs no write access. The file stays
-    after the release.
+    (another user's in a shared folder, or one on a read-only mount) is opened read-only, as a local ``flock``
+    needs no write access (NFS's does for an exclusive lock: :meth:`lock` says so). The file stays after the
+    release.
 
     Example:
         >>> import tempfile
@@ -634,19 +635,29 @@ class FileLock:
     def __init__(self, path: str | os.PathLike, mode: int = 0o666):
         self.path = Path(path)
         flags = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+        self.read_only = False
         try:
             self.fd: int | None = os.open(self.path, os.O_RDWR | os.O_CREAT | flags, mode)
-        except PermissionError:  # another user's lock file in a shared folder
-            self.fd = os.open(self.path, os.O_RDONLY | flags)
+        except OSError as e:
+            if e.errno not in (errno.EACCES, errno.EPERM, errno.EROFS):
+                raise
+            self.fd, self.read_only = os.open(self.path, os.O_RDONLY | flags), True
 
     def lock(self, exclusive: bool = True, wait: bool = True) -> bool:
         """Take the lock, ``exclusive`` or shared; while another holder (another process, or another
         :class:`FileLock` of this one) keeps it from this, wait (``wait``) or raise :class:`BlockingIOError`.
         ``False`` where the platform has no ``flock`` (nothing is locked), an ``OSError`` of :data:`NO_LOCKS` where
-        the file system has none."""
+        the file system has none, or where it locks this file only when opened for writing (NFS emulates ``flock``
+        with POSIX locks: ``EBADF`` on a read-only descriptor)."""
         if fcntl is None:
             return False
-        fcntl.flock(self.fd, (fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH) | (0 if wait else fcntl.LOCK_NB))
+        try:
+            fcntl.flock(self.fd, (fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH) | (0 if wait else fcntl.LOCK_NB))
+        except OSError as e:
+            if e.errno == errno.EBADF and self.read_only and self.fd is not None:
+                raise OSError(errno.ENOLCK, f"{self.path} is open read-only, and this file system locks only files "
+                                            "open for writing") from e
+            raise
         return True
 
     def release(self) -> None:

@@ -467,6 +467,19 @@ def test_the_cache_lock_is_shared_to_load_and_exclusive_to_build(tmp_path, monke
         with native_library._dir_lock(tmp_path, exclusive=True):
             assert not attempt(exclusive=False)
     assert attempt(exclusive=True)
+    for code in (errno.ENOLCK, errno.EIO):  # a file system without locks: the build goes on unlocked; else raised
+        def no_flock(fd, op, code=code):
+            raise OSError(code, os.strerror(code))
+        with monkeypatch.context() as m:
+            m.setattr(runtime.fcntl, "flock", no_flock)
+            if code == errno.EIO:
+                with pytest.raises(OSError), native_library._dir_lock(tmp_path, exclusive=True):
+                    pass
+            else:
+                ran = []
+                with native_library._dir_lock(tmp_path, exclusive=True):
+                    ran.append(True)
+                assert ran
     with FileLock(tmp_path / ".lock") as held:
         held.lock()
         monkeypatch.setattr(runtime, "fcntl", None)

@@ -295,6 +295,45 @@ def test_a_read_only_class_folder_is_refused_before_any_work(copy, monkeypatch):
     assert (out / "config.yaml").read_bytes() == before
 
 
+def test_the_lock_on_a_read_only_mount_and_on_nfs_read_only(tmp_path, monkeypatch, caplog):
+    """A lock file on a read-only mount (EROFS) is opened read-only like another user's; where the file system
+    locks only files open for writing (NFS: EBADF on a read-only descriptor), the folder runs unlocked with the
+    warning of a file system without locks. EBADF on a descriptor open for writing is a fault: raised."""
+    import errno
+    import fcntl
+    import os
+
+    from carvi_torch import runtime
+    from carvi_torch.runtime import FileLock, FolderLock
+
+    real_open, real_flock = os.open, fcntl.flock
+
+    def read_only_mount(path, flags, *mode):
+        if str(path).endswith(FolderLock.NAME) and flags & os.O_RDWR:
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real_open(path, flags, *mode)
+
+    def nfs_flock(fd, op):
+        if (fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_ACCMODE) == os.O_RDONLY:
+            raise OSError(errno.EBADF, "Bad file descriptor")
+        return real_flock(fd, op)
+    (tmp_path / FolderLock.NAME).write_text("123")
+    with monkeypatch.context() as m:
+        m.setattr(runtime.os, "open", read_only_mount)
+        with FileLock(tmp_path / FolderLock.NAME) as lock:
+            assert lock.read_only and lock.lock()
+        m.setattr(fcntl, "flock", nfs_flock)
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="carvi_torch"):
+            FolderLock(tmp_path).release()
+        assert "cannot lock it" in caplog.text
+    with monkeypatch.context() as m:
+        m.setattr(fcntl, "flock", lambda fd, op: (_ for _ in ()).throw(OSError(errno.EBADF, "Bad file descriptor")))
+        with FileLock(tmp_path / "other") as lock, pytest.raises(OSError) as raised:
+            lock.lock()
+        assert raised.value.errno == errno.EBADF
+
+
 def test_the_lock_works_on_another_users_file_and_without_file_system_locks(tmp_path, monkeypatch, caplog):
     """A lock file this process cannot open for writing (another user's, in a shared folder) is locked read-only;
     a file system without flock (ENOLCK, ENOSYS, EOPNOTSUPP) runs unlocked with a warning; any other error is
@@ -331,3 +370,16 @@ def test_the_lock_works_on_another_users_file_and_without_file_system_locks(tmp_
                 with caplog.at_level("WARNING", logger="carvi_torch"):
                     FolderLock(tmp_path).release()
                 assert "cannot lock it" in caplog.text
+
+
+def test_a_resumed_objects_done_entry_must_name_its_meshs_format(tmp_path):
+    """``_convert_mesh`` takes the format the resume check found (``ResumeCheck.done``): a bare truth value is refused
+    before anything is written or removed, instead of rewriting the mesh and unlinking ``<id>.True``."""
+    from carvi_torch.io.results import _convert_mesh
+
+    mesh = tmp_path / "meshes" / "3.ply"
+    mesh.parent.mkdir()
+    mesh.write_bytes(b"kept")
+    with pytest.raises(TypeError, match="object 3: its done entry must be the format"):
+        _convert_mesh(tmp_path, 3, {}, "obj", True)
+    assert mesh.read_bytes() == b"kept" and sorted(p.name for p in mesh.parent.iterdir()) == ["3.ply"]

@@ -30,8 +30,7 @@ from ..cameras import Similarity2D
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvases
 from ..runtime import os_error_line, torch_threads, watch_interrupts
 from .layout import object_stem, reserved
-from .outputs import read_json, safe_name, shown, write_json
-from .results import numbers
+from .outputs import numbers, read_json, safe_name, shown, write_json
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
            "clip_polygon", "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "far_outside",

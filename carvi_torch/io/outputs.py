@@ -23,7 +23,7 @@ import numpy as np
 
 __all__ = ["atomic_write", "write_json", "write_record", "read_json", "read_text", "write_npz", "write_bytes",
            "to_jsonable", "is_done", "safe_name", "record_target", "shown", "shown_names", "folder_within",
-           "write_within", "first_link"]
+           "write_within", "first_link", "numbers"]
 
 
 def _file_mode() -> int:
@@ -309,6 +309,26 @@ def safe_name(name) -> str:
         return text
     slug = re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._-")[:60] or "x"
     return f"{slug}-{hashlib.sha256(text.encode('utf-8', 'surrogatepass')).hexdigest()[:8]}"
+
+
+def numbers(value, shape: tuple, finite: bool = True) -> bool:
+    """Whether ``value`` is nested lists of ``shape`` holding numbers (not booleans; finite ones where ``finite``).
+
+    Example:
+        >>> numbers([[1, 2.5], [3, 4]], (2, 2)), numbers([1, "2"], (2,)), numbers(None, ())
+        (True, False, False)
+        >>> numbers(float("nan"), ()), numbers(float("nan"), (), finite=False)
+        (False, True)
+    """
+    if shape:
+        return isinstance(value, list) and len(value) == shape[0] and all(numbers(v, shape[1:], finite)
+                                                                          for v in value)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return not finite or math.isfinite(value)
+    except OverflowError:  # an integer too large for a float
+        return False
 
 
 def shown(value, width: int = 40) -> str:

@@ -19,7 +19,7 @@ from .. import quality
 from ..cameras import azimuth_elevation_roll_from_rotation
 from ..mesh import occupancy_to_mesh, write_mesh
 from .layout import class_dir, object_file
-from .outputs import read_json, shown, write_json, write_npz
+from .outputs import numbers, read_json, shown, write_json, write_npz
 
 __all__ = ["ROTATION_TOLERANCE", "numbers", "rotation_problem", "camera_record_problem", "shown", "ClassReport",
            "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras",
@@ -176,6 +176,9 @@ def _convert_mesh(cdir: Path, aid, members: dict, mesh_format: str, taken: str) 
     its ``done`` entry: the resume check found no mesh in ``mesh_format``): made from its voxels file's
     ``members`` (the occupancy is the written one, its largest component already taken), written, then the other
     file removed (the same shape, in a format the run no longer writes)."""
+    if not isinstance(taken, str):  # a truth value would name a file "<id>.True" and rewrite every resumed mesh
+        raise TypeError(f"object {aid}: its done entry must be the format of the mesh it is resumed with "
+                        f"(ResumeCheck.done), got {taken!r}")
     if taken == mesh_format:
         return
     write_mesh(occupancy_to_mesh(members["occupancy"], members["voxel_to_camera"]),
@@ -364,26 +367,6 @@ def resumed_levels(cdir: Path, coll, levels: list, done: list) -> list:
 
 #: How far ``R R^T`` may be from the identity for ``R`` (of ``gt.json`` or of a run) to count as a rotation.
 ROTATION_TOLERANCE = 1e-3
-
-
-def numbers(value, shape: tuple, finite: bool = True) -> bool:
-    """Whether ``value`` is nested lists of ``shape`` holding numbers (not booleans; finite ones where ``finite``).
-
-    Example:
-        >>> numbers([[1, 2.5], [3, 4]], (2, 2)), numbers([1, "2"], (2,)), numbers(None, ())
-        (True, False, False)
-        >>> numbers(float("nan"), ()), numbers(float("nan"), (), finite=False)
-        (False, True)
-    """
-    if shape:
-        return isinstance(value, list) and len(value) == shape[0] and all(numbers(v, shape[1:], finite)
-                                                                          for v in value)
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return False
-    try:
-        return not finite or math.isfinite(value)
-    except OverflowError:  # an integer too large for a float
-        return False
 
 
 def rotation_problem(R) -> str | None:
