@@ -242,3 +242,21 @@ def test_read_mesh_arrays_lets_the_parsers_errors_through(tmp_path):
         read_mesh_arrays(path)
     with pytest.raises(FileNotFoundError):
         read_mesh_arrays(tmp_path / "none.ply")
+
+
+def test_read_mesh_arrays_used_only_ignores_unused_vertices(tmp_path):
+    """A model whose unused vertex is NaN: refused by default (the export stores every vertex), read with
+    ``used_only`` (evaluate's metric reads only the vertices its faces name); a NaN vertex a face names is refused
+    either way."""
+    path = tmp_path / "m.off"
+    path.write_text("OFF\n4 1 0\n0 0 0\n1 0 0\n0 1 0\nnan nan nan\n3 0 1 2\n")
+    with pytest.raises(ValueError, match="finite"):
+        read_mesh_arrays(path)
+    v, f = read_mesh_arrays(path, used_only=True)
+    assert v.shape == (4, 3) and f.tolist() == [[0, 1, 2]]
+    from carvi_torch.evaluation.scoring import read_mesh
+
+    assert read_mesh(path).faces.tolist() == [[0, 1, 2]]  # a ground-truth model as evaluate reads it
+    path.write_text("OFF\n4 1 0\n0 0 0\n1 0 0\n0 1 0\nnan nan nan\n3 0 1 3\n")
+    with pytest.raises(ValueError, match="among those its faces name"):
+        read_mesh_arrays(path, used_only=True)

@@ -128,11 +128,11 @@ def camera_problem(cam) -> str | None:
 def read_mesh(path: Path) -> trimesh.Trimesh:
     """The mesh in the file ``path`` as written (:func:`~carvi_torch.mesh.read_mesh_arrays`); ``ValueError`` naming
     the file when there is none it can be read as (no file, a format trimesh does not read, a damaged file, no
-    face, vertices that are not finite, a face index outside the vertices)."""
+    face, a face index outside the vertices, or a vertex a face names that is not finite)."""
     if not Path(path).is_file():
         raise ValueError(f"cannot read {path}: {'a folder, not a file' if Path(path).is_dir() else 'no such file'}")
     try:
-        v, f = read_mesh_arrays(path)
+        v, f = read_mesh_arrays(path, used_only=True)  # the metric reads only the vertices the faces name
     except Exception as e:  # noqa: BLE001 - trimesh raises many kinds for a file it cannot read
         lines = str(e).strip().splitlines()
         raise ValueError(f"cannot read {path}: {type(e).__name__}" + (f": {lines[0]}" if lines else "")) from None
