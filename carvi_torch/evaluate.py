@@ -219,8 +219,9 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     the others have none, and their ids per kind of reason), ``camera_problems`` (per method and class: what of
     its ``cameras.json`` was unusable), ``unfinished`` (the methods whose run has not finished) and
     ``classes_without_reconstruction`` (per class of the data in scope that some method has no folder for: those
-    methods; without ``classes``, a class no method has is not evaluated). With ``shapes=False`` only the
-    viewpoints are evaluated (e.g. after ``stage=cameras``). The shapes are scored with one torch thread per
+    methods; without ``classes``, a class no method has is not evaluated) and ``unread_configs`` (per method
+    folder that is no run of this package and holds a ``config.yaml`` it cannot read: why). With ``shapes=False``
+    only the viewpoints are evaluated (e.g. after ``stage=cameras``). The shapes are scored with one torch thread per
     process, in this process or in ``jobs`` worker processes (default :func:`default_jobs`); the errors are the
     same either way.
 
@@ -229,10 +230,11 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
         ValueError: a ``data`` or ``gt.json`` that is not a JSON object of the expected kind; a ``split`` that no
             annotation of ``data`` has; a name in ``classes`` that is no class of ``data``; a reconstruction whose
             objects are not the ones of ``data`` (an annotation id of its ``cameras.json`` names another
-            object there: another class or ``source``; or none of its ids is in ``data``); a first run whose
-            ``config.yaml`` cannot be read (:class:`~carvi_torch.config.ConfigError`: its canvas loads the masks).
-            Another method's ``config.yaml`` that is no configuration of this package (another tool's file) is
-            listed in ``unread_configs`` and its meshes are found in the default ``mesh_format`` first.
+            object there: another class or ``source``; or a run of this package (the first method, or any folder
+            with a ``summary.json``) whose ``config.yaml`` cannot be read (:class:`~carvi_torch.config.ConfigError`:
+            the first run's canvas loads the masks, a run's ``mesh_format`` says which of its meshes are its own).
+            Another method's folder without ``summary.json`` may hold another tool's ``config.yaml``: it is listed in
+            ``unread_configs`` and its meshes are found in the default ``mesh_format`` first.
     """
     data = Path(data)
     ann = _read_annotations(data, gt, split)
@@ -281,15 +283,16 @@ def _run_config(rdir: Path) -> Config:
 
 def _run_configs(recons: dict) -> tuple[dict, dict]:
     """Each method's run configuration (:func:`_run_config`) and, per method whose ``config.yaml`` could not be
-    read, why: the first method's must be read (its canvas loads the baselines' masks); another's may be another
-    tool's file, and the defaults stand in (its ``mesh_format`` only orders the formats its meshes are looked up in).
-    """
+    read, why: the first method's must be read (its canvas loads the baselines' masks), and so must a run's of this
+    package (a folder with ``summary.json``: its ``mesh_format`` says which of its meshes are its own); another
+    folder may hold another tool's file, and the defaults stand in (its ``mesh_format`` only orders the formats its
+    meshes are looked up in)."""
     configs, unread = {}, {}
     for k, (name, rdir) in enumerate(recons.items()):
         try:
             configs[name] = _run_config(Path(rdir))
         except ConfigError as e:
-            if k == 0:
+            if k == 0 or (Path(rdir) / "summary.json").is_file():
                 raise
             configs[name], unread[name] = Config(), " ".join(str(e).split())
     return configs, unread
@@ -848,8 +851,9 @@ def _print_notes(args, recons: dict, res: dict) -> None:
         lines.append(f"note: {', '.join(cams_only)} stopped after the cameras (stage=cameras): no shapes to score; "
                      "--viewpoints-only evaluates the viewpoints alone")
     for name, why in res.get("unread_configs", {}).items():
-        lines.append(f"note: {name}'s config.yaml is no configuration of this package ({why[:120]}): its meshes are "
-                     f"looked up as {Config().mesh.format} first, then in the other formats")
+        lines.append(f"note: {name} is no run of this package and its config.yaml could not be read as one "
+                     f"({why[:120]}): its meshes are looked up as {Config().mesh.format} first, then in the other "
+                     "formats")
     for name in res["unfinished"]:
         lines.append(f"note: {name} ({recons[name]}) is an unfinished run (interrupted or still running): the "
                      "objects it has not reconstructed yet count as missing")

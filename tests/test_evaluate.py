@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 
-from carvi_torch.config import Config
+from carvi_torch.config import Config, ConfigError
 from carvi_torch.evaluate import evaluate, format_shape_table, format_viewpoint_table, main, posed_gt_mesh
 from carvi_torch.executors import run
 
@@ -161,12 +161,15 @@ def test_the_mesh_scored_is_the_one_of_the_runs_mesh_format(recon, tmp_path):
 
 def test_another_tools_config_yaml_beside_a_methods_meshes_is_noted_not_fatal(recon, tmp_path, capsys):
     """A method's folder holding another tool's ``config.yaml`` is evaluated (its meshes looked up in the default
-    format first) and named in a note; the first run's ``config.yaml`` must be this package's (its canvas loads the
-    masks), so a foreign one there is an error."""
+    format first) and named in a note; a run of this package (a folder with ``summary.json``) and the first method
+    (its canvas loads the masks) must have a readable one, so a foreign one there is an error."""
     data, _ = _gt(recon)
     other = tmp_path / "other"
     shutil.copytree(recon, other)
     (other / "config.yaml").write_text("seed: 42\ndata:\n  root: /x\n")
+    with pytest.raises(ConfigError, match="expected text, got a mapping"):  # a run of this package: its own
+        evaluate(data, {"Full": recon, "Other": other}, classes=["car"], step_percent=2.0, progress=False)
+    (other / "summary.json").unlink()  # another tool's folder of meshes and cameras
     res = evaluate(data, {"Full": recon, "Other": other}, classes=["car"], step_percent=2.0, progress=False)
     assert list(res["unread_configs"]) == ["Other"] and "data" in res["unread_configs"]["Other"]
     scored = [r["Other"]["error_percent"] for r in res["objects"].values() if "Other" in r]
@@ -175,8 +178,8 @@ def test_another_tools_config_yaml_beside_a_methods_meshes_is_noted_not_fatal(re
     capsys.readouterr()
     assert main(["--data", str(data), "--recon", f"Full={recon}", "--recon", f"Other={other}", "--classes", "car",
                  "--step-percent", "2", "--viewpoints-only"]) == 0
-    assert "note: Other's config.yaml is no configuration of this package" in capsys.readouterr().err
-    with pytest.raises(ValueError, match="data"):
+    assert "note: Other is no run of this package and its config.yaml could not be read" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="expected text, got a mapping"):
         evaluate(data, {"Other": other, "Full": recon}, classes=["car"], step_percent=2.0, progress=False)
 
 
