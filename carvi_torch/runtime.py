@@ -641,7 +641,10 @@ class FileLock:
         except OSError as e:
             if e.errno not in (errno.EACCES, errno.EPERM, errno.EROFS):
                 raise
-            self.fd, self.read_only = os.open(self.path, os.O_RDONLY | flags), True
+            try:
+                self.fd, self.read_only = os.open(self.path, os.O_RDONLY | flags), True
+            except FileNotFoundError:  # none to lock, and none can be made here: why not
+                raise e from None
 
     def lock(self, exclusive: bool = True, wait: bool = True) -> bool:
         """Take the lock, ``exclusive`` or shared; while another holder (another process, or another

@@ -322,6 +322,9 @@ def test_the_lock_on_a_read_only_mount_and_on_nfs_read_only(tmp_path, monkeypatc
         m.setattr(runtime.os, "open", read_only_mount)
         with FileLock(tmp_path / FolderLock.NAME) as lock:
             assert lock.read_only and lock.lock()
+        with pytest.raises(OSError) as raised:  # none to open read-only: the mount's error, not "no such file"
+            FileLock(tmp_path / "none" / FolderLock.NAME)
+        assert raised.value.errno == errno.EROFS
         m.setattr(fcntl, "flock", nfs_flock)
         caplog.clear()
         with caplog.at_level("WARNING", logger="carvi_torch"):
