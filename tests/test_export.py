@@ -1357,3 +1357,24 @@ def test_lifted_dataset_on_a_folder_without_a_store_says_what_to_do(recon, tmp_p
             LiftedDataset(folder)
     with pytest.raises(FileNotFoundError, match="no such export"):
         LiftedDataset(tmp_path / "nowhere")
+
+
+def test_objects_made_with_other_settings_are_said_and_recorded_in_the_store(recon, tmp_path, capsys):
+    """A run folder whose objects were made with other settings than its config.yaml's (summary.json's
+    ``resumed_from_other_settings``): the zarr export records them in the store's ``made_with_other_settings`` and
+    every format warns in one line naming each setting's values; a folder without the record says nothing."""
+    run = tmp_path / "run"
+    _run_copy(recon, run)
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "same"), "--quiet"] + _SMALL) == 0
+    assert _store_attrs(tmp_path / "same")["made_with_other_settings"] == {}
+    assert "other settings" not in capsys.readouterr().err
+    summary = json.loads((run / "summary.json").read_text())
+    summary["resumed_from_other_settings"] = {"carve.resolution": [16, 24], "selection.proposals": [5, 10, 10]}
+    (run / "summary.json").write_text(json.dumps(summary))
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "e"), "--quiet"] + _SMALL) == 0
+    assert _store_attrs(tmp_path / "e")["made_with_other_settings"] == summary["resumed_from_other_settings"]
+    for args in ([], ["--format", "ucmr"]):
+        if args:
+            assert export_main(["--recon", str(run), "--out", str(tmp_path / "u"), "--quiet"] + args) == 0
+        said = [line for line in capsys.readouterr().err.splitlines() if "other settings" in line]
+        assert len(said) == 1 and "carve.resolution 16 then 24; selection.proposals 5 then 10 then 10" in said[0]

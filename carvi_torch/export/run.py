@@ -33,7 +33,8 @@ from ..io.layout import object_file, object_mesh
 from ..io.writer import INT64_RANGE, start_method
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import (NOT_YET, NOT_IN_ANNOTATIONS, camera_entry, camera_problem, class_cameras, class_categories,
-                     class_scope, data_path, missing_class_reason, recon_config, run_classes, skip_all, unfinished)
+                     class_scope, data_path, missing_class_reason, other_settings, recon_config, run_classes, skip_all,
+                     unfinished)
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object,
                       safe_export_objects, view_occupancy)
 from .settings import settings_problem
@@ -177,7 +178,8 @@ def report_skipped(recon: Path, skipped_list: list, exported: int, pending: bool
     """The skipped objects, one line each (a count alone when ``progress`` is off; ``where``: where the reasons
     are); one warning line counting, per class, the ``cameras.json`` entries that name no object of the
     annotation file ``data``; an unfinished run's objects not reconstructed yet in one line, counted per class,
-    with the classes it has not started."""
+    with the classes it has not started; one warning line where the run's objects were made with other settings
+    than its ``config.yaml``'s (:func:`~carvi_torch.export.source.other_settings`)."""
     import sys
 
     other = [s for s in skipped_list if s["reason"] != NOT_YET]
@@ -190,6 +192,12 @@ def report_skipped(recon: Path, skipped_list: list, exported: int, pending: bool
         print(f"warning: {sum(extra.values())} camera(s) in cameras.json name no object of the annotation file "
               f"{data}: {', '.join(f'{n} of class {c}' for c, n in extra.items())} (listed as skipped; was the run "
               "made from another file?)", file=sys.stderr)
+    made = other_settings(recon)
+    if made:
+        print(f"warning: {recon} holds objects made with other settings than its config.yaml's: "
+              + "; ".join(f"{k} {' then '.join(map(str, v))}" for k, v in made.items())
+              + " (oldest first, then the run's; summary.json's resumed_from_other_settings: the folder's record, "
+              "not each object's); reconstruct with overwrite=true makes them alike", file=sys.stderr)
     if pending:
         print(f"warning: {recon} is an unfinished run (interrupted or still running): exported the {exported} "
               f"object(s) it finished; {_not_yet(recon, skipped_list)} (rerun reconstruct to finish it)",
@@ -294,7 +302,8 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
                  "points": points, "seed": seed, "classes": class_names,
                  "class_extent": {c: writer.extent[c] for c in class_names if c in writer.extent},
                  "categories": writer.categories,
-                 "skipped": skipped_list, "seconds": round(time.perf_counter() - t0, 3)}
+                 "skipped": skipped_list, "made_with_other_settings": other_settings(recon),
+                 "seconds": round(time.perf_counter() - t0, 3)}
         desc = writer.close(attrs)
     except InterruptedAfterSwap as e:  # Ctrl-C during the swap: the new store is complete, nothing to undo
         e.result = {**e.result, "samples": samples}
