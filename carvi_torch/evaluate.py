@@ -77,7 +77,7 @@ import torch
 from .cli import CommandError, add_common, positive_int, program, run_command, split_classes, writable_folder
 from .config import Config, ConfigError, read_run_config
 from .io.coco import CocoFormatError, class_keys, class_names, load_coco, object_id, select_classes
-from .io.layout import NOT_YET, unfinished
+from .io.layout import NOT_YET, other_settings, unfinished
 from .io.outputs import read_json, shown_names, write_bytes, write_json
 from .io.results import annotation_source, same_object
 from .evaluation import reliability, viewpoint_metrics
@@ -219,8 +219,10 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
     the others have none, and their ids per kind of reason), ``camera_problems`` (per method and class: what of
     its ``cameras.json`` was unusable), ``unfinished`` (the methods whose run has not finished) and
     ``classes_without_reconstruction`` (per class of the data in scope that some method has no folder for: those
-    methods; without ``classes``, a class no method has is not evaluated) and ``unread_configs`` (per method
-    folder that is no run of this package and holds a ``config.yaml`` it cannot read: why). With ``shapes=False``
+    methods; without ``classes``, a class no method has is not evaluated), ``unread_configs`` (per method
+    folder that is no run of this package and holds a ``config.yaml`` it cannot read: why) and
+    ``made_with_other_settings`` (per method whose folder holds objects made with other settings than its
+    ``config.yaml``'s: :func:`~carvi_torch.io.layout.other_settings`). With ``shapes=False``
     only the viewpoints are evaluated (e.g. after ``stage=cameras``). The shapes are scored with one torch thread per
     process, in this process or in ``jobs`` worker processes (default :func:`default_jobs`); the errors are the
     same either way.
@@ -269,7 +271,8 @@ def evaluate(data: str | Path, recons: dict[str, str | Path], *, gt: str | Path 
            "viewpoints": _class_viewpoints(list(per_class), objects, ann, cameras),
            "viewpoint_coverage": _viewpoint_coverage(objects, ann, cameras, problems),
            "camera_problems": _problem_texts(problems), "unfinished": unfinished,
-           "classes_without_reconstruction": without, "unread_configs": unread_configs}
+           "classes_without_reconstruction": without, "unread_configs": unread_configs,
+           "made_with_other_settings": {name: made for name, rdir in recons.items() if (made := other_settings(rdir))}}
     res["quality"] = reliability.quality_vs_error(res, cameras)
     res["seconds"] = round(time.perf_counter() - t0, 2)
     return res
@@ -854,6 +857,10 @@ def _print_notes(args, recons: dict, res: dict) -> None:
         lines.append(f"note: {name} is no run of this package and its config.yaml could not be read as one "
                      f"({why[:120]}): its meshes are looked up as {Config().mesh.format} first, then in the other "
                      "formats")
+    for name, made in res.get("made_with_other_settings", {}).items():
+        lines.append(f"note: {name} ({recons[name]}) holds objects made with other settings than its config.yaml's: "
+                     + "; ".join(f"{k} {' then '.join(map(str, v))}" for k, v in made.items())
+                     + " (oldest first, then the run's): its errors mix them")
     for name in res["unfinished"]:
         lines.append(f"note: {name} ({recons[name]}) is an unfinished run (interrupted or still running): the "
                      "objects it has not reconstructed yet count as missing")

@@ -183,6 +183,25 @@ def test_another_tools_config_yaml_beside_a_methods_meshes_is_noted_not_fatal(re
         evaluate(data, {"Other": other, "Full": recon}, classes=["car"], step_percent=2.0, progress=False)
 
 
+def test_a_run_made_with_other_settings_is_noted(recon, tmp_path, capsys):
+    """A method's folder whose objects were made with other settings than its config.yaml's: evaluate lists it in
+    ``made_with_other_settings`` and says so in a note naming each setting's values; a folder without the record
+    is not listed."""
+    data, _ = _gt(recon)
+    run = tmp_path / "run"
+    shutil.copytree(recon, run)
+    summary = json.loads((run / "summary.json").read_text())
+    summary["resumed_from_other_settings"] = {"carve.resolution": [16, 24]}
+    (run / "summary.json").write_text(json.dumps(summary))
+    capsys.readouterr()
+    assert main(["--data", str(data), "--recon", f"Mixed={run}", "--recon", f"Full={recon}", "--classes", "car",
+                 "--viewpoints-only", "--out", str(tmp_path / "ev")]) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if "other settings" in line]
+    assert len(notes) == 1 and notes[0].startswith("note: Mixed (") and "carve.resolution 16 then 24" in notes[0]
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert res["made_with_other_settings"] == {"Mixed": {"carve.resolution": [16, 24]}}
+
+
 def test_an_object_whose_ground_truth_fails_gets_a_reason_and_no_scores(recon, tmp_path):
     """A ground-truth mesh that cannot be read leaves its object unscored, with the reason, for every method and
     baseline; the class's other objects are scored."""

@@ -29,12 +29,11 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..io.coco import load_coco, skipped_at_load
-from ..io.layout import object_file, object_mesh
+from ..io.layout import object_file, object_mesh, other_settings
 from ..io.writer import INT64_RANGE, start_method
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import (NOT_YET, NOT_IN_ANNOTATIONS, camera_entry, camera_problem, class_cameras, class_categories,
-                     class_scope, data_path, missing_class_reason, other_settings, recon_config, run_classes, skip_all,
-                     unfinished)
+                     class_scope, data_path, missing_class_reason, recon_config, run_classes, skip_all, unfinished)
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object,
                       safe_export_objects, view_occupancy)
 from .settings import settings_problem
@@ -179,7 +178,7 @@ def report_skipped(recon: Path, skipped_list: list, exported: int, pending: bool
     are); one warning line counting, per class, the ``cameras.json`` entries that name no object of the
     annotation file ``data``; an unfinished run's objects not reconstructed yet in one line, counted per class,
     with the classes it has not started; one warning line where the run's objects were made with other settings
-    than its ``config.yaml``'s (:func:`~carvi_torch.export.source.other_settings`)."""
+    than its ``config.yaml``'s (:func:`~carvi_torch.io.layout.other_settings`)."""
     import sys
 
     other = [s for s in skipped_list if s["reason"] != NOT_YET]

@@ -11,7 +11,7 @@ from ..io.results import camera_record_problem
 
 __all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories",
            "camera_problem", "camera_entry", "missing_class_reason", "extra_cameras", "skip_all", "class_cameras",
-           "other_settings", "NOT_YET", "NOT_IN_ANNOTATIONS"]
+           "NOT_YET", "NOT_IN_ANNOTATIONS"]
 
 #: How the reason of a ``cameras.json`` entry that names no object of the annotation file begins.
 NOT_IN_ANNOTATIONS = "in cameras.json but not an object of the annotation file"
@@ -23,22 +23,6 @@ def recon_config(recon: Path) -> Config:
     if not p.is_file():
         raise FileNotFoundError(f"{recon}: no config.yaml (is this a reconstruction directory?)")
     return read_run_config(p)
-
-
-def other_settings(recon: Path) -> dict:
-    """The settings the run folder's finished objects were made with where they are not its ``config.yaml``'s
-    (``summary.json``'s ``resumed_from_other_settings``: per setting, the values the objects were made with, oldest
-    first, then the run's); ``{}`` where there are none, or no readable record.
-
-    Example:
-        >>> other_settings(Path("no/such/run"))
-        {}
-    """
-    try:
-        record = read_json(recon / "summary.json").get("resumed_from_other_settings")
-    except (OSError, ValueError, AttributeError):
-        return {}
-    return {str(k): v for k, v in record.items() if isinstance(v, list)} if isinstance(record, dict) else {}
 
 
 def data_path(recon: Path, cfg: Config) -> Path:

@@ -32,7 +32,7 @@ from .outputs import first_link, read_json, safe_name, shown_names
 __all__ = ["unfinished", "NOT_YET",
            "class_dir", "object_stem", "object_file", "object_mesh", "finished", "KINDS", "RUN_NAMES", "reserved",
            "INPUTS_CHANGED", "NO_INPUT_RECORD", "CANVAS_CHANGED", "PER_OBJECT_SETTINGS", "ResumeCheck", "resume_check",
-           "same_canvas", "other_objects", "held_fingerprint", "linked_path"]
+           "same_canvas", "other_objects", "held_fingerprint", "linked_path", "other_settings"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -82,6 +82,22 @@ def linked_path(out: str | Path, keys=()) -> Path | None:
             if path.is_symlink():
                 return path
     return None
+
+
+def other_settings(recon: str | Path) -> dict:
+    """The settings the run folder's finished objects were made with where they are not its ``config.yaml``'s
+    (``summary.json``'s ``resumed_from_other_settings``: per setting, the values the objects were made with, oldest
+    first, then the run's); ``{}`` where there are none, or no readable record.
+
+    Example:
+        >>> other_settings(Path("no/such/run"))
+        {}
+    """
+    try:
+        record = read_json(Path(recon) / "summary.json").get("resumed_from_other_settings")
+    except (OSError, ValueError, AttributeError):
+        return {}
+    return {str(k): v for k, v in record.items() if isinstance(v, list)} if isinstance(record, dict) else {}
 
 
 def object_stem(annotation_id) -> str:
