@@ -216,6 +216,22 @@ def test_a_class_meshes_in_an_earlier_format_get_their_3d_view_and_link(recon, t
     assert all(c["files"]["mesh"].endswith(f"meshes/{c['id']}.ply") for c in cards)
 
 
+def test_the_page_says_when_objects_were_made_with_other_settings(recon, tmp_path):
+    """A run whose summary records objects made with other settings than its config.yaml's: the page's header says
+    which, in one escaped line; a run without the record has no such line."""
+    run = tmp_path / "run"
+    shutil.copytree(recon, run, ignore=shutil.ignore_patterns("report"))
+    assert report_main(["--recon", str(run), "--out", str(tmp_path / "same"), "--quiet"]) == 0
+    assert "other settings" not in (tmp_path / "same" / "index.html").read_text()
+    summary = json.loads((run / "summary.json").read_text())
+    summary["resumed_from_other_settings"] = {"carve.resolution": [16, 24], "<b>": ["x", "y"]}
+    (run / "summary.json").write_text(json.dumps(summary))
+    assert report_main(["--recon", str(run), "--out", str(tmp_path / "rep"), "--quiet"]) == 0
+    page = (tmp_path / "rep" / "index.html").read_text()
+    line = re.search(r"<p class=warn>(.*?)</p>", page).group(1)
+    assert "carve.resolution 16 then 24; &lt;b&gt; x then y" in line and "<b>" not in page
+
+
 def test_no_network_reference_and_vendored_files_intact(recon):
     for p in (recon / "report").rglob("*"):
         if p.suffix in (".jpg", ".png") or p.name in ("LICENSE.three.txt", "VENDOR.md") or not p.is_file():

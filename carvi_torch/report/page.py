@@ -88,7 +88,25 @@ def _header(summary: dict, title: str, n_cards: int, sort_by: str) -> str:
     if isinstance(secs, (int, float)):
         line += f"; run took {secs:.1f} s on {escape(str(summary.get('device', '?')))}"
     extra = f"<p>input problems reported at load: {len(problems)} (summary.json)</p>" if problems else ""
-    return f"<header><h1>{escape(title)}</h1><p>{line}</p>{extra}</header>"
+    return f"<header><h1>{escape(title)}</h1><p>{line}</p>{extra}{_other_settings(summary)}</header>"
+
+
+def _other_settings(summary: dict) -> str:
+    """A line saying the run's objects were made with other settings than its ``config.yaml``'s (``summary.json``'s
+    ``resumed_from_other_settings``), or nothing.
+
+    Example:
+        >>> _other_settings({"resumed_from_other_settings": {"carve.resolution": [16, 24]}})[:92]
+        '<p class=warn>objects made with other settings than config.yaml: carve.resolution 16 then 24'
+    """
+    made = summary.get("resumed_from_other_settings")
+    made = {k: v for k, v in made.items() if isinstance(v, list)} if isinstance(made, dict) else {}
+    if not made:
+        return ""
+    values = "; ".join(f"{k} {' then '.join(map(str, v))}" for k, v in made.items())
+    text = (f"objects made with other settings than config.yaml: {values} (oldest first, then this run's; "
+            "reconstruct with overwrite=true makes them alike)")
+    return f"<p class=warn>{escape(text)}</p>"
 
 
 def index_html(summary: dict, title: str, panels: list[str], classes: list[tuple[str, str]], n_cards: int,
