@@ -143,6 +143,11 @@ class LiftedDataset(Dataset):
             raise ValueError(f"unknown field(s) {bad}; available: {sorted(known)}")
         self.transform = transform
         self.class_names = self.reader.class_names
+        made = self.attrs.get("made_with_other_settings") or {}
+        if made:
+            warnings.warn(f"{root}: its objects were made with other settings than their run's config.yaml: "
+                          + "; ".join(f"{k} {' then '.join(map(str, v))}" for k, v in made.items())
+                          + " (oldest first, then the run's; the export's made_with_other_settings)", stacklevel=2)
         wanted = set(classes) if classes is not None else None
         if wanted is not None and wanted - set(self.class_names):
             raise ValueError(f"class(es) {sorted(wanted - set(self.class_names))} not in the export; available: "
@@ -151,6 +156,12 @@ class LiftedDataset(Dataset):
                       if (wanted is None or s["class"] in wanted)
                       and (min_quality is None or (not math.isnan(s["quality"]) and s["quality"] >= min_quality))]
         self._dtypes = {f: getattr(torch, known[f].get("returns") or known[f]["dtype"]) for f in self.fields}
+
+    @property
+    def attrs(self) -> dict:
+        """The export's description (the root's ``carvi_export`` attribute: classes, fields, ``skipped`` objects,
+        ``made_with_other_settings``, ...); ``{}`` for the shard layout."""
+        return getattr(self.reader, "attrs", {})
 
     def __len__(self) -> int:
         return len(self._rows)

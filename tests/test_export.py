@@ -6,6 +6,7 @@ import math
 import shutil
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -1373,6 +1374,12 @@ def test_objects_made_with_other_settings_are_said_and_recorded_in_the_store(rec
     (run / "summary.json").write_text(json.dumps(summary))
     assert export_main(["--recon", str(run), "--out", str(tmp_path / "e"), "--quiet"] + _SMALL) == 0
     assert _store_attrs(tmp_path / "e")["made_with_other_settings"] == summary["resumed_from_other_settings"]
+    with pytest.warns(UserWarning, match="carve.resolution 16 then 24; selection.proposals 5 then 10 then 10"):
+        ds = LiftedDataset(tmp_path / "e")
+    assert ds.attrs["made_with_other_settings"] == summary["resumed_from_other_settings"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert LiftedDataset(tmp_path / "same").attrs["made_with_other_settings"] == {}
     for args in ([], ["--format", "ucmr"]):
         if args:
             assert export_main(["--recon", str(run), "--out", str(tmp_path / "u"), "--quiet"] + args) == 0
