@@ -45,10 +45,10 @@ import numpy as np
 import scipy.io
 from scipy.spatial import ConvexHull, distance
 
-from ..io.coco import load_coco, object_id, skipped_at_load
+from ..io.coco import load_coco, object_id
 from ..io.outputs import atomic_write, write_json
-from .source import (camera_entry, camera_problem, class_cameras, class_scope, data_path, recon_config, run_classes,
-                     unfinished)
+from .source import (camera_entry, camera_problem, class_cameras, class_scope, data_path, load_skips, recon_config,
+                     run_classes, unfinished)
 
 __all__ = ["normalised_shape", "cmr_pose", "export_format", "class_records", "quaternion_wxyz", "annotation_boxes"]
 
@@ -196,7 +196,7 @@ def _class_skips(loaded, recon: Path, cname: str, data: Path, pending: bool) -> 
     those skipped at load, every other one where there are no cameras, and the entries of ``cameras.json`` that
     name no object of the annotation file ``data`` (:func:`~carvi_torch.export.source.class_cameras`; ``pending``:
     the run is unfinished)."""
-    skipped = [{**s, "class": cname} for s in skipped_at_load(loaded.problems, cname)]
+    skipped = load_skips(loaded.problems, [cname])[cname]
     coll = loaded.collections.get(cname)
     cams = class_cameras(coll, cname, recon, skipped, pending, data) if coll is not None else None
     return cams, skipped

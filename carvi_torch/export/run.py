@@ -28,12 +28,13 @@ from typing import Iterable, Iterator
 import numpy as np
 from tqdm.auto import tqdm
 
-from ..io.coco import load_coco, skipped_at_load
+from ..io.coco import load_coco
 from ..io.layout import object_file, object_mesh, other_settings
 from ..io.writer import INT64_RANGE, start_method
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import (NOT_YET, NOT_IN_ANNOTATIONS, camera_entry, camera_problem, class_cameras, class_categories,
-                     class_scope, data_path, missing_class_reason, recon_config, run_classes, skip_all, unfinished)
+                     class_scope, data_path, load_skips, missing_class_reason, recon_config, run_classes, skip_all,
+                     unfinished)
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object,
                       safe_export_objects, view_occupancy)
 from .settings import settings_problem
@@ -236,7 +237,7 @@ def _missing_class_skips(loaded, recon: Path, missing: list) -> dict[str, list]:
     """``{class: [skipped objects]}`` of the classes of a finished run that have no folder: the objects skipped at
     load and every other object of the class, with the reason
     (:func:`~carvi_torch.export.source.missing_class_reason`)."""
-    out = _load_skips(loaded.problems, missing)
+    out = load_skips(loaded.problems, missing)
     for c in missing:
         coll = loaded.collections.get(c)
         out[c].extend(skip_all(coll, c, missing_class_reason(recon, c)) if coll is not None else ())
@@ -248,12 +249,6 @@ def _none_exported(skipped_list: list, out: Path) -> str:
     first = skipped_list[0]
     return (f"none of the {len(skipped_list)} object(s) could be exported (the first, {first['class']} annotation "
             f"{first['annotation_id']}: {first['reason']}); {out} is as it was")
-
-
-def _load_skips(problems: list, class_names: list) -> dict[str, list]:
-    """``{class: [skipped objects]}``, each class's list started with its objects skipped when the annotations
-    were read (:func:`~carvi_torch.io.coco.skipped_at_load`, as ``summary.json`` books them), with their reason."""
-    return {c: [{**s, "class": c} for s in skipped_at_load(problems, c)] for c in class_names}
 
 
 def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int = 2048, shard_size: int = 256,
@@ -287,7 +282,7 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     try:
         loaded, class_names, missing = _load(recon, cfg, data, classes, pending)
         writer.categories = class_categories(loaded.dataset["categories"], class_names)
-        skipped = _load_skips(loaded.problems, class_names)
+        skipped = load_skips(loaded.problems, class_names)
         samples = _write_samples(loaded, recon, class_names, settings, writer, skipped, progress, workers,
                                  NOT_YET if pending else "no voxels (not reconstructed)", data)
         if pending and not samples:

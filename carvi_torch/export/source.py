@@ -4,14 +4,14 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..config import Config, read_run_config
-from ..io.coco import class_keys, class_names, select_classes
+from ..io.coco import class_keys, class_names, select_classes, skipped_at_load
 from ..io.layout import NOT_YET, unfinished  # noqa: F401 - the export's names for them
 from ..io.outputs import read_json, shown
 from ..io.results import camera_record_problem
 
 __all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories",
-           "camera_problem", "camera_entry", "missing_class_reason", "extra_cameras", "skip_all", "class_cameras",
-           "NOT_YET", "NOT_IN_ANNOTATIONS"]
+           "camera_problem", "camera_entry", "load_skips", "missing_class_reason", "extra_cameras", "skip_all",
+           "class_cameras", "NOT_YET", "NOT_IN_ANNOTATIONS"]
 
 #: How the reason of a ``cameras.json`` entry that names no object of the annotation file begins.
 NOT_IN_ANNOTATIONS = "in cameras.json but not an object of the annotation file"
@@ -23,6 +23,13 @@ def recon_config(recon: Path) -> Config:
     if not p.is_file():
         raise FileNotFoundError(f"{recon}: no config.yaml (is this a reconstruction directory?)")
     return read_run_config(p)
+
+
+def load_skips(problems: list, class_names: list) -> dict[str, list]:
+    """``{class: [skipped objects]}``, each class's list started with its objects skipped when the annotations
+    were read (:func:`~carvi_torch.io.coco.skipped_at_load`, as ``summary.json`` books them), with their reason."""
+    return {c: [{**s, "class": c} for s in skipped_at_load(problems, c)] for c in class_names}
+
 
 
 def data_path(recon: Path, cfg: Config) -> Path:
