@@ -821,7 +821,7 @@ def test_one_cli_and_a_log(base, tmp_path, capsys):
 def test_a_duplicate_id_leaves_the_first_objects_card_alone(base, tmp_path):
     """A copy of annotation 2 with the same id: the copy is an input problem, while the object with that id
     (the first) is reconstructed, not listed among the class's failures, and its report card has its mesh."""
-    from carvi_torch.export.run import _load_skips
+    from carvi_torch.export.source import load_skips
 
     d = copy.deepcopy(base)
     first = next(a for a in d["annotations"] if a["id"] == 2)
@@ -835,4 +835,4 @@ def test_a_duplicate_id_leaves_the_first_objects_card_alone(base, tmp_path):
     cards = json.loads(text[text.index("\n[") + 1:text.rindex("]") + 1])
     card = next(c for c in cards if c["id"] == "2")
     assert "skipped" not in card and card.get("mesh"), card
-    assert _load_skips(load_coco(_write(tmp_path, d), canvas_size=48).problems, ["car"]) == {"car": []}
+    assert load_skips(load_coco(_write(tmp_path, d), canvas_size=48).problems, ["car"]) == {"car": []}
