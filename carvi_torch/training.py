@@ -26,6 +26,8 @@ import torch
 from torch.utils.data import Dataset
 from torch.utils.data._utils.collate import default_collate
 
+from .io.layout import other_settings_text
+
 __all__ = ["LiftedDataset", "collate_lifted", "ZarrReader"]
 
 
@@ -146,7 +148,7 @@ class LiftedDataset(Dataset):
         made = self.attrs.get("made_with_other_settings") or {}
         if made:
             warnings.warn(f"{root}: its objects were made with other settings than their run's config.yaml: "
-                          + "; ".join(f"{k} {' then '.join(map(str, v))}" for k, v in made.items())
+                          + other_settings_text(made)
                           + " (oldest first, then the run's; the export's made_with_other_settings)", stacklevel=2)
         wanted = set(classes) if classes is not None else None
         if wanted is not None and wanted - set(self.class_names):

@@ -1370,7 +1370,8 @@ def test_objects_made_with_other_settings_are_said_and_recorded_in_the_store(rec
     assert _store_attrs(tmp_path / "same")["made_with_other_settings"] == {}
     assert "other settings" not in capsys.readouterr().err
     summary = json.loads((run / "summary.json").read_text())
-    summary["resumed_from_other_settings"] = {"carve.resolution": [16, 24], "selection.proposals": [5, 10, 10]}
+    summary["resumed_from_other_settings"] = {"carve.resolution": [16, 24], "selection.proposals": [5, 10, 10],
+                                              "note": ["two\nlines", "one"]}  # a hand-edited record stays one line
     (run / "summary.json").write_text(json.dumps(summary))
     assert export_main(["--recon", str(run), "--out", str(tmp_path / "e"), "--quiet"] + _SMALL) == 0
     assert _store_attrs(tmp_path / "e")["made_with_other_settings"] == summary["resumed_from_other_settings"]
@@ -1384,4 +1385,5 @@ def test_objects_made_with_other_settings_are_said_and_recorded_in_the_store(rec
         if args:
             assert export_main(["--recon", str(run), "--out", str(tmp_path / "u"), "--quiet"] + args) == 0
         said = [line for line in capsys.readouterr().err.splitlines() if "other settings" in line]
-        assert len(said) == 1 and "carve.resolution 16 then 24; selection.proposals 5 then 10 then 10" in said[0]
+        assert len(said) == 1 and ("carve.resolution 16 then 24; selection.proposals 5 then 10 then 10; note two lines "
+                                   "then one") in said[0]

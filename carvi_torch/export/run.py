@@ -29,7 +29,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..io.coco import load_coco
-from ..io.layout import object_file, object_mesh, other_settings
+from ..io.layout import object_file, object_mesh, other_settings, other_settings_text
 from ..io.writer import INT64_RANGE, start_method
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import (NOT_YET, NOT_IN_ANNOTATIONS, camera_entry, camera_problem, class_cameras, class_categories,
@@ -195,7 +195,7 @@ def report_skipped(recon: Path, skipped_list: list, exported: int, pending: bool
     made = other_settings(recon)
     if made:
         print(f"warning: {recon} holds objects made with other settings than its config.yaml's: "
-              + "; ".join(f"{k} {' then '.join(map(str, v))}" for k, v in made.items())
+              + other_settings_text(made)
               + " (oldest first, then the run's; summary.json's resumed_from_other_settings: the folder's record, "
               "not each object's); reconstruct with overwrite=true makes them alike", file=sys.stderr)
     if pending:

@@ -32,7 +32,7 @@ from .outputs import first_link, read_json, safe_name, shown_names
 __all__ = ["unfinished", "NOT_YET",
            "class_dir", "object_stem", "object_file", "object_mesh", "finished", "KINDS", "RUN_NAMES", "reserved",
            "INPUTS_CHANGED", "NO_INPUT_RECORD", "CANVAS_CHANGED", "PER_OBJECT_SETTINGS", "ResumeCheck", "resume_check",
-           "same_canvas", "other_objects", "held_fingerprint", "linked_path", "other_settings"]
+           "same_canvas", "other_objects", "held_fingerprint", "linked_path", "other_settings", "other_settings_text"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -98,6 +98,17 @@ def other_settings(recon: str | Path) -> dict:
     except (OSError, ValueError, AttributeError):
         return {}
     return {str(k): v for k, v in record.items() if isinstance(v, list)} if isinstance(record, dict) else {}
+
+
+def other_settings_text(made: dict) -> str:
+    """:func:`other_settings`' record on one line: each setting with its values, oldest first (a value's own line
+    breaks and runs of spaces shown as one space).
+
+    Example:
+        >>> other_settings_text({"carve.resolution": [16, 24], "note": ["a\\nb", None]})
+        'carve.resolution 16 then 24; note a b then None'
+    """
+    return "; ".join(f"{k} " + " then ".join(" ".join(str(v).split()) for v in values) for k, values in made.items())
 
 
 def object_stem(annotation_id) -> str:

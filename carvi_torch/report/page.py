@@ -13,6 +13,7 @@ from __future__ import annotations
 from html import escape
 from urllib.parse import quote
 
+from ..io.layout import other_settings_text
 from .cards import legend
 
 __all__ = ["class_panel_html", "index_html", "MAX_REASONS"]
@@ -103,7 +104,7 @@ def _other_settings(summary: dict) -> str:
     made = {k: v for k, v in made.items() if isinstance(v, list)} if isinstance(made, dict) else {}
     if not made:
         return ""
-    values = "; ".join(f"{k} {' then '.join(map(str, v))}" for k, v in made.items())
+    values = other_settings_text(made)
     text = (f"objects made with other settings than config.yaml: {values} (oldest first, then this run's; "
             "reconstruct with overwrite=true makes them alike)")
     return f"<p class=warn>{escape(text)}</p>"
