@@ -26,7 +26,7 @@ import torch
 from torch.utils.data import Dataset
 from torch.utils.data._utils.collate import default_collate
 
-from .io.layout import other_settings_text
+from .io.layout import other_settings_text, settings_record
 
 __all__ = ["LiftedDataset", "collate_lifted", "ZarrReader"]
 
@@ -145,7 +145,7 @@ class LiftedDataset(Dataset):
             raise ValueError(f"unknown field(s) {bad}; available: {sorted(known)}")
         self.transform = transform
         self.class_names = self.reader.class_names
-        made = self.attrs.get("made_with_other_settings") or {}
+        made = settings_record(self.attrs.get("made_with_other_settings"))
         if made:
             warnings.warn(f"{root}: its objects were made with other settings than their run's config.yaml: "
                           + other_settings_text(made)

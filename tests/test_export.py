@@ -1387,3 +1387,30 @@ def test_objects_made_with_other_settings_are_said_and_recorded_in_the_store(rec
         said = [line for line in capsys.readouterr().err.splitlines() if "other settings" in line]
         assert len(said) == 1 and ("carve.resolution 16 then 24; selection.proposals 5 then 10 then 10; note two lines "
                                    "then one") in said[0]
+
+
+def test_a_hand_edited_settings_record_is_stored_and_said_safely(recon, tmp_path, capsys):
+    """A summary.json record edited by hand (a name with a line break, NaN, a value nested 900 deep, a list of 40
+    values, an empty list, a lone value): the export writes a store any JSON reader takes, warns on one line, and
+    keeps only settings with two or more values, each plain or a short text."""
+    from carvi_torch.io.layout import MOST_SETTINGS, settings_record
+
+    deep: list = []
+    for _ in range(900):
+        deep = [deep]
+    record = {"carve.resolution\nwarning: fake": [16, 24], "a": [float("nan"), 1], "b": [deep, 2],
+              "c": list(range(40)), "d": [], "e": [24]}
+    kept = settings_record(record)
+    assert list(kept) == ["carve.resolution warning: fake", "a", "b", "c"]
+    assert kept["a"] == ["nan", 1] and isinstance(kept["b"][0], str) and len(kept["b"][0]) <= 80
+    assert len(kept["c"]) == MOST_SETTINGS and kept["c"][-1] == 39
+    run = tmp_path / "run"
+    _run_copy(recon, run)
+    summary = json.loads((run / "summary.json").read_text())
+    (run / "summary.json").write_text(json.dumps({**summary, "resumed_from_other_settings": record}))
+    capsys.readouterr()
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "e"), "--quiet"] + _SMALL) == 0
+    json.loads((tmp_path / "e" / "zarr.json").read_text(), parse_constant=lambda c: pytest.fail(f"{c} in zarr.json"))
+    assert _store_attrs(tmp_path / "e")["made_with_other_settings"] == kept
+    said = [line for line in capsys.readouterr().err.splitlines() if "other settings" in line or "fake" in line]
+    assert len(said) == 1 and "carve.resolution warning: fake 16 then 24; a nan then 1" in said[0]

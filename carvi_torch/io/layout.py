@@ -22,6 +22,7 @@ Example:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,7 +33,8 @@ from .outputs import first_link, read_json, safe_name, shown_names
 __all__ = ["unfinished", "NOT_YET",
            "class_dir", "object_stem", "object_file", "object_mesh", "finished", "KINDS", "RUN_NAMES", "reserved",
            "INPUTS_CHANGED", "NO_INPUT_RECORD", "CANVAS_CHANGED", "PER_OBJECT_SETTINGS", "ResumeCheck", "resume_check",
-           "same_canvas", "other_objects", "held_fingerprint", "linked_path", "other_settings", "other_settings_text"]
+           "same_canvas", "other_objects", "held_fingerprint", "linked_path", "other_settings", "other_settings_text",
+           "settings_record", "MOST_SETTINGS"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -97,7 +99,45 @@ def other_settings(recon: str | Path) -> dict:
         record = read_json(Path(recon) / "summary.json").get("resumed_from_other_settings")
     except (OSError, ValueError, AttributeError):
         return {}
-    return {str(k): v for k, v in record.items() if isinstance(v, list)} if isinstance(record, dict) else {}
+    return settings_record(record)
+
+
+#: The most settings, and values per setting, a mixed-settings record keeps (the run's value always among them).
+MOST_SETTINGS = 16
+
+
+def settings_record(record) -> dict:
+    """A mixed-settings record (``resumed_from_other_settings``, or the export's ``made_with_other_settings``) as
+    safe to store and print: per setting (its name on one line, at most 80 characters), two or more values, each a
+    plain JSON value (text, a whole number, a finite float, a truth value, ``null``); any other value, or text over
+    80 characters, becomes a short text; at most :data:`MOST_SETTINGS` settings and values (the last, the run's,
+    kept). Anything else, or a setting with fewer than two values, is left out.
+
+    Example:
+        >>> settings_record({"carve.resolution": [16, 24], "x": [24], "y": "no list", "z": [float("nan"), [1, 2]]})
+        {'carve.resolution': [16, 24], 'z': ['nan', '[1, 2]']}
+    """
+    if not isinstance(record, dict):
+        return {}
+    out = {}
+    for k, values in list(record.items())[:MOST_SETTINGS]:
+        if isinstance(values, list) and len(values) >= 2:
+            kept = values[:MOST_SETTINGS - 1] + values[-1:] if len(values) > MOST_SETTINGS else values
+            out[" ".join(str(k).split())[:80]] = [_plain(v) for v in kept]
+    return out
+
+
+def _plain(value):
+    """``value`` where it is a plain JSON value (text of at most 80 characters), else a short text of it."""
+    if value is None or isinstance(value, (bool, int)) or (isinstance(value, float) and math.isfinite(value)):
+        return value
+    if isinstance(value, str) and len(value) <= 80:
+        return value
+    try:
+        text = " ".join(repr(value).split()) if not isinstance(value, str) else value
+    except RecursionError:
+        text = "(too deeply nested)"
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def other_settings_text(made: dict) -> str:
@@ -108,7 +148,8 @@ def other_settings_text(made: dict) -> str:
         >>> other_settings_text({"carve.resolution": [16, 24], "note": ["a\\nb", None]})
         'carve.resolution 16 then 24; note a b then None'
     """
-    return "; ".join(f"{k} " + " then ".join(" ".join(str(v).split()) for v in values) for k, values in made.items())
+    return "; ".join(" ".join(str(k).split()) + " " + " then ".join(" ".join(str(v).split()) for v in values)
+                     for k, values in made.items())
 
 
 def object_stem(annotation_id) -> str:

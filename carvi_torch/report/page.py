@@ -13,7 +13,7 @@ from __future__ import annotations
 from html import escape
 from urllib.parse import quote
 
-from ..io.layout import other_settings_text
+from ..io.layout import other_settings_text, settings_record
 from .cards import legend
 
 __all__ = ["class_panel_html", "index_html", "MAX_REASONS"]
@@ -100,8 +100,7 @@ def _other_settings(summary: dict) -> str:
         >>> _other_settings({"resumed_from_other_settings": {"carve.resolution": [16, 24]}})[:92]
         '<p class=warn>objects made with other settings than config.yaml: carve.resolution 16 then 24'
     """
-    made = summary.get("resumed_from_other_settings")
-    made = {k: v for k, v in made.items() if isinstance(v, list)} if isinstance(made, dict) else {}
+    made = settings_record(summary.get("resumed_from_other_settings"))
     if not made:
         return ""
     values = other_settings_text(made)
