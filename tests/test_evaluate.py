@@ -582,15 +582,21 @@ def test_malformed_ground_truth_skips_its_objects_and_evaluates_the_rest(recon, 
     assert err.count("\n") == 1 and err.startswith(f"error: {data.parent / 'gt.json'}: expected a JSON object")
 
 
-def test_malformed_cameras_of_a_run_leave_out_their_viewpoints(recon, tmp_path, capsys):
-    """A run's cameras.json entry that is not an object, or whose refined R is not 3 x 3, is one line naming the
-    object and method; the viewpoints are scored on the others and the meshes still count."""
+def _run_copy_cameras(recon, tmp_path):
+    """``(data, part, path, content, ids)``: a copy ``part`` of the run, its car ``cameras.json`` (``path``, its
+    ``content`` to edit and write back) and the ids there that have ground truth, in order."""
     data, gt = _gt(recon)
     part = tmp_path / "part"
     shutil.copytree(recon, part)
     p = part / "car" / "cameras.json"
     cj = json.loads(p.read_text())
-    ids = sorted((a for a in cj["cameras"] if a in gt), key=int)
+    return data, part, p, cj, sorted((a for a in cj["cameras"] if a in gt), key=int)
+
+
+def test_malformed_cameras_of_a_run_leave_out_their_viewpoints(recon, tmp_path, capsys):
+    """A run's cameras.json entry that is not an object, or whose refined R is not 3 x 3, is one line naming the
+    object and method; the viewpoints are scored on the others and the meshes still count."""
+    data, part, p, cj, ids = _run_copy_cameras(recon, tmp_path)
     cj["cameras"][ids[0]]["refined"]["R"] = cj["cameras"][ids[0]]["refined"]["R"][:2]
     cj["cameras"][ids[1]] = "oops"
     p.write_text(json.dumps(cj))
@@ -609,12 +615,7 @@ def test_malformed_cameras_of_a_run_leave_out_their_viewpoints(recon, tmp_path, 
 def test_missing_refined_cameras_are_grouped_by_the_kind_of_their_reason(recon, tmp_path, capsys):
     """The note on the objects without a usable refined camera groups them by the kind of their reason, whatever
     its text holds (an entry quoted with a colon in it), as ``viewpoint_coverage``'s ``missing_reasons`` does."""
-    data, gt = _gt(recon)
-    part = tmp_path / "part"
-    shutil.copytree(recon, part)
-    p = part / "car" / "cameras.json"
-    cj = json.loads(p.read_text())
-    ids = sorted((a for a in cj["cameras"] if a in gt), key=int)
+    data, part, p, cj, ids = _run_copy_cameras(recon, tmp_path)
     cj["cameras"][ids[0]] = "oops: no camera"
     cj["cameras"][ids[1]]["refined"] = None
     p.write_text(json.dumps(cj))
