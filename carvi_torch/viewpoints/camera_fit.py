@@ -61,7 +61,7 @@ equal to this code to rounding (:func:`_native_optimize`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import NamedTuple
 
 import torch
@@ -506,11 +506,77 @@ def _native_optimize(R, s, t, shape, keypoints, visible, max_iters, tol) -> Fitt
                   E_kp=E.clone(), E_sil=torch.zeros_like(E), iterations=it, converged=conv.reshape(n, b))
 
 
-#: Index of ``active`` in :func:`_lm_step`'s state.
-_ACTIVE = 9
 #: The optimiser works on a shrinking set of rows: once at most this fraction of the rows it
 #: holds still has an active camera, the others are written back and dropped (module docstring).
 COMPACT_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class _LMState:
+    """The per-camera state of :func:`_optimize_impl`'s Levenberg-Marquardt iterations, ``n`` rows of ``B``
+    cameras each, every field row-aligned.
+
+    Attributes:
+        R: ``(n, B, 3, 3)`` the current rotations.
+        s: ``(n, B)`` the current scales.
+        t: ``(n, B, 2)`` the current translations.
+        E: ``(n, B)`` the energy of the current cameras.
+        E_kp: ``(n, B)`` its keypoint term.
+        E_sil: ``(n, B)`` its unweighted silhouette term.
+        g: ``(n, B, 6)`` the energy's gradient in the local coordinates ``(omega, sigma, tau)``.
+        H: ``(n, B, 6, 6)`` its Gauss-Newton matrix in those coordinates.
+        mu: ``(n, B)`` the damping of the next step.
+        active: ``(n, B)`` bool, the camera still takes steps.
+        converged: ``(n, B)`` bool, the stopping rule fired.
+    """
+
+    R: torch.Tensor
+    s: torch.Tensor
+    t: torch.Tensor
+    E: torch.Tensor
+    E_kp: torch.Tensor
+    E_sil: torch.Tensor
+    g: torch.Tensor
+    H: torch.Tensor
+    mu: torch.Tensor
+    active: torch.Tensor
+    converged: torch.Tensor
+
+    def rows(self, keep: torch.Tensor) -> "_LMState":
+        """The state of rows ``keep`` (``(m,)`` int64) alone."""
+        return _LMState(**{f.name: getattr(self, f.name)[keep] for f in fields(self)})
+
+    def written_into(self, full: "_LMState", rows: torch.Tensor | None) -> "_LMState":
+        """``full`` with this working set's tensors copied into its rows ``rows`` (``(n,)`` int64; None: this state is
+        the full one, returned as it is)."""
+        if rows is None:
+            return self
+        return _LMState(**{f.name: getattr(full, f.name).index_copy(0, rows, getattr(self, f.name))
+                           for f in fields(self)})
+
+
+@dataclass(frozen=True)
+class _LMData:
+    """What the energy of :func:`_optimize_impl`'s working set reads, row-aligned with its :class:`_LMState`.
+
+    Attributes:
+        keypoints: ``(n, K, 2)`` NaN-free keypoints.
+        weights: ``(n, K)`` float keypoint weights (visible, finite keypoint and shape row).
+        maps: ``(n, H, W)`` finite distance maps, or None (no silhouette term).
+        lam: ``(n,)`` the silhouette weight ``lambda`` per row.
+        rscale: ``(n,)`` robust scales of the silhouette penalty, or None (squared distances).
+    """
+
+    keypoints: torch.Tensor
+    weights: torch.Tensor
+    maps: torch.Tensor | None
+    lam: torch.Tensor
+    rscale: torch.Tensor | None
+
+    def rows(self, keep: torch.Tensor) -> "_LMData":
+        """The data of rows ``keep`` (``(m,)`` int64) alone."""
+        return _LMData(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[keep]
+                          for f in fields(self)})
 
 
 def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol, rscale=None) -> Fitted:
@@ -537,84 +603,67 @@ def _optimize_impl(R, s, t, shape, keypoints, visible, maps, lam, max_iters, tol
         rscale = None if rscale is None else rscale.repeat_interleave(b, 0)
     E, E_kp, E_sil, g, H = _terms(R, s, t, S, kmf, kp, wv, maps, lam, rscale)
     E_before = E.clone()
-    mu = torch.full_like(E, 1e-3)
     active = torch.isfinite(E)
-    converged = torch.zeros_like(active)
-    # the working set: ``rows`` of the full state; ``state`` holds its per-camera tensors
-    full = [R, s, t, E, E_kp, E_sil, g, H, mu, active, converged]
+    # the working set: ``rows`` of the full state
+    full = state = _LMState(R=R, s=s, t=t, E=E, E_kp=E_kp, E_sil=E_sil, g=g, H=H, mu=torch.full_like(E, 1e-3),
+                            active=active, converged=torch.zeros_like(active))
     rows = None
     n_live = int(active.any(-1).sum())  # one host read per step: it also decides when to stop
-    state = list(full)
-    data = [kp, wv, maps, lam, rscale]
+    data = _LMData(keypoints=kp, weights=wv, maps=maps, lam=lam, rscale=rscale)
     it = 0
     for it in range(1, max_iters + 1):
         if n_live == 0:
             it -= 1
             break
         state = _lm_step(state, data, S, kmf, tol, dt)
-        live = state[_ACTIVE].any(-1)
+        live = state.active.any(-1)
         n_live = int(live.sum())
         if 0 < n_live <= COMPACT_FRACTION * live.shape[0]:
-            _write_back(full, rows, state)
+            full = state.written_into(full, rows)
             keep = live.nonzero().squeeze(1)
             rows = keep if rows is None else rows[keep]
-            state = [x[keep] for x in state]
-            data = [None if x is None else x[keep] for x in data]
-    _write_back(full, rows, state)
-    R, s, t, E, E_kp, E_sil, _g, _H, _mu, _active, converged = full
+            state, data = state.rows(keep), data.rows(keep)
+    full = state.written_into(full, rows)
+    R, s, t, E, E_kp, E_sil, converged = full.R, full.s, full.t, full.E, full.E_kp, full.E_sil, full.converged
     if flat:
         R, s, t = R.reshape(n, b, 3, 3), s.reshape(n, b), t.reshape(n, b, 2)
         E_before, E, E_kp, E_sil, converged = (x.reshape(n, b) for x in (E_before, E, E_kp, E_sil, converged))
     return Fitted(R=R, s=s, t=t, E_before=E_before, E=E, E_kp=E_kp, E_sil=E_sil, iterations=it, converged=converged)
 
 
-def _lm_step(state: list, data: list, S: torch.Tensor, kmf: torch.Tensor, tol: float, dt: torch.dtype) -> list:
+def _lm_step(state: _LMState, data: _LMData, S: torch.Tensor, kmf: torch.Tensor, tol: float,
+             dt: torch.dtype) -> _LMState:
     """One Levenberg-Marquardt step of :func:`_optimize_impl` on its working set.
 
-    ``state`` is ``[R, s, t, E, E_kp, E_sil, g, H, mu, active, converged]`` and ``data``
-    ``[keypoints, weights, maps, lam, rscale]``, both row-aligned; ``dt`` is the working dtype (the
-    keypoints'), in which the step is taken. Returns the new state. An active camera takes its step only
-    where the energy does not rise (its damping is then divided by 3, else multiplied by 4); it stops
-    when the relative decrease is at most ``tol`` or the damping passes 1e8.
+    ``state`` and ``data`` are row-aligned; ``dt`` is the working dtype (the keypoints'), in which the step is
+    taken. Returns the new state. An active camera takes its step only where the energy does not rise (its damping
+    is then divided by 3, else multiplied by 4); it stops when the relative decrease is at most ``tol`` or the
+    damping passes 1e8.
     """
-    R, s, t, E, E_kp, E_sil, g, H, mu, active, converged = state
-    kp_w, wv_w, maps_w, lam_w, rscale_w = data
+    st = state
     # damped 6x6 solves in float64: H can be rank-deficient (an instance with one
     # visible keypoint whose shape points all fall inside its mask has no
     # information about most directions); the relative ridge keeps A definite
-    H64 = H.double()
+    H64 = st.H.double()
     diagH = H64.diagonal(dim1=-2, dim2=-1)
     ridge = 1e-6 * diagH.mean(-1, keepdim=True) + 1e-12
-    A = H64 + mu.double()[..., None, None] * torch.diag_embed(diagH + ridge)
-    sol, info = torch.linalg.solve_ex(A, g.double().unsqueeze(-1))
+    A = H64 + st.mu.double()[..., None, None] * torch.diag_embed(diagH + ridge)
+    sol, info = torch.linalg.solve_ex(A, st.g.double().unsqueeze(-1))
     delta = (-sol.squeeze(-1)).to(dt)
-    ok = active & (info == 0) & torch.isfinite(delta).all(-1)
+    ok = st.active & (info == 0) & torch.isfinite(delta).all(-1)
     delta = torch.where(ok[..., None], delta, torch.zeros_like(delta))
-    Rt, st, tt = _retract(R, s, t, delta)
-    Et, Ekt, Est, gt, Ht = _terms(Rt, st, tt, S, kmf, kp_w, wv_w, maps_w, lam_w, rscale_w)
-    accept = active & torch.isfinite(Et) & (Et <= E)
-    small = accept & ((E - Et) <= tol * E)
-    a2, a3, a4 = accept[..., None], accept[..., None, None], accept[..., None, None]
-    R = torch.where(a4, Rt, R)
-    s = torch.where(accept, st, s)
-    t = torch.where(a2, tt, t)
-    E = torch.where(accept, Et, E)
-    E_kp = torch.where(accept, Ekt, E_kp)
-    E_sil = torch.where(accept, Est, E_sil)
-    g = torch.where(a2, gt, g)
-    H = torch.where(a3, Ht, H)
-    mu = torch.where(accept, mu / 3.0, torch.where(active, mu * 4.0, mu))
+    Rt, s_t, tt = _retract(st.R, st.s, st.t, delta)
+    Et, Ekt, Est, gt, Ht = _terms(Rt, s_t, tt, S, kmf, data.keypoints, data.weights, data.maps, data.lam, data.rscale)
+    accept = st.active & torch.isfinite(Et) & (Et <= st.E)
+    small = accept & ((st.E - Et) <= tol * st.E)
+    a2, a3 = accept[..., None], accept[..., None, None]
+    mu = torch.where(accept, st.mu / 3.0, torch.where(st.active, st.mu * 4.0, st.mu))
     done = small | (mu > 1e8)
-    return [R, s, t, E, E_kp, E_sil, g, H, mu, active & ~done, converged | (active & done)]
-
-
-def _write_back(full: list, rows, state: list) -> None:
-    """Copy the working set's tensors into the full ones (``rows`` None: the working set is the full set)."""
-    for i, x in enumerate(state):
-        if rows is None:
-            full[i] = x
-        else:
-            full[i] = full[i].index_copy(0, rows, x)
+    return _LMState(R=torch.where(a3, Rt, st.R), s=torch.where(accept, s_t, st.s), t=torch.where(a2, tt, st.t),
+                    E=torch.where(accept, Et, st.E), E_kp=torch.where(accept, Ekt, st.E_kp),
+                    E_sil=torch.where(accept, Est, st.E_sil), g=torch.where(a2, gt, st.g),
+                    H=torch.where(a3, Ht, st.H), mu=mu, active=st.active & ~done,
+                    converged=st.converged | (st.active & done))
 
 
 def _as_batched(cameras: ScaledOrthographic, dtype):
