@@ -81,14 +81,16 @@ from .io.layout import NOT_YET, other_settings, other_settings_text, unfinished
 from .io.outputs import read_json, shown_names, write_bytes, write_json
 from .io.results import annotation_source, same_object
 from .evaluation import reliability, viewpoint_metrics
-from .evaluation.scoring import (MAX_JOBS, POOL_FROM, Reason, ShapeScorer, camera_problem, default_jobs, gt_problem,
-                                 numbers, posed_gt_mesh, score_shapes)
+from .evaluation.scoring import (MAX_JOBS, POOL_FROM, Reason, ReasonKind, ShapeScorer, camera_problem, default_jobs,
+                                 gt_problem, numbers, posed_gt_mesh, score_shapes)
 
 __all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "format_change", "main",
            "NO_GROUND_TRUTH", "NOT_YET"]
 
 #: The reason of an object in scope that ``gt.json`` has no entry for.
 NO_GROUND_TRUTH = "no ground truth: gt.json has no entry for it"
+#: The kind of an object's problem that concerns its SfM camera alone: it does not explain a missing refined camera.
+UNUSABLE_SFM_CAMERA: ReasonKind = "unusable sfm camera in cameras.json"
 
 
 def _read_cameras(rdir: Path, classes) -> tuple[dict[str, dict | None], dict[str, dict]]:
@@ -134,8 +136,7 @@ def _usable_cameras(path: Path, content) -> tuple[dict, dict]:
             bad[aid] = Reason("cameras.json entry not an object",
                               f"its cameras.json entry is {entry!r:.40}, not an object")
             continue
-        for stage, kind in (("sfm", "unusable sfm camera in cameras.json"),
-                            ("refined", "unusable refined camera in cameras.json")):
+        for stage, kind in (("sfm", UNUSABLE_SFM_CAMERA), ("refined", "unusable refined camera in cameras.json")):
             why = camera_problem(entry[stage]) if entry.get(stage) is not None else None
             if why:
                 entry[stage] = None
@@ -550,20 +551,24 @@ def _viewpoint_coverage(objects: dict, ann: "_Annotations", cameras: dict, probl
 
 def _no_refined_camera(cam: dict | None, bad: dict, aid: str) -> Reason | None:
     """Why object ``aid`` has no refined camera to score (``None``: it has one): its class's ``cameras.json`` or its
-    entry or camera there is unusable (``bad``: the class's problems, as :func:`_scoped` gives them), it is not in
-    the file (``cam``: its entry, made safe to read, ``None``: none), the entry has no refined camera, or a
-    non-finite one.
+    entry or refined camera there is unusable (``bad``: the class's problems, as :func:`_scoped` gives them; an
+    unusable SfM camera is no reason), it is not in the file (``cam``: its entry, made safe to read, ``None``:
+    none), the entry has no refined camera, or a non-finite one.
 
     Example:
         >>> fine = {"file": None, "objects": {}}
         >>> _no_refined_camera(None, fine, "3").text, _no_refined_camera({"refined": None}, fine, "3").kind
         ('not in cameras.json', 'no refined camera')
+        >>> sfm_only = {"file": None, "objects": {"3": Reason.of(UNUSABLE_SFM_CAMERA, "R is not a rotation")}}
+        >>> _no_refined_camera({"sfm": None, "refined": None}, sfm_only, "3").text
+        'no refined camera'
     """
     refined = cam.get("refined") if cam is not None else None
     if bad["file"]:
         return Reason.of("unusable cameras.json", bad["file"])
-    if refined is None and aid in bad["objects"]:
-        return bad["objects"][aid]
+    problem = bad["objects"].get(aid)
+    if refined is None and problem is not None and problem.kind != UNUSABLE_SFM_CAMERA:
+        return problem
     if refined is None:
         return Reason.of("not in cameras.json" if cam is None else "no refined camera")
     return None if numbers(refined["R"], (3, 3)) else Reason.of("non-finite refined camera")

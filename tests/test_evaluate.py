@@ -787,3 +787,27 @@ def test_a_class_without_ground_truth_is_labelled_so_and_left_out_of_the_mean_co
     table = format_shape_table(res)
     assert "| chair (no ground truth for its 6) | - | - |" in table
     assert "| **mean** | 3.00 | 2.50 |" in table and "in common" not in table
+
+
+def test_a_missing_refined_camera_is_not_blamed_on_an_unusable_sfm_camera(recon, tmp_path, capsys):
+    """An object whose SfM camera is unusable and whose refined camera is absent has no refined camera because
+    there is none, not because of its SfM camera; an unusable refined camera beside an unusable SfM one is the
+    refined camera's problem; an unusable SfM camera beside a good refined one leaves the object's viewpoint
+    scored. The SfM problem is still a line of its own."""
+    data, part, p, cj, ids = _run_copy_cameras(recon, tmp_path)
+    for a in ids[:3]:
+        cj["cameras"][a]["sfm"]["R"] = cj["cameras"][a]["sfm"]["R"][:2]
+    cj["cameras"][ids[0]]["refined"] = None
+    cj["cameras"][ids[1]]["refined"]["R"] = cj["cameras"][ids[1]]["refined"]["R"][:2]
+    p.write_text(json.dumps(cj))
+    assert main(["--data", str(data), "--recon", str(part), "--viewpoints-only", "--quiet", "--out",
+                 str(tmp_path / "ev")]) == 0
+    err = _err_lines(capsys)
+    assert f"evaluate: car annotation {ids[0]}: Full: unusable sfm camera in cameras.json: R is not 3 x 3 " \
+           "numbers" in err
+    coverage = json.loads((tmp_path / "ev" / "results.json").read_text())["viewpoint_coverage"]["car"]["Full"]
+    assert coverage["missing"] == {ids[0]: "no refined camera",
+                                   ids[1]: "unusable refined camera in cameras.json: R is not 3 x 3 numbers"}
+    assert coverage["missing_reasons"] == {"no refined camera": [ids[0]],
+                                           "unusable refined camera in cameras.json": [ids[1]]}
+    assert coverage["objects"] == len(ids) - 2
