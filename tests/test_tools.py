@@ -1636,3 +1636,55 @@ def test_gpu_session_installs_the_wheels_when_a_requirement_does_not_import(tmp_
     rc, calls = run()
     assert rc == 1 and "pip install" in calls and "carried-1.0-py3-none-any.whl" in calls, calls
 
+
+
+def _run_with_meshes(run: Path, cls: str, meshes: dict, mesh_format: str) -> None:
+    """A run folder ``run`` whose ``config.yaml`` says ``mesh.format=mesh_format``, with class ``cls``'s meshes
+    ``meshes`` (file name -> trimesh) and a refined camera (identity, scale 1) for every object named."""
+    from carvi_torch.config import Config
+
+    (run / cls / "meshes").mkdir(parents=True)
+    (run / "config.yaml").write_text(Config().override({"mesh.format": mesh_format}).to_yaml())
+    cams = {}
+    for name, mesh in meshes.items():
+        mesh.export(run / cls / "meshes" / name)
+        cams[name.split(".")[0]] = {"refined": {"R": np.eye(3).tolist(), "s": 1.0, "t": [0.0, 0.0]}}
+    (run / cls / "cameras.json").write_text(json.dumps({"cameras": cams}))
+
+
+def test_studies_clusters_read_the_meshes_of_a_run_in_its_mesh_format(tmp_path: Path, monkeypatch):
+    """``studies.py clusters`` takes a run's meshes in the format its ``config.yaml`` names (obj here), not .ply
+    alone: every object with a mesh and a refined camera is clustered."""
+    import argparse
+
+    import trimesh
+
+    st = load_tool("studies", "studies_tool")
+    bench = tmp_path / "bench"
+    data = bench / "data_pool1_test0_seed0"
+    data.mkdir(parents=True)
+    (data / "annotations.json").write_text(json.dumps({"annotations": [{"id": i, "source": f"m{i % 2}"}
+                                                                      for i in range(4)]}))
+    _run_with_meshes(bench / "run_full", "thing",
+                     {f"{i}.obj": trimesh.creation.box(extents=(1.0 + i, 1.0, 1.0)) for i in range(4)}, "obj")
+    record, drawn = tmp_path / "clusters.json", {}
+    monkeypatch.setattr(st, "_record", lambda name: record)
+    monkeypatch.setattr(st, "_plot_clusters", lambda figs, k: drawn.update(figs))
+    assert st.clusters(argparse.Namespace(bench=str(bench), k=2, points=64, seed=0)) == 0
+    thing = json.loads(record.read_text())["classes"]["thing"]
+    assert thing["objects"] == 4 and sum(thing["sizes"]) == 4 and len(drawn["thing"]) == 2
+
+
+def test_voc_study_reads_the_mesh_of_the_runs_mesh_format(tmp_path: Path):
+    """voc_study takes a run's meshes through the package's lookup: in the format its ``config.yaml`` names first
+    (an older .ply beside it is not the run's), and ``None`` for an object without a mesh."""
+    import trimesh
+
+    vs = load_tool("voc_study")
+    run = tmp_path / "recon"
+    _run_with_meshes(run, vs.CLASS, {"7.obj": trimesh.creation.box(extents=(2.0, 2.0, 2.0)),
+                                     "7.ply": trimesh.creation.box(extents=(1.0, 1.0, 1.0))}, "obj")
+    fmt = vs.run_mesh_format(run)
+    assert fmt == "obj"
+    np.testing.assert_allclose(vs._recon_mesh(run, 7, fmt).extents, [2.0, 2.0, 2.0])
+    assert vs._recon_mesh(run, 8, fmt) is None

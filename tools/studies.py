@@ -73,6 +73,7 @@ from pathlib import Path
 
 import numpy as np
 
+from carvi_torch.io.layout import object_mesh
 from carvi_torch.runtime import cpu_seconds
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -106,6 +107,15 @@ def _data_dir(bench: Path) -> Path:
     if not cands:
         raise SystemExit(f"error: no rendered data in {bench} (run tools/benchmark_synthetic.py first)")
     return cands[0]
+
+
+def _run_mesh_format(run: Path) -> str:
+    """The ``mesh.format`` the run ``run`` wrote its meshes in (its ``config.yaml``; the default without one, or
+    without the run: :func:`~carvi_torch.io.layout.object_mesh` looks in the other formats too)."""
+    from carvi_torch.config import Config, read_run_config
+
+    cfg = run / "config.yaml"
+    return (read_run_config(cfg) if cfg.is_file() else Config()).mesh.format
 
 
 def _classes_of(ann: dict) -> dict[int, str]:
@@ -163,6 +173,7 @@ def ranking(args) -> int:
     full = bench / "run_full"
     table_step = json.loads(BENCHMARK_JSON.read_text())["settings"]["step_percent"] \
         if BENCHMARK_JSON.is_file() else 1.0
+    fmt = _run_mesh_format(full)
     jobs = []
     for aid in chosen:
         c = cls_of[aid]
@@ -171,9 +182,9 @@ def ranking(args) -> int:
         p = full / c / "proposals" / f"{aid}.npz"
         if not p.is_file():
             continue
-        mesh = full / c / "meshes" / f"{aid}.ply"
+        mesh = object_mesh(full / c, aid, fmt)
         jobs.append((str(p), gt[str(aid)], str(data), args.step_percent,
-                     str(mesh) if mesh.is_file() else None, table_step))
+                     str(mesh) if mesh is not None else None, table_step))
     raw = bench / "ranking" / f"errors_step{args.step_percent:g}_v{args.views_per_model}.json"
     if raw.is_file() and not args.fresh:
         cached = json.loads(raw.read_text())
@@ -458,16 +469,17 @@ def clusters(args) -> int:
     ann = json.loads((data / "annotations.json").read_text())
     model_of = {str(a["id"]): a["source"] for a in ann["annotations"]}
     full = bench / "run_full"
+    fmt = _run_mesh_format(full)
     t0 = time.perf_counter()
     out, figs = {}, {}
     for cdir in sorted(p for p in full.iterdir() if (p / "cameras.json").is_file()):
         c = cdir.name
         cams = json.loads((cdir / "cameras.json").read_text())["cameras"]
-        ids = sorted(int(p.stem) for p in (cdir / "meshes").glob("*.ply"))
-        ids = [a for a in ids if cams.get(str(a), {}).get("refined")]
+        files = {int(a): object_mesh(cdir, a, fmt) for a, e in cams.items() if e.get("refined")}
+        ids = sorted(a for a, f in files.items() if f is not None)
         if len(ids) < args.k:
             continue
-        meshes = [trimesh.load(cdir / "meshes" / f"{a}.ply", force="mesh", process=False) for a in ids]
+        meshes = [trimesh.load(files[a], force="mesh", process=False) for a in ids]
         pts = torch.stack([sample_points(m, args.points, seed=args.seed) for m in meshes])  # (N, M, 3)
         cam = ScaledOrthographic.from_list([cams[str(a)]["refined"] for a in ids], dtype=torch.float64)
         obj = normalise_points(cam.from_camera_frame(pts)).float()

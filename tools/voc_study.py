@@ -81,7 +81,7 @@ from carvi_torch.cameras import (
     azimuth_elevation_roll_from_rotation,
     rotation_from_azimuth_elevation_roll,
 )
-from carvi_torch.config import Config
+from carvi_torch.config import Config, read_run_config
 from carvi_torch.evaluation import metrics
 from carvi_torch.evaluation.viewpoint_metrics import (
     align_rotations,
@@ -92,6 +92,7 @@ from carvi_torch.evaluation.viewpoint_metrics import (
     viewpoint_report,
 )
 from carvi_torch.io import coco, voc
+from carvi_torch.io.layout import object_mesh
 from carvi_torch.io.outputs import read_json, write_json
 from carvi_torch.sdf import distance_to_mask
 from carvi_torch.synthetic.render import rasterize_triangles
@@ -413,7 +414,7 @@ def step_reconstruct(ann: Path, recon: Path, overrides: list[str], device: str) 
            "warnings": c["warnings"], "seconds": c["seconds"], "total_seconds": summ.get("total_seconds"),
            "peak_rss_mb": summ.get("peak_rss_mb"), "sfm": c.get("sfm", {}).get("reflection"),
            "clusters": c.get("clusters")}
-    meshes = len(list((recon / CLASS / "meshes").glob("*.ply")))
+    meshes = len(list((recon / CLASS / "meshes").glob(f"*.{run_mesh_format(recon)}")))
     out["meshes"] = meshes
     print_table("reconstruction (python -m carvi_torch.reconstruct)",
                 ["objects", "meshes", "skipped", "seconds (this run)"],
@@ -1048,9 +1049,18 @@ def step_diagnose(data: Path, work: Path, gt: dict, cfg: Config, device: str) ->
     return out
 
 
-def _recon_mesh(recon: Path, aid: int) -> trimesh.Trimesh | None:
-    p = recon / CLASS / "meshes" / f"{aid}.ply"
-    return trimesh.load(p, force="mesh", process=False) if p.is_file() else None
+def run_mesh_format(recon: Path) -> str:
+    """The ``mesh.format`` the run ``recon`` wrote its meshes in (its ``config.yaml``; the default without one:
+    :func:`~carvi_torch.io.layout.object_mesh` looks in the other formats too)."""
+    cfg = recon / "config.yaml"
+    return (read_run_config(cfg) if cfg.is_file() else Config()).mesh.format
+
+
+def _recon_mesh(recon: Path, aid: int, mesh_format: str) -> trimesh.Trimesh | None:
+    """Object ``aid``'s mesh of the run ``recon`` (:func:`~carvi_torch.io.layout.object_mesh`: in the run's
+    ``mesh_format`` first), ``None`` without one."""
+    p = object_mesh(recon / CLASS, aid, mesh_format)
+    return trimesh.load(p, force="mesh", process=False) if p is not None else None
 
 
 def _puffball_image(coll, i: int) -> trimesh.Trimesh:
@@ -1162,6 +1172,7 @@ class _ShapeSources:
     row_of: dict  # annotation id -> row of coll
     models: dict  # subtype -> load_models' entry
     recon: Path
+    mesh_format: str  # the run's mesh.format
 
 
 def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: Config, other_cads: int) -> dict:
@@ -1176,7 +1187,7 @@ def step_shapes(ann: Path, recon: Path, data: Path, work: Path, gt: dict, cfg: C
     t0 = time.perf_counter()
     models = load_models(data, work / "cad_solids")
     t_models = time.perf_counter() - t0
-    src = _ShapeSources(cc, cams_json, coll, row_of, models, recon)
+    src = _ShapeSources(cc, cams_json, coll, row_of, models, recon, run_mesh_format(recon))
     anns = [a for a in sorted(cc.anns.values(), key=lambda a: a["id"]) if gt_key(a["source"]) in gt]
     with_others = set(int(i) for i in np.linspace(0, len(anns) - 1, other_cads).round()) if other_cads > 0 else set()
     per = {}
@@ -1205,7 +1216,7 @@ def _shape_row(src: _ShapeSources, ann_entry: dict, g: dict, others: bool) -> di
     row = {"annotation_id": aid, "subtype": sub, "scale": s, "translation": t.tolist(),
            "cad_mask_iou": silhouette_iou(cad["vertices"], cad["faces"], R, s, t, mask)}
     row.update(_keypoint_check(src.cc, ann_entry, cad, R, s, t))
-    row["reconstruction"] = score_mesh(_recon_mesh(src.recon, aid), R, s, t, model)
+    row["reconstruction"] = score_mesh(_recon_mesh(src.recon, aid, src.mesh_format), R, s, t, model)
     if aid in src.row_of:
         row["puffball"] = score_mesh(_puffball_image(src.coll, src.row_of[aid]), R, s, t, model)
     row["sfm_hull"] = score_mesh(_sfmc_image(src.cams_json, aid), R, s, t, model)
@@ -1317,6 +1328,7 @@ class _FigureSources:
     recon: Path
     data: Path
     shapes: dict | None  # step_shapes' result
+    mesh_format: str  # the run's mesh.format
 
 
 def step_figure(path: Path, ann: Path, recon: Path, data: Path, gt: dict, vp: dict, shapes: dict | None,
@@ -1334,7 +1346,8 @@ def step_figure(path: Path, ann: Path, recon: Path, data: Path, gt: dict, vp: di
     cams_json = read_json(recon / CLASS / "cameras.json")
     G = np.asarray(vp["refined"]["report"]["alignment"], dtype=np.float64)
     per = vp["refined"]["per_object"]
-    keys = sorted((k for k in per if (recon / CLASS / "meshes" / f"{per[k]['annotation_id']}.ply").is_file()),
+    fmt = run_mesh_format(recon)
+    keys = sorted((k for k in per if object_mesh(recon / CLASS, per[k]["annotation_id"], fmt) is not None),
                   key=lambda k: per[k]["gt_azimuth"])
     picks = [keys[int(i)] for i in np.linspace(0, len(keys) - 1, count).round()] if keys else []
     names = cc.cats[1]["keypoints"]
@@ -1352,7 +1365,7 @@ def step_figure(path: Path, ann: Path, recon: Path, data: Path, gt: dict, vp: di
                                                    torch.tensor(math.radians(e), dtype=torch.float64),
                                                    torch.tensor(0.0, dtype=torch.float64)).numpy(), lbl)
              for a, e, lbl in ((45.0, 20.0, "az 45, el 20"), (0.0, 80.0, "from above"))]
-    src = _FigureSources(cc, cams_json, per, S, G, views, recon, data, shapes)
+    src = _FigureSources(cc, cams_json, per, S, G, views, recon, data, shapes, fmt)
     for j, key in enumerate(picks):
         first = (j % per_row) * cols
         _draw_voc_object(src, key, axes[j // per_row, first],
@@ -1374,7 +1387,7 @@ def _draw_voc_object(src: _FigureSources, key: str, a0, mesh_axes: list) -> None
     aid = src.per[key]["annotation_id"]
     ann_e = src.cc.anns[aid]
     mask = src.cc.annToMask(ann_e).astype(bool)
-    mesh = trimesh.load(src.recon / CLASS / "meshes" / f"{aid}.ply", force="mesh", process=False)
+    mesh = _recon_mesh(src.recon, aid, src.mesh_format)
     V = np.asarray(mesh.vertices, dtype=np.float64)
     F = np.asarray(mesh.faces, dtype=np.int64)
     x0, x1, y0, y1 = _draw_overlap(a0, mask, silhouette(V[:, :2], F, np.zeros(2), mask.shape))
