@@ -1414,3 +1414,38 @@ def test_a_hand_edited_settings_record_is_stored_and_said_safely(recon, tmp_path
     assert _store_attrs(tmp_path / "e")["made_with_other_settings"] == kept
     said = [line for line in capsys.readouterr().err.splitlines() if "other settings" in line or "fake" in line]
     assert len(said) == 1 and "carve.resolution warning: fake 16 then 24; a nan then 1" in said[0]
+
+
+def _voxels_with_header(path, member: str, header_edit: tuple[bytes, bytes]) -> None:
+    """A voxels file at ``path`` (grid, transform, canvas, fingerprint) whose ``member``'s ``.npy`` header has
+    ``header_edit[0]`` replaced by ``header_edit[1]`` (stored uncompressed, so the zip's checksums still hold)."""
+    import io
+    import zipfile
+
+    occ = np.zeros((4, 4, 4), bool)
+    occ[1:3, 1:3, 1:3] = True
+    buf = io.BytesIO()
+    np.savez(buf, occupancy=occ, voxel_to_canvas=np.eye(4), canvas_scale=np.float64(0.5),
+             canvas_offset=np.float64([3.0, 4.0]), input_fingerprint=np.asarray("abc", dtype=str))
+    with zipfile.ZipFile(buf) as zin, zipfile.ZipFile(path, "w") as zout:
+        for name in zin.namelist():
+            data = zin.read(name)
+            if name == f"{member}.npy":
+                assert header_edit[0] in data[:128]
+                data = data.replace(header_edit[0], header_edit[1], 1)
+            zout.writestr(name, data)
+
+
+#: A header edit that makes a member claim far more memory than any machine has.
+_HUGE = (b"'shape': (4, 4, 4)", b"'shape': (10000000000000, 4, 4)")
+
+
+def test_a_voxels_grid_whose_damaged_header_claims_any_size_is_unreadable_not_a_crash(tmp_path):
+    """A damaged ``.npy`` header can declare any shape; reading it raises ``MemoryError`` (numpy allocates the array
+    before reading it), which is the file's fault: the object is unreadable, the export goes on."""
+    from carvi_torch.export.objects import UnreadableFiles, _read_voxels
+
+    path = tmp_path / "3.npz"
+    _voxels_with_header(path, "occupancy", _HUGE)
+    with pytest.raises(UnreadableFiles, match="unreadable outputs: .*3.npz: .*MemoryError"):
+        _read_voxels(path)

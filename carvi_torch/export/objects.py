@@ -246,9 +246,11 @@ class UnreadableFiles(ValueError):
 
 #: What reading a partial or corrupt ``.npz`` or mesh file raises: ``np.load`` (``EOFError`` on an empty file,
 #: ``zipfile.BadZipFile`` on a cut or damaged one, ``zlib.error`` on damaged compressed data, ``KeyError`` on
-#: a missing member, ``ValueError``), trimesh's PLY reader (``ValueError``, ``IndexError`` on a cut header),
-#: and the file system (``OSError``). Anything else is a fault of the export, not of the files: it is raised.
-READ_ERRORS = (OSError, EOFError, ValueError, KeyError, IndexError, zipfile.BadZipFile, zlib.error)
+#: a missing member, ``ValueError``, ``MemoryError`` on a damaged ``.npy`` header that declares a shape no machine
+#: holds: numpy allocates the array before it reads it), trimesh's PLY reader (``ValueError``, ``IndexError`` on a
+#: cut header), and the file system (``OSError``). Anything else is a fault of the export, not of the files: it is
+#: raised.
+READ_ERRORS = (OSError, EOFError, ValueError, KeyError, IndexError, MemoryError, zipfile.BadZipFile, zlib.error)
 
 
 def _unreadable(path, e: BaseException) -> UnreadableFiles:
