@@ -1416,9 +1416,10 @@ def test_a_hand_edited_settings_record_is_stored_and_said_safely(recon, tmp_path
     assert len(said) == 1 and "carve.resolution warning: fake 16 then 24; a nan then 1" in said[0]
 
 
-def _voxels_with_header(path, member: str, header_edit: tuple[bytes, bytes]) -> None:
+def _voxels_with_header(path, member: str | None = None, header_edit: tuple[bytes, bytes] = (b"", b"")) -> None:
     """A voxels file at ``path`` (grid, transform, canvas, fingerprint) whose ``member``'s ``.npy`` header has
-    ``header_edit[0]`` replaced by ``header_edit[1]`` (stored uncompressed, so the zip's checksums still hold)."""
+    ``header_edit[0]`` replaced by ``header_edit[1]`` (stored uncompressed, so the zip's checksums still hold;
+    ``member`` None: a sound file)."""
     import io
     import zipfile
 
@@ -1449,3 +1450,21 @@ def test_a_voxels_grid_whose_damaged_header_claims_any_size_is_unreadable_not_a_
     _voxels_with_header(path, "occupancy", _HUGE)
     with pytest.raises(UnreadableFiles, match="unreadable outputs: .*3.npz: .*MemoryError"):
         _read_voxels(path)
+
+
+@pytest.mark.parametrize("damage", [(b"'descr': '<f8'", b"'descr': 'oops'"),
+                                    (b"'shape': ()", b"'shape': (10000000000000,)")], ids=["bad dtype", "huge shape"])
+def test_a_damaged_canvas_member_leaves_the_verdict_to_the_rest_of_the_read(tmp_path, damage):
+    """A canvas member that cannot be read is no other canvas (the rest of the read judges the file: this one's
+    grid and transform are sound, so it is read); a fault of the caller (no canvas to compare with) is raised,
+    not taken for damage."""
+    from carvi_torch.export.objects import _other_canvas, _read_voxels
+
+    path = tmp_path / "3.npz"
+    _voxels_with_header(path, "canvas_scale", damage)
+    with np.load(path) as z:
+        assert _other_canvas(z, (0.6, (3.0, 4.0)), "abc") is False
+    assert _read_voxels(path, (0.6, (3.0, 4.0)), "abc")["occupancy"].sum() == 8
+    _voxels_with_header(path)  # sound
+    with np.load(path) as z, pytest.raises(TypeError):
+        _other_canvas(z, None, "abc")

@@ -284,14 +284,15 @@ CANVAS_MEMBERS = ("canvas_scale", "canvas_offset")
 
 def _other_canvas(z, canvas: tuple, fingerprint: str | None) -> bool:
     """Whether the opened voxels file ``z`` records a canvas other than ``canvas`` (``(scale, (x, y))``, the
-    object's canvas as the export loads it); False also where it records none, where its canvas cannot be read,
-    and where it was made from other inputs than ``fingerprint`` (the rest of the read says what is wrong)."""
+    object's canvas as the export loads it); False also where it records none, where its canvas or fingerprint
+    cannot be read (:data:`READ_ERRORS`: the rest of the read says what is wrong), and where it was made from
+    other inputs than ``fingerprint``. Any other error is a fault of the caller: it is raised."""
     try:  # members are read one by one (about 0.1 ms each): the fingerprint only where the canvas differs
         held = {k: z[k] for k in CANVAS_MEMBERS if k in z.files}
         if same_canvas(held, canvas) is not False:
             return False
         return not (fingerprint and held_fingerprint(z) not in (None, fingerprint))
-    except Exception:  # noqa: BLE001 - any damage: the rest of the read says what is wrong
+    except READ_ERRORS:
         return False
 
 
