@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from .runtime import os_error_line  # re-exported: the commands' shared ending names OS errors with it
+from .runtime import folders_to_make, remove_empty
 
 __all__ = ["main", "add_common", "split_classes", "version", "program", "run_command", "CommandError",
            "os_error_line", "writable_folder", "writable_file", "positive_int", "nonneg_int"]
@@ -166,17 +167,13 @@ def writable_folder(path: str | os.PathLike, option: str = "--out") -> Path:
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise CommandError(f"{option} {out} is a file, not a folder")
-    made = [d for d in (out, *out.parents) if not d.exists()]  # deepest first
+    made = folders_to_make(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=out):
             pass
     except OSError as e:
-        for d in made:  # the folders made here, while empty: a failed check leaves nothing behind
-            try:
-                d.rmdir()
-            except OSError:
-                break
+        remove_empty(made)  # a failed check leaves nothing behind
         raise CommandError(f"{option} {out}: cannot write there ({os_error_line(e)})") from e
     return out
 

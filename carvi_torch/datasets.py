@@ -31,7 +31,7 @@ from typing import Callable, Sequence
 
 from .cli import (CommandError, add_common, nonneg_float, nonneg_int, positive_int, program, run_command,
                   split_classes, writable_file, writable_folder)
-from .runtime import check_replaceable
+from .runtime import check_replaceable, folders_to_make, remove_empty
 
 __all__ = ["build_parser", "main", "DATASET_NAMES"]
 
@@ -264,15 +264,6 @@ def _clear_earlier(out: Path) -> None:
             shutil.rmtree(d)
 
 
-def _remove_empty(folders: list[Path]) -> None:
-    """Remove ``folders`` (deepest first) while they are empty."""
-    for d in folders:
-        try:
-            d.rmdir()
-        except OSError:
-            break
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the exit status (0 success; 2 bad arguments or input, or an ``--out`` that cannot be
     written: one ``error:`` line, ``--out`` and then the inputs checked before the work, and the folders made
@@ -293,12 +284,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_replaceable(out, _not_dataset, "an earlier synthetic or procedural dataset", CommandError)
         if args.command == "synthetic":
             _check_apart(args.meshes, args.out)
-        made = [d for d in (out, *out.parents) if not d.exists()]  # deepest first
+        made = folders_to_make(out)
         writable_folder(out)
         try:
             job = jobs[args.command](args)
         except BaseException:  # a user error in the inputs (or Ctrl-C) before any work: remove what was made
-            _remove_empty(made)
+            remove_empty(made)
             raise
         _clear_earlier(out)
         _print_summary(job())

@@ -83,6 +83,7 @@ from .io.results import annotation_source, same_object
 from .evaluation import reliability, viewpoint_metrics
 from .evaluation.scoring import (MAX_JOBS, POOL_FROM, Reason, ReasonKind, ShapeScorer, camera_problem, default_jobs,
                                  gt_problem, numbers, posed_gt_mesh, score_shapes)
+from .runtime import folders_to_make, remove_empty
 
 __all__ = ["evaluate", "posed_gt_mesh", "format_shape_table", "format_viewpoint_table", "format_change", "main",
            "NO_GROUND_TRUTH", "NOT_YET"]
@@ -783,7 +784,7 @@ def _main(argv=None) -> int:
     args = ap.parse_args(argv)
     recons = _parse_recons(args.recon)
     # the folders the check below makes (--out and the parents it lacks, deepest first): removed on failure
-    made = [d for d in (Path(args.out), *Path(args.out).parents) if not d.exists()] if args.out else []
+    made = folders_to_make(args.out) if args.out else []
     if args.out:
         writable_folder(args.out)  # before minutes of work, not after
     status = None
@@ -791,7 +792,7 @@ def _main(argv=None) -> int:
         status = _evaluate_and_write(args, recons)
     finally:
         if status != 0:
-            _remove_empty(made)
+            remove_empty(made)
     return status
 
 
@@ -837,16 +838,6 @@ def _camera_only(recons: dict) -> list[str]:
         except Exception:  # noqa: BLE001 - no or damaged config: nothing to say
             pass
     return out
-
-
-def _remove_empty(folders: list[Path]) -> None:
-    """Remove ``folders`` (deepest first) while they are empty: the ones this command made, left behind by a
-    failure."""
-    for folder in folders:
-        try:
-            folder.rmdir()
-        except OSError:
-            return
 
 
 def _print_notes(args, recons: dict, res: dict) -> None:

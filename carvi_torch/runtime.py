@@ -2,7 +2,8 @@
 
 - resources: CPU cores (:func:`cores`), torch threads (:func:`torch_threads`, :func:`intra_op_threads`), stage
   timers (:class:`StageTimer`), peak memory and CPU time (:func:`peak_rss_mb`, :func:`cpu_seconds`);
-- output folders before a run writes: :func:`unwritable_above`, :func:`check_replaceable`, :func:`os_error_line`;
+- output folders before a run writes: :func:`unwritable_above`, :func:`check_replaceable`, :func:`os_error_line`,
+  :func:`folders_to_make` and :func:`remove_empty` (a failed command leaves no folder it made);
 - Ctrl-C and signals: :func:`watch_interrupts`, :func:`deferred_interrupt`, :func:`ignore_interrupt`;
 - child processes: :func:`start_method`, :class:`LeanProcessPool`, :func:`watch_parent`, :func:`processes_marked`,
   :func:`child_pythonpath`;
@@ -48,8 +49,8 @@ except ImportError:  # pragma: no cover - Windows (tests set it to None)
 __all__ = ["cores", "env_count", "torch_threads", "cpu_single_thread", "StageTimer", "peak_rss_mb", "cpu_seconds",
            "maxrss_to_mb", "stable_hash", "InterruptWatch", "watch_interrupts", "intra_op_threads", "log",
            "log_to_terminal", "log_to_file", "TqdmHandler", "deferred_interrupt", "ignore_interrupt",
-           "unwritable_above", "check_replaceable", "os_error_line", "watch_parent", "pid_alive",
-           "processes_marked", "gone_within", "FileLock", "FolderLock", "FolderBusy", "NO_LOCKS"]
+           "unwritable_above", "folders_to_make", "remove_empty", "check_replaceable", "os_error_line", "watch_parent",
+           "pid_alive", "processes_marked", "gone_within", "FileLock", "FolderLock", "FolderBusy", "NO_LOCKS"]
 
 
 def cores() -> int:
@@ -73,6 +74,32 @@ def unwritable_above(path: str | os.PathLike) -> str | None:
     if not os.path.isdir(probe):
         return f"{probe} is a file, not a folder"
     return None if os.access(probe, os.W_OK | os.X_OK) else f"{probe} is not writable"
+
+
+def folders_to_make(out: str | os.PathLike) -> list[Path]:
+    """``out`` and those of its parents that do not exist yet, deepest first: what ``mkdir(parents=True)`` makes,
+    and what :func:`remove_empty` removes again after a failure.
+
+    Example:
+        >>> [p.name for p in folders_to_make(Path(os.devnull).parent / "no" / "such")]
+        ['such', 'no']
+    """
+    made = []
+    for p in (Path(out), *Path(out).parents):
+        if p.exists() or p.is_symlink():
+            break
+        made.append(p)
+    return made
+
+
+def remove_empty(folders: list[Path]) -> None:
+    """Remove ``folders`` (deepest first, as :func:`folders_to_make` gives them) while they are empty: a command
+    that fails leaves none of the folders it made behind, and nothing else is touched."""
+    for p in folders:
+        try:
+            p.rmdir()
+        except OSError:
+            break
 
 
 def check_replaceable(out: Path, others: Callable[[Path], list[str]], what: str,

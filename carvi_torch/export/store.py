@@ -39,7 +39,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
-from ..runtime import check_replaceable, deferred_interrupt, os_error_line, pid_alive
+from ..runtime import check_replaceable, deferred_interrupt, folders_to_make, os_error_line, pid_alive, remove_empty
 
 __all__ = ["FieldSpec", "FIELDS", "DEFAULT_FIELDS", "MESH_FIELDS", "StoreWriter", "FORMAT_VERSION", "ATTRS_KEY",
            "PARTIAL_PREFIX", "InterruptedAfterSwap"]
@@ -272,17 +272,6 @@ class InterruptedAfterSwap(KeyboardInterrupt):
         self.result = result
 
 
-def _made_folders(out: Path) -> list[Path]:
-    """``out`` and those of its parents that do not exist yet (deepest first): what ``mkdir(parents=True)``
-    makes."""
-    made = []
-    for p in (out, *out.parents):
-        if p.exists() or p.is_symlink():
-            break
-        made.append(p)
-    return made
-
-
 class StoreWriter:
     """Writes samples class by class into a zarr v3 store at ``out`` (created, or replaced when it holds
     an earlier export's store and nothing else: ``ValueError`` naming the first entry the export did not write,
@@ -292,7 +281,7 @@ class StoreWriter:
     def __init__(self, out: str | Path, shard_size: int = 256, fields: list[str] | None = None):
         self.out = Path(out)
         check_replaceable(self.out, _not_export, "an earlier export")
-        self.made = _made_folders(self.out)  # removed by abort() when empty
+        self.made = folders_to_make(self.out)  # removed by abort() when empty
         self.swapped = False
         self.tmp = self.out / f"{PARTIAL_PREFIX}{os.getpid()}"
         try:
@@ -358,8 +347,4 @@ class StoreWriter:
         """Remove the store in progress: ``out`` is left as it was before (the folders this writer made for it,
         ``out`` and parents, are removed where empty; nothing else)."""
         shutil.rmtree(self.tmp, ignore_errors=True)
-        for p in self.made:
-            try:
-                p.rmdir()
-            except OSError:
-                break
+        remove_empty(self.made)
