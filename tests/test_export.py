@@ -1468,3 +1468,24 @@ def test_a_damaged_canvas_member_leaves_the_verdict_to_the_rest_of_the_read(tmp_
     _voxels_with_header(path)  # sound
     with np.load(path) as z, pytest.raises(TypeError):
         _other_canvas(z, None, "abc")
+
+
+def test_the_viewpoint_of_an_entry_without_angles_comes_from_its_refined_R_or_is_none(monkeypatch):
+    """Without readable angles the export computes them from ``refined.R``; every malformed entry or ``R`` gives
+    None (the object's reason), while an error of the code computing them is raised, not taken for a bad R."""
+    import carvi_torch.cameras
+    from carvi_torch.export.run import _viewpoint_or_none
+
+    eye = np.eye(3).tolist()
+    assert np.allclose(_viewpoint_or_none({"refined": {"R": eye}}),
+                       [float(a) for a in azimuth_elevation_roll_from_rotation(torch.eye(3, dtype=torch.float64))])
+    for entry in ("oops", {}, {"refined": None}, {"refined": {"R": [[1.0, 0.0]]}}, {"refined": {"R": "oops"}},
+                  {"refined": {"R": {"a": 1}}}, {"refined": {"R": [[10 ** 400] * 3] * 3}}):
+        assert _viewpoint_or_none(entry) is None, entry
+
+    def broken(R):
+        raise RuntimeError("a fault of the code")
+
+    monkeypatch.setattr(carvi_torch.cameras, "azimuth_elevation_roll_from_rotation", broken)
+    with pytest.raises(RuntimeError, match="a fault of the code"):
+        _viewpoint_or_none({"refined": {"R": eye}})

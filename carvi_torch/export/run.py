@@ -74,7 +74,7 @@ _ANGLE_KEYS = ("azimuth_deg", "elevation_deg", "roll_deg")
 def _viewpoint_or_none(entry: dict) -> list[float] | None:
     """Azimuth, elevation, roll (radians) of a ``cameras.json`` entry: the angles the run wrote (from its final
     camera's ``R``), or, where a file from elsewhere has none, computed from ``refined.R``; None where neither
-    is readable (the object is then skipped with a reason)."""
+    is readable (the object is then skipped with a reason). Only what a malformed entry raises means that."""
     try:
         angles = [math.radians(float(entry[k])) for k in _ANGLE_KEYS]
         if all(math.isfinite(a) for a in angles):
@@ -88,7 +88,7 @@ def _viewpoint_or_none(entry: dict) -> list[float] | None:
 
         R = torch.as_tensor(np.asarray(entry["refined"]["R"], dtype=np.float64).reshape(3, 3))
         return [float(x) for x in azimuth_elevation_roll_from_rotation(R)]
-    except Exception:  # noqa: BLE001 - any malformed R is the same reason
+    except (KeyError, TypeError, ValueError, OverflowError):  # no R, not 3 x 3 numbers, a number beyond float
         return None
 
 
