@@ -829,13 +829,14 @@ def _positive_finite(text: str) -> float:
 
 
 def _camera_only(recons: dict) -> list[str]:
-    """The methods whose run stopped after the cameras (``stage: cameras`` in its ``config.yaml``): no shapes."""
+    """The methods whose run stopped after the cameras (``stage: cameras`` in its ``config.yaml``): no shapes. A
+    missing or unreadable ``config.yaml`` (:class:`~carvi_torch.config.ConfigError`) says nothing."""
     out = []
     for name, rdir in recons.items():
         try:
             if read_run_config(Path(rdir) / "config.yaml").stage == "cameras":
                 out.append(name)
-        except Exception:  # noqa: BLE001 - no or damaged config: nothing to say
+        except ConfigError:  # no or damaged config: nothing to say
             pass
     return out
 

@@ -811,3 +811,24 @@ def test_a_missing_refined_camera_is_not_blamed_on_an_unusable_sfm_camera(recon,
     assert coverage["missing_reasons"] == {"no refined camera": [ids[0]],
                                            "unusable refined camera in cameras.json": [ids[1]]}
     assert coverage["objects"] == len(ids) - 2
+
+
+def test_runs_that_stopped_after_the_cameras_are_told_by_their_config(tmp_path, monkeypatch):
+    """``_camera_only`` names the runs whose ``config.yaml`` says ``stage: cameras``; a missing or damaged one says
+    nothing, and a fault of the code reading it is raised, not taken for a damaged file."""
+    import carvi_torch.evaluate as ev
+
+    runs = {name: tmp_path / name for name in ("cams", "full", "none", "bad")}
+    for rdir in runs.values():
+        rdir.mkdir()
+    (runs["cams"] / "config.yaml").write_text("stage: cameras\n")
+    (runs["full"] / "config.yaml").write_text("stage: all\n")
+    (runs["bad"] / "config.yaml").write_text("stage: [cameras\n")
+    assert ev._camera_only(runs) == ["cams"]
+
+    def broken(path):
+        raise RuntimeError("a fault of the code")
+
+    monkeypatch.setattr(ev, "read_run_config", broken)
+    with pytest.raises(RuntimeError, match="a fault of the code"):
+        ev._camera_only(runs)
