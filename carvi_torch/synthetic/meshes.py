@@ -328,7 +328,7 @@ def _npz_arrays(path: Path) -> dict[str, np.ndarray]:
     with open(path, "rb") as f:  # numpy leaves a file it opened itself open when it is no archive
         try:
             data = np.load(f, allow_pickle=False)
-        except Exception as e:  # zipfile, numpy and OS errors of a file that is not an .npz
+        except Exception as e:  # noqa: BLE001 - zipfile, numpy and OS errors of a file that is not an .npz
             raise BadModelFile(f"{path}: not a readable .npz archive ({_reason(e)})") from None
         if not isinstance(data, np.lib.npyio.NpzFile):
             raise BadModelFile(f"{path}: a single array (.npy), not an .npz archive of {', '.join(_NPZ_ARRAYS)}")
@@ -340,7 +340,7 @@ def _npz_arrays(path: Path) -> dict[str, np.ndarray]:
             for k in _NPZ_ARRAYS:
                 try:
                     arrays[k] = data[k]
-                except Exception as e:  # an object array (pickled), a damaged member
+                except Exception as e:  # noqa: BLE001 - an object array (pickled), a damaged member
                     raise BadModelFile(f"{path}: array {k!r} cannot be read ({_reason(e)})") from None
     return arrays
 
@@ -443,7 +443,7 @@ def _read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
         with np.errstate(over="ignore"):  # beyond float32: infinite, refused by Model's check
             vertices = np.asarray(mesh.vertices, dtype=np.float32).reshape(-1, 3)
         faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
-    except Exception as e:  # trimesh's readers raise many kinds on a file that is not what its name says
+    except Exception as e:  # noqa: BLE001 - trimesh's readers raise many kinds on a file that is not what its name says
         raise BadModelFile(f"{path}: not a readable {path.suffix.lower()} mesh ({_reason(e)})") from None
     return vertices, faces
 
