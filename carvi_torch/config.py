@@ -49,10 +49,10 @@ from .viewpoints.choice import CameraKeep
 from .viewpoints.frame import FrameChoice
 from .viewpoints.sfm import PolishMethod
 
-__all__ = ["Config", "ConfigError", "load_config", "read_run_config", "settings_changed", "flatten_settings",
-           "NEUTRAL_SETTINGS", "resolve_key", "all_keys", "FIELD_DOCS", "override_text", "NULL_WORDS", "InputConfig",
-           "ViewpointConfig", "SurrogateConfig", "CarveConfig", "SelectConfig", "MeshConfig", "StudyConfig",
-           "Stage", "Executor"]
+__all__ = ["Config", "ConfigError", "load_config", "read_run_config", "settings_changed", "object_settings",
+           "flatten_settings", "NEUTRAL_SETTINGS", "resolve_key", "all_keys", "FIELD_DOCS", "override_text",
+           "NULL_WORDS", "InputConfig", "ViewpointConfig", "SurrogateConfig", "CarveConfig", "SelectConfig",
+           "MeshConfig", "StudyConfig", "Stage", "Executor"]
 
 #: ``all`` runs every stage; ``cameras`` stops after viewpoint estimation.
 Stage = Literal["all", "cameras"]
@@ -877,6 +877,19 @@ NEUTRAL_SETTINGS = {"out", "data", "gt", "progress", "preview", "report", "overw
                     "study.keep_all_scores", "study.save_proposals"}  # files written beside the objects
 
 
+def object_settings(cfg: Config) -> dict[str, Any]:
+    """``{dotted key: value}`` of the settings that can change how an object is made: every setting but those of
+    :data:`NEUTRAL_SETTINGS`, in :func:`all_keys` order. What :func:`settings_changed` compares, and what each
+    object's voxels file records (:data:`~carvi_torch.io.layout.SETTINGS_MEMBER`).
+
+    Example:
+        >>> made = object_settings(Config())
+        >>> made["carve.resolution"], "out" in made, "carve.backend" in made
+        (60, False, False)
+    """
+    return {k: v for k, v in cfg.flat().items() if k not in NEUTRAL_SETTINGS}
+
+
 def settings_changed(previous: Path, cfg: Config, summary: dict) -> dict:
     """``{key: (made, ..., now)}``: the settings in which finished objects in the run folder of ``previous`` (its
     ``config.yaml``) may have been made otherwise than ``cfg`` says (``now``), with the values they were made with
@@ -909,9 +922,7 @@ def settings_changed(previous: Path, cfg: Config, summary: dict) -> dict:
         return {}
     record = summary.get("resumed_from_other_settings") or {}
     out = {}
-    for k, now in cfg.flat().items():
-        if k in NEUTRAL_SETTINGS:
-            continue
+    for k, now in object_settings(cfg).items():
         held = record.get(k) if isinstance(record, dict) else None
         made = list(held[:-1]) if isinstance(held, list) and len(held) > 1 else []
         if not made or old.get(k) != held[-1]:  # no record of it, or a config.yaml other than the record's run's

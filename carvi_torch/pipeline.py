@@ -27,8 +27,8 @@ from . import carve, select, surrogates
 from .carve import CarveMaps
 from .carve.puffball import puffball_grids
 from .collection import ClassCollection
-from .config import Config
-from .io.layout import ResumeCheck, class_dir, object_file, resume_check
+from .config import Config, object_settings
+from .io.layout import ResumeCheck, class_dir, object_file, resume_check, settings_text
 from .io.outputs import write_json
 from .io.results import (ClassReport, cameras_json, canonical_image_cameras, drop_cameras, quality_summary,
                          resumed_levels, resumed_objects, scores_entry, write_scores)
@@ -278,7 +278,7 @@ def _job(sel: select.Selection, occupancy: torch.Tensor, masks: torch.Tensor, j:
                 proposals=(proposals_payload(sel, j, sur, canvas_to_image, aid_of)
                            if cfg.study.save_proposals and best >= 0 else None),
                 largest_component=cfg.mesh.largest_component, mask=masks[j].numpy(),
-                input_fingerprint=plan.coll.fingerprints[i])
+                input_fingerprint=plan.coll.fingerprints[i], settings=settings_text(object_settings(cfg)))
 
 
 def _submit(sel: select.Selection, ids: torch.Tensor, plan: ClassPlan, cfg: Config, report: ClassReport,

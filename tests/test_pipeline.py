@@ -408,6 +408,7 @@ def test_torch_mesher_keeps_voxels_and_gives_scikit_image_meshes(tiny, tmp_path)
     """``mesher=torch`` (the CUDA default) run on the CPU, with ``largest_component``: the voxels are the
     writers' run's (largest component taken) byte for byte, and every mesh is scikit-image's mesh of its
     reconstructed grid within 1e-5 voxel with the same triangles; the meshing is booked in the run."""
+    from carvi_torch.io.layout import SETTINGS_MEMBER, held_settings
     from carvi_torch.mesh import largest_component
 
     out, summary = tiny
@@ -418,7 +419,8 @@ def test_torch_mesher_keeps_voxels_and_gives_scikit_image_meshes(tiny, tmp_path)
     for f in (out / "car" / "voxels").glob("*.npz"):
         a, b = np.load(f), np.load(tmp_path / "t" / "car" / "voxels" / f.name)
         assert np.array_equal(largest_component(a["occupancy"]), b["occupancy"])
-        assert all(np.array_equal(a[k], b[k]) for k in a.files if k != "occupancy")
+        assert all(np.array_equal(a[k], b[k]) for k in a.files if k not in ("occupancy", SETTINGS_MEMBER))
+        assert held_settings(b) == {**held_settings(a), "mesh.mesher": "torch", "mesh.largest_component": True}
     assert _same_meshes_as_skimage(tmp_path / "t", "car") >= 5
 
 

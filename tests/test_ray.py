@@ -120,6 +120,11 @@ def test_ray_run_equals_local_run(cluster, local, tmp_path):
     out, ref = local
     got = run(_cfg(tmp_path, data=ref["data"], executor="ray", ray_address=c.address, ray_chunk_objects=2))
     _same_files(out, tmp_path)
+    from carvi_torch.config import object_settings
+    from carvi_torch.io.layout import file_settings
+
+    made = [file_settings(p) for p in sorted((tmp_path / "car" / "voxels").glob("*.npz"))]
+    assert len(made) == 6 and all(m == object_settings(_cfg(tmp_path)) for m in made)  # the tasks' writers too
     assert _counts(got) == _counts(ref)
     assert all(v["reconstructed"] == 6 for v in got["classes"].values())
     ex = got["executor"]

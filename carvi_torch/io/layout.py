@@ -22,6 +22,7 @@ Example:
 """
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,7 +35,7 @@ __all__ = ["unfinished", "NOT_YET",
            "class_dir", "object_stem", "object_file", "object_mesh", "finished", "KINDS", "RUN_NAMES", "reserved",
            "INPUTS_CHANGED", "NO_INPUT_RECORD", "CANVAS_CHANGED", "PER_OBJECT_SETTINGS", "ResumeCheck", "resume_check",
            "same_canvas", "other_objects", "held_fingerprint", "linked_path", "other_settings", "other_settings_text",
-           "settings_record", "MOST_SETTINGS"]
+           "settings_record", "MOST_SETTINGS", "SETTINGS_MEMBER", "settings_text", "held_settings", "file_settings"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -208,6 +209,56 @@ def held_fingerprint(voxels) -> str | None:
     """
     fp = voxels["input_fingerprint"] if "input_fingerprint" in voxels else None
     return str(fp) if fp is not None and fp.dtype.kind == "U" and fp.ndim == 0 else None
+
+
+#: The member of an object's voxels file that records the settings the object was made with
+#: (:func:`~carvi_torch.config.object_settings`, as compact JSON text: :func:`settings_text`; a 0-d unicode array,
+#: like ``input_fingerprint``). An older run's file has none: how its object was made is unknown.
+SETTINGS_MEMBER = "settings"
+
+
+def settings_text(settings: dict) -> str:
+    """``settings`` (``{dotted key: value}``: :func:`~carvi_torch.config.object_settings`) as a voxels file records
+    them (:data:`SETTINGS_MEMBER`): compact JSON, in the given order.
+
+    Example:
+        >>> settings_text({"carve.resolution": 16, "mesh.format": "ply"})
+        '{"carve.resolution":16,"mesh.format":"ply"}'
+    """
+    return json.dumps(settings, separators=(",", ":"))
+
+
+def held_settings(voxels) -> dict | None:
+    """The settings an object's voxels hold (``voxels``: the opened ``npz`` file, or its members in a dict):
+    ``{dotted key: value}`` as :func:`settings_text` wrote them, or ``None`` where there are none (an older run's
+    file) or they are of another kind or unreadable (a foreign file).
+
+    Example:
+        >>> held_settings({SETTINGS_MEMBER: np.asarray('{"carve.resolution":16}', dtype=str)}), held_settings({})
+        ({'carve.resolution': 16}, None)
+    """
+    text = voxels[SETTINGS_MEMBER] if SETTINGS_MEMBER in voxels else None
+    if text is None or text.dtype.kind != "U" or text.ndim != 0:
+        return None
+    try:
+        made = json.loads(str(text))
+    except (ValueError, RecursionError):
+        return None
+    return made if isinstance(made, dict) else None
+
+
+def file_settings(path: str | Path) -> dict | None:
+    """:func:`held_settings` of the voxels file at ``path``; ``None`` also where it is missing or cannot be read.
+
+    Example:
+        >>> file_settings("no/such/run/car/voxels/3.npz") is None
+        True
+    """
+    try:
+        with np.load(path) as z:
+            return held_settings(z)
+    except Exception:  # noqa: BLE001 - a missing or damaged file: its object's settings are unknown
+        return None
 
 
 def _voxels_state(path: Path) -> tuple[str | None, dict]:

@@ -18,7 +18,7 @@ import torch
 from .. import quality
 from ..cameras import azimuth_elevation_roll_from_rotation
 from ..mesh import occupancy_to_mesh, write_mesh
-from .layout import class_dir, object_file
+from .layout import SETTINGS_MEMBER, class_dir, held_settings, object_file, settings_text
 from .outputs import numbers, read_json, shown, write_json, write_npz
 
 __all__ = ["ROTATION_TOLERANCE", "numbers", "rotation_problem", "camera_record_problem", "shown", "ClassReport",
@@ -164,11 +164,29 @@ def resumed_objects(cdir: Path, coll, vp, done: list, mesh_format: str | None = 
         if "reconstruction_iou" in members:
             out[str(aid)] = float(members["reconstruction_iou"])
         v2o = (to_object[i] @ v2img).numpy() if has_camera[i] else np.full((4, 4), np.nan)
-        if not np.array_equal(members.get("voxel_to_object"), v2o, equal_nan=True):
-            write_npz(path, sync=False, **{**members, "voxel_to_object": v2o})
+        record = _mesh_format_record(members, mesh_format)
+        if record or not np.array_equal(members.get("voxel_to_object"), v2o, equal_nan=True):
+            write_npz(path, sync=False, **{**members, "voxel_to_object": v2o, **record})
         if mesh_format is not None:
             _convert_mesh(cdir, aid, members, mesh_format, done[i])
     return out
+
+
+def _mesh_format_record(members: dict, mesh_format: str | None) -> dict:
+    """``{SETTINGS_MEMBER: record}`` of a resumed object whose mesh is made again in ``mesh_format``
+    (:func:`_convert_mesh`; ``None``: none is): its voxels file's settings record with that ``mesh.format``, the
+    format its files are then in, written before the mesh (a stop between them leaves the mesh to convert, which
+    the next run does); ``{}`` where the record says that format already, or there is no record.
+
+    Example:
+        >>> held = {SETTINGS_MEMBER: np.asarray('{"mesh.format":"ply"}')}
+        >>> str(_mesh_format_record(held, "obj")[SETTINGS_MEMBER]), _mesh_format_record(held, "ply")
+        ('{"mesh.format":"obj"}', {})
+    """
+    made = held_settings(members)
+    if mesh_format is None or made is None or made.get("mesh.format", mesh_format) == mesh_format:
+        return {}
+    return {SETTINGS_MEMBER: np.asarray(settings_text({**made, "mesh.format": mesh_format}), dtype=str)}
 
 
 def _convert_mesh(cdir: Path, aid, members: dict, mesh_format: str, taken: str) -> None:

@@ -25,6 +25,7 @@ import numpy as np
 from .. import mesh
 from ..quality import reconstruction_iou
 from ..runtime import ignore_interrupt, peak_rss_mb, watch_parent
+from .layout import SETTINGS_MEMBER
 from .outputs import write_json, write_npz
 
 __all__ = ["write_object", "write_object_safe", "start_worker", "watch_parent", "init_worker"]
@@ -35,14 +36,15 @@ def write_object(job: dict) -> dict:
 
     Takes host (numpy) data only; a job with ``mesh_vertices`` and ``mesh_faces`` was meshed by the
     run (its occupancy is final: ``largest_component`` is not applied again). Writes the proposals
-    (studies) and scores first, then the mesh, then the voxels with the object's ``input_fingerprint`` (the
-    job's, when it has one): an object counts as finished once its voxels file exists and holds the
-    fingerprint of its current inputs (:func:`~carvi_torch.io.layout.finished`). The voxels and mesh files
-    are moved into place whole but not flushed to the disk (``sync=False``): a machine crash may leave one
-    damaged, which a resumed run finds (every member of the voxels file read, the mesh's faces checked) and
-    redoes. The studies' proposals and scores, which no check reads, are flushed. Returns ``ok``, ``reason``,
-    ``mesh_seconds``, ``write_seconds`` and ``reconstruction_iou`` (the value written into the voxels file,
-    ``None`` without a ``mask``), which the run's ``cameras.json`` takes without opening the file again.
+    (studies) and scores first, then the mesh, then the voxels with the object's ``input_fingerprint`` and the
+    ``settings`` it is made with (:data:`~carvi_torch.io.layout.SETTINGS_MEMBER`; the job's, when it has them): an
+    object counts as finished once its voxels file exists and holds the fingerprint of its current inputs
+    (:func:`~carvi_torch.io.layout.finished`). The voxels and mesh files are moved into place whole but not flushed
+    to the disk (``sync=False``): a machine crash may leave one damaged, which a resumed run finds (every member
+    of the voxels file read, the mesh's faces checked) and redoes. The studies' proposals and scores, which no
+    check reads, are flushed. Returns ``ok``, ``reason``, ``mesh_seconds``, ``write_seconds`` and
+    ``reconstruction_iou`` (the value written into the voxels file, ``None`` without a ``mask``), which the run's
+    ``cameras.json`` takes without opening the file again.
     """
     t0 = time.perf_counter()
     occ = job["occupancy"]
@@ -65,6 +67,8 @@ def write_object(job: dict) -> dict:
         extra["reconstruction_iou"] = np.float64(reconstruction_iou(occ, job["voxel_to_canvas"], job["mask"]))
     if job.get("input_fingerprint"):  # what the object was made from (a rerun resumes it only if unchanged)
         extra["input_fingerprint"] = np.asarray(job["input_fingerprint"], dtype=str)
+    if job.get("settings"):  # the settings it was made with (JSON text: layout.settings_text)
+        extra[SETTINGS_MEMBER] = np.asarray(job["settings"], dtype=str)
     mesh.write_mesh(m, job["mesh_path"], sync=False)
     # the voxels file last: it holds the fingerprint, so a stop between the two files leaves an earlier run's
     # voxels (another fingerprint, or none) beside the new mesh, and the object is redone
