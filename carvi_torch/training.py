@@ -57,16 +57,19 @@ class ZarrReader:
         self.fields = attrs["fields"]
         self.class_names = attrs["classes"]
         self.samples = []
+        alike = not settings_record(attrs.get("made_with_other_settings"))  # a store without the field
         for c in self.class_names:
             if c not in group:
                 continue
             g = group[c]
             ga = g.attrs.asdict()
             q = g["quality"][:] if "quality" in g else np.full(ga["count"], np.nan, np.float32)
+            run = g["made_with_run_settings"][:] if "made_with_run_settings" in g else np.full(ga["count"], alike)
             category = {"class_name": ga.get("category_name", c), "category_id": ga.get("category_id")}
             for row in range(ga["count"]):
                 self.samples.append({"class": c, "row": row, "annotation_id": ga["annotation_ids"][row],
-                                     "source": ga["sources"][row], "quality": float(q[row]), **category})
+                                     "source": ga["sources"][row], "quality": float(q[row]),
+                                     "made_with_run_settings": bool(run[row]), **category})
         self._group = None
         self._arrays: dict[tuple[str, str], object] = {}  # opened once per process: metadata is read once
         self._offsets: dict[str, np.ndarray] = {}
@@ -124,6 +127,12 @@ class LiftedDataset(Dataset):
     :attr:`class_names` hold, a safe spelling of the name), ``category_id`` (the COCO category id as a string;
     ``""`` and ``class_name`` = ``class_key`` for a store written before the export recorded categories),
     ``source`` and ``annotation_key`` (the annotation id as a string, also for string ids).
+
+    Where a run folder held objects made with other settings than its ``config.yaml``'s (a rerun with another
+    ``carve.resolution`` resumes them), opening the store warns, :attr:`attrs` holds the record
+    (``made_with_other_settings``) and :attr:`made_with_run_settings` says which items were made with the run's
+    settings (also each item's field of that name): ``Subset(ds, np.flatnonzero(ds.made_with_run_settings))``
+    keeps those.
     """
 
     def __init__(self, root, classes: Iterable[str] | None = None, fields: Sequence[str] | None = None,
@@ -145,11 +154,14 @@ class LiftedDataset(Dataset):
             raise ValueError(f"unknown field(s) {bad}; available: {sorted(known)}")
         self.transform = transform
         self.class_names = self.reader.class_names
-        made = settings_record(self.attrs.get("made_with_other_settings"))
+        made = self._made = settings_record(self.attrs.get("made_with_other_settings"))
         if made:
+            other = sum(not s.get("made_with_run_settings", False) for s in self.reader.samples)
             warnings.warn(f"{root}: its objects were made with other settings than their run's config.yaml: "
                           + other_settings_text(made)
-                          + " (oldest first, then the run's; the export's made_with_other_settings)", stacklevel=2)
+                          + " (oldest first, then the run's; the export's made_with_other_settings); "
+                          f"made_with_run_settings is false for {other} of its {len(self.reader.samples)} objects",
+                          stacklevel=2)
         wanted = set(classes) if classes is not None else None
         if wanted is not None and wanted - set(self.class_names):
             raise ValueError(f"class(es) {sorted(wanted - set(self.class_names))} not in the export; available: "
@@ -164,6 +176,14 @@ class LiftedDataset(Dataset):
         """The export's description (the root's ``carvi_export`` attribute: classes, fields, ``skipped`` objects,
         ``made_with_other_settings``, ...); ``{}`` for the shard layout."""
         return getattr(self.reader, "attrs", {})
+
+    @property
+    def made_with_run_settings(self) -> np.ndarray:
+        """``(len(self),)`` bool: per item, whether its object was made with the run's settings (the store's field
+        ``made_with_run_settings``; for a store written before it, every item ``True`` unless the store records
+        other settings (``made_with_other_settings``), then ``False``: unknown)."""
+        return np.array([self.reader.samples[g].get("made_with_run_settings", not self._made)
+                         for g in self._rows], dtype=bool)
 
     def __len__(self) -> int:
         return len(self._rows)

@@ -1360,15 +1360,30 @@ def test_lifted_dataset_on_a_folder_without_a_store_says_what_to_do(recon, tmp_p
         LiftedDataset(tmp_path / "nowhere")
 
 
+def _as_older_files(run) -> None:
+    """The voxels files of the run folder ``run`` as an older run wrote them: without the settings each object was
+    made with (so the folder's record in summary.json stands for them)."""
+    from carvi_torch.io.layout import SETTINGS_MEMBER
+
+    for path in run.glob("*/voxels/*.npz"):
+        with np.load(path) as z:
+            members = {k: z[k] for k in z.files if k != SETTINGS_MEMBER}
+        np.savez(path, **members)
+
+
 def test_objects_made_with_other_settings_are_said_and_recorded_in_the_store(recon, tmp_path, capsys):
     """A run folder whose objects were made with other settings than its config.yaml's (summary.json's
-    ``resumed_from_other_settings``): the zarr export records them in the store's ``made_with_other_settings`` and
-    every format warns in one line naming each setting's values; a folder without the record says nothing."""
+    ``resumed_from_other_settings``), and whose voxels files do not record each object's (an older run's): the zarr
+    export records the folder's record in the store's ``made_with_other_settings``, marks every object as not made
+    with the run's settings, and every format warns in one line naming each setting's values; a folder without the
+    record says nothing (tests/test_resume_settings.py: objects that record their settings)."""
     run = tmp_path / "run"
     _run_copy(recon, run)
+    _as_older_files(run)
     assert export_main(["--recon", str(run), "--out", str(tmp_path / "same"), "--quiet"] + _SMALL) == 0
     assert _store_attrs(tmp_path / "same")["made_with_other_settings"] == {}
     assert "other settings" not in capsys.readouterr().err
+    assert LiftedDataset(tmp_path / "same").made_with_run_settings.all()
     summary = json.loads((run / "summary.json").read_text())
     summary["resumed_from_other_settings"] = {"carve.resolution": [16, 24], "selection.proposals": [5, 10, 10],
                                               "note": ["two\nlines", "one"]}  # a hand-edited record stays one line
@@ -1378,6 +1393,7 @@ def test_objects_made_with_other_settings_are_said_and_recorded_in_the_store(rec
     with pytest.warns(UserWarning, match="carve.resolution 16 then 24; selection.proposals 5 then 10 then 10"):
         ds = LiftedDataset(tmp_path / "e")
     assert ds.attrs["made_with_other_settings"] == summary["resumed_from_other_settings"]
+    assert len(ds) == 10 and not ds.made_with_run_settings.any()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert LiftedDataset(tmp_path / "same").attrs["made_with_other_settings"] == {}
@@ -1406,6 +1422,7 @@ def test_a_hand_edited_settings_record_is_stored_and_said_safely(recon, tmp_path
     assert len(kept["c"]) == MOST_SETTINGS and kept["c"][-1] == 39
     run = tmp_path / "run"
     _run_copy(recon, run)
+    _as_older_files(run)
     summary = json.loads((run / "summary.json").read_text())
     (run / "summary.json").write_text(json.dumps({**summary, "resumed_from_other_settings": record}))
     capsys.readouterr()

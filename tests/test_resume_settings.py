@@ -122,6 +122,141 @@ def test_files_written_besides_the_objects_are_no_changed_setting(copy):
     assert "resumed_from_other_settings" not in summary and _counts(summary) == (0, 6, 0)
 
 
+# --------------------------------------------------------------------------- the record each object keeps
+
+
+def _held(out: Path, cls: str = "car") -> dict:
+    """``{annotation id: carve.resolution}`` its voxels file records (``None``: no record)."""
+    from carvi_torch.io.layout import file_settings
+
+    return {int(p.stem): (file_settings(p) or {}).get("carve.resolution")
+            for p in sorted((out / cls / "voxels").glob("*.npz"))}
+
+
+def _drop_settings(paths) -> None:
+    """The voxels files at ``paths`` as an older run wrote them: without the settings member."""
+    from carvi_torch.io.layout import SETTINGS_MEMBER
+
+    for path in paths:
+        with np.load(path) as z:
+            members = {k: z[k] for k in z.files if k != SETTINGS_MEMBER}
+        np.savez(path, **members)
+
+
+def _marked(store: Path, cls: str) -> dict:
+    """``{annotation id: made_with_run_settings}`` of a class of an export."""
+    import zarr
+
+    g = zarr.open_group(str(store), mode="r")[cls]
+    return dict(zip(g.attrs["annotation_ids"], g["made_with_run_settings"][:].tolist()))
+
+
+def _export(out: Path, store: Path) -> dict:
+    from carvi_torch.export import export
+
+    return export(out, store, resolution=4, points=8, progress=False, workers=0)
+
+
+def _two_cars_remade_at_24(copy) -> Path:
+    """The copy's run folder after cars 2 and 5 were lost and a rerun at resolution 24 remade them (the other
+    objects resumed, made at 16)."""
+    data, out = copy
+    assert set(_held(out).values()) == {16}
+    for aid in (2, 5):
+        (out / "car" / "voxels" / f"{aid}.npz").unlink()
+    summary = run(_cfg(out, data, resolution=24), workers=0)
+    assert _counts(summary) == (2, 4, 0)
+    assert summary["resumed_from_other_settings"] == {"carve.resolution": [16, 24, 24]}
+    return out
+
+
+def test_each_object_records_its_settings_and_the_store_marks_those_made_otherwise(copy, tmp_path):
+    """Two cars lost, then a rerun at resolution 24: each voxels file records the resolution its object was made
+    with (24 for the two remade, 16 for the resumed), and the export marks exactly the resumed objects as not made
+    with the run's settings (``made_with_run_settings``), its record of the other settings made from those
+    objects; ``LiftedDataset`` gives the marks per item and as an array, and says how many in its warning."""
+    from carvi_torch.training import LiftedDataset
+
+    out = _two_cars_remade_at_24(copy)
+    assert _held(out) == {1: 16, 2: 24, 3: 16, 4: 16, 5: 24, 6: 16} and set(_held(out, "chair").values()) == {16}
+    index = _export(out, tmp_path / "store")
+    assert _marked(tmp_path / "store", "car") == {1: False, 2: True, 3: False, 4: False, 5: True, 6: False}
+    assert set(_marked(tmp_path / "store", "chair").values()) == {False}
+    assert index["made_with_other_settings"] == {"carve.resolution": [16, 24, 24]}
+    with pytest.warns(UserWarning, match="made_with_run_settings is false for 10 of its 12 objects"):
+        ds = LiftedDataset(tmp_path / "store", classes=["car"], fields=["mask"])
+        every = LiftedDataset(tmp_path / "store", classes=["car"])
+    assert ds.made_with_run_settings.tolist() == [False, True, False, False, True, False]
+    assert "made_with_run_settings" not in ds[1]  # a field like the others: an item has it where asked for
+    assert [every[i]["made_with_run_settings"].item() for i in range(6)] == ds.made_with_run_settings.tolist()
+
+
+def test_cmr_and_ucmr_files_mark_the_objects_made_otherwise_too(copy, tmp_path):
+    """The CMR ``.mat`` and U-CMR ``.json`` files carry each object's ``made_with_run_settings`` (a 1 x N logical
+    array beside ``annotation_ids``; a key of each image record) and the class's record of the other settings."""
+    import scipy.io
+
+    from carvi_torch.export.formats import export_format
+
+    out = _two_cars_remade_at_24(copy)
+    want = {1: False, 2: True, 3: False, 4: False, 5: True, 6: False}
+    export_format(out, tmp_path / "ucmr", "ucmr", progress=False)
+    car = json.loads((tmp_path / "ucmr" / "car.json").read_text())
+    assert {r["annotation_id"]: r["made_with_run_settings"] for r in car["images"]} == want
+    assert car["made_with_other_settings"] == {"carve.resolution": [16, 24, 24]}
+    chair = json.loads((tmp_path / "ucmr" / "chair.json").read_text())
+    assert chair["made_with_other_settings"] == {"carve.resolution": [16, 24]}
+    export_format(out, tmp_path / "cmr", "cmr", progress=False)
+    mat = scipy.io.loadmat(tmp_path / "cmr" / "car.mat", struct_as_record=False, squeeze_me=True)
+    assert dict(zip(mat["annotation_ids"].astype(int).tolist(), mat["made_with_run_settings"].tolist())) == want
+    assert json.loads(str(mat["made_with_other_settings"])) == {"carve.resolution": [16, 24, 24]}
+
+
+def test_files_without_a_record_fall_back_on_the_folders(copy, tmp_path):
+    """Voxels files written before objects recorded their settings: where the folder records no other settings,
+    every object counts as made with the run's; where it does, an object without a record counts as not (unknown)
+    and the store takes the folder's record, while an object that records the run's settings is still marked so."""
+    from carvi_torch.io.layout import SETTINGS_MEMBER
+
+    data, out = copy
+    _drop_settings((out / "car" / "voxels").glob("*.npz"))
+    _export(out, tmp_path / "alike")
+    assert set(_marked(tmp_path / "alike", "car").values()) == {True}
+    assert _store_record(tmp_path / "alike") == {}
+    (out / "car" / "voxels" / "2.npz").unlink()
+    run(_cfg(out, data, resolution=24), workers=0)  # the resumed cars record nothing, car 2 records 24
+    with np.load(out / "car" / "voxels" / "1.npz") as z:
+        assert SETTINGS_MEMBER not in z.files
+    _export(out, tmp_path / "mixed")
+    assert _marked(tmp_path / "mixed", "car") == {1: False, 2: True, 3: False, 4: False, 5: False, 6: False}
+    assert _store_record(tmp_path / "mixed") == {"carve.resolution": [16, 24, 24]}
+
+
+def _store_record(store: Path) -> dict:
+    return json.loads((store / "zarr.json").read_text())["attributes"]["carvi_export"]["made_with_other_settings"]
+
+
+def test_writer_processes_record_the_settings_too_and_a_converted_mesh_its_format(copy, tmp_path):
+    """Objects written by writer processes (``workers=1``, as a Ray task's are: the same job) record their settings
+    as the inline writer does; a rerun in another mesh format that converts the resumed objects' meshes records
+    the new format in their voxels files, so the export finds them made with the run's settings."""
+    from carvi_torch.config import object_settings
+    from carvi_torch.io.layout import file_settings
+
+    data, out = copy
+    summary = run(_cfg(out, data, resolution=20, overwrite=True, classes="car"), workers=1)
+    assert _counts(summary) == (6, 0, 0)
+    want = object_settings(_cfg(out, data, resolution=20))
+    assert all(file_settings(p) == want for p in (out / "car" / "voxels").glob("*.npz"))
+    summary = run(_cfg(out, data, resolution=20, mesh_format="obj", classes="car"), workers=0)
+    assert {file_settings(p)["mesh.format"] for p in (out / "car" / "voxels").glob("*.npz")} == {"obj"}
+    assert summary["resumed_from_other_settings"]["carve.resolution"] == [16, 20, 20]  # the chairs, kept at 16
+    _export(out, tmp_path / "store")
+    assert set(_marked(tmp_path / "store", "car").values()) == {True}
+    assert set(_marked(tmp_path / "store", "chair").values()) == {False}  # kept from the first run
+    assert _store_record(tmp_path / "store") == {"carve.resolution": [16, 20, 20], "mesh.format": ["ply", "obj", "obj"]}
+
+
 # --------------------------------------------------------------------------- the canvas
 
 

@@ -18,13 +18,17 @@ annotations (``scipy.io.loadmat(path, struct_as_record=False, squeeze_me=True)``
   **1-based** (CMR subtracts 1 when it loads them).
 - ``annotation_ids``, ``image_ids``, ``sources``, ``kp_names``: which object each element is;
   ``skipped_ids``, ``skipped_reasons``: the class's objects left out, and why.
+- ``made_with_run_settings`` (1 x N logical): per element, whether the object's shape (its voxels and mesh in the
+  run folder) was made with the run's settings, as the zarr store's field of that name says;
+  ``made_with_other_settings``: the class's objects' record of the other settings, as JSON text (``{}``: none).
 
 ``--format ucmr`` writes ``<out>/<class>.json`` with one record per object: ``annotation_id``,
 ``image_id``, ``source``, ``bbox`` (the annotation's box, x0, y0, x1, y1: its extreme pixel centres, image
 pixels, 0-based), ``quality`` and
 ``sfmpose = [s, [tx, ty], [qw, qx, qy, qz]]``: CMR's pose of the same object (``trans`` 1-based,
-the quaternion of ``rot``, scalar first as CMR's ``quaternion_from_matrix`` gives it); plus the
-mean shape ``S`` (K x 3), ``faces`` (0-based) and ``skipped`` (the class's objects left out, with the reason).
+the quaternion of ``rot``, scalar first as CMR's ``quaternion_from_matrix`` gives it) and
+``made_with_run_settings`` (as the ``.mat``'s); plus the mean shape ``S`` (K x 3), ``faces`` (0-based),
+``skipped`` (the class's objects left out, with the reason) and ``made_with_other_settings`` (the record, a dict).
 
 Objects left out (skipped when the annotations were read, without a usable camera, of a class whose
 ``cameras.json`` is missing, and the entries of ``cameras.json`` that name no object of the annotation file)
@@ -46,9 +50,10 @@ import scipy.io
 from scipy.spatial import ConvexHull, distance
 
 from ..io.coco import load_coco, object_id
+from ..io.layout import file_settings, object_file, settings_text
 from ..io.outputs import atomic_write, write_json
-from .source import (camera_entry, camera_problem, class_cameras, class_scope, data_path, load_skips, recon_config,
-                     run_classes, unfinished)
+from .source import (SettingsTally, camera_entry, camera_problem, class_cameras, class_scope, data_path, load_skips,
+                     recon_config, run_classes, unfinished)
 
 __all__ = ["normalised_shape", "cmr_pose", "export_format", "class_records", "quaternion_wxyz", "annotation_boxes"]
 
@@ -162,7 +167,8 @@ def class_records(cams: dict, cname: str, coll, boxes: dict, skipped: list) -> t
     return out, S, hull
 
 
-def _write_cmr(path: Path, recs: list, S: np.ndarray, hull: np.ndarray, names: list, skipped: list) -> None:
+def _write_cmr(path: Path, recs: list, S: np.ndarray, hull: np.ndarray, names: list, skipped: list,
+               made: dict) -> None:
     anno = np.zeros((1, len(recs)), dtype=[("rot", object), ("scale", object), ("trans", object),
                                            ("err_sfm_reproj", object)])
     for j, r in enumerate(recs):
@@ -173,14 +179,16 @@ def _write_cmr(path: Path, recs: list, S: np.ndarray, hull: np.ndarray, names: l
             "sources": np.array([r["source"] or "" for r in recs], dtype=object),
             "kp_names": np.array(names, dtype=object),
             "skipped_ids": np.array([str(r["annotation_id"]) for r in skipped], dtype=object),
-            "skipped_reasons": np.array([r["reason"] for r in skipped], dtype=object)}
+            "skipped_reasons": np.array([r["reason"] for r in skipped], dtype=object),
+            "made_with_run_settings": np.array([[r["made_with_run_settings"] for r in recs]], dtype=bool),
+            "made_with_other_settings": settings_text(made)}
     atomic_write(path, lambda f: scipy.io.savemat(f, data, do_compression=True))
 
 
 def _write_ucmr(path: Path, cname: str, recs: list, S: np.ndarray, hull: np.ndarray, names: list,
-                skipped: list) -> None:
+                skipped: list, made: dict) -> None:
     items = [{"annotation_id": r["annotation_id"], "image_id": r["image_id"], "source": r["source"],
-              "bbox": r["bbox"], "quality": r["quality"],
+              "bbox": r["bbox"], "quality": r["quality"], "made_with_run_settings": r["made_with_run_settings"],
               "sfmpose": [float(r["scale"]), (r["trans"] + 1.0).tolist(), quaternion_wxyz(r["rot"]).tolist()]}
              for r in recs]
     write_json(path, {"class": cname, "keypoint_names": names, "S": S.tolist(), "faces": hull.tolist(),
@@ -188,7 +196,8 @@ def _write_ucmr(path: Path, cname: str, recs: list, S: np.ndarray, hull: np.ndar
                                     "s * R(q)[:2] @ X + t in image pixels, 1-based (CMR's); R rows = image x, "
                                     "image y (down), viewing direction",
                       "images": items,
-                      "skipped": [{k: r.get(k) for k in ("annotation_id", "source", "reason")} for r in skipped]})
+                      "skipped": [{k: r.get(k) for k in ("annotation_id", "source", "reason")} for r in skipped],
+                      "made_with_other_settings": made})
 
 
 def _class_skips(loaded, recon: Path, cname: str, data: Path, pending: bool) -> tuple[dict | None, list]:
@@ -200,6 +209,17 @@ def _class_skips(loaded, recon: Path, cname: str, data: Path, pending: bool) -> 
     coll = loaded.collections.get(cname)
     cams = class_cameras(coll, cname, recon, skipped, pending, data) if coll is not None else None
     return cams, skipped
+
+
+def _settings_of(recs: list, cdir: Path, tally: SettingsTally) -> dict:
+    """Each record's ``made_with_run_settings`` from the settings its object's voxels file in the class folder
+    ``cdir`` records (none, or no file: the folder's record counts), each counted in ``tally`` too; returns the
+    class's own record (:meth:`~carvi_torch.export.source.SettingsTally.record`)."""
+    mine = SettingsTally(tally.run, tally.folder)
+    for r in recs:
+        r["made_with_run_settings"] = mine.add(file_settings(object_file(cdir, "voxels", r["annotation_id"])))
+    tally.others += mine.others
+    return mine.record()
 
 
 def export_format(recon: str | Path, out: str | Path, fmt: str, classes=None, progress: bool = True) -> dict:
@@ -220,20 +240,22 @@ def export_format(recon: str | Path, out: str | Path, fmt: str, classes=None, pr
     scope = class_scope(loaded.dataset["categories"], covered, classes, recon)  # an unknown class: ValueError
     boxes = annotation_boxes(loaded.dataset["annotations"])
     written, skipped, objects, pending = [], [], 0, unfinished(recon)
+    tally = SettingsTally.of(recon, cfg)
     for cname in scope:
         cams, class_skipped = _class_skips(loaded, recon, cname, data, pending)
         if cams is not None:
             coll = loaded.collections[cname]
             recs, S, hull = class_records(cams, cname, coll, boxes, class_skipped)
+            made = _settings_of(recs, recon / cname, tally)
             names = list(coll.meta.keypoint_names)
             path = out / f"{cname}.{'mat' if fmt == 'cmr' else 'json'}"
             if fmt == "cmr":
-                _write_cmr(path, recs, S, hull, names, class_skipped)
+                _write_cmr(path, recs, S, hull, names, class_skipped, made)
             else:
-                _write_ucmr(path, cname, recs, S, hull, names, class_skipped)
+                _write_ucmr(path, cname, recs, S, hull, names, class_skipped, made)
             written.append(path)
             objects += len(recs)
         skipped += class_skipped
     report_skipped(recon, skipped, objects, pending, progress, data,
-                   where="without --quiet each is listed with its reason")
+                   where="without --quiet each is listed with its reason", tally=tally)
     return {"files": written, "objects": objects, "skipped": skipped}

@@ -29,7 +29,7 @@ import numpy as np
 from scipy import ndimage
 from trimesh.exchange import ply as _ply  # noqa: F401 - mesh.read_mesh_arrays' parser, loaded before the workers fork
 
-from ..io.layout import held_fingerprint, same_canvas
+from ..io.layout import SETTINGS_MEMBER, held_fingerprint, held_settings, same_canvas
 from ..mesh import read_mesh_arrays
 from ..runtime import ignore_interrupt, watch_parent
 from .raster import zbuffer
@@ -305,8 +305,8 @@ def _read_voxels(path, canvas: tuple | None = None, fingerprint: str | None = No
         with np.load(path) as z:
             if canvas is not None and _other_canvas(z, canvas, fingerprint):
                 raise OtherCanvas(OTHER_CANVAS)
-            vox = {k: np.asarray(z[k]) for k in ("occupancy", *VOXEL_TRANSFORMS, "input_fingerprint")
-                   if k in z.files}
+            vox = {k: np.asarray(z[k]) for k in ("occupancy", *VOXEL_TRANSFORMS, "input_fingerprint",
+                                                 SETTINGS_MEMBER) if k in z.files}
         _check_voxels(vox)
     except OtherCanvas:
         raise
@@ -330,7 +330,9 @@ def export_object(job: dict) -> dict:
     when the voxels file records a canvas other than the job's (``canvas_scale``, ``canvas_offset``),
     :class:`OtherInputs` when it holds an input fingerprint other than the job's ``fingerprint`` (the annotations
     changed since the object was made, or its redo failed and left an earlier run's files), and
-    :class:`UnreadableFiles` when its voxels or mesh file cannot be read."""
+    :class:`UnreadableFiles` when its voxels or mesh file cannot be read. ``settings``: the settings its voxels file
+    records (:func:`~carvi_torch.io.layout.held_settings`, ``None``: none), which the export weighs
+    (:class:`~carvi_torch.export.source.SettingsTally`) into ``made_with_run_settings``."""
     a, b = float(job["canvas_scale"]), np.asarray(job["canvas_offset"], dtype=np.float64)
     z = _read_voxels(job["voxels"], (a, b), job.get("fingerprint"))
     held = held_fingerprint(z)
@@ -364,6 +366,7 @@ def export_object(job: dict) -> dict:
         "depth": depth_map(verts, faces, C, depth_centre),
         "points": pts @ to_class[:3, :3].T + to_class[:3, 3], "normals": normals @ R,
         "class_index": np.int64(job["class_index"]),
+        "settings": held_settings(z),  # not a field: the export tallies it (made_with_run_settings)
     }
     if job["mesh_field"]:
         out["mesh_vertices"] = verts @ to_class[:3, :3].T + to_class[:3, 3]

@@ -32,9 +32,9 @@ from ..io.coco import load_coco
 from ..io.layout import object_file, object_mesh, other_settings, other_settings_text
 from ..io.writer import INT64_RANGE, start_method
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
-from .source import (NOT_YET, NOT_IN_ANNOTATIONS, camera_entry, camera_problem, class_cameras, class_categories,
-                     class_scope, data_path, load_skips, missing_class_reason, recon_config, run_classes, skip_all,
-                     unfinished)
+from .source import (NOT_YET, NOT_IN_ANNOTATIONS, SettingsTally, camera_entry, camera_problem, class_cameras,
+                     class_categories, class_scope, data_path, load_skips, missing_class_reason, recon_config,
+                     run_classes, skip_all, unfinished)
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object,
                       safe_export_objects, view_occupancy)
 from .settings import settings_problem
@@ -174,12 +174,14 @@ def _skipped_in_order(class_names: list, skipped: dict) -> list:
 
 
 def report_skipped(recon: Path, skipped_list: list, exported: int, pending: bool, progress: bool, data: Path,
-                   where: str = "reasons in the store's 'skipped' attribute") -> None:
+                   where: str = "reasons in the store's 'skipped' attribute",
+                   tally: SettingsTally | None = None) -> None:
     """The skipped objects, one line each (a count alone when ``progress`` is off; ``where``: where the reasons
     are); one warning line counting, per class, the ``cameras.json`` entries that name no object of the
     annotation file ``data``; an unfinished run's objects not reconstructed yet in one line, counted per class,
-    with the classes it has not started; one warning line where the run's objects were made with other settings
-    than its ``config.yaml``'s (:func:`~carvi_torch.io.layout.other_settings`)."""
+    with the classes it has not started; one warning line where the exported objects were made with other
+    settings than the run's ``config.yaml``'s (``tally``: :class:`~carvi_torch.export.source.SettingsTally`; without
+    one, the folder's record: :func:`~carvi_torch.io.layout.other_settings`)."""
     import sys
 
     other = [s for s in skipped_list if s["reason"] != NOT_YET]
@@ -192,12 +194,11 @@ def report_skipped(recon: Path, skipped_list: list, exported: int, pending: bool
         print(f"warning: {sum(extra.values())} camera(s) in cameras.json name no object of the annotation file "
               f"{data}: {', '.join(f'{n} of class {c}' for c, n in extra.items())} (listed as skipped; was the run "
               "made from another file?)", file=sys.stderr)
-    made = other_settings(recon)
+    made = tally.line() if tally is not None else other_settings_text(other_settings(recon))
     if made:
-        print(f"warning: {recon} holds objects made with other settings than its config.yaml's: "
-              + other_settings_text(made)
-              + " (oldest first, then the run's; summary.json's resumed_from_other_settings: the folder's record, "
-              "not each object's); reconstruct with overwrite=true makes them alike", file=sys.stderr)
+        print(f"warning: {recon} holds objects made with other settings than its config.yaml's: {made}; the "
+              "export's made_with_run_settings says which; reconstruct with overwrite=true makes them alike",
+              file=sys.stderr)
     if pending:
         print(f"warning: {recon} is an unfinished run (interrupted or still running): exported the {exported} "
               f"object(s) it finished; {_not_yet(recon, skipped_list)} (rerun reconstruct to finish it)",
@@ -279,12 +280,13 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     writer = StoreWriter(out, shard_size, DEFAULT_FIELDS + (MESH_FIELDS if mesh else []))  # --out checked first
     settings = {"canvas": canvas, "resolution": resolution, "points": points, "seed": seed, "mesh_field": mesh,
                 "mesh_format": cfg.mesh.format}  # the run's own meshes first, where another format's are left
+    tally = SettingsTally.of(recon, cfg)
     try:
         loaded, class_names, missing = _load(recon, cfg, data, classes, pending)
         writer.categories = class_categories(loaded.dataset["categories"], class_names)
         skipped = load_skips(loaded.problems, class_names)
         samples = _write_samples(loaded, recon, class_names, settings, writer, skipped, progress, workers,
-                                 NOT_YET if pending else "no voxels (not reconstructed)", data)
+                                 NOT_YET if pending else "no voxels (not reconstructed)", data, tally)
         if pending and not samples:
             raise ValueError(f"{recon} is an unfinished run with no object reconstructed yet: nothing to export "
                              "(nothing was written)")
@@ -296,7 +298,7 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
                  "points": points, "seed": seed, "classes": class_names,
                  "class_extent": {c: writer.extent[c] for c in class_names if c in writer.extent},
                  "categories": writer.categories,
-                 "skipped": skipped_list, "made_with_other_settings": other_settings(recon),
+                 "skipped": skipped_list, "made_with_other_settings": tally.record(),
                  "seconds": round(time.perf_counter() - t0, 3)}
         desc = writer.close(attrs)
     except InterruptedAfterSwap as e:  # Ctrl-C during the swap: the new store is complete, nothing to undo
@@ -305,14 +307,15 @@ def export(recon: str | Path, out: str | Path, resolution: int = 32, points: int
     except BaseException:
         writer.abort()
         raise
-    report_skipped(recon, skipped_list, len(samples), pending, progress, data)
+    report_skipped(recon, skipped_list, len(samples), pending, progress, data, tally=tally)
     return {**desc, "samples": samples}
 
 
 def _write_samples(loaded, recon: Path, class_names: list, settings: dict, writer: StoreWriter, skipped: dict,
-                   progress: bool, workers: int, no_files: str, data: Path) -> list:
-    """Compute every object (in ``workers`` processes, or here) and add it to ``writer``; returns the samples'
-    entries (class, annotation_id, image_id, source) in store order."""
+                   progress: bool, workers: int, no_files: str, data: Path, tally: SettingsTally) -> list:
+    """Compute every object (in ``workers`` processes, or here) and add it to ``writer``, its
+    ``made_with_run_settings`` from the settings its voxels file records (counted in ``tally``); returns the
+    samples' entries (class, annotation_id, image_id, source) in store order."""
     samples = []
     bar = tqdm(total=sum(len(loaded.collections.get(c, ())) for c in class_names), desc="export",
                disable=not progress)
@@ -335,6 +338,7 @@ def _write_samples(loaded, recon: Path, class_names: list, settings: dict, write
                                             | {"reason": reason})
                     continue
                 sample["annotation_id"], sample["image_id"] = _int_id(job["annotation_id"]), _int_id(job["image_id"])
+                sample["made_with_run_settings"] = np.bool_(tally.add(sample.pop("settings")))
                 writer.add(job["class"], sample, job)
                 samples.append({k: job[k] for k in ("class", "annotation_id", "image_id", "source")})
     finally:

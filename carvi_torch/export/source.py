@@ -1,17 +1,19 @@
 """Where an export reads from: a reconstruction directory's configuration and the annotations it ran on."""
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..config import Config, read_run_config
+from ..config import Config, object_settings, read_run_config
 from ..io.coco import class_keys, class_names, select_classes, skipped_at_load
 from ..io.layout import NOT_YET, unfinished  # noqa: F401 - the export's names for them
+from ..io.layout import objects_record, other_settings, other_settings_text, other_values
 from ..io.outputs import read_json, shown
 from ..io.results import camera_record_problem
 
 __all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories",
            "camera_problem", "camera_entry", "load_skips", "missing_class_reason", "extra_cameras", "skip_all",
-           "class_cameras", "NOT_YET", "NOT_IN_ANNOTATIONS"]
+           "class_cameras", "NOT_YET", "NOT_IN_ANNOTATIONS", "SettingsTally"]
 
 #: How the reason of a ``cameras.json`` entry that names no object of the annotation file begins.
 NOT_IN_ANNOTATIONS = "in cameras.json but not an object of the annotation file"
@@ -199,3 +201,60 @@ def class_cameras(coll, cname: str, recon: Path, skipped: list, pending: bool, d
     known = {str(a) for a in coll.annotation_ids} | {str(s["annotation_id"]) for s in skipped}
     skipped.extend(extra_cameras(cams, cname, known, data))
     return cams
+
+
+@dataclass
+class SettingsTally:
+    """The settings the objects an export writes were made with, object by object: ``run`` (the run's,
+    :func:`~carvi_torch.config.object_settings` of its ``config.yaml``), ``folder`` (the run folder's record,
+    :func:`~carvi_torch.io.layout.other_settings`, which stands for an object whose voxels file records none: an
+    older run's) and, per object added, its :func:`~carvi_torch.io.layout.other_values` (``None``: unknown).
+
+    Example:
+        >>> tally = SettingsTally({"carve.resolution": 24}, {})
+        >>> tally.add({"carve.resolution": 24}), tally.add({"carve.resolution": 16}), tally.add(None)
+        (True, False, True)
+        >>> tally.record()
+        {'carve.resolution': [16, 24, 24]}
+    """
+
+    run: dict
+    folder: dict
+    others: list = field(default_factory=list)
+
+    @classmethod
+    def of(cls, recon: Path, cfg: Config) -> "SettingsTally":
+        """The tally of the run folder ``recon`` whose configuration is ``cfg``."""
+        return cls(object_settings(cfg), other_settings(recon))
+
+    def add(self, held: dict | None) -> bool:
+        """Count an object whose voxels file holds ``held`` (:func:`~carvi_torch.io.layout.held_settings`);
+        returns whether it was made with the run's settings (the store's ``made_with_run_settings``): its record
+        says so, or, without one, the folder records no other settings."""
+        other = other_values(held, self.run) if held is not None else None
+        self.others.append(other)
+        return not other if other is not None else not self.folder
+
+    def record(self) -> dict:
+        """The objects' mixed-settings record (:func:`~carvi_torch.io.layout.objects_record`): the store's
+        ``made_with_other_settings``, ``{}`` where all were made with the run's settings."""
+        return objects_record(self.others, self.run, self.folder)
+
+    def line(self) -> str:
+        """The record and how many of the objects were made otherwise on one line, ``""`` where none was.
+
+        Example:
+            >>> made, count = SettingsTally({"a": 2}, {"a": [1, 2]}, [{"a": 1}, {}, None]).line().split("; ")
+            >>> made
+            "a 1 then 2 then 2 (oldest first, then the run's)"
+            >>> count
+            "2 of the 3 exported objects (1 of them by the folder's record: its file records no settings)"
+        """
+        made = self.record()
+        if not made:
+            return ""
+        unknown = sum(o is None for o in self.others) if self.folder else 0
+        other = sum(bool(o) for o in self.others if o is not None) + unknown
+        why = f" ({unknown} of them by the folder's record: its file records no settings)" if unknown else ""
+        return (other_settings_text(made) + f" (oldest first, then the run's); {other} of the {len(self.others)} "
+                f"exported objects{why}")

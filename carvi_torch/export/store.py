@@ -84,6 +84,9 @@ FIELDS: dict[str, FieldSpec] = {
                                                "PASCAL3D+ defines them"),
     "quality": FieldSpec("float32", "()", "predicted reliability in [0, 1] (cameras.json 'quality'; NaN when "
                                           "the run wrote none)"),
+    "made_with_run_settings": FieldSpec("bool", "()", "made with the run's settings (its config.yaml's): so its "
+                                                      "voxels file records, or, where it records none (an older "
+                                                      "run's), the run folder records no other settings"),
     "occupancy_view": FieldSpec("bool", "(R, R, R)", "any-overlap occupancy in the view frame, [depth, y, x]: the "
                                                      "canvas square in x, y and R cells of depth view_depth[1] "
                                                      "centred on view_depth[0] (the whole object)"),

@@ -35,7 +35,8 @@ __all__ = ["unfinished", "NOT_YET",
            "class_dir", "object_stem", "object_file", "object_mesh", "finished", "KINDS", "RUN_NAMES", "reserved",
            "INPUTS_CHANGED", "NO_INPUT_RECORD", "CANVAS_CHANGED", "PER_OBJECT_SETTINGS", "ResumeCheck", "resume_check",
            "same_canvas", "other_objects", "held_fingerprint", "linked_path", "other_settings", "other_settings_text",
-           "settings_record", "MOST_SETTINGS", "SETTINGS_MEMBER", "settings_text", "held_settings", "file_settings"]
+           "settings_record", "MOST_SETTINGS", "SETTINGS_MEMBER", "settings_text", "held_settings", "file_settings",
+           "other_values", "objects_record"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -259,6 +260,50 @@ def file_settings(path: str | Path) -> dict | None:
             return held_settings(z)
     except Exception:  # noqa: BLE001 - a missing or damaged file: its object's settings are unknown
         return None
+
+
+def other_values(held: dict, run: dict) -> dict:
+    """``{dotted key: value}`` of the settings an object was made with (``held``: :func:`held_settings`) that are
+    not the run's (``run``: :func:`~carvi_torch.config.object_settings` of its ``config.yaml``; compared as JSON
+    holds them, a tuple as a list); a setting one of them lacks (added or removed since) counts, as ``None``.
+    ``{}``: the object was made with the run's settings.
+
+    Example:
+        >>> other_values({"carve.resolution": 16, "seed": 0}, {"carve.resolution": 24, "seed": 0, "new": (1, 2)})
+        {'carve.resolution': 16, 'new': None}
+    """
+    run = json.loads(settings_text(run))
+    return {k: held.get(k) for k in {**held, **run} if held.get(k) != run.get(k)}
+
+
+def objects_record(others: list, run: dict, folder: dict) -> dict:
+    """The mixed-settings record of a set of objects (the form of ``summary.json``'s ``resumed_from_other_settings``:
+    per setting, the values the objects were made with, then the run's; :func:`settings_record`) from each object's
+    :func:`other_values` (``None``: unknown, an older run's file without :data:`SETTINGS_MEMBER`): the values the
+    objects were made with, in the order of the folder's record (``folder``: :func:`other_settings`) where it has
+    them, and the folder's values too where an object's are unknown; then the run's value (``run``: its settings;
+    the folder's for a setting it does not know).
+
+    Example:
+        >>> run = {"carve.resolution": 24}
+        >>> objects_record([{}, {"carve.resolution": 16}], run, {}), objects_record([{}, {}], run, {"x": [1, 2]})
+        ({'carve.resolution': [16, 24, 24]}, {})
+        >>> objects_record([{}, None], run, {"carve.resolution": [20, 24]})
+        {'carve.resolution': [20, 24, 24]}
+    """
+    known, run = [o for o in others if o is not None], json.loads(settings_text(run))
+    made = {k: list(v[:-1]) for k, v in folder.items()} if len(known) < len(others) else {}
+    for k, v in ((k, v) for o in known for k, v in o.items()):
+        made.setdefault(k, []).append(v)
+    out = {}
+    for k, values in made.items():
+        now = run[k] if k in run else folder.get(k, [None])[-1]  # a setting the run does not know: the folder's
+        values += [now] if any(k not in o for o in known) else []  # objects made with the run's value
+        order = folder.get(k, [])[:-1]
+        values = sorted((v for i, v in enumerate(values) if v not in values[:i]),
+                        key=lambda v: order.index(v) if v in order else len(order))
+        out[k] = values + [now]
+    return settings_record(out)
 
 
 def _voxels_state(path: Path) -> tuple[str | None, dict]:
