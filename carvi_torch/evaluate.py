@@ -77,7 +77,7 @@ import torch
 from .cli import CommandError, add_common, positive_int, program, run_command, split_classes, writable_folder
 from .config import Config, ConfigError, read_run_config
 from .io.coco import CocoFormatError, class_keys, class_names, load_coco, object_id, select_classes
-from .io.layout import NOT_YET, other_settings, other_settings_text, unfinished
+from .io.layout import NOT_YET, objects_made_otherwise, objects_text, other_settings, other_settings_text, unfinished
 from .io.outputs import read_json, shown_names, write_bytes, write_json
 from .io.results import annotation_source, same_object
 from .evaluation import reliability, viewpoint_metrics
@@ -855,9 +855,10 @@ def _print_notes(args, recons: dict, res: dict) -> None:
                      f"({why[:120]}): its meshes are looked up as {Config().mesh.format} first, then in the other "
                      "formats")
     for name, made in res.get("made_with_other_settings", {}).items():
+        counted = objects_text(objects_made_otherwise(recons[name]))
         lines.append(f"note: {name} ({recons[name]}) holds objects made with other settings than its config.yaml's: "
                      + other_settings_text(made)
-                     + " (oldest first, then the run's): its errors mix them")
+                     + f" (oldest first, then the run's{'; ' + counted if counted else ''}): its errors mix them")
     for name in res["unfinished"]:
         lines.append(f"note: {name} ({recons[name]}) is an unfinished run (interrupted or still running): the "
                      "objects it has not reconstructed yet count as missing")

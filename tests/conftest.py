@@ -48,6 +48,20 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def record_settings(paths, **changed) -> None:
+    """Rewrite the voxels files at ``paths`` as if their objects had been made with the settings ``changed``
+    (dotted keys with ``.`` as ``__``: ``carve__resolution=16``) besides those they record."""
+    import numpy as np
+
+    from carvi_torch.io.layout import SETTINGS_MEMBER, file_settings, settings_text
+
+    for path in paths:
+        made = {**file_settings(path), **{k.replace("__", "."): v for k, v in changed.items()}}
+        with np.load(path) as z:
+            members = {k: z[k] for k in z.files}
+        np.savez(path, **{**members, SETTINGS_MEMBER: np.asarray(settings_text(made))})
+
+
 def load_tool(name: str, as_name: str | None = None):
     """``tools/<name>.py`` loaded as a module (registered in ``sys.modules`` under ``as_name``, default
     ``name``, so that its dataclasses find their module)."""

@@ -10,6 +10,7 @@ import pytest
 from carvi_torch.config import Config, ConfigError
 from carvi_torch.evaluate import evaluate, format_shape_table, format_viewpoint_table, main, posed_gt_mesh
 from carvi_torch.executors import run
+from conftest import record_settings
 
 TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 3, "canvas_size": 64, "progress": False,
         "refine_iters": 20, "plane_size": 32, "preview": False, "report": False, "classes": ["car"]}
@@ -185,8 +186,8 @@ def test_another_tools_config_yaml_beside_a_methods_meshes_is_noted_not_fatal(re
 
 def test_a_run_made_with_other_settings_is_noted(recon, tmp_path, capsys):
     """A method's folder whose objects were made with other settings than its config.yaml's: evaluate lists it in
-    ``made_with_other_settings`` and says so in a note naming each setting's values; a folder without the record
-    is not listed."""
+    ``made_with_other_settings`` and says so in a note naming each setting's values and how many objects their
+    voxels files say were made so; a folder without the record is not listed."""
     data, _ = _gt(recon)
     run = tmp_path / "run"
     shutil.copytree(recon, run)
@@ -198,8 +199,14 @@ def test_a_run_made_with_other_settings_is_noted(recon, tmp_path, capsys):
                  "--viewpoints-only", "--out", str(tmp_path / "ev")]) == 0
     notes = [line for line in capsys.readouterr().err.splitlines() if "other settings" in line]
     assert len(notes) == 1 and notes[0].startswith("note: Mixed (") and "carve.resolution 16 then 24" in notes[0]
+    assert "0 of its 6 objects by their voxels files" in notes[0]  # each records the run's settings
     res = json.loads((tmp_path / "ev" / "results.json").read_text())
     assert res["made_with_other_settings"] == {"Mixed": {"carve.resolution": [16, 24]}}
+    record_settings(sorted((run / "car" / "voxels").glob("*.npz"))[:2], carve__resolution=16)
+    assert main(["--data", str(data), "--recon", f"Mixed={run}", "--classes", "car", "--viewpoints-only",
+                 "--out", str(tmp_path / "ev2")]) == 0
+    notes = [line for line in capsys.readouterr().err.splitlines() if "other settings" in line]
+    assert len(notes) == 1 and "(oldest first, then the run's; 2 of its 6 objects by their voxels files)" in notes[0]
 
 
 def test_an_object_whose_ground_truth_fails_gets_a_reason_and_no_scores(recon, tmp_path):

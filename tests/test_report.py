@@ -24,6 +24,7 @@ from carvi_torch.executors import run
 from carvi_torch.report import build_report, main as report_main
 from carvi_torch.report.build import STATIC
 from carvi_torch.report.cards import decode_positions
+from conftest import record_settings
 
 CHROMIUM = Path("/usr/bin/chromium")
 TINY = {"procedural_instances": 6, "resolution": 20, "proposals": 4, "canvas_size": 64, "refine_iters": 30,
@@ -218,7 +219,8 @@ def test_a_class_meshes_in_an_earlier_format_get_their_3d_view_and_link(recon, t
 
 def test_the_page_says_when_objects_were_made_with_other_settings(recon, tmp_path):
     """A run whose summary records objects made with other settings than its config.yaml's: the page's header says
-    which, in one escaped line; a run without the record has no such line."""
+    which, in one escaped line, with how many objects their voxels files say were made so; a run without the record
+    has no such line."""
     run = tmp_path / "run"
     shutil.copytree(recon, run, ignore=shutil.ignore_patterns("report"))
     assert report_main(["--recon", str(run), "--out", str(tmp_path / "same"), "--quiet"]) == 0
@@ -230,6 +232,12 @@ def test_the_page_says_when_objects_were_made_with_other_settings(recon, tmp_pat
     page = (tmp_path / "rep" / "index.html").read_text()
     line = re.search(r"<p class=warn>(.*?)</p>", page).group(1)
     assert "carve.resolution 16 then 24; &lt;b&gt; x then y" in line and "<b>" not in page
+    assert "; 0 of its 12 objects by their voxels files;" in line
+    record_settings(sorted((run / "chair" / "voxels").glob("*.npz"))[:1], carve__resolution=16)
+    sorted((run / "car" / "voxels").glob("*.npz"))[0].unlink()  # an object without files is not counted
+    assert report_main(["--recon", str(run), "--out", str(tmp_path / "rep2"), "--quiet"]) == 0
+    line = re.search(r"<p class=warn>(.*?)</p>", (tmp_path / "rep2" / "index.html").read_text()).group(1)
+    assert "; 1 of its 11 objects by their voxels files;" in line
 
 
 def test_no_network_reference_and_vendored_files_intact(recon):

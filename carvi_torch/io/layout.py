@@ -36,7 +36,7 @@ __all__ = ["unfinished", "NOT_YET",
            "INPUTS_CHANGED", "NO_INPUT_RECORD", "CANVAS_CHANGED", "PER_OBJECT_SETTINGS", "ResumeCheck", "resume_check",
            "same_canvas", "other_objects", "held_fingerprint", "linked_path", "other_settings", "other_settings_text",
            "settings_record", "MOST_SETTINGS", "SETTINGS_MEMBER", "settings_text", "held_settings", "file_settings",
-           "other_values", "objects_record"]
+           "other_values", "objects_record", "objects_made_otherwise", "objects_text"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -304,6 +304,44 @@ def objects_record(others: list, run: dict, folder: dict) -> dict:
                         key=lambda v: order.index(v) if v in order else len(order))
         out[k] = values + [now]
     return settings_record(out)
+
+
+def objects_made_otherwise(recon: str | Path) -> tuple[int, int, int]:
+    """``(other, recorded, objects)``: how many objects of the run folder ``recon`` (its voxels files) record
+    settings other than its ``config.yaml``'s (:func:`other_values`), how many record theirs at all
+    (:data:`SETTINGS_MEMBER`), and how many there are; ``(0, 0, 0)`` without a readable ``config.yaml``.
+
+    Example:
+        >>> objects_made_otherwise("no/such/run")
+        (0, 0, 0)
+    """
+    from ..config import ConfigError, object_settings, read_run_config
+
+    try:
+        run = object_settings(read_run_config(Path(recon) / "config.yaml"))
+    except (ConfigError, OSError):
+        return 0, 0, 0
+    other = recorded = objects = 0
+    for path in Path(recon).glob("*/voxels/*.npz"):
+        objects += 1
+        held = file_settings(path)
+        recorded += held is not None
+        other += bool(held is not None and other_values(held, run))
+    return other, recorded, objects
+
+
+def objects_text(counts: tuple[int, int, int]) -> str:
+    """:func:`objects_made_otherwise`'s counts in a few words, ``""`` where no object records its settings.
+
+    Example:
+        >>> objects_text((2, 10, 12)), objects_text((0, 0, 12))
+        ('2 of its 12 objects by their voxels files, 2 of which record none', '')
+    """
+    other, recorded, objects = counts
+    if not recorded:
+        return ""
+    return f"{other} of its {objects} objects by their voxels files" + (
+        f", {objects - recorded} of which record none" if recorded < objects else "")
 
 
 def _voxels_state(path: Path) -> tuple[str | None, dict]:

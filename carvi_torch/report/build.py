@@ -30,6 +30,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Literal
 
 from ..io.coco import class_keys
+from ..io.layout import objects_made_otherwise, settings_record
 from ..io.outputs import first_link, folder_within, safe_name, write_within
 from ..runtime import LeanProcessPool, check_replaceable, os_error_line, start_method
 from .cards import Card, CardContext, ClassView, make_card
@@ -211,6 +212,8 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
                                    + ",\n".join(json.dumps(c.to_json()) for c in order) + "]);\n").encode(), sync=False)
     _copy_assets(out)
     title = title or f"carvi_torch report: {run.recon.resolve().name}"
-    index = write_within(out, "index.html", index_html(run.summary, title, panels, names, len(order), by).encode(),
-                         sync=False)
+    mixed = settings_record(run.summary.get("resumed_from_other_settings"))  # objects counted only then
+    page = index_html(run.summary, title, panels, names, len(order), by,
+                      objects_made_otherwise(run.recon) if mixed else None)
+    index = write_within(out, "index.html", page.encode(), sync=False)
     return Report(index=index, cards=len(order), sort_by=by, seconds=time.perf_counter() - t0)

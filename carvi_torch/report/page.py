@@ -13,7 +13,7 @@ from __future__ import annotations
 from html import escape
 from urllib.parse import quote
 
-from ..io.layout import other_settings_text, settings_record
+from ..io.layout import objects_text, other_settings_text, settings_record
 from .cards import legend
 
 __all__ = ["class_panel_html", "index_html", "MAX_REASONS"]
@@ -78,7 +78,7 @@ def _legend_html() -> str:
     return "<div class=legend id=legend-template>" + "".join(items) + "</div>"
 
 
-def _header(summary: dict, title: str, n_cards: int, sort_by: str) -> str:
+def _header(summary: dict, title: str, n_cards: int, sort_by: str, objects: tuple | None = None) -> str:
     classes = summary.get("classes") or {}
     total = sum(int(c.get("objects", 0) or 0) for c in classes.values() if isinstance(c, dict))
     done = sum(int(c.get("reconstructed", 0) or 0) for c in classes.values() if isinstance(c, dict))
@@ -89,12 +89,13 @@ def _header(summary: dict, title: str, n_cards: int, sort_by: str) -> str:
     if isinstance(secs, (int, float)):
         line += f"; run took {secs:.1f} s on {escape(str(summary.get('device', '?')))}"
     extra = f"<p>input problems reported at load: {len(problems)} (summary.json)</p>" if problems else ""
-    return f"<header><h1>{escape(title)}</h1><p>{line}</p>{extra}{_other_settings(summary)}</header>"
+    return f"<header><h1>{escape(title)}</h1><p>{line}</p>{extra}{_other_settings(summary, objects)}</header>"
 
 
-def _other_settings(summary: dict) -> str:
+def _other_settings(summary: dict, objects: tuple | None = None) -> str:
     """A line saying the run's objects were made with other settings than its ``config.yaml``'s (``summary.json``'s
-    ``resumed_from_other_settings``), or nothing.
+    ``resumed_from_other_settings``; ``objects``: how many by their voxels files,
+    :func:`~carvi_torch.io.layout.objects_made_otherwise`), or nothing.
 
     Example:
         >>> _other_settings({"resumed_from_other_settings": {"carve.resolution": [16, 24]}})[:92]
@@ -103,15 +104,17 @@ def _other_settings(summary: dict) -> str:
     made = settings_record(summary.get("resumed_from_other_settings"))
     if not made:
         return ""
-    values = other_settings_text(made)
-    text = (f"objects made with other settings than config.yaml: {values} (oldest first, then this run's; "
-            "reconstruct with overwrite=true makes them alike)")
+    values, counted = other_settings_text(made), objects_text(objects) if objects else ""
+    text = (f"objects made with other settings than config.yaml: {values} (oldest first, then this run's"
+            + (f"; {counted}" if counted else "") + "; reconstruct with overwrite=true makes them alike)")
     return f"<p class=warn>{escape(text)}</p>"
 
 
 def index_html(summary: dict, title: str, panels: list[str], classes: list[tuple[str, str]], n_cards: int,
-               sort_by: str) -> str:
-    """The whole page; ``classes``: ``(key, name)`` of every class for the filter."""
+               sort_by: str, objects: tuple | None = None) -> str:
+    """The whole page; ``classes``: ``(key, name)`` of every class for the filter; ``objects``: how many objects
+    were made with other settings by their voxels files (:func:`~carvi_torch.io.layout.objects_made_otherwise`),
+    where the run records any."""
     options = "<option value=all>all classes</option>" + "".join(
         f"<option value='{escape(k)}'>{escape(n)}</option>" for k, n in classes)
     return f"""<!doctype html>
@@ -119,7 +122,7 @@ def index_html(summary: dict, title: str, panels: list[str], classes: list[tuple
 <meta name=viewport content='width=device-width, initial-scale=1'>
 <link rel=stylesheet href='assets/report.css'></head>
 <body data-ready=0>
-{_header(summary, title, n_cards, sort_by)}
+{_header(summary, title, n_cards, sort_by, objects)}
 <h2>Classes</h2>
 <div class=class-grid>{''.join(panels)}</div>
 <h2 id=objects>Objects</h2>
