@@ -411,6 +411,27 @@ def test_a_second_run_into_a_folder_a_run_holds_is_refused_before_writing(copy, 
     FolderLock(out).release()
 
 
+def _files(folder: Path) -> dict:
+    """Every file under ``folder``: its content and modification time."""
+    return {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_refused_run_leaves_the_embedded_collection_of_the_run_holding_the_folder(procedural_input, tmp_path):
+    """Without ``--data`` a run generates the embedded collection into ``OUT/input``: a second run into a folder that
+    another holds (here with another seed, which would generate it anew) is refused before it generates anything,
+    so the holder's input stays byte for byte (it used to be replaced before the lock was asked for)."""
+    from carvi_torch.config import ConfigError
+    from carvi_torch.runtime import FolderLock
+
+    out = tmp_path / "run"
+    procedural_input(out)
+    with FolderLock(out):
+        before = _files(out)
+        with pytest.raises(ConfigError, match="another process"):
+            run(Config().override({**SMALL, "out": str(out), "procedural_instances": 2, "seed": 1}), workers=0)
+        assert _files(out) == before
+
+
 def test_a_read_only_class_folder_is_refused_before_any_work(copy, monkeypatch):
     """A class folder (or its meshes/ or voxels/) the run cannot write into: every object of the class would fail
     after its work, so the run stops first with one user error naming the folder, nothing written. (Simulated:

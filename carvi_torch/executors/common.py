@@ -148,10 +148,37 @@ def open_run(cfg: Config) -> RunSetup:
     """Check the request, read the annotations, then create the output folder and ``config.yaml``.
 
     Raises :class:`ConfigError` or :class:`~carvi_torch.io.coco.CocoFormatError` for a user error,
-    before anything is written (the embedded default collection is generated into ``OUT/input``).
+    before anything is written (the embedded default collection is generated into ``OUT/input``, once the
+    run holds the folder's lock: a run refused because another holds it writes nothing there).
     """
     device = check_request(cfg)
     out = Path(cfg.out)
+    lock = _lock(out) if cfg.data is None else None  # the embedded default is generated into OUT/input
+    try:
+        data_path, gt_path, loaded, gt, load_s = _read_input(cfg, device)
+        lock = lock or _lock(out)
+        previous = _earlier_summary(out)
+        earlier, earlier_data = _earlier_classes(previous, cfg)
+        changed = settings_changed(out / "config.yaml", cfg, previous)
+        write_bytes(out / "config.yaml", cfg.to_yaml().encode())
+    except BaseException:
+        if lock is not None:
+            lock.release()
+        raise
+    summary = {"data": str(Path(data_path).resolve()), "gt": str(Path(gt_path).resolve()) if gt_path else None,
+               "device": str(device), "torch_threads": torch.get_num_threads(),
+               "carve_backend": carve.resolve_backend(cfg.carve.backend, device, cfg.carve.interpolation),
+               "load_seconds": round(load_s, 3), "input_problems": [p.to_dict() for p in loaded.problems],
+               "classes": {}}
+    if earlier_data is not None and earlier_data != summary["data"]:
+        summary["data_changed"] = {"previous": earlier_data, "now": summary["data"]}
+    return RunSetup(cfg, out, device, loaded, gt, summary, changed, earlier=earlier, lock=lock)
+
+
+def _read_input(cfg: Config, device: torch.device) -> tuple:
+    """``(data_path, gt_path, loaded, gt, load_seconds)``: the annotations (:func:`prepare_data`) and ground truth
+    read and checked against the request (classes, references, the class folders under ``--out``); user errors
+    as :func:`open_run` says."""
     data_path, gt_path = prepare_data(cfg)  # reads only, unless it generates the embedded default
     t0 = time.perf_counter()
     loaded = coco.load_coco(data_path, canvas_size=cfg.input.canvas_size, margin=cfg.input.canvas_margin,
@@ -163,24 +190,8 @@ def open_run(cfg: Config) -> RunSetup:
         loaded.problems.append(gt_problem)
         gt_path = None
     _check_references(cfg.references, loaded.collections)
-    _check_class_folders(out, loaded.collections)
-    lock = _lock(out)
-    try:
-        previous = _earlier_summary(out)
-        earlier, earlier_data = _earlier_classes(previous, cfg)
-        changed = settings_changed(out / "config.yaml", cfg, previous)
-        write_bytes(out / "config.yaml", cfg.to_yaml().encode())
-    except BaseException:
-        lock.release()
-        raise
-    summary = {"data": str(Path(data_path).resolve()), "gt": str(Path(gt_path).resolve()) if gt_path else None,
-               "device": str(device), "torch_threads": torch.get_num_threads(),
-               "carve_backend": carve.resolve_backend(cfg.carve.backend, device, cfg.carve.interpolation),
-               "load_seconds": round(load_s, 3), "input_problems": [p.to_dict() for p in loaded.problems],
-               "classes": {}}
-    if earlier_data is not None and earlier_data != summary["data"]:
-        summary["data_changed"] = {"previous": earlier_data, "now": summary["data"]}
-    return RunSetup(cfg, out, device, loaded, gt, summary, changed, earlier=earlier, lock=lock)
+    _check_class_folders(Path(cfg.out), loaded.collections)
+    return data_path, gt_path, loaded, gt, load_s
 
 
 def _lock(out: Path) -> FolderLock:
