@@ -83,6 +83,47 @@ def test_the_record_of_other_settings_stays_while_their_objects_do(copy, caplog)
     assert "resumed_from_other_settings" not in then and _counts(then) == (0, 6, 0)
 
 
+def test_an_interrupted_overwrite_leaves_the_record_of_the_objects_it_did_not_redo(copy, monkeypatch):
+    """Ctrl-C of an overwrite run with another resolution once the cars are redone: config.yaml says 24, but the
+    chairs are still those made with 16. The record says so from the overwrite's start (it used to be left
+    out, and a rerun resumed the objects of 16 under a config of 24 without a word); the rerun keeps it, and an
+    overwrite that redoes every object drops it."""
+    import carvi_torch.pipeline as P
+
+    data, out = copy
+    calls, carve = [], P.carve_and_select
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:  # the chairs' first chunk: the cars (one chunk) are written
+            raise KeyboardInterrupt
+        return carve(*args, **kwargs)
+    with monkeypatch.context() as m:
+        m.setattr(P, "carve_and_select", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            run(_cfg(out, data, resolution=24, overwrite=True), workers=0)
+    assert json.loads((out / "summary.json").read_text())["resumed_from_other_settings"] == {
+        "carve.resolution": [16, 24, 24]}
+    rerun = run(_cfg(out, data, resolution=24), workers=0)
+    assert _counts(rerun) == (0, 6, 0) and _counts(rerun, "chair") == (0, 6, 0)
+    assert rerun["resumed_from_other_settings"] == {"carve.resolution": [16, 24, 24]}
+    redone = run(_cfg(out, data, resolution=24, overwrite=True), workers=0)
+    assert _counts(redone) == (6, 0, 0) and "resumed_from_other_settings" not in redone
+
+
+def test_an_overwrite_that_leaves_an_object_as_it_was_keeps_the_record(copy):
+    """overwrite=true with cameras=gt and a gt.json without object 1: the car is skipped, its files made with
+    resolution 16 stay, so the record of 16 stays too."""
+    data, out = copy
+    gt = json.loads((data.parent / "gt.json").read_text())
+    del gt["annotations"]["1"]
+    partial = out.parent / "gt_partial.json"
+    partial.write_text(json.dumps(gt))
+    summary = run(_cfg(out, data, resolution=24, overwrite=True, cameras="gt", gt=str(partial)), workers=0)
+    assert _counts(summary) == (5, 0, 1) and (out / "car" / "voxels" / "1.npz").is_file()
+    assert summary["resumed_from_other_settings"]["carve.resolution"] == [16, 24, 24]
+
+
 def test_opening_a_rerun_reads_the_earlier_summary_once(copy, monkeypatch):
     """Opening a run into a folder with a ``summary.json`` reads that file once: the classes it keeps and the record
     of the settings its objects were made with both come from that one reading."""

@@ -6,6 +6,7 @@ folder, the annotation file), the classes (the executor's business), then :func:
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -16,7 +17,8 @@ import torch
 from .. import carve
 from ..config import Config, ConfigError, settings_changed
 from ..io import coco
-from ..io.layout import KINDS, PER_OBJECT_SETTINGS, RUN_NAMES, ResumeCheck, class_dir, linked_path, other_objects
+from ..io.layout import (KINDS, PER_OBJECT_SETTINGS, RUN_NAMES, ResumeCheck, class_dir, linked_path, object_file,
+                         other_objects)
 from ..io.outputs import read_json, write_bytes, write_json
 from ..io.results import ClassReport, drop_cameras
 from ..runtime import FolderBusy, FolderLock, log, peak_rss_mb, stable_hash, unwritable_above
@@ -37,6 +39,7 @@ class RunSetup:
     summary: dict
     changed: dict = field(default_factory=dict)  # {setting: (values finished objects were made with, ..., now)}
     t_start: float = field(default_factory=time.perf_counter)
+    started_ns: int = field(default_factory=time.time_ns)  # files older than this are an earlier run's
     earlier: dict = field(default_factory=dict)  # classes an earlier run into the same folder reported
     lock: FolderLock | None = None  # held on ``out`` until the run ends (the executor releases it)
     kept: list = field(default_factory=list)  # those of them, with objects, that this run does not touch
@@ -258,30 +261,32 @@ def _skipped_classes(setup: RunSetup) -> None:
 
 def _settings_record(setup: RunSetup) -> None:
     """The settings finished objects in the folder were made with, other than this run's (``setup.changed``, from
-    :func:`~carvi_torch.config.settings_changed`), kept where such objects can stay: those this run resumes (not
-    with ``overwrite``; never for :data:`~carvi_torch.io.layout.PER_OBJECT_SETTINGS`, which the resume check
-    handles object by object) and those of the classes with objects that it does not touch (``setup.kept``:
-    an earlier run's classes that it leaves). Logged in one line and put into the summary
-    (``resumed_from_other_settings``, :func:`_settings_entry`), which is written at once: a run stopped before
-    its first class still carries the record on."""
+    :func:`~carvi_torch.config.settings_changed`), kept where such objects can stay (never for
+    :data:`~carvi_torch.io.layout.PER_OBJECT_SETTINGS`, which the resume check handles object by object, unless for
+    the classes with objects that the run does not touch, ``setup.kept``: an earlier run's classes that it leaves).
+    With ``overwrite`` too: the run redoes those objects, but until it has (a run stopped on the way leaves some),
+    they are in the folder. Logged in one line (with ``overwrite`` alone as info: the run redoes them all) and put
+    into the summary (``resumed_from_other_settings``, :func:`_settings_entry`), which is written at once: a run
+    stopped before its first class still carries the record on (:func:`_settings_at_end` drops it where no such
+    object is left)."""
     if not setup.changed:
         return
     ours = set(setup.loaded.collections) | set(setup.summary["classes"])
     setup.kept = sorted(k for k, v in setup.earlier.items() if k not in ours and isinstance(v, dict)
                         and (v.get("reconstructed") or v.get("resumed")))
-    resumes = not setup.cfg.overwrite
-    setup.changed = {k: v for k, v in setup.changed.items()
-                     if setup.kept or (resumes and k not in PER_OBJECT_SETTINGS)}
+    setup.changed = {k: v for k, v in setup.changed.items() if setup.kept or k not in PER_OBJECT_SETTINGS}
     if not setup.changed:
         return
     where = []
-    if resumes and set(setup.changed) - set(PER_OBJECT_SETTINGS):
-        where.append("its finished objects whose inputs are unchanged are kept as they are (resumed), so pass "
-                     "overwrite=true to redo them")
+    if set(setup.changed) - set(PER_OBJECT_SETTINGS):
+        where.append(("overwrite=true redoes those of the classes it runs, and summary.json names these settings "
+                      "until it has") if setup.cfg.overwrite else ("its finished objects whose inputs are unchanged "
+                     "are kept as they are (resumed), so pass overwrite=true to redo them"))
     if setup.kept:
         where.append(f"the classes this run does not touch keep their objects as they are ({', '.join(setup.kept)})")
-    log.warning(f"{setup.out} holds finished objects made with other settings ("
-                + ", ".join(f"{k}: {_made_with(v)}" for k, v in setup.changed.items()) + "); " + "; ".join(where))
+    (log.info if setup.cfg.overwrite and not setup.kept else log.warning)(
+        f"{setup.out} holds finished objects made with other settings ("
+        + ", ".join(f"{k}: {_made_with(v)}" for k, v in setup.changed.items()) + "); " + "; ".join(where))
     setup.summary["resumed_from_other_settings"] = _settings_entry(setup.changed, wrote=True)
     write_summary(setup)
 
@@ -422,17 +427,32 @@ def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = 
 
 def _settings_at_end(setup: RunSetup) -> None:
     """``resumed_from_other_settings`` as the run leaves the folder (:func:`_settings_record` wrote it as if the run
-    made objects): gone where no finished object made otherwise can be left (the run resumed none and no class is
-    kept from an earlier run), and without this run's value among those objects were made with where it made
+    made objects): gone where no finished object made otherwise can be left (the run resumed none, no class is
+    kept from an earlier run, and with ``overwrite`` no object of its classes keeps files from before it,
+    :func:`_left_from_before`), and without this run's value among those objects were made with where it made
     none."""
     s = setup.summary
     if not setup.changed:
         return
-    if not setup.kept and not any(c.get("resumed") for c in s["classes"].values()):
+    if not setup.kept and not any(c.get("resumed") for c in s["classes"].values()) and not _left_from_before(setup):
         s.pop("resumed_from_other_settings", None)
         return
     s["resumed_from_other_settings"] = _settings_entry(setup.changed, any(c.get("reconstructed")
                                                                           for c in s["classes"].values()))
+
+
+def _left_from_before(setup: RunSetup) -> bool:
+    """An ``overwrite`` run left an object of its classes with the voxels file of an earlier run (not redone: not
+    chosen by ``references``, skipped now, its class failed), which :func:`_settings_record` may record as made
+    with other settings. Without ``overwrite`` such objects are the resumed ones, counted in the summary."""
+    if not setup.cfg.overwrite:
+        return False
+    for key, coll in setup.loaded.collections.items():
+        for aid in coll.annotation_ids:
+            with contextlib.suppress(OSError):
+                if object_file(class_dir(setup.out, key), "voxels", aid).stat().st_mtime_ns < setup.started_ns:
+                    return True
+    return False
 
 
 def exit_status(summary: dict, stage: str = "all") -> int:
