@@ -423,6 +423,25 @@ def test_a_class_skipped_on_a_rerun_leaves_no_cameras_json_behind(copy):
     assert again["1"]["surrogates_from"] == "puffball" and again["2"]["surrogates_from"] != "puffball"
 
 
+@pytest.mark.parametrize("car", [[6, 6], {"objects": 6, "reconstructed": "6", "resumed": None}])
+def test_a_malformed_class_entry_of_the_earlier_summary_is_taken_as_unknown(copy, car, capsys):
+    """An earlier summary.json whose car entry is no object, or holds counts that are no numbers: a rerun of the
+    chairs ends with its table and exit status (it used to end in a traceback there), says so in one line, and
+    leaves the car's entry out."""
+    from carvi_torch.reconstruct import main as reconstruct_main
+
+    data, out = copy
+    summary = json.loads((out / "summary.json").read_text())
+    summary["classes"]["car"] = car
+    (out / "summary.json").write_text(json.dumps(summary))
+    rc = reconstruct_main(["--data", str(data), "--out", str(out), "classes=chair",
+                           *(f"{k}={v}" for k, v in SMALL.items())])
+    err = capsys.readouterr().err
+    assert rc == 0 and "Traceback" not in err
+    assert [line for line in err.splitlines() if "malformed entries of class 'car'" in line]
+    assert sorted(json.loads((out / "summary.json").read_text())["classes"]) == ["chair"]
+
+
 # --------------------------------------------------------------------------- one run at a time
 
 

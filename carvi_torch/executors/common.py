@@ -339,7 +339,8 @@ def class_generator(cfg: Config, key: str) -> torch.Generator:
 
 def _earlier_summary(out: Path) -> dict:
     """The ``summary.json`` an earlier run into ``out`` wrote, read once per run (``{}`` where there is none, or
-    it cannot be read or holds no JSON object)."""
+    it cannot be read or holds no JSON object), its malformed class entries left out (:func:`_class_entry_ok`,
+    logged in one line): this run knows nothing of those classes, as if the file did not name them."""
     path = out / "summary.json"
     if not path.is_file():
         return {}
@@ -347,7 +348,43 @@ def _earlier_summary(out: Path) -> dict:
         earlier = read_json(path)
     except (ValueError, OSError):
         return {}
-    return earlier if isinstance(earlier, dict) else {}
+    if not isinstance(earlier, dict):
+        return {}
+    classes = earlier.get("classes", {})
+    if not isinstance(classes, dict):
+        log.warning(f"{path}: its classes are no JSON object; taken as unknown (left out of this run's summary)")
+        classes = {}
+    kept = {k: v for k, v in classes.items() if _class_entry_ok(v)}
+    bad = [k for k in classes if k not in kept]
+    if bad:
+        more = f" and {len(bad) - 5} more" if len(bad) > 5 else ""
+        log.warning(f"{path}: malformed entries of class {', '.join(map(repr, bad[:5]))}{more}; taken as unknown "
+                    "(left out of this run's summary)")
+    return {**earlier, "classes": kept}
+
+
+#: The counts of a class entry of ``summary.json`` (whole numbers, none negative).
+_COUNTS = ("objects", "reconstructed", "resumed", "skipped")
+
+
+def _class_entry_ok(entry) -> bool:
+    """A class entry of ``summary.json`` as a run writes it, as far as a run reads it: an object whose counts
+    (:data:`_COUNTS`) are whole numbers of at least 0, ``status`` text, ``failures`` a list of objects, ``warnings``
+    a list, ``seconds`` an object of numbers (each where present).
+
+    Example:
+        >>> _class_entry_ok({"objects": 6, "reconstructed": 6, "seconds": {"sfm": 0.5}, "failures": []})
+        True
+        >>> [_class_entry_ok(e) for e in ([6], {"reconstructed": "6"}, {"resumed": None}, {"failures": [1]})]
+        [False, False, False, False]
+    """
+    if not isinstance(entry, dict):
+        return False
+    failures, seconds = entry.get("failures", []), entry.get("seconds", {})
+    return (all(type(entry.get(k, 0)) is int and entry.get(k, 0) >= 0 for k in _COUNTS)
+            and isinstance(entry.get("status", ""), str) and isinstance(entry.get("warnings", []), list)
+            and isinstance(failures, list) and all(isinstance(f, dict) for f in failures)
+            and isinstance(seconds, dict) and all(type(v) in (int, float) for v in seconds.values()))
 
 
 def _earlier_classes(earlier: dict, cfg: Config) -> tuple[dict, str | None]:
