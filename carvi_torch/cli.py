@@ -32,7 +32,7 @@ from .runtime import os_error_line  # re-exported: the commands' shared ending n
 from .runtime import folders_to_make, remove_empty
 
 __all__ = ["main", "add_common", "split_classes", "version", "program", "run_command", "CommandError",
-           "os_error_line", "writable_folder", "writable_file", "positive_int", "nonneg_int"]
+           "os_error_line", "writable_folder", "writable_file", "positive_int", "nonneg_int", "nonempty_paths"]
 
 #: Subcommand -> (module with ``main(argv)``, one line of help).
 COMMANDS = {
@@ -83,6 +83,24 @@ def split_classes(value: str | None) -> list[str] | None:
 
 class CommandError(Exception):
     """A user error a command reports as one ``error:`` line (exit status 2)."""
+
+
+def nonempty_paths(args: argparse.Namespace, *options: str) -> None:
+    """Raise :class:`CommandError` where one of the path ``options`` (``"--out"``; one the command does not have is
+    passed over) was given as empty text: an empty path would be taken as the current folder, or as no option at
+    all (a default), without a word.
+
+    Example:
+        >>> try:
+        ...     nonempty_paths(argparse.Namespace(out="", data="a.json"), "--data", "--out", "--gt")
+        ... except CommandError as e:
+        ...     print(e)
+        --out is empty; give a path ('.' for the current folder)
+    """
+    for option in options:
+        value = getattr(args, option.lstrip("-").replace("-", "_"), None)
+        if any(v == "" for v in (value if isinstance(value, list) else [value])):
+            raise CommandError(f"{option} is empty; give a path ('.' for the current folder)")
 
 
 def positive_int(text: str) -> int:

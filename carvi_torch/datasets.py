@@ -29,8 +29,8 @@ import warnings
 from pathlib import Path
 from typing import Callable, Sequence
 
-from .cli import (CommandError, add_common, nonneg_float, nonneg_int, positive_int, program, run_command,
-                  split_classes, writable_file, writable_folder)
+from .cli import (CommandError, add_common, nonempty_paths, nonneg_float, nonneg_int, positive_int, program,
+                  run_command, split_classes, writable_file, writable_folder)
 from .runtime import check_replaceable, folders_to_make, remove_empty
 
 __all__ = ["build_parser", "main", "DATASET_NAMES"]
@@ -277,6 +277,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     jobs = {"synthetic": _synthetic_job, "procedural": _procedural_job}
 
     def body() -> int:
+        nonempty_paths(args, "--meshes", "--keypoints", "--masks", "--annotations", "--out")
         if args.command == "voc":
             writable_file(args.out)
             return int(_run_voc(args) or 0)

@@ -74,7 +74,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .cli import CommandError, add_common, positive_int, program, run_command, split_classes, writable_folder
+from .cli import (CommandError, add_common, nonempty_paths, positive_int, program, run_command, split_classes,
+                  writable_folder)
 from .config import Config, ConfigError, read_run_config
 from .io.coco import CocoFormatError, class_keys, class_names, load_coco, object_id, select_classes
 from .io.layout import NOT_YET, objects_made_otherwise, objects_text, other_settings, other_settings_text, unfinished
@@ -782,6 +783,7 @@ def _main(argv=None) -> int:
                          "are the same for every count")
     add_common(ap)
     args = ap.parse_args(argv)
+    nonempty_paths(args, "--data", "--recon", "--out", "--gt")
     recons = _parse_recons(args.recon)
     # the folders the check below makes (--out and the parents it lacks, deepest first): removed on failure
     made = folders_to_make(args.out) if args.out else []
@@ -806,6 +808,8 @@ def _parse_recons(items: list[str]) -> dict[str, str]:
         name, sep, path = ("", "", item) if Path(item).is_dir() else item.partition("=")
         if not sep:
             name, path = "", item
+        if not path:
+            raise CommandError(f"--recon {item}: the directory is empty; give a path ('.' for the current folder)")
         name = name or ("Full" if not recons else Path(path).name)
         if name in recons:
             raise CommandError(f"two --recon are named {name} ({recons[name]} and {path}): name them apart "

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .cli import add_common, program, run_command, split_classes
+from .cli import add_common, nonempty_paths, program, run_command, split_classes
 from .config import FIELD_DOCS, Config, ConfigError, load_config, override_text
 from .io.coco import CocoFormatError
 
@@ -145,6 +145,7 @@ def main(argv=None) -> int:
 
 def _main(argv=None) -> int:
     args = parse_args(argv)
+    nonempty_paths(args, "--data", "--out", "--config")
     try:
         cfg = load_config(args.config, args.overrides)
         extra = {k: v for k, v in (("data", args.data), ("out", args.out), ("classes", args.classes)) if v}

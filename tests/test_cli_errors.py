@@ -56,6 +56,36 @@ def test_an_output_that_cannot_be_written_is_one_error_line(argv, tmp_path, afil
     assert called == [] and afile.read_text() == "mine"
 
 
+@pytest.mark.parametrize("argv, option", [
+    (["reconstruct", "--out", ""], "--out"), (["reconstruct", "--data", ""], "--data"),
+    (["evaluate", "--data", "", "--recon", "{tmp}"], "--data"),
+    (["evaluate", "--data", "a.json", "--recon", ""], "--recon"),
+    (["evaluate", "--data", "a.json", "--recon", "A="], "--recon A=:"),
+    (["evaluate", "--data", "a.json", "--recon", "{tmp}", "--out", ""], "--out"),
+    (["export", "--recon", "", "--out", "{tmp}/x"], "--recon"), (["export", "--recon", "{tmp}", "--out", ""], "--out"),
+    (["report", "--recon", ""], "--recon"), (["report", "--recon", "{tmp}", "--out", ""], "--out"),
+    (["datasets", "procedural", "--out", ""], "--out"), (["datasets", "synthetic", "--meshes", "", "--out", "x"],
+                                                         "--meshes"),
+    (["datasets", "voc", "--keypoints", str(VOC / "keypoints"), "--out", ""], "--out"),
+])
+def test_an_empty_path_is_one_error_line(argv, option, tmp_path, capsys, monkeypatch):
+    """An empty path (``--out ""``, a shell variable that was not set) is a user error in every command, before any
+    work: it used to be taken as the current folder, or as the option's default, without a word."""
+    def work(*a, **k):
+        raise cli.CommandError("the work started")
+    for target in ("carvi_torch.executors.run", "carvi_torch.evaluate._evaluate_and_write",
+                   "carvi_torch.export.run.export", "carvi_torch.report.build_report",
+                   "carvi_torch.synthetic.procedural.write_default_collection",
+                   "carvi_torch.synthetic.meshes.load_models", "carvi_torch.io.voc.run"):
+        monkeypatch.setattr(target, work)
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    assert cli.main([a.format(tmp=tmp_path) for a in argv]) == 2
+    assert _one_line(capsys, f"error: {option} ").startswith(f"error: {option} ")
+    assert list(here.iterdir()) == []
+
+
 def test_an_os_error_during_the_work_is_one_error_line(tmp_path, capsys, monkeypatch):
     """An output that fails only when written (a read-only place, a full disk) is one ``error:`` line with the
     path and the system's reason, exit 2, in every command (their shared ending)."""

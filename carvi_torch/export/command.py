@@ -11,7 +11,7 @@ import argparse
 import multiprocessing as mp
 import sys
 
-from ..cli import CommandError, add_common, program, run_command, split_classes
+from ..cli import CommandError, add_common, nonempty_paths, program, run_command, split_classes
 from .settings import settings_problem
 
 __all__ = ["main", "parser", "start_worker_server", "WORKER_MODULE"]
@@ -71,6 +71,7 @@ def main(argv=None) -> int:
 
 
 def _main(args) -> int:
+    nonempty_paths(args, "--recon", "--out")
     problem = settings_problem(args.resolution, args.points, args.shard_size, args.seed, args.workers)
     if problem is not None:  # before anything is started or written
         raise CommandError(f"{problem} (nothing was written)")

@@ -42,6 +42,9 @@ def main(argv=None) -> int:
 def _main(args) -> int:
     import sys
 
+    from ..cli import nonempty_paths
+
+    nonempty_paths(args, "--recon", "--out")
     try:
         rep = build_report(args.recon, args.out, per_page=args.per_page, workers=args.workers)
     except ReportError as e:
