@@ -616,6 +616,17 @@ def test_stress_inputs_checks_catch_bad_outcomes(tmp_path: Path):
         left.wait()
 
 
+def test_stress_inputs_never_imports_a_module_of_the_case_folder(tmp_path: Path):
+    """A case's command runs in its folder, among the crafted files: a ``yaml.py`` there is not imported (``python
+    -m`` puts the working folder first on ``sys.path``; the tool passes ``-P``)."""
+    st = load_tool("stress_inputs")
+    ctx = st.Ctx(st.Case("planted", "a yaml.py in the case folder", cli=()), tmp_path / "case", tmp_path, {}, 120)
+    ctx.dir.mkdir()
+    (ctx.dir / "yaml.py").write_text("import sys\nprint('planted module imported', file=sys.stderr)\nsys.exit(3)\n")
+    proc = st.invoke(ctx, extra=["--help"])
+    assert proc.rc == 0 and "planted" not in proc.stderr + proc.stdout, proc.stderr[-2000:]
+
+
 def test_synthetic_benchmark_seeds_table_and_keyed_record(tmp_path: Path):
     """Several seeds: per class and method every seed's mean, missing objects and the mean over the seeds
     (checked by hand on two classes); the record goes under ``--key`` with the file's other keys kept, and a

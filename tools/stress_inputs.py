@@ -66,7 +66,10 @@ from carvi_torch.runtime import gone_within, processes_marked
 SMALL = ("resolution=16", "proposals=3", "canvas_size=48", "refine_iters=20", "plane_size=24", "preview=false",
          "report=false")
 HEAVY = ("resolution=40", "proposals=20")  # a run long enough to be interrupted
-RECONSTRUCT = (sys.executable, "-m", "carvi_torch.reconstruct")
+#: The interpreter of the commands run: ``-P`` keeps the working folder (a case's folder, which holds its crafted
+#: files) off ``sys.path``, where ``python -m`` would put it first, so no module planted there is imported.
+PYTHON = (sys.executable, "-P")
+RECONSTRUCT = (*PYTHON, "-m", "carvi_torch.reconstruct")
 MARKER = "CARVI_STRESS_CASE"
 CARS, CHAIRS = tuple(range(1, 7)), tuple(range(7, 13))
 ALL = CARS + CHAIRS
@@ -770,7 +773,7 @@ class Ctx:
     def argv(self, extra=()) -> list:
         cli = [a.format(data=self.data, out=self.out, dir=self.dir) for a in self.case.cli]
         if self.case.command != "reconstruct":
-            return [sys.executable, "-m", f"carvi_torch.{self.case.command}", *cli, *self.case.args, *extra]
+            return [*PYTHON, "-m", f"carvi_torch.{self.case.command}", *cli, *self.case.args, *extra]
         return [*RECONSTRUCT, *cli, "--quiet", *SMALL, *self.case.args, *extra]
 
     def env(self, **extra) -> dict:
@@ -1146,7 +1149,7 @@ def make_base(work: Path) -> dict:
     base = work / "base"
     if base.exists():
         shutil.rmtree(base)
-    cmd = [sys.executable, "-m", "carvi_torch.datasets", "procedural", "--out", str(base), "--instances", "6",
+    cmd = [*PYTHON, "-m", "carvi_torch.datasets", "procedural", "--out", str(base), "--instances", "6",
            "--classes", "car,chair", "--seed", "1", "--quiet"]
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     data = json.loads((base / "annotations.json").read_text())
