@@ -7,6 +7,7 @@ import shutil
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -1506,3 +1507,45 @@ def test_the_viewpoint_of_an_entry_without_angles_comes_from_its_refined_R_or_is
     monkeypatch.setattr(carvi_torch.cameras, "azimuth_elevation_roll_from_rotation", broken)
     with pytest.raises(RuntimeError, match="a fault of the code"):
         _viewpoint_or_none({"refined": {"R": eye}})
+
+
+def _edit_cameras(run, cls: str, edit) -> Path:
+    """Rewrite ``run/cls/cameras.json`` by ``edit(content)``; returns its path."""
+    path = run / cls / "cameras.json"
+    cams = json.loads(path.read_text())
+    edit(cams)
+    path.write_text(json.dumps(cams))
+    return path
+
+
+def _class_skipped_alone(run, tmp_path, capsys, cls: str, why: str) -> None:
+    """The zarr store, cmr and ucmr each skip every object of ``cls`` with the reason ``why`` and export the other
+    class of the run (exit 0, no traceback)."""
+    data = json.loads((run / "input" / "annotations.json").read_text())
+    other = "car" if cls == "chair" else "chair"
+    capsys.readouterr()
+    assert export_main(["--recon", str(run), "--out", str(tmp_path / "e"), "--quiet"] + _SMALL) == 0
+    assert _reasons(tmp_path / "e") == {(cls, aid): why for aid in _ids(data, cls)}
+    assert _store_attrs(tmp_path / "e")["counts"] == {other: 5, cls: 0}
+    for fmt in ("cmr", "ucmr"):
+        res = export_format(run, tmp_path / fmt, fmt, progress=False)
+        assert [f.stem for f in res["files"]] == [other] and res["objects"] == 5
+        assert {s["reason"] for s in res["skipped"]} == {why}
+    assert "Traceback" not in "".join(capsys.readouterr())
+
+
+def test_a_class_whose_mean_shape_collapses_to_one_point_is_skipped_alone(recon, tmp_path, capsys):
+    """A class whose keypoints all lie at one point of its mean shape (duplicate keypoint names, a hand-edited
+    file) has no scale for its canonical frame: its objects are skipped with one reason naming the file, in every
+    format, and the other class is exported. A flat mean shape (every keypoint in one plane) still gives the
+    CMR files a hull."""
+    run = tmp_path / "run"
+    _run_copy(recon, run)
+    path = _edit_cameras(run, "chair", lambda c: c.update(mean_shape={n: [1.0, 2.0, 3.0] for n in c["mean_shape"]}))
+    why = (f"cameras.json unusable: {path}: its mean_shape has no extent (its keypoints lie at one point), so the "
+           "class has no scale for its canonical frame")
+    _class_skipped_alone(run, tmp_path, capsys, "chair", why)
+    _edit_cameras(run, "chair", lambda c: c.update(mean_shape={n: [float(i), float(i % 3), 0.0]
+                                                               for i, n in enumerate(c["mean_shape"])}))
+    res = export_format(run, tmp_path / "flat", "ucmr", progress=False)
+    assert res["objects"] == 10 and json.loads((tmp_path / "flat" / "chair.json").read_text())["faces"]

@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.io
-from scipy.spatial import ConvexHull, distance
+from scipy.spatial import ConvexHull, QhullError, distance
 
 from ..io.coco import load_coco, object_id
 from ..io.layout import file_settings, object_file, settings_text
@@ -82,10 +82,15 @@ def quaternion_wxyz(R: np.ndarray) -> np.ndarray:
 
 
 def _outward_hull(S: np.ndarray) -> np.ndarray:
-    """Triangles ``(F, 3)`` of the convex hull of ``S (K, 3)``, wound counter-clockwise seen from outside."""
+    """Triangles ``(F, 3)`` of the convex hull of ``S (K, 3)``, wound counter-clockwise seen from outside; of a
+    flat ``S`` (its keypoints in one plane or on one line), the hull of a joggled copy (Qhull's ``QJ``): both
+    sides of the flat shape."""
     if len(S) < 4:
         return np.zeros((0, 3), dtype=np.int64)
-    h = ConvexHull(S)
+    try:
+        h = ConvexHull(S)
+    except QhullError:  # flat: no 3-D hull
+        h = ConvexHull(S, qhull_options="QJ")
     f = h.simplices.copy()
     n = np.cross(S[f[:, 1]] - S[f[:, 0]], S[f[:, 2]] - S[f[:, 0]])
     inward = (n * (S[f[:, 0]] - S[h.vertices].mean(axis=0))).sum(axis=1) < 0

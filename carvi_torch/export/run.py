@@ -33,8 +33,8 @@ from ..io.layout import object_file, object_mesh, other_settings, other_settings
 from ..io.writer import INT64_RANGE, start_method
 from ..runtime import LeanProcessPool, cores, stable_hash, torch_threads
 from .source import (NOT_YET, NOT_IN_ANNOTATIONS, SettingsTally, camera_entry, camera_problem, class_cameras,
-                     class_categories, class_scope, data_path, load_skips, missing_class_reason, recon_config,
-                     run_classes, skip_all, unfinished)
+                     class_categories, class_extent, class_scope, data_path, load_skips, missing_class_reason,
+                     recon_config, run_classes, skip_all, unfinished)
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object,
                       safe_export_objects, view_occupancy)
 from .settings import settings_problem
@@ -55,13 +55,6 @@ def _int_id(value) -> np.int64:
     every id as given)."""
     lo, hi = INT64_RANGE
     return np.int64(value) if isinstance(value, int) and lo <= value <= hi else np.int64(-1)
-
-
-def class_extent(cams: dict) -> float:
-    """Half-side ``E`` of the canonical occupancy cube: 1.3 x the largest keypoint radius of the class's
-    mean shape (1.0 without one)."""
-    shape = np.array([v for v in cams.get("mean_shape", {}).values() if v is not None], dtype=np.float64)
-    return float(1.3 * np.linalg.norm(shape - shape.mean(0), axis=1).max()) if len(shape) else 1.0
 
 
 # =========================================================================== the export (main process)

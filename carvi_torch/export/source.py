@@ -1,8 +1,11 @@
 """Where an export reads from: a reconstruction directory's configuration and the annotations it ran on."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 from ..config import Config, object_settings, read_run_config
 from ..io.coco import class_keys, class_names, select_classes, skipped_at_load
@@ -13,7 +16,7 @@ from ..io.results import camera_record_problem
 
 __all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories",
            "camera_problem", "camera_entry", "load_skips", "missing_class_reason", "extra_cameras", "skip_all",
-           "class_cameras", "NOT_YET", "NOT_IN_ANNOTATIONS", "SettingsTally"]
+           "class_cameras", "class_extent", "NOT_YET", "NOT_IN_ANNOTATIONS", "SettingsTally"]
 
 #: How the reason of a ``cameras.json`` entry that names no object of the annotation file begins.
 NOT_IN_ANNOTATIONS = "in cameras.json but not an object of the annotation file"
@@ -179,22 +182,42 @@ def skip_all(coll, cname: str, reason: str) -> list[dict]:
             for aid, src in zip(coll.annotation_ids, coll.sources)]
 
 
+def class_extent(cams: dict) -> float:
+    """Half-side ``E`` of the canonical occupancy cube: 1.3 x the largest keypoint radius of the class's
+    mean shape (1.0 without one; 0 where its keypoints lie at one point: no scale, :func:`class_cameras` skips
+    such a class)."""
+    shape = np.array([v for v in cams.get("mean_shape", {}).values() if v is not None], dtype=np.float64)
+    return float(1.3 * np.linalg.norm(shape - shape.mean(0), axis=1).max()) if len(shape) else 1.0
+
+
+def _read_cameras(path: Path) -> tuple[dict | None, str | None]:
+    """A class's ``cameras.json`` at ``path`` and ``None``, or ``None`` and why it cannot be used: unreadable, not
+    a JSON object, or a mean shape of no extent (its keypoints at one point: the class has no scale for the
+    canonical frame, nor for CMR's normalised shape)."""
+    try:
+        cams = read_json(path)
+        if not isinstance(cams, dict):
+            raise ValueError(f"{path}: not a JSON object")
+    except (FileNotFoundError, ValueError) as e:
+        return None, f"cameras.json unreadable: {e}"
+    extent = class_extent(cams)
+    if not (math.isfinite(extent) and extent > 0):
+        return None, (f"cameras.json unusable: {path}: its mean_shape has no extent (its keypoints lie at one "
+                      "point), so the class has no scale for its canonical frame")
+    return cams, None
+
+
 def class_cameras(coll, cname: str, recon: Path, skipped: list, pending: bool, data: Path) -> dict | None:
     """The ``cameras.json`` of class ``cname`` of the run ``recon``, its entries that name no object of the
     annotation file ``data`` added to ``skipped`` (:func:`extra_cameras`; ``skipped`` holds the class's objects
     skipped so far, those skipped at load among them). None, with every object of ``coll`` added to ``skipped``,
     where the file is missing (the reason: :data:`NOT_YET` in an unfinished run, ``pending``, else
-    :func:`missing_class_reason`), unreadable, or not a JSON object."""
-    path, reason = recon / cname / "cameras.json", None
+    :func:`missing_class_reason`), or unusable (:func:`_read_cameras`)."""
+    path = recon / cname / "cameras.json"
     if not path.is_file():
-        reason = NOT_YET if pending else missing_class_reason(recon, cname)
+        cams, reason = None, NOT_YET if pending else missing_class_reason(recon, cname)
     else:
-        try:
-            cams = read_json(path)
-            if not isinstance(cams, dict):
-                raise ValueError(f"{path}: not a JSON object")
-        except (FileNotFoundError, ValueError) as e:
-            reason = f"cameras.json unreadable: {e}"
+        cams, reason = _read_cameras(path)
     if reason is not None:
         skipped.extend(skip_all(coll, cname, reason))
         return None
