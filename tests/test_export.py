@@ -1549,3 +1549,30 @@ def test_a_class_whose_mean_shape_collapses_to_one_point_is_skipped_alone(recon,
                                                                for i, n in enumerate(c["mean_shape"])}))
     res = export_format(run, tmp_path / "flat", "ucmr", progress=False)
     assert res["objects"] == 10 and json.loads((tmp_path / "flat" / "chair.json").read_text())["faces"]
+
+
+@pytest.mark.parametrize("shape, why", [([1, 2], "mean_shape is [1, 2], not an object of keypoint name -> 3 numbers"),
+                                        ({"seat": "x"}, "mean_shape 'seat' is 'x', not 3 finite numbers")])
+def test_a_mistyped_mean_shape_skips_its_class_naming_the_file(recon, tmp_path, capsys, shape, why):
+    """A hand-edited ``mean_shape`` (a list, a row that is no 3 numbers): that class is skipped with one reason
+    naming its ``cameras.json``, in every format; the other class is exported."""
+    run = tmp_path / "run"
+    _run_copy(recon, run)
+    path = _edit_cameras(run, "chair", lambda c: c.update(mean_shape=shape))
+    _class_skipped_alone(run, tmp_path, capsys, "chair", f"cameras.json unusable: {path}: {why}")
+
+
+def test_a_summary_whose_data_is_no_path_is_one_error_line(recon, tmp_path, capsys):
+    """``summary.json``'s ``data`` (the annotation file the run read) of the wrong type: one ``error:`` line naming
+    the file, exit 2, nothing written, in every format."""
+    run = tmp_path / "run"
+    _run_copy(recon, run)
+    summary = json.loads((run / "summary.json").read_text())
+    (run / "summary.json").write_text(json.dumps({**summary, "data": 5}))
+    for fmt in ("zarr", "cmr", "ucmr"):
+        capsys.readouterr()
+        assert export_main(["--recon", str(run), "--out", str(tmp_path / fmt), "--format", fmt, "--quiet"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"error: {run / 'summary.json'}: 'data' is 5, not the path of the annotation file the run "
+                       "read (nothing was written)"], err
+        assert not (tmp_path / fmt).exists()

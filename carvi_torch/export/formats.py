@@ -100,7 +100,7 @@ def _outward_hull(S: np.ndarray) -> np.ndarray:
 
 def _mean_shape(cams: dict, names: list) -> np.ndarray:
     """``(K, 3)`` mean shape in keypoint order; a keypoint without a row goes to the others' centre."""
-    rows = [cams.get("mean_shape", {}).get(n) for n in names]
+    rows = [(cams.get("mean_shape") or {}).get(n) for n in names]
     known = np.array([r for r in rows if r is not None], dtype=np.float64)
     c = known.mean(axis=0) if len(known) else np.zeros(3)
     return np.array([r if r is not None else c for r in rows], dtype=np.float64)

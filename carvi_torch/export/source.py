@@ -12,7 +12,7 @@ from ..io.coco import class_keys, class_names, select_classes, skipped_at_load
 from ..io.layout import NOT_YET, unfinished  # noqa: F401 - the export's names for them
 from ..io.layout import objects_record, other_settings, other_settings_text, other_values
 from ..io.outputs import read_json, shown
-from ..io.results import camera_record_problem
+from ..io.results import camera_record_problem, cameras_file_problem
 
 __all__ = ["recon_config", "data_path", "unfinished", "class_scope", "run_classes", "class_categories",
            "camera_problem", "camera_entry", "load_skips", "missing_class_reason", "extra_cameras", "skip_all",
@@ -39,9 +39,14 @@ def load_skips(problems: list, class_names: list) -> dict[str, list]:
 
 def data_path(recon: Path, cfg: Config) -> Path:
     """The annotations a run read: its summary's path (absolute), else its config's; a relative path
-    is looked up beside the run, then from the current folder."""
+    is looked up beside the run, then from the current folder. ``ValueError`` naming ``summary.json`` where its
+    ``data`` is not a path (a string)."""
     summ = recon / "summary.json"
-    data = read_json(summ).get("data") if summ.is_file() else None
+    summary = read_json(summ) if summ.is_file() else {}
+    data = summary.get("data") if isinstance(summary, dict) else None
+    if data is not None and not isinstance(data, str):
+        raise ValueError(f"{summ}: 'data' is {shown(data)}, not the path of the annotation file the run read "
+                         "(nothing was written)")
     data = data or cfg.data
     if not data:
         return recon / "input" / "annotations.json"
@@ -186,25 +191,27 @@ def class_extent(cams: dict) -> float:
     """Half-side ``E`` of the canonical occupancy cube: 1.3 x the largest keypoint radius of the class's
     mean shape (1.0 without one; 0 where its keypoints lie at one point: no scale, :func:`class_cameras` skips
     such a class)."""
-    shape = np.array([v for v in cams.get("mean_shape", {}).values() if v is not None], dtype=np.float64)
+    shape = np.array([v for v in (cams.get("mean_shape") or {}).values() if v is not None], dtype=np.float64)
     return float(1.3 * np.linalg.norm(shape - shape.mean(0), axis=1).max()) if len(shape) else 1.0
 
 
 def _read_cameras(path: Path) -> tuple[dict | None, str | None]:
     """A class's ``cameras.json`` at ``path`` and ``None``, or ``None`` and why it cannot be used: unreadable, not
-    a JSON object, or a mean shape of no extent (its keypoints at one point: the class has no scale for the
-    canonical frame, nor for CMR's normalised shape)."""
+    a JSON object, its ``cameras`` or ``mean_shape`` of the wrong type
+    (:func:`~carvi_torch.io.results.cameras_file_problem`: a mean shape row that is not 3 finite numbers included),
+    or a mean shape of no extent (its keypoints at one point: the class has no scale for the canonical frame, nor
+    for CMR's normalised shape)."""
     try:
         cams = read_json(path)
         if not isinstance(cams, dict):
             raise ValueError(f"{path}: not a JSON object")
     except (FileNotFoundError, ValueError) as e:
         return None, f"cameras.json unreadable: {e}"
-    extent = class_extent(cams)
-    if not (math.isfinite(extent) and extent > 0):
-        return None, (f"cameras.json unusable: {path}: its mean_shape has no extent (its keypoints lie at one "
-                      "point), so the class has no scale for its canonical frame")
-    return cams, None
+    why = cameras_file_problem(cams)
+    if why is None and not (math.isfinite(extent := class_extent(cams)) and extent > 0):
+        why = "its mean_shape has no extent (its keypoints lie at one point), so the class has no scale for its " \
+              "canonical frame"
+    return (cams, None) if why is None else (None, f"cameras.json unusable: {path}: {why}")
 
 
 def class_cameras(coll, cname: str, recon: Path, skipped: list, pending: bool, data: Path) -> dict | None:

@@ -22,8 +22,9 @@ from .layout import SETTINGS_MEMBER, class_dir, held_settings, object_file, sett
 from .outputs import numbers, read_json, shown, write_json, write_npz
 
 __all__ = ["ROTATION_TOLERANCE", "numbers", "rotation_problem", "camera_record_problem", "shown", "ClassReport",
-           "cameras_json", "scores_entry", "write_scores", "canonical_image_cameras",
-           "resumed_objects", "drop_cameras", "quality_summary", "annotation_source", "same_object"]
+           "cameras_json", "mean_shape_problem", "cameras_file_problem", "scores_entry", "write_scores",
+           "canonical_image_cameras", "resumed_objects", "drop_cameras", "quality_summary", "annotation_source",
+           "same_object"]
 
 
 @dataclass
@@ -432,3 +433,40 @@ def camera_record_problem(cam, finite: bool = True) -> str | None:
     if not numbers(t, (2,), finite):
         return f"t is {shown(t)}, not 2 {'finite ' if finite else ''}numbers"
     return None
+
+
+def mean_shape_problem(shape) -> str | None:
+    """What makes a mean shape of ``cameras.json`` (its ``mean_shape``, or a shape group's) unusable: not an object
+    of keypoint name -> 3 finite numbers or ``null`` (a keypoint the shape lacks); ``None`` when nothing does.
+
+    Example:
+        >>> mean_shape_problem({"nose": [0, 1, 2], "tail": None}) is None
+        True
+        >>> mean_shape_problem([1, 2])
+        'mean_shape is [1, 2], not an object of keypoint name -> 3 numbers'
+        >>> mean_shape_problem({"nose": [0, 1, "x"]})
+        "mean_shape 'nose' is [0, 1, 'x'], not 3 finite numbers"
+    """
+    if not isinstance(shape, dict):
+        return f"mean_shape is {shown(shape)}, not an object of keypoint name -> 3 numbers"
+    bad = next((k for k, row in shape.items() if row is not None and not numbers(row, (3,))), None)
+    return None if bad is None else f"mean_shape {shown(bad)} is {shown(shape[bad])}, not 3 finite numbers"
+
+
+def cameras_file_problem(cams) -> str | None:
+    """What makes a class's ``cameras.json`` (``cams``, its content) unusable as a whole: not a JSON object, its
+    ``cameras`` not an object of annotation id -> entry, or its ``mean_shape`` unusable (:func:`mean_shape_problem`;
+    either may be absent or ``null``); ``None`` when nothing does. The one check of the commands that read a
+    class's cameras back whole (export, report); a single entry's camera is :func:`camera_record_problem`'s.
+
+    Example:
+        >>> cameras_file_problem({"cameras": {}, "mean_shape": {"a": [0, 0, 1]}}) is None
+        True
+        >>> cameras_file_problem({"cameras": [1]}), cameras_file_problem([])
+        ("'cameras' is [1], not an object of annotation id -> entry", 'not a JSON object')
+    """
+    if not isinstance(cams, dict):
+        return "not a JSON object"
+    if cams.get("cameras") is not None and not isinstance(cams["cameras"], dict):
+        return f"'cameras' is {shown(cams['cameras'])}, not an object of annotation id -> entry"
+    return mean_shape_problem(cams["mean_shape"]) if cams.get("mean_shape") is not None else None
