@@ -1576,3 +1576,24 @@ def test_a_summary_whose_data_is_no_path_is_one_error_line(recon, tmp_path, caps
         assert err == [f"error: {run / 'summary.json'}: 'data' is 5, not the path of the annotation file the run "
                        "read (nothing was written)"], err
         assert not (tmp_path / fmt).exists()
+
+
+def test_a_class_named_like_zarrs_metadata_file_is_skipped_and_the_store_still_reads(recon, tmp_path, capsys):
+    """A category named ``zarr.json`` (its folder key too) cannot be a group of the store (the root's metadata file
+    has that name): its objects are skipped with the reason, the other class is exported, and the store opens in
+    LiftedDataset; ``--format ucmr`` exports that class."""
+    data = json.loads((recon / "input" / "annotations.json").read_text())
+    next(c for c in data["categories"] if c["name"] == "chair")["name"] = "zarr.json"
+    (tmp_path / "ann.json").write_text(json.dumps(data))
+    folder = tmp_path / "run"
+    run_cfg = {**TINY, "out": str(folder), "data": str(tmp_path / "ann.json"), "classes": ["car", "zarr.json"]}
+    run(Config().override(run_cfg), workers=0)
+    why = ("the class key 'zarr.json' cannot name a group of the zarr store (the group's own metadata file is "
+           "zarr.json); --format cmr or ucmr exports it")
+    assert export_main(["--recon", str(folder), "--out", str(tmp_path / "e"), "--quiet"] + _SMALL) == 0
+    assert set(_reasons(tmp_path / "e").values()) == {why}
+    assert _store_attrs(tmp_path / "e")["counts"] == {"car": 5, "zarr.json": 0}
+    ds = LiftedDataset(tmp_path / "e")
+    assert len(ds) == 5 and {ds[i]["class_key"] for i in range(5)} == {"car"}
+    assert export_main(["--recon", str(folder), "--out", str(tmp_path / "u"), "--format", "ucmr", "--quiet"]) == 0
+    assert len(json.loads((tmp_path / "u" / "zarr.json.json").read_text())["images"]) == 5

@@ -38,7 +38,8 @@ from .source import (NOT_YET, NOT_IN_ANNOTATIONS, SettingsTally, camera_entry, c
 from .objects import (canonical_occupancy, depth_map, init_worker, safe_export_object,
                       safe_export_objects, view_occupancy)
 from .settings import settings_problem
-from .store import ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, InterruptedAfterSwap, StoreWriter
+from .store import (ATTRS_KEY, DEFAULT_FIELDS, FIELDS, FORMAT_VERSION, MESH_FIELDS, InterruptedAfterSwap, StoreWriter,
+                    group_name_problem)
 
 __all__ = ["export", "report_skipped", "FIELDS", "DEFAULT_FIELDS", "view_occupancy", "canonical_occupancy",
            "depth_map", "ATTRS_KEY", "FORMAT_VERSION"]
@@ -125,6 +126,11 @@ def _class_jobs(loaded, recon: Path, class_names: list, settings: dict, writer: 
     for ci, cname in enumerate(class_names):
         coll, cdir = loaded.collections.get(cname), recon / cname
         if coll is None:  # every object of the class skipped at load
+            continue
+        if (why := group_name_problem(cname)) is not None:
+            skipped[cname].extend(skip_all(coll, cname, f"the class key {cname!r} cannot name a group of the zarr "
+                                                        f"store ({why}); --format cmr or ucmr exports it"))
+            bar.update(len(coll))
             continue
         cams = class_cameras(coll, cname, recon, skipped[cname], no_files == NOT_YET, data)
         if cams is None:

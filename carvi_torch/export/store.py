@@ -42,7 +42,7 @@ from zarr.codecs import BloscCodec
 from ..runtime import check_replaceable, deferred_interrupt, folders_to_make, os_error_line, pid_alive, remove_empty
 
 __all__ = ["FieldSpec", "FIELDS", "DEFAULT_FIELDS", "MESH_FIELDS", "StoreWriter", "FORMAT_VERSION", "ATTRS_KEY",
-           "PARTIAL_PREFIX", "InterruptedAfterSwap"]
+           "PARTIAL_PREFIX", "InterruptedAfterSwap", "group_name_problem"]
 
 #: The store's format: 3 centres ``occupancy_view``'s depth axis on the object's depth extent and records
 #: ``view_depth``; a format-2 store (no ``view_depth``) centred it on the mean vertex depth with cubic cells.
@@ -202,6 +202,26 @@ class _ClassArrays:
             self.group.create_array("mesh_offsets", data=off, chunks=off.shape, compressors=_compressor("int64"))
             attrs["mesh_offsets"] = "rows [i, i + 1) of mesh_vertices (column 0) and mesh_faces (column 1)"
         self.group.attrs.update(attrs)
+
+
+def group_name_problem(name: str) -> str | None:
+    """Why ``name`` cannot name a class group of the store, ``None`` where it can. Zarr v3 reserves, for a node's
+    name, the empty string, names holding ``/``, names made of periods alone and names starting with ``__``; and a
+    group's child named ``zarr.json`` would stand where the group's own metadata file goes (any case: file systems
+    that ignore case). The export's hidden folders' names are taken too. A class key (a safe folder name) breaks
+    none of these rules but the ``zarr.json`` one.
+
+    Example:
+        >>> group_name_problem("car") is None, group_name_problem("Zarr.JSON"), group_name_problem("__x")
+        (True, "the group's own metadata file is zarr.json", "zarr reserves names starting with '__'")
+    """
+    if not name or "/" in name or set(name) == {"."}:
+        return "zarr reserves it (empty, holding '/' or made of periods)"
+    if name.startswith("__"):
+        return "zarr reserves names starting with '__'"
+    if name.lower() == "zarr.json":
+        return "the group's own metadata file is zarr.json"
+    return "the export's hidden folders take it" if _own(name) else None
 
 
 def _own(name: str) -> bool:
