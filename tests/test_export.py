@@ -1597,3 +1597,36 @@ def test_a_class_named_like_zarrs_metadata_file_is_skipped_and_the_store_still_r
     assert len(ds) == 5 and {ds[i]["class_key"] for i in range(5)} == {"car"}
     assert export_main(["--recon", str(folder), "--out", str(tmp_path / "u"), "--format", "ucmr", "--quiet"]) == 0
     assert len(json.loads((tmp_path / "u" / "zarr.json.json").read_text())["images"]) == 5
+
+
+def test_cmr_and_ucmr_replace_their_own_earlier_files_alone(recon, tmp_path, capsys):
+    """A file in --out of the name cmr / ucmr would write that is not an earlier export's (a user's ``car.json``, a
+    CMR ``.mat`` of CMR's own): one ``error:`` line naming it, exit 2, nothing written. Their own earlier files,
+    marked or from before the marker, are replaced."""
+    import scipy.io
+
+    for fmt, ext in (("ucmr", "json"), ("cmr", "mat")):
+        out = tmp_path / fmt
+        out.mkdir()
+        if fmt == "ucmr":
+            (out / "car.json").write_text('{"my": "notes"}')
+        else:
+            scipy.io.savemat(out / "car.mat", {"sfm_anno": np.zeros((1, 2)), "S": np.zeros((3, 4))})
+        mine = (out / f"car.{ext}").read_bytes()
+        capsys.readouterr()
+        assert export_main(["--recon", str(recon), "--out", str(out), "--format", fmt, "--quiet"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"error: --out {out}: 'car.{ext}' is not a file of an earlier "), err
+        assert (out / f"car.{ext}").read_bytes() == mine and [p.name for p in out.iterdir()] == [f"car.{ext}"]
+        (out / f"car.{ext}").unlink()
+        assert export_main(["--recon", str(recon), "--out", str(out), "--format", fmt, "--quiet"]) == 0
+        if fmt == "ucmr":  # as written before the marker
+            js = json.loads((out / "car.json").read_text())
+            assert js.pop("carvi_export") == "ucmr"
+            (out / "car.json").write_text(json.dumps(js))
+        else:
+            mat = {k: v for k, v in scipy.io.loadmat(out / "car.mat").items() if not k.startswith("__")}
+            assert str(mat.pop("carvi_export")[0]) == "cmr"
+            scipy.io.savemat(out / "car.mat", mat)
+        assert export_main(["--recon", str(recon), "--out", str(out), "--format", fmt, "--quiet"]) == 0
+        assert sorted(p.name for p in out.iterdir()) == [f"car.{ext}", f"chair.{ext}"]

@@ -34,6 +34,10 @@ Objects left out (skipped when the annotations were read, without a usable camer
 ``cameras.json`` is missing, and the entries of ``cameras.json`` that name no object of the annotation file)
 are reported as the zarr export reports its own.
 
+Each file carries :data:`MARKER` (a key of the JSON, a variable of the ``.mat``) = its format: an export replaces
+its own earlier files alone, and refuses, before it writes anything, an ``--out`` where a file it would write
+is someone else's (a user's ``car.json``, a run's ``summary.json``).
+
 Example:
     >>> import numpy as np
     >>> S = np.array([[0, 0, 0], [2, 0, 0], [0, 1, 0], [0, 0, 3]], float)
@@ -51,11 +55,18 @@ from scipy.spatial import ConvexHull, QhullError, distance
 
 from ..io.coco import load_coco, object_id
 from ..io.layout import file_settings, object_file, settings_text
-from ..io.outputs import atomic_write, write_json
+from ..io.outputs import atomic_write, read_json, write_json
 from .source import (SettingsTally, camera_entry, camera_problem, class_cameras, class_scope, data_path, load_skips,
                      recon_config, run_classes, unfinished)
 
-__all__ = ["normalised_shape", "cmr_pose", "export_format", "class_records", "quaternion_wxyz", "annotation_boxes"]
+__all__ = ["normalised_shape", "cmr_pose", "export_format", "class_records", "quaternion_wxyz", "annotation_boxes",
+           "MARKER"]
+
+#: The key (``ucmr`` JSON) or variable (``cmr`` ``.mat``) that marks a file as this export's; its value is the format.
+MARKER = "carvi_export"
+#: The U-CMR file's ``convention`` (also how a file written before :data:`MARKER` is recognised).
+CONVENTION = ("sfmpose = [s, [tx, ty], [qw, qx, qy, qz]]: keypoint X of S projects to s * R(q)[:2] @ X + t in image "
+              "pixels, 1-based (CMR's); R rows = image x, image y (down), viewing direction")
 
 
 def normalised_shape(S: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -179,7 +190,7 @@ def _write_cmr(path: Path, recs: list, S: np.ndarray, hull: np.ndarray, names: l
     for j, r in enumerate(recs):
         anno[0, j] = (r["rot"], float(r["scale"]), r["trans"] + 1.0, float(r["err_sfm_reproj"]))
     ids = np.array([str(r["annotation_id"]) for r in recs], dtype=object)
-    data = {"sfm_anno": anno, "S": S.T.copy(), "conv_tri": (hull + 1).astype(np.float64),
+    data = {MARKER: "cmr", "sfm_anno": anno, "S": S.T.copy(), "conv_tri": (hull + 1).astype(np.float64),
             "annotation_ids": ids, "image_ids": np.array([str(r["image_id"]) for r in recs], dtype=object),
             "sources": np.array([r["source"] or "" for r in recs], dtype=object),
             "kp_names": np.array(names, dtype=object),
@@ -196,13 +207,36 @@ def _write_ucmr(path: Path, cname: str, recs: list, S: np.ndarray, hull: np.ndar
               "bbox": r["bbox"], "quality": r["quality"], "made_with_run_settings": r["made_with_run_settings"],
               "sfmpose": [float(r["scale"]), (r["trans"] + 1.0).tolist(), quaternion_wxyz(r["rot"]).tolist()]}
              for r in recs]
-    write_json(path, {"class": cname, "keypoint_names": names, "S": S.tolist(), "faces": hull.tolist(),
-                      "convention": "sfmpose = [s, [tx, ty], [qw, qx, qy, qz]]: keypoint X of S projects to "
-                                    "s * R(q)[:2] @ X + t in image pixels, 1-based (CMR's); R rows = image x, "
-                                    "image y (down), viewing direction",
-                      "images": items,
+    write_json(path, {MARKER: "ucmr", "class": cname, "keypoint_names": names, "S": S.tolist(),
+                      "faces": hull.tolist(), "convention": CONVENTION, "images": items,
                       "skipped": [{k: r.get(k) for k in ("annotation_id", "source", "reason")} for r in skipped],
                       "made_with_other_settings": made})
+
+
+def _ours(path: Path, fmt: str) -> bool:
+    """Whether the file at ``path`` is one an earlier ``fmt`` export wrote: it carries :data:`MARKER` = ``fmt``, or,
+    written before the marker, the U-CMR :data:`CONVENTION` / the ``.mat``'s ``kp_names`` and ``skipped_reasons``
+    beside ``sfm_anno`` (CMR's own files have neither)."""
+    try:
+        if fmt == "ucmr":
+            js = read_json(path)
+            return isinstance(js, dict) and (js.get(MARKER) == fmt or js.get("convention") == CONVENTION)
+        names = {n for n, _, _ in scipy.io.whosmat(path)}
+        if MARKER in names:
+            return str(scipy.io.loadmat(path, variable_names=[MARKER], squeeze_me=True)[MARKER]) == fmt
+        return {"sfm_anno", "kp_names", "skipped_reasons"} <= names
+    except (OSError, ValueError, TypeError, scipy.io.matlab.MatReadError):
+        return False
+
+
+def _check_replaceable(paths: list, out: Path, fmt: str) -> None:
+    """``ValueError`` naming the first of ``paths`` (the files the export is to write) that stands in ``out`` and
+    is not an earlier ``fmt`` export's (:func:`_ours`): it is never replaced."""
+    for path in paths:
+        if (path.exists() or path.is_symlink()) and not _ours(path, fmt):
+            raise ValueError(f"--out {out}: {path.name!r} is not a file of an earlier --format {fmt} export (no "
+                             f"{MARKER!r} marker): it is never replaced; choose another --out (nothing "
+                             "was written)")
 
 
 def _class_skips(loaded, recon: Path, cname: str, data: Path, pending: bool) -> tuple[dict | None, list]:
@@ -233,7 +267,9 @@ def export_format(recon: str | Path, out: str | Path, fmt: str, classes=None, pr
     their reason]}``: the objects skipped at load, those without a usable camera (their class's ``cameras.json``
     missing included), and the entries of ``cameras.json`` that name no object of the annotation file. Each file
     lists its class's in ``skipped``, and they are reported as the zarr export reports its own
-    (:func:`~carvi_torch.export.run.report_skipped`; one line each, a count alone when ``progress`` is off)."""
+    (:func:`~carvi_torch.export.run.report_skipped`; one line each, a count alone when ``progress`` is off).
+    ``ValueError``, nothing written, where a file to write stands in ``out`` and is not this export's
+    (:func:`_check_replaceable`)."""
     from .run import report_skipped
 
     recon, out = Path(recon), Path(out)
@@ -244,23 +280,24 @@ def export_format(recon: str | Path, out: str | Path, fmt: str, classes=None, pr
                        classes=classes or covered)
     scope = class_scope(loaded.dataset["categories"], covered, classes, recon)  # an unknown class: ValueError
     boxes = annotation_boxes(loaded.dataset["annotations"])
-    written, skipped, objects, pending = [], [], 0, unfinished(recon)
+    skipped, pending, files = [], unfinished(recon), []
     tally = SettingsTally.of(recon, cfg)
-    for cname in scope:
+    for cname in scope:  # every file's content first: the files in --out are checked before any is written
         cams, class_skipped = _class_skips(loaded, recon, cname, data, pending)
         if cams is not None:
             coll = loaded.collections[cname]
             recs, S, hull = class_records(cams, cname, coll, boxes, class_skipped)
             made = _settings_of(recs, recon / cname, tally)
-            names = list(coll.meta.keypoint_names)
-            path = out / f"{cname}.{'mat' if fmt == 'cmr' else 'json'}"
-            if fmt == "cmr":
-                _write_cmr(path, recs, S, hull, names, class_skipped, made)
-            else:
-                _write_ucmr(path, cname, recs, S, hull, names, class_skipped, made)
-            written.append(path)
-            objects += len(recs)
+            files.append((out / f"{cname}.{'mat' if fmt == 'cmr' else 'json'}", cname, recs, S, hull,
+                          list(coll.meta.keypoint_names), class_skipped, made))
         skipped += class_skipped
+    _check_replaceable([f[0] for f in files], out, fmt)
+    for path, cname, recs, S, hull, names, class_skipped, made in files:
+        if fmt == "cmr":
+            _write_cmr(path, recs, S, hull, names, class_skipped, made)
+        else:
+            _write_ucmr(path, cname, recs, S, hull, names, class_skipped, made)
+    objects = sum(len(f[2]) for f in files)
     report_skipped(recon, skipped, objects, pending, progress, data,
                    where="without --quiet each is listed with its reason", tally=tally)
-    return {"files": written, "objects": objects, "skipped": skipped}
+    return {"files": [f[0] for f in files], "objects": objects, "skipped": skipped}
