@@ -378,6 +378,24 @@ def test_report_never_writes_through_a_link_in_out(recon, tmp_path, capsys):
     assert (victim / "precious.txt").read_text() == "precious" and len(list(victim.iterdir())) == 1
 
 
+def test_a_linked_report_folder_of_the_run_is_refused_by_default(recon, tmp_path, capsys):
+    """``RECON/report`` a symbolic link (to a folder outside the run) and no --out: one ``error:`` line naming it,
+    exit 2, nothing written through it (reconstruct refuses that link too); given as --out, the link is the folder
+    the user named."""
+    run = tmp_path / "run"
+    shutil.copytree(recon, run, ignore=shutil.ignore_patterns("report"))
+    (tmp_path / "elsewhere").mkdir()
+    (run / "report").symlink_to("../elsewhere")
+    capsys.readouterr()
+    assert report_main(["--recon", str(run), "--quiet", "--workers", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"error: {run / 'report'} is a symbolic link: the report writes only inside the run's folder; "
+                   "remove the link or give --out (nothing was written)\n"), err
+    assert not any((tmp_path / "elsewhere").iterdir())
+    assert report_main(["--recon", str(run), "--out", str(run / "report"), "--quiet", "--workers", "0"]) == 0
+    assert (tmp_path / "elsewhere" / "index.html").is_file()
+
+
 def test_writes_replace_a_link_and_refuse_a_linked_folder(tmp_path):
     """Every write of the report (:func:`~carvi_torch.io.outputs.write_within`) replaces a link standing at the
     file's name (its target untouched) and refuses a link where a folder is, also a link planted after the

@@ -187,6 +187,9 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
     """
     t0 = time.perf_counter()
     run = read_run(recon)
+    if out is None and (run.recon / "report").is_symlink():  # as reconstruct refuses it: the run writes only inside
+        raise ReportError(f"{run.recon / 'report'} is a symbolic link: the report writes only inside the run's folder; "
+                          "remove the link or give --out (nothing was written)")
     out = Path(out) if out is not None else run.recon / "report"
     if out.resolve() == run.recon.resolve() or out.resolve() in {(run.recon / c.key).resolve() for c in run.classes}:
         raise ReportError(f"--out {out} is the run's folder or a class folder: give the report a folder of its own")
