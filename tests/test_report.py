@@ -452,6 +452,48 @@ def test_object_missing_from_cameras_json_gets_a_card(recon, tmp_path):
         run / "rep" / "index.html").read_text()
 
 
+def _edit(path: Path, edit) -> None:
+    content = json.loads(path.read_text())
+    edit(content)
+    path.write_text(json.dumps(content))
+
+
+@pytest.mark.parametrize("edits, notes", [
+    ({"car/cameras.json": lambda c: c.update(cameras=[1]),
+      "chair/cameras.json": lambda c: c.update(mean_shape=[1, 2]),
+      "summary.json": lambda s: (s.update(input_problems=5), s["classes"]["car"].update(failures=5),
+                                 s["classes"]["chair"].update(warnings=7))},
+     ["summary.json: 'input_problems' is 5, not a list",
+      "summary.json class car: 'failures' is 5, not a list",
+      "summary.json class chair: 'warnings' is 7, not a list",
+      "car/cameras.json: 'cameras' is [1], not an object of annotation id -> entry",
+      "chair/cameras.json: mean_shape is [1, 2], not an object of keypoint name -> 3 numbers"]),
+    ({"car/cameras.json": lambda c: c["mean_shape"].update(left_back_trunk="x"),
+      "chair/cameras.json": lambda c: c.update(shape_groups=[5]),
+      "summary.json": lambda s: s["classes"]["car"].update(seconds="x")},
+     ["summary.json class car: 'seconds' is 'x', not an object",
+      "car/cameras.json: mean_shape 'left_back_trunk' is 'x', not 3 finite numbers",
+      "chair/cameras.json: 'shape_groups' is [5], not a list of objects with a mean_shape"]),
+], ids=["cameras-list", "mean-shape-junk"])
+def test_hand_edited_parts_of_the_wrong_type_are_read_as_absent(recon, tmp_path, caplog, edits, notes):
+    """Parts of cameras.json and summary.json of the wrong type (a hand-edited file): each is one warning line naming
+    the file and read as absent, the class panel says so, and every object still gets its card."""
+    from html import escape
+
+    run = tmp_path / "run"
+    shutil.copytree(recon, run, ignore=shutil.ignore_patterns("report"))
+    for rel, edit in edits.items():
+        _edit(run / rel, edit)
+    with caplog.at_level("WARNING", logger="carvi_torch"):
+        rep = build_report(run, tmp_path / "rep", workers=0)
+    notes = [f"{n}; read as absent" for n in notes]
+    assert [r.getMessage() for r in caplog.records if r.getMessage().endswith("read as absent")] == [
+        f"report: {n}" for n in notes]
+    page = (tmp_path / "rep" / "index.html").read_text()
+    assert all(escape(n) in page for n in notes if "class" in n or "cameras.json" in n)
+    assert rep.cards == 12
+
+
 def test_photo_is_read_only_beside_the_annotations(tmp_path):
     """An image entry's ``file_name`` is read relative to the annotation file's folder or the folder above it;
     an absolute name, one climbing farther, a missing file, a folder, a pipe, a file that is no image and an

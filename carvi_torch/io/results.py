@@ -22,9 +22,9 @@ from .layout import SETTINGS_MEMBER, class_dir, held_settings, object_file, sett
 from .outputs import numbers, read_json, shown, write_json, write_npz
 
 __all__ = ["ROTATION_TOLERANCE", "numbers", "rotation_problem", "camera_record_problem", "shown", "ClassReport",
-           "cameras_json", "mean_shape_problem", "cameras_file_problem", "scores_entry", "write_scores",
-           "canonical_image_cameras", "resumed_objects", "drop_cameras", "quality_summary", "annotation_source",
-           "same_object"]
+           "cameras_json", "mean_shape_problem", "cameras_part_problems", "cameras_file_problem", "scores_entry",
+           "write_scores", "canonical_image_cameras", "resumed_objects", "drop_cameras", "quality_summary",
+           "annotation_source", "same_object"]
 
 
 @dataclass
@@ -453,11 +453,37 @@ def mean_shape_problem(shape) -> str | None:
     return None if bad is None else f"mean_shape {shown(bad)} is {shown(shape[bad])}, not 3 finite numbers"
 
 
+def cameras_part_problems(cams: dict) -> dict[str, str]:
+    """Per part of a class's ``cameras.json`` (``cams``, a JSON object) that has the wrong type, what is wrong:
+    ``cameras`` not an object of annotation id -> entry; ``mean_shape`` unusable (:func:`mean_shape_problem`);
+    ``shape_groups`` not a list of objects whose ``mean_shape`` is usable. An absent or ``null`` part is none.
+
+    Example:
+        >>> cameras_part_problems({"cameras": {}, "shape_groups": [5]})
+        {'shape_groups': "'shape_groups' is [5], not a list of objects with a mean_shape"}
+    """
+    out = {}
+    if cams.get("cameras") is not None and not isinstance(cams["cameras"], dict):
+        out["cameras"] = f"'cameras' is {shown(cams['cameras'])}, not an object of annotation id -> entry"
+    if cams.get("mean_shape") is not None and (why := mean_shape_problem(cams["mean_shape"])):
+        out["mean_shape"] = why
+    groups = cams.get("shape_groups")
+    if groups is not None and not (isinstance(groups, list) and all(isinstance(g, dict) for g in groups)):
+        out["shape_groups"] = f"'shape_groups' is {shown(groups)}, not a list of objects with a mean_shape"
+    elif groups is not None:
+        bad = [(i, why) for i, g in enumerate(groups)
+               if g.get("mean_shape") is not None and (why := mean_shape_problem(g["mean_shape"]))]
+        if bad:
+            out["shape_groups"] = f"shape group {bad[0][0]}'s {bad[0][1]}"
+    return out
+
+
 def cameras_file_problem(cams) -> str | None:
     """What makes a class's ``cameras.json`` (``cams``, its content) unusable as a whole: not a JSON object, its
     ``cameras`` not an object of annotation id -> entry, or its ``mean_shape`` unusable (:func:`mean_shape_problem`;
     either may be absent or ``null``); ``None`` when nothing does. The one check of the commands that read a
-    class's cameras back whole (export, report); a single entry's camera is :func:`camera_record_problem`'s.
+    class's cameras back whole (export, report: :func:`cameras_part_problems`, which this reads); a single entry's
+    camera is :func:`camera_record_problem`'s.
 
     Example:
         >>> cameras_file_problem({"cameras": {}, "mean_shape": {"a": [0, 0, 1]}}) is None
@@ -467,6 +493,5 @@ def cameras_file_problem(cams) -> str | None:
     """
     if not isinstance(cams, dict):
         return "not a JSON object"
-    if cams.get("cameras") is not None and not isinstance(cams["cameras"], dict):
-        return f"'cameras' is {shown(cams['cameras'])}, not an object of annotation id -> entry"
-    return mean_shape_problem(cams["mean_shape"]) if cams.get("mean_shape") is not None else None
+    problems = cameras_part_problems(cams)
+    return problems.get("cameras") or problems.get("mean_shape")

@@ -4,7 +4,9 @@ Nothing here writes anything. A class whose ``cameras.json`` is missing or unrea
 ``summary.json`` entry and says why (``ClassInputs.problem``); an object keeps its entry whatever its
 files look like (the card says what is wrong with them, :mod:`carvi_torch.report.cards`). An annotated
 object that ``summary.json`` counts in its class but neither ``cameras.json`` nor the failures name gets an entry
-too, with the problem (:data:`NO_CAMERA`).
+too, with the problem (:data:`NO_CAMERA`). A part of ``summary.json`` (:data:`RUN_PARTS`, :data:`CLASS_PARTS`) or
+of ``cameras.json`` (:func:`~carvi_torch.io.results.cameras_part_problems`) of the wrong type (a hand-edited file)
+is read as absent, with one warning line naming the file (and the class panel says so).
 
 Example:
     >>> _number({"quality": 0.5}, "quality"), _number({"quality": float("nan")}, "quality"), _number({}, "q")
@@ -12,6 +14,7 @@ Example:
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,9 +23,19 @@ import numpy as np
 
 from ..io.coco import class_keys, object_id
 from ..io.layout import object_stem
-from ..io.outputs import read_json
+from ..io.outputs import read_json, shown
+from ..io.results import cameras_part_problems
 
-__all__ = ["ReportError", "ObjectInputs", "ClassInputs", "RunInputs", "read_run", "NO_CAMERA"]
+__all__ = ["ReportError", "ObjectInputs", "ClassInputs", "RunInputs", "read_run", "NO_CAMERA", "RUN_PARTS",
+           "CLASS_PARTS"]
+
+log = logging.getLogger(__name__)
+#: The parts of ``summary.json`` the report reads, with the type each has (a class's entry: :data:`CLASS_PARTS`);
+#: a part of another type is read as absent (:func:`_typed`).
+RUN_PARTS = {"input_problems": list}
+CLASS_PARTS = {"failures": list, "warnings": list, "seconds": dict, "objects": (int, float),
+               "reconstructed": (int, float), "resumed": (int, float), "skipped": (int, float)}
+_WORDS = {list: "a list", dict: "an object"}
 
 
 class ReportError(Exception):
@@ -71,7 +84,8 @@ class ClassInputs:
     frame: str | None = None
     problem: str | None = None
     """Why the class has no objects to show (``cameras.json`` missing or unreadable), or that ``cameras.json`` and
-    the class's failures name fewer objects than ``summary.json`` counts; else ``None``."""
+    the class's failures name fewer objects than ``summary.json`` counts, after the parts of its ``summary.json``
+    entry and ``cameras.json`` read as absent for their wrong type, if any; else ``None``."""
     missing: int = 0
     """How many of the class's objects (``summary.json``'s count) neither ``cameras.json`` nor the failures name
     (``cameras.json`` lists every object of the class, chosen as a reference or not, with its camera or without)."""
@@ -93,6 +107,33 @@ def _number(d: dict, key: str) -> float | None:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
         return None
     return float(v)
+
+
+def _typed(record: dict, parts: dict, where: str) -> tuple[dict, list[str]]:
+    """``record`` without those of its ``parts`` (name -> type) whose value is of another type (``null`` counts as
+    absent), and a note for each (also a warning line; ``where``: the file, and the class, it is read from).
+
+    Example:
+        >>> _typed({"failures": 5, "objects": 6}, CLASS_PARTS, "summary.json")
+        ({'objects': 6}, ["summary.json: 'failures' is 5, not a list; read as absent"])
+    """
+    bad = [k for k, t in parts.items()
+           if record.get(k) is not None and (isinstance(record[k], bool) or not isinstance(record[k], t))]
+    notes = [f"{where}: {k!r} is {shown(record[k])}, not {_WORDS.get(parts[k], 'a number')}; read as absent"
+             for k in bad]
+    for note in notes:
+        log.warning(f"report: {note}")
+    return {k: v for k, v in record.items() if k not in bad}, notes
+
+
+def _usable_parts(cams: dict, key: str) -> tuple[dict, list[str]]:
+    """A class's ``cameras.json`` content without its parts of the wrong type
+    (:func:`~carvi_torch.io.results.cameras_part_problems`), and a note for each (also a warning line)."""
+    problems = cameras_part_problems(cams)
+    notes = [f"{key}/cameras.json: {why}; read as absent" for why in problems.values()]
+    for note in notes:
+        log.warning(f"report: {note}")
+    return {k: v for k, v in cams.items() if k not in problems}, notes
 
 
 def _mean_shapes(cams: dict, names: list[str]) -> list[np.ndarray]:
@@ -141,8 +182,10 @@ def _objects(cams: dict, failures: dict, scores: dict) -> list[ObjectInputs]:
     return out
 
 
-def _read_class(recon: Path, key: str, entry: dict) -> ClassInputs:
-    entry = entry if isinstance(entry, dict) else {}
+def _read_class(recon: Path, key: str, entry: dict, notes: list[str]) -> ClassInputs:
+    """Class ``key`` of the run: its ``summary.json`` ``entry`` (typed: :func:`_typed`, whose ``notes`` the class's
+    problem starts with) and ``cameras.json``."""
+    notes = list(notes)
     failures = {str(f["annotation_id"]): f.get("reason", "skipped") for f in entry.get("failures", [])
                 if isinstance(f, dict) and f.get("annotation_id") is not None}
     cls = ClassInputs(key=key, name=key, summary=entry)
@@ -155,6 +198,8 @@ def _read_class(recon: Path, key: str, entry: dict) -> ClassInputs:
         cams, cls.problem = {}, f"no {key}/cameras.json"
     except (ValueError, OSError) as e:
         cams, cls.problem = {}, f"{key}/cameras.json unreadable: {str(e).splitlines()[0][:120]}"
+    cams, more = _usable_parts(cams, key)
+    notes += more
     cls.name = str(cams.get("class", key))
     cls.frame = cams.get("frame")
     cls.keypoint_names = [str(n) for n in (cams.get("mean_shape") or {})]
@@ -167,6 +212,7 @@ def _read_class(recon: Path, key: str, entry: dict) -> ClassInputs:
         cls.missing = counted - known
         cls.problem = (f"{key}/cameras.json and the failures of the class name {known} of the {counted} objects "
                        "summary.json counts")
+    cls.problem = "; ".join([*notes, *([cls.problem] if cls.problem else [])]) or None
     return cls
 
 
@@ -211,8 +257,12 @@ def read_run(recon: str | Path) -> RunInputs:
         raise ReportError(f"{recon} is not a finished run: summary.json unreadable ({type(e).__name__})") from e
     if not isinstance(summary, dict) or not isinstance(summary.get("classes"), dict):
         raise ReportError(f"{recon}/summary.json has no 'classes' mapping")
-    classes = [_read_class(recon, str(k), v) for k, v in summary["classes"].items()
-               if (recon / str(k)).resolve().parent == recon.resolve()]
+    summary = _typed(summary, RUN_PARTS, "summary.json")[0]
+    typed = {str(k): _typed(v if isinstance(v, dict) else {}, CLASS_PARTS, f"summary.json class {k}")
+             for k, v in summary["classes"].items()}
+    summary["classes"] = {k: entry for k, (entry, _) in typed.items()}  # the page reads them typed too
+    classes = [_read_class(recon, k, entry, notes) for k, (entry, notes) in typed.items()
+               if (recon / k).resolve().parent == recon.resolve()]
     data = Path(summary["data"]) if isinstance(summary.get("data"), str) else None
     if (data is None or not data.is_file()) and (recon / "input" / "annotations.json").is_file():
         data = recon / "input" / "annotations.json"  # the embedded collection, in a run folder that moved
