@@ -203,6 +203,44 @@ def test_quality_orders_the_cards_and_damaged_files_are_named(recon, tmp_path):
     assert not (tmp_path / "nothing").exists()
 
 
+class _BrokenPool:
+    """An executor whose every job fails as when its worker process died."""
+
+    def submit(self, fn, *args):
+        from concurrent.futures import Future
+        from concurrent.futures.process import BrokenProcessPool
+
+        future = Future()
+        future.set_exception(BrokenProcessPool("the worker process died"))
+        return future
+
+
+def test_mesh_scripts_made_in_a_pool_give_the_same_report(recon, tmp_path):
+    """A run hands the report's mesh scripts to its writer processes (``start_report(pool=...)``) while it draws the
+    rest: the same files, byte for byte, as ``build_report`` in one process, a damaged and a missing mesh's reasons
+    included; a pool whose processes fail has the scripts made here, the same again."""
+    import multiprocessing as mp
+
+    from carvi_torch.report.build import start_report
+    from carvi_torch.runtime import LeanProcessPool, start_method
+
+    run = tmp_path / "run"
+    shutil.copytree(recon, run, ignore=shutil.ignore_patterns("report"))
+    ids = list(json.loads((run / "car" / "cameras.json").read_text())["cameras"])
+    (run / "car" / "meshes" / f"{ids[0]}.ply").unlink()
+    (run / "car" / "meshes" / f"{ids[1]}.ply").write_bytes(b"ply\nnot a mesh")
+    build_report(run, run / "here", workers=0)
+    with LeanProcessPool(1, mp_context=mp.get_context(start_method())) as pool:
+        pending = start_report(run, run / "pooled", pool=pool)
+        pending.finish()
+    start_report(run, run / "broken", pool=_BrokenPool()).finish()
+    here = _tree(run / "here")
+    assert _tree(run / "pooled") == here and _tree(run / "broken") == here
+    car = {c["id"]: c for c in _cards(run / "here")[1] if c["cls"] == "car"}
+    assert "no mesh file" in car[ids[0]]["problems"][0] and "mesh unreadable" in car[ids[1]]["problems"][0]
+    assert all(car[i].get("faces") for i in ids[2:])
+
+
 def test_a_class_meshes_in_an_earlier_format_get_their_3d_view_and_link(recon, tmp_path):
     """A run whose ``mesh_format`` changed after a class was made keeps that class's meshes in the earlier format: its
     cards show and link the file the export takes (:func:`~carvi_torch.io.layout.object_mesh`), not "no mesh file"."""

@@ -430,10 +430,12 @@ def book_class(setup: RunSetup, key: str, rep) -> None:
     write_summary(setup)
 
 
-def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = None) -> dict:
+def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = None, pool=None) -> dict:
     """Totals, the earlier run's other classes, ``summary.json``, ``preview.png`` and ``report/``; returns the summary.
 
-    ``workers_mb``: the largest writer process's peak memory (as the writers report it).
+    ``workers_mb``: the largest writer process's peak memory (as the writers report it). ``pool``: the run's
+    writer processes, idle by now: they make the report's mesh scripts (the decimation, most of the report's time)
+    while this process draws the preview and the rest of the report (:func:`~carvi_torch.report.build.start_report`).
     """
     s = setup.summary
     s["total_seconds"] = round(time.perf_counter() - setup.t_start, 3)
@@ -445,6 +447,14 @@ def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = 
     _settings_at_end(setup)
     s["writer_workers"] = writer_workers
     write_summary(setup)
+    report = None
+    if setup.cfg.report and setup.cfg.stage == "all":
+        try:
+            from ..report.build import start_report
+
+            report = start_report(setup.out, setup.out / "report", pool=pool)
+        except Exception as e:  # noqa: BLE001 - the report must never fail the run
+            log.warning(f"report/index.html not written: {e}")
     if setup.cfg.preview and setup.cfg.stage == "all":
         try:
             from ..preview import write_preview
@@ -452,11 +462,9 @@ def finish_run(setup: RunSetup, writer_workers: int, workers_mb: float | None = 
             write_preview(setup.out, read_json(setup.out / "summary.json"))
         except Exception as e:  # noqa: BLE001 - a picture must never fail the run
             log.warning(f"preview.png not written: {e}")
-    if setup.cfg.report and setup.cfg.stage == "all":
+    if report is not None:
         try:
-            from ..report import build_report
-
-            build_report(setup.out, setup.out / "report")
+            report.finish()
         except Exception as e:  # noqa: BLE001 - the report must never fail the run
             log.warning(f"report/index.html not written: {e}")
     return read_json(setup.out / "summary.json")

@@ -49,11 +49,13 @@ def run(cfg: Config, workers: int | None = None, threads: int | None = None) -> 
             try:
                 with torch_threads(n):
                     _classes(setup, writer)
+                writer.drain()
+                summary = finish_run(setup, writer.workers, writer.peak_rss_mb, pool=writer.pool)
             except BaseException:
                 writer.close(cancel=True)  # an error or Ctrl-C: stop the writers without waiting for them
                 raise
             writer.close()
-            return finish_run(setup, writer.workers, writer.peak_rss_mb)
+            return summary
 
 
 def local_record(classes: int) -> dict:

@@ -4,15 +4,27 @@
     python -m carvi_torch.report --recon DIR [--out DIR/report]
 
 Modules: :mod:`.inputs` (what is read: typed records), :mod:`.cards` (one object's overlay and mesh
-data), :mod:`.charts` (a class's figure), :mod:`.page` (the HTML), :mod:`.build` (all of it, in order);
+data), :mod:`.mesh_data` (the 3D view's decimated mesh script), :mod:`.charts` (a class's figure),
+:mod:`.page` (the HTML), :mod:`.build` (all of it, in order);
 ``static/`` holds the page's script, style sheet and the vendored three.js (``static/vendor/VENDOR.md``).
 """
 from __future__ import annotations
 
-from .build import Report, build_report
-from .inputs import ReportError
-
 __all__ = ["build_report", "Report", "ReportError", "main"]
+
+
+def __getattr__(name: str):
+    """``build_report``, ``Report`` and ``ReportError``, imported on first use: importing the package alone (as a
+    run's writer processes do for :mod:`.mesh_data`) loads neither torch nor matplotlib."""
+    if name in ("build_report", "Report"):
+        from . import build
+
+        return getattr(build, name)
+    if name == "ReportError":
+        from .inputs import ReportError
+
+        return ReportError
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def main(argv=None) -> int:
@@ -45,6 +57,9 @@ def _main(args) -> int:
     from ..cli import nonempty_paths
 
     nonempty_paths(args, "--recon", "--out")
+    this = sys.modules[__name__]  # the package's names, looked up as attributes (imported on first use)
+    build_report, ReportError = this.build_report, this.ReportError
+
     try:
         rep = build_report(args.recon, args.out, per_page=args.per_page, workers=args.workers)
     except ReportError as e:

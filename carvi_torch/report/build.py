@@ -33,12 +33,14 @@ from ..io.coco import class_keys
 from ..io.layout import objects_made_otherwise, settings_record
 from ..io.outputs import first_link, folder_within, safe_name, write_within
 from ..runtime import LeanProcessPool, check_replaceable, os_error_line, start_method
-from .cards import Card, CardContext, ClassView, make_card
+from .cards import Card, CardContext, ClassView, add_mesh, card_without_mesh, failed_card, make_card
 from .charts import class_figure
 from .inputs import ReportError, RunInputs, read_run
+from .mesh_data import write_mesh_script
 from .page import class_panel_html, index_html
 
-__all__ = ["build_report", "sort_cards", "default_workers", "Report", "SortBy", "STATIC", "ASSETS", "POOL_FROM"]
+__all__ = ["build_report", "start_report", "PendingReport", "sort_cards", "default_workers", "Report", "SortBy",
+           "STATIC", "ASSETS", "POOL_FROM"]
 
 log = logging.getLogger(__name__)
 #: Runs with at least this many objects make their cards in worker processes (:func:`default_workers`).
@@ -115,26 +117,70 @@ def default_workers(n_objects: int) -> int:
     return 0 if n_objects < POOL_FROM or cores <= 2 else min(4, cores - 1)
 
 
-def _make_cards(run: RunInputs, out: Path, max_faces: int, workers: int | None) -> dict[str, list[Card]]:
-    """Every class's cards (written files included), in this process or in ``workers`` processes."""
+def _jobs(run: RunInputs) -> list[tuple[ClassView, object, str]]:
+    """Every object's card job ``(class view, object, output folder key)``, classes in order."""
+    return [(ClassView.of(c), o, safe_name(c.key)) for c in run.classes for o in c.objects]
+
+
+def _make_cards(run: RunInputs, out: Path, max_faces: int, workers: int | None) -> list[Card]:
+    """Every object's card (written files included), in the order of :func:`_jobs`, in this process or in
+    ``workers`` processes."""
     args = (run.recon, out, run.data, run.mesh_format, max_faces)
-    jobs = [(ClassView.of(c), o, safe_name(c.key)) for c in run.classes for o in c.objects]
+    jobs = _jobs(run)
     workers = default_workers(len(jobs)) if workers is None else workers
-    made = None
     if workers > 0:
         try:
             with LeanProcessPool(workers, mp_context=mp.get_context(start_method()), initializer=_init_worker,
                                  initargs=args) as pool:
-                made = list(pool.map(_card_in_worker, jobs, chunksize=max(1, min(32, len(jobs) // (4 * workers)))))
+                return list(pool.map(_card_in_worker, jobs, chunksize=max(1, min(32, len(jobs) // (4 * workers)))))
         except (OSError, BrokenProcessPool) as e:  # no worker processes here: make the cards in this one
             log.warning(f"report: worker processes failed ({type(e).__name__}: {e}); making the cards here")
-    if made is None:
-        ctx = _context(*args)
-        made = [make_card(ctx, *job) for job in jobs]
-    per: dict[str, list[Card]] = {c.key: [] for c in run.classes}
-    for (view, _, _), card in zip(jobs, made):
-        per[view.key].append(card)
-    return per
+    ctx = _context(*args)
+    return [make_card(ctx, *job) for job in jobs]
+
+
+def _cards_beside(ctx: CardContext, jobs: list, meshes: list) -> tuple[list[Card], list]:
+    """Every object's card made in this process but for its mesh script, which ``meshes`` (per job of :func:`_jobs`)
+    holds the future of (:func:`~carvi_torch.report.mesh_data.write_mesh_script` in another process, or ``None``).
+    Returns the cards and, per card, ``(job, script arguments, future)`` for :func:`_book_meshes` (``None``: no
+    script)."""
+    cards, pending = [], []
+    for (view, obj, key), future in zip(jobs, meshes):
+        card, args = card_without_mesh(ctx, view, obj, key)
+        cards.append(card)
+        pending.append(None if args is None else ((view, obj, key), args, future))
+    return cards, pending
+
+
+def _book_meshes(cards: list[Card], pending: list) -> None:
+    """Book every mesh script of :func:`_cards_beside` on its card (waiting for it); one whose process failed is
+    made here; a card whose script cannot be made at all becomes a failed card, as :func:`make_card` makes it."""
+    for i, item in enumerate(pending):
+        if item is None:
+            continue
+        (view, obj, key), args, future = item
+        try:
+            try:
+                made = future.result() if future is not None else write_mesh_script(*args)
+            except Exception:  # noqa: BLE001 - the process failed (BrokenProcessPool, ...): made here
+                made = write_mesh_script(*args)
+            add_mesh(cards[i], args, made)
+        except Exception as e:  # noqa: BLE001 - one object's failure is its card's reason, never the report's end
+            cards[i] = failed_card(view, obj, key, e)
+
+
+def _submit_meshes(pool, run: RunInputs, out: Path, max_faces: int) -> list:
+    """Hand every mesh script of the report to ``pool`` (an executor); per job of :func:`_jobs` its future, or
+    ``None`` where the object is skipped or has no mesh file (the card says why, made in this process)."""
+    from ..io.layout import object_mesh
+
+    futures = []
+    for view, obj, key in _jobs(run):
+        src = None if obj.skipped is not None else object_mesh(run.recon / view.key, obj.annotation_id,
+                                                                run.mesh_format)
+        futures.append(None if src is None else pool.submit(
+            write_mesh_script, str(src), str(out), f"objects/{key}/{obj.stem}.js", f"{key}/{obj.stem}", max_faces))
+    return futures
 
 
 def _copy_assets(out: Path) -> None:
@@ -185,6 +231,16 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
             the run's folder, a class folder, a folder holding anything but an earlier report or a symbolic link
             among the report's entries (nothing is written through a link), or cannot be made.
     """
+    return start_report(recon, out, per_page, max_faces, title, workers).finish()
+
+
+def start_report(recon: str | Path, out: str | Path | None = None, per_page: int = 24, max_faces: int = 4000,
+                 title: str | None = None, workers: int | None = None, pool=None) -> "PendingReport":
+    """:func:`build_report` in two steps: this one reads the run and prepares ``out`` (raising what
+    :func:`build_report` raises) and, given ``pool`` (an executor, such as a run's writer processes), hands it
+    every mesh script (``workers`` is then not used); :meth:`PendingReport.finish` makes the rest in this process.
+    The caller may do other work in between (a run draws its ``preview.png``) while the pool decimates the
+    meshes; the files are those of :func:`build_report`."""
     t0 = time.perf_counter()
     run = read_run(recon)
     if out is None and (run.recon / "report").is_symlink():  # as reconstruct refuses it: the run writes only inside
@@ -194,29 +250,64 @@ def build_report(recon: str | Path, out: str | Path | None = None, per_page: int
     if out.resolve() == run.recon.resolve() or out.resolve() in {(run.recon / c.key).resolve() for c in run.classes}:
         raise ReportError(f"--out {out} is the run's folder or a class folder: give the report a folder of its own")
     _prepare(out, run)
-    per = _make_cards(run, out, max_faces, workers)
-    cards, panels, names = [], [], []
-    for cls in run.classes:
-        key = safe_name(cls.key)
-        mine = per[cls.key]
-        chart = None
-        if mine:
-            try:
-                class_figure(mine, out, f"classes/{key}.png")
-                chart = f"classes/{key}.png"
-            except Exception as e:  # noqa: BLE001 - a figure that fails leaves its panel without it
-                log.warning(f"report: the figure of class {cls.key} failed ({type(e).__name__}: {e})")
-        panels.append(class_panel_html(cls.summary, cls.key, cls.name, chart, cls.problem))
-        names.append((cls.key, cls.name))
-        cards += mine
-    order, by = sort_cards(cards)
-    meta = {"per_page": per_page, "sort_by": by, "names": dict(names)}
-    write_within(out, "cards.js", ("carviReport.index(" + json.dumps(meta) + ",\n["
-                                   + ",\n".join(json.dumps(c.to_json()) for c in order) + "]);\n").encode(), sync=False)
-    _copy_assets(out)
-    title = title or f"carvi_torch report: {run.recon.resolve().name}"
-    mixed = settings_record(run.summary.get("resumed_from_other_settings"))  # objects counted only then
-    page = index_html(run.summary, title, panels, names, len(order), by,
-                      objects_made_otherwise(run.recon) if mixed else None)
-    index = write_within(out, "index.html", page.encode(), sync=False)
-    return Report(index=index, cards=len(order), sort_by=by, seconds=time.perf_counter() - t0)
+    meshes = _submit_meshes(pool, run, out, max_faces) if pool is not None else None
+    return PendingReport(run, out, per_page, max_faces, title, workers, t0, meshes)
+
+
+@dataclass
+class PendingReport:
+    """A report :func:`start_report` began; :meth:`finish` writes it."""
+
+    run: RunInputs
+    out: Path
+    per_page: int
+    max_faces: int
+    title: str | None
+    workers: int | None
+    t0: float
+    meshes: list | None
+    """Per card job, the future of its mesh script in the pool (``None``: none); ``None``: no pool."""
+
+    def finish(self) -> Report:
+        """Make the cards (their mesh scripts booked from the pool), the class figures, ``cards.js``, the assets
+        and ``index.html``."""
+        run, out = self.run, self.out
+        jobs, pending = _jobs(run), None
+        if self.meshes is None:
+            cards = _make_cards(run, out, self.max_faces, self.workers)
+        else:
+            ctx = _context(run.recon, out, run.data, run.mesh_format, self.max_faces)
+            cards, pending = _cards_beside(ctx, jobs, self.meshes)
+        panels, names = [], []
+        for cls in run.classes:
+            mine = [card for (view, _, _), card in zip(jobs, cards) if view.key == cls.key]
+            panels.append(class_panel_html(cls.summary, cls.key, cls.name, _figure(mine, out, cls.key), cls.problem))
+            names.append((cls.key, cls.name))
+        if pending is not None:  # the figures need no mesh: drawn while the pool still decimates
+            _book_meshes(cards, pending)
+        order, by = sort_cards(cards)
+        meta = {"per_page": self.per_page, "sort_by": by, "names": dict(names)}
+        write_within(out, "cards.js", ("carviReport.index(" + json.dumps(meta) + ",\n["
+                                       + ",\n".join(json.dumps(c.to_json()) for c in order) + "]);\n").encode(),
+                     sync=False)
+        _copy_assets(out)
+        title = self.title or f"carvi_torch report: {run.recon.resolve().name}"
+        mixed = settings_record(run.summary.get("resumed_from_other_settings"))  # objects counted only then
+        page = index_html(run.summary, title, panels, names, len(order), by,
+                          objects_made_otherwise(run.recon) if mixed else None)
+        index = write_within(out, "index.html", page.encode(), sync=False)
+        return Report(index=index, cards=len(order), sort_by=by, seconds=time.perf_counter() - self.t0)
+
+
+def _figure(cards: list[Card], out: Path, class_key: str) -> str | None:
+    """The class figure of ``cards`` (:func:`~carvi_torch.report.charts.class_figure`) as ``out/classes/<key>.png``;
+    its path relative to ``out``, or ``None`` for a class without cards or a figure that failed (a warning)."""
+    if not cards:
+        return None
+    rel = f"classes/{safe_name(class_key)}.png"
+    try:
+        class_figure(cards, out, rel)
+        return rel
+    except Exception as e:  # noqa: BLE001 - a figure that fails leaves its panel without it
+        log.warning(f"report: the figure of class {class_key} failed ({type(e).__name__}: {e})")
+        return None

@@ -4,21 +4,12 @@ An object's overlay shows its image crop (white where the run has no photo) with
 reconstruction's silhouette in :data:`carvi_torch.preview.OVERLAY_COLOURS`, the annotated keypoints
 and the class mean shape's keypoints projected by the object's camera. Its mesh is decimated to at
 most ``max_faces`` faces and written as ``carviReport.mesh(key, data)`` with int16-quantised
-positions (:func:`encode_mesh`), so the page can load it from disk (``file://``) by a script tag.
+positions (:mod:`carvi_torch.report.mesh_data`), so the page can load it from disk (``file://``) by a
+script tag; that script may be made in another process (:func:`card_without_mesh`, :func:`add_mesh`).
 A missing or damaged file never stops the report: the card lists the reason (``Card.problems``).
-
-Example:
-    >>> v = np.array([[0, 0, 0], [2, 0, 0], [0, 4, 0]], float)
-    >>> d = encode_mesh(v, np.array([[0, 1, 2]]))
-    >>> d["half"], d["centre"], d["index_bits"]
-    (2.0, [1.0, 2.0, 0.0], 16)
-    >>> np.allclose(decode_positions(d), v, atol=2.0 / 32767)
-    True
 """
 from __future__ import annotations
 
-import base64
-import json
 import math
 import os
 from dataclasses import asdict, dataclass, field
@@ -31,9 +22,10 @@ from ..io.outputs import write_within
 from ..io.results import annotation_source, same_object
 from ..preview import OVERLAY_COLOURS, crop_box, overlay_colours, project_silhouette
 from .inputs import ClassInputs, ObjectInputs
+from .mesh_data import decode_positions, encode_mesh, write_mesh_script
 
 __all__ = ["Card", "CardContext", "ClassView", "legend", "encode_mesh", "decode_positions", "make_card",
-           "keypoint_residual", "image_path", "KEYPOINT_COLOURS", "CROP_SIZE"]
+           "card_without_mesh", "add_mesh", "keypoint_residual", "image_path", "KEYPOINT_COLOURS", "CROP_SIZE"]
 
 #: Marker colours (RGB 0-255) of the keypoints on the overlay, and what each means (the legend reads them).
 KEYPOINT_COLOURS = {"annotated": ((255, 150, 0), "annotated keypoint"),
@@ -71,45 +63,6 @@ class Card:
     def to_json(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()
                 if v is not None and v != [] and v != {}}
-
-
-def _b64(a: np.ndarray) -> str:
-    return base64.b64encode(np.ascontiguousarray(a).tobytes()).decode("ascii")
-
-
-def encode_mesh(vertices: np.ndarray, faces: np.ndarray) -> dict:
-    """``vertices (V, 3)`` float, ``faces (F, 3)`` int -> a JSON-able dict: little-endian int16
-    positions quantised in the bounding box (``centre``, ``half``: the largest half extent), base64,
-    and uint16 (``V < 65536``) or uint32 indices, base64."""
-    v = np.asarray(vertices, dtype=np.float64)
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    centre = (lo + hi) / 2
-    half = float(max((hi - lo).max() / 2, 1e-9))
-    q = np.clip(np.round((v - centre) / half * 32767), -32767, 32767).astype("<i2")
-    bits = 16 if len(v) < 65536 else 32
-    idx = np.asarray(faces).astype("<u2" if bits == 16 else "<u4")
-    return {"centre": [float(c) for c in centre], "half": half, "positions": _b64(q), "index": _b64(idx),
-            "index_bits": bits}
-
-
-def decode_positions(d: dict) -> np.ndarray:
-    """``(V, 3)`` float64 vertices of :func:`encode_mesh`'s output (what the page computes)."""
-    q = np.frombuffer(base64.b64decode(d["positions"]), dtype="<i2").reshape(-1, 3)
-    return q / 32767.0 * d["half"] + np.asarray(d["centre"])
-
-
-def _decimated(path: Path, max_faces: int) -> tuple[np.ndarray, np.ndarray]:
-    """Float32 vertices and int32 faces of the mesh file ``path`` (:func:`~carvi_torch.mesh.read_mesh_arrays`),
-    simplified to about ``max_faces`` faces where it has more."""
-    from ..mesh import read_mesh_arrays
-
-    v, f = read_mesh_arrays(path)
-    v, f = v.astype(np.float32), f.astype(np.int32)
-    if len(f) > max_faces:
-        import fast_simplification
-
-        v, f = fast_simplification.simplify(v, f, target_count=max_faces)
-    return v, f
 
 
 def _project(cam: dict | None, shape: np.ndarray) -> np.ndarray | None:
@@ -283,35 +236,55 @@ def _overlay(ctx: CardContext, cls: ClassView, obj: ObjectInputs, card: Card, re
     card.img = rel
 
 
-def _mesh(ctx: CardContext, cls: ClassView, obj: ObjectInputs, card: Card, rel: str) -> None:
-    """The decimated mesh (the file the export takes: :func:`~carvi_torch.io.layout.object_mesh`) as a registration
-    script ``ctx.out / rel``."""
+def _mesh_job(ctx: CardContext, cls: ClassView, obj: ObjectInputs, card: Card, rel: str) -> tuple | None:
+    """:func:`~carvi_torch.report.mesh_data.write_mesh_script`'s arguments for the object's decimated mesh (the
+    file the export takes: :func:`~carvi_torch.io.layout.object_mesh`) as the script ``ctx.out / rel``; ``None``
+    when it has no mesh file (the card says so)."""
     src = object_mesh(ctx.recon / cls.key, obj.annotation_id, ctx.mesh_format)
     if src is None:
         card.problems.append(f"no mesh file ({obj.stem}.{ctx.mesh_format}): no 3D view")
-        return
-    try:
-        v, f = _decimated(src, ctx.max_faces)
-    except Exception as e:  # noqa: BLE001 - a damaged mesh: the card says so
-        card.problems.append(f"mesh unreadable ({type(e).__name__}: {str(e)[:80]}): no 3D view")
-        return
-    data = encode_mesh(v, f)
-    text = f"carviReport.mesh({json.dumps(card.key)},{json.dumps(data, separators=(',', ':'))});\n"
-    write_within(ctx.out, rel, text.encode(), sync=False)
-    card.mesh, card.faces = rel, int(len(f))
+        return None
+    return str(src), str(ctx.out), rel, card.key, ctx.max_faces
+
+
+def add_mesh(card: Card, job: tuple, made: tuple[int | None, str | None]) -> None:
+    """Book on ``card`` what :func:`~carvi_torch.report.mesh_data.write_mesh_script` ``(*job)`` returned."""
+    faces, problem = made
+    if problem is not None:
+        card.problems.append(problem)
+    else:
+        card.mesh, card.faces = job[2], faces
+
+
+def failed_card(cls: ClassView, obj: ObjectInputs, out_key: str, e: Exception) -> Card:
+    """The card of an object whose card could not be made: the reason is its one problem."""
+    return Card(id=obj.annotation_id, cls=cls.key, key=f"{out_key}/{obj.stem}", source=obj.source,
+                skipped=obj.skipped, problems=[f"card failed ({type(e).__name__}: {str(e)[:120]})"])
 
 
 def make_card(ctx: CardContext, cls: ClassView, obj: ObjectInputs, out_key: str) -> Card:
     """Write one object's overlay and mesh script under ``ctx.out/objects/<out_key>/`` and return its card;
     whatever goes wrong, the card says so (``problems``) rather than raise."""
     try:
+        card, job = _make_card(ctx, cls, obj, out_key)
+        if job is not None:
+            add_mesh(card, job, write_mesh_script(*job))
+        return card
+    except Exception as e:  # noqa: BLE001 - one object's failure is its card's reason, never the report's end
+        return failed_card(cls, obj, out_key, e)
+
+
+def card_without_mesh(ctx: CardContext, cls: ClassView, obj: ObjectInputs, out_key: str) -> tuple[Card, tuple | None]:
+    """:func:`make_card` but for the mesh script: the card and the arguments of
+    :func:`~carvi_torch.report.mesh_data.write_mesh_script` that make it (``None``: none to make), for the caller
+    to run where it likes and book with :func:`add_mesh`."""
+    try:
         return _make_card(ctx, cls, obj, out_key)
     except Exception as e:  # noqa: BLE001 - one object's failure is its card's reason, never the report's end
-        return Card(id=obj.annotation_id, cls=cls.key, key=f"{out_key}/{obj.stem}", source=obj.source,
-                    skipped=obj.skipped, problems=[f"card failed ({type(e).__name__}: {str(e)[:120]})"])
+        return failed_card(cls, obj, out_key, e), None
 
 
-def _make_card(ctx: CardContext, cls: ClassView, obj: ObjectInputs, out_key: str) -> Card:
+def _make_card(ctx: CardContext, cls: ClassView, obj: ObjectInputs, out_key: str) -> tuple[Card, tuple | None]:
     card = Card(id=obj.annotation_id, cls=cls.key, key=f"{out_key}/{obj.stem}", source=obj.source,
                 quality=obj.quality, score=obj.score, az=obj.azimuth_deg, el=obj.elevation_deg,
                 camera_from=obj.camera_from, surrogates_from=obj.surrogates_from, skipped=obj.skipped)
@@ -320,9 +293,7 @@ def _make_card(ctx: CardContext, cls: ClassView, obj: ObjectInputs, out_key: str
         card.problems.append(obj.problem)
     base = f"objects/{out_key}/{obj.stem}"
     _overlay(ctx, cls, obj, card, base + ".jpg")
-    if obj.skipped is None:
-        _mesh(ctx, cls, obj, card, base + ".js")
-    return card
+    return card, (_mesh_job(ctx, cls, obj, card, base + ".js") if obj.skipped is None else None)
 
 
 def legend() -> list[tuple[str, str, str]]:
