@@ -19,8 +19,8 @@ was built against); ``torch.ops.load_library`` loads it. Its operators live in t
 the process, so two builds never share one, and a namespace already registered is reused, not loaded
 again.
 
-Cache rules: the directory is the user's own, mode 0700; a library is loaded only when it and its
-sidecar ``<name>.sha256`` are regular files of this user without group/other write bits and the
+Cache rules (:mod:`carvi_torch.user_cache`): the directory is the user's own, mode 0700; a library is loaded
+only when it and its sidecar ``<name>.sha256`` are regular files of this user without group/other write bits and the
 library's SHA-256 equals the sidecar's (checked before anything maps the file: a truncated library
 can crash the process that loads it); anything else is rebuilt. Builds run under an exclusive lock
 of the directory, into a private temporary directory, and are moved into place with ``os.replace``
@@ -40,7 +40,6 @@ import os
 import platform
 import shlex
 import shutil
-import stat
 import subprocess
 import sys
 import tempfile
@@ -51,6 +50,7 @@ from pathlib import Path
 import torch
 
 from .runtime import NO_LOCKS, FileLock
+from .user_cache import cache_root, own_file_problem, private_dir
 
 __all__ = ["library_path", "cache_entry_problem", "load", "library_operators", "once"]
 
@@ -77,8 +77,7 @@ def _compiler() -> list[str]:
 
 
 def _cache_dir() -> Path:
-    root = os.environ.get("CARVI_TORCH_CACHE")
-    return Path(root) if root else Path.home() / ".cache" / "carvi_torch"
+    return cache_root()
 
 
 def _key() -> str:
@@ -104,40 +103,9 @@ def _sidecar(path: Path) -> Path:
 # --------------------------------------------------------------------------- the cache's rules
 
 
-def _private_dir(path: Path) -> Path:
-    """``path`` as a directory of this user, mode 0700 (created so; an existing one of ours is tightened).
-
-    Raises ``PermissionError`` for a directory of another user or a symbolic link."""
-    path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)  # the mode applies to the root only if created
-    try:
-        path.mkdir(mode=0o700)
-    except FileExistsError:
-        pass
-    st = os.lstat(path)
-    if not stat.S_ISDIR(st.st_mode):
-        raise PermissionError(f"the kernel cache {path} is not a directory (a link?)")
-    if os.name == "posix":
-        if st.st_uid != os.getuid():
-            raise PermissionError(f"the kernel cache {path} belongs to uid {st.st_uid}, not to this user "
-                                  f"({os.getuid()})")
-        if stat.S_IMODE(st.st_mode) != 0o700:
-            os.chmod(path, 0o700)
-    return path
-
-
-def _own_file_problem(path: Path) -> str | None:
-    """Why ``path`` is not a regular file of this user without group/other write bits (``None`` when it is)."""
-    try:
-        st = os.lstat(path)
-    except FileNotFoundError:
-        return f"{path.name} is missing"
-    if not stat.S_ISREG(st.st_mode):
-        return f"{path.name} is not a regular file"
-    if os.name == "posix" and st.st_uid != os.getuid():
-        return f"{path.name} belongs to uid {st.st_uid}, not {os.getuid()}"
-    if os.name == "posix" and st.st_mode & 0o022:
-        return f"{path.name} is writable by others (mode {stat.S_IMODE(st.st_mode):o})"
-    return None
+#: The cache's rules (:mod:`carvi_torch.user_cache`), by their names here.
+_private_dir = private_dir
+_own_file_problem = own_file_problem
 
 
 def _sha256(path: Path) -> str:

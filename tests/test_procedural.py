@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -156,3 +157,80 @@ def test_default_collection_is_generated_again_for_other_settings(tmp_path):
         [a["keypoints"] for a in more["annotations"]]
     assert json.loads((tmp_path / GENERATION_RECORD).read_text()) == generation_settings(2, 3)
     assert len(list((tmp_path / "meshes").iterdir())) == 2 * len(CATEGORIES)
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_default_collection_is_kept_in_the_cache(tmp_path, monkeypatch):
+    """Generated once per settings and code, then copied from ``$CARVI_TORCH_CACHE/collections``: a hit gives the
+    same files byte for byte (so the same arrays); other settings or other code are another key (a miss); a
+    damaged, truncated, tampered or others-writable entry is not used but generated again and replaced, never a
+    crash; a cache that cannot be written leaves the collection as without one."""
+    from carvi_torch.synthetic import cache
+    from carvi_torch.synthetic.procedural import default_collection, generation_settings
+
+    monkeypatch.setenv("CARVI_TORCH_CACHE", str(tmp_path / "cache"))
+
+    def collection(name, seed=0):
+        said = []
+        default_collection(tmp_path / name, 1, seed, log=said.append)
+        assert len(said) == 1
+        return _files(tmp_path / name), said[0]
+
+    first, said = collection("a")
+    assert said.startswith("generating")
+    key = cache.collection_key(generation_settings(1, 0))
+    entry = cache.entry_path(key)
+    assert entry.is_file() and oct(entry.parent.stat().st_mode & 0o777) == "0o700"
+    kept = cache.load_files(key)
+    assert kept == {n: b for n, b in first.items() if n != "procedural.json"}
+    again, said = collection("b")
+    assert said.startswith("copying") and again == first
+    other, said = collection("c", seed=1)
+    assert said.startswith("generating") and other != first
+    assert cache.collection_key(generation_settings(1, 1)) != key
+    monkeypatch.setattr(cache, "_source_digest", lambda: "other code")
+    assert cache.collection_key(generation_settings(1, 0)) != key
+    monkeypatch.undo()
+    monkeypatch.setenv("CARVI_TORCH_CACHE", str(tmp_path / "cache"))
+    good = entry.read_bytes()
+    blob = np.frombuffer(good, np.uint8).copy()
+    with np.load(entry) as z:
+        tampered = {k: z[k] for k in z.files}
+    tampered["blob"] = tampered["blob"].copy()
+    tampered["blob"][0] ^= 1
+    for i, damage in enumerate((b"junk", good[:len(good) // 2], None, "others")):
+        if damage is None:
+            np.savez(entry, **tampered)
+        elif damage == "others":
+            entry.write_bytes(blob.tobytes())
+            entry.chmod(0o666)
+        else:
+            entry.write_bytes(damage)
+        assert cache.load_files(key) is None, damage
+        rebuilt, said = collection(f"d{i}")
+        assert said.startswith("generating") and rebuilt == first
+        assert entry.read_bytes() == good and cache.load_files(key) is not None
+    monkeypatch.setenv("CARVI_TORCH_CACHE", str(tmp_path / "a" / "annotations.json"))  # a file: nothing written
+    unkept, said = collection("e")
+    assert said.startswith("generating") and unkept == first
+
+
+def test_collection_cache_keeps_the_most_recently_used(tmp_path, monkeypatch):
+    """At most ``KEEP`` entries; a hit counts as a use."""
+    import os
+    import time
+
+    from carvi_torch.synthetic import cache
+
+    monkeypatch.setenv("CARVI_TORCH_CACHE", str(tmp_path))
+    monkeypatch.setattr(cache, "KEEP", 2)
+    for i, key in enumerate(("k1", "k2")):
+        cache.store_files(key, {"annotations.json": b"{}", "meshes/m.ply": bytes([i])})
+        os.utime(cache.entry_path(key), (time.time() - 100 + i, time.time() - 100 + i))
+    assert cache.load_files("k1") == {"annotations.json": b"{}", "meshes/m.ply": b"\0"}  # used: now the newest
+    cache.store_files("k3", {"annotations.json": b"[]"})
+    assert sorted(p.stem for p in (tmp_path / "collections").glob("*.npz")) == ["k1", "k3"]
+    assert cache.store_files("k4", {"../evil": b"x"}) is None and cache.load_files("k4") is None

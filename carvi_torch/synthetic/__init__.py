@@ -6,6 +6,7 @@
   :func:`render_view`, :func:`render_dataset` (COCO keypoint JSON + ``gt.json``).
 * :mod:`.procedural` — car, aeroplane, chair and bottle classes built from parts, and the
   default collection the package reconstructs when given no data.
+* :mod:`.cache` — the default collection's files, kept in the user's cache once generated.
 """
 from .meshes import Model, infer_flip_pairs, load_cad_npz, load_mesh_with_keypoints, load_model, load_models
 from .render import (keypoint_visibility, rasterize_depth, rasterize_triangles, render_dataset, render_view,

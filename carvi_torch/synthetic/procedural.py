@@ -602,22 +602,50 @@ def default_collection(target: str | Path, instances_per_class: int, seed: int, 
     """``annotations.json`` and ``gt.json`` of the embedded default collection in ``target``, generated
     there (:func:`write_default_collection`) unless it is complete and its record (:data:`GENERATION_RECORD`)
     holds these settings (:func:`generation_settings`): a rerun into the same folder with another ``seed`` or
-    ``instances_per_class`` generates the collection again, its earlier files removed first."""
+    ``instances_per_class`` generates the collection again, its earlier files removed first. A collection
+    generated once is kept in the user's cache (:mod:`carvi_torch.synthetic.cache`, keyed by the settings and the
+    code) and copied from there, the same files byte for byte."""
     import shutil
 
     from ..io.outputs import write_json
+    from . import cache
 
     target = Path(target)
     ann = target / "annotations.json"
     wanted = generation_settings(instances_per_class, seed)
     why = _why_generate(target, wanted)
     if why is not None:
-        log(f"generating the embedded procedural collection ({instances_per_class} instances per class, seed "
-            f"{seed}) in {target}: {why}")
+        what = f"the embedded procedural collection ({instances_per_class} instances per class, seed {seed})"
         (target / GENERATION_RECORD).unlink(missing_ok=True)  # written last: a cut-short generation has none
         for old in (ann, target / "gt.json"):
             old.unlink(missing_ok=True)
         shutil.rmtree(target / "meshes", ignore_errors=True)
-        write_default_collection(target, instances_per_class=instances_per_class, seed=seed, progress=progress)
+        key = cache.collection_key(wanted)
+        files = cache.load_files(key)
+        if files is not None:
+            log(f"copying {what} from the cache ({cache.entry_path(key).parent}) to {target}: {why}")
+            _write_files(target, files)
+        else:
+            log(f"generating {what} in {target}: {why}")
+            write_default_collection(target, instances_per_class=instances_per_class, seed=seed, progress=progress)
+            try:
+                cache.store_files(key, _collection_files(target))
+            except OSError as e:  # the cache is a convenience: never the run's end
+                log(f"warning: the collection was not kept in the cache: {e}")
         write_json(target / GENERATION_RECORD, wanted)
     return ann, target / "gt.json"
+
+
+def _collection_files(target: Path) -> dict[str, bytes]:
+    """What :func:`write_default_collection` wrote in ``target``: relative name -> bytes."""
+    paths = [target / "annotations.json", target / "gt.json", *sorted((target / "meshes").iterdir())]
+    return {p.relative_to(target).as_posix(): p.read_bytes() for p in paths}
+
+
+def _write_files(target: Path, files: dict[str, bytes]) -> None:
+    """Write a cached collection's ``files`` into ``target``, ``annotations.json`` last (it marks the folder
+    complete, as :func:`~carvi_torch.synthetic.render.render_dataset` writes it)."""
+    from ..io.outputs import write_bytes
+
+    for name in sorted(files, key=lambda n: (n == "annotations.json", n)):
+        write_bytes(target / name, files[name], sync=not name.startswith("meshes/"))
