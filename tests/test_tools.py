@@ -1699,3 +1699,42 @@ def test_voc_study_reads_the_mesh_of_the_runs_mesh_format(tmp_path: Path):
     assert fmt == "obj"
     np.testing.assert_allclose(vs._recon_mesh(run, 7, fmt).extents, [2.0, 2.0, 2.0])
     assert vs._recon_mesh(run, 8, fmt) is None
+
+
+def test_benchmark_make_run_times_the_default_run_step_by_step(tmp_path, monkeypatch):
+    """``--make-run``: its child process runs ``make run``'s command with the steps the package still has timed in
+    place (a tiny default run here: every step found, the whole process the sum of the steps and ``other``); the
+    variants take turns (new with the collection cached, new with an empty cache, old) and the table gives each
+    step's median; the runs' files are compared byte for byte but for those holding times or the folder's name."""
+    import argparse
+
+    bm = load_tool("benchmark", "benchmark_tool")
+    tiny = ["procedural_instances=6", "resolution=16", "proposals=2", "canvas_size=64", "classes=car",
+            "report=false", "preview=false"]
+    args = argparse.Namespace(set=tiny, work_dir=str(tmp_path), compare_with=None, rounds=1)
+    cache = bm._cache_with_kernels(tmp_path / "cache")
+    t = bm.make_run_once(tmp_path / "run", cache, args, "new", None)
+    assert all(t[k] > 0 for k in ("imports", "collection", "reconstruction", "whole process")), t
+    assert abs(sum(t[k] for k in bm.MAKE_RUN_STEPS[:5]) - t["whole process"]) < 0.01
+    assert (tmp_path / "run" / "car" / "cameras.json").is_file() and list((cache / "collections").glob("*.npz"))
+
+    seen = []
+
+    def fake_once(out, cache, args, name, pythonpath):
+        seen.append((out.name, cache.name, pythonpath))
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "summary.json").write_text(name)
+        return {"load_average": 0.0, **{k: float(len(seen)) for k in bm.MAKE_RUN_STEPS}}
+
+    monkeypatch.setattr(bm, "make_run_once", fake_once)
+    args = argparse.Namespace(set=[], work_dir=str(tmp_path / "w"), compare_with=str(tmp_path), rounds=2)
+    m = bm.make_run(args)
+    assert [s[0] for s in seen] == ["new", "new_first_run", "new", "old", "old", "new", "new_first_run"]
+    assert [s[1] for s in seen[1:4]] == ["cache_cold", "cache_warm", "cache_cold"] and seen[3][2] == str(tmp_path)
+    assert m["median"]["new"]["imports"] == 4.5 and m["differing_files_from_old"] == {"new, first run": [],
+                                                                                      "new": []}
+    table = "\n".join(bm._make_run_table(m))
+    assert "| imports | 4.50 | 4.50 | 4.50 |" in table and "the same byte for byte" in table
+    (tmp_path / "w" / "make_run" / "new" / "preview.png").write_bytes(b"x")
+    assert bm.run_files_differing(tmp_path / "w" / "make_run" / "old", tmp_path / "w" / "make_run" / "new") == [
+        "preview.png"]

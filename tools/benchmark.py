@@ -65,6 +65,14 @@ Examples::
     python tools/benchmark.py --objects 200 --eval              # with shape errors (gt.json)
     python tools/benchmark.py --many-classes --compare-with ../main   # 12 classes, this code vs another checkout
     python tools/benchmark.py --executor ray --objects 500      # Ray: 1 vs 2 worker nodes of 1 CPU
+    python tools/benchmark.py --make-run --compare-with ../main --rounds 3   # `make run`'s steps, this code vs another
+
+**make run** (``--make-run``): ``make run``'s command (``python -m carvi_torch.reconstruct --out DIR``, the embedded
+collection, with ``--set`` overrides) in child processes, its steps timed in place: the imports, the embedded
+collection, the reconstruction, the preview and report. Variants take turns for ``--rounds`` rounds: this code with
+an empty collection cache (the kernels copied: "new, first run"), with the collection cached ("new") and the
+``--compare-with`` checkout ("old"); the table gives each step's median, and whether the runs' files (cameras,
+voxels, meshes, the input collection, preview and report) are the old code's byte for byte.
 
 **Many classes** (``--many-classes``): 12 classes of about 50 objects, where real datasets spend their
 time (many classes of different sizes): the PASCAL3D+ CAD models of ``../shared/data/pascal3d_cad``
@@ -731,6 +739,134 @@ def _many_table(m: dict) -> list[str]:
 # =========================================================================== carving and selection
 
 
+# =========================================================================== make run, step by step
+
+#: The child process of ``--make-run``: ``make run``'s command, ``python -m carvi_torch.reconstruct --out DIR``, with
+#: its steps timed in place (wall seconds): the interpreter's start and imports, the embedded collection
+#: (``procedural.default_collection``: generated, or copied from the cache), the reconstruction (``_classes`` of the
+#: local executor) and the preview with the report (``finish_run``). argv: the JSON path, then the command's own.
+MAKE_RUN_CHILD = """
+import json, sys, time
+t0 = time.perf_counter()
+import carvi_torch.reconstruct as R
+from carvi_torch.executors import local
+from carvi_torch.synthetic import procedural
+T = {"imports": time.perf_counter() - t0}
+def timed(mod, name, key):
+    f = getattr(mod, name)
+    def w(*a, **k):
+        t = time.perf_counter()
+        try:
+            return f(*a, **k)
+        finally:
+            T[key] = T.get(key, 0.0) + time.perf_counter() - t
+    setattr(mod, name, w)
+timed(procedural, "default_collection", "collection")
+timed(local, "_classes", "reconstruction")
+timed(local, "finish_run", "preview and report")
+status = R.main(sys.argv[2:])
+T["whole process"] = time.perf_counter() - t0
+open(sys.argv[1], "w").write(json.dumps(T))
+sys.exit(status)
+"""
+#: ``--make-run``'s steps, in order (``other``: what the whole process spends beside them: loading, the writers'
+#: last objects, the exit).
+MAKE_RUN_STEPS = ("imports", "collection", "reconstruction", "preview and report", "other", "whole process")
+
+
+def _cache_with_kernels(folder: Path) -> Path:
+    """A fresh ``CARVI_TORCH_CACHE`` folder holding only this machine's compiled kernels (so that no run of
+    ``--make-run`` builds them) and no generated collection."""
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True, mode=0o700)
+    kernels = native.library_path().parent
+    if kernels.is_dir():
+        shutil.copytree(kernels, folder / "kernels", ignore=shutil.ignore_patterns(".lock", ".build-*"))
+    return folder
+
+
+def make_run_once(out: Path, cache: Path, args, name: str, pythonpath: str | None) -> dict:
+    """One default run (``make run``'s) of the code at ``pythonpath`` into a new ``out``, in a child process with
+    ``CARVI_TORCH_CACHE=cache``; its step seconds (:data:`MAKE_RUN_STEPS`) and the load average at its start."""
+    shutil.rmtree(out, ignore_errors=True)
+    times = out.with_name(out.name + ".steps.json")
+    env = dict(os.environ, PYTHONPATH=child_pythonpath(pythonpath or ROOT), CARVI_TORCH_CACHE=str(cache))
+    cmd = [sys.executable, "-c", MAKE_RUN_CHILD, str(times), "--out", str(out), "--quiet", *args.set]
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    res = subprocess.run(cmd, cwd=pythonpath or ROOT, env=env, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise SystemExit(f"{name}: the default run failed ({res.returncode}):\n{res.stderr[-3000:]}")
+    t = json.loads(times.read_text())
+    t["other"] = t["whole process"] - sum(t.get(k, 0.0) for k in MAKE_RUN_STEPS[:4])
+    return {"load_average": load, **{k: round(t.get(k, 0.0), 3) for k in MAKE_RUN_STEPS}}
+
+
+def run_files_differing(a: Path, b: Path) -> list[str]:
+    """The files of two default runs' folders that differ byte for byte (one missing counts), all but those that
+    hold times or the folder's name: ``run.log``, ``summary.json``, ``config.yaml``, the lock file and the
+    report's ``index.html``."""
+    import filecmp
+
+    skip = {"run.log", "summary.json", "config.yaml", ".carvi_torch.lock", "report/index.html"}
+
+    def files(root: Path) -> set[str]:
+        return {p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file()} - skip
+
+    fa, fb = files(a), files(b)
+    return sorted((fa ^ fb) | {f for f in fa & fb if not filecmp.cmp(a / f, b / f, shallow=False)})
+
+
+def make_run(args) -> dict:
+    """``--make-run``: the default run step by step, ``--rounds`` rounds, variants taking turns: this code with an
+    empty collection cache ("new, first run": the collection generated), this code with the collection cached
+    ("new": a run before the rounds fills the cache) and, with ``--compare-with``, that checkout's code ("old");
+    per variant and step the median over rounds, and which output files differ from the old code's."""
+    work = Path(args.work_dir) / "make_run"
+    warm = _cache_with_kernels(work / "cache_warm")
+    variants = {"new, first run": None, "new": None}
+    if args.compare_with:
+        variants["old"] = str(Path(args.compare_with).resolve())
+    outs = {name: work / name.replace(", ", "_").replace(" ", "_") for name in variants}
+    make_run_once(outs["new"], warm, args, "warm-up", None)  # fills the warm cache (untimed)
+
+    def once(name: str) -> dict:
+        cache = warm if name == "new" else _cache_with_kernels(work / "cache_cold")
+        return make_run_once(outs[name], cache, args, name, variants[name])
+
+    runs = take_turns({name: functools.partial(once, name) for name in variants}, args.rounds)
+    median = {name: {k: statistics.median(r[k] for r in rs) for k in MAKE_RUN_STEPS} for name, rs in runs.items()}
+    differ = {name: run_files_differing(outs["old"], outs[name]) for name in variants if name != "old"} \
+        if "old" in variants else {}
+    return {"runs": runs, "median": median, "differing_files_from_old": differ, "overrides": args.set}
+
+
+def _make_run_table(m: dict) -> list[str]:
+    names = list(m["median"])
+    lines = [f"| `make run` step (median of {len(next(iter(m['runs'].values())))} rounds, s) | " + " | ".join(names)
+             + " |", "|---|" + "---:|" * len(names)]
+    for step in MAKE_RUN_STEPS:
+        lines.append(f"| {step} | " + " | ".join(f"{m['median'][n][step]:.2f}" for n in names) + " |")
+    for name, diff in m["differing_files_from_old"].items():
+        lines.append(f"\noutput files of {name} and old: " + ("the same byte for byte" if not diff else
+                                                             f"{len(diff)} differ (first: {diff[0]})"))
+    return lines
+
+
+def main_make_run(args, argv: list[str]) -> dict:
+    """``--make-run``: run, print and write (default: key ``make_run`` of ``outputs/benchmarks.json``)."""
+    out_json, key = record_target(args, "make_run")
+    result = {"command": " ".join(["python tools/benchmark.py"] + [shlex.quote(a) for a in argv]),
+              "machine_at_start": machine(torch.device("cpu"))}
+    result["make_run"] = make_run(args)
+    result["machine_at_end"] = machine(torch.device("cpu"))
+    print("\n".join(_make_run_table(result["make_run"])))
+    print(f"load average at start / end: {result['machine_at_start']['load_average']} / "
+          f"{result['machine_at_end']['load_average']}")
+    write_record(out_json, result, key)
+    print(f"wrote {out_json}" + (f", key {key}" if key else ""))
+    return result
+
+
 def _plan(data: Path, args, device: torch.device):
     """The class plan of the run (same settings, same seed, same triplets) and the references to carve."""
     cfg = Config().override(dict(data=str(data), classes=[args.category], progress=False, device=args.device,
@@ -1337,11 +1473,14 @@ def build_parser() -> argparse.ArgumentParser:
                          "files written with and without fsync (timed)")
     ap.add_argument("--many-classes", action="store_true",
                     help="the many-class benchmark instead (12 classes of about 50 objects; see the docstring)")
+    ap.add_argument("--make-run", action="store_true",
+                    help="the default run of `make run`, step by step (see the docstring; record key make_run)")
     ap.add_argument("--compare-with", default=None, metavar="DIR",
-                    help="--many-classes: also run the code of this checkout (old), interleaved; report new / old")
+                    help="--many-classes, --make-run: also run the code of this checkout (old), interleaved")
     ap.add_argument("--compare-set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="--many-classes: also run this checkout with these overrides (alt); report new / alt")
-    ap.add_argument("--rounds", type=int, default=1, help="--many-classes: runs of each variant (best of)")
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="--many-classes: runs of each variant (best of); --make-run: (median of)")
     ap.add_argument("--cpu-clock", action="store_true",
                     help="--many-classes: stage timers (and total_seconds) on the run's CPU time, not the wall clock "
                          "(classes one after the other)")
@@ -1370,6 +1509,8 @@ def main(argv=None):
         native.available()  # build and self-test the kernel now, outside every timing
     if args.many_classes:
         return main_many(args, argv, device)
+    if args.make_run:
+        return main_make_run(args, argv)
     return main_class(args, argv, device)
 
 
