@@ -1716,6 +1716,8 @@ def test_benchmark_make_run_times_the_default_run_step_by_step(tmp_path, monkeyp
     t = bm.make_run_once(tmp_path / "run", cache, args, "new", None)
     assert all(t[k] > 0 for k in ("imports", "collection", "reconstruction", "whole process")), t
     assert abs(sum(t[k] for k in bm.MAKE_RUN_STEPS[:5]) - t["whole process"]) < 0.01
+    assert 0 < t["reconstruction (CPU)"] and abs(sum(t[k + " (CPU)"] for k in bm.MAKE_RUN_STEPS[:5])
+                                               - t["whole process (CPU)"]) < 0.01
     assert (tmp_path / "run" / "car" / "cameras.json").is_file() and list((cache / "collections").glob("*.npz"))
 
     seen = []
@@ -1724,7 +1726,7 @@ def test_benchmark_make_run_times_the_default_run_step_by_step(tmp_path, monkeyp
         seen.append((out.name, cache.name, pythonpath))
         out.mkdir(parents=True, exist_ok=True)
         (out / "summary.json").write_text(name)
-        return {"load_average": 0.0, **{k: float(len(seen)) for k in bm.MAKE_RUN_STEPS}}
+        return {"load_average": 0.0, **{k + c: float(len(seen)) for k in bm.MAKE_RUN_STEPS for c in ("", " (CPU)")}}
 
     monkeypatch.setattr(bm, "make_run_once", fake_once)
     args = argparse.Namespace(set=[], work_dir=str(tmp_path / "w"), compare_with=str(tmp_path), rounds=2)
@@ -1734,7 +1736,7 @@ def test_benchmark_make_run_times_the_default_run_step_by_step(tmp_path, monkeyp
     assert m["median"]["new"]["imports"] == 4.5 and m["differing_files_from_old"] == {"new, first run": [],
                                                                                       "new": []}
     table = "\n".join(bm._make_run_table(m))
-    assert "| imports | 4.50 | 4.50 | 4.50 |" in table and "the same byte for byte" in table
+    assert "| imports | 4.50 (4.50) | 4.50 (4.50) | 4.50 (4.50) |" in table and "the same byte for byte" in table
     (tmp_path / "w" / "make_run" / "new" / "preview.png").write_bytes(b"x")
     assert bm.run_files_differing(tmp_path / "w" / "make_run" / "old", tmp_path / "w" / "make_run" / "new") == [
         "preview.png"]

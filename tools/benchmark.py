@@ -744,28 +744,30 @@ def _many_table(m: dict) -> list[str]:
 #: The child process of ``--make-run``: ``make run``'s command, ``python -m carvi_torch.reconstruct --out DIR``, with
 #: its steps timed in place (wall seconds): the interpreter's start and imports, the embedded collection
 #: (``procedural.default_collection``: generated, or copied from the cache), the reconstruction (``_classes`` of the
-#: local executor) and the preview with the report (``finish_run``). argv: the JSON path, then the command's own.
+#: local executor) and the preview with the report (``finish_run``), each in wall seconds and in CPU seconds of the
+#: run's own process (its threads; not its writer processes). argv: the JSON path, then the command's own.
 MAKE_RUN_CHILD = """
 import json, sys, time
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), time.process_time()
 import carvi_torch.reconstruct as R
 from carvi_torch.executors import local
 from carvi_torch.synthetic import procedural
-T = {"imports": time.perf_counter() - t0}
+T = {"imports": time.perf_counter() - t0, "imports (CPU)": time.process_time() - c0}
 def timed(mod, name, key):
     f = getattr(mod, name)
     def w(*a, **k):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         try:
             return f(*a, **k)
         finally:
             T[key] = T.get(key, 0.0) + time.perf_counter() - t
+            T[key + " (CPU)"] = T.get(key + " (CPU)", 0.0) + time.process_time() - c
     setattr(mod, name, w)
 timed(procedural, "default_collection", "collection")
 timed(local, "_classes", "reconstruction")
 timed(local, "finish_run", "preview and report")
 status = R.main(sys.argv[2:])
-T["whole process"] = time.perf_counter() - t0
+T["whole process"], T["whole process (CPU)"] = time.perf_counter() - t0, time.process_time() - c0
 open(sys.argv[1], "w").write(json.dumps(T))
 sys.exit(status)
 """
@@ -797,8 +799,10 @@ def make_run_once(out: Path, cache: Path, args, name: str, pythonpath: str | Non
     if res.returncode != 0:
         raise SystemExit(f"{name}: the default run failed ({res.returncode}):\n{res.stderr[-3000:]}")
     t = json.loads(times.read_text())
-    t["other"] = t["whole process"] - sum(t.get(k, 0.0) for k in MAKE_RUN_STEPS[:4])
-    return {"load_average": load, **{k: round(t.get(k, 0.0), 3) for k in MAKE_RUN_STEPS}}
+    for clock in ("", " (CPU)"):
+        t["other" + clock] = t["whole process" + clock] - sum(t.get(k + clock, 0.0) for k in MAKE_RUN_STEPS[:4])
+    return {"load_average": load, **{k + clock: round(t.get(k + clock, 0.0), 3) for k in MAKE_RUN_STEPS
+                                     for clock in ("", " (CPU)")}}
 
 
 def run_files_differing(a: Path, b: Path) -> list[str]:
@@ -834,7 +838,8 @@ def make_run(args) -> dict:
         return make_run_once(outs[name], cache, args, name, variants[name])
 
     runs = take_turns({name: functools.partial(once, name) for name in variants}, args.rounds)
-    median = {name: {k: statistics.median(r[k] for r in rs) for k in MAKE_RUN_STEPS} for name, rs in runs.items()}
+    median = {name: {k: statistics.median(r[k] for r in rs) for k in rs[0] if k != "load_average"}
+              for name, rs in runs.items()}
     differ = {name: run_files_differing(outs["old"], outs[name]) for name in variants if name != "old"} \
         if "old" in variants else {}
     return {"runs": runs, "median": median, "differing_files_from_old": differ, "overrides": args.set}
@@ -842,10 +847,12 @@ def make_run(args) -> dict:
 
 def _make_run_table(m: dict) -> list[str]:
     names = list(m["median"])
-    lines = [f"| `make run` step (median of {len(next(iter(m['runs'].values())))} rounds, s) | " + " | ".join(names)
-             + " |", "|---|" + "---:|" * len(names)]
+    rounds = len(next(iter(m["runs"].values())))
+    lines = [f"| `make run` step, seconds: wall (CPU of the run's process), median of {rounds} rounds | "
+             + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
     for step in MAKE_RUN_STEPS:
-        lines.append(f"| {step} | " + " | ".join(f"{m['median'][n][step]:.2f}" for n in names) + " |")
+        lines.append(f"| {step} | " + " | ".join(f"{m['median'][n][step]:.2f} ({m['median'][n][step + ' (CPU)']:.2f})"
+                                                  for n in names) + " |")
     for name, diff in m["differing_files_from_old"].items():
         lines.append(f"\noutput files of {name} and old: " + ("the same byte for byte" if not diff else
                                                              f"{len(diff)} differ (first: {diff[0]})"))
