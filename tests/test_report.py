@@ -218,7 +218,7 @@ class _BrokenPool:
 def test_mesh_scripts_made_in_a_pool_give_the_same_report(recon, tmp_path):
     """A run hands the report's mesh scripts to its writer processes (``start_report(pool=...)``) while it draws the
     rest: the same files, byte for byte, as ``build_report`` in one process, a damaged and a missing mesh's reasons
-    included; a pool whose processes fail has the scripts made here, the same again."""
+    included; a pool whose processes fail, or that refuses the jobs, has the scripts made here, the same again."""
     import multiprocessing as mp
 
     from carvi_torch.report.build import start_report
@@ -234,8 +234,11 @@ def test_mesh_scripts_made_in_a_pool_give_the_same_report(recon, tmp_path):
         pending = start_report(run, run / "pooled", pool=pool)
         pending.finish()
     start_report(run, run / "broken", pool=_BrokenPool()).finish()
+    pool = LeanProcessPool(1, mp_context=mp.get_context(start_method()))
+    pool.shutdown()
+    start_report(run, run / "shut", pool=pool).finish()  # a pool that refuses every job
     here = _tree(run / "here")
-    assert _tree(run / "pooled") == here and _tree(run / "broken") == here
+    assert _tree(run / "pooled") == here and _tree(run / "broken") == here and _tree(run / "shut") == here
     car = {c["id"]: c for c in _cards(run / "here")[1] if c["cls"] == "car"}
     assert "no mesh file" in car[ids[0]]["problems"][0] and "mesh unreadable" in car[ids[1]]["problems"][0]
     assert all(car[i].get("faces") for i in ids[2:])

@@ -171,15 +171,24 @@ def _book_meshes(cards: list[Card], pending: list) -> None:
 
 def _submit_meshes(pool, run: RunInputs, out: Path, max_faces: int) -> list:
     """Hand every mesh script of the report to ``pool`` (an executor); per job of :func:`_jobs` its future, or
-    ``None`` where the object is skipped or has no mesh file (the card says why, made in this process)."""
+    ``None`` where the object is skipped or has no mesh file (the card says why) or the pool refused the job (a
+    broken pool: from then on every script is made in this process)."""
     from ..io.layout import object_mesh
 
     futures = []
     for view, obj, key in _jobs(run):
         src = None if obj.skipped is not None else object_mesh(run.recon / view.key, obj.annotation_id,
                                                                 run.mesh_format)
-        futures.append(None if src is None else pool.submit(
-            write_mesh_script, str(src), str(out), f"objects/{key}/{obj.stem}.js", f"{key}/{obj.stem}", max_faces))
+        future = None
+        if src is not None and pool is not None:
+            try:
+                future = pool.submit(write_mesh_script, str(src), str(out), f"objects/{key}/{obj.stem}.js",
+                                     f"{key}/{obj.stem}", max_faces)
+            except Exception as e:  # noqa: BLE001 - BrokenProcessPool, a shut-down pool: made here
+                log.warning(f"report: the worker processes refused the mesh scripts ({type(e).__name__}: {e}); "
+                            "making them here")
+                pool = None
+        futures.append(future)
     return futures
 
 
