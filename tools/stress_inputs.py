@@ -67,7 +67,7 @@ SMALL = ("resolution=16", "proposals=3", "canvas_size=48", "refine_iters=20", "p
          "report=false")
 HEAVY = ("resolution=40", "proposals=20")  # a run long enough to be interrupted
 #: The interpreter of the commands run: ``-P`` keeps the working folder (a case's folder, which holds its crafted
-#: files) off ``sys.path``, where ``python -m`` would put it first, so no module planted there is imported.
+#: files) off the module search path, where ``python -m`` would put it first, so no module planted there is imported.
 PYTHON = (sys.executable, "-P")
 RECONSTRUCT = (*PYTHON, "-m", "carvi_torch.reconstruct")
 MARKER = "CARVI_STRESS_CASE"
