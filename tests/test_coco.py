@@ -381,6 +381,24 @@ class TestLoad:
         assert field in res.problems[0].reason and len(res.problems[0].message()) < 300
         assert c.meta.flip_pairs == [(0, 1)] and c.meta.rigid_keypoints is None and c.meta.keypoints_3d is None
 
+    @pytest.mark.parametrize("names, said", [
+        (["x", "x", "x", "x"], "'x'"), (["left_wing", "left_wing", "nose", "tail"], "'left_wing'"),
+        ([1, "1", "nose", "tail"], "'1'"), (["a", "b", "a", "b"], "'a', 'b'")])
+    def test_a_category_whose_keypoint_names_repeat_is_skipped_with_one_reason(self, tmp_path, names, said):
+        """Keypoints are found by name (mean shape, templates, flips), so two sharing one would collapse into one
+        point: the category is an input problem naming it and the repeated names; the other classes load."""
+        path, images, anns = _dataset(tmp_path)
+        data = json.loads(path.read_text())
+        data["categories"][0]["keypoints"] = names
+        data["categories"].append(make_category(2, "kite", NAMES))
+        data["annotations"].append({**anns[0], "id": 50, "category_id": 2})
+        path.write_text(json.dumps(data))
+        res = load_coco(path, canvas_size=32)
+        assert list(res.collections) == ["kite"] and len(res.collections["kite"]) == 1
+        (p,) = res.problems
+        assert p.fatal and p.category == "plane" and p.annotation_id is None and "\n" not in p.message()
+        assert p.reason == f"keypoint names repeat: {said}; each keypoint needs its own name"
+
     def test_keypoints_beyond_float64_skip_their_object(self, tmp_path):
         bad = make_annotation(9, 1, 1, _ellipse(120, 160, 70, 60, 40, 20), np.ones((4, 2)), np.ones(4, bool))
         bad["keypoints"][0] = 10 ** 400

@@ -443,6 +443,12 @@ def _names_case(name: str, what: str, names: tuple) -> Case:
                 good=chairs_ids(names), absent=("/abs/path",), extra=_classes_named(names))
 
 
+def _repeat_chair_name(d: dict) -> None:
+    """The chair's keypoint 1 named as its keypoint 0."""
+    names = _entry(d, "categories", 2)["keypoints"]
+    names[1] = names[0]
+
+
 def _category_cases() -> list[Case]:
     no_names = "no keypoint names"
     return [
@@ -457,6 +463,8 @@ def _category_cases() -> list[Case]:
              bad=((Cls("chair"), no_names),)),
         Case("cat_empty_keypoints", "chair category with `keypoints: []`", edit=cat(2, keypoints=[]),
              bad=((Cls("chair"), no_names),)),
+        Case("cat_keypoints_repeat", "chair keypoint 1 renamed as keypoint 0", edit=_inplace(_repeat_chair_name),
+             bad=((Cls("chair"), "keypoint names repeat"),)),
         Case("cat_one_keypoint", "chair category with a single keypoint (\"center\")",
              edit=chain(cat(2, keypoints=["center"], flip_pairs=[]),
                         *(keypoints(a, lambda k: next(t for t in triples(k) if t[2] == 2)) for a in CHAIRS)),

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -30,7 +31,7 @@ from ..cameras import Similarity2D
 from ..collection import ClassCollection, ClassMeta, canvas_similarity, infer_flip_pairs, resample_to_canvases
 from ..runtime import os_error_line, torch_threads, watch_interrupts
 from .layout import object_stem, reserved
-from .outputs import numbers, read_json, safe_name, shown, write_json
+from .outputs import numbers, read_json, safe_name, shown, shown_names, write_json
 
 __all__ = ["CocoFormatError", "Problem", "LoadResult", "load_coco", "encode_mask", "decode_segmentation",
            "clip_polygon", "make_category", "make_annotation", "write_coco", "OUTSIDE_TOLERANCE", "far_outside",
@@ -373,6 +374,11 @@ def _category_meta(cat: dict, problems: list) -> ClassMeta | None:
         problems.append(Problem("category has no keypoint names", category=name))
         return None
     names = [str(n) for n in names]
+    repeated = [n for n, c in Counter(names).items() if c > 1]
+    if repeated:  # a name is how a keypoint is found (mean shape, templates, flips): two points cannot share one
+        problems.append(Problem(f"keypoint names repeat: {shown_names([shown(n) for n in repeated])}; each "
+                                "keypoint needs its own name", category=name))
+        return None
     k = len(names)
     pairs = cat.get("flip_pairs")
     if pairs is not None:
@@ -481,10 +487,11 @@ def load_coco(path: str | Path, *, canvas_size: int = 128, margin: float = 0.1, 
 
     Returns:
         :class:`LoadResult`, collections keyed by ``ClassMeta.key`` (two categories of one name are two
-        classes with different keys). Objects are skipped (with a :class:`Problem`) for: an unusable or
-        duplicate id (or one whose output files an earlier id names, :func:`_claim_id`), unknown category or
-        image, an image too large or without a size, keypoint count not matching the category, no visible
-        keypoint, missing/empty/malformed mask, occluded/truncated flags (or unreadable ones). NaN or
+        classes with different keys). A category without keypoint names or with a repeated one is skipped
+        (one :class:`Problem` naming it and the names). Objects are skipped (with a :class:`Problem`) for: an
+        unusable or duplicate id (or one whose output files an earlier id names, :func:`_claim_id`), unknown
+        category or image, an image too large or without a size, keypoint count not matching the category, no
+        visible keypoint, missing/empty/malformed mask, occluded/truncated flags (or unreadable ones). NaN or
         far-outside keypoints are dropped with a warning.
 
     Raises:
