@@ -879,3 +879,37 @@ def test_a_class_asked_for_without_a_usable_object_is_reported_skipped(caplog):
     assert setup.summary["classes"] == {"chair": {"status": "skipped", "objects": 0, "reconstructed": 0, "failures": [
         {"stage": "load", "reason": "no usable object of this class"}]}}
     assert "chair: no usable object of this class" in caplog.text
+
+
+@pytest.mark.parametrize("fmt", ["obj", "off", "ply", "stl"])
+@pytest.mark.parametrize("cut", ["line_end", "mid_line"])
+def test_a_mesh_file_cut_short_is_not_finished_in_any_format(tmp_path, fmt, cut):
+    """The voxels file records the faces of the mesh file as written (``io.layout.MESH_MEMBER``), so a mesh cut
+    short is found where its format states no counts (OBJ; and an OFF file cut at a line end still parses): the
+    resume check gives a reason and the object is redone. The whole file is a finished object's; a voxels file
+    without the record (an older run's) keeps the check it had."""
+    from carvi_torch.io import write_worker
+    from carvi_torch.io.layout import MESH_MEMBER, finished
+
+    occ = np.zeros((10, 10, 10), bool)
+    occ[2:8, 3:7, 2:8] = True
+    mesh_path, voxel_path = tmp_path / "meshes" / f"1.{fmt}", tmp_path / "voxels" / "1.npz"
+    mesh_path.parent.mkdir()
+    voxel_path.parent.mkdir()
+    job = dict(occupancy=occ, voxel_to_image=np.eye(4), voxel_to_canvas=np.eye(4), canvas_scale=1.0,
+               canvas_offset=np.zeros(2, np.float32), surrogates=np.zeros(0, np.int64), largest_component=False,
+               voxel_path=str(voxel_path), mesh_path=str(mesh_path))
+    assert write_worker.write_object(job)["ok"]
+    assert finished(tmp_path, 1, fmt) is True
+    whole = mesh_path.read_bytes()
+    at = int(len(whole) * 0.8)
+    if cut == "line_end" and fmt in ("obj", "off"):
+        at = whole.rindex(b"\n", 0, at) + 1
+    mesh_path.write_bytes(whole[:at])
+    why = finished(tmp_path, 1, fmt)
+    assert isinstance(why, str) and ("cut short" in why or "unreadable" in why), why
+    with np.load(voxel_path) as z:  # an older run's voxels file: no record
+        members = {k: z[k] for k in z.files if k != MESH_MEMBER}
+    np.savez(voxel_path, **members)
+    mesh_path.write_bytes(whole)
+    assert finished(tmp_path, 1, fmt) is True

@@ -16,7 +16,7 @@ import trimesh
 
 from carvi_torch.config import Config
 from carvi_torch.executors import run
-from carvi_torch.io.layout import finished
+from carvi_torch.io.layout import MESH_MEMBER, finished
 
 SMALL = {"resolution": 16, "proposals": 3, "canvas_size": 48, "progress": False, "refine_iters": 20,
          "plane_size": 24, "preview": False, "report": False}
@@ -329,7 +329,8 @@ def test_another_canvas_redoes_every_object(copy):
 
 def test_another_mesh_format_resumes_the_objects_with_their_meshes_in_it(copy):
     """mesh_format=obj: the finished objects are resumed (nothing redone), each mesh made again from its voxels
-    in the new format and the .ply removed; no setting is recorded as resumed otherwise. A mesh in another format
+    in the new format (its faces recorded in the voxels file) and the .ply removed; no setting is recorded as resumed
+    otherwise. A mesh in another format
     beside one in the run's is named in the summary, not taken."""
     data, out = copy
     ply = {f.stem: trimesh.load(f, force="mesh", process=False) for f in (out / "car" / "meshes").glob("*.ply")}
@@ -341,6 +342,8 @@ def test_another_mesh_format_resumes_the_objects_with_their_meshes_in_it(copy):
         obj = trimesh.load(out / "car" / "meshes" / f"{stem}.obj", force="mesh", process=False)
         assert np.allclose(obj.bounds, m.bounds, atol=1e-3) and abs(obj.volume - m.volume) < 1e-3 * abs(m.volume)
         assert finished(out / "car", int(stem), "obj") is True
+        with np.load(out / "car" / "voxels" / f"{stem}.npz") as z:  # the record follows the converted file
+            assert str(z[MESH_MEMBER]) == f"obj:{len(obj.faces)}"
     shutil.copy(out / "chair" / "meshes" / "7.obj", out / "chair" / "meshes" / "7.ply")
     again = run(_cfg(out, data, mesh_format="obj"), workers=0)
     assert _counts(again, "chair") == (0, 6, 0) and "meshes_converted" not in again["classes"]["chair"]
@@ -592,13 +595,13 @@ def test_the_lock_works_on_another_users_file_and_without_file_system_locks(tmp_
 
 
 def test_a_resumed_objects_done_entry_must_name_its_meshs_format(tmp_path):
-    """``_convert_mesh`` takes the format the resume check found (``ResumeCheck.done``): a bare truth value is refused
+    """``_converted_mesh`` takes the format the resume check found (``ResumeCheck.done``): a bare truth value is refused
     before anything is written or removed, instead of rewriting the mesh and unlinking ``<id>.True``."""
-    from carvi_torch.io.results import _convert_mesh
+    from carvi_torch.io.results import _converted_mesh
 
     mesh = tmp_path / "meshes" / "3.ply"
     mesh.parent.mkdir()
     mesh.write_bytes(b"kept")
     with pytest.raises(TypeError, match="object 3: its done entry must be the format"):
-        _convert_mesh(tmp_path, 3, {}, "obj", True)
+        _converted_mesh(3, {}, "obj", True)
     assert mesh.read_bytes() == b"kept" and sorted(p.name for p in mesh.parent.iterdir()) == ["3.ply"]

@@ -36,7 +36,8 @@ __all__ = ["unfinished", "NOT_YET",
            "INPUTS_CHANGED", "NO_INPUT_RECORD", "CANVAS_CHANGED", "PER_OBJECT_SETTINGS", "ResumeCheck", "resume_check",
            "same_canvas", "other_objects", "held_fingerprint", "linked_path", "other_settings", "other_settings_text",
            "settings_record", "MOST_SETTINGS", "SETTINGS_MEMBER", "settings_text", "held_settings", "file_settings",
-           "other_values", "objects_record", "objects_made_otherwise", "objects_text"]
+           "other_values", "objects_record", "objects_made_otherwise", "objects_text", "MESH_MEMBER", "mesh_record",
+           "held_mesh_faces"]
 
 #: Per-object file kinds and their extension (``None``: the mesh format).
 KINDS = {"meshes": None, "voxels": "npz", "proposals": "npz", "scores": "json"}
@@ -248,6 +249,39 @@ def held_settings(voxels) -> dict | None:
     return made if isinstance(made, dict) else None
 
 
+#: The voxels file's member recording the object's mesh file as written: ``"<format>:<faces>"``
+#: (:func:`mesh_record`), so that a mesh file cut short is found whatever its format (an OBJ or OFF file cut at a
+#: line end still parses). Faces alone: a format may store the vertices otherwise (STL repeats them per face),
+#: and a file cut among its vertices has lost every face.
+MESH_MEMBER = "mesh"
+
+
+def mesh_record(mesh_format: str, faces: int) -> np.ndarray:
+    """The :data:`MESH_MEMBER` of an object whose mesh file is in ``mesh_format`` with ``faces`` triangles.
+
+    Example:
+        >>> str(mesh_record("obj", 12))
+        'obj:12'
+    """
+    return np.asarray(f"{mesh_format}:{int(faces)}", dtype=str)
+
+
+def held_mesh_faces(voxels, mesh_format: str) -> int | None:
+    """The faces the voxels (the opened ``npz`` file, or its members in a dict) record for the object's
+    mesh file in ``mesh_format`` (:func:`mesh_record`); ``None`` where they record none (an older run's file), one
+    of another format (a mesh being converted: the file found is checked as before) or one of another kind.
+
+    Example:
+        >>> held_mesh_faces({MESH_MEMBER: mesh_record("obj", 12)}, "obj"), held_mesh_faces({}, "obj")
+        (12, None)
+    """
+    text = voxels[MESH_MEMBER] if MESH_MEMBER in voxels else None
+    if text is None or text.dtype.kind != "U" or text.ndim != 0:
+        return None
+    fmt, _, faces = str(text).partition(":")
+    return int(faces) if fmt == mesh_format and faces.isdigit() else None
+
+
 def file_settings(path: str | Path) -> dict | None:
     """:func:`held_settings` of the voxels file at ``path``; ``None`` also where it is missing or cannot be read.
 
@@ -375,10 +409,11 @@ def same_canvas(members: dict, canvas) -> bool | None:
                 and np.allclose(offset, canvas[1], rtol=1e-5, atol=1e-3))
 
 
-def _mesh_ok(path: Path) -> str | None:
+def _mesh_ok(path: Path, members: dict | None = None) -> str | None:
     """Why a mesh file is not a finished object's (``None``: it is one): it cannot be read, holds no usable mesh
-    (:func:`~carvi_torch.mesh.read_mesh_arrays`), or a face names a vertex twice, which no written face does
-    (zeros where a file's tail never reached the disk do)."""
+    (:func:`~carvi_torch.mesh.read_mesh_arrays`), a face names a vertex twice, which no written face does
+    (zeros where a file's tail never reached the disk do), or it holds other counts of vertices and faces than
+    its voxels file's ``members`` record for it (:func:`held_mesh_faces`: a file cut short)."""
     from ..mesh import read_mesh_arrays
 
     try:
@@ -387,6 +422,9 @@ def _mesh_ok(path: Path) -> str | None:
         return f"unreadable mesh ({type(e).__name__}: {' '.join(str(e).split())[:80]})"
     if ((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])).any():
         return "mesh with broken faces (a face names one vertex twice)"
+    held = held_mesh_faces(members or {}, path.suffix[1:].lower())
+    if held is not None and held != len(faces):
+        return f"mesh cut short ({len(faces)} faces where {held} were written)"
     return None
 
 
@@ -420,7 +458,7 @@ def _finished(mesh: Path | None, voxels: Path, fingerprint: str | None, canvas: 
     if why is None and canvas is not None:
         same = same_canvas(members, canvas)
         why = None if same else NO_INPUT_RECORD if same is None else CANVAS_CHANGED
-    return why or _mesh_ok(mesh) or True
+    return why or _mesh_ok(mesh, members) or True
 
 
 #: ``summary.json`` names of the reasons a sound finished object is redone (per class: ``redone``).

@@ -18,7 +18,7 @@ import torch
 from .. import quality
 from ..cameras import azimuth_elevation_roll_from_rotation
 from ..mesh import occupancy_to_mesh, write_mesh
-from .layout import SETTINGS_MEMBER, class_dir, held_settings, object_file, settings_text
+from .layout import MESH_MEMBER, SETTINGS_MEMBER, class_dir, held_settings, mesh_record, object_file, settings_text
 from .outputs import numbers, read_json, shown, write_json, write_npz
 
 __all__ = ["ROTATION_TOLERANCE", "numbers", "rotation_problem", "camera_record_problem", "shown", "ClassReport",
@@ -144,7 +144,7 @@ def resumed_objects(cdir: Path, coll, vp, done: list, mesh_format: str | None = 
     grid, which is in its image's frame: ``voxel_to_camera`` and every other member do not depend on the
     camera); ``NaN`` where the object has no camera now. With ``mesh_format``, a resumed object whose mesh is in
     another format only (an earlier run's ``mesh_format``) gets its mesh made again from its voxels (as the
-    writers make it) in ``mesh_format``, and the other file is removed (:func:`_convert_mesh`). Returns
+    writers make it) in ``mesh_format``, and the other file is removed (:func:`_converted_mesh`). Returns
     ``{str(aid): reconstruction_iou}`` of them (read from the same files). A file that cannot be read is left
     alone (the object is redone anyway)."""
     ids = [i for i, d in enumerate(done) if d]
@@ -165,17 +165,20 @@ def resumed_objects(cdir: Path, coll, vp, done: list, mesh_format: str | None = 
         if "reconstruction_iou" in members:
             out[str(aid)] = float(members["reconstruction_iou"])
         v2o = (to_object[i] @ v2img).numpy() if has_camera[i] else np.full((4, 4), np.nan)
-        record = _mesh_format_record(members, mesh_format)
+        converted = _converted_mesh(aid, members, mesh_format, done[i])
+        record = {**_mesh_format_record(members, mesh_format),
+                  **({MESH_MEMBER: mesh_record(mesh_format, len(converted.faces))} if converted is not None else {})}
         if record or not np.array_equal(members.get("voxel_to_object"), v2o, equal_nan=True):
             write_npz(path, sync=False, **{**members, "voxel_to_object": v2o, **record})
-        if mesh_format is not None:
-            _convert_mesh(cdir, aid, members, mesh_format, done[i])
+        if converted is not None:
+            write_mesh(converted, object_file(cdir, "meshes", aid, mesh_format), sync=False)
+            object_file(cdir, "meshes", aid, done[i]).unlink(missing_ok=True)
     return out
 
 
 def _mesh_format_record(members: dict, mesh_format: str | None) -> dict:
     """``{SETTINGS_MEMBER: record}`` of a resumed object whose mesh is made again in ``mesh_format``
-    (:func:`_convert_mesh`; ``None``: none is): its voxels file's settings record with that ``mesh.format``, the
+    (:func:`_converted_mesh`; ``None``: none is): its voxels file's settings record with that ``mesh.format``, the
     format its files are then in, written before the mesh (a stop between them leaves the mesh to convert, which
     the next run does); ``{}`` where the record says that format already, or there is no record.
 
@@ -190,19 +193,20 @@ def _mesh_format_record(members: dict, mesh_format: str | None) -> dict:
     return {SETTINGS_MEMBER: np.asarray(settings_text({**made, "mesh.format": mesh_format}), dtype=str)}
 
 
-def _convert_mesh(cdir: Path, aid, members: dict, mesh_format: str, taken: str) -> None:
-    """A resumed object's mesh in ``mesh_format`` where the one it is resumed with is in another format (``taken``,
-    its ``done`` entry: the resume check found no mesh in ``mesh_format``): made from its voxels file's
-    ``members`` (the occupancy is the written one, its largest component already taken), written, then the other
-    file removed (the same shape, in a format the run no longer writes)."""
+def _converted_mesh(aid, members: dict, mesh_format: str | None, taken: str):
+    """A resumed object's mesh (a ``trimesh.Trimesh``) to write in ``mesh_format`` where the one it is resumed with
+    is in another format (``taken``, its ``done`` entry: the resume check found no mesh in ``mesh_format``), made
+    from its voxels file's ``members`` as the writers make it (the occupancy is the written one, its largest
+    component already taken); ``None`` where there is none to convert. The caller records its faces in the voxels
+    file, writes it, then removes the other file (the same shape, in a format the run no longer writes): a stop
+    before the mesh is written leaves the old file, checked as before (the record names the other format), and
+    the next run converts it."""
     if not isinstance(taken, str):  # a truth value would name a file "<id>.True" and rewrite every resumed mesh
         raise TypeError(f"object {aid}: its done entry must be the format of the mesh it is resumed with "
                         f"(ResumeCheck.done), got {taken!r}")
-    if taken == mesh_format:
-        return
-    write_mesh(occupancy_to_mesh(members["occupancy"], members["voxel_to_camera"]),
-               object_file(cdir, "meshes", aid, mesh_format), sync=False)
-    object_file(cdir, "meshes", aid, taken).unlink(missing_ok=True)
+    if mesh_format is None or taken == mesh_format:
+        return None
+    return occupancy_to_mesh(members["occupancy"], members["voxel_to_camera"])
 
 
 def drop_cameras(out: Path | None, key: str, report: "ClassReport") -> None:

@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 
 from .. import mesh
 from ..quality import reconstruction_iou
 from ..runtime import ignore_interrupt, peak_rss_mb, watch_parent
-from .layout import SETTINGS_MEMBER
+from .layout import MESH_MEMBER, SETTINGS_MEMBER, mesh_record
 from .outputs import write_json, write_npz
 
 __all__ = ["write_object", "write_object_safe", "start_worker", "watch_parent", "init_worker"]
@@ -41,9 +42,9 @@ def write_object(job: dict) -> dict:
     object counts as finished once its voxels file exists and holds the fingerprint of its current inputs
     (:func:`~carvi_torch.io.layout.finished`). The voxels and mesh files are moved into place whole but not flushed
     to the disk (``sync=False``): a machine crash may leave one damaged, which a resumed run finds (every member
-    of the voxels file read, the mesh's faces checked) and redoes. The studies' proposals and scores, which no
-    check reads, are flushed. Returns ``ok``, ``reason``, ``mesh_seconds``, ``write_seconds`` and
-    ``reconstruction_iou`` (the value written into the voxels file, ``None`` without a ``mask``), which the run's
+    of the voxels file read, the mesh's faces checked against the count the voxels file records) and redoes. The
+    studies' proposals and scores, which no check reads, are flushed. Returns ``ok``, ``reason``, ``mesh_seconds``,
+    ``write_seconds`` and ``reconstruction_iou`` (the value written into the voxels file, ``None`` without a ``mask``), which the run's
     ``cameras.json`` takes without opening the file again.
     """
     t0 = time.perf_counter()
@@ -69,6 +70,7 @@ def write_object(job: dict) -> dict:
         extra["input_fingerprint"] = np.asarray(job["input_fingerprint"], dtype=str)
     if job.get("settings"):  # the settings it was made with (JSON text: layout.settings_text)
         extra[SETTINGS_MEMBER] = np.asarray(job["settings"], dtype=str)
+    extra[MESH_MEMBER] = mesh_record(Path(job["mesh_path"]).suffix[1:].lower(), len(m.faces))
     mesh.write_mesh(m, job["mesh_path"], sync=False)
     # the voxels file last: it holds the fingerprint, so a stop between the two files leaves an earlier run's
     # voxels (another fingerprint, or none) beside the new mesh, and the object is redone
