@@ -44,8 +44,8 @@ def write_object(job: dict) -> dict:
     to the disk (``sync=False``): a machine crash may leave one damaged, which a resumed run finds (every member
     of the voxels file read, the mesh's faces checked against the count the voxels file records) and redoes. The
     studies' proposals and scores, which no check reads, are flushed. Returns ``ok``, ``reason``, ``mesh_seconds``,
-    ``write_seconds`` and ``reconstruction_iou`` (the value written into the voxels file, ``None`` without a ``mask``), which the run's
-    ``cameras.json`` takes without opening the file again.
+    ``write_seconds`` and ``reconstruction_iou`` (the value written into the voxels file, ``None`` without a
+    ``mask``), which the run's ``cameras.json`` takes without opening the file again.
     """
     t0 = time.perf_counter()
     occ = job["occupancy"]
