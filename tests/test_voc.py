@@ -17,7 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from carvi_torch.io.coco import MAX_IMAGE_PIXELS
 from carvi_torch.io.voc import (
+    InstanceMapTooLarge,
     VocFormatError,
     box_iou,
     category_entry,
@@ -583,8 +585,10 @@ def test_read_sbd_instances(tmp_path):
     inst = read_sbd_instances(write_sbd(tmp_path, "2009_000020", seg, cats))
     assert inst.source == "sbd" and inst.shape == (48, 64)
     assert inst.ids.tolist() == [1, 2, 3] and inst.categories.tolist() == [15, 1, 1]
-    for k, m in zip(inst.ids, inst.masks):
+    masks = np.stack([inst.mask(j) for j in range(len(inst.ids))])
+    for k, m in zip(inst.ids, masks):
         np.testing.assert_array_equal(m, seg == k)
+    np.testing.assert_array_equal(inst.boxes, mask_boxes(masks))
 
 
 def test_read_sbd_single_instance_and_errors(tmp_path):
@@ -593,7 +597,7 @@ def test_read_sbd_single_instance_and_errors(tmp_path):
     seg = np.zeros((5, 6), np.uint8)
     seg[1:3, 1:4] = 1
     inst = read_sbd_instances(write_sbd(tmp_path, "one", seg, np.array([[8]], np.uint8)))
-    assert inst.categories.tolist() == [8] and inst.masks.sum() == 6
+    assert inst.categories.tolist() == [8] and inst.mask(0).sum() == 6
     savemat(tmp_path / "x.mat", {"other": np.zeros(3)})
     with pytest.raises(VocFormatError, match="no GTinst"):
         read_sbd_instances(tmp_path / "x.mat")
@@ -607,9 +611,11 @@ def test_read_voc_instances_and_classes(tmp_path):
     p = write_png(tmp_path / "SegmentationObject" / "a.png", seg)
     inst = read_voc_instances(p)
     assert inst.source == "voc" and inst.ids.tolist() == [1, 2] and inst.categories.tolist() == [0, 0]
-    for k, m in zip(inst.ids, inst.masks):
+    masks = np.stack([inst.mask(j) for j in range(len(inst.ids))])
+    for k, m in zip(inst.ids, masks):
         np.testing.assert_array_equal(m, seg == k)
-    assert not (inst.masks.any(0) & (seg == 255)).any()
+    np.testing.assert_array_equal(inst.boxes, mask_boxes(masks))
+    assert not (masks.any(0) & (seg == 255)).any()
     cls = np.where(seg == 1, 1, np.where(seg == 2, 15, np.where(seg == 255, 255, 0)))
     cls[20, 30] = 7  # a stray pixel does not outvote the rest
     c = write_png(tmp_path / "SegmentationClass" / "a.png", cls)
@@ -852,6 +858,141 @@ def test_unreadable_mask_files_are_reasons_but_other_errors_propagate(tmp_path, 
     monkeypatch.setattr(Image, "open", broken)
     with pytest.raises(RuntimeError):
         read_voc_instances(tmp_path / "a.png")
+
+
+# --------------------------------------------------------------------------- large instance maps
+
+
+def write_blank_png(path: Path, width: int, height: int) -> Path:
+    """A valid all-zero palette PNG of any size, streamed: 210 million pixels take 200 KB and under a second."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    z, row = zlib.compressobj(9), bytes(width + 1)  # filter byte 0, then the row's indices
+    idat = b"".join([z.compress(row) for _ in range(height)] + [z.flush()])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 3, 0, 0, 0))
+                     + chunk(b"PLTE", bytes(768)) + chunk(b"IDAT", idat) + chunk(b"IEND", b""))
+    return path
+
+
+def test_an_instance_map_over_the_pixel_limit_is_not_decoded_and_its_objects_are_skipped(tmp_path, capsys):
+    """A 205 KB palette PNG of 15000 x 14000 pixels (more than MAX_IMAGE_PIXELS) and no VOC record: refused from its
+    header, before a byte of it is decoded; its image has no size, so its objects are skipped with the reason (in
+    the output's carvi_skipped), one warning names the image, and the other images convert."""
+    import tracemalloc
+
+    masks = tmp_path / "masks"
+    big = write_blank_png(masks / "SegmentationObject" / "2009_000020.png", 15000, 14000)
+    assert big.stat().st_size < 300_000
+    tracemalloc.start()
+    with pytest.raises(InstanceMapTooLarge, match=f"is 15000x14000 pixels, more than {MAX_IMAGE_PIXELS}") as e:
+        read_voc_instances(big)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert e.value.size == (15000, 14000) and peak < 1_000_000
+    out = tmp_path / "o.json"
+    kdir = keypoint_dir(tmp_path, "sbd_1", "sbd_2", "valid")
+    assert run(argparse.Namespace(keypoints=str(kdir), masks=str(masks), out=str(out))) == 0
+    why = f"no image size: 2009_000020.png: instance map is 15000x14000 pixels, more than {MAX_IMAGE_PIXELS}"
+    assert load(out)["carvi_skipped"] == [{"file": FIXTURES[k], "reason": why} for k in ("sbd_1", "sbd_2")]
+    assert list(by_source(load(out))) == [FIXTURES["valid"]]
+    assert [line for line in capsys.readouterr().out.splitlines() if "2009_000020:" in line] == [
+        f"warning: 2009_000020: {why}"]
+
+
+def test_an_sbd_map_over_the_pixel_limit_or_a_mat_file_inflating_beyond_one_is_refused(tmp_path, monkeypatch):
+    """The .mat path keeps the same bound: a Segmentation of more pixels, and a file whose compressed variables
+    inflate to more bytes than such a map in doubles (measured by streaming, before scipy inflates them); a
+    compressed file within it reads as the uncompressed one."""
+    from scipy.io import savemat
+
+    import carvi_torch.io.voc as voc
+
+    seg, cats = sbd_map()
+    plain = write_sbd(tmp_path / "plain", "2009_000020", seg, cats)
+    packed = tmp_path / "packed.mat"
+    savemat(packed, {"GTinst": {"Segmentation": seg, "Categories": cats}}, do_compression=True)
+    a, b = read_sbd_instances(plain), read_sbd_instances(packed)
+    assert a.ids.tolist() == b.ids.tolist() == [1, 2, 3] and np.array_equal(a.boxes, b.boxes)
+    monkeypatch.setattr(voc, "_MAX_MAT_BYTES", 1000)
+    with pytest.raises(InstanceMapTooLarge, match="inflates to more than 1000 bytes"):
+        read_sbd_instances(packed)
+    assert read_sbd_instances(plain).ids.tolist() == [1, 2, 3]  # nothing to inflate
+    monkeypatch.setattr(voc, "MAX_IMAGE_PIXELS", 3000)
+    with pytest.raises(InstanceMapTooLarge, match="instance map is 64x48 pixels, more than 3000") as e:
+        read_sbd_instances(plain)
+    assert e.value.size == (64, 48)
+    report = convert(keypoint_dir(tmp_path, "sbd_1", "valid"), tmp_path / "o.json", masks_dir=tmp_path / "plain")
+    assert report.skipped == [(FIXTURES["sbd_1"], "no image size: 2009_000020.mat: instance map is 64x48 pixels, "
+                                                  "more than 3000")]
+    assert report.counts == {"aeroplane": 1} and report.warnings[0].startswith("2009_000020: no image size")
+    # a VOC record giving the image's size (within the bound): the map is only unusable, and the objects fall back
+    # to their polygons
+    records = tmp_path / "records"
+    records.mkdir()
+    record = (DATA / "annotations" / "2009_000010.xml").read_text().replace("<width>64", "<width>50")
+    (records / "2009_000020.xml").write_text(record.replace("<height>48", "<height>40"))
+    report = convert(keypoint_dir(tmp_path, "sbd_1", "valid"), tmp_path / "o.json", masks_dir=tmp_path / "plain",
+                     annotations_dir=records)
+    assert report.warnings[0] == (f"{plain}: instance map is 64x48 pixels, more than 3000; using polygons for "
+                                  "2009_000020")
+    assert report.skipped == [(FIXTURES["sbd_1"], "no mask: no foreground polygon and no matching instance mask")]
+
+
+def test_splitting_a_large_map_holds_one_instance_mask_at_a_time(tmp_path):
+    """254 instances on a 2000 x 2000 map: reading it with its class map, and making and encoding every instance's
+    mask, each peak under 4 bytes per pixel of numpy and Python allocations (never an (instances, H, W) array),
+    with the masks, boxes and classes of the map."""
+    import tracemalloc
+
+    from pycocotools import mask as mask_utils
+
+    h, w = 2000, 2000
+    seg = ((np.arange(h)[:, None] // 8 + np.arange(w)[None, :] // 250) % 254 + 1).astype(np.uint8)
+    seg[:3] = 0
+    seg[-3:, :] = 255
+    p = write_png(tmp_path / "SegmentationObject" / "a.png", seg)
+    c = write_png(tmp_path / "SegmentationClass" / "a.png", (seg % 20 + 1) * (seg < 255) + 255 * (seg == 255))
+    tracemalloc.start()
+    inst = read_voc_instances(p, c)
+    read_peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.reset_peak()
+    rles = [encode_rle(inst.mask(j)) for j in range(len(inst.ids))]
+    mask_peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert read_peak < 4 * h * w and mask_peak < 4 * h * w
+    assert inst.ids.tolist() == list(range(1, 255)) and inst.categories.tolist() == [k % 20 + 1 for k in range(1, 255)]
+    for k in (1, 77, 254):
+        m = seg == k
+        np.testing.assert_array_equal(mask_utils.decode(rles[k - 1]).astype(bool), m)
+        np.testing.assert_array_equal(inst.boxes[k - 1], mask_boxes(m[None])[0])
+
+
+def test_a_map_of_too_many_instance_values_a_class_map_of_another_size_and_memory_errors_are_unreadable(
+        tmp_path, monkeypatch):
+    import carvi_torch.io.voc as voc
+
+    seg, cats = sbd_map()
+    mat = write_sbd(tmp_path / "sbd", "2009_000020", seg, cats)
+    monkeypatch.setattr(voc, "MAX_INSTANCES", 2)
+    with pytest.raises(VocFormatError, match="holds more than 2 instance values: not an instance map"):
+        read_sbd_instances(mat)
+    monkeypatch.undo()
+    p = write_png(tmp_path / "SegmentationObject" / "a.png", voc_object_map())
+    c = write_blank_png(tmp_path / "SegmentationClass" / "a.png", 64, 47)
+    with pytest.raises(VocFormatError, match=r"class map \(47, 64\) differs from instance map \(48, 64\)"):
+        read_voc_instances(p, c)
+
+    def claims_too_much(*args, **kwargs):
+        raise MemoryError()  # what a header declaring a size beyond memory does
+
+    monkeypatch.setattr("scipy.io.loadmat", claims_too_much)
+    with pytest.raises(VocFormatError, match="cannot read the .mat file: it declares a size beyond memory"):
+        read_sbd_instances(mat)
 
 
 # --------------------------------------------------------------------------- real data

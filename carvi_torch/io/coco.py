@@ -145,7 +145,9 @@ def encode_mask(mask: np.ndarray | torch.Tensor) -> dict:
     """
     if isinstance(mask, torch.Tensor):
         mask = mask.detach().cpu().numpy()
-    rle = mask_utils.encode(np.asfortranarray(np.asarray(mask, dtype=np.uint8)))
+    mask = np.asarray(mask)
+    mask = mask.view(np.uint8) if mask.dtype == bool else mask.astype(np.uint8, copy=False)  # a bool mask: no copy
+    rle = mask_utils.encode(np.asfortranarray(mask))
     rle["counts"] = rle["counts"].decode("ascii")
     return {"size": [int(v) for v in rle["size"]], "counts": rle["counts"]}
 

@@ -48,6 +48,13 @@ foreground polygon is rasterised at the image size with an exact pixel-centre te
 ``(x=j, y=i)`` is inside the polygon or on its boundary; even-odd rule; several foreground
 segments are united).
 
+An instance map is held as the map itself: instance boxes (and class votes) come from one scan of it in
+blocks of rows, and an instance's mask is made only for the object it is matched to, one at a time, so memory
+stays a few bytes per pixel whatever the number of instances. A map of more than ``MAX_IMAGE_PIXELS`` pixels
+(a PNG's is refused from its header, before it is decoded; an SBD ``.mat`` whose compressed parts inflate to
+more than such a map in doubles, before scipy inflates them) is not read; nor is one holding more than
+``MAX_INSTANCES`` instance values.
+
 Image size: the VOC record's ``<size>`` when given, else the instance-map size, else the
 extent of all objects of the image (polygons, visible keypoints, ``visible_bounds``):
 ``ceil(max) + 1`` in 0-based coordinates. A visible keypoint farther outside its object's
@@ -57,8 +64,10 @@ visible, with a warning (:func:`far_keypoints`), before any size is taken. A siz
 
 Skipped objects (reported by file name with the reason, the rest goes on): malformed files,
 unknown categories, fewer than 2 visible keypoints, no mask (no polygon and no matching
-instance), empty masks, no image size (no record, no instance map, and an extent beyond
-``MAX_IMAGE_PIXELS``).
+instance), empty masks, no image size (no record, and an instance map or, without one, an extent beyond
+``MAX_IMAGE_PIXELS``: every object of that image, with one warning naming it). An instance map that cannot
+be read (or a too-large one when a VOC record gives the size) is a warning, and its image's objects fall
+back to their polygons.
 """
 from __future__ import annotations
 
@@ -67,6 +76,7 @@ import math
 import re
 import struct
 import sys
+import warnings
 import xml.etree.ElementTree as ET
 import zlib
 from collections import Counter, defaultdict
@@ -102,6 +112,8 @@ __all__ = [
     "VocObject",
     "VocRecord",
     "InstanceMasks",
+    "InstanceMapTooLarge",
+    "MAX_INSTANCES",
     "Report",
     "parse_keypoint_xml",
     "parse_voc_record",
@@ -386,36 +398,136 @@ def parse_voc_record(path: str | Path) -> VocRecord:
 
 # --------------------------------------------------------------------------- instance masks
 
+#: Most distinct instance values in one instance map (a 16-bit index's worth); a map holding more is no
+#: instance map (its per-instance boxes and class votes alone would not fit in memory).
+MAX_INSTANCES = 65535
+#: Pixels of an instance map scanned at once (whole rows): what bounds the scan's temporary arrays.
+_SCAN_PIXELS = 1 << 15
+#: Most bytes the compressed variables of an SBD ``.mat`` may inflate to: a map of ``MAX_IMAGE_PIXELS``
+#: pixels stored as doubles.
+_MAX_MAT_BYTES = 8 * MAX_IMAGE_PIXELS
+
+
+class InstanceMapTooLarge(VocFormatError):
+    """An instance map (or the file holding it) of more than ``MAX_IMAGE_PIXELS`` pixels, refused before it is
+    decoded where the file says its size first (PNG).
+
+    Attributes:
+        size: ``(W, H)`` of the map; ``None`` when only the file's decompressed size is known (``.mat``).
+    """
+
+    def __init__(self, path: str | Path, size: tuple[int, int] | None, problem: str | None = None):
+        self.size = size
+        super().__init__(path, problem or f"instance map is {size[0]}x{size[1]} pixels, more than "
+                                          f"{MAX_IMAGE_PIXELS}")
+
 
 @dataclass(frozen=True, eq=False)
 class InstanceMasks:
-    """The instances of one image's instance map.
+    """The instances of one image's instance map, kept as the map itself: one instance's mask is made when
+    asked for (:meth:`mask`), never all of them at once.
 
     Attributes:
-        masks: ``(B, H, W)`` bool, one mask per instance (empty instances dropped).
+        index_map: ``(H, W)`` integer instance values as the file holds them.
         categories: ``(B,)`` int64 VOC class index (1..20), 0 when unknown.
-        ids: ``(B,)`` int64 instance value in the map.
+        ids: ``(B,)`` int64 instance values present in the map, ascending (0 and 255 excluded).
+        boxes: ``(B, 4)`` float64 pixel-centre boxes ``[x0, y0, x1, y1]`` of the instances (as
+            :func:`mask_boxes`).
         source: ``"sbd"`` or ``"voc"``.
         path: the file read.
     """
 
-    masks: np.ndarray
+    index_map: np.ndarray
     categories: np.ndarray
     ids: np.ndarray
+    boxes: np.ndarray
     source: str
     path: Path
 
     @property
     def shape(self) -> tuple[int, int]:
         """``(H, W)``."""
-        return tuple(self.masks.shape[1:])
+        return tuple(self.index_map.shape)
+
+    def mask(self, j: int) -> np.ndarray:
+        """``(H, W)`` bool mask of instance ``j`` (index into :attr:`ids`), Fortran-ordered as COCO RLE encodes
+        it; only its box of the map is compared."""
+        x0, y0, x1, y1 = (int(v) for v in self.boxes[j])
+        out = np.zeros(self.shape, dtype=bool, order="F")
+        crop = self.index_map[y0:y1 + 1, x0:x1 + 1]
+        np.equal(crop, crop.dtype.type(self.ids[j]), out=out[y0:y1 + 1, x0:x1 + 1])
+        return out
 
 
-def _split_instances(inst_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(B,)`` instance ids (excluding 0 and 255) and ``(B, H, W)`` bool masks of an ``(H, W)`` map."""
-    ids = np.unique(inst_map)
-    ids = ids[(ids != 0) & (ids != 255)].astype(np.int64)
-    return ids, inst_map[None] == ids[:, None, None]
+def _row_blocks(height: int, width: int):
+    """``(r0, r1)`` row ranges of about ``_SCAN_PIXELS`` pixels covering ``height`` rows."""
+    step = max(1, _SCAN_PIXELS // max(width, 1))
+    return ((r, min(r + step, height)) for r in range(0, height, step))
+
+
+def _instance_ids(path: Path, inst_map: np.ndarray) -> np.ndarray:
+    """The instance values of an ``(H, W)`` map (excluding 0 and 255), ascending, found block by block;
+    :class:`VocFormatError` past ``MAX_INSTANCES``."""
+    ids = np.zeros(0, dtype=inst_map.dtype)
+    for r0, r1 in _row_blocks(*inst_map.shape):
+        ids = np.union1d(ids, inst_map[r0:r1])
+        if len(ids) > MAX_INSTANCES + 2:
+            break
+    ids = ids[(ids != 0) & (ids != 255)]
+    if len(ids) > MAX_INSTANCES:
+        raise VocFormatError(path, f"holds more than {MAX_INSTANCES} instance values: not an instance map")
+    return ids
+
+
+def _scan_instances(inst_map: np.ndarray, ids: np.ndarray, cls_map: np.ndarray | None = None):
+    """Boxes ``(B, 4)`` float64 of the instances ``ids`` of an ``(H, W)`` map and, with an ``(H, W)`` class
+    map, votes ``(B, 21)`` int64 (pixels of instance ``b`` with class ``c``, 1..20; 0 for any other value),
+    in one pass of row blocks: no array of more than a block's pixels besides the maps."""
+    n = len(ids)
+    lo = np.full((n, 2), np.iinfo(np.int64).max, dtype=np.int64)  # per instance: min x, min y
+    hi = np.full((n, 2), -1, dtype=np.int64)
+    votes = np.zeros((n, len(VOC_CLASSES) + 1), dtype=np.int64) if cls_map is not None else None
+    for r0, r1 in _row_blocks(*inst_map.shape) if n else ():
+        block = inst_map[r0:r1]
+        k = np.minimum(np.searchsorted(ids, block), n - 1)
+        yy, xx = np.nonzero(ids[k] == block)
+        kk = k[yy, xx]
+        for axis, v in ((0, xx), (1, yy + r0)):
+            np.minimum.at(lo[:, axis], kk, v)
+            np.maximum.at(hi[:, axis], kk, v)
+        if votes is not None:
+            c = cls_map[r0:r1][yy, xx]
+            np.add.at(votes, (kk, np.where((c >= 1) & (c <= len(VOC_CLASSES)), c, 0)), 1)
+    return np.concatenate([lo, hi], axis=1).astype(np.float64), votes
+
+
+def _check_mat_size(path: Path) -> None:
+    """:class:`InstanceMapTooLarge` when the compressed variables of a MAT-file (v5) inflate to more than
+    ``_MAX_MAT_BYTES`` (a map of more than ``MAX_IMAGE_PIXELS`` pixels, or a decompression bomb: kilobytes that
+    inflate to gigabytes), measured by inflating them a megabyte at a time; other files pass (scipy reads them)."""
+    with open(path, "rb") as f:
+        head = f.read(128)
+        order = {b"IM": "<", b"MI": ">"}.get(head[126:128])
+        if len(head) < 128 or order is None or struct.unpack(order + "H", head[124:126])[0] != 0x0100:
+            return
+        total = 0
+        while len(tag := f.read(8)) == 8:
+            mtype, nbytes = struct.unpack(order + "II", tag)
+            if mtype != 15:  # not miCOMPRESSED (its bytes are in the file), or a small element (in its tag)
+                f.seek(0 if mtype >> 16 else nbytes, 1)
+                continue
+            inflate, left = zlib.decompressobj(), nbytes
+            while left > 0 and (chunk := f.read(min(left, 1 << 20))):
+                left -= len(chunk)
+                try:
+                    while chunk and total <= _MAX_MAT_BYTES:
+                        total += len(inflate.decompress(chunk, 1 << 20))
+                        chunk = inflate.unconsumed_tail
+                except zlib.error:
+                    return  # not this check's to judge: scipy says what is wrong
+                if total > _MAX_MAT_BYTES:
+                    raise InstanceMapTooLarge(path, None, f"inflates to more than {_MAX_MAT_BYTES} bytes, more than "
+                                                          f"an instance map of {MAX_IMAGE_PIXELS} pixels")
 
 
 def read_sbd_instances(path: str | Path) -> InstanceMasks:
@@ -425,17 +537,39 @@ def read_sbd_instances(path: str | Path) -> InstanceMasks:
     ``GTinst.Categories[k - 1]`` is its VOC class index (1..20).
 
     Raises:
-        VocFormatError: unreadable file, no ``GTinst``/``Segmentation``, not 2-D.
+        InstanceMapTooLarge: a map of more than ``MAX_IMAGE_PIXELS`` pixels, or a file whose compressed parts
+            inflate to more than such a map in doubles (checked before scipy inflates them).
+        VocFormatError: unreadable file (one that claims more memory than there is, too), no
+            ``GTinst``/``Segmentation``, not 2-D, more than ``MAX_INSTANCES`` instances.
     """
     from scipy.io import loadmat
     from scipy.io.matlab import MatReadError
 
     path = Path(path)
     try:
+        _check_mat_size(path)
         mat = loadmat(str(path), squeeze_me=True, struct_as_record=False)
     except (MatReadError, OSError, ValueError, TypeError, IndexError, KeyError, EOFError, NotImplementedError,
-            zlib.error, struct.error) as e:  # what scipy raises for corrupt files (an interrupt passes)
-        raise VocFormatError(path, f"cannot read the .mat file: {e}") from None
+            zlib.error, struct.error, MemoryError) as e:  # what scipy raises for corrupt files (an interrupt passes)
+        if isinstance(e, VocFormatError):
+            raise
+        why = "it declares a size beyond memory" if isinstance(e, MemoryError) else e
+        raise VocFormatError(path, f"cannot read the .mat file: {why}") from None
+    seg = _sbd_segmentation(path, mat)
+    cats = getattr(mat["GTinst"], "Categories", None)
+    cats = np.atleast_1d(np.asarray(cats if cats is not None else [], dtype=np.float64)).ravel().astype(np.int64)
+    cats = np.where((cats >= 1) & (cats <= len(VOC_CLASSES)), cats, 0)
+    ids = _instance_ids(path, seg)
+    boxes, _ = _scan_instances(seg, ids)
+    known = (ids >= 1) & (ids <= len(cats))
+    categories = np.zeros(len(ids), dtype=np.int64)
+    categories[known] = cats[ids[known].astype(np.int64) - 1]
+    return InstanceMasks(index_map=seg, categories=categories, ids=ids.astype(np.int64), boxes=boxes, source="sbd",
+                         path=path)
+
+
+def _sbd_segmentation(path: Path, mat: dict) -> np.ndarray:
+    """``GTinst.Segmentation`` as an ``(H, W)`` integer map (its own integer type, else int64)."""
     gt = mat.get("GTinst")
     if gt is None:
         raise VocFormatError(path, "no GTinst structure")
@@ -445,26 +579,49 @@ def read_sbd_instances(path: str | Path) -> InstanceMasks:
     seg = np.asarray(seg)
     if seg.ndim != 2 or seg.size == 0:
         raise VocFormatError(path, f"GTinst.Segmentation has shape {seg.shape}, expected (H, W)")
-    cats = getattr(gt, "Categories", None)
-    cats = np.atleast_1d(np.asarray(cats if cats is not None else [], dtype=np.float64)).ravel().astype(np.int64)
-    ids, masks = _split_instances(seg.astype(np.int64))
-    lookup = np.zeros(int(max(ids.max(initial=0), len(cats))) + 1, dtype=np.int64)
-    lookup[1:len(cats) + 1] = np.where((cats >= 1) & (cats <= len(VOC_CLASSES)), cats, 0)
-    return InstanceMasks(masks=masks, categories=lookup[ids], ids=ids, source="sbd", path=path)
+    if seg.size > MAX_IMAGE_PIXELS:
+        raise InstanceMapTooLarge(path, (seg.shape[1], seg.shape[0]))
+    return seg if seg.dtype.kind in "iu" else seg.astype(np.int64)
 
 
-def _read_index_png(path: Path) -> np.ndarray:
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """``(W, H)`` from a PNG file's header (``IHDR``), read without decoding; ``None`` for another file."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return None  # Pillow says what is wrong
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    w, h = struct.unpack(">II", head[16:24])
+    return w, h
+
+
+def _read_index_png(path: Path, shape: tuple[int, int] | None = None, what: str = "instance map") -> np.ndarray:
+    """The ``(H, W)`` index image of a palette or grey-level PNG, in its own integer type. Its size (and, with
+    ``shape``, that it is ``shape``) is checked before it is decoded."""
     from PIL import Image
 
+    size = _png_size(path)
+    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:  # before Pillow, whose own bound is lower
+        raise InstanceMapTooLarge(path, size)
     bad_png = (OSError, ValueError, SyntaxError, EOFError, zlib.error, Image.DecompressionBombError)
     try:
-        with Image.open(path) as im:
-            mode, values = im.mode, np.array(im).astype(np.int64)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # MAX_IMAGE_PIXELS is the bound
+            with Image.open(path) as im:
+                size = im.size
+                if size[0] * size[1] > MAX_IMAGE_PIXELS:
+                    raise InstanceMapTooLarge(path, size)
+                if shape is not None and (size[1], size[0]) != tuple(shape):
+                    raise VocFormatError(path, f"{what} {(size[1], size[0])} differs from instance map {tuple(shape)}")
+                if im.mode not in ("P", "L", "I", "I;16"):
+                    raise VocFormatError(path, f"PNG mode {im.mode!r}: expected a palette or grey-level index image")
+                return np.array(im)
     except bad_png as e:  # what Pillow raises for corrupt files (an interrupt passes)
+        if isinstance(e, VocFormatError):
+            raise
         raise VocFormatError(path, f"cannot read the PNG: {e}") from None
-    if mode not in ("P", "L", "I", "I;16"):
-        raise VocFormatError(path, f"PNG mode {mode!r}: expected a palette or grey-level index image")
-    return values
 
 
 def read_voc_instances(path: str | Path, class_path: str | Path | None = None) -> InstanceMasks:
@@ -477,25 +634,23 @@ def read_voc_instances(path: str | Path, class_path: str | Path | None = None) -
             its pixels; otherwise classes are unknown (0).
 
     Raises:
-        VocFormatError: unreadable PNG, RGB image, class map of another size.
+        InstanceMapTooLarge: a map of more than ``MAX_IMAGE_PIXELS`` pixels (refused before it is decoded).
+        VocFormatError: unreadable PNG, RGB image, class map of another size, more than ``MAX_INSTANCES``
+            instances.
     """
     path = Path(path)
     inst_map = _read_index_png(path)
-    ids, masks = _split_instances(inst_map)
-    cats = np.zeros(len(ids), dtype=np.int64)
+    ids = _instance_ids(path, inst_map)
+    cls_map = None
     if class_path is not None and len(ids):
-        cls_map = _read_index_png(Path(class_path))
-        if cls_map.shape != inst_map.shape:
-            raise VocFormatError(class_path, f"class map {cls_map.shape} differs from instance map {inst_map.shape}")
-        cls_map = np.where((cls_map >= 1) & (cls_map <= len(VOC_CLASSES)), cls_map, 0)
-        # votes[b, c] = pixels of instance b with class c, all instances at once
-        inst_index = np.searchsorted(ids, inst_map)
-        valid = np.isin(inst_map, ids)
-        votes = np.bincount(inst_index[valid] * (len(VOC_CLASSES) + 1) + cls_map[valid],
-                            minlength=len(ids) * (len(VOC_CLASSES) + 1)).reshape(len(ids), -1)
+        cls_map = _read_index_png(Path(class_path), inst_map.shape, "class map")
+    boxes, votes = _scan_instances(inst_map, ids, cls_map)
+    cats = np.zeros(len(ids), dtype=np.int64)
+    if votes is not None:
         votes[:, 0] = 0
         cats = np.where(votes.max(1) > 0, votes.argmax(1), 0)
-    return InstanceMasks(masks=masks, categories=cats, ids=ids, source="voc", path=path)
+    return InstanceMasks(index_map=inst_map, categories=cats, ids=ids.astype(np.int64), boxes=boxes, source="voc",
+                         path=path)
 
 
 def find_mask_file(masks_dir: str | Path, image: str) -> tuple[Path, Path | None] | None:
@@ -991,14 +1146,11 @@ def _image_sources(image: str, group: list, mdir, adir, report: Report):
             record = parse_voc_record(rec_path)
         except VocFormatError as e:
             report.warnings.append(str(e))
-    inst = None
-    if mdir is not None:
-        try:
-            inst = _read_instances(mdir, image)
-        except VocFormatError as e:
-            report.warnings.append(f"{e}; using polygons for {image}")
+    inst, too_large = _instances_of(image, mdir, record is not None, report) if mdir is not None else (None, None)
     if record is not None:
         size = (record.width, record.height)
+    elif too_large is not None:
+        size = too_large
     elif inst is not None:
         size = (inst.shape[1], inst.shape[0])
     else:
@@ -1012,12 +1164,26 @@ def _image_sources(image: str, group: list, mdir, adir, report: Report):
     return record, inst, size
 
 
+def _instances_of(image: str, mdir: Path, has_record: bool, report: Report):
+    """The image's instance masks (``None``: no map, or one warned about, whose objects fall back to their
+    polygons), and why the image has no size when its map is too large and no VOC record gives one."""
+    try:
+        return _read_instances(mdir, image), None
+    except InstanceMapTooLarge as e:
+        if not has_record:  # the map gives the image's size, and it is too large: no size
+            return None, f"no image size: {e.path.name}: {e.problem}"
+        report.warnings.append(f"{e}; using polygons for {image}")
+    except VocFormatError as e:
+        report.warnings.append(f"{e}; using polygons for {image}")
+    return None, None
+
+
 def _object_mask(obj: VocObject, j: int, inst, size, mdir, reasons: list):
     """The object's mask and its source: the matched instance mask, else its polygons (or a reason)."""
     mask, source = None, None
     if j >= 0:
-        mask, source = inst.masks[j], inst.source
-    elif obj.polygons and isinstance(size, str):
+        mask, source = inst.mask(j), inst.source
+    elif isinstance(size, str):
         reasons.append(size)
     elif obj.polygons and size is not None:
         mask, source = rasterize_polygons(obj.polygons, size[1], size[0]), "polygon"
@@ -1036,7 +1202,7 @@ def _convert_image(image, group, mdir, adir, wanted, min_iou, report: Report, ex
     if inst is not None and len(inst.ids):
         obj_boxes = np.stack([o.box() for _, o, _ in group])
         obj_cls = np.array([VOC_CLASSES.index(c) + 1 if c else 0 for _, _, c in group], dtype=np.int64)
-        match = match_instances(obj_boxes, obj_cls, mask_boxes(inst.masks), inst.categories, min_iou)
+        match = match_instances(obj_boxes, obj_cls, inst.boxes, inst.categories, min_iou)
     converted = []
     for (f, obj, cls), j in zip(group, match):
         if cls is None:
